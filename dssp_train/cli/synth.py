@@ -1,0 +1,34 @@
+"""``dssp-synth``: write the synthetic "tap count" memory task as a DP3 zarr dataset.
+
+    dssp-synth --out data/tap_count.zarr [--episodes 40] [--seed 0] [--points 64]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from dssp_train.cli.common import run_cli
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="dssp-synth", description="Write the synthetic tap-count dataset (DP3 zarr format).")
+    p.add_argument("--out", required=True, help="dataset path to write (.zarr directory)")
+    p.add_argument("--episodes", type=int, default=40)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--points", type=int, default=64, help="points per cloud")
+    args = p.parse_args(argv)
+
+    def _main() -> int:
+        from dssp_train.data.replay_buffer import ReplayBuffer
+        from dssp_train.data.synthetic import write_tap_count_dataset
+
+        path = write_tap_count_dataset(args.out, args.episodes, seed=args.seed, n_points=args.points)
+        print(f"wrote {ReplayBuffer.load(path)!r} to {path}")
+        return 0
+
+    return run_cli(_main)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,650 @@
+"""Read and write DP3 "ReplayBuffer" zarr datasets.
+
+On-disk layout (as DP3 and RoboTwin write it), with T the total number of steps
+over all episodes and E the number of episodes::
+
+    <root>/                     zarr group; its attributes are free-form JSON
+        data/point_cloud        (T, P, C) float, C = 3 (xyz) or 6 (xyz + rgb)
+        data/state              (T, S) float
+        data/action             (T, A) float
+        data/<other>            e.g. img, depth: ignored when reading
+        meta/episode_ends       (E,) int64, cumulative exclusive end of each episode
+
+Episode ``i`` covers steps ``episode_ends[i-1]:episode_ends[i]`` (from 0 for
+``i = 0``). Both zarr format 2 (what zarr-python 2.x writes: ``.zgroup`` and
+``.zarray`` files) and zarr format 3 (``zarr.json``) stores are read. Writing
+uses format 2 by default, Blosc zstd level 3 with byte shuffle and chunks of 100
+steps along time, like DP3.
+
+Every problem with a dataset on disk raises :class:`~dssp_train.errors.DatasetError`
+with a one-line message that names the key, the problem and what to do.
+
+Appending (:class:`ReplayBufferWriter`) writes the data arrays first and
+``meta/episode_ends`` last, and zarr's local store replaces each file
+atomically, so a crash in the middle of an append leaves every earlier episode
+intact, followed by steps that belong to no episode. :meth:`ReplayBuffer.load`
+reports such a tail as an error unless ``allow_incomplete_tail=True``, which
+drops exactly those steps and records how many in
+:attr:`ReplayBuffer.dropped_tail_steps`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import uuid
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numcodecs
+import numpy as np
+import zarr
+import zarr.codecs
+
+from dssp_train.errors import DatasetError
+
+__all__ = ["Episode", "ReplayBuffer", "ReplayBufferWriter", "write_replay_buffer"]
+
+DATA_KEYS = ("point_cloud", "state", "action")
+"""Per-step arrays under ``data/`` that this package reads and writes."""
+ENDS_KEY = "meta/episode_ends"
+REQUIRED_KEYS = tuple(f"data/{k}" for k in DATA_KEYS) + (ENDS_KEY,)
+POINT_DIMS = (3, 6)
+"""Allowed point widths C: xyz, or xyz + rgb."""
+CHUNK_STEPS = 100
+"""Chunk length along time, as DP3 writes."""
+ENDS_CHUNK = 1000
+ZARR_FORMATS = (2, 3)
+
+
+@dataclass
+class Episode:
+    """One demonstration.
+
+    Attributes:
+        point_cloud: (T, P, C) float32, C = 3 (xyz) or 6 (xyz + rgb).
+        state: (T, S) float32, the robot's proprioceptive state.
+        action: (T, A) float32, the commanded action at each step.
+    """
+
+    point_cloud: np.ndarray
+    state: np.ndarray
+    action: np.ndarray
+
+    @property
+    def n_steps(self) -> int:
+        """T, the number of steps."""
+        return int(np.shape(self.state)[0])
+
+
+# --------------------------------------------------------------------------- checks
+
+
+def _check_data_structure(point_cloud, state, action, where: str, prefix: str = "data/") -> None:
+    """Check ranks, widths and dtypes of the three per-step arrays (zarr or numpy)."""
+    pc_shape = tuple(np.shape(point_cloud))
+    if len(pc_shape) != 3 or pc_shape[2] not in POINT_DIMS or pc_shape[1] == 0:
+        raise DatasetError(
+            f"{where}: {prefix}point_cloud has shape {pc_shape}; expected (T, P, C) with P >= 1 "
+            f"and C = 3 (xyz) or 6 (xyz+rgb): rewrite the point clouds in that layout"
+        )
+    for name, array, letter in (("state", state, "S"), ("action", action, "A")):
+        shape = tuple(np.shape(array))
+        if len(shape) != 2 or shape[1] == 0:
+            raise DatasetError(
+                f"{where}: {prefix}{name} has shape {shape}; expected 2-D (T, {letter}) with {letter} >= 1: "
+                f"store one flat vector per step"
+            )
+    for name, array in zip(DATA_KEYS, (point_cloud, state, action)):
+        dtype = np.dtype(array.dtype)
+        if not (np.issubdtype(dtype, np.floating) or np.issubdtype(dtype, np.integer)):
+            raise DatasetError(
+                f"{where}: {prefix}{name} has dtype {dtype}; expected a float array: rewrite it as float32"
+            )
+
+
+def _check_ends_structure(ends, where: str) -> None:
+    """Check that episode_ends (zarr or numpy) is a non-empty 1-D integer array."""
+    if len(ends.shape) != 1:
+        raise DatasetError(
+            f"{where}: {ENDS_KEY} has shape {tuple(ends.shape)}; expected 1-D (E,): "
+            f"store one cumulative end index per episode"
+        )
+    if not np.issubdtype(np.dtype(ends.dtype), np.integer):
+        raise DatasetError(
+            f"{where}: {ENDS_KEY} has dtype {np.dtype(ends.dtype)}; expected an integer array (int64): rewrite it"
+        )
+    if ends.shape[0] == 0:
+        raise DatasetError(f"{where}: {ENDS_KEY} is empty, so the dataset holds no episode: write at least one")
+
+
+def _check_episode_ends(ends: np.ndarray, where: str) -> None:
+    """Check that (E,) int64 ``ends`` is positive and strictly increasing."""
+    if ends[0] <= 0:
+        problem = "episode 0 is empty" if ends[0] == 0 else "a negative index is out of range"
+        raise DatasetError(f"{where}: {ENDS_KEY}[0] = {ends[0]}: {problem}; remove it or fix the episode ends")
+    bad = np.flatnonzero(np.diff(ends) <= 0)
+    if bad.size:
+        k = int(bad[0]) + 1
+        raise DatasetError(
+            f"{where}: {ENDS_KEY} is not strictly increasing ({ENDS_KEY}[{k - 1}] = {ends[k - 1]}, "
+            f"[{k}] = {ends[k]}): episode {k} is empty; remove it or fix the episode ends"
+        )
+
+
+def _resolve_length(lengths: Mapping[str, int], last_end: int, allow_incomplete_tail: bool, where: str,
+                    remedy: str = "load with allow_incomplete_tail=True to drop them") -> tuple[int, int]:
+    """Return (number of steps to keep, number of trailing steps dropped).
+
+    ``lengths`` maps each data key to its length along time. Steps after
+    ``last_end`` are dropped only when ``allow_incomplete_tail`` is true;
+    otherwise the error suggests ``remedy``.
+    """
+    listing = ", ".join(f"{k}: {n}" for k, n in lengths.items())
+    shortest, longest = min(lengths.values()), max(lengths.values())
+    if shortest >= last_end and longest > last_end:
+        tail = longest - last_end
+        if allow_incomplete_tail:
+            return last_end, tail
+        raise DatasetError(
+            f"{where}: data has {tail} steps after the last episode end ({ENDS_KEY}[-1] = {last_end}; {listing}) "
+            f"(an incomplete episode?): {remedy}, or rewrite the dataset"
+        )
+    if shortest != longest:
+        raise DatasetError(
+            f"{where}: data arrays differ in length along time ({listing}); every array under data/ "
+            f"needs one entry per step: rewrite the dataset"
+        )
+    if last_end > longest:
+        raise DatasetError(
+            f"{where}: {ENDS_KEY}[-1] = {last_end} is out of range: the data arrays hold only {longest} steps "
+            f"(data shorter than the episodes claim): fix {ENDS_KEY} or rewrite the dataset"
+        )
+    return last_end, 0
+
+
+def _first_bad_steps(values: np.ndarray) -> np.ndarray:
+    """Indices of the steps (first axis) of ``values`` that hold NaN or inf."""
+    return np.flatnonzero(~np.isfinite(values.reshape(values.shape[0], -1)).all(axis=1))
+
+
+def _check_finite(key: str, values: np.ndarray, ends: np.ndarray, where: str) -> None:
+    """Raise if ``values`` (T, ...) holds NaN or inf; name the first bad step and its episode."""
+    bad_steps = _first_bad_steps(values)
+    if bad_steps.size:
+        step = int(bad_steps[0])
+        episode = int(np.searchsorted(ends, step, side="right"))
+        raise DatasetError(
+            f"{where}: {key} holds NaN or inf at {bad_steps.size} step(s), first at step {step} "
+            f"(episode {episode}): fix or remove that episode and rewrite the dataset"
+        )
+
+
+# --------------------------------------------------------------------------- zarr access
+
+
+def _describe(exc: Exception) -> str:
+    """``Type: message`` of an exception, on one line."""
+    return " ".join(f"{type(exc).__name__}: {exc}".split())
+
+
+def _is_zarr_store(path: Path) -> bool:
+    return path.is_dir() and ((path / ".zgroup").is_file() or (path / "zarr.json").is_file())
+
+
+def _open_group(path: Path, mode: str) -> zarr.Group:
+    if not path.exists():
+        raise DatasetError(f"dataset {path} does not exist: check the path")
+    if not path.is_dir():
+        raise DatasetError(f"{path} is a file, not a zarr dataset directory: point to the dataset's .zarr directory")
+    try:
+        # Consolidated metadata (.zmetadata) is ignored: appends do not update it.
+        return zarr.open_group(str(path), mode=mode, use_consolidated=False)
+    except Exception as exc:  # zarr raises several unrelated types here
+        raise DatasetError(
+            f"{path} is not a zarr group (no readable .zgroup or zarr.json: {type(exc).__name__}): "
+            f"point to the root directory of a DP3 zarr dataset"
+        ) from exc
+
+
+def _get_array(group: zarr.Group, key: str, where: str) -> zarr.Array:
+    try:
+        node = group[key]
+    except KeyError:
+        hint = "was it written completely?"
+        if key.startswith("data/") and DATA_KEYS[0] in group:
+            hint = "this looks like the data/ group itself: point to the dataset root"
+        raise DatasetError(
+            f"{where}: missing key {key} (a DP3 dataset needs {', '.join(REQUIRED_KEYS)}); {hint}"
+        ) from None
+    except Exception as exc:
+        raise DatasetError(
+            f"{where}: cannot open {key} ({_describe(exc)}); the store may be corrupt: rewrite it"
+        ) from exc
+    if not isinstance(node, zarr.Array):
+        raise DatasetError(f"{where}: {key} is a group, expected an array: rewrite the dataset")
+    return node
+
+
+def _read(array: zarr.Array, key: str, n_steps: int | None, where: str) -> np.ndarray:
+    try:
+        return np.asarray(array[:n_steps] if n_steps is not None else array[...])
+    except Exception as exc:
+        raise DatasetError(
+            f"{where}: cannot read {key} ({_describe(exc)}); the store may be corrupt: rewrite it"
+        ) from exc
+
+
+def _open_required(path: Path, mode: str) -> tuple[zarr.Group, dict[str, zarr.Array], np.ndarray]:
+    """Open a dataset, check its structure and episode ends; return (group, arrays, ends (E,) int64)."""
+    group = _open_group(path, mode)
+    where = str(path)
+    arrays = {key: _get_array(group, key, where) for key in REQUIRED_KEYS}
+    _check_data_structure(*(arrays[f"data/{k}"] for k in DATA_KEYS), where)
+    _check_ends_structure(arrays[ENDS_KEY], where)
+    ends = _read(arrays[ENDS_KEY], ENDS_KEY, None, where).astype(np.int64)
+    _check_episode_ends(ends, where)
+    return group, arrays, ends
+
+
+def _check_zarr_format(zarr_format: int) -> None:
+    if zarr_format not in ZARR_FORMATS:
+        raise DatasetError(f"zarr_format = {zarr_format!r} is not supported: use 2 or 3")
+
+
+def _compressor_kwargs(zarr_format: int) -> dict:
+    if zarr_format == 2:
+        return {"compressors": numcodecs.Blosc(cname="zstd", clevel=3, shuffle=numcodecs.Blosc.SHUFFLE)}
+    return {"compressors": zarr.codecs.BloscCodec(cname="zstd", clevel=3, shuffle="shuffle")}
+
+
+# --------------------------------------------------------------------------- reading
+
+
+class ReplayBuffer:
+    """A whole DP3 dataset in memory.
+
+    Attributes:
+        point_cloud: (T, P, C) float32, all episodes concatenated along time.
+        state: (T, S) float32.
+        action: (T, A) float32.
+        episode_ends: (E,) int64, cumulative exclusive end of each episode.
+        attrs: the root group's attributes (JSON).
+        dropped_tail_steps: steps after the last episode end that
+            ``load(..., allow_incomplete_tail=True)`` dropped (0 otherwise).
+    """
+
+    def __init__(self, point_cloud: np.ndarray, state: np.ndarray, action: np.ndarray,
+                 episode_ends: np.ndarray, attrs: dict | None = None):
+        """Wrap in-memory arrays (shapes as in the class docstring) after validating them.
+
+        Data arrays are converted to float32 and episode_ends to int64.
+
+        Raises:
+            DatasetError: the arrays do not form a valid dataset.
+        """
+        where = "replay buffer"
+        point_cloud, state, action, ends = (np.asarray(a) for a in (point_cloud, state, action, episode_ends))
+        _check_data_structure(point_cloud, state, action, where)
+        _check_ends_structure(ends, where)
+        ends = ends.astype(np.int64)
+        _check_episode_ends(ends, where)
+        lengths = {"data/point_cloud": len(point_cloud), "data/state": len(state), "data/action": len(action)}
+        _resolve_length(lengths, int(ends[-1]), False, where)
+        values = {}
+        for key, array in zip(REQUIRED_KEYS, (point_cloud, state, action)):
+            with np.errstate(over="ignore"):
+                values[key] = array.astype(np.float32, copy=False)
+            _check_finite(key, values[key], ends, where)
+        self._set(values, ends, attrs, 0)
+
+    def _set(self, values: Mapping[str, np.ndarray], ends: np.ndarray, attrs: dict | None,
+             dropped_tail_steps: int) -> None:
+        self.point_cloud = values["data/point_cloud"]
+        self.state = values["data/state"]
+        self.action = values["data/action"]
+        self.episode_ends = ends
+        self.attrs = dict(attrs or {})
+        self.dropped_tail_steps = int(dropped_tail_steps)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike, *, allow_incomplete_tail: bool = False) -> ReplayBuffer:
+        """Read a dataset (zarr format 2 or 3) into memory and validate it.
+
+        Data arrays are converted to float32. Arrays under ``data/`` other than
+        point_cloud, state and action are not read.
+
+        Args:
+            path: the dataset's root directory.
+            allow_incomplete_tail: drop the steps after the last episode end (left
+                by an interrupted append) instead of raising; their number is
+                stored in :attr:`dropped_tail_steps`. Nothing else is dropped.
+
+        Raises:
+            DatasetError: the path is not a valid dataset; the message says why.
+        """
+        path = Path(path)
+        where = str(path)
+        group, arrays, ends = _open_required(path, "r")
+        lengths = {key: arrays[key].shape[0] for key in REQUIRED_KEYS[:3]}
+        n_steps, dropped = _resolve_length(lengths, int(ends[-1]), allow_incomplete_tail, where)
+        values = {}
+        for key in REQUIRED_KEYS[:3]:
+            raw = _read(arrays[key], key, n_steps, where)
+            with np.errstate(over="ignore"):
+                values[key] = raw.astype(np.float32, copy=False)
+            _check_finite(key, values[key], ends, where)
+        buffer = cls.__new__(cls)
+        buffer._set(values, ends, group.attrs.asdict(), dropped)
+        return buffer
+
+    @property
+    def n_episodes(self) -> int:
+        """E, the number of episodes."""
+        return int(self.episode_ends.shape[0])
+
+    @property
+    def n_steps(self) -> int:
+        """T, the number of steps over all episodes."""
+        return int(self.episode_ends[-1])
+
+    @property
+    def n_points(self) -> int:
+        """P, points per cloud."""
+        return int(self.point_cloud.shape[1])
+
+    @property
+    def point_dim(self) -> int:
+        """C, values per point: 3 (xyz) or 6 (xyz + rgb)."""
+        return int(self.point_cloud.shape[2])
+
+    @property
+    def state_dim(self) -> int:
+        """S."""
+        return int(self.state.shape[1])
+
+    @property
+    def action_dim(self) -> int:
+        """A."""
+        return int(self.action.shape[1])
+
+    @property
+    def control_rate_hz(self) -> float | None:
+        """``attrs["control_rate_hz"]`` as a float, or None when absent."""
+        rate = self.attrs.get("control_rate_hz")
+        if rate is None:
+            return None
+        try:
+            return float(rate)
+        except (TypeError, ValueError):
+            raise DatasetError(f"attribute control_rate_hz = {rate!r} is not a number: set it to the rate in Hz")
+
+    def episode_lengths(self) -> np.ndarray:
+        """(E,) int64, the number of steps of each episode."""
+        return np.diff(self.episode_ends, prepend=0)
+
+    def episode_range(self, i: int) -> tuple[int, int]:
+        """(start, end) step indices of episode ``i`` (negative ``i`` counts from the end)."""
+        if not -self.n_episodes <= i < self.n_episodes:
+            raise IndexError(f"episode {i} out of range for {self.n_episodes} episodes")
+        i %= self.n_episodes
+        start = int(self.episode_ends[i - 1]) if i > 0 else 0
+        return start, int(self.episode_ends[i])
+
+    def episode(self, i: int) -> Episode:
+        """Episode ``i`` as float32 views into this buffer: (T_i, P, C), (T_i, S), (T_i, A)."""
+        start, end = self.episode_range(i)
+        return Episode(self.point_cloud[start:end], self.state[start:end], self.action[start:end])
+
+    def __repr__(self) -> str:
+        return (f"ReplayBuffer(n_episodes={self.n_episodes}, n_steps={self.n_steps}, "
+                f"point_cloud=({self.n_points}, {self.point_dim}), state_dim={self.state_dim}, "
+                f"action_dim={self.action_dim})")
+
+
+# --------------------------------------------------------------------------- writing
+
+
+def _validated_episode(episode: Episode, where: str,
+                       dims: tuple[int, int, int, int] | None = None) -> Episode:
+    """Return ``episode`` as float32 arrays after checking shapes and values.
+
+    ``dims`` = (P, C, S, A) that the episode must match, if given.
+    """
+    pc, state, action = (np.asarray(getattr(episode, k)) for k in DATA_KEYS)
+    _check_data_structure(pc, state, action, where, prefix="")
+    lengths = {"point_cloud": pc.shape[0], "state": state.shape[0], "action": action.shape[0]}
+    if len(set(lengths.values())) != 1:
+        listing = ", ".join(f"{k}: {n}" for k, n in lengths.items())
+        raise DatasetError(f"{where}: arrays differ in length along time ({listing}): give one entry per step")
+    if state.shape[0] == 0:
+        raise DatasetError(f"{where}: the episode is empty (0 steps): leave it out")
+    got = (pc.shape[1], pc.shape[2], state.shape[1], action.shape[1])
+    if dims is not None and got != dims:
+        raise DatasetError(
+            f"{where}: (P, C, S, A) = {got} does not match the dataset's {dims}: "
+            f"resample the points or write a separate dataset"
+        )
+    values = []
+    for key, array in zip(DATA_KEYS, (pc, state, action)):
+        with np.errstate(over="ignore"):
+            array = array.astype(np.float32, copy=False)
+        bad_steps = _first_bad_steps(array)
+        if bad_steps.size:
+            raise DatasetError(f"{where}: {key} holds NaN or inf (first at step {bad_steps[0]}): fix the episode")
+        values.append(array)
+    return Episode(*values)
+
+
+def _episode_dims(episode: Episode) -> tuple[int, int, int, int]:
+    """(P, C, S, A) of an episode."""
+    return (episode.point_cloud.shape[1], episode.point_cloud.shape[2],
+            episode.state.shape[1], episode.action.shape[1])
+
+
+def _check_attrs(attrs: dict | None) -> dict:
+    attrs = dict(attrs or {})
+    try:
+        json.dumps(attrs)
+    except (TypeError, ValueError) as exc:
+        raise DatasetError(f"dataset attributes are not JSON-serialisable ({exc}): use plain numbers, "
+                           f"strings, lists and dicts") from exc
+    return attrs
+
+
+def _write_store(path: Path, episodes: Sequence[Episode], attrs: dict, zarr_format: int) -> None:
+    """Write validated float32 episodes as a new store at ``path``."""
+    root = zarr.open_group(str(path), mode="w-", zarr_format=zarr_format, attributes=attrs)
+    data = root.create_group("data")
+    meta = root.create_group("meta")
+    codec = _compressor_kwargs(zarr_format)
+    for key in DATA_KEYS:
+        values = np.concatenate([getattr(ep, key) for ep in episodes], axis=0)
+        array = data.create_array(key, shape=values.shape, dtype=np.float32,
+                                  chunks=(CHUNK_STEPS,) + values.shape[1:], **codec)
+        array[...] = values
+    ends = np.cumsum([ep.n_steps for ep in episodes], dtype=np.int64)
+    array = meta.create_array("episode_ends", shape=ends.shape, dtype=np.int64, chunks=(ENDS_CHUNK,), **codec)
+    array[...] = ends
+
+
+def _check_replaceable(path: Path) -> None:
+    if path.exists() and not (path.is_dir() and (_is_zarr_store(path) or not any(path.iterdir()))):
+        raise DatasetError(
+            f"{path} exists and is not a zarr dataset or an empty directory: refusing to replace it; "
+            f"choose another path or remove it"
+        )
+
+
+def _move_into_place(tmp: Path, path: Path) -> None:
+    """Rename the finished store ``tmp`` onto ``path``, replacing an existing one."""
+    if not path.exists():
+        os.replace(tmp, path)
+        return
+    old = path.with_name(f".{path.name}.old-{uuid.uuid4().hex[:8]}")
+    os.replace(path, old)
+    try:
+        os.replace(tmp, path)
+    except BaseException:
+        os.replace(old, path)
+        raise
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def write_replay_buffer(path: str | os.PathLike, episodes: Sequence[Episode], attrs: dict | None = None,
+                        zarr_format: int = 2) -> None:
+    """Write ``episodes`` as a complete dataset at ``path``.
+
+    Each episode holds point_cloud (T_i, P, C), state (T_i, S) and action
+    (T_i, A); P, C, S and A must agree over all episodes. The store is written
+    into a temporary sibling directory and then renamed onto ``path``; an
+    existing dataset at ``path`` is moved aside only once the new one is
+    complete, and deleted after the new one is in place.
+
+    Args:
+        path: directory to create (parents are created too).
+        episodes: at least one non-empty episode with finite values.
+        attrs: JSON attributes for the root group (e.g. ``control_rate_hz``).
+        zarr_format: 2 (default, what zarr-python 2.x and DP3 use) or 3.
+
+    Raises:
+        DatasetError: an episode is invalid, or ``path`` holds something
+            other than a zarr dataset or an empty directory.
+    """
+    _check_zarr_format(zarr_format)
+    attrs = _check_attrs(attrs)
+    if len(episodes) == 0:
+        raise DatasetError(f"{path}: no episodes to write: give at least one")
+    checked = [_validated_episode(episodes[0], "episode 0")]
+    dims = _episode_dims(checked[0])
+    checked += [_validated_episode(ep, f"episode {i}", dims) for i, ep in enumerate(episodes[1:], start=1)]
+
+    path = Path(path)
+    _check_replaceable(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp-{uuid.uuid4().hex[:8]}")
+    try:
+        _write_store(tmp, checked, attrs, zarr_format)
+        _move_into_place(tmp, path)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+class ReplayBufferWriter:
+    """Append episodes one at a time to a new or existing dataset.
+
+    A new dataset appears on disk, written atomically, with its first episode.
+    For an existing one, its structure and episode ends are checked (point
+    values are not read) and episodes are appended: the data arrays first,
+    ``meta/episode_ends`` last, so an interrupted append leaves every earlier
+    episode readable (see the module docstring). Use as a context manager::
+
+        with ReplayBufferWriter("demo.zarr", attrs={"control_rate_hz": 10.0}) as writer:
+            writer.add_episode(episode)
+
+    Args:
+        path: dataset directory.
+        attrs: JSON attributes merged into the root group's attributes.
+        zarr_format: format of a new dataset (2 or 3); an existing dataset
+            keeps its own format.
+        repair_incomplete_tail: if the existing dataset ends with steps that
+            belong to no episode (an interrupted append), cut them off before
+            appending instead of raising DatasetError.
+    """
+
+    def __init__(self, path: str | os.PathLike, attrs: dict | None = None, zarr_format: int = 2,
+                 *, repair_incomplete_tail: bool = False):
+        _check_zarr_format(zarr_format)
+        self.path = Path(path)
+        self.zarr_format = zarr_format
+        self._attrs = _check_attrs(attrs)
+        self._closed = False
+        self._arrays: dict[str, zarr.Array] | None = None
+        self._dims: tuple[int, int, int, int] | None = None
+        self._n_steps = 0
+        self._n_episodes = 0
+        self.dropped_tail_steps = 0
+        """Steps after the last episode end that ``repair_incomplete_tail=True`` cut off."""
+        if _is_zarr_store(self.path) or (self.path.exists() and not self._is_empty_dir()):
+            self._open_existing(repair_incomplete_tail)
+
+    def _is_empty_dir(self) -> bool:
+        return self.path.is_dir() and not any(self.path.iterdir())
+
+    def _open_existing(self, repair_incomplete_tail: bool) -> None:
+        where = str(self.path)
+        group, arrays, ends = _open_required(self.path, "r+")
+        extra = sorted(set(group["data"].array_keys()) - set(DATA_KEYS))
+        if extra:
+            raise DatasetError(
+                f"{where}: data/{extra[0]} exists: appending would leave it shorter than the other arrays; "
+                f"write a new dataset instead"
+            )
+        lengths = {key: arrays[key].shape[0] for key in REQUIRED_KEYS[:3]}
+        n_steps, dropped = _resolve_length(lengths, int(ends[-1]), repair_incomplete_tail, where,
+                                           remedy="open the writer with repair_incomplete_tail=True to cut them off")
+        self.dropped_tail_steps = dropped
+        if dropped:
+            for key in REQUIRED_KEYS[:3]:
+                arrays[key].resize((n_steps,) + tuple(arrays[key].shape[1:]))
+        if self._attrs:
+            group.attrs.update(self._attrs)
+        self.zarr_format = group.metadata.zarr_format
+        self._arrays = arrays
+        self._dims = (arrays["data/point_cloud"].shape[1], arrays["data/point_cloud"].shape[2],
+                      arrays["data/state"].shape[1], arrays["data/action"].shape[1])
+        self._n_steps = n_steps
+        self._n_episodes = int(ends.shape[0])
+
+    @property
+    def n_episodes(self) -> int:
+        """Episodes in the dataset so far."""
+        return self._n_episodes
+
+    @property
+    def n_steps(self) -> int:
+        """Steps in the dataset so far."""
+        return self._n_steps
+
+    def add_episode(self, episode: Episode) -> None:
+        """Append one episode: point_cloud (T, P, C), state (T, S), action (T, A).
+
+        Raises:
+            DatasetError: the episode is empty, holds NaN/inf, or does not match
+                the dataset's (P, C, S, A); or the dataset changed underneath.
+        """
+        if self._closed:
+            raise ValueError("ReplayBufferWriter is closed")
+        where = f"{self.path}: episode {self._n_episodes}"
+        episode = _validated_episode(episode, where, self._dims)
+        if self._arrays is None:
+            write_replay_buffer(self.path, [episode], self._attrs, self.zarr_format)
+            _, self._arrays, _ = _open_required(self.path, "r+")
+            self._dims = _episode_dims(episode)
+        else:
+            lengths = [self._arrays[key].shape[0] for key in REQUIRED_KEYS]
+            if lengths != [self._n_steps] * 3 + [self._n_episodes]:
+                raise DatasetError(
+                    f"{where}: the dataset no longer has the expected {self._n_steps} steps and "
+                    f"{self._n_episodes} episodes (an earlier append failed?): reopen the writer with "
+                    f"repair_incomplete_tail=True"
+                )
+            for key in DATA_KEYS:
+                self._arrays[f"data/{key}"].append(getattr(episode, key), axis=0)
+            self._arrays[ENDS_KEY].append(np.array([self._n_steps + episode.n_steps], dtype=np.int64))
+        self._n_steps += episode.n_steps
+        self._n_episodes += 1
+
+    def close(self) -> None:
+        """Stop writing; every added episode is already on disk."""
+        self._closed = True
+        self._arrays = None
+
+    def __enter__(self) -> ReplayBufferWriter:
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.close()

@@ -1,0 +1,68 @@
+"""Observation encoder E_obs: DP3's point encoder and a proprioception MLP, fused into z_t.
+
+Point branch (DP3): a per-point MLP, Linear → LayerNorm → ReLU for each width, max-pooled over the
+points, then Linear → LayerNorm to ``point_feature_dim``. No T-Net, no BatchNorm. State branch (DP3):
+Linear → ReLU → Linear. The two features are concatenated and projected to the model width.
+
+Shapes: point cloud (B, P, C) with C = ``point_dim`` (normalised), agent_pos (B, S) → z (B, d_model).
+Leading dims may be any (e.g. (B, T, P, C) → (B, T, d_model)).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from dssp_train.config import ModelConfig
+
+
+class PointEncoder(nn.Module):
+    """(..., P, C) → (..., point_feature_dim)."""
+
+    def __init__(self, in_dim: int, widths: list[int], out_dim: int):
+        super().__init__()
+        layers: list[nn.Module] = []
+        prev = in_dim
+        for w in widths:
+            layers += [nn.Linear(prev, w), nn.LayerNorm(w), nn.ReLU()]
+            prev = w
+        self.mlp = nn.Sequential(*layers)
+        self.final_projection = nn.Sequential(nn.Linear(prev, out_dim), nn.LayerNorm(out_dim))
+
+    def forward(self, points: torch.Tensor) -> torch.Tensor:
+        return self.final_projection(self.mlp(points).amax(dim=-2))
+
+
+class StateEncoder(nn.Module):
+    """(..., S) → (..., widths[-1]): Linear → ReLU → ... → Linear."""
+
+    def __init__(self, in_dim: int, widths: list[int]):
+        super().__init__()
+        layers: list[nn.Module] = []
+        prev = in_dim
+        for i, w in enumerate(widths):
+            layers.append(nn.Linear(prev, w))
+            if i < len(widths) - 1:
+                layers.append(nn.ReLU())
+            prev = w
+        self.mlp = nn.Sequential(*layers)
+
+    def forward(self, state: torch.Tensor) -> torch.Tensor:
+        return self.mlp(state)
+
+
+class ObservationEncoder(nn.Module):
+    """E_obs: (point cloud (..., P, C), agent_pos (..., S)) → z (..., d_model)."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        widths = list(cfg.point_widths)
+        if cfg.point_dim == 6 and len(widths) == 3:
+            widths = widths + [512]  # DP3 widens the point MLP when colour is used
+        self.point_encoder = PointEncoder(cfg.point_dim, widths, cfg.point_feature_dim)
+        self.state_encoder = StateEncoder(cfg.state_dim, cfg.state_widths)
+        self.projection = nn.Linear(cfg.point_feature_dim + cfg.state_widths[-1], cfg.d_model)
+
+    def forward(self, point_cloud: torch.Tensor, agent_pos: torch.Tensor) -> torch.Tensor:
+        feats = torch.cat([self.point_encoder(point_cloud), self.state_encoder(agent_pos)], dim=-1)
+        return self.projection(feats)

@@ -1,0 +1,147 @@
+"""DSSPPolicy: the whole model — normalisers, E_obs, G_psi, g_phi and f_theta — and its losses.
+
+Training is trajectory-wise (paper Appendix C.1): one whole trajectory is encoded causally,
+``z = E_obs(o_{1:T})`` and ``c = G_psi(z)``, and B action windows are sampled from it; the window
+starting at t is conditioned only on ``c_t`` and ``z_{t-N+1..t}`` (indices before 0 repeat the
+first observation) and predicts ``a_t .. a_{t+H-1}`` (indices past the end repeat the last action).
+
+Raw (unnormalised) shapes at the boundary:
+    point_cloud (T, P, C) or (B, T, P, C); agent_pos (T, S); action (T, A); action chunk (B, H, A).
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from dssp_train.config import ModelConfig
+from dssp_train.model.denoiser import Denoiser
+from dssp_train.model.dynamics import DynamicsPredictor, dynamics_loss
+from dssp_train.model.history_encoder import HistoryEncoder
+from dssp_train.model.normalizer import RangeNormalizer
+from dssp_train.model.obs_encoder import ObservationEncoder
+from dssp_train.model.scheduler import DiffusionSchedule
+
+
+class DSSPPolicy(nn.Module):
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        if cfg.state_dim < 1 or cfg.action_dim < 1:
+            raise ValueError("ModelConfig.state_dim and action_dim must be set (from the dataset) before building")
+        self.cfg = cfg
+        self.normalizers = nn.ModuleDict(
+            {
+                "point_cloud": RangeNormalizer(cfg.point_dim),
+                "agent_pos": RangeNormalizer(cfg.state_dim),
+                "action": RangeNormalizer(cfg.action_dim),
+            }
+        )
+        self.obs_encoder = ObservationEncoder(cfg)
+        self.history_encoder = HistoryEncoder(cfg) if cfg.use_history else None
+        self.dynamics = DynamicsPredictor(cfg.d_model, cfg.action_dim) if cfg.uses_dynamics_loss else None
+        self.denoiser = Denoiser(cfg)
+        self.schedule = DiffusionSchedule(cfg.diffusion)
+
+    # ------------------------------------------------------------ normalisers
+    def fit_normalizers(self, point_cloud, agent_pos, action) -> None:
+        """Fit the min/max statistics on training data: (..., C), (..., S), (..., A)."""
+        self.normalizers["point_cloud"].fit(point_cloud[..., : self.cfg.point_dim])
+        self.normalizers["agent_pos"].fit(agent_pos)
+        self.normalizers["action"].fit(action)
+
+    # --------------------------------------------------------------- encoding
+    def encode_observations(self, point_cloud: torch.Tensor, agent_pos: torch.Tensor) -> torch.Tensor:
+        """Raw (..., P, C) and (..., S) → z (..., d). Extra point channels (rgb) beyond point_dim are dropped."""
+        pc = self.normalizers["point_cloud"].normalize(point_cloud[..., : self.cfg.point_dim])
+        pos = self.normalizers["agent_pos"].normalize(agent_pos)
+        return self.obs_encoder(pc, pos)
+
+    def build_prefix(self, context: torch.Tensor | None, recent: torch.Tensor) -> torch.Tensor:
+        """Prefix [c_t, z_{t-N+1}, ..., z_t]: context (B, d) or None, recent (B, N, d) → (B, L_p, d)."""
+        parts = []
+        if self.cfg.use_history:
+            parts.append(context.unsqueeze(1))
+        if self.cfg.use_recent_states:
+            parts.append(recent)
+        return torch.cat(parts, dim=1)
+
+    # ----------------------------------------------------------------- losses
+    def trajectory_windows(self, length: int, starts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Indices (B, N) of the recent observations and (B, H) of the target actions for each start."""
+        n, h = self.cfg.n_obs_steps, self.cfg.horizon
+        obs_idx = (starts.unsqueeze(1) + torch.arange(-n + 1, 1, device=starts.device)).clamp(min=0)
+        act_idx = (starts.unsqueeze(1) + torch.arange(h, device=starts.device)).clamp(max=length - 1)
+        return obs_idx, act_idx
+
+    def compute_loss(
+        self,
+        point_cloud: torch.Tensor,
+        agent_pos: torch.Tensor,
+        action: torch.Tensor,
+        starts: torch.Tensor,
+        generator: torch.Generator | None = None,
+    ) -> dict[str, torch.Tensor]:
+        """Losses on one trajectory.
+
+        Args:
+            point_cloud (T, P, C), agent_pos (T, S), action (T, A): one raw trajectory.
+            starts (B,): the window start times t.
+            generator: source of the diffusion noise and timesteps.
+        Returns:
+            {"loss", "diffusion", "dynamics"} scalars.
+        """
+        length = action.shape[0]
+        z = self.encode_observations(point_cloud.unsqueeze(0), agent_pos.unsqueeze(0))  # (1, T, d)
+        c = self.history_encoder(z) if self.history_encoder is not None else None  # (1, T, d)
+        a_norm = self.normalizers["action"].normalize(action)  # (T, A)
+
+        obs_idx, act_idx = self.trajectory_windows(length, starts)
+        prefix = self.build_prefix(None if c is None else c[0, starts], z[0, obs_idx])
+        x0 = a_norm[act_idx]  # (B, H, A)
+        noise = torch.randn(x0.shape, generator=generator).to(x0.device)
+        timesteps = torch.randint(0, self.cfg.diffusion.num_train_timesteps, (x0.shape[0],), generator=generator)
+        timesteps = timesteps.to(x0.device)
+        pred = self.denoiser(prefix, self.schedule.add_noise(x0, noise, timesteps), timesteps)
+        target = x0 if self.cfg.diffusion.prediction_type == "sample" else noise
+        diffusion = F.mse_loss(pred, target)
+
+        dyn = diffusion.new_zeros(())
+        if self.dynamics is not None and length > 1:
+            dyn = dynamics_loss(self.dynamics(c[0, :-1], a_norm[:-1]), z[0, 1:])
+        return {"loss": diffusion + self.cfg.dynamics_weight * dyn, "diffusion": diffusion, "dynamics": dyn}
+
+    def forward(self, *args, **kwargs) -> dict[str, torch.Tensor]:
+        """Same as :meth:`compute_loss` (what DistributedDataParallel calls)."""
+        return self.compute_loss(*args, **kwargs)
+
+    # --------------------------------------------------------------- sampling
+    @torch.no_grad()
+    def sample_normalized(self, prefix: torch.Tensor, noise: torch.Tensor, num_steps: int | None = None) -> torch.Tensor:
+        """DDIM from noise (B, H, A) to a normalised action chunk (B, H, A), given the prefix (B, L_p, d)."""
+        x = noise
+        batch = x.shape[0]
+        if self.cfg.timestep_decoupled:
+            states = self.denoiser.encode_prefix(prefix)
+            model = lambda x_t, t: self.denoiser.denoise(states, x_t, t)  # noqa: E731
+        else:
+            model = lambda x_t, t: self.denoiser(prefix, x_t, t)  # noqa: E731
+        for t in self.schedule.inference_timesteps(num_steps):
+            timesteps = torch.full((batch,), t, dtype=torch.long, device=x.device)
+            x = self.schedule.ddim_step(model(x, timesteps), t, x, num_steps)
+        return x
+
+    @torch.no_grad()
+    def sample_trajectory_windows(
+        self,
+        point_cloud: torch.Tensor,
+        agent_pos: torch.Tensor,
+        starts: torch.Tensor,
+        noise: torch.Tensor,
+    ) -> torch.Tensor:
+        """Raw action chunks (B, H, A) for windows of one raw trajectory, from noise (B, H, A)."""
+        z = self.encode_observations(point_cloud.unsqueeze(0), agent_pos.unsqueeze(0))
+        c = self.history_encoder(z) if self.history_encoder is not None else None
+        obs_idx, _ = self.trajectory_windows(agent_pos.shape[0], starts)
+        prefix = self.build_prefix(None if c is None else c[0, starts], z[0, obs_idx])
+        return self.normalizers["action"].unnormalize(self.sample_normalized(prefix, noise))

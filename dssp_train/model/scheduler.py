@@ -1,0 +1,76 @@
+"""DDPM noising for training and DDIM sampling for inference.
+
+Numerically the same as diffusers' ``DDPMScheduler.add_noise`` and ``DDIMScheduler.step`` with
+eta = 0 and "leading" timestep spacing (a test checks it against diffusers). Written out here so that
+the exporter can unroll the K sampling steps into a graph with every coefficient a constant.
+
+Shapes: samples (B, H, A); timesteps (B,) int64.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from dssp_train.config import DiffusionConfig
+
+
+def make_betas(cfg: DiffusionConfig) -> torch.Tensor:
+    """(num_train_timesteps,) float32 betas, as diffusers computes them."""
+    n = cfg.num_train_timesteps
+    if cfg.beta_schedule == "linear":
+        return torch.linspace(cfg.beta_start, cfg.beta_end, n, dtype=torch.float32)
+    if cfg.beta_schedule == "scaled_linear":
+        return torch.linspace(cfg.beta_start**0.5, cfg.beta_end**0.5, n, dtype=torch.float32) ** 2
+
+    def alpha_bar(t: float) -> float:
+        return math.cos((t + 0.008) / 1.008 * math.pi / 2) ** 2
+
+    betas = [min(1 - alpha_bar((i + 1) / n) / alpha_bar(i / n), 0.999) for i in range(n)]
+    return torch.tensor(betas, dtype=torch.float32)
+
+
+class DiffusionSchedule:
+    """The noise schedule and the DDIM update, independent of any model."""
+
+    def __init__(self, cfg: DiffusionConfig):
+        self.cfg = cfg
+        self.betas = make_betas(cfg)
+        self.alphas_cumprod = torch.cumprod(1.0 - self.betas, dim=0)
+        self.final_alpha_cumprod = torch.tensor(1.0) if cfg.set_alpha_to_one else self.alphas_cumprod[0]
+
+    # ---------------------------------------------------------------- training
+    def add_noise(self, x0: torch.Tensor, noise: torch.Tensor, timesteps: torch.Tensor) -> torch.Tensor:
+        """x_tau = sqrt(abar_tau) x0 + sqrt(1 - abar_tau) noise; x0, noise (B, ...), timesteps (B,)."""
+        abar = self.alphas_cumprod.to(x0.device)[timesteps].to(x0.dtype)
+        abar = abar.reshape(-1, *([1] * (x0.dim() - 1)))
+        return abar.sqrt() * x0 + (1 - abar).sqrt() * noise
+
+    # --------------------------------------------------------------- inference
+    def inference_timesteps(self, num_steps: int | None = None) -> list[int]:
+        """DDIM timesteps, "leading" spacing: e.g. [90, 80, ..., 0] for 10 of 100."""
+        k = num_steps or self.cfg.num_inference_steps
+        ratio = self.cfg.num_train_timesteps // k
+        return [int(t) + self.cfg.steps_offset for t in reversed(range(0, k * ratio, ratio))]
+
+    def ddim_coefficients(self, t: int, num_steps: int | None = None) -> tuple[float, float]:
+        """(alpha_prod_t, alpha_prod_prev) for the DDIM step from timestep t."""
+        k = num_steps or self.cfg.num_inference_steps
+        prev = t - self.cfg.num_train_timesteps // k
+        a_t = self.alphas_cumprod[t]
+        a_prev = self.alphas_cumprod[prev] if prev >= 0 else self.final_alpha_cumprod
+        return float(a_t), float(a_prev)
+
+    def ddim_step(self, model_output: torch.Tensor, t: int, sample: torch.Tensor, num_steps: int | None = None) -> torch.Tensor:
+        """One deterministic DDIM step (eta = 0) from x_t to x_prev."""
+        a_t, a_prev = self.ddim_coefficients(t, num_steps)
+        if self.cfg.prediction_type == "sample":
+            x0 = model_output
+            eps = (sample - a_t**0.5 * x0) / (1 - a_t) ** 0.5
+        else:
+            eps = model_output
+            x0 = (sample - (1 - a_t) ** 0.5 * eps) / a_t**0.5
+        if self.cfg.clip_sample:
+            x0 = x0.clamp(-1.0, 1.0)
+        return a_prev**0.5 * x0 + (1 - a_prev) ** 0.5 * eps

@@ -1,0 +1,194 @@
+"""Run directories and checkpoints: safetensors for tensors, JSON for everything else, no pickles.
+
+A run directory::
+
+    RUN_DIR/
+      config.json            RunConfig (model, train, control rate, dataset)
+      model.safetensors      EMA weights, normalisers included — what export and deployment load
+      checkpoint/            the latest full training state, for --resume
+        model.safetensors    raw weights
+        ema.safetensors      EMA weights
+        optimizer.safetensors AdamW moments, one tensor per parameter and moment
+        trainer_state.json   step, EMA step, LR-schedule step, param groups
+        rng.safetensors      torch RNG states
+      log.jsonl, loss.png
+
+Every file is written to a temporary name and renamed into place; the checkpoint folder is swapped
+in whole, so a crash never leaves a half-written checkpoint behind.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import torch
+from safetensors import SafetensorError
+from safetensors.torch import load_file, save_file
+from torch import nn
+
+from dssp_train.config import RunConfig
+from dssp_train.errors import CheckpointError, ConfigError
+
+FORMAT_VERSION = "1"
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+# ------------------------------------------------------------------ file helpers
+def atomic_write_text(path: Path, text: str) -> None:
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    with os.fdopen(fd, "w") as f:
+        f.write(text)
+    os.chmod(tmp, 0o666 & ~_umask())
+    os.replace(tmp, path)
+
+
+def save_tensors(path: Path, tensors: dict[str, torch.Tensor], metadata: dict[str, str] | None = None) -> None:
+    path = Path(path)
+    tensors = {k: v.detach().cpu().contiguous() for k, v in tensors.items()}
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    save_file(tensors, tmp, metadata=metadata)
+    os.chmod(tmp, 0o666 & ~_umask())
+    os.replace(tmp, path)
+
+
+def load_tensors(path: Path) -> dict[str, torch.Tensor]:
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path} is missing: train a model first (dssp-train) or point at a complete run directory")
+    try:
+        return load_file(str(path))
+    except (SafetensorError, OSError, ValueError) as exc:
+        raise CheckpointError(f"{path} is not a readable safetensors file ({exc}); re-export or retrain it") from None
+
+
+def load_state_into(module: nn.Module, tensors: dict[str, torch.Tensor], source: Path) -> None:
+    """Load a state dict strictly, explaining any key or shape that does not fit the config."""
+    expected = module.state_dict()
+    missing = sorted(set(expected) - set(tensors))
+    unexpected = sorted(set(tensors) - set(expected))
+    mismatched = [
+        f"{k} {tuple(tensors[k].shape)} vs {tuple(v.shape)}"
+        for k, v in expected.items()
+        if k in tensors and tuple(tensors[k].shape) != tuple(v.shape)
+    ]
+    problems = []
+    if missing:
+        problems.append(f"{len(missing)} missing (e.g. {', '.join(missing[:3])})")
+    if unexpected:
+        problems.append(f"{len(unexpected)} unexpected (e.g. {', '.join(unexpected[:3])})")
+    if mismatched:
+        problems.append(f"{len(mismatched)} with another shape (checkpoint vs config, e.g. {'; '.join(mismatched[:3])})")
+    if problems:
+        raise CheckpointError(
+            f"{source} does not fit its config: tensors {'; '.join(problems)}. "
+            "Use the config.json saved with these weights, or retrain with this config"
+        )
+    module.load_state_dict(tensors, strict=True)
+
+
+# -------------------------------------------------------------------- run files
+def save_config(run_dir: Path, config: RunConfig) -> None:
+    atomic_write_text(Path(run_dir) / "config.json", config.to_json() + "\n")
+
+
+def load_config(run_dir: Path) -> RunConfig:
+    path = Path(run_dir) / "config.json"
+    if not path.is_file():
+        raise CheckpointError(f"{path} is missing: {run_dir} is not a DSSP run directory (dssp-train --out creates one)")
+    try:
+        return RunConfig.from_dict(json.loads(path.read_text()))
+    except json.JSONDecodeError as exc:
+        raise CheckpointError(f"{path} is not valid JSON ({exc.msg} at line {exc.lineno}); restore it from the run") from None
+    except (ConfigError, TypeError) as exc:
+        raise CheckpointError(f"{path} is not a valid DSSP config: {exc}") from None
+
+
+def load_policy(run_dir: Path, weights: str = "model.safetensors"):
+    """Build the policy described by ``RUN_DIR/config.json`` and load its (EMA) weights."""
+    from dssp_train.model.policy import DSSPPolicy
+
+    config = load_config(run_dir)
+    policy = DSSPPolicy(config.model)
+    path = Path(run_dir) / weights
+    load_state_into(policy, load_tensors(path), path)
+    return policy.eval(), config
+
+
+# ------------------------------------------------------------ training state
+def _optimizer_tensors(optimizer: torch.optim.Optimizer) -> tuple[dict[str, torch.Tensor], list[dict[str, Any]]]:
+    state = optimizer.state_dict()
+    tensors = {}
+    for idx, slots in state["state"].items():
+        for name, value in slots.items():
+            tensors[f"{idx}.{name}"] = value if torch.is_tensor(value) else torch.tensor(value)
+    return tensors, state["param_groups"]
+
+
+def _optimizer_state(tensors: dict[str, torch.Tensor], param_groups: list[dict[str, Any]]) -> dict[str, Any]:
+    state: dict[int, dict[str, torch.Tensor]] = {}
+    for key, value in tensors.items():
+        idx, name = key.split(".", 1)
+        state.setdefault(int(idx), {})[name] = value
+    return {"state": state, "param_groups": param_groups}
+
+
+def save_training_state(
+    run_dir: Path,
+    model: nn.Module,
+    ema_model: nn.Module,
+    optimizer: torch.optim.Optimizer,
+    trainer_state: dict[str, Any],
+    rng: dict[str, torch.Tensor],
+) -> None:
+    """Write RUN_DIR/checkpoint atomically (a new folder swapped in whole)."""
+    run_dir = Path(run_dir)
+    tmp = Path(tempfile.mkdtemp(dir=run_dir, prefix=".checkpoint."))
+    os.chmod(tmp, 0o777 & ~_umask())
+    meta = {"format_version": FORMAT_VERSION, "step": str(trainer_state["step"])}
+    save_tensors(tmp / "model.safetensors", model.state_dict(), meta)
+    save_tensors(tmp / "ema.safetensors", ema_model.state_dict(), meta)
+    opt_tensors, groups = _optimizer_tensors(optimizer)
+    save_tensors(tmp / "optimizer.safetensors", opt_tensors, meta)
+    save_tensors(tmp / "rng.safetensors", rng, meta)
+    atomic_write_text(tmp / "trainer_state.json", json.dumps({**trainer_state, "param_groups": groups}, indent=2))
+    final, old = run_dir / "checkpoint", run_dir / ".checkpoint.old"
+    if old.exists():
+        shutil.rmtree(old)
+    if final.exists():
+        final.rename(old)
+    tmp.rename(final)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def load_training_state(run_dir: Path) -> dict[str, Any]:
+    """Everything :func:`save_training_state` wrote, as tensors and JSON."""
+    ckpt = Path(run_dir) / "checkpoint"
+    if not ckpt.is_dir() and (Path(run_dir) / ".checkpoint.old").is_dir():
+        ckpt = Path(run_dir) / ".checkpoint.old"  # a crash mid-swap: the previous checkpoint is complete
+    if not ckpt.is_dir():
+        raise CheckpointError(f"{ckpt} is missing: nothing to resume in {run_dir}; start without --resume")
+    try:
+        trainer_state = json.loads((ckpt / "trainer_state.json").read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise CheckpointError(f"{ckpt / 'trainer_state.json'} is unreadable ({exc}); start a new run") from None
+    groups = trainer_state.pop("param_groups")
+    return {
+        "model": load_tensors(ckpt / "model.safetensors"),
+        "ema": load_tensors(ckpt / "ema.safetensors"),
+        "optimizer": _optimizer_state(load_tensors(ckpt / "optimizer.safetensors"), groups),
+        "rng": load_tensors(ckpt / "rng.safetensors"),
+        "trainer_state": trainer_state,
+        "path": ckpt,
+    }

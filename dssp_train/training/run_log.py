@@ -1,0 +1,57 @@
+"""The machine-readable training log (``log.jsonl``: one JSON object per line) and its plot (``loss.png``).
+
+Each line has ``"kind": "train"`` (step, loss, diffusion, dynamics, lr, steps_per_s, windows_per_s)
+or ``"kind": "val"`` (step, val_diffusion, val_action_mse). Lines are flushed as written, so a
+crashed run keeps its log up to the crash.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+
+class RunLog:
+    def __init__(self, path: Path, append: bool = False):
+        self.path = Path(path)
+        self._file = open(self.path, "a" if append else "w")
+
+    def write(self, kind: str, **values: Any) -> None:
+        self._file.write(json.dumps({"kind": kind, **values}) + "\n")
+        self._file.flush()
+
+    def close(self) -> None:
+        self._file.close()
+
+
+def read_log(path: Path) -> list[dict[str, Any]]:
+    return [json.loads(line) for line in Path(path).read_text().splitlines() if line.strip()]
+
+
+def plot_log(log_path: Path, png_path: Path) -> None:
+    """Loss curves: training diffusion and dynamics losses, validation losses, on a log scale."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = read_log(log_path)
+    train = [r for r in rows if r["kind"] == "train"]
+    val = [r for r in rows if r["kind"] == "val"]
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    if train:
+        steps = [r["step"] for r in train]
+        axes[0].plot(steps, [r["diffusion"] for r in train], label="diffusion (train)")
+        if any(r["dynamics"] for r in train):
+            axes[0].plot(steps, [r["dynamics"] for r in train], label="dynamics 1-cos (train)")
+    if val:
+        steps = [r["step"] for r in val]
+        axes[0].plot(steps, [r["val_diffusion"] for r in val], "o-", label="diffusion (val, EMA)")
+        axes[1].plot(steps, [r["val_action_mse"] for r in val], "o-", color="C3")
+    axes[0].set(xlabel="step", ylabel="loss", yscale="log", title="Training losses")
+    axes[0].legend()
+    axes[1].set(xlabel="step", ylabel="MSE (normalised units)", yscale="log", title="Validation: sampled action chunk error")
+    fig.tight_layout()
+    fig.savefig(png_path, dpi=100)
+    plt.close(fig)

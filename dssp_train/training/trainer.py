@@ -1,0 +1,273 @@
+"""The training loop behind ``dssp-train``.
+
+One optimisation step = one whole training trajectory (per process), B action windows sampled
+from it (paper Appendix C.1); AdamW, cosine schedule with warm-up, EMA weights for validation and
+export, held-out validation episodes, seeded sampling, resumable checkpoints. Under ``torchrun``
+(``WORLD_SIZE`` > 1) the model is wrapped in DistributedDataParallel (gloo on CPU, NCCL on CUDA);
+each process draws its own trajectory, so a step sees ``world_size`` trajectories.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.distributed as dist
+
+from dssp_train.config import RunConfig
+from dssp_train.data.replay_buffer import ReplayBuffer
+from dssp_train.errors import ConfigError, DSSPError
+from dssp_train.model.policy import DSSPPolicy
+from dssp_train.training import checkpoint as ckpt
+from dssp_train.training.ema import EMA
+from dssp_train.training.lr_schedule import cosine_with_warmup
+from dssp_train.training.run_log import RunLog, plot_log
+
+VAL_SEED = 1234567
+
+
+@dataclass
+class TrajectoryTensors:
+    """One episode as tensors: point_cloud (T, P, C), agent_pos (T, S), action (T, A)."""
+
+    point_cloud: torch.Tensor
+    agent_pos: torch.Tensor
+    action: torch.Tensor
+
+    @property
+    def length(self) -> int:
+        return self.action.shape[0]
+
+
+def split_episodes(n_episodes: int, val_ratio: float, seed: int) -> tuple[list[int], list[int]]:
+    """Held-out validation episodes: round(n * val_ratio), at least 1 when val_ratio > 0 and n >= 2."""
+    order = np.random.default_rng(seed).permutation(n_episodes).tolist()
+    n_val = 0
+    if val_ratio > 0 and n_episodes >= 2:
+        n_val = min(n_episodes - 1, max(1, round(n_episodes * val_ratio)))
+    return sorted(order[n_val:]), sorted(order[:n_val])
+
+
+def resolve_data_facts(config: RunConfig, data: ReplayBuffer, data_path: str, control_rate_hz: float | None) -> RunConfig:
+    """Fill the dimensions and control rate from the dataset; refuse what does not fit."""
+    m = config.model
+    if data.point_dim < m.point_dim:
+        raise ConfigError(
+            f"model.point_dim={m.point_dim} needs xyz+rgb clouds but {data_path} has {data.point_dim} channels per point; "
+            "use model.point_dim=3"
+        )
+    for name, have in (("state_dim", data.state_dim), ("action_dim", data.action_dim)):
+        want = getattr(m, name)
+        if want and want != have:
+            raise ConfigError(f"model.{name}={want} but {data_path} has {have}; drop the override to use the dataset's")
+        setattr(m, name, have)
+    m.n_points = data.n_points
+    config.dataset = str(data_path)
+    if control_rate_hz is not None:
+        config.control_rate_hz = float(control_rate_hz)
+    elif data.control_rate_hz is not None:
+        config.control_rate_hz = float(data.control_rate_hz)
+    RunConfig.from_dict(config.to_dict())  # re-validate
+    return config
+
+
+class Trainer:
+    def __init__(
+        self,
+        config: RunConfig,
+        data_path: str | os.PathLike,
+        run_dir: str | os.PathLike,
+        device: str = "cpu",
+        resume: bool = False,
+        progress: bool = True,
+        control_rate_hz: float | None = None,
+    ):
+        self.world_size = int(os.environ.get("WORLD_SIZE", "1"))
+        self.rank = int(os.environ.get("RANK", "0"))
+        if device == "cuda" and not torch.cuda.is_available():
+            raise ConfigError("--device cuda was asked for but CUDA is not available here; use --device cpu")
+        if self.world_size > 1 and not dist.is_initialized():
+            dist.init_process_group("nccl" if device == "cuda" else "gloo")
+        if device == "cuda" and self.world_size > 1:
+            device = f"cuda:{int(os.environ.get('LOCAL_RANK', '0'))}"
+        self.device = torch.device(device)
+        self.run_dir = Path(run_dir)
+        self.is_main = self.rank == 0
+        self.progress = progress and self.is_main
+
+        self.data = ReplayBuffer.load(data_path)
+        # On --resume the caller passes the run's own config (dssp-train does).
+        self.config = config = resolve_data_facts(config, self.data, str(data_path), control_rate_hz)
+        tc = config.train
+
+        self.train_ids, self.val_ids = split_episodes(self.data.n_episodes, tc.val_ratio, tc.seed)
+        if not self.train_ids:
+            raise DSSPError(f"{data_path} has no training episodes left after the validation split; lower train.val_ratio")
+        self.train_eps = [self._episode(i) for i in self.train_ids]
+        self.val_eps = [self._episode(i) for i in self.val_ids] or self.train_eps
+        self.val_on_train = not self.val_ids
+
+        torch.manual_seed(tc.seed)
+        self.policy = DSSPPolicy(config.model)
+        cat = lambda key: np.concatenate([getattr(self.data.episode(i), key) for i in self.train_ids])  # noqa: E731
+        self.policy.fit_normalizers(cat("point_cloud"), cat("state"), cat("action"))
+        self.policy.to(self.device)
+
+        decay, no_decay = [], []
+        for p in self.policy.parameters():
+            (no_decay if getattr(p, "_no_weight_decay", False) else decay).append(p)
+        self.optimizer = torch.optim.AdamW(
+            [{"params": decay, "weight_decay": tc.weight_decay}, {"params": no_decay, "weight_decay": 0.0}],
+            lr=tc.lr,
+            betas=tuple(tc.betas),
+        )
+        self.lr_schedule = cosine_with_warmup(self.optimizer, tc.warmup_steps, tc.steps)
+        self.ema = EMA(self.policy, tc.ema_power, tc.ema_max_decay)
+        self.generator = torch.Generator().manual_seed(tc.seed * 1000 + self.rank)
+        self.step = 0
+        if resume:
+            self._restore()
+        self.model = self.policy
+        if self.world_size > 1:
+            self.model = torch.nn.parallel.DistributedDataParallel(
+                self.policy, device_ids=[self.device.index] if self.device.type == "cuda" else None
+            )
+
+    # ------------------------------------------------------------------ data
+    def _episode(self, i: int) -> TrajectoryTensors:
+        ep = self.data.episode(i)
+        t = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32)).to(self.device)  # noqa: E731
+        return TrajectoryTensors(t(ep.point_cloud), t(ep.state), t(ep.action))
+
+    def _sample_starts(self, length: int, count: int) -> torch.Tensor:
+        """Window starts t ~ U{0, ..., T - H_a} (at least H_a real actions in every window)."""
+        high = max(1, length - self.config.model.n_action_steps + 1)
+        return torch.randint(0, high, (count,), generator=self.generator).to(self.device)
+
+    # -------------------------------------------------------------- training
+    def train_step(self) -> dict[str, float]:
+        tc = self.config.train
+        ep = self.train_eps[int(torch.randint(len(self.train_eps), (1,), generator=self.generator))]
+        starts = self._sample_starts(ep.length, tc.batch_size)
+        self.model.train()
+        losses = self.model(ep.point_cloud, ep.agent_pos, ep.action, starts, self.generator)
+        self.optimizer.zero_grad(set_to_none=True)
+        losses["loss"].backward()
+        self.optimizer.step()
+        self.lr_schedule.step()
+        self.ema.update(self.policy)
+        self.step += 1
+        values = {k: float(v.detach()) for k, v in losses.items()}
+        if not all(math.isfinite(v) for v in values.values()):
+            raise DSSPError(f"the loss became non-finite at step {self.step} ({values}); lower train.lr or check the data")
+        return values
+
+    @torch.no_grad()
+    def validate(self) -> dict[str, float]:
+        """EMA model on held-out episodes, with fixed windows, noise and timesteps."""
+        policy = self.ema.model
+        tc, mc = self.config.train, self.config.model
+        gen = torch.Generator().manual_seed(VAL_SEED)
+        per_ep = max(1, tc.val_windows // len(self.val_eps))
+        diff, mse, weights = 0.0, 0.0, 0
+        for ep in self.val_eps:
+            high = max(1, ep.length - mc.n_action_steps + 1)
+            starts = torch.linspace(0, high - 1, min(per_ep, high)).round().long().to(self.device)
+            losses = policy.compute_loss(ep.point_cloud, ep.agent_pos, ep.action, starts, gen)
+            noise = torch.randn((len(starts), mc.horizon, mc.action_dim), generator=gen).to(self.device)
+            pred = policy.sample_trajectory_windows(ep.point_cloud, ep.agent_pos, starts, noise)
+            _, act_idx = policy.trajectory_windows(ep.length, starts)
+            norm = policy.normalizers["action"].normalize
+            err = (norm(pred) - norm(ep.action[act_idx]))[:, : mc.n_action_steps].pow(2).mean()
+            diff += float(losses["diffusion"]) * len(starts)
+            mse += float(err) * len(starts)
+            weights += len(starts)
+        return {"val_diffusion": diff / weights, "val_action_mse": mse / weights}
+
+    def run(self) -> dict[str, Any]:
+        tc = self.config.train
+        log = None
+        if self.is_main:
+            self.run_dir.mkdir(parents=True, exist_ok=True)
+            ckpt.save_config(self.run_dir, self.config)
+            log = RunLog(self.run_dir / "log.jsonl", append=self.step > 0)
+        bar = None
+        if self.progress:
+            from tqdm.auto import tqdm
+
+            bar = tqdm(total=tc.steps, initial=self.step, desc="dssp-train", unit="step", dynamic_ncols=True)
+        last_val: dict[str, float] = {}
+        t_log, n_log = time.perf_counter(), 0
+        try:
+            while self.step < tc.steps:
+                values = self.train_step()
+                n_log += 1
+                if bar is not None:
+                    bar.update(1)
+                    bar.set_postfix(diff=f"{values['diffusion']:.4f}", dyn=f"{values['dynamics']:.3f}")
+                if self.step % tc.log_every == 0 or self.step == tc.steps:
+                    elapsed = time.perf_counter() - t_log
+                    rate = n_log / max(elapsed, 1e-9)
+                    if log is not None:
+                        log.write(
+                            "train",
+                            step=self.step,
+                            lr=self.lr_schedule.get_last_lr()[0],
+                            steps_per_s=rate,
+                            windows_per_s=rate * tc.batch_size * self.world_size,
+                            **values,
+                        )
+                    t_log, n_log = time.perf_counter(), 0
+                if self.is_main and (self.step % tc.val_every == 0 or self.step == tc.steps):
+                    last_val = self.validate()
+                    log.write("val", step=self.step, on_train_episodes=self.val_on_train, **last_val)
+                    if bar is not None:
+                        bar.write(f"step {self.step}: " + ", ".join(f"{k} {v:.5f}" for k, v in last_val.items()))
+                if self.is_main and (self.step % tc.save_every == 0 or self.step == tc.steps):
+                    self.save()
+        finally:
+            if bar is not None:
+                bar.close()
+            if log is not None:
+                log.close()
+        if self.is_main:
+            plot_log(self.run_dir / "log.jsonl", self.run_dir / "loss.png")
+        if self.world_size > 1:
+            dist.barrier()
+        return {"step": self.step, "run_dir": str(self.run_dir), **last_val}
+
+    # ----------------------------------------------------------- checkpoints
+    def save(self) -> None:
+        meta = {"format_version": ckpt.FORMAT_VERSION, "step": str(self.step)}
+        ckpt.save_tensors(self.run_dir / "model.safetensors", self.ema.model.state_dict(), meta)
+        ckpt.save_training_state(
+            self.run_dir,
+            self.policy,
+            self.ema.model,
+            self.optimizer,
+            {"step": self.step, "ema_step": self.ema.step, "world_size": self.world_size},
+            {"generator": self.generator.get_state(), "torch": torch.get_rng_state()},
+        )
+
+    def _restore(self) -> None:
+        state = ckpt.load_training_state(self.run_dir)
+        where = state["path"]
+        ckpt.load_state_into(self.policy, state["model"], where / "model.safetensors")
+        ckpt.load_state_into(self.ema.model, state["ema"], where / "ema.safetensors")
+        try:
+            self.optimizer.load_state_dict(state["optimizer"])
+        except (ValueError, KeyError, RuntimeError) as exc:
+            raise DSSPError(f"{where / 'optimizer.safetensors'} does not fit this model ({exc}); start a new run") from None
+        self.step = int(state["trainer_state"]["step"])
+        self.ema.step = int(state["trainer_state"]["ema_step"])
+        self.lr_schedule.last_epoch = self.step
+        for group, factor in zip(self.optimizer.param_groups, self.lr_schedule.lr_lambdas):
+            group["lr"] = group["initial_lr"] * factor(self.step)
+        self.generator.set_state(state["rng"]["generator"])
+        torch.set_rng_state(state["rng"]["torch"])
