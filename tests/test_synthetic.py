@@ -3,6 +3,8 @@
 import numpy as np
 import pytest
 
+from dssp_train.errors import ConfigError
+
 from dssp_train.data.replay_buffer import ReplayBuffer
 from dssp_train.data.synthetic import (
     CUE_CENTERS,
@@ -42,7 +44,7 @@ def test_shapes_dtypes_and_finite(n_points):
         np.testing.assert_array_equal(ep.action[-1], ep.state[-1])
         np.testing.assert_array_equal(ep.state[-1], [1.0, 0.0])  # parked
     assert sorted(count_taps(ep.state) for ep in episodes) == [1, 1, 1, 2, 2, 2]
-    with pytest.raises(ValueError):
+    with pytest.raises(ConfigError, match="n_points must be at least"):
         make_tap_count_episodes(2, n_points=10)
 
 

@@ -40,10 +40,11 @@ from pathlib import Path
 import numpy as np
 
 from dssp_train.data.replay_buffer import Episode, write_replay_buffer
+from dssp_train.errors import ConfigError
 
 __all__ = [
-    "CUE_STEPS", "EPISODE_LENGTH", "FIRST_PAUSE_STEPS", "NOISE_STD",
-    "count_taps", "make_tap_count_episodes", "tap_count_states", "write_tap_count_dataset",
+    "CUE_STEPS", "DECISION_STEP", "EPISODE_LENGTH", "FIRST_PAUSE_STEPS", "NOISE_STD",
+    "chunk_decision", "count_taps", "expert_decision", "make_tap_count_episodes", "tap_count_states", "write_tap_count_dataset",
 ]
 
 CUE_STEPS = 3
@@ -84,6 +85,20 @@ def count_taps(states: np.ndarray, height: float = 0.9) -> int:
     """Number of times y rises to ``height`` or above in ``states`` (T, 2); e.g. to score a rollout."""
     high = np.asarray(states)[:, 1] >= height
     return int(np.count_nonzero(high[1:] & ~high[:-1]) + bool(high[:1].any()))
+
+
+DECISION_STEP = FIRST_PAUSE_STEPS[-1]  # 16: the last aliased step, where the expert's next move splits
+
+
+def expert_decision(episode: Episode) -> str:
+    """What the expert does after the first pause: "park" (one-tap episode) or "tap" (two-tap)."""
+    return "park" if count_taps(episode.state) == 1 else "tap"
+
+
+def chunk_decision(chunk: np.ndarray, state: np.ndarray) -> str:
+    """Read a predicted action chunk (H, 2) from ``state`` (2,): "park" if it moves more in x than in y."""
+    move = np.asarray(chunk)[-1] - np.asarray(state)
+    return "park" if move[0] > move[1] else "tap"
 
 
 def _scene(seed: int, n_points: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -128,9 +143,9 @@ def make_tap_count_episodes(n_episodes: int, seed: int = 0, n_points: int = 64) 
     more are generated.
     """
     if n_episodes < 1:
-        raise ValueError(f"n_episodes must be at least 1, got {n_episodes}")
+        raise ConfigError(f"n_episodes must be at least 1, got {n_episodes}")
     if n_points < MIN_POINTS:
-        raise ValueError(f"n_points must be at least {MIN_POINTS}, got {n_points}")
+        raise ConfigError(f"n_points must be at least {MIN_POINTS}, got {n_points}")
     scene = _scene(seed, n_points)
     return [_episode(seed, i, scene) for i in range(n_episodes)]
 

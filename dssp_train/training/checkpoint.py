@@ -164,10 +164,11 @@ def save_training_state(
     save_tensors(tmp / "rng.safetensors", rng, meta)
     atomic_write_text(tmp / "trainer_state.json", json.dumps({**trainer_state, "param_groups": groups}, indent=2))
     final, old = run_dir / "checkpoint", run_dir / ".checkpoint.old"
-    if old.exists():
-        shutil.rmtree(old)
     if final.exists():
+        if old.exists():
+            shutil.rmtree(old)  # stale: checkpoint/ is complete
         final.rename(old)
+    # Without checkpoint/ (a crash mid-swap), .checkpoint.old is the only complete checkpoint: keep it until now.
     tmp.rename(final)
     shutil.rmtree(old, ignore_errors=True)
 
@@ -178,7 +179,9 @@ def load_training_state(run_dir: Path) -> dict[str, Any]:
     if not ckpt.is_dir() and (Path(run_dir) / ".checkpoint.old").is_dir():
         ckpt = Path(run_dir) / ".checkpoint.old"  # a crash mid-swap: the previous checkpoint is complete
     if not ckpt.is_dir():
-        raise CheckpointError(f"{ckpt} is missing: nothing to resume in {run_dir}; start without --resume")
+        raise CheckpointError(
+            f"{ckpt} is missing: nothing to resume in {run_dir}; start a new run (without --resume) in another --out"
+        )
     try:
         trainer_state = json.loads((ckpt / "trainer_state.json").read_text())
     except (OSError, json.JSONDecodeError) as exc:

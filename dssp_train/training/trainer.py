@@ -9,6 +9,7 @@ each process draws its own trajectory, so a step sees ``world_size`` trajectorie
 
 from __future__ import annotations
 
+import hashlib
 import math
 import os
 import time
@@ -236,11 +237,25 @@ class Trainer:
                 bar.close()
             if log is not None:
                 log.close()
+        if self.world_size > 1:
+            self._log_param_checksums()
         if self.is_main:
             plot_log(self.run_dir / "log.jsonl", self.run_dir / "loss.png")
         if self.world_size > 1:
             dist.barrier()
         return {"step": self.step, "run_dir": str(self.run_dir), **last_val}
+
+    def _log_param_checksums(self) -> None:
+        """Under DDP: a SHA-256 of every process's weights, gathered into log.jsonl (they must all be equal)."""
+        digest = hashlib.sha256()
+        for value in self.policy.state_dict().values():
+            digest.update(value.detach().cpu().contiguous().numpy().tobytes())
+        checksums: list[str | None] = [None] * self.world_size
+        dist.all_gather_object(checksums, digest.hexdigest())
+        if self.is_main:
+            log = RunLog(self.run_dir / "log.jsonl", append=True)
+            log.write("ddp", world_size=self.world_size, param_checksums=checksums)
+            log.close()
 
     # ----------------------------------------------------------- checkpoints
     def save(self) -> None:

@@ -1,0 +1,110 @@
+"""Training cost on this machine: one optimisation step for the ``tiny`` and ``robotwin`` presets, and
+the history encoder's forward + backward over a 600-step trajectory.
+
+    python benchmarks/train_step_time.py [--repeats 5] [--robotwin-length 300] [--json PATH]
+
+Prints a Markdown table of medians (and min/max) in milliseconds. A step is what ``dssp-train``
+does: encode one whole trajectory (E_obs, G_psi), B windows through the denoiser, both losses,
+backward, AdamW, EMA. Inputs are random tensors of the preset's shapes (RoboTwin: 1024 xyz points,
+S = A = 14).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import statistics
+import time
+
+import torch
+
+from dssp_train.config import load_preset
+from dssp_train.model.history_encoder import HistoryEncoder
+from dssp_train.model.policy import DSSPPolicy
+from dssp_train.training.ema import EMA
+
+
+def timed(fn, repeats: int, warmup: int = 1) -> list[float]:
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append((time.perf_counter() - t0) * 1e3)
+    return times
+
+
+def train_step_fn(preset: str, length: int, state_dim: int, action_dim: int):
+    cfg = load_preset(preset)
+    m = cfg.model
+    m.state_dim, m.action_dim = state_dim, action_dim
+    torch.manual_seed(0)
+    policy = DSSPPolicy(m)
+    pc = torch.randn(length, m.n_points, m.point_dim)
+    pos, act = torch.randn(length, state_dim), torch.randn(length, action_dim)
+    policy.fit_normalizers(pc.numpy(), pos.numpy(), act.numpy())
+    opt = torch.optim.AdamW(policy.parameters(), lr=1e-4, betas=(0.95, 0.999), weight_decay=1e-6)
+    ema = EMA(policy)
+    gen = torch.Generator().manual_seed(0)
+    batch = cfg.train.batch_size
+
+    def step():
+        starts = torch.randint(0, length - m.n_action_steps + 1, (batch,), generator=gen)
+        loss = policy.compute_loss(pc, pos, act, starts, gen)["loss"]
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        ema.update(policy)
+
+    n_params = sum(p.numel() for p in policy.parameters())
+    return step, f"{preset}: T={length}, P={m.n_points}, B={batch}, {n_params / 1e6:.1f}M params"
+
+
+def history_fwd_bwd_fn(length: int):
+    m = load_preset("robotwin").model
+    torch.manual_seed(0)
+    enc = HistoryEncoder(m)
+    z = torch.randn(1, length, m.d_model, requires_grad=True)
+
+    def step():
+        enc.zero_grad(set_to_none=True)
+        enc(z).pow(2).mean().backward()
+
+    return step, f"G_psi (robotwin: d=512, 2 Mamba layers, N=64), T={length}, fwd+bwd"
+
+
+def row(label: str, times: list[float]) -> dict:
+    return {"what": label, "median_ms": statistics.median(times), "min_ms": min(times), "max_ms": max(times), "n": len(times)}
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--robotwin-length", type=int, default=300, help="trajectory length for the robotwin step (RoboTwin averages 100-640)")
+    p.add_argument("--history-length", type=int, default=600)
+    p.add_argument("--json", help="also write the figures as JSON here")
+    args = p.parse_args()
+
+    rows = []
+    for fn, label in (
+        train_step_fn("tiny", 40, 2, 2),
+        train_step_fn("robotwin", args.robotwin_length, 14, 14),
+        history_fwd_bwd_fn(args.history_length),
+    ):
+        rows.append(row(label, timed(fn, args.repeats)))
+        print(f"measured: {label}", flush=True)
+
+    print(f"\nMachine: {platform.processor() or platform.machine()}, torch {torch.__version__}, {torch.get_num_threads()} threads\n")
+    print("| what | median ms | min ms | max ms | n |")
+    print("|---|---:|---:|---:|---:|")
+    for r in rows:
+        print(f"| {r['what']} | {r['median_ms']:.1f} | {r['min_ms']:.1f} | {r['max_ms']:.1f} | {r['n']} |")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(rows, f, indent=2)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,262 @@
+"""Our DDPM noising and DDIM sampling against diffusers' schedulers as the oracle.
+
+DP3's settings: 100 training timesteps, squaredcos_cap_v2 betas, clip_sample, set_alpha_to_one,
+steps_offset 0, x0 ("sample") prediction, 10 DDIM steps. The epsilon-prediction variant, other beta
+schedules and other step counts are checked too.
+"""
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+from diffusers import DDIMScheduler, DDPMScheduler
+
+from dssp_train.config import DiffusionConfig, apply_overrides, load_preset
+from dssp_train.model.policy import DSSPPolicy
+from dssp_train.model.scheduler import DiffusionSchedule
+
+DP3 = dict(
+    num_train_timesteps=100,
+    beta_start=1e-4,
+    beta_end=0.02,
+    beta_schedule="squaredcos_cap_v2",
+    clip_sample=True,
+    set_alpha_to_one=True,
+    steps_offset=0,
+    prediction_type="sample",
+)
+TOL = 1e-5
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Tiny tensors: one intra-op thread is fastest and does not stall when other processes load the CPU."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def ours(**changes) -> DiffusionSchedule:
+    return DiffusionSchedule(DiffusionConfig(**{**DP3, "num_inference_steps": 10, **changes}))
+
+
+def ddim(**changes) -> DDIMScheduler:
+    return DDIMScheduler(**{**DP3, **changes})
+
+
+def ddpm(**changes) -> DDPMScheduler:
+    settings = {k: v for k, v in {**DP3, **changes}.items() if k not in ("set_alpha_to_one", "steps_offset")}
+    return DDPMScheduler(**settings)
+
+
+def run_diffusers(scheduler: DDIMScheduler, model, noise: torch.Tensor, num_steps: int) -> torch.Tensor:
+    scheduler.set_timesteps(num_steps)
+    x = noise
+    for t in scheduler.timesteps:
+        x = scheduler.step(model(x, int(t)), t, x).prev_sample
+    return x
+
+
+def run_ours(schedule: DiffusionSchedule, model, noise: torch.Tensor, num_steps: int) -> torch.Tensor:
+    x = noise
+    for t in schedule.inference_timesteps(num_steps):
+        x = schedule.ddim_step(model(x, t), t, x, num_steps)
+    return x
+
+
+def toy_model(x: torch.Tensor, t: int) -> torch.Tensor:
+    """A fixed, deterministic, timestep-dependent stand-in for the denoiser; exceeds [-1, 1] so clipping matters."""
+    return 1.6 * torch.tanh(1.3 * x + 0.05 * t - 2.0) + 0.1 * torch.sin(x * (t + 1) / 17.0)
+
+
+# --------------------------------------------------------------------- schedule
+@pytest.mark.parametrize("beta_schedule", ["squaredcos_cap_v2", "linear", "scaled_linear"])
+def test_betas_and_alphas_cumprod_equal_diffusers(beta_schedule):
+    mine, theirs = ours(beta_schedule=beta_schedule), ddim(beta_schedule=beta_schedule)
+    assert mine.betas.dtype == theirs.betas.dtype == torch.float32
+    assert torch.equal(mine.betas, theirs.betas)
+    assert torch.equal(mine.alphas_cumprod, theirs.alphas_cumprod)
+    assert torch.equal(mine.final_alpha_cumprod, theirs.final_alpha_cumprod)
+    assert torch.equal(mine.alphas_cumprod, ddpm(beta_schedule=beta_schedule).alphas_cumprod)
+
+
+def test_final_alpha_cumprod_without_set_alpha_to_one():
+    mine, theirs = ours(set_alpha_to_one=False), ddim(set_alpha_to_one=False)
+    assert float(mine.final_alpha_cumprod) == float(theirs.final_alpha_cumprod) < 1.0
+
+
+def test_timesteps_are_dp3s_leading_spacing():
+    schedule = ours()
+    assert schedule.inference_timesteps() == [90, 80, 70, 60, 50, 40, 30, 20, 10, 0]
+    scheduler = ddim()
+    scheduler.set_timesteps(10)
+    assert schedule.inference_timesteps(10) == scheduler.timesteps.tolist()
+
+
+@pytest.mark.parametrize("num_steps,steps_offset", [(1, 0), (3, 0), (7, 0), (10, 1), (16, 0), (100, 0)])
+def test_timesteps_equal_diffusers_for_other_step_counts(num_steps, steps_offset):
+    scheduler = ddim(steps_offset=steps_offset)
+    scheduler.set_timesteps(num_steps)
+    assert ours(steps_offset=steps_offset).inference_timesteps(num_steps) == scheduler.timesteps.tolist()
+
+
+@pytest.mark.parametrize("beta_schedule", ["squaredcos_cap_v2", "linear"])
+def test_add_noise_equals_ddpm_add_noise(beta_schedule):
+    gen = torch.Generator().manual_seed(0)
+    x0 = torch.rand((200, 4, 3), generator=gen) * 2 - 1
+    noise = torch.randn((200, 4, 3), generator=gen)
+    timesteps = torch.cat([torch.arange(100), torch.randint(0, 100, (100,), generator=gen)])
+    mine = ours(beta_schedule=beta_schedule).add_noise(x0, noise, timesteps)
+    theirs = ddpm(beta_schedule=beta_schedule).add_noise(x0, noise, timesteps)
+    assert mine.shape == theirs.shape == x0.shape
+    assert (mine - theirs).abs().max().item() <= 1e-6
+    # Not the identity: at t = 99 the sample is mostly noise.
+    assert (mine[99] - x0[99]).abs().max().item() > 0.5
+
+
+# ------------------------------------------------------------ DDIM with a toy model
+@pytest.mark.parametrize("prediction_type", ["sample", "epsilon"])
+@pytest.mark.parametrize(
+    "changes,num_steps",
+    [
+        ({}, 10),
+        ({"beta_schedule": "linear"}, 10),
+        ({"set_alpha_to_one": False}, 10),
+        ({"clip_sample": False}, 10),
+        ({"steps_offset": 1}, 10),
+        ({}, 7),
+        ({}, 1),
+    ],
+)
+def test_ddim_loop_with_toy_model_matches_diffusers(prediction_type, changes, num_steps):
+    changes = {**changes, "prediction_type": prediction_type}
+    noise = torch.randn((5, 4, 3), generator=torch.Generator().manual_seed(1))
+    mine = run_ours(ours(**changes), toy_model, noise, num_steps)
+    theirs = run_diffusers(ddim(**changes), toy_model, noise, num_steps)
+    assert torch.isfinite(mine).all()
+    assert (mine - theirs).abs().max().item() <= TOL
+    assert (mine - noise).abs().max().item() > 0.1
+
+
+def test_single_ddim_step_matches_diffusers_at_every_timestep():
+    gen = torch.Generator().manual_seed(2)
+    for prediction_type in ("sample", "epsilon"):
+        schedule, scheduler = ours(prediction_type=prediction_type), ddim(prediction_type=prediction_type)
+        scheduler.set_timesteps(10)
+        for t in scheduler.timesteps.tolist():
+            sample = torch.randn((3, 4, 2), generator=gen)
+            output = 2 * torch.randn((3, 4, 2), generator=gen)  # partly outside [-1, 1]: clipping is exercised
+            mine = schedule.ddim_step(output, t, sample)
+            theirs = scheduler.step(output, t, sample).prev_sample
+            assert (mine - theirs).abs().max().item() <= TOL, (prediction_type, t)
+
+
+def test_clipping_is_what_diffusers_does():
+    """Sanity check that the comparison can fail: without clipping the result differs from diffusers'."""
+    noise = torch.randn((5, 4, 3), generator=torch.Generator().manual_seed(1))
+    unclipped = run_ours(ours(clip_sample=False), toy_model, noise, 10)
+    theirs = run_diffusers(ddim(), toy_model, noise, 10)
+    assert (unclipped - theirs).abs().max().item() > 1e-2
+
+
+# ------------------------------------------------------- DDIM with a DSSP policy
+def tiny_policy(prediction_type: str, decoupled: bool = True) -> DSSPPolicy:
+    config = apply_overrides(
+        load_preset("tiny"),
+        [
+            "model.d_model=32",
+            "model.d_state=8",
+            "model.n_denoiser_layers=2",
+            "model.n_history_layers=1",
+            "model.n_points=24",
+            "model.state_dim=2",
+            "model.action_dim=3",
+            f"model.timestep_decoupled={'true' if decoupled else 'false'}",
+            f"model.diffusion.prediction_type={prediction_type}",
+        ],
+    )
+    torch.manual_seed(0)
+    policy = DSSPPolicy(config.model)
+    rng = np.random.default_rng(0)
+    policy.fit_normalizers(
+        rng.normal(size=(50, 24, 3)).astype(np.float32),
+        rng.normal(size=(50, 2)).astype(np.float32),
+        rng.normal(size=(50, 3)).astype(np.float32),
+    )
+    # The zero-initialised AdaLN projections would make the output independent of the timestep and the
+    # prefix; perturb every parameter so that the sampler sees a model that depends on both.
+    gen = torch.Generator().manual_seed(3)
+    with torch.no_grad():
+        for p in policy.parameters():
+            p.add_(0.3 * torch.randn(p.shape, generator=gen))
+    return policy.eval()
+
+
+def policy_prefix(policy: DSSPPolicy, batch: int) -> torch.Tensor:
+    gen = torch.Generator().manual_seed(4)
+    m = policy.cfg
+    with torch.no_grad():
+        z = policy.encode_observations(torch.randn((1, 6, 24, 3), generator=gen), torch.randn((1, 6, 2), generator=gen))
+        c = policy.history_encoder(z)
+        starts = torch.tensor([5, 3, 0, 1][:batch])
+        obs_idx, _ = policy.trajectory_windows(6, starts)
+        prefix = policy.build_prefix(c[0, starts], z[0, obs_idx])
+    assert prefix.shape == (batch, m.prefix_length, m.d_model)
+    return prefix
+
+
+@pytest.mark.parametrize(
+    "prediction_type,decoupled", [("sample", True), ("epsilon", True), ("sample", False), ("epsilon", False)]
+)
+def test_policy_sampling_matches_diffusers_ddim(prediction_type, decoupled):
+    policy = tiny_policy(prediction_type, decoupled)
+    m = policy.cfg
+    assert dataclasses.asdict(m.diffusion) == {**DP3, "num_inference_steps": 10, "prediction_type": prediction_type}
+    prefix = policy_prefix(policy, 4)
+    noise = torch.randn((4, m.horizon, m.action_dim), generator=torch.Generator().manual_seed(5))
+
+    mine = policy.sample_normalized(prefix, noise)
+
+    outputs = []
+
+    def model(x, t):
+        with torch.no_grad():
+            timesteps = torch.full((x.shape[0],), t, dtype=torch.long)
+            if decoupled:
+                out = policy.denoiser.denoise(policy.denoiser.encode_prefix(prefix), x, timesteps)
+            else:
+                out = policy.denoiser(prefix, x, timesteps)
+        outputs.append(out)
+        return out
+
+    theirs = run_diffusers(ddim(prediction_type=prediction_type), model, noise, 10)
+
+    assert mine.shape == noise.shape
+    assert torch.isfinite(mine).all()
+    assert (mine - theirs).abs().max().item() <= TOL
+    # The model is not trivial: its output depends on the timestep, and the sample moved away from the noise.
+    assert len(outputs) == 10
+    assert (outputs[0] - outputs[-1]).abs().max().item() > 1e-3
+    assert (mine - noise).abs().max().item() > 0.1
+    if prediction_type == "sample":
+        assert max(o.abs().max().item() for o in outputs) > 1.0  # clipping is exercised
+        assert mine.abs().max().item() <= 1.0 + 1e-6  # the last step returns the clipped x0
+
+
+def test_policy_sampling_with_fewer_steps_matches_diffusers():
+    policy = tiny_policy("sample")
+    m = policy.cfg
+    prefix = policy_prefix(policy, 2)
+    noise = torch.randn((2, m.horizon, m.action_dim), generator=torch.Generator().manual_seed(6))
+    states = policy.denoiser.encode_prefix(prefix)
+
+    def model(x, t):
+        with torch.no_grad():
+            return policy.denoiser.denoise(states, x, torch.full((x.shape[0],), t, dtype=torch.long))
+
+    mine = policy.sample_normalized(prefix, noise, num_steps=4)
+    theirs = run_diffusers(ddim(), model, noise, 4)
+    assert (mine - theirs).abs().max().item() <= TOL
+    assert (mine - policy.sample_normalized(prefix, noise)).abs().max().item() > 1e-4

@@ -1,0 +1,340 @@
+"""``dssp-train`` and ``dssp-params`` from the command line: one-line errors, the happy path, ablation flags."""
+
+import json
+import math
+import os
+import re
+import struct
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import zarr
+from safetensors import safe_open
+
+from dssp_train.cli.params import main as params_main
+from dssp_train.cli.train import main as train_main
+from dssp_train.config import RunConfig, load_preset
+from dssp_train.data.replay_buffer import ReplayBuffer, write_replay_buffer
+from dssp_train.data import synthetic
+from dssp_train.data.synthetic import make_tap_count_episodes, write_tap_count_dataset
+from dssp_train.model.policy import DSSPPolicy
+from dssp_train.training.run_log import read_log
+from dssp_train.training.trainer import Trainer
+
+SMALL = [
+    "model.d_model=32",
+    "model.d_state=8",
+    "model.n_denoiser_layers=2",
+    "model.n_history_layers=1",
+    "train.batch_size=4",
+    "train.val_windows=4",
+    "train.warmup_steps=1",
+    "train.log_every=1",
+    "train.val_every=2",
+    "train.save_every=2",
+]
+SET_SMALL = [a for item in SMALL for a in ("--set", item)]
+TRAIN_KEYS = {"kind", "step", "loss", "diffusion", "dynamics", "lr", "steps_per_s", "windows_per_s"}
+VAL_KEYS = {"kind", "step", "on_train_episodes", "val_diffusion", "val_action_mse"}
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    """Tiny tensors: one intra-op thread is fastest and does not stall on a busy machine."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def subprocess_env() -> dict[str, str]:
+    return {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONWARNINGS": "ignore"}
+
+
+def cli(*args) -> list[str]:
+    return [sys.executable, "-m", "dssp_train.cli.train", *map(str, args)]
+
+
+def one_error_line(stderr: str) -> str:
+    assert "Traceback" not in stderr, stderr
+    lines = stderr.strip().splitlines()
+    assert len(lines) == 1, stderr
+    assert lines[0].startswith("error: "), stderr
+    return lines[0]
+
+
+# ---------------------------------------------------------------------- data
+@pytest.fixture(scope="module")
+def data(tmp_path_factory) -> Path:
+    return write_tap_count_dataset(tmp_path_factory.mktemp("data") / "tap.zarr", 4, seed=0, n_points=24)
+
+
+@pytest.fixture(scope="module")
+def nan_data(tmp_path_factory) -> Path:
+    path = write_tap_count_dataset(tmp_path_factory.mktemp("nan") / "nan.zarr", 3, seed=0, n_points=24)
+    step = nan_step(path)
+    action = zarr.open_array(str(path / "data" / "action"), mode="r+")
+    action[step, 1] = np.nan
+    assert np.isnan(np.asarray(action[step, 1]))
+    return path
+
+
+def nan_step(path: Path) -> int:
+    """The corrupted step: the sixth step of episode 1."""
+    return int(np.asarray(zarr.open_array(str(path / "meta" / "episode_ends"), mode="r")[0])) + 5
+
+
+@pytest.fixture(scope="module")
+def not_zarr(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("plain") / "plain_dir"
+    path.mkdir()
+    (path / "readme.txt").write_text("not a dataset")
+    return path
+
+
+@pytest.fixture(scope="module")
+def happy(tmp_path_factory, data):
+    """A real ``python -m dssp_train.cli.train`` run of 4 steps."""
+    out = tmp_path_factory.mktemp("happy") / "run"
+    proc = subprocess.run(
+        cli("--data", data, "--out", out, "--preset", "tiny", "--steps", 4, "--no-progress", *SET_SMALL),
+        capture_output=True,
+        text=True,
+        env=subprocess_env(),
+        timeout=300,
+    )
+    return {"out": out, "proc": proc}
+
+
+# ---------------------------------------------------------------- error cases
+def error_cases(data: Path, nan_data: Path, not_zarr: Path, tmp: Path, happy_out: Path):
+    """(name, argv, a phrase the one-line message must contain)."""
+    fresh = tmp / "fresh"
+    base = ["--preset", "tiny", "--steps", "2", "--no-progress", *SET_SMALL]
+    return [
+        ("missing dataset", ["--data", tmp / "nope.zarr", "--out", fresh, *base], "does not exist"),
+        ("not zarr", ["--data", not_zarr, "--out", fresh, *base], "is not a zarr group"),
+        ("nan action", ["--data", nan_data, "--out", fresh, *base], "data/action holds NaN or inf"),
+        ("unknown preset", ["--data", data, "--out", fresh, "--preset", "nosuch", "--no-progress"], "unknown preset 'nosuch'"),
+        ("bad set key", ["--data", data, "--out", fresh, *base, "--set", "model.nosuch=3"], "unknown field 'model.nosuch'"),
+        ("bad set section", ["--data", data, "--out", fresh, *base, "--set", "optim.lr=3"], "'optim' is not a config section"),
+        ("set without =", ["--data", data, "--out", fresh, *base, "--set", "model.d_model"], "must look like section.field=value"),
+        ("bad set value", ["--data", data, "--out", fresh, *base, "--set", "model.d_model=0"], "model.d_model must be >= 1"),
+        ("out holds a run", ["--data", data, "--out", happy_out, *base], "already holds a run"),
+        ("resume without run", ["--data", data, "--out", fresh, "--resume", "--no-progress"], "config.json is missing"),
+        ("device cuda", ["--data", data, "--out", fresh, *base, "--device", "cuda"], "CUDA is not available"),
+        ("point_dim 6 on xyz", ["--data", data, "--out", fresh, *base, "--set", "model.point_dim=6"], "model.point_dim=6 needs xyz+rgb"),
+        ("resume with preset", ["--data", data, "--out", happy_out, "--resume", "--preset", "tiny"], "drop --preset"),
+        ("resume with set", ["--data", data, "--out", happy_out, "--resume", "--set", "model.d_model=64"], "only --steps may change"),
+    ]
+
+
+CASE_NAMES = [
+    "missing dataset", "not zarr", "nan action", "unknown preset", "bad set key", "bad set section", "set without =",
+    "bad set value", "out holds a run", "resume without run", "device cuda", "point_dim 6 on xyz", "resume with preset",
+    "resume with set",
+]
+SUBPROCESS_CASES = ["missing dataset", "not zarr", "nan action", "device cuda"]
+
+
+@pytest.mark.parametrize("name", CASE_NAMES)
+def test_bad_input_is_one_error_line_and_exit_code_2(name, data, nan_data, not_zarr, happy, tmp_path, capsys):
+    cases = {n: (argv, phrase) for n, argv, phrase in error_cases(data, nan_data, not_zarr, tmp_path, happy["out"])}
+    argv, phrase = cases[name]
+    before = sorted(p.name for p in happy["out"].rglob("*"))
+    assert train_main([str(a) for a in argv]) == 2
+    captured = capsys.readouterr()
+    line = one_error_line(captured.err)
+    assert phrase in line, line
+    assert captured.out == ""
+    assert not (tmp_path / "fresh").exists()  # nothing half-made on disk
+    assert sorted(p.name for p in happy["out"].rglob("*")) == before  # an existing run is left alone
+
+
+def test_bad_input_via_subprocess(data, nan_data, not_zarr, happy, tmp_path):
+    cases = {n: (argv, phrase) for n, argv, phrase in error_cases(data, nan_data, not_zarr, tmp_path, happy["out"])}
+    procs = {
+        name: subprocess.Popen(
+            cli(*cases[name][0]), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=subprocess_env()
+        )
+        for name in SUBPROCESS_CASES
+    }
+    for name, proc in procs.items():
+        out, err = proc.communicate(timeout=300)
+        assert proc.returncode == 2, (name, err)
+        assert cases[name][1] in one_error_line(err), name
+        assert out == ""
+
+
+def test_nan_message_names_the_step_and_episode(nan_data, tmp_path, capsys):
+    assert train_main(["--data", str(nan_data), "--out", str(tmp_path / "x"), "--no-progress"]) == 2
+    line = one_error_line(capsys.readouterr().err)
+    assert f"first at step {nan_step(nan_data)} (episode 1)" in line
+
+
+def test_resume_of_a_run_stopped_before_its_first_checkpoint(data, tmp_path, capsys, monkeypatch):
+    """config.json exists but no checkpoint: --resume fails, and its advice does not lead back to the same error."""
+    out = tmp_path / "early"
+
+    def interrupt(self):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Trainer, "train_step", interrupt)
+    assert train_main(["--data", str(data), "--out", str(out), "--steps", "4", "--no-progress", *SET_SMALL]) == 130
+    monkeypatch.undo()
+    capsys.readouterr()
+    assert (out / "config.json").is_file() and not (out / "checkpoint").exists()
+
+    assert train_main(["--data", str(data), "--out", str(out), "--resume", "--no-progress"]) == 2
+    line = one_error_line(capsys.readouterr().err)
+    assert "nothing to resume" in line and "another --out" in line
+    # Without --resume the same --out is refused too, so "another --out" is the way forward.
+    assert train_main(["--data", str(data), "--out", str(out), "--no-progress", *SET_SMALL]) == 2
+    assert "another --out" in one_error_line(capsys.readouterr().err)
+
+
+# ---------------------------------------------------------------- happy path
+def test_happy_path_exit_code_and_summary(happy):
+    proc, out = happy["proc"], happy["out"]
+    assert proc.returncode == 0, proc.stderr
+    assert "Traceback" not in proc.stderr and "error" not in proc.stderr
+    assert "warning" not in proc.stderr  # the tap-count dataset records its control rate
+    summary = json.loads(proc.stdout)
+    assert summary["step"] == 4
+    assert Path(summary["run_dir"]) == out
+    for key in ("val_diffusion", "val_action_mse"):
+        assert math.isfinite(summary[key]) and summary[key] > 0
+
+
+def test_happy_path_run_directory(happy, data):
+    out = happy["out"]
+    assert happy["proc"].returncode == 0, happy["proc"].stderr
+    config = json.loads((out / "config.json").read_text())
+    assert config["preset"] == "tiny"
+    assert config["control_rate_hz"] == synthetic.CONTROL_RATE_HZ
+    assert config["dataset"] == str(data)
+    assert config["train"]["steps"] == 4
+    m = config["model"]
+    assert (m["d_model"], m["state_dim"], m["action_dim"], m["n_points"], m["point_dim"]) == (32, 2, 2, 24, 3)
+
+    with safe_open(str(out / "model.safetensors"), "pt") as f:
+        assert f.metadata()["step"] == "4"
+        keys = set(f.keys())
+    assert keys == set(DSSPPolicy(RunConfig.from_dict(config).model).state_dict())
+
+    rows = read_log(out / "log.jsonl")
+    train = [r for r in rows if r["kind"] == "train"]
+    val = [r for r in rows if r["kind"] == "val"]
+    assert [r["step"] for r in train] == [1, 2, 3, 4]
+    assert [r["step"] for r in val] == [2, 4]
+    for r in train:
+        assert set(r) == TRAIN_KEYS
+        assert all(math.isfinite(r[k]) for k in TRAIN_KEYS - {"kind", "step"})
+        assert r["steps_per_s"] > 0 and r["lr"] >= 0
+        assert r["loss"] == pytest.approx(r["diffusion"] + m["dynamics_weight"] * r["dynamics"], rel=1e-5)
+        assert r["windows_per_s"] == pytest.approx(r["steps_per_s"] * config["train"]["batch_size"], rel=1e-9)
+    assert train[0]["lr"] == pytest.approx(config["train"]["lr"])  # after one warm-up step: the peak
+    assert train[-1]["lr"] == pytest.approx(0.0, abs=1e-12)  # cosine ends at 0
+    for r in val:
+        assert set(r) == VAL_KEYS
+        assert r["on_train_episodes"] is False
+        assert math.isfinite(r["val_diffusion"]) and math.isfinite(r["val_action_mse"])
+
+
+def test_happy_path_loss_png(happy):
+    png = (happy["out"] / "loss.png").read_bytes()
+    assert png.startswith(PNG_SIGNATURE)
+    assert png[12:16] == b"IHDR"
+    width, height = struct.unpack(">II", png[16:24])
+    assert (width, height) == (1100, 400)
+    assert len(png) > 10_000  # two axes with curves, not an empty canvas
+    assert png.rstrip(b"\x00").endswith(b"IEND\xaeB`\x82")
+
+
+def test_missing_control_rate_warns_and_flag_sets_it(tmp_path, capsys):
+    path = tmp_path / "norate.zarr"
+    write_replay_buffer(path, make_tap_count_episodes(3, seed=1, n_points=24))
+    assert "control_rate_hz" not in ReplayBuffer.load(path).attrs
+    common = ["--data", str(path), "--steps", "1", "--no-progress", *SET_SMALL]
+
+    assert train_main([*common, "--out", str(tmp_path / "a")]) == 0
+    err = capsys.readouterr().err
+    assert err.startswith("warning: ") and "--control-rate" in err
+    assert json.loads((tmp_path / "a" / "config.json").read_text())["control_rate_hz"] is None
+
+    assert train_main([*common, "--out", str(tmp_path / "b"), "--control-rate", "20"]) == 0
+    assert "warning" not in capsys.readouterr().err
+    assert json.loads((tmp_path / "b" / "config.json").read_text())["control_rate_hz"] == 20.0
+
+
+# ----------------------------------------------------------------- ablations
+ABLATIONS = [
+    (["--no-history"], "use_history", False),
+    (["--no-timestep-decoupling"], "timestep_decoupled", False),
+    (["--no-recent-states"], "use_recent_states", False),
+    (["--no-dynamics-loss"], "dynamics_weight", 0.0),
+    (["--history-backbone", "transformer"], "history_backbone", "transformer"),
+    (["--history-window", "5"], "history_window", 5),
+]
+
+
+@pytest.mark.parametrize("flags,field,value", ABLATIONS, ids=[a[0][0] for a in ABLATIONS])
+def test_ablation_flags_train_and_land_in_config(flags, field, value, data, tmp_path, capsys):
+    out = tmp_path / "run"
+    assert train_main(["--data", str(data), "--out", str(out), "--steps", "3", "--no-progress", *SET_SMALL, *flags]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["step"] == 3 and math.isfinite(summary["val_action_mse"])
+    model = json.loads((out / "config.json").read_text())["model"]
+    assert model[field] == value
+    defaults = load_preset("tiny").model
+    for name, default in (("use_history", True), ("timestep_decoupled", True), ("use_recent_states", True),
+                          ("history_backbone", "mamba"), ("history_window", 0),
+                          ("dynamics_weight", defaults.dynamics_weight)):
+        if name != field:
+            assert model[name] == default, name
+
+    with safe_open(str(out / "model.safetensors"), "pt") as f:
+        keys = set(f.keys())
+    history = {k for k in keys if k.startswith("history_encoder.")}
+    dynamics = {k for k in keys if k.startswith("dynamics.")}
+    assert bool(history) == (field != "use_history")
+    assert bool(dynamics) == (field not in ("use_history", "dynamics_weight"))
+    if field == "history_backbone":
+        assert any("self_attn" in k for k in history) and not any("A_log" in k for k in history)
+    elif history:
+        assert any("A_log" in k for k in history)
+    rows = read_log(out / "log.jsonl")
+    train = [r for r in rows if r["kind"] == "train"]
+    assert [r["step"] for r in train] == [1, 2, 3]
+    if field in ("use_history", "dynamics_weight"):
+        assert all(r["dynamics"] == 0 and r["loss"] == r["diffusion"] for r in train)
+    else:
+        assert all(r["dynamics"] > 0 for r in train)
+
+
+# ---------------------------------------------------------------- dssp-params
+def test_params_total_equals_the_models_parameter_count(capsys):
+    assert params_main(["--preset", "robotwin"]) == 0
+    out = capsys.readouterr().out
+    assert "S=14, A=14" in out.splitlines()[0]
+    totals = [line for line in out.splitlines() if line.split() and line.split()[0] == "total"]
+    assert len(totals) == 1
+    printed = int(totals[0].split()[1].replace(",", ""))
+
+    config = load_preset("robotwin")
+    config.model.state_dim = config.model.action_dim = 14
+    expected = sum(p.numel() for p in DSSPPolicy(config.model).parameters())
+    assert printed == expected
+    assert re.search(rf"{expected / 1e6:.2f}\s*$", totals[0])
+    rows = [line for line in out.splitlines()[2:] if line.split() and line.split()[0] != "total"]
+    assert sum(int(re.findall(r"([\d,]+)\s+[\d.]+\s*$", r)[0].replace(",", "")) for r in rows) == expected
+
+
+def test_params_unknown_preset_is_one_error_line(capsys):
+    assert params_main(["--preset", "nosuch"]) == 2
+    assert "unknown preset" in one_error_line(capsys.readouterr().err)
