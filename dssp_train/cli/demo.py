@@ -1,6 +1,6 @@
 """``dssp-demo``: the embedded default, end to end on a CPU in a few minutes, no hardware.
 
-    dssp-demo [--out runs/demo] [--steps 1000] [--episodes 40] [--seed 0]
+    dssp-demo [--out runs/demo] [--steps 1500] [--episodes 40] [--seed 0]
 
 1. writes the synthetic "tap count" memory task (``dssp-synth``) to ``OUT/tap_count.zarr``;
 2. trains the ``tiny`` DSSP preset on it (``OUT/dssp``) and, with the same data, budget and seed,
@@ -49,19 +49,19 @@ def decision_accuracy(run_dir: Path, data_path: Path) -> float:
     return hits / max(total, 1)
 
 
-def run_demo(out: Path, steps: int, episodes: int, seed: int, progress: bool = True) -> dict[str, dict[str, float]]:
+def run_demo(out: Path, steps: int | None, episodes: int, seed: int, progress: bool = True) -> dict[str, dict[str, float]]:
     """Dataset, two trainings and their evaluation; returns {"dssp": {...}, "reactive": {...}}."""
     from dssp_train.config import apply_overrides, load_preset
     from dssp_train.data.synthetic import write_tap_count_dataset
+    from dssp_train.training.checkpoint import atomic_write_text
     from dssp_train.training.trainer import Trainer
 
     out.mkdir(parents=True, exist_ok=True)
     data = write_tap_count_dataset(out / "tap_count.zarr", episodes, seed=seed)
     results = {}
     for name, extra in (("dssp", []), ("reactive", ["model.use_history=false"])):
-        config = apply_overrides(
-            load_preset("tiny"), [f"train.steps={steps}", f"train.seed={seed}", "train.val_ratio=0.2", *extra]
-        )
+        budget = [f"train.steps={steps}"] if steps else []
+        config = apply_overrides(load_preset("tiny"), [*budget, f"train.seed={seed}", "train.val_ratio=0.2", *extra])
         run_dir = out / name
         if progress:
             print(f"training {name} -> {run_dir}", flush=True)
@@ -71,7 +71,7 @@ def run_demo(out: Path, steps: int, episodes: int, seed: int, progress: bool = T
             "val_action_mse": summary["val_action_mse"],
             "decision_accuracy": decision_accuracy(run_dir, data),
         }
-    (out / "results.json").write_text(json.dumps(results, indent=2) + "\n")
+    atomic_write_text(out / "results.json", json.dumps(results, indent=2) + "\n")
     return results
 
 
@@ -91,7 +91,7 @@ def format_results(results: dict[str, dict[str, float]]) -> str:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="dssp-demo", description="Synthetic memory task: DSSP against the reactive baseline.")
     p.add_argument("--out", default="runs/demo", help="output directory (dataset, two run directories, results.json)")
-    p.add_argument("--steps", type=int, default=1000, help="training steps for each model")
+    p.add_argument("--steps", type=int, help="training steps for each model (default: the tiny preset's 1500)")
     p.add_argument("--episodes", type=int, default=40, help="demonstrations to generate")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-progress", action="store_true")
