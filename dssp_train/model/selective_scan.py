@@ -17,28 +17,36 @@ from __future__ import annotations
 import torch
 
 
-def _scan_inplace(a: torch.Tensor, x: torch.Tensor) -> None:
+def _scan_inplace(a: torch.Tensor, x: torch.Tensor, reverse: bool = False) -> None:
     """In-place inclusive scan of ``x_t = a_t * x_{t-1} + x_t`` along dim 1 (any length L).
 
+    With ``reverse`` the recurrence runs from the end: ``x_t = a_t * x_{t+1} + x_t``.
     ``a`` and ``x`` are (B, L, D, N); ``a`` is overwritten with partial products.
     """
     length = x.shape[1]
     levels = length.bit_length() - 1
-    # Up-sweep: position i ends up holding the reduction of the block of length lowbit(i+1) ending at i.
+
+    def positions(first: int, step: int, count: int) -> slice:
+        """``count`` positions first, first + step, ... counted from the start (or from the end)."""
+        if not reverse:
+            return slice(first, first + step * (count - 1) + 1, step)
+        last = length - 1 - first
+        return slice(last - step * (count - 1), last + 1, step)
+
+    # Up-sweep: position p ends up holding the reduction of the block of length lowbit(p+1) ending at p.
     for d in range(levels):
         half, stride = 1 << d, 1 << (d + 1)
         count = length // stride
-        target = slice(stride - 1, None, stride)
-        x_t, a_t = x[:, target][:, :count], a[:, target][:, :count]
-        x_t.addcmul_(a_t, x[:, half - 1 :: stride][:, :count])
-        a_t.mul_(a[:, half - 1 :: stride][:, :count])
-    # Down-sweep: complete the prefixes of positions whose block does not start at 0.
+        target, source = positions(stride - 1, stride, count), positions(half - 1, stride, count)
+        x[:, target].addcmul_(a[:, target], x[:, source])
+        a[:, target].mul_(a[:, source])
+    # Down-sweep: complete the prefixes of positions whose block does not start at the first position.
     for d in range(levels - 1, -1, -1):
         half, stride = 1 << d, 1 << (d + 1)
-        x_t = x[:, stride + half - 1 :: stride]
-        count = x_t.shape[1]
+        count = len(range(stride + half - 1, length, stride))
         if count:
-            x_t.addcmul_(a[:, stride + half - 1 :: stride], x[:, stride - 1 :: stride][:, :count])
+            target, source = positions(stride + half - 1, stride, count), positions(stride - 1, stride, count)
+            x[:, target].addcmul_(a[:, target], x[:, source])
 
 
 def _scan(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -60,11 +68,15 @@ class _LinearScan(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad_h: torch.Tensor):
         a, h, h0 = ctx.saved_tensors
-        # g_t = grad_h_t + a_{t+1} g_{t+1}: the same recurrence, reversed in time.
-        a_next = torch.cat([a[:, 1:], a.new_zeros(a[:, :1].shape)], dim=1)
-        g = _scan(a_next.flip(1), grad_h.flip(1)).flip(1)
-        h_prev = torch.cat([h0.unsqueeze(1), h[:, :-1]], dim=1)
-        grad_a = g * h_prev
+        # g_t = grad_h_t + a_{t+1} g_{t+1}: the same recurrence, run from the end.
+        a_next = torch.empty_like(a, memory_format=torch.contiguous_format)
+        a_next[:, :-1] = a[:, 1:]
+        a_next[:, -1] = 0
+        g = grad_h.clone(memory_format=torch.contiguous_format)
+        _scan_inplace(a_next, g, reverse=True)
+        grad_a = torch.empty_like(g)
+        torch.mul(g[:, 1:], h[:, :-1], out=grad_a[:, 1:])
+        grad_a[:, 0] = g[:, 0] * h0
         grad_h0 = a[:, 0] * g[:, 0]
         return grad_a, g, grad_h0
 
