@@ -76,13 +76,13 @@ def mamba_tokens(mixer: Mamba, u: torch.Tensor, state: MambaState | None) -> tup
 
     dt, b, c = mixer._ssm_params(x)  # (B, L, E), (B, L, n), (B, L, n)
     a = -torch.exp(mixer.A_log.float())  # (E, n)
-    decay = torch.exp(dt.unsqueeze(-1) * a)  # (B, L, E, n)
-    drive = (dt * x).unsqueeze(-1) * b.unsqueeze(2)  # (B, L, E, n)
-    hs = []
-    for i in range(length):
-        h = drive[:, i] if h is None else decay[:, i] * h + drive[:, i]  # (B, E, n)
-        hs.append(h)
-    y = torch.matmul(torch.stack(hs, dim=1), c.unsqueeze(-1)).squeeze(-1)  # (B, L, E)
+    # One token at a time: only (B, E) and (B, n) slices are taken, the (B, E, n) terms are built per token.
+    ys = []
+    for dt_i, dtx_i, b_i, c_i in zip(dt.unbind(1), (dt * x).unbind(1), b.unbind(1), c.unbind(1)):
+        drive = dtx_i.unsqueeze(-1) * b_i.unsqueeze(1)  # (B, E, n)
+        h = drive if h is None else torch.exp(dt_i.unsqueeze(-1) * a) * h + drive
+        ys.append(torch.matmul(h, c_i.unsqueeze(-1)).squeeze(-1))  # (B, E)
+    y = torch.stack(ys, dim=1)  # (B, L, E)
     y = (y + mixer.D * x) * F.silu(z)
     return mixer.out_proj(y), (new_conv, h)
 
