@@ -35,15 +35,6 @@ CHECKPOINT_FILES = ("model.safetensors", "ema.safetensors", "optimizer.safetenso
 ALLOWED_SUFFIXES = {".json", ".jsonl", ".png", ".safetensors"}
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """Tiny tensors: one intra-op thread is fastest, does not stall on a busy machine, and is deterministic."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 def train_args(data: Path, out: Path, steps: int = 2 * K) -> list[str]:
     args = ["--data", str(data), "--out", str(out), "--preset", "tiny", "--steps", str(steps), "--no-progress"]
     for item in OVERRIDES:

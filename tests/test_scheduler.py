@@ -29,15 +29,6 @@ DP3 = dict(
 TOL = 1e-5
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Tiny tensors: one intra-op thread is fastest and does not stall when other processes load the CPU."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 def ours(**changes) -> DiffusionSchedule:
     return DiffusionSchedule(DiffusionConfig(**{**DP3, "num_inference_steps": 10, **changes}))
 

@@ -11,7 +11,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 import zarr
 from safetensors import safe_open
 
@@ -41,15 +40,6 @@ SET_SMALL = [a for item in SMALL for a in ("--set", item)]
 TRAIN_KEYS = {"kind", "step", "loss", "diffusion", "dynamics", "lr", "steps_per_s", "windows_per_s"}
 VAL_KEYS = {"kind", "step", "on_train_episodes", "val_diffusion", "val_action_mse"}
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-
-
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """Tiny tensors: one intra-op thread is fastest and does not stall on a busy machine."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
 
 
 def subprocess_env() -> dict[str, str]:
