@@ -76,13 +76,17 @@ def mamba_tokens(mixer: Mamba, u: torch.Tensor, state: MambaState | None) -> tup
 
     dt, b, c = mixer._ssm_params(x)  # (B, L, E), (B, L, n), (B, L, n)
     a = -torch.exp(mixer.A_log.float())  # (E, n)
-    # One token at a time: only (B, E) and (B, n) slices are taken, the (B, E, n) terms are built per token.
-    ys = []
-    for dt_i, dtx_i, b_i, c_i in zip(dt.unbind(1), (dt * x).unbind(1), b.unbind(1), c.unbind(1)):
-        drive = dtx_i.unsqueeze(-1) * b_i.unsqueeze(1)  # (B, E, n)
-        h = drive if h is None else torch.exp(dt_i.unsqueeze(-1) * a) * h + drive
-        ys.append(torch.matmul(h, c_i.unsqueeze(-1)).squeeze(-1))  # (B, E)
-    y = torch.stack(ys, dim=1)  # (B, L, E)
+    decay = torch.exp(dt.unsqueeze(-1) * a)  # (B, L, E, n)
+    drive = (dt * x).unsqueeze(-1) * b.unsqueeze(2)  # (B, L, E, n)
+    if h is not None:
+        h = h.unsqueeze(1)  # (B, 1, E, n)
+    # The recurrence, one token at a time: two elementwise ops per token on (B, 1, E, n) slices.
+    hs = []
+    for decay_i, drive_i in zip(decay.split(1, dim=1), drive.split(1, dim=1)):
+        h = drive_i if h is None else decay_i * h + drive_i
+        hs.append(h)
+    y = torch.matmul(torch.cat(hs, dim=1), c.unsqueeze(-1)).squeeze(-1)  # (B, L, E)
+    h = h.squeeze(1)  # (B, E, n)
     y = (y + mixer.D * x) * F.silu(z)
     return mixer.out_proj(y), (new_conv, h)
 
