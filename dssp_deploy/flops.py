@@ -1,0 +1,57 @@
+"""Floating-point operations of one history step and one action chunk, counted from the model config.
+
+Counts multiply-adds of every matrix product as 2 flops (the dominant cost) plus the selective-scan
+update (about 7 flops per (channel, state) pair per token); norms and activations are left out, so the
+achieved GFLOP/s reported by the profiler is a slight underestimate. ``cfg`` is the ``model`` section of
+``dssp_model.json`` (a plain dict), so this needs no torch.
+"""
+
+from __future__ import annotations
+
+import math
+
+
+def _mlp(widths: list[int]) -> int:
+    return sum(2 * a * b for a, b in zip(widths[:-1], widths[1:]))
+
+
+def mamba_token_flops(cfg: dict) -> int:
+    """One token through one Mamba layer (recurrent step)."""
+    d, n, expand, w = cfg["d_model"], cfg["d_state"], cfg["expand"], cfg["d_conv"]
+    e = expand * d
+    rank = math.ceil(d / 16)
+    return (
+        2 * d * 2 * e  # in_proj
+        + 2 * e * w  # depthwise conv
+        + 2 * e * (rank + 2 * n)  # x_proj
+        + 2 * rank * e  # dt_proj
+        + 7 * e * n  # exp(dt A), dt B x, decay * h + drive, C . h
+        + 2 * e * d  # out_proj
+    )
+
+
+def observation_flops(cfg: dict, n_points: int) -> int:
+    """E_obs on one observation: per-point MLP, max-pool, state MLP and the fusion projection."""
+    widths = list(cfg["point_widths"])
+    if cfg["point_dim"] == 6 and len(widths) == 3:
+        widths.append(512)
+    point = n_points * _mlp([cfg["point_dim"], *widths]) + 2 * widths[-1] * cfg["point_feature_dim"]
+    state = _mlp([cfg["state_dim"], *cfg["state_widths"]])
+    fuse = 2 * (cfg["point_feature_dim"] + cfg["state_widths"][-1]) * cfg["d_model"]
+    return point + state + fuse
+
+
+def history_step_flops(cfg: dict, n_points: int) -> int:
+    """One control tick: E_obs plus one step of every history layer."""
+    layers = cfg["n_history_layers"] if cfg["use_history"] else 0
+    return observation_flops(cfg, n_points) + layers * mamba_token_flops(cfg)
+
+
+def chunk_flops(cfg: dict, denoise_steps: int) -> int:
+    """One action chunk: the prefix once (cached), then K passes over the H action tokens."""
+    n_prefix = int(cfg["use_history"]) + (cfg["n_obs_steps"] if cfg["use_recent_states"] else 0)
+    per_token = cfg["n_denoiser_layers"] * mamba_token_flops(cfg)
+    d, a, h = cfg["d_model"], cfg["action_dim"], cfg["horizon"]
+    io = h * (2 * a * d + 2 * d * a)  # action_in and action_out
+    prefix_passes = 1 if cfg["timestep_decoupled"] else denoise_steps
+    return prefix_passes * n_prefix * per_token + denoise_steps * (h * per_token + io)

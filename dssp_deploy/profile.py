@@ -1,0 +1,256 @@
+"""``dssp-profile``: CPU latency and memory of an exported DSSP model, in numbers and a plot.
+
+    dssp-profile MODEL_DIR [--checkpoint RUN_DIR] [--quick] [--threads N] [--json PATH] [--plot PATH]
+
+Measures, for the model directory given (batch 1, the model's point count):
+- per component — history step, denoiser chunk (K DDIM steps), the chunk tick (both) — p50/p95/p99/max
+  over many calls after warm-up, and the resident memory;
+- a history-length sweep from 10 to 10,000 steps: the cost of one history update at each length and the
+  memory (DSSP's claim: constant);
+- in the same run, when torch is importable: PyTorch eager (needs ``--checkpoint``) and TorchScript
+  (``*.pt`` in the model directory) of the same model, and a causal Transformer history encoder of the
+  same width over the full history (paper Table 3's alternative), whose per-step cost grows;
+- achieved GFLOP/s against this machine's own float32 GEMM peak (numpy).
+Prints a Markdown table; ``--json`` writes every figure (ms, MiB); ``--plot`` a PNG.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dssp_deploy.flops import chunk_flops, history_step_flops
+from dssp_deploy.latency import LatencyStats, gemm_peak_gflops, resident_memory_mib, time_calls
+from dssp_deploy.policy import OnnxPolicy
+
+FULL = {"iterations": 200, "chunk_iterations": 50, "sweep": [10, 100, 1000, 10000], "window": 50, "transformer_max": 10000}
+QUICK = {"iterations": 20, "chunk_iterations": 5, "sweep": [10, 100, 300], "window": 10, "transformer_max": 300}
+
+
+def random_observation(policy: OnnxPolicy, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    n_points = policy.manifest["model_config"]["n_points"]
+    return (
+        rng.standard_normal((1, n_points, policy.point_dim), dtype=np.float32),
+        rng.standard_normal((1, policy.state_dim), dtype=np.float32),
+    )
+
+
+def profile_components(policy: OnnxPolicy, settings: dict, rng) -> dict[str, Any]:
+    pc, pos = random_observation(policy, rng)
+    policy.reset()
+    history = time_calls(lambda: policy.observe(pc, pos), settings["iterations"])
+    chunk = time_calls(lambda: policy.act(seed=0), settings["chunk_iterations"])
+    tick = time_calls(lambda: (policy.observe(pc, pos), policy.act(seed=0)), settings["chunk_iterations"])
+    return {"history_step": history, "denoiser_chunk": chunk, "chunk_tick": tick}
+
+
+def history_sweep(step, lengths: list[int], window: int) -> list[dict[str, float]]:
+    """Per-step cost and resident memory at each history length; ``step()`` adds one observation."""
+    rows, done = [], 0
+    for length in lengths:
+        while done < length - window:
+            step()
+            done += 1
+        samples = time_calls(step, window, warmup=0)
+        done += window
+        rows.append({"length": length, "p50_ms": float(np.median(samples)), "rss_mib": resident_memory_mib()})
+    return rows
+
+
+def torch_comparisons(model_dir: Path, checkpoint: Path | None, manifest: dict, settings: dict, threads: int | None):
+    """Eager PyTorch, TorchScript and a causal Transformer history encoder, when torch is available."""
+    try:
+        import torch
+    except ImportError:
+        return {"skipped": "torch is not installed: no PyTorch comparison"}
+    if threads:
+        torch.set_num_threads(threads)
+    out: dict[str, Any] = {}
+    m = manifest["model_config"]
+    rng = torch.Generator().manual_seed(0)
+    pc = torch.randn(1, m["n_points"], m["point_dim"], generator=rng)
+    pos = torch.randn(1, m["state_dim"], generator=rng)
+    if checkpoint is not None:
+        from dssp_train.model.streaming import StreamingPolicy
+        from dssp_train.training.checkpoint import load_policy
+
+        policy, _ = load_policy(checkpoint)
+        stream = StreamingPolicy(policy)
+        with torch.inference_mode():
+            out["eager_history_step"] = time_calls(lambda: stream.observe(pc, pos), settings["iterations"])
+            out["eager_denoiser_chunk"] = time_calls(
+                lambda: stream.act(seed=0, num_steps=manifest["denoise_steps"]), settings["chunk_iterations"]
+            )
+    files = {g: manifest["graphs"][g]["files"].get("torchscript") for g in ("history_step", "denoiser")}
+    if all(files.values()):
+        history = torch.jit.load(str(model_dir / files["history_step"]))
+        denoiser = torch.jit.load(str(model_dir / files["denoiser"]))
+        state_specs = [s for s in manifest["graphs"]["history_step"]["inputs"] if s["name"] in manifest["history_state"]]
+        state = [torch.zeros([1, *s["shape"][1:]]) for s in state_specs]
+        with torch.inference_mode():
+            out["torchscript_history_step"] = time_calls(lambda: history(pc, pos, *state), settings["iterations"])
+            inputs = []
+            if manifest["use_history"]:
+                inputs.append(torch.zeros(1, m["d_model"]))
+            if manifest["use_recent_states"]:
+                inputs.append(torch.zeros(1, m["n_obs_steps"], m["d_model"]))
+            noise = torch.randn(1, m["horizon"], m["action_dim"], generator=rng)
+            out["torchscript_denoiser_chunk"] = time_calls(lambda: denoiser(*inputs, noise), settings["chunk_iterations"])
+    # Paper Table 3's alternative: a causal Transformer over the full history (same width and depth).
+    from dssp_train.model.history_encoder import CausalTransformer
+
+    heads = 8 if m["d_model"] % 8 == 0 else 4
+    net = CausalTransformer(m["d_model"], m["n_history_layers"], heads).eval()
+    buffer: list[torch.Tensor] = []
+
+    def transformer_step():
+        buffer.append(torch.randn(1, 1, m["d_model"]))
+        with torch.inference_mode():
+            net(torch.cat(buffer, dim=1))[:, -1]
+
+    lengths = [n for n in settings["sweep"] if n <= settings["transformer_max"]]
+    out["transformer_sweep"] = history_sweep(transformer_step, lengths, min(settings["window"], 5))
+    return out
+
+
+def run_profile(model_dir: Path, checkpoint: Path | None, quick: bool, threads: int | None) -> dict[str, Any]:
+    settings = QUICK if quick else FULL
+    rng = np.random.default_rng(0)
+    rss_before = resident_memory_mib()
+    policy = OnnxPolicy(model_dir, threads=threads)
+    rss_loaded = resident_memory_mib()
+    manifest = policy.manifest
+    m = manifest["model_config"]
+    components = profile_components(policy, settings, rng)
+    stats = {k: LatencyStats.of(v).to_dict() for k, v in components.items()}
+
+    pc, pos = random_observation(policy, rng)
+    policy.reset()
+    sweep = history_sweep(lambda: policy.observe(pc, pos), settings["sweep"], settings["window"])
+
+    peak = gemm_peak_gflops()
+    flops = {"history_step": history_step_flops(m, m["n_points"]), "denoiser_chunk": chunk_flops(m, manifest["denoise_steps"])}
+    achieved = {k: flops[k] / (stats[k]["p50"] / 1e3) / 1e9 for k in flops}
+    comparisons = torch_comparisons(model_dir, checkpoint, manifest, settings, threads)
+    comp_stats = {k: LatencyStats.of(v).to_dict() for k, v in comparisons.items() if isinstance(v, list) and k != "transformer_sweep"}
+    return {
+        "model_dir": str(model_dir),
+        "machine": {"processor": platform.processor() or platform.machine(), "threads": threads, "gemm_peak_gflops": peak},
+        "settings": {"quick": quick, **settings},
+        "memory_mib": {"before_load": rss_before, "after_load": rss_loaded, "after_profile": resident_memory_mib()},
+        "latency_ms": stats,
+        "samples_ms": components,
+        "history_sweep": sweep,
+        "flops": flops,
+        "achieved_gflops": achieved,
+        "fraction_of_peak": {k: v / peak for k, v in achieved.items()},
+        "torch": {**comp_stats, "transformer_sweep": comparisons.get("transformer_sweep"), "skipped": comparisons.get("skipped")},
+    }
+
+
+def markdown(report: dict[str, Any]) -> str:
+    lat, torch_stats = report["latency_ms"], report["torch"]
+    lines = [
+        f"Model: {report['model_dir']} — GEMM peak {report['machine']['gemm_peak_gflops']:.0f} GFLOP/s (numpy float32)",
+        "",
+        "| component | p50 ms | p95 ms | p99 ms | max ms | GFLOP/s | of peak |",
+        "|---|---:|---:|---:|---:|---:|---:|",
+    ]
+    for key, label in (("history_step", "history step (ORT)"), ("denoiser_chunk", "denoiser chunk (ORT)"), ("chunk_tick", "chunk tick: both (ORT)")):
+        s = lat[key]
+        gf = report["achieved_gflops"].get(key)
+        extra = f"{gf:.1f} | {100 * report['fraction_of_peak'][key]:.1f} %" if gf is not None else " | "
+        lines.append(f"| {label} | {s['p50']:.2f} | {s['p95']:.2f} | {s['p99']:.2f} | {s['max']:.2f} | {extra} |")
+    for key, label in (
+        ("eager_history_step", "history step (PyTorch eager)"),
+        ("eager_denoiser_chunk", "denoiser chunk (PyTorch eager)"),
+        ("torchscript_history_step", "history step (TorchScript)"),
+        ("torchscript_denoiser_chunk", "denoiser chunk (TorchScript)"),
+    ):
+        if key in torch_stats:
+            s = torch_stats[key]
+            lines.append(f"| {label} | {s['p50']:.2f} | {s['p95']:.2f} | {s['p99']:.2f} | {s['max']:.2f} | | |")
+    if "eager_denoiser_chunk" in torch_stats:
+        ratio = torch_stats["eager_denoiser_chunk"]["p50"] / lat["denoiser_chunk"]["p50"]
+        lines += ["", f"ONNX Runtime vs PyTorch eager per chunk: {ratio:.1f}x faster (p50, same run)"]
+    lines += ["", "| history length | DSSP step p50 ms | RSS MiB | Transformer (full history) step p50 ms |", "|---:|---:|---:|---:|"]
+    tf = {r["length"]: r for r in (torch_stats.get("transformer_sweep") or [])}
+    for r in report["history_sweep"]:
+        t = tf.get(r["length"])
+        lines.append(f"| {r['length']} | {r['p50_ms']:.3f} | {r['rss_mib']:.0f} | {t['p50_ms']:.2f} |" if t else f"| {r['length']} | {r['p50_ms']:.3f} | {r['rss_mib']:.0f} | |")
+    sweep = report["history_sweep"]
+    growth = sweep[-1]["p50_ms"] / sweep[0]["p50_ms"] - 1
+    lines += ["", f"DSSP per-step cost at {sweep[-1]['length']} steps vs {sweep[0]['length']}: {100 * growth:+.1f} %; "
+              f"memory {sweep[-1]['rss_mib'] - sweep[0]['rss_mib']:+.1f} MiB"]
+    mem = report["memory_mib"]
+    lines.append(f"Resident memory: {mem['before_load']:.0f} MiB before load, {mem['after_load']:.0f} after, {mem['after_profile']:.0f} at the end")
+    if torch_stats.get("skipped"):
+        lines.append(torch_stats["skipped"])
+    return "\n".join(lines)
+
+
+def plot(report: dict[str, Any], path: Path) -> None:
+    try:
+        import matplotlib
+    except ImportError:
+        raise SystemExit("error: --plot needs matplotlib (pip install matplotlib)") from None
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import matplotlib.ticker
+
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4))
+    sweep = report["history_sweep"]
+    ax1.plot([r["length"] for r in sweep], [r["p50_ms"] for r in sweep], "o-", label="DSSP (Mamba, ORT)")
+    tf = report["torch"].get("transformer_sweep")
+    if tf:
+        ax1.plot([r["length"] for r in tf], [r["p50_ms"] for r in tf], "s-", label="causal Transformer, full history (torch)")
+    ax1.set(xscale="log", yscale="log", xlabel="history length (steps)", ylabel="one history update, p50 ms", title="Per-step cost vs history")
+    ax1.legend()
+    samples = [report["samples_ms"][k] for k in ("history_step", "denoiser_chunk")]
+    bins = np.geomspace(min(map(min, samples)) * 0.9, max(map(max, samples)) * 1.1, 50)
+    for values, label in zip(samples, ("history step", "denoiser chunk")):
+        ax2.hist(values, bins=bins, alpha=0.6, label=label)
+    ax2.set(xscale="log", xlabel="latency ms", ylabel="calls", title="Latency distribution (ORT)")
+    ax2.xaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
+    ax2.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+    ax2.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    from dssp_train.cli.common import run_cli
+
+    p = argparse.ArgumentParser(prog="dssp-profile", description="CPU latency and memory of an exported DSSP model.")
+    p.add_argument("model_dir", type=Path)
+    p.add_argument("--checkpoint", type=Path, help="the run directory it was exported from, for the PyTorch eager comparison")
+    p.add_argument("--quick", action="store_true", help="short run (tests, CI)")
+    p.add_argument("--threads", type=int, help="ONNX Runtime (and torch) intra-op threads (default: all CPUs)")
+    p.add_argument("--json", type=Path, help="write every figure here")
+    p.add_argument("--plot", type=Path, help="write a PNG here")
+    args = p.parse_args(argv)
+
+    def _main() -> int:
+        t0 = time.perf_counter()
+        report = run_profile(args.model_dir, args.checkpoint, args.quick, args.threads)
+        report["profile_seconds"] = time.perf_counter() - t0
+        print(markdown(report))
+        if args.json:
+            args.json.write_text(json.dumps(report, indent=2) + "\n")
+        if args.plot:
+            plot(report, args.plot)
+        return 0
+
+    return run_cli(_main)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
