@@ -1,0 +1,212 @@
+"""The robot runtime: no torch, same chunks as the PyTorch streaming API, control-loop semantics, profiler."""
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+import warnings
+
+import numpy as np
+import pytest
+
+from dssp_deploy import OnnxPolicy
+from dssp_deploy.control_loop import ChunkedControl
+from dssp_deploy.manifest import MANIFEST_NAME, ModelDirError
+
+
+def long_trajectory(data_path, length=1000):
+    from dssp_train.data.replay_buffer import ReplayBuffer
+
+    buf = ReplayBuffer.load(data_path)
+    reps = -(-length // buf.n_steps)
+    return np.tile(buf.point_cloud, (reps, 1, 1))[:length], np.tile(buf.state, (reps, 1))[:length]
+
+
+def test_importing_the_runtime_never_imports_torch(tiny_export):
+    _, model_dir, _ = tiny_export
+    code = textwrap.dedent(
+        f"""
+        import sys
+        sys.modules["torch"] = None  # any import of torch now fails
+        import numpy as np
+        from dssp_deploy import OnnxPolicy
+        from dssp_deploy.control_loop import ChunkedControl
+        p = OnnxPolicy({str(model_dir)!r}, threads=1)
+        loop = ChunkedControl(p, seed=0)
+        for t in range(7):
+            action, info = loop.tick(np.zeros((32, 3), np.float32), np.zeros(2, np.float32))
+        assert action.shape == (1, 2) and np.isfinite(action).all()
+        assert "torch" not in [m for m in sys.modules if sys.modules[m] is not None]
+        print("ok")
+        """
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "ok"
+
+
+def test_runtime_chunks_equal_pytorch_streaming_over_1000_steps(tiny_export):
+    import torch
+
+    from dssp_train.model.streaming import StreamingPolicy
+    from dssp_train.training.checkpoint import load_policy
+
+    run_dir, model_dir, data = tiny_export
+    runtime = OnnxPolicy(model_dir, threads=1)
+    policy, config = load_policy(run_dir)
+    stream = StreamingPolicy(policy)
+    pcs, states = long_trajectory(data)
+    rng = np.random.default_rng(0)
+    worst_chunk = worst_context = 0.0
+    for t in range(len(states)):
+        runtime.observe(pcs[t], states[t])
+        c_ref = stream.observe(pcs[t], states[t])
+        worst_context = max(worst_context, float(np.abs(runtime.context - c_ref.numpy()).max()))
+        if t % config.model.n_action_steps == 0:
+            noise = rng.standard_normal((1, config.model.horizon, config.model.action_dim)).astype(np.float32)
+            worst_chunk = max(worst_chunk, float(np.abs(runtime.act(noise=noise) - stream.act(noise=torch.from_numpy(noise))).max()))
+    assert worst_context <= 1e-4 and worst_chunk <= 1e-4, (worst_context, worst_chunk)
+
+
+def test_recent_tokens_pad_with_the_first_and_reset_forgets(tiny_export):
+    _, model_dir, data = tiny_export
+    p = OnnxPolicy(model_dir, threads=1)
+    pcs, states = long_trajectory(data, 5)
+    z0 = p.observe(pcs[0], states[0])
+    assert p.recent.shape == (1, p.n_obs_steps, p.manifest["d_model"])
+    assert np.array_equal(p.recent, np.repeat(z0[:, None], p.n_obs_steps, axis=1))
+    first = p.act(seed=1)
+    before = p.recent.copy()
+    z1 = p.observe(pcs[1], states[1])
+    assert np.array_equal(p.recent[:, -1], z1) and np.array_equal(p.recent[:, :-1], before[:, 1:])
+    p.reset()
+    p.observe(pcs[0], states[0])
+    assert np.array_equal(p.act(seed=1), first)  # a fresh episode: the same history, the same chunk
+
+
+def test_colour_channels_are_cut_and_bad_shapes_refused(tiny_export):
+    _, model_dir, data = tiny_export
+    p = OnnxPolicy(model_dir, threads=1)
+    pcs, states = long_trajectory(data, 1)
+    rgb = np.concatenate([pcs[0], np.ones_like(pcs[0])], axis=-1)
+    z_rgb = p.observe(rgb, states[0])
+    p.reset()
+    assert np.array_equal(z_rgb, p.observe(pcs[0], states[0]))
+    with pytest.raises(ValueError, match="agent_pos"):
+        p.observe(pcs[0], np.zeros(5, np.float32))
+    with pytest.raises(ValueError, match="channels"):
+        p.observe(pcs[0][:, :2], states[0])
+    with pytest.raises(ValueError, match="noise must have shape"):
+        p.act(noise=np.zeros((1, 1, 1), np.float32))
+
+
+def copy_model(model_dir, tmp_path):
+    import shutil
+
+    dst = tmp_path / "model"
+    shutil.copytree(model_dir, dst)
+    return dst
+
+
+def test_manifest_that_does_not_fit_the_graphs_is_refused(tiny_export, tmp_path):
+    _, model_dir, _ = tiny_export
+    bad = copy_model(model_dir, tmp_path)
+    manifest = json.loads((bad / MANIFEST_NAME).read_text())
+    manifest["graphs"]["denoiser"]["inputs"][-1]["name"] = "eps"
+    (bad / MANIFEST_NAME).write_text(json.dumps(manifest))
+    with pytest.raises(ModelDirError, match="inputs are .* says"):
+        OnnxPolicy(bad)
+    manifest["graphs"]["denoiser"]["inputs"][-1]["name"] = "noise"
+    manifest["graphs"]["denoiser"]["inputs"][-1]["shape"][1] = 99
+    (bad / MANIFEST_NAME).write_text(json.dumps(manifest))
+    with pytest.raises(ModelDirError, match="noise"):
+        OnnxPolicy(bad)
+    manifest["format_version"] = "0"
+    (bad / MANIFEST_NAME).write_text(json.dumps(manifest))
+    with pytest.raises(ModelDirError, match="format version"):
+        OnnxPolicy(bad)
+    with pytest.raises(ModelDirError, match="does not exist"):
+        OnnxPolicy(tmp_path / "nowhere")
+    (bad / "denoiser.onnx").write_bytes(b"not a graph")
+    manifest["format_version"] = "1"
+    (bad / MANIFEST_NAME).write_text(json.dumps(manifest))
+    with pytest.raises(ModelDirError, match="could not be loaded"):
+        OnnxPolicy(bad)
+
+
+def test_control_loop_updates_history_every_tick_and_chunks_every_h_a(tiny_export):
+    _, model_dir, data = tiny_export
+    p = OnnxPolicy(model_dir, threads=1)
+    loop = ChunkedControl(p, seed=0)
+    pcs, states = long_trajectory(data, 12)
+    ha = p.n_action_steps
+    infos = [loop.tick(pcs[t], states[t])[1] for t in range(12)]
+    assert p.steps == 12
+    assert [i.new_chunk for i in infos] == [t % ha == 0 for t in range(12)]
+    assert [i.chunk_index for i in infos] == [t % ha for t in range(12)]
+
+
+def test_prefetch_starts_early_drops_passed_actions_and_matches_its_history(tiny_export):
+    _, model_dir, data = tiny_export
+    p = OnnxPolicy(model_dir, threads=1)
+    ha, lead = p.n_action_steps, 1
+    loop = ChunkedControl(p, rate_hz=10, prefetch=True, seed=0, chunk_ms_estimate=50.0)  # 50 ms at 10 Hz: 1 tick
+    assert loop.lead == lead
+    pcs, states = long_trajectory(data, 2 * ha + 1)
+    actions = [loop.tick(pcs[t], states[t]) for t in range(2 * ha + 1)]
+    # Reference: the chunk for ticks [ha, 2 ha) computed from the history at tick ha - lead, actions from index lead.
+    ref = OnnxPolicy(model_dir, threads=1, warmup=0)
+    for t in range(ha - lead + 1):
+        ref.observe(pcs[t], states[t])
+    expected = ref.act(seed=0 + ha - lead)
+    for j in range(ha):
+        action, info = actions[ha + j]
+        assert info.chunk_index == lead + j
+        np.testing.assert_allclose(action, expected[:, lead + j], atol=1e-6)
+    with pytest.raises(ValueError, match="H - H_a"):
+        ChunkedControl(p, rate_hz=10, prefetch=True, chunk_ms_estimate=1000.0)
+
+
+def test_over_budget_chunks_are_reported_not_silent(tiny_export):
+    _, model_dir, data = tiny_export
+    p = OnnxPolicy(model_dir, threads=1)
+    with pytest.warns(UserWarning, match="trained on data at 10 Hz"):
+        loop = ChunkedControl(p, rate_hz=1e5, seed=0)  # a 10 us budget: every chunk tick is over it
+    pcs, states = long_trajectory(data, 1)
+    _, info = loop.tick(pcs[0], states[0])
+    assert info.over_budget and any("over budget" in e for e in info.events)
+
+
+def test_running_at_another_rate_than_trained_warns(tiny_export):
+    _, model_dir, _ = tiny_export
+    p = OnnxPolicy(model_dir, threads=1)
+    assert p.control_rate_hz == 10.0
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        ChunkedControl(p, rate_hz=30)
+        ChunkedControl(p, rate_hz=10)
+    assert len(caught) == 1 and "10 Hz" in str(caught[0].message)
+
+
+def test_profiler_quick_run_reports_every_figure(tiny_export, tmp_path):
+    run_dir, model_dir, _ = tiny_export
+    json_path, png_path = tmp_path / "profile.json", tmp_path / "profile.png"
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    out = subprocess.run(
+        [sys.executable, "-m", "dssp_deploy.profile", str(model_dir), "--checkpoint", str(run_dir), "--quick",
+         "--threads", "1", "--json", str(json_path), "--plot", str(png_path)],
+        capture_output=True, text=True, timeout=300, env=env,
+    )
+    assert out.returncode == 0, out.stderr
+    assert "| history step (ORT) |" in out.stdout and "ONNX Runtime vs PyTorch eager" in out.stdout
+    report = json.loads(json_path.read_text())
+    for key in ("history_step", "denoiser_chunk", "chunk_tick"):
+        s = report["latency_ms"][key]
+        assert 0 < s["p50"] <= s["p95"] <= s["p99"] <= s["max"]
+    assert [r["length"] for r in report["history_sweep"]] == report["settings"]["sweep"]
+    assert all(r["rss_mib"] > 0 for r in report["history_sweep"])
+    assert report["machine"]["gemm_peak_gflops"] > 0 and report["achieved_gflops"]["denoiser_chunk"] > 0
+    assert report["torch"]["eager_denoiser_chunk"]["p50"] > 0 and report["torch"]["torchscript_history_step"]["p50"] > 0
+    assert len(report["torch"]["transformer_sweep"]) >= 2
+    assert png_path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
