@@ -1,0 +1,29 @@
+"""Checkpoint → ONNX / TorchScript graphs for a robot that runs ONNX Runtime alone.
+
+    python -m export.to_onnx RUN_DIR -o MODEL_DIR            # export (and verify) a trained run
+    python -m export.verify MODEL_DIR --checkpoint RUN_DIR   # parity with the PyTorch model
+
+Modules: ``graphs`` (the torch modules that are traced), ``to_onnx`` (the exporter), ``verify`` (parity),
+``manifest`` (``dssp_model.json``), ``output_dir`` (all-or-nothing model directories), ``quantize``
+(int8), ``sessions`` (ONNX Runtime options), ``trajectory`` (what verification streams), ``errors``.
+The names below import lazily, so ``import export`` does not import torch.
+"""
+
+from export.errors import ExportError, ParityError
+from export.manifest import FORMAT_VERSION, MANIFEST_NAME, read_manifest
+
+__all__ = ["ExportError", "FORMAT_VERSION", "MANIFEST_NAME", "ParityError", "export_model", "read_manifest", "verify_model"]
+
+
+def export_model(*args, **kwargs):
+    """See :func:`export.to_onnx.export_model`."""
+    from export.to_onnx import export_model as _export_model
+
+    return _export_model(*args, **kwargs)
+
+
+def verify_model(*args, **kwargs):
+    """See :func:`export.verify.verify_model`."""
+    from export.verify import verify_model as _verify_model
+
+    return _verify_model(*args, **kwargs)
