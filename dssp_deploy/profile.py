@@ -30,7 +30,7 @@ from dssp_deploy.flops import chunk_flops, history_step_flops
 from dssp_deploy.latency import LatencyStats, gemm_peak_gflops, resident_memory_mib, time_calls
 from dssp_deploy.policy import OnnxPolicy
 
-FULL = {"iterations": 200, "chunk_iterations": 50, "sweep": [10, 100, 1000, 10000], "window": 50, "transformer_max": 10000}
+FULL = {"iterations": 300, "chunk_iterations": 100, "sweep": [10, 100, 1000, 3000, 10000], "window": 50, "transformer_max": 3000}
 QUICK = {"iterations": 20, "chunk_iterations": 5, "sweep": [10, 100, 300], "window": 10, "transformer_max": 300}
 
 
@@ -108,15 +108,17 @@ def torch_comparisons(model_dir: Path, checkpoint: Path | None, manifest: dict, 
 
     heads = 8 if m["d_model"] % 8 == 0 else 4
     net = CausalTransformer(m["d_model"], m["n_history_layers"], heads).eval()
-    buffer: list[torch.Tensor] = []
+    rows = []
+    for length in (n for n in settings["sweep"] if n <= settings["transformer_max"]):
+        past = torch.randn(1, length - 1, m["d_model"], generator=rng)
 
-    def transformer_step():
-        buffer.append(torch.randn(1, 1, m["d_model"]))
-        with torch.inference_mode():
-            net(torch.cat(buffer, dim=1))[:, -1]
+        def transformer_step():
+            with torch.inference_mode():
+                net(torch.cat([past, torch.randn(1, 1, m["d_model"])], dim=1))[:, -1]
 
-    lengths = [n for n in settings["sweep"] if n <= settings["transformer_max"]]
-    out["transformer_sweep"] = history_sweep(transformer_step, lengths, min(settings["window"], 5))
+        samples = time_calls(transformer_step, 3, warmup=1)
+        rows.append({"length": length, "p50_ms": float(np.median(samples)), "rss_mib": resident_memory_mib()})
+    out["transformer_sweep"] = rows
     return out
 
 
