@@ -30,8 +30,8 @@ from dssp_deploy.flops import chunk_flops, history_step_flops
 from dssp_deploy.latency import LatencyStats, gemm_peak_gflops, resident_memory_mib, time_calls
 from dssp_deploy.policy import OnnxPolicy
 
-FULL = {"iterations": 300, "chunk_iterations": 100, "sweep": [10, 100, 1000, 3000, 10000], "window": 50, "transformer_max": 3000}
-QUICK = {"iterations": 20, "chunk_iterations": 5, "sweep": [10, 100, 300], "window": 10, "transformer_max": 300}
+FULL = {"iterations": 300, "chunk_iterations": 100, "torch_iterations": 30, "sweep": [10, 100, 1000, 3000, 10000], "window": 50, "transformer_max": 3000}
+QUICK = {"iterations": 20, "chunk_iterations": 5, "torch_iterations": 5, "sweep": [10, 100, 300], "window": 10, "transformer_max": 300}
 
 
 def random_observation(policy: OnnxPolicy, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -86,7 +86,7 @@ def torch_comparisons(model_dir: Path, checkpoint: Path | None, manifest: dict, 
         with torch.inference_mode():
             out["eager_history_step"] = time_calls(lambda: stream.observe(pc, pos), settings["iterations"])
             out["eager_denoiser_chunk"] = time_calls(
-                lambda: stream.act(seed=0, num_steps=manifest["denoise_steps"]), settings["chunk_iterations"]
+                lambda: stream.act(seed=0, num_steps=manifest["denoise_steps"]), settings["torch_iterations"]
             )
     files = {g: manifest["graphs"][g]["files"].get("torchscript") for g in ("history_step", "denoiser")}
     if all(files.values()):
@@ -102,7 +102,7 @@ def torch_comparisons(model_dir: Path, checkpoint: Path | None, manifest: dict, 
             if manifest["use_recent_states"]:
                 inputs.append(torch.zeros(1, m["n_obs_steps"], m["d_model"]))
             noise = torch.randn(1, m["horizon"], m["action_dim"], generator=rng)
-            out["torchscript_denoiser_chunk"] = time_calls(lambda: denoiser(*inputs, noise), settings["chunk_iterations"])
+            out["torchscript_denoiser_chunk"] = time_calls(lambda: denoiser(*inputs, noise), settings["torch_iterations"])
     # Paper Table 3's alternative: a causal Transformer over the full history (same width and depth).
     from dssp_train.model.history_encoder import CausalTransformer
 
