@@ -1,0 +1,130 @@
+"""Export figures per preset: export time, graph sizes and node counts, parity, ORT vs torch latency.
+
+    python benchmarks/export_report.py [--preset tiny robotwin] [--run RUN_DIR] [--out runs/export_report]
+                                       [--verify-steps 1000] [--threads N] [--quantize] [--json PATH]
+
+For each preset without ``--run``, a run directory with an untrained policy is made by hand
+(S = A = 14, normalisers fitted on random data, saved with the checkpoint helpers) — export and parity
+do not depend on training. The latency figures are measured separately from verification, one backend
+at a time, batch 1: median over repeated calls after a warm-up.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from dssp_train.config import load_preset
+from dssp_train.model.policy import DSSPPolicy
+from dssp_train.training import checkpoint as ckpt
+from export.sessions import default_threads, open_session
+from export.to_onnx import export_model, format_summary
+
+
+def make_untrained_run(preset: str, run_dir: Path, state_dim: int = 14, action_dim: int = 14, seed: int = 0) -> Path:
+    """A run directory (config.json, model.safetensors) holding an untrained ``preset`` policy."""
+    config = load_preset(preset)
+    config.model.state_dim, config.model.action_dim = state_dim, action_dim
+    torch.manual_seed(seed)
+    policy = DSSPPolicy(config.model)
+    rng = np.random.default_rng(seed)
+    policy.fit_normalizers(
+        rng.uniform(-1, 1, (16, config.model.n_points, config.model.point_dim)).astype(np.float32),
+        rng.uniform(-1, 1, (256, state_dim)).astype(np.float32),
+        rng.uniform(-1, 1, (256, action_dim)).astype(np.float32),
+    )
+    run_dir.mkdir(parents=True, exist_ok=True)
+    ckpt.save_config(run_dir, config)
+    ckpt.save_tensors(run_dir / "model.safetensors", policy.state_dict(), {"format_version": ckpt.FORMAT_VERSION, "step": "0"})
+    return run_dir
+
+
+def median_ms(fn, repeats: int, warmup: int = 3) -> float:
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return round(1000 * float(np.median(times)), 3)
+
+
+def latency(model_dir: Path, run_dir: Path, threads: int, repeats: int) -> dict[str, dict[str, float]]:
+    """Median ms per history step and per chunk, batch 1: ORT (fp32, int8 if present) and torch eager."""
+    from dssp_train.model.streaming import StreamingPolicy
+    from dssp_train.training.checkpoint import load_policy
+
+    manifest = json.loads((model_dir / "dssp_model.json").read_text())
+    feeds = {}
+    for graph in ("history_step", "denoiser"):
+        feeds[graph] = {
+            s["name"]: np.random.default_rng(0).standard_normal([1 if d == "B" else manifest["model_config"]["n_points"] if d == "P" else d for d in s["shape"]]).astype(np.float32)
+            for s in manifest["graphs"][graph]["inputs"]
+        }
+    out = {}
+    for kind in ("onnx", "onnx_int8"):
+        files = {g: manifest["graphs"][g]["files"].get(kind) for g in feeds}
+        if all(files.values()):
+            sessions = {g: open_session(model_dir / f, threads) for g, f in files.items()}
+            out[kind] = {
+                g: median_ms(lambda g=g: sessions[g].run(None, feeds[g]), repeats if g == "denoiser" else 10 * repeats)
+                for g in feeds
+            }
+    torch.set_num_threads(threads)
+    policy, _ = load_policy(run_dir)
+    stream = StreamingPolicy(policy)
+    pc, pos = feeds["history_step"]["point_cloud"], feeds["history_step"]["agent_pos"]
+    stream.observe(pc, pos)
+    noise = feeds["denoiser"]["noise"]
+    k = manifest["denoise_steps"]
+    out["torch_eager"] = {
+        "history_step": median_ms(lambda: stream.observe(pc, pos), 10 * repeats),
+        "denoiser": median_ms(lambda: stream.act(noise=noise, num_steps=k), repeats),
+    }
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--preset", nargs="+", default=["tiny", "robotwin"])
+    p.add_argument("--run", help="export this run directory instead of untrained presets")
+    p.add_argument("--out", default="runs/export_report")
+    p.add_argument("--verify-steps", type=int, default=1000)
+    p.add_argument("--threads", type=int, default=default_threads())
+    p.add_argument("--repeats", type=int, default=20)
+    p.add_argument("--quantize", action="store_true", help="also write and measure int8 graphs")
+    p.add_argument("--json", help="write the figures here (default OUT/report.json)")
+    args = p.parse_args(argv)
+
+    out = Path(args.out)
+    jobs = [(Path(args.run).name, Path(args.run))] if args.run else [(name, None) for name in args.preset]
+    report = {}
+    for name, run_dir in jobs:
+        if run_dir is None:
+            run_dir = make_untrained_run(name, out / f"{name}_run")
+        model_dir = out / f"{name}_model"
+        print(f"== {name}: {run_dir} -> {model_dir}", flush=True)
+        summary = export_model(
+            run_dir, model_dir, verify_steps=args.verify_steps, threads=args.threads, force=True,
+            quantize="int8" if args.quantize else None,
+        )
+        print(format_summary(summary), flush=True)
+        summary["latency_isolated_ms"] = latency(model_dir, run_dir, args.threads, args.repeats)
+        print(json.dumps(summary["latency_isolated_ms"]), flush=True)
+        report[name] = summary
+    path = Path(args.json) if args.json else out / "report.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(report, indent=2) + "\n")
+    print(f"figures written to {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,200 @@
+"""``dssp_model.json``: what a model directory holds and how to run it, readable without torch.
+
+The manifest names every graph input and output with its shape (symbolic dims as strings: "B" batch,
+"P" points) and dtype, and records what the runtime needs besides the graphs: the normaliser statistics
+(already applied inside the graphs; kept for reports and sanity checks), N, H, H_a, K and the DDIM
+timesteps, the control rate of the training data, the source checkpoint's sha256 and the versions of
+everything that produced the files. The key facts are also written into each ONNX file's
+``metadata_props`` (:func:`metadata_props`), so a lone ``.onnx`` file still says what it is.
+
+Shapes of the graph interface (E = expand * d_model, n = d_state, W = d_conv):
+    history_step: point_cloud (B, P, point_dim), agent_pos (B, S), conv_state_i (B, E, W), ssm_state_i (B, E, n)
+                  → z_t (B, d), c_t (B, d), conv_state_i_out (B, E, W), ssm_state_i_out (B, E, n)
+    denoiser:     c_t (B, d), z_recent (B, N, d), noise (B, H, A) → action (B, H, A)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+from dssp_train.config import ModelConfig, RunConfig
+from export.errors import ExportError
+
+FORMAT_VERSION = "1"
+KIND = "dssp-model"
+MANIFEST_NAME = "dssp_model.json"
+HISTORY_GRAPH = "history_step"
+DENOISER_GRAPH = "denoiser"
+GRAPHS = (HISTORY_GRAPH, DENOISER_GRAPH)
+
+
+def tensor_spec(name: str, shape: list[int | str], dtype: str = "float32") -> dict[str, Any]:
+    return {"name": name, "shape": list(shape), "dtype": dtype}
+
+
+def history_state_specs(m: ModelConfig, suffix: str = "") -> list[dict[str, Any]]:
+    """conv_state_i (B, E, W) and ssm_state_i (B, E, n) for every history layer, in graph order."""
+    inner = m.expand * m.d_model
+    specs = []
+    for i in range(m.n_history_layers):
+        specs.append(tensor_spec(f"conv_state_{i}{suffix}", ["B", inner, m.d_conv]))
+        specs.append(tensor_spec(f"ssm_state_{i}{suffix}", ["B", inner, m.d_state]))
+    return specs
+
+
+def history_io(m: ModelConfig) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """Inputs and outputs of the history-step graph (no state and z_t only without a history encoder)."""
+    inputs = [tensor_spec("point_cloud", ["B", "P", m.point_dim]), tensor_spec("agent_pos", ["B", m.state_dim])]
+    outputs = [tensor_spec("z_t", ["B", m.d_model])]
+    if m.use_history:
+        inputs += history_state_specs(m)
+        outputs += [tensor_spec("c_t", ["B", m.d_model])] + history_state_specs(m, "_out")
+    return inputs, outputs
+
+
+def denoiser_io(m: ModelConfig) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """Inputs and outputs of the denoiser graph."""
+    inputs = []
+    if m.use_history:
+        inputs.append(tensor_spec("c_t", ["B", m.d_model]))
+    if m.use_recent_states:
+        inputs.append(tensor_spec("z_recent", ["B", m.n_obs_steps, m.d_model]))
+    inputs.append(tensor_spec("noise", ["B", m.horizon, m.action_dim]))
+    return inputs, [tensor_spec("action", ["B", m.horizon, m.action_dim])]
+
+
+def graph_io(m: ModelConfig, graph: str) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    return history_io(m) if graph == HISTORY_GRAPH else denoiser_io(m)
+
+
+def build_manifest(
+    config: RunConfig,
+    *,
+    denoise_steps: int,
+    ddim_timesteps: list[int],
+    normalizers: dict[str, dict[str, list[float]]],
+    files: dict[str, dict[str, str]],
+    source: dict[str, Any],
+    exporter: dict[str, Any],
+    versions: dict[str, str],
+) -> dict[str, Any]:
+    """The manifest as a JSON-ready dict.
+
+    Args:
+        files: per graph, the file of each format, e.g. ``{"history_step": {"onnx": "history_step.onnx"}}``.
+        source: the checkpoint: run directory, weights file, EMA or raw, sha256, training step.
+        exporter: exporter name and version, ONNX opset, ONNX exporter used.
+        versions: library versions (dssp, torch, onnx, onnxruntime, python).
+    """
+    m = config.model
+    graphs = {}
+    for name in GRAPHS:
+        inputs, outputs = graph_io(m, name)
+        graphs[name] = {"files": files.get(name, {}), "inputs": inputs, "outputs": outputs}
+    return {
+        "kind": KIND,
+        "format_version": FORMAT_VERSION,
+        "preset": config.preset,
+        "model_config": dataclasses.asdict(m),
+        "graphs": graphs,
+        "point_dim": m.point_dim,
+        "state_dim": m.state_dim,
+        "action_dim": m.action_dim,
+        "d_model": m.d_model,
+        "n_obs_steps": m.n_obs_steps,
+        "horizon": m.horizon,
+        "n_action_steps": m.n_action_steps,
+        "denoise_steps": denoise_steps,
+        "ddim_timesteps": list(ddim_timesteps),
+        "use_history": m.use_history,
+        "use_recent_states": m.use_recent_states,
+        "history_state": [s["name"] for s in history_state_specs(m)] if m.use_history else [],
+        "control_rate_hz": config.control_rate_hz,
+        "normalizers": normalizers,
+        "runtime": {
+            "units": "point_cloud, agent_pos and action are raw (unnormalised); the graphs normalise inside",
+            "point_cloud": f"the first {m.point_dim} channels of each point (xyz{' + rgb' if m.point_dim == 6 else ''})",
+            "history_state": "all zeros at the start of an episode; feed each *_out back as the next tick's input",
+            "z_recent": "the last N z_t outputs, oldest first; at the start of an episode the first z_t repeats",
+            "noise": "standard normal (B, H, A)",
+            "act_every": f"one denoiser call every H_a = {m.n_action_steps} history steps; execute the first H_a actions",
+            "tick_rate_hz": config.control_rate_hz,
+        },
+        "source": source,
+        "exporter": exporter,
+        "versions": versions,
+        "files": {},  # file name → bytes, sha256 (and node count for ONNX), filled in by the exporter
+        "verification": None,  # the parity report, filled in by the exporter unless --skip-verify
+    }
+
+
+def metadata_props(manifest: dict[str, Any], graph: str) -> dict[str, str]:
+    """The key facts for one ONNX file's ``metadata_props`` (string values; structured ones as JSON)."""
+    facts = {
+        "kind": KIND,
+        "format_version": FORMAT_VERSION,
+        "graph": graph,
+        "model_config": json.dumps(manifest["model_config"], sort_keys=True),
+        "inputs": json.dumps(manifest["graphs"][graph]["inputs"]),
+        "outputs": json.dumps(manifest["graphs"][graph]["outputs"]),
+        "n_obs_steps": str(manifest["n_obs_steps"]),
+        "horizon": str(manifest["horizon"]),
+        "n_action_steps": str(manifest["n_action_steps"]),
+        "denoise_steps": str(manifest["denoise_steps"]),
+        "ddim_timesteps": json.dumps(manifest["ddim_timesteps"]),
+        "control_rate_hz": json.dumps(manifest["control_rate_hz"]),
+        "source_sha256": manifest["source"]["sha256"],
+        "exporter": json.dumps(manifest["exporter"], sort_keys=True),
+        "versions": json.dumps(manifest["versions"], sort_keys=True),
+    }
+    return facts
+
+
+def write_manifest(model_dir: Path, manifest: dict[str, Any]) -> Path:
+    """Write ``MODEL_DIR/dssp_model.json`` (temporary name, then rename)."""
+    path = Path(model_dir) / MANIFEST_NAME
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    with os.fdopen(fd, "w") as f:
+        json.dump(manifest, f, indent=2)
+        f.write("\n")
+    mask = os.umask(0)
+    os.umask(mask)
+    os.chmod(tmp, 0o666 & ~mask)
+    os.replace(tmp, path)
+    return path
+
+
+def read_manifest(model_dir: Path) -> dict[str, Any]:
+    """The manifest of a model directory, or an :class:`ExportError` that says what is wrong."""
+    model_dir = Path(model_dir)
+    path = model_dir / MANIFEST_NAME
+    if not model_dir.is_dir():
+        raise ExportError(f"model directory {model_dir} does not exist; create one with python -m export.to_onnx RUN_DIR -o {model_dir}")
+    if not path.is_file():
+        raise ExportError(f"{path} is missing: {model_dir} is not a DSSP model directory (python -m export.to_onnx makes one)")
+    try:
+        manifest = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ExportError(f"{path} is unreadable ({exc}); export the model again") from None
+    if not isinstance(manifest, dict) or manifest.get("kind") != KIND:
+        raise ExportError(f"{path} is not a DSSP model manifest (no \"kind\": \"{KIND}\"); export the model again")
+    if manifest.get("format_version") != FORMAT_VERSION:
+        raise ExportError(
+            f"{path} has format version {manifest.get('format_version')!r}, this exporter reads {FORMAT_VERSION!r}; "
+            "export the model again with this version"
+        )
+    return manifest
+
+
+def is_model_dir(path: Path) -> bool:
+    """True when ``path`` holds a previous export of any format version (a manifest of this kind)."""
+    try:
+        manifest = json.loads((Path(path) / MANIFEST_NAME).read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(manifest, dict) and manifest.get("kind") == KIND

@@ -1,0 +1,360 @@
+"""Export to ONNX / TorchScript: parity, the manifest, metadata, bad input, variants, a torch-free runtime."""
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+import pytest
+import torch
+
+from dssp_train.cli.train import main as train_main
+from dssp_train.config import apply_overrides, load_preset
+from dssp_train.data.synthetic import write_tap_count_dataset
+from dssp_train.model.policy import DSSPPolicy
+from dssp_train.model.streaming import StreamingPolicy
+from dssp_train.training import checkpoint as ckpt
+from dssp_train.training.checkpoint import load_policy
+from export import verify as verify_module
+from export.manifest import read_manifest
+from export.to_onnx import export_model
+from export.to_onnx import main as export_main
+from export.verify import main as verify_main
+
+SMALL = ["model.d_model=32", "model.d_state=8", "model.n_denoiser_layers=2", "train.batch_size=4", "train.val_windows=4", "train.warmup_steps=1"]
+ONNX_TYPES = {"tensor(float)": "float32"}
+pytestmark = pytest.mark.filterwarnings("ignore:`torch.jit.load` is deprecated:DeprecationWarning")
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    """Tiny tensors: one intra-op thread is fastest and does not stall on a busy machine."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def one_error_line(stderr: str) -> str:
+    assert "Traceback" not in stderr, stderr
+    lines = stderr.strip().splitlines()
+    assert len(lines) == 1, stderr
+    assert lines[0].startswith("error: "), stderr
+    return lines[0]
+
+
+def leftovers(folder: Path) -> list[str]:
+    """Temporary directories an export may have left next to its output."""
+    return [p.name for p in folder.iterdir() if ".partial-" in p.name or ".old-" in p.name]
+
+
+def save_run(run_dir: Path, *overrides: str, seed: int = 0) -> Path:
+    """A run directory with an untrained small policy (S = 3, A = 2), normalisers fitted on random data."""
+    config = apply_overrides(load_preset("tiny"), [*SMALL, *overrides])
+    config.model.state_dim, config.model.action_dim, config.model.n_points = 3, 2, 24
+    torch.manual_seed(seed)
+    policy = DSSPPolicy(config.model)
+    with torch.no_grad():  # AdaLN is zero at init; make it matter, so folding it is tested
+        for p in policy.denoiser.parameters():
+            p.add_(0.02 * torch.randn_like(p))
+    rng = np.random.default_rng(seed)
+    policy.fit_normalizers(rng.normal(size=(8, 24, 3)), rng.normal(size=(50, 3)), rng.uniform(-2, 3, (50, 2)))
+    run_dir.mkdir(parents=True)
+    ckpt.save_config(run_dir, config)
+    ckpt.save_tensors(run_dir / "model.safetensors", policy.state_dict(), {"step": "0"})
+    return run_dir
+
+
+# ------------------------------------------------------------------ fixtures
+@pytest.fixture(scope="module")
+def trained_run(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("trained")
+    data = write_tap_count_dataset(root / "tap.zarr", 6, seed=0, n_points=24)
+    args = ["--data", str(data), "--out", str(root / "run"), "--preset", "tiny", "--steps", "5", "--no-progress"]
+    assert train_main(args + [a for item in SMALL for a in ("--set", item)]) == 0
+    return root / "run"
+
+
+@pytest.fixture(scope="module")
+def exported(trained_run, tmp_path_factory) -> tuple[Path, dict]:
+    """The trained run exported in every format, int8 included, with the 1000-step parity check."""
+    out = tmp_path_factory.mktemp("models") / "tiny"
+    summary = export_model(trained_run, out, quantize="int8", verify_steps=1000, threads=1, progress=lambda _: None)
+    return out, summary
+
+
+# ---------------------------------------------------------------- happy path
+def test_export_passes_parity_over_1000_steps(exported, trained_run):
+    out, summary = exported
+    report = summary["verification"]
+    assert report["passed"] and report["steps"] == 1000 and report["chunks"] == 334
+    assert set(report["errors"]) == {"onnx", "torchscript"}
+    for figures in report["errors"].values():
+        assert all(value <= 1e-4 for value in figures.values()), figures
+    assert report["sequence"]["c_t"] <= 1e-4 and report["sequence"]["c_t_at_T"] <= 1e-4
+    assert "int8" in report and report["int8"]["action_max_abs_vs_fp32"] < 1.0
+    manifest = read_manifest(out)
+    assert manifest["verification"]["passed"]
+    assert sorted(os.listdir(out)) == sorted(
+        ["dssp_model.json", "history_step.onnx", "denoiser.onnx", "history_step.pt", "denoiser.pt",
+         "history_step.int8.onnx", "denoiser.int8.onnx"]
+    )
+    assert leftovers(out.parent) == []
+    assert manifest["source"]["sha256"] == verify_module.file_sha256(trained_run / "model.safetensors")
+    for name, info in manifest["files"].items():
+        assert info["bytes"] == (out / name).stat().st_size and info["sha256"] == verify_module.file_sha256(out / name)
+
+
+def test_graphs_match_the_manifest_and_carry_metadata(exported):
+    out, _ = exported
+    manifest = read_manifest(out)
+    m = manifest["model_config"]
+    assert manifest["denoise_steps"] == 10 and manifest["ddim_timesteps"] == [90, 80, 70, 60, 50, 40, 30, 20, 10, 0]
+    assert (manifest["n_obs_steps"], manifest["horizon"], manifest["n_action_steps"]) == (2, 4, 3)
+    assert manifest["control_rate_hz"] == 10.0
+    assert set(manifest["normalizers"]) == {"point_cloud", "agent_pos", "action"}
+    assert set(manifest["versions"]) >= {"dssp", "torch", "onnx", "onnxruntime"}
+    assert manifest["history_state"] == ["conv_state_0", "ssm_state_0", "conv_state_1", "ssm_state_1"]
+    inner = 2 * m["d_model"]
+    history_inputs = manifest["graphs"]["history_step"]["inputs"]
+    assert history_inputs[2] == {"name": "conv_state_0", "shape": ["B", inner, 4], "dtype": "float32"}
+    assert history_inputs[3] == {"name": "ssm_state_0", "shape": ["B", inner, m["d_state"]], "dtype": "float32"}
+    for graph, spec in manifest["graphs"].items():
+        for kind in ("onnx", "onnx_int8"):
+            path = out / spec["files"][kind]
+            onnx.checker.check_model(str(path), full_check=True)
+            session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+            for got, want in ((session.get_inputs(), spec["inputs"]), (session.get_outputs(), spec["outputs"])):
+                assert [(g.name, g.shape, ONNX_TYPES[g.type]) for g in got] == [(w["name"], w["shape"], w["dtype"]) for w in want]
+            props = {p.key: p.value for p in onnx.load(str(path), load_external_data=False).metadata_props}
+            assert props["graph"] == graph and props["format_version"] == manifest["format_version"]
+            assert props["source_sha256"] == manifest["source"]["sha256"]
+            assert json.loads(props["ddim_timesteps"]) == manifest["ddim_timesteps"]
+            assert int(props["n_action_steps"]) == 3 and json.loads(props["model_config"]) == m
+            assert json.loads(props["inputs"]) == spec["inputs"]
+
+
+def test_batch_and_point_count_are_dynamic(exported, trained_run):
+    """B = 3 and P = 17 (the graphs were traced with B = 2, P = 24): ORT and TorchScript match PyTorch."""
+    out, _ = exported
+    manifest = read_manifest(out)
+    policy, _ = load_policy(trained_run)
+    rng = np.random.default_rng(1)
+    pc, pos = rng.normal(size=(3, 17, 3)).astype(np.float32), rng.uniform(0, 1, (3, 2)).astype(np.float32)
+    noise = rng.standard_normal((3, 4, 2)).astype(np.float32)
+    stream = StreamingPolicy(policy)
+    stream.observe(pc, pos)
+    want_chunk = stream.act(noise=noise)
+    states = {s["name"]: np.zeros([3, *s["shape"][1:]], np.float32) for s in manifest["graphs"]["history_step"]["inputs"][2:]}
+    feeds = {"point_cloud": pc, "agent_pos": pos, **states}
+    history = ort.InferenceSession(str(out / "history_step.onnx"), providers=["CPUExecutionProvider"])
+    z_t, c_t, *_ = history.run(None, feeds)
+    denoiser = ort.InferenceSession(str(out / "denoiser.onnx"), providers=["CPUExecutionProvider"])
+    chunk = denoiser.run(None, {"c_t": c_t, "z_recent": np.repeat(z_t[:, None], 2, axis=1), "noise": noise})[0]
+    assert np.abs(c_t - stream.context.numpy()).max() <= 1e-4
+    assert np.abs(chunk - want_chunk).max() <= 1e-4
+    history_ts, denoiser_ts = (torch.jit.load(str(out / f"{g}.pt")) for g in ("history_step", "denoiser"))
+    with torch.no_grad():
+        ts_out = history_ts(*[torch.from_numpy(v) for v in feeds.values()])
+        ts_chunk = denoiser_ts(ts_out[1], ts_out[0][:, None].repeat(1, 2, 1), torch.from_numpy(noise))
+    assert torch.equal(ts_out[1], stream.context)
+    assert np.abs(ts_chunk.numpy() - want_chunk).max() <= 1e-5
+
+
+def test_graphs_run_where_torch_cannot_be_imported(exported, trained_run):
+    out, _ = exported
+    script = textwrap.dedent(
+        f"""
+        import sys
+        sys.modules["torch"] = None  # any import of torch now fails
+        import json
+        import numpy as np
+        import onnxruntime as ort
+        try:
+            import torch
+        except ImportError:
+            pass
+        else:
+            raise SystemExit("torch imported")
+        model = {str(out)!r}
+        manifest = json.load(open(model + "/dssp_model.json"))
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = 1
+        opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+        graphs = {{g: ort.InferenceSession(model + "/" + s["files"]["onnx"], opts, providers=["CPUExecutionProvider"])
+                  for g, s in manifest["graphs"].items()}}
+        specs = manifest["graphs"]["history_step"]["inputs"][2:]
+        states = [np.zeros([1] + s["shape"][1:], np.float32) for s in specs]
+        rng = np.random.default_rng(0)
+        recent = None
+        for t in range(5):
+            feeds = {{"point_cloud": rng.normal(size=(1, 24, 3)).astype(np.float32),
+                      "agent_pos": rng.uniform(size=(1, 2)).astype(np.float32)}}
+            feeds.update({{s["name"]: v for s, v in zip(specs, states)}})
+            z_t, c_t, *states = graphs["history_step"].run(None, feeds)
+            recent = np.repeat(z_t[:, None], manifest["n_obs_steps"], 1) if recent is None else np.concatenate([recent[:, 1:], z_t[:, None]], 1)
+        noise = rng.standard_normal((1, manifest["horizon"], manifest["action_dim"])).astype(np.float32)
+        chunk = graphs["denoiser"].run(None, {{"c_t": c_t, "z_recent": recent, "noise": noise}})[0]
+        print(json.dumps({{"chunk": chunk.tolist(), "torch_loaded": "torch" in sys.modules and sys.modules["torch"] is not None}}))
+        """
+    )
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+    got = json.loads(result.stdout)
+    assert not got["torch_loaded"]
+
+    policy, _ = load_policy(trained_run)
+    stream = StreamingPolicy(policy)
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        stream.observe(rng.normal(size=(1, 24, 3)).astype(np.float32), rng.uniform(size=(1, 2)).astype(np.float32))
+    noise = rng.standard_normal((1, 4, 2)).astype(np.float32)
+    assert np.abs(np.asarray(got["chunk"]) - stream.act(noise=noise)).max() <= 1e-4
+
+
+# ------------------------------------------------------------------ variants
+@pytest.mark.parametrize(
+    "overrides",
+    [["model.use_history=false"], ["model.timestep_decoupled=false"], ["model.use_recent_states=false"]],
+    ids=["reactive-baseline", "no-timestep-decoupling", "no-recent-states"],
+)
+def test_variants_export_and_verify(tmp_path, overrides):
+    run = save_run(tmp_path / "run", *overrides)
+    summary = export_model(run, tmp_path / "model", fmt="onnx", verify_steps=60, threads=1, progress=lambda _: None)
+    assert summary["verification"]["passed"]
+    manifest = read_manifest(tmp_path / "model")
+    names = lambda graph, io: [s["name"] for s in manifest["graphs"][graph][io]]  # noqa: E731
+    if "model.use_history=false" in overrides:
+        assert names("history_step", "inputs") == ["point_cloud", "agent_pos"]
+        assert names("history_step", "outputs") == ["z_t"]
+        assert names("denoiser", "inputs") == ["z_recent", "noise"]
+        assert manifest["history_state"] == []
+    elif "model.use_recent_states=false" in overrides:
+        assert names("denoiser", "inputs") == ["c_t", "noise"]
+    else:
+        assert names("denoiser", "inputs") == ["c_t", "z_recent", "noise"]
+    assert sorted(os.listdir(tmp_path / "model")) == ["denoiser.onnx", "dssp_model.json", "history_step.onnx"]
+
+
+def test_raw_weights_and_other_step_count(trained_run, tmp_path, capsys):
+    out = tmp_path / "raw"
+    args = [str(trained_run), "-o", str(out), "--no-ema", "--denoise-steps", "4", "--format", "torchscript", "--skip-verify"]
+    assert export_main(args) == 0
+    manifest = read_manifest(out)
+    assert manifest["source"]["weights"] == "checkpoint/model.safetensors" and not manifest["source"]["ema"]
+    assert manifest["ddim_timesteps"] == [75, 50, 25, 0] and manifest["verification"] is None
+    assert sorted(os.listdir(out)) == ["denoiser.pt", "dssp_model.json", "history_step.pt"]
+    assert verify_main([str(out), "--checkpoint", str(trained_run), "--steps", "30", "--threads", "1"]) == 0
+    assert "PASS" in capsys.readouterr().out
+
+
+def test_float64_check_accepts_only_graphs_as_exact_as_pytorch(tmp_path):
+    """A chunk above the bound passes when the graph is no further from float64 than 2x PyTorch's own error."""
+    policy, _ = load_policy(save_run(tmp_path / "run"))
+    rng = np.random.default_rng(0)
+    context, recent = rng.normal(size=(1, 32)).astype(np.float32), rng.normal(size=(1, 2, 32)).astype(np.float32)
+    noise = rng.standard_normal((1, 4, 2)).astype(np.float32)
+    from export.graphs import DenoiserGraph
+
+    with torch.no_grad():
+        exact = DenoiserGraph(policy, 10)(*(torch.from_numpy(x) for x in (context, recent, noise))).numpy()
+    flagged = lambda graph_error: [(1.0, 0, (context, recent, noise), {"torch": exact + 3e-4, "onnx": exact + graph_error})]  # noqa: E731
+    assert verify_module._float64_floor(policy, 10, ["onnx"], flagged(5e-4))["within"]
+    assert not verify_module._float64_floor(policy, 10, ["onnx"], flagged(1e-2))["within"]
+
+
+# ---------------------------------------------------------------- bad input
+def test_parity_failure_exits_1_and_leaves_nothing(trained_run, tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(verify_module, "BOUND", 0.0)
+    out = tmp_path / "models" / "fails"
+    args = [str(trained_run), "-o", str(out), "--format", "onnx", "--verify-steps", "10", "--threads", "1"]
+    assert export_main(args) == 1
+    assert "differ from the PyTorch model" in one_error_line(capsys.readouterr().err)
+    assert not out.exists() and not (tmp_path / "models").exists()
+
+
+def corrupt_weights(run: Path) -> None:
+    (run / "model.safetensors").write_bytes(b"\x00" * 64)
+
+
+def wrong_config(run: Path) -> None:
+    data = json.loads((run / "config.json").read_text())
+    data["model"]["d_model"] = 48
+    (run / "config.json").write_text(json.dumps(data))
+
+
+def remove_config(run: Path) -> None:
+    (run / "config.json").unlink()
+
+
+@pytest.mark.parametrize(
+    "damage, extra, message",
+    [
+        (remove_config, [], "is not a DSSP run directory"),
+        (corrupt_weights, [], "is not a readable safetensors file"),
+        (wrong_config, [], "does not fit its config"),
+        (None, ["--opset", "11"], "--opset 11 is not supported; use 17..20"),
+        (None, ["--denoise-steps", "101"], "--denoise-steps must be in [1, 100]"),
+        (None, ["--no-ema"], "drop --no-ema"),  # saved by hand: no checkpoint/ folder
+    ],
+    ids=["missing-config", "corrupt-weights", "config-mismatch", "opset", "denoise-steps", "no-checkpoint"],
+)
+def test_bad_run_directory_or_option(tmp_path, capsys, damage, extra, message):
+    run = save_run(tmp_path / "run")
+    if damage is not None:
+        damage(run)
+    out = tmp_path / "out" / "model"
+    assert export_main([str(run), "-o", str(out), "--skip-verify", *extra]) == 2
+    assert message in one_error_line(capsys.readouterr().err)
+    assert not (tmp_path / "out").exists()
+
+
+def test_missing_run_directory(tmp_path, capsys):
+    assert export_main([str(tmp_path / "nowhere"), "-o", str(tmp_path / "model")]) == 2
+    assert "run directory" in one_error_line(capsys.readouterr().err) and not (tmp_path / "model").exists()
+
+
+def test_unsupported_history_variant(tmp_path, capsys):
+    run = save_run(tmp_path / "run", 'model.history_backbone="transformer"')
+    assert export_main([str(run), "-o", str(tmp_path / "model")]) == 2
+    line = one_error_line(capsys.readouterr().err)
+    assert "history_backbone=transformer" in line and "export supports the Mamba history encoder" in line
+    assert leftovers(tmp_path) == [] and not (tmp_path / "model").exists()
+
+
+def test_output_path_rules(tmp_path, capsys):
+    run = save_run(tmp_path / "run")
+    fast = ["--format", "onnx", "--skip-verify"]
+    (tmp_path / "a_file").write_text("x")
+    assert export_main([str(run), "-o", str(tmp_path / "a_file" / "model"), *fast]) == 2
+    assert "cannot write to" in one_error_line(capsys.readouterr().err)
+
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "notes.txt").write_text("keep me")
+    assert export_main([str(run), "-o", str(other), "--force", *fast]) == 2
+    assert "is not a DSSP model directory" in one_error_line(capsys.readouterr().err)
+    assert (other / "notes.txt").read_text() == "keep me"
+
+    model = tmp_path / "model"
+    assert export_main([str(run), "-o", str(model), *fast]) == 0
+    first = read_manifest(model)["files"]
+    assert export_main([str(run), "-o", str(model), *fast]) == 2
+    assert "pass --force" in one_error_line(capsys.readouterr().err)
+    assert export_main([str(run), "-o", str(model), "--force", "--format", "both", "--skip-verify"]) == 0
+    assert set(read_manifest(model)["files"]) == set(first) | {"history_step.pt", "denoiser.pt"}
+    assert leftovers(tmp_path) == []
+
+
+def test_verify_bad_input(exported, tmp_path, capsys):
+    out, _ = exported
+    assert verify_main([str(tmp_path / "nothing"), "--checkpoint", str(tmp_path)]) == 2
+    assert "does not exist" in one_error_line(capsys.readouterr().err)
+    other = save_run(tmp_path / "other")
+    assert verify_main([str(out), "--checkpoint", str(other), "--steps", "5"]) == 2
+    assert "is not the checkpoint this model was exported from" in one_error_line(capsys.readouterr().err)
