@@ -23,7 +23,7 @@ import torch
 from dssp_train.config import load_preset
 from dssp_train.model.policy import DSSPPolicy
 from dssp_train.training import checkpoint as ckpt
-from export.sessions import default_threads, open_session
+from dssp_deploy.sessions import default_threads, open_session
 from export.to_onnx import export_model, format_summary
 
 

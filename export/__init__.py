@@ -5,7 +5,7 @@
 
 Modules: ``graphs`` (the torch modules that are traced), ``to_onnx`` (the exporter), ``verify`` (parity),
 ``manifest`` (``dssp_model.json``), ``output_dir`` (all-or-nothing model directories), ``quantize``
-(int8), ``sessions`` (ONNX Runtime options), ``trajectory`` (what verification streams), ``errors``.
+(int8), ``trajectory`` (what verification streams), ``errors``.
 The names below import lazily, so ``import export`` does not import torch.
 """
 

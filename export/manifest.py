@@ -17,20 +17,22 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
 from dssp_train.config import ModelConfig, RunConfig
-from export.errors import ExportError
+from dssp_train.training.checkpoint import atomic_write_text
 
-FORMAT_VERSION = "1"
-KIND = "dssp-model"
-MANIFEST_NAME = "dssp_model.json"
-HISTORY_GRAPH = "history_step"
-DENOISER_GRAPH = "denoiser"
-GRAPHS = (HISTORY_GRAPH, DENOISER_GRAPH)
+from dssp_deploy.manifest import (  # noqa: F401  (re-exported: the runtime owns the format's names and reader)
+    DENOISER_GRAPH,
+    FORMAT_VERSION,
+    GRAPHS,
+    HISTORY_GRAPH,
+    KIND,
+    MANIFEST_NAME,
+    is_model_dir,
+    read_manifest,
+)
 
 
 def tensor_spec(name: str, shape: list[int | str], dtype: str = "float32") -> dict[str, Any]:
@@ -158,43 +160,5 @@ def metadata_props(manifest: dict[str, Any], graph: str) -> dict[str, str]:
 def write_manifest(model_dir: Path, manifest: dict[str, Any]) -> Path:
     """Write ``MODEL_DIR/dssp_model.json`` (temporary name, then rename)."""
     path = Path(model_dir) / MANIFEST_NAME
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    with os.fdopen(fd, "w") as f:
-        json.dump(manifest, f, indent=2)
-        f.write("\n")
-    mask = os.umask(0)
-    os.umask(mask)
-    os.chmod(tmp, 0o666 & ~mask)
-    os.replace(tmp, path)
+    atomic_write_text(path, json.dumps(manifest, indent=2) + "\n")
     return path
-
-
-def read_manifest(model_dir: Path) -> dict[str, Any]:
-    """The manifest of a model directory, or an :class:`ExportError` that says what is wrong."""
-    model_dir = Path(model_dir)
-    path = model_dir / MANIFEST_NAME
-    if not model_dir.is_dir():
-        raise ExportError(f"model directory {model_dir} does not exist; create one with python -m export.to_onnx RUN_DIR -o {model_dir}")
-    if not path.is_file():
-        raise ExportError(f"{path} is missing: {model_dir} is not a DSSP model directory (python -m export.to_onnx makes one)")
-    try:
-        manifest = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise ExportError(f"{path} is unreadable ({exc}); export the model again") from None
-    if not isinstance(manifest, dict) or manifest.get("kind") != KIND:
-        raise ExportError(f"{path} is not a DSSP model manifest (no \"kind\": \"{KIND}\"); export the model again")
-    if manifest.get("format_version") != FORMAT_VERSION:
-        raise ExportError(
-            f"{path} has format version {manifest.get('format_version')!r}, this exporter reads {FORMAT_VERSION!r}; "
-            "export the model again with this version"
-        )
-    return manifest
-
-
-def is_model_dir(path: Path) -> bool:
-    """True when ``path`` holds a previous export of any format version (a manifest of this kind)."""
-    try:
-        manifest = json.loads((Path(path) / MANIFEST_NAME).read_text())
-    except (OSError, ValueError):
-        return False
-    return isinstance(manifest, dict) and manifest.get("kind") == KIND

@@ -37,7 +37,7 @@ import numpy as np
 from dssp_train.cli.common import run_cli
 from export.errors import ExportError, ParityError
 from export.manifest import DENOISER_GRAPH, HISTORY_GRAPH, read_manifest
-from export.sessions import default_threads, open_session
+from dssp_deploy.sessions import default_threads, open_session
 
 BOUND = 1e-4
 FLOOR_FACTOR = 2.0  # see _float64_floor
