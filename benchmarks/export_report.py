@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +22,7 @@ import torch
 from dssp_train.config import load_preset
 from dssp_train.model.policy import DSSPPolicy
 from dssp_train.training import checkpoint as ckpt
+from dssp_deploy.latency import time_calls
 from dssp_deploy.sessions import default_threads, open_session
 from export.to_onnx import export_model, format_summary
 
@@ -46,14 +46,7 @@ def make_untrained_run(preset: str, run_dir: Path, state_dim: int = 14, action_d
 
 
 def median_ms(fn, repeats: int, warmup: int = 3) -> float:
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return round(1000 * float(np.median(times)), 3)
+    return round(float(np.median(time_calls(fn, repeats, warmup))), 3)
 
 
 def latency(model_dir: Path, run_dir: Path, threads: int, repeats: int) -> dict[str, dict[str, float]]:

@@ -15,7 +15,6 @@ import argparse
 import json
 import platform
 import statistics
-import time
 
 import torch
 
@@ -23,17 +22,7 @@ from dssp_train.config import load_preset
 from dssp_train.model.history_encoder import HistoryEncoder
 from dssp_train.model.policy import DSSPPolicy
 from dssp_train.training.ema import EMA
-
-
-def timed(fn, repeats: int, warmup: int = 1) -> list[float]:
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append((time.perf_counter() - t0) * 1e3)
-    return times
+from dssp_deploy.latency import time_calls
 
 
 def train_step_fn(preset: str, length: int, state_dim: int, action_dim: int):
@@ -93,7 +82,7 @@ def main() -> None:
         train_step_fn("robotwin", args.robotwin_length, 14, 14),
         history_fwd_bwd_fn(args.history_length),
     ):
-        rows.append(row(label, timed(fn, args.repeats)))
+        rows.append(row(label, time_calls(fn, args.repeats, warmup=1)))
         print(f"measured: {label}", flush=True)
 
     print(f"\nMachine: {platform.processor() or platform.machine()}, torch {torch.__version__}, {torch.get_num_threads()} threads\n")
