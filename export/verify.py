@@ -3,8 +3,8 @@
     python -m export.verify MODEL_DIR --checkpoint RUN_DIR [--steps 1000] [--threads N] [--seed S] [--json PATH]
 
 Streams one trajectory (the run's dataset when it is long enough, else synthetic; see
-:mod:`export.trajectory`) one control tick at a time through ONNX Runtime, TorchScript and the PyTorch
-streaming API (:class:`dssp_train.model.streaming.StreamingPolicy`), each keeping its own recurrent state,
+:mod:`export.trajectory`) one control tick at a time through ONNX Runtime (the robot's runtime,
+``dssp_deploy.policy.OnnxPolicy``), TorchScript and the PyTorch streaming API (:class:`dssp_train.model.streaming.StreamingPolicy`), each keeping its own recurrent state,
 and asks for an action chunk every H_a ticks with identical noise, as the runtime will. Reported: the
 max abs error against PyTorch of ``z_t``, ``c_t``, the history state and the action chunks, and of the
 streamed ``c_t`` against the training (sequence) path ``policy.history_encoder(z)`` over the whole
@@ -87,6 +87,33 @@ class GraphStream:
         """noise (B, H, A) → the action chunk (B, H, A) in raw units."""
         available = {"c_t": self.context, "z_recent": self.recent, "noise": noise}
         return self.denoiser({name: available[name] for name in self.denoiser_inputs})[0]
+
+
+class RuntimeStream:
+    """The robot's runtime, :class:`dssp_deploy.policy.OnnxPolicy`, with the interface of :class:`GraphStream`.
+
+    The fp32 ONNX graphs are checked through it, so parity covers the runtime's state handling too.
+    observe: point_cloud (B, P, C), agent_pos (B, S) → z_t (B, d); act: noise (B, H, A) → chunk (B, H, A).
+    """
+
+    def __init__(self, model_dir: Path, threads: int):
+        from dssp_deploy.policy import OnnxPolicy
+
+        self.policy = OnnxPolicy(model_dir, threads=threads, warmup=0)
+
+    def observe(self, point_cloud: np.ndarray, agent_pos: np.ndarray) -> np.ndarray:
+        return self.policy.observe(point_cloud, agent_pos)
+
+    @property
+    def context(self) -> np.ndarray | None:
+        return self.policy.context
+
+    @property
+    def states(self) -> list[np.ndarray]:
+        return list((self.policy.state or {}).values())
+
+    def act(self, noise: np.ndarray) -> np.ndarray:
+        return self.policy.act(noise=noise)
 
 
 def onnx_graph(path: Path, outputs: list[str], threads: int) -> GraphFn:
@@ -239,6 +266,9 @@ def _open_backends(model_dir: Path, manifest: dict[str, Any], threads: int, batc
         missing = [str(p) for p in paths.values() if not p.is_file()]
         if missing:
             raise ExportError(f"{', '.join(missing)} listed in the manifest is missing; export the model again")
+        if kind == "onnx":
+            backends[kind] = RuntimeStream(model_dir, threads)  # the robot's own runtime code
+            continue
         if kind == "torchscript":
             fns = {g: torchscript_graph(paths[g]) for g in outputs}
         else:
