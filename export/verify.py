@@ -8,9 +8,10 @@ Streams one trajectory (the run's dataset when it is long enough, else synthetic
 and asks for an action chunk every H_a ticks with identical noise, as the runtime will. Reported: the
 max abs error against PyTorch of ``z_t``, ``c_t``, the history state and the action chunks, and of the
 streamed ``c_t`` against the training (sequence) path ``policy.history_encoder(z)`` over the whole
-trajectory. Every fp32 figure must be within ``BOUND`` (1e-4) — with one allowance for action chunks: the
-K-step denoiser can amplify fp32 rounding, so a chunk above the bound is evaluated in float64 and passes
-when the graphs are as close to it as PyTorch's own fp32 chunk is (within ``FLOOR_FACTOR`` = 2x).
+trajectory. Every fp32 figure must be within ``BOUND`` (1e-4). The K-step denoiser can amplify fp32
+rounding (seen: a model trained for 5 steps, whose PyTorch fp32 chunks were 2.7e-5 from float64), so the
+chunks above the bound are also evaluated in float64 and both distances are reported: alike, they point
+at the model's conditioning rather than at the export (the bound still decides).
 Int8 graphs, when present, are reported against the fp32 graphs (action error, speed-up) and are not
 held to the bound.
 
@@ -40,7 +41,6 @@ from export.manifest import DENOISER_GRAPH, HISTORY_GRAPH, read_manifest
 from dssp_deploy.sessions import default_threads, open_session
 
 BOUND = 1e-4
-FLOOR_FACTOR = 2.0  # see _float64_floor
 MAX_FLAGGED = 8
 FIGURES = ("z_t", "c_t", "state", "action")
 
@@ -346,10 +346,8 @@ def _stream_and_compare(model_dir, manifest, policy, traj, threads: int, seed: i
             sequence["c_t"] = max_abs(np.stack(streamed_c), c_seq)
             sequence["c_t_at_T"] = max_abs(streamed_c[-1], c_seq[-1])
 
-    worst_state = max([e[f] for e in errors.values() for f in FIGURES if f != "action"] + list(sequence.values()))
-    worst_action = max(e["action"] for e in errors.values())
+    worst = max([v for e in errors.values() for v in e.values()] + list(sequence.values()))
     floor = _float64_floor(policy, manifest["denoise_steps"], fp32, flagged) if flagged else None
-    action_ok = worst_action <= BOUND or bool(floor and floor["within"])
     report: dict[str, Any] = {
         "steps": traj.length,
         "batch": batch,
@@ -360,8 +358,8 @@ def _stream_and_compare(model_dir, manifest, policy, traj, threads: int, seed: i
         "errors": errors,
         "sequence": {"backend": main, **sequence},
         "action_float64_check": floor,
-        "worst": max(worst_state, worst_action),
-        "passed": bool(worst_state <= BOUND and action_ok),
+        "worst": worst,
+        "passed": bool(worst <= BOUND),
         "latency_ms": {
             name: {graph: _median_ms(ts) for graph, ts in per.items()} for name, per in times.items()
         },
@@ -380,11 +378,10 @@ def _stream_and_compare(model_dir, manifest, policy, traj, threads: int, seed: i
 
 
 def _float64_floor(policy, num_steps: int, backends: list[str], flagged: list) -> dict[str, Any]:
-    """For chunks above the bound: how far PyTorch's own fp32 chunk is from a float64 evaluation.
+    """For the chunks above the bound: how far PyTorch's fp32 chunk and each graph's are from float64.
 
-    The denoiser can amplify rounding differences (K steps of a deep network); when PyTorch fp32 itself
-    is ``floor`` away from float64, a graph within ``max(BOUND, FLOOR_FACTOR * floor)`` of float64 is as
-    exact as PyTorch and the chunk passes.
+    Diagnostic only: when PyTorch's own fp32 chunk is about as far from float64 as the graphs', the model
+    amplifies rounding (a property of the weights), not the export.
     """
     import copy
 
@@ -393,24 +390,15 @@ def _float64_floor(policy, num_steps: int, backends: list[str], flagged: list) -
     from export.graphs import DenoiserGraph
 
     graph64 = DenoiserGraph(copy.deepcopy(policy), num_steps).double().eval()
-    floor, deviation, within = 0.0, dict.fromkeys(backends, 0.0), True
+    floor, deviation = 0.0, dict.fromkeys(backends, 0.0)
     for _, _, (context, recent, noise), chunks in flagged:
         inputs = [torch.from_numpy(x).double() for x, use in ((context, graph64.use_history), (recent, graph64.use_recent)) if use]
         with torch.no_grad():
-            exact = graph64(*inputs, torch.from_numpy(noise).double()).numpy()
-        chunk_floor = max_abs(chunks["torch"], exact)
-        floor = max(floor, chunk_floor)
+            exact = graph64(*inputs, torch.from_numpy(noise).double()).numpy()  # (B, H, A)
+        floor = max(floor, max_abs(chunks["torch"], exact))
         for name in backends:
-            dev = max_abs(chunks[name], exact)
-            deviation[name] = max(deviation[name], dev)
-            within &= dev <= max(BOUND, FLOOR_FACTOR * chunk_floor)
-    return {
-        "chunks_checked": len(flagged),
-        "torch_fp32_vs_float64": floor,
-        "graphs_vs_float64": deviation,
-        "factor": FLOOR_FACTOR,
-        "within": bool(within),
-    }
+            deviation[name] = max(deviation[name], max_abs(chunks[name], exact))
+    return {"chunks_checked": len(flagged), "torch_fp32_vs_float64": floor, "graphs_vs_float64": deviation}
 
 
 def _ratio(a: float | None, b: float | None) -> float | None:
@@ -435,8 +423,7 @@ def format_report(report: dict[str, Any]) -> str:
         graphs = ", ".join(f"{k} {v:.2e}" for k, v in check["graphs_vs_float64"].items())
         lines.append(
             f"  {check['chunks_checked']} chunk(s) above the bound, evaluated in float64: PyTorch fp32 is "
-            f"{check['torch_fp32_vs_float64']:.2e} away, the graphs {graphs} -> "
-            f"{'as exact as PyTorch (within ' + str(check['factor']) + 'x), accepted' if check['within'] else 'less exact than PyTorch'}"
+            f"{check['torch_fp32_vs_float64']:.2e} away, the graphs {graphs} (alike: the model amplifies rounding)"
         )
     lines.append(f"  median latency, ms ({report['threads']} threads):   history step      chunk")
     for name, lat in report["latency_ms"].items():
@@ -455,11 +442,22 @@ def format_report(report: dict[str, Any]) -> str:
 
 def check_report(report: dict[str, Any]) -> None:
     """Raise :class:`ParityError` when a figure exceeds the bound."""
-    if not report["passed"]:
-        raise ParityError(
-            f"exported graphs differ from the PyTorch model by {report['worst']:.2e} > {report['bound']:g} "
-            "(see the table above); this is an export bug, please report it with the run's config.json"
+    if report["passed"]:
+        return
+    check = report.get("action_float64_check")
+    others = [v for e in report["errors"].values() for f, v in e.items() if f != "action"]
+    others += [v for k, v in report["sequence"].items() if k != "backend"]
+    if check and max(others, default=0.0) <= report["bound"]:
+        advice = (
+            f"only action chunks exceed it, and there PyTorch's own fp32 result is {check['torch_fp32_vs_float64']:.1e} "
+            f"from float64 (the graphs {max(check['graphs_vs_float64'].values()):.1e}): this model amplifies rounding; "
+            "to keep the graphs anyway, export with --skip-verify"
         )
+    else:
+        advice = "this is an export bug, please report it with the run's config.json"
+    raise ParityError(
+        f"exported graphs differ from the PyTorch model by {report['worst']:.2e} > {report['bound']:g} (see the table above); {advice}"
+    )
 
 
 # ---------------------------------------------------------------------- CLI
