@@ -104,7 +104,7 @@ def mamba_tokens(mixer: Mamba, u: torch.Tensor, state: MambaState | None) -> tup
         h = drive_i if h is None else decay_i * h + drive_i
         hs.append(h)
     y = torch.matmul(torch.cat(hs, dim=1), c.unsqueeze(-1))[..., 0]  # (B, L, E)
-    h = h.squeeze(1)  # (B, E, n)
+    h = h[:, 0]  # (B, E, n); indexing, not squeeze: squeeze of a dynamic dim exports as an If node
     y = (y + mixer.D * x) * F.silu(z)
     return mixer.out_proj(y), (new_conv, h)
 

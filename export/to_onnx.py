@@ -184,12 +184,45 @@ def write_onnx(module, example: tuple, path: Path, config, graph: str, opset: in
                     dim.dim_param = d
                 else:
                     dim.dim_value = d
+    drop_weight_identities(model)
     model.producer_name = "dssp export.to_onnx"
     model.producer_version = EXPORTER_VERSION
     model.doc_string = f"DSSP {graph} graph; see {MANIFEST_NAME} next to this file"
     onnx.helper.set_model_props(model, metadata)
     onnx.save(model, str(path))
     onnx.checker.check_model(str(path), full_check=True)
+
+
+def drop_weight_identities(model) -> int:
+    """Let every node read shared weights directly; returns the number of Identity nodes removed.
+
+    The exporter gives each reuse of a weight (the K unrolled denoiser steps share every layer) its own
+    ``Identity`` of the initializer. ONNX Runtime removes them when it loads the graph, but the int8
+    quantizer only quantizes a MatMul whose weight *is* an initializer: with the Identities in place it
+    quantized one use in eleven and kept the fp32 copy for the rest.
+    """
+    graph = model.graph
+    weights = {t.name for t in graph.initializer}
+    outputs = {o.name for o in graph.output}
+    alias = {
+        node.output[0]: node.input[0]
+        for node in graph.node
+        if node.op_type == "Identity" and node.input[0] in weights and node.output[0] not in outputs
+    }
+    kept = [node for node in graph.node if not (node.op_type == "Identity" and node.output[0] in alias)]
+    _rename_inputs(kept, alias)
+    del graph.node[:]
+    graph.node.extend(kept)
+    return len(alias)
+
+
+def _rename_inputs(nodes, alias: dict[str, str]) -> None:
+    """Rename node inputs, in subgraphs (If branches) too, which may read outer names."""
+    for node in nodes:
+        node.input[:] = [alias.get(name, name) for name in node.input]
+        for attr in node.attribute:
+            for sub in [attr.g] if attr.type == attr.GRAPH else list(attr.graphs):
+                _rename_inputs(sub.node, alias)
 
 
 def onnx_node_count(path: Path) -> int:
