@@ -3,11 +3,17 @@
 # on a GPU workstation use e.g. `make test TORCH=torch`.
 PYTHON ?= python3
 TORCH ?= torch==2.13.0
-EXTRAS ?= train,export,deploy,dev
+EXTRAS ?= train,export,deploy,hardware,dev
 
-.PHONY: setup demo test bench
+.PHONY: system setup demo test bench
 
-setup:
+# pyrealsense2 needs the system's libusb-1.0 (Debian/Ubuntu: apt-get install libusb-1.0-0).
+system:
+	@ldconfig -p | grep -q 'libusb-1.0.so.0' || \
+	  { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && apt-get update -qq && apt-get install -y -qq libusb-1.0-0 >/dev/null; } || \
+	  { echo "error: libusb-1.0 is missing; install it (sudo apt-get install libusb-1.0-0) and run make again"; exit 2; }
+
+setup: system
 	$(PYTHON) -m pip install --quiet "$(TORCH)" -e ".[$(EXTRAS)]"
 
 demo: setup
