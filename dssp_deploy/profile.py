@@ -28,10 +28,20 @@ import numpy as np
 
 from dssp_deploy.flops import chunk_flops, history_step_flops
 from dssp_deploy.latency import LatencyStats, gemm_peak_gflops, resident_memory_mib, time_calls
+from dssp_deploy.manifest import DENOISER_GRAPH, HISTORY_GRAPH, graph_file
+from dssp_deploy.op_breakdown import elementwise_share, op_type_breakdown
 from dssp_deploy.policy import OnnxPolicy
 
 FULL = {"iterations": 300, "chunk_iterations": 100, "torch_iterations": 30, "sweep": [10, 100, 1000, 3000, 10000], "window": 50, "transformer_max": 3000}
 QUICK = {"iterations": 20, "chunk_iterations": 5, "torch_iterations": 5, "sweep": [10, 100, 300], "window": 10, "transformer_max": 300}
+# The runtime's latency targets for the robotwin preset (1024 points, batch 1) on a 2-core CPU.
+TARGETS = {
+    "history_step_p50_ms": 1.5,
+    "history_step_p95_ms": 2.5,
+    "denoiser_chunk_p50_ms": 25.0,
+    "history_growth_10k": 0.05,  # per-step cost at the longest history vs the shortest
+    "ort_vs_eager_chunk": 3.0,  # ORT at least this many times faster than eager PyTorch
+}
 
 
 def random_observation(policy: OnnxPolicy, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -140,6 +150,7 @@ def run_profile(model_dir: Path, checkpoint: Path | None, quick: bool, threads: 
     peak = gemm_peak_gflops()
     flops = {"history_step": history_step_flops(m, m["n_points"]), "denoiser_chunk": chunk_flops(m, manifest["denoise_steps"])}
     achieved = {k: flops[k] / (stats[k]["p50"] / 1e3) / 1e9 for k in flops}
+    breakdown = graph_breakdowns(policy, model_dir, threads, runs=2 if quick else 5)
     comparisons = torch_comparisons(model_dir, checkpoint, manifest, settings, threads)
     comp_stats = {k: LatencyStats.of(v).to_dict() for k, v in comparisons.items() if isinstance(v, list) and k != "transformer_sweep"}
     return {
@@ -154,7 +165,44 @@ def run_profile(model_dir: Path, checkpoint: Path | None, quick: bool, threads: 
         "achieved_gflops": achieved,
         "fraction_of_peak": {k: v / peak for k, v in achieved.items()},
         "torch": {**comp_stats, "transformer_sweep": comparisons.get("transformer_sweep"), "skipped": comparisons.get("skipped")},
+        "op_breakdown": breakdown,
     }
+
+
+def graph_breakdowns(policy: OnnxPolicy, model_dir: Path, threads: int | None, runs: int) -> dict[str, list[dict]]:
+    """Per graph, kernel time by operator type (ONNX Runtime's profiler), on the inputs of a live episode."""
+    rng = np.random.default_rng(1)
+    pc, pos = random_observation(policy, rng)
+    policy.reset()
+    policy.observe(pc, pos)
+    history_feeds = {"point_cloud": pc, "agent_pos": pos, **policy.state} if policy.use_history else {"point_cloud": pc, "agent_pos": pos}
+    denoiser_feeds = {**policy.denoiser_inputs(), "noise": policy.noise(1, seed=0)}
+    manifest = policy.manifest
+    return {
+        "history_step": op_type_breakdown(graph_file(model_dir, manifest, HISTORY_GRAPH), history_feeds, threads, runs),
+        "denoiser_chunk": op_type_breakdown(graph_file(model_dir, manifest, DENOISER_GRAPH), denoiser_feeds, threads, runs),
+    }
+
+
+def target_rows(report: dict[str, Any]) -> list[tuple[str, float, float, bool, str]]:
+    """(figure, measured, target, met, how far) for each target the run has a figure for."""
+    lat, sweep, torch_stats = report["latency_ms"], report["history_sweep"], report["torch"]
+    rows = []
+
+    def upper(name, measured, target, unit):
+        met = measured <= target
+        rows.append((name, measured, target, met, "met" if met else f"{measured / target:.2f}x the target ({measured - target:+.3g} {unit})".replace(" )", ")")))
+
+    upper("history step p50 ms", lat["history_step"]["p50"], TARGETS["history_step_p50_ms"], "ms")
+    upper("history step p95 ms", lat["history_step"]["p95"], TARGETS["history_step_p95_ms"], "ms")
+    upper("denoiser chunk p50 ms", lat["denoiser_chunk"]["p50"], TARGETS["denoiser_chunk_p50_ms"], "ms")
+    growth = abs(sweep[-1]["p50_ms"] / sweep[0]["p50_ms"] - 1)
+    upper(f"history step cost change {sweep[0]['length']} → {sweep[-1]['length']} steps (fraction)", growth, TARGETS["history_growth_10k"], "")
+    if "eager_denoiser_chunk" in torch_stats:
+        ratio = torch_stats["eager_denoiser_chunk"]["p50"] / lat["denoiser_chunk"]["p50"]
+        met = ratio >= TARGETS["ort_vs_eager_chunk"]
+        rows.append(("ORT vs eager per chunk (x faster)", ratio, TARGETS["ort_vs_eager_chunk"], met, "met" if met else f"{ratio / TARGETS['ort_vs_eager_chunk']:.2f}x the target"))
+    return rows
 
 
 def markdown(report: dict[str, Any]) -> str:
@@ -195,6 +243,13 @@ def markdown(report: dict[str, Any]) -> str:
     lines.append(f"Resident memory: {mem['before_load']:.0f} MiB before load, {mem['after_load']:.0f} after, {mem['after_profile']:.0f} at the end")
     if torch_stats.get("skipped"):
         lines.append(torch_stats["skipped"])
+    for graph, label in (("history_step", "history step"), ("denoiser_chunk", "denoiser chunk")):
+        rows = report["op_breakdown"][graph]
+        top = ", ".join(f"{r['op']} {100 * r['share']:.0f} % ({r['nodes']} nodes)" for r in rows[:5])
+        lines.append(f"Where the {label} goes (ORT profiler, kernel time): {top}; elementwise/copy ops {100 * elementwise_share(rows):.0f} %")
+    lines += ["", "| target (robotwin preset, 2-core CPU) | measured | target | |", "|---|---:|---:|---|"]
+    for name, measured, target, _, how in target_rows(report):
+        lines.append(f"| {name} | {measured:.3g} | {target:.3g} | {how} |")
     return "\n".join(lines)
 
 

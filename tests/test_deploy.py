@@ -209,4 +209,9 @@ def test_profiler_quick_run_reports_every_figure(tiny_export, tmp_path):
     assert report["machine"]["gemm_peak_gflops"] > 0 and report["achieved_gflops"]["denoiser_chunk"] > 0
     assert report["torch"]["eager_denoiser_chunk"]["p50"] > 0 and report["torch"]["torchscript_history_step"]["p50"] > 0
     assert len(report["torch"]["transformer_sweep"]) >= 2
+    for graph in ("history_step", "denoiser_chunk"):  # ORT's own profiler explains where the time goes
+        rows = report["op_breakdown"][graph]
+        assert rows and abs(sum(r["share"] for r in rows) - 1) < 1e-6 and all(r["nodes"] >= 1 for r in rows)
+    assert "MatMul" in {r["op"] for r in report["op_breakdown"]["denoiser_chunk"]}
+    assert "| denoiser chunk p50 ms |" in out.stdout and "Where the denoiser chunk goes" in out.stdout
     assert png_path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
