@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from dssp_train.config import ModelConfig, RunConfig
-from dssp_train.training.checkpoint import atomic_write_text
+from dssp_train.atomic import atomic_write_text
 
 from dssp_deploy.manifest import (  # noqa: F401  (re-exported: the runtime owns the format's names and reader)
     DENOISER_GRAPH,

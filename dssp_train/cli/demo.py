@@ -53,7 +53,7 @@ def run_demo(out: Path, steps: int | None, episodes: int, seed: int, progress: b
     """Dataset, two trainings and their evaluation; returns {"dssp": {...}, "reactive": {...}}."""
     from dssp_train.config import apply_overrides, load_preset
     from dssp_train.data.synthetic import write_tap_count_dataset
-    from dssp_train.training.checkpoint import atomic_write_text
+    from dssp_train.atomic import atomic_write_text
     from dssp_train.training.trainer import Trainer
 
     out.mkdir(parents=True, exist_ok=True)
