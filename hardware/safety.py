@@ -1,0 +1,210 @@
+"""The safety layer between the policy and the arms: every command passes here, nothing else sends.
+
+    safety = Safety(SafetyConfig(), lower, upper, start=robot_state.position)
+    decision = safety.decide(action, now=time.monotonic(), camera_time=frame.timestamp,
+                             state=robot.state(), deadline_missed=False)
+    if decision.command is not None:
+        robot.command(decision.command)       # within the limits, by construction and by a final check
+
+Rules, in order, each tick (all positions in policy units, (dof,): per arm [J1..J6 rad, gripper 0..1]):
+1. A latched fault (arm error or e-stop reported, or a stop requested) → no command at all, ever again.
+2. Arm error / e-stop in the feedback → latch the fault, send nothing, report.
+3. Stale or missing joint feedback, stale or missing camera frame, an inference deadline miss, or an
+   action with NaN/inf or the wrong shape → **hold**: resend the last safe target.
+4. Otherwise the action is clipped to the joint/gripper limits, then to at most ``max_step`` away from
+   the last safe target (per joint, per tick, like LeRobot's ``max_relative_target``), and becomes the
+   new safe target.
+The first safe target is the measured position at start, clipped to the limits. Every event (hold,
+clip, refusal, fault) is recorded with its time in :attr:`Safety.events`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+
+from dssp_train.errors import ConfigError
+from hardware.arm import RobotState
+
+
+@dataclass(frozen=True)
+class SafetyConfig:
+    """Thresholds of the safety layer (seconds, radians and gripper fraction per tick)."""
+
+    max_joint_step: float = 0.05  # rad per tick and joint (0.5 rad/s at 10 Hz)
+    max_gripper_step: float = 0.2  # of the full opening per tick
+    camera_timeout: float = 0.25  # s: an older frame is stale
+    feedback_timeout: float = 0.1  # s: older joint feedback is stale
+    deadline_hold: bool = True  # hold when the policy missed the tick's deadline
+    disable_on_exit: bool = False  # disable the motors after the final hold (arms without brakes drop!)
+    limit_margin: float = 0.0  # rad kept away from each joint limit
+
+    def __post_init__(self):
+        for name in ("max_joint_step", "max_gripper_step", "camera_timeout", "feedback_timeout"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ConfigError(f"safety.{name} must be a positive number, got {value!r}")
+        if not (0 <= self.limit_margin < 0.5):
+            raise ConfigError(f"safety.limit_margin must be in [0, 0.5) rad, got {self.limit_margin!r}")
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any]) -> "SafetyConfig":
+        unknown = set(values) - set(cls.__dataclass_fields__)
+        if unknown:
+            raise ConfigError(f"unknown safety setting(s) {sorted(unknown)}; known: {sorted(cls.__dataclass_fields__)}")
+        return cls(**values)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class SafetyEvent:
+    time: float  # time.monotonic() seconds
+    tick: int
+    kind: str  # hold | clip | refuse | fault | stop
+    detail: str
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+@dataclass
+class Decision:
+    """What to send this tick: ``command`` (dof,) or None (send nothing), and why."""
+
+    command: np.ndarray | None
+    held: bool = False
+    clipped: bool = False
+    events: list[SafetyEvent] = field(default_factory=list)
+
+
+class Safety:
+    """Turns policy actions into commands that are always within the limits and the per-tick step.
+
+    lower, upper: (dof,) limits in policy units; gripper_mask: (dof,) bool, True for gripper entries
+    (their per-tick step is ``max_gripper_step``); start: (dof,) measured position at start.
+    """
+
+    def __init__(self, config: SafetyConfig, lower, upper, gripper_mask, start):
+        self.config = config
+        lower, upper = np.asarray(lower, np.float64), np.asarray(upper, np.float64)
+        self.gripper = np.asarray(gripper_mask, bool)
+        margin = np.where(self.gripper, 0.0, config.limit_margin)
+        self.lower, self.upper = lower + margin, upper - margin
+        if self.lower.shape != self.upper.shape or self.gripper.shape != self.lower.shape or np.any(self.lower > self.upper):
+            raise ConfigError("safety limits: lower, upper and gripper mask must have one shape and lower <= upper (minus the margin)")
+        self.dof = self.lower.shape[0]
+        self.max_step = np.where(self.gripper, config.max_gripper_step, config.max_joint_step)
+        start = np.asarray(start, np.float64)
+        if start.shape != (self.dof,) or not np.all(np.isfinite(start)):
+            raise ConfigError(f"safety needs a finite start position of shape ({self.dof},), got {start.shape}")
+        self.last_safe = np.clip(start, self.lower, self.upper)
+        outside = np.flatnonzero(np.abs(self.last_safe - start) > self.max_step)
+        if outside.size:
+            raise ConfigError(
+                f"the robot starts outside its limits on entries {outside.tolist()} (position {np.round(start[outside], 3).tolist()}, "
+                f"limits {np.round(self.lower[outside], 3).tolist()}..{np.round(self.upper[outside], 3).tolist()}): move it inside by hand first"
+            )
+        self.fault: str | None = None
+        self.events: list[SafetyEvent] = []
+        self.tick = 0
+
+    # ------------------------------------------------------------------ decisions
+    def _event(self, now: float, kind: str, detail: str, decision: Decision) -> None:
+        event = SafetyEvent(now, self.tick, kind, detail)
+        self.events.append(event)
+        decision.events.append(event)
+
+    def _hold(self, now: float, why: str, decision: Decision) -> Decision:
+        decision.command, decision.held = self.last_safe.copy(), True
+        self._event(now, "hold", why, decision)
+        return decision
+
+    def decide(
+        self,
+        action,
+        now: float,
+        camera_time: float | None,
+        state: RobotState | None,
+        deadline_missed: bool = False,
+    ) -> Decision:
+        """The command for this tick. ``action``: (dof,) policy units; times are ``time.monotonic()``."""
+        decision = Decision(command=None)
+        previous = self.last_safe.copy()
+        try:
+            if self.fault is not None:
+                return decision
+            if state is not None:
+                bad = [f"arm {i}: {s.detail or ('e-stop' if s.estop else 'error')}" for i, s in enumerate(state.status) if s.estop or s.error]
+                if bad:
+                    self.fault = "; ".join(bad)
+                    self._event(now, "fault", f"{self.fault}: commands stopped", decision)
+                    return decision
+            if state is None:
+                return self._hold(now, "no joint feedback yet", decision)
+            age = now - state.timestamp
+            if age > self.config.feedback_timeout:
+                return self._hold(now, f"joint feedback is {1e3 * age:.0f} ms old (> {1e3 * self.config.feedback_timeout:.0f} ms)", decision)
+            if camera_time is None:
+                return self._hold(now, "no camera frame", decision)
+            age = now - camera_time
+            if age > self.config.camera_timeout:
+                return self._hold(now, f"camera frame is {1e3 * age:.0f} ms old (> {1e3 * self.config.camera_timeout:.0f} ms)", decision)
+            if deadline_missed and self.config.deadline_hold:
+                return self._hold(now, "inference missed the tick's deadline", decision)
+            try:
+                target = np.asarray(action, np.float64).reshape(-1)
+            except (TypeError, ValueError):
+                return self._refuse(now, "an action that is not numeric", decision)
+            if target.shape != (self.dof,):
+                return self._refuse(now, f"an action of {target.size} values (the robot takes {self.dof})", decision)
+            if not np.all(np.isfinite(target)):
+                return self._refuse(now, "an action with NaN/inf", decision)
+            limited = np.clip(target, self.lower, self.upper)
+            stepped = np.clip(limited, self.last_safe - self.max_step, self.last_safe + self.max_step)
+            if np.any(limited != target):
+                self._event(now, "clip", f"joint limits on {np.flatnonzero(limited != target).tolist()}", decision)
+            if np.any(stepped != limited):
+                self._event(now, "clip", f"per-tick step on {np.flatnonzero(stepped != limited).tolist()}", decision)
+            decision.clipped = bool(decision.events)
+            self.last_safe = stepped
+            decision.command = stepped.copy()
+            return decision
+        finally:
+            if decision.command is not None:
+                self.check(decision.command, previous)
+            self.tick += 1
+
+    def _refuse(self, now: float, what: str, decision: Decision) -> Decision:
+        self._event(now, "refuse", f"refused {what}", decision)
+        return self._hold(now, "after a refused action", decision)
+
+    def stop(self, now: float, why: str) -> Decision:
+        """Latch a stop (signal, error): returns the final hold; nothing is commanded after it."""
+        decision = Decision(command=None)
+        if self.fault is None:
+            self._hold(now, f"final hold: {why}", decision)
+            self.fault = why
+            self._event(now, "stop", why, decision)
+        return decision
+
+    # ------------------------------------------------------------------ the last line
+    def check(self, command: np.ndarray, previous: np.ndarray) -> None:
+        """Raise if a command breaks a limit or the per-tick step (a bug, never a policy output).
+
+        The run loop treats this as a fault: it stops commanding and ends in a hold.
+        """
+        if command.shape != (self.dof,) or not np.all(np.isfinite(command)):
+            raise SafetyViolation("a non-finite or mis-shaped command reached the final check")
+        if np.any(command < self.lower - 1e-12) or np.any(command > self.upper + 1e-12):
+            raise SafetyViolation("a command outside the limits reached the final check")
+        if np.any(np.abs(command - previous) > self.max_step + 1e-12):
+            raise SafetyViolation("a command beyond the per-tick step reached the final check")
+
+
+class SafetyViolation(RuntimeError):
+    """A command that the rules should have made impossible: a bug; nothing is sent."""
