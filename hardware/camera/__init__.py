@@ -1,0 +1,56 @@
+"""Depth cameras: RealSense devices and recordings, a simulated tabletop, and :func:`open_camera`.
+
+    with open_camera("l515") as cam:         # or "d435", "d405", "file:episode.db3", "sim"
+        frame = cam.wait_for_frame()         # DepthFrame: depth (H, W) uint16, depth_unit m, intrinsics
+
+Modules: ``base`` (the interface), ``profiles`` (stream profiles as data), ``realsense`` (rs.pipeline),
+``software`` (rs.software_device: numpy frames through the SDK, .db3 recordings), ``sim`` (simulated
+camera). pyrealsense2 is imported only when a camera is opened.
+"""
+
+from __future__ import annotations
+
+from hardware.camera.base import Camera, DepthFrame, Intrinsics
+from hardware.camera.profiles import CameraProfile, load_profile, profile_names
+from hardware.errors import CameraError
+
+__all__ = ["Camera", "CameraProfile", "DepthFrame", "Intrinsics", "load_profile", "open_camera", "spec_forms"]
+
+
+def spec_forms() -> str:
+    """The accepted camera specs, for messages and --help: 'd405|d435|l515|file:PATH|sim'."""
+    return "|".join(profile_names() + ["file:PATH", "sim"])
+
+
+def open_camera(spec: str, serial: str | None = None, color: bool = False, **kw) -> Camera:
+    """A camera for ``spec`` (not started; use it as a context manager or call ``start()``).
+
+    spec: a profile name ('l515', 'd435', 'd405'; case-insensitive) for a live RealSense, optionally with
+    ``serial``; 'file:PATH' for a .bag/.db3 recording (keywords ``repeat_playback``, ``real_time``);
+    'sim' for the simulated tabletop (keywords of :class:`hardware.camera.sim.SimCamera`, e.g. ``seed``).
+    color: also deliver RGB aligned to depth. Unknown specs raise CameraError listing the valid forms.
+    """
+    if not isinstance(spec, str) or not spec.strip():
+        raise CameraError(f"camera spec must be one of {spec_forms()}, got {spec!r}")
+    text = spec.strip()
+    if text.lower().startswith("file:"):
+        path = text[len("file:"):]
+        if not path:
+            raise CameraError("camera spec file: needs a path, e.g. file:episode.db3")
+        if serial is not None:
+            raise CameraError("a serial number selects a live camera; it cannot be used with file:PATH")
+        from hardware.camera.realsense import RealSenseCamera
+
+        return RealSenseCamera(file=path, color=color, **kw)
+    name = text.lower()
+    if name == "sim":
+        if serial is not None:
+            raise CameraError("a serial number selects a live camera; it cannot be used with sim")
+        from hardware.camera.sim import SimCamera
+
+        return SimCamera(color=color, **kw)
+    if name in profile_names():
+        from hardware.camera.realsense import RealSenseCamera
+
+        return RealSenseCamera(name, serial=serial, color=color, **kw)
+    raise CameraError(f"unknown camera spec {spec!r}; use one of {spec_forms()}")
