@@ -9,8 +9,8 @@
 Rules, in order, each tick (all positions in policy units, (dof,): per arm [J1..J6 rad, gripper 0..1]):
 1. A latched fault (arm error or e-stop reported, or a stop requested) → no command at all, ever again.
 2. Arm error / e-stop in the feedback → latch the fault, send nothing, report.
-3. Stale or missing joint feedback, stale or missing camera frame, an inference deadline miss, or an
-   action with NaN/inf or the wrong shape → **hold**: resend the last safe target.
+3. Stale or missing joint feedback, stale or missing camera frame, an inference deadline miss, no
+   action, or an action with NaN/inf or the wrong shape → **hold**: resend the last safe target.
 4. Otherwise the action is clipped to the joint/gripper limits, then to at most ``max_step`` away from
    the last safe target (per joint, per tick, like LeRobot's ``max_relative_target``), and becomes the
    new safe target.
@@ -144,6 +144,8 @@ class Safety:
                     self.fault = "; ".join(bad)
                     self._event(now, "fault", f"{self.fault}: commands stopped", decision)
                     return decision
+            if deadline_missed and self.config.deadline_hold:  # first: it also makes the inputs look stale
+                return self._hold(now, "inference missed the tick's deadline", decision)
             if state is None:
                 return self._hold(now, "no joint feedback yet", decision)
             age = now - state.timestamp
@@ -154,8 +156,8 @@ class Safety:
             age = now - camera_time
             if age > self.config.camera_timeout:
                 return self._hold(now, f"camera frame is {1e3 * age:.0f} ms old (> {1e3 * self.config.camera_timeout:.0f} ms)", decision)
-            if deadline_missed and self.config.deadline_hold:
-                return self._hold(now, "inference missed the tick's deadline", decision)
+            if action is None:
+                return self._hold(now, "no action this tick", decision)
             try:
                 target = np.asarray(action, np.float64).reshape(-1)
             except (TypeError, ValueError):

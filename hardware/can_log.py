@@ -1,0 +1,58 @@
+"""Raw CAN traffic to a log file, from a listener of its own on the same bus.
+
+    with BusRecorder("can0", "socketcan", "runs/x/can0.blf"):
+        ...   # every frame on can0 (commands and feedback) goes to the file
+
+python-can's ``Logger`` picks the format from the suffix (``.blf``, ``.asc``, ``.csv``, ``.log``);
+``can.LogReader`` reads it back. SocketCAN and python-can's ``virtual`` interface deliver every frame to
+every bus opened on the channel, so a second bus sees both directions. (A ``udp_multicast`` sender does
+not see its own frames on another socket of the same process: record those from another process.)
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import can
+
+from hardware.errors import CanError
+from hardware.piper.bus import open_bus
+
+
+class BusRecorder:
+    def __init__(self, channel: str, interface: str, path: Path, **bus_options):
+        self.channel, self.interface, self.path = channel, interface, Path(path)
+        self.bus_options = bus_options
+        self._bus = self._notifier = self._logger = None
+
+    def start(self) -> None:
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._bus = open_bus(self.channel, self.interface, **self.bus_options)
+        try:
+            self._logger = can.Logger(str(self.path))
+        except (ValueError, OSError) as exc:
+            self._bus.shutdown()
+            raise CanError(f"cannot write the CAN log {self.path}: {exc}; use a .blf, .asc, .csv or .log path") from exc
+        self._notifier = can.Notifier(self._bus, [self._logger], timeout=0.05)
+
+    def stop(self) -> None:
+        if self._notifier is not None:
+            self._notifier.stop()  # stops its listeners too: the logger closes its file
+        elif self._logger is not None:
+            self._logger.stop()
+        if self._bus is not None:
+            self._bus.shutdown()
+        self._bus = self._notifier = self._logger = None
+
+    def __enter__(self) -> "BusRecorder":
+        self.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+
+def read_log(path: Path) -> list[can.Message]:
+    """Every frame of a log file, in order."""
+    with can.LogReader(str(path)) as reader:
+        return list(reader)
