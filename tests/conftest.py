@@ -31,3 +31,40 @@ def tiny_export(tmp_path_factory):
                        "--set", "train.val_every=30", "--no-progress"]) == 0
     assert export_main([str(run_dir), "-o", str(model_dir), "--skip-verify"]) == 0
     return run_dir, model_dir, data
+
+
+ARM_HOME = (0.0, 0.6, -0.6, 0.0, 0.4, 0.0, 0.8)  # one Piper: J1..J6 rad, gripper opening 0..1
+
+
+def write_arm_dataset(path, n_episodes: int = 4, n_arms: int = 1, steps: int = 30, n_points: int = 64, seed: int = 0):
+    """Small demonstrations in the robot's joint space (7 values per arm): a slow reach and return."""
+    import numpy as np
+
+    from dssp_train.data.replay_buffer import Episode, write_replay_buffer
+
+    rng = np.random.default_rng(seed)
+    home = np.tile(np.array(ARM_HOME), n_arms)
+    episodes = []
+    for _ in range(n_episodes):
+        offset = rng.uniform(-0.15, 0.15, home.shape)
+        phase = np.sin(np.linspace(0, np.pi, steps + 1))[:, None]
+        joints = (home + phase * offset).astype(np.float32)
+        cloud = rng.uniform([-0.3, -0.3, 0.0], [0.3, 0.3, 0.3], (steps, n_points, 3)).astype(np.float32)
+        episodes.append(Episode(point_cloud=cloud, state=joints[:-1], action=joints[1:]))
+    write_replay_buffer(path, episodes, attrs={"control_rate_hz": 50.0, "task": "reach"})
+    return path
+
+
+@pytest.fixture(scope="session")
+def arm_export(tmp_path_factory):
+    """A briefly trained tiny model for one simulated Piper (state = action = 7): its model directory."""
+    from dssp_train.cli.train import main as train_main
+    from export.to_onnx import main as export_main
+
+    root = tmp_path_factory.mktemp("arm_export")
+    data = write_arm_dataset(root / "arm.zarr")
+    run_dir, model_dir = root / "run", root / "model"
+    assert train_main(["--data", str(data), "--out", str(run_dir), "--preset", "tiny", "--steps", "20",
+                       "--set", "train.val_every=20", "--no-progress"]) == 0
+    assert export_main([str(run_dir), "-o", str(model_dir), "--skip-verify"]) == 0
+    return model_dir

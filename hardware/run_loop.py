@@ -1,0 +1,296 @@
+"""The robot's control loop: camera → point cloud → runtime → safety → arms, at a fixed rate.
+
+    runner = Runner(policy, camera, robot, cloud_config, camera_to_base, SafetyConfig(), LoopSettings(rate_hz=10))
+    summary = runner.run()        # until max_steps, a stop request (SIGINT/SIGTERM) or a fault
+
+Each tick:
+1. take the newest camera frame and the newest joint feedback; if either is missing or stale, **hold**
+   (resend the last safe target) and leave the history alone (a frozen camera must not fill the
+   memory with copies of one frame);
+2. otherwise build the point cloud (``hardware.pointcloud``, the same pipeline that builds datasets),
+   and run the runtime's tick (``dssp_deploy.ChunkedControl``: the history every tick, a new chunk every
+   H_a ticks);
+3. the safety layer turns the action into a command (limits, per-tick step; a deadline miss holds);
+4. send it (not with ``dry_run``), log the tick, sleep to the next tick.
+A fault (arm error or e-stop, a send failure, a runtime error) ends the loop in a hold: nothing is sent
+after it. Shapes: cloud (P, C) float32; state, action and command (dof,) in policy units.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import Counter, deque
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+
+from dssp_deploy.control_loop import ChunkedControl
+from dssp_deploy.policy import OnnxPolicy
+from dssp_train.errors import ConfigError, DSSPError
+from hardware.arm import Robot
+from hardware.camera.base import Camera
+from hardware.pointcloud import EmptyCloudError, PointCloudConfig, frame_to_cloud
+from hardware.run_log import RunLog
+from hardware.safety import Safety, SafetyConfig, SafetyViolation
+
+
+@dataclass(frozen=True)
+class LoopSettings:
+    rate_hz: float = 10.0
+    max_steps: int | None = None  # None: until stopped
+    dry_run: bool = False  # compute actions, send nothing (the arms are not enabled)
+    prefetch: bool = False  # start each chunk early in a background thread
+    seed: int | None = None  # diffusion noise seed (None: random)
+    startup_timeout: float = 5.0  # s to wait for the first frame and feedback
+
+    def __post_init__(self):
+        if not (math.isfinite(self.rate_hz) and 0 < self.rate_hz <= 1000):
+            raise ConfigError(f"--rate must be in (0, 1000] Hz, got {self.rate_hz}")
+        if self.max_steps is not None and self.max_steps < 1:
+            raise ConfigError(f"--max-steps must be at least 1, got {self.max_steps}")
+
+
+def check_fits(policy: OnnxPolicy, robot: Robot, cloud_config: PointCloudConfig) -> None:
+    """Refuse a model that does not fit this robot or camera pipeline — before anything moves."""
+    if policy.state_dim != robot.dof or policy.action_dim != robot.dof:
+        raise ConfigError(
+            f"the model takes a {policy.state_dim}-dim state and gives a {policy.action_dim}-dim action, but the robot has "
+            f"{robot.dof} values (7 per arm): pass one bus per arm the model was trained for (--can can0[,can1])"
+        )
+    model_points = policy.manifest["model_config"]["n_points"]
+    if cloud_config.n_points != model_points:
+        raise ConfigError(f"the point-cloud pipeline gives {cloud_config.n_points} points but the model was trained on {model_points}")
+
+
+class Runner:
+    def __init__(
+        self,
+        policy: OnnxPolicy,
+        camera: Camera,
+        robot: Robot,
+        cloud_config: PointCloudConfig,
+        camera_to_base: np.ndarray,
+        safety_config: SafetyConfig,
+        settings: LoopSettings,
+        limits: tuple[np.ndarray, np.ndarray, np.ndarray],
+        log: RunLog | None = None,
+        status: Callable[[str], None] | None = None,
+    ):
+        """``limits``: (lower (dof,), upper (dof,), gripper mask (dof,)) in policy units."""
+        check_fits(policy, robot, cloud_config)
+        self.policy, self.camera, self.robot = policy, camera, robot
+        self.cloud_config, self.camera_to_base = cloud_config, np.asarray(camera_to_base, np.float64)
+        self.safety_config, self.settings, self.limits = safety_config, settings, limits
+        self.log, self.status = log, status
+        self.period = 1.0 / settings.rate_hz
+        self.control = ChunkedControl(policy, rate_hz=settings.rate_hz, prefetch=settings.prefetch, seed=settings.seed)
+        self.safety: Safety | None = None
+        self.stop_reason: str | None = None
+        self.fault: str | None = None
+        self.ticks = 0
+        self.sent = 0
+        self.holds = 0
+        self.policy_ticks = 0
+        self.event_counts: Counter = Counter()
+        self.latencies: dict[str, list[float]] = {"cloud": [], "observe": [], "chunk": [], "tick": []}
+        self._tick_times: deque = deque(maxlen=50)
+
+    # ----------------------------------------------------------------- lifecycle
+    def request_stop(self, why: str) -> None:
+        """Ask the loop to end at the next tick with a final hold (signal handlers call this)."""
+        self.stop_reason = self.stop_reason or why
+
+    def start(self) -> None:
+        """Wait for the first frame and feedback, set up the safety layer, enable the arms (not in dry run)."""
+        deadline = time.monotonic() + self.settings.startup_timeout
+        self.camera.wait_for_frame(self.settings.startup_timeout)
+        state = self.robot.state()
+        while state is None:
+            if time.monotonic() > deadline:
+                raise DSSPError(
+                    f"no joint feedback within {self.settings.startup_timeout:g} s: check the CAN bus (bitrate 1 Mbit/s, cabling) and that the arm is powered"
+                )
+            time.sleep(0.005)
+            state = self.robot.state()
+        lower, upper, gripper = self.limits
+        self.safety = Safety(self.safety_config, lower, upper, gripper, state.position)
+        if not self.settings.dry_run:
+            self.robot.enable()
+        self.control.reset()
+
+    # ----------------------------------------------------------------- one tick
+    def tick(self) -> dict[str, Any]:
+        """One control tick; returns its log record."""
+        assert self.safety is not None, "start() first"
+        t0 = time.monotonic()
+        frame = self.camera.latest()
+        state = self.robot.state()
+        record: dict[str, Any] = {"tick": self.ticks, "time": t0, "state": None, "action": None, "command": None, "held": False}
+        cloud = None
+        action = None
+        deadline_missed = False
+        cfg = self.safety_config
+        fresh = (
+            frame is not None
+            and state is not None
+            and t0 - frame.timestamp <= cfg.camera_timeout
+            and t0 - state.timestamp <= cfg.feedback_timeout
+        )
+        if frame is not None:
+            record["frame_age_ms"] = 1e3 * (t0 - frame.timestamp)
+        if state is not None:
+            record["state"] = state.position
+            record["feedback_age_ms"] = 1e3 * (t0 - state.timestamp)
+        if fresh and self.fault is None:
+            c0 = time.monotonic()
+            try:
+                cloud, cloud_info = frame_to_cloud(frame, self.cloud_config, self.camera_to_base)
+            except EmptyCloudError as exc:  # nothing in the workspace: no observation, hold
+                cloud, record["events"] = None, [f"no observation: {exc}"]
+                self.event_counts["empty_cloud"] += 1
+            record["cloud_ms"] = 1e3 * (time.monotonic() - c0)
+            self.latencies["cloud"].append(record["cloud_ms"])
+        if cloud is not None:
+            if cloud_info.n_padded:
+                record["cloud_padded"] = int(cloud_info.n_padded)
+                self.event_counts["padded_cloud"] += 1
+            try:
+                out, info = self.control.tick(cloud[None], state.position[None].astype(np.float32))
+            except Exception as exc:  # the runtime failed: hold and end
+                self._fault(t0, f"runtime error: {exc}")
+            else:
+                action = out[0].astype(np.float64)
+                record["action"] = action
+                record["observe_ms"] = info.observe_ms
+                self.latencies["observe"].append(info.observe_ms)
+                if info.chunk_ms is not None:
+                    record["chunk_ms"] = info.chunk_ms
+                    self.latencies["chunk"].append(info.chunk_ms)
+                self.policy_ticks += 1
+                elapsed = time.monotonic() - t0
+                deadline_missed = info.over_budget or elapsed > self.period
+                record["events"] = list(info.events)
+        now = time.monotonic()
+        try:
+            decision = self.safety.decide(
+                action, now=now, camera_time=frame.timestamp if frame else None, state=self.robot.state(), deadline_missed=deadline_missed
+            )
+        except SafetyViolation as exc:
+            self._fault(now, f"safety check failed: {exc}")
+            decision = None
+        if decision is not None:
+            for event in decision.events:
+                self.event_counts[event.kind] += 1
+            record["safety"] = [e.to_dict() for e in decision.events]
+            record["held"] = decision.held
+            if self.safety.fault and self.fault is None:
+                self.fault = self.safety.fault
+            if decision.command is not None:
+                self._send(decision.command, record)
+        record["tick_ms"] = 1e3 * (time.monotonic() - t0)
+        self.latencies["tick"].append(record["tick_ms"])
+        self.holds += bool(record["held"])
+        if self.log is not None:
+            self.log.tick(record, cloud)
+        self.ticks += 1
+        self._tick_times.append(t0)
+        return record
+
+    def _send(self, command: np.ndarray, record: dict[str, Any]) -> None:
+        record["command"] = command
+        if self.settings.dry_run:
+            return
+        try:
+            self.robot.command(command)
+            self.sent += 1
+        except DSSPError as exc:
+            record["command"] = None
+            self._fault(time.monotonic(), f"send failed: {exc}")
+
+    def _fault(self, now: float, why: str) -> None:
+        """End commanding: the safety layer latches, the last safe target stays the arm's target."""
+        self.fault = self.fault or why
+        if self.safety is not None and self.safety.fault is None:
+            self.safety.stop(now, why)
+            self.event_counts["fault"] += 1
+
+    # ----------------------------------------------------------------- the loop
+    def run(self) -> dict[str, Any]:
+        self.start()
+        next_tick = time.monotonic()
+        overruns = 0
+        try:
+            while self.fault is None and self.stop_reason is None:
+                if self.settings.max_steps is not None and self.ticks >= self.settings.max_steps:
+                    break
+                record = self.tick()
+                if self.status is not None:
+                    self.status(self.status_line(record))
+                next_tick += self.period
+                delay = next_tick - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+                else:
+                    overruns += 1
+                    next_tick = time.monotonic()
+        finally:
+            self.finish(self.stop_reason or ("max steps" if self.fault is None else self.fault))
+        return self.summary(overruns)
+
+    def finish(self, why: str) -> None:
+        """The final hold (the last safe target once more), then disable if configured."""
+        if self.safety is None:
+            return
+        final = self.safety.stop(time.monotonic(), why)
+        if final.command is not None and not self.settings.dry_run and self.fault is None:
+            try:
+                self.robot.command(final.command)
+            except DSSPError as exc:
+                self.fault = f"final hold failed: {exc}"
+        if self.safety_config.disable_on_exit and not self.settings.dry_run:
+            try:
+                self.robot.disable()
+            except DSSPError as exc:
+                self.fault = self.fault or f"disable failed: {exc}"
+
+    def rate(self) -> float:
+        if len(self._tick_times) < 2:
+            return 0.0
+        return (len(self._tick_times) - 1) / max(self._tick_times[-1] - self._tick_times[0], 1e-9)
+
+    def status_line(self, record: dict[str, Any]) -> str:
+        def p50(key):
+            values = self.latencies[key][-50:]
+            return f"{np.median(values):.1f}" if values else "-"
+
+        events = " ".join(f"{k}={v}" for k, v in sorted(self.event_counts.items())) or "none"
+        return (
+            f"tick {self.ticks:5d}  {self.rate():5.1f} Hz  cloud {p50('cloud')} ms  observe {p50('observe')} ms  "
+            f"chunk {p50('chunk')} ms  tick {p50('tick')} ms  holds {self.holds}  events: {events}"
+            + ("  [dry run]" if self.settings.dry_run else "")
+        )
+
+    def summary(self, overruns: int = 0) -> dict[str, Any]:
+        def stats(values):
+            if not values:
+                return None
+            v = np.asarray(values)
+            return {"p50": float(np.median(v)), "p95": float(np.percentile(v, 95)), "max": float(v.max()), "n": int(v.size)}
+
+        return {
+            "ticks": self.ticks,
+            "policy_ticks": self.policy_ticks,
+            "commands_sent": self.sent,
+            "holds": self.holds,
+            "overruns": overruns,
+            "rate_hz": self.rate(),
+            "target_rate_hz": self.settings.rate_hz,
+            "dry_run": self.settings.dry_run,
+            "ended_by": self.fault or self.stop_reason or "max steps",
+            "fault": self.fault,
+            "events": dict(self.event_counts),
+            "latency_ms": {k: stats(v) for k, v in self.latencies.items()},
+            "safety_events": [e.to_dict() for e in (self.safety.events if self.safety else [])],
+        }
