@@ -55,16 +55,26 @@ def write_arm_dataset(path, n_episodes: int = 4, n_arms: int = 1, steps: int = 3
     return path
 
 
-@pytest.fixture(scope="session")
-def arm_export(tmp_path_factory):
-    """A briefly trained tiny model for one simulated Piper (state = action = 7): its model directory."""
+def _arm_export(tmp_path_factory, n_arms: int):
     from dssp_train.cli.train import main as train_main
     from export.to_onnx import main as export_main
 
-    root = tmp_path_factory.mktemp("arm_export")
-    data = write_arm_dataset(root / "arm.zarr")
+    root = tmp_path_factory.mktemp(f"arm_export_{n_arms}")
+    data = write_arm_dataset(root / "arm.zarr", n_arms=n_arms)
     run_dir, model_dir = root / "run", root / "model"
     assert train_main(["--data", str(data), "--out", str(run_dir), "--preset", "tiny", "--steps", "20",
                        "--set", "train.val_every=20", "--no-progress"]) == 0
     assert export_main([str(run_dir), "-o", str(model_dir), "--skip-verify"]) == 0
     return model_dir
+
+
+@pytest.fixture(scope="session")
+def arm_export(tmp_path_factory):
+    """A briefly trained tiny model for one simulated Piper (state = action = 7): its model directory."""
+    return _arm_export(tmp_path_factory, 1)
+
+
+@pytest.fixture(scope="session")
+def dual_arm_export(tmp_path_factory):
+    """The same for the two-arm platform (state = action = 14, RoboTwin order)."""
+    return _arm_export(tmp_path_factory, 2)

@@ -83,6 +83,22 @@ def test_dssp_run_on_the_embedded_simulation(arm_export, tmp_path, capsys):
     assert_within_limits(commands, np.where(GRIPPER, SafetyConfig().max_gripper_step, SafetyConfig().max_joint_step))
 
 
+def test_two_arms_as_one_14_value_robot(dual_arm_export, tmp_path, capsys):
+    log_dir = tmp_path / "log"
+    code = run_main(["--model", str(dual_arm_export), "--camera", "sim", "--can", "sim:2", "--max-steps", "40",
+                     "--log-dir", str(log_dir), "--seed", "0", "--threads", "1", "--quiet"])
+    assert code == 0, capsys.readouterr()
+    ticks = [t for t in read_ticks(log_dir) if t["command"] is not None]
+    assert ticks and all(len(t["command"]) == 14 and len(t["state"]) == 14 for t in ticks)
+    logged = np.array([t["command"] for t in ticks])
+    blfs = sorted(log_dir.glob("can_*.blf"))
+    assert [b.name.rsplit("-", 1)[-1] for b in blfs] == ["left.blf", "right.blf"]
+    for side, blf in enumerate(blfs):  # the left arm gets values 0..6, the right arm 7..13
+        commands = sent_commands(blf)
+        assert np.allclose(commands[: len(logged)], logged[:, 7 * side: 7 * side + 7], atol=WIRE)
+        assert_within_limits(commands, np.where(GRIPPER, 0.2, 0.05))
+
+
 def test_dry_run_sends_nothing(arm_export, tmp_path, capsys):
     log_dir = tmp_path / "log"
     code = run_main(["--model", str(arm_export), "--camera", "sim", "--can", "sim", "--max-steps", "30",
