@@ -3,7 +3,7 @@
 # on a GPU workstation use e.g. `make test TORCH=torch`.
 PYTHON ?= python3
 TORCH ?= torch==2.13.0
-EXTRAS ?= train,export,deploy,hardware,dev
+EXTRAS ?= train,export,deploy,hardware,sim,dev
 
 .PHONY: system setup demo test bench
 

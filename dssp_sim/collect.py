@@ -1,0 +1,87 @@
+"""Expert demonstrations in the simulation, written as a DP3 zarr dataset the trainer reads.
+
+Per control tick (10 Hz): the env is rendered through :class:`~dssp_sim.sim_camera.MujocoCamera` and the
+point-cloud pipeline (``hardware.pointcloud``, the one the robot runs) into point_cloud (P, 3); the
+measured arm state (7,) [J1..J6 rad, gripper opening 0..1] is ``state``; the expert's target for this
+tick (7,), the command sent to the arm, is ``action``. Only successful episodes are kept; each kept
+episode is appended as soon as it ends (crash-safe: ``ReplayBufferWriter``).
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from dssp_sim.settings import cloud_config_for, sim_attrs
+from dssp_sim.sim_camera import MujocoCamera
+from hardware.pointcloud import frame_to_cloud
+
+
+@dataclass
+class CollectResult:
+    kept: int = 0
+    attempted: int = 0
+    failures: Counter = field(default_factory=Counter)
+    steps: list[int] = field(default_factory=list)
+
+
+def expert_episode(env, expert, camera: MujocoCamera, cloud_config, seed: int):
+    """Run the expert for one episode; returns (point_cloud (T, P, 3), state (T, 7), action (T, 7), status)."""
+    clouds, states, actions = [], [], []
+    while True:
+        frame = camera.capture()
+        cloud, _ = frame_to_cloud(frame, cloud_config, camera.camera_to_base)
+        state = env.state()
+        action = expert.act(env)
+        clouds.append(cloud)
+        states.append(state)
+        actions.append(action)
+        env.step(action)
+        status = env.status()
+        if status.done:
+            break
+    return np.stack(clouds).astype(np.float32), np.stack(states).astype(np.float32), np.stack(actions).astype(np.float32), status
+
+
+def collect(task: str, n_episodes: int, out: Path, seed: int = 0, n_points: int | None = None,
+            max_attempts: int | None = None, progress: bool = True) -> CollectResult:
+    """Append ``n_episodes`` successful expert episodes of ``task`` to ``out`` (seeds seed, seed+1, ...)."""
+    from dssp_sim.env import PiperEnv
+    from dssp_sim.experts import make_expert
+    from dssp_train.data.replay_buffer import Episode, ReplayBufferWriter
+
+    max_attempts = max_attempts or 2 * n_episodes + 5
+    env = PiperEnv(task, seed=seed)
+    cloud_config = cloud_config_for(n_points)
+    result = CollectResult()
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=n_episodes, desc=f"collect {task}", unit="episode")
+    camera = MujocoCamera(env)
+    attrs = sim_attrs(task, env, camera, cloud_config)
+    with camera, ReplayBufferWriter(out, attrs=attrs) as writer:
+        episode_seed = seed
+        while result.kept < n_episodes and result.attempted < max_attempts:
+            env.reset(seed=episode_seed)
+            expert = make_expert(env)
+            clouds, states, actions, status = expert_episode(env, expert, camera, cloud_config, episode_seed)
+            result.attempted += 1
+            episode_seed += 1
+            if status.success:
+                writer.add_episode(Episode(point_cloud=clouds, state=states, action=actions))
+                result.kept += 1
+                result.steps.append(len(states))
+                if bar is not None:
+                    bar.update(1)
+            else:
+                result.failures[status.reason or "failed"] += 1
+            if bar is not None:
+                bar.set_postfix(attempted=result.attempted, failed=sum(result.failures.values()))
+    if bar is not None:
+        bar.close()
+    return result

@@ -1,0 +1,215 @@
+"""Closed-loop evaluation in the simulation, through the robot's own chain.
+
+    result = evaluate("models/tap", "tap", n_episodes=20, seed=1000)
+
+Each episode: the MuJoCo env is reset with its seed; its depth render goes through the RealSense software
+device and the point-cloud pipeline (:class:`~dssp_sim.sim_camera.MujocoCamera`, ``hardware.pointcloud``);
+the runtime (``dssp_deploy.OnnxPolicy``) runs the control loop of ``dssp-run`` (``hardware.run_loop.Runner``:
+the history every tick, a chunk every H_a ticks, the safety layer); commands go as Piper CAN frames on a
+python-can ``virtual`` bus to :class:`~dssp_sim.sim_arm.MujocoPiper`, which moves the MuJoCo arm.
+
+The loop runs in lockstep with simulated time: each tick advances the physics one control period, then
+renders, then runs the policy. The simulation waits for the policy, so the safety layer's deadline rule
+is off here (latency is measured and reported instead; ``dssp-profile`` and ``dssp-run`` judge it).
+
+``state_token_noise`` (σ) adds Gaussian noise to the N most recent state tokens z at every chunk (the
+paper's robustness test, Table 4); the context token c_t is left as computed.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+import uuid
+from collections import Counter
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from dssp_sim.settings import cloud_config_for
+from dssp_sim.sim_arm import MujocoPiper
+from dssp_sim.sim_camera import MujocoCamera
+from hardware.safety import SafetyConfig
+
+# Lockstep: inputs are fresh by construction; generous timeouts only catch a stalled bridge.
+EVAL_SAFETY = SafetyConfig(camera_timeout=2.0, feedback_timeout=2.0, deadline_hold=False)
+
+
+def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """95 % Wilson score interval of a success rate (0, 0 for n = 0)."""
+    if n == 0:
+        return 0.0, 0.0
+    p = successes / n
+    denom = 1 + z * z / n
+    centre = (p + z * z / (2 * n)) / denom
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+@dataclass
+class EpisodeOutcome:
+    seed: int
+    success: bool
+    reason: str
+    steps: int
+    info: dict
+    holds: int
+    safety_events: dict
+    chunk_ms_p50: float | None
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class EvalResult:
+    model_dir: str
+    task: str
+    episodes: list[EpisodeOutcome] = field(default_factory=list)
+    state_token_noise: float = 0.0
+    latency_ms: dict = field(default_factory=dict)
+
+    @property
+    def successes(self) -> int:
+        return sum(e.success for e in self.episodes)
+
+    @property
+    def success_rate(self) -> float:
+        return self.successes / max(1, len(self.episodes))
+
+    def interval(self) -> tuple[float, float]:
+        return wilson_interval(self.successes, len(self.episodes))
+
+    def reasons(self) -> Counter:
+        return Counter(e.reason for e in self.episodes if not e.success)
+
+    def to_dict(self) -> dict:
+        lo, hi = self.interval()
+        return {"model_dir": self.model_dir, "task": self.task, "n": len(self.episodes), "successes": self.successes,
+                "success_rate": self.success_rate, "wilson95": [lo, hi], "state_token_noise": self.state_token_noise,
+                "failure_reasons": dict(self.reasons()), "latency_ms": self.latency_ms,
+                "episodes": [e.to_dict() for e in self.episodes]}
+
+
+def _wait_for_feedback(robot, after: float, timeout: float = 2.0) -> None:
+    deadline = time.monotonic() + timeout
+    while True:
+        state = robot.state()
+        if state is not None and state.timestamp > after:
+            return
+        if time.monotonic() > deadline:
+            raise TimeoutError("the simulated arm's feedback did not arrive")
+        time.sleep(0.0005)
+
+
+class _NoisyRecentStates:
+    """Adds N(0, σ²) to z_recent whenever the denoiser's inputs are taken."""
+
+    def __init__(self, policy, sigma: float, rng: np.random.Generator):
+        self.policy, self.sigma, self.rng = policy, sigma, rng
+        self.original = policy.denoiser_inputs
+
+    def __call__(self):
+        feeds = self.original()
+        if "z_recent" in feeds:
+            z = feeds["z_recent"]
+            feeds["z_recent"] = (z + self.rng.normal(0.0, self.sigma, z.shape)).astype(np.float32)
+        return feeds
+
+
+def run_episode(policy, env, seed: int, cloud_config, frames: list | None = None) -> EpisodeOutcome:
+    """One closed-loop episode (env already constructed; it is reset here with ``seed``)."""
+    from hardware.piper.arm import PiperArm
+    from hardware.piper.limits import JointLimits
+    from hardware.piper.robot import PiperRobot
+    from hardware.run_loop import LoopSettings, Runner
+
+    env.reset(seed=seed)
+    channel = f"dssp-eval-{uuid.uuid4().hex[:8]}"
+    arm = MujocoPiper(env, channel)
+    arm.start(thread=False)
+    robot = PiperRobot([PiperArm(channel, "virtual")])
+    camera = MujocoCamera(env)
+    limits = JointLimits.piper()
+    period = 1.0 / env.control_rate_hz
+    try:
+        with camera, robot:
+            stop_pump = threading.Event()
+
+            def pump():  # answer the driver (enable) without advancing the physics
+                while not stop_pump.is_set():
+                    arm.step(0.0)
+                    time.sleep(0.003)
+
+            pumper = threading.Thread(target=pump, daemon=True)
+            pumper.start()
+            try:
+                camera.capture()
+                runner = Runner(policy, camera, robot, cloud_config, camera.camera_to_base, EVAL_SAFETY,
+                                LoopSettings(rate_hz=env.control_rate_hz, seed=seed),
+                                (limits.lower, limits.upper, np.arange(7) == 6))
+                runner.start()
+            finally:
+                stop_pump.set()
+                pumper.join()
+            status = env.status()
+            while not status.done and runner.fault is None:
+                before = time.monotonic()
+                arm.step(period)
+                camera.capture()
+                _wait_for_feedback(robot, before)
+                runner.tick()
+                if frames is not None:
+                    frames.append(camera.latest().depth.copy())
+                status = env.status()
+            runner.finish("episode over")
+    finally:
+        arm.stop()
+    chunk = runner.latencies["chunk"]
+    reason = status.reason if status.done else f"fault: {runner.fault}"
+    return EpisodeOutcome(seed=seed, success=bool(status.done and status.success), reason="" if status.success else reason,
+                          steps=env.steps, info=dict(status.info), holds=runner.holds, safety_events=dict(runner.event_counts),
+                          chunk_ms_p50=float(np.median(chunk)) if chunk else None)
+
+
+def evaluate(model_dir: Path, task: str, n_episodes: int, seed: int = 1000, threads: int | None = None,
+             state_token_noise: float = 0.0, strips_dir: Path | None = None, progress: bool = True) -> EvalResult:
+    """Evaluate a model directory on ``task`` for ``n_episodes`` seeded episodes (seeds seed, seed+1, ...)."""
+    from dssp_deploy.policy import OnnxPolicy
+    from dssp_sim.env import PiperEnv
+
+    policy = OnnxPolicy(model_dir, threads=threads)
+    if state_token_noise > 0:
+        policy.denoiser_inputs = _NoisyRecentStates(policy, state_token_noise, np.random.default_rng(seed))
+    env = PiperEnv(task, seed=seed)
+    cloud_config = cloud_config_for(policy.manifest["model_config"]["n_points"])
+    result = EvalResult(str(model_dir), task, state_token_noise=state_token_noise)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=n_episodes, desc=f"eval {task}", unit="episode")
+    chunk_ms, wall = [], []
+    for i in range(n_episodes):
+        frames = [] if strips_dir is not None else None
+        t0 = time.perf_counter()
+        outcome = run_episode(policy, env, seed + i, cloud_config, frames)
+        wall.append(time.perf_counter() - t0)
+        result.episodes.append(outcome)
+        if outcome.chunk_ms_p50 is not None:
+            chunk_ms.append(outcome.chunk_ms_p50)
+        if frames:
+            from dssp_sim.strips import save_strip
+
+            save_strip(frames, Path(strips_dir) / f"{task}_seed{seed + i}.png",
+                       f"{task} seed {seed + i}: {'success' if outcome.success else outcome.reason}")
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix(success=f"{result.successes}/{i + 1}")
+    if bar is not None:
+        bar.close()
+    result.latency_ms = {"chunk_p50": float(np.median(chunk_ms)) if chunk_ms else None,
+                         "episode_wall_s_p50": float(np.median(wall)) if wall else None}
+    return result

@@ -1,0 +1,36 @@
+"""What the simulation's datasets and evaluations share: the point-cloud settings and dataset attributes.
+
+The workspace crop is the table area in front of the arm (robot-base frame, metres); the point count
+comes from the model (or the preset) that will read the clouds.
+"""
+
+from __future__ import annotations
+
+from hardware.pointcloud import PointCloudConfig
+
+SIM_N_POINTS = 256
+# Table area in front of the arm, a little above the table top (z = 0) to drop the table itself,
+# and up to the height the arm reaches over the tasks.
+SIM_CROP_MIN = (0.05, -0.35, 0.005)
+SIM_CROP_MAX = (0.60, 0.35, 0.40)
+
+
+def cloud_config_for(n_points: int | None = None) -> PointCloudConfig:
+    """The simulation's point-cloud settings with ``n_points`` points (default :data:`SIM_N_POINTS`)."""
+    return PointCloudConfig(n_points=n_points or SIM_N_POINTS, depth_near=0.1, depth_far=2.0,
+                            crop_min=SIM_CROP_MIN, crop_max=SIM_CROP_MAX, voxel_size=0.01)
+
+
+def sim_attrs(task: str, env, camera, cloud_config: PointCloudConfig) -> dict:
+    """Dataset attributes: enough to rebuild the clouds and to know what ``action`` means."""
+    return {
+        "control_rate_hz": float(env.control_rate_hz),
+        "task": task,
+        "generator": "dssp_sim.collect",
+        "action_convention": "target: the joint/gripper target commanded at this tick (policy units)",
+        "state_convention": "measured [J1..J6 rad, gripper opening 0..1]",
+        "pointcloud": cloud_config.to_dict(),
+        "camera_intrinsics": camera.intrinsics.to_dict(),
+        "camera_depth_unit": float(camera.depth_unit),
+        "camera_to_base": camera.camera_to_base.tolist(),
+    }

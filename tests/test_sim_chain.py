@@ -1,0 +1,142 @@
+"""The simulation behind the robot's own interfaces: MuJoCo under the Piper CAN protocol and the RealSense
+software device; expert collection into a DP3 dataset; closed-loop evaluation through the whole chain."""
+
+import json
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from dssp_sim.cli import main as sim_main
+from dssp_sim.env import PiperEnv
+from dssp_sim.evaluate import wilson_interval
+from dssp_sim.settings import cloud_config_for
+from dssp_sim.sim_arm import MujocoPiper
+from dssp_sim.sim_camera import MujocoCamera
+from dssp_train.data.replay_buffer import ReplayBuffer
+from hardware.piper.arm import PiperArm
+from hardware.piper.robot import PiperRobot
+from hardware.pointcloud import frame_to_cloud
+
+
+def test_wilson_interval_matches_the_formula_at_known_points():
+    assert wilson_interval(0, 0) == (0.0, 0.0)
+    lo, hi = wilson_interval(0, 20)
+    assert lo == 0.0 and hi == pytest.approx(0.1611, abs=1e-4)
+    lo, hi = wilson_interval(20, 20)
+    assert lo == pytest.approx(0.8389, abs=1e-4) and hi == 1.0
+    lo, hi = wilson_interval(17, 20)
+    assert (lo, hi) == (pytest.approx(0.6396, abs=1e-4), pytest.approx(0.9476, abs=1e-4))
+
+
+def test_mujoco_arm_moves_only_through_can_frames():
+    env = PiperEnv("tap", seed=3)
+    env.reset(seed=3)
+    channel = "dssp-test-mujoco-arm"
+    arm = MujocoPiper(env, channel)
+    arm.start(thread=False)
+    robot = PiperRobot([PiperArm(channel, "virtual")])
+    stop = threading.Event()
+
+    def pump():
+        while not stop.is_set():
+            arm.step(0.0)
+            time.sleep(0.003)
+
+    try:
+        with robot:
+            t = threading.Thread(target=pump, daemon=True)
+            t.start()
+            robot.enable(timeout=3.0)
+            stop.set()
+            t.join()
+            start = env.joint_positions().copy()
+            for _ in range(3):  # the feedback is the MuJoCo arm's pose
+                arm.step(0.1)
+            state = robot.state()
+            assert np.allclose(state.position[:6], env.joint_positions(), atol=1e-4)
+            target = np.concatenate([start + np.array([0.1, 0.05, -0.05, 0.0, 0.05, 0.0]), [0.5]])
+            robot.command(target)
+            for _ in range(15):
+                arm.step(0.1)
+            assert np.allclose(env.joint_positions(), target[:6], atol=0.02)  # the physics tracked the CAN target
+            assert env.data.ctrl[env.arm.gripper_actuator] == pytest.approx(0.5 * 0.07, abs=1e-6)  # opening → stroke
+    finally:
+        arm.stop()
+
+
+def test_rendered_depth_goes_through_the_software_device_and_the_pipeline():
+    env = PiperEnv("tap", seed=0)
+    env.reset(seed=0)
+    with MujocoCamera(env) as camera:
+        frame = camera.capture()
+        depth, unit, intr, _ = env.render_depth()
+        assert np.array_equal(frame.depth, depth) and frame.intrinsics.width == intr.width
+        cloud, info = frame_to_cloud(frame, cloud_config_for(), camera.camera_to_base)
+    assert cloud.shape == (256, 3) and info.n_padded == 0
+    lo, hi = np.array(cloud_config_for().crop_min), np.array(cloud_config_for().crop_max)
+    assert np.all(cloud >= lo - 1e-6) and np.all(cloud <= hi + 1e-6)
+
+
+def test_collect_writes_a_dp3_dataset_of_successful_episodes(tmp_path, capsys):
+    out = tmp_path / "tap.zarr"
+    assert sim_main(["collect", "--task", "tap", "--episodes", "2", "--out", str(out), "--no-progress", "--points", "128"]) == 0
+    assert "kept 2 successful tap episodes of 2 tried" in capsys.readouterr().out
+    buffer = ReplayBuffer.load(out)
+    assert buffer.n_episodes == 2
+    episode = buffer.episode(0)
+    assert episode.point_cloud.shape[1:] == (128, 3) and episode.state.shape[1] == 7 and episode.action.shape[1] == 7
+    assert buffer.attrs["control_rate_hz"] == 10.0 and buffer.attrs["task"] == "tap"
+    assert buffer.attrs["pointcloud"]["n_points"] == 128 and len(buffer.attrs["camera_to_base"]) == 4
+    # appending keeps what was there
+    assert sim_main(["collect", "--task", "tap", "--episodes", "1", "--out", str(out), "--seed", "7", "--no-progress", "--points", "128"]) == 0
+    assert ReplayBuffer.load(out).n_episodes == 3
+
+
+def test_bad_input_is_one_line(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exc:
+        sim_main(["collect", "--task", "juggle", "--episodes", "1", "--out", str(tmp_path / "x.zarr")])
+    assert exc.value.code == 2 and "unknown task 'juggle'" in capsys.readouterr().err
+    assert sim_main(["eval", "--model", str(tmp_path / "none"), "--task", "tap", "--episodes", "1", "--no-progress"]) == 2
+    assert "does not exist" in capsys.readouterr().err
+
+
+@pytest.fixture(scope="module")
+def sim_model(tmp_path_factory):
+    """A briefly trained sim-preset model on a few collected tap episodes (its model directory)."""
+    from dssp_train.cli.train import main as train_main
+    from export.to_onnx import main as export_main
+
+    root = tmp_path_factory.mktemp("sim_model")
+    data = root / "tap.zarr"
+    assert sim_main(["collect", "--task", "tap", "--episodes", "3", "--out", str(data), "--no-progress"]) == 0
+    assert train_main(["--data", str(data), "--out", str(root / "run"), "--preset", "sim", "--steps", "20",
+                       "--set", "train.val_every=20", "--no-progress"]) == 0
+    assert export_main([str(root / "run"), "-o", str(root / "model"), "--skip-verify"]) == 0
+    return root / "model"
+
+
+def test_eval_runs_the_whole_chain(sim_model, tmp_path, capsys):
+    out = tmp_path / "eval.json"
+    strips = tmp_path / "strips"
+    assert sim_main(["eval", "--model", str(sim_model), "--task", "tap", "--episodes", "2", "--seed", "5",
+                     "--json", str(out), "--strips", str(strips), "--threads", "1", "--no-progress"]) == 0
+    text = capsys.readouterr().out
+    assert "tap: success" in text and "Wilson interval" in text and "| 5 |" in text and "| 6 |" in text
+    result = json.loads(out.read_text())
+    assert result["n"] == 2 and len(result["episodes"]) == 2
+    for e in result["episodes"]:
+        assert e["steps"] > 0 and (e["success"] or e["reason"])  # every failure has a reason
+        assert e["chunk_ms_p50"] > 0
+    assert sorted(p.name for p in strips.glob("*.png")) == ["tap_seed5.png", "tap_seed6.png"]
+
+
+def test_state_token_noise_changes_the_actions_not_the_chain(sim_model):
+    from dssp_sim.evaluate import evaluate
+
+    clean = evaluate(sim_model, "tap", 1, seed=3, threads=1, progress=False)
+    noisy = evaluate(sim_model, "tap", 1, seed=3, threads=1, state_token_noise=0.15, progress=False)
+    again = evaluate(sim_model, "tap", 1, seed=3, threads=1, progress=False)
+    assert clean.episodes[0].info == again.episodes[0].info and clean.episodes[0].steps == again.episodes[0].steps
+    assert noisy.state_token_noise == 0.15 and noisy.episodes[0].steps > 0
