@@ -96,6 +96,7 @@ def run(args) -> int:
     if args.json:
         from dssp_train.atomic import atomic_write_text
 
+        args.json.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_text(args.json, json.dumps(result.to_dict(), indent=2) + "\n")
     return 0
 
