@@ -1,6 +1,7 @@
 """``dssp-sim``: expert demonstrations and closed-loop evaluation in the MuJoCo simulation.
 
     dssp-sim collect --task tap|swap|put2 --episodes N --out PATH.zarr [--seed S] [--points P]
+    dssp-sim demo [--out runs/demo] [--steps 2000] [--demos 40] [--episodes 20]
     dssp-sim eval --model MODEL_DIR --task NAME --episodes N [--seed S] [--noise SIGMA] [--strips DIR] [--json PATH]
 
 ``collect`` keeps only successful expert episodes and says how many it tried. ``eval`` drives the model
@@ -44,6 +45,11 @@ def parse_args(argv):
     c.add_argument("--seed", type=int, default=0, help="first episode seed (default 0)")
     c.add_argument("--points", type=_positive, help="points per cloud (default 256, the sim preset's)")
     c.add_argument("--no-progress", action="store_true")
+    d = sub.add_parser("demo", help="collect, train DSSP and the reactive baseline, export, evaluate (tap)")
+    d.add_argument("--out", type=Path, default=Path("runs/demo"), help="working directory (replaced)")
+    d.add_argument("--steps", type=_positive, default=2000, help="training steps per model (default 2000)")
+    d.add_argument("--demos", type=_positive, default=40, help="expert demonstrations (default 40)")
+    d.add_argument("--episodes", type=_positive, default=20, help="evaluation episodes per model (default 20)")
     e = sub.add_parser("eval", help="closed-loop evaluation of a model directory")
     e.add_argument("--model", type=Path, required=True, help="model directory (python -m export.to_onnx)")
     e.add_argument("--task", type=_task, required=True, help=" | ".join(TASKS))
@@ -68,12 +74,29 @@ def print_eval(result) -> None:
         print(f"| {e.seed} | {'success' if e.success else e.reason} | {e.steps} | {detail} | {e.holds} |")
     if result.reasons():
         print("failures: " + ", ".join(f"{k} × {v}" for k, v in result.reasons().most_common()))
-    lat = result.latency_ms
-    if lat.get("chunk_p50") is not None:
-        print(f"denoiser chunk p50 {lat['chunk_p50']:.1f} ms; one episode takes {lat['episode_wall_s_p50']:.1f} s (p50, lockstep)")
+    print_latency(result.latency_ms)
+
+
+def print_latency(lat: dict) -> None:
+    """The control loop's latencies over every tick of the evaluation (ms)."""
+    labels = {"cloud": "point cloud (pipeline)", "observe": "history step (ORT)", "chunk": "denoiser chunk (ORT)",
+              "tick": "whole tick (cloud + policy + safety + CAN)"}
+    print("\n| stage | p50 ms | p95 ms | max ms | ticks |")
+    print("|---|---:|---:|---:|---:|")
+    for key, label in labels.items():
+        s = lat.get(key)
+        if s:
+            print(f"| {label} | {s['p50']:.2f} | {s['p95']:.2f} | {s['max']:.2f} | {s['n']} |")
+    if lat.get("episode_wall_s_p50") is not None:
+        print(f"one episode takes {lat['episode_wall_s_p50']:.1f} s (p50; lockstep with simulated time)")
 
 
 def run(args) -> int:
+    if args.command == "demo":
+        from dssp_sim.demo import run_demo
+
+        run_demo(args.out, steps=args.steps, demos=args.demos, episodes=args.episodes)
+        return 0
     if args.command == "collect":
         from dssp_sim.collect import collect
 

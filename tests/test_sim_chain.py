@@ -140,3 +140,19 @@ def test_state_token_noise_changes_the_actions_not_the_chain(sim_model):
     again = evaluate(sim_model, "tap", 1, seed=3, threads=1, progress=False)
     assert clean.episodes[0].info == again.episodes[0].info and clean.episodes[0].steps == again.episodes[0].steps
     assert noisy.state_token_noise == 0.15 and noisy.episodes[0].steps > 0
+
+
+def test_the_study_command_writes_its_report(tmp_path, capsys):
+    from dssp_sim.experiment import REPORT_NAME, main as study_main
+
+    work, report = tmp_path / "work", tmp_path / "report"
+    assert study_main(["--work", str(work), "--report", str(report), "--quick", "--threads", "1"]) == 0
+    md = (report / f"{REPORT_NAME}.md").read_text()
+    assert "| tap | DSSP (full history) |" in md and "| tap | reactive baseline" in md and "| 0.1 |" in md
+    assert (report / f"{REPORT_NAME}.png").read_bytes()[:4] == b"\x89PNG"
+    data = json.loads((report / f"{REPORT_NAME}.json").read_text())
+    assert set(data["evals"]) == {"tap_dssp_s0", "tap_reactive_s0"} and data["summary"]["tap"]["dssp"]["n"] == 1
+    # a second run resumes: every stage is found done
+    capsys.readouterr()
+    assert study_main(["--work", str(work), "--report", str(report), "--quick"]) == 0
+    assert capsys.readouterr().out.count("done before") == 9
