@@ -13,6 +13,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import threading
+
 import can
 
 from hardware.errors import CanError
@@ -23,7 +25,9 @@ class BusRecorder:
     def __init__(self, channel: str, interface: str, path: Path, **bus_options):
         self.channel, self.interface, self.path = channel, interface, Path(path)
         self.bus_options = bus_options
-        self._bus = self._notifier = self._logger = None
+        self._bus = self._logger = None
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
 
     def start(self) -> None:
         self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -33,16 +37,28 @@ class BusRecorder:
         except (ValueError, OSError) as exc:
             self._bus.shutdown()
             raise CanError(f"cannot write the CAN log {self.path}: {exc}; use a .blf, .asc, .csv or .log path") from exc
-        self._notifier = can.Notifier(self._bus, [self._logger], timeout=0.05)
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._record, name=f"can-log-{self.channel}", daemon=True)
+        self._thread.start()
+
+    def _record(self) -> None:
+        while not self._stop.is_set():
+            frame = self._bus.recv(timeout=0.05)
+            if frame is not None:
+                self._logger(frame)
 
     def stop(self) -> None:
-        if self._notifier is not None:
-            self._notifier.stop()  # stops its listeners too: the logger closes its file
-        elif self._logger is not None:
+        """Stop, after writing every frame that reached this listener (none is left in its queue)."""
+        if self._thread is not None:
+            self._stop.set()
+            self._thread.join()
+            while (frame := self._bus.recv(timeout=0.0)) is not None:
+                self._logger(frame)
+        if self._logger is not None:
             self._logger.stop()
         if self._bus is not None:
             self._bus.shutdown()
-        self._bus = self._notifier = self._logger = None
+        self._bus = self._logger = self._thread = None
 
     def __enter__(self) -> "BusRecorder":
         self.start()

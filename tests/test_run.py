@@ -209,7 +209,7 @@ def holds_for(record, text):
 def test_feedback_dropped_holds_within_one_tick(rig):
     runner, robot, _, ticks = rig
     before = ticks(10)
-    assert sum(not r["held"] for r in before) >= 7
+    assert sum(not r["held"] for r in before) >= 3  # the loop commands normally (a stalled machine may hold some)
     robot.simulators[0].pause_feedback()
     after = ticks(3)[1:]  # the first tick comes at once, before the feedback can be older than the timeout;
     # the next one, a period later (the timeout is shorter than a period), must hold
