@@ -462,3 +462,97 @@ def test_any_valid_episodes_round_trip(episodes, zarr_format):
         buffer = ReplayBuffer.load(path)
     assert_same_episodes(buffer, episodes)
     np.testing.assert_array_equal(buffer.episode_lengths(), [ep.n_steps for ep in episodes])
+
+
+# --------------------------------------------------------------------------- extra per-step arrays
+
+
+def with_extras(episodes, seed=0):
+    """The episodes with a float64 timestamp (T,) and a uint16 image (T, 3, 4) per step."""
+    rng = np.random.default_rng(seed)
+    return [Episode(ep.point_cloud, ep.state, ep.action,
+                    extras={"timestamp": np.arange(ep.n_steps) * 0.1 + rng.normal(),
+                            "depth": rng.integers(0, 4000, (ep.n_steps, 3, 4)).astype(np.uint16)})
+            for ep in episodes]
+
+
+@pytest.mark.parametrize("zarr_format", [2, 3])
+def test_extras_round_trip_and_append(tmp_path, zarr_format):
+    from dssp_train.data.replay_buffer import ReplayBufferReader
+
+    episodes = with_extras(make_episodes([3, 5, 2]))
+    path = tmp_path / "ds.zarr"
+    write_replay_buffer(path, episodes[:1], zarr_format=zarr_format)
+    with ReplayBufferWriter(path, extra_keys=["timestamp", "depth"]) as writer:
+        writer.add_episode(episodes[1], attrs={"episode_info": [{"i": 0}, {"i": 1}]})
+        writer.add_episode(episodes[2])
+    plain = ReplayBuffer.load(path)
+    assert plain.extras == {} and plain.n_episodes == 3
+    buffer = ReplayBuffer.load(path, extras=True)
+    assert buffer.attrs["episode_info"] == [{"i": 0}, {"i": 1}]
+    assert buffer.extras["timestamp"].dtype == np.float64 and buffer.extras["depth"].dtype == np.uint16
+    for i, ep in enumerate(episodes):
+        got = buffer.episode(i)
+        for name in ("timestamp", "depth"):
+            np.testing.assert_array_equal(got.extras[name], ep.extras[name])
+    reader = ReplayBufferReader(path)
+    assert reader.extra_keys == ("depth", "timestamp") and reader.arrays["data/depth"][0] == (10, 3, 4)
+    np.testing.assert_array_equal(reader.episode(1).extras["depth"], episodes[1].extras["depth"])
+    np.testing.assert_array_equal(reader.episode(2, extras=["timestamp"]).state, episodes[2].state)
+    assert ReplayBuffer.load(path, extras=["timestamp"]).extras.keys() == {"timestamp"}
+    with pytest.raises(DatasetError, match="missing key data/nope"):
+        ReplayBuffer.load(path, extras=["nope"])
+
+
+def test_extras_must_line_up(tmp_path):
+    episodes = with_extras(make_episodes([3, 4]))
+    path = tmp_path / "ds.zarr"
+    write_replay_buffer(path, episodes[:1])
+    with pytest.raises(DatasetError, match="data/depth exists: appending would leave it shorter"):
+        ReplayBufferWriter(path, extra_keys=["timestamp"])
+    with pytest.raises(DatasetError, match="data/frame is missing: the dataset was written without it"):
+        ReplayBufferWriter(path, extra_keys=["depth", "frame", "timestamp"])
+    with ReplayBufferWriter(path, extra_keys=["depth", "timestamp"]) as writer:
+        bad = Episode(episodes[1].point_cloud, episodes[1].state, episodes[1].action,
+                      extras={"timestamp": episodes[1].extras["timestamp"]})
+        with pytest.raises(DatasetError, match="the episode brings extras \\[timestamp\\]"):
+            writer.add_episode(bad)
+        wrong = Episode(*(getattr(episodes[1], k) for k in ("point_cloud", "state", "action")),
+                        extras={"timestamp": episodes[1].extras["timestamp"],
+                                "depth": episodes[1].extras["depth"].astype(np.float32)})
+        with pytest.raises(DatasetError, match="do not match the dataset's \\(depth uint16\\[3, 4\\], timestamp float64\\)"):
+            writer.add_episode(wrong)
+        short = Episode(*(getattr(episodes[1], k) for k in ("point_cloud", "state", "action")),
+                        extras={"timestamp": np.zeros(2), "depth": episodes[1].extras["depth"]})
+        with pytest.raises(DatasetError, match="extra timestamp has shape \\(2,\\); expected \\(4, ...\\)"):
+            writer.add_episode(short)
+        assert writer.n_episodes == 1
+    clash = Episode(episodes[0].point_cloud, episodes[0].state, episodes[0].action, extras={"state": episodes[0].state})
+    with pytest.raises(DatasetError, match="'state' cannot name an extra"):
+        write_replay_buffer(tmp_path / "x.zarr", [clash])
+    assert ReplayBuffer.load(path, extras=True).n_episodes == 1
+
+
+def test_interrupted_append_with_extras(tmp_path):
+    episodes = with_extras(make_episodes([3, 4, 5]))
+    path = tmp_path / "ds.zarr"
+    write_replay_buffer(path, episodes[:1])
+    root = zarr.open_group(str(path), mode="r+")
+    root["data/timestamp"].append(episodes[1].extras["timestamp"])  # the crash came after one extra array
+    assert ReplayBuffer.load(path).n_episodes == 1  # the tail is only in an array this load ignores
+    with pytest.raises(DatasetError, match="4 steps after the last episode end"):
+        ReplayBuffer.load(path, extras=True)
+    with pytest.raises(DatasetError, match="4 steps after .* repair_incomplete_tail=True"):
+        ReplayBufferWriter(path, extra_keys=["depth", "timestamp"])
+    with ReplayBufferWriter(path, extra_keys=["depth", "timestamp"], repair_incomplete_tail=True) as writer:
+        assert writer.dropped_tail_steps == 4
+        writer.add_episode(episodes[2])
+    buffer = ReplayBuffer.load(path, extras=True)
+    np.testing.assert_array_equal(buffer.episode(1).extras["timestamp"], episodes[2].extras["timestamp"])
+
+
+def test_large_extra_rows_get_smaller_chunks(tmp_path):
+    from dssp_train.data.replay_buffer import _extra_chunk_steps
+
+    assert _extra_chunk_steps(np.zeros((5, 480, 640), np.uint16)) == 27  # 16 MiB / 600 KiB per depth image
+    assert _extra_chunk_steps(np.zeros((5,), np.float64)) == 100

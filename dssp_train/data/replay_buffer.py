@@ -7,7 +7,7 @@ over all episodes and E the number of episodes::
         data/point_cloud        (T, P, C) float, C = 3 (xyz) or 6 (xyz + rgb)
         data/state              (T, S) float
         data/action             (T, A) float
-        data/<other>            e.g. img, depth: ignored when reading
+        data/<other>            (T, ...) per-step extras, e.g. img, depth, timestamps
         meta/episode_ends       (E,) int64, cumulative exclusive end of each episode
 
 Episode ``i`` covers steps ``episode_ends[i-1]:episode_ends[i]`` (from 0 for
@@ -15,6 +15,12 @@ Episode ``i`` covers steps ``episode_ends[i-1]:episode_ends[i]`` (from 0 for
 ``.zarray`` files) and zarr format 3 (``zarr.json``) stores are read. Writing
 uses format 2 by default, Blosc zstd level 3 with byte shuffle and chunks of 100
 steps along time, like DP3.
+
+Per-step arrays other than point_cloud, state and action ("extras": timestamps,
+raw depth images, ...) keep their own dtype. Reading ignores them unless asked
+(``ReplayBuffer.load(..., extras=True)``, :class:`ReplayBufferReader`); writing
+and appending carry them (:attr:`Episode.extras`), and an append must bring
+exactly the extras the dataset holds, so every array keeps one entry per step.
 
 Every problem with a dataset on disk raises :class:`~dssp_train.errors.DatasetError`
 with a one-line message that names the key, the problem and what to do.
@@ -25,7 +31,10 @@ atomically, so a crash in the middle of an append leaves every earlier episode
 intact, followed by steps that belong to no episode. :meth:`ReplayBuffer.load`
 reports such a tail as an error unless ``allow_incomplete_tail=True``, which
 drops exactly those steps and records how many in
-:attr:`ReplayBuffer.dropped_tail_steps`.
+:attr:`ReplayBuffer.dropped_tail_steps`. Attributes given with an episode
+(``add_episode(episode, attrs=...)``) are written before its data, so after a
+crash they may describe one episode more than ``meta/episode_ends`` holds:
+readers index such per-episode attributes by episode count.
 """
 
 from __future__ import annotations
@@ -35,7 +44,7 @@ import os
 import shutil
 import uuid
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numcodecs
@@ -45,7 +54,7 @@ import zarr.codecs
 
 from dssp_train.errors import DatasetError
 
-__all__ = ["Episode", "ReplayBuffer", "ReplayBufferWriter", "write_replay_buffer"]
+__all__ = ["Episode", "ReplayBuffer", "ReplayBufferReader", "ReplayBufferWriter", "write_replay_buffer"]
 
 DATA_KEYS = ("point_cloud", "state", "action")
 """Per-step arrays under ``data/`` that this package reads and writes."""
@@ -56,6 +65,8 @@ POINT_DIMS = (3, 6)
 CHUNK_STEPS = 100
 """Chunk length along time, as DP3 writes."""
 ENDS_CHUNK = 1000
+EXTRA_CHUNK_BYTES = 16 << 20
+"""Upper bound on the size of one chunk of an extra array (e.g. depth images): fewer steps per chunk."""
 ZARR_FORMATS = (2, 3)
 
 
@@ -67,11 +78,14 @@ class Episode:
         point_cloud: (T, P, C) float32, C = 3 (xyz) or 6 (xyz + rgb).
         state: (T, S) float32, the robot's proprioceptive state.
         action: (T, A) float32, the commanded action at each step.
+        extras: other per-step arrays by name, each (T, ...) of any numeric
+            or bool dtype (kept as is; NaN allowed), stored as ``data/<name>``.
     """
 
     point_cloud: np.ndarray
     state: np.ndarray
     action: np.ndarray
+    extras: dict[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def n_steps(self) -> int:
@@ -182,6 +196,38 @@ def _check_finite(key: str, values: np.ndarray, ends: np.ndarray, where: str) ->
         )
 
 
+def _check_extra_name(name: str, where: str) -> None:
+    """An extra's name is one path component that is not a required key."""
+    if not isinstance(name, str) or not name or "/" in name or name.startswith(".") or name in DATA_KEYS:
+        raise DatasetError(
+            f"{where}: {name!r} cannot name an extra per-step array: use a plain name other than "
+            f"{', '.join(DATA_KEYS)}"
+        )
+
+
+def _check_extra_array(name: str, array: np.ndarray, n_steps: int, where: str) -> np.ndarray:
+    """Check that an extra is (n_steps, ...) and numeric or bool; return it unchanged."""
+    dtype = np.dtype(array.dtype)
+    if array.ndim == 0 or array.shape[0] != n_steps:
+        raise DatasetError(
+            f"{where}: extra {name} has shape {tuple(array.shape)}; expected ({n_steps}, ...) with one entry per step"
+        )
+    if not (np.issubdtype(dtype, np.number) or dtype == np.bool_):
+        raise DatasetError(f"{where}: extra {name} has dtype {dtype}; store numbers or booleans")
+    return array
+
+
+def _layout(extras: Mapping[str, np.ndarray]) -> dict[str, tuple[str, tuple[int, ...]]]:
+    """{name: (dtype string, trailing shape)} of extra arrays (numpy or zarr)."""
+    return {name: (np.dtype(a.dtype).str, tuple(a.shape[1:])) for name, a in sorted(extras.items())}
+
+
+def _describe_layout(layout: Mapping[str, tuple[str, tuple[int, ...]]]) -> str:
+    if not layout:
+        return "none"
+    return ", ".join(f"{name} {np.dtype(dt).name}{list(shape) if shape else ''}" for name, (dt, shape) in layout.items())
+
+
 # --------------------------------------------------------------------------- zarr access
 
 
@@ -249,6 +295,28 @@ def _open_required(path: Path, mode: str) -> tuple[zarr.Group, dict[str, zarr.Ar
     return group, arrays, ends
 
 
+def _extra_arrays(group: zarr.Group, where: str, which: bool | Sequence[str] = True) -> dict[str, zarr.Array]:
+    """The per-step arrays under ``data/`` other than point_cloud, state and action (``which``: all if
+    True, none if False, else these names, each of which must exist)."""
+    if which is False:
+        return {}
+    try:
+        names = sorted(set(group["data"].array_keys()) - set(DATA_KEYS))
+    except Exception as exc:
+        raise DatasetError(f"{where}: cannot list data/ ({_describe(exc)}); the store may be corrupt: rewrite it") from exc
+    if which is not True:
+        wanted = list(which)
+        missing = [name for name in wanted if name not in names]
+        if missing:
+            raise DatasetError(f"{where}: missing key data/{missing[0]} (extras here: {', '.join(names) or 'none'})")
+        names = wanted
+    arrays = {name: _get_array(group, f"data/{name}", where) for name in names}
+    for name, array in arrays.items():
+        if len(array.shape) == 0:
+            raise DatasetError(f"{where}: data/{name} is a scalar, not a per-step array: rewrite the dataset")
+    return arrays
+
+
 def _check_zarr_format(zarr_format: int) -> None:
     if zarr_format not in ZARR_FORMATS:
         raise DatasetError(f"zarr_format = {zarr_format!r} is not supported: use 2 or 3")
@@ -274,13 +342,17 @@ class ReplayBuffer:
         attrs: the root group's attributes (JSON).
         dropped_tail_steps: steps after the last episode end that
             ``load(..., allow_incomplete_tail=True)`` dropped (0 otherwise).
+        extras: extra per-step arrays by name, (T, ...) each, in their stored
+            dtype (empty unless loaded with ``extras``).
     """
 
     def __init__(self, point_cloud: np.ndarray, state: np.ndarray, action: np.ndarray,
-                 episode_ends: np.ndarray, attrs: dict | None = None):
+                 episode_ends: np.ndarray, attrs: dict | None = None,
+                 extras: Mapping[str, np.ndarray] | None = None):
         """Wrap in-memory arrays (shapes as in the class docstring) after validating them.
 
-        Data arrays are converted to float32 and episode_ends to int64.
+        Data arrays are converted to float32 and episode_ends to int64;
+        ``extras`` (each (T, ...)) keep their dtype.
 
         Raises:
             DatasetError: the arrays do not form a valid dataset.
@@ -298,29 +370,37 @@ class ReplayBuffer:
             with np.errstate(over="ignore"):
                 values[key] = array.astype(np.float32, copy=False)
             _check_finite(key, values[key], ends, where)
-        self._set(values, ends, attrs, 0)
+        checked_extras = {}
+        for name, array in (extras or {}).items():
+            _check_extra_name(name, where)
+            checked_extras[name] = _check_extra_array(name, np.asarray(array), int(ends[-1]), where)
+        self._set(values, ends, attrs, 0, checked_extras)
 
     def _set(self, values: Mapping[str, np.ndarray], ends: np.ndarray, attrs: dict | None,
-             dropped_tail_steps: int) -> None:
+             dropped_tail_steps: int, extras: Mapping[str, np.ndarray] | None = None) -> None:
         self.point_cloud = values["data/point_cloud"]
         self.state = values["data/state"]
         self.action = values["data/action"]
         self.episode_ends = ends
         self.attrs = dict(attrs or {})
         self.dropped_tail_steps = int(dropped_tail_steps)
+        self.extras = dict(extras or {})
 
     @classmethod
-    def load(cls, path: str | os.PathLike, *, allow_incomplete_tail: bool = False) -> ReplayBuffer:
+    def load(cls, path: str | os.PathLike, *, allow_incomplete_tail: bool = False,
+             extras: bool | Sequence[str] = False) -> ReplayBuffer:
         """Read a dataset (zarr format 2 or 3) into memory and validate it.
 
         Data arrays are converted to float32. Arrays under ``data/`` other than
-        point_cloud, state and action are not read.
+        point_cloud, state and action are read only when ``extras`` asks.
 
         Args:
             path: the dataset's root directory.
             allow_incomplete_tail: drop the steps after the last episode end (left
                 by an interrupted append) instead of raising; their number is
                 stored in :attr:`dropped_tail_steps`. Nothing else is dropped.
+            extras: also read these extra per-step arrays (True: all of them)
+                into :attr:`extras`, each (T, ...) in its stored dtype.
 
         Raises:
             DatasetError: the path is not a valid dataset; the message says why.
@@ -328,7 +408,9 @@ class ReplayBuffer:
         path = Path(path)
         where = str(path)
         group, arrays, ends = _open_required(path, "r")
+        extra_arrays = _extra_arrays(group, where, extras)
         lengths = {key: arrays[key].shape[0] for key in REQUIRED_KEYS[:3]}
+        lengths.update({f"data/{name}": array.shape[0] for name, array in extra_arrays.items()})
         n_steps, dropped = _resolve_length(lengths, int(ends[-1]), allow_incomplete_tail, where)
         values = {}
         for key in REQUIRED_KEYS[:3]:
@@ -336,8 +418,9 @@ class ReplayBuffer:
             with np.errstate(over="ignore"):
                 values[key] = raw.astype(np.float32, copy=False)
             _check_finite(key, values[key], ends, where)
+        extra_values = {name: _read(array, f"data/{name}", n_steps, where) for name, array in extra_arrays.items()}
         buffer = cls.__new__(cls)
-        buffer._set(values, ends, group.attrs.asdict(), dropped)
+        buffer._set(values, ends, group.attrs.asdict(), dropped, extra_values)
         return buffer
 
     @property
@@ -394,9 +477,11 @@ class ReplayBuffer:
         return start, int(self.episode_ends[i])
 
     def episode(self, i: int) -> Episode:
-        """Episode ``i`` as float32 views into this buffer: (T_i, P, C), (T_i, S), (T_i, A)."""
+        """Episode ``i`` as float32 views into this buffer: (T_i, P, C), (T_i, S), (T_i, A), and views
+        (T_i, ...) of the loaded extras."""
         start, end = self.episode_range(i)
-        return Episode(self.point_cloud[start:end], self.state[start:end], self.action[start:end])
+        return Episode(self.point_cloud[start:end], self.state[start:end], self.action[start:end],
+                       {name: array[start:end] for name, array in self.extras.items()})
 
     def __repr__(self) -> str:
         return (f"ReplayBuffer(n_episodes={self.n_episodes}, n_steps={self.n_steps}, "
@@ -404,14 +489,103 @@ class ReplayBuffer:
                 f"action_dim={self.action_dim})")
 
 
+class ReplayBufferReader:
+    """A dataset on disk, read one episode (or one slice) at a time: nothing is loaded up front.
+
+    The structure and episode ends are checked on opening, like
+    :meth:`ReplayBuffer.load`; values are checked when read.
+
+    Attributes:
+        path: the dataset's root directory.
+        zarr_format: 2 or 3.
+        attrs: the root group's attributes (JSON).
+        episode_ends: (E,) int64.
+        dropped_tail_steps: steps after the last episode end that are ignored
+            (an interrupted append; only with ``allow_incomplete_tail=True``).
+        arrays: {key: (shape, dtype)} of every array under ``data/`` and ``meta/``,
+            with shapes as stored (including an ignored tail).
+        extra_keys: names of the extra per-step arrays under ``data/``.
+    """
+
+    def __init__(self, path: str | os.PathLike, *, allow_incomplete_tail: bool = False):
+        self.path = Path(path)
+        where = str(self.path)
+        group, arrays, ends = _open_required(self.path, "r")
+        extras = _extra_arrays(group, where)
+        lengths = {key: arrays[key].shape[0] for key in REQUIRED_KEYS[:3]}
+        lengths.update({f"data/{name}": array.shape[0] for name, array in extras.items()})
+        n_steps, dropped = _resolve_length(lengths, int(ends[-1]), allow_incomplete_tail, where)
+        self._arrays = {**{k: v for k, v in arrays.items()}, **{f"data/{n}": a for n, a in extras.items()}}
+        self.zarr_format = group.metadata.zarr_format
+        self.attrs = group.attrs.asdict()
+        self.episode_ends = ends
+        self.dropped_tail_steps = dropped
+        self.extra_keys = tuple(sorted(extras))
+        self.arrays = {key: (tuple(a.shape), np.dtype(a.dtype)) for key, a in sorted(self._arrays.items())}
+        self._n_steps = n_steps
+
+    @property
+    def n_episodes(self) -> int:
+        """E, the number of episodes."""
+        return int(self.episode_ends.shape[0])
+
+    @property
+    def n_steps(self) -> int:
+        """T, the number of steps that belong to episodes."""
+        return self._n_steps
+
+    def episode_lengths(self) -> np.ndarray:
+        """(E,) int64, the number of steps of each episode."""
+        return np.diff(self.episode_ends, prepend=0)
+
+    def episode_range(self, i: int) -> tuple[int, int]:
+        """(start, end) step indices of episode ``i`` (0 <= i < E)."""
+        if not 0 <= i < self.n_episodes:
+            raise DatasetError(f"{self.path}: episode {i} is out of range: the dataset holds episodes 0..{self.n_episodes - 1}")
+        return (int(self.episode_ends[i - 1]) if i > 0 else 0), int(self.episode_ends[i])
+
+    def read(self, key: str, start: int = 0, end: int | None = None) -> np.ndarray:
+        """Steps [start, end) of ``key`` (e.g. ``data/state``) in its stored dtype."""
+        if key not in self._arrays:
+            raise DatasetError(f"{self.path}: no array {key}")
+        end = self._n_steps if end is None else end
+        try:
+            return np.asarray(self._arrays[key][start:end])
+        except Exception as exc:
+            raise DatasetError(f"{self.path}: cannot read {key} ({_describe(exc)}); the store may be corrupt: rewrite it") from exc
+
+    def episode(self, i: int, extras: bool | Sequence[str] = True, check_finite: bool = True) -> Episode:
+        """Episode ``i``: point_cloud, state, action as float32 and the extras asked for (stored dtype).
+
+        Raises DatasetError if ``check_finite`` and the data holds NaN or inf.
+        """
+        start, end = self.episode_range(i)
+        values = []
+        for key in DATA_KEYS:
+            with np.errstate(over="ignore"):
+                array = self.read(f"data/{key}", start, end).astype(np.float32, copy=False)
+            if check_finite:
+                bad = _first_bad_steps(array)
+                if bad.size:
+                    raise DatasetError(
+                        f"{self.path}: data/{key} holds NaN or inf in episode {i} (step {start + int(bad[0])}): "
+                        f"fix or remove that episode"
+                    )
+            values.append(array)
+        names = self.extra_keys if extras is True else () if extras is False else tuple(extras)
+        return Episode(*values, extras={name: self.read(f"data/{name}", start, end) for name in names})
+
+
 # --------------------------------------------------------------------------- writing
 
 
 def _validated_episode(episode: Episode, where: str,
-                       dims: tuple[int, int, int, int] | None = None) -> Episode:
-    """Return ``episode`` as float32 arrays after checking shapes and values.
+                       dims: tuple[int, int, int, int] | None = None,
+                       layout: Mapping[str, tuple[str, tuple[int, ...]]] | None = None) -> Episode:
+    """Return ``episode`` as float32 arrays (extras as given) after checking shapes and values.
 
-    ``dims`` = (P, C, S, A) that the episode must match, if given.
+    ``dims`` = (P, C, S, A) and ``layout`` = the extras' {name: (dtype, trailing shape)}
+    that the episode must match, if given.
     """
     pc, state, action = (np.asarray(getattr(episode, k)) for k in DATA_KEYS)
     _check_data_structure(pc, state, action, where, prefix="")
@@ -435,7 +609,16 @@ def _validated_episode(episode: Episode, where: str,
         if bad_steps.size:
             raise DatasetError(f"{where}: {key} holds NaN or inf (first at step {bad_steps[0]}): fix the episode")
         values.append(array)
-    return Episode(*values)
+    extras = {}
+    for name, array in dict(getattr(episode, "extras", None) or {}).items():
+        _check_extra_name(name, where)
+        extras[name] = _check_extra_array(name, np.asarray(array), state.shape[0], where)
+    if layout is not None and _layout(extras) != dict(layout):
+        raise DatasetError(
+            f"{where}: extra per-step arrays ({_describe_layout(_layout(extras))}) do not match the dataset's "
+            f"({_describe_layout(layout)}): write a separate dataset"
+        )
+    return Episode(*values, extras=extras)
 
 
 def _episode_dims(episode: Episode) -> tuple[int, int, int, int]:
@@ -465,9 +648,20 @@ def _write_store(path: Path, episodes: Sequence[Episode], attrs: dict, zarr_form
         array = data.create_array(key, shape=values.shape, dtype=np.float32,
                                   chunks=(CHUNK_STEPS,) + values.shape[1:], **codec)
         array[...] = values
+    for name in sorted(episodes[0].extras):
+        values = np.concatenate([ep.extras[name] for ep in episodes], axis=0)
+        array = data.create_array(name, shape=values.shape, dtype=values.dtype,
+                                  chunks=(_extra_chunk_steps(values),) + values.shape[1:], **codec)
+        array[...] = values
     ends = np.cumsum([ep.n_steps for ep in episodes], dtype=np.int64)
     array = meta.create_array("episode_ends", shape=ends.shape, dtype=np.int64, chunks=(ENDS_CHUNK,), **codec)
     array[...] = ends
+
+
+def _extra_chunk_steps(values: np.ndarray) -> int:
+    """Steps per chunk of an extra (T, ...) array: CHUNK_STEPS, fewer for large rows (depth images)."""
+    row_bytes = max(1, int(np.prod(values.shape[1:], dtype=np.int64)) * values.dtype.itemsize)
+    return int(max(1, min(CHUNK_STEPS, EXTRA_CHUNK_BYTES // row_bytes)))
 
 
 def _check_replaceable(path: Path) -> None:
@@ -498,7 +692,8 @@ def write_replay_buffer(path: str | os.PathLike, episodes: Sequence[Episode], at
     """Write ``episodes`` as a complete dataset at ``path``.
 
     Each episode holds point_cloud (T_i, P, C), state (T_i, S) and action
-    (T_i, A); P, C, S and A must agree over all episodes. The store is written
+    (T_i, A); P, C, S and A, and the extras' names, dtypes and trailing shapes,
+    must agree over all episodes. The store is written
     into a temporary sibling directory and then renamed onto ``path``; an
     existing dataset at ``path`` is moved aside only once the new one is
     complete, and deleted after the new one is in place.
@@ -518,8 +713,8 @@ def write_replay_buffer(path: str | os.PathLike, episodes: Sequence[Episode], at
     if len(episodes) == 0:
         raise DatasetError(f"{path}: no episodes to write: give at least one")
     checked = [_validated_episode(episodes[0], "episode 0")]
-    dims = _episode_dims(checked[0])
-    checked += [_validated_episode(ep, f"episode {i}", dims) for i, ep in enumerate(episodes[1:], start=1)]
+    dims, layout = _episode_dims(checked[0]), _layout(checked[0].extras)
+    checked += [_validated_episode(ep, f"episode {i}", dims, layout) for i, ep in enumerate(episodes[1:], start=1)]
 
     path = Path(path)
     _check_replaceable(path)
@@ -538,9 +733,10 @@ class ReplayBufferWriter:
 
     A new dataset appears on disk, written atomically, with its first episode.
     For an existing one, its structure and episode ends are checked (point
-    values are not read) and episodes are appended: the data arrays first,
-    ``meta/episode_ends`` last, so an interrupted append leaves every earlier
-    episode readable (see the module docstring). Use as a context manager::
+    values are not read) and episodes are appended: the data arrays (and
+    extras) first, ``meta/episode_ends`` last, so an interrupted append leaves
+    every earlier episode readable (see the module docstring). Use as a
+    context manager::
 
         with ReplayBufferWriter("demo.zarr", attrs={"control_rate_hz": 10.0}) as writer:
             writer.add_episode(episode)
@@ -553,17 +749,25 @@ class ReplayBufferWriter:
         repair_incomplete_tail: if the existing dataset ends with steps that
             belong to no episode (an interrupted append), cut them off before
             appending instead of raising DatasetError.
+        extra_keys: names of the extra per-step arrays every added episode
+            brings (:attr:`Episode.extras`); an existing dataset must hold
+            exactly these under ``data/`` besides point_cloud, state and action.
     """
 
     def __init__(self, path: str | os.PathLike, attrs: dict | None = None, zarr_format: int = 2,
-                 *, repair_incomplete_tail: bool = False):
+                 *, repair_incomplete_tail: bool = False, extra_keys: Sequence[str] = ()):
         _check_zarr_format(zarr_format)
         self.path = Path(path)
         self.zarr_format = zarr_format
         self._attrs = _check_attrs(attrs)
+        for name in extra_keys:
+            _check_extra_name(name, str(self.path))
+        self.extra_keys = tuple(sorted(extra_keys))
         self._closed = False
+        self._group: zarr.Group | None = None
         self._arrays: dict[str, zarr.Array] | None = None
         self._dims: tuple[int, int, int, int] | None = None
+        self._layout: dict[str, tuple[str, tuple[int, ...]]] | None = None
         self._n_steps = 0
         self._n_episodes = 0
         self.dropped_tail_steps = 0
@@ -577,25 +781,37 @@ class ReplayBufferWriter:
     def _open_existing(self, repair_incomplete_tail: bool) -> None:
         where = str(self.path)
         group, arrays, ends = _open_required(self.path, "r+")
-        extra = sorted(set(group["data"].array_keys()) - set(DATA_KEYS))
-        if extra:
+        extras = _extra_arrays(group, where)
+        unexpected = sorted(set(extras) - set(self.extra_keys))
+        if unexpected:
             raise DatasetError(
-                f"{where}: data/{extra[0]} exists: appending would leave it shorter than the other arrays; "
+                f"{where}: data/{unexpected[0]} exists: appending would leave it shorter than the other arrays; "
                 f"write a new dataset instead"
             )
-        lengths = {key: arrays[key].shape[0] for key in REQUIRED_KEYS[:3]}
+        missing = sorted(set(self.extra_keys) - set(extras))
+        if missing:
+            raise DatasetError(
+                f"{where}: data/{missing[0]} is missing: the dataset was written without it, so appended "
+                f"episodes would not line up; write a new dataset instead"
+            )
+        arrays.update({f"data/{name}": extras[name] for name in self.extra_keys})
+        data_keys = [key for key in arrays if key != ENDS_KEY]
+        lengths = {key: arrays[key].shape[0] for key in data_keys}
         n_steps, dropped = _resolve_length(lengths, int(ends[-1]), repair_incomplete_tail, where,
                                            remedy="open the writer with repair_incomplete_tail=True to cut them off")
         self.dropped_tail_steps = dropped
         if dropped:
-            for key in REQUIRED_KEYS[:3]:
-                arrays[key].resize((n_steps,) + tuple(arrays[key].shape[1:]))
+            for key in data_keys:
+                if arrays[key].shape[0] != n_steps:
+                    arrays[key].resize((n_steps,) + tuple(arrays[key].shape[1:]))
         if self._attrs:
             group.attrs.update(self._attrs)
         self.zarr_format = group.metadata.zarr_format
+        self._group = group
         self._arrays = arrays
         self._dims = (arrays["data/point_cloud"].shape[1], arrays["data/point_cloud"].shape[2],
                       arrays["data/state"].shape[1], arrays["data/action"].shape[1])
+        self._layout = _layout({name: extras[name] for name in self.extra_keys})
         self._n_steps = n_steps
         self._n_episodes = int(ends.shape[0])
 
@@ -609,31 +825,58 @@ class ReplayBufferWriter:
         """Steps in the dataset so far."""
         return self._n_steps
 
-    def add_episode(self, episode: Episode) -> None:
-        """Append one episode: point_cloud (T, P, C), state (T, S), action (T, A).
+    @property
+    def attrs(self) -> dict:
+        """The dataset's root attributes as on disk (those given to the writer until the first episode)."""
+        if self._group is None:
+            return dict(self._attrs)
+        return self._group.attrs.asdict()
+
+    def add_episode(self, episode: Episode, attrs: dict | None = None) -> None:
+        """Append one episode: point_cloud (T, P, C), state (T, S), action (T, A), and its extras.
+
+        ``attrs`` are merged into the root group's attributes before the
+        episode's data is written (with a new dataset: written with it), so
+        they may describe the episode; after a crash during the append they
+        may describe an episode the dataset does not hold.
 
         Raises:
             DatasetError: the episode is empty, holds NaN/inf, or does not match
-                the dataset's (P, C, S, A); or the dataset changed underneath.
+                the dataset's (P, C, S, A) or extras; or the dataset changed underneath.
         """
         if self._closed:
             raise ValueError("ReplayBufferWriter is closed")
         where = f"{self.path}: episode {self._n_episodes}"
-        episode = _validated_episode(episode, where, self._dims)
+        brought = tuple(sorted(getattr(episode, "extras", None) or {}))
+        if brought != self.extra_keys:
+            raise DatasetError(
+                f"{where}: the episode brings extras [{', '.join(brought)}] but the writer was opened for "
+                f"[{', '.join(self.extra_keys)}]: pass the same extra_keys"
+            )
+        episode = _validated_episode(episode, where, self._dims, self._layout)
+        attrs = _check_attrs(attrs)
         if self._arrays is None:
-            write_replay_buffer(self.path, [episode], self._attrs, self.zarr_format)
-            _, self._arrays, _ = _open_required(self.path, "r+")
+            write_replay_buffer(self.path, [episode], {**self._attrs, **attrs}, self.zarr_format)
+            self._group, self._arrays, _ = _open_required(self.path, "r+")
+            self._arrays.update({f"data/{name}": _get_array(self._group, f"data/{name}", str(self.path))
+                                 for name in self.extra_keys})
             self._dims = _episode_dims(episode)
+            self._layout = _layout(episode.extras)
         else:
-            lengths = [self._arrays[key].shape[0] for key in REQUIRED_KEYS]
-            if lengths != [self._n_steps] * 3 + [self._n_episodes]:
+            keys = [key for key in self._arrays if key != ENDS_KEY]
+            lengths = [self._arrays[key].shape[0] for key in keys] + [self._arrays[ENDS_KEY].shape[0]]
+            if lengths != [self._n_steps] * len(keys) + [self._n_episodes]:
                 raise DatasetError(
                     f"{where}: the dataset no longer has the expected {self._n_steps} steps and "
                     f"{self._n_episodes} episodes (an earlier append failed?): reopen the writer with "
                     f"repair_incomplete_tail=True"
                 )
+            if attrs:
+                self._group.attrs.update(attrs)
             for key in DATA_KEYS:
                 self._arrays[f"data/{key}"].append(getattr(episode, key), axis=0)
+            for name in self.extra_keys:
+                self._arrays[f"data/{name}"].append(episode.extras[name], axis=0)
             self._arrays[ENDS_KEY].append(np.array([self._n_steps + episode.n_steps], dtype=np.int64))
         self._n_steps += episode.n_steps
         self._n_episodes += 1
@@ -642,6 +885,7 @@ class ReplayBufferWriter:
         """Stop writing; every added episode is already on disk."""
         self._closed = True
         self._arrays = None
+        self._group = None
 
     def __enter__(self) -> ReplayBufferWriter:
         return self
