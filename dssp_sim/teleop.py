@@ -1,0 +1,140 @@
+"""The embedded teleoperation rig: a scripted leader, a simulated follower and the simulated camera, in lockstep.
+
+What ``dssp-record --camera sim --can sim`` records from, with no hardware:
+
+- one python-can ``virtual`` bus shared, as on the real platform, by a leader and a follower;
+- the leader is a :class:`~hardware.leader.ScriptedLeader` played by the task's scripted expert
+  (``dssp_sim.experts``): each tick it sends the expert's target (0x151, 0x155..0x157, 0x159);
+- the follower is :class:`~dssp_sim.sim_arm.MujocoPiper` (powered on at start as a follower arm would
+  be), which obeys those frames with MuJoCo physics and sends its feedback;
+- the camera is :class:`~dssp_sim.sim_camera.MujocoCamera` (depth through the RealSense software device).
+
+Time is simulated (:class:`SimClock`): per tick the session calls ``before_tick()`` (the leader sends its
+command at time t), samples every stream at t, then ``after_tick(dt)`` (the clock moves to t + dt, the
+follower moves dt and reports, the camera renders). Each call returns once the recorder's bus monitor has
+received every frame sent, so a recording is deterministic. Fault injection for tests and demos:
+``pause_feedback`` / ``resume_feedback`` and ``freeze_camera``.
+"""
+
+from __future__ import annotations
+
+import uuid
+
+import numpy as np
+
+from dssp_sim.env import PiperEnv
+from dssp_sim.experts import make_expert
+from dssp_sim.sim_arm import MujocoPiper
+from dssp_sim.sim_camera import MujocoCamera
+from hardware.leader import ScriptedLeader
+from hardware.piper import codec
+
+
+class SimClock:
+    """Simulated time in seconds: starts at 0, moves only when told."""
+
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+    def advance(self, dt: float) -> None:
+        self.t += float(dt)
+
+
+class TeleopRig:
+    """The simulated leader/follower pair and camera for ``task`` (tap, swap, put2).
+
+    ``channel``: the virtual bus to listen on. ``camera``: the scene camera. ``clock``: the simulated
+    clock to stamp frames with. Episode ``k`` of a session uses the scene of seed ``seed + k``.
+    """
+
+    def __init__(self, task: str = "tap", seed: int = 0) -> None:
+        self.task, self.seed = task, int(seed)
+        self.env = PiperEnv(task, seed=self.seed)
+        self.clock = SimClock()
+        self.channel = f"dssp-teleop-{uuid.uuid4().hex[:8]}"
+        self.follower = MujocoPiper(self.env, self.channel)
+        self.camera = MujocoCamera(self.env)
+        self.leader = ScriptedLeader(self.channel, "virtual", script=self._script)
+        self.control_rate_hz = float(self.env.control_rate_hz)
+        self.expert = None
+        self.episode_seed: int | None = None
+        self.camera_frozen = False
+        self._monitor = None
+        self._episodes = 0
+
+    # ---- lifecycle ------------------------------------------------------------------------------------
+    def start(self, monitor) -> None:
+        """Open the buses and power the follower on (enable, as a follower arm is at the start of a session).
+        ``monitor``: the recorder's :class:`~hardware.bus_monitor.BusMonitor` on :attr:`channel`, started."""
+        self._monitor = monitor
+        self.follower.start(thread=False)
+        self.leader.start()
+        self.camera.start()
+        hold = self.env.state()
+        self.leader.send_frames([codec.MotorEnable(codec.MOTOR_ALL, codec.MOTOR_ENABLE_FLAG).to_frame()])
+        self.leader.send(hold)
+        self.follower.step(0.0)
+        self.camera.capture()
+        self._sync()
+
+    def stop(self) -> None:
+        self.camera.stop()
+        self.leader.stop()
+        self.follower.stop()
+        self.env.close()
+
+    def _sync(self) -> None:
+        """Wait until the monitor has every frame the leader and the follower sent."""
+        self._monitor.wait_for_frames(self.leader.frames_sent + self.follower.frames_sent)
+
+    # ---- episodes --------------------------------------------------------------------------------------
+    def new_episode(self) -> int:
+        """Reset the scene (seed ``seed + k`` for the k-th episode) with a fresh expert; returns the seed."""
+        self.episode_seed = self.seed + self._episodes
+        self._episodes += 1
+        self.env.reset(seed=self.episode_seed)
+        self.follower.sync_from_env()
+        self.expert = make_expert(self.env)
+        self.leader.last_target = self.env.state()
+        self.follower.step(0.0)
+        if not self.camera_frozen:
+            self.camera.capture()
+        self._sync()
+        return self.episode_seed
+
+    def end_episode(self) -> None:
+        """The leader holds still from now on."""
+        self.expert = None
+
+    def _script(self) -> np.ndarray | None:
+        return None if self.expert is None else self.expert.act(self.env)
+
+    def before_tick(self) -> None:
+        """The leader sends its command for this tick (the expert's target, or a hold between episodes)."""
+        self.leader.step()
+        self._sync()
+
+    def after_tick(self, dt: float) -> None:
+        """Simulated time moves ``dt`` s: the follower moves and reports, the camera renders."""
+        self.clock.advance(dt)
+        self.follower.step(dt)
+        if not self.camera_frozen:
+            self.camera.capture()
+        self._sync()
+
+    def episode_status(self):
+        """The task's status (``done``, ``success``, ``reason``) of the current episode."""
+        return self.env.status()
+
+    # ---- faults ---------------------------------------------------------------------------------------------
+    def pause_feedback(self) -> None:
+        self.follower.pause_feedback()
+
+    def resume_feedback(self) -> None:
+        self.follower.resume_feedback()
+
+    def freeze_camera(self, frozen: bool = True) -> None:
+        self.camera_frozen = bool(frozen)

@@ -1,0 +1,261 @@
+"""What a recorded dataset (``dssp-record``) holds beyond DP3's arrays, and :class:`RecordingDataset`,
+which appends recorded episodes to it crash-safely.
+
+On disk, next to DP3's ``data/point_cloud`` (T, P, C), ``data/state`` (T, S) and ``data/action`` (T, A)::
+
+    data/timestamp            (T,) float64  s since the episode's first tick: when the step was sampled
+    data/camera_timestamp     (T,) float64  s, same origin (negative: before the first step): arrival of the
+                                            camera frame the cloud is made from
+    data/state_timestamp      (T,) float64  s: arrival of the oldest follower feedback frame in ``state``
+    data/action_timestamp     (T,) float64  s: arrival of the oldest leader frame in ``action``
+                                            (next-state convention: the next step's state_timestamp)
+    data/camera_frame         (T,) int64    the camera's frame number (a repeat means no new frame)
+    data/step_problems        (T,) uint8    bit flags, :data:`STEP_PROBLEMS`
+    data/depth                (T, H, W) uint16, optional: the raw depth image (metres = value *
+                                            camera_depth_unit), to rebuild the clouds with other settings
+    meta/episode_ends         (E,) int64
+
+Root attributes: ``control_rate_hz``, ``action_convention`` (:data:`ACTION_CONVENTIONS`),
+``state_convention``, ``camera_to_base`` (4x4), ``camera_intrinsics``, ``camera_depth_unit``,
+``pointcloud`` (the :class:`~hardware.pointcloud.PointCloudConfig`), ``task``, ``generator``;
+``recording_sessions`` (one entry per recording session that kept an episode: devices, calibration,
+thresholds) and ``episode_info`` (one entry per episode, or null for episodes that were not recorded:
+session, start time, measured rate, stream ages, problems, CAN log files). ``episode_info`` is written
+before the episode's data, so after a crash it may hold one entry more than there are episodes: read it
+with :func:`episode_infos`.
+
+Raw CAN traffic of each kept episode: ``<dataset>.can/episode_000012.can0.blf`` (one per bus), written
+as ``...partial-<session>.blf`` while recording and renamed when the episode is kept.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from dssp_train.data.replay_buffer import Episode, ReplayBufferWriter
+from dssp_train.errors import DatasetError
+
+TIME_KEYS = ("timestamp", "camera_timestamp", "state_timestamp", "action_timestamp")
+FRAME_KEY = "camera_frame"
+FLAGS_KEY = "step_problems"
+DEPTH_KEY = "depth"
+RECORDED_KEYS = TIME_KEYS + (FRAME_KEY, FLAGS_KEY)
+"""Extras every recorded episode carries (``depth`` is optional)."""
+
+STEP_PROBLEMS = {
+    "camera_stale": 1,     # the newest frame was older than the camera threshold
+    "camera_repeat": 2,    # no new frame since the previous step (a dropped frame)
+    "feedback_stale": 4,   # the follower's newest joint/gripper feedback was older than its threshold
+    "leader_stale": 8,     # the leader's newest command was older than its threshold
+    "late_tick": 16,       # the step was sampled later than half a period after its schedule
+    "empty_cloud": 32,     # no point in the crop box: the previous step's cloud was repeated
+    "arm_error": 64,       # the follower reported an error or e-stop
+}
+"""Bit of each per-step problem in ``data/step_problems``."""
+
+PROBLEM_TEXT = {
+    "camera_stale": "stale camera",
+    "camera_repeat": "dropped camera frames",
+    "feedback_stale": "missing follower feedback",
+    "leader_stale": "missing leader commands",
+    "late_tick": "late ticks",
+    "empty_cloud": "empty point clouds",
+    "arm_error": "arm error",
+    "rate": "control rate off target",
+}
+
+ACTION_CONVENTIONS = {
+    "leader_command": "leader_command: the leader arm's joint/gripper target at this step (policy units)",
+    "next_state": "next_state: the follower's measured state at the next step (RoboTwin's convention; "
+                  "the last step of each episode is dropped)",
+}
+STATE_CONVENTION = "follower's measured [J1..J6 rad, gripper opening 0..1] per arm (left, right)"
+
+
+def problem_names(flags: int) -> list[str]:
+    """Names of the problems set in one step's flags."""
+    return [name for name, bit in STEP_PROBLEMS.items() if int(flags) & bit]
+
+
+def convention_name(attrs: Mapping) -> str | None:
+    """The action convention's short name from a dataset's attributes (None if not recorded)."""
+    text = attrs.get("action_convention")
+    if not isinstance(text, str) or not text:
+        return None
+    return text.split(":", 1)[0].strip()
+
+
+def episode_infos(attrs: Mapping, n_episodes: int) -> list[dict | None]:
+    """``attrs["episode_info"]`` aligned with the dataset's ``n_episodes`` episodes.
+
+    Entries beyond the last episode (left by a crash during an append) are dropped; missing ones are None.
+    """
+    raw = attrs.get("episode_info")
+    infos = list(raw) if isinstance(raw, list) else []
+    infos = [entry if isinstance(entry, dict) else None for entry in infos[:n_episodes]]
+    return infos + [None] * (n_episodes - len(infos))
+
+
+def can_log_dir(dataset: str | os.PathLike) -> Path:
+    """Directory of a dataset's CAN logs: ``<dataset>.can`` next to it."""
+    dataset = Path(dataset)
+    return dataset.with_name(dataset.name + ".can")
+
+
+def _channel_tag(channel: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_" else "_" for c in channel) or "bus"
+
+
+def can_log_name(index: int, channel: str) -> str:
+    """File name of episode ``index``'s log of bus ``channel``."""
+    return f"episode_{index:06d}.{_channel_tag(channel)}.blf"
+
+
+def partial_can_log_name(index: int, channel: str, session: str) -> str:
+    """File name of that log while the episode is being recorded (session: a unique tag)."""
+    return f"episode_{index:06d}.{_channel_tag(channel)}.partial-{session}.blf"
+
+
+LOCK_NAME = ".recording.lock"
+"""Held (``flock``) by the session recording into a dataset, in its CAN log directory."""
+
+
+class DatasetLock:
+    """An exclusive lock on ``path`` for this process (released by the system when the process dies): one
+    writer (a recording session, a repair) per dataset at a time."""
+
+    def __init__(self, path: Path):
+        import fcntl
+
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self._file = open(path, "a+")
+        try:
+            fcntl.flock(self._file, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            self._file.seek(0)
+            holder = self._file.read().strip() or "another process"
+            self._file.close()
+            raise DatasetError(f"{path.parent.name.removesuffix('.can')} is being recorded into by {holder}: "
+                               f"one writer per dataset at a time") from None
+        self._file.seek(0)
+        self._file.truncate()
+        self._file.write(f"pid {os.getpid()} on {_hostname()}\n")
+        self._file.flush()
+
+    def release(self) -> None:
+        if not self._file.closed:
+            self._file.close()
+
+
+def _hostname() -> str:
+    import socket
+
+    return socket.gethostname()
+
+
+def _same_number(a, b) -> bool:
+    try:
+        return math.isclose(float(a), float(b), rel_tol=1e-9, abs_tol=1e-12)
+    except (TypeError, ValueError):
+        return False
+
+
+class RecordingDataset:
+    """Appends recorded episodes to a new or existing dataset, one crash-safe append each.
+
+    ``dataset_attrs``: the root attributes a new dataset starts with (rate, conventions, calibration);
+    for an existing dataset the ones that decide what the data means (``control_rate_hz``,
+    ``action_convention``, ``pointcloud``) must match, else DatasetError. ``session``: this recording
+    session's description (devices, calibration, thresholds), stored in ``recording_sessions`` with
+    its first kept episode. ``extra_keys``: the per-step extras each episode brings.
+
+    An existing dataset whose last append was interrupted (steps after the last episode end) is
+    repaired on opening: :attr:`repaired_steps` says how many steps were cut off.
+    """
+
+    def __init__(self, path: str | os.PathLike, dataset_attrs: dict, session: dict, extra_keys: Sequence[str]):
+        self.path = Path(path)
+        self.session = dict(session)
+        self.session_added = False
+        self._lock = DatasetLock(can_log_dir(self.path) / LOCK_NAME)
+        self.writer = ReplayBufferWriter(self.path, attrs=None, repair_incomplete_tail=True, extra_keys=extra_keys)
+        self.repaired_steps = self.writer.dropped_tail_steps
+        self.new = self.writer.n_episodes == 0  # an existing dataset holds at least one episode
+        if self.new:
+            self.writer.close()
+            self.writer = ReplayBufferWriter(self.path, attrs=dataset_attrs, extra_keys=extra_keys)
+        else:
+            self._check_compatible(self.writer.attrs, dataset_attrs)
+        self.calibration_changed = not self.new and self._calibration_differs(self.writer.attrs, dataset_attrs)
+
+    def _check_compatible(self, existing: Mapping, wanted: Mapping) -> None:
+        where = str(self.path)
+        if not _same_number(existing.get("control_rate_hz"), wanted.get("control_rate_hz")):
+            raise DatasetError(
+                f"{where} was recorded at {existing.get('control_rate_hz')} Hz, this session runs at "
+                f"{wanted.get('control_rate_hz')} Hz: record at the dataset's rate (--rate) or into a new dataset"
+            )
+        if convention_name(existing) != convention_name(wanted):
+            raise DatasetError(
+                f"{where} uses the action convention {convention_name(existing)!r}, this session "
+                f"{convention_name(wanted)!r}: use the same --action or a new dataset"
+            )
+        if existing.get("pointcloud") != wanted.get("pointcloud"):
+            raise DatasetError(
+                f"{where} was recorded with other point-cloud settings ({existing.get('pointcloud')}): "
+                f"use the same settings or a new dataset"
+            )
+
+    @staticmethod
+    def _calibration_differs(existing: Mapping, wanted: Mapping) -> bool:
+        keys = ("camera_to_base", "camera_intrinsics", "camera_depth_unit")
+        return any(existing.get(k) != wanted.get(k) for k in keys)
+
+    @property
+    def n_episodes(self) -> int:
+        """Episodes in the dataset; also the index the next kept episode gets."""
+        return self.writer.n_episodes
+
+    def session_index(self) -> int:
+        """Index of this session in ``recording_sessions`` (once its first episode is kept)."""
+        sessions = self.writer.attrs.get("recording_sessions")
+        existing = len(sessions) if isinstance(sessions, list) else 0
+        return existing - 1 if self.session_added else existing
+
+    def commit(self, episode: Episode, info: dict) -> int:
+        """Append ``episode`` (with its extras) and its ``info`` entry; returns the episode's index.
+
+        The attributes (``episode_info``, ``recording_sessions``) are written first, then the data, then
+        the episode end: the episode is part of the dataset only once the last write has landed.
+        """
+        attrs = self.writer.attrs
+        index = self.writer.n_episodes
+        infos = episode_infos(attrs, index) + [dict(info, index=index, session=self.session_index())]
+        update = {"episode_info": infos}
+        if not self.session_added:
+            sessions = attrs.get("recording_sessions")
+            sessions = list(sessions) if isinstance(sessions, list) else []
+            update["recording_sessions"] = sessions + [self.session]
+        self.writer.add_episode(episode, attrs=update)
+        self.session_added = True
+        return index
+
+    def close(self) -> None:
+        self.writer.close()
+        self._lock.release()
+
+
+def flags_summary(flags: np.ndarray) -> dict[str, dict]:
+    """Per problem kind: {"steps": n, "first_step": k} over a (T,) uint8 array of step flags."""
+    flags = np.asarray(flags)
+    out = {}
+    for name, bit in STEP_PROBLEMS.items():
+        hit = np.flatnonzero(flags & bit)
+        if hit.size:
+            out[name] = {"steps": int(hit.size), "first_step": int(hit[0])}
+    return out

@@ -1,0 +1,261 @@
+"""A passive listener on one teleoperation bus: the follower's feedback, the leader's commands, the raw log.
+
+    with BusMonitor("can0") as bus:
+        state = bus.follower()          # ArmReading: (7,) policy units + arrival time of its oldest frame
+        command = bus.leader()          # the leader's latest target, same form
+        bus.begin_log("ep.can0.blf")    # every frame from now on goes to this python-can log
+        ...
+        frames = bus.end_log()
+
+The monitor never sends. One thread receives every frame, stamps it on arrival with ``clock()``
+(``time.monotonic`` on a robot; the simulated clock in lockstep), decodes it (``hardware.piper.codec``)
+and writes it to the episode's log when one is open, so the decoded streams and the log hold exactly the
+same frames. ``wait_for_frames(n)`` blocks until ``n`` frames have arrived (lockstep simulation).
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import can
+import numpy as np
+
+from hardware.errors import CanError
+from hardware.leader import ArmReading, LeaderTracker
+from hardware.piper import codec
+from hardware.piper.bus import open_bus
+from hardware.piper.limits import stroke_to_opening
+
+_NAN = float("nan")
+MAX_RECEIVE_FAILURES = 10
+ARM_ERROR_STATUSES = frozenset(range(0x01, 0x0B)) | {0x0E, 0x0F}
+"""0x2A1 arm_status values that are faults (e-stop, no solution, limit, communication, collision, ...)."""
+
+
+class FollowerTracker:
+    """The latest feedback of one follower arm: joints (0x2A5..0x2A7), gripper (0x2A8), status (0x2A1)."""
+
+    def __init__(self) -> None:
+        self._joints: dict[int, tuple[float, float, float]] = {}
+        self._gripper: tuple[float, float] | None = None
+        self.status: codec.ArmStatusFeedback | None = None
+        self.status_time = _NAN
+        self.frames = 0
+
+    def update(self, message, t: float) -> None:
+        if isinstance(message, codec.JointFeedback):
+            self._joints[message.pair] = (message.first, message.second, t)
+        elif isinstance(message, codec.GripperFeedback):
+            self._gripper = (message.stroke, t)
+        elif isinstance(message, codec.ArmStatusFeedback):
+            self.status, self.status_time = message, t
+        else:
+            return
+        self.frames += 1
+
+    def reading(self) -> ArmReading:
+        """Measured (7,) [J1..J6 rad, opening] and the arrival of its oldest frame; None until all came."""
+        if len(self._joints) < 3 or self._gripper is None:
+            return ArmReading(None, _NAN)
+        joints = [v for pair in range(3) for v in self._joints[pair][:2]]
+        stroke, gripper_time = self._gripper
+        oldest = min([self._joints[pair][2] for pair in range(3)] + [gripper_time])
+        return ArmReading(np.append(np.array(joints), float(stroke_to_opening(stroke))), oldest)
+
+    def error(self) -> str | None:
+        """What the latest 0x2A1 reports as a fault (e-stop, error status, error bits), or None."""
+        s = self.status
+        if s is None:
+            return None
+        problems = []
+        if s.arm_status in ARM_ERROR_STATUSES:
+            problems.append(codec.ARM_STATUS_NAMES.get(s.arm_status, f"status 0x{s.arm_status:02X}"))
+        if s.joint_limit_bits:
+            problems.append("joint limit " + ",".join(f"J{i + 1}" for i in range(6) if s.joint_limit_bits >> i & 1))
+        if s.comm_error_bits:
+            problems.append("communication error " + ",".join(f"J{i + 1}" for i in range(6) if s.comm_error_bits >> i & 1))
+        return "; ".join(problems) or None
+
+
+class BusMonitor:
+    """Listens to one bus shared by a leader and a follower arm (``channel`` on ``interface``).
+
+    ``clock`` stamps arrivals (seconds). ``bus_options`` go to ``can.Bus``. ``name``: how logs and
+    messages call the bus (default: the channel). ``frames_received`` counts
+    every frame; ``decoder.counts`` counts them by outcome. ``check()`` raises the receive thread's error.
+    """
+
+    def __init__(self, channel: str, interface: str = "socketcan", *, clock: Callable[[], float] = time.monotonic,
+                 bus_options: dict | None = None, name: str | None = None) -> None:
+        self.channel, self.interface = channel, interface
+        self.name = name or channel
+        self.clock = clock
+        self.bus_options = dict(bus_options or {})
+        self.decoder = codec.Decoder()
+        self.frames_received = 0
+        self._follower = FollowerTracker()
+        self._leader = LeaderTracker()
+        self._lock = threading.Condition()
+        self._log: can.Listener | None = None
+        self._log_frames = 0
+        self.log_error: str | None = None
+        """Why the current episode's log stopped early, or None."""
+        number = can.util.channel2int(self.name)
+        self._log_channel = number if number is not None and 0 <= number <= 0xFFFF else None
+        self._bus: can.BusABC | None = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._error: BaseException | None = None
+
+    def __repr__(self) -> str:
+        return f"BusMonitor({self.channel!r}, {self.interface!r})"
+
+    # ---- lifecycle ----------------------------------------------------------------------------------
+    def start(self) -> None:
+        """Open the bus and start receiving (no-op if started). Raises CanError."""
+        if self._bus is not None:
+            return
+        self._bus = open_bus(self.channel, self.interface, **self.bus_options)
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name=f"bus-monitor-{self.channel}", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        """Stop receiving, close an open log, shut the bus down."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+            self._thread = None
+        self.end_log()
+        bus, self._bus = self._bus, None
+        if bus is not None:
+            bus.shutdown()
+
+    def __enter__(self) -> "BusMonitor":
+        self.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def _run(self) -> None:
+        try:
+            self._receive()
+        except Exception as exc:  # kept for check(): the recorder stops with it instead of recording stale data
+            self._error = exc
+            with self._lock:
+                self._lock.notify_all()
+
+    def _receive(self) -> None:
+        bus, failures = self._bus, 0
+        while not self._stop.is_set():
+            try:
+                frame = bus.recv(timeout=0.05)
+            except (can.CanError, OSError, ValueError) as exc:
+                self.decoder.counts["receive_error"] += 1
+                failures += 1
+                if failures >= MAX_RECEIVE_FAILURES and not self._stop.is_set():
+                    self._error = exc
+                    with self._lock:
+                        self._lock.notify_all()
+                    return
+                continue
+            failures = 0
+            if frame is None:
+                continue
+            now = self.clock()
+            message = self.decoder.decode(frame)
+            with self._lock:
+                if message is not None:
+                    self._follower.update(message, now)
+                    self._leader.update(message, now)
+                if self._log is not None:
+                    self._write_log(frame)
+                self.frames_received += 1
+                self._lock.notify_all()
+
+    def _write_log(self, frame: can.Message) -> None:
+        """Write one frame to the open log (lock held). A failing log is closed and its error kept."""
+        try:
+            frame.channel = self._log_channel  # BLF stores a small integer channel
+            self._log.on_message_received(frame)
+            self._log_frames += 1
+        except Exception as exc:  # the recording goes on; the episode's metadata says its log is incomplete
+            self.log_error = f"{type(exc).__name__}: {exc}"
+            logger, self._log = self._log, None
+            try:
+                logger.stop()
+            except Exception:
+                pass
+
+    def check(self) -> None:
+        """Raise CanError if receiving failed (the thread has stopped)."""
+        if self._error is not None:
+            raise CanError(f"receiving from CAN bus {self.channel!r} failed: {self._error}; check the CAN link")
+
+    # ---- streams --------------------------------------------------------------------------------------
+    def follower(self) -> ArmReading:
+        """The follower's latest measured position (7,) in policy units, with arrival time."""
+        with self._lock:
+            return self._follower.reading()
+
+    def leader(self) -> ArmReading:
+        """The leader's latest commanded target (7,) in policy units, with arrival time."""
+        with self._lock:
+            return self._leader.reading()
+
+    def follower_error(self) -> str | None:
+        """A fault the follower reports in its latest status frame, or None."""
+        with self._lock:
+            return self._follower.error()
+
+    def counts(self) -> dict[str, int]:
+        """Frames received: total, follower feedback, leader commands."""
+        with self._lock:
+            return {"total": self.frames_received, "follower": self._follower.frames, "leader": self._leader.frames}
+
+    def wait_for_frames(self, n: int, timeout: float = 2.0) -> None:
+        """Block until at least ``n`` frames have been received in total (CanError after ``timeout`` s)."""
+        deadline = time.monotonic() + timeout
+        with self._lock:
+            while self.frames_received < n:
+                self.check()
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise CanError(f"bus {self.channel!r}: {self.frames_received} of {n} expected frames arrived "
+                                   f"within {timeout:g} s")
+                self._lock.wait(min(left, 0.05))
+
+    # ---- raw log ------------------------------------------------------------------------------------------
+    def begin_log(self, path: str | Path) -> None:
+        """Write every frame received from now on to ``path`` (format from the suffix: .blf, .asc, .csv, .log)."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            logger = can.Logger(str(path))
+        except (ValueError, OSError) as exc:
+            raise CanError(f"cannot write the CAN log {path}: {exc}") from exc
+        with self._lock:
+            previous, self._log, self._log_frames, self.log_error = self._log, logger, 0, None
+        if previous is not None:
+            previous.stop()
+
+    def end_log(self) -> int:
+        """Close the current log (flushing it); returns the number of frames it holds (0 if none was open)."""
+        with self._lock:
+            logger, self._log = self._log, None
+            frames = self._log_frames
+        if logger is None:
+            return 0
+        logger.stop()
+        return frames
+
+
+def oldest(readings: list[ArmReading]) -> float:
+    """The oldest arrival time over several arms' readings (nan if any is missing)."""
+    times = [r.time for r in readings]
+    return _NAN if any(math.isnan(t) for t in times) else min(times)

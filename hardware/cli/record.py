@@ -1,0 +1,349 @@
+"""``dssp-record``: record teleoperated demonstrations (Piper leader -> follower, RealSense scene) into a dataset.
+
+    dssp-record --camera l515|d435|d405|file:PATH|sim --can can0[,can1]|sim --out PATH.zarr
+                [--rate HZ] [--extrinsics FILE] [--task-name NAME] [--action leader|next-state]
+                [--pointcloud FILE] [--thresholds FILE] [--max-steps N] [--episodes N] [--auto]
+                [--no-depth] [--seed S] [--sim-speed X] [--interface socketcan] [--serial SERIAL] [--quiet]
+
+Controls: on a terminal single keys, s start, k stop and keep, d stop and discard, q quit; otherwise one
+command per line on stdin (s/start, k/keep, d/discard, q/quit). A live status line shows the episode, its
+step, the measured rate and the age of every stream (``!`` past its threshold). Each kept episode is
+appended to PATH.zarr crash-safely, with its raw CAN traffic in PATH.zarr.can/. ``--camera sim --can sim``
+records from the embedded simulation: the task's scripted expert plays the leader arm on a virtual bus.
+Exit codes: 0 done, 2 bad input, 130 stopped by a signal (an unfinished episode is discarded).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import queue
+import select
+import signal
+import socket
+import sys
+import threading
+import time
+from pathlib import Path
+
+from dssp_train.errors import ConfigError, DSSPError
+
+EPILOG = """\
+Action convention (--action): "leader" (default) records the leader arm's command at each step, what the
+follower was told to do and what dssp-run sends; "next-state" records the follower's next measured state
+(RoboTwin's convention; each episode loses its last step). The dataset's attributes say which.
+--auto starts and ends episodes by itself: after --max-steps, or on the simulation when the task is done
+(kept only if it succeeded); --episodes N ends the session after N kept episodes.
+"""
+
+KEYS = {"s": "start", " ": "start", "k": "keep", "d": "discard", "q": "quit"}
+WORDS = {"s": "start", "start": "start", "k": "keep", "keep": "keep", "d": "discard", "discard": "discard",
+         "q": "quit", "quit": "quit", "exit": "quit"}
+
+
+def parse_args(argv):
+    p = argparse.ArgumentParser(prog="dssp-record", description="Record teleoperated demonstrations into a DP3 zarr dataset.",
+                                epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--camera", default="sim", help="l515 | d435 | d405 | file:PATH (.bag/.db3) | sim (default: sim)")
+    p.add_argument("--serial", help="RealSense serial number, when several are connected")
+    p.add_argument("--can", default="sim", help="can0[,can1] (one bus per leader/follower pair: left, right) | sim (default: sim)")
+    p.add_argument("--interface", default="socketcan", help="python-can interface of real buses (default: socketcan)")
+    p.add_argument("--out", type=Path, required=True, help="dataset to create or append to (PATH.zarr)")
+    p.add_argument("--rate", type=float, help="recording rate in Hz (default: the dataset's, else the simulation's 10 Hz, else 10)")
+    p.add_argument("--extrinsics", type=Path, help="camera->robot-base calibration JSON (needed with a real camera)")
+    p.add_argument("--pointcloud", type=Path, help="point-cloud settings JSON (default: the dataset's, else the robot's defaults)")
+    p.add_argument("--task-name", help="task name stored with the data; on the simulation also its task (tap, swap, put2; default tap)")
+    p.add_argument("--action", choices=["leader", "next-state"], default="leader", help="what `action` holds (see below)")
+    p.add_argument("--thresholds", type=Path, help="stream thresholds JSON (hardware.recorder.RecordThresholds fields)")
+    p.add_argument("--max-steps", type=int, help="end (and keep) an episode after N steps")
+    p.add_argument("--episodes", type=int, help="end the session after N kept episodes")
+    p.add_argument("--auto", action="store_true", help="start and end episodes without the operator (see below)")
+    p.add_argument("--no-depth", action="store_true", help="do not store the raw depth images (the clouds cannot be rebuilt then)")
+    p.add_argument("--seed", type=int, help="simulation: scene seed of the first episode (default: after the dataset's last)")
+    p.add_argument("--sim-speed", type=float, help="simulation: simulated seconds per second (default 1, with --auto as fast as possible)")
+    p.add_argument("--quiet", action="store_true", help="no live status line")
+    args = p.parse_args(argv)
+    for name in ("max_steps", "episodes"):
+        value = getattr(args, name)
+        if value is not None and value < 1:
+            raise ConfigError(f"--{name.replace('_', '-')} must be at least 1, got {value}")
+    if args.sim_speed is not None and not args.sim_speed >= 0:
+        raise ConfigError(f"--sim-speed must be >= 0 (0 = as fast as possible), got {args.sim_speed}")
+    return args
+
+
+def _read_json(path: Path, what: str) -> dict:
+    try:
+        values = json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"{what} file {path} does not exist") from None
+    except json.JSONDecodeError as exc:
+        raise ConfigError(f"{what} file {path} is not valid JSON ({exc.msg} at line {exc.lineno})") from None
+    if not isinstance(values, dict):
+        raise ConfigError(f"{what} file {path} must hold a JSON object")
+    return values
+
+
+# ---- operator controls -----------------------------------------------------------------------------------
+class KeyControls:
+    """Single keys on a terminal (cbreak mode: no Enter needed, Ctrl-C still works)."""
+
+    def __init__(self, stream=sys.stdin):
+        import termios
+        import tty
+
+        self.stream, self.fd = stream, stream.fileno()
+        self._saved = termios.tcgetattr(self.fd)
+        tty.setcbreak(self.fd)
+
+    def poll(self) -> str | None:
+        ready, _, _ = select.select([self.fd], [], [], 0)
+        if not ready:
+            return None
+        key = os.read(self.fd, 1).decode(errors="ignore").lower()
+        return KEYS.get(key, f"key {key!r}" if key.strip() else None)
+
+    def close(self) -> None:
+        import termios
+
+        termios.tcsetattr(self.fd, termios.TCSADRAIN, self._saved)
+
+
+class LineControls:
+    """One command per line (s/start, k/keep, d/discard, q/quit) read by a thread; the end of input is "eof"."""
+
+    def __init__(self, stream=sys.stdin):
+        self._queue: queue.Queue = queue.Queue()
+        self._thread = threading.Thread(target=self._read, args=(stream,), name="record-controls", daemon=True)
+        self._thread.start()
+
+    def _read(self, stream) -> None:
+        try:
+            for line in stream:
+                word = line.strip().lower()
+                if word:
+                    self._queue.put(WORDS.get(word, word))
+        except (OSError, ValueError):
+            pass
+        self._queue.put("eof")
+
+    def poll(self) -> str | None:
+        try:
+            return self._queue.get_nowait()
+        except queue.Empty:
+            return None
+
+    def close(self) -> None:
+        pass
+
+
+class Console:
+    """Event lines on stdout (one per event, at once) and the live status line on stderr."""
+
+    def __init__(self, quiet: bool):
+        from hardware.cli.run import StatusPrinter
+
+        self.status = None if quiet else StatusPrinter()
+
+    def event(self, line: str) -> None:
+        if self.status is not None and self.status.tty:
+            sys.stderr.write("\r\x1b[K")
+            sys.stderr.flush()
+        print(line, flush=True)
+
+    def close(self) -> None:
+        if self.status is not None:
+            self.status.close()
+
+
+# ---- devices -------------------------------------------------------------------------------------------------
+def _next_sim_seed(out: Path) -> int:
+    """One past the largest scene seed the dataset's simulated episodes used (0 for a new dataset)."""
+    from dssp_train.data.replay_buffer import ReplayBufferReader
+
+    if not out.exists():
+        return 0
+    try:
+        reader = ReplayBufferReader(out, allow_incomplete_tail=True)
+    except Exception:  # the dataset's problems are reported when it is opened for writing
+        return 0
+    from dssp_train.data.recording import episode_infos
+
+    seeds = [info["sim"]["seed"] for info in episode_infos(reader.attrs, reader.n_episodes)
+             if info and isinstance(info.get("sim"), dict) and isinstance(info["sim"].get("seed"), int)]
+    return max(seeds) + 1 if seeds else reader.n_episodes
+
+
+def _existing_attrs(out: Path) -> dict:
+    from dssp_train.data.replay_buffer import ReplayBufferReader
+
+    if not out.exists():
+        return {}
+    try:
+        return ReplayBufferReader(out, allow_incomplete_tail=True).attrs
+    except Exception:
+        return {}
+
+
+def open_session(args, stack: contextlib.ExitStack, console: Console):
+    """Open the devices and the dataset for ``args`` (closed by ``stack``); returns the RecordSession
+    (its ``rig`` is the simulated rig, or None on a robot)."""
+    from dssp_train.data.recording import (
+        ACTION_CONVENTIONS,
+        DEPTH_KEY,
+        RECORDED_KEYS,
+        STATE_CONVENTION,
+        RecordingDataset,
+    )
+    from hardware.bus_monitor import BusMonitor
+    from hardware.pointcloud import PointCloudConfig, load_extrinsics
+    from hardware.record_session import RecordSession, SessionSettings
+    from hardware.recorder import Recorder, RecordThresholds, StampedCamera
+
+    sim_can = args.can.strip().lower().startswith("sim")
+    sim_camera = args.camera.strip().lower() == "sim"
+    if sim_can and args.can.strip().lower() != "sim":
+        raise ConfigError(f"--can {args.can}: the simulated rig has one leader/follower pair; use --can sim")
+    if sim_can and not sim_camera:
+        raise ConfigError("--can sim records the simulated scene in lockstep with simulated time: it needs --camera sim")
+    if args.auto and not sim_can and args.max_steps is None:
+        raise ConfigError("--auto on a robot needs --max-steps: nothing else ends an episode")
+    convention = "leader_command" if args.action == "leader" else "next_state"
+    thresholds = RecordThresholds.from_dict(_read_json(args.thresholds, "thresholds")) if args.thresholds else RecordThresholds()
+    existing = _existing_attrs(args.out)
+    task = args.task_name or (("tap" if sim_can else None) if not existing.get("task") else existing.get("task"))
+
+    if args.pointcloud:
+        cloud_config = PointCloudConfig.from_dict(_read_json(args.pointcloud, "point-cloud settings"))
+    elif isinstance(existing.get("pointcloud"), dict):
+        cloud_config = PointCloudConfig.from_dict(existing["pointcloud"])
+    elif sim_can:
+        from dssp_sim.settings import cloud_config_for
+
+        cloud_config = cloud_config_for()
+    else:
+        cloud_config = PointCloudConfig()
+
+    rig = None
+    if sim_can:
+        from dssp_sim.tasks import make_task
+        from dssp_sim.teleop import TeleopRig
+
+        try:
+            make_task(task)
+        except (KeyError, ValueError):
+            raise ConfigError(f"--task-name {task!r} is not a simulated task: use tap, swap or put2") from None
+        seed = args.seed if args.seed is not None else _next_sim_seed(args.out)
+        rig = TeleopRig(task, seed=seed)
+        stack.callback(rig.stop)
+        clock = rig.clock
+        rate = args.rate or existing.get("control_rate_hz") or rig.control_rate_hz
+        if abs(float(rate) - rig.control_rate_hz) > 1e-9:
+            raise ConfigError(f"the simulation runs at {rig.control_rate_hz:g} Hz: record it at that rate (--rate)")
+        monitors = [BusMonitor(rig.channel, "virtual", clock=clock, name="sim")]
+        monitors[0].start()
+        stack.callback(monitors[0].stop)
+        rig.start(monitors[0])
+        camera = StampedCamera(rig.camera, clock=clock)
+        camera_to_base = rig.camera.camera_to_base if args.extrinsics is None else load_extrinsics(args.extrinsics)
+        frame = rig.camera.latest()
+    else:
+        from hardware.camera import open_camera
+
+        if args.extrinsics is None and not sim_camera:
+            raise ConfigError("--extrinsics is needed with a real camera: the workspace crop is in the robot-base frame "
+                              "(a JSON file {\"camera_to_base\": 4x4})")
+        channels = [c.strip() for c in args.can.split(",")]
+        if not 1 <= len(channels) <= 2 or any(not c for c in channels):
+            raise ConfigError(f"--can {args.can!r} is invalid: give can0 or can0,can1 (left,right) or sim")
+        clock = time.monotonic
+        rate = args.rate or existing.get("control_rate_hz") or 10.0
+        raw_camera = open_camera(args.camera, serial=args.serial, color=cloud_config.use_color)
+        stack.enter_context(raw_camera)
+        camera_to_base = load_extrinsics(args.extrinsics) if args.extrinsics else raw_camera.camera_to_base
+        monitors = [BusMonitor(ch, args.interface) for ch in channels]
+        for monitor in monitors:
+            stack.enter_context(monitor)
+        frame = raw_camera.wait_for_frame(5.0)
+        camera = StampedCamera(raw_camera)
+
+    recorder = Recorder(camera, monitors, cloud_config, camera_to_base, float(rate), action_convention=convention,
+                        thresholds=thresholds, store_depth=not args.no_depth)
+    calibration = {
+        "camera_to_base": [[float(v) for v in row] for row in camera_to_base],
+        "camera_intrinsics": frame.intrinsics.to_dict(),
+        "camera_depth_unit": float(frame.depth_unit),
+    }
+    dataset_attrs = {
+        "control_rate_hz": float(rate),
+        "action_convention": ACTION_CONVENTIONS[convention],
+        "state_convention": STATE_CONVENTION,
+        "pointcloud": cloud_config.to_dict(),
+        **calibration,
+        "generator": "dssp-record",
+        "timestamps": "data/*timestamp: seconds since each episode's first step (recorder's clock)",
+        **({"task": task} if task else {}),
+    }
+    session_tag = time.strftime("%Y%m%d-%H%M%S") + f"-{os.getpid()}"
+    session = {
+        "tag": session_tag, "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "host": socket.gethostname(),
+        "camera": args.camera, "can": args.can, "interface": "virtual" if sim_can else args.interface,
+        "rate_hz": float(rate), "clock": "simulated" if sim_can else "monotonic", "action_convention": convention,
+        **calibration, "pointcloud": cloud_config.to_dict(), "thresholds": thresholds.to_dict(),
+        "store_depth": not args.no_depth, "task": task,
+    }
+    extra_keys = RECORDED_KEYS + (() if args.no_depth else (DEPTH_KEY,))
+    dataset = RecordingDataset(args.out, dataset_attrs, session, extra_keys)
+    stack.callback(dataset.close)
+    if dataset.repaired_steps:
+        console.event(f"warning: {args.out} ended with {dataset.repaired_steps} steps of an episode whose write was "
+                      f"interrupted; they were cut off (every complete episode is intact)")
+    if dataset.calibration_changed:
+        console.event("note: the camera calibration differs from the dataset's; it is stored with this session")
+
+    pace = args.sim_speed if args.sim_speed is not None else (0.0 if args.auto else 1.0)
+    settings = SessionSettings(max_steps=args.max_steps, auto=args.auto, episodes=args.episodes,
+                               pace=pace or None, task=task)
+    console.event(f"recording into {args.out} ({dataset.n_episodes} episodes so far) at {float(rate):g} Hz, "
+                  f"action = {convention}" + ("" if args.auto else "; commands: s start, k keep, d discard, q quit"))
+    return RecordSession(recorder, dataset, monitors, clock, settings, rig=rig, events=console.event,
+                         status=console.status, session_tag=session_tag)
+
+
+def record(args) -> int:
+    from dssp_train.data.recording import can_log_dir
+
+    console = Console(args.quiet)
+    with contextlib.ExitStack() as stack:
+        stack.callback(console.close)
+        run = open_session(args, stack, console)
+        controls = KeyControls() if sys.stdin.isatty() else LineControls()
+        stack.callback(controls.close)
+        handlers = {}
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            handlers[sig] = signal.signal(sig, lambda signum, _frame: run.request_stop(signal.Signals(signum).name))
+        stack.callback(lambda: [signal.signal(s, h) for s, h in handlers.items()])
+        try:
+            summary = run.run(controls)
+        except OSError as exc:  # the disk, the dataset's directory: one line, like every other error
+            raise DSSPError(f"writing {args.out} failed: {exc}") from exc
+
+    problems = f", {len(summary.kept_with_problems)} with problems (episodes {', '.join(map(str, summary.kept_with_problems))})" \
+        if summary.kept_with_problems else ""
+    failed = f", task failures: {summary.failed}" if summary.failed else ""
+    print(f"kept {len(summary.kept)} episode(s) ({summary.steps} steps){problems}; discarded {summary.discarded}{failed}; "
+          f"ended by: {summary.ended_by}")
+    print(f"dataset: {args.out} holds {summary.n_episodes} episodes; CAN logs in {can_log_dir(args.out)}")
+    return 130 if summary.ended_by in ("SIGINT", "SIGTERM") else 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    from dssp_train.cli.common import run_cli
+
+    return run_cli(lambda: record(parse_args(argv)))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
