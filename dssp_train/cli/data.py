@@ -1,0 +1,217 @@
+"""``dssp-data``: look at, check, combine and convert demonstration datasets (DP3 / RoboTwin zarr).
+
+    dssp-data info PATH [--json]
+    dssp-data view PATH --episode K [--out DIR] [--steps N] [--video]
+    dssp-data replay PATH --episode K [--can can0[,can1]|sim] [--send] [--rate HZ] [--safety FILE] [--interface IF]
+    dssp-data merge OUT IN IN... [--drop-marked] [--force]
+    dssp-data split PATH --train OUT --val OUT (--val-ratio R | --val-episodes 1,5) [--seed S] [--drop-marked] [--force]
+    dssp-data convert ROBOTWIN_DIR --out OUT.zarr [--episodes N] [--xyz] [--control-rate HZ] [--task NAME] [--force]
+    dssp-data repair PATH
+
+Every problem with the input is one ``error: ...`` line and exit code 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+from pathlib import Path
+
+from dssp_train.cli.common import run_cli
+from dssp_train.errors import DSSPError
+
+EPILOG = """\
+info      episodes, lengths, rates, arrays, value ranges, attributes, recording metadata, problems found
+view      PNG pictures of one episode: point clouds over time from three viewpoints, state/action trajectories
+replay    send an episode's actions to the arms through the safety layer; a dry run unless --send
+merge     concatenate datasets (episodes, per-episode metadata and CAN logs travel along)
+split     train/validation datasets by whole episodes
+convert   RoboTwin raw HDF5 episodes (<task>/<config>/data/episode*.hdf5) to a DP3 zarr dataset
+repair    cut off the steps of an interrupted write (every complete episode stays)
+"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="dssp-data", description="Look at, check, combine and convert datasets.",
+                                epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    info = sub.add_parser("info", help="what a dataset holds and the problems found")
+    info.add_argument("path", type=Path)
+    info.add_argument("--json", action="store_true", help="print the report as JSON")
+
+    view = sub.add_parser("view", help="pictures of one episode (PNG; --video adds a GIF)")
+    view.add_argument("path", type=Path)
+    view.add_argument("--episode", type=int, required=True)
+    view.add_argument("--out", type=Path, default=Path("."), help="directory for the pictures (default: .)")
+    view.add_argument("--steps", type=int, default=5, help="steps shown in the point-cloud picture (default 5)")
+    view.add_argument("--video", action="store_true", help="also an animated GIF of the point clouds")
+
+    replay = sub.add_parser("replay", help="send an episode's actions through the safety layer (dry run by default)")
+    replay.add_argument("path", type=Path)
+    replay.add_argument("--episode", type=int, required=True)
+    replay.add_argument("--can", help="can0[,can1] (left, right) | sim | sim:2; without it: dry run without an arm")
+    replay.add_argument("--interface", default="socketcan", help="python-can interface (default: socketcan)")
+    replay.add_argument("--send", action="store_true", help="enable the arms and command them (otherwise nothing is sent)")
+    replay.add_argument("--rate", type=float, help="replay rate in Hz (default: the dataset's control rate)")
+    replay.add_argument("--safety", type=Path, help="safety settings JSON (hardware.safety.SafetyConfig fields)")
+
+    merge = sub.add_parser("merge", help="concatenate datasets")
+    merge.add_argument("out", type=Path)
+    merge.add_argument("inputs", type=Path, nargs="+")
+    merge.add_argument("--force", action="store_true", help="replace an existing output")
+    merge.add_argument("--drop-marked", action="store_true", help="leave out episodes recorded with problems")
+
+    split = sub.add_parser("split", help="train/validation datasets by episode")
+    split.add_argument("path", type=Path)
+    split.add_argument("--train", type=Path, required=True)
+    split.add_argument("--val", type=Path, required=True)
+    group = split.add_mutually_exclusive_group(required=True)
+    group.add_argument("--val-ratio", type=float, help="fraction of episodes for validation, drawn with --seed")
+    group.add_argument("--val-episodes", help="comma-separated episode indices for validation")
+    split.add_argument("--seed", type=int, default=0)
+    split.add_argument("--force", action="store_true", help="replace existing outputs")
+    split.add_argument("--drop-marked", action="store_true", help="leave out episodes recorded with problems")
+
+    convert = sub.add_parser("convert", help="RoboTwin raw HDF5 episodes -> DP3 zarr")
+    convert.add_argument("source", type=Path, help="RoboTwin <task>/<config> directory, its data/ directory, or one .hdf5")
+    convert.add_argument("--out", type=Path, required=True)
+    convert.add_argument("--episodes", type=int, help="convert only the first N episodes")
+    convert.add_argument("--xyz", action="store_true", help="keep xyz only (drop the points' rgb)")
+    convert.add_argument("--control-rate", type=float, help="control rate of the episodes in Hz, stored as control_rate_hz")
+    convert.add_argument("--task", help="task name stored with the data")
+    convert.add_argument("--force", action="store_true", help="replace an existing output")
+
+    repair = sub.add_parser("repair", help="cut off the steps of an interrupted write")
+    repair.add_argument("path", type=Path)
+    return p
+
+
+def _info(args) -> int:
+    from dssp_train.data.inspect import format_report, inspect_dataset
+
+    report = inspect_dataset(args.path)
+    print(json.dumps(report, indent=2) if args.json else format_report(report))
+    return 0
+
+
+def _view(args) -> int:
+    from dssp_train.data.view import render_episode
+
+    if args.steps < 1:
+        raise DSSPError(f"--steps must be at least 1, got {args.steps}")
+    for path in render_episode(args.path, args.episode, args.out, columns=args.steps, video=args.video):
+        print(f"wrote {path}")
+    return 0
+
+
+def _replay(args) -> int:
+    from hardware.replay import replay_episode
+    from hardware.safety import SafetyConfig
+
+    safety = SafetyConfig()
+    if args.safety:
+        try:
+            values = json.loads(args.safety.read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise DSSPError(f"safety file {args.safety} cannot be read as JSON ({exc})") from None
+        safety = SafetyConfig.from_dict(values)
+    stop = {"why": None}
+    handlers = {s: signal.signal(s, lambda signum, _f: stop.update(why=signal.Signals(signum).name))
+                for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        result = replay_episode(args.path, args.episode, args.can, send=args.send, interface=args.interface,
+                                rate_hz=args.rate, safety_config=safety, should_stop=lambda: stop["why"] is not None)
+    finally:
+        for s, h in handlers.items():
+            signal.signal(s, h)
+    mode = f"sent {result['sent']} commands to {args.can}" if args.send else (
+        f"dry run on {args.can} (nothing sent)" if args.can else "dry run without an arm (ideal tracking)")
+    print(f"episode {result['episode']}: {result['steps']} actions at {result['rate_hz']:g} Hz, {mode}")
+    print(f"safety: {result['clips']} clips, {result['holds']} holds, {result['refused']} refused; largest change to a "
+          f"recorded action {result['max_change']:.4f}; first action {result['start_distance']:.3f} from the start")
+    if result["tracking_error"] is not None:
+        print(f"final tracking error {result['tracking_error']:.4f} (policy units)")
+    print(f"ended by: {result['ended_by']}")
+    return 130 if stop["why"] else 0
+
+
+def _merge(args) -> int:
+    from dssp_train.data.edit import merge
+
+    summary = merge(args.out, args.inputs, force=args.force, drop_marked=args.drop_marked)
+    for line in summary["warnings"]:
+        print(f"warning: {line}", file=sys.stderr)
+    for path, episodes in summary["dropped"].items():
+        print(f"left out episodes {episodes} of {path} (recorded with problems)")
+    print(f"wrote {args.out}: {summary['episodes']} episodes, {summary['steps']} steps, {summary['can_logs']} CAN logs")
+    return 0
+
+
+def _split(args) -> int:
+    from dssp_train.data.edit import split
+
+    episodes = None
+    if args.val_episodes is not None:
+        try:
+            episodes = [int(x) for x in args.val_episodes.split(",") if x.strip()]
+        except ValueError:
+            raise DSSPError(f"--val-episodes must be comma-separated integers, got {args.val_episodes!r}") from None
+    result = split(args.path, args.train, args.val, val_ratio=args.val_ratio, val_episodes=episodes, seed=args.seed,
+                   force=args.force, drop_marked=args.drop_marked)
+    if result["dropped"]:
+        print(f"left out episodes {result['dropped']} (recorded with problems)")
+    for part, target in (("train", args.train), ("val", args.val)):
+        s = result[f"{part}_summary"]
+        print(f"wrote {target}: {s['episodes']} episodes, {s['steps']} steps (source episodes {result[part]})")
+    return 0
+
+
+def _convert(args) -> int:
+    from dssp_train.data.robotwin_hdf5 import convert
+
+    tty = sys.stderr.isatty()
+
+    def progress(i, n, path):
+        if tty:
+            print(f"\rconverting {i + 1}/{n}: {path.name}\x1b[K", end="", file=sys.stderr, flush=True)
+
+    try:
+        summary = convert(args.source, args.out, max_episodes=args.episodes, xyz_only=args.xyz,
+                          control_rate_hz=args.control_rate, task=args.task, force=args.force, progress=progress)
+    finally:
+        if tty:
+            print("\r\x1b[K", end="", file=sys.stderr, flush=True)
+    print(f"wrote {args.out}: {summary['episodes']} episodes, {summary['steps']} steps "
+          f"(state = joint vector at t, action = joint vector at t + 1)")
+    if args.control_rate is None:
+        print("note: the control rate is not stored; pass --control-rate HZ (or give dssp-train --control-rate)",
+              file=sys.stderr)
+    return 0
+
+
+def _repair(args) -> int:
+    from dssp_train.data.edit import repair
+
+    result = repair(args.path)
+    if result["dropped_steps"] or result["dropped_infos"]:
+        print(f"repaired {args.path}: cut off {result['dropped_steps']} steps and {result['dropped_infos']} "
+              f"metadata entries of an interrupted write")
+    else:
+        print(f"{args.path} needed no repair")
+    return 0
+
+
+COMMANDS = {"info": _info, "view": _view, "replay": _replay, "merge": _merge, "split": _split,
+            "convert": _convert, "repair": _repair}
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return run_cli(lambda: COMMANDS[args.command](args))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,154 @@
+"""RoboTwin's raw HDF5 episodes -> a DP3 zarr dataset, as RoboTwin's ``policy/DP3/scripts/process_data.py`` does.
+
+RoboTwin's collection writes one file per episode, ``<task>/<config>/data/episode<N>.hdf5``, holding
+(T steps, 14 values = [left J1..J6, left gripper, right J1..J6, right gripper], joints in radians, grippers
+0..1)::
+
+    /joint_action/vector          (T, 14) float     the joint vector at each step
+    /joint_action/left_arm        (T, 6), left_gripper (T,), right_arm (T, 6), right_gripper (T,)
+    /pointcloud                   (T, N, 6) float   xyz (m) + rgb (0..1); empty when collected without clouds
+    /observation/<camera>/...     images and camera matrices (not converted)
+
+Conversion, per episode: ``state[t] = vector[t]`` and ``point_cloud[t] = pointcloud[t]`` for t < T - 1,
+``action[t] = vector[t + 1]`` (the next absolute target): T - 1 steps. ``/joint_action/vector`` is used
+when present, else it is assembled from the four arm/gripper arrays in that order.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import uuid
+from pathlib import Path
+
+import numpy as np
+
+from dssp_train.data.recording import ACTION_CONVENTIONS
+from dssp_train.data.replay_buffer import Episode, ReplayBufferWriter
+from dssp_train.errors import DatasetError
+
+PARTS = ("left_arm", "left_gripper", "right_arm", "right_gripper")
+_NUMBER = re.compile(r"(\d+)")
+
+
+def _h5py():
+    try:
+        import h5py
+    except ImportError:
+        raise DatasetError("reading RoboTwin's HDF5 episodes needs h5py: pip install h5py") from None
+    return h5py
+
+
+def find_episodes(source: str | os.PathLike) -> list[Path]:
+    """The episode files of ``source``: one .hdf5 file, or a directory holding ``episode*.hdf5`` (directly or
+    in ``data/``), sorted by episode number."""
+    source = Path(source)
+    if source.is_file():
+        return [source]
+    if not source.is_dir():
+        raise DatasetError(f"{source} does not exist: give a RoboTwin episode .hdf5 or its task directory")
+    for folder in (source, source / "data"):
+        files = [p for p in folder.glob("*.hdf5") if p.is_file()] if folder.is_dir() else []
+        if files:
+            def number(p: Path):
+                m = _NUMBER.findall(p.stem)
+                return (int(m[-1]) if m else -1, p.name)
+
+            return sorted(files, key=number)
+    raise DatasetError(f"no .hdf5 episodes in {source} or {source / 'data'}: point to RoboTwin's <task>/<config> directory")
+
+
+def read_episode(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """(vector (T, D) float64, pointcloud (T, N, C) float32) of one RoboTwin episode file."""
+    h5py = _h5py()
+    path = Path(path)
+    try:
+        f = h5py.File(path, "r")
+    except OSError as exc:
+        raise DatasetError(f"{path} is not a readable HDF5 file ({exc})") from None
+    with f:
+        if "joint_action/vector" in f:
+            vector = np.asarray(f["joint_action/vector"][()], dtype=np.float64)
+        elif all(f"joint_action/{k}" in f for k in PARTS):
+            parts = [np.asarray(f[f"joint_action/{k}"][()], dtype=np.float64) for k in PARTS]
+            parts = [p.reshape(len(p), -1) for p in parts]
+            vector = np.concatenate(parts, axis=1)
+        else:
+            raise DatasetError(f"{path}: no /joint_action/vector (nor left_arm, left_gripper, right_arm, right_gripper): "
+                               f"not a RoboTwin episode")
+        if "pointcloud" not in f:
+            raise DatasetError(f"{path}: no /pointcloud: collect with data_type.pointcloud enabled in the task config")
+        cloud = np.asarray(f["pointcloud"][()], dtype=np.float32)
+    if vector.ndim != 2 or vector.shape[0] == 0:
+        raise DatasetError(f"{path}: /joint_action/vector has shape {vector.shape}; expected (T, D)")
+    if cloud.size == 0 or cloud.ndim != 3:
+        raise DatasetError(f"{path}: /pointcloud is empty or not (T, N, C) (shape {cloud.shape}): the episode was "
+                           f"collected without point clouds (data_type.pointcloud)")
+    if cloud.shape[0] != vector.shape[0]:
+        raise DatasetError(f"{path}: /pointcloud has {cloud.shape[0]} steps but the joint vector {vector.shape[0]}")
+    if cloud.shape[2] not in (3, 6):
+        raise DatasetError(f"{path}: /pointcloud points have {cloud.shape[2]} values; expected 3 (xyz) or 6 (xyz + rgb)")
+    return vector, cloud
+
+
+def to_episode(vector: np.ndarray, cloud: np.ndarray, xyz_only: bool = False) -> Episode:
+    """RoboTwin's convention: state = vector[:-1], action = vector[1:], point_cloud = cloud[:-1]."""
+    if len(vector) < 2:
+        raise DatasetError("an episode needs at least 2 steps (the action is the next step's joint vector)")
+    points = cloud[:-1, :, :3] if xyz_only else cloud[:-1]
+    return Episode(point_cloud=points, state=vector[:-1].astype(np.float32), action=vector[1:].astype(np.float32))
+
+
+def convert(source: str | os.PathLike, out: str | os.PathLike, *, max_episodes: int | None = None,
+            xyz_only: bool = False, control_rate_hz: float | None = None, task: str | None = None,
+            force: bool = False, progress=None) -> dict:
+    """Convert RoboTwin episodes from ``source`` into the DP3 dataset ``out`` (written whole, then renamed).
+
+    Returns {"episodes": n, "steps": n, "files": [names]}. ``progress(i, n, path)`` is called per file.
+    """
+    files = find_episodes(source)
+    if max_episodes is not None:
+        if max_episodes < 1:
+            raise DatasetError(f"--episodes must be at least 1, got {max_episodes}")
+        files = files[:max_episodes]
+    out = Path(out)
+    if out.exists() and not force:
+        raise DatasetError(f"{out} exists: choose another output or pass --force to replace it")
+    attrs = {
+        "generator": "dssp-data convert (RoboTwin raw HDF5)",
+        "source": str(source),
+        "action_convention": ACTION_CONVENTIONS["next_state"],
+        "state_convention": "RoboTwin joint vector [left J1..J6 rad, left gripper 0..1, right J1..J6, right gripper]",
+        "converted_from": [p.name for p in files],
+    }
+    if control_rate_hz is not None:
+        attrs["control_rate_hz"] = float(control_rate_hz)
+    if task:
+        attrs["task"] = task
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.name}.tmp-{uuid.uuid4().hex[:8]}")
+    steps = 0
+    try:
+        with ReplayBufferWriter(tmp, attrs=attrs) as writer:
+            for i, path in enumerate(files):
+                if progress is not None:
+                    progress(i, len(files), path)
+                vector, cloud = read_episode(path)
+                try:
+                    episode = to_episode(vector, cloud, xyz_only)
+                    writer.add_episode(episode)
+                except DatasetError as exc:
+                    raise DatasetError(f"{path}: {exc}") from None
+                steps += episode.n_steps
+        if out.exists():
+            old = out.with_name(f".{out.name}.old-{uuid.uuid4().hex[:8]}")
+            os.replace(out, old)
+            os.replace(tmp, out)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(tmp, out)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+    return {"episodes": len(files), "steps": steps, "files": [p.name for p in files]}
