@@ -1,7 +1,7 @@
 """``dssp-sim``: expert demonstrations and closed-loop evaluation in the MuJoCo simulation.
 
     dssp-sim collect --task tap|swap|put2 --episodes N --out PATH.zarr [--seed S] [--points P]
-    dssp-sim demo [--out runs/demo] [--steps 2000] [--demos 40] [--episodes 20]
+    dssp-sim demo [--out runs/demo] [--steps 3000] [--demos 50] [--episodes 20]
     dssp-sim eval --model MODEL_DIR --task NAME --episodes N [--seed S] [--noise SIGMA] [--strips DIR] [--json PATH]
 
 ``collect`` keeps only successful expert episodes and says how many it tried. ``eval`` drives the model
@@ -47,8 +47,8 @@ def parse_args(argv):
     c.add_argument("--no-progress", action="store_true")
     d = sub.add_parser("demo", help="collect, train DSSP and the reactive baseline, export, evaluate (tap)")
     d.add_argument("--out", type=Path, default=Path("runs/demo"), help="working directory (replaced)")
-    d.add_argument("--steps", type=_positive, default=2000, help="training steps per model (default 2000)")
-    d.add_argument("--demos", type=_positive, default=40, help="expert demonstrations (default 40)")
+    d.add_argument("--steps", type=_positive, default=3000, help="training steps per model (default 3000)")
+    d.add_argument("--demos", type=_positive, default=50, help="expert demonstrations (default 50)")
     d.add_argument("--episodes", type=_positive, default=20, help="evaluation episodes per model (default 20)")
     e = sub.add_parser("eval", help="closed-loop evaluation of a model directory")
     e.add_argument("--model", type=Path, required=True, help="model directory (python -m export.to_onnx)")

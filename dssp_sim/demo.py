@@ -1,6 +1,6 @@
 """The Quick-start demo: the whole chain on the embedded simulation, no hardware.
 
-    dssp-sim demo --out runs/demo [--steps 2000] [--demos 40] [--episodes 20]
+    dssp-sim demo --out runs/demo [--steps 3000] [--demos 50] [--episodes 20]
 
 1. collect expert demonstrations of ``tap`` (press a spring-loaded button exactly three times, return
    home: after each press the scene looks the same, so counting needs memory);
@@ -27,7 +27,7 @@ TASK = "tap"
 VARIANTS = {"dssp": ("DSSP (full history)", []), "reactive": ("reactive baseline (no history)", ["--no-history"])}
 
 
-def run_demo(out: Path, steps: int = 2000, demos: int = 40, episodes: int = 20, seed: int = 0) -> dict:
+def run_demo(out: Path, steps: int = 3000, demos: int = 50, episodes: int = 20, seed: int = 0) -> dict:
     from dssp_sim.cli import print_latency
     from dssp_sim.collect import collect
     from dssp_sim.evaluate import evaluate

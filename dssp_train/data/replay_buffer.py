@@ -149,7 +149,7 @@ def _check_episode_ends(ends: np.ndarray, where: str) -> None:
 
 
 def _resolve_length(lengths: Mapping[str, int], last_end: int, allow_incomplete_tail: bool, where: str,
-                    remedy: str = "load with allow_incomplete_tail=True to drop them") -> tuple[int, int]:
+                    remedy: str = "cut them off with dssp-data repair PATH (or load with allow_incomplete_tail=True)") -> tuple[int, int]:
     """Return (number of steps to keep, number of trailing steps dropped).
 
     ``lengths`` maps each data key to its length along time. Steps after
