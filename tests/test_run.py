@@ -147,7 +147,9 @@ def test_sigterm_ends_in_a_hold(arm_export, tmp_path):
 # ----------------------------------------------------------------------------- fault injection
 RATE = 20.0
 PERIOD = 1 / RATE
-FAULT_SAFETY = SafetyConfig(camera_timeout=0.03, feedback_timeout=0.03)
+# Each fault test makes only its own input strict, so a stalled machine cannot hold for another reason first.
+FEEDBACK_SAFETY = SafetyConfig(camera_timeout=1.0, feedback_timeout=0.03)
+CAMERA_SAFETY = SafetyConfig(camera_timeout=0.03, feedback_timeout=1.0)
 
 
 class FreezableCamera(Camera):
@@ -175,7 +177,7 @@ class FreezableCamera(Camera):
 
 
 @pytest.fixture
-def rig(arm_export, tmp_path):
+def rig(arm_export, tmp_path, request):
     """A Runner on one simulated arm and a stepped camera, with a bus recorder: yields a helper."""
     policy = OnnxPolicy(arm_export, threads=1)
     robot = open_robot("sim")
@@ -183,7 +185,8 @@ def rig(arm_export, tmp_path):
     blf = tmp_path / "bus.blf"
     with camera, robot, BusRecorder(robot.arms[0].channel, "virtual", blf):
         with pytest.warns(UserWarning, match="20 Hz"):  # the model was trained at 50 Hz
-            runner = Runner(policy, camera, robot, PointCloudConfig(n_points=64), camera.camera_to_base, FAULT_SAFETY,
+            safety = FEEDBACK_SAFETY if "feedback" in request.node.name else CAMERA_SAFETY
+            runner = Runner(policy, camera, robot, PointCloudConfig(n_points=64), camera.camera_to_base, safety,
                             LoopSettings(rate_hz=RATE, seed=0), (LIMITS.lower, LIMITS.upper, GRIPPER),
                             log=RunLog(tmp_path / "log", {}))
         runner.start()
