@@ -22,13 +22,11 @@ from collections.abc import Callable
 from pathlib import Path
 
 import can
-import numpy as np
 
 from hardware.errors import CanError
-from hardware.leader import ArmReading, LeaderTracker
+from hardware.leader import ArmReading, JointGripperTracker, LeaderTracker
 from hardware.piper import codec
 from hardware.piper.bus import open_bus
-from hardware.piper.limits import stroke_to_opening
 
 _NAN = float("nan")
 MAX_RECEIVE_FAILURES = 10
@@ -36,15 +34,13 @@ ARM_ERROR_STATUSES = frozenset(range(0x01, 0x0B)) | {0x0E, 0x0F}
 """0x2A1 arm_status values that are faults (e-stop, no solution, limit, communication, collision, ...)."""
 
 
-class FollowerTracker:
+class FollowerTracker(JointGripperTracker):
     """The latest feedback of one follower arm: joints (0x2A5..0x2A7), gripper (0x2A8), status (0x2A1)."""
 
     def __init__(self) -> None:
-        self._joints: dict[int, tuple[float, float, float]] = {}
-        self._gripper: tuple[float, float] | None = None
+        super().__init__()
         self.status: codec.ArmStatusFeedback | None = None
         self.status_time = _NAN
-        self.frames = 0
 
     def update(self, message, t: float) -> None:
         if isinstance(message, codec.JointFeedback):
@@ -57,14 +53,6 @@ class FollowerTracker:
             return
         self.frames += 1
 
-    def reading(self) -> ArmReading:
-        """Measured (7,) [J1..J6 rad, opening] and the arrival of its oldest frame; None until all came."""
-        if len(self._joints) < 3 or self._gripper is None:
-            return ArmReading(None, _NAN)
-        joints = [v for pair in range(3) for v in self._joints[pair][:2]]
-        stroke, gripper_time = self._gripper
-        oldest = min([self._joints[pair][2] for pair in range(3)] + [gripper_time])
-        return ArmReading(np.append(np.array(joints), float(stroke_to_opening(stroke))), oldest)
 
     def error(self) -> str | None:
         """What the latest 0x2A1 reports as a fault (e-stop, error status, error bits), or None."""

@@ -44,7 +44,29 @@ class ArmReading:
         return self.position is not None
 
 
-class LeaderTracker:
+class JointGripperTracker:
+    """Three joint-pair frames and one gripper frame assembled into one (7,) reading.
+
+    Subclasses decide which frames feed ``_joints`` (pair -> (first rad, second rad, time)) and
+    ``_gripper`` ((stroke m, time)): a leader's commands or a follower's feedback.
+    """
+
+    def __init__(self) -> None:
+        self._joints: dict[int, tuple[float, float, float]] = {}
+        self._gripper: tuple[float, float] | None = None
+        self.frames = 0
+
+    def reading(self) -> ArmReading:
+        """(7,) [J1..J6 rad, opening] and the arrival of its oldest frame; None until all four frames came."""
+        if len(self._joints) < 3 or self._gripper is None:
+            return ArmReading(None, _NAN)
+        joints = [v for pair in range(3) for v in self._joints[pair][:2]]
+        stroke, gripper_time = self._gripper
+        oldest = min([self._joints[pair][2] for pair in range(3)] + [gripper_time])
+        return ArmReading(np.append(np.array(joints), float(stroke_to_opening(stroke))), oldest)
+
+
+class LeaderTracker(JointGripperTracker):
     """The latest command of one leader arm, built from its 0x155..0x157 and 0x159 frames.
 
     ``update(message, t)`` takes any decoded frame (others are ignored) with its arrival time ``t``.
@@ -52,10 +74,8 @@ class LeaderTracker:
     """
 
     def __init__(self) -> None:
-        self._joints: dict[int, tuple[float, float, float]] = {}  # pair -> (first, second, time)
-        self._gripper: tuple[float, float] | None = None  # (stroke m, time)
+        super().__init__()
         self.mode_time = _NAN
-        self.frames = 0
 
     def update(self, message, t: float) -> None:
         if isinstance(message, codec.JointCtrl):
@@ -68,14 +88,6 @@ class LeaderTracker:
             return
         self.frames += 1
 
-    def reading(self) -> ArmReading:
-        """The commanded target (7,) and the arrival of its oldest frame; None until all four frames came."""
-        if len(self._joints) < 3 or self._gripper is None:
-            return ArmReading(None, _NAN)
-        joints = [v for pair in range(3) for v in self._joints[pair][:2]]
-        stroke, gripper_time = self._gripper
-        oldest = min([self._joints[pair][2] for pair in range(3)] + [gripper_time])
-        return ArmReading(np.append(np.array(joints), float(stroke_to_opening(stroke))), oldest)
 
 
 def leader_frames(target: np.ndarray, speed_percent: int = 100, gripper_effort: float = 1.0) -> list[can.Message]:
