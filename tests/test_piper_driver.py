@@ -20,6 +20,7 @@ from hardware.piper.bus import open_bus
 from hardware.piper.limits import GRIPPER_STROKE_MAX, JOINT_LOWER, JOINT_UPPER
 from hardware.piper.robot import PiperRobot, open_robot
 from hardware.piper.sim import SimulatedPiper
+from waiting import wait_for
 
 MDEG = math.radians(0.001)  # joint resolution on the wire (rad)
 UM = 1e-6  # gripper resolution on the wire (m)
@@ -29,15 +30,6 @@ def channel(tag: str) -> str:
     return f"test-{tag}-{uuid.uuid4().hex[:10]}"
 
 
-def wait_for(predicate, timeout: float = 5.0, what: str = "condition"):
-    deadline = time.monotonic() + timeout
-    while True:
-        value = predicate()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"{what} not reached within {timeout} s")
-        time.sleep(0.003)
 
 
 def synced(arm: PiperArm, sim: SimulatedPiper) -> None:

@@ -22,21 +22,13 @@ from hardware.piper import codec
 from hardware.piper.arm import PiperArm
 from hardware.piper.limits import JOINT_LOWER, JOINT_UPPER
 from hardware.piper.sim import SimulatedPiper
+from waiting import wait_for
 
 MDEG = math.radians(0.001)
 # The SDK opens its bus with python-can's deprecated ``bustype=`` argument.
 pytestmark = pytest.mark.filterwarnings("ignore:The 'bustype' argument is deprecated:DeprecationWarning")
 
 
-def wait_for(predicate, timeout: float = 5.0, what: str = "condition"):
-    deadline = time.monotonic() + timeout
-    while True:
-        value = predicate()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"{what} not reached within {timeout} s")
-        time.sleep(0.005)
 
 
 @pytest.fixture

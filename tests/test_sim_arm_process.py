@@ -21,6 +21,7 @@ import pytest
 from hardware.cli.sim_arm import main as sim_arm_main
 from hardware.piper.arm import PiperArm
 from hardware.piper.robot import open_robot
+import waiting
 
 REPO = Path(__file__).resolve().parents[1]
 MDEG = np.radians(0.001)
@@ -61,14 +62,8 @@ def stop_sim(proc: subprocess.Popen, sig=signal.SIGTERM) -> tuple[str, str]:
 
 
 def wait_for(predicate, timeout: float = 10.0, what: str = "condition"):
-    deadline = time.monotonic() + timeout
-    while True:
-        value = predicate()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"{what} not reached within {timeout} s")
-        time.sleep(0.01)
+    """Across processes: a longer default timeout, a slower poll."""
+    return waiting.wait_for(predicate, timeout, what, poll=0.01)
 
 
 def test_driver_enables_and_moves_a_sim_arm_process():

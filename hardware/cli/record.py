@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import os
 import queue
 import select
@@ -28,6 +27,7 @@ import threading
 import time
 from pathlib import Path
 
+from dssp_train.cli.common import read_json_object
 from dssp_train.errors import ConfigError, DSSPError
 
 EPILOG = """\
@@ -72,18 +72,6 @@ def parse_args(argv):
     if args.sim_speed is not None and not args.sim_speed >= 0:
         raise ConfigError(f"--sim-speed must be >= 0 (0 = as fast as possible), got {args.sim_speed}")
     return args
-
-
-def _read_json(path: Path, what: str) -> dict:
-    try:
-        values = json.loads(Path(path).read_text())
-    except FileNotFoundError:
-        raise ConfigError(f"{what} file {path} does not exist") from None
-    except json.JSONDecodeError as exc:
-        raise ConfigError(f"{what} file {path} is not valid JSON ({exc.msg} at line {exc.lineno})") from None
-    if not isinstance(values, dict):
-        raise ConfigError(f"{what} file {path} must hold a JSON object")
-    return values
 
 
 # ---- operator controls -----------------------------------------------------------------------------------
@@ -211,12 +199,12 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
     if args.auto and not sim_can and args.max_steps is None:
         raise ConfigError("--auto on a robot needs --max-steps: nothing else ends an episode")
     convention = "leader_command" if args.action == "leader" else "next_state"
-    thresholds = RecordThresholds.from_dict(_read_json(args.thresholds, "thresholds")) if args.thresholds else RecordThresholds()
+    thresholds = RecordThresholds.from_dict(read_json_object(args.thresholds, "thresholds")) if args.thresholds else RecordThresholds()
     existing = _existing_attrs(args.out)
     task = args.task_name or (("tap" if sim_can else None) if not existing.get("task") else existing.get("task"))
 
     if args.pointcloud:
-        cloud_config = PointCloudConfig.from_dict(_read_json(args.pointcloud, "point-cloud settings"))
+        cloud_config = PointCloudConfig.from_dict(read_json_object(args.pointcloud, "point-cloud settings"))
     elif isinstance(existing.get("pointcloud"), dict):
         cloud_config = PointCloudConfig.from_dict(existing["pointcloud"])
     elif sim_can:

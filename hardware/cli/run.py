@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import signal
 import sys
 import time
@@ -22,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dssp_train.cli.common import read_json_object
 from dssp_train.errors import ConfigError
 
 EPILOG = """\
@@ -52,18 +52,6 @@ def parse_args(argv):
     p.add_argument("--no-can-log", action="store_true", help="do not write the raw CAN traffic (.blf per bus) into the log")
     p.add_argument("--quiet", action="store_true", help="no live status line")
     return p.parse_args(argv)
-
-
-def _read_json(path: Path, what: str) -> dict:
-    try:
-        values = json.loads(Path(path).read_text())
-    except FileNotFoundError:
-        raise ConfigError(f"{what} file {path} does not exist") from None
-    except json.JSONDecodeError as exc:
-        raise ConfigError(f"{what} file {path} is not valid JSON ({exc.msg} at line {exc.lineno})") from None
-    if not isinstance(values, dict):
-        raise ConfigError(f"{what} file {path} must hold a JSON object")
-    return values
 
 
 class StatusPrinter:
@@ -98,7 +86,7 @@ def run(args) -> int:
     from hardware.run_loop import LoopSettings, Runner, check_fits
     from hardware.safety import SafetyConfig
 
-    safety_config = SafetyConfig.from_dict(_read_json(args.safety, "safety")) if args.safety else SafetyConfig()
+    safety_config = SafetyConfig.from_dict(read_json_object(args.safety, "safety")) if args.safety else SafetyConfig()
     simulated_camera = args.camera.strip().lower() == "sim"
     if args.extrinsics:
         camera_to_base = load_extrinsics(args.extrinsics)
@@ -111,7 +99,7 @@ def run(args) -> int:
     policy = OnnxPolicy(args.model, threads=args.threads)
     n_points = policy.manifest["model_config"]["n_points"]
     if args.pointcloud:
-        cloud_config = PointCloudConfig.from_dict(_read_json(args.pointcloud, "point-cloud settings"))
+        cloud_config = PointCloudConfig.from_dict(read_json_object(args.pointcloud, "point-cloud settings"))
     else:
         cloud_config = PointCloudConfig(n_points=n_points)
     rate = args.rate or policy.control_rate_hz or 10.0
