@@ -156,3 +156,6 @@ def test_the_study_command_writes_its_report(tmp_path, capsys):
     capsys.readouterr()
     assert study_main(["--work", str(work), "--report", str(report), "--quick"]) == 0
     assert capsys.readouterr().out.count("done before") == 9
+    assert len(list((work / "logs").glob("*.seconds"))) == 9  # each stage's time, summed by the report
+    with pytest.raises(SystemExit, match="unknown task"):
+        study_main(["--work", str(work), "--report", str(report), "--quick", "--tasks", "swap"])
