@@ -1,6 +1,6 @@
-"""Latency statistics, resident memory and this machine's float32 GEMM peak (numpy only).
+"""Latency statistics, resident memory, and this machine's float32 GEMM peak and memory bandwidth (numpy only).
 
-Shapes: none; times in milliseconds, memory in MiB, throughput in GFLOP/s.
+Shapes: none; times in milliseconds, memory in MiB, throughput in GFLOP/s, bandwidth in GB/s.
 """
 
 from __future__ import annotations
@@ -10,6 +10,7 @@ import resource
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -69,3 +70,26 @@ def gemm_peak_gflops(size: int = 1024, repeats: int = 5) -> float:
     a @ b  # warm-up
     best = min(time_calls(lambda: a @ b, repeats, warmup=1))
     return 2 * size**3 / (best / 1e3) / 1e9
+
+
+def memory_read_gbs(mib: int = 256, repeats: int = 5) -> float:
+    """Best read bandwidth (GB/s) of numpy summing a float32 array far larger than any cache."""
+    a = np.ones(mib * 2**20 // 4, dtype=np.float32)
+    a.sum()  # warm-up: pages touched
+    best = min(time_calls(a.sum, repeats, warmup=1))
+    return a.nbytes / (best / 1e3) / 1e9
+
+
+def last_level_cache_bytes() -> int | None:
+    """Size of the largest CPU cache (Linux sysfs), None where it cannot be read."""
+    sizes = []
+    for index in Path("/sys/devices/system/cpu/cpu0/cache").glob("index*"):
+        try:
+            text = (index / "size").read_text().strip()
+        except OSError:
+            continue
+        unit = {"K": 2**10, "M": 2**20, "G": 2**30}.get(text[-1:].upper(), 1)
+        digits = text[:-1] if text[-1:].isalpha() else text
+        if digits.isdigit():
+            sizes.append(int(digits) * unit)
+    return max(sizes) if sizes else None

@@ -214,4 +214,7 @@ def test_profiler_quick_run_reports_every_figure(tiny_export, tmp_path):
         assert rows and abs(sum(r["share"] for r in rows) - 1) < 1e-6 and all(r["nodes"] >= 1 for r in rows)
     assert "MatMul" in {r["op"] for r in report["op_breakdown"]["denoiser_chunk"]}
     assert "| denoiser chunk p50 ms |" in out.stdout and "Where the denoiser chunk goes" in out.stdout
+    floor = report["chunk_floor"]  # the least a chunk can take here, from this machine's own peak and bandwidth
+    assert floor["read_gbs"] > 0 and 0 < floor["compute_ms"] <= floor["floor_ms"] and "Chunk floor on this machine" in out.stdout
+    assert floor["weights_mib"] * 2**20 == (model_dir / "denoiser.onnx").stat().st_size
     assert png_path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
