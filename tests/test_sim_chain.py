@@ -74,7 +74,9 @@ def test_rendered_depth_goes_through_the_software_device_and_the_pipeline():
         depth, unit, intr, _ = env.render_depth()
         assert np.array_equal(frame.depth, depth) and frame.intrinsics.width == intr.width
         cloud, info = frame_to_cloud(frame, cloud_config_for(), camera.camera_to_base)
-    assert cloud.shape == (256, 3) and info.n_padded == 0
+    # the tabletop crop leaves the button (about 60 depth pixels at 160 x 120); the rest repeats real points
+    assert cloud.shape == (256, 3) and 0 < info.n_padded < 256 - 30
+    assert len(np.unique(cloud, axis=0)) == 256 - info.n_padded
     lo, hi = np.array(cloud_config_for().crop_min), np.array(cloud_config_for().crop_max)
     assert np.all(cloud >= lo - 1e-6) and np.all(cloud <= hi + 1e-6)
 
