@@ -32,7 +32,7 @@ PLAN = {
     "preset": "sim",
     # Training steps per task: each step encodes a whole demonstration (the full history), so the longer
     # swap/put2 episodes (about 150 and 120 steps against tap's 60) cost about 2.5x more per step. At 1500
-    # steps DSSP dropped the first object in 11 of 20 swap episodes: swap gets tap's 3000.
+    # steps DSSP lost the first object in 9 of 20 swap episodes: swap gets tap's 3000.
     "steps": {"tap": 3000, "swap": 3000, "put2": 1500},
     "demos": {"tap": 50, "swap": 150, "put2": 150},
     "seeds": {"tap": [0, 1, 2], "swap": [0], "put2": [0]},
