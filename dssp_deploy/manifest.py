@@ -65,7 +65,8 @@ def graph_file(model_dir: Path, manifest: dict[str, Any], graph: str, fmt: str =
     """Path of one graph's file in a model directory; a clear error when it is not there."""
     name = manifest["graphs"][graph]["files"].get(fmt)
     if name is None:
-        raise ModelDirError(f"{model_dir} has no {fmt} file for {graph}; export it with --format {fmt} (or both)")
+        how = "--quantize int8" if fmt == "onnx_int8" else f"--format {fmt} (or both)"
+        raise ModelDirError(f"{model_dir} has no {fmt} file for {graph}; export it with {how}")
     path = Path(model_dir) / name
     if not path.is_file():
         raise ModelDirError(f"{path} is listed in {MANIFEST_NAME} but missing; export the model again")

@@ -1,6 +1,7 @@
 """The DSSP policy on the robot: two ONNX Runtime graphs, numpy in and out, no torch.
 
     policy = OnnxPolicy("models/tap")          # validates dssp_model.json against the graphs, warms up
+    policy = OnnxPolicy("models/tap", precision="int8")  # the int8 graphs (export --quantize int8)
     policy.reset()
     policy.observe(point_cloud, agent_pos)     # every control tick: the history-update graph
     chunk = policy.act(seed=0)                 # every H_a ticks: the denoiser graph → (B, H, A) raw units
@@ -40,8 +41,15 @@ def _batch(x, rank: int, name: str) -> np.ndarray:
     return np.ascontiguousarray(a)
 
 
+PRECISIONS = {"fp32": "onnx", "int8": "onnx_int8"}  # precision → the manifest's file kind
+
+
 class OnnxPolicy:
-    def __init__(self, model_dir: str | Path, threads: int | None = None, spinning: bool = False, warmup: int = 2):
+    def __init__(self, model_dir: str | Path, threads: int | None = None, spinning: bool = False, warmup: int = 2,
+                 precision: str = "fp32"):
+        if precision not in PRECISIONS:
+            raise ModelDirError(f"precision must be one of {sorted(PRECISIONS)}, got {precision!r}")
+        self.precision = precision
         self.model_dir = Path(model_dir)
         self.manifest: dict[str, Any] = read_manifest(self.model_dir)
         m = self.manifest
@@ -51,7 +59,7 @@ class OnnxPolicy:
         self.use_history, self.use_recent_states = m["use_history"], m["use_recent_states"]
         self.sessions = {}
         for graph in (HISTORY_GRAPH, DENOISER_GRAPH):
-            path = graph_file(self.model_dir, m, graph)
+            path = graph_file(self.model_dir, m, graph, PRECISIONS[precision])
             try:
                 session = open_session(path, threads, spinning)
             except Exception as exc:  # onnxruntime raises its own exception types

@@ -1,6 +1,6 @@
 """``dssp-profile``: CPU latency and memory of an exported DSSP model, in numbers and a plot.
 
-    dssp-profile MODEL_DIR [--checkpoint RUN_DIR] [--quick] [--threads N] [--json PATH] [--plot PATH]
+    dssp-profile MODEL_DIR [--checkpoint RUN_DIR] [--precision fp32|int8] [--quick] [--threads N] [--json PATH] [--plot PATH]
 
 Measures, for the model directory given (batch 1, the model's point count):
 - per component — history step, denoiser chunk (K DDIM steps), the chunk tick (both) — p50/p95/p99/max
@@ -39,7 +39,7 @@ from dssp_deploy.latency import (
 )
 from dssp_deploy.manifest import DENOISER_GRAPH, HISTORY_GRAPH, graph_file
 from dssp_deploy.op_breakdown import elementwise_share, op_type_breakdown
-from dssp_deploy.policy import OnnxPolicy
+from dssp_deploy.policy import PRECISIONS, OnnxPolicy
 
 FULL = {"iterations": 300, "chunk_iterations": 100, "torch_iterations": 30, "sweep": [10, 100, 1000, 3000, 10000], "window": 50, "transformer_max": 3000}
 QUICK = {"iterations": 20, "chunk_iterations": 5, "torch_iterations": 5, "sweep": [10, 100, 300], "window": 10, "transformer_max": 300}
@@ -141,11 +141,11 @@ def torch_comparisons(model_dir: Path, checkpoint: Path | None, manifest: dict, 
     return out
 
 
-def run_profile(model_dir: Path, checkpoint: Path | None, quick: bool, threads: int | None) -> dict[str, Any]:
+def run_profile(model_dir: Path, checkpoint: Path | None, quick: bool, threads: int | None, precision: str = "fp32") -> dict[str, Any]:
     settings = QUICK if quick else FULL
     rng = np.random.default_rng(0)
     rss_before = resident_memory_mib()
-    policy = OnnxPolicy(model_dir, threads=threads)
+    policy = OnnxPolicy(model_dir, threads=threads, precision=precision)
     rss_loaded = resident_memory_mib()
     manifest = policy.manifest
     m = manifest["model_config"]
@@ -159,12 +159,13 @@ def run_profile(model_dir: Path, checkpoint: Path | None, quick: bool, threads: 
     peak = gemm_peak_gflops()
     flops = {"history_step": history_step_flops(m, m["n_points"]), "denoiser_chunk": chunk_flops(m, manifest["denoise_steps"])}
     achieved = {k: flops[k] / (stats[k]["p50"] / 1e3) / 1e9 for k in flops}
-    floor = chunk_floor(model_dir, manifest, flops["denoiser_chunk"], peak)
+    floor = chunk_floor(model_dir, manifest, flops["denoiser_chunk"], peak, PRECISIONS[precision])
     breakdown = graph_breakdowns(policy, model_dir, threads, runs=2 if quick else 5)
     comparisons = torch_comparisons(model_dir, checkpoint, manifest, settings, threads)
     comp_stats = {k: LatencyStats.of(v).to_dict() for k, v in comparisons.items() if isinstance(v, list) and k != "transformer_sweep"}
     return {
         "model_dir": str(model_dir),
+        "precision": precision,
         "machine": {"processor": platform.processor() or platform.machine(), "threads": threads, "gemm_peak_gflops": peak},
         "settings": {"quick": quick, **settings},
         "memory_mib": {"before_load": rss_before, "after_load": rss_loaded, "after_profile": resident_memory_mib()},
@@ -180,12 +181,12 @@ def run_profile(model_dir: Path, checkpoint: Path | None, quick: bool, threads: 
     }
 
 
-def chunk_floor(model_dir: Path, manifest: dict, chunk_flops_: int, peak_gflops: float) -> dict[str, Any]:
+def chunk_floor(model_dir: Path, manifest: dict, chunk_flops_: int, peak_gflops: float, fmt: str = "onnx") -> dict[str, Any]:
     """The least time one chunk can take here: compute at the GEMM peak, or re-reading the weights per DDIM step.
 
     The denoiser graph's file is almost entirely its weights; the K DDIM steps run every layer in turn, so
     when the weights do not fit in the last-level cache each step streams them from memory again."""
-    weights = graph_file(model_dir, manifest, DENOISER_GRAPH).stat().st_size
+    weights = graph_file(model_dir, manifest, DENOISER_GRAPH, fmt).stat().st_size
     cache = last_level_cache_bytes()
     bandwidth = memory_read_gbs()
     steps = manifest["denoise_steps"]
@@ -205,10 +206,10 @@ def graph_breakdowns(policy: OnnxPolicy, model_dir: Path, threads: int | None, r
     policy.observe(pc, pos)
     history_feeds = {"point_cloud": pc, "agent_pos": pos, **policy.state} if policy.use_history else {"point_cloud": pc, "agent_pos": pos}
     denoiser_feeds = {**policy.denoiser_inputs(), "noise": policy.noise(1, seed=0)}
-    manifest = policy.manifest
+    manifest, fmt = policy.manifest, PRECISIONS[policy.precision]
     return {
-        "history_step": op_type_breakdown(graph_file(model_dir, manifest, HISTORY_GRAPH), history_feeds, threads, runs),
-        "denoiser_chunk": op_type_breakdown(graph_file(model_dir, manifest, DENOISER_GRAPH), denoiser_feeds, threads, runs),
+        "history_step": op_type_breakdown(graph_file(model_dir, manifest, HISTORY_GRAPH, fmt), history_feeds, threads, runs),
+        "denoiser_chunk": op_type_breakdown(graph_file(model_dir, manifest, DENOISER_GRAPH, fmt), denoiser_feeds, threads, runs),
     }
 
 
@@ -239,7 +240,7 @@ def target_rows(report: dict[str, Any]) -> list[tuple[str, float, float, bool, s
 def markdown(report: dict[str, Any]) -> str:
     lat, torch_stats = report["latency_ms"], report["torch"]
     lines = [
-        f"Model: {report['model_dir']} — GEMM peak {report['machine']['gemm_peak_gflops']:.0f} GFLOP/s (numpy float32)",
+        f"Model: {report['model_dir']} ({report['precision']} graphs) — GEMM peak {report['machine']['gemm_peak_gflops']:.0f} GFLOP/s (numpy float32)",
         "",
         "| component | p50 ms | p95 ms | p99 ms | max ms | GFLOP/s | of peak |",
         "|---|---:|---:|---:|---:|---:|---:|",
@@ -326,6 +327,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("model_dir", type=Path)
     p.add_argument("--checkpoint", type=Path, help="the run directory it was exported from, for the PyTorch eager comparison")
     p.add_argument("--quick", action="store_true", help="short run (tests, CI)")
+    p.add_argument("--precision", choices=sorted(PRECISIONS), default="fp32",
+                   help="which graphs to time: fp32, or int8 (export --quantize int8); PyTorch runs in fp32")
     p.add_argument("--threads", type=int, help="ONNX Runtime (and torch) intra-op threads (default: all CPUs)")
     p.add_argument("--json", type=Path, help="write every figure here")
     p.add_argument("--plot", type=Path, help="write a PNG here")
@@ -333,7 +336,7 @@ def main(argv: list[str] | None = None) -> int:
 
     def _main() -> int:
         t0 = time.perf_counter()
-        report = run_profile(args.model_dir, args.checkpoint, args.quick, args.threads)
+        report = run_profile(args.model_dir, args.checkpoint, args.quick, args.threads, args.precision)
         report["profile_seconds"] = time.perf_counter() - t0
         print(markdown(report))
         if args.json:

@@ -69,6 +69,30 @@ def test_runtime_chunks_equal_pytorch_streaming_over_1000_steps(tiny_export):
     assert worst_context <= 1e-4 and worst_chunk <= 1e-4, (worst_context, worst_chunk)
 
 
+def test_int8_graphs_run_on_request_and_their_absence_is_named(tiny_export, tmp_path):
+    from export.to_onnx import main as export_main
+
+    run_dir, model_dir, data = tiny_export
+    with pytest.raises(ModelDirError, match="--quantize int8"):
+        OnnxPolicy(model_dir, precision="int8")
+    with pytest.raises(ModelDirError, match="precision must be one of"):
+        OnnxPolicy(model_dir, precision="fp16")
+    int8_dir = tmp_path / "int8"
+    assert export_main([str(run_dir), "-o", str(int8_dir), "--skip-verify", "--quantize", "int8", "--format", "onnx"]) == 0
+    fp32, int8 = OnnxPolicy(int8_dir, threads=1), OnnxPolicy(int8_dir, threads=1, precision="int8")
+    for graph, session in int8.sessions.items():  # the int8 files, which carry their quantization in the metadata
+        assert "int8" in session.get_modelmeta().custom_metadata_map["quantization"]
+        assert "quantization" not in fp32.sessions[graph].get_modelmeta().custom_metadata_map
+    pcs, states = long_trajectory(data)
+    noise = np.random.default_rng(0).standard_normal((1, fp32.horizon, fp32.action_dim)).astype(np.float32)
+    for t in range(20):
+        fp32.observe(pcs[t], states[t])
+        int8.observe(pcs[t], states[t])
+    a, b = fp32.act(noise=noise), int8.act(noise=noise)
+    assert a.shape == b.shape and np.all(np.isfinite(b)) and not np.array_equal(a, b)
+    assert np.abs(a - b).max() <= 0.25 * (np.abs(a).max() + 1e-6)  # quantized, not a different policy
+
+
 def test_recent_tokens_pad_with_the_first_and_reset_forgets(tiny_export):
     _, model_dir, data = tiny_export
     p = OnnxPolicy(model_dir, threads=1)

@@ -2,7 +2,7 @@
 
     dssp-run --model MODEL_DIR --camera l515|d435|d405|file:PATH|sim --can can0[,can1]|sim[:2]
              [--rate HZ] [--extrinsics FILE] [--pointcloud FILE] [--safety FILE] [--max-steps N] [--dry-run]
-             [--log-dir DIR] [--prefetch] [--threads N] [--seed S] [--serial SERIAL] [--interface socketcan]
+             [--log-dir DIR] [--prefetch] [--threads N] [--precision fp32|int8] [--seed S] [--serial SERIAL] [--interface socketcan]
 
 Opens the camera and the arm(s), warms the model up, then runs the control loop (``hardware.run_loop``):
 the history every tick, a new chunk every H_a ticks, every command through the safety layer. Prints a
@@ -47,6 +47,8 @@ def parse_args(argv):
     p.add_argument("--dry-run", action="store_true", help="compute and log actions, send nothing")
     p.add_argument("--prefetch", action="store_true", help="compute each chunk early in a background thread")
     p.add_argument("--threads", type=int, help="ONNX Runtime threads (default: all CPUs)")
+    p.add_argument("--precision", choices=["fp32", "int8"], default="fp32",
+                   help="the model's fp32 graphs, or its int8 graphs (export --quantize int8)")
     p.add_argument("--seed", type=int, help="diffusion noise seed (default: random)")
     p.add_argument("--log-dir", type=Path, help="episode log directory (default: runs/dssp-run/YYYYmmdd-HHMMSS)")
     p.add_argument("--no-can-log", action="store_true", help="do not write the raw CAN traffic (.blf per bus) into the log")
@@ -96,7 +98,7 @@ def run(args) -> int:
             "(a JSON file {\"camera_to_base\": 4x4}; see the README's calibration section)"
         )
     print(f"loading {args.model} (warm-up included)", file=sys.stderr)
-    policy = OnnxPolicy(args.model, threads=args.threads)
+    policy = OnnxPolicy(args.model, threads=args.threads, precision=args.precision)
     n_points = policy.manifest["model_config"]["n_points"]
     if args.pointcloud:
         cloud_config = PointCloudConfig.from_dict(read_json_object(args.pointcloud, "point-cloud settings"))
