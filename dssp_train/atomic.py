@@ -1,13 +1,16 @@
 """Atomic file writes (numpy and the standard library only): a reader sees the old file or the new one.
 
 Each writes to a temporary file in the same directory, then ``os.replace``s it over the target, so a
-crash never leaves a half-written file behind under the real name.
+crash never leaves a half-written file behind under the real name. :func:`replace_dir` does the same
+for a directory built beside its target (a zarr dataset).
 """
 
 from __future__ import annotations
 
 import os
+import shutil
 import tempfile
+import uuid
 from pathlib import Path
 from typing import Callable
 
@@ -53,3 +56,15 @@ def atomic_save_npy(path: Path, array: np.ndarray) -> None:
             np.save(f, np.asarray(array), allow_pickle=False)
 
     atomic_write(path, write)
+
+
+def replace_dir(tmp: Path, out: Path) -> None:
+    """Move the finished directory ``tmp`` onto ``out``; an existing ``out`` is removed only after the move."""
+    tmp, out = Path(tmp), Path(out)
+    if out.exists():
+        old = out.with_name(f".{out.name}.old-{uuid.uuid4().hex[:8]}")
+        os.replace(out, old)
+        os.replace(tmp, out)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.replace(tmp, out)

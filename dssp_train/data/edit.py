@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 import zarr
 
+from dssp_train.atomic import replace_dir
 from dssp_train.data.recording import (
     LOCK_NAME,
     DatasetLock,
@@ -46,17 +47,6 @@ def _check_output(out: Path, inputs: Sequence[Path], force: bool) -> None:
         raise DatasetError(f"{out} exists: choose another output or pass --force to replace it")
     if out.exists() and not (out / ".zgroup").is_file() and not (out / "zarr.json").is_file():
         raise DatasetError(f"{out} exists and is not a zarr dataset: refusing to replace it")
-
-
-def _replace(tmp: Path, out: Path) -> None:
-    """Move the finished ``tmp`` onto ``out``; an existing ``out`` is removed only after the move."""
-    if out.exists():
-        old = out.with_name(f".{out.name}.old-{uuid.uuid4().hex[:8]}")
-        os.replace(out, old)
-        os.replace(tmp, out)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        os.replace(tmp, out)
 
 
 def _common_extras(readers: Sequence[ReplayBufferReader]) -> tuple[list[str], list[str]]:
@@ -139,7 +129,7 @@ def _copy(parts: Sequence[tuple[ReplayBufferReader, Sequence[int]]], out: Path, 
             os.replace(tmp_logs, out_logs)
         elif out_logs.exists() and force:
             shutil.rmtree(out_logs)
-        _replace(tmp, out)
+        replace_dir(tmp, out)
     finally:
         for leftover in (tmp, tmp_logs):
             if leftover.exists():

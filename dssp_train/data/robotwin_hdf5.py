@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dssp_train.atomic import replace_dir
 from dssp_train.data.recording import ACTION_CONVENTIONS
 from dssp_train.data.replay_buffer import Episode, ReplayBufferWriter
 from dssp_train.errors import DatasetError
@@ -141,13 +142,7 @@ def convert(source: str | os.PathLike, out: str | os.PathLike, *, max_episodes: 
                 except DatasetError as exc:
                     raise DatasetError(f"{path}: {exc}") from None
                 steps += episode.n_steps
-        if out.exists():
-            old = out.with_name(f".{out.name}.old-{uuid.uuid4().hex[:8]}")
-            os.replace(out, old)
-            os.replace(tmp, out)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(tmp, out)
+        replace_dir(tmp, out)
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
