@@ -226,6 +226,18 @@ class _Objects:
         """Both finger pads touch object k."""
         return all(env.touching(g, self.geoms[k]) for g in env.arm.finger_geoms)
 
+    def dropped(self, env, placed) -> str:
+        """The failure ``dropped object`` when an object fell off the table, or lies at rest (not held)
+        where ``placed(k)`` (upright, in a slot or a bin) is False; else ``""``."""
+        for k in range(len(self.bodies)):
+            if self.pos(env.data, k)[2] < -0.02:
+                return "dropped object"
+            if self.held(env, k) or self.speed(env.data, k) > REST_SPEED:
+                continue
+            if not placed(k):
+                return "dropped object"
+        return ""
+
 
 # --------------------------------------------------------------------------------------------------- tap
 class TapTask(Task):
@@ -388,15 +400,7 @@ class SwapTask(Task):
         return {"slots": {SWAP_OBJECTS[k]: self.slot_of(env, k) for k in range(2)}, "first": self.first}
 
     def failure(self, env) -> str:
-        for k in range(2):
-            p = self.objects.pos(env.data, k)
-            if p[2] < -0.02:
-                return "dropped object"
-            if self.objects.held(env, k) or self.objects.speed(env.data, k) > REST_SPEED:
-                continue
-            if not self.objects.upright(env.data, k, any_face=(k == 0)) or not self.slot_of(env, k):
-                return "dropped object"
-        return ""
+        return self.objects.dropped(env, lambda k: self.objects.upright(env.data, k, any_face=(k == 0)) and bool(self.slot_of(env, k)))
 
     def goal_reached(self, env) -> bool:
         for k in range(2):
@@ -496,15 +500,7 @@ class Put2Task(Task):
         return {"in_basket": sum(self.bin_of(env, k) == "basket" for k in range(2))}
 
     def failure(self, env) -> str:
-        for k in range(2):
-            p = self.objects.pos(env.data, k)
-            if p[2] < -0.02:
-                return "dropped object"
-            if self.objects.held(env, k) or self.objects.speed(env.data, k) > REST_SPEED:
-                continue
-            if not self.bin_of(env, k) or not self.objects.upright(env.data, k, any_face=True):
-                return "dropped object"
-        return ""
+        return self.objects.dropped(env, lambda k: bool(self.bin_of(env, k)) and self.objects.upright(env.data, k, any_face=True))
 
     def goal_reached(self, env) -> bool:
         for k in range(2):
