@@ -61,6 +61,9 @@ def is_model_dir(path: Path) -> bool:
     return isinstance(manifest, dict) and manifest.get("kind") == KIND
 
 
+PRECISIONS = {"fp32": "onnx", "int8": "onnx_int8"}  # the runtime's precision → the manifest's file kind
+
+
 def graph_file(model_dir: Path, manifest: dict[str, Any], graph: str, fmt: str = "onnx") -> Path:
     """Path of one graph's file in a model directory; a clear error when it is not there."""
     name = manifest["graphs"][graph]["files"].get(fmt)

@@ -24,6 +24,7 @@ import numpy as np
 from dssp_deploy.manifest import (
     DENOISER_GRAPH,
     HISTORY_GRAPH,
+    PRECISIONS,
     ModelDirError,
     check_session,
     graph_file,
@@ -39,9 +40,6 @@ def _batch(x, rank: int, name: str) -> np.ndarray:
     if a.ndim != rank:
         raise ValueError(f"{name} must have {rank - 1} or {rank} dims, got shape {a.shape}")
     return np.ascontiguousarray(a)
-
-
-PRECISIONS = {"fp32": "onnx", "int8": "onnx_int8"}  # precision → the manifest's file kind
 
 
 class OnnxPolicy:

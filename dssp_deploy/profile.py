@@ -37,9 +37,9 @@ from dssp_deploy.latency import (
     resident_memory_mib,
     time_calls,
 )
-from dssp_deploy.manifest import DENOISER_GRAPH, HISTORY_GRAPH, graph_file
+from dssp_deploy.manifest import DENOISER_GRAPH, HISTORY_GRAPH, PRECISIONS, graph_file
 from dssp_deploy.op_breakdown import elementwise_share, op_type_breakdown
-from dssp_deploy.policy import PRECISIONS, OnnxPolicy
+from dssp_deploy.policy import OnnxPolicy
 
 FULL = {"iterations": 300, "chunk_iterations": 100, "torch_iterations": 30, "sweep": [10, 100, 1000, 3000, 10000], "window": 50, "transformer_max": 3000}
 QUICK = {"iterations": 20, "chunk_iterations": 5, "torch_iterations": 5, "sweep": [10, 100, 300], "window": 10, "transformer_max": 300}

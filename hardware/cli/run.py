@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dssp_deploy.manifest import PRECISIONS
 from dssp_train.cli.common import read_json_object
 from dssp_train.errors import ConfigError
 
@@ -47,7 +48,7 @@ def parse_args(argv):
     p.add_argument("--dry-run", action="store_true", help="compute and log actions, send nothing")
     p.add_argument("--prefetch", action="store_true", help="compute each chunk early in a background thread")
     p.add_argument("--threads", type=int, help="ONNX Runtime threads (default: all CPUs)")
-    p.add_argument("--precision", choices=["fp32", "int8"], default="fp32",
+    p.add_argument("--precision", choices=sorted(PRECISIONS), default="fp32",
                    help="the model's fp32 graphs, or its int8 graphs (export --quantize int8)")
     p.add_argument("--seed", type=int, help="diffusion noise seed (default: random)")
     p.add_argument("--log-dir", type=Path, help="episode log directory (default: runs/dssp-run/YYYYmmdd-HHMMSS)")
