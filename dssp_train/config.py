@@ -7,15 +7,20 @@ overrides are ``section.field=value`` strings (``model.d_model=256``, ``train.ba
 
 from __future__ import annotations
 
-import dataclasses
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from importlib import resources
-from typing import Any
+from typing import ClassVar
 
 from dssp_train.errors import ConfigError
+from dssp_train.schema import Settings, setting
 
 HISTORY_BACKBONES = ("mamba", "transformer")
+MAX_DIM = 4096  # state / action channels
+MAX_WIDTH = 65536
+MAX_LAYERS = 256
+MAX_STEPS = 4096  # N, H, H_a
+MAX_RATE_HZ = 1000.0  # control rate: the Piper's CAN feedback arrives at 200 Hz
 
 
 def _require(cond: bool, message: str) -> None:
@@ -24,97 +29,76 @@ def _require(cond: bool, message: str) -> None:
 
 
 @dataclass
-class DiffusionConfig:
+class DiffusionConfig(Settings):
     """DDPM training / DDIM sampling schedule (DP3's settings by default)."""
 
-    num_train_timesteps: int = 100
-    num_inference_steps: int = 10
-    beta_start: float = 1e-4
-    beta_end: float = 0.02
-    beta_schedule: str = "squaredcos_cap_v2"
-    clip_sample: bool = True
-    set_alpha_to_one: bool = True
-    steps_offset: int = 0
-    prediction_type: str = "sample"
+    SECTION: ClassVar[str] = "model.diffusion"
 
-    def __post_init__(self):
-        _require(self.num_train_timesteps >= 1, "diffusion.num_train_timesteps must be >= 1")
+    num_train_timesteps: int = setting(100, ge=1, le=100_000)
+    num_inference_steps: int = setting(10, ge=1, le=100_000)
+    beta_start: float = setting(1e-4, gt=0, lt=1)
+    beta_end: float = setting(0.02, gt=0, lt=1)
+    beta_schedule: str = setting("squaredcos_cap_v2", choices=("linear", "scaled_linear", "squaredcos_cap_v2"))
+    clip_sample: bool = setting(True)
+    set_alpha_to_one: bool = setting(True)
+    steps_offset: int = setting(0, ge=0, le=100_000)
+    prediction_type: str = setting("sample", choices=("sample", "epsilon"))
+
+    def validate(self):
         _require(
-            1 <= self.num_inference_steps <= self.num_train_timesteps,
-            f"diffusion.num_inference_steps must be in [1, {self.num_train_timesteps}], got {self.num_inference_steps}",
+            self.num_inference_steps <= self.num_train_timesteps,
+            f"model.diffusion.num_inference_steps must be in [1, {self.num_train_timesteps}], got {self.num_inference_steps}",
         )
-        _require(
-            self.beta_schedule in ("linear", "scaled_linear", "squaredcos_cap_v2"),
-            f"diffusion.beta_schedule {self.beta_schedule!r} is not one of linear, scaled_linear, squaredcos_cap_v2",
-        )
-        _require(
-            self.prediction_type in ("sample", "epsilon"),
-            f"diffusion.prediction_type must be 'sample' or 'epsilon', got {self.prediction_type!r}",
-        )
+        _require(self.beta_start <= self.beta_end,
+                 f"model.diffusion.beta_start ({self.beta_start}) must not exceed beta_end ({self.beta_end})")
 
 
 @dataclass
-class ModelConfig:
+class ModelConfig(Settings):
     """DSSP architecture (names as in the paper: N recent state tokens, horizon H, H_a executed)."""
 
-    # Data interface (filled from the dataset when 0).
-    point_dim: int = 3  # 3 = xyz, 6 = xyz + rgb
-    state_dim: int = 0
-    action_dim: int = 0
-    n_points: int = 1024
-    # Widths.
-    d_model: int = 512
-    d_state: int = 64
-    d_conv: int = 4
-    expand: int = 2
-    n_history_layers: int = 2
-    n_denoiser_layers: int = 8
-    # Observation encoder E_obs (DP3's point encoder and state MLP).
-    point_widths: list[int] = field(default_factory=lambda: [64, 128, 256])
-    point_feature_dim: int = 128
-    state_widths: list[int] = field(default_factory=lambda: [64, 64])
-    # Horizons.
-    n_obs_steps: int = 3  # N
-    horizon: int = 8  # H
-    n_action_steps: int = 6  # H_a
-    # History encoder G_psi and ablation switches (paper Tables 3 and 5).
-    history_backbone: str = "mamba"
-    history_window: int = 0  # 0 = full history; T_h > 0 = only the last T_h observations
-    transformer_heads: int = 8
-    use_history: bool = True
-    use_recent_states: bool = True
-    timestep_decoupled: bool = True
-    dynamics_weight: float = 0.05
-    diffusion: DiffusionConfig = field(default_factory=DiffusionConfig)
+    SECTION: ClassVar[str] = "model"
 
-    def __post_init__(self):
-        if isinstance(self.diffusion, dict):
-            self.diffusion = DiffusionConfig(**_known(DiffusionConfig, self.diffusion, "model.diffusion"))
-        _require(self.point_dim in (3, 6), f"model.point_dim must be 3 (xyz) or 6 (xyz+rgb), got {self.point_dim}")
-        for name in ("state_dim", "action_dim"):
-            _require(getattr(self, name) >= 0, f"model.{name} must be >= 0 (0 = take it from the dataset)")
-        for name in ("d_model", "d_state", "d_conv", "expand", "n_denoiser_layers", "n_points", "point_feature_dim"):
-            _require(getattr(self, name) >= 1, f"model.{name} must be >= 1, got {getattr(self, name)}")
-        _require(self.n_history_layers >= 1, "model.n_history_layers must be >= 1")
-        _require(len(self.point_widths) >= 1 and min(self.point_widths) >= 1, "model.point_widths must be positive")
-        _require(len(self.state_widths) >= 1 and min(self.state_widths) >= 1, "model.state_widths must be positive")
-        _require(self.n_obs_steps >= 1, f"model.n_obs_steps (N) must be >= 1, got {self.n_obs_steps}")
-        _require(self.horizon >= 1, f"model.horizon (H) must be >= 1, got {self.horizon}")
+    # Data interface (filled from the dataset when 0).
+    point_dim: int = setting(3, choices=(3, 6))  # 3 = xyz, 6 = xyz + rgb
+    state_dim: int = setting(0, ge=0, le=MAX_DIM)
+    action_dim: int = setting(0, ge=0, le=MAX_DIM)
+    n_points: int = setting(1024, ge=1, le=1_000_000)
+    # Widths.
+    d_model: int = setting(512, ge=1, le=MAX_WIDTH)
+    d_state: int = setting(64, ge=1, le=MAX_WIDTH)
+    d_conv: int = setting(4, ge=1, le=64)
+    expand: int = setting(2, ge=1, le=16)
+    n_history_layers: int = setting(2, ge=1, le=MAX_LAYERS)
+    n_denoiser_layers: int = setting(8, ge=1, le=MAX_LAYERS)
+    # Observation encoder E_obs (DP3's point encoder and state MLP).
+    point_widths: list[int] = setting(default_factory=lambda: [64, 128, 256], ge=1, le=MAX_WIDTH, min_length=1, max_length=16)
+    point_feature_dim: int = setting(128, ge=1, le=MAX_WIDTH)
+    state_widths: list[int] = setting(default_factory=lambda: [64, 64], ge=1, le=MAX_WIDTH, min_length=1, max_length=16)
+    # Horizons.
+    n_obs_steps: int = setting(3, ge=1, le=MAX_STEPS)  # N
+    horizon: int = setting(8, ge=1, le=MAX_STEPS)  # H
+    n_action_steps: int = setting(6, ge=1, le=MAX_STEPS)  # H_a
+    # History encoder G_psi and ablation switches (paper Tables 3 and 5).
+    history_backbone: str = setting("mamba", choices=HISTORY_BACKBONES)
+    history_window: int = setting(0, ge=0, le=1_000_000)  # 0 = full history; T_h > 0 = only the last T_h observations
+    transformer_heads: int = setting(8, ge=1, le=MAX_WIDTH)
+    use_history: bool = setting(True)
+    use_recent_states: bool = setting(True)
+    timestep_decoupled: bool = setting(True)
+    dynamics_weight: float = setting(0.05, ge=0, le=1000)
+    diffusion: DiffusionConfig = setting(default_factory=DiffusionConfig)
+
+    def validate(self):
         _require(
-            1 <= self.n_action_steps <= self.horizon,
+            self.n_action_steps <= self.horizon,
             f"model.n_action_steps (H_a) must be in [1, horizon={self.horizon}], got {self.n_action_steps}",
         )
-        _require(
-            self.history_backbone in HISTORY_BACKBONES,
-            f"model.history_backbone must be one of {', '.join(HISTORY_BACKBONES)}, got {self.history_backbone!r}",
-        )
-        _require(self.history_window >= 0, "model.history_window must be >= 0 (0 = full history)")
         if self.history_backbone == "transformer":
             _require(
                 self.d_model % self.transformer_heads == 0,
                 f"model.d_model={self.d_model} must be divisible by model.transformer_heads={self.transformer_heads}",
             )
-        _require(self.dynamics_weight >= 0, "model.dynamics_weight must be >= 0")
         _require(
             self.use_history or self.use_recent_states,
             "model.use_history and model.use_recent_states cannot both be off: the denoiser would see no observation",
@@ -131,72 +115,41 @@ class ModelConfig:
 
 
 @dataclass
-class TrainConfig:
+class TrainConfig(Settings):
     """Optimisation and bookkeeping of one training run."""
 
-    steps: int = 3000
-    batch_size: int = 64  # action windows sampled from each trajectory (Appendix C.1)
-    lr: float = 1e-4
-    betas: list[float] = field(default_factory=lambda: [0.95, 0.999])
-    weight_decay: float = 1e-6
-    warmup_steps: int = 500
-    ema_power: float = 0.75
-    ema_max_decay: float = 0.9999
-    val_ratio: float = 0.1
-    val_every: int = 500
-    val_windows: int = 256
-    save_every: int = 1000
-    log_every: int = 10
-    seed: int = 0
+    SECTION: ClassVar[str] = "train"
 
-    def __post_init__(self):
-        _require(self.steps >= 1, f"train.steps must be >= 1, got {self.steps}")
-        _require(self.batch_size >= 1, f"train.batch_size must be >= 1, got {self.batch_size}")
-        _require(self.lr > 0, "train.lr must be > 0")
-        _require(len(self.betas) == 2 and all(0 <= b < 1 for b in self.betas), "train.betas must be two values in [0, 1)")
-        _require(self.weight_decay >= 0, "train.weight_decay must be >= 0")
-        _require(self.warmup_steps >= 0, "train.warmup_steps must be >= 0")
-        _require(0 <= self.val_ratio < 1, f"train.val_ratio must be in [0, 1), got {self.val_ratio}")
-        for name in ("val_every", "val_windows", "save_every", "log_every"):
-            _require(getattr(self, name) >= 1, f"train.{name} must be >= 1")
+    steps: int = setting(3000, ge=1, le=100_000_000)
+    batch_size: int = setting(64, ge=1, le=1_000_000)  # action windows sampled from each trajectory (Appendix C.1)
+    lr: float = setting(1e-4, gt=0, le=1)
+    betas: list[float] = setting(default_factory=lambda: [0.95, 0.999], ge=0, lt=1, min_length=2, max_length=2)
+    weight_decay: float = setting(1e-6, ge=0, le=1)
+    warmup_steps: int = setting(500, ge=0, le=100_000_000)
+    ema_power: float = setting(0.75, gt=0, le=10)
+    ema_max_decay: float = setting(0.9999, ge=0, le=1)
+    val_ratio: float = setting(0.1, ge=0, lt=1)
+    val_every: int = setting(500, ge=1, le=100_000_000)
+    val_windows: int = setting(256, ge=1, le=100_000_000)
+    save_every: int = setting(1000, ge=1, le=100_000_000)
+    log_every: int = setting(10, ge=1, le=100_000_000)
+    seed: int = setting(0, ge=0, le=2**63 - 1)
 
 
 @dataclass
-class RunConfig:
+class RunConfig(Settings):
     """Everything a run directory records: the model, the training, and facts about the data."""
 
-    model: ModelConfig = field(default_factory=ModelConfig)
-    train: TrainConfig = field(default_factory=TrainConfig)
-    preset: str = "custom"
-    control_rate_hz: float | None = None  # the rate the data was recorded at; the runtime must match it
-    dataset: str | None = None
+    SECTION: ClassVar[str] = "config"
 
-    def __post_init__(self):
-        if isinstance(self.model, dict):
-            self.model = ModelConfig(**_known(ModelConfig, self.model, "model"))
-        if isinstance(self.train, dict):
-            self.train = TrainConfig(**_known(TrainConfig, self.train, "train"))
-        _require(
-            self.control_rate_hz is None or self.control_rate_hz > 0,
-            f"control_rate_hz must be > 0, got {self.control_rate_hz}",
-        )
-
-    def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
-
-    @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> "RunConfig":
-        return cls(**_known(cls, data, "config"))
+    model: ModelConfig = setting(default_factory=ModelConfig)
+    train: TrainConfig = setting(default_factory=TrainConfig)
+    preset: str = setting("custom")
+    control_rate_hz: float | None = setting(None, gt=0, le=MAX_RATE_HZ, unit="Hz")  # the data's rate; the runtime must match it
+    dataset: str | None = setting(None)
 
     def to_json(self) -> str:
         return json.dumps(self.to_dict(), indent=2, sort_keys=True)
-
-
-def _known(cls, data: dict[str, Any], where: str) -> dict[str, Any]:
-    names = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(data) - names)
-    _require(not unknown, f"unknown key(s) in {where}: {', '.join(unknown)} (known: {', '.join(sorted(names))})")
-    return dict(data)
 
 
 def preset_names() -> list[str]:
@@ -230,4 +183,8 @@ def apply_overrides(config: RunConfig, overrides: list[str]) -> RunConfig:
             node = node[part]
         _require(parts[-1] in node, f"override {item!r}: unknown field {key!r}")
         node[parts[-1]] = value
+        try:
+            RunConfig.from_dict(data)
+        except ConfigError as exc:
+            raise ConfigError(f"--set {item}: {exc}") from None
     return RunConfig.from_dict(data)

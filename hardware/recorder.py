@@ -26,7 +26,8 @@ import math
 import time
 from collections import Counter, deque
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 
@@ -41,6 +42,7 @@ from dssp_train.data.recording import (
 )
 from dssp_train.data.replay_buffer import Episode
 from dssp_train.errors import ConfigError, DSSPError
+from dssp_train.schema import Settings, setting
 from hardware.bus_monitor import BusMonitor, oldest
 from hardware.camera.base import Camera, DepthFrame
 from hardware.pointcloud import EmptyCloudError, PointCloudConfig, frame_to_cloud
@@ -53,7 +55,7 @@ class RecorderNotReady(DSSPError):
 
 
 @dataclass(frozen=True)
-class RecordThresholds:
+class RecordThresholds(Settings):
     """When a stream counts as a problem (seconds; fractions of an episode's steps).
 
     camera_age / feedback_age / leader_age: a step whose newest frame of that stream is older is flagged.
@@ -63,31 +65,15 @@ class RecordThresholds:
     measured rate from the target that marks the episode. Flagged stale steps always mark it.
     """
 
-    camera_age: float = 0.25
-    feedback_age: float = 0.1
-    leader_age: float = 0.1
-    late_tick: float = 0.5
-    max_dropped_fraction: float = 0.1
-    max_late_fraction: float = 0.1
-    rate_tolerance: float = 0.05
+    SECTION: ClassVar[str] = "thresholds"
 
-    def __post_init__(self) -> None:
-        for f in fields(self):
-            value = getattr(self, f.name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
-                raise ConfigError(f"recording threshold {f.name} must be a positive number, got {value!r}")
-
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-    @classmethod
-    def from_dict(cls, values: dict) -> "RecordThresholds":
-        if not isinstance(values, dict):
-            raise ConfigError("recording thresholds must be a JSON object")
-        unknown = sorted(set(values) - {f.name for f in fields(cls)})
-        if unknown:
-            raise ConfigError(f"unknown recording threshold(s) {unknown}; known: {[f.name for f in fields(cls)]}")
-        return cls(**values)
+    camera_age: float = setting(0.25, gt=0, le=10.0, unit="s")
+    feedback_age: float = setting(0.1, gt=0, le=10.0, unit="s")
+    leader_age: float = setting(0.1, gt=0, le=10.0, unit="s")
+    late_tick: float = setting(0.5, gt=0, le=1.0, unit="of a period")
+    max_dropped_fraction: float = setting(0.1, gt=0, le=1.0, unit="of the steps")
+    max_late_fraction: float = setting(0.1, gt=0, le=1.0, unit="of the steps")
+    rate_tolerance: float = setting(0.05, gt=0, le=1.0, unit="relative")
 
 
 class StampedCamera:

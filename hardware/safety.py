@@ -20,45 +20,33 @@ clip, refusal, fault) is recorded with its time in :attr:`Safety.events`.
 
 from __future__ import annotations
 
-import math
 from dataclasses import asdict, dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
 from dssp_train.errors import ConfigError
+from dssp_train.schema import Settings, setting
 from hardware.arm import RobotState
 
 
 @dataclass(frozen=True)
-class SafetyConfig:
-    """Thresholds of the safety layer (seconds, radians and gripper fraction per tick)."""
+class SafetyConfig(Settings):
+    """Thresholds of the safety layer (seconds, radians and gripper fraction per tick); a ``--safety`` file.
 
-    max_joint_step: float = 0.05  # rad per tick and joint (0.5 rad/s at 10 Hz)
-    max_gripper_step: float = 0.2  # of the full opening per tick
-    camera_timeout: float = 0.25  # s: an older frame is stale
-    feedback_timeout: float = 0.1  # s: older joint feedback is stale
-    deadline_hold: bool = True  # hold when the policy missed the tick's deadline
-    disable_on_exit: bool = False  # disable the motors after the final hold (arms without brakes drop!)
-    limit_margin: float = 0.0  # rad kept away from each joint limit
+    Every field is type-checked (JSON ``"false"`` is not false) and range-checked on construction.
+    ``max_joint_step`` is also checked against the arm's speed at the control rate by ``dssp-run``.
+    """
 
-    def __post_init__(self):
-        for name in ("max_joint_step", "max_gripper_step", "camera_timeout", "feedback_timeout"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ConfigError(f"safety.{name} must be a positive number, got {value!r}")
-        if not (0 <= self.limit_margin < 0.5):
-            raise ConfigError(f"safety.limit_margin must be in [0, 0.5) rad, got {self.limit_margin!r}")
+    SECTION: ClassVar[str] = "safety"
 
-    @classmethod
-    def from_dict(cls, values: dict[str, Any]) -> "SafetyConfig":
-        unknown = set(values) - set(cls.__dataclass_fields__)
-        if unknown:
-            raise ConfigError(f"unknown safety setting(s) {sorted(unknown)}; known: {sorted(cls.__dataclass_fields__)}")
-        return cls(**values)
-
-    def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
+    max_joint_step: float = setting(0.05, gt=0, le=0.5, unit="rad per tick")  # 0.5 rad/s at 10 Hz
+    max_gripper_step: float = setting(0.2, gt=0, le=1.0, unit="of the opening per tick")
+    camera_timeout: float = setting(0.25, gt=0, le=5.0, unit="s")  # an older frame is stale
+    feedback_timeout: float = setting(0.1, gt=0, le=5.0, unit="s")  # older joint feedback is stale
+    deadline_hold: bool = setting(True)  # hold when the policy missed the tick's deadline
+    disable_on_exit: bool = setting(False)  # disable the motors after the final hold (arms without brakes drop!)
+    limit_margin: float = setting(0.0, ge=0, lt=0.5, unit="rad")  # kept away from each joint limit
 
 
 @dataclass(frozen=True)

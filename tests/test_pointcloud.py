@@ -305,13 +305,13 @@ def test_extrinsics_roundtrip(tmp_path):
 @pytest.mark.parametrize("content, words", [
     ("{not json", "not valid JSON"),
     ('{"frame": "base"}', "camera_to_base"),
-    ('{"camera_to_base": [[1, 0, 0], [0, 1, 0], [0, 0, 1]]}', "4x4"),
-    ('{"camera_to_base": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, NaN], [0, 0, 0, 1]]}', "NaN"),
+    ('{"camera_to_base": [[1, 0, 0], [0, 1, 0], [0, 0, 1]]}', "a list of 4 lists of 4 finite numbers"),
+    ('{"camera_to_base": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, NaN], [0, 0, 0, 1]]}', "camera_to_base[2][3] must be a finite number"),
     ('{"camera_to_base": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 1, 1]]}', "last row"),
     ('{"camera_to_base": [[2, 0, 0, 0], [0, 2, 0, 0], [0, 0, 2, 0], [0, 0, 0, 1]]}', "orthonormal"),
     ('{"camera_to_base": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, -1, 0], [0, 0, 0, 1]]}', "determinant"),
     ('{"camera_to_base": [[1, 0, 0, 900], [0, 1, 0, 50], [0, 0, 1, 600], [0, 0, 0, 1]]}', "metres"),
-    ('{"camera_to_base": [[1, 0, 0, "a"], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}', "numbers"),
+    ('{"camera_to_base": [[1, 0, 0, "a"], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}', "finite number"),
 ])
 def test_calibration_file_errors(tmp_path, content, words):
     path = tmp_path / "calib.json"

@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import json
 import sys
 import warnings
 from collections.abc import Callable
 
-from dssp_train.errors import ConfigError, DSSPError
+from dssp_train.errors import DSSPError
 
 
 def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
@@ -28,18 +27,3 @@ def run_cli(main: Callable[[], int | None]) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
-
-
-def read_json_object(path, what: str) -> dict:
-    """A JSON object from a settings file, or a one-line ``ConfigError`` naming ``what`` and the problem."""
-    from pathlib import Path
-
-    try:
-        values = json.loads(Path(path).read_text())
-    except FileNotFoundError:
-        raise ConfigError(f"{what} file {path} does not exist") from None
-    except json.JSONDecodeError as exc:
-        raise ConfigError(f"{what} file {path} is not valid JSON ({exc.msg} at line {exc.lineno})") from None
-    if not isinstance(values, dict):
-        raise ConfigError(f"{what} file {path} must hold a JSON object")
-    return values

@@ -7,27 +7,21 @@ All lengths are metres; the crop box is in the robot-base frame (after the camer
 from __future__ import annotations
 
 import json
-import math
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
+from dssp_train.atomic import atomic_write_text
 from dssp_train.errors import ConfigError
+from dssp_train.schema import Settings, setting
 
 SAMPLING_METHODS = ("fps",)
-
-
-def _vec3(name: str, value) -> tuple[float, float, float]:
-    try:
-        out = tuple(float(v) for v in value)
-    except (TypeError, ValueError):
-        raise ConfigError(f"point cloud config: {name} must be 3 numbers (x, y, z metres), got {value!r}") from None
-    if len(out) != 3 or not all(math.isfinite(v) for v in out):
-        raise ConfigError(f"point cloud config: {name} must be 3 finite numbers (x, y, z metres), got {value!r}")
-    return out
+MAX_RANGE_M = 20.0  # no depth camera of the toolkit measures farther; a larger value is a unit mistake (mm)
+MAX_CROP_M = 100.0  # a crop corner this far out keeps everything; beyond it the box was given in millimetres
 
 
 @dataclass(frozen=True)
-class PointCloudConfig:
+class PointCloudConfig(Settings):
     """How a depth frame becomes a fixed-size cloud.
 
     n_points: points per cloud (P), default 1024.
@@ -42,62 +36,29 @@ class PointCloudConfig:
     sampling: 'fps' (farthest point sampling).
     """
 
-    n_points: int = 1024
-    depth_near: float = 0.1
-    depth_far: float = 2.0
-    crop_min: tuple[float, float, float] = (0.0, -0.4, -0.02)
-    crop_max: tuple[float, float, float] = (0.8, 0.4, 0.5)
-    voxel_size: float = 0.01
-    use_color: bool = False
-    sampling: str = "fps"
+    SECTION: ClassVar[str] = "pointcloud"
 
-    def __post_init__(self) -> None:
-        n = self.n_points
-        if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= 1_000_000:
-            raise ConfigError(f"point cloud config: n_points must be an integer in [1, 1000000], got {n!r}")
-        for key in ("depth_near", "depth_far", "voxel_size"):
-            v = getattr(self, key)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
-                raise ConfigError(f"point cloud config: {key} must be a finite number >= 0 (metres), got {v!r}")
-            object.__setattr__(self, key, float(v))
+    n_points: int = setting(1024, ge=1, le=1_000_000)
+    depth_near: float = setting(0.1, ge=0, le=MAX_RANGE_M, unit="m")
+    depth_far: float = setting(2.0, gt=0, le=MAX_RANGE_M, unit="m")
+    crop_min: tuple[float, float, float] = setting((0.0, -0.4, -0.02), ge=-MAX_CROP_M, le=MAX_CROP_M, unit="m")
+    crop_max: tuple[float, float, float] = setting((0.8, 0.4, 0.5), ge=-MAX_CROP_M, le=MAX_CROP_M, unit="m")
+    voxel_size: float = setting(0.01, ge=0, le=1.0, unit="m (0 = off)")
+    use_color: bool = setting(False)
+    sampling: str = setting("fps", choices=SAMPLING_METHODS)
+
+    def validate(self) -> None:
         if not self.depth_near < self.depth_far:
-            raise ConfigError(f"point cloud config: depth_near ({self.depth_near}) must be below depth_far "
+            raise ConfigError(f"pointcloud.depth_near ({self.depth_near}) must be below depth_far "
                               f"({self.depth_far}), metres")
-        if self.voxel_size > 1.0:
-            raise ConfigError(f"point cloud config: voxel_size {self.voxel_size} m is larger than 1 m; "
-                              f"give metres (0 = off)")
-        lo, hi = _vec3("crop_min", self.crop_min), _vec3("crop_max", self.crop_max)
-        if not all(a < b for a, b in zip(lo, hi)):
-            raise ConfigError(f"point cloud config: crop_min {lo} must be below crop_max {hi} on every axis")
-        object.__setattr__(self, "crop_min", lo)
-        object.__setattr__(self, "crop_max", hi)
-        if not isinstance(self.use_color, bool):
-            raise ConfigError(f"point cloud config: use_color must be true or false, got {self.use_color!r}")
-        if self.sampling not in SAMPLING_METHODS:
-            raise ConfigError(f"point cloud config: sampling {self.sampling!r} is not one of "
-                              f"{', '.join(SAMPLING_METHODS)}")
+        if not all(a < b for a, b in zip(self.crop_min, self.crop_max)):
+            raise ConfigError(f"pointcloud.crop_min {list(self.crop_min)} must be below crop_max "
+                              f"{list(self.crop_max)} on every axis")
 
     @property
     def point_dim(self) -> int:
         """Channels per point: 3 (xyz) or 6 (xyz + rgb)."""
         return 6 if self.use_color else 3
-
-    def to_dict(self) -> dict:
-        """JSON-ready dict (tuples become lists)."""
-        out = asdict(self)
-        out["crop_min"], out["crop_max"] = list(self.crop_min), list(self.crop_max)
-        return out
-
-    @classmethod
-    def from_dict(cls, data: dict) -> "PointCloudConfig":
-        """Inverse of :meth:`to_dict`; unknown keys are an error (a typo must not be ignored)."""
-        if not isinstance(data, dict):
-            raise ConfigError(f"point cloud config must be a JSON object, got {type(data).__name__}")
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(data) - known)
-        if unknown:
-            raise ConfigError(f"point cloud config: unknown keys {unknown}; known: {sorted(known)}")
-        return cls(**data)
 
     def to_json(self) -> str:
         return json.dumps(self.to_dict(), indent=2)
@@ -112,12 +73,5 @@ class PointCloudConfig:
 
     def save(self, path: str | Path) -> Path:
         path = Path(path)
-        path.write_text(self.to_json() + "\n")
+        atomic_write_text(path, self.to_json() + "\n")
         return path
-
-    @classmethod
-    def load(cls, path: str | Path) -> "PointCloudConfig":
-        path = Path(path)
-        if not path.is_file():
-            raise ConfigError(f"point cloud config {path} does not exist; check the path")
-        return cls.from_json(path.read_text())

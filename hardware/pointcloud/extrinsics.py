@@ -12,12 +12,15 @@ coordinates. Every problem is a one-line :class:`~hardware.errors.CalibrationErr
 from __future__ import annotations
 
 import json
-import os
-import tempfile
+from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
+from dssp_train.atomic import atomic_write_text
+from dssp_train.errors import ConfigError
+from dssp_train.schema import Settings, setting
 from hardware.errors import CalibrationError
 
 ROTATION_TOLERANCE = 1e-3  # max |R^T R - I| entry and |det R - 1|: allows 4-5 printed decimals
@@ -57,6 +60,26 @@ def validate_extrinsics(matrix, source: str = "camera_to_base") -> np.ndarray:
     return m
 
 
+_ROW = tuple[float, float, float, float]
+
+
+@dataclass(frozen=True)
+class CalibrationFile(Settings):
+    """The calibration file's schema: ``camera_to_base`` (4 rows of 4 numbers), ``frame``, ``notes``."""
+
+    SECTION: ClassVar[str] = "calibration"
+
+    camera_to_base: tuple[_ROW, _ROW, _ROW, _ROW] = setting(ge=-1e6, le=1e6)
+    frame: str = setting("base")
+    notes: str = setting("")
+
+    def validate(self) -> None:
+        try:
+            validate_extrinsics(self.camera_to_base)
+        except CalibrationError as exc:
+            raise ConfigError(str(exc)) from None
+
+
 def load_extrinsics(path: str | Path | None) -> np.ndarray:
     """(4, 4) float64 camera->base transform from a calibration JSON file; None -> identity (camera frame)."""
     if path is None:
@@ -64,22 +87,11 @@ def load_extrinsics(path: str | Path | None) -> np.ndarray:
     path = Path(path).expanduser()
     if not path.exists():
         raise CalibrationError(f"calibration file {path} does not exist; check the path or calibrate the camera")
-    if not path.is_file():
-        raise CalibrationError(f"calibration file {path} is not a file")
     try:
-        data = json.loads(path.read_text())
-    except json.JSONDecodeError as e:
-        raise CalibrationError(f"calibration file {path} is not valid JSON (line {e.lineno}: {e.msg})") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise CalibrationError(f"calibration file {path} cannot be read ({e})") from None
-    if not isinstance(data, dict) or "camera_to_base" not in data:
-        raise CalibrationError(f"calibration file {path} needs a 'camera_to_base' key holding a 4x4 matrix")
-    matrix = data["camera_to_base"]
-    if not (isinstance(matrix, list) and all(isinstance(row, list) for row in matrix)):
-        raise CalibrationError(f"{path}: camera_to_base must be a list of 4 rows of 4 numbers")
-    if any(isinstance(v, bool) or not isinstance(v, (int, float)) for row in matrix for v in row):
-        raise CalibrationError(f"{path}: camera_to_base must hold only numbers")
-    return validate_extrinsics(matrix, source=str(path))
+        calibration = CalibrationFile.load(path, "calibration")
+    except ConfigError as exc:
+        raise CalibrationError(str(exc)) from None
+    return np.asarray(calibration.camera_to_base, dtype=np.float64)
 
 
 def save_extrinsics(path: str | Path, camera_to_base, frame: str = "base", notes: str = "") -> Path:
@@ -89,18 +101,5 @@ def save_extrinsics(path: str | Path, camera_to_base, frame: str = "base", notes
     text = json.dumps({"camera_to_base": [[float(v) for v in row] for row in m], "frame": str(frame),
                        "notes": str(notes)}, indent=2) + "\n"
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+    atomic_write_text(path, text)
     return path
-
