@@ -14,12 +14,32 @@ from hardware.camera.base import Camera, DepthFrame, Intrinsics
 from hardware.camera.profiles import CameraProfile, load_profile, profile_names
 from hardware.errors import CameraError
 
-__all__ = ["Camera", "CameraProfile", "DepthFrame", "Intrinsics", "load_profile", "open_camera", "spec_forms"]
+__all__ = ["Camera", "CameraProfile", "DepthFrame", "Intrinsics", "check_camera_spec", "load_profile", "open_camera", "spec_forms"]
 
 
 def spec_forms() -> str:
     """The accepted camera specs, for messages and --help: 'd405|d435|l515|file:PATH|sim'."""
     return "|".join(profile_names() + ["file:PATH", "sim"])
+
+
+def check_camera_spec(spec: str, serial: str | None = None) -> None:
+    """Refuse a camera spec that :func:`open_camera` cannot open, without opening anything (CameraError)."""
+    if not isinstance(spec, str) or not spec.strip():
+        raise CameraError(f"camera spec must be one of {spec_forms()}, got {spec!r}")
+    text = spec.strip()
+    if text.lower().startswith("file:"):
+        if not text[len("file:"):]:
+            raise CameraError("camera spec file: needs a path, e.g. file:episode.db3")
+        if serial is not None:
+            raise CameraError("a serial number selects a live camera; it cannot be used with file:PATH")
+        return
+    name = text.lower()
+    if name == "sim":
+        if serial is not None:
+            raise CameraError("a serial number selects a live camera; it cannot be used with sim")
+        return
+    if name not in profile_names():
+        raise CameraError(f"unknown camera {spec!r}; use one of {spec_forms()}")
 
 
 def open_camera(spec: str, serial: str | None = None, color: bool = False, **kw) -> Camera:
@@ -30,27 +50,18 @@ def open_camera(spec: str, serial: str | None = None, color: bool = False, **kw)
     'sim' for the simulated tabletop (keywords of :class:`hardware.camera.sim.SimCamera`, e.g. ``seed``).
     color: also deliver RGB aligned to depth. Unknown specs raise CameraError listing the valid forms.
     """
-    if not isinstance(spec, str) or not spec.strip():
-        raise CameraError(f"camera spec must be one of {spec_forms()}, got {spec!r}")
+    check_camera_spec(spec, serial)
     text = spec.strip()
     if text.lower().startswith("file:"):
         path = text[len("file:"):]
-        if not path:
-            raise CameraError("camera spec file: needs a path, e.g. file:episode.db3")
-        if serial is not None:
-            raise CameraError("a serial number selects a live camera; it cannot be used with file:PATH")
         from hardware.camera.realsense import RealSenseCamera
 
         return RealSenseCamera(file=path, color=color, **kw)
     name = text.lower()
     if name == "sim":
-        if serial is not None:
-            raise CameraError("a serial number selects a live camera; it cannot be used with sim")
         from hardware.camera.sim import SimCamera
 
         return SimCamera(color=color, **kw)
-    if name in profile_names():
-        from hardware.camera.realsense import RealSenseCamera
+    from hardware.camera.realsense import RealSenseCamera
 
-        return RealSenseCamera(name, serial=serial, color=color, **kw)
-    raise CameraError(f"unknown camera spec {spec!r}; use one of {spec_forms()}")
+    return RealSenseCamera(name, serial=serial, color=color, **kw)

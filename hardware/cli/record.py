@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import math
 import os
 import queue
 import select
@@ -27,7 +28,6 @@ import threading
 import time
 from pathlib import Path
 
-from dssp_train.cli.common import read_json_object
 from dssp_train.errors import ConfigError, DSSPError
 
 EPILOG = """\
@@ -69,6 +69,11 @@ def parse_args(argv):
         value = getattr(args, name)
         if value is not None and value < 1:
             raise ConfigError(f"--{name.replace('_', '-')} must be at least 1, got {value}")
+    if args.rate is not None and not (math.isfinite(args.rate) and 0 < args.rate <= 1000):
+        raise ConfigError(f"--rate must be in (0, 1000] Hz, got {args.rate:g}")
+    from hardware.camera import check_camera_spec
+
+    check_camera_spec(args.camera, args.serial)
     if args.sim_speed is not None and not args.sim_speed >= 0:
         raise ConfigError(f"--sim-speed must be >= 0 (0 = as fast as possible), got {args.sim_speed}")
     return args
@@ -199,12 +204,12 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
     if args.auto and not sim_can and args.max_steps is None:
         raise ConfigError("--auto on a robot needs --max-steps: nothing else ends an episode")
     convention = "leader_command" if args.action == "leader" else "next_state"
-    thresholds = RecordThresholds.from_dict(read_json_object(args.thresholds, "thresholds")) if args.thresholds else RecordThresholds()
+    thresholds = RecordThresholds.load(args.thresholds, "thresholds") if args.thresholds else RecordThresholds()
     existing = _existing_attrs(args.out)
     task = args.task_name or (("tap" if sim_can else None) if not existing.get("task") else existing.get("task"))
 
     if args.pointcloud:
-        cloud_config = PointCloudConfig.from_dict(read_json_object(args.pointcloud, "point-cloud settings"))
+        cloud_config = PointCloudConfig.load(args.pointcloud, "point-cloud settings")
     elif isinstance(existing.get("pointcloud"), dict):
         cloud_config = PointCloudConfig.from_dict(existing["pointcloud"])
     elif sim_can:

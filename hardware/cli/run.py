@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import math
 import signal
 import sys
 import time
@@ -22,8 +23,9 @@ from pathlib import Path
 import numpy as np
 
 from dssp_deploy.manifest import PRECISIONS
-from dssp_train.cli.common import read_json_object
 from dssp_train.errors import ConfigError
+
+MAX_RATE_HZ = 1000.0
 
 EPILOG = """\
 --camera sim --can sim runs everything against the embedded simulation (no hardware). Real arms:
@@ -78,7 +80,83 @@ class StatusPrinter:
             self.stream.write("\n")
 
 
+class StartupSignals:
+    """SIGINT/SIGTERM during start-up (imports, model loading, devices opening) become a clean stop.
+
+    Without it a Ctrl-C lands inside whatever is running — an import half done — and the error that
+    follows names the wrong thing. Checked between the start-up stages; nothing has moved yet.
+    """
+
+    def __init__(self):
+        self.reason: str | None = None
+        self._previous = {sig: signal.signal(sig, self._handle) for sig in (signal.SIGINT, signal.SIGTERM)}
+
+    def _handle(self, signum, _frame) -> None:
+        self.reason = signal.Signals(signum).name
+
+    def check(self) -> None:
+        if self.reason is not None:
+            raise StartupInterrupted(self.reason)
+
+    def restore(self) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+
+
+class StartupInterrupted(Exception):
+    """A signal arrived before the control loop started: nothing was enabled or sent."""
+
+
+def check_args(args) -> None:
+    """Flags that can be judged without opening anything; one line each, before any device or model is touched."""
+    from hardware.camera import check_camera_spec
+
+    check_camera_spec(args.camera, args.serial)
+    if args.rate is not None and not (math.isfinite(args.rate) and 0 < args.rate <= MAX_RATE_HZ):
+        raise ConfigError(f"--rate must be in (0, {MAX_RATE_HZ:g}] Hz, got {args.rate:g}")
+    if args.max_steps is not None and args.max_steps < 1:
+        raise ConfigError(f"--max-steps must be at least 1, got {args.max_steps}")
+    if args.threads is not None and args.threads < 1:
+        raise ConfigError(f"--threads must be at least 1, got {args.threads}")
+    if args.seed is not None and args.seed < 0:
+        raise ConfigError(f"--seed must be >= 0, got {args.seed}")
+
+
+def control_rate(args, policy) -> float:
+    """--rate, else the rate the model's training data was recorded at; a model without one needs --rate."""
+    if args.rate is not None:
+        return args.rate
+    if policy.control_rate_hz is None:
+        raise ConfigError(f"{args.model} records no control rate (its dataset had none): pass --rate HZ, the rate "
+                          "the demonstrations were recorded at")
+    return float(policy.control_rate_hz)
+
+
+def check_speed(safety_config, rate: float) -> None:
+    """The per-tick joint step at this rate must stay within what the arm can do."""
+    from hardware.piper.limits import MAX_JOINT_SPEED
+
+    speed = safety_config.max_joint_step * rate
+    if speed > MAX_JOINT_SPEED + 1e-9:
+        raise ConfigError(
+            f"safety.max_joint_step {safety_config.max_joint_step:g} rad per tick at {rate:g} Hz is {speed:.3g} rad/s, "
+            f"above the arm's {MAX_JOINT_SPEED:g} rad/s: lower max_joint_step to at most {MAX_JOINT_SPEED / rate:.4g}"
+        )
+
+
 def run(args) -> int:
+    signals = StartupSignals()
+    try:
+        return _run(args, signals)
+    except StartupInterrupted as exc:
+        print(f"stopped by {exc} during start-up; no arm was enabled, nothing was sent", file=sys.stderr)
+        return 130
+    finally:
+        signals.restore()
+
+
+def _run(args, signals: StartupSignals) -> int:
+    check_args(args)
     from dssp_deploy.policy import OnnxPolicy
     from hardware.camera import open_camera
     from hardware.can_log import BusRecorder
@@ -89,7 +167,10 @@ def run(args) -> int:
     from hardware.run_loop import LoopSettings, Runner, check_fits
     from hardware.safety import SafetyConfig
 
-    safety_config = SafetyConfig.from_dict(read_json_object(args.safety, "safety")) if args.safety else SafetyConfig()
+    signals.check()
+    safety_config = SafetyConfig.load(args.safety, "safety") if args.safety else SafetyConfig()
+    if args.rate is not None:
+        check_speed(safety_config, args.rate)
     simulated_camera = args.camera.strip().lower() == "sim"
     if args.extrinsics:
         camera_to_base = load_extrinsics(args.extrinsics)
@@ -98,14 +179,14 @@ def run(args) -> int:
             "--extrinsics is needed with a real camera or a recording: the workspace crop is in the robot-base frame "
             "(a JSON file {\"camera_to_base\": 4x4}; see the README's calibration section)"
         )
+    cloud_config = PointCloudConfig.load(args.pointcloud, "point-cloud settings") if args.pointcloud else None
     print(f"loading {args.model} (warm-up included)", file=sys.stderr)
     policy = OnnxPolicy(args.model, threads=args.threads, precision=args.precision)
-    n_points = policy.manifest["model_config"]["n_points"]
-    if args.pointcloud:
-        cloud_config = PointCloudConfig.from_dict(read_json_object(args.pointcloud, "point-cloud settings"))
-    else:
-        cloud_config = PointCloudConfig(n_points=n_points)
-    rate = args.rate or policy.control_rate_hz or 10.0
+    signals.check()
+    if cloud_config is None:
+        cloud_config = PointCloudConfig(n_points=policy.manifest["model_config"]["n_points"])
+    rate = control_rate(args, policy)
+    check_speed(safety_config, rate)
     settings = LoopSettings(rate_hz=rate, max_steps=args.max_steps, dry_run=args.dry_run, prefetch=args.prefetch, seed=args.seed)
     log_dir = args.log_dir or Path("runs/dssp-run") / time.strftime("%Y%m%d-%H%M%S")
 
@@ -116,6 +197,7 @@ def run(args) -> int:
     lower, upper = np.tile(limits.lower, n_arms), np.tile(limits.upper, n_arms)
     gripper = np.tile(np.arange(7) == 6, n_arms)
 
+    signals.check()
     camera = open_camera(args.camera, serial=args.serial)
     if simulated_camera and not args.extrinsics:
         camera_to_base = camera.camera_to_base  # the simulated camera's own mounting
@@ -128,6 +210,7 @@ def run(args) -> int:
         stack.enter_context(robot)  # connect: simulators start first, so the recorders find their channels
         for recorder in recorders:
             stack.enter_context(recorder)
+        signals.check()  # the last moment a signal means "never started"; from here the runner stops the loop
         log = RunLog(log_dir, {
             "model": str(args.model), "camera": args.camera, "can": args.can, "rate_hz": rate, "dry_run": args.dry_run,
             "camera_to_base": camera_to_base, "pointcloud": cloud_config.to_dict(), "safety": safety_config.to_dict(),
@@ -138,6 +221,8 @@ def run(args) -> int:
         handlers = {}
         for sig in (signal.SIGINT, signal.SIGTERM):
             handlers[sig] = signal.signal(sig, lambda signum, _frame: runner.request_stop(signal.Signals(signum).name))
+        if signals.reason is not None:
+            runner.request_stop(signals.reason)
         try:
             summary = runner.run()
         finally:

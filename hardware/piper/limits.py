@@ -23,6 +23,10 @@ JOINT_UPPER = np.array([2.6179, 3.14, 0.0, 1.745, 1.22, 2.09439])
 JOINT_LOWER.setflags(write=False)
 JOINT_UPPER.setflags(write=False)
 
+# Joint speed (rad/s): AgileX rates the Piper's joints at 180 deg/s (J1, J3) to 225 deg/s (J4-J6); the
+# slowest, pi rad/s, bounds what a per-tick step times the control rate may ask of any joint.
+MAX_JOINT_SPEED = 3.14159
+
 # Gripper stroke (m): the SDK's gripper range is 0..0.07 m (AgileX's ROS node clamps to 0..0.08 m).
 GRIPPER_STROKE_MIN = 0.0
 GRIPPER_STROKE_MAX = 0.07
