@@ -360,3 +360,42 @@ def test_crash_while_clearing_the_old_checkpoint_still_resumes(runs, tmp_path, m
 
     assert train_main(resume_args(runs["data"], run)) == 0
     assert_same_final_state(run, runs["straight"])
+
+
+# ---------------------------------------------------------- (f) a log and folders left by a killed run
+def test_resume_drops_log_lines_written_after_the_checkpoint(runs, tmp_path):
+    """A run killed between checkpoints logged steps past its checkpoint (and maybe half a line): resuming
+    from the checkpoint must not log those steps twice."""
+    run = copy_run(runs, tmp_path)
+    with open(run / "log.jsonl", "a") as f:
+        for step in (K + 1, K + 2):
+            f.write(json.dumps({"kind": "train", "step": step, "loss": 1.0, "diffusion": 1.0, "dynamics": 0.0}) + "\n")
+        f.write('{"kind": "train", "st')  # torn by the kill
+    assert train_main(resume_args(runs["data"], run)) == 0
+    steps = [r["step"] for r in read_log(run / "log.jsonl") if r["kind"] == "train"]
+    assert steps == list(range(1, 2 * K + 1))
+    assert all(json.loads(line) for line in (run / "log.jsonl").read_text().splitlines())
+
+
+def test_an_interrupted_checkpoint_save_leaves_no_partial_folder(runs, tmp_path, monkeypatch):
+    run = copy_run(runs, tmp_path)
+    (run / ".checkpoint.partial-killed").mkdir()  # what a SIGKILL mid-save leaves
+    (run / ".checkpoint.partial-killed" / "model.safetensors").write_bytes(b"half")
+    (run / ".model.safetensors.x1y2.tmp").write_bytes(b"half")
+    real = ckpt.save_tensors
+    calls = {"n": 0}
+
+    def dying_save(path, *args, **kwargs):
+        calls["n"] += 1
+        if Path(path).parent.name.startswith(".checkpoint.") and calls["n"] >= 3:
+            raise KeyboardInterrupt
+        return real(path, *args, **kwargs)
+
+    monkeypatch.setattr(ckpt, "save_tensors", dying_save)
+    assert train_main(resume_args(runs["data"], run)) == 130
+    leftovers = [p.name for p in run.iterdir() if p.name.startswith(".")]
+    assert leftovers == [], leftovers
+    assert (run / "checkpoint").is_dir()  # the previous complete checkpoint is still there
+    monkeypatch.setattr(ckpt, "save_tensors", real)
+    assert train_main(resume_args(runs["data"], run)) == 0
+    assert_same_final_state(run, runs["straight"])

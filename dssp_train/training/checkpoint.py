@@ -125,6 +125,21 @@ def _optimizer_state(tensors: dict[str, torch.Tensor], param_groups: list[dict[s
     return {"state": state, "param_groups": param_groups}
 
 
+PARTIAL_PREFIX = ".checkpoint.partial-"
+
+
+def remove_partial_checkpoints(run_dir: Path) -> None:
+    """Delete what a killed save left half-written in RUN_DIR: ``.checkpoint.*`` folders other than
+    ``.checkpoint.old`` (which may be the only complete checkpoint) and atomic writes' ``.*.tmp`` files."""
+    run_dir = Path(run_dir)
+    for leftover in run_dir.glob(".checkpoint.*"):
+        if leftover.name != ".checkpoint.old" and leftover.is_dir():
+            shutil.rmtree(leftover, ignore_errors=True)
+    for leftover in run_dir.glob(".*.tmp"):
+        if leftover.is_file():
+            leftover.unlink(missing_ok=True)
+
+
 def save_training_state(
     run_dir: Path,
     model: nn.Module,
@@ -135,15 +150,20 @@ def save_training_state(
 ) -> None:
     """Write RUN_DIR/checkpoint atomically (a new folder swapped in whole)."""
     run_dir = Path(run_dir)
-    tmp = Path(tempfile.mkdtemp(dir=run_dir, prefix=".checkpoint."))
-    os.chmod(tmp, 0o777 & ~_umask())
-    meta = {"format_version": FORMAT_VERSION, "step": str(trainer_state["step"])}
-    save_tensors(tmp / "model.safetensors", model.state_dict(), meta)
-    save_tensors(tmp / "ema.safetensors", ema_model.state_dict(), meta)
-    opt_tensors, groups = _optimizer_tensors(optimizer)
-    save_tensors(tmp / "optimizer.safetensors", opt_tensors, meta)
-    save_tensors(tmp / "rng.safetensors", rng, meta)
-    atomic_write_text(tmp / "trainer_state.json", json.dumps({**trainer_state, "param_groups": groups}, indent=2))
+    remove_partial_checkpoints(run_dir)
+    tmp = Path(tempfile.mkdtemp(dir=run_dir, prefix=PARTIAL_PREFIX))
+    try:
+        os.chmod(tmp, 0o777 & ~_umask())
+        meta = {"format_version": FORMAT_VERSION, "step": str(trainer_state["step"])}
+        save_tensors(tmp / "model.safetensors", model.state_dict(), meta)
+        save_tensors(tmp / "ema.safetensors", ema_model.state_dict(), meta)
+        opt_tensors, groups = _optimizer_tensors(optimizer)
+        save_tensors(tmp / "optimizer.safetensors", opt_tensors, meta)
+        save_tensors(tmp / "rng.safetensors", rng, meta)
+        atomic_write_text(tmp / "trainer_state.json", json.dumps({**trainer_state, "param_groups": groups}, indent=2))
+    except BaseException:  # an error or Ctrl-C mid-save: the partial folder goes, the previous checkpoint stays
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
     final, old = run_dir / "checkpoint", run_dir / ".checkpoint.old"
     if final.exists():
         if old.exists():
@@ -157,6 +177,8 @@ def save_training_state(
 def load_training_state(run_dir: Path) -> dict[str, Any]:
     """Everything :func:`save_training_state` wrote, as tensors and JSON."""
     ckpt = Path(run_dir) / "checkpoint"
+    if Path(run_dir).is_dir():
+        remove_partial_checkpoints(run_dir)
     if not ckpt.is_dir() and (Path(run_dir) / ".checkpoint.old").is_dir():
         ckpt = Path(run_dir) / ".checkpoint.old"  # a crash mid-swap: the previous checkpoint is complete
     if not ckpt.is_dir():

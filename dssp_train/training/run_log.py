@@ -11,10 +11,23 @@ import json
 from pathlib import Path
 from typing import Any
 
+from dssp_train.atomic import atomic_write_text
+
 
 class RunLog:
-    def __init__(self, path: Path, append: bool = False):
+    """``log.jsonl`` writer. ``resume_step``: continue an existing log from that step.
+
+    On resume the lines of steps after ``resume_step`` (written after the checkpoint the run continues
+    from, then lost with the interrupted process) and a torn last line are dropped first (the file is
+    rewritten atomically), so the log never repeats a step.
+    """
+
+    def __init__(self, path: Path, append: bool = False, resume_step: int | None = None):
         self.path = Path(path)
+        if resume_step is not None and self.path.exists():
+            kept = [line for line, row in _parsed_lines(self.path) if row is not None and row.get("step", 0) <= resume_step]
+            atomic_write_text(self.path, "".join(line + "\n" for line in kept))
+            append = True
         self._file = open(self.path, "a" if append else "w")
 
     def write(self, kind: str, **values: Any) -> None:
@@ -25,8 +38,22 @@ class RunLog:
         self._file.close()
 
 
+def _parsed_lines(path: Path) -> list[tuple[str, dict[str, Any] | None]]:
+    out = []
+    for line in Path(path).read_text().splitlines():
+        if not line.strip():
+            continue
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError:
+            row = None  # a line torn by a crash mid-write
+        out.append((line, row if isinstance(row, dict) else None))
+    return out
+
+
 def read_log(path: Path) -> list[dict[str, Any]]:
-    return [json.loads(line) for line in Path(path).read_text().splitlines() if line.strip()]
+    """The log's rows; a line torn by a crash is skipped."""
+    return [row for _, row in _parsed_lines(path) if row is not None]
 
 
 def plot_log(log_path: Path, png_path: Path) -> None:

@@ -197,7 +197,7 @@ class Trainer:
         if self.is_main:
             self.run_dir.mkdir(parents=True, exist_ok=True)
             ckpt.save_config(self.run_dir, self.config)
-            log = RunLog(self.run_dir / "log.jsonl", append=self.step > 0)
+            log = RunLog(self.run_dir / "log.jsonl", resume_step=self.step if self.step > 0 else None)
         bar = None
         if self.progress:
             from tqdm.auto import tqdm
