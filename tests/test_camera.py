@@ -8,6 +8,8 @@ import time
 import numpy as np
 import pytest
 
+from dssp_train.errors import ConfigError
+
 from hardware.camera import open_camera, spec_forms
 from hardware.camera.base import Intrinsics
 from hardware.camera.profiles import CameraProfile, load_profile, parse_version, profile_names
@@ -60,10 +62,12 @@ def test_profiles_as_data():
     assert load_profile("d405").depth_unit == 0.0001
     msg = _one_line_error(load_profile, "kinect")
     assert "d405, d435, l515" in msg
-    with pytest.raises(CameraError, match="width"):
+    with pytest.raises(ConfigError, match="width"):
         CameraProfile(name="x", width=0, height=480, fps=30, depth_unit=0.001, product_line="D400", device_name="D4")
-    with pytest.raises(CameraError, match="depth_unit"):
+    with pytest.raises(ConfigError, match="depth_unit"):
         CameraProfile(name="x", width=640, height=480, fps=30, depth_unit=1.0, product_line="D400", device_name="D4")
+    with pytest.raises(CameraError, match="camera profile 'x': camera profile.fps must be an integer"):
+        CameraProfile.from_entry("x", {**load_profile("d435").to_entry(), "fps": "30"})
     with pytest.raises(AttributeError):
         l515.fps = 15  # frozen
 

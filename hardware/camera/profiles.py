@@ -9,12 +9,14 @@ really carries is read from the frame itself (``DepthFrame.depth_unit``). No pyr
 from __future__ import annotations
 
 import json
-import math
 import re
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
+from typing import ClassVar
 
+from dssp_train.errors import ConfigError
+from dssp_train.schema import Settings, setting
 from hardware.errors import CameraError
 
 PROFILES_PATH = Path(__file__).with_name("profiles.json")
@@ -40,25 +42,19 @@ def parse_version(version: str) -> tuple[int, ...]:
 
 
 @dataclass(frozen=True)
-class ColorProfile:
+class ColorProfile(Settings):
     """The colour stream requested with ``color=True`` (aligned to depth afterwards). Pixels, fps."""
 
-    width: int
-    height: int
-    fps: int
-    format: str = "rgb8"
+    SECTION: ClassVar[str] = "camera profile color"
 
-    def __post_init__(self) -> None:
-        for key in ("width", "height", "fps"):
-            value = getattr(self, key)
-            if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
-                raise CameraError(f"colour profile: {key} must be a positive integer, got {value!r}")
-        if self.format not in _COLOR_FORMATS:
-            raise CameraError(f"colour profile: format {self.format!r} is not one of {', '.join(_COLOR_FORMATS)}")
+    width: int = setting(ge=1, le=8192, unit="pixels")
+    height: int = setting(ge=1, le=8192, unit="pixels")
+    fps: int = setting(ge=1, le=1000)
+    format: str = setting("rgb8", choices=_COLOR_FORMATS)
 
 
 @dataclass(frozen=True)
-class CameraProfile:
+class CameraProfile(Settings):
     """One depth camera model: the depth stream to request and what to expect from it.
 
     width, height: depth image size in pixels; fps: frames per second; format: 'z16' (uint16 raw depth).
@@ -68,63 +64,40 @@ class CameraProfile:
     removed_in_sdk: first librealsense version without support for this model ('2.54' for the L515), or None.
     """
 
-    name: str
-    width: int
-    height: int
-    fps: int
-    depth_unit: float
-    product_line: str
-    device_name: str
-    format: str = "z16"
-    description: str = ""
-    color: ColorProfile | None = None
-    removed_in_sdk: str | None = None
+    SECTION: ClassVar[str] = "camera profile"
 
-    def __post_init__(self) -> None:
-        where = f"camera profile {self.name!r}"
-        for key in ("width", "height", "fps"):
-            value = getattr(self, key)
-            if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
-                raise CameraError(f"{where}: {key} must be a positive integer, got {value!r}")
-        unit = self.depth_unit
-        number = isinstance(unit, (int, float)) and not isinstance(unit, bool)
-        if not number or not math.isfinite(unit) or not 0 < unit <= 0.01:
-            raise CameraError(f"{where}: depth_unit must be metres per raw unit in (0, 0.01], got {unit!r}")
-        if self.format not in _DEPTH_FORMATS:
-            raise CameraError(f"{where}: depth format {self.format!r} is not supported; "
-                              f"use {', '.join(_DEPTH_FORMATS)}")
+    name: str = setting()
+    width: int = setting(ge=1, le=8192, unit="pixels")
+    height: int = setting(ge=1, le=8192, unit="pixels")
+    fps: int = setting(ge=1, le=1000)
+    depth_unit: float = setting(gt=0, le=0.01, unit="m per raw unit")
+    product_line: str = setting()
+    device_name: str = setting()
+    format: str = setting("z16", choices=_DEPTH_FORMATS)
+    description: str = setting("")
+    color: ColorProfile | None = setting(None)
+    removed_in_sdk: str | None = setting(None)
+
+    def validate(self) -> None:
         if not self.product_line or not self.device_name:
-            raise CameraError(f"{where}: product_line and device_name must be non-empty")
-        if self.removed_in_sdk is not None and not _VERSION_RE.match(str(self.removed_in_sdk)):
-            raise CameraError(f"{where}: removed_in_sdk must look like '2.54', got {self.removed_in_sdk!r}")
+            raise ConfigError(f"camera profile {self.name!r}: product_line and device_name must be non-empty")
+        if self.removed_in_sdk is not None and not _VERSION_RE.match(self.removed_in_sdk):
+            raise ConfigError(f"camera profile {self.name!r}: removed_in_sdk must look like '2.54', got {self.removed_in_sdk!r}")
 
     @classmethod
-    def from_dict(cls, name: str, data: dict) -> "CameraProfile":
+    def from_entry(cls, name: str, data: dict) -> "CameraProfile":
+        """One entry of ``profiles.json`` (the key is the name); CameraError naming the profile."""
         if not isinstance(data, dict):
             raise CameraError(f"camera profile {name!r}: expected a JSON object, got {type(data).__name__}")
-        known = {"description", "product_line", "device_name", "width", "height", "fps", "format", "depth_unit",
-                 "color", "removed_in_sdk"}
-        unknown = sorted(set(data) - known)
-        if unknown:
-            raise CameraError(f"camera profile {name!r}: unknown keys {unknown}; known: {sorted(known)}")
-        missing = sorted({"product_line", "device_name", "width", "height", "fps", "depth_unit"} - set(data))
-        if missing:
-            raise CameraError(f"camera profile {name!r}: missing keys {missing}")
-        color = data.get("color")
-        if color is not None:
-            if not isinstance(color, dict):
-                raise CameraError(f"camera profile {name!r}: 'color' must be an object or null")
-            try:
-                color = ColorProfile(**color)
-            except TypeError as e:
-                raise CameraError(f"camera profile {name!r}: bad 'color' entry ({e})") from None
-        fields = {k: v for k, v in data.items() if k != "color"}
-        return cls(name=name, color=color, **fields)
+        try:
+            return cls.from_dict({**data, "name": name})
+        except ConfigError as exc:
+            raise CameraError(f"camera profile {name!r}: {exc}") from None
 
-    def to_dict(self) -> dict:
-        out = {k: getattr(self, k) for k in ("description", "product_line", "device_name", "width", "height",
-                                             "fps", "format", "depth_unit", "removed_in_sdk")}
-        out["color"] = None if self.color is None else dict(vars(self.color))
+    def to_entry(self) -> dict:
+        """The ``profiles.json`` entry (without the name, its key)."""
+        out = self.to_dict()
+        out.pop("name")
         return out
 
     def supported_by_sdk(self, sdk_version: str) -> bool:
@@ -144,7 +117,7 @@ def _load_all(path: str) -> dict[str, CameraProfile]:
         raise CameraError(f"camera profiles file {path} is not valid JSON (line {e.lineno}: {e.msg})") from None
     if not isinstance(data, dict) or not data:
         raise CameraError(f"camera profiles file {path} must hold a non-empty JSON object of profiles")
-    return {name: CameraProfile.from_dict(name, entry) for name, entry in data.items()}
+    return {name: CameraProfile.from_entry(name, entry) for name, entry in data.items()}
 
 
 def profile_names() -> list[str]:
