@@ -96,7 +96,7 @@ def test_info_reports_problems(tmp_path, recorded, capsys):
         root[f"data/{key}"].append(root[f"data/{key}"][:3])  # an interrupted append
     (can_log_dir(path) / "episode_000001.sim.blf").unlink()
     code, out, _ = run(capsys, "info", path)
-    assert code == 0
+    assert code == 1  # problems listed
     assert "3 steps after the last episode end: a write was interrupted" in out
     assert "data/state holds NaN or inf in episode(s) 0" in out
     assert "episode 1: the action jumps by" in out

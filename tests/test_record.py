@@ -238,7 +238,7 @@ def test_stream_problems_mark_the_episode(tmp_path, capsys):
     from dssp_train.cli.data import main as data_main
 
     capsys.readouterr()
-    assert data_main(["info", str(out)]) == 0
+    assert data_main(["info", str(out)]) == 1  # it lists problems
     text = capsys.readouterr().out
     assert "episode 0 was recorded with problems: stale camera at 8 step(s) from step 33; missing follower feedback " \
            "at 9 step(s) from step 12; dropped camera frames at 10 step(s) from step 31" in text

@@ -4,11 +4,15 @@
     dssp-data view PATH --episode K [--out DIR] [--steps N] [--video]
     dssp-data replay PATH --episode K [--can can0[,can1]|sim] [--send] [--rate HZ] [--safety FILE] [--interface IF]
     dssp-data merge OUT IN IN... [--drop-marked] [--force]
-    dssp-data split PATH --train OUT --val OUT (--val-ratio R | --val-episodes 1,5) [--seed S] [--drop-marked] [--force]
+    dssp-data split PATH --train OUT --val OUT (--val-ratio R | --val-episodes 1,5) [--seed S] [--drop-marked]
+                    [--drop-episodes 3,7-9] [--force]
     dssp-data convert ROBOTWIN_DIR --out OUT.zarr [--episodes N] [--xyz] [--control-rate HZ] [--task NAME] [--force]
     dssp-data repair PATH
 
-Every problem with the input is one ``error: ...`` line and exit code 2.
+Every problem with the input is one ``error: ...`` line and exit code 2: among them a chunk of the dataset that
+is missing or corrupt (the line names the key, the chunk, its steps and episodes). ``info`` exits with 1 when it
+lists problems with the data, 0 when it finds none; ``repair`` exits with 2 when the dataset has lost data it
+cannot restore, and changes nothing then.
 """
 
 from __future__ import annotations
@@ -24,12 +28,14 @@ from dssp_train.errors import DSSPError
 
 EPILOG = """\
 info      episodes, lengths, rates, arrays, value ranges, attributes, recording metadata, problems found
+          (exit 1 when it lists problems, 2 when the dataset cannot be read, e.g. a missing or corrupt chunk)
 view      PNG pictures of one episode: point clouds over time from three viewpoints, state/action trajectories
 replay    send an episode's actions to the arms through the safety layer; a dry run unless --send
 merge     concatenate datasets (episodes, per-episode metadata and CAN logs travel along)
-split     train/validation datasets by whole episodes
+split     train/validation datasets by whole episodes (--drop-episodes leaves episodes out, e.g. lost ones)
 convert   RoboTwin raw HDF5 episodes (<task>/<config>/data/episode*.hdf5) to a DP3 zarr dataset
-repair    cut off the steps of an interrupted write (every complete episode stays)
+repair    cut off the steps of an interrupted write (every complete episode stays); lost data (a missing or
+          corrupt chunk of a complete episode) cannot be repaired: exit 2, nothing changed
 """
 
 
@@ -74,6 +80,7 @@ def build_parser() -> argparse.ArgumentParser:
     split.add_argument("--seed", type=int, default=0)
     split.add_argument("--force", action="store_true", help="replace existing outputs")
     split.add_argument("--drop-marked", action="store_true", help="leave out episodes recorded with problems")
+    split.add_argument("--drop-episodes", help="leave out these episodes, e.g. 3,7-9 (those whose data is lost)")
 
     convert = sub.add_parser("convert", help="RoboTwin raw HDF5 episodes -> DP3 zarr")
     convert.add_argument("source", type=Path, help="RoboTwin <task>/<config> directory, its data/ directory, or one .hdf5")
@@ -94,7 +101,7 @@ def _info(args) -> int:
 
     report = inspect_dataset(args.path)
     print(json.dumps(report, indent=2) if args.json else format_report(report))
-    return 0
+    return 1 if report["problems"] else 0
 
 
 def _view(args) -> int:
@@ -111,13 +118,7 @@ def _replay(args) -> int:
     from hardware.replay import replay_episode
     from hardware.safety import SafetyConfig
 
-    safety = SafetyConfig()
-    if args.safety:
-        try:
-            values = json.loads(args.safety.read_text())
-        except (OSError, json.JSONDecodeError) as exc:
-            raise DSSPError(f"safety file {args.safety} cannot be read as JSON ({exc})") from None
-        safety = SafetyConfig.from_dict(values)
+    safety = SafetyConfig.load(args.safety, "safety") if args.safety else SafetyConfig()
     stop = {"why": None}
     handlers = {s: signal.signal(s, lambda signum, _f: stop.update(why=signal.Signals(signum).name))
                 for s in (signal.SIGINT, signal.SIGTERM)}
@@ -159,14 +160,34 @@ def _split(args) -> int:
             episodes = [int(x) for x in args.val_episodes.split(",") if x.strip()]
         except ValueError:
             raise DSSPError(f"--val-episodes must be comma-separated integers, got {args.val_episodes!r}") from None
+    drop = _episode_list(args.drop_episodes, "--drop-episodes") if args.drop_episodes is not None else []
     result = split(args.path, args.train, args.val, val_ratio=args.val_ratio, val_episodes=episodes, seed=args.seed,
-                   force=args.force, drop_marked=args.drop_marked)
+                   force=args.force, drop_marked=args.drop_marked, drop_episodes=drop)
     if result["dropped"]:
         print(f"left out episodes {result['dropped']} (recorded with problems)")
+    if result["left_out"]:
+        print(f"left out episodes {result['left_out']} (--drop-episodes)")
     for part, target in (("train", args.train), ("val", args.val)):
         s = result[f"{part}_summary"]
         print(f"wrote {target}: {s['episodes']} episodes, {s['steps']} steps (source episodes {result[part]})")
     return 0
+
+
+def _episode_list(text: str, option: str) -> list[int]:
+    """Episode indices from ``3,7-9`` (ranges inclusive)."""
+    episodes = []
+    try:
+        for part in (p.strip() for p in text.split(",")):
+            if not part:
+                continue
+            first, _, last = part.partition("-")
+            a, b = int(first), int(last) if last else int(first)
+            if b < a:
+                raise ValueError(part)
+            episodes += range(a, b + 1)
+    except ValueError:
+        raise DSSPError(f"{option} must be comma-separated episode indices or ranges (3,7-9), got {text!r}") from None
+    return episodes
 
 
 def _convert(args) -> int:

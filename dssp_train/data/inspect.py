@@ -8,7 +8,12 @@ measured rate of recorded episodes; every array under ``data/`` and ``meta/`` wi
 per-channel value ranges of state and action and the point clouds' coordinate ranges; the root
 attributes; per-episode recording metadata (``dssp_train.data.recording``); and ``problems`` (must be
 looked at: NaN, an interrupted write, marked episodes, missing CAN logs, timestamp gaps, ...) and
-``notes`` (worth knowing). The dataset is read one episode at a time.
+``notes`` (worth knowing). The dataset is read one episode at a time, through the dataset reader's checked
+path; first every chunk of every array is checked without decoding (stored, and a whole Blosc frame), so a
+missing or corrupt chunk anywhere, also in arrays the report does not read, raises DatasetError naming the
+key and the chunk (``dssp-data info``: exit 2) instead of reading as zeros. CAN-log names in
+``episode_info`` are resolved only inside the dataset's CAN-log folder; a name that points elsewhere is a
+problem, and that file is not looked at.
 """
 
 from __future__ import annotations
@@ -28,9 +33,11 @@ from dssp_train.data.recording import (
     STEP_PROBLEMS,
     can_log_dir,
     convention_name,
+    episode_can_logs,
     episode_infos,
 )
 from dssp_train.data.replay_buffer import DATA_KEYS, ReplayBufferReader
+from dssp_train.errors import DatasetError
 
 MAX_JOINT_JUMP = 0.5
 """rad: a recorded joint action changing more than this in one step is reported (a teleoperation glitch)."""
@@ -54,15 +61,19 @@ def _is_recorded(attrs: Mapping) -> bool:
 def inspect_dataset(path: str | os.PathLike) -> dict:
     """Read ``path`` episode by episode and return the report (see the module docstring).
 
-    Raises DatasetError when the dataset cannot be opened at all (missing keys, broken store); problems
-    with its values are listed in the report instead.
+    Raises DatasetError when the dataset cannot be opened or read (missing keys, a missing or corrupt chunk:
+    lost data); problems with its values are listed in the report instead.
     """
     path = Path(path)
     reader = ReplayBufferReader(path, allow_incomplete_tail=True)
+    unstored = reader.check_chunks()
     attrs = reader.attrs
     lengths = reader.episode_lengths()
     problems: list[str] = []
     notes: list[str] = []
+    for key, n in unstored.items():
+        notes.append(f"{key}: {n} chunk(s) are not stored and read as the fill value (zarr leaves out chunks that "
+                     f"hold only it); this array does not record that every chunk was written")
     recorded = _is_recorded(attrs)
 
     state_lo = state_hi = action_lo = action_hi = cloud_lo = cloud_hi = None
@@ -165,11 +176,16 @@ def inspect_dataset(path: str | os.PathLike) -> dict:
             entry["clean"] = not entry["problems"]
             if isinstance(info.get("sim"), dict):
                 entry["sim"] = info["sim"]
-            logs = info.get("can_logs") or {}
-            entry["can_logs"] = logs
-            for name in logs.values():
+            entry["can_logs"] = info.get("can_logs") or {}
+            try:
+                logs = episode_can_logs(path, info, i)
+            except DatasetError as exc:
+                problems.append(f"{exc} (not looked at)")
+                logs = {}
+            for log in logs.values():
+                name = log.relative_to(log_dir).as_posix()
                 referenced.add(name)
-                if not (log_dir / name).is_file():
+                if not log.is_file():
                     missing_logs.append(f"{name} (episode {i})")
             if info.get("can_log_errors"):
                 problems.append(f"episode {i}: its CAN log stopped early ({info['can_log_errors']})")
@@ -229,6 +245,8 @@ def inspect_dataset(path: str | os.PathLike) -> dict:
 
 
 def _problem_text(problem: dict) -> str:
+    if not isinstance(problem, dict):
+        return str(problem)
     what = problem.get("what") or PROBLEM_TEXT.get(problem.get("kind"), str(problem.get("kind")))
     if problem.get("kind") == "rate":
         return f"{what} ({problem.get('measured_hz')} Hz)"

@@ -25,7 +25,9 @@ before the episode's data, so after a crash it may hold one entry more than ther
 with :func:`episode_infos`.
 
 Raw CAN traffic of each kept episode: ``<dataset>.can/episode_000012.can0.blf`` (one per bus), written
-as ``...partial-<session>.blf`` while recording and renamed when the episode is kept.
+as ``...partial-<session>.blf`` while recording and renamed when the episode is kept. ``episode_info``
+names them (``can_logs``: {bus: file name}); a name read from a dataset is used only through
+:func:`can_log_path`, which refuses anything that does not stay inside that folder.
 """
 
 from __future__ import annotations
@@ -105,6 +107,39 @@ def can_log_dir(dataset: str | os.PathLike) -> Path:
     """Directory of a dataset's CAN logs: ``<dataset>.can`` next to it."""
     dataset = Path(dataset)
     return dataset.with_name(dataset.name + ".can")
+
+
+def can_log_path(dataset: str | os.PathLike, name, episode: int | None = None) -> Path:
+    """The CAN log that a dataset's ``episode_info[episode].can_logs`` names: ``can_log_dir(dataset) / name``.
+
+    The name is read from the dataset, so it must stay inside the dataset's CAN-log folder: a relative
+    path without ``..`` that still lies inside the folder with symbolic links resolved. Anything else (an
+    absolute path, ``../../etc/passwd``, a link leading out) raises DatasetError; nothing is read.
+    """
+    folder = can_log_dir(dataset)
+    what = f"{dataset}: episode_info[{'?' if episode is None else episode}].can_logs"
+    remedy = f"a dataset may only name files in {folder.name}/; fix episode_info or leave the episode out"
+    if not isinstance(name, str) or not name.strip() or "\0" in name:
+        raise DatasetError(f"{what} names {name!r}, not a file name: {remedy}")
+    relative = Path(name)
+    if relative.is_absolute() or ".." in relative.parts:
+        raise DatasetError(f"{what} names {name!r}, a path outside the CAN-log folder {folder}: {remedy}")
+    path = folder / relative
+    base, real = os.path.realpath(folder), os.path.realpath(path)
+    if real == base or os.path.commonpath([base, real]) != base:
+        raise DatasetError(f"{what} names {name!r}, which leads outside the CAN-log folder {folder} (a symbolic "
+                           f"link?): {remedy}")
+    return path
+
+
+def episode_can_logs(dataset: str | os.PathLike, info: Mapping | None, episode: int) -> dict[str, Path]:
+    """{bus: path} of the CAN logs an ``episode_info`` entry names, each checked by :func:`can_log_path`
+    (the files need not exist)."""
+    logs = (info or {}).get("can_logs") or {}
+    if not isinstance(logs, Mapping):
+        raise DatasetError(f"{dataset}: episode_info[{episode}].can_logs is {type(logs).__name__}, not an object "
+                           f"{{bus: file name}}: fix episode_info or leave the episode out")
+    return {str(bus): can_log_path(dataset, name, episode) for bus, name in logs.items()}
 
 
 def _channel_tag(channel: str) -> str:

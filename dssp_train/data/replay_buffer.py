@@ -35,15 +35,41 @@ drops exactly those steps and records how many in
 (``add_episode(episode, attrs=...)``) are written before its data, so after a
 crash they may describe one episode more than ``meta/episode_ends`` holds:
 readers index such per-episode attributes by episode count.
+
+Chunks. Every read goes through one checked path (:class:`_StoredArray`): before reading a key, the
+chunks the read needs are looked up in the store's listing (zarr 2 names them ``data/action/3.0``,
+zarr 3 ``data/action/c/3/0``; the array's metadata says which); then each chunk's bytes are fetched,
+a Blosc frame is checked against the bytes actually stored (its header's size and block offsets), and
+the whole chunk is decoded with the array's codecs. A slice is never decompressed in part: zarr 2's
+partial decompression (``partial_decompress``) calls c-blosc's ``blosc_getitem``, which is given no
+buffer length and follows the offsets in the frame's header, so a truncated chunk file makes it read
+past the end of the buffer and kill the process (SIGSEGV); old c-blosc did the same when decompressing
+a whole chunk (numcodecs issue 228). Checking the header against the bytes actually stored before any
+decoder sees them keeps that out of reach whatever the installed versions. A chunk that is missing,
+truncated or does not decode raises :class:`~dssp_train.errors.DatasetError` naming the key, the chunk, its steps
+and episodes, and what to do. Blosc frames carry no checksum: bytes overwritten inside a frame whose
+header still fits decode to wrong values that only the NaN/inf checks may notice.
+
+Empty chunks. zarr 3 does not store a chunk that holds only the fill value (``write_empty_chunks``
+off, its default), so a missing chunk file would read as zeros. This package's writer stores every
+chunk (``write_empty_chunks=True``, also when appending) and marks each array it creates with the
+attribute ``every_chunk_written``; in such an array, and in ``data/point_cloud``, ``data/state``,
+``data/action`` and ``meta/episode_ends`` of any dataset (zarr 2, which DP3 and RoboTwin use, stores
+every chunk, and a whole chunk of exact zeros is no recording), a missing chunk is lost data and an
+error. In an extra array without the mark (written by other tools, or before the mark existed) a
+missing chunk reads as the fill value, as zarr reads it; :meth:`ReplayBufferReader.check_chunks`
+counts them and ``dssp-data info`` says so. Appending to a dataset whose arrays hold every chunk
+marks them.
 """
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import shutil
 import uuid
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -51,6 +77,9 @@ import numcodecs
 import numpy as np
 import zarr
 import zarr.codecs
+from zarr.abc.store import RangeByteRequest
+from zarr.core.buffer import default_buffer_prototype
+from zarr.core.sync import sync
 
 from dssp_train.errors import DatasetError
 
@@ -274,13 +303,262 @@ def _get_array(group: zarr.Group, key: str, where: str) -> zarr.Array:
     return node
 
 
-def _read(array: zarr.Array, key: str, n_steps: int | None, where: str) -> np.ndarray:
-    try:
-        return np.asarray(array[:n_steps] if n_steps is not None else array[...])
-    except Exception as exc:
-        raise DatasetError(
-            f"{where}: cannot read {key} ({_describe(exc)}); the store may be corrupt: rewrite it"
-        ) from exc
+# --------------------------------------------------------------------------- chunks
+
+EVERY_CHUNK_ATTR = "every_chunk_written"
+"""Array attribute set by this package's writer: every chunk the array covers is stored, also those that
+hold only the fill value, so a missing chunk file is lost data (see the module docstring)."""
+WRITE_CONFIG = {"write_empty_chunks": True}
+"""zarr array config for writing: store every chunk."""
+_BLOSC_NAMES = ("blosc", "numcodecs.blosc")
+_BLOSC_HEADER = 16
+_BLOSC_MEMCPYED = 0x02
+_PROBE_BYTES = 1 << 16
+"""Bytes fetched to check a Blosc frame's header and block offsets without reading the whole chunk."""
+
+
+async def _collect(iterator) -> list:
+    return [item async for item in iterator]
+
+
+def _blosc_problem(read: Callable[[int, int], np.ndarray], size: int, expected_nbytes: int | None) -> str | None:
+    """What is wrong with a stored Blosc frame of ``size`` bytes, or None if its header fits the bytes.
+
+    ``read(start, end)`` returns bytes [start, end) of the frame as uint8. c-blosc trusts the header
+    (compressed size, block offsets) and reads where it points; checking it against the bytes actually
+    stored turns a truncated or overwritten chunk into an error instead of a read past the buffer.
+    """
+    if size < _BLOSC_HEADER:
+        return f"{size} bytes, shorter than a Blosc header"
+    head = read(0, _BLOSC_HEADER)
+    flags = int(head[2])
+    nbytes, blocksize, cbytes = (int(v) for v in np.frombuffer(head[4:16].tobytes(), "<u4"))
+    if cbytes > size:
+        return f"truncated: {size} of the {cbytes} bytes its Blosc header announces"
+    if cbytes != size:
+        return f"{size} bytes where its Blosc header announces {cbytes}: not a Blosc frame"
+    if expected_nbytes is not None and nbytes != expected_nbytes:
+        return f"its Blosc header announces {nbytes} bytes of data, a chunk of this array holds {expected_nbytes}"
+    if flags & _BLOSC_MEMCPYED:
+        return None if cbytes == nbytes + _BLOSC_HEADER else "its Blosc header is inconsistent (stored uncompressed)"
+    if nbytes == 0:
+        return None
+    if blocksize == 0:
+        return "its Blosc header gives a block size of 0"
+    first = _BLOSC_HEADER + 4 * -(-nbytes // blocksize)
+    if first > size:
+        return f"its Blosc block table needs {first} bytes, the file holds {size}"
+    starts = np.frombuffer(read(_BLOSC_HEADER, first).tobytes(), "<i4")
+    if starts.size and (starts.min() < first or starts.max() >= size):
+        return "its Blosc block offsets point outside the file"
+    return None
+
+
+def _episode_span(ends: np.ndarray | None, start: int, end: int) -> tuple[int, int] | None:
+    """(first, last) episode that holds any of the steps [start, end), or None."""
+    if ends is None or end <= start or start >= int(ends[-1]):
+        return None
+    first = int(np.searchsorted(ends, start, side="right"))
+    last = min(int(np.searchsorted(ends, end - 1, side="right")), len(ends) - 1)
+    return first, last
+
+
+class _StoredArray:
+    """One array of a dataset on disk, read through the checked path (see the module docstring).
+
+    The chunk grid is the array's (a shard per store key for sharded zarr 3 arrays); chunks are
+    indexed along time (axis 0); a read of steps [start, end) needs every chunk of the time chunks it
+    touches. ``strict``: a missing chunk is lost data (required keys, arrays this package wrote);
+    otherwise it reads as the fill value.
+    """
+
+    def __init__(self, array: zarr.Array, key: str, where: str):
+        self.array, self.key, self.where = array, key, where
+        metadata = array.metadata
+        grid = getattr(metadata, "chunk_grid", None)
+        chunk_shape = getattr(grid, "chunk_shape", None)
+        if chunk_shape is None or len(chunk_shape) != len(array.shape) or min(chunk_shape, default=1) < 1:
+            raise DatasetError(f"{where}: {key} uses a chunk grid this reader does not know ({type(grid).__name__}): "
+                               f"rewrite it with regular chunks")
+        self.chunk_shape = tuple(int(n) for n in chunk_shape)
+        self.grid = tuple(-(-int(n) // c) for n, c in zip(array.shape, self.chunk_shape))
+        self.dtype = np.dtype(array.dtype)
+        self.marked = array.attrs.get(EVERY_CHUNK_ATTR) is True
+        self.strict = key in REQUIRED_KEYS or self.marked
+        self.blosc, self.expected_nbytes = self._frame_format()
+        self._stored: frozenset[str] | None = None
+
+    def _frame_format(self) -> tuple[bool, int | None]:
+        """(chunks are stored as Blosc frames, decoded bytes of one chunk if known)."""
+        metadata = self.array.metadata
+        whole = int(np.prod(self.chunk_shape, dtype=np.int64)) * self.dtype.itemsize
+        if metadata.zarr_format == 2:
+            compressor = getattr(metadata, "compressor", None)
+            is_blosc = getattr(compressor, "codec_id", None) == "blosc"
+            return is_blosc, (whole if is_blosc and not metadata.filters else None)
+        names = [c.get("name") if isinstance(c, dict) else None for c in metadata.to_dict().get("codecs", [])]
+        if not names or names[-1] not in _BLOSC_NAMES:
+            return False, None
+        plain = len(names) >= 2 and names[-2] == "bytes" and all(n == "transpose" for n in names[:-2])
+        return True, (whole if plain else None)
+
+    # ---- where a chunk is, and what its loss means
+    def store_key(self, coords: tuple[int, ...]) -> str:
+        """The chunk's key in the store, e.g. ``data/action/3.0`` (zarr 2) or ``data/action/c/3/0`` (zarr 3)."""
+        return f"{self.array.path}/{self.array.metadata.encode_chunk_key(coords)}"
+
+    def coords(self, c: int):
+        """Grid coordinates of every chunk of time chunk ``c``."""
+        return itertools.product([c], *(range(n) for n in self.grid[1:]))
+
+    def stored(self) -> frozenset[str]:
+        """The keys the store lists under this array (listed once)."""
+        if self._stored is None:
+            try:
+                self._stored = frozenset(sync(_collect(self.array.store.list_prefix(self.array.path))))
+            except Exception as exc:
+                raise DatasetError(f"{self.where}: cannot list the chunks of {self.key} ({_describe(exc)}); "
+                                   f"the store may be corrupt: check the disk and restore the dataset from a copy") from exc
+        return self._stored
+
+    def _steps(self, c: int) -> tuple[int, int]:
+        size = self.chunk_shape[0]
+        return c * size, min((c + 1) * size, int(self.array.shape[0]))
+
+    def _lost(self, c: int, what: str, ends: np.ndarray | None) -> DatasetError:
+        a, b = self._steps(c)
+        if self.key == ENDS_KEY:
+            return DatasetError(f"{self.where}: {self.key} chunk {c} (episodes {a}..{b - 1}) {what}: the episode "
+                                f"boundaries are lost; restore the dataset from a copy (dssp-data repair cannot "
+                                f"restore lost data)")
+        span = _episode_span(ends, a, b)
+        if span is None:
+            where = f"steps {a}..{b - 1}"
+            remedy = "restore the dataset from a copy or rewrite it"
+        else:
+            i, j = span
+            episodes = f"episode {i}" if i == j else f"episodes {i}..{j}"
+            where = f"steps {a}..{b - 1}, {episodes}"
+            remedy = (f"re-record or re-convert {episodes}, or leave {'it' if i == j else 'them'} out with "
+                      f"dssp-data split {self.where} --train OUT --val OUT --val-ratio R "
+                      f"--drop-episodes {i if i == j else f'{i}-{j}'}")
+        return DatasetError(f"{self.where}: {self.key} chunk {c} ({where}) {what}: {remedy} "
+                            f"(dssp-data repair cannot restore lost data)")
+
+    def _time_chunks(self, start: int, end: int) -> range:
+        if end <= start:
+            return range(0)
+        size = self.chunk_shape[0]
+        return range(start // size, (end - 1) // size + 1)
+
+    def missing(self, start: int, end: int) -> list[tuple[int, str]]:
+        """(time chunk, store key) of each chunk that steps [start, end) need and the store does not list."""
+        stored = self.stored()
+        return [(c, key) for c in self._time_chunks(start, end) for key in map(self.store_key, self.coords(c))
+                if key not in stored]
+
+    def check_present(self, start: int, end: int, ends: np.ndarray | None) -> int:
+        """Raise DatasetError for the first chunk of steps [start, end) that is not stored, if ``strict``;
+        return the number of chunks not stored (read as the fill value) otherwise."""
+        missing = self.missing(start, end)
+        if missing and self.strict:
+            c, key = missing[0]
+            raise self._lost(c, f"is missing (no {key} in the store)", ends)
+        return len(missing)
+
+    def probe(self, start: int, end: int, ends: np.ndarray | None, decode: bool = False) -> int:
+        """:meth:`check_present`, then check each stored chunk of steps [start, end): its Blosc frame
+        against its size without decoding it (a few kilobytes read per chunk), or, with ``decode``, by
+        decoding it (one time chunk in memory at a time)."""
+        n_missing = self.check_present(start, end, ends)
+        if decode:
+            size = self.chunk_shape[0]
+            for c in self._time_chunks(start, end):
+                self.read(max(start, c * size), min(end, (c + 1) * size), ends)
+            return n_missing
+        if not self.blosc:
+            return n_missing
+        stored = self.stored()
+        for c in self._time_chunks(start, end):
+            for key in map(self.store_key, self.coords(c)):
+                if key not in stored:
+                    continue
+                try:
+                    problem = self._stored_frame_problem(key)
+                except Exception as exc:  # the store raises OSError and others
+                    raise self._lost(c, f"cannot be read ({_describe(exc)}; {key})", ends) from exc
+                if problem:
+                    raise self._lost(c, f"is corrupt ({problem}; {key})", ends)
+        return n_missing
+
+    def _stored_frame_problem(self, key: str) -> str | None:
+        """:func:`_blosc_problem` of the stored chunk ``key``, reading only its header and block table."""
+        store, prototype = self.array.store, default_buffer_prototype()
+        size = int(sync(store.getsize(key)))
+
+        def read(a: int, b: int) -> np.ndarray:
+            got = sync(store.get(key, prototype=prototype, byte_range=RangeByteRequest(a, b)))
+            if got is None:
+                raise FileNotFoundError(key)
+            return got.as_numpy_array()
+
+        head = read(0, min(size, _PROBE_BYTES))
+        return _blosc_problem(lambda a, b: head[a:b] if b <= head.size else read(a, b), size, self.expected_nbytes)
+
+    # ---- reading
+    def _decode(self, c: int, coords: tuple[int, ...], ends: np.ndarray | None) -> np.ndarray:
+        """The whole chunk at ``coords`` (its full chunk shape), checked and decoded."""
+        key = self.store_key(coords)
+        prototype = default_buffer_prototype()
+        try:
+            buffer = sync(self.array.store.get(key, prototype=prototype))
+        except Exception as exc:  # the store raises OSError and others
+            raise self._lost(c, f"cannot be read ({_describe(exc)}; {key})", ends) from exc
+        if buffer is None:
+            if self.strict:
+                raise self._lost(c, f"is missing (no {key} in the store)", ends)
+            fill = self.array.fill_value
+            return np.full(self.chunk_shape, 0 if fill is None else fill, dtype=self.dtype)
+        raw = buffer.as_numpy_array()
+        problem = _blosc_problem(lambda a, b: raw[a:b], raw.size, self.expected_nbytes) if self.blosc else None
+        if problem:
+            raise self._lost(c, f"is corrupt ({problem}; {key})", ends)
+        try:  # the whole chunk, by the array's own codecs
+            spec = self.array.metadata.get_chunk_spec(coords, self.array.async_array.config, prototype)
+            (decoded,) = sync(self.array.async_array.codec_pipeline.decode([(buffer, spec)]))
+        except Exception as exc:  # each codec raises its own types
+            raise self._lost(c, f"is corrupt (it does not decode: {_describe(exc)}; {key})", ends) from exc
+        values = None if decoded is None else decoded.as_numpy_array()
+        if values is None or values.shape != self.chunk_shape:
+            got = "nothing" if values is None else f"shape {values.shape}"
+            raise self._lost(c, f"is corrupt (it decodes to {got}, expected {self.chunk_shape}; {key})", ends)
+        return values
+
+    def read(self, start: int, end: int, ends: np.ndarray | None = None) -> np.ndarray:
+        """Steps [start, end) (0 <= start, end <= length) in the stored dtype, chunk by whole chunk."""
+        shape = tuple(int(n) for n in self.array.shape)
+        start, end = max(0, start), min(end, shape[0])
+        out = np.empty((max(0, end - start),) + shape[1:], dtype=self.dtype)
+        self.check_present(start, end, ends)
+        size = self.chunk_shape[0]
+        for c in self._time_chunks(start, end):
+            lo, hi = max(start, c * size), min(end, (c + 1) * size)
+            for coords in self.coords(c):
+                chunk = self._decode(c, coords, ends)
+                src, dst = [slice(lo - c * size, hi - c * size)], [slice(lo - start, hi - start)]
+                for axis in range(1, len(shape)):
+                    a = coords[axis] * self.chunk_shape[axis]
+                    b = min(a + self.chunk_shape[axis], shape[axis])
+                    src.append(slice(0, b - a))
+                    dst.append(slice(a, b))
+                out[tuple(dst)] = chunk[tuple(src)]
+        return out
+
+
+def _read(array: zarr.Array, key: str, where: str, end: int | None = None,
+          ends: np.ndarray | None = None) -> np.ndarray:
+    """Steps [0, end) of ``array`` (all of it if ``end`` is None) through the checked path."""
+    return _StoredArray(array, key, where).read(0, int(array.shape[0]) if end is None else end, ends)
 
 
 def _open_required(path: Path, mode: str) -> tuple[zarr.Group, dict[str, zarr.Array], np.ndarray]:
@@ -290,7 +568,7 @@ def _open_required(path: Path, mode: str) -> tuple[zarr.Group, dict[str, zarr.Ar
     arrays = {key: _get_array(group, key, where) for key in REQUIRED_KEYS}
     _check_data_structure(*(arrays[f"data/{k}"] for k in DATA_KEYS), where)
     _check_ends_structure(arrays[ENDS_KEY], where)
-    ends = _read(arrays[ENDS_KEY], ENDS_KEY, None, where).astype(np.int64)
+    ends = _read(arrays[ENDS_KEY], ENDS_KEY, where).astype(np.int64)
     _check_episode_ends(ends, where)
     return group, arrays, ends
 
@@ -414,11 +692,12 @@ class ReplayBuffer:
         n_steps, dropped = _resolve_length(lengths, int(ends[-1]), allow_incomplete_tail, where)
         values = {}
         for key in REQUIRED_KEYS[:3]:
-            raw = _read(arrays[key], key, n_steps, where)
+            raw = _read(arrays[key], key, where, n_steps, ends)
             with np.errstate(over="ignore"):
                 values[key] = raw.astype(np.float32, copy=False)
             _check_finite(key, values[key], ends, where)
-        extra_values = {name: _read(array, f"data/{name}", n_steps, where) for name, array in extra_arrays.items()}
+        extra_values = {name: _read(array, f"data/{name}", where, n_steps, ends)
+                        for name, array in extra_arrays.items()}
         buffer = cls.__new__(cls)
         buffer._set(values, ends, group.attrs.asdict(), dropped, extra_values)
         return buffer
@@ -493,7 +772,9 @@ class ReplayBufferReader:
     """A dataset on disk, read one episode (or one slice) at a time: nothing is loaded up front.
 
     The structure and episode ends are checked on opening, like
-    :meth:`ReplayBuffer.load`; values are checked when read.
+    :meth:`ReplayBuffer.load`; values are checked when read, each read through
+    the checked path of the module docstring (the chunks it needs must be stored
+    and decode). :meth:`check_chunks` checks every chunk without decoding.
 
     Attributes:
         path: the dataset's root directory.
@@ -516,6 +797,7 @@ class ReplayBufferReader:
         lengths.update({f"data/{name}": array.shape[0] for name, array in extras.items()})
         n_steps, dropped = _resolve_length(lengths, int(ends[-1]), allow_incomplete_tail, where)
         self._arrays = {**{k: v for k, v in arrays.items()}, **{f"data/{n}": a for n, a in extras.items()}}
+        self._stored = {key: _StoredArray(array, key, where) for key, array in self._arrays.items()}
         self.zarr_format = group.metadata.zarr_format
         self.attrs = group.attrs.asdict()
         self.episode_ends = ends
@@ -545,14 +827,43 @@ class ReplayBufferReader:
         return (int(self.episode_ends[i - 1]) if i > 0 else 0), int(self.episode_ends[i])
 
     def read(self, key: str, start: int = 0, end: int | None = None) -> np.ndarray:
-        """Steps [start, end) of ``key`` (e.g. ``data/state``) in its stored dtype."""
+        """Steps [start, end) of ``key`` (e.g. ``data/state``) in its stored dtype: (end - start, ...).
+
+        ``end`` defaults to :attr:`n_steps`; negative indices count from the stored length.
+
+        Raises:
+            DatasetError: a chunk the steps need is missing or corrupt (the message names the key,
+                the chunk, its steps and episodes), or there is no such key.
+        """
         if key not in self._arrays:
             raise DatasetError(f"{self.path}: no array {key}")
-        end = self._n_steps if end is None else end
-        try:
-            return np.asarray(self._arrays[key][start:end])
-        except Exception as exc:
-            raise DatasetError(f"{self.path}: cannot read {key} ({_describe(exc)}); the store may be corrupt: rewrite it") from exc
+        length = int(self._arrays[key].shape[0])
+        start, end, _ = slice(start, self._n_steps if end is None else end).indices(length)
+        return self._stored[key].read(start, max(start, end), self.episode_ends)
+
+    def check_chunks(self, keys: Sequence[str] | None = None, decode: bool = False) -> dict[str, int]:
+        """Check every chunk of ``keys`` (default: every array) over the episodes' steps.
+
+        Each must be listed by the store and, for Blosc-compressed arrays, hold a whole Blosc frame
+        (header and block offsets that fit the bytes stored; a few kilobytes read per chunk). With
+        ``decode``, each chunk is also decoded (the whole dataset is read, one chunk at a time).
+
+        Returns:
+            {key: number of chunks not stored} for arrays whose chunks that hold only the fill value may
+            be left out (extras without the ``every_chunk_written`` mark); they read as the fill value.
+
+        Raises:
+            DatasetError: the first missing or broken chunk (key, chunk, steps, episodes, what to do).
+        """
+        unstored = {}
+        for key in (sorted(self._arrays) if keys is None else keys):
+            if key not in self._stored:
+                raise DatasetError(f"{self.path}: no array {key}")
+            stored = self._stored[key]
+            n = stored.probe(0, self.n_episodes if key == ENDS_KEY else self._n_steps, self.episode_ends, decode)
+            if n:
+                unstored[key] = n
+        return unstored
 
     def episode(self, i: int, extras: bool | Sequence[str] = True, check_finite: bool = True) -> Episode:
         """Episode ``i``: point_cloud, state, action as float32 and the extras asked for (stored dtype).
@@ -642,7 +953,8 @@ def _write_store(path: Path, episodes: Sequence[Episode], attrs: dict, zarr_form
     root = zarr.open_group(str(path), mode="w-", zarr_format=zarr_format, attributes=attrs)
     data = root.create_group("data")
     meta = root.create_group("meta")
-    codec = _compressor_kwargs(zarr_format)
+    # every chunk is stored, also one that holds only the fill value: a missing chunk is then lost data
+    codec = {**_compressor_kwargs(zarr_format), "config": WRITE_CONFIG, "attributes": {EVERY_CHUNK_ATTR: True}}
     for key in DATA_KEYS:
         values = np.concatenate([getattr(ep, key) for ep in episodes], axis=0)
         array = data.create_array(key, shape=values.shape, dtype=np.float32,
@@ -732,11 +1044,13 @@ class ReplayBufferWriter:
     """Append episodes one at a time to a new or existing dataset.
 
     A new dataset appears on disk, written atomically, with its first episode.
-    For an existing one, its structure and episode ends are checked (point
-    values are not read) and episodes are appended: the data arrays (and
-    extras) first, ``meta/episode_ends`` last, so an interrupted append leaves
-    every earlier episode readable (see the module docstring). Use as a
-    context manager::
+    For an existing one, its structure and episode ends are checked, every chunk
+    must be stored with a whole frame and the last chunk of each array (which an
+    append rewrites) must decode (other values are not read); episodes are then
+    appended: the data arrays (and extras) first, ``meta/episode_ends`` last, so
+    an interrupted append leaves every earlier episode readable (see the module
+    docstring). Every chunk is stored, also one that holds only the fill value.
+    Use as a context manager::
 
         with ReplayBufferWriter("demo.zarr", attrs={"control_rate_hz": 10.0}) as writer:
             writer.add_episode(episode)
@@ -764,6 +1078,7 @@ class ReplayBufferWriter:
             _check_extra_name(name, str(self.path))
         self.extra_keys = tuple(sorted(extra_keys))
         self._closed = False
+        self._unmarked: list[str] = []
         self._group: zarr.Group | None = None
         self._arrays: dict[str, zarr.Array] | None = None
         self._dims: tuple[int, int, int, int] | None = None
@@ -799,6 +1114,17 @@ class ReplayBufferWriter:
         lengths = {key: arrays[key].shape[0] for key in data_keys}
         n_steps, dropped = _resolve_length(lengths, int(ends[-1]), repair_incomplete_tail, where,
                                            remedy="open the writer with repair_incomplete_tail=True to cut them off")
+        # Every chunk of the episodes must be stored and hold a whole frame (lost data is not appended to),
+        # and the last one, which the next append reads back and rewrites, must decode.
+        arrays = {key: array.with_config(WRITE_CONFIG) for key, array in arrays.items()}
+        self._unmarked = []
+        for key, array in arrays.items():
+            stored = _StoredArray(array, key, where)
+            end = int(ends.shape[0]) if key == ENDS_KEY else n_steps
+            if stored.probe(0, end, ends) == 0 and not stored.marked:
+                self._unmarked.append(key)
+            if key != ENDS_KEY:
+                stored.read(end - 1, end, ends)
         self.dropped_tail_steps = dropped
         if dropped:
             for key in data_keys:
@@ -857,9 +1183,10 @@ class ReplayBufferWriter:
         attrs = _check_attrs(attrs)
         if self._arrays is None:
             write_replay_buffer(self.path, [episode], {**self._attrs, **attrs}, self.zarr_format)
-            self._group, self._arrays, _ = _open_required(self.path, "r+")
-            self._arrays.update({f"data/{name}": _get_array(self._group, f"data/{name}", str(self.path))
-                                 for name in self.extra_keys})
+            self._group, arrays, _ = _open_required(self.path, "r+")
+            arrays.update({f"data/{name}": _get_array(self._group, f"data/{name}", str(self.path))
+                           for name in self.extra_keys})
+            self._arrays = {key: array.with_config(WRITE_CONFIG) for key, array in arrays.items()}
             self._dims = _episode_dims(episode)
             self._layout = _layout(episode.extras)
         else:
@@ -878,6 +1205,9 @@ class ReplayBufferWriter:
             for name in self.extra_keys:
                 self._arrays[f"data/{name}"].append(episode.extras[name], axis=0)
             self._arrays[ENDS_KEY].append(np.array([self._n_steps + episode.n_steps], dtype=np.int64))
+            for key in self._unmarked:  # they held every chunk, and every chunk written from now on is stored
+                self._arrays[key].attrs[EVERY_CHUNK_ATTR] = True
+            self._unmarked = []
         self._n_steps += episode.n_steps
         self._n_episodes += 1
 

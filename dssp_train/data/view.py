@@ -10,6 +10,9 @@
   (seconds from the recorded timestamps, else step / control rate); steps with recorded problems are
   shaded red; for a recorded dataset also the age of each stream at each step (ms).
 - ``<name>_ep<K>.gif`` (``video``): the oblique view over the whole episode.
+
+The episode is read through the dataset reader's checked path: a chunk of it that is missing or corrupt
+raises DatasetError naming the key and the chunk, and nothing is drawn from zeros that were never recorded.
 """
 
 from __future__ import annotations

@@ -1,0 +1,336 @@
+"""Damaged zarr chunks: every reader raises one DatasetError line naming the key (the CLIs exit 2), never
+crashes and never reads zeros that were not written; the writer stores every chunk; CAN-log names read from
+a dataset stay inside its CAN-log folder; ``dssp-data info`` exits 1 when it lists problems."""
+
+import contextlib
+import io
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numcodecs
+import numpy as np
+import pytest
+import zarr
+from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import strategies as st
+
+from dssp_train.cli.data import main as data_main
+from dssp_train.data.edit import merge, repair, split
+from dssp_train.data.inspect import inspect_dataset
+from dssp_train.data.recording import can_log_dir
+from dssp_train.data.replay_buffer import (
+    EVERY_CHUNK_ATTR,
+    Episode,
+    ReplayBuffer,
+    ReplayBufferReader,
+    ReplayBufferWriter,
+    _blosc_problem,
+    write_replay_buffer,
+)
+from dssp_train.data.view import render_episode
+from dssp_train.errors import DatasetError
+
+FORMATS = (2, 3)
+LENGTHS = (60, 90, 70)
+"""220 steps: time chunks of 100 steps 0..99, 100..199, 200..219; episode 1 spans chunks 0 and 1."""
+ENDS = np.cumsum(LENGTHS)
+EXTRAS = ("step_problems", "timestamp")
+KEYS = ("data/point_cloud", "data/state", "data/action", "meta/episode_ends", "data/timestamp", "data/step_problems")
+SETTINGS = {"deadline": None, "derandomize": True, "database": None, "suppress_health_check": [HealthCheck.too_slow]}
+
+
+def make_episodes(lengths=LENGTHS, seed=0):
+    """Random episodes with extras; every step_problems value is 0 and the actions of steps 200.. are 0, so some
+    chunks hold only the fill value (zarr 3 would leave them out unless told to store them)."""
+    rng = np.random.default_rng(seed)
+    episodes, start = [], 0
+    for n in lengths:
+        action = rng.normal(size=(n, 7)).astype(np.float32)
+        action[max(0, 200 - start):] = 0.0
+        episodes.append(Episode(rng.normal(size=(n, 8, 3)).astype(np.float32), rng.normal(size=(n, 7)).astype(np.float32),
+                                action, {"step_problems": np.zeros(n, np.uint8),
+                                         "timestamp": np.arange(n, dtype=np.float64) / 10.0}))
+        start += n
+    return episodes
+
+
+def write_dataset(path, zarr_format, episodes=None):
+    episodes = make_episodes() if episodes is None else episodes
+    infos = [{"index": i, "can_logs": {"can0": f"episode_{i:06d}.can0.blf"}, "problems": []} for i in range(len(episodes))]
+    write_replay_buffer(path, episodes, attrs={"control_rate_hz": 10.0, "episode_info": infos}, zarr_format=zarr_format)
+    can_log_dir(path).mkdir()
+    for i in range(len(episodes)):
+        (can_log_dir(path) / f"episode_{i:06d}.can0.blf").write_bytes(b"log %d" % i)
+    return path
+
+
+def copy_dataset(src, dst):
+    shutil.copytree(src, dst)
+    shutil.copytree(can_log_dir(src), can_log_dir(dst))
+    return dst
+
+
+def chunk_file(path, key, c):
+    """The file of time chunk ``c`` of ``key`` (first chunk along the other axes), named as zarr names it."""
+    array = zarr.open_group(str(path), mode="r", use_consolidated=False)[key]
+    return Path(path) / key / array.metadata.encode_chunk_key((c,) + (0,) * (array.ndim - 1))
+
+
+def snapshot(path):
+    return {p.relative_to(path).as_posix(): p.read_bytes() for p in sorted(Path(path).rglob("*")) if p.is_file()}
+
+
+def cli(*argv):
+    """dssp-data in-process: (exit code, stdout, stderr)."""
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = data_main([str(a) for a in argv])
+    return code, out.getvalue(), err.getvalue()
+
+
+def assert_names(exc_info, key, c=None):
+    message = str(exc_info.value)
+    assert "\n" not in message and key in message, message
+    if c is not None:
+        assert f"chunk {c} " in message, message
+
+
+@pytest.fixture(scope="module")
+def originals(tmp_path_factory):
+    """{zarr format: a pristine dataset}, and the values it holds."""
+    root = tmp_path_factory.mktemp("originals")
+    paths = {fmt: write_dataset(root / f"v{fmt}.zarr", fmt) for fmt in FORMATS}
+    return paths, ReplayBuffer.load(paths[2], extras=True)
+
+
+# ------------------------------------------------------------------------------------------------ the writer
+@pytest.mark.parametrize("zarr_format", FORMATS)
+def test_writer_stores_every_chunk(tmp_path, zarr_format):
+    path = tmp_path / "ds.zarr"
+    episodes = make_episodes()
+    write_replay_buffer(path, episodes[:2], zarr_format=zarr_format)
+    with ReplayBufferWriter(path, extra_keys=EXTRAS) as writer:
+        writer.add_episode(episodes[2])  # appended chunks of fill values are stored too
+    root = zarr.open_group(str(path), mode="r", use_consolidated=False)
+    for key in KEYS:
+        array = root[key]
+        assert array.attrs[EVERY_CHUNK_ATTR] is True
+        for c in range(-(-array.shape[0] // array.chunks[0])):
+            assert chunk_file(path, key, c).is_file(), (key, c)
+    buffer = ReplayBuffer.load(path, extras=True)
+    assert not buffer.extras["step_problems"].any() and not buffer.action[200:].any()
+    assert ReplayBufferReader(path).check_chunks() == {}
+
+
+# ------------------------------------------------------------------------------------------------ every reader
+def _episode_at(key, c):
+    """An episode that the damaged chunk holds steps of (any for episode_ends)."""
+    return 0 if key == "meta/episode_ends" else int(np.searchsorted(ENDS, 100 * c, side="right"))
+
+
+def _damage(path, key, c, how, data):
+    target = chunk_file(path, key, c)
+    raw = target.read_bytes()
+    if how == "delete":
+        target.unlink()
+    elif how == "truncate":
+        target.write_bytes(raw[: data.draw(st.integers(0, len(raw) - 1), label="kept bytes")])
+    else:
+        garbage = data.draw(st.binary(min_size=0, max_size=2 * len(raw)), label="garbage")
+        assume(garbage != raw)
+        target.write_bytes(garbage)
+
+
+@pytest.mark.parametrize("zarr_format", FORMATS)
+@pytest.mark.parametrize("key", KEYS)
+@settings(max_examples=3, **SETTINGS)
+@given(data=st.data())
+def test_every_reader_reports_a_damaged_chunk(originals, zarr_format, key, data):
+    paths, pristine = originals
+    how = data.draw(st.sampled_from(["truncate", "delete", "garbage"]), label="damage")
+    n_chunks = 1 if key == "meta/episode_ends" else 3
+    c = data.draw(st.integers(0, n_chunks - 1), label="chunk")
+    chunk = None if key == "meta/episode_ends" else c
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        path = copy_dataset(paths[zarr_format], tmp / "ds.zarr")
+        clean = copy_dataset(paths[zarr_format], tmp / "clean.zarr")
+        _damage(path, key, c, how, data)
+        before = snapshot(path)
+        episode = _episode_at(key, c)
+
+        with pytest.raises(DatasetError) as info:
+            inspect_dataset(path)
+        assert_names(info, key, chunk)
+        code, _, err = cli("info", path)
+        assert code == 2 and err.count("\n") == 1 and err.startswith("error: ") and key in err, (code, err)
+
+        with pytest.raises(DatasetError) as info:
+            ReplayBufferReader(path).episode(episode)
+        assert_names(info, key, chunk)
+        with pytest.raises(DatasetError) as info:
+            render_episode(path, episode, tmp / "views")
+        assert_names(info, key, chunk)
+
+        with pytest.raises(DatasetError) as info:
+            ReplayBuffer.load(path, extras=True)
+        assert_names(info, key, chunk)
+        if key.startswith("data/") and key.split("/")[1] in EXTRAS:  # the trainer does not read extras
+            buffer = ReplayBuffer.load(path)
+            for name in ("point_cloud", "state", "action"):
+                np.testing.assert_array_equal(getattr(buffer, name), getattr(pristine, name))
+        else:
+            with pytest.raises(DatasetError) as info:
+                ReplayBuffer.load(path)
+            assert_names(info, key, chunk)
+
+        listing = sorted(os.listdir(tmp))
+        with pytest.raises(DatasetError) as info:
+            merge(tmp / "merged.zarr", [clean, path])
+        assert_names(info, key, chunk)
+        with pytest.raises(DatasetError) as info:
+            split(path, tmp / "train.zarr", tmp / "val.zarr", val_ratio=0.3)
+        assert_names(info, key, chunk)
+        assert sorted(os.listdir(tmp)) == listing  # no output, no leftovers
+
+        with pytest.raises(DatasetError) as info:
+            repair(path)
+        assert_names(info, key, chunk)
+        with pytest.raises(DatasetError) as info:
+            ReplayBufferWriter(path, extra_keys=EXTRAS)
+        assert_names(info, key, chunk)
+        assert snapshot(path) == before  # nothing changed on disk
+
+
+@pytest.mark.parametrize("zarr_format", FORMATS)
+def test_truncated_chunk_is_exit_2_not_a_crash(tmp_path, originals, zarr_format):
+    """In a separate process, so that a crash of the decompressor (SIGSEGV) would show as its return code."""
+    path = copy_dataset(originals[0][zarr_format], tmp_path / "ds.zarr")
+    target = chunk_file(path, "data/action", 1)
+    target.write_bytes(target.read_bytes()[:-7])
+    result = subprocess.run([sys.executable, "-m", "dssp_train.cli.data", "info", str(path)],
+                            capture_output=True, text=True, timeout=120, check=False, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    lines = result.stderr.strip().splitlines()
+    assert result.returncode == 2, (result.returncode, result.stderr)
+    assert len(lines) == 1 and lines[0].startswith("error: "), result.stderr
+    assert "data/action chunk 1 (steps 100..199, episodes 1..2) is corrupt (truncated" in lines[0]
+    assert "dssp-data repair cannot restore lost data" in lines[0]
+
+
+def test_missing_chunk_is_lost_data_and_can_be_left_out(tmp_path, originals):
+    path = copy_dataset(originals[0][2], tmp_path / "ds.zarr")
+    (path / "data" / "action" / "2.0").unlink()  # a chunk of zeros: stored, so its absence is lost data
+    code, out, err = cli("info", path)
+    assert code == 2 and "problems" not in out
+    assert ("data/action chunk 2 (steps 200..219, episode 2) is missing (no data/action/2.0 in the store): "
+            "re-record or re-convert episode 2, or leave it out with dssp-data split") in err
+    assert "--drop-episodes 2 (dssp-data repair cannot restore lost data)" in err
+    code, _, err = cli("repair", path)
+    assert code == 2 and "data/action chunk 2" in err
+    np.testing.assert_array_equal(ReplayBufferReader(path).episode(1).action, originals[1].episode(1).action)
+
+    train, val = tmp_path / "train.zarr", tmp_path / "val.zarr"
+    code, out, err = cli("split", path, "--train", train, "--val", val, "--val-episodes", "0", "--drop-episodes", "2")
+    assert code == 0 and "left out episodes [2] (--drop-episodes)" in out, err
+    assert ReplayBuffer.load(train).n_episodes == ReplayBuffer.load(val).n_episodes == 1
+    np.testing.assert_array_equal(ReplayBuffer.load(train).action, originals[1].episode(1).action)
+    code, _, err = cli("split", path, "--train", train, "--val", val, "--val-ratio", "0.5", "--drop-episodes", "x")
+    assert code == 2 and "--drop-episodes must be comma-separated episode indices or ranges" in err
+
+
+def test_chunks_without_the_mark_may_hold_only_the_fill_value(tmp_path):
+    """An extra written by zarr 3 with its defaults (no chunk of only zeros stored) reads as zeros and info says so;
+    a required array never reads a missing chunk as zeros; appending to such a dataset stores every chunk and
+    marks the arrays that hold every chunk."""
+    path = tmp_path / "old.zarr"
+    episodes = make_episodes()
+    values = {f"data/{k}": np.concatenate([getattr(e, k) for e in episodes]) for k in ("point_cloud", "state", "action")}
+    values["data/step_problems"] = np.zeros(sum(LENGTHS), np.uint8)
+    values["meta/episode_ends"] = ENDS.astype(np.int64)
+    root = zarr.open_group(str(path), mode="w", zarr_format=3)
+    for key, value in values.items():
+        parent, name = key.split("/")
+        root.require_group(parent).create_array(name, data=value, chunks=(100,) + value.shape[1:])
+    assert not chunk_file(path, "data/step_problems", 0).exists()
+    assert not chunk_file(path, "data/action", 2).exists()  # only zeros
+
+    with pytest.raises(DatasetError, match=r"data/action chunk 2 \(steps 200..219, episode 2\) is missing"):
+        ReplayBuffer.load(path)
+    root["data/action"][200:] = values["data/action"][200:] = 1.0
+    buffer = ReplayBuffer.load(path, extras=True)
+    assert not buffer.extras["step_problems"].any()
+    np.testing.assert_array_equal(buffer.action, values["data/action"])
+    report = inspect_dataset(path)
+    assert "data/step_problems: 3 chunk(s) are not stored and read as the fill value" in " ".join(report["notes"])
+
+    new = make_episodes((30,), seed=1)[0]
+    new = Episode(new.point_cloud, new.state, new.action, {"step_problems": new.extras["step_problems"]})
+    with ReplayBufferWriter(path, extra_keys=["step_problems"]) as writer:
+        writer.add_episode(new)
+    root = zarr.open_group(str(path), mode="r")
+    assert root["data/action"].attrs[EVERY_CHUNK_ATTR] is True
+    assert EVERY_CHUNK_ATTR not in root["data/step_problems"].attrs  # its old chunks were left out
+    assert chunk_file(path, "data/step_problems", 2).is_file()  # the one the append wrote is stored
+
+
+def test_blosc_frame_check():
+    rng = np.random.default_rng(0)
+    for values in (rng.normal(size=5000).astype(np.float32), np.zeros(5000, np.float32),
+                   rng.integers(0, 256, 5000).astype(np.uint8)):  # compressible, all zeros, incompressible
+        for shuffle in (numcodecs.Blosc.SHUFFLE, numcodecs.Blosc.NOSHUFFLE):
+            frame = np.frombuffer(numcodecs.Blosc(cname="zstd", clevel=3, shuffle=shuffle).encode(values), np.uint8)
+            assert _blosc_problem(lambda a, b, f=frame: f[a:b], frame.size, values.nbytes) is None
+            assert "announces" in _blosc_problem(lambda a, b, f=frame: f[a:b], frame.size, values.nbytes + 4)
+            for n in range(0, frame.size, max(1, frame.size // 50)):
+                assert _blosc_problem(lambda a, b, f=frame[:n]: f[a:b], n, values.nbytes) is not None
+
+
+# ------------------------------------------------------------------------------------------------ CAN-log names
+@pytest.mark.parametrize("name", ["/etc/passwd", "../../etc/passwd", "sub/../../x.blf", "", "link.blf", 7])
+def test_merge_refuses_can_logs_outside_the_dataset(tmp_path, originals, name):
+    path = copy_dataset(originals[0][2], tmp_path / "crafted.zarr")
+    os.symlink("/etc/hosts", can_log_dir(path) / "link.blf")
+    root = zarr.open_group(str(path), mode="r+", use_consolidated=False)
+    infos = list(root.attrs["episode_info"])
+    infos[1] = dict(infos[1], can_logs={"can0": name})
+    root.attrs["episode_info"] = infos
+    listing = sorted(os.listdir(tmp_path))
+
+    with pytest.raises(DatasetError, match=r"episode_info\[1\]\.can_logs names") as info:
+        merge(tmp_path / "out.zarr", [originals[0][2], path])
+    assert "\n" not in str(info.value)
+    code, _, err = cli("merge", tmp_path / "out.zarr", path, originals[0][2])
+    assert code == 2 and err.count("\n") == 1 and "can_logs names" in err
+    code, _, err = cli("split", path, "--train", tmp_path / "t.zarr", "--val", tmp_path / "v.zarr", "--val-ratio", "0.3")
+    assert code == 2 and "can_logs names" in err
+    assert sorted(os.listdir(tmp_path)) == listing  # nothing written
+
+    report = inspect_dataset(path)  # info lists it as a problem and does not look at the file
+    assert any("episode_info[1].can_logs names" in p for p in report["problems"])
+    assert cli("info", path)[0] == 1
+
+
+def test_can_logs_must_be_an_object(tmp_path, originals):
+    path = copy_dataset(originals[0][3], tmp_path / "crafted.zarr")
+    root = zarr.open_group(str(path), mode="r+", use_consolidated=False)
+    root.attrs["episode_info"] = [{"can_logs": ["/etc/passwd"]}, None, None]
+    with pytest.raises(DatasetError, match=r"episode_info\[0\]\.can_logs is list, not an object"):
+        merge(tmp_path / "out.zarr", [path, originals[0][3]])
+    assert not (tmp_path / "out.zarr").exists()
+
+
+# ------------------------------------------------------------------------------------------------ info's exit code
+def test_info_exit_code_says_whether_problems_were_found(tmp_path):
+    episodes = make_episodes()
+    write_replay_buffer(tmp_path / "good.zarr", episodes, attrs={"control_rate_hz": 10.0})
+    assert cli("info", tmp_path / "good.zarr")[0] == 0
+    shutil.copytree(tmp_path / "good.zarr", tmp_path / "nan.zarr")
+    zarr.open_group(str(tmp_path / "nan.zarr"), mode="r+")["data/state"][LENGTHS[0] + 3, 2] = np.nan
+    code, out, _ = cli("info", tmp_path / "nan.zarr")
+    assert code == 1 and "data/state holds NaN or inf in episode(s) 1" in out
+    code, out, _ = cli("info", tmp_path / "nan.zarr", "--json")
+    assert code == 1 and '"problems": [' in out
