@@ -41,9 +41,12 @@ def replay_episode(path, episode: int, can: str | None, *, send: bool = False, i
     dof = actions.shape[1]
     if dof % ARM_DOF:
         raise DSSPError(f"{path}: actions have {dof} values; a Piper replay needs 7 per arm [J1..J6 rad, gripper 0..1]")
-    rate = rate_hz or reader.attrs.get("control_rate_hz")
-    if not isinstance(rate, (int, float)) or not math.isfinite(rate) or rate <= 0:
-        raise ConfigError(f"{path} does not record its control rate: pass --rate HZ")
+    if rate_hz is not None and not (math.isfinite(rate_hz) and 0 < rate_hz <= 1000):
+        raise ConfigError(f"--rate must be in (0, 1000] Hz, got {rate_hz:g}")
+    rate = rate_hz if rate_hz is not None else reader.attrs.get("control_rate_hz")
+    if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not math.isfinite(rate) or not 0 < rate <= 1000:
+        raise ConfigError(f"{path} does not record a usable control rate ({rate!r}): pass --rate HZ")
+    safety_config.check_speed(float(rate))
     if send and can is None:
         raise ConfigError("--send needs --can (the arms to command)")
     limits = JointLimits.piper().tile(dof // ARM_DOF)

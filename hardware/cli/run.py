@@ -132,18 +132,6 @@ def control_rate(args, policy) -> float:
     return float(policy.control_rate_hz)
 
 
-def check_speed(safety_config, rate: float) -> None:
-    """The per-tick joint step at this rate must stay within what the arm can do."""
-    from hardware.piper.limits import MAX_JOINT_SPEED
-
-    speed = safety_config.max_joint_step * rate
-    if speed > MAX_JOINT_SPEED + 1e-9:
-        raise ConfigError(
-            f"safety.max_joint_step {safety_config.max_joint_step:g} rad per tick at {rate:g} Hz is {speed:.3g} rad/s, "
-            f"above the arm's {MAX_JOINT_SPEED:g} rad/s: lower max_joint_step to at most {MAX_JOINT_SPEED / rate:.4g}"
-        )
-
-
 def run(args) -> int:
     signals = StartupSignals()
     try:
@@ -170,7 +158,7 @@ def _run(args, signals: StartupSignals) -> int:
     signals.check()
     safety_config = SafetyConfig.load(args.safety, "safety") if args.safety else SafetyConfig()
     if args.rate is not None:
-        check_speed(safety_config, args.rate)
+        safety_config.check_speed(args.rate)
     simulated_camera = args.camera.strip().lower() == "sim"
     if args.extrinsics:
         camera_to_base = load_extrinsics(args.extrinsics)
@@ -186,7 +174,7 @@ def _run(args, signals: StartupSignals) -> int:
     if cloud_config is None:
         cloud_config = PointCloudConfig(n_points=policy.manifest["model_config"]["n_points"])
     rate = control_rate(args, policy)
-    check_speed(safety_config, rate)
+    safety_config.check_speed(rate)
     settings = LoopSettings(rate_hz=rate, max_steps=args.max_steps, dry_run=args.dry_run, prefetch=args.prefetch, seed=args.seed)
     log_dir = args.log_dir or Path("runs/dssp-run") / time.strftime("%Y%m%d-%H%M%S")
 
