@@ -11,6 +11,10 @@ has passed by then, are dropped (as diffusion_policy's real-robot loop does), so
 does not wait. ``lead`` comes from the measured chunk latency and the tick period; it needs
 ``lead + H_a <= H``. A chunk that is still not ready when needed is waited for and reported as over
 budget in the tick's info — never silently late. The history is updated at every tick either way.
+
+An observation with NaN or infinity raises :class:`~dssp_deploy.policy.NonFiniteObservation` from
+``tick`` and changes nothing (no history update, no tick counted): the caller holds, as for a stale
+camera frame, and the next good observation continues the episode.
 """
 
 from __future__ import annotations
@@ -107,9 +111,9 @@ class ChunkedControl:
         p = self.policy
         inputs = {}
         if p.use_history:
-            inputs["c_t"] = np.zeros((1, p.manifest["d_model"]), np.float32)
+            inputs["c_t"] = np.zeros((1, p.d_model), np.float32)
         if p.use_recent_states:
-            inputs["z_recent"] = np.zeros((1, p.n_obs_steps, p.manifest["d_model"]), np.float32)
+            inputs["z_recent"] = np.zeros((1, p.n_obs_steps, p.d_model), np.float32)
         times = []
         for _ in range(iterations):
             t0 = time.perf_counter()
@@ -130,17 +134,19 @@ class ChunkedControl:
         return None if self.seed is None else self.seed + self.tick_count
 
     def tick(self, point_cloud, agent_pos) -> tuple[np.ndarray, TickInfo]:
-        """Update the history with this tick's observation and return this tick's action (B, A)."""
+        """Update the history with this tick's observation and return this tick's action (B, A).
+
+        Raises NonFiniteObservation (NaN/inf in the observation) before anything changes: hold this tick."""
         now = time.perf_counter()
         info_events: list[str] = []
         if self._last_tick_time is not None and self.period_ms:
             actual = (now - self._last_tick_time) * 1e3
             if actual > (1 + 2 * RATE_TOLERANCE) * self.period_ms:
                 info_events.append(f"tick period {actual:.1f} ms is longer than the model's {self.period_ms:.1f} ms")
-        self._last_tick_time = now
 
         t0 = time.perf_counter()
-        self.policy.observe(point_cloud, agent_pos)
+        self.policy.observe(point_cloud, agent_pos)  # a refused observation raises here, nothing changed
+        self._last_tick_time = now
         info = TickInfo(self.tick_count, 0, False, (time.perf_counter() - t0) * 1e3, events=info_events)
         t = self.tick_count
         ha = self.policy.n_action_steps

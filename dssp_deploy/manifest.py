@@ -1,7 +1,20 @@
 """Reading ``dssp_model.json`` — what a model directory holds and how to run it — without torch.
 
-``export.to_onnx`` writes the manifest (``export/manifest.py``) with the names and constants defined
-here; this module reads it and checks every graph against it (input/output names, shapes, dtypes).
+``export.to_onnx`` writes the manifest (``export/manifest.py``) with the names, constants and graph
+interface defined here; this module reads it and trusts nothing in it unchecked. :func:`read_manifest`
+(the one reader: the runtime, ``dssp-run``, ``dssp-profile``, the simulation and ``export.verify`` all
+use it) refuses, with one :class:`ModelDirError` line naming the field, its value and what to do:
+- a scalar fact of the wrong type or out of range (:class:`ManifestFacts`, :class:`ModelFacts`,
+  :class:`SourceFacts`: strict types from :mod:`dssp_train.schema`);
+- facts that contradict each other: H_a > H, K DDIM timesteps for another K, ``model_config`` against the
+  top-level facts, ``history_state`` against the history layers;
+- graph inputs/outputs other than the interface the facts give (:func:`graph_io`), normalisers of the wrong
+  size;
+- a file name that does not stay inside the model directory (absolute, ``..``, or a symbolic link out),
+  or a graph file without a size and sha256 in ``files``.
+The runtime then checks each graph file it opens against that size and sha256 (:func:`read_graph`: a
+file from another export is refused) and each ONNX session against the declared interface
+(:func:`check_session`).
 
 Shapes of the graph interface (E = expand * d_model, n = d_state, W = d_conv):
     history_step: point_cloud (B, P, point_dim), agent_pos (B, S), conv_state_i (B, E, W), ssm_state_i (B, E, n)
@@ -11,11 +24,17 @@ Shapes of the graph interface (E = expand * d_model, n = d_state, W = d_conv):
 
 from __future__ import annotations
 
+import hashlib
 import json
-from pathlib import Path
-from typing import Any
+import re
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path, PurePosixPath, PureWindowsPath
+from typing import Any, ClassVar
 
-from dssp_train.errors import DSSPError
+from dssp_train.config import MAX_DIM, MAX_LAYERS, MAX_RATE_HZ, MAX_STEPS, MAX_WIDTH
+from dssp_train.errors import ConfigError, DSSPError
+from dssp_train.schema import Settings, Spec, check_value, setting
 
 FORMAT_VERSION = "1"
 KIND = "dssp-model"
@@ -24,14 +43,193 @@ HISTORY_GRAPH = "history_step"
 DENOISER_GRAPH = "denoiser"
 GRAPHS = (HISTORY_GRAPH, DENOISER_GRAPH)
 ONNX_TYPES = {"float32": "tensor(float)", "int64": "tensor(int64)"}
+PRECISIONS = {"fp32": "onnx", "int8": "onnx_int8"}  # the runtime's precision → the manifest's file kind
+MAX_TIMESTEPS = 100_000  # DDPM training timesteps (dssp_train.config.DiffusionConfig)
+MAX_POINTS = 1_000_000
+NORMALIZER_STATS = ("scale", "offset", "input_min", "input_max")
+AGAIN = "export the model again (python -m export.to_onnx RUN_DIR -o MODEL_DIR)"
+_SHA256 = re.compile(r"[0-9a-f]{64}")
 
 
 class ModelDirError(DSSPError):
     """A model directory is missing, incomplete, or does not match its manifest."""
 
 
+# ------------------------------------------------------------------------------- the schema
+def _dim(default: int):
+    return setting(default, ge=1, le=MAX_DIM)
+
+
+def _width(default: int):
+    return setting(default, ge=1, le=MAX_WIDTH)
+
+
+def _steps(default: int):
+    return setting(default, ge=1, le=MAX_STEPS)
+
+
+# Every field must be in the manifest (``OPTIONAL`` ones may be left out); the defaults only describe a valid
+# example (a tiny one-arm model), for the schema's own tests — a manifest never gets them.
+@dataclass(frozen=True)
+class ManifestFacts(Settings):
+    """The manifest's top-level facts the runtime uses. N = n_obs_steps, H = horizon, H_a = n_action_steps,
+    K = denoise_steps."""
+
+    SECTION: ClassVar[str] = MANIFEST_NAME
+    OPTIONAL: ClassVar[tuple[str, ...]] = ()
+
+    point_dim: int = setting(3, choices=(3, 6))
+    state_dim: int = _dim(7)
+    action_dim: int = _dim(7)
+    d_model: int = _width(64)
+    n_obs_steps: int = _steps(2)
+    horizon: int = _steps(4)
+    n_action_steps: int = _steps(3)
+    denoise_steps: int = setting(10, ge=1, le=MAX_TIMESTEPS)
+    ddim_timesteps: list[int] = setting(default_factory=lambda: list(range(90, -1, -10)), ge=0, lt=MAX_TIMESTEPS,
+                                        min_length=1, max_length=MAX_TIMESTEPS)
+    use_history: bool = setting(True)
+    use_recent_states: bool = setting(True)
+    history_state: list[str] = setting(default_factory=lambda: ["conv_state_0", "ssm_state_0", "conv_state_1", "ssm_state_1"],
+                                       max_length=2 * MAX_LAYERS)
+    control_rate_hz: float | None = setting(None, gt=0, le=MAX_RATE_HZ, unit="Hz")
+
+    def validate(self) -> None:
+        s = self.SECTION
+        if self.n_action_steps > self.horizon:
+            raise ConfigError(f"{s}.n_action_steps (H_a) must be in [1, horizon={self.horizon}], got {self.n_action_steps}")
+        if len(self.ddim_timesteps) != self.denoise_steps:
+            raise ConfigError(
+                f"{s}.ddim_timesteps must hold denoise_steps={self.denoise_steps} values, got {len(self.ddim_timesteps)}"
+            )
+        if not (self.use_history or self.use_recent_states):
+            raise ConfigError(f"{s}.use_history and {s}.use_recent_states are both false: the denoiser would see no observation")
+        if self.use_history != bool(self.history_state):
+            raise ConfigError(
+                f"{s}.history_state is {self.history_state!r} with use_history={str(self.use_history).lower()}: "
+                "a history encoder has state tensors, a model without one has none"
+            )
+
+
+@dataclass(frozen=True)
+class ModelFacts(Settings):
+    """The facts of ``model_config`` the runtime and ``dssp-profile`` use (the rest is left to training)."""
+
+    SECTION: ClassVar[str] = f"{MANIFEST_NAME} model_config"
+    OPTIONAL: ClassVar[tuple[str, ...]] = ()
+
+    point_dim: int = setting(3, choices=(3, 6))
+    state_dim: int = _dim(7)
+    action_dim: int = _dim(7)
+    n_points: int = setting(64, ge=1, le=MAX_POINTS)
+    d_model: int = _width(64)
+    d_state: int = _width(16)
+    d_conv: int = setting(4, ge=1, le=64)
+    expand: int = setting(2, ge=1, le=16)
+    n_history_layers: int = setting(2, ge=1, le=MAX_LAYERS)
+    n_denoiser_layers: int = setting(4, ge=1, le=MAX_LAYERS)
+    point_widths: list[int] = setting(default_factory=lambda: [32, 64, 128], ge=1, le=MAX_WIDTH, min_length=1, max_length=16)
+    point_feature_dim: int = _width(64)
+    state_widths: list[int] = setting(default_factory=lambda: [32, 32], ge=1, le=MAX_WIDTH, min_length=1, max_length=16)
+    n_obs_steps: int = _steps(2)
+    horizon: int = _steps(4)
+    n_action_steps: int = _steps(3)
+    use_history: bool = setting(True)
+    use_recent_states: bool = setting(True)
+    timestep_decoupled: bool = setting(True)
+
+
+@dataclass(frozen=True)
+class SourceFacts(Settings):
+    """Where the model came from: the run's name (not its path), the weights file in it, their sha256, step."""
+
+    SECTION: ClassVar[str] = f"{MANIFEST_NAME} source"
+    OPTIONAL: ClassVar[tuple[str, ...]] = ("run",)  # older exports recorded a path instead (ignored)
+
+    weights: str = setting("model.safetensors")
+    sha256: str = setting("0" * 64)
+    ema: bool = setting(True)
+    step: int | None = setting(None, ge=0, le=2**63 - 1)  # the training step of the weights
+    run: str | None = setting(None)  # the training run's folder name
+
+    def validate(self) -> None:
+        s = self.SECTION
+        if not _SHA256.fullmatch(self.sha256):
+            raise ConfigError(f"{s}.sha256 must be 64 lowercase hex digits, got {self.sha256!r}")
+        if not _is_inside_name(self.weights):
+            raise ConfigError(f"{s}.weights must be a file name inside the run directory, got {self.weights!r}")
+        if self.run is not None and (not self.run or "/" in self.run or "\\" in self.run or self.run in (".", "..")):
+            raise ConfigError(f"{s}.run must be the run directory's name (no path), got {self.run!r}")
+
+
+def facts_from(cls, values: Any):
+    """``cls`` from the keys of ``values`` it knows (others are left alone); a missing key is a ConfigError."""
+    if not isinstance(values, Mapping):
+        raise ConfigError(f"{cls.SECTION} must be a JSON object, got {type(values).__name__}")
+    missing = [name for name in cls.field_names() if name not in values and name not in cls.OPTIONAL]
+    if missing:
+        raise ConfigError(f"{', '.join(f'{cls.SECTION}.{name}' for name in missing)} {'is' if len(missing) == 1 else 'are'} missing")
+    return cls.from_dict({k: values[k] for k in cls.field_names() if k in values})
+
+
+# ---------------------------------------------------------------------- the graph interface
+def tensor_spec(name: str, shape: list[int | str], dtype: str = "float32") -> dict[str, Any]:
+    return {"name": name, "shape": list(shape), "dtype": dtype}
+
+
+def history_state_specs(m, suffix: str = "") -> list[dict[str, Any]]:
+    """conv_state_i (B, E, W) and ssm_state_i (B, E, n) for every history layer, in graph order.
+
+    ``m``: anything with the model's attributes (``dssp_train.config.ModelConfig``, :class:`ModelFacts`)."""
+    inner = m.expand * m.d_model
+    specs = []
+    for i in range(m.n_history_layers):
+        specs.append(tensor_spec(f"conv_state_{i}{suffix}", ["B", inner, m.d_conv]))
+        specs.append(tensor_spec(f"ssm_state_{i}{suffix}", ["B", inner, m.d_state]))
+    return specs
+
+
+def history_io(m) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """Inputs and outputs of the history-step graph (no state and z_t only without a history encoder)."""
+    inputs = [tensor_spec("point_cloud", ["B", "P", m.point_dim]), tensor_spec("agent_pos", ["B", m.state_dim])]
+    outputs = [tensor_spec("z_t", ["B", m.d_model])]
+    if m.use_history:
+        inputs += history_state_specs(m)
+        outputs += [tensor_spec("c_t", ["B", m.d_model])] + history_state_specs(m, "_out")
+    return inputs, outputs
+
+
+def denoiser_io(m) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """Inputs and outputs of the denoiser graph."""
+    inputs = []
+    if m.use_history:
+        inputs.append(tensor_spec("c_t", ["B", m.d_model]))
+    if m.use_recent_states:
+        inputs.append(tensor_spec("z_recent", ["B", m.n_obs_steps, m.d_model]))
+    inputs.append(tensor_spec("noise", ["B", m.horizon, m.action_dim]))
+    return inputs, [tensor_spec("action", ["B", m.horizon, m.action_dim])]
+
+
+def graph_io(m, graph: str) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    return history_io(m) if graph == HISTORY_GRAPH else denoiser_io(m)
+
+
+def _depends(name: str) -> tuple[str, ...]:
+    """The facts a tensor's shape comes from (for messages)."""
+    base = name.removesuffix("_out")
+    if base.startswith("conv_state_"):
+        return ("expand", "d_model", "d_conv")
+    if base.startswith("ssm_state_"):
+        return ("expand", "d_model", "d_state")
+    return {
+        "point_cloud": ("point_dim",), "agent_pos": ("state_dim",), "z_t": ("d_model",), "c_t": ("d_model",),
+        "z_recent": ("n_obs_steps", "d_model"), "noise": ("horizon", "action_dim"), "action": ("horizon", "action_dim"),
+    }.get(base, ())
+
+
+# ------------------------------------------------------------------------------- the reader
 def read_manifest(model_dir: Path) -> dict[str, Any]:
-    """The manifest of a model directory, or a :class:`ModelDirError` that says what is wrong."""
+    """The manifest of a model directory, checked (see the module docstring), or a :class:`ModelDirError`."""
     model_dir = Path(model_dir)
     path = model_dir / MANIFEST_NAME
     if not model_dir.is_dir():
@@ -40,16 +238,156 @@ def read_manifest(model_dir: Path) -> dict[str, Any]:
         raise ModelDirError(f"{path} is missing: {model_dir} is not a DSSP model directory (python -m export.to_onnx makes one)")
     try:
         manifest = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise ModelDirError(f"{path} is unreadable ({exc}); export the model again") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ModelDirError(f"{path} is unreadable ({exc}); {AGAIN}") from None
     if not isinstance(manifest, dict) or manifest.get("kind") != KIND:
-        raise ModelDirError(f"{path} is not a DSSP model manifest (no \"kind\": \"{KIND}\"); export the model again")
+        raise ModelDirError(f"{path} is not a DSSP model manifest (no \"kind\": \"{KIND}\"); {AGAIN}")
     if manifest.get("format_version") != FORMAT_VERSION:
         raise ModelDirError(
             f"{path} has format version {manifest.get('format_version')!r}, this runtime reads {FORMAT_VERSION!r}; "
             "export the model again with this version of dssp"
         )
+    try:
+        check_manifest(manifest, model_dir)
+    except ConfigError as exc:
+        raise ModelDirError(f"{model_dir}: {exc}; {AGAIN}") from None
     return manifest
+
+
+def check_manifest(manifest: dict[str, Any], model_dir: Path) -> ManifestFacts:
+    """Check every fact the runtime uses; normalise them in place (e.g. an integer rate becomes a float).
+
+    Raises ConfigError (a fact: one line naming it) or ModelDirError (a path)."""
+    facts = facts_from(ManifestFacts, manifest)
+    model = facts_from(ModelFacts, manifest.get("model_config"))
+    for name in ("point_dim", "state_dim", "action_dim", "d_model", "n_obs_steps", "horizon", "n_action_steps",
+                 "use_history", "use_recent_states"):
+        top, inner = getattr(facts, name), getattr(model, name)
+        if top != inner:
+            raise ConfigError(
+                f"{MANIFEST_NAME}.{name} is {json.dumps(top)} but model_config.{name} is {json.dumps(inner)}: the manifest contradicts itself"
+            )
+    want_state = [s["name"] for s in history_state_specs(model)] if model.use_history else []
+    if facts.history_state != want_state:
+        raise ConfigError(
+            f"{MANIFEST_NAME}.history_state is {facts.history_state}, but the history graph of "
+            f"n_history_layers={model.n_history_layers} takes the state inputs {want_state}"
+        )
+    files = _check_files(manifest.get("files"), model_dir)
+    _check_graphs(manifest.get("graphs"), model, files, model_dir)
+    _check_normalizers(manifest.get("normalizers"), model)
+    source = facts_from(SourceFacts, manifest.get("source"))
+    manifest.update(facts.to_dict())
+    manifest["model_config"] = {**manifest["model_config"], **model.to_dict()}
+    manifest["source"] = {**manifest["source"], **source.to_dict()}
+    return facts
+
+
+def _check_files(files: Any, model_dir: Path) -> dict[str, dict[str, Any]]:
+    """``files``: {file name: {bytes, sha256, onnx_nodes?}}, every name inside the model directory."""
+    where = f"{MANIFEST_NAME} files"
+    files = check_value(files, dict[str, Any], Spec(), where)
+    for name, info in files.items():
+        model_file(model_dir, name, f"{where} entry")
+        entry = f"{where}[{name!r}]"
+        info = check_value(info, dict[str, Any], Spec(), entry)
+        for key in ("bytes", "sha256"):
+            if key not in info:
+                raise ConfigError(f"{entry}.{key} is missing")
+        check_value(info["bytes"], int, Spec(ge=0), f"{entry}.bytes")
+        if not isinstance(info["sha256"], str) or not _SHA256.fullmatch(info["sha256"]):
+            raise ConfigError(f"{entry}.sha256 must be 64 lowercase hex digits, got {info['sha256']!r}")
+        if "onnx_nodes" in info:
+            check_value(info["onnx_nodes"], int, Spec(ge=0), f"{entry}.onnx_nodes")
+    return files
+
+
+def _check_graphs(graphs: Any, model: ModelFacts, files: dict[str, Any], model_dir: Path) -> None:
+    """Both graphs, their files (inside the directory, listed in ``files``) and the interface the facts give."""
+    where = f"{MANIFEST_NAME} graphs"
+    graphs = check_value(graphs, dict[str, Any], Spec(), where)
+    missing = [g for g in GRAPHS if g not in graphs]
+    if missing:
+        raise ConfigError(f"{', '.join(f'{where}.{g}' for g in missing)} {'is' if len(missing) == 1 else 'are'} missing")
+    for graph in GRAPHS:
+        spec = check_value(graphs[graph], dict[str, Any], Spec(), f"{where}.{graph}")
+        for key in ("files", "inputs", "outputs"):
+            if key not in spec:
+                raise ConfigError(f"{where}.{graph}.{key} is missing")
+        kinds = check_value(spec["files"], dict[str, Any], Spec(), f"{where}.{graph}.files")
+        for kind, name in kinds.items():
+            field = f"{where}.{graph}.files.{kind}"
+            check_value(name, str, Spec(), field)
+            model_file(model_dir, name, field)
+            if name not in files:
+                raise ConfigError(f"{field} is {name!r}, which has no size and sha256 in {MANIFEST_NAME} files")
+        want = dict(zip(("inputs", "outputs"), graph_io(model, graph)))
+        for io in ("inputs", "outputs"):
+            field = f"{where}.{graph}.{io}"
+            declared = check_value(spec[io], list[dict[str, Any]], Spec(), field)
+            names = [check_value(d.get("name"), str, Spec(), f"{field}[{i}].name") for i, d in enumerate(declared)]
+            want_names = [w["name"] for w in want[io]]
+            if names != want_names:
+                raise ConfigError(
+                    f"{field} are {names}, but use_history={str(model.use_history).lower()}, "
+                    f"use_recent_states={str(model.use_recent_states).lower()}, n_history_layers={model.n_history_layers} "
+                    f"give {want_names}"
+                )
+            for d, w in zip(declared, want[io]):
+                shape = check_value(d.get("shape"), list[int | str], Spec(max_length=16), f"{field}.{w['name']}.shape")
+                dtype = check_value(d.get("dtype"), str, Spec(choices=tuple(ONNX_TYPES)), f"{field}.{w['name']}.dtype")
+                if shape != w["shape"] or dtype != w["dtype"]:
+                    given = ", ".join(f"{k}={getattr(model, k)}" for k in _depends(w["name"]))
+                    raise ConfigError(f"{field}.{w['name']} is {dtype} {shape}, but {given} give {w['dtype']} {w['shape']}")
+
+
+def _check_normalizers(normalizers: Any, model: ModelFacts) -> None:
+    """Per-channel statistics of the three normalised tensors, as many as the tensor has channels."""
+    where = f"{MANIFEST_NAME} normalizers"
+    normalizers = check_value(normalizers, dict[str, Any], Spec(), where)
+    for name, size in (("point_cloud", model.point_dim), ("agent_pos", model.state_dim), ("action", model.action_dim)):
+        if name not in normalizers:
+            raise ConfigError(f"{where}.{name} is missing")
+        stats = check_value(normalizers[name], dict[str, Any], Spec(), f"{where}.{name}")
+        for key in NORMALIZER_STATS:
+            field = f"{where}.{name}.{key}"
+            values = check_value(stats.get(key), list[float], Spec(), field)
+            if len(values) != size:
+                raise ConfigError(f"{field} must hold {size} values (one per channel), got {len(values)}")
+
+
+# ----------------------------------------------------------------------------- the files
+def _is_inside_name(name: str) -> bool:
+    """A relative path that names something below its directory: not absolute, no '..', no drive."""
+    if not name or "\x00" in name or "\\" in name:
+        return False
+    posix, windows = PurePosixPath(name), PureWindowsPath(name)
+    if posix.is_absolute() or windows.is_absolute() or windows.drive:
+        return False
+    parts = posix.parts
+    return bool(parts) and ".." not in parts and parts != (".",)
+
+
+def model_file(model_dir: Path, name: Any, field: str) -> Path:
+    """``model_dir / name`` for a file name read from the manifest, refused unless it stays inside the model
+    directory: no absolute path, no '..', no symbolic link that leads out of it."""
+    if not isinstance(name, str) or not _is_inside_name(name):
+        raise ModelDirError(
+            f"{model_dir}: {field} is {name!r}, which is not a file name inside the model directory "
+            f"(absolute paths and '..' are refused); {AGAIN}"
+        )
+    path = Path(model_dir) / name
+    try:
+        root = Path(model_dir).resolve(strict=True)
+        real = path.resolve()
+    except (OSError, RuntimeError) as exc:  # a symbolic-link loop
+        raise ModelDirError(f"{path} ({field}) cannot be resolved ({exc}); {AGAIN}") from None
+    if real != root and not real.is_relative_to(root):
+        raise ModelDirError(
+            f"{path} ({field}) is a symbolic link to {real}, outside the model directory {root}; "
+            "copy the file into the model directory or export the model again"
+        )
+    return path
 
 
 def is_model_dir(path: Path) -> bool:
@@ -61,19 +399,48 @@ def is_model_dir(path: Path) -> bool:
     return isinstance(manifest, dict) and manifest.get("kind") == KIND
 
 
-PRECISIONS = {"fp32": "onnx", "int8": "onnx_int8"}  # the runtime's precision → the manifest's file kind
-
-
 def graph_file(model_dir: Path, manifest: dict[str, Any], graph: str, fmt: str = "onnx") -> Path:
-    """Path of one graph's file in a model directory; a clear error when it is not there."""
+    """Path of one graph's file in a model directory (inside it); a clear error when it is not there."""
+    field = f"{MANIFEST_NAME} graphs.{graph}.files.{fmt}"
     name = manifest["graphs"][graph]["files"].get(fmt)
     if name is None:
         how = "--quantize int8" if fmt == "onnx_int8" else f"--format {fmt} (or both)"
         raise ModelDirError(f"{model_dir} has no {fmt} file for {graph}; export it with {how}")
-    path = Path(model_dir) / name
+    path = model_file(model_dir, name, field)
     if not path.is_file():
-        raise ModelDirError(f"{path} is listed in {MANIFEST_NAME} but missing; export the model again")
+        raise ModelDirError(f"{path} is listed in {MANIFEST_NAME} but missing; {AGAIN}")
     return path
+
+
+def sha256_hex(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def check_digest(path: Path, data: bytes, manifest: dict[str, Any], name: str) -> None:
+    """``data`` (the bytes of the manifest's file ``name``, read from ``path``) must have its size and sha256."""
+    want = manifest["files"].get(name)
+    if want is None:
+        raise ModelDirError(f"{path} has no size and sha256 in {MANIFEST_NAME} files; {AGAIN}")
+    got = sha256_hex(data)
+    if got != want["sha256"] or len(data) != want["bytes"]:
+        raise ModelDirError(
+            f"{path} is not the file this manifest was written for (sha256 {got[:12]}…, {len(data)} bytes; "
+            f"{MANIFEST_NAME} says {want['sha256'][:12]}…, {want['bytes']} bytes): it comes from another export or "
+            f"was changed; {AGAIN}, and copy model directories whole"
+        )
+
+
+def read_graph(model_dir: Path, manifest: dict[str, Any], graph: str, fmt: str = "onnx") -> tuple[Path, bytes]:
+    """(path, bytes) of one graph's file, its size and sha256 checked against the manifest.
+
+    Open the graph from these bytes: what runs is what was checked."""
+    path = graph_file(model_dir, manifest, graph, fmt)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise ModelDirError(f"{path} cannot be read ({exc.strerror or exc}); {AGAIN}") from None
+    check_digest(path, data, manifest, manifest["graphs"][graph]["files"][fmt])
+    return path, data
 
 
 def check_session(session, manifest: dict[str, Any], graph: str, where: Path) -> None:
@@ -86,12 +453,12 @@ def check_session(session, manifest: dict[str, Any], graph: str, where: Path) ->
         want = [d["name"] for d in declared]
         have = [a.name for a in actual]
         if want != have:
-            raise ModelDirError(f"{where}: {kind}s are {have}, {MANIFEST_NAME} says {want}; export the model again")
+            raise ModelDirError(f"{where}: {kind}s are {have}, {MANIFEST_NAME} says {want}; {AGAIN}")
         for d, a in zip(declared, actual):
             fixed = [s for s in d["shape"] if isinstance(s, int)]
             got = [s for s, w in zip(a.shape, d["shape"]) if isinstance(w, int)]
             if len(a.shape) != len(d["shape"]) or fixed != got or ONNX_TYPES.get(d["dtype"]) != a.type:
                 raise ModelDirError(
                     f"{where}: {kind} {a.name} is {a.type} {list(a.shape)}, {MANIFEST_NAME} says "
-                    f"{d['dtype']} {d['shape']}; export the model again"
+                    f"{d['dtype']} {d['shape']}; {AGAIN}"
                 )

@@ -9,7 +9,9 @@
 Same semantics as the PyTorch streaming API (``dssp_train.model.streaming.StreamingPolicy``): the
 recurrent history state starts at zero, the last N state tokens are kept, and at the start of an
 episode the first token repeats. Point clouds with more channels than the model uses (xyz + rgb for an
-xyz model) are cut to the model's channels, as in training.
+xyz model) are cut to the model's channels, as in training. An observation with NaN or infinity
+anywhere is refused (:class:`NonFiniteObservation`) before any graph runs: the recurrent history would
+keep it for the rest of the episode; refused, it leaves the state as it was.
 
 Shapes: point_cloud (B, P, C) or (P, C); agent_pos (B, S) or (S,); noise (B, H, A); chunk (B, H, A).
 """
@@ -27,10 +29,31 @@ from dssp_deploy.manifest import (
     PRECISIONS,
     ModelDirError,
     check_session,
-    graph_file,
+    read_graph,
     read_manifest,
 )
 from dssp_deploy.sessions import open_session
+
+MAX_LISTED = 4  # non-finite entries named in the message
+
+
+class NonFiniteObservation(ValueError):
+    """An observation holds NaN or infinity; it was refused before any graph ran (the history is unchanged)."""
+
+
+def check_finite(name: str, values: np.ndarray) -> None:
+    """Raise :class:`NonFiniteObservation` naming the input and its first non-finite entries."""
+    values = np.asarray(values)
+    bad = ~np.isfinite(values)
+    if not bad.any():
+        return
+    where = np.argwhere(bad)
+    listed = ", ".join(f"{tuple(int(i) for i in idx)}={values[tuple(idx)]}" for idx in where[:MAX_LISTED])
+    more = f" and {len(where) - MAX_LISTED} more" if len(where) > MAX_LISTED else ""
+    raise NonFiniteObservation(
+        f"{name} {list(values.shape)} has {len(where)} non-finite value(s) at {listed}{more}; "
+        "the observation was not used (the history is unchanged)"
+    )
 
 
 def _batch(x, rank: int, name: str) -> np.ndarray:
@@ -49,22 +72,25 @@ class OnnxPolicy:
             raise ModelDirError(f"precision must be one of {sorted(PRECISIONS)}, got {precision!r}")
         self.precision = precision
         self.model_dir = Path(model_dir)
-        self.manifest: dict[str, Any] = read_manifest(self.model_dir)
+        self.manifest: dict[str, Any] = read_manifest(self.model_dir)  # every fact checked, see dssp_deploy.manifest
         m = self.manifest
         self.point_dim, self.state_dim, self.action_dim = m["point_dim"], m["state_dim"], m["action_dim"]
+        self.d_model, self.n_points = m["d_model"], m["model_config"]["n_points"]
         self.n_obs_steps, self.horizon, self.n_action_steps = m["n_obs_steps"], m["horizon"], m["n_action_steps"]
-        self.control_rate_hz: float | None = m.get("control_rate_hz")
+        self.denoise_steps, self.ddim_timesteps = m["denoise_steps"], list(m["ddim_timesteps"])
+        self.control_rate_hz: float | None = m["control_rate_hz"]
         self.use_history, self.use_recent_states = m["use_history"], m["use_recent_states"]
+        self.history_state: list[str] = list(m["history_state"])
         self.sessions = {}
         for graph in (HISTORY_GRAPH, DENOISER_GRAPH):
-            path = graph_file(self.model_dir, m, graph, PRECISIONS[precision])
+            path, data = read_graph(self.model_dir, m, graph, PRECISIONS[precision])  # size and sha256 checked
             try:
-                session = open_session(path, threads, spinning)
+                session = open_session(data, threads, spinning)  # the checked bytes, not the path again
             except Exception as exc:  # onnxruntime raises its own exception types
                 raise ModelDirError(f"{path} could not be loaded by ONNX Runtime ({exc}); export the model again") from None
             check_session(session, m, graph, path)
             self.sessions[graph] = session
-        self._state_specs = [s for s in m["graphs"][HISTORY_GRAPH]["inputs"] if s["name"] in m["history_state"]]
+        self._state_specs = [s for s in m["graphs"][HISTORY_GRAPH]["inputs"] if s["name"] in self.history_state]
         self.reset()
         if warmup:
             self.warmup(warmup)
@@ -81,13 +107,18 @@ class OnnxPolicy:
         return {s["name"]: np.zeros([batch, *s["shape"][1:]], np.float32) for s in self._state_specs}
 
     def observe(self, point_cloud, agent_pos) -> np.ndarray:
-        """Run the history-update graph on one observation; returns z_t (B, d)."""
+        """Run the history-update graph on one observation; returns z_t (B, d).
+
+        Raises ValueError for a wrong shape and :class:`NonFiniteObservation` (a ValueError) for NaN or
+        infinity anywhere in either input (as float32): both before any graph runs, the state unchanged."""
         pc = _batch(point_cloud, 3, "point_cloud")
         pos = _batch(agent_pos, 2, "agent_pos")
         if pc.shape[-1] < self.point_dim:
             raise ValueError(f"point_cloud has {pc.shape[-1]} channels per point, the model needs {self.point_dim}")
         if pos.shape[-1] != self.state_dim or pos.shape[0] != pc.shape[0]:
             raise ValueError(f"agent_pos must be (B={pc.shape[0]}, S={self.state_dim}), got {pos.shape}")
+        check_finite("point_cloud", pc)
+        check_finite("agent_pos", pos)
         pc = np.ascontiguousarray(pc[..., : self.point_dim])
         batch = pc.shape[0]
         if self.state is None:

@@ -31,8 +31,9 @@ def session_options(threads: int | None = None, spinning: bool = False):
     return options
 
 
-def open_session(path: Path, threads: int | None = None, spinning: bool = False):
-    """A CPU ``InferenceSession`` for one ``.onnx`` file."""
+def open_session(model: Path | bytes, threads: int | None = None, spinning: bool = False):
+    """A CPU ``InferenceSession`` for one ``.onnx`` file, given as its path or as its bytes (already checked)."""
     import onnxruntime as ort
 
-    return ort.InferenceSession(str(path), session_options(threads, spinning), providers=["CPUExecutionProvider"])
+    source = bytes(model) if isinstance(model, (bytes, bytearray, memoryview)) else str(model)
+    return ort.InferenceSession(source, session_options(threads, spinning), providers=["CPUExecutionProvider"])

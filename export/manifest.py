@@ -3,7 +3,8 @@
 The manifest names every graph input and output with its shape (symbolic dims as strings: "B" batch,
 "P" points) and dtype, and records what the runtime needs besides the graphs: the normaliser statistics
 (already applied inside the graphs; kept for reports and sanity checks), N, H, H_a, K and the DDIM
-timesteps, the control rate of the training data, the source checkpoint's sha256 and the versions of
+timesteps, the control rate of the training data, where the weights came from (the run's name — not its
+path on the training machine —, the weights file, its sha256, the step, EMA or raw) and the versions of
 everything that produced the files. The key facts are also written into each ONNX file's
 ``metadata_props`` (:func:`metadata_props`), so a lone ``.onnx`` file still says what it is.
 
@@ -20,58 +21,24 @@ import json
 from pathlib import Path
 from typing import Any
 
-from dssp_train.config import ModelConfig, RunConfig
+from dssp_train.config import RunConfig
 from dssp_train.atomic import atomic_write_text
 
-from dssp_deploy.manifest import (  # noqa: F401  (re-exported: the runtime owns the format's names and reader)
+from dssp_deploy.manifest import (  # noqa: F401  (re-exported: the runtime owns the format: names, interface, reader)
     DENOISER_GRAPH,
     FORMAT_VERSION,
     GRAPHS,
     HISTORY_GRAPH,
     KIND,
     MANIFEST_NAME,
+    denoiser_io,
+    graph_io,
+    history_io,
+    history_state_specs,
     is_model_dir,
     read_manifest,
+    tensor_spec,
 )
-
-
-def tensor_spec(name: str, shape: list[int | str], dtype: str = "float32") -> dict[str, Any]:
-    return {"name": name, "shape": list(shape), "dtype": dtype}
-
-
-def history_state_specs(m: ModelConfig, suffix: str = "") -> list[dict[str, Any]]:
-    """conv_state_i (B, E, W) and ssm_state_i (B, E, n) for every history layer, in graph order."""
-    inner = m.expand * m.d_model
-    specs = []
-    for i in range(m.n_history_layers):
-        specs.append(tensor_spec(f"conv_state_{i}{suffix}", ["B", inner, m.d_conv]))
-        specs.append(tensor_spec(f"ssm_state_{i}{suffix}", ["B", inner, m.d_state]))
-    return specs
-
-
-def history_io(m: ModelConfig) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
-    """Inputs and outputs of the history-step graph (no state and z_t only without a history encoder)."""
-    inputs = [tensor_spec("point_cloud", ["B", "P", m.point_dim]), tensor_spec("agent_pos", ["B", m.state_dim])]
-    outputs = [tensor_spec("z_t", ["B", m.d_model])]
-    if m.use_history:
-        inputs += history_state_specs(m)
-        outputs += [tensor_spec("c_t", ["B", m.d_model])] + history_state_specs(m, "_out")
-    return inputs, outputs
-
-
-def denoiser_io(m: ModelConfig) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
-    """Inputs and outputs of the denoiser graph."""
-    inputs = []
-    if m.use_history:
-        inputs.append(tensor_spec("c_t", ["B", m.d_model]))
-    if m.use_recent_states:
-        inputs.append(tensor_spec("z_recent", ["B", m.n_obs_steps, m.d_model]))
-    inputs.append(tensor_spec("noise", ["B", m.horizon, m.action_dim]))
-    return inputs, [tensor_spec("action", ["B", m.horizon, m.action_dim])]
-
-
-def graph_io(m: ModelConfig, graph: str) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
-    return history_io(m) if graph == HISTORY_GRAPH else denoiser_io(m)
 
 
 def build_manifest(
@@ -89,7 +56,8 @@ def build_manifest(
 
     Args:
         files: per graph, the file of each format, e.g. ``{"history_step": {"onnx": "history_step.onnx"}}``.
-        source: the checkpoint: run directory, weights file, EMA or raw, sha256, training step.
+        source: the checkpoint: run name (the run directory's name, no path), weights file, EMA or raw, sha256,
+            training step.
         exporter: exporter name and version, ONNX opset, ONNX exporter used.
         versions: library versions (dssp, torch, onnx, onnxruntime, python).
     """

@@ -11,7 +11,9 @@ chunk (``denoiser``, K DDIM steps inside). MODEL_DIR gets::
     history_step.pt, denoiser.pt         the same traced modules as TorchScript archives (--format torchscript|both)
     *.int8.onnx                          int8 graphs (--quantize int8)
     dssp_model.json                      the manifest (see export.manifest): graph inputs/outputs, N, H, H_a, K, DDIM
-                                         timesteps, normalisers, control rate, source sha256, versions, parity figures
+                                         timesteps, normalisers, control rate, source (run name, weights file,
+                                         sha256, step, EMA or raw; no path), file sizes and sha256, versions,
+                                         parity figures
 
 The directory appears all at once (see :mod:`export.output_dir`); an existing previous export is replaced
 only with ``--force``. Unless ``--skip-verify``, :mod:`export.verify` streams ``--verify-steps`` ticks
@@ -72,14 +74,21 @@ def load_source(run_dir: Path, ema: bool = True):
     path = run_dir / weights
     with safe_open(str(path), "pt") as f:
         step = (f.metadata() or {}).get("step")
-    source = {
-        "run_dir": str(run_dir.absolute()),
+    source = {  # the run's identity, not where it lived on the training machine
+        "run": run_dir.resolve().name,
         "weights": weights,
         "ema": ema,
         "sha256": file_sha256(path),
         "step": int(step) if step and step.isdigit() else None,
     }
     return policy, config, source
+
+
+def without_local_paths(report: dict[str, Any], dataset: str | None) -> dict[str, Any]:
+    """The parity report for the manifest: the dataset named by its folder name, not its path on this machine."""
+    if not dataset or not isinstance(report.get("trajectory"), str):
+        return report
+    return {**report, "trajectory": report["trajectory"].replace(str(Path(dataset)), Path(dataset).name)}
 
 
 def library_versions() -> dict[str, str]:
@@ -351,7 +360,7 @@ def export_model(
         if verify:
             report = verify_model(staged.path, run_dir, verify_steps, threads, progress=progress)
             progress(format_report(report))
-            manifest["verification"] = report
+            manifest["verification"] = without_local_paths(report, config.dataset)
             write_manifest(staged.path, manifest)
             stage(f"verified: worst fp32 error {report['worst']:.2e} (bound {report['bound']:g})")
             check_report(report)

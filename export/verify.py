@@ -38,6 +38,7 @@ import numpy as np
 from dssp_train.cli.common import run_cli
 from export.errors import ExportError, ParityError
 from export.manifest import DENOISER_GRAPH, HISTORY_GRAPH, read_manifest
+from dssp_deploy.manifest import read_graph
 from dssp_deploy.sessions import default_threads, open_session
 
 BOUND = 1e-4
@@ -116,20 +117,25 @@ class RuntimeStream:
         return self.policy.act(noise=noise)
 
 
-def onnx_graph(path: Path, outputs: list[str], threads: int) -> GraphFn:
-    session = open_session(path, threads)
+def onnx_graph(path: Path, outputs: list[str], threads: int, data: bytes | None = None) -> GraphFn:
+    """An ONNX graph as a function; ``data``: the file's bytes, already checked against the manifest."""
+    session = open_session(path if data is None else data, threads)
     names = [o.name for o in session.get_outputs()]
     if names != outputs:
         raise ExportError(f"{path} outputs {names}, the manifest lists {outputs}; export the model again")
     return lambda feeds: session.run(None, feeds)
 
 
-def torchscript_graph(path: Path) -> GraphFn:
+def torchscript_graph(path: Path, data: bytes | None = None) -> GraphFn:
+    """A TorchScript graph as a function; ``data``: the file's bytes, already checked against the manifest."""
+    import io
+
     import torch
 
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", category=DeprecationWarning)  # torch.jit is deprecated, still the .pt reader
-        module = torch.jit.load(str(path), map_location="cpu").eval()
+        source = str(path) if data is None else io.BytesIO(data)
+        module = torch.jit.load(source, map_location="cpu").eval()
 
     def run(feeds: dict[str, np.ndarray]) -> list[np.ndarray]:
         with torch.no_grad():
@@ -201,14 +207,16 @@ def load_checked_policy(manifest: dict[str, Any], run_dir: Path):
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise ExportError(f"run directory {run_dir} does not exist; pass the dssp-train --out directory the model was exported from")
-    weights = manifest["source"]["weights"]
+    source = manifest["source"]  # checked by read_manifest: weights is a name inside the run directory
+    weights = source["weights"]
     path = run_dir / weights
     if path.is_file():
         sha = file_sha256(path)
-        if sha != manifest["source"]["sha256"]:
+        if sha != source["sha256"]:
+            run = f"run {source['run']!r}, " if source.get("run") else ""
             raise ExportError(
                 f"{path} (sha256 {sha[:12]}) is not the checkpoint this model was exported from "
-                f"(sha256 {manifest['source']['sha256'][:12]}); pass that run directory, or export again"
+                f"({run}{weights}, step {source['step']}, sha256 {source['sha256'][:12]}); pass that run directory, or export again"
             )
     policy, config = load_policy(run_dir, weights=weights)
     if dataclasses.asdict(config.model) != manifest["model_config"]:
@@ -262,17 +270,15 @@ def _open_backends(model_dir: Path, manifest: dict[str, Any], threads: int, batc
     for kind in ("onnx", "torchscript", "onnx_int8"):
         if not all(kind in files[g] for g in outputs):
             continue
-        paths = {g: model_dir / files[g][kind] for g in outputs}
-        missing = [str(p) for p in paths.values() if not p.is_file()]
-        if missing:
-            raise ExportError(f"{', '.join(missing)} listed in the manifest is missing; export the model again")
         if kind == "onnx":
-            backends[kind] = RuntimeStream(model_dir, threads)  # the robot's own runtime code
+            backends[kind] = RuntimeStream(model_dir, threads)  # the robot's own runtime code (it checks the files)
             continue
+        # inside the model directory, present, and the size and sha256 the manifest records
+        checked = {g: read_graph(model_dir, manifest, g, kind) for g in outputs}
         if kind == "torchscript":
-            fns = {g: torchscript_graph(paths[g]) for g in outputs}
+            fns = {g: torchscript_graph(*checked[g]) for g in outputs}
         else:
-            fns = {g: onnx_graph(paths[g], outputs[g], threads) for g in outputs}
+            fns = {g: onnx_graph(checked[g][0], outputs[g], threads, checked[g][1]) for g in outputs}
         backends[kind] = GraphStream(manifest, fns[HISTORY_GRAPH], fns[DENOISER_GRAPH], batch)
     if not any(k in backends for k in ("onnx", "torchscript")):
         raise ExportError(f"{model_dir} lists no ONNX or TorchScript graphs; export the model again")

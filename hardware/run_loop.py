@@ -9,7 +9,8 @@ Each tick:
    memory with copies of one frame);
 2. otherwise build the point cloud (``hardware.pointcloud``, the same pipeline that builds datasets),
    and run the runtime's tick (``dssp_deploy.ChunkedControl``: the history every tick, a new chunk every
-   H_a ticks);
+   H_a ticks); an empty cloud, or a cloud or joint state with NaN/inf (refused by the runtime before
+   any graph runs), is no observation: hold, the history left alone;
 3. the safety layer turns the action into a command (limits, per-tick step; a deadline miss holds);
 4. send it (not with ``dry_run``), log the tick, sleep to the next tick.
 A fault (arm error or e-stop, a send failure, a runtime error) ends the loop in a hold: nothing is sent
@@ -27,7 +28,7 @@ from typing import Any, Callable
 import numpy as np
 
 from dssp_deploy.control_loop import ChunkedControl
-from dssp_deploy.policy import OnnxPolicy
+from dssp_deploy.policy import NonFiniteObservation, OnnxPolicy
 from dssp_train.errors import ConfigError, DSSPError
 from hardware.arm import Robot
 from hardware.camera.base import Camera
@@ -158,6 +159,9 @@ class Runner:
                 self.event_counts["padded_cloud"] += 1
             try:
                 out, info = self.control.tick(cloud[None], state.position[None].astype(np.float32))
+            except NonFiniteObservation as exc:  # refused before the history saw it: no observation, hold
+                cloud, record["events"] = None, [f"no observation: {exc}"]
+                self.event_counts["non_finite_observation"] += 1
             except Exception as exc:  # the runtime failed: hold and end
                 self._fault(t0, f"runtime error: {exc}")
             else:

@@ -134,18 +134,29 @@ def copy_model(model_dir, tmp_path):
 
 
 def test_manifest_that_does_not_fit_the_graphs_is_refused(tiny_export, tmp_path):
+    import hashlib
+
     _, model_dir, _ = tiny_export
     bad = copy_model(model_dir, tmp_path)
-    manifest = json.loads((bad / MANIFEST_NAME).read_text())
+    good = json.loads((bad / MANIFEST_NAME).read_text())
+    manifest = json.loads(json.dumps(good))
     manifest["graphs"]["denoiser"]["inputs"][-1]["name"] = "eps"
     (bad / MANIFEST_NAME).write_text(json.dumps(manifest))
-    with pytest.raises(ModelDirError, match="inputs are .* says"):
+    with pytest.raises(ModelDirError, match="denoiser.inputs are .*'eps'.* give"):
         OnnxPolicy(bad)
     manifest["graphs"]["denoiser"]["inputs"][-1]["name"] = "noise"
     manifest["graphs"]["denoiser"]["inputs"][-1]["shape"][1] = 99
     (bad / MANIFEST_NAME).write_text(json.dumps(manifest))
     with pytest.raises(ModelDirError, match="noise"):
         OnnxPolicy(bad)
+    # each graph's file named as the other's (sizes and sha256 match the files): the sessions tell
+    manifest = json.loads(json.dumps(good))
+    files = {g: manifest["graphs"][g]["files"] for g in ("history_step", "denoiser")}
+    files["history_step"]["onnx"], files["denoiser"]["onnx"] = files["denoiser"]["onnx"], files["history_step"]["onnx"]
+    (bad / MANIFEST_NAME).write_text(json.dumps(manifest))
+    with pytest.raises(ModelDirError, match="inputs are .* says"):
+        OnnxPolicy(bad)
+    manifest = json.loads(json.dumps(good))
     manifest["format_version"] = "0"
     (bad / MANIFEST_NAME).write_text(json.dumps(manifest))
     with pytest.raises(ModelDirError, match="format version"):
@@ -153,7 +164,11 @@ def test_manifest_that_does_not_fit_the_graphs_is_refused(tiny_export, tmp_path)
     with pytest.raises(ModelDirError, match="does not exist"):
         OnnxPolicy(tmp_path / "nowhere")
     (bad / "denoiser.onnx").write_bytes(b"not a graph")
-    manifest["format_version"] = "1"
+    (bad / MANIFEST_NAME).write_text(json.dumps(good))
+    with pytest.raises(ModelDirError, match="denoiser.onnx is not the file this manifest was written for"):
+        OnnxPolicy(bad)
+    manifest = json.loads(json.dumps(good))
+    manifest["files"]["denoiser.onnx"].update(bytes=11, sha256=hashlib.sha256(b"not a graph").hexdigest())
     (bad / MANIFEST_NAME).write_text(json.dumps(manifest))
     with pytest.raises(ModelDirError, match="could not be loaded"):
         OnnxPolicy(bad)

@@ -106,6 +106,9 @@ def test_export_passes_parity_over_1000_steps(exported, trained_run):
     )
     assert leftovers(out.parent) == []
     assert manifest["source"]["sha256"] == verify_module.file_sha256(trained_run / "model.safetensors")
+    # the run's identity, not where it lived on the training machine
+    assert manifest["source"]["run"] == trained_run.name and "run_dir" not in manifest["source"]
+    assert str(trained_run.parent) not in (out / "dssp_model.json").read_text()
     for name, info in manifest["files"].items():
         assert info["bytes"] == (out / name).stat().st_size and info["sha256"] == verify_module.file_sha256(out / name)
 

@@ -9,6 +9,8 @@
 
 Streaming step by step gives the same ``c_t`` as the sequence path used in training, and the
 recent-state buffer is padded at the episode start by repeating the first observation, as in training.
+An observation with NaN or infinity is refused (``dssp_deploy.policy.NonFiniteObservation``) before the
+encoder runs, leaving the history as it was — the same rule as the robot's runtime.
 
 Shapes: point_cloud (B, P, C) or (P, C); agent_pos (B, S) or (S,); noise (B, H, A); chunk (B, H, A).
 """
@@ -18,6 +20,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from dssp_deploy.policy import NonFiniteObservation, check_finite  # noqa: F401  (NonFiniteObservation: what observe raises)
 from dssp_train.model.policy import DSSPPolicy
 
 
@@ -41,9 +44,14 @@ class StreamingPolicy:
 
     @torch.no_grad()
     def observe(self, point_cloud, agent_pos) -> torch.Tensor | None:
-        """Update the history with one observation; returns c_t (B, d) (None without a history encoder)."""
+        """Update the history with one observation; returns c_t (B, d) (None without a history encoder).
+
+        NaN or infinity anywhere in either input raises NonFiniteObservation; nothing changes."""
         pc = _as_batch(point_cloud, 3)
         pos = _as_batch(agent_pos, 2)
+        for name, t in (("point_cloud", pc), ("agent_pos", pos)):
+            if not bool(torch.isfinite(t).all()):
+                check_finite(name, t.detach().cpu().numpy())
         z_t = self.policy.encode_observations(pc, pos)  # (B, d)
         if self.policy.history_encoder is not None:
             self.context, self.history_state = self.policy.history_encoder.step(z_t, self.history_state)
