@@ -17,7 +17,7 @@ setup: system
 	$(PYTHON) -m pip install --quiet "$(TORCH)" -e ".[$(EXTRAS)]"
 
 demo: setup
-	dssp-sim demo --out runs/demo
+	dssp-sim demo --out runs/demo --force
 
 test: setup
 	$(PYTHON) -m pytest -q

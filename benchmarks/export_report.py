@@ -1,12 +1,17 @@
 """Export figures per preset: export time, graph sizes and node counts, parity, ORT vs torch latency.
 
     python benchmarks/export_report.py [--preset tiny robotwin] [--run RUN_DIR] [--out runs/export_report]
-                                       [--verify-steps 1000] [--threads N] [--quantize] [--json PATH]
+                                       [--verify-steps 1000] [--threads N] [--quantize] [--json PATH] [--force]
 
 For each preset without ``--run``, a run directory with an untrained policy is made by hand
 (S = A = 14, normalisers fitted on random data, saved with the checkpoint helpers) — export and parity
 do not depend on training. The latency figures are measured separately from verification, one backend
 at a time, batch 1: median over repeated calls after a warm-up.
+
+``--out`` must be new or empty; a previous report directory of this script (marked ``.dssp-output.json``)
+is replaced only with ``--force`` (moved aside meanwhile, deleted once the new one is complete, put back if it
+fails); anything else is never touched.
+An explicit ``--json`` file is new or, with ``--force``, replaced.
 """
 
 from __future__ import annotations
@@ -23,8 +28,15 @@ from dssp_train.config import load_preset
 from dssp_train.model.policy import DSSPPolicy
 from dssp_train.training import checkpoint as ckpt
 from dssp_deploy.latency import time_calls
+from dssp_deploy.manifest import read_graph, read_manifest
 from dssp_deploy.sessions import default_threads, open_session
+from dssp_train.cli.common import run_cli
+from dssp_train.output_guard import OutputDir, OutputKind, check_output_file, write_output_text
 from export.to_onnx import export_model, format_summary
+
+REPORT_DIR = OutputKind("an export report directory", "benchmarks/export_report.py",
+                        entries=("*_run", "*_model", "report.json"))
+"""``--out``: PRESET_run/ (untrained runs), PRESET_model/ (their exports), report.json."""
 
 
 def make_untrained_run(preset: str, run_dir: Path, state_dim: int = 14, action_dim: int = 14, seed: int = 0) -> Path:
@@ -54,7 +66,7 @@ def latency(model_dir: Path, run_dir: Path, threads: int, repeats: int) -> dict[
     from dssp_train.model.streaming import StreamingPolicy
     from dssp_train.training.checkpoint import load_policy
 
-    manifest = json.loads((model_dir / "dssp_model.json").read_text())
+    manifest = read_manifest(model_dir)  # checked: facts, interface, file names inside the model directory
     feeds = {}
     for graph in ("history_step", "denoiser"):
         feeds[graph] = {
@@ -65,7 +77,7 @@ def latency(model_dir: Path, run_dir: Path, threads: int, repeats: int) -> dict[
     for kind in ("onnx", "onnx_int8"):
         files = {g: manifest["graphs"][g]["files"].get(kind) for g in feeds}
         if all(files.values()):
-            sessions = {g: open_session(model_dir / f, threads) for g, f in files.items()}
+            sessions = {g: open_session(read_graph(model_dir, manifest, g, kind)[1], threads) for g in files}
             out[kind] = {
                 g: median_ms(lambda g=g: sessions[g].run(None, feeds[g]), repeats if g == "denoiser" else 10 * repeats)
                 for g in feeds
@@ -94,27 +106,38 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--repeats", type=int, default=20)
     p.add_argument("--quantize", action="store_true", help="also write and measure int8 graphs")
     p.add_argument("--json", help="write the figures here (default OUT/report.json)")
+    p.add_argument("--force", action="store_true", help="replace a previous report in --out and an existing --json file")
     args = p.parse_args(argv)
+    return run_cli(lambda: _report(args))
 
-    out = Path(args.out)
+
+def _report(args) -> int:
+    if args.json:
+        check_output_file(args.json, force=args.force, flag="--json")
     jobs = [(Path(args.run).name, Path(args.run))] if args.run else [(name, None) for name in args.preset]
     report = {}
-    for name, run_dir in jobs:
-        if run_dir is None:
-            run_dir = make_untrained_run(name, out / f"{name}_run")
-        model_dir = out / f"{name}_model"
-        print(f"== {name}: {run_dir} -> {model_dir}", flush=True)
-        summary = export_model(
-            run_dir, model_dir, verify_steps=args.verify_steps, threads=args.threads, force=True,
-            quantize="int8" if args.quantize else None,
-        )
-        print(format_summary(summary), flush=True)
-        summary["latency_isolated_ms"] = latency(model_dir, run_dir, args.threads, args.repeats)
-        print(json.dumps(summary["latency_isolated_ms"]), flush=True)
-        report[name] = summary
-    path = Path(args.json) if args.json else out / "report.json"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(report, indent=2) + "\n")
+    with OutputDir(args.out, REPORT_DIR, force=args.force, staged=False) as target:  # the report names its paths
+        out = target.path
+        for name, run_dir in jobs:
+            if run_dir is None:
+                run_dir = make_untrained_run(name, out / f"{name}_run")
+            model_dir = out / f"{name}_model"
+            print(f"== {name}: {run_dir} -> {model_dir}", flush=True)
+            summary = export_model(
+                run_dir, model_dir, verify_steps=args.verify_steps, threads=args.threads,
+                quantize="int8" if args.quantize else None,
+            )
+            print(format_summary(summary), flush=True)
+            summary["latency_isolated_ms"] = latency(model_dir, run_dir, args.threads, args.repeats)
+            print(json.dumps(summary["latency_isolated_ms"]), flush=True)
+            report[name] = summary
+        text = json.dumps(report, indent=2) + "\n"
+        if not args.json:
+            write_output_text(out / "report.json", text, force=False)
+        target.commit()
+    path = Path(args.json) if args.json else Path(args.out) / "report.json"
+    if args.json:
+        write_output_text(path, text, force=args.force, flag="--json")
     print(f"figures written to {path}")
     return 0
 

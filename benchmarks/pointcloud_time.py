@@ -1,6 +1,6 @@
 """Point-cloud pipeline cost on this machine: a 640x480 L515-like depth frame -> 1024 points.
 
-    python benchmarks/pointcloud_time.py [--repeats 100] [--color] [--json PATH]
+    python benchmarks/pointcloud_time.py [--repeats 100] [--color] [--json PATH [--force]]
 
 Frames come from the simulated tabletop camera's renderer (``hardware.camera.sim``: table, boxes, 1 mm
 depth noise, 0.2 % invalid pixels; a new noise draw per frame), seen from the simulated camera pose, and
@@ -21,6 +21,8 @@ import time
 import numpy as np
 
 from hardware.camera.base import DepthFrame
+from dssp_train.cli.common import run_cli
+from dssp_train.output_guard import check_output_file, write_output_text
 from hardware.camera.sim import SimCamera
 from hardware.pointcloud import PointCloudConfig, frame_to_cloud
 from hardware.pointcloud.pipeline import STAGES
@@ -31,8 +33,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeats", type=int, default=100)
     ap.add_argument("--warmup", type=int, default=5)
     ap.add_argument("--color", action="store_true", help="use_color=True (RGB channels, (P, 6) clouds)")
-    ap.add_argument("--json", help="also write the figures to this JSON file")
+    ap.add_argument("--json", help="also write the figures to this JSON file (a new one; --force replaces one)")
+    ap.add_argument("--force", action="store_true", help="replace an existing --json file")
     args = ap.parse_args(argv)
+    return run_cli(lambda: _measure(args))
+
+
+def _measure(args) -> int:
+    if args.json:
+        check_output_file(args.json, force=args.force, flag="--json")  # before measuring
 
     cam = SimCamera(seed=0, color=args.color)
     config = PointCloudConfig(use_color=args.color)
@@ -93,8 +102,7 @@ def main(argv: list[str] | None = None) -> int:
                "first_info": first_info.to_dict(), "points_median": n,
                "p50_ms": {k: pct(v, 50) for k, v in rows.items()},
                "p95_ms": {k: pct(v, 95) for k, v in rows.items()}}
-        with open(args.json, "w") as f:
-            json.dump(out, f, indent=2)
+        write_output_text(args.json, json.dumps(out, indent=2), force=args.force, flag="--json")
     return 0
 
 

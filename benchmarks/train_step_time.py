@@ -1,7 +1,7 @@
 """Training cost on this machine: one optimisation step for the ``tiny`` and ``robotwin`` presets, and
 the history encoder's forward + backward over a 600-step trajectory.
 
-    python benchmarks/train_step_time.py [--repeats 5] [--robotwin-length 300] [--json PATH]
+    python benchmarks/train_step_time.py [--repeats 5] [--robotwin-length 300] [--json PATH [--force]]
 
 Prints a Markdown table of medians (and min/max) in milliseconds. A step is what ``dssp-train``
 does: encode one whole trajectory (E_obs, G_psi), B windows through the denoiser, both losses,
@@ -15,6 +15,7 @@ import argparse
 import json
 import platform
 import statistics
+import sys
 
 import torch
 
@@ -23,6 +24,8 @@ from dssp_train.model.history_encoder import HistoryEncoder
 from dssp_train.model.policy import DSSPPolicy
 from dssp_train.training.ema import EMA
 from dssp_deploy.latency import time_calls
+from dssp_train.cli.common import run_cli
+from dssp_train.output_guard import check_output_file, write_output_text
 
 
 def train_step_fn(preset: str, length: int, state_dim: int, action_dim: int):
@@ -68,13 +71,20 @@ def row(label: str, times: list[float]) -> dict:
     return {"what": label, "median_ms": statistics.median(times), "min_ms": min(times), "max_ms": max(times), "n": len(times)}
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--robotwin-length", type=int, default=300, help="trajectory length for the robotwin step (RoboTwin averages 100-640)")
     p.add_argument("--history-length", type=int, default=600)
-    p.add_argument("--json", help="also write the figures as JSON here")
-    args = p.parse_args()
+    p.add_argument("--json", help="also write the figures as JSON here (a new file; --force replaces one)")
+    p.add_argument("--force", action="store_true", help="replace an existing --json file")
+    args = p.parse_args(argv)
+    return run_cli(lambda: _measure(args))
+
+
+def _measure(args) -> int:
+    if args.json:
+        check_output_file(args.json, force=args.force, flag="--json")  # before measuring
 
     rows = []
     for fn, label in (
@@ -91,9 +101,9 @@ def main() -> None:
     for r in rows:
         print(f"| {r['what']} | {r['median_ms']:.1f} | {r['min_ms']:.1f} | {r['max_ms']:.1f} | {r['n']} |")
     if args.json:
-        with open(args.json, "w") as f:
-            json.dump(rows, f, indent=2)
+        write_output_text(args.json, json.dumps(rows, indent=2), force=args.force, flag="--json")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

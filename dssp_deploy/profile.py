@@ -1,6 +1,6 @@
 """``dssp-profile``: CPU latency and memory of an exported DSSP model, in numbers and a plot.
 
-    dssp-profile MODEL_DIR [--checkpoint RUN_DIR] [--precision fp32|int8] [--quick] [--threads N] [--json PATH] [--plot PATH]
+    dssp-profile MODEL_DIR [--checkpoint RUN_DIR] [--precision fp32|int8] [--quick] [--threads N] [--json PATH] [--plot PATH] [--force]
 
 Measures, for the model directory given (batch 1, the model's point count):
 - per component — history step, denoiser chunk (K DDIM steps), the chunk tick (both) — p50/p95/p99/max
@@ -13,7 +13,8 @@ Measures, for the model directory given (batch 1, the model's point count):
 - achieved GFLOP/s against this machine's own float32 GEMM peak (numpy), and the chunk's floor on this
   machine: its flops at that peak, and — when the denoiser's weights exceed the last-level cache, so each
   of the K DDIM steps reads them from memory again — K x weight bytes at the measured read bandwidth.
-Prints a Markdown table; ``--json`` writes every figure (ms, MiB); ``--plot`` a PNG.
+Prints a Markdown table; ``--json`` writes every figure (ms, MiB); ``--plot`` a PNG. Both are new files or,
+with ``--force``, replace existing ones (checked before profiling; written to a temporary name and renamed).
 """
 
 from __future__ import annotations
@@ -290,7 +291,7 @@ def markdown(report: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def plot(report: dict[str, Any], path: Path) -> None:
+def plot(report: dict[str, Any], path: Path, force: bool = False) -> None:
     try:
         import matplotlib
     except ImportError:
@@ -316,7 +317,9 @@ def plot(report: dict[str, Any], path: Path) -> None:
     ax2.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     ax2.legend()
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    from dssp_train.output_guard import write_output_file
+
+    write_output_file(path, lambda tmp: fig.savefig(tmp, format="png", dpi=100), force=force, flag="--plot")
     plt.close(fig)
 
 
@@ -332,17 +335,23 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, help="ONNX Runtime (and torch) intra-op threads (default: all CPUs)")
     p.add_argument("--json", type=Path, help="write every figure here")
     p.add_argument("--plot", type=Path, help="write a PNG here")
+    p.add_argument("--force", action="store_true", help="replace existing --json and --plot files")
     args = p.parse_args(argv)
 
     def _main() -> int:
+        from dssp_train.output_guard import check_output_file, write_output_text
+
+        for path, flag in ((args.json, "--json"), (args.plot, "--plot")):
+            if path is not None:
+                check_output_file(path, force=args.force, flag=flag)
         t0 = time.perf_counter()
         report = run_profile(args.model_dir, args.checkpoint, args.quick, args.threads, args.precision)
         report["profile_seconds"] = time.perf_counter() - t0
         print(markdown(report))
         if args.json:
-            args.json.write_text(json.dumps(report, indent=2) + "\n")
+            write_output_text(args.json, json.dumps(report, indent=2) + "\n", force=args.force, flag="--json")
         if args.plot:
-            plot(report, args.plot)
+            plot(report, args.plot, force=args.force)
         return 0
 
     return run_cli(_main)

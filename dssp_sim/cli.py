@@ -1,18 +1,22 @@
 """``dssp-sim``: expert demonstrations and closed-loop evaluation in the MuJoCo simulation.
 
     dssp-sim collect --task tap|swap|put2 --episodes N --out PATH.zarr [--seed S] [--points P]
-    dssp-sim demo [--out runs/demo] [--steps 3000] [--demos 50] [--episodes 20]
-    dssp-sim eval --model MODEL_DIR --task NAME --episodes N [--seed S] [--noise SIGMA] [--strips DIR] [--json PATH]
+    dssp-sim demo [--out runs/demo] [--steps 3000] [--demos 50] [--episodes 20] [--force]
+    dssp-sim eval --model MODEL_DIR --task NAME --episodes N [--seed S] [--noise SIGMA] [--strips DIR] [--json PATH] [--force]
 
 ``collect`` keeps only successful expert episodes and says how many it tried. ``eval`` drives the model
 through the real chain (simulated camera → point-cloud pipeline → runtime → safety → CAN → simulated arm)
 and prints the success rate with its 95 % Wilson interval and each episode's outcome.
-Exit codes: 0 done, 2 bad input.
+Outputs (:mod:`dssp_train.output_guard`): ``collect`` appends only to a dataset ``dssp-sim collect`` wrote;
+``demo --out`` and ``eval --strips`` replace a previous output of their own only with ``--force``, and
+never a folder with anything else in it; ``eval --json`` replaces an existing file only with ``--force``.
+Exit codes: 0 done, 2 bad input (an output path that may not be written included).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
 from pathlib import Path
@@ -41,12 +45,13 @@ def parse_args(argv):
     c = sub.add_parser("collect", help="expert demonstrations → a DP3 zarr dataset")
     c.add_argument("--task", type=_task, required=True, help=" | ".join(TASKS))
     c.add_argument("--episodes", type=_positive, required=True, help="successful episodes to keep")
-    c.add_argument("--out", type=Path, required=True, help="dataset path (.zarr; appended to if it exists)")
+    c.add_argument("--out", type=Path, required=True, help="dataset path (.zarr; a dataset dssp-sim collect wrote is appended to)")
     c.add_argument("--seed", type=int, default=0, help="first episode seed (default 0)")
     c.add_argument("--points", type=_positive, help="points per cloud (default 256, the sim preset's)")
     c.add_argument("--no-progress", action="store_true")
     d = sub.add_parser("demo", help="collect, train DSSP and the reactive baseline, export, evaluate (tap)")
-    d.add_argument("--out", type=Path, default=Path("runs/demo"), help="working directory (replaced)")
+    d.add_argument("--out", type=Path, default=Path("runs/demo"), help="working directory (new or empty)")
+    d.add_argument("--force", action="store_true", help="replace a previous demo in --out")
     d.add_argument("--steps", type=_positive, default=3000, help="training steps per model (default 3000)")
     d.add_argument("--demos", type=_positive, default=50, help="expert demonstrations (default 50)")
     d.add_argument("--episodes", type=_positive, default=20, help="evaluation episodes per model (default 20)")
@@ -59,6 +64,7 @@ def parse_args(argv):
     e.add_argument("--threads", type=int, help="ONNX Runtime threads")
     e.add_argument("--strips", type=Path, help="write a PNG strip of each episode here")
     e.add_argument("--json", type=Path, help="write the result here")
+    e.add_argument("--force", action="store_true", help="replace an existing --json file and previous --strips")
     e.add_argument("--no-progress", action="store_true")
     return p.parse_args(argv)
 
@@ -95,7 +101,7 @@ def run(args) -> int:
     if args.command == "demo":
         from dssp_sim.demo import run_demo
 
-        run_demo(args.out, steps=args.steps, demos=args.demos, episodes=args.episodes)
+        run_demo(args.out, steps=args.steps, demos=args.demos, episodes=args.episodes, force=args.force)
         return 0
     if args.command == "collect":
         from dssp_sim.collect import collect
@@ -109,18 +115,23 @@ def run(args) -> int:
             raise ConfigError(f"only {result.kept} of {args.episodes} expert episodes succeeded in {result.attempted} tries; "
                               "the dataset holds the successful ones — check the task's expert")
         return 0
-    from dssp_sim.evaluate import evaluate
+    from dssp_sim.evaluate import STRIPS_DIR, evaluate
+    from dssp_train.output_guard import OutputDir, check_output_file, write_output_text
 
     if args.noise < 0:
         raise ConfigError(f"--noise must be >= 0, got {args.noise}")
-    result = evaluate(args.model, args.task, args.episodes, seed=args.seed, threads=args.threads,
-                      state_token_noise=args.noise, strips_dir=args.strips, progress=not args.no_progress)
+    if args.json:
+        check_output_file(args.json, force=args.force, flag="--json")
+    with contextlib.ExitStack() as stack:
+        strips = stack.enter_context(OutputDir(args.strips, STRIPS_DIR, force=args.force, flag="--strips")) if args.strips else None
+        result = evaluate(args.model, args.task, args.episodes, seed=args.seed, threads=args.threads,
+                          state_token_noise=args.noise, strips_dir=strips.path if strips else None,
+                          progress=not args.no_progress)
+        if strips is not None:
+            strips.commit()
     print_eval(result)
     if args.json:
-        from dssp_train.atomic import atomic_write_text
-
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        atomic_write_text(args.json, json.dumps(result.to_dict(), indent=2) + "\n")
+        write_output_text(args.json, json.dumps(result.to_dict(), indent=2) + "\n", force=args.force, flag="--json")
     return 0
 
 

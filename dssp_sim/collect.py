@@ -5,6 +5,10 @@ point-cloud pipeline (``hardware.pointcloud``, the one the robot runs) into poin
 measured arm state (7,) [J1..J6 rad, gripper opening 0..1] is ``state``; the expert's target for this
 tick (7,), the command sent to the arm, is ``action``. Only successful episodes are kept; each kept
 episode is appended as soon as it ends (crash-safe: ``ReplayBufferWriter``).
+
+``out`` is a new dataset, or one this module wrote for the same task (its ``generator`` and ``task``
+attributes), which is appended to; anything else there (a recorded dataset, another task's, a folder or a
+file) is refused before the simulation starts, and left as it is.
 """
 
 from __future__ import annotations
@@ -46,9 +50,21 @@ def expert_episode(env, expert, camera: MujocoCamera, cloud_config, seed: int):
     return np.stack(clouds).astype(np.float32), np.stack(states).astype(np.float32), np.stack(actions).astype(np.float32), status
 
 
+def check_collect_output(out: Path, task: str) -> None:
+    """Refuse an ``out`` that is neither new nor a dataset of ``task`` written by ``dssp-sim collect``."""
+    from dssp_train.output_guard import OWN, SIM_DATASET, OutputError, check_append, zarr_attrs
+
+    if check_append(out, kind=SIM_DATASET, flag="--out") == OWN:
+        have = (zarr_attrs(out) or {}).get("task")
+        if have != task:
+            raise OutputError(f"{out} holds {have!r} demonstrations, not {task!r}; collect {task!r} into another --out "
+                              "(nothing is changed)")
+
+
 def collect(task: str, n_episodes: int, out: Path, seed: int = 0, n_points: int | None = None,
             max_attempts: int | None = None, progress: bool = True) -> CollectResult:
     """Append ``n_episodes`` successful expert episodes of ``task`` to ``out`` (seeds seed, seed+1, ...)."""
+    check_collect_output(out, task)
     from dssp_sim.env import PiperEnv
     from dssp_sim.experts import make_expert
     from dssp_train.data.replay_buffer import Episode, ReplayBufferWriter

@@ -10,24 +10,37 @@
 4. evaluate each in closed loop through the robot's chain (simulated depth → RealSense software device →
    point-cloud pipeline → ONNX runtime → safety → Piper CAN → MuJoCo arm) on unseen episodes;
 5. print the success rates (95 % Wilson intervals) and DSSP's control-loop latency table.
-``--out`` is replaced on each run; ``results.json`` there holds every figure.
+``results.json`` in ``--out`` holds every figure. ``--out`` must be new or empty; a previous demo there is
+replaced only with ``--force`` (moved aside while the new one runs, deleted when it is complete, put back
+if it fails); anything else there is never touched (:mod:`dssp_train.output_guard`).
 """
 
 from __future__ import annotations
 
 import json
-import shutil
 import time
 from pathlib import Path
 
 from dssp_train.atomic import atomic_write_text
 from dssp_train.errors import DSSPError
+from dssp_train.output_guard import OutputDir, OutputKind
 
 TASK = "tap"
 VARIANTS = {"dssp": ("DSSP (full history)", []), "reactive": ("reactive baseline (no history)", ["--no-history"])}
+DEMO_DIR = OutputKind("a demo directory", "dssp-sim demo",
+                      entries=(f"{TASK}.zarr", *VARIANTS, *(f"{name}_model" for name in VARIANTS), "results.json"))
+"""``dssp-sim demo --out``: the dataset, both runs and model directories, results.json."""
 
 
-def run_demo(out: Path, steps: int = 3000, demos: int = 50, episodes: int = 20, seed: int = 0) -> dict:
+def run_demo(out: Path, steps: int = 3000, demos: int = 50, episodes: int = 20, seed: int = 0,
+             force: bool = False) -> dict:
+    with OutputDir(out, DEMO_DIR, force=force, staged=False) as target:
+        results = _run_demo(Path(out), steps, demos, episodes, seed)
+        target.commit()
+    return results
+
+
+def _run_demo(out: Path, steps: int, demos: int, episodes: int, seed: int) -> dict:
     from dssp_sim.cli import print_latency
     from dssp_sim.collect import collect
     from dssp_sim.evaluate import evaluate
@@ -35,9 +48,6 @@ def run_demo(out: Path, steps: int = 3000, demos: int = 50, episodes: int = 20, 
     from export.to_onnx import main as export_main
 
     t_start = time.perf_counter()
-    if out.exists():
-        shutil.rmtree(out)
-    out.mkdir(parents=True)
     timings = {}
     print(f"[1/4] collecting {demos} expert demonstrations of '{TASK}'")
     t0 = time.perf_counter()

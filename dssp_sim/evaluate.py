@@ -31,6 +31,7 @@ import numpy as np
 from dssp_sim.settings import cloud_config_for
 from dssp_sim.sim_arm import MujocoPiper
 from dssp_sim.sim_camera import MujocoCamera
+from dssp_train.output_guard import OutputKind
 from hardware.safety import SafetyConfig
 
 # Lockstep: inputs are fresh by construction; generous timeouts only catch a stalled bridge.
@@ -179,6 +180,10 @@ def run_episode(policy, env, seed: int, cloud_config, frames: list | None = None
     return EpisodeOutcome(seed=seed, success=bool(status.done and status.success), reason="" if status.success else reason,
                           steps=env.steps, info=dict(status.info), holds=runner.holds, safety_events=dict(runner.event_counts),
                           chunk_ms_p50=float(np.median(chunk)) if chunk else None)
+
+
+STRIPS_DIR = OutputKind("a folder of episode strips", "dssp-sim eval", entries=("*.png",))
+"""``dssp-sim eval --strips``: one PNG per episode (``TASK_seedS.png``), written all at once."""
 
 
 def evaluate(model_dir: Path, task: str, n_episodes: int, seed: int = 1000, threads: int | None = None,

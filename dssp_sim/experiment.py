@@ -1,6 +1,6 @@
 """The simulation study: DSSP against the reactive baseline on the memory tasks, and the robustness test.
 
-    python -m dssp_sim.experiment [--work runs/sim_experiment] [--report reports/sim] [--tasks T ...] [--quick]
+    python -m dssp_sim.experiment [--work runs/sim_experiment] [--report reports/sim] [--tasks T ...] [--quick] [--force]
 
 For each task: collect expert demonstrations; train DSSP and the reactive baseline (the same code with
 ``--no-history``: no history encoder, the denoiser sees only the N most recent state tokens — the
@@ -12,6 +12,11 @@ Every stage writes its output under ``--work`` and is skipped when that output e
 study resumes where it stopped, and ``--tasks`` splits it across processes or machines sharing ``--work``
 (a last run without ``--tasks`` finds every stage done and writes the whole report). The report — ``REPORT_NAME.md`` (tables), ``.png`` (plot) and ``.json``
 (every figure) — is written to ``--report``. The plan is data (:data:`PLAN`, :data:`QUICK_PLAN`).
+
+Outputs (:mod:`dssp_train.output_guard`): ``--work`` must be new, empty or a work directory of this study
+(marked ``.dssp-output.json``), which is continued; anything else is refused before any stage runs. The
+report's three files are written beside whatever else ``--report`` holds; existing ones are replaced only
+with ``--force``, checked before the study starts.
 """
 
 from __future__ import annotations
@@ -26,6 +31,7 @@ from pathlib import Path
 
 from dssp_sim.evaluate import wilson_interval
 from dssp_train.atomic import atomic_write_text
+from dssp_train.output_guard import OutputKind, check_output_files, claim_dir, write_output_file, write_output_text
 
 REPORT_NAME = "sim_memory_tasks"
 PLAN = {
@@ -45,6 +51,10 @@ PLAN = {
 QUICK_PLAN = {**PLAN, "steps": {"tap": 20}, "demos": {"tap": 3}, "seeds": {"tap": [0]}, "eval_episodes": 1,
               "export_flags": ["--skip-verify"],  # the export tests prove parity; this only checks the plumbing
               "robustness": {"task": "tap", "seed": 0, "sigmas": [0.1]}}
+WORK_DIR = OutputKind("a study work directory", "python -m dssp_sim.experiment",
+                      entries=("data", "runs", "models", "evals", "logs"), signature=lambda p: (p / "logs").is_dir())
+"""``--work``: data/, runs/, models/, evals/, logs/ (continued by the next run; older ones are recognised by logs/)."""
+REPORT_SUFFIXES = (".md", ".json", ".png")
 VARIANT_LABELS = {"dssp": "DSSP (full history)", "reactive": "reactive baseline (short window: N recent states)"}
 
 
@@ -79,6 +89,7 @@ def run_study(work: Path, plan: dict, threads: int | None = None, tasks: list[st
     unknown = sorted(set(tasks or []) - set(plan["demos"]))
     if unknown:
         raise SystemExit(f"error: unknown task(s) {unknown}; the plan has {list(plan['demos'])}")
+    claim_dir(work, kind=WORK_DIR, flag="--work", resume=True)
     py = sys.executable
     results: dict = {"plan": plan, "evals": {}, "robustness": {}}
     for task, n_demos in plan["demos"].items():
@@ -94,7 +105,7 @@ def run_study(work: Path, plan: dict, threads: int | None = None, tasks: list[st
                 run_dir, model_dir = work / "runs" / name, work / "models" / name
                 _stage(run_dir / "checkpoint", f"train {variant} seed {seed}", [py, "-m", "dssp_train.cli.train", "--data", str(data),
                        "--out", str(run_dir), "--preset", plan["preset"], "--steps", str(plan["steps"][task]), "--seed", str(seed),
-                       "--no-progress", *flags], work / "logs" / f"train_{name}.log")
+                       "--no-progress", "--force", *flags], work / "logs" / f"train_{name}.log")
                 _stage(model_dir / "dssp_model.json", f"export {variant} seed {seed}", [py, "-m", "export.to_onnx", str(run_dir),
                        "-o", str(model_dir), "--force", *plan.get("export_flags", [])], work / "logs" / f"export_{name}.log")
                 results["evals"][name] = _evaluate(work, model_dir, task, plan, name, 0.0, threads)
@@ -139,9 +150,14 @@ def summarise(results: dict) -> dict:
     return table
 
 
-def write_report(results: dict, report_dir: Path, seconds: float) -> Path:
-    """``seconds``: the compute time of all stages (:func:`_stage_seconds`)."""
-    report_dir.mkdir(parents=True, exist_ok=True)
+def report_files(report_dir: Path) -> list[Path]:
+    """The report's files in ``report_dir``: REPORT_NAME.md, .json and .png."""
+    return [report_dir / f"{REPORT_NAME}{suffix}" for suffix in REPORT_SUFFIXES]
+
+
+def write_report(results: dict, report_dir: Path, seconds: float, force: bool = False) -> Path:
+    """``seconds``: the compute time of all stages (:func:`_stage_seconds`); ``force``: replace existing report files."""
+    check_output_files(report_files(report_dir), force=force, flag="--report")
     table = summarise(results)
     plan = results["plan"]
     lines = [
@@ -177,14 +193,14 @@ def write_report(results: dict, report_dir: Path, seconds: float) -> Path:
                 cells.append(_pct(r["successes"], r["n"]))
             lines.append(f"| {sigma:g} | " + " | ".join(cells) + " |")
     lines += ["", f"![success rates]({REPORT_NAME}.png)", ""]
-    md = report_dir / f"{REPORT_NAME}.md"
-    atomic_write_text(md, "\n".join(lines))
-    atomic_write_text(report_dir / f"{REPORT_NAME}.json", json.dumps({"summary": table, **results}, indent=2) + "\n")
-    _plot(results, table, report_dir / f"{REPORT_NAME}.png")
+    md, js, png = report_files(report_dir)
+    write_output_text(md, "\n".join(lines), force=force, flag="--report")
+    write_output_text(js, json.dumps({"summary": table, **results}, indent=2) + "\n", force=force, flag="--report")
+    _plot(results, table, png, force)
     return md
 
 
-def _plot(results: dict, table: dict, path: Path) -> None:
+def _plot(results: dict, table: dict, path: Path, force: bool = False) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -221,7 +237,7 @@ def _plot(results: dict, table: dict, path: Path) -> None:
         ax.set(xlabel="σ of noise on recent state tokens", ylabel="success %", ylim=(0, 105), title=f"Robustness ({rob['task']})")
         ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    write_output_file(path, lambda tmp: fig.savefig(tmp, format="png", dpi=100), force=force, flag="--report")
     plt.close(fig)
 
 
@@ -232,15 +248,25 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quick", action="store_true", help="a tiny plan (tests): 3 demos, 20 steps, 1 episode")
     p.add_argument("--threads", type=int, help="ONNX Runtime threads for the evaluations")
     p.add_argument("--tasks", nargs="+", metavar="TASK", help="run only these tasks' stages (default: all, then the report)")
+    p.add_argument("--force", action="store_true", help="replace the report's files if they exist")
     args = p.parse_args(argv)
     plan = QUICK_PLAN if args.quick else PLAN
-    results = run_study(args.work, plan, args.threads, args.tasks)
-    if args.tasks and set(args.tasks) != set(plan["demos"]):
-        print(f"stages of {args.tasks} done; run without --tasks for the report")
+    partial = bool(args.tasks) and set(args.tasks) != set(plan["demos"])
+
+    def _main() -> int:
+        if not partial:  # before any stage: a report that may not be replaced stops the study now
+            check_output_files(report_files(args.report), force=args.force, flag="--report")
+        results = run_study(args.work, plan, args.threads, args.tasks)
+        if partial:
+            print(f"stages of {args.tasks} done; run without --tasks for the report")
+            return 0
+        md = write_report(results, args.report, _stage_seconds(args.work), force=args.force)
+        print(md.read_text())
         return 0
-    md = write_report(results, args.report, _stage_seconds(args.work))
-    print(md.read_text())
-    return 0
+
+    from dssp_train.cli.common import run_cli
+
+    return run_cli(_main)
 
 
 if __name__ == "__main__":

@@ -23,10 +23,14 @@ def _umask() -> int:
     return mask
 
 
-def atomic_write(path: Path, write: Callable[[str], None]) -> None:
-    """Call ``write(tmp_path)`` and move the result to ``path`` in one step."""
+def atomic_write(path: Path, write: Callable[[str], None], suffix: str = ".tmp") -> None:
+    """Call ``write(tmp_path)`` and move the result to ``path`` in one step.
+
+    ``suffix`` ends the temporary name (``.NAME.XXXX<suffix>``): writers that pick the format from the
+    file name (an animated GIF) need theirs, e.g. ``".tmp.gif"``.
+    """
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=suffix)
     os.close(fd)
     try:
         write(tmp)
@@ -59,12 +63,20 @@ def atomic_save_npy(path: Path, array: np.ndarray) -> None:
 
 
 def replace_dir(tmp: Path, out: Path) -> None:
-    """Move the finished directory ``tmp`` onto ``out``; an existing ``out`` is removed only after the move."""
+    """Move the finished directory ``tmp`` onto ``out``; an existing ``out`` is removed only after the move.
+
+    The existing ``out`` is first renamed aside (``.NAME.old-XXXX``); if ``tmp`` cannot be moved in, it is
+    put back. Which ``out`` may be replaced at all is :mod:`dssp_train.output_guard`'s decision.
+    """
     tmp, out = Path(tmp), Path(out)
     if out.exists():
         old = out.with_name(f".{out.name}.old-{uuid.uuid4().hex[:8]}")
         os.replace(out, old)
-        os.replace(tmp, out)
+        try:
+            os.replace(tmp, out)
+        except BaseException:
+            os.replace(old, out)
+            raise
         shutil.rmtree(old, ignore_errors=True)
     else:
         os.replace(tmp, out)

@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from dssp_train.cli.common import run_cli
+from dssp_train.output_guard import check_output_file, write_output_text
 from export.errors import ExportError, ParityError
 from export.manifest import DENOISER_GRAPH, HISTORY_GRAPH, read_manifest
 from dssp_deploy.manifest import read_graph
@@ -476,6 +477,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="seed of the noise (and of a synthetic trajectory)")
     p.add_argument("--batch", type=int, default=1, help="stream B copies of the trajectory at once (default 1)")
     p.add_argument("--json", metavar="PATH", help="also write the report as JSON")
+    p.add_argument("--force", action="store_true", help="replace an existing --json file")
     return p
 
 
@@ -485,10 +487,14 @@ def main(argv: list[str] | None = None) -> int:
     def _main() -> int:
         if args.batch < 1 or (args.threads is not None and args.threads < 1):
             raise ExportError("--batch and --threads must be >= 1")
+        if args.steps < 1:
+            raise ExportError(f"--steps must be >= 1, got {args.steps}")
+        if args.json:
+            check_output_file(args.json, force=args.force, flag="--json", error=ExportError)
         report = verify_model(Path(args.model_dir), Path(args.checkpoint), args.steps, args.threads, args.seed, args.batch, print)
         print(format_report(report))
         if args.json:
-            Path(args.json).write_text(json.dumps(report, indent=2) + "\n")
+            write_output_text(args.json, json.dumps(report, indent=2) + "\n", force=args.force, flag="--json", error=ExportError)
         try:
             check_report(report)
         except ParityError as exc:

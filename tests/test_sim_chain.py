@@ -154,9 +154,9 @@ def test_the_study_command_writes_its_report(tmp_path, capsys):
     assert (report / f"{REPORT_NAME}.png").read_bytes()[:4] == b"\x89PNG"
     data = json.loads((report / f"{REPORT_NAME}.json").read_text())
     assert set(data["evals"]) == {"tap_dssp_s0", "tap_reactive_s0"} and data["summary"]["tap"]["dssp"]["n"] == 1
-    # a second run resumes: every stage is found done
+    # a second run resumes: every stage is found done (--force: the report it rewrites exists)
     capsys.readouterr()
-    assert study_main(["--work", str(work), "--report", str(report), "--quick"]) == 0
+    assert study_main(["--work", str(work), "--report", str(report), "--quick", "--force"]) == 0
     assert capsys.readouterr().out.count("done before") == 9
     assert len(list((work / "logs").glob("*.seconds"))) == 9  # each stage's time, summed by the report
     with pytest.raises(SystemExit, match="unknown task"):

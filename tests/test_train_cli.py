@@ -114,7 +114,7 @@ def error_cases(data: Path, nan_data: Path, not_zarr: Path, tmp: Path, happy_out
         ("bad set key", ["--data", data, "--out", fresh, *base, "--set", "model.nosuch=3"], "unknown field 'model.nosuch'"),
         ("bad set section", ["--data", data, "--out", fresh, *base, "--set", "optim.lr=3"], "'optim' is not a config section"),
         ("set without =", ["--data", data, "--out", fresh, *base, "--set", "model.d_model"], "must look like section.field=value"),
-        ("bad set value", ["--data", data, "--out", fresh, *base, "--set", "model.d_model=0"], "model.d_model must be >= 1"),
+        ("bad set value", ["--data", data, "--out", fresh, *base, "--set", "model.d_model=0"], "model.d_model must be an integer in [1, 65536], got 0"),
         ("out holds a run", ["--data", data, "--out", happy_out, *base], "already holds a run"),
         ("resume without run", ["--data", data, "--out", fresh, "--resume", "--no-progress"], "config.json is missing"),
         ("device cuda", ["--data", data, "--out", fresh, *base, "--device", "cuda"], "CUDA is not available"),

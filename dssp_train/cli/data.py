@@ -54,6 +54,7 @@ def build_parser() -> argparse.ArgumentParser:
     view.add_argument("--out", type=Path, default=Path("."), help="directory for the pictures (default: .)")
     view.add_argument("--steps", type=int, default=5, help="steps shown in the point-cloud picture (default 5)")
     view.add_argument("--video", action="store_true", help="also an animated GIF of the point clouds")
+    view.add_argument("--force", action="store_true", help="replace pictures of the same name in --out")
 
     replay = sub.add_parser("replay", help="send an episode's actions through the safety layer (dry run by default)")
     replay.add_argument("path", type=Path)
@@ -109,7 +110,8 @@ def _view(args) -> int:
 
     if args.steps < 1:
         raise DSSPError(f"--steps must be at least 1, got {args.steps}")
-    for path in render_episode(args.path, args.episode, args.out, columns=args.steps, video=args.video):
+    for path in render_episode(args.path, args.episode, args.out, columns=args.steps, video=args.video,
+                               force=args.force):
         print(f"wrote {path}")
     return 0
 

@@ -1,6 +1,6 @@
 """``dssp-demo``: the embedded default, end to end on a CPU in a few minutes, no hardware.
 
-    dssp-demo [--out runs/demo] [--steps 1500] [--episodes 40] [--seed 0]
+    dssp-demo [--out runs/demo] [--steps 1500] [--episodes 40] [--seed 0] [--force]
 
 1. writes the synthetic "tap count" memory task (``dssp-synth``) to ``OUT/tap_count.zarr``;
 2. trains the ``tiny`` DSSP preset on it (``OUT/dssp``) and, with the same data, budget and seed,
@@ -8,6 +8,10 @@
 3. prints both validation results and the decision at the aliased moment — the step where the
    current observation is the same for one-tap and two-tap episodes and only memory tells
    whether to tap again or park.
+
+``--out`` must be new or empty; a previous ``dssp-demo`` output there is replaced only with ``--force``
+(moved aside while the new one runs, deleted when it is complete, put back if it fails); anything else
+there is never touched (:mod:`dssp_train.output_guard`).
 """
 
 from __future__ import annotations
@@ -18,8 +22,11 @@ import sys
 from pathlib import Path
 
 from dssp_train.cli.common import run_cli
+from dssp_train.output_guard import OutputDir, OutputKind
 
 DECISION_SEEDS = 8
+DEMO_DIR = OutputKind("a demo directory", "dssp-demo", entries=("tap_count.zarr", "dssp", "reactive", "results.json"))
+"""``dssp-demo --out``: the synthetic dataset, both runs, results.json."""
 
 
 def decision_accuracy(run_dir: Path, data_path: Path) -> float:
@@ -49,14 +56,21 @@ def decision_accuracy(run_dir: Path, data_path: Path) -> float:
     return hits / max(total, 1)
 
 
-def run_demo(out: Path, steps: int | None, episodes: int, seed: int, progress: bool = True) -> dict[str, dict[str, float]]:
+def run_demo(out: Path, steps: int | None, episodes: int, seed: int, progress: bool = True,
+             force: bool = False) -> dict[str, dict[str, float]]:
     """Dataset, two trainings and their evaluation; returns {"dssp": {...}, "reactive": {...}}."""
+    with OutputDir(out, DEMO_DIR, force=force, staged=False) as target:
+        results = _run_demo(Path(out), steps, episodes, seed, progress)
+        target.commit()
+    return results
+
+
+def _run_demo(out: Path, steps: int | None, episodes: int, seed: int, progress: bool) -> dict[str, dict[str, float]]:
     from dssp_train.config import apply_overrides, load_preset
     from dssp_train.data.synthetic import write_tap_count_dataset
     from dssp_train.atomic import atomic_write_text
     from dssp_train.training.trainer import Trainer
 
-    out.mkdir(parents=True, exist_ok=True)
     data = write_tap_count_dataset(out / "tap_count.zarr", episodes, seed=seed)
     results = {}
     for name, extra in (("dssp", []), ("reactive", ["model.use_history=false"])):
@@ -90,15 +104,17 @@ def format_results(results: dict[str, dict[str, float]]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="dssp-demo", description="Synthetic memory task: DSSP against the reactive baseline.")
-    p.add_argument("--out", default="runs/demo", help="output directory (dataset, two run directories, results.json)")
+    p.add_argument("--out", default="runs/demo", help="output directory, new or empty (dataset, two run directories, results.json)")
     p.add_argument("--steps", type=int, help="training steps for each model (default: the tiny preset's 1500)")
     p.add_argument("--episodes", type=int, default=40, help="demonstrations to generate")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--force", action="store_true", help="replace a previous dssp-demo output in --out")
     args = p.parse_args(argv)
 
     def _main() -> int:
-        results = run_demo(Path(args.out), args.steps, args.episodes, args.seed, progress=not args.no_progress)
+        results = run_demo(Path(args.out), args.steps, args.episodes, args.seed, progress=not args.no_progress,
+                           force=args.force)
         print(format_results(results))
         print(f"results in {Path(args.out) / 'results.json'}; runs in {args.out}/dssp and {args.out}/reactive")
         return 0

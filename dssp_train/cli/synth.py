@@ -1,6 +1,9 @@
 """``dssp-synth``: write the synthetic "tap count" memory task as a DP3 zarr dataset.
 
-    dssp-synth --out data/tap_count.zarr [--episodes 40] [--seed 0] [--points 64]
+    dssp-synth --out data/tap_count.zarr [--episodes 40] [--seed 0] [--points 64] [--force]
+
+``--out`` must be new or empty; a dataset dssp-synth wrote before (its ``generator`` attribute) is replaced
+only with ``--force``, all at once; any other dataset, folder or file there is never touched.
 """
 
 from __future__ import annotations
@@ -17,9 +20,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--episodes", type=int, default=40)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--points", type=int, default=64, help="points per cloud")
+    p.add_argument("--force", action="store_true", help="replace a dataset dssp-synth wrote before at --out")
     args = p.parse_args(argv)
 
     def _main() -> int:
+        from dssp_train.output_guard import SYNTH_DATASET, check_output
+
+        check_output(args.out, force=args.force, kind=SYNTH_DATASET, flag="--out")
+
         from dssp_train.data.replay_buffer import ReplayBuffer
         from dssp_train.data.synthetic import write_tap_count_dataset
 

@@ -24,6 +24,7 @@ import numpy as np
 
 from dssp_train.data.recording import FLAGS_KEY, problem_names
 from dssp_train.data.replay_buffer import ReplayBufferReader
+from dssp_train.output_guard import check_output_files, write_output_file
 
 VIEWS = (("oblique", 25.0, -60.0), ("top", 90.0, -90.0), ("side", 0.0, -90.0))
 """(name, elevation, azimuth) in degrees of each row of the cloud figure."""
@@ -110,9 +111,22 @@ def _problem_spans(flags: np.ndarray | None, t: np.ndarray) -> list[tuple[float,
     return spans
 
 
+def picture_paths(path: str | os.PathLike, episode: int, out_dir: str | os.PathLike, video: bool = False) -> list[Path]:
+    """The files :func:`render_episode` writes: ``<name>_ep<K>_clouds.png``, ``_trajectories.png`` (and ``.gif``)."""
+    stem = f"{Path(path).name.removesuffix('.zarr') or 'dataset'}_ep{episode}"
+    out_dir = Path(out_dir)
+    names = [f"{stem}_clouds.png", f"{stem}_trajectories.png"] + ([f"{stem}.gif"] if video else [])
+    return [out_dir / n for n in names]
+
+
 def render_episode(path: str | os.PathLike, episode: int, out_dir: str | os.PathLike, *, columns: int = 5,
-                   video: bool = False) -> list[Path]:
-    """Write the pictures of episode ``episode`` of dataset ``path`` into ``out_dir``; returns their paths."""
+                   video: bool = False, force: bool = False) -> list[Path]:
+    """Write the pictures of episode ``episode`` of dataset ``path`` into ``out_dir``; returns their paths.
+
+    Only the files of :func:`picture_paths` are written (atomically); one that exists is replaced only
+    with ``force`` — checked for all of them before anything is read or drawn.
+    """
+    check_output_files(picture_paths(path, episode, out_dir, video), force=force, flag="--out")
     plt = _pyplot()
     path, out_dir = Path(path), Path(out_dir)
     reader = ReplayBufferReader(path, allow_incomplete_tail=True)
@@ -146,7 +160,7 @@ def render_episode(path: str | os.PathLike, episode: int, out_dir: str | os.Path
     fig.suptitle(f"{path.name}  episode {episode}: point clouds ({ep.point_cloud.shape[1]} points, metres)", fontsize=10)
     fig.subplots_adjust(left=0.03, right=0.99, bottom=0.01, top=0.9, wspace=0.05, hspace=0.08)
     clouds_png = out_dir / f"{stem}_clouds.png"
-    fig.savefig(clouds_png, dpi=110)
+    write_output_file(clouds_png, lambda tmp: fig.savefig(tmp, format="png", dpi=110), force=force, flag="--out")
     plt.close(fig)
     written.append(clouds_png)
 
@@ -195,16 +209,16 @@ def render_episode(path: str | os.PathLike, episode: int, out_dir: str | os.Path
     fig.suptitle(f"{path.name}  episode {episode}: state (solid) and action (dashed){legend}", fontsize=10)
     fig.tight_layout(rect=(0, 0, 1, 0.95 if spans else 0.97))
     traj_png = out_dir / f"{stem}_trajectories.png"
-    fig.savefig(traj_png, dpi=110)
+    write_output_file(traj_png, lambda tmp: fig.savefig(tmp, format="png", dpi=110), force=force, flag="--out")
     plt.close(fig)
     written.append(traj_png)
 
     if video:
-        written.append(_write_gif(plt, ep, t, flags, out_dir / f"{stem}.gif", f"{path.name} episode {episode}"))
+        written.append(_write_gif(plt, ep, t, flags, out_dir / f"{stem}.gif", f"{path.name} episode {episode}", force))
     return written
 
 
-def _write_gif(plt, ep, t: np.ndarray, flags, target: Path, title: str) -> Path:
+def _write_gif(plt, ep, t: np.ndarray, flags, target: Path, title: str, force: bool) -> Path:
     from matplotlib.animation import FuncAnimation, PillowWriter
 
     steps = np.unique(np.linspace(0, ep.n_steps - 1, min(ep.n_steps, MAX_VIDEO_FRAMES)).round().astype(int))
@@ -223,7 +237,8 @@ def _write_gif(plt, ep, t: np.ndarray, flags, target: Path, title: str) -> Path:
 
     period = float(np.median(np.diff(t[steps]))) if len(steps) > 1 else 0.1
     animation = FuncAnimation(fig, draw, frames=len(steps), blit=False)
-    animation.save(target, writer=PillowWriter(fps=max(1.0, min(30.0, 1.0 / max(period, 1e-3)))))
+    writer = PillowWriter(fps=max(1.0, min(30.0, 1.0 / max(period, 1e-3))))
+    write_output_file(target, lambda tmp: animation.save(tmp, writer=writer), force=force, flag="--out", suffix=".tmp.gif")
     plt.close(fig)
     return target
 

@@ -190,6 +190,7 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
         STATE_CONVENTION,
         RecordingDataset,
     )
+    from dssp_train.output_guard import RECORDED_DATASET, check_append
     from hardware.bus_monitor import BusMonitor
     from hardware.pointcloud import PointCloudConfig, load_extrinsics
     from hardware.record_session import RecordSession, SessionSettings
@@ -203,6 +204,7 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
         raise ConfigError("--can sim records the simulated scene in lockstep with simulated time: it needs --camera sim")
     if args.auto and not sim_can and args.max_steps is None:
         raise ConfigError("--auto on a robot needs --max-steps: nothing else ends an episode")
+    check_append(args.out, kind=RECORDED_DATASET, flag="--out")  # appends only to its own recordings
     convention = "leader_command" if args.action == "leader" else "next_state"
     thresholds = RecordThresholds.load(args.thresholds, "thresholds") if args.thresholds else RecordThresholds()
     existing = _existing_attrs(args.out)

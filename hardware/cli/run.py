@@ -146,6 +146,7 @@ def run(args) -> int:
 def _run(args, signals: StartupSignals) -> int:
     check_args(args)
     from dssp_deploy.policy import OnnxPolicy
+    from dssp_train.output_guard import RUN_LOG, check_output, claim_dir
     from hardware.camera import open_camera
     from hardware.can_log import BusRecorder
     from hardware.piper.limits import JointLimits
@@ -177,6 +178,7 @@ def _run(args, signals: StartupSignals) -> int:
     safety_config.check_speed(rate)
     settings = LoopSettings(rate_hz=rate, max_steps=args.max_steps, dry_run=args.dry_run, prefetch=args.prefetch, seed=args.seed)
     log_dir = args.log_dir or Path("runs/dssp-run") / time.strftime("%Y%m%d-%H%M%S")
+    check_output(log_dir, force=None, kind=RUN_LOG, flag="--log-dir")  # a log is never replaced
 
     robot = open_robot(args.can, interface=args.interface)
     check_fits(policy, robot, cloud_config)  # before any device is opened
@@ -186,6 +188,7 @@ def _run(args, signals: StartupSignals) -> int:
     gripper = np.tile(np.arange(7) == 6, n_arms)
 
     signals.check()
+    claim_dir(log_dir, kind=RUN_LOG, flag="--log-dir")
     camera = open_camera(args.camera, serial=args.serial)
     if simulated_camera and not args.extrinsics:
         camera_to_base = camera.camera_to_base  # the simulated camera's own mounting

@@ -1,0 +1,671 @@
+"""No command destroys data it did not create: every command that writes checks its outputs first.
+
+(a) a foreign folder, a folder holding a zarr dataset, a file or a recorded dataset at a command's output
+    path: exit 2, one ``error:`` line, and not one byte changed on disk — with and without ``--force``;
+(b) a previous output of the same command: refused without ``--force``, replaced with it (the expensive
+    work is replaced by a stand-in: these tests check where the command writes, not what);
+(c) the guard itself (``dssp_train.output_guard``), property-based over random folder contents.
+The refusals come before any work: nothing here trains, collects or evaluates.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, example, given, settings
+from hypothesis import strategies as st
+
+from dssp_deploy.profile import main as profile_main
+from dssp_sim.cli import main as sim_main
+from dssp_sim.experiment import REPORT_NAME
+from dssp_sim.experiment import main as study_main
+from dssp_train.atomic import replace_dir
+from dssp_train.cli.demo import main as dssp_demo_main
+from dssp_train.cli.synth import main as synth_main
+from dssp_train.cli.train import main as train_main
+from dssp_train.data.replay_buffer import Episode, ReplayBuffer, write_replay_buffer
+from dssp_train.errors import DSSPError
+from dssp_train.output_guard import (
+    MARKER,
+    NEW,
+    OWN,
+    RUN_DIR,
+    SIM_DATASET,
+    SYNTH_DATASET,
+    OutputDir,
+    OutputError,
+    OutputKind,
+    check_append,
+    check_output,
+    check_output_file,
+    claim_dir,
+    write_output_file,
+    write_output_text,
+    zarr_attrs,
+    zarr_generator,
+)
+from export.to_onnx import main as export_main
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+# ------------------------------------------------------------------------------------------------ helpers
+def snapshot(root: Path) -> dict[str, str]:
+    """Every path under ``root`` with what it is: a folder, a link and its target, or a file's sha256."""
+    found = {}
+    for folder, dirs, files in os.walk(root, followlinks=False):
+        for name in dirs + files:
+            path = Path(folder, name)
+            rel = str(path.relative_to(root))
+            if path.is_symlink():
+                found[rel] = "link:" + os.readlink(path)
+            elif path.is_dir():
+                found[rel] = "dir"
+            else:
+                found[rel] = hashlib.sha256(path.read_bytes()).hexdigest()
+    return found
+
+
+def error_line(capsys) -> str:
+    captured = capsys.readouterr()
+    lines = captured.err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: "), captured.err
+    return lines[0]
+
+
+def load_script(name: str):
+    spec = importlib.util.spec_from_file_location(f"bench_{name}", ROOT / "benchmarks" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def tiny_episodes(n: int) -> list[Episode]:
+    rng = np.random.default_rng(0)
+    return [Episode(point_cloud=rng.random((3, 4, 3), dtype=np.float32), state=rng.random((3, 2), dtype=np.float32),
+                    action=rng.random((3, 2), dtype=np.float32)) for _ in range(n)]
+
+
+def write_dataset(path: Path, generator: str, n: int = 2, **attrs) -> Path:
+    write_replay_buffer(path, tiny_episodes(n), attrs={"generator": generator, **attrs})
+    return path
+
+
+# Foreign things at an output path: a folder with a file, a folder holding a zarr dataset (``mkdir -p
+# D/rec.zarr``), a file, and a recorded dataset (what ``dssp-record`` writes).
+def folder_with_file(path: Path) -> None:
+    path.mkdir()
+    (path / "notes.txt").write_text("keep me")
+
+
+def folder_with_zarr(path: Path) -> None:
+    (path / "rec.zarr").mkdir(parents=True)
+    (path / "rec.zarr" / ".zgroup").write_text('{"zarr_format": 2}')
+
+
+def a_file(path: Path) -> None:
+    path.write_text("not yours")
+
+
+def recorded_dataset(path: Path) -> None:
+    write_dataset(path, "dssp-record", n=28)
+
+
+FOLDERS = {"folder": folder_with_file, "zarr-inside": folder_with_zarr}
+DIR_FOREIGN = {**FOLDERS, "file": a_file, "recorded": recorded_dataset}
+
+
+def flag(force: bool) -> list[str]:
+    return ["--force"] if force else []
+
+
+# Each command with its output at ``out`` (a missing model or dataset elsewhere: the refusal must come first).
+def sim_demo(out, force):
+    return sim_main(["demo", "--out", str(out), "--steps", "1", "--demos", "1", "--episodes", "1", *flag(force)])
+
+
+def synth(out, force, episodes=2):
+    return synth_main(["--out", str(out), "--episodes", str(episodes), "--points", "24", *flag(force)])
+
+
+def dssp_demo(out, force):
+    return dssp_demo_main(["--out", str(out), "--steps", "1", "--episodes", "2", "--no-progress", *flag(force)])
+
+
+def train(out, force):
+    return train_main(["--data", str(out.parent / "missing.zarr"), "--out", str(out), "--steps", "1", "--no-progress", *flag(force)])
+
+
+def collect(out, force):
+    assert not force  # collect appends; it has no --force
+    return sim_main(["collect", "--task", "tap", "--episodes", "1", "--out", str(out), "--no-progress"])
+
+
+def eval_strips(out, force):
+    return sim_main(["eval", "--model", str(out.parent / "missing_model"), "--task", "tap", "--episodes", "1",
+                     "--strips", str(out), "--no-progress", *flag(force)])
+
+
+def eval_json(out, force):
+    return sim_main(["eval", "--model", str(out.parent / "missing_model"), "--task", "tap", "--episodes", "1",
+                     "--json", str(out), "--no-progress", *flag(force)])
+
+
+def profile_json(out, force):
+    return profile_main([str(out.parent / "missing_model"), "--quick", "--json", str(out), *flag(force)])
+
+
+def profile_plot(out, force):
+    return profile_main([str(out.parent / "missing_model"), "--quick", "--plot", str(out), *flag(force)])
+
+
+def study_work(out, force):
+    return study_main(["--work", str(out), "--report", str(out.parent / "report"), "--quick", *flag(force)])
+
+
+def study_report(out, force):  # out: REPORT_NAME.md in the report folder
+    return study_main(["--work", str(out.parent.parent / "work"), "--report", str(out.parent), "--quick", *flag(force)])
+
+
+def export(out, force):
+    return export_main([str(out.parent / "missing_run"), "-o", str(out), *flag(force)])
+
+
+def export_report(out, force):
+    return load_script("export_report").main(["--out", str(out), "--preset", "tiny", "--verify-steps", "1",
+                                              "--repeats", "1", *flag(force)])
+
+
+def export_report_json(out, force):
+    return load_script("export_report").main(["--out", str(out.parent / "report_dir"), "--json", str(out),
+                                              "--preset", "tiny", *flag(force)])
+
+
+def pointcloud_json(out, force):
+    return load_script("pointcloud_time").main(["--repeats", "1", "--warmup", "0", "--json", str(out), *flag(force)])
+
+
+def train_step_json(out, force):
+    return load_script("train_step_time").main(["--repeats", "1", "--json", str(out), *flag(force)])
+
+
+DIR_COMMANDS = {
+    "dssp-sim demo --out": (sim_demo, True),
+    "dssp-synth --out": (synth, True),
+    "dssp-demo --out": (dssp_demo, True),
+    "dssp-train --out": (train, True),
+    "dssp-sim collect --out": (collect, False),
+    "dssp-sim eval --strips": (eval_strips, True),
+    "experiment --work": (study_work, True),
+    "export.to_onnx -o": (export, True),
+    "export_report.py --out": (export_report, True),
+}
+FILE_COMMANDS = {
+    "dssp-sim eval --json": eval_json,
+    "dssp-profile --json": profile_json,
+    "dssp-profile --plot": profile_plot,
+    "experiment --report": study_report,
+    "export_report.py --json": export_report_json,
+    "pointcloud_time.py --json": pointcloud_json,
+    "train_step_time.py --json": train_step_json,
+}
+
+
+def refused_unchanged(capsys, root: Path, run, out: Path, force: bool) -> str:
+    before = snapshot(root)
+    assert run(out, force) == 2
+    line = error_line(capsys)
+    assert snapshot(root) == before, line
+    return line
+
+
+# ---------------------------------------------------------------------- (a) foreign outputs are refused
+@pytest.mark.parametrize("command", DIR_COMMANDS)
+def test_a_foreign_output_folder_is_never_touched(command, tmp_path, capsys):
+    run, has_force = DIR_COMMANDS[command]
+    for name, make in DIR_FOREIGN.items():
+        root = tmp_path / name
+        root.mkdir()
+        out = root / "target"
+        make(out)
+        for force in (False, True) if has_force else (False,):
+            line = refused_unchanged(capsys, root, run, out, force)
+            assert str(out) in line and "choose another" in line, line
+            assert "nothing is deleted" in line, line
+
+
+@pytest.mark.parametrize("command", FILE_COMMANDS)
+def test_a_folder_where_a_file_goes_is_never_touched(command, tmp_path, capsys):
+    run = FILE_COMMANDS[command]
+    name = f"{REPORT_NAME}.md" if command == "experiment --report" else "out.json"
+    for case, make in FOLDERS.items():
+        root = tmp_path / case
+        (root / "report").mkdir(parents=True)
+        out = root / "report" / name
+        make(out)
+        for force in (False, True):
+            line = refused_unchanged(capsys, root, run, out, force)
+            assert "is not a file" in line and "nothing is deleted" in line, line
+
+
+@pytest.mark.parametrize("command", FILE_COMMANDS)
+def test_an_existing_file_is_replaced_only_with_force(command, tmp_path, capsys):
+    run = FILE_COMMANDS[command]
+    (tmp_path / "report").mkdir()
+    out = tmp_path / "report" / (f"{REPORT_NAME}.md" if command == "experiment --report" else "out.json")
+    out.write_text("an earlier result")
+    line = refused_unchanged(capsys, tmp_path, run, out, False)
+    assert "pass --force" in line, line
+
+
+def test_synth_never_replaces_a_recorded_dataset(tmp_path, capsys):
+    """The reported loss: 28 recorded episodes replaced by 2 synthetic ones."""
+    out = tmp_path / "rec.zarr"
+    recorded_dataset(out)
+    for force in (False, True):
+        line = refused_unchanged(capsys, tmp_path, synth, out, force)
+        assert "is not a synthetic dataset made by dssp-synth" in line
+    assert ReplayBuffer.load(out).n_episodes == 28
+
+
+def test_collect_appends_only_to_its_own_dataset_of_the_same_task(tmp_path, capsys):
+    out = tmp_path / "swap.zarr"
+    write_dataset(out, "dssp_sim.collect", task="swap")
+    line = refused_unchanged(capsys, tmp_path, collect, out, False)
+    assert "holds 'swap' demonstrations, not 'tap'" in line
+    assert check_append(out, kind=SIM_DATASET) == OWN  # appending to it is fine: it is the task that differs
+
+
+# ------------------------------------------------------------- (b) a previous output of the same command
+def replaced(capsys, root: Path, run, out: Path) -> None:
+    """``out`` holds the command's previous output: refused without --force, replaced with it."""
+    line = refused_unchanged(capsys, root, run, out, False)
+    assert "already holds" in line or "exists;" in line, line
+    assert "pass --force" in line, line
+    before = snapshot(out) if out.is_dir() else out.read_bytes()
+    assert run(out, True) == 0
+    capsys.readouterr()
+    assert (snapshot(out) if out.is_dir() else out.read_bytes()) != before
+    assert not [p for p in root.rglob("*") if ".partial-" in p.name or ".old-" in p.name]
+
+
+def test_synth_replaces_its_own_dataset_with_force(tmp_path, capsys):
+    out = tmp_path / "synth.zarr"
+    assert synth(out, False) == 0
+    capsys.readouterr()
+    replaced(capsys, tmp_path, lambda o, f: synth(o, f, episodes=3), out)
+    assert ReplayBuffer.load(out).n_episodes == 3
+
+
+def test_sim_demo_replaces_its_own_output_with_force_and_restores_it_on_failure(tmp_path, capsys, monkeypatch):
+    import dssp_sim.demo as demo
+
+    calls = []
+
+    def fake(out, steps, demos, episodes, seed):
+        calls.append(out)
+        (out / "tap.zarr").mkdir()
+        (out / "results.json").write_text(json.dumps({"run": len(calls)}))
+        return {}
+
+    monkeypatch.setattr(demo, "_run_demo", fake)
+    out = tmp_path / "demo"
+    assert sim_demo(out, False) == 0 and (out / MARKER).is_file()
+    replaced(capsys, tmp_path, sim_demo, out)
+    assert json.loads((out / "results.json").read_text()) == {"run": 2}
+
+    def failing(out, *args):
+        (out / "results.json").write_text("half")
+        raise DSSPError("training dssp failed (exit 1)")
+
+    monkeypatch.setattr(demo, "_run_demo", failing)
+    before = snapshot(tmp_path)
+    assert sim_demo(out, True) == 2
+    assert "training dssp failed" in error_line(capsys)
+    assert snapshot(tmp_path) == before  # the previous demo is back, untouched
+
+
+def test_dssp_demo_replaces_its_own_output_with_force(tmp_path, capsys, monkeypatch):
+    import dssp_train.cli.demo as demo
+
+    runs = []
+
+    def fake(out, steps, episodes, seed, progress):
+        runs.append(1)
+        (out / "results.json").write_text(str(len(runs)))
+        row = {"val_diffusion": 0.1, "val_action_mse": 0.1, "decision_accuracy": 1.0}
+        return {"dssp": row, "reactive": row}
+
+    monkeypatch.setattr(demo, "_run_demo", fake)
+    out = tmp_path / "demo"
+    assert dssp_demo(out, False) == 0
+    replaced(capsys, tmp_path, dssp_demo, out)
+
+
+def test_train_replaces_a_previous_run_only_with_force(tmp_path, capsys, monkeypatch):
+    import dssp_train.cli.train as cli
+
+    runs = []
+
+    def fake(args, out):
+        runs.append(1)
+        (out / "config.json").write_text(json.dumps({"model": {}, "train": {}, "run": len(runs)}))
+        (out / "model.safetensors").write_bytes(b"weights %d" % len(runs))
+        (out / "checkpoint").mkdir()
+        return {"step": 1}
+
+    monkeypatch.setattr(cli, "_train", fake)
+    out = tmp_path / "run"
+    assert train(out, False) == 0
+    capsys.readouterr()
+    line = refused_unchanged(capsys, tmp_path, train, out, False)
+    assert "continue it with --resume, pass --force to replace it or choose another --out" in line
+    replaced(capsys, tmp_path, train, out)
+    assert json.loads((out / "config.json").read_text())["run"] == 2
+
+    def interrupted(args, out):
+        (out / "config.json").write_text("{}")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "_train", interrupted)
+    before = snapshot(tmp_path)
+    assert train(out, True) == 130
+    capsys.readouterr()
+    assert snapshot(tmp_path) == before  # the previous run is back
+    # a run folder with anything else in it is not the run's to delete
+    (out / "notes.txt").write_text("mine")
+    assert "nothing is deleted" in refused_unchanged(capsys, tmp_path, train, out, True)
+
+
+def test_eval_replaces_its_strips_and_json_only_with_force(tmp_path, capsys, monkeypatch):
+    import dssp_sim.evaluate as evaluate
+    from dssp_sim.evaluate import EvalResult
+
+    runs = []
+
+    def fake(model, task, n, seed=0, threads=None, state_token_noise=0.0, strips_dir=None, progress=True):
+        runs.append(1)
+        (Path(strips_dir) / "tap_seed1.png").write_bytes(b"png %d" % len(runs))
+        return EvalResult(str(model), task, state_token_noise=len(runs))
+
+    monkeypatch.setattr(evaluate, "evaluate", fake)
+
+    def run(out, force):
+        return sim_main(["eval", "--model", "m", "--task", "tap", "--episodes", "1", "--strips", str(out),
+                         "--json", str(out.parent / "eval.json"), "--no-progress", *flag(force)])
+
+    out = tmp_path / "strips"
+    assert run(out, False) == 0
+    replaced(capsys, tmp_path, run, out)
+    assert json.loads((tmp_path / "eval.json").read_text())["state_token_noise"] == 2
+    assert sorted(p.name for p in out.iterdir()) == [MARKER, "tap_seed1.png"]
+
+
+def test_profile_replaces_its_files_only_with_force(tmp_path, capsys, monkeypatch):
+    import dssp_deploy.profile as profile
+
+    runs = []
+
+    def fake(*args):
+        runs.append(1)
+        return {"history_sweep": [{"length": 1, "p50_ms": 1.0}, {"length": 10, "p50_ms": 2.0 + len(runs)}], "torch": {},
+                "samples_ms": {"history_step": [1.0, 2.0], "denoiser_chunk": [3.0, 4.0]}}
+
+    monkeypatch.setattr(profile, "run_profile", fake)
+    monkeypatch.setattr(profile, "markdown", lambda report: "table")
+
+    def run(out, force):
+        return profile_main(["model", "--json", str(out), "--plot", str(out.with_suffix(".png")), *flag(force)])
+
+    out = tmp_path / "profile.json"
+    assert run(out, False) == 0
+    png = (tmp_path / "profile.png").read_bytes()
+    assert png.startswith(b"\x89PNG")
+    replaced(capsys, tmp_path, run, out)
+    assert (tmp_path / "profile.png").read_bytes() != png
+
+
+def test_study_continues_its_work_and_replaces_its_report_only_with_force(tmp_path, capsys, monkeypatch):
+    import dssp_sim.experiment as experiment
+
+    stages = []
+    monkeypatch.setattr(experiment, "_stage", lambda done, what, cmd, log: stages.append(what))
+    monkeypatch.setattr(experiment, "_evaluate", lambda work, model, task, plan, name, sigma, threads: {
+        "successes": len(stages) % 2, "n": 1, "success_rate": float(len(stages) % 2), "failure_reasons": {}})
+    work, report = tmp_path / "work", tmp_path / "report"
+
+    def run(out, force):
+        return study_main(["--work", str(work), "--report", str(out.parent), "--quick", *flag(force)])
+
+    md = report / f"{REPORT_NAME}.md"
+    assert run(md, False) == 0 and (work / MARKER).is_file()
+    assert "train dssp seed 0" in stages
+    n = len(stages)
+    capsys.readouterr()
+    replaced(capsys, tmp_path, run, report / f"{REPORT_NAME}.json")
+    assert len(stages) == 2 * n  # the refused run stopped before any stage; the forced one continued the work
+    assert (report / f"{REPORT_NAME}.png").read_bytes().startswith(b"\x89PNG")
+
+
+def test_export_report_replaces_its_own_folder_only_with_force(tmp_path, capsys, monkeypatch):
+    module = load_script("export_report")
+    runs = []
+
+    def fake_export(run_dir, model_dir, **kwargs):
+        runs.append(1)
+        model_dir.mkdir()
+        (model_dir / "dssp_model.json").write_text(str(len(runs)))
+        return {"model_dir": str(model_dir)}
+
+    monkeypatch.setattr(module, "make_untrained_run", lambda name, run_dir: run_dir.mkdir() or run_dir)
+    monkeypatch.setattr(module, "export_model", fake_export)
+    monkeypatch.setattr(module, "format_summary", lambda summary: "")
+    monkeypatch.setattr(module, "latency", lambda *args: {})
+
+    def run(out, force):
+        return module.main(["--out", str(out), "--preset", "tiny", *flag(force)])
+
+    out = tmp_path / "report"
+    assert run(out, False) == 0
+    assert sorted(p.name for p in out.iterdir()) == [MARKER, "report.json", "tiny_model", "tiny_run"]
+    replaced(capsys, tmp_path, run, out)
+    assert (out / "tiny_model" / "dssp_model.json").read_text() == "2"
+
+
+def test_benchmark_json_files_are_replaced_only_with_force(tmp_path, capsys, monkeypatch):
+    out = tmp_path / "pointcloud.json"
+    assert pointcloud_json(out, False) == 0
+    replaced(capsys, tmp_path, pointcloud_json, out)
+
+    module = load_script("train_step_time")
+    monkeypatch.setattr(module, "train_step_fn", lambda *a: (lambda: None, f"step {a[0]}"))
+    monkeypatch.setattr(module, "history_fwd_bwd_fn", lambda *a: (lambda: None, "history"))
+    monkeypatch.setattr(module, "time_calls", lambda fn, n, warmup=0: [float(len(str(tmp_path)))])
+    out = tmp_path / "train_step.json"
+    assert module.main(["--json", str(out)]) == 0
+    assert refused_unchanged(capsys, tmp_path, lambda o, f: module.main(["--json", str(o)]), out, False)
+    assert module.main(["--json", str(out), "--force"]) == 0
+
+
+# ----------------------------------------------------------------------------------------- (c) the guard
+KIND = OutputKind("a test output", "test-cmd", entries=("a.json", "b", "*.png"))
+NAMES = ["a.json", "b", "x.png", ".a.json.1234.tmp", ".b.partial-xy", "notes.txt", "c", ".hidden", MARKER]
+
+
+def build(path: Path, names: list[str], dirs: set[str], marker: str | None) -> None:
+    path.mkdir()
+    for name in names:
+        if name == MARKER:
+            continue
+        if name in dirs:
+            (path / name).mkdir()
+            (path / name / "inner").write_text(name)
+        else:
+            (path / name).write_text(name)
+    if marker is not None:
+        (path / MARKER).write_text(marker)
+
+
+MARKERS = st.sampled_from([None, json.dumps({"command": "test-cmd", "output": "a test output"}),
+                           json.dumps({"command": "other", "output": "a test output"}), "not json"])
+
+
+OWN_MARKER = json.dumps({"command": "test-cmd", "output": "a test output"})
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(names=st.lists(st.sampled_from(NAMES), unique=True), dirs=st.sets(st.sampled_from(NAMES)), marker=MARKERS,
+       force=st.booleans(), staged=st.booleans())
+@example(names=["a.json", "x.png", ".b.partial-xy"], dirs={"b"}, marker=OWN_MARKER, force=True, staged=False)
+@example(names=["a.json", "x.png"], dirs=set(), marker=OWN_MARKER, force=True, staged=True)
+@example(names=["a.json", "notes.txt"], dirs=set(), marker=OWN_MARKER, force=True, staged=True)
+@example(names=[], dirs=set(), marker="not json", force=False, staged=False)
+def test_guard_replaces_only_its_own_folders(names, dirs, marker, force, staged):
+    with tempfile.TemporaryDirectory() as tmp:
+        root = Path(tmp)
+        out = root / "out"
+        build(out, names, dirs, marker)
+        content = [n for n in os.listdir(out) if n != MARKER]
+        own_marker = marker is not None and "test-cmd" in marker
+        expected = (NEW if not content
+                    else OWN if own_marker and all(KIND.expected(n) for n in content) else "refused")
+        before = snapshot(root)
+        try:
+            found = check_output(out, force=force, kind=KIND)
+        except OutputError as exc:
+            found = "refused"
+            assert str(exc).count("\n") == 0
+            assert ("pass --force" in str(exc)) == (expected == OWN and not force)
+        assert found == (expected if expected != OWN or force else "refused")
+        assert snapshot(root) == before
+        if found == "refused":
+            with pytest.raises(OutputError):
+                with OutputDir(out, KIND, force=force, staged=staged):
+                    pass
+            assert snapshot(root) == before
+            return
+        with OutputDir(out, KIND, force=force, staged=staged) as target:
+            (target.path / "a.json").write_text("new")
+            target.commit()
+        assert sorted(os.listdir(out)) == [MARKER, "a.json"] and (out / "a.json").read_text() == "new"
+        assert KIND.owns(out) and os.listdir(root) == ["out"]
+
+
+def test_file_rules(tmp_path):
+    new = tmp_path / "sub" / "r.json"
+    assert check_output_file(new, force=False) == new
+    write_output_text(new, "1", force=False)
+    with pytest.raises(OutputError, match="exists; pass --force to replace it or choose another --json"):
+        write_output_text(new, "2", force=False, flag="--json")
+    write_output_text(new, "2", force=True)
+    assert new.read_text() == "2" and os.listdir(new.parent) == ["r.json"]
+    gif = tmp_path / "a.gif"  # a writer that takes the format from the name sees the suffix it needs
+    write_output_file(gif, lambda tmp: Path(tmp).write_text(Path(tmp).suffix), force=False, suffix=".tmp.gif")
+    assert gif.read_text() == ".gif" and sorted(os.listdir(tmp_path)) == ["a.gif", "sub"]
+    (tmp_path / "d").mkdir()
+    (tmp_path / "link").symlink_to(new)
+    for path in (tmp_path / "d", tmp_path / "link"):
+        with pytest.raises(OutputError, match="is not a file"):
+            check_output_file(path, force=True)
+
+
+def test_output_dir_rolls_back_and_removes_only_what_it_created(tmp_path):
+    out = tmp_path / "a" / "b" / "out"
+    with pytest.raises(RuntimeError):
+        with OutputDir(out, KIND) as target:
+            (target.path / "a.json").write_text("x")
+            raise RuntimeError
+    assert os.listdir(tmp_path) == []  # the staging folder and the parents it made are gone
+    for staged in (True, False):
+        with OutputDir(out, KIND, staged=staged) as target:
+            (target.path / "a.json").write_text("old")
+            target.commit()
+        before = snapshot(tmp_path)
+        with pytest.raises(RuntimeError):
+            with OutputDir(out, KIND, force=True, staged=staged) as target:
+                (target.path / "a.json").write_text("new")
+                raise RuntimeError
+        assert snapshot(tmp_path) == before
+        claim = out.parent / "claimed"
+        claim_dir(claim, kind=KIND)
+        with pytest.raises(OutputError, match="already holds a test output from test-cmd; choose another --out"):
+            (claim / "b").mkdir()
+            claim_dir(claim, kind=KIND)
+        assert claim_dir(claim, kind=KIND, resume=True) == claim
+        shutil.rmtree(out.parent)
+    # keep_partial: an unfinished output that replaced nothing stays (a run to --resume) ...
+    with pytest.raises(KeyboardInterrupt):
+        with OutputDir(out, KIND, staged=False, keep_partial=True) as target:
+            (target.path / "a.json").write_text("partial")
+            raise KeyboardInterrupt
+    assert (out / "a.json").read_text() == "partial"
+    # ... but not an empty one, and an empty folder that was there stays an empty folder
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(KeyboardInterrupt):
+        with OutputDir(empty, KIND, staged=False, keep_partial=True):
+            raise KeyboardInterrupt
+    assert empty.is_dir() and os.listdir(empty) == []
+
+
+def test_replace_dir_puts_the_old_folder_back_when_the_swap_fails(tmp_path, monkeypatch):
+    old, new = tmp_path / "out", tmp_path / ".out.partial"
+    old.mkdir()
+    (old / "f").write_text("old")
+    new.mkdir()
+    real = os.replace
+
+    def fail_second(src, dst):
+        if Path(src) == new:
+            raise OSError("disk full")
+        real(src, dst)
+
+    monkeypatch.setattr(os, "replace", fail_second)
+    with pytest.raises(OSError):
+        replace_dir(new, old)
+    assert (old / "f").read_text() == "old" and sorted(os.listdir(tmp_path)) == [".out.partial", "out"]
+
+
+def test_a_previous_output_that_cannot_be_moved_aside_stays(tmp_path, monkeypatch):
+    out = claim_dir(tmp_path / "out", kind=KIND)
+    (out / "a.json").write_text("old")
+    before = snapshot(tmp_path)
+
+    def refuse(src, dst):
+        raise PermissionError(13, "Permission denied")
+
+    monkeypatch.setattr(os, "replace", refuse)
+    with pytest.raises(OutputError, match="cannot write to .*Permission denied"):
+        with OutputDir(out, KIND, force=True, staged=False):
+            pass
+    assert snapshot(tmp_path) == before
+
+
+def test_known_kinds_are_recognised_by_their_own_signature(tmp_path):
+    synth_zarr = write_dataset(tmp_path / "s.zarr", "dssp_train.data.synthetic")
+    assert zarr_generator(synth_zarr) == "dssp_train.data.synthetic" and SYNTH_DATASET.owns(synth_zarr)
+    v3 = tmp_path / "v3"
+    write_replay_buffer(v3, tiny_episodes(1), attrs={"generator": "x"}, zarr_format=3)
+    assert zarr_attrs(v3)["generator"] == "x" and not SYNTH_DATASET.owns(v3)
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.json").write_text(json.dumps({"model": {}, "train": {}}))
+    (run / ".checkpoint.old").mkdir()
+    assert RUN_DIR.owns(run)
+    (run / "data.csv").write_text("x")
+    assert not RUN_DIR.owns(run)
+
+
+def test_the_guard_does_not_import_torch():
+    code = "import sys; import dssp_train.output_guard; assert 'torch' not in sys.modules"
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
