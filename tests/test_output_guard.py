@@ -669,3 +669,54 @@ def test_known_kinds_are_recognised_by_their_own_signature(tmp_path):
 def test_the_guard_does_not_import_torch():
     code = "import sys; import dssp_train.output_guard; assert 'torch' not in sys.modules"
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
+
+
+# ---------------------------------------------------------------------- the robot's commands and dssp-data view
+def run_log(out, force):
+    from hardware.cli.run import main as run_main
+
+    return run_main(["--model", "no-such-model", "--log-dir", str(out), "--quiet"])
+
+
+def record_out(out, force):
+    from hardware.cli.record import main as record_main
+
+    return record_main(["--out", str(out), "--quiet", "--auto", "--episodes", "1"])
+
+
+@pytest.mark.parametrize("run", [run_log, record_out], ids=["dssp-run --log-dir", "dssp-record --out"])
+def test_the_robot_commands_never_touch_a_foreign_output(run, tmp_path, capsys):
+    foreign = {**FOLDERS, "file": a_file, "synthetic": lambda p: write_dataset(p, "dssp_train.data.synthetic")}
+    for name, make in foreign.items():
+        root = tmp_path / name
+        root.mkdir()
+        out = root / "target"
+        make(out)
+        line = refused_unchanged(capsys, root, run, out, False)
+        assert str(out) in line and "nothing is deleted" in line, line
+
+
+def test_dssp_run_never_reuses_a_log(tmp_path, capsys):
+    from dssp_train.output_guard import RUN_LOG, claim_dir
+
+    out = claim_dir(tmp_path / "log", kind=RUN_LOG, flag="--log-dir")
+    (out / "run.json").write_text("{}")
+    line = refused_unchanged(capsys, tmp_path, run_log, out, False)
+    assert "already holds an episode log" in line and "choose another --log-dir" in line, line
+
+
+def test_dssp_data_view_replaces_its_pictures_only_with_force(tmp_path, capsys):
+    from dssp_train.cli.data import main as data_main
+
+    data = write_dataset(tmp_path / "d.zarr", "dssp-record")
+    pictures = tmp_path / "pictures"
+    pictures.mkdir()
+    (pictures / "d_ep0_trajectories.png").write_text("someone's picture")
+    before = snapshot(tmp_path)
+    assert data_main(["view", str(data), "--episode", "0", "--out", str(pictures)]) == 2
+    line = error_line(capsys)
+    assert "d_ep0_trajectories.png exists; pass --force" in line, line
+    assert snapshot(tmp_path) == before  # checked before drawing: not even the clouds picture was written
+    assert data_main(["view", str(data), "--episode", "0", "--out", str(pictures), "--force"]) == 0
+    assert (pictures / "d_ep0_trajectories.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert sorted(p.name for p in pictures.iterdir()) == ["d_ep0_clouds.png", "d_ep0_trajectories.png"]

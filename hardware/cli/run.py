@@ -156,6 +156,8 @@ def _run(args, signals: StartupSignals) -> int:
     from hardware.run_loop import LoopSettings, Runner, check_fits
     from hardware.safety import SafetyConfig
 
+    log_dir = args.log_dir or Path("runs/dssp-run") / time.strftime("%Y%m%d-%H%M%S")
+    check_output(log_dir, force=None, kind=RUN_LOG, flag="--log-dir")  # a log is never replaced
     signals.check()
     safety_config = SafetyConfig.load(args.safety, "safety") if args.safety else SafetyConfig()
     if args.rate is not None:
@@ -177,8 +179,6 @@ def _run(args, signals: StartupSignals) -> int:
     rate = control_rate(args, policy)
     safety_config.check_speed(rate)
     settings = LoopSettings(rate_hz=rate, max_steps=args.max_steps, dry_run=args.dry_run, prefetch=args.prefetch, seed=args.seed)
-    log_dir = args.log_dir or Path("runs/dssp-run") / time.strftime("%Y%m%d-%H%M%S")
-    check_output(log_dir, force=None, kind=RUN_LOG, flag="--log-dir")  # a log is never replaced
 
     robot = open_robot(args.can, interface=args.interface)
     check_fits(policy, robot, cloud_config)  # before any device is opened
