@@ -339,8 +339,10 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
 
     def _main() -> int:
+        from dssp_deploy.sessions import check_threads
         from dssp_train.output_guard import check_output_file, write_output_text
 
+        check_threads(args.threads)
         for path, flag in ((args.json, "--json"), (args.plot, "--plot")):
             if path is not None:
                 check_output_file(path, force=args.force, flag=flag)

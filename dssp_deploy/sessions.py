@@ -9,6 +9,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from dssp_train.errors import ConfigError
+
 
 def default_threads() -> int:
     """The number of CPUs this process may run on."""
@@ -18,9 +20,21 @@ def default_threads() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+def check_threads(threads: int | None, flag: str = "--threads") -> None:
+    """None (all CPUs) or 1..CPUs: more threads than CPUs only slows a run down, and a huge count exhausts
+    the machine's threads and memory."""
+    if threads is None:
+        return
+    cpus = default_threads()
+    if isinstance(threads, bool) or not isinstance(threads, int) or not 1 <= threads <= cpus:
+        raise ConfigError(f"{flag} must be in [1, {cpus}] (the CPUs this process may use), got {threads!r}")
+
+
 def session_options(threads: int | None = None, spinning: bool = False):
     """``SessionOptions`` with ``intra_op_num_threads`` set and thread spinning off unless asked for."""
     import onnxruntime as ort
+
+    check_threads(threads)
 
     options = ort.SessionOptions()
     options.intra_op_num_threads = threads or default_threads()

@@ -34,6 +34,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from dssp_deploy.sessions import check_threads
 from dssp_train.cli.common import run_cli
 from export.errors import ExportError, ParityError
 from export.manifest import (
@@ -420,8 +421,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
 
     def _main() -> int:
-        if args.threads is not None and args.threads < 1:
-            raise ExportError(f"--threads must be >= 1, got {args.threads}")
+        check_threads(args.threads)
         try:
             summary = export_model(
                 Path(args.run_dir),

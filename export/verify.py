@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from dssp_train.cli.common import run_cli
+from dssp_deploy.sessions import check_threads
 from dssp_train.output_guard import check_output_file, write_output_text
 from export.errors import ExportError, ParityError
 from export.manifest import DENOISER_GRAPH, HISTORY_GRAPH, read_manifest
@@ -485,8 +486,9 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
 
     def _main() -> int:
-        if args.batch < 1 or (args.threads is not None and args.threads < 1):
-            raise ExportError("--batch and --threads must be >= 1")
+        if args.batch < 1:
+            raise ExportError(f"--batch must be >= 1, got {args.batch}")
+        check_threads(args.threads)
         if args.steps < 1:
             raise ExportError(f"--steps must be >= 1, got {args.steps}")
         if args.json:

@@ -354,7 +354,7 @@ def test_config_roundtrip(tmp_path):
     (dict(depth_near=1.0, depth_far=0.5), "depth_near"),
     (dict(depth_far=float("nan")), "depth_far"),
     (dict(voxel_size=-0.01), "voxel_size"),
-    (dict(voxel_size=5.0), "metres"),
+    (dict(voxel_size=5.0), "voxel_size must be a number in [0, 1] m"),
     (dict(crop_min=(0.0, 0.0, 1.0), crop_max=(1.0, 1.0, 0.5)), "crop_min"),
     (dict(crop_min=(0.0, 0.0)), "crop_min"),
     (dict(use_color="yes"), "use_color"),

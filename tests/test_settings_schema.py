@@ -291,7 +291,8 @@ def test_dssp_run_refuses_bad_settings_files(tmp_path, capsys, flag, content, fi
     (["--rate", "0"], "--rate must be in (0, 1000] Hz"),
     (["--rate", "nan"], "--rate must be in (0, 1000] Hz"),
     (["--max-steps", "0"], "--max-steps must be at least 1"),
-    (["--threads", "0"], "--threads must be at least 1"),
+    (["--threads", "0"], "--threads must be in [1, "),
+    (["--threads", "100000"], "--threads must be in [1, "),
 ])
 def test_dssp_run_flags_are_checked_first(tmp_path, capsys, argv, words):
     from hardware.cli import run

@@ -109,6 +109,7 @@ class StartupInterrupted(Exception):
 
 def check_args(args) -> None:
     """Flags that can be judged without opening anything; one line each, before any device or model is touched."""
+    from dssp_deploy.sessions import check_threads
     from hardware.camera import check_camera_spec
 
     check_camera_spec(args.camera, args.serial)
@@ -116,8 +117,7 @@ def check_args(args) -> None:
         raise ConfigError(f"--rate must be in (0, {MAX_RATE_HZ:g}] Hz, got {args.rate:g}")
     if args.max_steps is not None and args.max_steps < 1:
         raise ConfigError(f"--max-steps must be at least 1, got {args.max_steps}")
-    if args.threads is not None and args.threads < 1:
-        raise ConfigError(f"--threads must be at least 1, got {args.threads}")
+    check_threads(args.threads)
     if args.seed is not None and args.seed < 0:
         raise ConfigError(f"--seed must be >= 0, got {args.seed}")
 
