@@ -34,7 +34,7 @@ from typing import Any, ClassVar
 
 from dssp_train.config import MAX_DIM, MAX_LAYERS, MAX_RATE_HZ, MAX_STEPS, MAX_WIDTH
 from dssp_train.errors import ConfigError, DSSPError
-from dssp_train.schema import Settings, Spec, check_value, setting
+from dssp_train.schema import Settings, Spec, check_value, parse_json, setting
 
 FORMAT_VERSION = "1"
 KIND = "dssp-model"
@@ -102,6 +102,9 @@ class ManifestFacts(Settings):
             raise ConfigError(
                 f"{s}.ddim_timesteps must hold denoise_steps={self.denoise_steps} values, got {len(self.ddim_timesteps)}"
             )
+        if any(a <= b for a, b in zip(self.ddim_timesteps, self.ddim_timesteps[1:])):
+            raise ConfigError(f"{s}.ddim_timesteps must decrease strictly (the sampler runs from noise to data), "
+                              f"got {self.ddim_timesteps}")
         if not (self.use_history or self.use_recent_states):
             raise ConfigError(f"{s}.use_history and {s}.use_recent_states are both false: the denoiser would see no observation")
         if self.use_history != bool(self.history_state):
@@ -237,8 +240,8 @@ def read_manifest(model_dir: Path) -> dict[str, Any]:
     if not path.is_file():
         raise ModelDirError(f"{path} is missing: {model_dir} is not a DSSP model directory (python -m export.to_onnx makes one)")
     try:
-        manifest = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        manifest = parse_json(path.read_text())
+    except (OSError, ValueError) as exc:  # JSON errors, a key twice, nesting too deep, bad UTF-8
         raise ModelDirError(f"{path} is unreadable ({exc}); {AGAIN}") from None
     if not isinstance(manifest, dict) or manifest.get("kind") != KIND:
         raise ModelDirError(f"{path} is not a DSSP model manifest (no \"kind\": \"{KIND}\"); {AGAIN}")
@@ -277,6 +280,15 @@ def check_manifest(manifest: dict[str, Any], model_dir: Path) -> ManifestFacts:
     _check_graphs(manifest.get("graphs"), model, files, model_dir)
     _check_normalizers(manifest.get("normalizers"), model)
     source = facts_from(SourceFacts, manifest.get("source"))
+    diffusion = manifest["model_config"].get("diffusion")
+    trained = diffusion.get("num_train_timesteps") if isinstance(diffusion, Mapping) else None
+    if isinstance(trained, int) and not isinstance(trained, bool) and max(facts.ddim_timesteps) >= trained:
+        raise ConfigError(f"{MANIFEST_NAME}.ddim_timesteps reach {max(facts.ddim_timesteps)}, but the model was trained "
+                          f"on timesteps 0..{trained - 1} (model_config.diffusion.num_train_timesteps)")
+    runtime = manifest.get("runtime")
+    if isinstance(runtime, Mapping) and "tick_rate_hz" in runtime and runtime["tick_rate_hz"] != facts.control_rate_hz:
+        raise ConfigError(f"{MANIFEST_NAME} runtime.tick_rate_hz is {runtime['tick_rate_hz']!r} but control_rate_hz is "
+                          f"{facts.control_rate_hz!r}: the manifest contradicts itself")
     manifest.update(facts.to_dict())
     manifest["model_config"] = {**manifest["model_config"], **model.to_dict()}
     manifest["source"] = {**manifest["source"], **source.to_dict()}

@@ -19,7 +19,6 @@ with ``--force``, replace existing ones (checked before profiling; written to a 
 
 from __future__ import annotations
 
-import argparse
 import json
 import platform
 import sys
@@ -38,9 +37,10 @@ from dssp_deploy.latency import (
     resident_memory_mib,
     time_calls,
 )
-from dssp_deploy.manifest import DENOISER_GRAPH, HISTORY_GRAPH, PRECISIONS, graph_file
+from dssp_deploy.manifest import DENOISER_GRAPH, HISTORY_GRAPH, PRECISIONS, ModelDirError, graph_file, read_graph
 from dssp_deploy.op_breakdown import elementwise_share, op_type_breakdown
 from dssp_deploy.policy import OnnxPolicy
+from dssp_train.cli.common import ArgumentParser
 
 FULL = {"iterations": 300, "chunk_iterations": 100, "torch_iterations": 30, "sweep": [10, 100, 1000, 3000, 10000], "window": 50, "transformer_max": 3000}
 QUICK = {"iterations": 20, "chunk_iterations": 5, "torch_iterations": 5, "sweep": [10, 100, 300], "window": 10, "transformer_max": 300}
@@ -84,6 +84,23 @@ def history_sweep(step, lengths: list[int], window: int) -> list[dict[str, float
     return rows
 
 
+def check_source(model_dir: Path, checkpoint: Path, manifest: dict) -> None:
+    """``--checkpoint`` must be the run the model was exported from: its weights file's sha256 is the manifest's."""
+    import hashlib
+
+    source = manifest["source"]
+    path = Path(checkpoint) / source["weights"]
+    try:
+        digest = hashlib.sha256(path.read_bytes()).hexdigest()
+    except OSError as exc:
+        raise ModelDirError(f"--checkpoint {checkpoint}: {path} cannot be read ({exc.strerror or exc}); give the run "
+                            f"directory {model_dir} was exported from") from None
+    if digest != source["sha256"]:
+        raise ModelDirError(f"--checkpoint {checkpoint} is not the run {model_dir} was exported from ({source['weights']} "
+                            f"sha256 {digest[:12]}…, the model's source {source['sha256'][:12]}… of run "
+                            f"{source.get('run', '?')!r} step {source['step']}); give that run, or export this one")
+
+
 def torch_comparisons(model_dir: Path, checkpoint: Path | None, manifest: dict, settings: dict, threads: int | None):
     """Eager PyTorch, TorchScript and a causal Transformer history encoder, when torch is available."""
     try:
@@ -101,7 +118,8 @@ def torch_comparisons(model_dir: Path, checkpoint: Path | None, manifest: dict, 
         from dssp_train.model.streaming import StreamingPolicy
         from dssp_train.training.checkpoint import load_policy
 
-        policy, _ = load_policy(checkpoint)
+        check_source(model_dir, checkpoint, manifest)
+        policy, _ = load_policy(checkpoint, weights=manifest["source"]["weights"])
         stream = StreamingPolicy(policy)
         with torch.inference_mode():
             out["eager_history_step"] = time_calls(lambda: stream.observe(pc, pos), settings["iterations"])
@@ -110,8 +128,10 @@ def torch_comparisons(model_dir: Path, checkpoint: Path | None, manifest: dict, 
             )
     files = {g: manifest["graphs"][g]["files"].get("torchscript") for g in ("history_step", "denoiser")}
     if all(files.values()):
-        history = torch.jit.load(str(model_dir / files["history_step"]))
-        denoiser = torch.jit.load(str(model_dir / files["denoiser"]))
+        import io
+
+        history = torch.jit.load(io.BytesIO(read_graph(model_dir, manifest, "history_step", "torchscript")[1]))
+        denoiser = torch.jit.load(io.BytesIO(read_graph(model_dir, manifest, "denoiser", "torchscript")[1]))
         state_specs = [s for s in manifest["graphs"]["history_step"]["inputs"] if s["name"] in manifest["history_state"]]
         state = [torch.zeros([1, *s["shape"][1:]]) for s in state_specs]
         with torch.inference_mode():
@@ -326,7 +346,7 @@ def plot(report: dict[str, Any], path: Path, force: bool = False) -> None:
 def main(argv: list[str] | None = None) -> int:
     from dssp_train.cli.common import run_cli
 
-    p = argparse.ArgumentParser(prog="dssp-profile", description="CPU latency and memory of an exported DSSP model.")
+    p = ArgumentParser(prog="dssp-profile", description="CPU latency and memory of an exported DSSP model.")
     p.add_argument("model_dir", type=Path)
     p.add_argument("--checkpoint", type=Path, help="the run directory it was exported from, for the PyTorch eager comparison")
     p.add_argument("--quick", action="store_true", help="short run (tests, CI)")
@@ -343,6 +363,10 @@ def main(argv: list[str] | None = None) -> int:
         from dssp_train.output_guard import check_output_file, write_output_text
 
         check_threads(args.threads)
+        if args.checkpoint is not None:  # before minutes of profiling
+            from dssp_deploy.manifest import read_manifest
+
+            check_source(args.model_dir, args.checkpoint, read_manifest(args.model_dir))
         for path, flag in ((args.json, "--json"), (args.plot, "--plot")):
             if path is not None:
                 check_output_file(path, force=args.force, flag=flag)

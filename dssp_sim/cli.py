@@ -18,9 +18,11 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import math
 import sys
 from pathlib import Path
 
+from dssp_train.cli.common import ArgumentParser
 from dssp_train.errors import ConfigError
 
 TASKS = ("tap", "swap", "put2")
@@ -39,14 +41,21 @@ def _positive(text: str) -> int:
     return value
 
 
+def _non_negative(text: str) -> int:
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
+    return value
+
+
 def parse_args(argv):
-    p = argparse.ArgumentParser(prog="dssp-sim", description="Memory tasks in a MuJoCo simulation of the AgileX Piper.")
+    p = ArgumentParser(prog="dssp-sim", description="Memory tasks in a MuJoCo simulation of the AgileX Piper.")
     sub = p.add_subparsers(dest="command", required=True)
     c = sub.add_parser("collect", help="expert demonstrations → a DP3 zarr dataset")
     c.add_argument("--task", type=_task, required=True, help=" | ".join(TASKS))
     c.add_argument("--episodes", type=_positive, required=True, help="successful episodes to keep")
     c.add_argument("--out", type=Path, required=True, help="dataset path (.zarr; a dataset dssp-sim collect wrote is appended to)")
-    c.add_argument("--seed", type=int, default=0, help="first episode seed (default 0)")
+    c.add_argument("--seed", type=_non_negative, help="first scene seed (default: 0, or after the last one of the dataset appended to)")
     c.add_argument("--points", type=_positive, help="points per cloud (default 256, the sim preset's)")
     c.add_argument("--no-progress", action="store_true")
     d = sub.add_parser("demo", help="collect, train DSSP and the reactive baseline, export, evaluate (tap)")
@@ -59,7 +68,7 @@ def parse_args(argv):
     e.add_argument("--model", type=Path, required=True, help="model directory (python -m export.to_onnx)")
     e.add_argument("--task", type=_task, required=True, help=" | ".join(TASKS))
     e.add_argument("--episodes", type=_positive, default=20)
-    e.add_argument("--seed", type=int, default=1000, help="first episode seed (default 1000: unseen in collection)")
+    e.add_argument("--seed", type=_non_negative, default=1000, help="first episode seed (default 1000: unseen in collection)")
     e.add_argument("--noise", type=float, default=0.0, help="σ of Gaussian noise on the recent state tokens (robustness test)")
     e.add_argument("--threads", type=int, help="ONNX Runtime threads")
     e.add_argument("--strips", type=Path, help="write a PNG strip of each episode here")
@@ -118,8 +127,8 @@ def run(args) -> int:
     from dssp_sim.evaluate import STRIPS_DIR, evaluate
     from dssp_train.output_guard import OutputDir, check_output_file, write_output_text
 
-    if args.noise < 0:
-        raise ConfigError(f"--noise must be >= 0, got {args.noise}")
+    if not (math.isfinite(args.noise) and 0 <= args.noise <= 10):
+        raise ConfigError(f"--noise must be a number in [0, 10] (σ in the tokens' units), got {args.noise}")
     if args.json:
         check_output_file(args.json, force=args.force, flag="--json")
     with contextlib.ExitStack() as stack:

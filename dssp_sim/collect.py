@@ -61,10 +61,33 @@ def check_collect_output(out: Path, task: str) -> None:
                               "(nothing is changed)")
 
 
-def collect(task: str, n_episodes: int, out: Path, seed: int = 0, n_points: int | None = None,
+def first_seed(out: Path, seed: int | None) -> int:
+    """The scene seed to start from: ``seed``, else 0 for a new dataset, else the one after the last episode
+    tried in ``out`` (its ``next_seed`` attribute), so appending never repeats a demonstration."""
+    from dssp_train.output_guard import OutputError, zarr_attrs
+
+    if seed is not None:
+        if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+            raise OutputError(f"--seed must be an integer >= 0, got {seed!r}")
+        return seed
+    attrs = zarr_attrs(out) if Path(out).exists() else None
+    if not attrs:
+        return 0
+    next_seed = attrs.get("next_seed")
+    if isinstance(next_seed, bool) or not isinstance(next_seed, int) or next_seed < 0:
+        raise OutputError(f"{out} does not record which scene seeds it holds; give --seed S, a seed past those "
+                          "already collected (or collect into another --out)")
+    return next_seed
+
+
+def collect(task: str, n_episodes: int, out: Path, seed: int | None = None, n_points: int | None = None,
             max_attempts: int | None = None, progress: bool = True) -> CollectResult:
-    """Append ``n_episodes`` successful expert episodes of ``task`` to ``out`` (seeds seed, seed+1, ...)."""
+    """Append ``n_episodes`` successful expert episodes of ``task`` to ``out`` (seeds seed, seed+1, ...).
+
+    ``seed`` None: 0 for a new dataset, the seed after the last one tried when appending (``first_seed``).
+    """
     check_collect_output(out, task)
+    seed = first_seed(out, seed)
     from dssp_sim.env import PiperEnv
     from dssp_sim.experts import make_expert
     from dssp_train.data.replay_buffer import Episode, ReplayBufferWriter
@@ -89,7 +112,8 @@ def collect(task: str, n_episodes: int, out: Path, seed: int = 0, n_points: int 
             result.attempted += 1
             episode_seed += 1
             if status.success:
-                writer.add_episode(Episode(point_cloud=clouds, state=states, action=actions))
+                writer.add_episode(Episode(point_cloud=clouds, state=states, action=actions),
+                                   attrs={"next_seed": episode_seed})
                 result.kept += 1
                 result.steps.append(len(states))
                 if bar is not None:

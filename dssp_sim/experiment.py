@@ -21,7 +21,6 @@ with ``--force``, checked before the study starts.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import subprocess
@@ -31,7 +30,14 @@ from pathlib import Path
 
 from dssp_sim.evaluate import wilson_interval
 from dssp_train.atomic import atomic_write_text
-from dssp_train.output_guard import OutputKind, check_output_files, claim_dir, write_output_file, write_output_text
+from dssp_train.cli.common import ArgumentParser
+from dssp_train.output_guard import (
+    OutputKind,
+    check_output_files,
+    claim_dir,
+    write_output_file,
+    write_output_text,
+)
 
 REPORT_NAME = "sim_memory_tasks"
 PLAN = {
@@ -242,7 +248,7 @@ def _plot(results: dict, table: dict, path: Path, force: bool = False) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m dssp_sim.experiment", description=__doc__.split("\n\n")[0])
+    p = ArgumentParser(prog="python -m dssp_sim.experiment", description=__doc__.split("\n\n")[0])
     p.add_argument("--work", type=Path, default=Path("runs/sim_experiment"), help="datasets, runs, models, evaluations")
     p.add_argument("--report", type=Path, default=Path("reports/sim"), help="where the report goes")
     p.add_argument("--quick", action="store_true", help="a tiny plan (tests): 3 demos, 20 steps, 1 episode")

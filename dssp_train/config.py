@@ -13,7 +13,7 @@ from importlib import resources
 from typing import ClassVar
 
 from dssp_train.errors import ConfigError
-from dssp_train.schema import Settings, setting
+from dssp_train.schema import Settings, parse_json, setting
 
 HISTORY_BACKBONES = ("mamba", "transformer")
 MAX_DIM = 4096  # state / action channels
@@ -173,8 +173,8 @@ def apply_overrides(config: RunConfig, overrides: list[str]) -> RunConfig:
         _require("=" in item, f"override {item!r} must look like section.field=value, e.g. model.d_model=256")
         key, raw = item.split("=", 1)
         try:
-            value = json.loads(raw)
-        except json.JSONDecodeError:
+            value = parse_json(raw)
+        except ValueError:  # not JSON (a bare word), or a number too long to parse: checked as a string
             value = raw
         node = data
         parts = key.split(".")
@@ -186,5 +186,6 @@ def apply_overrides(config: RunConfig, overrides: list[str]) -> RunConfig:
         try:
             RunConfig.from_dict(data)
         except ConfigError as exc:
-            raise ConfigError(f"--set {item}: {exc}") from None
+            shown = item if len(item) <= 60 else item[:57] + "..."
+            raise ConfigError(f"--set {shown}: {exc}") from None
     return RunConfig.from_dict(data)

@@ -143,10 +143,33 @@ def all_schemas() -> list[type]:
     return [c for c in _REGISTRY if dataclasses.is_dataclass(c)]
 
 
+class DuplicateKey(ValueError):
+    """A JSON object names one key twice (json.loads would keep the last silently)."""
+
+
+def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict:
+    out = {}
+    for key, value in pairs:
+        if key in out:
+            raise DuplicateKey(key)
+        out[key] = value
+    return out
+
+
+def parse_json(text: str) -> Any:
+    """``json.loads`` that refuses a key given twice, and nesting too deep to parse, as ValueErrors."""
+    try:
+        return json.loads(text, object_pairs_hook=_no_duplicates)
+    except RecursionError:
+        raise ValueError("nested too deeply to be a settings file") from None
+
+
 def read_json_object(path: str | Path, what: str) -> dict:
     """A JSON object from a file, or a one-line ``ConfigError`` naming ``what`` and the problem."""
     try:
-        values = json.loads(Path(path).read_text())
+        values = parse_json(Path(path).read_text())
+    except DuplicateKey as exc:
+        raise ConfigError(f"{what} file {path} gives the key {exc} twice; keep one") from None
     except FileNotFoundError:
         raise ConfigError(f"{what} file {path} does not exist; check the path") from None
     except IsADirectoryError:
@@ -157,6 +180,8 @@ def read_json_object(path: str | Path, what: str) -> dict:
         raise ConfigError(f"{what} file {path} cannot be read ({exc.strerror or exc})") from None
     except json.JSONDecodeError as exc:
         raise ConfigError(f"{what} file {path} is not valid JSON ({exc.msg} at line {exc.lineno})") from None
+    except ValueError as exc:
+        raise ConfigError(f"{what} file {path} is not a usable JSON object ({exc})") from None
     if not isinstance(values, dict):
         raise ConfigError(f"{what} file {path} must hold a JSON object, got {type(values).__name__}")
     return values
@@ -220,6 +245,13 @@ def _plural(tp: Any) -> str:
     return words[2:].replace("list ", "lists ", 1) if words.startswith("a list") else words
 
 
+def _finite(value: int | float) -> bool:
+    try:
+        return math.isfinite(value)
+    except OverflowError:  # an int too large for a float
+        return False
+
+
 def check_value(value: Any, tp: Any, spec: Spec, name: str) -> Any:
     """``value`` checked against the annotation ``tp`` and ``spec``; returns it normalised (float, tuple)."""
     args = _union_args(tp)
@@ -250,7 +282,7 @@ def check_value(value: Any, tp: Any, spec: Spec, name: str) -> Any:
             _fail(name, "an integer", spec, value)
         return value
     if tp is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not _finite(value):
             _fail(name, "a finite number", spec, value)
         if not spec.in_range(value):
             _fail(name, "a number", spec, value)

@@ -35,7 +35,7 @@ from pathlib import Path
 from typing import Any
 
 from dssp_deploy.sessions import check_threads
-from dssp_train.cli.common import run_cli
+from dssp_train.cli.common import ArgumentParser, run_cli
 from export.errors import ExportError, ParityError
 from export.manifest import (
     DENOISER_GRAPH,
@@ -402,7 +402,7 @@ def format_summary(summary: dict[str, Any]) -> str:
 
 # ---------------------------------------------------------------------- CLI
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m export.to_onnx", description="Export a DSSP run directory to ONNX / TorchScript graphs.")
+    p = ArgumentParser(prog="python -m export.to_onnx", description="Export a DSSP run directory to ONNX / TorchScript graphs.")
     p.add_argument("run_dir", metavar="RUN_DIR", help="a dssp-train run directory (config.json, model.safetensors)")
     p.add_argument("-o", "--out", required=True, metavar="MODEL_DIR", help="the model directory to create")
     p.add_argument("--denoise-steps", type=int, metavar="K", help="DDIM steps inside the denoiser graph (default: the config's, 10)")

@@ -35,13 +35,12 @@ from typing import Any
 
 import numpy as np
 
-from dssp_train.cli.common import run_cli
-from dssp_deploy.sessions import check_threads
+from dssp_deploy.manifest import read_graph
+from dssp_deploy.sessions import check_threads, default_threads, open_session
+from dssp_train.cli.common import ArgumentParser, run_cli
 from dssp_train.output_guard import check_output_file, write_output_text
 from export.errors import ExportError, ParityError
 from export.manifest import DENOISER_GRAPH, HISTORY_GRAPH, read_manifest
-from dssp_deploy.manifest import read_graph
-from dssp_deploy.sessions import default_threads, open_session
 
 BOUND = 1e-4
 MAX_FLAGGED = 8
@@ -470,7 +469,7 @@ def check_report(report: dict[str, Any]) -> None:
 
 # ---------------------------------------------------------------------- CLI
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m export.verify", description="Check an exported model directory against its checkpoint.")
+    p = ArgumentParser(prog="python -m export.verify", description="Check an exported model directory against its checkpoint.")
     p.add_argument("model_dir", help="the exported model directory (dssp_model.json)")
     p.add_argument("--checkpoint", required=True, metavar="RUN_DIR", help="the dssp-train run directory it was exported from")
     p.add_argument("--steps", type=int, default=1000, help="control ticks to stream (default 1000)")

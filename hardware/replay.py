@@ -12,7 +12,6 @@ starts from the episode's first recorded state and assumes ideal tracking.
 
 from __future__ import annotations
 
-import math
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -21,7 +20,7 @@ import numpy as np
 
 from dssp_train.data.replay_buffer import ReplayBufferReader
 from dssp_train.errors import ConfigError, DSSPError
-from hardware.arm import ARM_DOF, RobotState
+from hardware.arm import ARM_DOF, RobotState, check_rate
 from hardware.piper.limits import JointLimits
 from hardware.safety import Safety, SafetyConfig
 
@@ -41,11 +40,13 @@ def replay_episode(path, episode: int, can: str | None, *, send: bool = False, i
     dof = actions.shape[1]
     if dof % ARM_DOF:
         raise DSSPError(f"{path}: actions have {dof} values; a Piper replay needs 7 per arm [J1..J6 rad, gripper 0..1]")
-    if rate_hz is not None and not (math.isfinite(rate_hz) and 0 < rate_hz <= 1000):
-        raise ConfigError(f"--rate must be in (0, 1000] Hz, got {rate_hz:g}")
-    rate = rate_hz if rate_hz is not None else reader.attrs.get("control_rate_hz")
-    if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not math.isfinite(rate) or not 0 < rate <= 1000:
-        raise ConfigError(f"{path} does not record a usable control rate ({rate!r}): pass --rate HZ")
+    if rate_hz is not None:
+        rate = check_rate(rate_hz)
+    else:
+        rate = reader.attrs.get("control_rate_hz")
+        if rate is None:
+            raise ConfigError(f"{path} does not record its control rate: pass --rate HZ")
+        rate = check_rate(rate, flag=f"{path}'s control_rate_hz attribute")
     safety_config.check_speed(float(rate))
     if send and can is None:
         raise ConfigError("--send needs --can (the arms to command)")

@@ -19,7 +19,6 @@ after it. Shapes: cloud (P, C) float32; state, action and command (dof,) in poli
 
 from __future__ import annotations
 
-import math
 import time
 from collections import Counter, deque
 from dataclasses import dataclass
@@ -30,7 +29,7 @@ import numpy as np
 from dssp_deploy.control_loop import ChunkedControl
 from dssp_deploy.policy import NonFiniteObservation, OnnxPolicy
 from dssp_train.errors import ConfigError, DSSPError
-from hardware.arm import Robot
+from hardware.arm import Robot, check_rate
 from hardware.camera.base import Camera
 from hardware.pointcloud import EmptyCloudError, PointCloudConfig, frame_to_cloud
 from hardware.run_log import RunLog
@@ -47,8 +46,7 @@ class LoopSettings:
     startup_timeout: float = 5.0  # s to wait for the first frame and feedback
 
     def __post_init__(self):
-        if not (math.isfinite(self.rate_hz) and 0 < self.rate_hz <= 1000):
-            raise ConfigError(f"--rate must be in (0, 1000] Hz, got {self.rate_hz}")
+        check_rate(self.rate_hz)
         if self.max_steps is not None and self.max_steps < 1:
             raise ConfigError(f"--max-steps must be at least 1, got {self.max_steps}")
 

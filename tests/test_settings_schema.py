@@ -288,8 +288,9 @@ def test_dssp_run_refuses_bad_settings_files(tmp_path, capsys, flag, content, fi
 
 @pytest.mark.parametrize("argv, words", [
     (["--camera", "foo"], "unknown camera 'foo'"),
-    (["--rate", "0"], "--rate must be in (0, 1000] Hz"),
-    (["--rate", "nan"], "--rate must be in (0, 1000] Hz"),
+    (["--rate", "0"], "--rate must be in [0.1, 1000] Hz"),
+    (["--rate", "nan"], "--rate must be in [0.1, 1000] Hz"),
+    (["--rate", "1e-300"], "--rate must be in [0.1, 1000] Hz"),
     (["--max-steps", "0"], "--max-steps must be at least 1"),
     (["--threads", "0"], "--threads must be in [1, "),
     (["--threads", "100000"], "--threads must be in [1, "),
@@ -329,7 +330,7 @@ def test_dssp_record_refuses_bad_settings_files(tmp_path, capsys, flag, content,
 
 @pytest.mark.parametrize("argv, words", [
     (["--camera", "foo"], "unknown camera 'foo'"),
-    (["--rate", "0"], "--rate must be in (0, 1000] Hz"),
+    (["--rate", "0"], "--rate must be in [0.1, 1000] Hz"),
 ])
 def test_dssp_record_flags_are_checked_first(tmp_path, capsys, argv, words):
     from hardware.cli import record

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import argparse
+import os
 import sys
 import warnings
 from collections.abc import Callable
@@ -11,6 +13,14 @@ from dssp_train.errors import DSSPError
 
 def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
     print(f"warning: {message}", file=file or sys.stderr)
+
+
+class ArgumentParser(argparse.ArgumentParser):
+    """argparse with the commands' one-line errors: ``error: PROG: MESSAGE (see PROG --help)``, exit code 2
+    (argparse's own prints the whole usage block first)."""
+
+    def error(self, message: str):
+        self.exit(2, f"error: {self.prog}: {message} (see {self.prog} --help)\n")
 
 
 def run_cli(main: Callable[[], int | None]) -> int:
@@ -27,3 +37,7 @@ def run_cli(main: Callable[[], int | None]) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # the reader of stdout went away (| head): stop quietly, as command-line tools do
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 141

@@ -10,6 +10,8 @@ camera). pyrealsense2 is imported only when a camera is opened.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from hardware.camera.base import Camera, DepthFrame, Intrinsics
 from hardware.camera.profiles import CameraProfile, load_profile, profile_names
 from hardware.errors import CameraError
@@ -28,10 +30,13 @@ def check_camera_spec(spec: str, serial: str | None = None) -> None:
         raise CameraError(f"camera spec must be one of {spec_forms()}, got {spec!r}")
     text = spec.strip()
     if text.lower().startswith("file:"):
-        if not text[len("file:"):]:
+        path = text[len("file:"):]
+        if not path:
             raise CameraError("camera spec file: needs a path, e.g. file:episode.db3")
         if serial is not None:
             raise CameraError("a serial number selects a live camera; it cannot be used with file:PATH")
+        if not Path(path).expanduser().is_file():
+            raise CameraError(f"camera recording {path} does not exist (or is not a file); give a .bag or .db3 recording")
         return
     name = text.lower()
     if name == "sim":

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import math
 import os
 import queue
 import select
@@ -28,6 +27,7 @@ import threading
 import time
 from pathlib import Path
 
+from dssp_train.cli.common import ArgumentParser
 from dssp_train.errors import ConfigError, DSSPError
 
 EPILOG = """\
@@ -44,7 +44,7 @@ WORDS = {"s": "start", "start": "start", "k": "keep", "keep": "keep", "d": "disc
 
 
 def parse_args(argv):
-    p = argparse.ArgumentParser(prog="dssp-record", description="Record teleoperated demonstrations into a DP3 zarr dataset.",
+    p = ArgumentParser(prog="dssp-record", description="Record teleoperated demonstrations into a DP3 zarr dataset.",
                                 epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--camera", default="sim", help="l515 | d435 | d405 | file:PATH (.bag/.db3) | sim (default: sim)")
     p.add_argument("--serial", help="RealSense serial number, when several are connected")
@@ -69,13 +69,18 @@ def parse_args(argv):
         value = getattr(args, name)
         if value is not None and value < 1:
             raise ConfigError(f"--{name.replace('_', '-')} must be at least 1, got {value}")
-    if args.rate is not None and not (math.isfinite(args.rate) and 0 < args.rate <= 1000):
-        raise ConfigError(f"--rate must be in (0, 1000] Hz, got {args.rate:g}")
+    from hardware.arm import check_rate
     from hardware.camera import check_camera_spec
 
+    if args.rate is not None:
+        check_rate(args.rate)
+
     check_camera_spec(args.camera, args.serial)
-    if args.sim_speed is not None and not args.sim_speed >= 0:
-        raise ConfigError(f"--sim-speed must be >= 0 (0 = as fast as possible), got {args.sim_speed}")
+    if args.sim_speed is not None and not (args.sim_speed == 0 or 0.01 <= args.sim_speed <= 100):
+        raise ConfigError(f"--sim-speed must be 0 (as fast as possible) or in [0.01, 100] simulated seconds per second, "
+                          f"got {args.sim_speed:g}")
+    if args.seed is not None and args.seed < 0:
+        raise ConfigError(f"--seed must be >= 0, got {args.seed}")
     return args
 
 
@@ -169,6 +174,19 @@ def _next_sim_seed(out: Path) -> int:
     return max(seeds) + 1 if seeds else reader.n_episodes
 
 
+def _check_no_orphan_can_logs(out: Path) -> None:
+    """A new dataset's CAN-log folder must not hold another recording's logs (they would be overwritten)."""
+    from dssp_train.data.recording import LOCK_NAME, can_log_dir
+
+    logs = can_log_dir(out)
+    if logs.is_symlink() or (logs.exists() and not logs.is_dir()):
+        raise ConfigError(f"{logs} exists and is not a folder of CAN logs; move it away or choose another --out "
+                          "(nothing is deleted)")
+    if logs.is_dir() and any(p.name != LOCK_NAME for p in logs.iterdir()):
+        raise ConfigError(f"{logs} holds CAN logs of a dataset that is not there ({out}); move them away or choose "
+                          "another --out (nothing is deleted)")
+
+
 def _existing_attrs(out: Path) -> dict:
     from dssp_train.data.replay_buffer import ReplayBufferReader
 
@@ -190,7 +208,7 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
         STATE_CONVENTION,
         RecordingDataset,
     )
-    from dssp_train.output_guard import RECORDED_DATASET, check_append
+    from dssp_train.output_guard import NEW, RECORDED_DATASET, check_append
     from hardware.bus_monitor import BusMonitor
     from hardware.pointcloud import PointCloudConfig, load_extrinsics
     from hardware.record_session import RecordSession, SessionSettings
@@ -204,7 +222,8 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
         raise ConfigError("--can sim records the simulated scene in lockstep with simulated time: it needs --camera sim")
     if args.auto and not sim_can and args.max_steps is None:
         raise ConfigError("--auto on a robot needs --max-steps: nothing else ends an episode")
-    check_append(args.out, kind=RECORDED_DATASET, flag="--out")  # appends only to its own recordings
+    if check_append(args.out, kind=RECORDED_DATASET, flag="--out") == NEW:  # appends only to its own recordings
+        _check_no_orphan_can_logs(args.out)
     convention = "leader_command" if args.action == "leader" else "next_state"
     thresholds = RecordThresholds.load(args.thresholds, "thresholds") if args.thresholds else RecordThresholds()
     existing = _existing_attrs(args.out)

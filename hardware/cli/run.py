@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import math
 import signal
 import sys
 import time
@@ -23,9 +22,8 @@ from pathlib import Path
 import numpy as np
 
 from dssp_deploy.manifest import PRECISIONS
+from dssp_train.cli.common import ArgumentParser
 from dssp_train.errors import ConfigError
-
-MAX_RATE_HZ = 1000.0
 
 EPILOG = """\
 --camera sim --can sim runs everything against the embedded simulation (no hardware). Real arms:
@@ -35,7 +33,7 @@ logs them without enabling or commanding the arms (feedback is still read).
 
 
 def parse_args(argv):
-    p = argparse.ArgumentParser(prog="dssp-run", description="Run a DSSP model on the robot.", epilog=EPILOG,
+    p = ArgumentParser(prog="dssp-run", description="Run a DSSP model on the robot.", epilog=EPILOG,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--model", type=Path, required=True, help="model directory (python -m export.to_onnx)")
     p.add_argument("--camera", default="sim", help="l515 | d435 | d405 | file:PATH (.bag/.db3) | sim (default: sim)")
@@ -110,11 +108,12 @@ class StartupInterrupted(Exception):
 def check_args(args) -> None:
     """Flags that can be judged without opening anything; one line each, before any device or model is touched."""
     from dssp_deploy.sessions import check_threads
+    from hardware.arm import check_rate
     from hardware.camera import check_camera_spec
 
     check_camera_spec(args.camera, args.serial)
-    if args.rate is not None and not (math.isfinite(args.rate) and 0 < args.rate <= MAX_RATE_HZ):
-        raise ConfigError(f"--rate must be in (0, {MAX_RATE_HZ:g}] Hz, got {args.rate:g}")
+    if args.rate is not None:
+        check_rate(args.rate)
     if args.max_steps is not None and args.max_steps < 1:
         raise ConfigError(f"--max-steps must be at least 1, got {args.max_steps}")
     check_threads(args.threads)
@@ -129,7 +128,9 @@ def control_rate(args, policy) -> float:
     if policy.control_rate_hz is None:
         raise ConfigError(f"{args.model} records no control rate (its dataset had none): pass --rate HZ, the rate "
                           "the demonstrations were recorded at")
-    return float(policy.control_rate_hz)
+    from hardware.arm import check_rate
+
+    return check_rate(policy.control_rate_hz, flag=f"{args.model}'s control_rate_hz")
 
 
 def run(args) -> int:
@@ -171,7 +172,8 @@ def _run(args, signals: StartupSignals) -> int:
             "(a JSON file {\"camera_to_base\": 4x4}; see the README's calibration section)"
         )
     cloud_config = PointCloudConfig.load(args.pointcloud, "point-cloud settings") if args.pointcloud else None
-    print(f"loading {args.model} (warm-up included)", file=sys.stderr)
+    if not args.quiet and sys.stderr.isatty():  # a progress note for a person; logs and scripts get only the result
+        print(f"loading {args.model} (warm-up included)", file=sys.stderr)
     policy = OnnxPolicy(args.model, threads=args.threads, precision=args.precision)
     signals.check()
     if cloud_config is None:
