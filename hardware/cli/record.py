@@ -209,6 +209,7 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
         RecordingDataset,
     )
     from dssp_train.output_guard import NEW, RECORDED_DATASET, check_append
+    from hardware.arm import check_rate
     from hardware.bus_monitor import BusMonitor
     from hardware.pointcloud import PointCloudConfig, load_extrinsics
     from hardware.record_session import RecordSession, SessionSettings
@@ -227,12 +228,19 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
     convention = "leader_command" if args.action == "leader" else "next_state"
     thresholds = RecordThresholds.load(args.thresholds, "thresholds") if args.thresholds else RecordThresholds()
     existing = _existing_attrs(args.out)
+    recorded_rate = None
+    if existing.get("control_rate_hz") is not None:
+        recorded_rate = check_rate(existing["control_rate_hz"], flag=f"{args.out}'s control_rate_hz attribute")
     task = args.task_name or (("tap" if sim_can else None) if not existing.get("task") else existing.get("task"))
 
     if args.pointcloud:
         cloud_config = PointCloudConfig.load(args.pointcloud, "point-cloud settings")
-    elif isinstance(existing.get("pointcloud"), dict):
-        cloud_config = PointCloudConfig.from_dict(existing["pointcloud"])
+    elif existing.get("pointcloud") is not None:
+        try:
+            cloud_config = PointCloudConfig.from_dict(existing["pointcloud"])
+        except ConfigError as exc:
+            raise ConfigError(f"{args.out}'s pointcloud attribute: {exc} (give --pointcloud FILE, or fix the "
+                              "attribute)") from None
     elif sim_can:
         from dssp_sim.settings import cloud_config_for
 
@@ -253,9 +261,11 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
         rig = TeleopRig(task, seed=seed)
         stack.callback(rig.stop)
         clock = rig.clock
-        rate = args.rate or existing.get("control_rate_hz") or rig.control_rate_hz
+        rate = args.rate or recorded_rate or rig.control_rate_hz
         if abs(float(rate) - rig.control_rate_hz) > 1e-9:
-            raise ConfigError(f"the simulation runs at {rig.control_rate_hz:g} Hz: record it at that rate (--rate)")
+            given = "--rate" if args.rate else f"{args.out}'s control_rate_hz attribute"
+            raise ConfigError(f"the simulation runs at {rig.control_rate_hz:g} Hz, {given} says {rate:g}: record it at "
+                              f"{rig.control_rate_hz:g} Hz")
         monitors = [BusMonitor(rig.channel, "virtual", clock=clock, name="sim")]
         monitors[0].start()
         stack.callback(monitors[0].stop)
@@ -273,7 +283,7 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
         if not 1 <= len(channels) <= 2 or any(not c for c in channels):
             raise ConfigError(f"--can {args.can!r} is invalid: give can0 or can0,can1 (left,right) or sim")
         clock = time.monotonic
-        rate = args.rate or existing.get("control_rate_hz") or 10.0
+        rate = args.rate or recorded_rate or 10.0
         raw_camera = open_camera(args.camera, serial=args.serial, color=cloud_config.use_color)
         stack.enter_context(raw_camera)
         camera_to_base = load_extrinsics(args.extrinsics) if args.extrinsics else raw_camera.camera_to_base
