@@ -24,22 +24,41 @@ Single files (JSON reports, PNG plots; :func:`check_output_file`, :func:`write_o
 directory or a symlink at that path is always refused. Files are written to a temporary name beside the
 target and renamed over it (:mod:`dssp_train.atomic`).
 
+Where an output goes: a path under a file, or in a folder that cannot be written, is refused with one
+line (:func:`check_output`, :func:`check_output_file`, :func:`make_dirs`); so is an output that is one of
+the command's inputs or lies inside one (:func:`check_not_inside`).
+
+Staging (:class:`Staging`, used by :class:`OutputDir` and the dataset writers): a directory is built as a
+hidden sibling ``.NAME.tmp-XXXXXXXX`` (``.NAME.partial-XXXXXXXX`` for :class:`OutputDir`) that this
+process holds an ``flock`` on while it writes, then renamed onto ``NAME`` (:func:`replace_dirs`: a previous
+output is moved aside first and deleted only once the new one is in place). On any other exit (an error,
+Ctrl-C) the staging directory is removed: zarr's background writes are let finish first
+(:func:`settle_background_writes`), and a second Ctrl-C during the clean-up or the final renames is held
+back until they are done (:func:`interrupts_deferred`). A process killed outright (SIGKILL) cannot clean
+up: the next command that writes the same output removes the staging directories of that name that no
+live process holds (:func:`sweep_stale`) — only names of exactly that pattern, never ``.NAME.old-*`` (a
+previous output moved aside, possibly the only copy).
+
 Every refusal is an :class:`OutputError`: one line, exit code 2 in the command-line tools.
 """
 
 from __future__ import annotations
 
+import contextlib
 import fnmatch
 import json
 import os
+import re
 import shutil
-import tempfile
+import signal
+import sys
+import threading
 import uuid
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from dssp_train.atomic import atomic_write, atomic_write_text, replace_dir
+from dssp_train.atomic import atomic_write, atomic_write_text
 from dssp_train.errors import DSSPError
 
 MARKER = ".dssp-output.json"
@@ -51,7 +70,9 @@ NEW, OWN = "new", "own"
 __all__ = [
     "MARKER", "NEW", "OWN", "OutputError", "OutputKind", "check_output", "check_append", "claim_dir", "OutputDir",
     "check_output_file", "check_output_files", "write_output_text", "write_output_file", "zarr_attrs", "zarr_generator",
-    "RUN_DIR", "SYNTH_DATASET", "SIM_DATASET", "RECORDED_DATASET", "RUN_LOG",
+    "check_not_inside", "make_dirs", "Staging", "replace_dirs", "sweep_stale", "is_staging_name",
+    "interrupts_deferred", "settle_background_writes",
+    "RUN_DIR", "SYNTH_DATASET", "SIM_DATASET", "RECORDED_DATASET", "DATA_DATASET", "DATA_GENERATORS", "RUN_LOG",
 ]
 
 
@@ -71,6 +92,9 @@ class OutputKind:
         signature: recognises the kind without the marker (outputs of older versions, formats with
             their own header such as zarr datasets and model directories).
         marker: whether the command writes :data:`MARKER` into the directories it creates.
+        companion: suffix of a sibling directory that belongs to the output (``".can"``: a dataset's CAN
+            logs at ``NAME.can``); it is checked, replaced and kept together with the output.
+        companion_entries: glob patterns of the names the command writes into the companion.
     """
 
     what: str
@@ -78,6 +102,24 @@ class OutputKind:
     entries: tuple[str, ...] = ("*",)
     signature: Callable[[Path], bool] | None = None
     marker: bool = True
+    companion: str | None = None
+    companion_entries: tuple[str, ...] = ()
+
+    def companion_path(self, path: Path) -> Path | None:
+        """Where the output at ``path`` keeps its companion directory (None if the kind has none)."""
+        path = Path(path)
+        return None if self.companion is None else path.with_name(path.name + self.companion)
+
+    def owns_companion(self, path: Path) -> bool:
+        """True when ``path`` (the companion directory) holds nothing but names the command writes there."""
+        path = Path(path)
+        if path.is_symlink() or not path.is_dir():
+            return False
+        try:
+            names = os.listdir(path)
+        except OSError:
+            return False
+        return all(any(fnmatch.fnmatchcase(n, p) for p in self.companion_entries) for n in names)
 
     def marked(self, path: Path) -> bool:
         """True when ``path``'s marker names this command and kind."""
@@ -151,14 +193,90 @@ def check_output(path: str | os.PathLike, *, force: bool | None, kind: OutputKin
     """
     path = Path(path)
     found = _found(path, kind)
+    if found == "foreign":
+        raise error(_foreign_message(path, kind, flag))
+    _check_companion(path, kind, found, flag, error)
     if found == NEW:
+        _check_parent(path, flag, error)
         return NEW
-    if found == OWN:
-        if force:
-            return OWN
-        hint = "pass --force to replace it or choose another" if force is not None else "choose another"
-        raise error(f"{path} already holds {kind.what} from {kind.command}; {hint} {flag}")
-    raise error(_foreign_message(path, kind, flag))
+    if force:
+        return OWN
+    hint = "pass --force to replace it or choose another" if force is not None else "choose another"
+    raise error(f"{path} already holds {kind.what} from {kind.command}; {hint} {flag}")
+
+
+def _check_companion(path: Path, kind: OutputKind, found: str, flag: str, error: type[DSSPError]) -> None:
+    """The kind's companion directory (a dataset's ``NAME.can``) must be absent, or belong to its own output."""
+    companion = kind.companion_path(path)
+    if companion is None or not (companion.exists() or companion.is_symlink()):
+        return
+    if found == NEW:
+        if companion.is_dir() and not companion.is_symlink() and not os.listdir(companion):
+            return  # an empty folder: nothing to lose
+        raise error(f"{companion} exists without {path.name} (it belongs to another dataset?); choose another {flag} "
+                    f"(nothing is deleted)")
+    if not kind.owns_companion(companion):
+        raise error(f"{companion} holds files {kind.command} does not write; choose another {flag} (nothing is deleted)")
+
+
+def _check_parent(path: Path, flag: str, error: type[DSSPError]) -> None:
+    """The nearest existing folder above ``path`` must be a folder this process may write into."""
+    path = Path(path).absolute()
+    for parent in path.parents:
+        if parent.exists() or parent.is_symlink():
+            break
+    else:
+        return
+    if not parent.is_dir():
+        raise error(f"cannot write {path}: {parent} is a file, not a folder; choose another {flag}")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise error(f"cannot write {path}: {parent} is not writable; choose another {flag}")
+
+
+def make_dirs(path: str | os.PathLike, *, flag: str = "--out", error: type[DSSPError] = OutputError) -> list[Path]:
+    """Create the folder ``path`` and its parents; returns the folders created (outermost first).
+
+    A path under a file, or one that cannot be created, is a one-line ``error`` (nothing is left behind).
+    """
+    path = Path(path).absolute()
+    _check_parent(path, flag, error)
+    if path.is_dir():
+        return []
+    if path.exists() or path.is_symlink():
+        raise error(f"cannot write into {path}: it is a file, not a folder; choose another {flag}")
+    missing, folder = [], path
+    while not (folder.exists() or folder.is_symlink()):
+        missing.append(folder)
+        folder = folder.parent
+    created = []
+    try:
+        for folder in reversed(missing):
+            folder.mkdir()
+            created.append(folder)
+    except OSError as exc:
+        for folder in reversed(created):
+            with contextlib.suppress(OSError):
+                folder.rmdir()
+        raise error(f"cannot write {path} ({exc.strerror or exc}); choose a writable {flag}") from None
+    return created
+
+
+def check_not_inside(out: str | os.PathLike, inputs: Iterable[str | os.PathLike], *, flag: str = "--out",
+                     error: type[DSSPError] = OutputError, contains: bool = True) -> None:
+    """Refuse an output that is one of ``inputs`` or lies inside one (symbolic links resolved).
+
+    ``contains``: also refuse an output that holds an input (replacing the output would delete it).
+    """
+    target = Path(os.path.realpath(Path(out).absolute()))
+    for item in inputs:
+        source = Path(os.path.realpath(Path(item).absolute()))
+        if target == source:
+            raise error(f"{out} is also an input ({item}); choose another {flag} (nothing is written)")
+        if source in target.parents:
+            raise error(f"{out} lies inside the input {item}; writing there would change it: choose another {flag} "
+                        f"(nothing is written)")
+        if contains and target in source.parents:
+            raise error(f"{out} holds the input {item}; choose another {flag} (nothing is written)")
 
 
 def check_append(path: str | os.PathLike, *, kind: OutputKind, flag: str = "--out",
@@ -168,6 +286,8 @@ def check_append(path: str | os.PathLike, *, kind: OutputKind, flag: str = "--ou
     found = _found(path, kind)
     if found == "foreign":
         raise error(_foreign_message(path, kind, flag))
+    if found == NEW:
+        _check_parent(path, flag, error)
     return found
 
 
@@ -199,14 +319,14 @@ class OutputDir:
             write files into target.path
             target.commit()
 
-    ``staged=True`` (default): ``target.path`` is a temporary sibling ``.NAME.partial-XXXX`` that
-    :meth:`commit` swaps onto ``out`` (:func:`dssp_train.atomic.replace_dir`; a previous output is deleted
-    after the swap). ``staged=False``, for outputs that record their own path or are watched while they
-    grow (runs, demos): ``target.path`` is ``out`` itself; a previous output (``--force``) is first moved
-    aside to ``.NAME.old-XXXX`` and deleted on :meth:`commit`. Without a commit (an error, Ctrl-C) what this
-    command created is removed and a previous output is put back — except with ``keep_partial``, when an
-    unfinished output that replaced nothing and holds something stays (a training run to ``--resume``).
-    Parent directories this command created are removed with it.
+    ``staged=True`` (default): ``target.path`` is a temporary sibling ``.NAME.partial-XXXXXXXX`` (a
+    :class:`Staging` directory) that :meth:`commit` swaps onto ``out`` (:func:`replace_dirs`; a previous
+    output is deleted after the swap). ``staged=False``, for outputs that record their own path or are
+    watched while they grow (runs, demos): ``target.path`` is ``out`` itself; a previous output (``--force``)
+    is first moved aside to ``.NAME.old-XXXX`` and deleted on :meth:`commit`. Without a commit (an error,
+    Ctrl-C) what this command created is removed and a previous output is put back — except with
+    ``keep_partial``, when an unfinished output that replaced nothing and holds something stays (a training
+    run to ``--resume``). Parent directories this command created are removed with it.
     """
 
     def __init__(self, out: str | os.PathLike, kind: OutputKind, *, force: bool = False, flag: str = "--out",
@@ -218,6 +338,7 @@ class OutputDir:
         self.found: str | None = None
         self._old: Path | None = None
         self._created: list[Path] = []
+        self._staging: Staging | None = None
         self._made_out = False
         self._committed = False
 
@@ -226,18 +347,12 @@ class OutputDir:
 
     def __enter__(self) -> "OutputDir":
         self.found = self.check()
-        missing, parent = [], self.out.parent
-        while not parent.exists():
-            missing.append(parent)
-            parent = parent.parent
         try:
-            for folder in reversed(missing):
-                folder.mkdir()
-                self._created.append(folder)
             if self.staged:
-                self.path = Path(tempfile.mkdtemp(dir=self.out.parent, prefix=f".{self.out.name}.partial-"))
-                os.chmod(self.path, 0o777 & ~_umask())
+                self._staging = Staging(flag=self.flag, error=self.error, tag="partial")
+                self.path = self._staging.make(self._staging.reserve(self.out))
             else:
+                self._created = make_dirs(self.out.parent, flag=self.flag, error=self.error)
                 if self.found == OWN:
                     old = self.out.with_name(f".{self.out.name}.old-{uuid.uuid4().hex[:8]}")
                     os.replace(self.out, old)
@@ -249,43 +364,300 @@ class OutputDir:
         except OSError as exc:
             self._rollback()
             raise self.error(f"cannot write to {self.out.parent} ({exc.strerror or exc}); choose a writable {self.flag}") from None
+        except BaseException:
+            self._rollback()
+            raise
         return self
 
     def commit(self) -> Path:
         """Put the finished output in place (replacing a previous one when allowed); returns ``out``."""
-        if self.staged:
-            self.check()  # again: something may have appeared meanwhile
-            replace_dir(self.path, self.out)
-        self._committed = True
-        if self._old is not None:
-            shutil.rmtree(self._old, ignore_errors=True)
-            self._old = None
+        with interrupts_deferred():
+            if self.staged:
+                self.check()  # again: something may have appeared meanwhile
+                self._staging.commit([(self.path, self.out)])
+            self._committed = True
+            if self._old is not None:
+                shutil.rmtree(self._old, ignore_errors=True)
+                self._old = None
         return self.out
 
     def _rollback(self) -> None:
-        if self.path is not None and self.staged:
-            shutil.rmtree(self.path, ignore_errors=True)
-        elif self.path is not None and (self._old is not None or not self.keep_partial or _empty(self.out)):
-            if self._made_out or self._old is not None:
-                shutil.rmtree(self.out, ignore_errors=True)
-            else:  # an empty directory was there: leave it empty
-                for entry in self.out.iterdir():
-                    if entry.is_dir() and not entry.is_symlink():
-                        shutil.rmtree(entry, ignore_errors=True)
-                    else:
-                        entry.unlink(missing_ok=True)
-        if self._old is not None:
-            os.replace(self._old, self.out)
-            self._old = None
-        for folder in reversed(self._created):
-            try:
-                folder.rmdir()
-            except OSError:
-                break
+        with interrupts_deferred():
+            if self._staging is not None:
+                self._staging.discard()
+            elif self.path is not None and (self._old is not None or not self.keep_partial or _empty(self.out)):
+                if self._made_out or self._old is not None:
+                    shutil.rmtree(self.out, ignore_errors=True)
+                else:  # an empty directory was there: leave it empty
+                    for entry in self.out.iterdir():
+                        if entry.is_dir() and not entry.is_symlink():
+                            shutil.rmtree(entry, ignore_errors=True)
+                        else:
+                            entry.unlink(missing_ok=True)
+            if self._old is not None:
+                os.replace(self._old, self.out)
+                self._old = None
+            for folder in reversed(self._created):
+                try:
+                    folder.rmdir()
+                except OSError:
+                    break
 
     def __exit__(self, *exc_info) -> None:
         if not self._committed:
             self._rollback()
+
+
+# ------------------------------------------------------------------------------------------- staging
+_STAGE = r"\.(?:tmp-[0-9a-f]{8}|partial-[0-9a-f]{8})"
+_STAGING_NAME = re.compile(rf"^\..+{_STAGE}(?:\.can)?$")
+_locks: dict[tuple[int, int], int] = {}
+"""Staging directories this process holds an ``flock`` on: (device, inode) → open descriptor."""
+
+
+def is_staging_name(name: str) -> bool:
+    """True for the name of a staging directory (``.NAME.tmp-XXXXXXXX``, ``.NAME.partial-XXXXXXXX``, and
+    such a name followed by ``.can``)."""
+    return bool(_STAGING_NAME.match(name))
+
+
+def _lock_dir(path: Path) -> None:
+    import fcntl
+
+    fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BaseException:
+        os.close(fd)
+        raise
+    info = os.fstat(fd)
+    _locks[(info.st_dev, info.st_ino)] = fd
+
+
+def _unlock_dir(path: Path) -> None:
+    try:
+        info = os.stat(path, follow_symlinks=False)
+    except OSError:
+        return
+    fd = _locks.pop((info.st_dev, info.st_ino), None)
+    if fd is not None:
+        os.close(fd)
+
+
+def _remove_dir(path: Path) -> None:
+    """Remove a staging directory of this process (and let go of its lock)."""
+    try:
+        info = os.stat(path, follow_symlinks=False)
+    except OSError:
+        return
+    fd = _locks.pop((info.st_dev, info.st_ino), None)
+    try:
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path, ignore_errors=True)
+    finally:
+        if fd is not None:
+            os.close(fd)
+
+
+def sweep_stale(out: str | os.PathLike) -> list[Path]:
+    """Remove the staging directories of ``out`` that a killed process left behind; returns them.
+
+    Only directories beside ``out`` named exactly as :class:`Staging` names them for ``out``
+    (``.NAME.tmp-XXXXXXXX``, ``.NAME.partial-XXXXXXXX``, nested ``..NAME.tmp-XXXXXXXX.tmp-XXXXXXXX`` and
+    their ``.can`` companions) and that no live process holds (the ``flock`` its writer holds dies with it).
+    """
+    import fcntl
+
+    out = Path(out).absolute()
+    pattern = re.compile(rf"^(\.+){re.escape(out.name)}((?:{_STAGE})+)(\.can)?$")
+    try:
+        names = os.listdir(out.parent)
+    except OSError:
+        return []
+    removed = []
+    for name in names:
+        match = pattern.match(name)
+        if not match or len(match.group(1)) != len(re.findall(_STAGE, match.group(2))):
+            continue
+        path = out.parent / name
+        try:
+            fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW)
+        except OSError:  # not a directory, a symbolic link, gone
+            continue
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:  # a live writer holds it
+            os.close(fd)
+            continue
+        try:
+            shutil.rmtree(path, ignore_errors=True)
+            removed.append(path)
+        finally:
+            os.close(fd)
+    return removed
+
+
+def replace_dirs(moves: Sequence[tuple[Path | None, Path]]) -> None:
+    """Put each finished directory ``new`` in place of its ``target``, all or none: ``[(new, target), ...]``.
+
+    Existing targets are first renamed aside (``.NAME.old-XXXXXXXX``), then each ``new`` is renamed onto its
+    target (``new`` None: the target is only removed); if a rename fails, everything is put back. The old
+    directories are deleted only once every new one is in place. Which targets may be replaced at all is
+    :func:`check_output`'s decision.
+    """
+    aside, placed = [], []
+    try:
+        for _, target in moves:
+            target = Path(target)
+            if target.exists() or target.is_symlink():
+                old = target.with_name(f".{target.name}.old-{uuid.uuid4().hex[:8]}")
+                os.replace(target, old)
+                aside.append((old, target))
+        for new, target in moves:
+            if new is not None:
+                os.replace(new, target)
+                placed.append((Path(new), Path(target)))
+    except BaseException:
+        for new, target in reversed(placed):
+            with contextlib.suppress(OSError):
+                os.replace(target, new)
+        for old, target in reversed(aside):
+            with contextlib.suppress(OSError):
+                os.replace(old, target)
+        raise
+    for old, _ in aside:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+class Staging:
+    """Hidden directories beside their outputs, written by this process and put in place together.
+
+        with Staging(flag="--out", error=DatasetError) as staging:
+            tmp = staging.make(staging.reserve(out))   # .OUT.tmp-XXXXXXXX, created and locked
+            ... write into tmp ...
+            staging.commit([(tmp, out)])
+
+    :meth:`reserve` sweeps the stale staging directories of ``out`` (:func:`sweep_stale`), creates the
+    missing parent folders and returns a new staging name beside ``out``; :meth:`make` creates a
+    directory there and locks it (a writer that creates the directory itself calls :meth:`hold` on it).
+    Leaving the block without :meth:`commit` (an error, Ctrl-C, a kill of the parent) waits for zarr's
+    background writes (:func:`settle_background_writes`), removes every reserved name (and its ``.can``
+    companion) and the parent folders it created.
+    """
+
+    def __init__(self, *, flag: str = "--out", error: type[DSSPError] = OutputError, tag: str = "tmp"):
+        self.flag, self.error, self.tag = flag, error, tag
+        self.reserved: list[Path] = []
+        self._created: list[Path] = []
+        self.committed = False
+
+    def reserve(self, out: str | os.PathLike) -> Path:
+        out = Path(out).absolute()
+        sweep_stale(out)
+        self._created += make_dirs(out.parent, flag=self.flag, error=self.error)
+        path = out.with_name(f".{out.name}.{self.tag}-{uuid.uuid4().hex[:8]}")
+        self.reserved.append(path)
+        return path
+
+    def make(self, path: Path) -> Path:
+        """Create the staging directory ``path`` (a reserved name, or its ``.can`` companion) and lock it."""
+        try:
+            os.mkdir(path)
+        except OSError as exc:
+            raise self.error(f"cannot write to {path.parent} ({exc.strerror or exc}); choose a writable {self.flag}") from None
+        self.hold(path)
+        return path
+
+    def hold(self, path: Path) -> None:
+        """Lock a staging directory this process created, so that :func:`sweep_stale` leaves it alone."""
+        _lock_dir(path)
+
+    def commit(self, moves: Sequence[tuple[Path | None, Path]]) -> None:
+        """:func:`replace_dirs` with a Ctrl-C held back until every rename is done."""
+        with interrupts_deferred():
+            replace_dirs(moves)
+            self.committed = True
+            for _, target in moves:
+                _unlock_dir(Path(target))
+
+    def discard(self) -> None:
+        """Remove what this staging wrote (once zarr has settled) and the parent folders it created."""
+        settle_background_writes()
+        with interrupts_deferred():
+            for path in self.reserved:
+                for item in (path, path.with_name(path.name + ".can")):
+                    _remove_dir(item)
+            for folder in reversed(self._created):
+                try:
+                    folder.rmdir()
+                except OSError:
+                    break
+            self.reserved, self._created = [], []
+
+    def __enter__(self) -> "Staging":
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        if not self.committed:
+            self.discard()
+
+
+# ------------------------------------------------------------------------------------------- interruptions
+@contextlib.contextmanager
+def interrupts_deferred(reraise: bool = True) -> Iterator[None]:
+    """Hold back Ctrl-C (SIGINT) inside the block, then act on it (``reraise``: KeyboardInterrupt) at its end.
+
+    For steps that must not stop half-way: renames that put outputs in place, the removal of a staging
+    directory. Only in the main thread (elsewhere signals are not delivered); a no-op when SIGINT is ignored.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.getsignal(signal.SIGINT)
+    if previous in (signal.SIG_IGN, None):
+        yield
+        return
+    caught = []
+    signal.signal(signal.SIGINT, lambda signum, frame: caught.append(frame))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        if caught and reraise:
+            if callable(previous):
+                previous(signal.SIGINT, caught[-1])
+            else:
+                os.kill(os.getpid(), signal.SIGINT)
+
+
+def settle_background_writes(timeout: float = 120.0) -> None:
+    """Wait until zarr's background event loop has finished what it was doing (at most ``timeout`` s).
+
+    zarr 3 runs every read and write as coroutines on its own thread (and a thread pool); a Ctrl-C reaches
+    only the main thread, which stops waiting while the operation goes on writing files. Before a staging
+    directory is removed, and before the process exits on Ctrl-C, its work must end (else files reappear
+    after the removal, or zarr's pool is shut down under it at exit). A further Ctrl-C meanwhile is ignored.
+    """
+    module = sys.modules.get("zarr.core.sync")
+    loop = (getattr(module, "loop", None) or [None])[0] if module is not None else None
+    if loop is None or loop.is_closed() or not loop.is_running():
+        return
+    import asyncio
+
+    async def idle() -> None:
+        me = asyncio.current_task()
+        deadline = loop.time() + timeout
+        while loop.time() < deadline:
+            others = [t for t in asyncio.all_tasks() if t is not me and not t.done()]
+            if not others:
+                return
+            await asyncio.wait(others, timeout=max(0.01, deadline - loop.time()))
+
+    with interrupts_deferred(reraise=False):
+        try:
+            asyncio.run_coroutine_threadsafe(idle(), loop).result(timeout + 5.0)
+        except Exception:  # the loop stopped, or the time is up: nothing more to wait for
+            pass
 
 
 def _empty(path: Path) -> bool:
@@ -304,6 +676,7 @@ def check_output_file(path: str | os.PathLike, *, force: bool, flag: str = "--ou
         raise error(f"{path} exists and is not a file; choose another {flag} (nothing is deleted)")
     if path.exists() and not force:
         raise error(f"{path} exists; pass --force to replace it or choose another {flag}")
+    _check_parent(path, flag, error)
     return path
 
 
@@ -314,10 +687,13 @@ def write_output_file(path: str | os.PathLike, write: Callable[[str], None], *, 
     ``suffix``: the temporary file's ending, for writers that take the format from the name (``".tmp.gif"``).
     """
     path = check_output_file(path, force=force, flag=flag, error=error)
+    created = make_dirs(path.parent, flag=flag, error=error)
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
         atomic_write(path, write, suffix=suffix)
     except OSError as exc:
+        for folder in reversed(created):
+            with contextlib.suppress(OSError):
+                folder.rmdir()
         raise error(f"cannot write {path} ({exc.strerror or exc}); choose a writable {flag}") from None
     return path
 
@@ -380,9 +756,28 @@ RUN_DIR = OutputKind("a run directory", "dssp-train",
 """``dssp-train --out``: config.json (a JSON object with ``model`` and ``train``), model.safetensors,
 checkpoint/, log.jsonl, loss.png — recognised by its config.json, no marker added."""
 
+def _made_by(path: Path, generators: Iterable[str]) -> bool:
+    """The zarr dataset at ``path`` names one of ``generators`` as its ``generator``, and was not made from
+    other datasets by an older ``dssp-data merge``/``split`` (which copied its first input's generator)."""
+    attrs = zarr_attrs(path) or {}
+    return attrs.get("generator") in tuple(generators) and "merged_from" not in attrs and "split_from" not in attrs
+
+
 SYNTH_DATASET = OutputKind("a synthetic dataset", "dssp-synth", entries=ZARR_ENTRIES, marker=False,
-                           signature=lambda p: zarr_generator(p) == "dssp_train.data.synthetic")
+                           signature=lambda p: _made_by(p, ("dssp_train.data.synthetic",)))
 """``dssp-synth --out``: a zarr dataset whose ``generator`` attribute is ``dssp_train.data.synthetic``."""
+
+DATA_GENERATORS = {"merge": "dssp-data merge", "split": "dssp-data split", "convert": "dssp-data convert"}
+"""The ``generator`` attribute each ``dssp-data`` command writes into the datasets it makes."""
+_LEGACY_DATA_GENERATORS = ("dssp-data convert (RoboTwin raw HDF5)",)
+"""What older versions of ``dssp-data convert`` wrote (merge and split copied their input's generator:
+their older outputs are not recognised, so they are never replaced)."""
+
+DATA_DATASET = OutputKind("a dataset", "dssp-data merge, split or convert", entries=ZARR_ENTRIES, marker=False,
+                          signature=lambda p: zarr_generator(p) in (*DATA_GENERATORS.values(), *_LEGACY_DATA_GENERATORS),
+                          companion=".can", companion_entries=("episode_*.blf",))
+"""``dssp-data merge OUT``, ``split --train/--val``, ``convert --out``: a zarr dataset whose ``generator``
+attribute is one of :data:`DATA_GENERATORS`, with its CAN logs at ``OUT.can`` (only ``episode_*.blf``)."""
 
 SIM_DATASET = OutputKind("a simulation dataset", "dssp-sim collect", marker=False,
                          signature=lambda p: zarr_generator(p) == "dssp_sim.collect")
@@ -394,9 +789,3 @@ RECORDED_DATASET = OutputKind("a recorded dataset", "dssp-record", marker=False,
 
 RUN_LOG = OutputKind("an episode log", "dssp-run")
 """``dssp-run --log-dir``: a new directory for one run's log (marked); an existing log is never reused."""
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask

@@ -43,7 +43,7 @@ def replay_episode(path, episode: int, can: str | None, *, send: bool = False, i
     if rate_hz is not None:
         rate = check_rate(rate_hz)
     else:
-        rate = reader.attrs.get("control_rate_hz")
+        rate = reader.control_rate_hz  # a value that is not a rate: a DatasetError naming the attribute
         if rate is None:
             raise ConfigError(f"{path} does not record its control rate: pass --rate HZ")
         rate = check_rate(rate, flag=f"{path}'s control_rate_hz attribute")

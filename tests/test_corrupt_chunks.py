@@ -4,6 +4,7 @@ a dataset stay inside its CAN-log folder; ``dssp-data info`` exits 1 when it lis
 
 import contextlib
 import io
+import json
 import os
 import shutil
 import subprocess
@@ -242,39 +243,105 @@ def test_missing_chunk_is_lost_data_and_can_be_left_out(tmp_path, originals):
     assert code == 2 and "--drop-episodes must be comma-separated episode indices or ranges" in err
 
 
-def test_chunks_without_the_mark_may_hold_only_the_fill_value(tmp_path):
-    """An extra written by zarr 3 with its defaults (no chunk of only zeros stored) reads as zeros and info says so;
-    a required array never reads a missing chunk as zeros; appending to such a dataset stores every chunk and
-    marks the arrays that hold every chunk."""
-    path = tmp_path / "old.zarr"
+def _write_with_zarr_defaults(path, zarr_format, values):
+    """Arrays as other tools write them with zarr 3's defaults: a chunk that holds only the fill value is not stored."""
+    root = zarr.open_group(str(path), mode="w", zarr_format=zarr_format)
+    for key, value in values.items():
+        parent, name = key.split("/")
+        root.require_group(parent).create_array(name, data=value, chunks=(100,) + value.shape[1:])
+    return root
+
+
+def _default_values():
     episodes = make_episodes()
     values = {f"data/{k}": np.concatenate([getattr(e, k) for e in episodes]) for k in ("point_cloud", "state", "action")}
     values["data/step_problems"] = np.zeros(sum(LENGTHS), np.uint8)
     values["meta/episode_ends"] = ENDS.astype(np.int64)
-    root = zarr.open_group(str(path), mode="w", zarr_format=3)
-    for key, value in values.items():
-        parent, name = key.split("/")
-        root.require_group(parent).create_array(name, data=value, chunks=(100,) + value.shape[1:])
+    return values
+
+
+def test_unmarked_zarr3_chunks_may_hold_only_the_fill_value(tmp_path):
+    """A zarr-3 dataset written by another tool with zarr's defaults (chunks of only zeros not stored) is valid:
+    a missing chunk reads as the fill value, in every array, and info says how many; appending to it stores every
+    chunk and marks the arrays that hold every chunk."""
+    path = tmp_path / "other.zarr"
+    values = _default_values()
+    _write_with_zarr_defaults(path, 3, values)
     assert not chunk_file(path, "data/step_problems", 0).exists()
     assert not chunk_file(path, "data/action", 2).exists()  # only zeros
 
-    with pytest.raises(DatasetError, match=r"data/action chunk 2 \(steps 200..219, episode 2\) is missing"):
-        ReplayBuffer.load(path)
-    root["data/action"][200:] = values["data/action"][200:] = 1.0
     buffer = ReplayBuffer.load(path, extras=True)
     assert not buffer.extras["step_problems"].any()
     np.testing.assert_array_equal(buffer.action, values["data/action"])
-    report = inspect_dataset(path)
-    assert "data/step_problems: 3 chunk(s) are not stored and read as the fill value" in " ".join(report["notes"])
+    assert ReplayBufferReader(path).check_chunks() == {"data/action": 1, "data/step_problems": 3}
+    code, out, err = cli("info", path)
+    assert code == 0 and "problems    none found" in out, (out, err)
+    assert "data/action: 1 chunk(s) are not stored and read as the fill value" in out
+    assert "data/step_problems: 3 chunk(s) are not stored and read as the fill value" in out
 
     new = make_episodes((30,), seed=1)[0]
     new = Episode(new.point_cloud, new.state, new.action, {"step_problems": new.extras["step_problems"]})
     with ReplayBufferWriter(path, extra_keys=["step_problems"]) as writer:
         writer.add_episode(new)
     root = zarr.open_group(str(path), mode="r")
-    assert root["data/action"].attrs[EVERY_CHUNK_ATTR] is True
-    assert EVERY_CHUNK_ATTR not in root["data/step_problems"].attrs  # its old chunks were left out
+    assert root["data/state"].attrs[EVERY_CHUNK_ATTR] is True  # it held every chunk
+    assert EVERY_CHUNK_ATTR not in root["data/action"].attrs  # chunk 2 of its old steps was left out
+    assert EVERY_CHUNK_ATTR not in root["data/step_problems"].attrs
     assert chunk_file(path, "data/step_problems", 2).is_file()  # the one the append wrote is stored
+
+
+def test_a_missing_chunk_of_a_zarr2_or_marked_array_is_lost_data(tmp_path):
+    """zarr format 2 (zarr-python 2 stores every chunk) and arrays this package marked: a missing chunk is lost."""
+    path = tmp_path / "v2.zarr"
+    _write_with_zarr_defaults(path, 2, _default_values())
+    assert not chunk_file(path, "data/action", 2).exists()
+    with pytest.raises(DatasetError, match=r"data/action chunk 2 \(steps 200..219, episode 2\) is missing"):
+        ReplayBuffer.load(path)
+    assert cli("info", path)[0] == 2
+
+    marked = write_dataset(tmp_path / "marked.zarr", 3)
+    chunk_file(marked, "data/state", 1).unlink()
+    with pytest.raises(DatasetError, match=r"data/state chunk 1 \(steps 100..199, episodes 1..2\) is missing"):
+        ReplayBuffer.load(marked)
+
+
+@pytest.mark.parametrize("zarr_format", FORMATS)
+def test_an_empty_episode_is_not_lost_data(tmp_path, zarr_format):
+    """episode_ends = [0] written with zarr's defaults: its only chunk holds the fill value and is not stored."""
+    path = tmp_path / "empty.zarr"
+    values = {key: value[:0] if key.startswith("data/") else value for key, value in _default_values().items()}
+    values["meta/episode_ends"] = np.array([0], np.int64)
+    _write_with_zarr_defaults(path, zarr_format, values)
+    assert not chunk_file(path, "meta/episode_ends", 0).exists()
+    code, _, err = cli("info", path)
+    assert code == 2 and err.count("\n") == 1
+    if zarr_format == 3:  # the fill value, as zarr defines it
+        assert "meta/episode_ends[0] = 0: episode 0 is empty" in err, err
+    else:  # lost, or left out as the fill value: either way the episode is empty
+        assert "meta/episode_ends chunk 0 (episodes 0..0) is missing" in err, err
+        assert "held only the fill value 0, and then episodes 0..0 are empty" in err, err
+
+
+@pytest.mark.parametrize("zarr_format", FORMATS)
+def test_an_enlarged_shape_is_a_metadata_mismatch_not_an_interrupted_write(tmp_path, zarr_format):
+    path = write_dataset(tmp_path / "ds.zarr", zarr_format)
+    meta = path / "data" / "state" / (".zarray" if zarr_format == 2 else "zarr.json")
+    doc = json.loads(meta.read_text())
+    doc["shape"][0] = 400  # no chunk behind steps 300..399
+    meta.write_text(json.dumps(doc))
+    with pytest.raises(DatasetError) as info:
+        ReplayBuffer.load(path)
+    message = str(info.value)
+    assert "data/state has 400 steps in its metadata" in message and "no chunk is stored for steps 300..399" in message
+    assert "its shape does not match the stored data" in message and "interrupted" not in message, message
+    code, out, _ = cli("info", path)
+    assert code == 1 and "data/state has 400 steps in its metadata" in out and "a write was interrupted" not in out, out
+    code, out, _ = cli("repair", path)
+    assert code == 0 and "set data/state back to the last episode end (its metadata gave 400 steps" in out, out
+    assert "cut off" not in out
+    assert ReplayBuffer.load(path).n_steps == int(ENDS[-1])
+    out = cli("info", path)[1]
+    assert "in its metadata" not in out and "after the last episode end" not in out, out
 
 
 def test_blosc_frame_check():

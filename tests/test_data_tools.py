@@ -124,7 +124,8 @@ def test_merge_and_split_round_trip(recorded, tmp_path, capsys):
     original = ReplayBuffer.load(recorded, extras=True)
     n = original.n_episodes
     merged = tmp_path / "merged.zarr"
-    code, out, _ = run(capsys, "merge", merged, recorded, recorded)
+    again = copy_dataset(recorded, tmp_path / "again.zarr")
+    code, out, _ = run(capsys, "merge", merged, recorded, again)
     assert code == 0 and f"wrote {merged}: {2 * n} episodes" in out and f"{2 * n} CAN logs" in out
     buffer = ReplayBuffer.load(merged, extras=True)
     assert buffer.n_episodes == 2 * n and set(buffer.extras) == set(original.extras)
@@ -137,7 +138,9 @@ def test_merge_and_split_round_trip(recorded, tmp_path, capsys):
     assert [i["index"] for i in infos] == list(range(2 * n))
     assert [i["session"] for i in infos] == [0] * n + [1] * n and len(buffer.attrs["recording_sessions"]) == 2
     assert all((can_log_dir(merged) / f"episode_{i:06d}.sim.blf").is_file() for i in range(2 * n))
-    assert buffer.attrs["merged_from"] == [{"path": str(recorded), "episodes": n}] * 2
+    assert buffer.attrs["merged_from"] == [{"path": str(p), "episodes": n, "generator": "dssp-record"}
+                                           for p in (recorded, again)]
+    assert buffer.attrs["generator"] == "dssp-data merge"
 
     train, val = tmp_path / "train.zarr", tmp_path / "val.zarr"
     code, out, _ = run(capsys, "split", merged, "--train", train, "--val", val, "--val-episodes", "1,2")
@@ -147,6 +150,7 @@ def test_merge_and_split_round_trip(recorded, tmp_path, capsys):
     np.testing.assert_array_equal(v.episode(0).state, buffer.episode(1).state)
     np.testing.assert_array_equal(t.episode(1).action, buffer.episode(3).action)
     assert v.attrs["split_from"]["episodes"] == [1, 2] and t.attrs["split_from"]["part"] == "train"
+    assert t.attrs["generator"] == "dssp-data split" and t.attrs["split_from"]["generator"] == "dssp-data merge"
     assert [i["sim"]["seed"] for i in v.attrs["episode_info"]] == [1, 0]
     assert (can_log_dir(val) / "episode_000001.sim.blf").is_file()
 
@@ -213,7 +217,7 @@ def test_convert_robotwin_hdf5(tmp_path, capsys):
     code, text, _ = run(capsys, "convert", task / "data" / "episode1.hdf5", "--out", tmp_path / "xyz.zarr", "--xyz")
     assert code == 0 and ReplayBuffer.load(tmp_path / "xyz.zarr").point_cloud.shape == (3, 16, 3)
     code, _, err = run(capsys, "convert", task, "--out", out)
-    one_line_error(code, err, "exists: choose another output or pass --force")
+    one_line_error(code, err, "already holds a dataset from dssp-data merge, split or convert; pass --force")
     assert run(capsys, "convert", task, "--out", out, "--force", "--episodes", "1")[0] == 0
     assert ReplayBuffer.load(out).n_episodes == 1
 
@@ -270,9 +274,9 @@ def test_replay_dry_run_and_on_the_simulated_arm(recorded, capsys):
     (["split", DP3, "--train", "a.zarr", "--val", "a.zarr", "--val-ratio", "0.5"], "must be different paths"),
     (["split", DP3, "--train", "a.zarr", "--val", "b.zarr", "--val-episodes", "0,1"], "at least one episode on each side"),
     (["split", DP3, "--train", "a.zarr", "--val", "b.zarr", "--val-episodes", "x"], "comma-separated integers"),
-    (["replay", DP3, "--episode", "0"], "does not record a usable control rate"),
+    (["replay", DP3, "--episode", "0"], "does not record its control rate"),
     (["replay", DP3, "--episode", "0", "--rate", "100"], "above the arm's 3.14159 rad/s"),
-    (["replay", DP3, "--episode", "0", "--rate", "0"], "--rate must be in (0, 1000] Hz"),
+    (["replay", DP3, "--episode", "0", "--rate", "0"], "--rate must be in [0.1, 1000] Hz"),
 ])
 def test_bad_input_is_one_line(tmp_path, capsys, monkeypatch, argv, fragment):
     monkeypatch.chdir(tmp_path)
@@ -295,3 +299,41 @@ def test_split_can_leave_out_marked_episodes(tmp_path, capsys):
     code, _, err = run(capsys, "split", path, "--train", tmp_path / "t2.zarr", "--val", tmp_path / "v2.zarr",
                        "--val-episodes", "0", "--drop-marked")
     one_line_error(code, err, "validation episode(s) [0] were recorded with problems")
+
+
+# ------------------------------------------------------------------------------------------------ attributes
+@pytest.mark.parametrize("value, shown", [(-10, "-10"), (float("nan"), "NaN"), (0, "0"), ("10", "'10'"),
+                                          ("abc", "'abc'"), (True, "true")])
+def test_info_lists_a_control_rate_that_is_not_a_rate(tmp_path, capsys, value, shown):
+    path = tmp_path / "d.zarr"
+    write_replay_buffer(path, [Episode(np.zeros((3, 4, 3), np.float32), np.ones((3, 2), np.float32),
+                                       np.ones((3, 2), np.float32))], attrs={"control_rate_hz": value})
+    code, out, _ = run(capsys, "info", path)
+    assert code == 1 and "rate        control_rate_hz is not a rate (see problems)" in out, out
+    assert f"  - attribute control_rate_hz is {shown}, not a rate in Hz (a number > 0); fix it with" in out, out
+    assert "the control rate is not recorded" not in out and "problems    none found" not in out
+    report = json.loads(run(capsys, "info", path, "--json")[1])
+    assert report["control_rate_hz"] is None
+    one_line_error(*run(capsys, "view", path, "--episode", "0", "--out", tmp_path / "v")[::2],
+                   "attribute control_rate_hz is")
+    assert not (tmp_path / "v").exists()
+
+
+def test_episode_info_of_the_wrong_type_is_a_problem_not_missing_metadata(tmp_path, capsys):
+    rng = np.random.default_rng(3)
+    eps = [Episode(rng.normal(size=(3, 4, 3)).astype(np.float32), rng.normal(size=(3, 2)).astype(np.float32),
+                   rng.normal(size=(3, 2)).astype(np.float32)) for _ in range(2)]
+    path = tmp_path / "d.zarr"
+    write_replay_buffer(path, eps, attrs={"episode_info": "hello", "control_rate_hz": 10.0})
+    code, out, _ = run(capsys, "info", path)
+    assert code == 1 and "  - attribute episode_info is 'hello', not a list (one object or null per episode)" in out
+    other, good = tmp_path / "e.zarr", tmp_path / "g.zarr"
+    write_replay_buffer(other, eps, attrs={"control_rate_hz": 10.0, "camera_to_base": [[1, 2]]})
+    write_replay_buffer(good, eps, attrs={"control_rate_hz": 10.0})
+    listing = sorted(p.name for p in tmp_path.iterdir())
+    for argv, fragment in ((["merge", tmp_path / "m.zarr", good, path], "attribute episode_info is 'hello'"),
+                           (["merge", tmp_path / "m.zarr", good, other], "attribute camera_to_base is [[1, 2]]"),
+                           (["split", path, "--train", tmp_path / "t.zarr", "--val", tmp_path / "v.zarr",
+                             "--val-ratio", "0.5"], "attribute episode_info is 'hello'")):
+        one_line_error(*run(capsys, *argv)[::2], fragment)
+    assert sorted(p.name for p in tmp_path.iterdir()) == listing

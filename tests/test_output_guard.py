@@ -720,3 +720,146 @@ def test_dssp_data_view_replaces_its_pictures_only_with_force(tmp_path, capsys):
     assert data_main(["view", str(data), "--episode", "0", "--out", str(pictures), "--force"]) == 0
     assert (pictures / "d_ep0_trajectories.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert sorted(p.name for p in pictures.iterdir()) == ["d_ep0_clouds.png", "d_ep0_trajectories.png"]
+
+
+# ---------------------------------------------------------------------- staging, interruptions, where outputs go
+def test_staging_is_removed_on_any_exit_with_the_parents_it_made(tmp_path):
+    from dssp_train.output_guard import Staging
+
+    out = tmp_path / "a" / "b" / "out.zarr"
+    with pytest.raises(KeyboardInterrupt):
+        with Staging() as staging:
+            tmp = staging.make(staging.reserve(out))
+            (tmp / "data").mkdir()
+            staging.make(tmp.with_name(tmp.name + ".can"))
+            raise KeyboardInterrupt
+    assert os.listdir(tmp_path) == []
+    (tmp_path / "keep").mkdir()
+    before = snapshot(tmp_path)
+    with pytest.raises(OutputError, match="is a file, not a folder; choose another --out"):
+        with Staging() as staging:
+            (tmp_path / "keep" / "f").write_text("x")
+            before = snapshot(tmp_path)
+            staging.reserve(tmp_path / "keep" / "f" / "out.zarr")
+    assert snapshot(tmp_path) == before
+    with Staging() as staging:
+        tmp = staging.make(staging.reserve(out))
+        (tmp / "x").write_text("new")
+        staging.commit([(tmp, out)])
+    assert os.listdir(out) == ["x"] and sorted(os.listdir(out.parent)) == ["out.zarr"]
+
+
+def test_only_stale_staging_folders_of_the_same_output_are_swept(tmp_path):
+    from dssp_train.output_guard import Staging, sweep_stale
+
+    out = tmp_path / "m.zarr"
+    stale = [".m.zarr.tmp-0123abcd", ".m.zarr.partial-89abcdef", "..m.zarr.tmp-0123abcd.tmp-4567cdef",
+             ".m.zarr.tmp-0123abcd.can"]
+    kept = [".m.zarr.old-0123abcd", ".m.zarr.tmp-nothex00", ".m.zarr.tmp-0123abc", "..m.zarr.tmp-0123abcd",
+            ".x.zarr.tmp-0123abcd", ".m.zarr.tmp-0123abcd.can.bak", "m.zarr.tmp-0123abcd"]
+    for name in stale + kept:
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "chunk").write_text(name)
+    (tmp_path / ".m.zarr.tmp-fedcba98").write_text("a file")
+    os.symlink(tmp_path / kept[0], tmp_path / ".m.zarr.tmp-fedcba99")
+    with Staging() as live:  # a staging folder of a live writer (this process) is left alone
+        held = live.make(live.reserve(out))
+        assert sorted(p.name for p in sweep_stale(out)) == []  # reserve swept the stale ones already
+        assert held.is_dir()
+        for name in stale:
+            (tmp_path / name).mkdir()
+        assert sorted(p.name for p in sweep_stale(out)) == sorted(stale)
+        assert held.is_dir()
+    remaining = sorted(os.listdir(tmp_path))
+    assert remaining == sorted(kept + [".m.zarr.tmp-fedcba98", ".m.zarr.tmp-fedcba99"])
+    assert all((tmp_path / name / "chunk").read_text() == name for name in kept)
+
+
+def test_replace_dirs_puts_everything_back_when_a_rename_fails(tmp_path, monkeypatch):
+    from dssp_train.output_guard import replace_dirs
+
+    for name in ("out", "out.can", "new", "new.can"):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "f").write_text(name)
+    before = snapshot(tmp_path)
+    real = os.replace
+
+    def fail_second_new(src, dst):
+        if Path(src).name == "new.can":
+            raise OSError("disk full")
+        real(src, dst)
+
+    monkeypatch.setattr(os, "replace", fail_second_new)
+    with pytest.raises(OSError):
+        replace_dirs([(tmp_path / "new", tmp_path / "out"), (tmp_path / "new.can", tmp_path / "out.can")])
+    assert snapshot(tmp_path) == before
+    monkeypatch.setattr(os, "replace", real)
+    replace_dirs([(tmp_path / "new", tmp_path / "out"), (None, tmp_path / "out.can")])
+    assert sorted(os.listdir(tmp_path)) == ["new.can", "out"] and (tmp_path / "out" / "f").read_text() == "new"
+
+
+def test_ctrl_c_is_held_back_inside_interrupts_deferred():
+    import signal
+
+    from dssp_train.output_guard import interrupts_deferred
+
+    done = []
+    with pytest.raises(KeyboardInterrupt):
+        with interrupts_deferred():
+            os.kill(os.getpid(), signal.SIGINT)
+            done.append("after the signal")
+    assert done == ["after the signal"]
+    with interrupts_deferred(reraise=False):
+        os.kill(os.getpid(), signal.SIGINT)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+def test_datasets_made_by_dssp_data_are_recognised_with_their_can_logs(tmp_path):
+    from dssp_train.output_guard import DATA_DATASET
+
+    for generator in ("dssp-data merge", "dssp-data split", "dssp-data convert", "dssp-data convert (RoboTwin raw HDF5)"):
+        path = write_dataset(tmp_path / f"{generator}.zarr", generator)
+        assert DATA_DATASET.owns(path) and check_output(path, force=True, kind=DATA_DATASET) == OWN
+    for generator in ("dssp-record", "dssp_train.data.synthetic", "dssp_sim.collect", "dssp-data"):
+        path = write_dataset(tmp_path / f"other-{generator}.zarr", generator)
+        assert not DATA_DATASET.owns(path)
+        with pytest.raises(OutputError, match="is not a dataset made by dssp-data merge, split or convert"):
+            check_output(path, force=True, kind=DATA_DATASET)
+    old_merge = write_dataset(tmp_path / "old.zarr", "dssp_train.data.synthetic", merged_from=[{"path": "a"}])
+    assert not SYNTH_DATASET.owns(old_merge)  # an older merge copied its input's generator: never replaced
+
+    own = write_dataset(tmp_path / "own.zarr", "dssp-data merge")
+    logs = tmp_path / "own.zarr.can"
+    logs.mkdir()
+    (logs / "episode_000000.can0.blf").write_bytes(b"log")
+    assert check_output(own, force=True, kind=DATA_DATASET) == OWN
+    (logs / ".recording.lock").write_text("pid 1")
+    with pytest.raises(OutputError, match=r"own.zarr.can holds files .* \(nothing is deleted\)"):
+        check_output(own, force=True, kind=DATA_DATASET)
+    lone = tmp_path / "lone.zarr.can"
+    lone.mkdir()
+    assert check_output(tmp_path / "lone.zarr", force=False, kind=DATA_DATASET) == NEW  # empty: nothing to lose
+    (lone / "episode_000000.can0.blf").write_bytes(b"log")
+    with pytest.raises(OutputError, match="lone.zarr.can exists without lone.zarr"):
+        check_output(tmp_path / "lone.zarr", force=True, kind=DATA_DATASET)
+
+
+def test_paths_under_a_file_and_outputs_inside_inputs_are_one_line(tmp_path):
+    from dssp_train.output_guard import check_not_inside, make_dirs
+
+    a_file = tmp_path / "f"
+    a_file.write_text("x")
+    before = snapshot(tmp_path)
+    for check in (lambda: check_output_file(a_file / "r.json", force=True),
+                  lambda: check_output(a_file / "sub" / "out", force=True, kind=KIND),
+                  lambda: make_dirs(a_file / "sub"), lambda: make_dirs(a_file),
+                  lambda: write_output_text(a_file / "r.json", "x", force=True),
+                  lambda: check_not_inside(tmp_path / "in" / "x", [tmp_path / "in"]),
+                  lambda: check_not_inside(tmp_path / "in", [tmp_path / "in" / "."]),
+                  lambda: check_not_inside(tmp_path, [tmp_path / "in"])):
+        with pytest.raises(OutputError) as info:
+            check()
+        assert "\n" not in str(info.value) and "choose" in str(info.value)
+    assert snapshot(tmp_path) == before
+    check_not_inside(tmp_path, [tmp_path / "in"], contains=False)  # pictures beside a dataset are fine
+    assert make_dirs(tmp_path / "a" / "b") == [tmp_path / "a", tmp_path / "a" / "b"]

@@ -5,6 +5,7 @@ the result; stream problems are flagged per step and per episode; operator comma
 import contextlib
 import io
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -244,8 +245,11 @@ def test_stream_problems_mark_the_episode(tmp_path, capsys):
            "at 9 step(s) from step 12; dropped camera frames at 10 step(s) from step 31" in text
     assert "PROBLEMS" in text and "episode 1 was recorded" not in text
 
-    clean = tmp_path / "clean.zarr"
-    assert data_main(["merge", str(clean), str(out), str(out), "--drop-marked"]) == 0
+    clean, again = tmp_path / "clean.zarr", tmp_path / "again.zarr"
+    shutil.copytree(out, again)  # merge refuses one input given twice
+    if Path(f"{out}.can").is_dir():
+        shutil.copytree(f"{out}.can", f"{again}.can")
+    assert data_main(["merge", str(clean), str(out), str(again), "--drop-marked"]) == 0
     assert f"left out episodes [0] of {out}" in capsys.readouterr().out
     merged = ReplayBuffer.load(clean)
     assert merged.n_episodes == 2 and all(info["clean"] for info in merged.attrs["episode_info"])

@@ -594,3 +594,56 @@ def test_large_extra_rows_get_smaller_chunks(tmp_path):
 
     assert _extra_chunk_steps(np.zeros((5, 480, 640), np.uint16)) == 27  # 16 MiB / 600 KiB per depth image
     assert _extra_chunk_steps(np.zeros((5,), np.float64)) == 100
+
+
+# --------------------------------------------------------------------------- attributes
+
+
+@pytest.mark.parametrize("value", [-10, 0, float("nan"), float("inf"), "10", "abc", True, [10], {"hz": 10}])
+def test_a_control_rate_that_is_not_a_rate_is_refused_naming_the_attribute(tmp_path, value):
+    path = tmp_path / "ds.zarr"
+    write_replay_buffer(path, make_episodes([3, 4]), attrs={"control_rate_hz": value})
+    for rate in (lambda: ReplayBuffer.load(path).control_rate_hz, lambda: ReplayBufferReader(path).control_rate_hz):
+        with pytest.raises(DatasetError) as info:
+            rate()
+        message = str(info.value)
+        assert "\n" not in message and str(path) in message and "attribute control_rate_hz is" in message, message
+        assert "not a rate in Hz" in message and "fix it with" in message, message
+    write_replay_buffer(path, make_episodes([3, 4]), attrs={"control_rate_hz": 15})
+    assert ReplayBuffer.load(path).control_rate_hz == 15.0 and ReplayBufferReader(path).control_rate_hz == 15.0
+    write_replay_buffer(path, make_episodes([3, 4]), attrs={"control_rate_hz": None})
+    assert ReplayBuffer.load(path).control_rate_hz is None
+
+
+@pytest.mark.parametrize("name, value, fragment", [
+    ("episode_info", "hello", "attribute episode_info is 'hello', not a list"),
+    ("episode_info", [{"index": 0}, 5], "attribute episode_info[1] is 5, not an object or null"),
+    ("recording_sessions", {"a": 1}, "attribute recording_sessions is"),
+    ("action_convention", 7, "attribute action_convention is 7"),
+    ("pointcloud", "default", "attribute pointcloud is 'default', not an object"),
+    ("camera_intrinsics", [1, 2], "attribute camera_intrinsics is [1, 2]"),
+    ("camera_intrinsics", {"width": True, "fx": 1.0}, "attribute camera_intrinsics.width is true"),
+    ("camera_intrinsics", {"width": 4, "fx": "600"}, "attribute camera_intrinsics.fx is '600'"),
+    ("camera_to_base", [[1, 0, 0, 0]] * 3, "attribute camera_to_base is"),
+    ("camera_to_base", [[1, 0, 0, "x"]] * 4, "not a 4x4 matrix of finite numbers"),
+    ("camera_depth_unit", -0.001, "attribute camera_depth_unit is -0.001"),
+])
+def test_every_attribute_reader_refuses_a_wrong_type_naming_it(name, value, fragment):
+    from dssp_train.data import attributes
+    from dssp_train.data.recording import episode_infos
+
+    attrs = {name: value}
+    with pytest.raises(DatasetError) as info:
+        attributes.READERS[name](attrs, "d.zarr")
+    message = str(info.value)
+    assert "\n" not in message and message.startswith("d.zarr: ") and fragment in message, message
+    assert attributes.attribute_problems(attrs, "d.zarr") == {name: message}
+    if name == "episode_info":  # never read as "no metadata"
+        with pytest.raises(DatasetError, match="episode_info"):
+            episode_infos(attrs, 2, "d.zarr")
+    valid = {"control_rate_hz": 10, "action_convention": "leader_command: x", "episode_info": [None, {"index": 1}],
+             "recording_sessions": [{}], "pointcloud": {"n_points": 8}, "camera_depth_unit": 0.00025,
+             "camera_intrinsics": {"width": 4, "height": 3, "fx": 1.0, "fy": 1, "ppx": 2.0, "ppy": 1.5},
+             "camera_to_base": [[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}
+    assert attributes.attribute_problems(valid, "d.zarr") == {}
+    assert attributes.control_rate(valid) == 10.0 and isinstance(attributes.control_rate(valid), float)

@@ -30,14 +30,31 @@ def run_cli(main: Callable[[], int | None]) -> int:
     """
     warnings.showwarning = _one_line_warning
     try:
-        return int(main() or 0)
+        code = int(main() or 0)
+        sys.stdout.flush()
+        return code
     except DSSPError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
+        _settle_after_interrupt()
         print("interrupted", file=sys.stderr)
         return 130
     except BrokenPipeError:  # the reader of stdout went away (| head): stop quietly, as command-line tools do
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())
+        try:
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+        except (OSError, ValueError, AttributeError):  # stdout is not a file (tests capture it)
+            pass
         return 141
+
+
+def _settle_after_interrupt() -> None:
+    """zarr 3 reads and writes on its own thread: let them end before the process does (a Ctrl-C reaches only
+    the main thread), and do not warn about the calls the interruption stopped before they started."""
+    if "zarr" not in sys.modules:
+        return
+    from dssp_train.output_guard import settle_background_writes
+
+    warnings.filterwarnings("ignore", message="coroutine .* was never awaited", category=RuntimeWarning)
+    settle_background_writes()

@@ -13,6 +13,12 @@ Every problem with the input is one ``error: ...`` line and exit code 2: among t
 is missing or corrupt (the line names the key, the chunk, its steps and episodes). ``info`` exits with 1 when it
 lists problems with the data, 0 when it finds none; ``repair`` exits with 2 when the dataset has lost data it
 cannot restore, and changes nothing then.
+
+Outputs: merge, split and convert write a new dataset, or replace one that dssp-data made (``--force``, with
+its ``.can`` CAN logs); a recorded, synthetic or any other dataset or folder there is refused and nothing is
+deleted. An output may not be an input or lie inside one. Ctrl-C stops with exit code 130 and leaves no
+temporary behind (``.OUT.tmp-*``); a killed command's temporaries are removed by the next one writing OUT.
+Output that a reader stops reading (``dssp-data info PATH | head``) ends the command quietly (exit code 141).
 """
 
 from __future__ import annotations
@@ -68,7 +74,7 @@ def build_parser() -> argparse.ArgumentParser:
     merge = sub.add_parser("merge", help="concatenate datasets")
     merge.add_argument("out", type=Path)
     merge.add_argument("inputs", type=Path, nargs="+")
-    merge.add_argument("--force", action="store_true", help="replace an existing output")
+    merge.add_argument("--force", action="store_true", help="replace a dataset dssp-data made before at OUT")
     merge.add_argument("--drop-marked", action="store_true", help="leave out episodes recorded with problems")
 
     split = sub.add_parser("split", help="train/validation datasets by episode")
@@ -78,8 +84,8 @@ def build_parser() -> argparse.ArgumentParser:
     group = split.add_mutually_exclusive_group(required=True)
     group.add_argument("--val-ratio", type=float, help="fraction of episodes for validation, drawn with --seed")
     group.add_argument("--val-episodes", help="comma-separated episode indices for validation")
-    split.add_argument("--seed", type=int, default=0)
-    split.add_argument("--force", action="store_true", help="replace existing outputs")
+    split.add_argument("--seed", type=int, default=0, help="seed of the --val-ratio draw (>= 0)")
+    split.add_argument("--force", action="store_true", help="replace datasets dssp-data made before at --train/--val")
     split.add_argument("--drop-marked", action="store_true", help="leave out episodes recorded with problems")
     split.add_argument("--drop-episodes", help="leave out these episodes, e.g. 3,7-9 (those whose data is lost)")
 
@@ -90,7 +96,7 @@ def build_parser() -> argparse.ArgumentParser:
     convert.add_argument("--xyz", action="store_true", help="keep xyz only (drop the points' rgb)")
     convert.add_argument("--control-rate", type=float, help="control rate of the episodes in Hz, stored as control_rate_hz")
     convert.add_argument("--task", help="task name stored with the data")
-    convert.add_argument("--force", action="store_true", help="replace an existing output")
+    convert.add_argument("--force", action="store_true", help="replace a dataset dssp-data made before at --out")
 
     repair = sub.add_parser("repair", help="cut off the steps of an interrupted write")
     repair.add_argument("path", type=Path)
@@ -144,7 +150,7 @@ def _replay(args) -> int:
 def _merge(args) -> int:
     from dssp_train.data.edit import merge
 
-    summary = merge(args.out, args.inputs, force=args.force, drop_marked=args.drop_marked)
+    summary = merge(args.out, args.inputs, force=args.force, drop_marked=args.drop_marked, flag="OUT")
     for line in summary["warnings"]:
         print(f"warning: {line}", file=sys.stderr)
     for path, episodes in summary["dropped"].items():
@@ -162,6 +168,8 @@ def _split(args) -> int:
             episodes = [int(x) for x in args.val_episodes.split(",") if x.strip()]
         except ValueError:
             raise DSSPError(f"--val-episodes must be comma-separated integers, got {args.val_episodes!r}") from None
+    if args.seed < 0:
+        raise DSSPError(f"--seed must be a non-negative integer, got {args.seed}")
     drop = _episode_list(args.drop_episodes, "--drop-episodes") if args.drop_episodes is not None else []
     result = split(args.path, args.train, args.val, val_ratio=args.val_ratio, val_episodes=episodes, seed=args.seed,
                    force=args.force, drop_marked=args.drop_marked, drop_episodes=drop)
@@ -222,7 +230,10 @@ def _repair(args) -> int:
     if result["dropped_steps"] or result["dropped_infos"]:
         print(f"repaired {args.path}: cut off {result['dropped_steps']} steps and {result['dropped_infos']} "
               f"metadata entries of an interrupted write")
-    else:
+    for key, (start, length) in result["reset_shapes"].items():
+        print(f"repaired {args.path}: set {key} back to the last episode end (its metadata gave {length} steps, with "
+              f"no chunk stored for steps {start}..{length - 1}; nothing stored was lost)")
+    if not (result["dropped_steps"] or result["dropped_infos"] or result["reset_shapes"]):
         print(f"{args.path} needed no repair")
     return 0
 
@@ -231,9 +242,13 @@ COMMANDS = {"info": _info, "view": _view, "replay": _replay, "merge": _merge, "s
             "convert": _convert, "repair": _repair}
 
 
+def _run(args) -> int:
+    return COMMANDS[args.command](args)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    return run_cli(lambda: COMMANDS[args.command](args))
+    return run_cli(lambda: _run(args))
 
 
 if __name__ == "__main__":

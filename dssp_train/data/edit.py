@@ -5,12 +5,20 @@
     split("all.zarr", "train.zarr", "val.zarr", val_ratio=0.1, drop_episodes=[7, 8])  # leave 7 and 8 out
     repair("demo.zarr")          # cut off the steps of an interrupted append
 
-Episodes are copied one at a time (memory holds one episode), into a temporary directory that is renamed
-onto the output when complete; an existing output is replaced only with ``force``. What travels with each
+Episodes are copied one at a time (memory holds one episode), into a temporary directory beside the output
+(``.OUT.tmp-XXXXXXXX``, its CAN logs in ``.OUT.tmp-XXXXXXXX.can``) that is renamed onto the output when
+complete. What may be at an output (:data:`~dssp_train.output_guard.DATA_DATASET`): nothing, or a dataset
+``dssp-data`` merge, split or convert made (its ``generator`` attribute), replaced only with ``force``,
+together with its ``OUT.can`` CAN logs; anything else — a recorded, synthetic or foreign dataset, a
+``OUT.can`` folder without its dataset — is refused, ``force`` or not, and nothing is deleted. An output
+may not be an input, lie inside one (or its CAN-log folder) or hold one; an input may not be given twice.
+On an error or Ctrl-C the temporary directories are removed (once zarr's background writes have settled).
+What travels with each
 episode: its arrays (point_cloud, state, action, and the extras every input holds with the same layout;
 the others are dropped and named in the returned warnings), its ``episode_info`` entry (session indices
 renumbered), and its CAN logs (``<dataset>.can/``, renamed to the new episode index). The root attributes
-are the first input's, plus ``merged_from`` / ``split_from`` saying where each episode came from.
+are the first input's, plus ``merged_from`` / ``split_from`` saying where each episode came from (with the
+input's own ``generator``), and ``generator`` = ``dssp-data merge`` / ``dssp-data split``.
 
 Everything is read through the dataset reader's checked path, so a missing or corrupt chunk stops the
 command with one line naming the key and the chunk, before the output replaces anything. The CAN-log
@@ -25,14 +33,13 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import uuid
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 import zarr
 
-from dssp_train.atomic import replace_dir
+from dssp_train.data import attributes
 from dssp_train.data.recording import (
     LOCK_NAME,
     DatasetLock,
@@ -43,19 +50,38 @@ from dssp_train.data.recording import (
     episode_infos,
 )
 from dssp_train.data.replay_buffer import ReplayBufferReader, ReplayBufferWriter
-from dssp_train.errors import DatasetError
+from dssp_train.errors import ConfigError, DatasetError
+from dssp_train.output_guard import (
+    DATA_DATASET,
+    DATA_GENERATORS,
+    Staging,
+    check_not_inside,
+    check_output,
+    interrupts_deferred,
+    settle_background_writes,
+)
 
 PER_EPISODE_ATTRS = ("episode_info", "recording_sessions")
 
 
-def _check_output(out: Path, inputs: Sequence[Path], force: bool) -> None:
-    for src in inputs:
-        if out.resolve() == src.resolve():
-            raise DatasetError(f"the output {out} is also an input: write to a new path")
-    if out.exists() and not force:
-        raise DatasetError(f"{out} exists: choose another output or pass --force to replace it")
-    if out.exists() and not (out / ".zgroup").is_file() and not (out / "zarr.json").is_file():
-        raise DatasetError(f"{out} exists and is not a zarr dataset: refusing to replace it")
+def check_inputs(inputs: Sequence[str | os.PathLike]) -> None:
+    """Each input dataset once (symbolic links resolved): the same one twice would duplicate its episodes."""
+    seen = {}
+    for item in inputs:
+        real = os.path.realpath(Path(item).absolute())
+        if real in seen:
+            also = "" if str(seen[real]) == str(item) else f" (as {seen[real]} and {item})"
+            raise DatasetError(f"{item} is given twice{also}: every episode of it would be in the output twice; "
+                               f"give each input once")
+        seen[real] = item
+
+
+def check_data_output(out: str | os.PathLike, inputs: Sequence[str | os.PathLike], force: bool, flag: str = "OUT") -> str:
+    """Where ``dssp-data`` merge, split or convert may write a dataset (see the module docstring): NEW or OWN."""
+    sources = [p for item in inputs for p in (Path(item), can_log_dir(item))]
+    check_not_inside(out, sources, flag=flag, error=DatasetError)
+    check_not_inside(can_log_dir(out), sources, flag=flag, error=DatasetError)
+    return check_output(out, force=force, kind=DATA_DATASET, flag=flag, error=DatasetError)
 
 
 def _common_extras(readers: Sequence[ReplayBufferReader]) -> tuple[list[str], list[str]]:
@@ -77,10 +103,10 @@ def _dims(reader: ReplayBufferReader) -> tuple[int, int, int, int]:
     return pc[1], pc[2], state[1], action[1]
 
 
-def _check_parts(parts: Sequence[tuple[ReplayBufferReader, Sequence[int]]], out: Path, force: bool) -> dict:
+def _check_parts(parts: Sequence[tuple[ReplayBufferReader, Sequence[int]]], out: Path, force: bool, flag: str) -> dict:
     """Check one output before anything is written; return {(id(reader), episode): {bus: CAN log path}}."""
     readers = [reader for reader, _ in parts]
-    _check_output(out, [r.path for r in readers], force)
+    check_data_output(out, [r.path for r in readers], force, flag)
     dims = {_dims(r) for r in readers}
     if len(dims) > 1:
         listing = ", ".join(f"{r.path}: {_dims(r)}" for r in readers)
@@ -88,25 +114,29 @@ def _check_parts(parts: Sequence[tuple[ReplayBufferReader, Sequence[int]]], out:
                            f"they cannot form one dataset")
     if sum(len(indices) for _, indices in parts) == 0:
         raise DatasetError("no episodes to write")
+    for reader in readers:  # their attributes travel into the output: one of the wrong type is refused here
+        for message in attributes.attribute_problems(reader.attrs, reader.path).values():
+            raise DatasetError(message)
     logs_of = {}
     for reader, indices in parts:
-        reader_infos = episode_infos(reader.attrs, reader.n_episodes)
+        reader_infos = episode_infos(reader.attrs, reader.n_episodes, reader.path)
         for i in indices:
             logs_of[id(reader), i] = episode_can_logs(reader.path, reader_infos[i], i)
     return logs_of
 
 
-def _stage(parts: Sequence[tuple[ReplayBufferReader, Sequence[int]]], tmp: Path, attrs: dict, logs_of: dict) -> dict:
-    """Write the chosen episodes of each reader, in order, as a new dataset at ``tmp`` (CAN logs beside it)."""
+def _stage(parts: Sequence[tuple[ReplayBufferReader, Sequence[int]]], tmp: Path, attrs: dict, logs_of: dict,
+           staging: Staging) -> dict:
+    """Write the chosen episodes of each reader, in order, as a new dataset in the staging directory ``tmp``
+    (CAN logs in its ``.can`` companion)."""
     readers = [reader for reader, _ in parts]
     common, dropped = _common_extras(readers)
     tmp_logs = can_log_dir(tmp)
     infos, sessions, n_logs, steps = [], [], 0, 0
-    with ReplayBufferWriter(tmp, attrs=attrs, extra_keys=common) as writer:
+    with ReplayBufferWriter(tmp, attrs=attrs, extra_keys=common, staged=True) as writer:
         for reader, indices in parts:
-            reader_infos = episode_infos(reader.attrs, reader.n_episodes)
-            reader_sessions = reader.attrs.get("recording_sessions")
-            reader_sessions = list(reader_sessions) if isinstance(reader_sessions, list) else []
+            reader_infos = episode_infos(reader.attrs, reader.n_episodes, reader.path)
+            reader_sessions = list(attributes.recording_sessions(reader.attrs, reader.path) or [])
             session_offset = len(sessions)
             sessions += reader_sessions
             for i in indices:
@@ -120,7 +150,8 @@ def _stage(parts: Sequence[tuple[ReplayBufferReader, Sequence[int]]], tmp: Path,
                     logs = {}
                     for bus, src in logs_of[id(reader), i].items():
                         if src.is_file():
-                            tmp_logs.mkdir(parents=True, exist_ok=True)
+                            if not tmp_logs.is_dir():
+                                staging.make(tmp_logs)
                             new_name = can_log_name(index, bus)
                             shutil.copy2(src, tmp_logs / new_name)
                             logs[bus] = new_name
@@ -139,39 +170,41 @@ def _stage(parts: Sequence[tuple[ReplayBufferReader, Sequence[int]]], tmp: Path,
     return {"episodes": len(infos), "steps": steps, "dropped_extras": dropped, "can_logs": n_logs}
 
 
-def _copy(jobs: Sequence[tuple[Sequence[tuple[ReplayBufferReader, Sequence[int]]], Path, dict]],
+def _copy(jobs: Sequence[tuple[Sequence[tuple[ReplayBufferReader, Sequence[int]]], Path, dict, str]],
           force: bool) -> list[dict]:
-    """Write each job (parts = [(reader, episode indices)], output, root attributes) as a new dataset.
+    """Write each job (parts = [(reader, episode indices)], output, root attributes, its flag) as a new dataset.
 
     Every output is checked first (output path, dimensions, the CAN-log names of every episode), then
-    written into a temporary directory beside it; only when all are complete are they moved onto their
-    outputs, so an error (a corrupt chunk, a bad CAN-log name) leaves no output behind.
-    Returns one {"episodes": n, "steps": n, "dropped_extras": [...], "can_logs": n} per job.
+    written into a staging directory beside it; only when all are complete are they moved onto their
+    outputs (with their CAN logs), so an error (a corrupt chunk, a bad CAN-log name) or Ctrl-C leaves no
+    output and no temporary behind. Returns one {"episodes": n, "steps": n, "dropped_extras": [...],
+    "can_logs": n} per job.
     """
     logs_of = {}
-    for parts, out, _ in jobs:
-        logs_of.update(_check_parts(parts, out, force))
-    staged, summaries = [], []
+    outputs = [Path(out) for _, out, _, _ in jobs]
+    for k, (parts, out, _, flag) in enumerate(jobs):
+        logs_of.update(_check_parts(parts, out, force, flag))
+        others = [p for j, other in enumerate(outputs) if j != k for p in (other, can_log_dir(other))]
+        check_not_inside(out, others, flag=flag, error=DatasetError)
+    summaries = []
     try:
-        for parts, out, attrs in jobs:
-            out.parent.mkdir(parents=True, exist_ok=True)
-            tmp = out.with_name(f".{out.name}.tmp-{uuid.uuid4().hex[:8]}")
-            staged.append((tmp, out))
-            summaries.append(_stage(parts, tmp, attrs, logs_of))
-        for tmp, out in staged:
-            out_logs, tmp_logs = can_log_dir(out), can_log_dir(tmp)
-            if tmp_logs.is_dir():
-                if out_logs.exists():
-                    shutil.rmtree(out_logs)
-                os.replace(tmp_logs, out_logs)
-            elif out_logs.exists() and force:
-                shutil.rmtree(out_logs)
-            replace_dir(tmp, out)
+        with Staging(flag=jobs[0][3], error=DatasetError) as staging:
+            staged = []
+            for parts, out, attrs, flag in jobs:
+                staging.flag = flag
+                tmp = staging.make(staging.reserve(out))
+                staged.append((tmp, Path(out), flag))
+                summaries.append(_stage(parts, tmp, attrs, logs_of, staging))
+            with interrupts_deferred():
+                for tmp, out, flag in staged:  # again: something may have appeared meanwhile
+                    check_data_output(out, [], force, flag)
+                moves = []
+                for tmp, out, _ in staged:
+                    tmp_logs = can_log_dir(tmp)
+                    moves += [(tmp, out), (tmp_logs if tmp_logs.is_dir() else None, can_log_dir(out))]
+                staging.commit(moves)
     finally:
-        for tmp, _ in staged:
-            for leftover in (tmp, can_log_dir(tmp)):
-                if leftover.exists():
-                    shutil.rmtree(leftover, ignore_errors=True)
+        settle_background_writes()  # a read interrupted by Ctrl-C finishes before the process exits
     return summaries
 
 
@@ -181,27 +214,39 @@ def _json_key(value) -> str:
 
 def marked_episodes(reader: ReplayBufferReader) -> list[int]:
     """Episodes whose recording metadata lists problems (stale streams, dropped frames, ...)."""
-    return [i for i, info in enumerate(episode_infos(reader.attrs, reader.n_episodes)) if info and info.get("problems")]
+    return [i for i, info in enumerate(episode_infos(reader.attrs, reader.n_episodes, reader.path))
+            if info and info.get("problems")]
 
 
 def _base_attrs(attrs: dict) -> dict:
     return {k: v for k, v in attrs.items() if k not in PER_EPISODE_ATTRS}
 
 
+def _source(reader: ReplayBufferReader, **fields) -> dict:
+    """Where episodes came from: the input's path, its own ``generator`` (if it records one), and ``fields``."""
+    source = {"path": str(reader.path), **fields}
+    if isinstance(reader.attrs.get("generator"), str):
+        source["generator"] = reader.attrs["generator"]
+    return source
+
+
 def merge(out: str | os.PathLike, inputs: Sequence[str | os.PathLike], force: bool = False,
-          drop_marked: bool = False) -> dict:
+          drop_marked: bool = False, flag: str = "OUT") -> dict:
     """Concatenate the episodes of ``inputs`` (in order) into a new dataset ``out``.
 
     The inputs must agree on (P, C, S, A), and on ``control_rate_hz`` and the action convention where
-    they record them. ``drop_marked`` leaves out episodes recorded with problems. Returns the summary of
-    :func:`_copy` plus ``warnings`` (lines to show the user) and ``dropped`` ({input: [episodes]}).
+    they record them; each is given once. ``drop_marked`` leaves out episodes recorded with problems.
+    ``flag`` names ``out`` in messages. Returns the summary of :func:`_copy` plus ``warnings`` (lines to
+    show the user) and ``dropped`` ({input: [episodes]}).
     """
     if len(inputs) < 2:
         raise DatasetError("merge needs at least two input datasets")
+    check_inputs(inputs)
+    check_data_output(out, inputs, force, flag)
     readers = [ReplayBufferReader(p) for p in inputs]
     warnings = []
-    for key, describe in (("control_rate_hz", lambda a: a.get("control_rate_hz")), ("action convention", convention_name)):
-        values = {str(r.path): describe(r.attrs) for r in readers}
+    for key, describe in (("control_rate_hz", attributes.control_rate), ("action convention", convention_name)):
+        values = {str(r.path): describe(r.attrs, r.path) for r in readers}
         known = {v for v in values.values() if v is not None}
         if len(known) > 1:
             raise DatasetError(f"the inputs differ in {key} ({values}): episodes with different meanings cannot be "
@@ -210,7 +255,7 @@ def merge(out: str | os.PathLike, inputs: Sequence[str | os.PathLike], force: bo
             missing = [p for p, v in values.items() if v is None]
             warnings.append(f"{key} is not recorded in {', '.join(missing)}: the merged dataset says "
                             f"{next(iter(known))} for all episodes")
-    clouds = {_json_key(r.attrs.get("pointcloud")) for r in readers if r.attrs.get("pointcloud") is not None}
+    clouds = {_json_key(attributes.pointcloud(r.attrs, r.path)) for r in readers if r.attrs.get("pointcloud") is not None}
     if len(clouds) > 1:
         warnings.append("the inputs were made with different point-cloud settings (attribute pointcloud); "
                         "the first input's are kept")
@@ -218,10 +263,11 @@ def merge(out: str | os.PathLike, inputs: Sequence[str | os.PathLike], force: bo
     for r in readers[1:]:
         for key, value in _base_attrs(r.attrs).items():
             attrs.setdefault(key, value)
-    attrs["merged_from"] = [{"path": str(r.path), "episodes": r.n_episodes} for r in readers]
+    attrs["merged_from"] = [_source(r, episodes=r.n_episodes) for r in readers]
+    attrs["generator"] = DATA_GENERATORS["merge"]
     dropped = {str(r.path): marked_episodes(r) for r in readers} if drop_marked else {}
     parts = [(r, [i for i in range(r.n_episodes) if i not in set(dropped.get(str(r.path), ()))]) for r in readers]
-    (summary,) = _copy([(parts, Path(out), attrs)], force)
+    (summary,) = _copy([(parts, Path(out), attrs, flag)], force)
     summary["dropped"] = {k: v for k, v in dropped.items() if v}
     if summary["dropped_extras"]:
         warnings.append(f"per-step arrays not held by every input (or stored differently) were left out: "
@@ -234,6 +280,8 @@ def choose_validation(n_episodes: int, val_ratio: float | None = None, val_episo
                       seed: int = 0) -> list[int]:
     """Sorted validation episode indices: the given ones, or round(val_ratio * E) drawn with ``seed``
     (at least 1, at most E - 1)."""
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ConfigError(f"--seed must be a non-negative integer, got {seed!r}")
     if val_episodes is not None:
         chosen = sorted(set(int(i) for i in val_episodes))
         bad = [i for i in chosen if not 0 <= i < n_episodes]
@@ -259,9 +307,13 @@ def split(path: str | os.PathLike, train_out: str | os.PathLike, val_out: str | 
     rest, and ``val_episodes`` may not name them. Returns {"train": [source indices], "val": [...],
     "dropped": [marked episodes left out], "left_out": [drop_episodes], "train_summary": ..., "val_summary": ...}.
     """
-    reader = ReplayBufferReader(path)
-    if Path(train_out).resolve() == Path(val_out).resolve():
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ConfigError(f"--seed must be a non-negative integer, got {seed!r}")
+    if os.path.realpath(Path(train_out).absolute()) == os.path.realpath(Path(val_out).absolute()):
         raise DatasetError("--train and --val must be different paths")
+    check_data_output(train_out, [path], force, "--train")
+    check_data_output(val_out, [path], force, "--val")
+    reader = ReplayBufferReader(path)
     named = sorted({int(i) for i in drop_episodes})
     bad = [i for i in named if not 0 <= i < reader.n_episodes]
     if bad:
@@ -284,7 +336,8 @@ def split(path: str | os.PathLike, train_out: str | os.PathLike, val_out: str | 
     train = [i for i in keep if i not in set(val)]
     base = _base_attrs(reader.attrs)
     jobs = [([(reader, indices)], Path(target),
-             dict(base, split_from={"path": str(reader.path), "part": part, "episodes": indices, "seed": seed}))
+             dict(base, split_from=_source(reader, part=part, episodes=indices, seed=seed),
+                  generator=DATA_GENERATORS["split"]), f"--{part}")
             for part, indices, target in (("train", train, train_out), ("val", val, val_out))]
     train_summary, val_summary = _copy(jobs, force)
     return {"train": train, "val": val, "dropped": marked, "left_out": named, "train_summary": train_summary,
@@ -293,10 +346,13 @@ def split(path: str | os.PathLike, train_out: str | os.PathLike, val_out: str | 
 
 def repair(path: str | os.PathLike) -> dict:
     """Cut off the steps an interrupted append left after the last episode end, and per-episode metadata
-    beyond the last episode. Returns {"dropped_steps": n, "dropped_infos": n}.
+    beyond the last episode; set back to the last episode end an array whose metadata gives steps that no
+    stored chunk holds. Returns {"dropped_steps": n, "dropped_infos": n, "reset_shapes": {key: [first step
+    without a chunk, length it had]}}.
 
     Lost data cannot be repaired: a missing or corrupt chunk of a complete episode raises DatasetError
-    (the key, the chunk, its steps and episodes) before anything on disk changes.
+    (the key, the chunk, its steps and episodes) before anything on disk changes. The changes themselves
+    are made with Ctrl-C held back until they are done.
     """
     # a missing or broken dataset is reported first; every chunk of the complete episodes is decoded
     ReplayBufferReader(path, allow_incomplete_tail=True).check_chunks(decode=True)
@@ -311,13 +367,20 @@ def repair(path: str | os.PathLike) -> dict:
 
 def _repair(path) -> dict:
     reader = ReplayBufferReader(path, allow_incomplete_tail=True)
-    dropped = reader.dropped_tail_steps
-    if dropped:
-        with ReplayBufferWriter(path, repair_incomplete_tail=True, extra_keys=reader.extra_keys) as writer:
-            dropped = writer.dropped_tail_steps
-    raw = reader.attrs.get("episode_info")
-    extra_infos = max(0, len(raw) - reader.n_episodes) if isinstance(raw, list) else 0
-    if extra_infos:
-        zarr.open_group(str(path), mode="r+", use_consolidated=False).attrs.update(
-            {"episode_info": raw[: reader.n_episodes]})
-    return {"dropped_steps": dropped, "dropped_infos": extra_infos}
+    unbacked = reader.unbacked_steps
+    cut = max([shape[0] - reader.n_steps for key, (shape, _) in reader.arrays.items()
+               if key.startswith("data/") and key not in unbacked] + [0])
+    raw = attributes.episode_info(reader.attrs, reader.path)
+    extra_infos = max(0, len(raw) - reader.n_episodes) if raw is not None else 0
+    try:
+        with interrupts_deferred():
+            if reader.dropped_tail_steps:
+                with ReplayBufferWriter(path, repair_incomplete_tail=True, extra_keys=reader.extra_keys):
+                    pass
+            if extra_infos:
+                zarr.open_group(str(path), mode="r+", use_consolidated=False).attrs.update(
+                    {"episode_info": raw[: reader.n_episodes]})
+    finally:
+        settle_background_writes()
+    return {"dropped_steps": cut, "dropped_infos": extra_infos,
+            "reset_shapes": {key: [start, length] for key, (start, length, _) in unbacked.items()}}

@@ -8,7 +8,9 @@ measured rate of recorded episodes; every array under ``data/`` and ``meta/`` wi
 per-channel value ranges of state and action and the point clouds' coordinate ranges; the root
 attributes; per-episode recording metadata (``dssp_train.data.recording``); and ``problems`` (must be
 looked at: NaN, an interrupted write, marked episodes, missing CAN logs, timestamp gaps, ...) and
-``notes`` (worth knowing). The dataset is read one episode at a time, through the dataset reader's checked
+``notes`` (worth knowing). An attribute whose value has the wrong type (a ``control_rate_hz`` that is not a
+number > 0, an ``episode_info`` that is not a list, ...: :mod:`dssp_train.data.attributes`) is a problem
+that names it, never read as "not recorded". The dataset is read one episode at a time, through the dataset reader's checked
 path; first every chunk of every array is checked without decoding (stored, and a whole Blosc frame), so a
 missing or corrupt chunk anywhere, also in arrays the report does not read, raises DatasetError naming the
 key and the chunk (``dssp-data info``: exit 2) instead of reading as zeros. CAN-log names in
@@ -27,12 +29,12 @@ from pathlib import Path
 
 import numpy as np
 
+from dssp_train.data import attributes
 from dssp_train.data.recording import (
     FLAGS_KEY,
     PROBLEM_TEXT,
     STEP_PROBLEMS,
     can_log_dir,
-    convention_name,
     episode_can_logs,
     episode_infos,
 )
@@ -54,8 +56,26 @@ def _episode_list(indices: list[int], limit: int = 12) -> str:
     return shown + (f", ... ({len(indices)} in all)" if len(indices) > limit else "")
 
 
+def _generators(attrs: Mapping) -> set:
+    """The programs that made the dataset: its ``generator`` and those of the inputs merge/split recorded."""
+    found = {attrs.get("generator")}
+    sources = attrs.get("merged_from")
+    sources = (sources if isinstance(sources, list) else []) + [attrs.get("split_from")]
+    found |= {s.get("generator") for s in sources if isinstance(s, Mapping)}
+    return {g for g in found if isinstance(g, str)}
+
+
 def _is_recorded(attrs: Mapping) -> bool:
-    return attrs.get("generator") == "dssp-record" or isinstance(attrs.get("episode_info"), list)
+    return "dssp-record" in _generators(attrs) or isinstance(attrs.get("episode_info"), list)
+
+
+def _checked(read, attrs: Mapping, where, problems: list[str]):
+    """``read(attrs, where)``, or None with its message added to ``problems``."""
+    try:
+        return read(attrs, where)
+    except DatasetError as exc:
+        problems.append(str(exc).removeprefix(f"{where}: "))
+        return None
 
 
 def inspect_dataset(path: str | os.PathLike) -> dict:
@@ -72,9 +92,13 @@ def inspect_dataset(path: str | os.PathLike) -> dict:
     problems: list[str] = []
     notes: list[str] = []
     for key, n in unstored.items():
-        notes.append(f"{key}: {n} chunk(s) are not stored and read as the fill value (zarr leaves out chunks that "
+        notes.append(f"{key}: {n} chunk(s) are not stored and read as the fill value (zarr 3 leaves out chunks that "
                      f"hold only it); this array does not record that every chunk was written")
     recorded = _is_recorded(attrs)
+    where = str(path)
+    for name in ("action_convention", "pointcloud", "camera_intrinsics", "camera_to_base", "camera_depth_unit",
+                 "recording_sessions"):
+        _checked(attributes.READERS[name], attrs, where, problems)
 
     state_lo = state_hi = action_lo = action_hi = cloud_lo = cloud_hi = None
     nonfinite: dict[str, list[int]] = {k: [] for k in DATA_KEYS}
@@ -83,8 +107,7 @@ def inspect_dataset(path: str | os.PathLike) -> dict:
     gaps: dict[int, int] = {}
     backwards: list[int] = []
     flagged_steps: dict[str, int] = {}
-    rate = attrs.get("control_rate_hz")
-    rate = float(rate) if isinstance(rate, (int, float)) and not isinstance(rate, bool) and rate > 0 else None
+    rate = _checked(attributes.control_rate, attrs, where, problems)
     time_keys = [k for k in ("timestamp",) if k in reader.extra_keys]
     want_extras = time_keys + ([FLAGS_KEY] if FLAGS_KEY in reader.extra_keys else [])
     n_arms = None
@@ -132,8 +155,15 @@ def inspect_dataset(path: str | os.PathLike) -> dict:
                     flagged_steps[name] = flagged_steps.get(name, 0) + n
 
     # ---- problems with the values --------------------------------------------------------------------
-    if reader.dropped_tail_steps:
-        problems.append(f"{reader.dropped_tail_steps} steps after the last episode end: a write was interrupted; they "
+    for key, (start, length, meta) in reader.unbacked_steps.items():
+        problems.append(f"{key} has {length} steps in its metadata ({meta}) but no chunk is stored for steps "
+                        f"{start}..{length - 1}, after the last episode end ({reader.n_steps}): its shape does not match "
+                        f"the stored data (edited metadata, or a write that stopped right after growing the array); "
+                        f"`dssp-data repair` sets it back to {reader.n_steps} steps (nothing stored is lost)")
+    tail = max([shape[0] - reader.n_steps for key, (shape, _) in reader.arrays.items()
+                if key.startswith("data/") and key not in reader.unbacked_steps] + [0])
+    if tail:
+        problems.append(f"{tail} steps after the last episode end: a write was interrupted; they "
                         f"are ignored (remove them with `dssp-data repair`; the next dssp-record session also does)")
     for key, episodes in nonfinite.items():
         if episodes:
@@ -151,10 +181,10 @@ def inspect_dataset(path: str | os.PathLike) -> dict:
         problems.append(f"timestamps do not increase in episode(s) {_episode_list(backwards)}")
     for i, n in gaps.items():
         problems.append(f"episode {i}: {n} gap(s) longer than {GAP_PERIODS:g} periods between steps")
-    if rate is None:
+    if attrs.get("control_rate_hz") is None:
         (problems if recorded else notes).append(
             "the control rate is not recorded (attribute control_rate_hz): pass --control-rate to dssp-train")
-    if convention_name(attrs) is None:
+    if attrs.get("action_convention") is None:
         notes.append("the action convention is not recorded (attribute action_convention)")
     for key in ("point_cloud", "state", "action"):
         dtype = reader.arrays[f"data/{key}"][1]
@@ -162,7 +192,11 @@ def inspect_dataset(path: str | os.PathLike) -> dict:
             notes.append(f"data/{key} is stored as {dtype}; it is read as float32")
 
     # ---- recording metadata ---------------------------------------------------------------------------
-    infos = episode_infos(attrs, reader.n_episodes)
+    try:
+        infos = episode_infos(attrs, reader.n_episodes, where)
+    except DatasetError as exc:
+        problems.append(str(exc).removeprefix(f"{where}: ") + " (the recording metadata is not looked at)")
+        infos = [None] * reader.n_episodes
     episodes = []
     marked = []
     log_dir = can_log_dir(path)
@@ -210,7 +244,7 @@ def inspect_dataset(path: str | os.PathLike) -> dict:
             notes.append(f"CAN logs that belong to no episode (an append interrupted after the log was renamed): "
                          f"{', '.join(orphans[:4])}" + (" ..." if len(orphans) > 4 else ""))
     sessions = attrs.get("recording_sessions")
-    if isinstance(sessions, list) and len(sessions) > 1:
+    if isinstance(sessions, list) and len(sessions) > 1 and all(isinstance(x, Mapping) for x in sessions):
         keys = ("camera_to_base", "camera_intrinsics", "camera_depth_unit")
         first = sessions[0] if isinstance(sessions[0], dict) else {}
         changed = [k for k, s in enumerate(sessions) if isinstance(s, dict) and any(s.get(x) != first.get(x) for x in keys)]
@@ -228,7 +262,7 @@ def inspect_dataset(path: str | os.PathLike) -> dict:
         "control_rate_hz": rate,
         "measured_rate_hz": ({"mean": float(np.mean(measured)), "min": float(np.min(measured)), "max": float(np.max(measured))}
                              if measured else None),
-        "action_convention": attrs.get("action_convention"),
+        "action_convention": attrs.get("action_convention") if isinstance(attrs.get("action_convention"), str) else None,
         "arrays": {k: {"shape": list(shape), "dtype": str(dtype)} for k, (shape, dtype) in reader.arrays.items()},
         "ranges": {
             "state": _range_rows(state_lo, state_hi),
@@ -277,7 +311,8 @@ def format_report(report: dict) -> str:
     if len(lengths) <= 30:
         out.append(f"lengths     {lengths}")
     rate = report["control_rate_hz"]
-    out.append(f"rate        {f'{rate:g} Hz (control_rate_hz)' if rate else 'not recorded'}"
+    invalid = rate is None and report["attributes"].get("control_rate_hz") is not None
+    out.append(f"rate        {f'{rate:g} Hz (control_rate_hz)' if rate else 'control_rate_hz is not a rate (see problems)' if invalid else 'not recorded'}"
                + (f"; measured {report['measured_rate_hz']['mean']:.3f} Hz (min {report['measured_rate_hz']['min']:.3f}, "
                   f"max {report['measured_rate_hz']['max']:.3f})" if report["measured_rate_hz"] else ""))
     out.append(f"action      {report['action_convention'] or 'convention not recorded'}")

@@ -39,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dssp_train.data import attributes
 from dssp_train.data.replay_buffer import Episode, ReplayBufferWriter
 from dssp_train.errors import DatasetError
 
@@ -84,22 +85,21 @@ def problem_names(flags: int) -> list[str]:
     return [name for name, bit in STEP_PROBLEMS.items() if int(flags) & bit]
 
 
-def convention_name(attrs: Mapping) -> str | None:
-    """The action convention's short name from a dataset's attributes (None if not recorded)."""
-    text = attrs.get("action_convention")
-    if not isinstance(text, str) or not text:
-        return None
-    return text.split(":", 1)[0].strip()
+def convention_name(attrs: Mapping, where=None) -> str | None:
+    """The action convention's short name from a dataset's attributes (None if not recorded).
+
+    Raises DatasetError (naming ``where``, the dataset) when ``action_convention`` is not a text."""
+    return attributes.convention_name(attrs, where)
 
 
-def episode_infos(attrs: Mapping, n_episodes: int) -> list[dict | None]:
+def episode_infos(attrs: Mapping, n_episodes: int, where=None) -> list[dict | None]:
     """``attrs["episode_info"]`` aligned with the dataset's ``n_episodes`` episodes.
 
     Entries beyond the last episode (left by a crash during an append) are dropped; missing ones are None.
+    An ``episode_info`` that is not a list of objects (or nulls) raises DatasetError naming ``where``.
     """
-    raw = attrs.get("episode_info")
-    infos = list(raw) if isinstance(raw, list) else []
-    infos = [entry if isinstance(entry, dict) else None for entry in infos[:n_episodes]]
+    raw = attributes.episode_info(attrs, where) or []
+    infos = [dict(entry) if entry is not None else None for entry in raw[:n_episodes]]
     return infos + [None] * (n_episodes - len(infos))
 
 
@@ -230,6 +230,8 @@ class RecordingDataset:
 
     def _check_compatible(self, existing: Mapping, wanted: Mapping) -> None:
         where = str(self.path)
+        for message in attributes.attribute_problems(existing, where).values():
+            raise DatasetError(message)
         if not _same_number(existing.get("control_rate_hz"), wanted.get("control_rate_hz")):
             raise DatasetError(
                 f"{where} was recorded at {existing.get('control_rate_hz')} Hz, this session runs at "
@@ -258,8 +260,8 @@ class RecordingDataset:
 
     def session_index(self) -> int:
         """Index of this session in ``recording_sessions`` (once its first episode is kept)."""
-        sessions = self.writer.attrs.get("recording_sessions")
-        existing = len(sessions) if isinstance(sessions, list) else 0
+        sessions = attributes.recording_sessions(self.writer.attrs, self.path)
+        existing = len(sessions) if sessions is not None else 0
         return existing - 1 if self.session_added else existing
 
     def commit(self, episode: Episode, info: dict) -> int:
@@ -270,11 +272,10 @@ class RecordingDataset:
         """
         attrs = self.writer.attrs
         index = self.writer.n_episodes
-        infos = episode_infos(attrs, index) + [dict(info, index=index, session=self.session_index())]
+        infos = episode_infos(attrs, index, self.path) + [dict(info, index=index, session=self.session_index())]
         update = {"episode_info": infos}
         if not self.session_added:
-            sessions = attrs.get("recording_sessions")
-            sessions = list(sessions) if isinstance(sessions, list) else []
+            sessions = list(attributes.recording_sessions(attrs, self.path) or [])
             update["recording_sessions"] = sessions + [self.session]
         self.writer.add_episode(episode, attrs=update)
         self.session_added = True

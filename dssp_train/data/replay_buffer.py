@@ -51,15 +51,32 @@ and episodes, and what to do. Blosc frames carry no checksum: bytes overwritten 
 header still fits decode to wrong values that only the NaN/inf checks may notice.
 
 Empty chunks. zarr 3 does not store a chunk that holds only the fill value (``write_empty_chunks``
-off, its default), so a missing chunk file would read as zeros. This package's writer stores every
-chunk (``write_empty_chunks=True``, also when appending) and marks each array it creates with the
-attribute ``every_chunk_written``; in such an array, and in ``data/point_cloud``, ``data/state``,
-``data/action`` and ``meta/episode_ends`` of any dataset (zarr 2, which DP3 and RoboTwin use, stores
-every chunk, and a whole chunk of exact zeros is no recording), a missing chunk is lost data and an
-error. In an extra array without the mark (written by other tools, or before the mark existed) a
-missing chunk reads as the fill value, as zarr reads it; :meth:`ReplayBufferReader.check_chunks`
-counts them and ``dssp-data info`` says so. Appending to a dataset whose arrays hold every chunk
-marks them.
+off, its default, also when it writes format 2), so a chunk file may be missing from a valid dataset.
+Where a missing chunk is lost data, and where it is the fill value:
+
+- zarr format 2 arrays: lost data, an error. zarr-python 2 (DP3, RoboTwin) stores every chunk by default,
+  so a missing file there was deleted or never finished (zarr-python 3 with its defaults also leaves chunks
+  out of format 2 arrays: such a dataset is refused naming the chunk; rewrite it with
+  ``write_empty_chunks=True`` or as format 3);
+- arrays this package marked with the attribute ``every_chunk_written`` (its writer stores every chunk,
+  ``write_empty_chunks=True``, also when appending, and marks each array it creates): lost data, an error;
+- any other zarr 3 array (written by other tools): the fill value, as zarr defines it;
+  :meth:`ReplayBufferReader.check_chunks` counts such implicit chunks and ``dssp-data info`` says how many.
+
+Appending to a dataset whose arrays hold every chunk marks them. A ``meta/episode_ends`` chunk left out
+because it held only the fill value 0 (``episode_ends = [0]``) reads, in an unmarked zarr 3 array, as
+empty episodes, which the episode-end checks refuse as such; in a format 2 array the error says that the
+chunk is lost or held only the fill value, and then those episodes are empty.
+
+Shape and chunks. An array whose metadata (``.zarray`` / ``zarr.json``) gives more steps than
+``meta/episode_ends`` covers, with no chunk stored behind the extra steps (in an array where a missing
+chunk is lost data), is reported as a shape that does not match the stored data, not as the steps of an
+interrupted append: :attr:`ReplayBufferReader.unbacked_steps` names them, and the writer's
+``repair_incomplete_tail`` (``dssp-data repair``) sets the shape back to the last episode end (nothing
+stored is lost).
+
+Attributes are read through :mod:`dssp_train.data.attributes`: a value of the wrong type (a
+``control_rate_hz`` of ``"10"``, ``true`` or ``-10``) raises DatasetError naming the attribute.
 """
 
 from __future__ import annotations
@@ -67,8 +84,7 @@ from __future__ import annotations
 import itertools
 import json
 import os
-import shutil
-import uuid
+import re
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -81,7 +97,9 @@ from zarr.abc.store import RangeByteRequest
 from zarr.core.buffer import default_buffer_prototype
 from zarr.core.sync import sync
 
+from dssp_train.data import attributes
 from dssp_train.errors import DatasetError
+from dssp_train.output_guard import Staging, is_staging_name
 
 __all__ = ["Episode", "ReplayBuffer", "ReplayBufferReader", "ReplayBufferWriter", "write_replay_buffer"]
 
@@ -177,13 +195,20 @@ def _check_episode_ends(ends: np.ndarray, where: str) -> None:
         )
 
 
+REPAIR_REMEDY = "cut them off with dssp-data repair PATH (or load with allow_incomplete_tail=True)"
+SHAPE_REMEDY = "dssp-data repair PATH sets it back to the last episode end (nothing stored is lost)"
+
+
 def _resolve_length(lengths: Mapping[str, int], last_end: int, allow_incomplete_tail: bool, where: str,
-                    remedy: str = "cut them off with dssp-data repair PATH (or load with allow_incomplete_tail=True)") -> tuple[int, int]:
+                    remedy: str = REPAIR_REMEDY, unbacked: Mapping[str, tuple[int, int, str]] | None = None,
+                    shape_remedy: str = SHAPE_REMEDY) -> tuple[int, int]:
     """Return (number of steps to keep, number of trailing steps dropped).
 
     ``lengths`` maps each data key to its length along time. Steps after
     ``last_end`` are dropped only when ``allow_incomplete_tail`` is true;
-    otherwise the error suggests ``remedy``.
+    otherwise the error suggests ``remedy``. ``unbacked``: {key: (first step without a stored chunk,
+    length, metadata file)} of arrays whose metadata gives steps that no chunk holds — reported as a
+    shape that does not match the data (``shape_remedy``), not as an interrupted write.
     """
     listing = ", ".join(f"{k}: {n}" for k, n in lengths.items())
     shortest, longest = min(lengths.values()), max(lengths.values())
@@ -191,6 +216,14 @@ def _resolve_length(lengths: Mapping[str, int], last_end: int, allow_incomplete_
         tail = longest - last_end
         if allow_incomplete_tail:
             return last_end, tail
+        if unbacked:
+            key, (start, length, meta) = next(iter(unbacked.items()))
+            raise DatasetError(
+                f"{where}: {key} has {length} steps in its metadata ({meta}) but no chunk is stored for steps "
+                f"{start}..{length - 1}, and the episodes end at step {last_end} ({ENDS_KEY}[-1]): its shape does not "
+                f"match the stored data (an edited {meta.rsplit('/', 1)[-1]}, or a write that stopped right after "
+                f"growing the array): {shape_remedy}"
+            )
         raise DatasetError(
             f"{where}: data has {tail} steps after the last episode end ({ENDS_KEY}[-1] = {last_end}; {listing}) "
             f"(an incomplete episode?): {remedy}, or rewrite the dataset"
@@ -368,8 +401,8 @@ class _StoredArray:
 
     The chunk grid is the array's (a shard per store key for sharded zarr 3 arrays); chunks are
     indexed along time (axis 0); a read of steps [start, end) needs every chunk of the time chunks it
-    touches. ``strict``: a missing chunk is lost data (required keys, arrays this package wrote);
-    otherwise it reads as the fill value.
+    touches. ``strict``: a missing chunk is lost data (zarr format 2, arrays this package marked);
+    otherwise (unmarked zarr 3 arrays) it reads as the fill value.
     """
 
     def __init__(self, array: zarr.Array, key: str, where: str):
@@ -384,7 +417,8 @@ class _StoredArray:
         self.grid = tuple(-(-int(n) // c) for n, c in zip(array.shape, self.chunk_shape))
         self.dtype = np.dtype(array.dtype)
         self.marked = array.attrs.get(EVERY_CHUNK_ATTR) is True
-        self.strict = key in REQUIRED_KEYS or self.marked
+        self.zarr_format = int(array.metadata.zarr_format)
+        self.strict = self.zarr_format == 2 or self.marked
         self.blosc, self.expected_nbytes = self._frame_format()
         self._stored: frozenset[str] | None = None
 
@@ -425,12 +459,37 @@ class _StoredArray:
         size = self.chunk_shape[0]
         return c * size, min((c + 1) * size, int(self.array.shape[0]))
 
+    @property
+    def metadata_file(self) -> str:
+        """Where the array's metadata is stored: ``data/state/.zarray`` or ``data/state/zarr.json``."""
+        return f"{self.key}/{'.zarray' if self.zarr_format == 2 else 'zarr.json'}"
+
+    def unbacked_from(self, last_end: int) -> int | None:
+        """The first step after ``last_end`` from which no chunk is stored up to the array's length, or None
+        (every step is backed by a stored chunk, the array holds no step after ``last_end``, or a missing
+        chunk here reads as the fill value)."""
+        length = int(self.array.shape[0])
+        if not self.strict or length <= last_end:
+            return None
+        sentinels = [str(918273645000 + axis) for axis in range(len(self.chunk_shape))]
+        pattern = re.escape(self.store_key(tuple(int(v) for v in sentinels)))
+        for value in sentinels:
+            pattern = pattern.replace(value, r"(\d+)", 1)
+        indices = [int(m.group(1)) for m in map(re.compile(f"^{pattern}$").match, self.stored()) if m]
+        size = self.chunk_shape[0]
+        top = max((c for c in indices if c >= last_end // size), default=None)
+        backed = last_end if top is None else max(last_end, min(length, (top + 1) * size))
+        return backed if backed < length else None
+
     def _lost(self, c: int, what: str, ends: np.ndarray | None) -> DatasetError:
         a, b = self._steps(c)
         if self.key == ENDS_KEY:
+            fill = self.array.fill_value
+            also = (f" — or a writer left it out because it held only the fill value {fill}, and then episodes "
+                    f"{a}..{b - 1} are empty;" if what.startswith("is missing") else ":")
             return DatasetError(f"{self.where}: {self.key} chunk {c} (episodes {a}..{b - 1}) {what}: the episode "
-                                f"boundaries are lost; restore the dataset from a copy (dssp-data repair cannot "
-                                f"restore lost data)")
+                                f"boundaries are lost{also} restore the dataset from a copy or rewrite {self.key} "
+                                f"(dssp-data repair cannot restore lost data)")
         span = _episode_span(ends, a, b)
         if span is None:
             where = f"steps {a}..{b - 1}"
@@ -561,6 +620,20 @@ def _read(array: zarr.Array, key: str, where: str, end: int | None = None,
     return _StoredArray(array, key, where).read(0, int(array.shape[0]) if end is None else end, ends)
 
 
+def _unbacked(arrays: Mapping[str, zarr.Array], last_end: int, where: str) -> dict[str, tuple[int, int, str]]:
+    """{key: (first step without a stored chunk, length, metadata file)} of the data arrays whose metadata
+    gives steps after ``last_end`` that no stored chunk holds (see the module docstring)."""
+    found = {}
+    for key, array in arrays.items():
+        if key == ENDS_KEY or int(array.shape[0]) <= last_end:
+            continue
+        stored = _StoredArray(array, key, where)
+        start = stored.unbacked_from(last_end)
+        if start is not None:
+            found[key] = (start, int(array.shape[0]), stored.metadata_file)
+    return found
+
+
 def _open_required(path: Path, mode: str) -> tuple[zarr.Group, dict[str, zarr.Array], np.ndarray]:
     """Open a dataset, check its structure and episode ends; return (group, arrays, ends (E,) int64)."""
     group = _open_group(path, mode)
@@ -622,6 +695,7 @@ class ReplayBuffer:
             ``load(..., allow_incomplete_tail=True)`` dropped (0 otherwise).
         extras: extra per-step arrays by name, (T, ...) each, in their stored
             dtype (empty unless loaded with ``extras``).
+        path: where it was loaded from (None for a buffer built in memory).
     """
 
     def __init__(self, point_cloud: np.ndarray, state: np.ndarray, action: np.ndarray,
@@ -663,6 +737,7 @@ class ReplayBuffer:
         self.attrs = dict(attrs or {})
         self.dropped_tail_steps = int(dropped_tail_steps)
         self.extras = dict(extras or {})
+        self.path = None
 
     @classmethod
     def load(cls, path: str | os.PathLike, *, allow_incomplete_tail: bool = False,
@@ -689,7 +764,9 @@ class ReplayBuffer:
         extra_arrays = _extra_arrays(group, where, extras)
         lengths = {key: arrays[key].shape[0] for key in REQUIRED_KEYS[:3]}
         lengths.update({f"data/{name}": array.shape[0] for name, array in extra_arrays.items()})
-        n_steps, dropped = _resolve_length(lengths, int(ends[-1]), allow_incomplete_tail, where)
+        data_arrays = {**arrays, **{f"data/{name}": a for name, a in extra_arrays.items()}}
+        n_steps, dropped = _resolve_length(lengths, int(ends[-1]), allow_incomplete_tail, where,
+                                           unbacked=_unbacked(data_arrays, int(ends[-1]), where))
         values = {}
         for key in REQUIRED_KEYS[:3]:
             raw = _read(arrays[key], key, where, n_steps, ends)
@@ -700,6 +777,7 @@ class ReplayBuffer:
                         for name, array in extra_arrays.items()}
         buffer = cls.__new__(cls)
         buffer._set(values, ends, group.attrs.asdict(), dropped, extra_values)
+        buffer.path = path
         return buffer
 
     @property
@@ -734,14 +812,10 @@ class ReplayBuffer:
 
     @property
     def control_rate_hz(self) -> float | None:
-        """``attrs["control_rate_hz"]`` as a float, or None when absent."""
-        rate = self.attrs.get("control_rate_hz")
-        if rate is None:
-            return None
-        try:
-            return float(rate)
-        except (TypeError, ValueError):
-            raise DatasetError(f"attribute control_rate_hz = {rate!r} is not a number: set it to the rate in Hz")
+        """``attrs["control_rate_hz"]`` in Hz, or None when absent.
+
+        Raises DatasetError naming the attribute when it is not a number > 0 (``"10"``, ``true``, NaN, -10)."""
+        return attributes.control_rate(self.attrs, self.path if self.path is not None else "replay buffer")
 
     def episode_lengths(self) -> np.ndarray:
         """(E,) int64, the number of steps of each episode."""
@@ -786,6 +860,9 @@ class ReplayBufferReader:
         arrays: {key: (shape, dtype)} of every array under ``data/`` and ``meta/``,
             with shapes as stored (including an ignored tail).
         extra_keys: names of the extra per-step arrays under ``data/``.
+        unbacked_steps: {key: (first step, length, metadata file)} of arrays whose metadata gives steps
+            after the last episode end that no stored chunk holds (a shape that does not match the data;
+            only with ``allow_incomplete_tail=True``, else an error).
     """
 
     def __init__(self, path: str | os.PathLike, *, allow_incomplete_tail: bool = False):
@@ -795,8 +872,10 @@ class ReplayBufferReader:
         extras = _extra_arrays(group, where)
         lengths = {key: arrays[key].shape[0] for key in REQUIRED_KEYS[:3]}
         lengths.update({f"data/{name}": array.shape[0] for name, array in extras.items()})
-        n_steps, dropped = _resolve_length(lengths, int(ends[-1]), allow_incomplete_tail, where)
         self._arrays = {**{k: v for k, v in arrays.items()}, **{f"data/{n}": a for n, a in extras.items()}}
+        self.unbacked_steps = _unbacked(self._arrays, int(ends[-1]), where)
+        n_steps, dropped = _resolve_length(lengths, int(ends[-1]), allow_incomplete_tail, where,
+                                           unbacked=self.unbacked_steps)
         self._stored = {key: _StoredArray(array, key, where) for key, array in self._arrays.items()}
         self.zarr_format = group.metadata.zarr_format
         self.attrs = group.attrs.asdict()
@@ -815,6 +894,11 @@ class ReplayBufferReader:
     def n_steps(self) -> int:
         """T, the number of steps that belong to episodes."""
         return self._n_steps
+
+    @property
+    def control_rate_hz(self) -> float | None:
+        """``attrs["control_rate_hz"]`` in Hz, or None when absent; DatasetError when it is not a number > 0."""
+        return attributes.control_rate(self.attrs, self.path)
 
     def episode_lengths(self) -> np.ndarray:
         """(E,) int64, the number of steps of each episode."""
@@ -949,7 +1033,7 @@ def _check_attrs(attrs: dict | None) -> dict:
 
 
 def _write_store(path: Path, episodes: Sequence[Episode], attrs: dict, zarr_format: int) -> None:
-    """Write validated float32 episodes as a new store at ``path``."""
+    """Write validated float32 episodes as a new store at ``path`` (a new or empty directory)."""
     root = zarr.open_group(str(path), mode="w-", zarr_format=zarr_format, attributes=attrs)
     data = root.create_group("data")
     meta = root.create_group("meta")
@@ -977,26 +1061,11 @@ def _extra_chunk_steps(values: np.ndarray) -> int:
 
 
 def _check_replaceable(path: Path) -> None:
-    if path.exists() and not (path.is_dir() and (_is_zarr_store(path) or not any(path.iterdir()))):
+    if path.is_symlink() or (path.exists() and not (path.is_dir() and (_is_zarr_store(path) or not any(path.iterdir())))):
         raise DatasetError(
             f"{path} exists and is not a zarr dataset or an empty directory: refusing to replace it; "
             f"choose another path or remove it"
         )
-
-
-def _move_into_place(tmp: Path, path: Path) -> None:
-    """Rename the finished store ``tmp`` onto ``path``, replacing an existing one."""
-    if not path.exists():
-        os.replace(tmp, path)
-        return
-    old = path.with_name(f".{path.name}.old-{uuid.uuid4().hex[:8]}")
-    os.replace(path, old)
-    try:
-        os.replace(tmp, path)
-    except BaseException:
-        os.replace(old, path)
-        raise
-    shutil.rmtree(old, ignore_errors=True)
 
 
 def write_replay_buffer(path: str | os.PathLike, episodes: Sequence[Episode], attrs: dict | None = None,
@@ -1005,10 +1074,13 @@ def write_replay_buffer(path: str | os.PathLike, episodes: Sequence[Episode], at
 
     Each episode holds point_cloud (T_i, P, C), state (T_i, S) and action
     (T_i, A); P, C, S and A, and the extras' names, dtypes and trailing shapes,
-    must agree over all episodes. The store is written
-    into a temporary sibling directory and then renamed onto ``path``; an
-    existing dataset at ``path`` is moved aside only once the new one is
-    complete, and deleted after the new one is in place.
+    must agree over all episodes. The store is written into a temporary sibling
+    directory (``.NAME.tmp-XXXXXXXX``, :class:`~dssp_train.output_guard.Staging`)
+    and then renamed onto ``path``; an existing dataset at ``path`` is moved
+    aside only once the new one is complete, and deleted after the new one is
+    in place. On any failure or interruption (Ctrl-C) the temporary directory
+    is removed once zarr's background writes have settled; one left by a killed
+    process is removed by the next write to ``path``.
 
     Args:
         path: directory to create (parents are created too).
@@ -1017,8 +1089,8 @@ def write_replay_buffer(path: str | os.PathLike, episodes: Sequence[Episode], at
         zarr_format: 2 (default, what zarr-python 2.x and DP3 use) or 3.
 
     Raises:
-        DatasetError: an episode is invalid, or ``path`` holds something
-            other than a zarr dataset or an empty directory.
+        DatasetError: an episode is invalid, ``path`` holds something other
+            than a zarr dataset or an empty directory, or cannot be written.
     """
     _check_zarr_format(zarr_format)
     attrs = _check_attrs(attrs)
@@ -1030,14 +1102,10 @@ def write_replay_buffer(path: str | os.PathLike, episodes: Sequence[Episode], at
 
     path = Path(path)
     _check_replaceable(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{uuid.uuid4().hex[:8]}")
-    try:
+    with Staging(flag="path", error=DatasetError) as staging:
+        tmp = staging.make(staging.reserve(path))
         _write_store(tmp, checked, attrs, zarr_format)
-        _move_into_place(tmp, path)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
+        staging.commit([(tmp, path)])
 
 
 class ReplayBufferWriter:
@@ -1066,12 +1134,16 @@ class ReplayBufferWriter:
         extra_keys: names of the extra per-step arrays every added episode
             brings (:attr:`Episode.extras`); an existing dataset must hold
             exactly these under ``data/`` besides point_cloud, state and action.
+        staged: ``path`` is an empty staging directory of the caller's, which
+            puts it in place when complete (:class:`~dssp_train.output_guard.Staging`):
+            the first episode is written into it directly instead of beside it.
     """
 
     def __init__(self, path: str | os.PathLike, attrs: dict | None = None, zarr_format: int = 2,
-                 *, repair_incomplete_tail: bool = False, extra_keys: Sequence[str] = ()):
+                 *, repair_incomplete_tail: bool = False, extra_keys: Sequence[str] = (), staged: bool = False):
         _check_zarr_format(zarr_format)
         self.path = Path(path)
+        self.staged = staged
         self.zarr_format = zarr_format
         self._attrs = _check_attrs(attrs)
         for name in extra_keys:
@@ -1087,6 +1159,9 @@ class ReplayBufferWriter:
         self._n_episodes = 0
         self.dropped_tail_steps = 0
         """Steps after the last episode end that ``repair_incomplete_tail=True`` cut off."""
+        self.unbacked_steps: dict[str, tuple[int, int, str]] = {}
+        """Arrays whose metadata gave steps after the last episode end that no stored chunk held
+        (``{key: (first such step, length, metadata file)}``); ``repair_incomplete_tail=True`` set them back."""
         if _is_zarr_store(self.path) or (self.path.exists() and not self._is_empty_dir()):
             self._open_existing(repair_incomplete_tail)
 
@@ -1112,8 +1187,12 @@ class ReplayBufferWriter:
         arrays.update({f"data/{name}": extras[name] for name in self.extra_keys})
         data_keys = [key for key in arrays if key != ENDS_KEY]
         lengths = {key: arrays[key].shape[0] for key in data_keys}
+        self.unbacked_steps = _unbacked(arrays, int(ends[-1]), where)
         n_steps, dropped = _resolve_length(lengths, int(ends[-1]), repair_incomplete_tail, where,
-                                           remedy="open the writer with repair_incomplete_tail=True to cut them off")
+                                           remedy="open the writer with repair_incomplete_tail=True to cut them off",
+                                           unbacked=self.unbacked_steps,
+                                           shape_remedy="open the writer with repair_incomplete_tail=True to set it "
+                                                        "back (nothing stored is lost)")
         # Every chunk of the episodes must be stored and hold a whole frame (lost data is not appended to),
         # and the last one, which the next append reads back and rewrites, must decode.
         arrays = {key: array.with_config(WRITE_CONFIG) for key, array in arrays.items()}
@@ -1182,7 +1261,10 @@ class ReplayBufferWriter:
         episode = _validated_episode(episode, where, self._dims, self._layout)
         attrs = _check_attrs(attrs)
         if self._arrays is None:
-            write_replay_buffer(self.path, [episode], {**self._attrs, **attrs}, self.zarr_format)
+            if self.staged and self._is_empty_dir() and is_staging_name(self.path.name):
+                _write_store(self.path, [episode], {**self._attrs, **attrs}, self.zarr_format)
+            else:
+                write_replay_buffer(self.path, [episode], {**self._attrs, **attrs}, self.zarr_format)
             self._group, arrays, _ = _open_required(self.path, "r+")
             arrays.update({f"data/{name}": _get_array(self._group, f"data/{name}", str(self.path))
                            for name in self.extra_keys})

@@ -16,18 +16,24 @@ when present, else it is assembled from the four arm/gripper arrays in that orde
 
 from __future__ import annotations
 
+import math
 import os
 import re
-import shutil
-import uuid
 from pathlib import Path
 
 import numpy as np
 
-from dssp_train.atomic import replace_dir
-from dssp_train.data.recording import ACTION_CONVENTIONS
+from dssp_train.data.recording import ACTION_CONVENTIONS, can_log_dir
 from dssp_train.data.replay_buffer import Episode, ReplayBufferWriter
 from dssp_train.errors import DatasetError
+from dssp_train.output_guard import (
+    DATA_DATASET,
+    DATA_GENERATORS,
+    Staging,
+    check_output,
+    interrupts_deferred,
+    settle_background_writes,
+)
 
 PARTS = ("left_arm", "left_gripper", "right_arm", "right_gripper")
 _NUMBER = re.compile(r"(\d+)")
@@ -103,21 +109,28 @@ def to_episode(vector: np.ndarray, cloud: np.ndarray, xyz_only: bool = False) ->
 
 def convert(source: str | os.PathLike, out: str | os.PathLike, *, max_episodes: int | None = None,
             xyz_only: bool = False, control_rate_hz: float | None = None, task: str | None = None,
-            force: bool = False, progress=None) -> dict:
+            force: bool = False, progress=None, flag: str = "--out") -> dict:
     """Convert RoboTwin episodes from ``source`` into the DP3 dataset ``out`` (written whole, then renamed).
 
-    Returns {"episodes": n, "steps": n, "files": [names]}. ``progress(i, n, path)`` is called per file.
+    ``out`` must be new, or a dataset ``dssp-data`` made (replaced only with ``force``); anything else is
+    refused and nothing is deleted (:data:`~dssp_train.output_guard.DATA_DATASET`). The dataset is
+    written into a staging directory beside ``out``, removed on an error or Ctrl-C. Its ``generator``
+    attribute is ``dssp-data convert``. Returns {"episodes": n, "steps": n, "files": [names]}.
+    ``progress(i, n, path)`` is called per file.
     """
+    if control_rate_hz is not None and not (isinstance(control_rate_hz, (int, float)) and not isinstance(control_rate_hz, bool)
+                                            and math.isfinite(control_rate_hz) and control_rate_hz > 0):
+        raise DatasetError(f"--control-rate must be a rate in Hz (a number > 0), got {control_rate_hz!r}")
     files = find_episodes(source)
     if max_episodes is not None:
         if max_episodes < 1:
             raise DatasetError(f"--episodes must be at least 1, got {max_episodes}")
         files = files[:max_episodes]
     out = Path(out)
-    if out.exists() and not force:
-        raise DatasetError(f"{out} exists: choose another output or pass --force to replace it")
+    check_output(out, force=force, kind=DATA_DATASET, flag=flag, error=DatasetError)
     attrs = {
-        "generator": "dssp-data convert (RoboTwin raw HDF5)",
+        "generator": DATA_GENERATORS["convert"],
+        "source_format": "RoboTwin raw HDF5",
         "source": str(source),
         "action_convention": ACTION_CONVENTIONS["next_state"],
         "state_convention": "RoboTwin joint vector [left J1..J6 rad, left gripper 0..1, right J1..J6, right gripper]",
@@ -127,23 +140,24 @@ def convert(source: str | os.PathLike, out: str | os.PathLike, *, max_episodes: 
         attrs["control_rate_hz"] = float(control_rate_hz)
     if task:
         attrs["task"] = task
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.name}.tmp-{uuid.uuid4().hex[:8]}")
     steps = 0
     try:
-        with ReplayBufferWriter(tmp, attrs=attrs) as writer:
-            for i, path in enumerate(files):
-                if progress is not None:
-                    progress(i, len(files), path)
-                vector, cloud = read_episode(path)
-                try:
-                    episode = to_episode(vector, cloud, xyz_only)
-                    writer.add_episode(episode)
-                except DatasetError as exc:
-                    raise DatasetError(f"{path}: {exc}") from None
-                steps += episode.n_steps
-        replace_dir(tmp, out)
+        with Staging(flag=flag, error=DatasetError) as staging:
+            tmp = staging.make(staging.reserve(out))
+            with ReplayBufferWriter(tmp, attrs=attrs, staged=True) as writer:
+                for i, path in enumerate(files):
+                    if progress is not None:
+                        progress(i, len(files), path)
+                    vector, cloud = read_episode(path)
+                    try:
+                        episode = to_episode(vector, cloud, xyz_only)
+                        writer.add_episode(episode)
+                    except DatasetError as exc:
+                        raise DatasetError(f"{path}: {exc}") from None
+                    steps += episode.n_steps
+            with interrupts_deferred():
+                check_output(out, force=force, kind=DATA_DATASET, flag=flag, error=DatasetError)  # again
+                staging.commit([(tmp, out), (None, can_log_dir(out))])
     finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
+        settle_background_writes()
     return {"episodes": len(files), "steps": steps, "files": [p.name for p in files]}

@@ -22,9 +22,14 @@ from pathlib import Path
 
 import numpy as np
 
-from dssp_train.data.recording import FLAGS_KEY, problem_names
+from dssp_train.data.recording import FLAGS_KEY, can_log_dir, problem_names
 from dssp_train.data.replay_buffer import ReplayBufferReader
-from dssp_train.output_guard import check_output_files, write_output_file
+from dssp_train.output_guard import (
+    check_not_inside,
+    check_output_files,
+    make_dirs,
+    write_output_file,
+)
 
 VIEWS = (("oblique", 25.0, -60.0), ("top", 90.0, -90.0), ("side", 0.0, -90.0))
 """(name, elevation, azimuth) in degrees of each row of the cloud figure."""
@@ -124,20 +129,20 @@ def render_episode(path: str | os.PathLike, episode: int, out_dir: str | os.Path
     """Write the pictures of episode ``episode`` of dataset ``path`` into ``out_dir``; returns their paths.
 
     Only the files of :func:`picture_paths` are written (atomically); one that exists is replaced only
-    with ``force`` — checked for all of them before anything is read or drawn.
+    with ``force`` — checked for all of them before anything is read or drawn. ``out_dir`` may not be the
+    dataset, lie inside it or in its CAN-log folder, or lie under a file.
     """
+    check_not_inside(out_dir, [path, can_log_dir(path)], flag="--out", contains=False)
     check_output_files(picture_paths(path, episode, out_dir, video), force=force, flag="--out")
     plt = _pyplot()
     path, out_dir = Path(path), Path(out_dir)
     reader = ReplayBufferReader(path, allow_incomplete_tail=True)
     ep = reader.episode(episode, extras=[k for k in reader.extra_keys if k != "depth"], check_finite=False)
-    rate = reader.attrs.get("control_rate_hz")
-    rate = float(rate) if isinstance(rate, (int, float)) and rate > 0 else None
-    t, t_label = _times(ep, rate)
+    t, t_label = _times(ep, reader.control_rate_hz)
     flags = ep.extras.get(FLAGS_KEY)
     name = path.name.removesuffix(".zarr") or "dataset"
     stem = f"{name}_ep{episode}"
-    out_dir.mkdir(parents=True, exist_ok=True)
+    make_dirs(out_dir, flag="--out")
     written = []
 
     # ---- clouds: columns = steps across the episode, rows = viewpoints

@@ -163,13 +163,10 @@ def _next_sim_seed(out: Path) -> int:
 
     if not out.exists():
         return 0
-    try:
-        reader = ReplayBufferReader(out, allow_incomplete_tail=True)
-    except Exception:  # the dataset's problems are reported when it is opened for writing
-        return 0
+    reader = ReplayBufferReader(out, allow_incomplete_tail=True)  # a broken dataset: its one-line DatasetError
     from dssp_train.data.recording import episode_infos
 
-    seeds = [info["sim"]["seed"] for info in episode_infos(reader.attrs, reader.n_episodes)
+    seeds = [info["sim"]["seed"] for info in episode_infos(reader.attrs, reader.n_episodes, out)
              if info and isinstance(info.get("sim"), dict) and isinstance(info["sim"].get("seed"), int)]
     return max(seeds) + 1 if seeds else reader.n_episodes
 
@@ -192,10 +189,7 @@ def _existing_attrs(out: Path) -> dict:
 
     if not out.exists():
         return {}
-    try:
-        return ReplayBufferReader(out, allow_incomplete_tail=True).attrs
-    except Exception:
-        return {}
+    return ReplayBufferReader(out, allow_incomplete_tail=True).attrs  # a broken dataset: its one-line DatasetError
 
 
 def open_session(args, stack: contextlib.ExitStack, console: Console):
@@ -231,7 +225,10 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
     recorded_rate = None
     if existing.get("control_rate_hz") is not None:
         recorded_rate = check_rate(existing["control_rate_hz"], flag=f"{args.out}'s control_rate_hz attribute")
-    task = args.task_name or (("tap" if sim_can else None) if not existing.get("task") else existing.get("task"))
+    recorded_task = existing.get("task")
+    if recorded_task is not None and not isinstance(recorded_task, str):
+        raise ConfigError(f"{args.out}'s task attribute is {recorded_task!r}, not a task name; fix the attribute")
+    task = args.task_name or (recorded_task or ("tap" if sim_can else None))
 
     if args.pointcloud:
         cloud_config = PointCloudConfig.load(args.pointcloud, "point-cloud settings")
