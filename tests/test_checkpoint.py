@@ -277,11 +277,18 @@ def test_corrupt_checkpoint_file_on_resume(runs, tmp_path, capsys, name):
 def test_resume_without_checkpoint_folder(runs, tmp_path, capsys):
     run = copy_run(runs, tmp_path)
     shutil.rmtree(run / "checkpoint")
-    with pytest.raises(CheckpointError, match="nothing to resume"):
+    with pytest.raises(CheckpointError, match="has no checkpoint yet .*nothing to resume; start it over with --force"):
         ckpt.load_training_state(run)
+    assert ckpt.read_trainer_state(run) is None and ckpt.checkpoint_dir(run) is None
     assert train_main(resume_args(runs["data"], run)) == 2
     line = one_error_line(capsys.readouterr())
-    assert "checkpoint is missing" in line and "nothing to resume" in line
+    assert f"{run / 'checkpoint'} is missing, so the run cannot be continued" in line
+    assert "model.safetensors stays usable" in line and "start it over with --force" in line
+    # Without model.safetensors either, the run stopped before its first save (step K).
+    (run / "model.safetensors").unlink()
+    assert train_main(resume_args(runs["data"], run)) == 2
+    assert one_error_line(capsys.readouterr()) == (
+        f"error: {run} has no checkpoint yet (stopped before step {K}'s save): start it over with --force")
 
 
 def test_error_classes_are_user_errors():

@@ -44,7 +44,7 @@ def test_shapes_dtypes_and_finite(n_points):
         np.testing.assert_array_equal(ep.action[-1], ep.state[-1])
         np.testing.assert_array_equal(ep.state[-1], [1.0, 0.0])  # parked
     assert sorted(count_taps(ep.state) for ep in episodes) == [1, 1, 1, 2, 2, 2]
-    with pytest.raises(ConfigError, match="n_points must be at least"):
+    with pytest.raises(ConfigError, match=r"n_points must be an integer in \[24, 100000\], got"):
         make_tap_count_episodes(2, n_points=10)
 
 
@@ -99,3 +99,26 @@ def test_write_dataset(tmp_path):
     assert buffer.attrs["generator"] == "dssp_train.data.synthetic"
     expected = make_tap_count_episodes(4, seed=2, n_points=32)
     np.testing.assert_array_equal(buffer.episode(3).point_cloud, expected[3].point_cloud)
+
+
+@pytest.mark.parametrize("kwargs,message", [
+    ({"seed": -1}, r"seed must be an integer in \[0, 9223372036854775807\], got -1"),
+    ({"n_episodes": 0}, r"n_episodes must be an integer in \[1, 10000\], got 0"),
+    ({"n_episodes": 10_001}, r"n_episodes must be an integer in \[1, 10000\], got 10001"),
+    ({"n_points": 100_001}, r"n_points must be an integer in \[24, 100000\], got 100001"),
+    ({"n_episodes": 1000, "n_points": 20_000}, r"n_episodes 1000 x n_points 20000 make 9.6 GB of point clouds, more than "
+                                               r"the 2 GB the generator holds in memory; lower n_episodes or n_points"),
+])
+def test_out_of_bounds_requests_are_refused_before_any_work(kwargs, message, tmp_path):
+    args = {"n_episodes": 2, "seed": 0, "n_points": 24, **kwargs}
+    with pytest.raises(ConfigError, match=f"^{message}$"):
+        make_tap_count_episodes(**args)
+    with pytest.raises(ConfigError, match=f"^{message}$"):
+        write_tap_count_dataset(tmp_path / "d.zarr", **args)
+    assert not (tmp_path / "d.zarr").exists()
+
+
+def test_numpy_integers_are_accepted():
+    a = make_tap_count_episodes(np.int64(2), seed=np.int64(3), n_points=np.int64(24))
+    b = make_tap_count_episodes(2, seed=3, n_points=24)
+    np.testing.assert_array_equal(a[1].point_cloud, b[1].point_cloud)

@@ -114,7 +114,7 @@ def error_cases(data: Path, nan_data: Path, not_zarr: Path, tmp: Path, happy_out
         ("bad set key", ["--data", data, "--out", fresh, *base, "--set", "model.nosuch=3"], "unknown field 'model.nosuch'"),
         ("bad set section", ["--data", data, "--out", fresh, *base, "--set", "optim.lr=3"], "'optim' is not a config section"),
         ("set without =", ["--data", data, "--out", fresh, *base, "--set", "model.d_model"], "must look like section.field=value"),
-        ("bad set value", ["--data", data, "--out", fresh, *base, "--set", "model.d_model=0"], "model.d_model must be an integer in [1, 65536], got 0"),
+        ("bad set value", ["--data", data, "--out", fresh, *base, "--set", "model.expand=0"], "--set model.expand=0: model.expand must be an integer in [1, 16], got 0"),
         ("out holds a run", ["--data", data, "--out", happy_out, *base], "already holds a run"),
         ("resume without run", ["--data", data, "--out", fresh, "--resume", "--no-progress"], "config.json is missing"),
         ("device cuda", ["--data", data, "--out", fresh, *base, "--device", "cuda"], "CUDA is not available"),
@@ -167,25 +167,35 @@ def test_nan_message_names_the_step_and_episode(nan_data, tmp_path, capsys):
     assert f"first at step {nan_step(nan_data)} (episode 1)" in line
 
 
-def test_resume_of_a_run_stopped_before_its_first_checkpoint(data, tmp_path, capsys, monkeypatch):
-    """config.json exists but no checkpoint: --resume fails, and its advice does not lead back to the same error."""
+def test_a_run_stopped_before_its_first_checkpoint_is_started_over_with_force(data, tmp_path, capsys, monkeypatch):
+    """config.json exists but no checkpoint: every message says the same thing (start it over with --force),
+    and --force does replace it."""
     out = tmp_path / "early"
+    real_step = Trainer.train_step
 
-    def interrupt(self):
-        raise KeyboardInterrupt
+    def interrupt_after_one_step(self):
+        if self.step >= 1:
+            raise KeyboardInterrupt
+        return real_step(self)
 
-    monkeypatch.setattr(Trainer, "train_step", interrupt)
+    monkeypatch.setattr(Trainer, "train_step", interrupt_after_one_step)
     assert train_main(["--data", str(data), "--out", str(out), "--steps", "4", "--no-progress", *SET_SMALL]) == 130
     monkeypatch.undo()
-    capsys.readouterr()
-    assert (out / "config.json").is_file() and not (out / "checkpoint").exists()
+    assert capsys.readouterr().err.strip() == (
+        "interrupted after step 1, before step 2's save: no checkpoint was kept; start the run over by adding --force")
+    assert (out / "config.json").is_file() and (out / "log.jsonl").is_file() and not (out / "checkpoint").exists()
 
+    no_checkpoint = f"error: {out} has no checkpoint yet (stopped before step 2's save): start it over with --force"
     assert train_main(["--data", str(data), "--out", str(out), "--resume", "--no-progress"]) == 2
-    line = one_error_line(capsys.readouterr().err)
-    assert "nothing to resume" in line and "another --out" in line
-    # Without --resume the same --out is refused too, so "another --out" is the way forward.
+    assert one_error_line(capsys.readouterr().err) == no_checkpoint
     assert train_main(["--data", str(data), "--out", str(out), "--no-progress", *SET_SMALL]) == 2
-    assert "another --out" in one_error_line(capsys.readouterr().err)
+    assert one_error_line(capsys.readouterr().err) == no_checkpoint + ", or choose another --out"
+
+    assert train_main(["--data", str(data), "--out", str(out), "--steps", "2", "--force", "--no-progress", *SET_SMALL]) == 0
+    capsys.readouterr()
+    assert json.loads((out / "checkpoint" / "trainer_state.json").read_text())["step"] == 2
+    assert json.loads((out / "config.json").read_text())["train"]["steps"] == 2
+    assert [r["step"] for r in read_log(out / "log.jsonl") if r["kind"] == "train"] == [1, 2]
 
 
 # ---------------------------------------------------------------- happy path

@@ -74,7 +74,7 @@ def _run_demo(out: Path, steps: int | None, episodes: int, seed: int, progress: 
     data = write_tap_count_dataset(out / "tap_count.zarr", episodes, seed=seed)
     results = {}
     for name, extra in (("dssp", []), ("reactive", ["model.use_history=false"])):
-        budget = [f"train.steps={steps}"] if steps else []
+        budget = [f"train.steps={steps}"] if steps is not None else []
         config = apply_overrides(load_preset("tiny"), [*budget, f"train.seed={seed}", "train.val_ratio=0.2", *extra])
         run_dir = out / name
         if progress:
@@ -106,13 +106,21 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="dssp-demo", description="Synthetic memory task: DSSP against the reactive baseline.")
     p.add_argument("--out", default="runs/demo", help="output directory, new or empty (dataset, two run directories, results.json)")
     p.add_argument("--steps", type=int, help="training steps for each model (default: the tiny preset's 1500)")
-    p.add_argument("--episodes", type=int, default=40, help="demonstrations to generate")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--episodes", type=int, default=40, help="demonstrations to generate (2 to 10000)")
+    p.add_argument("--seed", type=int, default=0, help="seed for the data and both trainings (>= 0)")
     p.add_argument("--no-progress", action="store_true")
     p.add_argument("--force", action="store_true", help="replace a previous dssp-demo output in --out")
     args = p.parse_args(argv)
 
     def _main() -> int:
+        from dssp_train.cli.train import check_flag
+        from dssp_train.data.synthetic import MAX_EPISODES, check_tap_count_size
+        from dssp_train.schema import Spec, check_value
+
+        if args.steps is not None:
+            check_flag("--steps", "train.steps", args.steps)
+        check_value(args.episodes, int, Spec(ge=2, le=MAX_EPISODES), "--episodes")  # 2: one is held out for validation
+        check_tap_count_size(args.episodes, args.seed, 64, names=("--episodes", "--seed", "points"))
         results = run_demo(Path(args.out), args.steps, args.episodes, args.seed, progress=not args.no_progress,
                            force=args.force)
         print(format_results(results))

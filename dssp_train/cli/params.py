@@ -10,7 +10,13 @@ import argparse
 import sys
 
 from dssp_train.cli.common import run_cli
-from dssp_train.config import apply_overrides, load_preset, preset_names
+from dssp_train.cli.train import set_fields
+from dssp_train.config import MAX_DIM, apply_overrides, load_preset, preset_names
+from dssp_train.errors import ConfigError
+from dssp_train.schema import Spec, check_value
+
+
+DEFAULT_DIM = 14  # RoboTwin's two arms
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -18,32 +24,55 @@ def main(argv: list[str] | None = None) -> int:
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--preset", help=f"one of {', '.join(preset_names())}")
     src.add_argument("--run", help="a run directory (config.json)")
-    p.add_argument("--state-dim", type=int, default=14, help="agent_pos dimension for a preset (default 14, RoboTwin)")
-    p.add_argument("--action-dim", type=int, default=14, help="action dimension for a preset (default 14, RoboTwin)")
+    p.add_argument("--state-dim", type=int, help=f"agent_pos dimension for a preset (default {DEFAULT_DIM}, RoboTwin)")
+    p.add_argument("--action-dim", type=int, help=f"action dimension for a preset (default {DEFAULT_DIM}, RoboTwin)")
     p.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE")
     args = p.parse_args(argv)
 
     def _main() -> int:
         from dssp_train.model.param_count import format_breakdown, parameter_breakdown
-        from dssp_train.model.policy import DSSPPolicy
         from dssp_train.training.checkpoint import load_config
 
+        sets = set_fields(args.set, "preset, dataset and control_rate_hz describe a run and change no parameter")
+        dims = {"model.state_dim": ("--state-dim", args.state_dim), "model.action_dim": ("--action-dim", args.action_dim)}
+        for key, (flag, value) in dims.items():
+            if value is None:
+                continue
+            if args.run:
+                raise ConfigError(f"{flag} is for --preset; a run's dimensions come from its config.json (drop {flag})")
+            if key in sets:
+                raise ConfigError(f"{flag} and --set {sets[key]} both set {key}; keep one")
+            check_value(value, int, Spec(ge=1, le=MAX_DIM), flag)
         if args.run:
             config = apply_overrides(load_config(args.run), args.set)
         else:
             config = load_preset(args.preset)
-            config.model.state_dim = config.model.state_dim or args.state_dim
-            config.model.action_dim = config.model.action_dim or args.action_dim
+            config.model.state_dim = args.state_dim or config.model.state_dim or DEFAULT_DIM
+            config.model.action_dim = args.action_dim or config.model.action_dim or DEFAULT_DIM
             config = apply_overrides(config, args.set)
         m = config.model
+        for key in ("model.state_dim", "model.action_dim"):
+            if getattr(m, key.split(".")[1]) < 1:
+                raise ConfigError(f"--set {sets.get(key, key)}: counting parameters needs {key} of at least 1 "
+                                  f"(0 means 'from the dataset', which dssp-params has none of)")
         print(
             f"preset {config.preset}: d_model {m.d_model}, d_state {m.d_state}, expand {m.expand}, "
             f"{m.n_history_layers} history + {m.n_denoiser_layers} denoiser layers, S={m.state_dim}, A={m.action_dim}"
         )
-        print(format_breakdown(parameter_breakdown(DSSPPolicy(m))))
+        print(format_breakdown(parameter_breakdown(meta_policy(m))))
         return 0
 
     return run_cli(_main)
+
+
+def meta_policy(model):
+    """The policy built on the meta device: every parameter's shape, no memory (any width can be counted)."""
+    import torch
+
+    from dssp_train.model.policy import DSSPPolicy
+
+    with torch.device("meta"):
+        return DSSPPolicy(model)
 
 
 if __name__ == "__main__":

@@ -7,21 +7,38 @@
 A new run goes into a new or empty --out. A previous run there is refused (continue it with --resume) or,
 with --force, replaced: it is moved aside while the new run trains, deleted when the new run completes,
 and put back if the new run fails or is interrupted. A folder holding anything but a run is never touched
-(:mod:`dssp_train.output_guard`).
+(:mod:`dssp_train.output_guard`). A run that stopped before its first checkpoint cannot be continued: it is
+started over with --force.
+
+Every config field has one source: a flag (--steps, --seed, ...), else ``--set model.*/train.*``, else the
+preset; the same field from a flag and a --set, or twice from --set, is refused. The dataset gives the
+dimensions, the cloud size and the control rate; a --control-rate or a ``--set model.n_points`` that
+contradicts it is refused. --resume continues the run on the same --data (its resolved path and, as the
+checkpoint records them, its episodes) with the run's own config; only --steps may grow.
+
+Ctrl-C and SIGTERM stop the same way (exit code 130): the message says which checkpoint is kept and the
+command that continues from it. Before training, a step that clearly cannot fit in memory is refused
+(:mod:`dssp_train.training.memory`).
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import json
 import os
+import shlex
+import signal
 import sys
+import threading
+import typing
 from pathlib import Path
 
 from dssp_train.cli.common import run_cli
-from dssp_train.config import apply_overrides, load_preset, preset_names
-from dssp_train.errors import DSSPError
+from dssp_train.config import RunConfig, apply_overrides, load_preset, preset_names
+from dssp_train.errors import CheckpointError, ConfigError, DSSPError
+from dssp_train.schema import Spec, check_value
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -29,13 +46,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data", required=True, help="DP3/RoboTwin zarr dataset (data/point_cloud, data/state, data/action, meta/episode_ends)")
     p.add_argument("--preset", default=None, help=f"model and training preset: {', '.join(preset_names())} (default tiny)")
     p.add_argument("--out", required=True, help="run directory to create (or to continue with --resume)")
-    p.add_argument("--steps", type=int, help="total optimisation steps (with --resume: the new total)")
+    p.add_argument("--steps", type=int, help="total optimisation steps (with --resume: the new total, past the checkpoint's step)")
     p.add_argument("--seed", type=int, help="seed for initialisation, episode split and sampling")
     p.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="default: cuda when available")
     p.add_argument("--batch-size", type=int, help="action windows sampled from each trajectory per step")
     p.add_argument("--lr", type=float, help="peak learning rate")
     p.add_argument("--val-ratio", type=float, help="fraction of episodes held out for validation")
-    p.add_argument("--control-rate", type=float, help="control rate of the data in Hz, when the dataset does not record it")
+    p.add_argument("--control-rate", type=float, help="control rate of the data in Hz, when the dataset does not record it "
+                   "(a recorded rate must not be contradicted)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
     p.add_argument("--force", action="store_true", help="replace a previous run in --out (once the new one completes)")
     ablations = p.add_argument_group("ablations (paper Tables 3 and 5)")
@@ -50,72 +68,219 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def config_from_args(args):
-    from dssp_train.training.checkpoint import load_config
+# Flags that set one config field: (flag, argparse dest, field).
+VALUE_FLAGS = (
+    ("--steps", "steps", "train.steps"),
+    ("--seed", "seed", "train.seed"),
+    ("--batch-size", "batch_size", "train.batch_size"),
+    ("--lr", "lr", "train.lr"),
+    ("--val-ratio", "val_ratio", "train.val_ratio"),
+    ("--history-backbone", "history_backbone", "model.history_backbone"),
+    ("--history-window", "history_window", "model.history_window"),
+)
+SWITCH_FLAGS = (
+    ("--no-history", "no_history", "model.use_history", False),
+    ("--no-timestep-decoupling", "no_timestep_decoupling", "model.timestep_decoupled", False),
+    ("--no-recent-states", "no_recent_states", "model.use_recent_states", False),
+    ("--no-dynamics-loss", "no_dynamics_loss", "model.dynamics_weight", 0.0),
+)
+SET_SECTIONS = ("model", "train")
+NOT_SET_FIELDS = {"preset": "--preset", "dataset": "--data", "control_rate_hz": "--control-rate"}
 
+
+def _field(key: str):
+    """(type annotation, Spec) of a ``section.field`` of RunConfig (sections model, train, model.diffusion)."""
+    cls = RunConfig
+    *sections, name = key.split(".")
+    for section in sections:
+        cls = typing.get_type_hints(cls)[section]
+    return typing.get_type_hints(cls)[name], {f.name: f for f in dataclasses.fields(cls)}[name].metadata.get("spec", Spec())
+
+
+def check_flag(flag: str, key: str, value):
+    """``value`` of ``flag`` checked against the config field ``key`` it sets; the error names the flag."""
+    tp, spec = _field(key)
+    return check_value(value, tp, spec, flag)
+
+
+def set_fields(items: list[str], elsewhere: str | None = None) -> dict[str, str]:
+    """``{section.field: item}`` of ``--set`` items; refuses fields that are not the user's to set this way.
+
+    ``elsewhere``: where the refusal says preset, dataset and control_rate_hz come from (default: dssp-train's flags).
+    """
+    elsewhere = elsewhere or ", ".join(f"{name} comes from {flag}" for name, flag in NOT_SET_FIELDS.items())
+    keys = {}
+    for item in items:
+        if "=" not in item:
+            continue  # apply_overrides explains the form
+        key = item.split("=", 1)[0]
+        head = key.split(".")[0]
+        if head in NOT_SET_FIELDS or (head in SET_SECTIONS and "." not in key):
+            raise ConfigError(
+                f"--set {item}: --set takes model.* and train.* fields, one at a time (e.g. model.d_model=256); {elsewhere}"
+            )
+        if key in keys:
+            raise ConfigError(f"--set {keys[key]} and --set {item} both set {key}; keep one")
+        keys[key] = item
+    return keys
+
+
+def given_flags(args) -> list[tuple[str, str, object]]:
+    """(flag as typed, field, value) of every config flag on the command line, values checked."""
+    flags = []
+    for flag, dest, key in VALUE_FLAGS:
+        value = getattr(args, dest)
+        if value is not None:
+            flags.append((f"{flag} {value}", key, check_flag(flag, key, value)))
+    for flag, dest, key, value in SWITCH_FLAGS:
+        if getattr(args, dest):
+            flags.append((flag, key, value))
+    return flags
+
+
+def config_from_args(args, run_config: RunConfig | None = None) -> RunConfig:
+    """The config of this run: ``run_config`` (the run's own, on --resume) or the preset, with --set and the flags."""
+    flags = given_flags(args)
+    sets = set_fields(args.set)
+    for typed, key, _ in flags:
+        if key in sets:
+            raise ConfigError(f"{typed.split()[0]} and --set {sets[key]} both set {key}; keep one")
     if args.resume:
         if args.preset:
             raise DSSPError("--resume continues the run with its own config; drop --preset")
-        config = load_config(Path(args.out))
-    else:
-        config = load_preset(args.preset or "tiny")
-    overrides = list(args.set)
-    flags = {
-        "train.steps": args.steps,
-        "train.seed": args.seed,
-        "train.batch_size": args.batch_size,
-        "train.lr": args.lr,
-        "train.val_ratio": args.val_ratio,
-        "model.history_backbone": args.history_backbone,
-        "model.history_window": args.history_window,
-    }
-    overrides += [f"{k}={json.dumps(v)}" for k, v in flags.items() if v is not None]
-    for flag, key, value in (
-        (args.no_history, "model.use_history", False),
-        (args.no_timestep_decoupling, "model.timestep_decoupled", False),
-        (args.no_recent_states, "model.use_recent_states", False),
-        (args.no_dynamics_loss, "model.dynamics_weight", 0.0),
-    ):
-        if flag:
-            overrides.append(f"{key}={json.dumps(value)}")
-    if args.resume:
-        changed = [o for o in overrides if not o.startswith("train.steps=")]
+        changed = [typed for typed, key, _ in flags if key != "train.steps"] + [f"--set {item}" for item in args.set]
         if changed:
             raise DSSPError(f"--resume keeps the run's config; only --steps may change (got {', '.join(changed)})")
-    return apply_overrides(config, overrides)
+        if run_config is None:
+            from dssp_train.training.checkpoint import load_config
+
+            run_config = load_config(Path(args.out))
+        config = run_config
+    else:
+        config = apply_overrides(load_preset(args.preset or "tiny"), list(args.set))
+    for typed, key, value in flags:
+        data = config.to_dict()
+        section, name = key.split(".")
+        data[section][name] = value
+        try:
+            config = RunConfig.from_dict(data)
+        except ConfigError as exc:
+            raise ConfigError(f"{typed}: {exc}") from None
+    return config
+
+
+def _first_save(out: Path) -> str:
+    """"step N's save" for the run in ``out`` (its config.json), or "its first save"."""
+    from dssp_train.training.checkpoint import first_save_step, load_config
+
+    try:
+        return f"step {first_save_step(load_config(out))}'s save"
+    except DSSPError:
+        return "its first save"
+
+
+def no_checkpoint_message(out: Path) -> str:
+    """Why the run in ``out`` cannot be continued when it holds no checkpoint, and what to do."""
+    if (out / "model.safetensors").is_file():  # written with every checkpoint: this one was removed since
+        return (f"{out / 'checkpoint'} is missing, so the run cannot be continued (its model.safetensors stays usable "
+                "for export): start it over with --force")
+    return f"{out} has no checkpoint yet (stopped before {_first_save(out)}): start it over with --force"
+
+
+def check_resume(args, out: Path) -> RunConfig:
+    """Before the dataset is read: the run in ``out`` can be continued as asked. Returns its config."""
+    from dssp_train.training.checkpoint import load_config, read_trainer_state
+
+    config = load_config(out)
+    state = read_trainer_state(out)
+    if state is None:
+        raise CheckpointError(no_checkpoint_message(out))
+    if args.steps is not None and args.steps <= state["step"]:
+        raise ConfigError(f"--steps must be larger than the checkpoint's step {state['step']} to continue (got {args.steps})")
+    return config
+
+
+def interrupted_message(args, out: Path, trainer, replaced: bool) -> str:
+    """What a Ctrl-C (or SIGTERM) kept, and how to go on from there."""
+    from dssp_train.training.checkpoint import checkpoint_dir, read_trainer_state
+
+    at = "interrupted before training began" if trainer is None else f"interrupted after step {trainer.step}"
+    if replaced:
+        return f"{at}; this run is discarded and the previous run in {out} is back as it was"
+    if not out.exists():
+        return f"{at}; nothing was kept"
+    state = None
+    with contextlib.suppress(DSSPError):
+        state = read_trainer_state(out)
+    if state is not None:
+        command = shlex.join(["dssp-train", "--data", str(args.data), "--out", str(args.out), "--resume"])
+        return f"{at}; the checkpoint of step {state['step']} is in {checkpoint_dir(out)}: continue with {command}"
+    if args.resume:
+        return f"{at}; {out} is unchanged"
+    return f"{at}, before {_first_save(out)}: no checkpoint was kept; start the run over by adding --force"
+
+
+@contextlib.contextmanager
+def sigterm_as_interrupt():
+    """SIGTERM (a scheduler, kill, systemd) stops the run as Ctrl-C does: a KeyboardInterrupt in the main thread."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    args.trainer = None  # set by _train once the Trainer exists (for the interruption message)
 
     def _main() -> int:
-        from dssp_train.output_guard import RUN_DIR, OutputDir, OutputError, check_output
+        from dssp_train.output_guard import OWN, RUN_DIR, OutputDir, OutputError, check_output
 
         out = Path(args.out)
         if args.resume and args.force:
             raise DSSPError("--resume continues the run in --out; drop --force")
         is_main = int(os.environ.get("RANK", "0")) == 0
-        with contextlib.ExitStack() as stack:
-            target = None
-            if not args.resume:
-                try:  # before anything else: a run that may not be replaced stops here
-                    if is_main:
-                        target = stack.enter_context(OutputDir(out, RUN_DIR, force=args.force, staged=False, keep_partial=True))
-                    else:  # rank 0 moves a replaced run aside and creates --out
-                        check_output(out, force=args.force, kind=RUN_DIR)
-                except OutputError:
-                    if RUN_DIR.owns(out):
-                        raise OutputError(f"{out} already holds a run; continue it with --resume, pass --force to replace it "
-                                          "or choose another --out") from None
-                    raise
-            summary = _train(args, out)
-            if target is not None:
-                target.commit()
+        replaced = False
+        try:
+            with contextlib.ExitStack() as stack:
+                target = None
+                if not args.resume:
+                    try:  # before anything else: a run that may not be replaced stops here
+                        if is_main:
+                            target = stack.enter_context(OutputDir(out, RUN_DIR, force=args.force, staged=False, keep_partial=True))
+                            replaced = target.found == OWN
+                        else:  # rank 0 moves a replaced run aside and creates --out
+                            check_output(out, force=args.force, kind=RUN_DIR)
+                    except OutputError:
+                        from dssp_train.training.checkpoint import checkpoint_dir
+
+                        if RUN_DIR.owns(out):
+                            if checkpoint_dir(out) is None:
+                                raise OutputError(f"{no_checkpoint_message(out)}, or choose another --out") from None
+                            raise OutputError(f"{out} already holds a run; continue it with --resume, pass --force to replace it "
+                                              "or choose another --out") from None
+                        raise
+                summary = _train(args, out)
+                if target is not None:
+                    target.commit()
+        except KeyboardInterrupt:
+            if is_main:
+                print(interrupted_message(args, out, args.trainer, replaced), file=sys.stderr)
+            return 130
         if summary is not None:
             print(json.dumps(summary, indent=2))
         return 0
 
-    return run_cli(_main)
+    with sigterm_as_interrupt():
+        return run_cli(_main)
 
 
 def _train(args, out: Path) -> dict | None:
@@ -124,13 +289,19 @@ def _train(args, out: Path) -> dict | None:
 
     from dssp_train.training.trainer import Trainer
 
+    given_flags(args)  # each flag's value first, named as typed
+    if args.control_rate is not None:
+        check_flag("--control-rate", "control_rate_hz", args.control_rate)
+    run_config = check_resume(args, out) if args.resume else None
+    config = config_from_args(args, run_config)
     if not Path(args.data).exists():
         raise DSSPError(f"dataset {args.data} does not exist; pass a DP3/RoboTwin .zarr directory (dssp-synth makes one)")
-    config = config_from_args(args)
     device = args.device if args.device != "auto" else ("cuda" if torch.cuda.is_available() else "cpu")
     trainer = Trainer(
-        config, args.data, out, device=device, resume=args.resume, progress=not args.no_progress, control_rate_hz=args.control_rate
+        config, args.data, out, device=device, resume=args.resume, progress=not args.no_progress,
+        control_rate_hz=args.control_rate, user_set=set_fields(args.set),
     )
+    args.trainer = trainer
     if trainer.is_main and trainer.config.control_rate_hz is None:
         print(f"warning: {args.data} does not record its control rate; pass --control-rate HZ so the runtime can match it", file=sys.stderr)
     summary = trainer.run()

@@ -34,6 +34,7 @@ outside the table and out of the arm's reach. Gaussian noise of std
 
 from __future__ import annotations
 
+import numbers
 import os
 from pathlib import Path
 
@@ -60,6 +61,10 @@ MIN_POINTS = N_ARM_POINTS + N_CUE_POINTS + 8
 NOISE_STD = 0.002
 CONTROL_RATE_HZ = 10.0
 CUE_CENTERS = {1: (-0.8, 1.0, 0.05), 2: (1.8, 1.0, 0.05)}
+MAX_EPISODES = 10_000
+MAX_POINTS = 100_000
+MAX_SEED = 2**63 - 1
+MAX_CLOUD_BYTES = 2 * 10**9  # all point clouds together, float32: they are built in memory before writing
 ARM_HEIGHT = 0.1
 TABLE_LOW, TABLE_HIGH = -0.5, 1.5
 
@@ -134,18 +139,32 @@ def _episode(seed: int, i: int, scene: tuple[np.ndarray, np.ndarray, np.ndarray]
     return Episode(point_cloud=cloud.astype(np.float32), state=states, action=actions)
 
 
+def check_tap_count_size(n_episodes: int, seed: int, n_points: int,
+                         names: tuple[str, str, str] = ("n_episodes", "seed", "n_points")) -> None:
+    """Refuse (ConfigError, one line naming ``names``) a request outside the task's bounds: 1..MAX_EPISODES
+    episodes, a seed >= 0, MIN_POINTS..MAX_POINTS points, at most MAX_CLOUD_BYTES of point clouds in all."""
+    episodes_name, seed_name, points_name = names
+    for name, value, low, high in ((episodes_name, n_episodes, 1, MAX_EPISODES), (seed_name, seed, 0, MAX_SEED),
+                                   (points_name, n_points, MIN_POINTS, MAX_POINTS)):
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral) or not low <= value <= high:
+            raise ConfigError(f"{name} must be an integer in [{low}, {high}], got {value!r}")
+    size = n_episodes * EPISODE_LENGTH * n_points * 3 * 4
+    if size > MAX_CLOUD_BYTES:
+        raise ConfigError(
+            f"{episodes_name} {n_episodes} x {points_name} {n_points} make {size / 1e9:.1f} GB of point clouds, "
+            f"more than the {MAX_CLOUD_BYTES / 1e9:g} GB the generator holds in memory; lower {episodes_name} or {points_name}"
+        )
+
+
 def make_tap_count_episodes(n_episodes: int, seed: int = 0, n_points: int = 64) -> list[Episode]:
     """Generate ``n_episodes`` tap-count demonstrations, deterministic from ``seed``.
 
     Each episode has point_cloud (40, n_points, 3), state (40, 2) and
-    action (40, 2), all float32. Episodes 2k and 2k + 1 are one one-tap and one
+    action (40, 2), all float32. Bounds: :func:`check_tap_count_size`. Episodes 2k and 2k + 1 are one one-tap and one
     two-tap episode, so the first ``n`` episodes do not depend on how many
     more are generated.
     """
-    if n_episodes < 1:
-        raise ConfigError(f"n_episodes must be at least 1, got {n_episodes}")
-    if n_points < MIN_POINTS:
-        raise ConfigError(f"n_points must be at least {MIN_POINTS}, got {n_points}")
+    check_tap_count_size(n_episodes, seed, n_points)
     scene = _scene(seed, n_points)
     return [_episode(seed, i, scene) for i in range(n_episodes)]
 

@@ -84,16 +84,42 @@ def save_config(run_dir: Path, config: RunConfig) -> None:
     atomic_write_text(Path(run_dir) / "config.json", config.to_json() + "\n")
 
 
+RESTORE_HINT = "restore the run's own config.json, or train the run again (dssp-train --force)"
+
+
 def load_config(run_dir: Path) -> RunConfig:
+    """``RUN_DIR/config.json`` as a validated RunConfig; every problem is one CheckpointError naming the file."""
     path = Path(run_dir) / "config.json"
     if not path.is_file():
         raise CheckpointError(f"{path} is missing: {run_dir} is not a DSSP run directory (dssp-train --out creates one)")
     try:
-        return RunConfig.from_dict(json.loads(path.read_text()))
+        values = json.loads(path.read_text())
+    except UnicodeDecodeError:
+        raise CheckpointError(f"{path} is not a text file (damaged or not a run config); {RESTORE_HINT}") from None
+    except OSError as exc:
+        raise CheckpointError(f"{path} cannot be read ({exc.strerror or exc}); check its permissions") from None
     except json.JSONDecodeError as exc:
-        raise CheckpointError(f"{path} is not valid JSON ({exc.msg} at line {exc.lineno}); restore it from the run") from None
+        raise CheckpointError(f"{path} is not valid JSON ({exc.msg} at line {exc.lineno}); {RESTORE_HINT}") from None
+    if not isinstance(values, dict):
+        raise CheckpointError(f"{path} must hold a JSON object (a DSSP run config), got {type(values).__name__}; {RESTORE_HINT}")
+    try:
+        config = RunConfig.from_dict(values)
     except (ConfigError, TypeError) as exc:
         raise CheckpointError(f"{path} is not a valid DSSP config: {exc}") from None
+    missing = [key for key in ("model", "train") if not isinstance(values.get(key), dict)]
+    if missing:
+        raise CheckpointError(f"{path} lacks its {' and '.join(missing)} section{'s' if len(missing) > 1 else ''}: "
+                              f"it is not a complete run config; {RESTORE_HINT}")
+    m = config.model
+    if m.state_dim < 1 or m.action_dim < 1:
+        raise CheckpointError(f"{path} has model.state_dim={m.state_dim} and model.action_dim={m.action_dim}, but a run "
+                              f"records its dataset's (at least 1); {RESTORE_HINT}")
+    return config
+
+
+def first_save_step(config: RunConfig) -> int:
+    """The step of a run's first checkpoint."""
+    return min(config.train.save_every, config.train.steps)
 
 
 def load_policy(run_dir: Path, weights: str = "model.safetensors"):
@@ -174,22 +200,47 @@ def save_training_state(
     shutil.rmtree(old, ignore_errors=True)
 
 
+def checkpoint_dir(run_dir: Path) -> Path | None:
+    """The folder :func:`load_training_state` reads (``checkpoint/``, or ``.checkpoint.old`` after a crash
+    mid-swap), or None when the run has no checkpoint yet. Changes nothing on disk."""
+    for name in ("checkpoint", ".checkpoint.old"):
+        path = Path(run_dir) / name
+        if path.is_dir() and not path.is_symlink():
+            return path
+    return None
+
+
+def read_trainer_state(run_dir: Path) -> dict[str, Any] | None:
+    """The checkpoint's ``trainer_state.json`` (step, EMA step, the dataset it was trained on, ...) without
+    the tensors, or None when the run has no checkpoint yet. Changes nothing on disk."""
+    ckpt = checkpoint_dir(run_dir)
+    if ckpt is None:
+        return None
+    path = ckpt / "trainer_state.json"
+    try:
+        state = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise CheckpointError(f"{path} is unreadable ({exc}); start a new run") from None
+    if not isinstance(state, dict) or isinstance(state.get("step"), bool) or not isinstance(state.get("step"), int):
+        raise CheckpointError(f"{path} does not record the checkpoint's step; start a new run")
+    return state
+
+
 def load_training_state(run_dir: Path) -> dict[str, Any]:
     """Everything :func:`save_training_state` wrote, as tensors and JSON."""
-    ckpt = Path(run_dir) / "checkpoint"
     if Path(run_dir).is_dir():
         remove_partial_checkpoints(run_dir)
-    if not ckpt.is_dir() and (Path(run_dir) / ".checkpoint.old").is_dir():
-        ckpt = Path(run_dir) / ".checkpoint.old"  # a crash mid-swap: the previous checkpoint is complete
-    if not ckpt.is_dir():
+    ckpt = checkpoint_dir(run_dir)
+    if ckpt is None:
         raise CheckpointError(
-            f"{ckpt} is missing: nothing to resume in {run_dir}; start a new run (without --resume) in another --out"
+            f"{run_dir} has no checkpoint yet (it stopped before its first save): nothing to resume; "
+            "start it over with --force (without --resume)"
         )
     try:
         trainer_state = json.loads((ckpt / "trainer_state.json").read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise CheckpointError(f"{ckpt / 'trainer_state.json'} is unreadable ({exc}); start a new run") from None
-    groups = trainer_state.pop("param_groups")
+        groups = trainer_state.pop("param_groups")
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, AttributeError, KeyError, TypeError) as exc:
+        raise CheckpointError(f"{ckpt / 'trainer_state.json'} is unreadable ({exc!r}); start a new run") from None
     return {
         "model": load_tensors(ckpt / "model.safetensors"),
         "ema": load_tensors(ckpt / "ema.safetensors"),

@@ -13,6 +13,7 @@ import hashlib
 import math
 import os
 import time
+from collections.abc import Collection
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -23,11 +24,12 @@ import torch.distributed as dist
 
 from dssp_train.config import RunConfig
 from dssp_train.data.replay_buffer import ReplayBuffer
-from dssp_train.errors import ConfigError, DSSPError
+from dssp_train.errors import CheckpointError, ConfigError, DSSPError
 from dssp_train.model.policy import DSSPPolicy
 from dssp_train.training import checkpoint as ckpt
 from dssp_train.training.ema import EMA
 from dssp_train.training.lr_schedule import cosine_with_warmup
+from dssp_train.training.memory import check_memory
 from dssp_train.training.run_log import RunLog, plot_log
 
 VAL_SEED = 1234567
@@ -55,27 +57,80 @@ def split_episodes(n_episodes: int, val_ratio: float, seed: int) -> tuple[list[i
     return sorted(order[n_val:]), sorted(order[:n_val])
 
 
-def resolve_data_facts(config: RunConfig, data: ReplayBuffer, data_path: str, control_rate_hz: float | None) -> RunConfig:
-    """Fill the dimensions and control rate from the dataset; refuse what does not fit."""
+def resolve_data_facts(config: RunConfig, data: ReplayBuffer, data_path: str, control_rate_hz: float | None,
+                       *, resume: bool = False, user_set: Collection[str] = ()) -> RunConfig:
+    """Fill the dimensions and control rate from the dataset; refuse what does not fit.
+
+    ``control_rate_hz``: the rate the user gave (``--control-rate``); it must agree with the rate the dataset
+    records, if any. ``resume``: ``config`` is a run's own config, continued on ``data``: nothing in it is
+    replaced (its dataset path stays; a control rate it lacks may be filled in). ``user_set``: the
+    ``section.field`` names the user set (``--set``), refused when the dataset says otherwise.
+    """
     m = config.model
     if data.point_dim < m.point_dim:
         raise ConfigError(
             f"model.point_dim={m.point_dim} needs xyz+rgb clouds but {data_path} has {data.point_dim} channels per point; "
-            "use model.point_dim=3"
+            + ("--resume continues a run on the same --data it was trained on" if resume else "use model.point_dim=3")
         )
-    for name, have in (("state_dim", data.state_dim), ("action_dim", data.action_dim)):
+    for name, have, what in (("state_dim", data.state_dim, "state values"), ("action_dim", data.action_dim, "action values"),
+                             ("n_points", data.n_points, "points per cloud")):
         want = getattr(m, name)
-        if want and want != have:
-            raise ConfigError(f"model.{name}={want} but {data_path} has {have}; drop the override to use the dataset's")
-        setattr(m, name, have)
-    m.n_points = data.n_points
-    config.dataset = str(data_path)
-    if control_rate_hz is not None:
-        config.control_rate_hz = float(control_rate_hz)
-    elif data.control_rate_hz is not None:
-        config.control_rate_hz = float(data.control_rate_hz)
+        if want == have or (name != "n_points" and not want):
+            setattr(m, name, have)
+            continue
+        if resume:
+            raise ConfigError(f"the run's config has model.{name}={want} but {data_path} has {have} {what}: it was trained on "
+                              "other data; --resume continues it on the same --data")
+        if name != "n_points" or f"model.{name}" in user_set:
+            raise ConfigError(f"--set model.{name}={want} but {data_path} has {have} {what}; drop the override to use the dataset's")
+        setattr(m, name, have)  # the preset's cloud size: the dataset's is used
+    if not resume or config.dataset is None:
+        config.dataset = str(data_path)
+    recorded = data.control_rate_hz
+    if control_rate_hz is not None and recorded is not None and not math.isclose(control_rate_hz, recorded, rel_tol=1e-9):
+        raise ConfigError(f"--control-rate {control_rate_hz:g} Hz contradicts the {recorded:g} Hz that {data_path} records; "
+                          "drop --control-rate (the recorded rate is used)")
+    rate = control_rate_hz if control_rate_hz is not None else recorded
+    if resume and config.control_rate_hz is not None:  # the run's rate stays; a contradiction is refused
+        if rate is not None and not math.isclose(rate, config.control_rate_hz, rel_tol=1e-9):
+            if control_rate_hz is not None:
+                raise ConfigError(f"--control-rate {rate:g} Hz contradicts the run's control rate of "
+                                  f"{config.control_rate_hz:g} Hz; drop --control-rate")
+            raise ConfigError(f"{data_path} now records {rate:g} Hz but the run was trained at {config.control_rate_hz:g} Hz: "
+                              "the dataset changed since; start a new run (--force, or another --out)")
+    elif rate is not None:
+        config.control_rate_hz = float(rate)
     RunConfig.from_dict(config.to_dict())  # re-validate
     return config
+
+
+def dataset_identity(data: ReplayBuffer, data_path: str | os.PathLike) -> dict[str, Any]:
+    """What a checkpoint records of its dataset: the resolved path, episode count, steps and a digest of the
+    episode boundaries (cheap, and changes when episodes are added, removed or cut)."""
+    ends = np.asarray(data.episode_ends, dtype=np.int64)
+    return {
+        "path": os.path.realpath(data_path),
+        "n_episodes": int(data.n_episodes),
+        "n_steps": int(data.n_steps),
+        "episode_ends_sha256": hashlib.sha256(ends.tobytes()).hexdigest(),
+    }
+
+
+def check_resume_data(run_dir: Path, config: RunConfig, data: ReplayBuffer, data_path: str | os.PathLike) -> None:
+    """Refuse to continue a run on another dataset than the one it was trained on (or on one that changed)."""
+    state = ckpt.read_trainer_state(run_dir) or {}
+    recorded = state.get("dataset") if isinstance(state.get("dataset"), dict) else None
+    trained_on = (recorded or {}).get("path") or config.dataset
+    if trained_on is not None and os.path.realpath(trained_on) != os.path.realpath(data_path):
+        raise ConfigError(f"{run_dir} was trained on {trained_on}; --resume continues it on the same --data (got {data_path})")
+    if recorded is not None:
+        now = dataset_identity(data, data_path)
+        if any(recorded.get(k) != now[k] for k in ("n_episodes", "n_steps", "episode_ends_sha256")):
+            raise ConfigError(
+                f"{data_path} changed since {run_dir} was trained on it ({recorded.get('n_episodes')} episodes, "
+                f"{recorded.get('n_steps')} steps then; {now['n_episodes']} episodes, {now['n_steps']} steps now): "
+                "its held-out episodes would not be the same; start a new run (--force, or another --out)"
+            )
 
 
 class Trainer:
@@ -88,6 +143,7 @@ class Trainer:
         resume: bool = False,
         progress: bool = True,
         control_rate_hz: float | None = None,
+        user_set: Collection[str] = (),
     ):
         self.world_size = int(os.environ.get("WORLD_SIZE", "1"))
         self.rank = int(os.environ.get("RANK", "0"))
@@ -104,7 +160,11 @@ class Trainer:
 
         self.data = ReplayBuffer.load(data_path)
         # On --resume the caller passes the run's own config (dssp-train does).
-        self.config = config = resolve_data_facts(config, self.data, str(data_path), control_rate_hz)
+        if resume:
+            check_resume_data(self.run_dir, config, self.data, data_path)
+        self.config = config = resolve_data_facts(config, self.data, str(data_path), control_rate_hz,
+                                                  resume=resume, user_set=user_set)
+        self.dataset_identity = dataset_identity(self.data, data_path)
         tc = config.train
 
         self.train_ids, self.val_ids = split_episodes(self.data.n_episodes, tc.val_ratio, tc.seed)
@@ -113,6 +173,7 @@ class Trainer:
         self.train_eps = [self._episode(i) for i in self.train_ids]
         self.val_eps = [self._episode(i) for i in self.val_ids] or self.train_eps
         self.val_on_train = not self.val_ids
+        check_memory(config, max(ep.length for ep in self.train_eps), self.device)
 
         torch.manual_seed(tc.seed)
         self.policy = DSSPPolicy(config.model)
@@ -130,7 +191,7 @@ class Trainer:
         )
         self.lr_schedule = cosine_with_warmup(self.optimizer, tc.warmup_steps, tc.steps)
         self.ema = EMA(self.policy, tc.ema_power, tc.ema_max_decay)
-        self.generator = torch.Generator().manual_seed(tc.seed * 1000 + self.rank)
+        self.generator = torch.Generator().manual_seed((tc.seed * 1000 + self.rank) % 2**64)
         self.step = 0
         if resume:
             self._restore()
@@ -266,7 +327,7 @@ class Trainer:
             self.policy,
             self.ema.model,
             self.optimizer,
-            {"step": self.step, "ema_step": self.ema.step, "world_size": self.world_size},
+            {"step": self.step, "ema_step": self.ema.step, "world_size": self.world_size, "dataset": self.dataset_identity},
             {"generator": self.generator.get_state(), "torch": torch.get_rng_state()},
         )
 
@@ -279,8 +340,14 @@ class Trainer:
             self.optimizer.load_state_dict(state["optimizer"])
         except (ValueError, KeyError, RuntimeError) as exc:
             raise DSSPError(f"{where / 'optimizer.safetensors'} does not fit this model ({exc}); start a new run") from None
-        self.step = int(state["trainer_state"]["step"])
-        self.ema.step = int(state["trainer_state"]["ema_step"])
+        try:
+            self.step = int(state["trainer_state"]["step"])
+            self.ema.step = int(state["trainer_state"]["ema_step"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise CheckpointError(f"{where / 'trainer_state.json'} lacks the step ({exc!r}); start a new run") from None
+        if self.step > self.config.train.steps:
+            raise ConfigError(f"train.steps={self.config.train.steps} is below the checkpoint's step {self.step}; "
+                              "continue with a larger --steps")
         self.lr_schedule.last_epoch = self.step
         for group, factor in zip(self.optimizer.param_groups, self.lr_schedule.lr_lambdas):
             group["lr"] = group["initial_lr"] * factor(self.step)
