@@ -339,7 +339,7 @@ def test_output_path_rules(tmp_path, capsys):
     fast = ["--format", "onnx", "--skip-verify"]
     (tmp_path / "a_file").write_text("x")
     assert export_main([str(run), "-o", str(tmp_path / "a_file" / "model"), *fast]) == 2
-    assert "cannot write to" in one_error_line(capsys.readouterr().err)
+    assert "is a file, not a folder" in one_error_line(capsys.readouterr().err)
 
     other = tmp_path / "other"
     other.mkdir()
