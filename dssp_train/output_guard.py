@@ -80,6 +80,17 @@ class OutputError(DSSPError):
     """An output path holds something the command may not replace."""
 
 
+def _entries(path: str | os.PathLike) -> list[str] | None:
+    """The names in the real directory ``path``; None for a symlink, a non-directory or an unreadable one."""
+    path = Path(path)
+    if path.is_symlink() or not path.is_dir():
+        return None
+    try:
+        return os.listdir(path)
+    except OSError:
+        return None
+
+
 @dataclass(frozen=True)
 class OutputKind:
     """What a command writes at an output path, and how to recognise it later.
@@ -112,14 +123,8 @@ class OutputKind:
 
     def owns_companion(self, path: Path) -> bool:
         """True when ``path`` (the companion directory) holds nothing but names the command writes there."""
-        path = Path(path)
-        if path.is_symlink() or not path.is_dir():
-            return False
-        try:
-            names = os.listdir(path)
-        except OSError:
-            return False
-        return all(any(fnmatch.fnmatchcase(n, p) for p in self.companion_entries) for n in names)
+        names = _entries(path)
+        return names is not None and all(any(fnmatch.fnmatchcase(n, p) for p in self.companion_entries) for n in names)
 
     def marked(self, path: Path) -> bool:
         """True when ``path``'s marker names this command and kind."""
@@ -140,12 +145,8 @@ class OutputKind:
 
     def owns(self, path: Path) -> bool:
         """True when ``path`` is a directory this command wrote and holds nothing else."""
-        path = Path(path)
-        if path.is_symlink() or not path.is_dir():
-            return False
-        try:
-            names = os.listdir(path)
-        except OSError:
+        names = _entries(path)
+        if names is None:
             return False
         if not (self.marked(path) or (self.signature is not None and _safe(self.signature, path))):
             return False
@@ -166,15 +167,10 @@ def _safe(check: Callable[[Path], bool], path: Path) -> bool:
 
 def _found(path: Path, kind: OutputKind) -> str:
     """NEW, OWN, or "foreign" (anything that may not be touched)."""
-    if path.is_symlink():
-        return "foreign"
-    if not path.exists():
+    if not path.exists() and not path.is_symlink():
         return NEW
-    if not path.is_dir():
-        return "foreign"
-    try:
-        names = os.listdir(path)
-    except OSError:
+    names = _entries(path)
+    if names is None:
         return "foreign"
     if all(name == MARKER for name in names):
         return NEW

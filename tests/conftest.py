@@ -78,3 +78,22 @@ def arm_export(tmp_path_factory):
 def dual_arm_export(tmp_path_factory):
     """The same for the two-arm platform (state = action = 14, RoboTwin order)."""
     return _arm_export(tmp_path_factory, 2)
+
+
+def snapshot(root):
+    """Every path under ``root`` with what it is: a folder, a link and its target, or a file's sha256."""
+    import hashlib
+    from pathlib import Path
+
+    found = {}
+    for folder, dirs, files in os.walk(root, followlinks=False):
+        for name in dirs + files:
+            path = Path(folder, name)
+            rel = str(path.relative_to(root))
+            if path.is_symlink():
+                found[rel] = "link:" + os.readlink(path)
+            elif path.is_dir():
+                found[rel] = "dir"
+            else:
+                found[rel] = hashlib.sha256(path.read_bytes()).hexdigest()
+    return found

@@ -5,7 +5,6 @@ one; ``info | head`` ends quietly; a negative seed is refused."""
 
 from __future__ import annotations
 
-import hashlib
 import os
 import shutil
 import signal
@@ -16,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import snapshot
 
 from dssp_train.cli.data import main as data_main
 from dssp_train.data.recording import can_log_dir
@@ -25,22 +25,6 @@ from dssp_train.data.synthetic import write_tap_count_dataset
 ROOT = Path(__file__).resolve().parents[1]
 DP3 = ROOT / "tests" / "fixtures" / "dp3_zarr2_tiny.zarr"
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
-
-
-def snapshot(root: Path) -> dict[str, str]:
-    """Every path under ``root`` with what it is: a folder, a link and its target, or a file's sha256."""
-    found = {}
-    for folder, dirs, files in os.walk(root, followlinks=False):
-        for name in dirs + files:
-            path = Path(folder, name)
-            rel = str(path.relative_to(root))
-            if path.is_symlink():
-                found[rel] = "link:" + os.readlink(path)
-            elif path.is_dir():
-                found[rel] = "dir"
-            else:
-                found[rel] = hashlib.sha256(path.read_bytes()).hexdigest()
-    return found
 
 
 def run(capsys, *argv):
