@@ -2,7 +2,7 @@
 
     python benchmarks/pointcloud_time.py [--repeats 100] [--color] [--json PATH [--force]]
 
-Frames come from the simulated tabletop camera's renderer (``hardware.camera.sim``: table, boxes, 1 mm
+Frames come from the simulated tabletop camera's renderer (``hardware.camera.tabletop``: table, boxes, 1 mm
 depth noise, 0.2 % invalid pixels; a new noise draw per frame), seen from the simulated camera pose, and
 go through ``hardware.pointcloud.frame_to_cloud`` with the default ``PointCloudConfig``. Prints the
 config and a Markdown table of p50 / p95 milliseconds per stage and in total over the repeats (after a
@@ -21,9 +21,9 @@ import time
 import numpy as np
 
 from hardware.camera.base import DepthFrame
-from dssp_train.cli.common import run_cli
-from dssp_train.output_guard import check_output_file, write_output_text
-from hardware.camera.sim import SimCamera
+from dssp_data.cli_runner import run_cli
+from dssp_data.output_guard import check_output_file, write_output_text
+from hardware.camera.tabletop import SimCamera
 from hardware.pointcloud import PointCloudConfig, frame_to_cloud
 from hardware.pointcloud.pipeline import STAGES
 

@@ -24,8 +24,8 @@ from dssp_train.model.history_encoder import HistoryEncoder
 from dssp_train.model.policy import DSSPPolicy
 from dssp_train.training.ema import EMA
 from dssp_deploy.latency import time_calls
-from dssp_train.cli.common import run_cli
-from dssp_train.output_guard import check_output_file, write_output_text
+from dssp_data.cli_runner import run_cli
+from dssp_data.output_guard import check_output_file, write_output_text
 
 
 def train_step_fn(preset: str, length: int, state_dim: int, action_dim: int):

@@ -1,11 +1,11 @@
 """Reading ``dssp_model.json`` — what a model directory holds and how to run it — without torch.
 
-``export.to_onnx`` writes the manifest (``export/manifest.py``) with the names, constants and graph
+``export.to_onnx`` writes the manifest (``export/manifest_writer.py``) with the names, constants and graph
 interface defined here; this module reads it and trusts nothing in it unchecked. :func:`read_manifest`
 (the one reader: the runtime, ``dssp-run``, ``dssp-profile``, the simulation and ``export.verify`` all
 use it) refuses, with one :class:`ModelDirError` line naming the field, its value and what to do:
 - a scalar fact of the wrong type or out of range (:class:`ManifestFacts`, :class:`ModelFacts`,
-  :class:`SourceFacts`: strict types from :mod:`dssp_train.schema`);
+  :class:`SourceFacts`: strict types from :mod:`dssp_data.schema`);
 - facts that contradict each other: H_a > H, K DDIM timesteps for another K, ``model_config`` against the
   top-level facts, ``history_state`` against the history layers;
 - graph inputs/outputs other than the interface the facts give (:func:`graph_io`), normalisers of the wrong
@@ -32,9 +32,9 @@ from dataclasses import dataclass
 from pathlib import Path, PurePosixPath, PureWindowsPath
 from typing import Any, ClassVar
 
-from dssp_train.config import MAX_DIM, MAX_LAYERS, MAX_RATE_HZ, MAX_STEPS, MAX_WIDTH
-from dssp_train.errors import ConfigError, DSSPError
-from dssp_train.schema import Settings, Spec, check_value, parse_json, setting
+from dssp_data.schema import MAX_DIM, MAX_LAYERS, MAX_RATE_HZ, MAX_STEPS, MAX_WIDTH
+from dssp_data.errors import ConfigError, DSSPError
+from dssp_data.schema import Settings, Spec, check_value, parse_json, setting
 
 FORMAT_VERSION = "1"
 KIND = "dssp-model"

@@ -39,8 +39,8 @@ from dssp_deploy.latency import (
 )
 from dssp_deploy.manifest import DENOISER_GRAPH, HISTORY_GRAPH, PRECISIONS, ModelDirError, graph_file, read_graph
 from dssp_deploy.op_breakdown import elementwise_share, op_type_breakdown
-from dssp_deploy.policy import OnnxPolicy
-from dssp_train.cli.common import ArgumentParser
+from dssp_deploy.onnx_policy import OnnxPolicy
+from dssp_data.cli_runner import ArgumentParser
 
 FULL = {"iterations": 300, "chunk_iterations": 100, "torch_iterations": 30, "sweep": [10, 100, 1000, 3000, 10000], "window": 50, "transformer_max": 3000}
 QUICK = {"iterations": 20, "chunk_iterations": 5, "torch_iterations": 5, "sweep": [10, 100, 300], "window": 10, "transformer_max": 300}
@@ -337,14 +337,14 @@ def plot(report: dict[str, Any], path: Path, force: bool = False) -> None:
     ax2.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     ax2.legend()
     fig.tight_layout()
-    from dssp_train.output_guard import write_output_file
+    from dssp_data.output_guard import write_output_file
 
     write_output_file(path, lambda tmp: fig.savefig(tmp, format="png", dpi=100), force=force, flag="--plot")
     plt.close(fig)
 
 
 def main(argv: list[str] | None = None) -> int:
-    from dssp_train.cli.common import run_cli
+    from dssp_data.cli_runner import run_cli
 
     p = ArgumentParser(prog="dssp-profile", description="CPU latency and memory of an exported DSSP model.")
     p.add_argument("model_dir", type=Path)
@@ -360,7 +360,7 @@ def main(argv: list[str] | None = None) -> int:
 
     def _main() -> int:
         from dssp_deploy.sessions import check_threads
-        from dssp_train.output_guard import check_output_file, write_output_text
+        from dssp_data.output_guard import check_output_file, write_output_text
 
         check_threads(args.threads)
         if args.checkpoint is not None:  # before minutes of profiling

@@ -9,7 +9,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from dssp_train.errors import ConfigError
+from dssp_data.errors import ConfigError
 
 
 def default_threads() -> int:

@@ -1,6 +1,6 @@
 """Expert demonstrations in the simulation, written as a DP3 zarr dataset the trainer reads.
 
-Per control tick (10 Hz): the env is rendered through :class:`~dssp_sim.sim_camera.MujocoCamera` and the
+Per control tick (10 Hz): the env is rendered through :class:`~dssp_sim.mujoco_camera.MujocoCamera` and the
 point-cloud pipeline (``hardware.pointcloud``, the one the robot runs) into point_cloud (P, 3); the
 measured arm state (7,) [J1..J6 rad, gripper opening 0..1] is ``state``; the expert's target for this
 tick (7,), the command sent to the arm, is ``action``. Only successful episodes are kept; each kept
@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from dssp_sim.settings import cloud_config_for, sim_attrs
-from dssp_sim.sim_camera import MujocoCamera
+from dssp_sim.mujoco_camera import MujocoCamera
 from hardware.pointcloud import frame_to_cloud
 
 
@@ -52,7 +52,7 @@ def expert_episode(env, expert, camera: MujocoCamera, cloud_config, seed: int):
 
 def check_collect_output(out: Path, task: str) -> None:
     """Refuse an ``out`` that is neither new nor a dataset of ``task`` written by ``dssp-sim collect``."""
-    from dssp_train.output_guard import OWN, SIM_DATASET, OutputError, check_append, zarr_attrs
+    from dssp_data.output_guard import OWN, SIM_DATASET, OutputError, check_append, zarr_attrs
 
     if check_append(out, kind=SIM_DATASET, flag="--out") == OWN:
         have = (zarr_attrs(out) or {}).get("task")
@@ -64,7 +64,7 @@ def check_collect_output(out: Path, task: str) -> None:
 def first_seed(out: Path, seed: int | None) -> int:
     """The scene seed to start from: ``seed``, else 0 for a new dataset, else the one after the last episode
     tried in ``out`` (its ``next_seed`` attribute), so appending never repeats a demonstration."""
-    from dssp_train.output_guard import OutputError, zarr_attrs
+    from dssp_data.output_guard import OutputError, zarr_attrs
 
     if seed is not None:
         if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
@@ -90,7 +90,7 @@ def collect(task: str, n_episodes: int, out: Path, seed: int | None = None, n_po
     seed = first_seed(out, seed)
     from dssp_sim.env import PiperEnv
     from dssp_sim.experts import make_expert
-    from dssp_train.data.replay_buffer import Episode, ReplayBufferWriter
+    from dssp_data.replay_buffer import Episode, ReplayBufferWriter
 
     max_attempts = max_attempts or 2 * n_episodes + 5
     env = PiperEnv(task, seed=seed)

@@ -12,7 +12,7 @@
 5. print the success rates (95 % Wilson intervals) and DSSP's control-loop latency table.
 ``results.json`` in ``--out`` holds every figure. ``--out`` must be new or empty; a previous demo there is
 replaced only with ``--force`` (moved aside while the new one runs, deleted when it is complete, put back
-if it fails); anything else there is never touched (:mod:`dssp_train.output_guard`).
+if it fails); anything else there is never touched (:mod:`dssp_data.output_guard`).
 """
 
 from __future__ import annotations
@@ -21,9 +21,9 @@ import json
 import time
 from pathlib import Path
 
-from dssp_train.atomic import atomic_write_text
-from dssp_train.errors import DSSPError
-from dssp_train.output_guard import OutputDir, OutputKind
+from dssp_data.files import atomic_write_text
+from dssp_data.errors import DSSPError
+from dssp_data.output_guard import OutputDir, OutputKind
 
 TASK = "tap"
 VARIANTS = {"dssp": ("DSSP (full history)", []), "reactive": ("reactive baseline (no history)", ["--no-history"])}
@@ -41,7 +41,7 @@ def run_demo(out: Path, steps: int = 3000, demos: int = 50, episodes: int = 20, 
 
 
 def _run_demo(out: Path, steps: int, demos: int, episodes: int, seed: int) -> dict:
-    from dssp_sim.cli import print_latency
+    from dssp_sim.evaluate import print_latency
     from dssp_sim.collect import collect
     from dssp_sim.evaluate import evaluate
     from dssp_train.cli.train import main as train_main

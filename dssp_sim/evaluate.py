@@ -3,10 +3,10 @@
     result = evaluate("models/tap", "tap", n_episodes=20, seed=1000)
 
 Each episode: the MuJoCo env is reset with its seed; its depth render goes through the RealSense software
-device and the point-cloud pipeline (:class:`~dssp_sim.sim_camera.MujocoCamera`, ``hardware.pointcloud``);
+device and the point-cloud pipeline (:class:`~dssp_sim.mujoco_camera.MujocoCamera`, ``hardware.pointcloud``);
 the runtime (``dssp_deploy.OnnxPolicy``) runs the control loop of ``dssp-run`` (``hardware.run_loop.Runner``:
 the history every tick, a chunk every H_a ticks, the safety layer); commands go as Piper CAN frames on a
-python-can ``virtual`` bus to :class:`~dssp_sim.sim_arm.MujocoPiper`, which moves the MuJoCo arm.
+python-can ``virtual`` bus to :class:`~dssp_sim.mujoco_arm.MujocoPiper`, which moves the MuJoCo arm.
 
 The loop runs in lockstep with simulated time: each tick advances the physics one control period, then
 renders, then runs the policy. The simulation waits for the policy, so the safety layer's deadline rule
@@ -29,9 +29,9 @@ from pathlib import Path
 import numpy as np
 
 from dssp_sim.settings import cloud_config_for
-from dssp_sim.sim_arm import MujocoPiper
-from dssp_sim.sim_camera import MujocoCamera
-from dssp_train.output_guard import OutputKind
+from dssp_sim.mujoco_arm import MujocoPiper
+from dssp_sim.mujoco_camera import MujocoCamera
+from dssp_data.output_guard import OutputKind
 from hardware.safety import SafetyConfig
 
 # Lockstep: inputs are fresh by construction; generous timeouts only catch a stalled bridge.
@@ -128,7 +128,7 @@ def run_episode(policy, env, seed: int, cloud_config, frames: list | None = None
     (cloud, observe, chunk, tick), when given."""
     from hardware.piper.arm import PiperArm
     from hardware.piper.limits import JointLimits
-    from hardware.piper.robot import PiperRobot
+    from hardware.piper.piper_robot import PiperRobot
     from hardware.run_loop import LoopSettings, Runner
 
     env.reset(seed=seed)
@@ -189,7 +189,7 @@ STRIPS_DIR = OutputKind("a folder of episode strips", "dssp-sim eval", entries=(
 def evaluate(model_dir: Path, task: str, n_episodes: int, seed: int = 1000, threads: int | None = None,
              state_token_noise: float = 0.0, strips_dir: Path | None = None, progress: bool = True) -> EvalResult:
     """Evaluate a model directory on ``task`` for ``n_episodes`` seeded episodes (seeds seed, seed+1, ...)."""
-    from dssp_deploy.policy import OnnxPolicy
+    from dssp_deploy.onnx_policy import OnnxPolicy
     from dssp_sim.env import PiperEnv
 
     policy = OnnxPolicy(model_dir, threads=threads)
@@ -227,3 +227,31 @@ def evaluate(model_dir: Path, task: str, n_episodes: int, seed: int = 1000, thre
     }
     result.latency_ms["episode_wall_s_p50"] = float(np.median(wall)) if wall else None
     return result
+
+
+def print_eval(result) -> None:
+    lo, hi = result.interval()
+    print(f"\n{result.task}: success {result.successes}/{len(result.episodes)} = {100 * result.success_rate:.0f} % "
+          f"(95 % Wilson interval {100 * lo:.0f}–{100 * hi:.0f} %)" + (f", state-token noise σ={result.state_token_noise:g}" if result.state_token_noise else ""))
+    print("| seed | outcome | steps | detail | holds |")
+    print("|---:|---|---:|---|---:|")
+    for e in result.episodes:
+        detail = ", ".join(f"{k}={v}" for k, v in e.info.items() if isinstance(v, (int, float, str, bool)))
+        print(f"| {e.seed} | {'success' if e.success else e.reason} | {e.steps} | {detail} | {e.holds} |")
+    if result.reasons():
+        print("failures: " + ", ".join(f"{k} × {v}" for k, v in result.reasons().most_common()))
+    print_latency(result.latency_ms)
+
+
+def print_latency(lat: dict) -> None:
+    """The control loop's latencies over every tick of the evaluation (ms)."""
+    labels = {"cloud": "point cloud (pipeline)", "observe": "history step (ORT)", "chunk": "denoiser chunk (ORT)",
+              "tick": "whole tick (cloud + policy + safety + CAN)"}
+    print("\n| stage | p50 ms | p95 ms | max ms | ticks |")
+    print("|---|---:|---:|---:|---:|")
+    for key, label in labels.items():
+        s = lat.get(key)
+        if s:
+            print(f"| {label} | {s['p50']:.2f} | {s['p95']:.2f} | {s['max']:.2f} | {s['n']} |")
+    if lat.get("episode_wall_s_p50") is not None:
+        print(f"one episode takes {lat['episode_wall_s_p50']:.1f} s (p50; lockstep with simulated time)")

@@ -13,7 +13,7 @@ study resumes where it stopped, and ``--tasks`` splits it across processes or ma
 (a last run without ``--tasks`` finds every stage done and writes the whole report). The report — ``REPORT_NAME.md`` (tables), ``.png`` (plot) and ``.json``
 (every figure) — is written to ``--report``. The plan is data (:data:`PLAN`, :data:`QUICK_PLAN`).
 
-Outputs (:mod:`dssp_train.output_guard`): ``--work`` must be new, empty or a work directory of this study
+Outputs (:mod:`dssp_data.output_guard`): ``--work`` must be new, empty or a work directory of this study
 (marked ``.dssp-output.json``), which is continued; anything else is refused before any stage runs. The
 report's three files are written beside whatever else ``--report`` holds; existing ones are replaced only
 with ``--force``, checked before the study starts.
@@ -29,9 +29,9 @@ import time
 from pathlib import Path
 
 from dssp_sim.evaluate import wilson_interval
-from dssp_train.atomic import atomic_write_text
-from dssp_train.cli.common import ArgumentParser
-from dssp_train.output_guard import (
+from dssp_data.files import atomic_write_text
+from dssp_data.cli_runner import ArgumentParser
+from dssp_data.output_guard import (
     OutputKind,
     check_output_files,
     claim_dir,
@@ -103,7 +103,7 @@ def run_study(work: Path, plan: dict, threads: int | None = None, tasks: list[st
             continue
         print(f"{task}:")
         data = work / "data" / f"{task}.zarr"
-        _stage(data / "meta", f"collect {n_demos} demos", [py, "-m", "dssp_sim.cli", "collect", "--task", task, "--episodes",
+        _stage(data / "meta", f"collect {n_demos} demos", [py, "-m", "dssp_sim.sim_cli", "collect", "--task", task, "--episodes",
                str(n_demos), "--out", str(data), "--no-progress"], work / "logs" / f"collect_{task}.log")
         for seed in plan["seeds"][task]:
             for variant, flags in plan["variants"].items():
@@ -128,7 +128,7 @@ def run_study(work: Path, plan: dict, threads: int | None = None, tasks: list[st
 def _evaluate(work: Path, model_dir: Path, task: str, plan: dict, name: str, sigma: float, threads: int | None) -> dict:
     suffix = f"_noise{sigma:g}" if sigma else ""
     out = work / "evals" / f"{name}{suffix}.json"
-    cmd = [sys.executable, "-m", "dssp_sim.cli", "eval", "--model", str(model_dir), "--task", task, "--episodes",
+    cmd = [sys.executable, "-m", "dssp_sim.sim_cli", "eval", "--model", str(model_dir), "--task", task, "--episodes",
            str(plan["eval_episodes"]), "--seed", str(plan["eval_seed"]), "--noise", str(sigma), "--json", str(out), "--no-progress"]
     if threads:
         cmd += ["--threads", str(threads)]
@@ -270,7 +270,7 @@ def main(argv: list[str] | None = None) -> int:
         print(md.read_text())
         return 0
 
-    from dssp_train.cli.common import run_cli
+    from dssp_data.cli_runner import run_cli
 
     return run_cli(_main)
 

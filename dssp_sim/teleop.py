@@ -5,9 +5,9 @@ What ``dssp-record --camera sim --can sim`` records from, with no hardware:
 - one python-can ``virtual`` bus shared, as on the real platform, by a leader and a follower;
 - the leader is a :class:`~hardware.leader.ScriptedLeader` played by the task's scripted expert
   (``dssp_sim.experts``): each tick it sends the expert's target (0x151, 0x155..0x157, 0x159);
-- the follower is :class:`~dssp_sim.sim_arm.MujocoPiper` (powered on at start as a follower arm would
+- the follower is :class:`~dssp_sim.mujoco_arm.MujocoPiper` (powered on at start as a follower arm would
   be), which obeys those frames with MuJoCo physics and sends its feedback;
-- the camera is :class:`~dssp_sim.sim_camera.MujocoCamera` (depth through the RealSense software device).
+- the camera is :class:`~dssp_sim.mujoco_camera.MujocoCamera` (depth through the RealSense software device).
 
 Time is simulated (:class:`SimClock`): per tick the session calls ``before_tick()`` (the leader sends its
 command at time t), samples every stream at t, then ``after_tick(dt)`` (the clock moves to t + dt, the
@@ -24,8 +24,8 @@ import numpy as np
 
 from dssp_sim.env import PiperEnv
 from dssp_sim.experts import make_expert
-from dssp_sim.sim_arm import MujocoPiper
-from dssp_sim.sim_camera import MujocoCamera
+from dssp_sim.mujoco_arm import MujocoPiper
+from dssp_sim.mujoco_camera import MujocoCamera
 from hardware.leader import ScriptedLeader
 from hardware.piper import codec
 
@@ -138,3 +138,30 @@ class TeleopRig:
 
     def freeze_camera(self, frozen: bool = True) -> None:
         self.camera_frozen = bool(frozen)
+
+
+class TeleopRigs:
+    """The simulation as ``dssp-record``'s :class:`~hardware.cli.record.SimulatedRig`: its point-cloud
+    settings and a :class:`TeleopRig` per session."""
+
+    def default_cloud_config(self):
+        from dssp_sim.settings import cloud_config_for
+
+        return cloud_config_for()
+
+    def open(self, task: str, seed: int) -> TeleopRig:
+        from dssp_data.errors import ConfigError
+        from dssp_sim.tasks import make_task
+
+        try:
+            make_task(task)
+        except (KeyError, ValueError):
+            raise ConfigError(f"--task-name {task!r} is not a simulated task: use tap, swap or put2") from None
+        return TeleopRig(task, seed=seed)
+
+
+def record_main(argv: list[str] | None = None) -> int:
+    """``dssp-sim record``: ``dssp-record`` on the simulated rig (``--camera sim --can sim`` by default)."""
+    from hardware.cli.record import main
+
+    return main(argv, sim=TeleopRigs(), prog="dssp-sim record")

@@ -12,15 +12,10 @@ from dataclasses import dataclass
 from importlib import resources
 from typing import ClassVar
 
-from dssp_train.errors import ConfigError
-from dssp_train.schema import Settings, parse_json, setting
+from dssp_data.errors import ConfigError
+from dssp_data.schema import MAX_DIM, MAX_LAYERS, MAX_RATE_HZ, MAX_STEPS, MAX_WIDTH, Settings, parse_json, setting
 
 HISTORY_BACKBONES = ("mamba", "transformer")
-MAX_DIM = 4096  # state / action channels
-MAX_WIDTH = 65536
-MAX_LAYERS = 256
-MAX_STEPS = 4096  # N, H, H_a
-MAX_RATE_HZ = 1000.0  # control rate: the Piper's CAN feedback arrives at 200 Hz
 
 
 def _require(cond: bool, message: str) -> None:

@@ -9,8 +9,8 @@ Modules: ``graphs`` (the torch modules that are traced), ``to_onnx`` (the export
 The names below import lazily, so ``import export`` does not import torch.
 """
 
-from export.errors import ExportError, ParityError
-from export.manifest import FORMAT_VERSION, MANIFEST_NAME, read_manifest
+from dssp_data.errors import ExportError, ParityError
+from export.manifest_writer import FORMAT_VERSION, MANIFEST_NAME, read_manifest
 
 __all__ = ["ExportError", "FORMAT_VERSION", "MANIFEST_NAME", "ParityError", "export_model", "read_manifest", "verify_model"]
 

@@ -35,7 +35,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from dssp_train.errors import ConfigError
+from dssp_data.errors import ConfigError
 from dssp_train.model.denoiser import modulate
 from dssp_train.model.mamba import Mamba, MambaState
 from dssp_train.model.policy import DSSPPolicy

@@ -10,7 +10,7 @@ chunk (``denoiser``, K DDIM steps inside). MODEL_DIR gets::
     history_step.onnx, denoiser.onnx     fp32 graphs (--format onnx|both)
     history_step.pt, denoiser.pt         the same traced modules as TorchScript archives (--format torchscript|both)
     *.int8.onnx                          int8 graphs (--quantize int8)
-    dssp_model.json                      the manifest (see export.manifest): graph inputs/outputs, N, H, H_a, K, DDIM
+    dssp_model.json                      the manifest (see export.manifest_writer): graph inputs/outputs, N, H, H_a, K, DDIM
                                          timesteps, normalisers, control rate, source (run name, weights file,
                                          sha256, step, EMA or raw; no path), file sizes and sha256, versions,
                                          parity figures
@@ -35,9 +35,9 @@ from pathlib import Path
 from typing import Any
 
 from dssp_deploy.sessions import check_threads
-from dssp_train.cli.common import ArgumentParser, run_cli
-from export.errors import ExportError, ParityError
-from export.manifest import (
+from dssp_data.cli_runner import ArgumentParser, run_cli
+from dssp_data.errors import ExportError, ParityError
+from export.manifest_writer import (
     DENOISER_GRAPH,
     GRAPHS,
     HISTORY_GRAPH,

@@ -36,8 +36,8 @@ def load_trajectory(config: RunConfig, normalizers: dict, steps: int, seed: int 
         path = Path(config.dataset)
         reason = f"dataset {path} not found"
         if path.exists():
-            from dssp_train.data.replay_buffer import ReplayBuffer
-            from dssp_train.errors import DSSPError
+            from dssp_data.replay_buffer import ReplayBuffer
+            from dssp_data.errors import DSSPError
 
             try:
                 data = ReplayBuffer.load(path)

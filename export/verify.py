@@ -4,7 +4,7 @@
 
 Streams one trajectory (the run's dataset when it is long enough, else synthetic; see
 :mod:`export.trajectory`) one control tick at a time through ONNX Runtime (the robot's runtime,
-``dssp_deploy.policy.OnnxPolicy``), TorchScript and the PyTorch streaming API (:class:`dssp_train.model.streaming.StreamingPolicy`), each keeping its own recurrent state,
+``dssp_deploy.onnx_policy.OnnxPolicy``), TorchScript and the PyTorch streaming API (:class:`dssp_train.model.streaming.StreamingPolicy`), each keeping its own recurrent state,
 and asks for an action chunk every H_a ticks with identical noise, as the runtime will. Reported: the
 max abs error against PyTorch of ``z_t``, ``c_t``, the history state and the action chunks, and of the
 streamed ``c_t`` against the training (sequence) path ``policy.history_encoder(z)`` over the whole
@@ -37,10 +37,10 @@ import numpy as np
 
 from dssp_deploy.manifest import read_graph
 from dssp_deploy.sessions import check_threads, default_threads, open_session
-from dssp_train.cli.common import ArgumentParser, run_cli
-from dssp_train.output_guard import check_output_file, write_output_text
-from export.errors import ExportError, ParityError
-from export.manifest import DENOISER_GRAPH, HISTORY_GRAPH, read_manifest
+from dssp_data.cli_runner import ArgumentParser, run_cli
+from dssp_data.output_guard import check_output_file, write_output_text
+from dssp_data.errors import ExportError, ParityError
+from export.manifest_writer import DENOISER_GRAPH, HISTORY_GRAPH, read_manifest
 
 BOUND = 1e-4
 MAX_FLAGGED = 8
@@ -92,14 +92,14 @@ class GraphStream:
 
 
 class RuntimeStream:
-    """The robot's runtime, :class:`dssp_deploy.policy.OnnxPolicy`, with the interface of :class:`GraphStream`.
+    """The robot's runtime, :class:`dssp_deploy.onnx_policy.OnnxPolicy`, with the interface of :class:`GraphStream`.
 
     The fp32 ONNX graphs are checked through it, so parity covers the runtime's state handling too.
     observe: point_cloud (B, P, C), agent_pos (B, S) → z_t (B, d); act: noise (B, H, A) → chunk (B, H, A).
     """
 
     def __init__(self, model_dir: Path, threads: int):
-        from dssp_deploy.policy import OnnxPolicy
+        from dssp_deploy.onnx_policy import OnnxPolicy
 
         self.policy = OnnxPolicy(model_dir, threads=threads, warmup=0)
 

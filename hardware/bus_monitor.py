@@ -23,7 +23,7 @@ from pathlib import Path
 
 import can
 
-from hardware.errors import CanError
+from dssp_data.errors import CanError
 from hardware.leader import ArmReading, JointGripperTracker, LeaderTracker
 from hardware.piper import codec
 from hardware.piper.bus import open_bus

@@ -17,7 +17,7 @@ import threading
 
 import can
 
-from hardware.errors import CanError
+from dssp_data.errors import CanError
 from hardware.piper.bus import open_bus
 
 

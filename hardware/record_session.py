@@ -4,7 +4,7 @@
     summary = session.run(controls)     # controls.poll() -> "start" | "keep" | "discard" | "quit" | None
 
 Commands: ``start`` begins an episode (its CAN logs open, one per bus, under a partial name); ``keep`` ends
-it and appends it to the dataset (:class:`~dssp_train.data.recording.RecordingDataset`: one crash-safe
+it and appends it to the dataset (:class:`~dssp_data.recording.RecordingDataset`: one crash-safe
 append; the logs are renamed to ``episode_NNNNNN.<bus>.blf`` first); ``discard`` ends it and deletes it
 and its logs; ``quit`` ends the session (refused while an episode is being recorded: keep or discard it
 first). A stop request (SIGINT/SIGTERM) or the end of the command stream discards an unfinished episode,
@@ -26,8 +26,8 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from dssp_train.data.recording import RecordingDataset, can_log_dir, can_log_name, partial_can_log_name
-from dssp_train.errors import DSSPError
+from dssp_data.recording import RecordingDataset, can_log_dir, can_log_name, partial_can_log_name
+from dssp_data.errors import DSSPError
 from hardware.bus_monitor import BusMonitor
 from hardware.recorder import Recorder, RecorderNotReady
 
@@ -189,7 +189,7 @@ class RecordSession:
 
     def _rescue(self, episode, info: dict, exc: BaseException) -> None:
         """The append failed: write the episode as a dataset of its own next to the dataset, so it is not lost."""
-        from dssp_train.data.replay_buffer import write_replay_buffer
+        from dssp_data.replay_buffer import write_replay_buffer
 
         target = self.dataset.path.with_name(f"{self.dataset.path.name}.unsaved-{self.session_tag}-{len(self.summary.kept)}")
         try:

@@ -13,7 +13,7 @@ Per tick (shapes in policy units, dof = 7 per arm, left then right):
 - every leader's latest command -> the command (dof,), the ``action`` of the ``leader_command``
   convention; with ``next_state`` the action of step t is the state of step t + 1 (RoboTwin);
 - the arrival time of each stream, and its age against :class:`RecordThresholds`: each step carries
-  bit flags (``dssp_train.data.recording.STEP_PROBLEMS``), and the episode's metadata lists every problem.
+  bit flags (``dssp_data.recording.STEP_PROBLEMS``), and the episode's metadata lists every problem.
 
 Nothing is invented: a stale stream's last value is recorded and its steps flagged; a frame with no
 point in the crop box repeats the previous step's cloud, flagged ``empty_cloud``. Nothing is written
@@ -31,7 +31,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from dssp_train.data.recording import (
+from dssp_data.recording import (
     ACTION_CONVENTIONS,
     DEPTH_KEY,
     FLAGS_KEY,
@@ -40,9 +40,9 @@ from dssp_train.data.recording import (
     STEP_PROBLEMS,
     flags_summary,
 )
-from dssp_train.data.replay_buffer import Episode
-from dssp_train.errors import ConfigError, DSSPError
-from dssp_train.schema import Settings, setting
+from dssp_data.replay_buffer import Episode
+from dssp_data.errors import ConfigError, DSSPError
+from dssp_data.schema import Settings, setting
 from hardware.bus_monitor import BusMonitor, oldest
 from hardware.camera.base import Camera, DepthFrame
 from hardware.pointcloud import EmptyCloudError, PointCloudConfig, frame_to_cloud

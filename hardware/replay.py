@@ -18,9 +18,9 @@ from collections.abc import Callable
 
 import numpy as np
 
-from dssp_train.data.replay_buffer import ReplayBufferReader
-from dssp_train.errors import ConfigError, DSSPError
-from hardware.arm import ARM_DOF, RobotState, check_rate
+from dssp_data.replay_buffer import ReplayBufferReader
+from dssp_data.errors import ConfigError, DSSPError
+from hardware.robot import ARM_DOF, RobotState, check_rate
 from hardware.piper.limits import JointLimits
 from hardware.safety import Safety, SafetyConfig
 
@@ -54,7 +54,7 @@ def replay_episode(path, episode: int, can: str | None, *, send: bool = False, i
     gripper = np.tile(np.arange(ARM_DOF) == ARM_DOF - 1, dof // ARM_DOF)
     robot = None
     if can is not None:
-        from hardware.piper.robot import open_robot
+        from hardware.piper.piper_robot import open_robot
 
         robot = open_robot(can, interface=interface)
         if robot.dof != dof:

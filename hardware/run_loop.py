@@ -27,9 +27,9 @@ from typing import Any, Callable
 import numpy as np
 
 from dssp_deploy.control_loop import ChunkedControl
-from dssp_deploy.policy import NonFiniteObservation, OnnxPolicy
-from dssp_train.errors import ConfigError, DSSPError
-from hardware.arm import Robot, check_rate
+from dssp_deploy.onnx_policy import NonFiniteObservation, OnnxPolicy
+from dssp_data.errors import ConfigError, DSSPError
+from hardware.robot import Robot, check_rate
 from hardware.camera.base import Camera
 from hardware.pointcloud import EmptyCloudError, PointCloudConfig, frame_to_cloud
 from hardware.run_log import RunLog

@@ -25,9 +25,9 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from dssp_train.errors import ConfigError
-from dssp_train.schema import Settings, setting
-from hardware.arm import RobotState
+from dssp_data.errors import ConfigError
+from dssp_data.schema import Settings, setting
+from hardware.robot import RobotState
 from hardware.piper.limits import MAX_JOINT_SPEED
 
 

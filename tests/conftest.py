@@ -40,7 +40,7 @@ def write_arm_dataset(path, n_episodes: int = 4, n_arms: int = 1, steps: int = 3
     """Small demonstrations in the robot's joint space (7 values per arm): a slow reach and return."""
     import numpy as np
 
-    from dssp_train.data.replay_buffer import Episode, write_replay_buffer
+    from dssp_data.replay_buffer import Episode, write_replay_buffer
 
     rng = np.random.default_rng(seed)
     home = np.tile(np.array(ARM_HOME), n_arms)

@@ -10,8 +10,8 @@ import subprocess
 
 import pytest
 
-from dssp_train.errors import ConfigError
-from dssp_train.schema import read_json_object
+from dssp_data.errors import ConfigError
+from dssp_data.schema import read_json_object
 
 
 def _one_error_line(capsys, code: int) -> str:
@@ -62,7 +62,7 @@ def test_argparse_errors_are_one_line(tmp_path, argv):
 
 
 def test_sim_eval_refuses_a_non_finite_noise(tmp_path, capsys):
-    from dssp_sim.cli import main as sim_main
+    from dssp_sim.sim_cli import main as sim_main
 
     code = sim_main(["eval", "--model", str(tmp_path / "m"), "--task", "tap", "--noise", "nan", "--no-progress"])
     assert "--noise must be a number in [0, 10]" in _one_error_line(capsys, code)
@@ -77,7 +77,7 @@ def test_dssp_run_names_a_missing_recording(tmp_path, capsys):
 
 
 def test_dssp_record_will_not_write_into_another_recording_s_can_logs(tmp_path, capsys):
-    from hardware.cli.record import main as record_main
+    from dssp_sim.teleop import record_main
 
     logs = tmp_path / "rec.zarr.can"
     logs.mkdir()
@@ -92,8 +92,8 @@ def test_collect_appends_from_the_seed_after_the_last_one(tmp_path):
     import numpy as np
 
     from dssp_sim.collect import first_seed
-    from dssp_train.data.replay_buffer import Episode, write_replay_buffer
-    from dssp_train.output_guard import OutputError
+    from dssp_data.replay_buffer import Episode, write_replay_buffer
+    from dssp_data.output_guard import OutputError
 
     assert first_seed(tmp_path / "new.zarr", None) == 0
     assert first_seed(tmp_path / "new.zarr", 7) == 7
@@ -135,7 +135,7 @@ def _edited_copy(model_dir, tmp_path, edit):
 ])
 def test_a_manifest_that_contradicts_itself(arm_export, tmp_path, edit, words):
     from dssp_deploy.manifest import read_manifest
-    from dssp_train.errors import DSSPError
+    from dssp_data.errors import DSSPError
 
     with pytest.raises(DSSPError) as info:
         read_manifest(_edited_copy(arm_export, tmp_path, edit))

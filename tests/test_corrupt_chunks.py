@@ -19,11 +19,11 @@ import zarr
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
-from dssp_train.cli.data import main as data_main
-from dssp_train.data.edit import merge, repair, split
-from dssp_train.data.inspect import inspect_dataset
-from dssp_train.data.recording import can_log_dir
-from dssp_train.data.replay_buffer import (
+from dssp_data.data_cli import main as data_main
+from dssp_data.edit import merge, repair, split
+from dssp_data.inspect import inspect_dataset
+from dssp_data.recording import can_log_dir
+from dssp_data.replay_buffer import (
     EVERY_CHUNK_ATTR,
     Episode,
     ReplayBuffer,
@@ -32,8 +32,8 @@ from dssp_train.data.replay_buffer import (
     _blosc_problem,
     write_replay_buffer,
 )
-from dssp_train.data.view import render_episode
-from dssp_train.errors import DatasetError
+from dssp_data.view import render_episode
+from dssp_data.errors import DatasetError
 
 FORMATS = (2, 3)
 LENGTHS = (60, 90, 70)
@@ -213,7 +213,7 @@ def test_truncated_chunk_is_exit_2_not_a_crash(tmp_path, originals, zarr_format)
     path = copy_dataset(originals[0][zarr_format], tmp_path / "ds.zarr")
     target = chunk_file(path, "data/action", 1)
     target.write_bytes(target.read_bytes()[:-7])
-    result = subprocess.run([sys.executable, "-m", "dssp_train.cli.data", "info", str(path)],
+    result = subprocess.run([sys.executable, "-m", "dssp_data.data_cli", "info", str(path)],
                             capture_output=True, text=True, timeout=120, check=False, env={**os.environ, "OMP_NUM_THREADS": "1"})
     lines = result.stderr.strip().splitlines()
     assert result.returncode == 2, (result.returncode, result.stderr)

@@ -17,9 +17,9 @@ import numpy as np
 import pytest
 from conftest import snapshot
 
-from dssp_train.cli.data import main as data_main
-from dssp_train.data.recording import can_log_dir
-from dssp_train.data.replay_buffer import Episode, ReplayBuffer, write_replay_buffer
+from dssp_data.data_cli import main as data_main
+from dssp_data.recording import can_log_dir
+from dssp_data.replay_buffer import Episode, ReplayBuffer, write_replay_buffer
 from dssp_train.data.synthetic import write_tap_count_dataset
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -242,7 +242,7 @@ def test_a_negative_seed_is_refused(tmp_path, capsys, inputs):
 
 # ------------------------------------------------------------------ 6. a closed pipe
 def test_info_into_a_closed_pipe_ends_quietly():
-    proc = subprocess.Popen([sys.executable, "-m", "dssp_train.cli.data", "info", str(DP3)], cwd=ROOT, env=ENV,
+    proc = subprocess.Popen([sys.executable, "-m", "dssp_data.data_cli", "info", str(DP3)], cwd=ROOT, env=ENV,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     proc.stdout.close()  # the reader is gone before anything is written (``| head -0``)
     err = proc.stderr.read().decode()
@@ -251,7 +251,7 @@ def test_info_into_a_closed_pipe_ends_quietly():
 
 # ------------------------------------------------------------------ 2. Ctrl-C and kill -9
 def _start(argv, cwd):
-    return subprocess.Popen([sys.executable, "-m", "dssp_train.cli.data", *map(str, argv)], cwd=cwd, env=ENV,
+    return subprocess.Popen([sys.executable, "-m", "dssp_data.data_cli", *map(str, argv)], cwd=cwd, env=ENV,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 

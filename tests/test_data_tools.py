@@ -9,17 +9,19 @@ import numpy as np
 import pytest
 import zarr
 
-from dssp_train.cli.data import main as data_main
-from dssp_train.data.recording import can_log_dir, episode_infos
-from dssp_train.data.replay_buffer import Episode, ReplayBuffer, write_replay_buffer
+from dssp_data.data_cli import main as data_main
+from hardware.cli.replay import main as replay_main
+from dssp_data.recording import can_log_dir, episode_infos
+from dssp_data.replay_buffer import Episode, ReplayBuffer, write_replay_buffer
 
 FIXTURES = Path(__file__).parent / "fixtures"
 DP3 = FIXTURES / "dp3_zarr2_tiny.zarr"
 
 
 def run(capsys, *argv):
-    """dssp-data in-process: (exit code, stdout, stderr)."""
-    code = data_main([str(a) for a in argv])
+    """dssp-data in-process (``replay ...`` runs dssp-replay): (exit code, stdout, stderr)."""
+    main = replay_main if argv[0] == "replay" else data_main
+    code = main([str(a) for a in argv[1:]] if argv[0] == "replay" else [str(a) for a in argv])
     captured = capsys.readouterr()
     return code, captured.out, captured.err
 
@@ -32,7 +34,7 @@ def one_line_error(code, err, fragment):
 @pytest.fixture(scope="module")
 def recorded(tmp_path_factory):
     """Two episodes recorded on the embedded default (scripted leader, simulated follower and camera)."""
-    from hardware.cli.record import main as record_main
+    from dssp_sim.teleop import record_main
 
     path = tmp_path_factory.mktemp("recorded") / "rec.zarr"
     assert record_main(["--out", str(path), "--auto", "--episodes", "2", "--quiet"]) == 0

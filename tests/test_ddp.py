@@ -10,7 +10,7 @@ import pytest
 
 from dssp_train.data.synthetic import write_tap_count_dataset
 from dssp_train.training.checkpoint import load_policy
-from dssp_train.training.run_log import read_log
+from dssp_train.training.train_log import read_log
 
 STEPS = 6
 BATCH = 4

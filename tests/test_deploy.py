@@ -16,7 +16,7 @@ from dssp_deploy.manifest import MANIFEST_NAME, ModelDirError
 
 
 def long_trajectory(data_path, length=1000):
-    from dssp_train.data.replay_buffer import ReplayBuffer
+    from dssp_data.replay_buffer import ReplayBuffer
 
     buf = ReplayBuffer.load(data_path)
     reps = -(-length // buf.n_steps)

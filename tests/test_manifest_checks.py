@@ -23,7 +23,7 @@ from hypothesis import strategies as st
 from dssp_deploy import OnnxPolicy
 from dssp_deploy.control_loop import ChunkedControl
 from dssp_deploy.manifest import MANIFEST_NAME, ModelDirError
-from dssp_deploy.policy import NonFiniteObservation
+from dssp_deploy.onnx_policy import NonFiniteObservation
 
 EXAMPLES = 6  # per field: ~50 fields, each example rewrites the manifest of one copied model directory
 FAST = settings(max_examples=EXAMPLES, deadline=None, derandomize=True,
@@ -434,9 +434,9 @@ def test_the_chunked_loop_skips_a_non_finite_observation(arm_export):
 
 def test_the_robot_loop_holds_on_a_non_finite_cloud_and_keeps_it_out_of_the_history(arm_export, monkeypatch):
     from hardware import run_loop
-    from hardware.camera.sim import SimCamera
+    from hardware.camera.tabletop import SimCamera
     from hardware.piper.limits import JointLimits
-    from hardware.piper.robot import open_robot
+    from hardware.piper.piper_robot import open_robot
     from hardware.pointcloud import PointCloudConfig
     from hardware.safety import SafetyConfig
 

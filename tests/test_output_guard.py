@@ -4,7 +4,7 @@
     path: exit 2, one ``error:`` line, and not one byte changed on disk — with and without ``--force``;
 (b) a previous output of the same command: refused without ``--force``, replaced with it (the expensive
     work is replaced by a stand-in: these tests check where the command writes, not what);
-(c) the guard itself (``dssp_train.output_guard``), property-based over random folder contents.
+(c) the guard itself (``dssp_data.output_guard``), property-based over random folder contents.
 The refusals come before any work: nothing here trains, collects or evaluates.
 """
 
@@ -26,16 +26,15 @@ from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from dssp_deploy.profile import main as profile_main
-from dssp_sim.cli import main as sim_main
+from dssp_sim.sim_cli import main as sim_main
 from dssp_sim.experiment import REPORT_NAME
 from dssp_sim.experiment import main as study_main
-from dssp_train.atomic import replace_dir
-from dssp_train.cli.demo import main as dssp_demo_main
+from dssp_data.files import replace_dir
 from dssp_train.cli.synth import main as synth_main
 from dssp_train.cli.train import main as train_main
-from dssp_train.data.replay_buffer import Episode, ReplayBuffer, write_replay_buffer
-from dssp_train.errors import DSSPError
-from dssp_train.output_guard import (
+from dssp_data.replay_buffer import Episode, ReplayBuffer, write_replay_buffer
+from dssp_data.errors import DSSPError
+from dssp_data.output_guard import (
     MARKER,
     NEW,
     OWN,
@@ -122,10 +121,6 @@ def synth(out, force, episodes=2):
     return synth_main(["--out", str(out), "--episodes", str(episodes), "--points", "24", *flag(force)])
 
 
-def dssp_demo(out, force):
-    return dssp_demo_main(["--out", str(out), "--steps", "1", "--episodes", "2", "--no-progress", *flag(force)])
-
-
 def train(out, force):
     return train_main(["--data", str(out.parent / "missing.zarr"), "--out", str(out), "--steps", "1", "--no-progress", *flag(force)])
 
@@ -186,7 +181,6 @@ def train_step_json(out, force):
 DIR_COMMANDS = {
     "dssp-sim demo --out": (sim_demo, True),
     "dssp-synth --out": (synth, True),
-    "dssp-demo --out": (dssp_demo, True),
     "dssp-train --out": (train, True),
     "dssp-sim collect --out": (collect, False),
     "dssp-sim eval --strips": (eval_strips, True),
@@ -317,23 +311,6 @@ def test_sim_demo_replaces_its_own_output_with_force_and_restores_it_on_failure(
     assert sim_demo(out, True) == 2
     assert "training dssp failed" in error_line(capsys)
     assert snapshot(tmp_path) == before  # the previous demo is back, untouched
-
-
-def test_dssp_demo_replaces_its_own_output_with_force(tmp_path, capsys, monkeypatch):
-    import dssp_train.cli.demo as demo
-
-    runs = []
-
-    def fake(out, steps, episodes, seed, progress):
-        runs.append(1)
-        (out / "results.json").write_text(str(len(runs)))
-        row = {"val_diffusion": 0.1, "val_action_mse": 0.1, "decision_accuracy": 1.0}
-        return {"dssp": row, "reactive": row}
-
-    monkeypatch.setattr(demo, "_run_demo", fake)
-    out = tmp_path / "demo"
-    assert dssp_demo(out, False) == 0
-    replaced(capsys, tmp_path, dssp_demo, out)
 
 
 def test_train_replaces_a_previous_run_only_with_force(tmp_path, capsys, monkeypatch):
@@ -651,7 +628,7 @@ def test_known_kinds_are_recognised_by_their_own_signature(tmp_path):
 
 
 def test_the_guard_does_not_import_torch():
-    code = "import sys; import dssp_train.output_guard; assert 'torch' not in sys.modules"
+    code = "import sys; import dssp_data.output_guard; assert 'torch' not in sys.modules"
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
 
 
@@ -663,7 +640,7 @@ def run_log(out, force):
 
 
 def record_out(out, force):
-    from hardware.cli.record import main as record_main
+    from dssp_sim.teleop import record_main
 
     return record_main(["--out", str(out), "--quiet", "--auto", "--episodes", "1"])
 
@@ -681,7 +658,7 @@ def test_the_robot_commands_never_touch_a_foreign_output(run, tmp_path, capsys):
 
 
 def test_dssp_run_never_reuses_a_log(tmp_path, capsys):
-    from dssp_train.output_guard import RUN_LOG, claim_dir
+    from dssp_data.output_guard import RUN_LOG, claim_dir
 
     out = claim_dir(tmp_path / "log", kind=RUN_LOG, flag="--log-dir")
     (out / "run.json").write_text("{}")
@@ -690,7 +667,7 @@ def test_dssp_run_never_reuses_a_log(tmp_path, capsys):
 
 
 def test_dssp_data_view_replaces_its_pictures_only_with_force(tmp_path, capsys):
-    from dssp_train.cli.data import main as data_main
+    from dssp_data.data_cli import main as data_main
 
     data = write_dataset(tmp_path / "d.zarr", "dssp-record")
     pictures = tmp_path / "pictures"
@@ -708,7 +685,7 @@ def test_dssp_data_view_replaces_its_pictures_only_with_force(tmp_path, capsys):
 
 # ---------------------------------------------------------------------- staging, interruptions, where outputs go
 def test_staging_is_removed_on_any_exit_with_the_parents_it_made(tmp_path):
-    from dssp_train.output_guard import Staging
+    from dssp_data.output_guard import Staging
 
     out = tmp_path / "a" / "b" / "out.zarr"
     with pytest.raises(KeyboardInterrupt):
@@ -734,7 +711,7 @@ def test_staging_is_removed_on_any_exit_with_the_parents_it_made(tmp_path):
 
 
 def test_only_stale_staging_folders_of_the_same_output_are_swept(tmp_path):
-    from dssp_train.output_guard import Staging, sweep_stale
+    from dssp_data.output_guard import Staging, sweep_stale
 
     out = tmp_path / "m.zarr"
     stale = [".m.zarr.tmp-0123abcd", ".m.zarr.partial-89abcdef", "..m.zarr.tmp-0123abcd.tmp-4567cdef",
@@ -760,7 +737,7 @@ def test_only_stale_staging_folders_of_the_same_output_are_swept(tmp_path):
 
 
 def test_replace_dirs_puts_everything_back_when_a_rename_fails(tmp_path, monkeypatch):
-    from dssp_train.output_guard import replace_dirs
+    from dssp_data.output_guard import replace_dirs
 
     for name in ("out", "out.can", "new", "new.can"):
         (tmp_path / name).mkdir()
@@ -785,7 +762,7 @@ def test_replace_dirs_puts_everything_back_when_a_rename_fails(tmp_path, monkeyp
 def test_ctrl_c_is_held_back_inside_interrupts_deferred():
     import signal
 
-    from dssp_train.output_guard import interrupts_deferred
+    from dssp_data.output_guard import interrupts_deferred
 
     done = []
     with pytest.raises(KeyboardInterrupt):
@@ -799,7 +776,7 @@ def test_ctrl_c_is_held_back_inside_interrupts_deferred():
 
 
 def test_datasets_made_by_dssp_data_are_recognised_with_their_can_logs(tmp_path):
-    from dssp_train.output_guard import DATA_DATASET
+    from dssp_data.output_guard import DATA_DATASET
 
     for generator in ("dssp-data merge", "dssp-data split", "dssp-data convert", "dssp-data convert (RoboTwin raw HDF5)"):
         path = write_dataset(tmp_path / f"{generator}.zarr", generator)
@@ -829,7 +806,7 @@ def test_datasets_made_by_dssp_data_are_recognised_with_their_can_logs(tmp_path)
 
 
 def test_paths_under_a_file_and_outputs_inside_inputs_are_one_line(tmp_path):
-    from dssp_train.output_guard import check_not_inside, make_dirs
+    from dssp_data.output_guard import check_not_inside, make_dirs
 
     a_file = tmp_path / "f"
     a_file.write_text("x")

@@ -13,13 +13,13 @@ import can
 import numpy as np
 import pytest
 
-from hardware.errors import ArmError, CanError
+from dssp_data.errors import ArmError, CanError
 from hardware.piper import codec
 from hardware.piper.arm import PiperArm
 from hardware.piper.bus import open_bus
 from hardware.piper.limits import GRIPPER_STROKE_MAX, JOINT_LOWER, JOINT_UPPER
-from hardware.piper.robot import PiperRobot, open_robot
-from hardware.piper.sim import SimulatedPiper
+from hardware.piper.piper_robot import PiperRobot, open_robot
+from hardware.piper.can_simulator import SimulatedPiper
 from waiting import wait_for
 
 MDEG = math.radians(0.001)  # joint resolution on the wire (rad)

@@ -21,7 +21,7 @@ from piper_sdk import C_PiperInterface_V2
 from hardware.piper import codec
 from hardware.piper.arm import PiperArm
 from hardware.piper.limits import JOINT_LOWER, JOINT_UPPER
-from hardware.piper.sim import SimulatedPiper
+from hardware.piper.can_simulator import SimulatedPiper
 from waiting import wait_for
 
 MDEG = math.radians(0.001)

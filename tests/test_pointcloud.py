@@ -13,9 +13,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from dssp_train.errors import ConfigError
+from dssp_data.errors import ConfigError
 from hardware.camera.base import DepthFrame, Intrinsics
-from hardware.errors import CalibrationError, CameraError
+from dssp_data.errors import CalibrationError, CameraError
 from hardware.pointcloud import (
     EmptyCloudError,
     PointCloudConfig,
@@ -158,7 +158,7 @@ def test_voxel_size_respected():
 
 
 def test_voxel_in_pipeline_on_sim_frame():
-    from hardware.camera.sim import SimCamera
+    from hardware.camera.tabletop import SimCamera
 
     cam = SimCamera(seed=0)
     cam.start(thread=False)
@@ -274,7 +274,7 @@ def test_colour_channels():
 
 
 def test_sim_frame_default_config():
-    from hardware.camera.sim import Box, SimCamera
+    from hardware.camera.tabletop import Box, SimCamera
 
     cam = SimCamera(seed=0, color=True, moving_box=lambda t: Box(center=(0.3, 0.25, 0.1), size=(0.05, 0.05, 0.2)))
     cam.start(thread=False)
@@ -377,7 +377,7 @@ def test_config_from_dict_rejects_unknown_keys():
 def test_pointcloud_imports_without_pyrealsense2():
     code = ("import sys; sys.modules['pyrealsense2'] = None; sys.modules['open3d'] = None\n"
             "import hardware.pointcloud, hardware.camera\n"
-            "from hardware.camera.sim import SimCamera\n"
+            "from hardware.camera.tabletop import SimCamera\n"
             "print('ok')")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr

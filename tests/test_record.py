@@ -17,16 +17,17 @@ import numpy as np
 import pytest
 import zarr
 
-from dssp_train.data.recording import (
+from dssp_data.recording import (
     FLAGS_KEY,
     STEP_PROBLEMS,
     can_log_dir,
     episode_infos,
 )
-from dssp_train.data.replay_buffer import ReplayBuffer, ReplayBufferReader
-from dssp_train.errors import DatasetError
+from dssp_data.replay_buffer import ReplayBuffer, ReplayBufferReader
+from dssp_data.errors import DatasetError
 from hardware.can_log import read_log
-from hardware.cli.record import Console, LineControls, main as record_main, open_session, parse_args
+from dssp_sim.teleop import TeleopRigs, record_main
+from hardware.cli.record import Console, LineControls, open_session, parse_args
 from hardware.leader import LeaderTracker, leader_frames
 from hardware.piper import codec
 
@@ -57,7 +58,7 @@ def run_session(args, plan_or_controls, capsys=None):
     console = Console(quiet=True)
     console.event = events.append
     with contextlib.ExitStack() as stack:
-        session = open_session(parse_args(args), stack, console)
+        session = open_session(parse_args(args, sim=TeleopRigs()), stack, console)
         controls = plan_or_controls if hasattr(plan_or_controls, "poll") else Scripted(session, plan_or_controls)
         summary = session.run(controls)
     return summary, events
@@ -236,7 +237,7 @@ def test_stream_problems_mark_the_episode(tmp_path, capsys):
     assert {"feedback_stale", "camera_stale", "camera_repeat"} <= kinds and not info[0]["clean"]
     assert info[1]["clean"] and not reader.episode(1).extras[FLAGS_KEY].any()
 
-    from dssp_train.cli.data import main as data_main
+    from dssp_data.data_cli import main as data_main
 
     capsys.readouterr()
     assert data_main(["info", str(out)]) == 1  # it lists problems
@@ -308,11 +309,11 @@ def test_real_time_loop_on_a_virtual_bus(tmp_path):
     """The robot's path: wall-clock ticks, a follower and a leader on one bus, a camera with its own thread."""
     import uuid
 
-    from dssp_train.data.recording import RECORDED_KEYS, RecordingDataset
+    from dssp_data.recording import RECORDED_KEYS, RecordingDataset
     from hardware.bus_monitor import BusMonitor
-    from hardware.camera.sim import SimCamera
+    from hardware.camera.tabletop import SimCamera
     from hardware.leader import ScriptedLeader
-    from hardware.piper.sim import SimulatedPiper
+    from hardware.piper.can_simulator import SimulatedPiper
     from hardware.pointcloud import PointCloudConfig
     from hardware.record_session import RecordSession, SessionSettings
     from hardware.recorder import Recorder, StampedCamera
@@ -409,7 +410,7 @@ def test_a_failed_append_saves_the_episode_aside(tmp_path):
     console.event = events.append
     with pytest.raises(OSError, match="No space left"):
         with contextlib.ExitStack() as stack:
-            session = open_session(parse_args(["--out", str(out), "--quiet", "--sim-speed", "0", "--no-depth"]), stack,
+            session = open_session(parse_args(["--out", str(out), "--quiet", "--sim-speed", "0", "--no-depth"], sim=TeleopRigs()), stack,
                                    console)
             session.run(Scripted(session, plan))
     saved = [e for e in events if e.startswith("error: appending the episode failed")]
@@ -421,10 +422,21 @@ def test_a_failed_append_saves_the_episode_aside(tmp_path):
 
 
 def test_one_recording_session_per_dataset(tmp_path):
-    from dssp_train.data.recording import RECORDED_KEYS, RecordingDataset
+    from dssp_data.recording import RECORDED_KEYS, RecordingDataset
 
     first = RecordingDataset(tmp_path / "d.zarr", {}, {}, RECORDED_KEYS)
     with pytest.raises(DatasetError, match=f"d.zarr is being recorded into by pid {os.getpid()}"):
         RecordingDataset(tmp_path / "d.zarr", {}, {}, RECORDED_KEYS)
     first.close()
     RecordingDataset(tmp_path / "d.zarr", {}, {}, RECORDED_KEYS).close()
+
+
+def test_dssp_record_drives_real_buses_only(tmp_path, capsys):
+    """dssp-record itself never reaches into the simulation: --can sim points to dssp-sim record."""
+    from hardware.cli.record import main as robot_record_main
+
+    out = tmp_path / "x.zarr"
+    assert robot_record_main(["--out", str(out), "--camera", "sim", "--can", "sim", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "record the simulation with dssp-sim record" in err[0]
+    assert not out.exists()

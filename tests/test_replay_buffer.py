@@ -13,14 +13,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from dssp_train.data.replay_buffer import (
+from dssp_data.replay_buffer import (
     Episode,
     ReplayBuffer,
     ReplayBufferReader,
     ReplayBufferWriter,
     write_replay_buffer,
 )
-from dssp_train.errors import DatasetError
+from dssp_data.errors import DatasetError
 
 FIXTURES = Path(__file__).parent / "fixtures"
 P, C, S, A = 8, 6, 14, 14
@@ -516,7 +516,7 @@ def with_extras(episodes, seed=0):
 
 @pytest.mark.parametrize("zarr_format", [2, 3])
 def test_extras_round_trip_and_append(tmp_path, zarr_format):
-    from dssp_train.data.replay_buffer import ReplayBufferReader
+    from dssp_data.replay_buffer import ReplayBufferReader
 
     episodes = with_extras(make_episodes([3, 5, 2]))
     path = tmp_path / "ds.zarr"
@@ -590,7 +590,7 @@ def test_interrupted_append_with_extras(tmp_path):
 
 
 def test_large_extra_rows_get_smaller_chunks(tmp_path):
-    from dssp_train.data.replay_buffer import _extra_chunk_steps
+    from dssp_data.replay_buffer import _extra_chunk_steps
 
     assert _extra_chunk_steps(np.zeros((5, 480, 640), np.uint16)) == 27  # 16 MiB / 600 KiB per depth image
     assert _extra_chunk_steps(np.zeros((5,), np.float64)) == 100
@@ -629,8 +629,8 @@ def test_a_control_rate_that_is_not_a_rate_is_refused_naming_the_attribute(tmp_p
     ("camera_depth_unit", -0.001, "attribute camera_depth_unit is -0.001"),
 ])
 def test_every_attribute_reader_refuses_a_wrong_type_naming_it(name, value, fragment):
-    from dssp_train.data import attributes
-    from dssp_train.data.recording import episode_infos
+    from dssp_data import attributes
+    from dssp_data.recording import episode_infos
 
     attrs = {name: value}
     with pytest.raises(DatasetError) as info:

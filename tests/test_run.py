@@ -11,14 +11,14 @@ import time
 import numpy as np
 import pytest
 
-from dssp_deploy.policy import OnnxPolicy
+from dssp_deploy.onnx_policy import OnnxPolicy
 from hardware.camera.base import Camera
-from hardware.camera.sim import SimCamera
+from hardware.camera.tabletop import SimCamera
 from hardware.can_log import BusRecorder, read_log
 from hardware.cli.run import main as run_main
 from hardware.piper import codec
 from hardware.piper.limits import GRIPPER_STROKE_MAX, JointLimits
-from hardware.piper.robot import open_robot
+from hardware.piper.piper_robot import open_robot
 from hardware.pointcloud import PointCloudConfig
 from hardware.run_log import RunLog, read_clouds, read_ticks
 from hardware.run_loop import LoopSettings, Runner

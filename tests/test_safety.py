@@ -5,8 +5,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from dssp_train.errors import ConfigError
-from hardware.arm import ArmStatus, RobotState
+from dssp_data.errors import ConfigError
+from hardware.robot import ArmStatus, RobotState
 from hardware.safety import Safety, SafetyConfig
 
 LOWER = np.array([-2.6179, 0.0, -2.967, -1.745, -1.22, -2.0944, 0.0])

@@ -15,12 +15,12 @@ from hypothesis import strategies as st
 import dssp_deploy.manifest  # noqa: F401  (defines the manifest's schema)
 import dssp_train.config  # noqa: F401
 import hardware.camera.profiles
-import hardware.pointcloud.config  # noqa: F401
+import dssp_data.observation  # noqa: F401
 import hardware.pointcloud.extrinsics  # noqa: F401
 import hardware.recorder  # noqa: F401
 import hardware.safety  # noqa: F401
-from dssp_train.errors import ConfigError
-from dssp_train.schema import Settings, Spec, _union_args, all_schemas, setting
+from dssp_data.errors import ConfigError
+from dssp_data.schema import Settings, Spec, _union_args, all_schemas, setting
 
 IDENTITY = [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
 SAMPLES = {
@@ -261,7 +261,7 @@ def test_dssp_run_refuses_a_bad_safety_file_before_anything_opens(tmp_path, caps
     from hardware.cli import run
 
     opened = []
-    monkeypatch.setattr("hardware.piper.robot.open_robot", lambda *a, **k: opened.append("robot"))
+    monkeypatch.setattr("hardware.piper.piper_robot.open_robot", lambda *a, **k: opened.append("robot"))
     path = tmp_path / "safety.json"
     path.write_text(json.dumps(content).replace("NaN", "NaN"))
     code = run.main(["--model", str(tmp_path / "no-model"), "--safety", str(path), "--quiet"])

@@ -18,9 +18,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hardware.cli.sim_arm import main as sim_arm_main
+from hardware.cli.can_sim import main as sim_arm_main
 from hardware.piper.arm import PiperArm
-from hardware.piper.robot import open_robot
+from hardware.piper.piper_robot import open_robot
 import waiting
 
 REPO = Path(__file__).resolve().parents[1]
@@ -40,7 +40,7 @@ def start_sim(channels: str, port: int, *extra: str) -> tuple[subprocess.Popen, 
     env["PYTHONPATH"] = os.pathsep.join(p for p in (str(REPO), env.get("PYTHONPATH", "")) if p)
     env["CAN_CONFIG"] = json.dumps({"hop_limit": 0, "port": port})
     proc = subprocess.Popen(
-        [sys.executable, "-m", "hardware.cli.sim_arm", "--channel", channels, "--interface", "udp_multicast",
+        [sys.executable, "-m", "hardware.cli.can_sim", "--channel", channels, "--interface", "udp_multicast",
          "--port", str(port), *extra],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO, env=env)
     ready, _, _ = select.select([proc.stdout], [], [], 30.0)
@@ -129,7 +129,7 @@ def test_sigint_ends_the_process_cleanly():
 
 
 def test_bad_arguments_exit_2_with_one_error_line():
-    proc = subprocess.run([sys.executable, "-m", "hardware.cli.sim_arm", "--channel", "10.0.0.1"],
+    proc = subprocess.run([sys.executable, "-m", "hardware.cli.can_sim", "--channel", "10.0.0.1"],
                           capture_output=True, text=True, cwd=REPO, timeout=60,
                           env={**os.environ, "PYTHONPATH": str(REPO)})
     assert proc.returncode == 2 and proc.stdout == ""

@@ -8,15 +8,15 @@ import time
 import numpy as np
 import pytest
 
-from dssp_sim.cli import main as sim_main
+from dssp_sim.sim_cli import main as sim_main
 from dssp_sim.env import PiperEnv
 from dssp_sim.evaluate import wilson_interval
 from dssp_sim.settings import cloud_config_for
-from dssp_sim.sim_arm import MujocoPiper
-from dssp_sim.sim_camera import MujocoCamera
-from dssp_train.data.replay_buffer import ReplayBuffer
+from dssp_sim.mujoco_arm import MujocoPiper
+from dssp_sim.mujoco_camera import MujocoCamera
+from dssp_data.replay_buffer import ReplayBuffer
 from hardware.piper.arm import PiperArm
-from hardware.piper.robot import PiperRobot
+from hardware.piper.piper_robot import PiperRobot
 from hardware.pointcloud import frame_to_cloud
 
 

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from dssp_train.errors import ConfigError
+from dssp_data.errors import ConfigError
 
-from dssp_train.data.replay_buffer import ReplayBuffer
+from dssp_data.replay_buffer import ReplayBuffer
 from dssp_train.data.synthetic import (
     CUE_CENTERS,
     CUE_STEPS,

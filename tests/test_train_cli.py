@@ -17,11 +17,11 @@ from safetensors import safe_open
 from dssp_train.cli.params import main as params_main
 from dssp_train.cli.train import main as train_main
 from dssp_train.config import RunConfig, load_preset
-from dssp_train.data.replay_buffer import ReplayBuffer, write_replay_buffer
+from dssp_data.replay_buffer import ReplayBuffer, write_replay_buffer
 from dssp_train.data import synthetic
 from dssp_train.data.synthetic import make_tap_count_episodes, write_tap_count_dataset
 from dssp_train.model.policy import DSSPPolicy
-from dssp_train.training.run_log import read_log
+from dssp_train.training.train_log import read_log
 from dssp_train.training.trainer import Trainer
 
 SMALL = [

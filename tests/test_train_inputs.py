@@ -1,4 +1,4 @@
-"""Bad input to dssp-train, dssp-params, dssp-synth and dssp-demo: one line naming what the user typed, exit
+"""Bad input to dssp-train, dssp-params, dssp-synth: one line naming what the user typed, exit
 code 2, nothing written; --resume only continues a run as it was; SIGTERM and Ctrl-C say what was kept."""
 
 import json
@@ -14,7 +14,6 @@ from pathlib import Path
 import pytest
 import torch
 
-from dssp_train.cli.demo import main as demo_main
 from dssp_train.cli.params import main as params_main
 from dssp_train.cli.synth import main as synth_main
 from dssp_train.cli.train import main as train_main
@@ -22,7 +21,7 @@ from dssp_train.config import apply_overrides, load_preset
 from dssp_train.data.synthetic import write_tap_count_dataset
 from dssp_train.model.policy import DSSPPolicy
 from dssp_train.training import memory
-from dssp_train.training.run_log import read_log
+from dssp_train.training.train_log import read_log
 from dssp_train.training.trainer import Trainer
 
 from conftest import write_arm_dataset
@@ -223,7 +222,7 @@ def test_resume_with_a_contradicting_control_rate_is_refused(trained, data, tmp_
 
 
 def test_resume_may_record_a_control_rate_the_run_lacked(tmp_path, capsys):
-    from dssp_train.data.replay_buffer import write_replay_buffer
+    from dssp_data.replay_buffer import write_replay_buffer
     from dssp_train.data.synthetic import make_tap_count_episodes
 
     path = tmp_path / "norate.zarr"
@@ -266,7 +265,7 @@ def test_ctrl_c_after_a_checkpoint_says_where_it_is_and_how_to_continue(data, tm
 
 
 def test_ctrl_c_before_training_keeps_nothing(data, tmp_path, capsys, monkeypatch):
-    from dssp_train.data.replay_buffer import ReplayBuffer
+    from dssp_data.replay_buffer import ReplayBuffer
 
     def interrupted_load(*args, **kwargs):
         raise KeyboardInterrupt
@@ -376,7 +375,7 @@ def test_params_run_refuses_dimension_flags_and_run_fields(trained, capsys):
         "--set preset=robotwin: --set takes model.* and train.* fields")
 
 
-# ------------------------------------------------------------------ 9. dssp-synth and dssp-demo
+# ------------------------------------------------------------------ 9. dssp-synth
 @pytest.mark.parametrize("argv,message", [
     (["--seed", "-1"], "--seed must be an integer in [0, 9223372036854775807], got -1"),
     (["--points", "10000000"], "--points must be an integer in [24, 100000], got 10000000"),
@@ -390,41 +389,6 @@ def test_synth_bad_flags(tmp_path, capsys, argv, message):
     out = tmp_path / "d.zarr"
     assert refused(capsys, synth_main, ["--out", out, *argv]) == message
     assert not out.exists()
-
-
-@pytest.mark.parametrize("argv,message", [
-    (["--steps", "0"], "--steps must be an integer in [1, 100000000], got 0"),
-    (["--seed", "-1"], "--seed must be an integer in [0, 9223372036854775807], got -1"),
-    (["--episodes", "1"], "--episodes must be an integer in [2, 10000], got 1"),
-    (["--episodes", "20000"], "--episodes must be an integer in [2, 10000], got 20000"),
-])
-def test_demo_bad_flags(tmp_path, capsys, argv, message):
-    out = tmp_path / "demo"
-    assert refused(capsys, demo_main, ["--out", out, "--no-progress", *argv]) == message
-    assert not out.exists()
-
-
-def test_demo_passes_its_step_budget_through(tmp_path, monkeypatch):
-    """``steps`` reaches the trainer as given (0 is not "unset"; None is the preset's)."""
-    import dssp_train.cli.demo as demo
-    import dssp_train.training.trainer as trainer
-
-    seen = []
-
-    class Stop(Exception):
-        pass
-
-    def fake_trainer(config, *args, **kwargs):
-        seen.append(config.train.steps)
-        raise Stop
-
-    monkeypatch.setattr(trainer, "Trainer", fake_trainer)
-    for steps, expected in ((7, 7), (None, load_preset("tiny").train.steps)):
-        with pytest.raises(Stop):
-            demo._run_demo(tmp_path / f"demo{steps}", steps, 2, 0, progress=False)
-        assert seen[-1] == expected
-    with pytest.raises(Exception, match="train.steps must be an integer in"):
-        demo._run_demo(tmp_path / "demo0", 0, 2, 0, progress=False)
 
 
 # ------------------------------------------------------------------ 10. memory
@@ -500,7 +464,7 @@ MEASURE = """
 import json, sys
 import numpy as np, torch
 from dssp_train.config import load_preset
-from dssp_train.data.replay_buffer import Episode, write_replay_buffer
+from dssp_data.replay_buffer import Episode, write_replay_buffer
 from dssp_train.training.memory import estimate_step_memory
 from dssp_train.training.trainer import Trainer
 

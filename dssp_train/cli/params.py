@@ -9,11 +9,12 @@ from __future__ import annotations
 import argparse
 import sys
 
-from dssp_train.cli.common import run_cli
+from dssp_data.cli_runner import run_cli
 from dssp_train.cli.train import set_fields
-from dssp_train.config import MAX_DIM, apply_overrides, load_preset, preset_names
-from dssp_train.errors import ConfigError
-from dssp_train.schema import Spec, check_value
+from dssp_data.schema import MAX_DIM
+from dssp_train.config import apply_overrides, load_preset, preset_names
+from dssp_data.errors import ConfigError
+from dssp_data.schema import Spec, check_value
 
 
 DEFAULT_DIM = 14  # RoboTwin's two arms

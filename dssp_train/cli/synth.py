@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from dssp_train.cli.common import run_cli
+from dssp_data.cli_runner import run_cli
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -25,12 +25,12 @@ def main(argv: list[str] | None = None) -> int:
 
     def _main() -> int:
         from dssp_train.data.synthetic import check_tap_count_size
-        from dssp_train.output_guard import SYNTH_DATASET, check_output
+        from dssp_data.output_guard import SYNTH_DATASET, check_output
 
         check_tap_count_size(args.episodes, args.seed, args.points, names=("--episodes", "--seed", "--points"))
         check_output(args.out, force=args.force, kind=SYNTH_DATASET, flag="--out")
 
-        from dssp_train.data.replay_buffer import ReplayBuffer
+        from dssp_data.replay_buffer import ReplayBuffer
         from dssp_train.data.synthetic import write_tap_count_dataset
 
         path = write_tap_count_dataset(args.out, args.episodes, seed=args.seed, n_points=args.points)

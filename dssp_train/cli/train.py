@@ -7,7 +7,7 @@
 A new run goes into a new or empty --out. A previous run there is refused (continue it with --resume) or,
 with --force, replaced: it is moved aside while the new run trains, deleted when the new run completes,
 and put back if the new run fails or is interrupted. A folder holding anything but a run is never touched
-(:mod:`dssp_train.output_guard`). A run that stopped before its first checkpoint cannot be continued: it is
+(:mod:`dssp_data.output_guard`). A run that stopped before its first checkpoint cannot be continued: it is
 started over with --force.
 
 Every config field has one source: a flag (--steps, --seed, ...), else ``--set model.*/train.*``, else the
@@ -35,10 +35,10 @@ import threading
 import typing
 from pathlib import Path
 
-from dssp_train.cli.common import run_cli
+from dssp_data.cli_runner import run_cli
 from dssp_train.config import RunConfig, apply_overrides, load_preset, preset_names
-from dssp_train.errors import CheckpointError, ConfigError, DSSPError
-from dssp_train.schema import Spec, check_value
+from dssp_data.errors import CheckpointError, ConfigError, DSSPError
+from dssp_data.schema import Spec, check_value
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -242,7 +242,7 @@ def main(argv: list[str] | None = None) -> int:
     args.trainer = None  # set by _train once the Trainer exists (for the interruption message)
 
     def _main() -> int:
-        from dssp_train.output_guard import OWN, RUN_DIR, OutputDir, OutputError, check_output
+        from dssp_data.output_guard import OWN, RUN_DIR, OutputDir, OutputError, check_output
 
         out = Path(args.out)
         if args.resume and args.force:

@@ -9,7 +9,7 @@
 
 Streaming step by step gives the same ``c_t`` as the sequence path used in training, and the
 recent-state buffer is padded at the episode start by repeating the first observation, as in training.
-An observation with NaN or infinity is refused (``dssp_deploy.policy.NonFiniteObservation``) before the
+An observation with NaN or infinity is refused (``dssp_deploy.onnx_policy.NonFiniteObservation``) before the
 encoder runs, leaving the history as it was — the same rule as the robot's runtime.
 
 Shapes: point_cloud (B, P, C) or (P, C); agent_pos (B, S) or (S,); noise (B, H, A); chunk (B, H, A).
@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from dssp_deploy.policy import NonFiniteObservation, check_finite  # noqa: F401  (NonFiniteObservation: what observe raises)
+from dssp_deploy.onnx_policy import NonFiniteObservation, check_finite  # noqa: F401  (NonFiniteObservation: what observe raises)
 from dssp_train.model.policy import DSSPPolicy
 
 

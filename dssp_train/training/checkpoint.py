@@ -31,9 +31,9 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 from torch import nn
 
-from dssp_train.atomic import _umask, atomic_write, atomic_write_text  # noqa: F401  (re-exported)
+from dssp_data.files import _umask, atomic_write, atomic_write_text  # noqa: F401  (re-exported)
 from dssp_train.config import RunConfig
-from dssp_train.errors import CheckpointError, ConfigError
+from dssp_data.errors import CheckpointError, ConfigError
 
 FORMAT_VERSION = "1"
 

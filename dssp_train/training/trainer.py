@@ -23,14 +23,14 @@ import torch
 import torch.distributed as dist
 
 from dssp_train.config import RunConfig
-from dssp_train.data.replay_buffer import ReplayBuffer
-from dssp_train.errors import CheckpointError, ConfigError, DSSPError
+from dssp_data.replay_buffer import ReplayBuffer
+from dssp_data.errors import CheckpointError, ConfigError, DSSPError
 from dssp_train.model.policy import DSSPPolicy
 from dssp_train.training import checkpoint as ckpt
 from dssp_train.training.ema import EMA
 from dssp_train.training.lr_schedule import cosine_with_warmup
 from dssp_train.training.memory import check_memory
-from dssp_train.training.run_log import RunLog, plot_log
+from dssp_train.training.train_log import RunLog, plot_log
 
 VAL_SEED = 1234567
 

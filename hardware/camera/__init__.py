@@ -14,7 +14,7 @@ from pathlib import Path
 
 from hardware.camera.base import Camera, DepthFrame, Intrinsics
 from hardware.camera.profiles import CameraProfile, load_profile, profile_names
-from hardware.errors import CameraError
+from dssp_data.errors import CameraError
 
 __all__ = ["Camera", "CameraProfile", "DepthFrame", "Intrinsics", "check_camera_spec", "load_profile", "open_camera", "spec_forms"]
 
@@ -52,7 +52,7 @@ def open_camera(spec: str, serial: str | None = None, color: bool = False, **kw)
 
     spec: a profile name ('l515', 'd435', 'd405'; case-insensitive) for a live RealSense, optionally with
     ``serial``; 'file:PATH' for a .bag/.db3 recording (keywords ``repeat_playback``, ``real_time``);
-    'sim' for the simulated tabletop (keywords of :class:`hardware.camera.sim.SimCamera`, e.g. ``seed``).
+    'sim' for the simulated tabletop (keywords of :class:`hardware.camera.tabletop.SimCamera`, e.g. ``seed``).
     color: also deliver RGB aligned to depth. Unknown specs raise CameraError listing the valid forms.
     """
     check_camera_spec(spec, serial)
@@ -64,7 +64,7 @@ def open_camera(spec: str, serial: str | None = None, color: bool = False, **kw)
         return RealSenseCamera(file=path, color=color, **kw)
     name = text.lower()
     if name == "sim":
-        from hardware.camera.sim import SimCamera
+        from hardware.camera.tabletop import SimCamera
 
         return SimCamera(color=color, **kw)
     from hardware.camera.realsense import RealSenseCamera

@@ -68,7 +68,7 @@ class Camera(ABC):
         """Block until a frame is available (raises ``CameraError`` after ``timeout`` seconds)."""
         import time
 
-        from hardware.errors import CameraError
+        from dssp_data.errors import CameraError
 
         deadline = time.monotonic() + timeout
         while True:

@@ -6,7 +6,7 @@ already aligned to it) into a software depth sensor, and takes real ``rs.depth_f
 live camera's frames are. :func:`record_depth` writes such frames to a ``.db3`` recording (``rs.recorder``)
 that ``rs.pipeline`` — and so :class:`~hardware.camera.realsense.RealSenseCamera` ``(file=...)`` — plays back.
 
-Used by the simulated camera (``hardware.camera.sim``) and by tests. ``rs.pipeline`` cannot open a
+Used by the simulated camera (``hardware.camera.tabletop``) and by tests. ``rs.pipeline`` cannot open a
 software device, so frames come out through the syncer, not through a pipeline.
 """
 
@@ -22,7 +22,7 @@ import numpy as np
 
 from hardware.camera.base import Camera, DepthFrame, Intrinsics
 from hardware.camera.realsense import depth_frame_from_rs, import_rs
-from hardware.errors import CameraError
+from dssp_data.errors import CameraError
 
 
 def _rs_intrinsics(rs, intr: Intrinsics):

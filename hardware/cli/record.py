@@ -8,8 +8,10 @@
 Controls: on a terminal single keys, s start, k stop and keep, d stop and discard, q quit; otherwise one
 command per line on stdin (s/start, k/keep, d/discard, q/quit). A live status line shows the episode, its
 step, the measured rate and the age of every stream (``!`` past its threshold). Each kept episode is
-appended to PATH.zarr crash-safely, with its raw CAN traffic in PATH.zarr.can/. ``--camera sim --can sim``
-records from the embedded simulation: the task's scripted expert plays the leader arm on a virtual bus.
+appended to PATH.zarr crash-safely, with its raw CAN traffic in PATH.zarr.can/. ``dssp-sim record`` (same
+flags, :mod:`dssp_sim.teleop`) records from the embedded simulation through this same code: ``--camera sim
+--can sim`` (its defaults), the task's scripted expert playing the leader arm on a virtual bus. The
+simulation is handed in as a :class:`SimulatedRig` (this package never imports the simulation).
 Exit codes: 0 done, 2 bad input, 130 stopped by a signal (an unfinished episode is discarded).
 """
 
@@ -26,9 +28,10 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Protocol
 
-from dssp_train.cli.common import ArgumentParser
-from dssp_train.errors import ConfigError, DSSPError
+from dssp_data.cli_runner import ArgumentParser
+from dssp_data.errors import ConfigError, DSSPError
 
 EPILOG = """\
 Action convention (--action): "leader" (default) records the leader arm's command at each step, what the
@@ -43,12 +46,27 @@ WORDS = {"s": "start", "start": "start", "k": "keep", "keep": "keep", "d": "disc
          "q": "quit", "quit": "quit", "exit": "quit"}
 
 
-def parse_args(argv):
-    p = ArgumentParser(prog="dssp-record", description="Record teleoperated demonstrations into a DP3 zarr dataset.",
+class SimulatedRig(Protocol):
+    """What ``--can sim`` needs from a simulation (``dssp-sim record`` passes :class:`dssp_sim.teleop.TeleopRigs`)."""
+
+    def default_cloud_config(self): ...
+    """The simulation's point-cloud settings (a :class:`~dssp_data.observation.PointCloudConfig`)."""
+
+    def open(self, task: str, seed: int): ...
+    """A rig (``channel``, ``camera``, ``clock``, ``control_rate_hz``, ``start(monitor)``, ``stop()``) for
+    ``task`` from scene ``seed``; raises ConfigError naming the task when there is no such task."""
+
+
+def parse_args(argv, sim: SimulatedRig | None = None, prog: str = "dssp-record"):
+    """``argv`` → the arguments; ``sim``: the simulation ``--can sim`` records from (None: a robot only)."""
+    p = ArgumentParser(prog=prog, description="Record teleoperated demonstrations into a DP3 zarr dataset.",
                                 epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--camera", default="sim", help="l515 | d435 | d405 | file:PATH (.bag/.db3) | sim (default: sim)")
+    default = "sim" if sim is not None else None
+    p.add_argument("--camera", default=default, required=sim is None,
+                   help="l515 | d435 | d405 | file:PATH (.bag/.db3) | sim" + (" (default: sim)" if sim else ""))
     p.add_argument("--serial", help="RealSense serial number, when several are connected")
-    p.add_argument("--can", default="sim", help="can0[,can1] (one bus per leader/follower pair: left, right) | sim (default: sim)")
+    p.add_argument("--can", default=default, required=sim is None,
+                   help="can0[,can1] (one bus per leader/follower pair: left, right)" + (" | sim (default: sim)" if sim else ""))
     p.add_argument("--interface", default="socketcan", help="python-can interface of real buses (default: socketcan)")
     p.add_argument("--out", type=Path, required=True, help="dataset to create or append to (PATH.zarr)")
     p.add_argument("--rate", type=float, help="recording rate in Hz (default: the dataset's, else the simulation's 10 Hz, else 10)")
@@ -69,7 +87,7 @@ def parse_args(argv):
         value = getattr(args, name)
         if value is not None and value < 1:
             raise ConfigError(f"--{name.replace('_', '-')} must be at least 1, got {value}")
-    from hardware.arm import check_rate
+    from hardware.robot import check_rate
     from hardware.camera import check_camera_spec
 
     if args.rate is not None:
@@ -81,6 +99,10 @@ def parse_args(argv):
                           f"got {args.sim_speed:g}")
     if args.seed is not None and args.seed < 0:
         raise ConfigError(f"--seed must be >= 0, got {args.seed}")
+    if sim is None and args.can.strip().lower().startswith("sim"):
+        raise ConfigError(f"--can {args.can}: dssp-record drives real buses; record the simulation with dssp-sim record "
+                          "(same flags)")
+    args.sim_rig = sim
     return args
 
 
@@ -159,12 +181,12 @@ class Console:
 # ---- devices -------------------------------------------------------------------------------------------------
 def _next_sim_seed(out: Path) -> int:
     """One past the largest scene seed the dataset's simulated episodes used (0 for a new dataset)."""
-    from dssp_train.data.replay_buffer import ReplayBufferReader
+    from dssp_data.replay_buffer import ReplayBufferReader
 
     if not out.exists():
         return 0
     reader = ReplayBufferReader(out, allow_incomplete_tail=True)  # a broken dataset: its one-line DatasetError
-    from dssp_train.data.recording import episode_infos
+    from dssp_data.recording import episode_infos
 
     seeds = [info["sim"]["seed"] for info in episode_infos(reader.attrs, reader.n_episodes, out)
              if info and isinstance(info.get("sim"), dict) and isinstance(info["sim"].get("seed"), int)]
@@ -173,7 +195,7 @@ def _next_sim_seed(out: Path) -> int:
 
 def _check_no_orphan_can_logs(out: Path) -> None:
     """A new dataset's CAN-log folder must not hold another recording's logs (they would be overwritten)."""
-    from dssp_train.data.recording import LOCK_NAME, can_log_dir
+    from dssp_data.recording import LOCK_NAME, can_log_dir
 
     logs = can_log_dir(out)
     if logs.is_symlink() or (logs.exists() and not logs.is_dir()):
@@ -185,7 +207,7 @@ def _check_no_orphan_can_logs(out: Path) -> None:
 
 
 def _existing_attrs(out: Path) -> dict:
-    from dssp_train.data.replay_buffer import ReplayBufferReader
+    from dssp_data.replay_buffer import ReplayBufferReader
 
     if not out.exists():
         return {}
@@ -195,15 +217,15 @@ def _existing_attrs(out: Path) -> dict:
 def open_session(args, stack: contextlib.ExitStack, console: Console):
     """Open the devices and the dataset for ``args`` (closed by ``stack``); returns the RecordSession
     (its ``rig`` is the simulated rig, or None on a robot)."""
-    from dssp_train.data.recording import (
+    from dssp_data.recording import (
         ACTION_CONVENTIONS,
         DEPTH_KEY,
         RECORDED_KEYS,
         STATE_CONVENTION,
         RecordingDataset,
     )
-    from dssp_train.output_guard import NEW, RECORDED_DATASET, check_append
-    from hardware.arm import check_rate
+    from dssp_data.output_guard import NEW, RECORDED_DATASET, check_append
+    from hardware.robot import check_rate
     from hardware.bus_monitor import BusMonitor
     from hardware.pointcloud import PointCloudConfig, load_extrinsics
     from hardware.record_session import RecordSession, SessionSettings
@@ -239,23 +261,14 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
             raise ConfigError(f"{args.out}'s pointcloud attribute: {exc} (give --pointcloud FILE, or fix the "
                               "attribute)") from None
     elif sim_can:
-        from dssp_sim.settings import cloud_config_for
-
-        cloud_config = cloud_config_for()
+        cloud_config = args.sim_rig.default_cloud_config()
     else:
         cloud_config = PointCloudConfig()
 
     rig = None
     if sim_can:
-        from dssp_sim.tasks import make_task
-        from dssp_sim.teleop import TeleopRig
-
-        try:
-            make_task(task)
-        except (KeyError, ValueError):
-            raise ConfigError(f"--task-name {task!r} is not a simulated task: use tap, swap or put2") from None
         seed = args.seed if args.seed is not None else _next_sim_seed(args.out)
-        rig = TeleopRig(task, seed=seed)
+        rig = args.sim_rig.open(task, seed)
         stack.callback(rig.stop)
         clock = rig.clock
         rate = args.rate or recorded_rate or rig.control_rate_hz
@@ -334,7 +347,7 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
 
 
 def record(args) -> int:
-    from dssp_train.data.recording import can_log_dir
+    from dssp_data.recording import can_log_dir
 
     console = Console(args.quiet)
     with contextlib.ExitStack() as stack:
@@ -360,10 +373,10 @@ def record(args) -> int:
     return 130 if summary.ended_by in ("SIGINT", "SIGTERM") else 0
 
 
-def main(argv: list[str] | None = None) -> int:
-    from dssp_train.cli.common import run_cli
+def main(argv: list[str] | None = None, sim: SimulatedRig | None = None, prog: str = "dssp-record") -> int:
+    from dssp_data.cli_runner import run_cli
 
-    return run_cli(lambda: record(parse_args(argv)))
+    return run_cli(lambda: record(parse_args(argv, sim, prog)))
 
 
 if __name__ == "__main__":

@@ -22,8 +22,8 @@ from pathlib import Path
 import numpy as np
 
 from dssp_deploy.manifest import PRECISIONS
-from dssp_train.cli.common import ArgumentParser
-from dssp_train.errors import ConfigError
+from dssp_data.cli_runner import ArgumentParser
+from dssp_data.errors import ConfigError
 
 EPILOG = """\
 --camera sim --can sim runs everything against the embedded simulation (no hardware). Real arms:
@@ -108,7 +108,7 @@ class StartupInterrupted(Exception):
 def check_args(args) -> None:
     """Flags that can be judged without opening anything; one line each, before any device or model is touched."""
     from dssp_deploy.sessions import check_threads
-    from hardware.arm import check_rate
+    from hardware.robot import check_rate
     from hardware.camera import check_camera_spec
 
     check_camera_spec(args.camera, args.serial)
@@ -128,7 +128,7 @@ def control_rate(args, policy) -> float:
     if policy.control_rate_hz is None:
         raise ConfigError(f"{args.model} records no control rate (its dataset had none): pass --rate HZ, the rate "
                           "the demonstrations were recorded at")
-    from hardware.arm import check_rate
+    from hardware.robot import check_rate
 
     return check_rate(policy.control_rate_hz, flag=f"{args.model}'s control_rate_hz")
 
@@ -146,12 +146,12 @@ def run(args) -> int:
 
 def _run(args, signals: StartupSignals) -> int:
     check_args(args)
-    from dssp_deploy.policy import OnnxPolicy
-    from dssp_train.output_guard import RUN_LOG, check_output, claim_dir
+    from dssp_deploy.onnx_policy import OnnxPolicy
+    from dssp_data.output_guard import RUN_LOG, check_output, claim_dir
     from hardware.camera import open_camera
     from hardware.can_log import BusRecorder
     from hardware.piper.limits import JointLimits
-    from hardware.piper.robot import open_robot
+    from hardware.piper.piper_robot import open_robot
     from hardware.pointcloud import PointCloudConfig, load_extrinsics
     from hardware.run_log import RunLog
     from hardware.run_loop import LoopSettings, Runner, check_fits
@@ -246,7 +246,7 @@ def print_summary(summary: dict, log_dir: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from dssp_train.cli.common import run_cli
+    from dssp_data.cli_runner import run_cli
 
     args = parse_args(argv)
     return run_cli(lambda: run(args))

@@ -12,9 +12,9 @@ _EXPORTS = {
     "JointLimits": "hardware.piper.limits",
     "PiperArm": "hardware.piper.arm",
     "PiperFeedback": "hardware.piper.arm",
-    "PiperRobot": "hardware.piper.robot",
-    "open_robot": "hardware.piper.robot",
-    "SimulatedPiper": "hardware.piper.sim",
+    "PiperRobot": "hardware.piper.piper_robot",
+    "open_robot": "hardware.piper.piper_robot",
+    "SimulatedPiper": "hardware.piper.can_simulator",
 }
 __all__ = sorted(_EXPORTS)
 

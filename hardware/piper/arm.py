@@ -15,8 +15,8 @@ from dataclasses import dataclass
 import can
 import numpy as np
 
-from hardware.arm import ArmStatus
-from hardware.errors import ArmError, CanError
+from hardware.robot import ArmStatus
+from dssp_data.errors import ArmError, CanError
 from hardware.piper import codec
 from hardware.piper.bus import open_bus
 from hardware.piper.codec import ArmStatusFeedback, GripperFeedback, JointFeedback, MotorLowSpeed

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hardware.arm import ARM_DOF
+from hardware.robot import ARM_DOF
 
 N_JOINTS = 6
 

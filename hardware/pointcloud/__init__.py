@@ -7,7 +7,7 @@
 numpy + fpsample only; imports without pyrealsense2.
 """
 
-from hardware.pointcloud.config import PointCloudConfig
+from dssp_data.observation import PointCloudConfig
 from hardware.pointcloud.extrinsics import identity, load_extrinsics, save_extrinsics, validate_extrinsics
 from hardware.pointcloud.pipeline import (
     CloudInfo,

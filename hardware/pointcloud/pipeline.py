@@ -39,8 +39,8 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from hardware.camera.base import DepthFrame, Intrinsics
-from hardware.errors import CameraError
-from hardware.pointcloud.config import PointCloudConfig
+from dssp_data.errors import CameraError
+from dssp_data.observation import PointCloudConfig
 from hardware.pointcloud.extrinsics import validate_extrinsics
 
 STAGES = ("clip", "deproject", "crop", "voxel", "sample", "pad", "color")

@@ -1,4 +1,4 @@
-"""``PiperRobot``: one or two Piper arms as one ``hardware.arm.Robot`` in policy units, and ``open_robot``.
+"""``PiperRobot``: one or two Piper arms as one ``hardware.robot.Robot`` in policy units, and ``open_robot``.
 
 Policy vector (RoboTwin order): one arm (7,) [J1..J6 rad, gripper opening 0..1]; two arms (14,)
 [left J1..J6, left gripper, right J1..J6, right gripper]. Gripper opening g <-> stroke g * 0.07 m.
@@ -12,11 +12,11 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from hardware.arm import ARM_DOF, ArmStatus, Robot, RobotState
-from hardware.errors import ArmError, HardwareError
+from hardware.robot import ARM_DOF, ArmStatus, Robot, RobotState
+from dssp_data.errors import ArmError, HardwareError
 from hardware.piper.arm import PiperArm
 from hardware.piper.limits import opening_to_stroke, stroke_to_opening
-from hardware.piper.sim import SimulatedPiper
+from hardware.piper.can_simulator import SimulatedPiper
 
 
 class PiperRobot(Robot):

@@ -7,7 +7,7 @@
 
 Episodes are copied one at a time (memory holds one episode), into a temporary directory beside the output
 (``.OUT.tmp-XXXXXXXX``, its CAN logs in ``.OUT.tmp-XXXXXXXX.can``) that is renamed onto the output when
-complete. What may be at an output (:data:`~dssp_train.output_guard.DATA_DATASET`): nothing, or a dataset
+complete. What may be at an output (:data:`~dssp_data.output_guard.DATA_DATASET`): nothing, or a dataset
 ``dssp-data`` merge, split or convert made (its ``generator`` attribute), replaced only with ``force``,
 together with its ``OUT.can`` CAN logs; anything else — a recorded, synthetic or foreign dataset, a
 ``OUT.can`` folder without its dataset — is refused, ``force`` or not, and nothing is deleted. An output
@@ -23,7 +23,7 @@ input's own ``generator``), and ``generator`` = ``dssp-data merge`` / ``dssp-dat
 Everything is read through the dataset reader's checked path, so a missing or corrupt chunk stops the
 command with one line naming the key and the chunk, before the output replaces anything. The CAN-log
 names come from the inputs' ``episode_info``; each must stay inside that input's CAN-log folder
-(:func:`~dssp_train.data.recording.can_log_path`), checked for every episode before anything is written.
+(:func:`~dssp_data.recording.can_log_path`), checked for every episode before anything is written.
 ``repair`` first checks every chunk of the complete episodes (decoding them): it cannot restore lost
 data, so a missing or corrupt chunk is an error and nothing on disk changes.
 """
@@ -39,8 +39,8 @@ from pathlib import Path
 import numpy as np
 import zarr
 
-from dssp_train.data import attributes
-from dssp_train.data.recording import (
+from dssp_data import attributes
+from dssp_data.recording import (
     LOCK_NAME,
     DatasetLock,
     can_log_dir,
@@ -49,9 +49,9 @@ from dssp_train.data.recording import (
     episode_can_logs,
     episode_infos,
 )
-from dssp_train.data.replay_buffer import ReplayBufferReader, ReplayBufferWriter
-from dssp_train.errors import ConfigError, DatasetError
-from dssp_train.output_guard import (
+from dssp_data.replay_buffer import ReplayBufferReader, ReplayBufferWriter
+from dssp_data.errors import ConfigError, DatasetError
+from dssp_data.output_guard import (
     DATA_DATASET,
     DATA_GENERATORS,
     Staging,

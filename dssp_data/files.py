@@ -66,7 +66,7 @@ def replace_dir(tmp: Path, out: Path) -> None:
     """Move the finished directory ``tmp`` onto ``out``; an existing ``out`` is removed only after the move.
 
     The existing ``out`` is first renamed aside (``.NAME.old-XXXX``); if ``tmp`` cannot be moved in, it is
-    put back. Which ``out`` may be replaced at all is :mod:`dssp_train.output_guard`'s decision.
+    put back. Which ``out`` may be replaced at all is :mod:`dssp_data.output_guard`'s decision.
     """
     tmp, out = Path(tmp), Path(out)
     if out.exists():

@@ -1,4 +1,4 @@
-"""The simulated Piper of ``hardware.piper.sim`` with MuJoCo doing the motion.
+"""The simulated Piper of ``hardware.piper.can_simulator`` with MuJoCo doing the motion.
 
 It speaks the Piper CAN protocol exactly as the kinematic simulator does (feedback frames, enable,
 e-stop, error bits); only the motion differs: the commanded joint and gripper targets go to the MuJoCo
@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from hardware.piper import codec
-from hardware.piper.sim import SimulatedPiper
+from hardware.piper.can_simulator import SimulatedPiper
 
 
 class MujocoPiper(SimulatedPiper):

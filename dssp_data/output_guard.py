@@ -22,7 +22,7 @@ dssp_sim.experiment`` resumes its work directory) continue only their own kind (
 Single files (JSON reports, PNG plots; :func:`check_output_file`, :func:`write_output_text`,
 :func:`write_output_file`): a new file is written; an existing file is replaced only with ``--force``; a
 directory or a symlink at that path is always refused. Files are written to a temporary name beside the
-target and renamed over it (:mod:`dssp_train.atomic`).
+target and renamed over it (:mod:`dssp_data.files`).
 
 Where an output goes: a path under a file, or in a folder that cannot be written, is refused with one
 line (:func:`check_output`, :func:`check_output_file`, :func:`make_dirs`); so is an output that is one of
@@ -58,8 +58,8 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from dssp_train.atomic import atomic_write, atomic_write_text
-from dssp_train.errors import DSSPError
+from dssp_data.files import atomic_write, atomic_write_text
+from dssp_data.errors import DSSPError
 
 MARKER = ".dssp-output.json"
 """The file a command writes into a directory it creates: which command made it and what it is."""
@@ -738,7 +738,7 @@ def zarr_generator(path: str | os.PathLike) -> str | None:
 
 
 ZARR_ENTRIES = (".zgroup", ".zattrs", ".zmetadata", "zarr.json", "data", "meta")
-"""The top-level names of a DP3 zarr dataset as :mod:`dssp_train.data.replay_buffer` writes it."""
+"""The top-level names of a DP3 zarr dataset as :mod:`dssp_data.replay_buffer` writes it."""
 
 
 def _run_signature(path: Path) -> bool:

@@ -39,9 +39,9 @@ from pathlib import Path
 
 import numpy as np
 
-from dssp_train.data import attributes
-from dssp_train.data.replay_buffer import Episode, ReplayBufferWriter
-from dssp_train.errors import DatasetError
+from dssp_data import attributes
+from dssp_data.replay_buffer import Episode, ReplayBufferWriter
+from dssp_data.errors import DatasetError
 
 TIME_KEYS = ("timestamp", "camera_timestamp", "state_timestamp", "action_timestamp")
 FRAME_KEY = "camera_frame"

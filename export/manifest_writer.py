@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from dssp_train.config import RunConfig
-from dssp_train.atomic import atomic_write_text
+from dssp_data.files import atomic_write_text
 
 from dssp_deploy.manifest import (  # noqa: F401  (re-exported: the runtime owns the format: names, interface, reader)
     DENOISER_GRAPH,

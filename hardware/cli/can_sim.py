@@ -1,6 +1,6 @@
 """``dssp-sim-arm``: run simulated AgileX Piper arms on CAN buses until SIGINT/SIGTERM (or --duration).
 
-Each channel gets one ``hardware.piper.sim.SimulatedPiper``. Between processes use ``udp_multicast``: each
+Each channel gets one ``hardware.piper.can_simulator.SimulatedPiper``. Between processes use ``udp_multicast``: each
 channel is a multicast group address; frames stay on this host (hop limit 0).
 """
 
@@ -13,8 +13,8 @@ import sys
 import threading
 import time
 
-from dssp_train.cli.common import run_cli
-from hardware.errors import HardwareError
+from dssp_data.cli_runner import run_cli
+from dssp_data.errors import HardwareError
 
 EPILOG = """\
 channels:
@@ -90,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _run(args, channels: list[str]) -> int:
-    from hardware.piper.sim import SimulatedPiper
+    from hardware.piper.can_simulator import SimulatedPiper
 
     options = {"port": args.port} if args.port is not None and args.interface == "udp_multicast" else {}
     sims = [SimulatedPiper(c, args.interface, rate=args.rate, bus_options=options) for c in channels]

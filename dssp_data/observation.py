@@ -11,9 +11,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar
 
-from dssp_train.atomic import atomic_write_text
-from dssp_train.errors import ConfigError
-from dssp_train.schema import Settings, setting
+from dssp_data.files import atomic_write_text
+from dssp_data.errors import ConfigError
+from dssp_data.schema import Settings, setting
 
 SAMPLING_METHODS = ("fps",)
 MAX_RANGE_M = 20.0  # no depth camera of the toolkit measures farther; a larger value is a unit mistake (mm)

@@ -8,7 +8,7 @@ import sys
 import warnings
 from collections.abc import Callable
 
-from dssp_train.errors import DSSPError
+from dssp_data.errors import DSSPError
 
 
 def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
@@ -54,7 +54,7 @@ def _settle_after_interrupt() -> None:
     the main thread), and do not warn about the calls the interruption stopped before they started."""
     if "zarr" not in sys.modules:
         return
-    from dssp_train.output_guard import settle_background_writes
+    from dssp_data.output_guard import settle_background_writes
 
     warnings.filterwarnings("ignore", message="coroutine .* was never awaited", category=RuntimeWarning)
     settle_background_writes()

@@ -11,7 +11,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from dssp_train.atomic import atomic_write_text
+from dssp_data.files import atomic_write_text
 
 
 class RunLog:

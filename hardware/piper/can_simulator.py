@@ -30,7 +30,7 @@ import time
 import can
 import numpy as np
 
-from hardware.errors import CanError
+from dssp_data.errors import CanError
 from hardware.piper import codec
 from hardware.piper.bus import open_bus
 from hardware.piper.limits import GRIPPER_STROKE_MAX, GRIPPER_STROKE_MIN, JOINT_LOWER, JOINT_UPPER

@@ -1,13 +1,15 @@
 """``dssp-sim``: expert demonstrations and closed-loop evaluation in the MuJoCo simulation.
 
     dssp-sim collect --task tap|swap|put2 --episodes N --out PATH.zarr [--seed S] [--points P]
+    dssp-sim record --out PATH.zarr [dssp-record's flags; --camera sim --can sim by default]
     dssp-sim demo [--out runs/demo] [--steps 3000] [--demos 50] [--episodes 20] [--force]
     dssp-sim eval --model MODEL_DIR --task NAME --episodes N [--seed S] [--noise SIGMA] [--strips DIR] [--json PATH] [--force]
 
+``record`` is ``dssp-record`` on the simulated rig (the task's scripted expert plays the leader arm).
 ``collect`` keeps only successful expert episodes and says how many it tried. ``eval`` drives the model
 through the real chain (simulated camera → point-cloud pipeline → runtime → safety → CAN → simulated arm)
 and prints the success rate with its 95 % Wilson interval and each episode's outcome.
-Outputs (:mod:`dssp_train.output_guard`): ``collect`` appends only to a dataset ``dssp-sim collect`` wrote;
+Outputs (:mod:`dssp_data.output_guard`): ``collect`` appends only to a dataset ``dssp-sim collect`` wrote;
 ``demo --out`` and ``eval --strips`` replace a previous output of their own only with ``--force``, and
 never a folder with anything else in it; ``eval --json`` replaces an existing file only with ``--force``.
 Exit codes: 0 done, 2 bad input (an output path that may not be written included).
@@ -22,8 +24,8 @@ import math
 import sys
 from pathlib import Path
 
-from dssp_train.cli.common import ArgumentParser
-from dssp_train.errors import ConfigError
+from dssp_data.cli_runner import ArgumentParser
+from dssp_data.errors import ConfigError
 
 TASKS = ("tap", "swap", "put2")
 
@@ -51,6 +53,7 @@ def _non_negative(text: str) -> int:
 def parse_args(argv):
     p = ArgumentParser(prog="dssp-sim", description="Memory tasks in a MuJoCo simulation of the AgileX Piper.")
     sub = p.add_subparsers(dest="command", required=True)
+    sub.add_parser("record", help="dssp-record on the simulated rig (same flags; see dssp-sim record --help)")
     c = sub.add_parser("collect", help="expert demonstrations → a DP3 zarr dataset")
     c.add_argument("--task", type=_task, required=True, help=" | ".join(TASKS))
     c.add_argument("--episodes", type=_positive, required=True, help="successful episodes to keep")
@@ -78,34 +81,6 @@ def parse_args(argv):
     return p.parse_args(argv)
 
 
-def print_eval(result) -> None:
-    lo, hi = result.interval()
-    print(f"\n{result.task}: success {result.successes}/{len(result.episodes)} = {100 * result.success_rate:.0f} % "
-          f"(95 % Wilson interval {100 * lo:.0f}–{100 * hi:.0f} %)" + (f", state-token noise σ={result.state_token_noise:g}" if result.state_token_noise else ""))
-    print("| seed | outcome | steps | detail | holds |")
-    print("|---:|---|---:|---|---:|")
-    for e in result.episodes:
-        detail = ", ".join(f"{k}={v}" for k, v in e.info.items() if isinstance(v, (int, float, str, bool)))
-        print(f"| {e.seed} | {'success' if e.success else e.reason} | {e.steps} | {detail} | {e.holds} |")
-    if result.reasons():
-        print("failures: " + ", ".join(f"{k} × {v}" for k, v in result.reasons().most_common()))
-    print_latency(result.latency_ms)
-
-
-def print_latency(lat: dict) -> None:
-    """The control loop's latencies over every tick of the evaluation (ms)."""
-    labels = {"cloud": "point cloud (pipeline)", "observe": "history step (ORT)", "chunk": "denoiser chunk (ORT)",
-              "tick": "whole tick (cloud + policy + safety + CAN)"}
-    print("\n| stage | p50 ms | p95 ms | max ms | ticks |")
-    print("|---|---:|---:|---:|---:|")
-    for key, label in labels.items():
-        s = lat.get(key)
-        if s:
-            print(f"| {label} | {s['p50']:.2f} | {s['p95']:.2f} | {s['max']:.2f} | {s['n']} |")
-    if lat.get("episode_wall_s_p50") is not None:
-        print(f"one episode takes {lat['episode_wall_s_p50']:.1f} s (p50; lockstep with simulated time)")
-
-
 def run(args) -> int:
     if args.command == "demo":
         from dssp_sim.demo import run_demo
@@ -124,8 +99,8 @@ def run(args) -> int:
             raise ConfigError(f"only {result.kept} of {args.episodes} expert episodes succeeded in {result.attempted} tries; "
                               "the dataset holds the successful ones — check the task's expert")
         return 0
-    from dssp_sim.evaluate import STRIPS_DIR, evaluate
-    from dssp_train.output_guard import OutputDir, check_output_file, write_output_text
+    from dssp_sim.evaluate import STRIPS_DIR, evaluate, print_eval
+    from dssp_data.output_guard import OutputDir, check_output_file, write_output_text
 
     if not (math.isfinite(args.noise) and 0 <= args.noise <= 10):
         raise ConfigError(f"--noise must be a number in [0, 10] (σ in the tokens' units), got {args.noise}")
@@ -145,8 +120,13 @@ def run(args) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from dssp_train.cli.common import run_cli
+    from dssp_data.cli_runner import run_cli
 
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["record"]:  # dssp-record's own flags, on the simulated rig
+        from dssp_sim.teleop import record_main
+
+        return record_main(argv[1:])
     args = parse_args(argv)
     return run_cli(lambda: run(args))
 

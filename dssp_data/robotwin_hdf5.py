@@ -23,10 +23,10 @@ from pathlib import Path
 
 import numpy as np
 
-from dssp_train.data.recording import ACTION_CONVENTIONS, can_log_dir
-from dssp_train.data.replay_buffer import Episode, ReplayBufferWriter
-from dssp_train.errors import DatasetError
-from dssp_train.output_guard import (
+from dssp_data.recording import ACTION_CONVENTIONS, can_log_dir
+from dssp_data.replay_buffer import Episode, ReplayBufferWriter
+from dssp_data.errors import DatasetError
+from dssp_data.output_guard import (
     DATA_DATASET,
     DATA_GENERATORS,
     Staging,
@@ -113,7 +113,7 @@ def convert(source: str | os.PathLike, out: str | os.PathLike, *, max_episodes: 
     """Convert RoboTwin episodes from ``source`` into the DP3 dataset ``out`` (written whole, then renamed).
 
     ``out`` must be new, or a dataset ``dssp-data`` made (replaced only with ``force``); anything else is
-    refused and nothing is deleted (:data:`~dssp_train.output_guard.DATA_DATASET`). The dataset is
+    refused and nothing is deleted (:data:`~dssp_data.output_guard.DATA_DATASET`). The dataset is
     written into a staging directory beside ``out``, removed on an error or Ctrl-C. Its ``generator``
     attribute is ``dssp-data convert``. Returns {"episodes": n, "steps": n, "files": [names]}.
     ``progress(i, n, path)`` is called per file.

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from dssp_train.errors import ConfigError
+from dssp_data.errors import ConfigError
 
 ARM_DOF = 7  # J1..J6 + gripper
 
@@ -50,7 +50,7 @@ class RobotState:
 
 
 class Robot(ABC):
-    """One or more arms as one vector. Every method raises ``hardware.errors.ArmError``/``CanError``."""
+    """One or more arms as one vector. Every method raises ``dssp_data.errors.ArmError``/``CanError``."""
 
     dof: int
 

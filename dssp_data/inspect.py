@@ -6,10 +6,10 @@
 The report holds: the number of episodes and their lengths; the control rate (attribute) and the
 measured rate of recorded episodes; every array under ``data/`` and ``meta/`` with shape and dtype;
 per-channel value ranges of state and action and the point clouds' coordinate ranges; the root
-attributes; per-episode recording metadata (``dssp_train.data.recording``); and ``problems`` (must be
+attributes; per-episode recording metadata (``dssp_data.recording``); and ``problems`` (must be
 looked at: NaN, an interrupted write, marked episodes, missing CAN logs, timestamp gaps, ...) and
 ``notes`` (worth knowing). An attribute whose value has the wrong type (a ``control_rate_hz`` that is not a
-number > 0, an ``episode_info`` that is not a list, ...: :mod:`dssp_train.data.attributes`) is a problem
+number > 0, an ``episode_info`` that is not a list, ...: :mod:`dssp_data.attributes`) is a problem
 that names it, never read as "not recorded". The dataset is read one episode at a time, through the dataset reader's checked
 path; first every chunk of every array is checked without decoding (stored, and a whole Blosc frame), so a
 missing or corrupt chunk anywhere, also in arrays the report does not read, raises DatasetError naming the
@@ -29,8 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from dssp_train.data import attributes
-from dssp_train.data.recording import (
+from dssp_data import attributes
+from dssp_data.recording import (
     FLAGS_KEY,
     PROBLEM_TEXT,
     STEP_PROBLEMS,
@@ -38,8 +38,8 @@ from dssp_train.data.recording import (
     episode_can_logs,
     episode_infos,
 )
-from dssp_train.data.replay_buffer import DATA_KEYS, ReplayBufferReader
-from dssp_train.errors import DatasetError
+from dssp_data.replay_buffer import DATA_KEYS, ReplayBufferReader
+from dssp_data.errors import DatasetError
 
 MAX_JOINT_JUMP = 0.5
 """rad: a recorded joint action changing more than this in one step is reported (a teleoperation glitch)."""

@@ -1,7 +1,7 @@
 """Typed readers of a dataset's root attributes: a value of the wrong type is an error, never a guess.
 
 Each reader takes the attributes (a JSON dict) and the dataset's path for the message, and returns the
-value, ``None`` when the attribute is absent (or null), or raises :class:`~dssp_train.errors.DatasetError` with one
+value, ``None`` when the attribute is absent (or null), or raises :class:`~dssp_data.errors.DatasetError` with one
 line naming the dataset, the attribute and its value, and how to fix it. Nothing is converted behind the
 user's back: ``"10"`` is not a rate, ``true`` is not 1 Hz, and an ``episode_info`` that is not a list is
 not read as "no metadata". :func:`attribute_problems` runs every reader and returns their messages, for
@@ -24,7 +24,7 @@ import math
 import os
 from collections.abc import Callable, Mapping
 
-from dssp_train.errors import DatasetError
+from dssp_data.errors import DatasetError
 
 INTRINSICS_INTEGERS = ("width", "height")
 INTRINSICS_NUMBERS = ("fx", "fy", "ppx", "ppy")

@@ -14,7 +14,7 @@ import numpy as np
 
 from hardware.camera.base import Camera, DepthFrame
 from hardware.camera.software import SoftwareDepthCamera
-from hardware.errors import CameraError
+from dssp_data.errors import CameraError
 
 
 class MujocoCamera(Camera):

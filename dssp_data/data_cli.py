@@ -2,7 +2,6 @@
 
     dssp-data info PATH [--json]
     dssp-data view PATH --episode K [--out DIR] [--steps N] [--video]
-    dssp-data replay PATH --episode K [--can can0[,can1]|sim] [--send] [--rate HZ] [--safety FILE] [--interface IF]
     dssp-data merge OUT IN IN... [--drop-marked] [--force]
     dssp-data split PATH --train OUT --val OUT (--val-ratio R | --val-episodes 1,5) [--seed S] [--drop-marked]
                     [--drop-episodes 3,7-9] [--force]
@@ -13,6 +12,8 @@ Every problem with the input is one ``error: ...`` line and exit code 2: among t
 is missing or corrupt (the line names the key, the chunk, its steps and episodes). ``info`` exits with 1 when it
 lists problems with the data, 0 when it finds none; ``repair`` exits with 2 when the dataset has lost data it
 cannot restore, and changes nothing then.
+
+Replaying an episode on the arms is ``dssp-replay`` (:mod:`hardware.cli.replay`).
 
 Outputs: merge, split and convert write a new dataset, or replace one that dssp-data made (``--force``, with
 its ``.can`` CAN logs); a recorded, synthetic or any other dataset or folder there is refused and nothing is
@@ -25,18 +26,16 @@ from __future__ import annotations
 
 import argparse
 import json
-import signal
 import sys
 from pathlib import Path
 
-from dssp_train.cli.common import run_cli
-from dssp_train.errors import DSSPError
+from dssp_data.cli_runner import run_cli
+from dssp_data.errors import DSSPError
 
 EPILOG = """\
 info      episodes, lengths, rates, arrays, value ranges, attributes, recording metadata, problems found
           (exit 1 when it lists problems, 2 when the dataset cannot be read, e.g. a missing or corrupt chunk)
 view      PNG pictures of one episode: point clouds over time from three viewpoints, state/action trajectories
-replay    send an episode's actions to the arms through the safety layer; a dry run unless --send
 merge     concatenate datasets (episodes, per-episode metadata and CAN logs travel along)
 split     train/validation datasets by whole episodes (--drop-episodes leaves episodes out, e.g. lost ones)
 convert   RoboTwin raw HDF5 episodes (<task>/<config>/data/episode*.hdf5) to a DP3 zarr dataset
@@ -61,15 +60,6 @@ def build_parser() -> argparse.ArgumentParser:
     view.add_argument("--steps", type=int, default=5, help="steps shown in the point-cloud picture (default 5)")
     view.add_argument("--video", action="store_true", help="also an animated GIF of the point clouds")
     view.add_argument("--force", action="store_true", help="replace pictures of the same name in --out")
-
-    replay = sub.add_parser("replay", help="send an episode's actions through the safety layer (dry run by default)")
-    replay.add_argument("path", type=Path)
-    replay.add_argument("--episode", type=int, required=True)
-    replay.add_argument("--can", help="can0[,can1] (left, right) | sim | sim:2; without it: dry run without an arm")
-    replay.add_argument("--interface", default="socketcan", help="python-can interface (default: socketcan)")
-    replay.add_argument("--send", action="store_true", help="enable the arms and command them (otherwise nothing is sent)")
-    replay.add_argument("--rate", type=float, help="replay rate in Hz (default: the dataset's control rate)")
-    replay.add_argument("--safety", type=Path, help="safety settings JSON (hardware.safety.SafetyConfig fields)")
 
     merge = sub.add_parser("merge", help="concatenate datasets")
     merge.add_argument("out", type=Path)
@@ -104,7 +94,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _info(args) -> int:
-    from dssp_train.data.inspect import format_report, inspect_dataset
+    from dssp_data.inspect import format_report, inspect_dataset
 
     report = inspect_dataset(args.path)
     print(json.dumps(report, indent=2) if args.json else format_report(report))
@@ -112,7 +102,7 @@ def _info(args) -> int:
 
 
 def _view(args) -> int:
-    from dssp_train.data.view import render_episode
+    from dssp_data.view import render_episode
 
     if args.steps < 1:
         raise DSSPError(f"--steps must be at least 1, got {args.steps}")
@@ -122,33 +112,8 @@ def _view(args) -> int:
     return 0
 
 
-def _replay(args) -> int:
-    from hardware.replay import replay_episode
-    from hardware.safety import SafetyConfig
-
-    safety = SafetyConfig.load(args.safety, "safety") if args.safety else SafetyConfig()
-    stop = {"why": None}
-    handlers = {s: signal.signal(s, lambda signum, _f: stop.update(why=signal.Signals(signum).name))
-                for s in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        result = replay_episode(args.path, args.episode, args.can, send=args.send, interface=args.interface,
-                                rate_hz=args.rate, safety_config=safety, should_stop=lambda: stop["why"] is not None)
-    finally:
-        for s, h in handlers.items():
-            signal.signal(s, h)
-    mode = f"sent {result['sent']} commands to {args.can}" if args.send else (
-        f"dry run on {args.can} (nothing sent)" if args.can else "dry run without an arm (ideal tracking)")
-    print(f"episode {result['episode']}: {result['steps']} actions at {result['rate_hz']:g} Hz, {mode}")
-    print(f"safety: {result['clips']} clips, {result['holds']} holds, {result['refused']} refused; largest change to a "
-          f"recorded action {result['max_change']:.4f}; first action {result['start_distance']:.3f} from the start")
-    if result["tracking_error"] is not None:
-        print(f"final tracking error {result['tracking_error']:.4f} (policy units)")
-    print(f"ended by: {result['ended_by']}")
-    return 130 if stop["why"] else 0
-
-
 def _merge(args) -> int:
-    from dssp_train.data.edit import merge
+    from dssp_data.edit import merge
 
     summary = merge(args.out, args.inputs, force=args.force, drop_marked=args.drop_marked, flag="OUT")
     for line in summary["warnings"]:
@@ -160,7 +125,7 @@ def _merge(args) -> int:
 
 
 def _split(args) -> int:
-    from dssp_train.data.edit import split
+    from dssp_data.edit import split
 
     episodes = None
     if args.val_episodes is not None:
@@ -201,7 +166,7 @@ def _episode_list(text: str, option: str) -> list[int]:
 
 
 def _convert(args) -> int:
-    from dssp_train.data.robotwin_hdf5 import convert
+    from dssp_data.robotwin_hdf5 import convert
 
     tty = sys.stderr.isatty()
 
@@ -224,7 +189,7 @@ def _convert(args) -> int:
 
 
 def _repair(args) -> int:
-    from dssp_train.data.edit import repair
+    from dssp_data.edit import repair
 
     result = repair(args.path)
     if result["dropped_steps"] or result["dropped_infos"]:
@@ -238,7 +203,7 @@ def _repair(args) -> int:
     return 0
 
 
-COMMANDS = {"info": _info, "view": _view, "replay": _replay, "merge": _merge, "split": _split,
+COMMANDS = {"info": _info, "view": _view, "merge": _merge, "split": _split,
             "convert": _convert, "repair": _repair}
 
 

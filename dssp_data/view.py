@@ -22,9 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
-from dssp_train.data.recording import FLAGS_KEY, can_log_dir, problem_names
-from dssp_train.data.replay_buffer import ReplayBufferReader
-from dssp_train.output_guard import (
+from dssp_data.recording import FLAGS_KEY, can_log_dir, problem_names
+from dssp_data.replay_buffer import ReplayBufferReader
+from dssp_data.output_guard import (
     check_not_inside,
     check_output_files,
     make_dirs,

@@ -1,0 +1,48 @@
+"""User-facing errors: one line that says what is wrong and what to do.
+
+The CLIs catch :class:`DSSPError` and print its message without a traceback.
+"""
+
+
+class DSSPError(Exception):
+    """An error caused by the user's input (a path, a dataset, a config)."""
+
+
+class DatasetError(DSSPError):
+    """A dataset on disk is missing something or holds invalid values."""
+
+
+class ConfigError(DSSPError):
+    """A configuration value is invalid or does not fit a checkpoint."""
+
+
+class CheckpointError(DSSPError):
+    """A checkpoint is missing, corrupt, or does not fit its config."""
+
+
+class HardwareError(DSSPError):
+    """A device is missing, misconfigured, or reported a fault."""
+
+
+class CameraError(HardwareError):
+    """A camera cannot be opened, or delivers no usable frames."""
+
+
+class CanError(HardwareError):
+    """A CAN bus cannot be opened, or a frame could not be sent."""
+
+
+class ArmError(HardwareError):
+    """An arm did not answer, refused a command, or reports an error."""
+
+
+class CalibrationError(HardwareError):
+    """A calibration (extrinsics) file is missing or invalid."""
+
+
+class ExportError(DSSPError):
+    """Bad input to export or verify: a path, an option, a model directory."""
+
+
+class ParityError(ExportError):
+    """The exported graphs disagree with the PyTorch streaming policy beyond the bound."""

@@ -1,0 +1,63 @@
+"""``dssp-replay``: send a recorded episode's actions to the arms through the safety layer (a dry run unless --send).
+
+    dssp-replay PATH --episode K [--can can0[,can1]|sim] [--send] [--rate HZ] [--safety FILE] [--interface IF]
+
+Without ``--can`` the episode runs against ideal tracking (no arm); with ``--can`` but without ``--send`` the
+arms are read, never commanded. Ctrl-C / SIGTERM stop between two commands and hold (exit code 130).
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+from pathlib import Path
+
+from dssp_data.cli_runner import ArgumentParser, run_cli
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = ArgumentParser(prog="dssp-replay", description="Send an episode's actions through the safety layer (dry run by default).")
+    p.add_argument("path", type=Path)
+    p.add_argument("--episode", type=int, required=True)
+    p.add_argument("--can", help="can0[,can1] (left, right) | sim | sim:2; without it: dry run without an arm")
+    p.add_argument("--interface", default="socketcan", help="python-can interface (default: socketcan)")
+    p.add_argument("--send", action="store_true", help="enable the arms and command them (otherwise nothing is sent)")
+    p.add_argument("--rate", type=float, help="replay rate in Hz (default: the dataset's control rate)")
+    p.add_argument("--safety", type=Path, help="safety settings JSON (hardware.safety.SafetyConfig fields)")
+
+    return p
+
+
+def _replay(args) -> int:
+    from hardware.replay import replay_episode
+    from hardware.safety import SafetyConfig
+
+    safety = SafetyConfig.load(args.safety, "safety") if args.safety else SafetyConfig()
+    stop = {"why": None}
+    handlers = {s: signal.signal(s, lambda signum, _f: stop.update(why=signal.Signals(signum).name))
+                for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        result = replay_episode(args.path, args.episode, args.can, send=args.send, interface=args.interface,
+                                rate_hz=args.rate, safety_config=safety, should_stop=lambda: stop["why"] is not None)
+    finally:
+        for s, h in handlers.items():
+            signal.signal(s, h)
+    mode = f"sent {result['sent']} commands to {args.can}" if args.send else (
+        f"dry run on {args.can} (nothing sent)" if args.can else "dry run without an arm (ideal tracking)")
+    print(f"episode {result['episode']}: {result['steps']} actions at {result['rate_hz']:g} Hz, {mode}")
+    print(f"safety: {result['clips']} clips, {result['holds']} holds, {result['refused']} refused; largest change to a "
+          f"recorded action {result['max_change']:.4f}; first action {result['start_distance']:.3f} from the start")
+    if result["tracking_error"] is not None:
+        print(f"final tracking error {result['tracking_error']:.4f} (policy units)")
+    print(f"ended by: {result['ended_by']}")
+    return 130 if stop["why"] else 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return run_cli(lambda: _replay(args))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
