@@ -41,7 +41,8 @@ import numpy as np
 
 from dssp_data import attributes
 from dssp_data.replay_buffer import Episode, ReplayBufferWriter
-from dssp_data.errors import DatasetError
+from dssp_data.errors import ConfigError, DatasetError
+from dssp_data.observation import ObservationContract, check_contract
 
 TIME_KEYS = ("timestamp", "camera_timestamp", "state_timestamp", "action_timestamp")
 FRAME_KEY = "camera_frame"
@@ -242,11 +243,14 @@ class RecordingDataset:
                 f"{where} uses the action convention {convention_name(existing)!r}, this session "
                 f"{convention_name(wanted)!r}: use the same --action or a new dataset"
             )
-        if existing.get("pointcloud") != wanted.get("pointcloud"):
-            raise DatasetError(
-                f"{where} was recorded with other point-cloud settings ({existing.get('pointcloud')}): "
-                f"use the same settings or a new dataset"
-            )
+        try:
+            check_contract(ObservationContract.from_attrs(existing, where), ObservationContract.from_attrs(wanted, "this session"),
+                           trained_by=where, given_by="this session",
+                           remedy="record with the dataset's settings (leave out --pointcloud) or into a new dataset")
+        except ConfigError as exc:
+            raise DatasetError(str(exc)) from None
+        if (existing.get("pointcloud") is None) != (wanted.get("pointcloud") is None):
+            raise DatasetError(f"{where} records no point-cloud settings: record into a new dataset")
 
     @staticmethod
     def _calibration_differs(existing: Mapping, wanted: Mapping) -> bool:

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 from pathlib import Path, PurePosixPath, PureWindowsPath
 from typing import Any, ClassVar
 
+from dssp_data.observation import ObservationContract
 from dssp_data.schema import MAX_DIM, MAX_LAYERS, MAX_RATE_HZ, MAX_STEPS, MAX_WIDTH
 from dssp_data.errors import ConfigError, DSSPError
 from dssp_data.schema import Settings, Spec, check_value, parse_json, setting
@@ -289,10 +290,28 @@ def check_manifest(manifest: dict[str, Any], model_dir: Path) -> ManifestFacts:
     if isinstance(runtime, Mapping) and "tick_rate_hz" in runtime and runtime["tick_rate_hz"] != facts.control_rate_hz:
         raise ConfigError(f"{MANIFEST_NAME} runtime.tick_rate_hz is {runtime['tick_rate_hz']!r} but control_rate_hz is "
                           f"{facts.control_rate_hz!r}: the manifest contradicts itself")
+    observation = observation_of(manifest)
+    cloud = observation.pointcloud
+    for field, have, want in (("pointcloud.n_points", cloud and cloud.n_points, model.n_points),
+                              ("pointcloud.point_dim", cloud and cloud.point_dim, model.point_dim),
+                              ("state", observation.state and observation.state.dim, model.state_dim),
+                              ("action", observation.action and observation.action.dim, model.action_dim)):
+        if have is not None and have != want:
+            raise ConfigError(f"{MANIFEST_NAME} observation.{field} makes {have} values but the model takes {want}: "
+                              "the manifest contradicts itself")
     manifest.update(facts.to_dict())
     manifest["model_config"] = {**manifest["model_config"], **model.to_dict()}
     manifest["source"] = {**manifest["source"], **source.to_dict()}
     return facts
+
+
+def observation_of(manifest: dict[str, Any]) -> ObservationContract:
+    """The model's observation contract (``observation``; a field the training data did not record is
+    "unknown", i.e. None here; a manifest without the section knows none)."""
+    try:
+        return ObservationContract.from_manifest(manifest.get("observation"))
+    except ConfigError as exc:
+        raise ConfigError(f"{MANIFEST_NAME} {exc}") from None
 
 
 def _check_files(files: Any, model_dir: Path) -> dict[str, dict[str, Any]]:

@@ -1,6 +1,6 @@
 """dssp_sim: a MuJoCo simulation of the AgileX Piper workcell with memory tasks and scripted experts.
 
-- ``dssp_sim.model``: the MJCF of the arm, table and depth camera, generated from the Piper's DH table;
+- ``dssp_sim.mjcf``: the MJCF of the arm, table and depth camera, generated from the Piper's DH table;
 - ``dssp_sim.tasks``: the tasks ``tap``, ``swap`` and ``put2`` (objects, randomisation, scoring);
 - ``dssp_sim.env``: ``PiperEnv``, the simulation at the policy's control rate, with depth rendering;
 - ``dssp_sim.experts``: scripted experts (``make_expert``) for collecting demonstrations;

@@ -13,7 +13,7 @@ Two levels of use:
     while not env.status().done:
         env.step(expert.act(env))
 
-The depth camera is fixed (``dssp_sim.model.CAMERA_*``); ``render_depth`` returns a raw uint16 image in
+The depth camera is fixed (``dssp_sim.mjcf.CAMERA_*``); ``render_depth`` returns a raw uint16 image in
 units of ``DEPTH_UNIT`` (0.25 mm, as an L515), exact pinhole intrinsics of the render and the camera's
 pose in the base frame (optical frame: x right, y down, z forward).
 """
@@ -31,7 +31,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
-from dssp_sim.model import CAMERA_NAME, TIMESTEP, ArmIndex, scene_xml  # noqa: E402
+from dssp_sim.mjcf import CAMERA_NAME, TIMESTEP, ArmIndex, scene_xml  # noqa: E402
 from dssp_sim.tasks import HOME, HOME_TOLERANCE, START_JITTER, Task, TaskStatus, make_task  # noqa: E402
 from hardware.camera.base import Intrinsics  # noqa: E402
 from hardware.piper.limits import (  # noqa: E402

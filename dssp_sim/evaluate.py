@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dssp_deploy.manifest import observation_of
 from dssp_sim.settings import cloud_config_for
 from dssp_sim.mujoco_arm import MujocoPiper
 from dssp_sim.mujoco_camera import MujocoCamera
@@ -196,7 +197,9 @@ def evaluate(model_dir: Path, task: str, n_episodes: int, seed: int = 1000, thre
     if state_token_noise > 0:
         policy.denoiser_inputs = _NoisyRecentStates(policy, state_token_noise, np.random.default_rng(seed))
     env = PiperEnv(task, seed=seed)
-    cloud_config = cloud_config_for(policy.manifest["model_config"]["n_points"])
+    # The model's own point-cloud settings (its observation contract), as dssp-run uses them; a model trained on
+    # data that recorded none sees the simulation's settings at its point count.
+    cloud_config = observation_of(policy.manifest).pointcloud or cloud_config_for(policy.manifest["model_config"]["n_points"])
     result = EvalResult(str(model_dir), task, state_token_noise=state_token_noise)
     bar = None
     if progress:

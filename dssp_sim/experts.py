@@ -25,7 +25,7 @@ from collections.abc import Iterator
 import numpy as np
 
 from dssp_sim.ik import IKSolver
-from dssp_sim.model import FINGER_WIDTH, FINGERTIP_BELOW_TCP
+from dssp_sim.mjcf import FINGER_WIDTH, FINGERTIP_BELOW_TCP
 from dssp_sim.tasks import (
     BIN_FLOOR,
     BIN_LOW_TOP,

@@ -12,7 +12,7 @@ import math
 import mujoco
 import numpy as np
 
-from dssp_sim.model import ArmIndex
+from dssp_sim.mjcf import ArmIndex
 from hardware.piper.limits import JOINT_LOWER, JOINT_UPPER
 
 

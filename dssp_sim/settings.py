@@ -11,7 +11,7 @@ README). The point count comes from the model (or the preset) that will read the
 
 from __future__ import annotations
 
-from hardware.pointcloud import PointCloudConfig
+from dssp_data.observation import ObservationContract, PointCloudConfig, piper_layout
 
 SIM_N_POINTS = 256
 # Table area in front of the arm, a little above the table top (z = 0) to drop the table itself, and up
@@ -34,7 +34,7 @@ def sim_attrs(task: str, env, camera, cloud_config: PointCloudConfig) -> dict:
         "generator": "dssp_sim.collect",
         "action_convention": "target: the joint/gripper target commanded at this tick (policy units)",
         "state_convention": "measured [J1..J6 rad, gripper opening 0..1]",
-        "pointcloud": cloud_config.to_dict(),
+        **ObservationContract(pointcloud=cloud_config, state=piper_layout(1), action=piper_layout(1)).attrs(),
         "camera_intrinsics": camera.intrinsics.to_dict(),
         "camera_depth_unit": float(camera.depth_unit),
         "camera_to_base": camera.camera_to_base.tolist(),

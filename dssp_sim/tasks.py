@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 import mujoco
 import numpy as np
 
-from dssp_sim.model import GRIPPER_BIT, SCENE_BIT
+from dssp_sim.mjcf import GRIPPER_BIT, SCENE_BIT
 
 # The arm's home pose (rad, J1..J6): tool centre point at about (0.31, 0, 0.11) m, tilted 25 deg forward,
 # above the middle of the work area.

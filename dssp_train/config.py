@@ -13,6 +13,7 @@ from importlib import resources
 from typing import ClassVar
 
 from dssp_data.errors import ConfigError
+from dssp_data.observation import ObservationContract
 from dssp_data.schema import MAX_DIM, MAX_LAYERS, MAX_RATE_HZ, MAX_STEPS, MAX_WIDTH, Settings, parse_json, setting
 
 HISTORY_BACKBONES = ("mamba", "transformer")
@@ -142,6 +143,8 @@ class RunConfig(Settings):
     preset: str = setting("custom")
     control_rate_hz: float | None = setting(None, gt=0, le=MAX_RATE_HZ, unit="Hz")  # the data's rate; the runtime must match it
     dataset: str | None = setting(None)
+    # The observation contract the dataset records (point-cloud settings, state/action layout; null: unknown).
+    observation: ObservationContract = setting(default_factory=ObservationContract)
 
     def to_json(self) -> str:
         return json.dumps(self.to_dict(), indent=2, sort_keys=True)

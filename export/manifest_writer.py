@@ -85,6 +85,7 @@ def build_manifest(
         "use_recent_states": m.use_recent_states,
         "history_state": [s["name"] for s in history_state_specs(m)] if m.use_history else [],
         "control_rate_hz": config.control_rate_hz,
+        "observation": config.observation.to_manifest(),
         "normalizers": normalizers,
         "runtime": {
             "units": "point_cloud, agent_pos and action are raw (unnormalised); the graphs normalise inside",

@@ -221,7 +221,7 @@ def test_a_wrong_manifest_field_is_refused_at_load(model, scratch, path, token, 
 )
 def test_dssp_run_exits_2_before_any_arm_is_opened_or_enabled(model, tmp_path, monkeypatch, capsys, change, token):
     from hardware.cli.run import main as run_main
-    from hardware.piper import robot as piper_robot
+    from hardware.piper import piper_robot
 
     model_dir, good = model
     manifest = copy.deepcopy(good)

@@ -236,7 +236,7 @@ def test_schema_refuses_an_annotation_it_cannot_check():
 
     with pytest.raises(TypeError, match="cannot check"):
         Odd()
-    from dssp_train import schema
+    from dssp_data import schema
 
     schema._REGISTRY.remove(Odd)
 
@@ -318,12 +318,12 @@ def test_dssp_run_refuses_a_step_faster_than_the_arm(tmp_path, capsys):
     ("--pointcloud", {"voxel_size": 10}, "pointcloud.voxel_size"),
 ])
 def test_dssp_record_refuses_bad_settings_files(tmp_path, capsys, flag, content, field):
-    from hardware.cli import record
+    from dssp_sim.teleop import record_main
 
     path = tmp_path / "settings.json"
     path.write_text(json.dumps(content))
     out = tmp_path / "rec.zarr"
-    code = record.main(["--out", str(out), flag, str(path), "--quiet", "--auto", "--episodes", "1"])
+    code = record_main(["--out", str(out), flag, str(path), "--quiet", "--auto", "--episodes", "1"])
     assert field in _one_line_exit_2(capsys, code)
     assert not out.exists()
 
@@ -336,7 +336,7 @@ def test_dssp_record_flags_are_checked_first(tmp_path, capsys, argv, words):
     from hardware.cli import record
 
     out = tmp_path / "rec.zarr"
-    code = record.main(["--out", str(out), "--quiet", *argv])
+    code = record.main(["--out", str(out), "--quiet", "--can", "can0", "--camera", "sim", *argv])
     assert words in _one_line_exit_2(capsys, code)
     assert not out.exists()
 

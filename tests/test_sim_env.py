@@ -10,7 +10,7 @@ import pytest
 
 from dssp_sim.env import CONTROL_RATE_HZ, DEPTH_MAX_M, DEPTH_MIN_M, DEPTH_UNIT, PiperEnv
 from dssp_sim.experts import make_expert
-from dssp_sim.model import dh_forward
+from dssp_sim.mjcf import dh_forward
 from dssp_sim.tasks import HOME, SLOT_PAD_HALF, SwapTask
 from hardware.camera.base import Intrinsics
 from hardware.piper.limits import GRIPPER_STROKE_MAX, JOINT_LOWER, JOINT_UPPER, JointLimits
@@ -61,7 +61,7 @@ def test_model_follows_the_dh_table(tap_env):
 
 def test_two_arms_are_a_small_step():
     """The platform's second arm: the same body tree under another prefix and base pose."""
-    from dssp_sim.model import ArmIndex, arm_xml, build_model
+    from dssp_sim.mjcf import ArmIndex, arm_xml, build_model
 
     m = build_model(arms=(arm_xml("left_", (0.0, 0.3, 0.0)), arm_xml("right_", (0.0, -0.3, 0.0))))
     left, right = ArmIndex.find(m, "left_"), ArmIndex.find(m, "right_")

@@ -25,6 +25,7 @@ import torch.distributed as dist
 from dssp_train.config import RunConfig
 from dssp_data.replay_buffer import ReplayBuffer
 from dssp_data.errors import CheckpointError, ConfigError, DSSPError
+from dssp_data.observation import ObservationContract
 from dssp_train.model.policy import DSSPPolicy
 from dssp_train.training import checkpoint as ckpt
 from dssp_train.training.ema import EMA
@@ -59,7 +60,7 @@ def split_episodes(n_episodes: int, val_ratio: float, seed: int) -> tuple[list[i
 
 def resolve_data_facts(config: RunConfig, data: ReplayBuffer, data_path: str, control_rate_hz: float | None,
                        *, resume: bool = False, user_set: Collection[str] = ()) -> RunConfig:
-    """Fill the dimensions and control rate from the dataset; refuse what does not fit.
+    """Fill the dimensions, the control rate and the observation contract from the dataset; refuse what does not fit.
 
     ``control_rate_hz``: the rate the user gave (``--control-rate``); it must agree with the rate the dataset
     records, if any. ``resume``: ``config`` is a run's own config, continued on ``data``: nothing in it is
@@ -100,6 +101,13 @@ def resolve_data_facts(config: RunConfig, data: ReplayBuffer, data_path: str, co
                               "the dataset changed since; start a new run (--force, or another --out)")
     elif rate is not None:
         config.control_rate_hz = float(rate)
+    recorded_contract = ObservationContract.from_attrs(data.attrs, str(data_path))
+    if not resume or config.observation == ObservationContract():  # a resumed run keeps the contract it has
+        config.observation = recorded_contract
+    pointcloud = config.observation.pointcloud
+    if pointcloud is not None and pointcloud.n_points != m.n_points:
+        raise ConfigError(f"{data_path}'s pointcloud attribute says {pointcloud.n_points} points per cloud but its clouds "
+                          f"hold {m.n_points}: fix the attribute")
     RunConfig.from_dict(config.to_dict())  # re-validate
     return config
 

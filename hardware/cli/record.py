@@ -224,9 +224,11 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
         STATE_CONVENTION,
         RecordingDataset,
     )
+    from dssp_data.observation import ObservationContract, piper_layout
     from dssp_data.output_guard import NEW, RECORDED_DATASET, check_append
     from hardware.robot import check_rate
     from hardware.bus_monitor import BusMonitor
+    from hardware.clock import REAL_CLOCK
     from hardware.pointcloud import PointCloudConfig, load_extrinsics
     from hardware.record_session import RecordSession, SessionSettings
     from hardware.recorder import Recorder, RecordThresholds, StampedCamera
@@ -292,7 +294,7 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
         channels = [c.strip() for c in args.can.split(",")]
         if not 1 <= len(channels) <= 2 or any(not c for c in channels):
             raise ConfigError(f"--can {args.can!r} is invalid: give can0 or can0,can1 (left,right) or sim")
-        clock = time.monotonic
+        clock = REAL_CLOCK
         rate = args.rate or recorded_rate or 10.0
         raw_camera = open_camera(args.camera, serial=args.serial, color=cloud_config.use_color)
         stack.enter_context(raw_camera)
@@ -303,6 +305,7 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
         frame = raw_camera.wait_for_frame(5.0)
         camera = StampedCamera(raw_camera)
 
+    n_arms = 1 if sim_can else len(monitors)
     recorder = Recorder(camera, monitors, cloud_config, camera_to_base, float(rate), action_convention=convention,
                         thresholds=thresholds, store_depth=not args.no_depth)
     calibration = {
@@ -315,6 +318,7 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
         "action_convention": ACTION_CONVENTIONS[convention],
         "state_convention": STATE_CONVENTION,
         "pointcloud": cloud_config.to_dict(),
+        **ObservationContract(state=piper_layout(n_arms), action=piper_layout(n_arms)).attrs(),
         **calibration,
         "generator": "dssp-record",
         "timestamps": "data/*timestamp: seconds since each episode's first step (recorder's clock)",

@@ -30,7 +30,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _replay(args) -> int:
-    from hardware.replay import replay_episode
+    from hardware.episode_replay import replay_episode
     from hardware.safety import SafetyConfig
 
     safety = SafetyConfig.load(args.safety, "safety") if args.safety else SafetyConfig()

@@ -3,10 +3,15 @@
     dssp-run --model MODEL_DIR --camera l515|d435|d405|file:PATH|sim --can can0[,can1]|sim[:2]
              [--rate HZ] [--extrinsics FILE] [--pointcloud FILE] [--safety FILE] [--max-steps N] [--dry-run]
              [--log-dir DIR] [--prefetch] [--threads N] [--precision fp32|int8] [--seed S] [--serial SERIAL] [--interface socketcan]
+             [--allow-mismatch FIELD ...]
 
 Opens the camera and the arm(s), warms the model up, then runs the control loop (``hardware.run_loop``):
 the history every tick, a new chunk every H_a ticks, every command through the safety layer. Prints a
 live one-line status, writes the episode log (``hardware.run_log``) and ends with a summary.
+The model carries its observation contract (``dssp_model.json`` ``observation`` and ``control_rate_hz``: the
+point-cloud settings, the state/action layout per arm, the control rate); its point-cloud settings are the
+default, and a setup that contradicts it (``--pointcloud``, ``--can`` with another number of arms, ``--rate``)
+is refused before anything is opened, one line naming the field, both values and ``--allow-mismatch FIELD``.
 Exit codes: 0 done, 1 ended by a fault (arm error, e-stop, send failure), 2 bad input, 130 stopped by a signal.
 """
 
@@ -53,6 +58,9 @@ def parse_args(argv):
     p.add_argument("--seed", type=int, help="diffusion noise seed (default: random)")
     p.add_argument("--log-dir", type=Path, help="episode log directory (default: runs/dssp-run/YYYYmmdd-HHMMSS)")
     p.add_argument("--no-can-log", action="store_true", help="do not write the raw CAN traffic (.blf per bus) into the log")
+    p.add_argument("--allow-mismatch", action="append", default=[], metavar="FIELD",
+                   help="run although FIELD of the setup differs from the model's training data (e.g. pointcloud.crop_min, "
+                        "control_rate_hz); written to the log; repeatable")
     p.add_argument("--quiet", action="store_true", help="no live status line")
     return p.parse_args(argv)
 
@@ -119,11 +127,22 @@ def check_args(args) -> None:
     check_threads(args.threads)
     if args.seed is not None and args.seed < 0:
         raise ConfigError(f"--seed must be >= 0, got {args.seed}")
+    from dssp_data.observation import contract_fields
+
+    known = [*contract_fields(), "control_rate_hz"]
+    for field in args.allow_mismatch:
+        if field not in known:
+            raise ConfigError(f"--allow-mismatch {field}: not a field of the observation contract; one of {', '.join(known)}")
 
 
 def control_rate(args, policy) -> float:
-    """--rate, else the rate the model's training data was recorded at; a model without one needs --rate."""
+    """--rate, else the rate the model's training data was recorded at; a model without one needs --rate.
+    A --rate that contradicts the model's is refused unless --allow-mismatch control_rate_hz."""
     if args.rate is not None:
+        trained = policy.control_rate_hz
+        if trained is not None and abs(args.rate - trained) > 1e-9 * trained and "control_rate_hz" not in args.allow_mismatch:
+            raise ConfigError(f"--rate gives control_rate_hz = {args.rate:g} but the model {args.model} has {trained:g}: "
+                              "use the same settings, or pass --allow-mismatch control_rate_hz to run anyway (written to the log)")
         return args.rate
     if policy.control_rate_hz is None:
         raise ConfigError(f"{args.model} records no control rate (its dataset had none): pass --rate HZ, the rate "
@@ -152,6 +171,8 @@ def _run(args, signals: StartupSignals) -> int:
     from hardware.can_log import BusRecorder
     from hardware.piper.limits import JointLimits
     from hardware.piper.piper_robot import open_robot
+    from dssp_data.observation import FRAME_ROBOT_BASE, ObservationContract, check_contract, piper_layout
+    from dssp_deploy.manifest import observation_of
     from hardware.pointcloud import PointCloudConfig, load_extrinsics
     from hardware.run_log import RunLog
     from hardware.run_loop import LoopSettings, Runner, check_fits
@@ -176,15 +197,27 @@ def _run(args, signals: StartupSignals) -> int:
         print(f"loading {args.model} (warm-up included)", file=sys.stderr)
     policy = OnnxPolicy(args.model, threads=args.threads, precision=args.precision)
     signals.check()
-    if cloud_config is None:
-        cloud_config = PointCloudConfig(n_points=policy.manifest["model_config"]["n_points"])
+    trained = observation_of(policy.manifest)
+    if cloud_config is None:  # the model's own settings; a model from data that recorded none: the defaults
+        cloud_config = trained.pointcloud or PointCloudConfig(n_points=policy.manifest["model_config"]["n_points"])
     rate = control_rate(args, policy)
     safety_config.check_speed(rate)
     settings = LoopSettings(rate_hz=rate, max_steps=args.max_steps, dry_run=args.dry_run, prefetch=args.prefetch, seed=args.seed)
 
     robot = open_robot(args.can, interface=args.interface)
-    check_fits(policy, robot, cloud_config)  # before any device is opened
     n_arms = robot.dof // 7
+    given = ObservationContract(pointcloud=cloud_config, frame=FRAME_ROBOT_BASE, state=piper_layout(n_arms),
+                                action=piper_layout(n_arms))
+    pointcloud_by = f"--pointcloud {args.pointcloud}" if args.pointcloud else "the default point-cloud settings"
+    overrides = check_contract(trained, given, trained_by=f"the model {args.model}", allow=args.allow_mismatch,
+                               given_by={"pointcloud": pointcloud_by, "frame": "the point-cloud pipeline",
+                                         "state": f"--can {args.can}", "action": f"--can {args.can}"})
+    if args.rate is not None and "control_rate_hz" in args.allow_mismatch and policy.control_rate_hz not in (None, args.rate):
+        overrides.append({"field": "control_rate_hz", "trained": policy.control_rate_hz, "given": args.rate})
+    for o in overrides:
+        print(f"warning: running with {o['field']} = {o['given']} although the model was trained with {o['trained']} "
+              "(--allow-mismatch)", file=sys.stderr)
+    check_fits(policy, robot, cloud_config)  # before any device is opened
     limits = JointLimits.piper()
     lower, upper = np.tile(limits.lower, n_arms), np.tile(limits.upper, n_arms)
     gripper = np.tile(np.arange(7) == 6, n_arms)
@@ -208,6 +241,7 @@ def _run(args, signals: StartupSignals) -> int:
             "model": str(args.model), "camera": args.camera, "can": args.can, "rate_hz": rate, "dry_run": args.dry_run,
             "camera_to_base": camera_to_base, "pointcloud": cloud_config.to_dict(), "safety": safety_config.to_dict(),
             "manifest": {k: policy.manifest[k] for k in ("denoise_steps", "control_rate_hz") if k in policy.manifest},
+            "observation": trained.to_manifest(), "allowed_mismatches": overrides,
         })
         runner = Runner(policy, camera, robot, cloud_config, camera_to_base, safety_config, settings,
                         (lower, upper, gripper), log=log, status=status)
