@@ -17,7 +17,8 @@ On disk, next to DP3's ``data/point_cloud`` (T, P, C), ``data/state`` (T, S) and
 
 Root attributes: ``control_rate_hz``, ``action_convention`` (:data:`ACTION_CONVENTIONS`),
 ``state_convention``, ``camera_to_base`` (4x4), ``camera_intrinsics``, ``camera_depth_unit``,
-``pointcloud`` (the :class:`~hardware.pointcloud.PointCloudConfig`), ``task``, ``generator``;
+``pointcloud`` (the :class:`~dssp_data.observation.PointCloudConfig`), ``state_layout``, ``action_layout``
+(:class:`~dssp_data.observation.VectorLayout`), ``task``, ``generator``;
 ``recording_sessions`` (one entry per recording session that kept an episode: devices, calibration,
 thresholds) and ``episode_info`` (one entry per episode, or null for episodes that were not recorded:
 session, start time, measured rate, stream ages, problems, CAN log files). ``episode_info`` is written

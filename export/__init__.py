@@ -4,8 +4,8 @@
     python -m export.verify MODEL_DIR --checkpoint RUN_DIR   # parity with the PyTorch model
 
 Modules: ``graphs`` (the torch modules that are traced), ``to_onnx`` (the exporter), ``verify`` (parity),
-``manifest`` (``dssp_model.json``), ``output_dir`` (all-or-nothing model directories), ``quantize``
-(int8), ``trajectory`` (what verification streams), ``errors``.
+``manifest_writer`` (writes ``dssp_model.json``; the format is :mod:`dssp_deploy.manifest`), ``output_dir`` (all-or-nothing model directories), ``quantize``
+(int8), ``trajectory`` (what verification streams); errors are :mod:`dssp_data.errors`.
 The names below import lazily, so ``import export`` does not import torch.
 """
 

@@ -4,8 +4,8 @@
         frame = cam.wait_for_frame()         # DepthFrame: depth (H, W) uint16, depth_unit m, intrinsics
 
 Modules: ``base`` (the interface), ``profiles`` (stream profiles as data), ``realsense`` (rs.pipeline),
-``software`` (rs.software_device: numpy frames through the SDK, .db3 recordings), ``sim`` (simulated
-camera). pyrealsense2 is imported only when a camera is opened.
+``software`` (rs.software_device: numpy frames through the SDK, .db3 recordings), ``tabletop`` (the
+simulated tabletop camera, spec ``sim``). pyrealsense2 is imported only when a camera is opened.
 """
 
 from __future__ import annotations

@@ -46,7 +46,7 @@ def parse_args(argv):
     p.add_argument("--can", default="sim", help="can0[,can1] (one bus per arm: left, right) | sim | sim:2 (default: sim)")
     p.add_argument("--interface", default="socketcan", help="python-can interface of real buses (default: socketcan)")
     p.add_argument("--rate", type=float, help="control rate in Hz (default: the model's training rate)")
-    p.add_argument("--extrinsics", type=Path, help="camera→robot-base calibration JSON (default: identity)")
+    p.add_argument("--extrinsics", type=Path, help="camera→robot-base calibration JSON (needed with a real camera or a recording)")
     p.add_argument("--pointcloud", type=Path, help="point-cloud pipeline settings JSON (crop box, voxel, clip)")
     p.add_argument("--safety", type=Path, help="safety settings JSON (hardware.safety.SafetyConfig fields)")
     p.add_argument("--max-steps", type=int, help="stop after N ticks (default: until Ctrl-C)")
