@@ -8,7 +8,7 @@ import torch.nn.functional as F
 
 from dssp_train.model.mamba import Mamba
 from dssp_train.model.mamba_stack import MambaStack
-from dssp_train.model.selective_scan import linear_scan, linear_scan_reference
+from dssp_train.model.selective_scan import linear_scan, linear_scan_unrolled
 
 # Parameter names and shapes of mamba_ssm.Mamba(d_model, d_state, d_conv, expand) (mamba_simple.py).
 def mamba_ssm_shapes(d_model, d_state, d_conv, expand):
@@ -88,6 +88,26 @@ def test_sequence_path_continues_from_a_state():
     assert torch.allclose(torch.cat([first, rest], 1), full, atol=1e-6)
 
 
+@pytest.mark.parametrize("length", [1, 2, 3, 8, 17])
+@pytest.mark.parametrize("with_state", [False, True], ids=["fresh", "continued"])
+def test_unrolled_path_equals_sequence_path_and_stepping(length, with_state):
+    """forward_unrolled == forward == step over the tokens: outputs (B, L, d) and the final state."""
+    torch.manual_seed(length)
+    m = Mamba(32, d_state=16)
+    u = torch.randn(2, length, 32)
+    with torch.no_grad():
+        state = m(torch.randn(2, 5, 32))[1] if with_state else None
+        unrolled, (conv_u, ssm_u) = m.forward_unrolled(u, state)
+        sequence, (conv_s, ssm_s) = m(u, state)
+        stepped, step_state = [], state or m.init_state(2)
+        for t in range(length):
+            y, step_state = m.step(u[:, t], step_state)
+            stepped.append(y)
+    for out, (conv, ssm) in ((sequence, (conv_s, ssm_s)), (torch.stack(stepped, 1), step_state)):
+        assert (unrolled - out).abs().max().item() <= 1e-5
+        assert (conv_u - conv).abs().max().item() <= 1e-5 and (ssm_u - ssm).abs().max().item() <= 1e-5
+
+
 @pytest.mark.parametrize("length", [1, 2, 5, 12, 33, 257])
 def test_scan_forward_and_gradients_equal_sequential_reference(length):
     torch.manual_seed(length)
@@ -96,7 +116,7 @@ def test_scan_forward_and_gradients_equal_sequential_reference(length):
     h0 = torch.randn(2, 3, 4, dtype=torch.float64, requires_grad=True)
     w = torch.randn(2, length, 3, 4, dtype=torch.float64)
     fast = linear_scan(a, b, h0)
-    ref = linear_scan_reference(a, b, h0)
+    ref = linear_scan_unrolled(a, b, h0)
     assert (fast - ref).abs().max().item() < 1e-12
     g_fast = torch.autograd.grad((fast * w).sum(), (a, b, h0))
     g_ref = torch.autograd.grad((ref * w).sum(), (a, b, h0))

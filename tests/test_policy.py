@@ -128,6 +128,33 @@ def test_prefix_caching_equals_full_denoiser():
     assert (full - cached).abs().max().item() <= 1e-5
 
 
+@pytest.mark.parametrize("decoupled", [True, False], ids=["cached", "full"])
+def test_modulation_table_and_unrolled_path_equal_the_plain_denoiser(decoupled):
+    """One table row per DDIM timestep, shared by the batch, and the unrolled Mamba path: the same x0_hat."""
+    policy = make_policy(f"model.timestep_decoupled={str(decoupled).lower()}")
+    den = policy.denoiser
+    prefix = torch.randn(3, policy.cfg.prefix_length, 32)
+    x = torch.randn(3, policy.cfg.horizon, A)
+    timesteps = policy.schedule.inference_timesteps(4)
+    with torch.no_grad():
+        for p in den.parameters():
+            p.add_(0.02 * torch.randn_like(p))
+        table = den.modulation(torch.tensor(timesteps))
+        assert table.layers.shape == (4, 2, 3, 32) and table.final.shape == (4, 2, 32)
+        states = {u: den.encode_prefix(prefix, unrolled=u) for u in (False, True)} if decoupled else None
+        for k, t in enumerate(timesteps):
+            plain = den(prefix, x, torch.full((3,), t))
+            for unrolled in (False, True):
+                if decoupled:
+                    got = den.denoise_modulated(states[unrolled], x, table.at(k), unrolled)
+                else:
+                    got = den.forward_modulated(prefix, x, table.at(k), unrolled)
+                assert (got - plain).abs().max().item() <= 1e-5, (t, unrolled)
+        sampled = policy.sample_normalized(prefix, x, 4)
+        assert (policy.sample_normalized(prefix, x, 4, unrolled=True) - sampled).abs().max().item() <= 1e-5
+        assert (policy.sample_normalized(prefix, x, 4, table=table) - sampled).abs().max().item() == 0
+
+
 def test_timestep_reaches_only_the_action_tokens():
     torch.manual_seed(0)
     policy = make_policy()

@@ -5,6 +5,9 @@ The diffusion timestep tau enters **only the action tokens**, through AdaLN in e
 the prefix tokens are never modulated, so the prefix is a stable condition for every denoising step
 and — because Mamba is causal — its per-layer recurrent state can be computed once per chunk and
 reused for all K DDIM steps (:meth:`Denoiser.encode_prefix` / :meth:`Denoiser.denoise`).
+The timestep reaches the blocks only through its AdaLN parameters (:meth:`Denoiser.modulation`), so
+sampling computes them once for the K DDIM timesteps and each step looks its row up
+(:meth:`Denoiser.forward_modulated` / :meth:`Denoiser.denoise_modulated`).
 With ``timestep_decoupled=False`` (paper Table 5 ablation) the prefix is modulated too.
 
 Shapes: prefix (B, L_p, d), x_tau (B, H, A), timesteps (B,) → x0_hat (B, H, A).
@@ -12,17 +15,42 @@ Shapes: prefix (B, L_p, d), x_tau (B, H, A), timesteps (B,) → x0_hat (B, H, A)
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import torch
 from torch import nn
 
 from dssp_train.config import ModelConfig
 from dssp_train.model.history_encoder import sinusoidal_embedding
 from dssp_train.model.mamba import Mamba, MambaState
-from dssp_train.model.mamba_stack import RMSNorm, init_mamba_weights
+from dssp_train.model.mamba_stack import MambaBlock, RMSNorm, init_mamba_weights
+
+
+class Modulation(NamedTuple):
+    """AdaLN parameters for T timesteps: T = B (one per sample) or T = 1 (shared by the batch).
+
+    layers (T, n_layers, 3, d): shift, scale, gate of every block; final (T, 2, d): shift, scale of the readout.
+    """
+
+    layers: torch.Tensor
+    final: torch.Tensor
+
+    def block(self, i: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Shift, scale, gate (T, d) of block i."""
+        return self.layers[:, i].unbind(1)
+
+    def at(self, k: int) -> Modulation:
+        """Row k of a table (timestep k of K) as a one-row Modulation: (1, n_layers, 3, d), (1, 2, d)."""
+        return Modulation(self.layers[k : k + 1], self.final[k : k + 1])
+
+
+def mixer_path(mixer: Mamba, unrolled: bool):
+    """The sequence path of ``mixer`` to run: ``forward`` (parallel scan) or ``forward_unrolled`` (traceable)."""
+    return mixer.forward_unrolled if unrolled else mixer
 
 
 def modulate(x: torch.Tensor, shift: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
-    """AdaLN: x (B, L, d), shift/scale (B, d)."""
+    """AdaLN: x (B, L, d), shift/scale (B, d) or (1, d) → (B, L, d)."""
     return x * (1 + scale.unsqueeze(1)) + shift.unsqueeze(1)
 
 
@@ -35,14 +63,15 @@ class TimestepEmbedding(nn.Module):
         self.mlp = nn.Sequential(nn.Linear(d_model, 4 * d_model), nn.SiLU(), nn.Linear(4 * d_model, d_model))
 
     def forward(self, timesteps: torch.Tensor) -> torch.Tensor:
-        return self.mlp(sinusoidal_embedding(timesteps, self.d_model))
+        """timesteps (B,) → (B, d), in the dtype of the weights."""
+        return self.mlp(sinusoidal_embedding(timesteps, self.d_model).to(self.mlp[0].weight.dtype))
 
 
-class DenoiserBlock(nn.Module):
+class DenoiserBlock(MambaBlock):
+    """A pre-norm Mamba block with its AdaLN projection: temb (B, d) → shift, scale, gate (B, 3 * d)."""
+
     def __init__(self, d_model: int, d_state: int, d_conv: int, expand: int, layer_idx: int):
-        super().__init__()
-        self.norm = RMSNorm(d_model)
-        self.mixer = Mamba(d_model, d_state=d_state, d_conv=d_conv, expand=expand, layer_idx=layer_idx)
+        super().__init__(d_model, d_state, d_conv, expand, layer_idx)
         self.modulation = nn.Sequential(nn.SiLU(), nn.Linear(d_model, 3 * d_model))
 
 
@@ -70,51 +99,74 @@ class Denoiser(nn.Module):
         nn.init.zeros_(self.final_modulation[-1].weight)
         nn.init.zeros_(self.final_modulation[-1].bias)
 
+    # ---------------------------------------------------------- AdaLN parameters
+    def modulation(self, timesteps: torch.Tensor) -> Modulation:
+        """The AdaLN parameters of timesteps (T,): a batch's (T = B), or a DDIM table's (T = K), computed once."""
+        temb = self.time_embed(timesteps)  # (T, d)
+        count, d = temb.shape
+        layers = torch.stack([layer.modulation(temb).view(count, 3, d) for layer in self.layers], dim=1)
+        return Modulation(layers, self.final_modulation(temb).view(count, 2, d))
+
     # ------------------------------------------------------------ full forward
     def forward(self, prefix: torch.Tensor, x_tau: torch.Tensor, timesteps: torch.Tensor) -> torch.Tensor:
-        """Training path over the whole sequence: returns x0_hat (B, H, A)."""
-        temb = self.time_embed(timesteps)
+        """Training path over the whole sequence: prefix (B, L_p, d), x_tau (B, H, A), timesteps (B,) → x0_hat (B, H, A)."""
+        return self.forward_modulated(prefix, x_tau, self.modulation(timesteps))
+
+    def forward_modulated(
+        self, prefix: torch.Tensor, x_tau: torch.Tensor, mod: Modulation, unrolled: bool = False
+    ) -> torch.Tensor:
+        """:meth:`forward` with the AdaLN parameters given: prefix (B, L_p, d), x_tau (B, H, A) → x0_hat (B, H, A).
+
+        ``mod`` has B rows or one (shared by the batch); ``unrolled`` runs :meth:`Mamba.forward_unrolled`.
+        """
         p, a = prefix, self.embed_actions(x_tau)
         n_prefix = p.shape[1]
-        for layer in self.layers:
-            shift, scale, gate = layer.modulation(temb).chunk(3, dim=-1)
+        for i, layer in enumerate(self.layers):
+            shift, scale, gate = mod.block(i)
             hp = layer.norm(p)
             if not self.decoupled:
                 hp = modulate(hp, shift, scale)
             ha = modulate(layer.norm(a), shift, scale)
-            out, _ = layer.mixer(torch.cat([hp, ha], dim=1))
+            out, _ = mixer_path(layer.mixer, unrolled)(torch.cat([hp, ha], dim=1))
             op, oa = out[:, :n_prefix], out[:, n_prefix:]
             p = p + (op if self.decoupled else gate.unsqueeze(1) * op)
             a = a + gate.unsqueeze(1) * oa
-        return self.readout(a, temb)
+        return self.readout(a, mod)
 
     # ---------------------------------------------------- prefix-cached forward
-    def encode_prefix(self, prefix: torch.Tensor) -> list[MambaState]:
-        """Run the (unmodulated) prefix once: the recurrent state of every layer after it."""
+    def encode_prefix(self, prefix: torch.Tensor, unrolled: bool = False) -> list[MambaState]:
+        """Run the (unmodulated) prefix (B, L_p, d) once: the (conv, ssm) state of every layer after it."""
         if not self.decoupled:
             raise RuntimeError("prefix caching needs timestep_decoupled=True (the prefix depends on tau otherwise)")
         states = []
         p = prefix
         for layer in self.layers:
-            out, state = layer.mixer(layer.norm(p))
+            out, state = mixer_path(layer.mixer, unrolled)(layer.norm(p))
             p = p + out
             states.append(state)
         return states
 
     def denoise(self, prefix_states: list[MambaState], x_tau: torch.Tensor, timesteps: torch.Tensor) -> torch.Tensor:
-        """x0_hat (B, H, A) from the cached prefix states; equals :meth:`forward` on the same prefix."""
-        temb = self.time_embed(timesteps)
+        """x0_hat (B, H, A) from the cached prefix states, x_tau (B, H, A), timesteps (B,); equals :meth:`forward`."""
+        return self.denoise_modulated(prefix_states, x_tau, self.modulation(timesteps))
+
+    def denoise_modulated(
+        self, prefix_states: list[MambaState], x_tau: torch.Tensor, mod: Modulation, unrolled: bool = False
+    ) -> torch.Tensor:
+        """:meth:`denoise` with the AdaLN parameters given (B rows or one): x_tau (B, H, A) → x0_hat (B, H, A)."""
         a = self.embed_actions(x_tau)
-        for layer, state in zip(self.layers, prefix_states):
-            shift, scale, gate = layer.modulation(temb).chunk(3, dim=-1)
-            out, _ = layer.mixer(modulate(layer.norm(a), shift, scale), state)
+        for i, (layer, state) in enumerate(zip(self.layers, prefix_states)):
+            shift, scale, gate = mod.block(i)
+            out, _ = mixer_path(layer.mixer, unrolled)(modulate(layer.norm(a), shift, scale), state)
             a = a + gate.unsqueeze(1) * out
-        return self.readout(a, temb)
+        return self.readout(a, mod)
 
     # ----------------------------------------------------------------- helpers
     def embed_actions(self, x_tau: torch.Tensor) -> torch.Tensor:
+        """x_tau (B, H, A) → action tokens (B, H, d)."""
         return self.action_in(x_tau) + self.action_pos
 
-    def readout(self, a: torch.Tensor, temb: torch.Tensor) -> torch.Tensor:
-        shift, scale = self.final_modulation(temb).chunk(2, dim=-1)
+    def readout(self, a: torch.Tensor, mod: Modulation) -> torch.Tensor:
+        """Action tokens (B, H, d) → x0_hat (B, H, A) through the final AdaLN."""
+        shift, scale = mod.final.unbind(1)
         return self.action_out(modulate(self.norm_f(a), shift, scale))

@@ -1,12 +1,14 @@
 """Mamba (selective state-space) layer in pure PyTorch, weight-compatible with ``mamba_ssm.Mamba``.
 
 Parameter names, shapes and initialisation follow ``mamba_ssm/modules/mamba_simple.py`` (Mamba-1),
-so a state dict trained on a GPU with mamba-ssm loads here and back. One set of weights, two paths:
+so a state dict trained on a GPU with mamba-ssm loads here and back. One set of weights, three paths, one result:
 
 - :meth:`Mamba.forward` — the sequence path (training, prefixes): a parallel scan over L tokens,
   optionally continuing from and returning the recurrent state.
-- :meth:`Mamba.step` — the recurrent path (streaming, export): one token in, explicit
-  ``(conv_state, ssm_state)`` in and out, no in-place updates.
+- :meth:`Mamba.forward_unrolled` — the same for a few tokens with the scan unrolled token by token,
+  a graph that traces (the exported denoiser).
+- :meth:`Mamba.step` — the recurrent path (streaming, the exported history step): one token in,
+  explicit ``(conv_state, ssm_state)`` in and out, no in-place updates.
 
 Reference math, per channel d and state index n::
 
@@ -28,7 +30,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from dssp_train.model.selective_scan import linear_scan
+from dssp_train.model.selective_scan import linear_scan, linear_scan_unrolled
 
 MambaState = tuple[torch.Tensor, torch.Tensor]
 
@@ -102,7 +104,7 @@ class Mamba(nn.Module):
 
     # ------------------------------------------------------------ sequence path
     def forward(self, hidden_states: torch.Tensor, state: MambaState | None = None) -> tuple[torch.Tensor, MambaState]:
-        """Sequence path.
+        """Sequence path: the recurrence as a parallel scan (any length, with a backward pass).
 
         Args:
             hidden_states: (B, L, d_model).
@@ -110,28 +112,34 @@ class Mamba(nn.Module):
         Returns:
             out (B, L, d_model) and the state after the last token.
         """
-        batch, seqlen, _ = hidden_states.shape
+        return self._sequence(hidden_states, state, linear_scan)
+
+    def forward_unrolled(
+        self, hidden_states: torch.Tensor, state: MambaState | None = None
+    ) -> tuple[torch.Tensor, MambaState]:
+        """Short-sequence path: :meth:`forward` (same arguments, same result) with the recurrence unrolled.
+
+        Every projection runs on all L tokens at once; only ``h_t = decay_t * h_{t-1} + drive_t`` is a
+        loop, one multiply-add per token on (B, 1, d_inner, d_state) slices, nothing in place, so the
+        layer traces into a plain graph (ONNX, TorchScript) for a small, fixed L. Stepping :meth:`step`
+        token by token traces too, but turns every projection into L matrix-vector products.
+        """
+        return self._sequence(hidden_states, state, linear_scan_unrolled)
+
+    def _sequence(self, hidden_states: torch.Tensor, state: MambaState | None, scan) -> tuple[torch.Tensor, MambaState]:
+        """hidden_states (B, L, d_model) → out (B, L, d_model), state; ``scan(a, b, h0)`` as :func:`linear_scan`."""
         x, z = self.in_proj(hidden_states).chunk(2, dim=-1)  # (B, L, d_inner) each
 
-        # Causal depthwise convolution, continuing from the previous conv inputs.
+        # Causal depthwise convolution, continuing from the last d_conv conv inputs (zeros at a fresh start).
         x = x.transpose(1, 2)  # (B, d_inner, L)
-        if state is None:
-            history = x.new_zeros(batch, self.d_inner, self.d_conv)
-        else:
-            history = state[0]
-        x_ext = torch.cat([history[:, :, 1:], x], dim=-1)  # (B, d_inner, d_conv - 1 + L)
-        new_conv_state = torch.cat([history, x], dim=-1)[:, :, -self.d_conv :]
-        x = F.conv1d(x_ext, self.conv1d.weight, self.conv1d.bias, groups=self.d_inner)
+        x_ext = F.pad(x, (self.d_conv, 0)) if state is None else torch.cat([state[0], x], dim=-1)  # (B, d_inner, d_conv + L)
+        new_conv_state = x_ext[:, :, -self.d_conv :]
+        x = F.conv1d(x_ext[:, :, 1:], self.conv1d.weight, self.conv1d.bias, groups=self.d_inner)
         x = F.silu(x).transpose(1, 2)  # (B, L, d_inner)
 
-        dt, B, C = self._ssm_params(x)  # (B, L, d_inner), (B, L, d_state), (B, L, d_state)
-        A = -torch.exp(self.A_log.float())  # (d_inner, d_state)
-        decay = torch.exp(dt.unsqueeze(-1) * A)  # (B, L, d_inner, d_state)
-        drive = (dt * x).unsqueeze(-1) * B.unsqueeze(2)  # (B, L, d_inner, d_state)
-        h = linear_scan(decay, drive, None if state is None else state[1])  # (B, L, d_inner, d_state)
-        y = torch.matmul(h, C.unsqueeze(-1)).squeeze(-1)  # (B, L, d_inner)
-        y = (y + self.D * x) * F.silu(z)
-        return self.out_proj(y), (new_conv_state, h[:, -1])
+        decay, drive, C = self._ssm_inputs(x)  # (B, L, d_inner, d_state) twice, (B, L, d_state)
+        h = scan(decay, drive, None if state is None else state[1])  # (B, L, d_inner, d_state)
+        return self._output(h, C, x, z), (new_conv_state, h[:, -1])
 
     # ----------------------------------------------------------- recurrent path
     def step(self, hidden_states: torch.Tensor, state: MambaState) -> tuple[torch.Tensor, MambaState]:
@@ -151,15 +159,21 @@ class Mamba(nn.Module):
             x = x + self.conv1d.bias
         x = F.silu(x)
 
-        dt, B, C = self._ssm_params(x)  # (B, d_inner), (B, d_state), (B, d_state)
-        A = -torch.exp(self.A_log.float())
-        decay = torch.exp(dt.unsqueeze(-1) * A)  # (B, d_inner, d_state)
-        ssm_state = decay * ssm_state + (dt * x).unsqueeze(-1) * B.unsqueeze(1)
-        y = torch.matmul(ssm_state, C.unsqueeze(-1)).squeeze(-1)  # (B, d_inner)
-        y = (y + self.D * x) * F.silu(z)
-        return self.out_proj(y), (conv_state, ssm_state)
+        decay, drive, C = self._ssm_inputs(x)  # (B, d_inner, d_state) twice, (B, d_state)
+        ssm_state = decay * ssm_state + drive
+        return self._output(ssm_state, C, x, z), (conv_state, ssm_state)
 
-    def _ssm_params(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    # ------------------------------------------------------------------ shared
+    def _ssm_inputs(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """x (..., d_inner) → decay exp(dt A), drive dt B x (..., d_inner, d_state) and C (..., d_state)."""
         dt, B, C = torch.split(self.x_proj(x), [self.dt_rank, self.d_state, self.d_state], dim=-1)
-        dt = F.softplus(self.dt_proj(dt))
-        return dt, B, C
+        dt = F.softplus(self.dt_proj(dt))  # (..., d_inner)
+        A = -torch.exp(self.A_log.to(torch.promote_types(self.A_log.dtype, torch.float32)))  # (d_inner, d_state), fp32 or wider
+        decay = torch.exp(dt.unsqueeze(-1) * A)
+        drive = (dt * x).unsqueeze(-1) * B.unsqueeze(-2)
+        return decay, drive, C
+
+    def _output(self, h: torch.Tensor, C: torch.Tensor, x: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """States h (..., d_inner, d_state), C (..., d_state), x and z (..., d_inner) → out (..., d_model)."""
+        y = torch.matmul(h, C.unsqueeze(-1))[..., 0]  # (..., d_inner)
+        return self.out_proj((y + self.D * x) * F.silu(z))

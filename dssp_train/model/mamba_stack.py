@@ -32,6 +32,8 @@ class RMSNorm(nn.Module):
 
 
 class MambaBlock(nn.Module):
+    """``norm`` and ``mixer`` of one residual block: x (B, L, d_model) → x + mixer(norm(x))."""
+
     def __init__(self, d_model: int, d_state: int, d_conv: int, expand: int, layer_idx: int):
         super().__init__()
         self.norm = RMSNorm(d_model)

@@ -16,7 +16,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from dssp_train.config import ModelConfig
-from dssp_train.model.denoiser import Denoiser
+from dssp_train.model.denoiser import Denoiser, Modulation
 from dssp_train.model.dynamics import DynamicsPredictor, dynamics_loss
 from dssp_train.model.history_encoder import HistoryEncoder
 from dssp_train.model.normalizer import RangeNormalizer
@@ -117,18 +117,32 @@ class DSSPPolicy(nn.Module):
 
     # --------------------------------------------------------------- sampling
     @torch.no_grad()
-    def sample_normalized(self, prefix: torch.Tensor, noise: torch.Tensor, num_steps: int | None = None) -> torch.Tensor:
-        """DDIM from noise (B, H, A) to a normalised action chunk (B, H, A), given the prefix (B, L_p, d)."""
+    def sample_normalized(
+        self,
+        prefix: torch.Tensor,
+        noise: torch.Tensor,
+        num_steps: int | None = None,
+        table: Modulation | None = None,
+        unrolled: bool = False,
+    ) -> torch.Tensor:
+        """DDIM from noise (B, H, A) to a normalised action chunk (B, H, A), given the prefix (B, L_p, d).
+
+        The AdaLN parameters of the K timesteps are computed once (or given: ``table``, K rows) and each
+        step takes its row; with ``timestep_decoupled`` the prefix runs once and its states serve every step.
+        ``unrolled`` runs the Mamba layers' traceable path (:meth:`Mamba.forward_unrolled`).
+        """
+        den = self.denoiser
+        timesteps = self.schedule.inference_timesteps(num_steps)
+        if table is None:
+            table = den.modulation(torch.tensor(timesteps, device=noise.device))
+        states = den.encode_prefix(prefix, unrolled) if self.cfg.timestep_decoupled else None
         x = noise
-        batch = x.shape[0]
-        if self.cfg.timestep_decoupled:
-            states = self.denoiser.encode_prefix(prefix)
-            model = lambda x_t, t: self.denoiser.denoise(states, x_t, t)  # noqa: E731
-        else:
-            model = lambda x_t, t: self.denoiser(prefix, x_t, t)  # noqa: E731
-        for t in self.schedule.inference_timesteps(num_steps):
-            timesteps = torch.full((batch,), t, dtype=torch.long, device=x.device)
-            x = self.schedule.ddim_step(model(x, timesteps), t, x, num_steps)
+        for k, t in enumerate(timesteps):
+            if states is not None:
+                x0 = den.denoise_modulated(states, x, table.at(k), unrolled)
+            else:
+                x0 = den.forward_modulated(prefix, x, table.at(k), unrolled)
+            x = self.schedule.ddim_step(x0, t, x, num_steps)
         return x
 
     @torch.no_grad()

@@ -9,6 +9,8 @@ recurrence is a linear recurrence), so autograd stores only ``a`` and the states
 Written by hand because no maintained library offers a CPU selective scan with a custom backward
 (mamba-ssm's kernels are CUDA/Triton only and cannot be imported without a GPU).
 
+:func:`linear_scan_unrolled` is the plain loop, for short sequences in an exported graph.
+
 Shapes: ``a``, ``b``, ``h`` are (B, L, D, N); the recurrence runs along dim 1 (L), any length.
 """
 
@@ -96,11 +98,16 @@ def linear_scan(a: torch.Tensor, b: torch.Tensor, h0: torch.Tensor | None = None
     return _LinearScan.apply(a, b, h0)
 
 
-def linear_scan_reference(a: torch.Tensor, b: torch.Tensor, h0: torch.Tensor | None = None) -> torch.Tensor:
-    """The same recurrence as a plain loop over time: the readable reference the tests compare to."""
-    h = a.new_zeros(a.shape[:1] + a.shape[2:]) if h0 is None else h0
+def linear_scan_unrolled(a: torch.Tensor, b: torch.Tensor, h0: torch.Tensor | None = None) -> torch.Tensor:
+    """:func:`linear_scan` as a plain loop over time: a, b (B, L, D, N), h0 (B, D, N) or None → h (B, L, D, N).
+
+    One multiply-add per step and nothing in place, so it traces into a plain graph for a short, fixed L
+    (the exported denoiser); also the readable reference :func:`linear_scan` is tested against.
+    With ``h0`` None the first state is ``b_0`` itself.
+    """
+    h = None if h0 is None else h0.unsqueeze(1)  # (B, 1, D, N)
     states = []
-    for t in range(a.shape[1]):
-        h = a[:, t] * h + b[:, t]
+    for a_t, b_t in zip(a.split(1, dim=1), b.split(1, dim=1)):
+        h = b_t if h is None else a_t * h + b_t
         states.append(h)
-    return torch.stack(states, dim=1)
+    return torch.cat(states, dim=1)
