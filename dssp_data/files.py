@@ -1,18 +1,21 @@
-"""Atomic file writes (numpy and the standard library only): a reader sees the old file or the new one.
+"""Atomic file writes and directory swaps (numpy and the standard library only): a reader sees the old
+version or the new one.
 
-Each writes to a temporary file in the same directory, then ``os.replace``s it over the target, so a
-crash never leaves a half-written file behind under the real name. :func:`replace_dir` does the same
-for a directory built beside its target (a zarr dataset).
+Each file is written to a temporary file in the same directory, then ``os.replace``d over the target, so
+a crash never leaves a half-written file behind under the real name. :func:`replace_dirs` does the same
+for directories built beside their targets (a zarr dataset, a checkpoint): the previous version is moved
+aside, the new one moved in, the previous one deleted; if a move fails, the previous one is put back.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import tempfile
 import uuid
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -42,14 +45,20 @@ def atomic_write(path: Path, write: Callable[[str], None], suffix: str = ".tmp")
         raise
 
 
-def atomic_write_text(path: Path, text: str) -> None:
+def text_writer(text: str) -> Callable[[str], None]:
+    """A ``write(tmp)`` for :func:`atomic_write` that writes ``text`` and syncs it to disk."""
+
     def write(tmp: str) -> None:
         with open(tmp, "w") as f:
             f.write(text)
             f.flush()
             os.fsync(f.fileno())
 
-    atomic_write(path, write)
+    return write
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    atomic_write(path, text_writer(text))
 
 
 def atomic_save_npy(path: Path, array: np.ndarray) -> None:
@@ -62,21 +71,46 @@ def atomic_save_npy(path: Path, array: np.ndarray) -> None:
     atomic_write(path, write)
 
 
-def replace_dir(tmp: Path, out: Path) -> None:
-    """Move the finished directory ``tmp`` onto ``out``; an existing ``out`` is removed only after the move.
+def sibling_name(path: Path, tag: str) -> Path:
+    """A fresh hidden name beside ``path``: ``.NAME.TAG-XXXXXXXX`` (8 hex digits)."""
+    path = Path(path)
+    return path.with_name(f".{path.name}.{tag}-{uuid.uuid4().hex[:8]}")
 
-    The existing ``out`` is first renamed aside (``.NAME.old-XXXX``); if ``tmp`` cannot be moved in, it is
-    put back. Which ``out`` may be replaced at all is :mod:`dssp_data.output_guard`'s decision.
+
+def replace_dirs(moves: Sequence[tuple[Path | None, Path]], *, aside: Callable[[Path], Path] | None = None) -> None:
+    """Put each finished directory ``new`` in place of its ``target``, all or none: ``[(new, target), ...]``.
+
+    Existing targets are first renamed aside (``aside(target)``, default ``.NAME.old-XXXXXXXX``), then each
+    ``new`` is renamed onto its target (``new`` None: the target is only removed); if a rename fails,
+    everything is put back. The old directories are deleted only once every new one is in place. Which
+    targets may be replaced at all is :mod:`dssp_data.output_guard`'s decision.
     """
-    tmp, out = Path(tmp), Path(out)
-    if out.exists():
-        old = out.with_name(f".{out.name}.old-{uuid.uuid4().hex[:8]}")
-        os.replace(out, old)
-        try:
-            os.replace(tmp, out)
-        except BaseException:
-            os.replace(old, out)
-            raise
+    aside = aside or (lambda target: sibling_name(target, "old"))
+    moved, placed = [], []
+    try:
+        for _, target in moves:
+            target = Path(target)
+            if target.exists() or target.is_symlink():
+                old = Path(aside(target))
+                os.replace(target, old)
+                moved.append((old, target))
+        for new, target in moves:
+            if new is not None:
+                os.replace(new, target)
+                placed.append((Path(new), Path(target)))
+    except BaseException:
+        for new, target in reversed(placed):
+            with contextlib.suppress(OSError):
+                os.replace(target, new)
+        for old, target in reversed(moved):
+            with contextlib.suppress(OSError):
+                os.replace(old, target)
+        raise
+    for old, _ in moved:
         shutil.rmtree(old, ignore_errors=True)
-    else:
-        os.replace(tmp, out)
+
+
+def replace_dir(new: Path, target: Path, *, aside: Path | None = None) -> None:
+    """:func:`replace_dirs` for one directory; ``aside``: where a previous ``target`` waits until ``new`` is
+    in place (default ``.NAME.old-XXXXXXXX``)."""
+    replace_dirs([(new, target)], aside=None if aside is None else lambda _: Path(aside))

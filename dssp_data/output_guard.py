@@ -30,7 +30,7 @@ the command's inputs or lies inside one (:func:`check_not_inside`).
 
 Staging (:class:`Staging`, used by :class:`OutputDir` and the dataset writers): a directory is built as a
 hidden sibling ``.NAME.tmp-XXXXXXXX`` (``.NAME.partial-XXXXXXXX`` for :class:`OutputDir`) that this
-process holds an ``flock`` on while it writes, then renamed onto ``NAME`` (:func:`replace_dirs`: a previous
+process holds an ``flock`` on while it writes, then renamed onto ``NAME`` (:func:`~dssp_data.files.replace_dirs`: a previous
 output is moved aside first and deleted only once the new one is in place). On any other exit (an error,
 Ctrl-C) the staging directory is removed: zarr's background writes are let finish first
 (:func:`settle_background_writes`), and a second Ctrl-C during the clean-up or the final renames is held
@@ -53,12 +53,11 @@ import shutil
 import signal
 import sys
 import threading
-import uuid
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from dssp_data.files import atomic_write, atomic_write_text
+from dssp_data.files import atomic_write, atomic_write_text, replace_dirs, sibling_name, text_writer
 from dssp_data.errors import DSSPError
 
 MARKER = ".dssp-output.json"
@@ -350,7 +349,7 @@ class OutputDir:
             else:
                 self._created = make_dirs(self.out.parent, flag=self.flag, error=self.error)
                 if self.found == OWN:
-                    old = self.out.with_name(f".{self.out.name}.old-{uuid.uuid4().hex[:8]}")
+                    old = sibling_name(self.out, "old")
                     os.replace(self.out, old)
                     self._old = old  # only once it is moved: a rollback puts it back
                 self._made_out = not self.out.exists()
@@ -493,38 +492,6 @@ def sweep_stale(out: str | os.PathLike) -> list[Path]:
     return removed
 
 
-def replace_dirs(moves: Sequence[tuple[Path | None, Path]]) -> None:
-    """Put each finished directory ``new`` in place of its ``target``, all or none: ``[(new, target), ...]``.
-
-    Existing targets are first renamed aside (``.NAME.old-XXXXXXXX``), then each ``new`` is renamed onto its
-    target (``new`` None: the target is only removed); if a rename fails, everything is put back. The old
-    directories are deleted only once every new one is in place. Which targets may be replaced at all is
-    :func:`check_output`'s decision.
-    """
-    aside, placed = [], []
-    try:
-        for _, target in moves:
-            target = Path(target)
-            if target.exists() or target.is_symlink():
-                old = target.with_name(f".{target.name}.old-{uuid.uuid4().hex[:8]}")
-                os.replace(target, old)
-                aside.append((old, target))
-        for new, target in moves:
-            if new is not None:
-                os.replace(new, target)
-                placed.append((Path(new), Path(target)))
-    except BaseException:
-        for new, target in reversed(placed):
-            with contextlib.suppress(OSError):
-                os.replace(target, new)
-        for old, target in reversed(aside):
-            with contextlib.suppress(OSError):
-                os.replace(old, target)
-        raise
-    for old, _ in aside:
-        shutil.rmtree(old, ignore_errors=True)
-
-
 class Staging:
     """Hidden directories beside their outputs, written by this process and put in place together.
 
@@ -551,7 +518,7 @@ class Staging:
         out = Path(out).absolute()
         sweep_stale(out)
         self._created += make_dirs(out.parent, flag=self.flag, error=self.error)
-        path = out.with_name(f".{out.name}.{self.tag}-{uuid.uuid4().hex[:8]}")
+        path = sibling_name(out, self.tag)
         self.reserved.append(path)
         return path
 
@@ -697,14 +664,7 @@ def write_output_file(path: str | os.PathLike, write: Callable[[str], None], *, 
 def write_output_text(path: str | os.PathLike, text: str, *, force: bool, flag: str = "--out",
                       error: type[DSSPError] = OutputError) -> Path:
     """:func:`write_output_file` for text (JSON, Markdown)."""
-
-    def write(tmp: str) -> None:
-        with open(tmp, "w") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-
-    return write_output_file(path, write, force=force, flag=flag, error=error)
+    return write_output_file(path, text_writer(text), force=force, flag=flag, error=error)
 
 
 def check_output_files(paths: Iterable[str | os.PathLike], *, force: bool, flag: str = "--out",

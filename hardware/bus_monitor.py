@@ -24,12 +24,11 @@ from pathlib import Path
 import can
 
 from dssp_data.errors import CanError
+from hardware.can_reader import CanReader
 from hardware.leader import ArmReading, JointGripperTracker, LeaderTracker
 from hardware.piper import codec
-from hardware.piper.bus import open_bus
 
 _NAN = float("nan")
-MAX_RECEIVE_FAILURES = 10
 ARM_ERROR_STATUSES = frozenset(range(0x01, 0x0B)) | {0x0E, 0x0F}
 """0x2A1 arm_status values that are faults (e-stop, no solution, limit, communication, collision, ...)."""
 
@@ -94,10 +93,8 @@ class BusMonitor:
         """Why the current episode's log stopped early, or None."""
         number = can.util.channel2int(self.name)
         self._log_channel = number if number is not None and 0 <= number <= 0xFFFF else None
-        self._bus: can.BusABC | None = None
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self._error: BaseException | None = None
+        self._reader = CanReader(channel, interface, bus_options, name=f"bus-monitor-{channel}",
+                                 on_frame=self._receive, counts=self.decoder.counts, on_error=self._wake)
 
     def __repr__(self) -> str:
         return f"BusMonitor({self.channel!r}, {self.interface!r})"
@@ -105,23 +102,14 @@ class BusMonitor:
     # ---- lifecycle ----------------------------------------------------------------------------------
     def start(self) -> None:
         """Open the bus and start receiving (no-op if started). Raises CanError."""
-        if self._bus is not None:
-            return
-        self._bus = open_bus(self.channel, self.interface, **self.bus_options)
-        self._stop.clear()
-        self._thread = threading.Thread(target=self._run, name=f"bus-monitor-{self.channel}", daemon=True)
-        self._thread.start()
+        if self._reader.bus is None:
+            self._reader.start()
 
     def stop(self) -> None:
         """Stop receiving, close an open log, shut the bus down."""
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
-            self._thread = None
+        self._reader.stop()
         self.end_log()
-        bus, self._bus = self._bus, None
-        if bus is not None:
-            bus.shutdown()
+        self._reader.close()
 
     def __enter__(self) -> "BusMonitor":
         self.start()
@@ -130,41 +118,23 @@ class BusMonitor:
     def __exit__(self, *exc) -> None:
         self.stop()
 
-    def _run(self) -> None:
-        try:
-            self._receive()
-        except Exception as exc:  # kept for check(): the recorder stops with it instead of recording stale data
-            self._error = exc
-            with self._lock:
-                self._lock.notify_all()
+    def _wake(self, _exc: BaseException) -> None:
+        """The receive thread failed: wake ``wait_for_frames`` so that it raises at once."""
+        with self._lock:
+            self._lock.notify_all()
 
-    def _receive(self) -> None:
-        bus, failures = self._bus, 0
-        while not self._stop.is_set():
-            try:
-                frame = bus.recv(timeout=0.05)
-            except (can.CanError, OSError, ValueError) as exc:
-                self.decoder.counts["receive_error"] += 1
-                failures += 1
-                if failures >= MAX_RECEIVE_FAILURES and not self._stop.is_set():
-                    self._error = exc
-                    with self._lock:
-                        self._lock.notify_all()
-                    return
-                continue
-            failures = 0
-            if frame is None:
-                continue
-            now = self.clock()
-            message = self.decoder.decode(frame)
-            with self._lock:
-                if message is not None:
-                    self._follower.update(message, now)
-                    self._leader.update(message, now)
-                if self._log is not None:
-                    self._write_log(frame)
-                self.frames_received += 1
-                self._lock.notify_all()
+    def _receive(self, frame: can.Message) -> None:
+        """Stamp, decode and log one frame (receive thread)."""
+        now = self.clock()
+        message = self.decoder.decode(frame)
+        with self._lock:
+            if message is not None:
+                self._follower.update(message, now)
+                self._leader.update(message, now)
+            if self._log is not None:
+                self._write_log(frame)
+            self.frames_received += 1
+            self._lock.notify_all()
 
     def _write_log(self, frame: can.Message) -> None:
         """Write one frame to the open log (lock held). A failing log is closed and its error kept."""
@@ -182,8 +152,8 @@ class BusMonitor:
 
     def check(self) -> None:
         """Raise CanError if receiving failed (the thread has stopped)."""
-        if self._error is not None:
-            raise CanError(f"receiving from CAN bus {self.channel!r} failed: {self._error}; check the CAN link")
+        if self._reader.error is not None:
+            raise CanError(f"receiving from CAN bus {self.channel!r} failed: {self._reader.error}; check the CAN link")
 
     # ---- streams --------------------------------------------------------------------------------------
     def follower(self) -> ArmReading:

@@ -20,8 +20,8 @@ import can
 import numpy as np
 
 from dssp_data.errors import CanError
+from hardware.can_reader import CanReader
 from hardware.piper import codec
-from hardware.piper.bus import open_bus
 from hardware.piper.limits import opening_to_stroke, stroke_to_opening
 
 _NAN = float("nan")
@@ -121,16 +121,15 @@ class ScriptedLeader:
         self.send_timeout = send_timeout
         self.frames_sent = 0
         self.last_target: np.ndarray | None = None
-        self._bus: can.BusABC | None = None
+        self._reader = CanReader(channel, interface, bus_options)  # no thread: send_frames drains what arrives
 
     def start(self) -> None:
-        if self._bus is None:
-            self._bus = open_bus(self.channel, self.interface, **self.bus_options)
+        """Open the bus (no-op if open). Raises CanError."""
+        self._reader.open()
 
     def stop(self) -> None:
-        bus, self._bus = self._bus, None
-        if bus is not None:
-            bus.shutdown()
+        """Shut the bus down (idempotent)."""
+        self._reader.close()
 
     def __enter__(self) -> "ScriptedLeader":
         self.start()
@@ -141,13 +140,14 @@ class ScriptedLeader:
 
     def send_frames(self, frames: list[can.Message]) -> None:
         """Send raw frames (e.g. the setup that powers a follower on). Raises CanError."""
-        if self._bus is None:
+        bus = self._reader.bus
+        if bus is None:
             raise CanError(f"scripted leader on {self.channel!r} is not started")
-        while self._bus.recv(timeout=0.0) is not None:  # what others send is not for us
+        while bus.recv(timeout=0.0) is not None:  # what others send is not for us
             pass
         for frame in frames:
             try:
-                self._bus.send(frame, timeout=self.send_timeout)
+                bus.send(frame, timeout=self.send_timeout)
             except (can.CanError, OSError, ValueError) as exc:
                 raise CanError(f"scripted leader: sending 0x{frame.arbitration_id:03X} on {self.channel!r} failed ({exc})") from exc
             self.frames_sent += 1

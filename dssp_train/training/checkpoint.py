@@ -31,7 +31,7 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 from torch import nn
 
-from dssp_data.files import _umask, atomic_write, atomic_write_text  # noqa: F401  (re-exported)
+from dssp_data.files import _umask, atomic_write, atomic_write_text, replace_dir  # noqa: F401  (re-exported)
 from dssp_train.config import RunConfig
 from dssp_data.errors import CheckpointError, ConfigError
 
@@ -191,12 +191,10 @@ def save_training_state(
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     final, old = run_dir / "checkpoint", run_dir / ".checkpoint.old"
-    if final.exists():
-        if old.exists():
-            shutil.rmtree(old)  # stale: checkpoint/ is complete
-        final.rename(old)
+    if final.exists() and old.exists():
+        shutil.rmtree(old)  # stale: checkpoint/ is complete
     # Without checkpoint/ (a crash mid-swap), .checkpoint.old is the only complete checkpoint: keep it until now.
-    tmp.rename(final)
+    replace_dir(tmp, final, aside=old)
     shutil.rmtree(old, ignore_errors=True)
 
 

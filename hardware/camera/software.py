@@ -12,7 +12,6 @@ software device, so frames come out through the syncer, not through a pipeline.
 
 from __future__ import annotations
 
-import os
 import threading
 import time
 from collections.abc import Iterable
@@ -23,6 +22,7 @@ import numpy as np
 from hardware.camera.base import Camera, DepthFrame, Intrinsics
 from hardware.camera.realsense import depth_frame_from_rs, import_rs
 from dssp_data.errors import CameraError
+from dssp_data.files import atomic_write
 
 
 def _rs_intrinsics(rs, intr: Intrinsics):
@@ -223,34 +223,33 @@ def record_depth(path: str | Path, frames: Iterable[np.ndarray], intrinsics: Int
     """
     path = Path(path).expanduser()
     color_iter = None if colors is None else iter(colors)
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
-    cam = SoftwareDepthCamera(intrinsics, depth_unit, fps=fps, color=color_iter is not None, record_to=tmp)
-    n = 0
-    try:
+
+    def write(tmp: str) -> None:
+        cam = SoftwareDepthCamera(intrinsics, depth_unit, fps=fps, color=color_iter is not None, record_to=tmp)
+        n = 0
         try:
-            cam.start()
-        except CameraError as e:  # name the user's path, not the temporary one
-            raise CameraError(str(e).replace(str(tmp), str(path))) from None
-        t0 = time.monotonic()
-        for depth in frames:
-            color = None
-            if color_iter is not None:
-                color = next(color_iter, None)
-                if color is None:
-                    raise CameraError(f"record_depth: fewer colour images than depth frames ({n})")
-            if pace:
-                delay = t0 + n / fps - time.monotonic()
-                if delay > 0:
-                    time.sleep(delay)
-            cam.inject(depth, color)
-            n += 1
-    except BaseException:
-        cam.stop()
-        tmp.unlink(missing_ok=True)
-        raise
-    cam.stop()
-    if n == 0:
-        tmp.unlink(missing_ok=True)
-        raise CameraError(f"record_depth: no frames given for {path}")
-    os.replace(tmp, path)
+            try:
+                cam.start()
+            except CameraError as e:  # name the user's path, not the temporary one
+                raise CameraError(str(e).replace(tmp, str(path))) from None
+            t0 = time.monotonic()
+            for depth in frames:
+                color = None
+                if color_iter is not None:
+                    color = next(color_iter, None)
+                    if color is None:
+                        raise CameraError(f"record_depth: fewer colour images than depth frames ({n})")
+                if pace:
+                    delay = t0 + n / fps - time.monotonic()
+                    if delay > 0:
+                        time.sleep(delay)
+                cam.inject(depth, color)
+                n += 1
+        finally:
+            cam.stop()
+        if n == 0:
+            raise CameraError(f"record_depth: no frames given for {path}")
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write(path, write, suffix=f".tmp{path.suffix}")
     return path

@@ -15,15 +15,14 @@ from dataclasses import dataclass
 import can
 import numpy as np
 
+from hardware.can_reader import CanReader
 from hardware.robot import ArmStatus
 from dssp_data.errors import ArmError, CanError
 from hardware.piper import codec
-from hardware.piper.bus import open_bus
 from hardware.piper.codec import ArmStatusFeedback, GripperFeedback, JointFeedback, MotorLowSpeed
 
 _FEEDBACK_TYPES = (ArmStatusFeedback, JointFeedback, GripperFeedback, MotorLowSpeed, codec.MotorHighSpeed)
 _NAN = float("nan")
-MAX_RECEIVE_FAILURES = 10  # consecutive receive errors before the bus is taken as failed
 
 
 def _status_name(arm_status: int) -> str:
@@ -81,13 +80,11 @@ class PiperArm:
         self.gripper_effort = gripper_effort  # N·m, used when command_gripper gets no effort
         self.stale_after = stale_after
         self.decoder = codec.Decoder()
-        self._bus: can.BusABC | None = None
+        self._reader = CanReader(channel, interface, bus_options, name=f"piper-rx-{channel}",
+                                 on_frame=self._receive, counts=self.decoder.counts)
         self._lock = threading.Lock()
         self._send_lock = threading.Lock()
         self._latest: dict[int, tuple[object, float]] = {}  # arbitration ID -> (message, arrival time)
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self._rx_error: BaseException | None = None
 
     def __repr__(self) -> str:
         return f"PiperArm({self.channel!r}, {self.interface!r})"
@@ -95,28 +92,15 @@ class PiperArm:
     # ---- lifecycle ------------------------------------------------------------------------------------------
     def connect(self) -> None:
         """Open the bus and start the receive thread (no-op if connected). Raises CanError."""
-        if self._bus is not None:
+        if self._reader.bus is not None:
             return
-        self._bus = open_bus(self.channel, self.interface, **self.bus_options)
-        self._stop.clear()
-        self._rx_error = None
         with self._lock:
             self._latest.clear()  # feedback from before a reconnect is not reused
-        self._thread = threading.Thread(target=self._receive_loop, name=f"piper-rx-{self.channel}", daemon=True)
-        self._thread.start()
+        self._reader.start()
 
     def close(self) -> None:
         """Stop the receive thread and shut the bus down (sends nothing; idempotent)."""
-        bus, self._bus = self._bus, None
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
-            self._thread = None
-        if bus is not None:
-            try:
-                bus.shutdown()
-            except (can.CanError, OSError) as exc:
-                raise CanError(f"closing CAN bus {self.channel!r} failed: {exc}") from exc
+        self._reader.close()
 
     def __enter__(self) -> "PiperArm":
         self.connect()
@@ -125,38 +109,22 @@ class PiperArm:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def _receive_loop(self) -> None:
-        bus = self._bus
-        failures = 0
-        while not self._stop.is_set():
-            try:
-                frame = bus.recv(timeout=0.05)
-            except (can.CanError, OSError, ValueError) as exc:
-                # One bad datagram (udp_multicast) is counted and skipped; a bus that keeps failing stops
-                # the thread, and feedback()/status() raise the error from then on.
-                self.decoder.counts["receive_error"] += 1
-                failures += 1
-                if failures >= MAX_RECEIVE_FAILURES and not self._stop.is_set():
-                    self._rx_error = exc
-                    return
-                continue
-            failures = 0
-            if frame is None:
-                continue
-            now = time.monotonic()
-            message = self.decoder.decode(frame)
-            if isinstance(message, _FEEDBACK_TYPES):
-                with self._lock:
-                    self._latest[frame.arbitration_id] = (message, now)
+    def _receive(self, frame: can.Message) -> None:
+        """Keep one feedback frame with its arrival time (receive thread)."""
+        now = time.monotonic()
+        message = self.decoder.decode(frame)
+        if isinstance(message, _FEEDBACK_TYPES):
+            with self._lock:
+                self._latest[frame.arbitration_id] = (message, now)
 
     def _check_rx(self) -> None:
-        if self._rx_error is not None:
-            raise CanError(f"receiving from CAN bus {self.channel!r} failed: {self._rx_error}; "
+        if self._reader.error is not None:
+            raise CanError(f"receiving from CAN bus {self.channel!r} failed: {self._reader.error}; "
                            "check the CAN link, then reconnect")
 
     # ---- sending ----------------------------------------------------------------------------------------------
     def _send(self, *frames: can.Message) -> None:
-        bus = self._bus
+        bus = self._reader.bus
         if bus is None:
             raise CanError(f"arm on {self.channel!r} is not connected: call connect() first")
         with self._send_lock:

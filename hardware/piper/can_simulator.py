@@ -31,12 +31,11 @@ import can
 import numpy as np
 
 from dssp_data.errors import CanError
+from hardware.can_reader import CanReader
 from hardware.piper import codec
-from hardware.piper.bus import open_bus
 from hardware.piper.limits import GRIPPER_STROKE_MAX, GRIPPER_STROKE_MIN, JOINT_LOWER, JOINT_UPPER
 
 REACHED_TOL = 1e-4  # rad: motion_status reports "reached" within this of every target
-MAX_RECEIVE_FAILURES = 10  # consecutive receive errors before the bus is taken as failed
 WIRE_UNIT = math.radians(0.001)  # rad: resolution of joint angles on the bus
 
 
@@ -64,7 +63,6 @@ class SimulatedPiper:
         self.ticks = 0
         self.frames_sent = 0
         self.commands_received = 0
-        self.error: BaseException | None = None  # why the thread stopped, if it failed
 
         q0 = np.zeros(6) if initial_joints is None else np.asarray(initial_joints, dtype=np.float64).reshape(6)
         self._q = np.clip(q0, JOINT_LOWER, JOINT_UPPER)
@@ -84,9 +82,9 @@ class SimulatedPiper:
         self._feedback_paused = False
 
         self._lock = threading.RLock()
-        self._bus: can.BusABC | None = None
-        self._thread: threading.Thread | None = None
-        self._stop = threading.Event()
+        self._last = self._next_tick = 0.0  # monotonic times of the last feedback round and the next one
+        self._reader = CanReader(channel, interface, bus_options, name=f"sim-piper-{channel}",
+                                 on_frame=self._handle_frame, counts=self.decoder.counts, tick=self._tick)
 
     def __repr__(self) -> str:
         return f"SimulatedPiper({self.channel!r}, {self.interface!r})"
@@ -94,75 +92,54 @@ class SimulatedPiper:
     # ---- lifecycle ----------------------------------------------------------------------------------------
     def start(self, thread: bool = True) -> None:
         """Open the bus; with ``thread`` run ticks at ``rate`` in a thread, else wait for ``step`` calls."""
-        if self._bus is not None:
+        if self._reader.bus is not None:
             raise RuntimeError(f"{self!r} is already started")
-        self._bus = open_bus(self.channel, self.interface, **self.bus_options)
-        self._stop.clear()
-        self.error = None
+        self._reader.open()
         if thread:
-            self._thread = threading.Thread(target=self._run, name=f"sim-piper-{self.channel}", daemon=True)
-            self._thread.start()
+            self._last = self._next_tick = time.monotonic()
+            self._reader.start()
 
     def stop(self) -> None:
         """Stop the thread and close the bus. Raises CanError if the thread had stopped on an error."""
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
-            self._thread = None
-        bus, self._bus = self._bus, None
-        if bus is not None:
-            bus.shutdown()
+        self._reader.close()
         if self.error is not None:
             raise CanError(f"simulated arm on {self.channel!r} failed: {self.error}") from self.error
 
     @property
+    def error(self) -> BaseException | None:
+        """Why the thread stopped, if it failed (printed by dssp-sim-arm)."""
+        return self._reader.error
+
+    @property
     def started(self) -> bool:
         """The bus is open (with or without the thread)."""
-        return self._bus is not None
+        return self._reader.bus is not None
 
     @property
     def running(self) -> bool:
         """The thread is ticking."""
-        return self._thread is not None and self._thread.is_alive()
+        return self._reader.running
 
-    def _run(self) -> None:
-        period = 1.0 / self.rate
-        last = time.monotonic()
-        next_tick = last
-        failures = 0
-        try:
-            while not self._stop.is_set():
-                now = time.monotonic()
-                if now >= next_tick:
-                    with self._lock:
-                        self._advance(min(now - last, 0.1))
-                        self._send_feedback()
-                    last = now
-                    next_tick += period
-                    if next_tick < now:  # fell behind (e.g. a stalled machine): do not try to catch up
-                        next_tick = now + period
-                try:
-                    frame = self._bus.recv(timeout=max(0.0, next_tick - time.monotonic()))
-                except (can.CanError, OSError, ValueError):
-                    # A bad datagram (udp_multicast) is counted and skipped; a failing bus stops the thread.
-                    self.decoder.counts["receive_error"] += 1
-                    failures += 1
-                    if failures >= MAX_RECEIVE_FAILURES:
-                        raise
-                    continue
-                failures = 0
-                if frame is not None:
-                    self._handle_frame(frame)
-        except Exception as exc:  # kept in self.error, raised by stop(), printed by dssp-sim-arm
-            if not self._stop.is_set():
-                self.error = exc
+    def _tick(self) -> float:
+        """Advance and send one round of feedback when it is due (thread); returns the time left to the next."""
+        now = time.monotonic()
+        if now >= self._next_tick:
+            with self._lock:
+                self._advance(min(now - self._last, 0.1))
+                self._send_feedback()
+            self._last = now
+            self._next_tick += 1.0 / self.rate
+            if self._next_tick < now:  # fell behind (e.g. a stalled machine): do not try to catch up
+                self._next_tick = now + 1.0 / self.rate
+        return max(0.0, self._next_tick - time.monotonic())
 
     def step(self, dt: float) -> None:
         """Deterministic tick (use with ``start(thread=False)``): handle received commands, advance ``dt`` s,
         send one round of feedback (unless paused)."""
-        if self._bus is None:
+        bus = self._reader.bus
+        if bus is None:
             raise RuntimeError(f"{self!r} is not started")
-        while (frame := self._bus.recv(timeout=0.0)) is not None:
+        while (frame := bus.recv(timeout=0.0)) is not None:
             self._handle_frame(frame)
         with self._lock:
             self._advance(float(dt))
@@ -296,7 +273,7 @@ class SimulatedPiper:
         if self._feedback_paused:
             return
         for frame in self.feedback_frames():
-            self._bus.send(frame, timeout=0.05)
+            self._reader.bus.send(frame, timeout=0.05)
             self.frames_sent += 1
 
     # ---- fault injection -----------------------------------------------------------------------------------
