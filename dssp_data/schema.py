@@ -171,26 +171,31 @@ def parse_json(text: str) -> Any:
         raise ValueError("nested too deeply to be a settings file") from None
 
 
-def read_json_object(path: str | Path, what: str) -> dict:
-    """A JSON object from a file, or a one-line ``ConfigError`` naming ``what`` and the problem."""
+def read_json_object(path: str | Path, what: str | None, *, error: type[Exception] = ConfigError,
+                     hint: str | None = None) -> dict:
+    """A JSON object from a file, or one line naming the file and the problem: ``"{what} file {path} ..."``
+    (``what`` None: ``"{path} ..."``), raised as ``error``; ``hint`` replaces the generic advice on a file
+    that exists but holds no usable JSON object (e.g. how to restore it)."""
+    label = f"{what} file {path}" if what else str(path)
+    fix = f"; {hint}" if hint else ""
     try:
         values = parse_json(Path(path).read_text())
     except DuplicateKey as exc:
-        raise ConfigError(f"{what} file {path} gives the key {exc} twice; keep one") from None
+        raise error(f"{label} gives the key {exc} twice; " + (hint or "keep one")) from None
     except FileNotFoundError:
-        raise ConfigError(f"{what} file {path} does not exist; check the path") from None
+        raise error(f"{label} does not exist; check the path") from None
     except IsADirectoryError:
-        raise ConfigError(f"{what} file {path} is a directory; give the JSON file") from None
+        raise error(f"{label} is a directory; give the JSON file") from None
     except UnicodeDecodeError:
-        raise ConfigError(f"{what} file {path} is not a text file; give a JSON file") from None
+        raise error(f"{label} is not a text file" + (f" (damaged?){fix}" if hint else "; give a JSON file")) from None
     except OSError as exc:
-        raise ConfigError(f"{what} file {path} cannot be read ({exc.strerror or exc})") from None
+        raise error(f"{label} cannot be read ({exc.strerror or exc}); check its permissions") from None
     except json.JSONDecodeError as exc:
-        raise ConfigError(f"{what} file {path} is not valid JSON ({exc.msg} at line {exc.lineno})") from None
+        raise error(f"{label} is not valid JSON ({exc.msg} at line {exc.lineno}){fix}") from None
     except ValueError as exc:
-        raise ConfigError(f"{what} file {path} is not a usable JSON object ({exc})") from None
+        raise error(f"{label} is not a usable JSON object ({exc}){fix}") from None
     if not isinstance(values, dict):
-        raise ConfigError(f"{what} file {path} must hold a JSON object, got {type(values).__name__}")
+        raise error(f"{label} must hold a JSON object, got {type(values).__name__}{fix}")
     return values
 
 

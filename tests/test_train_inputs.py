@@ -354,9 +354,9 @@ def test_params_meta_count_equals_the_real_model(capsys):
 
 
 @pytest.mark.parametrize("damage,message", [
-    (lambda c: os.urandom(64) + b"\xff\xfe", "config.json is not a text file (damaged or not a run config)"),
+    (lambda c: os.urandom(64) + b"\xff\xfe", "config.json is not a text file (damaged?)"),
     (lambda c: json.dumps({k: v for k, v in c.items() if k != "model"}).encode(), "config.json lacks its model section"),
-    (lambda c: b"[1, 2]", "config.json must hold a JSON object (a DSSP run config), got list"),
+    (lambda c: b"[1, 2]", "config.json must hold a JSON object, got list"),
     (lambda c: json.dumps({**c, "model": {**c["model"], "state_dim": 0}}).encode(), "has model.state_dim=0"),
 ])
 def test_params_on_a_damaged_run_config_is_one_line(trained, tmp_path, capsys, damage, message):

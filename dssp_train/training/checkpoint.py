@@ -31,9 +31,10 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 from torch import nn
 
-from dssp_data.files import _umask, atomic_write, atomic_write_text, replace_dir  # noqa: F401  (re-exported)
+from dssp_data.files import _umask, atomic_write, atomic_write_text, replace_dir
 from dssp_train.config import RunConfig
 from dssp_data.errors import CheckpointError, ConfigError
+from dssp_data.schema import read_json_object
 
 FORMAT_VERSION = "1"
 
@@ -92,16 +93,7 @@ def load_config(run_dir: Path) -> RunConfig:
     path = Path(run_dir) / "config.json"
     if not path.is_file():
         raise CheckpointError(f"{path} is missing: {run_dir} is not a DSSP run directory (dssp-train --out creates one)")
-    try:
-        values = json.loads(path.read_text())
-    except UnicodeDecodeError:
-        raise CheckpointError(f"{path} is not a text file (damaged or not a run config); {RESTORE_HINT}") from None
-    except OSError as exc:
-        raise CheckpointError(f"{path} cannot be read ({exc.strerror or exc}); check its permissions") from None
-    except json.JSONDecodeError as exc:
-        raise CheckpointError(f"{path} is not valid JSON ({exc.msg} at line {exc.lineno}); {RESTORE_HINT}") from None
-    if not isinstance(values, dict):
-        raise CheckpointError(f"{path} must hold a JSON object (a DSSP run config), got {type(values).__name__}; {RESTORE_HINT}")
+    values = read_json_object(path, None, error=CheckpointError, hint=RESTORE_HINT)
     try:
         config = RunConfig.from_dict(values)
     except (ConfigError, TypeError) as exc:
