@@ -140,11 +140,3 @@ def test_a_manifest_that_contradicts_itself(arm_export, tmp_path, edit, words):
     with pytest.raises(DSSPError) as info:
         read_manifest(_edited_copy(arm_export, tmp_path, edit))
     assert words in str(info.value)
-
-
-def test_profile_refuses_a_checkpoint_the_model_was_not_exported_from(arm_export, tiny_export, tmp_path, capsys):
-    from dssp_deploy.profile import main as profile_main
-
-    other_run, _, _ = tiny_export
-    code = profile_main([str(arm_export), "--quick", "--checkpoint", str(other_run), "--threads", "1"])
-    assert "is not the run" in _one_error_line(capsys, code)

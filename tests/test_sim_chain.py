@@ -2,8 +2,13 @@
 software device; expert collection into a DP3 dataset; closed-loop evaluation through the whole chain."""
 
 import json
+import os
+import subprocess
+import sys
+import textwrap
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -102,6 +107,64 @@ def test_bad_input_is_one_line(tmp_path, capsys):
     assert exc.value.code == 2 and "unknown task 'juggle'" in capsys.readouterr().err
     assert sim_main(["eval", "--model", str(tmp_path / "none"), "--task", "tap", "--episodes", "1", "--no-progress"]) == 2
     assert "does not exist" in capsys.readouterr().err
+
+
+def _gone(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    return False
+
+
+def test_the_demo_runs_each_stage_side_by_side_and_stops_at_the_first_failure(tmp_path, capsys):
+    from dssp_data.errors import DSSPError
+    from dssp_sim.demo import run_side_by_side
+
+    py, logs = sys.executable, tmp_path / "logs"
+    seconds = run_side_by_side("check", {
+        "a": [py, "-c", "import os, sys; print('one'); sys.stderr.write('\\rbar 1\\rbar 2\\n'); print(os.environ['OMP_NUM_THREADS'])"],
+        "b": [py, "-c", "print('two')"],
+    }, logs)
+    assert set(seconds) == {"a", "b"} and all(s > 0 for s in seconds.values())
+    out = capsys.readouterr().out.splitlines()
+    assert {"[a] one", "[a] bar 1", "[a] bar 2", "[a] 1", "[b] two"} <= set(out)  # one thread each; a bar's end shown
+    assert (logs / "check_a.log").read_text() == "one\nbar 1\nbar 2\n1\n" and (logs / "check_b.log").read_text() == "two\n"
+
+    pid_file = tmp_path / "slow.pid"
+    slow = [py, "-c", f"import os, time; open({str(pid_file)!r}, 'w').write(str(os.getpid())); time.sleep(120)"]
+    bad = [py, "-c", f"import os, sys, time\nwhile not os.path.exists({str(pid_file)!r}): time.sleep(0.05)\nprint('boom'); sys.exit(3)"]
+    t0 = time.perf_counter()
+    with pytest.raises(DSSPError) as info:
+        run_side_by_side("training", {"slow": slow, "bad": bad}, logs)
+    message = str(info.value)
+    assert time.perf_counter() - t0 < 60 and _gone(int(pid_file.read_text()))  # the other one was stopped
+    assert message.startswith("training of bad failed (exit 3); its log: ") and message.endswith(": boom") and "\n" not in message
+    kept = Path(message.split("its log: ")[1].rsplit(": ", 1)[0])  # a copy outside --out, which is removed on failure
+    assert kept.read_text() == "boom\n"
+    kept.unlink()
+
+
+def test_ctrl_c_stops_the_demo_processes(tmp_path):
+    pid_file = tmp_path / "child.pid"
+    code = textwrap.dedent(f"""
+        import os, signal, sys, threading, time
+        from pathlib import Path
+        from dssp_sim.demo import run_side_by_side
+        child = [sys.executable, "-c", "import os, time; open({str(pid_file)!r}, 'w').write(str(os.getpid())); time.sleep(120)"]
+        def interrupt():
+            while not os.path.exists({str(pid_file)!r}):
+                time.sleep(0.05)
+            os.kill(os.getpid(), signal.SIGINT)
+        threading.Thread(target=interrupt, daemon=True).start()
+        try:
+            run_side_by_side("training", {{"dssp": child}}, Path({str(tmp_path / "logs")!r}))
+        except KeyboardInterrupt:
+            print("interrupted")
+        """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert out.stdout.strip() == "interrupted", out.stderr
+    assert _gone(int(pid_file.read_text()))
 
 
 @pytest.fixture(scope="module")

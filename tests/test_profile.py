@@ -1,0 +1,91 @@
+"""``dssp-profile`` runs on ONNX Runtime and numpy only; the PyTorch comparison is benchmarks/torch_comparison.py."""
+
+import importlib.util
+import json
+import os
+import shutil
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def load_comparison():
+    spec = importlib.util.spec_from_file_location("bench_torch_comparison", ROOT / "benchmarks" / "torch_comparison.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_profile_runs_where_torch_cannot_be_imported(tiny_export, tmp_path):
+    _, model_dir, _ = tiny_export
+    json_path, png_path = tmp_path / "profile.json", tmp_path / "profile.png"
+    code = textwrap.dedent(
+        f"""
+        import sys
+        for name in ("torch", "dssp_train", "export", "onnx"):
+            sys.modules[name] = None  # any import of these now fails
+        from dssp_deploy.profile import main
+        code = main([{str(model_dir)!r}, "--quick", "--threads", "1", "--json", {str(json_path)!r}, "--plot", {str(png_path)!r}])
+        assert code == 0, code
+        print("loaded:", sorted(m for m in ("torch", "dssp_train", "export", "onnx") if sys.modules.get(m) is not None))
+        """
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                         env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert out.returncode == 0, out.stderr
+    assert "loaded: []" in out.stdout and "| history step (ORT) |" in out.stdout and "Chunk floor on this machine" in out.stdout
+    assert "PyTorch" not in out.stdout and "Transformer" not in out.stdout
+    report = json.loads(json_path.read_text())
+    assert "torch" not in report and 0 < report["latency_ms"]["denoiser_chunk"]["p50"]
+    assert [r["length"] for r in report["history_sweep"]] == report["settings"]["sweep"]
+    assert png_path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_profile_has_no_checkpoint_flag(tmp_path, capsys):
+    from dssp_deploy.profile import main
+
+    with pytest.raises(SystemExit) as exc:
+        main([str(tmp_path), "--checkpoint", str(tmp_path)])
+    assert exc.value.code == 2 and "unrecognized arguments: --checkpoint" in capsys.readouterr().err
+
+
+def test_torch_comparison_reports_medians_and_ratios_to_the_runtime(tiny_export, tmp_path, capsys):
+    run_dir, model_dir, _ = tiny_export
+    out = tmp_path / "comparison.json"
+    bench = load_comparison()
+    assert bench.main([str(model_dir), "--checkpoint", str(run_dir), "--quick", "--threads", "1", "--json", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "| history step |" in text and "| denoiser chunk |" in text and "ONNX Runtime vs PyTorch eager per chunk" in text
+    report = json.loads(out.read_text())
+    for backend in ("ort", "eager", "torchscript"):
+        assert all(report["median_ms"][backend][k] > 0 for k in ("history_step", "denoiser_chunk"))
+    for backend in ("eager", "torchscript"):
+        ratios = report["ratio_to_ort"][backend]
+        assert ratios["denoiser_chunk"] == pytest.approx(report["median_ms"][backend]["denoiser_chunk"] / report["median_ms"]["ort"]["denoiser_chunk"])
+    assert [r["length"] for r in report["history_sweep"]] == bench.QUICK["sweep"]
+    assert all(r["dssp_ort_ms"] > 0 and r["transformer_torch_ms"] > 0 for r in report["history_sweep"])
+    # without --checkpoint: TorchScript and the sweep only, and the table says why eager is missing
+    assert bench.main([str(model_dir), "--quick", "--threads", "1"]) == 0
+    text = capsys.readouterr().out
+    assert "PyTorch eager: not measured (give --checkpoint" in text and "TorchScript ms" in text
+
+
+def test_torch_comparison_refuses_a_checkpoint_the_model_was_not_exported_from(tiny_export, tmp_path, capsys):
+    run_dir, model_dir, _ = tiny_export
+    bench = load_comparison()
+    other = tmp_path / "other_run"
+    shutil.copytree(run_dir, other)
+    weights = other / json.loads((model_dir / "dssp_model.json").read_text())["source"]["weights"]
+    data = bytearray(weights.read_bytes())
+    data[-1] ^= 1  # another run's weights
+    weights.write_bytes(bytes(data))
+    assert bench.main([str(model_dir), "--quick", "--checkpoint", str(other), "--threads", "1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "is not the run" in err[0]
+    assert bench.main([str(model_dir), "--quick", "--checkpoint", str(tmp_path / "none"), "--threads", "1"]) == 2
+    assert "cannot be read" in capsys.readouterr().err
