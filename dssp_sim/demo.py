@@ -63,28 +63,25 @@ def _run_demo(out: Path, steps: int, demos: int, episodes: int, seed: int) -> di
     py = sys.executable
     t_start = time.perf_counter()
     timings = {}
-    print(f"[1/4] collecting {demos} expert demonstrations of '{TASK}'", flush=True)
+    print(f"[1/2] collecting {demos} expert demonstrations of '{TASK}'", flush=True)
     t0 = time.perf_counter()
     data = out / f"{TASK}.zarr"
     result = collect(TASK, demos, data, seed=seed)
     if result.kept < demos:
         raise DSSPError(f"only {result.kept} of {demos} expert episodes succeeded")
     timings["collect_s"] = time.perf_counter() - t0
-    labels = " and ".join(label for label, _ in VARIANTS.values())
-    print(f"[2/4] training {labels}: {steps} steps each (sim preset), side by side", flush=True)
-    train = {name: [py, "-m", "dssp_train.cli.train", "--data", str(data), "--out", str(out / name), "--preset", "sim",
-                    "--steps", str(steps), "--seed", str(seed), *flags] for name, (_, flags) in VARIANTS.items()}
-    timings.update({f"train_{k}_s": v for k, v in run_side_by_side("training", train, out / "logs").items()})
-    print("[3/4] exporting both (parity checked), side by side", flush=True)
-    export = {name: [py, "-m", "export.to_onnx", str(out / name), "-o", str(out / f"{name}_model"), "--threads", "1"]
-              for name in VARIANTS}
-    timings.update({f"export_{k}_s": v for k, v in run_side_by_side("export", export, out / "logs").items()})
-    print(f"[4/4] evaluating both: {episodes} closed-loop episodes each, side by side", flush=True)
+    print(f"[2/2] for each model, side by side: train ({steps} steps, sim preset) → export (parity checked) → "
+          f"evaluate ({episodes} closed-loop episodes)", flush=True)
     (out / "evals").mkdir(exist_ok=True)
-    evaluate = {name: [py, "-m", "dssp_sim.sim_cli", "eval", "--model", str(out / f"{name}_model"), "--task", TASK,
-                       "--episodes", str(episodes), "--seed", str(1000 + seed), "--threads", "1",
-                       "--json", str(out / "evals" / f"{name}.json")] for name in VARIANTS}
-    timings.update({f"eval_{k}_s": v for k, v in run_side_by_side("evaluation", evaluate, out / "logs").items()})
+    chains = {name: [
+        ("train", [py, "-m", "dssp_train.cli.train", "--data", str(data), "--out", str(out / name), "--preset", "sim",
+                   "--steps", str(steps), "--seed", str(seed), *flags]),
+        ("export", [py, "-m", "export.to_onnx", str(out / name), "-o", str(out / f"{name}_model"), "--threads", "1"]),
+        ("eval", [py, "-m", "dssp_sim.sim_cli", "eval", "--model", str(out / f"{name}_model"), "--task", TASK,
+                  "--episodes", str(episodes), "--seed", str(1000 + seed), "--threads", "1",
+                  "--json", str(out / "evals" / f"{name}.json")]),
+    ] for name, (_, flags) in VARIANTS.items()}
+    timings.update(run_side_by_side(chains, out / "logs"))
     evals = {name: json.loads((out / "evals" / f"{name}.json").read_text()) for name in VARIANTS}
     timings["total_s"] = time.perf_counter() - t_start
     print(f"\nTask '{TASK}', {episodes} unseen episodes each, closed loop through camera → cloud → runtime → safety → CAN → arm:\n")
@@ -94,7 +91,7 @@ def _run_demo(out: Path, steps: int, demos: int, episodes: int, seed: int) -> di
         lo, hi = r["wilson95"]
         failures = ", ".join(f"{k} × {v}" for k, v in Counter(r["failure_reasons"]).most_common()) or "—"
         print(f"| {VARIANTS[name][0]} | {r['successes']}/{r['n']} = {100 * r['success_rate']:.0f} % | {100 * lo:.0f}–{100 * hi:.0f} % | {failures} |")
-    print("\nDSSP's control loop, every tick of its evaluation (one ONNX Runtime thread, beside the baseline's evaluation):")
+    print("\nDSSP's control loop, every tick of its evaluation (one ONNX Runtime thread):")
     print_latency(evals["dssp"]["latency_ms"])
     print(f"\ntotal {timings['total_s'] / 60:.1f} min; {out / 'results.json'} holds every figure")
     results = {"task": TASK, "steps": steps, "demos": demos, "episodes": episodes, "seed": seed, "timings": timings,
@@ -165,28 +162,35 @@ class _Child:
         self.proc.stdout.close()
 
 
-def run_side_by_side(stage: str, commands: dict[str, list[str]], logs: Path) -> dict[str, float]:
-    """Run the commands at once and wait for all; each one's seconds. The first that fails stops the others
-    and raises one line with the stage, the exit code, its last line and a copy of its log outside ``--out``
-    (the demo directory is removed on failure); Ctrl-C stops them all."""
+def run_side_by_side(chains: dict[str, list[tuple[str, list[str]]]], logs: Path) -> dict[str, float]:
+    """Run each chain's commands one after the other, the chains at once; returns ``{f"{stage}_{name}_s": seconds}``.
+    The first command that fails stops the others and raises one line with the stage, the exit code, its last line
+    and a copy of its log outside ``--out`` (the demo directory is removed on failure); Ctrl-C stops them all."""
     logs.mkdir(parents=True, exist_ok=True)
-    children: list[_Child] = []
+    seconds: dict[str, float] = {}
+    pending = {name: list(steps) for name, steps in chains.items()}
+    running: dict[str, tuple[str, _Child]] = {}
     try:
-        for name, cmd in commands.items():
-            children.append(_Child(name, cmd, logs / f"{stage}_{name}.log"))
-        running = list(children)
-        while running:
-            for child in list(running):
+        while pending or running:
+            for name in list(pending):
+                if name not in running:
+                    stage, cmd = pending[name].pop(0)
+                    running[name] = (stage, _Child(name, cmd, logs / f"{stage}_{name}.log"))
+                    if not pending[name]:
+                        del pending[name]
+            for name, (stage, child) in list(running.items()):
                 code = child.poll()
                 if code is None:
                     continue
-                running.remove(child)
+                del running[name]
+                child.stop()
                 if code != 0:
                     raise DSSPError(_failure(stage, child, code))
+                seconds[f"{stage}_{name}_s"] = child.seconds
             time.sleep(0.2)
-        return {child.name: child.seconds for child in children}
+        return seconds
     finally:
-        for child in children:
+        for _, child in running.values():
             child.stop()
 
 

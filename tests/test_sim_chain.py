@@ -117,29 +117,34 @@ def _gone(pid: int) -> bool:
     return False
 
 
-def test_the_demo_runs_each_stage_side_by_side_and_stops_at_the_first_failure(tmp_path, capsys):
+def test_the_demo_runs_each_chain_in_order_side_by_side_and_stops_at_the_first_failure(tmp_path, capsys):
     from dssp_data.errors import DSSPError
     from dssp_sim.demo import run_side_by_side
 
     py, logs = sys.executable, tmp_path / "logs"
-    seconds = run_side_by_side("check", {
-        "a": [py, "-c", "import os, sys; print('one'); sys.stderr.write('\\rbar 1\\rbar 2\\n'); print(os.environ['OMP_NUM_THREADS'])"],
-        "b": [py, "-c", "print('two')"],
+    order = tmp_path / "order.txt"
+    mark = lambda text: [py, "-c", f"open({str(order)!r}, 'a').write({text!r} + '\\n')"]  # noqa: E731
+    seconds = run_side_by_side({
+        "a": [("check", [py, "-c", "import os, sys; print('one'); sys.stderr.write('\\rbar 1\\rbar 2\\n'); print(os.environ['OMP_NUM_THREADS'])"]),
+              ("then", mark("a2"))],
+        "b": [("check", [py, "-c", "print('two')"])],
     }, logs)
-    assert set(seconds) == {"a", "b"} and all(s > 0 for s in seconds.values())
+    assert set(seconds) == {"check_a_s", "then_a_s", "check_b_s"} and all(s > 0 for s in seconds.values())
     out = capsys.readouterr().out.splitlines()
     assert {"[a] one", "[a] bar 1", "[a] bar 2", "[a] 1", "[b] two"} <= set(out)  # one thread each; a bar's end shown
     assert (logs / "check_a.log").read_text() == "one\nbar 1\nbar 2\n1\n" and (logs / "check_b.log").read_text() == "two\n"
+    assert order.read_text() == "a2\n"  # the chain's second command ran after its first
 
     pid_file = tmp_path / "slow.pid"
     slow = [py, "-c", f"import os, time; open({str(pid_file)!r}, 'w').write(str(os.getpid())); time.sleep(120)"]
     bad = [py, "-c", f"import os, sys, time\nwhile not os.path.exists({str(pid_file)!r}): time.sleep(0.05)\nprint('boom'); sys.exit(3)"]
     t0 = time.perf_counter()
     with pytest.raises(DSSPError) as info:
-        run_side_by_side("training", {"slow": slow, "bad": bad}, logs)
+        run_side_by_side({"slow": [("training", slow)], "bad": [("training", bad), ("export", mark("never"))]}, logs)
     message = str(info.value)
     assert time.perf_counter() - t0 < 60 and _gone(int(pid_file.read_text()))  # the other one was stopped
     assert message.startswith("training of bad failed (exit 3); its log: ") and message.endswith(": boom") and "\n" not in message
+    assert "never" not in order.read_text()  # nothing after the failed command ran
     kept = Path(message.split("its log: ")[1].rsplit(": ", 1)[0])  # a copy outside --out, which is removed on failure
     assert kept.read_text() == "boom\n"
     kept.unlink()
@@ -158,7 +163,7 @@ def test_ctrl_c_stops_the_demo_processes(tmp_path):
             os.kill(os.getpid(), signal.SIGINT)
         threading.Thread(target=interrupt, daemon=True).start()
         try:
-            run_side_by_side("training", {{"dssp": child}}, Path({str(tmp_path / "logs")!r}))
+            run_side_by_side({{"dssp": [("training", child)]}}, Path({str(tmp_path / "logs")!r}))
         except KeyboardInterrupt:
             print("interrupted")
         """)
