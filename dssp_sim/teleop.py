@@ -26,21 +26,14 @@ from dssp_sim.env import PiperEnv
 from dssp_sim.experts import make_expert
 from dssp_sim.mujoco_arm import MujocoPiper
 from dssp_sim.mujoco_camera import MujocoCamera
+from hardware.clock import FakeClock
 from hardware.leader import ScriptedLeader
 from hardware.piper import codec
 
 
-class SimClock:
-    """Simulated time in seconds: starts at 0, moves only when told."""
-
-    def __init__(self) -> None:
-        self.t = 0.0
-
-    def __call__(self) -> float:
-        return self.t
-
-    def advance(self, dt: float) -> None:
-        self.t += float(dt)
+class SimClock(FakeClock):
+    """Simulated time in seconds (a :class:`hardware.clock.Clock`): starts at 0, moves only when told
+    (``after_tick`` advances it one period)."""
 
 
 class TeleopRig:

@@ -13,9 +13,11 @@ each after ``max_steps`` or, on the simulated rig, when the task is done (kept i
 append fails (a full disk, ...), the episode is written as a dataset of its own next to the dataset
 (``<dataset>.unsaved-<session>-<n>``) before the error ends the session.
 
-Timing: on a robot the loop ticks every 1 / rate seconds of ``time.monotonic`` (a tick that starts more
-than half a period late is flagged). With a :class:`~dssp_sim.teleop.TeleopRig` it runs in lockstep
-with simulated time, as fast as it can or ``pace`` times real time.
+Timing: on a robot the loop ticks every 1 / rate seconds of its ``clock`` (:mod:`hardware.clock`:
+``REAL_CLOCK``, ``time.monotonic``; a tick that starts more than half a period late is flagged) and
+sleeps on it between ticks. With a :class:`~dssp_sim.teleop.TeleopRig` it runs in lockstep with the
+rig's simulated clock, as fast as it can or ``pace`` times the ``wall`` clock. The ``auto`` start-up
+wait (``ready_timeout``) is on ``clock``.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ from pathlib import Path
 from dssp_data.recording import RecordingDataset, can_log_dir, can_log_name, partial_can_log_name
 from dssp_data.errors import DSSPError
 from hardware.bus_monitor import BusMonitor
+from hardware.clock import REAL_CLOCK, Clock
 from hardware.recorder import Recorder, RecorderNotReady
 
 @dataclass(frozen=True)
@@ -36,8 +39,8 @@ class SessionSettings:
     """max_steps: end (and keep) an episode after this many steps (None: only the operator ends it).
     auto: start episodes without a command; each ends after max_steps or when the simulated task is done.
     episodes: end the session after this many kept episodes (None: only on quit). pace: lockstep only,
-    simulated seconds per wall second (None: as fast as possible). ready_timeout: seconds ``auto`` waits
-    for every stream before giving up. task: the task name stored with each episode."""
+    simulated seconds per wall second (None: as fast as possible). ready_timeout: seconds (of the session's
+    clock) ``auto`` waits for every stream before giving up. task: the task name stored with each episode."""
 
     max_steps: int | None = None
     auto: bool = False
@@ -65,17 +68,18 @@ class RecordSession:
     """Runs the loop for ``recorder`` and appends kept episodes to ``dataset``.
 
     monitors: the recorder's bus monitors (their per-episode CAN logs go to ``<dataset>.can/``).
-    clock: the recorder's clock (``time.monotonic`` or the rig's simulated clock). rig: the lockstep
-    :class:`~dssp_sim.teleop.TeleopRig`, or None on a robot. events: prints one line per event (episode
-    started, kept, discarded, problems). status: shows the live one-line status (or None).
+    clock: the recorder's clock, the one its streams are stamped on (:data:`~hardware.clock.REAL_CLOCK` or
+    the rig's simulated clock). rig: the lockstep :class:`~dssp_sim.teleop.TeleopRig`, or None on a robot.
+    wall: the clock ``pace`` is kept on. events: prints one line per event (episode started, kept,
+    discarded, problems). status: shows the live one-line status (or None).
     """
 
     def __init__(self, recorder: Recorder, dataset: RecordingDataset, monitors: Sequence[BusMonitor],
-                 clock: Callable[[], float], settings: SessionSettings, *, rig=None,
+                 clock: Clock, settings: SessionSettings, *, rig=None, wall: Clock = REAL_CLOCK,
                  events: Callable[[str], None] = print, status: Callable[[str], None] | None = None,
                  session_tag: str | None = None) -> None:
         self.recorder, self.dataset, self.monitors = recorder, dataset, list(monitors)
-        self.clock, self.settings, self.rig = clock, settings, rig
+        self.clock, self.wall, self.settings, self.rig = clock, wall, settings, rig
         self.events, self.status = events, status
         self.session_tag = session_tag or time.strftime("%Y%m%d-%H%M%S")
         self.log_dir = can_log_dir(dataset.path)
@@ -98,7 +102,7 @@ class RecordSession:
         if self.rig is not None:
             self._episode_seed = self.rig.new_episode()
         try:
-            self.recorder.start(self.clock())
+            self.recorder.start(self.clock.now())
         except RecorderNotReady as exc:
             if self.rig is not None:
                 self.rig.end_episode()
@@ -255,10 +259,11 @@ class RecordSession:
         """Loop until quit, a stop request, or ``episodes`` kept; returns the summary."""
         rec, period = self.recorder, self.recorder.period
         lockstep = self.rig is not None
-        wall0, sim0 = time.monotonic(), self.clock()
-        next_tick = self.clock()
+        clock, wall = self.clock, self.wall
+        wall0, sim0 = wall.now(), clock.now()
+        next_tick = clock.now()
         if self.settings.auto:
-            self._ready_deadline = time.monotonic() + self.settings.ready_timeout
+            self._ready_deadline = clock.now() + self.settings.ready_timeout
         try:
             while True:
                 if self._stop_reason is not None:
@@ -274,12 +279,12 @@ class RecordSession:
                 if self.settings.auto and not rec.recording:
                     problem = self._start(quiet=True)
                     if problem is None:
-                        self._ready_deadline = time.monotonic() + self.settings.ready_timeout
-                    elif time.monotonic() > self._ready_deadline:
+                        self._ready_deadline = clock.now() + self.settings.ready_timeout
+                    elif clock.now() > self._ready_deadline:
                         raise DSSPError(f"{problem} (waited {self.settings.ready_timeout:g} s)")
                 if lockstep:
                     self.rig.before_tick()
-                now = self.clock()
+                now = clock.now()
                 sample = rec.tick(now, scheduled=None if lockstep else next_tick)
                 if lockstep:
                     self.rig.after_tick(period)
@@ -294,15 +299,13 @@ class RecordSession:
                 next_tick += period
                 if lockstep:
                     if self.settings.pace:
-                        delay = wall0 + (self.clock() - sim0) / self.settings.pace - time.monotonic()
-                        if delay > 0:
-                            time.sleep(delay)
+                        wall.sleep(wall0 + (clock.now() - sim0) / self.settings.pace - wall.now())
                 else:
-                    delay = next_tick - self.clock()
+                    delay = next_tick - clock.now()
                     if delay > 0:
-                        time.sleep(delay)
+                        clock.sleep(delay)
                     elif -delay > period:  # more than a tick behind: do not try to catch up
-                        next_tick = self.clock()
+                        next_tick = clock.now()
         finally:
             if rec.recording:  # an exception: nothing unconfirmed is kept
                 self._close_logs()

@@ -18,6 +18,10 @@ Per tick (shapes in policy units, dof = 7 per arm, left then right):
 Nothing is invented: a stale stream's last value is recorded and its steps flagged; a frame with no
 point in the crop box repeats the previous step's cloud, flagged ``empty_cloud``. Nothing is written
 here: the session (``hardware.record_session``) commits a finished episode.
+
+The recorder reads no clock for its timeline: each tick's ``now`` comes from the session's clock
+(:mod:`hardware.clock`), and every stream is stamped on that same clock (the bus monitors' and the
+camera's ``clock``). Only ``started_unix``, the episode's calendar date, is wall time.
 """
 
 from __future__ import annotations
@@ -80,8 +84,8 @@ class StampedCamera:
     """A camera's newest frame with its arrival time on the recorder's clock.
 
     With ``clock`` None the frame's own ``timestamp`` (``time.monotonic()`` at arrival) is used, which is
-    the recorder's clock on a robot. With a clock (simulated time), a frame is stamped with ``clock()``
-    when it is first seen.
+    the recorder's clock on a robot. With a clock (a :class:`hardware.clock.Clock` or any callable returning
+    seconds: simulated or manual time), a frame is stamped with ``clock()`` when it is first seen.
     """
 
     def __init__(self, camera: Camera, clock: Callable[[], float] | None = None) -> None:

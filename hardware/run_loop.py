@@ -15,6 +15,11 @@ Each tick:
 4. send it (not with ``dry_run``), log the tick, sleep to the next tick.
 A fault (arm error or e-stop, a send failure, a runtime error) ends the loop in a hold: nothing is sent
 after it. Shapes: cloud (P, C) float32; state, action and command (dof,) in policy units.
+
+Time: the tick times, the inputs' ages, the tick's deadline, the start-up waits and the pacing are read
+from ``clock`` (:mod:`hardware.clock`; ``time.monotonic`` by default), the clock the camera and the arms
+stamp their arrivals on. The latencies (``*_ms``) are compute cost, measured with ``time.perf_counter``
+whatever the clock.
 """
 
 from __future__ import annotations
@@ -27,10 +32,11 @@ from typing import Any, Callable
 import numpy as np
 
 from dssp_deploy.control_loop import ChunkedControl
-from dssp_deploy.onnx_policy import NonFiniteObservation, OnnxPolicy
-from dssp_data.errors import ConfigError, DSSPError
+from dssp_deploy.onnx_policy import OnnxPolicy
+from dssp_data.errors import CameraError, ConfigError, DSSPError, NonFiniteObservation
 from hardware.robot import Robot, check_rate
 from hardware.camera.base import Camera
+from hardware.clock import REAL_CLOCK, Clock
 from hardware.pointcloud import EmptyCloudError, PointCloudConfig, frame_to_cloud
 from hardware.run_log import RunLog
 from hardware.safety import Safety, SafetyConfig, SafetyViolation
@@ -43,7 +49,7 @@ class LoopSettings:
     dry_run: bool = False  # compute actions, send nothing (the arms are not enabled)
     prefetch: bool = False  # start each chunk early in a background thread
     seed: int | None = None  # diffusion noise seed (None: random)
-    startup_timeout: float = 5.0  # s to wait for the first frame and feedback
+    startup_timeout: float = 5.0  # s (of the runner's clock) to wait for the first frame and feedback
 
     def __post_init__(self):
         check_rate(self.rate_hz)
@@ -76,13 +82,15 @@ class Runner:
         limits: tuple[np.ndarray, np.ndarray, np.ndarray],
         log: RunLog | None = None,
         status: Callable[[str], None] | None = None,
+        clock: Clock = REAL_CLOCK,
     ):
-        """``limits``: (lower (dof,), upper (dof,), gripper mask (dof,)) in policy units."""
+        """``limits``: (lower (dof,), upper (dof,), gripper mask (dof,)) in policy units. ``clock``: the
+        timeline of the camera's and the arms' timestamps (:mod:`hardware.clock`)."""
         check_fits(policy, robot, cloud_config)
         self.policy, self.camera, self.robot = policy, camera, robot
         self.cloud_config, self.camera_to_base = cloud_config, np.asarray(camera_to_base, np.float64)
         self.safety_config, self.settings, self.limits = safety_config, settings, limits
-        self.log, self.status = log, status
+        self.log, self.status, self.clock = log, status, clock
         self.period = 1.0 / settings.rate_hz
         self.control = ChunkedControl(policy, rate_hz=settings.rate_hz, prefetch=settings.prefetch, seed=settings.seed)
         self.safety: Safety | None = None
@@ -103,27 +111,35 @@ class Runner:
 
     def start(self) -> None:
         """Wait for the first frame and feedback, set up the safety layer, enable the arms (not in dry run)."""
-        deadline = time.monotonic() + self.settings.startup_timeout
-        self.camera.wait_for_frame(self.settings.startup_timeout)
-        state = self.robot.state()
-        while state is None:
-            if time.monotonic() > deadline:
-                raise DSSPError(
-                    f"no joint feedback within {self.settings.startup_timeout:g} s: check the CAN bus (bitrate 1 Mbit/s, cabling) and that the arm is powered"
-                )
-            time.sleep(0.005)
-            state = self.robot.state()
+        timeout = self.settings.startup_timeout
+        deadline = self.clock.now() + timeout
+        if self._wait(self.camera.latest, deadline) is None:
+            raise CameraError(f"{self.camera.name}: no frame within {timeout:g} s; check the cable/USB3 port or the recording")
+        state = self._wait(self.robot.state, deadline)
+        if state is None:
+            raise DSSPError(
+                f"no joint feedback within {timeout:g} s: check the CAN bus (bitrate 1 Mbit/s, cabling) and that the arm is powered"
+            )
         lower, upper, gripper = self.limits
         self.safety = Safety(self.safety_config, lower, upper, gripper, state.position)
         if not self.settings.dry_run:
             self.robot.enable()
         self.control.reset()
 
+    def _wait(self, get: Callable[[], Any], deadline: float) -> Any:
+        """The first ``get()`` that is not None, polled on the clock until ``deadline``; else None."""
+        value = get()
+        while value is None and self.clock.now() <= deadline:
+            self.clock.sleep(0.005)
+            value = get()
+        return value
+
     # ----------------------------------------------------------------- one tick
     def tick(self) -> dict[str, Any]:
         """One control tick; returns its log record."""
         assert self.safety is not None, "start() first"
-        t0 = time.monotonic()
+        t0 = self.clock.now()
+        w0 = time.perf_counter()
         frame = self.camera.latest()
         state = self.robot.state()
         record: dict[str, Any] = {"tick": self.ticks, "time": t0, "state": None, "action": None, "command": None, "held": False}
@@ -143,13 +159,13 @@ class Runner:
             record["state"] = state.position
             record["feedback_age_ms"] = 1e3 * (t0 - state.timestamp)
         if fresh and self.fault is None:
-            c0 = time.monotonic()
+            c0 = time.perf_counter()
             try:
                 cloud, cloud_info = frame_to_cloud(frame, self.cloud_config, self.camera_to_base)
             except EmptyCloudError as exc:  # nothing in the workspace: no observation, hold
                 cloud, record["events"] = None, [f"no observation: {exc}"]
                 self.event_counts["empty_cloud"] += 1
-            record["cloud_ms"] = 1e3 * (time.monotonic() - c0)
+            record["cloud_ms"] = 1e3 * (time.perf_counter() - c0)
             self.latencies["cloud"].append(record["cloud_ms"])
         if cloud is not None:
             if cloud_info.n_padded:
@@ -171,10 +187,10 @@ class Runner:
                     record["chunk_ms"] = info.chunk_ms
                     self.latencies["chunk"].append(info.chunk_ms)
                 self.policy_ticks += 1
-                elapsed = time.monotonic() - t0
+                elapsed = self.clock.now() - t0
                 deadline_missed = info.over_budget or elapsed > self.period
                 record["events"] = list(info.events)
-        now = time.monotonic()
+        now = self.clock.now()
         try:
             decision = self.safety.decide(
                 action, now=now, camera_time=frame.timestamp if frame else None, state=self.robot.state(), deadline_missed=deadline_missed
@@ -191,7 +207,7 @@ class Runner:
                 self.fault = self.safety.fault
             if decision.command is not None:
                 self._send(decision.command, record)
-        record["tick_ms"] = 1e3 * (time.monotonic() - t0)
+        record["tick_ms"] = 1e3 * (time.perf_counter() - w0)
         self.latencies["tick"].append(record["tick_ms"])
         self.holds += bool(record["held"])
         if self.log is not None:
@@ -209,7 +225,7 @@ class Runner:
             self.sent += 1
         except DSSPError as exc:
             record["command"] = None
-            self._fault(time.monotonic(), f"send failed: {exc}")
+            self._fault(self.clock.now(), f"send failed: {exc}")
 
     def _fault(self, now: float, why: str) -> None:
         """End commanding: the safety layer latches, the last safe target stays the arm's target."""
@@ -221,7 +237,7 @@ class Runner:
     # ----------------------------------------------------------------- the loop
     def run(self) -> dict[str, Any]:
         self.start()
-        next_tick = time.monotonic()
+        next_tick = self.clock.now()
         overruns = 0
         try:
             while self.fault is None and self.stop_reason is None:
@@ -231,12 +247,12 @@ class Runner:
                 if self.status is not None:
                     self.status(self.status_line(record))
                 next_tick += self.period
-                delay = next_tick - time.monotonic()
+                delay = next_tick - self.clock.now()
                 if delay > 0:
-                    time.sleep(delay)
+                    self.clock.sleep(delay)
                 else:
                     overruns += 1
-                    next_tick = time.monotonic()
+                    next_tick = self.clock.now()
         finally:
             self.finish(self.stop_reason or ("max steps" if self.fault is None else self.fault))
         return self.summary(overruns)
@@ -245,7 +261,7 @@ class Runner:
         """The final hold (the last safe target once more), then disable if configured."""
         if self.safety is None:
             return
-        final = self.safety.stop(time.monotonic(), why)
+        final = self.safety.stop(self.clock.now(), why)
         if final.command is not None and not self.settings.dry_run and self.fault is None:
             try:
                 self.robot.command(final.command)

@@ -1,7 +1,7 @@
 """The safety layer between the policy and the arms: every command passes here, nothing else sends.
 
     safety = Safety(SafetyConfig(), lower, upper, start=robot_state.position)
-    decision = safety.decide(action, now=time.monotonic(), camera_time=frame.timestamp,
+    decision = safety.decide(action, now=clock.now(), camera_time=frame.timestamp,
                              state=robot.state(), deadline_missed=False)
     if decision.command is not None:
         robot.command(decision.command)       # within the limits, by construction and by a final check
@@ -16,6 +16,9 @@ Rules, in order, each tick (all positions in policy units, (dof,): per arm [J1..
    new safe target.
 The first safe target is the measured position at start, clipped to the limits. Every event (hold,
 clip, refusal, fault) is recorded with its time in :attr:`Safety.events`.
+
+The layer reads no clock: every time is passed in (``now``, ``camera_time``, ``state.timestamp``), all
+seconds on the loop's clock (:mod:`hardware.clock`), so ages and event times are whatever that clock says.
 """
 
 from __future__ import annotations
@@ -61,7 +64,7 @@ class SafetyConfig(Settings):
 
 @dataclass(frozen=True)
 class SafetyEvent:
-    time: float  # time.monotonic() seconds
+    time: float  # seconds on the loop's clock
     tick: int
     kind: str  # hold | clip | refuse | fault | stop
     detail: str
@@ -130,7 +133,7 @@ class Safety:
         state: RobotState | None,
         deadline_missed: bool = False,
     ) -> Decision:
-        """The command for this tick. ``action``: (dof,) policy units; times are ``time.monotonic()``."""
+        """The command for this tick. ``action``: (dof,) policy units; times are seconds on the loop's clock."""
         decision = Decision(command=None)
         previous = self.last_safe.copy()
         try:

@@ -1,6 +1,9 @@
 """``dssp-record`` on the embedded default (scripted leader -> simulated follower on a virtual bus, simulated
 camera): episodes recorded, a recorder killed mid-episode leaves every completed episode, training reads
-the result; stream problems are flagged per step and per episode; operator commands; the real-time loop."""
+the result; stream problems are flagged per step and per episode; operator commands; the robot's loop.
+
+The sessions run on a clock no machine's speed can move: the rig's simulated clock in lockstep, or a
+manual clock (``waiting.World``) for the robot's loop. What stays real time says why."""
 
 import contextlib
 import io
@@ -9,13 +12,13 @@ import shutil
 import signal
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 import zarr
+from waiting import World, wait_for
 
 from dssp_data.recording import (
     FLAGS_KEY,
@@ -80,6 +83,8 @@ def test_leader_frames_decode_to_the_commanded_target():
 
 # ------------------------------------------------------------------------------------------------ end to end
 def test_record_kill_mid_episode_then_train(tmp_path, capsys):
+    """Real time: a recording process killed mid-episode; paced at ``--sim-speed 3`` (2 s an episode), it is
+    killed 0.8 s into its second one."""
     out = tmp_path / "demo.zarr"
     assert record_main(["--out", str(out), "--auto", "--episodes", "3", "--quiet"]) == 0
     printed = capsys.readouterr().out
@@ -89,7 +94,7 @@ def test_record_kill_mid_episode_then_train(tmp_path, capsys):
 
     # A second session appends; it is killed (SIGKILL) in the middle of its second episode.
     proc = subprocess.Popen(
-        [sys.executable, "-m", "hardware.cli.record", "--out", str(out), "--auto", "--episodes", "20",
+        [sys.executable, "-m", "dssp_sim.sim_cli", "record", "--out", str(out), "--auto", "--episodes", "20",
          "--sim-speed", "3", "--quiet"],
         stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env(), cwd=tmp_path)
     lines = []
@@ -142,9 +147,11 @@ def test_record_kill_mid_episode_then_train(tmp_path, capsys):
 
 
 def test_sigterm_discards_the_unfinished_episode(tmp_path):
+    """Real time: a signal into a recording process; paced at ``--sim-speed 4`` (1.5 s an episode), it is
+    signalled 0.3 s into its second one."""
     out = tmp_path / "demo.zarr"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "hardware.cli.record", "--out", str(out), "--auto", "--sim-speed", "4", "--no-depth"],
+        [sys.executable, "-m", "dssp_sim.sim_cli", "record", "--out", str(out), "--auto", "--sim-speed", "4", "--no-depth"],
         stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env(), cwd=tmp_path)
     lines = []
     try:
@@ -304,9 +311,12 @@ def test_bad_input_is_one_line(tmp_path, capsys, args, message):
     assert not (tmp_path / "x.zarr").exists()
 
 
-# ------------------------------------------------------------------------------------------------ real time
-def test_real_time_loop_on_a_virtual_bus(tmp_path):
-    """The robot's path: wall-clock ticks, a follower and a leader on one bus, a camera with its own thread."""
+# ------------------------------------------------------------------------------------------------ the robot's loop
+def test_the_robot_loop_on_its_clock(tmp_path):
+    """The robot's path (no lockstep rig): a follower and a leader on one virtual bus heard by a bus monitor, a
+    camera, the session pacing itself. On a manual clock on which the devices move while the loop sleeps,
+    every time is exact: ticks one period apart, every stream fresh, and the one tick that started late
+    (the tick before it took 1.6 periods) is flagged, with the camera frame it repeated."""
     import uuid
 
     from dssp_data.recording import RECORDED_KEYS, RecordingDataset
@@ -319,59 +329,70 @@ def test_real_time_loop_on_a_virtual_bus(tmp_path):
     from hardware.recorder import Recorder, StampedCamera
 
     channel = f"rec-{uuid.uuid4().hex[:8]}"
-    t0 = time.monotonic()
+    clock = World()
 
     def script():
-        t = time.monotonic() - t0
+        t = clock.now()
         return np.array([0.3 * np.sin(t), 1.0, -0.8, 0.0, 0.3, 0.0, 0.5 + 0.3 * np.sin(t)])
 
     follower = SimulatedPiper(channel, "virtual", initial_joints=[0.0, 1.0, -0.8, 0.0, 0.3, 0.0])
     leader = ScriptedLeader(channel, "virtual", script=script)
-    monitor = BusMonitor(channel, "virtual", name="can0")
-    camera = SimCamera(seed=0, fps=30)
-    stop = threading.Event()
+    monitor = BusMonitor(channel, "virtual", clock=clock, name="can0")
+    camera = SimCamera(seed=0)
 
-    def lead():
-        while not stop.is_set():
-            leader.step()
-            time.sleep(0.01)
+    def step(dt):  # the leader sends, the follower obeys and reports, the camera renders; all heard at once
+        leader.step()
+        follower.step(dt)
+        camera.capture()
+        monitor.wait_for_frames(leader.frames_sent + follower.frames_sent, timeout=30.0)
 
     with contextlib.ExitStack() as stack:
-        for device in (follower, leader, monitor, camera):
+        follower.start(thread=False)
+        stack.callback(follower.stop)
+        for device in (leader, monitor):
             device.start()
             stack.callback(device.stop)
+        camera.start(thread=False)
+        stack.callback(camera.stop)
         leader.send_frames([codec.MotorEnable(codec.MOTOR_ALL, codec.MOTOR_ENABLE_FLAG).to_frame()])
-        thread = threading.Thread(target=lead, daemon=True)
-        thread.start()
-        stack.callback(thread.join)
-        stack.callback(stop.set)
-        camera.wait_for_frame(5.0)
-        recorder = Recorder(StampedCamera(camera), [monitor], PointCloudConfig(n_points=128), camera.camera_to_base,
-                            rate_hz=20.0, store_depth=False)
+        clock.steps = [step]
+        clock.sleep(0.05)
+        recorder = Recorder(StampedCamera(camera, clock=clock), [monitor], PointCloudConfig(n_points=128),
+                            camera.camera_to_base, rate_hz=20.0, store_depth=False)
         dataset = RecordingDataset(tmp_path / "rt.zarr", {"control_rate_hz": 20.0, "action_convention": "leader_command"},
                                    {"camera": "sim"}, RECORDED_KEYS)
-        events = []
-        session = RecordSession(recorder, dataset, [monitor], time.monotonic,
-                                SessionSettings(max_steps=12, auto=True, episodes=1), events=events.append)
+        stack.callback(dataset.close)
+        started, events = clock.now(), []
+
+        def status(line):  # the tick that recorded step 5 takes 1.6 periods
+            if recorder.steps == 6:
+                clock.advance(1.6 * 0.05)
+
+        session = RecordSession(recorder, dataset, [monitor], clock, SessionSettings(max_steps=12, auto=True, episodes=1),
+                                events=events.append, status=status)
         summary = session.run(Scripted(session, lambda s: None))
-        dataset.close()
     assert summary.kept == [0], events
     buffer = ReplayBuffer.load(tmp_path / "rt.zarr", extras=True)
-    ep = buffer.episode(0)
+    ep, info = buffer.episode(0), buffer.attrs["episode_info"][0]
     assert ep.n_steps == 12 and ep.point_cloud.shape == (12, 128, 3)
-    dt = np.diff(ep.extras["timestamp"])
-    assert np.all(dt > 0) and 0.03 < np.median(dt) < 0.1  # 20 Hz, loosely: the machine may be busy
-    assert np.all(ep.extras["state_timestamp"] <= ep.extras["timestamp"])
-    assert np.all(ep.extras["camera_timestamp"] <= ep.extras["timestamp"])
-    # The action is what the leader sent (its script), the state what the follower measured.
-    assert np.all(np.abs(ep.action[:, 1] - 1.0) < WIRE) and np.all(np.abs(ep.action[:, 6] - 0.5) < 0.31)
-    assert np.all(np.abs(ep.state[:, 2] + 0.8) < 1e-3)
-    info = buffer.attrs["episode_info"][0]
-    assert 10.0 < info["rate_hz"] < 25.0 and info["can_frames"]["can0"] > 0
+    t = ep.extras["timestamp"]
+    np.testing.assert_allclose(t, np.r_[0:6, 6.6, 7:12] * 0.05, atol=1e-9)  # step 6 began 0.6 period late
+    flags = ep.extras[FLAGS_KEY]
+    assert flags[6] == STEP_PROBLEMS["late_tick"] | STEP_PROBLEMS["camera_repeat"] and not np.delete(flags, 6).any()
+    ages = {key: t - ep.extras[f"{key}_timestamp"] for key in ("camera", "state", "action")}
+    for key, age in ages.items():  # fresh every tick but the late one: nothing moved while the loop was busy
+        np.testing.assert_allclose(age, np.where(np.arange(12) == 6, 0.08, 0.0), atol=1e-9, err_msg=key)
+    # The action is what the leader sent (its script at the time it sent it), the state what the follower measured.
+    sent_at = started + ep.extras["action_timestamp"]
+    np.testing.assert_allclose(ep.action[:, 0], 0.3 * np.sin(sent_at), atol=WIRE)
+    assert np.all(np.abs(ep.action[:, 1] - 1.0) < WIRE) and np.all(np.abs(ep.state[:, 2] + 0.8) < 1e-3)
+    assert info["rate_hz"] == pytest.approx(20.0) and info["clean"] and info["can_frames"]["can0"] > 0
+    assert info["step_problems"]["late_tick"]["first_step"] == 6
     assert (tmp_path / "rt.zarr.can" / "episode_000000.can0.blf").is_file()
 
 
 def test_single_keys_on_a_terminal():
+    """Real time: a pseudo-terminal, read as it delivers."""
     import pty
 
     from hardware.cli.record import KeyControls
@@ -382,8 +403,10 @@ def test_single_keys_on_a_terminal():
         try:
             assert controls.poll() is None
             os.write(master, b"sKdQx")
-            time.sleep(0.05)
-            assert [controls.poll() for _ in range(6)] == ["start", "keep", "discard", "quit", "key 'x'", None]
+            keys = []  # the terminal hands the bytes over when it does: poll until all five came
+            wait_for(lambda: keys.append(controls.poll()) or len([k for k in keys if k]) == 5, 30.0, "five keys")
+            assert [k for k in keys if k] == ["start", "keep", "discard", "quit", "key 'x'"]
+            assert controls.poll() is None
         finally:
             controls.close()
     os.close(master)

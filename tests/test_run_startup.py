@@ -1,5 +1,6 @@
-"""dssp-run's start-up: a signal at any moment of it is a clean stop, and a model without a recorded rate
-is refused rather than run at a guessed one.
+"""dssp-run's start-up: a signal at any moment of it is a clean stop, a model without a recorded rate
+is refused rather than run at a guessed one, and the waits for the first frame and the first feedback are
+bounded on the loop's clock.
 
 The signal test is real time by nature (a signal into a real process at a point of its start-up); its
 verdict does not depend on where the signal lands: either start-up stops with nothing enabled, or the
@@ -14,9 +15,14 @@ import subprocess
 import sys
 import time
 
+import numpy as np
 import pytest
 
+from dssp_data.errors import CameraError, DSSPError
+from hardware.camera.base import Camera
 from hardware.cli.run import main as run_main
+from hardware.clock import FakeClock
+from hardware.robot import Robot
 
 
 @pytest.mark.parametrize("delay", [0.3, 1.0, 2.0, 3.5])
@@ -52,3 +58,54 @@ def test_a_model_without_a_control_rate_needs_rate(tiny_export, tmp_path, capsys
     err = capsys.readouterr().err
     assert code == 2 and "records no control rate" in err and "--rate" in err, err
     assert not (tmp_path / "log").exists()
+
+
+class SilentArm(Robot):
+    """An arm that never reports (unpowered, or the wrong bus); enabling it would be a bug."""
+
+    dof = 7
+    connect = close = emergency_stop = disable = lambda self: None
+
+    def state(self):
+        return None
+
+    def enable(self, timeout=2.0):
+        raise AssertionError("an arm without feedback was enabled")
+
+    def command(self, target):
+        raise AssertionError("an arm without feedback was commanded")
+
+
+class StillCamera(Camera):
+    """A camera whose newest frame is ``frame`` (start-up only asks whether there is one)."""
+
+    start = stop = lambda self: None
+
+    def __init__(self, frame):
+        self.frame = frame
+
+    def latest(self):
+        return self.frame
+
+
+def test_start_up_gives_up_on_its_clock(arm_export):
+    """No joint feedback, or no camera frame: start-up gives up after ``startup_timeout`` s of the runner's
+    clock, polling on it; on a manual clock that takes no wall time, and the time it gave up at is exact."""
+    from dssp_deploy.onnx_policy import OnnxPolicy
+    from hardware.piper.limits import JointLimits
+    from hardware.pointcloud import PointCloudConfig
+    from hardware.run_loop import LoopSettings, Runner
+    from hardware.safety import SafetyConfig
+
+    clock, camera = FakeClock(start=100.0), StillCamera(object())
+    limits = JointLimits.piper()
+    runner = Runner(OnnxPolicy(arm_export, threads=1), camera, SilentArm(), PointCloudConfig(n_points=64), np.eye(4),
+                    SafetyConfig(), LoopSettings(rate_hz=50.0, startup_timeout=2.0),
+                    (limits.lower, limits.upper, np.arange(7) == 6), clock=clock)
+    with pytest.raises(DSSPError, match="no joint feedback within 2 s"):
+        runner.start()
+    assert 102.0 < clock.now() <= 102.005 + 1e-9  # the first poll past the deadline
+    camera.frame = None
+    with pytest.raises(CameraError, match="no frame within 2 s"):
+        runner.start()
+    assert 104.0 < clock.now() <= 104.01 + 1e-9 and runner.safety is None
