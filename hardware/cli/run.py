@@ -24,9 +24,8 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
-from dssp_deploy.manifest import PRECISIONS
+# Only the standard library and the base's light modules load before main() installs the start-up signal
+# handler (StartupSignals): a Ctrl-C during the heavier imports (numpy, the runtime) is then a clean stop.
 from dssp_data.cli_runner import ArgumentParser
 from dssp_data.errors import ConfigError
 
@@ -53,6 +52,8 @@ def parse_args(argv):
     p.add_argument("--dry-run", action="store_true", help="compute and log actions, send nothing")
     p.add_argument("--prefetch", action="store_true", help="compute each chunk early in a background thread")
     p.add_argument("--threads", type=int, help="ONNX Runtime threads (default: all CPUs)")
+    from dssp_deploy.manifest import PRECISIONS
+
     p.add_argument("--precision", choices=sorted(PRECISIONS), default="fp32",
                    help="the model's fp32 graphs, or its int8 graphs (export --quantize int8)")
     p.add_argument("--seed", type=int, help="diffusion noise seed (default: random)")
@@ -152,8 +153,9 @@ def control_rate(args, policy) -> float:
     return check_rate(policy.control_rate_hz, flag=f"{args.model}'s control_rate_hz")
 
 
-def run(args) -> int:
-    signals = StartupSignals()
+def run(args, signals: StartupSignals | None = None) -> int:
+    """``args`` → exit code; ``signals``: the start-up handler main() installed (None: installed here)."""
+    signals = signals or StartupSignals()
     try:
         return _run(args, signals)
     except StartupInterrupted as exc:
@@ -164,6 +166,9 @@ def run(args) -> int:
 
 
 def _run(args, signals: StartupSignals) -> int:
+    import numpy as np
+
+    signals.check()
     check_args(args)
     from dssp_deploy.onnx_policy import OnnxPolicy
     from dssp_data.output_guard import RUN_LOG, check_output, claim_dir
@@ -280,10 +285,14 @@ def print_summary(summary: dict, log_dir: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from dssp_data.cli_runner import run_cli
+    signals = StartupSignals()  # first: from here a Ctrl-C is a clean stop, even during the imports below
+    try:
+        from dssp_data.cli_runner import run_cli
 
-    args = parse_args(argv)
-    return run_cli(lambda: run(args))
+        args = parse_args(argv)
+        return run_cli(lambda: run(args, signals))
+    finally:
+        signals.restore()
 
 
 if __name__ == "__main__":
