@@ -1,12 +1,15 @@
-"""Export figures per preset: export time, graph sizes and node counts, parity, ORT vs torch latency.
+"""Export figures per preset: export time, graph sizes and node counts, parity and its time, ORT vs torch latency.
 
     python benchmarks/export_report.py [--preset tiny robotwin] [--run RUN_DIR] [--out runs/export_report]
                                        [--verify-steps 1000] [--threads N] [--quantize] [--json PATH] [--force]
 
 For each preset without ``--run``, a run directory with an untrained policy is made by hand
 (S = A = 14, normalisers fitted on random data, saved with the checkpoint helpers) — export and parity
-do not depend on training. The latency figures are measured separately from verification, one backend
-at a time, batch 1: median over repeated calls after a warm-up.
+do not depend on training. Parity is the exporter's verification (:mod:`export.verify`: the graphs
+streamed, the PyTorch reference in batch); its time split (reference, streaming, batch checks) is in
+``verification.seconds``. The latency figures are measured separately, one backend at a time, batch 1
+(ONNX Runtime fp32 and int8, PyTorch eager through the streaming API): median over repeated calls after
+a warm-up.
 
 ``--out`` must be new or empty; a previous report directory of this script (marked ``.dssp-output.json``)
 is replaced only with ``--force`` (moved aside meanwhile, deleted once the new one is complete, put back if it
@@ -128,6 +131,9 @@ def _report(args) -> int:
                 quantize="int8" if args.quantize else None,
             )
             print(format_summary(summary), flush=True)
+            if summary["verification"]:
+                split = ", ".join(f"{k} {v} s" for k, v in summary["verification"]["seconds"].items())
+                print(f"verification time: {split}", flush=True)
             summary["latency_isolated_ms"] = latency(model_dir, run_dir, args.threads, args.repeats)
             print(json.dumps(summary["latency_isolated_ms"]), flush=True)
             report[name] = summary

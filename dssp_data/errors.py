@@ -46,3 +46,11 @@ class ExportError(DSSPError):
 
 class ParityError(ExportError):
     """The exported graphs disagree with the PyTorch streaming policy beyond the bound."""
+
+
+class NonFiniteObservation(ValueError):
+    """An observation holds NaN or infinity; it was refused before the history saw it (the history is unchanged).
+
+    A ValueError, not a :class:`DSSPError`: a runtime condition of one control tick (hold the tick), raised by
+    ``dssp_data.streaming_history.check_finite``.
+    """

@@ -6,14 +6,16 @@
     policy.observe(point_cloud, agent_pos)     # every control tick: the history-update graph
     chunk = policy.act(seed=0)                 # every H_a ticks: the denoiser graph → (B, H, A) raw units
 
-Same semantics as the PyTorch streaming API (``dssp_train.model.streaming.StreamingPolicy``): the
-recurrent history state starts at zero, the last N state tokens are kept, and at the start of an
-episode the first token repeats. Point clouds with more channels than the model uses (xyz + rgb for an
-xyz model) are cut to the model's channels, as in training. An observation with NaN or infinity
-anywhere is refused (:class:`NonFiniteObservation`) before any graph runs: the recurrent history would
-keep it for the rest of the episode; refused, it leaves the state as it was.
+The history is kept by :class:`dssp_data.streaming_history.StreamingHistory`, the state machine of the
+PyTorch streaming API (``dssp_train.model.streaming.StreamingPolicy``) too: the recurrent history state
+starts at zero, the last N state tokens are kept, and at the start of an episode the first token
+repeats. Point clouds with more channels than the model uses (xyz + rgb for an xyz model) are cut to the
+model's channels, as in training. An observation with NaN or infinity anywhere is refused
+(:class:`dssp_data.errors.NonFiniteObservation`) before any graph runs: the recurrent history would keep
+it for the rest of the episode; refused, it leaves the state as it was.
 
-Shapes: point_cloud (B, P, C) or (P, C); agent_pos (B, S) or (S,); noise (B, H, A); chunk (B, H, A).
+Shapes: point_cloud (B, P, C) or (P, C); agent_pos (B, S) or (S,); noise (B, H, A); chunk (B, H, A);
+z_t, c_t (B, d); recent (B, N, d); state {name: (B, ...)} as the manifest's history inputs.
 """
 
 from __future__ import annotations
@@ -23,6 +25,8 @@ from typing import Any
 
 import numpy as np
 
+from dssp_data.errors import NonFiniteObservation  # noqa: F401  (what observe raises)
+from dssp_data.streaming_history import StreamingHistory, check_finite
 from dssp_deploy.manifest import (
     DENOISER_GRAPH,
     HISTORY_GRAPH,
@@ -33,27 +37,6 @@ from dssp_deploy.manifest import (
     read_manifest,
 )
 from dssp_deploy.sessions import open_session
-
-MAX_LISTED = 4  # non-finite entries named in the message
-
-
-class NonFiniteObservation(ValueError):
-    """An observation holds NaN or infinity; it was refused before any graph ran (the history is unchanged)."""
-
-
-def check_finite(name: str, values: np.ndarray) -> None:
-    """Raise :class:`NonFiniteObservation` naming the input and its first non-finite entries."""
-    values = np.asarray(values)
-    bad = ~np.isfinite(values)
-    if not bad.any():
-        return
-    where = np.argwhere(bad)
-    listed = ", ".join(f"{tuple(int(i) for i in idx)}={values[tuple(idx)]}" for idx in where[:MAX_LISTED])
-    more = f" and {len(where) - MAX_LISTED} more" if len(where) > MAX_LISTED else ""
-    raise NonFiniteObservation(
-        f"{name} {list(values.shape)} has {len(where)} non-finite value(s) at {listed}{more}; "
-        "the observation was not used (the history is unchanged)"
-    )
 
 
 def _batch(x, rank: int, name: str) -> np.ndarray:
@@ -91,26 +74,54 @@ class OnnxPolicy:
             check_session(session, m, graph, path)
             self.sessions[graph] = session
         self._state_specs = [s for s in m["graphs"][HISTORY_GRAPH]["inputs"] if s["name"] in self.history_state]
-        self.reset()
+        self._history_outputs = [o.name for o in self.sessions[HISTORY_GRAPH].get_outputs()]
+        self.history: StreamingHistory[np.ndarray] = StreamingHistory(
+            self.n_obs_steps, self._history_step, lambda tokens: np.stack(tokens, axis=1), self._zero_state
+        )
         if warmup:
             self.warmup(warmup)
 
     # ----------------------------------------------------------------- episode
     def reset(self) -> None:
         """Start a new episode: zero history state, empty recent-token buffer."""
-        self.state: dict[str, np.ndarray] | None = None
-        self.context: np.ndarray | None = None  # (B, d)
-        self.recent: np.ndarray | None = None  # (B, N, d)
-        self.steps = 0
+        self.history.reset()
+
+    @property
+    def state(self) -> dict[str, np.ndarray] | None:
+        """The history state {name: (B, ...)} the next tick starts from; None before the first observation."""
+        return self.history.state
+
+    @property
+    def context(self) -> np.ndarray | None:
+        """c_t (B, d) after the last observation; None before it or without a history encoder."""
+        return self.history.context
+
+    @property
+    def recent(self) -> np.ndarray | None:
+        """The last N z tokens (B, N, d), oldest first; None before the first observation."""
+        return self.history.recent
+
+    @property
+    def steps(self) -> int:
+        return self.history.steps
 
     def _zero_state(self, batch: int) -> dict[str, np.ndarray]:
         return {s["name"]: np.zeros([batch, *s["shape"][1:]], np.float32) for s in self._state_specs}
 
+    def _history_step(self, pc: np.ndarray, pos: np.ndarray, state: dict[str, np.ndarray]):
+        """The history graph: pc (B, P, C), pos (B, S), state → z_t (B, d), c_t (B, d) or None, new state."""
+        session = self.sessions[HISTORY_GRAPH]
+        named = dict(zip(self._history_outputs, session.run(None, {"point_cloud": pc, "agent_pos": pos, **state})))
+        if not self.use_history:
+            return named["z_t"], None, state
+        return named["z_t"], named["c_t"], {name: named[f"{name}_out"] for name in state}
+
     def observe(self, point_cloud, agent_pos) -> np.ndarray:
         """Run the history-update graph on one observation; returns z_t (B, d).
 
-        Raises ValueError for a wrong shape and :class:`NonFiniteObservation` (a ValueError) for NaN or
-        infinity anywhere in either input (as float32): both before any graph runs, the state unchanged."""
+        Raises ValueError for a wrong shape or a batch size other than the episode's, and
+        :class:`NonFiniteObservation` (a ValueError) for NaN or infinity anywhere in either input (as
+        float32): all before any graph runs, the state unchanged."""
         pc = _batch(point_cloud, 3, "point_cloud")
         pos = _batch(agent_pos, 2, "agent_pos")
         if pc.shape[-1] < self.point_dim:
@@ -119,25 +130,7 @@ class OnnxPolicy:
             raise ValueError(f"agent_pos must be (B={pc.shape[0]}, S={self.state_dim}), got {pos.shape}")
         check_finite("point_cloud", pc)
         check_finite("agent_pos", pos)
-        pc = np.ascontiguousarray(pc[..., : self.point_dim])
-        batch = pc.shape[0]
-        if self.state is None:
-            self.state = self._zero_state(batch)
-        elif self.recent.shape[0] != batch:
-            raise ValueError(f"batch size {batch} within an episode of batch size {self.recent.shape[0]}; call reset() first")
-        feeds = {"point_cloud": pc, "agent_pos": pos, **self.state}
-        outputs = self.sessions[HISTORY_GRAPH].run(None, feeds)
-        named = dict(zip([o.name for o in self.sessions[HISTORY_GRAPH].get_outputs()], outputs))
-        z_t = named["z_t"]
-        if self.use_history:
-            self.context = named["c_t"]
-            self.state = {name: named[f"{name}_out"] for name in self.state}
-        if self.recent is None:
-            self.recent = np.repeat(z_t[:, None], self.n_obs_steps, axis=1)
-        else:
-            self.recent = np.concatenate([self.recent[:, 1:], z_t[:, None]], axis=1)
-        self.steps += 1
-        return z_t
+        return self.history.observe(np.ascontiguousarray(pc[..., : self.point_dim]), pos)
 
     # ------------------------------------------------------------------ chunks
     def denoiser_inputs(self) -> dict[str, np.ndarray]:

@@ -16,8 +16,10 @@ chunk (``denoiser``, K DDIM steps inside). MODEL_DIR gets::
                                          parity figures
 
 The directory appears all at once (see :mod:`export.output_dir`); an existing previous export is replaced
-only with ``--force``. Unless ``--skip-verify``, :mod:`export.verify` streams ``--verify-steps`` ticks
-through every backend before the directory is moved into place; a parity failure leaves nothing behind.
+only with ``--force``. Unless ``--skip-verify``, :mod:`export.verify` compares the graphs with the PyTorch
+model over ``--verify-steps`` ticks (the ONNX graphs streamed through the robot's runtime, the reference
+computed in batch on the training path) before the directory is moved into place; a parity failure
+leaves nothing behind.
 
 Exit codes: 0 done, 1 parity failed, 2 bad input (the message says what to do).
 """
@@ -264,7 +266,7 @@ def export_model(
         ParityError: the graphs do not reproduce the PyTorch model (nothing is left behind).
     """
     from export.output_dir import StagedDirectory
-    from export.verify import check_report, file_sha256, format_report, verify_model
+    from export.verify import check_report, describe_worst, file_sha256, format_report, verify_model
 
     if opset not in SUPPORTED_OPSETS:
         raise ExportError(f"--opset {opset} is not supported; use {SUPPORTED_OPSETS.start}..{SUPPORTED_OPSETS.stop - 1} (default {DEFAULT_OPSET})")
@@ -363,7 +365,7 @@ def export_model(
             progress(format_report(report))
             manifest["verification"] = without_local_paths(report, config.dataset)
             write_manifest(staged.path, manifest)
-            stage(f"verified: worst fp32 error {report['worst']:.2e} (bound {report['bound']:g})")
+            stage(f"verified: worst {describe_worst(report)} (bound {report['bound']:g})")
             check_report(report)
         final = staged.commit()
 
@@ -387,9 +389,12 @@ def format_summary(summary: dict[str, Any]) -> str:
     if report is None:
         lines.append("parity: not verified (--skip-verify); run python -m export.verify MODEL_DIR --checkpoint RUN_DIR")
     else:
+        from export.verify import describe_worst
+
         lines.append(
-            f"parity: worst fp32 error {report['worst']:.2e} <= {report['bound']:g} over {report['steps']} steps "
-            f"and {report['chunks']} chunks ({', '.join(report['errors'])} vs PyTorch)"
+            f"parity: {', '.join(report['errors'])} vs PyTorch fp32 (training path) over {report['steps']} steps and "
+            f"{report['chunks']} of {report.get('chunk_ticks_total', report['chunks'])} chunks: worst {describe_worst(report)} "
+            f"<= {report['bound']:g}"
         )
         if "int8" in report:
             q = report["int8"]

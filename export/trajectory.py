@@ -1,4 +1,5 @@
-"""The observation trajectory that verification streams through every backend.
+"""The observation trajectory of verification: streamed through the exported graphs tick by tick, and
+given to the PyTorch reference whole (:mod:`export.verify`). Both treat it as one episode.
 
 From the run's dataset (``config.dataset``) when it exists and holds at least the requested number of
 steps — its episodes back to back, as stored — otherwise synthetic: a fixed cloud that drifts and a

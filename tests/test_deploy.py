@@ -109,6 +109,60 @@ def test_recent_tokens_pad_with_the_first_and_reset_forgets(tiny_export):
     assert np.array_equal(p.act(seed=1), first)  # a fresh episode: the same history, the same chunk
 
 
+@pytest.mark.parametrize("library", ["numpy", "torch"])
+def test_the_streaming_history_state_machine(library):
+    """Zero state at the start, the first token repeated until N exist, the last N kept, a failed step or a
+    batch change leaves everything as it was, reset starts over: with numpy arrays and with torch tensors."""
+    if library == "torch":
+        torch = pytest.importorskip("torch")
+        array, stack = torch.as_tensor, lambda ts: torch.stack(ts, dim=1)
+    else:
+        array, stack = np.asarray, lambda ts: np.stack(ts, axis=1)
+    from dssp_data.streaming_history import StreamingHistory
+
+    seen = []
+
+    def step(obs, state):  # obs (B, 1) → z_t = obs (B, 1), c_t = running sum, state = the sum
+        seen.append(state)
+        if float(obs.sum()) < 0:
+            raise ValueError("refused")
+        total = state + obs
+        return obs, total, total
+
+    history = StreamingHistory(3, step, stack, zero_state=lambda b: array(np.zeros((b, 1))))
+    assert history.recent is None and history.context is None and history.steps == 0
+    history.observe(array([[1.0], [2.0]]))
+    assert float(seen[0].sum()) == 0.0 and tuple(history.recent.shape) == (2, 3, 1)
+    assert np.asarray(history.recent)[:, :, 0].tolist() == [[1, 1, 1], [2, 2, 2]]
+    history.observe(array([[3.0], [4.0]]))
+    history.observe(array([[5.0], [6.0]]))
+    history.observe(array([[7.0], [8.0]]))
+    assert np.asarray(history.recent)[0, :, 0].tolist() == [3, 5, 7] and np.asarray(history.context)[:, 0].tolist() == [16, 20]
+    kept = (history.steps, np.asarray(history.recent).copy(), np.asarray(history.state).copy())
+    with pytest.raises(ValueError, match="refused"):
+        history.observe(array([[-100.0], [0.0]]))
+    with pytest.raises(ValueError, match="batch size 1 within an episode of batch size 2; call reset"):
+        history.observe(array([[1.0]]))
+    assert history.steps == kept[0] and np.array_equal(np.asarray(history.recent), kept[1])
+    assert np.array_equal(np.asarray(history.state), kept[2])
+    history.reset()
+    history.observe(array([[9.0]]))  # a new episode may have another batch size
+    assert float(seen[-1].sum()) == 0.0 and np.asarray(history.recent)[0, :, 0].tolist() == [9, 9, 9]
+
+
+def test_non_finite_values_are_named_and_refused():
+    from dssp_data.errors import NonFiniteObservation
+    from dssp_data.streaming_history import check_finite
+
+    check_finite("agent_pos", np.zeros((1, 3)))
+    bad = np.zeros((1, 8, 3), np.float32)
+    bad[0, 2, 1], bad[0, 5] = np.nan, np.inf
+    with pytest.raises(NonFiniteObservation, match=r"^point_cloud \[1, 8, 3\] has 4 non-finite value\(s\) at \(0, 2, 1\)=nan, "
+                       r"\(0, 5, 0\)=inf, \(0, 5, 1\)=inf, \(0, 5, 2\)=inf; the observation was not used"):
+        check_finite("point_cloud", bad)
+    assert issubclass(NonFiniteObservation, ValueError)
+
+
 def test_colour_channels_are_cut_and_bad_shapes_refused(tiny_export):
     _, model_dir, data = tiny_export
     p = OnnxPolicy(model_dir, threads=1)
@@ -229,16 +283,16 @@ def test_running_at_another_rate_than_trained_warns(tiny_export):
 
 
 def test_profiler_quick_run_reports_every_figure(tiny_export, tmp_path):
-    run_dir, model_dir, _ = tiny_export
+    _, model_dir, _ = tiny_export
     json_path, png_path = tmp_path / "profile.json", tmp_path / "profile.png"
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     out = subprocess.run(
-        [sys.executable, "-m", "dssp_deploy.profile", str(model_dir), "--checkpoint", str(run_dir), "--quick",
+        [sys.executable, "-m", "dssp_deploy.profile", str(model_dir), "--quick",
          "--threads", "1", "--json", str(json_path), "--plot", str(png_path)],
         capture_output=True, text=True, timeout=300, env=env,
     )
     assert out.returncode == 0, out.stderr
-    assert "| history step (ORT) |" in out.stdout and "ONNX Runtime vs PyTorch eager" in out.stdout
+    assert "| history step (ORT) |" in out.stdout
     report = json.loads(json_path.read_text())
     for key in ("history_step", "denoiser_chunk", "chunk_tick"):
         s = report["latency_ms"][key]
@@ -246,8 +300,6 @@ def test_profiler_quick_run_reports_every_figure(tiny_export, tmp_path):
     assert [r["length"] for r in report["history_sweep"]] == report["settings"]["sweep"]
     assert all(r["rss_mib"] > 0 for r in report["history_sweep"])
     assert report["machine"]["gemm_peak_gflops"] > 0 and report["achieved_gflops"]["denoiser_chunk"] > 0
-    assert report["torch"]["eager_denoiser_chunk"]["p50"] > 0 and report["torch"]["torchscript_history_step"]["p50"] > 0
-    assert len(report["torch"]["transformer_sweep"]) >= 2
     for graph in ("history_step", "denoiser_chunk"):  # ORT's own profiler explains where the time goes
         rows = report["op_breakdown"][graph]
         assert rows and abs(sum(r["share"] for r in rows) - 1) < 1e-6 and all(r["nodes"] >= 1 for r in rows)

@@ -92,11 +92,14 @@ def exported(trained_run, tmp_path_factory) -> tuple[Path, dict]:
 def test_export_passes_parity_over_1000_steps(exported, trained_run):
     out, summary = exported
     report = summary["verification"]
-    assert report["passed"] and report["steps"] == 1000 and report["chunks"] == 334
-    assert set(report["errors"]) == {"onnx", "torchscript"}
+    assert report["passed"] and report["steps"] == 1000 and report["chunk_ticks_total"] == 334
+    assert report["chunks"] == verify_module.CHUNKS and report["chunk_ticks"][0] == 0 and report["chunk_ticks"][-1] == 999
+    assert set(report["errors"]) == {"onnx", "torchscript"} and report["streamed"] == ["onnx"]
+    assert report["batch_checked"] == {"torchscript": [0, report["chunk_ticks"][4], 999]}
     for figures in report["errors"].values():
-        assert all(value <= 1e-4 for value in figures.values()), figures
-    assert report["sequence"]["c_t"] <= 1e-4 and report["sequence"]["c_t_at_T"] <= 1e-4
+        assert all(value <= 1e-4 for value in figures.values() if value is not None), figures
+    assert report["errors"]["torchscript"]["state"] is None  # checked through its c_t
+    assert report["units"]["action"].startswith("normalised") and report["worst_at"]["backend"] in report["errors"]
     assert "int8" in report and report["int8"]["action_max_abs_vs_fp32"] < 1.0
     manifest = read_manifest(out)
     assert manifest["verification"]["passed"]
@@ -180,6 +183,7 @@ def test_graphs_run_where_torch_cannot_be_imported(exported, trained_run):
         import json
         import numpy as np
         import onnxruntime as ort
+        from dssp_data.streaming_history import StreamingHistory
         try:
             import torch
         except ImportError:
@@ -194,17 +198,19 @@ def test_graphs_run_where_torch_cannot_be_imported(exported, trained_run):
         graphs = {{g: ort.InferenceSession(model + "/" + s["files"]["onnx"], opts, providers=["CPUExecutionProvider"])
                   for g, s in manifest["graphs"].items()}}
         specs = manifest["graphs"]["history_step"]["inputs"][2:]
-        states = [np.zeros([1] + s["shape"][1:], np.float32) for s in specs]
-        rng = np.random.default_rng(0)
-        recent = None
-        for t in range(5):
-            feeds = {{"point_cloud": rng.normal(size=(1, 24, 3)).astype(np.float32),
-                      "agent_pos": rng.uniform(size=(1, 2)).astype(np.float32)}}
-            feeds.update({{s["name"]: v for s, v in zip(specs, states)}})
+
+        def step(point_cloud, agent_pos, states):
+            feeds = {{"point_cloud": point_cloud, "agent_pos": agent_pos, **dict(zip([s["name"] for s in specs], states))}}
             z_t, c_t, *states = graphs["history_step"].run(None, feeds)
-            recent = np.repeat(z_t[:, None], manifest["n_obs_steps"], 1) if recent is None else np.concatenate([recent[:, 1:], z_t[:, None]], 1)
+            return z_t, c_t, states
+
+        history = StreamingHistory(manifest["n_obs_steps"], step, lambda ts: np.stack(ts, axis=1),
+                                   lambda b: [np.zeros([b] + s["shape"][1:], np.float32) for s in specs])
+        rng = np.random.default_rng(0)
+        for t in range(5):
+            history.observe(rng.normal(size=(1, 24, 3)).astype(np.float32), rng.uniform(size=(1, 2)).astype(np.float32))
         noise = rng.standard_normal((1, manifest["horizon"], manifest["action_dim"])).astype(np.float32)
-        chunk = graphs["denoiser"].run(None, {{"c_t": c_t, "z_recent": recent, "noise": noise}})[0]
+        chunk = graphs["denoiser"].run(None, {{"c_t": history.context, "z_recent": history.recent, "noise": noise}})[0]
         print(json.dumps({{"chunk": chunk.tolist(), "torch_loaded": "torch" in sys.modules and sys.modules["torch"] is not None}}))
         """
     )
@@ -258,21 +264,63 @@ def test_raw_weights_and_other_step_count(trained_run, tmp_path, capsys):
     assert "PASS" in capsys.readouterr().out
 
 
-def test_float64_check_measures_distances_to_float64(tmp_path):
-    """Chunks above the bound are re-evaluated in float64: PyTorch's and each graph's distance to it."""
+def test_float64_check_measures_distances_to_float64_in_normalised_units(tmp_path):
+    """Chunks above the bound are re-evaluated in float64 on each one's own inputs: PyTorch's and each
+    graph's distance to it, in normalised action units (raw error times the normaliser's scale)."""
     policy, _ = load_policy(save_run(tmp_path / "run"))
     rng = np.random.default_rng(0)
     context, recent = rng.normal(size=(1, 32)).astype(np.float32), rng.normal(size=(1, 2, 32)).astype(np.float32)
+    other = recent + np.float32(0.5)  # the graph's own inputs differ from the reference's
     noise = rng.standard_normal((1, 4, 2)).astype(np.float32)
-    from export.graphs import DenoiserGraph
-
     with torch.no_grad():
-        exact = DenoiserGraph(policy, 10)(*(torch.from_numpy(x) for x in (context, recent, noise))).numpy()
-    flagged = [(1.0, 0, (context, recent, noise), {"torch": exact + 3e-4, "onnx": exact - 5e-3})]
-    check = verify_module._float64_floor(policy, 10, ["onnx"], flagged)
-    assert check["chunks_checked"] == 1
-    assert check["torch_fp32_vs_float64"] == pytest.approx(3e-4, abs=1e-5)
-    assert check["graphs_vs_float64"]["onnx"] == pytest.approx(5e-3, abs=1e-5)
+        exact = {}
+        for name, r in (("torch", recent), ("onnx", other)):
+            prefix = policy.double().build_prefix(torch.from_numpy(context).double(), torch.from_numpy(r).double())
+            x = policy.sample_normalized(prefix, torch.from_numpy(noise).double(), 10)
+            exact[name] = policy.normalizers["action"].unnormalize(x).numpy()
+        policy.float()
+    scale = policy.normalizers["action"].scale.numpy().astype(np.float64)  # (A,)
+    flagged = [{"step": 6, "inputs": {"torch": (context, recent, noise), "onnx": (context, other, noise)},
+                "chunks": {"torch": exact["torch"] + 3e-4, "onnx": exact["onnx"] - 5e-3}}]
+    check = verify_module._float64_check(policy, 10, scale, flagged)
+    assert check["chunks_checked"] == 1 and check["steps"] == [6] and check["units"].startswith("normalised")
+    assert check["torch_fp32_vs_float64"] == pytest.approx(3e-4 * scale.max(), rel=1e-3)
+    assert check["graphs_vs_float64"]["onnx"] == pytest.approx(5e-3 * scale.max(), rel=1e-3)
+
+
+def test_action_errors_are_judged_in_normalised_units():
+    """A raw error of 4.4e-4 on a channel spanning [-12, 12] is 3.7e-5 normalised units: within the bound."""
+    scale = np.array([2 / 24, 2 / 2])  # the action normaliser: [-12, 12] and [-1, 1] → [-1, 1]
+    got, want = np.zeros((3, 1, 4, 2)), np.zeros((3, 1, 4, 2))
+    got[1, 0, 2, 0] = 4.4e-4  # the wide channel
+    got[2, 0, 1, 1] = 2e-5  # the narrow one
+    value, index = verify_module.worst(got, want, scale)
+    assert value == pytest.approx(4.4e-4 / 12) and index == (1, 0, 2, 0)
+    assert verify_module.worst(got, want * np.nan, scale) == (float("inf"), (0, 0, 0, 0))
+    assert verify_module.chunk_ticks(1000, 6, 4) == ([0, 330, 666, 996], 167)
+    assert verify_module.chunk_ticks(10, 3, 0) == ([0, 3, 6, 9], 4)
+
+
+def fake_report(torch64: float, graph64: float) -> dict:
+    errors = {"onnx": {"z_t": 1e-6, "c_t": 2e-6, "state": 1e-6, "action": 4.4e-4}}
+    return {
+        "passed": False, "bound": 1e-4, "worst": 4.4e-4, "errors": errors,
+        "worst_at": {"backend": "onnx", "figure": "action", "step": 417, "horizon": 2, "channel": 3},
+        "action_float64_check": {"chunks_checked": 1, "steps": [417], "torch_fp32_vs_float64": torch64,
+                                 "graphs_vs_float64": {"onnx": graph64}},
+    }
+
+
+def test_the_failure_says_what_it_measured():
+    with pytest.raises(verify_module.ParityError) as info:
+        verify_module.check_report(fake_report(6.8e-5, 4.4e-4))
+    message = str(info.value)
+    assert message.startswith("onnx action differs from PyTorch fp32 by 4.40e-04 normalised action units at step 417, "
+                              "horizon 2, action channel 3, above the bound 0.0001; ")
+    assert "PyTorch fp32 is 6.8e-05 away and onnx 4.4e-04 (6.5x): the exported graph loses precision" in message
+    assert "alike" not in message and "\n" not in message
+    with pytest.raises(verify_module.ParityError, match=r"\(1\.1x\): the model amplifies fp32 rounding as much in PyTorch"):
+        verify_module.check_report(fake_report(4.0e-4, 4.4e-4))
 
 
 # ---------------------------------------------------------------- bad input
@@ -281,7 +329,9 @@ def test_parity_failure_exits_1_and_leaves_nothing(trained_run, tmp_path, capsys
     out = tmp_path / "models" / "fails"
     args = [str(trained_run), "-o", str(out), "--format", "onnx", "--verify-steps", "10", "--threads", "1"]
     assert export_main(args) == 1
-    assert "differ from the PyTorch model" in one_error_line(capsys.readouterr().err)
+    line = one_error_line(capsys.readouterr().err)
+    assert "differs from PyTorch fp32 by" in line and "above the bound 0;" in line and " at step " in line
+    assert "nothing was written" in line
     assert not out.exists() and not (tmp_path / "models").exists()
 
 

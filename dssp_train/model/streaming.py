@@ -1,4 +1,4 @@
-"""The PyTorch streaming API: the reference that exported graphs and the runtime are checked against.
+"""The PyTorch streaming API: a trained policy run one control tick at a time, as the robot runs it.
 
     stream = StreamingPolicy(policy)
     stream.reset()
@@ -7,12 +7,15 @@
         if it is time for a new chunk:
             chunk = stream.act(seed=0)           # (B, H, A) raw units; execute the first H_a
 
-Streaming step by step gives the same ``c_t`` as the sequence path used in training, and the
-recent-state buffer is padded at the episode start by repeating the first observation, as in training.
-An observation with NaN or infinity is refused (``dssp_deploy.onnx_policy.NonFiniteObservation``) before the
-encoder runs, leaving the history as it was — the same rule as the robot's runtime.
+The history is kept by :class:`dssp_data.streaming_history.StreamingHistory`, the state machine the
+robot's runtime (``dssp_deploy.onnx_policy.OnnxPolicy``) uses too: zero recurrent state at the start of
+an episode, the last N ``z`` tokens, the first ``z`` repeated until N exist (as in training). Streaming
+step by step gives the same ``c_t`` as the sequence path used in training. An observation with NaN or
+infinity is refused (:class:`dssp_data.errors.NonFiniteObservation`) before the encoder runs, leaving the
+history as it was — the same rule as the robot's runtime.
 
-Shapes: point_cloud (B, P, C) or (P, C); agent_pos (B, S) or (S,); noise (B, H, A); chunk (B, H, A).
+Shapes: point_cloud (B, P, C) or (P, C); agent_pos (B, S) or (S,); noise (B, H, A); chunk (B, H, A);
+c_t (B, d); recent (B, N, d).
 """
 
 from __future__ import annotations
@@ -20,7 +23,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from dssp_deploy.onnx_policy import NonFiniteObservation, check_finite  # noqa: F401  (NonFiniteObservation: what observe raises)
+from dssp_data.errors import NonFiniteObservation  # noqa: F401  (what observe raises)
+from dssp_data.streaming_history import StreamingHistory, check_finite
 from dssp_train.model.policy import DSSPPolicy
 
 
@@ -33,14 +37,38 @@ class StreamingPolicy:
     def __init__(self, policy: DSSPPolicy):
         self.policy = policy.eval()
         self.cfg = policy.cfg
-        self.reset()
+        self.history = StreamingHistory(self.cfg.n_obs_steps, self._step, lambda tokens: torch.stack(tokens, dim=1))
+
+    def _step(self, pc: torch.Tensor, pos: torch.Tensor, state):
+        """pc (B, P, C), pos (B, S), the history encoder's state (None: a new episode) → z_t, c_t, new state."""
+        z_t = self.policy.encode_observations(pc, pos)  # (B, d)
+        if self.policy.history_encoder is None:
+            return z_t, None, state
+        context, state = self.policy.history_encoder.step(z_t, state)
+        return z_t, context, state
 
     def reset(self) -> None:
         """Start a new episode: forget the history."""
-        self.history_state = None
-        self.recent: torch.Tensor | None = None  # (B, N, d)
-        self.context: torch.Tensor | None = None  # (B, d)
-        self.steps = 0
+        self.history.reset()
+
+    @property
+    def context(self) -> torch.Tensor | None:
+        """c_t (B, d) after the last observation; None before it or without a history encoder."""
+        return self.history.context
+
+    @property
+    def recent(self) -> torch.Tensor | None:
+        """The last N z tokens (B, N, d), oldest first; None before the first observation."""
+        return self.history.recent
+
+    @property
+    def history_state(self):
+        """The history encoder's state (per layer (conv (B, E, W), ssm (B, E, n)) for Mamba); None at the start."""
+        return self.history.state
+
+    @property
+    def steps(self) -> int:
+        return self.history.steps
 
     @torch.no_grad()
     def observe(self, point_cloud, agent_pos) -> torch.Tensor | None:
@@ -52,14 +80,7 @@ class StreamingPolicy:
         for name, t in (("point_cloud", pc), ("agent_pos", pos)):
             if not bool(torch.isfinite(t).all()):
                 check_finite(name, t.detach().cpu().numpy())
-        z_t = self.policy.encode_observations(pc, pos)  # (B, d)
-        if self.policy.history_encoder is not None:
-            self.context, self.history_state = self.policy.history_encoder.step(z_t, self.history_state)
-        if self.recent is None:
-            self.recent = z_t.unsqueeze(1).repeat(1, self.cfg.n_obs_steps, 1)
-        else:
-            self.recent = torch.cat([self.recent[:, 1:], z_t.unsqueeze(1)], dim=1)
-        self.steps += 1
+        self.history.observe(pc, pos)
         return self.context
 
     @torch.no_grad()
