@@ -131,7 +131,7 @@ def _report(args) -> int:
                 quantize="int8" if args.quantize else None,
             )
             print(format_summary(summary), flush=True)
-            if summary["verification"]:
+            if summary.get("verification"):
                 split = ", ".join(f"{k} {v} s" for k, v in summary["verification"]["seconds"].items())
                 print(f"verification time: {split}", flush=True)
             summary["latency_isolated_ms"] = latency(model_dir, run_dir, args.threads, args.repeats)

@@ -45,7 +45,7 @@ class ExportError(DSSPError):
 
 
 class ParityError(ExportError):
-    """The exported graphs disagree with the PyTorch streaming policy beyond the bound."""
+    """The exported graphs disagree with the PyTorch reference beyond the bound (``export.verify``)."""
 
 
 class NonFiniteObservation(ValueError):

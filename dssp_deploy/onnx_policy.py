@@ -25,7 +25,6 @@ from typing import Any
 
 import numpy as np
 
-from dssp_data.errors import NonFiniteObservation  # noqa: F401  (what observe raises)
 from dssp_data.streaming_history import StreamingHistory, check_finite
 from dssp_deploy.manifest import (
     DENOISER_GRAPH,

@@ -10,7 +10,7 @@ The names below import lazily, so ``import export`` does not import torch.
 """
 
 from dssp_data.errors import ExportError, ParityError
-from export.manifest_writer import FORMAT_VERSION, MANIFEST_NAME, read_manifest
+from dssp_deploy.manifest import FORMAT_VERSION, MANIFEST_NAME, read_manifest
 
 __all__ = ["ExportError", "FORMAT_VERSION", "MANIFEST_NAME", "ParityError", "export_model", "read_manifest", "verify_model"]
 

@@ -24,21 +24,7 @@ from typing import Any
 from dssp_train.config import RunConfig
 from dssp_data.files import atomic_write_text
 
-from dssp_deploy.manifest import (  # noqa: F401  (re-exported: the runtime owns the format: names, interface, reader)
-    DENOISER_GRAPH,
-    FORMAT_VERSION,
-    GRAPHS,
-    HISTORY_GRAPH,
-    KIND,
-    MANIFEST_NAME,
-    denoiser_io,
-    graph_io,
-    history_io,
-    history_state_specs,
-    is_model_dir,
-    read_manifest,
-    tensor_spec,
-)
+from dssp_deploy.manifest import FORMAT_VERSION, GRAPHS, KIND, MANIFEST_NAME, graph_io, history_state_specs
 
 
 def build_manifest(

@@ -19,7 +19,7 @@ from pathlib import Path
 
 from dssp_data.output_guard import OutputDir, OutputKind, check_output
 from dssp_data.errors import ExportError
-from export.manifest_writer import MANIFEST_NAME, is_model_dir
+from dssp_deploy.manifest import MANIFEST_NAME, is_model_dir
 
 
 def _is_own_model_dir(path: Path) -> bool:

@@ -39,16 +39,8 @@ from typing import Any
 from dssp_deploy.sessions import check_threads
 from dssp_data.cli_runner import ArgumentParser, run_cli
 from dssp_data.errors import ExportError, ParityError
-from export.manifest_writer import (
-    DENOISER_GRAPH,
-    GRAPHS,
-    HISTORY_GRAPH,
-    MANIFEST_NAME,
-    build_manifest,
-    graph_io,
-    metadata_props,
-    write_manifest,
-)
+from dssp_deploy.manifest import DENOISER_GRAPH, GRAPHS, HISTORY_GRAPH, MANIFEST_NAME, graph_io
+from export.manifest_writer import build_manifest, metadata_props, write_manifest
 
 EXPORTER_VERSION = "1"
 SUPPORTED_OPSETS = range(17, 21)  # LayerNormalization needs 17; torch's TorchScript-based exporter stops at 20

@@ -70,7 +70,7 @@ from dssp_data.output_guard import check_output_file, write_output_text
 from dssp_data.streaming_history import StreamingHistory
 from dssp_deploy.manifest import read_graph
 from dssp_deploy.sessions import check_threads, default_threads
-from export.manifest_writer import DENOISER_GRAPH, HISTORY_GRAPH, read_manifest
+from dssp_deploy.manifest import DENOISER_GRAPH, HISTORY_GRAPH, read_manifest
 
 BOUND = 1e-4
 CHUNKS = 8  # action chunks compared by default, spread over the trajectory

@@ -21,7 +21,7 @@ from dssp_train.model.streaming import StreamingPolicy
 from dssp_train.training import checkpoint as ckpt
 from dssp_train.training.checkpoint import load_policy
 from export import verify as verify_module
-from export.manifest_writer import read_manifest
+from dssp_deploy.manifest import read_manifest
 from export.to_onnx import export_model
 from export.to_onnx import main as export_main
 from export.verify import main as verify_main

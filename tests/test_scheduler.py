@@ -242,10 +242,12 @@ def test_policy_sampling_with_fewer_steps_matches_diffusers():
     prefix = policy_prefix(policy, 2)
     noise = torch.randn((2, m.horizon, m.action_dim), generator=torch.Generator().manual_seed(6))
     states = policy.denoiser.encode_prefix(prefix)
+    timesteps = policy.schedule.inference_timesteps(4)
+    table = policy.denoiser.modulation(torch.tensor(timesteps))  # the sampler's own AdaLN rows: only DDIM is compared
 
     def model(x, t):
         with torch.no_grad():
-            return policy.denoiser.denoise(states, x, torch.full((x.shape[0],), t, dtype=torch.long))
+            return policy.denoiser.denoise_modulated(states, x, table.at(timesteps.index(t)))
 
     mine = policy.sample_normalized(prefix, noise, num_steps=4)
     theirs = run_diffusers(ddim(), model, noise, 4)

@@ -23,7 +23,6 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from dssp_data.errors import NonFiniteObservation  # noqa: F401  (what observe raises)
 from dssp_data.streaming_history import StreamingHistory, check_finite
 from dssp_train.model.policy import DSSPPolicy
 
