@@ -249,11 +249,16 @@ def make_dirs(path: str | os.PathLike, *, flag: str = "--out", error: type[DSSPE
             folder.mkdir()
             created.append(folder)
     except OSError as exc:
-        for folder in reversed(created):
-            with contextlib.suppress(OSError):
-                folder.rmdir()
+        _remove_created(created)
         raise error(f"cannot write {path} ({exc.strerror or exc}); choose a writable {flag}") from None
     return created
+
+
+def _remove_created(created: list[Path]) -> None:
+    """Remove the (still empty) folders a failed write created, innermost first."""
+    for folder in reversed(created):
+        with contextlib.suppress(OSError):
+            folder.rmdir()
 
 
 def check_not_inside(out: str | os.PathLike, inputs: Iterable[str | os.PathLike], *, flag: str = "--out",
@@ -654,9 +659,7 @@ def write_output_file(path: str | os.PathLike, write: Callable[[str], None], *, 
     try:
         atomic_write(path, write, suffix=suffix)
     except OSError as exc:
-        for folder in reversed(created):
-            with contextlib.suppress(OSError):
-                folder.rmdir()
+        _remove_created(created)
         raise error(f"cannot write {path} ({exc.strerror or exc}); choose a writable {flag}") from None
     return path
 
