@@ -16,6 +16,7 @@ from pathlib import Path
 import threading
 
 import can
+from can.util import channel2int
 
 from dssp_data.errors import CanError
 from hardware.piper.bus import open_bus
@@ -27,6 +28,11 @@ class BusRecorder:
         self.bus_options = bus_options
         self._bus = self._logger = None
         self._thread: threading.Thread | None = None
+        # BLF/ASC store a channel number: python-can takes the name's trailing digits ("can0" → 0), which for a
+        # generated name ("dssp-sim-b1996431") overflow the format's 16 bits; such frames are logged on the
+        # file's own channel (one file per bus).
+        number = channel2int(channel)
+        self._renamed = number is not None and not 0 <= number < 0xFFFF
         self._stop = threading.Event()
 
     def start(self) -> None:
@@ -45,7 +51,12 @@ class BusRecorder:
         while not self._stop.is_set():
             frame = self._bus.recv(timeout=0.05)
             if frame is not None:
-                self._logger(frame)
+                self._write(frame)
+
+    def _write(self, frame: can.Message) -> None:
+        if self._renamed:
+            frame.channel = None
+        self._logger(frame)
 
     def stop(self) -> None:
         """Stop, after writing every frame that reached this listener (none is left in its queue)."""
@@ -53,7 +64,7 @@ class BusRecorder:
             self._stop.set()
             self._thread.join()
             while (frame := self._bus.recv(timeout=0.0)) is not None:
-                self._logger(frame)
+                self._write(frame)
         if self._logger is not None:
             self._logger.stop()
         if self._bus is not None:

@@ -364,3 +364,19 @@ def test_the_loop_keeps_its_period_on_its_clock(rig):
     assert len(records) == 10 and gaps == pytest.approx([1, 1, 1, 1.5, 1, 1, 1, 1, 1])
     assert summary["overruns"] == 1 and summary["ended_by"] == "max steps"
     assert summary["rate_hz"] == pytest.approx(9 / (9.5 * PERIOD))
+
+
+@pytest.mark.parametrize("suffix", [".blf", ".asc"])
+def test_the_can_log_takes_any_bus_name(tmp_path, suffix):
+    """A generated channel name whose trailing digits overflow BLF/ASC's channel number is still logged."""
+    import can
+
+    from hardware.can_log import BusRecorder, read_log
+
+    channel = "dssp-test-b1996431"
+    path = tmp_path / f"bus{suffix}"
+    with BusRecorder(channel, "virtual", path):
+        with can.Bus(channel=channel, interface="virtual") as sender:
+            sender.send(can.Message(arbitration_id=0x2A5, data=bytes(8), is_extended_id=False))
+    frames = read_log(path)
+    assert [f.arbitration_id for f in frames] == [0x2A5]
