@@ -200,22 +200,24 @@ def _differs(a: Any, b: Any) -> bool:
 
 
 def check_contract(trained: ObservationContract, given: ObservationContract, *, trained_by: str,
-                   given_by: str | dict[str, str],
-                   allow: tuple[str, ...] | list[str] = (), remedy: str | None = None) -> list[dict[str, Any]]:
+                   given_by: str | dict[str, str], allow: tuple[str, ...] | list[str] = (), remedy: str | None = None,
+                   extra: tuple[tuple[str, Any, Any], ...] | list[tuple[str, Any, Any]] = ()) -> list[dict[str, Any]]:
     """Refuse a setup that contradicts the training contract, one line naming the field, both values and the
     flag that overrides; returns the overridden mismatches (``allow`` names them) for the log.
 
     ``trained_by``: whose values ``trained`` holds (e.g. "the model runs/x_model"); ``given_by``: where the
     setup's values come from (e.g. "--pointcloud cloud.json"; or one per top-level field: {"pointcloud": ...,
     "state": ...}); ``remedy``: the advice instead of the override
-    (a dataset holds one contract: dssp-record has no override)."""
+    (a dataset holds one contract: dssp-record has no override); ``extra``: ``(field, trained, given)`` facts
+    that travel beside the contract (the control rate), judged by the same rule."""
     overridden = []
-    for key, want, have in contract_mismatches(trained, given):
+    beside = [(k, a, b) for k, a, b in extra if a is not None and b is not None and _differs(a, b)]
+    for key, want, have in [*contract_mismatches(trained, given), *beside]:
         if key in allow:
             overridden.append({"field": key, "trained": _json(want), "given": _json(have)})
             continue
         by = given_by if isinstance(given_by, str) else given_by[key.split(".")[0]]
-        raise ConfigError(f"{by} gives {key} = {_json(have)} but {trained_by} has {_json(want)}: " + (
+        raise ConfigError(f"{by} gives {key} = {_show(have)} but {trained_by} has {_show(want)}: " + (
             remedy or f"use the same settings, or pass --allow-mismatch {key} to run anyway (written to the log)"))
     return overridden
 
@@ -228,4 +230,8 @@ def contract_fields() -> list[str]:
 
 def _json(value: Any) -> Any:
     return list(value) if isinstance(value, tuple) else value
+
+
+def _show(value: Any) -> str:
+    return f"{value:g}" if isinstance(value, float) else str(_json(value))
 

@@ -138,12 +138,8 @@ def check_args(args) -> None:
 
 def control_rate(args, policy) -> float:
     """--rate, else the rate the model's training data was recorded at; a model without one needs --rate.
-    A --rate that contradicts the model's is refused unless --allow-mismatch control_rate_hz."""
+    (A --rate that contradicts the model's is refused with the rest of the contract, in _run.)"""
     if args.rate is not None:
-        trained = policy.control_rate_hz
-        if trained is not None and abs(args.rate - trained) > 1e-9 * trained and "control_rate_hz" not in args.allow_mismatch:
-            raise ConfigError(f"--rate gives control_rate_hz = {args.rate:g} but the model {args.model} has {trained:g}: "
-                              "use the same settings, or pass --allow-mismatch control_rate_hz to run anyway (written to the log)")
         return args.rate
     if policy.control_rate_hz is None:
         raise ConfigError(f"{args.model} records no control rate (its dataset had none): pass --rate HZ, the rate "
@@ -216,9 +212,9 @@ def _run(args, signals: StartupSignals) -> int:
     pointcloud_by = f"--pointcloud {args.pointcloud}" if args.pointcloud else "the default point-cloud settings"
     overrides = check_contract(trained, given, trained_by=f"the model {args.model}", allow=args.allow_mismatch,
                                given_by={"pointcloud": pointcloud_by, "frame": "the point-cloud pipeline",
-                                         "state": f"--can {args.can}", "action": f"--can {args.can}"})
-    if args.rate is not None and "control_rate_hz" in args.allow_mismatch and policy.control_rate_hz not in (None, args.rate):
-        overrides.append({"field": "control_rate_hz", "trained": policy.control_rate_hz, "given": args.rate})
+                                         "state": f"--can {args.can}", "action": f"--can {args.can}",
+                                         "control_rate_hz": "--rate"},
+                               extra=[("control_rate_hz", policy.control_rate_hz, args.rate)])
     for o in overrides:
         print(f"warning: running with {o['field']} = {o['given']} although the model was trained with {o['trained']} "
               "(--allow-mismatch)", file=sys.stderr)
