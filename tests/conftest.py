@@ -33,6 +33,31 @@ def tiny_export(tmp_path_factory):
     return run_dir, model_dir, data
 
 
+# A small, quick training configuration (``--set`` overrides of the tiny preset) for CLI tests.
+SMALL = [
+    "model.d_model=32",
+    "model.d_state=8",
+    "model.n_denoiser_layers=2",
+    "model.n_history_layers=1",
+    "train.batch_size=4",
+    "train.val_windows=4",
+    "train.warmup_steps=1",
+    "train.log_every=1",
+    "train.val_every=2",
+    "train.save_every=2",
+]
+SET_SMALL = [a for item in SMALL for a in ("--set", item)]
+
+
+def one_error_line(stderr: str) -> str:
+    """The one ``error: ...`` line a command printed (no traceback, nothing else)."""
+    assert "Traceback" not in stderr, stderr
+    lines = stderr.strip().splitlines()
+    assert len(lines) == 1, stderr
+    assert lines[0].startswith("error: "), stderr
+    return lines[0]
+
+
 ARM_HOME = (0.0, 0.6, -0.6, 0.0, 0.4, 0.0, 0.8)  # one Piper: J1..J6 rad, gripper opening 0..1
 
 

@@ -26,6 +26,8 @@ from export.to_onnx import export_model
 from export.to_onnx import main as export_main
 from export.verify import main as verify_main
 
+from conftest import one_error_line
+
 SMALL = ["model.d_model=32", "model.d_state=8", "model.n_denoiser_layers=2", "train.batch_size=4", "train.val_windows=4", "train.warmup_steps=1"]
 ONNX_TYPES = {"tensor(float)": "float32"}
 pytestmark = pytest.mark.filterwarnings("ignore:`torch.jit.load` is deprecated:DeprecationWarning")
@@ -40,12 +42,6 @@ def one_thread():
     torch.set_num_threads(before)
 
 
-def one_error_line(stderr: str) -> str:
-    assert "Traceback" not in stderr, stderr
-    lines = stderr.strip().splitlines()
-    assert len(lines) == 1, stderr
-    assert lines[0].startswith("error: "), stderr
-    return lines[0]
 
 
 def leftovers(folder: Path) -> list[str]:

@@ -24,19 +24,8 @@ from dssp_train.model.policy import DSSPPolicy
 from dssp_train.training.train_log import read_log
 from dssp_train.training.trainer import Trainer
 
-SMALL = [
-    "model.d_model=32",
-    "model.d_state=8",
-    "model.n_denoiser_layers=2",
-    "model.n_history_layers=1",
-    "train.batch_size=4",
-    "train.val_windows=4",
-    "train.warmup_steps=1",
-    "train.log_every=1",
-    "train.val_every=2",
-    "train.save_every=2",
-]
-SET_SMALL = [a for item in SMALL for a in ("--set", item)]
+from conftest import SET_SMALL, one_error_line
+
 TRAIN_KEYS = {"kind", "step", "loss", "diffusion", "dynamics", "lr", "steps_per_s", "windows_per_s"}
 VAL_KEYS = {"kind", "step", "on_train_episodes", "val_diffusion", "val_action_mse"}
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -50,12 +39,6 @@ def cli(*args) -> list[str]:
     return [sys.executable, "-m", "dssp_train.cli.train", *map(str, args)]
 
 
-def one_error_line(stderr: str) -> str:
-    assert "Traceback" not in stderr, stderr
-    lines = stderr.strip().splitlines()
-    assert len(lines) == 1, stderr
-    assert lines[0].startswith("error: "), stderr
-    return lines[0]
 
 
 # ---------------------------------------------------------------------- data

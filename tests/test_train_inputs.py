@@ -24,29 +24,10 @@ from dssp_train.training import memory
 from dssp_train.training.train_log import read_log
 from dssp_train.training.trainer import Trainer
 
-from conftest import write_arm_dataset
-
-SMALL = [
-    "model.d_model=32",
-    "model.d_state=8",
-    "model.n_denoiser_layers=2",
-    "model.n_history_layers=1",
-    "train.batch_size=4",
-    "train.val_windows=4",
-    "train.warmup_steps=1",
-    "train.log_every=1",
-    "train.val_every=2",
-    "train.save_every=2",
-]
-SET_SMALL = [a for item in SMALL for a in ("--set", item)]
+from conftest import SET_SMALL, SMALL, one_error_line, write_arm_dataset
 
 
-def one_error_line(stderr: str) -> str:
-    assert "Traceback" not in stderr, stderr
-    lines = stderr.strip().splitlines()
-    assert len(lines) == 1, stderr
-    assert lines[0].startswith("error: "), stderr
-    return lines[0]
+
 
 
 def refused(capsys, main, argv) -> str:
