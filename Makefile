@@ -5,7 +5,15 @@ PYTHON ?= python3
 TORCH ?= torch==2.13.0
 EXTRAS ?= train,export,deploy,hardware,sim,dev
 
-.PHONY: system setup demo test bench
+.PHONY: system setup kernel demo test bench
+
+# The fused Mamba operators for ONNX Runtime (optional at run time; see dssp_deploy/kernel/). Built against
+# ONNX Runtime's C API headers: fetched from Debian 13's libonnxruntime-dev into build/ort-include, or taken
+# from ORT_INCLUDE_DIR (the include/ folder of an ONNX Runtime release).
+CXX ?= g++
+KERNEL := dssp_deploy/kernel/libdssp_mamba.so
+ORT_INCLUDE_DIR ?= build/ort-include
+KERNEL_FLAGS ?= -O3 -std=c++17 -fPIC -shared -fvisibility=hidden -fopenmp-simd -fno-trapping-math -Wall -Wextra
 
 # pyrealsense2 needs the system's libusb-1.0 (Debian/Ubuntu: apt-get install libusb-1.0-0).
 system:
@@ -15,6 +23,14 @@ system:
 
 setup: system
 	$(PYTHON) -m pip install --quiet "$(TORCH)" -e ".[$(EXTRAS)]"
+	@$(MAKE) --no-print-directory kernel || echo "note: the fused Mamba kernel was not built; the standard ONNX graphs will run (see make kernel)"
+
+kernel: $(KERNEL)
+
+$(KERNEL): dssp_deploy/kernel/mamba_ops.cc
+	@[ -f "$(ORT_INCLUDE_DIR)/onnxruntime_lite_custom_op.h" ] || dssp_deploy/kernel/fetch_ort_headers.sh "$(ORT_INCLUDE_DIR)"
+	$(CXX) $(KERNEL_FLAGS) -I"$(ORT_INCLUDE_DIR)" $< -o $@.tmp
+	@mv $@.tmp $@
 
 demo: setup
 	dssp-sim demo --out runs/demo --force

@@ -44,7 +44,21 @@ HISTORY_GRAPH = "history_step"
 DENOISER_GRAPH = "denoiser"
 GRAPHS = (HISTORY_GRAPH, DENOISER_GRAPH)
 ONNX_TYPES = {"float32": "tensor(float)", "int64": "tensor(int64)"}
-PRECISIONS = {"fp32": "onnx", "int8": "onnx_int8"}  # the runtime's precision → the manifest's file kind
+PRECISIONS = {"fp32": "onnx", "int8": "onnx_int8", "int4": "onnx_int4"}  # the runtime's precision → the manifest's file kind
+FUSED = "_fused"  # file kind suffix of the graphs with the fused Mamba operators (dssp_deploy.mamba_kernel)
+
+
+def file_kind(precision: str, fused: bool = False) -> str:
+    """The manifest's file kind of one precision's graphs: ``onnx``, ``onnx_int8_fused``, ..."""
+    return PRECISIONS[precision] + (FUSED if fused else "")
+
+
+def file_suffix(kind: str) -> str:
+    """The file name suffix of a file kind: ``onnx`` → ``.onnx``, ``onnx_int8_fused`` → ``.int8.fused.onnx``."""
+    if kind == "torchscript":
+        return ".pt"
+    parts = kind.split("_")[1:]
+    return "".join(f".{p}" for p in parts) + ".onnx"
 MAX_TIMESTEPS = 100_000  # DDPM training timesteps (dssp_train.config.DiffusionConfig)
 MAX_POINTS = 1_000_000
 NORMALIZER_STATS = ("scale", "offset", "input_min", "input_max")
@@ -435,7 +449,13 @@ def graph_file(model_dir: Path, manifest: dict[str, Any], graph: str, fmt: str =
     field = f"{MANIFEST_NAME} graphs.{graph}.files.{fmt}"
     name = manifest["graphs"][graph]["files"].get(fmt)
     if name is None:
-        how = "--quantize int8" if fmt == "onnx_int8" else f"--format {fmt} (or both)"
+        quantized = next((p for p, kind in PRECISIONS.items() if fmt.startswith(kind) and p != "fp32"), None)
+        if fmt.endswith(FUSED):
+            how = "the fused Mamba kernel built (make kernel)"
+        elif quantized:
+            how = f"--quantize {quantized}"
+        else:
+            how = f"--format {fmt} (or both)"
         raise ModelDirError(f"{model_dir} has no {fmt} file for {graph}; export it with {how}")
     path = model_file(model_dir, name, field)
     if not path.is_file():

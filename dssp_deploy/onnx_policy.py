@@ -2,6 +2,7 @@
 
     policy = OnnxPolicy("models/tap")          # validates dssp_model.json against the graphs, warms up
     policy = OnnxPolicy("models/tap", precision="int8")  # the int8 graphs (export --quantize int8)
+    print(policy.kernel_note)                  # one line: which graphs run (fused Mamba kernel or standard)
     policy.reset()
     policy.observe(point_cloud, agent_pos)     # every control tick: the history-update graph
     chunk = policy.act(seed=0)                 # every H_a ticks: the denoiser graph → (B, H, A) raw units
@@ -13,6 +14,11 @@ repeats. Point clouds with more channels than the model uses (xyz + rgb for an x
 model's channels, as in training. An observation with NaN or infinity anywhere is refused
 (:class:`dssp_data.errors.NonFiniteObservation`) before any graph runs: the recurrent history would keep
 it for the rest of the episode; refused, it leaves the state as it was.
+
+Graphs: with ``kernel="auto"`` (the default) the ``*.fused.onnx`` graphs run when the model directory has
+them and the fused Mamba library loads (:mod:`dssp_deploy.mamba_kernel`); otherwise the standard graphs,
+which compute the same actions (both pass ``export.verify``). ``kernel="fused"`` refuses to fall back,
+``kernel="standard"`` never uses the library. :attr:`OnnxPolicy.kernel_note` says in one line which runs and why.
 
 Shapes: point_cloud (B, P, C) or (P, C); agent_pos (B, S) or (S,); noise (B, H, A); chunk (B, H, A);
 z_t, c_t (B, d); recent (B, N, d); state {name: (B, ...)} as the manifest's history inputs.
@@ -26,16 +32,56 @@ from typing import Any
 import numpy as np
 
 from dssp_data.streaming_history import StreamingHistory, check_finite
+from dssp_deploy.mamba_kernel import kernel as find_kernel
 from dssp_deploy.manifest import (
     DENOISER_GRAPH,
+    GRAPHS,
     HISTORY_GRAPH,
     PRECISIONS,
     ModelDirError,
     check_session,
+    file_kind,
     read_graph,
     read_manifest,
 )
 from dssp_deploy.sessions import open_session
+
+KERNELS = ("auto", "fused", "standard")
+DEFAULT_PRECISION = "fp32"
+
+
+def add_runtime_arguments(parser) -> None:
+    """``--precision`` and ``--kernel``: which of a model directory's graphs a command runs."""
+    parser.add_argument("--precision", choices=list(PRECISIONS), default=DEFAULT_PRECISION,
+                        help=f"the model's graphs to run: {', '.join(PRECISIONS)} (default {DEFAULT_PRECISION}; export writes all three)")
+    parser.add_argument("--kernel", choices=KERNELS, default="auto",
+                        help="fused: the fused Mamba kernel's graphs (make kernel), standard: the plain ONNX graphs, "
+                             "auto (default): fused when the library loads, else standard")
+
+
+class GraphLoadError(ModelDirError):
+    """ONNX Runtime could not load a graph file (which matched the manifest's size and sha256)."""
+
+
+def choose_graphs(manifest: dict[str, Any], precision: str, kernel: str = "auto") -> tuple[bool, str]:
+    """(run the fused graphs?, why) for a model's manifest, the precision and the ``kernel`` choice.
+
+    Raises :class:`ModelDirError` when ``kernel="fused"`` cannot be honoured."""
+    if kernel not in KERNELS:
+        raise ModelDirError(f"kernel must be one of {', '.join(KERNELS)}, got {kernel!r}")
+    if kernel == "standard":
+        return False, "standard ONNX graphs (asked for)"
+    kind = file_kind(precision, fused=True)
+    if not all(kind in manifest["graphs"][g]["files"] for g in GRAPHS):
+        why = f"the model directory has no {precision} fused graphs; export it again with the kernel built (make kernel)"
+    else:
+        found = find_kernel()
+        if found.available:
+            return True, f"fused Mamba kernel ({found.implementation}, {found.path.name})"
+        why = f"the fused Mamba kernel is unavailable: {found.reason}"
+    if kernel == "fused":
+        raise ModelDirError(f"kernel fused: {why}")
+    return False, f"standard ONNX graphs ({why})"
 
 
 def _batch(x, rank: int, name: str) -> np.ndarray:
@@ -49,7 +95,7 @@ def _batch(x, rank: int, name: str) -> np.ndarray:
 
 class OnnxPolicy:
     def __init__(self, model_dir: str | Path, threads: int | None = None, spinning: bool = False, warmup: int = 2,
-                 precision: str = "fp32"):
+                 precision: str = "fp32", kernel: str = "auto"):
         if precision not in PRECISIONS:
             raise ModelDirError(f"precision must be one of {sorted(PRECISIONS)}, got {precision!r}")
         self.precision = precision
@@ -63,15 +109,15 @@ class OnnxPolicy:
         self.control_rate_hz: float | None = m["control_rate_hz"]
         self.use_history, self.use_recent_states = m["use_history"], m["use_recent_states"]
         self.history_state: list[str] = list(m["history_state"])
-        self.sessions = {}
-        for graph in (HISTORY_GRAPH, DENOISER_GRAPH):
-            path, data = read_graph(self.model_dir, m, graph, PRECISIONS[precision])  # size and sha256 checked
-            try:
-                session = open_session(data, threads, spinning)  # the checked bytes, not the path again
-            except Exception as exc:  # onnxruntime raises its own exception types
-                raise ModelDirError(f"{path} could not be loaded by ONNX Runtime ({exc}); export the model again") from None
-            check_session(session, m, graph, path)
-            self.sessions[graph] = session
+        self.fused, self.kernel_note = choose_graphs(m, precision, kernel)
+        try:
+            self.sessions = self._open_sessions(threads, spinning)
+        except GraphLoadError as exc:  # ONNX Runtime refused a fused graph (not a file or interface mismatch)
+            if not self.fused or kernel == "fused":
+                raise
+            self.fused, self.kernel_note = False, f"standard ONNX graphs (the fused graphs failed to load: {exc})"
+            self.sessions = self._open_sessions(threads, spinning)
+        self.kernel = "fused" if self.fused else "standard"
         self._state_specs = [s for s in m["graphs"][HISTORY_GRAPH]["inputs"] if s["name"] in self.history_state]
         self._history_outputs = [o.name for o in self.sessions[HISTORY_GRAPH].get_outputs()]
         self.history: StreamingHistory[np.ndarray] = StreamingHistory(
@@ -79,6 +125,19 @@ class OnnxPolicy:
         )
         if warmup:
             self.warmup(warmup)
+
+    def _open_sessions(self, threads: int | None, spinning: bool) -> dict[str, Any]:
+        sessions = {}
+        for graph in (HISTORY_GRAPH, DENOISER_GRAPH):
+            path, data = read_graph(self.model_dir, self.manifest, graph, file_kind(self.precision, self.fused))  # size and sha256 checked
+            try:
+                session = open_session(data, threads, spinning, fused=self.fused)  # the checked bytes, not the path again
+            except Exception as exc:  # onnxruntime raises its own exception types
+                first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+                raise GraphLoadError(f"{path} could not be loaded by ONNX Runtime ({first}); export the model again") from None
+            check_session(session, self.manifest, graph, path)
+            sessions[graph] = session
+        return sessions
 
     # ----------------------------------------------------------------- episode
     def reset(self) -> None:

@@ -30,8 +30,9 @@ def check_threads(threads: int | None, flag: str = "--threads") -> None:
         raise ConfigError(f"{flag} must be in [1, {cpus}] (the CPUs this process may use), got {threads!r}")
 
 
-def session_options(threads: int | None = None, spinning: bool = False):
-    """``SessionOptions`` with ``intra_op_num_threads`` set and thread spinning off unless asked for."""
+def session_options(threads: int | None = None, spinning: bool = False, fused: bool = False):
+    """``SessionOptions`` with ``intra_op_num_threads`` set and thread spinning off unless asked for;
+    ``fused``: with the fused Mamba operators registered (:mod:`dssp_deploy.mamba_kernel`)."""
     import onnxruntime as ort
 
     check_threads(threads)
@@ -42,12 +43,17 @@ def session_options(threads: int | None = None, spinning: bool = False):
     flag = "1" if spinning else "0"
     options.add_session_config_entry("session.intra_op.allow_spinning", flag)
     options.add_session_config_entry("session.inter_op.allow_spinning", flag)
+    if fused:
+        from dssp_deploy.mamba_kernel import register
+
+        register(options)
     return options
 
 
-def open_session(model: Path | bytes, threads: int | None = None, spinning: bool = False):
-    """A CPU ``InferenceSession`` for one ``.onnx`` file, given as its path or as its bytes (already checked)."""
+def open_session(model: Path | bytes, threads: int | None = None, spinning: bool = False, fused: bool = False):
+    """A CPU ``InferenceSession`` for one ``.onnx`` file, given as its path or as its bytes (already checked);
+    ``fused`` for a graph with the fused Mamba operators."""
     import onnxruntime as ort
 
     source = bytes(model) if isinstance(model, (bytes, bytearray, memoryview)) else str(model)
-    return ort.InferenceSession(source, session_options(threads, spinning), providers=["CPUExecutionProvider"])
+    return ort.InferenceSession(source, session_options(threads, spinning, fused), providers=["CPUExecutionProvider"])

@@ -25,6 +25,7 @@ import sys
 from pathlib import Path
 
 from dssp_data.cli_runner import ArgumentParser
+from dssp_deploy.onnx_policy import add_runtime_arguments
 from dssp_data.errors import ConfigError
 
 TASKS = ("tap", "swap", "put2")
@@ -74,6 +75,7 @@ def parse_args(argv):
     e.add_argument("--seed", type=_non_negative, default=1000, help="first episode seed (default 1000: unseen in collection)")
     e.add_argument("--noise", type=float, default=0.0, help="σ of Gaussian noise on the recent state tokens (robustness test)")
     e.add_argument("--threads", type=int, help="ONNX Runtime threads")
+    add_runtime_arguments(e)
     e.add_argument("--strips", type=Path, help="write a PNG strip of each episode here")
     e.add_argument("--json", type=Path, help="write the result here")
     e.add_argument("--force", action="store_true", help="replace an existing --json file and previous --strips")
@@ -109,7 +111,7 @@ def run(args) -> int:
     with contextlib.ExitStack() as stack:
         strips = stack.enter_context(OutputDir(args.strips, STRIPS_DIR, force=args.force, flag="--strips")) if args.strips else None
         result = evaluate(args.model, args.task, args.episodes, seed=args.seed, threads=args.threads,
-                          state_token_noise=args.noise, strips_dir=strips.path if strips else None,
+                          precision=args.precision, kernel=args.kernel, state_token_noise=args.noise, strips_dir=strips.path if strips else None,
                           progress=not args.no_progress)
         if strips is not None:
             strips.commit()

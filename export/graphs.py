@@ -37,7 +37,9 @@ from torch import nn
 
 from dssp_data.errors import ConfigError
 from dssp_train.model.denoiser import Modulation
+from dssp_train.model.mamba import Mamba
 from dssp_train.model.policy import DSSPPolicy
+from export.fused_ops import FUSED_OPS
 
 
 def check_exportable(policy: DSSPPolicy) -> None:
@@ -62,6 +64,13 @@ def pruned_copy(policy: DSSPPolicy, keep: tuple[str, ...]) -> DSSPPolicy:
         if name not in keep:
             setattr(pruned, name, None)
     return pruned.eval()
+
+
+def use_fused_ops(module: nn.Module) -> None:
+    """Route every Mamba layer of ``module`` through the fused operators (:mod:`export.fused_ops`)."""
+    for layer in module.modules():
+        if isinstance(layer, Mamba):
+            layer.fused_ops = FUSED_OPS
 
 
 def state_names(n_layers: int) -> list[str]:

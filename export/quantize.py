@@ -1,7 +1,12 @@
-"""Int8 versions of the exported ONNX graphs (ONNX Runtime dynamic quantization).
+"""Quantized versions of the exported ONNX graphs, both with ONNX Runtime's own quantizers.
 
-Weights of every MatMul/Gemm become int8 (per output channel), activations are quantized on the fly
-at run time; everything else (the scan, norms, DDIM arithmetic) stays fp32. ORT's optional pre-processing
+- int8 (:func:`quantize_int8`): dynamic quantization. Weights of every MatMul/Gemm become int8 (per output
+  channel), activations are quantized on the fly at run time.
+- int4 (:func:`quantize_int4`): weight-only. Every MatMul with a constant weight becomes ``MatMulNBits``
+  (4-bit weights in blocks of :data:`INT4_BLOCK` along the input dimension, symmetric, one fp32 scale per
+  block); ``accuracy_level`` 4 lets ONNX Runtime compute with int8 activations where the CPU allows.
+
+Everything else (the scan, norms, DDIM arithmetic, the fused Mamba operators) stays fp32. ORT's optional pre-processing
 (``quant_pre_process``) is skipped: on the robotwin denoiser it took 30 s and made the int8 actions 8x
 less exact for a 10 % speed-up. The int8 graphs are not
 held to the fp32 parity bound: verification reports their action error against the fp32 graphs and
@@ -15,6 +20,32 @@ import tempfile
 from pathlib import Path
 
 QUANTIZED_OPS = ["MatMul", "Gemm"]
+INT4_BLOCK = 32
+INT4_ACCURACY_LEVEL = 4
+
+
+def _quiet_root(fn):
+    """Run ``fn()`` with the root and onnxruntime loggers at ERROR: the quantizers log hints and every node they skip."""
+    import onnxruntime.quantization.matmul_nbits_quantizer  # noqa: F401 (creates its logger)
+
+    loggers = [logging.getLogger()] + [logging.getLogger(name) for name in list(logging.root.manager.loggerDict)
+                                       if name.startswith("onnxruntime")]
+    levels = [logger.level for logger in loggers]
+    for logger in loggers:
+        logger.setLevel(logging.ERROR)
+    try:
+        return fn()
+    finally:
+        for logger, level in zip(loggers, levels):
+            logger.setLevel(level)
+
+
+def _save(model, dst: Path, metadata: dict[str, str], quantization: str) -> None:
+    import onnx
+
+    del model.metadata_props[:]
+    onnx.helper.set_model_props(model, {**metadata, "quantization": quantization})
+    onnx.save(model, str(dst))
 
 
 def quantize_int8(src: Path, dst: Path, metadata: dict[str, str]) -> None:
@@ -24,14 +55,23 @@ def quantize_int8(src: Path, dst: Path, metadata: dict[str, str]) -> None:
 
     with tempfile.TemporaryDirectory(dir=Path(dst).parent) as tmp:
         raw = Path(tmp) / "int8.onnx"
-        root = logging.getLogger()
-        level = root.level
-        root.setLevel(logging.ERROR)  # quantize_dynamic logs a pre-processing suggestion on the root logger
-        try:
-            quantize_dynamic(src, raw, op_types_to_quantize=QUANTIZED_OPS, per_channel=True, weight_type=QuantType.QInt8)
-        finally:
-            root.setLevel(level)
+        _quiet_root(lambda: quantize_dynamic(src, raw, op_types_to_quantize=QUANTIZED_OPS, per_channel=True,
+                                             weight_type=QuantType.QInt8))
         model = onnx.load(str(raw))
-    del model.metadata_props[:]
-    onnx.helper.set_model_props(model, {**metadata, "quantization": "int8 dynamic (onnxruntime.quantization), MatMul/Gemm weights per channel"})
-    onnx.save(model, str(dst))
+    _save(model, dst, metadata, "int8 dynamic (onnxruntime.quantization), MatMul/Gemm weights per channel")
+
+
+def quantize_int4(src: Path, dst: Path, metadata: dict[str, str]) -> None:
+    """Write the int4 weight-only graph of ``src`` (an fp32 ``.onnx``) to ``dst``, with ``metadata`` as its metadata_props."""
+    import onnx
+    from onnxruntime.quantization.matmul_nbits_quantizer import DefaultWeightOnlyQuantConfig, MatMulNBitsQuantizer
+
+    config = DefaultWeightOnlyQuantConfig(block_size=INT4_BLOCK, is_symmetric=True, accuracy_level=INT4_ACCURACY_LEVEL,
+                                          op_types_to_quantize=("MatMul",))
+    quantizer = MatMulNBitsQuantizer(onnx.load(str(src)), algo_config=config)
+    _quiet_root(quantizer.process)
+    _save(quantizer.model.model, dst, metadata,
+          f"int4 weight-only (onnxruntime MatMulNBits), blocks of {INT4_BLOCK}, symmetric, accuracy_level {INT4_ACCURACY_LEVEL}")
+
+
+QUANTIZERS = {"int8": quantize_int8, "int4": quantize_int4}

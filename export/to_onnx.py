@@ -1,15 +1,19 @@
 """Export a trained DSSP run directory to a self-contained model directory for ONNX Runtime.
 
     python -m export.to_onnx RUN_DIR -o MODEL_DIR [--denoise-steps K] [--opset N] [--format onnx|torchscript|both]
-                             [--no-ema] [--quantize int8] [--skip-verify] [--verify-steps T] [--force] [--threads N]
+                             [--no-ema] [--quantize int8 int4 | none] [--no-fused] [--skip-verify] [--verify-steps T]
+                             [--force] [--threads N]
 
 The split follows the architecture: the recurrent history encoder becomes a stepwise graph run once per
 control tick (``history_step``), the action generator a fixed-step denoiser graph run once per action
 chunk (``denoiser``, K DDIM steps inside). MODEL_DIR gets::
 
     history_step.onnx, denoiser.onnx     fp32 graphs (--format onnx|both)
+    *.fused.onnx                         the same graphs with the fused Mamba operators (ai.dssp::CausalConv1d,
+                                         ai.dssp::SelectiveScan), when the kernel library loads here (make kernel)
+                                         and unless --no-fused
     history_step.pt, denoiser.pt         the same traced modules as TorchScript archives (--format torchscript|both)
-    *.int8.onnx                          int8 graphs (--quantize int8)
+    *.int8.onnx, *.int4.onnx             quantized graphs, standard and fused (--quantize, default both)
     dssp_model.json                      the manifest (see export.manifest_writer): graph inputs/outputs, N, H, H_a, K, DDIM
                                          timesteps, normalisers, control rate, source (run name, weights file,
                                          sha256, step, EMA or raw; no path), file sizes and sha256, versions,
@@ -39,7 +43,8 @@ from typing import Any
 from dssp_deploy.sessions import check_threads
 from dssp_data.cli_runner import ArgumentParser, run_cli
 from dssp_data.errors import ExportError, ParityError
-from dssp_deploy.manifest import DENOISER_GRAPH, GRAPHS, HISTORY_GRAPH, MANIFEST_NAME, graph_io
+from dssp_deploy.mamba_kernel import DOMAIN, OPSET_VERSION
+from dssp_deploy.manifest import DENOISER_GRAPH, GRAPHS, HISTORY_GRAPH, MANIFEST_NAME, PRECISIONS, file_kind, file_suffix, graph_io
 from export.manifest_writer import build_manifest, metadata_props, write_manifest
 
 EXPORTER_VERSION = "1"
@@ -47,6 +52,7 @@ SUPPORTED_OPSETS = range(17, 21)  # LayerNormalization needs 17; torch's TorchSc
 DEFAULT_OPSET = 17
 FORMATS = {"onnx": ("onnx",), "torchscript": ("torchscript",), "both": ("onnx", "torchscript")}
 WEIGHTS = {True: "model.safetensors", False: "checkpoint/model.safetensors"}
+QUANTIZED = tuple(p for p in PRECISIONS if p != "fp32")
 
 
 # ------------------------------------------------------------------ loading
@@ -135,11 +141,15 @@ def example_inputs(config, graph: str, batch: int = 2) -> tuple:
     return tuple(torch.randn(shape, generator=gen) for shape in shapes)
 
 
-def graph_modules(policy, denoise_steps: int) -> dict[str, Any]:
-    """{graph name: the torch module that becomes it}."""
-    from export.graphs import DenoiserGraph, HistoryStepGraph
+def graph_modules(policy, denoise_steps: int, fused: bool = False) -> dict[str, Any]:
+    """{graph name: the torch module that becomes it}; ``fused``: with the fused Mamba operators (:mod:`export.fused_ops`)."""
+    from export.graphs import DenoiserGraph, HistoryStepGraph, use_fused_ops
 
-    return {HISTORY_GRAPH: HistoryStepGraph(policy).eval(), DENOISER_GRAPH: DenoiserGraph(policy, denoise_steps).eval()}
+    modules = {HISTORY_GRAPH: HistoryStepGraph(policy).eval(), DENOISER_GRAPH: DenoiserGraph(policy, denoise_steps).eval()}
+    if fused:
+        for module in modules.values():
+            use_fused_ops(module)
+    return modules
 
 
 def trace(module, example: tuple):
@@ -151,8 +161,12 @@ def trace(module, example: tuple):
 
 
 # -------------------------------------------------------------------- ONNX
-def write_onnx(module, example: tuple, path: Path, config, graph: str, opset: int, metadata: dict[str, str]) -> None:
+def write_onnx(module, example: tuple, path: Path, config, graph: str, opset: int, metadata: dict[str, str],
+               fused: bool = False) -> None:
     """Export one graph module to ``path``; set the manifest's IO shapes and metadata; run the full checker.
+
+    ``fused``: the module's Mamba layers use :data:`export.fused_ops.FUSED_OPS`, so the graph holds the
+    ``ai.dssp`` operators (the checker checks everything but their inside).
 
     The module itself is exported (the exporter traces it again): a TorchScript trace loses the tensor
     ranks that the ONNX conversion of ``transpose`` needs.
@@ -173,6 +187,7 @@ def write_onnx(module, example: tuple, path: Path, config, graph: str, opset: in
             output_names=[s["name"] for s in outputs],
             dynamic_axes=dynamic_axes,
             do_constant_folding=True,
+            custom_opsets={DOMAIN: OPSET_VERSION} if fused else None,
         )
     model = onnx.load(str(path))
     for values, specs in ((model.graph.input, inputs), (model.graph.output, outputs)):
@@ -244,7 +259,8 @@ def export_model(
     opset: int = DEFAULT_OPSET,
     fmt: str = "both",
     ema: bool = True,
-    quantize: str | None = None,
+    quantize: tuple[str, ...] | str | None = None,
+    fused: bool = True,
     verify: bool = True,
     verify_steps: int = 1000,
     force: bool = False,
@@ -264,16 +280,30 @@ def export_model(
         raise ExportError(f"--opset {opset} is not supported; use {SUPPORTED_OPSETS.start}..{SUPPORTED_OPSETS.stop - 1} (default {DEFAULT_OPSET})")
     if fmt not in FORMATS:
         raise ExportError(f"--format must be one of {', '.join(FORMATS)}, got {fmt!r}")
-    if quantize not in (None, "int8"):
-        raise ExportError(f"--quantize supports int8 only, got {quantize!r}")
+    if quantize is None:  # the default: every precision, when there are ONNX graphs to quantize
+        quantize = QUANTIZED if "onnx" in FORMATS.get(fmt, ()) else ()
+    quantize = tuple(dict.fromkeys((quantize,) if isinstance(quantize, str) else quantize))
+    unknown = [q for q in quantize if q not in QUANTIZED]
+    if unknown:
+        raise ExportError(f"--quantize takes {', '.join(QUANTIZED)} or none, got {', '.join(unknown)}")
     if quantize and "onnx" not in FORMATS[fmt]:
-        raise ExportError("--quantize int8 quantizes the ONNX graphs; use --format onnx or both")
+        raise ExportError(f"--quantize {' '.join(quantize)} quantizes the ONNX graphs; use --format onnx or both, or --quantize none")
     if verify and verify_steps < 1:
         raise ExportError(f"--verify-steps must be >= 1, got {verify_steps}")
     formats = FORMATS[fmt]
     run_dir, out_dir = Path(run_dir), Path(out_dir)
     started = time.perf_counter()
-    n_stages = 4 + bool(quantize) + verify
+    kernel_note = None
+    if fused and "onnx" in formats:
+        from dssp_deploy.mamba_kernel import kernel
+
+        found = kernel()
+        fused = found.available
+        if not fused:
+            kernel_note = f"fused graphs not written: {found.reason}"
+    else:
+        fused = False
+    n_stages = 4 + bool(quantize) + verify + fused
 
     clock = [time.perf_counter(), 0]
 
@@ -298,13 +328,10 @@ def export_model(
         stage(f"built {HISTORY_GRAPH} and {DENOISER_GRAPH} (K = {k} DDIM steps {timesteps}, {caching})")
 
         files: dict[str, dict[str, str]] = {g: {} for g in GRAPHS}
+        onnx_kinds = [file_kind(p, f) for p in ("fp32", *quantize) for f in (False, True)[: 1 + fused]] if "onnx" in formats else []
         for g in GRAPHS:
-            if "onnx" in formats:
-                files[g]["onnx"] = f"{g}.onnx"
-            if "torchscript" in formats:
-                files[g]["torchscript"] = f"{g}.pt"
-            if quantize:
-                files[g]["onnx_int8"] = f"{g}.int8.onnx"
+            for kind in onnx_kinds + (["torchscript"] if "torchscript" in formats else []):
+                files[g][kind] = f"{g}{file_suffix(kind)}"
         manifest = build_manifest(
             config,
             denoise_steps=k,
@@ -333,12 +360,27 @@ def export_model(
             stage(f"wrote {', '.join(files[g]['onnx'] for g in GRAPHS)} (opset {opset}, onnx.checker full_check passed)")
         else:
             stage("ONNX not requested")
-        if quantize:
-            from export.quantize import quantize_int8
-
+        if fused:
+            fused_modules = graph_modules(policy, k, fused=True)
+            kind = file_kind("fp32", fused=True)
             for g in GRAPHS:
-                quantize_int8(staged.path / files[g]["onnx"], staged.path / files[g]["onnx_int8"], metadata_props(manifest, g))
-            stage(f"wrote {', '.join(files[g]['onnx_int8'] for g in GRAPHS)} (int8 dynamic quantization)")
+                write_onnx(fused_modules[g], examples[g], staged.path / files[g][kind], config, g, opset, metadata_props(manifest, g),
+                           fused=True)
+            del fused_modules
+            stage(f"wrote {', '.join(files[g][kind] for g in GRAPHS)} (fused Mamba operators)")
+        elif kernel_note:
+            progress(kernel_note)
+        if quantize:
+            from export.quantize import QUANTIZERS
+
+            written = []
+            for precision in quantize:
+                for is_fused in (False, True)[: 1 + fused]:
+                    src, dst = file_kind("fp32", is_fused), file_kind(precision, is_fused)
+                    for g in GRAPHS:
+                        QUANTIZERS[precision](staged.path / files[g][src], staged.path / files[g][dst], metadata_props(manifest, g))
+                        written.append(files[g][dst])
+            stage(f"wrote {', '.join(written)} (ONNX Runtime quantization: {', '.join(quantize)})")
 
         manifest["files"] = {}
         for g in GRAPHS:
@@ -388,10 +430,9 @@ def format_summary(summary: dict[str, Any]) -> str:
             f"{report['chunks']} of {report.get('chunk_ticks_total', report['chunks'])} chunks: worst {describe_worst(report)} "
             f"<= {report['bound']:g}"
         )
-        if "int8" in report:
-            q = report["int8"]
+        for name, q in report.get("quantized", {}).items():
             lines.append(
-                f"int8: action max abs error vs fp32 {q['action_max_abs_vs_fp32']:.2e}, "
+                f"{name}: action max abs error vs fp32 {q['action_max_abs_vs_fp32']:.2e}, "
                 f"speed-up {q['speedup_history_step']}x per history step, {q['speedup_denoiser']}x per chunk"
             )
     return "\n".join(lines)
@@ -406,7 +447,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--opset", type=int, default=DEFAULT_OPSET, help=f"ONNX opset, {SUPPORTED_OPSETS.start}..{SUPPORTED_OPSETS.stop - 1} (default {DEFAULT_OPSET})")
     p.add_argument("--format", dest="fmt", default="both", choices=list(FORMATS), help="graphs to write (default both)")
     p.add_argument("--no-ema", action="store_true", help="export the raw weights (RUN_DIR/checkpoint/model.safetensors), not the EMA ones")
-    p.add_argument("--quantize", choices=["int8"], help="also write int8 graphs (*.int8.onnx)")
+    p.add_argument("--quantize", nargs="+", metavar="PRECISION", choices=[*QUANTIZED, "none"],
+                   help=f"quantized graphs to write beside the fp32 ONNX ones: {' '.join(QUANTIZED)} (default: both) or none")
+    p.add_argument("--no-fused", action="store_true",
+                   help="do not write the *.fused.onnx graphs (written by default when the fused Mamba kernel loads)")
     p.add_argument("--skip-verify", action="store_true", help="do not stream the parity check before finishing")
     p.add_argument("--verify-steps", type=int, default=1000, help="control ticks the parity check streams (default 1000)")
     p.add_argument("--threads", type=int, help="threads for the parity check (default: all CPUs of this process)")
@@ -427,7 +471,8 @@ def main(argv: list[str] | None = None) -> int:
                 opset=args.opset,
                 fmt=args.fmt,
                 ema=not args.no_ema,
-                quantize=args.quantize,
+                quantize=None if args.quantize is None else tuple(q for q in args.quantize if q != "none"),
+                fused=not args.no_fused,
                 verify=not args.skip_verify,
                 verify_steps=args.verify_steps,
                 force=args.force,

@@ -39,8 +39,10 @@ spanning +-12 is held to the same relative precision as one spanning +-1. Every 
 amplify fp32 rounding, so chunks above the bound are also evaluated in float64 on each one's own inputs:
 when a graph is about as far from float64 as PyTorch fp32 (within 2x) the model amplifies rounding;
 when it is further, precision is lost in the exported graph. Both distances are reported as measured.
-Int8 graphs, when present, are streamed the same way and reported against the fp32 ONNX graphs (action
-error, speed-up); they are not held to the bound.
+The fused graphs (``*.fused.onnx``, the fused Mamba operators of ``dssp_deploy/kernel``), when present,
+are streamed the same way and held to the same bound. Quantized graphs (int8, int4; standard and fused),
+when present, are streamed too and reported against the fp32 graphs of their own path (action error,
+speed-up); they are not held to the bound.
 
 Exit codes: 0 pass, 1 a figure exceeds the bound, 2 bad input (a path, a mismatched checkpoint).
 
@@ -70,9 +72,10 @@ from dssp_data.output_guard import check_output_file, write_output_text
 from dssp_data.streaming_history import StreamingHistory
 from dssp_deploy.manifest import read_graph
 from dssp_deploy.sessions import check_threads, default_threads
-from dssp_deploy.manifest import DENOISER_GRAPH, HISTORY_GRAPH, read_manifest
+from dssp_deploy.manifest import DENOISER_GRAPH, FUSED, HISTORY_GRAPH, PRECISIONS, file_kind, read_manifest
 
 BOUND = 1e-4
+BOUNDED_ALSO = ("onnx_fused",)  # streamed backends held to BOUND besides the main one
 CHUNKS = 8  # action chunks compared by default, spread over the trajectory
 BLOCK = 64  # ticks per block of the reference's sequence path, chunks per batch of its denoiser
 TRACE_CHECKS = 3  # rows of the TorchScript check: the traces were made with batch 2
@@ -136,14 +139,14 @@ class GraphStream:
 class RuntimeStream:
     """The robot's runtime, :class:`dssp_deploy.onnx_policy.OnnxPolicy`, with the interface of :class:`GraphStream`.
 
-    The ONNX graphs (fp32, or int8 with ``precision``) are streamed through it, so parity covers the
+    The ONNX graphs (fp32, int8 or int4 with ``precision``; standard or fused with ``kernel``) are streamed through it, so parity covers the
     runtime's state handling too; it checks the files against the manifest itself.
     """
 
-    def __init__(self, model_dir: Path, threads: int, precision: str = "fp32"):
+    def __init__(self, model_dir: Path, threads: int, precision: str = "fp32", kernel: str = "standard"):
         from dssp_deploy.onnx_policy import OnnxPolicy
 
-        self.policy = OnnxPolicy(model_dir, threads=threads, warmup=0, precision=precision)
+        self.policy = OnnxPolicy(model_dir, threads=threads, warmup=0, precision=precision, kernel=kernel)
 
     def observe(self, point_cloud: np.ndarray, agent_pos: np.ndarray) -> np.ndarray:
         return self.policy.observe(point_cloud, agent_pos)
@@ -360,24 +363,31 @@ def verify_model(
 
 
 def _open_backends(model_dir: Path, manifest: dict[str, Any], threads: int) -> tuple[dict[str, Any], dict[str, dict[str, GraphFn]]]:
-    """(streamed backends by name, the main one first; TorchScript graph functions to check in batch, or {})."""
+    """(streamed backends by file kind, the main one first; TorchScript graph functions to check in batch, or {}).
+
+    Every ONNX kind the model directory has is streamed through the robot's runtime: ``onnx`` (the main
+    one), ``onnx_fused`` (the fused Mamba operators; held to the same bound), and the quantized graphs of
+    both paths (figures against fp32, not bounded).
+    """
     graphs = (HISTORY_GRAPH, DENOISER_GRAPH)
-    has = {kind: all(kind in manifest["graphs"][g]["files"] for g in graphs) for kind in ("onnx", "torchscript", "onnx_int8")}
-    if not (has["onnx"] or has["torchscript"]):
+    kinds = [kind for kind in manifest["graphs"][HISTORY_GRAPH]["files"] if all(kind in manifest["graphs"][g]["files"] for g in graphs)]
+    if not ("onnx" in kinds or "torchscript" in kinds):
         raise ExportError(f"{model_dir} lists no ONNX or TorchScript graphs; export the model again")
     streamed: dict[str, Any] = {}
     traced: dict[str, dict[str, GraphFn]] = {}
-    if has["torchscript"]:
+    if "torchscript" in kinds:
         # inside the model directory, present, and the size and sha256 the manifest records
         fns = {g: torchscript_graph(*read_graph(model_dir, manifest, g, "torchscript")) for g in graphs}
-        if has["onnx"]:
+        if "onnx" in kinds:
             traced["torchscript"] = fns
         else:
             streamed["torchscript"] = GraphStream(manifest, fns[HISTORY_GRAPH], fns[DENOISER_GRAPH])
-    if has["onnx"]:
+    onnx_kinds = {file_kind(p, f): (p, f) for p in PRECISIONS for f in (False, True)}
+    if "onnx" in kinds:
         streamed = {"onnx": RuntimeStream(model_dir, threads), **streamed}  # the robot's own runtime code
-    if has["onnx_int8"]:
-        streamed["onnx_int8"] = RuntimeStream(model_dir, threads, precision="int8")
+    for kind, (precision, fused) in onnx_kinds.items():
+        if kind != "onnx" and kind in kinds:
+            streamed[kind] = RuntimeStream(model_dir, threads, precision=precision, kernel="fused" if fused else "standard")
     return streamed, traced
 
 
@@ -488,7 +498,9 @@ def _stream_and_compare(model_dir, manifest, policy, traj, ref: Reference, ticks
     clock = time.perf_counter()
     scale = np.asarray(manifest["normalizers"]["action"]["scale"], dtype=np.float64)  # (A,): raw → normalised units
     errors, where = {}, {}
-    errors[main], where[main] = compare_streamed(main, got, ref, ticks, scale, manifest["history_state"])
+    for name in [main, *BOUNDED_ALSO]:
+        if name in backends:
+            errors[name], where[name] = compare_streamed(name, got, ref, ticks, scale, manifest["history_state"])
     trace, checked = None, {}
     if traced:
         errors["torchscript"], where["torchscript"], rows, t_chunks = check_traces(
@@ -515,7 +527,7 @@ def _stream_and_compare(model_dir, manifest, policy, traj, ref: Reference, ticks
             "PyTorch fp32 training path: encode_observations, the history encoder's sequence forward "
             "over the whole trajectory, sample_normalized on the compared chunks in one batch"
         ),
-        "streamed": [main],
+        "streamed": list(backends),
         "batch_checked": checked,
         "bound": BOUND,
         "units": {"z_t": MODEL_UNITS, "c_t": MODEL_UNITS, "state": MODEL_UNITS, "action": ACTION_UNITS},
@@ -530,24 +542,28 @@ def _stream_and_compare(model_dir, manifest, policy, traj, ref: Reference, ticks
         "latency_ms": {name: {graph: _median_ms(ts) for graph, ts in per.items()} for name, per in got.times.items()},
         "seconds": seconds,
     }
-    if "onnx_int8" in backends:
-        report["int8"] = _int8_figures(manifest, got, main, scale, report["latency_ms"])
+    quantized = {name: _quantized_figures(manifest, got, name, scale, report["latency_ms"]) for name in backends
+                 if name not in (main, *BOUNDED_ALSO) and name != "torchscript"}
+    if quantized:
+        report["quantized"] = quantized
     return report
 
 
-def _int8_figures(manifest, got: Streamed, main: str, scale: np.ndarray, lat: dict) -> dict[str, Any]:
-    """The int8 graphs against the fp32 ones they were quantized from (not bounded)."""
+def _quantized_figures(manifest, got: Streamed, name: str, scale: np.ndarray, lat: dict) -> dict[str, Any]:
+    """A quantized backend (``onnx_int8``, ``onnx_int4_fused``, ...) against the fp32 graphs of its own path (not bounded)."""
     action = manifest["normalizers"]["action"]
     span = np.asarray(action["input_max"]) - np.asarray(action["input_min"])
-    int8_chunks, fp32_chunks = np.stack(got.chunks["onnx_int8"]), np.stack(got.chunks[main])
-    has_c = got.c[main][0] is not None
+    fp32 = "onnx_fused" if name.endswith(FUSED) and "onnx_fused" in got.chunks else "onnx"
+    q_chunks, fp32_chunks = np.stack(got.chunks[name]), np.stack(got.chunks[fp32])
+    has_c = got.c[fp32][0] is not None
     return {
-        "action_max_abs_vs_fp32": worst(int8_chunks, fp32_chunks)[0],
-        "action_max_abs_over_range": worst(int8_chunks, fp32_chunks)[0] / float(max(span.max(), 1e-12)),
-        "action_normalised_vs_fp32": worst(int8_chunks, fp32_chunks, scale)[0],
-        "c_t_max_abs_vs_fp32": worst(np.stack(got.c["onnx_int8"]), np.stack(got.c[main]))[0] if has_c else 0.0,
-        "speedup_history_step": _ratio(lat[main]["history_step"], lat["onnx_int8"]["history_step"]),
-        "speedup_denoiser": _ratio(lat[main]["denoiser"], lat["onnx_int8"]["denoiser"]),
+        "against": fp32,
+        "action_max_abs_vs_fp32": worst(q_chunks, fp32_chunks)[0],
+        "action_max_abs_over_range": worst(q_chunks, fp32_chunks)[0] / float(max(span.max(), 1e-12)),
+        "action_normalised_vs_fp32": worst(q_chunks, fp32_chunks, scale)[0],
+        "c_t_max_abs_vs_fp32": worst(np.stack(got.c[name]), np.stack(got.c[fp32]))[0] if has_c else 0.0,
+        "speedup_history_step": _ratio(lat[fp32]["history_step"], lat[name]["history_step"]),
+        "speedup_denoiser": _ratio(lat[fp32]["denoiser"], lat[name]["denoiser"]),
     }
 
 
@@ -693,10 +709,9 @@ def format_report(report: dict[str, Any]) -> str:
     for name, lat in report["latency_ms"].items():
         hs, dn = lat["history_step"], lat["denoiser"]
         lines.append(f"  {name:<12}{'':20}{hs if hs is not None else '-':>12}{dn if dn is not None else '-':>11}")
-    if "int8" in report:
-        q = report["int8"]
+    for name, q in report.get("quantized", {}).items():
         lines.append(
-            f"  int8 vs fp32: action max abs {q['action_max_abs_vs_fp32']:.2e} "
+            f"  {name} vs {q['against']}: action max abs {q['action_max_abs_vs_fp32']:.2e} "
             f"({100 * q['action_max_abs_over_range']:.2f} % of the action range), c_t {q['c_t_max_abs_vs_fp32']:.2e}; "
             f"speed-up history step {q['speedup_history_step']}x, chunk {q['speedup_denoiser']}x (not bounded)"
         )

@@ -69,16 +69,16 @@ def test_runtime_chunks_equal_pytorch_streaming_over_1000_steps(tiny_export):
     assert worst_context <= 1e-4 and worst_chunk <= 1e-4, (worst_context, worst_chunk)
 
 
-def test_int8_graphs_run_on_request_and_their_absence_is_named(tiny_export, tmp_path):
+def test_quantized_graphs_run_on_request_and_their_absence_is_named(tiny_export, tmp_path):
     from export.to_onnx import main as export_main
 
     run_dir, model_dir, data = tiny_export
-    with pytest.raises(ModelDirError, match="--quantize int8"):
-        OnnxPolicy(model_dir, precision="int8")
     with pytest.raises(ModelDirError, match="precision must be one of"):
         OnnxPolicy(model_dir, precision="fp16")
     int8_dir = tmp_path / "int8"
     assert export_main([str(run_dir), "-o", str(int8_dir), "--skip-verify", "--quantize", "int8", "--format", "onnx"]) == 0
+    with pytest.raises(ModelDirError, match="--quantize int4"):
+        OnnxPolicy(int8_dir, precision="int4")
     fp32, int8 = OnnxPolicy(int8_dir, threads=1), OnnxPolicy(int8_dir, threads=1, precision="int8")
     for graph, session in int8.sessions.items():  # the int8 files, which carry their quantization in the metadata
         assert "int8" in session.get_modelmeta().custom_metadata_map["quantization"]
@@ -206,10 +206,12 @@ def test_manifest_that_does_not_fit_the_graphs_is_refused(tiny_export, tmp_path)
     # each graph's file named as the other's (sizes and sha256 match the files): the sessions tell
     manifest = json.loads(json.dumps(good))
     files = {g: manifest["graphs"][g]["files"] for g in ("history_step", "denoiser")}
-    files["history_step"]["onnx"], files["denoiser"]["onnx"] = files["denoiser"]["onnx"], files["history_step"]["onnx"]
+    for kind in files["history_step"]:
+        files["history_step"][kind], files["denoiser"][kind] = files["denoiser"][kind], files["history_step"][kind]
     (bad / MANIFEST_NAME).write_text(json.dumps(manifest))
-    with pytest.raises(ModelDirError, match="inputs are .* says"):
-        OnnxPolicy(bad)
+    for kernel in ("auto", "standard"):  # a mismatch is refused, never a reason to fall back to the standard graphs
+        with pytest.raises(ModelDirError, match="inputs are .* says"):
+            OnnxPolicy(bad, kernel=kernel)
     manifest = json.loads(json.dumps(good))
     manifest["format_version"] = "0"
     (bad / MANIFEST_NAME).write_text(json.dumps(manifest))
@@ -220,12 +222,12 @@ def test_manifest_that_does_not_fit_the_graphs_is_refused(tiny_export, tmp_path)
     (bad / "denoiser.onnx").write_bytes(b"not a graph")
     (bad / MANIFEST_NAME).write_text(json.dumps(good))
     with pytest.raises(ModelDirError, match="denoiser.onnx is not the file this manifest was written for"):
-        OnnxPolicy(bad)
+        OnnxPolicy(bad, kernel="standard")  # the files that run are checked
     manifest = json.loads(json.dumps(good))
     manifest["files"]["denoiser.onnx"].update(bytes=11, sha256=hashlib.sha256(b"not a graph").hexdigest())
     (bad / MANIFEST_NAME).write_text(json.dumps(manifest))
     with pytest.raises(ModelDirError, match="could not be loaded"):
-        OnnxPolicy(bad)
+        OnnxPolicy(bad, kernel="standard")
 
 
 def test_control_loop_updates_history_every_tick_and_chunks_every_h_a(tiny_export):

@@ -22,6 +22,7 @@ from dssp_train.training import checkpoint as ckpt
 from dssp_train.training.checkpoint import load_policy
 from export import verify as verify_module
 from dssp_deploy.manifest import read_manifest
+from dssp_deploy.sessions import session_options
 from export.to_onnx import export_model
 from export.to_onnx import main as export_main
 from export.verify import main as verify_main
@@ -78,9 +79,10 @@ def trained_run(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def exported(trained_run, tmp_path_factory) -> tuple[Path, dict]:
-    """The trained run exported in every format, int8 included, with the 1000-step parity check."""
+    """The trained run exported in every format (fused graphs, int8 and int4 included: the defaults), with the
+    1000-step parity check."""
     out = tmp_path_factory.mktemp("models") / "tiny"
-    summary = export_model(trained_run, out, quantize="int8", verify_steps=1000, threads=1, progress=lambda _: None)
+    summary = export_model(trained_run, out, verify_steps=1000, threads=1, progress=lambda _: None)
     return out, summary
 
 
@@ -90,18 +92,23 @@ def test_export_passes_parity_over_1000_steps(exported, trained_run):
     report = summary["verification"]
     assert report["passed"] and report["steps"] == 1000 and report["chunk_ticks_total"] == 334
     assert report["chunks"] == verify_module.CHUNKS and report["chunk_ticks"][0] == 0 and report["chunk_ticks"][-1] == 999
-    assert set(report["errors"]) == {"onnx", "torchscript"} and report["streamed"] == ["onnx"]
+    quantized = ["onnx_int8", "onnx_int8_fused", "onnx_int4", "onnx_int4_fused"]
+    assert set(report["errors"]) == {"onnx", "onnx_fused", "torchscript"}
+    assert sorted(report["streamed"]) == sorted(["onnx", "onnx_fused", *quantized])
     assert report["batch_checked"] == {"torchscript": [0, report["chunk_ticks"][4], 999]}
     for figures in report["errors"].values():
         assert all(value <= 1e-4 for value in figures.values() if value is not None), figures
     assert report["errors"]["torchscript"]["state"] is None  # checked through its c_t
     assert report["units"]["action"].startswith("normalised") and report["worst_at"]["backend"] in report["errors"]
-    assert "int8" in report and report["int8"]["action_max_abs_vs_fp32"] < 1.0
+    assert sorted(report["quantized"]) == sorted(quantized)
+    for name, q in report["quantized"].items():  # each against the fp32 graphs of its own path, not bounded
+        assert q["against"] == ("onnx_fused" if name.endswith("_fused") else "onnx") and 0 < q["action_max_abs_vs_fp32"] < 1.0
     manifest = read_manifest(out)
     assert manifest["verification"]["passed"]
     assert sorted(os.listdir(out)) == sorted(
-        ["dssp_model.json", "history_step.onnx", "denoiser.onnx", "history_step.pt", "denoiser.pt",
-         "history_step.int8.onnx", "denoiser.int8.onnx"]
+        ["dssp_model.json", "history_step.pt", "denoiser.pt"]
+        + [f"{g}{suffix}.onnx" for g in ("history_step", "denoiser")
+           for suffix in ("", ".fused", ".int8", ".int8.fused", ".int4", ".int4.fused")]
     )
     assert leftovers(out.parent) == []
     assert manifest["source"]["sha256"] == verify_module.file_sha256(trained_run / "model.safetensors")
@@ -127,10 +134,11 @@ def test_graphs_match_the_manifest_and_carry_metadata(exported):
     assert history_inputs[2] == {"name": "conv_state_0", "shape": ["B", inner, 4], "dtype": "float32"}
     assert history_inputs[3] == {"name": "ssm_state_0", "shape": ["B", inner, m["d_state"]], "dtype": "float32"}
     for graph, spec in manifest["graphs"].items():
-        for kind in ("onnx", "onnx_int8"):
+        for kind in ("onnx", "onnx_int8", "onnx_int4", "onnx_fused", "onnx_int4_fused"):
             path = out / spec["files"][kind]
             onnx.checker.check_model(str(path), full_check=True)
-            session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+            options = session_options(1, fused=kind.endswith("_fused"))
+            session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
             for got, want in ((session.get_inputs(), spec["inputs"]), (session.get_outputs(), spec["outputs"])):
                 assert [(g.name, g.shape, ONNX_TYPES[g.type]) for g in got] == [(w["name"], w["shape"], w["dtype"]) for w in want]
             props = {p.key: p.value for p in onnx.load(str(path), load_external_data=False).metadata_props}
@@ -232,8 +240,8 @@ def test_graphs_run_where_torch_cannot_be_imported(exported, trained_run):
 )
 def test_variants_export_and_verify(tmp_path, overrides):
     run = save_run(tmp_path / "run", *overrides)
-    summary = export_model(run, tmp_path / "model", fmt="onnx", verify_steps=60, threads=1, progress=lambda _: None)
-    assert summary["verification"]["passed"]
+    summary = export_model(run, tmp_path / "model", fmt="onnx", quantize=(), verify_steps=60, threads=1, progress=lambda _: None)
+    assert summary["verification"]["passed"] and set(summary["verification"]["errors"]) == {"onnx", "onnx_fused"}
     manifest = read_manifest(tmp_path / "model")
     names = lambda graph, io: [s["name"] for s in manifest["graphs"][graph][io]]  # noqa: E731
     if "model.use_history=false" in overrides:
@@ -245,7 +253,8 @@ def test_variants_export_and_verify(tmp_path, overrides):
         assert names("denoiser", "inputs") == ["c_t", "noise"]
     else:
         assert names("denoiser", "inputs") == ["c_t", "z_recent", "noise"]
-    assert sorted(os.listdir(tmp_path / "model")) == ["denoiser.onnx", "dssp_model.json", "history_step.onnx"]
+    assert sorted(os.listdir(tmp_path / "model")) == ["denoiser.fused.onnx", "denoiser.onnx", "dssp_model.json",
+                                                      "history_step.fused.onnx", "history_step.onnx"]
 
 
 def test_raw_weights_and_other_step_count(trained_run, tmp_path, capsys):

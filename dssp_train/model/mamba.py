@@ -30,12 +30,17 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from dssp_train.model.selective_scan import linear_scan, linear_scan_unrolled
+from dssp_train.model.selective_scan import linear_scan, linear_scan_unrolled, selective_scan
 
 MambaState = tuple[torch.Tensor, torch.Tensor]
 
 
 class Mamba(nn.Module):
+    # Set on the copies export traces into the fused graphs (``export.fused_ops.FusedOps``): an object whose
+    # ``selective_scan`` and ``causal_conv`` replace :func:`selective_scan` (without ``scan``) and
+    # :func:`causal_conv`, each one graph node. None (the default) everywhere else.
+    fused_ops = None
+
     def __init__(
         self,
         d_model: int,
@@ -130,16 +135,14 @@ class Mamba(nn.Module):
         """hidden_states (B, L, d_model) → out (B, L, d_model), state; ``scan(a, b, h0)`` as :func:`linear_scan`."""
         x, z = self.in_proj(hidden_states).chunk(2, dim=-1)  # (B, L, d_inner) each
 
-        # Causal depthwise convolution, continuing from the last d_conv conv inputs (zeros at a fresh start).
-        x = x.transpose(1, 2)  # (B, d_inner, L)
-        x_ext = F.pad(x, (self.d_conv, 0)) if state is None else torch.cat([state[0], x], dim=-1)  # (B, d_inner, d_conv + L)
-        new_conv_state = x_ext[:, :, -self.d_conv :]
-        x = F.conv1d(x_ext[:, :, 1:], self.conv1d.weight, self.conv1d.bias, groups=self.d_inner)
-        x = F.silu(x).transpose(1, 2)  # (B, L, d_inner)
+        conv_state = x.new_zeros(x.shape[0], self.d_inner, self.d_conv) if state is None else state[0]
+        if self.fused_ops is not None:
+            x, new_conv_state = self.fused_ops.causal_conv(x, conv_state, self.conv1d.weight[:, 0].t(), self._conv_bias())
+        else:
+            x, new_conv_state = causal_conv(x, conv_state, self.conv1d.weight, self.conv1d.bias)  # (B, L, d_inner)
 
-        decay, drive, C = self._ssm_inputs(x)  # (B, L, d_inner, d_state) twice, (B, L, d_state)
-        h = scan(decay, drive, None if state is None else state[1])  # (B, L, d_inner, d_state)
-        return self._output(h, C, x, z), (new_conv_state, h[:, -1])
+        y, last = self._selective_scan(x, z, None if state is None else state[1], scan)  # (B, L, d_inner), (B, d_inner, d_state)
+        return self.out_proj(y), (new_conv_state, last)
 
     # ----------------------------------------------------------- recurrent path
     def step(self, hidden_states: torch.Tensor, state: MambaState) -> tuple[torch.Tensor, MambaState]:
@@ -153,27 +156,50 @@ class Mamba(nn.Module):
         """
         conv_state, ssm_state = state
         x, z = self.in_proj(hidden_states).chunk(2, dim=-1)  # (B, d_inner)
-        conv_state = torch.cat([conv_state[:, :, 1:], x.unsqueeze(-1)], dim=-1)
-        x = (conv_state * self.conv1d.weight.squeeze(1)).sum(-1)
-        if self.conv1d.bias is not None:
-            x = x + self.conv1d.bias
-        x = F.silu(x)
+        if self.fused_ops is not None:
+            x, conv_state = self.fused_ops.causal_conv(x.unsqueeze(1), conv_state, self.conv1d.weight[:, 0].t(), self._conv_bias())
+            x = x[:, 0]
+        else:  # one token: the window's dot product with the kernel, cheaper than a convolution
+            conv_state = torch.cat([conv_state[:, :, 1:], x.unsqueeze(-1)], dim=-1)
+            x = (conv_state * self.conv1d.weight.squeeze(1)).sum(-1)
+            if self.conv1d.bias is not None:
+                x = x + self.conv1d.bias
+            x = F.silu(x)
 
-        decay, drive, C = self._ssm_inputs(x)  # (B, d_inner, d_state) twice, (B, d_state)
-        ssm_state = decay * ssm_state + drive
-        return self._output(ssm_state, C, x, z), (conv_state, ssm_state)
+        y, ssm_state = self._selective_scan(x.unsqueeze(1), z.unsqueeze(1), ssm_state, linear_scan_unrolled)
+        return self.out_proj(y[:, 0]), (conv_state, ssm_state)
 
     # ------------------------------------------------------------------ shared
-    def _ssm_inputs(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """x (..., d_inner) → decay exp(dt A), drive dt B x (..., d_inner, d_state) and C (..., d_state)."""
-        dt, B, C = torch.split(self.x_proj(x), [self.dt_rank, self.d_state, self.d_state], dim=-1)
-        dt = F.softplus(self.dt_proj(dt))  # (..., d_inner)
-        A = -torch.exp(self.A_log.to(torch.promote_types(self.A_log.dtype, torch.float32)))  # (d_inner, d_state), fp32 or wider
-        decay = torch.exp(dt.unsqueeze(-1) * A)
-        drive = (dt * x).unsqueeze(-1) * B.unsqueeze(-2)
-        return decay, drive, C
+    def _conv_bias(self) -> torch.Tensor:
+        return self.conv1d.bias if self.conv1d.bias is not None else self.conv1d.weight.new_zeros(self.d_inner)
 
-    def _output(self, h: torch.Tensor, C: torch.Tensor, x: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
-        """States h (..., d_inner, d_state), C (..., d_state), x and z (..., d_inner) → out (..., d_model)."""
-        y = torch.matmul(h, C.unsqueeze(-1))[..., 0]  # (..., d_inner)
-        return self.out_proj((y + self.D * x) * F.silu(z))
+    def _selective_scan(self, x: torch.Tensor, z: torch.Tensor, h0: torch.Tensor | None, scan) -> tuple[torch.Tensor, torch.Tensor]:
+        """x, z (B, L, d_inner), h0 (B, d_inner, d_state) or None → y * silu(z) (B, L, d_inner), the last state.
+
+        With :attr:`fused_ops` set (the exported fused graphs), its ``selective_scan`` does the work of
+        :func:`selective_scan` in one operator; otherwise ``scan`` runs the recurrence.
+        """
+        dt, B, C = torch.split(self.x_proj(x), [self.dt_rank, self.d_state, self.d_state], dim=-1)
+        dt = self.dt_proj(dt)  # (B, L, d_inner), before softplus
+        A = -torch.exp(self.A_log.to(torch.promote_types(self.A_log.dtype, torch.float32)))  # (d_inner, d_state), fp32 or wider
+        if self.fused_ops is not None:
+            if h0 is None:
+                h0 = x.new_zeros(x.shape[0], self.d_inner, self.d_state)
+            return self.fused_ops.selective_scan(x, dt, B, C, z, A, self.D, h0)
+        return selective_scan(x, dt, B, C, z, A, self.D, h0, scan)
+
+
+def causal_conv(x: torch.Tensor, state: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Mamba's conv branch: the causal depthwise convolution continuing from ``state``, then SiLU.
+
+    Args:
+        x: (B, L, E) the tokens' conv inputs.
+        state: (B, E, W) the last W conv inputs before them, newest last (zeros at a fresh start).
+        weight: (E, 1, W) the depthwise kernel (``nn.Conv1d`` layout); bias: (E,) or None.
+    Returns:
+        silu(conv) (B, L, E) and the new state (B, E, W): the last W of [state, x].
+    """
+    width = state.shape[-1]
+    x_ext = torch.cat([state, x.transpose(1, 2)], dim=-1)  # (B, E, W + L)
+    y = F.conv1d(x_ext[:, :, 1:], weight, bias, groups=x.shape[-1])  # (B, E, L)
+    return F.silu(y).transpose(1, 2), x_ext[:, :, -width:]

@@ -10,6 +10,8 @@ Written by hand because no maintained library offers a CPU selective scan with a
 (mamba-ssm's kernels are CUDA/Triton only and cannot be imported without a GPU).
 
 :func:`linear_scan_unrolled` is the plain loop, for short sequences in an exported graph.
+:func:`selective_scan` is Mamba's whole selective scan around either of them (softplus, decay, drive,
+readout, gate): the arithmetic the fused ONNX Runtime operator (``dssp_deploy/kernel``) does in one pass.
 
 Shapes: ``a``, ``b``, ``h`` are (B, L, D, N); the recurrence runs along dim 1 (L), any length.
 """
@@ -17,6 +19,7 @@ Shapes: ``a``, ``b``, ``h`` are (B, L, D, N); the recurrence runs along dim 1 (L
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 
 
 def _scan_inplace(a: torch.Tensor, x: torch.Tensor, reverse: bool = False) -> None:
@@ -111,3 +114,24 @@ def linear_scan_unrolled(a: torch.Tensor, b: torch.Tensor, h0: torch.Tensor | No
         h = b_t if h is None else a_t * h + b_t
         states.append(h)
     return torch.cat(states, dim=1)
+
+
+def selective_scan(x, dt, B, C, z, A, D, h0=None, scan=linear_scan):
+    """Mamba's selective scan: y_t = (C_t . h_t + D x_t) * silu(z_t), h_t = exp(delta_t A) h_{t-1} + delta_t x_t B_t.
+
+    Args:
+        x, z: (batch, L, E) the conv branch (after its SiLU) and the gate branch.
+        dt: (batch, L, E) ``dt_proj`` output before softplus (delta = softplus(dt)).
+        B, C: (batch, L, n).
+        A: (E, n), negative; D: (E,).
+        h0: (batch, E, n) the state before the first token, or None for zeros.
+        scan: :func:`linear_scan` or :func:`linear_scan_unrolled`.
+    Returns:
+        y (batch, L, E) and the state after the last token (batch, E, n).
+    """
+    delta = F.softplus(dt)
+    decay = torch.exp(delta.unsqueeze(-1) * A)  # (batch, L, E, n)
+    drive = (delta * x).unsqueeze(-1) * B.unsqueeze(-2)  # (batch, L, E, n)
+    h = scan(decay, drive, h0)  # (batch, L, E, n)
+    y = torch.matmul(h, C.unsqueeze(-1))[..., 0]  # (batch, L, E)
+    return (y + D * x) * F.silu(z), h[:, -1]

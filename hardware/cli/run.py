@@ -2,7 +2,7 @@
 
     dssp-run --model MODEL_DIR --camera l515|d435|d405|file:PATH|sim --can can0[,can1]|sim[:2]
              [--rate HZ] [--extrinsics FILE] [--pointcloud FILE] [--safety FILE] [--max-steps N] [--dry-run]
-             [--log-dir DIR] [--prefetch] [--threads N] [--precision fp32|int8] [--seed S] [--serial SERIAL] [--interface socketcan]
+             [--log-dir DIR] [--prefetch] [--threads N] [--precision fp32|int8|int4] [--kernel auto|fused|standard] [--seed S] [--serial SERIAL] [--interface socketcan]
              [--allow-mismatch FIELD ...]
 
 Opens the camera and the arm(s), warms the model up, then runs the control loop (``hardware.run_loop``):
@@ -52,10 +52,9 @@ def parse_args(argv):
     p.add_argument("--dry-run", action="store_true", help="compute and log actions, send nothing")
     p.add_argument("--prefetch", action="store_true", help="compute each chunk early in a background thread")
     p.add_argument("--threads", type=int, help="ONNX Runtime threads (default: all CPUs)")
-    from dssp_deploy.manifest import PRECISIONS
+    from dssp_deploy.onnx_policy import add_runtime_arguments
 
-    p.add_argument("--precision", choices=sorted(PRECISIONS), default="fp32",
-                   help="the model's fp32 graphs, or its int8 graphs (export --quantize int8)")
+    add_runtime_arguments(p)
     p.add_argument("--seed", type=int, help="diffusion noise seed (default: random)")
     p.add_argument("--log-dir", type=Path, help="episode log directory (default: runs/dssp-run/YYYYmmdd-HHMMSS)")
     p.add_argument("--no-can-log", action="store_true", help="do not write the raw CAN traffic (.blf per bus) into the log")
@@ -196,7 +195,8 @@ def _run(args, signals: StartupSignals) -> int:
     cloud_config = PointCloudConfig.load(args.pointcloud, "point-cloud settings") if args.pointcloud else None
     if not args.quiet and sys.stderr.isatty():  # a progress note for a person; logs and scripts get only the result
         print(f"loading {args.model} (warm-up included)", file=sys.stderr)
-    policy = OnnxPolicy(args.model, threads=args.threads, precision=args.precision)
+    policy = OnnxPolicy(args.model, threads=args.threads, precision=args.precision, kernel=args.kernel)
+    print(f"Mamba kernel: {policy.kernel_note}", file=sys.stderr)
     signals.check()
     trained = observation_of(policy.manifest)
     if cloud_config is None:  # the model's own settings; a model from data that recorded none: the defaults

@@ -1,0 +1,157 @@
+"""The fused Mamba operators (dssp_deploy/kernel): each implementation against PyTorch, and the runtime's
+choice between the fused and the standard graphs (used when present, a clean fallback when not)."""
+
+import json
+import shutil
+
+import numpy as np
+import onnxruntime as ort
+import pytest
+import onnx
+import torch
+from onnx import TensorProto, helper
+
+from dssp_deploy import mamba_kernel
+from dssp_deploy.manifest import MANIFEST_NAME, ModelDirError, sha256_hex
+from dssp_deploy.onnx_policy import OnnxPolicy
+from dssp_deploy.sessions import session_options
+from dssp_train.model.mamba import causal_conv
+from dssp_train.model.selective_scan import linear_scan_unrolled, selective_scan
+
+IMPLEMENTATIONS = ["avx2", "portable"]
+
+
+@pytest.fixture(scope="module", autouse=True)
+def built_kernel():
+    found = mamba_kernel.kernel()
+    assert found.available, f"the fused Mamba kernel is not built here ({found.reason}); run `make kernel` (make setup does)"
+    return found
+
+
+def op_session(op: str, inputs: list[str], outputs: list[str], implementation: str, monkeypatch, threads: int | None = None):
+    """A one-node graph of ``ai.dssp::op`` (its implementation chosen by DSSP_SCAN_PATH when the session is made)."""
+    monkeypatch.setenv("DSSP_SCAN_PATH", implementation)
+    graph = helper.make_graph(
+        [helper.make_node(op, inputs, outputs, domain=mamba_kernel.DOMAIN)], "g",
+        [helper.make_tensor_value_info(n, TensorProto.FLOAT, None) for n in inputs],
+        [helper.make_tensor_value_info(n, TensorProto.FLOAT, None) for n in outputs],
+    )
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17), helper.make_opsetid(mamba_kernel.DOMAIN, 1)])
+    return ort.InferenceSession(model.SerializeToString(), session_options(threads, fused=True), providers=["CPUExecutionProvider"])
+
+
+# batch, tokens, channels E, state n: the model's shapes, and odd ones (n and E not multiples of 8, one token)
+SCAN_SHAPES = [(1, 8, 64, 16), (2, 3, 40, 12), (1, 1, 1024, 64), (3, 5, 20, 5)]
+
+
+@pytest.mark.parametrize("implementation", IMPLEMENTATIONS)
+@pytest.mark.parametrize("shape", SCAN_SHAPES, ids=lambda s: "x".join(map(str, s)))
+def test_selective_scan_matches_pytorch(implementation, shape, monkeypatch):
+    b, length, e, n = shape
+    rng = np.random.default_rng(sum(shape))
+    f32 = lambda *s, scale=1.0, shift=0.0: (rng.standard_normal(s) * scale + shift).astype(np.float32)  # noqa: E731
+    feeds = {"x": f32(b, length, e), "dt": f32(b, length, e, scale=2.0, shift=-3.0), "B": f32(b, length, n), "C": f32(b, length, n),
+             "z": f32(b, length, e, scale=3.0), "A": -np.exp(rng.uniform(0, np.log(n), (e, n))).astype(np.float32),
+             "D": f32(e), "h0": f32(b, e, n)}
+    feeds["dt"][0, 0, :3] = [25.0, -40.0, 0.0]  # softplus's linear branch, its far tail, its middle
+    session = op_session(mamba_kernel.SCAN_OP, list(feeds), ["y", "h"], implementation, monkeypatch)
+    y, h = session.run(None, feeds)
+    t = {k: torch.from_numpy(v).double() for k, v in feeds.items()}
+    y_ref, h_ref = selective_scan(t["x"], t["dt"], t["B"], t["C"], t["z"], t["A"], t["D"], t["h0"], linear_scan_unrolled)
+    assert y.shape == (b, length, e) and h.shape == (b, e, n)
+    assert np.abs(y - y_ref.numpy()).max() <= 2e-6 * max(1.0, float(y_ref.abs().max()))
+    assert np.abs(h - h_ref.numpy()).max() <= 2e-6 * max(1.0, float(h_ref.abs().max()))
+
+
+@pytest.mark.parametrize("shape", [(1, 8, 1024, 4), (2, 3, 40, 4), (1, 1, 24, 4), (2, 6, 20, 3)], ids=lambda s: "x".join(map(str, s)))
+def test_causal_conv_matches_pytorch(shape, monkeypatch):
+    b, length, e, w = shape
+    rng = np.random.default_rng(sum(shape))
+    feeds = {"x": rng.standard_normal((b, length, e)).astype(np.float32), "state": rng.standard_normal((b, e, w)).astype(np.float32),
+             "weight": rng.standard_normal((w, e)).astype(np.float32), "bias": rng.standard_normal(e).astype(np.float32)}
+    session = op_session(mamba_kernel.CONV_OP, list(feeds), ["y", "new_state"], "auto", monkeypatch)
+    y, new_state = session.run(None, feeds)
+    t = {k: torch.from_numpy(v).double() for k, v in feeds.items()}
+    y_ref, state_ref = causal_conv(t["x"], t["state"], t["weight"].t().unsqueeze(1), t["bias"])
+    assert np.abs(y - y_ref.numpy()).max() <= 1e-5 and np.array_equal(new_state, state_ref.numpy().astype(np.float32))
+
+
+def test_a_wrong_shape_is_an_error_not_a_crash(monkeypatch):
+    session = op_session(mamba_kernel.SCAN_OP, ["x", "dt", "B", "C", "z", "A", "D", "h0"], ["y", "h"], "auto", monkeypatch)
+    z = lambda *s: np.zeros(s, np.float32)  # noqa: E731
+    with pytest.raises(Exception, match="SelectiveScan: h0 has shape \\(1, 8, 3\\), expected \\(1, 8, 4\\)"):
+        session.run(None, {"x": z(1, 2, 8), "dt": z(1, 2, 8), "B": z(1, 2, 4), "C": z(1, 2, 4), "z": z(1, 2, 8), "A": z(8, 4),
+                           "D": z(8), "h0": z(1, 8, 3)})
+
+
+# ------------------------------------------------------------ the runtime's choice
+def run_chunk(policy: OnnxPolicy, data_seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(data_seed)
+    for _ in range(7):
+        policy.observe(rng.normal(size=(1, 32, 3)).astype(np.float32), rng.uniform(size=(1, policy.state_dim)).astype(np.float32))
+    return policy.act(seed=0)
+
+
+def test_fused_graphs_run_by_default_and_match_the_standard_ones(tiny_export, monkeypatch):
+    _, model_dir, _ = tiny_export
+    fused, standard = OnnxPolicy(model_dir, threads=1), OnnxPolicy(model_dir, threads=1, kernel="standard")
+    assert fused.kernel == "fused" and fused.kernel_note.startswith("fused Mamba kernel (")
+    assert standard.kernel == "standard" and standard.kernel_note == "standard ONNX graphs (asked for)"
+    assert np.abs(run_chunk(fused) - run_chunk(standard)).max() <= 1e-4
+    monkeypatch.setenv("DSSP_SCAN_PATH", "portable")  # the portable implementation, through the whole runtime
+    portable = OnnxPolicy(model_dir, threads=1)
+    assert portable.kernel_note == "fused Mamba kernel (portable, libdssp_mamba.so)"
+    assert np.abs(run_chunk(portable) - run_chunk(standard)).max() <= 1e-4
+
+
+def test_a_missing_or_broken_library_falls_back_to_the_standard_graphs(tiny_export, tmp_path, monkeypatch):
+    _, model_dir, _ = tiny_export
+    want = run_chunk(OnnxPolicy(model_dir, threads=1, kernel="standard"))
+    broken = tmp_path / "libdssp_mamba.so"
+    broken.write_bytes(b"\x7fELF not really a library")
+    for library, reason in ((tmp_path / "missing.so", "is missing (build it with `make kernel`)"), (broken, "failed to load")):
+        monkeypatch.setenv(mamba_kernel.LIBRARY_ENV, str(library))
+        policy = OnnxPolicy(model_dir, threads=1)
+        assert policy.kernel == "standard" and reason in policy.kernel_note and "\n" not in policy.kernel_note
+        assert np.array_equal(run_chunk(policy), want)
+        with pytest.raises(ModelDirError, match="kernel fused: the fused Mamba kernel is unavailable") as err:
+            OnnxPolicy(model_dir, threads=1, kernel="fused")
+        assert "\n" not in str(err.value)
+    monkeypatch.setenv(mamba_kernel.LIBRARY_ENV, "off")
+    assert OnnxPolicy(model_dir, threads=1).kernel_note == "standard ONNX graphs (the fused Mamba kernel is unavailable: DSSP_KERNEL=off)"
+
+
+def test_a_model_without_fused_graphs_runs_the_standard_ones(tiny_export, tmp_path):
+    _, model_dir, _ = tiny_export
+    plain = tmp_path / "model"
+    shutil.copytree(model_dir, plain)
+    manifest = json.loads((plain / MANIFEST_NAME).read_text())
+    for spec in manifest["graphs"].values():  # as exported with --no-fused, or where the kernel was not built
+        spec["files"] = {kind: name for kind, name in spec["files"].items() if not kind.endswith("_fused")}
+    (plain / MANIFEST_NAME).write_text(json.dumps(manifest))
+    policy = OnnxPolicy(plain, threads=1)
+    assert policy.kernel == "standard" and "has no fp32 fused graphs" in policy.kernel_note
+    with pytest.raises(ModelDirError, match="has no int4 fused graphs"):
+        OnnxPolicy(plain, threads=1, precision="int4", kernel="fused")
+
+
+def test_a_fused_graph_the_runtime_cannot_load_falls_back(tiny_export, tmp_path):
+    """A library without the operators a graph names (an older build): the session fails, the standard graphs run."""
+    _, model_dir, _ = tiny_export
+    model = tmp_path / "model"
+    shutil.copytree(model_dir, model)
+    manifest = json.loads((model / MANIFEST_NAME).read_text())
+    name = manifest["graphs"]["denoiser"]["files"]["onnx_fused"]
+    graph = onnx.load(str(model / name))
+    for node in graph.graph.node:
+        if node.op_type == "SelectiveScan":
+            node.op_type = "SelectiveScanV9"
+    data = graph.SerializeToString()
+    (model / name).write_bytes(data)
+    manifest["files"][name].update(bytes=len(data), sha256=sha256_hex(data))
+    (model / MANIFEST_NAME).write_text(json.dumps(manifest))
+    policy = OnnxPolicy(model, threads=1)
+    assert policy.kernel == "standard" and policy.kernel_note.startswith("standard ONNX graphs (the fused graphs failed to load:")
+    with pytest.raises(ModelDirError, match="could not be loaded by ONNX Runtime") as err:
+        OnnxPolicy(model, threads=1, kernel="fused")
+    assert "\n" not in str(err.value)
