@@ -20,6 +20,10 @@ them and the fused Mamba library loads (:mod:`dssp_deploy.mamba_kernel`); otherw
 which compute the same actions (both pass ``export.verify``). ``kernel="fused"`` refuses to fall back,
 ``kernel="standard"`` never uses the library. :attr:`OnnxPolicy.kernel_note` says in one line which runs and why.
 
+Threads: ``threads`` (default: all CPUs) for both graphs; with ``background_chunks`` (the control loop's
+prefetch, where a chunk is computed while ticks go on) the history graph gets one thread and the
+denoiser the rest, so the tick's history step never waits for cores the chunk holds.
+
 Shapes: point_cloud (B, P, C) or (P, C); agent_pos (B, S) or (S,); noise (B, H, A); chunk (B, H, A);
 z_t, c_t (B, d); recent (B, N, d); state {name: (B, ...)} as the manifest's history inputs.
 """
@@ -44,7 +48,7 @@ from dssp_deploy.manifest import (
     read_graph,
     read_manifest,
 )
-from dssp_deploy.sessions import open_session
+from dssp_deploy.sessions import check_threads, default_threads, open_session
 
 KERNELS = ("auto", "fused", "standard")
 DEFAULT_PRECISION = "fp32"
@@ -95,7 +99,7 @@ def _batch(x, rank: int, name: str) -> np.ndarray:
 
 class OnnxPolicy:
     def __init__(self, model_dir: str | Path, threads: int | None = None, spinning: bool = False, warmup: int = 2,
-                 precision: str = "fp32", kernel: str = "auto"):
+                 precision: str = DEFAULT_PRECISION, kernel: str = "auto", background_chunks: bool = False):
         if precision not in PRECISIONS:
             raise ModelDirError(f"precision must be one of {sorted(PRECISIONS)}, got {precision!r}")
         self.precision = precision
@@ -109,14 +113,19 @@ class OnnxPolicy:
         self.control_rate_hz: float | None = m["control_rate_hz"]
         self.use_history, self.use_recent_states = m["use_history"], m["use_recent_states"]
         self.history_state: list[str] = list(m["history_state"])
+        check_threads(threads)
+        total = threads or default_threads()
+        # With chunks computed in the background (prefetch) the history step and the denoiser run at the same
+        # time: the history gets one thread and the denoiser the others, so they do not compete for cores.
+        self.threads = {HISTORY_GRAPH: 1, DENOISER_GRAPH: max(1, total - 1)} if background_chunks else dict.fromkeys(GRAPHS, total)
         self.fused, self.kernel_note = choose_graphs(m, precision, kernel)
         try:
-            self.sessions = self._open_sessions(threads, spinning)
+            self.sessions = self._open_sessions(spinning)
         except GraphLoadError as exc:  # ONNX Runtime refused a fused graph (not a file or interface mismatch)
             if not self.fused or kernel == "fused":
                 raise
             self.fused, self.kernel_note = False, f"standard ONNX graphs (the fused graphs failed to load: {exc})"
-            self.sessions = self._open_sessions(threads, spinning)
+            self.sessions = self._open_sessions(spinning)
         self.kernel = "fused" if self.fused else "standard"
         self._state_specs = [s for s in m["graphs"][HISTORY_GRAPH]["inputs"] if s["name"] in self.history_state]
         self._history_outputs = [o.name for o in self.sessions[HISTORY_GRAPH].get_outputs()]
@@ -126,12 +135,12 @@ class OnnxPolicy:
         if warmup:
             self.warmup(warmup)
 
-    def _open_sessions(self, threads: int | None, spinning: bool) -> dict[str, Any]:
+    def _open_sessions(self, spinning: bool) -> dict[str, Any]:
         sessions = {}
         for graph in (HISTORY_GRAPH, DENOISER_GRAPH):
             path, data = read_graph(self.model_dir, self.manifest, graph, file_kind(self.precision, self.fused))  # size and sha256 checked
             try:
-                session = open_session(data, threads, spinning, fused=self.fused)  # the checked bytes, not the path again
+                session = open_session(data, self.threads[graph], spinning, fused=self.fused)  # the checked bytes, not the path again
             except Exception as exc:  # onnxruntime raises its own exception types
                 first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
                 raise GraphLoadError(f"{path} could not be loaded by ONNX Runtime ({first}); export the model again") from None

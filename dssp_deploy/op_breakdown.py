@@ -20,11 +20,13 @@ import numpy as np
 from dssp_deploy.sessions import session_options
 
 
-def op_type_breakdown(path: Path, feeds: dict[str, np.ndarray], threads: int | None = None, runs: int = 5, warmup: int = 2) -> list[dict]:
-    """Kernel time per run by operator type, over ``runs`` profiled calls after ``warmup`` calls."""
+def op_type_breakdown(path: Path, feeds: dict[str, np.ndarray], threads: int | None = None, runs: int = 5, warmup: int = 2,
+                      fused: bool = False) -> list[dict]:
+    """Kernel time per run by operator type, over ``runs`` profiled calls after ``warmup`` calls
+    (``fused``: a graph with the fused Mamba operators)."""
     import onnxruntime as ort
 
-    options = session_options(threads)
+    options = session_options(threads, fused=fused)
     options.enable_profiling = True
     options.profile_file_prefix = str(Path(path).with_suffix("")) + "_opprofile"
     session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])

@@ -1,6 +1,7 @@
 """``dssp-profile``: CPU latency and memory of an exported DSSP model, in numbers and a plot.
 
-    dssp-profile MODEL_DIR [--precision fp32|int8] [--quick] [--threads N] [--json PATH] [--plot PATH] [--force]
+    dssp-profile MODEL_DIR [--precision fp32|int8|int4] [--kernel auto|fused|standard] [--quick] [--threads N]
+                           [--json PATH] [--plot PATH] [--force]
 
 Measures, for the model directory given (batch 1, the model's point count), with ONNX Runtime and numpy only:
 - per component — history step, denoiser chunk (K DDIM steps), the chunk tick (both) — p50/p95/p99/max
@@ -10,6 +11,11 @@ Measures, for the model directory given (batch 1, the model's point count), with
 - achieved GFLOP/s against this machine's own float32 GEMM peak (numpy), and the chunk's floor on this
   machine: its flops at that peak, and — when the denoiser's weights exceed the last-level cache, so each
   of the K DDIM steps reads them from memory again — K x weight bytes at the measured read bandwidth.
+- paths and threads: history step and chunk p50 on the fused Mamba kernel's graphs and on the standard
+  ones, each at 1 thread and at ``--threads`` (default: all CPUs), with the speed-up of the threads — to
+  extrapolate to a robot computer with more cores;
+- the tick with the next chunk prefetched in the background (the control loop's ``prefetch``): the
+  history step gets one thread and the chunk the others; the tick's p99 against the history step's p99.
 Prints a Markdown table; ``--json`` writes every figure (ms, MiB); ``--plot`` a PNG. Both are new files or,
 with ``--force``, replace existing ones (checked before profiling; written to a temporary name and renamed).
 The same model under PyTorch eager and TorchScript, and a causal Transformer history encoder over the full
@@ -36,19 +42,23 @@ from dssp_deploy.latency import (
     resident_memory_mib,
     time_calls,
 )
-from dssp_deploy.manifest import DENOISER_GRAPH, HISTORY_GRAPH, PRECISIONS, graph_file
+from dssp_deploy.manifest import DENOISER_GRAPH, HISTORY_GRAPH, file_kind, graph_file, read_manifest
+from dssp_deploy.onnx_policy import DEFAULT_PRECISION, OnnxPolicy, add_runtime_arguments, choose_graphs
 from dssp_deploy.op_breakdown import elementwise_share, op_type_breakdown
-from dssp_deploy.onnx_policy import OnnxPolicy
+from dssp_deploy.sessions import default_threads
 from dssp_data.cli_runner import ArgumentParser
 
-FULL = {"iterations": 300, "chunk_iterations": 100, "sweep": [10, 100, 1000, 3000, 10000], "window": 50}
-QUICK = {"iterations": 20, "chunk_iterations": 5, "sweep": [10, 100, 300], "window": 10}
+FULL = {"iterations": 300, "chunk_iterations": 100, "sweep": [10, 100, 1000, 3000, 10000], "window": 50,
+        "matrix_iterations": 100, "matrix_chunks": 20, "prefetch_ticks": 300}
+QUICK = {"iterations": 20, "chunk_iterations": 5, "sweep": [10, 100, 300], "window": 10,
+         "matrix_iterations": 10, "matrix_chunks": 3, "prefetch_ticks": 24}
 # The runtime's latency targets for the robotwin preset (1024 points, batch 1) on a 2-core CPU.
 TARGETS = {
     "history_step_p50_ms": 1.5,
     "history_step_p95_ms": 2.5,
     "denoiser_chunk_p50_ms": 25.0,
     "history_growth_10k": 0.05,  # per-step cost at the longest history vs the shortest
+    "prefetch_tick_p99_over_history_p99": 1.5,
 }
 
 
@@ -69,6 +79,53 @@ def profile_components(policy: OnnxPolicy, settings: dict, rng) -> dict[str, Any
     return {"history_step": history, "denoiser_chunk": chunk, "chunk_tick": tick}
 
 
+def paths_and_threads(model_dir: Path, precision: str, threads: int, settings: dict, rng) -> list[dict[str, Any]]:
+    """History step and chunk p50 per graph set (fused when the kernel loads, standard) at 1 and ``threads`` threads."""
+    rows = []
+    kernels = ["fused", "standard"] if choose_graphs(read_manifest(model_dir), precision)[0] else ["standard"]
+    for kernel in kernels:
+        for n in sorted({1, threads}):
+            policy = OnnxPolicy(model_dir, threads=n, precision=precision, kernel=kernel)
+            pc, pos = random_observation(policy, rng)
+            policy.reset()
+            history = LatencyStats.of(time_calls(lambda: policy.observe(pc, pos), settings["matrix_iterations"]))
+            chunk = LatencyStats.of(time_calls(lambda: policy.act(seed=0), settings["matrix_chunks"]))
+            rows.append({"kernel": kernel, "threads": n, "history_step_p50": history.p50, "history_step_p99": history.p99,
+                         "chunk_p50": chunk.p50})
+    for row in rows:
+        one = next(r for r in rows if r["kernel"] == row["kernel"] and r["threads"] == 1)
+        row["history_speedup_vs_1"] = one["history_step_p50"] / row["history_step_p50"]
+        row["chunk_speedup_vs_1"] = one["chunk_p50"] / row["chunk_p50"]
+    return rows
+
+
+def prefetch_ticks(model_dir: Path, precision: str, kernel: str, threads: int, ticks: int, rng) -> dict[str, Any]:
+    """Real-time ticks at the model's control rate with the next chunk prefetched: the tick's latency against
+    the history step's, measured on the same sessions (history on one thread, the chunk on the others)."""
+    from dssp_deploy.control_loop import ChunkedControl
+
+    policy = OnnxPolicy(model_dir, threads=threads, precision=precision, kernel=kernel, background_chunks=True)
+    pc, pos = random_observation(policy, rng)
+    policy.reset()
+    alone = LatencyStats.of(time_calls(lambda: policy.observe(pc, pos), max(ticks, 20)))
+    rate = policy.control_rate_hz or 10.0
+    loop = ChunkedControl(policy, rate_hz=rate, prefetch=True, seed=0)
+    period = 1.0 / rate
+    tick_ms, waited, next_at = [], 0, time.perf_counter()
+    for _ in range(ticks):
+        t0 = time.perf_counter()
+        _, info = loop.tick(pc, pos)
+        tick_ms.append((time.perf_counter() - t0) * 1e3)
+        waited += info.over_budget
+        next_at += period
+        time.sleep(max(0.0, next_at - time.perf_counter()))
+    loop.reset()
+    ticks_stats = LatencyStats.of(tick_ms)
+    return {"rate_hz": rate, "ticks": ticks, "lead_ticks": loop.lead, "threads": dict(policy.threads),
+            "history_step_alone": alone.to_dict(), "tick": ticks_stats.to_dict(), "chunks_late": int(waited),
+            "tick_p99_over_history_p99": ticks_stats.p99 / alone.p99}
+
+
 def history_sweep(step, lengths: list[int], window: int) -> list[dict[str, float]]:
     """Per-step cost and resident memory at each history length; ``step()`` adds one observation."""
     rows, done = [], 0
@@ -82,12 +139,13 @@ def history_sweep(step, lengths: list[int], window: int) -> list[dict[str, float
     return rows
 
 
-def run_profile(model_dir: Path, quick: bool, threads: int | None, precision: str = "fp32") -> dict[str, Any]:
+def run_profile(model_dir: Path, quick: bool, threads: int | None, precision: str = DEFAULT_PRECISION,
+                kernel: str = "auto") -> dict[str, Any]:
     """Every figure of one profiling run of the model directory (see the module's docstring)."""
     settings = QUICK if quick else FULL
     rng = np.random.default_rng(0)
     rss_before = resident_memory_mib()
-    policy = OnnxPolicy(model_dir, threads=threads, precision=precision)
+    policy = OnnxPolicy(model_dir, threads=threads, precision=precision, kernel=kernel)
     rss_loaded = resident_memory_mib()
     manifest = policy.manifest
     m = manifest["model_config"]
@@ -101,11 +159,19 @@ def run_profile(model_dir: Path, quick: bool, threads: int | None, precision: st
     peak = gemm_peak_gflops()
     flops = {"history_step": history_step_flops(m, m["n_points"]), "denoiser_chunk": chunk_flops(m, manifest["denoise_steps"])}
     achieved = {k: flops[k] / (stats[k]["p50"] / 1e3) / 1e9 for k in flops}
-    floor = chunk_floor(model_dir, manifest, flops["denoiser_chunk"], peak, PRECISIONS[precision])
+    floor = chunk_floor(model_dir, manifest, flops["denoiser_chunk"], peak, file_kind(precision, policy.fused))
     breakdown = graph_breakdowns(policy, model_dir, threads, runs=2 if quick else 5)
+    used, note = policy.kernel, policy.kernel_note
+    n_threads = threads or default_threads()
+    matrix = paths_and_threads(model_dir, precision, n_threads, settings, rng)
+    prefetch = prefetch_ticks(model_dir, precision, used, n_threads, settings["prefetch_ticks"], rng)
     return {
         "model_dir": str(model_dir),
         "precision": precision,
+        "kernel": used,
+        "kernel_note": note,
+        "paths_and_threads": matrix,
+        "prefetch": prefetch,
         "machine": {"processor": platform.processor() or platform.machine(), "threads": threads, "gemm_peak_gflops": peak},
         "settings": {"quick": quick, **settings},
         "memory_mib": {"before_load": rss_before, "after_load": rss_loaded, "after_profile": resident_memory_mib()},
@@ -145,10 +211,12 @@ def graph_breakdowns(policy: OnnxPolicy, model_dir: Path, threads: int | None, r
     policy.observe(pc, pos)
     history_feeds = {"point_cloud": pc, "agent_pos": pos, **policy.state} if policy.use_history else {"point_cloud": pc, "agent_pos": pos}
     denoiser_feeds = {**policy.denoiser_inputs(), "noise": policy.noise(1, seed=0)}
-    manifest, fmt = policy.manifest, PRECISIONS[policy.precision]
+    manifest, fmt = policy.manifest, file_kind(policy.precision, policy.fused)
     return {
-        "history_step": op_type_breakdown(graph_file(model_dir, manifest, HISTORY_GRAPH, fmt), history_feeds, threads, runs),
-        "denoiser_chunk": op_type_breakdown(graph_file(model_dir, manifest, DENOISER_GRAPH, fmt), denoiser_feeds, threads, runs),
+        "history_step": op_type_breakdown(graph_file(model_dir, manifest, HISTORY_GRAPH, fmt), history_feeds, threads, runs,
+                                          fused=policy.fused),
+        "denoiser_chunk": op_type_breakdown(graph_file(model_dir, manifest, DENOISER_GRAPH, fmt), denoiser_feeds, threads, runs,
+                                            fused=policy.fused),
     }
 
 
@@ -169,13 +237,16 @@ def target_rows(report: dict[str, Any]) -> list[tuple[str, float, float, bool, s
         rows[-1] = (*rows[-1][:4], rows[-1][4] + f"; this machine's floor for it is {floor:.3g} ms")
     growth = abs(sweep[-1]["p50_ms"] / sweep[0]["p50_ms"] - 1)
     upper(f"history step cost change {sweep[0]['length']} → {sweep[-1]['length']} steps (fraction)", growth, TARGETS["history_growth_10k"], "")
+    upper("tick p99 with prefetch / history step p99", report["prefetch"]["tick_p99_over_history_p99"],
+          TARGETS["prefetch_tick_p99_over_history_p99"], "")
     return rows
 
 
 def markdown(report: dict[str, Any]) -> str:
     lat = report["latency_ms"]
     lines = [
-        f"Model: {report['model_dir']} ({report['precision']} graphs) — GEMM peak {report['machine']['gemm_peak_gflops']:.0f} GFLOP/s (numpy float32)",
+        f"Model: {report['model_dir']} ({report['precision']} graphs, {report['kernel_note']}) — "
+        f"GEMM peak {report['machine']['gemm_peak_gflops']:.0f} GFLOP/s (numpy float32)",
         "",
         "| component | p50 ms | p95 ms | p99 ms | max ms | GFLOP/s | of peak |",
         "|---|---:|---:|---:|---:|---:|---:|",
@@ -185,6 +256,16 @@ def markdown(report: dict[str, Any]) -> str:
         gf = report["achieved_gflops"].get(key)
         extra = f"{gf:.1f} | {100 * report['fraction_of_peak'][key]:.1f} %" if gf is not None else " | "
         lines.append(f"| {label} | {s['p50']:.2f} | {s['p95']:.2f} | {s['p99']:.2f} | {s['max']:.2f} | {extra} |")
+    lines += ["", "| graphs | threads | history step p50 ms | p99 ms | chunk p50 ms | history speed-up | chunk speed-up |",
+              "|---|---:|---:|---:|---:|---:|---:|"]
+    for r in report["paths_and_threads"]:
+        lines.append(f"| {r['kernel']} | {r['threads']} | {r['history_step_p50']:.2f} | {r['history_step_p99']:.2f} | {r['chunk_p50']:.2f} | "
+                     f"{r['history_speedup_vs_1']:.2f}x | {r['chunk_speedup_vs_1']:.2f}x |")
+    pf = report["prefetch"]
+    lines += ["", f"Prefetch: {pf['ticks']} real-time ticks at {pf['rate_hz']:g} Hz, each chunk started {pf['lead_ticks']} tick(s) early "
+              f"(history {pf['threads']['history_step']} thread, chunk {pf['threads']['denoiser']}): tick p50 {pf['tick']['p50']:.2f} ms, "
+              f"p99 {pf['tick']['p99']:.2f} ms against the history step alone p99 {pf['history_step_alone']['p99']:.2f} ms "
+              f"({pf['tick_p99_over_history_p99']:.2f}x); chunks late: {pf['chunks_late']}"]
     lines += ["", "| history length | DSSP step p50 ms | RSS MiB |", "|---:|---:|---:|"]
     for r in report["history_sweep"]:
         lines.append(f"| {r['length']} | {r['p50_ms']:.3f} | {r['rss_mib']:.0f} |")
@@ -244,8 +325,7 @@ def main(argv: list[str] | None = None) -> int:
     p = ArgumentParser(prog="dssp-profile", description="CPU latency and memory of an exported DSSP model.")
     p.add_argument("model_dir", type=Path)
     p.add_argument("--quick", action="store_true", help="short run (tests, CI)")
-    p.add_argument("--precision", choices=sorted(PRECISIONS), default="fp32",
-                   help="which graphs to time: fp32, or int8 (export --quantize int8)")
+    add_runtime_arguments(p)
     p.add_argument("--threads", type=int, help="ONNX Runtime intra-op threads (default: all CPUs)")
     p.add_argument("--json", type=Path, help="write every figure here")
     p.add_argument("--plot", type=Path, help="write a PNG here")
@@ -261,7 +341,7 @@ def main(argv: list[str] | None = None) -> int:
             if path is not None:
                 check_output_file(path, force=args.force, flag=flag)
         t0 = time.perf_counter()
-        report = run_profile(args.model_dir, args.quick, args.threads, args.precision)
+        report = run_profile(args.model_dir, args.quick, args.threads, args.precision, args.kernel)
         report["profile_seconds"] = time.perf_counter() - t0
         print(markdown(report))
         if args.json:

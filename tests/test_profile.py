@@ -44,6 +44,13 @@ def test_profile_runs_where_torch_cannot_be_imported(tiny_export, tmp_path):
     assert "torch" not in report and 0 < report["latency_ms"]["denoiser_chunk"]["p50"]
     assert [r["length"] for r in report["history_sweep"]] == report["settings"]["sweep"]
     assert png_path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # both graph sets, each at 1 thread (--threads 1), and the prefetched tick on the same model
+    assert report["kernel"] == "fused" and [(r["kernel"], r["threads"]) for r in report["paths_and_threads"]] == [("fused", 1), ("standard", 1)]
+    assert all(r["chunk_p50"] > 0 and r["chunk_speedup_vs_1"] == 1.0 for r in report["paths_and_threads"])
+    prefetch = report["prefetch"]
+    assert prefetch["ticks"] == report["settings"]["prefetch_ticks"] and prefetch["lead_ticks"] >= 1
+    assert prefetch["threads"] == {"history_step": 1, "denoiser": 1} and prefetch["tick_p99_over_history_p99"] > 0
+    assert "| fused | 1 |" in out.stdout and "| standard | 1 |" in out.stdout and "Prefetch: " in out.stdout
 
 
 def test_profile_has_no_checkpoint_flag(tmp_path, capsys):

@@ -133,7 +133,7 @@ class Mamba(nn.Module):
 
     def _sequence(self, hidden_states: torch.Tensor, state: MambaState | None, scan) -> tuple[torch.Tensor, MambaState]:
         """hidden_states (B, L, d_model) → out (B, L, d_model), state; ``scan(a, b, h0)`` as :func:`linear_scan`."""
-        x, z = self.in_proj(hidden_states).chunk(2, dim=-1)  # (B, L, d_inner) each
+        x, z = self.in_proj(hidden_states).split(self.d_inner, dim=-1)  # (B, L, d_inner) each; one Split node when exported
 
         conv_state = x.new_zeros(x.shape[0], self.d_inner, self.d_conv) if state is None else state[0]
         if self.fused_ops is not None:
@@ -155,7 +155,7 @@ class Mamba(nn.Module):
             out (B, d_model) and the new state (new tensors; the inputs are not modified).
         """
         conv_state, ssm_state = state
-        x, z = self.in_proj(hidden_states).chunk(2, dim=-1)  # (B, d_inner)
+        x, z = self.in_proj(hidden_states).split(self.d_inner, dim=-1)  # (B, d_inner)
         if self.fused_ops is not None:
             x, conv_state = self.fused_ops.causal_conv(x.unsqueeze(1), conv_state, self.conv1d.weight[:, 0].t(), self._conv_bias())
             x = x[:, 0]

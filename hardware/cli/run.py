@@ -195,7 +195,8 @@ def _run(args, signals: StartupSignals) -> int:
     cloud_config = PointCloudConfig.load(args.pointcloud, "point-cloud settings") if args.pointcloud else None
     if not args.quiet and sys.stderr.isatty():  # a progress note for a person; logs and scripts get only the result
         print(f"loading {args.model} (warm-up included)", file=sys.stderr)
-    policy = OnnxPolicy(args.model, threads=args.threads, precision=args.precision, kernel=args.kernel)
+    policy = OnnxPolicy(args.model, threads=args.threads, precision=args.precision, kernel=args.kernel,
+                        background_chunks=args.prefetch)
     print(f"Mamba kernel: {policy.kernel_note}", file=sys.stderr)
     signals.check()
     trained = observation_of(policy.manifest)
