@@ -191,22 +191,22 @@ AVX2_FN inline float hsum8(__m256 v) {
   return _mm_cvtss_f32(_mm_add_ss(t, _mm_shuffle_ps(t, t, 1)));
 }
 
-// 2^y for y <= 0 (clamped at -126): y = m + f with m an integer, f in [-0.5, 0.5]; 2^f by the Cephes exp2f
-// polynomial (relative error about 2e-7), 2^m by writing m into the exponent bits.
+// 2^y for y <= 0 (clamped at -125): y = m + f with m an integer, f in [-0.5, 0.5]; 2^f by a degree-5
+// polynomial fitted to the relative error (at most 1.8e-7 in float32), 2^m added to its exponent bits
+// (an integer add instead of a multiply: the multiply ports are what the scan is short of).
 AVX2_FN inline __m256 exp2_8(__m256 y) {
   const __m256 magic = _mm256_set1_ps(12582912.0f);  // 1.5 * 2^23: t = y + magic holds round(y) in its low bits
-  y = _mm256_max_ps(y, _mm256_set1_ps(-126.0f));
+  y = _mm256_max_ps(y, _mm256_set1_ps(-125.0f));
   const __m256 t = _mm256_add_ps(y, magic);
   const __m256 f = _mm256_sub_ps(y, _mm256_sub_ps(t, magic));
-  __m256 q = _mm256_set1_ps(1.535336188319500e-4f);
-  q = _mm256_fmadd_ps(q, f, _mm256_set1_ps(1.339887440266574e-3f));
-  q = _mm256_fmadd_ps(q, f, _mm256_set1_ps(9.618437357674640e-3f));
-  q = _mm256_fmadd_ps(q, f, _mm256_set1_ps(5.550332471162809e-2f));
-  q = _mm256_fmadd_ps(q, f, _mm256_set1_ps(2.402264791363012e-1f));
-  q = _mm256_fmadd_ps(q, f, _mm256_set1_ps(6.931472028550421e-1f));
+  __m256 q = _mm256_set1_ps(1.3218674575909972e-3f);
+  q = _mm256_fmadd_ps(q, f, _mm256_set1_ps(9.671702980995178e-3f));
+  q = _mm256_fmadd_ps(q, f, _mm256_set1_ps(5.550893023610115e-2f));
+  q = _mm256_fmadd_ps(q, f, _mm256_set1_ps(2.4022237956523895e-1f));
+  q = _mm256_fmadd_ps(q, f, _mm256_set1_ps(6.931468844413757e-1f));
   q = _mm256_fmadd_ps(q, f, _mm256_set1_ps(1.0f));
-  const __m256i bits = _mm256_slli_epi32(_mm256_add_epi32(_mm256_castps_si256(t), _mm256_set1_epi32(127)), 23);
-  return _mm256_mul_ps(q, _mm256_castsi256_ps(bits));
+  // the low bits of t are round(y) in two's complement; shifted into the exponent field they add round(y)
+  return _mm256_castsi256_ps(_mm256_add_epi32(_mm256_castps_si256(q), _mm256_slli_epi32(_mm256_castps_si256(t), 23)));
 }
 
 // dst[j * dst_stride + c] = src[c * stride + j] * scale for an 8 x 8 block.
@@ -265,26 +265,25 @@ AVX2_FN void scan_block_avx2(const Problem& p, int64_t b, int64_t e0, int64_t e1
       const __m256 d = _mm256_loadu_ps(delta + t * w + g), u = _mm256_loadu_ps(dx + t * w + g);
       const float* Bt = p.B + (b * L + t) * n;
       const float* Ct = p.C + (b * L + t) * n;
-      __m256 acc0 = _mm256_setzero_ps(), acc1 = _mm256_setzero_ps();
+      __m256 acc[4] = {_mm256_setzero_ps(), _mm256_setzero_ps(), _mm256_setzero_ps(), _mm256_setzero_ps()};
       int64_t k = 0;
-      for (; k + 1 < n; k += 2) {
-        const __m256 a0 = exp2_8(_mm256_mul_ps(d, _mm256_load_ps(At + 8 * k)));
-        const __m256 a1 = exp2_8(_mm256_mul_ps(d, _mm256_load_ps(At + 8 * k + 8)));
-        const __m256 h0 = _mm256_fmadd_ps(a0, _mm256_load_ps(ht + 8 * k), _mm256_mul_ps(u, _mm256_broadcast_ss(Bt + k)));
-        const __m256 h1 = _mm256_fmadd_ps(a1, _mm256_load_ps(ht + 8 * k + 8), _mm256_mul_ps(u, _mm256_broadcast_ss(Bt + k + 1)));
-        _mm256_store_ps(ht + 8 * k, h0);
-        _mm256_store_ps(ht + 8 * k + 8, h1);
-        acc0 = _mm256_fmadd_ps(_mm256_broadcast_ss(Ct + k), h0, acc0);
-        acc1 = _mm256_fmadd_ps(_mm256_broadcast_ss(Ct + k + 1), h1, acc1);
+      for (; k + 4 <= n; k += 4) {  // four independent state rows in flight
+        for (int64_t j = 0; j < 4; ++j) {
+          const __m256 a = exp2_8(_mm256_mul_ps(d, _mm256_load_ps(At + 8 * (k + j))));
+          const __m256 h = _mm256_fmadd_ps(a, _mm256_load_ps(ht + 8 * (k + j)), _mm256_mul_ps(u, _mm256_broadcast_ss(Bt + k + j)));
+          _mm256_store_ps(ht + 8 * (k + j), h);
+          acc[j] = _mm256_fmadd_ps(_mm256_broadcast_ss(Ct + k + j), h, acc[j]);
+        }
       }
-      if (k < n) {
-        const __m256 a0 = exp2_8(_mm256_mul_ps(d, _mm256_load_ps(At + 8 * k)));
-        const __m256 h0 = _mm256_fmadd_ps(a0, _mm256_load_ps(ht + 8 * k), _mm256_mul_ps(u, _mm256_broadcast_ss(Bt + k)));
-        _mm256_store_ps(ht + 8 * k, h0);
-        acc0 = _mm256_fmadd_ps(_mm256_broadcast_ss(Ct + k), h0, acc0);
+      for (; k < n; ++k) {
+        const __m256 a = exp2_8(_mm256_mul_ps(d, _mm256_load_ps(At + 8 * k)));
+        const __m256 h = _mm256_fmadd_ps(a, _mm256_load_ps(ht + 8 * k), _mm256_mul_ps(u, _mm256_broadcast_ss(Bt + k)));
+        _mm256_store_ps(ht + 8 * k, h);
+        acc[0] = _mm256_fmadd_ps(_mm256_broadcast_ss(Ct + k), h, acc[0]);
       }
+      const __m256 sum = _mm256_add_ps(_mm256_add_ps(acc[0], acc[1]), _mm256_add_ps(acc[2], acc[3]));
       const int64_t at = (b * L + t) * E + e;
-      const __m256 y = _mm256_fmadd_ps(D, _mm256_loadu_ps(p.x + at), _mm256_add_ps(acc0, acc1));
+      const __m256 y = _mm256_fmadd_ps(D, _mm256_loadu_ps(p.x + at), sum);
       _mm256_storeu_ps(p.y + at, _mm256_mul_ps(y, _mm256_loadu_ps(gate + t * w + g)));
     }
     // (n, 8) back to rows (8, n): the same transpose with the roles swapped, in 8 x 8 blocks
@@ -311,11 +310,13 @@ struct ConvProblem {
   int64_t batch, L, E, W;
 };
 
-inline float xe_at(const ConvProblem& p, int64_t b, int64_t i, int64_t e) {
-  return i < p.W ? p.state[(b * p.E + e) * p.W + i] : p.x[(b * p.L + i - p.W) * p.E + e];
-}
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+#define CONV_CLONES __attribute__((target_clones("arch=x86-64-v3", "default")))  // an AVX2 + FMA build beside the baseline one
+#else
+#define CONV_CLONES
+#endif
 
-void conv_block(const ConvProblem& p, int64_t b, int64_t e0, int64_t e1) {
+CONV_CLONES void conv_block(const ConvProblem& p, int64_t b, int64_t e0, int64_t e1) {
   const int64_t L = p.L, E = p.E, W = p.W;
   for (int64_t t = 0; t < L; ++t) {
     float* y = p.y + (b * L + t) * E;
@@ -334,8 +335,17 @@ void conv_block(const ConvProblem& p, int64_t b, int64_t e0, int64_t e1) {
 #pragma omp simd
     for (int64_t e = e0; e < e1; ++e) y[e] = y[e] / (1.0f + fast_exp(-y[e]));
   }
-  for (int64_t e = e0; e < e1; ++e)
-    for (int64_t k = 0; k < W; ++k) p.new_state[(b * E + e) * W + k] = xe_at(p, b, L + k, e);
+  for (int64_t k = 0; k < W; ++k) {  // the new state: the last W steps of [state, x]
+    const int64_t i = L + k;
+    float* out = p.new_state + b * E * W + k;
+    if (i >= W) {
+      const float* xi = p.x + (b * L + i - W) * E;
+      for (int64_t e = e0; e < e1; ++e) out[e * W] = xi[e];
+    } else {
+      const float* si = p.state + b * E * W + i;
+      for (int64_t e = e0; e < e1; ++e) out[e * W] = si[e * W];
+    }
+  }
 }
 
 // ------------------------------------------------------------------ the operator
