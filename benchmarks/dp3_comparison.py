@@ -335,7 +335,7 @@ def compare(model_dir: Path, threads: int | None, repeats: int, precision: str =
         dp3_ort = time_calls(lambda: chunk(pc, pos, noise), repeats, warmup=WARMUP)
         ort_out = chunk(pc, pos, noise)
         graph_mib = chunk.graph_mib
-        del chunk
+        chunk = None  # the sessions close before their folder is removed
     tpc, tpos, tnoise = (torch.from_numpy(x) for x in (pc, pos, noise))
     with torch.inference_mode():
         dp3_torch = time_calls(lambda: dp3_chunk_torch(encoder, unet, steps, tpc, tpos, tnoise), repeats, warmup=WARMUP)

@@ -1,7 +1,7 @@
 """The DSSP policy on the robot: two ONNX Runtime graphs, numpy in and out, no torch.
 
     policy = OnnxPolicy("models/tap")          # validates dssp_model.json against the graphs, warms up
-    policy = OnnxPolicy("models/tap", precision="int8")  # the int8 graphs (export --quantize int8)
+    policy = OnnxPolicy("models/tap", precision="fp32")  # the fp32 graphs (default: DEFAULT_PRECISION's, int8)
     print(policy.kernel_note)                  # one line: which graphs run (fused Mamba kernel or standard)
     policy.reset()
     policy.observe(point_cloud, agent_pos)     # every control tick: the history-update graph
@@ -51,13 +51,25 @@ from dssp_deploy.manifest import (
 from dssp_deploy.sessions import check_threads, default_threads, open_session
 
 KERNELS = ("auto", "fused", "standard")
-DEFAULT_PRECISION = "fp32"
+# The precision run when none is asked for: the fastest one whose closed-loop success stays inside fp32's
+# 95 % interval (reports/sampling, the README's CPU table). A model directory without its graphs (exported
+# with --quantize none) runs fp32, and the start-up line says so.
+DEFAULT_PRECISION = "int8"
+
+
+def default_precision(manifest: dict[str, Any]) -> tuple[str, str]:
+    """(precision, why) when none is asked for: :data:`DEFAULT_PRECISION` if the model has those graphs, else fp32."""
+    kind = file_kind(DEFAULT_PRECISION)
+    if all(kind in manifest["graphs"][g]["files"] for g in GRAPHS):
+        return DEFAULT_PRECISION, ""
+    return "fp32", f"; fp32: the model directory has no {DEFAULT_PRECISION} graphs"
 
 
 def add_runtime_arguments(parser) -> None:
     """``--precision`` and ``--kernel``: which of a model directory's graphs a command runs."""
-    parser.add_argument("--precision", choices=list(PRECISIONS), default=DEFAULT_PRECISION,
-                        help=f"the model's graphs to run: {', '.join(PRECISIONS)} (default {DEFAULT_PRECISION}; export writes all three)")
+    parser.add_argument("--precision", choices=list(PRECISIONS),
+                        help=f"the model's graphs to run: {', '.join(PRECISIONS)} (default {DEFAULT_PRECISION} when the model has "
+                             "them, else fp32; export writes all three)")
     parser.add_argument("--kernel", choices=KERNELS, default="auto",
                         help="fused: the fused Mamba kernel's graphs (make kernel), standard: the plain ONNX graphs, "
                              "auto (default): fused when the library loads, else standard")
@@ -99,10 +111,9 @@ def _batch(x, rank: int, name: str) -> np.ndarray:
 
 class OnnxPolicy:
     def __init__(self, model_dir: str | Path, threads: int | None = None, spinning: bool = False, warmup: int = 2,
-                 precision: str = DEFAULT_PRECISION, kernel: str = "auto", background_chunks: bool = False):
-        if precision not in PRECISIONS:
+                 precision: str | None = None, kernel: str = "auto", background_chunks: bool = False):
+        if precision is not None and precision not in PRECISIONS:
             raise ModelDirError(f"precision must be one of {sorted(PRECISIONS)}, got {precision!r}")
-        self.precision = precision
         self.model_dir = Path(model_dir)
         self.manifest: dict[str, Any] = read_manifest(self.model_dir)  # every fact checked, see dssp_deploy.manifest
         m = self.manifest
@@ -118,15 +129,20 @@ class OnnxPolicy:
         # With chunks computed in the background (prefetch) the history step and the denoiser run at the same
         # time: the history gets one thread and the denoiser the others, so they do not compete for cores.
         self.threads = {HISTORY_GRAPH: 1, DENOISER_GRAPH: max(1, total - 1)} if background_chunks else dict.fromkeys(GRAPHS, total)
+        why_precision = ""
+        if precision is None:
+            precision, why_precision = default_precision(m)
+        self.precision = precision
         self.fused, self.kernel_note = choose_graphs(m, precision, kernel)
+        self.kernel_note = f"{precision}, {self.kernel_note}{why_precision}"
         try:
             self.sessions = self._open_sessions(spinning)
         except GraphLoadError as exc:  # ONNX Runtime refused a fused graph (not a file or interface mismatch)
             if not self.fused or kernel == "fused":
                 raise
-            self.fused, self.kernel_note = False, f"standard ONNX graphs (the fused graphs failed to load: {exc})"
+            self.fused, self.kernel_note = False, f"{precision}, standard ONNX graphs (the fused graphs failed to load: {exc})"
             self.sessions = self._open_sessions(spinning)
-        self.kernel = "fused" if self.fused else "standard"
+        self.kernel = "fused" if self.fused else "standard"  # kernel_note: "<precision>, <graphs> (<why>)", one line
         self._state_specs = [s for s in m["graphs"][HISTORY_GRAPH]["inputs"] if s["name"] in self.history_state]
         self._history_outputs = [o.name for o in self.sessions[HISTORY_GRAPH].get_outputs()]
         self.history: StreamingHistory[np.ndarray] = StreamingHistory(
@@ -137,6 +153,13 @@ class OnnxPolicy:
 
     def _open_sessions(self, spinning: bool) -> dict[str, Any]:
         sessions = {}
+        # Every ONNX graph file of the directory is checked (size, sha256) before anything runs, not only the
+        # ones chosen: a damaged model directory is refused as a whole, whichever graphs a fallback would take.
+        running = {g: file_kind(self.precision, self.fused) for g in GRAPHS}
+        for graph in GRAPHS:
+            for kind in self.manifest["graphs"][graph]["files"]:
+                if kind.startswith("onnx") and kind != running[graph]:
+                    read_graph(self.model_dir, self.manifest, graph, kind)
         for graph in (HISTORY_GRAPH, DENOISER_GRAPH):
             path, data = read_graph(self.model_dir, self.manifest, graph, file_kind(self.precision, self.fused))  # size and sha256 checked
             try:

@@ -43,7 +43,7 @@ from dssp_deploy.latency import (
     time_calls,
 )
 from dssp_deploy.manifest import DENOISER_GRAPH, HISTORY_GRAPH, file_kind, graph_file, read_manifest
-from dssp_deploy.onnx_policy import DEFAULT_PRECISION, OnnxPolicy, add_runtime_arguments, choose_graphs
+from dssp_deploy.onnx_policy import OnnxPolicy, add_runtime_arguments, choose_graphs
 from dssp_deploy.op_breakdown import elementwise_share, op_type_breakdown
 from dssp_deploy.sessions import default_threads
 from dssp_data.cli_runner import ArgumentParser
@@ -139,13 +139,14 @@ def history_sweep(step, lengths: list[int], window: int) -> list[dict[str, float
     return rows
 
 
-def run_profile(model_dir: Path, quick: bool, threads: int | None, precision: str = DEFAULT_PRECISION,
+def run_profile(model_dir: Path, quick: bool, threads: int | None, precision: str | None = None,
                 kernel: str = "auto") -> dict[str, Any]:
     """Every figure of one profiling run of the model directory (see the module's docstring)."""
     settings = QUICK if quick else FULL
     rng = np.random.default_rng(0)
     rss_before = resident_memory_mib()
     policy = OnnxPolicy(model_dir, threads=threads, precision=precision, kernel=kernel)
+    precision = policy.precision  # the default resolved
     rss_loaded = resident_memory_mib()
     manifest = policy.manifest
     m = manifest["model_config"]

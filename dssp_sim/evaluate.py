@@ -30,7 +30,6 @@ from pathlib import Path
 import numpy as np
 
 from dssp_deploy.manifest import observation_of
-from dssp_deploy.onnx_policy import DEFAULT_PRECISION
 from dssp_sim.settings import cloud_config_for
 from dssp_sim.mujoco_arm import MujocoPiper
 from dssp_sim.mujoco_camera import MujocoCamera
@@ -74,8 +73,8 @@ class EvalResult:
     episodes: list[EpisodeOutcome] = field(default_factory=list)
     state_token_noise: float = 0.0
     latency_ms: dict = field(default_factory=dict)
-    precision: str = DEFAULT_PRECISION
-    kernel: str = ""  # the graphs that ran: "fused" or "standard"
+    precision: str = ""  # the graphs that ran: "fp32", "int8" or "int4"; "fused" or "standard"
+    kernel: str = ""
 
     @property
     def successes(self) -> int:
@@ -194,21 +193,21 @@ STRIPS_DIR = OutputKind("a folder of episode strips", "dssp-sim eval", entries=(
 
 def evaluate(model_dir: Path, task: str, n_episodes: int, seed: int = 1000, threads: int | None = None,
              state_token_noise: float = 0.0, strips_dir: Path | None = None, progress: bool = True,
-             precision: str = DEFAULT_PRECISION, kernel: str = "auto") -> EvalResult:
+             precision: str | None = None, kernel: str = "auto") -> EvalResult:
     """Evaluate a model directory on ``task`` for ``n_episodes`` seeded episodes (seeds seed, seed+1, ...);
     ``precision`` and ``kernel`` choose its graphs (:class:`dssp_deploy.onnx_policy.OnnxPolicy`)."""
     from dssp_deploy.onnx_policy import OnnxPolicy
     from dssp_sim.env import PiperEnv
 
     policy = OnnxPolicy(model_dir, threads=threads, precision=precision, kernel=kernel)
-    print(f"Mamba kernel: {policy.kernel_note}", file=sys.stderr)
+    print(f"graphs: {policy.kernel_note}", file=sys.stderr)
     if state_token_noise > 0:
         policy.denoiser_inputs = _NoisyRecentStates(policy, state_token_noise, np.random.default_rng(seed))
     env = PiperEnv(task, seed=seed)
     # The model's own point-cloud settings (its observation contract), as dssp-run uses them; a model trained on
     # data that recorded none sees the simulation's settings at its point count.
     cloud_config = observation_of(policy.manifest).pointcloud or cloud_config_for(policy.manifest["model_config"]["n_points"])
-    result = EvalResult(str(model_dir), task, state_token_noise=state_token_noise, precision=precision, kernel=policy.kernel)
+    result = EvalResult(str(model_dir), task, state_token_noise=state_token_noise, precision=policy.precision, kernel=policy.kernel)
     bar = None
     if progress:
         from tqdm import tqdm

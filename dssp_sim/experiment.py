@@ -55,7 +55,7 @@ PLAN = {
     "export_flags": [],  # parity is checked on every export of the study
 }
 QUICK_PLAN = {**PLAN, "steps": {"tap": 20}, "demos": {"tap": 3}, "seeds": {"tap": [0]}, "eval_episodes": 1,
-              "export_flags": ["--skip-verify"],  # the export tests prove parity; this only checks the plumbing
+              "export_flags": ["--skip-verify", "--quantize", "none"],  # the export tests prove parity and quantize; this checks the plumbing
               "robustness": {"task": "tap", "seed": 0, "sigmas": [0.1]}}
 WORK_DIR = OutputKind("a study work directory", "python -m dssp_sim.experiment",
                       entries=("data", "runs", "models", "evals", "logs"), signature=lambda p: (p / "logs").is_dir())

@@ -391,7 +391,7 @@ def test_unsupported_history_variant(tmp_path, capsys):
 
 def test_output_path_rules(tmp_path, capsys):
     run = save_run(tmp_path / "run")
-    fast = ["--format", "onnx", "--skip-verify"]
+    fast = ["--format", "onnx", "--skip-verify", "--quantize", "none", "--no-fused"]
     (tmp_path / "a_file").write_text("x")
     assert export_main([str(run), "-o", str(tmp_path / "a_file" / "model"), *fast]) == 2
     assert "is a file, not a folder" in one_error_line(capsys.readouterr().err)
@@ -408,7 +408,7 @@ def test_output_path_rules(tmp_path, capsys):
     first = read_manifest(model)["files"]
     assert export_main([str(run), "-o", str(model), *fast]) == 2
     assert "pass --force" in one_error_line(capsys.readouterr().err)
-    assert export_main([str(run), "-o", str(model), "--force", "--format", "both", "--skip-verify"]) == 0
+    assert export_main([str(run), "-o", str(model), "--force", "--format", "both", "--skip-verify", "--quantize", "none", "--no-fused"]) == 0
     assert set(read_manifest(model)["files"]) == set(first) | {"history_step.pt", "denoiser.pt"}
     assert leftovers(tmp_path) == []
 

@@ -13,7 +13,7 @@ from onnx import TensorProto, helper
 
 from dssp_deploy import mamba_kernel
 from dssp_deploy.manifest import MANIFEST_NAME, ModelDirError, sha256_hex
-from dssp_deploy.onnx_policy import OnnxPolicy
+from dssp_deploy.onnx_policy import DEFAULT_PRECISION, OnnxPolicy
 from dssp_deploy.sessions import session_options
 from dssp_train.model.mamba import causal_conv
 from dssp_train.model.selective_scan import linear_scan_unrolled, selective_scan
@@ -94,19 +94,21 @@ def run_chunk(policy: OnnxPolicy, data_seed: int = 0) -> np.ndarray:
 
 def test_fused_graphs_run_by_default_and_match_the_standard_ones(tiny_export, monkeypatch):
     _, model_dir, _ = tiny_export
-    fused, standard = OnnxPolicy(model_dir, threads=1), OnnxPolicy(model_dir, threads=1, kernel="standard")
-    assert fused.kernel == "fused" and fused.kernel_note.startswith("fused Mamba kernel (")
-    assert standard.kernel == "standard" and standard.kernel_note == "standard ONNX graphs (asked for)"
+    default = OnnxPolicy(model_dir, threads=1)
+    assert default.kernel == "fused" and default.precision == DEFAULT_PRECISION
+    assert default.kernel_note == f"{DEFAULT_PRECISION}, fused Mamba kernel (avx2, libdssp_mamba.so)"
+    fused, standard = OnnxPolicy(model_dir, threads=1, precision="fp32"), OnnxPolicy(model_dir, threads=1, precision="fp32", kernel="standard")
+    assert fused.kernel == "fused" and standard.kernel_note == "fp32, standard ONNX graphs (asked for)"
     assert np.abs(run_chunk(fused) - run_chunk(standard)).max() <= 1e-4
     monkeypatch.setenv("DSSP_SCAN_PATH", "portable")  # the portable implementation, through the whole runtime
-    portable = OnnxPolicy(model_dir, threads=1)
-    assert portable.kernel_note == "fused Mamba kernel (portable, libdssp_mamba.so)"
+    portable = OnnxPolicy(model_dir, threads=1, precision="fp32")
+    assert portable.kernel_note == "fp32, fused Mamba kernel (portable, libdssp_mamba.so)"
     assert np.abs(run_chunk(portable) - run_chunk(standard)).max() <= 1e-4
 
 
 def test_a_missing_or_broken_library_falls_back_to_the_standard_graphs(tiny_export, tmp_path, monkeypatch):
     _, model_dir, _ = tiny_export
-    want = run_chunk(OnnxPolicy(model_dir, threads=1, kernel="standard"))
+    want = run_chunk(OnnxPolicy(model_dir, threads=1, kernel="standard"))  # int8, the default precision
     broken = tmp_path / "libdssp_mamba.so"
     broken.write_bytes(b"\x7fELF not really a library")
     for library, reason in ((tmp_path / "missing.so", "is missing (build it with `make kernel`)"), (broken, "failed to load")):
@@ -118,7 +120,8 @@ def test_a_missing_or_broken_library_falls_back_to_the_standard_graphs(tiny_expo
             OnnxPolicy(model_dir, threads=1, kernel="fused")
         assert "\n" not in str(err.value)
     monkeypatch.setenv(mamba_kernel.LIBRARY_ENV, "off")
-    assert OnnxPolicy(model_dir, threads=1).kernel_note == "standard ONNX graphs (the fused Mamba kernel is unavailable: DSSP_KERNEL=off)"
+    assert OnnxPolicy(model_dir, threads=1).kernel_note == (
+        f"{DEFAULT_PRECISION}, standard ONNX graphs (the fused Mamba kernel is unavailable: DSSP_KERNEL=off)")
 
 
 def test_a_model_without_fused_graphs_runs_the_standard_ones(tiny_export, tmp_path):
@@ -130,7 +133,7 @@ def test_a_model_without_fused_graphs_runs_the_standard_ones(tiny_export, tmp_pa
         spec["files"] = {kind: name for kind, name in spec["files"].items() if not kind.endswith("_fused")}
     (plain / MANIFEST_NAME).write_text(json.dumps(manifest))
     policy = OnnxPolicy(plain, threads=1)
-    assert policy.kernel == "standard" and "has no fp32 fused graphs" in policy.kernel_note
+    assert policy.kernel == "standard" and f"has no {DEFAULT_PRECISION} fused graphs" in policy.kernel_note
     with pytest.raises(ModelDirError, match="has no int4 fused graphs"):
         OnnxPolicy(plain, threads=1, precision="int4", kernel="fused")
 
@@ -150,8 +153,8 @@ def test_a_fused_graph_the_runtime_cannot_load_falls_back(tiny_export, tmp_path)
     (model / name).write_bytes(data)
     manifest["files"][name].update(bytes=len(data), sha256=sha256_hex(data))
     (model / MANIFEST_NAME).write_text(json.dumps(manifest))
-    policy = OnnxPolicy(model, threads=1)
-    assert policy.kernel == "standard" and policy.kernel_note.startswith("standard ONNX graphs (the fused graphs failed to load:")
+    policy = OnnxPolicy(model, threads=1, precision="fp32")
+    assert policy.kernel == "standard" and policy.kernel_note.startswith("fp32, standard ONNX graphs (the fused graphs failed to load:")
     with pytest.raises(ModelDirError, match="could not be loaded by ONNX Runtime") as err:
-        OnnxPolicy(model, threads=1, kernel="fused")
+        OnnxPolicy(model, threads=1, precision="fp32", kernel="fused")
     assert "\n" not in str(err.value)

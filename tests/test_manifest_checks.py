@@ -263,7 +263,8 @@ def other_export(arm_export, tmp_path_factory):
     run_dir = arm_export.parent / "run"
     assert (run_dir / "config.json").is_file()
     out = tmp_path_factory.mktemp("other") / "model"
-    assert export_main([str(run_dir), "-o", str(out), "--skip-verify", "--format", "onnx", "--denoise-steps", "4"]) == 0
+    assert export_main([str(run_dir), "-o", str(out), "--skip-verify", "--format", "onnx", "--quantize", "none",
+                        "--denoise-steps", "4"]) == 0
     return out
 
 

@@ -37,7 +37,7 @@ def recorded_model(tmp_path_factory):
                         "--no-depth", "--quiet"]) == 0
     assert train_main(["--data", str(data), "--out", str(run_dir), "--preset", "tiny", "--steps", "2",
                        "--set", "train.val_every=2", "--no-progress"]) == 0
-    assert export_main([str(run_dir), "-o", str(model_dir), "--skip-verify"]) == 0
+    assert export_main([str(run_dir), "-o", str(model_dir), "--skip-verify", "--quantize", "none"]) == 0
     return model_dir, run_dir
 
 

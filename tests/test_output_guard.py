@@ -354,7 +354,7 @@ def test_eval_replaces_its_strips_and_json_only_with_force(tmp_path, capsys, mon
 
     runs = []
 
-    def fake(model, task, n, seed=0, threads=None, state_token_noise=0.0, strips_dir=None, progress=True):
+    def fake(model, task, n, seed=0, threads=None, state_token_noise=0.0, strips_dir=None, progress=True, **graphs):
         runs.append(1)
         (Path(strips_dir) / "tap_seed1.png").write_bytes(b"png %d" % len(runs))
         return EvalResult(str(model), task, state_token_noise=len(runs))

@@ -11,6 +11,8 @@ from pathlib import Path
 
 import pytest
 
+from dssp_deploy.manifest import file_kind, read_manifest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -43,6 +45,21 @@ def test_profile_runs_where_torch_cannot_be_imported(tiny_export, tmp_path):
     report = json.loads(json_path.read_text())
     assert "torch" not in report and 0 < report["latency_ms"]["denoiser_chunk"]["p50"]
     assert [r["length"] for r in report["history_sweep"]] == report["settings"]["sweep"]
+    for key in ("history_step", "denoiser_chunk", "chunk_tick"):
+        s = report["latency_ms"][key]
+        assert 0 < s["p50"] <= s["p95"] <= s["p99"] <= s["max"]
+    assert all(r["rss_mib"] > 0 for r in report["history_sweep"])
+    assert report["machine"]["gemm_peak_gflops"] > 0 and report["achieved_gflops"]["denoiser_chunk"] > 0
+    for graph in ("history_step", "denoiser_chunk"):  # ORT's own profiler explains where the time goes
+        rows = report["op_breakdown"][graph]
+        assert rows and abs(sum(r["share"] for r in rows) - 1) < 1e-6 and all(r["nodes"] >= 1 for r in rows)
+    ops = {r["op"] for r in report["op_breakdown"]["denoiser_chunk"]}
+    assert any("MatMul" in op for op in ops) and {"SelectiveScan", "CausalConv1d"} <= ops  # the fused graphs ran
+    assert "| denoiser chunk p50 ms |" in out.stdout and "Where the denoiser chunk goes" in out.stdout
+    floor = report["chunk_floor"]  # the least a chunk can take here, from this machine's own peak and bandwidth
+    assert floor["read_gbs"] > 0 and 0 < floor["compute_ms"] <= floor["floor_ms"] and "Chunk floor on this machine" in out.stdout
+    ran = read_manifest(model_dir)["graphs"]["denoiser"]["files"][file_kind(report["precision"], report["kernel"] == "fused")]
+    assert floor["weights_mib"] * 2**20 == (model_dir / ran).stat().st_size
     assert png_path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     # both graph sets, each at 1 thread (--threads 1), and the prefetched tick on the same model
     assert report["kernel"] == "fused" and [(r["kernel"], r["threads"]) for r in report["paths_and_threads"]] == [("fused", 1), ("standard", 1)]

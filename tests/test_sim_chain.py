@@ -183,7 +183,7 @@ def sim_model(tmp_path_factory):
     assert sim_main(["collect", "--task", "tap", "--episodes", "3", "--out", str(data), "--no-progress"]) == 0
     assert train_main(["--data", str(data), "--out", str(root / "run"), "--preset", "sim", "--steps", "20",
                        "--set", "train.val_every=20", "--no-progress"]) == 0
-    assert export_main([str(root / "run"), "-o", str(root / "model"), "--skip-verify"]) == 0
+    assert export_main([str(root / "run"), "-o", str(root / "model"), "--skip-verify", "--quantize", "none"]) == 0
     return root / "model"
 
 

@@ -197,7 +197,6 @@ def _run(args, signals: StartupSignals) -> int:
         print(f"loading {args.model} (warm-up included)", file=sys.stderr)
     policy = OnnxPolicy(args.model, threads=args.threads, precision=args.precision, kernel=args.kernel,
                         background_chunks=args.prefetch)
-    print(f"Mamba kernel: {policy.kernel_note}", file=sys.stderr)
     signals.check()
     trained = observation_of(policy.manifest)
     if cloud_config is None:  # the model's own settings; a model from data that recorded none: the defaults
@@ -220,6 +219,7 @@ def _run(args, signals: StartupSignals) -> int:
         print(f"warning: running with {o['field']} = {o['given']} although the model was trained with {o['trained']} "
               "(--allow-mismatch)", file=sys.stderr)
     check_fits(policy, robot, cloud_config)  # before any device is opened
+    print(f"graphs: {policy.kernel_note}", file=sys.stderr)  # which graphs run: the one start-up line about them
     limits = JointLimits.piper()
     lower, upper = np.tile(limits.lower, n_arms), np.tile(limits.upper, n_arms)
     gripper = np.tile(np.arange(7) == 6, n_arms)

@@ -1,0 +1,160 @@
+"""The CPU targets of one exported model in one run, with the fused Mamba kernel and without it.
+
+    python benchmarks/cpu_targets.py MODEL_DIR --checkpoint RUN_DIR [--threads N] [--precision fp32|int8|int4]
+                                     [--quick] [--no-dp3] [--json PATH [--force]]
+
+Batch 1, the model's point count, ``--threads`` ONNX Runtime threads (default: all CPUs; torch gets the same).
+For each graph set — the fused Mamba kernel's (``*.fused.onnx``) and the standard one — measures:
+
+- the denoiser chunk (K DDIM steps) at ``--precision`` (default: the runtime's default), p50;
+- the history step in fp32, p50 and p99;
+- the tick with the next chunk prefetched (``dssp-profile``'s real-time loop: history on one thread, the
+  chunk on the others), its p99 against the history step's p99 on the same sessions;
+
+and once: PyTorch eager (``--checkpoint``, the run the model was exported from) per chunk and per
+history step, and DP3's policy head at its RoboTwin configuration in ONNX Runtime
+(``benchmarks/dp3_comparison.py``; skipped with ``--no-dp3``). Ratios are of medians measured in this run.
+Prints the targets table (the robotwin preset's targets on a 2-core CPU); ``--json`` writes every figure.
+The runtime-only figures, without torch, are ``dssp-profile MODEL_DIR``.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from dp3_comparison import compare as dp3_compare  # noqa: E402
+from torch_comparison import check_source, eager_samples  # noqa: E402
+
+from dssp_data.cli_runner import ArgumentParser, run_cli  # noqa: E402
+from dssp_data.output_guard import check_output_file, write_output_text  # noqa: E402
+from dssp_deploy.latency import LatencyStats, time_calls  # noqa: E402
+from dssp_deploy.manifest import PRECISIONS, read_manifest  # noqa: E402
+from dssp_deploy.onnx_policy import DEFAULT_PRECISION, OnnxPolicy, choose_graphs  # noqa: E402
+from dssp_deploy.profile import prefetch_ticks, random_observation  # noqa: E402
+from dssp_deploy.sessions import check_threads, default_threads  # noqa: E402
+
+FULL = {"history": 300, "chunks": 30, "prefetch_ticks": 300, "torch_iterations": 10, "dp3_repeats": 5}
+QUICK = {"history": 20, "chunks": 3, "prefetch_ticks": 20, "torch_iterations": 2, "dp3_repeats": 1}
+TARGETS = {  # robotwin preset, 1024 points, batch 1, 2 threads, p50
+    "chunk_ms": (25.0, 50.0),  # (target, required)
+    "history_step_fp32_ms": 1.5,
+    "ort_vs_eager_chunk": 5.0,
+    "dssp_vs_dp3_chunk": 100.0,
+    "prefetch_tick_p99_over_history_p99": 1.5,
+}
+
+
+def runtime_figures(model_dir: Path, kernel: str, precision: str, threads: int, settings: dict) -> dict:
+    """Chunk (at ``precision``), fp32 history step and prefetched tick on one graph set."""
+    rng = np.random.default_rng(0)
+    out = {}
+    for p in dict.fromkeys([precision, "fp32"]):
+        policy = OnnxPolicy(model_dir, threads=threads, precision=p, kernel=kernel)
+        pc, pos = random_observation(policy, rng)
+        policy.reset()
+        history = LatencyStats.of(time_calls(lambda: policy.observe(pc, pos), settings["history"]))
+        chunk = LatencyStats.of(time_calls(lambda: policy.act(seed=0), settings["chunks"]))
+        out[p] = {"history_step": history.to_dict(), "chunk": chunk.to_dict(), "kernel_note": policy.kernel_note}
+    prefetch = prefetch_ticks(model_dir, precision, kernel, threads, settings["prefetch_ticks"], rng)
+    return {"precision": out, "prefetch": prefetch}
+
+
+def measure(model_dir: Path, checkpoint: Path, threads: int, precision: str, quick: bool, dp3: bool) -> dict:
+    settings = QUICK if quick else FULL
+    torch.set_num_threads(threads)
+    manifest = read_manifest(model_dir)
+    kernels = ["fused", "standard"] if choose_graphs(manifest, precision)[0] else ["standard"]
+    runtime = {k: runtime_figures(model_dir, k, precision, threads, settings) for k in kernels}
+    policy = OnnxPolicy(model_dir, threads=threads, precision=precision, kernel="standard", warmup=0)
+    pc, pos = (torch.from_numpy(a) for a in random_observation(policy, np.random.default_rng(0)))
+    eager = eager_samples(checkpoint, manifest, pc, pos, {"iterations": settings["history"], "torch_iterations": settings["torch_iterations"]})
+    eager = {k: LatencyStats.of(v).to_dict() for k, v in eager.items()}
+    dp3 = dp3_compare(model_dir, threads, settings["dp3_repeats"], precision) if dp3 else None
+    return {"model_dir": str(model_dir), "checkpoint": str(checkpoint), "threads": threads, "precision": precision,
+            "settings": settings, "runtime": runtime, "eager_torch": eager, "dp3": dp3, "targets": TARGETS,
+            "rows": rows(runtime, eager, dp3, precision)}
+
+
+def rows(runtime: dict, eager: dict, dp3: dict | None, precision: str) -> list[dict]:
+    """The targets table: per figure, the value on each graph set and the target."""
+    def per_kernel(fn):
+        return {k: fn(r) for k, r in runtime.items()}
+
+    chunk = per_kernel(lambda r: r["precision"][precision]["chunk"]["p50"])
+    out = [
+        {"figure": f"chunk, K = {{k}}, {precision}, p50 ms", "values": chunk, "target": "<= 25 (required <= 50)",
+         "met": {k: v <= TARGETS["chunk_ms"][0] for k, v in chunk.items()},
+         "required_met": {k: v <= TARGETS["chunk_ms"][1] for k, v in chunk.items()}},
+        {"figure": "history step, fp32, p50 ms", "values": per_kernel(lambda r: r["precision"]["fp32"]["history_step"]["p50"]),
+         "target": "<= 1.5"},
+        {"figure": "ONNX Runtime vs eager PyTorch per chunk (eager fp32 / ORT)",
+         "values": per_kernel(lambda r: eager["denoiser_chunk"]["p50"] / r["precision"][precision]["chunk"]["p50"]), "target": ">= 5x"},
+        {"figure": "tick p99 with prefetch / history step p99",
+         "values": per_kernel(lambda r: r["prefetch"]["tick_p99_over_history_p99"]), "target": "<= 1.5x"},
+    ]
+    if dp3 is not None:  # DP3 in ONNX Runtime against DSSP's chunk on the default graphs, both timed in dp3_comparison's run
+        out.insert(3, {"figure": "DP3 chunk / DSSP chunk, same CPU (both ONNX Runtime)",
+                       "values": {"fused" if "fused" in dp3["kernel_note"] else "standard": dp3["ratio"]["dp3_ort_over_dssp_ort"]},
+                       "target": ">= 100x"})
+    return out
+
+
+def markdown(report: dict) -> str:
+    kernels = list(report["runtime"])
+    k = read_manifest(Path(report["model_dir"]))["denoise_steps"]
+    head = {"fused": "fused Mamba kernel", "standard": "standard graphs"}
+    lines = [f"Model: {report['model_dir']} — batch 1, {report['threads']} thread(s), medians of this run", "",
+             "| figure | " + " | ".join(head[k] for k in kernels) + " | target |", "|---|" + "---:|" * len(kernels) + "---|"]
+    for row in report["rows"]:
+        cells = " | ".join(f"{row['values'][k]:.2f}" if k in row["values"] else "-" for k in kernels)
+        lines.append(f"| {row['figure'].format(k=k)} | {cells} | {row['target']} |")
+    eager = report["eager_torch"]
+    lines += ["", f"PyTorch eager (fp32, {torch.get_num_threads()} threads): chunk {eager['denoiser_chunk']['p50']:.1f} ms, "
+              f"history step {eager['history_step']['p50']:.2f} ms"]
+    if report["dp3"]:
+        d = report["dp3"]["median_ms"]
+        lines.append(f"DP3 head (RoboTwin configuration, {report['dp3']['dp3']['params']['total'] / 1e6:.0f} M parameters): "
+                     f"{d['dp3_ort_chunk']:.0f} ms per chunk in ONNX Runtime, {d['dp3_torch_chunk']:.0f} ms in PyTorch; DSSP in the "
+                     f"same run {d['dssp_ort_chunk']:.1f} ms ({report['dp3']['kernel_note']})")
+    for kernel, r in report["runtime"].items():
+        pf = r["prefetch"]
+        lines.append(f"{head[kernel]}: prefetched tick p50 {pf['tick']['p50']:.2f} / p99 {pf['tick']['p99']:.2f} ms, history step alone p99 "
+                     f"{pf['history_step_alone']['p99']:.2f} ms, chunks late {pf['chunks_late']} of {pf['ticks']} ticks")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = ArgumentParser(prog="cpu_targets.py", description=__doc__.split("\n\n")[0])
+    p.add_argument("model_dir", type=Path, help="a model directory (python -m export.to_onnx)")
+    p.add_argument("--checkpoint", type=Path, required=True, help="the run directory it was exported from (PyTorch eager)")
+    p.add_argument("--threads", type=int, help="ONNX Runtime and torch threads (default: all CPUs)")
+    p.add_argument("--precision", choices=list(PRECISIONS), default=DEFAULT_PRECISION, help=f"the chunk's graphs (default {DEFAULT_PRECISION})")
+    p.add_argument("--quick", action="store_true", help="short run (tests)")
+    p.add_argument("--no-dp3", action="store_true", help="skip DP3 (its ONNX export is about 1 GB and a minute)")
+    p.add_argument("--json", type=Path, help="write every figure here (a new file; --force replaces one)")
+    p.add_argument("--force", action="store_true", help="replace an existing --json file")
+    args = p.parse_args(argv)
+
+    def _main() -> int:
+        check_threads(args.threads)
+        if args.json:
+            check_output_file(args.json, force=args.force, flag="--json")
+        check_source(args.model_dir, args.checkpoint, read_manifest(args.model_dir))
+        report = measure(args.model_dir, args.checkpoint, args.threads or default_threads(), args.precision, args.quick, not args.no_dp3)
+        print(markdown(report))
+        if args.json:
+            write_output_text(args.json, json.dumps(report, indent=2) + "\n", force=args.force, flag="--json")
+        return 0
+
+    return run_cli(_main)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
