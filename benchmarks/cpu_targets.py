@@ -113,7 +113,7 @@ def markdown(report: dict) -> str:
     lines = [f"Model: {report['model_dir']} — batch 1, {report['threads']} thread(s), medians of this run", "",
              "| figure | " + " | ".join(head[k] for k in kernels) + " | target |", "|---|" + "---:|" * len(kernels) + "---|"]
     for row in report["rows"]:
-        cells = " | ".join(f"{row['values'][k]:.2f}" if k in row["values"] else "-" for k in kernels)
+        cells = " | ".join(f"{row['values'][k]:.2f}" if row["values"].get(k) is not None else "-" for k in kernels)
         lines.append(f"| {row['figure'].format(k=k)} | {cells} | {row['target']} |")
     eager = report["eager_torch"]
     lines += ["", f"PyTorch eager (fp32, {torch.get_num_threads()} threads): chunk {eager['denoiser_chunk']['p50']:.1f} ms, "
@@ -125,6 +125,9 @@ def markdown(report: dict) -> str:
                      f"same run {d['dssp_ort_chunk']:.1f} ms ({report['dp3']['kernel_note']})")
     for kernel, r in report["runtime"].items():
         pf = r["prefetch"]
+        if not pf["possible"]:
+            lines.append(f"{head[kernel]}: prefetch not possible ({pf['reason']})")
+            continue
         lines.append(f"{head[kernel]}: prefetched tick p50 {pf['tick']['p50']:.2f} / p99 {pf['tick']['p99']:.2f} ms, history step alone p99 "
                      f"{pf['history_step_alone']['p99']:.2f} ms, chunks late {pf['chunks_late']} of {pf['ticks']} ticks")
     return "\n".join(lines)

@@ -708,7 +708,7 @@ def format_report(report: dict[str, Any]) -> str:
     lines.append(f"  median latency, ms ({threads}):   history step      chunk")
     for name, lat in report["latency_ms"].items():
         hs, dn = lat["history_step"], lat["denoiser"]
-        lines.append(f"  {name:<12}{'':20}{hs if hs is not None else '-':>12}{dn if dn is not None else '-':>11}")
+        lines.append(f"  {name:<16}{'':16}{hs if hs is not None else '-':>12}{dn if dn is not None else '-':>11}")
     for name, q in report.get("quantized", {}).items():
         lines.append(
             f"  {name} vs {q['against']}: action max abs {q['action_max_abs_vs_fp32']:.2e} "
