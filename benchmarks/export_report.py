@@ -31,7 +31,7 @@ from dssp_train.config import load_preset
 from dssp_train.model.policy import DSSPPolicy
 from dssp_train.training import checkpoint as ckpt
 from dssp_deploy.latency import time_calls
-from dssp_deploy.manifest import read_graph, read_manifest
+from dssp_deploy.manifest import FUSED, read_graph, read_manifest
 from dssp_deploy.sessions import default_threads, open_session
 from dssp_data.cli_runner import run_cli
 from dssp_data.output_guard import OutputDir, OutputKind, check_output_file, write_output_text
@@ -65,7 +65,8 @@ def median_ms(fn, repeats: int, warmup: int = 3) -> float:
 
 
 def latency(model_dir: Path, run_dir: Path, threads: int, repeats: int) -> dict[str, dict[str, float]]:
-    """Median ms per history step and per chunk, batch 1: ORT (fp32, int8 if present) and torch eager."""
+    """Median ms per history step and per chunk, batch 1: ORT (every ONNX graph set present: fp32, fused,
+    quantized) and torch eager."""
     from dssp_train.model.streaming import StreamingPolicy
     from dssp_train.training.checkpoint import load_policy
 
@@ -77,10 +78,11 @@ def latency(model_dir: Path, run_dir: Path, threads: int, repeats: int) -> dict[
             for s in manifest["graphs"][graph]["inputs"]
         }
     out = {}
-    for kind in ("onnx", "onnx_int8"):
+    for kind in manifest["graphs"]["denoiser"]["files"]:
         files = {g: manifest["graphs"][g]["files"].get(kind) for g in feeds}
-        if all(files.values()):
-            sessions = {g: open_session(read_graph(model_dir, manifest, g, kind)[1], threads) for g in files}
+        if kind.startswith("onnx") and all(files.values()):
+            fused = kind.endswith(FUSED)
+            sessions = {g: open_session(read_graph(model_dir, manifest, g, kind)[1], threads, fused=fused) for g in files}
             out[kind] = {
                 g: median_ms(lambda g=g: sessions[g].run(None, feeds[g]), repeats if g == "denoiser" else 10 * repeats)
                 for g in feeds
@@ -107,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--verify-steps", type=int, default=1000)
     p.add_argument("--threads", type=int, default=default_threads())
     p.add_argument("--repeats", type=int, default=20)
-    p.add_argument("--quantize", action="store_true", help="also write and measure int8 graphs")
+    p.add_argument("--quantize", action="store_true", help="also write and measure the int8 and int4 graphs")
     p.add_argument("--json", help="write the figures here (default OUT/report.json)")
     p.add_argument("--force", action="store_true", help="replace a previous report in --out and an existing --json file")
     args = p.parse_args(argv)
@@ -128,7 +130,7 @@ def _report(args) -> int:
             print(f"== {name}: {run_dir} -> {model_dir}", flush=True)
             summary = export_model(
                 run_dir, model_dir, verify_steps=args.verify_steps, threads=args.threads,
-                quantize="int8" if args.quantize else None,
+                quantize=("int8", "int4") if args.quantize else (),
             )
             print(format_summary(summary), flush=True)
             if summary.get("verification"):
