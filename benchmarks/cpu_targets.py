@@ -20,7 +20,6 @@ The runtime-only figures, without torch, are ``dssp-profile MODEL_DIR``.
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 
@@ -29,11 +28,11 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from bench_output import check_json, emit  # noqa: E402
 from dp3_comparison import compare as dp3_compare  # noqa: E402
 from torch_comparison import check_source, eager_samples  # noqa: E402
 
 from dssp_data.cli_runner import ArgumentParser, run_cli  # noqa: E402
-from dssp_data.output_guard import check_output_file, write_output_text  # noqa: E402
 from dssp_deploy.latency import LatencyStats, time_calls  # noqa: E402
 from dssp_deploy.manifest import PRECISIONS, read_manifest  # noqa: E402
 from dssp_deploy.onnx_policy import DEFAULT_PRECISION, OnnxPolicy, choose_graphs  # noqa: E402
@@ -147,14 +146,10 @@ def main(argv: list[str] | None = None) -> int:
 
     def _main() -> int:
         check_threads(args.threads)
-        if args.json:
-            check_output_file(args.json, force=args.force, flag="--json")
+        check_json(args.json, args.force)
         check_source(args.model_dir, args.checkpoint, read_manifest(args.model_dir))
         report = measure(args.model_dir, args.checkpoint, args.threads or default_threads(), args.precision, args.quick, not args.no_dp3)
-        print(markdown(report))
-        if args.json:
-            write_output_text(args.json, json.dumps(report, indent=2) + "\n", force=args.force, flag="--json")
-        return 0
+        return emit(report, markdown(report), args.json, args.force)
 
     return run_cli(_main)
 

@@ -48,7 +48,6 @@ contains no DP3 code. DP3's observation/action normalisation (elementwise) is le
 
 from __future__ import annotations
 
-import json
 import math
 import platform
 import sys
@@ -59,9 +58,10 @@ import numpy as np
 import torch
 from torch import nn
 
-from dssp_data.cli_runner import ArgumentParser, run_cli
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the benchmarks' shared helpers
+from bench_output import check_json, emit  # noqa: E402
+from dssp_data.cli_runner import ArgumentParser, run_cli  # noqa: E402
 from dssp_data.errors import ConfigError
-from dssp_data.output_guard import check_output_file, write_output_text
 from dssp_deploy.latency import time_calls
 from dssp_deploy.manifest import PRECISIONS
 from dssp_deploy.onnx_policy import OnnxPolicy
@@ -417,13 +417,9 @@ def main(argv: list[str] | None = None) -> int:
             raise ConfigError(f"--repeats must be at least 1, got {repeats}")
         if args.dp3_dims is not None:
             check_dp3_config({**DP3_ROBOTWIN, "down_dims": args.dp3_dims})
-        if args.json:
-            check_output_file(args.json, force=args.force, flag="--json")
+        check_json(args.json, args.force)
         report = compare(args.model_dir, args.threads, repeats, args.precision, args.dp3_dims)
-        print(markdown(report))
-        if args.json:
-            write_output_text(args.json, json.dumps(report, indent=2) + "\n", force=args.force, flag="--json")
-        return 0
+        return emit(report, markdown(report), args.json, args.force)
 
     return run_cli(_main)
 

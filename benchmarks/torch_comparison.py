@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import hashlib
 import io
-import json
 import platform
 import sys
 from pathlib import Path
@@ -28,13 +27,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dssp_deploy.latency import LatencyStats, time_calls
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the benchmarks' shared helpers
+from bench_output import check_json, emit  # noqa: E402
+from dssp_deploy.latency import LatencyStats, time_calls  # noqa: E402
 from dssp_deploy.manifest import PRECISIONS, ModelDirError, read_graph, read_manifest
 from dssp_deploy.onnx_policy import OnnxPolicy
 from dssp_deploy.profile import FULL as PROFILE_FULL, QUICK as PROFILE_QUICK, history_sweep, profile_components, random_observation
 from dssp_deploy.sessions import check_threads
 from dssp_data.cli_runner import ArgumentParser, run_cli
-from dssp_data.output_guard import check_output_file, write_output_text
 from dssp_train.model.history_encoder import CausalTransformer
 from dssp_train.model.streaming import StreamingPolicy
 from dssp_train.training.checkpoint import load_policy
@@ -183,15 +183,11 @@ def main(argv: list[str] | None = None) -> int:
 
     def _main() -> int:
         check_threads(args.threads)
-        if args.json:
-            check_output_file(args.json, force=args.force, flag="--json")
+        check_json(args.json, args.force)
         if args.checkpoint is not None:  # before minutes of measuring
             check_source(args.model_dir, args.checkpoint, read_manifest(args.model_dir))
         report = compare(args.model_dir, args.checkpoint, args.quick, args.threads, args.precision)
-        print(markdown(report))
-        if args.json:
-            write_output_text(args.json, json.dumps(report, indent=2) + "\n", force=args.force, flag="--json")
-        return 0
+        return emit(report, markdown(report), args.json, args.force)
 
     return run_cli(_main)
 

@@ -670,6 +670,17 @@ def write_output_text(path: str | os.PathLike, text: str, *, force: bool, flag: 
     return write_output_file(path, text_writer(text), force=force, flag=flag, error=error)
 
 
+def write_output_figure(path: str | os.PathLike, fig, *, force: bool, flag: str = "--out", dpi: int = 100,
+                        error: type[DSSPError] = OutputError) -> Path:
+    """:func:`write_output_file` for a matplotlib figure (PNG), which is closed afterwards."""
+    import matplotlib.pyplot as plt
+
+    try:
+        return write_output_file(path, lambda tmp: fig.savefig(tmp, format="png", dpi=dpi), force=force, flag=flag, error=error)
+    finally:
+        plt.close(fig)
+
+
 def check_output_files(paths: Iterable[str | os.PathLike], *, force: bool, flag: str = "--out",
                        error: type[DSSPError] = OutputError) -> list[Path]:
     """:func:`check_output_file` for several files at once (all are checked before any is written)."""

@@ -322,10 +322,9 @@ def plot(report: dict[str, Any], path: Path, force: bool = False) -> None:
     ax2.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     ax2.legend()
     fig.tight_layout()
-    from dssp_data.output_guard import write_output_file
+    from dssp_data.output_guard import write_output_figure
 
-    write_output_file(path, lambda tmp: fig.savefig(tmp, format="png", dpi=100), force=force, flag="--plot")
-    plt.close(fig)
+    write_output_figure(path, fig, force=force, flag="--plot")
 
 
 def main(argv: list[str] | None = None) -> int:

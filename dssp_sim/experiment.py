@@ -35,7 +35,7 @@ from dssp_data.output_guard import (
     OutputKind,
     check_output_files,
     claim_dir,
-    write_output_file,
+    write_output_figure,
     write_output_text,
 )
 
@@ -243,8 +243,7 @@ def _plot(results: dict, table: dict, path: Path, force: bool = False) -> None:
         ax.set(xlabel="σ of noise on recent state tokens", ylabel="success %", ylim=(0, 105), title=f"Robustness ({rob['task']})")
         ax.legend(fontsize=8)
     fig.tight_layout()
-    write_output_file(path, lambda tmp: fig.savefig(tmp, format="png", dpi=100), force=force, flag="--report")
-    plt.close(fig)
+    write_output_figure(path, fig, force=force, flag="--report")
 
 
 def main(argv: list[str] | None = None) -> int:

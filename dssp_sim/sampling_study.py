@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 
 from dssp_data.cli_runner import ArgumentParser, run_cli
-from dssp_data.output_guard import OutputKind, check_output_files, claim_dir, write_output_file, write_output_text
+from dssp_data.output_guard import OutputKind, check_output_files, claim_dir, write_output_figure, write_output_text
 from dssp_deploy.manifest import PRECISIONS
 from dssp_sim.evaluate import wilson_interval
 from dssp_sim.experiment import PLAN as MEMORY_PLAN
@@ -179,8 +179,7 @@ def _plot(table: dict, plan: dict, path: Path, force: bool) -> None:
         ax.set_xticks(plan["denoise_steps"])
         ax.legend(fontsize=7)
     fig.tight_layout()
-    write_output_file(path, lambda tmp: fig.savefig(tmp, format="png", dpi=100), force=force, flag="--report")
-    plt.close(fig)
+    write_output_figure(path, fig, force=force, flag="--report")
 
 
 def main(argv: list[str] | None = None) -> int:
