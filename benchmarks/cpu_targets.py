@@ -33,10 +33,10 @@ from dp3_comparison import compare as dp3_compare  # noqa: E402
 from torch_comparison import check_source, eager_samples  # noqa: E402
 
 from dssp_data.cli_runner import ArgumentParser, run_cli  # noqa: E402
-from dssp_deploy.latency import LatencyStats, time_calls  # noqa: E402
+from dssp_deploy.latency import LatencyStats  # noqa: E402
 from dssp_deploy.manifest import PRECISIONS, read_manifest  # noqa: E402
-from dssp_deploy.onnx_policy import DEFAULT_PRECISION, OnnxPolicy, choose_graphs  # noqa: E402
-from dssp_deploy.profile import prefetch_ticks, random_observation  # noqa: E402
+from dssp_deploy.onnx_policy import DEFAULT_PRECISION, OnnxPolicy  # noqa: E402
+from dssp_deploy.profile import paths_and_threads, prefetch_ticks, random_observation  # noqa: E402
 from dssp_deploy.sessions import check_threads, default_threads  # noqa: E402
 
 FULL = {"history": 300, "chunks": 30, "prefetch_ticks": 300, "torch_iterations": 10, "dp3_repeats": 5}
@@ -50,27 +50,26 @@ TARGETS = {  # robotwin preset, 1024 points, batch 1, 2 threads, p50
 }
 
 
-def runtime_figures(model_dir: Path, kernel: str, precision: str, threads: int, settings: dict) -> dict:
-    """Chunk (at ``precision``), fp32 history step and prefetched tick on one graph set."""
+def runtime_figures(model_dir: Path, precision: str, threads: int, settings: dict) -> dict:
+    """Per graph set (fused, standard): chunk and history step at ``precision`` and fp32 (``dssp-profile``'s
+    paths-and-threads rows, at ``threads``), and the prefetched tick."""
     rng = np.random.default_rng(0)
-    out = {}
+    timing = {"matrix_iterations": settings["history"], "matrix_chunks": settings["chunks"]}
+    out: dict = {}
     for p in dict.fromkeys([precision, "fp32"]):
-        policy = OnnxPolicy(model_dir, threads=threads, precision=p, kernel=kernel)
-        pc, pos = random_observation(policy, rng)
-        policy.reset()
-        history = LatencyStats.of(time_calls(lambda: policy.observe(pc, pos), settings["history"]))
-        chunk = LatencyStats.of(time_calls(lambda: policy.act(seed=0), settings["chunks"]))
-        out[p] = {"history_step": history.to_dict(), "chunk": chunk.to_dict(), "kernel_note": policy.kernel_note}
-    prefetch = prefetch_ticks(model_dir, precision, kernel, threads, settings["prefetch_ticks"], rng)
-    return {"precision": out, "prefetch": prefetch}
+        for row in paths_and_threads(model_dir, p, threads, timing, rng):
+            if row["threads"] == threads:
+                out.setdefault(row["kernel"], {"precision": {}})["precision"][p] = row
+    for kernel, r in out.items():
+        r["prefetch"] = prefetch_ticks(model_dir, precision, kernel, threads, settings["prefetch_ticks"], rng)
+    return out
 
 
 def measure(model_dir: Path, checkpoint: Path, threads: int, precision: str, quick: bool, dp3: bool) -> dict:
     settings = QUICK if quick else FULL
     torch.set_num_threads(threads)
     manifest = read_manifest(model_dir)
-    kernels = ["fused", "standard"] if choose_graphs(manifest, precision)[0] else ["standard"]
-    runtime = {k: runtime_figures(model_dir, k, precision, threads, settings) for k in kernels}
+    runtime = runtime_figures(model_dir, precision, threads, settings)
     policy = OnnxPolicy(model_dir, threads=threads, precision=precision, kernel="standard", warmup=0)
     pc, pos = (torch.from_numpy(a) for a in random_observation(policy, np.random.default_rng(0)))
     eager = eager_samples(checkpoint, manifest, pc, pos, {"iterations": settings["history"], "torch_iterations": settings["torch_iterations"]})
@@ -86,15 +85,15 @@ def rows(runtime: dict, eager: dict, dp3: dict | None, precision: str) -> list[d
     def per_kernel(fn):
         return {k: fn(r) for k, r in runtime.items()}
 
-    chunk = per_kernel(lambda r: r["precision"][precision]["chunk"]["p50"])
+    chunk = per_kernel(lambda r: r["precision"][precision]["chunk_p50"])
     out = [
         {"figure": f"chunk, K = {{k}}, {precision}, p50 ms", "values": chunk, "target": "<= 25 (required <= 50)",
          "met": {k: v <= TARGETS["chunk_ms"][0] for k, v in chunk.items()},
          "required_met": {k: v <= TARGETS["chunk_ms"][1] for k, v in chunk.items()}},
-        {"figure": "history step, fp32, p50 ms", "values": per_kernel(lambda r: r["precision"]["fp32"]["history_step"]["p50"]),
+        {"figure": "history step, fp32, p50 ms", "values": per_kernel(lambda r: r["precision"]["fp32"]["history_step_p50"]),
          "target": "<= 1.5"},
         {"figure": "ONNX Runtime vs eager PyTorch per chunk (eager fp32 / ORT)",
-         "values": per_kernel(lambda r: eager["denoiser_chunk"]["p50"] / r["precision"][precision]["chunk"]["p50"]), "target": ">= 5x"},
+         "values": per_kernel(lambda r: eager["denoiser_chunk"]["p50"] / r["precision"][precision]["chunk_p50"]), "target": ">= 5x"},
         {"figure": "tick p99 with prefetch / history step p99",
          "values": per_kernel(lambda r: r["prefetch"]["tick_p99_over_history_p99"]), "target": "<= 1.5x"},
     ]

@@ -135,6 +135,13 @@ class OnnxPolicy:
         self.precision = precision
         self.fused, self.kernel_note = choose_graphs(m, precision, kernel)
         self.kernel_note = f"{precision}, {self.kernel_note}{why_precision}"
+        # Every other ONNX graph file of the directory is checked too (size, sha256), once, before anything runs:
+        # a damaged model directory is refused as a whole, whichever graphs a fallback would take.
+        chosen = file_kind(precision, self.fused)
+        for graph in GRAPHS:
+            for kind in m["graphs"][graph]["files"]:
+                if kind.startswith("onnx") and kind != chosen:
+                    read_graph(self.model_dir, m, graph, kind)
         try:
             self.sessions = self._open_sessions(spinning)
         except GraphLoadError as exc:  # ONNX Runtime refused a fused graph (not a file or interface mismatch)
@@ -142,7 +149,6 @@ class OnnxPolicy:
                 raise
             self.fused, self.kernel_note = False, f"{precision}, standard ONNX graphs (the fused graphs failed to load: {exc})"
             self.sessions = self._open_sessions(spinning)
-        self.kernel = "fused" if self.fused else "standard"  # kernel_note: "<precision>, <graphs> (<why>)", one line
         self._state_specs = [s for s in m["graphs"][HISTORY_GRAPH]["inputs"] if s["name"] in self.history_state]
         self._history_outputs = [o.name for o in self.sessions[HISTORY_GRAPH].get_outputs()]
         self.history: StreamingHistory[np.ndarray] = StreamingHistory(
@@ -153,13 +159,6 @@ class OnnxPolicy:
 
     def _open_sessions(self, spinning: bool) -> dict[str, Any]:
         sessions = {}
-        # Every ONNX graph file of the directory is checked (size, sha256) before anything runs, not only the
-        # ones chosen: a damaged model directory is refused as a whole, whichever graphs a fallback would take.
-        running = {g: file_kind(self.precision, self.fused) for g in GRAPHS}
-        for graph in GRAPHS:
-            for kind in self.manifest["graphs"][graph]["files"]:
-                if kind.startswith("onnx") and kind != running[graph]:
-                    read_graph(self.model_dir, self.manifest, graph, kind)
         for graph in (HISTORY_GRAPH, DENOISER_GRAPH):
             path, data = read_graph(self.model_dir, self.manifest, graph, file_kind(self.precision, self.fused))  # size and sha256 checked
             try:
@@ -170,6 +169,11 @@ class OnnxPolicy:
             check_session(session, self.manifest, graph, path)
             sessions[graph] = session
         return sessions
+
+    @property
+    def kernel(self) -> str:
+        """The graphs that run: "fused" or "standard" (:attr:`kernel_note`: "<precision>, <graphs> (<why>)", one line)."""
+        return "fused" if self.fused else "standard"
 
     # ----------------------------------------------------------------- episode
     def reset(self) -> None:

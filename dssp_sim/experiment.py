@@ -74,7 +74,7 @@ def _run(cmd: list[str], log: Path) -> None:
         raise SystemExit(f"error: {' '.join(cmd[:4])} ... failed (exit {code}); see {log}: {' | '.join(tail)}")
 
 
-def _stage(done: Path, what: str, cmd: list[str], log: Path) -> None:
+def stage(done: Path, what: str, cmd: list[str], log: Path) -> None:
     if done.exists():
         print(f"  {what}: done before ({done})")
         return
@@ -85,7 +85,7 @@ def _stage(done: Path, what: str, cmd: list[str], log: Path) -> None:
     print(f"  {what}: {seconds:.0f} s")
 
 
-def _stage_seconds(work: Path) -> float:
+def stage_seconds(work: Path) -> float:
     """Compute time of every stage of the study so far, resumed and parallel runs included."""
     return sum(float(f.read_text()) for f in (work / "logs").glob("*.seconds"))
 
@@ -103,16 +103,16 @@ def run_study(work: Path, plan: dict, threads: int | None = None, tasks: list[st
             continue
         print(f"{task}:")
         data = work / "data" / f"{task}.zarr"
-        _stage(data / "meta", f"collect {n_demos} demos", [py, "-m", "dssp_sim.sim_cli", "collect", "--task", task, "--episodes",
+        stage(data / "meta", f"collect {n_demos} demos", [py, "-m", "dssp_sim.sim_cli", "collect", "--task", task, "--episodes",
                str(n_demos), "--out", str(data), "--no-progress"], work / "logs" / f"collect_{task}.log")
         for seed in plan["seeds"][task]:
             for variant, flags in plan["variants"].items():
                 name = f"{task}_{variant}_s{seed}"
                 run_dir, model_dir = work / "runs" / name, work / "models" / name
-                _stage(run_dir / "checkpoint", f"train {variant} seed {seed}", [py, "-m", "dssp_train.cli.train", "--data", str(data),
+                stage(run_dir / "checkpoint", f"train {variant} seed {seed}", [py, "-m", "dssp_train.cli.train", "--data", str(data),
                        "--out", str(run_dir), "--preset", plan["preset"], "--steps", str(plan["steps"][task]), "--seed", str(seed),
                        "--no-progress", "--force", *flags], work / "logs" / f"train_{name}.log")
-                _stage(model_dir / "dssp_model.json", f"export {variant} seed {seed}", [py, "-m", "export.to_onnx", str(run_dir),
+                stage(model_dir / "dssp_model.json", f"export {variant} seed {seed}", [py, "-m", "export.to_onnx", str(run_dir),
                        "-o", str(model_dir), "--force", *plan.get("export_flags", [])], work / "logs" / f"export_{name}.log")
                 results["evals"][name] = _evaluate(work, model_dir, task, plan, name, 0.0, threads)
     rob = plan["robustness"]
@@ -132,12 +132,12 @@ def _evaluate(work: Path, model_dir: Path, task: str, plan: dict, name: str, sig
            str(plan["eval_episodes"]), "--seed", str(plan["eval_seed"]), "--noise", str(sigma), "--json", str(out), "--no-progress"]
     if threads:
         cmd += ["--threads", str(threads)]
-    _stage(out, f"eval {name}{suffix}", cmd, work / "logs" / f"eval_{name}{suffix}.log")
+    stage(out, f"eval {name}{suffix}", cmd, work / "logs" / f"eval_{name}{suffix}.log")
     return json.loads(out.read_text())
 
 
 # ------------------------------------------------------------------------------------------------ report
-def _pct(k: int, n: int) -> str:
+def pct(k: int, n: int) -> str:
     lo, hi = wilson_interval(k, n)
     return f"{100 * k / max(n, 1):.0f} % ({k}/{n}; {100 * lo:.0f}–{100 * hi:.0f})"
 
@@ -162,7 +162,7 @@ def report_files(report_dir: Path) -> list[Path]:
 
 
 def write_report(results: dict, report_dir: Path, seconds: float, force: bool = False) -> Path:
-    """``seconds``: the compute time of all stages (:func:`_stage_seconds`); ``force``: replace existing report files."""
+    """``seconds``: the compute time of all stages (:func:`stage_seconds`); ``force``: replace existing report files."""
     check_output_files(report_files(report_dir), force=force, flag="--report")
     table = summarise(results)
     plan = results["plan"]
@@ -184,7 +184,7 @@ def write_report(results: dict, report_dir: Path, seconds: float, force: bool = 
         for variant, row in variants.items():
             seeds = ", ".join(f"{s}: {v}" for s, v in sorted(row["per_seed"].items()))
             reasons = ", ".join(f"{k} × {v}" for k, v in sorted(row["reasons"].items())) or "—"
-            lines.append(f"| {task} | {VARIANT_LABELS.get(variant, variant)} | {_pct(row['k'], row['n'])} | {seeds} | {reasons} |")
+            lines.append(f"| {task} | {VARIANT_LABELS.get(variant, variant)} | {pct(row['k'], row['n'])} | {seeds} | {reasons} |")
     if results["robustness"]:
         rob = plan["robustness"]
         lines += ["", f"Robustness (paper Table 4): Gaussian noise σ on the N most recent state tokens at inference, "
@@ -196,7 +196,7 @@ def write_report(results: dict, report_dir: Path, seconds: float, force: bool = 
             for variant in plan["variants"]:
                 name = f"{rob['task']}_{variant}_s{rob['seed']}"
                 r = results["evals"][name] if sigma == 0 else results["robustness"][f"{name}_noise{sigma:g}"]
-                cells.append(_pct(r["successes"], r["n"]))
+                cells.append(pct(r["successes"], r["n"]))
             lines.append(f"| {sigma:g} | " + " | ".join(cells) + " |")
     lines += ["", f"![success rates]({REPORT_NAME}.png)", ""]
     md, js, png = report_files(report_dir)
@@ -265,7 +265,7 @@ def main(argv: list[str] | None = None) -> int:
         if partial:
             print(f"stages of {args.tasks} done; run without --tasks for the report")
             return 0
-        md = write_report(results, args.report, _stage_seconds(args.work), force=args.force)
+        md = write_report(results, args.report, stage_seconds(args.work), force=args.force)
         print(md.read_text())
         return 0
 

@@ -27,7 +27,7 @@ from dssp_data.output_guard import OutputKind, check_output_files, claim_dir, wr
 from dssp_deploy.manifest import PRECISIONS
 from dssp_sim.evaluate import wilson_interval
 from dssp_sim.experiment import PLAN as MEMORY_PLAN
-from dssp_sim.experiment import _pct, _stage, _stage_seconds
+from dssp_sim.experiment import pct, stage, stage_seconds
 
 REPORT_NAME = "sampling"
 PLAN = {
@@ -63,19 +63,19 @@ def run_study(work: Path, plan: dict, tasks: list[str] | None = None) -> dict:
             continue
         print(f"{task}:")
         data, run_dir = work / "data" / f"{task}.zarr", work / "runs" / f"{task}_dssp_s{plan['seed']}"
-        _stage(data / "meta", f"collect {n_demos} demos", [py, "-m", "dssp_sim.sim_cli", "collect", "--task", task, "--episodes",
+        stage(data / "meta", f"collect {n_demos} demos", [py, "-m", "dssp_sim.sim_cli", "collect", "--task", task, "--episodes",
                str(n_demos), "--out", str(data), "--no-progress"], logs / f"collect_{task}.log")
-        _stage(run_dir / "checkpoint", "train DSSP", [py, "-m", "dssp_train.cli.train", "--data", str(data), "--out", str(run_dir),
+        stage(run_dir / "checkpoint", "train DSSP", [py, "-m", "dssp_train.cli.train", "--data", str(data), "--out", str(run_dir),
                "--preset", plan["preset"], "--steps", str(plan["steps"][task]), "--seed", str(plan["seed"]), "--no-progress",
                "--force"], logs / f"train_{task}.log")
         for k in plan["denoise_steps"]:
             model_dir = work / "models" / f"{task}_k{k}"
-            _stage(model_dir / "dssp_model.json", f"export K={k}", [py, "-m", "export.to_onnx", str(run_dir), "-o", str(model_dir),
+            stage(model_dir / "dssp_model.json", f"export K={k}", [py, "-m", "export.to_onnx", str(run_dir), "-o", str(model_dir),
                    "--denoise-steps", str(k), "--threads", str(plan["threads"]), "--force"], logs / f"export_{task}_k{k}.log")
             for precision in plan["precisions"]:
                 name = cell(task, k, precision)
                 out = work / "evals" / f"{name}.json"
-                _stage(out, f"eval K={k} {precision}", [py, "-m", "dssp_sim.sim_cli", "eval", "--model", str(model_dir), "--task", task,
+                stage(out, f"eval K={k} {precision}", [py, "-m", "dssp_sim.sim_cli", "eval", "--model", str(model_dir), "--task", task,
                        "--episodes", str(plan["eval_episodes"]), "--seed", str(plan["eval_seed"]), "--precision", precision,
                        "--threads", str(plan["threads"]), "--json", str(out), "--no-progress"], logs / f"eval_{name}.log")
                 evals[name] = json.loads(out.read_text())
@@ -140,7 +140,7 @@ def write_report(evals: dict, plan: dict, report_dir: Path, seconds: float, forc
             cells = []
             for precision, rows in per_precision.items():
                 row = rows.get(k)
-                cells += ["-", "-"] if row is None else [_pct(row["k"], row["n"]), f"{row['chunk_ms']:.2f}" if row["chunk_ms"] else "-"]
+                cells += ["-", "-"] if row is None else [pct(row["k"], row["n"]), f"{row['chunk_ms']:.2f}" if row["chunk_ms"] else "-"]
             lines.append(f"| {k} | " + " | ".join(cells) + " |")
         lines.append("")
     k = choice["at_denoise_steps"]
@@ -198,7 +198,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.tasks:
             print(f"stages of {', '.join(args.tasks)} done in {time.perf_counter() - started:.0f} s; run without --tasks for the report")
             return 0
-        md = write_report(evals, PLAN, args.report, _stage_seconds(args.work), force=args.force)
+        md = write_report(evals, PLAN, args.report, stage_seconds(args.work), force=args.force)
         print(f"report: {md}")
         return 0
 

@@ -141,15 +141,11 @@ def example_inputs(config, graph: str, batch: int = 2) -> tuple:
     return tuple(torch.randn(shape, generator=gen) for shape in shapes)
 
 
-def graph_modules(policy, denoise_steps: int, fused: bool = False) -> dict[str, Any]:
-    """{graph name: the torch module that becomes it}; ``fused``: with the fused Mamba operators (:mod:`export.fused_ops`)."""
-    from export.graphs import DenoiserGraph, HistoryStepGraph, use_fused_ops
+def graph_modules(policy, denoise_steps: int) -> dict[str, Any]:
+    """{graph name: the torch module that becomes it}."""
+    from export.graphs import DenoiserGraph, HistoryStepGraph
 
-    modules = {HISTORY_GRAPH: HistoryStepGraph(policy).eval(), DENOISER_GRAPH: DenoiserGraph(policy, denoise_steps).eval()}
-    if fused:
-        for module in modules.values():
-            use_fused_ops(module)
-    return modules
+    return {HISTORY_GRAPH: HistoryStepGraph(policy).eval(), DENOISER_GRAPH: DenoiserGraph(policy, denoise_steps).eval()}
 
 
 def trace(module, example: tuple):
@@ -361,12 +357,13 @@ def export_model(
         else:
             stage("ONNX not requested")
         if fused:
-            fused_modules = graph_modules(policy, k, fused=True)
+            from export.graphs import use_fused_ops
+
             kind = file_kind("fp32", fused=True)
-            for g in GRAPHS:
-                write_onnx(fused_modules[g], examples[g], staged.path / files[g][kind], config, g, opset, metadata_props(manifest, g),
+            for g in GRAPHS:  # the same modules, their Mamba layers now on the fused operators
+                use_fused_ops(modules[g])
+                write_onnx(modules[g], examples[g], staged.path / files[g][kind], config, g, opset, metadata_props(manifest, g),
                            fused=True)
-            del fused_modules
             stage(f"wrote {', '.join(files[g][kind] for g in GRAPHS)} (fused Mamba operators)")
         elif kernel_note:
             progress(kernel_note)

@@ -18,19 +18,12 @@ from dssp_train.training.checkpoint import load_policy
 from dssp_train.training.train_log import read_log
 from dssp_train.training.trainer import Trainer
 
+from conftest import SMALL
+
 K = 3  # the interrupted run stops after K steps; the full run has 2 K
-OVERRIDES = [
-    "model.d_model=32",
-    "model.d_state=8",
-    "model.n_denoiser_layers=2",
-    "model.n_history_layers=1",
-    "train.batch_size=4",
-    "train.val_windows=4",
-    "train.warmup_steps=2",
-    "train.log_every=1",
-    f"train.val_every={K}",
-    f"train.save_every={K}",
-]
+# conftest's SMALL model and batch, checkpointing every K steps
+OVERRIDES = [*[o for o in SMALL if o.startswith("model.") or o.startswith("train.batch_size") or o.startswith("train.val_windows")],
+             "train.warmup_steps=2", "train.log_every=1", f"train.val_every={K}", f"train.save_every={K}"]
 CHECKPOINT_FILES = ("model.safetensors", "ema.safetensors", "optimizer.safetensors", "rng.safetensors")
 ALLOWED_SUFFIXES = {".json", ".jsonl", ".png", ".safetensors"}
 

@@ -16,8 +16,8 @@ from dssp_deploy.manifest import file_kind, read_manifest
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def load_comparison():
-    spec = importlib.util.spec_from_file_location("bench_torch_comparison", ROOT / "benchmarks" / "torch_comparison.py")
+def load_comparison(name: str = "torch_comparison"):
+    spec = importlib.util.spec_from_file_location(f"bench_{name}", ROOT / "benchmarks" / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
@@ -113,3 +113,19 @@ def test_torch_comparison_refuses_a_checkpoint_the_model_was_not_exported_from(t
     assert len(err) == 1 and "is not the run" in err[0]
     assert bench.main([str(model_dir), "--quick", "--checkpoint", str(tmp_path / "none"), "--threads", "1"]) == 2
     assert "cannot be read" in capsys.readouterr().err
+
+
+def test_cpu_targets_table_has_every_row_on_both_graph_sets(tiny_export, tmp_path, capsys):
+    run_dir, model_dir, _ = tiny_export
+    out = tmp_path / "targets.json"
+    bench = load_comparison("cpu_targets")
+    assert bench.main([str(model_dir), "--checkpoint", str(run_dir), "--quick", "--no-dp3", "--threads", "1", "--json", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "| fused Mamba kernel | standard graphs | target |" in text and "| chunk, K = 10, int8, p50 ms |" in text
+    report = json.loads(out.read_text())
+    assert set(report["runtime"]) == {"fused", "standard"} and report["dp3"] is None
+    for kernel, r in report["runtime"].items():
+        assert set(r["precision"]) == {"int8", "fp32"} and all(p["threads"] == 1 and p["chunk_p50"] > 0 for p in r["precision"].values())
+        assert r["prefetch"]["possible"] and r["prefetch"]["threads"] == {"history_step": 1, "denoiser": 1}
+    eager_ratio = next(row for row in report["rows"] if row["figure"].startswith("ONNX Runtime vs eager"))["values"]
+    assert eager_ratio["fused"] == pytest.approx(report["eager_torch"]["denoiser_chunk"]["p50"] / report["runtime"]["fused"]["precision"]["int8"]["chunk_p50"])
