@@ -7,7 +7,8 @@ every model directory has, never do. So the kernel is optional: :func:`kernel` s
 and the runtime (:class:`dssp_deploy.onnx_policy.OnnxPolicy`) falls back to the standard graphs when it
 does not, saying why in one line.
 
-``DSSP_SCAN_PATH=portable|avx2|auto`` chooses the library's implementation (see the C++ source).
+``DSSP_SCAN_PATH=auto|avx512|avx2|portable`` chooses the library's implementation (see the C++ source;
+auto, the default, is the widest this CPU runs).
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ OPSET_VERSION = 1
 LIBRARY_NAME = "libdssp_mamba.so"
 LIBRARY_ENV = "DSSP_KERNEL"
 DEFAULT_LIBRARY = Path(__file__).resolve().parent / "kernel" / LIBRARY_NAME
+SCAN_PATHS = ("auto", "avx512", "avx2", "portable")  # the values of DSSP_SCAN_PATH
 
 
 @dataclass(frozen=True)
@@ -33,7 +35,7 @@ class Kernel:
 
     path: Path | None
     reason: str = ""
-    implementation: str = ""  # "avx2" or "portable": what the library runs on this CPU
+    implementation: str = ""  # "avx512", "avx2" or "portable": what the library runs on this CPU
 
     @property
     def available(self) -> bool:
@@ -66,7 +68,8 @@ def _probe(path: Path, scan_path: str) -> Kernel:
     except (OSError, AttributeError):
         implementation = "unknown"
     if implementation == "invalid":
-        return Kernel(None, f"DSSP_SCAN_PATH={scan_path!r} cannot run on this CPU; unset it or set it to portable")
+        return Kernel(None, f"DSSP_SCAN_PATH={scan_path!r} is not one of {', '.join(SCAN_PATHS)} or cannot run on this CPU; "
+                            "unset it or set it to portable")
     return Kernel(path, implementation=implementation)
 
 

@@ -61,3 +61,32 @@ class FusedOps:
 
 
 FUSED_OPS = FusedOps()
+
+
+def mark_unread_states(model) -> int:
+    """Set ``state_out = 0`` on every ``SelectiveScan`` node whose state output nothing reads; returns how many.
+
+    In the denoiser graph the K action-token scans of each layer start from the prefix's state and their
+    final state is never used: the kernel then skips writing it back, (E, n) floats per layer and step.
+    """
+    import onnx
+
+    graph = model.graph
+    read = _names_read(graph.node) | {o.name for o in graph.output}
+    marked = 0
+    for node in graph.node:
+        if node.domain == DOMAIN and node.op_type == SCAN_OP and node.output[1] not in read:
+            node.attribute.append(onnx.helper.make_attribute("state_out", 0))
+            marked += 1
+    return marked
+
+
+def _names_read(nodes) -> set[str]:
+    """Every name the nodes read, in their subgraphs (If branches) too."""
+    names = set()
+    for node in nodes:
+        names.update(node.input)
+        for attr in node.attribute:
+            for sub in [attr.g] if attr.type == attr.GRAPH else list(attr.graphs):
+                names |= _names_read(sub.node)
+    return names

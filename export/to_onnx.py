@@ -45,6 +45,7 @@ from dssp_data.cli_runner import ArgumentParser, run_cli
 from dssp_data.errors import ExportError, ParityError
 from dssp_deploy.mamba_kernel import DOMAIN, OPSET_VERSION
 from dssp_deploy.manifest import DENOISER_GRAPH, GRAPHS, HISTORY_GRAPH, MANIFEST_NAME, PRECISIONS, file_kind, file_suffix, graph_io
+from export.fused_ops import mark_unread_states
 from export.manifest_writer import build_manifest, metadata_props, write_manifest
 
 EXPORTER_VERSION = "1"
@@ -200,6 +201,8 @@ def write_onnx(module, example: tuple, path: Path, config, graph: str, opset: in
                 else:
                     dim.dim_value = d
     drop_weight_identities(model)
+    if fused:
+        mark_unread_states(model)
     model.producer_name = "dssp export.to_onnx"
     model.producer_version = EXPORTER_VERSION
     model.doc_string = f"DSSP {graph} graph; see {MANIFEST_NAME} next to this file"

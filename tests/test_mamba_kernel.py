@@ -18,7 +18,15 @@ from dssp_deploy.sessions import session_options
 from dssp_train.model.mamba import causal_conv
 from dssp_train.model.selective_scan import linear_scan_unrolled, selective_scan
 
-IMPLEMENTATIONS = ["avx2", "portable"]
+IMPLEMENTATIONS = ["avx512", "avx2", "portable"]
+
+
+def cpu_runs(implementation: str) -> bool:
+    """Whether this CPU has the instructions of an implementation (Linux's CPU flags)."""
+    flags = {
+        word for line in open("/proc/cpuinfo") if line.startswith("flags") for word in line.split(":", 1)[1].split()
+    }
+    return {"avx512": {"avx512f", "avx2", "fma"}, "avx2": {"avx2", "fma"}, "portable": set()}[implementation] <= flags
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -54,7 +62,12 @@ def test_selective_scan_matches_pytorch(implementation, shape, monkeypatch):
              "z": f32(b, length, e, scale=3.0), "A": -np.exp(rng.uniform(0, np.log(n), (e, n))).astype(np.float32),
              "D": f32(e), "h0": f32(b, e, n)}
     feeds["dt"][0, 0, :3] = [25.0, -40.0, 0.0]  # softplus's linear branch, its far tail, its middle
+    if not cpu_runs(implementation):  # asking for it is a one-line error, not a crash or a silent fallback
+        with pytest.raises(Exception, match=f"DSSP_SCAN_PATH={implementation}, but this CPU lacks"):
+            op_session(mamba_kernel.SCAN_OP, list(feeds), ["y", "h"], implementation, monkeypatch)
+        return
     session = op_session(mamba_kernel.SCAN_OP, list(feeds), ["y", "h"], implementation, monkeypatch)
+    assert mamba_kernel.kernel().implementation == implementation
     y, h = session.run(None, feeds)
     t = {k: torch.from_numpy(v).double() for k, v in feeds.items()}
     y_ref, h_ref = selective_scan(t["x"], t["dt"], t["B"], t["C"], t["z"], t["A"], t["D"], t["h0"], linear_scan_unrolled)
@@ -96,14 +109,46 @@ def test_fused_graphs_run_by_default_and_match_the_standard_ones(tiny_export, mo
     _, model_dir, _ = tiny_export
     default = OnnxPolicy(model_dir, threads=1)
     assert default.kernel == "fused" and default.precision == DEFAULT_PRECISION
-    assert default.kernel_note == f"{DEFAULT_PRECISION}, fused Mamba kernel (avx2, libdssp_mamba.so)"
+    widest = next(i for i in IMPLEMENTATIONS if cpu_runs(i))  # auto: the widest this CPU runs
+    assert default.kernel_note == f"{DEFAULT_PRECISION}, fused Mamba kernel ({widest}, libdssp_mamba.so)"
     fused, standard = OnnxPolicy(model_dir, threads=1, precision="fp32"), OnnxPolicy(model_dir, threads=1, precision="fp32", kernel="standard")
     assert fused.kernel == "fused" and standard.kernel_note == "fp32, standard ONNX graphs (asked for)"
     assert np.abs(run_chunk(fused) - run_chunk(standard)).max() <= 1e-4
-    monkeypatch.setenv("DSSP_SCAN_PATH", "portable")  # the portable implementation, through the whole runtime
-    portable = OnnxPolicy(model_dir, threads=1, precision="fp32")
-    assert portable.kernel_note == "fp32, fused Mamba kernel (portable, libdssp_mamba.so)"
-    assert np.abs(run_chunk(portable) - run_chunk(standard)).max() <= 1e-4
+    for implementation in [i for i in IMPLEMENTATIONS if i != widest and cpu_runs(i)]:  # the others, through the whole runtime
+        monkeypatch.setenv("DSSP_SCAN_PATH", implementation)
+        other = OnnxPolicy(model_dir, threads=1, precision="fp32")
+        assert other.kernel_note == f"fp32, fused Mamba kernel ({implementation}, libdssp_mamba.so)"
+        assert np.abs(run_chunk(other) - run_chunk(standard)).max() <= 1e-4
+
+
+def test_action_token_scans_do_not_write_the_state_nobody_reads(tiny_export, monkeypatch):
+    """Export marks the denoiser's action-token scans state_out = 0; the kernel then returns an empty state."""
+    _, model_dir, _ = tiny_export
+    manifest = json.loads((model_dir / MANIFEST_NAME).read_text())
+    scans = [n for n in onnx.load(str(model_dir / manifest["graphs"]["denoiser"]["files"]["onnx_fused"])).graph.node
+             if n.op_type == mamba_kernel.SCAN_OP]
+    marked = [n for n in scans if any(a.name == "state_out" and a.i == 0 for a in n.attribute)]
+    layers = manifest["model_config"]["n_denoiser_layers"]
+    assert len(marked) == manifest["denoise_steps"] * layers and len(scans) == len(marked) + layers  # the prefix's are read
+    history = onnx.load(str(model_dir / manifest["graphs"]["history_step"]["files"]["onnx_fused"])).graph.node
+    assert not any(a.name == "state_out" for n in history for a in n.attribute)  # the history step's state is its output
+
+    names = ["x", "dt", "B", "C", "z", "A", "D", "h0"]
+    rng = np.random.default_rng(0)
+    feeds = {"x": rng.normal(size=(1, 4, 16)), "dt": rng.normal(size=(1, 4, 16)), "B": rng.normal(size=(1, 4, 8)),
+             "C": rng.normal(size=(1, 4, 8)), "z": rng.normal(size=(1, 4, 16)), "A": -rng.uniform(0.5, 4, (16, 8)),
+             "D": rng.normal(size=16), "h0": rng.normal(size=(1, 16, 8))}
+    feeds = {k: v.astype(np.float32) for k, v in feeds.items()}
+    graph = helper.make_graph(
+        [helper.make_node(mamba_kernel.SCAN_OP, names, ["y", "h"], domain=mamba_kernel.DOMAIN, state_out=0)], "g",
+        [helper.make_tensor_value_info(n, TensorProto.FLOAT, None) for n in names],
+        [helper.make_tensor_value_info(n, TensorProto.FLOAT, None) for n in ("y", "h")])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17), helper.make_opsetid(mamba_kernel.DOMAIN, 1)])
+    for implementation in [i for i in IMPLEMENTATIONS if cpu_runs(i)]:
+        monkeypatch.setenv("DSSP_SCAN_PATH", implementation)
+        y, h = ort.InferenceSession(model.SerializeToString(), session_options(1, fused=True), providers=["CPUExecutionProvider"]).run(None, feeds)
+        y_full, _ = op_session(mamba_kernel.SCAN_OP, names, ["y", "h"], implementation, monkeypatch).run(None, feeds)
+        assert h.shape == (1, 0, 8) and np.array_equal(y, y_full)
 
 
 def test_a_missing_or_broken_library_falls_back_to_the_standard_graphs(tiny_export, tmp_path, monkeypatch):
