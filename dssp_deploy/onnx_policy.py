@@ -22,7 +22,11 @@ which compute the same actions (both pass ``export.verify``). ``kernel="fused"``
 
 Threads: ``threads`` (default: all CPUs) for both graphs; with ``background_chunks`` (the control loop's
 prefetch, where a chunk is computed while ticks go on) the history graph gets one thread and the
-denoiser the rest, so the tick's history step never waits for cores the chunk holds.
+denoiser the rest, so the tick's history step never waits for cores the chunk holds. ``spinning``: the
+denoiser's threads busy-wait between its operators while a chunk runs, and sleep between chunks
+(default ``None``: when the denoiser has 2 threads or more). A chunk is hundreds of operators of tens of
+µs each; without spinning each one waits for a sleeping thread to wake and 2 threads gain nothing over 1.
+Spinning is slower when another busy process shares the cores (``--no-spin``; README, CPU targets).
 
 Shapes: point_cloud (B, P, C) or (P, C); agent_pos (B, S) or (S,); noise (B, H, A); chunk (B, H, A);
 z_t, c_t (B, d); recent (B, N, d); state {name: (B, ...)} as the manifest's history inputs.
@@ -73,6 +77,9 @@ def add_runtime_arguments(parser) -> None:
     parser.add_argument("--kernel", choices=KERNELS, default="auto",
                         help="fused: the fused Mamba kernel's graphs (make kernel), standard: the plain ONNX graphs, "
                              "auto (default): fused when the library loads, else standard")
+    parser.add_argument("--no-spin", action="store_true",
+                        help="the chunk's threads sleep between its operators (default: with 2 threads or more they spin "
+                             "while a chunk runs, never between chunks; slower when another busy process shares the cores)")
 
 
 class GraphLoadError(ModelDirError):
@@ -110,7 +117,7 @@ def _batch(x, rank: int, name: str) -> np.ndarray:
 
 
 class OnnxPolicy:
-    def __init__(self, model_dir: str | Path, threads: int | None = None, spinning: bool = False, warmup: int = 2,
+    def __init__(self, model_dir: str | Path, threads: int | None = None, spinning: bool | None = None, warmup: int = 2,
                  precision: str | None = None, kernel: str = "auto", background_chunks: bool = False):
         if precision is not None and precision not in PRECISIONS:
             raise ModelDirError(f"precision must be one of {sorted(PRECISIONS)}, got {precision!r}")
@@ -129,6 +136,7 @@ class OnnxPolicy:
         # With chunks computed in the background (prefetch) the history step and the denoiser run at the same
         # time: the history gets one thread and the denoiser the others, so they do not compete for cores.
         self.threads = {HISTORY_GRAPH: 1, DENOISER_GRAPH: max(1, total - 1)} if background_chunks else dict.fromkeys(GRAPHS, total)
+        self.spinning = self.threads[DENOISER_GRAPH] > 1 if spinning is None else bool(spinning)
         why_precision = ""
         if precision is None:
             precision, why_precision = default_precision(m)
@@ -143,12 +151,12 @@ class OnnxPolicy:
                 if kind.startswith("onnx") and kind != chosen:
                     read_graph(self.model_dir, m, graph, kind)
         try:
-            self.sessions = self._open_sessions(spinning)
+            self.sessions = self._open_sessions()
         except GraphLoadError as exc:  # ONNX Runtime refused a fused graph (not a file or interface mismatch)
             if not self.fused or kernel == "fused":
                 raise
             self.fused, self.kernel_note = False, f"{precision}, standard ONNX graphs (the fused graphs failed to load: {exc})"
-            self.sessions = self._open_sessions(spinning)
+            self.sessions = self._open_sessions()
         self._state_specs = [s for s in m["graphs"][HISTORY_GRAPH]["inputs"] if s["name"] in self.history_state]
         self._history_outputs = [o.name for o in self.sessions[HISTORY_GRAPH].get_outputs()]
         self.history: StreamingHistory[np.ndarray] = StreamingHistory(
@@ -157,12 +165,13 @@ class OnnxPolicy:
         if warmup:
             self.warmup(warmup)
 
-    def _open_sessions(self, spinning: bool) -> dict[str, Any]:
+    def _open_sessions(self) -> dict[str, Any]:
         sessions = {}
         for graph in (HISTORY_GRAPH, DENOISER_GRAPH):
             path, data = read_graph(self.model_dir, self.manifest, graph, file_kind(self.precision, self.fused))  # size and sha256 checked
             try:
-                session = open_session(data, self.threads[graph], spinning, fused=self.fused)  # the checked bytes, not the path again
+                spin = self.spinning and graph == DENOISER_GRAPH  # a history step is too short to gain from it
+                session = open_session(data, self.threads[graph], spin, fused=self.fused)  # the checked bytes, not the path again
             except Exception as exc:  # onnxruntime raises its own exception types
                 first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
                 raise GraphLoadError(f"{path} could not be loaded by ONNX Runtime ({first}); export the model again") from None

@@ -80,18 +80,19 @@ def profile_components(policy: OnnxPolicy, settings: dict, rng) -> dict[str, Any
 
 
 def paths_and_threads(model_dir: Path, precision: str, threads: int, settings: dict, rng) -> list[dict[str, Any]]:
-    """History step and chunk p50 per graph set (fused when the kernel loads, standard) at 1 and ``threads`` threads."""
+    """History step and chunk p50 per graph set (fused when the kernel loads, standard) at 1 and ``threads`` threads
+    (the chunk's threads spinning during a chunk, the default), and with ``threads`` > 1 once more with ``--no-spin``."""
     rows = []
     kernels = ["fused", "standard"] if choose_graphs(read_manifest(model_dir), precision)[0] else ["standard"]
     for kernel in kernels:
-        for n in sorted({1, threads}):
-            policy = OnnxPolicy(model_dir, threads=n, precision=precision, kernel=kernel)
+        for n, spinning in [(1, None)] + ([(threads, None), (threads, False)] if threads > 1 else []):
+            policy = OnnxPolicy(model_dir, threads=n, precision=precision, kernel=kernel, spinning=spinning)
             pc, pos = random_observation(policy, rng)
             policy.reset()
             history = LatencyStats.of(time_calls(lambda: policy.observe(pc, pos), settings["matrix_iterations"]))
             chunk = LatencyStats.of(time_calls(lambda: policy.act(seed=0), settings["matrix_chunks"]))
-            rows.append({"kernel": kernel, "threads": n, "history_step_p50": history.p50, "history_step_p99": history.p99,
-                         "chunk_p50": chunk.p50})
+            rows.append({"kernel": kernel, "threads": n, "spinning": policy.spinning, "history_step_p50": history.p50,
+                         "history_step_p99": history.p99, "chunk_p50": chunk.p50})
     for row in rows:
         one = next(r for r in rows if r["kernel"] == row["kernel"] and r["threads"] == 1)
         row["history_speedup_vs_1"] = one["history_step_p50"] / row["history_step_p50"]
@@ -144,12 +145,12 @@ def history_sweep(step, lengths: list[int], window: int) -> list[dict[str, float
 
 
 def run_profile(model_dir: Path, quick: bool, threads: int | None, precision: str | None = None,
-                kernel: str = "auto") -> dict[str, Any]:
+                kernel: str = "auto", spinning: bool | None = None) -> dict[str, Any]:
     """Every figure of one profiling run of the model directory (see the module's docstring)."""
     settings = QUICK if quick else FULL
     rng = np.random.default_rng(0)
     rss_before = resident_memory_mib()
-    policy = OnnxPolicy(model_dir, threads=threads, precision=precision, kernel=kernel)
+    policy = OnnxPolicy(model_dir, threads=threads, precision=precision, kernel=kernel, spinning=spinning)
     precision = policy.precision  # the default resolved
     rss_loaded = resident_memory_mib()
     manifest = policy.manifest
@@ -265,7 +266,8 @@ def markdown(report: dict[str, Any]) -> str:
     lines += ["", "| graphs | threads | history step p50 ms | p99 ms | chunk p50 ms | history speed-up | chunk speed-up |",
               "|---|---:|---:|---:|---:|---:|---:|"]
     for r in report["paths_and_threads"]:
-        lines.append(f"| {r['kernel']} | {r['threads']} | {r['history_step_p50']:.2f} | {r['history_step_p99']:.2f} | {r['chunk_p50']:.2f} | "
+        spin = ", --no-spin" if r["threads"] > 1 and not r["spinning"] else ""
+        lines.append(f"| {r['kernel']}{spin} | {r['threads']} | {r['history_step_p50']:.2f} | {r['history_step_p99']:.2f} | {r['chunk_p50']:.2f} | "
                      f"{r['history_speedup_vs_1']:.2f}x | {r['chunk_speedup_vs_1']:.2f}x |")
     pf = report["prefetch"]
     if not pf["possible"]:
@@ -349,7 +351,7 @@ def main(argv: list[str] | None = None) -> int:
             if path is not None:
                 check_output_file(path, force=args.force, flag=flag)
         t0 = time.perf_counter()
-        report = run_profile(args.model_dir, args.quick, args.threads, args.precision, args.kernel)
+        report = run_profile(args.model_dir, args.quick, args.threads, args.precision, args.kernel, False if args.no_spin else None)
         report["profile_seconds"] = time.perf_counter() - t0
         print(markdown(report))
         if args.json:

@@ -1,7 +1,11 @@
 """ONNX Runtime sessions configured for a robot's small, shared CPU (numpy + onnxruntime only).
 
-Thread spinning is off by default: with spinning on, idle ORT threads busy-wait between calls, and runs
-were 2-3x slower when another process (or torch in the same process) shared the cores.
+Thread spinning is off unless asked for: ONNX Runtime's own default lets idle threads busy-wait after every
+call, and runs were 2-3x slower when another process (or torch in the same process) shared the cores. When
+asked for (``spinning=True``; the runtime does for the denoiser when it has 2 threads or more, ``--no-spin``
+stops it), the threads spin only while a run is in progress (``session.force_spinning_stop``): a chunk's
+hundreds of small parallel operators then do not each wait for a sleeping thread to wake, and nothing spins
+between chunks.
 """
 
 from __future__ import annotations
@@ -31,7 +35,8 @@ def check_threads(threads: int | None, flag: str = "--threads") -> None:
 
 
 def session_options(threads: int | None = None, spinning: bool = False, fused: bool = False):
-    """``SessionOptions`` with ``intra_op_num_threads`` set and thread spinning off unless asked for;
+    """``SessionOptions`` with ``intra_op_num_threads`` set and thread spinning off unless asked for (then only
+    during a run);
     ``fused``: with the fused Mamba operators registered (:mod:`dssp_deploy.mamba_kernel`)."""
     import onnxruntime as ort
 
@@ -43,6 +48,8 @@ def session_options(threads: int | None = None, spinning: bool = False, fused: b
     flag = "1" if spinning else "0"
     options.add_session_config_entry("session.intra_op.allow_spinning", flag)
     options.add_session_config_entry("session.inter_op.allow_spinning", flag)
+    if spinning:  # spin inside a run only: the threads go to sleep when it returns
+        options.add_session_config_entry("session.force_spinning_stop", "1")
     if fused:
         from dssp_deploy.mamba_kernel import register
 

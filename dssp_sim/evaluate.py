@@ -193,13 +193,13 @@ STRIPS_DIR = OutputKind("a folder of episode strips", "dssp-sim eval", entries=(
 
 def evaluate(model_dir: Path, task: str, n_episodes: int, seed: int = 1000, threads: int | None = None,
              state_token_noise: float = 0.0, strips_dir: Path | None = None, progress: bool = True,
-             precision: str | None = None, kernel: str = "auto") -> EvalResult:
+             precision: str | None = None, kernel: str = "auto", spinning: bool | None = None) -> EvalResult:
     """Evaluate a model directory on ``task`` for ``n_episodes`` seeded episodes (seeds seed, seed+1, ...);
     ``precision`` and ``kernel`` choose its graphs (:class:`dssp_deploy.onnx_policy.OnnxPolicy`)."""
     from dssp_deploy.onnx_policy import OnnxPolicy
     from dssp_sim.env import PiperEnv
 
-    policy = OnnxPolicy(model_dir, threads=threads, precision=precision, kernel=kernel)
+    policy = OnnxPolicy(model_dir, threads=threads, precision=precision, kernel=kernel, spinning=spinning)
     print(f"graphs: {policy.kernel_note}", file=sys.stderr)
     if state_token_noise > 0:
         policy.denoiser_inputs = _NoisyRecentStates(policy, state_token_noise, np.random.default_rng(seed))

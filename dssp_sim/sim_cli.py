@@ -111,7 +111,7 @@ def run(args) -> int:
     with contextlib.ExitStack() as stack:
         strips = stack.enter_context(OutputDir(args.strips, STRIPS_DIR, force=args.force, flag="--strips")) if args.strips else None
         result = evaluate(args.model, args.task, args.episodes, seed=args.seed, threads=args.threads,
-                          precision=args.precision, kernel=args.kernel, state_token_noise=args.noise, strips_dir=strips.path if strips else None,
+                          precision=args.precision, kernel=args.kernel, spinning=False if args.no_spin else None, state_token_noise=args.noise, strips_dir=strips.path if strips else None,
                           progress=not args.no_progress)
         if strips is not None:
             strips.commit()

@@ -9,6 +9,7 @@ import sys
 import textwrap
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from dssp_deploy.manifest import file_kind, read_manifest
@@ -129,3 +130,28 @@ def test_cpu_targets_table_has_every_row_on_both_graph_sets(tiny_export, tmp_pat
         assert r["prefetch"]["possible"] and r["prefetch"]["threads"] == {"history_step": 1, "denoiser": 1}
     eager_ratio = next(row for row in report["rows"] if row["figure"].startswith("ONNX Runtime vs eager"))["values"]
     assert eager_ratio["fused"] == pytest.approx(report["eager_torch"]["denoiser_chunk"]["p50"] / report["runtime"]["fused"]["precision"]["int8"]["chunk_p50"])
+
+
+def test_the_chunk_spins_only_while_it_runs_and_only_with_threads_to_spin(tiny_export):
+    """The denoiser's threads spin during a run only (force_spinning_stop), by default when it has 2 threads or more;
+    the actions are the same either way; the profile's thread rows add --no-spin when there are threads to spin."""
+    from dssp_deploy.onnx_policy import OnnxPolicy
+    from dssp_deploy.profile import paths_and_threads
+    from dssp_deploy.sessions import session_options
+
+    options = session_options(2, spinning=True)
+    assert options.get_session_config_entry("session.intra_op.allow_spinning") == "1"
+    assert options.get_session_config_entry("session.force_spinning_stop") == "1"
+    assert session_options(2).get_session_config_entry("session.intra_op.allow_spinning") == "0"
+    _, model_dir, _ = tiny_export
+    chunks = []
+    for threads, spinning, spins in ((2, None, True), (2, False, False), (1, None, False), (2, True, True)):
+        policy = OnnxPolicy(model_dir, threads=threads, spinning=spinning)
+        assert policy.spinning is spins
+        policy.observe(np.zeros((32, 3), np.float32), np.zeros(policy.state_dim, np.float32))
+        chunks.append(policy.act(seed=0))
+    assert all(np.array_equal(c, chunks[0]) for c in chunks)
+    assert OnnxPolicy(model_dir, threads=2, background_chunks=True).spinning is False  # the chunk's one thread
+    rows = paths_and_threads(model_dir, "int8", 2, {"matrix_iterations": 2, "matrix_chunks": 1}, np.random.default_rng(0))
+    assert [(r["kernel"], r["threads"], r["spinning"]) for r in rows] == [
+        ("fused", 1, False), ("fused", 2, True), ("fused", 2, False), ("standard", 1, False), ("standard", 2, True), ("standard", 2, False)]

@@ -196,7 +196,7 @@ def _run(args, signals: StartupSignals) -> int:
     if not args.quiet and sys.stderr.isatty():  # a progress note for a person; logs and scripts get only the result
         print(f"loading {args.model} (warm-up included)", file=sys.stderr)
     policy = OnnxPolicy(args.model, threads=args.threads, precision=args.precision, kernel=args.kernel,
-                        background_chunks=args.prefetch)
+                        background_chunks=args.prefetch, spinning=False if args.no_spin else None)
     signals.check()
     trained = observation_of(policy.manifest)
     if cloud_config is None:  # the model's own settings; a model from data that recorded none: the defaults
