@@ -1,7 +1,8 @@
 """Export figures per preset: export time, graph sizes and node counts, parity and its time, ORT vs torch latency.
 
     python benchmarks/export_report.py [--preset tiny robotwin] [--run RUN_DIR] [--out runs/export_report]
-                                       [--verify-steps 1000] [--threads N] [--quantize] [--json PATH] [--force]
+                                       [--verify-steps 1000] [--threads N] [--quantize] [--set model.F=V]
+                                       [--json PATH] [--force]
 
 For each preset without ``--run``, a run directory with an untrained policy is made by hand
 (S = A = 14, normalisers fitted on random data, saved with the checkpoint helpers) — export and parity
@@ -27,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dssp_train.config import load_preset
+from dssp_train.config import apply_overrides, load_preset
 from dssp_train.model.policy import DSSPPolicy
 from dssp_train.training import checkpoint as ckpt
 from dssp_deploy.latency import time_calls
@@ -42,9 +43,11 @@ REPORT_DIR = OutputKind("an export report directory", "benchmarks/export_report.
 """``--out``: PRESET_run/ (untrained runs), PRESET_model/ (their exports), report.json."""
 
 
-def make_untrained_run(preset: str, run_dir: Path, state_dim: int = 14, action_dim: int = 14, seed: int = 0) -> Path:
-    """A run directory (config.json, model.safetensors) holding an untrained ``preset`` policy."""
-    config = load_preset(preset)
+def make_untrained_run(preset: str, run_dir: Path, state_dim: int = 14, action_dim: int = 14, seed: int = 0,
+                       overrides: list[str] = ()) -> Path:
+    """A run directory (config.json, model.safetensors) holding an untrained ``preset`` policy (``overrides``:
+    ``section.field=value`` items, as dssp-train's ``--set``)."""
+    config = apply_overrides(load_preset(preset), list(overrides))
     config.model.state_dim, config.model.action_dim = state_dim, action_dim
     torch.manual_seed(seed)
     policy = DSSPPolicy(config.model)
@@ -110,6 +113,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, default=default_threads())
     p.add_argument("--repeats", type=int, default=20)
     p.add_argument("--quantize", action="store_true", help="also write and measure the int8 and int4 graphs")
+    p.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE",
+                   help="a config field of the untrained runs, e.g. model.denoiser_mlp=none (the 28.1 M robotwin)")
     p.add_argument("--json", help="write the figures here (default OUT/report.json)")
     p.add_argument("--force", action="store_true", help="replace a previous report in --out and an existing --json file")
     args = p.parse_args(argv)
@@ -125,7 +130,7 @@ def _report(args) -> int:
         out = target.path
         for name, run_dir in jobs:
             if run_dir is None:
-                run_dir = make_untrained_run(name, out / f"{name}_run")
+                run_dir = make_untrained_run(name, out / f"{name}_run", overrides=args.set)
             model_dir = out / f"{name}_model"
             print(f"== {name}: {run_dir} -> {model_dir}", flush=True)
             summary = export_model(

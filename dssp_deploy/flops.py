@@ -30,6 +30,21 @@ def mamba_token_flops(cfg: dict) -> int:
     )
 
 
+def mlp_token_flops(cfg: dict) -> int:
+    """One token through a denoiser block's MLP (``denoiser_mlp``: none, gated = mamba-ssm's GatedMLP, dit)."""
+    d, kind = cfg["d_model"], cfg.get("denoiser_mlp", "none")
+    if kind == "gated":
+        hidden = (int(8 * d / 3) + 127) // 128 * 128
+        return 2 * d * 2 * hidden + 2 * hidden * d
+    return 2 * 2 * d * 4 * d if kind == "dit" else 0
+
+
+def attention_token_flops(cfg: dict, context: float) -> int:
+    """One token through one causal self-attention layer that attends to ``context`` tokens."""
+    d = cfg["d_model"]
+    return int(2 * d * 3 * d + 2 * 2 * context * d + 2 * d * d)  # qkv, scores and weighted sum, out projection
+
+
 def observation_flops(cfg: dict, n_points: int) -> int:
     """E_obs on one observation: per-point MLP, max-pool, state MLP and the fusion projection."""
     widths = list(cfg["point_widths"])
@@ -48,10 +63,16 @@ def history_step_flops(cfg: dict, n_points: int) -> int:
 
 
 def chunk_flops(cfg: dict, denoise_steps: int) -> int:
-    """One action chunk: the prefix once (cached), then K passes over the H action tokens."""
+    """One action chunk: the prefix once (cached), then K passes over the H action tokens (each denoiser block's
+    mixer, Mamba or attention to the tokens before it, and its MLP)."""
     n_prefix = int(cfg["use_history"]) + (cfg["n_obs_steps"] if cfg["use_recent_states"] else 0)
-    per_token = cfg["n_denoiser_layers"] * mamba_token_flops(cfg)
-    d, a, h = cfg["d_model"], cfg["action_dim"], cfg["horizon"]
+    h = cfg["horizon"]
+    if cfg.get("denoiser_backbone", "mamba") == "transformer":  # an action token attends to the prefix and the tokens before it
+        mixer = attention_token_flops(cfg, n_prefix + (h + 1) / 2)
+    else:
+        mixer = mamba_token_flops(cfg)
+    per_token = cfg["n_denoiser_layers"] * (mixer + mlp_token_flops(cfg))
+    d, a = cfg["d_model"], cfg["action_dim"]
     io = h * (2 * a * d + 2 * d * a)  # action_in and action_out
     prefix_passes = 1 if cfg["timestep_decoupled"] else denoise_steps
     return prefix_passes * n_prefix * per_token + denoise_steps * (h * per_token + io)

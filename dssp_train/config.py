@@ -17,6 +17,16 @@ from dssp_data.observation import ObservationContract
 from dssp_data.schema import MAX_DIM, MAX_LAYERS, MAX_RATE_HZ, MAX_STEPS, MAX_WIDTH, Settings, parse_json, setting
 
 HISTORY_BACKBONES = ("mamba", "transformer")
+# What follows the mixer in each denoiser block (README, "The paper's size"): nothing (the Mamba block alone),
+# mamba-ssm's GatedMLP (Block with mlp_cls=GatedMLP: 8d/3 hidden, SiLU gate, unmodulated), or DiT's MLP (4d
+# hidden, GELU, with its own AdaLN shift/scale/gate on the action tokens).
+DENOISER_MLPS = ("none", "gated", "dit")
+# Where the predicted chunk starts (README, "Action-chunk alignment"): at the current step t (execute its first
+# H_a actions), or at the oldest recent observation t - N + 1 as DP3 does (execute from index N - 1; every
+# table of the paper has H_a = H - N + 1).
+ACTION_ALIGNMENTS = ("current", "dp3")
+# The denoiser blocks' mixer: Mamba (the paper's), or causal self-attention (Table 5's "w/ Trans.").
+DENOISER_BACKBONES = ("mamba", "transformer")
 
 
 def _require(cond: bool, message: str) -> None:
@@ -75,10 +85,13 @@ class ModelConfig(Settings):
     n_obs_steps: int = setting(3, ge=1, le=MAX_STEPS)  # N
     horizon: int = setting(8, ge=1, le=MAX_STEPS)  # H
     n_action_steps: int = setting(6, ge=1, le=MAX_STEPS)  # H_a
+    action_alignment: str = setting("current", choices=ACTION_ALIGNMENTS)
     # History encoder G_psi and ablation switches (paper Tables 3 and 5).
     history_backbone: str = setting("mamba", choices=HISTORY_BACKBONES)
     history_window: int = setting(0, ge=0, le=1_000_000)  # 0 = full history; T_h > 0 = only the last T_h observations
     transformer_heads: int = setting(8, ge=1, le=MAX_WIDTH)
+    denoiser_backbone: str = setting("mamba", choices=DENOISER_BACKBONES)
+    denoiser_mlp: str = setting("none", choices=DENOISER_MLPS)
     use_history: bool = setting(True)
     use_recent_states: bool = setting(True)
     timestep_decoupled: bool = setting(True)
@@ -90,7 +103,12 @@ class ModelConfig(Settings):
             self.n_action_steps <= self.horizon,
             f"model.n_action_steps (H_a) must be in [1, horizon={self.horizon}], got {self.n_action_steps}",
         )
-        if self.history_backbone == "transformer":
+        _require(
+            self.action_offset + self.n_action_steps <= self.horizon,
+            f"model.action_alignment=dp3 executes the chunk from index N - 1 = {self.action_offset}: model.n_action_steps "
+            f"(H_a) must be at most horizon - N + 1 = {self.horizon - self.action_offset}, got {self.n_action_steps}",
+        )
+        if "transformer" in (self.history_backbone, self.denoiser_backbone):
             _require(
                 self.d_model % self.transformer_heads == 0,
                 f"model.d_model={self.d_model} must be divisible by model.transformer_heads={self.transformer_heads}",
@@ -99,6 +117,11 @@ class ModelConfig(Settings):
             self.use_history or self.use_recent_states,
             "model.use_history and model.use_recent_states cannot both be off: the denoiser would see no observation",
         )
+
+    @property
+    def action_offset(self) -> int:
+        """Index of the chunk's first executed action: N - 1 with DP3's alignment, else 0."""
+        return self.n_obs_steps - 1 if self.action_alignment == "dp3" else 0
 
     @property
     def prefix_length(self) -> int:
@@ -117,6 +140,10 @@ class TrainConfig(Settings):
     SECTION: ClassVar[str] = "train"
 
     steps: int = setting(3000, ge=1, le=100_000_000)
+    # Epochs of trajectory-wise training (one optimisation step reads one trajectory, so an epoch is one pass
+    # over the training trajectories: as many steps as there are training episodes). 0: train.steps is the
+    # budget; > 0: train.steps = epochs x training episodes, resolved when the run starts (README, "Epochs").
+    epochs: int = setting(0, ge=0, le=100_000_000)
     batch_size: int = setting(64, ge=1, le=1_000_000)  # action windows sampled from each trajectory (Appendix C.1)
     lr: float = setting(1e-4, gt=0, le=1)
     betas: list[float] = setting(default_factory=lambda: [0.95, 0.999], ge=0, lt=1, min_length=2, max_length=2)

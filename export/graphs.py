@@ -13,13 +13,16 @@ The model's math lives in ``dssp_train``; these wrappers only choose the export-
   ``Denoiser.modulation`` for the K DDIM timesteps is computed once at construction and kept as buffers,
   so the timestep MLP and the AdaLN projections are not part of the graph, and the DDIM coefficients
   are Python constants. With ``timestep_decoupled`` the prefix ``[c_t, z...]`` runs once per call and its
-  per-layer recurrent state serves all K steps (``Denoiser.encode_prefix`` / ``Denoiser.denoise_modulated``).
+  per-layer state serves all K steps (``Denoiser.encode_prefix`` / ``Denoiser.denoise_modulated``): Mamba's
+  recurrent state, or for the Transformer denoiser (``model.denoiser_backbone = "transformer"``) the prefix's
+  keys and values, which each step's action tokens attend to.
 - Mamba's sequence path (``Mamba.forward``) uses a parallel scan with in-place strided views that does
   not export; the denoiser runs ``Mamba.forward_unrolled`` instead: the same layer with the recurrence
   unrolled over the few prefix or action tokens. Unrolling ``Mamba.step`` token by token exports as well
   (the history graph is exactly that, for one token), but for the robotwin denoiser it gave 44.6k ONNX
   nodes instead of 9.3k and ran about 2x slower in ONNX Runtime (262 vs ~120 ms per chunk, 2 threads):
-  every projection becomes a matrix-vector product.
+  every projection becomes a matrix-vector product. The attention mixer's ``forward_unrolled`` is its
+  ``forward``; the Transformer denoiser has no Mamba layer, so its fused graph has no custom operator.
 
 Shapes (B batch, P points, C = ``point_dim``, S state, A action, d width, N recent tokens, H horizon,
 E = d_inner = expand * d, n = d_state, W = d_conv):
@@ -43,7 +46,9 @@ from export.fused_ops import FUSED_OPS
 
 
 def check_exportable(policy: DSSPPolicy) -> None:
-    """Refuse history variants whose streaming state grows or is not a fixed recurrent state."""
+    """Refuse history variants whose streaming state grows or is not a fixed recurrent state.
+
+    Every denoiser exports (Mamba or attention mixer): it keeps nothing from one chunk to the next."""
     cfg = policy.cfg
     if cfg.use_history and not policy.history_encoder.is_recurrent:
         variant = f"history_backbone={cfg.history_backbone}, history_window={cfg.history_window}"
@@ -125,7 +130,8 @@ class DenoiserGraph(nn.Module):
         den = policy.denoiser
         with torch.no_grad():
             table = den.modulation(torch.tensor(self.timesteps))
-        # (K, n_layers, 3, d): shift, scale, gate of every block at every step; (K, 2, d): final shift, scale.
+        # (K, n_layers, R, d): shift, scale, gate of every block (R = 3, 6 with DiT's MLP) at every step;
+        # (K, 2, d): final shift, scale.
         self.register_buffer("layer_mod", table.layers, persistent=False)
         self.register_buffer("final_mod", table.final, persistent=False)
         # Folded: the timestep MLP and the AdaLN projections are not part of the graph.

@@ -65,6 +65,7 @@ def build_manifest(
         "n_obs_steps": m.n_obs_steps,
         "horizon": m.horizon,
         "n_action_steps": m.n_action_steps,
+        "action_offset": m.action_offset,
         "denoise_steps": denoise_steps,
         "ddim_timesteps": list(ddim_timesteps),
         "use_history": m.use_history,
@@ -79,7 +80,8 @@ def build_manifest(
             "history_state": "all zeros at the start of an episode; feed each *_out back as the next tick's input",
             "z_recent": "the last N z_t outputs, oldest first; at the start of an episode the first z_t repeats",
             "noise": "standard normal (B, H, A)",
-            "act_every": f"one denoiser call every H_a = {m.n_action_steps} history steps; execute the first H_a actions",
+            "act_every": f"one denoiser call every H_a = {m.n_action_steps} history steps; execute the H_a actions from "
+                         f"index action_offset = {m.action_offset}",
             "tick_rate_hz": config.control_rate_hz,
         },
         "source": source,

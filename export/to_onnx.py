@@ -184,7 +184,7 @@ def write_onnx(module, example: tuple, path: Path, config, graph: str, opset: in
             output_names=[s["name"] for s in outputs],
             dynamic_axes=dynamic_axes,
             do_constant_folding=True,
-            custom_opsets={DOMAIN: OPSET_VERSION} if fused else None,
+            custom_opsets={DOMAIN: OPSET_VERSION} if fused and has_fused_layers(module) else None,
         )
     model = onnx.load(str(path))
     for values, specs in ((model.graph.input, inputs), (model.graph.output, outputs)):
@@ -209,6 +209,11 @@ def write_onnx(module, example: tuple, path: Path, config, graph: str, opset: in
     onnx.helper.set_model_props(model, metadata)
     onnx.save(model, str(path))
     onnx.checker.check_model(str(path), full_check=True)
+
+
+def has_fused_layers(module) -> bool:
+    """Whether ``module`` has a Mamba layer routed through the fused operators (a Transformer denoiser has none)."""
+    return any(getattr(m, "fused_ops", None) is not None for m in module.modules())
 
 
 def drop_weight_identities(model) -> int:

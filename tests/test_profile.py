@@ -155,3 +155,18 @@ def test_the_chunk_spins_only_while_it_runs_and_only_with_threads_to_spin(tiny_e
     rows = paths_and_threads(model_dir, "int8", 2, {"matrix_iterations": 2, "matrix_chunks": 1}, np.random.default_rng(0))
     assert [(r["kernel"], r["threads"], r["spinning"]) for r in rows] == [
         ("fused", 1, False), ("fused", 2, True), ("fused", 2, False), ("standard", 1, False), ("standard", 2, True), ("standard", 2, False)]
+
+
+def test_chunk_flops_count_each_denoiser_blocks_mixer_and_mlp():
+    from dssp_deploy.flops import attention_token_flops, chunk_flops, mamba_token_flops, mlp_token_flops
+
+    cfg = {"d_model": 64, "d_state": 16, "expand": 2, "d_conv": 4, "n_denoiser_layers": 2, "horizon": 4, "action_dim": 2,
+           "n_obs_steps": 2, "use_history": True, "use_recent_states": True, "timestep_decoupled": True}
+    k, tokens = 10, 3 + 10 * 4  # the prefix (c_t and 2 z) once, then K passes over H action tokens
+    none = chunk_flops(cfg, k)
+    assert chunk_flops({**cfg, "denoiser_mlp": "none"}, k) == none  # an export without the field: Mamba-only blocks
+    gated = chunk_flops({**cfg, "denoiser_mlp": "gated"}, k)
+    assert mlp_token_flops({**cfg, "denoiser_mlp": "gated"}) == 2 * 64 * 2 * 256 + 2 * 256 * 64  # hidden 8d/3 -> 256
+    assert gated - none == 2 * tokens * mlp_token_flops({**cfg, "denoiser_mlp": "gated"})
+    attention = chunk_flops({**cfg, "denoiser_backbone": "transformer"}, k)
+    assert attention - none == 2 * tokens * (attention_token_flops(cfg, 3 + 2.5) - mamba_token_flops(cfg))

@@ -28,6 +28,7 @@ from conftest import SET_SMALL, one_error_line
 
 TRAIN_KEYS = {"kind", "step", "loss", "diffusion", "dynamics", "lr", "steps_per_s", "windows_per_s"}
 VAL_KEYS = {"kind", "step", "on_train_episodes", "val_diffusion", "val_action_mse"}
+DYNAMICS_KEYS = {"dyn_cos", "dyn_cos_mean", "dyn_cos_prev"}  # the dynamics loss's diagnostics
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
@@ -164,7 +165,7 @@ def test_a_run_stopped_before_its_first_checkpoint_is_started_over_with_force(da
     monkeypatch.setattr(Trainer, "train_step", interrupt_after_one_step)
     assert train_main(["--data", str(data), "--out", str(out), "--steps", "4", "--no-progress", *SET_SMALL]) == 130
     monkeypatch.undo()
-    assert capsys.readouterr().err.strip() == (
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
         "interrupted after step 1, before step 2's save: no checkpoint was kept; start the run over by adding --force")
     assert (out / "config.json").is_file() and (out / "log.jsonl").is_file() and not (out / "checkpoint").exists()
 
@@ -186,7 +187,8 @@ def test_happy_path_exit_code_and_summary(happy):
     proc, out = happy["proc"], happy["out"]
     assert proc.returncode == 0, proc.stderr
     assert "Traceback" not in proc.stderr and "error" not in proc.stderr
-    assert "warning" not in proc.stderr  # the tap-count dataset records its control rate
+    assert "--control-rate" not in proc.stderr  # the tap-count dataset records its control rate
+    assert proc.stderr.startswith("budget: 4 steps (train.steps, 1.333 epochs of 3 training episodes)")
     summary = json.loads(proc.stdout)
     assert summary["step"] == 4
     assert Path(summary["run_dir"]) == out
@@ -216,8 +218,9 @@ def test_happy_path_run_directory(happy, data):
     assert [r["step"] for r in train] == [1, 2, 3, 4]
     assert [r["step"] for r in val] == [2, 4]
     for r in train:
-        assert set(r) == TRAIN_KEYS
-        assert all(math.isfinite(r[k]) for k in TRAIN_KEYS - {"kind", "step"})
+        assert set(r) == TRAIN_KEYS | DYNAMICS_KEYS
+        assert all(math.isfinite(r[k]) for k in (TRAIN_KEYS | DYNAMICS_KEYS) - {"kind", "step"})
+        assert all(-1 <= r[k] <= 1 for k in DYNAMICS_KEYS) and r["dyn_cos"] == pytest.approx(1 - r["dynamics"], abs=1e-5)
         assert r["steps_per_s"] > 0 and r["lr"] >= 0
         assert r["loss"] == pytest.approx(r["diffusion"] + m["dynamics_weight"] * r["dynamics"], rel=1e-5)
         assert r["windows_per_s"] == pytest.approx(r["steps_per_s"] * config["train"]["batch_size"], rel=1e-9)
@@ -234,8 +237,8 @@ def test_happy_path_loss_png(happy):
     assert png.startswith(PNG_SIGNATURE)
     assert png[12:16] == b"IHDR"
     width, height = struct.unpack(">II", png[16:24])
-    assert (width, height) == (1100, 400)
-    assert len(png) > 10_000  # two axes with curves, not an empty canvas
+    assert (width, height) == (1650, 400)  # losses, validation, and the dynamics predictor against trivial ones
+    assert len(png) > 10_000  # three axes with curves, not an empty canvas
     assert png.rstrip(b"\x00").endswith(b"IEND\xaeB`\x82")
 
 
@@ -247,12 +250,55 @@ def test_missing_control_rate_warns_and_flag_sets_it(tmp_path, capsys):
 
     assert train_main([*common, "--out", str(tmp_path / "a")]) == 0
     err = capsys.readouterr().err
-    assert err.startswith("warning: ") and "--control-rate" in err
+    assert any(line.startswith("warning: ") and "--control-rate" in line for line in err.splitlines())
     assert json.loads((tmp_path / "a" / "config.json").read_text())["control_rate_hz"] is None
 
     assert train_main([*common, "--out", str(tmp_path / "b"), "--control-rate", "20"]) == 0
-    assert "warning" not in capsys.readouterr().err
+    assert "--control-rate" not in capsys.readouterr().err
     assert json.loads((tmp_path / "b" / "config.json").read_text())["control_rate_hz"] == 20.0
+
+
+# ------------------------------------------------------ the training budget
+def test_epochs_are_passes_over_the_training_trajectories(data, tmp_path, capsys):
+    """--epochs E: E x (training episodes) steps, one trajectory per step; printed at the start and recorded."""
+    common = ["--data", str(data), "--no-progress", *SET_SMALL]
+    assert train_main([*common, "--out", str(tmp_path / "a"), "--epochs", "2", "--val-ratio", "0.25"]) == 0
+    captured = capsys.readouterr()
+    assert json.loads(captured.out)["step"] == 6  # 4 episodes, 1 held out: 2 x 3
+    train = json.loads((tmp_path / "a" / "config.json").read_text())["train"]
+    assert train["steps"] == 6 and train["epochs"] == 2
+    lines = captured.err.splitlines()
+    assert "budget: 6 steps (2 epochs x 3 training episodes), 4 windows per step" in lines
+    warning = [line for line in lines if "validation holdout" in line]
+    assert len(warning) == 1 and warning[0].startswith("warning: ") and "takes 1 of 4 episodes" in warning[0] and "--no-holdout" in warning[0]
+
+    assert train_main([*common, "--out", str(tmp_path / "b"), "--epochs", "1", "--no-holdout"]) == 0
+    captured = capsys.readouterr()
+    assert json.loads(captured.out)["step"] == 4 and "validation holdout" not in captured.err
+    assert json.loads((tmp_path / "b" / "config.json").read_text())["train"]["val_ratio"] == 0.0
+
+
+@pytest.mark.parametrize("flags,message", [
+    (["--steps", "3", "--epochs", "2"], "--steps and --epochs (or their --set) both set the training budget; keep one"),
+    (["--epochs", "2", "--set", "train.steps=3"], "--steps and --epochs (or their --set) both set the training budget; keep one"),
+    (["--no-holdout", "--val-ratio", "0.2"], "both set train.val_ratio; keep one"),
+    (["--epochs", "-1"], "--epochs"),
+])
+def test_budget_flags_that_contradict_are_one_error_line(flags, message, data, tmp_path, capsys):
+    assert train_main(["--data", str(data), "--out", str(tmp_path / "run"), "--no-progress", *SET_SMALL, *flags]) == 2
+    assert message in one_error_line(capsys.readouterr().err)
+    assert not (tmp_path / "run" / "config.json").exists()
+
+
+def test_the_paper_presets_follow_the_papers_budget_and_steps_give_way():
+    from dssp_train.cli.train import build_parser, config_from_args
+
+    for preset, epochs in (("metaworld", 1000), ("adroit", 3000), ("robotwin", 3000)):
+        config = config_from_args(build_parser().parse_args(["--data", "d", "--out", "o", "--preset", preset]))
+        assert config.train.epochs == epochs and config.train.val_ratio == 0.0 and config.model.denoiser_mlp == "gated"
+        assert config.model.action_alignment == "dp3" and config.model.n_action_steps == config.model.horizon - config.model.n_obs_steps + 1
+    config = config_from_args(build_parser().parse_args(["--data", "d", "--out", "o", "--preset", "adroit", "--steps", "50"]))
+    assert config.train.steps == 50 and config.train.epochs == 0  # asked-for steps replace the preset's epochs
 
 
 # ----------------------------------------------------------------- ablations
@@ -296,8 +342,9 @@ def test_ablation_flags_train_and_land_in_config(flags, field, value, data, tmp_
     assert [r["step"] for r in train] == [1, 2, 3]
     if field in ("use_history", "dynamics_weight"):
         assert all(r["dynamics"] == 0 and r["loss"] == r["diffusion"] for r in train)
+        assert not any(DYNAMICS_KEYS & set(r) for r in train)
     else:
-        assert all(r["dynamics"] > 0 for r in train)
+        assert all(r["dynamics"] > 0 and DYNAMICS_KEYS <= set(r) for r in train)
 
 
 # ---------------------------------------------------------------- dssp-params
@@ -314,8 +361,16 @@ def test_params_total_equals_the_models_parameter_count(capsys):
     expected = sum(p.numel() for p in DSSPPolicy(config.model).parameters())
     assert printed == expected
     assert re.search(rf"{expected / 1e6:.2f}\s*$", totals[0])
-    rows = [line for line in out.splitlines()[2:] if line.split() and line.split()[0] != "total"]
+    lines = out.splitlines()
+    end = lines.index(totals[0])
+    rows = [line for line in lines[2:end] if line.split()]
     assert sum(int(re.findall(r"([\d,]+)\s+[\d.]+\s*$", r)[0].replace(",", "")) for r in rows) == expected
+    # the paper's size: the preset's block (Mamba + GatedMLP) lands within 3 % of 44.3 M; every alternative is listed
+    variants = {tuple(line.split()[:2]): line for line in lines[end + 2:]}
+    assert set(variants) == {(b, m) for b in ("mamba", "transformer") for m in ("none", "gated", "dit")}
+    own = variants[("mamba", "gated")]
+    assert own.endswith("<- this config") and abs(expected / 44.3e6 - 1) <= 0.03
+    assert float(own.split()[2]) == pytest.approx(expected / 1e6, abs=0.006)
 
 
 def test_params_unknown_preset_is_one_error_line(capsys):

@@ -58,12 +58,32 @@ def main(argv: list[str] | None = None) -> int:
                                   f"(0 means 'from the dataset', which dssp-params has none of)")
         print(
             f"preset {config.preset}: d_model {m.d_model}, d_state {m.d_state}, expand {m.expand}, "
-            f"{m.n_history_layers} history + {m.n_denoiser_layers} denoiser layers, S={m.state_dim}, A={m.action_dim}"
+            f"{m.n_history_layers} history + {m.n_denoiser_layers} denoiser layers ({m.denoiser_backbone}, MLP {m.denoiser_mlp}), "
+            f"S={m.state_dim}, A={m.action_dim}"
         )
         print(format_breakdown(parameter_breakdown(meta_policy(m))))
+        print(block_variants(m))
         return 0
 
     return run_cli(_main)
+
+
+PAPER_PARAMS = 44.3e6  # the paper's reported size (RoboTwin configuration)
+
+
+def block_variants(model) -> str:
+    """The total for each denoiser block composition (model.denoiser_mlp) and mixer (model.denoiser_backbone) at
+    this config's sizes, against the paper's 44.3 M; the config's own marked."""
+    import dataclasses
+
+    lines = [f"denoiser blocks (model.denoiser_backbone, model.denoiser_mlp): total, vs the paper's {PAPER_PARAMS / 1e6:.1f} M"]
+    for backbone in ("mamba", "transformer"):
+        for mlp in ("none", "gated", "dit"):
+            variant = dataclasses.replace(model, denoiser_backbone=backbone, denoiser_mlp=mlp)
+            total = sum(p.numel() for p in meta_policy(variant).parameters())
+            mark = "  <- this config" if (backbone, mlp) == (model.denoiser_backbone, model.denoiser_mlp) else ""
+            lines.append(f"  {backbone:<11} {mlp:<5} {total / 1e6:7.2f} M  {100 * (total / PAPER_PARAMS - 1):+6.1f} %{mark}")
+    return "\n".join(lines)
 
 
 def meta_policy(model):

@@ -51,7 +51,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="default: cuda when available")
     p.add_argument("--batch-size", type=int, help="action windows sampled from each trajectory per step")
     p.add_argument("--lr", type=float, help="peak learning rate")
+    p.add_argument("--epochs", type=int, help="passes over the training trajectories (steps = epochs x training episodes); "
+                                                "instead of --steps")
     p.add_argument("--val-ratio", type=float, help="fraction of episodes held out for validation")
+    p.add_argument("--no-holdout", action="store_true", help="train on every episode (train.val_ratio 0), as the paper does with "
+                                                             "its 10 MetaWorld/Adroit demonstrations; validation reports on training episodes")
     p.add_argument("--control-rate", type=float, help="control rate of the data in Hz, when the dataset does not record it "
                    "(a recorded rate must not be contradicted)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
@@ -63,6 +67,8 @@ def build_parser() -> argparse.ArgumentParser:
     ablations.add_argument("--no-dynamics-loss", action="store_true", help="lambda = 0")
     ablations.add_argument("--history-backbone", choices=["mamba", "transformer"], help="history encoder backbone")
     ablations.add_argument("--history-window", type=int, help="encode only the last T_h observations (0 = full history)")
+    ablations.add_argument("--denoiser-backbone", choices=["mamba", "transformer"],
+                           help="denoiser blocks' mixer: Mamba, or causal self-attention (Table 5's w/ Trans.)")
     p.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE", help="any other config field, e.g. model.d_model=256")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
@@ -71,14 +77,17 @@ def build_parser() -> argparse.ArgumentParser:
 # Flags that set one config field: (flag, argparse dest, field).
 VALUE_FLAGS = (
     ("--steps", "steps", "train.steps"),
+    ("--epochs", "epochs", "train.epochs"),
     ("--seed", "seed", "train.seed"),
     ("--batch-size", "batch_size", "train.batch_size"),
     ("--lr", "lr", "train.lr"),
     ("--val-ratio", "val_ratio", "train.val_ratio"),
     ("--history-backbone", "history_backbone", "model.history_backbone"),
     ("--history-window", "history_window", "model.history_window"),
+    ("--denoiser-backbone", "denoiser_backbone", "model.denoiser_backbone"),
 )
 SWITCH_FLAGS = (
+    ("--no-holdout", "no_holdout", "train.val_ratio", 0.0),
     ("--no-history", "no_history", "model.use_history", False),
     ("--no-timestep-decoupling", "no_timestep_decoupling", "model.timestep_decoupled", False),
     ("--no-recent-states", "no_recent_states", "model.use_recent_states", False),
@@ -142,9 +151,16 @@ def config_from_args(args, run_config: RunConfig | None = None) -> RunConfig:
     """The config of this run: ``run_config`` (the run's own, on --resume) or the preset, with --set and the flags."""
     flags = given_flags(args)
     sets = set_fields(args.set)
+    seen: dict[str, str] = {}
     for typed, key, _ in flags:
         if key in sets:
             raise ConfigError(f"{typed.split()[0]} and --set {sets[key]} both set {key}; keep one")
+        if key in seen:
+            raise ConfigError(f"{seen[key]} and {typed.split()[0]} both set {key}; keep one")
+        seen[key] = typed.split()[0]
+    budget = {key for _, key, _ in flags} | set(sets)
+    if {"train.steps", "train.epochs"} <= budget:
+        raise ConfigError("--steps and --epochs (or their --set) both set the training budget; keep one")
     if args.resume:
         if args.preset:
             raise DSSPError("--resume continues the run with its own config; drop --preset")
@@ -166,6 +182,8 @@ def config_from_args(args, run_config: RunConfig | None = None) -> RunConfig:
             config = RunConfig.from_dict(data)
         except ConfigError as exc:
             raise ConfigError(f"{typed}: {exc}") from None
+    if "train.steps" in budget and config.train.epochs:  # steps asked for: the preset's (or the run's) epochs give way
+        config = apply_overrides(config, ["train.epochs=0"])
     return config
 
 
@@ -302,6 +320,9 @@ def _train(args, out: Path) -> dict | None:
         control_rate_hz=args.control_rate, user_set=set_fields(args.set),
     )
     args.trainer = trainer
+    if trainer.is_main:
+        for note in trainer.notes:
+            print(note, file=sys.stderr)
     if trainer.is_main and trainer.config.control_rate_hz is None:
         print(f"warning: {args.data} does not record its control rate; pass --control-rate HZ so the runtime can match it", file=sys.stderr)
     summary = trainer.run()

@@ -1,14 +1,22 @@
-"""Denoiser f_theta: a Mamba stack over ``[c_t, z_{t-N+1}, ..., z_t, x_tau tokens]`` that predicts x_0.
+"""Denoiser f_theta: a stack of AdaLN blocks over ``[c_t, z_{t-N+1}, ..., z_t, x_tau tokens]`` that predicts x_0.
 
 The diffusion timestep tau enters **only the action tokens**, through AdaLN in every block
 (shift, scale and a residual gate from a zero-initialised projection of the timestep embedding);
 the prefix tokens are never modulated, so the prefix is a stable condition for every denoising step
-and — because Mamba is causal — its per-layer recurrent state can be computed once per chunk and
+and — because the mixer is causal — its per-layer state can be computed once per chunk and
 reused for all K DDIM steps (:meth:`Denoiser.encode_prefix` / :meth:`Denoiser.denoise`).
 The timestep reaches the blocks only through its AdaLN parameters (:meth:`Denoiser.modulation`), so
 sampling computes them once for the K DDIM timesteps and each step looks its row up
 (:meth:`Denoiser.forward_modulated` / :meth:`Denoiser.denoise_modulated`).
 With ``timestep_decoupled=False`` (paper Table 5 ablation) the prefix is modulated too.
+
+Each block's mixer (``model.denoiser_backbone``) is Mamba (the paper's; the per-layer state is the
+recurrent ``(conv_state, ssm_state)``) or causal multi-head self-attention with rotary positions (Table 5's
+"w/ Trans.", :class:`dssp_train.model.attention.CausalSelfAttention`; the per-layer state is the prefix's
+key/value cache). The mixer is optionally followed by an MLP (``model.denoiser_mlp``): mamba-ssm's
+GatedMLP (its ``Block`` with ``mlp_cls=GatedMLP``; unmodulated) or DiT's MLP (with its own AdaLN shift,
+scale and gate on the action tokens, so a block's modulation has 6 rows instead of 3). The MLP is
+token-wise, so the prefix caching above holds.
 
 Shapes: prefix (B, L_p, d), x_tau (B, H, A), timesteps (B,) → x0_hat (B, H, A).
 """
@@ -18,25 +26,31 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from dssp_train.config import ModelConfig
+from dssp_train.model.attention import CausalSelfAttention, init_attention_weights
 from dssp_train.model.history_encoder import sinusoidal_embedding
-from dssp_train.model.mamba import Mamba, MambaState
-from dssp_train.model.mamba_stack import MambaBlock, RMSNorm, init_mamba_weights
+from dssp_train.model.mamba import Mamba
+from dssp_train.model.mamba_stack import RMSNorm, init_mamba_weights
+
+# One layer's cached prefix: Mamba's (conv_state, ssm_state) (MambaState), or attention's (k, v) cache (KVCache).
+MixerState = tuple[torch.Tensor, torch.Tensor]
 
 
 class Modulation(NamedTuple):
     """AdaLN parameters for T timesteps: T = B (one per sample) or T = 1 (shared by the batch).
 
-    layers (T, n_layers, 3, d): shift, scale, gate of every block; final (T, 2, d): shift, scale of the readout.
+    layers (T, n_layers, R, d): shift, scale, gate of every block's mixer (R = 3), then of its MLP (R = 6, DiT's
+    MLP); final (T, 2, d): shift, scale of the readout.
     """
 
     layers: torch.Tensor
     final: torch.Tensor
 
-    def block(self, i: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Shift, scale, gate (T, d) of block i."""
+    def block(self, i: int) -> tuple[torch.Tensor, ...]:
+        """Shift, scale, gate (T, d) of block i's mixer (, and of its MLP)."""
         return self.layers[:, i].unbind(1)
 
     def at(self, k: int) -> Modulation:
@@ -44,8 +58,8 @@ class Modulation(NamedTuple):
         return Modulation(self.layers[k : k + 1], self.final[k : k + 1])
 
 
-def mixer_path(mixer: Mamba, unrolled: bool):
-    """The sequence path of ``mixer`` to run: ``forward`` (parallel scan) or ``forward_unrolled`` (traceable)."""
+def mixer_path(mixer: Mamba | CausalSelfAttention, unrolled: bool):
+    """The sequence path of ``mixer`` to run: ``forward`` (Mamba: parallel scan) or ``forward_unrolled`` (traceable)."""
     return mixer.forward_unrolled if unrolled else mixer
 
 
@@ -67,12 +81,74 @@ class TimestepEmbedding(nn.Module):
         return self.mlp(sinusoidal_embedding(timesteps, self.d_model).to(self.mlp[0].weight.dtype))
 
 
-class DenoiserBlock(MambaBlock):
-    """A pre-norm Mamba block with its AdaLN projection: temb (B, d) → shift, scale, gate (B, 3 * d)."""
+class GatedMLP(nn.Module):
+    """mamba-ssm's GatedMLP: x (..., d) → fc2(y * silu(g)), [y, g] = fc1(x); hidden 8d/3 rounded up to 128, no biases."""
 
-    def __init__(self, d_model: int, d_state: int, d_conv: int, expand: int, layer_idx: int):
-        super().__init__(d_model, d_state, d_conv, expand, layer_idx)
-        self.modulation = nn.Sequential(nn.SiLU(), nn.Linear(d_model, 3 * d_model))
+    def __init__(self, d_model: int):
+        super().__init__()
+        hidden = (int(8 * d_model / 3) + 127) // 128 * 128
+        self.fc1 = nn.Linear(d_model, 2 * hidden, bias=False)
+        self.fc2 = nn.Linear(hidden, d_model, bias=False)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        y, gate = self.fc1(x).chunk(2, dim=-1)
+        return self.fc2(y * F.silu(gate))
+
+
+class DiTMLP(nn.Module):
+    """DiT's MLP: x (..., d) → fc2(gelu_tanh(fc1(x))), hidden 4d, with biases."""
+
+    def __init__(self, d_model: int):
+        super().__init__()
+        self.fc1 = nn.Linear(d_model, 4 * d_model)
+        self.fc2 = nn.Linear(4 * d_model, d_model)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.fc2(F.gelu(self.fc1(x), approximate="tanh"))
+
+
+MLPS = {"gated": GatedMLP, "dit": DiTMLP}
+
+
+class DenoiserBlock(nn.Module):
+    """A pre-norm block — ``norm``, the ``mixer`` (Mamba, or causal self-attention for ``backbone="transformer"``),
+    then ``norm2`` and an MLP unless ``mlp`` is "none" — with its AdaLN projection: temb (B, d) → shift, scale,
+    gate (B, 3 * d), and the MLP's shift, scale, gate too for "dit" (B, 6 * d)."""
+
+    def __init__(
+        self,
+        d_model: int,
+        d_state: int,
+        d_conv: int,
+        expand: int,
+        layer_idx: int,
+        mlp: str = "none",
+        backbone: str = "mamba",
+        n_heads: int = 8,
+    ):
+        super().__init__()
+        self.norm = RMSNorm(d_model)
+        if backbone == "mamba":
+            self.mixer = Mamba(d_model, d_state=d_state, d_conv=d_conv, expand=expand, layer_idx=layer_idx)
+        elif backbone == "transformer":
+            self.mixer = CausalSelfAttention(d_model, n_heads, layer_idx=layer_idx)
+        else:
+            raise ValueError(f"denoiser backbone must be 'mamba' or 'transformer', got {backbone!r}")
+        self.mlp_kind = mlp
+        if mlp != "none":
+            self.norm2 = RMSNorm(d_model)
+            self.mlp = MLPS[mlp](d_model)
+        self.modulation = nn.Sequential(nn.SiLU(), nn.Linear(d_model, (6 if mlp == "dit" else 3) * d_model))
+
+    def mlp_residual(self, x: torch.Tensor, mod: tuple[torch.Tensor, ...] = ()) -> torch.Tensor:
+        """x (B, L, d) → x + MLP(norm2(x)); ``mod``: the MLP's (shift, scale, gate) (B or 1, d) for modulated tokens."""
+        if self.mlp_kind == "none":
+            return x
+        h = self.norm2(x)
+        if not mod or self.mlp_kind != "dit":
+            return x + self.mlp(h)
+        shift, scale, gate = mod
+        return x + gate.unsqueeze(1) * self.mlp(modulate(h, shift, scale))
 
 
 class Denoiser(nn.Module):
@@ -85,13 +161,18 @@ class Denoiser(nn.Module):
         self.action_pos = nn.Parameter(torch.zeros(cfg.horizon, d))
         self.time_embed = TimestepEmbedding(d)
         self.layers = nn.ModuleList(
-            DenoiserBlock(d, cfg.d_state, cfg.d_conv, cfg.expand, i) for i in range(cfg.n_denoiser_layers)
+            DenoiserBlock(
+                d, cfg.d_state, cfg.d_conv, cfg.expand, i, cfg.denoiser_mlp, cfg.denoiser_backbone, cfg.transformer_heads
+            )
+            for i in range(cfg.n_denoiser_layers)
         )
         self.norm_f = RMSNorm(d)
         self.final_modulation = nn.Sequential(nn.SiLU(), nn.Linear(d, 2 * d))
         self.action_out = nn.Linear(d, cfg.action_dim)
 
-        self.apply(lambda m: init_mamba_weights(m, cfg.n_denoiser_layers))
+        residuals = 1 if cfg.denoiser_mlp == "none" else 2
+        self.apply(lambda m: init_mamba_weights(m, cfg.n_denoiser_layers, residuals))
+        self.apply(lambda m: init_attention_weights(m, cfg.n_denoiser_layers, residuals))
         nn.init.normal_(self.action_pos, std=0.02)
         for layer in self.layers:
             nn.init.zeros_(layer.modulation[-1].weight)
@@ -104,7 +185,7 @@ class Denoiser(nn.Module):
         """The AdaLN parameters of timesteps (T,): a batch's (T = B), or a DDIM table's (T = K), computed once."""
         temb = self.time_embed(timesteps)  # (T, d)
         count, d = temb.shape
-        layers = torch.stack([layer.modulation(temb).view(count, 3, d) for layer in self.layers], dim=1)
+        layers = torch.stack([layer.modulation(temb).view(count, -1, d) for layer in self.layers], dim=1)
         return Modulation(layers, self.final_modulation(temb).view(count, 2, d))
 
     # ------------------------------------------------------------ full forward
@@ -117,48 +198,50 @@ class Denoiser(nn.Module):
     ) -> torch.Tensor:
         """:meth:`forward` with the AdaLN parameters given: prefix (B, L_p, d), x_tau (B, H, A) → x0_hat (B, H, A).
 
-        ``mod`` has B rows or one (shared by the batch); ``unrolled`` runs :meth:`Mamba.forward_unrolled`.
+        ``mod`` has B rows or one (shared by the batch); ``unrolled`` runs the mixers' ``forward_unrolled``
+        (:meth:`Mamba.forward_unrolled`; the same as ``forward`` for attention).
         """
         p, a = prefix, self.embed_actions(x_tau)
         n_prefix = p.shape[1]
         for i, layer in enumerate(self.layers):
-            shift, scale, gate = mod.block(i)
+            shift, scale, gate, *mlp_mod = mod.block(i)
             hp = layer.norm(p)
             if not self.decoupled:
                 hp = modulate(hp, shift, scale)
             ha = modulate(layer.norm(a), shift, scale)
             out, _ = mixer_path(layer.mixer, unrolled)(torch.cat([hp, ha], dim=1))
             op, oa = out[:, :n_prefix], out[:, n_prefix:]
-            p = p + (op if self.decoupled else gate.unsqueeze(1) * op)
-            a = a + gate.unsqueeze(1) * oa
+            p = layer.mlp_residual(p + (op if self.decoupled else gate.unsqueeze(1) * op), () if self.decoupled else mlp_mod)
+            a = layer.mlp_residual(a + gate.unsqueeze(1) * oa, mlp_mod)
         return self.readout(a, mod)
 
     # ---------------------------------------------------- prefix-cached forward
-    def encode_prefix(self, prefix: torch.Tensor, unrolled: bool = False) -> list[MambaState]:
-        """Run the (unmodulated) prefix (B, L_p, d) once: the (conv, ssm) state of every layer after it."""
+    def encode_prefix(self, prefix: torch.Tensor, unrolled: bool = False) -> list[MixerState]:
+        """Run the (unmodulated) prefix (B, L_p, d) once: every layer's state after it — Mamba's (conv (B, E, W),
+        ssm (B, E, n)), or attention's key/value cache (k, v) each (B, heads, L_p, d_head)."""
         if not self.decoupled:
             raise RuntimeError("prefix caching needs timestep_decoupled=True (the prefix depends on tau otherwise)")
         states = []
         p = prefix
         for layer in self.layers:
             out, state = mixer_path(layer.mixer, unrolled)(layer.norm(p))
-            p = p + out
+            p = layer.mlp_residual(p + out)
             states.append(state)
         return states
 
-    def denoise(self, prefix_states: list[MambaState], x_tau: torch.Tensor, timesteps: torch.Tensor) -> torch.Tensor:
+    def denoise(self, prefix_states: list[MixerState], x_tau: torch.Tensor, timesteps: torch.Tensor) -> torch.Tensor:
         """x0_hat (B, H, A) from the cached prefix states, x_tau (B, H, A), timesteps (B,); equals :meth:`forward`."""
         return self.denoise_modulated(prefix_states, x_tau, self.modulation(timesteps))
 
     def denoise_modulated(
-        self, prefix_states: list[MambaState], x_tau: torch.Tensor, mod: Modulation, unrolled: bool = False
+        self, prefix_states: list[MixerState], x_tau: torch.Tensor, mod: Modulation, unrolled: bool = False
     ) -> torch.Tensor:
         """:meth:`denoise` with the AdaLN parameters given (B rows or one): x_tau (B, H, A) → x0_hat (B, H, A)."""
         a = self.embed_actions(x_tau)
         for i, (layer, state) in enumerate(zip(self.layers, prefix_states)):
-            shift, scale, gate = mod.block(i)
+            shift, scale, gate, *mlp_mod = mod.block(i)
             out, _ = mixer_path(layer.mixer, unrolled)(modulate(layer.norm(a), shift, scale), state)
-            a = a + gate.unsqueeze(1) * out
+            a = layer.mlp_residual(a + gate.unsqueeze(1) * out, mlp_mod)
         return self.readout(a, mod)
 
     # ----------------------------------------------------------------- helpers

@@ -24,3 +24,18 @@ class DynamicsPredictor(nn.Module):
 def dynamics_loss(z_hat_next: torch.Tensor, z_next: torch.Tensor) -> torch.Tensor:
     """1 - cosine similarity, averaged; the target is detached (stop-gradient)."""
     return (1 - F.cosine_similarity(z_hat_next, z_next.detach(), dim=-1)).mean()
+
+
+@torch.no_grad()
+def dynamics_diagnostics(z_hat_next: torch.Tensor, z: torch.Tensor) -> dict[str, torch.Tensor]:
+    """How much the predictor knows beyond trivial guesses, on one trajectory z (T, d) and its predictions
+    z_hat_next (T - 1, d) of z[1:]: mean cosines to z_{t+1} of the prediction (``dyn_cos`` = 1 - L_dyn), of the
+    episode's mean z direction (``dyn_cos_mean``) and of z_t itself (``dyn_cos_prev``). A predictor no better
+    than these, or all three near 1 (every z alike), is what a collapsed z looks like."""
+    target = z[1:]
+    mean = z.mean(dim=0, keepdim=True).expand_as(target)
+    return {
+        "dyn_cos": F.cosine_similarity(z_hat_next, target, dim=-1).mean(),
+        "dyn_cos_mean": F.cosine_similarity(mean, target, dim=-1).mean(),
+        "dyn_cos_prev": F.cosine_similarity(z[:-1], target, dim=-1).mean(),
+    }

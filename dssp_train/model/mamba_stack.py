@@ -40,14 +40,16 @@ class MambaBlock(nn.Module):
         self.mixer = Mamba(d_model, d_state=d_state, d_conv=d_conv, expand=expand, layer_idx=layer_idx)
 
 
-def init_mamba_weights(module: nn.Module, n_layer: int) -> None:
-    """mamba-ssm's ``_init_weights`` for one submodule (apply with ``model.apply``)."""
+def init_mamba_weights(module: nn.Module, n_layer: int, residuals_per_layer: int = 1) -> None:
+    """mamba-ssm's ``_init_weights`` for one submodule (apply with ``model.apply``): the last projection of each
+    residual branch (Mamba's ``out_proj``, an MLP's ``fc2``) scaled by 1/sqrt(residuals_per_layer * n_layer)."""
     if isinstance(module, nn.Linear) and module.bias is not None and not getattr(module.bias, "_no_reinit", False):
         nn.init.zeros_(module.bias)
-    if isinstance(module, Mamba):
-        nn.init.kaiming_uniform_(module.out_proj.weight, a=math.sqrt(5))
+    last = module.out_proj if isinstance(module, Mamba) else getattr(module, "fc2", None)
+    if isinstance(last, nn.Linear):
+        nn.init.kaiming_uniform_(last.weight, a=math.sqrt(5))
         with torch.no_grad():
-            module.out_proj.weight /= math.sqrt(n_layer)
+            last.weight /= math.sqrt(residuals_per_layer * n_layer)
 
 
 class MambaStack(nn.Module):

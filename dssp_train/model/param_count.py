@@ -11,7 +11,7 @@ GROUPS: list[tuple[str, tuple[str, ...]]] = [
     ("E_obs fusion projection", ("obs_encoder.projection.",)),
     ("G_psi history encoder", ("history_encoder.",)),
     ("g_phi dynamics predictor", ("dynamics.",)),
-    ("f_theta Mamba blocks", ("denoiser.layers.",)),
+    ("f_theta blocks (mixer + MLP)", ("denoiser.layers.",)),
     ("f_theta AdaLN modulation", ("denoiser.final_modulation.",)),
     ("f_theta timestep embedding", ("denoiser.time_embed.",)),
     ("f_theta action in/out + final norm", ("denoiser.",)),

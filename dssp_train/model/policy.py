@@ -17,7 +17,7 @@ from torch import nn
 
 from dssp_train.config import ModelConfig
 from dssp_train.model.denoiser import Denoiser, Modulation
-from dssp_train.model.dynamics import DynamicsPredictor, dynamics_loss
+from dssp_train.model.dynamics import DynamicsPredictor, dynamics_diagnostics, dynamics_loss
 from dssp_train.model.history_encoder import HistoryEncoder
 from dssp_train.model.normalizer import RangeNormalizer
 from dssp_train.model.obs_encoder import ObservationEncoder
@@ -68,10 +68,13 @@ class DSSPPolicy(nn.Module):
 
     # ----------------------------------------------------------------- losses
     def trajectory_windows(self, length: int, starts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Indices (B, N) of the recent observations and (B, H) of the target actions for each start."""
+        """Indices (B, N) of the recent observations and (B, H) of the target actions for each start t: the chunk
+        starts at t, or at t - N + 1 with DP3's alignment (``cfg.action_offset``); indices past either end of the
+        trajectory repeat its first or last step."""
         n, h = self.cfg.n_obs_steps, self.cfg.horizon
         obs_idx = (starts.unsqueeze(1) + torch.arange(-n + 1, 1, device=starts.device)).clamp(min=0)
-        act_idx = (starts.unsqueeze(1) + torch.arange(h, device=starts.device)).clamp(max=length - 1)
+        first = starts.unsqueeze(1) - self.cfg.action_offset
+        act_idx = (first + torch.arange(h, device=starts.device)).clamp(min=0, max=length - 1)
         return obs_idx, act_idx
 
     def compute_loss(
@@ -89,7 +92,8 @@ class DSSPPolicy(nn.Module):
             starts (B,): the window start times t.
             generator: source of the diffusion noise and timesteps.
         Returns:
-            {"loss", "diffusion", "dynamics"} scalars.
+            {"loss", "diffusion", "dynamics"} scalars, and with the dynamics loss its diagnostics (no gradient):
+            "dyn_cos", "dyn_cos_mean", "dyn_cos_prev" (:func:`dssp_train.model.dynamics.dynamics_diagnostics`).
         """
         length = action.shape[0]
         z = self.encode_observations(point_cloud.unsqueeze(0), agent_pos.unsqueeze(0))  # (1, T, d)
@@ -107,9 +111,12 @@ class DSSPPolicy(nn.Module):
         diffusion = F.mse_loss(pred, target)
 
         dyn = diffusion.new_zeros(())
+        diagnostics = {}
         if self.dynamics is not None and length > 1:
-            dyn = dynamics_loss(self.dynamics(c[0, :-1], a_norm[:-1]), z[0, 1:])
-        return {"loss": diffusion + self.cfg.dynamics_weight * dyn, "diffusion": diffusion, "dynamics": dyn}
+            z_hat = self.dynamics(c[0, :-1], a_norm[:-1])
+            dyn = dynamics_loss(z_hat, z[0, 1:])
+            diagnostics = dynamics_diagnostics(z_hat, z[0])
+        return {"loss": diffusion + self.cfg.dynamics_weight * dyn, "diffusion": diffusion, "dynamics": dyn, **diagnostics}
 
     def forward(self, *args, **kwargs) -> dict[str, torch.Tensor]:
         """Same as :meth:`compute_loss` (what DistributedDataParallel calls)."""

@@ -82,9 +82,15 @@ class StreamingPolicy:
         self.history.observe(pc, pos)
         return self.context
 
+    @property
+    def action_offset(self) -> int:
+        """Index of the chunk's first action to execute (N - 1 with DP3's alignment, else 0); run H_a from there."""
+        return self.cfg.action_offset
+
     @torch.no_grad()
     def act(self, noise=None, seed: int | None = None, num_steps: int | None = None) -> np.ndarray:
-        """The action chunk (B, H, A) in raw units, from the given noise or a seeded draw."""
+        """The action chunk (B, H, A) in raw units, from the given noise or a seeded draw; execute
+        ``chunk[:, action_offset : action_offset + H_a]``."""
         if self.recent is None:
             raise RuntimeError("act() before any observe(): feed at least one observation first")
         batch = self.recent.shape[0]

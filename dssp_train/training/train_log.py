@@ -1,6 +1,7 @@
 """The machine-readable training log (``log.jsonl``: one JSON object per line) and its plot (``loss.png``).
 
-Each line has ``"kind": "train"`` (step, loss, diffusion, dynamics, lr, steps_per_s, windows_per_s)
+Each line has ``"kind": "train"`` (step, loss, diffusion, dynamics, lr, steps_per_s, windows_per_s; with the
+dynamics loss also dyn_cos, dyn_cos_mean, dyn_cos_prev: the predictor's and two trivial predictors' cosines)
 or ``"kind": "val"`` (step, val_diffusion, val_action_mse). Lines are flushed as written, so a
 crashed run keeps its log up to the crash.
 """
@@ -66,12 +67,19 @@ def plot_log(log_path: Path, png_path: Path) -> None:
     rows = read_log(log_path)
     train = [r for r in rows if r["kind"] == "train"]
     val = [r for r in rows if r["kind"] == "val"]
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    diagnostics = [r for r in train if "dyn_cos" in r]
+    fig, axes = plt.subplots(1, 3 if diagnostics else 2, figsize=(16.5 if diagnostics else 11, 4))
     if train:
         steps = [r["step"] for r in train]
         axes[0].plot(steps, [r["diffusion"] for r in train], label="diffusion (train)")
         if any(r["dynamics"] for r in train):
             axes[0].plot(steps, [r["dynamics"] for r in train], label="dynamics 1-cos (train)")
+    if diagnostics:  # the dynamics predictor against trivial guesses of z_{t+1}: a collapsed z shows here
+        steps = [r["step"] for r in diagnostics]
+        for key, label in (("dyn_cos", "g_phi(c_t, a_t)"), ("dyn_cos_prev", "z_t (persistence)"), ("dyn_cos_mean", "episode mean z")):
+            axes[2].plot(steps, [r[key] for r in diagnostics], label=label)
+        axes[2].set(xlabel="step", ylabel="cosine to z_{t+1}", title="Dynamics predictor vs trivial predictors")
+        axes[2].legend()
     if val:
         steps = [r["step"] for r in val]
         axes[0].plot(steps, [r["val_diffusion"] for r in val], "o-", label="diffusion (val, EMA)")

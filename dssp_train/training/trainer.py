@@ -141,6 +141,34 @@ def check_resume_data(run_dir: Path, config: RunConfig, data: ReplayBuffer, data
             )
 
 
+# Fewer training episodes than this and the validation holdout is warned about: it takes a real share of the data.
+FEW_TRAINING_EPISODES = 20
+
+
+def resolve_epochs(config: RunConfig, n_train: int) -> RunConfig:
+    """``config`` with train.steps = train.epochs x ``n_train`` (one trajectory per step, Appendix C.1)."""
+    data = config.to_dict()
+    data["train"]["steps"] = config.train.epochs * n_train
+    try:
+        return RunConfig.from_dict(data)
+    except ConfigError as exc:
+        raise ConfigError(f"train.epochs={config.train.epochs} x {n_train} training episodes: {exc}") from None
+
+
+def budget_notes(config: RunConfig, n_train: int, n_val: int) -> list[str]:
+    """The lines a run prints at its start: its budget in steps (and epochs), and a warning about a costly holdout."""
+    tc = config.train
+    epochs = tc.steps / n_train
+    how = f"{tc.epochs} epochs x {n_train} training episodes" if tc.epochs else f"train.steps, {epochs:.4g} epochs of {n_train} training episodes"
+    notes = [f"budget: {tc.steps} steps ({how}), {tc.batch_size} windows per step"]
+    if n_val and n_train < FEW_TRAINING_EPISODES:
+        notes.append(
+            f"warning: the validation holdout (train.val_ratio={tc.val_ratio}) takes {n_val} of {n_train + n_val} episodes, "
+            f"leaving {n_train} to train on; --no-holdout trains on all of them (validation then reports on training episodes)"
+        )
+    return notes
+
+
 class Trainer:
     def __init__(
         self,
@@ -178,6 +206,10 @@ class Trainer:
         self.train_ids, self.val_ids = split_episodes(self.data.n_episodes, tc.val_ratio, tc.seed)
         if not self.train_ids:
             raise DSSPError(f"{data_path} has no training episodes left after the validation split; lower train.val_ratio")
+        if tc.epochs and not resume:  # a resumed run keeps the steps it resolved (or the --steps it was given)
+            self.config = config = resolve_epochs(config, len(self.train_ids))
+            tc = config.train
+        self.notes = budget_notes(config, len(self.train_ids), len(self.val_ids))
         self.train_eps = [self._episode(i) for i in self.train_ids]
         self.val_eps = [self._episode(i) for i in self.val_ids] or self.train_eps
         self.val_on_train = not self.val_ids
@@ -254,7 +286,8 @@ class Trainer:
             pred = policy.sample_trajectory_windows(ep.point_cloud, ep.agent_pos, starts, noise)
             _, act_idx = policy.trajectory_windows(ep.length, starts)
             norm = policy.normalizers["action"].normalize
-            err = (norm(pred) - norm(ep.action[act_idx]))[:, : mc.n_action_steps].pow(2).mean()
+            executed = slice(mc.action_offset, mc.action_offset + mc.n_action_steps)  # the actions the robot runs
+            err = (norm(pred) - norm(ep.action[act_idx]))[:, executed].pow(2).mean()
             diff += float(losses["diffusion"]) * len(starts)
             mse += float(err) * len(starts)
             weights += len(starts)
