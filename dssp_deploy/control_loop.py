@@ -98,11 +98,11 @@ class ChunkedControl:
             if chunk_ms_estimate is None:
                 chunk_ms_estimate = self.measure_chunk_ms()
             self.lead = max(1, math.ceil(chunk_ms_estimate / self.period_ms))
-            spare = policy.horizon - policy.n_action_steps
+            spare = policy.horizon - policy.action_offset - policy.n_action_steps
             if self.lead > spare:
                 raise ValueError(
                     f"a chunk takes {chunk_ms_estimate:.1f} ms = {self.lead} ticks at {self.rate_hz:g} Hz, but only "
-                    f"H - H_a = {spare} predicted actions can be dropped; run without prefetch or at a lower rate"
+                    f"H - action_offset - H_a = {spare} predicted actions can be dropped; run without prefetch or at a lower rate"
                 )
         self.reset()
 
@@ -158,14 +158,14 @@ class ChunkedControl:
                     info.over_budget = True
                 chunk, info.chunk_ms = self.pending.result()
                 info.waited_ms = (time.perf_counter() - w0) * 1e3
-                self.chunk, self.chunk_offset, self.pending = chunk, self.lead, None
+                self.chunk, self.chunk_offset, self.pending = chunk, self.policy.action_offset + self.lead, None
                 if info.over_budget:
                     info.events.append(f"chunk not ready at tick {t}: waited {info.waited_ms:.1f} ms (over budget)")
             else:
                 c0 = time.perf_counter()
                 self.chunk = self.policy.act(seed=self._chunk_seed())
                 info.chunk_ms = (time.perf_counter() - c0) * 1e3
-                self.chunk_offset = 0
+                self.chunk_offset = self.policy.action_offset
                 if self.period_ms and info.observe_ms + info.chunk_ms > self.period_ms:
                     info.over_budget = True
                     info.events.append(

@@ -88,10 +88,11 @@ def _steps(default: int):
 @dataclass(frozen=True)
 class ManifestFacts(Settings):
     """The manifest's top-level facts the runtime uses. N = n_obs_steps, H = horizon, H_a = n_action_steps,
-    K = denoise_steps."""
+    K = denoise_steps; action_offset: the chunk's first executed action (N - 1 with DP3's alignment, 0 otherwise;
+    exports that predate it have none: their chunks start at the current step)."""
 
     SECTION: ClassVar[str] = MANIFEST_NAME
-    OPTIONAL: ClassVar[tuple[str, ...]] = ()
+    OPTIONAL: ClassVar[tuple[str, ...]] = ("action_offset",)
 
     point_dim: int = setting(3, choices=(3, 6))
     state_dim: int = _dim(7)
@@ -100,6 +101,7 @@ class ManifestFacts(Settings):
     n_obs_steps: int = _steps(2)
     horizon: int = _steps(4)
     n_action_steps: int = _steps(3)
+    action_offset: int = setting(0, ge=0, le=MAX_STEPS)
     denoise_steps: int = setting(10, ge=1, le=MAX_TIMESTEPS)
     ddim_timesteps: list[int] = setting(default_factory=lambda: list(range(90, -1, -10)), ge=0, lt=MAX_TIMESTEPS,
                                         min_length=1, max_length=MAX_TIMESTEPS)
@@ -113,6 +115,9 @@ class ManifestFacts(Settings):
         s = self.SECTION
         if self.n_action_steps > self.horizon:
             raise ConfigError(f"{s}.n_action_steps (H_a) must be in [1, horizon={self.horizon}], got {self.n_action_steps}")
+        if self.action_offset not in (0, self.n_obs_steps - 1) or self.action_offset + self.n_action_steps > self.horizon:
+            raise ConfigError(f"{s}.action_offset must be 0 or n_obs_steps - 1 = {self.n_obs_steps - 1} with action_offset + "
+                              f"n_action_steps <= horizon = {self.horizon}, got {self.action_offset}")
         if len(self.ddim_timesteps) != self.denoise_steps:
             raise ConfigError(
                 f"{s}.ddim_timesteps must hold denoise_steps={self.denoise_steps} values, got {len(self.ddim_timesteps)}"
@@ -285,6 +290,10 @@ def check_manifest(manifest: dict[str, Any], model_dir: Path) -> ManifestFacts:
             raise ConfigError(
                 f"{MANIFEST_NAME}.{name} is {json.dumps(top)} but model_config.{name} is {json.dumps(inner)}: the manifest contradicts itself"
             )
+    alignment = manifest["model_config"].get("action_alignment", "current")
+    if facts.action_offset != (model.n_obs_steps - 1 if alignment == "dp3" else 0):
+        raise ConfigError(f"{MANIFEST_NAME}.action_offset is {facts.action_offset} but model_config.action_alignment is "
+                          f"{json.dumps(alignment)} with n_obs_steps {model.n_obs_steps}: the manifest contradicts itself")
     want_state = [s["name"] for s in history_state_specs(model)] if model.use_history else []
     if facts.history_state != want_state:
         raise ConfigError(

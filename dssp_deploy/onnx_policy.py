@@ -127,6 +127,7 @@ class OnnxPolicy:
         self.point_dim, self.state_dim, self.action_dim = m["point_dim"], m["state_dim"], m["action_dim"]
         self.d_model, self.n_points = m["d_model"], m["model_config"]["n_points"]
         self.n_obs_steps, self.horizon, self.n_action_steps = m["n_obs_steps"], m["horizon"], m["n_action_steps"]
+        self.action_offset: int = m.get("action_offset", 0)  # execute chunk[:, action_offset : action_offset + H_a]
         self.denoise_steps, self.ddim_timesteps = m["denoise_steps"], list(m["ddim_timesteps"])
         self.control_rate_hz: float | None = m["control_rate_hz"]
         self.use_history, self.use_recent_states = m["use_history"], m["use_recent_states"]

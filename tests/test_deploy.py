@@ -258,7 +258,7 @@ def test_prefetch_starts_early_drops_passed_actions_and_matches_its_history(tiny
         action, info = actions[ha + j]
         assert info.chunk_index == lead + j
         np.testing.assert_allclose(action, expected[:, lead + j], atol=1e-6)
-    with pytest.raises(ValueError, match="H - H_a"):
+    with pytest.raises(ValueError, match="H - action_offset - H_a = 1 predicted actions can be dropped"):
         ChunkedControl(p, rate_hz=10, prefetch=True, chunk_ms_estimate=1000.0)
 
 
