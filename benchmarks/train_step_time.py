@@ -1,7 +1,7 @@
 """Training cost on this machine: one optimisation step for the ``tiny`` and ``robotwin`` presets, and
 the history encoder's forward + backward over a 600-step trajectory.
 
-    python benchmarks/train_step_time.py [--repeats 5] [--robotwin-length 300] [--json PATH [--force]]
+    python benchmarks/train_step_time.py [--repeats 5] [--robotwin-length 300] [--device cpu|cuda] [--json PATH [--force]]
 
 Prints a Markdown table of medians (and min/max) in milliseconds. A step is what ``dssp-train``
 does: encode one whole trajectory (E_obs, G_psi), B windows through the denoiser, both losses,
@@ -25,10 +25,23 @@ from dssp_train.model.policy import DSSPPolicy
 from dssp_train.training.ema import EMA
 from dssp_deploy.latency import time_calls
 from dssp_data.cli_runner import run_cli
+from dssp_data.errors import DSSPError
 from dssp_data.output_guard import check_output_file, write_output_text
 
 
-def train_step_fn(preset: str, length: int, state_dim: int, action_dim: int):
+def synchronized(step, device: str):
+    """``step`` that waits for the device's queued work, so a timed call is the whole step."""
+    if device != "cuda":
+        return step
+
+    def run():
+        step()
+        torch.cuda.synchronize()
+
+    return run
+
+
+def train_step_fn(preset: str, length: int, state_dim: int, action_dim: int, device: str = "cpu"):
     cfg = load_preset(preset)
     m = cfg.model
     m.state_dim, m.action_dim = state_dim, action_dim
@@ -37,13 +50,15 @@ def train_step_fn(preset: str, length: int, state_dim: int, action_dim: int):
     pc = torch.randn(length, m.n_points, m.point_dim)
     pos, act = torch.randn(length, state_dim), torch.randn(length, action_dim)
     policy.fit_normalizers(pc.numpy(), pos.numpy(), act.numpy())
+    policy.to(device)
+    pc, pos, act = pc.to(device), pos.to(device), act.to(device)
     opt = torch.optim.AdamW(policy.parameters(), lr=1e-4, betas=(0.95, 0.999), weight_decay=1e-6)
     ema = EMA(policy)
     gen = torch.Generator().manual_seed(0)
     batch = cfg.train.batch_size
 
     def step():
-        starts = torch.randint(0, length - m.n_action_steps + 1, (batch,), generator=gen)
+        starts = torch.randint(0, length - m.n_action_steps + 1, (batch,), generator=gen).to(device)
         loss = policy.compute_loss(pc, pos, act, starts, gen)["loss"]
         opt.zero_grad(set_to_none=True)
         loss.backward()
@@ -51,20 +66,20 @@ def train_step_fn(preset: str, length: int, state_dim: int, action_dim: int):
         ema.update(policy)
 
     n_params = sum(p.numel() for p in policy.parameters())
-    return step, f"{preset}: T={length}, P={m.n_points}, B={batch}, {n_params / 1e6:.1f}M params"
+    return synchronized(step, device), f"{preset}: T={length}, P={m.n_points}, B={batch}, {n_params / 1e6:.1f}M params"
 
 
-def history_fwd_bwd_fn(length: int):
+def history_fwd_bwd_fn(length: int, device: str = "cpu"):
     m = load_preset("robotwin").model
     torch.manual_seed(0)
-    enc = HistoryEncoder(m)
-    z = torch.randn(1, length, m.d_model, requires_grad=True)
+    enc = HistoryEncoder(m).to(device)
+    z = torch.randn(1, length, m.d_model, device=device, requires_grad=True)
 
     def step():
         enc.zero_grad(set_to_none=True)
         enc(z).pow(2).mean().backward()
 
-    return step, f"G_psi (robotwin: d=512, 2 Mamba layers, N=64), T={length}, fwd+bwd"
+    return synchronized(step, device), f"G_psi (robotwin: d=512, 2 Mamba layers, N=64), T={length}, fwd+bwd"
 
 
 def row(label: str, times: list[float]) -> dict:
@@ -76,6 +91,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--robotwin-length", type=int, default=300, help="trajectory length for the robotwin step (RoboTwin averages 100-640)")
     p.add_argument("--history-length", type=int, default=600)
+    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="where to train (cuda: a GPU machine's step time)")
     p.add_argument("--json", help="also write the figures as JSON here (a new file; --force replaces one)")
     p.add_argument("--force", action="store_true", help="replace an existing --json file")
     args = p.parse_args(argv)
@@ -86,16 +102,19 @@ def _measure(args) -> int:
     if args.json:
         check_output_file(args.json, force=args.force, flag="--json")  # before measuring
 
+    if args.device == "cuda" and not torch.cuda.is_available():
+        raise DSSPError("--device cuda: CUDA is not available here; measure on a GPU machine or use --device cpu")
     rows = []
     for fn, label in (
-        train_step_fn("tiny", 40, 2, 2),
-        train_step_fn("robotwin", args.robotwin_length, 14, 14),
-        history_fwd_bwd_fn(args.history_length),
+        train_step_fn("tiny", 40, 2, 2, args.device),
+        train_step_fn("robotwin", args.robotwin_length, 14, 14, args.device),
+        history_fwd_bwd_fn(args.history_length, args.device),
     ):
         rows.append(row(label, time_calls(fn, args.repeats, warmup=1)))
         print(f"measured: {label}", flush=True)
 
-    print(f"\nMachine: {platform.processor() or platform.machine()}, torch {torch.__version__}, {torch.get_num_threads()} threads\n")
+    where = torch.cuda.get_device_name() if args.device == "cuda" else f"{torch.get_num_threads()} threads"
+    print(f"\nMachine: {platform.processor() or platform.machine()}, torch {torch.__version__}, {where}\n")
     print("| what | median ms | min ms | max ms | n |")
     print("|---|---:|---:|---:|---:|")
     for r in rows:
