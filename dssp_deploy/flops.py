@@ -57,9 +57,11 @@ def observation_flops(cfg: dict, n_points: int) -> int:
 
 
 def history_step_flops(cfg: dict, n_points: int) -> int:
-    """One control tick: E_obs plus one step of every history layer."""
+    """One control tick: E_obs plus one step of every history layer (with a window of T_h steps, every layer
+    runs over the T_h tokens of the window)."""
     layers = cfg["n_history_layers"] if cfg["use_history"] else 0
-    return observation_flops(cfg, n_points) + layers * mamba_token_flops(cfg)
+    tokens = cfg.get("history_window", 0) or 1
+    return observation_flops(cfg, n_points) + layers * tokens * mamba_token_flops(cfg)
 
 
 def chunk_flops(cfg: dict, denoise_steps: int) -> int:

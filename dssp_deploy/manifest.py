@@ -139,7 +139,7 @@ class ModelFacts(Settings):
     """The facts of ``model_config`` the runtime and ``dssp-profile`` use (the rest is left to training)."""
 
     SECTION: ClassVar[str] = f"{MANIFEST_NAME} model_config"
-    OPTIONAL: ClassVar[tuple[str, ...]] = ()
+    OPTIONAL: ClassVar[tuple[str, ...]] = ("history_window",)
 
     point_dim: int = setting(3, choices=(3, 6))
     state_dim: int = _dim(7)
@@ -160,6 +160,7 @@ class ModelFacts(Settings):
     use_history: bool = setting(True)
     use_recent_states: bool = setting(True)
     timestep_decoupled: bool = setting(True)
+    history_window: int = setting(0, ge=0, le=MAX_STEPS)  # 0: the full history (exports that predate it have none)
 
 
 @dataclass(frozen=True)
@@ -201,9 +202,12 @@ def tensor_spec(name: str, shape: list[int | str], dtype: str = "float32") -> di
 
 
 def history_state_specs(m, suffix: str = "") -> list[dict[str, Any]]:
-    """conv_state_i (B, E, W) and ssm_state_i (B, E, n) for every history layer, in graph order.
+    """conv_state_i (B, E, W) and ssm_state_i (B, E, n) for every history layer, in graph order; with a window of
+    T_h steps (``history_window``), the window z_window (B, T_h, d) and the count of observations seen z_seen (B, 1).
 
     ``m``: anything with the model's attributes (``dssp_train.config.ModelConfig``, :class:`ModelFacts`)."""
+    if getattr(m, "history_window", 0):
+        return [tensor_spec(f"z_window{suffix}", ["B", m.history_window, m.d_model]), tensor_spec(f"z_seen{suffix}", ["B", 1])]
     inner = m.expand * m.d_model
     specs = []
     for i in range(m.n_history_layers):
@@ -244,6 +248,8 @@ def _depends(name: str) -> tuple[str, ...]:
         return ("expand", "d_model", "d_conv")
     if base.startswith("ssm_state_"):
         return ("expand", "d_model", "d_state")
+    if base == "z_window":
+        return ("history_window", "d_model")
     return {
         "point_cloud": ("point_dim",), "agent_pos": ("state_dim",), "z_t": ("d_model",), "c_t": ("d_model",),
         "z_recent": ("n_obs_steps", "d_model"), "noise": ("horizon", "action_dim"), "action": ("horizon", "action_dim"),

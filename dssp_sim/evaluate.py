@@ -13,7 +13,8 @@ renders, then runs the policy. The simulation waits for the policy, so the safet
 is off here (latency is measured and reported instead; ``dssp-profile`` and ``dssp-run`` judge it).
 
 ``state_token_noise`` (σ) adds Gaussian noise to the N most recent state tokens z at every chunk (the
-paper's robustness test, Table 4); the context token c_t is left as computed.
+paper's robustness test, Table 4); the context token c_t is left as computed. Every evaluation records the
+tokens' RMS per element (``z_rms``, before any noise), so σ reads against the tokens' own scale.
 """
 
 from __future__ import annotations
@@ -75,6 +76,7 @@ class EvalResult:
     latency_ms: dict = field(default_factory=dict)
     precision: str = ""  # the graphs that ran: "fp32", "int8" or "int4"; "fused" or "standard"
     kernel: str = ""
+    z_rms: float | None = None  # RMS per element of the recent state tokens the denoiser saw, before noise
 
     @property
     def successes(self) -> int:
@@ -94,6 +96,8 @@ class EvalResult:
         lo, hi = self.interval()
         return {"model_dir": self.model_dir, "task": self.task, "n": len(self.episodes), "successes": self.successes,
                 "success_rate": self.success_rate, "wilson95": [lo, hi], "state_token_noise": self.state_token_noise,
+                "z_rms": self.z_rms,
+                "noise_over_z_rms": self.state_token_noise / self.z_rms if self.z_rms else None,
                 "failure_reasons": dict(self.reasons()), "latency_ms": self.latency_ms,
                 "precision": self.precision, "kernel": self.kernel,
                 "episodes": [e.to_dict() for e in self.episodes]}
@@ -110,19 +114,26 @@ def _wait_for_feedback(robot, after: float, timeout: float = 2.0) -> None:
         time.sleep(0.0005)
 
 
-class _NoisyRecentStates:
-    """Adds N(0, σ²) to z_recent whenever the denoiser's inputs are taken."""
+class _RecentStates:
+    """Whenever the denoiser's inputs are taken: records z_recent's mean square per element, then adds N(0, σ²)
+    to it (σ > 0)."""
 
     def __init__(self, policy, sigma: float, rng: np.random.Generator):
         self.policy, self.sigma, self.rng = policy, sigma, rng
         self.original = policy.denoiser_inputs
+        self.mean_squares: list[float] = []
 
     def __call__(self):
         feeds = self.original()
         if "z_recent" in feeds:
             z = feeds["z_recent"]
-            feeds["z_recent"] = (z + self.rng.normal(0.0, self.sigma, z.shape)).astype(np.float32)
+            self.mean_squares.append(float(np.mean(np.square(z, dtype=np.float64))))
+            if self.sigma > 0:
+                feeds["z_recent"] = (z + self.rng.normal(0.0, self.sigma, z.shape)).astype(np.float32)
         return feeds
+
+    def rms(self) -> float | None:
+        return float(np.sqrt(np.mean(self.mean_squares))) if self.mean_squares else None
 
 
 def run_episode(policy, env, seed: int, cloud_config, frames: list | None = None,
@@ -201,8 +212,7 @@ def evaluate(model_dir: Path, task: str, n_episodes: int, seed: int = 1000, thre
 
     policy = OnnxPolicy(model_dir, threads=threads, precision=precision, kernel=kernel, spinning=spinning)
     print(f"graphs: {policy.kernel_note}", file=sys.stderr)
-    if state_token_noise > 0:
-        policy.denoiser_inputs = _NoisyRecentStates(policy, state_token_noise, np.random.default_rng(seed))
+    recent = policy.denoiser_inputs = _RecentStates(policy, state_token_noise, np.random.default_rng(seed))
     env = PiperEnv(task, seed=seed)
     # The model's own point-cloud settings (its observation contract), as dssp-run uses them; a model trained on
     # data that recorded none sees the simulation's settings at its point count.
@@ -236,13 +246,15 @@ def evaluate(model_dir: Path, task: str, n_episodes: int, seed: int = 1000, thre
         for key, v in ticks.items() if v
     }
     result.latency_ms["episode_wall_s_p50"] = float(np.median(wall)) if wall else None
+    result.z_rms = recent.rms()
     return result
 
 
 def print_eval(result) -> None:
     lo, hi = result.interval()
     print(f"\n{result.task}: success {result.successes}/{len(result.episodes)} = {100 * result.success_rate:.0f} % "
-          f"(95 % Wilson interval {100 * lo:.0f}–{100 * hi:.0f} %)" + (f", state-token noise σ={result.state_token_noise:g}" if result.state_token_noise else ""))
+          f"(95 % Wilson interval {100 * lo:.0f}–{100 * hi:.0f} %)" + (f", state-token noise σ={result.state_token_noise:g}" if result.state_token_noise else "")
+          + (f" ({result.state_token_noise / result.z_rms:.2f} x the tokens' RMS {result.z_rms:.2f})" if result.state_token_noise and result.z_rms else ""))
     print("| seed | outcome | steps | detail | holds |")
     print("|---:|---|---:|---|---:|")
     for e in result.episodes:

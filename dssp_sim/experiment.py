@@ -1,12 +1,17 @@
-"""The simulation study: DSSP against the reactive baseline on the memory tasks, and the robustness test.
+"""The simulation study: DSSP against the reactive baseline on the memory tasks, the ablations, and the
+robustness test.
 
     python -m dssp_sim.experiment [--work runs/sim_experiment] [--report reports/sim] [--tasks T ...] [--quick] [--force]
 
 For each task: collect expert demonstrations; train DSSP and the reactive baseline (the same code with
 ``--no-history``: no history encoder, the denoiser sees only the N most recent state tokens — the
 "short window"), same data, preset, budget and seed; export both; evaluate each in closed loop through
-the robot's chain on the same unseen episode seeds. Then the paper's Table 4 test: Gaussian noise on the
-N most recent state tokens at inference, DSSP (full history) against the short window.
+the robot's chain on the same unseen episode seeds. Then the ablations (paper Table 5's columns and Table 3's
+history window) on the ablation tasks, each a variant of DSSP trained and evaluated the same way; and the
+paper's Table 4 test: Gaussian noise on the N most recent state tokens at inference, DSSP (full history)
+against the T_h = 10 window ("w/o full history") and the reactive baseline, σ also as a multiple of the
+tokens' own RMS (measured in each evaluation). The Transformer history encoder of Table 3 is not in the
+study: it does not export (over the full history its state grows).
 
 Every stage writes its output under ``--work`` and is skipped when that output exists, so an interrupted
 study resumes where it stopped, and ``--tasks`` splits it across processes or machines sharing ``--work``
@@ -49,19 +54,39 @@ PLAN = {
     "demos": {"tap": 50, "swap": 150, "put2": 150},
     "seeds": {"tap": [0, 1, 2], "swap": [0], "put2": [0]},
     "variants": {"dssp": [], "reactive": ["--no-history"]},
+    # Table 5's columns beside "full" (dssp) and "w/o history" (reactive), and Table 3's T_h = 10 window: trained
+    # for the ablation tasks and seeds only.
+    "ablations": {
+        "no_timestep_decoupling": ["--no-timestep-decoupling"],
+        "no_recent_states": ["--no-recent-states"],
+        "no_dynamics_loss": ["--no-dynamics-loss"],
+        "transformer_denoiser": ["--denoiser-backbone", "transformer"],
+        "window10": ["--history-window", "10"],
+    },
+    "ablation_seeds": {"tap": [0, 1, 2], "put2": [0]},
     "eval_episodes": 20,
     "eval_seed": 1000,
-    "robustness": {"task": "tap", "seed": 0, "sigmas": [0.05, 0.10, 0.15]},
+    # σ in the tokens' units; z is layer-normed, so its RMS per element is about 1 (each evaluation measures it)
+    "robustness": {"task": "tap", "seed": 0, "variants": ["dssp", "window10", "reactive"],
+                   "sigmas": [0.05, 0.10, 0.15, 0.3, 0.5, 1.0]},
     "export_flags": [],  # parity is checked on every export of the study
 }
 QUICK_PLAN = {**PLAN, "steps": {"tap": 20}, "demos": {"tap": 3}, "seeds": {"tap": [0]}, "eval_episodes": 1,
               "export_flags": ["--skip-verify", "--quantize", "none"],  # the export tests prove parity and quantize; this checks the plumbing
-              "robustness": {"task": "tap", "seed": 0, "sigmas": [0.1]}}
+              "ablations": {"window3": ["--history-window", "3"]}, "ablation_seeds": {"tap": [0]},
+              "robustness": {"task": "tap", "seed": 0, "variants": ["dssp", "window3", "reactive"], "sigmas": [0.1]}}
 WORK_DIR = OutputKind("a study work directory", "python -m dssp_sim.experiment",
                       entries=("data", "runs", "models", "evals", "logs"), signature=lambda p: (p / "logs").is_dir())
 """``--work``: data/, runs/, models/, evals/, logs/ (continued by the next run; older ones are recognised by logs/)."""
 REPORT_SUFFIXES = (".md", ".json", ".png")
-VARIANT_LABELS = {"dssp": "DSSP (full history)", "reactive": "reactive baseline (short window: N recent states)"}
+VARIANT_LABELS = {
+    "dssp": "DSSP (full history)", "reactive": "reactive baseline (short window: N recent states)",
+    "no_timestep_decoupling": "w/o timestep decoupling", "no_recent_states": "w/o recent states",
+    "no_dynamics_loss": "w/o dynamics loss", "transformer_denoiser": "w/ Transformer denoiser",
+    "window10": "w/o full history (window T_h = 10)", "window3": "window T_h = 3",
+}
+# Table 5's rows: the main variants under the paper's names, then the ablations.
+TABLE5_LABELS = {"dssp": "full (DSSP)", "reactive": "w/o history (reactive baseline)"}
 
 
 def _run(cmd: list[str], log: Path) -> None:
@@ -105,20 +130,21 @@ def run_study(work: Path, plan: dict, threads: int | None = None, tasks: list[st
         data = work / "data" / f"{task}.zarr"
         stage(data / "meta", f"collect {n_demos} demos", [py, "-m", "dssp_sim.sim_cli", "collect", "--task", task, "--episodes",
                str(n_demos), "--out", str(data), "--no-progress"], work / "logs" / f"collect_{task}.log")
-        for seed in plan["seeds"][task]:
-            for variant, flags in plan["variants"].items():
-                name = f"{task}_{variant}_s{seed}"
-                run_dir, model_dir = work / "runs" / name, work / "models" / name
-                stage(run_dir / "checkpoint", f"train {variant} seed {seed}", [py, "-m", "dssp_train.cli.train", "--data", str(data),
-                       "--out", str(run_dir), "--preset", plan["preset"], "--steps", str(plan["steps"][task]), "--seed", str(seed),
-                       "--no-progress", "--force", *flags], work / "logs" / f"train_{name}.log")
-                stage(model_dir / "dssp_model.json", f"export {variant} seed {seed}", [py, "-m", "export.to_onnx", str(run_dir),
-                       "-o", str(model_dir), "--force", *plan.get("export_flags", [])], work / "logs" / f"export_{name}.log")
-                results["evals"][name] = _evaluate(work, model_dir, task, plan, name, 0.0, threads)
+        runs = [(seed, variant, flags) for seed in plan["seeds"][task] for variant, flags in plan["variants"].items()]
+        runs += [(seed, variant, flags) for seed in plan["ablation_seeds"].get(task, []) for variant, flags in plan["ablations"].items()]
+        for seed, variant, flags in runs:
+            name = f"{task}_{variant}_s{seed}"
+            run_dir, model_dir = work / "runs" / name, work / "models" / name
+            stage(run_dir / "checkpoint", f"train {variant} seed {seed}", [py, "-m", "dssp_train.cli.train", "--data", str(data),
+                   "--out", str(run_dir), "--preset", plan["preset"], "--steps", str(plan["steps"][task]), "--seed", str(seed),
+                   "--no-progress", "--force", *flags], work / "logs" / f"train_{name}.log")
+            stage(model_dir / "dssp_model.json", f"export {variant} seed {seed}", [py, "-m", "export.to_onnx", str(run_dir),
+                   "-o", str(model_dir), "--force", *plan.get("export_flags", [])], work / "logs" / f"export_{name}.log")
+            results["evals"][name] = _evaluate(work, model_dir, task, plan, name, 0.0, threads)
     rob = plan["robustness"]
     if tasks and rob["task"] not in tasks:
         return results
-    for variant in plan["variants"]:
+    for variant in rob["variants"]:
         name = f"{rob['task']}_{variant}_s{rob['seed']}"
         for sigma in rob["sigmas"]:
             results["robustness"][f"{name}_noise{sigma:g}"] = _evaluate(work, work / "models" / name, rob["task"], plan, name, sigma, threads)
@@ -161,17 +187,27 @@ def report_files(report_dir: Path) -> list[Path]:
     return [report_dir / f"{REPORT_NAME}{suffix}" for suffix in REPORT_SUFFIXES]
 
 
+def _rob_result(results: dict, rob: dict, variant: str, sigma: float) -> dict:
+    name = f"{rob['task']}_{variant}_s{rob['seed']}"
+    return results["evals"][name] if sigma == 0 else results["robustness"][f"{name}_noise{sigma:g}"]
+
+
+def _z_rms(results: dict, rob: dict) -> float | None:
+    """The recent state tokens' RMS per element, as DSSP's noise-free evaluation measured it (None in older results)."""
+    return _rob_result(results, rob, rob["variants"][0], 0.0).get("z_rms")
+
+
 def write_report(results: dict, report_dir: Path, seconds: float, force: bool = False) -> Path:
     """``seconds``: the compute time of all stages (:func:`stage_seconds`); ``force``: replace existing report files."""
     check_output_files(report_files(report_dir), force=force, flag="--report")
     table = summarise(results)
     plan = results["plan"]
     lines = [
-        "# Memory tasks in simulation: DSSP against the reactive baseline",
+        "# Memory tasks in simulation: DSSP against the reactive baseline, the ablations, robustness",
         "",
         f"Produced by `python -m dssp_sim.experiment` ({seconds / 60:.0f} min of stage time on this 2-core machine, "
         "summed over resumed and parallel runs). "
-        f"Preset `{plan['preset']}`, training steps per task {plan['steps']} (the same for both models), "
+        f"Preset `{plan['preset']}`, training steps per task {plan['steps']} (the same for every model), "
         f"{plan['eval_episodes']} evaluation episodes per model on unseen seeds "
         f"({plan['eval_seed']}…), closed loop through the robot's chain (simulated depth → RealSense software device → "
         "point-cloud pipeline → ONNX runtime → safety → Piper CAN frames → MuJoCo arm). Success rates with 95 % Wilson "
@@ -182,22 +218,37 @@ def write_report(results: dict, report_dir: Path, seconds: float, force: bool = 
     ]
     for task, variants in table.items():
         for variant, row in variants.items():
+            if variant not in plan["variants"]:
+                continue
             seeds = ", ".join(f"{s}: {v}" for s, v in sorted(row["per_seed"].items()))
             reasons = ", ".join(f"{k} × {v}" for k, v in sorted(row["reasons"].items())) or "—"
             lines.append(f"| {task} | {VARIANT_LABELS.get(variant, variant)} | {pct(row['k'], row['n'])} | {seeds} | {reasons} |")
+    ablation_tasks = [t for t in plan["ablation_seeds"] if t in table and any(v in table[t] for v in plan["ablations"])]
+    if ablation_tasks:
+        seeds = ", ".join(f"`{t}` seeds {plan['ablation_seeds'][t]}" for t in ablation_tasks)
+        lines += ["", f"Ablations (paper Table 5, and Table 3's window): each row one change to DSSP, trained and evaluated "
+                  f"as above ({seeds}; rows pooled over those seeds only). The Transformer history encoder of Table 3 is "
+                  "not here: it does not export (over the full history its state grows).", "",
+                  "| model | " + " | ".join(f"`{t}`" for t in ablation_tasks) + " |", "|---|" + "---|" * len(ablation_tasks)]
+        for variant in [*plan["variants"], *plan["ablations"]]:
+            cells = []
+            for task in ablation_tasks:
+                names = [f"{task}_{variant}_s{seed}" for seed in plan["ablation_seeds"][task]]
+                rs = [results["evals"][n] for n in names if n in results["evals"]]
+                cells.append(pct(sum(r["successes"] for r in rs), sum(r["n"] for r in rs)) if rs else "—")
+            lines.append(f"| {TABLE5_LABELS.get(variant, VARIANT_LABELS.get(variant, variant))} | " + " | ".join(cells) + " |")
     if results["robustness"]:
         rob = plan["robustness"]
+        rms = _z_rms(results, rob)
         lines += ["", f"Robustness (paper Table 4): Gaussian noise σ on the N most recent state tokens at inference, "
-                  f"task `{rob['task']}`, training seed {rob['seed']}.", "",
-                  "| σ | " + " | ".join(VARIANT_LABELS.get(v, v) for v in plan["variants"]) + " |",
-                  "|---:|" + "---|" * len(plan["variants"])]
+                  f"task `{rob['task']}`, training seed {rob['seed']}. σ is in the tokens' units"
+                  + (f"; their RMS per element is {rms:.2f} (DSSP, noise-free), so σ / RMS is in the second column." if rms else "."),
+                  "", "| σ | σ / RMS | " + " | ".join(VARIANT_LABELS.get(v, v) for v in rob["variants"]) + " |",
+                  "|---:|---:|" + "---|" * len(rob["variants"])]
         for sigma in [0.0, *rob["sigmas"]]:
-            cells = []
-            for variant in plan["variants"]:
-                name = f"{rob['task']}_{variant}_s{rob['seed']}"
-                r = results["evals"][name] if sigma == 0 else results["robustness"][f"{name}_noise{sigma:g}"]
-                cells.append(pct(r["successes"], r["n"]))
-            lines.append(f"| {sigma:g} | " + " | ".join(cells) + " |")
+            cells = [pct(r["successes"], r["n"]) for r in (_rob_result(results, rob, v, sigma) for v in rob["variants"])]
+            lines.append(f"| {sigma:g} | {sigma / rms:.2f} | " if rms else f"| {sigma:g} | — | ")
+            lines[-1] += " | ".join(cells) + " |"
     lines += ["", f"![success rates]({REPORT_NAME}.png)", ""]
     md, js, png = report_files(report_dir)
     write_output_text(md, "\n".join(lines), force=force, flag="--report")
@@ -206,42 +257,59 @@ def write_report(results: dict, report_dir: Path, seconds: float, force: bool = 
     return md
 
 
+def _bars(ax, groups: list[str], series: list[tuple[str, list[tuple[int, int]]]], title: str) -> None:
+    """Grouped bars of success % with Wilson intervals: ``series`` [(label, [(k, n) per group])]."""
+    import numpy as np
+
+    width = 0.8 / max(len(series), 1)
+    for i, (label, counts) in enumerate(series):
+        rates, errs = [], [[], []]
+        for k, n in counts:
+            p = k / max(n, 1)
+            lo, hi = wilson_interval(k, n)
+            rates.append(100 * p)
+            errs[0].append(100 * (p - lo))
+            errs[1].append(100 * (hi - p))
+        ax.bar(np.arange(len(groups)) + (i - (len(series) - 1) / 2) * width, rates, width, yerr=errs, capsize=3, label=label)
+    ax.set(xticks=np.arange(len(groups)), xticklabels=groups, ylabel="success %", ylim=(0, 105), title=title)
+    ax.legend(fontsize=7)
+
+
 def _plot(results: dict, table: dict, path: Path, force: bool = False) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    import numpy as np
 
     plan = results["plan"]
-    variants = list(plan["variants"])
-    fig, axes = plt.subplots(1, 2 if results["robustness"] else 1, figsize=(11, 4), squeeze=False)
-    ax = axes[0, 0]
     tasks = list(table)
-    width = 0.8 / len(variants)
-    for i, variant in enumerate(variants):
-        rates, errs = [], [[], []]
-        for task in tasks:
-            row = table[task].get(variant, {"k": 0, "n": 0})
-            p = row["k"] / max(row["n"], 1)
-            lo, hi = wilson_interval(row["k"], row["n"])
-            rates.append(100 * p)
-            errs[0].append(100 * (p - lo))
-            errs[1].append(100 * (hi - p))
-        ax.bar(np.arange(len(tasks)) + (i - (len(variants) - 1) / 2) * width, rates, width, yerr=errs, capsize=3,
-               label=VARIANT_LABELS.get(variant, variant))
-    ax.set(xticks=np.arange(len(tasks)), xticklabels=tasks, ylabel="success %", ylim=(0, 105), title="Closed-loop success (95 % Wilson)")
-    ax.legend(fontsize=8)
+    ablation_tasks = [t for t in plan["ablation_seeds"] if t in table and any(v in table[t] for v in plan["ablations"])]
+    panels = 1 + bool(ablation_tasks) + bool(results["robustness"])
+    fig, axes = plt.subplots(1, panels, figsize=(5.5 * panels, 4), squeeze=False)
+    axes = list(axes[0])
+    counts = lambda task, v: (table[task].get(v, {"k": 0})["k"], table[task].get(v, {"n": 0})["n"])  # noqa: E731
+    _bars(axes.pop(0), tasks, [(VARIANT_LABELS.get(v, v), [counts(t, v) for t in tasks]) for v in plan["variants"]],
+          "Closed-loop success (95 % Wilson)")
+    if ablation_tasks:
+        series = []
+        for v in [*plan["variants"], *plan["ablations"]]:
+            cells = []
+            for t in ablation_tasks:
+                rs = [results["evals"].get(f"{t}_{v}_s{seed}") for seed in plan["ablation_seeds"][t]]
+                rs = [r for r in rs if r]
+                cells.append((sum(r["successes"] for r in rs), sum(r["n"] for r in rs)))
+            series.append((TABLE5_LABELS.get(v, VARIANT_LABELS.get(v, v)), cells))
+        _bars(axes.pop(0), ablation_tasks, series, "Ablations (Table 5)")
     if results["robustness"]:
-        ax = axes[0, 1]
+        ax = axes.pop(0)
         rob = plan["robustness"]
+        rms = _z_rms(results, rob) or 1.0
         sigmas = [0.0, *rob["sigmas"]]
-        for variant in variants:
-            name = f"{rob['task']}_{variant}_s{rob['seed']}"
-            ys = [results["evals"][name]["success_rate"] if s == 0 else results["robustness"][f"{name}_noise{s:g}"]["success_rate"] for s in sigmas]
-            ax.plot(sigmas, [100 * y for y in ys], "o-", label=VARIANT_LABELS.get(variant, variant))
-        ax.set(xlabel="σ of noise on recent state tokens", ylabel="success %", ylim=(0, 105), title=f"Robustness ({rob['task']})")
-        ax.legend(fontsize=8)
+        for variant in rob["variants"]:
+            ys = [_rob_result(results, rob, variant, s)["success_rate"] for s in sigmas]
+            ax.plot([s / rms for s in sigmas], [100 * y for y in ys], "o-", label=VARIANT_LABELS.get(variant, variant))
+        ax.set(xlabel="σ / RMS of the recent state tokens", ylabel="success %", ylim=(0, 105), title=f"Robustness ({rob['task']})")
+        ax.legend(fontsize=7)
     fig.tight_layout()
     write_output_figure(path, fig, force=force, flag="--report")
 

@@ -46,15 +46,16 @@ from export.fused_ops import FUSED_OPS
 
 
 def check_exportable(policy: DSSPPolicy) -> None:
-    """Refuse history variants whose streaming state grows or is not a fixed recurrent state.
+    """Refuse history variants that do not export: the Transformer history encoder (over the full history its
+    state grows; the exporter does not trace it over a window either).
 
     Every denoiser exports (Mamba or attention mixer): it keeps nothing from one chunk to the next."""
     cfg = policy.cfg
-    if cfg.use_history and not policy.history_encoder.is_recurrent:
+    if cfg.use_history and cfg.history_backbone != "mamba":
         variant = f"history_backbone={cfg.history_backbone}, history_window={cfg.history_window}"
         raise ConfigError(
-            f"this run's history encoder ({variant}) has no constant-size recurrent state; export supports the "
-            "Mamba history encoder over the full history (history_window 0) and the reactive baseline (use_history false)"
+            f"this run's history encoder ({variant}) does not export; export supports the Mamba history encoder over "
+            "the full history or a window of T_h steps (history_window), and the reactive baseline (use_history false)"
         )
 
 
@@ -89,6 +90,9 @@ class HistoryStepGraph(nn.Module):
 
     forward(point_cloud (B, P, C), agent_pos (B, S), conv_state_0 (B, E, W), ssm_state_0 (B, E, n), ...)
         → z_t (B, d), c_t (B, d), conv_state_0_out (B, E, W), ssm_state_0_out (B, E, n), ...
+    With a window of T_h steps (``history_window``) the state is the window and a count instead:
+    forward(point_cloud, agent_pos, z_window (B, T_h, d), z_seen (B, 1)) → z_t, c_t, z_window_out, z_seen_out
+    (``HistoryEncoder.window_step``: the Mamba stack runs over the window every tick).
     Without a history encoder (the reactive baseline): forward(point_cloud, agent_pos) → z_t.
     Start an episode with all states zero.
     """
@@ -103,8 +107,12 @@ class HistoryStepGraph(nn.Module):
         z_t = self.policy.encode_observations(point_cloud, agent_pos)  # (B, d)
         if not self.has_history:
             return z_t
+        encoder = self.policy.history_encoder
+        if encoder.window:
+            c_t, (window, seen) = encoder.window_step(z_t, *states, unrolled=True)
+            return z_t, c_t, window, seen
         layer_states = [(states[2 * i], states[2 * i + 1]) for i in range(len(states) // 2)]
-        c_t, new_states = self.policy.history_encoder.step(z_t, layer_states)
+        c_t, new_states = encoder.step(z_t, layer_states)
         return (z_t, c_t, *[s for pair in new_states for s in pair])
 
 

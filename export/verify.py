@@ -285,8 +285,14 @@ def pytorch_reference(policy, point_cloud: np.ndarray, agent_pos: np.ndarray, ti
         pc, pos = torch.from_numpy(point_cloud), torch.from_numpy(agent_pos)
         z = torch.cat([policy.encode_observations(pc[None, i : i + BLOCK], pos[None, i : i + BLOCK]) for i in range(0, steps, BLOCK)], dim=1)
         c, state = None, []
-        if policy.history_encoder is not None:  # exportable: a Mamba stack over the full history
-            net, parts, layers = policy.history_encoder.net, [], None
+        encoder = policy.history_encoder
+        if encoder is not None and encoder.window:  # exportable: a Mamba stack over a window of T_h steps
+            c = torch.cat([encoder(z[:, max(0, i - encoder.window + 1) : i + BLOCK])[:, min(i, encoder.window - 1):]
+                           for i in range(0, steps, BLOCK)], dim=1)  # (1, T, d): each block with the window before it
+            last = (torch.arange(steps - encoder.window, steps)).clamp(min=0)  # the final window, the first z before the start
+            state = [z[:, last].numpy(), np.full((1, 1), min(steps, encoder.window), np.float32)]  # z_window, z_seen
+        elif encoder is not None:  # exportable: a Mamba stack over the full history
+            net, parts, layers = encoder.net, [], None
             for i in range(0, steps, BLOCK):
                 out, layers = net(z[:, i : i + BLOCK], layers)
                 parts.append(out)

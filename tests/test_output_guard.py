@@ -428,7 +428,7 @@ def test_export_report_replaces_its_own_folder_only_with_force(tmp_path, capsys,
         (model_dir / "dssp_model.json").write_text(str(len(runs)))
         return {"model_dir": str(model_dir)}
 
-    monkeypatch.setattr(module, "make_untrained_run", lambda name, run_dir: run_dir.mkdir() or run_dir)
+    monkeypatch.setattr(module, "make_untrained_run", lambda name, run_dir, overrides=(): run_dir.mkdir() or run_dir)
     monkeypatch.setattr(module, "export_model", fake_export)
     monkeypatch.setattr(module, "format_summary", lambda summary: "")
     monkeypatch.setattr(module, "latency", lambda *args: {})

@@ -210,6 +210,7 @@ def test_state_token_noise_changes_the_actions_not_the_chain(sim_model):
     again = evaluate(sim_model, "tap", 1, seed=3, threads=1, progress=False)
     assert clean.episodes[0].info == again.episodes[0].info and clean.episodes[0].steps == again.episodes[0].steps
     assert noisy.state_token_noise == 0.15 and noisy.episodes[0].steps > 0
+    assert 0.1 < clean.z_rms < 10 and noisy.to_dict()["noise_over_z_rms"] == pytest.approx(0.15 / noisy.z_rms)  # z is layer-normed
 
 
 def test_the_study_command_writes_its_report(tmp_path, capsys):
@@ -219,13 +220,17 @@ def test_the_study_command_writes_its_report(tmp_path, capsys):
     assert study_main(["--work", str(work), "--report", str(report), "--quick", "--threads", "1"]) == 0
     md = (report / f"{REPORT_NAME}.md").read_text()
     assert "| tap | DSSP (full history) |" in md and "| tap | reactive baseline" in md and "| 0.1 |" in md
+    assert "| window T_h = 3 | " in md and "| full (DSSP) | " in md  # the ablation table
     assert (report / f"{REPORT_NAME}.png").read_bytes()[:4] == b"\x89PNG"
     data = json.loads((report / f"{REPORT_NAME}.json").read_text())
-    assert set(data["evals"]) == {"tap_dssp_s0", "tap_reactive_s0"} and data["summary"]["tap"]["dssp"]["n"] == 1
+    assert set(data["evals"]) == {"tap_dssp_s0", "tap_reactive_s0", "tap_window3_s0"} and data["summary"]["tap"]["dssp"]["n"] == 1
+    rms = data["evals"]["tap_dssp_s0"]["z_rms"]  # σ is also read against the tokens' own scale
+    assert rms > 0 and f"| 0.1 | {0.1 / rms:.2f} |" in md
+    assert set(data["robustness"]) == {f"tap_{v}_s0_noise0.1" for v in ("dssp", "window3", "reactive")}
     # a second run resumes: every stage is found done (--force: the report it rewrites exists)
     capsys.readouterr()
     assert study_main(["--work", str(work), "--report", str(report), "--quick", "--force"]) == 0
-    assert capsys.readouterr().out.count("done before") == 9
-    assert len(list((work / "logs").glob("*.seconds"))) == 9  # each stage's time, summed by the report
+    assert capsys.readouterr().out.count("done before") == 13
+    assert len(list((work / "logs").glob("*.seconds"))) == 13  # each stage's time, summed by the report
     with pytest.raises(SystemExit, match="unknown task"):
         study_main(["--work", str(work), "--report", str(report), "--quick", "--tasks", "swap"])

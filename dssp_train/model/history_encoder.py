@@ -65,13 +65,19 @@ class HistoryEncoder(nn.Module):
 
     @property
     def is_recurrent(self) -> bool:
-        """True when the streaming state has a constant size (Mamba over the full history)."""
+        """True when the streaming state is a recurrent state of constant size (Mamba over the full history)."""
         return self.backbone == "mamba" and self.window == 0
 
-    def _encode(self, z: torch.Tensor) -> torch.Tensor:
-        """Run the backbone over whole sequences from a fresh start: (B, L, d) → (B, L, d)."""
+    @property
+    def has_constant_state(self) -> bool:
+        """True when the streaming state has a constant size: the recurrent state, or a window of T_h tokens."""
+        return self.is_recurrent or self.window > 0
+
+    def _encode(self, z: torch.Tensor, unrolled: bool = False) -> torch.Tensor:
+        """Run the backbone over whole sequences from a fresh start: (B, L, d) → (B, L, d) (``unrolled``: Mamba's
+        traceable path, for export)."""
         if self.backbone == "mamba":
-            return self.net(z)[0]
+            return self.net(z, unrolled=unrolled)[0]
         return self.net(z)
 
     def forward(self, z: torch.Tensor) -> torch.Tensor:
@@ -90,8 +96,28 @@ class HistoryEncoder(nn.Module):
             if state is None:
                 state = self.net.init_state(z_t.shape[0], z_t.device)
             return self.net.step(z_t, state)
-        if state is None:
-            state = z_t.unsqueeze(1).expand(-1, max(self.window, 1), -1) if self.window else z_t.unsqueeze(1)
-        else:
-            state = torch.cat([state[:, 1:] if self.window else state, z_t.unsqueeze(1)], dim=1)
+        if self.window:
+            return self.window_step(z_t, *(self.window_start(z_t) if state is None else state))
+        state = z_t.unsqueeze(1) if state is None else torch.cat([state, z_t.unsqueeze(1)], dim=1)
         return self._encode(state)[:, -1], state
+
+    # ------------------------------------------------------------ a window of T_h steps
+    def window_start(self, z_t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The state of a window model at the start of an episode: all zeros, as the runtime starts every state:
+        the window (B, T_h, d) and the count of observations seen (B, 1)."""
+        batch, dim = z_t.shape
+        return z_t.new_zeros(batch, self.window, dim), z_t.new_zeros(batch, 1)
+
+    def window_step(self, z_t: torch.Tensor, window: torch.Tensor, seen: torch.Tensor, unrolled: bool = False):
+        """One tick of a window model: z_t (B, d), the last T_h tokens (B, T_h, d) and how many were seen (B, 1)
+        → c_t (B, d) and the new (window, seen). Slots not yet seen hold the episode's first z (the training
+        path's padding), so the first tick's zeros never reach the encoder; the backbone runs over the window
+        from a fresh start (``unrolled``: the traceable path, as the exported history graph runs it)."""
+        length = window.shape[1]
+        window = torch.cat([window[:, 1:], z_t.unsqueeze(1)], dim=1)
+        seen = (seen + 1).clamp(max=length)
+        start = (length - seen).long()  # (B, 1): the oldest real token's slot; those before it are padding
+        first = window.gather(1, start.unsqueeze(-1).expand(-1, 1, window.shape[2]))  # (B, 1, d)
+        padding = torch.arange(length, device=window.device).unsqueeze(0) < start  # (B, T_h)
+        window = torch.where(padding.unsqueeze(-1), first, window)
+        return self._encode(window, unrolled)[:, -1], (window, seen)

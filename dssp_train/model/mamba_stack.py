@@ -65,11 +65,13 @@ class MambaStack(nn.Module):
     def init_state(self, batch_size: int, device=None) -> StackState:
         return [layer.mixer.init_state(batch_size, device) for layer in self.layers]
 
-    def forward(self, x: torch.Tensor, state: StackState | None = None) -> tuple[torch.Tensor, StackState]:
-        """Sequence path: x (B, L, d_model) → (B, L, d_model) and the state after the last token."""
+    def forward(self, x: torch.Tensor, state: StackState | None = None, unrolled: bool = False) -> tuple[torch.Tensor, StackState]:
+        """Sequence path: x (B, L, d_model) → (B, L, d_model) and the state after the last token (``unrolled``: each
+        layer's traceable :meth:`Mamba.forward_unrolled`, for export over a few tokens)."""
         new_state = []
         for i, layer in enumerate(self.layers):
-            out, layer_state = layer.mixer(layer.norm(x), None if state is None else state[i])
+            mixer = layer.mixer.forward_unrolled if unrolled else layer.mixer
+            out, layer_state = mixer(layer.norm(x), None if state is None else state[i])
             x = x + out
             new_state.append(layer_state)
         return self.norm_f(x), new_state
