@@ -56,17 +56,17 @@ PLAN = {
     "variants": {"dssp": [], "reactive": ["--no-history"]},
     # Table 5's columns beside "full" (dssp) and "w/o history" (reactive), and Table 3's T_h = 10 window: trained
     # for the ablation tasks and seeds only.
-    "ablations": {
+    "ablations": {  # in the order they train: the window first (Table 4 needs it)
+        "window10": ["--history-window", "10"],
         "no_timestep_decoupling": ["--no-timestep-decoupling"],
         "no_recent_states": ["--no-recent-states"],
         "no_dynamics_loss": ["--no-dynamics-loss"],
         "transformer_denoiser": ["--denoiser-backbone", "transformer"],
-        "window10": ["--history-window", "10"],
     },
     "ablation_seeds": {"tap": [0, 1, 2], "put2": [0]},
     "eval_episodes": 20,
     "eval_seed": 1000,
-    # σ in the tokens' units; z is layer-normed, so its RMS per element is about 1 (each evaluation measures it)
+    # σ in the tokens' units (each evaluation measures their RMS per element, reported beside σ)
     "robustness": {"task": "tap", "seed": 0, "variants": ["dssp", "window10", "reactive"],
                    "sigmas": [0.05, 0.10, 0.15, 0.3, 0.5, 1.0]},
     "export_flags": [],  # parity is checked on every export of the study
@@ -100,7 +100,9 @@ def _run(cmd: list[str], log: Path) -> None:
 
 
 def stage(done: Path, what: str, cmd: list[str], log: Path) -> None:
-    if done.exists():
+    """Run ``cmd`` unless it completed before: ``done`` exists and so does the stage's time (written only when
+    its command succeeded, so a stage stopped halfway is run again)."""
+    if done.exists() and log.with_suffix(".seconds").exists():
         print(f"  {what}: done before ({done})")
         return
     t0 = time.perf_counter()
@@ -108,6 +110,15 @@ def stage(done: Path, what: str, cmd: list[str], log: Path) -> None:
     seconds = time.perf_counter() - t0
     atomic_write_text(log.with_suffix(".seconds"), f"{seconds:.1f}\n")  # summed by the report
     print(f"  {what}: {seconds:.0f} s")
+
+
+def train_command(data: Path, run_dir: Path, plan: dict, task: str, seed: int, flags: list[str], log: Path) -> list[str]:
+    """The training stage's command: a new run, or ``--resume`` of one stopped halfway (its checkpoint is there,
+    the stage's time is not), so an interrupted study loses at most the steps since the last checkpoint."""
+    if (run_dir / "checkpoint").is_dir() and not log.with_suffix(".seconds").exists():
+        return [sys.executable, "-m", "dssp_train.cli.train", "--data", str(data), "--out", str(run_dir), "--resume", "--no-progress"]
+    return [sys.executable, "-m", "dssp_train.cli.train", "--data", str(data), "--out", str(run_dir), "--preset", plan["preset"],
+            "--steps", str(plan["steps"][task]), "--seed", str(seed), "--no-progress", "--force", *flags]
 
 
 def stage_seconds(work: Path) -> float:
@@ -130,14 +141,15 @@ def run_study(work: Path, plan: dict, threads: int | None = None, tasks: list[st
         data = work / "data" / f"{task}.zarr"
         stage(data / "meta", f"collect {n_demos} demos", [py, "-m", "dssp_sim.sim_cli", "collect", "--task", task, "--episodes",
                str(n_demos), "--out", str(data), "--no-progress"], work / "logs" / f"collect_{task}.log")
-        runs = [(seed, variant, flags) for seed in plan["seeds"][task] for variant, flags in plan["variants"].items()]
-        runs += [(seed, variant, flags) for seed in plan["ablation_seeds"].get(task, []) for variant, flags in plan["ablations"].items()]
+        seeds = dict.fromkeys([*plan["seeds"][task], *plan["ablation_seeds"].get(task, [])])
+        runs = [(seed, variant, flags) for seed in seeds for variant, flags in [
+            *(plan["variants"].items() if seed in plan["seeds"][task] else []),
+            *(plan["ablations"].items() if seed in plan["ablation_seeds"].get(task, []) else [])]]  # seed by seed
         for seed, variant, flags in runs:
             name = f"{task}_{variant}_s{seed}"
             run_dir, model_dir = work / "runs" / name, work / "models" / name
-            stage(run_dir / "checkpoint", f"train {variant} seed {seed}", [py, "-m", "dssp_train.cli.train", "--data", str(data),
-                   "--out", str(run_dir), "--preset", plan["preset"], "--steps", str(plan["steps"][task]), "--seed", str(seed),
-                   "--no-progress", "--force", *flags], work / "logs" / f"train_{name}.log")
+            log = work / "logs" / f"train_{name}.log"
+            stage(run_dir / "checkpoint", f"train {variant} seed {seed}", train_command(data, run_dir, plan, task, seed, flags, log), log)
             stage(model_dir / "dssp_model.json", f"export {variant} seed {seed}", [py, "-m", "export.to_onnx", str(run_dir),
                    "-o", str(model_dir), "--force", *plan.get("export_flags", [])], work / "logs" / f"export_{name}.log")
             results["evals"][name] = _evaluate(work, model_dir, task, plan, name, 0.0, threads)

@@ -210,7 +210,7 @@ def test_state_token_noise_changes_the_actions_not_the_chain(sim_model):
     again = evaluate(sim_model, "tap", 1, seed=3, threads=1, progress=False)
     assert clean.episodes[0].info == again.episodes[0].info and clean.episodes[0].steps == again.episodes[0].steps
     assert noisy.state_token_noise == 0.15 and noisy.episodes[0].steps > 0
-    assert 0.1 < clean.z_rms < 10 and noisy.to_dict()["noise_over_z_rms"] == pytest.approx(0.15 / noisy.z_rms)  # z is layer-normed
+    assert 0.1 < clean.z_rms < 10 and noisy.to_dict()["noise_over_z_rms"] == pytest.approx(0.15 / noisy.z_rms)
 
 
 def test_the_study_command_writes_its_report(tmp_path, capsys):
@@ -234,3 +234,17 @@ def test_the_study_command_writes_its_report(tmp_path, capsys):
     assert len(list((work / "logs").glob("*.seconds"))) == 13  # each stage's time, summed by the report
     with pytest.raises(SystemExit, match="unknown task"):
         study_main(["--work", str(work), "--report", str(report), "--quick", "--tasks", "swap"])
+
+
+def test_a_training_stopped_halfway_is_resumed_not_taken_for_done(tmp_path):
+    from dssp_sim.experiment import PLAN, train_command
+
+    run_dir, log = tmp_path / "runs" / "tap_dssp_s0", tmp_path / "logs" / "train_tap_dssp_s0.log"
+    fresh = train_command(tmp_path / "tap.zarr", run_dir, PLAN, "tap", 0, [], log)
+    assert "--force" in fresh and "--preset" in fresh and "--resume" not in fresh
+    (run_dir / "checkpoint").mkdir(parents=True)  # a checkpoint, but the stage never finished (no .seconds)
+    resumed = train_command(tmp_path / "tap.zarr", run_dir, PLAN, "tap", 0, [], log)
+    assert "--resume" in resumed and "--force" not in resumed and resumed[resumed.index("--out") + 1] == str(run_dir)
+    log.parent.mkdir()
+    log.with_suffix(".seconds").write_text("12.0\n")  # finished: a new run only if asked again (stage skips it)
+    assert "--resume" not in train_command(tmp_path / "tap.zarr", run_dir, PLAN, "tap", 0, [], log)
