@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -139,8 +140,11 @@ def run_study(work: Path, plan: dict, threads: int | None = None, tasks: list[st
             continue
         print(f"{task}:")
         data = work / "data" / f"{task}.zarr"
+        collect_log = work / "logs" / f"collect_{task}.log"
+        if data.exists() and not collect_log.with_suffix(".seconds").exists():  # a collection stopped halfway: collect
+            shutil.rmtree(data)  # would append to it; the study's own partial dataset is collected again instead
         stage(data / "meta", f"collect {n_demos} demos", [py, "-m", "dssp_sim.sim_cli", "collect", "--task", task, "--episodes",
-               str(n_demos), "--out", str(data), "--no-progress"], work / "logs" / f"collect_{task}.log")
+               str(n_demos), "--out", str(data), "--no-progress"], collect_log)
         seeds = dict.fromkeys([*plan["seeds"][task], *plan["ablation_seeds"].get(task, [])])
         runs = [(seed, variant, flags) for seed in seeds for variant, flags in [
             *(plan["variants"].items() if seed in plan["seeds"][task] else []),

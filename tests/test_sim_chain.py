@@ -248,3 +248,22 @@ def test_a_training_stopped_halfway_is_resumed_not_taken_for_done(tmp_path):
     log.parent.mkdir()
     log.with_suffix(".seconds").write_text("12.0\n")  # finished: a new run only if asked again (stage skips it)
     assert "--resume" not in train_command(tmp_path / "tap.zarr", run_dir, PLAN, "tap", 0, [], log)
+
+
+def test_a_collection_stopped_halfway_is_collected_again_not_appended_to(tmp_path, monkeypatch):
+    import dssp_sim.experiment as experiment
+
+    seen = []
+    monkeypatch.setattr(experiment, "stage", lambda done, what, cmd, log: seen.append((what, (done.parent).exists())))
+    monkeypatch.setattr(experiment, "_evaluate", lambda *args: {"successes": 0, "n": 1, "success_rate": 0.0, "failure_reasons": {}})
+    work = tmp_path / "work"
+    partial = work / "data" / "tap.zarr"
+    (partial / "data").mkdir(parents=True)  # a collection interrupted before its stage finished (no .seconds)
+    (work / "logs").mkdir()  # the study's own work directory
+    experiment.run_study(work, experiment.QUICK_PLAN)
+    assert seen[0] == ("collect 3 demos", False)  # removed before the stage: collect would append to it
+    (partial / "meta").mkdir(parents=True)
+    (work / "logs" / "collect_tap.seconds").write_text("3.0\n")
+    seen.clear()
+    experiment.run_study(work, experiment.QUICK_PLAN)
+    assert seen[0] == ("collect 3 demos", True)  # a finished collection stays
