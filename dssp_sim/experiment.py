@@ -69,7 +69,7 @@ PLAN = {
     "eval_seed": 1000,
     # σ in the tokens' units (each evaluation measures their RMS per element, reported beside σ)
     "robustness": {"task": "tap", "seed": 0, "variants": ["dssp", "window10", "reactive"],
-                   "sigmas": [0.05, 0.10, 0.15, 0.3, 0.5, 1.0]},
+                   "sigmas": [0.05, 0.10, 0.15, 0.3, 0.5, 1.0, 2.0]},
     "export_flags": [],  # parity is checked on every export of the study
 }
 QUICK_PLAN = {**PLAN, "steps": {"tap": 20}, "demos": {"tap": 3}, "seeds": {"tap": [0]}, "eval_episodes": 1,
