@@ -80,6 +80,29 @@ def memory_read_gbs(mib: int = 256, repeats: int = 5) -> float:
     return a.nbytes / (best / 1e3) / 1e9
 
 
+CACHE_PROBE_MIB = (2, 4, 8, 12, 16, 24, 32, 64, 128)
+
+
+def read_bandwidth_by_size(sizes_mib: tuple[int, ...] = CACHE_PROBE_MIB, repeats: int = 10) -> list[tuple[int, float]]:
+    """[(MiB, best GB/s)] of numpy's vectorised max over float32 arrays of each size, read again and again: the
+    sizes the process's share of the caches holds read far faster than the ones that stream from memory."""
+    out = []
+    for mib in sizes_mib:
+        a = np.ones(mib * 2**20 // 4, dtype=np.float32)
+        a.max()  # warm-up: pages touched, the array in whatever cache holds it
+        best = min(time_calls(a.max, repeats, warmup=1))
+        out.append((mib, a.nbytes / (best / 1e3) / 1e9))
+    return out
+
+
+def effective_cache_bytes(profile: list[tuple[int, float]], factor: float = 2.0) -> int | None:
+    """The largest probed size read at least ``factor`` times faster than the largest (memory), as bytes: the cache
+    this process actually gets, which on a shared machine can be far less than the CPU's (None: none was)."""
+    memory = profile[-1][1]
+    cached = [mib for mib, gbs in profile[:-1] if gbs >= factor * memory]
+    return max(cached) * 2**20 if cached else None
+
+
 def last_level_cache_bytes() -> int | None:
     """Size of the largest CPU cache (Linux sysfs), None where it cannot be read."""
     sizes = []

@@ -59,6 +59,8 @@ def test_profile_runs_where_torch_cannot_be_imported(tiny_export, tmp_path):
     assert "| denoiser chunk p50 ms |" in out.stdout and "Where the denoiser chunk goes" in out.stdout
     floor = report["chunk_floor"]  # the least a chunk can take here, from this machine's own peak and bandwidth
     assert floor["read_gbs"] > 0 and 0 < floor["compute_ms"] <= floor["floor_ms"] and "Chunk floor on this machine" in out.stdout
+    assert [int(k) for k in floor["read_gbs_by_mib"]] == [2, 4, 8, 12, 16, 24, 32, 64, 128]  # the cache this process gets
+    assert floor["cpu_cache_mib"] is None or floor["cache_mib"] is None or floor["cache_mib"] <= floor["cpu_cache_mib"]
     ran = read_manifest(model_dir)["graphs"]["denoiser"]["files"][file_kind(report["precision"], report["kernel"] == "fused")]
     assert floor["weights_mib"] * 2**20 == (model_dir / ran).stat().st_size
     assert png_path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -170,3 +172,11 @@ def test_chunk_flops_count_each_denoiser_blocks_mixer_and_mlp():
     assert gated - none == 2 * tokens * mlp_token_flops({**cfg, "denoiser_mlp": "gated"})
     attention = chunk_flops({**cfg, "denoiser_backbone": "transformer"}, k)
     assert attention - none == 2 * tokens * (attention_token_flops(cfg, 3 + 2.5) - mamba_token_flops(cfg))
+
+
+def test_the_effective_cache_is_the_largest_size_read_twice_as_fast_as_memory():
+    from dssp_deploy.latency import effective_cache_bytes
+
+    shared_vm = [(2, 64.0), (4, 75.0), (8, 78.0), (12, 37.0), (16, 23.0), (128, 21.0)]  # measured on a shared 32 MiB L3
+    assert effective_cache_bytes(shared_vm) == 8 * 2**20
+    assert effective_cache_bytes([(2, 30.0), (128, 25.0)]) is None  # nothing read faster than memory
