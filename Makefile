@@ -4,6 +4,8 @@
 PYTHON ?= python3
 TORCH ?= torch==2.13.0
 EXTRAS ?= train,export,deploy,hardware,sim,dev
+# Test workers (pytest-xdist), one per core; each test file runs whole in one worker (its fixtures built once).
+TEST_WORKERS ?= auto
 
 .PHONY: system setup kernel demo test bench
 
@@ -36,7 +38,7 @@ demo: setup
 	dssp-sim demo --out runs/demo --force
 
 test: setup
-	$(PYTHON) -m pytest -q
+	$(PYTHON) -m pytest -q -n $(TEST_WORKERS) --dist loadfile
 
 bench: setup
 	$(PYTHON) benchmarks/train_step_time.py
