@@ -8,11 +8,11 @@ joints within ``HOME_TOLERANCE``); success is declared once the goal has held fo
 
 - ``tap``: a spring-loaded button; press it exactly ``TAP_PRESSES`` (3) times, then go home. The button
   springs back after each press, so the scene after press 1, 2 or 3 looks the same.
-- ``swap``: a cube and a cylinder on slots A and B, a free buffer slot C in front of them; exchange them
-  through the buffer (first A->C, B->A, C->B, or the mirror B->C, A->B, C->A: a seeded choice, as is which
-  object starts on A). With one object in the buffer the next move depends on the past: the layout
-  "cube in C, cylinder on B, A empty" follows A->C when the cube started on A (next: B->A) and A->B when
-  it started on B (next: C->A).
+- ``swap``: a cube and a cylinder on slots A and B (which starts on A is seeded), a free buffer slot C in
+  front of them; exchange them through the buffer, the cube first (A->C, B->A, C->B when it starts on A,
+  the mirror B->C, A->B, C->A when it starts on B). With one object in the buffer the next move depends on
+  the past: the layout "cube in C, cylinder on B, A empty" follows A->C when the cube started on A (next:
+  B->A) and A->B when it started on B (next: C->A); and each start layout is the other's goal.
 - ``put2``: two blocks in a source bin, moved one after the other into the basket beside it, then home.
   Both bins have tall walls on the camera side, so a block lying in either is hidden from the depth
   camera: the scene at home looks the same before, between and after the two transfers.
@@ -318,9 +318,11 @@ SWAP_OBJECTS = ("cube", "cylinder")
 class SwapTask(Task):
     """Exchange the cube and the cylinder on slots A and B through the buffer slot C, then go home.
 
-    ``reset`` options: ``a_object`` ("cube" | "cylinder": which object starts on A) and ``first``
-    ("A" | "B": which slot's object goes to the buffer first). Both are seeded choices by default; the
-    slot jitter is drawn the same way whatever the options.
+    ``reset`` options: ``a_object`` ("cube" | "cylinder": which object starts on A; a seeded choice by
+    default) and ``first`` ("A" | "B": which slot's object goes to the buffer first; by default the cube's,
+    so the first move follows from the scene: with a coin toss no observation could settle, the policies
+    hesitated between A and B at the start and swept into the object they reached late). The slot jitter
+    is drawn the same way whatever the options.
 
     After ``reset``: ``slots`` {"A" | "B" | "C": (2,) centre, m}, ``start`` / ``goal`` (slot of the cube,
     slot of the cylinder), ``first``, ``objects`` (index 0 cube, 1 cylinder).
@@ -356,12 +358,10 @@ class SwapTask(Task):
         options = dict(options or {})
         centre = np.array(SLOT_CENTER) + rng.uniform(-SLOT_JITTER, SLOT_JITTER, 2)
         a_is_cube = bool(rng.integers(2))
-        first = "A" if rng.integers(2) else "B"
         yaw_jitter = rng.uniform(-0.1, 0.1)
         if "a_object" in options:
             a_is_cube = options.pop("a_object") == "cube"
-        if "first" in options:
-            first = options.pop("first")
+        first = options.pop("first", "A" if a_is_cube else "B")  # the cube goes first
         if options:
             raise ValueError(f"swap: unknown reset options {sorted(options)}")
         if first not in ("A", "B"):

@@ -44,14 +44,16 @@ def test_expert_succeeds_with_small_steps(task, seeds):
         assert np.abs(env.joint_positions() - HOME).max() < 0.05
 
 
-def test_swap_randomises_both_directions_and_arrangements():
+def test_swap_randomises_both_arrangements_and_moves_the_cube_first():
     env = PiperEnv("swap")
     seen = set()
     for seed in range(12):
         env.reset(seed)
         seen.add((env.task.first, env.task.start))
-    assert {first for first, _ in seen} == {"A", "B"}
-    assert {start for _, start in seen} == {("A", "B"), ("B", "A")}
+        assert env.task.plan()[0][0] == 0  # the cube goes to the buffer first: no coin toss at the start
+    assert seen == {("A", ("A", "B")), ("B", ("B", "A"))}  # both directions, each following from the layout
+    env.reset(0, {"first": "B", "a_object": "cube"})  # the other object first, on request
+    assert env.task.plan()[0] == (1, "B", "C")
     with pytest.raises(ValueError, match="unknown reset options"):
         env.reset(0, {"colour": "red"})
 
@@ -198,14 +200,14 @@ def test_put2_aliasing_at_home_between_and_after_the_transfers():
 
 def test_swap_aliasing_across_directions():
     """The cube in the buffer, the cylinder on B, A empty and the arm at home: reached after the first
-    move when the cube started on A and went first, and after the second move when it started on B and
-    the other object went first. The expert then moves the cylinder B->A in the first case and the cube
+    move when the cube started on A, and after the second move when it started on B (the cube goes first
+    in both). The expert then moves the cylinder B->A in the first case and the cube
     C->A in the second: only the history tells which (the slots are the same: same seed)."""
     env_a = PiperEnv("swap", seed=6)
-    env_a.reset(6, {"a_object": "cube", "first": "A"})
+    env_a.reset(6, {"a_object": "cube"})
     log_a = _episode(env_a, render=True)
     env_b = PiperEnv("swap", seed=6)
-    env_b.reset(6, {"a_object": "cylinder", "first": "B"})
+    env_b.reset(6, {"a_object": "cylinder"})
     log_b = _episode(env_b, render=True)
     assert env_a.status().success and env_b.status().success
     i = _decision(log_a, "approach", "home_dwell", nth=0)
