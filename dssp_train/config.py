@@ -49,6 +49,10 @@ class DiffusionConfig(Settings):
     set_alpha_to_one: bool = setting(True)
     steps_offset: int = setting(0, ge=0, le=100_000)
     prediction_type: str = setting("sample", choices=("sample", "epsilon"))
+    # Where the K sampling timesteps sit (diffusers' names): "leading" [0, T/K, ...] reversed, e.g. [90, ..., 0]
+    # for 10 of 100 (DP3's); "trailing" ends each interval instead, e.g. [99, 89, ..., 9], so that even K = 1
+    # starts at the noise level t = T - 1 (the distilled few-step samplers, dssp-distill).
+    timestep_spacing: str = setting("leading", choices=("leading", "trailing"))
 
     def validate(self):
         _require(
@@ -159,6 +163,28 @@ class TrainConfig(Settings):
     seed: int = setting(0, ge=0, le=2**63 - 1)
 
 
+DISTILL_METHODS = ("consistency", "trajectory")
+
+
+@dataclass
+class DistillConfig(Settings):
+    """A few-step student of a trained run (``dssp-distill``; README, "Distilled few-step sampling").
+
+    teacher: the teacher's run directory ("" = an ordinary run, not a student). method: "consistency"
+    (consistency distillation on the teacher's DDIM grid of ``teacher_steps`` steps) or "trajectory" (the
+    student's K-step sampler regressed onto the teacher's ``teacher_steps``-step DDIM output from the same
+    noise). freeze_encoders: the observation and history encoders (and the dynamics head) stay the teacher's;
+    only the denoiser trains.
+    """
+
+    SECTION: ClassVar[str] = "distill"
+
+    teacher: str = setting("")
+    method: str = setting("consistency", choices=DISTILL_METHODS)
+    teacher_steps: int = setting(10, ge=2, le=1000)
+    freeze_encoders: bool = setting(True)
+
+
 @dataclass
 class RunConfig(Settings):
     """Everything a run directory records: the model, the training, and facts about the data."""
@@ -172,6 +198,7 @@ class RunConfig(Settings):
     dataset: str | None = setting(None)
     # The observation contract the dataset records (point-cloud settings, state/action layout; null: unknown).
     observation: ObservationContract = setting(default_factory=ObservationContract)
+    distill: DistillConfig = setting(default_factory=DistillConfig)  # a distilled student's teacher and method
 
     def to_json(self) -> str:
         return json.dumps(self.to_dict(), indent=2, sort_keys=True)

@@ -93,6 +93,15 @@ def test_timesteps_equal_diffusers_for_other_step_counts(num_steps, steps_offset
     assert ours(steps_offset=steps_offset).inference_timesteps(num_steps) == scheduler.timesteps.tolist()
 
 
+@pytest.mark.parametrize("num_steps", [1, 2, 3, 7, 10])
+def test_trailing_timesteps_equal_diffusers_and_start_at_the_noise_level(num_steps):
+    scheduler = ddim(timestep_spacing="trailing")
+    scheduler.set_timesteps(num_steps)
+    mine = ours(timestep_spacing="trailing").inference_timesteps(num_steps)
+    assert mine == scheduler.timesteps.tolist() and mine[0] == 99
+    assert ours().inference_timesteps(1) == [0]  # leading spacing: one step would start where no noise is
+
+
 @pytest.mark.parametrize("beta_schedule", ["squaredcos_cap_v2", "linear"])
 def test_add_noise_equals_ddpm_add_noise(beta_schedule):
     gen = torch.Generator().manual_seed(0)
@@ -119,6 +128,9 @@ def test_add_noise_equals_ddpm_add_noise(beta_schedule):
         ({"steps_offset": 1}, 10),
         ({}, 7),
         ({}, 1),
+        ({"timestep_spacing": "trailing"}, 1),
+        ({"timestep_spacing": "trailing"}, 2),
+        ({"timestep_spacing": "trailing"}, 10),
     ],
 )
 def test_ddim_loop_with_toy_model_matches_diffusers(prediction_type, changes, num_steps):
@@ -204,7 +216,8 @@ def policy_prefix(policy: DSSPPolicy, batch: int) -> torch.Tensor:
 def test_policy_sampling_matches_diffusers_ddim(prediction_type, decoupled):
     policy = tiny_policy(prediction_type, decoupled)
     m = policy.cfg
-    assert dataclasses.asdict(m.diffusion) == {**DP3, "num_inference_steps": 10, "prediction_type": prediction_type}
+    assert dataclasses.asdict(m.diffusion) == {**DP3, "num_inference_steps": 10, "prediction_type": prediction_type,
+                                              "timestep_spacing": "leading"}
     prefix = policy_prefix(policy, 4)
     noise = torch.randn((4, m.horizon, m.action_dim), generator=torch.Generator().manual_seed(5))
 

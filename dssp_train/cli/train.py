@@ -256,7 +256,13 @@ def sigterm_as_interrupt():
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    return run_training(build_parser().parse_args(argv), config_from_args)
+
+
+def run_training(args, make_config) -> int:
+    """Train into ``args.out`` with the config ``make_config(args, run_config)`` builds (``run_config``: the
+    run's own on --resume, else None): the output guard, --resume, --force and interruptions of dssp-train,
+    shared by dssp-distill."""
     args.trainer = None  # set by _train once the Trainer exists (for the interruption message)
 
     def _main() -> int:
@@ -286,7 +292,7 @@ def main(argv: list[str] | None = None) -> int:
                             raise OutputError(f"{out} already holds a run; continue it with --resume, pass --force to replace it "
                                               "or choose another --out") from None
                         raise
-                summary = _train(args, out)
+                summary = _train(args, out, make_config)
                 if target is not None:
                     target.commit()
         except KeyboardInterrupt:
@@ -301,7 +307,7 @@ def main(argv: list[str] | None = None) -> int:
         return run_cli(_main)
 
 
-def _train(args, out: Path) -> dict | None:
+def _train(args, out: Path, make_config) -> dict | None:
     """Train into ``out``; the summary on the main process, None on the others."""
     import torch
 
@@ -311,7 +317,7 @@ def _train(args, out: Path) -> dict | None:
     if args.control_rate is not None:
         check_flag("--control-rate", "control_rate_hz", args.control_rate)
     run_config = check_resume(args, out) if args.resume else None
-    config = config_from_args(args, run_config)
+    config = make_config(args, run_config)
     if not Path(args.data).exists():
         raise DSSPError(f"dataset {args.data} does not exist; pass a DP3/RoboTwin .zarr directory (dssp-synth makes one)")
     device = args.device if args.device != "auto" else ("cuda" if torch.cuda.is_available() else "cpu")

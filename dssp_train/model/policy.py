@@ -66,6 +66,18 @@ class DSSPPolicy(nn.Module):
             parts.append(recent)
         return torch.cat(parts, dim=1)
 
+    def encode_trajectory(self, point_cloud: torch.Tensor, agent_pos: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """One raw trajectory (T, P, C), (T, S) → its state tokens z (1, T, d) and context tokens c (1, T, d)
+        (None without a history encoder), each causal."""
+        z = self.encode_observations(point_cloud.unsqueeze(0), agent_pos.unsqueeze(0))
+        return z, (self.history_encoder(z) if self.history_encoder is not None else None)
+
+    def window_prefix(self, z: torch.Tensor, c: torch.Tensor | None, starts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The prefix (B, L_p, d) of the windows starting at ``starts`` (B,) of one encoded trajectory (z, c: (1, T, d)),
+        and the indices (B, H) of their target actions."""
+        obs_idx, act_idx = self.trajectory_windows(z.shape[1], starts)
+        return self.build_prefix(None if c is None else c[0, starts], z[0, obs_idx]), act_idx
+
     # ----------------------------------------------------------------- losses
     def trajectory_windows(self, length: int, starts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Indices (B, N) of the recent observations and (B, H) of the target actions for each start t: the chunk
@@ -96,12 +108,9 @@ class DSSPPolicy(nn.Module):
             "dyn_cos", "dyn_cos_mean", "dyn_cos_prev" (:func:`dssp_train.model.dynamics.dynamics_diagnostics`).
         """
         length = action.shape[0]
-        z = self.encode_observations(point_cloud.unsqueeze(0), agent_pos.unsqueeze(0))  # (1, T, d)
-        c = self.history_encoder(z) if self.history_encoder is not None else None  # (1, T, d)
+        z, c = self.encode_trajectory(point_cloud, agent_pos)
         a_norm = self.normalizers["action"].normalize(action)  # (T, A)
-
-        obs_idx, act_idx = self.trajectory_windows(length, starts)
-        prefix = self.build_prefix(None if c is None else c[0, starts], z[0, obs_idx])
+        prefix, act_idx = self.window_prefix(z, c, starts)
         x0 = a_norm[act_idx]  # (B, H, A)
         noise = torch.randn(x0.shape, generator=generator).to(x0.device)
         timesteps = torch.randint(0, self.cfg.diffusion.num_train_timesteps, (x0.shape[0],), generator=generator)
@@ -138,6 +147,17 @@ class DSSPPolicy(nn.Module):
         step takes its row; with ``timestep_decoupled`` the prefix runs once and its states serve every step.
         ``unrolled`` runs the Mamba layers' traceable path (:meth:`Mamba.forward_unrolled`).
         """
+        return self.ddim_chain(prefix, noise, num_steps, table, unrolled)
+
+    def ddim_chain(
+        self,
+        prefix: torch.Tensor,
+        noise: torch.Tensor,
+        num_steps: int | None = None,
+        table: Modulation | None = None,
+        unrolled: bool = False,
+    ) -> torch.Tensor:
+        """:meth:`sample_normalized` with gradients (a distilled student trains its K-step chain end to end)."""
         den = self.denoiser
         timesteps = self.schedule.inference_timesteps(num_steps)
         if table is None:
@@ -161,8 +181,5 @@ class DSSPPolicy(nn.Module):
         noise: torch.Tensor,
     ) -> torch.Tensor:
         """Raw action chunks (B, H, A) for windows of one raw trajectory, from noise (B, H, A)."""
-        z = self.encode_observations(point_cloud.unsqueeze(0), agent_pos.unsqueeze(0))
-        c = self.history_encoder(z) if self.history_encoder is not None else None
-        obs_idx, _ = self.trajectory_windows(agent_pos.shape[0], starts)
-        prefix = self.build_prefix(None if c is None else c[0, starts], z[0, obs_idx])
+        prefix, _ = self.window_prefix(*self.encode_trajectory(point_cloud, agent_pos), starts)
         return self.normalizers["action"].unnormalize(self.sample_normalized(prefix, noise))

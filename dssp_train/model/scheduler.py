@@ -1,7 +1,7 @@
 """DDPM noising for training and DDIM sampling for inference.
 
 Numerically the same as diffusers' ``DDPMScheduler.add_noise`` and ``DDIMScheduler.step`` with
-eta = 0 and "leading" timestep spacing (a test checks it against diffusers). Written out here so that
+eta = 0 and "leading" or "trailing" timestep spacing (a test checks it against diffusers). Written out here so that
 the exporter can unroll the K sampling steps into a graph with every coefficient a constant.
 
 Shapes: samples (B, H, A); timesteps (B,) int64.
@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 
 from dssp_train.config import DiffusionConfig
@@ -49,9 +50,13 @@ class DiffusionSchedule:
 
     # --------------------------------------------------------------- inference
     def inference_timesteps(self, num_steps: int | None = None) -> list[int]:
-        """DDIM timesteps, "leading" spacing: e.g. [90, 80, ..., 0] for 10 of 100."""
+        """DDIM timesteps: "leading" spacing [90, 80, ..., 0] for 10 of 100, "trailing" [99, 89, ..., 9]
+        (``cfg.timestep_spacing``, as diffusers' DDIMScheduler places them)."""
         k = num_steps or self.cfg.num_inference_steps
-        ratio = self.cfg.num_train_timesteps // k
+        n = self.cfg.num_train_timesteps
+        if self.cfg.timestep_spacing == "trailing":
+            return [int(round(t)) - 1 for t in np.arange(n, 0, -n / k)]
+        ratio = n // k
         return [int(t) + self.cfg.steps_offset for t in reversed(range(0, k * ratio, ratio))]
 
     def ddim_coefficients(self, t: int, num_steps: int | None = None) -> tuple[float, float]:
@@ -74,3 +79,27 @@ class DiffusionSchedule:
         if self.cfg.clip_sample:
             x0 = x0.clamp(-1.0, 1.0)
         return a_prev**0.5 * x0 + (1 - a_prev) ** 0.5 * eps
+
+    # ------------------------------------------------- per-sample steps (distillation)
+    def alpha_prod(self, t: torch.Tensor) -> torch.Tensor:
+        """abar_t (B,) of timesteps t (B,) int64; t = -1 is the clean end (the final alpha, as DDIM's last step)."""
+        table = torch.cat([self.final_alpha_cumprod.reshape(1), self.alphas_cumprod]).to(t.device)
+        return table[t + 1]
+
+    def predicted_x0_eps(self, model_output: torch.Tensor, sample: torch.Tensor, t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(x0, eps) the model's output implies at x_t = ``sample`` (B, H, A), timesteps t (B,), as :meth:`ddim_step`
+        takes them (eps from the unclipped x0, x0 clipped with ``clip_sample``)."""
+        a_t = self.alpha_prod(t).to(sample.dtype).reshape(-1, *([1] * (sample.dim() - 1)))
+        if self.cfg.prediction_type == "sample":
+            x0 = model_output
+            eps = (sample - a_t.sqrt() * x0) / (1 - a_t).sqrt()
+        else:
+            eps = model_output
+            x0 = (sample - (1 - a_t).sqrt() * eps) / a_t.sqrt()
+        return (x0.clamp(-1.0, 1.0) if self.cfg.clip_sample else x0), eps
+
+    def ddim_jump(self, x0: torch.Tensor, eps: torch.Tensor, t_to: torch.Tensor) -> torch.Tensor:
+        """Deterministic DDIM to timesteps t_to (B,) (-1: the clean end) from a prediction (x0, eps), each (B, H, A)."""
+        a_to = self.alpha_prod(t_to).to(x0.dtype).reshape(-1, *([1] * (x0.dim() - 1)))
+        return a_to.sqrt() * x0 + (1 - a_to).sqrt() * eps
+

@@ -1,7 +1,7 @@
 """Exponential moving average of the weights, used for validation, export and deployment.
 
 Decay schedule as in diffusion_policy / DP3: ``1 - (1 + step) ** -power`` capped at ``max_decay``,
-0 at the first update. Buffers (the normalisers) are copied, not averaged.
+0 at the first update. Buffers (the normalisers) and frozen parameters are copied, not averaged.
 """
 
 from __future__ import annotations
@@ -29,7 +29,10 @@ class EMA:
     def update(self, model: nn.Module) -> None:
         decay = self.decay()
         for ema_p, p in zip(self.model.parameters(), model.parameters()):
-            ema_p.mul_(decay).add_(p.detach(), alpha=1 - decay)
+            if p.requires_grad:
+                ema_p.mul_(decay).add_(p.detach(), alpha=1 - decay)
+            else:  # frozen (a distilled student's encoders): copied, so they stay bit-identical
+                ema_p.copy_(p)
         for ema_b, b in zip(self.model.buffers(), model.buffers()):
             ema_b.copy_(b)
         self.step += 1

@@ -1,8 +1,8 @@
 """The machine-readable training log (``log.jsonl``: one JSON object per line) and its plot (``loss.png``).
 
 Each line has ``"kind": "train"`` (step, loss, diffusion, dynamics, lr, steps_per_s, windows_per_s; with the
-dynamics loss also dyn_cos, dyn_cos_mean, dyn_cos_prev: the predictor's and two trivial predictors' cosines)
-or ``"kind": "val"`` (step, val_diffusion, val_action_mse). Lines are flushed as written, so a
+dynamics loss also dyn_cos, dyn_cos_mean, dyn_cos_prev: the predictor's and two trivial predictors' cosines;
+a distilled student logs loss, distill and teacher_mse instead of the diffusion and dynamics losses) or ``"kind": "val"`` (step, val_diffusion, val_action_mse). Lines are flushed as written, so a
 crashed run keeps its log up to the crash.
 """
 
@@ -71,9 +71,13 @@ def plot_log(log_path: Path, png_path: Path) -> None:
     fig, axes = plt.subplots(1, 3 if diagnostics else 2, figsize=(16.5 if diagnostics else 11, 4))
     if train:
         steps = [r["step"] for r in train]
-        axes[0].plot(steps, [r["diffusion"] for r in train], label="diffusion (train)")
-        if any(r["dynamics"] for r in train):
-            axes[0].plot(steps, [r["dynamics"] for r in train], label="dynamics 1-cos (train)")
+        if "distill" in train[0]:  # a distilled student (dssp-distill)
+            axes[0].plot(steps, [r["distill"] for r in train], label="distillation (train)")
+            axes[0].plot(steps, [r["teacher_mse"] for r in train], label="K-step chunk vs teacher (train)")
+        else:
+            axes[0].plot(steps, [r["diffusion"] for r in train], label="diffusion (train)")
+            if any(r["dynamics"] for r in train):
+                axes[0].plot(steps, [r["dynamics"] for r in train], label="dynamics 1-cos (train)")
     if diagnostics:  # the dynamics predictor against trivial guesses of z_{t+1}: a collapsed z shows here
         steps = [r["step"] for r in diagnostics]
         for key, label in (("dyn_cos", "g_phi(c_t, a_t)"), ("dyn_cos_prev", "z_t (persistence)"), ("dyn_cos_mean", "episode mean z")):

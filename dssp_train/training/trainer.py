@@ -220,9 +220,17 @@ class Trainer:
         cat = lambda key: np.concatenate([getattr(self.data.episode(i), key) for i in self.train_ids])  # noqa: E731
         self.policy.fit_normalizers(cat("point_cloud"), cat("state"), cat("action"))
         self.policy.to(self.device)
+        self.teacher = None
+        if config.distill.teacher:  # a few-step student: the teacher's weights and normalisers to start with
+            from dssp_train.training.distillation import init_student, load_teacher
+
+            self.teacher = load_teacher(config, self.device)
+            init_student(self.policy, self.teacher, config.distill.freeze_encoders)
 
         decay, no_decay = [], []
         for p in self.policy.parameters():
+            if not p.requires_grad:  # a student's frozen encoders
+                continue
             (no_decay if getattr(p, "_no_weight_decay", False) else decay).append(p)
         self.optimizer = torch.optim.AdamW(
             [{"params": decay, "weight_decay": tc.weight_decay}, {"params": no_decay, "weight_decay": 0.0}],
@@ -236,9 +244,13 @@ class Trainer:
         if resume:
             self._restore()
         self.model = self.policy
+        if self.teacher is not None:
+            from dssp_train.training.distillation import DistillObjective
+
+            self.model = DistillObjective(self.policy, self.teacher, config)
         if self.world_size > 1:
             self.model = torch.nn.parallel.DistributedDataParallel(
-                self.policy, device_ids=[self.device.index] if self.device.type == "cuda" else None
+                self.model, device_ids=[self.device.index] if self.device.type == "cuda" else None
             )
 
     # ------------------------------------------------------------------ data
@@ -313,7 +325,7 @@ class Trainer:
                 n_log += 1
                 if bar is not None:
                     bar.update(1)
-                    bar.set_postfix(diff=f"{values['diffusion']:.4f}", dyn=f"{values['dynamics']:.3f}")
+                    bar.set_postfix({k: f"{values[k]:.4f}" for k in ("diffusion", "dynamics", "distill") if k in values})
                 if self.step % tc.log_every == 0 or self.step == tc.steps:
                     elapsed = time.perf_counter() - t_log
                     rate = n_log / max(elapsed, 1e-9)

@@ -1,0 +1,144 @@
+"""dssp-distill: a few-step student of a trained run — its objectives, its run directory, its export and its refusals."""
+
+import json
+
+import pytest
+import torch
+
+from conftest import one_error_line
+from dssp_train.cli.distill import main as distill_main
+from dssp_train.config import DiffusionConfig
+from dssp_train.model.scheduler import DiffusionSchedule
+from dssp_train.training.checkpoint import load_policy
+from dssp_train.training.distillation import ENCODER_PARTS
+
+FAST = ["--batch-size", "8", "--no-progress"]
+
+
+@pytest.fixture(scope="module")
+def teacher(tmp_path_factory):
+    """A tiny teacher trained a little longer than the shared one, so that its 10-step sampler is not the noise."""
+    from dssp_train.cli.train import main as train_main
+    from dssp_train.data.synthetic import write_tap_count_dataset
+
+    root = tmp_path_factory.mktemp("teacher")
+    data = write_tap_count_dataset(root / "tap.zarr", 6, seed=0, n_points=32)
+    assert train_main(["--data", str(data), "--out", str(root / "run"), "--preset", "tiny", "--steps", "60",
+                       "--set", "train.val_every=60", "--set", "model.d_model=32", "--no-progress"]) == 0
+    return root / "run", data
+
+
+def teacher_gap(policy, teacher, data, steps: int) -> float:
+    """MSE (normalised units) of ``policy``'s chunks against the teacher's 10-step chunks, same windows and noise."""
+    from dssp_data.replay_buffer import ReplayBuffer
+
+    ep = ReplayBuffer.load(data).episode(0)
+    pc, pos = torch.from_numpy(ep.point_cloud), torch.from_numpy(ep.state)
+    starts = torch.arange(0, 36, 3)
+    noise = torch.randn((len(starts), policy.cfg.horizon, policy.cfg.action_dim), generator=torch.Generator().manual_seed(3))
+    with torch.no_grad():
+        prefix, _ = teacher.window_prefix(*teacher.encode_trajectory(pc, pos), starts)
+        want = teacher.sample_normalized(prefix, noise)
+        got = policy.sample_normalized(policy.window_prefix(*policy.encode_trajectory(pc, pos), starts)[0], noise, steps)
+    return float((got - want).pow(2).mean())
+
+
+@pytest.mark.parametrize("num_steps", [1, 2, 10])
+def test_per_sample_steps_are_the_ddim_step(num_steps):
+    """predicted_x0_eps + ddim_jump, batched over timesteps, is the scheduler's DDIM step at every timestep."""
+    for prediction_type in ("sample", "epsilon"):
+        schedule = DiffusionSchedule(DiffusionConfig(prediction_type=prediction_type, timestep_spacing="trailing"))
+        gen = torch.Generator().manual_seed(num_steps)
+        ts = schedule.inference_timesteps(num_steps)
+        x, out = torch.randn((len(ts), 4, 3), generator=gen), 1.5 * torch.randn((len(ts), 4, 3), generator=gen)
+        t = torch.tensor(ts)
+        prev = t - schedule.cfg.num_train_timesteps // num_steps
+        batched = schedule.ddim_jump(*schedule.predicted_x0_eps(out, x, t), prev.clamp(min=-1))
+        for i, ti in enumerate(ts):
+            one = schedule.ddim_step(out[i : i + 1], ti, x[i : i + 1], num_steps)
+            assert torch.allclose(batched[i : i + 1], one, atol=1e-6)
+
+
+@pytest.mark.parametrize("method", ["consistency", "trajectory"])
+def test_a_student_is_an_ordinary_run_of_the_teacher_sampling_in_k_steps(method, teacher, tmp_path, capsys):
+    run, data = teacher
+    out = tmp_path / "student"
+    assert distill_main(["--teacher", str(run), "--steps", "1", "--out", str(out), "--method", method,
+                         "--train-steps", "6", *FAST]) == 0
+    config = json.loads((out / "config.json").read_text())
+    assert config["distill"] == {"teacher": str(run.resolve()), "method": method, "teacher_steps": 10, "freeze_encoders": True}
+    assert config["model"]["diffusion"]["num_inference_steps"] == 1 and config["model"]["diffusion"]["timestep_spacing"] == "trailing"
+    assert config["dataset"] == str(data) and config["train"]["steps"] == 6
+    rows = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+    assert {"distill", "teacher_mse"} <= set(rows[0]) and (out / "loss.png").read_bytes()[:4] == b"\x89PNG"
+    student, _ = load_policy(out)
+    theirs, _ = load_policy(run)
+    mine_sd, their_sd = student.state_dict(), theirs.state_dict()
+    frozen = [k for k in mine_sd if k.split(".")[0] in ENCODER_PARTS or k.startswith("normalizers")]
+    assert frozen and all(torch.equal(mine_sd[k], their_sd[k]) for k in frozen)  # the teacher's encoders, unchanged
+    assert any(not torch.equal(mine_sd[k], their_sd[k]) for k in mine_sd if k.startswith("denoiser"))  # its denoiser trained
+    assert student.schedule.inference_timesteps() == [99]
+
+
+def test_trajectory_distillation_brings_one_step_to_the_teachers_chunks(teacher, tmp_path):
+    run, data = teacher
+    theirs, _ = load_policy(run)
+    out = tmp_path / "k1"
+    assert distill_main(["--teacher", str(run), "--steps", "1", "--out", str(out), "--method", "trajectory",
+                         "--train-steps", "60", "--lr", "1e-3", "--batch-size", "16", "--no-progress"]) == 0
+    student, _ = load_policy(out)
+    untrained = load_policy(run)[0]
+    untrained.cfg.diffusion.timestep_spacing = "trailing"  # the teacher itself, sampled in one trailing step
+    before = teacher_gap(untrained, theirs, data, 1)
+    after = teacher_gap(student, theirs, data, 1)
+    assert after < 0.5 * before, (before, after)
+
+
+def test_the_student_exports_with_parity_and_its_k_in_the_manifest(teacher, tmp_path):
+    from dssp_deploy.onnx_policy import OnnxPolicy
+    from export.to_onnx import main as export_main
+
+    run, _ = teacher
+    out, model = tmp_path / "k2", tmp_path / "k2_model"
+    assert distill_main(["--teacher", str(run), "--steps", "2", "--out", str(out), "--train-steps", "4", *FAST]) == 0
+    assert export_main([str(out), "-o", str(model), "--quantize", "none"]) == 0  # parity is proven, as on every export
+    manifest = json.loads((model / "dssp_model.json").read_text())
+    assert manifest["denoise_steps"] == 2 and manifest["ddim_timesteps"] == [99, 49]
+    policy = OnnxPolicy(model, threads=1)
+    assert policy.denoise_steps == 2
+
+
+def test_a_stopped_student_resumes_with_its_own_config(teacher, tmp_path):
+    run, _ = teacher
+    out = tmp_path / "student"
+    assert distill_main(["--teacher", str(run), "--steps", "1", "--out", str(out), "--train-steps", "4", *FAST]) == 0
+    assert distill_main(["--out", str(out), "--resume", "--train-steps", "6", "--no-progress"]) == 0
+    state = json.loads((out / "checkpoint" / "trainer_state.json").read_text())
+    assert state["step"] == 6
+    assert json.loads((out / "config.json").read_text())["distill"]["teacher"] == str(run.resolve())
+
+
+@pytest.mark.parametrize("args,message", [
+    (lambda run, out: ["--teacher", str(run), "--steps", "10", "--out", out], "not fewer than the teacher's 10"),
+    (lambda run, out: ["--teacher", str(run) + "_missing", "--steps", "1", "--out", out], "_missing"),
+    (lambda run, out: ["--steps", "1", "--out", out], "needs --teacher RUN_DIR and --steps K"),
+    (lambda run, out: ["--teacher", str(run), "--steps", "0", "--out", out], "num_inference_steps"),
+])
+def test_bad_requests_are_one_error_line(args, message, teacher, tmp_path, capsys):
+    run, _ = teacher
+    assert distill_main(args(run, str(tmp_path / "s")) + FAST) == 2
+    assert message in one_error_line(capsys.readouterr().err)
+    assert not (tmp_path / "s").exists()
+
+
+def test_a_student_is_not_a_teacher_and_resume_keeps_its_config(teacher, tmp_path, capsys):
+    run, _ = teacher
+    out = tmp_path / "student"
+    assert distill_main(["--teacher", str(run), "--steps", "1", "--out", str(out), "--train-steps", "2", *FAST]) == 0
+    capsys.readouterr()
+    assert distill_main(["--teacher", str(out), "--steps", "1", "--out", str(tmp_path / "s2"), *FAST]) == 2
+    assert "is itself a distilled student" in one_error_line(capsys.readouterr().err)
+    assert distill_main(["--out", str(out), "--resume", "--method", "trajectory", "--train-steps", "4", "--no-progress"]) == 2
+    assert "only --train-steps may change (got --method)" in one_error_line(capsys.readouterr().err)
+    assert distill_main(["--out", str(run), "--resume", "--train-steps", "100", "--no-progress"]) == 2
+    assert "not a distilled student" in one_error_line(capsys.readouterr().err)
