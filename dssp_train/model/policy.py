@@ -133,21 +133,9 @@ class DSSPPolicy(nn.Module):
 
     # --------------------------------------------------------------- sampling
     @torch.no_grad()
-    def sample_normalized(
-        self,
-        prefix: torch.Tensor,
-        noise: torch.Tensor,
-        num_steps: int | None = None,
-        table: Modulation | None = None,
-        unrolled: bool = False,
-    ) -> torch.Tensor:
-        """DDIM from noise (B, H, A) to a normalised action chunk (B, H, A), given the prefix (B, L_p, d).
-
-        The AdaLN parameters of the K timesteps are computed once (or given: ``table``, K rows) and each
-        step takes its row; with ``timestep_decoupled`` the prefix runs once and its states serve every step.
-        ``unrolled`` runs the Mamba layers' traceable path (:meth:`Mamba.forward_unrolled`).
-        """
-        return self.ddim_chain(prefix, noise, num_steps, table, unrolled)
+    def sample_normalized(self, *args, **kwargs) -> torch.Tensor:
+        """:meth:`ddim_chain` without gradients: how every chunk is sampled."""
+        return self.ddim_chain(*args, **kwargs)
 
     def ddim_chain(
         self,
@@ -157,7 +145,13 @@ class DSSPPolicy(nn.Module):
         table: Modulation | None = None,
         unrolled: bool = False,
     ) -> torch.Tensor:
-        """:meth:`sample_normalized` with gradients (a distilled student trains its K-step chain end to end)."""
+        """DDIM from noise (B, H, A) to a normalised action chunk (B, H, A), given the prefix (B, L_p, d); with
+        gradients (a distilled student trains its K-step chain end to end), :meth:`sample_normalized` without.
+
+        The AdaLN parameters of the K timesteps are computed once (or given: ``table``, K rows) and each
+        step takes its row; with ``timestep_decoupled`` the prefix runs once and its states serve every step.
+        ``unrolled`` runs the Mamba layers' traceable path (:meth:`Mamba.forward_unrolled`).
+        """
         den = self.denoiser
         timesteps = self.schedule.inference_timesteps(num_steps)
         if table is None:
