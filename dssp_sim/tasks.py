@@ -68,17 +68,19 @@ CYLINDER_HALF_HEIGHT = 0.03
 # Two bins side by side across the robot's front, source at -y, basket at +y, each turned to face the
 # robot. Each has tall walls on the camera side and at its outer end (they hide what lies inside from the
 # camera) and low walls facing the robot and facing the other bin (so a block is carried between the bins
-# just above the low walls).
-BIN_INNER_HALF = (0.03, 0.066)  # interior half sizes (x, y)
+# just above the low walls). Along a bin, the open gripper (4.9 cm between the fingers) clears the other block
+# by 2.6 cm and the end wall by 1.6 cm: with 0.9 cm each (bins 13 cm long, blocks 5.6 cm apart) the policies'
+# centimetre-scale misses pushed the blocks over or jammed a finger against the wall.
+BIN_INNER_HALF = (0.03, 0.08)  # interior half sizes (x, y)
 BIN_WALL = 0.006  # wall thickness
 BIN_FLOOR = 0.005  # floor thickness (its top is z = BIN_FLOOR)
 BIN_WALL_TOP = 0.065  # z of the tall walls
 BIN_LOW_TOP = 0.03  # z of the low walls
-SOURCE_CENTER = (0.31, -0.08)
-BASKET_CENTER = (0.31, 0.08)
+SOURCE_CENTER = (0.31, -0.095)
+BASKET_CENTER = (0.31, 0.095)
 BIN_JITTER = 0.01  # m, uniform jitter of each bin's x and y
 BLOCK_HALF = (0.015, 0.015, 0.01)  # m: 3 x 3 x 2 cm blocks
-BLOCK_SPACING = 0.028  # blocks sit at y = centre -+ BLOCK_SPACING in the source and go to the same spots in the basket
+BLOCK_SPACING = 0.035  # blocks sit at y = centre -+ BLOCK_SPACING in the source and go to the same spots in the basket
 
 REST_SPEED = 0.05  # m/s: an object slower than this is "at rest"
 
