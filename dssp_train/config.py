@@ -25,6 +25,8 @@ DENOISER_MLPS = ("none", "gated", "dit")
 # H_a actions), or at the oldest recent observation t - N + 1 as DP3 does (execute from index N - 1; every
 # table of the paper has H_a = H - N + 1).
 ACTION_ALIGNMENTS = ("current", "dp3")
+# Where DDIM's K timesteps sit among the training timesteps (diffusers' names; DiffusionConfig.timestep_spacing).
+TIMESTEP_SPACINGS = ("leading", "trailing")
 # The denoiser blocks' mixer: Mamba (the paper's), or causal self-attention (Table 5's "w/ Trans.").
 DENOISER_BACKBONES = ("mamba", "transformer")
 
@@ -52,7 +54,7 @@ class DiffusionConfig(Settings):
     # Where the K sampling timesteps sit (diffusers' names): "leading" [0, T/K, ...] reversed, e.g. [90, ..., 0]
     # for 10 of 100 (DP3's); "trailing" ends each interval instead, e.g. [99, 89, ..., 9], so that even K = 1
     # starts at the noise level t = T - 1 (the distilled few-step samplers, dssp-distill).
-    timestep_spacing: str = setting("leading", choices=("leading", "trailing"))
+    timestep_spacing: str = setting("leading", choices=TIMESTEP_SPACINGS)
 
     def validate(self):
         _require(

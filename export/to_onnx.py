@@ -44,6 +44,7 @@ from dssp_deploy.sessions import check_threads
 from dssp_data.cli_runner import ArgumentParser, run_cli
 from dssp_data.errors import ExportError, ParityError
 from dssp_deploy.mamba_kernel import DOMAIN, OPSET_VERSION
+from dssp_train.config import TIMESTEP_SPACINGS as SPACINGS
 from dssp_deploy.manifest import DENOISER_GRAPH, GRAPHS, HISTORY_GRAPH, MANIFEST_NAME, PRECISIONS, file_kind, file_suffix, graph_io
 from export.fused_ops import mark_unread_states
 from export.manifest_writer import build_manifest, metadata_props, write_manifest
@@ -260,6 +261,7 @@ def export_model(
     out_dir: Path,
     *,
     denoise_steps: int | None = None,
+    timestep_spacing: str | None = None,
     opset: int = DEFAULT_OPSET,
     fmt: str = "both",
     ema: bool = True,
@@ -320,6 +322,10 @@ def export_model(
     with StagedDirectory(out_dir, force) as staged:
         policy, config, source = load_source(run_dir, ema)
         diffusion = config.model.diffusion
+        if timestep_spacing is not None:
+            if timestep_spacing not in SPACINGS:
+                raise ExportError(f"--timestep-spacing must be one of {', '.join(SPACINGS)}, got {timestep_spacing!r}")
+            diffusion.timestep_spacing = timestep_spacing  # the policy's schedule reads these same settings
         k = diffusion.num_inference_steps if denoise_steps is None else denoise_steps
         if not 1 <= k <= diffusion.num_train_timesteps:
             raise ExportError(f"--denoise-steps must be in [1, {diffusion.num_train_timesteps}] (the training timesteps), got {k}")
@@ -449,6 +455,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("run_dir", metavar="RUN_DIR", help="a dssp-train run directory (config.json, model.safetensors)")
     p.add_argument("-o", "--out", required=True, metavar="MODEL_DIR", help="the model directory to create")
     p.add_argument("--denoise-steps", type=int, metavar="K", help="DDIM steps inside the denoiser graph (default: the config's, 10)")
+    p.add_argument("--timestep-spacing", choices=SPACINGS, help="where the K timesteps sit: leading [90..0] or trailing "
+                                                                "[99..9] (default: the config's; trailing lets K = 1 start from noise)")
     p.add_argument("--opset", type=int, default=DEFAULT_OPSET, help=f"ONNX opset, {SUPPORTED_OPSETS.start}..{SUPPORTED_OPSETS.stop - 1} (default {DEFAULT_OPSET})")
     p.add_argument("--format", dest="fmt", default="both", choices=list(FORMATS), help="graphs to write (default both)")
     p.add_argument("--no-ema", action="store_true", help="export the raw weights (RUN_DIR/checkpoint/model.safetensors), not the EMA ones")
@@ -473,6 +481,7 @@ def main(argv: list[str] | None = None) -> int:
                 Path(args.run_dir),
                 Path(args.out),
                 denoise_steps=args.denoise_steps,
+                timestep_spacing=args.timestep_spacing,
                 opset=args.opset,
                 fmt=args.fmt,
                 ema=not args.no_ema,

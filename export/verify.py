@@ -221,6 +221,7 @@ def load_checked_policy(manifest: dict[str, Any], run_dir: Path):
     """The policy the manifest was exported from: same weights file, same sha256, same model config."""
     import dataclasses
 
+    from dssp_train.config import TIMESTEP_SPACINGS
     from dssp_train.training.checkpoint import load_policy
 
     run_dir = Path(run_dir)
@@ -238,6 +239,10 @@ def load_checked_policy(manifest: dict[str, Any], run_dir: Path):
                 f"({run}{weights}, step {source['step']}, sha256 {source['sha256'][:12]}); pass that run directory, or export again"
             )
     policy, config = load_policy(run_dir, weights=weights)
+    # The timesteps' spacing may be chosen at export (--timestep-spacing); the policy samples as the graphs do.
+    spacing = (manifest["model_config"].get("diffusion") or {}).get("timestep_spacing")
+    if spacing in TIMESTEP_SPACINGS:
+        config.model.diffusion.timestep_spacing = spacing
     if dataclasses.asdict(config.model) != manifest["model_config"]:
         raise ExportError(f"{run_dir}/config.json does not describe the exported model; pass the run directory it was exported from")
     return policy, config

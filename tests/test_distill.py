@@ -108,6 +108,19 @@ def test_the_student_exports_with_parity_and_its_k_in_the_manifest(teacher, tmp_
     assert policy.denoise_steps == 2
 
 
+def test_the_teacher_exports_at_k_1_from_the_noise_level_with_parity(teacher, tmp_path):
+    """The undistilled baseline: the teacher's own weights at one trailing step ([99]); leading spacing would give [0]."""
+    from export.to_onnx import main as export_main
+
+    run, _ = teacher
+    model = tmp_path / "k1"
+    assert export_main([str(run), "-o", str(model), "--denoise-steps", "1", "--timestep-spacing", "trailing",
+                        "--quantize", "none", "--no-fused"]) == 0
+    manifest = json.loads((model / "dssp_model.json").read_text())
+    assert manifest["ddim_timesteps"] == [99] and manifest["model_config"]["diffusion"]["timestep_spacing"] == "trailing"
+    assert json.loads((run / "config.json").read_text())["model"]["diffusion"]["timestep_spacing"] == "leading"  # run untouched
+
+
 def test_a_stopped_student_resumes_with_its_own_config(teacher, tmp_path):
     run, _ = teacher
     out = tmp_path / "student"
