@@ -155,3 +155,23 @@ def test_a_student_is_not_a_teacher_and_resume_keeps_its_config(teacher, tmp_pat
     assert "only --train-steps may change (got --method)" in one_error_line(capsys.readouterr().err)
     assert distill_main(["--out", str(run), "--resume", "--train-steps", "100", "--no-progress"]) == 2
     assert "not a distilled student" in one_error_line(capsys.readouterr().err)
+
+
+def test_the_distillation_study_writes_its_report(tmp_path, capsys):
+    from dssp_sim.distill_study import REPORT_NAME, main as study_main
+
+    work, report = tmp_path / "work", tmp_path / "report"
+    assert study_main(["--work", str(work), "--report", str(report), "--quick"]) == 0
+    md = (report / f"{REPORT_NAME}.md").read_text()
+    assert "| teacher (DDIM, 10 steps) | 10 |" in md and "| student: trajectory distillation | 1 |" in md
+    assert "| teacher, DDIM at K trailing steps (no distillation) | 1 |" in md
+    data = json.loads((report / f"{REPORT_NAME}.json").read_text())
+    assert set(data["evals"]) == {"tap_teacher_k10", "tap_ddim_k1", "tap_trajectory_k1"}
+    latency = data["summary"]["latency"]
+    assert set(latency) == {"10", "1"} and latency["10"]["of_k10"] == 1.0 and latency["1"]["chunk_ms"] > 0
+    assert "## The chunk on the `tiny` preset" in md and (report / f"{REPORT_NAME}.png").read_bytes()[:4] == b"\x89PNG"
+    manifest = json.loads((work / "models" / "tap_trajectory_k1" / "dssp_model.json").read_text())
+    assert manifest["ddim_timesteps"] == [99]
+    capsys.readouterr()
+    assert study_main(["--work", str(work), "--report", str(report), "--quick", "--force"]) == 0  # resumes: all done
+    assert "done before" in capsys.readouterr().out
