@@ -27,7 +27,7 @@ from dssp_data.cli_runner import ArgumentParser, run_cli
 from dssp_data.output_guard import OutputKind, check_output_files, claim_dir, write_output_figure, write_output_text
 from dssp_sim.evaluate import wilson_interval
 from dssp_sim.experiment import PLAN as MEMORY_PLAN
-from dssp_sim.experiment import pct, stage, stage_seconds
+from dssp_sim.experiment import collect_stage, pct, stage, stage_seconds, train_stage
 
 REPORT_NAME = "distill"
 TASKS = ("tap", "put2", "swap")
@@ -76,12 +76,8 @@ def run_study(work: Path, plan: dict, tasks: list[str] | None = None) -> tuple[d
         if tasks and task not in tasks:
             continue
         print(f"{task}:")
-        data, teacher = work / "data" / f"{task}.zarr", work / "runs" / f"{task}_teacher"
-        stage(data / "meta", f"collect {n_demos} demos", [py, "-m", "dssp_sim.sim_cli", "collect", "--task", task, "--episodes",
-              str(n_demos), "--out", str(data), "--no-progress"], logs / f"collect_{task}.log")
-        stage(teacher / "checkpoint", "train the teacher", [py, "-m", "dssp_train.cli.train", "--data", str(data), "--out",
-              str(teacher), "--preset", plan["preset"], "--steps", str(plan["steps"][task]), "--seed", str(plan["seed"]),
-              "--no-progress", "--force"], logs / f"train_{task}.log")
+        data, teacher = collect_stage(work, task, n_demos), work / "runs" / f"{task}_teacher"
+        train_stage(work, data, teacher, plan, task, plan["seed"], [], "train the teacher")
         for name, kind, k in cells(task, plan):
             run_dir, flags = teacher, ["--denoise-steps", str(k), "--timestep-spacing", "trailing"] if kind == "ddim" else []
             if kind not in ("teacher", "ddim"):

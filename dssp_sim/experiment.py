@@ -127,6 +127,25 @@ def stage_seconds(work: Path) -> float:
     return sum(float(f.read_text()) for f in (work / "logs").glob("*.seconds"))
 
 
+def collect_stage(work: Path, task: str, n_demos: int) -> Path:
+    """The study's ``n_demos`` demonstrations of ``task`` in ``work/data`` (collected unless done before; a
+    collection stopped halfway is collected again, not appended to): the dataset's path."""
+    data, log = work / "data" / f"{task}.zarr", work / "logs" / f"collect_{task}.log"
+    if data.exists() and not log.with_suffix(".seconds").exists():
+        shutil.rmtree(data)  # the study's own partial dataset
+    stage(data / "meta", f"collect {n_demos} demos", [sys.executable, "-m", "dssp_sim.sim_cli", "collect", "--task", task,
+          "--episodes", str(n_demos), "--out", str(data), "--no-progress"], log)
+    return data
+
+
+def train_stage(work: Path, data: Path, run_dir: Path, plan: dict, task: str, seed: int, flags: list[str], what: str,
+                name: str | None = None) -> None:
+    """Train ``run_dir`` (the plan's preset and steps for ``task``) unless done before; resumed if stopped halfway.
+    Its log is ``work/logs/train_{name}.log`` (default: the run's name)."""
+    log = work / "logs" / f"train_{name or run_dir.name}.log"
+    stage(run_dir / "checkpoint", what, train_command(data, run_dir, plan, task, seed, flags, log), log)
+
+
 def run_study(work: Path, plan: dict, threads: int | None = None, tasks: list[str] | None = None) -> dict:
     """Run (or resume) the study's stages for ``tasks`` (default: every task of the plan)."""
     unknown = sorted(set(tasks or []) - set(plan["demos"]))
@@ -139,12 +158,7 @@ def run_study(work: Path, plan: dict, threads: int | None = None, tasks: list[st
         if tasks and task not in tasks:
             continue
         print(f"{task}:")
-        data = work / "data" / f"{task}.zarr"
-        collect_log = work / "logs" / f"collect_{task}.log"
-        if data.exists() and not collect_log.with_suffix(".seconds").exists():  # a collection stopped halfway: collect
-            shutil.rmtree(data)  # would append to it; the study's own partial dataset is collected again instead
-        stage(data / "meta", f"collect {n_demos} demos", [py, "-m", "dssp_sim.sim_cli", "collect", "--task", task, "--episodes",
-               str(n_demos), "--out", str(data), "--no-progress"], collect_log)
+        data = collect_stage(work, task, n_demos)
         seeds = dict.fromkeys([*plan["seeds"][task], *plan["ablation_seeds"].get(task, [])])
         runs = [(seed, variant, flags) for seed in seeds for variant, flags in [
             *(plan["variants"].items() if seed in plan["seeds"][task] else []),
@@ -152,8 +166,7 @@ def run_study(work: Path, plan: dict, threads: int | None = None, tasks: list[st
         for seed, variant, flags in runs:
             name = f"{task}_{variant}_s{seed}"
             run_dir, model_dir = work / "runs" / name, work / "models" / name
-            log = work / "logs" / f"train_{name}.log"
-            stage(run_dir / "checkpoint", f"train {variant} seed {seed}", train_command(data, run_dir, plan, task, seed, flags, log), log)
+            train_stage(work, data, run_dir, plan, task, seed, flags, f"train {variant} seed {seed}")
             stage(model_dir / "dssp_model.json", f"export {variant} seed {seed}", [py, "-m", "export.to_onnx", str(run_dir),
                    "-o", str(model_dir), "--force", *plan.get("export_flags", [])], work / "logs" / f"export_{name}.log")
             results["evals"][name] = _evaluate(work, model_dir, task, plan, name, 0.0, threads)

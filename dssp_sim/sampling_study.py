@@ -27,7 +27,7 @@ from dssp_data.output_guard import OutputKind, check_output_files, claim_dir, wr
 from dssp_deploy.manifest import PRECISIONS
 from dssp_sim.evaluate import wilson_interval
 from dssp_sim.experiment import PLAN as MEMORY_PLAN
-from dssp_sim.experiment import pct, stage, stage_seconds
+from dssp_sim.experiment import collect_stage, pct, stage, stage_seconds, train_stage
 
 REPORT_NAME = "sampling"
 PLAN = {
@@ -62,12 +62,8 @@ def run_study(work: Path, plan: dict, tasks: list[str] | None = None) -> dict:
         if tasks and task not in tasks:
             continue
         print(f"{task}:")
-        data, run_dir = work / "data" / f"{task}.zarr", work / "runs" / f"{task}_dssp_s{plan['seed']}"
-        stage(data / "meta", f"collect {n_demos} demos", [py, "-m", "dssp_sim.sim_cli", "collect", "--task", task, "--episodes",
-               str(n_demos), "--out", str(data), "--no-progress"], logs / f"collect_{task}.log")
-        stage(run_dir / "checkpoint", "train DSSP", [py, "-m", "dssp_train.cli.train", "--data", str(data), "--out", str(run_dir),
-               "--preset", plan["preset"], "--steps", str(plan["steps"][task]), "--seed", str(plan["seed"]), "--no-progress",
-               "--force"], logs / f"train_{task}.log")
+        data, run_dir = collect_stage(work, task, n_demos), work / "runs" / f"{task}_dssp_s{plan['seed']}"
+        train_stage(work, data, run_dir, plan, task, plan["seed"], [], "train DSSP", name=task)
         for k in plan["denoise_steps"]:
             model_dir = work / "models" / f"{task}_k{k}"
             stage(model_dir / "dssp_model.json", f"export K={k}", [py, "-m", "export.to_onnx", str(run_dir), "-o", str(model_dir),
