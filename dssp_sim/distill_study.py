@@ -24,10 +24,10 @@ import time
 from pathlib import Path
 
 from dssp_data.cli_runner import ArgumentParser, run_cli
-from dssp_data.output_guard import OutputKind, check_output_files, claim_dir, write_output_figure, write_output_text
+from dssp_data.output_guard import OutputKind, check_output_files, write_output_figure, write_output_text
 from dssp_sim.evaluate import wilson_interval
 from dssp_sim.experiment import PLAN as MEMORY_PLAN
-from dssp_sim.experiment import collect_stage, pct, stage, stage_seconds, train_stage
+from dssp_sim.experiment import pct, stage, stage_seconds, study_tasks, train_stage
 
 REPORT_NAME = "distill"
 TASKS = ("tap", "put2", "swap")
@@ -66,17 +66,10 @@ def cells(task: str, plan: dict) -> list[tuple[str, str, int]]:
 
 def run_study(work: Path, plan: dict, tasks: list[str] | None = None) -> tuple[dict, dict]:
     """Run (or resume) every stage; returns ({cell: evaluation}, {K: dssp-profile figures on the latency preset})."""
-    unknown = sorted(set(tasks or []) - set(plan["demos"]) - {"latency"})
-    if unknown:
-        raise SystemExit(f"error: unknown task(s) {unknown}; the plan has {list(plan['demos'])} and latency")
-    claim_dir(work, kind=WORK_DIR, flag="--work", resume=True)
     py, logs = sys.executable, work / "logs"
     evals: dict = {}
-    for task, n_demos in plan["demos"].items():
-        if tasks and task not in tasks:
-            continue
-        print(f"{task}:")
-        data, teacher = collect_stage(work, task, n_demos), work / "runs" / f"{task}_teacher"
+    for task, data in study_tasks(work, plan, tasks, WORK_DIR, others=("latency",)):
+        teacher = work / "runs" / f"{task}_teacher"
         train_stage(work, data, teacher, plan, task, plan["seed"], [], "train the teacher")
         for name, kind, k in cells(task, plan):
             run_dir, flags = teacher, ["--denoise-steps", str(k), "--timestep-spacing", "trailing"] if kind == "ddim" else []

@@ -138,6 +138,19 @@ def collect_stage(work: Path, task: str, n_demos: int) -> Path:
     return data
 
 
+def study_tasks(work: Path, plan: dict, tasks: list[str] | None, kind: OutputKind, others: tuple[str, ...] = ()):
+    """Check ``tasks`` (names of the plan's tasks, or of ``others``), claim ``work`` for a study of ``kind``, and yield
+    (task, dataset) for each of the plan's tasks to run (all without ``tasks``), its demonstrations collected."""
+    unknown = sorted(set(tasks or []) - set(plan["demos"]) - set(others))
+    if unknown:
+        raise SystemExit(f"error: unknown task(s) {unknown}; the plan has {[*plan['demos'], *others]}")
+    claim_dir(work, kind=kind, flag="--work", resume=True)
+    for task, n_demos in plan["demos"].items():
+        if not tasks or task in tasks:
+            print(f"{task}:")
+            yield task, collect_stage(work, task, n_demos)
+
+
 def train_stage(work: Path, data: Path, run_dir: Path, plan: dict, task: str, seed: int, flags: list[str], what: str,
                 name: str | None = None) -> None:
     """Train ``run_dir`` (the plan's preset and steps for ``task``) unless done before; resumed if stopped halfway.
@@ -148,17 +161,9 @@ def train_stage(work: Path, data: Path, run_dir: Path, plan: dict, task: str, se
 
 def run_study(work: Path, plan: dict, threads: int | None = None, tasks: list[str] | None = None) -> dict:
     """Run (or resume) the study's stages for ``tasks`` (default: every task of the plan)."""
-    unknown = sorted(set(tasks or []) - set(plan["demos"]))
-    if unknown:
-        raise SystemExit(f"error: unknown task(s) {unknown}; the plan has {list(plan['demos'])}")
-    claim_dir(work, kind=WORK_DIR, flag="--work", resume=True)
     py = sys.executable
     results: dict = {"plan": plan, "evals": {}, "robustness": {}}
-    for task, n_demos in plan["demos"].items():
-        if tasks and task not in tasks:
-            continue
-        print(f"{task}:")
-        data = collect_stage(work, task, n_demos)
+    for task, data in study_tasks(work, plan, tasks, WORK_DIR):
         seeds = dict.fromkeys([*plan["seeds"][task], *plan["ablation_seeds"].get(task, [])])
         runs = [(seed, variant, flags) for seed in seeds for variant, flags in [
             *(plan["variants"].items() if seed in plan["seeds"][task] else []),

@@ -23,11 +23,11 @@ import time
 from pathlib import Path
 
 from dssp_data.cli_runner import ArgumentParser, run_cli
-from dssp_data.output_guard import OutputKind, check_output_files, claim_dir, write_output_figure, write_output_text
+from dssp_data.output_guard import OutputKind, check_output_files, write_output_figure, write_output_text
 from dssp_deploy.manifest import PRECISIONS
 from dssp_sim.evaluate import wilson_interval
 from dssp_sim.experiment import PLAN as MEMORY_PLAN
-from dssp_sim.experiment import collect_stage, pct, stage, stage_seconds, train_stage
+from dssp_sim.experiment import pct, stage, stage_seconds, study_tasks, train_stage
 
 REPORT_NAME = "sampling"
 PLAN = {
@@ -52,17 +52,10 @@ def cell(task: str, k: int, precision: str) -> str:
 
 def run_study(work: Path, plan: dict, tasks: list[str] | None = None) -> dict:
     """Run (or resume) every stage for ``tasks`` (default all); returns {cell name: evaluation result}."""
-    unknown = sorted(set(tasks or []) - set(plan["demos"]))
-    if unknown:
-        raise SystemExit(f"error: unknown task(s) {unknown}; the plan has {list(plan['demos'])}")
-    claim_dir(work, kind=WORK_DIR, flag="--work", resume=True)
     py, logs = sys.executable, work / "logs"
     evals: dict = {}
-    for task, n_demos in plan["demos"].items():
-        if tasks and task not in tasks:
-            continue
-        print(f"{task}:")
-        data, run_dir = collect_stage(work, task, n_demos), work / "runs" / f"{task}_dssp_s{plan['seed']}"
+    for task, data in study_tasks(work, plan, tasks, WORK_DIR):
+        run_dir = work / "runs" / f"{task}_dssp_s{plan['seed']}"
         train_stage(work, data, run_dir, plan, task, plan["seed"], [], "train DSSP", name=task)
         for k in plan["denoise_steps"]:
             model_dir = work / "models" / f"{task}_k{k}"
