@@ -94,7 +94,7 @@ def collect(task: str, n_episodes: int, out: Path, seed: int | None = None, n_po
 
     max_attempts = max_attempts or 2 * n_episodes + 5
     env = PiperEnv(task, seed=seed)
-    cloud_config = cloud_config_for(n_points)
+    cloud_config = cloud_config_for(n_points, task)
     result = CollectResult()
     bar = None
     if progress:

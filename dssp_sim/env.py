@@ -33,6 +33,7 @@ import numpy as np  # noqa: E402
 
 from dssp_sim.mjcf import CAMERA_NAME, TIMESTEP, ArmIndex, scene_xml  # noqa: E402
 from dssp_sim.tasks import HOME, HOME_TOLERANCE, START_JITTER, Task, TaskStatus, make_task  # noqa: E402
+from dssp_sim.settings import render_size_for  # noqa: E402
 from hardware.camera.base import Intrinsics  # noqa: E402
 from hardware.piper.limits import (  # noqa: E402
     GRIPPER_STROKE_MAX,
@@ -55,7 +56,7 @@ _OPTICAL_IN_MJCAM = np.diag([1.0, -1.0, -1.0])
 class PiperEnv:
     """One Piper arm and ``task`` ("tap" | "swap" | "put2"), seeded by ``seed``.
 
-    render_size: (H, W) pixels of the depth render (4:3 keeps the camera's 70 x 55 degree field of view;
+    render_size: (H, W) pixels of the depth render (default: the task's, :func:`dssp_sim.settings.render_size_for`; 4:3 keeps the camera's 70 x 55 degree field of view;
     another aspect keeps the vertical field of view). Attributes: ``task`` (the :class:`Task`), ``model``,
     ``data`` (MuJoCo), ``control_rate_hz``, ``max_steps`` (the task's step budget), ``steps`` (control
     periods simulated since reset, also counted when driven through ``advance``), ``arm`` (an
@@ -66,7 +67,7 @@ class PiperEnv:
     runs in a thread of its own that holds the GL context (``close()`` stops it).
     """
 
-    def __init__(self, task: str, seed: int = 0, render_size: tuple[int, int] = (120, 160)) -> None:
+    def __init__(self, task: str, seed: int = 0, render_size: tuple[int, int] | None = None) -> None:
         self.task: Task = make_task(task)
         self.model = mujoco.MjModel.from_xml_string(
             scene_xml(self.task.objects_xml(), extra_contact=self.task.extra_contact()))
@@ -74,6 +75,7 @@ class PiperEnv:
         self.arm = ArmIndex.find(self.model)
         self.control_rate_hz = CONTROL_RATE_HZ
         self.max_steps = self.task.max_steps
+        render_size = render_size or render_size_for(task)
         self.render_size = (int(render_size[0]), int(render_size[1]))
         self._substeps_per_control = int(round(1.0 / (CONTROL_RATE_HZ * TIMESTEP)))
         self._camera_id = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_CAMERA, CAMERA_NAME)

@@ -216,7 +216,7 @@ def evaluate(model_dir: Path, task: str, n_episodes: int, seed: int = 1000, thre
     env = PiperEnv(task, seed=seed)
     # The model's own point-cloud settings (its observation contract), as dssp-run uses them; a model trained on
     # data that recorded none sees the simulation's settings at its point count.
-    cloud_config = observation_of(policy.manifest).pointcloud or cloud_config_for(policy.manifest["model_config"]["n_points"])
+    cloud_config = observation_of(policy.manifest).pointcloud or cloud_config_for(policy.manifest["model_config"]["n_points"], task)
     result = EvalResult(str(model_dir), task, state_token_noise=state_token_noise, precision=policy.precision, kernel=policy.kernel)
     bar = None
     if progress:

@@ -86,6 +86,25 @@ def test_rendered_depth_goes_through_the_software_device_and_the_pipeline():
     assert np.all(cloud >= lo - 1e-6) and np.all(cloud <= hi + 1e-6)
 
 
+def test_swap_sees_its_small_objects_in_a_finer_cloud():
+    """swap renders at 320 x 240 with 5 mm voxels: its cube and cylinder fill the 256 points (at the default
+    160 x 120 and 1 cm the whole scene gave about 70, the rest padding)."""
+    from dssp_sim.settings import render_size_for
+
+    env = PiperEnv("swap", seed=0)
+    env.reset(seed=0)
+    assert env.render_size == render_size_for("swap") == (240, 320) and PiperEnv("tap").render_size == (120, 160)
+    config = cloud_config_for(task="swap")
+    assert config.voxel_size == 0.005 and cloud_config_for(task="tap").voxel_size == 0.01
+    with MujocoCamera(env) as camera:
+        fine, info = frame_to_cloud(camera.capture(), config, camera.camera_to_base)
+        _, coarse = frame_to_cloud(camera.capture(), cloud_config_for(), camera.camera_to_base)
+    assert info.n_padded == 0 and info.n_after_voxel > 256 > 2 * coarse.n_after_voxel
+    for k in range(2):  # each object is in the cloud: points within its footprint, above the pads
+        xy = env.task.objects.pos(env.data, k)[:2]
+        assert np.sum(np.linalg.norm(fine[:, :2] - xy, axis=1) < 0.02) >= 10
+
+
 def test_collect_writes_a_dp3_dataset_of_successful_episodes(tmp_path, capsys):
     out = tmp_path / "tap.zarr"
     assert sim_main(["collect", "--task", "tap", "--episodes", "2", "--out", str(out), "--no-progress", "--points", "128"]) == 0
