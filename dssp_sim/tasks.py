@@ -68,16 +68,17 @@ CYLINDER_HALF_HEIGHT = 0.03
 # Two bins side by side across the robot's front, source at -y, basket at +y, each turned to face the
 # robot. Each has tall walls on the camera side and at its outer end (they hide what lies inside from the
 # camera) and low walls facing the robot and facing the other bin (so a block is carried between the bins
-# just above the low walls). Along a bin, the open gripper (4.9 cm between the fingers) clears the other block
-# by 2.6 cm and the end wall by 1.6 cm: with 0.9 cm each (bins 13 cm long, blocks 5.6 cm apart) the policies'
-# centimetre-scale misses pushed the blocks over or jammed a finger against the wall.
-BIN_INNER_HALF = (0.03, 0.08)  # interior half sizes (x, y)
+# just above the low walls). Along a bin, the open gripper (6 cm between the fingers) misses the block it
+# straddles by 1.4 cm on each side and clears the other block by 1.7 cm and the end wall by 1.2 cm: with 0.9 cm
+# each (4.9 cm open, bins 13 cm long, blocks 5.6 cm apart) the policies' centimetre-scale misses put a finger on
+# the block, pushed the blocks over or jammed a finger against the wall.
+BIN_INNER_HALF = (0.03, 0.085)  # interior half sizes (x, y)
 BIN_WALL = 0.006  # wall thickness
 BIN_FLOOR = 0.005  # floor thickness (its top is z = BIN_FLOOR)
 BIN_WALL_TOP = 0.065  # z of the tall walls
 BIN_LOW_TOP = 0.03  # z of the low walls
-SOURCE_CENTER = (0.31, -0.095)
-BASKET_CENTER = (0.31, 0.095)
+SOURCE_CENTER = (0.31, -0.1)
+BASKET_CENTER = (0.31, 0.1)
 BIN_JITTER = 0.01  # m, uniform jitter of each bin's x and y
 BLOCK_HALF = (0.015, 0.015, 0.01)  # m: 3 x 3 x 2 cm blocks
 BLOCK_SPACING = 0.035  # blocks sit at y = centre -+ BLOCK_SPACING in the source and go to the same spots in the basket
@@ -444,7 +445,7 @@ class Put2Task(Task):
 
     name = "put2"
     max_steps = 180
-    home_opening = 0.7
+    home_opening = 0.85
 
     def objects_xml(self) -> str:
         blocks = "".join(
