@@ -128,6 +128,24 @@ def test_prefix_caching_equals_full_denoiser():
     assert (full - cached).abs().max().item() <= 1e-5
 
 
+def test_one_step_sampling_is_one_pass_and_equals_the_cached_prefix():
+    """K = 1 runs [prefix, x] in one pass (each weight read once per chunk); K >= 2 caches the prefix's states."""
+    policy = make_policy('model.diffusion.timestep_spacing="trailing"')
+    den = policy.denoiser
+    prefix, noise = torch.randn(3, policy.cfg.prefix_length, 32), torch.randn(3, policy.cfg.horizon, A)
+    calls, encode = [], den.encode_prefix
+    den.encode_prefix = lambda *args, **kwargs: calls.append(1) or encode(*args, **kwargs)
+    with torch.no_grad():
+        for p in den.parameters():
+            p.add_(0.01 * torch.randn_like(p))
+        one = policy.sample_normalized(prefix, noise, 1)
+        assert calls == []
+        cached = den.denoise_modulated(encode(prefix), noise, den.modulation(torch.tensor([99])).at(0))
+        assert (one - policy.schedule.ddim_step(cached, 99, noise, 1)).abs().max().item() <= 1e-5
+        policy.sample_normalized(prefix, noise, 2)
+    assert calls == [1]
+
+
 @pytest.mark.parametrize("decoupled", [True, False], ids=["cached", "full"])
 def test_modulation_table_and_unrolled_path_equal_the_plain_denoiser(decoupled):
     """One table row per DDIM timestep, shared by the batch, and the unrolled Mamba path: the same x0_hat."""

@@ -149,14 +149,17 @@ class DSSPPolicy(nn.Module):
         gradients (a distilled student trains its K-step chain end to end), :meth:`sample_normalized` without.
 
         The AdaLN parameters of the K timesteps are computed once (or given: ``table``, K rows) and each
-        step takes its row; with ``timestep_decoupled`` the prefix runs once and its states serve every step.
+        step takes its row; with ``timestep_decoupled`` the prefix runs once and its states serve every step (K = 1:
+        prefix and action tokens in one pass).
         ``unrolled`` runs the Mamba layers' traceable path (:meth:`Mamba.forward_unrolled`).
         """
         den = self.denoiser
         timesteps = self.schedule.inference_timesteps(num_steps)
         if table is None:
             table = den.modulation(torch.tensor(timesteps, device=noise.device))
-        states = den.encode_prefix(prefix, unrolled) if self.cfg.timestep_decoupled else None
+        # The prefix's states serve the K steps; one step needs none: it runs [prefix, x] in one pass (each weight
+        # read once per chunk instead of twice).
+        states = den.encode_prefix(prefix, unrolled) if self.cfg.timestep_decoupled and len(timesteps) > 1 else None
         x = noise
         for k, t in enumerate(timesteps):
             if states is not None:
