@@ -170,7 +170,7 @@ DISTILL_METHODS = ("consistency", "trajectory")
 
 @dataclass
 class DistillConfig(Settings):
-    """A few-step student of a trained run (``dssp-distill``; README, "Distilled few-step sampling").
+    """A few-step student of a trained run (``dssp-distill``; dssp_train/README.md, "dssp-distill").
 
     teacher: the teacher's run directory ("" = an ordinary run, not a student). method: "consistency"
     (consistency distillation on the teacher's DDIM grid of ``teacher_steps`` steps) or "trajectory" (the
@@ -182,7 +182,7 @@ class DistillConfig(Settings):
     SECTION: ClassVar[str] = "distill"
 
     teacher: str = setting("")
-    method: str = setting("consistency", choices=DISTILL_METHODS)
+    method: str = setting("trajectory", choices=DISTILL_METHODS)
     teacher_steps: int = setting(10, ge=2, le=1000)
     freeze_encoders: bool = setting(True)
 

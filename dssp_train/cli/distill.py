@@ -33,7 +33,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", type=int, dest="denoise_steps", help="the student's denoising steps per chunk (K; 1 or 2 "
                                                                     "is what distillation is for)")
     p.add_argument("--out", required=True, help="the student's run directory (or the one to continue with --resume)")
-    p.add_argument("--method", choices=DISTILL_METHODS, help="consistency (default) or trajectory")
+    p.add_argument("--method", choices=DISTILL_METHODS, help="trajectory (default) or consistency")
     p.add_argument("--data", help="dataset (default: the teacher's)")
     p.add_argument("--train-steps", type=int, dest="steps", help="optimisation steps (default: a third of the teacher's, "
                                                                   "at least 100; with --resume: the new total)")
@@ -95,7 +95,7 @@ def student_config(args, run_config: RunConfig | None) -> RunConfig:
     data["model"]["diffusion"].update(num_inference_steps=args.denoise_steps, timestep_spacing="trailing")
     steps = args.steps if args.steps is not None else max(100, teacher_config.train.steps // 3)
     data["train"].update(steps=steps, epochs=0, warmup_steps=min(teacher_config.train.warmup_steps, steps // 10))
-    data["distill"] = {"teacher": str(teacher.resolve()), "method": args.method or "consistency",
+    data["distill"] = {"teacher": str(teacher.resolve()), "method": args.method or "trajectory",
                        "teacher_steps": args.teacher_steps or k_teacher, "freeze_encoders": not args.fine_tune_encoders}
     data["dataset"] = None
     for typed, key, value in given_flags(args):

@@ -1,5 +1,5 @@
-"""Few-step students of a trained DSSP run: the objective ``dssp-distill`` trains (README, "Distilled few-step
-sampling").
+"""Few-step students of a trained DSSP run: the objective ``dssp-distill`` trains (dssp_train/README.md,
+"dssp-distill").
 
 The student is the teacher's model — same architecture, same weights to start with, same normalisers — whose
 config samples in K = ``model.diffusion.num_inference_steps`` steps at "trailing" timesteps ([99] for K = 1,
