@@ -1,9 +1,10 @@
 """The distillation study: a chunk in one or two denoising steps, against the 10-step teacher.
 
-    python -m dssp_sim.distill_study [--work runs/distill_study] [--report reports/distill] [--tasks T ...] [--force]
+    python -m dssp_sim.distill_study [--work runs/distill_study] [--report reports/distill] [--tasks T ...]
+                                     [--teachers runs/sim_experiment] [--force]
 
 For each task: collect demonstrations and train the teacher as the simulation study does (preset ``sim``,
-its steps and demonstrations, seed 0); export it at K = 10 (its own sampler) and at K = 1 and 2 trailing
+its steps and demonstrations, seed 0) — or take that study's own run (``--teachers``); export it at K = 10 (its own sampler) and at K = 1 and 2 trailing
 steps without distillation (``--timestep-spacing trailing``: the first step at the noise level); distil it
 (``dssp-distill``) into K = 1 and K = 2 students — with both objectives on the plan's method tasks, with the
 plan's method elsewhere — and export them; evaluate every cell in closed loop on the same unseen episodes.
@@ -64,13 +65,23 @@ def cells(task: str, plan: dict) -> list[tuple[str, str, int]]:
     return out
 
 
-def run_study(work: Path, plan: dict, tasks: list[str] | None = None) -> tuple[dict, dict]:
-    """Run (or resume) every stage; returns ({cell: evaluation}, {K: dssp-profile figures on the latency preset})."""
+def run_study(work: Path, plan: dict, tasks: list[str] | None = None, teachers: Path | None = None) -> tuple[dict, dict]:
+    """Run (or resume) every stage; returns ({cell: evaluation}, {K: dssp-profile figures on the latency preset}).
+
+    ``teachers``: a simulation study's work directory whose seed-``plan["seed"]`` DSSP runs are the teachers (they
+    are not trained again; their students train on the datasets they trained on)."""
     py, logs = sys.executable, work / "logs"
     evals: dict = {}
-    for task, data in study_tasks(work, plan, tasks, WORK_DIR, others=("latency",)):
-        teacher = work / "runs" / f"{task}_teacher"
-        train_stage(work, data, teacher, plan, task, plan["seed"], [], "train the teacher")
+    for task, data in study_tasks(work, plan, tasks, WORK_DIR, others=("latency",), collect=teachers is None):
+        if teachers is None:
+            teacher = work / "runs" / f"{task}_teacher"
+            train_stage(work, data, teacher, plan, task, plan["seed"], [], "train the teacher")
+        else:
+            teacher = teachers / "runs" / f"{task}_dssp_s{plan['seed']}"
+            if not (teacher / "model.safetensors").is_file() or not (teachers / "logs" / f"train_{teacher.name}.seconds").is_file():
+                raise SystemExit(f"error: {teacher} is not a finished training of the study in {teachers}; run "
+                                 f"python -m dssp_sim.experiment --work {teachers} --tasks {task} first, or drop --teachers")
+            print(f"  teacher: {teacher}")
         for name, kind, k in cells(task, plan):
             run_dir, flags = teacher, ["--denoise-steps", str(k), "--timestep-spacing", "trailing"] if kind == "ddim" else []
             if kind not in ("teacher", "ddim"):
@@ -205,6 +216,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--tasks", nargs="+", metavar="TASK", help="run only these tasks' stages (tap, put2, swap, latency; "
                                                                "default: all, then the report)")
     p.add_argument("--quick", action="store_true", help="a tiny plan (tests): tap only, a few steps, one episode")
+    p.add_argument("--teachers", type=Path, metavar="STUDY_WORK", help="take the teachers from a simulation study's work "
+                   "directory (python -m dssp_sim.experiment: its seed-0 DSSP runs) instead of training them")
     p.add_argument("--force", action="store_true", help="replace the report's files if they exist")
     args = p.parse_args(argv)
     plan = QUICK_PLAN if args.quick else PLAN
@@ -213,7 +226,7 @@ def main(argv: list[str] | None = None) -> int:
         if not args.tasks:
             check_output_files(report_files(args.report), force=args.force, flag="--report")
         started = time.perf_counter()
-        evals, latency = run_study(args.work, plan, args.tasks)
+        evals, latency = run_study(args.work, plan, args.tasks, args.teachers)
         if args.tasks:
             print(f"stages of {', '.join(args.tasks)} done in {time.perf_counter() - started:.0f} s; run without --tasks for the report")
             return 0

@@ -138,9 +138,11 @@ def collect_stage(work: Path, task: str, n_demos: int) -> Path:
     return data
 
 
-def study_tasks(work: Path, plan: dict, tasks: list[str] | None, kind: OutputKind, others: tuple[str, ...] = ()):
+def study_tasks(work: Path, plan: dict, tasks: list[str] | None, kind: OutputKind, others: tuple[str, ...] = (),
+                collect: bool = True):
     """Check ``tasks`` (names of the plan's tasks, or of ``others``), claim ``work`` for a study of ``kind``, and yield
-    (task, dataset) for each of the plan's tasks to run (all without ``tasks``), its demonstrations collected."""
+    (task, dataset) for each of the plan's tasks to run (all without ``tasks``), its demonstrations collected
+    (``collect`` false: no dataset, None)."""
     unknown = sorted(set(tasks or []) - set(plan["demos"]) - set(others))
     if unknown:
         raise SystemExit(f"error: unknown task(s) {unknown}; the plan has {[*plan['demos'], *others]}")
@@ -148,7 +150,7 @@ def study_tasks(work: Path, plan: dict, tasks: list[str] | None, kind: OutputKin
     for task, n_demos in plan["demos"].items():
         if not tasks or task in tasks:
             print(f"{task}:")
-            yield task, collect_stage(work, task, n_demos)
+            yield task, collect_stage(work, task, n_demos) if collect else None
 
 
 def train_stage(work: Path, data: Path, run_dir: Path, plan: dict, task: str, seed: int, flags: list[str], what: str,

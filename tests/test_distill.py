@@ -175,3 +175,31 @@ def test_the_distillation_study_writes_its_report(tmp_path, capsys):
     capsys.readouterr()
     assert study_main(["--work", str(work), "--report", str(report), "--quick", "--force"]) == 0  # resumes: all done
     assert "done before" in capsys.readouterr().out
+
+
+def test_the_study_takes_its_teachers_from_a_simulation_study(tmp_path, monkeypatch, capsys):
+    import dssp_sim.distill_study as study
+
+    seen = []
+
+    def fake_stage(done, what, cmd, log):
+        seen.append((what, cmd))
+        if done.suffix == ".json":
+            done.parent.mkdir(parents=True, exist_ok=True)
+            done.write_text("{}")
+
+    monkeypatch.setattr(study, "stage", fake_stage)
+    sim_work = tmp_path / "sim"
+    with pytest.raises(SystemExit, match="is not a finished training of the study"):
+        study.run_study(tmp_path / "work", study.QUICK_PLAN, ["tap"], teachers=sim_work)
+    teacher = sim_work / "runs" / "tap_dssp_s0"
+    teacher.mkdir(parents=True)
+    (teacher / "model.safetensors").write_bytes(b"")
+    (sim_work / "logs").mkdir()
+    (sim_work / "logs" / "train_tap_dssp_s0.seconds").write_text("1.0\n")
+    evals, latency = study.run_study(tmp_path / "work2", study.QUICK_PLAN, ["tap"], teachers=sim_work)
+    assert set(evals) == {"tap_teacher_k10", "tap_ddim_k1", "tap_trajectory_k1"} and latency == {}
+    assert not any(what.startswith(("collect", "train")) for what, _ in seen)  # nothing collected or trained again
+    distill = next(cmd for what, cmd in seen if what.startswith("distil"))
+    assert distill[distill.index("--teacher") + 1] == str(teacher)
+    assert not (tmp_path / "work2" / "data").exists()
