@@ -15,7 +15,7 @@ from dssp_data.observation import ObservationContract, PointCloudConfig, piper_l
 
 SIM_N_POINTS = 256
 # Table area in front of the arm, a little above the table top (z = 0) to drop the table itself, and up
-# to 10 cm: the tallest object (the swap cylinder) is 6 cm, the put2 bins' walls 6.5 cm.
+# to 10 cm: the tallest object (the swap cylinder) is 6 cm, the put2 bins' walls 7.5 cm.
 SIM_CROP_MIN = (0.05, -0.35, 0.005)
 SIM_CROP_MAX = (0.60, 0.35, 0.10)
 

@@ -68,14 +68,15 @@ CYLINDER_HALF_HEIGHT = 0.03
 # Two bins side by side across the robot's front, source at -y, basket at +y, each turned to face the
 # robot. Each has tall walls on the camera side and at its outer end (they hide what lies inside from the
 # camera) and low walls facing the robot and facing the other bin (so a block is carried between the bins
-# just above the low walls). Along a bin, the open gripper (6 cm between the fingers) misses the block it
-# straddles by 1.4 cm on each side and clears the other block by 1.7 cm and the end wall by 1.2 cm: with 0.9 cm
-# each (4.9 cm open, bins 13 cm long, blocks 5.6 cm apart) the policies' centimetre-scale misses put a finger on
-# the block, pushed the blocks over or jammed a finger against the wall.
-BIN_INNER_HALF = (0.03, 0.085)  # interior half sizes (x, y)
+# just above the low walls). The open gripper (6 cm between the fingers) misses the block it straddles by 1.4 cm
+# on each side and clears the other block by 1.7 cm and the end wall by 1.2 cm; across the bin (8 cm inside)
+# the fingers clear the walls by 2 cm. With 0.9 cm along (4.9 cm open, bins 13 cm long, blocks 5.6 cm apart) and
+# 1 cm across (6 cm inside) the policies' centimetre-scale misses put a finger on the block or on a wall's top,
+# or pushed the other block away. The tall walls (7.5 cm) still hide the blocks from the camera.
+BIN_INNER_HALF = (0.04, 0.085)  # interior half sizes (x, y)
 BIN_WALL = 0.006  # wall thickness
 BIN_FLOOR = 0.005  # floor thickness (its top is z = BIN_FLOOR)
-BIN_WALL_TOP = 0.065  # z of the tall walls
+BIN_WALL_TOP = 0.075  # z of the tall walls
 BIN_LOW_TOP = 0.03  # z of the low walls
 SOURCE_CENTER = (0.31, -0.1)
 BASKET_CENTER = (0.31, 0.1)
