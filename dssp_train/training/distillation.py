@@ -43,14 +43,6 @@ ENCODER_PARTS = ("obs_encoder", "history_encoder", "dynamics")
 TARGET_DECAY = 0.95  # the consistency target's EMA decay (Consistency Models' distillation setting)
 
 
-def student_model_config(teacher: RunConfig, steps: int):
-    """The teacher's model config sampling in ``steps`` steps at trailing timesteps."""
-    from dssp_train.config import apply_overrides
-
-    return apply_overrides(teacher, [f"model.diffusion.num_inference_steps={steps}",
-                                     "model.diffusion.timestep_spacing=trailing"]).model
-
-
 def load_teacher(config: RunConfig, device: torch.device) -> DSSPPolicy:
     """The teacher named by ``config.distill.teacher`` (its EMA weights), frozen, in eval mode; its architecture
     must be the student's (only the sampling settings may differ)."""
