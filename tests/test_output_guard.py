@@ -318,7 +318,7 @@ def test_train_replaces_a_previous_run_only_with_force(tmp_path, capsys, monkeyp
 
     runs = []
 
-    def fake(args, out):
+    def fake(args, out, make_config):
         runs.append(1)
         (out / "config.json").write_text(json.dumps({"model": {}, "train": {}, "run": len(runs)}))
         (out / "model.safetensors").write_bytes(b"weights %d" % len(runs))
