@@ -334,7 +334,7 @@ def test_train_replaces_a_previous_run_only_with_force(tmp_path, capsys, monkeyp
     replaced(capsys, tmp_path, train, out)
     assert json.loads((out / "config.json").read_text())["run"] == 2
 
-    def interrupted(args, out):
+    def interrupted(args, out, make_config):
         (out / "config.json").write_text("{}")
         raise KeyboardInterrupt
 
