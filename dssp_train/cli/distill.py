@@ -19,7 +19,7 @@ import sys
 from pathlib import Path
 
 from dssp_data.errors import ConfigError, DSSPError
-from dssp_train.cli.train import given_flags, run_training
+from dssp_train.cli.train import given_flags, run_training, with_flags
 from dssp_train.config import DISTILL_METHODS, RunConfig
 
 # dssp-train's config flags a student does not take (its architecture is the teacher's).
@@ -98,13 +98,7 @@ def student_config(args, run_config: RunConfig | None) -> RunConfig:
     data["distill"] = {"teacher": str(teacher.resolve()), "method": args.method or "trajectory",
                        "teacher_steps": args.teacher_steps or k_teacher, "freeze_encoders": not args.fine_tune_encoders}
     data["dataset"] = None
-    for typed, key, value in given_flags(args):
-        section, name = key.split(".")
-        data[section][name] = value
-    try:
-        config = RunConfig.from_dict(data)
-    except ConfigError as exc:
-        raise ConfigError(f"dssp-distill: {exc}") from None
+    config = with_flags(RunConfig.from_dict(data), given_flags(args))  # a bad --steps or --teacher-steps names its field
     if config.model.diffusion.num_inference_steps >= config.distill.teacher_steps:
         raise ConfigError(f"--steps {config.model.diffusion.num_inference_steps} is not fewer than the teacher's "
                           f"{config.distill.teacher_steps}: a student samples in fewer steps than its teacher")

@@ -147,6 +147,20 @@ def given_flags(args) -> list[tuple[str, str, object]]:
     return flags
 
 
+def with_flags(config: RunConfig, flags: list[tuple[str, str, object]]) -> RunConfig:
+    """``config`` with each flag's field set (``given_flags``' triples); a value the config refuses is one error
+    naming the flag as typed."""
+    for typed, key, value in flags:
+        data = config.to_dict()
+        section, name = key.split(".")
+        data[section][name] = value
+        try:
+            config = RunConfig.from_dict(data)
+        except ConfigError as exc:
+            raise ConfigError(f"{typed}: {exc}") from None
+    return config
+
+
 def config_from_args(args, run_config: RunConfig | None = None) -> RunConfig:
     """The config of this run: ``run_config`` (the run's own, on --resume) or the preset, with --set and the flags."""
     flags = given_flags(args)
@@ -174,14 +188,7 @@ def config_from_args(args, run_config: RunConfig | None = None) -> RunConfig:
         config = run_config
     else:
         config = apply_overrides(load_preset(args.preset or "tiny"), list(args.set))
-    for typed, key, value in flags:
-        data = config.to_dict()
-        section, name = key.split(".")
-        data[section][name] = value
-        try:
-            config = RunConfig.from_dict(data)
-        except ConfigError as exc:
-            raise ConfigError(f"{typed}: {exc}") from None
+    config = with_flags(config, flags)
     if "train.steps" in budget and config.train.epochs:  # steps asked for: the preset's (or the run's) epochs give way
         config = apply_overrides(config, ["train.epochs=0"])
     return config
