@@ -86,9 +86,10 @@ class DiffusionSchedule:
         table = torch.cat([self.final_alpha_cumprod.reshape(1), self.alphas_cumprod]).to(t.device)
         return table[t + 1]
 
-    def predicted_x0_eps(self, model_output: torch.Tensor, sample: torch.Tensor, t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def predicted_x0_eps(self, model_output: torch.Tensor, sample: torch.Tensor, t: torch.Tensor,
+                         clip: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
         """(x0, eps) the model's output implies at x_t = ``sample`` (B, H, A), timesteps t (B,), as :meth:`ddim_step`
-        takes them (eps from the unclipped x0, x0 clipped with ``clip_sample``)."""
+        takes them (eps from the unclipped x0, x0 clipped with ``clip_sample`` unless ``clip`` is false)."""
         a_t = self.alpha_prod(t).to(sample.dtype).reshape(-1, *([1] * (sample.dim() - 1)))
         if self.cfg.prediction_type == "sample":
             x0 = model_output
@@ -96,7 +97,7 @@ class DiffusionSchedule:
         else:
             eps = model_output
             x0 = (sample - (1 - a_t).sqrt() * eps) / a_t.sqrt()
-        return (x0.clamp(-1.0, 1.0) if self.cfg.clip_sample else x0), eps
+        return (x0.clamp(-1.0, 1.0) if self.cfg.clip_sample and clip else x0), eps
 
     def ddim_jump(self, x0: torch.Tensor, eps: torch.Tensor, t_to: torch.Tensor) -> torch.Tensor:
         """Deterministic DDIM to timesteps t_to (B,) (-1: the clean end) from a prediction (x0, eps), each (B, H, A)."""
