@@ -13,8 +13,9 @@ not depend on the weights) exported at K = 10, 2 and 1 and timed by ``dssp-profi
 runtime's default graphs).
 
 The report — ``REPORT_NAME.md``, ``.png``, ``.json`` — goes to ``--report``. Stages are skipped when their
-output exists (``--work`` resumes, ``--tasks`` splits the work), as in :mod:`dssp_sim.experiment`, whose stage
-runner this uses.
+output exists (``--work`` resumes, ``--tasks`` splits the work), and every finished evaluation and stage time is
+kept in the report's record (``--report``/record), so a machine without the work directory trains nothing
+whose evaluations are recorded — as in :mod:`dssp_sim.experiment`, whose stage runner this uses.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from dssp_data.cli_runner import ArgumentParser, run_cli
 from dssp_data.output_guard import OutputKind, check_output_files, write_output_figure, write_output_text
 from dssp_sim.evaluate import wilson_interval
 from dssp_sim.experiment import PLAN as MEMORY_PLAN
-from dssp_sim.experiment import pct, stage, stage_seconds, study_tasks, train_stage
+from dssp_sim.experiment import RECORD_DIR, keep, pct, recorded, stage, stage_seconds, study_tasks, train_stage
 
 REPORT_NAME = "distill"
 TASKS = ("tap", "put2", "swap")
@@ -65,17 +66,23 @@ def cells(task: str, plan: dict) -> list[tuple[str, str, int]]:
     return out
 
 
-def run_study(work: Path, plan: dict, tasks: list[str] | None = None, teachers: Path | None = None) -> tuple[dict, dict]:
+def run_study(work: Path, plan: dict, tasks: list[str] | None = None, teachers: Path | None = None,
+              record: Path | None = None) -> tuple[dict, dict]:
     """Run (or resume) every stage; returns ({cell: evaluation}, {K: dssp-profile figures on the latency preset}).
 
     ``teachers``: a simulation study's work directory whose seed-``plan["seed"]`` DSSP runs are the teachers (they
-    are not trained again; their students train on the datasets they trained on)."""
+    are not trained again; their students train on the datasets they trained on). ``record``: where finished
+    evaluations are kept; a task whose cells are all recorded trains nothing."""
     py, logs = sys.executable, work / "logs"
     evals: dict = {}
-    for task, data in study_tasks(work, plan, tasks, WORK_DIR, others=("latency",), collect=teachers is None):
+    for task, dataset in study_tasks(work, plan, tasks, WORK_DIR, others=("latency",), record=record):
+        if all(recorded(record, name) for name, _, _ in cells(task, plan)):
+            evals.update({name: recorded(record, name) for name, _, _ in cells(task, plan)})
+            print(f"  every cell recorded ({record})")
+            continue
         if teachers is None:
             teacher = work / "runs" / f"{task}_teacher"
-            train_stage(work, data, teacher, plan, task, plan["seed"], [], "train the teacher")
+            train_stage(work, dataset(), teacher, plan, task, plan["seed"], [], "train the teacher", record=record)
         else:
             teacher = teachers / "runs" / f"{task}_dssp_s{plan['seed']}"
             if not (teacher / "model.safetensors").is_file() or not (teachers / "logs" / f"train_{teacher.name}.seconds").is_file():
@@ -83,42 +90,50 @@ def run_study(work: Path, plan: dict, tasks: list[str] | None = None, teachers: 
                                  f"python -m dssp_sim.experiment --work {teachers} --tasks {task} first, or drop --teachers")
             print(f"  teacher: {teacher}")
         for name, kind, k in cells(task, plan):
+            if (kept := recorded(record, name)) is not None:
+                evals[name] = kept
+                continue
             run_dir, flags = teacher, ["--denoise-steps", str(k), "--timestep-spacing", "trailing"] if kind == "ddim" else []
             if kind not in ("teacher", "ddim"):
                 run_dir = work / "runs" / name
                 stage(run_dir / "checkpoint", f"distil {kind} K={k}", [py, "-m", "dssp_train.cli.distill", "--teacher", str(teacher),
                       "--steps", str(k), "--method", kind, "--out", str(run_dir), "--train-steps", str(plan["distill_steps"][task]),
-                      "--no-progress", "--force"], logs / f"distill_{name}.log")
+                      "--no-progress", "--force"], logs / f"distill_{name}.log", record)
             model = work / "models" / name
             stage(model / "dssp_model.json", f"export {name}", [py, "-m", "export.to_onnx", str(run_dir), "-o", str(model), *flags,
-                  "--threads", str(plan["threads"]), "--force", *plan["export_flags"]], logs / f"export_{name}.log")
+                  "--threads", str(plan["threads"]), "--force", *plan["export_flags"]], logs / f"export_{name}.log", record)
             out = work / "evals" / f"{name}.json"
             stage(out, f"eval {name}", [py, "-m", "dssp_sim.sim_cli", "eval", "--model", str(model), "--task", task, "--episodes",
                   str(plan["eval_episodes"]), "--seed", str(plan["eval_seed"]), "--threads", str(plan["threads"]), "--json",
-                  str(out), "--no-progress"], logs / f"eval_{name}.log")
+                  str(out), "--no-progress"], logs / f"eval_{name}.log", record)
+            keep(record, out, "evals")
             evals[name] = json.loads(out.read_text())
-    latency = {} if tasks and "latency" not in tasks else _latency(work, plan)
+    latency = {} if tasks and "latency" not in tasks else _latency(work, plan, record)
     return evals, latency
 
 
-def _latency(work: Path, plan: dict) -> dict:
+def _latency(work: Path, plan: dict, record: Path | None = None) -> dict:
     """The chunk's cost at each K on a model of the latency preset's size (untrained weights: the cost is the same)."""
     py, logs, lat = sys.executable, work / "logs", plan["latency"]
     print(f"latency ({lat['preset']} preset):")
+    if all(recorded(record, f"latency_k{k}") for k in lat["denoise_steps"]):
+        print(f"  every K recorded ({record})")
+        return {k: recorded(record, f"latency_k{k}") for k in lat["denoise_steps"]}
     data, run_dir = work / "data" / "latency.zarr", work / "runs" / f"latency_{lat['preset']}"
     stage(data / "meta", "synthetic data", [py, "-m", "dssp_train.cli.synth", "--out", str(data), "--episodes", "2", "--points",
-          str(lat["points"])], logs / "latency_data.log")
+          str(lat["points"])], logs / "latency_data.log", record)
     stage(run_dir / "checkpoint", f"a {lat['preset']} model", [py, "-m", "dssp_train.cli.train", "--data", str(data), "--out",
           str(run_dir), "--preset", lat["preset"], "--steps", "1", "--set", "train.val_every=1", "--no-progress", "--force"],
-          logs / "latency_train.log")
+          logs / "latency_train.log", record)
     figures = {}
     for k in lat["denoise_steps"]:
         model, out = work / "models" / f"latency_k{k}", work / "evals" / f"latency_k{k}.json"
         stage(model / "dssp_model.json", f"export K={k}", [py, "-m", "export.to_onnx", str(run_dir), "-o", str(model), "--denoise-steps",
               str(k), "--timestep-spacing", "trailing", "--verify-steps", "50", "--force", *plan["export_flags"]],
-              logs / f"latency_export_k{k}.log")
+              logs / f"latency_export_k{k}.log", record)
         stage(out, f"profile K={k}", [py, "-m", "dssp_deploy.profile", str(model), "--threads", str(lat["threads"]), "--json", str(out),
-              *lat["profile_flags"]], logs / f"latency_profile_k{k}.log")
+              *lat["profile_flags"]], logs / f"latency_profile_k{k}.log", record)
+        keep(record, out, "evals")
         figures[k] = json.loads(out.read_text())
     return figures
 
@@ -226,11 +241,11 @@ def main(argv: list[str] | None = None) -> int:
         if not args.tasks:
             check_output_files(report_files(args.report), force=args.force, flag="--report")
         started = time.perf_counter()
-        evals, latency = run_study(args.work, plan, args.tasks, args.teachers)
+        evals, latency = run_study(args.work, plan, args.tasks, args.teachers, args.report / RECORD_DIR)
         if args.tasks:
             print(f"stages of {', '.join(args.tasks)} done in {time.perf_counter() - started:.0f} s; run without --tasks for the report")
             return 0
-        md = write_report(evals, latency, plan, args.report, stage_seconds(args.work), force=args.force)
+        md = write_report(evals, latency, plan, args.report, stage_seconds(args.work, args.report / RECORD_DIR), force=args.force)
         print(f"report: {md}")
         return 0
 

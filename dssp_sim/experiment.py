@@ -15,8 +15,12 @@ study: it does not export (over the full history its state grows).
 
 Every stage writes its output under ``--work`` and is skipped when that output exists, so an interrupted
 study resumes where it stopped, and ``--tasks`` splits it across processes or machines sharing ``--work``
-(a last run without ``--tasks`` finds every stage done and writes the whole report). The report — ``REPORT_NAME.md`` (tables), ``.png`` (plot) and ``.json``
-(every figure) — is written to ``--report``. The plan is data (:data:`PLAN`, :data:`QUICK_PLAN`).
+(a last run without ``--tasks`` finds every stage done and writes the whole report). Every finished evaluation
+and stage time is also kept in the report's record (``--report``/record: evals/NAME.json, seconds/STAGE.seconds,
+a few kB each, committed with the report), so a machine without the work directory resumes from the record:
+a model whose evaluations are all recorded is not trained again, and ``--report-only`` writes the report from
+the record alone, the cells not yet run marked as pending. The report — ``REPORT_NAME.md`` (tables), ``.png``
+(plot) and ``.json`` (every figure) — is written to ``--report``. The plan is data (:data:`PLAN`, :data:`QUICK_PLAN`).
 
 Outputs (:mod:`dssp_data.output_guard`): ``--work`` must be new, empty or a work directory of this study
 (marked ``.dssp-output.json``), which is continued; anything else is refused before any stage runs. The
@@ -26,6 +30,7 @@ with ``--force``, checked before the study starts.
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import shutil
@@ -37,6 +42,7 @@ from pathlib import Path
 from dssp_sim.evaluate import wilson_interval
 from dssp_data.files import atomic_write_text
 from dssp_data.cli_runner import ArgumentParser
+from dssp_data.errors import DSSPError
 from dssp_data.output_guard import (
     OutputKind,
     check_output_files,
@@ -80,6 +86,8 @@ WORK_DIR = OutputKind("a study work directory", "python -m dssp_sim.experiment",
                       entries=("data", "runs", "models", "evals", "logs"), signature=lambda p: (p / "logs").is_dir())
 """``--work``: data/, runs/, models/, evals/, logs/ (continued by the next run; older ones are recognised by logs/)."""
 REPORT_SUFFIXES = (".md", ".json", ".png")
+RECORD_DIR = "record"
+"""Under ``--report``: evals/NAME.json and seconds/STAGE.seconds of every finished stage (see the module's docstring)."""
 VARIANT_LABELS = {
     "dssp": "DSSP (full history)", "reactive": "reactive baseline (short window: N recent states)",
     "no_timestep_decoupling": "w/o timestep decoupling", "no_recent_states": "w/o recent states",
@@ -100,17 +108,32 @@ def _run(cmd: list[str], log: Path) -> None:
         raise SystemExit(f"error: {' '.join(cmd[:4])} ... failed (exit {code}); see {log}: {' | '.join(tail)}")
 
 
-def stage(done: Path, what: str, cmd: list[str], log: Path) -> None:
+def stage(done: Path, what: str, cmd: list[str], log: Path, record: Path | None = None) -> None:
     """Run ``cmd`` unless it completed before: ``done`` exists and so does the stage's time (written only when
-    its command succeeded, so a stage stopped halfway is run again)."""
+    its command succeeded, so a stage stopped halfway is run again). ``record``: keep the stage's time there too."""
     if done.exists() and log.with_suffix(".seconds").exists():
         print(f"  {what}: done before ({done})")
-        return
-    t0 = time.perf_counter()
-    _run(cmd, log)
-    seconds = time.perf_counter() - t0
-    atomic_write_text(log.with_suffix(".seconds"), f"{seconds:.1f}\n")  # summed by the report
-    print(f"  {what}: {seconds:.0f} s")
+    else:
+        t0 = time.perf_counter()
+        _run(cmd, log)
+        seconds = time.perf_counter() - t0
+        atomic_write_text(log.with_suffix(".seconds"), f"{seconds:.1f}\n")  # summed by the report
+        print(f"  {what}: {seconds:.0f} s")
+    keep(record, log.with_suffix(".seconds"), "seconds")
+
+
+def keep(record: Path | None, path: Path, kind: str) -> None:
+    """Copy a finished stage's file (its time: ``kind`` "seconds"; its evaluation: "evals") into ``record``."""
+    if record is not None:
+        (record / kind).mkdir(parents=True, exist_ok=True)
+        if not (record / kind / path.name).is_file() or (record / kind / path.name).read_text() != path.read_text():
+            atomic_write_text(record / kind / path.name, path.read_text())
+
+
+def recorded(record: Path | None, name: str) -> dict | None:
+    """The evaluation ``name`` kept in ``record``, or None."""
+    path = record / "evals" / f"{name}.json" if record is not None else None
+    return json.loads(path.read_text()) if path is not None and path.is_file() else None
 
 
 def train_command(data: Path, run_dir: Path, plan: dict, task: str, seed: int, flags: list[str], log: Path) -> list[str]:
@@ -122,27 +145,30 @@ def train_command(data: Path, run_dir: Path, plan: dict, task: str, seed: int, f
             "--steps", str(plan["steps"][task]), "--seed", str(seed), "--no-progress", "--force", *flags]
 
 
-def stage_seconds(work: Path) -> float:
-    """Compute time of every stage of the study so far, resumed and parallel runs included."""
-    return sum(float(f.read_text()) for f in (work / "logs").glob("*.seconds"))
+def stage_seconds(work: Path, record: Path | None = None) -> float:
+    """Compute time of every stage of the study so far, resumed and parallel runs included: the stage times of
+    ``work`` and of ``record`` (kept there from other machines), each stage counted once."""
+    files = {f.name: f for d in (record / "seconds" if record else None, work / "logs") if d and d.is_dir()
+             for f in d.glob("*.seconds")}
+    return sum(float(f.read_text()) for f in files.values())
 
 
-def collect_stage(work: Path, task: str, n_demos: int) -> Path:
+def collect_stage(work: Path, task: str, n_demos: int, record: Path | None = None) -> Path:
     """The study's ``n_demos`` demonstrations of ``task`` in ``work/data`` (collected unless done before; a
     collection stopped halfway is collected again, not appended to): the dataset's path."""
     data, log = work / "data" / f"{task}.zarr", work / "logs" / f"collect_{task}.log"
     if data.exists() and not log.with_suffix(".seconds").exists():
         shutil.rmtree(data)  # the study's own partial dataset
     stage(data / "meta", f"collect {n_demos} demos", [sys.executable, "-m", "dssp_sim.sim_cli", "collect", "--task", task,
-          "--episodes", str(n_demos), "--out", str(data), "--no-progress"], log)
+          "--episodes", str(n_demos), "--out", str(data), "--no-progress"], log, record)
     return data
 
 
 def study_tasks(work: Path, plan: dict, tasks: list[str] | None, kind: OutputKind, others: tuple[str, ...] = (),
-                collect: bool = True):
+                record: Path | None = None):
     """Check ``tasks`` (names of the plan's tasks, or of ``others``), claim ``work`` for a study of ``kind``, and yield
-    (task, dataset) for each of the plan's tasks to run (all without ``tasks``), its demonstrations collected
-    (``collect`` false: no dataset, None)."""
+    (task, dataset) for each of the plan's tasks to run (all without ``tasks``): ``dataset()`` collects the task's
+    demonstrations on its first call (none when every stage that needs them is recorded) and returns their path."""
     unknown = sorted(set(tasks or []) - set(plan["demos"]) - set(others))
     if unknown:
         raise SystemExit(f"error: unknown task(s) {unknown}; the plan has {[*plan['demos'], *others]}")
@@ -150,51 +176,84 @@ def study_tasks(work: Path, plan: dict, tasks: list[str] | None, kind: OutputKin
     for task, n_demos in plan["demos"].items():
         if not tasks or task in tasks:
             print(f"{task}:")
-            yield task, collect_stage(work, task, n_demos) if collect else None
+            yield task, functools.cache(functools.partial(collect_stage, work, task, n_demos, record))
 
 
 def train_stage(work: Path, data: Path, run_dir: Path, plan: dict, task: str, seed: int, flags: list[str], what: str,
-                name: str | None = None) -> None:
+                name: str | None = None, record: Path | None = None) -> None:
     """Train ``run_dir`` (the plan's preset and steps for ``task``) unless done before; resumed if stopped halfway.
     Its log is ``work/logs/train_{name}.log`` (default: the run's name)."""
     log = work / "logs" / f"train_{name or run_dir.name}.log"
-    stage(run_dir / "checkpoint", what, train_command(data, run_dir, plan, task, seed, flags, log), log)
+    stage(run_dir / "checkpoint", what, train_command(data, run_dir, plan, task, seed, flags, log), log, record)
 
 
-def run_study(work: Path, plan: dict, threads: int | None = None, tasks: list[str] | None = None) -> dict:
-    """Run (or resume) the study's stages for ``tasks`` (default: every task of the plan)."""
+def eval_name(name: str, sigma: float) -> str:
+    """An evaluation's name: the model's, with the noise level when there is noise."""
+    return f"{name}_noise{sigma:g}" if sigma else name
+
+
+def model_runs(plan: dict, task: str) -> list[tuple[int, str, list[str], list[float]]]:
+    """(seed, variant, training flags, noise levels it is evaluated at) of every model of ``task``, seed by seed: the
+    main variants on the task's seeds, the ablations on its ablation seeds; σ = 0 for all, and the robustness test's
+    σs for its models."""
+    rob = plan["robustness"]
+    seeds = dict.fromkeys([*plan["seeds"][task], *plan["ablation_seeds"].get(task, [])])
+    return [(seed, variant, flags, [0.0, *(rob["sigmas"] if (task, seed) == (rob["task"], rob["seed"]) and variant in rob["variants"] else [])])
+            for seed in seeds for variant, flags in [
+                *(plan["variants"].items() if seed in plan["seeds"][task] else []),
+                *(plan["ablations"].items() if seed in plan["ablation_seeds"].get(task, []) else [])]]
+
+
+def run_study(work: Path, plan: dict, threads: int | None = None, tasks: list[str] | None = None,
+              record: Path | None = None) -> dict:
+    """Run (or resume) the study's stages for ``tasks`` (default: every task of the plan). A model whose evaluations
+    are all in ``record`` is neither trained nor exported again."""
     py = sys.executable
     results: dict = {"plan": plan, "evals": {}, "robustness": {}}
-    for task, data in study_tasks(work, plan, tasks, WORK_DIR):
-        seeds = dict.fromkeys([*plan["seeds"][task], *plan["ablation_seeds"].get(task, [])])
-        runs = [(seed, variant, flags) for seed in seeds for variant, flags in [
-            *(plan["variants"].items() if seed in plan["seeds"][task] else []),
-            *(plan["ablations"].items() if seed in plan["ablation_seeds"].get(task, []) else [])]]  # seed by seed
-        for seed, variant, flags in runs:
+    for task, dataset in study_tasks(work, plan, tasks, WORK_DIR, record=record):
+        for seed, variant, flags, sigmas in model_runs(plan, task):
             name = f"{task}_{variant}_s{seed}"
             run_dir, model_dir = work / "runs" / name, work / "models" / name
-            train_stage(work, data, run_dir, plan, task, seed, flags, f"train {variant} seed {seed}")
-            stage(model_dir / "dssp_model.json", f"export {variant} seed {seed}", [py, "-m", "export.to_onnx", str(run_dir),
-                   "-o", str(model_dir), "--force", *plan.get("export_flags", [])], work / "logs" / f"export_{name}.log")
-            results["evals"][name] = _evaluate(work, model_dir, task, plan, name, 0.0, threads)
-    rob = plan["robustness"]
-    if tasks and rob["task"] not in tasks:
-        return results
-    for variant in rob["variants"]:
-        name = f"{rob['task']}_{variant}_s{rob['seed']}"
-        for sigma in rob["sigmas"]:
-            results["robustness"][f"{name}_noise{sigma:g}"] = _evaluate(work, work / "models" / name, rob["task"], plan, name, sigma, threads)
+            if not all(recorded(record, eval_name(name, sigma)) for sigma in sigmas):
+                train_stage(work, dataset(), run_dir, plan, task, seed, flags, f"train {variant} seed {seed}", record=record)
+                stage(model_dir / "dssp_model.json", f"export {variant} seed {seed}", [py, "-m", "export.to_onnx", str(run_dir),
+                       "-o", str(model_dir), "--force", *plan.get("export_flags", [])], work / "logs" / f"export_{name}.log", record)
+            for sigma in sigmas:
+                results["robustness" if sigma else "evals"][eval_name(name, sigma)] = _evaluate(
+                    work, record, model_dir, task, plan, name, sigma, threads)
     return results
 
 
-def _evaluate(work: Path, model_dir: Path, task: str, plan: dict, name: str, sigma: float, threads: int | None) -> dict:
-    suffix = f"_noise{sigma:g}" if sigma else ""
-    out = work / "evals" / f"{name}{suffix}.json"
+def recorded_results(plan: dict, record: Path) -> tuple[dict, list[str]]:
+    """The study's results as far as ``record`` holds them, and the names of the evaluations it lacks."""
+    results: dict = {"plan": plan, "evals": {}, "robustness": {}}
+    pending = []
+    for task in plan["demos"]:
+        for seed, variant, _, sigmas in model_runs(plan, task):
+            for sigma in sigmas:
+                name = eval_name(f"{task}_{variant}_s{seed}", sigma)
+                r = recorded(record, name)
+                if r is None:
+                    pending.append(name)
+                else:
+                    results["robustness" if sigma else "evals"][name] = r
+    return results, pending
+
+
+def _evaluate(work: Path, record: Path | None, model_dir: Path, task: str, plan: dict, name: str, sigma: float,
+              threads: int | None) -> dict:
+    name = eval_name(name, sigma)
+    kept = recorded(record, name)
+    if kept is not None:
+        print(f"  eval {name}: recorded")
+        return kept
+    out = work / "evals" / f"{name}.json"
     cmd = [sys.executable, "-m", "dssp_sim.sim_cli", "eval", "--model", str(model_dir), "--task", task, "--episodes",
            str(plan["eval_episodes"]), "--seed", str(plan["eval_seed"]), "--noise", str(sigma), "--json", str(out), "--no-progress"]
     if threads:
         cmd += ["--threads", str(threads)]
-    stage(out, f"eval {name}{suffix}", cmd, work / "logs" / f"eval_{name}{suffix}.log")
+    stage(out, f"eval {name}", cmd, work / "logs" / f"eval_{name}.log", record)
+    keep(record, out, "evals")
     return json.loads(out.read_text())
 
 
@@ -223,18 +282,20 @@ def report_files(report_dir: Path) -> list[Path]:
     return [report_dir / f"{REPORT_NAME}{suffix}" for suffix in REPORT_SUFFIXES]
 
 
-def _rob_result(results: dict, rob: dict, variant: str, sigma: float) -> dict:
-    name = f"{rob['task']}_{variant}_s{rob['seed']}"
-    return results["evals"][name] if sigma == 0 else results["robustness"][f"{name}_noise{sigma:g}"]
+def _rob_result(results: dict, rob: dict, variant: str, sigma: float) -> dict | None:
+    """One cell of the robustness test (None while pending)."""
+    name = eval_name(f"{rob['task']}_{variant}_s{rob['seed']}", sigma)
+    return results["robustness" if sigma else "evals"].get(name)
 
 
 def _z_rms(results: dict, rob: dict) -> float | None:
     """The recent state tokens' RMS per element, as DSSP's noise-free evaluation measured it (None in older results)."""
-    return _rob_result(results, rob, rob["variants"][0], 0.0).get("z_rms")
+    return (_rob_result(results, rob, rob["variants"][0], 0.0) or {}).get("z_rms")
 
 
-def write_report(results: dict, report_dir: Path, seconds: float, force: bool = False) -> Path:
-    """``seconds``: the compute time of all stages (:func:`stage_seconds`); ``force``: replace existing report files."""
+def write_report(results: dict, report_dir: Path, seconds: float, force: bool = False, pending: list[str] = ()) -> Path:
+    """``seconds``: the compute time of all stages (:func:`stage_seconds`); ``force``: replace existing report files;
+    ``pending``: the evaluations not run yet (a report from the record, ``--report-only``), listed and marked "pending"."""
     check_output_files(report_files(report_dir), force=force, flag="--report")
     table = summarise(results)
     plan = results["plan"]
@@ -271,7 +332,8 @@ def write_report(results: dict, report_dir: Path, seconds: float, force: bool = 
             for task in ablation_tasks:
                 names = [f"{task}_{variant}_s{seed}" for seed in plan["ablation_seeds"][task]]
                 rs = [results["evals"][n] for n in names if n in results["evals"]]
-                cells.append(pct(sum(r["successes"] for r in rs), sum(r["n"] for r in rs)) if rs else "—")
+                cells.append(pct(sum(r["successes"] for r in rs), sum(r["n"] for r in rs)) + ("" if len(rs) == len(names) else
+                             f" (seeds so far: {len(rs)} of {len(names)})") if rs else "pending")
             lines.append(f"| {TABLE5_LABELS.get(variant, VARIANT_LABELS.get(variant, variant))} | " + " | ".join(cells) + " |")
     if results["robustness"]:
         rob = plan["robustness"]
@@ -282,13 +344,17 @@ def write_report(results: dict, report_dir: Path, seconds: float, force: bool = 
                   "", "| σ | σ / RMS | " + " | ".join(VARIANT_LABELS.get(v, v) for v in rob["variants"]) + " |",
                   "|---:|---:|" + "---|" * len(rob["variants"])]
         for sigma in [0.0, *rob["sigmas"]]:
-            cells = [pct(r["successes"], r["n"]) for r in (_rob_result(results, rob, v, sigma) for v in rob["variants"])]
+            cells = [pct(r["successes"], r["n"]) if r else "pending" for r in (_rob_result(results, rob, v, sigma) for v in rob["variants"])]
             lines.append(f"| {sigma:g} | {sigma / rms:.2f} | " if rms else f"| {sigma:g} | — | ")
             lines[-1] += " | ".join(cells) + " |"
+    if pending:
+        lines += ["", f"**Partial report**: {len(pending)} evaluation(s) of the plan are pending (not run yet): "
+                  + ", ".join(f"`{n}`" for n in pending) + ". Rows pool the seeds run so far."]
     lines += ["", f"![success rates]({REPORT_NAME}.png)", ""]
     md, js, png = report_files(report_dir)
     write_output_text(md, "\n".join(lines), force=force, flag="--report")
-    write_output_text(js, json.dumps({"summary": table, **results}, indent=2) + "\n", force=force, flag="--report")
+    write_output_text(js, json.dumps({"summary": table, **results, "pending": list(pending)}, indent=2) + "\n",
+                      force=force, flag="--report")
     _plot(results, table, png, force)
     return md
 
@@ -342,8 +408,8 @@ def _plot(results: dict, table: dict, path: Path, force: bool = False) -> None:
         rms = _z_rms(results, rob) or 1.0
         sigmas = [0.0, *rob["sigmas"]]
         for variant in rob["variants"]:
-            ys = [_rob_result(results, rob, variant, s)["success_rate"] for s in sigmas]
-            ax.plot([s / rms for s in sigmas], [100 * y for y in ys], "o-", label=VARIANT_LABELS.get(variant, variant))
+            done = [(s, r) for s in sigmas if (r := _rob_result(results, rob, variant, s))]
+            ax.plot([s / rms for s, _ in done], [100 * r["success_rate"] for _, r in done], "o-", label=VARIANT_LABELS.get(variant, variant))
         ax.set(xlabel="σ / RMS of the recent state tokens", ylabel="success %", ylim=(0, 105), title=f"Robustness ({rob['task']})")
         ax.legend(fontsize=7)
     fig.tight_layout()
@@ -358,18 +424,30 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, help="ONNX Runtime threads for the evaluations")
     p.add_argument("--tasks", nargs="+", metavar="TASK", help="run only these tasks' stages (default: all, then the report)")
     p.add_argument("--force", action="store_true", help="replace the report's files if they exist")
+    p.add_argument("--report-only", action="store_true", help="run no stage: write the report from the record "
+                   f"(--report/{RECORD_DIR}), the evaluations not run yet listed as pending")
     args = p.parse_args(argv)
     plan = QUICK_PLAN if args.quick else PLAN
     partial = bool(args.tasks) and set(args.tasks) != set(plan["demos"])
+    record = args.report / RECORD_DIR
+    if args.report_only and args.tasks:
+        p.error("--report-only writes the whole report from the record; drop --tasks")
 
     def _main() -> int:
         if not partial:  # before any stage: a report that may not be replaced stops the study now
             check_output_files(report_files(args.report), force=args.force, flag="--report")
-        results = run_study(args.work, plan, args.threads, args.tasks)
-        if partial:
-            print(f"stages of {args.tasks} done; run without --tasks for the report")
+        if args.report_only:
+            results, pending = recorded_results(plan, record)
+            if not results["evals"]:
+                raise DSSPError(f"{record} holds no evaluation of this plan; run the study first (without --report-only)")
+            md = write_report(results, args.report, stage_seconds(args.work, record), force=args.force, pending=pending)
+            print(md.read_text())
             return 0
-        md = write_report(results, args.report, stage_seconds(args.work), force=args.force)
+        results = run_study(args.work, plan, args.threads, args.tasks, record)
+        if partial:
+            print(f"stages of {args.tasks} done (kept in {record}); run without --tasks for the report")
+            return 0
+        md = write_report(results, args.report, stage_seconds(args.work, record), force=args.force)
         print(md.read_text())
         return 0
 

@@ -54,9 +54,9 @@ def run_study(work: Path, plan: dict, tasks: list[str] | None = None) -> dict:
     """Run (or resume) every stage for ``tasks`` (default all); returns {cell name: evaluation result}."""
     py, logs = sys.executable, work / "logs"
     evals: dict = {}
-    for task, data in study_tasks(work, plan, tasks, WORK_DIR):
+    for task, dataset in study_tasks(work, plan, tasks, WORK_DIR):
         run_dir = work / "runs" / f"{task}_dssp_s{plan['seed']}"
-        train_stage(work, data, run_dir, plan, task, plan["seed"], [], "train DSSP", name=task)
+        train_stage(work, dataset(), run_dir, plan, task, plan["seed"], [], "train DSSP", name=task)
         for k in plan["denoise_steps"]:
             model_dir = work / "models" / f"{task}_k{k}"
             stage(model_dir / "dssp_model.json", f"export K={k}", [py, "-m", "export.to_onnx", str(run_dir), "-o", str(model_dir),

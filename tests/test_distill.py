@@ -174,7 +174,12 @@ def test_the_distillation_study_writes_its_report(tmp_path, capsys):
     assert manifest["ddim_timesteps"] == [99]
     capsys.readouterr()
     assert study_main(["--work", str(work), "--report", str(report), "--quick", "--force"]) == 0  # resumes: all done
-    assert "done before" in capsys.readouterr().out
+    assert "every cell recorded" in capsys.readouterr().out
+    assert {f.stem for f in (report / "record" / "evals").glob("*.json")} == {*data["evals"], "latency_k10", "latency_k1"}
+    # another machine without the work directory trains nothing: the report's record holds every evaluation
+    assert study_main(["--work", str(tmp_path / "elsewhere"), "--report", str(report), "--quick", "--force"]) == 0
+    assert not (tmp_path / "elsewhere" / "runs").exists()
+    assert json.loads((report / f"{REPORT_NAME}.json").read_text())["evals"] == data["evals"]
 
 
 def test_the_study_takes_its_teachers_from_a_simulation_study(tmp_path, monkeypatch, capsys):
@@ -182,7 +187,7 @@ def test_the_study_takes_its_teachers_from_a_simulation_study(tmp_path, monkeypa
 
     seen = []
 
-    def fake_stage(done, what, cmd, log):
+    def fake_stage(done, what, cmd, log, record=None):
         seen.append((what, cmd))
         if done.suffix == ".json":
             done.parent.mkdir(parents=True, exist_ok=True)

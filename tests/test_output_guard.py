@@ -400,8 +400,8 @@ def test_study_continues_its_work_and_replaces_its_report_only_with_force(tmp_pa
     import dssp_sim.experiment as experiment
 
     stages = []
-    monkeypatch.setattr(experiment, "stage", lambda done, what, cmd, log: stages.append(what))
-    monkeypatch.setattr(experiment, "_evaluate", lambda work, model, task, plan, name, sigma, threads: {
+    monkeypatch.setattr(experiment, "stage", lambda done, what, cmd, log, record=None: stages.append(what))
+    monkeypatch.setattr(experiment, "_evaluate", lambda work, record, model, task, plan, name, sigma, threads: {
         "successes": len(stages) % 2, "n": 1, "success_rate": float(len(stages) % 2), "failure_reasons": {}})
     work, report = tmp_path / "work", tmp_path / "report"
 

@@ -246,11 +246,26 @@ def test_the_study_command_writes_its_report(tmp_path, capsys):
     rms = data["evals"]["tap_dssp_s0"]["z_rms"]  # σ is also read against the tokens' own scale
     assert rms > 0 and f"| 0.1 | {0.1 / rms:.2f} |" in md
     assert set(data["robustness"]) == {f"tap_{v}_s0_noise0.1" for v in ("dssp", "window3", "reactive")}
-    # a second run resumes: every stage is found done (--force: the report it rewrites exists)
-    capsys.readouterr()
-    assert study_main(["--work", str(work), "--report", str(report), "--quick", "--force"]) == 0
-    assert capsys.readouterr().out.count("done before") == 13
     assert len(list((work / "logs").glob("*.seconds"))) == 13  # each stage's time, summed by the report
+    record = report / "record"  # every evaluation and stage time, kept beside the report
+    assert sorted(f.stem for f in (record / "evals").glob("*.json")) == sorted([*data["evals"], *data["robustness"]])
+    assert sorted(f.name for f in (record / "seconds").iterdir()) == sorted(f.name for f in (work / "logs").glob("*.seconds"))
+    # another machine, without the work directory, resumes from the record: nothing is collected, trained or evaluated again
+    capsys.readouterr()
+    elsewhere = tmp_path / "elsewhere"
+    assert study_main(["--work", str(elsewhere), "--report", str(report), "--quick", "--force"]) == 0
+    out = capsys.readouterr().out
+    assert out.count(": recorded") == 6 and "done before" not in out and not (elsewhere / "data").exists()
+    assert json.loads((report / f"{REPORT_NAME}.json").read_text())["evals"] == data["evals"]
+    # a report from the record alone: an evaluation not run yet is listed as pending
+    (record / "evals" / "tap_window3_s0_noise0.1.json").unlink()
+    assert study_main(["--work", str(elsewhere), "--report", str(report), "--quick", "--force", "--report-only"]) == 0
+    md = (report / f"{REPORT_NAME}.md").read_text()
+    assert "**Partial report**: 1 evaluation(s) of the plan are pending (not run yet): `tap_window3_s0_noise0.1`" in md
+    assert "| 0.1 | " in md and "pending |" in md
+    assert json.loads((report / f"{REPORT_NAME}.json").read_text())["pending"] == ["tap_window3_s0_noise0.1"]
+    assert study_main(["--work", str(elsewhere), "--report", str(tmp_path / "empty"), "--quick", "--report-only"]) == 2
+    assert "holds no evaluation of this plan" in capsys.readouterr().err
     with pytest.raises(SystemExit, match="unknown task"):
         study_main(["--work", str(work), "--report", str(report), "--quick", "--tasks", "swap"])
 
@@ -273,7 +288,7 @@ def test_a_collection_stopped_halfway_is_collected_again_not_appended_to(tmp_pat
     import dssp_sim.experiment as experiment
 
     seen = []
-    monkeypatch.setattr(experiment, "stage", lambda done, what, cmd, log: seen.append((what, (done.parent).exists())))
+    monkeypatch.setattr(experiment, "stage", lambda done, what, cmd, log, record=None: seen.append((what, (done.parent).exists())))
     monkeypatch.setattr(experiment, "_evaluate", lambda *args: {"successes": 0, "n": 1, "success_rate": 0.0, "failure_reasons": {}})
     work = tmp_path / "work"
     partial = work / "data" / "tap.zarr"
