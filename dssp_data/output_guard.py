@@ -721,10 +721,11 @@ def _run_signature(path: Path) -> bool:
 
 
 RUN_DIR = OutputKind("a run directory", "dssp-train",
-                     entries=("config.json", "model.safetensors", "checkpoint", "log.jsonl", "loss.png"),
+                     entries=("config.json", "model.safetensors", "checkpoint", "log.jsonl", "loss.png", "tensorboard", "wandb"),
                      signature=_run_signature, marker=False)
 """``dssp-train --out``: config.json (a JSON object with ``model`` and ``train``), model.safetensors,
-checkpoint/, log.jsonl, loss.png — recognised by its config.json, no marker added."""
+checkpoint/, log.jsonl, loss.png, and the dashboards' tensorboard/ and wandb/ (``--log``) — recognised by its
+config.json, no marker added."""
 
 def _made_by(path: Path, generators: Iterable[str]) -> bool:
     """The zarr dataset at ``path`` names one of ``generators`` as its ``generator``, and was not made from

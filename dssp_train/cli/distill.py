@@ -2,6 +2,7 @@
 
     dssp-distill --teacher runs/tap --steps 1 --out runs/tap_k1 [--method consistency|trajectory] [--data PATH.zarr]
                  [--train-steps N] [--teacher-steps M] [--fine-tune-encoders] [--batch-size B] [--lr LR] [--seed S]
+                 [--log tensorboard|wandb|none]
     dssp-distill --out runs/tap_k1 --resume              # continue where it stopped (dssp-train --resume works too)
 
 The student starts as the teacher (weights, normalisers, observation settings) and samples in ``--steps`` DDIM
@@ -9,7 +10,7 @@ steps at trailing timesteps; ``--method`` picks its objective (:mod:`dssp_train.
 directory is an ordinary run — ``python -m export.to_onnx`` writes its K into the manifest and the runtime
 runs it unchanged. Data: the teacher's dataset unless ``--data`` names another with the same dimensions.
 Budget: ``--train-steps`` (default a third of the teacher's steps, at least 100); learning rate and windows per
-step: the teacher's unless given. Output, ``--force``, ``--resume`` and Ctrl-C behave as in ``dssp-train``.
+step: the teacher's unless given. Output, ``--force``, ``--resume``, ``--log`` and Ctrl-C behave as in ``dssp-train``.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ import sys
 from pathlib import Path
 
 from dssp_data.errors import ConfigError, DSSPError
-from dssp_train.cli.train import given_flags, run_training, with_flags
+from dssp_train.cli.train import add_log_flag, given_flags, run_training, with_flags
 from dssp_train.config import DISTILL_METHODS, RunConfig
 
 # dssp-train's config flags a student does not take (its architecture is the teacher's).
@@ -48,6 +49,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resume", action="store_true", help="continue the student in --out from its last checkpoint")
     p.add_argument("--force", action="store_true", help="replace a previous run in --out (once the new one completes)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_log_flag(p)
     return p
 
 

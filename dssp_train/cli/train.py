@@ -16,6 +16,10 @@ dimensions, the cloud size and the control rate; a --control-rate or a ``--set m
 contradicts it is refused. --resume continues the run on the same --data (its resolved path and, as the
 checkpoint records them, its episodes) with the run's own config; only --steps may grow.
 
+--log tensorboard|wandb sends what log.jsonl records, and the validation chunks as images, to a dashboard
+in the run directory (:mod:`dssp_train.training.dashboards`); like --no-progress it is not part of the run's config,
+so --resume may change it.
+
 Ctrl-C and SIGTERM stop the same way (exit code 130): the message says which checkpoint is kept and the
 command that continues from it. Before training, a step that clearly cannot fit in memory is refused
 (:mod:`dssp_train.training.memory`).
@@ -37,6 +41,7 @@ from pathlib import Path
 
 from dssp_data.cli_runner import run_cli
 from dssp_train.config import RunConfig, apply_overrides, load_preset, preset_names
+from dssp_train.training.dashboards import DASHBOARDS, check_dashboard
 from dssp_data.errors import CheckpointError, ConfigError, DSSPError
 from dssp_data.schema import Spec, check_value
 
@@ -71,7 +76,16 @@ def build_parser() -> argparse.ArgumentParser:
                            help="denoiser blocks' mixer: Mamba, or causal self-attention (Table 5's w/ Trans.)")
     p.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE", help="any other config field, e.g. model.d_model=256")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_log_flag(p)
     return p
+
+
+def add_log_flag(p: argparse.ArgumentParser) -> None:
+    """``--log tensorboard|wandb|none`` on ``p``: the dashboard the run logs to besides log.jsonl. Checked by
+    ``run_training`` (one line naming the allowed values, or the package to install), not by argparse."""
+    p.add_argument("--log", default="none", metavar="{" + ",".join(DASHBOARDS) + "}",
+                   help="dashboard besides log.jsonl: tensorboard (RUN_DIR/tensorboard), wandb (RUN_DIR/wandb, offline unless "
+                        "WANDB_MODE says otherwise) or none (default); needs the viz extra")
 
 
 # Flags that set one config field: (flag, argparse dest, field).
@@ -275,9 +289,11 @@ def run_training(args, make_config) -> int:
     def _main() -> int:
         from dssp_data.output_guard import OWN, RUN_DIR, OutputDir, OutputError, check_output
 
+        run_kind = RUN_DIR
         out = Path(args.out)
         if args.resume and args.force:
             raise DSSPError("--resume continues the run in --out; drop --force")
+        check_dashboard(args.log)  # before --out is touched: an unknown value, or its package missing
         is_main = int(os.environ.get("RANK", "0")) == 0
         replaced = False
         try:
@@ -286,14 +302,14 @@ def run_training(args, make_config) -> int:
                 if not args.resume:
                     try:  # before anything else: a run that may not be replaced stops here
                         if is_main:
-                            target = stack.enter_context(OutputDir(out, RUN_DIR, force=args.force, staged=False, keep_partial=True))
+                            target = stack.enter_context(OutputDir(out, run_kind, force=args.force, staged=False, keep_partial=True))
                             replaced = target.found == OWN
                         else:  # rank 0 moves a replaced run aside and creates --out
-                            check_output(out, force=args.force, kind=RUN_DIR)
+                            check_output(out, force=args.force, kind=run_kind)
                     except OutputError:
                         from dssp_train.training.checkpoint import checkpoint_dir
 
-                        if RUN_DIR.owns(out):
+                        if run_kind.owns(out):
                             if checkpoint_dir(out) is None:
                                 raise OutputError(f"{no_checkpoint_message(out)}, or choose another --out") from None
                             raise OutputError(f"{out} already holds a run; continue it with --resume, pass --force to replace it "
@@ -330,7 +346,7 @@ def _train(args, out: Path, make_config) -> dict | None:
     device = args.device if args.device != "auto" else ("cuda" if torch.cuda.is_available() else "cpu")
     trainer = Trainer(
         config, args.data, out, device=device, resume=args.resume, progress=not args.no_progress,
-        control_rate_hz=args.control_rate, user_set=set_fields(args.set),
+        control_rate_hz=args.control_rate, user_set=set_fields(args.set), dashboard=args.log,
     )
     args.trainer = trainer
     if trainer.is_main:

@@ -1,4 +1,5 @@
-"""The machine-readable training log (``log.jsonl``: one JSON object per line) and its plot (``loss.png``).
+"""The machine-readable training log (``log.jsonl``: one JSON object per line), its plot (``loss.png``), and
+the figure of a validation chunk the dashboards show (:func:`chunk_figure`).
 
 Each line has ``"kind": "train"`` (step, loss, diffusion, dynamics, lr, steps_per_s, windows_per_s; with the
 dynamics loss also dyn_cos, dyn_cos_mean, dyn_cos_prev: the predictor's and two trivial predictors' cosines;
@@ -9,8 +10,11 @@ crashed run keeps its log up to the crash.
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from dssp_data.files import atomic_write_text
 
@@ -94,3 +98,47 @@ def plot_log(log_path: Path, png_path: Path) -> None:
     fig.tight_layout()
     fig.savefig(png_path, dpi=100)
     plt.close(fig)
+
+
+@dataclass
+class ValChunk:
+    """One validation window's chunk: ``steps`` (H,) the episode steps of its actions, ``sampled`` and ``expert``
+    (H, A) the EMA model's sampled chunk and the expert's actions in raw units, ``executed`` the [start, stop)
+    indices of the actions the robot runs; ``episode`` and ``start`` say which window, ``held_out`` whether the
+    episode is a validation one (else a training one, as with ``--no-holdout``)."""
+
+    episode: int
+    start: int
+    steps: np.ndarray
+    sampled: np.ndarray
+    expert: np.ndarray
+    executed: tuple[int, int]
+    held_out: bool
+
+
+def chunk_figure(chunk: ValChunk, max_dims: int = 14):
+    """A matplotlib figure of ``chunk``: one panel per action dimension (the first ``max_dims``), the sampled
+    chunk against the expert's actions, the executed actions shaded. Built without pyplot (nothing to close)."""
+    from matplotlib.figure import Figure
+
+    dims = min(chunk.expert.shape[1], max_dims)
+    cols = min(dims, 7)
+    rows = -(-dims // cols)
+    fig = Figure(figsize=(max(2.2 * cols, 5.0), 1.9 * rows + 0.7), dpi=80)
+    axes = fig.subplots(rows, cols, squeeze=False).ravel()
+    lo, hi = chunk.steps[chunk.executed[0]], chunk.steps[chunk.executed[1] - 1]
+    for d, ax in enumerate(axes):
+        if d >= dims:
+            ax.set_axis_off()
+            continue
+        ax.axvspan(lo - 0.5, hi + 0.5, color="0.9")
+        ax.plot(chunk.steps, chunk.expert[:, d], "o-", ms=3, color="C0", label="expert")
+        ax.plot(chunk.steps, chunk.sampled[:, d], "s--", ms=3, color="C3", label="sampled")
+        ax.set_title(f"action[{d}]", fontsize=8)
+        ax.tick_params(labelsize=7)
+    axes[0].legend(fontsize=7)
+    where = "held-out" if chunk.held_out else "training"
+    fig.suptitle(f"validation chunk: {where} episode {chunk.episode}, window at step {chunk.start}\n"
+                 "sampled (EMA) vs expert, raw units; executed actions shaded", fontsize=9)
+    fig.tight_layout()
+    return fig

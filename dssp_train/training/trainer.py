@@ -31,7 +31,8 @@ from dssp_train.training import checkpoint as ckpt
 from dssp_train.training.ema import EMA
 from dssp_train.training.lr_schedule import cosine_with_warmup
 from dssp_train.training.memory import check_memory
-from dssp_train.training.train_log import RunLog, plot_log
+from dssp_train.training.dashboards import Dashboard, open_dashboard
+from dssp_train.training.train_log import RunLog, ValChunk, chunk_figure, plot_log
 
 VAL_SEED = 1234567
 
@@ -170,6 +171,14 @@ def budget_notes(config: RunConfig, n_train: int, n_val: int) -> list[str]:
 
 
 class Trainer:
+    """One training run into ``run_dir`` on the dataset at ``data_path`` (:meth:`run` trains it).
+
+    ``resume``: continue the run's checkpoint (``config`` is then the run's own). ``progress``: a progress bar.
+    ``control_rate_hz``: the rate the user gave (``--control-rate``). ``user_set``: the fields the user set with
+    ``--set``. ``dashboard``: where the log goes besides ``log.jsonl`` (``--log``: tensorboard, wandb or none;
+    :mod:`dssp_train.training.dashboards`), on the main process only.
+    """
+
     def __init__(
         self,
         config: RunConfig,
@@ -180,6 +189,7 @@ class Trainer:
         progress: bool = True,
         control_rate_hz: float | None = None,
         user_set: Collection[str] = (),
+        dashboard: str = "none",
     ):
         self.world_size = int(os.environ.get("WORLD_SIZE", "1"))
         self.rank = int(os.environ.get("RANK", "0"))
@@ -193,6 +203,8 @@ class Trainer:
         self.run_dir = Path(run_dir)
         self.is_main = self.rank == 0
         self.progress = progress and self.is_main
+        self.dashboard = dashboard
+        self.val_chunk: ValChunk | None = None  # the last validation's first chunk (what the dashboards plot)
 
         self.data = ReplayBuffer.load(data_path)
         # On --resume the caller passes the run's own config (dssp-train does).
@@ -284,13 +296,15 @@ class Trainer:
 
     @torch.no_grad()
     def validate(self) -> dict[str, float]:
-        """EMA model on held-out episodes, with fixed windows, noise and timesteps."""
+        """EMA model on held-out episodes, with fixed windows, noise and timesteps: {val_diffusion, val_action_mse}.
+        The middle window of the first episode is kept in ``val_chunk``."""
         policy = self.ema.model
         tc, mc = self.config.train, self.config.model
         gen = torch.Generator().manual_seed(VAL_SEED)
         per_ep = max(1, tc.val_windows // len(self.val_eps))
         diff, mse, weights = 0.0, 0.0, 0
-        for ep in self.val_eps:
+        executed = slice(mc.action_offset, mc.action_offset + mc.n_action_steps)  # the actions the robot runs
+        for i, ep in enumerate(self.val_eps):
             high = max(1, ep.length - mc.n_action_steps + 1)
             starts = torch.linspace(0, high - 1, min(per_ep, high)).round().long().to(self.device)
             losses = policy.compute_loss(ep.point_cloud, ep.agent_pos, ep.action, starts, gen)
@@ -298,20 +312,51 @@ class Trainer:
             pred = policy.sample_trajectory_windows(ep.point_cloud, ep.agent_pos, starts, noise)
             _, act_idx = policy.trajectory_windows(ep.length, starts)
             norm = policy.normalizers["action"].normalize
-            executed = slice(mc.action_offset, mc.action_offset + mc.n_action_steps)  # the actions the robot runs
             err = (norm(pred) - norm(ep.action[act_idx]))[:, executed].pow(2).mean()
+            if i == 0:
+                k = len(starts) // 2
+                self.val_chunk = ValChunk(
+                    episode=(self.val_ids or self.train_ids)[0], start=int(starts[k]), steps=act_idx[k].cpu().numpy(),
+                    sampled=pred[k].cpu().numpy(), expert=ep.action[act_idx[k]].cpu().numpy(),
+                    executed=(executed.start, executed.stop), held_out=not self.val_on_train,
+                )
             diff += float(losses["diffusion"]) * len(starts)
             mse += float(err) * len(starts)
             weights += len(starts)
         return {"val_diffusion": diff / weights, "val_action_mse": mse / weights}
 
     def run(self) -> dict[str, Any]:
-        tc = self.config.train
-        log = None
+        """Train to ``train.steps``, logging, validating and saving on the way; returns the summary (step, run_dir
+        and the last validation's values). ``log.jsonl`` gets every log row; the dashboard, if any, the same."""
+        log: RunLog | None = None
+        dashboard: Dashboard | None = None
+        failed = True
+        try:
+            if self.is_main:
+                self.run_dir.mkdir(parents=True, exist_ok=True)
+                ckpt.save_config(self.run_dir, self.config)
+                resume_step = self.step if self.step > 0 else None
+                log = RunLog(self.run_dir / "log.jsonl", resume_step=resume_step)
+                dashboard = open_dashboard(self.dashboard, self.run_dir, self.config.to_dict(), resume_step)
+            last_val = self._train_loop(log, dashboard)
+            failed = False
+        finally:
+            if dashboard is not None:
+                dashboard.close(failed=failed)
+            if log is not None:
+                log.close()
+        if self.world_size > 1:
+            self._log_param_checksums()
         if self.is_main:
-            self.run_dir.mkdir(parents=True, exist_ok=True)
-            ckpt.save_config(self.run_dir, self.config)
-            log = RunLog(self.run_dir / "log.jsonl", resume_step=self.step if self.step > 0 else None)
+            plot_log(self.run_dir / "log.jsonl", self.run_dir / "loss.png")
+        if self.world_size > 1:
+            dist.barrier()
+        return {"step": self.step, "run_dir": str(self.run_dir), **last_val}
+
+    def _train_loop(self, log: RunLog | None, dashboard: Dashboard | None) -> dict[str, float]:
+        """The steps from ``self.step`` to ``train.steps``; ``log`` and ``dashboard`` (None on the other processes)
+        receive each log and validation row. Returns the last validation's values."""
+        tc = self.config.train
         bar = None
         if self.progress:
             from tqdm.auto import tqdm
@@ -330,18 +375,17 @@ class Trainer:
                     elapsed = time.perf_counter() - t_log
                     rate = n_log / max(elapsed, 1e-9)
                     if log is not None:
-                        log.write(
-                            "train",
-                            step=self.step,
-                            lr=self.lr_schedule.get_last_lr()[0],
-                            steps_per_s=rate,
-                            windows_per_s=rate * tc.batch_size * self.world_size,
-                            **values,
-                        )
+                        row = {"lr": self.lr_schedule.get_last_lr()[0], "steps_per_s": rate,
+                               "windows_per_s": rate * tc.batch_size * self.world_size, **values}
+                        log.write("train", step=self.step, **row)
+                        dashboard.log_scalars(self.step, row)
                     t_log, n_log = time.perf_counter(), 0
                 if self.is_main and (self.step % tc.val_every == 0 or self.step == tc.steps):
                     last_val = self.validate()
                     log.write("val", step=self.step, on_train_episodes=self.val_on_train, **last_val)
+                    dashboard.log_scalars(self.step, last_val)
+                    if self.dashboard != "none" and self.val_chunk is not None:
+                        dashboard.log_figure(self.step, "val_chunk", chunk_figure(self.val_chunk))
                     if bar is not None:
                         bar.write(f"step {self.step}: " + ", ".join(f"{k} {v:.5f}" for k, v in last_val.items()))
                 if self.is_main and (self.step % tc.save_every == 0 or self.step == tc.steps):
@@ -349,15 +393,7 @@ class Trainer:
         finally:
             if bar is not None:
                 bar.close()
-            if log is not None:
-                log.close()
-        if self.world_size > 1:
-            self._log_param_checksums()
-        if self.is_main:
-            plot_log(self.run_dir / "log.jsonl", self.run_dir / "loss.png")
-        if self.world_size > 1:
-            dist.barrier()
-        return {"step": self.step, "run_dir": str(self.run_dir), **last_val}
+        return last_val
 
     def _log_param_checksums(self) -> None:
         """Under DDP: a SHA-256 of every process's weights, gathered into log.jsonl (they must all be equal)."""
