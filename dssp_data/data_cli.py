@@ -1,7 +1,7 @@
 """``dssp-data``: look at, check, combine and convert demonstration datasets (DP3 / RoboTwin zarr).
 
     dssp-data info PATH [--json]
-    dssp-data view PATH --episode K [--out DIR] [--steps N] [--video]
+    dssp-data view PATH --episode K [--out DIR] [--steps N] [--video] [--rerun [URL] | --rerun-save PATH.rrd]
     dssp-data merge OUT IN IN... [--drop-marked] [--force]
     dssp-data split PATH --train OUT --val OUT (--val-ratio R | --val-episodes 1,5) [--seed S] [--drop-marked]
                     [--drop-episodes 3,7-9] [--force]
@@ -35,7 +35,8 @@ from dssp_data.errors import DSSPError
 EPILOG = """\
 info      episodes, lengths, rates, arrays, value ranges, attributes, recording metadata, problems found
           (exit 1 when it lists problems, 2 when the dataset cannot be read, e.g. a missing or corrupt chunk)
-view      PNG pictures of one episode: point clouds over time from three viewpoints, state/action trajectories
+view      PNG pictures of one episode: point clouds over time from three viewpoints, state/action trajectories;
+          with --rerun / --rerun-save PATH.rrd the episode in Rerun instead (cloud, depth, joints, ghost chunk)
 merge     concatenate datasets (episodes, per-episode metadata and CAN logs travel along)
 split     train/validation datasets by whole episodes (--drop-episodes leaves episodes out, e.g. lost ones)
 convert   RoboTwin raw HDF5 episodes (<task>/<config>/data/episode*.hdf5) to a DP3 zarr dataset
@@ -60,6 +61,9 @@ def build_parser() -> argparse.ArgumentParser:
     view.add_argument("--steps", type=int, default=5, help="steps shown in the point-cloud picture (default 5)")
     view.add_argument("--video", action="store_true", help="also an animated GIF of the point clouds")
     view.add_argument("--force", action="store_true", help="replace pictures of the same name in --out")
+    from dssp_data.rerun_views import add_rerun_flags
+
+    add_rerun_flags(view, what="the episode (instead of the pictures)")
 
     merge = sub.add_parser("merge", help="concatenate datasets")
     merge.add_argument("out", type=Path)
@@ -106,6 +110,12 @@ def _view(args) -> int:
 
     if args.steps < 1:
         raise DSSPError(f"--steps must be at least 1, got {args.steps}")
+    if args.rerun is not None or args.rerun_save is not None:
+        from dssp_data.view import rerun_episode
+
+        counts = rerun_episode(args.path, args.episode, args.rerun, args.rerun_save)
+        print(f"rerun views: {counts['logged']} steps logged" + (f"; saved to {args.rerun_save}" if args.rerun_save else ""))
+        return 0
     for path in render_episode(args.path, args.episode, args.out, columns=args.steps, video=args.video,
                                force=args.force):
         print(f"wrote {path}")

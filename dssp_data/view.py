@@ -11,6 +11,11 @@
   shaded red; for a recorded dataset also the age of each stream at each step (ms).
 - ``<name>_ep<K>.gif`` (``video``): the oblique view over the whole episode.
 
+``rerun_episode`` shows the same episode in Rerun (``dssp-data view --rerun`` / ``--rerun-save PATH.rrd``), with the
+entities of the robot's live views (:mod:`dssp_data.rerun_views`), one tick per step: the cloud, the depth image and
+camera pose when the dataset recorded them, the state, the recorded action as the command, the actions of the next
+``horizon`` steps as the gripper's ghost path, and the recorded problems as events.
+
 The episode is read through the dataset reader's checked path: a chunk of it that is missing or corrupt
 raises DatasetError naming the key and the chunk, and nothing is drawn from zeros that were never recorded.
 """
@@ -22,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dssp_data import attributes
 from dssp_data.recording import FLAGS_KEY, can_log_dir, problem_names
 from dssp_data.replay_buffer import ReplayBufferReader
 from dssp_data.output_guard import (
@@ -247,3 +253,26 @@ def _write_gif(plt, ep, t: np.ndarray, flags, target: Path, title: str, force: b
     plt.close(fig)
     return target
 
+
+
+def rerun_episode(path: str | os.PathLike, episode: int, connect: str | None, save: Path | None, horizon: int = 16) -> dict:
+    """Log episode ``episode`` of dataset ``path`` to Rerun (``connect``: "spawn" or a viewer's URL; ``save``: a new
+    .rrd file); returns {"logged": steps, "dropped": 0} — every step is logged (the queue waits, nothing is dropped)."""
+    from dssp_data.rerun_views import open_views
+
+    path = Path(path)
+    reader = ReplayBufferReader(path, allow_incomplete_tail=True)
+    ep = reader.episode(episode, check_finite=False)
+    intrinsics, to_base = attributes.camera_intrinsics(reader.attrs, path), attributes.camera_to_base(reader.attrs, path)
+    unit = attributes.depth_unit(reader.attrs, path)
+    depth, flags = ep.extras.get("depth"), ep.extras.get(FLAGS_KEY)
+    views = open_views("dssp-data view", connect, save)
+    with views:
+        if intrinsics is not None and to_base is not None:
+            views.camera(intrinsics, np.asarray(to_base, np.float64))
+        views.text(0, "episode", f"{path.name} episode {episode}: {ep.n_steps} steps")
+        for t in range(ep.n_steps):
+            views.tick(t, wait=True, cloud=ep.point_cloud[t], state=ep.state[t], command=ep.action[t],
+                       chunk=ep.action[t: t + horizon], depth=depth[t] if depth is not None else None, depth_unit=unit,
+                       events=problem_names(flags[t]) if flags is not None else ())
+    return {"logged": views.logged, "dropped": views.dropped}

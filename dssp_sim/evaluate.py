@@ -137,11 +137,12 @@ class _RecentStates:
 
 
 def run_episode(policy, env, seed: int, cloud_config, frames: list | None = None,
-                latencies: dict[str, list[float]] | None = None) -> EpisodeOutcome:
+                latencies: dict[str, list[float]] | None = None, views=None) -> EpisodeOutcome:
     """One closed-loop episode (env already constructed; it is reset here with ``seed``).
 
     ``frames`` collects each tick's depth image; ``latencies`` each tick's latencies in ms by stage
-    (cloud, observe, chunk, tick), when given."""
+    (cloud, observe, chunk, tick), when given; ``views`` (:class:`dssp_data.rerun_views.TickViews`) get every
+    tick, continuing their timeline after the previous episode's."""
     from hardware.piper.arm import PiperArm
     from hardware.piper.limits import JointLimits
     from hardware.piper.piper_robot import PiperRobot
@@ -170,7 +171,10 @@ def run_episode(policy, env, seed: int, cloud_config, frames: list | None = None
                 camera.capture()
                 runner = Runner(policy, camera, robot, cloud_config, camera.camera_to_base, EVAL_SAFETY,
                                 LoopSettings(rate_hz=env.control_rate_hz, seed=seed),
-                                (limits.lower, limits.upper, np.arange(7) == 6))
+                                (limits.lower, limits.upper, np.arange(7) == 6), views=views,
+                                view_tick=views.last_tick + 1 if views is not None else 0)
+                if views is not None:
+                    views.text(runner.view_tick, "episode", f"{env.task.name} seed {seed}")
                 runner.start()
             finally:
                 stop_pump.set()
@@ -204,9 +208,10 @@ STRIPS_DIR = OutputKind("a folder of episode strips", "dssp-sim eval", entries=(
 
 def evaluate(model_dir: Path, task: str, n_episodes: int, seed: int = 1000, threads: int | None = None,
              state_token_noise: float = 0.0, strips_dir: Path | None = None, progress: bool = True,
-             precision: str | None = None, kernel: str = "auto", spinning: bool | None = None) -> EvalResult:
+             precision: str | None = None, kernel: str = "auto", spinning: bool | None = None, views=None) -> EvalResult:
     """Evaluate a model directory on ``task`` for ``n_episodes`` seeded episodes (seeds seed, seed+1, ...);
-    ``precision`` and ``kernel`` choose its graphs (:class:`dssp_deploy.onnx_policy.OnnxPolicy`)."""
+    ``precision`` and ``kernel`` choose its graphs (:class:`dssp_deploy.onnx_policy.OnnxPolicy`); ``views``: Rerun
+    views of every tick of every episode, on one timeline (the caller closes them)."""
     from dssp_deploy.onnx_policy import OnnxPolicy
     from dssp_sim.env import PiperEnv
 
@@ -228,7 +233,7 @@ def evaluate(model_dir: Path, task: str, n_episodes: int, seed: int = 1000, thre
     for i in range(n_episodes):
         frames = [] if strips_dir is not None else None
         t0 = time.perf_counter()
-        outcome = run_episode(policy, env, seed + i, cloud_config, frames, ticks)
+        outcome = run_episode(policy, env, seed + i, cloud_config, frames, ticks, views)
         wall.append(time.perf_counter() - t0)
         result.episodes.append(outcome)
         if frames:

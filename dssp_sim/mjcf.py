@@ -5,7 +5,8 @@ the table top is the plane z = 0. One Piper arm stands at the origin; the task a
 (``dssp_sim.tasks``) and a fixed depth camera looks at the workspace from the front, above the far edge
 of the table.
 
-The arm follows the modified Denavit-Hartenberg table of the Piper SDK (``kinematics/piper_fk.py``, the
+The arm follows the modified Denavit-Hartenberg table of the Piper SDK (``kinematics/piper_fk.py``, kept in
+:mod:`dssp_data.arm_kinematics`; the
 variant with the 2-degree J2/J3 offsets): body ``link{i}`` is DH frame i, so ``link6`` is the flange.
 Six hinge joints carry the limits of ``hardware.piper.limits``; six position actuators (with velocity
 feedback ``kv``) drive them, and gravity compensation of the links stands in for the Piper's own. The
@@ -30,20 +31,14 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
+from dssp_data.arm_kinematics import TCP_OFFSET, dh_link_transform  # the arm's DH table and tool centre point
 from hardware.piper.limits import GRIPPER_STROKE_MAX, JOINT_LOWER, JOINT_UPPER
-
-# Modified DH table of the Piper (metres, radians), joint i: RotX(alpha) TransX(a) RotZ(theta + q) TransZ(d).
-DH_A = (0.0, 0.0, 0.28503, -0.02198, 0.0, 0.0)
-DH_ALPHA = (0.0, -math.pi / 2, 0.0, math.pi / 2, -math.pi / 2, math.pi / 2)
-DH_THETA = (0.0, math.radians(-172.22), math.radians(-102.78), 0.0, 0.0, 0.0)
-DH_D = (0.123, 0.0, 0.0, 0.25075, 0.0, 0.091)
 
 # The gripper on the flange (link6 frame, z = approach direction, fingers slide along +-y).
 HAND_LENGTH = 0.045  # flange to the base of the fingers
 FINGER_LENGTH = 0.065
 FINGER_THICKNESS = 0.008  # along the slide axis
 FINGER_WIDTH = 0.02  # across the slide axis
-TCP_OFFSET = HAND_LENGTH + FINGER_LENGTH - 0.012  # flange -> tool centre point (between the pads), along z
 FINGERTIP_BELOW_TCP = HAND_LENGTH + FINGER_LENGTH - TCP_OFFSET  # 0.012 m
 
 # Servo gains (SI): joints (N m / rad, N m s / rad), gripper (N / m, N s / m) and grip force limit (N).
@@ -77,39 +72,11 @@ def _fmt(values) -> str:
     return " ".join(f"{float(v):.9g}" for v in values)
 
 
-def _rot_x(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
-
-
-def _rot_z(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
 def mat_to_quat(mat: np.ndarray) -> np.ndarray:
     """(3, 3) rotation matrix -> (4,) unit quaternion (w, x, y, z)."""
     q = np.zeros(4)
     mujoco.mju_mat2Quat(q, np.asarray(mat, dtype=np.float64).reshape(-1))
     return q
-
-
-def dh_link_transform(i: int) -> tuple[np.ndarray, np.ndarray]:
-    """Fixed part of DH joint i (0-based) at q = 0: (pos (3,), rotation (3, 3)) of frame i in frame i-1."""
-    rot = _rot_x(DH_ALPHA[i]) @ _rot_z(DH_THETA[i])
-    pos = np.array([DH_A[i], 0.0, 0.0]) + _rot_x(DH_ALPHA[i]) @ np.array([0.0, 0.0, DH_D[i]])
-    return pos, rot
-
-
-def dh_forward(q: np.ndarray) -> np.ndarray:
-    """Flange pose (4, 4) in the base frame for joints q (6,) rad, straight from the DH table."""
-    t = np.eye(4)
-    for i in range(6):
-        step = np.eye(4)
-        step[:3, :3] = _rot_x(DH_ALPHA[i]) @ _rot_z(DH_THETA[i] + float(q[i]))
-        step[:3, 3] = np.array([DH_A[i], 0.0, 0.0]) + _rot_x(DH_ALPHA[i]) @ np.array([0.0, 0.0, DH_D[i]])
-        t = t @ step
-    return t
 
 
 def camera_xyaxes(pos=CAMERA_POS, target=CAMERA_TARGET) -> np.ndarray:

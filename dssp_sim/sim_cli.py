@@ -4,6 +4,7 @@
     dssp-sim record --out PATH.zarr [dssp-record's flags; --camera sim --can sim by default]
     dssp-sim demo [--out runs/demo] [--steps 3000] [--demos 50] [--episodes 20] [--force]
     dssp-sim eval --model MODEL_DIR --task NAME --episodes N [--seed S] [--noise SIGMA] [--strips DIR] [--json PATH] [--force]
+                  [--rerun [URL] | --rerun-save PATH.rrd]
 
 ``record`` is ``dssp-record`` on the simulated rig (the task's scripted expert plays the leader arm).
 ``collect`` keeps only successful expert episodes and says how many it tried. ``eval`` drives the model
@@ -80,6 +81,9 @@ def parse_args(argv):
     e.add_argument("--json", type=Path, help="write the result here")
     e.add_argument("--force", action="store_true", help="replace an existing --json file and previous --strips")
     e.add_argument("--no-progress", action="store_true")
+    from dssp_data.rerun_views import add_rerun_flags
+
+    add_rerun_flags(e, what="every tick of every episode")
     return p.parse_args(argv)
 
 
@@ -106,13 +110,21 @@ def run(args) -> int:
 
     if not (math.isfinite(args.noise) and 0 <= args.noise <= 10):
         raise ConfigError(f"--noise must be a number in [0, 10] (σ in the tokens' units), got {args.noise}")
+    from dssp_data.rerun_views import check_views, open_views
+
+    check_views(args.rerun, args.rerun_save)
     if args.json:
         check_output_file(args.json, force=args.force, flag="--json")
+
+    views = open_views("dssp-sim eval", args.rerun, args.rerun_save)
     with contextlib.ExitStack() as stack:
+        if views is not None:
+            stack.callback(lambda: print(f"rerun views: {views.close()['logged']} ticks logged, {views.dropped} dropped"
+                                         + (f"; saved to {args.rerun_save}" if args.rerun_save else "")))
         strips = stack.enter_context(OutputDir(args.strips, STRIPS_DIR, force=args.force, flag="--strips")) if args.strips else None
         result = evaluate(args.model, args.task, args.episodes, seed=args.seed, threads=args.threads,
                           precision=args.precision, kernel=args.kernel, spinning=False if args.no_spin else None, state_token_noise=args.noise, strips_dir=strips.path if strips else None,
-                          progress=not args.no_progress)
+                          progress=not args.no_progress, views=views)
         if strips is not None:
             strips.commit()
     print_eval(result)

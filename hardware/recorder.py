@@ -43,8 +43,10 @@ from dssp_data.recording import (
     PROBLEM_TEXT,
     STEP_PROBLEMS,
     flags_summary,
+    problem_names,
 )
 from dssp_data.replay_buffer import Episode
+from dssp_data.rerun_views import TickViews
 from dssp_data.errors import ConfigError, DSSPError
 from dssp_data.schema import Settings, setting
 from hardware.bus_monitor import BusMonitor, oldest
@@ -140,12 +142,14 @@ class Recorder:
     camera: the scene camera. monitors: one :class:`~hardware.bus_monitor.BusMonitor` per arm pair (left,
     right). cloud_config / camera_to_base (4, 4): the point-cloud pipeline's settings. rate_hz: the target
     control rate. action_convention: ``leader_command`` or ``next_state``. store_depth: keep each step's
-    raw depth image (H, W) uint16 as the ``depth`` extra.
+    raw depth image (H, W) uint16 as the ``depth`` extra. views: Rerun views (:mod:`dssp_data.rerun_views`) of
+    every recorded step (the caller closes them): depth, cloud, state, the action as the command, step problems.
     """
 
     def __init__(self, camera: StampedCamera, monitors: Sequence[BusMonitor], cloud_config: PointCloudConfig,
                  camera_to_base: np.ndarray, rate_hz: float, *, action_convention: str = "leader_command",
-                 thresholds: RecordThresholds = RecordThresholds(), store_depth: bool = True) -> None:
+                 thresholds: RecordThresholds = RecordThresholds(), store_depth: bool = True,
+                 views: TickViews | None = None) -> None:
         if action_convention not in ACTION_CONVENTIONS:
             raise ConfigError(f"action convention {action_convention!r} is not one of {', '.join(ACTION_CONVENTIONS)}")
         if not (math.isfinite(rate_hz) and 0 < rate_hz <= 1000):
@@ -157,6 +161,7 @@ class Recorder:
         self.action_convention = action_convention
         self.thresholds = thresholds
         self.store_depth = store_depth
+        self.views = views
         self.dof = 7 * len(self.monitors)
         self.recording = False
         self.episode_counts: Counter = Counter()
@@ -242,6 +247,10 @@ class Recorder:
         self._reset_buffers()
         self.recording = True
         self.started_unix = time.time()
+        if self.views is not None:
+            if self.views.last_tick < 0:
+                self.views.camera(sample.frame.intrinsics.to_dict(), self.camera_to_base)
+            self.views.text(self.views.last_tick + 1, "episode", "episode started")
         self._last_frame = None
         self._tick_times.clear()
         return sample
@@ -285,6 +294,9 @@ class Recorder:
             self._depth.append(np.array(frame.depth, dtype=np.uint16, copy=True))
         for key in self._ages:
             self._ages[key].append(sample.age_ms(key))
+        if self.views is not None:  # references to this step's arrays, never modified afterwards
+            self.views.tick(self.views.last_tick + 1, depth=frame.depth, depth_unit=frame.depth_unit, cloud=cloud,
+                            state=self._states[-1], command=self._commands[-1], events=problem_names(sample.flags))
         for name, bit in STEP_PROBLEMS.items():
             if sample.flags & bit:
                 self.episode_counts[name] += 1

@@ -12,7 +12,8 @@ Each tick:
    H_a ticks); an empty cloud, or a cloud or joint state with NaN/inf (refused by the runtime before
    any graph runs), is no observation: hold, the history left alone;
 3. the safety layer turns the action into a command (limits, per-tick step; a deadline miss holds);
-4. send it (not with ``dry_run``), log the tick, sleep to the next tick.
+4. send it (not with ``dry_run``), log the tick (and queue its Rerun views: ``views``, never blocking), sleep to
+   the next tick.
 A fault (arm error or e-stop, a send failure, a runtime error) ends the loop in a hold: nothing is sent
 after it. Shapes: cloud (P, C) float32; state, action and command (dof,) in policy units.
 
@@ -38,6 +39,7 @@ from hardware.robot import Robot, check_rate
 from hardware.camera.base import Camera
 from hardware.clock import REAL_CLOCK, Clock
 from hardware.pointcloud import EmptyCloudError, PointCloudConfig, frame_to_cloud
+from dssp_data.rerun_views import TickViews
 from hardware.run_log import RunLog
 from hardware.safety import Safety, SafetyConfig, SafetyViolation
 
@@ -83,14 +85,18 @@ class Runner:
         log: RunLog | None = None,
         status: Callable[[str], None] | None = None,
         clock: Clock = REAL_CLOCK,
+        views: TickViews | None = None,
+        view_tick: int = 0,
     ):
         """``limits``: (lower (dof,), upper (dof,), gripper mask (dof,)) in policy units. ``clock``: the
-        timeline of the camera's and the arms' timestamps (:mod:`hardware.clock`)."""
+        timeline of the camera's and the arms' timestamps (:mod:`hardware.clock`). ``views``: Rerun views of each
+        tick (:mod:`dssp_data.rerun_views`; the caller closes them), on their timeline from ``view_tick`` on."""
         check_fits(policy, robot, cloud_config)
         self.policy, self.camera, self.robot = policy, camera, robot
         self.cloud_config, self.camera_to_base = cloud_config, np.asarray(camera_to_base, np.float64)
         self.safety_config, self.settings, self.limits = safety_config, settings, limits
-        self.log, self.status, self.clock = log, status, clock
+        self.log, self.status, self.clock, self.views = log, status, clock, views
+        self.view_tick = view_tick  # the views' timeline: continues over episodes (evaluations)
         self.period = 1.0 / settings.rate_hz
         self.control = ChunkedControl(policy, rate_hz=settings.rate_hz, prefetch=settings.prefetch, seed=settings.seed)
         self.safety: Safety | None = None
@@ -122,6 +128,9 @@ class Runner:
             )
         lower, upper, gripper = self.limits
         self.safety = Safety(self.safety_config, lower, upper, gripper, state.position)
+        if self.views is not None:
+            frame = self.camera.latest()
+            self.views.camera(frame.intrinsics.to_dict(), self.camera_to_base)
         if not self.settings.dry_run:
             self.robot.enable()
         self.control.reset()
@@ -145,6 +154,7 @@ class Runner:
         record: dict[str, Any] = {"tick": self.ticks, "time": t0, "state": None, "action": None, "command": None, "held": False}
         cloud = None
         action = None
+        new_chunk = None
         deadline_missed = False
         cfg = self.safety_config
         fresh = (
@@ -186,6 +196,8 @@ class Runner:
                 if info.chunk_ms is not None:
                     record["chunk_ms"] = info.chunk_ms
                     self.latencies["chunk"].append(info.chunk_ms)
+                if info.new_chunk and self.control.chunk is not None:
+                    new_chunk = self.control.chunk[0, self.control.chunk_offset:]  # (H - offset, A): the actions to come
                 self.policy_ticks += 1
                 elapsed = self.clock.now() - t0
                 deadline_missed = info.over_budget or elapsed > self.period
@@ -212,9 +224,21 @@ class Runner:
         self.holds += bool(record["held"])
         if self.log is not None:
             self.log.tick(record, cloud)
+        if self.views is not None:
+            self._view(record, frame, cloud, new_chunk)
         self.ticks += 1
         self._tick_times.append(t0)
         return record
+
+    def _view(self, record: dict[str, Any], frame, cloud: np.ndarray | None, chunk: np.ndarray | None) -> None:
+        """Queue the tick's Rerun views (references to this tick's arrays; the loop makes new ones every tick)."""
+        events = [f"{e['kind']}: {e['detail']}" for e in record.get("safety", []) if e["kind"] != "clip"]
+        events += [e for e in record.get("events", [])]
+        self.views.tick(
+            self.view_tick, depth=frame.depth if frame is not None else None, depth_unit=frame.depth_unit if frame is not None else None,
+            cloud=cloud, state=record["state"], command=record["command"], chunk=chunk, held=record["held"], events=events,
+            latency_ms={k: record.get(f"{k}_ms") for k in ("cloud", "observe", "chunk", "tick")})
+        self.view_tick += 1
 
     def _send(self, command: np.ndarray, record: dict[str, Any]) -> None:
         record["command"] = command

@@ -10,6 +10,8 @@ import threading
 import time
 from pathlib import Path
 
+from rrd import read_rrd, text_rows
+
 import numpy as np
 import pytest
 
@@ -177,7 +179,7 @@ def test_ctrl_c_stops_the_demo_processes(tmp_path):
         from dssp_sim.demo import run_side_by_side
         child = [sys.executable, "-c", "import os, time; open({str(pid_file)!r}, 'w').write(str(os.getpid())); time.sleep(120)"]
         def interrupt():
-            while not os.path.exists({str(pid_file)!r}):
+            while not (os.path.exists({str(pid_file)!r}) and open({str(pid_file)!r}).read()):  # the pid written, not only the file
                 time.sleep(0.05)
             os.kill(os.getpid(), signal.SIGINT)
         threading.Thread(target=interrupt, daemon=True).start()
@@ -209,10 +211,16 @@ def sim_model(tmp_path_factory):
 def test_eval_runs_the_whole_chain(sim_model, tmp_path, capsys):
     out = tmp_path / "eval.json"
     strips = tmp_path / "strips"
+    rrd = tmp_path / "eval.rrd"
     assert sim_main(["eval", "--model", str(sim_model), "--task", "tap", "--episodes", "2", "--seed", "5",
-                     "--json", str(out), "--strips", str(strips), "--threads", "1", "--no-progress"]) == 0
+                     "--json", str(out), "--strips", str(strips), "--threads", "1", "--no-progress", "--rerun-save", str(rrd)]) == 0
     text = capsys.readouterr().out
     assert "tap: success" in text and "Wilson interval" in text and "| 5 |" in text and "| 6 |" in text
+    # the Rerun views: both episodes on one timeline, one step per tick
+    steps = [e["steps"] for e in json.loads(out.read_text())["episodes"]]
+    ticks, _, _ = read_rrd(rrd)
+    assert ticks["safety/held"] == list(range(sum(steps))) and f"rerun views: {sum(steps)} ticks logged, 0 dropped" in text
+    assert text_rows(rrd, "episode") == ["tap seed 5", "tap seed 6"] and ticks["world/arm0/chunk"]
     result = json.loads(out.read_text())
     assert result["n"] == 2 and len(result["episodes"]) == 2
     for e in result["episodes"]:

@@ -10,7 +10,7 @@ import pytest
 
 from dssp_sim.env import CONTROL_RATE_HZ, DEPTH_MAX_M, DEPTH_MIN_M, DEPTH_UNIT, PiperEnv
 from dssp_sim.experts import make_expert
-from dssp_sim.mjcf import dh_forward
+from dssp_data.arm_kinematics import flange_pose as dh_forward
 from dssp_sim.tasks import HOME, SLOT_PAD_HALF, SwapTask
 from hardware.camera.base import Intrinsics
 from hardware.piper.limits import GRIPPER_STROKE_MAX, JOINT_LOWER, JOINT_UPPER, JointLimits

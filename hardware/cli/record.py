@@ -4,6 +4,7 @@
                 [--rate HZ] [--extrinsics FILE] [--task-name NAME] [--action leader|next-state]
                 [--pointcloud FILE] [--thresholds FILE] [--max-steps N] [--episodes N] [--auto]
                 [--no-depth] [--seed S] [--sim-speed X] [--interface socketcan] [--serial SERIAL] [--quiet]
+                [--rerun [URL] | --rerun-save PATH.rrd]
 
 Controls: on a terminal single keys, s start, k stop and keep, d stop and discard, q quit; otherwise one
 command per line on stdin (s/start, k/keep, d/discard, q/quit). A live status line shows the episode, its
@@ -82,7 +83,11 @@ def parse_args(argv, sim: SimulatedRig | None = None, prog: str = "dssp-record")
     p.add_argument("--seed", type=int, help="simulation: scene seed of the first episode (default: after the dataset's last)")
     p.add_argument("--sim-speed", type=float, help="simulation: simulated seconds per second (default 1, with --auto as fast as possible)")
     p.add_argument("--quiet", action="store_true", help="no live status line")
+    from dssp_data.rerun_views import add_rerun_flags, check_views
+
+    add_rerun_flags(p, what="every recorded step")
     args = p.parse_args(argv)
+    check_views(args.rerun, args.rerun_save)
     for name in ("max_steps", "episodes"):
         value = getattr(args, name)
         if value is not None and value < 1:
@@ -232,6 +237,7 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
     from hardware.pointcloud import PointCloudConfig, load_extrinsics
     from hardware.record_session import RecordSession, SessionSettings
     from hardware.recorder import Recorder, RecordThresholds, StampedCamera
+    from dssp_data.rerun_views import open_views
 
     sim_can = args.can.strip().lower().startswith("sim")
     sim_camera = args.camera.strip().lower() == "sim"
@@ -306,8 +312,12 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
         camera = StampedCamera(raw_camera)
 
     n_arms = 1 if sim_can else len(monitors)
+    views = open_views("dssp-record", args.rerun, args.rerun_save)
+    if views is not None:
+        stack.callback(lambda: console.event(f"rerun views: {views.close()['logged']} steps logged, {views.dropped} dropped"
+                                             + (f"; saved to {args.rerun_save}" if args.rerun_save else "")))
     recorder = Recorder(camera, monitors, cloud_config, camera_to_base, float(rate), action_convention=convention,
-                        thresholds=thresholds, store_depth=not args.no_depth)
+                        thresholds=thresholds, store_depth=not args.no_depth, views=views)
     calibration = {
         "camera_to_base": [[float(v) for v in row] for row in camera_to_base],
         "camera_intrinsics": frame.intrinsics.to_dict(),

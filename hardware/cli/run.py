@@ -3,11 +3,12 @@
     dssp-run --model MODEL_DIR --camera l515|d435|d405|file:PATH|sim --can can0[,can1]|sim[:2]
              [--rate HZ] [--extrinsics FILE] [--pointcloud FILE] [--safety FILE] [--max-steps N] [--dry-run]
              [--log-dir DIR] [--prefetch] [--threads N] [--precision fp32|int8|int4] [--kernel auto|fused|standard] [--seed S] [--serial SERIAL] [--interface socketcan]
-             [--allow-mismatch FIELD ...]
+             [--allow-mismatch FIELD ...] [--rerun [URL]] [--rerun-save PATH.rrd]
 
 Opens the camera and the arm(s), warms the model up, then runs the control loop (``hardware.run_loop``):
 the history every tick, a new chunk every H_a ticks, every command through the safety layer. Prints a
-live one-line status, writes the episode log (``hardware.run_log``) and ends with a summary.
+live one-line status, writes the episode log (``hardware.run_log``) and ends with a summary; ``--rerun`` /
+``--rerun-save`` also show each tick in Rerun (:mod:`dssp_data.rerun_views`).
 The model carries its observation contract (``dssp_model.json`` ``observation`` and ``control_rate_hz``: the
 point-cloud settings, the state/action layout per arm, the control rate); its point-cloud settings are the
 default, and a setup that contradicts it (``--pointcloud``, ``--can`` with another number of arms, ``--rate``)
@@ -62,6 +63,9 @@ def parse_args(argv):
                    help="run although FIELD of the setup differs from the model's training data (e.g. pointcloud.crop_min, "
                         "control_rate_hz); written to the log; repeatable")
     p.add_argument("--quiet", action="store_true", help="no live status line")
+    from dssp_data.rerun_views import add_rerun_flags
+
+    add_rerun_flags(p)
     return p.parse_args(argv)
 
 
@@ -174,12 +178,14 @@ def _run(args, signals: StartupSignals) -> int:
     from dssp_data.observation import FRAME_ROBOT_BASE, ObservationContract, check_contract, piper_layout
     from dssp_deploy.manifest import observation_of
     from hardware.pointcloud import PointCloudConfig, load_extrinsics
+    from dssp_data.rerun_views import check_views, open_views
     from hardware.run_log import RunLog
     from hardware.run_loop import LoopSettings, Runner, check_fits
     from hardware.safety import SafetyConfig
 
     log_dir = args.log_dir or Path("runs/dssp-run") / time.strftime("%Y%m%d-%H%M%S")
     check_output(log_dir, force=None, kind=RUN_LOG, flag="--log-dir")  # a log is never replaced
+    check_views(args.rerun, args.rerun_save)
     signals.check()
     safety_config = SafetyConfig.load(args.safety, "safety") if args.safety else SafetyConfig()
     if args.rate is not None:
@@ -224,6 +230,7 @@ def _run(args, signals: StartupSignals) -> int:
     lower, upper = np.tile(limits.lower, n_arms), np.tile(limits.upper, n_arms)
     gripper = np.tile(np.arange(7) == 6, n_arms)
 
+    views = open_views("dssp-run", args.rerun, args.rerun_save)  # flags checked (and a viewer started) before any device
     signals.check()
     claim_dir(log_dir, kind=RUN_LOG, flag="--log-dir")
     camera = open_camera(args.camera, serial=args.serial)
@@ -234,6 +241,8 @@ def _run(args, signals: StartupSignals) -> int:
     ]
     status = None if args.quiet else StatusPrinter()
     with contextlib.ExitStack() as stack:
+        if views is not None:
+            stack.callback(lambda: print_views(views.close(), args.rerun_save))
         stack.enter_context(camera)
         stack.enter_context(robot)  # connect: simulators start first, so the recorders find their channels
         for recorder in recorders:
@@ -246,7 +255,7 @@ def _run(args, signals: StartupSignals) -> int:
             "observation": trained.to_manifest(), "allowed_mismatches": overrides,
         })
         runner = Runner(policy, camera, robot, cloud_config, camera_to_base, safety_config, settings,
-                        (lower, upper, gripper), log=log, status=status)
+                        (lower, upper, gripper), log=log, status=status, views=views)
         handlers = {}
         for sig in (signal.SIGINT, signal.SIGTERM):
             handlers[sig] = signal.signal(sig, lambda signum, _frame: runner.request_stop(signal.Signals(signum).name))
@@ -264,6 +273,11 @@ def _run(args, signals: StartupSignals) -> int:
     if summary["fault"]:
         return 1
     return 130 if runner.stop_reason in ("SIGINT", "SIGTERM") else 0
+
+
+def print_views(counts: dict, saved: Path | None) -> None:
+    """One line on the Rerun views: ticks logged and dropped, and the file they were saved to."""
+    print(f"rerun views: {counts['logged']} ticks logged, {counts['dropped']} dropped" + (f"; saved to {saved}" if saved else ""))
 
 
 def print_summary(summary: dict, log_dir: Path) -> None:

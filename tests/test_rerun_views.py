@@ -1,0 +1,124 @@
+"""Rerun views of runs, recordings and datasets: saved with ``--rerun-save``, read back with Rerun's own loader,
+checked entity by entity and tick by tick against the run's own log; the queue that keeps logging off the
+control loop drops (and counts) instead of blocking; a missing rerun-sdk is one line."""
+
+import sys
+import threading
+
+import mujoco
+import numpy as np
+import pytest
+from rrd import read_rrd, text_rows
+
+from dssp_data.arm_kinematics import ARM_VALUES, flange_pose, tool_points
+from dssp_data.data_cli import main as data_main
+from dssp_data.errors import ConfigError
+from dssp_data.rerun_views import height_colors, open_views
+from dssp_sim.teleop import record_main
+from hardware.cli.run import main as run_main
+from hardware.run_log import read_ticks
+
+
+def one_error_line(capsys) -> str:
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    return err[0]
+
+
+def test_dssp_run_views_match_its_tick_log(arm_export, tmp_path, capsys):
+    rrd, log_dir = tmp_path / "run.rrd", tmp_path / "log"
+    code = run_main(["--model", str(arm_export), "--camera", "sim", "--can", "sim", "--max-steps", "30", "--log-dir",
+                     str(log_dir), "--seed", "0", "--threads", "1", "--quiet", "--rerun-save", str(rrd)])
+    out = capsys.readouterr().out
+    assert code == 0, out
+    assert "rerun views: 30 ticks logged, 0 dropped; saved to" in out and not rrd.with_name("run.rrd.partial").exists()
+    ticks, static, components = read_rrd(rrd)
+    log = read_ticks(log_dir)
+    assert ticks["safety/held"] == list(range(30))  # one step of the timeline per control tick
+    assert ticks["latency/tick"] == list(range(30))
+    assert ticks["world/cloud"] == [t["tick"] for t in log if t["cloud_index"] is not None]
+    assert ticks["joints/arm0/state"] == [t["tick"] for t in log if t["state"] is not None]
+    assert ticks["joints/arm0/command"] == [t["tick"] for t in log if t["command"] is not None]
+    assert ticks["world/arm0/chunk"] == [t["tick"] for t in log if t.get("chunk_ms") is not None]  # a ghost per new chunk
+    assert ticks["world/arm0/chunk"] and ticks["world/camera/depth"] == list(range(30))
+    assert {"world/camera", "world/camera/depth", "world"} <= static
+    assert "Pinhole:image_from_camera" in components["world/camera/depth"]
+    assert "DepthImage:buffer" in components["world/camera/depth"]
+    assert {"Points3D:positions", "Points3D:colors"} <= components["world/cloud"]
+
+
+def test_a_recording_and_its_dataset_in_rerun(tmp_path, capsys):
+    data, rec_rrd, view_rrd = tmp_path / "rec.zarr", tmp_path / "rec.rrd", tmp_path / "view.rrd"
+    assert record_main(["--out", str(data), "--auto", "--episodes", "1", "--max-steps", "12", "--quiet",
+                        "--rerun-save", str(rec_rrd)]) == 0
+    assert "rerun views: 12 steps logged, 0 dropped" in capsys.readouterr().out
+    ticks, static, _ = read_rrd(rec_rrd)
+    assert ticks["world/cloud"] == ticks["world/camera/depth"] == ticks["joints/arm0/state"] == list(range(12))
+    assert "world/camera" in static and text_rows(rec_rrd, "episode") == ["episode started"]
+
+    assert data_main(["view", str(data), "--episode", "0", "--rerun-save", str(view_rrd)]) == 0
+    assert "rerun views: 12 steps logged" in capsys.readouterr().out
+    ticks, static, _ = read_rrd(view_rrd)
+    for entity in ("world/cloud", "world/camera/depth", "joints/arm0/state", "joints/arm0/command", "world/arm0/chunk",
+                   "world/arm0/gripper"):
+        assert ticks[entity] == list(range(12)), entity
+    assert "world/camera" in static and text_rows(view_rrd, "episode") == ["rec.zarr episode 0: 12 steps"]
+    # the PNGs stay the default; a saved view is never replaced
+    assert data_main(["view", str(data), "--episode", "0", "--rerun-save", str(view_rrd)]) == 2
+    assert "view.rrd exists" in one_error_line(capsys)
+
+
+def test_a_full_queue_drops_and_counts_instead_of_blocking(tmp_path):
+    views = open_views("test", None, tmp_path / "q.rrd", queue_size=2)
+    gate = threading.Event()
+    original = views._log_tick
+    views._log_tick = lambda *a, **k: (gate.wait(10), original(*a, **k))  # a worker stuck behind a slow sink
+    results = [views.tick(t, held=False) for t in range(6)]
+    assert results[:2] == [True, True] and not all(results) and views.dropped == results.count(False)
+    gate.set()
+    counts = views.close()
+    assert counts["logged"] + counts["dropped"] == 6 and counts["dropped"] >= 3
+    ticks, _, _ = read_rrd(tmp_path / "q.rrd")
+    assert len(ticks["safety/held"]) == counts["logged"]
+
+
+def test_flags_are_checked_before_anything_runs(arm_export, tmp_path, capsys, monkeypatch):
+    (tmp_path / "old.rrd").write_bytes(b"")
+    assert run_main(["--model", str(arm_export), "--max-steps", "1", "--rerun-save", str(tmp_path / "old.rrd")]) == 2
+    assert "old.rrd exists; choose a new file name" in one_error_line(capsys)
+    assert run_main(["--model", str(arm_export), "--max-steps", "1", "--rerun-save", str(tmp_path / "x.txt")]) == 2
+    assert "a Rerun recording is a .rrd file" in one_error_line(capsys)
+    monkeypatch.setitem(sys.modules, "rerun", None)  # rerun-sdk not installed
+    assert run_main(["--model", str(arm_export), "--max-steps", "1", "--log-dir", str(tmp_path / "log"),
+                     "--rerun-save", str(tmp_path / "new.rrd")]) == 2
+    line = one_error_line(capsys)
+    assert "--rerun-save needs rerun-sdk" in line and 'pip install -e ".[viz]"' in line
+    assert not (tmp_path / "log").exists()  # nothing ran
+    with pytest.raises(ConfigError, match="--rerun needs rerun-sdk"):
+        open_views("test", "spawn", None)
+
+
+def test_the_ghost_follows_the_simulated_gripper():
+    """tool_points (the viewers' forward kinematics) lands on the MuJoCo model's tool centre point."""
+    from dssp_sim.env import PiperEnv
+    from hardware.piper.limits import JOINT_LOWER, JOINT_UPPER
+
+    env = PiperEnv("tap", seed=0)
+    m, d, arm = env.model, env.data, env.arm
+    rng = np.random.default_rng(1)
+    qs = np.array([[*rng.uniform(JOINT_LOWER, JOINT_UPPER), 0.5] for _ in range(4)])
+    points = tool_points(np.concatenate([qs, qs], axis=1))  # two arms, each in its own base frame
+    assert points.shape == (4, 2, 3) and np.allclose(points[:, 0], points[:, 1])
+    for q, p in zip(qs, points[:, 0]):
+        d.qpos[arm.qpos] = q[:6]
+        mujoco.mj_kinematics(m, d)
+        np.testing.assert_allclose(d.site_xpos[arm.tcp_site], p, atol=1e-9)
+        assert np.allclose(flange_pose(q[:6])[:3, 3], d.xpos[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "link6")])
+    with pytest.raises(ValueError, match=f"not {ARM_VALUES} per arm"):
+        tool_points(np.zeros(6))
+
+
+def test_height_colours_run_from_the_lowest_to_the_highest_point():
+    colors = height_colors(np.array([0.0, 0.5, 1.0]))
+    assert colors.dtype == np.uint8 and colors.shape == (3, 3)
+    assert tuple(colors[0]) == (68, 1, 84) and tuple(colors[2]) == (253, 231, 37) and tuple(colors[1]) == (33, 145, 140)
