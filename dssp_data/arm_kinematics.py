@@ -56,14 +56,19 @@ def flange_pose(q: np.ndarray) -> np.ndarray:
 
 def tool_points(joints: np.ndarray, tcp_offset: float = TCP_OFFSET) -> np.ndarray:
     """Tool centre points (T, arms, 3) in each arm's base frame for ``joints`` (T, 7 * arms) in policy units
-    (a single (7 * arms,) vector gives (1, arms, 3)). A width that is not a whole number of arms is an error."""
+    (a single (7 * arms,) vector gives (1, arms, 3)). A width that is not a whole number of arms is an error.
+    Batched over every pose at once (the viewers call it per chunk)."""
     joints = np.atleast_2d(np.asarray(joints, np.float64))
     if joints.shape[-1] % ARM_VALUES:
         raise ValueError(f"joint vectors have {joints.shape[-1]} values, not {ARM_VALUES} per arm (6 joints + gripper)")
     arms = joints.shape[-1] // ARM_VALUES
-    out = np.empty((joints.shape[0], arms, 3))
-    for t, row in enumerate(joints):
-        for arm in range(arms):
-            pose = flange_pose(row[arm * ARM_VALUES: arm * ARM_VALUES + 6])
-            out[t, arm] = pose[:3, 3] + tcp_offset * pose[:3, 2]
-    return out
+    q = joints.reshape(-1, arms, ARM_VALUES)[..., :6].reshape(-1, 6)  # (T * arms, 6)
+    rot, pos = np.broadcast_to(np.eye(3), (len(q), 3, 3)), np.zeros((len(q), 3))
+    for i in range(6):
+        c, s = np.cos(DH_THETA[i] + q[:, i]), np.sin(DH_THETA[i] + q[:, i])
+        rz = np.zeros((len(q), 3, 3))
+        rz[:, 0, 0], rz[:, 0, 1], rz[:, 1, 0], rz[:, 1, 1], rz[:, 2, 2] = c, -s, s, c, 1.0
+        offset = np.array([DH_A[i], 0.0, 0.0]) + _rot_x(DH_ALPHA[i]) @ np.array([0.0, 0.0, DH_D[i]])
+        pos = pos + rot @ offset
+        rot = rot @ _rot_x(DH_ALPHA[i]) @ rz
+    return (pos + tcp_offset * rot[:, :, 2]).reshape(joints.shape[0], arms, 3)

@@ -35,6 +35,7 @@ from __future__ import annotations
 import os
 import queue
 import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -215,7 +216,12 @@ class TickViews:
 
     def _log_tick(self, tick: int, depth=None, depth_unit: float | None = None, cloud=None, state=None, command=None,
                   chunk=None, held: bool | None = None, events=(), latency_ms: dict | None = None) -> None:
-        rr, log = self._rr, self.stream.log
+        rr = self._rr
+
+        def log(*args, **kwargs) -> None:  # each call, then the interpreter to a waiting control loop (sleep(0) yields)
+            self.stream.log(*args, **kwargs)
+            time.sleep(0)
+
         self.stream.set_time("tick", sequence=tick)
         if depth is not None:
             log("world/camera/depth", rr.DepthImage(depth, meter=1.0 / (depth_unit or 0.001)))
