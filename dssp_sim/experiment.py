@@ -15,7 +15,8 @@ study: it does not export (over the full history its state grows).
 
 Every stage writes its output under ``--work`` and is skipped when that output exists, so an interrupted
 study resumes where it stopped, and ``--tasks`` splits it across processes or machines sharing ``--work``
-(a last run without ``--tasks`` finds every stage done and writes the whole report). Every finished evaluation
+(``--seeds`` splits a task's models by training seed; a last run without either finds every stage done and writes
+the whole report). Every finished evaluation
 and stage time is also kept in the report's record (``--report``/record: evals/NAME.json, seconds/STAGE.seconds,
 a few kB each, committed with the report), so a machine without the work directory resumes from the record:
 a model whose evaluations are all recorded is not trained again, and ``--report-only`` writes the report from
@@ -205,13 +206,15 @@ def model_runs(plan: dict, task: str) -> list[tuple[int, str, list[str], list[fl
 
 
 def run_study(work: Path, plan: dict, threads: int | None = None, tasks: list[str] | None = None,
-              record: Path | None = None) -> dict:
-    """Run (or resume) the study's stages for ``tasks`` (default: every task of the plan). A model whose evaluations
-    are all in ``record`` is neither trained nor exported again."""
+              record: Path | None = None, seeds: list[int] | None = None) -> dict:
+    """Run (or resume) the study's stages for ``tasks`` (default: every task of the plan) and training ``seeds``
+    (default: all). A model whose evaluations are all in ``record`` is neither trained nor exported again."""
     py = sys.executable
     results: dict = {"plan": plan, "evals": {}, "robustness": {}}
     for task, dataset in study_tasks(work, plan, tasks, WORK_DIR, record=record):
         for seed, variant, flags, sigmas in model_runs(plan, task):
+            if seeds is not None and seed not in seeds:
+                continue
             name = f"{task}_{variant}_s{seed}"
             run_dir, model_dir = work / "runs" / name, work / "models" / name
             if not all(recorded(record, eval_name(name, sigma)) for sigma in sigmas):
@@ -423,15 +426,20 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quick", action="store_true", help="a tiny plan (tests): 3 demos, 20 steps, 1 episode")
     p.add_argument("--threads", type=int, help="ONNX Runtime threads for the evaluations")
     p.add_argument("--tasks", nargs="+", metavar="TASK", help="run only these tasks' stages (default: all, then the report)")
+    p.add_argument("--seeds", nargs="+", type=int, metavar="SEED", help="run only the models of these training seeds "
+                   "(with --tasks: split one task's models across processes; no report)")
     p.add_argument("--force", action="store_true", help="replace the report's files if they exist")
     p.add_argument("--report-only", action="store_true", help="run no stage: write the report from the record "
                    f"(--report/{RECORD_DIR}), the evaluations not run yet listed as pending")
     args = p.parse_args(argv)
     plan = QUICK_PLAN if args.quick else PLAN
-    partial = bool(args.tasks) and set(args.tasks) != set(plan["demos"])
+    partial = bool(args.tasks) and set(args.tasks) != set(plan["demos"]) or args.seeds is not None
     record = args.report / RECORD_DIR
-    if args.report_only and args.tasks:
-        p.error("--report-only writes the whole report from the record; drop --tasks")
+    known = {seed for t in plan["demos"] for seed in [*plan["seeds"][t], *plan["ablation_seeds"].get(t, [])]}
+    if args.seeds is not None and set(args.seeds) - known:
+        p.error(f"--seeds {sorted(set(args.seeds) - known)}: the plan trains seeds {sorted(known)}")
+    if args.report_only and partial:
+        p.error("--report-only writes the whole report from the record; drop --tasks and --seeds")
 
     def _main() -> int:
         if not partial:  # before any stage: a report that may not be replaced stops the study now
@@ -443,9 +451,10 @@ def main(argv: list[str] | None = None) -> int:
             md = write_report(results, args.report, stage_seconds(args.work, record), force=args.force, pending=pending)
             print(md.read_text())
             return 0
-        results = run_study(args.work, plan, args.threads, args.tasks, record)
+        results = run_study(args.work, plan, args.threads, args.tasks, record, args.seeds)
         if partial:
-            print(f"stages of {args.tasks} done (kept in {record}); run without --tasks for the report")
+            print(f"stages of {args.tasks or 'every task'}{f' seeds {args.seeds}' if args.seeds else ''} done (kept in {record}); "
+                  "run without --tasks and --seeds for the report")
             return 0
         md = write_report(results, args.report, stage_seconds(args.work, record), force=args.force)
         print(md.read_text())

@@ -309,3 +309,20 @@ def test_a_collection_stopped_halfway_is_collected_again_not_appended_to(tmp_pat
     seen.clear()
     experiment.run_study(work, experiment.QUICK_PLAN)
     assert seen[0] == ("collect 3 demos", True)  # a finished collection stays
+
+
+def test_seeds_split_a_tasks_models_across_processes(tmp_path, monkeypatch, capsys):
+    import dssp_sim.experiment as experiment
+
+    trained = []
+    monkeypatch.setattr(experiment, "stage", lambda done, what, cmd, log, record=None: trained.append(what) if "train" in what else None)
+    monkeypatch.setattr(experiment, "_evaluate", lambda *args: {"successes": 0, "n": 1, "success_rate": 0.0, "failure_reasons": {}})
+    plan = {**experiment.QUICK_PLAN, "seeds": {"tap": [0, 1]}, "ablation_seeds": {"tap": [1]}}
+    experiment.run_study(tmp_path / "work", plan, seeds=[1])
+    assert trained == ["train dssp seed 1", "train reactive seed 1", "train window3 seed 1"]
+    trained.clear()
+    experiment.run_study(tmp_path / "work", plan, seeds=[0])
+    assert trained == ["train dssp seed 0", "train reactive seed 0"]
+    with pytest.raises(SystemExit):
+        experiment.main(["--work", str(tmp_path / "w"), "--quick", "--seeds", "7"])
+    assert "--seeds [7]: the plan trains seeds [0]" in capsys.readouterr().err
