@@ -122,3 +122,60 @@ def test_height_colours_run_from_the_lowest_to_the_highest_point():
     colors = height_colors(np.array([0.0, 0.5, 1.0]))
     assert colors.dtype == np.uint8 and colors.shape == (3, 3)
     assert tuple(colors[0]) == (68, 1, 84) and tuple(colors[2]) == (253, 231, 37) and tuple(colors[1]) == (33, 145, 140)
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_rerun_url_connects_to_a_running_viewer_or_server(tmp_path):
+    """--rerun URL streams to a Rerun server (here the rerun CLI, headless, saving what it receives)."""
+    import shutil
+    import subprocess
+    import time
+
+    from waiting import wait_for
+
+    received, port = tmp_path / "received.rrd", _free_port()
+    server = subprocess.Popen([shutil.which("rerun") or "rerun", "--port", str(port), "--save", str(received)],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        wait_for(lambda: received.exists() or server.poll() is not None, timeout=30)
+        views = open_views("test", f"rerun+http://127.0.0.1:{port}/proxy", None)
+        for t in range(5):
+            views.tick(t, held=t == 3, state=np.zeros(7))
+        assert views.close() == {"logged": 5, "dropped": 0}
+        wait_for(lambda: "safety/held" in read_rrd(received)[0] and len(read_rrd(received)[0]["safety/held"]) == 5, timeout=30)
+    finally:
+        server.terminate()
+        server.wait(10)
+    ticks, _, _ = read_rrd(received)
+    assert ticks["safety/held"] == ticks["joints/arm0/state"] == list(range(5))
+
+
+def test_a_crash_leaves_a_readable_partial_recording(tmp_path):
+    """A process that dies mid-run leaves PATH.rrd.partial, readable up to the ticks it flushed."""
+    import subprocess
+    import textwrap
+
+    save = tmp_path / "crash.rrd"
+    code = textwrap.dedent(f"""
+        import os, numpy as np
+        from pathlib import Path
+        from dssp_data.rerun_views import open_views
+        views = open_views("crash", None, Path({str(save)!r}))
+        for t in range(8):
+            views.tick(t, held=False, state=np.zeros(7))
+        while views.logged < 8:
+            pass
+        views.stream.flush()
+        os._exit(9)  # no close(): a crash
+        """)
+    assert subprocess.run([sys.executable, "-c", code], timeout=60).returncode == 9
+    assert not save.exists() and save.with_name("crash.rrd.partial").is_file()
+    ticks, _, _ = read_rrd(save.with_name("crash.rrd.partial"))
+    assert ticks["safety/held"] == list(range(8))
