@@ -5,7 +5,6 @@ control loop drops (and counts) instead of blocking; a missing rerun-sdk is one 
 import sys
 import threading
 
-import mujoco
 import numpy as np
 import pytest
 from rrd import read_rrd, text_rows
@@ -100,7 +99,9 @@ def test_flags_are_checked_before_anything_runs(arm_export, tmp_path, capsys, mo
 
 def test_the_ghost_follows_the_simulated_gripper():
     """tool_points (the viewers' forward kinematics) lands on the MuJoCo model's tool centre point."""
-    from dssp_sim.env import PiperEnv
+    import mujoco
+
+    from dssp_sim.env import PiperEnv  # first: it picks MuJoCo's headless renderer
     from hardware.piper.limits import JOINT_LOWER, JOINT_UPPER
 
     env = PiperEnv("tap", seed=0)
@@ -136,7 +137,6 @@ def test_rerun_url_connects_to_a_running_viewer_or_server(tmp_path):
     """--rerun URL streams to a Rerun server (here the rerun CLI, headless, saving what it receives)."""
     import shutil
     import subprocess
-    import time
 
     from waiting import wait_for
 
@@ -149,7 +149,13 @@ def test_rerun_url_connects_to_a_running_viewer_or_server(tmp_path):
         for t in range(5):
             views.tick(t, held=t == 3, state=np.zeros(7))
         assert views.close() == {"logged": 5, "dropped": 0}
-        wait_for(lambda: "safety/held" in read_rrd(received)[0] and len(read_rrd(received)[0]["safety/held"]) == 5, timeout=30)
+        def all_received():
+            try:
+                return len(read_rrd(received)[0].get("safety/held", [])) == 5
+            except ValueError:  # nothing arrived yet
+                return False
+
+        wait_for(all_received, timeout=30, what="the 5 ticks at the server")
     finally:
         server.terminate()
         server.wait(10)
