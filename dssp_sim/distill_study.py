@@ -26,6 +26,7 @@ import time
 from pathlib import Path
 
 from dssp_data.cli_runner import ArgumentParser, run_cli
+from dssp_data.errors import DSSPError
 from dssp_data.output_guard import OutputKind, check_output_files, write_output_figure, write_output_text
 from dssp_sim.evaluate import wilson_interval
 from dssp_sim.experiment import PLAN as MEMORY_PLAN
@@ -112,6 +113,15 @@ def run_study(work: Path, plan: dict, tasks: list[str] | None = None, teachers: 
     return evals, latency
 
 
+def recorded_results(plan: dict, record: Path) -> tuple[dict, dict, list[str]]:
+    """(evaluations, latency figures, names pending) as far as ``record`` holds them."""
+    kept = {name: recorded(record, name) for task in plan["demos"] for name, _, _ in cells(task, plan)}
+    kept |= {f"latency_k{k}": recorded(record, f"latency_k{k}") for k in plan["latency"]["denoise_steps"]}
+    evals = {name: r for name, r in kept.items() if r is not None and not name.startswith("latency_k")}
+    latency = {k: kept[f"latency_k{k}"] for k in plan["latency"]["denoise_steps"] if kept[f"latency_k{k}"] is not None}
+    return evals, latency, [name for name, r in kept.items() if r is None]
+
+
 def _latency(work: Path, plan: dict, record: Path | None = None) -> dict:
     """The chunk's cost at each K on a model of the latency preset's size (untrained weights: the cost is the same)."""
     py, logs, lat = sys.executable, work / "logs", plan["latency"]
@@ -165,7 +175,9 @@ def report_files(report_dir: Path) -> list[Path]:
     return [report_dir / f"{REPORT_NAME}{suffix}" for suffix in REPORT_SUFFIXES]
 
 
-def write_report(evals: dict, latency: dict, plan: dict, report_dir: Path, seconds: float, force: bool = False) -> Path:
+def write_report(evals: dict, latency: dict, plan: dict, report_dir: Path, seconds: float, force: bool = False,
+                 pending: list[str] = ()) -> Path:
+    """The report's three files; ``pending``: the cells not run yet (``--report-only``), listed."""
     check_output_files(report_files(report_dir), force=force, flag="--report")
     table = summarise(evals, latency, plan)
     lines = [
@@ -194,10 +206,14 @@ def write_report(evals: dict, latency: dict, plan: dict, report_dir: Path, secon
             ratio = f"{row['of_k10']:.2f}" if row["of_k10"] is not None else "-"
             lines.append(f"| {k} | {row['chunk_ms']:.2f} | {ratio} | {row['path']} |")
         lines.append("")
+    if pending:
+        lines += [f"**Partial report**: {len(pending)} cell(s) of the plan are pending (not run yet): "
+                  + ", ".join(f"`{n}`" for n in pending) + ".", ""]
     lines += [f"![success against K]({REPORT_NAME}.png)", ""]
     md, js, png = report_files(report_dir)
     write_output_text(md, "\n".join(lines), force=force, flag="--report")
-    write_output_text(js, json.dumps({"plan": plan, "summary": table, "evals": evals, "latency": latency}, indent=2) + "\n",
+    write_output_text(js, json.dumps({"plan": plan, "summary": table, "evals": evals, "latency": latency,
+                                      "pending": list(pending)}, indent=2) + "\n",
                       force=force, flag="--report")
     _plot(table, png, force)
     return md
@@ -234,12 +250,24 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--teachers", type=Path, metavar="STUDY_WORK", help="take the teachers from a simulation study's work "
                    "directory (python -m dssp_sim.experiment: its seed-0 DSSP runs) instead of training them")
     p.add_argument("--force", action="store_true", help="replace the report's files if they exist")
+    p.add_argument("--report-only", action="store_true", help="run no stage: write the report from the record "
+                   f"(--report/{RECORD_DIR}), the cells not run yet listed as pending")
     args = p.parse_args(argv)
     plan = QUICK_PLAN if args.quick else PLAN
+    if args.report_only and args.tasks:
+        p.error("--report-only writes the whole report from the record; drop --tasks")
 
     def _main() -> int:
         if not args.tasks:
             check_output_files(report_files(args.report), force=args.force, flag="--report")
+        if args.report_only:
+            evals, latency, pending = recorded_results(plan, args.report / RECORD_DIR)
+            if not evals:
+                raise DSSPError(f"{args.report / RECORD_DIR} holds no evaluation of this plan; run the study first")
+            md = write_report(evals, latency, plan, args.report, stage_seconds(args.work, args.report / RECORD_DIR),
+                              force=args.force, pending=pending)
+            print(f"report: {md}")
+            return 0
         started = time.perf_counter()
         evals, latency = run_study(args.work, plan, args.tasks, args.teachers, args.report / RECORD_DIR)
         if args.tasks:

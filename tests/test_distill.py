@@ -180,6 +180,11 @@ def test_the_distillation_study_writes_its_report(tmp_path, capsys):
     assert study_main(["--work", str(tmp_path / "elsewhere"), "--report", str(report), "--quick", "--force"]) == 0
     assert not (tmp_path / "elsewhere" / "runs").exists()
     assert json.loads((report / f"{REPORT_NAME}.json").read_text())["evals"] == data["evals"]
+    # the report from the record alone: a cell not run yet is listed as pending
+    (report / "record" / "evals" / "tap_ddim_k1.json").unlink()
+    assert study_main(["--work", str(tmp_path / "elsewhere"), "--report", str(report), "--quick", "--force", "--report-only"]) == 0
+    assert "**Partial report**: 1 cell(s) of the plan are pending (not run yet): `tap_ddim_k1`" in (report / f"{REPORT_NAME}.md").read_text()
+    assert json.loads((report / f"{REPORT_NAME}.json").read_text())["pending"] == ["tap_ddim_k1"]
 
 
 def test_the_study_takes_its_teachers_from_a_simulation_study(tmp_path, monkeypatch, capsys):
