@@ -77,8 +77,9 @@ def run_study(work: Path, plan: dict, tasks: list[str] | None = None, teachers: 
     py, logs = sys.executable, work / "logs"
     evals: dict = {}
     for task, dataset in study_tasks(work, plan, tasks, WORK_DIR, others=("latency",), record=record):
-        if all(recorded(record, name) for name, _, _ in cells(task, plan)):
-            evals.update({name: recorded(record, name) for name, _, _ in cells(task, plan)})
+        kept = {name: recorded(record, name) for name, _, _ in cells(task, plan)}
+        if all(r is not None for r in kept.values()):
+            evals.update(kept)
             print(f"  every cell recorded ({record})")
             continue
         if teachers is None:
@@ -91,8 +92,8 @@ def run_study(work: Path, plan: dict, tasks: list[str] | None = None, teachers: 
                                  f"python -m dssp_sim.experiment --work {teachers} --tasks {task} first, or drop --teachers")
             print(f"  teacher: {teacher}")
         for name, kind, k in cells(task, plan):
-            if (kept := recorded(record, name)) is not None:
-                evals[name] = kept
+            if kept[name] is not None:
+                evals[name] = kept[name]
                 continue
             run_dir, flags = teacher, ["--denoise-steps", str(k), "--timestep-spacing", "trailing"] if kind == "ddim" else []
             if kind not in ("teacher", "ddim"):
@@ -126,9 +127,10 @@ def _latency(work: Path, plan: dict, record: Path | None = None) -> dict:
     """The chunk's cost at each K on a model of the latency preset's size (untrained weights: the cost is the same)."""
     py, logs, lat = sys.executable, work / "logs", plan["latency"]
     print(f"latency ({lat['preset']} preset):")
-    if all(recorded(record, f"latency_k{k}") for k in lat["denoise_steps"]):
+    kept = {k: recorded(record, f"latency_k{k}") for k in lat["denoise_steps"]}
+    if all(r is not None for r in kept.values()):
         print(f"  every K recorded ({record})")
-        return {k: recorded(record, f"latency_k{k}") for k in lat["denoise_steps"]}
+        return kept
     data, run_dir = work / "data" / "latency.zarr", work / "runs" / f"latency_{lat['preset']}"
     stage(data / "meta", "synthetic data", [py, "-m", "dssp_train.cli.synth", "--out", str(data), "--episodes", "2", "--points",
           str(lat["points"])], logs / "latency_data.log", record)

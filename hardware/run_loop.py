@@ -233,7 +233,7 @@ class Runner:
     def _view(self, record: dict[str, Any], frame, cloud: np.ndarray | None, chunk: np.ndarray | None) -> None:
         """Queue the tick's Rerun views (references to this tick's arrays; the loop makes new ones every tick)."""
         events = [f"{e['kind']}: {e['detail']}" for e in record.get("safety", []) if e["kind"] != "clip"]
-        events += [e for e in record.get("events", [])]
+        events += record.get("events", [])
         self.views.tick(
             self.view_tick, depth=frame.depth if frame is not None else None, depth_unit=frame.depth_unit if frame is not None else None,
             cloud=cloud, state=record["state"], command=record["command"], chunk=chunk, held=record["held"], events=events,

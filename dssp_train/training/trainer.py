@@ -297,7 +297,7 @@ class Trainer:
     @torch.no_grad()
     def validate(self) -> dict[str, float]:
         """EMA model on held-out episodes, with fixed windows, noise and timesteps: {val_diffusion, val_action_mse}.
-        The middle window of the first episode is kept in ``val_chunk``."""
+        With a dashboard, the middle window of the first episode is kept in ``val_chunk`` (what it plots)."""
         policy = self.ema.model
         tc, mc = self.config.train, self.config.model
         gen = torch.Generator().manual_seed(VAL_SEED)
@@ -313,7 +313,7 @@ class Trainer:
             _, act_idx = policy.trajectory_windows(ep.length, starts)
             norm = policy.normalizers["action"].normalize
             err = (norm(pred) - norm(ep.action[act_idx]))[:, executed].pow(2).mean()
-            if i == 0:
+            if i == 0 and self.dashboard != "none":
                 k = len(starts) // 2
                 self.val_chunk = ValChunk(
                     episode=(self.val_ids or self.train_ids)[0], start=int(starts[k]), steps=act_idx[k].cpu().numpy(),
@@ -384,7 +384,7 @@ class Trainer:
                     last_val = self.validate()
                     log.write("val", step=self.step, on_train_episodes=self.val_on_train, **last_val)
                     dashboard.log_scalars(self.step, last_val)
-                    if self.dashboard != "none" and self.val_chunk is not None:
+                    if self.val_chunk is not None:
                         dashboard.log_figure(self.step, "val_chunk", chunk_figure(self.val_chunk))
                     if bar is not None:
                         bar.write(f"step {self.step}: " + ", ".join(f"{k} {v:.5f}" for k, v in last_val.items()))
