@@ -3,10 +3,17 @@ the history encoder's forward + backward over a 600-step trajectory.
 
     python benchmarks/train_step_time.py [--repeats 5] [--robotwin-length 300] [--device cpu|cuda] [--json PATH [--force]]
 
+    python benchmarks/train_step_time.py --paper [--repeats 3] [--device cpu|cuda] [--json PATH [--force]]
+
 Prints a Markdown table of medians (and min/max) in milliseconds. A step is what ``dssp-train``
 does: encode one whole trajectory (E_obs, G_psi), B windows through the denoiser, both losses,
 backward, AdamW, EMA. Inputs are random tensors of the preset's shapes (RoboTwin: 1024 xyz points,
 S = A = 14).
+
+``--paper``: what reproducing one task of the paper costs on this device, for each paper preset — its
+step at a typical trajectory of its benchmark (PAPER_TASKS: length, state and action sizes, demonstrations)
+times its budget in steps (the preset's epochs x demonstrations, every one trained on, as ``dssp-train``
+resolves it).
 """
 
 from __future__ import annotations
@@ -23,10 +30,18 @@ from dssp_train.config import load_preset
 from dssp_train.model.history_encoder import HistoryEncoder
 from dssp_train.model.policy import DSSPPolicy
 from dssp_train.training.ema import EMA
+from dssp_train.training.trainer import resolve_epochs
 from dssp_deploy.latency import time_calls
 from dssp_data.cli_runner import run_cli
 from dssp_data.errors import DSSPError
 from dssp_data.output_guard import check_output_file, write_output_text
+
+
+# One typical task per paper preset: (trajectory length T, state size S, action size A, demonstrations).
+# MetaWorld: DP3's episodes of 200 steps, agent_pos 9, action 4; Adroit: at most 200 steps (the hammer and
+# door tasks' horizon), agent_pos 24, action 26 (hammer); both 10 demonstrations (the paper's Appendix C);
+# RoboTwin: 50 demonstrations of about 300 steps (episodes run 100-640), S = A = 14.
+PAPER_TASKS = {"metaworld": (200, 9, 4, 10), "adroit": (200, 24, 26, 10), "robotwin": (300, 14, 14, 50)}
 
 
 def synchronized(step, device: str):
@@ -92,6 +107,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--robotwin-length", type=int, default=300, help="trajectory length for the robotwin step (RoboTwin averages 100-640)")
     p.add_argument("--history-length", type=int, default=600)
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="where to train (cuda: a GPU machine's step time)")
+    p.add_argument("--paper", action="store_true", help="the paper presets' step times and what one task's budget costs")
     p.add_argument("--json", help="also write the figures as JSON here (a new file; --force replaces one)")
     p.add_argument("--force", action="store_true", help="replace an existing --json file")
     args = p.parse_args(argv)
@@ -104,6 +120,8 @@ def _measure(args) -> int:
 
     if args.device == "cuda" and not torch.cuda.is_available():
         raise DSSPError("--device cuda: CUDA is not available here; measure on a GPU machine or use --device cpu")
+    if args.paper:
+        return _paper_costs(args)
     rows = []
     for fn, label in (
         train_step_fn("tiny", 40, 2, 2, args.device),
@@ -119,6 +137,29 @@ def _measure(args) -> int:
     print("|---|---:|---:|---:|---:|")
     for r in rows:
         print(f"| {r['what']} | {r['median_ms']:.1f} | {r['min_ms']:.1f} | {r['max_ms']:.1f} | {r['n']} |")
+    if args.json:
+        write_output_text(args.json, json.dumps(rows, indent=2), force=args.force, flag="--json")
+    return 0
+
+
+def _paper_costs(args) -> int:
+    """The ``--paper`` table: per paper preset, the step's median and one task's budget in steps and hours."""
+    rows = []
+    for preset, (length, state_dim, action_dim, demos) in PAPER_TASKS.items():
+        fn, label = train_step_fn(preset, length, state_dim, action_dim, args.device)
+        timing = row(label, time_calls(fn, args.repeats, warmup=1))
+        cfg = load_preset(preset)
+        steps = resolve_epochs(cfg, demos).train.steps
+        rows.append({**timing, "preset": preset, "epochs": cfg.train.epochs, "demos": demos, "steps": steps,
+                     "hours": timing["median_ms"] * steps / 3.6e6})
+        print(f"measured: {label}", flush=True)
+    where = torch.cuda.get_device_name() if args.device == "cuda" else f"{torch.get_num_threads()} threads"
+    print(f"\nMachine: {platform.processor() or platform.machine()}, torch {torch.__version__}, {where}\n")
+    print("| preset | step (median ms; min-max) | budget | steps | one task |")
+    print("|---|---:|---|---:|---:|")
+    for r in rows:
+        print(f"| {r['what']} | {r['median_ms']:.1f} ({r['min_ms']:.1f}-{r['max_ms']:.1f}) | {r['epochs']} epochs x "
+              f"{r['demos']} demos | {r['steps']:,} | {r['hours']:.1f} h ({r['hours'] / 24:.1f} days) |")
     if args.json:
         write_output_text(args.json, json.dumps(rows, indent=2), force=args.force, flag="--json")
     return 0

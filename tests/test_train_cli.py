@@ -278,6 +278,30 @@ def test_epochs_are_passes_over_the_training_trajectories(data, tmp_path, capsys
     assert json.loads((tmp_path / "b" / "config.json").read_text())["train"]["val_ratio"] == 0.0
 
 
+def test_the_paper_cost_table_is_each_presets_step_times_its_budget(tmp_path, capsys, monkeypatch):
+    """``benchmarks/train_step_time.py --paper``: one task's cost = the step's median x (the preset's epochs x
+    the task's demonstrations), every demonstration trained on; each step built at its task's shapes."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("bench_train_step_time", Path(__file__).parents[1] / "benchmarks" / "train_step_time.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    built = []
+    monkeypatch.setattr(bench, "train_step_fn", lambda *a: (built.append(a), (lambda: None, f"step {a[0]}"))[1])
+    median = {"metaworld": 1000.0, "adroit": 2000.0, "robotwin": 3600.0}  # ms
+    monkeypatch.setattr(bench, "time_calls", lambda fn, n, warmup=0: [median[built[-1][0]]] * n)
+    assert bench.main(["--paper", "--repeats", "2", "--json", str(tmp_path / "cost.json")]) == 0
+    rows = {r["preset"]: r for r in json.loads((tmp_path / "cost.json").read_text())}
+    assert [a[:4] for a in built] == [(preset, *bench.PAPER_TASKS[preset][:3]) for preset in rows]
+    for preset, (_, _, _, demos) in bench.PAPER_TASKS.items():
+        epochs = load_preset(preset).train.epochs
+        assert rows[preset]["steps"] == epochs * demos and rows[preset]["epochs"] == epochs
+        assert rows[preset]["hours"] == pytest.approx(median[preset] * epochs * demos / 3.6e6)
+    assert rows["robotwin"]["steps"] == 150_000 and rows["robotwin"]["hours"] == pytest.approx(150.0)
+    out = capsys.readouterr().out
+    assert "| step robotwin | 3600.0 (3600.0-3600.0) | 3000 epochs x 50 demos | 150,000 | 150.0 h (6.2 days) |" in out
+
+
 @pytest.mark.parametrize("flags,message", [
     (["--steps", "3", "--epochs", "2"], "--steps and --epochs (or their --set) both set the training budget; keep one"),
     (["--epochs", "2", "--set", "train.steps=3"], "--steps and --epochs (or their --set) both set the training budget; keep one"),
