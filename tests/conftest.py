@@ -1,9 +1,16 @@
 """Test-wide settings: one intra-op thread, so results do not depend on the machine's core count
-and small tensor ops do not stall when another process shares the cores."""
+and small tensor ops do not stall when another process shares the cores; Ctrl-C as Python's default."""
 
 import os
+import signal
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+# A suite started in the background by a non-interactive shell (`make test &`) inherits SIGINT ignored, and
+# every process it starts would too; the Ctrl-C tests send SIGINT, so the suite restores Python's default
+# (its processes then start with the default as well).
+if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 try:
     import torch
