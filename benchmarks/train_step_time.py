@@ -131,12 +131,17 @@ def _measure(args) -> int:
         rows.append(row(label, time_calls(fn, args.repeats, warmup=1)))
         print(f"measured: {label}", flush=True)
 
+    return _report(args, rows, "| what | median ms | min ms | max ms | n |\n|---|---:|---:|---:|---:|",
+                   lambda r: f"| {r['what']} | {r['median_ms']:.1f} | {r['min_ms']:.1f} | {r['max_ms']:.1f} | {r['n']} |")
+
+
+def _report(args, rows: list[dict], header: str, line) -> int:
+    """Print the machine and the Markdown table (``header``, then ``line(row)`` per row); write ``--json``."""
     where = torch.cuda.get_device_name() if args.device == "cuda" else f"{torch.get_num_threads()} threads"
     print(f"\nMachine: {platform.processor() or platform.machine()}, torch {torch.__version__}, {where}\n")
-    print("| what | median ms | min ms | max ms | n |")
-    print("|---|---:|---:|---:|---:|")
+    print(header)
     for r in rows:
-        print(f"| {r['what']} | {r['median_ms']:.1f} | {r['min_ms']:.1f} | {r['max_ms']:.1f} | {r['n']} |")
+        print(line(r))
     if args.json:
         write_output_text(args.json, json.dumps(rows, indent=2), force=args.force, flag="--json")
     return 0
@@ -153,16 +158,9 @@ def _paper_costs(args) -> int:
         rows.append({**timing, "preset": preset, "epochs": cfg.train.epochs, "demos": demos, "steps": steps,
                      "hours": timing["median_ms"] * steps / 3.6e6})
         print(f"measured: {label}", flush=True)
-    where = torch.cuda.get_device_name() if args.device == "cuda" else f"{torch.get_num_threads()} threads"
-    print(f"\nMachine: {platform.processor() or platform.machine()}, torch {torch.__version__}, {where}\n")
-    print("| preset | step (median ms; min-max) | budget | steps | one task |")
-    print("|---|---:|---|---:|---:|")
-    for r in rows:
-        print(f"| {r['what']} | {r['median_ms']:.1f} ({r['min_ms']:.1f}-{r['max_ms']:.1f}) | {r['epochs']} epochs x "
-              f"{r['demos']} demos | {r['steps']:,} | {r['hours']:.1f} h ({r['hours'] / 24:.1f} days) |")
-    if args.json:
-        write_output_text(args.json, json.dumps(rows, indent=2), force=args.force, flag="--json")
-    return 0
+    return _report(args, rows, "| preset | step (median ms; min-max) | budget | steps | one task |\n|---|---:|---|---:|---:|",
+                   lambda r: f"| {r['what']} | {r['median_ms']:.1f} ({r['min_ms']:.1f}-{r['max_ms']:.1f}) | {r['epochs']} epochs x "
+                             f"{r['demos']} demos | {r['steps']:,} | {r['hours']:.1f} h ({r['hours'] / 24:.1f} days) |")
 
 
 if __name__ == "__main__":
