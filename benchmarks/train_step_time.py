@@ -26,11 +26,10 @@ import sys
 
 import torch
 
-from dssp_train.config import load_preset
+from dssp_train.config import load_preset, resolve_epochs
 from dssp_train.model.history_encoder import HistoryEncoder
 from dssp_train.model.policy import DSSPPolicy
 from dssp_train.training.ema import EMA
-from dssp_train.training.trainer import resolve_epochs
 from dssp_deploy.latency import time_calls
 from dssp_data.cli_runner import run_cli
 from dssp_data.errors import DSSPError

@@ -211,6 +211,16 @@ def preset_names() -> list[str]:
     return sorted(p.name[: -len(".json")] for p in files.iterdir() if p.name.endswith(".json"))
 
 
+def resolve_epochs(config: RunConfig, n_train: int) -> RunConfig:
+    """``config`` with train.steps = train.epochs x ``n_train`` (one trajectory per step, Appendix C.1)."""
+    data = config.to_dict()
+    data["train"]["steps"] = config.train.epochs * n_train
+    try:
+        return RunConfig.from_dict(data)
+    except ConfigError as exc:
+        raise ConfigError(f"train.epochs={config.train.epochs} x {n_train} training episodes: {exc}") from None
+
+
 def load_preset(name: str) -> RunConfig:
     """The named preset (``tiny``, ``robotwin``, ``metaworld``, ``adroit``) as a validated RunConfig."""
     names = preset_names()

@@ -302,6 +302,17 @@ def test_the_paper_cost_table_is_each_presets_step_times_its_budget(tmp_path, ca
     assert "| step robotwin | 3600.0 (3600.0-3600.0) | 3000 epochs x 50 demos | 150,000 | 150.0 h (6.2 days) |" in out
 
 
+def test_the_step_time_benchmark_needs_only_torch_numpy_and_tqdm():
+    """On a GPU machine the benchmark runs from a checkout (``PYTHONPATH=.``) with no dataset or runtime stack."""
+    script = Path(__file__).parents[1] / "benchmarks" / "train_step_time.py"
+    code = ("import runpy, sys\n"
+            "for name in ('zarr', 'numcodecs', 'onnx', 'onnxruntime', 'safetensors', 'matplotlib', 'mujoco', 'can'):\n"
+            "    sys.modules[name] = None  # importing any of these now fails\n"
+            f"sys.argv = ['train_step_time.py', '--help']\nrunpy.run_path({str(script)!r}, run_name='__main__')\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0 and "--paper" in proc.stdout, proc.stderr
+
+
 @pytest.mark.parametrize("flags,message", [
     (["--steps", "3", "--epochs", "2"], "--steps and --epochs (or their --set) both set the training budget; keep one"),
     (["--epochs", "2", "--set", "train.steps=3"], "--steps and --epochs (or their --set) both set the training budget; keep one"),

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
-from dssp_train.config import RunConfig
+from dssp_train.config import RunConfig, resolve_epochs
 from dssp_data.replay_buffer import ReplayBuffer
 from dssp_data.errors import CheckpointError, ConfigError, DSSPError
 from dssp_data.observation import ObservationContract
@@ -144,16 +144,6 @@ def check_resume_data(run_dir: Path, config: RunConfig, data: ReplayBuffer, data
 
 # Fewer training episodes than this and the validation holdout is warned about: it takes a real share of the data.
 FEW_TRAINING_EPISODES = 20
-
-
-def resolve_epochs(config: RunConfig, n_train: int) -> RunConfig:
-    """``config`` with train.steps = train.epochs x ``n_train`` (one trajectory per step, Appendix C.1)."""
-    data = config.to_dict()
-    data["train"]["steps"] = config.train.epochs * n_train
-    try:
-        return RunConfig.from_dict(data)
-    except ConfigError as exc:
-        raise ConfigError(f"train.epochs={config.train.epochs} x {n_train} training episodes: {exc}") from None
 
 
 def budget_notes(config: RunConfig, n_train: int, n_val: int) -> list[str]:
