@@ -4,7 +4,7 @@ model and the viewers read it from.
 Policy units per arm (7 values): J1..J6 in radians, then the gripper opening in [0, 1]. Frames: each arm's
 base frame (metres), z up; frame 6 is the flange, the gripper's approach direction its z axis.
 
-    pose = flange_pose(q)              # q (6,) rad -> (4, 4)
+    pose = flange_pose(q)              # q (6,) rad -> (4, 4); flange_poses(q (N, 6)) -> rotations, positions
     tcp = tool_points(joints)          # joints (T, 7 * arms) policy units -> (T, arms, 3) tool centre points
 """
 
@@ -43,14 +43,25 @@ def dh_link_transform(i: int) -> tuple[np.ndarray, np.ndarray]:
     return pos, rot
 
 
+def flange_poses(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Flange poses in the arm's base frame for joints q (N, 6) rad: (rotations (N, 3, 3), positions (N, 3)),
+    batched over every pose at once."""
+    q = np.asarray(q, np.float64).reshape(-1, 6)
+    rot, pos = np.broadcast_to(np.eye(3), (len(q), 3, 3)), np.zeros((len(q), 3))
+    for i in range(6):
+        c, s = np.cos(DH_THETA[i] + q[:, i]), np.sin(DH_THETA[i] + q[:, i])
+        rz = np.zeros((len(q), 3, 3))
+        rz[:, 0, 0], rz[:, 0, 1], rz[:, 1, 0], rz[:, 1, 1], rz[:, 2, 2] = c, -s, s, c, 1.0
+        pos = pos + rot @ dh_link_transform(i)[0]
+        rot = rot @ _rot_x(DH_ALPHA[i]) @ rz
+    return rot, pos
+
+
 def flange_pose(q: np.ndarray) -> np.ndarray:
     """Flange pose (4, 4) in the arm's base frame for joints q (6,) rad."""
+    rot, pos = flange_poses(q)
     t = np.eye(4)
-    for i in range(6):
-        step = np.eye(4)
-        step[:3, :3] = _rot_x(DH_ALPHA[i]) @ _rot_z(DH_THETA[i] + float(q[i]))
-        step[:3, 3] = np.array([DH_A[i], 0.0, 0.0]) + _rot_x(DH_ALPHA[i]) @ np.array([0.0, 0.0, DH_D[i]])
-        t = t @ step
+    t[:3, :3], t[:3, 3] = rot[0], pos[0]
     return t
 
 
@@ -62,13 +73,5 @@ def tool_points(joints: np.ndarray, tcp_offset: float = TCP_OFFSET) -> np.ndarra
     if joints.shape[-1] % ARM_VALUES:
         raise ValueError(f"joint vectors have {joints.shape[-1]} values, not {ARM_VALUES} per arm (6 joints + gripper)")
     arms = joints.shape[-1] // ARM_VALUES
-    q = joints.reshape(-1, arms, ARM_VALUES)[..., :6].reshape(-1, 6)  # (T * arms, 6)
-    rot, pos = np.broadcast_to(np.eye(3), (len(q), 3, 3)), np.zeros((len(q), 3))
-    for i in range(6):
-        c, s = np.cos(DH_THETA[i] + q[:, i]), np.sin(DH_THETA[i] + q[:, i])
-        rz = np.zeros((len(q), 3, 3))
-        rz[:, 0, 0], rz[:, 0, 1], rz[:, 1, 0], rz[:, 1, 1], rz[:, 2, 2] = c, -s, s, c, 1.0
-        offset = np.array([DH_A[i], 0.0, 0.0]) + _rot_x(DH_ALPHA[i]) @ np.array([0.0, 0.0, DH_D[i]])
-        pos = pos + rot @ offset
-        rot = rot @ _rot_x(DH_ALPHA[i]) @ rz
+    rot, pos = flange_poses(joints.reshape(-1, arms, ARM_VALUES)[..., :6])  # T * arms poses
     return (pos + tcp_offset * rot[:, :, 2]).reshape(joints.shape[0], arms, 3)

@@ -254,7 +254,6 @@ def _write_gif(plt, ep, t: np.ndarray, flags, target: Path, title: str, force: b
     return target
 
 
-
 def rerun_episode(path: str | os.PathLike, episode: int, connect: str | None, save: Path | None, horizon: int = 16) -> dict:
     """Log episode ``episode`` of dataset ``path`` to Rerun (``connect``: "spawn" or a viewer's URL; ``save``: a new
     .rrd file); returns {"logged": steps, "dropped": 0} — every step is logged (the queue waits, nothing is dropped)."""
