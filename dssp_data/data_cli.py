@@ -113,8 +113,7 @@ def _view(args) -> int:
     if args.rerun is not None or args.rerun_save is not None:
         from dssp_data.view import rerun_episode
 
-        counts = rerun_episode(args.path, args.episode, args.rerun, args.rerun_save)
-        print(f"rerun views: {counts['logged']} steps logged" + (f"; saved to {args.rerun_save}" if args.rerun_save else ""))
+        print(rerun_episode(args.path, args.episode, args.rerun, args.rerun_save))
         return 0
     for path in render_episode(args.path, args.episode, args.out, columns=args.steps, video=args.video,
                                force=args.force):

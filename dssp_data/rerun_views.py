@@ -5,6 +5,7 @@
     views.tick(t, depth=..., depth_unit=..., cloud=..., state=..., command=..., chunk=..., held=..., events=[...],
                latency_ms={"cloud": 0.6, ...})              # never blocks: queued, or dropped and counted
     views.close()                                            # drains the queue; {"logged": n, "dropped": m}
+    print(views.close_line())                                # the same, as the commands' one line
 
 Everything is on the timeline ``tick`` (one step per control tick). Entities, in the robot's base frame
 (metres, z up) unless said otherwise:
@@ -178,6 +179,12 @@ class TickViews:
         if self._error is not None:
             raise ConfigError(f"the Rerun views stopped: {self._error}")
         return {"logged": self.logged, "dropped": self.dropped}
+
+    def close_line(self, unit: str = "ticks") -> str:
+        """:meth:`close`, then the one line the commands print: what was logged and dropped, and the file saved."""
+        counts = self.close()
+        return (f"rerun views: {counts['logged']} {unit} logged, {counts['dropped']} dropped"
+                + (f"; saved to {self.save}" if self.save is not None else ""))
 
     def __enter__(self) -> TickViews:
         return self

@@ -254,9 +254,9 @@ def _write_gif(plt, ep, t: np.ndarray, flags, target: Path, title: str, force: b
     return target
 
 
-def rerun_episode(path: str | os.PathLike, episode: int, connect: str | None, save: Path | None, horizon: int = 16) -> dict:
+def rerun_episode(path: str | os.PathLike, episode: int, connect: str | None, save: Path | None, horizon: int = 16) -> str:
     """Log episode ``episode`` of dataset ``path`` to Rerun (``connect``: "spawn" or a viewer's URL; ``save``: a new
-    .rrd file); returns {"logged": steps, "dropped": 0} — every step is logged (the queue waits, nothing is dropped)."""
+    .rrd file); returns the views' closing line — every step is logged (the queue waits, nothing is dropped)."""
     from dssp_data.rerun_views import open_views
 
     path = Path(path)
@@ -274,4 +274,4 @@ def rerun_episode(path: str | os.PathLike, episode: int, connect: str | None, sa
             views.tick(t, wait=True, cloud=ep.point_cloud[t], state=ep.state[t], command=ep.action[t],
                        chunk=ep.action[t: t + horizon], depth=depth[t] if depth is not None else None, depth_unit=unit,
                        events=problem_names(flags[t]) if flags is not None else ())
-    return {"logged": views.logged, "dropped": views.dropped}
+    return views.close_line("steps")  # closed already: the counts

@@ -119,8 +119,7 @@ def run(args) -> int:
     views = open_views("dssp-sim eval", args.rerun, args.rerun_save)
     with contextlib.ExitStack() as stack:
         if views is not None:
-            stack.callback(lambda: print(f"rerun views: {views.close()['logged']} ticks logged, {views.dropped} dropped"
-                                         + (f"; saved to {args.rerun_save}" if args.rerun_save else "")))
+            stack.callback(lambda: print(views.close_line()))
         strips = stack.enter_context(OutputDir(args.strips, STRIPS_DIR, force=args.force, flag="--strips")) if args.strips else None
         result = evaluate(args.model, args.task, args.episodes, seed=args.seed, threads=args.threads,
                           precision=args.precision, kernel=args.kernel, spinning=False if args.no_spin else None, state_token_noise=args.noise, strips_dir=strips.path if strips else None,

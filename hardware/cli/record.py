@@ -314,8 +314,7 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
     n_arms = 1 if sim_can else len(monitors)
     views = open_views("dssp-record", args.rerun, args.rerun_save)
     if views is not None:
-        stack.callback(lambda: console.event(f"rerun views: {views.close()['logged']} steps logged, {views.dropped} dropped"
-                                             + (f"; saved to {args.rerun_save}" if args.rerun_save else "")))
+        stack.callback(lambda: console.event(views.close_line("steps")))
     recorder = Recorder(camera, monitors, cloud_config, camera_to_base, float(rate), action_convention=convention,
                         thresholds=thresholds, store_depth=not args.no_depth, views=views)
     calibration = {

@@ -242,7 +242,7 @@ def _run(args, signals: StartupSignals) -> int:
     status = None if args.quiet else StatusPrinter()
     with contextlib.ExitStack() as stack:
         if views is not None:
-            stack.callback(lambda: print_views(views.close(), args.rerun_save))
+            stack.callback(lambda: print(views.close_line()))
         stack.enter_context(camera)
         stack.enter_context(robot)  # connect: simulators start first, so the recorders find their channels
         for recorder in recorders:
@@ -273,11 +273,6 @@ def _run(args, signals: StartupSignals) -> int:
     if summary["fault"]:
         return 1
     return 130 if runner.stop_reason in ("SIGINT", "SIGTERM") else 0
-
-
-def print_views(counts: dict, saved: Path | None) -> None:
-    """One line on the Rerun views: ticks logged and dropped, and the file they were saved to."""
-    print(f"rerun views: {counts['logged']} ticks logged, {counts['dropped']} dropped" + (f"; saved to {saved}" if saved else ""))
 
 
 def print_summary(summary: dict, log_dir: Path) -> None:
