@@ -289,7 +289,6 @@ def run_training(args, make_config) -> int:
     def _main() -> int:
         from dssp_data.output_guard import OWN, RUN_DIR, OutputDir, OutputError, check_output
 
-        run_kind = RUN_DIR
         out = Path(args.out)
         if args.resume and args.force:
             raise DSSPError("--resume continues the run in --out; drop --force")
@@ -302,14 +301,14 @@ def run_training(args, make_config) -> int:
                 if not args.resume:
                     try:  # before anything else: a run that may not be replaced stops here
                         if is_main:
-                            target = stack.enter_context(OutputDir(out, run_kind, force=args.force, staged=False, keep_partial=True))
+                            target = stack.enter_context(OutputDir(out, RUN_DIR, force=args.force, staged=False, keep_partial=True))
                             replaced = target.found == OWN
                         else:  # rank 0 moves a replaced run aside and creates --out
-                            check_output(out, force=args.force, kind=run_kind)
+                            check_output(out, force=args.force, kind=RUN_DIR)
                     except OutputError:
                         from dssp_train.training.checkpoint import checkpoint_dir
 
-                        if run_kind.owns(out):
+                        if RUN_DIR.owns(out):
                             if checkpoint_dir(out) is None:
                                 raise OutputError(f"{no_checkpoint_message(out)}, or choose another --out") from None
                             raise OutputError(f"{out} already holds a run; continue it with --resume, pass --force to replace it "

@@ -31,9 +31,7 @@ import numpy as np
 from dssp_data.errors import ConfigError, DSSPError
 
 DASHBOARDS = ("tensorboard", "wandb", "none")
-"""The values of ``--log``."""
-PACKAGES = {"tensorboard": "tensorboard", "wandb": "wandb"}
-"""The package each dashboard imports."""
+"""The values of ``--log``; each but ``none`` is also the package it imports."""
 INSTALL_HINT = 'pip install -e ".[viz]"'
 TENSORBOARD_DIR = "tensorboard"
 WANDB_DIR = "wandb"
@@ -59,13 +57,12 @@ def check_dashboard(name: str, flag: str = "--log") -> None:
     naming ``flag``). Imports the package, so that a broken install fails here rather than during training."""
     if name not in DASHBOARDS:
         raise ConfigError(f"{flag} {name}: choose one of {', '.join(DASHBOARDS)}")
-    package = PACKAGES.get(name)
-    if package is None:
+    if name == "none":
         return
     try:
-        importlib.import_module(package)
+        importlib.import_module(name)
     except ImportError:
-        raise ConfigError(f"{flag} {name} needs the {package} package: {INSTALL_HINT}") from None
+        raise ConfigError(f"{flag} {name} needs the {name} package: {INSTALL_HINT}") from None
 
 
 def open_dashboard(name: str, run_dir: Path, config: Mapping[str, Any], resume_step: int | None = None) -> Dashboard:
