@@ -3,6 +3,7 @@ the validation chunks as images, read back with TensorBoard's and W&B's own form
 them; a missing package or an unknown value is one error line before anything is trained."""
 
 import json
+import re
 import struct
 import sys
 from pathlib import Path
@@ -210,8 +211,8 @@ def test_a_resumed_run_logs_to_the_same_wandb_id(data, tmp_path):
     run_id = (run / "wandb" / "run_id").read_text().strip()
     assert train_main(["--data", str(data), "--out", str(run), "--resume", "--steps", "4", "--no-progress", "--log", "wandb"]) == 0
     assert (run / "wandb" / "run_id").read_text().strip() == run_id
-    folders = offline_runs(run)
-    assert len(folders) == 2 and all(folder.name.endswith(f"-{run_id}") for folder in folders)
+    folders = offline_runs(run)  # W&B names a second folder of the same id in the same second with a "-1" suffix
+    assert len(folders) == 2 and all(re.fullmatch(rf"offline-run-\d{{8}}_\d{{6}}-{run_id}(-\d+)?", f.name) for f in folders), folders
     resumed = wandb_history(wandb_records(folders[1] / f"run-{run_id}.wandb"))
     assert sorted({row["step"] for row in resumed}) == [3, 4]
 
