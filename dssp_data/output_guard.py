@@ -70,7 +70,7 @@ __all__ = [
     "MARKER", "NEW", "OWN", "OutputError", "OutputKind", "check_output", "check_append", "claim_dir", "OutputDir",
     "check_output_file", "check_output_files", "write_output_text", "write_output_file", "zarr_attrs", "zarr_generator",
     "check_not_inside", "make_dirs", "Staging", "replace_dirs", "sweep_stale", "is_staging_name",
-    "interrupts_deferred", "settle_background_writes",
+    "interrupts_deferred", "settle_background_writes", "WriterLock", "writer_lock_path",
     "RUN_DIR", "SYNTH_DATASET", "SIM_DATASET", "RECORDED_DATASET", "DATA_DATASET", "DATA_GENERATORS", "RUN_LOG",
 ]
 
@@ -406,6 +406,97 @@ class OutputDir:
     def __exit__(self, *exc_info) -> None:
         if not self._committed:
             self._rollback()
+
+
+# -------------------------------------------------------------------------------------- one writer
+def writer_lock_path(out: str | os.PathLike) -> Path:
+    """The lock file of the output at ``out``: ``.NAME.lock`` beside it, so it outlives the swaps of a
+    staged output and covers an output that does not exist yet."""
+    out = Path(out).absolute()
+    return out.with_name(f".{out.name}.lock")
+
+
+class WriterLock:
+    """One writer per output: an exclusive ``flock`` on :func:`writer_lock_path` (``out``), held until
+    :meth:`release` (or the process ends: the system lets go of a dead process's lock).
+
+    A second writer gets one line naming the holder (pid and host) and what to do, as ``error``; nothing
+    of the first is touched. The lock file is opened without following links and must be a regular file
+    (a symlink planted at its name is refused, never followed); it is removed on release, and a lock won
+    on a file that was removed or replaced meanwhile is retried on the new one.
+
+        lock = WriterLock(out, what="run directory", flag="--out")
+        try: ...write...
+        finally: lock.release()
+    """
+
+    def __init__(self, out: str | os.PathLike, *, what: str = "output", flag: str = "--out",
+                 error: type[DSSPError] = OutputError) -> None:
+        import fcntl
+        import socket
+        import stat
+
+        self.path = writer_lock_path(out)
+        self._fd: int | None = None
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise error(f"cannot create {self.path.parent} ({exc.strerror or exc}); choose a writable {flag}") from None
+        for _ in range(100):
+            try:
+                fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC | os.O_NONBLOCK, 0o644)
+            except OSError as exc:
+                raise error(f"cannot open the lock file {self.path} ({exc.strerror or exc}): it must be a regular "
+                            f"file, not a link; remove it or choose another {flag}") from None
+            info = os.fstat(fd)
+            if not stat.S_ISREG(info.st_mode):
+                os.close(fd)
+                raise error(f"the lock file {self.path} is not a regular file; remove it or choose another {flag}")
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                try:
+                    holder = os.pread(fd, 200, 0).decode(errors="replace").strip() or "another process"
+                finally:
+                    os.close(fd)
+                raise error(f"{Path(out)} is being written by {holder}: one writer per {what} at a time; wait for "
+                            f"it to finish or choose another {flag}") from None
+            try:
+                now = os.stat(self.path, follow_symlinks=False)
+            except OSError:
+                now = None
+            if now is None or (now.st_dev, now.st_ino) != (info.st_dev, info.st_ino):
+                os.close(fd)  # released and removed by its previous holder between our open and flock: again
+                continue
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"pid {os.getpid()} on {socket.gethostname()}\n".encode(), 0)
+            self._fd = fd
+            return
+        raise error(f"could not take the lock {self.path}; try again")
+
+    @property
+    def held(self) -> bool:
+        return self._fd is not None
+
+    def release(self) -> None:
+        """Remove the lock file (while still holding it) and let go; idempotent."""
+        fd, self._fd = self._fd, None
+        if fd is None:
+            return
+        try:
+            info, now = os.fstat(fd), os.stat(self.path, follow_symlinks=False)
+            if (now.st_dev, now.st_ino) == (info.st_dev, info.st_ino):
+                os.unlink(self.path)
+        except OSError:
+            pass
+        finally:
+            os.close(fd)
+
+    def __enter__(self) -> "WriterLock":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.release()
 
 
 # ------------------------------------------------------------------------------------------- staging

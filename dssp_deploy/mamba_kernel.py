@@ -67,9 +67,9 @@ def _probe(path: Path, scan_path: str) -> Kernel:
         implementation = fn().decode()
     except (OSError, AttributeError):
         implementation = "unknown"
-    if implementation == "invalid":
-        return Kernel(None, f"DSSP_SCAN_PATH={scan_path!r} is not one of {', '.join(SCAN_PATHS)} or cannot run on this CPU; "
-                            "unset it or set it to portable")
+    if implementation.startswith("invalid"):  # "invalid: " + the library's reason (an unknown value, or a path this CPU lacks)
+        why = implementation.partition(":")[2].strip() or f"DSSP_SCAN_PATH={scan_path!r} cannot be used here; unset it"
+        return Kernel(None, why)
     return Kernel(path, implementation=implementation)
 
 

@@ -409,10 +409,15 @@ extern "C" __attribute__((visibility("default"))) OrtStatus* ORT_API_CALL Regist
 }
 
 // Which implementation a session would use on this CPU now ("avx512", "avx2" or "portable"), for start-up logs.
+// The implementation DSSP_SCAN_PATH selects here, or "invalid: " and why it cannot run (for the loader's message).
 extern "C" __attribute__((visibility("default"))) const char* DsspScanPath() {
+  static thread_local std::string answer;
   try {
-    return path_name(choose_path());
+    answer = path_name(choose_path());
+  } catch (const std::exception& exc) {
+    answer = std::string("invalid: ") + exc.what();
   } catch (...) {
-    return "invalid";
+    answer = "invalid: DSSP_SCAN_PATH cannot be used here";
   }
+  return answer.c_str();
 }
