@@ -7,7 +7,7 @@ EXTRAS ?= train,export,deploy,hardware,sim,viz,dev
 # Test workers (pytest-xdist), one per core; each test file runs whole in one worker (its fixtures built once).
 TEST_WORKERS ?= auto
 
-.PHONY: system setup kernel demo test bench
+.PHONY: system setup kernel demo test test-slow bench
 
 # The fused Mamba operators for ONNX Runtime (optional at run time; see dssp_deploy/kernel/). Built against
 # ONNX Runtime's C API headers: fetched from Debian 13's libonnxruntime-dev into build/ort-include, or taken
@@ -39,6 +39,10 @@ demo: setup
 
 test: setup
 	$(PYTHON) -m pytest -q -n $(TEST_WORKERS) --dist loadfile
+
+# The long end-to-end tests (the memory smoke training, the two studies' quick plans): minutes each.
+test-slow: setup
+	$(PYTHON) -m pytest -q -n $(TEST_WORKERS) --dist loadfile -m slow
 
 bench: setup
 	$(PYTHON) benchmarks/train_step_time.py

@@ -23,21 +23,87 @@ if torch is not None:
 
 import pytest  # noqa: E402
 
+TEST_SEED = 0
+"""The seed every test starts from (torch, numpy's global generator, ``random``): a test's result does not
+depend on which tests ran before it in the same worker."""
 
-@pytest.fixture(scope="session")
-def tiny_export(tmp_path_factory):
-    """A briefly trained tiny DSSP run and its exported model directory: (run_dir, model_dir, data_path)."""
+
+@pytest.fixture(autouse=True)
+def process_state():
+    """Each test starts from the same process-wide state and leaves it as it found it: one torch intra-op
+    thread, seeded global generators, and the environment, the working directory and the signal handlers
+    restored afterwards (what a test, or code it calls, changes in the process stays with that test)."""
+    import random
+
+    import numpy as np
+
+    environ, cwd = dict(os.environ), os.getcwd()
+    handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
+    random_state, numpy_state = random.getstate(), np.random.get_state()
+    random.seed(TEST_SEED)
+    np.random.seed(TEST_SEED)
+    if torch is not None:
+        threads, interop_rng = torch.get_num_threads(), torch.get_rng_state()
+        torch.set_num_threads(1)
+        torch.manual_seed(TEST_SEED)
+    try:
+        yield
+    finally:
+        if torch is not None:
+            torch.set_num_threads(threads)
+            torch.set_rng_state(interop_rng)
+        random.setstate(random_state)
+        np.random.set_state(numpy_state)
+        for sig, handler in handlers.items():
+            if handler is not None and signal.getsignal(sig) is not handler:
+                signal.signal(sig, handler)
+        os.chdir(cwd)
+        if dict(os.environ) != environ:
+            os.environ.clear()
+            os.environ.update(environ)
+
+
+def built_once(tmp_path_factory, request, name: str, build) -> tuple:
+    """``build(root)`` (a tuple of paths) made once per test run, however many pytest-xdist workers need it:
+    the first worker builds it under a file lock in the run's shared temporary folder, the others wait and
+    reuse it. Tests treat such a fixture as read-only (they copy what they change)."""
+    import json
+    import shutil
+    from pathlib import Path
+
+    from filelock import FileLock
+
+    base = tmp_path_factory.getbasetemp()
+    worker = getattr(request.config, "workerinput", None)  # set in a pytest-xdist worker
+    shared = base if worker is None else base.parent  # .../pytest-N, common to this run's workers only
+    root, record = shared / f"built_{name}", shared / f"built_{name}.json"
+    with FileLock(str(shared / f"built_{name}.lock")):
+        if record.is_file():
+            return tuple(Path(p) for p in json.loads(record.read_text()))
+        shutil.rmtree(root, ignore_errors=True)  # what a failed build in another worker left
+        root.mkdir()
+        built = build(root)
+        record.write_text(json.dumps([str(p) for p in built]))
+    return built
+
+
+def _build_tiny_export(root):
     from dssp_train.cli.train import main as train_main
     from dssp_train.data.synthetic import write_tap_count_dataset
     from export.to_onnx import main as export_main
 
-    root = tmp_path_factory.mktemp("tiny_export")
     data = write_tap_count_dataset(root / "tap.zarr", 6, seed=0, n_points=32)
     run_dir, model_dir = root / "run", root / "model"
     assert train_main(["--data", str(data), "--out", str(run_dir), "--preset", "tiny", "--steps", "30",
                        "--set", "train.val_every=30", "--no-progress"]) == 0
     assert export_main([str(run_dir), "-o", str(model_dir), "--skip-verify"]) == 0
     return run_dir, model_dir, data
+
+
+@pytest.fixture(scope="session")
+def tiny_export(tmp_path_factory, request):
+    """A briefly trained tiny DSSP run and its exported model directory: (run_dir, model_dir, data_path)."""
+    return built_once(tmp_path_factory, request, "tiny_export", _build_tiny_export)
 
 
 # A small, quick training configuration (``--set`` overrides of the tiny preset) for CLI tests.
@@ -87,29 +153,31 @@ def write_arm_dataset(path, n_episodes: int = 4, n_arms: int = 1, steps: int = 3
     return path
 
 
-def _arm_export(tmp_path_factory, n_arms: int):
+def _arm_export(tmp_path_factory, request, n_arms: int):
     from dssp_train.cli.train import main as train_main
     from export.to_onnx import main as export_main
 
-    root = tmp_path_factory.mktemp(f"arm_export_{n_arms}")
-    data = write_arm_dataset(root / "arm.zarr", n_arms=n_arms)
-    run_dir, model_dir = root / "run", root / "model"
-    assert train_main(["--data", str(data), "--out", str(run_dir), "--preset", "tiny", "--steps", "20",
-                       "--set", "train.val_every=20", "--no-progress"]) == 0
-    assert export_main([str(run_dir), "-o", str(model_dir), "--skip-verify"]) == 0
-    return model_dir
+    def build(root):
+        data = write_arm_dataset(root / "arm.zarr", n_arms=n_arms)
+        run_dir, model_dir = root / "run", root / "model"
+        assert train_main(["--data", str(data), "--out", str(run_dir), "--preset", "tiny", "--steps", "20",
+                           "--set", "train.val_every=20", "--no-progress"]) == 0
+        assert export_main([str(run_dir), "-o", str(model_dir), "--skip-verify"]) == 0
+        return (model_dir,)
+
+    return built_once(tmp_path_factory, request, f"arm_export_{n_arms}", build)[0]
 
 
 @pytest.fixture(scope="session")
-def arm_export(tmp_path_factory):
+def arm_export(tmp_path_factory, request):
     """A briefly trained tiny model for one simulated Piper (state = action = 7): its model directory."""
-    return _arm_export(tmp_path_factory, 1)
+    return _arm_export(tmp_path_factory, request, 1)
 
 
 @pytest.fixture(scope="session")
-def dual_arm_export(tmp_path_factory):
+def dual_arm_export(tmp_path_factory, request):
     """The same for the two-arm platform (state = action = 14, RoboTwin order)."""
-    return _arm_export(tmp_path_factory, 2)
+    return _arm_export(tmp_path_factory, request, 2)
 
 
 def snapshot(root):
@@ -129,3 +197,11 @@ def snapshot(root):
             else:
                 found[rel] = hashlib.sha256(path.read_bytes()).hexdigest()
     return found
+
+
+def pytest_terminal_summary(terminalreporter, config):
+    """The test order's seed on the last lines (``-q`` hides the header that names it): ``--randomly-seed=N``
+    runs the same order again, ``-p no:randomly`` the files' own order."""
+    seed = getattr(config.option, "randomly_seed", None)
+    if seed is not None and getattr(config.option, "randomly_reorganize", True):
+        terminalreporter.write_line(f"test order: random, --randomly-seed={seed}")

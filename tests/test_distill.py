@@ -157,6 +157,7 @@ def test_a_student_is_not_a_teacher_and_resume_keeps_its_config(teacher, tmp_pat
     assert "not a distilled student" in one_error_line(capsys.readouterr().err)
 
 
+@pytest.mark.slow
 def test_the_distillation_study_writes_its_report(tmp_path, capsys):
     from dssp_sim.distill_study import REPORT_NAME, main as study_main
 

@@ -107,6 +107,7 @@ def run_chunk(policy: OnnxPolicy, data_seed: int = 0) -> np.ndarray:
 
 def test_fused_graphs_run_by_default_and_match_the_standard_ones(tiny_export, monkeypatch):
     _, model_dir, _ = tiny_export
+    monkeypatch.delenv("DSSP_SCAN_PATH", raising=False)  # the default (auto), whatever path the suite forces
     default = OnnxPolicy(model_dir, threads=1)
     assert default.kernel == "fused" and default.precision == DEFAULT_PRECISION
     widest = next(i for i in IMPLEMENTATIONS if cpu_runs(i))  # auto: the widest this CPU runs

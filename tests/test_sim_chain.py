@@ -240,6 +240,7 @@ def test_state_token_noise_changes_the_actions_not_the_chain(sim_model):
     assert 0.1 < clean.z_rms < 10 and noisy.to_dict()["noise_over_z_rms"] == pytest.approx(0.15 / noisy.z_rms)
 
 
+@pytest.mark.slow
 def test_the_study_command_writes_its_report(tmp_path, capsys):
     from dssp_sim.experiment import REPORT_NAME, main as study_main
 

@@ -1,6 +1,7 @@
 """Smoke test of the whole training package: on a task with observation aliasing (the synthetic tap-count
 task), the history model beats the reactive baseline trained on the same data with the same budget."""
 
+import pytest
 import torch
 
 from dssp_data.replay_buffer import ReplayBuffer
@@ -31,6 +32,7 @@ def decision_accuracy(run_dir, data_path) -> float:
     return hits / total
 
 
+@pytest.mark.slow
 def test_history_model_beats_reactive_baseline_on_memory_task(tmp_path):
     data = write_tap_count_dataset(tmp_path / "tap_count.zarr", 40, seed=0)
     results = {}
