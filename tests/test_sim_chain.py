@@ -3,6 +3,7 @@ software device; expert collection into a DP3 dataset; closed-loop evaluation th
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 import textwrap
@@ -277,6 +278,43 @@ def test_the_study_command_writes_its_report(tmp_path, capsys):
     assert "holds no evaluation of this plan" in capsys.readouterr().err
     with pytest.raises(SystemExit, match="unknown task"):
         study_main(["--work", str(work), "--report", str(report), "--quick", "--tasks", "swap"])
+
+
+QUICK_RECORD = Path(__file__).parent / "fixtures" / "sim_study_quick_record"
+"""The record of one whole quick-plan study (``python -m dssp_sim.experiment --work W --report R --quick
+--threads 1``, then R/record): what the long end-to-end test above produces, kept so that the record's uses
+are tested in seconds."""
+
+
+def test_the_study_resumes_from_its_record_and_reports_from_it(tmp_path, capsys):
+    from dssp_sim.experiment import REPORT_NAME, main as study_main
+
+    report = tmp_path / "report"
+    shutil.copytree(QUICK_RECORD, report / "record")
+    recorded = sorted(f.stem for f in (report / "record" / "evals").glob("*.json"))
+    # a machine without the work directory resumes from the record: nothing is collected, trained or evaluated
+    elsewhere = tmp_path / "elsewhere"
+    assert study_main(["--work", str(elsewhere), "--report", str(report), "--quick", "--force"]) == 0
+    out = capsys.readouterr().out
+    assert out.count(": recorded") == 6 and "done before" not in out and not (elsewhere / "data").exists()
+    md = (report / f"{REPORT_NAME}.md").read_text()
+    assert "| tap | DSSP (full history) |" in md and "| tap | reactive baseline" in md and "| 0.1 |" in md
+    assert "| window T_h = 3 | " in md and "| full (DSSP) | " in md  # the ablation table
+    assert (report / f"{REPORT_NAME}.png").read_bytes()[:4] == b"\x89PNG"
+    data = json.loads((report / f"{REPORT_NAME}.json").read_text())
+    assert sorted([*data["evals"], *data["robustness"]]) == recorded and "pending" not in md.lower()
+    for name, row in data["evals"].items():  # the report's figures are the record's
+        assert row == json.loads((report / "record" / "evals" / f"{name}.json").read_text())
+    rms = data["evals"]["tap_dssp_s0"]["z_rms"]
+    assert rms > 0 and f"| 0.1 | {0.1 / rms:.2f} |" in md
+    # a report from the record alone: an evaluation not run yet is listed as pending
+    (report / "record" / "evals" / "tap_window3_s0_noise0.1.json").unlink()
+    assert study_main(["--work", str(elsewhere), "--report", str(report), "--quick", "--force", "--report-only"]) == 0
+    md = (report / f"{REPORT_NAME}.md").read_text()
+    assert "**Partial report**: 1 evaluation(s) of the plan are pending (not run yet): `tap_window3_s0_noise0.1`" in md
+    assert json.loads((report / f"{REPORT_NAME}.json").read_text())["pending"] == ["tap_window3_s0_noise0.1"]
+    assert study_main(["--work", str(elsewhere), "--report", str(tmp_path / "empty"), "--quick", "--report-only"]) == 2
+    assert "holds no evaluation of this plan" in capsys.readouterr().err
 
 
 def test_a_training_stopped_halfway_is_resumed_not_taken_for_done(tmp_path):
