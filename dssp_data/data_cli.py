@@ -29,7 +29,7 @@ import json
 import sys
 from pathlib import Path
 
-from dssp_data.cli_runner import run_cli
+from dssp_data.cli_runner import ArgumentParser, run_cli
 from dssp_data.errors import DSSPError
 
 EPILOG = """\
@@ -46,8 +46,8 @@ repair    cut off the steps of an interrupted write (every complete episode stay
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="dssp-data", description="Look at, check, combine and convert datasets.",
-                                epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = ArgumentParser(prog="dssp-data", description="Look at, check, combine and convert datasets.",
+                       epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     info = sub.add_parser("info", help="what a dataset holds and the problems found")

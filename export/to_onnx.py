@@ -20,7 +20,9 @@ chunk (``denoiser``, K DDIM steps inside). MODEL_DIR gets::
                                          parity figures
 
 The directory appears all at once (see :mod:`export.output_dir`); an existing previous export is replaced
-only with ``--force``. Unless ``--skip-verify``, :mod:`export.verify` compares the graphs with the PyTorch
+only with ``--force``, and a second export into the same MODEL_DIR while one runs is refused. A config.json
+edited since training (it differs from the config the weights record) is refused, naming the fields. Unless
+``--skip-verify``, :mod:`export.verify` compares the graphs with the PyTorch
 model over ``--verify-steps`` ticks (the ONNX graphs streamed through the robot's runtime, the reference
 computed in batch on the training path) before the directory is moved into place; a parity failure
 leaves nothing behind.
@@ -75,6 +77,7 @@ def load_source(run_dir: Path, ema: bool = True):
     policy, config = load_policy(run_dir, weights=weights)
     check_exportable(policy)
     path = run_dir / weights
+    check_finite_weights(policy, path)
     with safe_open(str(path), "pt") as f:
         step = (f.metadata() or {}).get("step")
     source = {  # the run's identity, not where it lived on the training machine
@@ -85,6 +88,19 @@ def load_source(run_dir: Path, ema: bool = True):
         "step": int(step) if step and step.isdigit() else None,
     }
     return policy, config, source
+
+
+def check_finite_weights(policy, path: Path) -> None:
+    """Refuse weights (and normaliser statistics) with NaN or infinity, naming the first such tensor: the graphs
+    would compute NaN, or with int8 plausible-looking garbage, on every input."""
+    import torch
+
+    for name, tensor in policy.state_dict().items():
+        if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
+            count = int((~torch.isfinite(tensor)).sum())
+            raise ExportError(f"{path}: tensor {name} {list(tensor.shape)} holds {count} non-finite value(s) (NaN/inf); "
+                              "nothing was exported: export an earlier checkpoint of the run, or train again (the loss "
+                              "diverged: a lower learning rate)")
 
 
 def without_local_paths(report: dict[str, Any], dataset: str | None) -> dict[str, Any]:
@@ -279,6 +295,8 @@ def export_model(
         ExportError: bad input (nothing is written).
         ParityError: the graphs do not reproduce the PyTorch model (nothing is left behind).
     """
+    from dssp_train.training.checkpoint import config_recorded
+    from dssp_train.training.output_lock import writer_lock
     from export.output_dir import StagedDirectory
     from export.verify import check_report, describe_worst, file_sha256, format_report, verify_model
 
@@ -319,8 +337,10 @@ def export_model(
         progress(f"[{clock[1]}/{n_stages}] {message} ({now - clock[0]:.1f} s)")
         clock[0] = now
 
-    with StagedDirectory(out_dir, force) as staged:
-        policy, config, source = load_source(run_dir, ema)
+    with writer_lock(out_dir, what="model directory", flag="-o", error=ExportError), StagedDirectory(out_dir, force) as staged:
+        policy, config, source = load_source(run_dir, ema)  # refuses a config.json edited since training
+        unrecorded = "" if config_recorded(run_dir / WEIGHTS[ema]) else (
+            "; its config is not recorded (saved by an older version): config.json taken as it is")
         diffusion = config.model.diffusion
         if timestep_spacing is not None:
             if timestep_spacing not in SPACINGS:
@@ -330,7 +350,7 @@ def export_model(
         if not 1 <= k <= diffusion.num_train_timesteps:
             raise ExportError(f"--denoise-steps must be in [1, {diffusion.num_train_timesteps}] (the training timesteps), got {k}")
         timesteps = policy.schedule.inference_timesteps(k)
-        stage(f"loaded {run_dir} ({'EMA' if ema else 'raw'} weights, step {source['step']}, sha256 {source['sha256'][:12]})")
+        stage(f"loaded {run_dir} ({'EMA' if ema else 'raw'} weights, step {source['step']}, sha256 {source['sha256'][:12]}{unrecorded})")
 
         modules = graph_modules(policy, k)
         examples = {g: example_inputs(config, g) for g in GRAPHS}

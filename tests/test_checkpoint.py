@@ -124,10 +124,18 @@ def test_resume_changes_weights_and_steps_beyond_the_interrupted_run(runs):
     assert any(not torch.equal(a[k], b[k]) for k in a)
 
 
-def test_resume_of_a_finished_run_changes_nothing(runs, tmp_path):
+def test_resume_of_a_finished_run_changes_nothing(runs, tmp_path, capsys):
+    from conftest import snapshot
+
     run = tmp_path / "done"
     shutil.copytree(runs["straight"], run)
+    before = snapshot(run)
     assert train_main(resume_args(runs["data"], run)) == 0
+    captured = capsys.readouterr()
+    assert captured.out == ""  # no summary: nothing was trained
+    assert captured.err.strip() == (f"{run} has completed its {2 * K} steps: nothing to train; continue it with "
+                                    f"--resume --steps N (N > {2 * K})")
+    assert snapshot(run) == before
     assert_same_final_state(run, runs["straight"])
     assert [r["step"] for r in read_log(run / "log.jsonl") if r["kind"] == "train"] == list(range(1, 2 * K + 1))
 
@@ -180,6 +188,29 @@ def test_load_policy_matches_trained_ema_model(runs, tmp_path):
 
 
 # ----------------------------------------------------------------- (c) errors
+def strip_config_record(run: Path) -> None:
+    """Make ``run`` look saved by a version from before configs were recorded: no config in its weights'
+    metadata or its trainer_state.json (the record must be there to remove)."""
+    from safetensors import safe_open
+    from safetensors.torch import save_file
+
+    for path in [run / "model.safetensors", *sorted((run / "checkpoint").glob("*.safetensors"))]:
+        with safe_open(str(path), "pt") as f:
+            meta = dict(f.metadata())
+        assert {"config", "config_sha256"} <= set(meta), path
+        save_file(load_file(str(path)), str(path), metadata={k: v for k, v in meta.items() if not k.startswith("config")})
+    state_path = run / "checkpoint" / "trainer_state.json"
+    state = json.loads(state_path.read_text())
+    del state["config"], state["config_sha256"]
+    state_path.write_text(json.dumps(state))
+
+
+def edit_config(run: Path, section: str, **values) -> None:
+    config = json.loads((run / "config.json").read_text())
+    (config[section] if section else config).update(values)
+    (run / "config.json").write_text(json.dumps(config))
+
+
 @pytest.mark.parametrize(
     "edit,kind",
     [
@@ -189,13 +220,24 @@ def test_load_policy_matches_trained_ema_model(runs, tmp_path):
     ],
 )
 def test_weights_that_do_not_fit_the_config(runs, tmp_path, capsys, edit, kind):
-    run = tmp_path / "edited"
-    shutil.copytree(runs["straight"], run)
-    config = json.loads((run / "config.json").read_text())
-    config["model"].update(edit)
-    (run / "config.json").write_text(json.dumps(config))
-    tensor_names = set(load_file(str(run / "model.safetensors")))
+    """config.json edited after training: the recorded config names the field; a run from before configs were
+    recorded still gets the tensors' own explanation."""
+    run = copy_run(runs, tmp_path, "edited")  # stopped halfway: --resume has steps to train
+    edit_config(run, "model", **edit)
+    (field, value), = edit.items()
+    trained = json.loads((runs["straight"] / "config.json").read_text())["model"][field]
+    named = f"model.{field} {value} (trained: {trained})"
 
+    with pytest.raises(CheckpointError) as info:
+        load_policy(run)
+    assert "\n" not in str(info.value) and named in str(info.value)
+    assert f"{run / 'config.json'} differs from the config {run / 'model.safetensors'} was trained with" in str(info.value)
+    assert train_main(resume_args(runs["data"], run)) == 2
+    line = one_error_line(capsys.readouterr())
+    assert named in line and str(run / "checkpoint" / "trainer_state.json") in line
+
+    strip_config_record(run)
+    tensor_names = set(load_file(str(run / "model.safetensors")))
     with pytest.raises(CheckpointError) as info:
         load_policy(run)
     message = str(info.value)
@@ -206,10 +248,102 @@ def test_weights_that_do_not_fit_the_config(runs, tmp_path, capsys, edit, kind):
     named = [n for n in tensor_names | {f"denoiser.layers.2.{s}" for s in ("norm.weight", "mixer.A_log")} if n in message]
     assert named, message
 
-    # --resume reports it the same way: one line, exit code 2.
+    # --resume reports it the same way: one line, exit code 2 (after the warning that the config is not recorded).
+    assert train_main(resume_args(runs["data"], run)) == 2
+    warning, error = capsys.readouterr().err.strip().splitlines()
+    assert warning.startswith("warning: ") and "does not record the config it was trained with" in warning
+    assert error.startswith("error: ") and kind in error and "checkpoint" in error
+
+
+def test_every_weights_file_records_the_config_it_was_trained_with(runs):
+    from safetensors import safe_open
+
+    run = runs["straight"]
+    text = ckpt.canonical_config(ckpt.load_config(run))
+    for path in [run / "model.safetensors", *(run / "checkpoint" / n for n in CHECKPOINT_FILES)]:
+        with safe_open(str(path), "pt") as f:
+            meta = f.metadata()
+        assert meta["config"] == text and meta["config_sha256"] == ckpt.config_sha256(text), path
+    state = json.loads((run / "checkpoint" / "trainer_state.json").read_text())
+    assert state["config_sha256"] == ckpt.config_sha256(text) and state["config"] == json.loads(text)
+
+
+@pytest.mark.parametrize("section,values,named", [
+    ("train", {"lr": 0.5}, "train.lr 0.5 (trained: 0.001)"),
+    ("train", {"seed": 7, "batch_size": 3}, "train.batch_size 3 (trained: 4), train.seed 7 (trained: 0)"),
+    (None, {"control_rate_hz": 30.0}, "control_rate_hz 30.0 (trained: 10.0)"),
+    ("model", {"dynamics_weight": 0.0}, "model.dynamics_weight 0.0 (trained: 0.05)"),
+])
+def test_resume_refuses_a_config_edited_after_training(runs, tmp_path, capsys, section, values, named):
+    """Fields the tensors cannot tell: the checkpoint's recorded config does; nothing in the run changes."""
+    from conftest import snapshot
+
+    run = copy_run(runs, tmp_path)
+    edit_config(run, section, **values)
+    before = snapshot(run)
     assert train_main(resume_args(runs["data"], run)) == 2
     line = one_error_line(capsys.readouterr())
-    assert kind in line and "checkpoint" in line
+    assert named in line, line
+    assert line.startswith(f"error: {run / 'config.json'} differs from the config {run / 'checkpoint' / 'trainer_state.json'}")
+    assert "put the trained values back in config.json" in line
+    assert snapshot(run) == before
+
+
+def test_resume_accepts_config_json_written_another_way(runs, tmp_path, capsys):
+    """Only values count: another layout of the same config (keys reordered, no indentation, a default left
+    out) continues the run."""
+    run = copy_run(runs, tmp_path)
+    config = json.loads((run / "config.json").read_text())
+    del config["distill"]  # the default
+    (run / "config.json").write_text(json.dumps(dict(reversed(list(config.items())))))
+    assert train_main(resume_args(runs["data"], run)) == 0
+    assert "config" not in capsys.readouterr().err  # no warning about it, no refusal
+    assert_same_final_state(run, runs["straight"])
+
+
+def test_a_checkpoint_without_a_recorded_config_resumes_with_a_warning(runs, tmp_path, capsys):
+    run = copy_run(runs, tmp_path)
+    strip_config_record(run)
+    assert train_main(resume_args(runs["data"], run)) == 0
+    warnings = [line for line in capsys.readouterr().err.splitlines() if line.startswith("warning: ") and "config" in line]
+    assert warnings == [f"warning: {run / 'checkpoint' / 'trainer_state.json'} does not record the config it was trained "
+                        f"with (saved by an older version): {run / 'config.json'} is taken as it is"]
+    assert_same_final_state(run, runs["straight"])  # and its next checkpoint records it
+
+
+FAST_EXPORT = ["--format", "onnx", "--skip-verify", "--quantize", "none", "--no-fused"]
+
+
+def test_export_refuses_a_config_edited_after_training(runs, tmp_path, capsys):
+    from export.to_onnx import main as export_main
+
+    run = tmp_path / "run"
+    shutil.copytree(runs["straight"], run)
+    edit_config(run, "model", n_action_steps=2)
+    model = tmp_path / "out" / "model"
+    assert export_main([str(run), "-o", str(model), *FAST_EXPORT]) == 2
+    line = one_error_line(capsys.readouterr())
+    assert f"{run / 'config.json'} differs from the config {run / 'model.safetensors'} was trained with" in line
+    assert "model.n_action_steps 2 (trained: 3)" in line
+    assert not (tmp_path / "out").exists()
+    # The raw weights (--no-ema) record it too.
+    assert export_main([str(run), "-o", str(model), "--no-ema", *FAST_EXPORT]) == 2
+    assert f"differs from the config {run / 'checkpoint' / 'model.safetensors'} was trained" in one_error_line(capsys.readouterr())
+
+
+def test_export_takes_a_run_without_a_recorded_config_and_says_so(runs, tmp_path, capsys):
+    from export.to_onnx import main as export_main
+
+    run = tmp_path / "run"
+    shutil.copytree(runs["straight"], run)
+    assert export_main([str(run), "-o", str(tmp_path / "recorded"), *FAST_EXPORT]) == 0
+    assert "config is not recorded" not in capsys.readouterr().out
+    strip_config_record(run)
+    assert export_main([str(run), "-o", str(tmp_path / "model"), *FAST_EXPORT]) == 0
+    captured = capsys.readouterr()
+    loaded = [line for line in captured.out.splitlines() if " loaded " in line]
+    assert len(loaded) == 1 and "its config is not recorded (saved by an older version): config.json taken as it is" in loaded[0]
+    assert "error" not in captured.err
 
 
 def test_missing_config_json(runs, tmp_path, capsys):

@@ -131,7 +131,11 @@ def test_bad_input_is_one_error_line_and_exit_code_2(name, data, nan_data, not_z
 
 
 def test_bad_input_via_subprocess(data, nan_data, not_zarr, happy, tmp_path):
-    cases = {n: (argv, phrase) for n, argv, phrase in error_cases(data, nan_data, not_zarr, tmp_path, happy["out"])}
+    cases = {}
+    for name in SUBPROCESS_CASES:  # each into its own --out: they run at the same time (one writer per run directory)
+        (tmp_path / name).mkdir()
+        cases[name] = {n: (argv, phrase) for n, argv, phrase in error_cases(data, nan_data, not_zarr, tmp_path / name,
+                                                                             happy["out"])}[name]
     procs = {
         name: subprocess.Popen(
             cli(*cases[name][0]), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=subprocess_env()

@@ -258,6 +258,35 @@ def test_ctrl_c_before_training_keeps_nothing(data, tmp_path, capsys, monkeypatc
     assert not out.exists()
 
 
+def test_ctrl_c_before_the_first_step_says_so(data, tmp_path, capsys, monkeypatch):
+    """Interrupted once the run is set up but before any step: not "after step 0", and nothing logged as trained."""
+    out = tmp_path / "run"
+    interrupt_at(monkeypatch, 0)
+    assert train_main(["--data", str(data), "--out", str(out), "--steps", "4", "--no-progress", *SET_SMALL]) == 130
+    captured = capsys.readouterr()
+    assert captured.out == ""  # no summary
+    assert captured.err.strip().splitlines()[-1] == (
+        "interrupted before the first step: no checkpoint was kept; start the run over by adding --force")
+    assert read_log(out / "log.jsonl") == [] and not (out / "checkpoint").exists()
+
+
+def test_ctrl_c_of_a_resume_before_its_first_step_changes_nothing(trained, data, tmp_path, capsys, monkeypatch):
+    """A --resume interrupted before a step past the checkpoint: the message says where it stopped and repeats the
+    --steps asked for (the run's config.json keeps its own until the next checkpoint); the run is as it was."""
+    run = copy_of(trained, tmp_path)
+    before = snapshot(run)
+    interrupt_at(monkeypatch, 2)
+    assert train_main(["--data", str(data), "--out", str(run), "--resume", "--steps", "4", "--no-progress"]) == 130
+    monkeypatch.undo()
+    command = f"dssp-train --data {data} --out {run} --resume --steps 4"
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        f"interrupted before any step past the checkpoint's step 2; the checkpoint of step 2 is in {run / 'checkpoint'}: "
+        f"continue with {command}")
+    assert snapshot(run) == before
+    assert train_main(command.split()[1:] + ["--no-progress"]) == 0
+    assert [r["step"] for r in read_log(run / "log.jsonl") if r["kind"] == "train"] == [1, 2, 3, 4]
+
+
 def test_ctrl_c_of_a_run_replacing_another_puts_the_other_back(trained, data, tmp_path, capsys, monkeypatch):
     run = copy_of(trained, tmp_path)
     before = snapshot(run)

@@ -19,6 +19,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from dssp_data.cli_runner import ArgumentParser
 from dssp_data.errors import ConfigError, DSSPError
 from dssp_train.cli.train import add_log_flag, given_flags, run_training, with_flags
 from dssp_train.config import DISTILL_METHODS, RunConfig
@@ -29,7 +30,7 @@ TRAIN_ONLY = ("epochs", "val_ratio", "history_backbone", "history_window", "deno
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="dssp-distill", description=__doc__.split("\n\n")[0].strip("`"))
+    p = ArgumentParser(prog="dssp-distill", description=__doc__.split("\n\n")[0].strip("`"))
     p.add_argument("--teacher", help="the trained run directory to distil (dssp-train's --out)")
     p.add_argument("--steps", type=int, dest="denoise_steps", help="the student's denoising steps per chunk (K; 1 or 2 "
                                                                     "is what distillation is for)")
@@ -113,6 +114,7 @@ def main(argv: list[str] | None = None) -> int:
         setattr(args, name, None if name not in ("no_holdout", "no_history", "no_timestep_decoupling", "no_recent_states",
                                                  "no_dynamics_loss") else False)
     args.set = []
+    args.steps_flag = "--train-steps"
     return run_training(args, student_config)
 
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from dssp_data.cli_runner import run_cli
+from dssp_data.cli_runner import ArgumentParser, run_cli
 from dssp_train.cli.train import set_fields
 from dssp_data.schema import MAX_DIM
 from dssp_train.config import apply_overrides, load_preset, preset_names
@@ -20,15 +20,19 @@ from dssp_data.schema import Spec, check_value
 DEFAULT_DIM = 14  # RoboTwin's two arms
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="dssp-params", description="Parameter breakdown of a DSSP model.")
+def build_parser() -> argparse.ArgumentParser:
+    p = ArgumentParser(prog="dssp-params", description="Parameter breakdown of a DSSP model.")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--preset", help=f"one of {', '.join(preset_names())}")
     src.add_argument("--run", help="a run directory (config.json)")
     p.add_argument("--state-dim", type=int, help=f"agent_pos dimension for a preset (default {DEFAULT_DIM}, RoboTwin)")
     p.add_argument("--action-dim", type=int, help=f"action dimension for a preset (default {DEFAULT_DIM}, RoboTwin)")
     p.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE")
-    args = p.parse_args(argv)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
 
     def _main() -> int:
         from dssp_train.model.param_count import format_breakdown, parameter_breakdown

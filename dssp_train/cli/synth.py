@@ -11,17 +11,21 @@ from __future__ import annotations
 import argparse
 import sys
 
-from dssp_data.cli_runner import run_cli
+from dssp_data.cli_runner import ArgumentParser, run_cli
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="dssp-synth", description="Write the synthetic tap-count dataset (DP3 zarr format).")
+def build_parser() -> argparse.ArgumentParser:
+    p = ArgumentParser(prog="dssp-synth", description="Write the synthetic tap-count dataset (DP3 zarr format).")
     p.add_argument("--out", required=True, help="dataset path to write (.zarr directory)")
     p.add_argument("--episodes", type=int, default=40, help="demonstrations to generate (1 to 10000)")
     p.add_argument("--seed", type=int, default=0, help="seed (>= 0)")
     p.add_argument("--points", type=int, default=64, help="points per cloud (24 to 100000)")
     p.add_argument("--force", action="store_true", help="replace a dataset dssp-synth wrote before at --out")
-    args = p.parse_args(argv)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
 
     def _main() -> int:
         from dssp_train.data.synthetic import check_tap_count_size

@@ -8,13 +8,18 @@ A new run goes into a new or empty --out. A previous run there is refused (conti
 with --force, replaced: it is moved aside while the new run trains, deleted when the new run completes,
 and put back if the new run fails or is interrupted. A folder holding anything but a run is never touched
 (:mod:`dssp_data.output_guard`). A run that stopped before its first checkpoint cannot be continued: it is
-started over with --force.
+started over with --force. One process writes a run directory at a time: a second dssp-train or dssp-distill
+with the same --out (a new run, --force or --resume) is refused before it reads or changes anything there
+(:mod:`dssp_train.training.output_lock`).
 
 Every config field has one source: a flag (--steps, --seed, ...), else ``--set model.*/train.*``, else the
 preset; the same field from a flag and a --set, or twice from --set, is refused. The dataset gives the
 dimensions, the cloud size and the control rate; a --control-rate or a ``--set model.n_points`` that
 contradicts it is refused. --resume continues the run on the same --data (its resolved path and, as the
-checkpoint records them, its episodes) with the run's own config; only --steps may grow.
+checkpoint records them, its episodes) with the run's own config; only --steps may grow. A config.json that
+differs from the config the checkpoint records is refused, naming the fields (one from a version that did not
+record it is taken with a warning); the --steps of a resume reach config.json with its next checkpoint. A
+--resume of a run that has completed its steps trains nothing and says so.
 
 --log tensorboard|wandb sends what log.jsonl records, and the validation chunks as images, to a dashboard
 in the run directory (:mod:`dssp_train.training.dashboards`); like --no-progress it is not part of the run's config,
@@ -39,7 +44,7 @@ import threading
 import typing
 from pathlib import Path
 
-from dssp_data.cli_runner import run_cli
+from dssp_data.cli_runner import ArgumentParser, run_cli
 from dssp_train.config import RunConfig, apply_overrides, load_preset, preset_names
 from dssp_train.training.dashboards import DASHBOARDS, check_dashboard
 from dssp_data.errors import CheckpointError, ConfigError, DSSPError
@@ -47,7 +52,7 @@ from dssp_data.schema import Spec, check_value
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="dssp-train", description=__doc__.split("\n\n")[0].strip("`"))
+    p = ArgumentParser(prog="dssp-train", description=__doc__.split("\n\n")[0].strip("`"))
     p.add_argument("--data", required=True, help="DP3/RoboTwin zarr dataset (data/point_cloud, data/state, data/action, meta/episode_ends)")
     p.add_argument("--preset", default=None, help=f"model and training preset: {', '.join(preset_names())} (default tiny)")
     p.add_argument("--out", required=True, help="run directory to create (or to continue with --resume)")
@@ -227,13 +232,21 @@ def no_checkpoint_message(out: Path) -> str:
 
 
 def check_resume(args, out: Path) -> RunConfig:
-    """Before the dataset is read: the run in ``out`` can be continued as asked. Returns its config."""
-    from dssp_train.training.checkpoint import load_config, read_trainer_state
+    """Before the dataset is read: the run in ``out`` can be continued as asked, and its config.json is the config
+    its checkpoint was trained with (one without that record, from an older version, is taken with a warning).
+    Returns its config."""
+    import warnings
+
+    from dssp_train.training.checkpoint import check_recorded_config, checkpoint_dir, load_config, read_trainer_state
 
     config = load_config(out)
     state = read_trainer_state(out)
     if state is None:
         raise CheckpointError(no_checkpoint_message(out))
+    where = checkpoint_dir(out) / "trainer_state.json"
+    if not check_recorded_config(out, config, state, where):
+        warnings.warn(f"{where} does not record the config it was trained with (saved by an older version): "
+                      f"{out / 'config.json'} is taken as it is")
     if args.steps is not None and args.steps <= state["step"]:
         raise ConfigError(f"--steps must be larger than the checkpoint's step {state['step']} to continue (got {args.steps})")
     return config
@@ -243,7 +256,14 @@ def interrupted_message(args, out: Path, trainer, replaced: bool) -> str:
     """What a Ctrl-C (or SIGTERM) kept, and how to go on from there."""
     from dssp_train.training.checkpoint import checkpoint_dir, read_trainer_state
 
-    at = "interrupted before training began" if trainer is None else f"interrupted after step {trainer.step}"
+    if trainer is None:
+        at = "interrupted before training began"
+    elif trainer.step > trainer.start_step:
+        at = f"interrupted after step {trainer.step}"
+    elif trainer.start_step:
+        at = f"interrupted before any step past the checkpoint's step {trainer.start_step}"
+    else:
+        at = "interrupted before the first step"
     if replaced:
         return f"{at}; this run is discarded and the previous run in {out} is back as it was"
     if not out.exists():
@@ -252,11 +272,25 @@ def interrupted_message(args, out: Path, trainer, replaced: bool) -> str:
     with contextlib.suppress(DSSPError):
         state = read_trainer_state(out)
     if state is not None:
-        command = shlex.join(["dssp-train", "--data", str(args.data), "--out", str(args.out), "--resume"])
-        return f"{at}; the checkpoint of step {state['step']} is in {checkpoint_dir(out)}: continue with {command}"
+        command = ["dssp-train", "--data", str(args.data), "--out", str(args.out), "--resume"]
+        if args.resume and args.steps is not None and args.steps != _run_steps(out):  # not saved yet: asked again
+            command += ["--steps", str(args.steps)]
+        return f"{at}; the checkpoint of step {state['step']} is in {checkpoint_dir(out)}: continue with {shlex.join(command)}"
     if args.resume:
         return f"{at}; {out} is unchanged"
+    if trainer is not None and trainer.step == 0:
+        return f"{at}: no checkpoint was kept; start the run over by adding --force"
     return f"{at}, before {_first_save(out)}: no checkpoint was kept; start the run over by adding --force"
+
+
+def _run_steps(out: Path) -> int | None:
+    """train.steps of the run's config.json, or None when it cannot be read."""
+    from dssp_train.training.checkpoint import load_config
+
+    try:
+        return load_config(out).train.steps
+    except DSSPError:
+        return None
 
 
 @contextlib.contextmanager
@@ -288,6 +322,7 @@ def run_training(args, make_config) -> int:
 
     def _main() -> int:
         from dssp_data.output_guard import OWN, RUN_DIR, OutputDir, OutputError, check_output
+        from dssp_train.training.output_lock import writer_lock
 
         out = Path(args.out)
         if args.resume and args.force:
@@ -297,6 +332,8 @@ def run_training(args, make_config) -> int:
         replaced = False
         try:
             with contextlib.ExitStack() as stack:
+                if is_main:  # one writer per run directory, before anything in it is read, moved or written
+                    stack.enter_context(writer_lock(out, what="run directory", flag="--out"))
                 target = None
                 if not args.resume:
                     try:  # before anything else: a run that may not be replaced stops here
@@ -340,6 +377,15 @@ def _train(args, out: Path, make_config) -> dict | None:
         check_flag("--control-rate", "control_rate_hz", args.control_rate)
     run_config = check_resume(args, out) if args.resume else None
     config = make_config(args, run_config)
+    if args.resume and args.steps is None:
+        from dssp_train.training.checkpoint import read_trainer_state
+
+        done = read_trainer_state(out)["step"]
+        if done >= config.train.steps:  # nothing to train: nothing is read, written or reported as trained
+            if int(os.environ.get("RANK", "0")) == 0:
+                print(f"{out} has completed its {config.train.steps} steps: nothing to train; continue it with "
+                      f"--resume {getattr(args, 'steps_flag', '--steps')} N (N > {done})", file=sys.stderr)
+            return None
     if not Path(args.data).exists():
         raise DSSPError(f"dataset {args.data} does not exist; pass a DP3/RoboTwin .zarr directory (dssp-synth makes one)")
     device = args.device if args.device != "auto" else ("cuda" if torch.cuda.is_available() else "cpu")

@@ -9,20 +9,29 @@ A run directory::
         model.safetensors    raw weights
         ema.safetensors      EMA weights
         optimizer.safetensors AdamW moments, one tensor per parameter and moment
-        trainer_state.json   step, EMA step, LR-schedule step, param groups
+        trainer_state.json   step, EMA step, LR-schedule step, param groups, the run's config
         rng.safetensors      torch RNG states
       log.jsonl, loss.png
 
 Every file is written to a temporary name and renamed into place; the checkpoint folder is swapped
 in whole, so a crash never leaves a half-written checkpoint behind.
+
+Every weights file records the config it was trained with (safetensors metadata ``config``, its SHA-256
+in ``config_sha256``; ``trainer_state.json`` the same as ``config`` and ``config_sha256``): a config.json
+edited after training is refused where weights are loaded (:func:`load_policy`, so export and verify) and
+by ``--resume`` (:func:`check_recorded_config`), one line naming the fields that differ. Checkpoints saved
+before configs were recorded carry no record: they are accepted with config.json as it is (``--resume``
+warns; export says so in its "loaded" line), their tensors still checked against it by shape.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import shutil
 import tempfile
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -109,19 +118,125 @@ def load_config(run_dir: Path) -> RunConfig:
     return config
 
 
+# ------------------------------------------------------------ the recorded config
+CONFIG_KEY, CONFIG_HASH_KEY = "config", "config_sha256"
+"""Where a checkpoint records its config: safetensors metadata keys and ``trainer_state.json`` keys."""
+
+
+def canonical_config(config: RunConfig) -> str:
+    """``config`` as the one JSON text that is hashed and recorded (sorted keys, no spaces)."""
+    return json.dumps(config.to_dict(), sort_keys=True, separators=(",", ":"))
+
+
+def config_sha256(text: str) -> str:
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def config_record(config: RunConfig) -> dict[str, str]:
+    """What a checkpoint records of the config it was trained with: ``{"config": JSON, "config_sha256": hex}``."""
+    text = canonical_config(config)
+    return {CONFIG_KEY: text, CONFIG_HASH_KEY: config_sha256(text)}
+
+
+def _flat(values: Any, prefix: str = "") -> dict[str, Any]:
+    """``{"model.d_model": 32, ...}``: nested objects flattened to dotted field names (lists kept whole)."""
+    if not isinstance(values, Mapping):
+        return {prefix: values}
+    flat: dict[str, Any] = {}
+    for key, value in values.items():
+        flat.update(_flat(value, f"{prefix}.{key}" if prefix else str(key)))
+    return flat
+
+
+def config_differences(recorded: Mapping[str, Any], now: Mapping[str, Any]) -> list[tuple[str, Any, Any]]:
+    """(field, value now, value recorded) of every field that differs, in field order (absent: None)."""
+    a, b = _flat(now), _flat(recorded)
+    return [(key, a.get(key), b.get(key)) for key in sorted(set(a) | set(b)) if a.get(key) != b.get(key)]
+
+
+def _recorded_values(text: Any, digest: Any, where: str) -> dict[str, Any]:
+    """The recorded config (a JSON text or object, with its SHA-256) as a dict normalised through RunConfig, so
+    that fields added to the config since compare as their defaults."""
+    if isinstance(text, Mapping):
+        text = json.dumps(text, sort_keys=True, separators=(",", ":"))
+    damaged = f"{where} records a damaged config; train the run again (dssp-train --force)"
+    if not isinstance(text, str) or not isinstance(digest, str) or config_sha256(text) != digest:
+        raise CheckpointError(damaged)
+    try:
+        values = json.loads(text)
+    except json.JSONDecodeError:
+        raise CheckpointError(damaged) from None
+    if not isinstance(values, dict):
+        raise CheckpointError(damaged)
+    try:
+        return RunConfig.from_dict(values).to_dict()
+    except (ConfigError, TypeError):
+        return values
+
+
+def _show(value: Any) -> str:
+    return json.dumps(value) if not isinstance(value, str) else value
+
+
+def check_recorded_config(run_dir: Path, config: RunConfig, record: Mapping[str, Any] | None, where: Path | str) -> bool:
+    """Refuse a config.json that differs from the config ``where`` (a weights file, a trainer_state.json) records.
+
+    ``record``: the safetensors metadata or the trainer state holding ``config`` and ``config_sha256``. Returns
+    False when there is no record (a checkpoint from before configs were recorded: config.json is taken as it
+    is), True when config.json is the recorded config; otherwise one CheckpointError naming the fields that differ.
+    """
+    record = record or {}
+    if CONFIG_KEY not in record and CONFIG_HASH_KEY not in record:
+        return False
+    digest = record.get(CONFIG_HASH_KEY)
+    now_text = canonical_config(config)
+    if isinstance(record.get(CONFIG_KEY), str) and config_sha256(now_text) == digest == config_sha256(record[CONFIG_KEY]):
+        return True
+    differences = config_differences(_recorded_values(record.get(CONFIG_KEY), digest, str(where)), json.loads(now_text))
+    if not differences:
+        return True
+    shown = ", ".join(f"{key} {_show(now)} (trained: {_show(then)})" for key, now, then in differences[:4])
+    more = f" and {len(differences) - 4} more" if len(differences) > 4 else ""
+    raise CheckpointError(
+        f"{Path(run_dir) / 'config.json'} differs from the config {where} was trained with: {shown}{more}; "
+        "put the trained values back in config.json, or train a new run with the new ones"
+    )
+
+
+def weights_metadata(path: Path) -> dict[str, str]:
+    """The safetensors metadata of the weights file ``path`` (its header only; {} when it has none)."""
+    from safetensors import safe_open
+
+    try:
+        with safe_open(str(path), "pt") as f:
+            return dict(f.metadata() or {})
+    except (SafetensorError, OSError, ValueError) as exc:
+        raise CheckpointError(f"{path} is not a readable safetensors file ({exc}); re-export or retrain it") from None
+
+
+def config_recorded(path: Path) -> bool:
+    """Whether the weights file ``path`` records the config it was trained with."""
+    return CONFIG_HASH_KEY in weights_metadata(path)
+
+
 def first_save_step(config: RunConfig) -> int:
     """The step of a run's first checkpoint."""
     return min(config.train.save_every, config.train.steps)
 
 
 def load_policy(run_dir: Path, weights: str = "model.safetensors"):
-    """Build the policy described by ``RUN_DIR/config.json`` and load its (EMA) weights."""
+    """Build the policy described by ``RUN_DIR/config.json`` and load its (EMA) weights.
+
+    A config.json that differs from the config the weights record is refused (:func:`check_recorded_config`).
+    """
     from dssp_train.model.policy import DSSPPolicy
 
     config = load_config(run_dir)
-    policy = DSSPPolicy(config.model)
     path = Path(run_dir) / weights
-    load_state_into(policy, load_tensors(path), path)
+    tensors = load_tensors(path)
+    check_recorded_config(run_dir, config, weights_metadata(path), path)
+    policy = DSSPPolicy(config.model)
+    load_state_into(policy, tensors, path)
     return policy.eval(), config
 
 
@@ -165,14 +280,19 @@ def save_training_state(
     optimizer: torch.optim.Optimizer,
     trainer_state: dict[str, Any],
     rng: dict[str, torch.Tensor],
+    config: RunConfig | None = None,
 ) -> None:
-    """Write RUN_DIR/checkpoint atomically (a new folder swapped in whole)."""
+    """Write RUN_DIR/checkpoint atomically (a new folder swapped in whole). ``config``: the run's config, recorded
+    in every file of the checkpoint (:func:`config_record`)."""
     run_dir = Path(run_dir)
     remove_partial_checkpoints(run_dir)
     tmp = Path(tempfile.mkdtemp(dir=run_dir, prefix=PARTIAL_PREFIX))
+    record = config_record(config) if config is not None else {}
+    if config is not None:
+        trainer_state = {**trainer_state, CONFIG_KEY: json.loads(record[CONFIG_KEY]), CONFIG_HASH_KEY: record[CONFIG_HASH_KEY]}
     try:
         os.chmod(tmp, 0o777 & ~_umask())
-        meta = {"format_version": FORMAT_VERSION, "step": str(trainer_state["step"])}
+        meta = {"format_version": FORMAT_VERSION, "step": str(trainer_state["step"]), **record}
         save_tensors(tmp / "model.safetensors", model.state_dict(), meta)
         save_tensors(tmp / "ema.safetensors", ema_model.state_dict(), meta)
         opt_tensors, groups = _optimizer_tensors(optimizer)

@@ -243,8 +243,10 @@ class Trainer:
         self.ema = EMA(self.policy, tc.ema_power, tc.ema_max_decay)
         self.generator = torch.Generator().manual_seed((tc.seed * 1000 + self.rank) % 2**64)
         self.step = 0
+        self.resumed = resume
         if resume:
             self._restore()
+        self.start_step = self.step  # where this process began: 0, or the checkpoint's step on --resume
         self.model = self.policy
         if self.teacher is not None:
             from dssp_train.training.distillation import DistillObjective
@@ -324,7 +326,8 @@ class Trainer:
         try:
             if self.is_main:
                 self.run_dir.mkdir(parents=True, exist_ok=True)
-                ckpt.save_config(self.run_dir, self.config)
+                if not self.resumed:  # a resumed run's config.json changes with its next checkpoint (save)
+                    ckpt.save_config(self.run_dir, self.config)
                 resume_step = self.step if self.step > 0 else None
                 log = RunLog(self.run_dir / "log.jsonl", resume_step=resume_step)
                 dashboard = open_dashboard(self.dashboard, self.run_dir, self.config.to_dict(), resume_step)
@@ -399,7 +402,9 @@ class Trainer:
 
     # ----------------------------------------------------------- checkpoints
     def save(self) -> None:
-        meta = {"format_version": ckpt.FORMAT_VERSION, "step": str(self.step)}
+        """The EMA weights, the checkpoint, then config.json: each records the config it was trained with
+        (:func:`~dssp_train.training.checkpoint.config_record`), which config.json then is."""
+        meta = {"format_version": ckpt.FORMAT_VERSION, "step": str(self.step), **ckpt.config_record(self.config)}
         ckpt.save_tensors(self.run_dir / "model.safetensors", self.ema.model.state_dict(), meta)
         ckpt.save_training_state(
             self.run_dir,
@@ -408,7 +413,9 @@ class Trainer:
             self.optimizer,
             {"step": self.step, "ema_step": self.ema.step, "world_size": self.world_size, "dataset": self.dataset_identity},
             {"generator": self.generator.get_state(), "torch": torch.get_rng_state()},
+            config=self.config,
         )
+        ckpt.save_config(self.run_dir, self.config)
 
     def _restore(self) -> None:
         state = ckpt.load_training_state(self.run_dir)
