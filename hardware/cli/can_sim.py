@@ -13,7 +13,7 @@ import sys
 import threading
 import time
 
-from dssp_data.cli_runner import run_cli
+from dssp_data.cli_runner import ArgumentParser, run_cli
 from dssp_data.errors import HardwareError
 
 EPILOG = """\
@@ -52,9 +52,9 @@ class _ArgumentError(Exception):
     pass
 
 
-class _Parser(argparse.ArgumentParser):
-    def error(self, message):  # one line on stderr and exit 2, without the usage block
-        raise _ArgumentError(message)
+class _Parser(ArgumentParser):
+    def error(self, message):  # ArgumentParser's one line, returned by main as exit code 2 (not a SystemExit)
+        raise _ArgumentError(f"{self.prog}: {message} (see {self.prog} --help)")
 
 
 def _parser() -> argparse.ArgumentParser:
