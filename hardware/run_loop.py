@@ -1,7 +1,7 @@
 """The robot's control loop: camera → point cloud → runtime → safety → arms, at a fixed rate.
 
     runner = Runner(policy, camera, robot, cloud_config, camera_to_base, SafetyConfig(), LoopSettings(rate_hz=10))
-    summary = runner.run()        # until max_steps, a stop request (SIGINT/SIGTERM) or a fault
+    summary = runner.run()        # until max_steps, a stop request (a signal, a lost output) or a fault
 
 Each tick:
 1. take the newest camera frame and the newest joint feedback; if either is missing or stale, **hold**
@@ -52,6 +52,7 @@ class LoopSettings:
     prefetch: bool = False  # start each chunk early in a background thread
     seed: int | None = None  # diffusion noise seed (None: random)
     startup_timeout: float = 5.0  # s (of the runner's clock) to wait for the first frame and feedback
+    chunk_ms: float | None = None  # prefetch: the chunk latency its lead is chosen from (None: measured at start)
 
     def __post_init__(self):
         check_rate(self.rate_hz)
@@ -98,10 +99,14 @@ class Runner:
         self.log, self.status, self.clock, self.views = log, status, clock, views
         self.view_tick = view_tick  # the views' timeline: continues over episodes (evaluations)
         self.period = 1.0 / settings.rate_hz
-        self.control = ChunkedControl(policy, rate_hz=settings.rate_hz, prefetch=settings.prefetch, seed=settings.seed)
+        self.control = ChunkedControl(policy, rate_hz=settings.rate_hz, prefetch=settings.prefetch, seed=settings.seed,
+                                      chunk_ms_estimate=settings.chunk_ms)
         self.safety: Safety | None = None
         self.stop_reason: str | None = None
         self.fault: str | None = None
+        self.ended_by: str | None = None  # what ended the run, recorded where it ended (None: it has not ended)
+        self.disabled = False  # the motors were disabled at the end (SafetyConfig.disable_on_exit)
+        self.overruns = 0
         self.ticks = 0
         self.sent = 0
         self.holds = 0
@@ -116,12 +121,15 @@ class Runner:
         self.stop_reason = self.stop_reason or why
 
     def start(self) -> None:
-        """Wait for the first frame and feedback, set up the safety layer, enable the arms (not in dry run)."""
+        """Wait for the first frame and feedback, set up the safety layer, enable the arms (not in dry run).
+        A stop requested before the arms are enabled ends the start there: nothing is enabled or sent."""
         timeout = self.settings.startup_timeout
         deadline = self.clock.now() + timeout
-        if self._wait(self.camera.latest, deadline) is None:
+        if self._wait(self.camera.latest, deadline) is None and self.stop_reason is None:
             raise CameraError(f"{self.camera.name}: no frame within {timeout:g} s; check the cable/USB3 port or the recording")
         state = self._wait(self.robot.state, deadline)
+        if self.stop_reason is not None:
+            return
         if state is None:
             raise DSSPError(
                 f"no joint feedback within {timeout:g} s: check the CAN bus (bitrate 1 Mbit/s, cabling) and that the arm is powered"
@@ -136,9 +144,9 @@ class Runner:
         self.control.reset()
 
     def _wait(self, get: Callable[[], Any], deadline: float) -> Any:
-        """The first ``get()`` that is not None, polled on the clock until ``deadline``; else None."""
+        """The first ``get()`` that is not None, polled on the clock until ``deadline`` or a stop request; else None."""
         value = get()
-        while value is None and self.clock.now() <= deadline:
+        while value is None and self.clock.now() <= deadline and self.stop_reason is None:
             self.clock.sleep(0.005)
             value = get()
         return value
@@ -260,12 +268,15 @@ class Runner:
 
     # ----------------------------------------------------------------- the loop
     def run(self) -> dict[str, Any]:
-        self.start()
-        next_tick = self.clock.now()
-        overruns = 0
+        """Start, then tick until max_steps, a stop request, a fault or an error; each ending is recorded where it
+        happens (``ended_by``) and passes :meth:`finish`. A stop requested before the start enables nothing."""
         try:
+            if self.stop_reason is None:
+                self.start()
+            next_tick = self.clock.now()
             while self.fault is None and self.stop_reason is None:
                 if self.settings.max_steps is not None and self.ticks >= self.settings.max_steps:
+                    self.ended_by = "max steps"
                     break
                 record = self.tick()
                 if self.status is not None:
@@ -275,15 +286,20 @@ class Runner:
                 if delay > 0:
                     self.clock.sleep(delay)
                 else:
-                    overruns += 1
+                    self.overruns += 1
                     next_tick = self.clock.now()
+        except BaseException as exc:
+            self.ended_by = self.ended_by or describe_ending(exc)
+            raise
         finally:
-            self.finish(self.stop_reason or ("max steps" if self.fault is None else self.fault))
-        return self.summary(overruns)
+            self.finish(self.ended_by or self.fault or self.stop_reason)
+        return self.summary()
 
     def finish(self, why: str) -> None:
-        """The final hold (the last safe target once more), then disable if configured."""
-        if self.safety is None:
+        """The final hold (the last safe target once more), then disable if configured. ``why`` is what ended the
+        run: recorded as ``ended_by`` unless the ending was recorded before."""
+        self.ended_by = self.ended_by or why
+        if self.safety is None:  # never started: nothing was enabled or sent
             return
         final = self.safety.stop(self.clock.now(), why)
         if final.command is not None and not self.settings.dry_run and self.fault is None:
@@ -294,6 +310,7 @@ class Runner:
         if self.safety_config.disable_on_exit and not self.settings.dry_run:
             try:
                 self.robot.disable()
+                self.disabled = True
             except DSSPError as exc:
                 self.fault = self.fault or f"disable failed: {exc}"
 
@@ -314,7 +331,8 @@ class Runner:
             + ("  [dry run]" if self.settings.dry_run else "")
         )
 
-    def summary(self, overruns: int = 0) -> dict[str, Any]:
+    def summary(self, overruns: int | None = None) -> dict[str, Any]:
+        """The run in numbers; ``ended_by``: what ended it (None while it has not ended)."""
         def stats(values):
             if not values:
                 return None
@@ -326,13 +344,21 @@ class Runner:
             "policy_ticks": self.policy_ticks,
             "commands_sent": self.sent,
             "holds": self.holds,
-            "overruns": overruns,
+            "overruns": self.overruns if overruns is None else overruns,
             "rate_hz": self.rate(),
             "target_rate_hz": self.settings.rate_hz,
             "dry_run": self.settings.dry_run,
-            "ended_by": self.fault or self.stop_reason or "max steps",
+            "ended_by": self.ended_by,
             "fault": self.fault,
+            "disabled": self.disabled,
             "events": dict(self.event_counts),
             "latency_ms": {k: stats(v) for k, v in self.latencies.items()},
             "safety_events": [e.to_dict() for e in (self.safety.events if self.safety else [])],
         }
+
+
+def describe_ending(exc: BaseException) -> str:
+    """What an exception that ended a run says in its summary: ``error: <message>`` (Python's Ctrl-C: SIGINT)."""
+    if isinstance(exc, KeyboardInterrupt):
+        return "SIGINT"
+    return f"error: {exc}" if str(exc) else f"error: {type(exc).__name__}"

@@ -146,9 +146,11 @@ def test_record_kill_mid_episode_then_train(tmp_path, capsys):
                        "--set", "train.val_every=5", "--no-progress"]) == 0
 
 
-def test_sigterm_discards_the_unfinished_episode(tmp_path):
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP], ids=["SIGTERM", "SIGHUP"])
+def test_a_signal_discards_the_unfinished_episode(tmp_path, sig):
     """Real time: a signal into a recording process; paced at ``--sim-speed 4`` (1.5 s an episode), it is
-    signalled 0.3 s into its second one."""
+    signalled 0.3 s into its second one. Any stop signal (here also a closed terminal's SIGHUP) ends the session
+    the same way; the exit code is 128 + the signal's number."""
     out = tmp_path / "demo.zarr"
     proc = subprocess.Popen(
         [sys.executable, "-m", "dssp_sim.sim_cli", "record", "--out", str(out), "--auto", "--sim-speed", "4", "--no-depth"],
@@ -159,14 +161,15 @@ def test_sigterm_discards_the_unfinished_episode(tmp_path):
             lines.append(line.strip())
             if line.startswith("episode 1: recording"):
                 time.sleep(0.3)
-                proc.send_signal(signal.SIGTERM)
+                proc.send_signal(sig)
         proc.wait(timeout=20)
     finally:
         if proc.poll() is None:
             proc.kill()
-    assert proc.returncode == 130, (lines, proc.stderr.read())
-    assert any(x.startswith("episode 1: discarded (stopped by SIGTERM before keep") for x in lines), lines
-    assert lines[-2].startswith("kept 1 episode(s) (60 steps); discarded 1") and lines[-2].endswith("ended by: SIGTERM")
+    name = signal.Signals(sig).name
+    assert proc.returncode == 128 + sig, (lines, proc.stderr.read())
+    assert any(x.startswith(f"episode 1: discarded (stopped by {name} before keep") for x in lines), lines
+    assert lines[-2].startswith("kept 1 episode(s) (60 steps); discarded 1") and lines[-2].endswith(f"ended by: {name}")
     assert ReplayBuffer.load(out).n_episodes == 1
     assert not [p for p in can_log_dir(out).iterdir() if ".partial-" in p.name]
 

@@ -139,7 +139,7 @@ def test_bad_input_fails_before_motion(arm_export, tmp_path, capsys):
     assert code == 2 and "does not exist" in capsys.readouterr().err
 
 
-def test_sigterm_ends_in_a_hold(arm_export, tmp_path):
+def test_sigterm_ends_in_a_hold(arm_export, tmp_path, capsys):
     """Real time: a signal into a running process (it is sent once 20 ticks are logged, whenever that is)."""
     log_dir = tmp_path / "log"
     proc = subprocess.Popen(
@@ -149,9 +149,12 @@ def test_sigterm_ends_in_a_hold(arm_export, tmp_path):
     )
     wait_for(lambda: proc.poll() is not None or ((log_dir / "ticks.jsonl").exists() and len(read_ticks(log_dir)) >= 20),
              timeout=120, what="20 logged ticks", poll=0.1)
+    # a second dssp-run on the same log directory: one line naming the running one, nothing of it touched
+    assert run_main(["--model", str(arm_export), "--log-dir", str(log_dir), "--quiet"]) == 2
+    assert f"is being written by pid {proc.pid}" in capsys.readouterr().err
     proc.send_signal(signal.SIGTERM)
     out, err = proc.communicate(timeout=60)
-    assert proc.returncode == 130, err
+    assert proc.returncode == 128 + signal.SIGTERM, err
     assert "ended by: SIGTERM" in out
     events = json.loads((log_dir / "run.json").read_text())["summary"]["safety_events"]
     assert [e["kind"] for e in events[-2:]] == ["hold", "stop"] and "SIGTERM" in events[-1]["detail"]

@@ -1,6 +1,7 @@
 """dssp-run's start-up: a signal at any moment of it is a clean stop, a model without a recorded rate
 is refused rather than run at a guessed one, and the waits for the first frame and the first feedback are
-bounded on the loop's clock.
+bounded on the loop's clock. What can be judged before a device opens is: a second writer of a log directory,
+default log names that would collide, a --prefetch lead the control rate cannot hold.
 
 The signal test is real time by nature (a signal into a real process at a point of its start-up, counted
 from the moment main() installs its handler); its verdict does not depend on where the signal lands: either start-up stops with nothing enabled, or the
@@ -125,3 +126,89 @@ def test_start_up_gives_up_on_its_clock(arm_export):
     with pytest.raises(CameraError, match="no frame within 2 s"):
         runner.start()
     assert 104.0 < clock.now() <= 104.01 + 1e-9 and runner.safety is None
+
+
+# ------------------------------------------------------------------------------------------------ before any device
+def _devices_opened(monkeypatch) -> list[str]:
+    """The devices dssp-run opens from here on (none, if it refuses first)."""
+    opened = []
+    monkeypatch.setattr("hardware.piper.piper_robot.open_robot", lambda *a, **k: opened.append("robot"))
+    monkeypatch.setattr("hardware.camera.open_camera", lambda *a, **k: opened.append("camera"))
+    return opened
+
+
+def test_a_second_writer_of_a_log_directory_gets_one_line_before_anything_opens(arm_export, tmp_path, capsys,
+                                                                                 monkeypatch):
+    """One writer per log directory: while another run holds it (here a lock taken in this process, as a first
+    dssp-run would), the second is refused with one line naming the holder, before the model or any device, and
+    nothing of the first's is touched."""
+    from conftest import one_error_line, snapshot
+
+    from dssp_data.output_guard import WriterLock
+
+    log_dir = tmp_path / "log"
+    first = WriterLock(log_dir, what="log directory", flag="--log-dir")
+    try:
+        log_dir.mkdir()
+        (log_dir / "ticks.jsonl").write_text('{"tick": 0}\n')
+        before = snapshot(tmp_path)
+        opened = _devices_opened(monkeypatch)
+        code = run_main(["--model", str(arm_export), "--log-dir", str(log_dir), "--quiet", "--max-steps", "3"])
+        line = one_error_line(capsys.readouterr().err)
+        assert code == 2 and f"is being written by pid {os.getpid()}" in line and "choose another --log-dir" in line
+        assert opened == [] and snapshot(tmp_path) == before
+    finally:
+        first.release()
+
+
+def test_default_log_directories_never_collide(arm_export, tmp_path, capsys, monkeypatch):
+    """Runs started in the same second: the default name gets a suffix chosen under its lock — past a finished
+    run's log and past a name another run holds — and neither of those is touched."""
+    import json
+
+    from dssp_data.output_guard import WriterLock
+    from hardware.cli import run as run_module
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(run_module, "log_stamp", lambda: "20260101-120000")
+    root = tmp_path / "runs" / "dssp-run"
+    finished = root / "20260101-120000"
+    finished.mkdir(parents=True)
+    (finished / "run.json").write_text("{}")
+    starting = WriterLock(root / "20260101-120000-2", what="log directory", flag="--log-dir")
+    try:
+        code = run_main(["--model", str(arm_export), "--max-steps", "3", "--threads", "1", "--quiet"])
+    finally:
+        starting.release()
+    out = capsys.readouterr().out
+    assert code == 0 and "episode log: runs/dssp-run/20260101-120000-3" in out, out
+    assert json.loads((root / "20260101-120000-3" / "run.json").read_text())["summary"]["ticks"] == 3
+    assert (finished / "run.json").read_text() == "{}" and not (root / "20260101-120000-2").exists()
+    assert sorted(p.name for p in root.iterdir()) == ["20260101-120000", "20260101-120000-3"]  # no lock left
+
+
+def test_a_prefetch_lead_the_rate_cannot_hold_is_refused_before_anything_opens(arm_export, tmp_path, capsys,
+                                                                               monkeypatch):
+    """--prefetch: the chunk's latency is measured once, before any device opens; a lead that does not fit the
+    horizon at the control rate is one line (here a chunk of 1 s at 50 Hz), and the loop chooses its lead from
+    that same measurement (it is not measured again after the devices opened)."""
+    from conftest import one_error_line
+
+    from dssp_deploy.control_loop import ChunkedControl
+
+    measured = []
+    monkeypatch.setattr(ChunkedControl, "measure_chunk_ms", lambda self, iterations=5: measured.append(1) or 1000.0)
+    opened = _devices_opened(monkeypatch)
+    code = run_main(["--model", str(arm_export), "--prefetch", "--log-dir", str(tmp_path / "log"), "--quiet",
+                     "--max-steps", "3", "--threads", "1"])
+    line = one_error_line(capsys.readouterr().err)
+    assert code == 2 and "--prefetch at 50 Hz: a chunk takes 1000.0 ms = 50 ticks" in line, line
+    assert "run without prefetch or at a lower rate" in line
+    assert opened == [] and not (tmp_path / "log").exists()
+
+    monkeypatch.undo()
+    measured.clear()
+    monkeypatch.setattr(ChunkedControl, "measure_chunk_ms", lambda self, iterations=5: measured.append(1) or 5.0)
+    code = run_main(["--model", str(arm_export), "--prefetch", "--log-dir", str(tmp_path / "log"), "--quiet",
+                     "--max-steps", "5", "--threads", "1"])
+    assert code == 0 and measured == [1], capsys.readouterr()

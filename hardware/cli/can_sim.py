@@ -1,4 +1,7 @@
-"""``dssp-sim-arm``: run simulated AgileX Piper arms on CAN buses until SIGINT/SIGTERM (or --duration).
+"""``dssp-sim-arm``: run simulated AgileX Piper arms on CAN buses until stopped (or --duration).
+
+Any signal whose default would end the process (SIGINT, SIGTERM, SIGHUP, ...; :mod:`hardware.cli.stops`) stops
+the simulators cleanly, exit code 0: stopping is how this command ends.
 
 Each channel gets one ``hardware.piper.can_simulator.SimulatedPiper``. Between processes use ``udp_multicast``: each
 channel is a multicast group address; frames stay on this host (hop limit 0).
@@ -8,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import ipaddress
-import signal
 import sys
 import threading
 import time
@@ -90,12 +92,14 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _run(args, channels: list[str]) -> int:
+    from hardware.cli.stops import Stops
     from hardware.piper.can_simulator import SimulatedPiper
 
     options = {"port": args.port} if args.port is not None and args.interface == "udp_multicast" else {}
     sims = [SimulatedPiper(c, args.interface, rate=args.rate, bus_options=options) for c in channels]
     stop = threading.Event()
-    previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
+    stops = Stops(streams=False)
+    stops.during(lambda _why: stop.set())
     started = []
     start_time = time.monotonic()
     failure: HardwareError | None = None
@@ -119,8 +123,7 @@ def _run(args, channels: list[str]) -> int:
                 sim.stop()
             except HardwareError as exc:
                 failure = failure or exc
-        for s, handler in previous.items():
-            signal.signal(s, handler)
+        stops.restore()
     elapsed = time.monotonic() - start_time
     summary = "; ".join(f"{sim.channel}: {sim.ticks} ticks, {sim.frames_sent} frames sent, "
                         f"{sim.commands_received} commands received" for sim in started)

@@ -13,7 +13,11 @@ appended to PATH.zarr crash-safely, with its raw CAN traffic in PATH.zarr.can/. 
 flags, :mod:`dssp_sim.teleop`) records from the embedded simulation through this same code: ``--camera sim
 --can sim`` (its defaults), the task's scripted expert playing the leader arm on a virtual bus. The
 simulation is handed in as a :class:`SimulatedRig` (this package never imports the simulation).
-Exit codes: 0 done, 2 bad input, 130 stopped by a signal (an unfinished episode is discarded).
+Every way the process is stopped — any signal whose default would end it (SIGINT, SIGTERM, SIGHUP, ...), or
+stdout/stderr going away — ends the session like Ctrl-C (:mod:`hardware.cli.stops`): an unfinished episode is
+discarded, every kept one stays in the dataset.
+Exit codes: 0 done, 2 bad input, 128 + N stopped by signal N (130 SIGINT, 143 SIGTERM, 129 SIGHUP, ...), 141 stdout
+or stderr went away.
 """
 
 from __future__ import annotations
@@ -23,7 +27,6 @@ import contextlib
 import os
 import queue
 import select
-import signal
 import socket
 import sys
 import threading
@@ -33,6 +36,7 @@ from typing import Protocol
 
 from dssp_data.cli_runner import ArgumentParser
 from dssp_data.errors import ConfigError, DSSPError
+from hardware.cli.stops import StartupInterrupted, Stops
 
 EPILOG = """\
 Action convention (--action): "leader" (default) records the leader arm's command at each step, what the
@@ -273,6 +277,9 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
     else:
         cloud_config = PointCloudConfig()
 
+    views = open_views("dssp-record", args.rerun, args.rerun_save)  # before any device: a bad flag opens nothing
+    if views is not None:
+        stack.callback(lambda: console.event(views.close_line("steps")))
     rig = None
     if sim_can:
         seed = args.seed if args.seed is not None else _next_sim_seed(args.out)
@@ -312,9 +319,6 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
         camera = StampedCamera(raw_camera)
 
     n_arms = 1 if sim_can else len(monitors)
-    views = open_views("dssp-record", args.rerun, args.rerun_save)
-    if views is not None:
-        stack.callback(lambda: console.event(views.close_line("steps")))
     recorder = Recorder(camera, monitors, cloud_config, camera_to_base, float(rate), action_convention=convention,
                         thresholds=thresholds, store_depth=not args.no_depth, views=views)
     calibration = {
@@ -359,7 +363,22 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
                          status=console.status, session_tag=session_tag)
 
 
-def record(args) -> int:
+def record(args, stops: Stops | None = None) -> int:
+    """``args`` → exit code; ``stops``: the stop request main() installed (None: installed here)."""
+    own = stops is None
+    stops = stops or Stops()
+    try:
+        stops.check()
+        return _record(args, stops)
+    except StartupInterrupted as exc:
+        print(f"stopped by {exc} during start-up; nothing was recorded", file=sys.stderr)
+        return stops.code
+    finally:
+        if own:
+            stops.restore()
+
+
+def _record(args, stops: Stops) -> int:
     from dssp_data.recording import can_log_dir
 
     console = Console(args.quiet)
@@ -368,10 +387,8 @@ def record(args) -> int:
         run = open_session(args, stack, console)
         controls = KeyControls() if sys.stdin.isatty() else LineControls()
         stack.callback(controls.close)
-        handlers = {}
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            handlers[sig] = signal.signal(sig, lambda signum, _frame: run.request_stop(signal.Signals(signum).name))
-        stack.callback(lambda: [signal.signal(s, h) for s, h in handlers.items()])
+        stops.during(run.request_stop)  # a stop that came while the devices opened, or any later one
+        stack.callback(stops.during, None)
         try:
             summary = run.run(controls)
         except OSError as exc:  # the disk, the dataset's directory: one line, like every other error
@@ -383,13 +400,17 @@ def record(args) -> int:
     print(f"kept {len(summary.kept)} episode(s) ({summary.steps} steps){problems}; discarded {summary.discarded}{failed}; "
           f"ended by: {summary.ended_by}")
     print(f"dataset: {args.out} holds {summary.n_episodes} episodes; CAN logs in {can_log_dir(args.out)}")
-    return 130 if summary.ended_by in ("SIGINT", "SIGTERM") else 0
+    return stops.code if stops.reason is not None and summary.ended_by == stops.reason else 0
 
 
 def main(argv: list[str] | None = None, sim: SimulatedRig | None = None, prog: str = "dssp-record") -> int:
-    from dssp_data.cli_runner import run_cli
+    stops = Stops()  # first: from here every stop is a clean one
+    try:
+        from dssp_data.cli_runner import run_cli
 
-    return run_cli(lambda: record(parse_args(argv, sim, prog)))
+        return run_cli(lambda: record(parse_args(argv, sim, prog), stops))
+    finally:
+        stops.restore()
 
 
 if __name__ == "__main__":

@@ -3,17 +3,19 @@
     dssp-replay PATH --episode K [--can can0[,can1]|sim] [--send] [--rate HZ] [--safety FILE] [--interface IF]
 
 Without ``--can`` the episode runs against ideal tracking (no arm); with ``--can`` but without ``--send`` the
-arms are read, never commanded. Ctrl-C / SIGTERM stop between two commands and hold (exit code 130).
+arms are read, never commanded. Every way the process is stopped — any signal whose default would end it (Ctrl-C,
+SIGTERM, SIGHUP, ...), or stdout/stderr going away (:mod:`hardware.cli.stops`) — stops between two commands and
+holds; exit code 128 + N for signal N (130 SIGINT, 143 SIGTERM, ...), 141 when stdout or stderr went away.
 """
 
 from __future__ import annotations
 
 import argparse
-import signal
 import sys
 from pathlib import Path
 
 from dssp_data.cli_runner import ArgumentParser, run_cli
+from hardware.cli.stops import Stops
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -29,20 +31,17 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _replay(args) -> int:
+def _replay(args, stops: Stops) -> int:
     from hardware.episode_replay import replay_episode
     from hardware.safety import SafetyConfig
 
     safety = SafetyConfig.load(args.safety, "safety") if args.safety else SafetyConfig()
-    stop = {"why": None}
-    handlers = {s: signal.signal(s, lambda signum, _f: stop.update(why=signal.Signals(signum).name))
-                for s in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        result = replay_episode(args.path, args.episode, args.can, send=args.send, interface=args.interface,
-                                rate_hz=args.rate, safety_config=safety, should_stop=lambda: stop["why"] is not None)
-    finally:
-        for s, h in handlers.items():
-            signal.signal(s, h)
+    if stops.reason is not None:
+        print(f"stopped by {stops.reason} before the replay started; nothing was sent", file=sys.stderr)
+        return stops.code
+    result = replay_episode(args.path, args.episode, args.can, send=args.send, interface=args.interface,
+                            rate_hz=args.rate, safety_config=safety, should_stop=lambda: stops.reason is not None)
+    stopped = result["ended_by"] == "stop requested"  # the replay's word for should_stop(): the stop's own reason
     mode = f"sent {result['sent']} commands to {args.can}" if args.send else (
         f"dry run on {args.can} (nothing sent)" if args.can else "dry run without an arm (ideal tracking)")
     print(f"episode {result['episode']}: {result['steps']} actions at {result['rate_hz']:g} Hz, {mode}")
@@ -50,13 +49,17 @@ def _replay(args) -> int:
           f"recorded action {result['max_change']:.4f}; first action {result['start_distance']:.3f} from the start")
     if result["tracking_error"] is not None:
         print(f"final tracking error {result['tracking_error']:.4f} (policy units)")
-    print(f"ended by: {result['ended_by']}")
-    return 130 if stop["why"] else 0
+    print(f"ended by: {stops.reason if stopped else result['ended_by']}")
+    return stops.code if stopped else 0
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    return run_cli(lambda: _replay(args))
+    stops = Stops()  # first: from here every stop is a clean one
+    try:
+        args = build_parser().parse_args(argv)
+        return run_cli(lambda: _replay(args, stops))
+    finally:
+        stops.restore()
 
 
 if __name__ == "__main__":

@@ -13,22 +13,26 @@ The model carries its observation contract (``dssp_model.json`` ``observation`` 
 point-cloud settings, the state/action layout per arm, the control rate); its point-cloud settings are the
 default, and a setup that contradicts it (``--pointcloud``, ``--can`` with another number of arms, ``--rate``)
 is refused before anything is opened, one line naming the field, both values and ``--allow-mismatch FIELD``.
-Exit codes: 0 done, 1 ended by a fault (arm error, e-stop, send failure), 2 bad input, 130 stopped by a signal.
+Every way the process is stopped — any signal whose default would end it (SIGINT, SIGTERM, SIGHUP, SIGQUIT, ...),
+or stdout/stderr going away — is one stop request (:mod:`hardware.cli.stops`): the loop ends in its final hold (and
+disables the motors if the safety settings say so), the log and the summary name the true reason.
+Exit codes: 0 done, 1 ended by a fault (arm error, e-stop, send failure), 2 bad input, 128 + N stopped by signal N
+(130 SIGINT, 143 SIGTERM, 129 SIGHUP, ...), 141 stdout or stderr went away.
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
-import signal
 import sys
 import time
 from pathlib import Path
 
-# Only the standard library and the base's light modules load before main() installs the start-up signal
-# handler (StartupSignals): a Ctrl-C during the heavier imports (numpy, the runtime) is then a clean stop.
+# Only the standard library and the base's light modules load before main() installs the stop request
+# (hardware.cli.stops): a Ctrl-C during the heavier imports (numpy, the runtime) is then a clean stop.
 from dssp_data.cli_runner import ArgumentParser
 from dssp_data.errors import ConfigError
+from hardware.cli.stops import StartupInterrupted, Stops
 
 EPILOG = """\
 --camera sim --can sim runs everything against the embedded simulation (no hardware). Real arms:
@@ -57,7 +61,7 @@ def parse_args(argv):
 
     add_runtime_arguments(p)
     p.add_argument("--seed", type=int, help="diffusion noise seed (default: random)")
-    p.add_argument("--log-dir", type=Path, help="episode log directory (default: runs/dssp-run/YYYYmmdd-HHMMSS)")
+    p.add_argument("--log-dir", type=Path, help="episode log directory (default: runs/dssp-run/YYYYmmdd-HHMMSS[-N])")
     p.add_argument("--no-can-log", action="store_true", help="do not write the raw CAN traffic (.blf per bus) into the log")
     p.add_argument("--allow-mismatch", action="append", default=[], metavar="FIELD",
                    help="run although FIELD of the setup differs from the model's training data (e.g. pointcloud.crop_min, "
@@ -72,7 +76,8 @@ def parse_args(argv):
 class StatusPrinter:
     """The live one-line status: rewritten in place on a terminal, one line a second otherwise."""
 
-    def __init__(self, stream=sys.stderr):
+    def __init__(self, stream=None):
+        stream = sys.stderr if stream is None else stream  # looked up now: the stream the stop request watches
         self.stream, self.tty, self.last = stream, stream.isatty(), 0.0
 
     def __call__(self, line: str) -> None:
@@ -88,33 +93,6 @@ class StatusPrinter:
     def close(self) -> None:
         if self.tty:
             self.stream.write("\n")
-
-
-class StartupSignals:
-    """SIGINT/SIGTERM during start-up (imports, model loading, devices opening) become a clean stop.
-
-    Without it a Ctrl-C lands inside whatever is running — an import half done — and the error that
-    follows names the wrong thing. Checked between the start-up stages; nothing has moved yet.
-    """
-
-    def __init__(self):
-        self.reason: str | None = None
-        self._previous = {sig: signal.signal(sig, self._handle) for sig in (signal.SIGINT, signal.SIGTERM)}
-
-    def _handle(self, signum, _frame) -> None:
-        self.reason = signal.Signals(signum).name
-
-    def check(self) -> None:
-        if self.reason is not None:
-            raise StartupInterrupted(self.reason)
-
-    def restore(self) -> None:
-        for sig, handler in self._previous.items():
-            signal.signal(sig, handler)
-
-
-class StartupInterrupted(Exception):
-    """A signal arrived before the control loop started: nothing was enabled or sent."""
 
 
 def check_args(args) -> None:
@@ -152,22 +130,83 @@ def control_rate(args, policy) -> float:
     return check_rate(policy.control_rate_hz, flag=f"{args.model}'s control_rate_hz")
 
 
-def run(args, signals: StartupSignals | None = None) -> int:
-    """``args`` → exit code; ``signals``: the start-up handler main() installed (None: installed here)."""
-    signals = signals or StartupSignals()
+def log_stamp() -> str:
+    """The default log directory's name: the local time to the second (runs in the same second get -2, -3, ...)."""
+    return time.strftime("%Y%m%d-%H%M%S")
+
+
+def lock_log_dir(log_dir: Path | None, stack: contextlib.ExitStack) -> Path:
+    """The run's log directory, locked for this run until ``stack`` closes (one writer per log directory, a second
+    one gets one line before anything is opened): ``--log-dir``, or ``runs/dssp-run/<log_stamp()>``, with a suffix
+    -2, -3, ... when that name is taken — chosen under its lock, so two runs never pick the same one. The folders
+    made for the lock are removed again if the run leaves nothing in them."""
+    from dssp_data.output_guard import OutputError, WriterLock, make_dirs, writer_lock_path
+
+    chosen = log_dir if log_dir is not None else Path("runs/dssp-run") / log_stamp()
+    created = make_dirs(chosen.absolute().parent, flag="--log-dir")
+    stack.callback(_remove_empty, created)
+    if log_dir is not None:
+        stack.callback(WriterLock(log_dir, what="log directory", flag="--log-dir").release)
+        return log_dir
+    for n in range(1, 1000):
+        candidate = chosen if n == 1 else chosen.with_name(f"{chosen.name}-{n}")
+        if candidate.exists() or candidate.is_symlink():
+            continue
+        try:
+            lock = WriterLock(candidate, what="log directory", flag="--log-dir")
+        except OutputError:
+            if writer_lock_path(candidate).exists():  # another run holds this name
+                continue
+            raise
+        if candidate.exists() or candidate.is_symlink():  # taken meanwhile by a run that has ended
+            lock.release()
+            continue
+        stack.callback(lock.release)
+        return candidate
+    raise ConfigError(f"{chosen.parent} holds 999 logs named {chosen.name}[-N]; pass --log-dir DIR")
+
+
+def _remove_empty(folders: list[Path]) -> None:
+    for folder in reversed(folders):
+        with contextlib.suppress(OSError):
+            folder.rmdir()
+
+
+def check_prefetch(policy, rate: float) -> float:
+    """--prefetch: the chunk latency (ms, measured once here, before any device opens) and that the lead it needs
+    at ``rate`` fits the model's horizon; one line otherwise. The run's loop chooses its lead from the same value."""
+    import warnings
+
+    from dssp_deploy.control_loop import ChunkedControl
+
+    with warnings.catch_warnings():  # a rate other than the model's is warned about once, by the loop itself
+        warnings.simplefilter("ignore")
+        chunk_ms = ChunkedControl(policy, rate_hz=rate).measure_chunk_ms()
+        try:
+            ChunkedControl(policy, rate_hz=rate, prefetch=True, chunk_ms_estimate=chunk_ms)
+        except ValueError as exc:
+            raise ConfigError(f"--prefetch at {rate:g} Hz: {exc}") from None
+    return chunk_ms
+
+
+def run(args, stops: Stops | None = None) -> int:
+    """``args`` → exit code; ``stops``: the stop request main() installed (None: installed here)."""
+    own = stops is None
+    stops = stops or Stops()
     try:
-        return _run(args, signals)
+        return _run(args, stops)
     except StartupInterrupted as exc:
         print(f"stopped by {exc} during start-up; no arm was enabled, nothing was sent", file=sys.stderr)
-        return 130
+        return stops.code
     finally:
-        signals.restore()
+        if own:
+            stops.restore()
 
 
-def _run(args, signals: StartupSignals) -> int:
+def _run(args, stops: Stops) -> int:
     import numpy as np
 
-    signals.check()
+    stops.check()
     check_args(args)
     from dssp_deploy.onnx_policy import OnnxPolicy
     from dssp_data.output_guard import RUN_LOG, check_output, claim_dir
@@ -180,74 +219,71 @@ def _run(args, signals: StartupSignals) -> int:
     from hardware.pointcloud import PointCloudConfig, load_extrinsics
     from dssp_data.rerun_views import check_views, open_views
     from hardware.run_log import RunLog
-    from hardware.run_loop import LoopSettings, Runner, check_fits
+    from hardware.run_loop import LoopSettings, Runner, check_fits, describe_ending
     from hardware.safety import SafetyConfig
 
-    log_dir = args.log_dir or Path("runs/dssp-run") / time.strftime("%Y%m%d-%H%M%S")
-    check_output(log_dir, force=None, kind=RUN_LOG, flag="--log-dir")  # a log is never replaced
     check_views(args.rerun, args.rerun_save)
-    signals.check()
-    safety_config = SafetyConfig.load(args.safety, "safety") if args.safety else SafetyConfig()
-    if args.rate is not None:
-        safety_config.check_speed(args.rate)
-    simulated_camera = args.camera.strip().lower() == "sim"
-    if args.extrinsics:
-        camera_to_base = load_extrinsics(args.extrinsics)
-    elif not simulated_camera:
-        raise ConfigError(
-            "--extrinsics is needed with a real camera or a recording: the workspace crop is in the robot-base frame "
-            "(a JSON file {\"camera_to_base\": 4x4}; see the README's calibration section)"
-        )
-    cloud_config = PointCloudConfig.load(args.pointcloud, "point-cloud settings") if args.pointcloud else None
-    if not args.quiet and sys.stderr.isatty():  # a progress note for a person; logs and scripts get only the result
-        print(f"loading {args.model} (warm-up included)", file=sys.stderr)
-    policy = OnnxPolicy(args.model, threads=args.threads, precision=args.precision, kernel=args.kernel,
-                        background_chunks=args.prefetch, spinning=False if args.no_spin else None)
-    signals.check()
-    trained = observation_of(policy.manifest)
-    if cloud_config is None:  # the model's own settings; a model from data that recorded none: the defaults
-        cloud_config = trained.pointcloud or PointCloudConfig(n_points=policy.manifest["model_config"]["n_points"])
-    rate = control_rate(args, policy)
-    safety_config.check_speed(rate)
-    settings = LoopSettings(rate_hz=rate, max_steps=args.max_steps, dry_run=args.dry_run, prefetch=args.prefetch, seed=args.seed)
+    with contextlib.ExitStack() as stack:  # the log directory's lock, the views: released and closed on every exit
+        log_dir = lock_log_dir(args.log_dir, stack)
+        check_output(log_dir, force=None, kind=RUN_LOG, flag="--log-dir")  # a log is never replaced
+        stops.check()
+        safety_config = SafetyConfig.load(args.safety, "safety") if args.safety else SafetyConfig()
+        if args.rate is not None:
+            safety_config.check_speed(args.rate)
+        simulated_camera = args.camera.strip().lower() == "sim"
+        if args.extrinsics:
+            camera_to_base = load_extrinsics(args.extrinsics)
+        elif not simulated_camera:
+            raise ConfigError(
+                "--extrinsics is needed with a real camera or a recording: the workspace crop is in the robot-base frame "
+                "(a JSON file {\"camera_to_base\": 4x4}; see the README's calibration section)"
+            )
+        cloud_config = PointCloudConfig.load(args.pointcloud, "point-cloud settings") if args.pointcloud else None
+        if not args.quiet and sys.stderr.isatty():  # a progress note for a person; logs and scripts get only the result
+            print(f"loading {args.model} (warm-up included)", file=sys.stderr)
+        policy = OnnxPolicy(args.model, threads=args.threads, precision=args.precision, kernel=args.kernel,
+                            background_chunks=args.prefetch, spinning=False if args.no_spin else None)
+        stops.check()
+        trained = observation_of(policy.manifest)
+        if cloud_config is None:  # the model's own settings; a model from data that recorded none: the defaults
+            cloud_config = trained.pointcloud or PointCloudConfig(n_points=policy.manifest["model_config"]["n_points"])
+        rate = control_rate(args, policy)
+        safety_config.check_speed(rate)
+        chunk_ms = check_prefetch(policy, rate) if args.prefetch else None  # a lead the rate cannot hold: refused here
+        robot = open_robot(args.can, interface=args.interface)  # not connected yet
+        n_arms = robot.dof // 7
+        given = ObservationContract(pointcloud=cloud_config, frame=FRAME_ROBOT_BASE, state=piper_layout(n_arms),
+                                    action=piper_layout(n_arms))
+        pointcloud_by = f"--pointcloud {args.pointcloud}" if args.pointcloud else "the default point-cloud settings"
+        overrides = check_contract(trained, given, trained_by=f"the model {args.model}", allow=args.allow_mismatch,
+                                   given_by={"pointcloud": pointcloud_by, "frame": "the point-cloud pipeline",
+                                             "state": f"--can {args.can}", "action": f"--can {args.can}",
+                                             "control_rate_hz": "--rate"},
+                                   extra=[("control_rate_hz", policy.control_rate_hz, args.rate)])
+        for o in overrides:
+            print(f"warning: running with {o['field']} = {o['given']} although the model was trained with {o['trained']} "
+                  "(--allow-mismatch)", file=sys.stderr)
+        check_fits(policy, robot, cloud_config)  # before any device is opened
+        stops.check()
+        settings = LoopSettings(rate_hz=rate, max_steps=args.max_steps, dry_run=args.dry_run, prefetch=args.prefetch,
+                                seed=args.seed, chunk_ms=chunk_ms)
+        print(f"graphs: {policy.kernel_note}", file=sys.stderr)  # which graphs run: the one start-up line about them
+        limits = JointLimits.piper()
+        lower, upper = np.tile(limits.lower, n_arms), np.tile(limits.upper, n_arms)
+        gripper = np.tile(np.arange(7) == 6, n_arms)
 
-    robot = open_robot(args.can, interface=args.interface)
-    n_arms = robot.dof // 7
-    given = ObservationContract(pointcloud=cloud_config, frame=FRAME_ROBOT_BASE, state=piper_layout(n_arms),
-                                action=piper_layout(n_arms))
-    pointcloud_by = f"--pointcloud {args.pointcloud}" if args.pointcloud else "the default point-cloud settings"
-    overrides = check_contract(trained, given, trained_by=f"the model {args.model}", allow=args.allow_mismatch,
-                               given_by={"pointcloud": pointcloud_by, "frame": "the point-cloud pipeline",
-                                         "state": f"--can {args.can}", "action": f"--can {args.can}",
-                                         "control_rate_hz": "--rate"},
-                               extra=[("control_rate_hz", policy.control_rate_hz, args.rate)])
-    for o in overrides:
-        print(f"warning: running with {o['field']} = {o['given']} although the model was trained with {o['trained']} "
-              "(--allow-mismatch)", file=sys.stderr)
-    check_fits(policy, robot, cloud_config)  # before any device is opened
-    print(f"graphs: {policy.kernel_note}", file=sys.stderr)  # which graphs run: the one start-up line about them
-    limits = JointLimits.piper()
-    lower, upper = np.tile(limits.lower, n_arms), np.tile(limits.upper, n_arms)
-    gripper = np.tile(np.arange(7) == 6, n_arms)
-
-    views = open_views("dssp-run", args.rerun, args.rerun_save)  # flags checked (and a viewer started) before any device
-    signals.check()
-    claim_dir(log_dir, kind=RUN_LOG, flag="--log-dir")
-    camera = open_camera(args.camera, serial=args.serial)
-    if simulated_camera and not args.extrinsics:
-        camera_to_base = camera.camera_to_base  # the simulated camera's own mounting
-    recorders = [] if args.no_can_log else [
-        BusRecorder(arm.channel, arm.interface, log_dir / f"can_{arm.channel}.blf", **arm.bus_options) for arm in robot.arms
-    ]
-    status = None if args.quiet else StatusPrinter()
-    with contextlib.ExitStack() as stack:
+        views = open_views("dssp-run", args.rerun, args.rerun_save)  # flags checked (and a viewer started) before any device
         if views is not None:
             stack.callback(lambda: print(views.close_line()))
-        stack.enter_context(camera)
-        stack.enter_context(robot)  # connect: simulators start first, so the recorders find their channels
-        for recorder in recorders:
-            stack.enter_context(recorder)
-        signals.check()  # the last moment a signal means "never started"; from here the runner stops the loop
+        stops.check()  # the last moment a stop raises; from here it is the runner's, and the log records it
+        claim_dir(log_dir, kind=RUN_LOG, flag="--log-dir")
+        camera = open_camera(args.camera, serial=args.serial)  # not started yet
+        if simulated_camera and not args.extrinsics:
+            camera_to_base = camera.camera_to_base  # the simulated camera's own mounting
+        recorders = [] if args.no_can_log else [
+            BusRecorder(arm.channel, arm.interface, log_dir / f"can_{arm.channel}.blf", **arm.bus_options) for arm in robot.arms
+        ]
+        status = None if args.quiet else StatusPrinter()
         log = RunLog(log_dir, {
             "model": str(args.model), "camera": args.camera, "can": args.can, "rate_hz": rate, "dry_run": args.dry_run,
             "camera_to_base": camera_to_base, "pointcloud": cloud_config.to_dict(), "safety": safety_config.to_dict(),
@@ -256,23 +292,31 @@ def _run(args, signals: StartupSignals) -> int:
         })
         runner = Runner(policy, camera, robot, cloud_config, camera_to_base, safety_config, settings,
                         (lower, upper, gripper), log=log, status=status, views=views)
-        handlers = {}
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            handlers[sig] = signal.signal(sig, lambda signum, _frame: runner.request_stop(signal.Signals(signum).name))
-        if signals.reason is not None:
-            runner.request_stop(signals.reason)
+        stops.during(runner.request_stop)  # a stop that came meanwhile, or any later: the runner's final hold
         try:
-            summary = runner.run()
+            with contextlib.ExitStack() as devices:
+                devices.enter_context(camera)
+                devices.enter_context(robot)  # connect: simulators start first, so the recorders find their channels
+                for recorder in recorders:
+                    devices.enter_context(recorder)
+                try:
+                    summary = runner.run()
+                finally:
+                    if status is not None:
+                        status.close()
+        except BaseException as exc:
+            if runner.ended_by is None:  # a device failed to open: the run never started, its reason is this error
+                runner.finish(describe_ending(exc))
+            raise
         finally:
-            for sig, handler in handlers.items():
-                signal.signal(sig, handler)
-            if status is not None:
-                status.close()
-            log.close(runner.summary())
+            stops.during(None)
+            log.close(runner.summary())  # every ending writes the summary, with what ended the run
     print_summary(summary, log_dir)
+    if runner.safety is None and summary["ended_by"] == stops.reason:
+        print(f"stopped by {stops.reason} during start-up; no arm was enabled, nothing was sent", file=sys.stderr)
     if summary["fault"]:
         return 1
-    return 130 if runner.stop_reason in ("SIGINT", "SIGTERM") else 0
+    return stops.code if stops.reason is not None and summary["ended_by"] == stops.reason else 0
 
 
 def print_summary(summary: dict, log_dir: Path) -> None:
@@ -286,19 +330,20 @@ def print_summary(summary: dict, log_dir: Path) -> None:
           f"(target {summary['target_rate_hz']:g}), commands sent {summary['commands_sent']}, holds {summary['holds']}"
           + (" [dry run]" if summary["dry_run"] else ""))
     print(f"latency p50 / p95 / max ms: cloud {fmt('cloud')}, observe {fmt('observe')}, chunk {fmt('chunk')}, tick {fmt('tick')}")
-    print(f"safety events: {summary['events'] or 'none'}; ended by: {summary['ended_by']}")
+    print(f"safety events: {summary['events'] or 'none'}; ended by: {summary['ended_by']}"
+          + ("; motors disabled" if summary.get("disabled") else ""))
     print(f"episode log: {log_dir}")
 
 
 def main(argv: list[str] | None = None) -> int:
-    signals = StartupSignals()  # first: from here a Ctrl-C is a clean stop, even during the imports below
+    stops = Stops()  # first: from here every stop is a clean one, even during the imports below
     try:
         from dssp_data.cli_runner import run_cli
 
         args = parse_args(argv)
-        return run_cli(lambda: run(args, signals))
+        return run_cli(lambda: run(args, stops))
     finally:
-        signals.restore()
+        stops.restore()
 
 
 if __name__ == "__main__":
