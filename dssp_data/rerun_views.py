@@ -25,8 +25,13 @@ Everything is on the timeline ``tick`` (one step per control tick). Entities, in
 Logging never blocks the caller: :meth:`TickViews.tick` puts references to the arrays on a bounded queue (the
 caller must not modify them afterwards; the control loop makes new ones every tick) and a worker thread does
 the forward kinematics, colours and Rerun calls. A full queue drops the tick's views and counts it. A saved
-recording is streamed to ``PATH.partial`` and renamed to ``PATH`` when closed (a crash leaves the partial file,
-readable up to the last tick logged).
+recording is streamed to ``PATH.partial`` and put in place as ``PATH`` when closed (a crash leaves the partial file,
+readable up to the last tick logged). The partial file is created new in its folder, never through a link, and
+written through its own descriptor; neither it nor ``PATH`` ever replaces a file that is there.
+
+The flags are checked once, here (:func:`check_views`, for ``dssp-run``, ``dssp-record``, ``dssp-sim eval`` and
+``dssp-data view``), before the commands open anything: ``--rerun URL`` must parse as a Rerun address,
+``--rerun-save`` must name a new ``.rrd`` file in an existing, writable folder, with no ``PATH.partial`` beside it.
 
 rerun-sdk is optional (the ``viz`` extra); without it the flags fail with one line saying what to install.
 """
@@ -70,19 +75,39 @@ def add_rerun_flags(parser, what: str = "each control tick") -> None:
 
 
 def check_views(connect: str | None, save: Path | None) -> None:
-    """Check ``--rerun`` / ``--rerun-save`` without opening anything: rerun-sdk is installed, ``save`` is a new
-    ``.rrd`` file in an existing folder (a recording is never replaced). One-line :class:`ConfigError` otherwise."""
+    """Check ``--rerun`` / ``--rerun-save`` without opening anything: rerun-sdk is installed, ``connect`` is "spawn"
+    or an address Rerun can parse, ``save`` is a new ``.rrd`` file in an existing, writable folder with no
+    ``PATH.partial`` beside it (a recording is never replaced). One-line :class:`ConfigError` otherwise."""
     if connect is None and save is None:
         return
-    require_rerun("--rerun-save" if connect is None else "--rerun")
+    rr = require_rerun("--rerun-save" if connect is None else "--rerun")
+    if connect is not None and connect != "spawn":
+        try:
+            rr.GrpcSink(connect)  # parses the address; connects only once a recording is given it
+        except Exception as exc:  # noqa: BLE001 - rerun's parse errors are RuntimeErrors of its own wording
+            raise ConfigError(f"--rerun {connect!r} is not a Rerun viewer's address ({' '.join(str(exc).split())}); "
+                              "give e.g. rerun+http://127.0.0.1:9876/proxy, or --rerun alone to start a viewer") from None
     if save is not None:
         save = Path(save)
-        if save.suffix != ".rrd":
-            raise ConfigError(f"--rerun-save {save}: a Rerun recording is a .rrd file; name it e.g. {save.with_suffix('.rrd')}")
+        if save.suffix != ".rrd" or not save.stem:
+            raise ConfigError(f"--rerun-save {save}: a Rerun recording is a .rrd file; name it e.g. "
+                              f"{save.with_suffix('.rrd') if save.name else 'views.rrd'}")
+        if save.is_dir() and not save.is_symlink():
+            raise ConfigError(f"--rerun-save {save} is a folder; give a new .rrd file name")
         if save.exists() or save.is_symlink():
             raise ConfigError(f"--rerun-save {save} exists; choose a new file name (a recording is never replaced)")
         if not save.parent.is_dir():
-            raise ConfigError(f"--rerun-save {save}: the folder {save.parent} does not exist; create it first")
+            what = "is not a folder" if save.parent.exists() else "does not exist; create it first"
+            raise ConfigError(f"--rerun-save {save}: the folder {save.parent} {what}")
+        if not os.access(save.parent, os.W_OK | os.X_OK):
+            raise ConfigError(f"--rerun-save {save}: the folder {save.parent} is not writable; choose another one")
+        partial = _partial(save)
+        if partial.is_symlink():
+            raise ConfigError(f"--rerun-save {save}: {partial} is a symbolic link; remove it (a recording is never "
+                              "written through a link)")
+        if partial.exists():
+            raise ConfigError(f"--rerun-save {save}: {partial} exists (a recording that did not finish?); move it "
+                              "away or choose another name")
 
 
 def open_views(app: str, connect: str | None, save: Path | None, queue_size: int = QUEUE_SIZE) -> TickViews | None:
@@ -92,21 +117,93 @@ def open_views(app: str, connect: str | None, save: Path | None, queue_size: int
         return None
     check_views(connect, save)
     rr = require_rerun()
-    stream = rr.RecordingStream(app)
-    sinks = []
-    if save is not None:
-        sinks.append(rr.FileSink(str(_partial(save))))
-    if connect == "spawn":
-        stream.spawn(connect=False)
-        sinks.append(rr.GrpcSink())
-    elif connect is not None:
-        sinks.append(rr.GrpcSink(connect))
-    stream.set_sinks(*sinks)
-    return TickViews(stream, save=save, queue_size=queue_size)
+    save = Path(save) if save is not None else None
+    fd = _create_partial(save) if save is not None else None
+    try:
+        stream = rr.RecordingStream(app)
+        sinks = []
+        if save is not None:
+            sinks.append(rr.FileSink(_written_path(fd, _partial(save))))
+        if connect == "spawn":
+            stream.spawn(connect=False)
+            sinks.append(rr.GrpcSink())
+        elif connect is not None:
+            sinks.append(rr.GrpcSink(connect))
+        stream.set_sinks(*sinks)
+    except Exception as exc:  # noqa: BLE001 - a viewer that cannot start, a sink that cannot open: one line
+        if fd is not None:
+            _drop_partial(fd, _partial(save))
+        flag = "--rerun" if connect is not None else "--rerun-save"
+        raise ConfigError(f"{flag}: the Rerun views could not be opened ({' '.join(str(exc).split())})") from None
+    return TickViews(stream, save=save, queue_size=queue_size, save_fd=fd)
 
 
 def _partial(save: Path) -> Path:
     return save.with_name(save.name + ".partial")
+
+
+def _create_partial(save: Path) -> int:
+    """Create ``PATH.partial`` new, in ``PATH``'s folder, without following a link: its descriptor (a link or a
+    file planted there meanwhile is refused with one line)."""
+    partial = _partial(save)
+    folder = os.open(save.parent, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    try:
+        return os.open(partial.name, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC | getattr(os, "O_NOFOLLOW", 0),
+                       0o644, dir_fd=folder)
+    except FileExistsError:
+        raise ConfigError(f"--rerun-save {save}: {partial} appeared meanwhile (a link or another recording); move it "
+                          "away or choose another name") from None
+    except OSError as exc:
+        raise ConfigError(f"--rerun-save {save}: cannot create {partial} ({exc.strerror or exc})") from None
+    finally:
+        os.close(folder)
+
+
+def _written_path(fd: int, partial: Path) -> str:
+    """The path Rerun opens to write the recording: the descriptor's own file where the system names it
+    (``/proc/self/fd/N``: whatever happens to the name meanwhile), else the partial file's name."""
+    own = f"/proc/self/fd/{fd}"
+    try:
+        if os.path.samestat(os.stat(own), os.fstat(fd)):
+            return own
+    except OSError:
+        pass
+    return str(partial)
+
+
+def _same_file(fd: int, path: Path) -> bool:
+    """Whether ``path`` (not followed if a link) is still the file open as ``fd``."""
+    try:
+        return os.path.samestat(os.lstat(path), os.fstat(fd))
+    except OSError:
+        return False
+
+
+def _drop_partial(fd: int, partial: Path) -> None:
+    """Remove a partial file this process created (only if the name is still that file) and close it."""
+    try:
+        if _same_file(fd, partial):
+            os.unlink(partial)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def _publish(fd: int, save: Path) -> None:
+    """Put the finished recording (the file open as ``fd``, named ``PATH.partial``) in place as ``PATH``: a new
+    name for the same file, never over one that is there; then the partial name goes. Closes ``fd``."""
+    partial = _partial(save)
+    try:
+        if not _same_file(fd, partial):
+            raise ConfigError(f"{partial} was moved or replaced while the views were written; {save} was not made")
+        try:
+            os.link(partial, save, follow_symlinks=False)
+        except FileExistsError:
+            raise ConfigError(f"{save} appeared while the views were written; the recording stays at {partial}") from None
+        os.unlink(partial)
+    finally:
+        os.close(fd)
 
 
 def height_colors(z: np.ndarray) -> np.ndarray:
@@ -122,10 +219,12 @@ def height_colors(z: np.ndarray) -> np.ndarray:
 class TickViews:
     """Views of a run on the ``tick`` timeline, logged by a worker thread from a bounded queue."""
 
-    def __init__(self, stream: Any, save: Path | None = None, queue_size: int = QUEUE_SIZE):
+    def __init__(self, stream: Any, save: Path | None = None, queue_size: int = QUEUE_SIZE, save_fd: int | None = None):
+        """``save``: the recording's final path, written as ``PATH.partial``; ``save_fd``: that partial file's
+        descriptor (:func:`open_views`; None: the partial file is put in place by its name)."""
         import rerun as rr
 
-        self._rr, self.stream, self.save = rr, stream, save
+        self._rr, self.stream, self.save, self._save_fd = rr, stream, save, save_fd
         self.logged = 0
         self.dropped = 0
         self.last_tick = -1  # the latest tick given to tick(): a next episode continues after it
@@ -174,7 +273,10 @@ class TickViews:
             self._worker.join(timeout)
             self.stream.flush()
             self.stream.disconnect()
-            if self.save is not None and _partial(self.save).is_file():
+            if self._save_fd is not None:
+                fd, self._save_fd = self._save_fd, None
+                _publish(fd, self.save)
+            elif self.save is not None and _partial(self.save).is_file() and not _partial(self.save).is_symlink():
                 os.replace(_partial(self.save), self.save)
         if self._error is not None:
             raise ConfigError(f"the Rerun views stopped: {self._error}")

@@ -112,15 +112,15 @@ def run(args) -> int:
         raise ConfigError(f"--noise must be a number in [0, 10] (σ in the tokens' units), got {args.noise}")
     from dssp_data.rerun_views import check_views, open_views
 
-    check_views(args.rerun, args.rerun_save)
+    check_views(args.rerun, args.rerun_save)  # every flag checked before anything is opened or written
     if args.json:
         check_output_file(args.json, force=args.force, flag="--json")
 
-    views = open_views("dssp-sim eval", args.rerun, args.rerun_save)
     with contextlib.ExitStack() as stack:
+        strips = stack.enter_context(OutputDir(args.strips, STRIPS_DIR, force=args.force, flag="--strips")) if args.strips else None
+        views = open_views("dssp-sim eval", args.rerun, args.rerun_save)  # after --strips: a refused one saves no views
         if views is not None:
             stack.callback(lambda: print(views.close_line()))
-        strips = stack.enter_context(OutputDir(args.strips, STRIPS_DIR, force=args.force, flag="--strips")) if args.strips else None
         result = evaluate(args.model, args.task, args.episodes, seed=args.seed, threads=args.threads,
                           precision=args.precision, kernel=args.kernel, spinning=False if args.no_spin else None, state_token_noise=args.noise, strips_dir=strips.path if strips else None,
                           progress=not args.no_progress, views=views)

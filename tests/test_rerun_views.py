@@ -1,6 +1,7 @@
 """Rerun views of runs, recordings and datasets: saved with ``--rerun-save``, read back with Rerun's own loader,
 checked entity by entity and tick by tick against the run's own log; the queue that keeps logging off the
-control loop drops (and counts) instead of blocking; a missing rerun-sdk is one line."""
+control loop drops (and counts) instead of blocking; a missing rerun-sdk, and every bad --rerun / --rerun-save
+value, is one line before anything opens; a recording is never written through a link."""
 
 import sys
 import threading
@@ -185,3 +186,82 @@ def test_a_crash_leaves_a_readable_partial_recording(tmp_path):
     assert not save.exists() and save.with_name("crash.rrd.partial").is_file()
     ticks, _, _ = read_rrd(save.with_name("crash.rrd.partial"))
     assert ticks["safety/held"] == list(range(8))
+
+
+# ------------------------------------------------------------------------------------------------ bad flags
+BAD_VIEWS = {  # flag values → the words of their one line
+    "not a URL": (["--rerun", "not a url"], "is not a Rerun viewer's address"),
+    "a bad port": (["--rerun", "rerun+http://127.0.0.1:notaport/proxy"], "is not a Rerun viewer's address"),
+    "no such folder": (["--rerun-save", "{tmp}/missing/v.rrd"], "does not exist; create it first"),
+    "a folder": (["--rerun-save", "{tmp}/folder.rrd"], "is a folder; give a new .rrd file name"),
+    "an existing file": (["--rerun-save", "{tmp}/old.rrd"], "exists; choose a new file name"),
+    "a planted link": (["--rerun-save", "{tmp}/new.rrd"], "new.rrd.partial is a symbolic link"),
+}
+
+
+def _dssp_run(tmp, flags):
+    return run_main(["--model", str(tmp / "model"), "--log-dir", str(tmp / "log"), "--quiet", *flags])
+
+
+def _dssp_record(tmp, flags):
+    return record_main(["--out", str(tmp / "rec.zarr"), "--auto", "--episodes", "1", "--quiet", *flags])
+
+
+def _dssp_sim_eval(tmp, flags):
+    from dssp_sim.sim_cli import main as sim_main
+
+    return sim_main(["eval", "--model", str(tmp / "model"), "--task", "tap", "--episodes", "1", "--no-progress", *flags])
+
+
+def _dssp_data_view(tmp, flags):
+    return data_main(["view", str(tmp / "data" / "d.zarr"), "--episode", "0", *flags])
+
+
+@pytest.mark.parametrize("command", [_dssp_run, _dssp_record, _dssp_sim_eval, _dssp_data_view],
+                         ids=["dssp-run", "dssp-record", "dssp-sim eval", "dssp-data view"])
+def test_bad_view_flags_are_one_line_before_anything_opens(command, tmp_path, capsys):
+    """Each command that takes --rerun / --rerun-save refuses a bad value with one line (exit 2) before it opens
+    anything: nothing is written, the target of a planted link is untouched."""
+    from conftest import snapshot, write_arm_dataset
+
+    (tmp_path / "data").mkdir()
+    write_arm_dataset(tmp_path / "data" / "d.zarr", n_episodes=1, steps=4)
+    (tmp_path / "folder.rrd").mkdir()
+    (tmp_path / "old.rrd").write_bytes(b"an earlier recording")
+    (tmp_path / "victim.txt").write_text("not yours")
+    (tmp_path / "new.rrd.partial").symlink_to(tmp_path / "victim.txt")
+    before = snapshot(tmp_path)
+    for name, (flags, words) in BAD_VIEWS.items():
+        flags = [f.format(tmp=tmp_path) for f in flags]
+        assert command(tmp_path, flags) == 2, name
+        line = one_error_line(capsys)
+        assert words in line and line.startswith("error: "), (name, line)
+        assert snapshot(tmp_path) == before, name
+
+
+def test_a_recording_is_never_written_through_a_link(tmp_path, monkeypatch):
+    """The partial file is created new (a link planted after the check is refused), and the recording is written
+    through its own descriptor: a name swapped for a link meanwhile gets nothing, and is not put in place."""
+    victim = tmp_path / "victim.txt"
+    victim.write_text("not yours")
+    save = tmp_path / "late.rrd"
+    with monkeypatch.context() as patch:
+        patch.setattr("dssp_data.rerun_views.check_views", lambda connect, save: None)  # the link comes after the check
+        save.with_name("late.rrd.partial").symlink_to(victim)
+        with pytest.raises(ConfigError, match="appeared meanwhile"):
+            open_views("test", None, save)
+    assert victim.read_text() == "not yours" and not save.exists()
+
+    save = tmp_path / "swapped.rrd"
+    views = open_views("test", None, save)
+    partial = save.with_name("swapped.rrd.partial")
+    moved = tmp_path / "moved.rrd"
+    partial.rename(moved)
+    partial.symlink_to(victim)
+    for t in range(4):
+        views.tick(t, held=False, state=np.zeros(7))
+    with pytest.raises(ConfigError, match="was moved or replaced"):
+        views.close()
+    assert victim.read_text() == "not yours" and not save.exists()
+    ticks, _, _ = read_rrd(moved)  # every tick went to the file the views created
+    assert ticks["safety/held"] == list(range(4))
