@@ -13,12 +13,17 @@ does not wait. ``lead`` comes from the measured chunk latency and the tick perio
 budget in the tick's info — never silently late. The history is updated at every tick either way.
 
 An observation with NaN or infinity raises :class:`~dssp_data.errors.NonFiniteObservation` from
-``tick`` and changes nothing (no history update, no tick counted): the caller holds, as for a stale
-camera frame, and the next good observation continues the episode.
+``tick``, one outside the training range :class:`~dssp_deploy.ranges.ObservationOutOfRange`, and both
+change nothing (no history update, no tick counted): the caller holds, as for a stale camera frame, and
+the next good observation continues the episode. A chunk the runtime refuses (NaN/inf or an action outside
+the action range: :class:`~dssp_deploy.ranges.ChunkOutOfRange`) is raised from the tick that needs it, and
+that tick is undone (its observation taken back out of the history, no tick counted): the caller holds the
+same way, and the next tick computes a new chunk.
 """
 
 from __future__ import annotations
 
+import copy
 import math
 import threading
 import time
@@ -28,6 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from dssp_deploy.onnx_policy import OnnxPolicy
+from dssp_deploy.ranges import ChunkOutOfRange
 
 RATE_TOLERANCE = 0.05
 
@@ -117,7 +123,10 @@ class ChunkedControl:
         times = []
         for _ in range(iterations):
             t0 = time.perf_counter()
-            p.denoise(inputs, seed=0)
+            try:
+                p.denoise(inputs, seed=0)
+            except ChunkOutOfRange:  # zeros are no context the model was trained on: only the time counts here
+                pass
             times.append((time.perf_counter() - t0) * 1e3)
         return float(np.median(times))
 
@@ -136,7 +145,8 @@ class ChunkedControl:
     def tick(self, point_cloud, agent_pos) -> tuple[np.ndarray, TickInfo]:
         """Update the history with this tick's observation and return this tick's action (B, A).
 
-        Raises NonFiniteObservation (NaN/inf in the observation) before anything changes: hold this tick."""
+        Raises NonFiniteObservation (NaN/inf in the observation) or ObservationOutOfRange before anything
+        changes, and ChunkOutOfRange (a refused chunk) with the tick undone: hold this tick."""
         now = time.perf_counter()
         info_events: list[str] = []
         if self._last_tick_time is not None and self.period_ms:
@@ -145,8 +155,20 @@ class ChunkedControl:
                 info_events.append(f"tick period {actual:.1f} ms is longer than the model's {self.period_ms:.1f} ms")
 
         t0 = time.perf_counter()
+        # The history before this tick: each observation replaces its fields (never changes them in place).
+        before = copy.copy(self.policy.history)
         self.policy.observe(point_cloud, agent_pos)  # a refused observation raises here, nothing changed
+        try:
+            action, info = self._act(t0, info_events)
+        except ChunkOutOfRange:  # undo the tick: the history as before it, no tick counted
+            self.policy.history = before
+            raise
         self._last_tick_time = now
+        self.tick_count += 1
+        return action, info
+
+    def _act(self, t0: float, info_events: list[str]) -> tuple[np.ndarray, TickInfo]:
+        """This tick's action (B, A) after its observation: a new chunk every H_a ticks, else the current one."""
         info = TickInfo(self.tick_count, 0, False, (time.perf_counter() - t0) * 1e3, events=info_events)
         t = self.tick_count
         ha = self.policy.n_action_steps
@@ -154,11 +176,12 @@ class ChunkedControl:
             info.new_chunk = True
             if self.pending is not None:
                 w0 = time.perf_counter()
-                if not self.pending.done():
+                pending, self.pending = self.pending, None  # taken, whether its chunk is used or refused
+                if not pending.done():
                     info.over_budget = True
-                chunk, info.chunk_ms = self.pending.result()
+                chunk, info.chunk_ms = pending.result()
                 info.waited_ms = (time.perf_counter() - w0) * 1e3
-                self.chunk, self.chunk_offset, self.pending = chunk, self.policy.action_offset + self.lead, None
+                self.chunk, self.chunk_offset = chunk, self.policy.action_offset + self.lead
                 if info.over_budget:
                     info.events.append(f"chunk not ready at tick {t}: waited {info.waited_ms:.1f} ms (over budget)")
             else:
@@ -176,5 +199,4 @@ class ChunkedControl:
             self.pending = _Background(self.policy, self.policy.denoiser_inputs(), self._chunk_seed())
         index = self.chunk_offset + (t - self.chunk_start)
         info.chunk_index = index
-        self.tick_count += 1
         return self.chunk[:, index], info

@@ -9,6 +9,10 @@ does not, saying why in one line.
 
 ``DSSP_SCAN_PATH=auto|avx512|avx2|portable`` chooses the library's implementation (see the C++ source;
 auto, the default, is the widest this CPU runs).
+
+Before the library is loaded its ELF headers are checked (:func:`elf_problem`): loading a truncated library
+maps pages past the end of the file, and the first touch of one kills the process (SIGBUS) — no exception
+to catch. A library that fails the check is unavailable, as a missing one is.
 """
 
 from __future__ import annotations
@@ -16,6 +20,8 @@ from __future__ import annotations
 import ctypes
 import functools
 import os
+import struct
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -50,12 +56,76 @@ def library_path() -> Path | None:
     return Path(env) if env else DEFAULT_LIBRARY
 
 
+ELF_MAGIC = b"\x7fELF"
+ET_DYN = 3  # e_type of a shared library
+SHT_NOBITS = 8  # a section with no bytes in the file (.bss)
+# Per ELF class (1: 32-bit, 2: 64-bit): the header's (e_type, e_machine, e_phoff, e_shoff, e_phentsize, e_phnum,
+# e_shentsize, e_shnum) fields after e_ident, and the sizes and fields of a program header (p_offset, p_filesz)
+# and a section header (sh_type, sh_offset, sh_size).
+ELF_LAYOUT = {
+    1: {"header": ("HH8xII4x2xHHHH", 52), "segment": (32, "4xI8xI"), "section": (40, "4xI8xII")},
+    2: {"header": ("HH4x8xQQ4x2xHHHH", 64), "segment": (56, "8xQ16xQ"), "section": (64, "4xI16xQQ")},
+}
+
+
+@functools.lru_cache(maxsize=1)
+def _host_elf() -> bytes | None:
+    """e_ident[4:6] (class, byte order) and e_machine of this Python's own executable; None when it is no ELF file."""
+    try:
+        with open(os.path.realpath(sys.executable), "rb") as f:
+            head = f.read(20)
+    except OSError:
+        return None
+    return head[4:6] + head[18:20] if head[:4] == ELF_MAGIC and len(head) == 20 else None
+
+
+def elf_problem(path: Path) -> str | None:
+    """What makes ``path`` unsafe to load as this process's shared library, or None: not ELF, another class, byte
+    order or machine than this Python, not a shared library, or a header table, segment or section that ends past
+    the end of the file (a truncated copy: loading it would kill the process with SIGBUS). Not checked where
+    this Python is no ELF executable."""
+    host = _host_elf()
+    if host is None:
+        return None
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        return f"cannot be read ({exc.strerror or exc})"
+    size = len(data)
+    if size < 20 or data[:4] != ELF_MAGIC:
+        return "is not an ELF shared library"
+    if data[4:6] + data[18:20] != host:
+        return "is built for another machine or word size than this Python"
+    layout = ELF_LAYOUT.get(data[4])
+    order = "<" if data[5] == 1 else ">"
+    fmt, header = layout["header"] if layout else ("", 0)
+    if not layout or size < header:
+        return f"is truncated ({size} bytes, shorter than its ELF header)"
+    e_type, _, phoff, shoff, phentsize, phnum, shentsize, shnum = struct.unpack_from(order + fmt, data, 16)
+    if e_type != ET_DYN:
+        return f"is not a shared library (ELF type {e_type})"
+    for what, offset, entsize, count, (want, fields) in (("program header", phoff, phentsize, phnum, layout["segment"]),
+                                                       ("section header", shoff, shentsize, shnum, layout["section"])):
+        if count and (entsize != want or offset + count * entsize > size):
+            return f"is truncated (its {what} table ends at byte {offset + count * entsize}, the file has {size})"
+        for i in range(count):
+            values = struct.unpack_from(order + fields, data, offset + i * entsize)
+            start, length = values[-2:]
+            if (what == "program header" or values[0] != SHT_NOBITS) and start + length > size:
+                kind = "segment" if what == "program header" else "section"
+                return f"is truncated (its {kind} {i} ends at byte {start + length}, the file has {size})"
+    return None
+
+
 @functools.lru_cache(maxsize=None)
 def _probe(path: Path, scan_path: str) -> Kernel:
     import onnxruntime as ort
 
     if not path.is_file():
         return Kernel(None, f"{path} is missing (build it with `make kernel`)")
+    problem = elf_problem(path)
+    if problem:
+        return Kernel(None, f"{path} failed to load: it {problem}, so it was not loaded; rebuild it with `make kernel`")
     try:
         ort.SessionOptions().register_custom_ops_library(str(path))
     except Exception as exc:  # onnxruntime raises its own exception types

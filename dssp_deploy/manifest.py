@@ -13,8 +13,9 @@ use it) refuses, with one :class:`ModelDirError` line naming the field, its valu
 - a file name that does not stay inside the model directory (absolute, ``..``, or a symbolic link out),
   or a graph file without a size and sha256 in ``files``.
 The runtime then checks each graph file it opens against that size and sha256 (:func:`read_graph`: a
-file from another export is refused) and each ONNX session against the declared interface
-(:func:`check_session`).
+file from another export is refused), every file of external data an ONNX graph names the same way
+(:func:`read_graph_files`: inside the model directory, listed with its own size and sha256), and each
+ONNX session against the declared interface (:func:`check_session`).
 
 Shapes of the graph interface (E = expand * d_model, n = d_state, W = d_conv):
     history_step: point_cloud (B, P, point_dim), agent_pos (B, S), conv_state_i (B, E, W), ssm_state_i (B, E, n)
@@ -33,6 +34,7 @@ from pathlib import Path, PurePosixPath, PureWindowsPath
 from typing import Any, ClassVar
 
 from dssp_data.observation import ObservationContract
+from dssp_deploy.external_data import MalformedGraph, external_locations
 from dssp_data.schema import MAX_DIM, MAX_LAYERS, MAX_RATE_HZ, MAX_STEPS, MAX_WIDTH
 from dssp_data.errors import ConfigError, DSSPError
 from dssp_data.schema import Settings, Spec, check_value, parse_json, setting
@@ -402,7 +404,9 @@ def _check_graphs(graphs: Any, model: ModelFacts, files: dict[str, Any], model_d
 
 
 def _check_normalizers(normalizers: Any, model: ModelFacts) -> None:
-    """Per-channel statistics of the three normalised tensors, as many as the tensor has channels."""
+    """Per-channel statistics of the three normalised tensors, as many as the tensor has channels, finite, with
+    scale > 0 and input_min <= input_max: the training ranges the runtime refuses observations and chunks outside
+    of (:mod:`dssp_deploy.ranges`)."""
     where = f"{MANIFEST_NAME} normalizers"
     normalizers = check_value(normalizers, dict[str, Any], Spec(), where)
     for name, size in (("point_cloud", model.point_dim), ("agent_pos", model.state_dim), ("action", model.action_dim)):
@@ -414,6 +418,11 @@ def _check_normalizers(normalizers: Any, model: ModelFacts) -> None:
             values = check_value(stats.get(key), list[float], Spec(), field)
             if len(values) != size:
                 raise ConfigError(f"{field} must hold {size} values (one per channel), got {len(values)}")
+        for c, (scale, low, high) in enumerate(zip(stats["scale"], stats["input_min"], stats["input_max"])):
+            if not scale > 0:
+                raise ConfigError(f"{where}.{name}.scale must be > 0 (y = x * scale + offset), got {scale!r} for channel {c}")
+            if not low <= high:
+                raise ConfigError(f"{where}.{name}: channel {c} has input_min {low!r} > input_max {high!r}")
 
 
 # ----------------------------------------------------------------------------- the files
@@ -507,6 +516,38 @@ def read_graph(model_dir: Path, manifest: dict[str, Any], graph: str, fmt: str =
         raise ModelDirError(f"{path} cannot be read ({exc.strerror or exc}); {AGAIN}") from None
     check_digest(path, data, manifest, manifest["graphs"][graph]["files"][fmt])
     return path, data
+
+
+def read_graph_files(model_dir: Path, manifest: dict[str, Any], graph: str, fmt: str = "onnx") -> tuple[Path, bytes, dict[str, bytes]]:
+    """(path, bytes, external data) of one ONNX graph: its file as :func:`read_graph` reads it, and the files its
+    tensors' external data name, {location: bytes}. Each such file must be in the model directory (its location
+    relative to the graph's folder: no absolute path, no '..', no symbolic link out) and have its own size and
+    sha256 in the manifest's files, which its bytes must match; else a :class:`ModelDirError`.
+
+    Give ONNX Runtime these bytes (``dssp_deploy.sessions.open_session``): what runs is what was checked."""
+    path, data = read_graph(model_dir, manifest, graph, fmt)
+    try:
+        locations = external_locations(data)
+    except MalformedGraph as exc:
+        raise ModelDirError(f"{path} is not a well-formed ONNX graph ({exc}); {AGAIN}") from None
+    folder = PurePosixPath(manifest["graphs"][graph]["files"][fmt]).parent
+    external = {}
+    for location in locations:
+        if location is None or not _is_inside_name(location):
+            raise ModelDirError(f"{path} keeps tensors in external data at {location!r}, which is not a file name inside "
+                                f"the model directory (absolute paths and '..' are refused); {AGAIN}")
+        name = str(folder / location)
+        file = model_file(model_dir, name, f"the external data of {path.name}")
+        if name not in manifest["files"]:
+            raise ModelDirError(f"{path} keeps tensors in {file}, which has no size and sha256 in {MANIFEST_NAME} files "
+                                f"(every file the runtime loads must); {AGAIN}")
+        try:
+            blob = file.read_bytes()
+        except OSError as exc:
+            raise ModelDirError(f"{file} (the external data of {path.name}) cannot be read ({exc.strerror or exc}); {AGAIN}") from None
+        check_digest(file, blob, manifest, name)
+        external[location] = blob
+    return path, data, external
 
 
 def check_session(session, manifest: dict[str, Any], graph: str, where: Path) -> None:

@@ -13,7 +13,10 @@ starts at zero, the last N state tokens are kept, and at the start of an episode
 repeats. Point clouds with more channels than the model uses (xyz + rgb for an xyz model) are cut to the
 model's channels, as in training. An observation with NaN or infinity anywhere is refused
 (:class:`dssp_data.errors.NonFiniteObservation`) before any graph runs: the recurrent history would keep
-it for the rest of the episode; refused, it leaves the state as it was.
+it for the rest of the episode; refused, it leaves the state as it was. So is one with a value far outside
+the training range (:class:`dssp_deploy.ranges.ObservationOutOfRange`), and a chunk with NaN/inf or an
+action outside the action range is never returned (:class:`dssp_deploy.ranges.ChunkOutOfRange`), on every
+precision: the ranges and their margin are in :mod:`dssp_deploy.ranges`.
 
 Graphs: with ``kernel="auto"`` (the default) the ``*.fused.onnx`` graphs run when the model directory has
 them and the fused Mamba library loads (:mod:`dssp_deploy.mamba_kernel`); otherwise the standard graphs,
@@ -49,9 +52,10 @@ from dssp_deploy.manifest import (
     ModelDirError,
     check_session,
     file_kind,
-    read_graph,
+    read_graph_files,
     read_manifest,
 )
+from dssp_deploy.ranges import ChunkOutOfRange, ObservationOutOfRange, model_ranges
 from dssp_deploy.sessions import check_threads, default_threads, open_session
 
 KERNELS = ("auto", "fused", "standard")
@@ -132,6 +136,7 @@ class OnnxPolicy:
         self.control_rate_hz: float | None = m["control_rate_hz"]
         self.use_history, self.use_recent_states = m["use_history"], m["use_recent_states"]
         self.history_state: list[str] = list(m["history_state"])
+        self.ranges = model_ranges(m, self.point_dim)  # what observe() and denoise() accept (dssp_deploy.ranges)
         check_threads(threads)
         total = threads or default_threads()
         # With chunks computed in the background (prefetch) the history step and the denoiser run at the same
@@ -144,13 +149,13 @@ class OnnxPolicy:
         self.precision = precision
         self.fused, self.kernel_note = choose_graphs(m, precision, kernel)
         self.kernel_note = f"{precision}, {self.kernel_note}{why_precision}"
-        # Every other ONNX graph file of the directory is checked too (size, sha256), once, before anything runs:
-        # a damaged model directory is refused as a whole, whichever graphs a fallback would take.
+        # Every other ONNX graph file of the directory is checked too (size, sha256, its external data), once, before
+        # anything runs: a damaged model directory is refused as a whole, whichever graphs a fallback would take.
         chosen = file_kind(precision, self.fused)
         for graph in GRAPHS:
             for kind in m["graphs"][graph]["files"]:
                 if kind.startswith("onnx") and kind != chosen:
-                    read_graph(self.model_dir, m, graph, kind)
+                    read_graph_files(self.model_dir, m, graph, kind)
         try:
             self.sessions = self._open_sessions()
         except GraphLoadError as exc:  # ONNX Runtime refused a fused graph (not a file or interface mismatch)
@@ -169,10 +174,14 @@ class OnnxPolicy:
     def _open_sessions(self) -> dict[str, Any]:
         sessions = {}
         for graph in (HISTORY_GRAPH, DENOISER_GRAPH):
-            path, data = read_graph(self.model_dir, self.manifest, graph, file_kind(self.precision, self.fused))  # size and sha256 checked
+            # size and sha256 checked, of the graph and of each file of external data it names
+            path, data, external = read_graph_files(self.model_dir, self.manifest, graph, file_kind(self.precision, self.fused))
             try:
                 spin = self.spinning and graph == DENOISER_GRAPH  # a history step is too short to gain from it
-                session = open_session(data, self.threads[graph], spin, fused=self.fused)  # the checked bytes, not the path again
+                # the checked bytes, not the paths again
+                session = open_session(data, self.threads[graph], spin, fused=self.fused, external=external)
+            except ModelDirError:
+                raise
             except Exception as exc:  # onnxruntime raises its own exception types
                 first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
                 raise GraphLoadError(f"{path} could not be loaded by ONNX Runtime ({first}); export the model again") from None
@@ -223,9 +232,11 @@ class OnnxPolicy:
     def observe(self, point_cloud, agent_pos) -> np.ndarray:
         """Run the history-update graph on one observation; returns z_t (B, d).
 
-        Raises ValueError for a wrong shape or a batch size other than the episode's, and
+        Raises ValueError for a wrong shape or a batch size other than the episode's,
         :class:`NonFiniteObservation` (a ValueError) for NaN or infinity anywhere in either input (as
-        float32): all before any graph runs, the state unchanged."""
+        float32), and :class:`ObservationOutOfRange` for a value of agent_pos or of the cloud's model
+        channels outside the training range plus the margin (:mod:`dssp_deploy.ranges`): all before any
+        graph runs, the state unchanged."""
         pc = _batch(point_cloud, 3, "point_cloud")
         pos = _batch(agent_pos, 2, "agent_pos")
         if pc.shape[-1] < self.point_dim:
@@ -234,7 +245,12 @@ class OnnxPolicy:
             raise ValueError(f"agent_pos must be (B={pc.shape[0]}, S={self.state_dim}), got {pos.shape}")
         check_finite("point_cloud", pc)
         check_finite("agent_pos", pos)
-        return self.history.observe(np.ascontiguousarray(pc[..., : self.point_dim]), pos)
+        pc = np.ascontiguousarray(pc[..., : self.point_dim])
+        for name, values in (("point_cloud", pc), ("agent_pos", pos)):
+            wrong = self.ranges[name].outside(values)
+            if wrong:
+                raise ObservationOutOfRange(f"{wrong}; the observation was not used (the history is unchanged)")
+        return self.history.observe(pc, pos)
 
     # ------------------------------------------------------------------ chunks
     def denoiser_inputs(self) -> dict[str, np.ndarray]:
@@ -252,21 +268,33 @@ class OnnxPolicy:
         return np.random.default_rng(seed).standard_normal((batch, self.horizon, self.action_dim), dtype=np.float32)
 
     def denoise(self, inputs: dict[str, np.ndarray], noise: np.ndarray | None = None, seed: int | None = None) -> np.ndarray:
-        """Run the denoiser graph on given inputs: the action chunk (B, H, A) in raw units."""
+        """Run the denoiser graph on given inputs: the action chunk (B, H, A) in raw units.
+
+        Raises :class:`ChunkOutOfRange` for a chunk with NaN/inf or an action outside the action range plus
+        the margin (:mod:`dssp_deploy.ranges`): such a chunk is never returned."""
         batch = next(iter(inputs.values())).shape[0]
         noise = self.noise(batch, seed) if noise is None else _batch(noise, 3, "noise")
         if noise.shape != (batch, self.horizon, self.action_dim):
             raise ValueError(f"noise must have shape {(batch, self.horizon, self.action_dim)}, got {noise.shape}")
-        return self.sessions[DENOISER_GRAPH].run(None, {**inputs, "noise": noise})[0]
+        chunk = self.sessions[DENOISER_GRAPH].run(None, {**inputs, "noise": noise})[0]
+        wrong = self.ranges["action"].outside(chunk)
+        if wrong:
+            raise ChunkOutOfRange(f"{wrong}; the chunk was not used")
+        return chunk
 
     def act(self, noise=None, seed: int | None = None) -> np.ndarray:
         """The action chunk (B, H, A) for the current history, from the given noise or a seeded draw."""
         return self.denoise(self.denoiser_inputs(), noise, seed)
 
+    def example_observation(self, rng: np.random.Generator, n_points: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """An observation the model accepts, drawn uniformly from the training ranges: point_cloud (1, P, point_dim)
+        (P: ``n_points``, default the model's), agent_pos (1, S); for warm-up and timing."""
+        pc = self.ranges["point_cloud"].sample(rng, (1, n_points or self.n_points))
+        return pc, self.ranges["agent_pos"].sample(rng, (1,))
+
     def warmup(self, iterations: int = 2) -> None:
-        """Run both graphs on zeros (allocations, kernel selection), then reset."""
-        pc = np.zeros((1, 64, self.point_dim), np.float32)
-        pos = np.zeros((1, self.state_dim), np.float32)
+        """Run both graphs on an example observation (allocations, kernel selection), then reset."""
+        pc, pos = self.example_observation(np.random.default_rng(0), 64)
         for _ in range(iterations):
             self.observe(pc, pos)
             self.act(seed=0)

@@ -17,19 +17,23 @@ from pathlib import Path
 
 import numpy as np
 
-from dssp_deploy.sessions import session_options
+from dssp_deploy.sessions import add_external_data, session_options
 
 
 def op_type_breakdown(path: Path, feeds: dict[str, np.ndarray], threads: int | None = None, runs: int = 5, warmup: int = 2,
-                      fused: bool = False) -> list[dict]:
+                      fused: bool = False, model: bytes | None = None, external: dict[str, bytes] | None = None) -> list[dict]:
     """Kernel time per run by operator type, over ``runs`` profiled calls after ``warmup`` calls
-    (``fused``: a graph with the fused Mamba operators)."""
+    (``fused``: a graph with the fused Mamba operators). ``model`` and ``external``: the graph's checked bytes and
+    those of its external data (``dssp_deploy.manifest.read_graph_files``; default: ``path``'s bytes, which may
+    name no external data)."""
     import onnxruntime as ort
 
     options = session_options(threads, fused=fused)
     options.enable_profiling = True
     options.profile_file_prefix = str(Path(path).with_suffix("")) + "_opprofile"
-    session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+    data = Path(path).read_bytes() if model is None else model
+    add_external_data(options, data, external)
+    session = ort.InferenceSession(data, options, providers=["CPUExecutionProvider"])
     for _ in range(warmup):
         session.run(None, feeds)
     # Profiling starts with the session; drop warm-up events by counting runs in the trace.

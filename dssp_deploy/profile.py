@@ -44,7 +44,7 @@ from dssp_deploy.latency import (
     resident_memory_mib,
     time_calls,
 )
-from dssp_deploy.manifest import DENOISER_GRAPH, HISTORY_GRAPH, file_kind, graph_file, read_manifest
+from dssp_deploy.manifest import DENOISER_GRAPH, HISTORY_GRAPH, file_kind, graph_file, read_graph_files, read_manifest
 from dssp_deploy.onnx_policy import OnnxPolicy, add_runtime_arguments, choose_graphs
 from dssp_deploy.op_breakdown import elementwise_share, op_type_breakdown
 from dssp_deploy.sessions import default_threads
@@ -65,11 +65,8 @@ TARGETS = {
 
 
 def random_observation(policy: OnnxPolicy, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    n_points = policy.manifest["model_config"]["n_points"]
-    return (
-        rng.standard_normal((1, n_points, policy.point_dim), dtype=np.float32),
-        rng.standard_normal((1, policy.state_dim), dtype=np.float32),
-    )
+    """point_cloud (1, P, point_dim), agent_pos (1, S) drawn from the training ranges (the runtime refuses others)."""
+    return policy.example_observation(rng)
 
 
 def profile_components(policy: OnnxPolicy, settings: dict, rng) -> dict[str, Any]:
@@ -226,12 +223,11 @@ def graph_breakdowns(policy: OnnxPolicy, model_dir: Path, threads: int | None, r
     history_feeds = {"point_cloud": pc, "agent_pos": pos, **policy.state} if policy.use_history else {"point_cloud": pc, "agent_pos": pos}
     denoiser_feeds = {**policy.denoiser_inputs(), "noise": policy.noise(1, seed=0)}
     manifest, fmt = policy.manifest, file_kind(policy.precision, policy.fused)
-    return {
-        "history_step": op_type_breakdown(graph_file(model_dir, manifest, HISTORY_GRAPH, fmt), history_feeds, threads, runs,
-                                          fused=policy.fused),
-        "denoiser_chunk": op_type_breakdown(graph_file(model_dir, manifest, DENOISER_GRAPH, fmt), denoiser_feeds, threads, runs,
-                                            fused=policy.fused),
-    }
+    breakdowns = {}
+    for name, graph, feeds in (("history_step", HISTORY_GRAPH, history_feeds), ("denoiser_chunk", DENOISER_GRAPH, denoiser_feeds)):
+        path, data, external = read_graph_files(model_dir, manifest, graph, fmt)  # the checked bytes, as the runtime loads them
+        breakdowns[name] = op_type_breakdown(path, feeds, threads, runs, fused=policy.fused, model=data, external=external)
+    return breakdowns
 
 
 def target_rows(report: dict[str, Any]) -> list[tuple[str, float, float, bool, str]]:

@@ -6,14 +6,21 @@ asked for (``spinning=True``; the runtime does for the denoiser when it has 2 th
 stops it), the threads spin only while a run is in progress (``session.force_spinning_stop``): a chunk's
 hundreds of small parallel operators then do not each wait for a sleeping thread to wake, and nothing spins
 between chunks.
+
+A session is opened from a graph's bytes, already checked (``dssp_deploy.manifest.read_graph_files``), never
+from a path: ONNX Runtime would read what the graph names as external data from the current directory.
+Each external-data file comes as checked bytes too (``external``); a graph naming any other is refused.
 """
 
 from __future__ import annotations
 
 import os
+from collections.abc import Mapping
 from pathlib import Path
 
 from dssp_data.errors import ConfigError
+from dssp_deploy.external_data import MalformedGraph, external_locations
+from dssp_deploy.manifest import ModelDirError
 
 
 def default_threads() -> int:
@@ -57,10 +64,32 @@ def session_options(threads: int | None = None, spinning: bool = False, fused: b
     return options
 
 
-def open_session(model: Path | bytes, threads: int | None = None, spinning: bool = False, fused: bool = False):
-    """A CPU ``InferenceSession`` for one ``.onnx`` file, given as its path or as its bytes (already checked);
-    ``fused`` for a graph with the fused Mamba operators."""
+def add_external_data(options, model: bytes, external: Mapping[str, bytes] | None = None) -> None:
+    """Give ``options`` the files the ONNX graph ``model`` keeps tensors in, from ``external`` ({location: bytes},
+    checked by ``dssp_deploy.manifest.read_graph_files``). Raises :class:`ModelDirError` for a graph that names
+    any other file: ONNX Runtime would read it from the current directory, unchecked."""
+    try:
+        locations = external_locations(model)
+    except MalformedGraph as exc:
+        raise ModelDirError(f"not a well-formed ONNX graph ({exc}); export the model again") from None
+    external = external or {}
+    unchecked = [loc for loc in locations if loc not in external]
+    if unchecked:
+        raise ModelDirError(f"the graph keeps tensors in external data at {unchecked[0]!r}, which was not read and checked "
+                            "from the model directory (dssp_deploy.manifest.read_graph_files); refused")
+    if locations:
+        options.add_external_initializers_from_files_in_memory(locations, [external[loc] for loc in locations],
+                                                                [len(external[loc]) for loc in locations])
+
+
+def open_session(model: Path | bytes, threads: int | None = None, spinning: bool = False, fused: bool = False,
+                 external: Mapping[str, bytes] | None = None):
+    """A CPU ``InferenceSession`` for one ``.onnx`` graph, given as its bytes (already checked) or its path (read
+    here); ``external``: the checked bytes of the files its tensors' external data name (see
+    :func:`add_external_data`); ``fused`` for a graph with the fused Mamba operators."""
     import onnxruntime as ort
 
-    source = bytes(model) if isinstance(model, (bytes, bytearray, memoryview)) else str(model)
-    return ort.InferenceSession(source, session_options(threads, spinning, fused), providers=["CPUExecutionProvider"])
+    data = bytes(model) if isinstance(model, (bytes, bytearray, memoryview)) else Path(model).read_bytes()
+    options = session_options(threads, spinning, fused)
+    add_external_data(options, data, external)
+    return ort.InferenceSession(data, options, providers=["CPUExecutionProvider"])

@@ -147,6 +147,7 @@ class RuntimeStream:
         from dssp_deploy.onnx_policy import OnnxPolicy
 
         self.policy = OnnxPolicy(model_dir, threads=threads, warmup=0, precision=precision, kernel=kernel)
+        self.name = f"{self.policy.precision} {self.policy.kernel}"
 
     def observe(self, point_cloud: np.ndarray, agent_pos: np.ndarray) -> np.ndarray:
         return self.policy.observe(point_cloud, agent_pos)
@@ -163,7 +164,14 @@ class RuntimeStream:
         return self.policy.denoiser_inputs()
 
     def act(self, noise: np.ndarray) -> np.ndarray:
-        return self.policy.act(noise=noise)
+        """The chunk; one the runtime refuses (NaN/inf, outside the action range) on the trajectory fails parity."""
+        from dssp_deploy.ranges import ChunkOutOfRange
+
+        try:
+            return self.policy.act(noise=noise)
+        except ChunkOutOfRange as exc:
+            raise ParityError(f"the {self.name} graphs give a chunk the runtime refuses: {exc}; export the model again "
+                              "from finite weights, and report it with the run's config.json if it persists") from None
 
 
 def torchscript_graph(path: Path, data: bytes | None = None) -> GraphFn:

@@ -9,8 +9,10 @@ Each tick:
    memory with copies of one frame);
 2. otherwise build the point cloud (``hardware.pointcloud``, the same pipeline that builds datasets),
    and run the runtime's tick (``dssp_deploy.ChunkedControl``: the history every tick, a new chunk every
-   H_a ticks); an empty cloud, or a cloud or joint state with NaN/inf (refused by the runtime before
-   any graph runs), is no observation: hold, the history left alone;
+   H_a ticks); an empty cloud, or a cloud or joint state with NaN/inf or a value far outside the model's
+   training range (refused by the runtime before any graph runs), is no observation: hold, the history left
+   alone; a chunk the runtime refuses (NaN/inf, an action outside the action range) is no action: hold, the
+   tick undone (``dssp_deploy.ranges``);
 3. the safety layer turns the action into a command (limits, per-tick step; a deadline miss holds);
 4. send it (not with ``dry_run``), log the tick (and queue its Rerun views: ``views``, never blocking), sleep to
    the next tick.
@@ -34,6 +36,7 @@ import numpy as np
 
 from dssp_deploy.control_loop import ChunkedControl
 from dssp_deploy.onnx_policy import OnnxPolicy
+from dssp_deploy.ranges import ChunkOutOfRange, ObservationOutOfRange
 from dssp_data.errors import CameraError, ConfigError, DSSPError, NonFiniteObservation
 from hardware.robot import Robot, check_rate
 from hardware.camera.base import Camera
@@ -191,9 +194,12 @@ class Runner:
                 self.event_counts["padded_cloud"] += 1
             try:
                 out, info = self.control.tick(cloud[None], state.position[None].astype(np.float32))
-            except NonFiniteObservation as exc:  # refused before the history saw it: no observation, hold
+            except (NonFiniteObservation, ObservationOutOfRange) as exc:  # refused before the history saw it: no observation, hold
                 cloud, record["events"] = None, [f"no observation: {exc}"]
-                self.event_counts["non_finite_observation"] += 1
+                self.event_counts["non_finite_observation" if isinstance(exc, NonFiniteObservation) else "observation_out_of_range"] += 1
+            except ChunkOutOfRange as exc:  # refused, the tick undone: no action, hold
+                cloud, record["events"] = None, [f"no action: {exc}"]
+                self.event_counts["chunk_out_of_range"] += 1
             except Exception as exc:  # the runtime failed: hold and end
                 self._fault(t0, f"runtime error: {exc}")
             else:

@@ -376,6 +376,28 @@ def test_bad_run_directory_or_option(tmp_path, capsys, damage, extra, message):
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("prefix, value", [("history_encoder.", float("nan")), ("denoiser.", float("inf")),
+                                           ("normalizers.action.", float("-inf"))], ids=["nan", "inf", "normaliser"])
+def test_non_finite_weights_are_named_and_nothing_is_written(tmp_path, capsys, prefix, value):
+    from safetensors import safe_open
+    from safetensors.torch import load_file, save_file
+
+    run = save_run(tmp_path / "run")
+    weights = run / "model.safetensors"
+    with safe_open(str(weights), "pt") as f:
+        metadata = f.metadata()
+    tensors = load_file(str(weights))
+    name = next(k for k in sorted(tensors) if k.startswith(prefix) and tensors[k].is_floating_point())
+    tensors[name].view(-1)[-1] = value
+    save_file(tensors, str(weights), metadata=metadata)
+    before = sorted(p.name for p in tmp_path.iterdir())
+    out = tmp_path / "out" / "model"
+    assert export_main([str(run), "-o", str(out), "--skip-verify"]) == 2
+    line = one_error_line(capsys.readouterr().err)
+    assert f"tensor {name} [" in line and "holds 1 non-finite value(s)" in line and "nothing was exported" in line
+    assert sorted(p.name for p in tmp_path.iterdir()) == before and leftovers(tmp_path) == []
+
+
 def test_missing_run_directory(tmp_path, capsys):
     assert export_main([str(tmp_path / "nowhere"), "-o", str(tmp_path / "model")]) == 2
     assert "run directory" in one_error_line(capsys.readouterr().err) and not (tmp_path / "model").exists()

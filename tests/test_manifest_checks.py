@@ -172,6 +172,9 @@ FIELDS = [
      lambda o, m: st.sampled_from([None, "x", [1.0] * 3, [NAN] * 7, [INF] * 7, ["1"] * 7, DELETE])
      | st.lists(st.floats(-10, 10), max_size=12).filter(lambda v: len(v) != 7)),
     (("normalizers", "agent_pos"), "agent_pos", lambda o, m: st.sampled_from([None, {}, DELETE])),
+    # the training ranges the runtime refuses observations outside of: input_min <= input_max per channel
+    (("normalizers", "agent_pos", "input_min"), "normalizers.agent_pos",
+     lambda o, m: st.sampled_from([[NAN] * 7, [1e3] * 7, DELETE]) | st.lists(st.floats(2, 1e6), min_size=7, max_size=7)),
     # where it came from: an identity, no path
     (("source", "sha256"), "source.sha256", lambda o, m: st.sampled_from(["", "abc", None, 3, o.upper(), DELETE])),
     (("source", "weights"), "source.weights", lambda o, m: st.sampled_from(["../model.safetensors", "/abs/model.safetensors", "", None, DELETE])),
@@ -433,7 +436,9 @@ def test_the_chunked_loop_skips_a_non_finite_observation(arm_export):
         assert np.array_equal(a, b) and info.chunk_index == ref_info.chunk_index
 
 
-def test_the_robot_loop_holds_on_a_non_finite_cloud_and_keeps_it_out_of_the_history(arm_export, monkeypatch):
+def test_the_robot_loop_holds_on_a_non_finite_cloud_and_keeps_it_out_of_the_history(arm_export, tmp_path, monkeypatch):
+    from test_runtime_guards import widened_copy
+
     from hardware import run_loop
     from hardware.camera.tabletop import SimCamera
     from hardware.piper.limits import JointLimits
@@ -452,7 +457,7 @@ def test_the_robot_loop_holds_on_a_non_finite_cloud_and_keeps_it_out_of_the_hist
         return cloud, info
 
     monkeypatch.setattr(run_loop, "frame_to_cloud", cloud_with_nan)
-    policy = OnnxPolicy(arm_export, threads=1)
+    policy = OnnxPolicy(widened_copy(arm_export, tmp_path / "model"), threads=1)  # accepts the rig's observations
     limits = JointLimits.piper()
     camera, robot = SimCamera(seed=0), open_robot("sim")
     # generous timeouts and no deadline hold: the only reason to hold here is the refused observation
