@@ -23,16 +23,19 @@ input's own ``generator``), and ``generator`` = ``dssp-data merge`` / ``dssp-dat
 Everything is read through the dataset reader's checked path, so a missing or corrupt chunk stops the
 command with one line naming the key and the chunk, before the output replaces anything. The CAN-log
 names come from the inputs' ``episode_info``; each must stay inside that input's CAN-log folder
-(:func:`~dssp_data.recording.can_log_path`), checked for every episode before anything is written.
-``repair`` first checks every chunk of the complete episodes (decoding them): it cannot restore lost
-data, so a missing or corrupt chunk is an error and nothing on disk changes.
+(:func:`~dssp_data.recording.can_log_path`), checked for every episode before anything is written, and
+each log is copied only as a regular file of that folder (:func:`~dssp_data.files.copy_regular_file`: a
+linked folder or file, a FIFO or a device is refused with one line, never followed). ``repair`` holds the
+dataset's writer lock (:func:`~dssp_data.replay_buffer.dataset_lock`: no recording session or collect
+meanwhile), refuses a dataset folder holding a symbolic link, and first checks every chunk of the complete
+episodes (decoding them): it cannot restore lost data, so a missing or corrupt chunk is an error and
+nothing on disk changes.
 """
 
 from __future__ import annotations
 
 import json
 import os
-import shutil
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -40,16 +43,15 @@ import numpy as np
 import zarr
 
 from dssp_data import attributes
+from dssp_data.files import copy_regular_file
 from dssp_data.recording import (
-    LOCK_NAME,
-    DatasetLock,
     can_log_dir,
     can_log_name,
     convention_name,
     episode_can_logs,
     episode_infos,
 )
-from dssp_data.replay_buffer import ReplayBufferReader, ReplayBufferWriter
+from dssp_data.replay_buffer import ReplayBufferReader, ReplayBufferWriter, check_dataset_tree, dataset_lock
 from dssp_data.errors import ConfigError, DatasetError
 from dssp_data.output_guard import (
     DATA_DATASET,
@@ -149,11 +151,12 @@ def _stage(parts: Sequence[tuple[ReplayBufferReader, Sequence[int]]], tmp: Path,
                         info["session"] = info["session"] + session_offset
                     logs = {}
                     for bus, src in logs_of[id(reader), i].items():
-                        if src.is_file():
+                        if os.path.lexists(src):  # a log never written is not there; anything else is copied or refused
                             if not tmp_logs.is_dir():
                                 staging.make(tmp_logs)
                             new_name = can_log_name(index, bus)
-                            shutil.copy2(src, tmp_logs / new_name)
+                            copy_regular_file(src, tmp_logs / new_name, inside=can_log_dir(reader.path),
+                                              error=DatasetError)
                             logs[bus] = new_name
                             n_logs += 1
                     info["can_logs"] = logs
@@ -354,12 +357,12 @@ def repair(path: str | os.PathLike) -> dict:
     (the key, the chunk, its steps and episodes) before anything on disk changes. The changes themselves
     are made with Ctrl-C held back until they are done.
     """
-    # a missing or broken dataset is reported first; every chunk of the complete episodes is decoded
-    ReplayBufferReader(path, allow_incomplete_tail=True).check_chunks(decode=True)
-    if not can_log_dir(path).is_dir():  # never recorded into: no recording session can hold it
-        return _repair(path)
-    lock = DatasetLock(can_log_dir(path) / LOCK_NAME)
+    ReplayBufferReader(path, allow_incomplete_tail=True)  # a missing or broken dataset is reported first
+    lock = dataset_lock(path, flag="PATH")  # no other writer (a recording session, a collect) meanwhile
     try:
+        check_dataset_tree(path, appending=True)  # changed in place: no link to write through
+        # every chunk of the complete episodes is decoded
+        ReplayBufferReader(path, allow_incomplete_tail=True).check_chunks(decode=True)
         return _repair(path)
     finally:
         lock.release()
@@ -375,7 +378,7 @@ def _repair(path) -> dict:
     try:
         with interrupts_deferred():
             if reader.dropped_tail_steps:
-                with ReplayBufferWriter(path, repair_incomplete_tail=True, extra_keys=reader.extra_keys):
+                with ReplayBufferWriter(path, repair_incomplete_tail=True, extra_keys=reader.extra_keys, lock=False):
                     pass
             if extra_infos:
                 zarr.open_group(str(path), mode="r+", use_consolidated=False).attrs.update(

@@ -5,19 +5,24 @@ Each file is written to a temporary file in the same directory, then ``os.replac
 a crash never leaves a half-written file behind under the real name. :func:`replace_dirs` does the same
 for directories built beside their targets (a zarr dataset, a checkpoint): the previous version is moved
 aside, the new one moved in, the previous one deleted; if a move fails, the previous one is put back.
+Files are copied out of a user's folder only by :func:`copy_regular_file` (regular files, no link followed).
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import shutil
+import stat
 import tempfile
 import uuid
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
+
+from dssp_data.errors import DSSPError
 
 
 def _umask() -> int:
@@ -69,6 +74,68 @@ def atomic_save_npy(path: Path, array: np.ndarray) -> None:
             np.save(f, np.asarray(array), allow_pickle=False)
 
     atomic_write(path, write)
+
+
+def _no_link_below(base: Path, path: Path, error: type[DSSPError]) -> None:
+    """``base`` is a real folder (not a link) and no folder between it and ``path`` is a link."""
+    relative = Path(os.path.relpath(path, base))
+    if relative.is_absolute() or ".." in relative.parts:
+        raise error(f"{path} is not inside {base}: only a folder's own files are copied")
+    folder = Path(base)
+    for part in (None, *relative.parts[:-1]):
+        folder = folder if part is None else folder / part
+        try:
+            info = os.lstat(folder)
+        except OSError as exc:
+            raise error(f"cannot read {folder} ({exc.strerror or exc})") from None
+        if stat.S_ISLNK(info.st_mode) or not stat.S_ISDIR(info.st_mode):
+            what = "a symbolic link" if stat.S_ISLNK(info.st_mode) else "not a folder"
+            raise error(f"{folder} is {what}: only a folder's own files are copied (nothing is copied through a "
+                        f"link); move the files into a real folder")
+
+
+def copy_regular_file(src: str | os.PathLike, dst: str | os.PathLike, *, inside: str | os.PathLike,
+                      error: type[DSSPError] = DSSPError) -> Path:
+    """Copy ``src``, a regular file in the folder ``inside``, to the new file ``dst`` (mode and times kept).
+
+    The one way files are copied out of a user's folder: nothing is followed out of it. ``inside`` and every
+    folder between it and ``src`` must be real folders, ``src`` a regular file, each checked without following
+    links (``src`` is opened with ``O_NOFOLLOW`` and checked on the open descriptor, so a link or a FIFO
+    swapped in meanwhile is refused too); ``dst`` must not exist (it is created, never written through a
+    link). Anything else is one line, as ``error``; nothing is copied then.
+    """
+    src, dst = Path(src), Path(dst)
+    _no_link_below(Path(inside), src, error)
+    try:
+        fd = os.open(src, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise error(f"{src} is a symbolic link: only a folder's own files are copied; replace the link with the "
+                        f"file") from None
+        raise error(f"cannot read {src} ({exc.strerror or exc})") from None
+    try:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode):
+            raise error(f"{src} is not a regular file (a FIFO, socket or device): only regular files are copied; "
+                        f"remove it")
+        try:
+            out = os.open(dst, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC,
+                          stat.S_IMODE(info.st_mode) | stat.S_IWUSR)
+        except OSError as exc:
+            raise error(f"cannot write {dst} ({exc.strerror or exc})") from None
+        try:
+            with os.fdopen(fd, "rb", closefd=False) as reader, os.fdopen(out, "wb", closefd=False) as writer:
+                shutil.copyfileobj(reader, writer, 1 << 20)
+            os.utime(out, ns=(info.st_atime_ns, info.st_mtime_ns))
+        except BaseException:
+            os.close(out)
+            with contextlib.suppress(OSError):
+                os.unlink(dst)
+            raise
+        os.close(out)
+    finally:
+        os.close(fd)
+    return dst
 
 
 def sibling_name(path: Path, tag: str) -> Path:

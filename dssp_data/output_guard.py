@@ -70,7 +70,7 @@ __all__ = [
     "MARKER", "NEW", "OWN", "OutputError", "OutputKind", "check_output", "check_append", "claim_dir", "OutputDir",
     "check_output_file", "check_output_files", "write_output_text", "write_output_file", "zarr_attrs", "zarr_generator",
     "check_not_inside", "make_dirs", "Staging", "replace_dirs", "sweep_stale", "is_staging_name",
-    "interrupts_deferred", "settle_background_writes", "WriterLock", "writer_lock_path",
+    "interrupts_deferred", "settle_background_writes", "WriterLock", "writer_lock_path", "read_regular_text",
     "RUN_DIR", "SYNTH_DATASET", "SIM_DATASET", "RECORDED_DATASET", "DATA_DATASET", "DATA_GENERATORS", "RUN_LOG",
 ]
 
@@ -128,7 +128,7 @@ class OutputKind:
     def marked(self, path: Path) -> bool:
         """True when ``path``'s marker names this command and kind."""
         try:
-            data = json.loads((Path(path) / MARKER).read_text())
+            data = json.loads(read_regular_text(Path(path) / MARKER) or "null")
         except (OSError, ValueError):
             return False
         return isinstance(data, dict) and data.get("command") == self.command and data.get("output") == self.what
@@ -420,9 +420,10 @@ class WriterLock:
     """One writer per output: an exclusive ``flock`` on :func:`writer_lock_path` (``out``), held until
     :meth:`release` (or the process ends: the system lets go of a dead process's lock).
 
-    A second writer gets one line naming the holder (pid and host) and what to do, as ``error``; nothing
-    of the first is touched. The lock file is opened without following links and must be a regular file
-    (a symlink planted at its name is refused, never followed); it is removed on release, and a lock won
+    A second writer gets one line naming the holder (what it does, pid and host, as the holder wrote them
+    into the lock file: ``doing`` is "written" or e.g. "recorded into") and what to do, as ``error``;
+    nothing of the first is touched. The lock file is opened without following links and must be a regular
+    file (a symlink planted at its name is refused, never followed); it is removed on release, and a lock won
     on a file that was removed or replaced meanwhile is retried on the new one.
 
         lock = WriterLock(out, what="run directory", flag="--out")
@@ -431,7 +432,7 @@ class WriterLock:
     """
 
     def __init__(self, out: str | os.PathLike, *, what: str = "output", flag: str = "--out",
-                 error: type[DSSPError] = OutputError) -> None:
+                 error: type[DSSPError] = OutputError, doing: str = "written") -> None:
         import fcntl
         import socket
         import stat
@@ -456,10 +457,12 @@ class WriterLock:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except OSError:
                 try:
-                    holder = os.pread(fd, 200, 0).decode(errors="replace").strip() or "another process"
+                    holder = " ".join(os.pread(fd, 200, 0).decode(errors="replace").split()) or "another process"
                 finally:
                     os.close(fd)
-                raise error(f"{Path(out)} is being written by {holder}: one writer per {what} at a time; wait for "
+                if " by " not in holder:  # a lock file that does not say what its holder does
+                    holder = f"written by {holder}"
+                raise error(f"{Path(out)} is being {holder}: one writer per {what} at a time; wait for "
                             f"it to finish or choose another {flag}") from None
             try:
                 now = os.stat(self.path, follow_symlinks=False)
@@ -469,7 +472,7 @@ class WriterLock:
                 os.close(fd)  # released and removed by its previous holder between our open and flock: again
                 continue
             os.ftruncate(fd, 0)
-            os.pwrite(fd, f"pid {os.getpid()} on {socket.gethostname()}\n".encode(), 0)
+            os.pwrite(fd, f"{doing} by pid {os.getpid()} on {socket.gethostname()}\n".encode(), 0)
             self._fd = fd
             return
         raise error(f"could not take the lock {self.path}; try again")
@@ -779,14 +782,43 @@ def check_output_files(paths: Iterable[str | os.PathLike], *, force: bool, flag:
 
 
 # ------------------------------------------------------------------------------------------- known kinds
+METADATA_LIMIT = 256 << 20
+"""Bytes a metadata file (a marker, a zarr group's attributes, a run's config.json) may hold."""
+
+
+def read_regular_text(path: str | os.PathLike, limit: int = METADATA_LIMIT) -> str | None:
+    """The text of ``path`` if it is a regular file, read without following a link; None when there is no
+    such file (absent, a symbolic link, a FIFO or a device: never opened through, never waited on).
+    A file larger than ``limit`` bytes or not UTF-8 raises ValueError."""
+    import stat
+
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
+    except OSError:
+        return None
+    with os.fdopen(fd, "rb") as f:
+        info = os.fstat(f.fileno())
+        if not stat.S_ISREG(info.st_mode):
+            return None
+        data = f.read(limit + 1)
+    if len(data) > limit:
+        raise ValueError(f"{path} holds more than {limit} bytes")
+    return data.decode()
+
+
 def zarr_attrs(path: str | os.PathLike) -> dict | None:
-    """The root attributes of a zarr group at ``path`` (format 2 or 3), read as JSON; None if it is not one."""
+    """The root attributes of a zarr group at ``path`` (format 2 or 3), read as JSON; None if it is not one.
+
+    Its metadata files are read only as regular files (:func:`read_regular_text`), no link followed: with a
+    linked ``.zgroup`` or ``zarr.json`` the folder is not a zarr group, with a linked ``.zattrs`` it has no
+    attributes."""
     path = Path(path)
-    if (path / ".zgroup").is_file():
-        attrs_file = path / ".zattrs"
-        attrs = json.loads(attrs_file.read_text()) if attrs_file.is_file() else {}
-    elif (path / "zarr.json").is_file():
-        attrs = json.loads((path / "zarr.json").read_text()).get("attributes", {})
+    if read_regular_text(path / ".zgroup") is not None:
+        text = read_regular_text(path / ".zattrs")
+        attrs = json.loads(text) if text is not None else {}
+    elif (text := read_regular_text(path / "zarr.json")) is not None:
+        meta = json.loads(text)
+        attrs = meta.get("attributes", {}) if isinstance(meta, dict) else None
     else:
         return None
     return attrs if isinstance(attrs, dict) else None
@@ -807,7 +839,7 @@ ZARR_ENTRIES = (".zgroup", ".zattrs", ".zmetadata", "zarr.json", "data", "meta")
 
 
 def _run_signature(path: Path) -> bool:
-    config = json.loads((path / "config.json").read_text())
+    config = json.loads(read_regular_text(path / "config.json") or "null")
     return isinstance(config, dict) and "model" in config and "train" in config
 
 

@@ -41,7 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from dssp_data import attributes
-from dssp_data.replay_buffer import Episode, ReplayBufferWriter
+from dssp_data.replay_buffer import Episode, ReplayBufferWriter, dataset_lock
 from dssp_data.errors import ConfigError, DatasetError
 from dssp_data.observation import ObservationContract, check_contract
 
@@ -115,8 +115,10 @@ def can_log_path(dataset: str | os.PathLike, name, episode: int | None = None) -
     """The CAN log that a dataset's ``episode_info[episode].can_logs`` names: ``can_log_dir(dataset) / name``.
 
     The name is read from the dataset, so it must stay inside the dataset's CAN-log folder: a relative
-    path without ``..`` that still lies inside the folder with symbolic links resolved. Anything else (an
-    absolute path, ``../../etc/passwd``, a link leading out) raises DatasetError; nothing is read.
+    path without ``..`` that still lies inside the folder with symbolic links resolved, in a folder that is
+    not itself a link. Anything else (an absolute path, ``../../etc/passwd``, a link leading out, a linked
+    folder) raises DatasetError; nothing is read. Files are copied out of it only as regular files
+    (:func:`~dssp_data.files.copy_regular_file`: no link followed).
     """
     folder = can_log_dir(dataset)
     what = f"{dataset}: episode_info[{'?' if episode is None else episode}].can_logs"
@@ -126,6 +128,9 @@ def can_log_path(dataset: str | os.PathLike, name, episode: int | None = None) -
     relative = Path(name)
     if relative.is_absolute() or ".." in relative.parts:
         raise DatasetError(f"{what} names {name!r}, a path outside the CAN-log folder {folder}: {remedy}")
+    if folder.is_symlink():
+        raise DatasetError(f"{what} names {name!r} in {folder}, which is a symbolic link (it may lead anywhere): "
+                           f"{remedy}")
     path = folder / relative
     base, real = os.path.realpath(folder), os.path.realpath(path)
     if real == base or os.path.commonpath([base, real]) != base:
@@ -159,40 +164,25 @@ def partial_can_log_name(index: int, channel: str, session: str) -> str:
 
 
 LOCK_NAME = ".recording.lock"
-"""Held (``flock``) by the session recording into a dataset, in its CAN log directory."""
+"""The lock file older versions kept in a dataset's CAN-log folder (now the dataset's writer lock,
+:func:`~dssp_data.replay_buffer.dataset_lock`, ``.NAME.lock`` beside the dataset; a stale one is ignored)."""
 
 
-class DatasetLock:
-    """An exclusive lock on ``path`` for this process (released by the system when the process dies): one
-    writer (a recording session, a repair) per dataset at a time."""
-
-    def __init__(self, path: Path):
-        import fcntl
-
-        path.parent.mkdir(parents=True, exist_ok=True)
-        self._file = open(path, "a+")
-        try:
-            fcntl.flock(self._file, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            self._file.seek(0)
-            holder = self._file.read().strip() or "another process"
-            self._file.close()
-            raise DatasetError(f"{path.parent.name.removesuffix('.can')} is being recorded into by {holder}: "
-                               f"one writer per dataset at a time") from None
-        self._file.seek(0)
-        self._file.truncate()
-        self._file.write(f"pid {os.getpid()} on {_hostname()}\n")
-        self._file.flush()
-
-    def release(self) -> None:
-        if not self._file.closed:
-            self._file.close()
-
-
-def _hostname() -> str:
-    import socket
-
-    return socket.gethostname()
+def check_can_log_dir(dataset: str | os.PathLike) -> None:
+    """The CAN-log folder of ``dataset``, where a recording session writes, is absent or a real folder holding
+    only regular files: a symbolic link there (the folder, or a file in it) would have the logs written, renamed
+    or copied through it elsewhere. Anything else raises DatasetError naming it (nothing is written)."""
+    folder = can_log_dir(dataset)
+    if folder.is_symlink() or (folder.exists() and not folder.is_dir()):
+        raise DatasetError(f"{folder} is {'a symbolic link' if folder.is_symlink() else 'not a folder'}: a dataset's "
+                           f"CAN logs are kept in a real folder beside it; move it away (nothing was written)")
+    if not folder.exists():
+        return
+    for entry in os.scandir(folder):
+        if entry.is_symlink() or not (entry.is_file(follow_symlinks=False) or entry.is_dir(follow_symlinks=False)):
+            kind = "a symbolic link" if entry.is_symlink() else "not a regular file"
+            raise DatasetError(f"{folder}: {entry.name} is {kind}: a dataset's CAN logs must be its own files; "
+                               f"move it away (nothing was written)")
 
 
 def _same_number(a, b) -> bool:
@@ -213,21 +203,32 @@ class RecordingDataset:
 
     An existing dataset whose last append was interrupted (steps after the last episode end) is
     repaired on opening: :attr:`repaired_steps` says how many steps were cut off.
+
+    The session holds the dataset's writer lock (:func:`~dssp_data.replay_buffer.dataset_lock`) until
+    :meth:`close`: a second session, a ``dssp-sim collect`` or a ``dssp-data repair`` of the same dataset is
+    refused with one line. The dataset's folder and its CAN-log folder may hold no symbolic link
+    (:func:`~dssp_data.replay_buffer.check_dataset_tree`, :func:`check_can_log_dir`).
     """
 
     def __init__(self, path: str | os.PathLike, dataset_attrs: dict, session: dict, extra_keys: Sequence[str]):
         self.path = Path(path)
         self.session = dict(session)
         self.session_added = False
-        self._lock = DatasetLock(can_log_dir(self.path) / LOCK_NAME)
-        self.writer = ReplayBufferWriter(self.path, attrs=None, repair_incomplete_tail=True, extra_keys=extra_keys)
-        self.repaired_steps = self.writer.dropped_tail_steps
-        self.new = self.writer.n_episodes == 0  # an existing dataset holds at least one episode
-        if self.new:
-            self.writer.close()
-            self.writer = ReplayBufferWriter(self.path, attrs=dataset_attrs, extra_keys=extra_keys)
-        else:
-            self._check_compatible(self.writer.attrs, dataset_attrs)
+        self._lock = dataset_lock(self.path, flag="--out", doing="recorded into")
+        try:
+            check_can_log_dir(self.path)
+            self.writer = ReplayBufferWriter(self.path, attrs=None, repair_incomplete_tail=True, extra_keys=extra_keys,
+                                             lock=False)
+            self.repaired_steps = self.writer.dropped_tail_steps
+            self.new = self.writer.n_episodes == 0  # an existing dataset holds at least one episode
+            if self.new:
+                self.writer.close()
+                self.writer = ReplayBufferWriter(self.path, attrs=dataset_attrs, extra_keys=extra_keys, lock=False)
+            else:
+                self._check_compatible(self.writer.attrs, dataset_attrs)
+        except BaseException:
+            self._lock.release()
+            raise
         self.calibration_changed = not self.new and self._calibration_differs(self.writer.attrs, dataset_attrs)
 
     def _check_compatible(self, existing: Mapping, wanted: Mapping) -> None:

@@ -50,6 +50,15 @@ truncated or does not decode raises :class:`~dssp_data.errors.DatasetError` nami
 and episodes, and what to do. Blosc frames carry no checksum: bytes overwritten inside a frame whose
 header still fits decode to wrong values that only the NaN/inf checks may notice.
 
+Bounds (:mod:`dssp_data.bounded`). A chunk is decoded by the array's codecs with every decompressing stage
+bounded by the chunk's shape x dtype (a decompression bomb is a corrupt chunk, named as above; a codec whose
+output cannot be bounded is refused by name), a stored chunk file larger than any encoding of a chunk is
+not fetched, and every read (one chunk, one slice, a whole :meth:`ReplayBuffer.load`) whose declared size
+is over the read budget (``DSSP_READ_BUDGET``, 4 GiB by default) is refused before anything is allocated.
+Before a dataset is opened its folder is walked without following links (:func:`check_dataset_tree`): a
+symbolic link, FIFO or device inside it is refused (zarr would read or append through it, outside the
+dataset); a writer also refuses a dataset folder that is itself a link.
+
 Empty chunks. zarr 3 does not store a chunk that holds only the fill value (``write_empty_chunks``
 off, its default, also when it writes format 2), so a chunk file may be missing from a valid dataset.
 Where a missing chunk is lost data, and where it is the fill value:
@@ -85,7 +94,7 @@ import itertools
 import json
 import os
 import re
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -98,10 +107,20 @@ from zarr.core.buffer import default_buffer_prototype
 from zarr.core.sync import sync
 
 from dssp_data import attributes
+from dssp_data.bounded import (
+    ChunkTooLarge,
+    UnboundedCodec,
+    blosc_problem as _blosc_problem,
+    bounded_pipeline,
+    check_budget,
+    human_size,
+    nbytes_of,
+)
 from dssp_data.errors import DatasetError
-from dssp_data.output_guard import Staging, is_staging_name
+from dssp_data.output_guard import Staging, WriterLock, is_staging_name
 
-__all__ = ["Episode", "ReplayBuffer", "ReplayBufferReader", "ReplayBufferWriter", "write_replay_buffer"]
+__all__ = ["Episode", "ReplayBuffer", "ReplayBufferReader", "ReplayBufferWriter", "write_replay_buffer", "dataset_lock",
+           "check_dataset_tree"]
 
 DATA_KEYS = ("point_cloud", "state", "action")
 """Per-step arrays under ``data/`` that this package reads and writes."""
@@ -302,11 +321,44 @@ def _is_zarr_store(path: Path) -> bool:
     return path.is_dir() and ((path / ".zgroup").is_file() or (path / "zarr.json").is_file())
 
 
+def check_dataset_tree(path: str | os.PathLike, *, appending: bool = False) -> None:
+    """Every entry inside the dataset folder ``path`` must be a real folder or a regular file, checked without
+    following links: zarr follows a symbolic link (``data/state`` leading to another folder, a chunk leading to
+    another file or to ``/dev/zero``) and would read, or append, through it outside the dataset. A link, a FIFO
+    or a device file raises DatasetError naming it. ``appending``: ``path`` itself may not be a link either (a
+    writer writes only into a dataset's own folders)."""
+    path = Path(path)
+    if appending and path.is_symlink():
+        raise DatasetError(f"{path} is a symbolic link: appending writes only into a dataset's own folder; give the "
+                           f"dataset's real path ({os.path.realpath(path)}) (nothing was written)")
+    folders = [path]
+    while folders:
+        folder = folders.pop()
+        try:
+            entries = list(os.scandir(folder))
+        except OSError as exc:
+            raise DatasetError(f"cannot list {folder} ({exc.strerror or exc}): check the dataset's permissions") from None
+        for entry in entries:
+            relative = os.path.relpath(entry.path, path)
+            if entry.is_symlink():
+                raise DatasetError(
+                    f"{path}: {relative} is a symbolic link: a dataset's files and folders must be its own (zarr "
+                    f"would {'write' if appending else 'read'} through the link, outside the dataset); replace it with "
+                    f"the real {'folder' if os.path.isdir(entry.path) else 'file'} (nothing was {'written' if appending else 'read'})"
+                )
+            if entry.is_dir(follow_symlinks=False):
+                folders.append(Path(entry.path))
+            elif not entry.is_file(follow_symlinks=False):
+                raise DatasetError(f"{path}: {relative} is not a regular file (a FIFO, socket or device): remove it "
+                                   f"from the dataset")
+
+
 def _open_group(path: Path, mode: str) -> zarr.Group:
     if not path.exists():
         raise DatasetError(f"dataset {path} does not exist: check the path")
     if not path.is_dir():
         raise DatasetError(f"{path} is a file, not a zarr dataset directory: point to the dataset's .zarr directory")
+    check_dataset_tree(path, appending=mode != "r")
     try:
         # Consolidated metadata (.zmetadata) is ignored: appends do not update it.
         return zarr.open_group(str(path), mode=mode, use_consolidated=False)
@@ -344,47 +396,12 @@ hold only the fill value, so a missing chunk file is lost data (see the module d
 WRITE_CONFIG = {"write_empty_chunks": True}
 """zarr array config for writing: store every chunk."""
 _BLOSC_NAMES = ("blosc", "numcodecs.blosc")
-_BLOSC_HEADER = 16
-_BLOSC_MEMCPYED = 0x02
 _PROBE_BYTES = 1 << 16
 """Bytes fetched to check a Blosc frame's header and block offsets without reading the whole chunk."""
 
 
 async def _collect(iterator) -> list:
     return [item async for item in iterator]
-
-
-def _blosc_problem(read: Callable[[int, int], np.ndarray], size: int, expected_nbytes: int | None) -> str | None:
-    """What is wrong with a stored Blosc frame of ``size`` bytes, or None if its header fits the bytes.
-
-    ``read(start, end)`` returns bytes [start, end) of the frame as uint8. c-blosc trusts the header
-    (compressed size, block offsets) and reads where it points; checking it against the bytes actually
-    stored turns a truncated or overwritten chunk into an error instead of a read past the buffer.
-    """
-    if size < _BLOSC_HEADER:
-        return f"{size} bytes, shorter than a Blosc header"
-    head = read(0, _BLOSC_HEADER)
-    flags = int(head[2])
-    nbytes, blocksize, cbytes = (int(v) for v in np.frombuffer(head[4:16].tobytes(), "<u4"))
-    if cbytes > size:
-        return f"truncated: {size} of the {cbytes} bytes its Blosc header announces"
-    if cbytes != size:
-        return f"{size} bytes where its Blosc header announces {cbytes}: not a Blosc frame"
-    if expected_nbytes is not None and nbytes != expected_nbytes:
-        return f"its Blosc header announces {nbytes} bytes of data, a chunk of this array holds {expected_nbytes}"
-    if flags & _BLOSC_MEMCPYED:
-        return None if cbytes == nbytes + _BLOSC_HEADER else "its Blosc header is inconsistent (stored uncompressed)"
-    if nbytes == 0:
-        return None
-    if blocksize == 0:
-        return "its Blosc header gives a block size of 0"
-    first = _BLOSC_HEADER + 4 * -(-nbytes // blocksize)
-    if first > size:
-        return f"its Blosc block table needs {first} bytes, the file holds {size}"
-    starts = np.frombuffer(read(_BLOSC_HEADER, first).tobytes(), "<i4")
-    if starts.size and (starts.min() < first or starts.max() >= size):
-        return "its Blosc block offsets point outside the file"
-    return None
 
 
 def _episode_span(ends: np.ndarray | None, start: int, end: int) -> tuple[int, int] | None:
@@ -419,13 +436,15 @@ class _StoredArray:
         self.marked = array.attrs.get(EVERY_CHUNK_ATTR) is True
         self.zarr_format = int(array.metadata.zarr_format)
         self.strict = self.zarr_format == 2 or self.marked
+        self.chunk_nbytes = nbytes_of(self.chunk_shape, self.dtype)
         self.blosc, self.expected_nbytes = self._frame_format()
         self._stored: frozenset[str] | None = None
+        self._pipeline = None
 
     def _frame_format(self) -> tuple[bool, int | None]:
         """(chunks are stored as Blosc frames, decoded bytes of one chunk if known)."""
         metadata = self.array.metadata
-        whole = int(np.prod(self.chunk_shape, dtype=np.int64)) * self.dtype.itemsize
+        whole = self.chunk_nbytes
         if metadata.zarr_format == 2:
             compressor = getattr(metadata, "compressor", None)
             is_blosc = getattr(compressor, "codec_id", None) == "blosc"
@@ -565,12 +584,40 @@ class _StoredArray:
         return _blosc_problem(lambda a, b: head[a:b] if b <= head.size else read(a, b), size, self.expected_nbytes)
 
     # ---- reading
+    def _bounded_pipeline(self):
+        """The array's codecs with every decompressing stage bounded by a chunk's size (built once)."""
+        if self._pipeline is None:
+            try:
+                self._pipeline = bounded_pipeline(self.array, self.chunk_shape, self.dtype)
+            except UnboundedCodec as exc:
+                raise DatasetError(
+                    f"{self.where}: {self.key} is stored with the codec {exc}, whose decoded size this reader cannot "
+                    f"bound (it reads blosc, zstd, lz4, zlib, gzip, bz2 and lzma, checksums and numeric filters): "
+                    f"rewrite the array with zarr's default compressor"
+                ) from None
+        return self._pipeline
+
     def _decode(self, c: int, coords: tuple[int, ...], ends: np.ndarray | None) -> np.ndarray:
-        """The whole chunk at ``coords`` (its full chunk shape), checked and decoded."""
+        """The whole chunk at ``coords`` (its full chunk shape), checked and decoded within its size
+        (:mod:`dssp_data.bounded`: no decoding stage may produce more than a chunk holds)."""
+        check_budget(self.chunk_nbytes, f"{self.where}: one chunk of {self.key} (chunk shape {self.chunk_shape})",
+                     f"rewrite it with smaller chunks (its chunk shape is in {self.metadata_file})")
         key = self.store_key(coords)
         prototype = default_buffer_prototype()
+        pipeline = self._bounded_pipeline()
         try:
-            buffer = sync(self.array.store.get(key, prototype=prototype))
+            try:
+                size = int(sync(self.array.store.getsize(key)))
+            except FileNotFoundError:
+                size = None
+            # compressed data is at most a little larger than what it decodes to (at most 8 bytes per element
+            # in any stage): never fetch more than twice that
+            if size is not None and size > 2 * max(self.chunk_nbytes, 8 * (self.chunk_nbytes // self.dtype.itemsize)) + (1 << 16):
+                raise self._lost(c, f"is corrupt ({human_size(size)} stored, more than a chunk of "
+                                    f"{human_size(self.chunk_nbytes)} takes; {key})", ends)
+            buffer = None if size is None else sync(self.array.store.get(key, prototype=prototype))
+        except DatasetError:
+            raise
         except Exception as exc:  # the store raises OSError and others
             raise self._lost(c, f"cannot be read ({_describe(exc)}; {key})", ends) from exc
         if buffer is None:
@@ -582,9 +629,11 @@ class _StoredArray:
         problem = _blosc_problem(lambda a, b: raw[a:b], raw.size, self.expected_nbytes) if self.blosc else None
         if problem:
             raise self._lost(c, f"is corrupt ({problem}; {key})", ends)
-        try:  # the whole chunk, by the array's own codecs
+        try:  # the whole chunk, by the array's own codecs, each decompressing stage bounded
             spec = self.array.metadata.get_chunk_spec(coords, self.array.async_array.config, prototype)
-            (decoded,) = sync(self.array.async_array.codec_pipeline.decode([(buffer, spec)]))
+            (decoded,) = sync(pipeline.decode([(buffer, spec)]))
+        except ChunkTooLarge as exc:
+            raise self._lost(c, f"is corrupt ({exc}; {key})", ends) from None
         except Exception as exc:  # each codec raises its own types
             raise self._lost(c, f"is corrupt (it does not decode: {_describe(exc)}; {key})", ends) from exc
         values = None if decoded is None else decoded.as_numpy_array()
@@ -594,10 +643,16 @@ class _StoredArray:
         return values
 
     def read(self, start: int, end: int, ends: np.ndarray | None = None) -> np.ndarray:
-        """Steps [start, end) (0 <= start, end <= length) in the stored dtype, chunk by whole chunk."""
+        """Steps [start, end) (0 <= start, end <= length) in the stored dtype, chunk by whole chunk.
+
+        A read larger than the read budget (:func:`~dssp_data.bounded.read_budget`) is refused before
+        anything is allocated."""
         shape = tuple(int(n) for n in self.array.shape)
         start, end = max(0, start), min(end, shape[0])
-        out = np.empty((max(0, end - start),) + shape[1:], dtype=self.dtype)
+        rows = (max(0, end - start),) + shape[1:]
+        check_budget(nbytes_of(rows, self.dtype), f"{self.where}: reading {self.key} steps {start}..{end - 1}",
+                     f"read fewer steps at a time (its shape is in {self.metadata_file})")
+        out = np.empty(rows, dtype=self.dtype)
         self.check_present(start, end, ends)
         size = self.chunk_shape[0]
         for c in self._time_chunks(start, end):
@@ -767,6 +822,11 @@ class ReplayBuffer:
         data_arrays = {**arrays, **{f"data/{name}": a for name, a in extra_arrays.items()}}
         n_steps, dropped = _resolve_length(lengths, int(ends[-1]), allow_incomplete_tail, where,
                                            unbacked=_unbacked(data_arrays, int(ends[-1]), where))
+        need = sum(n_steps * (nbytes_of(arrays[key].shape[1:], arrays[key].dtype)
+                              + (0 if arrays[key].dtype == np.float32 else nbytes_of(arrays[key].shape[1:], np.float32)))
+                   for key in REQUIRED_KEYS[:3])
+        need += sum(n_steps * nbytes_of(array.shape[1:], array.dtype) for array in extra_arrays.values())
+        check_budget(need, f"{where}: loading {n_steps} steps", "read it one episode at a time (ReplayBufferReader)")
         values = {}
         for key in REQUIRED_KEYS[:3]:
             raw = _read(arrays[key], key, where, n_steps, ends)
@@ -1108,6 +1168,18 @@ def write_replay_buffer(path: str | os.PathLike, episodes: Sequence[Episode], at
         staging.commit([(tmp, path)])
 
 
+def dataset_lock(path: str | os.PathLike, *, flag: str = "path", doing: str = "written") -> WriterLock:
+    """One writer per dataset: the :class:`~dssp_data.output_guard.WriterLock` of the dataset at ``path``
+    (``.NAME.lock`` beside it, links in the folders above resolved, so that two names for one dataset share
+    one lock). Every writer that appends to a dataset or changes it in place holds it
+    (:class:`ReplayBufferWriter`, ``dssp-sim collect``, a recording session, ``dssp-data repair``); a second
+    one gets one DatasetError line naming the holder (``flag``: the option that names the dataset; ``doing``:
+    what this writer does, as the line a second one gets says it)."""
+    path = Path(path).absolute()
+    return WriterLock(Path(os.path.realpath(path.parent)) / path.name, what="dataset", flag=flag, error=DatasetError,
+                      doing=doing)
+
+
 class ReplayBufferWriter:
     """Append episodes one at a time to a new or existing dataset.
 
@@ -1137,10 +1209,18 @@ class ReplayBufferWriter:
         staged: ``path`` is an empty staging directory of the caller's, which
             puts it in place when complete (:class:`~dssp_data.output_guard.Staging`):
             the first episode is written into it directly instead of beside it.
+        lock: hold the dataset's writer lock (:func:`dataset_lock`) until :meth:`close`,
+            so that a second writer of the same dataset is refused with one line;
+            False when the caller holds it already (a staged writer needs none).
+
+    An existing dataset is checked before anything is written: no symbolic link, FIFO
+    or device anywhere in its folder (:func:`check_dataset_tree`), its structure and
+    its chunks as above.
     """
 
     def __init__(self, path: str | os.PathLike, attrs: dict | None = None, zarr_format: int = 2,
-                 *, repair_incomplete_tail: bool = False, extra_keys: Sequence[str] = (), staged: bool = False):
+                 *, repair_incomplete_tail: bool = False, extra_keys: Sequence[str] = (), staged: bool = False,
+                 lock: bool = True):
         _check_zarr_format(zarr_format)
         self.path = Path(path)
         self.staged = staged
@@ -1162,8 +1242,13 @@ class ReplayBufferWriter:
         self.unbacked_steps: dict[str, tuple[int, int, str]] = {}
         """Arrays whose metadata gave steps after the last episode end that no stored chunk held
         (``{key: (first such step, length, metadata file)}``); ``repair_incomplete_tail=True`` set them back."""
-        if _is_zarr_store(self.path) or (self.path.exists() and not self._is_empty_dir()):
-            self._open_existing(repair_incomplete_tail)
+        self._lock = dataset_lock(self.path) if lock and not staged else None
+        try:
+            if self.path.is_symlink() or _is_zarr_store(self.path) or (self.path.exists() and not self._is_empty_dir()):
+                self._open_existing(repair_incomplete_tail)
+        except BaseException:
+            self.close()
+            raise
 
     def _is_empty_dir(self) -> bool:
         return self.path.is_dir() and not any(self.path.iterdir())
@@ -1294,10 +1379,13 @@ class ReplayBufferWriter:
         self._n_episodes += 1
 
     def close(self) -> None:
-        """Stop writing; every added episode is already on disk."""
+        """Stop writing (and let go of the dataset's writer lock); every added episode is already on disk."""
         self._closed = True
         self._arrays = None
         self._group = None
+        lock, self._lock = getattr(self, "_lock", None), None
+        if lock is not None:
+            lock.release()
 
     def __enter__(self) -> ReplayBufferWriter:
         return self

@@ -12,6 +12,10 @@ RoboTwin's collection writes one file per episode, ``<task>/<config>/data/episod
 Conversion, per episode: ``state[t] = vector[t]`` and ``point_cloud[t] = pointcloud[t]`` for t < T - 1,
 ``action[t] = vector[t + 1]`` (the next absolute target): T - 1 steps. ``/joint_action/vector`` is used
 when present, else it is assembled from the four arm/gripper arrays in that order.
+
+A file that pulls in other files (an external link, external storage, a virtual dataset) is refused
+before any data is read, naming the object; each dataset read must fit the read budget
+(:mod:`dssp_data.bounded`), and its gzip-compressed chunks are checked to decode within their size.
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dssp_data.bounded import ChunkTooLarge, check_budget, decompress, human_size, nbytes_of
 from dssp_data.recording import ACTION_CONVENTIONS, can_log_dir
 from dssp_data.replay_buffer import Episode, ReplayBufferWriter
 from dssp_data.errors import DatasetError
@@ -66,8 +71,105 @@ def find_episodes(source: str | os.PathLike) -> list[Path]:
     raise DatasetError(f"no .hdf5 episodes in {source} or {source / 'data'}: point to RoboTwin's <task>/<config> directory")
 
 
+def check_self_contained(f, path: Path) -> None:
+    """Refuse an HDF5 file that pulls in other files, before any data is read: an external link (an object
+    of another file), a dataset with external storage (its values in other files: the dataset creation
+    property ``external``) or a virtual dataset (mapped from other files). The line names the object."""
+    h5py = _h5py()
+    remedy = "convert only self-contained episode files (copy the data into the file itself)"
+
+    def problem(name: str, link, node) -> str | None:
+        if isinstance(link, h5py.ExternalLink):
+            return f"/{name} is an external link to {link.filename}:{link.path}, another file"
+        if not isinstance(node, h5py.Dataset):
+            return None
+        if node.is_virtual:
+            return f"/{name} is a virtual dataset (its values are mapped from other files)"
+        if node.id.get_create_plist().get_external_count() > 0:
+            return f"/{name} keeps its values in external files (HDF5 external storage)"
+        return None
+
+    found, seen, groups = None, set(), [("", f)]
+    try:
+        while groups and found is None:  # every link of every group reached by hard links, none followed out
+            prefix, group = groups.pop()
+            for name in group:
+                link = group.get(name, getlink=True)
+                node = group.get(name) if isinstance(link, h5py.HardLink) else None  # soft links: checked at the target
+                found = problem(prefix + name, link, node)
+                if found:
+                    break
+                if isinstance(node, h5py.Group) and hash(node.id) not in seen:
+                    seen.add(hash(node.id))
+                    groups.append((f"{prefix}{name}/", node))
+    except Exception as exc:  # h5py raises several types for a damaged file
+        raise DatasetError(f"{path} is not a readable HDF5 file ({exc})") from None
+    if found:
+        raise DatasetError(f"{path}: {found}: {remedy}")
+
+
+_FILTERS = {1: "deflate", 2: "shuffle", 3: "fletcher32"}
+"""HDF5 filters whose decoded size is bounded here: deflate (gzip; checked chunk by chunk), and the byte
+shuffle and checksum, which do not grow their input."""
+
+
+def read_array(f, name: str, path: Path, dtype) -> np.ndarray:
+    """The HDF5 dataset ``name`` of the open file ``f`` as ``dtype``, read within bounds.
+
+    It must be a numeric dataset; its size (as stored and as ``dtype``) must fit the read budget
+    (:func:`~dssp_data.bounded.read_budget`), and each compressed chunk must decode to no more than a
+    chunk holds (a deflate bomb is refused before HDF5 decodes it); a filter other than deflate, shuffle
+    and fletcher32 is refused by name. Anything else raises DatasetError naming the dataset."""
+    h5py = _h5py()
+    node = f.get(name)
+    if not isinstance(node, h5py.Dataset):
+        raise DatasetError(f"{path}: /{name} is not a dataset: not a RoboTwin episode")
+    stored = node.dtype
+    if not (np.issubdtype(stored, np.number) or stored == np.bool_):
+        raise DatasetError(f"{path}: /{name} holds {stored}, not numbers: not a RoboTwin episode")
+    need = nbytes_of(node.shape, stored) + (0 if stored == np.dtype(dtype) else nbytes_of(node.shape, dtype))
+    check_budget(need, f"{path}: /{name} (shape {node.shape})", "convert smaller episode files")
+    plist = node.id.get_create_plist()
+    filters = [plist.get_filter(i)[0] for i in range(plist.get_nfilters())]
+    for code in filters:
+        if code not in _FILTERS:
+            raise DatasetError(f"{path}: /{name} is compressed with the HDF5 filter {code}, whose decoded size this "
+                               f"reader cannot bound: re-save the episode uncompressed or with gzip")
+    if filters.count(1) > 1:
+        raise DatasetError(f"{path}: /{name} is compressed twice with deflate: re-save the episode uncompressed or "
+                           f"with gzip")
+    if 1 in filters and node.chunks is not None:
+        chunk_nbytes = nbytes_of(node.chunks, stored)
+        check_budget(chunk_nbytes, f"{path}: one chunk of /{name} (chunk shape {node.chunks})",
+                     "re-save the episode with smaller chunks")
+        deflate_bit = 1 << filters.index(1)
+        for i in range(node.id.get_num_chunks()):
+            info = node.id.get_chunk_info(i)
+            if info.filter_mask & deflate_bit:
+                continue  # stored without deflate: as large as it is on disk
+            if info.size > 2 * chunk_nbytes + (1 << 16):
+                raise DatasetError(f"{path}: /{name} chunk {info.chunk_offset} is corrupt ({human_size(info.size)} "
+                                   f"stored, more than a chunk of {human_size(chunk_nbytes)} takes): re-save the episode")
+            _, raw = node.id.read_direct_chunk(info.chunk_offset)
+            try:
+                decompress("zlib", raw, chunk_nbytes)
+            except ChunkTooLarge as exc:
+                raise DatasetError(f"{path}: /{name} chunk {info.chunk_offset} is corrupt ({exc}): re-save or leave "
+                                   f"out the episode") from None
+            except Exception as exc:
+                raise DatasetError(f"{path}: /{name} chunk {info.chunk_offset} is corrupt (it does not decode: "
+                                   f"{exc}): re-save or leave out the episode") from None
+    try:
+        return np.asarray(node[()], dtype=dtype)
+    except Exception as exc:  # h5py raises OSError and others for damaged data
+        raise DatasetError(f"{path}: /{name} cannot be read ({exc}): re-save or leave out the episode") from None
+
+
 def read_episode(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
-    """(vector (T, D) float64, pointcloud (T, N, C) float32) of one RoboTwin episode file."""
+    """(vector (T, D) float64, pointcloud (T, N, C) float32) of one RoboTwin episode file.
+
+    The file is first checked to be self-contained (:func:`check_self_contained`); each dataset is read
+    within bounds (:func:`read_array`)."""
     h5py = _h5py()
     path = Path(path)
     try:
@@ -75,10 +177,11 @@ def read_episode(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     except OSError as exc:
         raise DatasetError(f"{path} is not a readable HDF5 file ({exc})") from None
     with f:
+        check_self_contained(f, path)
         if "joint_action/vector" in f:
-            vector = np.asarray(f["joint_action/vector"][()], dtype=np.float64)
+            vector = read_array(f, "joint_action/vector", path, np.float64)
         elif all(f"joint_action/{k}" in f for k in PARTS):
-            parts = [np.asarray(f[f"joint_action/{k}"][()], dtype=np.float64) for k in PARTS]
+            parts = [read_array(f, f"joint_action/{k}", path, np.float64) for k in PARTS]
             parts = [p.reshape(len(p), -1) for p in parts]
             vector = np.concatenate(parts, axis=1)
         else:
@@ -86,7 +189,7 @@ def read_episode(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
                                f"not a RoboTwin episode")
         if "pointcloud" not in f:
             raise DatasetError(f"{path}: no /pointcloud: collect with data_type.pointcloud enabled in the task config")
-        cloud = np.asarray(f["pointcloud"][()], dtype=np.float32)
+        cloud = read_array(f, "pointcloud", path, np.float32)
     if vector.ndim != 2 or vector.shape[0] == 0:
         raise DatasetError(f"{path}: /joint_action/vector has shape {vector.shape}; expected (T, D)")
     if cloud.size == 0 or cloud.ndim != 3:

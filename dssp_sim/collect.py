@@ -8,7 +8,10 @@ episode is appended as soon as it ends (crash-safe: ``ReplayBufferWriter``).
 
 ``out`` is a new dataset, or one this module wrote for the same task (its ``generator`` and ``task``
 attributes), which is appended to; anything else there (a recorded dataset, another task's, a folder or a
-file) is refused before the simulation starts, and left as it is.
+file, a dataset folder holding a symbolic link) is refused before the simulation starts, and left as it is.
+A collect holds the dataset's writer lock (:func:`dssp_data.replay_buffer.dataset_lock`) from before the
+simulation starts until it ends: a second collect (or a recording, a repair) of the same dataset is refused
+with one line, and nothing of the first is touched.
 """
 
 from __future__ import annotations
@@ -86,8 +89,20 @@ def collect(task: str, n_episodes: int, out: Path, seed: int | None = None, n_po
 
     ``seed`` None: 0 for a new dataset, the seed after the last one tried when appending (``first_seed``).
     """
+    from dssp_data.replay_buffer import dataset_lock
+
     check_collect_output(out, task)
-    seed = first_seed(out, seed)
+    first_seed(out, seed)  # a bad --seed is refused before anything is created
+    lock = dataset_lock(out, flag="--out")  # one writer per dataset: a second collect is refused here
+    try:
+        check_collect_output(out, task)  # again: another writer may have changed it meanwhile
+        return _collect(task, n_episodes, out, first_seed(out, seed), n_points, max_attempts, progress)
+    finally:
+        lock.release()
+
+
+def _collect(task: str, n_episodes: int, out: Path, seed: int, n_points: int | None, max_attempts: int | None,
+             progress: bool) -> CollectResult:
     from dssp_sim.env import PiperEnv
     from dssp_sim.experts import make_expert
     from dssp_data.replay_buffer import Episode, ReplayBufferWriter
@@ -103,7 +118,7 @@ def collect(task: str, n_episodes: int, out: Path, seed: int | None = None, n_po
         bar = tqdm(total=n_episodes, desc=f"collect {task}", unit="episode")
     camera = MujocoCamera(env)
     attrs = sim_attrs(task, env, camera, cloud_config)
-    with camera, ReplayBufferWriter(out, attrs=attrs) as writer:
+    with camera, ReplayBufferWriter(out, attrs=attrs, lock=False) as writer:
         episode_seed = seed
         while result.kept < n_episodes and result.attempted < max_attempts:
             env.reset(seed=episode_seed)

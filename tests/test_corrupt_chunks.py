@@ -401,3 +401,121 @@ def test_info_exit_code_says_whether_problems_were_found(tmp_path):
     assert code == 1 and "data/state holds NaN or inf in episode(s) 1" in out
     code, out, _ = cli("info", tmp_path / "nan.zarr", "--json")
     assert code == 1 and '"problems": [' in out
+
+
+# ------------------------------------------------------------------------------------------------ decompression bombs
+def recode(path, key, **codecs):
+    """Rewrite the array ``key`` of the dataset at ``path`` with other codecs (same values, shape and chunks)."""
+    root = zarr.open_group(str(path), mode="r+", use_consolidated=False)
+    old = root[key]
+    values, chunks, attrs = old[...], old.chunks, old.attrs.asdict()
+    parent, name = key.rsplit("/", 1)
+    del root[parent][name]
+    new = root[parent].create_array(name, shape=values.shape, dtype=values.dtype, chunks=chunks, attributes=attrs,
+                                    config={"write_empty_chunks": True}, **codecs)
+    new[...] = values
+
+
+ZERO_GIB = np.zeros(1 << 30, np.uint8)  # untouched pages: no memory until read
+BOMBS = {  # (zarr format, codecs of data/state, a small stored chunk that decodes to far more than 2.7 KiB)
+    "zstd": (2, {"compressors": numcodecs.Zstd(level=1)}, lambda: numcodecs.Zstd(level=1).encode(ZERO_GIB)),
+    "zstd, zarr 3": (3, {"compressors": zarr.codecs.ZstdCodec(level=1)}, lambda: numcodecs.Zstd(level=1).encode(ZERO_GIB)),
+    "gzip, zarr 3": (3, {"compressors": zarr.codecs.GzipCodec()}, lambda: numcodecs.GZip(9).encode(ZERO_GIB[:32 << 20])),
+    "blosc behind a filter": (2, {"compressors": numcodecs.Blosc(cname="zstd"), "filters": [numcodecs.Delta("<f4")]},
+                              lambda: numcodecs.Blosc(cname="zstd", clevel=9).encode(ZERO_GIB[:32 << 20])),
+}
+
+
+def bombed(tmp_path, originals, name, c=0, folder="bombed.zarr"):
+    """A copy of the dataset whose data/state is stored with the bomb's codecs, its time chunk ``c`` the bomb."""
+    zarr_format, codecs, bomb = BOMBS[name]
+    path = copy_dataset(originals[0][zarr_format], tmp_path / folder)
+    recode(path, "data/state", **codecs)
+    np.testing.assert_allclose(ReplayBuffer.load(path).state, originals[1].state, atol=1e-5)  # readable as recoded
+    data = bomb()
+    assert len(data) < 40_000
+    chunk_file(path, "data/state", c).write_bytes(data)
+    return path
+
+
+@pytest.mark.parametrize("name", BOMBS)
+def test_a_decompression_bomb_is_one_line_in_every_reader(tmp_path, originals, name):
+    path = bombed(tmp_path, originals, name)
+    last = bombed(tmp_path, originals, name, c=2, folder="last.zarr")  # the chunk an append reads back
+    readers = ((lambda: ReplayBuffer.load(path), 0), (lambda: ReplayBufferReader(path).episode(0), 0),
+               (lambda: ReplayBufferReader(path).check_chunks(decode=True), 0),
+               (lambda: ReplayBufferWriter(last, extra_keys=EXTRAS), 2))
+    for read, c in readers:
+        with pytest.raises(DatasetError) as info:
+            read()
+        assert_names(info, "data/state", c)
+        assert "decompression bomb" in str(info.value)
+    listing = sorted(os.listdir(tmp_path))
+    for argv in (("info", path), ("repair", path), ("merge", tmp_path / "m.zarr", path, originals[0][2])):
+        code, _, err = cli(*argv)
+        assert code == 2 and err.count("\n") == 1 and "decompression bomb" in err, (argv, err)
+    assert sorted(os.listdir(tmp_path)) == listing  # nothing written
+
+
+PEAK = """
+import resource, sys
+from dssp_data.replay_buffer import ReplayBuffer
+from dssp_data.errors import DatasetError
+try:
+    ReplayBuffer.load(sys.argv[1])
+    print("read")
+except DatasetError as exc:
+    print(exc)
+print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss // 1024)
+"""
+
+
+def test_a_decompression_bomb_takes_no_memory(tmp_path, originals):
+    """A 32 kB chunk that decodes to 1 GiB: reading it peaks no higher than reading the intact dataset."""
+    path = bombed(tmp_path, originals, "zstd")
+    runs = {}
+    for which in (originals[0][2], path):
+        proc = subprocess.run([sys.executable, "-c", PEAK, str(which)], capture_output=True, text=True, timeout=300,
+                              env={**os.environ, "OMP_NUM_THREADS": "1"})
+        assert proc.returncode == 0, proc.stderr
+        message, peak_mib = proc.stdout.strip().rsplit("\n", 1)
+        runs[str(which)] = (message, int(peak_mib))
+    intact, bomb = runs[str(originals[0][2])], runs[str(path)]
+    assert intact[0] == "read" and "decodes to 1.0 GiB" in bomb[0], runs
+    assert bomb[1] < intact[1] + 100, runs  # MiB: the gigabyte was never allocated
+
+
+def test_reads_beyond_the_read_budget_are_one_line(tmp_path, originals, monkeypatch):
+    path = originals[0][2]  # 220 steps; loading point_cloud, state and action takes 33 kB
+    monkeypatch.setenv("DSSP_READ_BUDGET", "16K")
+    with pytest.raises(DatasetError) as info:
+        ReplayBuffer.load(path)
+    assert_names(info, "over the read budget of 16.0 KiB (DSSP_READ_BUDGET)")
+    ep = ReplayBufferReader(path).episode(1)  # one episode at a time fits
+    np.testing.assert_array_equal(ep.state, originals[1].episode(1).state)
+    code, out, err = cli("info", path)  # reads one episode at a time
+    assert code == 1 and err == "" and "episodes    3, 220 steps" in out  # 1: the random actions jump
+    monkeypatch.setenv("DSSP_READ_BUDGET", "9000")  # an episode's 8640 bytes of clouds fit, their 9600-byte chunks do not
+    with pytest.raises(DatasetError) as info:
+        ReplayBufferReader(path).episode(1)
+    assert_names(info, "one chunk of data/point_cloud")
+    assert "DSSP_READ_BUDGET" in str(info.value)
+    monkeypatch.setenv("DSSP_READ_BUDGET", "lots")
+    code, _, err = cli("info", path)
+    assert code == 2 and err.count("\n") == 1 and "DSSP_READ_BUDGET='lots' is not a size" in err
+
+
+def test_a_chunk_shape_beyond_the_budget_and_an_unknown_codec_are_one_line(tmp_path, originals):
+    path = copy_dataset(originals[0][2], tmp_path / "crafted.zarr")
+    meta_file = path / "data" / "state" / ".zarray"
+    meta = json.loads(meta_file.read_text())
+    meta_file.write_text(json.dumps(dict(meta, chunks=[10**9, 7])))  # one chunk "holds" 26 GiB
+    with pytest.raises(DatasetError) as info:
+        ReplayBuffer.load(path)
+    assert_names(info, "one chunk of data/state (chunk shape (1000000000, 7))")
+    assert "over the read budget" in str(info.value)
+    meta_file.write_text(json.dumps(dict(meta, filters=[{"id": "packbits"}])))
+    for read in (lambda: ReplayBuffer.load(path), lambda: ReplayBufferReader(path).episode(0)):
+        with pytest.raises(DatasetError) as info:
+            read()
+        assert_names(info, "data/state is stored with the codec packbits")
