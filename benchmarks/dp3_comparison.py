@@ -315,8 +315,7 @@ def compare(model_dir: Path, threads: int | None, repeats: int, precision: str =
     rng = np.random.default_rng(0)
 
     # DSSP: a few observations, then time one chunk; the per-tick history update on its own
-    pc1 = rng.standard_normal((1, p, 3), dtype=np.float32)
-    pos1 = rng.standard_normal((1, s), dtype=np.float32)
+    pc1, pos1 = policy.example_observation(rng, p)  # inside the trained ranges (the runtime refuses others)
     policy.reset()
     for _ in range(policy.n_obs_steps + 2):
         policy.observe(pc1, pos1)

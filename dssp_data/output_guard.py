@@ -70,7 +70,7 @@ __all__ = [
     "MARKER", "NEW", "OWN", "OutputError", "OutputKind", "check_output", "check_append", "claim_dir", "OutputDir",
     "check_output_file", "check_output_files", "write_output_text", "write_output_file", "zarr_attrs", "zarr_generator",
     "check_not_inside", "make_dirs", "Staging", "replace_dirs", "sweep_stale", "is_staging_name",
-    "interrupts_deferred", "settle_background_writes", "WriterLock", "writer_lock_path", "read_regular_text",
+    "interrupts_deferred", "settle_background_writes", "WriterLock", "writer_lock", "writer_lock_path", "read_regular_text",
     "RUN_DIR", "SYNTH_DATASET", "SIM_DATASET", "RECORDED_DATASET", "DATA_DATASET", "DATA_GENERATORS", "RUN_LOG",
 ]
 
@@ -500,6 +500,29 @@ class WriterLock:
 
     def __exit__(self, *exc) -> None:
         self.release()
+
+
+@contextlib.contextmanager
+def writer_lock(out: str | os.PathLike, *, what: str, flag: str = "--out", error: type[DSSPError] = OutputError,
+                doing: str = "written") -> Iterator[WriterLock]:
+    """Hold the :class:`WriterLock` of ``out`` inside the block (every command's one writer per output).
+
+    The folders above ``out`` that the lock file needs are created first (a path under a file is one line
+    naming ``flag``) and removed again at the end if they are still empty.
+    """
+    created = make_dirs(Path(out).absolute().parent, flag=flag, error=error)
+    try:
+        lock = WriterLock(out, what=what, flag=flag, error=error, doing=doing)
+        try:
+            yield lock
+        finally:
+            lock.release()
+    finally:
+        for folder in reversed(created):
+            try:
+                folder.rmdir()
+            except OSError:  # it holds the output (or anything else): kept
+                break
 
 
 # ------------------------------------------------------------------------------------------- staging

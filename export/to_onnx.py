@@ -296,7 +296,7 @@ def export_model(
         ParityError: the graphs do not reproduce the PyTorch model (nothing is left behind).
     """
     from dssp_train.training.checkpoint import config_recorded
-    from dssp_train.training.output_lock import writer_lock
+    from dssp_data.output_guard import writer_lock
     from export.output_dir import StagedDirectory
     from export.verify import check_report, describe_worst, file_sha256, format_report, verify_model
 

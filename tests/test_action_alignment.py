@@ -59,7 +59,7 @@ def test_the_control_loop_executes_the_chunk_from_the_manifests_offset(tiny_expo
     assert offset == manifest["n_obs_steps"] - 1 == 1 and OnnxPolicy(model_dir, threads=1).action_offset == 0
     loop = ChunkedControl(policy, seed=0)
     rng = np.random.default_rng(0)
-    obs = [(rng.normal(size=(32, 3)).astype(np.float32), rng.normal(size=2).astype(np.float32)) for _ in range(2 * ha)]
+    obs = [policy.example_observation(rng, 32) for _ in range(2 * ha)]
     ticks = [loop.tick(*o) for o in obs]
     assert [info.chunk_index for _, info in ticks] == [offset + t % ha for t in range(2 * ha)]
     reference = OnnxPolicy(model, threads=1, warmup=0)

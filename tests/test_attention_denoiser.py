@@ -171,8 +171,7 @@ def test_export_verifies_and_the_runtime_matches_pytorch(trained_run, tmp_path, 
     runtimes = [OnnxPolicy(model, threads=1, precision="fp32", kernel=k, warmup=0) for k in kernels]
     worst = 0.0
     for t in range(7):
-        pc = rng.normal(size=(1, 24, 3)).astype(np.float32)
-        pos = rng.uniform(size=(1, 2)).astype(np.float32)
+        pc, pos = runtimes[0].example_observation(rng, 24)  # inside the trained ranges (others are refused)
         stream.observe(pc, pos)
         for runtime in runtimes:
             runtime.observe(pc, pos)

@@ -49,6 +49,6 @@ def test_a_window_model_exports_verifies_and_runs(tmp_path, capsys):
     policy = OnnxPolicy(model, threads=1)
     rng = np.random.default_rng(0)
     for _ in range(7):
-        policy.observe(rng.normal(size=(24, 3)).astype(np.float32), rng.normal(size=policy.state_dim).astype(np.float32))
+        policy.observe(*policy.example_observation(rng, 24))
     assert policy.state["z_window"].shape == (1, 5, manifest["d_model"]) and policy.state["z_seen"].tolist() == [[5.0]]
     assert np.isfinite(policy.act(seed=0)).all()

@@ -101,7 +101,7 @@ def test_a_wrong_shape_is_an_error_not_a_crash(monkeypatch):
 def run_chunk(policy: OnnxPolicy, data_seed: int = 0) -> np.ndarray:
     rng = np.random.default_rng(data_seed)
     for _ in range(7):
-        policy.observe(rng.normal(size=(1, 32, 3)).astype(np.float32), rng.uniform(size=(1, policy.state_dim)).astype(np.float32))
+        policy.observe(*policy.example_observation(rng, 32))  # inside the trained ranges (others are refused)
     return policy.act(seed=0)
 
 

@@ -10,7 +10,7 @@ and put back if the new run fails or is interrupted. A folder holding anything b
 (:mod:`dssp_data.output_guard`). A run that stopped before its first checkpoint cannot be continued: it is
 started over with --force. One process writes a run directory at a time: a second dssp-train or dssp-distill
 with the same --out (a new run, --force or --resume) is refused before it reads or changes anything there
-(:mod:`dssp_train.training.output_lock`).
+(:func:`dssp_data.output_guard.writer_lock`).
 
 Every config field has one source: a flag (--steps, --seed, ...), else ``--set model.*/train.*``, else the
 preset; the same field from a flag and a --set, or twice from --set, is refused. The dataset gives the
@@ -321,8 +321,7 @@ def run_training(args, make_config) -> int:
     args.trainer = None  # set by _train once the Trainer exists (for the interruption message)
 
     def _main() -> int:
-        from dssp_data.output_guard import OWN, RUN_DIR, OutputDir, OutputError, check_output
-        from dssp_train.training.output_lock import writer_lock
+        from dssp_data.output_guard import OWN, RUN_DIR, OutputDir, OutputError, check_output, writer_lock
 
         out = Path(args.out)
         if args.resume and args.force:

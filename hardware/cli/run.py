@@ -140,36 +140,29 @@ def lock_log_dir(log_dir: Path | None, stack: contextlib.ExitStack) -> Path:
     one gets one line before anything is opened): ``--log-dir``, or ``runs/dssp-run/<log_stamp()>``, with a suffix
     -2, -3, ... when that name is taken — chosen under its lock, so two runs never pick the same one. The folders
     made for the lock are removed again if the run leaves nothing in them."""
-    from dssp_data.output_guard import OutputError, WriterLock, make_dirs, writer_lock_path
+    from dssp_data.output_guard import OutputError, writer_lock, writer_lock_path
 
-    chosen = log_dir if log_dir is not None else Path("runs/dssp-run") / log_stamp()
-    created = make_dirs(chosen.absolute().parent, flag="--log-dir")
-    stack.callback(_remove_empty, created)
     if log_dir is not None:
-        stack.callback(WriterLock(log_dir, what="log directory", flag="--log-dir").release)
+        stack.enter_context(writer_lock(log_dir, what="log directory", flag="--log-dir"))
         return log_dir
+    chosen = Path("runs/dssp-run") / log_stamp()
     for n in range(1, 1000):
         candidate = chosen if n == 1 else chosen.with_name(f"{chosen.name}-{n}")
         if candidate.exists() or candidate.is_symlink():
             continue
+        attempt = contextlib.ExitStack()
         try:
-            lock = WriterLock(candidate, what="log directory", flag="--log-dir")
+            attempt.enter_context(writer_lock(candidate, what="log directory", flag="--log-dir"))
         except OutputError:
             if writer_lock_path(candidate).exists():  # another run holds this name
                 continue
             raise
         if candidate.exists() or candidate.is_symlink():  # taken meanwhile by a run that has ended
-            lock.release()
+            attempt.close()
             continue
-        stack.callback(lock.release)
+        stack.enter_context(attempt)
         return candidate
     raise ConfigError(f"{chosen.parent} holds 999 logs named {chosen.name}[-N]; pass --log-dir DIR")
-
-
-def _remove_empty(folders: list[Path]) -> None:
-    for folder in reversed(folders):
-        with contextlib.suppress(OSError):
-            folder.rmdir()
 
 
 def check_prefetch(policy, rate: float) -> float:
