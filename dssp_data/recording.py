@@ -44,6 +44,7 @@ from dssp_data import attributes
 from dssp_data.replay_buffer import Episode, ReplayBufferWriter, dataset_lock
 from dssp_data.errors import ConfigError, DatasetError
 from dssp_data.observation import ObservationContract, check_contract
+from dssp_data.output_guard import WriterLock
 
 TIME_KEYS = ("timestamp", "camera_timestamp", "state_timestamp", "action_timestamp")
 FRAME_KEY = "camera_frame"
@@ -210,11 +211,14 @@ class RecordingDataset:
     (:func:`~dssp_data.replay_buffer.check_dataset_tree`, :func:`check_can_log_dir`).
     """
 
-    def __init__(self, path: str | os.PathLike, dataset_attrs: dict, session: dict, extra_keys: Sequence[str]):
+    def __init__(self, path: str | os.PathLike, dataset_attrs: dict, session: dict, extra_keys: Sequence[str],
+                 lock: WriterLock | None = None):
+        """``lock``: the dataset's writer lock when the caller took it already (``dssp-record`` takes it before
+        it opens any device); it is released by :meth:`close` too."""
         self.path = Path(path)
         self.session = dict(session)
         self.session_added = False
-        self._lock = dataset_lock(self.path, flag="--out", doing="recorded into")
+        self._lock = lock if lock is not None else dataset_lock(self.path, flag="--out", doing="recorded into")
         try:
             check_can_log_dir(self.path)
             self.writer = ReplayBufferWriter(self.path, attrs=None, repair_incomplete_tail=True, extra_keys=extra_keys,

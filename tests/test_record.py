@@ -457,6 +457,22 @@ def test_one_recording_session_per_dataset(tmp_path):
     RecordingDataset(tmp_path / "d.zarr", {}, {}, RECORDED_KEYS).close()
 
 
+def test_a_second_recording_session_is_refused_before_any_device_opens(tmp_path, capsys, monkeypatch):
+    from dssp_data.replay_buffer import dataset_lock
+    from conftest import one_error_line
+
+    opened = []
+    monkeypatch.setattr(TeleopRigs, "open", lambda self, task, seed: opened.append(task))
+    out = tmp_path / "d.zarr"
+    held = dataset_lock(out, doing="recorded into")  # the first session
+    try:
+        assert record_main(["--out", str(out), "--auto", "--episodes", "1", "--quiet"]) == 2
+        assert f"is being recorded into by pid {os.getpid()}" in one_error_line(capsys.readouterr().err)
+        assert opened == [] and not out.exists()  # no rig opened, nothing written
+    finally:
+        held.release()
+
+
 def test_dssp_record_drives_real_buses_only(tmp_path, capsys):
     """dssp-record itself never reaches into the simulation: --can sim points to dssp-sim record."""
     from hardware.cli.record import main as robot_record_main

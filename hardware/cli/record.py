@@ -235,6 +235,7 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
     )
     from dssp_data.observation import ObservationContract, piper_layout
     from dssp_data.output_guard import NEW, RECORDED_DATASET, check_append
+    from dssp_data.replay_buffer import dataset_lock
     from hardware.robot import check_rate
     from hardware.bus_monitor import BusMonitor
     from hardware.clock import REAL_CLOCK
@@ -251,6 +252,9 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
         raise ConfigError("--can sim records the simulated scene in lockstep with simulated time: it needs --camera sim")
     if args.auto and not sim_can and args.max_steps is None:
         raise ConfigError("--auto on a robot needs --max-steps: nothing else ends an episode")
+    # one writer per dataset, before any device opens: a second session stops here, touching nothing
+    lock = dataset_lock(args.out, flag="--out", doing="recorded into")
+    stack.callback(lock.release)
     if check_append(args.out, kind=RECORDED_DATASET, flag="--out") == NEW:  # appends only to its own recordings
         _check_no_orphan_can_logs(args.out)
     convention = "leader_command" if args.action == "leader" else "next_state"
@@ -346,7 +350,7 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
         "store_depth": not args.no_depth, "task": task,
     }
     extra_keys = RECORDED_KEYS + (() if args.no_depth else (DEPTH_KEY,))
-    dataset = RecordingDataset(args.out, dataset_attrs, session, extra_keys)
+    dataset = RecordingDataset(args.out, dataset_attrs, session, extra_keys, lock=lock)
     stack.callback(dataset.close)
     if dataset.repaired_steps:
         console.event(f"warning: {args.out} ended with {dataset.repaired_steps} steps of an episode whose write was "
