@@ -26,27 +26,18 @@ from dssp_data.output_guard import writer_lock_path, zarr_attrs
 from dssp_data.recording import RECORDED_KEYS, RecordingDataset, can_log_dir
 from dssp_data.replay_buffer import Episode, ReplayBuffer, ReplayBufferWriter, dataset_lock, write_replay_buffer
 
+from test_data_outputs import ENV, run
+from test_data_outputs import one_line_error as data_outputs_error
+
 ROOT = Path(__file__).resolve().parents[1]
-ENV = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
 SECRET = b"secret: not part of any dataset\n"
 SETTINGS = {"deadline": None, "derandomize": True, "database": None, "max_examples": 12,
             "suppress_health_check": [HealthCheck.too_slow, HealthCheck.function_scoped_fixture]}
 
 
-def run(capsys, *argv):
-    """dssp-data in-process: (exit code, stdout, stderr)."""
-    code = data_main([str(a) for a in argv])
-    captured = capsys.readouterr()
-    return code, captured.out, captured.err
-
-
 def one_line_error(code, err, *fragments):
-    lines = err.strip().splitlines()
-    assert code == 2 and len(lines) == 1 and lines[0].startswith("error: "), err
     assert "Traceback" not in err
-    for fragment in fragments:
-        assert fragment in lines[0], err
-    return lines[0]
+    return data_outputs_error(code, err, *fragments)
 
 
 def one_line(exc_info, *fragments):

@@ -15,27 +15,14 @@ import pytest
 from dssp_data.output_guard import WriterLock, writer_lock_path
 from dssp_train.cli.distill import main as distill_main
 from dssp_train.cli.train import main as train_main
-from dssp_train.data.synthetic import write_tap_count_dataset
 from dssp_train.training.train_log import read_log
 from dssp_train.training.trainer import Trainer
 from export.to_onnx import main as export_main
 
 from conftest import SET_SMALL, one_error_line, snapshot
+from test_train_inputs import data, trained  # noqa: F401 (fixtures: a small dataset, a finished 2-step run)
 
 FAST_EXPORT = ["--format", "onnx", "--skip-verify", "--quantize", "none", "--no-fused"]
-
-
-@pytest.fixture(scope="module")
-def data(tmp_path_factory) -> Path:
-    return write_tap_count_dataset(tmp_path_factory.mktemp("data") / "tap.zarr", 4, seed=0, n_points=24)
-
-
-@pytest.fixture(scope="module")
-def trained(tmp_path_factory, data) -> Path:
-    """A finished 2-step run (checkpoint at step 2)."""
-    out = tmp_path_factory.mktemp("trained") / "run"
-    assert train_main(["--data", str(data), "--out", str(out), "--steps", "2", "--no-progress", *SET_SMALL]) == 0
-    return out
 
 
 def held_by_me(line: str, out: Path, what: str, flag: str) -> None:
