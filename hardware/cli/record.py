@@ -36,7 +36,7 @@ from typing import Protocol
 
 from dssp_data.cli_runner import ArgumentParser
 from dssp_data.errors import ConfigError, DSSPError
-from hardware.cli.stops import StartupInterrupted, Stops
+from hardware.cli.stops import Stops, run_stoppable
 
 EPILOG = """\
 Action convention (--action): "leader" (default) records the leader arm's command at each step, what the
@@ -369,17 +369,7 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
 
 def record(args, stops: Stops | None = None) -> int:
     """``args`` → exit code; ``stops``: the stop request main() installed (None: installed here)."""
-    own = stops is None
-    stops = stops or Stops()
-    try:
-        stops.check()
-        return _record(args, stops)
-    except StartupInterrupted as exc:
-        print(f"stopped by {exc} during start-up; nothing was recorded", file=sys.stderr)
-        return stops.code
-    finally:
-        if own:
-            stops.restore()
+    return run_stoppable(_record, args, stops, "nothing was recorded")
 
 
 def _record(args, stops: Stops) -> int:

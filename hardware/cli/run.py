@@ -32,7 +32,7 @@ from pathlib import Path
 # (hardware.cli.stops): a Ctrl-C during the heavier imports (numpy, the runtime) is then a clean stop.
 from dssp_data.cli_runner import ArgumentParser
 from dssp_data.errors import ConfigError
-from hardware.cli.stops import StartupInterrupted, Stops
+from hardware.cli.stops import Stops, run_stoppable
 
 EPILOG = """\
 --camera sim --can sim runs everything against the embedded simulation (no hardware). Real arms:
@@ -184,16 +184,7 @@ def check_prefetch(policy, rate: float) -> float:
 
 def run(args, stops: Stops | None = None) -> int:
     """``args`` → exit code; ``stops``: the stop request main() installed (None: installed here)."""
-    own = stops is None
-    stops = stops or Stops()
-    try:
-        return _run(args, stops)
-    except StartupInterrupted as exc:
-        print(f"stopped by {exc} during start-up; no arm was enabled, nothing was sent", file=sys.stderr)
-        return stops.code
-    finally:
-        if own:
-            stops.restore()
+    return run_stoppable(_run, args, stops, "no arm was enabled, nothing was sent")
 
 
 def _run(args, stops: Stops) -> int:

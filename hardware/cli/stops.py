@@ -138,6 +138,23 @@ class Stops:
         self._streams = []
 
 
+def run_stoppable(body: Callable, args, stops: Stops | None, nothing_done: str) -> int:
+    """``body(args, stops)`` → exit code, with a stop during start-up (:class:`StartupInterrupted`) as one line
+    ("stopped by SIGHUP during start-up; " + ``nothing_done``) and ``stops.code``; ``stops``: the request main()
+    installed (None: installed here, and restored at the end)."""
+    own = stops is None
+    stops = stops or Stops()
+    try:
+        stops.check()
+        return body(args, stops)
+    except StartupInterrupted as exc:
+        print(f"stopped by {exc} during start-up; {nothing_done}", file=sys.stderr)
+        return stops.code
+    finally:
+        if own:
+            stops.restore()
+
+
 def _to_devnull(stream) -> None:
     """Point the file descriptor under ``stream`` at /dev/null (a stream without one: nothing to do)."""
     try:
