@@ -13,7 +13,6 @@ import os
 import shutil
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
@@ -437,61 +436,28 @@ def test_the_chunked_loop_skips_a_non_finite_observation(arm_export):
 
 
 def test_the_robot_loop_holds_on_a_non_finite_cloud_and_keeps_it_out_of_the_history(arm_export, tmp_path, monkeypatch):
-    from test_runtime_guards import widened_copy
-
-    from hardware import run_loop
-    from hardware.camera.tabletop import SimCamera
-    from hardware.piper.limits import JointLimits
-    from hardware.piper.piper_robot import open_robot
-    from hardware.pointcloud import PointCloudConfig
-    from hardware.safety import SafetyConfig
+    from test_runtime_guards import rig_loop
 
     poisoned = {"on": False}
-    real_cloud = run_loop.frame_to_cloud
 
-    def cloud_with_nan(frame, config, camera_to_base=None):
-        cloud, info = real_cloud(frame, config, camera_to_base)
+    def cloud_with_nan(cloud):
         if poisoned["on"]:
             cloud = cloud.copy()
             cloud[3, 1] = NAN
-        return cloud, info
+        return cloud
 
-    monkeypatch.setattr(run_loop, "frame_to_cloud", cloud_with_nan)
-    policy = OnnxPolicy(widened_copy(arm_export, tmp_path / "model"), threads=1)  # accepts the rig's observations
-    limits = JointLimits.piper()
-    camera, robot = SimCamera(seed=0), open_robot("sim")
-    # generous timeouts and no deadline hold: the only reason to hold here is the refused observation
-    safety = SafetyConfig(camera_timeout=2.0, feedback_timeout=2.0, deadline_hold=False)
-    camera.start(thread=False)
-    camera.capture()
-    try:
-        with robot:
-            runner = run_loop.Runner(policy, camera, robot, PointCloudConfig(n_points=64), camera.camera_to_base, safety,
-                                     run_loop.LoopSettings(rate_hz=50.0, seed=0), (limits.lower, limits.upper, np.arange(7) == 6))
-            runner.start()
-
-            def ticks(n):
-                out = []
-                for _ in range(n):
-                    camera.capture()
-                    out.append(runner.tick())
-                    time.sleep(0.02)
-                return out
-
-            assert all(r["action"] is not None for r in ticks(5))
-            steps, count = policy.steps, runner.control.tick_count
-            poisoned["on"] = True
-            held = ticks(3)
-            assert policy.steps == steps and runner.control.tick_count == count  # the history was not fed
-            for r in held:
-                assert r["held"] and r["action"] is None and r["command"] is not None
-                assert any(e.startswith("no observation: point_cloud") and "(0, 3, 1)=nan" in e for e in r["events"])
-                assert any(e["kind"] == "hold" for e in r["safety"])
-            assert all(np.array_equal(r["command"], held[0]["command"]) for r in held)  # the last safe target, resent
-            assert runner.event_counts["non_finite_observation"] == 3 and runner.fault is None
-            poisoned["on"] = False
-            after = ticks(3)
-            assert policy.steps == steps + 3 and all(r["action"] is not None for r in after)
-            runner.finish("test over")
-    finally:
-        camera.stop()
+    with rig_loop(arm_export, tmp_path, monkeypatch, cloud_with_nan, pause=0.02) as (policy, runner, ticks):
+        assert all(r["action"] is not None for r in ticks(5))
+        steps, count = policy.steps, runner.control.tick_count
+        poisoned["on"] = True
+        held = ticks(3)
+        assert policy.steps == steps and runner.control.tick_count == count  # the history was not fed
+        for r in held:
+            assert r["held"] and r["action"] is None and r["command"] is not None
+            assert any(e.startswith("no observation: point_cloud") and "(0, 3, 1)=nan" in e for e in r["events"])
+            assert any(e["kind"] == "hold" for e in r["safety"])
+        assert all(np.array_equal(r["command"], held[0]["command"]) for r in held)  # the last safe target, resent
+        assert runner.event_counts["non_finite_observation"] == 3 and runner.fault is None
+        poisoned["on"] = False
+        after = ticks(3)
+        assert policy.steps == steps + 3 and all(r["action"] is not None for r in after)

@@ -7,12 +7,14 @@
 - a truncated fused-kernel library: not loaded (it would kill the process with SIGBUS), the standard graphs run.
 """
 
+import contextlib
 import json
 import os
 import shutil
 import subprocess
 import sys
 import textwrap
+import time
 
 import numpy as np
 import onnx
@@ -219,7 +221,12 @@ def widened_copy(model_dir, dst):
     return dst
 
 
-def test_the_robot_loop_holds_on_a_refused_observation_or_chunk(arm_export, tmp_path, monkeypatch):
+@contextlib.contextmanager
+def rig_loop(arm_export, tmp_path, monkeypatch, edit_cloud, pause: float = 0.0):
+    """The robot's loop (``hardware.run_loop.Runner``) on the simulated camera and arm, with every cloud passed
+    through ``edit_cloud(cloud) -> cloud`` first: yields (policy, runner, ticks), ``ticks(n)`` the records of n
+    ticks (``pause`` seconds of wall time after each). Generous timeouts and no deadline hold: the only reason
+    to hold is what the test injects."""
     from hardware import run_loop
     from hardware.camera.tabletop import SimCamera
     from hardware.piper.limits import JointLimits
@@ -227,21 +234,16 @@ def test_the_robot_loop_holds_on_a_refused_observation_or_chunk(arm_export, tmp_
     from hardware.pointcloud import PointCloudConfig
     from hardware.safety import SafetyConfig
 
-    far = {"on": False}
     real_cloud = run_loop.frame_to_cloud
 
-    def cloud_far_out(frame, config, camera_to_base=None):
+    def edited(frame, config, camera_to_base=None):
         cloud, info = real_cloud(frame, config, camera_to_base)
-        if far["on"]:
-            cloud = cloud.copy()
-            cloud[3, 1] = 50.0  # 50 m: no table is that wide
-        return cloud, info
+        return edit_cloud(cloud), info
 
-    monkeypatch.setattr(run_loop, "frame_to_cloud", cloud_far_out)
-    policy = OnnxPolicy(widened_copy(arm_export, tmp_path / "model"), threads=1)
+    monkeypatch.setattr(run_loop, "frame_to_cloud", edited)
+    policy = OnnxPolicy(widened_copy(arm_export, tmp_path / "model"), threads=1)  # accepts the rig's observations
     limits = JointLimits.piper()
     camera, robot = SimCamera(seed=0), open_robot("sim")
-    # generous timeouts and no deadline hold: the only reason to hold here is the refusal
     safety = SafetyConfig(camera_timeout=2.0, feedback_timeout=2.0, deadline_hold=False)
     camera.start(thread=False)
     camera.capture()
@@ -256,37 +258,52 @@ def test_the_robot_loop_holds_on_a_refused_observation_or_chunk(arm_export, tmp_
                 for _ in range(n):
                     camera.capture()
                     out.append(runner.tick())
+                    if pause:
+                        time.sleep(pause)
                 return out
 
-            def assert_held(records, prefix, token):
-                for r in records:
-                    assert r["held"] and r["action"] is None and r["command"] is not None
-                    assert any(e.startswith(prefix) and token in e for e in r["events"]), r["events"]
-                    assert any(e["kind"] == "hold" for e in r["safety"])
-                assert all(np.array_equal(r["command"], records[0]["command"]) for r in records)  # the last safe target
-
-            assert all(r["action"] is not None for r in ticks(4))
-            steps, count = policy.steps, runner.control.tick_count
-            far["on"] = True
-            assert_held(ticks(3), "no observation: point_cloud", "(0, 3, 1)=50 >")
-            assert policy.steps == steps and runner.control.tick_count == count  # the history was not fed
-            assert runner.event_counts["observation_out_of_range"] == 3 and runner.fault is None
-            far["on"] = False
-            # the next chunk comes out NaN: refused at every tick it is due, the tick undone, held
-            ha = policy.n_action_steps
-            while runner.control.tick_count % ha:  # up to the tick that takes the next chunk
-                ticks(1)
-            session = policy.sessions["denoiser"]
-            policy.sessions["denoiser"] = Corrupted(session, (0, 1, 2), np.nan)
-            steps = policy.steps
-            assert_held(ticks(3), "no action: action chunk", "(0, 1, 2)=nan (not finite)")
-            assert policy.steps == steps and runner.event_counts["chunk_out_of_range"] == 3 and runner.fault is None
-            policy.sessions["denoiser"] = session
-            after = ticks(2)
-            assert all(r["action"] is not None for r in after) and policy.steps == steps + 2
+            yield policy, runner, ticks
             runner.finish("test over")
     finally:
         camera.stop()
+
+
+def test_the_robot_loop_holds_on_a_refused_observation_or_chunk(arm_export, tmp_path, monkeypatch):
+    far = {"on": False}
+
+    def cloud_far_out(cloud):
+        if far["on"]:
+            cloud = cloud.copy()
+            cloud[3, 1] = 50.0  # 50 m: no table is that wide
+        return cloud
+
+    def assert_held(records, prefix, token):
+        for r in records:
+            assert r["held"] and r["action"] is None and r["command"] is not None
+            assert any(e.startswith(prefix) and token in e for e in r["events"]), r["events"]
+            assert any(e["kind"] == "hold" for e in r["safety"])
+        assert all(np.array_equal(r["command"], records[0]["command"]) for r in records)  # the last safe target
+
+    with rig_loop(arm_export, tmp_path, monkeypatch, cloud_far_out) as (policy, runner, ticks):
+        assert all(r["action"] is not None for r in ticks(4))
+        steps, count = policy.steps, runner.control.tick_count
+        far["on"] = True
+        assert_held(ticks(3), "no observation: point_cloud", "(0, 3, 1)=50 >")
+        assert policy.steps == steps and runner.control.tick_count == count  # the history was not fed
+        assert runner.event_counts["observation_out_of_range"] == 3 and runner.fault is None
+        far["on"] = False
+        # the next chunk comes out NaN: refused at every tick it is due, the tick undone, held
+        ha = policy.n_action_steps
+        while runner.control.tick_count % ha:  # up to the tick that takes the next chunk
+            ticks(1)
+        session = policy.sessions["denoiser"]
+        policy.sessions["denoiser"] = Corrupted(session, (0, 1, 2), np.nan)
+        steps = policy.steps
+        assert_held(ticks(3), "no action: action chunk", "(0, 1, 2)=nan (not finite)")
+        assert policy.steps == steps and runner.event_counts["chunk_out_of_range"] == 3 and runner.fault is None
+        policy.sessions["denoiser"] = session
+        after = ticks(2)
+        assert all(r["action"] is not None for r in after) and policy.steps == steps + 2
 
 
 # -------------------------------------------------------------------------- ONNX external data
