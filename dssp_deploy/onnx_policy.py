@@ -60,17 +60,40 @@ from dssp_deploy.sessions import check_threads, default_threads, open_session
 
 KERNELS = ("auto", "fused", "standard")
 # The precision run when none is asked for: the fastest one whose closed-loop success stays inside fp32's
-# 95 % interval (reports/sampling, the README's CPU table). A model directory without its graphs (exported
-# with --quantize none) runs fp32, and the start-up line says so.
+# 95 % interval (reports/sampling, the README's CPU table), as long as its export measured its actions within
+# QUANTIZED_ACTION_BOUND of fp32's. A model directory without its graphs (exported with --quantize none), or
+# whose graphs were measured further off, runs fp32, and the start-up line says why.
 DEFAULT_PRECISION = "int8"
+QUANTIZED_ACTION_BOUND = 0.05
+"""The largest action error of a quantized graph against fp32, as a fraction of the action range (the export's
+verification, ``verification.quantized`` in the manifest), at which it is still run by default."""
+
+
+def quantized_action_error(manifest: dict[str, Any], precision: str) -> float | None:
+    """The worst action error of ``precision``'s graphs against fp32 that the export measured (a fraction of the
+    action range), or None when the model was not verified."""
+    verification = manifest.get("verification")
+    quantized = verification.get("quantized") if isinstance(verification, dict) else None
+    if not isinstance(quantized, dict):
+        return None
+    errors = [q.get("action_max_abs_over_range") for name, q in quantized.items()
+              if isinstance(q, dict) and name.removeprefix("onnx_").removesuffix("_fused") == precision]
+    errors = [float(e) for e in errors if isinstance(e, (int, float))]
+    return max(errors) if errors else None
 
 
 def default_precision(manifest: dict[str, Any]) -> tuple[str, str]:
-    """(precision, why) when none is asked for: :data:`DEFAULT_PRECISION` if the model has those graphs, else fp32."""
+    """(precision, why) when none is asked for: :data:`DEFAULT_PRECISION` if the model has those graphs and their
+    measured error is within :data:`QUANTIZED_ACTION_BOUND`, else fp32."""
     kind = file_kind(DEFAULT_PRECISION)
-    if all(kind in manifest["graphs"][g]["files"] for g in GRAPHS):
-        return DEFAULT_PRECISION, ""
-    return "fp32", f"; fp32: the model directory has no {DEFAULT_PRECISION} graphs"
+    if not all(kind in manifest["graphs"][g]["files"] for g in GRAPHS):
+        return "fp32", f"; fp32: the model directory has no {DEFAULT_PRECISION} graphs"
+    error = quantized_action_error(manifest, DEFAULT_PRECISION)
+    if error is not None and error > QUANTIZED_ACTION_BOUND:
+        return "fp32", (f"; fp32: its {DEFAULT_PRECISION} graphs' actions were {100 * error:.1f} % of the action range off "
+                        f"fp32's at export (more than {100 * QUANTIZED_ACTION_BOUND:.0f} %); --precision {DEFAULT_PRECISION} "
+                        "runs them anyway")
+    return DEFAULT_PRECISION, ""
 
 
 def add_runtime_arguments(parser) -> None:

@@ -281,3 +281,34 @@ def test_running_at_another_rate_than_trained_warns(tiny_export):
         ChunkedControl(p, rate_hz=30)
         ChunkedControl(p, rate_hz=10)
     assert len(caught) == 1 and "10 Hz" in str(caught[0].message)
+
+
+def test_int8_state_tokens_track_fp32_on_this_cpu(tiny_export):
+    """The int8 observation encoder stays close to fp32 on any x86-64 CPU. Without VNNI (AVX2 only) ONNX Runtime's
+    uint8 x int8 products add in int16 and saturate with full-range weights (z_t off by ~10 % of its scale);
+    export.quantize keeps the weights to 7 bits so that no CPU saturates."""
+    _, model_dir, data = tiny_export
+    fp32, int8 = OnnxPolicy(model_dir, threads=1, precision="fp32"), OnnxPolicy(model_dir, threads=1, precision="int8")
+    pcs, states = long_trajectory(data, 60)
+    z32 = np.concatenate([fp32.observe(pc, s) for pc, s in zip(pcs, states)])
+    z8 = np.concatenate([int8.observe(pc, s) for pc, s in zip(pcs, states)])
+    assert np.abs(z8 - z32).max() <= 0.05 * np.abs(z32).max(), np.abs(z8 - z32).max() / np.abs(z32).max()
+
+
+@pytest.mark.parametrize("error, runs", [(0.2, "fp32"), (0.01, "int8"), (None, "int8")])
+def test_int8_measured_too_far_off_at_export_is_not_the_default(tiny_export, tmp_path, error, runs):
+    import shutil
+
+    _, model_dir, _ = tiny_export
+    copy = tmp_path / "model"
+    shutil.copytree(model_dir, copy)
+    manifest = json.loads((copy / MANIFEST_NAME).read_text())
+    if error is not None:
+        manifest["verification"] = {"quantized": {"onnx_int8": {"action_max_abs_over_range": 0.01},
+                                                  "onnx_int8_fused": {"action_max_abs_over_range": error}}}
+    (copy / MANIFEST_NAME).write_text(json.dumps(manifest))
+    policy = OnnxPolicy(copy, threads=1)
+    assert policy.precision == runs
+    if runs == "fp32":
+        assert "20.0 % of the action range" in policy.kernel_note and "--precision int8" in policy.kernel_note
+    assert OnnxPolicy(copy, threads=1, precision="int8").precision == "int8"  # asked for, it runs
