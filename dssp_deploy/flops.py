@@ -52,7 +52,7 @@ def observation_flops(cfg: dict, n_points: int) -> int:
         widths.append(512)
     point = n_points * _mlp([cfg["point_dim"], *widths]) + 2 * widths[-1] * cfg["point_feature_dim"]
     state = _mlp([cfg["state_dim"], *cfg["state_widths"]])
-    fuse = 2 * (cfg["point_feature_dim"] + cfg["state_widths"][-1]) * cfg["d_model"]
+    fuse = 0 if cfg.get("denoiser_backbone") == "unet" else 2 * (cfg["point_feature_dim"] + cfg["state_widths"][-1]) * cfg["d_model"]
     return point + state + fuse
 
 
@@ -64,9 +64,36 @@ def history_step_flops(cfg: dict, n_points: int) -> int:
     return observation_flops(cfg, n_points) + layers * tokens * mamba_token_flops(cfg)
 
 
+def unet_flops(cfg: dict) -> int:
+    """One evaluation of DP3's UNet (``denoiser_backbone`` unet) on a chunk of H actions: its convolutions and the
+    FiLM projections of every residual block (level i runs at length H / 2^i)."""
+    k, h, a = cfg["unet_kernel_size"], cfg["horizon"], cfg["action_dim"]
+    n_prefix = int(cfg["use_history"]) + (cfg["n_obs_steps"] if cfg["use_recent_states"] else 0)
+    cond = cfg["unet_step_embed_dim"] + n_prefix * cfg["d_model"]
+    dims = list(cfg["unet_down_dims"])
+    levels = list(zip([a, *dims[:-1]], dims))
+    lengths = [h // 2**i for i in range(len(dims))]
+
+    def block(c_in: int, c_out: int, n: int) -> int:  # two convs, the FiLM projection, a 1x1 residual if the width changes
+        return 2 * n * k * (c_in * c_out + c_out * c_out) + 2 * cond * 2 * c_out + (2 * n * c_in * c_out if c_in != c_out else 0)
+
+    total = 0
+    for i, (c_in, c_out) in enumerate(levels):
+        total += block(c_in, c_out, lengths[i]) + block(c_out, c_out, lengths[i])
+        if i < len(levels) - 1:
+            total += 2 * lengths[i + 1] * 3 * c_out * c_out  # Conv1d k3 stride 2
+    total += 2 * block(dims[-1], dims[-1], lengths[-1])
+    for j, (c_in, c_out) in enumerate(reversed(levels[1:])):
+        n = lengths[-1 - j]
+        total += block(2 * c_out, c_in, n) + block(c_in, c_in, n) + 2 * n * 4 * c_in * c_in  # ConvTranspose1d k4 stride 2
+    return total + 2 * h * k * dims[0] * dims[0] + 2 * h * dims[0] * a  # the head
+
+
 def chunk_flops(cfg: dict, denoise_steps: int) -> int:
     """One action chunk: the prefix once (cached), then K passes over the H action tokens (each denoiser block's
-    mixer, Mamba or attention to the tokens before it, and its MLP)."""
+    mixer, Mamba or attention to the tokens before it, and its MLP); DP3's UNet: K evaluations."""
+    if cfg.get("denoiser_backbone") == "unet":
+        return denoise_steps * unet_flops(cfg)
     n_prefix = int(cfg["use_history"]) + (cfg["n_obs_steps"] if cfg["use_recent_states"] else 0)
     h = cfg["horizon"]
     if cfg.get("denoiser_backbone", "mamba") == "transformer":  # an action token attends to the prefix and the tokens before it

@@ -27,8 +27,9 @@ DENOISER_MLPS = ("none", "gated", "dit")
 ACTION_ALIGNMENTS = ("current", "dp3")
 # Where DDIM's K timesteps sit among the training timesteps (diffusers' names; DiffusionConfig.timestep_spacing).
 TIMESTEP_SPACINGS = ("leading", "trailing")
-# The denoiser blocks' mixer: Mamba (the paper's), or causal self-attention (Table 5's "w/ Trans.").
-DENOISER_BACKBONES = ("mamba", "transformer")
+# The denoiser: blocks with a Mamba mixer (the paper's) or causal self-attention (Table 5's "w/ Trans."), or DP3's
+# conditional 1-D UNet with FiLM (the baseline, dssp_train/model/unet.py; the "dp3" presets).
+DENOISER_BACKBONES = ("mamba", "transformer", "unet")
 
 
 def _require(cond: bool, message: str) -> None:
@@ -102,6 +103,11 @@ class ModelConfig(Settings):
     use_recent_states: bool = setting(True)
     timestep_decoupled: bool = setting(True)
     dynamics_weight: float = setting(0.05, ge=0, le=1000)
+    # DP3's UNet (denoiser_backbone "unet"): the widths of its levels, conv kernel, GroupNorm groups, step embedding.
+    unet_down_dims: list[int] = setting(default_factory=lambda: [512, 1024, 2048], ge=1, le=MAX_WIDTH, min_length=1, max_length=8)
+    unet_kernel_size: int = setting(5, ge=1, le=31)
+    unet_n_groups: int = setting(8, ge=1, le=MAX_WIDTH)
+    unet_step_embed_dim: int = setting(128, ge=2, le=MAX_WIDTH)
     diffusion: DiffusionConfig = setting(default_factory=DiffusionConfig)
 
     def validate(self):
@@ -119,10 +125,31 @@ class ModelConfig(Settings):
                 self.d_model % self.transformer_heads == 0,
                 f"model.d_model={self.d_model} must be divisible by model.transformer_heads={self.transformer_heads}",
             )
+        if self.denoiser_backbone == "unet":
+            self._validate_unet()
         _require(
             self.use_history or self.use_recent_states,
             "model.use_history and model.use_recent_states cannot both be off: the denoiser would see no observation",
         )
+
+    def _validate_unet(self) -> None:
+        features = self.point_feature_dim + self.state_widths[-1]
+        _require(
+            self.d_model == features,
+            f"model.denoiser_backbone=unet (DP3) conditions on the observation features themselves, without a projection: "
+            f"model.d_model must be point_feature_dim + state_widths[-1] = {features}, got {self.d_model}",
+        )
+        groups, dims = self.unet_n_groups, self.unet_down_dims
+        bad = [d for d in dims if d % groups]
+        _require(not bad, f"model.unet_down_dims must be multiples of model.unet_n_groups={groups} (GroupNorm), got {dims}")
+        _require(self.unet_kernel_size % 2 == 1, f"model.unet_kernel_size must be odd (same padding), got {self.unet_kernel_size}")
+        halvings = 2 ** (len(dims) - 1)
+        _require(
+            self.horizon % halvings == 0,
+            f"model.unet_down_dims has {len(dims)} levels, which halve the horizon {len(dims) - 1} times: model.horizon must "
+            f"be a multiple of {halvings}, got {self.horizon}",
+        )
+        _require(self.unet_step_embed_dim % 2 == 0, f"model.unet_step_embed_dim must be even (sin and cos), got {self.unet_step_embed_dim}")
 
     @property
     def action_offset(self) -> int:

@@ -39,7 +39,6 @@ import torch
 from torch import nn
 
 from dssp_data.errors import ConfigError
-from dssp_train.model.denoiser import Modulation
 from dssp_train.model.mamba import Mamba
 from dssp_train.model.policy import DSSPPolicy
 from export.fused_ops import FUSED_OPS
@@ -138,14 +137,12 @@ class DenoiserGraph(nn.Module):
         den = policy.denoiser
         with torch.no_grad():
             table = den.modulation(torch.tensor(self.timesteps))
-        # (K, n_layers, R, d): shift, scale, gate of every block (R = 3, 6 with DiT's MLP) at every step;
-        # (K, 2, d): final shift, scale.
-        self.register_buffer("layer_mod", table.layers, persistent=False)
-        self.register_buffer("final_mod", table.final, persistent=False)
-        # Folded: the timestep MLP and the AdaLN projections are not part of the graph.
-        den.time_embed = den.final_modulation = None
-        for layer in den.layers:
-            layer.modulation = None
+        # The table's tensors become buffers: the Mamba/attention denoiser's AdaLN parameters of every block at every
+        # step, (K, n_layers, R, d) and (K, 2, d) (R = 3, 6 with DiT's MLP); DP3's UNet's step embeddings (K, e).
+        self.table_type = type(table)
+        for name, tensor in zip(table._fields, table):
+            self.register_buffer(f"table_{name}", tensor, persistent=False)
+        den.fold_timestep()  # the timestep MLP and its projections are not part of the graph
 
     def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
         it = iter(inputs)
@@ -153,6 +150,6 @@ class DenoiserGraph(nn.Module):
         recent = next(it) if self.use_recent else None
         noise = next(it)
         prefix = self.policy.build_prefix(context, recent)  # (B, L_p, d)
-        table = Modulation(self.layer_mod, self.final_mod)
+        table = self.table_type(*(getattr(self, f"table_{name}") for name in self.table_type._fields))
         x = self.policy.sample_normalized(prefix, noise, self.num_steps, table, unrolled=True)  # (B, H, A)
         return self.policy.normalizers["action"].unnormalize(x)

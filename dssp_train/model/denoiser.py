@@ -188,6 +188,12 @@ class Denoiser(nn.Module):
         layers = torch.stack([layer.modulation(temb).view(count, -1, d) for layer in self.layers], dim=1)
         return Modulation(layers, self.final_modulation(temb).view(count, 2, d))
 
+    def fold_timestep(self) -> None:
+        """Drop the timestep MLP and the AdaLN projections (an exported graph has the K steps' table as constants)."""
+        self.time_embed = self.final_modulation = None
+        for layer in self.layers:
+            layer.modulation = None
+
     # ------------------------------------------------------------ full forward
     def forward(self, prefix: torch.Tensor, x_tau: torch.Tensor, timesteps: torch.Tensor) -> torch.Tensor:
         """Training path over the whole sequence: prefix (B, L_p, d), x_tau (B, H, A), timesteps (B,) → x0_hat (B, H, A)."""

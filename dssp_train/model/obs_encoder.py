@@ -3,7 +3,8 @@
 Point branch (DP3): a per-point MLP, Linear → LayerNorm → ReLU for each width, max-pooled over the
 points, then Linear → LayerNorm to ``point_feature_dim``. The last ReLU runs after the pooling (ReLU is
 monotonic, so max(ReLU(x)) = ReLU(max(x)): one pass over (P, width) values fewer). No T-Net, no BatchNorm. State branch (DP3):
-Linear → ReLU → Linear. The two features are concatenated and projected to the model width.
+Linear → ReLU → Linear. The two features are concatenated and projected to the model width; DP3's UNet
+(``denoiser_backbone = "unet"``) takes the concatenated features as they are, as DP3 does (d_model is then their width).
 
 Shapes: point cloud (B, P, C) with C = ``point_dim`` (normalised), agent_pos (B, S) → z (B, d_model).
 Leading dims may be any (e.g. (B, T, P, C) → (B, T, d_model)).
@@ -72,7 +73,8 @@ class ObservationEncoder(nn.Module):
             widths = widths + [512]  # DP3 widens the point MLP when colour is used
         self.point_encoder = PointEncoder(cfg.point_dim, widths, cfg.point_feature_dim)
         self.state_encoder = StateEncoder(cfg.state_dim, cfg.state_widths)
-        self.projection = nn.Linear(cfg.point_feature_dim + cfg.state_widths[-1], cfg.d_model)
+        features = cfg.point_feature_dim + cfg.state_widths[-1]
+        self.projection = nn.Identity() if cfg.denoiser_backbone == "unet" else nn.Linear(features, cfg.d_model)
 
     def forward(self, point_cloud: torch.Tensor, agent_pos: torch.Tensor) -> torch.Tensor:
         feats = torch.cat([self.point_encoder(point_cloud), self.state_encoder(agent_pos)], dim=-1)

@@ -12,6 +12,9 @@ GROUPS: list[tuple[str, tuple[str, ...]]] = [
     ("G_psi history encoder", ("history_encoder.",)),
     ("g_phi dynamics predictor", ("dynamics.",)),
     ("f_theta blocks (mixer + MLP)", ("denoiser.layers.",)),
+    ("f_theta UNet FiLM projections (DP3)", ()),
+    ("f_theta UNet convolutions (DP3)", ("denoiser.down.", "denoiser.mid.", "denoiser.up.", "denoiser.head.")),
+    ("f_theta UNet step encoder (DP3)", ("denoiser.step_encoder.",)),
     ("f_theta AdaLN modulation", ("denoiser.final_modulation.",)),
     ("f_theta timestep embedding", ("denoiser.time_embed.",)),
     ("f_theta action in/out + final norm", ("denoiser.",)),
@@ -21,6 +24,8 @@ GROUPS: list[tuple[str, tuple[str, ...]]] = [
 def _row(name: str) -> str:
     if ".modulation." in name:
         return "f_theta AdaLN modulation"
+    if name.startswith("denoiser.") and ".film." in name:
+        return "f_theta UNet FiLM projections (DP3)"
     for label, prefixes in GROUPS:
         if name.startswith(prefixes):
             return label

@@ -22,6 +22,7 @@ from dssp_train.model.history_encoder import HistoryEncoder
 from dssp_train.model.normalizer import RangeNormalizer
 from dssp_train.model.obs_encoder import ObservationEncoder
 from dssp_train.model.scheduler import DiffusionSchedule
+from dssp_train.model.unet import UNetDenoiser
 
 
 class DSSPPolicy(nn.Module):
@@ -40,7 +41,7 @@ class DSSPPolicy(nn.Module):
         self.obs_encoder = ObservationEncoder(cfg)
         self.history_encoder = HistoryEncoder(cfg) if cfg.use_history else None
         self.dynamics = DynamicsPredictor(cfg.d_model, cfg.action_dim) if cfg.uses_dynamics_loss else None
-        self.denoiser = Denoiser(cfg)
+        self.denoiser = UNetDenoiser(cfg) if cfg.denoiser_backbone == "unet" else Denoiser(cfg)
         self.schedule = DiffusionSchedule(cfg.diffusion)
 
     # ------------------------------------------------------------ normalisers
