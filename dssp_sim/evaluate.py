@@ -62,6 +62,7 @@ class EpisodeOutcome:
     holds: int
     safety_events: dict
     chunk_ms_p50: float | None
+    decision: dict = field(default_factory=dict)  # the memory decision (dssp_sim.tasks.Task.decision)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -92,13 +93,20 @@ class EvalResult:
     def reasons(self) -> Counter:
         return Counter(e.reason for e in self.episodes if not e.success)
 
+    def decisions(self) -> dict:
+        """The memory decision apart from the manipulation: episodes that reached it, how many decided right, and
+        what was chosen (e.g. tap's count of presses, its confusion row)."""
+        reached = [e.decision for e in self.episodes if e.decision.get("reached")]
+        return {"reached": len(reached), "correct": sum(bool(d["correct"]) for d in reached),
+                "choices": dict(Counter(d["choice"] for d in reached))}
+
     def to_dict(self) -> dict:
         lo, hi = self.interval()
         return {"model_dir": self.model_dir, "task": self.task, "n": len(self.episodes), "successes": self.successes,
                 "success_rate": self.success_rate, "wilson95": [lo, hi], "state_token_noise": self.state_token_noise,
                 "z_rms": self.z_rms,
                 "noise_over_z_rms": self.state_token_noise / self.z_rms if self.z_rms else None,
-                "failure_reasons": dict(self.reasons()), "latency_ms": self.latency_ms,
+                "failure_reasons": dict(self.reasons()), "decisions": self.decisions(), "latency_ms": self.latency_ms,
                 "precision": self.precision, "kernel": self.kernel,
                 "episodes": [e.to_dict() for e in self.episodes]}
 
@@ -199,7 +207,7 @@ def run_episode(policy, env, seed: int, cloud_config, frames: list | None = None
     reason = status.reason if status.done else f"fault: {runner.fault}"
     return EpisodeOutcome(seed=seed, success=bool(status.done and status.success), reason="" if status.success else reason,
                           steps=env.steps, info=dict(status.info), holds=runner.holds, safety_events=dict(runner.event_counts),
-                          chunk_ms_p50=float(np.median(chunk)) if chunk else None)
+                          chunk_ms_p50=float(np.median(chunk)) if chunk else None, decision=env.task.decision(dict(status.info)))
 
 
 STRIPS_DIR = OutputKind("a folder of episode strips", "dssp-sim eval", entries=("*.png",))
@@ -267,6 +275,9 @@ def print_eval(result) -> None:
         print(f"| {e.seed} | {'success' if e.success else e.reason} | {e.steps} | {detail} | {e.holds} |")
     if result.reasons():
         print("failures: " + ", ".join(f"{k} × {v}" for k, v in result.reasons().most_common()))
+    d = result.decisions()
+    print(f"memory decision: right in {d['correct']} of the {d['reached']} episodes that reached it ("
+          + ", ".join(f"{k} × {v}" for k, v in sorted(d["choices"].items())) + ")")
     print_latency(result.latency_ms)
 
 

@@ -19,6 +19,14 @@ joints within ``HOME_TOLERANCE``); success is declared once the goal has held fo
 
 Failure reasons: "wrong count" (a fourth press), "dropped object" (an object at rest outside every slot
 or bin, tipped over, or off the table), "timeout" (``max_steps`` control steps without success).
+
+The memory decision, scored apart from the manipulation (``Task.decision(info)`` on an episode's final
+``info``): tap — the number of presses (3 is right); swap — the move made from the first layout that only
+memory can settle (after the first move: the cylinder to the cube's start slot is right, the cube on to it
+is the other start's plan); put2 — going back into the source bin for the second block after the first is
+in the basket (the scene at home looks the same as before the first transfer). Each decision is counted
+only in the episodes that reached it (tap: every episode; swap: the first move made; put2: one block in
+the basket), so a failed grasp is not scored as a wrong memory.
 """
 
 from __future__ import annotations
@@ -85,6 +93,8 @@ BLOCK_HALF = (0.015, 0.015, 0.01)  # m: 3 x 3 x 2 cm blocks
 BLOCK_SPACING = 0.035  # blocks sit at y = centre -+ BLOCK_SPACING in the source and go to the same spots in the basket
 
 REST_SPEED = 0.05  # m/s: an object slower than this is "at rest"
+REACH_Z = 0.05  # m: the tool centre point below this inside the source bin is a reach into it (put2's scoring)
+REACH_HYSTERESIS = 0.02  # m: the reach ends above REACH_Z + this, or outside the bin
 
 
 @dataclass
@@ -150,6 +160,7 @@ class Task:
         for ``HOME_SETTLE_S`` seconds of simulated time (the arm has come to rest at home)."""
         if self._status.done:
             return
+        self.watch(env)
         self._status.info = self.progress(env)
         reason = self.failure(env)
         if reason:
@@ -166,8 +177,17 @@ class Task:
         if env.steps >= env.max_steps:
             self._finish(False, "timeout")
 
+    def watch(self, env) -> None:
+        """After every ``env.advance``, before ``progress``: follow events the scoring needs (moves, reaches)."""
+
     def progress(self, env) -> dict:
         return {}
+
+    @staticmethod
+    def decision(info: dict) -> dict:
+        """The memory decision of an episode from its final ``info``: {"reached": the episode got to the decision,
+        "correct": it decided right (None when not reached), "choice": what it did, as a short label}."""
+        return {"reached": False, "correct": None, "choice": ""}
 
     def failure(self, env) -> str:
         return ""
@@ -308,6 +328,11 @@ class TapTask(Task):
     def progress(self, env) -> dict:
         return {"presses": self.presses, "button_down": self._down}
 
+    @staticmethod
+    def decision(info: dict) -> dict:
+        presses = int(info.get("presses", 0))
+        return {"reached": True, "correct": presses == TAP_PRESSES, "choice": f"{presses} presses"}
+
     def failure(self, env) -> str:
         return "wrong count" if self.presses > TAP_PRESSES else ""
 
@@ -375,9 +400,11 @@ class SwapTask(Task):
         for s, body in self._slot_bodies.items():
             env.model.body_pos[body] = [*self.slots[s], 0.0]
         self.first = first
+        self.moves: list[str] = []
         # start[k] = slot of object k (0 cube, 1 cylinder) at the start; goal = the other one of A/B.
         self.start = ("A", "B") if a_is_cube else ("B", "A")
         self.goal = (self.start[1], self.start[0])
+        self._rest = list(self.start)
         for k in range(2):
             xy = self.slots[self.start[k]]
             yaw = math.atan2(xy[1], xy[0]) + (yaw_jitter if k == 0 else 0.0)
@@ -400,8 +427,27 @@ class SwapTask(Task):
                 return s
         return ""
 
+    def watch(self, env) -> None:
+        """A move: an object coming to rest (not held) in a slot other than the one it last rested in."""
+        for k in range(2):
+            slot = self.slot_of(env, k)
+            if slot and slot != self._rest[k] and not self.objects.held(env, k) and self.objects.speed(env.data, k) <= REST_SPEED:
+                self.moves.append(f"{SWAP_OBJECTS[k]} {self._rest[k]}->{slot}")
+                self._rest[k] = slot
+
     def progress(self, env) -> dict:
-        return {"slots": {SWAP_OBJECTS[k]: self.slot_of(env, k) for k in range(2)}, "first": self.first}
+        return {"slots": {SWAP_OBJECTS[k]: self.slot_of(env, k) for k in range(2)}, "first": self.first,
+                "moves": list(self.moves), "plan": [f"{SWAP_OBJECTS[k]} {a}->{b}" for k, a, b in self.plan()]}
+
+    @staticmethod
+    def decision(info: dict) -> dict:
+        """Reached once the first planned move is made; right when the next move is the plan's second."""
+        moves, plan = list(info.get("moves", [])), list(info.get("plan", []))
+        if not plan or moves[:1] != plan[:1]:
+            return {"reached": False, "correct": None, "choice": "first move not made"}
+        if len(moves) < 2:
+            return {"reached": True, "correct": False, "choice": "no second move"}
+        return {"reached": True, "correct": moves[1] == plan[1], "choice": moves[1]}
 
     def failure(self, env) -> str:
         return self.objects.dropped(env, lambda k: self.objects.upright(env.data, k, any_face=(k == 0)) and bool(self.slot_of(env, k)))
@@ -472,6 +518,8 @@ class Put2Task(Task):
         for name, body in self._bin_bodies.items():
             env.model.body_pos[body] = [*self.bins[name], 0.0]
             env.model.body_quat[body] = yaw_quat(self.bin_yaw[name])
+        self.reaches = [0, 0, 0]
+        self._reaching = False
         jitter = rng.uniform(-0.003, 0.003, (2, 2))
         for k in range(2):
             xy = self.place_xy("source", k) + jitter[k]
@@ -500,8 +548,30 @@ class Put2Task(Task):
                 return name
         return ""
 
+    def watch(self, env) -> None:
+        """A reach: the tool centre point going down into the source bin (inside its walls, below ``REACH_Z``);
+        counted per number of blocks in the basket at the time (``reaches[n]``)."""
+        tcp, _ = env.tcp_pose()
+        d = np.abs(self._to_bin("source", tcp[:2]))
+        inside = d[0] <= BIN_INNER_HALF[0] and d[1] <= BIN_INNER_HALF[1]
+        if not self._reaching and inside and tcp[2] < REACH_Z:
+            self._reaching = True
+            self.reaches[sum(self.bin_of(env, k) == "basket" for k in range(2))] += 1
+        elif self._reaching and (not inside or tcp[2] > REACH_Z + REACH_HYSTERESIS):
+            self._reaching = False
+
     def progress(self, env) -> dict:
-        return {"in_basket": sum(self.bin_of(env, k) == "basket" for k in range(2))}
+        return {"in_basket": sum(self.bin_of(env, k) == "basket" for k in range(2)), "reaches": list(self.reaches)}
+
+    @staticmethod
+    def decision(info: dict) -> dict:
+        """Reached once a block is in the basket (or was: one taken out again counts); right when the arm went
+        back into the source bin for the second block."""
+        reaches = list(info.get("reaches", [0, 0, 0]))
+        if info.get("in_basket", 0) < 1 and reaches[1] == 0 and reaches[2] == 0:
+            return {"reached": False, "correct": None, "choice": "no block in the basket"}
+        back = reaches[1] > 0 or info.get("in_basket", 0) == 2
+        return {"reached": True, "correct": back, "choice": "back for the second" if back else "stopped after one"}
 
     def failure(self, env) -> str:
         return self.objects.dropped(env, lambda k: bool(self.bin_of(env, k)) and self.objects.upright(env.data, k, any_face=True))

@@ -44,6 +44,37 @@ def test_expert_succeeds_with_small_steps(task, seeds):
         assert np.abs(env.joint_positions() - HOME).max() < 0.05
 
 
+@pytest.mark.parametrize("task", ["tap", "swap", "put2"])
+def test_the_experts_memory_decision_is_scored_right(task):
+    env = PiperEnv(task)
+    env.reset(3)
+    _episode(env)
+    info = env.status().info
+    decision = env.task.decision(info)
+    assert decision["reached"] and decision["correct"], (decision, info)
+    if task == "swap":
+        assert info["moves"] == info["plan"] and len(info["moves"]) == 3
+    if task == "put2":
+        assert info["reaches"] == [1, 1, 0]  # one reach for each block, none after both
+
+
+@pytest.mark.parametrize("task, info, reached, correct", [
+    ("tap", {"presses": 2}, True, False),
+    ("tap", {"presses": 4}, True, False),
+    ("swap", {"moves": [], "plan": ["cube A->C", "cylinder B->A", "cube C->B"]}, False, None),
+    ("swap", {"moves": ["cube A->C", "cube C->B"], "plan": ["cube A->C", "cylinder B->A", "cube C->B"]}, True, False),
+    ("swap", {"moves": ["cube A->C"], "plan": ["cube A->C", "cylinder B->A", "cube C->B"]}, True, False),
+    ("put2", {"in_basket": 0, "reaches": [3, 0, 0]}, False, None),
+    ("put2", {"in_basket": 1, "reaches": [1, 0, 0]}, True, False),
+    ("put2", {"in_basket": 1, "reaches": [1, 1, 0]}, True, True),
+])
+def test_a_wrong_or_unreached_memory_decision_is_told_apart(task, info, reached, correct):
+    from dssp_sim.tasks import TASKS
+
+    decision = TASKS[task].decision(info)
+    assert (decision["reached"], decision["correct"]) == (reached, correct)
+
+
 def test_swap_randomises_both_arrangements_and_moves_the_cube_first():
     env = PiperEnv("swap")
     seen = set()
