@@ -1,0 +1,329 @@
+"""The memory-task study under the protocol: DSSP against DP3 and DSSP without history on tap, swap and put2,
+on validation seeds and then, once the plan is frozen, on test seeds.
+
+    python -m studies.memory_tasks [--split validation|test] [--tasks T ...] [--workers 2] [--work runs/memory]
+                             [--report reports/memory] [--freeze] [--report-only] [--quick]
+
+For each task: collect the expert demonstrations (demonstration seeds 0…); for every model of the plan and
+every training seed: train (the same trainer, data and budget), export (parity checked), evaluate in closed loop
+through the robot's chain on the split's scenes — the same scenes for every model, so every comparison is
+paired. The stages run on :class:`studies.runner.Runner` (side by side, one thread each, resumed after an
+interruption). Each finished evaluation is kept in the record (``--report``/record/evals/NAME.json, its
+episodes' seeds, outcomes and memory decisions); the report (``memory.md`` and ``memory.json``) is rebuilt
+from the record alone (``--report-only``; :func:`write_report`).
+
+The protocol (:mod:`studies.protocol`): ``--split validation`` (seeds 1000…) is where the plan is chosen;
+``--freeze`` keeps the plan's hash beside the record; ``--split test`` (seeds 10000…) runs only the frozen
+plan. The report gives each model's success with a two-way cluster-bootstrap interval over training seeds and
+scenes, the memory decision scored apart from the manipulation (:meth:`dssp_sim.tasks.Task.decision`), and
+for every model against DSSP the paired difference with its interval and the exact paired test's p-value
+(:mod:`studies.stats`).
+
+DP3 at its own size (the ``dp3`` preset, 251 M parameters) is in the plan as a GPU model: a 2-core CPU does
+not train it at this budget, so the study prints its commands instead of running them.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+from dssp_data.cli_runner import ArgumentParser, run_cli
+from dssp_data.errors import DSSPError
+from dssp_data.files import atomic_write_text
+from studies import protocol
+from studies.runner import Runner, Stage
+from studies.stats import cluster_bootstrap, describe_p, paired_difference, paired_exact_test
+
+REPORT_NAME = "memory"
+PLAN = {
+    "tasks": {"tap": {"demos": 50, "steps": 3000}, "swap": {"demos": 150, "steps": 3000}, "put2": {"demos": 150, "steps": 1500}},
+    "models": {
+        "dssp": {"preset": "sim", "flags": []},
+        "dp3_sim": {"preset": "dp3_sim", "flags": []},
+        "wo_history": {"preset": "sim", "flags": ["--no-history"]},
+    },
+    # Table 5's ablations of DSSP, on tap only
+    "ablations": {"tap": {
+        "no_timestep_decoupling": {"preset": "sim", "flags": ["--no-timestep-decoupling"]},
+        "no_recent_states": {"preset": "sim", "flags": ["--no-recent-states"]},
+        "no_dynamics_loss": {"preset": "sim", "flags": ["--no-dynamics-loss"]},
+        "transformer_denoiser": {"preset": "sim", "flags": ["--denoiser-backbone", "transformer"]},
+    }},
+    # trained on a GPU: the study prints their commands
+    "gpu_models": {"dp3": {"preset": "dp3", "flags": []}},
+    "seeds": [0, 1, 2],
+    "episodes": {"validation": 20, "test": 50},
+    "export_flags": ["--quantize", "int8"],
+}
+QUICK_PLAN = {
+    "tasks": {"tap": {"demos": 3, "steps": 10}},
+    "models": {
+        "dssp": {"preset": "sim", "flags": []},
+        "dp3_sim": {"preset": "dp3_sim", "flags": ["--set", "model.unet_down_dims=[16,32]"]},
+        "wo_history": {"preset": "sim", "flags": ["--no-history"]},
+    },
+    "ablations": {},
+    "gpu_models": {"dp3": {"preset": "dp3", "flags": []}},
+    "seeds": [0, 1],
+    "episodes": {"validation": 2, "test": 2},
+    "export_flags": ["--skip-verify", "--quantize", "none"],
+}
+LABELS = {
+    "dssp": "DSSP (full history)", "dp3_sim": "DP3 (sim size, 0.71 M)", "dp3": "DP3 (its own size, 251 M)",
+    "wo_history": "DSSP w/o history", "no_timestep_decoupling": "w/o timestep decoupling",
+    "no_recent_states": "w/o recent states", "no_dynamics_loss": "w/o dynamics loss",
+    "transformer_denoiser": "w/ Transformer denoiser",
+}
+RECORD_DIR = "record"
+
+
+def models_of(plan: dict, task: str) -> dict[str, dict]:
+    """The models trained for ``task``: the plan's models, then the task's ablations."""
+    return {**plan["models"], **plan["ablations"].get(task, {})}
+
+
+def eval_name(task: str, model: str, seed: int, split: str) -> str:
+    return f"{task}_{model}_s{seed}_{split}"
+
+
+def train_argv(plan: dict, task: str, model: dict, seed: int, data: str, run: str) -> list[str]:
+    return ["--data", data, "--out", run, "--preset", model["preset"], "--steps", str(plan["tasks"][task]["steps"]),
+            "--seed", str(seed), "--no-progress", "--force", *model["flags"]]
+
+
+def stages(plan: dict, split: str, tasks: list[str], record: Path) -> list[Stage]:
+    """Every stage of ``tasks`` for ``split``; a model whose evaluation is in the record needs none."""
+    n = plan["episodes"][split]
+    first = protocol.split_seeds(split, n)[0]
+    out: list[Stage] = []
+    for task in tasks:
+        spec = plan["tasks"][task]
+        data = f"data/{task}.zarr"
+        need_data = False
+        for name, model in models_of(plan, task).items():
+            for seed in plan["seeds"]:
+                key = f"{task}_{name}_s{seed}"
+                result = eval_name(task, name, seed, split)
+                if (record / "evals" / f"{result}.json").is_file():
+                    continue
+                need_data = True
+                run, model_dir = f"runs/{key}", f"models/{key}"
+                out += [
+                    Stage(f"train_{key}", "dssp_train.cli.train:main", tuple(train_argv(plan, task, model, seed, data, run)),
+                          after=(f"collect_{task}",), resume=("--data", data, "--out", run, "--resume", "--no-progress"),
+                          started=f"{run}/checkpoint"),
+                    Stage(f"export_{key}", "export.to_onnx:main", (run, "-o", model_dir, "--force", "--threads", "1",
+                                                                   *plan["export_flags"]), after=(f"train_{key}",)),
+                    Stage(f"eval_{result}", "dssp_sim.sim_cli:main",
+                          ("eval", "--model", model_dir, "--task", task, "--episodes", str(n), "--seed", str(first),
+                           "--threads", "1", "--json", f"evals/{result}.json", "--force", "--no-progress"),
+                          after=(f"export_{key}",), outputs=(f"evals/{result}.json",)),
+                ]
+        if need_data:
+            out.insert(0, Stage(f"collect_{task}", "dssp_sim.sim_cli:main",
+                                ("collect", "--task", task, "--episodes", str(spec["demos"]), "--out", data, "--no-progress"),
+                                clean=(data,)))
+    return out
+
+
+def compact(result: dict) -> dict:
+    """What the record keeps of an evaluation: its counts, decisions, latency, and each episode's seed, outcome,
+    steps and memory decision (the per-tick details stay in the work folder)."""
+    keep = ("task", "n", "successes", "failure_reasons", "decisions", "precision", "kernel", "latency_ms")
+    return {**{k: result[k] for k in keep if k in result},
+            "episodes": [{"seed": e["seed"], "success": e["success"], "reason": e["reason"], "steps": e["steps"],
+                          "decision": e.get("decision", {})} for e in result["episodes"]]}
+
+
+def keep_evaluations(work: Path, record: Path, stage_list: list[Stage], runner: Runner) -> None:
+    for s in stage_list:
+        for output in s.outputs:
+            src = work / output
+            if runner.done(s.name) and src.is_file():
+                dst = record / output
+                dst.parent.mkdir(parents=True, exist_ok=True)
+                atomic_write_text(dst, json.dumps(compact(json.loads(src.read_text())), indent=1) + "\n")
+
+
+def gpu_commands(plan: dict, tasks: list[str]) -> list[str]:
+    lines = []
+    for name, model in plan["gpu_models"].items():
+        for task in tasks:
+            for seed in plan["seeds"]:
+                key = f"{task}_{name}_s{seed}"
+                lines.append("dssp-train " + " ".join(train_argv(plan, task, model, seed, f"data/{task}.zarr", f"runs/{key}"))
+                             + " --device cuda")
+    return lines
+
+
+# ------------------------------------------------------------------------------------------------ report
+def grid(record: Path, task: str, model: str, seeds: list[int], split: str) -> tuple[list[list[int]], list[int], list[dict]] | None:
+    """(outcomes (R, S), scene seeds, the R evaluations) of one model, or None until all its seeds are recorded."""
+    evals = []
+    for seed in seeds:
+        path = record / "evals" / f"{eval_name(task, model, seed, split)}.json"
+        if not path.is_file():
+            return None
+        evals.append(json.loads(path.read_text()))
+    scenes = [e["seed"] for e in evals[0]["episodes"]]
+    for r in evals[1:]:
+        if [e["seed"] for e in r["episodes"]] != scenes:
+            raise DSSPError(f"{task}/{model}: the training seeds were evaluated on different scenes; the study pairs them")
+    return [[int(e["success"]) for e in r["episodes"]] for r in evals], scenes, evals
+
+
+def _pct(x: float) -> str:
+    return f"{100 * x:.0f}"
+
+
+def report_lines(plan: dict, record: Path, split: str) -> tuple[list[str], dict]:
+    """The report's Markdown lines and its figures, from the record alone."""
+    figures: dict = {"split": split, "tasks": {}}
+    prov_path = record / f"provenance_{split}.json"
+    runs = json.loads(prov_path.read_text()) if prov_path.is_file() else []
+    seeds = plan["seeds"]
+    n = plan["episodes"][split]
+    scene_seeds = protocol.split_seeds(split, n)
+    lines = [
+        f"# Memory tasks, {split} split: DSSP against DP3 and DSSP without history",
+        "",
+        f"Rebuilt from `{record}` by `python -m studies.memory_tasks --split {split} --report-only`. "
+        f"Scenes: {split} seeds {scene_seeds[0]}–{scene_seeds[-1]} ({n} per model and training seed, the same for every "
+        f"model); training seeds {seeds}; steps per task {({t: s['steps'] for t, s in plan['tasks'].items()})}. "
+        "Success: mean over training seeds and scenes, 95 % two-way cluster-bootstrap interval (training seeds × scenes). "
+        "Δ vs DSSP: paired difference (same scenes) with its interval and the exact paired sign-flip test.",
+    ]
+    for prov in runs:
+        m = prov.get("machine", {})
+        lines += ["", f"Run on: task definition {prov.get('task_definition')}, plan {prov.get('plan')}, code {prov.get('commit')}; "
+                  f"{m.get('cpu')} ({m.get('cores')} cores), onnxruntime {m.get('onnxruntime')}, torch {m.get('torch')}."]
+    if split == "validation":
+        lines += ["", "Validation seeds: the plan is chosen on these, so these figures are not a test result."]
+    for task in plan["tasks"]:
+        models = models_of(plan, task)
+        rows, base = {}, grid(record, task, "dssp", seeds, split)
+        lines += ["", f"## {task}", "",
+                  "| model | success % (95 % CI) | per training seed | Δ vs DSSP (95 % CI) | paired test | memory decision right / reached | failures |",
+                  "|---|---|---|---|---|---|---|"]
+        for name in models:
+            g = grid(record, task, name, seeds, split)
+            if g is None:
+                lines.append(f"| {LABELS.get(name, name)} | pending | | | | | |")
+                continue
+            outcomes, _, evals = g
+            mean, lo, hi = cluster_bootstrap(outcomes)
+            per_seed = ", ".join(f"{sum(o)}/{len(o)}" for o in outcomes)
+            reached = sum(e["decisions"]["reached"] for e in evals)
+            right = sum(e["decisions"]["correct"] for e in evals)
+            reasons: dict[str, int] = {}
+            for e in evals:
+                for k, v in e["failure_reasons"].items():
+                    reasons[k] = reasons.get(k, 0) + v
+            fails = ", ".join(f"{k} × {v}" for k, v in sorted(reasons.items())) or "—"
+            row = {"success": mean, "ci": [lo, hi], "per_seed": [sum(o) for o in outcomes], "episodes": len(outcomes[0]),
+                   "decision_right": right, "decision_reached": reached, "failures": reasons,
+                   "choices": _merge(e["decisions"]["choices"] for e in evals)}
+            delta = test = "—"
+            if name != "dssp" and base is not None:
+                d, dlo, dhi = paired_difference(outcomes, base[0])
+                p = paired_exact_test(outcomes, base[0])
+                row.update(delta=d, delta_ci=[dlo, dhi], p=p)
+                delta, test = f"{100 * d:+.0f} ({100 * dlo:+.0f} to {100 * dhi:+.0f})", describe_p(p)
+            rows[name] = row
+            decision = f"{right}/{reached}" + (f" ({100 * right / reached:.0f} %)" if reached else "")
+            lines.append(f"| {LABELS.get(name, name)} | {_pct(mean)} ({_pct(lo)}–{_pct(hi)}) | {per_seed} | {delta} | {test} | "
+                         f"{decision} | {fails} |")
+        for name in plan["gpu_models"]:
+            lines.append(f"| {LABELS.get(name, name)} | not run: a GPU model (commands below) | | | | | |")
+        if task == "tap" and rows:
+            counts = sorted({c for r in rows.values() for c in r["choices"]}, key=lambda c: int(c.split()[0]))
+            lines += ["", "tap's memory decision: presses counted at the end of each episode (3 is right), all training seeds:", "",
+                      "| model | " + " | ".join(counts) + " |", "|---|" + "---:|" * len(counts)]
+            for name, r in rows.items():
+                lines.append(f"| {LABELS.get(name, name)} | " + " | ".join(str(r['choices'].get(c, 0)) for c in counts) + " |")
+        figures["tasks"][task] = rows
+    lines += ["", "DP3 at its own size (the `dp3` preset) trains on a GPU; its commands for this plan:", "", "```"]
+    lines += gpu_commands(plan, list(plan["tasks"])) + ["```", ""]
+    return lines, figures
+
+
+def _merge(dicts) -> dict:
+    out: dict = {}
+    for d in dicts:
+        for k, v in d.items():
+            out[k] = out.get(k, 0) + v
+    return out
+
+
+def write_report(plan: dict, record: Path, report: Path, split: str) -> Path:
+    lines, figures = report_lines(plan, record, split)
+    md = report / f"{REPORT_NAME}_{split}.md"
+    atomic_write_text(md, "\n".join(lines))
+    atomic_write_text(report / f"{REPORT_NAME}_{split}.json", json.dumps({"plan": plan, **figures}, indent=1, sort_keys=True) + "\n")
+    return md
+
+
+def run_study(plan: dict, split: str, tasks: list[str], work: Path, report: Path, workers: int) -> Path:
+    record = report / RECORD_DIR
+    if split == "test":
+        protocol.check_frozen(record, plan)
+    work.mkdir(parents=True, exist_ok=True)
+    (work / "evals").mkdir(exist_ok=True)
+    stage_list = stages(plan, split, tasks, record)
+    note_provenance(record, plan, split)
+    runner = Runner(work, workers=workers)
+    print(f"{len(stage_list)} stage(s) for {', '.join(tasks)} on the {split} split, {workers} at a time")
+    try:
+        runner.run(stage_list)
+    finally:
+        keep_evaluations(work, record, stage_list, runner)
+    return write_report(plan, record, report, split)
+
+
+def note_provenance(record: Path, plan: dict, split: str) -> None:
+    """Add this run's provenance to the record's list for ``split`` (a resumed study on other code or another
+    machine adds an entry; the same one again adds none)."""
+    path = record / f"provenance_{split}.json"
+    runs = json.loads(path.read_text()) if path.is_file() else []
+    now = protocol.provenance(plan)
+    if not runs or runs[-1] != now:
+        record.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(path, json.dumps(runs + [now], indent=1) + "\n")
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = ArgumentParser(prog="python -m studies.memory_tasks", description=__doc__.split("\n\n")[0])
+    p.add_argument("--split", choices=list(protocol.SPLITS), default="validation")
+    p.add_argument("--tasks", nargs="+", metavar="TASK", help="default: every task of the plan")
+    p.add_argument("--workers", type=int, default=2, help="stages side by side, one thread each (default 2)")
+    p.add_argument("--work", type=Path, default=Path("runs/memory"), help="datasets, runs, models, evaluations, logs")
+    p.add_argument("--report", type=Path, default=Path("reports/memory"), help="the report and its record")
+    p.add_argument("--freeze", action="store_true", help="freeze the plan for the test split (after choosing on validation)")
+    p.add_argument("--report-only", action="store_true", help="run nothing: rebuild the report from the record")
+    p.add_argument("--quick", action="store_true", help="a tiny plan (tests)")
+    args = p.parse_args(argv)
+    plan = QUICK_PLAN if args.quick else PLAN
+    tasks = args.tasks or list(plan["tasks"])
+    unknown = [t for t in tasks if t not in plan["tasks"]]
+    if unknown:
+        p.error(f"--tasks: {', '.join(unknown)} not in the plan ({', '.join(plan['tasks'])})")
+
+    def _main() -> int:
+        record = args.report / RECORD_DIR
+        if args.freeze:
+            print(f"plan {protocol.freeze_plan(record, plan)} frozen in {record / protocol.FROZEN_NAME}; --split test runs it")
+            return 0
+        if args.report_only:
+            md = write_report(plan, record, args.report, args.split)
+        else:
+            md = run_study(plan, args.split, tasks, args.work, args.report, args.workers)
+        print(md.read_text())
+        return 0
+
+    return run_cli(_main)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

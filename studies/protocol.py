@@ -1,0 +1,148 @@
+"""The evaluation protocol: three disjoint seed ranges, the test range locked behind a frozen plan, and the
+provenance every record carries.
+
+- **demonstrations** (:data:`DEMO_SEEDS`): the scenes the experts are recorded in (``dssp-sim collect``
+  starts at seed 0).
+- **validation** (:data:`VALIDATION_SEEDS`): every choice — task settings, crops, budgets, checkpoints,
+  sampler settings — is made on these. Every simulation figure reported before this protocol was measured on
+  seeds 1000 and up while those choices were made: they are validation figures and are reported as such.
+- **test** (:data:`TEST_SEEDS`): touched only to produce a reported table. A study evaluates on it only
+  after its plan is frozen (:func:`freeze_plan`: the plan's hash written beside the record, from a
+  validation run of the same plan), and refuses when the plan has changed since (:func:`check_frozen`), so
+  a configuration cannot be tuned on test seeds and then reported.
+
+Each record states its provenance (:func:`provenance`): the task definition's hash (the source of the
+simulation's tasks, scenes and experts), the code's commit, the seeds, the budget (in the plan) and the
+machine.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import platform
+import subprocess
+from pathlib import Path
+
+from dssp_data.errors import DSSPError
+from dssp_data.files import atomic_write_text
+
+DEMO_SEEDS = range(0, 1000)
+VALIDATION_SEEDS = range(1000, 10_000)
+TEST_SEEDS = range(10_000, 20_000)
+SPLITS = {"validation": VALIDATION_SEEDS, "test": TEST_SEEDS}
+FROZEN_NAME = "frozen_plan.json"
+"""Beside a study's record: the plan's hash when it was frozen for the test split."""
+TASK_SOURCES = ("tasks.py", "experts.py", "env.py", "mjcf.py", "settings.py", "ik.py")
+"""The files of ``dssp_sim`` that define a task: its scene, randomisation, scoring and expert."""
+
+
+def split_seeds(split: str, n: int) -> list[int]:
+    """The first ``n`` scene seeds of a split ("validation" or "test"): the same scenes for every model (paired)."""
+    if split not in SPLITS:
+        raise DSSPError(f"unknown split {split!r}; choose one of {', '.join(SPLITS)}")
+    seeds = SPLITS[split]
+    if not 1 <= n <= len(seeds):
+        raise DSSPError(f"{split}: {n} episodes asked for, the split holds {len(seeds)} seeds")
+    return list(seeds[:n])
+
+
+def check_disjoint() -> None:
+    """The three ranges do not overlap (a change to one is checked here)."""
+    ranges = [DEMO_SEEDS, VALIDATION_SEEDS, TEST_SEEDS]
+    for a, b in zip(ranges, ranges[1:]):
+        if a.stop > b.start:
+            raise DSSPError(f"seed ranges overlap: {a} and {b}")
+
+
+def task_definition_hash() -> str:
+    """sha256 over the source of the simulation's task definitions (:data:`TASK_SOURCES`), first 16 hex digits."""
+    import dssp_sim
+
+    root = Path(dssp_sim.__file__).parent
+    h = hashlib.sha256()
+    for name in TASK_SOURCES:
+        h.update(name.encode() + b"\0" + (root / name).read_bytes() + b"\0")
+    return h.hexdigest()[:16]
+
+
+def plan_hash(plan: dict) -> str:
+    """sha256 of the plan's canonical JSON (sorted keys), first 16 hex digits."""
+    return hashlib.sha256(json.dumps(plan, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def code_commit() -> str:
+    """The git commit of the code (with ``+changes`` when the work tree differs from it), or "unknown"."""
+    root = Path(__file__).resolve().parent.parent
+    try:
+        head = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10)
+        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"], capture_output=True,
+                               text=True, timeout=10)
+    except (OSError, subprocess.TimeoutExpired):
+        return "unknown"
+    if head.returncode != 0:
+        return "unknown"
+    return head.stdout.strip() + ("+changes" if dirty.stdout.strip() else "")
+
+
+def machine() -> dict:
+    """The machine a figure was measured on: CPU model, cores, OS, and the versions that compute it."""
+    import numpy as np
+
+    cpu = platform.processor() or platform.machine()
+    flags: list[str] = []
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    cpu = line.split(":", 1)[1].strip()
+                elif line.startswith("flags"):
+                    have = set(line.split(":", 1)[1].split())
+                    flags = [f for f in ("avx2", "avx512f", "avx512_vnni", "avx_vnni", "amx_tile") if f in have]
+                    break
+    except OSError:
+        pass
+    info = {"cpu": cpu, "cpu_flags": flags, "cores": os.cpu_count(), "os": platform.platform(),
+            "python": platform.python_version(), "numpy": np.__version__}
+    for name in ("onnxruntime", "torch", "mujoco"):
+        try:
+            info[name] = __import__(name).__version__
+        except ImportError:
+            pass
+    return info
+
+
+def provenance(plan: dict) -> dict:
+    """What a record states about how it was made (module docstring)."""
+    return {"task_definition": task_definition_hash(), "plan": plan_hash(plan), "commit": code_commit(), "machine": machine()}
+
+
+def freeze_plan(record_dir: Path, plan: dict) -> str:
+    """Freeze ``plan`` for the test split: write its hash beside the record (once; a different frozen plan there is
+    refused: a new plan is a new study)."""
+    path = Path(record_dir) / FROZEN_NAME
+    digest = plan_hash(plan)
+    if path.is_file():
+        frozen = json.loads(path.read_text()).get("plan")
+        if frozen != digest:
+            raise DSSPError(f"{path} froze plan {frozen}, this plan is {digest}: a plan changed after its test run is a new "
+                            "study (another --report folder)")
+        return digest
+    atomic_write_text(path, json.dumps({"plan": digest, "task_definition": task_definition_hash()}, indent=2) + "\n")
+    return digest
+
+
+def check_frozen(record_dir: Path, plan: dict) -> None:
+    """Refuse the test split unless ``plan`` is the one frozen beside the record, on the same task definition."""
+    path = Path(record_dir) / FROZEN_NAME
+    if not path.is_file():
+        raise DSSPError(f"the test split needs a frozen plan and {path} does not exist: run the validation split, choose "
+                        "on it, then --freeze (the plan's hash is kept; the test seeds stay untouched until then)")
+    frozen = json.loads(path.read_text())
+    if frozen.get("plan") != plan_hash(plan):
+        raise DSSPError(f"the plan changed since it was frozen ({frozen.get('plan')} -> {plan_hash(plan)}): the test split "
+                        "evaluates only the frozen plan; a changed plan is a new study")
+    if frozen.get("task_definition") != task_definition_hash():
+        raise DSSPError(f"the task definition changed since the plan was frozen ({frozen.get('task_definition')} -> "
+                        f"{task_definition_hash()}): a changed task is a new study")

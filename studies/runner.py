@@ -1,0 +1,181 @@
+"""The stage runner every study uses: stages are calls of the packages' Python entry points, run side by side
+in their own processes with one thread each, resumed after an interruption.
+
+    stages = [Stage("collect_tap", "dssp_sim.sim_cli:main", ("collect", "--task", "tap", ...)),
+              Stage("train_tap_dssp_s0", "dssp_train.cli.train:main", (...), after=("collect_tap",),
+                    resume=("--data", ..., "--resume"), started="runs/tap_dssp_s0/checkpoint")]
+    seconds = Runner(work, workers=2).run(stages)
+
+- A stage is done when its marker ``work/done/NAME.json`` exists; the marker is written (atomically, with the
+  stage's seconds and its call) only after the entry point returned 0, so a stage stopped halfway runs
+  again. A stage whose ``started`` path exists but is not done runs its ``resume`` call instead (training:
+  ``--resume`` from the last checkpoint).
+- Up to ``workers`` stages run at once, each a fresh process (multiprocessing's spawn) with
+  ``OMP_NUM_THREADS`` and friends at ``threads`` (default 1) before anything imports torch or ONNX Runtime,
+  its output in ``work/logs/NAME.log``, run in the work folder (relative paths in a call are the work
+  folder's). A stage starts when every stage it comes ``after`` is done; ``clean`` paths are removed before
+  it starts (a collection stopped halfway is collected again, not appended to).
+- The first stage that fails stops the others and raises one line: its name, its exit code, its log's last
+  line and the log's path. Ctrl-C (or SIGTERM) stops every running stage too.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import multiprocessing
+import os
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from dssp_data.errors import DSSPError
+from dssp_data.files import atomic_write_text
+
+THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS")
+POLL_S = 0.2
+
+
+@dataclass(frozen=True)
+class Stage:
+    """One call of an entry point (``"package.module:function"``, called with ``argv``, returning an exit code)."""
+
+    name: str
+    entry: str
+    argv: tuple[str, ...]
+    after: tuple[str, ...] = ()
+    resume: tuple[str, ...] | None = None  # the call when ``started`` exists and the stage is not done
+    started: str | None = None  # a path (relative to the work folder, or absolute) left by an attempt stopped halfway
+    outputs: tuple[str, ...] = field(default=())  # what the stage writes (for the record's copies)
+    clean: tuple[str, ...] = ()  # paths (in the work folder) an attempt stopped halfway leaves, removed before it runs again
+
+    def __post_init__(self):
+        if not self.name or any(c in self.name for c in "/\\ ") or self.name.startswith("."):
+            raise ValueError(f"a stage name must be a plain file name, got {self.name!r}")
+        if ":" not in self.entry:
+            raise ValueError(f"a stage's entry must be 'module:function', got {self.entry!r}")
+
+
+def _call(entry: str, argv: list[str], log: str, threads: int, cwd: str) -> None:
+    """In the child: threads first, output to the log, then the entry point in the work folder; its return value is the
+    exit code."""
+    os.chdir(cwd)
+    for name in THREAD_VARIABLES:
+        os.environ[name] = str(threads)
+    os.environ["PYTHONUNBUFFERED"] = "1"
+    fd = os.open(log, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+    os.dup2(fd, 1)
+    os.dup2(fd, 2)
+    os.close(fd)
+    sys.stdout = open(1, "w", buffering=1, closefd=False)
+    sys.stderr = open(2, "w", buffering=1, closefd=False)
+    module, function = entry.split(":")
+    code = getattr(importlib.import_module(module), function)(list(argv))
+    sys.stdout.flush()
+    sys.stderr.flush()
+    sys.exit(int(code or 0))
+
+
+class Runner:
+    """Runs a study's stages in ``work`` (``done/``, ``logs/``): see the module docstring."""
+
+    def __init__(self, work: Path, workers: int = 1, threads: int = 1, say: Callable[[str], None] = print):
+        if workers < 1 or threads < 1:
+            raise DSSPError(f"workers and threads must be at least 1, got {workers} and {threads}")
+        self.work, self.workers, self.threads, self.say = Path(work), workers, threads, say
+        self.context = multiprocessing.get_context("spawn")
+
+    def marker(self, name: str) -> Path:
+        return self.work / "done" / f"{name}.json"
+
+    def done(self, name: str) -> bool:
+        return self.marker(name).is_file()
+
+    def seconds(self) -> dict[str, float]:
+        """Every done stage's seconds (the compute a study took, resumed and parallel runs included)."""
+        folder = self.work / "done"
+        return {p.stem: json.loads(p.read_text())["seconds"] for p in sorted(folder.glob("*.json"))} if folder.is_dir() else {}
+
+    def _path(self, path: str) -> Path:
+        return Path(path) if os.path.isabs(path) else self.work / path
+
+    def run(self, stages: Sequence[Stage]) -> dict[str, float]:
+        """Run every stage not done yet, in dependency order; returns {name: seconds} of the stages run now."""
+        names = [s.name for s in stages]
+        if len(set(names)) != len(names):
+            raise DSSPError(f"stage names repeat: {sorted({n for n in names if names.count(n) > 1})}")
+        known = set(names)
+        for s in stages:
+            missing = [a for a in s.after if a not in known and not self.done(a)]
+            if missing:
+                raise DSSPError(f"stage {s.name} comes after {missing}, which no stage makes")
+        (self.work / "logs").mkdir(parents=True, exist_ok=True)
+        (self.work / "done").mkdir(parents=True, exist_ok=True)
+        pending = [s for s in stages if not self.done(s.name)]
+        for s in stages:
+            if self.done(s.name):
+                self.say(f"  {s.name}: done before")
+        running: dict[str, tuple[Stage, multiprocessing.Process, float, list[str]]] = {}
+        ran: dict[str, float] = {}
+        try:
+            while pending or running:
+                for s in list(pending):
+                    if len(running) >= self.workers:
+                        break
+                    if all(self.done(a) for a in s.after):
+                        pending.remove(s)
+                        for path in s.clean:
+                            self._remove(path)
+                        argv = list(s.resume) if s.resume is not None and s.started and self._path(s.started).exists() else list(s.argv)
+                        log = self.work / "logs" / f"{s.name}.log"
+                        proc = self.context.Process(target=_call, args=(s.entry, argv, str(log.resolve()), self.threads,
+                                                                                str(self.work.resolve())), name=s.name)
+                        proc.start()
+                        running[s.name] = (s, proc, time.perf_counter(), argv)
+                        self.say(f"  {s.name}: started{' (resumed)' if argv != list(s.argv) else ''}")
+                if not running and pending:
+                    blocked = {s.name: [a for a in s.after if not self.done(a)] for s in pending}
+                    raise DSSPError(f"stages wait on stages that cannot finish: {blocked}")
+                for name, (s, proc, t0, argv) in list(running.items()):
+                    if proc.is_alive():
+                        continue
+                    proc.join()
+                    del running[name]
+                    if proc.exitcode != 0:
+                        raise DSSPError(self._failure(s, proc.exitcode))
+                    seconds = time.perf_counter() - t0
+                    atomic_write_text(self.marker(name), json.dumps(
+                        {"seconds": round(seconds, 1), "entry": s.entry, "argv": argv}, indent=1) + "\n")
+                    ran[name] = seconds
+                    self.say(f"  {name}: done in {seconds:.0f} s")
+                time.sleep(POLL_S)
+        finally:
+            for _, proc, _, _ in running.values():
+                if proc.is_alive():
+                    proc.terminate()
+                    proc.join(timeout=10)
+                    if proc.is_alive():
+                        proc.kill()
+                        proc.join()
+        return ran
+
+    def _remove(self, path: str) -> None:
+        """Remove what an attempt stopped halfway left at ``path``, which must lie inside the work folder (a link is
+        removed, never followed)."""
+        import shutil
+
+        target = self.work / path
+        if os.path.isabs(path) or ".." in Path(path).parts:
+            raise DSSPError(f"a stage may only clean paths inside its work folder, got {path!r}")
+        if target.is_symlink() or target.is_file():
+            target.unlink()
+        elif target.is_dir():
+            shutil.rmtree(target)
+
+    def _failure(self, s: Stage, code: int | None) -> str:
+        log = self.work / "logs" / f"{s.name}.log"
+        lines = log.read_text(encoding="utf-8", errors="replace").strip().splitlines() if log.is_file() else []
+        last = lines[-1] if lines else "(no output)"
+        return f"stage {s.name} ({s.entry}) failed with exit code {code}: {last} (log: {log}); run the study again to resume"

@@ -1,0 +1,112 @@
+"""The statistics every study reports: rates with intervals that respect how the episodes were drawn, and an
+exact paired test for every difference a report states.
+
+An evaluation grid is ``outcomes`` (R, S): R training seeds of one model, S test scenes (episode seeds), the
+same S scenes for every model of a table (paired), 1 = success. Episodes of one training seed share its
+weights and episodes of one scene share its layout, so neither seeds nor scenes are independent draws:
+
+- :func:`cluster_bootstrap` resamples training seeds and scenes independently (a two-way cluster bootstrap)
+  and reports the percentile interval of the mean. With few training seeds (3) the seed resampling is coarse;
+  the interval is still wider, and more honest, than one that pools the R x S episodes as independent.
+- :func:`paired_difference` gives the same interval for the difference of two models on the same grid
+  (the same resampled seeds and scenes for both), and :func:`paired_exact_test`'s p-value.
+- :func:`paired_exact_test`: a sign-flip (permutation) test on the per-scene differences of the two models'
+  mean success over their seeds. Under the null hypothesis (the two models are exchangeable on every
+  scene) each scene's difference is as likely negated; the p-value is the exact probability, over all
+  2^S sign patterns, of a total at least as far from zero as the observed one, computed by convolution
+  (the differences are multiples of 1 / R). With one training seed it is the exact McNemar test.
+
+Every function is deterministic (a fixed generator), so a report rebuilt from its record is identical.
+"""
+
+from __future__ import annotations
+
+import math
+from fractions import Fraction
+
+import numpy as np
+
+BOOTSTRAP_SAMPLES = 10_000
+BOOTSTRAP_SEED = 0
+ALPHA = 0.05
+
+
+def _grid(outcomes) -> np.ndarray:
+    grid = np.asarray(outcomes, dtype=np.float64)
+    if grid.ndim != 2 or grid.size == 0:
+        raise ValueError(f"outcomes must be (training seeds, scenes) with at least one of each, got shape {grid.shape}")
+    if not np.isin(grid, (0.0, 1.0)).all():
+        raise ValueError("outcomes must be 0 (failure) or 1 (success)")
+    return grid
+
+
+def _resampled_means(grids: list[np.ndarray], samples: int, seed: int) -> np.ndarray:
+    """(samples, len(grids)): the mean of each grid over the same resampled seeds and scenes."""
+    r, s = grids[0].shape
+    rng = np.random.default_rng(seed)
+    rows = rng.integers(0, r, (samples, r))
+    cols = rng.integers(0, s, (samples, s))
+    out = np.empty((samples, len(grids)))
+    for i, g in enumerate(grids):
+        # mean over the resampled (seed, scene) cells: the rows' means at the resampled columns
+        picked = g[rows]  # (samples, r, s)
+        out[:, i] = np.take_along_axis(picked, np.broadcast_to(cols[:, None, :], picked.shape[:2] + (s,)), axis=2).mean(axis=(1, 2))
+    return out
+
+
+def cluster_bootstrap(outcomes, samples: int = BOOTSTRAP_SAMPLES, seed: int = BOOTSTRAP_SEED,
+                      alpha: float = ALPHA) -> tuple[float, float, float]:
+    """(mean, low, high): the success rate of an (R, S) grid and its (1 - alpha) two-way cluster-bootstrap interval."""
+    grid = _grid(outcomes)
+    means = _resampled_means([grid], samples, seed)[:, 0]
+    lo, hi = np.quantile(means, [alpha / 2, 1 - alpha / 2])
+    return float(grid.mean()), float(lo), float(hi)
+
+
+def paired_difference(a, b, samples: int = BOOTSTRAP_SAMPLES, seed: int = BOOTSTRAP_SEED,
+                      alpha: float = ALPHA) -> tuple[float, float, float]:
+    """(difference, low, high): mean(a) - mean(b) of two (R, S) grids on the same scenes, with its two-way
+    cluster-bootstrap interval (the same resampled seeds and scenes for both)."""
+    ga, gb = _grid(a), _grid(b)
+    if ga.shape[1] != gb.shape[1]:
+        raise ValueError(f"paired grids must share their scenes: {ga.shape[1]} and {gb.shape[1]} scenes")
+    if ga.shape[0] != gb.shape[0]:
+        raise ValueError(f"paired grids must have as many training seeds: {ga.shape[0]} and {gb.shape[0]}")
+    means = _resampled_means([ga, gb], samples, seed)
+    diff = means[:, 0] - means[:, 1]
+    lo, hi = np.quantile(diff, [alpha / 2, 1 - alpha / 2])
+    return float(ga.mean() - gb.mean()), float(lo), float(hi)
+
+
+def paired_exact_test(a, b) -> float:
+    """Two-sided exact p-value that models a and b ((R_a, S) and (R_b, S) grids on the same S scenes) succeed
+    equally often: the sign-flip test on the per-scene differences of their mean success (module docstring)."""
+    ga, gb = _grid(a), _grid(b)
+    if ga.shape[1] != gb.shape[1]:
+        raise ValueError(f"paired grids must share their scenes: {ga.shape[1]} and {gb.shape[1]} scenes")
+    ra, rb = ga.shape[0], gb.shape[0]
+    unit = math.lcm(ra, rb)  # per-scene differences are whole multiples of 1 / unit
+    diffs = np.rint(ga.sum(0) * (unit // ra) - gb.sum(0) * (unit // rb)).astype(np.int64)
+    observed = abs(int(diffs.sum()))
+    steps = [abs(int(d)) for d in diffs if d]
+    if not steps:
+        return 1.0
+    # distribution of the sum of +-d over the non-zero scenes, as exact counts (Python integers: no overflow)
+    total = sum(steps)
+    counts = [0] * (2 * total + 1)
+    counts[total] = 1
+    for d in steps:
+        nxt = [0] * (2 * total + 1)
+        for value, c in enumerate(counts):
+            if c:
+                nxt[value - d] += c
+                nxt[value + d] += c
+        counts = nxt
+    extreme = sum(c for value, c in enumerate(counts) if abs(value - total) >= observed)
+    return float(Fraction(extreme, 2 ** len(steps)))
+
+
+def describe_p(p: float, alpha: float = ALPHA) -> str:
+    """``p = 0.012`` or ``p = 0.41, not significant``."""
+    shown = f"{p:.2g}" if p >= 0.001 else f"{p:.1e}"
+    return f"p = {shown}" + ("" if p < alpha else ", not significant")

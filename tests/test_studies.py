@@ -1,0 +1,159 @@
+"""The studies' foundations: the stage runner, the protocol's seed ranges and frozen plan, and the statistics."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.stats import binomtest
+
+from dssp_data.errors import DSSPError
+from studies import protocol
+from studies.runner import Runner, Stage
+from studies.stats import cluster_bootstrap, describe_p, paired_difference, paired_exact_test
+
+
+# ---------------------------------------------------------------------------------------------- entry points
+def write_marker(argv: list[str]) -> int:
+    """A stage's entry point for the tests: writes argv[0] with its own threads and working folder in it."""
+    path = Path(argv[0])
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps({"argv": argv, "omp": os.environ.get("OMP_NUM_THREADS"), "cwd": os.getcwd()}))
+    print(f"wrote {path}")
+    return 0
+
+
+def fail(argv: list[str]) -> int:
+    print("first line")
+    print(f"something broke: {argv[0]}")
+    return 3
+
+
+def needs(argv: list[str]) -> int:
+    """Succeeds only when argv[0] exists (the stage it comes after ran)."""
+    return 0 if Path(argv[0]).is_file() else 4
+
+
+ENTRY = "test_studies"  # tests/ is on sys.path (pytest puts it there; spawned stages inherit it)
+
+
+def test_stages_run_in_order_in_their_folder_with_one_thread_and_are_not_run_twice(tmp_path):
+    work = tmp_path / "work"
+    stages = [Stage("second", f"{ENTRY}:needs", ("out/a.json",), after=("first",)),
+              Stage("first", f"{ENTRY}:write_marker", ("out/a.json",)),
+              Stage("other", f"{ENTRY}:write_marker", ("out/b.json", "x"))]
+    said: list[str] = []
+    ran = Runner(work, workers=2, say=said.append).run(stages)
+    assert set(ran) == {"first", "second", "other"}
+    a = json.loads((work / "out/a.json").read_text())
+    assert a["omp"] == "1" and Path(a["cwd"]) == work.resolve()
+    assert "wrote out/a.json" in (work / "logs/first.log").read_text()
+    again = Runner(work, workers=2, say=said.append).run(stages)
+    assert again == {} and "  first: done before" in said
+    assert json.loads((work / "done/first.json").read_text())["argv"] == ["out/a.json"]
+
+
+def test_a_failed_stage_stops_the_study_with_one_line_and_runs_again_next_time(tmp_path):
+    work = tmp_path / "work"
+    stages = [Stage("bad", f"{ENTRY}:fail", ("x",)), Stage("after_bad", f"{ENTRY}:write_marker", ("out/c.json",), after=("bad",))]
+    with pytest.raises(DSSPError) as info:
+        Runner(work, say=lambda _: None).run(stages)
+    message = str(info.value)
+    assert "stage bad" in message and "exit code 3" in message and "something broke: x" in message and "\n" not in message
+    assert not (work / "done/bad.json").exists() and not (work / "out/c.json").exists()
+
+
+def test_a_stage_stopped_halfway_resumes_or_starts_clean(tmp_path):
+    work = tmp_path / "work"
+    (work / "partial").mkdir(parents=True)
+    (work / "half.zarr").mkdir()
+    (work / "half.zarr/junk").write_text("left by a collection stopped halfway")
+    stages = [Stage("train", f"{ENTRY}:write_marker", ("out/fresh.json",), resume=("out/resumed.json",), started="partial"),
+              Stage("collect", f"{ENTRY}:write_marker", ("half.zarr/new.json",), clean=("half.zarr",))]
+    Runner(work, say=lambda _: None).run(stages)
+    assert (work / "out/resumed.json").is_file() and not (work / "out/fresh.json").exists()
+    assert sorted(p.name for p in (work / "half.zarr").iterdir()) == ["new.json"]
+    with pytest.raises(DSSPError, match="inside its work folder"):
+        Runner(work, say=lambda _: None).run([Stage("escape", f"{ENTRY}:write_marker", ("y",), clean=("../outside",))])
+
+
+def test_stages_that_cannot_run_are_named(tmp_path):
+    with pytest.raises(DSSPError, match="no stage makes"):
+        Runner(tmp_path, say=lambda _: None).run([Stage("a", f"{ENTRY}:write_marker", ("z",), after=("missing",))])
+    with pytest.raises(DSSPError, match="repeat"):
+        Runner(tmp_path, say=lambda _: None).run([Stage("a", f"{ENTRY}:fail", ()), Stage("a", f"{ENTRY}:fail", ())])
+    with pytest.raises(ValueError, match="plain file name"):
+        Stage("a/b", f"{ENTRY}:fail", ())
+
+
+# ---------------------------------------------------------------------------------------------- protocol
+def test_the_seed_ranges_are_disjoint_and_every_model_sees_the_same_scenes():
+    protocol.check_disjoint()
+    demo, val, test = protocol.DEMO_SEEDS, protocol.VALIDATION_SEEDS, protocol.TEST_SEEDS
+    assert not set(demo) & set(val) and not set(val) & set(test) and not set(demo) & set(test)
+    assert protocol.split_seeds("test", 50) == list(range(10_000, 10_050)) == protocol.split_seeds("test", 50)
+    with pytest.raises(DSSPError, match="unknown split"):
+        protocol.split_seeds("train", 5)
+
+
+def test_the_test_split_runs_only_the_frozen_plan(tmp_path):
+    plan = {"tasks": {"tap": {"steps": 3000}}, "seeds": [0, 1, 2]}
+    with pytest.raises(DSSPError, match="needs a frozen plan"):
+        protocol.check_frozen(tmp_path, plan)
+    digest = protocol.freeze_plan(tmp_path, plan)
+    protocol.check_frozen(tmp_path, plan)
+    assert protocol.freeze_plan(tmp_path, plan) == digest  # freezing again is a no-op
+    tuned = {**plan, "seeds": [0, 1, 2, 3]}
+    with pytest.raises(DSSPError, match="the plan changed since it was frozen"):
+        protocol.check_frozen(tmp_path, tuned)
+    with pytest.raises(DSSPError, match="a new study"):
+        protocol.freeze_plan(tmp_path, tuned)
+    frozen = json.loads((tmp_path / protocol.FROZEN_NAME).read_text())
+    (tmp_path / protocol.FROZEN_NAME).write_text(json.dumps({**frozen, "task_definition": "0" * 16}))
+    with pytest.raises(DSSPError, match="task definition changed"):
+        protocol.check_frozen(tmp_path, plan)
+
+
+def test_provenance_names_the_task_the_code_and_the_machine():
+    prov = protocol.provenance({"a": 1})
+    assert len(prov["task_definition"]) == 16 and prov["plan"] == protocol.plan_hash({"a": 1})
+    assert prov["commit"] == "unknown" or len(prov["commit"].split("+")[0]) == 40
+    assert prov["machine"]["cores"] >= 1 and prov["machine"]["cpu"]
+
+
+# ---------------------------------------------------------------------------------------------- statistics
+def test_the_paired_test_with_one_seed_is_the_exact_mcnemar_test():
+    rng = np.random.default_rng(1)
+    a, b = rng.integers(0, 2, (1, 40)), rng.integers(0, 2, (1, 40))
+    n10, n01 = int(((a == 1) & (b == 0)).sum()), int(((a == 0) & (b == 1)).sum())
+    assert paired_exact_test(a, b) == pytest.approx(binomtest(n10, n10 + n01, 0.5).pvalue, rel=1e-12)
+
+
+def test_the_paired_test_over_seeds_is_the_full_sign_flip_enumeration():
+    rng = np.random.default_rng(2)
+    a, b = rng.integers(0, 2, (3, 12)), rng.integers(0, 2, (3, 12))
+    d = a.sum(0) - b.sum(0)
+    extreme = sum(abs(np.dot(signs, d)) >= abs(d.sum()) for signs in itertools.product([-1, 1], repeat=12))
+    assert paired_exact_test(a, b) == pytest.approx(extreme / 2**12, rel=1e-12)
+    assert paired_exact_test(a, a) == 1.0
+    assert paired_exact_test(np.ones((3, 20)), np.zeros((3, 20))) == pytest.approx(2 / 2**20)
+
+
+def test_the_cluster_bootstrap_is_wider_than_pooling_when_seeds_differ_and_is_deterministic():
+    from dssp_sim.evaluate import wilson_interval
+
+    outcomes = np.zeros((3, 50), int)
+    outcomes[0] = 1  # one training seed succeeds everywhere, the others never: the seeds are what varies
+    mean, lo, hi = cluster_bootstrap(outcomes)
+    w_lo, w_hi = wilson_interval(50, 150)
+    assert mean == pytest.approx(1 / 3) and hi - lo > 2 * (w_hi - w_lo)
+    assert cluster_bootstrap(outcomes) == (mean, lo, hi)
+    d, dlo, dhi = paired_difference(np.ones((3, 30)), np.zeros((3, 30)))
+    assert (d, dlo, dhi) == (1.0, 1.0, 1.0)
+    with pytest.raises(ValueError, match="share their scenes"):
+        paired_difference(np.ones((3, 30)), np.ones((3, 31)))
+    assert describe_p(0.2) == "p = 0.2, not significant" and describe_p(0.004) == "p = 0.004"
