@@ -10,7 +10,7 @@ from collections import Counter
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("dssp_data", "dssp_train", "export", "dssp_deploy", "hardware", "dssp_sim")
+PACKAGES = ("dssp_data", "dssp_train", "export", "dssp_deploy", "hardware", "dssp_sim", "studies")
 ROBOT_SIDE = ("dssp_data", "dssp_deploy", "hardware", "dssp_sim")
 
 
