@@ -49,7 +49,6 @@ contains no DP3 code. DP3's observation/action normalisation (elementwise) is le
 from __future__ import annotations
 
 import math
-import platform
 import sys
 import tempfile
 from pathlib import Path
@@ -61,6 +60,7 @@ from torch import nn
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the benchmarks' shared helpers
 from bench_output import check_json, emit  # noqa: E402
 from dssp_data.cli_runner import ArgumentParser, run_cli  # noqa: E402
+from dssp_data import machine
 from dssp_data.errors import ConfigError
 from dssp_deploy.latency import time_calls
 from dssp_deploy.manifest import PRECISIONS
@@ -294,17 +294,6 @@ def summary(samples: list[float]) -> dict:
     return {"median": float(p50), "p90": float(p90), "n": len(samples), "samples": [float(s) for s in samples]}
 
 
-def cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
 def compare(model_dir: Path, threads: int | None, repeats: int, precision: str = "fp32", dp3_dims=None) -> dict:
     import onnxruntime
 
@@ -347,7 +336,7 @@ def compare(model_dir: Path, threads: int | None, repeats: int, precision: str =
     params = {"encoder": n_params(encoder), "unet": n_params(unet)}
     return {
         "model_dir": str(model_dir), "precision": policy.precision, "kernel_note": policy.kernel_note,
-        "machine": {"cpu": cpu_model(), "threads": n_threads, "torch": torch.__version__,
+        "machine": {"cpu": machine.cpu()[0], "threads": n_threads, "torch": torch.__version__,
                     "torch_threads": torch.get_num_threads(), "onnxruntime": onnxruntime.__version__},
         "problem": {"n_points": p, "state_dim": s, "action_dim": a, "denoise_steps": k,
                     "dssp_horizon": policy.horizon, "dssp_n_obs_steps": policy.n_obs_steps,

@@ -33,6 +33,7 @@ import time
 from collections import Counter
 from pathlib import Path
 
+from dssp_data import machine
 from dssp_data.files import atomic_write_text
 from dssp_data.errors import DSSPError
 from dssp_data.output_guard import OutputDir, OutputKind
@@ -85,19 +86,29 @@ def _run_demo(out: Path, steps: int, demos: int, episodes: int, seed: int) -> di
     evals = {name: json.loads((out / "evals" / f"{name}.json").read_text()) for name in VARIANTS}
     timings["total_s"] = time.perf_counter() - t_start
     print(f"\nTask '{TASK}', {episodes} unseen episodes each, closed loop through camera → cloud → runtime → safety → CAN → arm:\n")
-    print("| model | success | 95 % Wilson interval | failures |")
-    print("|---|---:|---|---|")
-    for name, r in evals.items():
-        lo, hi = r["wilson95"]
-        failures = ", ".join(f"{k} × {v}" for k, v in Counter(r["failure_reasons"]).most_common()) or "—"
-        print(f"| {VARIANTS[name][0]} | {r['successes']}/{r['n']} = {100 * r['success_rate']:.0f} % | {100 * lo:.0f}–{100 * hi:.0f} % | {failures} |")
+    print(results_table(evals))
     print("\nDSSP's control loop, every tick of its evaluation (one ONNX Runtime thread):")
     print_latency(evals["dssp"]["latency_ms"])
     print(f"\ntotal {timings['total_s'] / 60:.1f} min; {out / 'results.json'} holds every figure")
+    for name, r in evals.items():  # the model directories by their names in --out (the record may move)
+        r["model_dir"] = f"{name}_model"
     results = {"task": TASK, "steps": steps, "demos": demos, "episodes": episodes, "seed": seed, "timings": timings,
-               "evals": evals}
+               "machine": machine.describe(), "evals": evals}
     atomic_write_text(out / "results.json", json.dumps(results, indent=2) + "\n")
     return results
+
+
+def results_table(evals: dict) -> str:
+    """The demo's table (Markdown) from its evaluations (``results.json``'s ``evals``): the demo prints it, and the
+    README shows it rebuilt from the committed record (``python -m studies.rebuild``)."""
+    lines = ["| model | success | 95 % Wilson interval | graphs | failures |", "|---|---:|---|---|---|"]
+    for name, r in evals.items():
+        lo, hi = r["wilson95"]
+        failures = ", ".join(f"{k} × {v}" for k, v in Counter(r["failure_reasons"]).most_common()) or "—"
+        graphs = f"{r.get('precision', '?')}, {r.get('kernel', '?')}"
+        lines.append(f"| {VARIANTS[name][0]} | {r['successes']}/{r['n']} = {100 * r['success_rate']:.0f} % | "
+                     f"{100 * lo:.0f}–{100 * hi:.0f} % | {graphs} | {failures} |")
+    return "\n".join(lines)
 
 
 class _Child:

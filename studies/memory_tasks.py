@@ -178,8 +178,9 @@ def _pct(x: float) -> str:
     return f"{100 * x:.0f}"
 
 
-def report_lines(plan: dict, record: Path, split: str) -> tuple[list[str], dict]:
-    """The report's Markdown lines and its figures, from the record alone."""
+def report_lines(plan: dict, record: Path, split: str, shown_record: str | None = None) -> tuple[list[str], dict]:
+    """The report's Markdown lines and its figures, from the record alone (``shown_record``: how the report names the
+    record's folder; default its path)."""
     figures: dict = {"split": split, "tasks": {}}
     prov_path = record / f"provenance_{split}.json"
     runs = json.loads(prov_path.read_text()) if prov_path.is_file() else []
@@ -189,7 +190,7 @@ def report_lines(plan: dict, record: Path, split: str) -> tuple[list[str], dict]
     lines = [
         f"# Memory tasks, {split} split: DSSP against DP3 and DSSP without history",
         "",
-        f"Rebuilt from `{record}` by `python -m studies.memory_tasks --split {split} --report-only`. "
+        f"Rebuilt from `{shown_record or record}` by `python -m studies.memory_tasks --split {split} --report-only`. "
         f"Scenes: {split} seeds {scene_seeds[0]}–{scene_seeds[-1]} ({n} per model and training seed, the same for every "
         f"model); training seeds {seeds}; steps per task {({t: s['steps'] for t, s in plan['tasks'].items()})}. "
         "Success: mean over training seeds and scenes, 95 % two-way cluster-bootstrap interval (training seeds × scenes). "
@@ -257,8 +258,8 @@ def _merge(dicts) -> dict:
     return out
 
 
-def write_report(plan: dict, record: Path, report: Path, split: str) -> Path:
-    lines, figures = report_lines(plan, record, split)
+def write_report(plan: dict, record: Path, report: Path, split: str, shown_record: str | None = None) -> Path:
+    lines, figures = report_lines(plan, record, split, shown_record)
     md = report / f"{REPORT_NAME}_{split}.md"
     atomic_write_text(md, "\n".join(lines))
     atomic_write_text(report / f"{REPORT_NAME}_{split}.json", json.dumps({"plan": plan, **figures}, indent=1, sort_keys=True) + "\n")

@@ -20,11 +20,10 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
-import platform
 import subprocess
 from pathlib import Path
 
+from dssp_data import machine
 from dssp_data.errors import DSSPError
 from dssp_data.files import atomic_write_text
 
@@ -86,36 +85,10 @@ def code_commit() -> str:
     return head.stdout.strip() + ("+changes" if dirty.stdout.strip() else "")
 
 
-def machine() -> dict:
-    """The machine a figure was measured on: CPU model, cores, OS, and the versions that compute it."""
-    import numpy as np
-
-    cpu = platform.processor() or platform.machine()
-    flags: list[str] = []
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                elif line.startswith("flags"):
-                    have = set(line.split(":", 1)[1].split())
-                    flags = [f for f in ("avx2", "avx512f", "avx512_vnni", "avx_vnni", "amx_tile") if f in have]
-                    break
-    except OSError:
-        pass
-    info = {"cpu": cpu, "cpu_flags": flags, "cores": os.cpu_count(), "os": platform.platform(),
-            "python": platform.python_version(), "numpy": np.__version__}
-    for name in ("onnxruntime", "torch", "mujoco"):
-        try:
-            info[name] = __import__(name).__version__
-        except ImportError:
-            pass
-    return info
-
-
 def provenance(plan: dict) -> dict:
     """What a record states about how it was made (module docstring)."""
-    return {"task_definition": task_definition_hash(), "plan": plan_hash(plan), "commit": code_commit(), "machine": machine()}
+    return {"task_definition": task_definition_hash(), "plan": plan_hash(plan), "commit": code_commit(),
+            "machine": machine.describe()}
 
 
 def freeze_plan(record_dir: Path, plan: dict) -> str:

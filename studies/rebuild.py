@@ -1,0 +1,149 @@
+"""Every reported figure rebuilt from its committed record, by one command; ``--check`` changes nothing and
+fails on any difference (the test suite runs it: it reads records, it reruns nothing).
+
+    python -m studies.rebuild [--check] [--root .]
+
+What it rebuilds (:data:`SOURCES`):
+
+- ``reports/memory/``: the memory-task study's report of each split its record holds
+  (:mod:`studies.memory_tasks`, ``record/evals``);
+- ``reports/sim/`` and ``reports/distill/``: the earlier simulation and distillation studies' reports from
+  their records (``record/evals``, ``record/seconds``; their plots too, not compared byte for byte: the
+  tables and the JSON are);
+- the README's figure blocks, each between ``<!-- figures: NAME -->`` and ``<!-- /figures -->``: ``demo``
+  (the Quick start's table, from ``reports/demo/results.json``).
+
+``reports/sampling/`` has no record beyond its report's JSON and predates 7-bit int8 weights: it is listed as
+stale, with the command that rebuilds it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import re
+import shutil
+import sys
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+
+from dssp_data.cli_runner import ArgumentParser, run_cli
+from dssp_data.errors import DSSPError
+from dssp_data.files import atomic_write_text
+
+BLOCK = re.compile(r"(<!-- figures: (?P<name>[a-z_]+) -->\n)(?P<body>.*?)(<!-- /figures -->)", re.S)
+STALE = {"reports/sampling": "python -m dssp_sim.sampling_study --force (its int8 cells predate 7-bit int8 weights)"}
+
+
+def _memory(root: Path, out: Path) -> list[str]:
+    from studies import memory_tasks
+
+    record = root / "reports/memory" / memory_tasks.RECORD_DIR
+    written = []
+    for split in ("validation", "test"):
+        if any((record / "evals").glob(f"*_{split}.json")):
+            md = memory_tasks.write_report(memory_tasks.PLAN, record, out, split, shown_record="reports/memory/record")
+            written += [md.name, md.with_suffix(".json").name]
+    return written
+
+
+def _sim(root: Path, out: Path) -> list[str]:
+    from dssp_sim import experiment
+
+    record = root / "reports/sim" / experiment.RECORD_DIR
+    results, pending = experiment.recorded_results(experiment.PLAN, record)
+    with contextlib.redirect_stdout(io.StringIO()):
+        md = experiment.write_report(results, out, experiment.stage_seconds(out / "no-work", record), force=True, pending=pending)
+    return [md.name, md.with_suffix(".json").name]
+
+
+def _distill(root: Path, out: Path) -> list[str]:
+    from dssp_sim import distill_study
+
+    record = root / "reports/distill" / distill_study.RECORD_DIR
+    evals, latency, pending = distill_study.recorded_results(distill_study.PLAN, record)
+    with contextlib.redirect_stdout(io.StringIO()):
+        md = distill_study.write_report(evals, latency, distill_study.PLAN, out, distill_study.stage_seconds(out / "no-work", record),
+                                        force=True, pending=pending)
+    return [md.name, md.with_suffix(".json").name]
+
+
+SOURCES: dict[str, Callable[[Path, Path], list[str]]] = {
+    "reports/memory": _memory,
+    "reports/sim": _sim,
+    "reports/distill": _distill,
+}
+"""Report folder -> a function writing its rebuilt files into a folder, returning the names to compare."""
+
+
+def readme_blocks(root: Path) -> dict[str, str]:
+    """NAME -> the README figure block's body, rebuilt from its record."""
+    from dssp_sim.demo import results_table
+
+    demo = json.loads((root / "reports/demo/results.json").read_text())
+    return {"demo": results_table(demo["evals"]) + "\n"}
+
+
+def rebuild(root: Path, check: bool) -> list[str]:
+    """Rebuild everything under ``root``; returns the files that differ (``check``) or were rewritten."""
+    changed = []
+    for folder, build in SOURCES.items():
+        if not (root / folder).is_dir():
+            continue
+        with tempfile.TemporaryDirectory() as tmp:
+            out = Path(tmp)
+            for name in build(root, out):
+                new, old = out / name, root / folder / name
+                if not old.is_file() or old.read_text() != new.read_text():
+                    changed.append(f"{folder}/{name}")
+                    if not check:
+                        atomic_write_text(old, new.read_text())
+            if not check:
+                for png in out.glob("*.png"):
+                    shutil.copyfile(png, root / folder / png.name)
+    readme = root / "README.md"
+    text = readme.read_text()
+    blocks = readme_blocks(root)
+    seen = set()
+
+    def replace(m: re.Match) -> str:
+        name = m.group("name")
+        if name not in blocks:
+            raise DSSPError(f"README.md has a figure block {name!r} that nothing rebuilds; known: {', '.join(blocks)}")
+        seen.add(name)
+        return m.group(1) + blocks[name] + m.group(4)
+
+    new_text = BLOCK.sub(replace, text)
+    if new_text != text:
+        changed.append("README.md")
+        if not check:
+            atomic_write_text(readme, new_text)
+    missing = set(blocks) - seen
+    if missing:
+        raise DSSPError(f"README.md lacks the figure block(s) {', '.join(sorted(missing))} (<!-- figures: NAME --> ... <!-- /figures -->)")
+    return changed
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = ArgumentParser(prog="python -m studies.rebuild", description=__doc__.split("\n\n")[0])
+    p.add_argument("--check", action="store_true", help="change nothing: list what differs from its record, exit 1 if anything")
+    p.add_argument("--root", type=Path, default=Path(__file__).resolve().parent.parent, help="the project's root")
+    args = p.parse_args(argv)
+
+    def _main() -> int:
+        changed = rebuild(args.root, args.check)
+        for folder, command in STALE.items():
+            print(f"stale: {folder}: rebuild with {command}")
+        if args.check and changed:
+            print("differs from its record: " + ", ".join(changed) + "; run python -m studies.rebuild")
+            return 1
+        print(("rewritten: " + ", ".join(changed)) if changed else "every report and README figure matches its record")
+        return 0
+
+    return run_cli(_main)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

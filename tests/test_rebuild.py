@@ -1,0 +1,51 @@
+"""Every committed report and README figure is what its record rebuilds (python -m studies.rebuild --check)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from dssp_data.errors import DSSPError
+from studies.rebuild import main, rebuild
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_every_report_and_readme_figure_matches_its_record(capsys):
+    assert main(["--check"]) == 0
+    out = capsys.readouterr().out
+    assert "every report and README figure matches its record" in out and "stale: reports/sampling" in out
+
+
+@pytest.fixture
+def copy_root(tmp_path):
+    shutil.copytree(ROOT / "reports", tmp_path / "reports")
+    shutil.copyfile(ROOT / "README.md", tmp_path / "README.md")
+    return tmp_path
+
+
+def test_a_figure_that_differs_from_its_record_is_found_and_rewritten(copy_root, capsys):
+    demo = copy_root / "reports/demo/results.json"
+    record = json.loads(demo.read_text())
+    record["evals"]["dssp"]["successes"] -= 1
+    demo.write_text(json.dumps(record))
+    sim_eval = sorted((copy_root / "reports/sim/record/evals").glob("*.json"))[0]
+    r = json.loads(sim_eval.read_text())
+    r["successes"] = r["n"] - r["successes"]
+    sim_eval.write_text(json.dumps(r))
+    assert main(["--check", "--root", str(copy_root)]) == 1
+    out = capsys.readouterr().out
+    assert "differs from its record: " in out and "README.md" in out and "reports/sim/sim_memory_tasks.md" in out
+    assert "README.md" in rebuild(copy_root, check=False)  # rewritten from the records
+    assert rebuild(copy_root, check=True) == []
+    assert "17/20" in (copy_root / "README.md").read_text()
+
+
+def test_a_readme_block_nothing_rebuilds_is_an_error(copy_root):
+    readme = copy_root / "README.md"
+    readme.write_text(readme.read_text() + "\n<!-- figures: guesswork -->\n| made up |\n<!-- /figures -->\n")
+    with pytest.raises(DSSPError, match="'guesswork' that nothing rebuilds"):
+        rebuild(copy_root, check=True)
