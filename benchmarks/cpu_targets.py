@@ -1,7 +1,7 @@
 """The CPU targets of one exported model in one run, with the fused Mamba kernel and without it.
 
     python benchmarks/cpu_targets.py MODEL_DIR --checkpoint RUN_DIR [--threads N] [--precision fp32|int8|int4]
-                                     [--quick] [--no-dp3] [--json PATH [--force]]
+                                     [--quick] [--json PATH [--force]]
 
 Batch 1, the model's point count, ``--threads`` ONNX Runtime threads (default: all CPUs; torch gets the same).
 For each graph set — the fused Mamba kernel's (``*.fused.onnx``) and the standard one — measures:
@@ -12,8 +12,8 @@ For each graph set — the fused Mamba kernel's (``*.fused.onnx``) and the stand
   chunk on the others), its p99 against the history step's p99 on the same sessions;
 
 and once: PyTorch eager (``--checkpoint``, the run the model was exported from) per chunk and per
-history step, and DP3's policy head at its RoboTwin configuration in ONNX Runtime
-(``benchmarks/dp3_comparison.py``; skipped with ``--no-dp3``). Ratios are of medians measured in this run.
+history step. Ratios are of medians measured in this run. DSSP against DP3, like for like, is
+``benchmarks/dp3_comparison.py``.
 Prints the targets table (the robotwin preset's targets on a 2-core CPU); ``--json`` writes every figure.
 The runtime-only figures, without torch, are ``dssp-profile MODEL_DIR``.
 """
@@ -29,9 +29,9 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_output import check_json, emit  # noqa: E402
-from dp3_comparison import compare as dp3_compare  # noqa: E402
 from torch_comparison import check_source, eager_samples  # noqa: E402
 
+from dssp_data import machine  # noqa: E402
 from dssp_data.cli_runner import ArgumentParser, run_cli  # noqa: E402
 from dssp_deploy.latency import LatencyStats  # noqa: E402
 from dssp_deploy.manifest import PRECISIONS, read_manifest  # noqa: E402
@@ -39,14 +39,13 @@ from dssp_deploy.onnx_policy import DEFAULT_PRECISION, OnnxPolicy  # noqa: E402
 from dssp_deploy.profile import paths_and_threads, prefetch_ticks, random_observation  # noqa: E402
 from dssp_deploy.sessions import check_threads, default_threads  # noqa: E402
 
-FULL = {"history": 300, "chunks": 30, "prefetch_ticks": 300, "torch_iterations": 10, "dp3_repeats": 5}
-QUICK = {"history": 20, "chunks": 3, "prefetch_ticks": 20, "torch_iterations": 2, "dp3_repeats": 1}
+FULL = {"history": 300, "chunks": 30, "prefetch_ticks": 300, "torch_iterations": 10}
+QUICK = {"history": 20, "chunks": 3, "prefetch_ticks": 20, "torch_iterations": 2}
 NO_SPIN = "+no-spin"  # the fused graphs with the chunk's threads sleeping between its operators (--no-spin)
 TARGETS = {  # robotwin preset, 1024 points, batch 1, 2 threads, p50
     "chunk_ms": (25.0, 50.0),  # (target, required)
     "history_step_fp32_ms": 1.5,
     "ort_vs_eager_chunk": 5.0,
-    "dssp_vs_dp3_chunk": 100.0,
     "prefetch_tick_p99_over_history_p99": 1.5,
 }
 
@@ -68,7 +67,7 @@ def runtime_figures(model_dir: Path, precision: str, threads: int, settings: dic
     return out
 
 
-def measure(model_dir: Path, checkpoint: Path, threads: int, precision: str, quick: bool, dp3: bool) -> dict:
+def measure(model_dir: Path, checkpoint: Path, threads: int, precision: str, quick: bool) -> dict:
     settings = QUICK if quick else FULL
     torch.set_num_threads(threads)
     manifest = read_manifest(model_dir)
@@ -77,13 +76,12 @@ def measure(model_dir: Path, checkpoint: Path, threads: int, precision: str, qui
     pc, pos = (torch.from_numpy(a) for a in random_observation(policy, np.random.default_rng(0)))
     eager = eager_samples(checkpoint, manifest, pc, pos, {"iterations": settings["history"], "torch_iterations": settings["torch_iterations"]})
     eager = {k: LatencyStats.of(v).to_dict() for k, v in eager.items()}
-    dp3 = dp3_compare(model_dir, threads, settings["dp3_repeats"], precision) if dp3 else None
     return {"model_dir": str(model_dir), "checkpoint": str(checkpoint), "threads": threads, "precision": precision,
-            "settings": settings, "runtime": runtime, "eager_torch": eager, "dp3": dp3, "targets": TARGETS,
-            "rows": rows(runtime, eager, dp3, precision)}
+            "settings": settings, "runtime": runtime, "eager_torch": eager, "targets": TARGETS,
+            "machine": machine.describe(), "rows": rows(runtime, eager, precision)}
 
 
-def rows(runtime: dict, eager: dict, dp3: dict | None, precision: str) -> list[dict]:
+def rows(runtime: dict, eager: dict, precision: str) -> list[dict]:
     """The targets table: per figure, the value on each graph set and the target."""
     def per_kernel(fn):
         return {k: fn(r) for k, r in runtime.items()}
@@ -100,10 +98,6 @@ def rows(runtime: dict, eager: dict, dp3: dict | None, precision: str) -> list[d
         {"figure": "tick p99 with prefetch / history step p99",
          "values": per_kernel(lambda r: r["prefetch"]["tick_p99_over_history_p99"] if r["prefetch"] else None), "target": "<= 1.5x"},
     ]
-    if dp3 is not None:  # DP3 in ONNX Runtime against DSSP's chunk on the default graphs, both timed in dp3_comparison's run
-        out.insert(3, {"figure": "DP3 chunk / DSSP chunk, same CPU (both ONNX Runtime)",
-                       "values": {"fused" if "fused" in dp3["kernel_note"] else "standard": dp3["ratio"]["dp3_ort_over_dssp_ort"]},
-                       "target": ">= 100x"})
     return out
 
 
@@ -119,11 +113,6 @@ def markdown(report: dict) -> str:
     eager = report["eager_torch"]
     lines += ["", f"PyTorch eager (fp32, {torch.get_num_threads()} threads): chunk {eager['denoiser_chunk']['p50']:.1f} ms, "
               f"history step {eager['history_step']['p50']:.2f} ms"]
-    if report["dp3"]:
-        d = report["dp3"]["median_ms"]
-        lines.append(f"DP3 head (RoboTwin configuration, {report['dp3']['dp3']['params']['total'] / 1e6:.0f} M parameters): "
-                     f"{d['dp3_ort_chunk']:.0f} ms per chunk in ONNX Runtime, {d['dp3_torch_chunk']:.0f} ms in PyTorch; DSSP in the "
-                     f"same run {d['dssp_ort_chunk']:.1f} ms ({report['dp3']['kernel_note']})")
     for kernel, r in report["runtime"].items():
         pf = r["prefetch"]
         if pf is None:
@@ -143,7 +132,6 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, help="ONNX Runtime and torch threads (default: all CPUs)")
     p.add_argument("--precision", choices=list(PRECISIONS), default=DEFAULT_PRECISION, help=f"the chunk's graphs (default {DEFAULT_PRECISION})")
     p.add_argument("--quick", action="store_true", help="short run (tests)")
-    p.add_argument("--no-dp3", action="store_true", help="skip DP3 (its ONNX export is about 1 GB and a minute)")
     p.add_argument("--json", type=Path, help="write every figure here (a new file; --force replaces one)")
     p.add_argument("--force", action="store_true", help="replace an existing --json file")
     args = p.parse_args(argv)
@@ -152,7 +140,7 @@ def main(argv: list[str] | None = None) -> int:
         check_threads(args.threads)
         check_json(args.json, args.force)
         check_source(args.model_dir, args.checkpoint, read_manifest(args.model_dir))
-        report = measure(args.model_dir, args.checkpoint, args.threads or default_threads(), args.precision, args.quick, not args.no_dp3)
+        report = measure(args.model_dir, args.checkpoint, args.threads or default_threads(), args.precision, args.quick)
         return emit(report, markdown(report), args.json, args.force)
 
     return run_cli(_main)

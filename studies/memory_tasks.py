@@ -93,8 +93,9 @@ def train_argv(plan: dict, task: str, model: dict, seed: int, data: str, run: st
             "--seed", str(seed), "--no-progress", "--force", *model["flags"]]
 
 
-def stages(plan: dict, split: str, tasks: list[str], record: Path) -> list[Stage]:
-    """Every stage of ``tasks`` for ``split``; a model whose evaluation is in the record needs none."""
+def stages(plan: dict, split: str, tasks: list[str], record: Path, models: list[str] | None = None) -> list[Stage]:
+    """Every stage of ``tasks`` for ``split`` (of ``models`` only, when given); a model whose evaluation is in the
+    record needs none."""
     n = plan["episodes"][split]
     first = protocol.split_seeds(split, n)[0]
     out: list[Stage] = []
@@ -103,6 +104,8 @@ def stages(plan: dict, split: str, tasks: list[str], record: Path) -> list[Stage
         data = f"data/{task}.zarr"
         need_data = False
         for name, model in models_of(plan, task).items():
+            if models is not None and name not in models:
+                continue
             for seed in plan["seeds"]:
                 key = f"{task}_{name}_s{seed}"
                 result = eval_name(task, name, seed, split)
@@ -266,13 +269,14 @@ def write_report(plan: dict, record: Path, report: Path, split: str, shown_recor
     return md
 
 
-def run_study(plan: dict, split: str, tasks: list[str], work: Path, report: Path, workers: int) -> Path:
+def run_study(plan: dict, split: str, tasks: list[str], work: Path, report: Path, workers: int,
+              models: list[str] | None = None) -> Path:
     record = report / RECORD_DIR
     if split == "test":
         protocol.check_frozen(record, plan)
     work.mkdir(parents=True, exist_ok=True)
     (work / "evals").mkdir(exist_ok=True)
-    stage_list = stages(plan, split, tasks, record)
+    stage_list = stages(plan, split, tasks, record, models)
     note_provenance(record, plan, split)
     runner = Runner(work, workers=workers)
     print(f"{len(stage_list)} stage(s) for {', '.join(tasks)} on the {split} split, {workers} at a time")
@@ -298,6 +302,7 @@ def main(argv: list[str] | None = None) -> int:
     p = ArgumentParser(prog="python -m studies.memory_tasks", description=__doc__.split("\n\n")[0])
     p.add_argument("--split", choices=list(protocol.SPLITS), default="validation")
     p.add_argument("--tasks", nargs="+", metavar="TASK", help="default: every task of the plan")
+    p.add_argument("--models", nargs="+", metavar="MODEL", help="only these models (default: every model of the plan)")
     p.add_argument("--workers", type=int, default=2, help="stages side by side, one thread each (default 2)")
     p.add_argument("--work", type=Path, default=Path("runs/memory"), help="datasets, runs, models, evaluations, logs")
     p.add_argument("--report", type=Path, default=Path("reports/memory"), help="the report and its record")
@@ -310,6 +315,10 @@ def main(argv: list[str] | None = None) -> int:
     unknown = [t for t in tasks if t not in plan["tasks"]]
     if unknown:
         p.error(f"--tasks: {', '.join(unknown)} not in the plan ({', '.join(plan['tasks'])})")
+    known = {m for t in tasks for m in models_of(plan, t)}
+    if args.models and set(args.models) - known:
+        p.error(f"--models: {', '.join(sorted(set(args.models) - known))} not in the plan's models for these tasks "
+                f"({', '.join(sorted(known))})")
 
     def _main() -> int:
         record = args.report / RECORD_DIR
@@ -319,7 +328,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.report_only:
             md = write_report(plan, record, args.report, args.split)
         else:
-            md = run_study(plan, args.split, tasks, args.work, args.report, args.workers)
+            md = run_study(plan, args.split, tasks, args.work, args.report, args.workers, args.models)
         print(md.read_text())
         return 0
 

@@ -157,3 +157,59 @@ def test_the_cluster_bootstrap_is_wider_than_pooling_when_seeds_differ_and_is_de
     with pytest.raises(ValueError, match="share their scenes"):
         paired_difference(np.ones((3, 30)), np.ones((3, 31)))
     assert describe_p(0.2) == "p = 0.2, not significant" and describe_p(0.004) == "p = 0.004"
+
+
+# ---------------------------------------------------------------------------------------------- the memory study
+def _fake_eval(record: Path, name: str, scenes: list[int], wins: list[int], presses: list[int]) -> None:
+    episodes = [{"seed": s, "success": bool(w), "reason": "" if w else "timeout", "steps": 60,
+                 "decision": {"reached": True, "correct": p == 3, "choice": f"{p} presses"}} for s, w, p in zip(scenes, wins, presses)]
+    result = {"task": "tap", "n": len(scenes), "successes": sum(wins),
+              "failure_reasons": {"timeout": len(wins) - sum(wins)} if len(wins) > sum(wins) else {},
+              "decisions": {"reached": len(scenes), "correct": sum(p == 3 for p in presses),
+                            "choices": {f"{p} presses": presses.count(p) for p in set(presses)}},
+              "episodes": episodes}
+    (record / "evals").mkdir(parents=True, exist_ok=True)
+    (record / "evals" / f"{name}.json").write_text(json.dumps(result))
+
+
+def test_the_memory_report_pairs_every_model_with_dssp_and_marks_what_is_pending(tmp_path):
+    from studies import memory_tasks
+
+    plan = {**memory_tasks.QUICK_PLAN, "seeds": [0, 1], "episodes": {"validation": 10, "test": 10}}
+    scenes = protocol.split_seeds("validation", 10)
+    for seed in (0, 1):
+        _fake_eval(tmp_path, f"tap_dssp_s{seed}_validation", scenes, [1] * 9 + [0], [3] * 9 + [2])
+        _fake_eval(tmp_path, f"tap_wo_history_s{seed}_validation", scenes, [0] * 8 + [1, 1], [2, 4] * 4 + [3, 3])
+    lines, figures = memory_tasks.report_lines(plan, tmp_path, "validation", shown_record="reports/memory/record")
+    text = "\n".join(lines)
+    row = figures["tasks"]["tap"]["wo_history"]
+    assert row["success"] == pytest.approx(0.2) and row["delta"] == pytest.approx(-0.7)
+    assert row["p"] == pytest.approx(paired_exact_test([[0] * 8 + [1, 1]] * 2, [[1] * 9 + [0]] * 2))
+    assert row["decision_right"] == 4 and row["decision_reached"] == 20
+    assert "| DSSP w/o history | 20 (" in text and describe_p(row["p"]) in text
+    assert "| DP3 (sim size, 0.71 M) | pending |" in text  # not evaluated yet: never a made-up row
+    assert "| 2 presses | 3 presses | 4 presses |" in text and "not a test result" in text
+    assert "reports/memory/record" in text and str(tmp_path) not in text
+    _fake_eval(tmp_path, "tap_dssp_s1_validation", scenes[::-1], [1] * 10, [3] * 10)
+    with pytest.raises(DSSPError, match="different scenes"):
+        memory_tasks.report_lines(plan, tmp_path, "validation")
+
+
+@pytest.mark.slow
+def test_the_quick_memory_study_runs_end_to_end_and_locks_the_test_split(tmp_path, capsys):
+    from studies import memory_tasks
+
+    work, report = tmp_path / "work", tmp_path / "report"
+    base = ["--quick", "--work", str(work), "--report", str(report), "--workers", "2"]
+    assert memory_tasks.main([*base, "--split", "test"]) == 2
+    assert "needs a frozen plan" in capsys.readouterr().err
+    assert memory_tasks.main(base) == 0
+    out = capsys.readouterr().out
+    assert "| DSSP (full history) |" in out and "| DP3 (sim size, 0.71 M) |" in out and "pending" not in out
+    assert memory_tasks.main([*base, "--freeze"]) == 0
+    assert memory_tasks.main([*base, "--split", "test"]) == 0  # the trained models are reused: only evaluations run
+    evals = sorted(p.name for p in (report / "record/evals").iterdir())
+    assert len(evals) == 2 * 3 * 2 and all(json.loads((report / "record/evals" / e).read_text())["n"] == 2 for e in evals)
+    trains = [p for p in (work / "done").glob("train_*.json")]
+    assert len(trains) == 3 * 2
+    assert memory_tasks.main([*base, "--split", "test", "--report-only"]) == 0
