@@ -78,7 +78,8 @@ def measure(model_dir: Path, checkpoint: Path, threads: int, precision: str, qui
     eager = {k: LatencyStats.of(v).to_dict() for k, v in eager.items()}
     return {"model_dir": str(model_dir), "checkpoint": str(checkpoint), "threads": threads, "precision": precision,
             "settings": settings, "runtime": runtime, "eager_torch": eager, "targets": TARGETS,
-            "machine": machine.describe(), "rows": rows(runtime, eager, precision)}
+            "machine": machine.describe(), "denoise_steps": manifest["denoise_steps"], "torch_threads": torch.get_num_threads(),
+            "rows": rows(runtime, eager, precision)}
 
 
 def rows(runtime: dict, eager: dict, precision: str) -> list[dict]:
@@ -103,15 +104,17 @@ def rows(runtime: dict, eager: dict, precision: str) -> list[dict]:
 
 def markdown(report: dict) -> str:
     kernels = list(report["runtime"])
-    k = read_manifest(Path(report["model_dir"]))["denoise_steps"]
+    k = report["denoise_steps"]
     head = {"fused": "fused Mamba kernel", "fused" + NO_SPIN: "fused, --no-spin", "standard": "standard graphs"}
-    lines = [f"Model: {report['model_dir']} — batch 1, {report['threads']} thread(s), medians of this run", "",
+    m = report["machine"]
+    lines = [f"Model: {Path(report['model_dir']).name} — batch 1, {report['threads']} thread(s), medians of one run; {m['cpu']} "
+             f"({m['cores']} cores, {', '.join(m['cpu_flags']) or 'no AVX2'}), onnxruntime {m.get('onnxruntime')}", "",
              "| figure | " + " | ".join(head[k] for k in kernels) + " | target |", "|---|" + "---:|" * len(kernels) + "---|"]
     for row in report["rows"]:
         cells = " | ".join(f"{row['values'][k]:.2f}" if row["values"].get(k) is not None else "-" for k in kernels)
         lines.append(f"| {row['figure'].format(k=k)} | {cells} | {row['target']} |")
     eager = report["eager_torch"]
-    lines += ["", f"PyTorch eager (fp32, {torch.get_num_threads()} threads): chunk {eager['denoiser_chunk']['p50']:.1f} ms, "
+    lines += ["", f"PyTorch eager (fp32, {report['torch_threads']} threads): chunk {eager['denoiser_chunk']['p50']:.1f} ms, "
               f"history step {eager['history_step']['p50']:.2f} ms"]
     for kernel, r in report["runtime"].items():
         pf = r["prefetch"]

@@ -139,6 +139,13 @@ def markdown(r: dict) -> str:
             cells = ("—", "—") if ratio is None else (f"{ratio['tick_ms']:.1f}x", f"{ratio['chunk_ms']:.1f}x")
             lines.append(f"| {row['label']} | {row['params'] / 1e6:.2f} M | {precision} | {t['step_ms']:.2f} | {t['chunk_ms']:.2f} | "
                          f"{t['tick_ms']:.2f} (H_a = {t['n_action_steps']}) | {cells[0]} | {cells[1]} |")
+    heads = []
+    for name, row in r["models"].items():
+        if name == "dssp":
+            continue
+        per = ", ".join(f"{precision} {ratios[name]['tick_ms']:.1f}x" for precision, ratios in r["ratios"].items())
+        heads.append(f"{row['label']}: {per}")
+    lines += ["", "DP3's tick / DSSP's tick at the same precision — " + "; ".join(heads) + "."]
     return "\n".join(lines)
 
 

@@ -19,7 +19,7 @@ scenes, the memory decision scored apart from the manipulation (:meth:`dssp_sim.
 for every model against DSSP the paired difference with its interval and the exact paired test's p-value
 (:mod:`studies.stats`).
 
-DP3 at its own size (the ``dp3`` preset, 251 M parameters) is in the plan as a GPU model: a 2-core CPU does
+DP3 at its own size (the ``dp3`` preset, 262 M parameters) is in the plan as a GPU model: a 2-core CPU does
 not train it at this budget, so the study prints its commands instead of running them.
 """
 
@@ -71,7 +71,7 @@ QUICK_PLAN = {
     "export_flags": ["--skip-verify", "--quantize", "none"],
 }
 LABELS = {
-    "dssp": "DSSP (full history)", "dp3_sim": "DP3 (sim size, 0.71 M)", "dp3": "DP3 (its own size, 251 M)",
+    "dssp": "DSSP (full history)", "dp3_sim": "DP3 (sim size, 0.71 M)", "dp3": "DP3 (its own size, 262 M)",
     "wo_history": "DSSP w/o history", "no_timestep_decoupling": "w/o timestep decoupling",
     "no_recent_states": "w/o recent states", "no_dynamics_loss": "w/o dynamics loss",
     "transformer_denoiser": "w/ Transformer denoiser",

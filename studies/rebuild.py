@@ -10,8 +10,11 @@ What it rebuilds (:data:`SOURCES`):
 - ``reports/sim/`` and ``reports/distill/``: the earlier simulation and distillation studies' reports from
   their records (``record/evals``, ``record/seconds``; their plots too, not compared byte for byte: the
   tables and the JSON are);
-- the README's figure blocks, each between ``<!-- figures: NAME -->`` and ``<!-- /figures -->``: ``demo``
-  (the Quick start's table, from ``reports/demo/results.json``).
+- the READMEs' figure blocks (the top one's and each package's), each between ``<!-- figures: NAME -->`` and ``<!-- /figures -->``: ``demo``
+  (the Quick start's table, from ``reports/demo/results.json``), ``sim_paired`` (the earlier simulation
+  study's comparisons with DSSP and their exact paired tests, from ``reports/sim/record``), and the CPU tables
+  ``cpu_targets``, ``dp3_paper``, ``dp3_sim`` (rendered by the benchmark scripts' own ``markdown`` from their
+  records in ``reports/cpu/``).
 
 ``reports/sampling/`` has no record beyond its report's JSON and predates 7-bit int8 weights: it is listed as
 stale, with the command that rebuilds it.
@@ -33,7 +36,7 @@ from dssp_data.cli_runner import ArgumentParser, run_cli
 from dssp_data.errors import DSSPError
 from dssp_data.files import atomic_write_text
 
-BLOCK = re.compile(r"(<!-- figures: (?P<name>[a-z_]+) -->\n)(?P<body>.*?)(<!-- /figures -->)", re.S)
+BLOCK = re.compile(r"(<!-- figures: (?P<name>[a-z0-9_]+) -->\n)(?P<body>.*?)(<!-- /figures -->)", re.S)
 STALE = {"reports/sampling": "python -m dssp_sim.sampling_study --force (its int8 cells predate 7-bit int8 weights)"}
 
 
@@ -78,12 +81,69 @@ SOURCES: dict[str, Callable[[Path, Path], list[str]]] = {
 """Report folder -> a function writing its rebuilt files into a folder, returning the names to compare."""
 
 
+SIM_COMPARED = ("reactive", "window10", "no_timestep_decoupling", "no_recent_states", "no_dynamics_loss", "transformer_denoiser")
+
+
+def sim_paired_table(record: Path) -> str:
+    """The earlier simulation study's comparisons with DSSP, paired on its scenes (seeds 1000…), from its record: each
+    model's success, the difference and the exact paired test (:mod:`studies.stats`)."""
+    from dssp_sim import experiment
+    from studies.stats import describe_p, paired_exact_test
+
+    def grid(task: str, variant: str, seeds: list[int]) -> list[list[int]] | None:
+        rows = [experiment.recorded(record, f"{task}_{variant}_s{seed}") for seed in seeds]
+        if any(r is None for r in rows):
+            return None
+        scenes = [[e["seed"] for e in r["episodes"]] for r in rows]
+        if any(s != scenes[0] for s in scenes):
+            raise DSSPError(f"{record}: {task}/{variant} seeds were evaluated on different scenes")
+        return [[int(e["success"]) for e in r["episodes"]] for r in rows]
+
+    lines = ["| task | training seeds × scenes | model | DSSP | model's | Δ | paired exact test |", "|---|---|---|---:|---:|---:|---|"]
+    plan = experiment.PLAN
+    for task in plan["demos"]:
+        seeds = sorted(set(plan["seeds"][task]) | set(plan["ablation_seeds"].get(task, [])))
+        for variant in SIM_COMPARED:
+            used = [s for s in seeds if experiment.recorded(record, f"{task}_{variant}_s{s}")]
+            base, other = grid(task, "dssp", used), grid(task, variant, used)
+            if not used or base is None or other is None:
+                continue
+            a, b = sum(map(sum, base)) / (len(used) * len(base[0])), sum(map(sum, other)) / (len(used) * len(other[0]))
+            lines.append(f"| {task} | {len(used)} × {len(base[0])} | {experiment.VARIANT_LABELS.get(variant, variant)} | "
+                         f"{100 * a:.0f} % | {100 * b:.0f} % | {100 * (b - a):+.0f} | {describe_p(paired_exact_test(other, base))} |")
+    return "\n".join(lines) + "\n"
+
+
+def benchmark(root: Path, name: str):
+    """The benchmark script ``benchmarks/NAME.py`` as a module (its ``markdown(report)`` renders its record)."""
+    import importlib.util
+
+    folder = str(root / "benchmarks")
+    if folder not in sys.path:
+        sys.path.insert(0, folder)  # the scripts import their shared helpers by name
+    spec = importlib.util.spec_from_file_location(f"bench_{name}", root / "benchmarks" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 def readme_blocks(root: Path) -> dict[str, str]:
     """NAME -> the README figure block's body, rebuilt from its record."""
     from dssp_sim.demo import results_table
 
     demo = json.loads((root / "reports/demo/results.json").read_text())
-    return {"demo": results_table(demo["evals"]) + "\n"}
+    blocks = {"demo": results_table(demo["evals"]) + "\n", "sim_paired": sim_paired_table(root / "reports/sim/record")}
+    for block, (script, record) in BENCHMARK_BLOCKS.items():
+        blocks[block] = benchmark(root, script).markdown(json.loads((root / record).read_text())) + "\n"
+    return blocks
+
+
+BENCHMARK_BLOCKS = {
+    "cpu_targets": ("cpu_targets", "reports/cpu/cpu_targets.json"),
+    "dp3_paper": ("dp3_comparison", "reports/cpu/dp3_comparison_paper.json"),
+    "dp3_sim": ("dp3_comparison", "reports/cpu/dp3_comparison_sim.json"),
+}
+"""README block -> (the benchmark script whose ``markdown`` renders it, its committed record)."""
 
 
 def rebuild(root: Path, check: bool) -> list[str]:
@@ -103,27 +163,34 @@ def rebuild(root: Path, check: bool) -> list[str]:
             if not check:
                 for png in out.glob("*.png"):
                     shutil.copyfile(png, root / folder / png.name)
-    readme = root / "README.md"
-    text = readme.read_text()
     blocks = readme_blocks(root)
-    seen = set()
+    seen: set[str] = set()
+    for readme in readmes(root):
+        text = readme.read_text()
 
-    def replace(m: re.Match) -> str:
-        name = m.group("name")
-        if name not in blocks:
-            raise DSSPError(f"README.md has a figure block {name!r} that nothing rebuilds; known: {', '.join(blocks)}")
-        seen.add(name)
-        return m.group(1) + blocks[name] + m.group(4)
+        def replace(m: re.Match) -> str:
+            name = m.group("name")
+            if name not in blocks:
+                raise DSSPError(f"{readme.relative_to(root)} has a figure block {name!r} that nothing rebuilds; known: "
+                                f"{', '.join(blocks)}")
+            seen.add(name)
+            return m.group(1) + blocks[name] + m.group(4)
 
-    new_text = BLOCK.sub(replace, text)
-    if new_text != text:
-        changed.append("README.md")
-        if not check:
-            atomic_write_text(readme, new_text)
+        new_text = BLOCK.sub(replace, text)
+        if new_text != text:
+            changed.append(str(readme.relative_to(root)))
+            if not check:
+                atomic_write_text(readme, new_text)
     missing = set(blocks) - seen
     if missing:
-        raise DSSPError(f"README.md lacks the figure block(s) {', '.join(sorted(missing))} (<!-- figures: NAME --> ... <!-- /figures -->)")
+        raise DSSPError(f"no README has the figure block(s) {', '.join(sorted(missing))} (<!-- figures: NAME --> ... "
+                        "<!-- /figures -->)")
     return changed
+
+
+def readmes(root: Path) -> list[Path]:
+    """The project's READMEs: the top one and each package's."""
+    return [root / "README.md", *sorted(p for p in root.glob("*/README.md") if p.parent.name not in ("runs", "build"))]
 
 
 def main(argv: list[str] | None = None) -> int:

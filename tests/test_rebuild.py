@@ -23,7 +23,10 @@ def test_every_report_and_readme_figure_matches_its_record(capsys):
 @pytest.fixture
 def copy_root(tmp_path):
     shutil.copytree(ROOT / "reports", tmp_path / "reports")
-    shutil.copyfile(ROOT / "README.md", tmp_path / "README.md")
+    shutil.copytree(ROOT / "benchmarks", tmp_path / "benchmarks")
+    for readme in [ROOT / "README.md", *ROOT.glob("*/README.md")]:
+        (tmp_path / readme.relative_to(ROOT)).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(readme, tmp_path / readme.relative_to(ROOT))
     return tmp_path
 
 
