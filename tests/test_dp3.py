@@ -146,3 +146,16 @@ def test_dssp_sim_eval_runs_dp3(dp3_model, tmp_path, capsys):
                      "--json", str(out), "--threads", "1", "--no-progress", "--precision", "fp32"]) == 0
     record = json.loads(out.read_text())
     assert record["n"] == 1 and record["episodes"][0]["steps"] > 0
+
+
+def test_dssp_run_runs_dp3_on_the_embedded_simulation(dp3_model, tmp_path, capsys):
+    from hardware.cli.run import main as run_main
+
+    log_dir = tmp_path / "log"
+    code = run_main(["--model", str(dp3_model), "--camera", "sim", "--can", "sim", "--max-steps", "30",
+                     "--log-dir", str(log_dir), "--seed", "0", "--threads", "1", "--quiet"])
+    out = capsys.readouterr().out
+    assert code == 0, out
+    assert "ticks 30" in out and "ended by: max steps" in out
+    summary = json.loads((log_dir / "run.json").read_text())["summary"]
+    assert summary["ticks"] == 30 and summary["commands_sent"] > 0
