@@ -187,6 +187,9 @@ def report_lines(plan: dict, record: Path, split: str, shown_record: str | None 
     figures: dict = {"split": split, "tasks": {}}
     prov_path = record / f"provenance_{split}.json"
     runs = json.loads(prov_path.read_text()) if prov_path.is_file() else []
+    runs = [runs] if isinstance(runs, dict) else runs  # one run, written as an object
+    if not isinstance(runs, list) or not all(isinstance(r, dict) for r in runs):
+        raise DSSPError(f"{prov_path} must hold a list of runs' provenance (objects); write it again with this study")
     seeds = plan["seeds"]
     n = plan["episodes"][split]
     scene_seeds = protocol.split_seeds(split, n)
@@ -262,11 +265,44 @@ def _merge(dicts) -> dict:
 
 
 def write_report(plan: dict, record: Path, report: Path, split: str, shown_record: str | None = None) -> Path:
+    """``memory_SPLIT.md`` (tables), ``.json`` (every figure) and ``.png`` (the plot), from the record alone."""
     lines, figures = report_lines(plan, record, split, shown_record)
     md = report / f"{REPORT_NAME}_{split}.md"
+    lines += [f"![success and memory decision per model]({md.with_suffix('.png').name})", ""]
+    report.mkdir(parents=True, exist_ok=True)
     atomic_write_text(md, "\n".join(lines))
     atomic_write_text(report / f"{REPORT_NAME}_{split}.json", json.dumps({"plan": plan, **figures}, indent=1, sort_keys=True) + "\n")
+    plot(figures, md.with_suffix(".png"))
     return md
+
+
+def plot(figures: dict, path: Path) -> None:
+    """Per task: each model's success with its cluster-bootstrap interval, and its memory decision's accuracy among
+    the episodes that reached it."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from dssp_data.output_guard import write_output_figure
+
+    tasks = [t for t, rows in figures["tasks"].items() if rows]
+    fig, axes = plt.subplots(1, max(len(tasks), 1), figsize=(5.5 * max(len(tasks), 1), 4), squeeze=False)
+    for ax, task in zip(axes[0], tasks):
+        rows = figures["tasks"][task]
+        names = list(rows)
+        x = np.arange(len(names))
+        success = [100 * rows[n]["success"] for n in names]
+        err = [[100 * (rows[n]["success"] - rows[n]["ci"][0]) for n in names], [100 * (rows[n]["ci"][1] - rows[n]["success"]) for n in names]]
+        decision = [100 * rows[n]["decision_right"] / rows[n]["decision_reached"] if rows[n]["decision_reached"] else 0 for n in names]
+        ax.bar(x - 0.2, success, 0.4, yerr=err, capsize=3, label="success (95 % cluster bootstrap)")
+        ax.bar(x + 0.2, decision, 0.4, label="memory decision right (of reached)")
+        ax.set(xticks=x, ylim=(0, 105), ylabel="%", title=f"{task} ({figures['split']} split)")
+        ax.set_xticklabels([LABELS.get(n, n) for n in names], rotation=20, ha="right", fontsize=7)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    write_output_figure(path, fig, force=True, flag="--report")
 
 
 def run_study(plan: dict, split: str, tasks: list[str], work: Path, report: Path, workers: int,

@@ -47,7 +47,8 @@ def _memory(root: Path, out: Path) -> list[str]:
     written = []
     for split in ("validation", "test"):
         if any((record / "evals").glob(f"*_{split}.json")):
-            md = memory_tasks.write_report(memory_tasks.PLAN, record, out, split, shown_record="reports/memory/record")
+            with contextlib.redirect_stdout(io.StringIO()):
+                md = memory_tasks.write_report(memory_tasks.PLAN, record, out, split, shown_record="reports/memory/record")
             written += [md.name, md.with_suffix(".json").name]
     return written
 
