@@ -213,3 +213,19 @@ def test_the_quick_memory_study_runs_end_to_end_and_locks_the_test_split(tmp_pat
     trains = [p for p in (work / "done").glob("train_*.json")]
     assert len(trains) == 3 * 2
     assert memory_tasks.main([*base, "--split", "test", "--report-only"]) == 0
+
+
+@pytest.mark.slow
+def test_the_quick_sampling_study_runs_end_to_end_and_rebuilds_from_its_record(tmp_path, capsys):
+    from studies import sampling
+
+    work, report = tmp_path / "work", tmp_path / "report"
+    assert sampling.main(["--quick", "--work", str(work), "--report", str(report), "--workers", "2"]) == 0
+    first = (report / "sampling.md").read_text()
+    assert "| 2 | " in first and "| 1 | " in first and "validation seeds 1000–1000" in first
+    assert len(list((report / "record/evals").glob("*.json"))) == 4
+    capsys.readouterr()
+    assert sampling.main(["--quick", "--work", str(work), "--report", str(report)]) == 0
+    assert "0 stage(s)" in capsys.readouterr().out  # every cell is in the record: nothing runs again
+    assert sampling.main(["--quick", "--report", str(report), "--report-only"]) == 0
+    assert (report / "sampling.md").read_text() == first

@@ -1,0 +1,241 @@
+"""The sampling study: closed-loop success and chunk cost against DDIM steps K and weight precision.
+
+    python -m studies.sampling [--tasks tap put2] [--workers 2] [--work runs/sampling] [--report reports/sampling]
+                               [--report-only] [--quick]
+
+For each task (``tap``, ``put2``): collect the expert demonstrations, train DSSP as the memory-task study does
+(preset ``sim``, its steps and demonstrations, training seed 0), export it once per K in the plan (every export
+writes fp32, int8 and int4 graphs and proves the fp32 ones' parity) and evaluate every (K, precision) cell in
+closed loop through the robot's chain on the same scenes, on the graphs the runtime picks (the fused Mamba
+kernel when it loads; each evaluation records which ran). K and the default precision are choices, so the
+study runs on **validation** seeds only (:mod:`studies.protocol`). The chunk cost of a cell is the denoiser's
+median time during its evaluation (one ONNX Runtime thread, beside MuJoCo).
+
+Stages run on :class:`studies.runner.Runner` (side by side, one thread each, resumed). Each evaluation is kept
+in the record (``--report``/record/evals/NAME.json: its counts, episodes and chunk latency); the report —
+``sampling.md``, ``.json``, ``.png`` — is rebuilt from the record alone (``--report-only``,
+``python -m studies.rebuild``).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+from dssp_data.cli_runner import ArgumentParser, run_cli
+from dssp_data.errors import DSSPError
+from dssp_data.files import atomic_write_text
+from dssp_deploy.manifest import PRECISIONS
+from dssp_sim.evaluate import wilson_interval
+from studies import memory_tasks, protocol
+from studies.runner import Runner, Stage
+
+REPORT_NAME = "sampling"
+PLAN = {
+    "tasks": {task: memory_tasks.PLAN["tasks"][task] for task in ("tap", "put2")},
+    "preset": "sim",
+    "seed": 0,
+    "denoise_steps": [10, 5, 3, 2],
+    "precisions": list(PRECISIONS),
+    "episodes": 20,
+}
+QUICK_PLAN = {**PLAN, "tasks": {"tap": {"demos": 3, "steps": 10}}, "denoise_steps": [2, 1], "precisions": ["fp32", "int8"],
+              "episodes": 1}
+RECORD_DIR = "record"
+
+
+def cell(task: str, k: int, precision: str) -> str:
+    return f"{task}_k{k}_{precision}"
+
+
+def stages(plan: dict, tasks: list[str], record: Path) -> list[Stage]:
+    """Every stage of ``tasks``; a cell whose evaluation is in the record needs none."""
+    first = protocol.split_seeds("validation", plan["episodes"])[0]
+    out: list[Stage] = []
+    for task in tasks:
+        spec, data, run = plan["tasks"][task], f"data/{task}.zarr", f"runs/{task}_dssp_s{plan['seed']}"
+        task_stages: list[Stage] = []
+        for k in plan["denoise_steps"]:
+            model = f"models/{task}_k{k}"
+            cells = [Stage(f"eval_{cell(task, k, p)}", "dssp_sim.sim_cli:main",
+                           ("eval", "--model", model, "--task", task, "--episodes", str(plan["episodes"]), "--seed", str(first),
+                            "--precision", p, "--threads", "1", "--json", f"evals/{cell(task, k, p)}.json", "--force",
+                            "--no-progress"), after=(f"export_{task}_k{k}",), outputs=(f"evals/{cell(task, k, p)}.json",))
+                     for p in plan["precisions"] if not (record / "evals" / f"{cell(task, k, p)}.json").is_file()]
+            if cells:
+                task_stages += [Stage(f"export_{task}_k{k}", "export.to_onnx:main",
+                                      (run, "-o", model, "--denoise-steps", str(k), "--threads", "1", "--force"),
+                                      after=(f"train_{task}",)), *cells]
+        if task_stages:
+            argv = ("--data", data, "--out", run, "--preset", plan["preset"], "--steps", str(spec["steps"]), "--seed",
+                    str(plan["seed"]), "--no-progress", "--force")
+            out += [Stage(f"collect_{task}", "dssp_sim.sim_cli:main",
+                          ("collect", "--task", task, "--episodes", str(spec["demos"]), "--out", data, "--no-progress"), clean=(data,)),
+                    Stage(f"train_{task}", "dssp_train.cli.train:main", argv, after=(f"collect_{task}",),
+                          resume=("--data", data, "--out", run, "--resume", "--no-progress"), started=f"{run}/checkpoint"),
+                    *task_stages]
+    return out
+
+
+def keep(work: Path, record: Path, stage_list: list[Stage], runner: Runner) -> None:
+    """Each finished evaluation into the record: what the report needs (counts, episodes, the chunk's latency)."""
+    for s in stage_list:
+        for output in s.outputs:
+            if runner.done(s.name) and (work / output).is_file():
+                result = json.loads((work / output).read_text())
+                kept = {**memory_tasks.compact(result), "wilson95": result["wilson95"], "success_rate": result["success_rate"]}
+                (record / "evals").mkdir(parents=True, exist_ok=True)
+                atomic_write_text(record / output, json.dumps(kept, indent=1) + "\n")
+
+
+def recorded(plan: dict, record: Path) -> dict:
+    """{cell: evaluation} of every cell of the plan the record holds."""
+    evals = {}
+    for task in plan["tasks"]:
+        for k in plan["denoise_steps"]:
+            for p in plan["precisions"]:
+                path = record / "evals" / f"{cell(task, k, p)}.json"
+                if path.is_file():
+                    evals[cell(task, k, p)] = json.loads(path.read_text())
+    return evals
+
+
+def summarise(evals: dict, plan: dict) -> dict:
+    """{task: {precision: {K: {k, n, rate, wilson95, chunk_ms, kernel}}}} from the evaluations."""
+    table: dict = {}
+    for task in plan["tasks"]:
+        for precision in plan["precisions"]:
+            for k in plan["denoise_steps"]:
+                r = evals.get(cell(task, k, precision))
+                if r is None:
+                    continue
+                table.setdefault(task, {}).setdefault(precision, {})[k] = {
+                    "k": r["successes"], "n": r["n"], "rate": r["success_rate"], "wilson95": r["wilson95"],
+                    "chunk_ms": r["latency_ms"].get("chunk", {}).get("p50"), "kernel": r.get("kernel")}
+    return table
+
+
+def eligible_precisions(table: dict, plan: dict) -> dict:
+    """Per precision at the plan's first K: is its success inside fp32's 95 % interval on every task? The default
+    precision is the fastest eligible one; speed is judged on the paper's size (the README's CPU table)."""
+    k = plan["denoise_steps"][0]
+    verdict = {}
+    for precision in plan["precisions"]:
+        inside = {}
+        for task in table:
+            r, ref = table[task].get(precision, {}).get(k), table[task].get("fp32", {}).get(k)
+            inside[task] = r is not None and ref is not None and ref["wilson95"][0] <= r["rate"] <= ref["wilson95"][1]
+        verdict[precision] = {"inside_fp32_interval": all(inside.values()), "per_task": inside}
+    return {"at_denoise_steps": k, "per_precision": verdict}
+
+
+def pct(k: int, n: int) -> str:
+    lo, hi = wilson_interval(k, n)
+    return f"{100 * k / max(n, 1):.0f} % ({k}/{n}; {100 * lo:.0f}–{100 * hi:.0f})"
+
+
+def write_report(plan: dict, record: Path, report: Path, shown_record: str | None = None) -> Path:
+    """``sampling.md``, ``.json``, ``.png`` from the record alone."""
+    evals = recorded(plan, record)
+    if not evals:
+        raise DSSPError(f"{record} holds no evaluation of this plan; run the study first")
+    table = summarise(evals, plan)
+    choice = eligible_precisions(table, plan)
+    scenes = protocol.split_seeds("validation", plan["episodes"])
+    kernels = sorted({row["kernel"] for t in table.values() for p in t.values() for row in p.values() if row["kernel"]})
+    lines = [
+        "# Sampling: DDIM steps K and weight precision against closed-loop success", "",
+        f"Rebuilt from `{shown_record or record}` by `python -m studies.sampling --report-only`. DSSP, preset `{plan['preset']}`, "
+        f"trained once per task (steps {({t: s['steps'] for t, s in plan['tasks'].items()})}, seed {plan['seed']}), exported "
+        f"once per K; {plan['episodes']} closed-loop episodes per cell on validation seeds {scenes[0]}–{scenes[-1]} (K and the "
+        f"precision are choices: validation, not a test result); graphs run: {', '.join(kernels) or '-'} Mamba path. Success "
+        "with 95 % Wilson intervals (one training seed); chunk = the denoiser's median time during the evaluation (one "
+        "ONNX Runtime thread, beside MuJoCo).", "",
+    ]
+    for task, per_precision in table.items():
+        lines += [f"## {task}", "", "| K | " + " | ".join(f"{p} success | {p} chunk ms" for p in per_precision) + " |",
+                  "|---:|" + "---|---:|" * len(per_precision)]
+        for k in plan["denoise_steps"]:
+            cells = []
+            for rows in per_precision.values():
+                row = rows.get(k)
+                cells += ["pending", "-"] if row is None else [pct(row["k"], row["n"]), f"{row['chunk_ms']:.2f}" if row["chunk_ms"] else "-"]
+            lines.append(f"| {k} | " + " | ".join(cells) + " |")
+        lines.append("")
+    lines += [f"Eligible as the runtime's default precision (success inside fp32's 95 % interval on every task at K = "
+              f"{choice['at_denoise_steps']}):", ""]
+    for precision, v in choice["per_precision"].items():
+        lines.append(f"- {precision}: {'eligible' if v['inside_fp32_interval'] else 'not eligible'} ("
+                     + ", ".join(f"{t} " + ("inside" if ok else "outside") for t, ok in v["per_task"].items()) + ")")
+    lines += ["", f"![success and chunk cost against K]({REPORT_NAME}.png)", ""]
+    report.mkdir(parents=True, exist_ok=True)
+    md = report / f"{REPORT_NAME}.md"
+    atomic_write_text(md, "\n".join(lines))
+    atomic_write_text(report / f"{REPORT_NAME}.json", json.dumps({"plan": plan, "summary": table, "eligible_precisions": choice},
+                                                                 indent=1, sort_keys=True) + "\n")
+    plot(table, plan, report / f"{REPORT_NAME}.png")
+    return md
+
+
+def plot(table: dict, plan: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from dssp_data.output_guard import write_output_figure
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    for task, per_precision in table.items():
+        for precision, rows in per_precision.items():
+            ks = [k for k in plan["denoise_steps"] if k in rows]
+            rates = [100 * rows[k]["rate"] for k in ks]
+            lo = [100 * (rows[k]["rate"] - rows[k]["wilson95"][0]) for k in ks]
+            hi = [100 * (rows[k]["wilson95"][1] - rows[k]["rate"]) for k in ks]
+            axes[0].errorbar(ks, rates, yerr=[lo, hi], marker="o", capsize=3, label=f"{task} {precision}")
+            axes[1].plot(ks, [rows[k]["chunk_ms"] or float("nan") for k in ks], marker="o", label=f"{task} {precision}")
+    axes[0].set(xlabel="DDIM steps K", ylabel="success %", ylim=(0, 105), title="Closed-loop success (95 % Wilson)")
+    axes[1].set(xlabel="DDIM steps K", ylabel="ms", ylim=(0, None), title="Denoiser chunk, median (1 thread)")
+    for ax in axes:
+        ax.set_xticks(plan["denoise_steps"])
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    write_output_figure(path, fig, force=True, flag="--report")
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = ArgumentParser(prog="python -m studies.sampling", description=__doc__.split("\n\n")[0])
+    p.add_argument("--tasks", nargs="+", metavar="TASK", help="default: every task of the plan")
+    p.add_argument("--workers", type=int, default=2, help="stages side by side, one thread each (default 2)")
+    p.add_argument("--work", type=Path, default=Path("runs/sampling"), help="datasets, runs, models, evaluations, logs")
+    p.add_argument("--report", type=Path, default=Path("reports/sampling"), help="the report and its record")
+    p.add_argument("--report-only", action="store_true", help="run nothing: rebuild the report from the record")
+    p.add_argument("--quick", action="store_true", help="a tiny plan (tests)")
+    args = p.parse_args(argv)
+    plan = QUICK_PLAN if args.quick else PLAN
+    tasks = args.tasks or list(plan["tasks"])
+    if set(tasks) - set(plan["tasks"]):
+        p.error(f"--tasks: {', '.join(sorted(set(tasks) - set(plan['tasks'])))} not in the plan ({', '.join(plan['tasks'])})")
+
+    def _main() -> int:
+        record = args.report / RECORD_DIR
+        if not args.report_only:
+            stage_list = stages(plan, tasks, record)
+            memory_tasks.note_provenance(record, plan, "validation")
+            runner = Runner(args.work, workers=args.workers)
+            (args.work / "evals").mkdir(parents=True, exist_ok=True)
+            print(f"{len(stage_list)} stage(s) for {', '.join(tasks)}, {args.workers} at a time")
+            try:
+                runner.run(stage_list)
+            finally:
+                keep(args.work, record, stage_list, runner)
+        md = write_report(plan, record, args.report)
+        print(md.read_text())
+        return 0
+
+    return run_cli(_main)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
