@@ -71,7 +71,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
     p.add_argument("--force", action="store_true", help="replace a previous run in --out (once the new one completes)")
     ablations = p.add_argument_group("ablations (paper Tables 3 and 5)")
-    ablations.add_argument("--no-history", action="store_true", help="no history encoder: the reactive, DP3-like baseline")
+    ablations.add_argument("--no-history", action="store_true", help="no history encoder: DSSP without history (the reactive baseline; DP3 itself: --preset dp3_sim or dp3)")
     ablations.add_argument("--no-timestep-decoupling", action="store_true", help="AdaLN modulates the prefix tokens too")
     ablations.add_argument("--no-recent-states", action="store_true", help="prefix is [c_t] only")
     ablations.add_argument("--no-dynamics-loss", action="store_true", help="lambda = 0")
