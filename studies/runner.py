@@ -16,7 +16,8 @@ in their own processes with one thread each, resumed after an interruption.
   folder's). A stage starts when every stage it comes ``after`` is done; ``clean`` paths are removed before
   it starts (a collection stopped halfway is collected again, not appended to).
 - The first stage that fails stops the others and raises one line: its name, its exit code, its log's last
-  line and the log's path. Ctrl-C (or SIGTERM) stops every running stage too.
+  line and the log's path. Ctrl-C, or SIGTERM (also where a background launch ignores SIGINT), stops every
+  running stage too; what finished is kept.
 """
 
 from __future__ import annotations
@@ -78,6 +79,32 @@ def _call(entry: str, argv: list[str], log: str, threads: int, cwd: str) -> None
     sys.exit(int(code or 0))
 
 
+class Stopped(KeyboardInterrupt):
+    """SIGTERM while stages run: handled as Ctrl-C (every running stage is stopped, the command exits 130)."""
+
+
+def _raise_stopped(signum, frame):
+    raise Stopped(f"signal {signum}")
+
+
+def _stop_on_sigterm():
+    """Make SIGTERM stop the study like Ctrl-C while it runs (by default it would end this process and leave its stages
+    running); returns the handler to restore, or None off the main thread (where no handler can be set)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    return signal.signal(signal.SIGTERM, _raise_stopped)
+
+
+def _restore_sigterm(previous) -> None:
+    import signal
+
+    if previous is not None:
+        signal.signal(signal.SIGTERM, previous)
+
+
 class Runner:
     """Runs a study's stages in ``work`` (``done/``, ``logs/``): see the module docstring."""
 
@@ -119,6 +146,7 @@ class Runner:
                 self.say(f"  {s.name}: done before")
         running: dict[str, tuple[Stage, multiprocessing.Process, float, list[str]]] = {}
         ran: dict[str, float] = {}
+        previous = _stop_on_sigterm()
         try:
             while pending or running:
                 for s in list(pending):
@@ -152,6 +180,7 @@ class Runner:
                     self.say(f"  {name}: done in {seconds:.0f} s")
                 time.sleep(POLL_S)
         finally:
+            _restore_sigterm(previous)
             for _, proc, _, _ in running.values():
                 if proc.is_alive():
                     proc.terminate()

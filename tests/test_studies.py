@@ -229,3 +229,38 @@ def test_the_quick_sampling_study_runs_end_to_end_and_rebuilds_from_its_record(t
     assert "0 stage(s)" in capsys.readouterr().out  # every cell is in the record: nothing runs again
     assert sampling.main(["--quick", "--report", str(report), "--report-only"]) == 0
     assert (report / "sampling.md").read_text() == first
+
+
+def sleep_long(argv: list[str]) -> int:
+    """A stage that runs until it is stopped; writes its pid first."""
+    import time
+
+    Path(argv[0]).write_text(str(os.getpid()))
+    time.sleep(120)
+    return 0
+
+
+def test_sigterm_stops_the_running_stages_and_keeps_what_finished(tmp_path):
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    work = tmp_path / "work"
+    code = (f"import sys; sys.path.insert(0, {str(Path(__file__).parent)!r}); from studies.runner import Runner, Stage; "
+            f"Runner({str(work)!r}, workers=2, say=print).run([Stage('quick', 'test_studies:write_marker', ('done.json',)), "
+            f"Stage('long', 'test_studies:sleep_long', ('pid',))])")
+    # started the way a background launch is: SIGINT ignored, so only SIGTERM can stop it
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    deadline = time.monotonic() + 60
+    while not ((work / "pid").is_file() and (work / "done/quick.json").is_file()) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    stage_pid = int((work / "pid").read_text())
+    proc.send_signal(signal.SIGTERM)
+    proc.wait(timeout=30)
+    assert proc.returncode != 0 and (work / "done/quick.json").is_file() and not (work / "done/long.json").exists()
+    with pytest.raises(ProcessLookupError):  # the stage went with the runner
+        for _ in range(50):
+            os.kill(stage_pid, 0)
+            time.sleep(0.1)
