@@ -14,7 +14,7 @@ What it rebuilds (:data:`SOURCES`):
   (the Quick start's table, from ``reports/demo/results.json``), ``sim_paired`` (the earlier simulation
   study's comparisons with DSSP and their exact paired tests, from ``reports/sim/record``), and the CPU tables
   ``cpu_targets``, ``dp3_paper``, ``dp3_sim`` (rendered by the benchmark scripts' own ``markdown`` from their
-  records in ``reports/cpu/``).
+  records in ``reports/cpu/``), ``memory_test`` (the memory study's test-split tables, from its record).
 
 - ``reports/sampling/``: the sampling study's report (:mod:`studies.sampling`) once its record exists; the
   report there now predates it (and 7-bit int8 weights) and is listed as stale, with the command that
@@ -129,6 +129,22 @@ def sim_paired_table(record: Path) -> str:
     return "\n".join(lines) + "\n"
 
 
+def memory_table(record: Path, split: str) -> str:
+    """The memory study's tables of ``split`` for the tasks run so far (rows not yet evaluated left out)."""
+    from studies import memory_tasks
+
+    lines, figures = memory_tasks.report_lines(memory_tasks.PLAN, record, split, shown_record="reports/memory/record")
+    out: list[str] = []
+    for task, rows in figures["tasks"].items():
+        if not rows:
+            continue
+        start = lines.index(f"## {task}") + 2
+        end = next(i for i, line in enumerate(lines[start:]) if not line.startswith("|"))
+        table = [line for line in lines[start:start + end] if "| pending |" not in line]
+        out += [f"`{task}`, {split} split:", "", *table, ""]
+    return "\n".join(out) if out else "(no task evaluated yet)\n"
+
+
 def benchmark(root: Path, name: str):
     """The benchmark script ``benchmarks/NAME.py`` as a module (its ``markdown(report)`` renders its record)."""
     import importlib.util
@@ -147,7 +163,8 @@ def readme_blocks(root: Path) -> dict[str, str]:
     from dssp_sim.demo import results_table
 
     demo = json.loads((root / "reports/demo/results.json").read_text())
-    blocks = {"demo": results_table(demo["evals"]) + "\n", "sim_paired": sim_paired_table(root / "reports/sim/record")}
+    blocks = {"demo": results_table(demo["evals"]) + "\n", "sim_paired": sim_paired_table(root / "reports/sim/record"),
+              "memory_test": memory_table(root / "reports/memory/record", "test")}
     for block, (script, record) in BENCHMARK_BLOCKS.items():
         blocks[block] = benchmark(root, script).markdown(json.loads((root / record).read_text())) + "\n"
     return blocks
