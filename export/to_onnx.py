@@ -339,6 +339,11 @@ def export_model(
 
     with writer_lock(out_dir, what="model directory", flag="-o", error=ExportError), StagedDirectory(out_dir, force) as staged:
         policy, config, source = load_source(run_dir, ema)  # refuses a config.json edited since training
+        from dssp_train.model.mamba import Mamba
+
+        if fused and not any(isinstance(m, Mamba) for m in policy.modules()):  # e.g. DP3: nothing to fuse
+            fused, kernel_note = False, "fused graphs not written: the model has no Mamba layer (they would be its standard graphs)"
+            n_stages -= 1
         unrecorded = "" if config_recorded(run_dir / WEIGHTS[ema]) else (
             "; its config is not recorded (saved by an older version): config.json taken as it is")
         diffusion = config.model.diffusion

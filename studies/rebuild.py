@@ -181,20 +181,6 @@ BENCHMARK_BLOCKS = {
 def rebuild(root: Path, check: bool) -> list[str]:
     """Rebuild everything under ``root``; returns the files that differ (``check``) or were rewritten."""
     changed = []
-    for folder, build in SOURCES.items():
-        if not (root / folder).is_dir():
-            continue
-        with tempfile.TemporaryDirectory() as tmp:
-            out = Path(tmp)
-            for name in build(root, out):
-                new, old = out / name, root / folder / name
-                if not old.is_file() or old.read_text() != new.read_text():
-                    changed.append(f"{folder}/{name}")
-                    if not check:
-                        atomic_write_text(old, new.read_text())
-            if not check:
-                for png in out.glob("*.png"):
-                    shutil.copyfile(png, root / folder / png.name)
     blocks = readme_blocks(root)
     seen: set[str] = set()
     for readme in readmes(root):
@@ -217,6 +203,20 @@ def rebuild(root: Path, check: bool) -> list[str]:
     if missing:
         raise DSSPError(f"no README has the figure block(s) {', '.join(sorted(missing))} (<!-- figures: NAME --> ... "
                         "<!-- /figures -->)")
+    for folder, build in SOURCES.items():
+        if not (root / folder).is_dir():
+            continue
+        with tempfile.TemporaryDirectory() as tmp:
+            out = Path(tmp)
+            for name in build(root, out):
+                new, old = out / name, root / folder / name
+                if not old.is_file() or old.read_text() != new.read_text():
+                    changed.append(f"{folder}/{name}")
+                    if not check:
+                        atomic_write_text(old, new.read_text())
+            if not check:
+                for png in out.glob("*.png"):
+                    shutil.copyfile(png, root / folder / png.name)
     return changed
 
 
