@@ -17,28 +17,7 @@ from studies.runner import Runner, Stage
 from studies.stats import cluster_bootstrap, describe_p, paired_difference, paired_exact_test
 
 
-# ---------------------------------------------------------------------------------------------- entry points
-def write_marker(argv: list[str]) -> int:
-    """A stage's entry point for the tests: writes argv[0] with its own threads and working folder in it."""
-    path = Path(argv[0])
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps({"argv": argv, "omp": os.environ.get("OMP_NUM_THREADS"), "cwd": os.getcwd()}))
-    print(f"wrote {path}")
-    return 0
-
-
-def fail(argv: list[str]) -> int:
-    print("first line")
-    print(f"something broke: {argv[0]}")
-    return 3
-
-
-def needs(argv: list[str]) -> int:
-    """Succeeds only when argv[0] exists (the stage it comes after ran)."""
-    return 0 if Path(argv[0]).is_file() else 4
-
-
-ENTRY = "test_studies"  # tests/ is on sys.path (pytest puts it there; spawned stages inherit it)
+ENTRY = "study_entries"  # tests/ is on sys.path (pytest puts it there; spawned stages inherit it)
 
 
 def test_stages_run_in_order_in_their_folder_with_one_thread_and_are_not_run_twice(tmp_path):
@@ -231,15 +210,6 @@ def test_the_quick_sampling_study_runs_end_to_end_and_rebuilds_from_its_record(t
     assert (report / "sampling.md").read_text() == first
 
 
-def sleep_long(argv: list[str]) -> int:
-    """A stage that runs until it is stopped; writes its pid first."""
-    import time
-
-    Path(argv[0]).write_text(str(os.getpid()))
-    time.sleep(120)
-    return 0
-
-
 def test_sigterm_stops_the_running_stages_and_keeps_what_finished(tmp_path):
     import signal
     import subprocess
@@ -248,8 +218,8 @@ def test_sigterm_stops_the_running_stages_and_keeps_what_finished(tmp_path):
 
     work = tmp_path / "work"
     code = (f"import sys; sys.path.insert(0, {str(Path(__file__).parent)!r}); from studies.runner import Runner, Stage; "
-            f"Runner({str(work)!r}, workers=2, say=print).run([Stage('quick', 'test_studies:write_marker', ('done.json',)), "
-            f"Stage('long', 'test_studies:sleep_long', ('pid',))])")
+            f"Runner({str(work)!r}, workers=2, say=print).run([Stage('quick', 'study_entries:write_marker', ('done.json',)), "
+            f"Stage('long', 'study_entries:sleep_long', ('pid',))])")
     # started the way a background launch is: SIGINT ignored, so only SIGTERM can stop it
     proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))

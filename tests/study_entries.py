@@ -1,0 +1,36 @@
+"""Entry points for the stage runner's tests (tests/test_studies.py): a spawned stage imports this module, so it
+imports nothing heavy."""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+
+
+def write_marker(argv: list[str]) -> int:
+    """Writes argv[0] with its own threads and working folder in it."""
+    path = Path(argv[0])
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps({"argv": argv, "omp": os.environ.get("OMP_NUM_THREADS"), "cwd": os.getcwd()}))
+    print(f"wrote {path}")
+    return 0
+
+
+def fail(argv: list[str]) -> int:
+    print("first line")
+    print(f"something broke: {argv[0]}")
+    return 3
+
+
+def needs(argv: list[str]) -> int:
+    """Succeeds only when argv[0] exists (the stage it comes after ran)."""
+    return 0 if Path(argv[0]).is_file() else 4
+
+
+def sleep_long(argv: list[str]) -> int:
+    """A stage that runs until it is stopped; writes its pid first."""
+    Path(argv[0]).write_text(str(os.getpid()))
+    time.sleep(120)
+    return 0
