@@ -27,13 +27,17 @@ from __future__ import annotations
 
 import json
 import sys
+
+import numpy as np
 from pathlib import Path
 
 from dssp_data.cli_runner import ArgumentParser, run_cli
 from dssp_data.errors import DSSPError
 from dssp_data.files import atomic_write_text
+from dssp_data.output_guard import write_output_figure
 from studies import protocol
-from studies.runner import Runner, Stage
+from studies.evaluations import run_and_keep
+from studies.runner import Stage
 from studies.stats import cluster_bootstrap, describe_p, paired_difference, paired_exact_test
 
 REPORT_NAME = "memory"
@@ -129,25 +133,6 @@ def stages(plan: dict, split: str, tasks: list[str], record: Path, models: list[
                                 ("collect", "--task", task, "--episodes", str(spec["demos"]), "--out", data, "--no-progress"),
                                 clean=(data,)))
     return out
-
-
-def compact(result: dict) -> dict:
-    """What the record keeps of an evaluation: its counts, decisions, latency, and each episode's seed, outcome,
-    steps and memory decision (the per-tick details stay in the work folder)."""
-    keep = ("task", "n", "successes", "failure_reasons", "decisions", "precision", "kernel", "latency_ms")
-    return {**{k: result[k] for k in keep if k in result},
-            "episodes": [{"seed": e["seed"], "success": e["success"], "reason": e["reason"], "steps": e["steps"],
-                          "decision": e.get("decision", {})} for e in result["episodes"]]}
-
-
-def keep_evaluations(work: Path, record: Path, stage_list: list[Stage], runner: Runner) -> None:
-    for s in stage_list:
-        for output in s.outputs:
-            src = work / output
-            if runner.done(s.name) and src.is_file():
-                dst = record / output
-                dst.parent.mkdir(parents=True, exist_ok=True)
-                atomic_write_text(dst, json.dumps(compact(json.loads(src.read_text())), indent=1) + "\n")
 
 
 def gpu_commands(plan: dict, tasks: list[str]) -> list[str]:
@@ -279,13 +264,10 @@ def write_report(plan: dict, record: Path, report: Path, split: str, shown_recor
 def plot(figures: dict, path: Path) -> None:
     """Per task: each model's success with its cluster-bootstrap interval, and its memory decision's accuracy among
     the episodes that reached it."""
-    import matplotlib
+    import matplotlib  # here, not at the top: the study's command starts without it
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    import numpy as np
-
-    from dssp_data.output_guard import write_output_figure
 
     tasks = [t for t, rows in figures["tasks"].items() if rows]
     fig, axes = plt.subplots(1, max(len(tasks), 1), figsize=(5.5 * max(len(tasks), 1), 4), squeeze=False)
@@ -310,28 +292,10 @@ def run_study(plan: dict, split: str, tasks: list[str], work: Path, report: Path
     record = report / RECORD_DIR
     if split == "test":
         protocol.check_frozen(record, plan)
-    work.mkdir(parents=True, exist_ok=True)
-    (work / "evals").mkdir(exist_ok=True)
     stage_list = stages(plan, split, tasks, record, models)
-    note_provenance(record, plan, split)
-    runner = Runner(work, workers=workers)
-    print(f"{len(stage_list)} stage(s) for {', '.join(tasks)} on the {split} split, {workers} at a time")
-    try:
-        runner.run(stage_list)
-    finally:
-        keep_evaluations(work, record, stage_list, runner)
+    protocol.note_provenance(record, plan, split)
+    run_and_keep(work, record, stage_list, workers, f"{', '.join(tasks)} on the {split} split")
     return write_report(plan, record, report, split)
-
-
-def note_provenance(record: Path, plan: dict, split: str) -> None:
-    """Add this run's provenance to the record's list for ``split`` (a resumed study on other code or another
-    machine adds an entry; the same one again adds none)."""
-    path = record / f"provenance_{split}.json"
-    runs = json.loads(path.read_text()) if path.is_file() else []
-    now = protocol.provenance(plan)
-    if not runs or runs[-1] != now:
-        record.mkdir(parents=True, exist_ok=True)
-        atomic_write_text(path, json.dumps(runs + [now], indent=1) + "\n")
 
 
 def main(argv: list[str] | None = None) -> int:

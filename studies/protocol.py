@@ -23,6 +23,7 @@ import json
 import subprocess
 from pathlib import Path
 
+import dssp_sim
 from dssp_data import machine
 from dssp_data.errors import DSSPError
 from dssp_data.files import atomic_write_text
@@ -57,8 +58,6 @@ def check_disjoint() -> None:
 
 def task_definition_hash() -> str:
     """sha256 over the source of the simulation's task definitions (:data:`TASK_SOURCES`), first 16 hex digits."""
-    import dssp_sim
-
     root = Path(dssp_sim.__file__).parent
     h = hashlib.sha256()
     for name in TASK_SOURCES:
@@ -89,6 +88,17 @@ def provenance(plan: dict) -> dict:
     """What a record states about how it was made (module docstring)."""
     return {"task_definition": task_definition_hash(), "plan": plan_hash(plan), "commit": code_commit(),
             "machine": machine.describe()}
+
+
+def note_provenance(record_dir: Path, plan: dict, split: str) -> None:
+    """Add this run's provenance to the record's list for ``split`` (a resumed study on other code or another
+    machine adds an entry; the same one again adds none)."""
+    path = Path(record_dir) / f"provenance_{split}.json"
+    runs = json.loads(path.read_text()) if path.is_file() else []
+    now = provenance(plan)
+    if not runs or runs[-1] != now:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(path, json.dumps(runs + [now], indent=1) + "\n")
 
 
 def freeze_plan(record_dir: Path, plan: dict) -> str:

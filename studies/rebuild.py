@@ -24,6 +24,8 @@ What it rebuilds (:data:`SOURCES`):
 from __future__ import annotations
 
 import contextlib
+import functools
+import importlib.util
 import io
 import json
 import re
@@ -36,6 +38,10 @@ from pathlib import Path
 from dssp_data.cli_runner import ArgumentParser, run_cli
 from dssp_data.errors import DSSPError
 from dssp_data.files import atomic_write_text
+from dssp_sim import distill_study, experiment
+from dssp_sim.demo import results_table
+from studies import memory_tasks, sampling
+from studies.stats import describe_p, paired_exact_test
 
 BLOCK = re.compile(r"(<!-- figures: (?P<name>[a-z0-9_]+) -->\n)(?P<body>.*?)(<!-- /figures -->)", re.S)
 STALE = {"reports/sampling": "python -m studies.sampling (the report there has no record, and its int8 cells predate "
@@ -44,8 +50,6 @@ STALE = {"reports/sampling": "python -m studies.sampling (the report there has n
 
 
 def _memory(root: Path, out: Path) -> list[str]:
-    from studies import memory_tasks
-
     record = root / "reports/memory" / memory_tasks.RECORD_DIR
     written = []
     for split in ("validation", "test"):
@@ -57,8 +61,6 @@ def _memory(root: Path, out: Path) -> list[str]:
 
 
 def _sim(root: Path, out: Path) -> list[str]:
-    from dssp_sim import experiment
-
     record = root / "reports/sim" / experiment.RECORD_DIR
     results, pending = experiment.recorded_results(experiment.PLAN, record)
     with contextlib.redirect_stdout(io.StringIO()):
@@ -67,8 +69,6 @@ def _sim(root: Path, out: Path) -> list[str]:
 
 
 def _distill(root: Path, out: Path) -> list[str]:
-    from dssp_sim import distill_study
-
     record = root / "reports/distill" / distill_study.RECORD_DIR
     evals, latency, pending = distill_study.recorded_results(distill_study.PLAN, record)
     with contextlib.redirect_stdout(io.StringIO()):
@@ -78,8 +78,6 @@ def _distill(root: Path, out: Path) -> list[str]:
 
 
 def _sampling(root: Path, out: Path) -> list[str]:
-    from studies import sampling
-
     record = root / "reports/sampling" / sampling.RECORD_DIR
     if not (record / "evals").is_dir():
         return []  # listed as stale
@@ -102,9 +100,6 @@ SIM_COMPARED = ("reactive", "window10", "no_timestep_decoupling", "no_recent_sta
 def sim_paired_table(record: Path) -> str:
     """The earlier simulation study's comparisons with DSSP, paired on its scenes (seeds 1000…), from its record: each
     model's success, the difference and the exact paired test (:mod:`studies.stats`)."""
-    from dssp_sim import experiment
-    from studies.stats import describe_p, paired_exact_test
-
     def grid(task: str, variant: str, seeds: list[int]) -> list[list[int]] | None:
         rows = [experiment.recorded(record, f"{task}_{variant}_s{seed}") for seed in seeds]
         if any(r is None for r in rows):
@@ -131,8 +126,6 @@ def sim_paired_table(record: Path) -> str:
 
 def memory_table(record: Path, split: str) -> str:
     """The memory study's tables of ``split`` for the tasks run so far (rows not yet evaluated left out)."""
-    from studies import memory_tasks
-
     lines, figures = memory_tasks.report_lines(memory_tasks.PLAN, record, split, shown_record="reports/memory/record")
     out: list[str] = []
     for task, rows in figures["tasks"].items():
@@ -145,9 +138,10 @@ def memory_table(record: Path, split: str) -> str:
     return "\n".join(out) if out else "(no task evaluated yet)\n"
 
 
+@functools.cache
 def benchmark(root: Path, name: str):
-    """The benchmark script ``benchmarks/NAME.py`` as a module (its ``markdown(report)`` renders its record)."""
-    import importlib.util
+    """The benchmark script ``benchmarks/NAME.py`` as a module (its ``markdown(report)`` renders its record), loaded
+    once."""
 
     folder = str(root / "benchmarks")
     if folder not in sys.path:
@@ -160,8 +154,6 @@ def benchmark(root: Path, name: str):
 
 def readme_blocks(root: Path) -> dict[str, str]:
     """NAME -> the README figure block's body, rebuilt from its record."""
-    from dssp_sim.demo import results_table
-
     demo = json.loads((root / "reports/demo/results.json").read_text())
     blocks = {"demo": results_table(demo["evals"]) + "\n", "sim_paired": sim_paired_table(root / "reports/sim/record"),
               "memory_test": memory_table(root / "reports/memory/record", "test")}

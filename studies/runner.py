@@ -26,7 +26,10 @@ import importlib
 import json
 import multiprocessing
 import os
+import shutil
+import signal
 import sys
+import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -90,17 +93,12 @@ def _raise_stopped(signum, frame):
 def _stop_on_sigterm():
     """Make SIGTERM stop the study like Ctrl-C while it runs (by default it would end this process and leave its stages
     running); returns the handler to restore, or None off the main thread (where no handler can be set)."""
-    import signal
-    import threading
-
     if threading.current_thread() is not threading.main_thread():
         return None
     return signal.signal(signal.SIGTERM, _raise_stopped)
 
 
 def _restore_sigterm(previous) -> None:
-    import signal
-
     if previous is not None:
         signal.signal(signal.SIGTERM, previous)
 
@@ -193,8 +191,6 @@ class Runner:
     def _remove(self, path: str) -> None:
         """Remove what an attempt stopped halfway left at ``path``, which must lie inside the work folder (a link is
         removed, never followed)."""
-        import shutil
-
         target = self.work / path
         if os.path.isabs(path) or ".." in Path(path).parts:
             raise DSSPError(f"a stage may only clean paths inside its work folder, got {path!r}")

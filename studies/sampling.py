@@ -12,7 +12,8 @@ study runs on **validation** seeds only (:mod:`studies.protocol`). The chunk cos
 median time during its evaluation (one ONNX Runtime thread, beside MuJoCo).
 
 Stages run on :class:`studies.runner.Runner` (side by side, one thread each, resumed). Each evaluation is kept
-in the record (``--report``/record/evals/NAME.json: its counts, episodes and chunk latency); the report —
+in the record (``--report``/record/evals/NAME.json, :func:`studies.evaluations.compact`: counts, episodes,
+chunk latency); the report —
 ``sampling.md``, ``.json``, ``.png`` — is rebuilt from the record alone (``--report-only``,
 ``python -m studies.rebuild``).
 """
@@ -26,10 +27,13 @@ from pathlib import Path
 from dssp_data.cli_runner import ArgumentParser, run_cli
 from dssp_data.errors import DSSPError
 from dssp_data.files import atomic_write_text
+from dssp_data.output_guard import write_output_figure
 from dssp_deploy.manifest import PRECISIONS
 from dssp_sim.evaluate import wilson_interval
+from dssp_sim.experiment import pct
 from studies import memory_tasks, protocol
-from studies.runner import Runner, Stage
+from studies.evaluations import run_and_keep
+from studies.runner import Stage
 
 REPORT_NAME = "sampling"
 PLAN = {
@@ -78,17 +82,6 @@ def stages(plan: dict, tasks: list[str], record: Path) -> list[Stage]:
     return out
 
 
-def keep(work: Path, record: Path, stage_list: list[Stage], runner: Runner) -> None:
-    """Each finished evaluation into the record: what the report needs (counts, episodes, the chunk's latency)."""
-    for s in stage_list:
-        for output in s.outputs:
-            if runner.done(s.name) and (work / output).is_file():
-                result = json.loads((work / output).read_text())
-                kept = {**memory_tasks.compact(result), "wilson95": result["wilson95"], "success_rate": result["success_rate"]}
-                (record / "evals").mkdir(parents=True, exist_ok=True)
-                atomic_write_text(record / output, json.dumps(kept, indent=1) + "\n")
-
-
 def recorded(plan: dict, record: Path) -> dict:
     """{cell: evaluation} of every cell of the plan the record holds."""
     evals = {}
@@ -111,7 +104,8 @@ def summarise(evals: dict, plan: dict) -> dict:
                 if r is None:
                     continue
                 table.setdefault(task, {}).setdefault(precision, {})[k] = {
-                    "k": r["successes"], "n": r["n"], "rate": r["success_rate"], "wilson95": r["wilson95"],
+                    "k": r["successes"], "n": r["n"], "rate": r["successes"] / max(r["n"], 1),
+                    "wilson95": list(wilson_interval(r["successes"], r["n"])),
                     "chunk_ms": r["latency_ms"].get("chunk", {}).get("p50"), "kernel": r.get("kernel")}
     return table
 
@@ -128,11 +122,6 @@ def eligible_precisions(table: dict, plan: dict) -> dict:
             inside[task] = r is not None and ref is not None and ref["wilson95"][0] <= r["rate"] <= ref["wilson95"][1]
         verdict[precision] = {"inside_fp32_interval": all(inside.values()), "per_task": inside}
     return {"at_denoise_steps": k, "per_precision": verdict}
-
-
-def pct(k: int, n: int) -> str:
-    lo, hi = wilson_interval(k, n)
-    return f"{100 * k / max(n, 1):.0f} % ({k}/{n}; {100 * lo:.0f}–{100 * hi:.0f})"
 
 
 def write_report(plan: dict, record: Path, report: Path, shown_record: str | None = None) -> Path:
@@ -179,12 +168,10 @@ def write_report(plan: dict, record: Path, report: Path, shown_record: str | Non
 
 
 def plot(table: dict, plan: dict, path: Path) -> None:
-    import matplotlib
+    import matplotlib  # here, not at the top: the study's command starts without it
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from dssp_data.output_guard import write_output_figure
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     for task, per_precision in table.items():
@@ -221,15 +208,8 @@ def main(argv: list[str] | None = None) -> int:
     def _main() -> int:
         record = args.report / RECORD_DIR
         if not args.report_only:
-            stage_list = stages(plan, tasks, record)
-            memory_tasks.note_provenance(record, plan, "validation")
-            runner = Runner(args.work, workers=args.workers)
-            (args.work / "evals").mkdir(parents=True, exist_ok=True)
-            print(f"{len(stage_list)} stage(s) for {', '.join(tasks)}, {args.workers} at a time")
-            try:
-                runner.run(stage_list)
-            finally:
-                keep(args.work, record, stage_list, runner)
+            protocol.note_provenance(record, plan, "validation")
+            run_and_keep(args.work, record, stages(plan, tasks, record), args.workers, ", ".join(tasks))
         md = write_report(plan, record, args.report)
         print(md.read_text())
         return 0

@@ -1,0 +1,39 @@
+"""Running a study's stages and keeping what its evaluations found in the study's record.
+
+A record keeps, of each closed-loop evaluation (``dssp-sim eval --json``), what a report needs (:func:`compact`):
+its counts, failure reasons, memory decisions, graphs and latency, and each episode's scene seed, outcome, steps
+and memory decision. The per-tick details stay in the work folder.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from dssp_data.files import atomic_write_text
+from studies.runner import Runner, Stage
+
+KEPT = ("task", "n", "successes", "failure_reasons", "decisions", "precision", "kernel", "latency_ms")
+
+
+def compact(result: dict) -> dict:
+    """What the record keeps of one evaluation (module docstring)."""
+    return {**{k: result[k] for k in KEPT if k in result},
+            "episodes": [{"seed": e["seed"], "success": e["success"], "reason": e["reason"], "steps": e["steps"],
+                          "decision": e.get("decision", {})} for e in result["episodes"]]}
+
+
+def run_and_keep(work: Path, record: Path, stage_list: list[Stage], workers: int, what: str) -> None:
+    """Run the stages in ``work`` (``workers`` at a time) and keep every finished stage's evaluations (its
+    ``outputs``) in ``record`` at the same relative paths — also when a stage fails or the study is stopped."""
+    (work / "evals").mkdir(parents=True, exist_ok=True)
+    runner = Runner(work, workers=workers)
+    print(f"{len(stage_list)} stage(s) for {what}, {workers} at a time")
+    try:
+        runner.run(stage_list)
+    finally:
+        for s in stage_list:
+            for output in s.outputs:
+                if runner.done(s.name) and (work / output).is_file():
+                    (record / output).parent.mkdir(parents=True, exist_ok=True)
+                    atomic_write_text(record / output, json.dumps(compact(json.loads((work / output).read_text())), indent=1) + "\n")
