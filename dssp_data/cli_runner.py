@@ -3,10 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
+import signal
 import sys
+import threading
+import time
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 from dssp_data.errors import DSSPError
 
@@ -30,7 +34,8 @@ def run_cli(main: Callable[[], int | None]) -> int:
     """
     warnings.showwarning = _one_line_warning
     try:
-        code = int(main() or 0)
+        with interrupts_at_safe_points():
+            code = int(main() or 0)
         sys.stdout.flush()
         return code
     except DSSPError as exc:
@@ -58,3 +63,57 @@ def _settle_after_interrupt() -> None:
 
     warnings.filterwarnings("ignore", message="coroutine .* was never awaited", category=RuntimeWarning)
     settle_background_writes()
+
+
+# ------------------------------------------------------------------------------------------- Ctrl-C
+# The standard library's thread synchronisation is not safe against an exception raised between two of its
+# bytecodes: a KeyboardInterrupt that lands in ``concurrent.futures.wait`` just after it took a future's lock
+# leaves that lock held (CPython bpo-20319), and zarr's thread then blocks for ever when it completes the
+# future; the process never ends. So a Ctrl-C is raised only once the main thread runs outside these modules.
+_STDLIB = os.path.dirname(threading.__file__)
+_UNSAFE = tuple(os.path.join(_STDLIB, name) for name in ("threading.py", "queue.py", "concurrent" + os.sep,
+                                                         "asyncio" + os.sep))
+RETRY_S = 0.01     # how often a held-back Ctrl-C looks again for a safe point
+MAX_HOLD_S = 5.0   # a Ctrl-C held back longer than this is raised wherever the main thread is
+
+
+def in_thread_machinery(frame) -> bool:
+    """True while ``frame`` (the main thread's innermost) runs the standard library's thread synchronisation."""
+    return frame is not None and frame.f_code.co_filename.startswith(_UNSAFE)
+
+
+@contextlib.contextmanager
+def interrupts_at_safe_points(clock: Callable[[], float] = time.monotonic) -> Iterator[None]:
+    """Inside the block, Ctrl-C (SIGINT) raises KeyboardInterrupt as usual, but never inside the standard
+    library's locks, queues and futures (:func:`in_thread_machinery`): there it is held back and raised a few
+    milliseconds later, once the main thread is elsewhere (at most :data:`MAX_HOLD_S` later). Only in the main
+    thread and where SIGINT has Python's default handler; elsewhere a no-op."""
+    if (threading.current_thread() is not threading.main_thread()
+            or signal.getsignal(signal.SIGINT) is not signal.default_int_handler):
+        yield
+        return
+    held = {"since": None}
+
+    def retry() -> None:
+        import _thread
+
+        while held["since"] is not None:
+            time.sleep(RETRY_S)
+            if held["since"] is not None:
+                _thread.interrupt_main(signal.SIGINT)
+
+    def handler(signum, frame) -> None:
+        if in_thread_machinery(frame) and (held["since"] is None or clock() - held["since"] < MAX_HOLD_S):
+            if held["since"] is None:
+                held["since"] = clock()
+                threading.Thread(target=retry, name="ctrl-c-retry", daemon=True).start()
+            return
+        held["since"] = None
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGINT, handler)
+    try:
+        yield
+    finally:
+        held["since"] = None
+        signal.signal(signal.SIGINT, signal.default_int_handler)

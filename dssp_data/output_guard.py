@@ -710,7 +710,7 @@ def interrupts_deferred(reraise: bool = True) -> Iterator[None]:
         signal.signal(signal.SIGINT, previous)
         if caught and reraise:
             if callable(previous):
-                previous(signal.SIGINT, caught[-1])
+                previous(signal.SIGINT, sys._getframe())
             else:
                 os.kill(os.getpid(), signal.SIGINT)
 

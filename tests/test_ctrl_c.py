@@ -1,0 +1,94 @@
+"""A command's Ctrl-C never lands inside the standard library's thread synchronisation.
+
+A KeyboardInterrupt raised in ``concurrent.futures.wait`` just after it took a future's lock leaves the lock
+held; zarr's thread then blocks for ever completing that future and the interrupted command never ends.
+:func:`dssp_data.cli_runner.interrupts_at_safe_points` holds such a Ctrl-C back until the main thread is out.
+"""
+
+from __future__ import annotations
+
+import _thread
+import concurrent.futures
+import signal
+import sys
+import threading
+import time
+
+import pytest
+
+from dssp_data.cli_runner import MAX_HOLD_S, in_thread_machinery, interrupts_at_safe_points, run_cli
+
+
+@pytest.fixture
+def waiting_thread():
+    """A thread blocked in ``threading.Event.wait``, and its innermost frame (in threading.py)."""
+    gate = threading.Event()
+    thread = threading.Thread(target=gate.wait, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 10
+    while not in_thread_machinery(sys._current_frames().get(thread.ident)) and time.monotonic() < deadline:
+        time.sleep(0.001)
+    yield sys._current_frames()[thread.ident]
+    gate.set()
+    thread.join()
+
+
+def test_a_ctrl_c_in_thread_machinery_is_raised_once_the_main_thread_is_out(waiting_thread):
+    assert in_thread_machinery(waiting_thread) and not in_thread_machinery(sys._getframe())
+    with interrupts_at_safe_points():
+        handler = signal.getsignal(signal.SIGINT)
+        assert handler is not signal.default_int_handler
+        handler(signal.SIGINT, waiting_thread)  # held back: nothing raised here
+        with pytest.raises(KeyboardInterrupt):
+            for _ in range(2000):  # about 10 s at most; the held Ctrl-C comes within milliseconds
+                time.sleep(0.005)
+        with pytest.raises(KeyboardInterrupt):
+            handler(signal.SIGINT, sys._getframe())  # outside the machinery it is raised at once
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+def test_the_handler_is_restored_and_a_ctrl_c_held_too_long_is_raised_anyway(waiting_thread):
+    now = [100.0]
+    try:
+        with interrupts_at_safe_points(clock=lambda: now[0]):
+            handler = signal.getsignal(signal.SIGINT)
+            handler(signal.SIGINT, waiting_thread)
+            now[0] += MAX_HOLD_S + 0.1  # the main thread stayed in the machinery too long
+            with pytest.raises(KeyboardInterrupt):
+                handler(signal.SIGINT, waiting_thread)
+    except KeyboardInterrupt:  # the retry thread's interrupt arrived before the one above: same outcome
+        pass
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+def test_run_cli_holds_the_handler_only_while_the_command_runs():
+    seen = []
+    assert run_cli(lambda: seen.append(signal.getsignal(signal.SIGINT))) == 0
+    assert seen and seen[0] is not signal.default_int_handler
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    assert run_cli(lambda: _thread.interrupt_main()) == 130  # a Ctrl-C during a command: exit code 130
+
+
+def test_the_step_of_futures_wait_that_takes_the_locks_is_machinery():
+    """The frame the bug needs (``concurrent.futures.wait`` taking each future's lock) is one the Ctrl-C waits out."""
+    frames = []
+    future = concurrent.futures.Future()
+    future.set_result(1)
+    lock = future._condition
+
+    class Recording:
+        def acquire(self, *args):
+            frames.append(sys._getframe(1))
+            return lock.acquire(*args)
+
+        def release(self):
+            lock.release()
+
+    future._condition = Recording()
+    concurrent.futures.wait([future])
+    assert frames and frames[0].f_code.co_name == "__enter__" and in_thread_machinery(frames[0])
+    with interrupts_at_safe_points():
+        signal.getsignal(signal.SIGINT)(signal.SIGINT, frames[0])  # held back
+        with pytest.raises(KeyboardInterrupt):
+            for _ in range(2000):
+                time.sleep(0.005)
