@@ -35,7 +35,7 @@ $(KERNEL): dssp_deploy/kernel/mamba_ops.cc dssp_deploy/kernel/scan_simd.inc
 	@mv $@.tmp $@
 
 demo: setup
-	dssp-sim demo --out runs/demo --force
+	dssp-demo --out runs/demo --force
 
 test: setup
 	$(PYTHON) -m pytest -q -n $(TEST_WORKERS) --dist loadfile

@@ -16,7 +16,7 @@ Directories (:func:`check_output`, :class:`OutputDir`):
   refused, ``--force`` or not: nothing is deleted.
 
 Commands that add to what is there (``dssp-sim collect`` appends episodes, ``python -m
-dssp_sim.experiment`` resumes its work directory) continue only their own kind (:func:`check_append`,
+studies.sim_study`` resumes its work directory) continue only their own kind (:func:`check_append`,
 :func:`claim_dir` with ``resume=True``) and refuse anything else.
 
 Single files (JSON reports, PNG plots; :func:`check_output_file`, :func:`write_output_text`,

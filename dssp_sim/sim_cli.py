@@ -2,7 +2,6 @@
 
     dssp-sim collect --task tap|swap|put2 --episodes N --out PATH.zarr [--seed S] [--points P]
     dssp-sim record --out PATH.zarr [dssp-record's flags; --camera sim --can sim by default]
-    dssp-sim demo [--out runs/demo] [--steps 3000] [--demos 50] [--episodes 20] [--force]
     dssp-sim eval --model MODEL_DIR --task NAME --episodes N [--seed S] [--noise SIGMA] [--strips DIR] [--json PATH] [--force]
                   [--rerun [URL] | --rerun-save PATH.rrd]
 
@@ -11,7 +10,7 @@
 through the real chain (simulated camera → point-cloud pipeline → runtime → safety → CAN → simulated arm)
 and prints the success rate with its 95 % Wilson interval and each episode's outcome.
 Outputs (:mod:`dssp_data.output_guard`): ``collect`` appends only to a dataset ``dssp-sim collect`` wrote;
-``demo --out`` and ``eval --strips`` replace a previous output of their own only with ``--force``, and
+``eval --strips`` replaces a previous output of its own only with ``--force``, and
 never a folder with anything else in it; ``eval --json`` replaces an existing file only with ``--force``.
 Exit codes: 0 done, 2 bad input (an output path that may not be written included).
 """
@@ -38,7 +37,7 @@ def _task(name: str) -> str:
     return name
 
 
-def _positive(text: str) -> int:
+def positive_int(text: str) -> int:
     value = int(text)
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
@@ -58,21 +57,15 @@ def parse_args(argv):
     sub.add_parser("record", help="dssp-record on the simulated rig (same flags; see dssp-sim record --help)")
     c = sub.add_parser("collect", help="expert demonstrations → a DP3 zarr dataset")
     c.add_argument("--task", type=_task, required=True, help=" | ".join(TASKS))
-    c.add_argument("--episodes", type=_positive, required=True, help="successful episodes to keep")
+    c.add_argument("--episodes", type=positive_int, required=True, help="successful episodes to keep")
     c.add_argument("--out", type=Path, required=True, help="dataset path (.zarr; a dataset dssp-sim collect wrote is appended to)")
     c.add_argument("--seed", type=_non_negative, help="first scene seed (default: 0, or after the last one of the dataset appended to)")
-    c.add_argument("--points", type=_positive, help="points per cloud (default 256, the sim preset's)")
+    c.add_argument("--points", type=positive_int, help="points per cloud (default 256, the sim preset's)")
     c.add_argument("--no-progress", action="store_true")
-    d = sub.add_parser("demo", help="collect, train DSSP and the reactive baseline, export, evaluate (tap)")
-    d.add_argument("--out", type=Path, default=Path("runs/demo"), help="working directory (new or empty)")
-    d.add_argument("--force", action="store_true", help="replace a previous demo in --out")
-    d.add_argument("--steps", type=_positive, default=3000, help="training steps per model (default 3000)")
-    d.add_argument("--demos", type=_positive, default=50, help="expert demonstrations (default 50)")
-    d.add_argument("--episodes", type=_positive, default=20, help="evaluation episodes per model (default 20)")
     e = sub.add_parser("eval", help="closed-loop evaluation of a model directory")
     e.add_argument("--model", type=Path, required=True, help="model directory (python -m export.to_onnx)")
     e.add_argument("--task", type=_task, required=True, help=" | ".join(TASKS))
-    e.add_argument("--episodes", type=_positive, default=20)
+    e.add_argument("--episodes", type=positive_int, default=20)
     e.add_argument("--seed", type=_non_negative, default=1000, help="first episode seed (default 1000: unseen in collection)")
     e.add_argument("--noise", type=float, default=0.0, help="σ of Gaussian noise on the recent state tokens (robustness test)")
     e.add_argument("--threads", type=int, help="ONNX Runtime threads")
@@ -88,11 +81,6 @@ def parse_args(argv):
 
 
 def run(args) -> int:
-    if args.command == "demo":
-        from dssp_sim.demo import run_demo
-
-        run_demo(args.out, steps=args.steps, demos=args.demos, episodes=args.episodes, force=args.force)
-        return 0
     if args.command == "collect":
         from dssp_sim.collect import collect
 

@@ -38,9 +38,8 @@ from pathlib import Path
 from dssp_data.cli_runner import ArgumentParser, run_cli
 from dssp_data.errors import DSSPError
 from dssp_data.files import atomic_write_text
-from dssp_sim import distill_study, experiment
-from dssp_sim.demo import results_table
-from studies import memory_tasks, sampling
+from studies import distill_study, memory_tasks, sampling, sim_study
+from studies.demo import results_table
 from studies.stats import describe_p, paired_exact_test
 
 BLOCK = re.compile(r"(<!-- figures: (?P<name>[a-z0-9_]+) -->\n)(?P<body>.*?)(<!-- /figures -->)", re.S)
@@ -61,10 +60,10 @@ def _memory(root: Path, out: Path) -> list[str]:
 
 
 def _sim(root: Path, out: Path) -> list[str]:
-    record = root / "reports/sim" / experiment.RECORD_DIR
-    results, pending = experiment.recorded_results(experiment.PLAN, record)
+    record = root / "reports/sim" / sim_study.RECORD_DIR
+    results, pending = sim_study.recorded_results(sim_study.PLAN, record)
     with contextlib.redirect_stdout(io.StringIO()):
-        md = experiment.write_report(results, out, experiment.stage_seconds(out / "no-work", record), force=True, pending=pending)
+        md = sim_study.write_report(results, out, sim_study.stage_seconds(out / "no-work", record), force=True, pending=pending)
     return [md.name, md.with_suffix(".json").name]
 
 
@@ -101,7 +100,7 @@ def sim_paired_table(record: Path) -> str:
     """The earlier simulation study's comparisons with DSSP, paired on its scenes (seeds 1000…), from its record: each
     model's success, the difference and the exact paired test (:mod:`studies.stats`)."""
     def grid(task: str, variant: str, seeds: list[int]) -> list[list[int]] | None:
-        rows = [experiment.recorded(record, f"{task}_{variant}_s{seed}") for seed in seeds]
+        rows = [sim_study.recorded(record, f"{task}_{variant}_s{seed}") for seed in seeds]
         if any(r is None for r in rows):
             return None
         scenes = [[e["seed"] for e in r["episodes"]] for r in rows]
@@ -110,16 +109,16 @@ def sim_paired_table(record: Path) -> str:
         return [[int(e["success"]) for e in r["episodes"]] for r in rows]
 
     lines = ["| task | training seeds × scenes | model | DSSP | model's | Δ | paired exact test |", "|---|---|---|---:|---:|---:|---|"]
-    plan = experiment.PLAN
+    plan = sim_study.PLAN
     for task in plan["demos"]:
         seeds = sorted(set(plan["seeds"][task]) | set(plan["ablation_seeds"].get(task, [])))
         for variant in SIM_COMPARED:
-            used = [s for s in seeds if experiment.recorded(record, f"{task}_{variant}_s{s}")]
+            used = [s for s in seeds if sim_study.recorded(record, f"{task}_{variant}_s{s}")]
             base, other = grid(task, "dssp", used), grid(task, variant, used)
             if not used or base is None or other is None:
                 continue
             a, b = sum(map(sum, base)) / (len(used) * len(base[0])), sum(map(sum, other)) / (len(used) * len(other[0]))
-            lines.append(f"| {task} | {len(used)} × {len(base[0])} | {experiment.VARIANT_LABELS.get(variant, variant)} | "
+            lines.append(f"| {task} | {len(used)} × {len(base[0])} | {sim_study.VARIANT_LABELS.get(variant, variant)} | "
                          f"{100 * a:.0f} % | {100 * b:.0f} % | {100 * (b - a):+.0f} | {describe_p(paired_exact_test(other, base))} |")
     return "\n".join(lines) + "\n"
 

@@ -15,8 +15,10 @@ in their own processes with one thread each, resumed after an interruption.
   its output in ``work/logs/NAME.log``, run in the work folder (relative paths in a call are the work
   folder's). A stage starts when every stage it comes ``after`` is done; ``clean`` paths are removed before
   it starts (a collection stopped halfway is collected again, not appended to).
-- The first stage that fails stops the others and raises one line: its name, its exit code, its log's last
-  line and the log's path. Ctrl-C, or SIGTERM (also where a background launch ignores SIGINT), stops every
+- With ``echo``, each running stage's output is shown as it comes, line by line behind ``[NAME]`` (a progress
+  bar, a line ended by a carriage return, at most every :data:`PROGRESS_EVERY_S`).
+- The first stage that fails stops the others and raises :class:`StageFailed`, one line: its name, its exit code,
+  its log's last line and the log's path. Ctrl-C, or SIGTERM (also where a background launch ignores SIGINT), stops every
   running stage too; what finished is kept.
 """
 
@@ -26,6 +28,7 @@ import importlib
 import json
 import multiprocessing
 import os
+import re
 import shutil
 import signal
 import sys
@@ -40,6 +43,7 @@ from dssp_data.files import atomic_write_text
 
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS")
 POLL_S = 0.2
+PROGRESS_EVERY_S = 15.0
 
 
 @dataclass(frozen=True)
@@ -82,6 +86,58 @@ def _call(entry: str, argv: list[str], log: str, threads: int, cwd: str) -> None
     sys.exit(int(code or 0))
 
 
+class StageFailed(DSSPError):
+    """A stage's entry point ended with a non-zero exit code (or was killed: ``code`` None)."""
+
+    def __init__(self, stage: str, entry: str, code: int | None, log: Path, last: str):
+        self.stage, self.code, self.log, self.last = stage, code, log, last
+        super().__init__(f"stage {stage} ({entry}) failed with exit code {code}: {last} (log: {log}); "
+                         "run the study again to resume")
+
+
+class _Echo:
+    """Shows what a stage appends to its log, line by line behind ``[NAME] ``; a progress bar (a line ended by
+    ``\\r``) at most every PROGRESS_EVERY_S, and its last state when the stage ends."""
+
+    def __init__(self, name: str, log: Path, say: Callable[[str], None], clock: Callable[[], float] = time.monotonic):
+        self.name, self.log, self.say, self.clock = name, log, say, clock
+        self.offset, self.buffer, self.bar, self.shown = 0, b"", None, -PROGRESS_EVERY_S
+
+    def _show(self, line: str) -> None:
+        self.say(f"[{self.name}] {line}")
+
+    def poll(self) -> None:
+        try:
+            with open(self.log, "rb") as f:
+                f.seek(self.offset)
+                chunk = f.read()
+        except OSError:
+            return
+        self.offset += len(chunk)
+        self.buffer += chunk
+        held = b"\r" if self.buffer.endswith(b"\r") else b""  # perhaps the first half of \r\n
+        *parts, rest = re.split(rb"(\r\n|\n|\r)", self.buffer[: len(self.buffer) - len(held)])
+        self.buffer = rest + held
+        for text, end in zip(parts[::2], parts[1::2]):
+            line = text.decode("utf-8", "replace").rstrip()
+            if end == b"\r":
+                self.bar = line
+                if line and self.clock() - self.shown >= PROGRESS_EVERY_S:
+                    self._show(line)
+                    self.bar, self.shown = None, self.clock()
+            else:  # a complete line also ends a bar (tqdm closes with its final state)
+                self.bar = None
+                if line:
+                    self._show(line)
+
+    def close(self) -> None:
+        self.poll()
+        for line in (self.bar, self.buffer.decode("utf-8", "replace").rstrip()):  # a bar's last state, an unended line
+            if line:
+                self._show(line)
+        self.bar, self.buffer = None, b""
+
+
 class Stopped(KeyboardInterrupt):
     """SIGTERM while stages run: handled as Ctrl-C (every running stage is stopped, the command exits 130)."""
 
@@ -106,10 +162,11 @@ def _restore_sigterm(previous) -> None:
 class Runner:
     """Runs a study's stages in ``work`` (``done/``, ``logs/``): see the module docstring."""
 
-    def __init__(self, work: Path, workers: int = 1, threads: int = 1, say: Callable[[str], None] = print):
+    def __init__(self, work: Path, workers: int = 1, threads: int = 1, say: Callable[[str], None] = print,
+                 echo: bool = False):
         if workers < 1 or threads < 1:
             raise DSSPError(f"workers and threads must be at least 1, got {workers} and {threads}")
-        self.work, self.workers, self.threads, self.say = Path(work), workers, threads, say
+        self.work, self.workers, self.threads, self.say, self.echo = Path(work), workers, threads, say, echo
         self.context = multiprocessing.get_context("spawn")
 
     def marker(self, name: str) -> Path:
@@ -143,6 +200,7 @@ class Runner:
             if self.done(s.name):
                 self.say(f"  {s.name}: done before")
         running: dict[str, tuple[Stage, multiprocessing.Process, float, list[str]]] = {}
+        echoes: dict[str, _Echo] = {}
         ran: dict[str, float] = {}
         previous = _stop_on_sigterm()
         try:
@@ -160,17 +218,23 @@ class Runner:
                                                                                 str(self.work.resolve())), name=s.name)
                         proc.start()
                         running[s.name] = (s, proc, time.perf_counter(), argv)
+                        if self.echo:
+                            echoes[s.name] = _Echo(s.name, log, self.say)
                         self.say(f"  {s.name}: started{' (resumed)' if argv != list(s.argv) else ''}")
                 if not running and pending:
                     blocked = {s.name: [a for a in s.after if not self.done(a)] for s in pending}
                     raise DSSPError(f"stages wait on stages that cannot finish: {blocked}")
                 for name, (s, proc, t0, argv) in list(running.items()):
                     if proc.is_alive():
+                        if name in echoes:
+                            echoes[name].poll()
                         continue
                     proc.join()
                     del running[name]
+                    if name in echoes:
+                        echoes.pop(name).close()
                     if proc.exitcode != 0:
-                        raise DSSPError(self._failure(s, proc.exitcode))
+                        raise self._failure(s, proc.exitcode)
                     seconds = time.perf_counter() - t0
                     atomic_write_text(self.marker(name), json.dumps(
                         {"seconds": round(seconds, 1), "entry": s.entry, "argv": argv}, indent=1) + "\n")
@@ -199,8 +263,7 @@ class Runner:
         elif target.is_dir():
             shutil.rmtree(target)
 
-    def _failure(self, s: Stage, code: int | None) -> str:
+    def _failure(self, s: Stage, code: int | None) -> StageFailed:
         log = self.work / "logs" / f"{s.name}.log"
         lines = log.read_text(encoding="utf-8", errors="replace").strip().splitlines() if log.is_file() else []
-        last = lines[-1] if lines else "(no output)"
-        return f"stage {s.name} ({s.entry}) failed with exit code {code}: {last} (log: {log}); run the study again to resume"
+        return StageFailed(s.name, s.entry, code, log, lines[-1] if lines else "(no output)")

@@ -30,10 +30,10 @@ from dssp_data.files import atomic_write_text
 from dssp_data.output_guard import write_output_figure
 from dssp_deploy.manifest import PRECISIONS
 from dssp_sim.evaluate import wilson_interval
-from dssp_sim.experiment import pct
 from studies import memory_tasks, protocol
 from studies.evaluations import run_and_keep
 from studies.runner import Stage
+from studies.sim_study import pct
 
 REPORT_NAME = "sampling"
 PLAN = {

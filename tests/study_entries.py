@@ -1,5 +1,5 @@
-"""Entry points for the stage runner's tests (tests/test_studies.py): a spawned stage imports this module, so it
-imports nothing heavy."""
+"""Entry points for the stage runner's tests (tests/test_studies.py, tests/test_sim_study.py): a spawned stage
+imports this module, so it imports nothing heavy."""
 
 from __future__ import annotations
 
@@ -29,8 +29,27 @@ def needs(argv: list[str]) -> int:
     return 0 if Path(argv[0]).is_file() else 4
 
 
+def record_call(argv: list[str]) -> int:
+    """Appends its argv to calls.jsonl in the working folder: the call a study's stage makes, without making it."""
+    with open("calls.jsonl", "a") as f:
+        f.write(json.dumps(argv) + "\n")
+    return 0
+
+
 def sleep_long(argv: list[str]) -> int:
     """A stage that runs until it is stopped; writes its pid first."""
     Path(argv[0]).write_text(str(os.getpid()))
     time.sleep(120)
+    return 0
+
+
+def chatter(argv: list[str]) -> int:
+    """Lines, a progress bar on stderr and an unended last line."""
+    import sys
+
+    print("one")
+    sys.stderr.write("\rbar 1\rbar 2\n")
+    sys.stderr.flush()
+    print(os.environ.get("OMP_NUM_THREADS"))
+    sys.stdout.write("no newline")
     return 0

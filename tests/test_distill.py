@@ -159,10 +159,10 @@ def test_a_student_is_not_a_teacher_and_resume_keeps_its_config(teacher, tmp_pat
 
 @pytest.mark.slow
 def test_the_distillation_study_writes_its_report(tmp_path, capsys):
-    from dssp_sim.distill_study import REPORT_NAME, main as study_main
+    from studies.distill_study import REPORT_NAME, main as study_main
 
     work, report = tmp_path / "work", tmp_path / "report"
-    assert study_main(["--work", str(work), "--report", str(report), "--quick"]) == 0
+    assert study_main(["--work", str(work), "--report", str(report), "--quick", "--workers", "2"]) == 0
     md = (report / f"{REPORT_NAME}.md").read_text()
     assert "| teacher (DDIM, 10 steps) | 10 |" in md and "| student: trajectory distillation | 1 |" in md
     assert "| teacher, DDIM at K trailing steps (no distillation) | 1 |" in md
@@ -173,6 +173,8 @@ def test_the_distillation_study_writes_its_report(tmp_path, capsys):
     assert "## The chunk on the `tiny` preset" in md and (report / f"{REPORT_NAME}.png").read_bytes()[:4] == b"\x89PNG"
     manifest = json.loads((work / "models" / "tap_trajectory_k1" / "dssp_model.json").read_text())
     assert manifest["ddim_timesteps"] == [99]
+    seconds = {f.stem for f in (report / "record" / "seconds").glob("*.seconds")}
+    assert seconds == {p.stem for p in (work / "done").glob("*.json")} and "latency_profile_k1" in seconds
     capsys.readouterr()
     assert study_main(["--work", str(work), "--report", str(report), "--quick", "--force"]) == 0  # resumes: all done
     assert "every cell recorded" in capsys.readouterr().out
@@ -188,29 +190,46 @@ def test_the_distillation_study_writes_its_report(tmp_path, capsys):
     assert json.loads((report / f"{REPORT_NAME}.json").read_text())["pending"] == ["tap_ddim_k1"]
 
 
-def test_the_study_takes_its_teachers_from_a_simulation_study(tmp_path, monkeypatch, capsys):
-    import dssp_sim.distill_study as study
+def test_the_study_takes_its_teachers_from_a_simulation_study(tmp_path, monkeypatch):
+    import studies.distill_study as study
+    from dssp_data.errors import DSSPError
 
     seen = []
 
-    def fake_stage(done, what, cmd, log, record=None):
-        seen.append((what, cmd))
-        if done.suffix == ".json":
-            done.parent.mkdir(parents=True, exist_ok=True)
-            done.write_text("{}")
+    def fake_run_and_keep(work, record, stage_list, workers, what, seconds=False):
+        """Keeps a stand-in evaluation of every stage that makes one, as if each had run."""
+        seen.extend(stage_list)
+        for s in stage_list:
+            for output in s.outputs:
+                (record / output).parent.mkdir(parents=True, exist_ok=True)
+                (record / output).write_text("{}")
 
-    monkeypatch.setattr(study, "stage", fake_stage)
+    monkeypatch.setattr(study, "run_and_keep", fake_run_and_keep)
     sim_work = tmp_path / "sim"
-    with pytest.raises(SystemExit, match="is not a finished training of the study"):
-        study.run_study(tmp_path / "work", study.QUICK_PLAN, ["tap"], teachers=sim_work)
+    with pytest.raises(DSSPError, match="is not a finished training of the study"):
+        study.run_study(study.QUICK_PLAN, ["tap"], tmp_path / "work", tmp_path / "record", 1, teachers=sim_work)
+    assert not (tmp_path / "work").exists()  # refused before anything was written
     teacher = sim_work / "runs" / "tap_dssp_s0"
     teacher.mkdir(parents=True)
     (teacher / "model.safetensors").write_bytes(b"")
-    (sim_work / "logs").mkdir()
-    (sim_work / "logs" / "train_tap_dssp_s0.seconds").write_text("1.0\n")
-    evals, latency = study.run_study(tmp_path / "work2", study.QUICK_PLAN, ["tap"], teachers=sim_work)
+    (sim_work / "done").mkdir()
+    (sim_work / "done" / "train_tap_dssp_s0.json").write_text('{"seconds": 1.0}')
+    study.run_study(study.QUICK_PLAN, ["tap"], tmp_path / "work2", tmp_path / "record", 1, teachers=sim_work)
+    evals, latency, _ = study.recorded_results(study.QUICK_PLAN, tmp_path / "record")
     assert set(evals) == {"tap_teacher_k10", "tap_ddim_k1", "tap_trajectory_k1"} and latency == {}
-    assert not any(what.startswith(("collect", "train")) for what, _ in seen)  # nothing collected or trained again
-    distill = next(cmd for what, cmd in seen if what.startswith("distil"))
-    assert distill[distill.index("--teacher") + 1] == str(teacher)
+    assert not any(s.name.startswith(("collect", "train")) for s in seen)  # nothing collected or trained again
+    distill = next(s for s in seen if s.name.startswith("distill"))
+    assert distill.entry == "dssp_train.cli.distill:main" and distill.argv[distill.argv.index("--teacher") + 1] == str(teacher.resolve())
+    exports = {s.name: s.argv[0] for s in seen if s.name.startswith("export")}
+    assert exports["export_tap_teacher_k10"] == exports["export_tap_ddim_k1"] == str(teacher.resolve())
     assert not (tmp_path / "work2" / "data").exists()
+
+
+def test_the_profiles_run_alone_after_every_other_stage(tmp_path):
+    import studies.distill_study as study
+
+    stages = study.stages(study.QUICK_PLAN, ["tap", "latency"], tmp_path / "record")
+    names = [s.name for s in stages]
+    first, second = (next(s for s in stages if s.name == f"latency_profile_k{k}") for k in (10, 1))
+    assert set(first.after) == set(names) - {first.name, second.name} and second.after == (first.name,)
+    assert first.entry == "dssp_deploy.profile:main" and first.outputs == ("evals/latency_k10.json",)

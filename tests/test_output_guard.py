@@ -27,8 +27,6 @@ from hypothesis import strategies as st
 
 from dssp_deploy.profile import main as profile_main
 from dssp_sim.sim_cli import main as sim_main
-from dssp_sim.experiment import REPORT_NAME
-from dssp_sim.experiment import main as study_main
 from dssp_data.files import replace_dir
 from dssp_train.cli.synth import main as synth_main
 from dssp_train.cli.train import main as train_main
@@ -54,6 +52,8 @@ from dssp_data.output_guard import (
     zarr_generator,
 )
 from export.to_onnx import main as export_main
+from studies.sim_study import REPORT_NAME
+from studies.sim_study import main as study_main
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -113,8 +113,10 @@ def flag(force: bool) -> list[str]:
 
 
 # Each command with its output at ``out`` (a missing model or dataset elsewhere: the refusal must come first).
-def sim_demo(out, force):
-    return sim_main(["demo", "--out", str(out), "--steps", "1", "--demos", "1", "--episodes", "1", *flag(force)])
+def demo(out, force):
+    from studies.demo import main as demo_main
+
+    return demo_main(["--out", str(out), "--steps", "1", "--demos", "1", "--episodes", "1", *flag(force)])
 
 
 def synth(out, force, episodes=2):
@@ -179,12 +181,12 @@ def train_step_json(out, force):
 
 
 DIR_COMMANDS = {
-    "dssp-sim demo --out": (sim_demo, True),
+    "dssp-demo --out": (demo, True),
     "dssp-synth --out": (synth, True),
     "dssp-train --out": (train, True),
     "dssp-sim collect --out": (collect, False),
     "dssp-sim eval --strips": (eval_strips, True),
-    "experiment --work": (study_work, True),
+    "sim_study --work": (study_work, True),
     "export.to_onnx -o": (export, True),
     "export_report.py --out": (export_report, True),
 }
@@ -192,7 +194,7 @@ FILE_COMMANDS = {
     "dssp-sim eval --json": eval_json,
     "dssp-profile --json": profile_json,
     "dssp-profile --plot": profile_plot,
-    "experiment --report": study_report,
+    "sim_study --report": study_report,
     "export_report.py --json": export_report_json,
     "pointcloud_time.py --json": pointcloud_json,
     "train_step_time.py --json": train_step_json,
@@ -225,7 +227,7 @@ def test_a_foreign_output_folder_is_never_touched(command, tmp_path, capsys):
 @pytest.mark.parametrize("command", FILE_COMMANDS)
 def test_a_folder_where_a_file_goes_is_never_touched(command, tmp_path, capsys):
     run = FILE_COMMANDS[command]
-    name = f"{REPORT_NAME}.md" if command == "experiment --report" else "out.json"
+    name = f"{REPORT_NAME}.md" if command == "sim_study --report" else "out.json"
     for case, make in FOLDERS.items():
         root = tmp_path / case
         (root / "report").mkdir(parents=True)
@@ -240,7 +242,7 @@ def test_a_folder_where_a_file_goes_is_never_touched(command, tmp_path, capsys):
 def test_an_existing_file_is_replaced_only_with_force(command, tmp_path, capsys):
     run = FILE_COMMANDS[command]
     (tmp_path / "report").mkdir()
-    out = tmp_path / "report" / (f"{REPORT_NAME}.md" if command == "experiment --report" else "out.json")
+    out = tmp_path / "report" / (f"{REPORT_NAME}.md" if command == "sim_study --report" else "out.json")
     out.write_text("an earlier result")
     line = refused_unchanged(capsys, tmp_path, run, out, False)
     assert "pass --force" in line, line
@@ -285,8 +287,8 @@ def test_synth_replaces_its_own_dataset_with_force(tmp_path, capsys):
     assert ReplayBuffer.load(out).n_episodes == 3
 
 
-def test_sim_demo_replaces_its_own_output_with_force_and_restores_it_on_failure(tmp_path, capsys, monkeypatch):
-    import dssp_sim.demo as demo
+def test_the_demo_replaces_its_own_output_with_force_and_restores_it_on_failure(tmp_path, capsys, monkeypatch):
+    import studies.demo as module
 
     calls = []
 
@@ -296,19 +298,19 @@ def test_sim_demo_replaces_its_own_output_with_force_and_restores_it_on_failure(
         (out / "results.json").write_text(json.dumps({"run": len(calls)}))
         return {}
 
-    monkeypatch.setattr(demo, "_run_demo", fake)
+    monkeypatch.setattr(module, "_run_demo", fake)
     out = tmp_path / "demo"
-    assert sim_demo(out, False) == 0 and (out / MARKER).is_file()
-    replaced(capsys, tmp_path, sim_demo, out)
+    assert demo(out, False) == 0 and (out / MARKER).is_file()
+    replaced(capsys, tmp_path, demo, out)
     assert json.loads((out / "results.json").read_text()) == {"run": 2}
 
     def failing(out, *args):
         (out / "results.json").write_text("half")
         raise DSSPError("training dssp failed (exit 1)")
 
-    monkeypatch.setattr(demo, "_run_demo", failing)
+    monkeypatch.setattr(module, "_run_demo", failing)
     before = snapshot(tmp_path)
-    assert sim_demo(out, True) == 2
+    assert demo(out, True) == 2
     assert "training dssp failed" in error_line(capsys)
     assert snapshot(tmp_path) == before  # the previous demo is back, untouched
 
@@ -397,12 +399,19 @@ def test_profile_replaces_its_files_only_with_force(tmp_path, capsys, monkeypatc
 
 
 def test_study_continues_its_work_and_replaces_its_report_only_with_force(tmp_path, capsys, monkeypatch):
-    import dssp_sim.experiment as experiment
+    import studies.sim_study as sim_study
 
-    stages = []
-    monkeypatch.setattr(experiment, "stage", lambda done, what, cmd, log, record=None: stages.append(what))
-    monkeypatch.setattr(experiment, "_evaluate", lambda work, record, model, task, plan, name, sigma, threads: {
-        "successes": len(stages) % 2, "n": 1, "success_rate": float(len(stages) % 2), "failure_reasons": {}})
+    calls: list[list[str]] = []
+
+    def fake_run_and_keep(work, record, stage_list, workers, what, seconds=False):
+        """As if the study were stopped after its first evaluation: that one is kept in the record."""
+        calls.append([s.name for s in stage_list])
+        first = next(s for s in stage_list if s.outputs)
+        (record / "evals").mkdir(parents=True, exist_ok=True)
+        (record / first.outputs[0]).write_text(json.dumps({"successes": len(calls) % 2, "n": 1, "failure_reasons": {},
+                                                           "episodes": []}))
+
+    monkeypatch.setattr(sim_study, "run_and_keep", fake_run_and_keep)
     work, report = tmp_path / "work", tmp_path / "report"
 
     def run(out, force):
@@ -410,11 +419,11 @@ def test_study_continues_its_work_and_replaces_its_report_only_with_force(tmp_pa
 
     md = report / f"{REPORT_NAME}.md"
     assert run(md, False) == 0 and (work / MARKER).is_file()
-    assert "train dssp seed 0" in stages
-    n = len(stages)
+    assert "train_tap_dssp_s0" in calls[0]
     capsys.readouterr()
     replaced(capsys, tmp_path, run, report / f"{REPORT_NAME}.json")
-    assert len(stages) == 2 * n  # the refused run stopped before any stage; the forced one continued the work
+    # the refused run stopped before any stage; the forced one continued the work (what the first kept is not run again)
+    assert len(calls) == 2 and calls[1] and "eval_tap_dssp_s0" in calls[0] and "eval_tap_dssp_s0" not in calls[1]
     assert (report / f"{REPORT_NAME}.png").read_bytes().startswith(b"\x89PNG")
 
 

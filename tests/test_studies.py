@@ -46,6 +46,44 @@ def test_a_failed_stage_stops_the_study_with_one_line_and_runs_again_next_time(t
     assert not (work / "done/bad.json").exists() and not (work / "out/c.json").exists()
 
 
+def test_with_echo_each_stage_is_shown_line_by_line_behind_its_name(tmp_path):
+    said: list[str] = []
+    Runner(tmp_path, workers=2, echo=True, say=said.append).run(
+        [Stage("a", f"{ENTRY}:chatter", ()), Stage("b", f"{ENTRY}:write_marker", ("m.json",))])
+    assert [line for line in said if line.startswith("[a]")] == ["[a] one", "[a] bar 1", "[a] bar 2", "[a] 1", "[a] no newline"]
+    assert "[b] wrote m.json" in said
+    assert (tmp_path / "logs/a.log").read_bytes() == b"one\n\rbar 1\rbar 2\n1\nno newline"
+
+
+def test_the_demo_stops_at_a_failed_stage_with_its_log_kept_outside_out(tmp_path, monkeypatch, capsys):
+    import studies.demo as demo
+
+    monkeypatch.setattr(demo, "stages", lambda *args: [Stage("first", f"{ENTRY}:write_marker", ("m.json",)),
+                                                       Stage("bad", f"{ENTRY}:fail", ("x",), after=("first",)),
+                                                       Stage("never", f"{ENTRY}:write_marker", ("n.json",), after=("bad",))])
+    out = tmp_path / "demo"
+    assert demo.main(["--out", str(out), "--steps", "1", "--demos", "1", "--episodes", "1"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: bad failed (exit 3); its log: ") and err.endswith(": something broke: x"), err
+    assert "\n" not in err and not out.exists()  # --out, new, is gone
+    kept = Path(err.split("its log: ")[1].split(": something broke")[0])
+    assert kept.read_text() == "first line\nsomething broke: x\n"
+    kept.unlink()
+
+
+def test_the_demo_runs_its_stages_in_order_in_out(tmp_path):
+    from studies.demo import VARIANTS, stages
+
+    listed = stages(10, 3, 2, 0)
+    names = [s.name for s in listed]
+    assert names[0] == "collect" and len(names) == 1 + 3 * len(VARIANTS)
+    for name in VARIANTS:  # each model: train after collect, export after train, evaluate after export
+        by = {s.name: s for s in listed}
+        assert by[f"train_{name}"].after == ("collect",) and by[f"export_{name}"].after == (f"train_{name}",)
+        assert by[f"eval_{name}"].after == (f"export_{name}",) and f"evals/{name}.json" in by[f"eval_{name}"].argv
+    assert "--no-history" in by["train_reactive"].argv and "--no-history" not in by["train_dssp"].argv
+
+
 def test_a_stage_stopped_halfway_resumes_or_starts_clean(tmp_path):
     work = tmp_path / "work"
     (work / "partial").mkdir(parents=True)

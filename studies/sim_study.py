@@ -1,7 +1,9 @@
-"""The simulation study: DSSP against the reactive baseline on the memory tasks, the ablations, and the
-robustness test.
+"""The first simulation study: DSSP against the reactive baseline on the memory tasks, the ablations, and the
+robustness test. Its figures are validation figures (its scenes are the seeds its settings were chosen on); for
+headline claims it is superseded by the memory-task study, studies.memory_tasks.
 
-    python -m dssp_sim.experiment [--work runs/sim_experiment] [--report reports/sim] [--tasks T ...] [--quick] [--force]
+    python -m studies.sim_study [--work runs/sim_experiment] [--report reports/sim] [--tasks T ...] [--seeds S ...]
+                                [--workers 2] [--quick] [--force] [--report-only]
 
 For each task: collect expert demonstrations; train DSSP and the reactive baseline (the same code with
 ``--no-history``: no history encoder, the denoiser sees only the N most recent state tokens — the
@@ -13,17 +15,25 @@ against the T_h = 10 window ("w/o full history") and the reactive baseline, σ a
 tokens' own RMS (measured in each evaluation). The Transformer history encoder of Table 3 is not in the
 study: it does not export (over the full history its state grows).
 
-Every stage writes its output under ``--work`` and is skipped when that output exists, so an interrupted
-study resumes where it stopped, and ``--tasks`` splits it across processes or machines sharing ``--work``
-(``--seeds`` splits a task's models by training seed; a last run without either finds every stage done and writes
-the whole report). Every finished evaluation
-and stage time is also kept in the report's record (``--report``/record: evals/NAME.json, seconds/STAGE.seconds,
-a few kB each, committed with the report), so a machine without the work directory resumes from the record:
-a model whose evaluations are all recorded is not trained again, and ``--report-only`` writes the report from
+The stages (:func:`stages`) run on :class:`studies.runner.Runner` in ``--work`` (``--workers`` side by side, one
+thread each; an interrupted study resumes: a finished stage is not run again, a training stopped halfway
+continues from its checkpoint (``--resume``), a collection stopped halfway is collected again):
+
+- ``collect_TASK`` (``dssp-sim collect``): the task's expert demonstrations, ``data/TASK.zarr``;
+- ``train_TASK_VARIANT_sSEED`` (``dssp-train``): one model, ``runs/TASK_VARIANT_sSEED``;
+- ``export_TASK_VARIANT_sSEED`` (``python -m export.to_onnx``): its graphs, ``models/TASK_VARIANT_sSEED``, the
+  parity checked (the quick plan skips the check and the quantized graphs: the export tests prove both);
+- ``eval_NAME`` (``dssp-sim eval``): its closed-loop evaluation, ``evals/NAME.json`` (NAME: the model's, with
+  ``_noiseσ`` for the robustness test's noise levels).
+
+``--tasks`` and ``--seeds`` run part of the study (no report); a last run without them writes the report. Every
+finished evaluation and stage time is kept in the report's record (``--report``/record: evals/NAME.json,
+:func:`studies.evaluations.compact`; seconds/STAGE.seconds), so a machine without the work folder resumes from the
+record: a model whose evaluations are all recorded needs no stage, and ``--report-only`` writes the report from
 the record alone, the cells not yet run marked as pending. The report — ``REPORT_NAME.md`` (tables), ``.png``
 (plot) and ``.json`` (every figure) — is written to ``--report``. The plan is data (:data:`PLAN`, :data:`QUICK_PLAN`).
 
-Outputs (:mod:`dssp_data.output_guard`): ``--work`` must be new, empty or a work directory of this study
+Outputs (:mod:`dssp_data.output_guard`): ``--work`` must be new, empty or a work folder of this study
 (marked ``.dssp-output.json``), which is continued; anything else is refused before any stage runs. The
 report's three files are written beside whatever else ``--report`` holds; existing ones are replaced only
 with ``--force``, checked before the study starts.
@@ -31,26 +41,17 @@ with ``--force``, checked before the study starts.
 
 from __future__ import annotations
 
-import functools
 import json
-import os
-import shutil
-import subprocess
 import sys
-import time
+from collections.abc import Iterator
 from pathlib import Path
 
-from dssp_sim.evaluate import wilson_interval
-from dssp_data.files import atomic_write_text
-from dssp_data.cli_runner import ArgumentParser
+from dssp_data.cli_runner import ArgumentParser, run_cli
 from dssp_data.errors import DSSPError
-from dssp_data.output_guard import (
-    OutputKind,
-    check_output_files,
-    claim_dir,
-    write_output_figure,
-    write_output_text,
-)
+from dssp_data.output_guard import OutputKind, check_output_files, claim_dir, write_output_figure, write_output_text
+from dssp_sim.evaluate import wilson_interval
+from studies.evaluations import run_and_keep
+from studies.runner import Runner, Stage
 
 REPORT_NAME = "sim_memory_tasks"
 PLAN = {
@@ -83,9 +84,12 @@ QUICK_PLAN = {**PLAN, "steps": {"tap": 20}, "demos": {"tap": 3}, "seeds": {"tap"
               "export_flags": ["--skip-verify", "--quantize", "none"],  # the export tests prove parity and quantize; this checks the plumbing
               "ablations": {"window3": ["--history-window", "3"]}, "ablation_seeds": {"tap": [0]},
               "robustness": {"task": "tap", "seed": 0, "variants": ["dssp", "window3", "reactive"], "sigmas": [0.1]}}
-WORK_DIR = OutputKind("a study work directory", "python -m dssp_sim.experiment",
-                      entries=("data", "runs", "models", "evals", "logs"), signature=lambda p: (p / "logs").is_dir())
-"""``--work``: data/, runs/, models/, evals/, logs/ (continued by the next run; older ones are recognised by logs/)."""
+WORK_ENTRIES = ("data", "runs", "models", "evals", "logs", "done")
+"""What a study's work folder holds (the runner's ``logs/`` and ``done/``; older work folders are recognised by
+``logs/``)."""
+WORK_DIR = OutputKind("a study work directory", "python -m studies.sim_study", entries=WORK_ENTRIES,
+                      signature=lambda p: (p / "logs").is_dir())
+"""``--work``: data/, runs/, models/, evals/, logs/, done/ (continued by the next run)."""
 REPORT_SUFFIXES = (".md", ".json", ".png")
 RECORD_DIR = "record"
 """Under ``--report``: evals/NAME.json and seconds/STAGE.seconds of every finished stage (see the module's docstring)."""
@@ -99,93 +103,18 @@ VARIANT_LABELS = {
 TABLE5_LABELS = {"dssp": "full (DSSP)", "reactive": "w/o history (reactive baseline)"}
 
 
-def _run(cmd: list[str], log: Path) -> None:
-    """Run one stage as its own process, its output in ``log``; a failure stops the study with that log."""
-    log.parent.mkdir(parents=True, exist_ok=True)
-    with open(log, "w") as f:
-        code = subprocess.call(cmd, stdout=f, stderr=subprocess.STDOUT, env={**os.environ, "PYTHONUNBUFFERED": "1"})
-    if code != 0:
-        tail = log.read_text().strip().splitlines()[-3:]
-        raise SystemExit(f"error: {' '.join(cmd[:4])} ... failed (exit {code}); see {log}: {' | '.join(tail)}")
-
-
-def stage(done: Path, what: str, cmd: list[str], log: Path, record: Path | None = None) -> None:
-    """Run ``cmd`` unless it completed before: ``done`` exists and so does the stage's time (written only when
-    its command succeeded, so a stage stopped halfway is run again). ``record``: keep the stage's time there too."""
-    if done.exists() and log.with_suffix(".seconds").exists():
-        print(f"  {what}: done before ({done})")
-    else:
-        t0 = time.perf_counter()
-        _run(cmd, log)
-        seconds = time.perf_counter() - t0
-        atomic_write_text(log.with_suffix(".seconds"), f"{seconds:.1f}\n")  # summed by the report
-        print(f"  {what}: {seconds:.0f} s")
-    keep(record, log.with_suffix(".seconds"), "seconds")
-
-
-def keep(record: Path | None, path: Path, kind: str) -> None:
-    """Copy a finished stage's file (its time: ``kind`` "seconds"; its evaluation: "evals") into ``record``."""
-    if record is not None:
-        (record / kind).mkdir(parents=True, exist_ok=True)
-        if not (record / kind / path.name).is_file() or (record / kind / path.name).read_text() != path.read_text():
-            atomic_write_text(record / kind / path.name, path.read_text())
-
-
 def recorded(record: Path | None, name: str) -> dict | None:
     """The evaluation ``name`` kept in ``record``, or None."""
     path = record / "evals" / f"{name}.json" if record is not None else None
     return json.loads(path.read_text()) if path is not None and path.is_file() else None
 
 
-def train_command(data: Path, run_dir: Path, plan: dict, task: str, seed: int, flags: list[str], log: Path) -> list[str]:
-    """The training stage's command: a new run, or ``--resume`` of one stopped halfway (its checkpoint is there,
-    the stage's time is not), so an interrupted study loses at most the steps since the last checkpoint."""
-    if (run_dir / "checkpoint").is_dir() and not log.with_suffix(".seconds").exists():
-        return [sys.executable, "-m", "dssp_train.cli.train", "--data", str(data), "--out", str(run_dir), "--resume", "--no-progress"]
-    return [sys.executable, "-m", "dssp_train.cli.train", "--data", str(data), "--out", str(run_dir), "--preset", plan["preset"],
-            "--steps", str(plan["steps"][task]), "--seed", str(seed), "--no-progress", "--force", *flags]
-
-
 def stage_seconds(work: Path, record: Path | None = None) -> float:
-    """Compute time of every stage of the study so far, resumed and parallel runs included: the stage times of
-    ``work`` and of ``record`` (kept there from other machines), each stage counted once."""
-    files = {f.name: f for d in (record / "seconds" if record else None, work / "logs") if d and d.is_dir()
-             for f in d.glob("*.seconds")}
-    return sum(float(f.read_text()) for f in files.values())
-
-
-def collect_stage(work: Path, task: str, n_demos: int, record: Path | None = None) -> Path:
-    """The study's ``n_demos`` demonstrations of ``task`` in ``work/data`` (collected unless done before; a
-    collection stopped halfway is collected again, not appended to): the dataset's path."""
-    data, log = work / "data" / f"{task}.zarr", work / "logs" / f"collect_{task}.log"
-    if data.exists() and not log.with_suffix(".seconds").exists():
-        shutil.rmtree(data)  # the study's own partial dataset
-    stage(data / "meta", f"collect {n_demos} demos", [sys.executable, "-m", "dssp_sim.sim_cli", "collect", "--task", task,
-          "--episodes", str(n_demos), "--out", str(data), "--no-progress"], log, record)
-    return data
-
-
-def study_tasks(work: Path, plan: dict, tasks: list[str] | None, kind: OutputKind, others: tuple[str, ...] = (),
-                record: Path | None = None):
-    """Check ``tasks`` (names of the plan's tasks, or of ``others``), claim ``work`` for a study of ``kind``, and yield
-    (task, dataset) for each of the plan's tasks to run (all without ``tasks``): ``dataset()`` collects the task's
-    demonstrations on its first call (none when every stage that needs them is recorded) and returns their path."""
-    unknown = sorted(set(tasks or []) - set(plan["demos"]) - set(others))
-    if unknown:
-        raise SystemExit(f"error: unknown task(s) {unknown}; the plan has {[*plan['demos'], *others]}")
-    claim_dir(work, kind=kind, flag="--work", resume=True)
-    for task, n_demos in plan["demos"].items():
-        if not tasks or task in tasks:
-            print(f"{task}:")
-            yield task, functools.cache(functools.partial(collect_stage, work, task, n_demos, record))
-
-
-def train_stage(work: Path, data: Path, run_dir: Path, plan: dict, task: str, seed: int, flags: list[str], what: str,
-                name: str | None = None, record: Path | None = None) -> None:
-    """Train ``run_dir`` (the plan's preset and steps for ``task``) unless done before; resumed if stopped halfway.
-    Its log is ``work/logs/train_{name}.log`` (default: the run's name)."""
-    log = work / "logs" / f"train_{name or run_dir.name}.log"
-    stage(run_dir / "checkpoint", what, train_command(data, run_dir, plan, task, seed, flags, log), log, record)
+    """Compute time of every stage of the study so far, resumed and parallel runs included: the stage times kept in
+    ``record`` (from every machine that ran part of it) and the done stages of ``work``, each stage counted once."""
+    folder = record / "seconds" if record is not None else None
+    seconds = {f.stem: float(f.read_text()) for f in sorted(folder.glob("*.seconds"))} if folder and folder.is_dir() else {}
+    return sum({**seconds, **Runner(work).seconds()}.values())
 
 
 def eval_name(name: str, sigma: float) -> str:
@@ -205,26 +134,65 @@ def model_runs(plan: dict, task: str) -> list[tuple[int, str, list[str], list[fl
                 *(plan["ablations"].items() if seed in plan["ablation_seeds"].get(task, []) else [])]]
 
 
-def run_study(work: Path, plan: dict, threads: int | None = None, tasks: list[str] | None = None,
-              record: Path | None = None, seeds: list[int] | None = None) -> dict:
-    """Run (or resume) the study's stages for ``tasks`` (default: every task of the plan) and training ``seeds``
-    (default: all). A model whose evaluations are all in ``record`` is neither trained nor exported again."""
-    py = sys.executable
-    results: dict = {"plan": plan, "evals": {}, "robustness": {}}
-    for task, dataset in study_tasks(work, plan, tasks, WORK_DIR, record=record):
+def models(plan: dict, tasks: list[str], seeds: list[int] | None = None) -> Iterator[tuple[str, int, str, list[str], list[float]]]:
+    """(task, seed, variant, training flags, noise levels) of every model of ``tasks`` (of training ``seeds`` only,
+    when given)."""
+    for task in tasks:
         for seed, variant, flags, sigmas in model_runs(plan, task):
-            if seeds is not None and seed not in seeds:
-                continue
+            if seeds is None or seed in seeds:
+                yield task, seed, variant, flags, sigmas
+
+
+def train_argv(plan: dict, task: str, seed: int, flags: list[str], data: str, run: str) -> tuple[str, ...]:
+    """``dssp-train``'s arguments for one model: the plan's preset and steps for ``task``."""
+    return ("--data", data, "--out", run, "--preset", plan["preset"], "--steps", str(plan["steps"][task]), "--seed", str(seed),
+            "--no-progress", "--force", *flags)
+
+
+def stages(plan: dict, tasks: list[str], record: Path, seeds: list[int] | None = None) -> list[Stage]:
+    """Every stage of ``tasks`` (the models of training ``seeds`` only, when given; module docstring); a model whose
+    evaluations are all in ``record`` needs none, and of the others only the evaluations not recorded run."""
+    out: list[Stage] = []
+    for task in tasks:
+        data = f"data/{task}.zarr"
+        task_stages: list[Stage] = []
+        for _, seed, variant, flags, sigmas in models(plan, [task], seeds):
             name = f"{task}_{variant}_s{seed}"
-            run_dir, model_dir = work / "runs" / name, work / "models" / name
-            if not all(recorded(record, eval_name(name, sigma)) for sigma in sigmas):
-                train_stage(work, dataset(), run_dir, plan, task, seed, flags, f"train {variant} seed {seed}", record=record)
-                stage(model_dir / "dssp_model.json", f"export {variant} seed {seed}", [py, "-m", "export.to_onnx", str(run_dir),
-                       "-o", str(model_dir), "--force", *plan.get("export_flags", [])], work / "logs" / f"export_{name}.log", record)
-            for sigma in sigmas:
-                results["robustness" if sigma else "evals"][eval_name(name, sigma)] = _evaluate(
-                    work, record, model_dir, task, plan, name, sigma, threads)
-    return results
+            pending = [sigma for sigma in sigmas if recorded(record, eval_name(name, sigma)) is None]
+            if not pending:
+                continue
+            run, model = f"runs/{name}", f"models/{name}"
+            task_stages += [
+                Stage(f"train_{name}", "dssp_train.cli.train:main", train_argv(plan, task, seed, flags, data, run),
+                      after=(f"collect_{task}",), resume=("--data", data, "--out", run, "--resume", "--no-progress"),
+                      started=f"{run}/checkpoint"),
+                Stage(f"export_{name}", "export.to_onnx:main", (run, "-o", model, "--force", "--threads", "1",
+                                                                *plan["export_flags"]), after=(f"train_{name}",)),
+            ]
+            for sigma in pending:
+                result = eval_name(name, sigma)
+                task_stages.append(Stage(
+                    f"eval_{result}", "dssp_sim.sim_cli:main",
+                    ("eval", "--model", model, "--task", task, "--episodes", str(plan["eval_episodes"]), "--seed",
+                     str(plan["eval_seed"]), "--noise", str(sigma), "--threads", "1", "--json", f"evals/{result}.json", "--force",
+                     "--no-progress"), after=(f"export_{name}",), outputs=(f"evals/{result}.json",)))
+        if task_stages:
+            out += [Stage(f"collect_{task}", "dssp_sim.sim_cli:main", ("collect", "--task", task, "--episodes",
+                                                                         str(plan["demos"][task]), "--out", data, "--no-progress"),
+                          clean=(data,)), *task_stages]
+    return out
+
+
+def run_study(plan: dict, tasks: list[str], work: Path, record: Path, workers: int, seeds: list[int] | None = None) -> None:
+    """Claim ``work`` for the study and run (or resume) the stages of ``tasks`` and training ``seeds`` (default: all),
+    keeping every finished evaluation and stage time in ``record``."""
+    claim_dir(work, kind=WORK_DIR, flag="--work", resume=True)
+    for task, seed, variant, _, sigmas in models(plan, tasks, seeds):
+        for sigma in sigmas:
+            name = eval_name(f"{task}_{variant}_s{seed}", sigma)
+            if recorded(record, name) is not None:
+                print(f"  eval {name}: recorded")
+    run_and_keep(work, record, stages(plan, tasks, record, seeds), workers, ", ".join(tasks), seconds=True)
 
 
 def recorded_results(plan: dict, record: Path) -> tuple[dict, list[str]]:
@@ -241,23 +209,6 @@ def recorded_results(plan: dict, record: Path) -> tuple[dict, list[str]]:
                 else:
                     results["robustness" if sigma else "evals"][name] = r
     return results, pending
-
-
-def _evaluate(work: Path, record: Path | None, model_dir: Path, task: str, plan: dict, name: str, sigma: float,
-              threads: int | None) -> dict:
-    name = eval_name(name, sigma)
-    kept = recorded(record, name)
-    if kept is not None:
-        print(f"  eval {name}: recorded")
-        return kept
-    out = work / "evals" / f"{name}.json"
-    cmd = [sys.executable, "-m", "dssp_sim.sim_cli", "eval", "--model", str(model_dir), "--task", task, "--episodes",
-           str(plan["eval_episodes"]), "--seed", str(plan["eval_seed"]), "--noise", str(sigma), "--json", str(out), "--no-progress"]
-    if threads:
-        cmd += ["--threads", str(threads)]
-    stage(out, f"eval {name}", cmd, work / "logs" / f"eval_{name}.log", record)
-    keep(record, out, "evals")
-    return json.loads(out.read_text())
 
 
 # ------------------------------------------------------------------------------------------------ report
@@ -298,14 +249,14 @@ def _z_rms(results: dict, rob: dict) -> float | None:
 
 def write_report(results: dict, report_dir: Path, seconds: float, force: bool = False, pending: list[str] = ()) -> Path:
     """``seconds``: the compute time of all stages (:func:`stage_seconds`); ``force``: replace existing report files;
-    ``pending``: the evaluations not run yet (a report from the record, ``--report-only``), listed and marked "pending"."""
+    ``pending``: the evaluations not run yet, listed and marked "pending"."""
     check_output_files(report_files(report_dir), force=force, flag="--report")
     table = summarise(results)
     plan = results["plan"]
     lines = [
         "# Memory tasks in simulation: DSSP against the reactive baseline, the ablations, robustness",
         "",
-        f"Produced by `python -m dssp_sim.experiment` ({seconds / 60:.0f} min of stage time on this 2-core machine, "
+        f"Produced by `python -m studies.sim_study` ({seconds / 60:.0f} min of stage time on this 2-core machine, "
         "summed over resumed and parallel runs). "
         f"Preset `{plan['preset']}`, training steps per task {plan['steps']} (the same for every model), "
         f"{plan['eval_episodes']} evaluation episodes per model on unseen seeds "
@@ -381,7 +332,7 @@ def _bars(ax, groups: list[str], series: list[tuple[str, list[tuple[int, int]]]]
 
 
 def _plot(results: dict, table: dict, path: Path, force: bool = False) -> None:
-    import matplotlib
+    import matplotlib  # here, not at the top: the study's command starts without it
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -412,7 +363,8 @@ def _plot(results: dict, table: dict, path: Path, force: bool = False) -> None:
         sigmas = [0.0, *rob["sigmas"]]
         for variant in rob["variants"]:
             done = [(s, r) for s in sigmas if (r := _rob_result(results, rob, variant, s))]
-            ax.plot([s / rms for s, _ in done], [100 * r["success_rate"] for _, r in done], "o-", label=VARIANT_LABELS.get(variant, variant))
+            ax.plot([s / rms for s, _ in done], [100 * r["successes"] / max(r["n"], 1) for _, r in done], "o-",
+                    label=VARIANT_LABELS.get(variant, variant))
         ax.set(xlabel="σ / RMS of the recent state tokens", ylabel="success %", ylim=(0, 105), title=f"Robustness ({rob['task']})")
         ax.legend(fontsize=7)
     fig.tight_layout()
@@ -420,11 +372,11 @@ def _plot(results: dict, table: dict, path: Path, force: bool = False) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = ArgumentParser(prog="python -m dssp_sim.experiment", description=__doc__.split("\n\n")[0])
-    p.add_argument("--work", type=Path, default=Path("runs/sim_experiment"), help="datasets, runs, models, evaluations")
-    p.add_argument("--report", type=Path, default=Path("reports/sim"), help="where the report goes")
+    p = ArgumentParser(prog="python -m studies.sim_study", description=__doc__.split("\n\n")[0])
+    p.add_argument("--work", type=Path, default=Path("runs/sim_experiment"), help="datasets, runs, models, evaluations, logs")
+    p.add_argument("--report", type=Path, default=Path("reports/sim"), help="where the report and its record go")
     p.add_argument("--quick", action="store_true", help="a tiny plan (tests): 3 demos, 20 steps, 1 episode")
-    p.add_argument("--threads", type=int, help="ONNX Runtime threads for the evaluations")
+    p.add_argument("--workers", type=int, default=2, help="stages side by side, one thread each (default 2)")
     p.add_argument("--tasks", nargs="+", metavar="TASK", help="run only these tasks' stages (default: all, then the report)")
     p.add_argument("--seeds", nargs="+", type=int, metavar="SEED", help="run only the models of these training seeds "
                    "(with --tasks: split one task's models across processes; no report)")
@@ -433,34 +385,34 @@ def main(argv: list[str] | None = None) -> int:
                    f"(--report/{RECORD_DIR}), the evaluations not run yet listed as pending")
     args = p.parse_args(argv)
     plan = QUICK_PLAN if args.quick else PLAN
-    partial = bool(args.tasks) and set(args.tasks) != set(plan["demos"]) or args.seeds is not None
-    record = args.report / RECORD_DIR
+    unknown = [t for t in args.tasks or [] if t not in plan["demos"]]
+    if unknown:
+        p.error(f"--tasks: {', '.join(unknown)} not in the plan ({', '.join(plan['demos'])})")
     known = {seed for t in plan["demos"] for seed in [*plan["seeds"][t], *plan["ablation_seeds"].get(t, [])]}
     if args.seeds is not None and set(args.seeds) - known:
         p.error(f"--seeds {sorted(set(args.seeds) - known)}: the plan trains seeds {sorted(known)}")
+    if args.workers < 1:
+        p.error(f"--workers must be at least 1, got {args.workers}")
+    partial = bool(args.tasks) and set(args.tasks) != set(plan["demos"]) or args.seeds is not None
     if args.report_only and partial:
         p.error("--report-only writes the whole report from the record; drop --tasks and --seeds")
+    record = args.report / RECORD_DIR
 
     def _main() -> int:
         if not partial:  # before any stage: a report that may not be replaced stops the study now
             check_output_files(report_files(args.report), force=args.force, flag="--report")
-        if args.report_only:
-            results, pending = recorded_results(plan, record)
-            if not results["evals"]:
-                raise DSSPError(f"{record} holds no evaluation of this plan; run the study first (without --report-only)")
-            md = write_report(results, args.report, stage_seconds(args.work, record), force=args.force, pending=pending)
-            print(md.read_text())
-            return 0
-        results = run_study(args.work, plan, args.threads, args.tasks, record, args.seeds)
-        if partial:
-            print(f"stages of {args.tasks or 'every task'}{f' seeds {args.seeds}' if args.seeds else ''} done (kept in {record}); "
-                  "run without --tasks and --seeds for the report")
-            return 0
-        md = write_report(results, args.report, stage_seconds(args.work, record), force=args.force)
+        if not args.report_only:
+            run_study(plan, args.tasks or list(plan["demos"]), args.work, record, args.workers, args.seeds)
+            if partial:
+                print(f"stages of {args.tasks or 'every task'}{f' seeds {args.seeds}' if args.seeds else ''} done (kept in "
+                      f"{record}); run without --tasks and --seeds for the report")
+                return 0
+        results, pending = recorded_results(plan, record)
+        if not results["evals"]:
+            raise DSSPError(f"{record} holds no evaluation of this plan; run the study first (without --report-only)")
+        md = write_report(results, args.report, stage_seconds(args.work, record), force=args.force, pending=pending)
         print(md.read_text())
         return 0
-
-    from dssp_data.cli_runner import run_cli
 
     return run_cli(_main)
 
