@@ -77,6 +77,12 @@ RETRY_S = 0.01     # how often a held-back Ctrl-C looks again for a safe point
 MAX_HOLD_S = 5.0   # a Ctrl-C held back longer than this is raised wherever the main thread is
 
 
+def is_default_interrupt_handler(handler) -> bool:
+    """True for Python's own SIGINT handler and for :func:`interrupts_at_safe_points`' (which raises the same
+    KeyboardInterrupt, only later): a command that installs its own stop handling replaces either."""
+    return handler is signal.default_int_handler or getattr(handler, "safe_point_interrupts", False)
+
+
 def in_thread_machinery(frame) -> bool:
     """True while ``frame`` (the main thread's innermost) runs the standard library's thread synchronisation."""
     return frame is not None and frame.f_code.co_filename.startswith(_UNSAFE)
@@ -111,6 +117,7 @@ def interrupts_at_safe_points(clock: Callable[[], float] = time.monotonic) -> It
         held["since"] = None
         raise KeyboardInterrupt
 
+    handler.safe_point_interrupts = True
     signal.signal(signal.SIGINT, handler)
     try:
         yield

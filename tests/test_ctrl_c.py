@@ -92,3 +92,21 @@ def test_the_step_of_futures_wait_that_takes_the_locks_is_machinery():
         with pytest.raises(KeyboardInterrupt):
             for _ in range(2000):
                 time.sleep(0.005)
+
+
+def test_a_command_with_its_own_stop_handling_takes_sigint_over():
+    """dssp-run, dssp-record and dssp-sim-arm end every stop in a hold (hardware.cli.stops): under run_cli their handler
+    still replaces the Ctrl-C one."""
+    from hardware.cli.stops import Stops
+
+    seen = []
+
+    def command() -> int:
+        stops = Stops(streams=False)
+        try:
+            seen.append(signal.SIGINT in stops.signals and signal.getsignal(signal.SIGINT) == stops._signalled)
+        finally:
+            stops.restore()
+        return 0
+
+    assert run_cli(command) == 0 and seen == [True]

@@ -37,6 +37,8 @@ import sys
 import threading
 from collections.abc import Callable
 
+from dssp_data.cli_runner import is_default_interrupt_handler
+
 LOST_STREAM_CODE = 128 + 13
 """The exit code after stdout or stderr went away: as for SIGPIPE (its reader went away), as shells report it."""
 
@@ -83,7 +85,7 @@ class Stops:
         if threading.current_thread() is threading.main_thread():  # signals reach the main thread only
             for signum in stop_signals():
                 current = signal.getsignal(signum)
-                if current in (signal.SIG_DFL, signal.SIG_IGN, signal.default_int_handler):
+                if current in (signal.SIG_DFL, signal.SIG_IGN) or is_default_interrupt_handler(current):
                     self._previous[signum] = signal.signal(signum, self._signalled)
         if streams:
             for name in ("stdout", "stderr"):
