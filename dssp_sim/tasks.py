@@ -22,11 +22,11 @@ or bin, tipped over, or off the table), "timeout" (``max_steps`` control steps w
 
 The memory decision, scored apart from the manipulation (``Task.decision(info)`` on an episode's final
 ``info``): tap — the number of presses (3 is right); swap — the move made from the first layout that only
-memory can settle (after the first move: the cylinder to the cube's start slot is right, the cube on to it
-is the other start's plan); put2 — going back into the source bin for the second block after the first is
-in the basket (the scene at home looks the same as before the first transfer). Each decision is counted
-only in the episodes that reached it (tap: every episode; swap: the first move made; put2: one block in
-the basket), so a failed grasp is not scored as a wrong memory.
+memory can settle (after the first move: the cylinder to the cube's start slot is right, the cube on to it is
+the other start's plan); put2 — at home after the first block, going back into the source bin for the second,
+and at home after both, not reaching into it again (the scene at home looks the same before, between and after
+the transfers). Each decision is counted only in the episodes that reached it (tap: every episode; swap: the
+first move made; put2: one block in the basket), so a failed grasp is not scored as a wrong memory.
 """
 
 from __future__ import annotations
@@ -565,13 +565,22 @@ class Put2Task(Task):
 
     @staticmethod
     def decision(info: dict) -> dict:
-        """Reached once a block is in the basket (or was: one taken out again counts); right when the arm went
-        back into the source bin for the second block."""
+        """The two moments at home that look the same: after the first block (right: back into the source bin
+        for the second) and, once both are in the basket, after the second (right: no reach into the source bin
+        again). Reached once a block is in the basket (or was: one taken out again counts); right when every
+        moment reached was decided right."""
         reaches = list(info.get("reaches", [0, 0, 0]))
-        if info.get("in_basket", 0) < 1 and reaches[1] == 0 and reaches[2] == 0:
+        in_basket = info.get("in_basket", 0)
+        if in_basket < 1 and reaches[1] == 0 and reaches[2] == 0:
             return {"reached": False, "correct": None, "choice": "no block in the basket"}
-        back = reaches[1] > 0 or info.get("in_basket", 0) == 2
-        return {"reached": True, "correct": back, "choice": "back for the second" if back else "stopped after one"}
+        back = reaches[1] > 0 or in_basket == 2
+        if not back:
+            return {"reached": True, "correct": False, "choice": "stopped after one"}
+        if reaches[2] > 0:
+            return {"reached": True, "correct": False, "choice": "back for the second, then in again after both"}
+        if in_basket == 2:
+            return {"reached": True, "correct": True, "choice": "back for the second, then stayed out"}
+        return {"reached": True, "correct": True, "choice": "back for the second"}
 
     def failure(self, env) -> str:
         return self.objects.dropped(env, lambda k: bool(self.bin_of(env, k)) and self.objects.upright(env.data, k, any_face=True))

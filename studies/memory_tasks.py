@@ -189,7 +189,8 @@ def report_lines(plan: dict, record: Path, split: str, shown_record: str | None 
     ]
     for prov in runs:
         m = prov.get("machine", {})
-        lines += ["", f"Run on: task definition {prov.get('task_definition')}, plan {prov.get('plan')}, code {prov.get('commit')}; "
+        started = f" ({', '.join(prov['tasks'])})" if prov.get("tasks") else ""
+        lines += ["", f"Run{started} on: task definition {prov.get('task_definition')}, plan {prov.get('plan')}, code {prov.get('commit')}; "
                   f"{m.get('cpu')} ({m.get('cores')} cores), onnxruntime {m.get('onnxruntime')}, torch {m.get('torch')}."]
     if split == "validation":
         lines += ["", "Validation seeds: the plan is chosen on these, so these figures are not a test result."]
@@ -293,7 +294,7 @@ def run_study(plan: dict, split: str, tasks: list[str], work: Path, report: Path
     if split == "test":
         protocol.check_frozen(record, plan)
     stage_list = stages(plan, split, tasks, record, models)
-    protocol.note_provenance(record, plan, split)
+    protocol.note_provenance(record, plan, split, tasks)
     run_and_keep(work, record, stage_list, workers, f"{', '.join(tasks)} on the {split} split")
     return write_report(plan, record, report, split)
 
@@ -323,7 +324,9 @@ def main(argv: list[str] | None = None) -> int:
     def _main() -> int:
         record = args.report / RECORD_DIR
         if args.freeze:
-            print(f"plan {protocol.freeze_plan(record, plan)} frozen in {record / protocol.FROZEN_NAME}; --split test runs it")
+            tested = [t for t in plan["tasks"] if any((record / "evals").glob(f"{t}_*_test.json"))]
+            print(f"plan {protocol.freeze_plan(record, plan, tested)} frozen in {record / protocol.FROZEN_NAME} on task "
+                  f"definition {protocol.task_definition_hash()}; --split test runs it")
             return 0
         if args.report_only:
             md = write_report(plan, record, args.report, args.split)

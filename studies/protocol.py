@@ -21,6 +21,7 @@ from __future__ import annotations
 import hashlib
 import json
 import subprocess
+from collections.abc import Iterable
 from pathlib import Path
 
 import dssp_sim
@@ -84,35 +85,45 @@ def code_commit() -> str:
     return head.stdout.strip() + ("+changes" if dirty.stdout.strip() else "")
 
 
-def provenance(plan: dict) -> dict:
-    """What a record states about how it was made (module docstring)."""
+def provenance(plan: dict, tasks: Iterable[str] | None = None) -> dict:
+    """What a record states about how it was made (module docstring); ``tasks``: the tasks the run was started for."""
     return {"task_definition": task_definition_hash(), "plan": plan_hash(plan), "commit": code_commit(),
-            "machine": machine.describe()}
+            "machine": machine.describe(), **({"tasks": sorted(tasks)} if tasks is not None else {})}
 
 
-def note_provenance(record_dir: Path, plan: dict, split: str) -> None:
+def note_provenance(record_dir: Path, plan: dict, split: str, tasks: Iterable[str] | None = None) -> None:
     """Add this run's provenance to the record's list for ``split`` (a resumed study on other code or another
     machine adds an entry; the same one again adds none)."""
     path = Path(record_dir) / f"provenance_{split}.json"
     runs = json.loads(path.read_text()) if path.is_file() else []
-    now = provenance(plan)
+    now = provenance(plan, tasks)
     if not runs or runs[-1] != now:
         path.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_text(path, json.dumps(runs + [now], indent=1) + "\n")
 
 
-def freeze_plan(record_dir: Path, plan: dict) -> str:
-    """Freeze ``plan`` for the test split: write its hash beside the record (once; a different frozen plan there is
-    refused: a new plan is a new study)."""
+def freeze_plan(record_dir: Path, plan: dict, tested: Iterable[str] = ()) -> str:
+    """Freeze ``plan`` for the test split: write its hash and the task definition's beside the record (once; a
+    different frozen plan there is refused: a new plan is a new study).
+
+    Freezing the same plan again after the task definition changed (a scorer fixed on validation evidence, say)
+    moves the freeze to the new definition and keeps the earlier one in ``earlier`` with the tasks whose test
+    evaluations were already in the record (``tested``): those stay as they were run (each run's provenance names
+    its definition), and only tasks tested from now on run on the new one."""
     path = Path(record_dir) / FROZEN_NAME
     digest = plan_hash(plan)
+    current = task_definition_hash()
     if path.is_file():
-        frozen = json.loads(path.read_text()).get("plan")
-        if frozen != digest:
-            raise DSSPError(f"{path} froze plan {frozen}, this plan is {digest}: a plan changed after its test run is a new "
-                            "study (another --report folder)")
+        frozen = json.loads(path.read_text())
+        if frozen.get("plan") != digest:
+            raise DSSPError(f"{path} froze plan {frozen.get('plan')}, this plan is {digest}: a plan changed after its test run "
+                            "is a new study (another --report folder)")
+        if frozen.get("task_definition") == current:
+            return digest
+        earlier = [*frozen.get("earlier", []), {"task_definition": frozen.get("task_definition"), "tested": sorted(tested)}]
+        atomic_write_text(path, json.dumps({"plan": digest, "task_definition": current, "earlier": earlier}, indent=2) + "\n")
         return digest
-    atomic_write_text(path, json.dumps({"plan": digest, "task_definition": task_definition_hash()}, indent=2) + "\n")
+    atomic_write_text(path, json.dumps({"plan": digest, "task_definition": current}, indent=2) + "\n")
     return digest
 
 

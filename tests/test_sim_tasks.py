@@ -67,6 +67,9 @@ def test_the_experts_memory_decision_is_scored_right(task):
     ("put2", {"in_basket": 0, "reaches": [3, 0, 0]}, False, None),
     ("put2", {"in_basket": 1, "reaches": [1, 0, 0]}, True, False),
     ("put2", {"in_basket": 1, "reaches": [1, 1, 0]}, True, True),
+    ("put2", {"in_basket": 2, "reaches": [1, 1, 0]}, True, True),
+    ("put2", {"in_basket": 2, "reaches": [1, 1, 1]}, True, False),  # back into the source bin after both: memory failed
+    ("put2", {"in_basket": 1, "reaches": [1, 1, 2]}, True, False),  # one taken out again after both were in
 ])
 def test_a_wrong_or_unreached_memory_decision_is_told_apart(task, info, reached, correct):
     from dssp_sim.tasks import TASKS

@@ -133,6 +133,14 @@ def test_the_test_split_runs_only_the_frozen_plan(tmp_path):
     (tmp_path / protocol.FROZEN_NAME).write_text(json.dumps({**frozen, "task_definition": "0" * 16}))
     with pytest.raises(DSSPError, match="task definition changed"):
         protocol.check_frozen(tmp_path, plan)
+    # the same plan frozen again on the changed definition: the earlier one kept with the tasks tested on it
+    assert protocol.freeze_plan(tmp_path, plan, tested=["tap"]) == digest
+    protocol.check_frozen(tmp_path, plan)
+    refrozen = json.loads((tmp_path / protocol.FROZEN_NAME).read_text())
+    assert refrozen["task_definition"] == protocol.task_definition_hash()
+    assert refrozen["earlier"] == [{"task_definition": "0" * 16, "tested": ["tap"]}]
+    with pytest.raises(DSSPError, match="a new study"):  # still: never another plan
+        protocol.freeze_plan(tmp_path, tuned)
 
 
 def test_provenance_names_the_task_the_code_and_the_machine():
