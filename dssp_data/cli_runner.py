@@ -98,23 +98,34 @@ def interrupts_at_safe_points(clock: Callable[[], float] = time.monotonic) -> It
             or signal.getsignal(signal.SIGINT) is not signal.default_int_handler):
         yield
         return
-    held = {"since": None}
+    # since: when the Ctrl-C being held came (None: none held); retry: a retry's interruption not yet handled
+    held: dict = {"since": None, "retry": False, "thread": None}
+    lock = threading.RLock()  # re-entrant: a handler may run again inside the handler
 
     def retry() -> None:
         import _thread
 
-        while held["since"] is not None:
+        while True:
             time.sleep(RETRY_S)
-            if held["since"] is not None:
+            with lock:  # look and ask in one step, so no retry is asked for after the Ctrl-C was raised
+                if held["since"] is None:
+                    return
+                held["retry"] = True
                 _thread.interrupt_main(signal.SIGINT)
 
     def handler(signum, frame) -> None:
-        if in_thread_machinery(frame) and (held["since"] is None or clock() - held["since"] < MAX_HOLD_S):
-            if held["since"] is None:
-                held["since"] = clock()
-                threading.Thread(target=retry, name="ctrl-c-retry", daemon=True).start()
-            return
-        held["since"] = None
+        with lock:
+            from_retry, held["retry"] = held["retry"], False
+            if from_retry and held["since"] is None:
+                return  # a retry asked for before the held Ctrl-C was raised: nothing left to raise
+            since = held["since"]
+            if in_thread_machinery(frame) and (since is None or clock() - since < MAX_HOLD_S):
+                if since is None:
+                    held["since"] = clock()
+                    held["thread"] = threading.Thread(target=retry, name="ctrl-c-retry", daemon=True)
+                    held["thread"].start()
+                return
+            held["since"] = None
         raise KeyboardInterrupt
 
     handler.safe_point_interrupts = True
@@ -122,5 +133,9 @@ def interrupts_at_safe_points(clock: Callable[[], float] = time.monotonic) -> It
     try:
         yield
     finally:
-        held["since"] = None
+        with lock:
+            held["since"] = None
+        if held["thread"] is not None:
+            held["thread"].join()
+        # signal.signal runs a retry's pending interruption (ignored above) before it puts the default back
         signal.signal(signal.SIGINT, signal.default_int_handler)
