@@ -215,6 +215,16 @@ def test_the_memory_report_pairs_every_model_with_dssp_and_marks_what_is_pending
     assert "| DP3 (sim size, 0.71 M) | pending |" in text  # not evaluated yet: never a made-up row
     assert "| 2 presses | 3 presses | 4 presses |" in text and "not a test result" in text
     assert "reports/memory/record" in text and str(tmp_path) not in text
+    # trainings run on another machine are stated; a malformed statement is refused, not skipped
+    elsewhere = {"models": ["wo_history"], "tasks": ["tap"], "seeds": [0, 1], "machine": "a GPU", "how": "side by side",
+                 "code": "abc"}
+    (tmp_path / "trained_elsewhere.json").write_text(json.dumps([elsewhere]))
+    text = "\n".join(memory_tasks.report_lines(plan, tmp_path, "validation")[0])
+    assert "Trained elsewhere (DSSP w/o history; tap; training seeds [0, 1]): a GPU; side by side (code abc)." in text
+    (tmp_path / "trained_elsewhere.json").write_text(json.dumps([{"models": ["wo_history"]}]))
+    with pytest.raises(DSSPError, match="trained_elsewhere.json must hold"):
+        memory_tasks.report_lines(plan, tmp_path, "validation")
+    (tmp_path / "trained_elsewhere.json").unlink()
     _fake_eval(tmp_path, "tap_dssp_s1_validation", scenes[::-1], [1] * 10, [3] * 10)
     with pytest.raises(DSSPError, match="different scenes"):
         memory_tasks.report_lines(plan, tmp_path, "validation")
