@@ -188,6 +188,9 @@ class TrainConfig(Settings):
     val_every: int = setting(500, ge=1, le=100_000_000)
     val_windows: int = setting(256, ge=1, le=100_000_000)
     save_every: int = setting(1000, ge=1, le=100_000_000)
+    # > 0: also keep the EMA weights every ``keep_every`` steps as RUN/snapshots/step_NNNNNNN/ (model.safetensors and
+    # config.json: a run directory export.to_onnx reads), for evaluations along training (the MetaWorld metric)
+    keep_every: int = setting(0, ge=0, le=100_000_000)
     log_every: int = setting(10, ge=1, le=100_000_000)
     seed: int = setting(0, ge=0, le=2**63 - 1)
 

@@ -533,3 +533,22 @@ def test_an_interrupted_checkpoint_save_leaves_no_partial_folder(runs, tmp_path,
     monkeypatch.setattr(ckpt, "save_tensors", real)
     assert train_main(resume_args(runs["data"], run)) == 0
     assert_same_final_state(run, runs["straight"])
+
+
+def test_kept_snapshots_are_run_directories_of_their_step(runs, tmp_path):
+    """train.keep_every: the EMA weights every N steps as RUN/snapshots/step_NNNNNNN (what export reads); the last
+    one is the run's final weights, and a resumed run keeps the same snapshots as a straight one."""
+    straight, resumed = tmp_path / "straight", tmp_path / "resumed"
+    assert train_main([*train_args(runs["data"], straight), "--set", f"train.keep_every={K}"]) == 0
+    assert sorted(p.name for p in (straight / "snapshots").iterdir()) == [f"step_{K:07d}", f"step_{2 * K:07d}"]
+    assert_same_tensors(straight / "snapshots" / f"step_{2 * K:07d}" / "model.safetensors", straight / "model.safetensors")
+    policy, config = load_policy(straight / "snapshots" / f"step_{K:07d}")
+    assert config.train.keep_every == K and ckpt.weights_metadata(
+        straight / "snapshots" / f"step_{K:07d}" / "model.safetensors")["step"] == str(K)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(Trainer, "train_step", lambda self, _f=Interrupt(K): _f(self))
+        assert train_main([*train_args(runs["data"], resumed), "--set", f"train.keep_every={K}"]) == 130
+    assert train_main(resume_args(runs["data"], resumed)) == 0
+    for step in (K, 2 * K):
+        name = f"step_{step:07d}"
+        assert_same_tensors(resumed / "snapshots" / name / "model.safetensors", straight / "snapshots" / name / "model.safetensors")

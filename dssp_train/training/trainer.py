@@ -12,6 +12,7 @@ from __future__ import annotations
 import hashlib
 import math
 import os
+import shutil
 import time
 from collections.abc import Collection
 from dataclasses import dataclass
@@ -383,6 +384,8 @@ class Trainer:
                         bar.write(f"step {self.step}: " + ", ".join(f"{k} {v:.5f}" for k, v in last_val.items()))
                 if self.is_main and (self.step % tc.save_every == 0 or self.step == tc.steps):
                     self.save()
+                if self.is_main and tc.keep_every and self.step % tc.keep_every == 0:
+                    self.keep_snapshot()
         finally:
             if bar is not None:
                 bar.close()
@@ -416,6 +419,20 @@ class Trainer:
             config=self.config,
         )
         ckpt.save_config(self.run_dir, self.config)
+
+    def keep_snapshot(self) -> Path:
+        """RUN/snapshots/step_NNNNNNN/: this step's EMA weights and config.json, written to a temporary folder and
+        renamed (a snapshot is whole or absent)."""
+        folder = self.run_dir / "snapshots" / f"step_{self.step:07d}"
+        staging = folder.with_name(folder.name + ".tmp")
+        shutil.rmtree(staging, ignore_errors=True)
+        staging.mkdir(parents=True)
+        meta = {"format_version": ckpt.FORMAT_VERSION, "step": str(self.step), **ckpt.config_record(self.config)}
+        ckpt.save_tensors(staging / "model.safetensors", self.ema.model.state_dict(), meta)
+        ckpt.save_config(staging, self.config)
+        shutil.rmtree(folder, ignore_errors=True)
+        staging.rename(folder)
+        return folder
 
     def _restore(self) -> None:
         state = ckpt.load_training_state(self.run_dir)
