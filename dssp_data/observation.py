@@ -142,8 +142,12 @@ class ObservationContract(Settings):
                 values[field] = kind.from_dict(attrs[key])
             except ConfigError as exc:
                 raise ConfigError(f"{where}'s {key} attribute: {exc}; fix or remove the attribute") from None
-        if "pointcloud" in values:
-            values["frame"] = FRAME_ROBOT_BASE
+        if "pointcloud" in values:  # a dataset names its clouds' frame when it is not the robot's base
+            frame = attrs.get("pointcloud_frame", FRAME_ROBOT_BASE)
+            if not isinstance(frame, str) or not frame:
+                raise ConfigError(f"{where}'s pointcloud_frame attribute must be a non-empty string, got {frame!r}; "
+                                  "fix or remove the attribute")
+            values["frame"] = frame
         return cls(**values)
 
     def to_manifest(self) -> dict[str, Any]:
@@ -163,6 +167,8 @@ class ObservationContract(Settings):
         out: dict[str, Any] = {}
         if self.pointcloud is not None:
             out["pointcloud"] = self.pointcloud.to_dict()
+            if self.frame not in (None, FRAME_ROBOT_BASE):
+                out["pointcloud_frame"] = self.frame
         if self.state is not None:
             out["state_layout"] = self.state.to_dict()
         if self.action is not None:

@@ -8,6 +8,7 @@ import json
 import pytest
 
 from dssp_data.observation import (
+    FRAME_ROBOT_BASE,
     UNKNOWN,
     ObservationContract,
     PointCloudConfig,
@@ -130,3 +131,14 @@ def test_dssp_record_refuses_appending_with_other_settings(tmp_path, capsys):
     assert record_main([*args, "--pointcloud", str(other)]) == 2
     line = capsys.readouterr().err.strip()
     assert "pointcloud.voxel_size = 0.02" in line and "has 0.01" in line and "new dataset" in line
+
+
+def test_a_dataset_names_its_clouds_frame_when_it_is_not_the_robots_base():
+    base = ObservationContract(pointcloud=PointCloudConfig(), frame=FRAME_ROBOT_BASE, state=piper_layout(1))
+    assert "pointcloud_frame" not in base.attrs()
+    assert ObservationContract.from_attrs(base.attrs(), "d.zarr").frame == FRAME_ROBOT_BASE
+    other = ObservationContract(pointcloud=PointCloudConfig(), frame="camera: DP3's frame", state=piper_layout(1))
+    assert other.attrs()["pointcloud_frame"] == "camera: DP3's frame"
+    assert ObservationContract.from_attrs(other.attrs(), "d.zarr") == other
+    with pytest.raises(ConfigError, match=r"^d.zarr's pointcloud_frame attribute must be a non-empty string, got 3"):
+        ObservationContract.from_attrs({**other.attrs(), "pointcloud_frame": 3}, "d.zarr")
