@@ -23,8 +23,14 @@ system:
 	  { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && apt-get update -qq && apt-get install -y -qq libusb-1.0-0 >/dev/null; } || \
 	  { echo "error: libusb-1.0 is missing; install it (sudo apt-get install libusb-1.0-0) and run make again"; exit 2; }
 
+# MetaWorld (dssp-sim's metaworld/NAME tasks) goes in without its dependencies: it declares mujoco==3.3.0 and runs on
+# the MuJoCo installed here (dssp_sim/metaworld_env.py says how); pip's resolver reports that declaration.
+METAWORLD ?= metaworld==3.1.1
+
 setup: system
 	$(PYTHON) -m pip install --quiet "$(TORCH)" -e ".[$(EXTRAS)]"
+	@out=$$($(PYTHON) -m pip install --quiet --no-deps "$(METAWORLD)" 2>&1) || { echo "$$out"; exit 1; }; \
+	  echo "$$out" | grep -v "requires mujoco==\|dependency resolver\|^$$" || true
 	@$(MAKE) --no-print-directory kernel || echo "note: the fused Mamba kernel was not built; the standard ONNX graphs will run (see make kernel)"
 
 kernel: $(KERNEL)

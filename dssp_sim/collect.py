@@ -6,6 +6,10 @@ measured arm state (7,) [J1..J6 rad, gripper opening 0..1] is ``state``; the exp
 tick (7,), the command sent to the arm, is ``action``. Only successful episodes are kept; each kept
 episode is appended as soon as it ends (crash-safe: ``ReplayBufferWriter``).
 
+``metaworld/NAME`` (:mod:`dssp_sim.metaworld_env`): DP3's protocol instead — MetaWorld's scripted expert, whole
+200-step episodes kept when the task's success flag held for 5 steps, clouds (512, 3) in DP3's cloud frame, state (9,)
+and action (4,) as DP3 stores them; the dataset's ``benchmark`` attribute names the task and protocol.
+
 ``out`` is a new dataset, or one this module wrote for the same task (its ``generator`` and ``task``
 attributes), which is appended to; anything else there (a recorded dataset, another task's, a folder or a
 file, a dataset folder holding a symbolic link) is refused before the simulation starts, and left as it is.
@@ -36,7 +40,8 @@ class CollectResult:
 
 
 def expert_episode(env, expert, camera: MujocoCamera, cloud_config, seed: int):
-    """Run the expert for one episode; returns (point_cloud (T, P, 3), state (T, 7), action (T, 7), status)."""
+    """Run the expert for one episode; returns (point_cloud (T, P, 3), state (T, S), action (T, A), status): S = A = 7
+    on the Piper, S = 9 and A = 4 on MetaWorld."""
     clouds, states, actions = [], [], []
     while True:
         frame = camera.capture()
@@ -101,15 +106,35 @@ def collect(task: str, n_episodes: int, out: Path, seed: int | None = None, n_po
         lock.release()
 
 
-def _collect(task: str, n_episodes: int, out: Path, seed: int, n_points: int | None, max_attempts: int | None,
-             progress: bool) -> CollectResult:
+def _task_env(task: str, seed: int, n_points: int | None):
+    """(env, expert factory, point-cloud settings) for ``task``: a Piper memory task or ``metaworld/NAME``."""
+    from dssp_sim import metaworld_env
+
+    if metaworld_env.is_metaworld(task):  # DP3's protocol: whole 200-step episodes, kept at 5 successful steps
+        env = metaworld_env.MetaWorldEnv(task, seed=seed, success_steps=metaworld_env.DEMO_SUCCESS_STEPS,
+                                         stop_on_success=False)
+        return env, metaworld_env.MetaWorldExpert, metaworld_env.cloud_config(n_points)
     from dssp_sim.env import PiperEnv
     from dssp_sim.experts import make_expert
-    from dssp_data.replay_buffer import Episode, ReplayBufferWriter
 
-    max_attempts = max_attempts or 2 * n_episodes + 5
-    env = PiperEnv(task, seed=seed)
-    cloud_config = cloud_config_for(n_points, task)
+    return PiperEnv(task, seed=seed), make_expert, cloud_config_for(n_points, task)
+
+
+def _collect(task: str, n_episodes: int, out: Path, seed: int, n_points: int | None, max_attempts: int | None,
+             progress: bool) -> CollectResult:
+    env, make_expert, cloud_config = _task_env(task, seed, n_points)
+    try:
+        return _collect_episodes(env, make_expert, cloud_config, task, n_episodes, out, seed,
+                                 max_attempts or 2 * n_episodes + 5, progress)
+    finally:
+        env.close()
+
+
+def _collect_episodes(env, make_expert, cloud_config, task: str, n_episodes: int, out: Path, seed: int,
+                      max_attempts: int, progress: bool) -> CollectResult:
+    from dssp_data.replay_buffer import Episode, ReplayBufferWriter
+    from dssp_sim import metaworld_env
+
     result = CollectResult()
     bar = None
     if progress:
@@ -117,7 +142,8 @@ def _collect(task: str, n_episodes: int, out: Path, seed: int, n_points: int | N
 
         bar = tqdm(total=n_episodes, desc=f"collect {task}", unit="episode")
     camera = MujocoCamera(env)
-    attrs = sim_attrs(task, env, camera, cloud_config)
+    attrs = (metaworld_env.dataset_attrs(env, camera, cloud_config) if metaworld_env.is_metaworld(task)
+             else sim_attrs(task, env, camera, cloud_config))
     with camera, ReplayBufferWriter(out, attrs=attrs, lock=False) as writer:
         episode_seed = seed
         while result.kept < n_episodes and result.attempted < max_attempts:

@@ -79,7 +79,7 @@ class PiperEnv:
         self.render_size = (int(render_size[0]), int(render_size[1]))
         self._substeps_per_control = int(round(1.0 / (CONTROL_RATE_HZ * TIMESTEP)))
         self._camera_id = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_CAMERA, CAMERA_NAME)
-        self._renderer: _RenderThread | None = None
+        self._renderer: DepthRenderThread | None = None
         self._renderer_finalizer = None
         self.lock = threading.RLock()
         self._substeps = 0
@@ -225,7 +225,7 @@ class PiperEnv:
         (~0.2 s)."""
         with self.lock:
             if self._renderer is None:
-                self._renderer = _RenderThread(self.model, self.render_size, self._camera_id)
+                self._renderer = DepthRenderThread(self.model, self.render_size, self._camera_id)
                 self._renderer_finalizer = weakref.finalize(self, self._renderer.close)
             metres = self._renderer.render(self.data)
             cam_to_base = self.camera_to_base()
@@ -251,7 +251,7 @@ class PiperEnv:
         self.close()
 
 
-class _RenderThread:
+class DepthRenderThread:
     """One thread that owns a MuJoCo depth renderer and its GL context (a GL context is bound to the
     thread that made it current), so ``render_depth`` works from any thread: a capture thread, a test,
     the main loop. ``render(data)`` -> (H, W) float32 metric depth (metres along the optical axis)."""

@@ -34,6 +34,7 @@ from dssp_deploy.manifest import observation_of
 from dssp_sim.settings import cloud_config_for
 from dssp_sim.mujoco_arm import MujocoPiper
 from dssp_sim.mujoco_camera import MujocoCamera
+from dssp_data.errors import ConfigError
 from dssp_data.output_guard import OutputKind
 from hardware.safety import SafetyConfig
 
@@ -210,6 +211,55 @@ def run_episode(policy, env, seed: int, cloud_config, frames: list | None = None
                           chunk_ms_p50=float(np.median(chunk)) if chunk else None, decision=env.task.decision(dict(status.info)))
 
 
+def run_direct_episode(policy, env, seed: int, cloud_config, frames: list | None = None,
+                       latencies: dict[str, list[float]] | None = None) -> EpisodeOutcome:
+    """One closed-loop episode of an env whose arm is stepped directly, not over CAN (MetaWorld's Sawyer,
+    :class:`~dssp_sim.metaworld_env.MetaWorldEnv`): render → point-cloud pipeline → runtime
+    (``dssp_deploy.ChunkedControl``: the history every tick, a chunk every H_a) → ``env.step``.
+
+    A tick the runtime refuses (NaN/inf or an out-of-range observation, a refused chunk) holds (``env.hold()``)
+    and is counted in ``holds`` and ``safety_events``; the next tick goes on."""
+    from dssp_data.errors import NonFiniteObservation
+    from dssp_deploy.control_loop import ChunkedControl
+    from dssp_deploy.ranges import ChunkOutOfRange, ObservationOutOfRange
+    from hardware.pointcloud import frame_to_cloud
+
+    env.reset(seed=seed)
+    loop = ChunkedControl(policy, rate_hz=env.control_rate_hz, seed=seed)
+    camera = MujocoCamera(env)
+    holds, events = 0, Counter()
+    stages: dict[str, list[float]] = {"cloud": [], "observe": [], "chunk": [], "tick": []}
+    with camera:
+        status = env.status()
+        while not status.done:
+            t0 = time.perf_counter()
+            frame = camera.capture()
+            cloud, _ = frame_to_cloud(frame, cloud_config, camera.camera_to_base)
+            t1 = time.perf_counter()
+            stages["cloud"].append((t1 - t0) * 1e3)
+            try:
+                action, info = loop.tick(cloud, env.state())
+            except (NonFiniteObservation, ObservationOutOfRange, ChunkOutOfRange) as e:
+                holds += 1
+                events[type(e).__name__] += 1
+                env.hold()
+            else:
+                stages["observe"].append(info.observe_ms)
+                if info.chunk_ms is not None:
+                    stages["chunk"].append(info.chunk_ms)
+                env.step(action[0])
+            stages["tick"].append((time.perf_counter() - t0) * 1e3)
+            if frames is not None:
+                frames.append(frame.depth.copy())
+            status = env.status()
+    if latencies is not None:
+        for key, values in stages.items():
+            latencies.setdefault(key, []).extend(values)
+    chunk = stages["chunk"]
+    return EpisodeOutcome(seed=seed, success=status.success, reason=status.reason, steps=env.steps, info=dict(status.info),
+                          holds=holds, safety_events=dict(events), chunk_ms_p50=float(np.median(chunk)) if chunk else None)
+
+
 STRIPS_DIR = OutputKind("a folder of episode strips", "dssp-sim eval", entries=("*.png",))
 """``dssp-sim eval --strips``: one PNG per episode (``TASK_seedS.png``), written all at once."""
 
@@ -221,15 +271,31 @@ def evaluate(model_dir: Path, task: str, n_episodes: int, seed: int = 1000, thre
     ``precision`` and ``kernel`` choose its graphs (:class:`dssp_deploy.onnx_policy.OnnxPolicy`); ``views``: Rerun
     views of every tick of every episode, on one timeline (the caller closes them)."""
     from dssp_deploy.onnx_policy import OnnxPolicy
-    from dssp_sim.env import PiperEnv
+    from dssp_sim import metaworld_env
 
+    if metaworld_env.is_metaworld(task) and views is not None:
+        raise ConfigError("--rerun views show the Piper's control loop; MetaWorld evaluations have none (drop the flag)")
     policy = OnnxPolicy(model_dir, threads=threads, precision=precision, kernel=kernel, spinning=spinning)
     print(f"graphs: {policy.kernel_note}", file=sys.stderr)
     recent = policy.denoiser_inputs = _RecentStates(policy, state_token_noise, np.random.default_rng(seed))
-    env = PiperEnv(task, seed=seed)
     # The model's own point-cloud settings (its observation contract), as dssp-run uses them; a model trained on
     # data that recorded none sees the simulation's settings at its point count.
-    cloud_config = observation_of(policy.manifest).pointcloud or cloud_config_for(policy.manifest["model_config"]["n_points"], task)
+    n_points = policy.manifest["model_config"]["n_points"]
+    if metaworld_env.is_metaworld(task):
+        metaworld_env.check_model_dims(policy.manifest["model_config"], model_dir)
+        env = metaworld_env.MetaWorldEnv(task, seed=seed)
+        cloud_config = observation_of(policy.manifest).pointcloud or metaworld_env.cloud_config(n_points)
+
+        def episode(s, frames, ticks):
+            return run_direct_episode(policy, env, s, cloud_config, frames, ticks)
+    else:
+        from dssp_sim.env import PiperEnv
+
+        env = PiperEnv(task, seed=seed)
+        cloud_config = observation_of(policy.manifest).pointcloud or cloud_config_for(n_points, task)
+
+        def episode(s, frames, ticks):
+            return run_episode(policy, env, s, cloud_config, frames, ticks, views)
     result = EvalResult(str(model_dir), task, state_token_noise=state_token_noise, precision=policy.precision, kernel=policy.kernel)
     bar = None
     if progress:
@@ -238,20 +304,23 @@ def evaluate(model_dir: Path, task: str, n_episodes: int, seed: int = 1000, thre
         bar = tqdm(total=n_episodes, desc=f"eval {task}", unit="episode")
     wall = []
     ticks: dict[str, list[float]] = {}
-    for i in range(n_episodes):
-        frames = [] if strips_dir is not None else None
-        t0 = time.perf_counter()
-        outcome = run_episode(policy, env, seed + i, cloud_config, frames, ticks, views)
-        wall.append(time.perf_counter() - t0)
-        result.episodes.append(outcome)
-        if frames:
-            from dssp_sim.strips import save_strip
+    try:
+        for i in range(n_episodes):
+            frames = [] if strips_dir is not None else None
+            t0 = time.perf_counter()
+            outcome = episode(seed + i, frames, ticks)
+            wall.append(time.perf_counter() - t0)
+            result.episodes.append(outcome)
+            if frames:
+                from dssp_sim.strips import save_strip
 
-            save_strip(frames, Path(strips_dir) / f"{task}_seed{seed + i}.png",
-                       f"{task} seed {seed + i}: {'success' if outcome.success else outcome.reason}")
-        if bar is not None:
-            bar.update(1)
-            bar.set_postfix(success=f"{result.successes}/{i + 1}")
+                save_strip(frames, Path(strips_dir) / f"{task}_seed{seed + i}.png",
+                           f"{task} seed {seed + i}: {'success' if outcome.success else outcome.reason}")
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(success=f"{result.successes}/{i + 1}")
+    finally:
+        env.close()
     if bar is not None:
         bar.close()
     result.latency_ms = {
@@ -276,8 +345,9 @@ def print_eval(result) -> None:
     if result.reasons():
         print("failures: " + ", ".join(f"{k} × {v}" for k, v in result.reasons().most_common()))
     d = result.decisions()
-    print(f"memory decision: right in {d['correct']} of the {d['reached']} episodes that reached it ("
-          + ", ".join(f"{k} × {v}" for k, v in sorted(d["choices"].items())) + ")")
+    if not result.task.startswith("metaworld/"):  # MetaWorld's tasks hold no memory decision
+        print(f"memory decision: right in {d['correct']} of the {d['reached']} episodes that reached it ("
+              + ", ".join(f"{k} × {v}" for k, v in sorted(d["choices"].items())) + ")")
     print_latency(result.latency_ms)
 
 
