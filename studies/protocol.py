@@ -85,24 +85,26 @@ def code_commit() -> str:
     return head.stdout.strip() + ("+changes" if dirty.stdout.strip() else "")
 
 
-def provenance(plan: dict, tasks: Iterable[str] | None = None) -> dict:
-    """What a record states about how it was made (module docstring); ``tasks``: the tasks the run was started for."""
-    return {"task_definition": task_definition_hash(), "plan": plan_hash(plan), "commit": code_commit(),
+def provenance(plan: dict, tasks: Iterable[str] | None = None, definition: str | None = None) -> dict:
+    """What a record states about how it was made (module docstring); ``tasks``: the tasks the run was started for;
+    ``definition``: the hash of a benchmark defined elsewhere (MetaWorld's), instead of :func:`task_definition_hash`."""
+    return {"task_definition": definition or task_definition_hash(), "plan": plan_hash(plan), "commit": code_commit(),
             "machine": machine.describe(), **({"tasks": sorted(tasks)} if tasks is not None else {})}
 
 
-def note_provenance(record_dir: Path, plan: dict, split: str, tasks: Iterable[str] | None = None) -> None:
+def note_provenance(record_dir: Path, plan: dict, split: str, tasks: Iterable[str] | None = None,
+                    definition: str | None = None) -> None:
     """Add this run's provenance to the record's list for ``split`` (a resumed study on other code or another
     machine adds an entry; the same one again adds none)."""
     path = Path(record_dir) / f"provenance_{split}.json"
     runs = json.loads(path.read_text()) if path.is_file() else []
-    now = provenance(plan, tasks)
+    now = provenance(plan, tasks, definition)
     if not runs or runs[-1] != now:
         path.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_text(path, json.dumps(runs + [now], indent=1) + "\n")
 
 
-def freeze_plan(record_dir: Path, plan: dict, tested: Iterable[str] = ()) -> str:
+def freeze_plan(record_dir: Path, plan: dict, tested: Iterable[str] = (), definition: str | None = None) -> str:
     """Freeze ``plan`` for the test split: write its hash and the task definition's beside the record (once; a
     different frozen plan there is refused: a new plan is a new study).
 
@@ -112,7 +114,7 @@ def freeze_plan(record_dir: Path, plan: dict, tested: Iterable[str] = ()) -> str
     its definition), and only tasks tested from now on run on the new one."""
     path = Path(record_dir) / FROZEN_NAME
     digest = plan_hash(plan)
-    current = task_definition_hash()
+    current = definition or task_definition_hash()
     if path.is_file():
         frozen = json.loads(path.read_text())
         if frozen.get("plan") != digest:
@@ -127,8 +129,10 @@ def freeze_plan(record_dir: Path, plan: dict, tested: Iterable[str] = ()) -> str
     return digest
 
 
-def check_frozen(record_dir: Path, plan: dict) -> None:
-    """Refuse the test split unless ``plan`` is the one frozen beside the record, on the same task definition."""
+def check_frozen(record_dir: Path, plan: dict, definition: str | None = None) -> None:
+    """Refuse the test split unless ``plan`` is the one frozen beside the record, on the same task definition
+    (``definition``: a benchmark's own hash, as given to :func:`freeze_plan`)."""
+    current = definition or task_definition_hash()
     path = Path(record_dir) / FROZEN_NAME
     if not path.is_file():
         raise DSSPError(f"the test split needs a frozen plan and {path} does not exist: run the validation split, choose "
@@ -137,6 +141,6 @@ def check_frozen(record_dir: Path, plan: dict) -> None:
     if frozen.get("plan") != plan_hash(plan):
         raise DSSPError(f"the plan changed since it was frozen ({frozen.get('plan')} -> {plan_hash(plan)}): the test split "
                         "evaluates only the frozen plan; a changed plan is a new study")
-    if frozen.get("task_definition") != task_definition_hash():
+    if frozen.get("task_definition") != current:
         raise DSSPError(f"the task definition changed since the plan was frozen ({frozen.get('task_definition')} -> "
-                        f"{task_definition_hash()}): a changed task is a new study")
+                        f"{current}): a changed task is a new study")

@@ -7,6 +7,8 @@ What it rebuilds (:data:`SOURCES`):
 
 - ``reports/memory/``: the memory-task study's report of each split its record holds
   (:mod:`studies.memory_tasks`, ``record/evals``);
+- ``reports/metaworld/``: the MetaWorld study's report (:mod:`studies.metaworld`) from its record (``record/plan.json``,
+  ``record/evals``);
 - ``reports/sim/`` and ``reports/distill/``: the earlier simulation and distillation studies' reports from
   their records (``record/evals``, ``record/seconds``; their plots too, not compared byte for byte: the
   tables and the JSON are);
@@ -38,7 +40,7 @@ from pathlib import Path
 from dssp_data.cli_runner import ArgumentParser, run_cli
 from dssp_data.errors import DSSPError
 from dssp_data.files import atomic_write_text
-from studies import distill_study, memory_tasks, sampling, sim_study
+from studies import distill_study, memory_tasks, metaworld, sampling, sim_study
 from studies.demo import results_table
 from studies.stats import describe_p, paired_exact_test
 
@@ -84,8 +86,18 @@ def _sampling(root: Path, out: Path) -> list[str]:
     return [md.name, md.with_suffix(".json").name]
 
 
+def _metaworld(root: Path, out: Path) -> list[str]:
+    record = root / "reports/metaworld" / metaworld.RECORD_DIR
+    if not (record / "plan.json").is_file():
+        return []
+    md = metaworld.write_report(json.loads((record / "plan.json").read_text()), record, out,
+                                shown_record="reports/metaworld/record")
+    return [md.name, md.with_suffix(".json").name]
+
+
 SOURCES: dict[str, Callable[[Path, Path], list[str]]] = {
     "reports/memory": _memory,
+    "reports/metaworld": _metaworld,
     "reports/sim": _sim,
     "reports/distill": _distill,
     "reports/sampling": _sampling,
