@@ -20,6 +20,12 @@ DP3's protocol, as its MetaWorld wrapper and demonstration script do it:
 - episodes of 200 steps; a demonstration is kept when the task's success flag held at 5 steps or more; an
   evaluation episode succeeds when the flag is set at any step (it ends there: the rest cannot change it).
 
+The memory variant ``metaworld-cue/NAME`` (this project's own, not part of MetaWorld; NAME in :data:`CUE_TASKS`,
+tasks whose goal no object shows): the task's goal marker is a cue — a sphere of :data:`CUE_RADIUS_M` at the goal,
+in the clouds for the first :data:`CUE_STEPS` steps of an episode, then too small to render — so after the first
+tenth of a second a policy knows the goal only from what it remembers. The expert knows it throughout (MetaWorld's
+scripted policy reads it from the simulator), the scoring is the task's own.
+
 DP3's cloud frame. DP3 turns corner2's depth into points with the rotation of camera 0 (``topview``, the identity)
 and no translation, then rotates them by Rx(61.4°)·Ry(-7°) (its ``pc_transform``); its crop box
 ``[-0.5, -1.5, -0.795]``–``[1, -0.4, 100]`` is given in that frame. ``render_depth`` returns that frame as the
@@ -52,6 +58,13 @@ from dssp_sim.tasks import TaskStatus  # noqa: E402
 from hardware.camera.base import Intrinsics  # noqa: E402
 
 PREFIX = "metaworld/"
+# This project's memory variant (not MetaWorld's own): the goal marker is a cue shown for the first CUE_STEPS steps of
+# an episode, then hidden, so the goal must be remembered (see the module docstring).
+CUE_PREFIX = "metaworld-cue/"
+CUE_TASKS = ("reach", "push", "pick-place")  # tasks whose goal is only a marker (no object shows it)
+CUE_STEPS = 10
+CUE_RADIUS_M = 0.04
+HIDDEN_RADIUS_M = 1e-6
 INSTALL = 'pip install --no-deps metaworld==3.1.1 && pip install "gymnasium>=1.1" imageio'
 
 # The difficulty groups DP3 and the papers after it report MetaWorld by (Seo et al., 2022): all 50 tasks.
@@ -99,15 +112,32 @@ CAMERA_TO_CLOUD[:3, :3] = _dp3_rotation() @ np.diag([1.0, -1.0, -1.0])
 
 
 def is_metaworld(task: str) -> bool:
-    return isinstance(task, str) and task.startswith(PREFIX)
+    """``metaworld/NAME`` or the memory variant ``metaworld-cue/NAME``."""
+    return isinstance(task, str) and task.startswith((PREFIX, CUE_PREFIX))
+
+
+def is_cue(task: str) -> bool:
+    return isinstance(task, str) and task.startswith(CUE_PREFIX)
 
 
 def task_name(task: str) -> str:
-    """``metaworld/door-open`` -> ``door-open``; an unknown task is a one-line ConfigError."""
+    """``metaworld/door-open`` -> ``door-open`` (``metaworld-cue/reach`` -> ``reach``); an unknown task is a
+    one-line ConfigError."""
+    if is_cue(task):
+        name = task[len(CUE_PREFIX):]
+        if name not in CUE_TASKS:
+            raise ConfigError(f"unknown MetaWorld cue task {name!r}; choose one of {', '.join(CUE_TASKS)} "
+                              f"(as {CUE_PREFIX}NAME)")
+        return name
     name = task[len(PREFIX):] if is_metaworld(task) else task
     if name not in TASKS:
         raise ConfigError(f"unknown MetaWorld task {name!r}; choose one of {', '.join(TASKS)} (as metaworld/NAME)")
     return name
+
+
+def task_id(task: str) -> str:
+    """The canonical id: ``metaworld/NAME`` or ``metaworld-cue/NAME`` (a bare name is MetaWorld's own task)."""
+    return (CUE_PREFIX if is_cue(task) else PREFIX) + task_name(task)
 
 
 def tasks_of(selection: list[str]) -> list[str]:
@@ -174,15 +204,17 @@ def _patch_mocap_welds() -> None:
 
 
 class MetaWorldEnv:
-    """One MetaWorld v3 task (``name``, e.g. ``"door-open"``), its scene drawn from ``seed`` at each ``reset``.
+    """One MetaWorld v3 task (``task``: ``"door-open"``, ``"metaworld/door-open"`` or the memory variant
+    ``"metaworld-cue/reach"``), its scene drawn from ``seed`` at each ``reset``.
 
     success_steps: steps with the task's success flag set that make the episode a success (1 for evaluation,
     :data:`DEMO_SUCCESS_STEPS` for demonstrations); stop_on_success: end the episode once it is one."""
 
-    def __init__(self, name: str, seed: int = 0, success_steps: int = 1, stop_on_success: bool = True,
+    def __init__(self, task: str, seed: int = 0, success_steps: int = 1, stop_on_success: bool = True,
                  render_size: tuple[int, int] = RENDER_SIZE):
         metaworld = _import_metaworld()
-        self.name = task_name(name)
+        self.task, self.name = task_id(task), task_name(task)
+        self.cue_steps = CUE_STEPS if is_cue(task) else None
         self.success_steps, self.stop_on_success = int(success_steps), bool(stop_on_success)
         self.render_size = tuple(render_size)
         cls = metaworld.env_dict.ALL_V3_ENVIRONMENTS_GOAL_OBSERVABLE[f"{self.name}-v3-goal-observable"]
@@ -191,6 +223,7 @@ class MetaWorldEnv:
         self._camera_id = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_CAMERA, CAMERA)
         self.model.cam_pos[self._camera_id] = CAMERA_POS
         self.control_rate_hz = 1.0 / (self.env.frame_skip * float(self.model.opt.timestep))
+        self._goal_site = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_SITE, "goal")
         self.lock = threading.RLock()
         self._renderer: DepthRenderThread | None = None
         self._renderer_finalizer = None
@@ -205,6 +238,8 @@ class MetaWorldEnv:
             self.env._freeze_rand_vec = False  # draw the scene from the env's generator, seeded just above
             self.env.seeded_rand_vec = True
             self.obs, _ = self.env.reset()
+            if self.cue_steps is not None:
+                self._show_cue(True)
             mujoco.mj_forward(self.model, self.data)
             self.steps = 0
             self.gripper_effort = -1.0  # open, as MetaWorld's reset leaves the hand
@@ -224,10 +259,20 @@ class MetaWorldEnv:
             self.obs, _, _, _, info = self.env.step(np.clip(action, -1.0, 1.0))
             self.gripper_effort = float(np.clip(action[3], -1.0, 1.0))
             self.steps += 1
+            if self.cue_steps is not None and self.steps >= self.cue_steps:
+                self._show_cue(False)
             if info.get("success"):
                 self.succeeded += 1
                 if self.first_success is None:
                     self.first_success = self.steps
+
+    def _show_cue(self, shown: bool) -> None:
+        """The goal marker as the cue: a sphere of :data:`CUE_RADIUS_M`, or too small to render (its position stays
+        the task's: MetaWorld's reward checks it)."""
+        self.model.site_size[self._goal_site] = CUE_RADIUS_M if shown else HIDDEN_RADIUS_M
+
+    def cue_shown(self) -> bool:
+        return self.cue_steps is not None and self.steps < self.cue_steps
 
     def hold(self) -> None:
         """One step that stays: no hand displacement, the gripper effort of the last step."""
@@ -238,6 +283,8 @@ class MetaWorldEnv:
             success = self.succeeded >= self.success_steps
             done = self.steps >= EPISODE_STEPS or (success and self.stop_on_success)
             info = {"success_steps": self.succeeded, "first_success_step": self.first_success}
+            if self.cue_steps is not None:
+                info["cue_steps"] = self.cue_steps
             return TaskStatus(done=done, success=done and success, reason="" if success or not done else "timeout",
                               info=info)
 
@@ -296,11 +343,14 @@ def dataset_attrs(env: MetaWorldEnv, camera, config: PointCloudConfig) -> dict:
 
     return {
         "control_rate_hz": float(env.control_rate_hz),
-        "task": PREFIX + env.name,
+        "task": env.task,
         "generator": "dssp_sim.collect",
         "benchmark": {"name": "metaworld", "version": getattr(metaworld, "__version__", "3.1.1"), "task": f"{env.name}-v3",
                       "difficulty": difficulty_of(env.name), "protocol": "DP3", "episode_steps": EPISODE_STEPS,
-                      "demo_success_steps": DEMO_SUCCESS_STEPS},
+                      "demo_success_steps": DEMO_SUCCESS_STEPS,
+                      **({"variant": f"this project's memory variant: the goal marker, a {CUE_RADIUS_M * 100:.0f} cm "
+                                     f"sphere, is shown for the first {env.cue_steps} steps, then hidden",
+                          "cue_steps": env.cue_steps} if env.cue_steps is not None else {})},
         "action_convention": "the scripted expert's action as DP3 stores it: hand displacement in 1/100 m and gripper "
                              "effort, unclipped (MetaWorld clips it to [-1, 1] when it steps)",
         "state_convention": "measured [hand xyz, right fingertip xyz, left fingertip xyz] m (DP3's agent_pos)",

@@ -1,6 +1,6 @@
 """``dssp-sim``: expert demonstrations and closed-loop evaluation in the MuJoCo simulation.
 
-    dssp-sim collect --task tap|swap|put2|metaworld/NAME --episodes N --out PATH.zarr [--seed S] [--points P]
+    dssp-sim collect --task tap|swap|put2|metaworld/NAME|metaworld-cue/NAME --episodes N --out PATH.zarr [--seed S] [--points P]
     dssp-sim record --out PATH.zarr [dssp-record's flags; --camera sim --can sim by default]
     dssp-sim eval --model MODEL_DIR --task NAME --episodes N [--seed S] [--noise SIGMA] [--strips DIR] [--json PATH] [--force]
                   [--rerun [URL] | --rerun-save PATH.rrd]
@@ -31,16 +31,21 @@ from dssp_data.errors import ConfigError
 TASKS = ("tap", "swap", "put2")
 
 
+TASK_HELP = (" | ".join(TASKS) + " | metaworld/NAME (a MetaWorld v3 task) | metaworld-cue/NAME (reach, push, "
+             "pick-place with the goal shown for 10 steps, then hidden)")
+
+
 def _task(name: str) -> str:
-    from dssp_sim.metaworld_env import PREFIX, is_metaworld, task_name
+    from dssp_sim.metaworld_env import is_metaworld, task_id
 
     if is_metaworld(name):
         try:
-            return PREFIX + task_name(name)
+            return task_id(name)
         except ConfigError as e:
             raise argparse.ArgumentTypeError(str(e)) from None
     if name not in TASKS:
-        raise argparse.ArgumentTypeError(f"unknown task {name!r}; choose one of {', '.join(TASKS)} or metaworld/NAME")
+        raise argparse.ArgumentTypeError(f"unknown task {name!r}; choose one of {', '.join(TASKS)}, metaworld/NAME or "
+                                         "metaworld-cue/NAME")
     return name
 
 
@@ -63,7 +68,7 @@ def parse_args(argv):
     sub = p.add_subparsers(dest="command", required=True)
     sub.add_parser("record", help="dssp-record on the simulated rig (same flags; see dssp-sim record --help)")
     c = sub.add_parser("collect", help="expert demonstrations → a DP3 zarr dataset")
-    c.add_argument("--task", type=_task, required=True, help=" | ".join(TASKS) + " | metaworld/NAME (a MetaWorld v3 task)")
+    c.add_argument("--task", type=_task, required=True, help=TASK_HELP)
     c.add_argument("--episodes", type=positive_int, required=True, help="successful episodes to keep")
     c.add_argument("--out", type=Path, required=True, help="dataset path (.zarr; a dataset dssp-sim collect wrote is appended to)")
     c.add_argument("--seed", type=_non_negative, help="first scene seed (default: 0, or after the last one of the dataset appended to)")
@@ -71,7 +76,7 @@ def parse_args(argv):
     c.add_argument("--no-progress", action="store_true")
     e = sub.add_parser("eval", help="closed-loop evaluation of a model directory")
     e.add_argument("--model", type=Path, required=True, help="model directory (python -m export.to_onnx)")
-    e.add_argument("--task", type=_task, required=True, help=" | ".join(TASKS) + " | metaworld/NAME (a MetaWorld v3 task)")
+    e.add_argument("--task", type=_task, required=True, help=TASK_HELP)
     e.add_argument("--episodes", type=positive_int, default=20)
     e.add_argument("--seed", type=_non_negative, default=1000, help="first episode seed (default 1000: unseen in collection)")
     e.add_argument("--noise", type=float, default=0.0, help="σ of Gaussian noise on the recent state tokens (robustness test)")

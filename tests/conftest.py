@@ -5,6 +5,9 @@ import os
 import signal
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
+# MuJoCo picks its OpenGL platform when it is first imported; every test module is imported at collection, in
+# every worker, so the headless one is set here, before any of them (a window platform would hang a render thread).
+os.environ.setdefault("MUJOCO_GL", "egl")
 
 # A suite started in the background by a non-interactive shell (`make test &`) inherits SIGINT ignored, and
 # every process it starts would too; the Ctrl-C tests send SIGINT, so the suite restores Python's default

@@ -3,14 +3,15 @@ plain zarr-python reads the way DP3's ReplayBuffer does, and the whole chain (co
 
 import json
 
-import mujoco
-import numpy as np
-import pytest
-import zarr
 from conftest import SET_SMALL, one_error_line
 
 from dssp_data.errors import ConfigError, DSSPError
-from dssp_sim import metaworld_env as mw
+from dssp_sim import metaworld_env as mw  # before mujoco: it sets MUJOCO_GL=egl
+
+import mujoco  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+import zarr  # noqa: E402
 from dssp_sim.sim_cli import main as sim_main
 
 TASK = "reach"  # the quickest expert
@@ -52,6 +53,37 @@ def test_scenes_are_drawn_from_the_seed():
         env.reset(5)
         np.testing.assert_array_equal(env.obs, first)
         assert not np.array_equal(first[-3:], other[-3:])  # the goal moved
+
+
+def test_the_cue_variant_shows_the_goal_for_ten_steps_then_hides_it():
+    assert mw.task_id("metaworld-cue/reach") == "metaworld-cue/reach" and mw.task_id("reach") == "metaworld/reach"
+    with pytest.raises(ConfigError, match="unknown MetaWorld cue task 'door-open'"):
+        mw.task_name("metaworld-cue/door-open")
+    def depth_at_goal(env) -> tuple[float, float]:
+        """(depth rendered where the goal projects, m; the goal's own depth, m) — in the camera's optical frame."""
+        raw, unit, intr, _ = env.render_depth()
+        cam = env._camera_id
+        rot = env.data.cam_xmat[cam].reshape(3, 3)  # MuJoCo's camera: x right, y up, looking along -z
+        x, y, z = np.diag([1.0, -1.0, -1.0]) @ rot.T @ (env.env._target_pos - env.data.cam_xpos[cam])
+        u, v = round(intr.fx * x / z + intr.ppx), round(intr.fy * y / z + intr.ppy)
+        return float(raw[v, u]) * unit, float(z)
+
+    with mw.MetaWorldEnv("metaworld-cue/reach", seed=3) as env:
+        for _ in range(mw.CUE_STEPS):
+            assert env.cue_shown()
+            seen, goal = depth_at_goal(env)
+            assert seen == pytest.approx(goal - mw.CUE_RADIUS_M, abs=0.01)  # the cue's near surface
+            env.hold()
+        assert not env.cue_shown()
+        seen, goal = depth_at_goal(env)
+        assert seen == 0.0 or seen > goal + 0.05  # what lies behind it (or nothing within range)
+        assert np.array_equal(env.data.site_xpos[env._goal_site], env.env._target_pos)  # hidden, not moved
+        env.reset(3)  # a new episode shows it again; the expert, which knows the goal, still succeeds
+        assert env.cue_shown() and depth_at_goal(env)[0] == pytest.approx(depth_at_goal(env)[1] - mw.CUE_RADIUS_M, abs=0.01)
+        expert = mw.MetaWorldExpert(env)
+        while not env.status().done:
+            env.step(expert.act(env))
+        assert env.status().success and env.status().info["cue_steps"] == mw.CUE_STEPS
 
 
 @pytest.fixture(scope="module")
@@ -147,6 +179,10 @@ def test_the_study_selects_tasks_and_plans_every_checkpoints_evaluation():
     evals = [s for s in test if s.name.startswith("eval_")]
     assert [s.name for s in evals] == [f"eval_reach_{m}_s0_step1000_test" for m in plan["models"]]
     assert evals[0].argv[evals[0].argv.index("--seed") + 1] == str(split_seeds("test", 50)[0])
+    memory = study.stages({**study.MEMORY_PLAN, "seeds": [0]}, "validation", ["reach"], Path("/nonexistent"))
+    assert memory[0].argv[:3] == ("collect", "--task", "metaworld-cue/reach")
+    assert all(s.argv[s.argv.index("--task") + 1] == "metaworld-cue/reach" for s in memory if s.name.startswith("eval_"))
+    assert study.main(["--memory", "--tasks", "door-open", "--cost"]) == 2  # not a cue task: one line, nothing runs
 
 
 def test_the_report_gives_the_papers_metric_and_the_paired_test_split(tmp_path):
