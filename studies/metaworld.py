@@ -48,6 +48,7 @@ TOP = 5  # the paper's metric: the mean of the top five evaluations
 HORIZONS = ["--set", "model.n_obs_steps=2", "--set", "model.horizon=4", "--set", "model.n_action_steps=3",
             "--set", "model.n_points=512"]
 PLAN = {
+    "suite": "metaworld",
     # two tasks of each difficulty group, the first two of each in alphabetical order (chosen before any result),
     # one of each group first so that a partial run covers every group
     "tasks": ["button-press", "basketball", "assembly", "disassemble",
@@ -71,7 +72,11 @@ PAPER_PLAN = {
     "models": {"dssp": {"preset": "metaworld", "flags": []}, "dp3": {"preset": "dp3", "flags": HORIZONS},
                "wo_history": {"preset": "metaworld", "flags": ["--no-history"]}},
 }
+# This project's memory variant (dssp_sim.metaworld_env: the goal shown for the first 10 steps, then hidden), same
+# protocol and budget as PLAN; no paper to compare with.
+MEMORY_PLAN = {**PLAN, "suite": "metaworld-cue", "tasks": ["reach", "push"]}
 QUICK_PLAN = {
+    "suite": "metaworld",
     "tasks": ["reach"],
     "demos": 2,
     "epochs": 2,
@@ -114,6 +119,15 @@ def select_tasks(items: list[str]) -> list[str]:
             names = mw.tasks_of([item])
         out.extend(n for n in names if n not in out)
     return out
+
+
+def task_id(plan: dict, task: str) -> str:
+    """The task as dssp-sim names it: ``metaworld/NAME`` or the memory variant's ``metaworld-cue/NAME``."""
+    return f"{plan.get('suite', 'metaworld')}/{task}"
+
+
+def is_memory(plan: dict) -> bool:
+    return plan.get("suite") == "metaworld-cue"
 
 
 def steps_of(plan: dict) -> int:
@@ -169,13 +183,13 @@ def stages(plan: dict, split: str, tasks: list[str], record: Path) -> list[Stage
                               (f"{run}/snapshots/step_{step:07d}", "-o", model_dir, "--force", "--threads", "1",
                                *plan["export_flags"]), after=(f"train_{key}",)),
                         Stage(f"eval_{result}", "dssp_sim.sim_cli:main",
-                              ("eval", "--model", model_dir, "--task", f"metaworld/{task}", "--episodes", str(n),
+                              ("eval", "--model", model_dir, "--task", task_id(plan, task), "--episodes", str(n),
                                "--seed", str(first), "--threads", "1", "--json", f"evals/{result}.json", "--force",
                                "--no-progress"), after=(f"export_{key}_step{step}",), outputs=(f"evals/{result}.json",)),
                     ]
         if need_data:
             out.insert(0, Stage(f"collect_{task}", "dssp_sim.sim_cli:main",
-                                ("collect", "--task", f"metaworld/{task}", "--episodes", str(plan["demos"]), "--out", data,
+                                ("collect", "--task", task_id(plan, task), "--episodes", str(plan["demos"]), "--out", data,
                                  "--no-progress"), clean=(data,)))
     return out
 
@@ -262,10 +276,18 @@ def report_lines(plan: dict, record: Path, shown_record: str | None = None) -> t
     figures = figures_of(plan, record)
     steps, kept = steps_of(plan), checkpoint_steps(plan)
     ratio = plan["epochs"] / PAPER_EPOCHS
+    memory = is_memory(plan)
+    title = ("# MetaWorld with a cue that disappears (this project's memory variant): DSSP, DP3 and DSSP w/o history"
+             if memory else "# MetaWorld under DP3's protocol: DSSP, DP3 and DSSP w/o history")
     lines = [
-        "# MetaWorld under DP3's protocol: DSSP, DP3 and DSSP w/o history",
+        title,
         "",
-        f"Rebuilt from `{shown_record or record}` by `python -m studies.metaworld --report-only`. "
+        *(["The variant (`metaworld-cue/NAME`, dssp_sim/metaworld_env.py) is this project's, not MetaWorld's: the "
+           "task's goal marker, a 4 cm sphere, is in the clouds for the first 10 steps of an episode, then hidden; the "
+           "expert knows the goal throughout, a policy only from what it remembers. The paper reports no such task.", ""]
+          if memory else []),
+        f"Rebuilt from `{shown_record or record}` by `python -m studies.metaworld{' --memory' if memory else ''} "
+        "--report-only`. "
         f"{plan['demos']} expert demonstrations per task (MetaWorld's scripted policies, demonstration seeds from 0), "
         f"512-point clouds in DP3's frame; training seeds {plan['seeds']}; {plan['epochs']} epochs = {steps} steps "
         f"({ratio:.2f} of the paper's {PAPER_EPOCHS} epochs); models "
@@ -284,19 +306,9 @@ def report_lines(plan: dict, record: Path, shown_record: str | None = None) -> t
             lines += ["", f"Run ({split}) on: benchmark definition {prov.get('task_definition')}, plan {prov.get('plan')}, "
                       f"code {prov.get('commit')}; {m.get('cpu')} ({m.get('cores')} cores), torch {m.get('torch')}."]
     names = list(plan["models"])
-    lines += ["", "## Per difficulty group, beside the paper", "",
-              "| group (tasks here / paper's) | " + " | ".join(f"{LABELS.get(n, n)} top-5" for n in names) + " | "
-              + " | ".join(f"{LABELS.get(n, n)} test" for n in names) + " | paper DSSP | paper DP3 |",
-              "|---|" + "---:|" * (2 * len(names) + 2)]
-    for group, g in figures["groups"].items():
-        paper = [f"{PAPER[m][group][0]} ± {PAPER[m][group][1]}" for m in ("dssp", "dp3")]
-        lines.append(f"| {group} ({g[names[0]]['tasks']} / {PAPER_TASKS[group]}) | "
-                     + " | ".join(_cell(g[n]["top5"]) for n in names) + " | "
-                     + " | ".join(_cell(g[n]["test"]) for n in names) + f" | {paper[0]} | {paper[1]} |")
-    lines += ["", f"Budget: {ratio:.2f} of the paper's epochs, the models at the sizes named above (the paper's DSSP "
-              "is the `metaworld` preset, 45 M parameters, and its DP3 is DP3's own size); the paper's figures average "
-              "its 34 tasks, these the tasks run here. No claim beyond this budget.", "",
-              "## Per task", "",
+    if not memory:
+        lines += _paper_lines(figures, names, ratio)
+    lines += ["", "## Per task", "",
               "| task | model | top-5 (mean ± std over seeds) | per seed | test success % (95 % CI) | Δ vs DSSP | paired test |",
               "|---|---|---|---|---|---|---|"]
     for task, rows in figures["tasks"].items():
@@ -311,6 +323,23 @@ def report_lines(plan: dict, record: Path, shown_record: str | None = None) -> t
             lines.append(f"| {task} | {LABELS.get(name, name)} | {top} | {seeds} | {test} | {delta} | {p} |")
     lines.append("")
     return lines, figures
+
+
+def _paper_lines(figures: dict, names: list[str], ratio: float) -> list[str]:
+    """Per difficulty group: this study's figures beside the paper's table."""
+    lines = ["", "## Per difficulty group, beside the paper", "",
+             "| group (tasks here / paper's) | " + " | ".join(f"{LABELS.get(n, n)} top-5" for n in names) + " | "
+             + " | ".join(f"{LABELS.get(n, n)} test" for n in names) + " | paper DSSP | paper DP3 |",
+             "|---|" + "---:|" * (2 * len(names) + 2)]
+    for group, g in figures["groups"].items():
+        paper = [f"{PAPER[m][group][0]} ± {PAPER[m][group][1]}" for m in ("dssp", "dp3")]
+        lines.append(f"| {group} ({g[names[0]]['tasks']} / {PAPER_TASKS[group]}) | "
+                     + " | ".join(_cell(g[n]["top5"]) for n in names) + " | "
+                     + " | ".join(_cell(g[n]["test"]) for n in names) + f" | {paper[0]} | {paper[1]} |")
+    lines += ["", f"Budget: {ratio:.2f} of the paper's epochs, the models at the sizes named above (the paper's DSSP "
+                  "is the `metaworld` preset, 45 M parameters, and its DP3 is DP3's own size); the paper's figures "
+                  "average its 34 tasks, these the tasks run here. No claim beyond this budget."]
+    return lines
 
 
 def write_report(plan: dict, record: Path, report: Path, shown_record: str | None = None) -> Path:
@@ -377,8 +406,11 @@ def main(argv: list[str] | None = None) -> int:
                    help="names, groups (easy, medium, hard, very_hard), GROUP:N (its first N alphabetically) or all "
                         "(default: the plan's 8 tasks, two of each group)")
     p.add_argument("--workers", type=int, default=2, help="stages side by side, one thread each (default 2)")
-    p.add_argument("--work", type=Path, default=Path("runs/metaworld"), help="datasets, runs, models, evaluations, logs")
-    p.add_argument("--report", type=Path, default=Path("reports/metaworld"), help="the report and its record")
+    p.add_argument("--memory", action="store_true",
+                   help="the memory variant (metaworld-cue/NAME: reach and push, the goal shown for 10 steps, then "
+                        "hidden), same protocol and budget; work and report default to runs/ and reports/metaworld_cue")
+    p.add_argument("--work", type=Path, help="datasets, runs, models, evaluations, logs (default runs/metaworld)")
+    p.add_argument("--report", type=Path, help="the report and its record (default reports/metaworld)")
     p.add_argument("--freeze", action="store_true", help="freeze the plan for the test split (after the validation split)")
     p.add_argument("--report-only", action="store_true", help="run nothing: rebuild the report from the record")
     p.add_argument("--paper-budget", action="store_true",
@@ -388,10 +420,20 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quick", action="store_true", help="a tiny plan (tests)")
     args = p.parse_args(argv)
 
+    folder = "metaworld_cue" if args.memory else "metaworld"
+    args.work = args.work or Path("runs") / folder
+    args.report = args.report or Path("reports") / folder
+    if args.memory and args.paper_budget:
+        p.error("--memory runs this project's variant at the plan's budget; the paper has no such task (drop one)")
+
     def _main() -> int:
         plan = dict(QUICK_PLAN if args.quick else PAPER_PLAN if args.paper_budget else PLAN)
+        if args.memory:
+            plan = {**plan, "suite": "metaworld-cue", "tasks": MEMORY_PLAN["tasks"] if not args.quick else ["reach"]}
         if args.tasks:
             plan["tasks"] = select_tasks(args.tasks)
+        for task in plan["tasks"] if args.memory else ():
+            _mw().task_name(task_id(plan, task))  # one of the cue tasks, or one line saying which are
         record = args.report / RECORD_DIR
         if args.cost:
             print(cost(plan, plan["tasks"], record))
