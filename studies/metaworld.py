@@ -3,7 +3,7 @@ scored as the paper scores them and on held-out test seeds.
 
     python -m studies.metaworld --tasks easy:2 medium:2 hard:2 very_hard:2       # the validation split
     python -m studies.metaworld --freeze
-    python -m studies.metaworld --split test
+    python -m studies.metaworld --split test [--only button-press]            # all, or some, of the plan's tasks
     python -m studies.metaworld --tasks all --paper-budget --cost                # what the paper's budget costs
 
 For each task (``dssp_sim.metaworld_env``): MetaWorld's scripted expert records the plan's demonstrations
@@ -405,6 +405,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--tasks", nargs="+", metavar="TASK",
                    help="names, groups (easy, medium, hard, very_hard), GROUP:N (its first N alphabetically) or all "
                         "(default: the plan's 8 tasks, two of each group)")
+    p.add_argument("--only", nargs="+", metavar="TASK",
+                   help="run only these of the plan's tasks now (the plan, and what it freezes, stays whole)")
     p.add_argument("--workers", type=int, default=2, help="stages side by side, one thread each (default 2)")
     p.add_argument("--memory", action="store_true",
                    help="the memory variant (metaworld-cue/NAME: reach and push, the goal shown for 10 steps, then "
@@ -446,7 +448,11 @@ def main(argv: list[str] | None = None) -> int:
             ran = record / "plan.json"
             md = write_report(json.loads(ran.read_text()) if ran.is_file() else plan, record, args.report)
         else:
-            md = run_study(plan, args.split, plan["tasks"], args.work, args.report, args.workers)
+            only = args.only or plan["tasks"]
+            outside = [t for t in only if t not in plan["tasks"]]
+            if outside:
+                raise DSSPError(f"--only {' '.join(outside)}: not in the plan's tasks ({', '.join(plan['tasks'])})")
+            md = run_study(plan, args.split, only, args.work, args.report, args.workers)
         print(md.read_text())
         return 0
 

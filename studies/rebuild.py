@@ -7,8 +7,8 @@ What it rebuilds (:data:`SOURCES`):
 
 - ``reports/memory/``: the memory-task study's report of each split its record holds
   (:mod:`studies.memory_tasks`, ``record/evals``);
-- ``reports/metaworld/``: the MetaWorld study's report (:mod:`studies.metaworld`) from its record (``record/plan.json``,
-  ``record/evals``);
+- ``reports/metaworld/`` and ``reports/metaworld_cue/``: the MetaWorld study's reports (:mod:`studies.metaworld`, its
+  memory variant with ``--memory``) from their records (``record/plan.json``, ``record/evals``);
 - ``reports/sim/`` and ``reports/distill/``: the earlier simulation and distillation studies' reports from
   their records (``record/evals``, ``record/seconds``; their plots too, not compared byte for byte: the
   tables and the JSON are);
@@ -86,18 +86,22 @@ def _sampling(root: Path, out: Path) -> list[str]:
     return [md.name, md.with_suffix(".json").name]
 
 
-def _metaworld(root: Path, out: Path) -> list[str]:
-    record = root / "reports/metaworld" / metaworld.RECORD_DIR
-    if not (record / "plan.json").is_file():
-        return []
-    md = metaworld.write_report(json.loads((record / "plan.json").read_text()), record, out,
-                                shown_record="reports/metaworld/record")
-    return [md.name, md.with_suffix(".json").name]
+def _metaworld(folder: str) -> Callable[[Path, Path], list[str]]:
+    def build(root: Path, out: Path) -> list[str]:
+        record = root / folder / metaworld.RECORD_DIR
+        if not (record / "plan.json").is_file():
+            return []
+        md = metaworld.write_report(json.loads((record / "plan.json").read_text()), record, out,
+                                    shown_record=f"{folder}/record")
+        return [md.name, md.with_suffix(".json").name]
+
+    return build
 
 
 SOURCES: dict[str, Callable[[Path, Path], list[str]]] = {
     "reports/memory": _memory,
-    "reports/metaworld": _metaworld,
+    "reports/metaworld": _metaworld("reports/metaworld"),
+    "reports/metaworld_cue": _metaworld("reports/metaworld_cue"),
     "reports/sim": _sim,
     "reports/distill": _distill,
     "reports/sampling": _sampling,
