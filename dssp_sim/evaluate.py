@@ -345,16 +345,19 @@ def print_eval(result) -> None:
     if result.reasons():
         print("failures: " + ", ".join(f"{k} × {v}" for k, v in result.reasons().most_common()))
     d = result.decisions()
-    if not result.task.startswith("metaworld/"):  # MetaWorld's tasks hold no memory decision
+    from dssp_sim.metaworld_env import is_metaworld
+
+    direct = is_metaworld(result.task)
+    if not direct:  # MetaWorld's tasks (and the cue variant, whose success is the decision) hold no separate one
         print(f"memory decision: right in {d['correct']} of the {d['reached']} episodes that reached it ("
               + ", ".join(f"{k} × {v}" for k, v in sorted(d["choices"].items())) + ")")
-    print_latency(result.latency_ms)
+    print_latency(result.latency_ms, tick="whole tick (cloud + policy + step)" if direct else None)
 
 
-def print_latency(lat: dict) -> None:
-    """The control loop's latencies over every tick of the evaluation (ms)."""
+def print_latency(lat: dict, tick: str | None = None) -> None:
+    """The control loop's latencies over every tick of the evaluation (ms); ``tick``: what a whole tick holds."""
     labels = {"cloud": "point cloud (pipeline)", "observe": "history step (ORT)", "chunk": "denoiser chunk (ORT)",
-              "tick": "whole tick (cloud + policy + safety + CAN)"}
+              "tick": tick or "whole tick (cloud + policy + safety + CAN)"}
     print("\n| stage | p50 ms | p95 ms | max ms | ticks |")
     print("|---|---:|---:|---:|---:|")
     for key, label in labels.items():

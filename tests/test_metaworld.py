@@ -138,7 +138,8 @@ def test_train_export_and_evaluate_on_metaworld(demos, tmp_path, capsys):
     assert episode["seed"] == 1000 and 1 <= episode["steps"] <= mw.EPISODE_STEPS
     assert episode["success"] or (episode["steps"] == mw.EPISODE_STEPS and episode["reason"] == "timeout")
     assert result["latency_ms"]["cloud"]["n"] == episode["steps"]
-    assert "memory decision" not in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "memory decision" not in out and "whole tick (cloud + policy + step)" in out
 
     # Rerun views of MetaWorld episodes are refused with one line
     assert sim_main(["eval", "--model", str(model), "--task", f"metaworld/{TASK}", "--episodes", "1",
