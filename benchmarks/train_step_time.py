@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import statistics
 import sys
 
@@ -130,19 +129,36 @@ def _measure(args) -> int:
         rows.append(row(label, time_calls(fn, args.repeats, warmup=1)))
         print(f"measured: {label}", flush=True)
 
-    return _report(args, rows, "| what | median ms | min ms | max ms | n |\n|---|---:|---:|---:|---:|",
-                   lambda r: f"| {r['what']} | {r['median_ms']:.1f} | {r['min_ms']:.1f} | {r['max_ms']:.1f} | {r['n']} |")
+    return _report(args, rows)
 
 
-def _report(args, rows: list[dict], header: str, line) -> int:
-    """Print the machine and the Markdown table (``header``, then ``line(row)`` per row); write ``--json``."""
-    where = torch.cuda.get_device_name() if args.device == "cuda" else f"{torch.get_num_threads()} threads"
-    print(f"\nMachine: {platform.processor() or platform.machine()}, torch {torch.__version__}, {where}\n")
-    print(header)
-    for r in rows:
-        print(line(r))
+def markdown(report: dict) -> str:
+    """The Markdown table of a record this script wrote (``--json``): the plain steps, or ``--paper``'s costs."""
+    rows = report["rows"]
+    if report.get("paper"):
+        lines = ["| preset | step (median ms; min-max) | budget | steps | one task |", "|---|---:|---|---:|---:|"]
+        lines += [f"| {r['what']} | {r['median_ms']:.1f} ({r['min_ms']:.1f}-{r['max_ms']:.1f}) | {r['epochs']} epochs x "
+                  f"{r['demos']} demos | {r['steps']:,} | {r['hours']:.1f} h ({r['hours'] / 24:.1f} days) |" for r in rows]
+    else:
+        lines = ["| what | median ms | min ms | max ms | n |", "|---|---:|---:|---:|---:|"]
+        lines += [f"| {r['what']} | {r['median_ms']:.1f} | {r['min_ms']:.1f} | {r['max_ms']:.1f} | {r['n']} |" for r in rows]
+    m = report["machine"]
+    where = m.get("gpu") or f"{m.get('cpu')}, {m.get('threads')} threads"
+    return "\n".join(lines) + f"\n\nMeasured on {where}, torch {m.get('torch')} ({report['repeats']} timed steps per row after one warm-up)."
+
+
+def _report(args, rows: list[dict], paper: bool = False) -> int:
+    """Print the machine and the Markdown table; write ``--json`` (the record :func:`markdown` renders)."""
+    from dssp_data import machine
+
+    described = {**machine.describe(), "threads": torch.get_num_threads()}
+    if args.device == "cuda":
+        described["gpu"] = torch.cuda.get_device_name()
+    described["torch"] = torch.__version__
+    report = {"machine": described, "device": args.device, "paper": paper, "repeats": args.repeats, "rows": rows}
+    print("\n" + markdown(report))
     if args.json:
-        write_output_text(args.json, json.dumps(rows, indent=2), force=args.force, flag="--json")
+        write_output_text(args.json, json.dumps(report, indent=2) + "\n", force=args.force, flag="--json")
     return 0
 
 
@@ -157,9 +173,7 @@ def _paper_costs(args) -> int:
         rows.append({**timing, "preset": preset, "epochs": cfg.train.epochs, "demos": demos, "steps": steps,
                      "hours": timing["median_ms"] * steps / 3.6e6})
         print(f"measured: {label}", flush=True)
-    return _report(args, rows, "| preset | step (median ms; min-max) | budget | steps | one task |\n|---|---:|---|---:|---:|",
-                   lambda r: f"| {r['what']} | {r['median_ms']:.1f} ({r['min_ms']:.1f}-{r['max_ms']:.1f}) | {r['epochs']} epochs x "
-                             f"{r['demos']} demos | {r['steps']:,} | {r['hours']:.1f} h ({r['hours'] / 24:.1f} days) |")
+    return _report(args, rows, paper=True)
 
 
 if __name__ == "__main__":

@@ -360,6 +360,12 @@ def cost(plan: dict, tasks: list[str], record: Path) -> str:
     episodes = runs * (plan["evaluations"] * plan["episodes"]["validation"] + plan["episodes"]["test"])
     lines = [f"{len(tasks)} tasks x {len(plan['models'])} models x {len(plan['seeds'])} seeds = {runs} trainings of "
              f"{steps_of(plan)} steps ({steps} in all), {runs * plan['evaluations']} exports, {episodes} evaluation episodes"]
+    gpu = _gpu_step_ms()
+    if gpu is not None:
+        ms, where = gpu
+        lines.append(f"on {where} (reports/gpu, the `metaworld` preset's step, {ms:.0f} ms): the trainings take about "
+                     f"{steps * ms / 3.6e6:.0f} GPU-hours at the paper's DSSP size, one after another (DP3 at its own "
+                     "size and the smaller models differ; evaluation is extra)")
     seconds = _measured(record)
     if seconds:
         lines.append(f"measured by this record's runs: {seconds['step_s'] * 1e3:.0f} ms per training step (its plan's "
@@ -370,6 +376,18 @@ def cost(plan: dict, tasks: list[str], record: Path) -> str:
     else:
         lines.append("no seconds measured yet: the record has no finished training and evaluation")
     return "\n".join(lines)
+
+
+GPU_RECORD = Path(__file__).resolve().parent.parent / "reports/gpu/train_step_time_paper_h200.json"
+
+
+def _gpu_step_ms() -> tuple[float, str] | None:
+    """The `metaworld` preset's training step on a GPU, from the committed record (benchmarks/train_step_time.py)."""
+    if not GPU_RECORD.is_file():
+        return None
+    report = json.loads(GPU_RECORD.read_text())
+    rows = [r for r in report["rows"] if r.get("preset") == "metaworld"]
+    return (float(rows[0]["median_ms"]), report["machine"].get("gpu", "a GPU")) if rows else None
 
 
 def _measured(record: Path) -> dict | None:

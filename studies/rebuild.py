@@ -15,8 +15,8 @@ What it rebuilds (:data:`SOURCES`):
 - the READMEs' figure blocks (the top one's and each package's), each between ``<!-- figures: NAME -->`` and ``<!-- /figures -->``: ``demo``
   (the Quick start's table, from ``reports/demo/results.json``), ``sim_paired`` (the earlier simulation
   study's comparisons with DSSP and their exact paired tests, from ``reports/sim/record``), and the CPU tables
-  ``cpu_targets``, ``dp3_paper``, ``dp3_sim`` (rendered by the benchmark scripts' own ``markdown`` from their
-  records in ``reports/cpu/``), ``memory_test`` (the memory study's test-split tables, from its record).
+  ``cpu_targets``, ``dp3_paper``, ``dp3_sim``, ``gpu_train_paper`` (rendered by the benchmark scripts' own
+  ``markdown`` from their records in ``reports/cpu/`` and ``reports/gpu/``), ``memory_test`` (the memory study's test-split tables, from its record).
 
 - ``reports/sampling/``: the sampling study's report (:mod:`studies.sampling`) once its record exists; the
   report there now predates it (and 7-bit int8 weights) and is listed as stale, with the command that
@@ -181,6 +181,7 @@ BENCHMARK_BLOCKS = {
     "cpu_targets": ("cpu_targets", "reports/cpu/cpu_targets.json"),
     "dp3_paper": ("dp3_comparison", "reports/cpu/dp3_comparison_paper.json"),
     "dp3_sim": ("dp3_comparison", "reports/cpu/dp3_comparison_sim.json"),
+    "gpu_train_paper": ("train_step_time", "reports/gpu/train_step_time_paper_h200.json"),
 }
 """README block -> (the benchmark script whose ``markdown`` renders it, its committed record)."""
 
