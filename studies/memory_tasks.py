@@ -192,9 +192,8 @@ def report_lines(plan: dict, record: Path, split: str, shown_record: str | None 
         started = f" ({', '.join(prov['tasks'])})" if prov.get("tasks") else ""
         lines += ["", f"Run{started} on: task definition {prov.get('task_definition')}, plan {prov.get('plan')}, code {prov.get('commit')}; "
                   f"{m.get('cpu')} ({m.get('cores')} cores), onnxruntime {m.get('onnxruntime')}, torch {m.get('torch')}."]
-    for other in _trained_elsewhere(record):
-        lines += ["", f"Trained elsewhere ({', '.join(LABELS.get(m, m) for m in other['models'])}; {', '.join(other['tasks'])}; "
-                  f"training seeds {other['seeds']}): {other['machine']}; {other['how']} (code {other['code']})."]
+    for other in protocol.trained_elsewhere(record):
+        lines += ["", protocol.describe_trained_elsewhere(other, LABELS)]
     if split == "validation":
         lines += ["", "Validation seeds: the plan is chosen on these, so these figures are not a test result."]
     for task in plan["tasks"]:
@@ -243,19 +242,6 @@ def report_lines(plan: dict, record: Path, split: str, shown_record: str | None 
     lines += ["", "DP3 at its own size (the `dp3` preset) trains on a GPU; its commands for this plan:", "", "```"]
     lines += gpu_commands(plan, list(plan["tasks"])) + ["```", ""]
     return lines, figures
-
-
-def _trained_elsewhere(record: Path) -> list[dict]:
-    """``record/trained_elsewhere.json``: trainings run on another machine than the evaluations (a GPU), each entry
-    its models, tasks, seeds, machine, how and code; absent: every training ran where the provenance says."""
-    path = record / "trained_elsewhere.json"
-    if not path.is_file():
-        return []
-    entries = json.loads(path.read_text())
-    keys = ("models", "tasks", "seeds", "machine", "how", "code")
-    if not isinstance(entries, list) or not all(isinstance(e, dict) and all(k in e for k in keys) for e in entries):
-        raise DSSPError(f"{path} must hold a list of objects with {', '.join(keys)}; write it again")
-    return entries
 
 
 def _merge(dicts) -> dict:

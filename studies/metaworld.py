@@ -305,6 +305,8 @@ def report_lines(plan: dict, record: Path, shown_record: str | None = None) -> t
             m = prov.get("machine", {})
             lines += ["", f"Run ({split}) on: benchmark definition {prov.get('task_definition')}, plan {prov.get('plan')}, "
                       f"code {prov.get('commit')}; {m.get('cpu')} ({m.get('cores')} cores), torch {m.get('torch')}."]
+    for other in protocol.trained_elsewhere(record):
+        lines += ["", protocol.describe_trained_elsewhere(other, LABELS)]
     names = list(plan["models"])
     if not memory:
         lines += _paper_lines(figures, names, ratio)

@@ -144,3 +144,27 @@ def check_frozen(record_dir: Path, plan: dict, definition: str | None = None) ->
     if frozen.get("task_definition") != current:
         raise DSSPError(f"the task definition changed since the plan was frozen ({frozen.get('task_definition')} -> "
                         f"{current}): a changed task is a new study")
+
+
+TRAINED_ELSEWHERE = "trained_elsewhere.json"
+"""Beside a record: trainings run on another machine than its evaluations (a GPU)."""
+
+
+def trained_elsewhere(record_dir: Path) -> list[dict]:
+    """``record/trained_elsewhere.json``: each entry's models, tasks, seeds, machine, how and code; absent: every
+    training ran where the record's provenance says."""
+    path = Path(record_dir) / TRAINED_ELSEWHERE
+    if not path.is_file():
+        return []
+    entries = json.loads(path.read_text())
+    keys = ("models", "tasks", "seeds", "machine", "how", "code")
+    if not isinstance(entries, list) or not all(isinstance(e, dict) and all(k in e for k in keys) for e in entries):
+        raise DSSPError(f"{path} must hold a list of objects with {', '.join(keys)}; write it again")
+    return entries
+
+
+def describe_trained_elsewhere(entry: dict, labels: dict[str, str]) -> str:
+    """The report's line for one :func:`trained_elsewhere` entry."""
+    return (f"Trained elsewhere ({', '.join(labels.get(m, m) for m in entry['models'])}; {', '.join(entry['tasks'])}; "
+            f"training seeds {entry['seeds']}): {entry['machine']}; {entry['how']} (code {entry['code']}).")
+
