@@ -142,6 +142,13 @@ def checkpoint_steps(plan: dict) -> list[int]:
     return [steps // k * (i + 1) for i in range(k)]
 
 
+def model_order(plan: dict) -> list[str]:
+    """The plan's models as the report lists them: DSSP first, then as :data:`LABELS` orders them (a record's
+    plan.json keeps its keys sorted)."""
+    order = list(LABELS)
+    return sorted(plan["models"], key=lambda n: order.index(n) if n in order else len(order))
+
+
 def eval_name(task: str, model: str, seed: int, step: int, split: str) -> str:
     return f"{task}_{model}_s{seed}_step{step}_{split}"
 
@@ -227,7 +234,7 @@ def figures_of(plan: dict, record: Path) -> dict:
     out: dict = {"tasks": {}, "groups": {}}
     for task in plan["tasks"]:
         rows = {}
-        for name in plan["models"]:
+        for name in model_order(plan):
             row: dict = {}
             per_seed = []
             for seed in plan["seeds"]:
@@ -258,7 +265,7 @@ def figures_of(plan: dict, record: Path) -> dict:
         if not tasks:
             continue
         g = {}
-        for name in plan["models"]:
+        for name in model_order(plan):
             vals = [out["tasks"][t][name].get("top5", {}).get("mean") for t in tasks]
             tests = [out["tasks"][t][name].get("test", {}).get("success") for t in tasks]
             g[name] = {"tasks": len(tasks),
@@ -291,7 +298,7 @@ def report_lines(plan: dict, record: Path, shown_record: str | None = None) -> t
         f"{plan['demos']} expert demonstrations per task (MetaWorld's scripted policies, demonstration seeds from 0), "
         f"512-point clouds in DP3's frame; training seeds {plan['seeds']}; {plan['epochs']} epochs = {steps} steps "
         f"({ratio:.2f} of the paper's {PAPER_EPOCHS} epochs); models "
-        + ", ".join(f"{LABELS.get(n, n)} (`--preset {m['preset']}`)" for n, m in plan["models"].items()) + ".",
+        + ", ".join(f"{LABELS.get(n, n)} (`--preset {plan['models'][n]['preset']}`)" for n in model_order(plan)) + ".",
         "",
         f"**Paper metric** (validation seeds): each training seed's checkpoints at steps {kept} are evaluated on "
         f"{plan['episodes']['validation']} episodes; per seed the mean of the top {TOP} (of {len(kept)}), then mean ± std "
@@ -307,7 +314,7 @@ def report_lines(plan: dict, record: Path, shown_record: str | None = None) -> t
                       f"code {prov.get('commit')}; {m.get('cpu')} ({m.get('cores')} cores), torch {m.get('torch')}."]
     for other in protocol.trained_elsewhere(record):
         lines += ["", protocol.describe_trained_elsewhere(other, LABELS)]
-    names = list(plan["models"])
+    names = model_order(plan)
     if not memory:
         lines += _paper_lines(figures, names, ratio)
     lines += ["", "## Per task", "",
@@ -362,21 +369,27 @@ def cost(plan: dict, tasks: list[str], record: Path) -> str:
     episodes = runs * (plan["evaluations"] * plan["episodes"]["validation"] + plan["episodes"]["test"])
     lines = [f"{len(tasks)} tasks x {len(plan['models'])} models x {len(plan['seeds'])} seeds = {runs} trainings of "
              f"{steps_of(plan)} steps ({steps} in all), {runs * plan['evaluations']} exports, {episodes} evaluation episodes"]
-    gpu = _gpu_step_ms()
+    gpu = _gpu_step_ms() if any(m["preset"] == "metaworld" for m in plan["models"].values()) else None
     if gpu is not None:
         ms, where = gpu
         lines.append(f"on {where} (reports/gpu, the `metaworld` preset's step, {ms:.0f} ms): the trainings take about "
                      f"{steps * ms / 3.6e6:.0f} GPU-hours at the paper's DSSP size, one after another (DP3 at its own "
                      "size and the smaller models differ; evaluation is extra)")
     seconds = _measured(record)
-    if seconds:
-        lines.append(f"measured by this record's runs: {seconds['step_s'] * 1e3:.0f} ms per training step (its plan's "
-                     f"models), {seconds['episode_s']:.1f} s per evaluation episode, one core each; at those rates this "
-                     f"plan takes about {(steps * seconds['step_s'] + episodes * seconds['episode_s']) / 3600:.0f} "
-                     "core-hours on that machine (larger models train slower: the paper's 45 M-parameter preset is a "
-                     "GPU job, `benchmarks/train_step_time.py --paper` times its step)")
+    if seconds is None:
+        lines.append("no seconds measured yet: the record has no finished evaluation")
+        return "\n".join(lines)
+    evals_h = episodes * seconds["episode_s"] / 3600
+    if seconds["step_s"] is None:
+        lines.append(f"measured by this record's runs: {seconds['episode_s']:.1f} s per evaluation episode, one core: "
+                     f"about {evals_h:.0f} core-hours of evaluation on that machine (its trainings ran elsewhere, "
+                     "record/trained_elsewhere.json)")
     else:
-        lines.append("no seconds measured yet: the record has no finished training and evaluation")
+        lines.append(f"measured by this record's runs: {seconds['step_s'] * 1e3:.0f} ms per training step (its plan's "
+                     f"models), {seconds['episode_s']:.1f} s per evaluation episode, one core each: about "
+                     f"{(steps * seconds['step_s']) / 3600 + evals_h:.0f} core-hours on that machine (larger models "
+                     "train slower: the paper's 45 M-parameter preset is a GPU job, `benchmarks/train_step_time.py "
+                     "--paper` times its step)")
     return "\n".join(lines)
 
 
@@ -393,13 +406,16 @@ def _gpu_step_ms() -> tuple[float, str] | None:
 
 
 def _measured(record: Path) -> dict | None:
+    """{step_s, episode_s}: the record's median training step (None when its trainings ran elsewhere or none
+    finished) and evaluation episode, in seconds; None without a finished evaluation."""
     folder = record / "seconds"
     train = [float(p.read_text()) for p in folder.glob("train_*.seconds")] if folder.is_dir() else []
     evals = [(float(p.read_text()), p.stem[len("eval_"):]) for p in folder.glob("eval_*.seconds")] if folder.is_dir() else []
-    if not train or not evals:
+    if not evals:
         return None
-    plan_steps = json.loads((record / "plan.json").read_text())
-    step_s = float(np.median(train)) / steps_of(plan_steps)
+    step_s = None
+    if train and not protocol.trained_elsewhere(record):
+        step_s = float(np.median(train)) / steps_of(json.loads((record / "plan.json").read_text()))
     per_episode = []
     for secs, name in evals:
         e = json.loads((record / "evals" / f"{name}.json").read_text())
