@@ -295,7 +295,9 @@ def test_the_paper_cost_table_is_each_presets_step_times_its_budget(tmp_path, ca
     median = {"metaworld": 1000.0, "adroit": 2000.0, "robotwin": 3600.0}  # ms
     monkeypatch.setattr(bench, "time_calls", lambda fn, n, warmup=0: [median[built[-1][0]]] * n)
     assert bench.main(["--paper", "--repeats", "2", "--json", str(tmp_path / "cost.json")]) == 0
-    rows = {r["preset"]: r for r in json.loads((tmp_path / "cost.json").read_text())}
+    report = json.loads((tmp_path / "cost.json").read_text())
+    assert report["paper"] and report["device"] == "cpu" and report["repeats"] == 2 and report["machine"]["cpu"]
+    rows = {r["preset"]: r for r in report["rows"]}
     assert [a[:4] for a in built] == [(preset, *bench.PAPER_TASKS[preset][:3]) for preset in rows]
     for preset, (_, _, _, demos) in bench.PAPER_TASKS.items():
         epochs = load_preset(preset).train.epochs
@@ -304,6 +306,7 @@ def test_the_paper_cost_table_is_each_presets_step_times_its_budget(tmp_path, ca
     assert rows["robotwin"]["steps"] == 150_000 and rows["robotwin"]["hours"] == pytest.approx(150.0)
     out = capsys.readouterr().out
     assert "| step robotwin | 3600.0 (3600.0-3600.0) | 3000 epochs x 50 demos | 150,000 | 150.0 h (6.2 days) |" in out
+    assert bench.markdown(report) in out  # the record renders to what was printed (the README's table comes from it)
 
 
 def test_the_step_time_benchmark_needs_only_torch_numpy_and_tqdm():
