@@ -45,7 +45,7 @@ class RobotState:
     """What the robot reports: position (dof,) in policy units, with the arrival time of its oldest part."""
 
     position: np.ndarray  # (dof,) float64: per arm [J1..J6 rad, gripper 0..1]
-    timestamp: float  # time.monotonic() of the OLDEST feedback frame the position is built from
+    timestamp: float  # arrival time (the arms' clock) of the OLDEST feedback frame the position is built from
     status: tuple[ArmStatus, ...] = field(default_factory=tuple)  # one per arm
 
 

@@ -21,6 +21,7 @@ from hardware.camera.realsense import (
 )
 from hardware.camera.tabletop import Box, SimCamera
 from hardware.camera.software import SoftwareDepthCamera, record_depth
+from waiting import wait_for
 from dssp_data.errors import CameraError
 
 INTR = Intrinsics(width=640, height=480, fx=457.1, fy=455.9, ppx=318.7, ppy=243.2)
@@ -124,14 +125,15 @@ def test_db3_recording_plays_back_through_rs_pipeline(tmp_path):
     assert isinstance(cam, RealSenseCamera)
     seen = {}
     with cam:
-        deadline = time.monotonic() + 10
-        while not cam.playback_finished and time.monotonic() < deadline:
+
+        def finished() -> bool:  # keeps every frame it sees on the way
             f = cam.latest()
             if f is not None:
                 seen[f.frame_number] = f
-            time.sleep(0.002)
+            return cam.playback_finished
+
+        wait_for(finished, timeout=10, what="the recording played to its end")
         seen[cam.latest().frame_number] = cam.latest()
-        assert cam.playback_finished
         assert cam.frames_received == 4
     assert 3 in seen  # the last frame stays the newest
     for number, f in seen.items():
@@ -149,10 +151,7 @@ def test_db3_repeat_playback_and_colour(tmp_path):
     path = record_depth(tmp_path / "c.db3", frames, small, UNIT, colors=colors, pace=False)
     with RealSenseCamera(file=path, real_time=False, repeat_playback=True, color=True) as cam:
         f = cam.wait_for_frame(timeout=5)
-        deadline = time.monotonic() + 10
-        while cam.frames_received <= 2 * len(frames) and time.monotonic() < deadline:
-            time.sleep(0.01)
-        assert cam.frames_received > 2 * len(frames)  # looped
+        wait_for(lambda: cam.frames_received > 2 * len(frames), timeout=10, what="the recording looped twice")
         assert not cam.playback_finished
     np.testing.assert_array_equal(f.depth, frames[f.frame_number])
     assert f.color is not None and f.color.shape == (60, 80, 3) and f.color.dtype == np.uint8
@@ -271,9 +270,7 @@ def test_sim_camera_geometry_and_colour():
 def test_sim_camera_thread_and_errors():
     with SimCamera(seed=1, fps=60) as cam:
         first = cam.wait_for_frame(timeout=5)
-        time.sleep(0.15)
-        later = cam.latest()
-        assert later.frame_number > first.frame_number
+        wait_for(lambda: cam.latest().frame_number > first.frame_number, what="the capture thread's next frame")
         _one_line_error(cam.capture)  # stepped mode only
     _one_line_error(SimCamera(seed=0).capture)  # not started
 

@@ -5,15 +5,16 @@ exact; the driver's receive thread still runs, so reads of its feedback wait (bo
 """
 
 import math
-import time
 import uuid
 from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import TimeoutError as FutureTimeout
 
 import can
 import numpy as np
 import pytest
 
 from dssp_data.errors import ArmError, CanError
+from hardware.clock import FakeClock
 from hardware.piper import codec
 from hardware.piper.arm import PiperArm
 from hardware.piper.bus import open_bus
@@ -42,12 +43,22 @@ def synced(arm: PiperArm, sim: SimulatedPiper) -> None:
 
 
 def step_while(sims, future, dt: float = 0.0):
-    """Step deterministic simulators until a background call finishes; return its result."""
-    while not future.done():
+    """Step deterministic simulators until a background call finishes; return its result (or raise its error)."""
+    while True:
         for sim in sims:
             sim.step(dt)
-        time.sleep(0.002)
-    return future.result()
+        try:
+            return future.result(timeout=0.002)  # the call's end, or the next round of steps
+        except FutureTimeout:
+            pass
+
+
+def drained(arm: PiperArm, raw: can.BusABC) -> None:
+    """Wait until the driver has handled every frame sent before this call: a marker frame of an unknown ID
+    goes out last on the virtual bus (which keeps the order of sends) and is counted once it is read."""
+    before = arm.decoder.counts["unknown_id"]
+    raw.send(can.Message(arbitration_id=0x123, data=bytes(8), is_extended_id=False))
+    wait_for(lambda: arm.decoder.counts["unknown_id"] > before, what="the marker frame read")
 
 
 def enable(arms, sims, timeout=3.0):
@@ -90,13 +101,13 @@ def test_enable_is_confirmed_from_feedback(rig):
 
 
 def test_enable_times_out_without_an_arm():
-    arm = PiperArm(channel("nobody"), "virtual")
+    clock = FakeClock()
+    arm = PiperArm(channel("nobody"), "virtual", clock=clock)
     arm.connect()
     try:
-        t0 = time.monotonic()
         with pytest.raises(ArmError, match=r"did not confirm enable within 0\.3 s \(no driver or gripper feedback"):
             arm.enable(0.3)
-        assert 0.3 <= time.monotonic() - t0 < 2.0
+        assert 0.3 <= clock.now() < 0.31  # it waited on the arm's clock, and no longer than asked
     finally:
         arm.close()
 
@@ -236,26 +247,34 @@ def test_error_bits_appear_in_status_and_stop_motion(rig):
 
 
 # ---- feedback and timestamps ------------------------------------------------------------------------------
-def test_feedback_timestamps_are_arrival_times_and_state_uses_the_oldest(rig):
-    sim, arm = rig
+def test_feedback_timestamps_are_arrival_times_and_state_uses_the_oldest():
+    ch = channel("stamps")
+    clock = FakeClock(start=100.0)
+    sim = SimulatedPiper(ch, "virtual")
+    sim.start(thread=False)
+    arm = PiperArm(ch, "virtual", clock=clock)
+    arm.connect()
     robot = PiperRobot([arm])
-    assert robot.state() is None
-    before = time.monotonic()
-    sim.step(0.0)
-    state = wait_for(robot.state)
-    fb = arm.feedback()
-    assert before <= fb.joints_time <= time.monotonic() and before <= fb.gripper_time <= time.monotonic()
-    assert state.timestamp == min(fb.joints_time, fb.gripper_time)
+    try:
+        assert robot.state() is None
+        sim.step(0.0)
+        state = wait_for(robot.state)
+        fb = arm.feedback()
+        assert fb.joints_time == fb.gripper_time == 100.0  # stamped on the arm's clock when they arrived
+        assert state.timestamp == 100.0
 
-    # Fresh joint frames only: the state's time stays at the older gripper frame.
-    with can.Bus(interface="virtual", channel=arm.channel) as raw:
-        time.sleep(0.01)
-        for i in range(3):
-            raw.send(codec.JointFeedback(i, 0.0, 0.0).to_frame())
-        wait_for(lambda: arm.feedback().joints_time > fb.gripper_time + 0.005)
-    fb2 = arm.feedback()
-    assert fb2.gripper_time == fb.gripper_time
-    assert robot.state().timestamp == fb.gripper_time
+        # Fresh joint frames only, 0.25 s later: the state's time stays at the older gripper frame.
+        clock.advance(0.25)
+        with can.Bus(interface="virtual", channel=ch) as raw:
+            for i in range(3):
+                raw.send(codec.JointFeedback(i, 0.0, 0.0).to_frame())
+            drained(arm, raw)
+        fb2 = arm.feedback()
+        assert fb2.joints_time == 100.25 and fb2.gripper_time == 100.0
+        assert robot.state().timestamp == 100.0
+    finally:
+        arm.close()
+        sim.stop()
 
 
 def test_state_needs_all_joint_frames_and_the_gripper():
@@ -286,20 +305,25 @@ def test_paused_feedback_goes_stale():
     ch = channel("stale")
     sim = SimulatedPiper(ch, "virtual")
     sim.start()
-    arm = PiperArm(ch, "virtual", stale_after=0.1)
+    clock = FakeClock()
+    arm = PiperArm(ch, "virtual", stale_after=0.1, clock=clock)
     arm.connect()
     try:
         wait_for(lambda: arm.feedback().status is not None)
+        assert not arm.status().error
         sim.pause_feedback()
-        time.sleep(0.05)
-        t_paused = arm.feedback().status_time
-        time.sleep(0.2)
+        with can.Bus(interface="virtual", channel=ch) as raw:
+            drained(arm, raw)  # what the simulator sent before the pause has arrived
+            t_paused = arm.feedback().status_time
+            assert not arm.status().error  # 0 s old
+            clock.advance(0.2)
+            drained(arm, raw)  # nothing more came while paused
         assert arm.feedback().status_time == t_paused
         st = arm.status()
-        assert st.error and "no status frame for" in st.detail
+        assert st.error and "no status frame for 0.20 s" in st.detail
         sim.resume_feedback()
         wait_for(lambda: arm.feedback().status_time > t_paused)
-        wait_for(lambda: not arm.status().error)
+        assert not arm.status().error
     finally:
         arm.close()
         sim.stop()
@@ -398,11 +422,11 @@ def test_open_robot_sim(spec, dof):
         wait_for(robot.state)
         robot.enable(3.0)
         target = np.tile([0.2, 0.3, -0.2, 0.1, -0.1, 0.25, 0.6], dof // 7)
-        deadline = time.monotonic() + 5.0
-        while not np.allclose(robot.state().position, target, atol=2 * MDEG):
-            assert time.monotonic() < deadline, robot.state().position
+        def commanded_and_reached() -> bool:  # the arms' threads move them on wall time
             robot.command(target)
-            time.sleep(0.01)
+            return np.allclose(robot.state().position, target, atol=2 * MDEG)
+
+        wait_for(commanded_and_reached, what="every arm at the target")
         assert all(not s.error and s.enabled for s in robot.status())
         robot.simulators[-1].raise_error(1 << 8)
         wait_for(lambda: robot.status()[-1].error)

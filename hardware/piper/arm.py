@@ -1,6 +1,7 @@
 """``PiperArm``: one AgileX Piper on one CAN bus, in device units (joints (6,) radians, gripper stroke in metres).
 
-A receive thread keeps the latest feedback frame of each kind with its ``time.monotonic()`` arrival time.
+A receive thread keeps the latest feedback frame of each kind with its arrival time on the arm's clock
+(``hardware.clock``; wall time by default).
 Commands are sent synchronously; a frame that cannot be sent raises ``CanError``. The arm obeys joint
 targets only in CAN command mode with joint move mode (``set_joint_mode``), after ``enable``.
 """
@@ -9,13 +10,13 @@ from __future__ import annotations
 
 import math
 import threading
-import time
 from dataclasses import dataclass
 
 import can
 import numpy as np
 
 from hardware.can_reader import CanReader
+from hardware.clock import REAL_CLOCK, Clock
 from hardware.robot import ArmStatus
 from dssp_data.errors import ArmError, CanError
 from hardware.piper import codec
@@ -35,7 +36,7 @@ def _joint_list(bits: int) -> str:
 
 @dataclass(frozen=True)
 class PiperFeedback:
-    """The latest feedback of one arm, with ``time.monotonic()`` arrival times (nan when missing).
+    """The latest feedback of one arm, with arrival times on the arm's clock (nan when missing).
 
     joints: (6,) radians, None until all of 0x2A5..0x2A7 arrived; ``joints_time`` is the OLDEST of the three.
     gripper: 0x2A8 (stroke m, effort N·m, status). status: 0x2A1. drivers: 0x261..0x266 per motor J1..J6
@@ -69,16 +70,20 @@ class PiperArm:
     bounds how long a send may wait for room in a full queue before it raises CanError. ``stale_after`` (s):
     ``status()`` reports an error when the newest status frame is older than this. ``decoder.counts`` counts
     the frames received by outcome (``decoded``, or why one was dropped) and failed reads (``receive_error``).
+    ``clock``: the timeline of arrival times, staleness and ``enable``'s waits (one clock with the loop that
+    compares them; a ``FakeClock`` in tests).
     """
 
     def __init__(self, channel: str, interface: str = "socketcan", *, bus_options: dict | None = None,
-                 send_timeout: float = 0.05, gripper_effort: float = 1.0, stale_after: float = 0.5) -> None:
+                 send_timeout: float = 0.05, gripper_effort: float = 1.0, stale_after: float = 0.5,
+                 clock: Clock = REAL_CLOCK) -> None:
         self.channel = channel
         self.interface = interface
         self.bus_options = dict(bus_options or {})
         self.send_timeout = send_timeout
         self.gripper_effort = gripper_effort  # N·m, used when command_gripper gets no effort
         self.stale_after = stale_after
+        self.clock = clock
         self.decoder = codec.Decoder()
         self._reader = CanReader(channel, interface, bus_options, name=f"piper-rx-{channel}",
                                  on_frame=self._receive, counts=self.decoder.counts)
@@ -111,7 +116,7 @@ class PiperArm:
 
     def _receive(self, frame: can.Message) -> None:
         """Keep one feedback frame with its arrival time (receive thread)."""
-        now = time.monotonic()
+        now = self.clock()
         message = self.decoder.decode(frame)
         if isinstance(message, _FEEDBACK_TYPES):
             with self._lock:
@@ -184,7 +189,7 @@ class PiperArm:
         joint drivers (0x261..0x266 bit 6) and the gripper (0x2A8 bit 6) enabled. ArmError after ``timeout`` s.
         The request is repeated every 0.1 s, as the arm may miss one.
         """
-        start = time.monotonic()
+        start = self.clock()
         deadline = start + timeout
         next_send = start
         while True:
@@ -192,7 +197,7 @@ class PiperArm:
             fb = self._feedback_since(start)
             if fb.drivers_enabled and fb.gripper is not None and fb.gripper.enabled:
                 return
-            now = time.monotonic()
+            now = self.clock()
             if now >= deadline:
                 raise ArmError(f"arm on {self.channel!r} did not confirm enable within {timeout:g} s "
                                f"({self._enable_problem(fb)}); check its power, cable and e-stop, then retry")
@@ -203,7 +208,7 @@ class PiperArm:
                     frames.append(codec.GripperCtrl(stroke, self.gripper_effort, codec.GRIPPER_ENABLE).to_frame())
                 self._send(*frames)
                 next_send = now + 0.1
-            time.sleep(0.005)
+            self.clock.sleep(0.005)
 
     def _enable_problem(self, fb: PiperFeedback) -> str:
         if all(d is None for d in fb.drivers) and fb.gripper is None:
@@ -256,7 +261,7 @@ class PiperArm:
             return ArmStatus(enabled=False, estop=False, error=True, detail="no status frame (0x2A1) received yet")
         s = fb.status
         problems = []
-        age = time.monotonic() - fb.status_time
+        age = self.clock() - fb.status_time
         if age > self.stale_after:
             problems.append(f"no status frame for {age:.2f} s")
         estop = s.arm_status == 0x01
