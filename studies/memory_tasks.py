@@ -188,10 +188,7 @@ def report_lines(plan: dict, record: Path, split: str, shown_record: str | None 
         "Δ vs DSSP: paired difference (same scenes) with its interval and the exact paired sign-flip test.",
     ]
     for prov in runs:
-        m = prov.get("machine", {})
-        started = f" ({', '.join(prov['tasks'])})" if prov.get("tasks") else ""
-        lines += ["", f"Run{started} on: task definition {prov.get('task_definition')}, plan {prov.get('plan')}, code {prov.get('commit')}; "
-                  f"{m.get('cpu')} ({m.get('cores')} cores), onnxruntime {m.get('onnxruntime')}, torch {m.get('torch')}."]
+        lines += ["", protocol.describe_run(prov)]
     for other in protocol.trained_elsewhere(record):
         lines += ["", protocol.describe_trained_elsewhere(other, LABELS)]
     if split == "validation":

@@ -309,9 +309,7 @@ def report_lines(plan: dict, record: Path, shown_record: str | None = None) -> t
     for split in ("validation", "test"):
         path = record / f"provenance_{split}.json"
         for prov in json.loads(path.read_text()) if path.is_file() else []:
-            m = prov.get("machine", {})
-            lines += ["", f"Run ({split}) on: benchmark definition {prov.get('task_definition')}, plan {prov.get('plan')}, "
-                      f"code {prov.get('commit')}; {m.get('cpu')} ({m.get('cores')} cores), torch {m.get('torch')}."]
+            lines += ["", protocol.describe_run(prov, split, definition="benchmark definition")]
     for other in protocol.trained_elsewhere(record):
         lines += ["", protocol.describe_trained_elsewhere(other, LABELS)]
     names = model_order(plan)

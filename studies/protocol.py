@@ -163,6 +163,16 @@ def trained_elsewhere(record_dir: Path) -> list[dict]:
     return entries
 
 
+def describe_run(prov: dict, split: str | None = None, definition: str = "task definition") -> str:
+    """The report's line for one run's provenance (:func:`record_provenance`): its split and tasks, the
+    definition, plan and code it ran with, and the machine."""
+    m = prov.get("machine", {})
+    said = [part for part in (split, ", ".join(prov.get("tasks") or ())) if part]
+    label = f" ({': '.join(said)})" if said else ""
+    return (f"Run{label} on: {definition} {prov.get('task_definition')}, plan {prov.get('plan')}, code {prov.get('commit')}; "
+            f"{m.get('cpu')} ({m.get('cores')} cores), onnxruntime {m.get('onnxruntime')}, torch {m.get('torch')}.")
+
+
 def describe_trained_elsewhere(entry: dict, labels: dict[str, str]) -> str:
     """The report's line for one :func:`trained_elsewhere` entry."""
     return (f"Trained elsewhere ({', '.join(labels.get(m, m) for m in entry['models'])}; {', '.join(entry['tasks'])}; "

@@ -225,6 +225,12 @@ def test_the_memory_report_pairs_every_model_with_dssp_and_marks_what_is_pending
     with pytest.raises(DSSPError, match="trained_elsewhere.json must hold"):
         memory_tasks.report_lines(plan, tmp_path, "validation")
     (tmp_path / "trained_elsewhere.json").unlink()
+    # each run's line names its split and tasks, so two runs of one plan on different tasks read apart
+    run = {"task_definition": "d", "plan": "p", "commit": "c", "tasks": ["tap", "swap"],
+           "machine": {"cpu": "X", "cores": 2, "onnxruntime": "1", "torch": "2"}}
+    assert protocol.describe_run(run, "test", definition="benchmark definition") == (
+        "Run (test: tap, swap) on: benchmark definition d, plan p, code c; X (2 cores), onnxruntime 1, torch 2.")
+    assert protocol.describe_run({**run, "tasks": []}).startswith("Run on: task definition d,")
     _fake_eval(tmp_path, "tap_dssp_s1_validation", scenes[::-1], [1] * 10, [3] * 10)
     with pytest.raises(DSSPError, match="different scenes"):
         memory_tasks.report_lines(plan, tmp_path, "validation")
