@@ -10,7 +10,6 @@ each test uses a fresh channel and checks effects, not return values.
 """
 
 import math
-import time
 import uuid
 
 import can
@@ -125,13 +124,13 @@ def test_sdk_drives_the_simulator_and_reads_its_feedback(sdk_channel):
         wait_for(lambda: sdk.GetArmEnableStatus() == [True] * 6, what="SDK sees drivers enabled")
 
         target = [20000, 30000, -25000, 10000, -15000, 45000]  # 0.001 degree
-        deadline = time.monotonic() + 5.0
-        while not np.allclose(sim.joints, np.radians(np.array(target) / 1000), atol=MDEG):
-            assert time.monotonic() < deadline, sim.joints
+        def commanded_and_reached() -> bool:  # the simulator's thread moves it on wall time
             sdk.MotionCtrl_2(0x01, 0x01, 100, 0x00)  # as the SDK's demos do before each joint command
             sdk.JointCtrl(*target)
             sdk.GripperCtrl(30000, 1000, 0x01, 0)
-            time.sleep(0.01)
+            return np.allclose(sim.joints, np.radians(np.array(target) / 1000), atol=MDEG)
+
+        wait_for(commanded_and_reached, what="the simulator at the SDK's target")
         wait_for(lambda: sim.gripper_stroke == pytest.approx(0.03, abs=1e-9), what="gripper at 30 mm")
         wait_for(lambda: sdk_joint_feedback(sdk) == target, what="SDK reads the reached joints")
         wait_for(lambda: sdk.GetArmGripperMsgs().gripper_state.grippers_angle == 30000, what="SDK reads 30 mm")
@@ -159,9 +158,12 @@ def test_sdk_drives_the_simulator_and_reads_its_feedback(sdk_channel):
         sdk.EmergencyStop(0x01)
         wait_for(lambda: sdk.GetArmStatus().arm_status.arm_status.value == 0x01, what="SDK reads e-stop")
         held = sim.joints
+        read = sim.decoder.counts["decoded"]
         for _ in range(10):
-            sdk.JointCtrl(0, 0, 0, 0, 0, 0)
-            time.sleep(0.01)
+            sdk.JointCtrl(0, 0, 0, 0, 0, 0)  # three frames each
+        wait_for(lambda: sim.decoder.counts["decoded"] >= read + 30, what="the simulator read the commands")
+        stamp = sdk.GetArmStatus().time_stamp
+        wait_for(lambda: sdk.GetArmStatus().time_stamp > stamp, what="a feedback round after them")
         np.testing.assert_array_equal(sim.joints, held)
 
         sdk.EmergencyStop(0x02)  # resume: a reset, motors unpowered afterwards

@@ -239,7 +239,7 @@ class SteppedArm(Robot):
         def answer():
             while not done.is_set():
                 self.sim.step(0.0)
-                time.sleep(0.002)
+                done.wait(0.002)
 
         thread = threading.Thread(target=answer, daemon=True)
         thread.start()
