@@ -3,7 +3,6 @@ software device; expert collection into a DP3 dataset; closed-loop evaluation th
 
 import json
 import threading
-import time
 
 from rrd import read_rrd, text_rows
 
@@ -44,7 +43,7 @@ def test_mujoco_arm_moves_only_through_can_frames():
     def pump():
         while not stop.is_set():
             arm.step(0.0)
-            time.sleep(0.003)
+            stop.wait(0.003)
 
     try:
         with robot:

@@ -15,6 +15,7 @@ from dssp_data.errors import DSSPError
 from studies import protocol
 from studies.runner import Runner, Stage
 from studies.stats import cluster_bootstrap, describe_p, paired_difference, paired_exact_test
+from waiting import wait_for
 
 
 ENTRY = "study_entries"  # tests/ is on sys.path (pytest puts it there; spawned stages inherit it)
@@ -276,7 +277,6 @@ def test_sigterm_stops_the_running_stages_and_keeps_what_finished(tmp_path):
     import signal
     import subprocess
     import sys
-    import time
 
     work = tmp_path / "work"
     code = (f"import sys; sys.path.insert(0, {str(Path(__file__).parent)!r}); from studies.runner import Runner, Stage; "
@@ -285,14 +285,18 @@ def test_sigterm_stops_the_running_stages_and_keeps_what_finished(tmp_path):
     # started the way a background launch is: SIGINT ignored, so only SIGTERM can stop it
     proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
-    deadline = time.monotonic() + 60
-    while not ((work / "pid").is_file() and (work / "done/quick.json").is_file()) and time.monotonic() < deadline:
-        time.sleep(0.1)
+    wait_for(lambda: (work / "pid").is_file() and (work / "done/quick.json").is_file(), timeout=60,
+             what="the first stage done and the second started", poll=0.1)
     stage_pid = int((work / "pid").read_text())
     proc.send_signal(signal.SIGTERM)
     proc.wait(timeout=30)
     assert proc.returncode != 0 and (work / "done/quick.json").is_file() and not (work / "done/long.json").exists()
-    with pytest.raises(ProcessLookupError):  # the stage went with the runner
-        for _ in range(50):
+
+    def gone() -> bool:  # the stage went with the runner
+        try:
             os.kill(stage_pid, 0)
-            time.sleep(0.1)
+        except ProcessLookupError:
+            return True
+        return False
+
+    wait_for(gone, what="the stage's process ended")

@@ -8,7 +8,6 @@ import shutil
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -25,6 +24,7 @@ from dssp_train.training.train_log import read_log
 from dssp_train.training.trainer import Trainer
 
 from conftest import SET_SMALL, SMALL, one_error_line, write_arm_dataset
+from waiting import wait_for
 
 
 
@@ -306,11 +306,11 @@ def test_sigterm_stops_like_ctrl_c_and_keeps_the_checkpoint(data, tmp_path):
     proc = subprocess.Popen([sys.executable, "-m", "dssp_train.cli.train", *argv], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, env=env)
     try:
-        deadline = time.monotonic() + 240
-        while not (out / "checkpoint" / "trainer_state.json").is_file():
+        def checkpointed() -> bool:
             assert proc.poll() is None, proc.communicate()
-            assert time.monotonic() < deadline, "no checkpoint within 240 s"
-            time.sleep(0.2)
+            return (out / "checkpoint" / "trainer_state.json").is_file()
+
+        wait_for(checkpointed, timeout=240, what="a checkpoint", poll=0.2)
         proc.send_signal(signal.SIGTERM)
         stdout, stderr = proc.communicate(timeout=120)
     finally:
