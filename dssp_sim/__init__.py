@@ -5,7 +5,7 @@
 - ``dssp_sim.env``: ``PiperEnv``, the simulation at the policy's control rate, with depth rendering;
 - ``dssp_sim.experts``: scripted experts (``make_expert``) for collecting demonstrations;
 - ``dssp_sim.ik``: damped-least-squares inverse kinematics on MuJoCo's Jacobian;
-- ``dssp_sim.teleop``: the teleoperation rig ``dssp-record --camera sim --can sim`` records from (the
+- ``dssp_sim.teleop``: the teleoperation rig ``dssp-sim record`` (``--camera mujoco --can mujoco``) records from (the
   expert as a leader arm on a virtual CAN bus, the MuJoCo follower, the simulated camera, in lockstep).
 
 Rendering is headless: importing ``dssp_sim`` sets ``MUJOCO_GL=egl`` unless it is set already. MuJoCo

@@ -1,7 +1,7 @@
 """``dssp-sim``: expert demonstrations and closed-loop evaluation in the MuJoCo simulation.
 
     dssp-sim collect --task tap|swap|put2|metaworld/NAME|metaworld-cue/NAME --episodes N --out PATH.zarr [--seed S] [--points P]
-    dssp-sim record --out PATH.zarr [dssp-record's flags; --camera sim --can sim by default]
+    dssp-sim record --out PATH.zarr [dssp-record's flags; --camera mujoco --can mujoco by default]
     dssp-sim eval --model MODEL_DIR --task NAME --episodes N [--seed S] [--noise SIGMA] [--strips DIR] [--json PATH] [--force]
                   [--rerun [URL] | --rerun-save PATH.rrd]
 

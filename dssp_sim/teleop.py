@@ -1,6 +1,6 @@
 """The embedded teleoperation rig: a scripted leader, a simulated follower and the simulated camera, in lockstep.
 
-What ``dssp-record --camera sim --can sim`` records from, with no hardware:
+What ``dssp-sim record`` (``dssp-record --camera mujoco --can mujoco``) records from, with no hardware:
 
 - one python-can ``virtual`` bus shared, as on the real platform, by a leader and a follower;
 - the leader is a :class:`~hardware.leader.ScriptedLeader` played by the task's scripted expert
@@ -154,7 +154,7 @@ class TeleopRigs:
 
 
 def record_main(argv: list[str] | None = None) -> int:
-    """``dssp-sim record``: ``dssp-record`` on the simulated rig (``--camera sim --can sim`` by default)."""
+    """``dssp-sim record``: ``dssp-record`` on the simulated rig (``--camera mujoco --can mujoco`` by default)."""
     from hardware.cli.record import main
 
     return main(argv, sim=TeleopRigs(), prog="dssp-sim record")

@@ -286,7 +286,7 @@ def test_sim_camera_thread_and_errors():
 
 # -- open_camera ------------------------------------------------------------------------------------------
 def test_open_camera_specs(tmp_path):
-    assert spec_forms() == "d405|d435|l515|file:PATH|sim"
+    assert spec_forms() == "d405|d435|l515|file:PATH|tabletop"
     cam = open_camera(" D435 ", serial="123", color=True)
     assert isinstance(cam, RealSenseCamera) and cam.profile.name == "d435" and cam.serial == "123" and cam.color
     assert open_camera("d405").profile.depth_unit == 0.0001
@@ -294,11 +294,14 @@ def test_open_camera_specs(tmp_path):
                        Intrinsics(80, 60, 70.0, 70.0, 40.0, 30.0), UNIT, pace=False)
     cam = open_camera(f"file:{rec}", repeat_playback=True)
     assert cam.file == rec and cam.repeat_playback
-    sim = open_camera("sim", seed=5)
+    sim = open_camera("tabletop", seed=5)
     assert isinstance(sim, SimCamera) and sim.seed == 5
-    for bad in ("kinect", "file:", "", "sim:d435"):
+    for bad in ("kinect", "file:", "", "tabletop:d435"):
         msg = _one_line_error(open_camera, bad)
         if bad not in ("file:",):
-            assert "d405|d435|l515|file:PATH|sim" in msg
-    _one_line_error(open_camera, "sim", serial="1")
+            assert "d405|d435|l515|file:PATH|tabletop" in msg
+    _one_line_error(open_camera, "tabletop", serial="1")
+    # one name per simulator: the old spelling says which is which, the MuJoCo camera points to dssp-sim
+    assert "'tabletop'" in _one_line_error(open_camera, "sim") and "'mujoco'" in _one_line_error(open_camera, "SIM")
+    assert "dssp-sim record" in _one_line_error(open_camera, "mujoco")
     _one_line_error(open_camera, f"file:{rec}", serial="1")

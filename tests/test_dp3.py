@@ -153,7 +153,7 @@ def test_dssp_run_runs_dp3_on_the_embedded_simulation(dp3_model, tmp_path, capsy
     from hardware.cli.run import main as run_main
 
     log_dir = tmp_path / "log"
-    code = run_main(["--model", str(dp3_model), "--camera", "sim", "--can", "sim", "--max-steps", "30",
+    code = run_main(["--model", str(dp3_model), "--camera", "tabletop", "--can", "sim", "--max-steps", "30",
                      "--log-dir", str(log_dir), "--seed", "0", "--threads", "1", "--quiet"])
     out = capsys.readouterr().out
     assert code == 0, out

@@ -234,7 +234,7 @@ def test_dssp_run_exits_2_before_any_arm_is_opened_or_enabled(model, tmp_path, m
     monkeypatch.setattr(piper_robot, "open_robot", lambda *a, **k: opened.append(a) or real_open(*a, **k))
     monkeypatch.setattr(piper_robot.PiperRobot, "enable", lambda self, *a, **k: enabled.append(self))
     log_dir = tmp_path / "log"
-    code = run_main(["--model", str(bad), "--camera", "sim", "--can", "sim", "--max-steps", "5",
+    code = run_main(["--model", str(bad), "--camera", "tabletop", "--can", "sim", "--max-steps", "5",
                      "--log-dir", str(log_dir), "--threads", "1", "--quiet"])
     err = capsys.readouterr().err
     errors = [line for line in err.splitlines() if line.startswith("error:")]
@@ -247,7 +247,7 @@ def test_dssp_run_command_exits_2_on_h_a_above_the_horizon(model, tmp_path):
     model_dir, good = model
     bad = copy_model(model_dir, tmp_path / "bad", with_value(good, ("n_action_steps",), good["horizon"] + 1))
     out = subprocess.run(
-        [sys.executable, "-m", "hardware.cli.run", "--model", str(bad), "--camera", "sim", "--can", "sim",
+        [sys.executable, "-m", "hardware.cli.run", "--model", str(bad), "--camera", "tabletop", "--can", "sim",
          "--max-steps", "5", "--log-dir", str(tmp_path / "log"), "--threads", "1", "--quiet"],
         capture_output=True, text=True, timeout=120, env={**os.environ, "OMP_NUM_THREADS": "1"},
     )

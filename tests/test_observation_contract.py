@@ -57,7 +57,7 @@ def test_the_contract_goes_from_the_dataset_into_the_run_and_the_manifest(record
 def run(model_dir, log_dir, *extra):
     from hardware.cli.run import main as run_main
 
-    return run_main(["--model", str(model_dir), "--camera", "sim", "--can", "sim", "--max-steps", "3",
+    return run_main(["--model", str(model_dir), "--camera", "tabletop", "--can", "sim", "--max-steps", "3",
                      "--log-dir", str(log_dir), "--threads", "1", "--quiet", "--no-can-log", *extra])
 
 

@@ -300,9 +300,12 @@ def test_next_state_convention(tmp_path):
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--can", "sim", "--camera", "l515"], "--can sim records the simulated scene"),
-    (["--can", "sim:2"], "the simulated rig has one leader/follower pair"),
-    (["--can", "can0", "--camera", "sim", "--auto"], "--auto on a robot needs --max-steps"),
+    (["--can", "mujoco", "--camera", "l515"], "--can mujoco records the MuJoCo scene"),
+    (["--can", "can0", "--camera", "mujoco"], "it goes with --camera mujoco, and --camera mujoco with --can mujoco"),
+    (["--can", "mujoco:2"], "the simulated rig has one leader/follower pair"),
+    (["--can", "sim"], "the simulated rig's arms are spelled mujoco"),  # the spelling before two simulators
+    (["--camera", "sim"], "camera 'sim' is ambiguous"),
+    (["--can", "can0", "--camera", "tabletop", "--auto"], "--auto on a robot needs --max-steps"),
     (["--task-name", "juggle"], "is not a simulated task"),
     (["--max-steps", "0"], "--max-steps must be at least 1"),
     (["--thresholds", "missing.json"], "thresholds file missing.json does not exist"),
@@ -478,7 +481,11 @@ def test_dssp_record_drives_real_buses_only(tmp_path, capsys):
     from hardware.cli.record import main as robot_record_main
 
     out = tmp_path / "x.zarr"
-    assert robot_record_main(["--out", str(out), "--camera", "sim", "--can", "sim", "--quiet"]) == 2
+    for can in ("sim", "mujoco"):
+        assert robot_record_main(["--out", str(out), "--camera", "tabletop", "--can", can, "--quiet"]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "record the simulation with dssp-sim record" in err[0]
+    assert robot_record_main(["--out", str(out), "--camera", "mujoco", "--can", "can0", "--quiet"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "record the simulation with dssp-sim record" in err[0]
+    assert len(err) == 1 and "exists only under dssp-sim" in err[0]
     assert not out.exists()

@@ -27,7 +27,7 @@ def one_error_line(capsys) -> str:
 
 def test_dssp_run_views_match_its_tick_log(arm_export, tmp_path, capsys):
     rrd, log_dir = tmp_path / "run.rrd", tmp_path / "log"
-    code = run_main(["--model", str(arm_export), "--camera", "sim", "--can", "sim", "--max-steps", "30", "--log-dir",
+    code = run_main(["--model", str(arm_export), "--camera", "tabletop", "--can", "sim", "--max-steps", "30", "--log-dir",
                      str(log_dir), "--seed", "0", "--threads", "1", "--quiet", "--rerun-save", str(rrd)])
     out = capsys.readouterr().out
     assert code == 0, out

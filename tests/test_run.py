@@ -78,7 +78,7 @@ def test_dssp_run_on_the_embedded_simulation(arm_export, tmp_path, capsys):
     logged, sent and kept within the limits is checked exactly. The fault injection below shows that fresh
     inputs are commanded every tick."""
     log_dir = tmp_path / "log"
-    code = run_main(["--model", str(arm_export), "--camera", "sim", "--can", "sim", "--max-steps", "60",
+    code = run_main(["--model", str(arm_export), "--camera", "tabletop", "--can", "sim", "--max-steps", "60",
                      "--log-dir", str(log_dir), "--seed", "0", "--threads", "1", "--quiet"])
     out = capsys.readouterr().out
     assert code == 0, out
@@ -102,7 +102,7 @@ def test_dssp_run_on_the_embedded_simulation(arm_export, tmp_path, capsys):
 
 def test_two_arms_as_one_14_value_robot(dual_arm_export, tmp_path, capsys):
     log_dir = tmp_path / "log"
-    code = run_main(["--model", str(dual_arm_export), "--camera", "sim", "--can", "sim:2", "--max-steps", "40",
+    code = run_main(["--model", str(dual_arm_export), "--camera", "tabletop", "--can", "sim:2", "--max-steps", "40",
                      "--log-dir", str(log_dir), "--seed", "0", "--threads", "1", "--quiet"])
     assert code == 0, capsys.readouterr()
     ticks = [t for t in read_ticks(log_dir) if t["command"] is not None]
@@ -118,7 +118,7 @@ def test_two_arms_as_one_14_value_robot(dual_arm_export, tmp_path, capsys):
 
 def test_dry_run_sends_nothing(arm_export, tmp_path, capsys):
     log_dir = tmp_path / "log"
-    code = run_main(["--model", str(arm_export), "--camera", "sim", "--can", "sim", "--max-steps", "30",
+    code = run_main(["--model", str(arm_export), "--camera", "tabletop", "--can", "sim", "--max-steps", "30",
                      "--dry-run", "--log-dir", str(log_dir), "--threads", "1", "--quiet"])
     assert code == 0 and "[dry run]" in capsys.readouterr().out
     [blf] = log_dir.glob("can_*.blf")
@@ -143,7 +143,7 @@ def test_sigterm_ends_in_a_hold(arm_export, tmp_path, capsys):
     """Real time: a signal into a running process (it is sent once 20 ticks are logged, whenever that is)."""
     log_dir = tmp_path / "log"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "hardware.cli.run", "--model", str(arm_export), "--camera", "sim", "--can", "sim",
+        [sys.executable, "-m", "hardware.cli.run", "--model", str(arm_export), "--camera", "tabletop", "--can", "sim",
          "--log-dir", str(log_dir), "--threads", "1"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env={**os.environ, "OMP_NUM_THREADS": "1"},
     )

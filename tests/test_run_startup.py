@@ -44,7 +44,7 @@ def wait_for_start_up_handler(proc: subprocess.Popen, timeout: float = 60.0) -> 
 @pytest.mark.parametrize("delay", [0.0, 0.3, 1.0, 2.0, 3.5])
 def test_ctrl_c_during_start_up_is_a_clean_stop(arm_export, tmp_path, delay):
     proc = subprocess.Popen(
-        [sys.executable, "-m", "hardware.cli.run", "--model", str(arm_export), "--camera", "sim", "--can", "sim",
+        [sys.executable, "-m", "hardware.cli.run", "--model", str(arm_export), "--camera", "tabletop", "--can", "sim",
          "--log-dir", str(tmp_path / "log"), "--threads", "1", "--quiet"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env={**os.environ, "OMP_NUM_THREADS": "1"},
     )
@@ -52,7 +52,7 @@ def test_ctrl_c_during_start_up_is_a_clean_stop(arm_export, tmp_path, delay):
     time.sleep(delay)
     proc.send_signal(signal.SIGINT)
     out, err = proc.communicate(timeout=120)
-    assert proc.returncode == 130, err
+    assert proc.returncode == 130, (out, err)
     assert "Traceback" not in err and "cannot be imported" not in err, err
     assert "during start-up; no arm was enabled" in err or "ended by: SIGINT" in out, (out, err)
 

@@ -48,7 +48,7 @@ def _start(arm_export, tmp_path, *extra, quiet=True):
     safety = tmp_path / "safety.json"
     safety.write_text(json.dumps({"disable_on_exit": True}))
     return subprocess.Popen(
-        [sys.executable, "-m", "hardware.cli.run", "--model", str(arm_export), "--camera", "sim", "--can", "sim",
+        [sys.executable, "-m", "hardware.cli.run", "--model", str(arm_export), "--camera", "tabletop", "--can", "sim",
          "--log-dir", str(tmp_path / "log"), "--threads", "1", "--safety", str(safety), *(["--quiet"] if quiet else []),
          *extra],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=_env())

@@ -336,7 +336,7 @@ def test_dssp_record_flags_are_checked_first(tmp_path, capsys, argv, words):
     from hardware.cli import record
 
     out = tmp_path / "rec.zarr"
-    code = record.main(["--out", str(out), "--quiet", "--can", "can0", "--camera", "sim", *argv])
+    code = record.main(["--out", str(out), "--quiet", "--can", "can0", "--camera", "tabletop", *argv])
     assert words in _one_line_exit_2(capsys, code)
     assert not out.exists()
 

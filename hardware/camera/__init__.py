@@ -1,11 +1,11 @@
 """Depth cameras: RealSense devices and recordings, a simulated tabletop, and :func:`open_camera`.
 
-    with open_camera("l515") as cam:         # or "d435", "d405", "file:episode.db3", "sim"
+    with open_camera("l515") as cam:         # or "d435", "d405", "file:episode.db3", "tabletop"
         frame = cam.wait_for_frame()         # DepthFrame: depth (H, W) uint16, depth_unit m, intrinsics
 
 Modules: ``base`` (the interface), ``profiles`` (stream profiles as data), ``realsense`` (rs.pipeline),
 ``software`` (rs.software_device: numpy frames through the SDK, .db3 recordings), ``tabletop`` (the
-simulated tabletop camera, spec ``sim``). pyrealsense2 is imported only when a camera is opened.
+simulated tabletop camera, spec ``tabletop``). pyrealsense2 is imported only when a camera is opened.
 """
 
 from __future__ import annotations
@@ -16,12 +16,14 @@ from hardware.camera.base import Camera, DepthFrame, Intrinsics
 from hardware.camera.profiles import CameraProfile, load_profile, profile_names
 from dssp_data.errors import CameraError
 
-__all__ = ["Camera", "CameraProfile", "DepthFrame", "Intrinsics", "check_camera_spec", "load_profile", "open_camera", "spec_forms"]
+TABLETOP = "tabletop"  # the spec of the simulated tabletop camera (hardware.camera.tabletop)
+
+__all__ = ["TABLETOP", "Camera", "CameraProfile", "DepthFrame", "Intrinsics", "check_camera_spec", "load_profile", "open_camera", "spec_forms"]
 
 
 def spec_forms() -> str:
-    """The accepted camera specs, for messages and --help: 'd405|d435|l515|file:PATH|sim'."""
-    return "|".join(profile_names() + ["file:PATH", "sim"])
+    """The accepted camera specs, for messages and --help: 'd405|d435|l515|file:PATH|tabletop'."""
+    return "|".join(profile_names() + ["file:PATH", TABLETOP])
 
 
 def check_camera_spec(spec: str, serial: str | None = None) -> None:
@@ -39,9 +41,15 @@ def check_camera_spec(spec: str, serial: str | None = None) -> None:
             raise CameraError(f"camera recording {path} does not exist (or is not a file); give a .bag or .db3 recording")
         return
     name = text.lower()
-    if name == "sim":
+    if name == "sim":  # the spelling before there were two simulators
+        raise CameraError("camera 'sim' is ambiguous: the simulated tabletop camera is 'tabletop'; the MuJoCo Piper's "
+                          "camera is 'mujoco' (dssp-sim record only)")
+    if name == "mujoco":
+        raise CameraError("camera 'mujoco' is the MuJoCo Piper's and exists only under dssp-sim (dssp-sim record); "
+                          f"here use one of {spec_forms()}")
+    if name == TABLETOP:
         if serial is not None:
-            raise CameraError("a serial number selects a live camera; it cannot be used with sim")
+            raise CameraError(f"a serial number selects a live camera; it cannot be used with {TABLETOP}")
         return
     if name not in profile_names():
         raise CameraError(f"unknown camera {spec!r}; use one of {spec_forms()}")
@@ -52,7 +60,7 @@ def open_camera(spec: str, serial: str | None = None, color: bool = False, **kw)
 
     spec: a profile name ('l515', 'd435', 'd405'; case-insensitive) for a live RealSense, optionally with
     ``serial``; 'file:PATH' for a .bag/.db3 recording (keywords ``repeat_playback``, ``real_time``);
-    'sim' for the simulated tabletop (keywords of :class:`hardware.camera.tabletop.SimCamera`, e.g. ``seed``).
+    'tabletop' for the simulated tabletop (keywords of :class:`hardware.camera.tabletop.SimCamera`, e.g. ``seed``).
     color: also deliver RGB aligned to depth. Unknown specs raise CameraError listing the valid forms.
     """
     check_camera_spec(spec, serial)
@@ -63,7 +71,7 @@ def open_camera(spec: str, serial: str | None = None, color: bool = False, **kw)
 
         return RealSenseCamera(file=path, color=color, **kw)
     name = text.lower()
-    if name == "sim":
+    if name == TABLETOP:
         from hardware.camera.tabletop import SimCamera
 
         return SimCamera(color=color, **kw)

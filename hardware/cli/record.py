@@ -10,8 +10,8 @@ Controls: on a terminal single keys, s start, k stop and keep, d stop and discar
 command per line on stdin (s/start, k/keep, d/discard, q/quit). A live status line shows the episode, its
 step, the measured rate and the age of every stream (``!`` past its threshold). Each kept episode is
 appended to PATH.zarr crash-safely, with its raw CAN traffic in PATH.zarr.can/. ``dssp-sim record`` (same
-flags, :mod:`dssp_sim.teleop`) records from the embedded simulation through this same code: ``--camera sim
---can sim`` (its defaults), the task's scripted expert playing the leader arm on a virtual bus. The
+flags, :mod:`dssp_sim.teleop`) records from the embedded simulation through this same code: ``--camera mujoco
+--can mujoco`` (its defaults: the MuJoCo Piper's camera and arms), the task's scripted expert playing the leader arm on a virtual bus. The
 simulation is handed in as a :class:`SimulatedRig` (this package never imports the simulation).
 Every way the process is stopped — any signal whose default would end it (SIGINT, SIGTERM, SIGHUP, ...), or
 stdout/stderr going away — ends the session like Ctrl-C (:mod:`hardware.cli.stops`): an unfinished episode is
@@ -46,6 +46,7 @@ follower was told to do and what dssp-run sends; "next-state" records the follow
 (kept only if it succeeded); --episodes N ends the session after N kept episodes.
 """
 
+MUJOCO = "mujoco"  # the camera and arms of the simulated rig dssp-sim record hands in (SimulatedRig)
 KEYS = {"s": "start", " ": "start", "k": "keep", "d": "discard", "q": "quit"}
 WORDS = {"s": "start", "start": "start", "k": "keep", "keep": "keep", "d": "discard", "discard": "discard",
          "q": "quit", "quit": "quit", "exit": "quit"}
@@ -66,12 +67,14 @@ def parse_args(argv, sim: SimulatedRig | None = None, prog: str = "dssp-record")
     """``argv`` → the arguments; ``sim``: the simulation ``--can sim`` records from (None: a robot only)."""
     p = ArgumentParser(prog=prog, description="Record teleoperated demonstrations into a DP3 zarr dataset.",
                                 epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    default = "sim" if sim is not None else None
+    default = MUJOCO if sim is not None else None
     p.add_argument("--camera", default=default, required=sim is None,
-                   help="l515 | d435 | d405 | file:PATH (.bag/.db3) | sim" + (" (default: sim)" if sim else ""))
+                   help="l515 | d435 | d405 | file:PATH (.bag/.db3) | tabletop"
+                        + (" | mujoco (default: mujoco, the MuJoCo Piper's)" if sim else ""))
     p.add_argument("--serial", help="RealSense serial number, when several are connected")
     p.add_argument("--can", default=default, required=sim is None,
-                   help="can0[,can1] (one bus per leader/follower pair: left, right)" + (" | sim (default: sim)" if sim else ""))
+                   help="can0[,can1] (one bus per leader/follower pair: left, right)"
+                        + (" | mujoco (default: mujoco, the MuJoCo Piper's arms)" if sim else ""))
     p.add_argument("--interface", default="socketcan", help="python-can interface of real buses (default: socketcan)")
     p.add_argument("--out", type=Path, required=True, help="dataset to create or append to (PATH.zarr)")
     p.add_argument("--rate", type=float, help="recording rate in Hz (default: the dataset's, else the simulation's 10 Hz, else 10)")
@@ -102,15 +105,20 @@ def parse_args(argv, sim: SimulatedRig | None = None, prog: str = "dssp-record")
     if args.rate is not None:
         check_rate(args.rate)
 
-    check_camera_spec(args.camera, args.serial)
+    if not (sim is not None and args.camera.strip().lower() == MUJOCO):
+        check_camera_spec(args.camera, args.serial)
     if args.sim_speed is not None and not (args.sim_speed == 0 or 0.01 <= args.sim_speed <= 100):
         raise ConfigError(f"--sim-speed must be 0 (as fast as possible) or in [0.01, 100] simulated seconds per second, "
                           f"got {args.sim_speed:g}")
     if args.seed is not None and args.seed < 0:
         raise ConfigError(f"--seed must be >= 0, got {args.seed}")
-    if sim is None and args.can.strip().lower().startswith("sim"):
+    can = args.can.strip().lower()
+    if sim is None and (can.startswith("sim") or can.startswith(MUJOCO)):
         raise ConfigError(f"--can {args.can}: dssp-record drives real buses; record the simulation with dssp-sim record "
                           "(same flags)")
+    if sim is not None and can.startswith("sim"):  # the spelling before there were two simulators
+        raise ConfigError(f"--can {args.can}: the simulated rig's arms are spelled mujoco (--camera mujoco --can mujoco, "
+                          "the defaults)")
     args.sim_rig = sim
     return args
 
@@ -244,12 +252,13 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
     from hardware.recorder import Recorder, RecordThresholds, StampedCamera
     from dssp_data.rerun_views import open_views
 
-    sim_can = args.can.strip().lower().startswith("sim")
-    sim_camera = args.camera.strip().lower() == "sim"
-    if sim_can and args.can.strip().lower() != "sim":
-        raise ConfigError(f"--can {args.can}: the simulated rig has one leader/follower pair; use --can sim")
-    if sim_can and not sim_camera:
-        raise ConfigError("--can sim records the simulated scene in lockstep with simulated time: it needs --camera sim")
+    sim_can = args.can.strip().lower().startswith(MUJOCO)
+    sim_camera = args.camera.strip().lower() == MUJOCO
+    if sim_can and args.can.strip().lower() != MUJOCO:
+        raise ConfigError(f"--can {args.can}: the simulated rig has one leader/follower pair; use --can mujoco")
+    if sim_can != sim_camera:
+        raise ConfigError("--can mujoco records the MuJoCo scene in lockstep with simulated time: it goes with --camera "
+                          "mujoco, and --camera mujoco with --can mujoco")
     if args.auto and not sim_can and args.max_steps is None:
         raise ConfigError("--auto on a robot needs --max-steps: nothing else ends an episode")
     # one writer per dataset, before any device opens: a second session stops here, touching nothing
@@ -303,14 +312,14 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
         camera_to_base = rig.camera.camera_to_base if args.extrinsics is None else load_extrinsics(args.extrinsics)
         frame = rig.camera.latest()
     else:
-        from hardware.camera import open_camera
+        from hardware.camera import TABLETOP, open_camera
 
-        if args.extrinsics is None and not sim_camera:
+        if args.extrinsics is None and args.camera.strip().lower() != TABLETOP:
             raise ConfigError("--extrinsics is needed with a real camera: the workspace crop is in the robot-base frame "
                               "(a JSON file {\"camera_to_base\": 4x4})")
         channels = [c.strip() for c in args.can.split(",")]
         if not 1 <= len(channels) <= 2 or any(not c for c in channels):
-            raise ConfigError(f"--can {args.can!r} is invalid: give can0 or can0,can1 (left,right) or sim")
+            raise ConfigError(f"--can {args.can!r} is invalid: give can0 or can0,can1 (left,right)")
         clock = REAL_CLOCK
         rate = args.rate or recorded_rate or 10.0
         raw_camera = open_camera(args.camera, serial=args.serial, color=cloud_config.use_color)

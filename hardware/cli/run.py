@@ -35,7 +35,8 @@ from dssp_data.errors import ConfigError
 from hardware.cli.stops import Stops, run_stoppable
 
 EPILOG = """\
---camera sim --can sim runs everything against the embedded simulation (no hardware). Real arms:
+--camera tabletop --can sim runs everything against the simulated tabletop camera and the CAN simulator of
+the Piper (no hardware; the defaults). Real arms:
 --can can0 (one Piper) or can0,can1 (two: left, right; 14 values). --dry-run computes the actions and
 logs them without enabling or commanding the arms (feedback is still read).
 """
@@ -45,7 +46,8 @@ def parse_args(argv):
     p = ArgumentParser(prog="dssp-run", description="Run a DSSP model on the robot.", epilog=EPILOG,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--model", type=Path, required=True, help="model directory (python -m export.to_onnx)")
-    p.add_argument("--camera", default="sim", help="l515 | d435 | d405 | file:PATH (.bag/.db3) | sim (default: sim)")
+    p.add_argument("--camera", default="tabletop",
+                   help="l515 | d435 | d405 | file:PATH (.bag/.db3) | tabletop (default: tabletop, the simulated one)")
     p.add_argument("--serial", help="RealSense serial number, when several are connected")
     p.add_argument("--can", default="sim", help="can0[,can1] (one bus per arm: left, right) | sim | sim:2 (default: sim)")
     p.add_argument("--interface", default="socketcan", help="python-can interface of real buses (default: socketcan)")
@@ -194,7 +196,7 @@ def _run(args, stops: Stops) -> int:
     check_args(args)
     from dssp_deploy.onnx_policy import OnnxPolicy
     from dssp_data.output_guard import RUN_LOG, check_output, claim_dir
-    from hardware.camera import open_camera
+    from hardware.camera import TABLETOP, open_camera
     from hardware.can_log import BusRecorder
     from hardware.piper.limits import JointLimits
     from hardware.piper.piper_robot import open_robot
@@ -214,7 +216,7 @@ def _run(args, stops: Stops) -> int:
         safety_config = SafetyConfig.load(args.safety, "safety") if args.safety else SafetyConfig()
         if args.rate is not None:
             safety_config.check_speed(args.rate)
-        simulated_camera = args.camera.strip().lower() == "sim"
+        simulated_camera = args.camera.strip().lower() == TABLETOP
         if args.extrinsics:
             camera_to_base = load_extrinsics(args.extrinsics)
         elif not simulated_camera:
