@@ -153,7 +153,6 @@ def run_episode(policy, env, seed: int, cloud_config, frames: list | None = None
     (cloud, observe, chunk, tick), when given; ``views`` (:class:`dssp_data.rerun_views.TickViews`) get every
     tick, continuing their timeline after the previous episode's."""
     from hardware.piper.arm import PiperArm
-    from hardware.piper.limits import JointLimits
     from hardware.piper.piper_robot import PiperRobot
     from hardware.run_loop import LoopSettings, Runner
 
@@ -163,7 +162,6 @@ def run_episode(policy, env, seed: int, cloud_config, frames: list | None = None
     arm.start(thread=False)
     robot = PiperRobot([PiperArm(channel, "virtual")])
     camera = MujocoCamera(env)
-    limits = JointLimits.piper()
     period = 1.0 / env.control_rate_hz
     try:
         with camera, robot:
@@ -179,8 +177,7 @@ def run_episode(policy, env, seed: int, cloud_config, frames: list | None = None
             try:
                 camera.capture()
                 runner = Runner(policy, camera, robot, cloud_config, camera.camera_to_base, EVAL_SAFETY,
-                                LoopSettings(rate_hz=env.control_rate_hz, seed=seed),
-                                (limits.lower, limits.upper, np.arange(7) == 6), views=views,
+                                LoopSettings(rate_hz=env.control_rate_hz, seed=seed), views=views,
                                 view_tick=views.last_tick + 1 if views is not None else 0)
                 if views is not None:
                     views.text(runner.view_tick, "episode", f"{env.task.name} seed {seed}")

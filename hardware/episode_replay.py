@@ -21,7 +21,7 @@ import numpy as np
 from dssp_data.replay_buffer import ReplayBufferReader
 from dssp_data.errors import ConfigError, DSSPError
 from hardware.robot import ARM_DOF, RobotState, check_rate
-from hardware.piper.limits import JointLimits
+from hardware.piper.limits import piper_description
 from hardware.safety import Safety, SafetyConfig
 
 FAR_START = 0.3
@@ -47,11 +47,8 @@ def replay_episode(path, episode: int, can: str | None, *, send: bool = False, i
         if rate is None:
             raise ConfigError(f"{path} does not record its control rate: pass --rate HZ")
         rate = check_rate(rate, flag=f"{path}'s control_rate_hz attribute")
-    safety_config.check_speed(float(rate))
     if send and can is None:
         raise ConfigError("--send needs --can (the arms to command)")
-    limits = JointLimits.piper().tile(dof // ARM_DOF)
-    gripper = np.tile(np.arange(ARM_DOF) == ARM_DOF - 1, dof // ARM_DOF)
     robot = None
     if can is not None:
         from hardware.piper.piper_robot import open_robot
@@ -59,6 +56,8 @@ def replay_episode(path, episode: int, can: str | None, *, send: bool = False, i
         robot = open_robot(can, interface=interface)
         if robot.dof != dof:
             raise ConfigError(f"the episode has {dof} action values but --can {can} gives {robot.dof} (7 per arm)")
+    described = robot.description if robot is not None else piper_description(dof // ARM_DOF)  # no arms: a Piper's
+    safety_config.check_speed(float(rate), described.max_joint_speed)
     counts: Counter = Counter()
     changed = 0.0
     sent = 0
@@ -81,7 +80,7 @@ def replay_episode(path, episode: int, can: str | None, *, send: bool = False, i
         if distance > FAR_START:
             events(f"note: the first action is {distance:.2f} rad from {where}: the safety layer ramps it by at most "
                    f"{safety_config.max_joint_step} rad per tick")
-        safety = Safety(safety_config, limits.lower, limits.upper, gripper, start)
+        safety = Safety(safety_config, described.lower, described.upper, described.gripper, start)
         if send:
             robot.enable()
         period = 1.0 / float(rate)

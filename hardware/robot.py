@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from dssp_data.errors import ConfigError
+from dssp_data.observation import VectorLayout
 
 ARM_DOF = 7  # J1..J6 + gripper
 
@@ -49,10 +50,73 @@ class RobotState:
     status: tuple[ArmStatus, ...] = field(default_factory=tuple)  # one per arm
 
 
+@dataclass(frozen=True)
+class RobotDescription:
+    """What a robot is, read from it by the loop, the safety layer and the observation contract (as LeRobot's
+    robots expose their features), so that no caller re-derives it from constants.
+
+    model: the hardware's name. layout: the (dof,) vector's arms and channels ("name unit", left arm first).
+    lower, upper: (dof,) float64 bounds in policy units. gripper: (dof,) bool, the gripper values.
+    max_joint_speed: rad/s, the slowest joint's rated speed (bounds the safety layer's step x rate).
+    feedback_hz: the rate the arm's feedback arrives at (a control rate above it reuses feedback).
+    """
+
+    model: str
+    layout: VectorLayout
+    lower: np.ndarray
+    upper: np.ndarray
+    gripper: np.ndarray
+    max_joint_speed: float
+    feedback_hz: float
+
+    def __post_init__(self) -> None:
+        dof = self.layout.dim
+        lower, upper = (np.array(v, dtype=np.float64).reshape(-1) for v in (self.lower, self.upper))
+        gripper = np.array(self.gripper, dtype=bool).reshape(-1)
+        if not lower.shape == upper.shape == gripper.shape == (dof,):
+            raise ValueError(f"{self.model}: lower, upper and gripper must each have the layout's {dof} values")
+        if not (np.all(np.isfinite(lower)) and np.all(np.isfinite(upper)) and np.all(lower <= upper)):
+            raise ValueError(f"{self.model}: limits must be finite with lower <= upper")
+        if not (self.max_joint_speed > 0 and self.feedback_hz > 0):
+            raise ValueError(f"{self.model}: max_joint_speed and feedback_hz must be positive")
+        for name, array in (("lower", lower), ("upper", upper), ("gripper", gripper)):
+            array.setflags(write=False)
+            object.__setattr__(self, name, array)
+
+    @property
+    def dof(self) -> int:
+        return self.layout.dim
+
+    @property
+    def n_arms(self) -> int:
+        return self.layout.arms
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """(dof,) value names: ``J1 rad`` … for one arm; ``left.J1 rad`` … ``right.gripper opening 0..1`` for two."""
+        channels, arms = self.layout.channels, self.layout.arms
+        if arms == 1:
+            return tuple(channels)
+        sides = ("left", "right") if arms == 2 else tuple(f"arm{a}" for a in range(arms))
+        return tuple(f"{side}.{c}" for side in sides for c in channels)
+
+    def to_dict(self) -> dict:
+        """JSON-ready (the run log states the robot it ran on)."""
+        return {"model": self.model, "arms": self.layout.arms, "channels": list(self.layout.channels),
+                "lower": self.lower.tolist(), "upper": self.upper.tolist(), "gripper": self.gripper.tolist(),
+                "max_joint_speed": self.max_joint_speed, "feedback_hz": self.feedback_hz}
+
+
 class Robot(ABC):
-    """One or more arms as one vector. Every method raises ``dssp_data.errors.ArmError``/``CanError``."""
+    """One or more arms as one vector. Every method raises ``dssp_data.errors.ArmError``/``CanError``.
+
+    ``description`` says what the robot is (:class:`RobotDescription`) without touching the hardware."""
 
     dof: int
+
+    @property
+    @abstractmethod
+    def description(self) -> RobotDescription: ...
 
     @abstractmethod
     def connect(self) -> None: ...

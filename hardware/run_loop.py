@@ -85,19 +85,23 @@ class Runner:
         camera_to_base: np.ndarray,
         safety_config: SafetyConfig,
         settings: LoopSettings,
-        limits: tuple[np.ndarray, np.ndarray, np.ndarray],
+        limits: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
         log: RunLog | None = None,
         status: Callable[[str], None] | None = None,
         clock: Clock = REAL_CLOCK,
         views: TickViews | None = None,
         view_tick: int = 0,
     ):
-        """``limits``: (lower (dof,), upper (dof,), gripper mask (dof,)) in policy units. ``clock``: the
+        """``limits``: (lower (dof,), upper (dof,), gripper mask (dof,)) in policy units; default: the robot's own
+        (``robot.description``), narrower ones only for a test or a cautious first run. ``clock``: the
         timeline of the camera's and the arms' timestamps (:mod:`hardware.clock`). ``views``: Rerun views of each
         tick (:mod:`dssp_data.rerun_views`; the caller closes them), on their timeline from ``view_tick`` on."""
         check_fits(policy, robot, cloud_config)
         self.policy, self.camera, self.robot = policy, camera, robot
         self.cloud_config, self.camera_to_base = cloud_config, np.asarray(camera_to_base, np.float64)
+        if limits is None:
+            described = robot.description
+            limits = (described.lower, described.upper, described.gripper)
         self.safety_config, self.settings, self.limits = safety_config, settings, limits
         self.log, self.status, self.clock, self.views = log, status, clock, views
         self.view_tick = view_tick  # the views' timeline: continues over episodes (evaluations)

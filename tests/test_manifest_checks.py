@@ -230,8 +230,8 @@ def test_dssp_run_exits_2_before_any_arm_is_opened_or_enabled(model, tmp_path, m
     change(manifest)
     bad = copy_model(model_dir, tmp_path / "bad", manifest)
     opened, enabled = [], []
-    real_open = piper_robot.open_robot
-    monkeypatch.setattr(piper_robot, "open_robot", lambda *a, **k: opened.append(a) or real_open(*a, **k))
+    real_connect = piper_robot.PiperRobot.connect  # a bus opens when the robot connects
+    monkeypatch.setattr(piper_robot.PiperRobot, "connect", lambda self: opened.append(self) or real_connect(self))
     monkeypatch.setattr(piper_robot.PiperRobot, "enable", lambda self, *a, **k: enabled.append(self))
     log_dir = tmp_path / "log"
     code = run_main(["--model", str(bad), "--camera", "tabletop", "--can", "sim", "--max-steps", "5",

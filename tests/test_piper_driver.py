@@ -4,6 +4,7 @@ Most tests drive the simulator deterministically (``start(thread=False)`` + ``st
 exact; the driver's receive thread still runs, so reads of its feedback wait (bounded) for the frames.
 """
 
+import json
 import math
 import uuid
 from concurrent.futures import ThreadPoolExecutor
@@ -15,12 +16,14 @@ import pytest
 
 from dssp_data.errors import ArmError, CanError
 from hardware.clock import FakeClock
+from dssp_data.observation import piper_layout
 from hardware.piper import codec
 from hardware.piper.arm import PiperArm
 from hardware.piper.bus import open_bus
 from hardware.piper.limits import GRIPPER_STROKE_MAX, JOINT_LOWER, JOINT_UPPER
 from hardware.piper.piper_robot import PiperRobot, open_robot
 from hardware.piper.can_simulator import SimulatedPiper
+from hardware.robot import RobotDescription
 from waiting import wait_for
 
 MDEG = math.radians(0.001)  # joint resolution on the wire (rad)
@@ -433,6 +436,26 @@ def test_open_robot_sim(spec, dof):
         robot.emergency_stop()
         wait_for(lambda: all(s.estop for s in robot.status()))
     assert not any(sim.running for sim in robot.simulators)
+
+
+def test_the_robot_describes_itself():
+    """What the loop, the safety layer and the observation contract read from the robot, not from constants."""
+    one, two = open_robot("sim").description, open_robot("sim:2").description
+    assert (one.dof, one.n_arms, two.dof, two.n_arms) == (7, 1, 14, 2) and one.model == "AgileX Piper"
+    assert one.names[0] == "J1 rad" and two.names[7] == "right.J1 rad" and two.names[13] == "right.gripper opening 0..1"
+    assert np.flatnonzero(two.gripper).tolist() == [6, 13]
+    np.testing.assert_array_equal(two.lower[:6], JOINT_LOWER)
+    np.testing.assert_array_equal(two.upper[7:13], JOINT_UPPER)
+    assert (two.lower[13], two.upper[13]) == (0.0, 1.0)  # the gripper's opening
+    assert two.layout == piper_layout(2)  # the observation contract's layout
+    assert two.max_joint_speed == pytest.approx(3.14159) and two.feedback_hz == 200.0
+    with pytest.raises(ValueError):
+        two.lower[0] = 0.0  # read-only
+    with pytest.raises(ValueError, match="7 values"):
+        RobotDescription("x", piper_layout(1), np.zeros(6), np.ones(6), np.zeros(6, bool), 1.0, 1.0)
+    with pytest.raises(ValueError, match="lower <= upper"):
+        RobotDescription("x", piper_layout(1), np.ones(7), np.zeros(7), np.zeros(7, bool), 1.0, 1.0)
+    assert json.loads(json.dumps(two.to_dict()))["gripper"][13] is True
 
 
 @pytest.mark.parametrize("spec", ["", "sim:3", "sim:0", "can0,,can1", "a,b,c", "simulator"])

@@ -207,6 +207,10 @@ class SteppedArm(Robot):
 
     dof = 7
 
+    @property
+    def description(self):
+        return self.inner.description
+
     def __init__(self, clock):
         self.channel, self.clock, self.arrived = f"dssp-test-{uuid.uuid4().hex[:8]}", clock, None
         self.sim = SimulatedPiper(self.channel, "virtual")

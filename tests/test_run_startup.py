@@ -24,6 +24,7 @@ from dssp_data.errors import CameraError, DSSPError
 from hardware.camera.base import Camera
 from hardware.cli.run import main as run_main
 from hardware.clock import FakeClock
+from hardware.piper.limits import piper_description
 from hardware.robot import Robot
 
 
@@ -82,6 +83,7 @@ class SilentArm(Robot):
 
     dof = 7
     connect = close = emergency_stop = disable = lambda self: None
+    description = property(lambda self: piper_description(1))
 
     def state(self):
         return None
@@ -132,7 +134,8 @@ def test_start_up_gives_up_on_its_clock(arm_export):
 def _devices_opened(monkeypatch) -> list[str]:
     """The devices dssp-run opens from here on (none, if it refuses first)."""
     opened = []
-    monkeypatch.setattr("hardware.piper.piper_robot.open_robot", lambda *a, **k: opened.append("robot"))
+    # a robot is described before it connects (what it is, not a device opened): connecting is what counts
+    monkeypatch.setattr("hardware.piper.piper_robot.PiperRobot.connect", lambda self: opened.append("robot"))
     monkeypatch.setattr("hardware.camera.open_camera", lambda *a, **k: opened.append("camera"))
     return opened
 

@@ -6,6 +6,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from dssp_data.errors import ConfigError
+from hardware.piper.piper_robot import open_robot
 from hardware.robot import ArmStatus, RobotState
 from hardware.safety import Safety, SafetyConfig
 
@@ -124,3 +125,12 @@ def test_no_command_ever_leaves_the_limits_or_the_step(actions, stale):
         assert np.all(d.command >= LOWER) and np.all(d.command <= UPPER)
         assert np.all(np.abs(d.command - previous) <= s.max_step + 1e-12)
         previous = d.command
+
+
+def test_the_step_limit_is_checked_against_the_robots_own_joint_speed():
+    config = SafetyConfig(max_joint_step=0.1)  # 5 rad/s at 50 Hz
+    config.check_speed(50.0, max_joint_speed=6.0)  # a faster arm takes it
+    with pytest.raises(ConfigError, match=r"above the arm's 3 rad/s: lower max_joint_step to at most 0\.06"):
+        config.check_speed(50.0, max_joint_speed=3.0)
+    with pytest.raises(ConfigError, match="above the arm's 3.14159 rad/s"):  # the Piper, as it describes itself
+        config.check_speed(50.0, open_robot("sim").description.max_joint_speed)

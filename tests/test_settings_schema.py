@@ -261,7 +261,7 @@ def test_dssp_run_refuses_a_bad_safety_file_before_anything_opens(tmp_path, caps
     from hardware.cli import run
 
     opened = []
-    monkeypatch.setattr("hardware.piper.piper_robot.open_robot", lambda *a, **k: opened.append("robot"))
+    monkeypatch.setattr("hardware.piper.piper_robot.PiperRobot.connect", lambda self: opened.append("robot"))
     path = tmp_path / "safety.json"
     path.write_text(json.dumps(content).replace("NaN", "NaN"))
     code = run.main(["--model", str(tmp_path / "no-model"), "--safety", str(path), "--quiet"])

@@ -190,17 +190,14 @@ def run(args, stops: Stops | None = None) -> int:
 
 
 def _run(args, stops: Stops) -> int:
-    import numpy as np
-
     stops.check()
     check_args(args)
     from dssp_deploy.onnx_policy import OnnxPolicy
     from dssp_data.output_guard import RUN_LOG, check_output, claim_dir
     from hardware.camera import TABLETOP, open_camera
     from hardware.can_log import BusRecorder
-    from hardware.piper.limits import JointLimits
     from hardware.piper.piper_robot import open_robot
-    from dssp_data.observation import FRAME_ROBOT_BASE, ObservationContract, check_contract, piper_layout
+    from dssp_data.observation import FRAME_ROBOT_BASE, ObservationContract, check_contract
     from dssp_deploy.manifest import observation_of
     from hardware.pointcloud import PointCloudConfig, load_extrinsics
     from dssp_data.rerun_views import check_views, open_views
@@ -214,8 +211,10 @@ def _run(args, stops: Stops) -> int:
         check_output(log_dir, force=None, kind=RUN_LOG, flag="--log-dir")  # a log is never replaced
         stops.check()
         safety_config = SafetyConfig.load(args.safety, "safety") if args.safety else SafetyConfig()
+        robot = open_robot(args.can, interface=args.interface)  # not connected yet: what it is, from itself
+        described = robot.description
         if args.rate is not None:
-            safety_config.check_speed(args.rate)
+            safety_config.check_speed(args.rate, described.max_joint_speed)
         simulated_camera = args.camera.strip().lower() == TABLETOP
         if args.extrinsics:
             camera_to_base = load_extrinsics(args.extrinsics)
@@ -234,12 +233,10 @@ def _run(args, stops: Stops) -> int:
         if cloud_config is None:  # the model's own settings; a model from data that recorded none: the defaults
             cloud_config = trained.pointcloud or PointCloudConfig(n_points=policy.manifest["model_config"]["n_points"])
         rate = control_rate(args, policy)
-        safety_config.check_speed(rate)
+        safety_config.check_speed(rate, described.max_joint_speed)
         chunk_ms = check_prefetch(policy, rate) if args.prefetch else None  # a lead the rate cannot hold: refused here
-        robot = open_robot(args.can, interface=args.interface)  # not connected yet
-        n_arms = robot.dof // 7
-        given = ObservationContract(pointcloud=cloud_config, frame=FRAME_ROBOT_BASE, state=piper_layout(n_arms),
-                                    action=piper_layout(n_arms))
+        given = ObservationContract(pointcloud=cloud_config, frame=FRAME_ROBOT_BASE, state=described.layout,
+                                    action=described.layout)
         pointcloud_by = f"--pointcloud {args.pointcloud}" if args.pointcloud else "the default point-cloud settings"
         overrides = check_contract(trained, given, trained_by=f"the model {args.model}", allow=args.allow_mismatch,
                                    given_by={"pointcloud": pointcloud_by, "frame": "the point-cloud pipeline",
@@ -254,10 +251,6 @@ def _run(args, stops: Stops) -> int:
         settings = LoopSettings(rate_hz=rate, max_steps=args.max_steps, dry_run=args.dry_run, prefetch=args.prefetch,
                                 seed=args.seed, chunk_ms=chunk_ms)
         print(f"graphs: {policy.kernel_note}", file=sys.stderr)  # which graphs run: the one start-up line about them
-        limits = JointLimits.piper()
-        lower, upper = np.tile(limits.lower, n_arms), np.tile(limits.upper, n_arms)
-        gripper = np.tile(np.arange(7) == 6, n_arms)
-
         views = open_views("dssp-run", args.rerun, args.rerun_save)  # flags checked (and a viewer started) before any device
         if views is not None:
             stack.callback(lambda: print(views.close_line()))
@@ -271,13 +264,14 @@ def _run(args, stops: Stops) -> int:
         ]
         status = None if args.quiet else StatusPrinter()
         log = RunLog(log_dir, {
-            "model": str(args.model), "camera": args.camera, "can": args.can, "rate_hz": rate, "dry_run": args.dry_run,
+            "model": str(args.model), "camera": args.camera, "can": args.can, "robot": described.to_dict(),
+            "rate_hz": rate, "dry_run": args.dry_run,
             "camera_to_base": camera_to_base, "pointcloud": cloud_config.to_dict(), "safety": safety_config.to_dict(),
             "manifest": {k: policy.manifest[k] for k in ("denoise_steps", "control_rate_hz") if k in policy.manifest},
             "observation": trained.to_manifest(), "allowed_mismatches": overrides,
         })
         runner = Runner(policy, camera, robot, cloud_config, camera_to_base, safety_config, settings,
-                        (lower, upper, gripper), log=log, status=status, views=views)
+                        log=log, status=status, views=views)  # the limits: the robot's own
         stops.during(runner.request_stop)  # a stop that came meanwhile, or any later: the runner's final hold
         try:
             with contextlib.ExitStack() as devices:

@@ -11,7 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hardware.robot import ARM_DOF
+from dssp_data.observation import piper_layout
+from hardware.robot import ARM_DOF, RobotDescription
 
 N_JOINTS = 6
 
@@ -26,6 +27,9 @@ JOINT_UPPER.setflags(write=False)
 # Joint speed (rad/s): AgileX rates the Piper's joints at 180 deg/s (J1, J3) to 225 deg/s (J4-J6); the
 # slowest, pi rad/s, bounds what a per-tick step times the control rate may ask of any joint.
 MAX_JOINT_SPEED = 3.14159
+
+# Feedback rate (Hz): the Piper reports joints, gripper and status at 200 Hz.
+FEEDBACK_HZ = 200.0
 
 # Gripper stroke (m): the SDK's gripper range is 0..0.07 m (AgileX's ROS node clamps to 0..0.08 m).
 GRIPPER_STROKE_MIN = 0.0
@@ -95,3 +99,13 @@ class JointLimits:
         v = np.asarray(values, dtype=np.float64)
         inside = (v >= self.lower - tol) & (v <= self.upper + tol)
         return np.flatnonzero(~inside)
+
+
+def piper_description(n_arms: int = 1) -> RobotDescription:
+    """``n_arms`` Pipers (1 or 2, left first) as the loop, the safety layer and the observation contract see them:
+    per arm [J1..J6 rad within ``JOINT_LOWER/UPPER``, gripper opening 0..1], the slowest joint's speed, the
+    feedback rate."""
+    limits = JointLimits.piper().tile(n_arms)
+    return RobotDescription(model="AgileX Piper", layout=piper_layout(n_arms), lower=limits.lower, upper=limits.upper,
+                            gripper=np.tile(np.arange(ARM_DOF) == ARM_DOF - 1, n_arms),
+                            max_joint_speed=MAX_JOINT_SPEED, feedback_hz=FEEDBACK_HZ)

@@ -12,10 +12,10 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from hardware.robot import ARM_DOF, ArmStatus, Robot, RobotState
+from hardware.robot import ARM_DOF, ArmStatus, Robot, RobotDescription, RobotState
 from dssp_data.errors import ArmError, HardwareError
 from hardware.piper.arm import PiperArm
-from hardware.piper.limits import opening_to_stroke, stroke_to_opening
+from hardware.piper.limits import opening_to_stroke, piper_description, stroke_to_opening
 from hardware.piper.can_simulator import SimulatedPiper
 
 
@@ -38,6 +38,10 @@ class PiperRobot(Robot):
 
     def __repr__(self) -> str:
         return f"PiperRobot({', '.join(a.channel for a in self.arms)})"
+
+    @property
+    def description(self) -> RobotDescription:
+        return piper_description(len(self.arms))
 
     def connect(self) -> None:
         """Start the simulators (if any), then open every arm's bus. Raises CanError."""
