@@ -33,6 +33,7 @@ def run_cli(main: Callable[[], int | None]) -> int:
     Warnings print as one ``warning: <message>`` line, without the source line.
     """
     warnings.showwarning = _one_line_warning
+    written_before = len(_put_in_place())
     try:
         with interrupts_at_safe_points():
             code = int(main() or 0)
@@ -43,7 +44,11 @@ def run_cli(main: Callable[[], int | None]) -> int:
         return 2
     except KeyboardInterrupt:
         _settle_after_interrupt()
-        print("interrupted", file=sys.stderr)
+        written = _put_in_place()[written_before:]
+        if written:  # the outputs were complete when the Ctrl-C came: say so, they stay
+            print(f"interrupted after writing {', '.join(map(str, written))} (complete)", file=sys.stderr)
+        else:
+            print("interrupted", file=sys.stderr)
         return 130
     except BrokenPipeError:  # the reader of stdout went away (| head): stop quietly, as command-line tools do
         try:
@@ -52,6 +57,12 @@ def run_cli(main: Callable[[], int | None]) -> int:
         except (OSError, ValueError, AttributeError):  # stdout is not a file (tests capture it)
             pass
         return 141
+
+
+def _put_in_place() -> list:
+    """The outputs this process has put in place so far (none while the output guard is not loaded)."""
+    guard = sys.modules.get("dssp_data.output_guard")
+    return list(guard.PUT_IN_PLACE) if guard is not None else []
 
 
 def _settle_after_interrupt() -> None:

@@ -198,14 +198,16 @@ def _copy(jobs: Sequence[tuple[Sequence[tuple[ReplayBufferReader, Sequence[int]]
                 tmp = staging.make(staging.reserve(out))
                 staged.append((tmp, Path(out), flag))
                 summaries.append(_stage(parts, tmp, attrs, logs_of, staging))
-            with interrupts_deferred():
-                for tmp, out, flag in staged:  # again: something may have appeared meanwhile
+            moves = []
+            for tmp, out, _ in staged:
+                tmp_logs = can_log_dir(tmp)
+                moves += [(tmp, out), (tmp_logs if tmp_logs.is_dir() else None, can_log_dir(out))]
+
+            def nothing_appeared() -> None:  # again: something may have appeared meanwhile
+                for _, out, flag in staged:
                     check_data_output(out, [], force, flag)
-                moves = []
-                for tmp, out, _ in staged:
-                    tmp_logs = can_log_dir(tmp)
-                    moves += [(tmp, out), (tmp_logs if tmp_logs.is_dir() else None, can_log_dir(out))]
-                staging.commit(moves)
+
+            staging.commit(moves, check=nothing_appeared)
     finally:
         settle_background_writes()  # a read interrupted by Ctrl-C finishes before the process exits
     return summaries

@@ -371,10 +371,9 @@ class OutputDir:
 
     def commit(self) -> Path:
         """Put the finished output in place (replacing a previous one when allowed); returns ``out``."""
-        with interrupts_deferred():
-            if self.staged:
-                self.check()  # again: something may have appeared meanwhile
-                self._staging.commit([(self.path, self.out)])
+        if self.staged:
+            self._staging.commit([(self.path, self.out)], check=self.check)  # again: something may have appeared
+        with interrupts_deferred(reraise=not self.staged):  # staged: in place now, a Ctrl-C comes too late
             self._committed = True
             if self._old is not None:
                 shutil.rmtree(self._old, ignore_errors=True)
@@ -404,7 +403,7 @@ class OutputDir:
                     break
 
     def __exit__(self, *exc_info) -> None:
-        if not self._committed:
+        if not (self._committed or (self._staging is not None and self._staging.committed)):  # in place: kept
             self._rollback()
 
 
@@ -614,6 +613,11 @@ def sweep_stale(out: str | os.PathLike) -> list[Path]:
     return removed
 
 
+PUT_IN_PLACE: list[Path] = []
+"""Every output this process has put in place (:meth:`Staging.commit`), in order: a command interrupted after
+its outputs were complete says so (``dssp_data.cli_runner.run_cli``) instead of claiming it wrote nothing."""
+
+
 class Staging:
     """Hidden directories beside their outputs, written by this process and put in place together.
 
@@ -657,11 +661,20 @@ class Staging:
         """Lock a staging directory this process created, so that :func:`sweep_stale` leaves it alone."""
         _lock_dir(path)
 
-    def commit(self, moves: Sequence[tuple[Path | None, Path]]) -> None:
-        """:func:`replace_dirs` with a Ctrl-C held back until every rename is done."""
-        with interrupts_deferred():
+    def commit(self, moves: Sequence[tuple[Path | None, Path]], check: Callable[[], object] | None = None) -> None:
+        """Put the staged outputs in place (:func:`replace_dirs`). ``check`` runs first (nothing appeared
+        meanwhile; it raises to refuse). A Ctrl-C before the renames stops the commit (KeyboardInterrupt: nothing
+        is put in place); one during the renames comes too late: the outputs are complete, and the command goes
+        on as if it had come after (it never reports an interruption with its outputs in place)."""
+        with interrupts_deferred(reraise=False) as caught:
+            if check is not None:
+                check()
+            if caught:
+                caught.clear()
+                raise KeyboardInterrupt
             replace_dirs(moves)
             self.committed = True
+            PUT_IN_PLACE.extend(Path(target) for source, target in moves if source is not None)
             for _, target in moves:
                 _unlock_dir(Path(target))
 
@@ -689,23 +702,24 @@ class Staging:
 
 # ------------------------------------------------------------------------------------------- interruptions
 @contextlib.contextmanager
-def interrupts_deferred(reraise: bool = True) -> Iterator[None]:
+def interrupts_deferred(reraise: bool = True) -> Iterator[list]:
     """Hold back Ctrl-C (SIGINT) inside the block, then act on it (``reraise``: KeyboardInterrupt) at its end.
 
     For steps that must not stop half-way: renames that put outputs in place, the removal of a staging
     directory. Only in the main thread (elsewhere signals are not delivered); a no-op when SIGINT is ignored.
+    The block gets the list of the Ctrl-Cs held back so far (a step can look before it begins).
     """
     if threading.current_thread() is not threading.main_thread():
-        yield
+        yield []
         return
     previous = signal.getsignal(signal.SIGINT)
     if previous in (signal.SIG_IGN, None):
-        yield
+        yield []
         return
-    caught = []
+    caught: list = []
     signal.signal(signal.SIGINT, lambda signum, frame: caught.append(frame))
     try:
-        yield
+        yield caught
     finally:
         signal.signal(signal.SIGINT, previous)
         if caught and reraise:

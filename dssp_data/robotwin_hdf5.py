@@ -36,7 +36,6 @@ from dssp_data.output_guard import (
     DATA_GENERATORS,
     Staging,
     check_output,
-    interrupts_deferred,
     settle_background_writes,
 )
 
@@ -258,9 +257,8 @@ def convert(source: str | os.PathLike, out: str | os.PathLike, *, max_episodes: 
                     except DatasetError as exc:
                         raise DatasetError(f"{path}: {exc}") from None
                     steps += episode.n_steps
-            with interrupts_deferred():
-                check_output(out, force=force, kind=DATA_DATASET, flag=flag, error=DatasetError)  # again
-                staging.commit([(tmp, out), (None, can_log_dir(out))])
+            staging.commit([(tmp, out), (None, can_log_dir(out))],  # the output checked again first
+                           check=lambda: check_output(out, force=force, kind=DATA_DATASET, flag=flag, error=DatasetError))
     finally:
         settle_background_writes()
     return {"episodes": len(files), "steps": steps, "files": [p.name for p in files]}

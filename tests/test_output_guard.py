@@ -784,6 +784,58 @@ def test_ctrl_c_is_held_back_inside_interrupts_deferred():
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
 
 
+def test_a_ctrl_c_stops_a_commit_before_its_renames_and_comes_too_late_during_them(tmp_path, monkeypatch):
+    """Never "interrupted" with the outputs in place: a Ctrl-C while the output is checked again stops the commit
+    (nothing in place, the staging removed); one during the renames lets the commit finish and raises nothing."""
+    import signal
+
+    from dssp_data import output_guard
+    from dssp_data.output_guard import Staging
+
+    def ctrl_c():
+        os.kill(os.getpid(), signal.SIGINT)
+
+    out = tmp_path / "out"
+    with pytest.raises(KeyboardInterrupt):
+        with Staging() as staging:
+            tmp = staging.make(staging.reserve(out))
+            (tmp / "f").write_text("new")
+            staging.commit([(tmp, out)], check=ctrl_c)
+    assert os.listdir(tmp_path) == []
+
+    real = output_guard.replace_dirs
+    monkeypatch.setattr(output_guard, "replace_dirs", lambda moves: (ctrl_c(), real(moves)))
+    with Staging() as staging:
+        tmp = staging.make(staging.reserve(out))
+        (tmp / "f").write_text("new")
+        staging.commit([(tmp, out)], check=lambda: None)
+    assert os.listdir(tmp_path) == ["out"] and (out / "f").read_text() == "new"
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+def test_a_command_interrupted_after_its_outputs_were_in_place_names_them(tmp_path, capsys):
+    from dssp_data.cli_runner import run_cli
+    from dssp_data.output_guard import Staging
+
+    out = tmp_path / "out"
+
+    def writes_then_is_interrupted():
+        with Staging() as staging:
+            tmp = staging.make(staging.reserve(out))
+            (tmp / "f").write_text("new")
+            staging.commit([(tmp, out)])
+        raise KeyboardInterrupt  # a Ctrl-C while the command prints its summary
+
+    def is_interrupted():
+        raise KeyboardInterrupt
+
+    assert run_cli(writes_then_is_interrupted) == 130
+    assert capsys.readouterr().err.strip() == f"interrupted after writing {out} (complete)"
+    assert (out / "f").read_text() == "new"
+    assert run_cli(is_interrupted) == 130  # an earlier command's outputs are not this one's
+    assert capsys.readouterr().err.strip() == "interrupted"
+
+
 def test_datasets_made_by_dssp_data_are_recognised_with_their_can_logs(tmp_path):
     from dssp_data.output_guard import DATA_DATASET
 
