@@ -149,7 +149,8 @@ def test_db3_repeat_playback_and_colour(tmp_path):
     rng = np.random.default_rng(3)
     colors = [rng.integers(0, 256, (60, 80, 3), dtype=np.uint8) for _ in frames]
     path = record_depth(tmp_path / "c.db3", frames, small, UNIT, colors=colors, pace=False)
-    with RealSenseCamera(file=path, real_time=False, repeat_playback=True, color=True) as cam:
+    # real time: librealsense's non-real-time playback can stall at the loop point (its issue #10312)
+    with RealSenseCamera(file=path, real_time=True, repeat_playback=True, color=True) as cam:
         f = cam.wait_for_frame(timeout=5)
         wait_for(lambda: cam.frames_received > 2 * len(frames), timeout=10, what="the recording looped twice")
         assert not cam.playback_finished
