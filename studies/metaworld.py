@@ -314,7 +314,7 @@ def report_lines(plan: dict, record: Path, shown_record: str | None = None) -> t
         lines += ["", protocol.describe_trained_elsewhere(other, LABELS)]
     names = model_order(plan)
     if not memory:
-        lines += _paper_lines(figures, names, ratio)
+        lines += ["", "## Per difficulty group, beside the paper", "", *group_table(figures, names, ratio)]
     lines += ["", "## Per task", "",
               "| task | model | top-5 (mean ± std over seeds) | per seed | test success % (95 % CI) | Δ vs DSSP | paired test |",
               "|---|---|---|---|---|---|---|"]
@@ -332,10 +332,10 @@ def report_lines(plan: dict, record: Path, shown_record: str | None = None) -> t
     return lines, figures
 
 
-def _paper_lines(figures: dict, names: list[str], ratio: float) -> list[str]:
-    """Per difficulty group: this study's figures beside the paper's table."""
-    lines = ["", "## Per difficulty group, beside the paper", "",
-             "| group (tasks here / paper's) | " + " | ".join(f"{LABELS.get(n, n)} top-5" for n in names) + " | "
+def group_table(figures: dict, names: list[str], ratio: float) -> list[str]:
+    """Per difficulty group: this study's figures beside the paper's table, and the budget (the report's
+    section and the README's ``metaworld`` block)."""
+    lines = ["| group (tasks here / paper's) | " + " | ".join(f"{LABELS.get(n, n)} top-5" for n in names) + " | "
              + " | ".join(f"{LABELS.get(n, n)} test" for n in names) + " | paper DSSP | paper DP3 |",
              "|---|" + "---:|" * (2 * len(names) + 2)]
     for group, g in figures["groups"].items():
@@ -347,6 +347,12 @@ def _paper_lines(figures: dict, names: list[str], ratio: float) -> list[str]:
                   "is the `metaworld` preset, 45 M parameters, and its DP3 is DP3's own size); the paper's figures "
                   "average its 34 tasks, these the tasks run here. No claim beyond this budget."]
     return lines
+
+
+def readme_table(record: Path) -> str:
+    """The README's ``metaworld`` block: :func:`group_table` of the plan the record was made with."""
+    plan = json.loads((Path(record) / "plan.json").read_text())
+    return "\n".join(group_table(figures_of(plan, record), model_order(plan), plan["epochs"] / PAPER_EPOCHS)) + "\n"
 
 
 def write_report(plan: dict, record: Path, report: Path, shown_record: str | None = None) -> Path:

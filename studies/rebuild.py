@@ -16,7 +16,8 @@ What it rebuilds (:data:`SOURCES`):
   (the Quick start's table, from ``reports/demo/results.json``), ``sim_paired`` (the earlier simulation
   study's comparisons with DSSP and their exact paired tests, from ``reports/sim/record``), and the CPU tables
   ``cpu_targets``, ``dp3_paper``, ``dp3_sim``, ``gpu_train_paper`` (rendered by the benchmark scripts' own
-  ``markdown`` from their records in ``reports/cpu/`` and ``reports/gpu/``), ``memory_test`` (the memory study's test-split tables, from its record).
+  ``markdown`` from their records in ``reports/cpu/`` and ``reports/gpu/``), ``memory_test`` (the memory study's test-split tables, from its record), ``metaworld`` (the MetaWorld study's
+  per-group table beside the paper's, from ``reports/metaworld/record`` once it holds a plan).
 
 - ``reports/sampling/``: the sampling study's report (:mod:`studies.sampling`) once its record exists; the
   report there now predates it (and 7-bit int8 weights) and is listed as stale, with the command that
@@ -172,6 +173,8 @@ def readme_blocks(root: Path) -> dict[str, str]:
     demo = json.loads((root / "reports/demo/results.json").read_text())
     blocks = {"demo": results_table(demo["evals"]) + "\n", "sim_paired": sim_paired_table(root / "reports/sim/record"),
               "memory_test": memory_table(root / "reports/memory/record", "test")}
+    if (root / "reports/metaworld/record/plan.json").is_file():
+        blocks["metaworld"] = metaworld.readme_table(root / "reports/metaworld/record")
     for block, (script, record) in BENCHMARK_BLOCKS.items():
         blocks[block] = benchmark(root, script).markdown(json.loads((root / record).read_text())) + "\n"
     return blocks

@@ -215,6 +215,10 @@ def test_the_report_gives_the_papers_metric_and_the_paired_test_split(tmp_path):
     assert "| easy (1 / 21) | 60.0 |" in text and "90.5 ± 2.1" in text and "87.3 ± 2.2" in text
     assert "| button-press | DSSP w/o history | pending |" in text  # never a made-up row
     assert "optimistic" in text and "0.10 of the paper's 1000 epochs" in text
+    (tmp_path / "plan.json").write_text(json.dumps(plan))  # the README's block: the same table, from the record
+    block = study.readme_table(tmp_path)
+    assert block.startswith("| group (tasks here / paper's) |") and "| easy (1 / 21) | 60.0 |" in block
+    assert block.rstrip().endswith("No claim beyond this budget.") and block in text + "\n"
 
 
 @pytest.mark.slow
