@@ -36,6 +36,7 @@ from dssp_sim.mujoco_arm import MujocoPiper
 from dssp_sim.mujoco_camera import MujocoCamera
 from dssp_data.errors import ConfigError
 from dssp_data.output_guard import OutputKind
+from hardware.pacing import latency_stats
 from hardware.safety import SafetyConfig
 
 # Lockstep: inputs are fresh by construction; generous timeouts only catch a stalled bridge.
@@ -320,10 +321,7 @@ def evaluate(model_dir: Path, task: str, n_episodes: int, seed: int = 1000, thre
         env.close()
     if bar is not None:
         bar.close()
-    result.latency_ms = {
-        key: {"p50": float(np.median(v)), "p95": float(np.percentile(v, 95)), "max": float(np.max(v)), "n": len(v)}
-        for key, v in ticks.items() if v
-    }
+    result.latency_ms = {key: latency_stats(v) for key, v in ticks.items() if v}
     result.latency_ms["episode_wall_s_p50"] = float(np.median(wall)) if wall else None
     result.z_rms = recent.rms()
     return result

@@ -12,7 +12,6 @@ starts from the episode's first recorded state and assumes ideal tracking.
 
 from __future__ import annotations
 
-import time
 from collections import Counter
 from collections.abc import Callable
 
@@ -20,6 +19,8 @@ import numpy as np
 
 from dssp_data.replay_buffer import ReplayBufferReader
 from dssp_data.errors import ConfigError, DSSPError
+from hardware.clock import REAL_CLOCK, Clock
+from hardware.pacing import Pacer
 from hardware.robot import ARM_DOF, RobotState, check_rate
 from hardware.piper.limits import piper_description
 from hardware.safety import Safety, SafetyConfig
@@ -31,9 +32,11 @@ FAR_START = 0.3
 def replay_episode(path, episode: int, can: str | None, *, send: bool = False, interface: str = "socketcan",
                    rate_hz: float | None = None, safety_config: SafetyConfig = SafetyConfig(),
                    events: Callable[[str], None] = print, should_stop: Callable[[], bool] = lambda: False,
-                   feedback_timeout: float = 3.0) -> dict:
+                   feedback_timeout: float = 3.0, clock: Clock = REAL_CLOCK) -> dict:
     """Replay ``episode`` of dataset ``path``; returns a summary dict (ticks, commands sent, clips, holds,
-    largest change the safety layer made, final tracking error when sent)."""
+    largest change the safety layer made, final tracking error when sent). ``clock``: the timeline of the pacing,
+    the feedback wait and the safety layer's times (:mod:`hardware.clock`), the one the arms stamp their feedback
+    on."""
     reader = ReplayBufferReader(path)
     ep = reader.episode(episode, extras=False)
     actions = ep.action.astype(np.float64)
@@ -66,11 +69,11 @@ def replay_episode(path, episode: int, can: str | None, *, send: bool = False, i
     try:
         if robot is not None:
             robot.connect()
-            deadline = time.monotonic() + feedback_timeout
+            deadline = clock.now() + feedback_timeout
             while (state := robot.state()) is None:
-                if time.monotonic() > deadline:
+                if clock.now() > deadline:
                     raise DSSPError(f"no feedback from {can} within {feedback_timeout:g} s: check the bus and that the arm is powered")
-                time.sleep(0.01)
+                clock.sleep(0.01)
             start = state.position
             where = "the arm's position"
         else:
@@ -84,13 +87,13 @@ def replay_episode(path, episode: int, can: str | None, *, send: bool = False, i
         if send:
             robot.enable()
         period = 1.0 / float(rate)
-        next_tick = time.monotonic()
+        pacer = Pacer(clock, period)  # a late tick starts the schedule again: no burst of commands to catch up
         last = start.copy()
         for k, action in enumerate(actions):
             if should_stop():
                 stopped = "stop requested"
                 break
-            now = time.monotonic()
+            now = clock.now()
             if robot is not None:
                 state = robot.state()
             else:
@@ -106,15 +109,12 @@ def replay_episode(path, episode: int, can: str | None, *, send: bool = False, i
             if send:
                 robot.command(decision.command)
                 sent += 1
-                next_tick += period
-                delay = next_tick - time.monotonic()
-                if delay > 0:
-                    time.sleep(delay)
-        final = safety.stop(time.monotonic(), stopped or "replay done")
+                pacer.wait()
+        final = safety.stop(clock.now(), stopped or "replay done")
         if send and final.command is not None:  # end in a hold at the last safe command
             robot.command(final.command)
         if send:
-            time.sleep(min(1.0, 5 * period))
+            clock.sleep(min(1.0, 5 * period))
             state = robot.state()
             if state is not None:
                 tracking = float(np.max(np.abs(state.position - last)))

@@ -32,6 +32,7 @@ from dssp_data.recording import RecordingDataset, can_log_dir, can_log_name, par
 from dssp_data.errors import DSSPError
 from hardware.bus_monitor import BusMonitor
 from hardware.clock import REAL_CLOCK, Clock
+from hardware.pacing import Pacer
 from hardware.recorder import Recorder, RecorderNotReady
 
 @dataclass(frozen=True)
@@ -261,7 +262,7 @@ class RecordSession:
         lockstep = self.rig is not None
         clock, wall = self.clock, self.wall
         wall0, sim0 = wall.now(), clock.now()
-        next_tick = clock.now()
+        pacer = Pacer(clock, period, resync=period)  # up to a period late: the samples stay on their grid
         if self.settings.auto:
             self._ready_deadline = clock.now() + self.settings.ready_timeout
         try:
@@ -285,7 +286,7 @@ class RecordSession:
                 if lockstep:
                     self.rig.before_tick()
                 now = clock.now()
-                sample = rec.tick(now, scheduled=None if lockstep else next_tick)
+                sample = rec.tick(now, scheduled=None if lockstep else pacer.next_tick)
                 if lockstep:
                     self.rig.after_tick(period)
                 if self.status is not None:
@@ -296,16 +297,11 @@ class RecordSession:
                         self._auto_end()
                     elif rec.steps >= self.settings.max_steps:
                         self._keep("max steps")
-                next_tick += period
                 if lockstep:
                     if self.settings.pace:
                         wall.sleep(wall0 + (clock.now() - sim0) / self.settings.pace - wall.now())
                 else:
-                    delay = next_tick - clock.now()
-                    if delay > 0:
-                        clock.sleep(delay)
-                    elif -delay > period:  # more than a tick behind: do not try to catch up
-                        next_tick = clock.now()
+                    pacer.wait()
         finally:
             if rec.recording:  # an exception: nothing unconfirmed is kept
                 self._close_logs()

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections import Counter, deque
+from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import ClassVar
@@ -51,6 +51,7 @@ from dssp_data.errors import ConfigError, DSSPError
 from dssp_data.schema import Settings, setting
 from hardware.bus_monitor import BusMonitor, oldest
 from hardware.camera.base import Camera, DepthFrame
+from hardware.pacing import RateMeter, latency_stats
 from hardware.pointcloud import EmptyCloudError, PointCloudConfig, frame_to_cloud
 
 _NAN = float("nan")
@@ -129,13 +130,6 @@ def frame_key(frame: DepthFrame) -> tuple[int, float]:
     return int(frame.frame_number), float(frame.timestamp)
 
 
-def _stats_ms(values: list[float]) -> dict | None:
-    v = np.asarray([x for x in values if math.isfinite(x)], dtype=np.float64)
-    if v.size == 0:
-        return None
-    return {"p50": round(float(np.median(v)), 3), "p95": round(float(np.percentile(v, 95)), 3), "max": round(float(v.max()), 3)}
-
-
 class Recorder:
     """Samples the camera and the arms at each tick and buffers the current episode in memory.
 
@@ -165,7 +159,7 @@ class Recorder:
         self.dof = 7 * len(self.monitors)
         self.recording = False
         self.episode_counts: Counter = Counter()
-        self._tick_times: deque = deque(maxlen=50)
+        self._rate = RateMeter()
         self._cloud_for: tuple[tuple[int, float], np.ndarray] | None = None  # (frame_key, its cloud)
         self._last_frame: tuple[int, float] | None = None
         self._reset_buffers()
@@ -252,14 +246,14 @@ class Recorder:
                 self.views.camera(sample.frame.intrinsics.to_dict(), self.camera_to_base)
             self.views.text(self.views.last_tick + 1, "episode", "episode started")
         self._last_frame = None
-        self._tick_times.clear()
+        self._rate = RateMeter()
         return sample
 
     def tick(self, now: float, scheduled: float | None = None) -> Sample:
         """Sample the streams; while recording, append one step. ``scheduled``: when the tick was due (for
         late-tick detection; None = on time)."""
         sample = self.sample(now)
-        self._tick_times.append(now)
+        self._rate.mark(now)
         if not self.recording:
             return sample
         if scheduled is not None and now - scheduled > self.thresholds.late_tick * self.period:
@@ -309,8 +303,7 @@ class Recorder:
 
     def rate(self) -> float:
         """Measured tick rate (Hz) over the last 50 ticks."""
-        t = self._tick_times
-        return (len(t) - 1) / max(t[-1] - t[0], 1e-9) if len(t) >= 2 else 0.0
+        return self._rate.rate()
 
     def abort(self) -> int:
         """Drop the current episode; returns how many steps it had."""
@@ -363,7 +356,7 @@ class Recorder:
                 problems.append({"kind": name, **summary[name], "what": PROBLEM_TEXT[name]})
         if math.isfinite(rate) and abs(rate - self.rate_hz) > th.rate_tolerance * self.rate_hz:
             problems.append({"kind": "rate", "measured_hz": round(rate, 3), "what": PROBLEM_TEXT["rate"]})
-        ages = {key: _stats_ms(values) for key, values in self._ages.items()}
+        ages = {key: latency_stats(values, digits=3) for key, values in self._ages.items()}
         if not self.needs_leader:
             ages.pop("leader", None)
         return {

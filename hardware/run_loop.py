@@ -28,7 +28,7 @@ whatever the clock.
 from __future__ import annotations
 
 import time
-from collections import Counter, deque
+from collections import Counter
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -41,6 +41,7 @@ from dssp_data.errors import CameraError, ConfigError, DSSPError, NonFiniteObser
 from hardware.robot import Robot, check_rate
 from hardware.camera.base import Camera
 from hardware.clock import REAL_CLOCK, Clock
+from hardware.pacing import Pacer, RateMeter, latency_stats
 from hardware.pointcloud import EmptyCloudError, PointCloudConfig, frame_to_cloud
 from dssp_data.rerun_views import TickViews
 from hardware.run_log import RunLog
@@ -113,14 +114,14 @@ class Runner:
         self.fault: str | None = None
         self.ended_by: str | None = None  # what ended the run, recorded where it ended (None: it has not ended)
         self.disabled = False  # the motors were disabled at the end (SafetyConfig.disable_on_exit)
-        self.overruns = 0
         self.ticks = 0
         self.sent = 0
         self.holds = 0
         self.policy_ticks = 0
         self.event_counts: Counter = Counter()
         self.latencies: dict[str, list[float]] = {"cloud": [], "observe": [], "chunk": [], "tick": []}
-        self._tick_times: deque = deque(maxlen=50)
+        self.pacer = Pacer(clock, self.period)  # resync at once: a late tick starts the schedule again
+        self._rate = RateMeter()
 
     # ----------------------------------------------------------------- lifecycle
     def request_stop(self, why: str) -> None:
@@ -245,7 +246,7 @@ class Runner:
         if self.views is not None:
             self._view(record, frame, cloud, new_chunk)
         self.ticks += 1
-        self._tick_times.append(t0)
+        self._rate.mark(t0)
         return record
 
     def _view(self, record: dict[str, Any], frame, cloud: np.ndarray | None, chunk: np.ndarray | None) -> None:
@@ -283,7 +284,7 @@ class Runner:
         try:
             if self.stop_reason is None:
                 self.start()
-            next_tick = self.clock.now()
+            self.pacer.start()
             while self.fault is None and self.stop_reason is None:
                 if self.settings.max_steps is not None and self.ticks >= self.settings.max_steps:
                     self.ended_by = "max steps"
@@ -291,13 +292,7 @@ class Runner:
                 record = self.tick()
                 if self.status is not None:
                     self.status(self.status_line(record))
-                next_tick += self.period
-                delay = next_tick - self.clock.now()
-                if delay > 0:
-                    self.clock.sleep(delay)
-                else:
-                    self.overruns += 1
-                    next_tick = self.clock.now()
+                self.pacer.wait()
         except BaseException as exc:
             self.ended_by = self.ended_by or describe_ending(exc)
             raise
@@ -324,10 +319,14 @@ class Runner:
             except DSSPError as exc:
                 self.fault = self.fault or f"disable failed: {exc}"
 
+    @property
+    def overruns(self) -> int:
+        """Ticks that ended after the next one was due (:class:`hardware.pacing.Pacer`)."""
+        return self.pacer.overruns
+
     def rate(self) -> float:
-        if len(self._tick_times) < 2:
-            return 0.0
-        return (len(self._tick_times) - 1) / max(self._tick_times[-1] - self._tick_times[0], 1e-9)
+        """Measured tick rate (Hz) over the last 50 ticks."""
+        return self._rate.rate()
 
     def status_line(self, record: dict[str, Any]) -> str:
         def p50(key):
@@ -343,12 +342,6 @@ class Runner:
 
     def summary(self, overruns: int | None = None) -> dict[str, Any]:
         """The run in numbers; ``ended_by``: what ended it (None while it has not ended)."""
-        def stats(values):
-            if not values:
-                return None
-            v = np.asarray(values)
-            return {"p50": float(np.median(v)), "p95": float(np.percentile(v, 95)), "max": float(v.max()), "n": int(v.size)}
-
         return {
             "ticks": self.ticks,
             "policy_ticks": self.policy_ticks,
@@ -362,7 +355,7 @@ class Runner:
             "fault": self.fault,
             "disabled": self.disabled,
             "events": dict(self.event_counts),
-            "latency_ms": {k: stats(v) for k, v in self.latencies.items()},
+            "latency_ms": {k: latency_stats(v) for k, v in self.latencies.items()},
             "safety_events": [e.to_dict() for e in (self.safety.events if self.safety else [])],
         }
 
