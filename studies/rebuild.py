@@ -19,9 +19,8 @@ What it rebuilds (:data:`SOURCES`):
   ``markdown`` from their records in ``reports/cpu/`` and ``reports/gpu/``), ``memory_test`` (the memory study's test-split tables, from its record), ``metaworld`` (the MetaWorld study's
   per-group table beside the paper's, from ``reports/metaworld/record`` once it holds a plan).
 
-- ``reports/sampling/``: the sampling study's report (:mod:`studies.sampling`) once its record exists; the
-  report there now predates it (and 7-bit int8 weights) and is listed as stale, with the command that
-  rebuilds it.
+- ``reports/sampling/``: the sampling study's report (:mod:`studies.sampling`), and the README's ``sampling``
+  block.
 """
 
 from __future__ import annotations
@@ -46,9 +45,6 @@ from studies.demo import results_table
 from studies.stats import describe_p, paired_exact_test
 
 BLOCK = re.compile(r"(<!-- figures: (?P<name>[a-z0-9_]+) -->\n)(?P<body>.*?)(<!-- /figures -->)", re.S)
-STALE = {"reports/sampling": "python -m studies.sampling (the report there has no record, and its int8 cells predate "
-                             "7-bit int8 weights)"}
-"""Report folders whose committed report has no record yet: what rebuilds them (listed until their record exists)."""
 
 
 def _memory(root: Path, out: Path) -> list[str]:
@@ -81,8 +77,6 @@ def _distill(root: Path, out: Path) -> list[str]:
 
 def _sampling(root: Path, out: Path) -> list[str]:
     record = root / "reports/sampling" / sampling.RECORD_DIR
-    if not (record / "evals").is_dir():
-        return []  # listed as stale
     md = sampling.write_report(sampling.PLAN, record, out, shown_record="reports/sampling/record")
     return [md.name, md.with_suffix(".json").name]
 
@@ -172,7 +166,8 @@ def readme_blocks(root: Path) -> dict[str, str]:
     """NAME -> the README figure block's body, rebuilt from its record."""
     demo = json.loads((root / "reports/demo/results.json").read_text())
     blocks = {"demo": results_table(demo["evals"]) + "\n", "sim_paired": sim_paired_table(root / "reports/sim/record"),
-              "memory_test": memory_table(root / "reports/memory/record", "test")}
+              "memory_test": memory_table(root / "reports/memory/record", "test"),
+              "sampling": sampling.readme_table(root / "reports/sampling" / sampling.RECORD_DIR)}
     if (root / "reports/metaworld/record/plan.json").is_file():
         blocks["metaworld"] = metaworld.readme_table(root / "reports/metaworld/record")
     for block, (script, record) in BENCHMARK_BLOCKS.items():
@@ -244,9 +239,6 @@ def main(argv: list[str] | None = None) -> int:
 
     def _main() -> int:
         changed = rebuild(args.root, args.check)
-        for folder, command in STALE.items():
-            if not (args.root / folder / "record").is_dir():
-                print(f"stale: {folder}: rebuild with {command}")
         if args.check and changed:
             print("differs from its record: " + ", ".join(changed) + "; run python -m studies.rebuild")
             return 1

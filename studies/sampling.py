@@ -167,6 +167,22 @@ def write_report(plan: dict, record: Path, report: Path, shown_record: str | Non
     return md
 
 
+def readme_table(record: Path, plan: dict = PLAN) -> str:
+    """The README's ``sampling`` block: each task's success per precision at the plan's first K, and which
+    precisions are eligible as the runtime's default (:func:`eligible_precisions`)."""
+    table = summarise(recorded(plan, record), plan)
+    k, precisions = plan["denoise_steps"][0], plan["precisions"]
+    lines = [f"| task (K = {k}, {plan['episodes']} validation episodes) | " + " | ".join(precisions) + " |",
+             "|---|" + "---:|" * len(precisions)]
+    for task, per_precision in table.items():
+        cells = [per_precision.get(p, {}).get(k) for p in precisions]
+        lines.append(f"| {task} | " + " | ".join("pending" if c is None else pct(c["k"], c["n"]).split(" (")[0] for c in cells) + " |")
+    verdict = eligible_precisions(table, plan)["per_precision"]
+    lines += ["", "Eligible as the default precision (inside fp32's 95 % interval on every task): "
+              + ", ".join(f"{p} {'yes' if v['inside_fp32_interval'] else 'no'}" for p, v in verdict.items() if p != "fp32") + "."]
+    return "\n".join(lines) + "\n"
+
+
 def plot(table: dict, plan: dict, path: Path) -> None:
     import matplotlib  # here, not at the top: the study's command starts without it
 
