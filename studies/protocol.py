@@ -125,6 +125,7 @@ def freeze_plan(record_dir: Path, plan: dict, tested: Iterable[str] = (), defini
         earlier = [*frozen.get("earlier", []), {"task_definition": frozen.get("task_definition"), "tested": sorted(tested)}]
         atomic_write_text(path, json.dumps({"plan": digest, "task_definition": current, "earlier": earlier}, indent=2) + "\n")
         return digest
+    path.parent.mkdir(parents=True, exist_ok=True)  # a plan may be frozen before its first run
     atomic_write_text(path, json.dumps({"plan": digest, "task_definition": current}, indent=2) + "\n")
     return digest
 

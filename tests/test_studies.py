@@ -144,6 +144,14 @@ def test_the_test_split_runs_only_the_frozen_plan(tmp_path):
         protocol.freeze_plan(tmp_path, tuned)
 
 
+def test_a_plan_fixed_before_any_run_can_be_frozen_into_a_new_record_folder(tmp_path):
+    record = tmp_path / "reports" / "study" / "record"  # nothing there yet
+    plan = {"tasks": ["reach"], "seeds": [0]}
+    digest = protocol.freeze_plan(record, plan, definition="ab" * 8)
+    assert json.loads((record / protocol.FROZEN_NAME).read_text()) == {"plan": digest, "task_definition": "ab" * 8}
+    protocol.check_frozen(record, plan, definition="ab" * 8)
+
+
 def test_provenance_names_the_task_the_code_and_the_machine():
     prov = protocol.provenance({"a": 1})
     assert len(prov["task_definition"]) == 16 and prov["plan"] == protocol.plan_hash({"a": 1})
