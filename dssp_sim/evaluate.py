@@ -156,6 +156,7 @@ def run_episode(policy, env, seed: int, cloud_config, frames: list | None = None
     from hardware.piper.arm import PiperArm
     from hardware.piper.piper_robot import PiperRobot
     from hardware.run_loop import LoopSettings, Runner
+    from hardware.subscribers.rerun_ticks import RerunTicks
 
     env.reset(seed=seed)
     channel = f"dssp-eval-{uuid.uuid4().hex[:8]}"
@@ -177,11 +178,11 @@ def run_episode(policy, env, seed: int, cloud_config, frames: list | None = None
             pumper.start()
             try:
                 camera.capture()
+                subscribers = [RerunTicks(views)] if views is not None else []
                 runner = Runner(policy, camera, robot, cloud_config, camera.camera_to_base, EVAL_SAFETY,
-                                LoopSettings(rate_hz=env.control_rate_hz, seed=seed), views=views,
-                                view_tick=views.last_tick + 1 if views is not None else 0)
+                                LoopSettings(rate_hz=env.control_rate_hz, seed=seed), subscribers=subscribers)
                 if views is not None:
-                    views.text(runner.view_tick, "episode", f"{env.task.name} seed {seed}")
+                    views.text(subscribers[0].next_tick, "episode", f"{env.task.name} seed {seed}")
                 runner.start()
             finally:
                 stop_pump.set()
@@ -197,6 +198,7 @@ def run_episode(policy, env, seed: int, cloud_config, frames: list | None = None
                     frames.append(camera.latest().depth.copy())
                 status = env.status()
             runner.finish("episode over")
+            runner.close()
     finally:
         arm.stop()
     chunk = runner.latencies["chunk"]

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from dssp_data.files import atomic_save_npy, atomic_write_text
+from hardware.subscribers import Subscriber, Tick
 
 
 def _jsonable(value):
@@ -29,7 +30,10 @@ def _jsonable(value):
     raise TypeError(f"not JSON serialisable: {type(value).__name__}")
 
 
-class RunLog:
+class RunLog(Subscriber):
+    """The episode log (module docstring) as the control loop's subscriber: each tick appended, the summary
+    written at the end."""
+
     def __init__(self, directory: Path, settings: dict[str, Any], part_size: int = 100):
         self.dir = Path(directory)
         (self.dir / "clouds").mkdir(parents=True, exist_ok=True)
@@ -52,6 +56,12 @@ class RunLog:
         self.ticks += 1
         if len(self._clouds) >= self.part_size:
             self._flush_clouds()
+
+    def on_tick(self, tick: Tick) -> None:
+        self.tick(tick.record, tick.cloud)
+
+    def on_end(self, summary: dict[str, Any]) -> None:
+        self.close(summary)
 
     def _flush_clouds(self) -> None:
         if self._clouds:

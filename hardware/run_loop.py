@@ -14,8 +14,8 @@ Each tick:
    alone; a chunk the runtime refuses (NaN/inf, an action outside the action range) is no action: hold, the
    tick undone (``dssp_deploy.ranges``);
 3. the safety layer turns the action into a command (limits, per-tick step; a deadline miss holds);
-4. send it (not with ``dry_run``), log the tick (and queue its Rerun views: ``views``, never blocking), sleep to
-   the next tick.
+4. send it (not with ``dry_run``), hand the tick to the subscribers (:mod:`hardware.subscribers`: the episode
+   log, the status line, Rerun views, …), sleep to the next tick (:class:`hardware.pacing.Pacer`).
 A fault (arm error or e-stop, a send failure, a runtime error) ends the loop in a hold: nothing is sent
 after it. Shapes: cloud (P, C) float32; state, action and command (dof,) in policy units.
 
@@ -30,7 +30,8 @@ from __future__ import annotations
 import time
 from collections import Counter
 from dataclasses import dataclass
-from typing import Any, Callable
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -43,9 +44,8 @@ from hardware.camera.base import Camera
 from hardware.clock import REAL_CLOCK, Clock
 from hardware.pacing import Pacer, RateMeter, latency_stats
 from hardware.pointcloud import EmptyCloudError, PointCloudConfig, frame_to_cloud
-from dssp_data.rerun_views import TickViews
-from hardware.run_log import RunLog
 from hardware.safety import Safety, SafetyConfig, SafetyViolation
+from hardware.subscribers import Subscriber, Tick
 
 
 @dataclass(frozen=True)
@@ -87,16 +87,14 @@ class Runner:
         safety_config: SafetyConfig,
         settings: LoopSettings,
         limits: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
-        log: RunLog | None = None,
-        status: Callable[[str], None] | None = None,
         clock: Clock = REAL_CLOCK,
-        views: TickViews | None = None,
-        view_tick: int = 0,
+        subscribers: Sequence[Subscriber] = (),
     ):
         """``limits``: (lower (dof,), upper (dof,), gripper mask (dof,)) in policy units; default: the robot's own
         (``robot.description``), narrower ones only for a test or a cautious first run. ``clock``: the
-        timeline of the camera's and the arms' timestamps (:mod:`hardware.clock`). ``views``: Rerun views of each
-        tick (:mod:`dssp_data.rerun_views`; the caller closes them), on their timeline from ``view_tick`` on."""
+        timeline of the camera's and the arms' timestamps (:mod:`hardware.clock`). ``subscribers``: what else
+        happens on each tick — the episode log, the status line, Rerun views, … (:mod:`hardware.subscribers`),
+        told in this order; :meth:`close` gives them the summary."""
         check_fits(policy, robot, cloud_config)
         self.policy, self.camera, self.robot = policy, camera, robot
         self.cloud_config, self.camera_to_base = cloud_config, np.asarray(camera_to_base, np.float64)
@@ -104,8 +102,8 @@ class Runner:
             described = robot.description
             limits = (described.lower, described.upper, described.gripper)
         self.safety_config, self.settings, self.limits = safety_config, settings, limits
-        self.log, self.status, self.clock, self.views = log, status, clock, views
-        self.view_tick = view_tick  # the views' timeline: continues over episodes (evaluations)
+        self.clock, self.subscribers = clock, list(subscribers)
+        self._closed = False
         self.period = 1.0 / settings.rate_hz
         self.control = ChunkedControl(policy, rate_hz=settings.rate_hz, prefetch=settings.prefetch, seed=settings.seed,
                                       chunk_ms_estimate=settings.chunk_ms)
@@ -144,12 +142,11 @@ class Runner:
             )
         lower, upper, gripper = self.limits
         self.safety = Safety(self.safety_config, lower, upper, gripper, state.position)
-        if self.views is not None:
-            frame = self.camera.latest()
-            self.views.camera(frame.intrinsics.to_dict(), self.camera_to_base)
         if not self.settings.dry_run:
             self.robot.enable()
         self.control.reset()
+        for subscriber in self.subscribers:
+            subscriber.on_start(self)
 
     def _wait(self, get: Callable[[], Any], deadline: float) -> Any:
         """The first ``get()`` that is not None, polled on the clock until ``deadline`` or a stop request; else None."""
@@ -241,23 +238,12 @@ class Runner:
         record["tick_ms"] = 1e3 * (time.perf_counter() - w0)
         self.latencies["tick"].append(record["tick_ms"])
         self.holds += bool(record["held"])
-        if self.log is not None:
-            self.log.tick(record, cloud)
-        if self.views is not None:
-            self._view(record, frame, cloud, new_chunk)
         self.ticks += 1
         self._rate.mark(t0)
+        tick = Tick(record, frame, cloud, new_chunk, self)
+        for subscriber in self.subscribers:
+            subscriber.on_tick(tick)
         return record
-
-    def _view(self, record: dict[str, Any], frame, cloud: np.ndarray | None, chunk: np.ndarray | None) -> None:
-        """Queue the tick's Rerun views (references to this tick's arrays; the loop makes new ones every tick)."""
-        events = [f"{e['kind']}: {e['detail']}" for e in record.get("safety", []) if e["kind"] != "clip"]
-        events += record.get("events", [])
-        self.views.tick(
-            self.view_tick, depth=frame.depth if frame is not None else None, depth_unit=frame.depth_unit if frame is not None else None,
-            cloud=cloud, state=record["state"], command=record["command"], chunk=chunk, held=record["held"], events=events,
-            latency_ms={k: record.get(f"{k}_ms") for k in ("cloud", "observe", "chunk", "tick")})
-        self.view_tick += 1
 
     def _send(self, command: np.ndarray, record: dict[str, Any]) -> None:
         record["command"] = command
@@ -289,9 +275,7 @@ class Runner:
                 if self.settings.max_steps is not None and self.ticks >= self.settings.max_steps:
                     self.ended_by = "max steps"
                     break
-                record = self.tick()
-                if self.status is not None:
-                    self.status(self.status_line(record))
+                self.tick()
                 self.pacer.wait()
         except BaseException as exc:
             self.ended_by = self.ended_by or describe_ending(exc)
@@ -328,17 +312,15 @@ class Runner:
         """Measured tick rate (Hz) over the last 50 ticks."""
         return self._rate.rate()
 
-    def status_line(self, record: dict[str, Any]) -> str:
-        def p50(key):
-            values = self.latencies[key][-50:]
-            return f"{np.median(values):.1f}" if values else "-"
-
-        events = " ".join(f"{k}={v}" for k, v in sorted(self.event_counts.items())) or "none"
-        return (
-            f"tick {self.ticks:5d}  {self.rate():5.1f} Hz  cloud {p50('cloud')} ms  observe {p50('observe')} ms  "
-            f"chunk {p50('chunk')} ms  tick {p50('tick')} ms  holds {self.holds}  events: {events}"
-            + ("  [dry run]" if self.settings.dry_run else "")
-        )
+    def close(self) -> dict[str, Any]:
+        """Give every subscriber the summary (once; later calls only return it): after :meth:`run`, or after a
+        start that failed. Returns the summary."""
+        summary = self.summary()
+        if not self._closed:
+            self._closed = True
+            for subscriber in self.subscribers:
+                subscriber.on_end(summary)
+        return summary
 
     def summary(self, overruns: int | None = None) -> dict[str, Any]:
         """The run in numbers; ``ended_by``: what ended it (None while it has not ended)."""

@@ -8,6 +8,7 @@ machine. The ``dssp-run`` tests run the command itself, whose simulated devices 
 time, and assert nothing that depends on how fast the machine is.
 """
 
+import csv
 import dataclasses
 import json
 import os
@@ -37,6 +38,7 @@ from hardware.robot import Robot
 from hardware.run_log import RunLog, read_clouds, read_ticks
 from hardware.run_loop import LoopSettings, Runner
 from hardware.safety import SafetyConfig
+from hardware.subscribers import Subscriber
 
 LIMITS = JointLimits.piper()
 GRIPPER = np.arange(7) == 6
@@ -79,7 +81,7 @@ def test_dssp_run_on_the_embedded_simulation(arm_export, tmp_path, capsys):
     inputs are commanded every tick."""
     log_dir = tmp_path / "log"
     code = run_main(["--model", str(arm_export), "--camera", "tabletop", "--can", "sim", "--max-steps", "60",
-                     "--log-dir", str(log_dir), "--seed", "0", "--threads", "1", "--quiet"])
+                     "--log-dir", str(log_dir), "--seed", "0", "--threads", "1", "--quiet", "--subscribe", "csv"])
     out = capsys.readouterr().out
     assert code == 0, out
     assert "ticks 60" in out and "ended by: max steps" in out
@@ -98,6 +100,24 @@ def test_dssp_run_on_the_embedded_simulation(arm_export, tmp_path, capsys):
     assert len(commands) == len(logged) + 1
     assert np.allclose(commands[: len(logged)], logged, atol=WIRE)
     assert_within_limits(commands, np.where(GRIPPER, SafetyConfig().max_gripper_step, SafetyConfig().max_joint_step))
+    # the CSV subscriber (--subscribe csv) saw the same ticks the episode log holds
+    with open(log_dir / "ticks.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert [int(r["tick"]) for r in rows] == list(range(60))
+    assert [int(r["held"]) for r in rows] == [int(t["held"]) for t in ticks]
+    for row, t in zip(rows, ticks):
+        if t["command"] is None:
+            assert row["command_0"] == ""
+        else:
+            assert np.allclose([float(row[f"command_{i}"]) for i in range(7)], t["command"], atol=1e-6)
+        assert (row["chunk_ms"] == "") == (t.get("chunk_ms") is None)
+
+
+def test_an_unknown_subscriber_is_refused_before_anything_opens(arm_export, tmp_path, capsys):
+    code = run_main(["--model", str(arm_export), "--log-dir", str(tmp_path / "log"), "--subscribe", "nope"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and err == ["error: --subscribe nope: no such subscriber; choose from csv"]
+    assert not (tmp_path / "log").exists()
 
 
 def test_two_arms_as_one_14_value_robot(dual_arm_export, tmp_path, capsys):
@@ -281,7 +301,7 @@ def rig(arm_export, tmp_path, request):
         with pytest.warns(UserWarning, match="20 Hz"):  # the model was trained at 50 Hz
             runner = Runner(policy, camera, robot, PointCloudConfig(n_points=64), camera.camera_to_base,
                             getattr(request, "param", CAMERA_SAFETY), LoopSettings(rate_hz=RATE, seed=0),
-                            (LIMITS.lower, LIMITS.upper, GRIPPER), log=RunLog(tmp_path / "log", {}), clock=clock)
+                            (LIMITS.lower, LIMITS.upper, GRIPPER), clock=clock, subscribers=[RunLog(tmp_path / "log", {})])
         robot.step(0.0)
         runner.start()
         clock.steps = [robot.step, camera.step]
@@ -295,7 +315,7 @@ def rig(arm_export, tmp_path, request):
 
         yield runner, robot, camera, ticks, clock
         runner.finish("test over")
-    runner.log.close(runner.summary())
+    runner.close()
     assert_within_limits(sent_commands(blf), runner.safety.max_step)
 
 
@@ -357,6 +377,51 @@ def test_arm_error_stops_commanding(rig):
     assert runner.sent == sent_before
 
 
+class Seen(Subscriber):
+    """What a subscriber is told, in order."""
+
+    def __init__(self):
+        self.calls = []
+
+    def on_start(self, loop):
+        self.calls.append(("start", loop.ticks, loop.safety is not None))
+
+    def on_tick(self, tick):
+        self.calls.append(("tick", tick))
+
+    def on_end(self, summary):
+        self.calls.append(("end", summary))
+
+
+def test_subscribers_see_the_start_every_tick_after_its_command_and_the_end_once(rig):
+    runner, robot, camera, ticks, clock = rig
+    seen = Seen()
+    runner.subscribers.append(seen)
+    records = ticks(5)
+    got = [c[1] for c in seen.calls if c[0] == "tick"]
+    assert [t.record for t in got] == records and [t.record["tick"] for t in got] == list(range(5))
+    assert all(t.loop is runner for t in got)
+    commanded = [t for t in got if t.record["command"] is not None]
+    assert commanded  # each was sent before the subscriber heard of it
+    assert all(t.cloud is None or t.cloud.shape == (64, 3) for t in got)
+    assert any(t.chunk is not None for t in got) and all(t.chunk is None or t.chunk.ndim == 2 for t in got)
+    runner.finish("test over")
+    first = runner.close()
+    assert runner.close() == first  # told once
+    ends = [c[1] for c in seen.calls if c[0] == "end"]
+    assert len(ends) == 1 and ends[0]["ended_by"] == "test over" and ends[0]["ticks"] == 5
+
+
+def test_the_status_line_counts_what_the_loop_counts(rig):
+    from hardware.subscribers.status_line import StatusLine
+
+    runner, robot, camera, ticks, clock = rig
+    lines = []
+    runner.subscribers.append(StatusLine(lines.append))
+    ticks(3)
+    assert len(lines) == 3 and lines[-1].startswith("tick     3") and f"holds {runner.holds}" in lines[-1]
+
+
 def test_the_loop_keeps_its_period_on_its_clock(rig):
     """run() sleeps to each next tick on the runner's clock: ticks one period apart; a tick that outlasts
     its period is an overrun, and the schedule restarts from it rather than catching up."""
@@ -364,7 +429,13 @@ def test_the_loop_keeps_its_period_on_its_clock(rig):
     records = []
     tick = runner.tick
     runner.tick = lambda: records.append(tick()) or records[-1]
-    runner.status = lambda line: clock.advance(1.5 * PERIOD) if len(records) == 4 else None  # the 4th tick is slow
+
+    class Slow(Subscriber):  # the 4th tick is slow
+        def on_tick(self, t):
+            if t.record["tick"] == 3:
+                clock.advance(1.5 * PERIOD)
+
+    runner.subscribers.append(Slow())
     runner.settings = dataclasses.replace(runner.settings, max_steps=10)
     summary = runner.run()
     gaps = np.diff([r["time"] for r in records]) / PERIOD

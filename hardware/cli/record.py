@@ -180,7 +180,7 @@ class Console:
     """Event lines on stdout (one per event, at once) and the live status line on stderr."""
 
     def __init__(self, quiet: bool):
-        from hardware.cli.run import StatusPrinter
+        from hardware.subscribers.status_line import StatusPrinter
 
         self.status = None if quiet else StatusPrinter()
 

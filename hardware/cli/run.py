@@ -69,32 +69,13 @@ def parse_args(argv):
                    help="run although FIELD of the setup differs from the model's training data (e.g. pointcloud.crop_min, "
                         "control_rate_hz); written to the log; repeatable")
     p.add_argument("--quiet", action="store_true", help="no live status line")
+    p.add_argument("--subscribe", action="append", default=[], metavar="NAME",
+                   help="also hand every tick to the subscriber NAME (hardware.subscribers.REGISTRY: csv = "
+                        "LOG_DIR/ticks.csv); repeatable")
     from dssp_data.rerun_views import add_rerun_flags
 
     add_rerun_flags(p)
     return p.parse_args(argv)
-
-
-class StatusPrinter:
-    """The live one-line status: rewritten in place on a terminal, one line a second otherwise."""
-
-    def __init__(self, stream=None):
-        stream = sys.stderr if stream is None else stream  # looked up now: the stream the stop request watches
-        self.stream, self.tty, self.last = stream, stream.isatty(), 0.0
-
-    def __call__(self, line: str) -> None:
-        now = time.monotonic()
-        if self.tty:
-            self.stream.write("\r" + line[:200] + "\x1b[K")
-            self.stream.flush()
-        elif now - self.last >= 1.0:
-            self.stream.write(line + "\n")
-            self.stream.flush()
-            self.last = now
-
-    def close(self) -> None:
-        if self.tty:
-            self.stream.write("\n")
 
 
 def check_args(args) -> None:
@@ -104,6 +85,9 @@ def check_args(args) -> None:
     from hardware.camera import check_camera_spec
 
     check_camera_spec(args.camera, args.serial)
+    from hardware.subscribers import check_subscribers
+
+    check_subscribers(args.subscribe)
     if args.rate is not None:
         check_rate(args.rate)
     if args.max_steps is not None and args.max_steps < 1:
@@ -202,6 +186,9 @@ def _run(args, stops: Stops) -> int:
     from hardware.pointcloud import PointCloudConfig, load_extrinsics
     from dssp_data.rerun_views import check_views, open_views
     from hardware.run_log import RunLog
+    from hardware.subscribers import open_subscribers
+    from hardware.subscribers.rerun_ticks import RerunTicks
+    from hardware.subscribers.status_line import StatusLine
     from hardware.run_loop import LoopSettings, Runner, check_fits, describe_ending
     from hardware.safety import SafetyConfig
 
@@ -262,7 +249,6 @@ def _run(args, stops: Stops) -> int:
         recorders = [] if args.no_can_log else [
             BusRecorder(arm.channel, arm.interface, log_dir / f"can_{arm.channel}.blf", **arm.bus_options) for arm in robot.arms
         ]
-        status = None if args.quiet else StatusPrinter()
         log = RunLog(log_dir, {
             "model": str(args.model), "camera": args.camera, "can": args.can, "robot": described.to_dict(),
             "rate_hz": rate, "dry_run": args.dry_run,
@@ -270,8 +256,10 @@ def _run(args, stops: Stops) -> int:
             "manifest": {k: policy.manifest[k] for k in ("denoise_steps", "control_rate_hz") if k in policy.manifest},
             "observation": trained.to_manifest(), "allowed_mismatches": overrides,
         })
+        subscribers = [log, *([] if args.quiet else [StatusLine()]), *([RerunTicks(views)] if views is not None else []),
+                       *open_subscribers(args.subscribe, log_dir)]
         runner = Runner(policy, camera, robot, cloud_config, camera_to_base, safety_config, settings,
-                        log=log, status=status, views=views)  # the limits: the robot's own
+                        subscribers=subscribers)  # the limits: the robot's own
         stops.during(runner.request_stop)  # a stop that came meanwhile, or any later: the runner's final hold
         try:
             with contextlib.ExitStack() as devices:
@@ -279,18 +267,14 @@ def _run(args, stops: Stops) -> int:
                 devices.enter_context(robot)  # connect: simulators start first, so the recorders find their channels
                 for recorder in recorders:
                     devices.enter_context(recorder)
-                try:
-                    summary = runner.run()
-                finally:
-                    if status is not None:
-                        status.close()
+                summary = runner.run()
         except BaseException as exc:
             if runner.ended_by is None:  # a device failed to open: the run never started, its reason is this error
                 runner.finish(describe_ending(exc))
             raise
         finally:
             stops.during(None)
-            log.close(runner.summary())  # every ending writes the summary, with what ended the run
+            runner.close()  # every ending gives the subscribers the summary (the log's), with what ended the run
     print_summary(summary, log_dir)
     if runner.safety is None and summary["ended_by"] == stops.reason:
         print(f"stopped by {stops.reason} during start-up; no arm was enabled, nothing was sent", file=sys.stderr)
