@@ -134,30 +134,7 @@ def one_error_line(stderr: str) -> str:
     return lines[0]
 
 
-ARM_HOME = (0.0, 0.6, -0.6, 0.0, 0.4, 0.0, 0.8)  # one Piper: J1..J6 rad, gripper opening 0..1
-
-
-def write_arm_dataset(path, n_episodes: int = 4, n_arms: int = 1, steps: int = 30, n_points: int = 64, seed: int = 0):
-    """Small demonstrations in the robot's joint space (7 values per arm): from rest (all zeros, the simulated
-    arm's power-on pose) a slow reach to home and past it, clouds spread over the default crop box — so the
-    observations of the simulated rig lie inside what the model was trained on (the runtime refuses others)."""
-    import numpy as np
-
-    from dssp_data.observation import PointCloudConfig
-    from dssp_data.replay_buffer import Episode, write_replay_buffer
-
-    rng = np.random.default_rng(seed)
-    home = np.tile(np.array(ARM_HOME), n_arms)
-    crop = PointCloudConfig()
-    episodes = []
-    for _ in range(n_episodes):
-        offset = rng.uniform(-0.15, 0.15, home.shape)
-        s = np.linspace(0, 1, steps + 1)[:, None]
-        joints = (np.minimum(1.0, 2 * s) * home + np.sin(np.pi * s) * offset).astype(np.float32)
-        cloud = rng.uniform(crop.crop_min, crop.crop_max, (steps, n_points, 3)).astype(np.float32)
-        episodes.append(Episode(point_cloud=cloud, state=joints[:-1], action=joints[1:]))
-    write_replay_buffer(path, episodes, attrs={"control_rate_hz": 50.0, "task": "reach"})
-    return path
+from dssp_train.data.rig_reach import write_rig_reach as write_arm_dataset  # noqa: E402
 
 
 def _arm_export(tmp_path_factory, request, n_arms: int):
