@@ -180,6 +180,7 @@ BENCHMARK_BLOCKS = {
     "dp3_paper": ("dp3_comparison", "reports/cpu/dp3_comparison_paper.json"),
     "dp3_sim": ("dp3_comparison", "reports/cpu/dp3_comparison_sim.json"),
     "gpu_train_paper": ("train_step_time", "reports/gpu/train_step_time_paper_h200.json"),
+    "loop_overhead": ("loop_overhead", "reports/cpu/loop_overhead.json"),
 }
 """README block -> (the benchmark script whose ``markdown`` renders it, its committed record)."""
 
