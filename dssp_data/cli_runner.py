@@ -84,6 +84,9 @@ def _settle_after_interrupt() -> None:
 _STDLIB = os.path.dirname(threading.__file__)
 _UNSAFE = tuple(os.path.join(_STDLIB, name) for name in ("threading.py", "queue.py", "concurrent" + os.sep,
                                                          "asyncio" + os.sep))
+# An exception raised inside a finalizer (``__del__``, a weakref callback, which the garbage collector may run
+# between any two bytecodes) is printed as "Exception ignored in ..." and dropped: that Ctrl-C would be lost.
+_FINALIZERS = tuple(os.path.join(_STDLIB, name) for name in ("weakref.py", "_weakrefset.py"))
 RETRY_S = 0.01     # how often a held-back Ctrl-C looks again for a safe point
 MAX_HOLD_S = 5.0   # a Ctrl-C held back longer than this is raised wherever the main thread is
 
@@ -99,12 +102,24 @@ def in_thread_machinery(frame) -> bool:
     return frame is not None and frame.f_code.co_filename.startswith(_UNSAFE)
 
 
+def in_a_finalizer(frame) -> bool:
+    """True while ``frame`` or a caller of it is a finalizer (a ``__del__``, or the standard library's weakref
+    callbacks: WeakSet, the weak dictionaries, ``weakref.finalize``), where Python ignores an exception raised
+    instead of passing it on."""
+    while frame is not None:
+        if frame.f_code.co_name == "__del__" or frame.f_code.co_filename.startswith(_FINALIZERS):
+            return True
+        frame = frame.f_back
+    return False
+
+
 @contextlib.contextmanager
 def interrupts_at_safe_points(clock: Callable[[], float] = time.monotonic) -> Iterator[None]:
     """Inside the block, Ctrl-C (SIGINT) raises KeyboardInterrupt as usual, but never inside the standard
-    library's locks, queues and futures (:func:`in_thread_machinery`): there it is held back and raised a few
-    milliseconds later, once the main thread is elsewhere (at most :data:`MAX_HOLD_S` later). Only in the main
-    thread and where SIGINT has Python's default handler; elsewhere a no-op."""
+    library's locks, queues and futures (:func:`in_thread_machinery`) nor inside a finalizer, which would drop
+    it (:func:`in_a_finalizer`): there it is held back and raised a few milliseconds later, once the main
+    thread is elsewhere (at most :data:`MAX_HOLD_S` later). Only in the main thread and where SIGINT has
+    Python's default handler; elsewhere a no-op."""
     if (threading.current_thread() is not threading.main_thread()
             or signal.getsignal(signal.SIGINT) is not signal.default_int_handler):
         yield
@@ -130,7 +145,8 @@ def interrupts_at_safe_points(clock: Callable[[], float] = time.monotonic) -> It
             if from_retry and held["since"] is None:
                 return  # a retry asked for before the held Ctrl-C was raised: nothing left to raise
             since = held["since"]
-            if in_thread_machinery(frame) and (since is None or clock() - since < MAX_HOLD_S):
+            unsafe = in_thread_machinery(frame) or in_a_finalizer(frame)
+            if unsafe and (since is None or clock() - since < MAX_HOLD_S):
                 if since is None:
                     held["since"] = clock()
                     held["thread"] = threading.Thread(target=retry, name="ctrl-c-retry", daemon=True)

@@ -110,3 +110,38 @@ def test_a_command_with_its_own_stop_handling_takes_sigint_over():
         return 0
 
     assert run_cli(command) == 0 and seen == [True]
+
+
+def test_a_ctrl_c_inside_a_finalizer_is_held_back_not_lost():
+    """The garbage collector may run a ``__del__`` or a weakref callback between any two bytecodes; a
+    KeyboardInterrupt raised there is printed as "Exception ignored" and dropped, so the Ctrl-C waits it out."""
+    import gc
+    import weakref
+
+    from dssp_data.cli_runner import in_a_finalizer
+
+    seen = []
+
+    class Dropped:
+        def __del__(self):
+            seen.append(in_a_finalizer(sys._getframe()))
+            signal.getsignal(signal.SIGINT)(signal.SIGINT, sys._getframe())  # held back: nothing raised here
+            seen.append("returned")
+
+    with pytest.raises(KeyboardInterrupt):  # the held Ctrl-C, raised once the finalizer has returned
+        with interrupts_at_safe_points():
+            obj = Dropped()
+            del obj  # its last reference: __del__ runs here
+            for _ in range(2000):  # about 10 s at most; the held Ctrl-C comes within milliseconds
+                time.sleep(0.005)
+    assert seen == [True, "returned"]
+
+    class Member:
+        pass
+
+    member, frames = Member(), []
+    weakref.finalize(member, lambda: frames.append(sys._getframe()))  # called from weakref.py's finalize
+    del member
+    gc.collect()
+    assert frames and in_a_finalizer(frames[0]) and not in_a_finalizer(sys._getframe())
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
