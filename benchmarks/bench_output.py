@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from dssp_data.output_guard import check_output_file, write_output_text
+from dssp_core.output_guard import check_output_file, write_output_text
 
 
 def check_json(path: Path | None, force: bool) -> None:

@@ -31,8 +31,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_output import check_json, emit  # noqa: E402
 from torch_comparison import check_source, eager_samples  # noqa: E402
 
-from dssp_data import machine  # noqa: E402
-from dssp_data.cli_runner import ArgumentParser, run_cli  # noqa: E402
+from dssp_core import machine  # noqa: E402
+from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_deploy.latency import LatencyStats  # noqa: E402
 from dssp_deploy.manifest import PRECISIONS, read_manifest  # noqa: E402
 from dssp_deploy.onnx_policy import DEFAULT_PRECISION, OnnxPolicy  # noqa: E402

@@ -41,9 +41,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))  # the benchmarks' shar
 from bench_output import check_json, emit  # noqa: E402
 from export_report import make_untrained_run  # noqa: E402
 
-from dssp_data import machine  # noqa: E402
-from dssp_data.cli_runner import ArgumentParser, run_cli  # noqa: E402
-from dssp_data.errors import ConfigError  # noqa: E402
+from dssp_core import machine  # noqa: E402
+from dssp_core.cli_runner import ArgumentParser, run_cli
+from dssp_core.errors import ConfigError
 from dssp_deploy.latency import time_calls  # noqa: E402
 from dssp_deploy.onnx_policy import OnnxPolicy  # noqa: E402
 from dssp_deploy.sessions import check_threads, default_threads  # noqa: E402

@@ -34,8 +34,8 @@ from dssp_train.training import checkpoint as ckpt
 from dssp_deploy.latency import time_calls
 from dssp_deploy.manifest import FUSED, read_graph, read_manifest
 from dssp_deploy.sessions import default_threads, open_session
-from dssp_data.cli_runner import run_cli
-from dssp_data.output_guard import OutputDir, OutputKind, check_output_file, write_output_text
+from dssp_core.cli_runner import run_cli
+from dssp_core.output_guard import OutputDir, OutputKind, check_output_file, write_output_text
 from export.to_onnx import export_model, format_summary
 
 REPORT_DIR = OutputKind("an export report directory", "benchmarks/export_report.py",

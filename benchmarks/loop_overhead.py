@@ -31,9 +31,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the benchmarks' shared helpers
 from bench_output import check_json, emit  # noqa: E402
 
-from dssp_data import machine  # noqa: E402
-from dssp_data.cli_runner import ArgumentParser, run_cli  # noqa: E402
-from dssp_data.errors import ConfigError  # noqa: E402
+from dssp_core import machine  # noqa: E402
+from dssp_core.cli_runner import ArgumentParser, run_cli
+from dssp_core.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parent.parent
 RUN = ("import sys; from hardware.cli.run import main; sys.exit(main(sys.argv[1:]))")

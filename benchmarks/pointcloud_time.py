@@ -21,8 +21,8 @@ import time
 import numpy as np
 
 from hardware.camera.base import DepthFrame
-from dssp_data.cli_runner import run_cli
-from dssp_data.output_guard import check_output_file, write_output_text
+from dssp_core.cli_runner import run_cli
+from dssp_core.output_guard import check_output_file, write_output_text
 from hardware.camera.tabletop import SimCamera
 from hardware.pointcloud import PointCloudConfig, frame_to_cloud
 from hardware.pointcloud.pipeline import STAGES

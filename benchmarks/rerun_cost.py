@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 from bench_output import check_json, emit
 
-from dssp_data.cli_runner import run_cli
+from dssp_core.cli_runner import run_cli
 from dssp_data.rerun_views import open_views
 from hardware.camera.base import DepthFrame
 from hardware.camera.tabletop import SimCamera

@@ -34,7 +34,7 @@ from dssp_deploy.manifest import PRECISIONS, ModelDirError, read_graph, read_man
 from dssp_deploy.onnx_policy import OnnxPolicy
 from dssp_deploy.profile import FULL as PROFILE_FULL, QUICK as PROFILE_QUICK, history_sweep, profile_components, random_observation
 from dssp_deploy.sessions import check_threads
-from dssp_data.cli_runner import ArgumentParser, run_cli
+from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_train.model.history_encoder import CausalTransformer
 from dssp_train.model.streaming import StreamingPolicy
 from dssp_train.training.checkpoint import load_policy

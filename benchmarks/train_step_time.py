@@ -30,9 +30,9 @@ from dssp_train.model.history_encoder import HistoryEncoder
 from dssp_train.model.policy import DSSPPolicy
 from dssp_train.training.ema import EMA
 from dssp_deploy.latency import time_calls
-from dssp_data.cli_runner import run_cli
-from dssp_data.errors import DSSPError
-from dssp_data.output_guard import check_output_file, write_output_text
+from dssp_core.cli_runner import run_cli
+from dssp_core.errors import DSSPError
+from dssp_core.output_guard import check_output_file, write_output_text
 
 
 # One typical task per paper preset: (trajectory length T, state size S, action size A, demonstrations).
@@ -149,7 +149,7 @@ def markdown(report: dict) -> str:
 
 def _report(args, rows: list[dict], paper: bool = False) -> int:
     """Print the machine and the Markdown table; write ``--json`` (the record :func:`markdown` renders)."""
-    from dssp_data import machine
+    from dssp_core import machine
 
     described = {**machine.describe(), "threads": torch.get_num_threads()}
     if args.device == "cuda":

@@ -1,7 +1,7 @@
 """Typed readers of a dataset's root attributes: a value of the wrong type is an error, never a guess.
 
 Each reader takes the attributes (a JSON dict) and the dataset's path for the message, and returns the
-value, ``None`` when the attribute is absent (or null), or raises :class:`~dssp_data.errors.DatasetError` with one
+value, ``None`` when the attribute is absent (or null), or raises :class:`~dssp_core.errors.DatasetError` with one
 line naming the dataset, the attribute and its value, and how to fix it. Nothing is converted behind the
 user's back: ``"10"`` is not a rate, ``true`` is not 1 Hz, and an ``episode_info`` that is not a list is
 not read as "no metadata". :func:`attribute_problems` runs every reader and returns their messages, for
@@ -15,6 +15,10 @@ not read as "no metadata". :func:`attribute_problems` runs every reader and retu
     camera_intrinsics   an object; width and height positive integers, fx, fy, ppx, ppy finite numbers
     camera_to_base      4x4 finite numbers
     camera_depth_unit   a number > 0, finite (metres per depth unit)
+
+:func:`zarr_attrs` reads the attributes from the files without zarr and without following a link, and
+:func:`made_by` / :func:`zarr_generator` say which program wrote a dataset: the signatures by which each
+command recognises its own datasets (``dssp_core.output_guard.OutputKind``).
 """
 
 from __future__ import annotations
@@ -22,9 +26,12 @@ from __future__ import annotations
 import json
 import math
 import os
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 
-from dssp_data.errors import DatasetError
+from pathlib import Path
+
+from dssp_core.errors import DatasetError
+from dssp_core.files import read_regular_text
 
 INTRINSICS_INTEGERS = ("width", "height")
 INTRINSICS_NUMBERS = ("fx", "fy", "ppx", "ppy")
@@ -168,3 +175,44 @@ def attribute_problems(attrs: Mapping, where: str | os.PathLike | None = None) -
         except DatasetError as exc:
             problems[name] = str(exc)
     return problems
+
+
+# ------------------------------------------------------------------------------------------- from disk
+def zarr_attrs(path: str | os.PathLike) -> dict | None:
+    """The root attributes of a zarr group at ``path`` (format 2 or 3), read as JSON; None if it is not one.
+
+    Its metadata files are read only as regular files (:func:`~dssp_core.files.read_regular_text`), no link followed: with a
+    linked ``.zgroup`` or ``zarr.json`` the folder is not a zarr group, with a linked ``.zattrs`` it has no
+    attributes."""
+    path = Path(path)
+    if read_regular_text(path / ".zgroup") is not None:
+        text = read_regular_text(path / ".zattrs")
+        attrs = json.loads(text) if text is not None else {}
+    elif (text := read_regular_text(path / "zarr.json")) is not None:
+        meta = json.loads(text)
+        attrs = meta.get("attributes", {}) if isinstance(meta, dict) else None
+    else:
+        return None
+    return attrs if isinstance(attrs, dict) else None
+
+
+def zarr_generator(path: str | os.PathLike) -> str | None:
+    """The ``generator`` attribute of a zarr dataset (which program wrote it), or None."""
+    try:
+        attrs = zarr_attrs(path)
+    except (OSError, ValueError):
+        return None
+    value = (attrs or {}).get("generator")
+    return value if isinstance(value, str) else None
+
+
+ZARR_ENTRIES = (".zgroup", ".zattrs", ".zmetadata", "zarr.json", "data", "meta")
+"""The top-level names of a DP3 zarr dataset as :mod:`dssp_data.replay_buffer` writes it."""
+
+
+def made_by(path: str | os.PathLike, generators: Iterable[str]) -> bool:
+    """The zarr dataset at ``path`` names one of ``generators`` as its ``generator``, and was not made from
+    other datasets by an older ``dssp-data merge``/``split`` (which copied its first input's generator)."""
+    attrs = zarr_attrs(path) or {}
+    return attrs.get("generator") in tuple(generators) and "merged_from" not in attrs and "split_from" not in attrs
+

@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from dssp_data.errors import ConfigError, DatasetError
+from dssp_core.errors import ConfigError, DatasetError
 
 READ_BUDGET_ENV = "DSSP_READ_BUDGET"
 DEFAULT_READ_BUDGET = 4 << 30

@@ -29,8 +29,8 @@ import json
 import sys
 from pathlib import Path
 
-from dssp_data.cli_runner import ArgumentParser, run_cli
-from dssp_data.errors import DSSPError
+from dssp_core.cli_runner import ArgumentParser, run_cli
+from dssp_core.errors import DSSPError
 
 EPILOG = """\
 info      episodes, lengths, rates, arrays, value ranges, attributes, recording metadata, problems found

@@ -7,7 +7,7 @@
 
 Episodes are copied one at a time (memory holds one episode), into a temporary directory beside the output
 (``.OUT.tmp-XXXXXXXX``, its CAN logs in ``.OUT.tmp-XXXXXXXX.can``) that is renamed onto the output when
-complete. What may be at an output (:data:`~dssp_data.output_guard.DATA_DATASET`): nothing, or a dataset
+complete. What may be at an output (:data:`~dssp_data.edit.DATA_DATASET`): nothing, or a dataset
 ``dssp-data`` merge, split or convert made (its ``generator`` attribute), replaced only with ``force``,
 together with its ``OUT.can`` CAN logs; anything else — a recorded, synthetic or foreign dataset, a
 ``OUT.can`` folder without its dataset — is refused, ``force`` or not, and nothing is deleted. An output
@@ -24,7 +24,7 @@ Everything is read through the dataset reader's checked path, so a missing or co
 command with one line naming the key and the chunk, before the output replaces anything. The CAN-log
 names come from the inputs' ``episode_info``; each must stay inside that input's CAN-log folder
 (:func:`~dssp_data.recording.can_log_path`), checked for every episode before anything is written, and
-each log is copied only as a regular file of that folder (:func:`~dssp_data.files.copy_regular_file`: a
+each log is copied only as a regular file of that folder (:func:`~dssp_core.files.copy_regular_file`: a
 linked folder or file, a FIFO or a device is refused with one line, never followed). ``repair`` holds the
 dataset's writer lock (:func:`~dssp_data.replay_buffer.dataset_lock`: no recording session or collect
 meanwhile), refuses a dataset folder holding a symbolic link, and first checks every chunk of the complete
@@ -43,7 +43,7 @@ import numpy as np
 import zarr
 
 from dssp_data import attributes
-from dssp_data.files import copy_regular_file
+from dssp_core.files import copy_regular_file
 from dssp_data.recording import (
     can_log_dir,
     can_log_name,
@@ -52,16 +52,23 @@ from dssp_data.recording import (
     episode_infos,
 )
 from dssp_data.replay_buffer import ReplayBufferReader, ReplayBufferWriter, check_dataset_tree, dataset_lock
-from dssp_data.errors import ConfigError, DatasetError
-from dssp_data.output_guard import (
-    DATA_DATASET,
-    DATA_GENERATORS,
-    Staging,
-    check_not_inside,
-    check_output,
-    interrupts_deferred,
-    settle_background_writes,
-)
+from dssp_core.errors import ConfigError, DatasetError
+from dssp_core.staging import Staging, interrupts_deferred, settle_background_writes
+from dssp_core.output_guard import OutputKind, check_not_inside, check_output
+from dssp_data.attributes import ZARR_ENTRIES, zarr_generator
+
+
+DATA_GENERATORS = {"merge": "dssp-data merge", "split": "dssp-data split", "convert": "dssp-data convert"}
+"""The ``generator`` attribute each ``dssp-data`` command writes into the datasets it makes."""
+_LEGACY_DATA_GENERATORS = ("dssp-data convert (RoboTwin raw HDF5)",)
+"""What older versions of ``dssp-data convert`` wrote (merge and split copied their input's generator:
+their older outputs are not recognised, so they are never replaced)."""
+
+DATA_DATASET = OutputKind("a dataset", "dssp-data merge, split or convert", entries=ZARR_ENTRIES, marker=False,
+                          signature=lambda p: zarr_generator(p) in (*DATA_GENERATORS.values(), *_LEGACY_DATA_GENERATORS),
+                          companion=".can", companion_entries=("episode_*.blf",))
+"""``dssp-data merge OUT``, ``split --train/--val``, ``convert --out``: a zarr dataset whose ``generator``
+attribute is one of :data:`DATA_GENERATORS`, with its CAN logs at ``OUT.can`` (only ``episode_*.blf``)."""
 
 PER_EPISODE_ATTRS = ("episode_info", "recording_sessions")
 

@@ -39,7 +39,7 @@ from dssp_data.recording import (
     episode_infos,
 )
 from dssp_data.replay_buffer import DATA_KEYS, ReplayBufferReader
-from dssp_data.errors import DatasetError
+from dssp_core.errors import DatasetError
 
 MAX_JOINT_JUMP = 0.5
 """rad: a recorded joint action changing more than this in one step is reported (a teleoperation glitch)."""

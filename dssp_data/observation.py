@@ -21,9 +21,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
 
-from dssp_data.files import atomic_write_text
-from dssp_data.errors import ConfigError
-from dssp_data.schema import MAX_DIM, Settings, setting
+from dssp_core.files import atomic_write_text
+from dssp_core.errors import ConfigError
+from dssp_core.schema import MAX_DIM, Settings, setting
 
 SAMPLING_METHODS = ("fps",)
 MAX_RANGE_M = 20.0  # no depth camera of the toolkit measures farther; a larger value is a unit mistake (mm)

@@ -42,9 +42,9 @@ import numpy as np
 
 from dssp_data import attributes
 from dssp_data.replay_buffer import Episode, ReplayBufferWriter, dataset_lock
-from dssp_data.errors import ConfigError, DatasetError
+from dssp_core.errors import ConfigError, DatasetError
 from dssp_data.observation import ObservationContract, check_contract
-from dssp_data.output_guard import WriterLock
+from dssp_core.staging import WriterLock
 
 TIME_KEYS = ("timestamp", "camera_timestamp", "state_timestamp", "action_timestamp")
 FRAME_KEY = "camera_frame"
@@ -119,7 +119,7 @@ def can_log_path(dataset: str | os.PathLike, name, episode: int | None = None) -
     path without ``..`` that still lies inside the folder with symbolic links resolved, in a folder that is
     not itself a link. Anything else (an absolute path, ``../../etc/passwd``, a link leading out, a linked
     folder) raises DatasetError; nothing is read. Files are copied out of it only as regular files
-    (:func:`~dssp_data.files.copy_regular_file`: no link followed).
+    (:func:`~dssp_core.files.copy_regular_file`: no link followed).
     """
     folder = can_log_dir(dataset)
     what = f"{dataset}: episode_info[{'?' if episode is None else episode}].can_logs"

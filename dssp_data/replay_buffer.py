@@ -22,7 +22,7 @@ raw depth images, ...) keep their own dtype. Reading ignores them unless asked
 and appending carry them (:attr:`Episode.extras`), and an append must bring
 exactly the extras the dataset holds, so every array keeps one entry per step.
 
-Every problem with a dataset on disk raises :class:`~dssp_data.errors.DatasetError`
+Every problem with a dataset on disk raises :class:`~dssp_core.errors.DatasetError`
 with a one-line message that names the key, the problem and what to do.
 
 Appending (:class:`ReplayBufferWriter`) writes the data arrays first and
@@ -46,7 +46,7 @@ buffer length and follows the offsets in the frame's header, so a truncated chun
 past the end of the buffer and kill the process (SIGSEGV); old c-blosc did the same when decompressing
 a whole chunk (numcodecs issue 228). Checking the header against the bytes actually stored before any
 decoder sees them keeps that out of reach whatever the installed versions. A chunk that is missing,
-truncated or does not decode raises :class:`~dssp_data.errors.DatasetError` naming the key, the chunk, its steps
+truncated or does not decode raises :class:`~dssp_core.errors.DatasetError` naming the key, the chunk, its steps
 and episodes, and what to do. Blosc frames carry no checksum: bytes overwritten inside a frame whose
 header still fits decode to wrong values that only the NaN/inf checks may notice.
 
@@ -116,8 +116,8 @@ from dssp_data.bounded import (
     human_size,
     nbytes_of,
 )
-from dssp_data.errors import DatasetError
-from dssp_data.output_guard import Staging, WriterLock, is_staging_name
+from dssp_core.errors import DatasetError
+from dssp_core.staging import Staging, WriterLock, is_staging_name
 
 __all__ = ["Episode", "ReplayBuffer", "ReplayBufferReader", "ReplayBufferWriter", "write_replay_buffer", "dataset_lock",
            "check_dataset_tree"]
@@ -1135,7 +1135,7 @@ def write_replay_buffer(path: str | os.PathLike, episodes: Sequence[Episode], at
     Each episode holds point_cloud (T_i, P, C), state (T_i, S) and action
     (T_i, A); P, C, S and A, and the extras' names, dtypes and trailing shapes,
     must agree over all episodes. The store is written into a temporary sibling
-    directory (``.NAME.tmp-XXXXXXXX``, :class:`~dssp_data.output_guard.Staging`)
+    directory (``.NAME.tmp-XXXXXXXX``, :class:`~dssp_core.staging.Staging`)
     and then renamed onto ``path``; an existing dataset at ``path`` is moved
     aside only once the new one is complete, and deleted after the new one is
     in place. On any failure or interruption (Ctrl-C) the temporary directory
@@ -1169,7 +1169,7 @@ def write_replay_buffer(path: str | os.PathLike, episodes: Sequence[Episode], at
 
 
 def dataset_lock(path: str | os.PathLike, *, flag: str = "path", doing: str = "written") -> WriterLock:
-    """One writer per dataset: the :class:`~dssp_data.output_guard.WriterLock` of the dataset at ``path``
+    """One writer per dataset: the :class:`~dssp_core.staging.WriterLock` of the dataset at ``path``
     (``.NAME.lock`` beside it, links in the folders above resolved, so that two names for one dataset share
     one lock). Every writer that appends to a dataset or changes it in place holds it
     (:class:`ReplayBufferWriter`, ``dssp-sim collect``, a recording session, ``dssp-data repair``); a second
@@ -1207,7 +1207,7 @@ class ReplayBufferWriter:
             brings (:attr:`Episode.extras`); an existing dataset must hold
             exactly these under ``data/`` besides point_cloud, state and action.
         staged: ``path`` is an empty staging directory of the caller's, which
-            puts it in place when complete (:class:`~dssp_data.output_guard.Staging`):
+            puts it in place when complete (:class:`~dssp_core.staging.Staging`):
             the first episode is written into it directly instead of beside it.
         lock: hold the dataset's writer lock (:func:`dataset_lock`) until :meth:`close`,
             so that a second writer of the same dataset is refused with one line;

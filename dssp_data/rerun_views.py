@@ -48,7 +48,7 @@ from typing import Any
 import numpy as np
 
 from dssp_data.arm_kinematics import ARM_VALUES, tool_points
-from dssp_data.errors import ConfigError
+from dssp_core.errors import ConfigError
 
 QUEUE_SIZE = 256  # ticks of views waiting for the worker; beyond it they are dropped (and counted)
 INSTALL_HINT = 'pip install -e ".[viz]" (or pip install rerun-sdk)'

@@ -30,14 +30,10 @@ import numpy as np
 from dssp_data.bounded import ChunkTooLarge, check_budget, decompress, human_size, nbytes_of
 from dssp_data.recording import ACTION_CONVENTIONS, can_log_dir
 from dssp_data.replay_buffer import Episode, ReplayBufferWriter
-from dssp_data.errors import DatasetError
-from dssp_data.output_guard import (
-    DATA_DATASET,
-    DATA_GENERATORS,
-    Staging,
-    check_output,
-    settle_background_writes,
-)
+from dssp_core.errors import DatasetError
+from dssp_data.edit import DATA_DATASET, DATA_GENERATORS
+from dssp_core.staging import Staging, settle_background_writes
+from dssp_core.output_guard import check_output
 
 PARTS = ("left_arm", "left_gripper", "right_arm", "right_gripper")
 _NUMBER = re.compile(r"(\d+)")
@@ -215,7 +211,7 @@ def convert(source: str | os.PathLike, out: str | os.PathLike, *, max_episodes: 
     """Convert RoboTwin episodes from ``source`` into the DP3 dataset ``out`` (written whole, then renamed).
 
     ``out`` must be new, or a dataset ``dssp-data`` made (replaced only with ``force``); anything else is
-    refused and nothing is deleted (:data:`~dssp_data.output_guard.DATA_DATASET`). The dataset is
+    refused and nothing is deleted (:data:`~dssp_data.edit.DATA_DATASET`). The dataset is
     written into a staging directory beside ``out``, removed on an error or Ctrl-C. Its ``generator``
     attribute is ``dssp-data convert``. Returns {"episodes": n, "steps": n, "files": [names]}.
     ``progress(i, n, path)`` is called per file.

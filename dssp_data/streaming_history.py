@@ -34,7 +34,7 @@ from typing import Any, Generic, TypeVar
 
 import numpy as np
 
-from dssp_data.errors import NonFiniteObservation
+from dssp_core.errors import NonFiniteObservation
 
 Array = TypeVar("Array")  # numpy.ndarray or torch.Tensor: the backend's array type
 State = Any  # the backend's recurrent state: a dict or list of arrays, a list of (conv, ssm) pairs, or None

@@ -30,12 +30,8 @@ import numpy as np
 from dssp_data import attributes
 from dssp_data.recording import FLAGS_KEY, can_log_dir, problem_names
 from dssp_data.replay_buffer import ReplayBufferReader
-from dssp_data.output_guard import (
-    check_not_inside,
-    check_output_files,
-    make_dirs,
-    write_output_file,
-)
+from dssp_core.output_guard import check_not_inside, check_output_files, write_output_file
+from dssp_core.files import make_dirs
 
 VIEWS = (("oblique", 25.0, -60.0), ("top", 90.0, -90.0), ("side", 0.0, -90.0))
 """(name, elevation, azimuth) in degrees of each row of the cloud figure."""

@@ -12,7 +12,7 @@ does not wait. ``lead`` comes from the measured chunk latency and the tick perio
 ``lead + H_a <= H``. A chunk that is still not ready when needed is waited for and reported as over
 budget in the tick's info — never silently late. The history is updated at every tick either way.
 
-An observation with NaN or infinity raises :class:`~dssp_data.errors.NonFiniteObservation` from
+An observation with NaN or infinity raises :class:`~dssp_core.errors.NonFiniteObservation` from
 ``tick``, one outside the training range :class:`~dssp_deploy.ranges.ObservationOutOfRange`, and both
 change nothing (no history update, no tick counted): the caller holds, as for a stale camera frame, and
 the next good observation continues the episode. A chunk the runtime refuses (NaN/inf or an action outside

@@ -5,7 +5,7 @@ interface defined here; this module reads it and trusts nothing in it unchecked.
 (the one reader: the runtime, ``dssp-run``, ``dssp-profile``, the simulation and ``export.verify`` all
 use it) refuses, with one :class:`ModelDirError` line naming the field, its value and what to do:
 - a scalar fact of the wrong type or out of range (:class:`ManifestFacts`, :class:`ModelFacts`,
-  :class:`SourceFacts`: strict types from :mod:`dssp_data.schema`);
+  :class:`SourceFacts`: strict types from :mod:`dssp_core.schema`);
 - facts that contradict each other: H_a > H, K DDIM timesteps for another K, ``model_config`` against the
   top-level facts, ``history_state`` against the history layers;
 - graph inputs/outputs other than the interface the facts give (:func:`graph_io`), normalisers of the wrong
@@ -35,9 +35,9 @@ from typing import Any, ClassVar
 
 from dssp_data.observation import ObservationContract
 from dssp_deploy.external_data import MalformedGraph, external_locations
-from dssp_data.schema import MAX_DIM, MAX_LAYERS, MAX_RATE_HZ, MAX_STEPS, MAX_WIDTH
-from dssp_data.errors import ConfigError, DSSPError
-from dssp_data.schema import Settings, Spec, check_value, parse_json, setting
+from dssp_core.schema import MAX_DIM, MAX_LAYERS, MAX_RATE_HZ, MAX_STEPS, MAX_WIDTH
+from dssp_core.errors import ConfigError, DSSPError
+from dssp_core.schema import Settings, Spec, check_value, parse_json, setting
 
 FORMAT_VERSION = "1"
 KIND = "dssp-model"

@@ -12,7 +12,7 @@ PyTorch streaming API (``dssp_train.model.streaming.StreamingPolicy``) too: the 
 starts at zero, the last N state tokens are kept, and at the start of an episode the first token
 repeats. Point clouds with more channels than the model uses (xyz + rgb for an xyz model) are cut to the
 model's channels, as in training. An observation with NaN or infinity anywhere is refused
-(:class:`dssp_data.errors.NonFiniteObservation`) before any graph runs: the recurrent history would keep
+(:class:`dssp_core.errors.NonFiniteObservation`) before any graph runs: the recurrent history would keep
 it for the rest of the episode; refused, it leaves the state as it was. So is one with a value far outside
 the training range (:class:`dssp_deploy.ranges.ObservationOutOfRange`), and a chunk with NaN/inf or an
 action outside the action range is never returned (:class:`dssp_deploy.ranges.ChunkOutOfRange`), on every

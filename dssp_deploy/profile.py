@@ -48,7 +48,8 @@ from dssp_deploy.manifest import DENOISER_GRAPH, HISTORY_GRAPH, file_kind, graph
 from dssp_deploy.onnx_policy import OnnxPolicy, add_runtime_arguments, choose_graphs
 from dssp_deploy.op_breakdown import elementwise_share, op_type_breakdown
 from dssp_deploy.sessions import default_threads
-from dssp_data.cli_runner import ArgumentParser
+from dssp_core.cli_runner import ArgumentParser, run_cli
+from dssp_core.output_guard import check_output_file, write_output_figure, write_output_text
 
 FULL = {"iterations": 300, "chunk_iterations": 100, "sweep": [10, 100, 1000, 3000, 10000], "window": 50,
         "matrix_iterations": 100, "matrix_chunks": 20, "prefetch_ticks": 300}
@@ -331,14 +332,11 @@ def plot(report: dict[str, Any], path: Path, force: bool = False) -> None:
     ax2.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     ax2.legend()
     fig.tight_layout()
-    from dssp_data.output_guard import write_output_figure
 
     write_output_figure(path, fig, force=force, flag="--plot")
 
 
 def main(argv: list[str] | None = None) -> int:
-    from dssp_data.cli_runner import run_cli
-
     p = ArgumentParser(prog="dssp-profile", description="CPU latency and memory of an exported DSSP model.")
     p.add_argument("model_dir", type=Path)
     p.add_argument("--quick", action="store_true", help="short run (tests, CI)")
@@ -351,7 +349,6 @@ def main(argv: list[str] | None = None) -> int:
 
     def _main() -> int:
         from dssp_deploy.sessions import check_threads
-        from dssp_data.output_guard import check_output_file, write_output_text
 
         check_threads(args.threads)
         for path, flag in ((args.json, "--json"), (args.plot, "--plot")):

@@ -8,7 +8,7 @@ precision:
 
 - ``observe``: every coordinate of ``point_cloud`` (the model's channels) and every value of
   ``agent_pos`` inside its range, else :class:`ObservationOutOfRange` before any graph runs (the history
-  is unchanged, as for NaN/inf: :class:`dssp_data.errors.NonFiniteObservation`);
+  is unchanged, as for NaN/inf: :class:`dssp_core.errors.NonFiniteObservation`);
 - ``denoise`` (``act``): every action of the chunk finite and inside the action range, else
   :class:`ChunkOutOfRange`.
 The control loops hold on either, as for a stale camera frame (``ChunkedControl.tick``, ``hardware.run_loop``).
@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from dssp_data.errors import DSSPError
+from dssp_core.errors import DSSPError
 
 MARGIN = 0.5  # of the tensor's widest channel span, on both sides of each channel's training range
 FLAT_BELOW = 1e-4  # a span below it is a constant channel to the normaliser (dssp_train's RangeNormalizer.range_eps)

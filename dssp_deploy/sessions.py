@@ -18,7 +18,7 @@ import os
 from collections.abc import Mapping
 from pathlib import Path
 
-from dssp_data.errors import ConfigError
+from dssp_core.errors import ConfigError
 from dssp_deploy.external_data import MalformedGraph, external_locations
 from dssp_deploy.manifest import ModelDirError
 

@@ -26,9 +26,16 @@ from pathlib import Path
 
 import numpy as np
 
-from dssp_sim.settings import cloud_config_for, sim_attrs
+from dssp_core.errors import OutputError
+from dssp_core.output_guard import OWN, OutputKind, check_append
+from dssp_data.attributes import zarr_attrs, zarr_generator
 from dssp_sim.mujoco_camera import MujocoCamera
+from dssp_sim.settings import cloud_config_for, sim_attrs
 from hardware.pointcloud import frame_to_cloud
+
+SIM_DATASET = OutputKind("a simulation dataset", "dssp-sim collect", marker=False,
+                         signature=lambda p: zarr_generator(p) == "dssp_sim.collect")
+"""``dssp-sim collect --out``: a zarr dataset whose ``generator`` attribute is ``dssp_sim.collect`` (appended to)."""
 
 
 @dataclass
@@ -60,8 +67,6 @@ def expert_episode(env, expert, camera: MujocoCamera, cloud_config, seed: int):
 
 def check_collect_output(out: Path, task: str) -> None:
     """Refuse an ``out`` that is neither new nor a dataset of ``task`` written by ``dssp-sim collect``."""
-    from dssp_data.output_guard import OWN, SIM_DATASET, OutputError, check_append, zarr_attrs
-
     if check_append(out, kind=SIM_DATASET, flag="--out") == OWN:
         have = (zarr_attrs(out) or {}).get("task")
         if have != task:
@@ -72,8 +77,6 @@ def check_collect_output(out: Path, task: str) -> None:
 def first_seed(out: Path, seed: int | None) -> int:
     """The scene seed to start from: ``seed``, else 0 for a new dataset, else the one after the last episode
     tried in ``out`` (its ``next_seed`` attribute), so appending never repeats a demonstration."""
-    from dssp_data.output_guard import OutputError, zarr_attrs
-
     if seed is not None:
         if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
             raise OutputError(f"--seed must be an integer >= 0, got {seed!r}")

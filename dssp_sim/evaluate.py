@@ -34,8 +34,8 @@ from dssp_deploy.manifest import observation_of
 from dssp_sim.settings import cloud_config_for
 from dssp_sim.mujoco_arm import MujocoPiper
 from dssp_sim.mujoco_camera import MujocoCamera
-from dssp_data.errors import ConfigError
-from dssp_data.output_guard import OutputKind
+from dssp_core.errors import ConfigError, NonFiniteObservation
+from dssp_core.output_guard import OutputKind
 from hardware.pacing import latency_stats
 from hardware.safety import SafetyConfig
 
@@ -219,7 +219,6 @@ def run_direct_episode(policy, env, seed: int, cloud_config, frames: list | None
 
     A tick the runtime refuses (NaN/inf or an out-of-range observation, a refused chunk) holds (``env.hold()``)
     and is counted in ``holds`` and ``safety_events``; the next tick goes on."""
-    from dssp_data.errors import NonFiniteObservation
     from dssp_deploy.control_loop import ChunkedControl
     from dssp_deploy.ranges import ChunkOutOfRange, ObservationOutOfRange
     from hardware.pointcloud import frame_to_cloud

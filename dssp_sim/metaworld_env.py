@@ -50,8 +50,9 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
+import warnings
 
-from dssp_data.errors import ConfigError  # noqa: E402
+from dssp_core.errors import ConfigError
 from dssp_data.observation import ObservationContract, PointCloudConfig, VectorLayout  # noqa: E402
 from dssp_sim.env import DepthRenderThread  # noqa: E402
 from dssp_sim.tasks import TaskStatus  # noqa: E402
@@ -330,8 +331,6 @@ class MetaWorldExpert:
         self.policy = ENV_POLICY_MAP[f"{env.name}-v3"]()
 
     def act(self, env: MetaWorldEnv) -> np.ndarray:
-        import warnings
-
         with warnings.catch_warnings():  # "Constant(s) may be too high": MetaWorld clips the action itself
             warnings.simplefilter("ignore", UserWarning)
             return np.asarray(self.policy.get_action(env.obs), np.float32)

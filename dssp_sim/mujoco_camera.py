@@ -14,7 +14,7 @@ import numpy as np
 
 from hardware.camera.base import Camera, DepthFrame
 from hardware.camera.software import SoftwareDepthCamera
-from dssp_data.errors import CameraError
+from dssp_core.errors import CameraError
 
 
 class MujocoCamera(Camera):

@@ -9,7 +9,7 @@
 ``collect`` keeps only successful expert episodes and says how many it tried. ``eval`` drives the model
 through the real chain (simulated camera → point-cloud pipeline → runtime → safety → CAN → simulated arm)
 and prints the success rate with its 95 % Wilson interval and each episode's outcome.
-Outputs (:mod:`dssp_data.output_guard`): ``collect`` appends only to a dataset ``dssp-sim collect`` wrote;
+Outputs (:mod:`dssp_core.output_guard`): ``collect`` appends only to a dataset ``dssp-sim collect`` wrote;
 ``eval --strips`` replaces a previous output of its own only with ``--force``, and
 never a folder with anything else in it; ``eval --json`` replaces an existing file only with ``--force``.
 Exit codes: 0 done, 2 bad input (an output path that may not be written included).
@@ -24,9 +24,10 @@ import math
 import sys
 from pathlib import Path
 
-from dssp_data.cli_runner import ArgumentParser
+from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_deploy.onnx_policy import add_runtime_arguments
-from dssp_data.errors import ConfigError
+from dssp_core.errors import ConfigError
+from dssp_core.output_guard import OutputDir, check_output_file, write_output_text
 
 TASKS = ("tap", "swap", "put2")
 
@@ -106,7 +107,6 @@ def run(args) -> int:
                               "the dataset holds the successful ones — check the task's expert")
         return 0
     from dssp_sim.evaluate import STRIPS_DIR, evaluate, print_eval
-    from dssp_data.output_guard import OutputDir, check_output_file, write_output_text
 
     if not (math.isfinite(args.noise) and 0 <= args.noise <= 10):
         raise ConfigError(f"--noise must be a number in [0, 10] (σ in the tokens' units), got {args.noise}")
@@ -133,8 +133,6 @@ def run(args) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from dssp_data.cli_runner import run_cli
-
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv[:1] == ["record"]:  # dssp-record's own flags, on the simulated rig
         from dssp_sim.teleop import record_main

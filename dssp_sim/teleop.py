@@ -29,6 +29,7 @@ from dssp_sim.mujoco_camera import MujocoCamera
 from hardware.clock import FakeClock
 from hardware.leader import ScriptedLeader
 from hardware.piper import codec
+from dssp_core.errors import ConfigError
 
 
 class SimClock(FakeClock):
@@ -143,7 +144,6 @@ class TeleopRigs:
         return cloud_config_for()
 
     def open(self, task: str, seed: int) -> TeleopRig:
-        from dssp_data.errors import ConfigError
         from dssp_sim.tasks import make_task
 
         try:

@@ -12,9 +12,9 @@ from dataclasses import dataclass
 from importlib import resources
 from typing import ClassVar
 
-from dssp_data.errors import ConfigError
+from dssp_core.errors import ConfigError
 from dssp_data.observation import ObservationContract
-from dssp_data.schema import MAX_DIM, MAX_LAYERS, MAX_RATE_HZ, MAX_STEPS, MAX_WIDTH, Settings, parse_json, setting
+from dssp_core.schema import MAX_DIM, MAX_LAYERS, MAX_RATE_HZ, MAX_STEPS, MAX_WIDTH, Settings, parse_json, setting
 
 HISTORY_BACKBONES = ("mamba", "transformer")
 # What follows the mixer in each denoiser block (README, "The paper's size"): nothing (the Mamba block alone),

@@ -38,7 +38,7 @@ import copy
 import torch
 from torch import nn
 
-from dssp_data.errors import ConfigError
+from dssp_core.errors import ConfigError
 from dssp_train.model.mamba import Mamba
 from dssp_train.model.policy import DSSPPolicy
 from export.fused_ops import FUSED_OPS

@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from dssp_train.config import RunConfig
-from dssp_data.files import atomic_write_text
+from dssp_core.files import atomic_write_text
 
 from dssp_deploy.manifest import FORMAT_VERSION, GRAPHS, KIND, MANIFEST_NAME, graph_io, history_state_specs
 

@@ -1,4 +1,4 @@
-"""Write a model directory all at once or not at all (the rules of :mod:`dssp_data.output_guard`).
+"""Write a model directory all at once or not at all (the rules of :mod:`dssp_core.output_guard`).
 
 Files are written into a temporary sibling directory (``.NAME.partial-XXXX`` next to MODEL_DIR) and the
 whole directory is renamed into place at the end; on any failure (an error, a failed parity check,
@@ -17,8 +17,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from dssp_data.output_guard import OutputDir, OutputKind, check_output
-from dssp_data.errors import ExportError
+from dssp_core.output_guard import OutputDir, OutputKind, check_output
+from dssp_core.errors import ExportError
 from dssp_deploy.manifest import MANIFEST_NAME, is_model_dir
 
 

@@ -43,13 +43,14 @@ from pathlib import Path
 from typing import Any
 
 from dssp_deploy.sessions import check_threads
-from dssp_data.cli_runner import ArgumentParser, run_cli
-from dssp_data.errors import ExportError, ParityError
+from dssp_core.cli_runner import ArgumentParser, run_cli
+from dssp_core.errors import ExportError, ParityError
 from dssp_deploy.mamba_kernel import DOMAIN, OPSET_VERSION
 from dssp_train.config import TIMESTEP_SPACINGS as SPACINGS
 from dssp_deploy.manifest import DENOISER_GRAPH, GRAPHS, HISTORY_GRAPH, MANIFEST_NAME, PRECISIONS, file_kind, file_suffix, graph_io
 from export.fused_ops import mark_unread_states
 from export.manifest_writer import build_manifest, metadata_props, write_manifest
+from dssp_core.staging import writer_lock
 
 EXPORTER_VERSION = "1"
 SUPPORTED_OPSETS = range(17, 21)  # LayerNormalization needs 17; torch's TorchScript-based exporter stops at 20
@@ -296,7 +297,6 @@ def export_model(
         ParityError: the graphs do not reproduce the PyTorch model (nothing is left behind).
     """
     from dssp_train.training.checkpoint import config_recorded
-    from dssp_data.output_guard import writer_lock
     from export.output_dir import StagedDirectory
     from export.verify import check_report, describe_worst, file_sha256, format_report, verify_model
 

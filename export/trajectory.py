@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from dssp_train.config import RunConfig
+from dssp_core.errors import DSSPError
 
 
 @dataclass
@@ -38,7 +39,6 @@ def load_trajectory(config: RunConfig, normalizers: dict, steps: int, seed: int 
         reason = f"dataset {path} not found"
         if path.exists():
             from dssp_data.replay_buffer import ReplayBuffer
-            from dssp_data.errors import DSSPError
 
             try:
                 data = ReplayBuffer.load(path)

@@ -65,10 +65,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import dataclasses
 
-from dssp_data.cli_runner import ArgumentParser, run_cli
-from dssp_data.errors import ExportError, ParityError
-from dssp_data.output_guard import check_output_file, write_output_text
+from dssp_core.cli_runner import ArgumentParser, run_cli
+from dssp_core.errors import ExportError, ParityError
+from dssp_core.output_guard import check_output_file, write_output_text
 from dssp_data.streaming_history import StreamingHistory
 from dssp_deploy.manifest import read_graph
 from dssp_deploy.sessions import check_threads, default_threads
@@ -227,7 +228,6 @@ def file_sha256(path: Path) -> str:
 
 def load_checked_policy(manifest: dict[str, Any], run_dir: Path):
     """The policy the manifest was exported from: same weights file, same sha256, same model config."""
-    import dataclasses
 
     from dssp_train.config import TIMESTEP_SPACINGS
     from dssp_train.training.checkpoint import load_policy

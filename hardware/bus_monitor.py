@@ -23,7 +23,7 @@ from pathlib import Path
 
 import can
 
-from dssp_data.errors import CanError
+from dssp_core.errors import CanError
 from hardware.can_reader import CanReader
 from hardware.leader import ArmReading, JointGripperTracker, LeaderTracker
 from hardware.piper import codec

@@ -18,7 +18,7 @@ import threading
 import can
 from can.util import channel2int
 
-from dssp_data.errors import CanError
+from dssp_core.errors import CanError
 from hardware.piper.bus import open_bus
 
 

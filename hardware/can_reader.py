@@ -20,7 +20,7 @@ from collections.abc import Callable, MutableMapping
 
 import can
 
-from dssp_data.errors import CanError
+from dssp_core.errors import CanError
 from hardware.piper.bus import open_bus
 
 MAX_RECEIVE_FAILURES = 10  # consecutive receive errors before the bus is taken as failed

@@ -18,7 +18,7 @@ from collections.abc import Callable
 import numpy as np
 
 from dssp_data.replay_buffer import ReplayBufferReader
-from dssp_data.errors import ConfigError, DSSPError
+from dssp_core.errors import ConfigError, DSSPError
 from hardware.clock import REAL_CLOCK, Clock
 from hardware.pacing import Pacer
 from hardware.robot import ARM_DOF, RobotState, check_rate

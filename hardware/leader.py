@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import can
 import numpy as np
 
-from dssp_data.errors import CanError
+from dssp_core.errors import CanError
 from hardware.can_reader import CanReader
 from hardware.piper import codec
 from hardware.piper.limits import opening_to_stroke, stroke_to_opening

@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from dssp_data.recording import RecordingDataset, can_log_dir, can_log_name, partial_can_log_name
-from dssp_data.errors import DSSPError
+from dssp_core.errors import DSSPError
 from hardware.bus_monitor import BusMonitor
 from hardware.clock import REAL_CLOCK, Clock
 from hardware.pacing import Pacer

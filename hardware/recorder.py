@@ -47,8 +47,8 @@ from dssp_data.recording import (
 )
 from dssp_data.replay_buffer import Episode
 from dssp_data.rerun_views import TickViews
-from dssp_data.errors import ConfigError, DSSPError
-from dssp_data.schema import Settings, setting
+from dssp_core.errors import ConfigError, DSSPError
+from dssp_core.schema import Settings, setting
 from hardware.bus_monitor import BusMonitor, oldest
 from hardware.camera.base import Camera, DepthFrame
 from hardware.pacing import RateMeter, latency_stats

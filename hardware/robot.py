@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from dssp_data.errors import ConfigError
+from dssp_core.errors import ConfigError
 from dssp_data.observation import VectorLayout
 
 ARM_DOF = 7  # J1..J6 + gripper
@@ -108,7 +108,7 @@ class RobotDescription:
 
 
 class Robot(ABC):
-    """One or more arms as one vector. Every method raises ``dssp_data.errors.ArmError``/``CanError``.
+    """One or more arms as one vector. Every method raises ``dssp_core.errors.ArmError``/``CanError``.
 
     ``description`` says what the robot is (:class:`RobotDescription`) without touching the hardware."""
 

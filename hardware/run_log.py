@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from dssp_data.files import atomic_save_npy, atomic_write_text
+from dssp_core.files import atomic_save_npy, atomic_write_text
 from hardware.subscribers import Subscriber, Tick
 
 

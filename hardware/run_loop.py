@@ -38,7 +38,7 @@ import numpy as np
 from dssp_deploy.control_loop import ChunkedControl
 from dssp_deploy.onnx_policy import OnnxPolicy
 from dssp_deploy.ranges import ChunkOutOfRange, ObservationOutOfRange
-from dssp_data.errors import CameraError, ConfigError, DSSPError, NonFiniteObservation
+from dssp_core.errors import CameraError, ConfigError, DSSPError, NonFiniteObservation
 from hardware.robot import Robot, check_rate
 from hardware.camera.base import Camera
 from hardware.clock import REAL_CLOCK, Clock

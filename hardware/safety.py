@@ -28,8 +28,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from dssp_data.errors import ConfigError
-from dssp_data.schema import Settings, setting
+from dssp_core.errors import ConfigError
+from dssp_core.schema import Settings, setting
 from hardware.robot import RobotState
 
 

@@ -17,7 +17,7 @@ thread (``dssp-train``, ``python -m export.to_onnx``, ``dssp-sim eval``); their 
 (outside ``--out``); Ctrl-C stops the stages too. ``results.json`` in ``--out`` holds every figure. ``--out``
 must be new or empty; a previous demo there is replaced only with ``--force`` (moved aside while the new one runs,
 deleted when it is complete, put back if it fails); anything else there is never touched
-(:mod:`dssp_data.output_guard`).
+(:mod:`dssp_core.output_guard`).
 """
 
 from __future__ import annotations
@@ -31,11 +31,11 @@ import time
 from collections import Counter
 from pathlib import Path
 
-from dssp_data import machine
-from dssp_data.cli_runner import ArgumentParser, run_cli
-from dssp_data.errors import DSSPError
-from dssp_data.files import atomic_write_text
-from dssp_data.output_guard import OutputDir, OutputKind
+from dssp_core import machine
+from dssp_core.cli_runner import ArgumentParser, run_cli
+from dssp_core.errors import DSSPError
+from dssp_core.files import atomic_write_text
+from dssp_core.output_guard import OutputDir, OutputKind
 from dssp_sim.evaluate import print_latency
 from dssp_sim.sim_cli import positive_int
 from studies.runner import Runner, Stage, StageFailed

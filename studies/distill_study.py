@@ -38,9 +38,9 @@ import json
 import sys
 from pathlib import Path
 
-from dssp_data.cli_runner import ArgumentParser, run_cli
-from dssp_data.errors import DSSPError
-from dssp_data.output_guard import OutputKind, check_output_files, claim_dir, write_output_figure, write_output_text
+from dssp_core.cli_runner import ArgumentParser, run_cli
+from dssp_core.errors import DSSPError
+from dssp_core.output_guard import OutputKind, check_output_files, claim_dir, write_output_figure, write_output_text
 from dssp_sim.evaluate import wilson_interval
 from studies.evaluations import run_and_keep
 from studies.runner import Stage

@@ -12,7 +12,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from dssp_data.files import atomic_write_text
+from dssp_core.files import atomic_write_text
 from studies.runner import Runner, Stage
 
 KEPT = ("task", "n", "successes", "failure_reasons", "decisions", "precision", "kernel", "latency_ms",

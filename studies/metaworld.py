@@ -32,10 +32,11 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import hashlib
 
-from dssp_data.cli_runner import ArgumentParser, run_cli
-from dssp_data.errors import DSSPError
-from dssp_data.files import atomic_write_text
+from dssp_core.cli_runner import ArgumentParser, run_cli
+from dssp_core.errors import DSSPError
+from dssp_core.files import atomic_write_text
 from studies import protocol
 from studies.evaluations import run_and_keep
 from studies.runner import Stage
@@ -203,7 +204,6 @@ def stages(plan: dict, split: str, tasks: list[str], record: Path) -> list[Stage
 
 def definition_hash() -> str:
     """The benchmark's definition: metaworld's version and this project's MetaWorld wrapper (first 16 hex digits)."""
-    import hashlib
     import importlib.metadata
 
     mw = _mw()

@@ -25,9 +25,9 @@ from collections.abc import Iterable
 from pathlib import Path
 
 import dssp_sim
-from dssp_data import machine
-from dssp_data.errors import DSSPError
-from dssp_data.files import atomic_write_text
+from dssp_core import machine
+from dssp_core.errors import DSSPError
+from dssp_core.files import atomic_write_text
 
 DEMO_SEEDS = range(0, 1000)
 VALIDATION_SEEDS = range(1000, 10_000)

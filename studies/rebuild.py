@@ -37,9 +37,9 @@ import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
-from dssp_data.cli_runner import ArgumentParser, run_cli
-from dssp_data.errors import DSSPError
-from dssp_data.files import atomic_write_text
+from dssp_core.cli_runner import ArgumentParser, run_cli
+from dssp_core.errors import DSSPError
+from dssp_core.files import atomic_write_text
 from studies import distill_study, memory_tasks, metaworld, sampling, sim_study
 from studies.demo import results_table
 from studies.stats import describe_p, paired_exact_test

@@ -38,8 +38,8 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from dssp_data.errors import DSSPError
-from dssp_data.files import atomic_write_text
+from dssp_core.errors import DSSPError
+from dssp_core.files import atomic_write_text
 
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS")
 POLL_S = 0.2

@@ -24,10 +24,10 @@ import json
 import sys
 from pathlib import Path
 
-from dssp_data.cli_runner import ArgumentParser, run_cli
-from dssp_data.errors import DSSPError
-from dssp_data.files import atomic_write_text
-from dssp_data.output_guard import write_output_figure
+from dssp_core.cli_runner import ArgumentParser, run_cli
+from dssp_core.errors import DSSPError
+from dssp_core.files import atomic_write_text
+from dssp_core.output_guard import write_output_figure
 from dssp_deploy.manifest import PRECISIONS
 from dssp_sim.evaluate import wilson_interval
 from studies import memory_tasks, protocol

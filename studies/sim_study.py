@@ -33,7 +33,7 @@ record: a model whose evaluations are all recorded needs no stage, and ``--repor
 the record alone, the cells not yet run marked as pending. The report — ``REPORT_NAME.md`` (tables), ``.png``
 (plot) and ``.json`` (every figure) — is written to ``--report``. The plan is data (:data:`PLAN`, :data:`QUICK_PLAN`).
 
-Outputs (:mod:`dssp_data.output_guard`): ``--work`` must be new, empty or a work folder of this study
+Outputs (:mod:`dssp_core.output_guard`): ``--work`` must be new, empty or a work folder of this study
 (marked ``.dssp-output.json``), which is continued; anything else is refused before any stage runs. The
 report's three files are written beside whatever else ``--report`` holds; existing ones are replaced only
 with ``--force``, checked before the study starts.
@@ -46,9 +46,9 @@ import sys
 from collections.abc import Iterator
 from pathlib import Path
 
-from dssp_data.cli_runner import ArgumentParser, run_cli
-from dssp_data.errors import DSSPError
-from dssp_data.output_guard import OutputKind, check_output_files, claim_dir, write_output_figure, write_output_text
+from dssp_core.cli_runner import ArgumentParser, run_cli
+from dssp_core.errors import DSSPError
+from dssp_core.output_guard import OutputKind, check_output_files, claim_dir, write_output_figure, write_output_text
 from dssp_sim.evaluate import wilson_interval
 from studies.evaluations import run_and_keep
 from studies.runner import Runner, Stage

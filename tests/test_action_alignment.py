@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from dssp_data.errors import ConfigError
+from dssp_core.errors import ConfigError
 from dssp_deploy import OnnxPolicy
 from dssp_deploy.control_loop import ChunkedControl
 from dssp_deploy.manifest import MANIFEST_NAME, ModelDirError

@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 
-from dssp_data.errors import ConfigError
+from dssp_core.errors import ConfigError
 
 from hardware.camera import open_camera, spec_forms
 from hardware.camera.base import Intrinsics
@@ -22,7 +22,7 @@ from hardware.camera.realsense import (
 from hardware.camera.tabletop import Box, SimCamera
 from hardware.camera.software import SoftwareDepthCamera, record_depth
 from waiting import wait_for
-from dssp_data.errors import CameraError
+from dssp_core.errors import CameraError
 
 INTR = Intrinsics(width=640, height=480, fx=457.1, fy=455.9, ppx=318.7, ppy=243.2)
 UNIT = 0.00025

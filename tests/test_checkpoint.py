@@ -12,7 +12,7 @@ from safetensors.torch import load_file
 from dssp_train.cli.train import main as train_main
 from dssp_train.config import apply_overrides, load_preset
 from dssp_train.data.synthetic import write_tap_count_dataset
-from dssp_data.errors import CheckpointError, DSSPError
+from dssp_core.errors import CheckpointError, DSSPError
 from dssp_train.training import checkpoint as ckpt
 from dssp_train.training.checkpoint import load_policy
 from dssp_train.training.train_log import read_log

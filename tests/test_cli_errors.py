@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from dssp_data.cli_runner import ArgumentParser
+from dssp_core.cli_runner import ArgumentParser
 
 ROOT = Path(__file__).resolve().parents[1]
 MODULE_TOOLS = {"python -m export.to_onnx": "export.to_onnx:main", "python -m export.verify": "export.verify:main"}

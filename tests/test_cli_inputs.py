@@ -10,8 +10,8 @@ import subprocess
 
 import pytest
 
-from dssp_data.errors import ConfigError
-from dssp_data.schema import read_json_object
+from dssp_core.errors import ConfigError
+from dssp_core.schema import read_json_object
 
 
 def _one_error_line(capsys, code: int) -> str:
@@ -93,7 +93,7 @@ def test_collect_appends_from_the_seed_after_the_last_one(tmp_path):
 
     from dssp_sim.collect import first_seed
     from dssp_data.replay_buffer import Episode, write_replay_buffer
-    from dssp_data.output_guard import OutputError
+    from dssp_core.errors import OutputError
 
     assert first_seed(tmp_path / "new.zarr", None) == 0
     assert first_seed(tmp_path / "new.zarr", 7) == 7
@@ -135,7 +135,7 @@ def _edited_copy(model_dir, tmp_path, edit):
 ])
 def test_a_manifest_that_contradicts_itself(arm_export, tmp_path, edit, words):
     from dssp_deploy.manifest import read_manifest
-    from dssp_data.errors import DSSPError
+    from dssp_core.errors import DSSPError
 
     with pytest.raises(DSSPError) as info:
         read_manifest(_edited_copy(arm_export, tmp_path, edit))

@@ -33,7 +33,7 @@ from dssp_data.replay_buffer import (
     write_replay_buffer,
 )
 from dssp_data.view import render_episode
-from dssp_data.errors import DatasetError
+from dssp_core.errors import DatasetError
 
 FORMATS = (2, 3)
 LENGTHS = (60, 90, 70)
@@ -460,7 +460,7 @@ def test_a_decompression_bomb_is_one_line_in_every_reader(tmp_path, originals, n
 PEAK = """
 import resource, sys
 from dssp_data.replay_buffer import ReplayBuffer
-from dssp_data.errors import DatasetError
+from dssp_core.errors import DatasetError
 try:
     ReplayBuffer.load(sys.argv[1])
     print("read")

@@ -2,7 +2,7 @@
 
 A KeyboardInterrupt raised in ``concurrent.futures.wait`` just after it took a future's lock leaves the lock
 held; zarr's thread then blocks for ever completing that future and the interrupted command never ends.
-:func:`dssp_data.cli_runner.interrupts_at_safe_points` holds such a Ctrl-C back until the main thread is out.
+:func:`dssp_core.cli_runner.interrupts_at_safe_points` holds such a Ctrl-C back until the main thread is out.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import time
 
 import pytest
 
-from dssp_data.cli_runner import MAX_HOLD_S, in_thread_machinery, interrupts_at_safe_points, run_cli
+from dssp_core.cli_runner import MAX_HOLD_S, in_thread_machinery, interrupts_at_safe_points, run_cli
 
 
 @pytest.fixture
@@ -118,7 +118,7 @@ def test_a_ctrl_c_inside_a_finalizer_is_held_back_not_lost():
     import gc
     import weakref
 
-    from dssp_data.cli_runner import in_a_finalizer
+    from dssp_core.cli_runner import in_a_finalizer
 
     seen = []
 

@@ -150,7 +150,7 @@ def test_the_streaming_history_state_machine(library):
 
 
 def test_non_finite_values_are_named_and_refused():
-    from dssp_data.errors import NonFiniteObservation
+    from dssp_core.errors import NonFiniteObservation
     from dssp_data.streaming_history import check_finite
 
     check_finite("agent_pos", np.zeros((1, 3)))

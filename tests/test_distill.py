@@ -192,7 +192,7 @@ def test_the_distillation_study_writes_its_report(tmp_path, capsys):
 
 def test_the_study_takes_its_teachers_from_a_simulation_study(tmp_path, monkeypatch):
     import studies.distill_study as study
-    from dssp_data.errors import DSSPError
+    from dssp_core.errors import DSSPError
 
     seen = []
 

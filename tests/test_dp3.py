@@ -10,7 +10,7 @@ import pytest
 import torch
 from torch import nn
 
-from dssp_data.errors import ConfigError
+from dssp_core.errors import ConfigError
 from dssp_deploy.flops import chunk_flops, unet_flops
 from dssp_train.config import apply_overrides, load_preset
 from dssp_train.model.param_count import parameter_breakdown

@@ -22,7 +22,7 @@ def bench():
 
 
 def test_both_run_through_the_same_runtime_with_the_same_settings(bench, tmp_path, monkeypatch, capsys):
-    from dssp_data.machine import describe
+    from dssp_core.machine import describe
 
     monkeypatch.setitem(bench.SCALES, "tiny", TINY)
     out = tmp_path / "dp3.json"

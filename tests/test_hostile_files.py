@@ -20,9 +20,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from dssp_data.data_cli import main as data_main
-from dssp_data.errors import DatasetError
-from dssp_data.files import copy_regular_file
-from dssp_data.output_guard import writer_lock_path, zarr_attrs
+from dssp_core.errors import DatasetError
+from dssp_core.files import copy_regular_file
+from dssp_core.staging import writer_lock_path
+from dssp_data.attributes import zarr_attrs
 from dssp_data.recording import RECORDED_KEYS, RecordingDataset, can_log_dir
 from dssp_data.replay_buffer import Episode, ReplayBuffer, ReplayBufferWriter, dataset_lock, write_replay_buffer
 

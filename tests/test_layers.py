@@ -10,8 +10,8 @@ from collections import Counter
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("dssp_data", "dssp_train", "export", "dssp_deploy", "hardware", "dssp_sim", "studies")
-ROBOT_SIDE = ("dssp_data", "dssp_deploy", "hardware", "dssp_sim")
+PACKAGES = ("dssp_core", "dssp_data", "dssp_train", "export", "dssp_deploy", "hardware", "dssp_sim", "studies")
+ROBOT_SIDE = ("dssp_core", "dssp_data", "dssp_deploy", "hardware", "dssp_sim")
 
 
 def modules(package: str) -> list[str]:
@@ -64,3 +64,13 @@ def test_every_robot_side_module_imports_where_torch_cannot():
 def test_module_names_are_unique_across_packages():
     leaves = Counter(m.rsplit(".", 1)[-1] for p in PACKAGES for m in modules(p) if "." in m and not m.endswith(".cli"))
     assert [name for name, n in leaves.items() if n > 1 and name != "cli"] == []
+
+
+def test_the_core_and_dssp_run_load_without_numpy():
+    """dssp-run installs its stop handling before numpy and the runtime load (a Ctrl-C during those imports is a
+    clean stop), so what it imports at module level — the core included — must not pull numpy in."""
+    code = ("import sys; import dssp_core.output_guard, dssp_core.staging, dssp_core.cli_runner, dssp_core.schema, "
+            "hardware.cli.run; print(sorted(m for m in sys.modules if m.split('.')[0] in ('numpy', 'zarr', 'torch')))")
+    proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0 and proc.stdout.strip() == "[]", proc.stdout + proc.stderr[-2000:]
+

@@ -22,7 +22,7 @@ from hypothesis import strategies as st
 from dssp_deploy import OnnxPolicy
 from dssp_deploy.control_loop import ChunkedControl
 from dssp_deploy.manifest import MANIFEST_NAME, ModelDirError
-from dssp_data.errors import NonFiniteObservation
+from dssp_core.errors import NonFiniteObservation
 
 EXAMPLES = 6  # per field: ~50 fields, each example rewrites the manifest of one copied model directory
 FAST = settings(max_examples=EXAMPLES, deadline=None, derandomize=True,

@@ -5,7 +5,7 @@ import json
 
 from conftest import SET_SMALL, one_error_line
 
-from dssp_data.errors import ConfigError, DSSPError
+from dssp_core.errors import ConfigError, DSSPError
 from dssp_sim import metaworld_env as mw  # before mujoco: it sets MUJOCO_GL=egl
 
 import mujoco  # noqa: E402

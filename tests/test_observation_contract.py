@@ -16,7 +16,7 @@ from dssp_data.observation import (
     contract_mismatches,
     piper_layout,
 )
-from dssp_data.errors import ConfigError
+from dssp_core.errors import ConfigError
 
 # A crop the simulation does not use by default (its own: (0.05, -0.35, 0.005) .. (0.60, 0.35, 0.10)).
 CROP = {"n_points": 48, "depth_near": 0.1, "depth_far": 2.0, "crop_min": [0.05, -0.3, 0.005],

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from dssp_data.output_guard import WriterLock, writer_lock_path
+from dssp_core.staging import WriterLock, writer_lock_path
 from dssp_train.cli.distill import main as distill_main
 from dssp_train.cli.train import main as train_main
 from dssp_train.training.train_log import read_log

@@ -4,7 +4,7 @@
     path: exit 2, one ``error:`` line, and not one byte changed on disk — with and without ``--force``;
 (b) a previous output of the same command: refused without ``--force``, replaced with it (the expensive
     work is replaced by a stand-in: these tests check where the command writes, not what);
-(c) the guard itself (``dssp_data.output_guard``), property-based over random folder contents.
+(c) the guard itself (``dssp_core.output_guard``), property-based over random folder contents.
 The refusals come before any work: nothing here trains, collects or evaluates.
 """
 
@@ -27,30 +27,20 @@ from hypothesis import strategies as st
 
 from dssp_deploy.profile import main as profile_main
 from dssp_sim.sim_cli import main as sim_main
-from dssp_data.files import replace_dir
+from dssp_core.files import replace_dir
 from dssp_train.cli.synth import main as synth_main
 from dssp_train.cli.train import main as train_main
 from dssp_data.replay_buffer import Episode, ReplayBuffer, write_replay_buffer
-from dssp_data.errors import DSSPError
-from dssp_data.output_guard import (
-    MARKER,
-    NEW,
-    OWN,
-    RUN_DIR,
-    SIM_DATASET,
-    SYNTH_DATASET,
-    OutputDir,
-    OutputError,
-    OutputKind,
-    check_append,
-    check_output,
-    check_output_file,
-    claim_dir,
-    write_output_file,
-    write_output_text,
-    zarr_attrs,
-    zarr_generator,
+from dssp_core.errors import DSSPError
+from dssp_core.output_guard import (
+    MARKER, NEW, OWN, OutputDir, OutputKind, check_append, check_output, check_output_file, claim_dir,
+    write_output_file, write_output_text,
 )
+from dssp_train.cli.train import RUN_DIR
+from dssp_sim.collect import SIM_DATASET
+from dssp_train.cli.synth import SYNTH_DATASET
+from dssp_core.errors import OutputError
+from dssp_data.attributes import zarr_attrs, zarr_generator
 from export.to_onnx import main as export_main
 from studies.sim_study import REPORT_NAME
 from studies.sim_study import main as study_main
@@ -636,9 +626,30 @@ def test_known_kinds_are_recognised_by_their_own_signature(tmp_path):
     assert not RUN_DIR.owns(run)
 
 
-def test_the_guard_does_not_import_torch():
-    code = "import sys; import dssp_data.output_guard; assert 'torch' not in sys.modules"
+def test_the_guard_imports_neither_torch_nor_zarr():
+    code = "import sys; import dssp_core.output_guard; assert 'torch' not in sys.modules and 'zarr' not in sys.modules"
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
+
+
+def test_two_writers_making_the_same_parent_folder_both_go_on(tmp_path, monkeypatch):
+    """Two commands side by side (two trainings into runs/a and runs/b) create runs/ at the same moment: the
+    one whose mkdir comes second finds it made, goes on, and does not count it as its own."""
+    from dssp_core.files import make_dirs
+
+    real = Path.mkdir
+
+    def the_other_writer_was_first(self, *args, **kwargs):
+        if self.name == "runs":
+            real(self)  # the other process, just before this one
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "mkdir", the_other_writer_was_first)
+    created = make_dirs(tmp_path / "runs" / "a")
+    assert created == [tmp_path / "runs" / "a"] and (tmp_path / "runs" / "a").is_dir()
+    (tmp_path / "file").write_text("x")
+    monkeypatch.setattr(Path, "mkdir", lambda self, *a, **k: (_ for _ in ()).throw(FileExistsError(17, "File exists")))
+    with pytest.raises(OutputError, match="File exists"):  # what is there is not a folder: still refused
+        make_dirs(tmp_path / "new" / "b")
 
 
 # ---------------------------------------------------------------------- the robot's commands and dssp-data view
@@ -667,7 +678,8 @@ def test_the_robot_commands_never_touch_a_foreign_output(run, tmp_path, capsys):
 
 
 def test_dssp_run_never_reuses_a_log(tmp_path, capsys):
-    from dssp_data.output_guard import RUN_LOG, claim_dir
+    from hardware.cli.run import RUN_LOG
+    from dssp_core.output_guard import claim_dir
 
     out = claim_dir(tmp_path / "log", kind=RUN_LOG, flag="--log-dir")
     (out / "run.json").write_text("{}")
@@ -694,7 +706,7 @@ def test_dssp_data_view_replaces_its_pictures_only_with_force(tmp_path, capsys):
 
 # ---------------------------------------------------------------------- staging, interruptions, where outputs go
 def test_staging_is_removed_on_any_exit_with_the_parents_it_made(tmp_path):
-    from dssp_data.output_guard import Staging
+    from dssp_core.staging import Staging
 
     out = tmp_path / "a" / "b" / "out.zarr"
     with pytest.raises(KeyboardInterrupt):
@@ -720,7 +732,7 @@ def test_staging_is_removed_on_any_exit_with_the_parents_it_made(tmp_path):
 
 
 def test_only_stale_staging_folders_of_the_same_output_are_swept(tmp_path):
-    from dssp_data.output_guard import Staging, sweep_stale
+    from dssp_core.staging import Staging, sweep_stale
 
     out = tmp_path / "m.zarr"
     stale = [".m.zarr.tmp-0123abcd", ".m.zarr.partial-89abcdef", "..m.zarr.tmp-0123abcd.tmp-4567cdef",
@@ -746,7 +758,7 @@ def test_only_stale_staging_folders_of_the_same_output_are_swept(tmp_path):
 
 
 def test_replace_dirs_puts_everything_back_when_a_rename_fails(tmp_path, monkeypatch):
-    from dssp_data.output_guard import replace_dirs
+    from dssp_core.files import replace_dirs
 
     for name in ("out", "out.can", "new", "new.can"):
         (tmp_path / name).mkdir()
@@ -771,7 +783,7 @@ def test_replace_dirs_puts_everything_back_when_a_rename_fails(tmp_path, monkeyp
 def test_ctrl_c_is_held_back_inside_interrupts_deferred():
     import signal
 
-    from dssp_data.output_guard import interrupts_deferred
+    from dssp_core.staging import interrupts_deferred
 
     done = []
     with pytest.raises(KeyboardInterrupt):
@@ -789,8 +801,8 @@ def test_a_ctrl_c_stops_a_commit_before_its_renames_and_comes_too_late_during_th
     (nothing in place, the staging removed); one during the renames lets the commit finish and raises nothing."""
     import signal
 
-    from dssp_data import output_guard
-    from dssp_data.output_guard import Staging
+    from dssp_core import staging as staging_module
+    from dssp_core.staging import Staging
 
     def ctrl_c():
         os.kill(os.getpid(), signal.SIGINT)
@@ -803,8 +815,8 @@ def test_a_ctrl_c_stops_a_commit_before_its_renames_and_comes_too_late_during_th
             staging.commit([(tmp, out)], check=ctrl_c)
     assert os.listdir(tmp_path) == []
 
-    real = output_guard.replace_dirs
-    monkeypatch.setattr(output_guard, "replace_dirs", lambda moves: (ctrl_c(), real(moves)))
+    real = staging_module.replace_dirs
+    monkeypatch.setattr(staging_module, "replace_dirs", lambda moves: (ctrl_c(), real(moves)))
     with Staging() as staging:
         tmp = staging.make(staging.reserve(out))
         (tmp / "f").write_text("new")
@@ -814,8 +826,8 @@ def test_a_ctrl_c_stops_a_commit_before_its_renames_and_comes_too_late_during_th
 
 
 def test_a_command_interrupted_after_its_outputs_were_in_place_names_them(tmp_path, capsys):
-    from dssp_data.cli_runner import run_cli
-    from dssp_data.output_guard import Staging
+    from dssp_core.cli_runner import run_cli
+    from dssp_core.staging import Staging
 
     out = tmp_path / "out"
 
@@ -837,7 +849,7 @@ def test_a_command_interrupted_after_its_outputs_were_in_place_names_them(tmp_pa
 
 
 def test_datasets_made_by_dssp_data_are_recognised_with_their_can_logs(tmp_path):
-    from dssp_data.output_guard import DATA_DATASET
+    from dssp_data.edit import DATA_DATASET
 
     for generator in ("dssp-data merge", "dssp-data split", "dssp-data convert", "dssp-data convert (RoboTwin raw HDF5)"):
         path = write_dataset(tmp_path / f"{generator}.zarr", generator)
@@ -867,7 +879,8 @@ def test_datasets_made_by_dssp_data_are_recognised_with_their_can_logs(tmp_path)
 
 
 def test_paths_under_a_file_and_outputs_inside_inputs_are_one_line(tmp_path):
-    from dssp_data.output_guard import check_not_inside, make_dirs
+    from dssp_core.output_guard import check_not_inside
+    from dssp_core.files import make_dirs
 
     a_file = tmp_path / "f"
     a_file.write_text("x")

@@ -14,7 +14,7 @@ import can
 import numpy as np
 import pytest
 
-from dssp_data.errors import ArmError, CanError
+from dssp_core.errors import ArmError, CanError
 from hardware.clock import FakeClock
 from dssp_data.observation import piper_layout
 from hardware.piper import codec

@@ -13,9 +13,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from dssp_data.errors import ConfigError
+from dssp_core.errors import ConfigError
 from hardware.camera.base import DepthFrame, Intrinsics
-from dssp_data.errors import CalibrationError, CameraError
+from dssp_core.errors import CalibrationError, CameraError
 from hardware.pointcloud import (
     EmptyCloudError,
     PointCloudConfig,

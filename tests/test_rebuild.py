@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from dssp_data.errors import DSSPError
+from dssp_core.errors import DSSPError
 from studies.rebuild import main, rebuild
 
 ROOT = Path(__file__).resolve().parents[1]

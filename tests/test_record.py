@@ -27,7 +27,7 @@ from dssp_data.recording import (
     episode_infos,
 )
 from dssp_data.replay_buffer import ReplayBuffer, ReplayBufferReader
-from dssp_data.errors import DatasetError
+from dssp_core.errors import DatasetError
 from hardware.can_log import read_log
 from dssp_sim.teleop import TeleopRigs, record_main
 from hardware.cli.record import Console, LineControls, open_session, parse_args

@@ -20,7 +20,7 @@ from dssp_data.replay_buffer import (
     ReplayBufferWriter,
     write_replay_buffer,
 )
-from dssp_data.errors import DatasetError
+from dssp_core.errors import DatasetError
 
 FIXTURES = Path(__file__).parent / "fixtures"
 P, C, S, A = 8, 6, 14, 14

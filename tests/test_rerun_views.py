@@ -12,7 +12,7 @@ from rrd import read_rrd, text_rows
 
 from dssp_data.arm_kinematics import ARM_VALUES, flange_pose, tool_points
 from dssp_data.data_cli import main as data_main
-from dssp_data.errors import ConfigError
+from dssp_core.errors import ConfigError
 from dssp_data.rerun_views import height_colors, open_views
 from dssp_sim.teleop import record_main
 from hardware.cli.run import main as run_main

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dssp_data.errors import CameraError, DSSPError
+from dssp_core.errors import CameraError, DSSPError
 from hardware.camera.base import Camera
 from hardware.cli.run import main as run_main
 from hardware.clock import FakeClock
@@ -147,7 +147,7 @@ def test_a_second_writer_of_a_log_directory_gets_one_line_before_anything_opens(
     nothing of the first's is touched."""
     from conftest import one_error_line, snapshot
 
-    from dssp_data.output_guard import WriterLock
+    from dssp_core.staging import WriterLock
 
     log_dir = tmp_path / "log"
     first = WriterLock(log_dir, what="log directory", flag="--log-dir")
@@ -169,7 +169,7 @@ def test_default_log_directories_never_collide(arm_export, tmp_path, capsys, mon
     run's log and past a name another run holds — and neither of those is touched."""
     import json
 
-    from dssp_data.output_guard import WriterLock
+    from dssp_core.staging import WriterLock
     from hardware.cli import run as run_module
 
     monkeypatch.chdir(tmp_path)

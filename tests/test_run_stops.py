@@ -26,7 +26,7 @@ import pytest
 from test_run import GRIPPER, assert_within_limits, sent_commands
 from waiting import wait_for
 
-from dssp_data.errors import CameraError, DSSPError
+from dssp_core.errors import CameraError, DSSPError
 from hardware.can_log import read_log
 from hardware.cli.run import main as run_main
 from hardware.cli.stops import LOST_STREAM_CODE, Stops, exit_code, signal_name, stop_signals

@@ -22,7 +22,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from dssp_data.errors import DSSPError, NonFiniteObservation
+from dssp_core.errors import DSSPError, NonFiniteObservation
 from dssp_deploy import mamba_kernel
 from dssp_deploy.control_loop import ChunkedControl
 from dssp_deploy.manifest import MANIFEST_NAME, ModelDirError, sha256_hex

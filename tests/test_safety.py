@@ -5,7 +5,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from dssp_data.errors import ConfigError
+from dssp_core.errors import ConfigError
 from hardware.piper.piper_robot import open_robot
 from hardware.robot import ArmStatus, RobotState
 from hardware.safety import Safety, SafetyConfig

@@ -19,8 +19,8 @@ import dssp_data.observation  # noqa: F401
 import hardware.pointcloud.extrinsics  # noqa: F401
 import hardware.recorder  # noqa: F401
 import hardware.safety  # noqa: F401
-from dssp_data.errors import ConfigError
-from dssp_data.schema import Settings, Spec, _union_args, all_schemas, setting
+from dssp_core.errors import ConfigError
+from dssp_core.schema import Settings, Spec, _union_args, all_schemas, setting
 
 IDENTITY = [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
 SAMPLES = {
@@ -236,7 +236,7 @@ def test_schema_refuses_an_annotation_it_cannot_check():
 
     with pytest.raises(TypeError, match="cannot check"):
         Odd()
-    from dssp_data import schema
+    from dssp_core import schema
 
     schema._REGISTRY.remove(Odd)
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from scipy.stats import binomtest
 
-from dssp_data.errors import DSSPError
+from dssp_core.errors import DSSPError
 from studies import protocol
 from studies.runner import Runner, Stage
 from studies.stats import cluster_bootstrap, describe_p, paired_difference, paired_exact_test

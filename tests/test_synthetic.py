@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from dssp_data.errors import ConfigError
+from dssp_core.errors import ConfigError
 
 from dssp_data.replay_buffer import ReplayBuffer
 from dssp_train.data.synthetic import (

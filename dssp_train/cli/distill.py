@@ -19,8 +19,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from dssp_data.cli_runner import ArgumentParser
-from dssp_data.errors import ConfigError, DSSPError
+from dssp_core.cli_runner import ArgumentParser
+from dssp_core.errors import ConfigError, DSSPError
 from dssp_train.cli.train import add_log_flag, given_flags, run_training, with_flags
 from dssp_train.config import DISTILL_METHODS, RunConfig
 

@@ -8,13 +8,14 @@ from __future__ import annotations
 
 import argparse
 import sys
+import dataclasses
 
-from dssp_data.cli_runner import ArgumentParser, run_cli
+from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_train.cli.train import set_fields
-from dssp_data.schema import MAX_DIM
+from dssp_core.schema import MAX_DIM
 from dssp_train.config import apply_overrides, load_preset, preset_names
-from dssp_data.errors import ConfigError
-from dssp_data.schema import Spec, check_value
+from dssp_core.errors import ConfigError
+from dssp_core.schema import Spec, check_value
 
 
 DEFAULT_DIM = 14  # RoboTwin's two arms
@@ -78,7 +79,6 @@ PAPER_PARAMS = 44.3e6  # the paper's reported size (RoboTwin configuration)
 def block_variants(model) -> str:
     """The total for each denoiser block composition (model.denoiser_mlp) and mixer (model.denoiser_backbone) at
     this config's sizes, against the paper's 44.3 M; the config's own marked."""
-    import dataclasses
 
     lines = [f"denoiser blocks (model.denoiser_backbone, model.denoiser_mlp): total, vs the paper's {PAPER_PARAMS / 1e6:.1f} M"]
     for backbone in ("mamba", "transformer"):

@@ -11,7 +11,14 @@ from __future__ import annotations
 import argparse
 import sys
 
-from dssp_data.cli_runner import ArgumentParser, run_cli
+from dssp_core.cli_runner import ArgumentParser, run_cli
+from dssp_core.output_guard import OutputKind, check_output
+from dssp_data.attributes import ZARR_ENTRIES, made_by
+
+
+SYNTH_DATASET = OutputKind("a synthetic dataset", "dssp-synth", entries=ZARR_ENTRIES, marker=False,
+                           signature=lambda p: made_by(p, ("dssp_train.data.synthetic",)))
+"""``dssp-synth --out``: a zarr dataset whose ``generator`` attribute is ``dssp_train.data.synthetic``."""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -29,7 +36,6 @@ def main(argv: list[str] | None = None) -> int:
 
     def _main() -> int:
         from dssp_train.data.synthetic import check_tap_count_size
-        from dssp_data.output_guard import SYNTH_DATASET, check_output
 
         check_tap_count_size(args.episodes, args.seed, args.points, names=("--episodes", "--seed", "--points"))
         check_output(args.out, force=args.force, kind=SYNTH_DATASET, flag="--out")

@@ -7,10 +7,10 @@
 A new run goes into a new or empty --out. A previous run there is refused (continue it with --resume) or,
 with --force, replaced: it is moved aside while the new run trains, deleted when the new run completes,
 and put back if the new run fails or is interrupted. A folder holding anything but a run is never touched
-(:mod:`dssp_data.output_guard`). A run that stopped before its first checkpoint cannot be continued: it is
+(:mod:`dssp_core.output_guard`). A run that stopped before its first checkpoint cannot be continued: it is
 started over with --force. One process writes a run directory at a time: a second dssp-train or dssp-distill
 with the same --out (a new run, --force or --resume) is refused before it reads or changes anything there
-(:func:`dssp_data.output_guard.writer_lock`).
+(:func:`dssp_core.staging.writer_lock`).
 
 Every config field has one source: a flag (--steps, --seed, ...), else ``--set model.*/train.*``, else the
 preset; the same field from a flag and a --set, or twice from --set, is refused. The dataset gives the
@@ -42,13 +42,30 @@ import signal
 import sys
 import threading
 import typing
+import warnings
 from pathlib import Path
 
-from dssp_data.cli_runner import ArgumentParser, run_cli
+from dssp_core.cli_runner import ArgumentParser, run_cli
+from dssp_core.errors import CheckpointError, ConfigError, DSSPError, OutputError
+from dssp_core.files import read_regular_text
+from dssp_core.output_guard import OWN, OutputDir, OutputKind, check_output
+from dssp_core.schema import Spec, check_value
+from dssp_core.staging import writer_lock
 from dssp_train.config import RunConfig, apply_overrides, load_preset, preset_names
 from dssp_train.training.dashboards import DASHBOARDS, check_dashboard
-from dssp_data.errors import CheckpointError, ConfigError, DSSPError
-from dssp_data.schema import Spec, check_value
+
+
+def _run_signature(path: Path) -> bool:
+    config = json.loads(read_regular_text(path / "config.json") or "null")
+    return isinstance(config, dict) and "model" in config and "train" in config
+
+
+RUN_DIR = OutputKind("a run directory", "dssp-train",
+                     entries=("config.json", "model.safetensors", "checkpoint", "log.jsonl", "loss.png", "tensorboard", "wandb"),
+                     signature=_run_signature, marker=False)
+"""``dssp-train --out``: config.json (a JSON object with ``model`` and ``train``), model.safetensors,
+checkpoint/, log.jsonl, loss.png, and the dashboards' tensorboard/ and wandb/ (``--log``) — recognised by its
+config.json, no marker added."""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -235,7 +252,6 @@ def check_resume(args, out: Path) -> RunConfig:
     """Before the dataset is read: the run in ``out`` can be continued as asked, and its config.json is the config
     its checkpoint was trained with (one without that record, from an older version, is taken with a warning).
     Returns its config."""
-    import warnings
 
     from dssp_train.training.checkpoint import check_recorded_config, checkpoint_dir, load_config, read_trainer_state
 
@@ -321,8 +337,6 @@ def run_training(args, make_config) -> int:
     args.trainer = None  # set by _train once the Trainer exists (for the interruption message)
 
     def _main() -> int:
-        from dssp_data.output_guard import OWN, RUN_DIR, OutputDir, OutputError, check_output, writer_lock
-
         out = Path(args.out)
         if args.resume and args.force:
             raise DSSPError("--resume continues the run in --out; drop --force")

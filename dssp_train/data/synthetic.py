@@ -41,7 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from dssp_data.replay_buffer import Episode, write_replay_buffer
-from dssp_data.errors import ConfigError
+from dssp_core.errors import ConfigError
 
 __all__ = [
     "CUE_STEPS", "DECISION_STEP", "EPISODE_LENGTH", "FIRST_PAUSE_STEPS", "NOISE_STD",

@@ -11,7 +11,7 @@ The history is kept by :class:`dssp_data.streaming_history.StreamingHistory`, th
 robot's runtime (``dssp_deploy.onnx_policy.OnnxPolicy``) uses too: zero recurrent state at the start of
 an episode, the last N ``z`` tokens, the first ``z`` repeated until N exist (as in training). Streaming
 step by step gives the same ``c_t`` as the sequence path used in training. An observation with NaN or
-infinity is refused (:class:`dssp_data.errors.NonFiniteObservation`) before the encoder runs, leaving the
+infinity is refused (:class:`dssp_core.errors.NonFiniteObservation`) before the encoder runs, leaving the
 history as it was — the same rule as the robot's runtime.
 
 Shapes: point_cloud (B, P, C) or (P, C); agent_pos (B, S) or (S,); noise (B, H, A); chunk (B, H, A);

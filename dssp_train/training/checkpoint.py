@@ -40,10 +40,10 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 from torch import nn
 
-from dssp_data.files import _umask, atomic_write, atomic_write_text, replace_dir
+from dssp_core.files import _umask, atomic_write, atomic_write_text, replace_dir
 from dssp_train.config import RunConfig
-from dssp_data.errors import CheckpointError, ConfigError
-from dssp_data.schema import read_json_object
+from dssp_core.errors import CheckpointError, ConfigError
+from dssp_core.schema import read_json_object
 
 FORMAT_VERSION = "1"
 

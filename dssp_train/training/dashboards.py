@@ -28,7 +28,8 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from dssp_data.errors import ConfigError, DSSPError
+from dssp_core.errors import ConfigError, DSSPError
+from dssp_core.files import atomic_write_text
 
 DASHBOARDS = ("tensorboard", "wandb", "none")
 """The values of ``--log``; each but ``none`` is also the package it imports."""
@@ -155,7 +156,6 @@ class WandbDashboard:
             reason = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
             raise DSSPError(f"--log wandb: W&B could not start the run in {mode} mode ({reason}); "
                             "unset WANDB_MODE to log offline, or run wandb login") from None
-        from dssp_data.files import atomic_write_text
 
         atomic_write_text(id_file, self.run.id + "\n")
         self.run.define_metric("step")

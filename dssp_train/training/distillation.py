@@ -36,7 +36,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from dssp_data.errors import ConfigError
+from dssp_core.errors import ConfigError
 from dssp_train.config import RunConfig
 from dssp_train.model.policy import DSSPPolicy
 

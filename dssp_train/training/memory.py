@@ -34,7 +34,7 @@ from pathlib import Path
 import torch
 
 from dssp_train.config import ModelConfig, RunConfig
-from dssp_data.errors import ConfigError
+from dssp_core.errors import ConfigError
 
 FLOAT_BYTES = 4
 STATE_COPIES = 5  # weights, gradients, AdamW exp_avg and exp_avg_sq, EMA weights

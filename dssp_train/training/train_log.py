@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from dssp_data.files import atomic_write_text
+from dssp_core.files import atomic_write_text
 
 
 class RunLog:

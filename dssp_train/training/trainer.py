@@ -25,7 +25,7 @@ import torch.distributed as dist
 
 from dssp_train.config import RunConfig, resolve_epochs
 from dssp_data.replay_buffer import ReplayBuffer
-from dssp_data.errors import CheckpointError, ConfigError, DSSPError
+from dssp_core.errors import CheckpointError, ConfigError, DSSPError
 from dssp_data.observation import ObservationContract
 from dssp_train.model.policy import DSSPPolicy
 from dssp_train.training import checkpoint as ckpt

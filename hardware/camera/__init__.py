@@ -14,7 +14,7 @@ from pathlib import Path
 
 from hardware.camera.base import Camera, DepthFrame, Intrinsics
 from hardware.camera.profiles import CameraProfile, load_profile, profile_names
-from dssp_data.errors import CameraError
+from dssp_core.errors import CameraError
 
 TABLETOP = "tabletop"  # the spec of the simulated tabletop camera (hardware.camera.tabletop)
 

@@ -13,6 +13,8 @@ from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
 import numpy as np
+import time
+from dssp_core.errors import CameraError
 
 
 @dataclass(frozen=True)
@@ -66,9 +68,7 @@ class Camera(ABC):
 
     def wait_for_frame(self, timeout: float = 5.0) -> DepthFrame:
         """Block until a frame is available (raises ``CameraError`` after ``timeout`` seconds)."""
-        import time
 
-        from dssp_data.errors import CameraError
 
         deadline = time.monotonic() + timeout
         while True:

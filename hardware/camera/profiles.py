@@ -15,9 +15,9 @@ from functools import lru_cache
 from pathlib import Path
 from typing import ClassVar
 
-from dssp_data.errors import ConfigError
-from dssp_data.schema import Settings, setting
-from dssp_data.errors import CameraError
+from dssp_core.errors import ConfigError
+from dssp_core.schema import Settings, setting
+from dssp_core.errors import CameraError
 
 PROFILES_PATH = Path(__file__).with_name("profiles.json")
 

@@ -24,7 +24,7 @@ import numpy as np
 
 from hardware.camera.base import Camera, DepthFrame, Intrinsics
 from hardware.camera.profiles import CameraProfile, load_profile, parse_version
-from dssp_data.errors import CameraError
+from dssp_core.errors import CameraError
 
 RECORDING_SUFFIXES = (".bag", ".db3")
 

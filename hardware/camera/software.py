@@ -21,8 +21,8 @@ import numpy as np
 
 from hardware.camera.base import Camera, DepthFrame, Intrinsics
 from hardware.camera.realsense import depth_frame_from_rs, import_rs
-from dssp_data.errors import CameraError
-from dssp_data.files import atomic_write
+from dssp_core.errors import CameraError
+from dssp_core.files import atomic_write
 
 
 def _rs_intrinsics(rs, intr: Intrinsics):

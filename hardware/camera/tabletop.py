@@ -26,7 +26,7 @@ import numpy as np
 
 from hardware.camera.base import Camera, DepthFrame, Intrinsics
 from hardware.camera.profiles import CameraProfile, load_profile
-from dssp_data.errors import CameraError
+from dssp_core.errors import CameraError
 
 # Object ids in the rendered id image (index into the colour palette); boxes follow from FIRST_BOX_ID.
 NOTHING, FLOOR, TABLE, FIRST_BOX_ID = 0, 1, 2, 3

@@ -15,8 +15,8 @@ import sys
 import threading
 import time
 
-from dssp_data.cli_runner import ArgumentParser, run_cli
-from dssp_data.errors import HardwareError
+from dssp_core.cli_runner import ArgumentParser, run_cli
+from dssp_core.errors import HardwareError
 
 EPILOG = """\
 channels:

@@ -34,9 +34,15 @@ import time
 from pathlib import Path
 from typing import Protocol
 
-from dssp_data.cli_runner import ArgumentParser
-from dssp_data.errors import ConfigError, DSSPError
+from dssp_core.cli_runner import ArgumentParser, run_cli
+from dssp_core.errors import ConfigError, DSSPError
+from dssp_core.output_guard import NEW, OutputKind, check_append
+from dssp_data.attributes import zarr_generator
 from hardware.cli.stops import Stops, run_stoppable
+
+RECORDED_DATASET = OutputKind("a recorded dataset", "dssp-record", marker=False,
+                              signature=lambda p: zarr_generator(p) == "dssp-record")
+"""``dssp-record --out``: a zarr dataset whose ``generator`` attribute is ``dssp-record`` (appended to)."""
 
 EPILOG = """\
 Action convention (--action): "leader" (default) records the leader arm's command at each step, what the
@@ -242,7 +248,6 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
         RecordingDataset,
     )
     from dssp_data.observation import ObservationContract, piper_layout
-    from dssp_data.output_guard import NEW, RECORDED_DATASET, check_append
     from dssp_data.replay_buffer import dataset_lock
     from hardware.robot import check_rate
     from hardware.bus_monitor import BusMonitor
@@ -409,8 +414,6 @@ def _record(args, stops: Stops) -> int:
 def main(argv: list[str] | None = None, sim: SimulatedRig | None = None, prog: str = "dssp-record") -> int:
     stops = Stops()  # first: from here every stop is a clean one
     try:
-        from dssp_data.cli_runner import run_cli
-
         return run_cli(lambda: record(parse_args(argv, sim, prog), stops))
     finally:
         stops.restore()

@@ -14,7 +14,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from dssp_data.cli_runner import ArgumentParser, run_cli
+from dssp_core.cli_runner import ArgumentParser, run_cli
 from hardware.cli.stops import Stops
 
 

@@ -26,13 +26,19 @@ import argparse
 import contextlib
 import sys
 import time
+import warnings
 from pathlib import Path
 
-# Only the standard library and the base's light modules load before main() installs the stop request
+# Only the standard library and the core (dssp_core, no numpy) load before main() installs the stop request
 # (hardware.cli.stops): a Ctrl-C during the heavier imports (numpy, the runtime) is then a clean stop.
-from dssp_data.cli_runner import ArgumentParser
-from dssp_data.errors import ConfigError
+from dssp_core.cli_runner import ArgumentParser, run_cli
+from dssp_core.errors import ConfigError, OutputError
+from dssp_core.output_guard import OutputKind, check_output, claim_dir
+from dssp_core.staging import writer_lock, writer_lock_path
 from hardware.cli.stops import Stops, run_stoppable
+
+RUN_LOG = OutputKind("an episode log", "dssp-run")
+"""``dssp-run --log-dir``: a new directory for one run's log (marked); an existing log is never reused."""
 
 EPILOG = """\
 --camera tabletop --can sim runs everything against the simulated tabletop camera and the CAN simulator of
@@ -126,7 +132,6 @@ def lock_log_dir(log_dir: Path | None, stack: contextlib.ExitStack) -> Path:
     one gets one line before anything is opened): ``--log-dir``, or ``runs/dssp-run/<log_stamp()>``, with a suffix
     -2, -3, ... when that name is taken — chosen under its lock, so two runs never pick the same one. The folders
     made for the lock are removed again if the run leaves nothing in them."""
-    from dssp_data.output_guard import OutputError, writer_lock, writer_lock_path
 
     if log_dir is not None:
         stack.enter_context(writer_lock(log_dir, what="log directory", flag="--log-dir"))
@@ -154,7 +159,6 @@ def lock_log_dir(log_dir: Path | None, stack: contextlib.ExitStack) -> Path:
 def check_prefetch(policy, rate: float) -> float:
     """--prefetch: the chunk latency (ms, measured once here, before any device opens) and that the lead it needs
     at ``rate`` fits the model's horizon; one line otherwise. The run's loop chooses its lead from the same value."""
-    import warnings
 
     from dssp_deploy.control_loop import ChunkedControl
 
@@ -177,7 +181,6 @@ def _run(args, stops: Stops) -> int:
     stops.check()
     check_args(args)
     from dssp_deploy.onnx_policy import OnnxPolicy
-    from dssp_data.output_guard import RUN_LOG, check_output, claim_dir
     from hardware.camera import TABLETOP, open_camera
     from hardware.can_log import BusRecorder
     from hardware.piper.piper_robot import open_robot
@@ -302,8 +305,6 @@ def print_summary(summary: dict, log_dir: Path) -> None:
 def main(argv: list[str] | None = None) -> int:
     stops = Stops()  # first: from here every stop is a clean one, even during the imports below
     try:
-        from dssp_data.cli_runner import run_cli
-
         args = parse_args(argv)
         return run_cli(lambda: run(args, stops))
     finally:

@@ -37,7 +37,7 @@ import sys
 import threading
 from collections.abc import Callable
 
-from dssp_data.cli_runner import is_default_interrupt_handler
+from dssp_core.cli_runner import is_default_interrupt_handler
 
 LOST_STREAM_CODE = 128 + 13
 """The exit code after stdout or stderr went away: as for SIGPIPE (its reader went away), as shells report it."""

@@ -18,7 +18,7 @@ import numpy as np
 from hardware.can_reader import CanReader
 from hardware.clock import REAL_CLOCK, Clock
 from hardware.robot import ArmStatus
-from dssp_data.errors import ArmError, CanError
+from dssp_core.errors import ArmError, CanError
 from hardware.piper import codec
 from hardware.piper.codec import ArmStatusFeedback, GripperFeedback, JointFeedback, MotorLowSpeed
 

@@ -14,7 +14,7 @@ import sys
 
 import can
 
-from dssp_data.errors import CanError
+from dssp_core.errors import CanError
 
 INTERFACES = ("socketcan", "virtual", "udp_multicast")
 DEFAULT_UDP_PORT = 43113  # python-can's default port for udp_multicast

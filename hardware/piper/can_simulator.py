@@ -30,7 +30,7 @@ import time
 import can
 import numpy as np
 
-from dssp_data.errors import CanError
+from dssp_core.errors import CanError
 from hardware.can_reader import CanReader
 from hardware.piper import codec
 from hardware.piper.limits import GRIPPER_STROKE_MAX, GRIPPER_STROKE_MIN, JOINT_LOWER, JOINT_UPPER

@@ -13,7 +13,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from hardware.robot import ARM_DOF, ArmStatus, Robot, RobotDescription, RobotState
-from dssp_data.errors import ArmError, HardwareError
+from dssp_core.errors import ArmError, HardwareError
 from hardware.piper.arm import PiperArm
 from hardware.piper.limits import opening_to_stroke, piper_description, stroke_to_opening
 from hardware.piper.can_simulator import SimulatedPiper

@@ -6,7 +6,7 @@
 ``camera_to_base`` maps a point in the camera's optical frame (x right, y down, z forward, metres) to the
 robot-base frame: p_base = R @ p_cam + t. Without a calibration file (``load_extrinsics(None)``) the
 identity is used: clouds then stay in the camera frame, and the crop box must be given in camera
-coordinates. Every problem is a one-line :class:`~dssp_data.errors.CalibrationError`.
+coordinates. Every problem is a one-line :class:`~dssp_core.errors.CalibrationError`.
 """
 
 from __future__ import annotations
@@ -18,10 +18,10 @@ from typing import ClassVar
 
 import numpy as np
 
-from dssp_data.files import atomic_write_text
-from dssp_data.errors import ConfigError
-from dssp_data.schema import Settings, setting
-from dssp_data.errors import CalibrationError
+from dssp_core.files import atomic_write_text
+from dssp_core.errors import ConfigError
+from dssp_core.schema import Settings, setting
+from dssp_core.errors import CalibrationError
 
 ROTATION_TOLERANCE = 1e-3  # max |R^T R - I| entry and |det R - 1|: allows 4-5 printed decimals
 MAX_TRANSLATION_M = 10.0  # a camera farther than this from the base is a unit mistake (mm instead of m)

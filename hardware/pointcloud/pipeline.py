@@ -39,7 +39,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from hardware.camera.base import DepthFrame, Intrinsics
-from dssp_data.errors import CameraError
+from dssp_core.errors import CameraError
 from dssp_data.observation import PointCloudConfig
 from hardware.pointcloud.extrinsics import validate_extrinsics
 

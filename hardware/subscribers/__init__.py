@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from dssp_data.errors import ConfigError
+from dssp_core.errors import ConfigError
 
 if TYPE_CHECKING:  # the loop imports this module; the name is for the annotations only
     from hardware.camera.base import DepthFrame

@@ -13,7 +13,7 @@ physically meaningful range, the unit and the allowed choices:
 
 Construction checks every field against its annotation, strictly — JSON ``"false"`` is not a boolean,
 ``64.5`` and ``true`` are not integers, NaN and infinity are not numbers — and against its range, and
-raises :class:`~dssp_data.errors.ConfigError` with one line naming the field, the value and the range:
+raises :class:`~dssp_core.errors.ConfigError` with one line naming the field, the value and the range:
 
     safety.disable_on_exit must be true or false (a JSON boolean), got 'false'
 
@@ -35,7 +35,7 @@ from dataclasses import MISSING, dataclass
 from pathlib import Path
 from typing import Any, ClassVar
 
-from dssp_data.errors import ConfigError
+from dssp_core.errors import ConfigError
 
 # Bounds shared by the training configs and the model manifest (a model past them is refused on load).
 MAX_DIM = 4096  # state / action channels

@@ -8,6 +8,10 @@ class DSSPError(Exception):
     """An error caused by the user's input (a path, a dataset, a config)."""
 
 
+class OutputError(DSSPError):
+    """An output path holds something the command may not replace, or cannot be written (``dssp_core.output_guard``)."""
+
+
 class DatasetError(DSSPError):
     """A dataset on disk is missing something or holds invalid values."""
 

@@ -12,7 +12,7 @@ import time
 import warnings
 from collections.abc import Callable, Iterator
 
-from dssp_data.errors import DSSPError
+from dssp_core.errors import DSSPError
 
 
 def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
@@ -60,9 +60,9 @@ def run_cli(main: Callable[[], int | None]) -> int:
 
 
 def _put_in_place() -> list:
-    """The outputs this process has put in place so far (none while the output guard is not loaded)."""
-    guard = sys.modules.get("dssp_data.output_guard")
-    return list(guard.PUT_IN_PLACE) if guard is not None else []
+    """The outputs this process has put in place so far (none while the staging module is not loaded)."""
+    staging = sys.modules.get("dssp_core.staging")
+    return list(staging.PUT_IN_PLACE) if staging is not None else []
 
 
 def _settle_after_interrupt() -> None:
@@ -70,7 +70,7 @@ def _settle_after_interrupt() -> None:
     the main thread), and do not warn about the calls the interruption stopped before they started."""
     if "zarr" not in sys.modules:
         return
-    from dssp_data.output_guard import settle_background_writes
+    from dssp_core.staging import settle_background_writes
 
     warnings.filterwarnings("ignore", message="coroutine .* was never awaited", category=RuntimeWarning)
     settle_background_writes()

@@ -1,4 +1,4 @@
-"""Atomic file writes and directory swaps (numpy and the standard library only): a reader sees the old
+"""Atomic file writes and directory swaps (the standard library only; numpy for ``.npy`` files): a reader sees the old
 version or the new one.
 
 Each file is written to a temporary file in the same directory, then ``os.replace``d over the target, so
@@ -20,9 +20,7 @@ import uuid
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-import numpy as np
-
-from dssp_data.errors import DSSPError
+from dssp_core.errors import DSSPError, OutputError
 
 
 def _umask() -> int:
@@ -66,8 +64,9 @@ def atomic_write_text(path: Path, text: str) -> None:
     atomic_write(path, text_writer(text))
 
 
-def atomic_save_npy(path: Path, array: np.ndarray) -> None:
+def atomic_save_npy(path: Path, array) -> None:
     """``np.save`` without pickles (numeric arrays only), atomically."""
+    import numpy as np  # only here: the core loads without numpy (the robot commands stop cleanly meanwhile)
 
     def write(tmp: str) -> None:
         with open(tmp, "wb") as f:
@@ -150,7 +149,7 @@ def replace_dirs(moves: Sequence[tuple[Path | None, Path]], *, aside: Callable[[
     Existing targets are first renamed aside (``aside(target)``, default ``.NAME.old-XXXXXXXX``), then each
     ``new`` is renamed onto its target (``new`` None: the target is only removed); if a rename fails,
     everything is put back. The old directories are deleted only once every new one is in place. Which
-    targets may be replaced at all is :mod:`dssp_data.output_guard`'s decision.
+    targets may be replaced at all is :mod:`dssp_core.output_guard`'s decision.
     """
     aside = aside or (lambda target: sibling_name(target, "old"))
     moved, placed = [], []
@@ -181,3 +180,79 @@ def replace_dir(new: Path, target: Path, *, aside: Path | None = None) -> None:
     """:func:`replace_dirs` for one directory; ``aside``: where a previous ``target`` waits until ``new`` is
     in place (default ``.NAME.old-XXXXXXXX``)."""
     replace_dirs([(new, target)], aside=None if aside is None else lambda _: Path(aside))
+
+
+# ------------------------------------------------------------------------------------------- folders
+def check_parent(path: Path, flag: str, error: type[DSSPError]) -> None:
+    """The nearest existing folder above ``path`` must be a folder this process may write into."""
+    path = Path(path).absolute()
+    for parent in path.parents:
+        if parent.exists() or parent.is_symlink():
+            break
+    else:
+        return
+    if not parent.is_dir():
+        raise error(f"cannot write {path}: {parent} is a file, not a folder; choose another {flag}")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise error(f"cannot write {path}: {parent} is not writable; choose another {flag}")
+
+
+def make_dirs(path: str | os.PathLike, *, flag: str = "--out", error: type[DSSPError] = OutputError) -> list[Path]:
+    """Create the folder ``path`` and its parents; returns the folders created (outermost first).
+
+    A path under a file, or one that cannot be created, is a one-line ``error`` (nothing is left behind).
+    """
+    path = Path(path).absolute()
+    check_parent(path, flag, error)
+    if path.is_dir():
+        return []
+    if path.exists() or path.is_symlink():
+        raise error(f"cannot write into {path}: it is a file, not a folder; choose another {flag}")
+    missing, folder = [], path
+    while not (folder.exists() or folder.is_symlink()):
+        missing.append(folder)
+        folder = folder.parent
+    created = []
+    try:
+        for folder in reversed(missing):
+            try:
+                folder.mkdir()
+            except FileExistsError:  # another process made it meanwhile (two writers beside each other)
+                if folder.is_dir() and not folder.is_symlink():
+                    continue
+                raise
+            created.append(folder)
+    except OSError as exc:
+        remove_created(created)
+        raise error(f"cannot write {path} ({exc.strerror or exc}); choose a writable {flag}") from None
+    return created
+
+
+def remove_created(created: list[Path]) -> None:
+    """Remove the (still empty) folders a failed write created, innermost first."""
+    for folder in reversed(created):
+        with contextlib.suppress(OSError):
+            folder.rmdir()
+
+
+# ------------------------------------------------------------------------------------------- metadata
+METADATA_LIMIT = 256 << 20
+"""Bytes a metadata file (a marker, a zarr group's attributes, a run's config.json) may hold."""
+
+
+def read_regular_text(path: str | os.PathLike, limit: int = METADATA_LIMIT) -> str | None:
+    """The text of ``path`` if it is a regular file, read without following a link; None when there is no
+    such file (absent, a symbolic link, a FIFO or a device: never opened through, never waited on).
+    A file larger than ``limit`` bytes or not UTF-8 raises ValueError."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
+    except OSError:
+        return None
+    with os.fdopen(fd, "rb") as f:
+        info = os.fstat(f.fileno())
+        if not stat.S_ISREG(info.st_mode):
+            return None
+        data = f.read(limit + 1)
+    if len(data) > limit:
+        raise ValueError(f"{path} holds more than {limit} bytes")
+    return data.decode()
