@@ -26,7 +26,7 @@ names come from the inputs' ``episode_info``; each must stay inside that input's
 (:func:`~dssp_data.recording.can_log_path`), checked for every episode before anything is written, and
 each log is copied only as a regular file of that folder (:func:`~dssp_core.files.copy_regular_file`: a
 linked folder or file, a FIFO or a device is refused with one line, never followed). ``repair`` holds the
-dataset's writer lock (:func:`~dssp_data.replay_buffer.dataset_lock`: no recording session or collect
+dataset's writer lock (:func:`~dssp_data.replay_buffer_writer.dataset_lock`: no recording session or collect
 meanwhile), refuses a dataset folder holding a symbolic link, and first checks every chunk of the complete
 episodes (decoding them): it cannot restore lost data, so a missing or corrupt chunk is an error and
 nothing on disk changes.
@@ -51,7 +51,9 @@ from dssp_data.recording import (
     episode_can_logs,
     episode_infos,
 )
-from dssp_data.replay_buffer import ReplayBufferReader, ReplayBufferWriter, check_dataset_tree, dataset_lock
+from dssp_data.replay_buffer import ReplayBufferReader
+from dssp_data.replay_buffer_writer import ReplayBufferWriter, dataset_lock
+from dssp_data.zarr_chunks import check_dataset_tree
 from dssp_core.errors import ConfigError, DatasetError
 from dssp_core.staging import Staging, interrupts_deferred, settle_background_writes
 from dssp_core.output_guard import OutputKind, check_not_inside, check_output

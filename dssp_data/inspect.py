@@ -38,7 +38,8 @@ from dssp_data.recording import (
     episode_can_logs,
     episode_infos,
 )
-from dssp_data.replay_buffer import DATA_KEYS, ReplayBufferReader
+from dssp_data.dataset_layout import DATA_KEYS
+from dssp_data.replay_buffer import ReplayBufferReader
 from dssp_core.errors import DatasetError
 
 MAX_JOINT_JUMP = 0.5

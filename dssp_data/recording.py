@@ -41,7 +41,8 @@ from pathlib import Path
 import numpy as np
 
 from dssp_data import attributes
-from dssp_data.replay_buffer import Episode, ReplayBufferWriter, dataset_lock
+from dssp_data.dataset_layout import Episode
+from dssp_data.replay_buffer_writer import ReplayBufferWriter, dataset_lock
 from dssp_core.errors import ConfigError, DatasetError
 from dssp_data.observation import ObservationContract, check_contract
 from dssp_core.staging import WriterLock
@@ -166,7 +167,7 @@ def partial_can_log_name(index: int, channel: str, session: str) -> str:
 
 LOCK_NAME = ".recording.lock"
 """The lock file older versions kept in a dataset's CAN-log folder (now the dataset's writer lock,
-:func:`~dssp_data.replay_buffer.dataset_lock`, ``.NAME.lock`` beside the dataset; a stale one is ignored)."""
+:func:`~dssp_data.replay_buffer_writer.dataset_lock`, ``.NAME.lock`` beside the dataset; a stale one is ignored)."""
 
 
 def check_can_log_dir(dataset: str | os.PathLike) -> None:
@@ -205,10 +206,10 @@ class RecordingDataset:
     An existing dataset whose last append was interrupted (steps after the last episode end) is
     repaired on opening: :attr:`repaired_steps` says how many steps were cut off.
 
-    The session holds the dataset's writer lock (:func:`~dssp_data.replay_buffer.dataset_lock`) until
+    The session holds the dataset's writer lock (:func:`~dssp_data.replay_buffer_writer.dataset_lock`) until
     :meth:`close`: a second session, a ``dssp-sim collect`` or a ``dssp-data repair`` of the same dataset is
     refused with one line. The dataset's folder and its CAN-log folder may hold no symbolic link
-    (:func:`~dssp_data.replay_buffer.check_dataset_tree`, :func:`check_can_log_dir`).
+    (:func:`~dssp_data.zarr_chunks.check_dataset_tree`, :func:`check_can_log_dir`).
     """
 
     def __init__(self, path: str | os.PathLike, dataset_attrs: dict, session: dict, extra_keys: Sequence[str],

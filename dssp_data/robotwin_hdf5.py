@@ -29,7 +29,8 @@ import numpy as np
 
 from dssp_data.bounded import ChunkTooLarge, check_budget, decompress, human_size, nbytes_of
 from dssp_data.recording import ACTION_CONVENTIONS, can_log_dir
-from dssp_data.replay_buffer import Episode, ReplayBufferWriter
+from dssp_data.dataset_layout import Episode
+from dssp_data.replay_buffer_writer import ReplayBufferWriter
 from dssp_core.errors import DatasetError
 from dssp_data.edit import DATA_DATASET, DATA_GENERATORS
 from dssp_core.staging import Staging, settle_background_writes

@@ -13,7 +13,7 @@ and action (4,) as DP3 stores them; the dataset's ``benchmark`` attribute names 
 ``out`` is a new dataset, or one this module wrote for the same task (its ``generator`` and ``task``
 attributes), which is appended to; anything else there (a recorded dataset, another task's, a folder or a
 file, a dataset folder holding a symbolic link) is refused before the simulation starts, and left as it is.
-A collect holds the dataset's writer lock (:func:`dssp_data.replay_buffer.dataset_lock`) from before the
+A collect holds the dataset's writer lock (:func:`dssp_data.replay_buffer_writer.dataset_lock`) from before the
 simulation starts until it ends: a second collect (or a recording, a repair) of the same dataset is refused
 with one line, and nothing of the first is touched.
 """
@@ -97,7 +97,7 @@ def collect(task: str, n_episodes: int, out: Path, seed: int | None = None, n_po
 
     ``seed`` None: 0 for a new dataset, the seed after the last one tried when appending (``first_seed``).
     """
-    from dssp_data.replay_buffer import dataset_lock
+    from dssp_data.replay_buffer_writer import dataset_lock
 
     check_collect_output(out, task)
     first_seed(out, seed)  # a bad --seed is refused before anything is created
@@ -135,7 +135,8 @@ def _collect(task: str, n_episodes: int, out: Path, seed: int, n_points: int | N
 
 def _collect_episodes(env, make_expert, cloud_config, task: str, n_episodes: int, out: Path, seed: int,
                       max_attempts: int, progress: bool) -> CollectResult:
-    from dssp_data.replay_buffer import Episode, ReplayBufferWriter
+    from dssp_data.dataset_layout import Episode
+    from dssp_data.replay_buffer_writer import ReplayBufferWriter
     from dssp_sim import metaworld_env
 
     result = CollectResult()

@@ -194,7 +194,7 @@ class RecordSession:
 
     def _rescue(self, episode, info: dict, exc: BaseException) -> None:
         """The append failed: write the episode as a dataset of its own next to the dataset, so it is not lost."""
-        from dssp_data.replay_buffer import write_replay_buffer
+        from dssp_data.replay_buffer_writer import write_replay_buffer
 
         target = self.dataset.path.with_name(f"{self.dataset.path.name}.unsaved-{self.session_tag}-{len(self.summary.kept)}")
         try:

@@ -45,7 +45,7 @@ from dssp_data.recording import (
     flags_summary,
     problem_names,
 )
-from dssp_data.replay_buffer import Episode
+from dssp_data.dataset_layout import Episode
 from dssp_data.rerun_views import TickViews
 from dssp_core.errors import ConfigError, DSSPError
 from dssp_core.schema import Settings, setting

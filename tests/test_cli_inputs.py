@@ -92,7 +92,8 @@ def test_collect_appends_from_the_seed_after_the_last_one(tmp_path):
     import numpy as np
 
     from dssp_sim.collect import first_seed
-    from dssp_data.replay_buffer import Episode, write_replay_buffer
+    from dssp_data.dataset_layout import Episode
+    from dssp_data.replay_buffer_writer import write_replay_buffer
     from dssp_core.errors import OutputError
 
     assert first_seed(tmp_path / "new.zarr", None) == 0

@@ -23,15 +23,11 @@ from dssp_data.data_cli import main as data_main
 from dssp_data.edit import merge, repair, split
 from dssp_data.inspect import inspect_dataset
 from dssp_data.recording import can_log_dir
-from dssp_data.replay_buffer import (
-    EVERY_CHUNK_ATTR,
-    Episode,
-    ReplayBuffer,
-    ReplayBufferReader,
-    ReplayBufferWriter,
-    _blosc_problem,
-    write_replay_buffer,
-)
+from dssp_data.zarr_chunks import EVERY_CHUNK_ATTR
+from dssp_data.dataset_layout import Episode
+from dssp_data.replay_buffer import ReplayBuffer, ReplayBufferReader
+from dssp_data.replay_buffer_writer import ReplayBufferWriter, write_replay_buffer
+from dssp_data.bounded import blosc_problem as _blosc_problem
 from dssp_data.view import render_episode
 from dssp_core.errors import DatasetError
 

@@ -19,7 +19,9 @@ from conftest import snapshot
 
 from dssp_data.data_cli import main as data_main
 from dssp_data.recording import can_log_dir
-from dssp_data.replay_buffer import Episode, ReplayBuffer, write_replay_buffer
+from dssp_data.dataset_layout import Episode
+from dssp_data.replay_buffer import ReplayBuffer
+from dssp_data.replay_buffer_writer import write_replay_buffer
 from dssp_train.data.synthetic import write_tap_count_dataset
 
 ROOT = Path(__file__).resolve().parents[1]

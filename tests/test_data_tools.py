@@ -12,7 +12,9 @@ import zarr
 from dssp_data.data_cli import main as data_main
 from hardware.cli.replay import main as replay_main
 from dssp_data.recording import can_log_dir, episode_infos
-from dssp_data.replay_buffer import Episode, ReplayBuffer, write_replay_buffer
+from dssp_data.dataset_layout import Episode
+from dssp_data.replay_buffer import ReplayBuffer
+from dssp_data.replay_buffer_writer import write_replay_buffer
 
 FIXTURES = Path(__file__).parent / "fixtures"
 DP3 = FIXTURES / "dp3_zarr2_tiny.zarr"

@@ -25,7 +25,9 @@ from dssp_core.files import copy_regular_file
 from dssp_core.staging import writer_lock_path
 from dssp_data.attributes import zarr_attrs
 from dssp_data.recording import RECORDED_KEYS, RecordingDataset, can_log_dir
-from dssp_data.replay_buffer import Episode, ReplayBuffer, ReplayBufferWriter, dataset_lock, write_replay_buffer
+from dssp_data.dataset_layout import Episode
+from dssp_data.replay_buffer import ReplayBuffer
+from dssp_data.replay_buffer_writer import ReplayBufferWriter, dataset_lock, write_replay_buffer
 
 from test_data_outputs import ENV, run
 from test_data_outputs import one_line_error as data_outputs_error

@@ -30,7 +30,9 @@ from dssp_sim.sim_cli import main as sim_main
 from dssp_core.files import replace_dir
 from dssp_train.cli.synth import main as synth_main
 from dssp_train.cli.train import main as train_main
-from dssp_data.replay_buffer import Episode, ReplayBuffer, write_replay_buffer
+from dssp_data.dataset_layout import Episode
+from dssp_data.replay_buffer import ReplayBuffer
+from dssp_data.replay_buffer_writer import write_replay_buffer
 from dssp_core.errors import DSSPError
 from dssp_core.output_guard import (
     MARKER, NEW, OWN, OutputDir, OutputKind, check_append, check_output, check_output_file, claim_dir,

@@ -87,7 +87,8 @@ def test_latency_stats_of_the_finite_values():
 def test_the_replay_reads_its_times_from_its_clock(tmp_path, monkeypatch):
     """dssp-replay without an arm on a fake clock: every action goes through the safety layer at the clock's time
     (a dry run sends nothing, so it paces nothing), never at the machine's."""
-    from dssp_data.replay_buffer import Episode, write_replay_buffer
+    from dssp_data.dataset_layout import Episode
+    from dssp_data.replay_buffer_writer import write_replay_buffer
     from hardware import episode_replay
 
     steps = 12

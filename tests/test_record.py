@@ -461,7 +461,7 @@ def test_one_recording_session_per_dataset(tmp_path):
 
 
 def test_a_second_recording_session_is_refused_before_any_device_opens(tmp_path, capsys, monkeypatch):
-    from dssp_data.replay_buffer import dataset_lock
+    from dssp_data.replay_buffer_writer import dataset_lock
     from conftest import one_error_line
 
     opened = []

@@ -13,13 +13,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from dssp_data.replay_buffer import (
-    Episode,
-    ReplayBuffer,
-    ReplayBufferReader,
-    ReplayBufferWriter,
-    write_replay_buffer,
-)
+from dssp_data.dataset_layout import Episode
+from dssp_data.replay_buffer import ReplayBuffer, ReplayBufferReader
+from dssp_data.replay_buffer_writer import ReplayBufferWriter, write_replay_buffer
 from dssp_core.errors import DatasetError
 
 FIXTURES = Path(__file__).parent / "fixtures"
@@ -590,7 +586,7 @@ def test_interrupted_append_with_extras(tmp_path):
 
 
 def test_large_extra_rows_get_smaller_chunks(tmp_path):
-    from dssp_data.replay_buffer import _extra_chunk_steps
+    from dssp_data.replay_buffer_writer import _extra_chunk_steps
 
     assert _extra_chunk_steps(np.zeros((5, 480, 640), np.uint16)) == 27  # 16 MiB / 600 KiB per depth image
     assert _extra_chunk_steps(np.zeros((5,), np.float64)) == 100

@@ -17,7 +17,8 @@ from safetensors import safe_open
 from dssp_train.cli.params import main as params_main
 from dssp_train.cli.train import main as train_main
 from dssp_train.config import RunConfig, load_preset
-from dssp_data.replay_buffer import ReplayBuffer, write_replay_buffer
+from dssp_data.replay_buffer import ReplayBuffer
+from dssp_data.replay_buffer_writer import write_replay_buffer
 from dssp_train.data import synthetic
 from dssp_train.data.synthetic import make_tap_count_episodes, write_tap_count_dataset
 from dssp_train.model.policy import DSSPPolicy

@@ -203,7 +203,7 @@ def test_resume_with_a_contradicting_control_rate_is_refused(trained, data, tmp_
 
 
 def test_resume_may_record_a_control_rate_the_run_lacked(tmp_path, capsys):
-    from dssp_data.replay_buffer import write_replay_buffer
+    from dssp_data.replay_buffer_writer import write_replay_buffer
     from dssp_train.data.synthetic import make_tap_count_episodes
 
     path = tmp_path / "norate.zarr"
@@ -474,7 +474,8 @@ MEASURE = """
 import json, sys
 import numpy as np, torch
 from dssp_train.config import load_preset
-from dssp_data.replay_buffer import Episode, write_replay_buffer
+from dssp_data.dataset_layout import Episode
+from dssp_data.replay_buffer_writer import write_replay_buffer
 from dssp_train.training.memory import estimate_step_memory
 from dssp_train.training.trainer import Trainer
 

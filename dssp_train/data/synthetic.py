@@ -40,7 +40,8 @@ from pathlib import Path
 
 import numpy as np
 
-from dssp_data.replay_buffer import Episode, write_replay_buffer
+from dssp_data.dataset_layout import Episode
+from dssp_data.replay_buffer_writer import write_replay_buffer
 from dssp_core.errors import ConfigError
 
 __all__ = [

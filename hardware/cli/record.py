@@ -248,7 +248,7 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
         RecordingDataset,
     )
     from dssp_data.observation import ObservationContract, piper_layout
-    from dssp_data.replay_buffer import dataset_lock
+    from dssp_data.replay_buffer_writer import dataset_lock
     from hardware.robot import check_rate
     from hardware.bus_monitor import BusMonitor
     from hardware.clock import REAL_CLOCK
