@@ -298,7 +298,8 @@ def export_model(
     """
     from dssp_train.training.checkpoint import config_recorded
     from export.output_dir import StagedDirectory
-    from export.verify import check_report, describe_worst, file_sha256, format_report, verify_model
+    from export.verify import file_sha256, verify_model
+    from export.verify_report import check_report, describe_worst, format_report
 
     if opset not in SUPPORTED_OPSETS:
         raise ExportError(f"--opset {opset} is not supported; use {SUPPORTED_OPSETS.start}..{SUPPORTED_OPSETS.stop - 1} (default {DEFAULT_OPSET})")
@@ -459,7 +460,7 @@ def format_summary(summary: dict[str, Any]) -> str:
     if report is None:
         lines.append("parity: not verified (--skip-verify); run python -m export.verify MODEL_DIR --checkpoint RUN_DIR")
     else:
-        from export.verify import describe_worst
+        from export.verify_report import describe_worst
 
         lines.append(
             f"parity: {', '.join(report['errors'])} vs PyTorch fp32 (training path) over {report['steps']} steps and "

@@ -54,26 +54,25 @@ N recent tokens, H horizon): trajectory point_cloud (T, P, C), agent_pos (T, S);
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import hashlib
 import json
 import sys
 import time
-import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import dataclasses
 
 from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import ExportError, ParityError
 from dssp_core.output_guard import check_output_file, write_output_text
-from dssp_data.streaming_history import StreamingHistory
-from dssp_deploy.manifest import read_graph
+from dssp_deploy.manifest import DENOISER_GRAPH, FUSED, HISTORY_GRAPH, PRECISIONS, file_kind, read_graph, read_manifest
 from dssp_deploy.sessions import check_threads, default_threads
-from dssp_deploy.manifest import DENOISER_GRAPH, FUSED, HISTORY_GRAPH, PRECISIONS, file_kind, read_manifest
+from export.graph_streams import GraphFn, GraphStream, RuntimeStream, torchscript_graph
+from export.verify_report import ACTION_UNITS, MODEL_UNITS, check_report, format_report
 
 BOUND = 1e-4
 BOUNDED_ALSO = ("onnx_fused",)  # streamed backends held to BOUND besides the main one
@@ -81,119 +80,6 @@ CHUNKS = 8  # action chunks compared by default, spread over the trajectory
 BLOCK = 64  # ticks per block of the reference's sequence path, chunks per batch of its denoiser
 TRACE_CHECKS = 3  # rows of the TorchScript check: the traces were made with batch 2
 MAX_FLAGGED = 4  # chunks above the bound evaluated in float64
-FIGURES = ("z_t", "c_t", "state", "action")
-ACTION_UNITS = "normalised action units (1 = half the channel's fitted range)"
-MODEL_UNITS = "model units"
-
-GraphFn = Callable[[dict[str, np.ndarray]], list[np.ndarray]]
-
-
-# ------------------------------------------------------------- graph runtime
-class GraphStream:
-    """The runtime loop over two exported graph functions, numpy in and out.
-
-    The history (zero state at the start, the last N ``z_t``, the first one repeated until N exist) is
-    :class:`dssp_data.streaming_history.StreamingHistory`, as in the robot's runtime; the denoiser gets
-    the inputs the manifest lists. observe: point_cloud (B, P, C), agent_pos (B, S) → z_t (B, d);
-    ``context`` c_t (B, d); ``states`` the history state in manifest order; act: noise (B, H, A) → chunk
-    (B, H, A) in raw units.
-    """
-
-    def __init__(self, manifest: dict[str, Any], history: GraphFn, denoiser: GraphFn):
-        self.manifest = manifest
-        self.history_fn, self.denoiser_fn = history, denoiser
-        self.state_specs = manifest["graphs"][HISTORY_GRAPH]["inputs"][2:]
-        self.denoiser_names = [s["name"] for s in manifest["graphs"][DENOISER_GRAPH]["inputs"]]
-        self.history = StreamingHistory(manifest["n_obs_steps"], self._step, lambda ts: np.stack(ts, axis=1), self.zero_state)
-
-    def zero_state(self, batch: int) -> list[np.ndarray]:
-        """The history state at an episode start: zeros, one array per manifest state input."""
-        return [np.zeros([batch, *s["shape"][1:]], dtype=np.float32) for s in self.state_specs]
-
-    def _step(self, point_cloud: np.ndarray, agent_pos: np.ndarray, states: list[np.ndarray]):
-        feeds = {"point_cloud": point_cloud, "agent_pos": agent_pos}
-        feeds.update({s["name"]: v for s, v in zip(self.state_specs, states)})
-        out = self.history_fn(feeds)
-        if not self.manifest["use_history"]:
-            return out[0], None, states
-        return out[0], out[1], list(out[2:])
-
-    def observe(self, point_cloud: np.ndarray, agent_pos: np.ndarray) -> np.ndarray:
-        return self.history.observe(point_cloud, agent_pos)
-
-    @property
-    def context(self) -> np.ndarray | None:
-        return self.history.context
-
-    @property
-    def states(self) -> list[np.ndarray] | None:
-        return self.history.state
-
-    def denoiser_inputs(self) -> dict[str, np.ndarray]:
-        available = {"c_t": self.history.context, "z_recent": self.history.recent}
-        return {name: available[name] for name in self.denoiser_names if name != "noise"}
-
-    def act(self, noise: np.ndarray) -> np.ndarray:
-        return self.denoiser_fn({**self.denoiser_inputs(), "noise": noise})[0]
-
-
-class RuntimeStream:
-    """The robot's runtime, :class:`dssp_deploy.onnx_policy.OnnxPolicy`, with the interface of :class:`GraphStream`.
-
-    The ONNX graphs (fp32, int8 or int4 with ``precision``; standard or fused with ``kernel``) are streamed through it, so parity covers the
-    runtime's state handling too; it checks the files against the manifest itself.
-    """
-
-    def __init__(self, model_dir: Path, threads: int, precision: str = "fp32", kernel: str = "standard"):
-        from dssp_deploy.onnx_policy import OnnxPolicy
-
-        self.policy = OnnxPolicy(model_dir, threads=threads, warmup=0, precision=precision, kernel=kernel)
-        self.name = f"{self.policy.precision} {self.policy.kernel}"
-
-    def observe(self, point_cloud: np.ndarray, agent_pos: np.ndarray) -> np.ndarray:
-        return self.policy.observe(point_cloud, agent_pos)
-
-    @property
-    def context(self) -> np.ndarray | None:
-        return self.policy.context
-
-    @property
-    def states(self) -> list[np.ndarray] | None:
-        return None if self.policy.state is None else list(self.policy.state.values())
-
-    def denoiser_inputs(self) -> dict[str, np.ndarray]:
-        return self.policy.denoiser_inputs()
-
-    def act(self, noise: np.ndarray) -> np.ndarray:
-        """The chunk; one the runtime refuses (NaN/inf, outside the action range) on the trajectory fails parity."""
-        from dssp_deploy.ranges import ChunkOutOfRange
-
-        try:
-            return self.policy.act(noise=noise)
-        except ChunkOutOfRange as exc:
-            raise ParityError(f"the {self.name} graphs give a chunk the runtime refuses: {exc}; export the model again "
-                              "from finite weights, and report it with the run's config.json if it persists") from None
-
-
-def torchscript_graph(path: Path, data: bytes | None = None) -> GraphFn:
-    """A TorchScript graph as a function; ``data``: the file's bytes, already checked against the manifest."""
-    import io
-
-    import torch
-
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", category=DeprecationWarning)  # torch.jit is deprecated, still the .pt reader
-        source = str(path) if data is None else io.BytesIO(data)
-        module = torch.jit.load(source, map_location="cpu").eval()
-
-    def run(feeds: dict[str, np.ndarray]) -> list[np.ndarray]:
-        with torch.no_grad():
-            out = module(*[torch.from_numpy(np.ascontiguousarray(v)) for v in feeds.values()])
-        return [t.numpy() for t in (out if isinstance(out, tuple) else (out,))]
-
-    return run
-
-
 # ------------------------------------------------------------------ helpers
 def worst(got, want, scale: np.ndarray | None = None) -> tuple[float, tuple[int, ...] | None]:
     """Max abs difference, times ``scale`` (broadcast on the last axis) if given, and where it is.
@@ -673,96 +559,6 @@ def _float64_check(policy, num_steps: int, scale: np.ndarray, flagged: list[dict
 
 def _ratio(a: float | None, b: float | None) -> float | None:
     return round(a / b, 2) if a and b else None
-
-
-# ------------------------------------------------------------------- report
-def _place(w: dict[str, Any]) -> str:
-    """Where a figure's worst error is, in words: ' at step 417, horizon 2, action channel 3' (or '')."""
-    place = [f"step {w['step']}"] if "step" in w else []
-    if "channel" in w:
-        place.append(f"horizon {w['horizon']}, action channel {w['channel']}")
-    elif "input" in w:
-        place.append(f"{w['input']} channel {w['index']}")
-    elif "index" in w:
-        place.append(f"feature {w['index']}")
-    return f" at {', '.join(place)}" if place else ""
-
-
-def _units(figure: str) -> str:
-    return "normalised action units" if figure == "action" else MODEL_UNITS
-
-
-def describe_worst(report: dict[str, Any]) -> str:
-    """The worst figure in words: 'onnx action 3.10e-05 normalised action units at step 417, horizon 2, action channel 3'."""
-    w = report["worst_at"]
-    return f"{w['backend']} {w['figure']} {report['worst']:.2e} {_units(w['figure'])}{_place(w)}"
-
-
-def format_report(report: dict[str, Any]) -> str:
-    """The report as a few aligned lines."""
-    ticks = report["chunk_ticks"]
-    shown = ", ".join(map(str, ticks)) if len(ticks) <= 8 else ", ".join(map(str, ticks[:6])) + f", ..., {ticks[-1]}"
-    total = report.get("chunk_ticks_total", report["chunks"])
-    lines = [
-        (f"parity over {report['steps']} steps x batch {report['batch']} ({report['trajectory']}): the exported graphs "
-         f"vs PyTorch fp32 on the training path, max abs error, bound {report['bound']:g}"),
-        (f"  reference: z_t and c_t of every step (c_t from the sequence path over the whole trajectory), "
-         f"{report['chunks']} of {total} chunks (steps {shown}) in one batch, same noise"),
-        f"  {'':<12}" + "".join(f"{f:>11}" for f in FIGURES),
-    ]
-    for name, e in report["errors"].items():
-        how = (f"one batch at steps {', '.join(map(str, report['batch_checked'][name]))}, denoiser on the reference's inputs"
-               if name in report["batch_checked"] else "streamed; state after the last step")
-        cells = "".join(f"{e[f]:>11.2e}" if e[f] is not None else f"{'-':>11}" for f in FIGURES)
-        lines.append(f"  {name:<12}{cells}   ({how})")
-    lines.append(f"  units: z_t, c_t, state in {MODEL_UNITS}; action in {ACTION_UNITS}")
-    check = report.get("action_float64_check")
-    if check:
-        graphs = ", ".join(f"{k} {v:.2e}" for k, v in check["graphs_vs_float64"].items())
-        lines.append(
-            f"  {check['chunks_checked']} chunk(s) above the bound (steps {', '.join(map(str, check['steps']))}) evaluated in "
-            f"float64 on their own inputs: PyTorch fp32 is {check['torch_fp32_vs_float64']:.2e} away, {graphs} (normalised units)"
-        )
-    threads = f"{report['threads']} thread{'s' if report['threads'] != 1 else ''}"
-    lines.append(f"  median latency, ms ({threads}):   history step      chunk")
-    for name, lat in report["latency_ms"].items():
-        hs, dn = lat["history_step"], lat["denoiser"]
-        lines.append(f"  {name:<16}{'':16}{hs if hs is not None else '-':>12}{dn if dn is not None else '-':>11}")
-    for name, q in report.get("quantized", {}).items():
-        lines.append(
-            f"  {name} vs {q['against']}: action max abs {q['action_max_abs_vs_fp32']:.2e} "
-            f"({100 * q['action_max_abs_over_range']:.2f} % of the action range), c_t {q['c_t_max_abs_vs_fp32']:.2e}; "
-            f"speed-up history step {q['speedup_history_step']}x, chunk {q['speedup_denoiser']}x (not bounded)"
-        )
-    if "seconds" in report:
-        lines.append("  time, s: " + ", ".join(f"{k.replace('_', ' ')} {v:.1f}" for k, v in report["seconds"].items()))
-    verdict = "<=" if report["passed"] else ">"
-    lines.append(f"  {'PASS' if report['passed'] else 'FAIL'}: worst {describe_worst(report)} {verdict} bound {report['bound']:g}")
-    return "\n".join(lines)
-
-
-def check_report(report: dict[str, Any]) -> None:
-    """Raise :class:`ParityError` (one line: what exceeded the bound, where, in which units, what to do)."""
-    if report["passed"]:
-        return
-    w = report["worst_at"]
-    what = (f"{w['backend']} {w['figure']} differs from PyTorch fp32 by {report['worst']:.2e} {_units(w['figure'])}"
-            f"{_place(w)}, above the bound {report['bound']:g}")
-    check = report.get("action_float64_check")
-    others = [v for e in report["errors"].values() for f, v in e.items() if f != "action" and v is not None]
-    if w["figure"] == "action" and check and check["graphs_vs_float64"] and max(others, default=0.0) <= report["bound"]:
-        torch64 = check["torch_fp32_vs_float64"]
-        name, graph64 = max(check["graphs_vs_float64"].items(), key=lambda kv: kv[1])
-        ratio = graph64 / torch64 if torch64 > 0 else float("inf")
-        measured = f"redone in float64 on each one's own inputs, PyTorch fp32 is {torch64:.1e} away and {name} {graph64:.1e} ({ratio:.1f}x)"
-        if ratio <= 2.0:
-            advice = (f"{measured}: the model amplifies fp32 rounding as much in PyTorch, not the export; "
-                      "to keep the graphs anyway, export with --skip-verify")
-        else:
-            advice = f"{measured}: the exported graph loses precision; please report it with the run's config.json"
-    else:
-        advice = "this is an export bug, please report it with the run's config.json"
-    raise ParityError(f"{what}; {advice}")
 
 
 # ---------------------------------------------------------------------- CLI

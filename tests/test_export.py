@@ -21,6 +21,7 @@ from dssp_train.model.streaming import StreamingPolicy
 from dssp_train.training import checkpoint as ckpt
 from dssp_train.training.checkpoint import load_policy
 from export import verify as verify_module
+from export import verify_report
 from dssp_deploy.manifest import read_manifest
 from dssp_deploy.sessions import session_options
 from export.to_onnx import export_model
@@ -318,14 +319,14 @@ def fake_report(torch64: float, graph64: float) -> dict:
 
 def test_the_failure_says_what_it_measured():
     with pytest.raises(verify_module.ParityError) as info:
-        verify_module.check_report(fake_report(6.8e-5, 4.4e-4))
+        verify_report.check_report(fake_report(6.8e-5, 4.4e-4))
     message = str(info.value)
     assert message.startswith("onnx action differs from PyTorch fp32 by 4.40e-04 normalised action units at step 417, "
                               "horizon 2, action channel 3, above the bound 0.0001; ")
     assert "PyTorch fp32 is 6.8e-05 away and onnx 4.4e-04 (6.5x): the exported graph loses precision" in message
     assert "alike" not in message and "\n" not in message
     with pytest.raises(verify_module.ParityError, match=r"\(1\.1x\): the model amplifies fp32 rounding as much in PyTorch"):
-        verify_module.check_report(fake_report(4.0e-4, 4.4e-4))
+        verify_report.check_report(fake_report(4.0e-4, 4.4e-4))
 
 
 # ---------------------------------------------------------------- bad input
