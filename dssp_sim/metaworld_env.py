@@ -44,13 +44,13 @@ from __future__ import annotations
 import math
 import os
 import threading
+import warnings
 import weakref
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
-import warnings
 
 from dssp_core.errors import ConfigError
 from dssp_data.observation import ObservationContract, PointCloudConfig, VectorLayout  # noqa: E402

@@ -27,12 +27,12 @@ by, ``GROUP:N`` for the first N of a group in alphabetical order, or ``all``.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import sys
 from pathlib import Path
 
 import numpy as np
-import hashlib
 
 from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import DSSPError

@@ -9,11 +9,12 @@ so the point-cloud pipeline (``hardware.pointcloud``) never knows where a frame 
 
 from __future__ import annotations
 
+import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
 import numpy as np
-import time
+
 from dssp_core.errors import CameraError
 
 
