@@ -155,6 +155,7 @@ def run_episode(policy, env, seed: int, cloud_config, frames: list | None = None
     tick, continuing their timeline after the previous episode's."""
     from hardware.piper.arm import PiperArm
     from hardware.piper.piper_robot import PiperRobot
+    from hardware.rig import Rig
     from hardware.run_loop import LoopSettings, Runner
     from hardware.subscribers.rerun_ticks import RerunTicks
 
@@ -164,9 +165,10 @@ def run_episode(policy, env, seed: int, cloud_config, frames: list | None = None
     arm.start(thread=False)
     robot = PiperRobot([PiperArm(channel, "virtual")])
     camera = MujocoCamera(env)
+    rig = Rig(camera, robot, camera.camera_to_base, EVAL_SAFETY)
     period = 1.0 / env.control_rate_hz
     try:
-        with camera, robot:
+        with rig:
             stop_pump = threading.Event()
 
             def pump():  # answer the driver (enable) without advancing the physics
@@ -179,8 +181,8 @@ def run_episode(policy, env, seed: int, cloud_config, frames: list | None = None
             try:
                 camera.capture()
                 subscribers = [RerunTicks(views)] if views is not None else []
-                runner = Runner(policy, camera, robot, cloud_config, camera.camera_to_base, EVAL_SAFETY,
-                                LoopSettings(rate_hz=env.control_rate_hz, seed=seed), subscribers=subscribers)
+                runner = Runner(policy, rig, cloud_config, LoopSettings(rate_hz=env.control_rate_hz, seed=seed),
+                                subscribers=subscribers)
                 if views is not None:
                     views.text(subscribers[0].next_tick, "episode", f"{env.task.name} seed {seed}")
                 runner.start()

@@ -1,7 +1,9 @@
 """The robot's control loop: camera → point cloud → runtime → safety → arms, at a fixed rate.
 
-    runner = Runner(policy, camera, robot, cloud_config, camera_to_base, SafetyConfig(), LoopSettings(rate_hz=10))
-    summary = runner.run()        # until max_steps, a stop request (a signal, a lost output) or a fault
+    rig = Rig(camera, robot, camera_to_base, SafetyConfig())          # hardware.rig: the devices, opened together
+    with rig:
+        runner = Runner(policy, rig, cloud_config, LoopSettings(rate_hz=10))
+        summary = runner.run()    # until max_steps, a stop request (a signal, a lost output) or a fault
 
 Each tick:
 1. take the newest camera frame and the newest joint feedback; if either is missing or stale, **hold**
@@ -20,7 +22,7 @@ A fault (arm error or e-stop, a send failure, a runtime error) ends the loop in 
 after it. Shapes: cloud (P, C) float32; state, action and command (dof,) in policy units.
 
 Time: the tick times, the inputs' ages, the tick's deadline, the start-up waits and the pacing are read
-from ``clock`` (:mod:`hardware.clock`; ``time.monotonic`` by default), the clock the camera and the arms
+from the rig's ``clock`` (:mod:`hardware.clock`; ``time.monotonic`` by default), the clock the camera and the arms
 stamp their arrivals on. The latencies (``*_ms``) are compute cost, measured with ``time.perf_counter``
 whatever the clock.
 """
@@ -40,11 +42,10 @@ from dssp_deploy.onnx_policy import OnnxPolicy
 from dssp_deploy.ranges import ChunkOutOfRange, ObservationOutOfRange
 from dssp_core.errors import CameraError, ConfigError, DSSPError, NonFiniteObservation
 from hardware.robot import Robot, check_rate
-from hardware.camera.base import Camera
-from hardware.clock import REAL_CLOCK, Clock
 from hardware.pacing import Pacer, RateMeter, latency_stats
 from hardware.pointcloud import EmptyCloudError, PointCloudConfig, frame_to_cloud
-from hardware.safety import Safety, SafetyConfig, SafetyViolation
+from hardware.rig import Rig
+from hardware.safety import Safety, SafetyViolation
 from hardware.subscribers import Subscriber, Tick
 
 
@@ -77,32 +78,17 @@ def check_fits(policy: OnnxPolicy, robot: Robot, cloud_config: PointCloudConfig)
 
 
 class Runner:
-    def __init__(
-        self,
-        policy: OnnxPolicy,
-        camera: Camera,
-        robot: Robot,
-        cloud_config: PointCloudConfig,
-        camera_to_base: np.ndarray,
-        safety_config: SafetyConfig,
-        settings: LoopSettings,
-        limits: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
-        clock: Clock = REAL_CLOCK,
-        subscribers: Sequence[Subscriber] = (),
-    ):
-        """``limits``: (lower (dof,), upper (dof,), gripper mask (dof,)) in policy units; default: the robot's own
-        (``robot.description``), narrower ones only for a test or a cautious first run. ``clock``: the
-        timeline of the camera's and the arms' timestamps (:mod:`hardware.clock`). ``subscribers``: what else
-        happens on each tick — the episode log, the status line, Rerun views, … (:mod:`hardware.subscribers`),
+    def __init__(self, policy: OnnxPolicy, rig: Rig, cloud_config: PointCloudConfig, settings: LoopSettings,
+                 subscribers: Sequence[Subscriber] = ()):
+        """``rig``: the camera, the arms, the safety settings and the clock (:class:`hardware.rig.Rig`; opened by
+        the caller, ``with rig:``), the limits the robot's own unless the rig narrows them. ``subscribers``: what
+        else happens on each tick — the episode log, the status line, Rerun views, … (:mod:`hardware.subscribers`),
         told in this order; :meth:`close` gives them the summary."""
-        check_fits(policy, robot, cloud_config)
-        self.policy, self.camera, self.robot = policy, camera, robot
-        self.cloud_config, self.camera_to_base = cloud_config, np.asarray(camera_to_base, np.float64)
-        if limits is None:
-            described = robot.description
-            limits = (described.lower, described.upper, described.gripper)
-        self.safety_config, self.settings, self.limits = safety_config, settings, limits
-        self.clock, self.subscribers = clock, list(subscribers)
+        check_fits(policy, rig.robot, cloud_config)
+        self.policy, self.rig, self.camera, self.robot = policy, rig, rig.camera, rig.robot
+        self.cloud_config, self.camera_to_base = cloud_config, rig.camera_to_base
+        self.safety_config, self.settings, self.limits = rig.safety, settings, rig.joint_limits()
+        self.clock, self.subscribers = rig.clock, list(subscribers)
         self._closed = False
         self.period = 1.0 / settings.rate_hz
         self.control = ChunkedControl(policy, rate_hz=settings.rate_hz, prefetch=settings.prefetch, seed=settings.seed,
@@ -118,7 +104,7 @@ class Runner:
         self.policy_ticks = 0
         self.event_counts: Counter = Counter()
         self.latencies: dict[str, list[float]] = {"cloud": [], "observe": [], "chunk": [], "tick": []}
-        self.pacer = Pacer(clock, self.period)  # resync at once: a late tick starts the schedule again
+        self.pacer = Pacer(self.clock, self.period)  # resync at once: a late tick starts the schedule again
         self._rate = RateMeter()
 
     # ----------------------------------------------------------------- lifecycle

@@ -34,6 +34,7 @@ from hardware.piper.can_simulator import SimulatedPiper
 from hardware.piper.limits import GRIPPER_STROKE_MAX, JointLimits
 from hardware.piper.piper_robot import PiperRobot
 from hardware.pointcloud import PointCloudConfig
+from hardware.rig import Rig
 from hardware.robot import Robot
 from hardware.run_log import RunLog, read_clouds, read_ticks
 from hardware.run_loop import LoopSettings, Runner
@@ -299,9 +300,10 @@ def rig(arm_export, tmp_path, request):
     blf = tmp_path / "bus.blf"
     with camera, robot, BusRecorder(robot.channel, "virtual", blf):
         with pytest.warns(UserWarning, match="20 Hz"):  # the model was trained at 50 Hz
-            runner = Runner(policy, camera, robot, PointCloudConfig(n_points=64), camera.camera_to_base,
-                            getattr(request, "param", CAMERA_SAFETY), LoopSettings(rate_hz=RATE, seed=0),
-                            (LIMITS.lower, LIMITS.upper, GRIPPER), clock=clock, subscribers=[RunLog(tmp_path / "log", {})])
+            rig = Rig(camera, robot, camera.camera_to_base, getattr(request, "param", CAMERA_SAFETY), clock=clock,
+                      limits=(LIMITS.lower, LIMITS.upper, GRIPPER))
+            runner = Runner(policy, rig, PointCloudConfig(n_points=64), LoopSettings(rate_hz=RATE, seed=0),
+                            subscribers=[RunLog(tmp_path / "log", {})])
         robot.step(0.0)
         runner.start()
         clock.steps = [robot.step, camera.step]

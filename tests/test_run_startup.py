@@ -113,14 +113,16 @@ def test_start_up_gives_up_on_its_clock(arm_export):
     from dssp_deploy.onnx_policy import OnnxPolicy
     from hardware.piper.limits import JointLimits
     from hardware.pointcloud import PointCloudConfig
+    from hardware.rig import Rig
     from hardware.run_loop import LoopSettings, Runner
     from hardware.safety import SafetyConfig
 
     clock, camera = FakeClock(start=100.0), StillCamera(object())
     limits = JointLimits.piper()
-    runner = Runner(OnnxPolicy(arm_export, threads=1), camera, SilentArm(), PointCloudConfig(n_points=64), np.eye(4),
-                    SafetyConfig(), LoopSettings(rate_hz=50.0, startup_timeout=2.0),
-                    (limits.lower, limits.upper, np.arange(7) == 6), clock=clock)
+    rig = Rig(camera, SilentArm(), np.eye(4), SafetyConfig(), clock=clock,
+              limits=(limits.lower, limits.upper, np.arange(7) == 6))
+    runner = Runner(OnnxPolicy(arm_export, threads=1), rig, PointCloudConfig(n_points=64),
+                    LoopSettings(rate_hz=50.0, startup_timeout=2.0))
     with pytest.raises(DSSPError, match="no joint feedback within 2 s"):
         runner.start()
     assert 102.0 < clock.now() <= 102.005 + 1e-9  # the first poll past the deadline

@@ -232,6 +232,7 @@ def rig_loop(arm_export, tmp_path, monkeypatch, edit_cloud, pause: float = 0.0):
     from hardware.piper.limits import JointLimits
     from hardware.piper.piper_robot import open_robot
     from hardware.pointcloud import PointCloudConfig
+    from hardware.rig import Rig
     from hardware.safety import SafetyConfig
 
     real_cloud = run_loop.frame_to_cloud
@@ -249,8 +250,8 @@ def rig_loop(arm_export, tmp_path, monkeypatch, edit_cloud, pause: float = 0.0):
     camera.capture()
     try:
         with robot:
-            runner = run_loop.Runner(policy, camera, robot, PointCloudConfig(n_points=64), camera.camera_to_base, safety,
-                                     run_loop.LoopSettings(rate_hz=50.0, seed=0), (limits.lower, limits.upper, np.arange(7) == 6))
+            rig = Rig(camera, robot, camera.camera_to_base, safety, limits=(limits.lower, limits.upper, np.arange(7) == 6))
+            runner = run_loop.Runner(policy, rig, PointCloudConfig(n_points=64), run_loop.LoopSettings(rate_hz=50.0, seed=0))
             runner.start()
 
             def ticks(n):

@@ -192,6 +192,7 @@ def _run(args, stops: Stops) -> int:
     from hardware.subscribers import open_subscribers
     from hardware.subscribers.rerun_ticks import RerunTicks
     from hardware.subscribers.status_line import StatusLine
+    from hardware.rig import Rig
     from hardware.run_loop import LoopSettings, Runner, check_fits, describe_ending
     from hardware.safety import SafetyConfig
 
@@ -261,15 +262,11 @@ def _run(args, stops: Stops) -> int:
         })
         subscribers = [log, *([] if args.quiet else [StatusLine()]), *([RerunTicks(views)] if views is not None else []),
                        *open_subscribers(args.subscribe, log_dir)]
-        runner = Runner(policy, camera, robot, cloud_config, camera_to_base, safety_config, settings,
-                        subscribers=subscribers)  # the limits: the robot's own
+        rig = Rig(camera, robot, camera_to_base, safety_config, recorders=recorders)  # the limits: the robot's own
+        runner = Runner(policy, rig, cloud_config, settings, subscribers=subscribers)
         stops.during(runner.request_stop)  # a stop that came meanwhile, or any later: the runner's final hold
         try:
-            with contextlib.ExitStack() as devices:
-                devices.enter_context(camera)
-                devices.enter_context(robot)  # connect: simulators start first, so the recorders find their channels
-                for recorder in recorders:
-                    devices.enter_context(recorder)
+            with rig:  # the camera, the arms (simulators start first, so the recorders find their channels), the recorders
                 summary = runner.run()
         except BaseException as exc:
             if runner.ended_by is None:  # a device failed to open: the run never started, its reason is this error

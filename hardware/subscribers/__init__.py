@@ -1,6 +1,6 @@
 """What happens on each tick of the control loop, besides control: subscribers.
 
-    runner = Runner(policy, camera, robot, cloud_config, camera_to_base, safety, settings,
+    runner = Runner(policy, rig, cloud_config, settings,
                     subscribers=[RunLog(log_dir, settings_dict), StatusLine(), RerunTicks(views)])
 
 The loop (:class:`hardware.run_loop.Runner`) controls: it reads the camera and the arms, runs the policy, passes
