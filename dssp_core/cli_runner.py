@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import _thread
 import argparse
 import contextlib
 import os
@@ -13,6 +14,7 @@ import warnings
 from collections.abc import Callable, Iterator
 
 from dssp_core.errors import DSSPError
+from dssp_core.staging import settle_background_writes
 
 
 def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
@@ -70,7 +72,6 @@ def _settle_after_interrupt() -> None:
     the main thread), and do not warn about the calls the interruption stopped before they started."""
     if "zarr" not in sys.modules:
         return
-    from dssp_core.staging import settle_background_writes
 
     warnings.filterwarnings("ignore", message="coroutine .* was never awaited", category=RuntimeWarning)
     settle_background_writes()
@@ -129,8 +130,6 @@ def interrupts_at_safe_points(clock: Callable[[], float] = time.monotonic) -> It
     lock = threading.RLock()  # re-entrant: a handler may run again inside the handler
 
     def retry() -> None:
-        import _thread
-
         while True:
             time.sleep(RETRY_S)
             with lock:  # look and ask in one step, so no retry is asked for after the Ctrl-C was raised

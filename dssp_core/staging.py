@@ -20,6 +20,7 @@ Every refusal is an :class:`OutputError`: one line, exit code 2 in the command-l
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import fcntl
 import os
@@ -369,7 +370,6 @@ def settle_background_writes(timeout: float = 120.0) -> None:
     loop = (getattr(module, "loop", None) or [None])[0] if module is not None else None
     if loop is None or loop.is_closed() or not loop.is_running():
         return
-    import asyncio
 
     async def idle() -> None:
         me = asyncio.current_task()

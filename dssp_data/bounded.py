@@ -184,9 +184,9 @@ def decompress(codec_id: str, data, limit: int, config: dict | None = None):
 
     ChunkTooLarge when it declares or decodes to more, ValueError when it is not such a stream. ``config``:
     the codec's numcodecs configuration (lzma's ``format`` and ``filters``)."""
-    import numcodecs.blosc
-    import numcodecs.lz4
-    import numcodecs.zstd
+    import numcodecs.blosc  # deferred: loads msgpack, numcodecs
+    import numcodecs.lz4  # deferred: loads msgpack, numcodecs
+    import numcodecs.zstd  # deferred: loads msgpack, numcodecs
 
     raw = np.frombuffer(memoryview(data).cast("B"), np.uint8)
     if codec_id == "blosc":
@@ -279,7 +279,7 @@ def _numcodec_config(codec) -> dict:
 def _bytes_codec_class():
     """A zarr BytesBytesCodec that runs its wrapped codec's decoding through :func:`decompress`, bounded by
     the chunk spec it is given (shape x dtype, plus a few bytes for checksums)."""
-    from zarr.abc.codec import BytesBytesCodec
+    from zarr.abc.codec import BytesBytesCodec  # deferred: loads msgpack, numcodecs
 
     @dataclass(frozen=True)
     class BoundedBytesCodec(BytesBytesCodec):
@@ -308,8 +308,8 @@ _BOUNDED_BYTES = None
 def _bounded_codec(codec, chunk_nbytes: int, n_elements: int):
     """``codec`` (one of an array's zarr codecs) with every decompressing stage bounded."""
     global _BOUNDED_BYTES
-    from zarr.codecs import ShardingCodec
-    from zarr.codecs._v2 import V2Codec
+    from zarr.codecs import ShardingCodec  # deferred: loads msgpack, numcodecs, zarr
+    from zarr.codecs._v2 import V2Codec  # deferred: loads msgpack, numcodecs, zarr
 
     if isinstance(codec, V2Codec):  # zarr format 2: numcodecs compressor and filters
         filters = tuple(codec.filters or ())
@@ -341,7 +341,7 @@ def _bounded_codec(codec, chunk_nbytes: int, n_elements: int):
 def bounded_pipeline(array, chunk_shape: tuple[int, ...], dtype):
     """A codec pipeline that decodes ``array``'s chunks (zarr 2 or 3) like its own, each decompressing stage
     bounded by the chunk's size. UnboundedCodec names a codec whose output cannot be bounded."""
-    from zarr.core.codec_pipeline import BatchedCodecPipeline
+    from zarr.core.codec_pipeline import BatchedCodecPipeline  # deferred: loads msgpack, numcodecs, zarr
 
     pipeline = array.async_array.codec_pipeline
     codecs = (*pipeline.array_array_codecs, pipeline.array_bytes_codec, *pipeline.bytes_bytes_codecs)

@@ -61,7 +61,7 @@ def build_parser() -> argparse.ArgumentParser:
     view.add_argument("--steps", type=int, default=5, help="steps shown in the point-cloud picture (default 5)")
     view.add_argument("--video", action="store_true", help="also an animated GIF of the point clouds")
     view.add_argument("--force", action="store_true", help="replace pictures of the same name in --out")
-    from dssp_data.rerun_views import add_rerun_flags
+    from dssp_data.rerun_views import add_rerun_flags  # deferred: loads numpy
 
     add_rerun_flags(view, what="the episode (instead of the pictures)")
 
@@ -98,7 +98,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _info(args) -> int:
-    from dssp_data.inspect import format_report, inspect_dataset
+    from dssp_data.inspect import format_report, inspect_dataset  # deferred: loads numpy
 
     report = inspect_dataset(args.path)
     print(json.dumps(report, indent=2) if args.json else format_report(report))
@@ -106,7 +106,7 @@ def _info(args) -> int:
 
 
 def _view(args) -> int:
-    from dssp_data.view import render_episode
+    from dssp_data.view import render_episode  # deferred: loads numpy
 
     if args.steps < 1:
         raise DSSPError(f"--steps must be at least 1, got {args.steps}")
@@ -122,7 +122,7 @@ def _view(args) -> int:
 
 
 def _merge(args) -> int:
-    from dssp_data.edit import merge
+    from dssp_data.edit import merge  # deferred: loads numpy
 
     summary = merge(args.out, args.inputs, force=args.force, drop_marked=args.drop_marked, flag="OUT")
     for line in summary["warnings"]:
@@ -134,7 +134,7 @@ def _merge(args) -> int:
 
 
 def _split(args) -> int:
-    from dssp_data.edit import split
+    from dssp_data.edit import split  # deferred: loads numpy
 
     episodes = None
     if args.val_episodes is not None:
@@ -175,7 +175,7 @@ def _episode_list(text: str, option: str) -> list[int]:
 
 
 def _convert(args) -> int:
-    from dssp_data.robotwin_hdf5 import convert
+    from dssp_data.robotwin_hdf5 import convert  # deferred: loads msgpack, numcodecs, numpy, …
 
     tty = sys.stderr.isatty()
 
@@ -198,7 +198,7 @@ def _convert(args) -> int:
 
 
 def _repair(args) -> int:
-    from dssp_data.edit import repair
+    from dssp_data.edit import repair  # deferred: loads msgpack, numcodecs, numpy, …
 
     result = repair(args.path)
     if result["dropped_steps"] or result["dropped_infos"]:

@@ -27,11 +27,12 @@ from pathlib import Path
 
 import numpy as np
 
+from dssp_core.files import make_dirs
+from dssp_core.output_guard import check_not_inside, check_output_files, write_output_file
 from dssp_data import attributes
 from dssp_data.recording import FLAGS_KEY, can_log_dir, problem_names
 from dssp_data.replay_buffer import ReplayBufferReader
-from dssp_core.output_guard import check_not_inside, check_output_files, write_output_file
-from dssp_core.files import make_dirs
+from dssp_data.rerun_views import open_views
 
 VIEWS = (("oblique", 25.0, -60.0), ("top", 90.0, -90.0), ("side", 0.0, -90.0))
 """(name, elevation, azimuth) in degrees of each row of the cloud figure."""
@@ -39,7 +40,7 @@ MAX_VIDEO_FRAMES = 150
 
 
 def _pyplot():
-    import matplotlib
+    import matplotlib  # deferred: loads matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -68,7 +69,7 @@ def _colors(cloud: np.ndarray, zlim: tuple[float, float]):
         if rgb.max() > 1.0:  # MetaWorld stores 0..255
             rgb = rgb / 255.0
         return np.clip(rgb, 0.0, 1.0)
-    import matplotlib
+    import matplotlib  # deferred: loads matplotlib
 
     z = (cloud[:, 2] - zlim[0]) / max(zlim[1] - zlim[0], 1e-9)
     return matplotlib.colormaps["viridis"](np.clip(z, 0, 1))
@@ -226,7 +227,7 @@ def render_episode(path: str | os.PathLike, episode: int, out_dir: str | os.Path
 
 
 def _write_gif(plt, ep, t: np.ndarray, flags, target: Path, title: str, force: bool) -> Path:
-    from matplotlib.animation import FuncAnimation, PillowWriter
+    from matplotlib.animation import FuncAnimation, PillowWriter  # deferred: loads matplotlib
 
     steps = np.unique(np.linspace(0, ep.n_steps - 1, min(ep.n_steps, MAX_VIDEO_FRAMES)).round().astype(int))
     limits = _limits(ep.point_cloud)
@@ -253,7 +254,6 @@ def _write_gif(plt, ep, t: np.ndarray, flags, target: Path, title: str, force: b
 def rerun_episode(path: str | os.PathLike, episode: int, connect: str | None, save: Path | None, horizon: int = 16) -> str:
     """Log episode ``episode`` of dataset ``path`` to Rerun (``connect``: "spawn" or a viewer's URL; ``save``: a new
     .rrd file); returns the views' closing line — every step is logged (the queue waits, nothing is dropped)."""
-    from dssp_data.rerun_views import open_views
 
     path = Path(path)
     reader = ReplayBufferReader(path, allow_incomplete_tail=True)

@@ -33,6 +33,9 @@ from typing import Any
 
 import numpy as np
 
+from dssp_core.cli_runner import ArgumentParser, run_cli
+from dssp_core.output_guard import check_output_file, write_output_figure, write_output_text
+from dssp_deploy.control_loop import ChunkedControl
 from dssp_deploy.flops import chunk_flops, history_step_flops
 from dssp_deploy.latency import (
     LatencyStats,
@@ -47,9 +50,7 @@ from dssp_deploy.latency import (
 from dssp_deploy.manifest import DENOISER_GRAPH, HISTORY_GRAPH, file_kind, graph_file, read_graph_files, read_manifest
 from dssp_deploy.onnx_policy import OnnxPolicy, add_runtime_arguments, choose_graphs
 from dssp_deploy.op_breakdown import elementwise_share, op_type_breakdown
-from dssp_deploy.sessions import default_threads
-from dssp_core.cli_runner import ArgumentParser, run_cli
-from dssp_core.output_guard import check_output_file, write_output_figure, write_output_text
+from dssp_deploy.sessions import check_threads, default_threads
 
 FULL = {"iterations": 300, "chunk_iterations": 100, "sweep": [10, 100, 1000, 3000, 10000], "window": 50,
         "matrix_iterations": 100, "matrix_chunks": 20, "prefetch_ticks": 300}
@@ -103,7 +104,6 @@ def paths_and_threads(model_dir: Path, precision: str, threads: int, settings: d
 def prefetch_ticks(model_dir: Path, precision: str, kernel: str, threads: int, ticks: int, rng) -> dict[str, Any]:
     """Real-time ticks at the model's control rate with the next chunk prefetched: the tick's latency against
     the history step's, measured on the same sessions (history on one thread, the chunk on the others)."""
-    from dssp_deploy.control_loop import ChunkedControl
 
     policy = OnnxPolicy(model_dir, threads=threads, precision=precision, kernel=kernel, background_chunks=True)
     pc, pos = random_observation(policy, rng)
@@ -316,7 +316,7 @@ def plot(report: dict[str, Any], path: Path, force: bool = False) -> None:
         raise SystemExit("error: --plot needs matplotlib (pip install matplotlib)") from None
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    import matplotlib.ticker
+    import matplotlib.ticker  # deferred: loads matplotlib
 
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4))
     sweep = report["history_sweep"]
@@ -348,8 +348,6 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
 
     def _main() -> int:
-        from dssp_deploy.sessions import check_threads
-
         check_threads(args.threads)
         for path, flag in ((args.json, "--json"), (args.plot, "--plot")):
             if path is not None:

@@ -97,7 +97,7 @@ def collect(task: str, n_episodes: int, out: Path, seed: int | None = None, n_po
 
     ``seed`` None: 0 for a new dataset, the seed after the last one tried when appending (``first_seed``).
     """
-    from dssp_data.replay_buffer_writer import dataset_lock
+    from dssp_data.replay_buffer_writer import dataset_lock  # deferred: loads msgpack, numcodecs, zarr
 
     check_collect_output(out, task)
     first_seed(out, seed)  # a bad --seed is refused before anything is created
@@ -111,14 +111,14 @@ def collect(task: str, n_episodes: int, out: Path, seed: int | None = None, n_po
 
 def _task_env(task: str, seed: int, n_points: int | None):
     """(env, expert factory, point-cloud settings) for ``task``: a Piper memory task or ``metaworld/NAME``."""
-    from dssp_sim import metaworld_env
+    from dssp_sim import metaworld_env  # deferred: loads mujoco
 
     if metaworld_env.is_metaworld(task):  # DP3's protocol: whole 200-step episodes, kept at 5 successful steps
         env = metaworld_env.MetaWorldEnv(task, seed=seed, success_steps=metaworld_env.DEMO_SUCCESS_STEPS,
                                          stop_on_success=False)
         return env, metaworld_env.MetaWorldExpert, metaworld_env.cloud_config(n_points)
-    from dssp_sim.env import PiperEnv
-    from dssp_sim.experts import make_expert
+    from dssp_sim.env import PiperEnv  # deferred: loads mujoco
+    from dssp_sim.experts import make_expert  # deferred: loads mujoco
 
     return PiperEnv(task, seed=seed), make_expert, cloud_config_for(n_points, task)
 
@@ -135,9 +135,9 @@ def _collect(task: str, n_episodes: int, out: Path, seed: int, n_points: int | N
 
 def _collect_episodes(env, make_expert, cloud_config, task: str, n_episodes: int, out: Path, seed: int,
                       max_attempts: int, progress: bool) -> CollectResult:
-    from dssp_data.dataset_layout import Episode
-    from dssp_data.replay_buffer_writer import ReplayBufferWriter
-    from dssp_sim import metaworld_env
+    from dssp_data.dataset_layout import Episode  # deferred: loads mujoco
+    from dssp_data.replay_buffer_writer import ReplayBufferWriter  # deferred: loads mujoco
+    from dssp_sim import metaworld_env  # deferred: loads mujoco
 
     result = CollectResult()
     bar = None

@@ -30,14 +30,23 @@ from pathlib import Path
 
 import numpy as np
 
-from dssp_deploy.manifest import observation_of
-from dssp_sim.settings import cloud_config_for
-from dssp_sim.mujoco_arm import MujocoPiper
-from dssp_sim.mujoco_camera import MujocoCamera
 from dssp_core.errors import ConfigError, NonFiniteObservation
 from dssp_core.output_guard import OutputKind
+from dssp_deploy.control_loop import ChunkedControl
+from dssp_deploy.manifest import observation_of
+from dssp_deploy.onnx_policy import OnnxPolicy
+from dssp_deploy.ranges import ChunkOutOfRange, ObservationOutOfRange
+from dssp_sim.mujoco_arm import MujocoPiper
+from dssp_sim.mujoco_camera import MujocoCamera
+from dssp_sim.settings import cloud_config_for
 from hardware.pacing import latency_stats
+from hardware.piper.arm import PiperArm
+from hardware.piper.piper_robot import PiperRobot
+from hardware.pointcloud import frame_to_cloud
+from hardware.rig import Rig
+from hardware.run_loop import LoopSettings, Runner
 from hardware.safety import SafetyConfig
+from hardware.subscribers.rerun_ticks import RerunTicks
 
 # Lockstep: inputs are fresh by construction; generous timeouts only catch a stalled bridge.
 EVAL_SAFETY = SafetyConfig(camera_timeout=2.0, feedback_timeout=2.0, deadline_hold=False)
@@ -153,11 +162,6 @@ def run_episode(policy, env, seed: int, cloud_config, frames: list | None = None
     ``frames`` collects each tick's depth image; ``latencies`` each tick's latencies in ms by stage
     (cloud, observe, chunk, tick), when given; ``views`` (:class:`dssp_data.rerun_views.TickViews`) get every
     tick, continuing their timeline after the previous episode's."""
-    from hardware.piper.arm import PiperArm
-    from hardware.piper.piper_robot import PiperRobot
-    from hardware.rig import Rig
-    from hardware.run_loop import LoopSettings, Runner
-    from hardware.subscribers.rerun_ticks import RerunTicks
 
     env.reset(seed=seed)
     channel = f"dssp-eval-{uuid.uuid4().hex[:8]}"
@@ -221,9 +225,6 @@ def run_direct_episode(policy, env, seed: int, cloud_config, frames: list | None
 
     A tick the runtime refuses (NaN/inf or an out-of-range observation, a refused chunk) holds (``env.hold()``)
     and is counted in ``holds`` and ``safety_events``; the next tick goes on."""
-    from dssp_deploy.control_loop import ChunkedControl
-    from dssp_deploy.ranges import ChunkOutOfRange, ObservationOutOfRange
-    from hardware.pointcloud import frame_to_cloud
 
     env.reset(seed=seed)
     loop = ChunkedControl(policy, rate_hz=env.control_rate_hz, seed=seed)
@@ -271,8 +272,7 @@ def evaluate(model_dir: Path, task: str, n_episodes: int, seed: int = 1000, thre
     """Evaluate a model directory on ``task`` for ``n_episodes`` seeded episodes (seeds seed, seed+1, ...);
     ``precision`` and ``kernel`` choose its graphs (:class:`dssp_deploy.onnx_policy.OnnxPolicy`); ``views``: Rerun
     views of every tick of every episode, on one timeline (the caller closes them)."""
-    from dssp_deploy.onnx_policy import OnnxPolicy
-    from dssp_sim import metaworld_env
+    from dssp_sim import metaworld_env  # deferred: loads mujoco
 
     if metaworld_env.is_metaworld(task) and views is not None:
         raise ConfigError("--rerun views show the Piper's control loop; MetaWorld evaluations have none (drop the flag)")
@@ -343,7 +343,7 @@ def print_eval(result) -> None:
     if result.reasons():
         print("failures: " + ", ".join(f"{k} × {v}" for k, v in result.reasons().most_common()))
     d = result.decisions()
-    from dssp_sim.metaworld_env import is_metaworld
+    from dssp_sim.metaworld_env import is_metaworld  # deferred: loads mujoco
 
     direct = is_metaworld(result.task)
     if not direct:  # MetaWorld's tasks (and the cue variant, whose success is the decision) hold no separate one

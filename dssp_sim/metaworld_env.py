@@ -170,7 +170,7 @@ def cloud_config(n_points: int | None = None) -> PointCloudConfig:
 
 def _import_metaworld():
     try:
-        import metaworld
+        import metaworld  # deferred: loads gymnasium, imageio, metaworld, …
         import metaworld.policies
     except ImportError as e:
         raise ConfigError(f"MetaWorld is not installed ({e}); install it with: {INSTALL}") from None
@@ -326,7 +326,7 @@ class MetaWorldExpert:
     """MetaWorld's scripted policy for the env's task; ``act(env)`` -> action (4,) from the env's full observation."""
 
     def __init__(self, env: MetaWorldEnv):
-        from metaworld.policies import ENV_POLICY_MAP
+        from metaworld.policies import ENV_POLICY_MAP  # deferred: loads gymnasium, imageio, metaworld, …
 
         self.policy = ENV_POLICY_MAP[f"{env.name}-v3"]()
 
@@ -338,7 +338,7 @@ class MetaWorldExpert:
 
 def dataset_attrs(env: MetaWorldEnv, camera, config: PointCloudConfig) -> dict:
     """Dataset attributes of MetaWorld demonstrations: what the clouds, state and action are."""
-    import metaworld
+    import metaworld  # deferred: loads gymnasium, imageio, metaworld, …
 
     return {
         "control_rate_hz": float(env.control_rate_hz),

@@ -25,9 +25,10 @@ import sys
 from pathlib import Path
 
 from dssp_core.cli_runner import ArgumentParser, run_cli
-from dssp_deploy.onnx_policy import add_runtime_arguments
 from dssp_core.errors import ConfigError
 from dssp_core.output_guard import OutputDir, check_output_file, write_output_text
+from dssp_data.rerun_views import add_rerun_flags
+from dssp_deploy.onnx_policy import add_runtime_arguments
 
 TASKS = ("tap", "swap", "put2")
 
@@ -37,7 +38,7 @@ TASK_HELP = (" | ".join(TASKS) + " | metaworld/NAME (a MetaWorld v3 task) | meta
 
 
 def _task(name: str) -> str:
-    from dssp_sim.metaworld_env import is_metaworld, task_id
+    from dssp_sim.metaworld_env import is_metaworld, task_id  # deferred: loads mujoco
 
     if is_metaworld(name):
         try:
@@ -87,7 +88,6 @@ def parse_args(argv):
     e.add_argument("--json", type=Path, help="write the result here")
     e.add_argument("--force", action="store_true", help="replace an existing --json file and previous --strips")
     e.add_argument("--no-progress", action="store_true")
-    from dssp_data.rerun_views import add_rerun_flags
 
     add_rerun_flags(e, what="every tick of every episode")
     return p.parse_args(argv)
@@ -106,11 +106,11 @@ def run(args) -> int:
             raise ConfigError(f"only {result.kept} of {args.episodes} expert episodes succeeded in {result.attempted} tries; "
                               "the dataset holds the successful ones — check the task's expert")
         return 0
-    from dssp_sim.evaluate import STRIPS_DIR, evaluate, print_eval
+    from dssp_sim.evaluate import STRIPS_DIR, evaluate, print_eval  # deferred: loads can
 
     if not (math.isfinite(args.noise) and 0 <= args.noise <= 10):
         raise ConfigError(f"--noise must be a number in [0, 10] (σ in the tokens' units), got {args.noise}")
-    from dssp_data.rerun_views import check_views, open_views
+    from dssp_data.rerun_views import check_views, open_views  # deferred: loads can
 
     check_views(args.rerun, args.rerun_save)  # every flag checked before anything is opened or written
     if args.json:

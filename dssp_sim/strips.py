@@ -9,7 +9,7 @@ import numpy as np
 
 def save_strip(frames: list[np.ndarray], path: Path, title: str, n: int = 8) -> Path:
     """frames: per tick depth (H, W) uint16; saves ``n`` evenly spaced ones as one PNG."""
-    import matplotlib
+    import matplotlib  # deferred: loads matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

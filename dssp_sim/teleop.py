@@ -22,14 +22,17 @@ import uuid
 
 import numpy as np
 
+from dssp_core.errors import ConfigError
 from dssp_sim.env import PiperEnv
 from dssp_sim.experts import make_expert
 from dssp_sim.mujoco_arm import MujocoPiper
 from dssp_sim.mujoco_camera import MujocoCamera
+from dssp_sim.settings import cloud_config_for
+from dssp_sim.tasks import make_task
+from hardware.cli.record import main
 from hardware.clock import FakeClock
 from hardware.leader import ScriptedLeader
 from hardware.piper import codec
-from dssp_core.errors import ConfigError
 
 
 class SimClock(FakeClock):
@@ -139,13 +142,9 @@ class TeleopRigs:
     settings and a :class:`TeleopRig` per session."""
 
     def default_cloud_config(self):
-        from dssp_sim.settings import cloud_config_for
-
         return cloud_config_for()
 
     def open(self, task: str, seed: int) -> TeleopRig:
-        from dssp_sim.tasks import make_task
-
         try:
             make_task(task)
         except (KeyError, ValueError):
@@ -155,6 +154,5 @@ class TeleopRigs:
 
 def record_main(argv: list[str] | None = None) -> int:
     """``dssp-sim record``: ``dssp-record`` on the simulated rig (``--camera mujoco --can mujoco`` by default)."""
-    from hardware.cli.record import main
 
     return main(argv, sim=TeleopRigs(), prog="dssp-sim record")

@@ -17,7 +17,7 @@ __all__ = ["ExportError", "FORMAT_VERSION", "MANIFEST_NAME", "ParityError", "exp
 
 def export_model(*args, **kwargs):
     """See :func:`export.to_onnx.export_model`."""
-    from export.to_onnx import export_model as _export_model
+    from export.to_onnx import export_model as _export_model  # deferred: loads torch, tqdm
 
     return _export_model(*args, **kwargs)
 

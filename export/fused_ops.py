@@ -69,7 +69,7 @@ def mark_unread_states(model) -> int:
     In the denoiser graph the K action-token scans of each layer start from the prefix's state and their
     final state is never used: the kernel then skips writing it back, (E, n) floats per layer and step.
     """
-    import onnx
+    import onnx  # deferred: loads onnx
 
     graph = model.graph
     read = _names_read(graph.node) | {o.name for o in graph.output}

@@ -8,6 +8,7 @@ Shapes: point cloud (B, P, C), agent_pos (B, S), the chunk (B, H, A).
 
 from __future__ import annotations
 
+import io
 import warnings
 from collections.abc import Callable
 from pathlib import Path
@@ -18,7 +19,8 @@ import numpy as np
 from dssp_core.errors import ParityError
 from dssp_data.streaming_history import StreamingHistory
 from dssp_deploy.manifest import DENOISER_GRAPH, HISTORY_GRAPH
-
+from dssp_deploy.onnx_policy import OnnxPolicy
+from dssp_deploy.ranges import ChunkOutOfRange
 
 GraphFn = Callable[[dict[str, np.ndarray]], list[np.ndarray]]
 """One exported graph as a function: named inputs in, its outputs in order."""
@@ -80,8 +82,6 @@ class RuntimeStream:
     """
 
     def __init__(self, model_dir: Path, threads: int, precision: str = "fp32", kernel: str = "standard"):
-        from dssp_deploy.onnx_policy import OnnxPolicy
-
         self.policy = OnnxPolicy(model_dir, threads=threads, warmup=0, precision=precision, kernel=kernel)
         self.name = f"{self.policy.precision} {self.policy.kernel}"
 
@@ -101,7 +101,6 @@ class RuntimeStream:
 
     def act(self, noise: np.ndarray) -> np.ndarray:
         """The chunk; one the runtime refuses (NaN/inf, outside the action range) on the trajectory fails parity."""
-        from dssp_deploy.ranges import ChunkOutOfRange
 
         try:
             return self.policy.act(noise=noise)
@@ -112,9 +111,8 @@ class RuntimeStream:
 
 def torchscript_graph(path: Path, data: bytes | None = None) -> GraphFn:
     """A TorchScript graph as a function; ``data``: the file's bytes, already checked against the manifest."""
-    import io
 
-    import torch
+    import torch  # deferred: loads torch, tqdm
 
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", category=DeprecationWarning)  # torch.jit is deprecated, still the .pt reader

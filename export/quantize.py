@@ -46,7 +46,7 @@ def _quiet_root(fn):
 
 
 def _save(model, dst: Path, metadata: dict[str, str], quantization: str) -> None:
-    import onnx
+    import onnx  # deferred: loads onnx
 
     del model.metadata_props[:]
     onnx.helper.set_model_props(model, {**metadata, "quantization": quantization})
@@ -55,8 +55,8 @@ def _save(model, dst: Path, metadata: dict[str, str], quantization: str) -> None
 
 def quantize_int8(src: Path, dst: Path, metadata: dict[str, str]) -> None:
     """Write the int8 graph of ``src`` (an fp32 ``.onnx``) to ``dst``, with ``metadata`` as its metadata_props."""
-    import onnx
-    from onnxruntime.quantization import QuantType, quantize_dynamic
+    import onnx  # deferred: loads onnx
+    from onnxruntime.quantization import QuantType, quantize_dynamic  # deferred: loads onnx, onnxruntime
 
     with tempfile.TemporaryDirectory(dir=Path(dst).parent) as tmp:
         raw = Path(tmp) / "int8.onnx"
@@ -68,7 +68,8 @@ def quantize_int8(src: Path, dst: Path, metadata: dict[str, str]) -> None:
 
 def quantize_int4(src: Path, dst: Path, metadata: dict[str, str]) -> None:
     """Write the int4 weight-only graph of ``src`` (an fp32 ``.onnx``) to ``dst``, with ``metadata`` as its metadata_props."""
-    import onnx
+    import onnx  # deferred: loads onnx
+    # deferred: loads onnx, onnxruntime
     from onnxruntime.quantization.matmul_nbits_quantizer import DefaultWeightOnlyQuantConfig, MatMulNBitsQuantizer
 
     config = DefaultWeightOnlyQuantConfig(block_size=INT4_BLOCK, is_symmetric=True, accuracy_level=INT4_ACCURACY_LEVEL,

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import importlib.metadata
 import platform
 import sys
 import time
@@ -42,15 +43,30 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from dssp_deploy.sessions import check_threads
+import torch
+
 from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import ExportError, ParityError
-from dssp_deploy.mamba_kernel import DOMAIN, OPSET_VERSION
-from dssp_train.config import TIMESTEP_SPACINGS as SPACINGS
-from dssp_deploy.manifest import DENOISER_GRAPH, GRAPHS, HISTORY_GRAPH, MANIFEST_NAME, PRECISIONS, file_kind, file_suffix, graph_io
-from export.fused_ops import mark_unread_states
-from export.manifest_writer import build_manifest, metadata_props, write_manifest
 from dssp_core.staging import writer_lock
+from dssp_deploy.mamba_kernel import DOMAIN, OPSET_VERSION
+from dssp_deploy.manifest import (
+    DENOISER_GRAPH,
+    GRAPHS,
+    HISTORY_GRAPH,
+    MANIFEST_NAME,
+    PRECISIONS,
+    file_kind,
+    file_suffix,
+    graph_io,
+)
+from dssp_deploy.sessions import check_threads
+from dssp_train.config import TIMESTEP_SPACINGS as SPACINGS
+from export.fused_ops import mark_unread_states
+from export.graphs import DenoiserGraph, HistoryStepGraph, check_exportable
+from export.manifest_writer import build_manifest, metadata_props, write_manifest
+from export.output_dir import StagedDirectory
+from export.verify import file_sha256, verify_model
+from export.verify_report import check_report, describe_worst, format_report
 
 EXPORTER_VERSION = "1"
 SUPPORTED_OPSETS = range(17, 21)  # LayerNormalization needs 17; torch's TorchScript-based exporter stops at 20
@@ -63,11 +79,9 @@ QUANTIZED = tuple(p for p in PRECISIONS if p != "fp32")
 # ------------------------------------------------------------------ loading
 def load_source(run_dir: Path, ema: bool = True):
     """(policy, config, source facts) for RUN_DIR's EMA (default) or raw weights."""
-    from safetensors import safe_open
+    from safetensors import safe_open  # deferred: loads safetensors
 
-    from dssp_train.training.checkpoint import load_policy
-    from export.graphs import check_exportable
-    from export.verify import file_sha256
+    from dssp_train.training.checkpoint import load_policy  # deferred: loads safetensors
 
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
@@ -94,7 +108,6 @@ def load_source(run_dir: Path, ema: bool = True):
 def check_finite_weights(policy, path: Path) -> None:
     """Refuse weights (and normaliser statistics) with NaN or infinity, naming the first such tensor: the graphs
     would compute NaN, or with int8 plausible-looking garbage, on every input."""
-    import torch
 
     for name, tensor in policy.state_dict().items():
         if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
@@ -112,11 +125,8 @@ def without_local_paths(report: dict[str, Any], dataset: str | None) -> dict[str
 
 
 def library_versions() -> dict[str, str]:
-    import importlib.metadata
-
-    import onnx
-    import onnxruntime
-    import torch
+    import onnx  # deferred: loads onnx
+    import onnxruntime  # deferred: loads onnxruntime
 
     try:
         dssp = importlib.metadata.version("dssp")
@@ -138,7 +148,6 @@ def quiet_tracing():
     Both are used on purpose: the torch.export-based exporter took 96 s for the tiny denoiser (the
     TorchScript-based one 3 s) and gave a larger graph that ran 2x slower in ONNX Runtime.
     """
-    import torch
 
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", category=DeprecationWarning)
@@ -152,7 +161,6 @@ def quiet_tracing():
 # ----------------------------------------------------------------- tracing
 def example_inputs(config, graph: str, batch: int = 2) -> tuple:
     """Random inputs with the graph's shapes, B = ``batch`` (2, so no size-1 broadcast is baked in)."""
-    import torch
 
     gen = torch.Generator().manual_seed(0)
     inputs, _ = graph_io(config.model, graph)
@@ -162,14 +170,12 @@ def example_inputs(config, graph: str, batch: int = 2) -> tuple:
 
 def graph_modules(policy, denoise_steps: int) -> dict[str, Any]:
     """{graph name: the torch module that becomes it}."""
-    from export.graphs import DenoiserGraph, HistoryStepGraph
 
     return {HISTORY_GRAPH: HistoryStepGraph(policy).eval(), DENOISER_GRAPH: DenoiserGraph(policy, denoise_steps).eval()}
 
 
 def trace(module, example: tuple):
     """The TorchScript trace of one graph module."""
-    import torch
 
     with torch.no_grad(), quiet_tracing():
         return torch.jit.trace(module, example, check_trace=False)
@@ -186,8 +192,7 @@ def write_onnx(module, example: tuple, path: Path, config, graph: str, opset: in
     The module itself is exported (the exporter traces it again): a TorchScript trace loses the tensor
     ranks that the ONNX conversion of ``transpose`` needs.
     """
-    import onnx
-    import torch
+    import onnx  # deferred: loads onnx
 
     inputs, outputs = graph_io(config.model, graph)
     dynamic_axes = {s["name"]: {i: d for i, d in enumerate(s["shape"]) if isinstance(d, str)} for s in inputs + outputs}
@@ -267,7 +272,7 @@ def _rename_inputs(nodes, alias: dict[str, str]) -> None:
 
 
 def onnx_node_count(path: Path) -> int:
-    import onnx
+    import onnx  # deferred: loads onnx
 
     return len(onnx.load(str(path), load_external_data=False).graph.node)
 
@@ -296,10 +301,7 @@ def export_model(
         ExportError: bad input (nothing is written).
         ParityError: the graphs do not reproduce the PyTorch model (nothing is left behind).
     """
-    from dssp_train.training.checkpoint import config_recorded
-    from export.output_dir import StagedDirectory
-    from export.verify import file_sha256, verify_model
-    from export.verify_report import check_report, describe_worst, format_report
+    from dssp_train.training.checkpoint import config_recorded  # deferred: loads safetensors
 
     if opset not in SUPPORTED_OPSETS:
         raise ExportError(f"--opset {opset} is not supported; use {SUPPORTED_OPSETS.start}..{SUPPORTED_OPSETS.stop - 1} (default {DEFAULT_OPSET})")

@@ -54,6 +54,7 @@ N recent tokens, H horizon): trajectory point_cloud (T, P, C), agent_pos (T, S);
 from __future__ import annotations
 
 import argparse
+import copy
 import dataclasses
 import hashlib
 import json
@@ -71,7 +72,9 @@ from dssp_core.errors import ExportError, ParityError
 from dssp_core.output_guard import check_output_file, write_output_text
 from dssp_deploy.manifest import DENOISER_GRAPH, FUSED, HISTORY_GRAPH, PRECISIONS, file_kind, read_graph, read_manifest
 from dssp_deploy.sessions import check_threads, default_threads
+from dssp_train.config import TIMESTEP_SPACINGS
 from export.graph_streams import GraphFn, GraphStream, RuntimeStream, torchscript_graph
+from export.trajectory import load_trajectory
 from export.verify_report import ACTION_UNITS, MODEL_UNITS, check_report, format_report
 
 BOUND = 1e-4
@@ -115,8 +118,7 @@ def file_sha256(path: Path) -> str:
 def load_checked_policy(manifest: dict[str, Any], run_dir: Path):
     """The policy the manifest was exported from: same weights file, same sha256, same model config."""
 
-    from dssp_train.config import TIMESTEP_SPACINGS
-    from dssp_train.training.checkpoint import load_policy
+    from dssp_train.training.checkpoint import load_policy  # deferred: loads safetensors, torch, tqdm
 
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
@@ -177,7 +179,7 @@ def pytorch_reference(policy, point_cloud: np.ndarray, agent_pos: np.ndarray, ti
                       num_steps: int) -> Reference:
     """The training path over one episode: point_cloud (T, P, C), agent_pos (T, S), chunk ``ticks`` (K,),
     noise (K, B, H, A) → :class:`Reference`. Every chunk's denoiser call is one batch (in blocks of ``BLOCK``)."""
-    import torch
+    import torch  # deferred: loads torch, tqdm
 
     steps = agent_pos.shape[0]
     with torch.no_grad():
@@ -234,9 +236,8 @@ def verify_model(
     Does not raise on a failed bound: see ``report["passed"]`` (:func:`check_report` raises, :func:`main`
     exits 1).
     """
-    import torch
+    import torch  # deferred: loads torch, tqdm
 
-    from export.trajectory import load_trajectory
 
     if steps < 1:
         raise ExportError(f"--steps must be >= 1, got {steps}")
@@ -530,9 +531,8 @@ def _float64_check(policy, num_steps: int, scale: np.ndarray, flagged: list[dict
     is not counted). Distances in normalised action units. Diagnostic only: when the graphs are about as
     far from float64 as PyTorch fp32, the model amplifies rounding (a property of the weights), not the export.
     """
-    import copy
 
-    import torch
+    import torch  # deferred: loads torch, tqdm
 
     policy64 = copy.deepcopy(policy).double().eval()
     owners = [(i, name) for i, entry in enumerate(flagged) for name in entry["inputs"]]

@@ -28,12 +28,14 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from dssp_data.recording import RecordingDataset, can_log_dir, can_log_name, partial_can_log_name
 from dssp_core.errors import DSSPError
+from dssp_data.recording import RecordingDataset, can_log_dir, can_log_name, partial_can_log_name
+from dssp_data.replay_buffer_writer import write_replay_buffer
 from hardware.bus_monitor import BusMonitor
 from hardware.clock import REAL_CLOCK, Clock
 from hardware.pacing import Pacer
 from hardware.recorder import Recorder, RecorderNotReady
+
 
 @dataclass(frozen=True)
 class SessionSettings:
@@ -194,7 +196,6 @@ class RecordSession:
 
     def _rescue(self, episode, info: dict, exc: BaseException) -> None:
         """The append failed: write the episode as a dataset of its own next to the dataset, so it is not lost."""
-        from dssp_data.replay_buffer_writer import write_replay_buffer
 
         target = self.dataset.path.with_name(f"{self.dataset.path.name}.unsaved-{self.session_tag}-{len(self.summary.kept)}")
         try:

@@ -28,6 +28,7 @@ by, ``GROUP:N`` for the first N of a group in alphabetical order, or ``all``.
 from __future__ import annotations
 
 import hashlib
+import importlib.metadata
 import json
 import sys
 from pathlib import Path
@@ -204,7 +205,6 @@ def stages(plan: dict, split: str, tasks: list[str], record: Path) -> list[Stage
 
 def definition_hash() -> str:
     """The benchmark's definition: metaworld's version and this project's MetaWorld wrapper (first 16 hex digits)."""
-    import importlib.metadata
 
     mw = _mw()
     try:

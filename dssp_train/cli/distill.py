@@ -56,7 +56,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def teacher_dataset(teacher: Path, config: RunConfig) -> str:
     """The dataset the teacher trained on: the resolved path its checkpoint records, else its config's."""
-    from dssp_train.training.checkpoint import read_trainer_state
+    from dssp_train.training.checkpoint import read_trainer_state  # deferred: loads safetensors, torch, tqdm
 
     state = read_trainer_state(teacher) or {}
     recorded = state.get("dataset") if isinstance(state.get("dataset"), dict) else {}
@@ -83,7 +83,7 @@ def student_config(args, run_config: RunConfig | None) -> RunConfig:
         if args.steps is not None:
             config["train"]["steps"] = args.steps
         return RunConfig.from_dict(config)
-    from dssp_train.training.checkpoint import load_config
+    from dssp_train.training.checkpoint import load_config  # deferred: loads safetensors, torch, tqdm
 
     if args.teacher is None or args.denoise_steps is None:
         raise DSSPError("dssp-distill needs --teacher RUN_DIR and --steps K (the student's denoising steps), or --resume")

@@ -36,8 +36,8 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
 
     def _main() -> int:
-        from dssp_train.model.param_count import format_breakdown, parameter_breakdown
-        from dssp_train.training.checkpoint import load_config
+        from dssp_train.model.param_count import format_breakdown, parameter_breakdown  # deferred: loads torch, tqdm
+        from dssp_train.training.checkpoint import load_config  # deferred: loads safetensors, torch, tqdm
 
         sets = set_fields(args.set, "preset, dataset and control_rate_hz describe a run and change no parameter")
         dims = {"model.state_dim": ("--state-dim", args.state_dim), "model.action_dim": ("--action-dim", args.action_dim)}
@@ -92,9 +92,9 @@ def block_variants(model) -> str:
 
 def meta_policy(model):
     """The policy built on the meta device: every parameter's shape, no memory (any width can be counted)."""
-    import torch
+    import torch  # deferred: loads torch, tqdm
 
-    from dssp_train.model.policy import DSSPPolicy
+    from dssp_train.model.policy import DSSPPolicy  # deferred: loads torch, tqdm
 
     with torch.device("meta"):
         return DSSPPolicy(model)

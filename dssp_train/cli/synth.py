@@ -35,13 +35,13 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
 
     def _main() -> int:
-        from dssp_train.data.synthetic import check_tap_count_size
+        from dssp_train.data.synthetic import check_tap_count_size  # deferred: loads msgpack, numcodecs, numpy, …
 
         check_tap_count_size(args.episodes, args.seed, args.points, names=("--episodes", "--seed", "--points"))
         check_output(args.out, force=args.force, kind=SYNTH_DATASET, flag="--out")
 
-        from dssp_data.replay_buffer import ReplayBuffer
-        from dssp_train.data.synthetic import write_tap_count_dataset
+        from dssp_data.replay_buffer import ReplayBuffer  # deferred: loads msgpack, numcodecs, numpy, …
+        from dssp_train.data.synthetic import write_tap_count_dataset  # deferred: loads msgpack, numcodecs, numpy, …
 
         path = write_tap_count_dataset(args.out, args.episodes, seed=args.seed, n_points=args.points)
         print(f"wrote {ReplayBuffer.load(path)!r} to {path}")

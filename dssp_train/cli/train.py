@@ -218,7 +218,7 @@ def config_from_args(args, run_config: RunConfig | None = None) -> RunConfig:
         if changed:
             raise DSSPError(f"--resume keeps the run's config; only --steps may change (got {', '.join(changed)})")
         if run_config is None:
-            from dssp_train.training.checkpoint import load_config
+            from dssp_train.training.checkpoint import load_config  # deferred: loads safetensors, torch, tqdm
 
             run_config = load_config(Path(args.out))
         config = run_config
@@ -232,7 +232,7 @@ def config_from_args(args, run_config: RunConfig | None = None) -> RunConfig:
 
 def _first_save(out: Path) -> str:
     """"step N's save" for the run in ``out`` (its config.json), or "its first save"."""
-    from dssp_train.training.checkpoint import first_save_step, load_config
+    from dssp_train.training.checkpoint import first_save_step, load_config  # deferred: loads safetensors, torch, tqdm
 
     try:
         return f"step {first_save_step(load_config(out))}'s save"
@@ -253,6 +253,7 @@ def check_resume(args, out: Path) -> RunConfig:
     its checkpoint was trained with (one without that record, from an older version, is taken with a warning).
     Returns its config."""
 
+    # deferred: loads safetensors, torch, tqdm
     from dssp_train.training.checkpoint import check_recorded_config, checkpoint_dir, load_config, read_trainer_state
 
     config = load_config(out)
@@ -270,6 +271,7 @@ def check_resume(args, out: Path) -> RunConfig:
 
 def interrupted_message(args, out: Path, trainer, replaced: bool) -> str:
     """What a Ctrl-C (or SIGTERM) kept, and how to go on from there."""
+    # deferred: loads safetensors, torch, tqdm
     from dssp_train.training.checkpoint import checkpoint_dir, read_trainer_state
 
     if trainer is None:
@@ -301,7 +303,7 @@ def interrupted_message(args, out: Path, trainer, replaced: bool) -> str:
 
 def _run_steps(out: Path) -> int | None:
     """train.steps of the run's config.json, or None when it cannot be read."""
-    from dssp_train.training.checkpoint import load_config
+    from dssp_train.training.checkpoint import load_config  # deferred: loads safetensors, torch, tqdm
 
     try:
         return load_config(out).train.steps
@@ -381,9 +383,9 @@ def run_training(args, make_config) -> int:
 
 def _train(args, out: Path, make_config) -> dict | None:
     """Train into ``out``; the summary on the main process, None on the others."""
-    import torch
+    import torch  # deferred: loads torch, tqdm
 
-    from dssp_train.training.trainer import Trainer
+    from dssp_train.training.trainer import Trainer  # deferred: loads msgpack, numcodecs, safetensors, …
 
     given_flags(args)  # each flag's value first, named as typed
     if args.control_rate is not None:

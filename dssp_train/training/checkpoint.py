@@ -36,14 +36,15 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from safetensors import SafetensorError
+from safetensors import SafetensorError, safe_open
 from safetensors.torch import load_file, save_file
 from torch import nn
 
-from dssp_core.files import _umask, atomic_write, atomic_write_text, replace_dir
-from dssp_train.config import RunConfig
 from dssp_core.errors import CheckpointError, ConfigError
+from dssp_core.files import _umask, atomic_write, atomic_write_text, replace_dir
 from dssp_core.schema import read_json_object
+from dssp_train.config import RunConfig
+from dssp_train.model.policy import DSSPPolicy
 
 FORMAT_VERSION = "1"
 
@@ -205,7 +206,6 @@ def check_recorded_config(run_dir: Path, config: RunConfig, record: Mapping[str,
 
 def weights_metadata(path: Path) -> dict[str, str]:
     """The safetensors metadata of the weights file ``path`` (its header only; {} when it has none)."""
-    from safetensors import safe_open
 
     try:
         with safe_open(str(path), "pt") as f:
@@ -229,7 +229,6 @@ def load_policy(run_dir: Path, weights: str = "model.safetensors"):
 
     A config.json that differs from the config the weights record is refused (:func:`check_recorded_config`).
     """
-    from dssp_train.model.policy import DSSPPolicy
 
     config = load_config(run_dir)
     path = Path(run_dir) / weights

@@ -88,7 +88,7 @@ def scalars_of(values: Mapping[str, Any]) -> dict[str, float]:
 
 def figure_image(fig: Any) -> np.ndarray:
     """The matplotlib figure ``fig`` rendered as an RGB image, (height, width, 3) uint8."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.backends.backend_agg import FigureCanvasAgg  # deferred: loads matplotlib
 
     canvas = FigureCanvasAgg(fig)
     canvas.draw()
@@ -112,7 +112,7 @@ class TensorBoardDashboard:
     """Event files in ``log_dir``; ``resume_step``: events after it, from an interrupted process, are purged."""
 
     def __init__(self, log_dir: Path, resume_step: int | None = None):
-        from torch.utils.tensorboard import SummaryWriter
+        from torch.utils.tensorboard import SummaryWriter  # deferred: loads tensorboard, termios, torch, …
 
         self.log_dir = Path(log_dir)
         self.writer = SummaryWriter(str(self.log_dir), purge_step=None if resume_step is None else resume_step + 1)
@@ -138,7 +138,7 @@ class WandbDashboard:
     """
 
     def __init__(self, run_dir: Path, config: Mapping[str, Any], resumed: bool = False):
-        import wandb
+        import wandb  # deferred: loads termios, wandb
 
         self.wandb = wandb
         run_dir = Path(run_dir)

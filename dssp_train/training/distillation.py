@@ -48,7 +48,7 @@ GAP_WINDOWS = 4  # windows on which consistency distillation logs teacher_mse
 def load_teacher(config: RunConfig, device: torch.device) -> DSSPPolicy:
     """The teacher named by ``config.distill.teacher`` (its EMA weights), frozen, in eval mode; its architecture
     must be the student's (only the sampling settings may differ)."""
-    from dssp_train.training.checkpoint import load_config, load_policy
+    from dssp_train.training.checkpoint import load_config, load_policy  # deferred: loads safetensors
 
     run_dir = Path(config.distill.teacher)
     teacher_config = load_config(run_dir)

@@ -33,8 +33,9 @@ from pathlib import Path
 
 import torch
 
-from dssp_train.config import ModelConfig, RunConfig
 from dssp_core.errors import ConfigError
+from dssp_train.config import ModelConfig, RunConfig
+from dssp_train.model.policy import DSSPPolicy
 
 FLOAT_BYTES = 4
 STATE_COPIES = 5  # weights, gradients, AdamW exp_avg and exp_avg_sq, EMA weights
@@ -58,7 +59,6 @@ def parameter_count(model: ModelConfig) -> int:
     """Number of parameters of the policy ``model`` describes, built on the meta device (nothing allocated).
 
     ``state_dim`` and ``action_dim`` must be set."""
-    from dssp_train.model.policy import DSSPPolicy
 
     with torch.device("meta"):
         policy = DSSPPolicy(model)

@@ -63,7 +63,7 @@ def read_log(path: Path) -> list[dict[str, Any]]:
 
 def plot_log(log_path: Path, png_path: Path) -> None:
     """Loss curves: training diffusion and dynamics losses, validation losses, on a log scale."""
-    import matplotlib
+    import matplotlib  # deferred: loads matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -119,7 +119,7 @@ class ValChunk:
 def chunk_figure(chunk: ValChunk, max_dims: int = 14):
     """A matplotlib figure of ``chunk``: one panel per action dimension (the first ``max_dims``), the sampled
     chunk against the expert's actions, the executed actions shaded. Built without pyplot (nothing to close)."""
-    from matplotlib.figure import Figure
+    from matplotlib.figure import Figure  # deferred: loads matplotlib
 
     dims = min(chunk.expert.shape[1], max_dims)
     cols = min(dims, 7)

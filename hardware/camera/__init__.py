@@ -12,9 +12,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from dssp_core.errors import CameraError
 from hardware.camera.base import Camera, DepthFrame, Intrinsics
 from hardware.camera.profiles import CameraProfile, load_profile, profile_names
-from dssp_core.errors import CameraError
+from hardware.camera.realsense import RealSenseCamera
 
 TABLETOP = "tabletop"  # the spec of the simulated tabletop camera (hardware.camera.tabletop)
 
@@ -67,14 +68,10 @@ def open_camera(spec: str, serial: str | None = None, color: bool = False, **kw)
     text = spec.strip()
     if text.lower().startswith("file:"):
         path = text[len("file:"):]
-        from hardware.camera.realsense import RealSenseCamera
-
         return RealSenseCamera(file=path, color=color, **kw)
     name = text.lower()
     if name == TABLETOP:
         from hardware.camera.tabletop import SimCamera
 
         return SimCamera(color=color, **kw)
-    from hardware.camera.realsense import RealSenseCamera
-
     return RealSenseCamera(name, serial=serial, color=color, **kw)

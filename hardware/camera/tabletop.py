@@ -24,9 +24,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from dssp_core.errors import CameraError
 from hardware.camera.base import Camera, DepthFrame, Intrinsics
 from hardware.camera.profiles import CameraProfile, load_profile
-from dssp_core.errors import CameraError
+from hardware.camera.software import SoftwareDepthCamera
 
 # Object ids in the rendered id image (index into the colour palette); boxes follow from FIRST_BOX_ID.
 NOTHING, FLOOR, TABLE, FIRST_BOX_ID = 0, 1, 2, 3
@@ -303,7 +304,6 @@ class SimCamera(Camera):
         """Start the software sensor and, with ``thread=True``, a capture thread at ``fps``."""
         if self._software is not None:
             return
-        from hardware.camera.software import SoftwareDepthCamera
 
         self._software = SoftwareDepthCamera(self.intrinsics, self.depth_unit, fps=self.fps, color=self.color)
         self._software.start()

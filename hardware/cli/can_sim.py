@@ -17,6 +17,7 @@ import time
 
 from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import HardwareError
+from hardware.cli.stops import Stops
 
 EPILOG = """\
 channels:
@@ -92,8 +93,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _run(args, channels: list[str]) -> int:
-    from hardware.cli.stops import Stops
-    from hardware.piper.can_simulator import SimulatedPiper
+    from hardware.piper.can_simulator import SimulatedPiper  # deferred: loads can, numpy
 
     options = {"port": args.port} if args.port is not None and args.interface == "udp_multicast" else {}
     sims = [SimulatedPiper(c, args.interface, rate=args.rate, bus_options=options) for c in channels]

@@ -38,6 +38,7 @@ from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import ConfigError, DSSPError
 from dssp_core.output_guard import NEW, OutputKind, check_append
 from dssp_data.attributes import zarr_generator
+from dssp_data.observation import ObservationContract, piper_layout
 from hardware.cli.stops import Stops, run_stoppable
 
 RECORDED_DATASET = OutputKind("a recorded dataset", "dssp-record", marker=False,
@@ -96,7 +97,7 @@ def parse_args(argv, sim: SimulatedRig | None = None, prog: str = "dssp-record")
     p.add_argument("--seed", type=int, help="simulation: scene seed of the first episode (default: after the dataset's last)")
     p.add_argument("--sim-speed", type=float, help="simulation: simulated seconds per second (default 1, with --auto as fast as possible)")
     p.add_argument("--quiet", action="store_true", help="no live status line")
-    from dssp_data.rerun_views import add_rerun_flags, check_views
+    from dssp_data.rerun_views import add_rerun_flags, check_views  # deferred: loads numpy
 
     add_rerun_flags(p, what="every recorded step")
     args = p.parse_args(argv)
@@ -105,8 +106,8 @@ def parse_args(argv, sim: SimulatedRig | None = None, prog: str = "dssp-record")
         value = getattr(args, name)
         if value is not None and value < 1:
             raise ConfigError(f"--{name.replace('_', '-')} must be at least 1, got {value}")
-    from hardware.robot import check_rate
-    from hardware.camera import check_camera_spec
+    from hardware.camera import check_camera_spec  # deferred: loads numpy
+    from hardware.robot import check_rate  # deferred: loads numpy
 
     if args.rate is not None:
         check_rate(args.rate)
@@ -134,8 +135,8 @@ class KeyControls:
     """Single keys on a terminal (cbreak mode: no Enter needed, Ctrl-C still works)."""
 
     def __init__(self, stream=sys.stdin):
-        import termios
-        import tty
+        import termios  # deferred: loads termios
+        import tty  # deferred: loads termios
 
         self.stream, self.fd = stream, stream.fileno()
         self._saved = termios.tcgetattr(self.fd)
@@ -149,7 +150,7 @@ class KeyControls:
         return KEYS.get(key, f"key {key!r}" if key.strip() else None)
 
     def close(self) -> None:
-        import termios
+        import termios  # deferred: loads termios
 
         termios.tcsetattr(self.fd, termios.TCSADRAIN, self._saved)
 
@@ -186,7 +187,7 @@ class Console:
     """Event lines on stdout (one per event, at once) and the live status line on stderr."""
 
     def __init__(self, quiet: bool):
-        from hardware.subscribers.status_line import StatusPrinter
+        from hardware.subscribers.status_line import StatusPrinter  # deferred: loads termios
 
         self.status = None if quiet else StatusPrinter()
 
@@ -204,12 +205,12 @@ class Console:
 # ---- devices -------------------------------------------------------------------------------------------------
 def _next_sim_seed(out: Path) -> int:
     """One past the largest scene seed the dataset's simulated episodes used (0 for a new dataset)."""
-    from dssp_data.replay_buffer import ReplayBufferReader
+    from dssp_data.replay_buffer import ReplayBufferReader  # deferred: loads msgpack, numcodecs, numpy, …
 
     if not out.exists():
         return 0
     reader = ReplayBufferReader(out, allow_incomplete_tail=True)  # a broken dataset: its one-line DatasetError
-    from dssp_data.recording import episode_infos
+    from dssp_data.recording import episode_infos  # deferred: loads msgpack, numcodecs, numpy, …
 
     seeds = [info["sim"]["seed"] for info in episode_infos(reader.attrs, reader.n_episodes, out)
              if info and isinstance(info.get("sim"), dict) and isinstance(info["sim"].get("seed"), int)]
@@ -218,7 +219,7 @@ def _next_sim_seed(out: Path) -> int:
 
 def _check_no_orphan_can_logs(out: Path) -> None:
     """A new dataset's CAN-log folder must not hold another recording's logs (they would be overwritten)."""
-    from dssp_data.recording import LOCK_NAME, can_log_dir
+    from dssp_data.recording import LOCK_NAME, can_log_dir  # deferred: loads msgpack, numcodecs, numpy, …
 
     logs = can_log_dir(out)
     if logs.is_symlink() or (logs.exists() and not logs.is_dir()):
@@ -230,7 +231,7 @@ def _check_no_orphan_can_logs(out: Path) -> None:
 
 
 def _existing_attrs(out: Path) -> dict:
-    from dssp_data.replay_buffer import ReplayBufferReader
+    from dssp_data.replay_buffer import ReplayBufferReader  # deferred: loads msgpack, numcodecs, numpy, …
 
     if not out.exists():
         return {}
@@ -247,15 +248,14 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
         STATE_CONVENTION,
         RecordingDataset,
     )
-    from dssp_data.observation import ObservationContract, piper_layout
-    from dssp_data.replay_buffer_writer import dataset_lock
-    from hardware.robot import check_rate
-    from hardware.bus_monitor import BusMonitor
-    from hardware.clock import REAL_CLOCK
-    from hardware.pointcloud import PointCloudConfig, load_extrinsics
-    from hardware.record_session import RecordSession, SessionSettings
-    from hardware.recorder import Recorder, RecordThresholds, StampedCamera
-    from dssp_data.rerun_views import open_views
+    from dssp_data.replay_buffer_writer import dataset_lock  # deferred: loads msgpack, numcodecs, numpy, …
+    from dssp_data.rerun_views import open_views  # deferred: loads numpy
+    from hardware.bus_monitor import BusMonitor  # deferred: loads numpy
+    from hardware.clock import REAL_CLOCK  # deferred: loads numpy
+    from hardware.pointcloud import PointCloudConfig, load_extrinsics  # deferred: loads numpy
+    from hardware.record_session import RecordSession, SessionSettings  # deferred: loads numpy
+    from hardware.recorder import Recorder, RecordThresholds, StampedCamera  # deferred: loads numpy
+    from hardware.robot import check_rate  # deferred: loads numpy
 
     sim_can = args.can.strip().lower().startswith(MUJOCO)
     sim_camera = args.camera.strip().lower() == MUJOCO
@@ -387,7 +387,7 @@ def record(args, stops: Stops | None = None) -> int:
 
 
 def _record(args, stops: Stops) -> int:
-    from dssp_data.recording import can_log_dir
+    from dssp_data.recording import can_log_dir  # deferred: loads numpy
 
     console = Console(args.quiet)
     with contextlib.ExitStack() as stack:

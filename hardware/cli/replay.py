@@ -32,8 +32,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _replay(args, stops: Stops) -> int:
-    from hardware.episode_replay import replay_episode
-    from hardware.safety import SafetyConfig
+    from hardware.episode_replay import replay_episode  # deferred: loads msgpack, numcodecs, numpy, …
+    from hardware.safety import SafetyConfig  # deferred: loads numpy
 
     safety = SafetyConfig.load(args.safety, "safety") if args.safety else SafetyConfig()
     if stops.reason is not None:

@@ -65,7 +65,7 @@ def parse_args(argv):
     p.add_argument("--dry-run", action="store_true", help="compute and log actions, send nothing")
     p.add_argument("--prefetch", action="store_true", help="compute each chunk early in a background thread")
     p.add_argument("--threads", type=int, help="ONNX Runtime threads (default: all CPUs)")
-    from dssp_deploy.onnx_policy import add_runtime_arguments
+    from dssp_deploy.onnx_policy import add_runtime_arguments  # deferred: loads numpy
 
     add_runtime_arguments(p)
     p.add_argument("--seed", type=int, help="diffusion noise seed (default: random)")
@@ -78,7 +78,7 @@ def parse_args(argv):
     p.add_argument("--subscribe", action="append", default=[], metavar="NAME",
                    help="also hand every tick to the subscriber NAME (hardware.subscribers.REGISTRY: csv = "
                         "LOG_DIR/ticks.csv); repeatable")
-    from dssp_data.rerun_views import add_rerun_flags
+    from dssp_data.rerun_views import add_rerun_flags  # deferred: loads numpy
 
     add_rerun_flags(p)
     return p.parse_args(argv)
@@ -86,12 +86,12 @@ def parse_args(argv):
 
 def check_args(args) -> None:
     """Flags that can be judged without opening anything; one line each, before any device or model is touched."""
-    from dssp_deploy.sessions import check_threads
-    from hardware.robot import check_rate
-    from hardware.camera import check_camera_spec
+    from dssp_deploy.sessions import check_threads  # deferred: loads numpy
+    from hardware.robot import check_rate  # deferred: loads numpy
+    from hardware.camera import check_camera_spec  # deferred: loads numpy
 
     check_camera_spec(args.camera, args.serial)
-    from hardware.subscribers import check_subscribers
+    from hardware.subscribers import check_subscribers  # deferred: loads numpy
 
     check_subscribers(args.subscribe)
     if args.rate is not None:
@@ -101,7 +101,7 @@ def check_args(args) -> None:
     check_threads(args.threads)
     if args.seed is not None and args.seed < 0:
         raise ConfigError(f"--seed must be >= 0, got {args.seed}")
-    from dssp_data.observation import contract_fields
+    from dssp_data.observation import contract_fields  # deferred: loads numpy
 
     known = [*contract_fields(), "control_rate_hz"]
     for field in args.allow_mismatch:
@@ -117,7 +117,7 @@ def control_rate(args, policy) -> float:
     if policy.control_rate_hz is None:
         raise ConfigError(f"{args.model} records no control rate (its dataset had none): pass --rate HZ, the rate "
                           "the demonstrations were recorded at")
-    from hardware.robot import check_rate
+    from hardware.robot import check_rate  # deferred: loads numpy
 
     return check_rate(policy.control_rate_hz, flag=f"{args.model}'s control_rate_hz")
 
@@ -160,7 +160,7 @@ def check_prefetch(policy, rate: float) -> float:
     """--prefetch: the chunk latency (ms, measured once here, before any device opens) and that the lead it needs
     at ``rate`` fits the model's horizon; one line otherwise. The run's loop chooses its lead from the same value."""
 
-    from dssp_deploy.control_loop import ChunkedControl
+    from dssp_deploy.control_loop import ChunkedControl  # deferred: loads numpy
 
     with warnings.catch_warnings():  # a rate other than the model's is warned about once, by the loop itself
         warnings.simplefilter("ignore")
@@ -180,21 +180,21 @@ def run(args, stops: Stops | None = None) -> int:
 def _run(args, stops: Stops) -> int:
     stops.check()
     check_args(args)
-    from dssp_deploy.onnx_policy import OnnxPolicy
-    from hardware.camera import TABLETOP, open_camera
-    from hardware.can_log import BusRecorder
-    from hardware.piper.piper_robot import open_robot
-    from dssp_data.observation import FRAME_ROBOT_BASE, ObservationContract, check_contract
-    from dssp_deploy.manifest import observation_of
-    from hardware.pointcloud import PointCloudConfig, load_extrinsics
-    from dssp_data.rerun_views import check_views, open_views
-    from hardware.run_log import RunLog
-    from hardware.subscribers import open_subscribers
-    from hardware.subscribers.rerun_ticks import RerunTicks
-    from hardware.subscribers.status_line import StatusLine
-    from hardware.rig import Rig
-    from hardware.run_loop import LoopSettings, Runner, check_fits, describe_ending
-    from hardware.safety import SafetyConfig
+    from dssp_deploy.onnx_policy import OnnxPolicy  # deferred: loads numpy
+    from hardware.camera import TABLETOP, open_camera  # deferred: loads numpy
+    from hardware.can_log import BusRecorder  # deferred: loads can
+    from hardware.piper.piper_robot import open_robot  # deferred: loads can
+    from dssp_data.observation import FRAME_ROBOT_BASE, ObservationContract, check_contract  # deferred: loads can
+    from dssp_deploy.manifest import observation_of  # deferred: loads can
+    from hardware.pointcloud import PointCloudConfig, load_extrinsics  # deferred: loads can
+    from dssp_data.rerun_views import check_views, open_views  # deferred: loads numpy
+    from hardware.run_log import RunLog  # deferred: loads numpy
+    from hardware.subscribers import open_subscribers  # deferred: loads numpy
+    from hardware.subscribers.rerun_ticks import RerunTicks  # deferred: loads numpy
+    from hardware.subscribers.status_line import StatusLine  # deferred: loads numpy
+    from hardware.rig import Rig  # deferred: loads numpy
+    from hardware.run_loop import LoopSettings, Runner, check_fits, describe_ending  # deferred: loads numpy
+    from hardware.safety import SafetyConfig  # deferred: loads numpy
 
     check_views(args.rerun, args.rerun_save)
     with contextlib.ExitStack() as stack:  # the log directory's lock, the views: released and closed on every exit

@@ -200,7 +200,7 @@ def farthest_point_indices(points: np.ndarray, n_samples: int) -> np.ndarray:
 
     fpsample's bucket FPS (kd-line) from start index 0 (the first point, in pixel order); deterministic.
     """
-    import fpsample
+    import fpsample  # deferred: loads fpsample
 
     pts = np.ascontiguousarray(points, dtype=np.float32)
     idx = fpsample.bucket_fps_kdline_sampling(pts, n_samples, h=_fps_height(len(pts)), start_idx=0)
