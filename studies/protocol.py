@@ -72,12 +72,15 @@ def plan_hash(plan: dict) -> str:
 
 
 def code_commit() -> str:
-    """The git commit of the code (with ``+changes`` when the work tree differs from it), or "unknown"."""
+    """The git commit of the code (with ``+changes`` when the work tree's code differs from it), or "unknown".
+
+    The committed records under ``reports/`` are left out of the comparison: a study rewrites its own record as it
+    goes, and that is no change to the code that produced it."""
     root = Path(__file__).resolve().parent.parent
     try:
         head = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10)
-        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"], capture_output=True,
-                               text=True, timeout=10)
+        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no", "--", ".",
+                                ":(exclude)reports"], capture_output=True, text=True, timeout=10)
     except (OSError, subprocess.TimeoutExpired):
         return "unknown"
     if head.returncode != 0:

@@ -308,3 +308,28 @@ def test_sigterm_stops_the_running_stages_and_keeps_what_finished(tmp_path):
         return False
 
     wait_for(gone, what="the stage's process ended")
+
+
+def test_the_code_commit_ignores_the_records_a_study_rewrites(tmp_path, monkeypatch):
+    """A study rewrites its record under reports/ as it runs: the code is still the commit's, no ``+changes``;
+    a changed source file is a change."""
+    import shutil
+    import subprocess
+
+    from studies import protocol
+
+    repo = tmp_path / "repo"
+    (repo / "studies").mkdir(parents=True)
+    (repo / "reports").mkdir()
+    shutil.copy(protocol.__file__, repo / "studies" / "protocol.py")
+    (repo / "reports" / "record.json").write_text("{}")
+    git = ["git", "-C", str(repo), "-c", "user.name=t", "-c", "user.email=t@t"]
+    subprocess.run([*git, "init", "-q"], check=True)
+    subprocess.run([*git, "add", "-A"], check=True)
+    subprocess.run([*git, "commit", "-qm", "x"], check=True)
+    head = subprocess.run([*git, "rev-parse", "HEAD"], capture_output=True, text=True, check=True).stdout.strip()
+    monkeypatch.setattr(protocol, "__file__", str(repo / "studies" / "protocol.py"))
+    (repo / "reports" / "record.json").write_text('{"more": 1}')
+    assert protocol.code_commit() == head
+    (repo / "studies" / "protocol.py").write_text("# changed\n")
+    assert protocol.code_commit() == head + "+changes"
