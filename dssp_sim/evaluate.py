@@ -1,12 +1,15 @@
 """Closed-loop evaluation in the simulation, through the robot's own chain.
 
     result = evaluate("models/tap", "tap", n_episodes=20, seed=1000)
+    result = evaluate(None, "tap", n_episodes=20, seed=1000)      # the scripted expert through the same loop
 
 Each episode: the MuJoCo env is reset with its seed; its depth render goes through the RealSense software
 device and the point-cloud pipeline (:class:`~dssp_sim.mujoco_camera.MujocoCamera`, ``hardware.pointcloud``);
-the runtime (``dssp_deploy.OnnxPolicy``) runs the control loop of ``dssp-run`` (``hardware.run_loop.Runner``:
-the history every tick, a chunk every H_a ticks, the safety layer); commands go as Piper CAN frames on a
-python-can ``virtual`` bus to :class:`~dssp_sim.mujoco_arm.MujocoPiper`, which moves the MuJoCo arm.
+the runtime (``dssp_deploy.OnnxPolicy``) runs the control loop of ``dssp-run`` (``hardware.run_loop.Runner``
+with the model as its policy source, ``hardware.policies.exported_model``: the history every tick, a chunk every H_a
+ticks, the safety layer); commands go as Piper CAN frames on a python-can ``virtual`` bus to
+:class:`~dssp_sim.mujoco_arm.MujocoPiper`, which moves the MuJoCo arm. Without a model the task's scripted expert
+is the loop's source (:class:`dssp_sim.expert_policy.ScriptedExpert`): the task's ceiling through the same chain.
 
 The loop runs in lockstep with simulated time: each tick advances the physics one control period, then
 renders, then runs the policy. The simulation waits for the policy, so the safety layer's deadline rule
@@ -43,6 +46,8 @@ from hardware.pacing import latency_stats
 from hardware.piper.arm import PiperArm
 from hardware.piper.piper_robot import PiperRobot
 from hardware.pointcloud import frame_to_cloud
+from hardware.policies import PolicySource
+from hardware.policies.exported_model import ModelPolicy
 from hardware.rig import Rig
 from hardware.run_loop import LoopSettings, Runner
 from hardware.safety import SafetyConfig
@@ -155,9 +160,11 @@ class _RecentStates:
         return float(np.sqrt(np.mean(self.mean_squares))) if self.mean_squares else None
 
 
-def run_episode(policy, env, seed: int, cloud_config, frames: list | None = None,
+def run_episode(source: PolicySource, env, seed: int, cloud_config, frames: list | None = None,
                 latencies: dict[str, list[float]] | None = None, views=None) -> EpisodeOutcome:
-    """One closed-loop episode (env already constructed; it is reset here with ``seed``).
+    """One closed-loop episode (env already constructed; it is reset here with ``seed``) of the control loop with
+    ``source`` deciding (:mod:`hardware.policies`; reset by the loop at its start). ``cloud_config``: the
+    point-cloud settings (None: a source that needs no cloud).
 
     ``frames`` collects each tick's depth image; ``latencies`` each tick's latencies in ms by stage
     (cloud, observe, chunk, tick), when given; ``views`` (:class:`dssp_data.rerun_views.TickViews`) get every
@@ -185,8 +192,7 @@ def run_episode(policy, env, seed: int, cloud_config, frames: list | None = None
             try:
                 camera.capture()
                 subscribers = [RerunTicks(views)] if views is not None else []
-                runner = Runner(policy, rig, cloud_config, LoopSettings(rate_hz=env.control_rate_hz, seed=seed),
-                                subscribers=subscribers)
+                runner = Runner(source, rig, cloud_config, LoopSettings(rate_hz=env.control_rate_hz), subscribers=subscribers)
                 if views is not None:
                     views.text(subscribers[0].next_tick, "episode", f"{env.task.name} seed {seed}")
                 runner.start()
@@ -266,16 +272,19 @@ STRIPS_DIR = OutputKind("a folder of episode strips", "dssp-sim eval", entries=(
 """``dssp-sim eval --strips``: one PNG per episode (``TASK_seedS.png``), written all at once."""
 
 
-def evaluate(model_dir: Path, task: str, n_episodes: int, seed: int = 1000, threads: int | None = None,
+def evaluate(model_dir: Path | None, task: str, n_episodes: int, seed: int = 1000, threads: int | None = None,
              state_token_noise: float = 0.0, strips_dir: Path | None = None, progress: bool = True,
              precision: str | None = None, kernel: str = "auto", spinning: bool | None = None, views=None) -> EvalResult:
     """Evaluate a model directory on ``task`` for ``n_episodes`` seeded episodes (seeds seed, seed+1, ...);
     ``precision`` and ``kernel`` choose its graphs (:class:`dssp_deploy.onnx_policy.OnnxPolicy`); ``views``: Rerun
-    views of every tick of every episode, on one timeline (the caller closes them)."""
+    views of every tick of every episode, on one timeline (the caller closes them). ``model_dir`` None: the task's
+    scripted expert drives the same loop (:class:`dssp_sim.expert_policy.ScriptedExpert`; Piper tasks)."""
     from dssp_sim import metaworld_env  # deferred: loads mujoco
 
     if metaworld_env.is_metaworld(task) and views is not None:
         raise ConfigError("--rerun views show the Piper's control loop; MetaWorld evaluations have none (drop the flag)")
+    if model_dir is None:
+        return _evaluate_expert(task, n_episodes, seed, strips_dir, progress, views)
     policy = OnnxPolicy(model_dir, threads=threads, precision=precision, kernel=kernel, spinning=spinning)
     print(f"graphs: {policy.kernel_note}", file=sys.stderr)
     recent = policy.denoiser_inputs = _RecentStates(policy, state_token_noise, np.random.default_rng(seed))
@@ -296,13 +305,39 @@ def evaluate(model_dir: Path, task: str, n_episodes: int, seed: int = 1000, thre
         cloud_config = observation_of(policy.manifest).pointcloud or cloud_config_for(n_points, task)
 
         def episode(s, frames, ticks):
-            return run_episode(policy, env, s, cloud_config, frames, ticks, views)
+            return run_episode(ModelPolicy(policy, env.control_rate_hz, seed=s), env, s, cloud_config, frames, ticks, views)
     result = EvalResult(str(model_dir), task, state_token_noise=state_token_noise, precision=policy.precision, kernel=policy.kernel)
+    _run_episodes(result, env, episode, n_episodes, seed, strips_dir, progress)
+    result.z_rms = recent.rms()
+    return result
+
+
+def _evaluate_expert(task: str, n_episodes: int, seed: int, strips_dir: Path | None, progress: bool, views) -> EvalResult:
+    """``dssp-sim eval --expert``: the task's scripted expert as the loop's policy source."""
+    from dssp_sim import metaworld_env  # deferred: loads mujoco
+    from dssp_sim.env import PiperEnv
+    from dssp_sim.expert_policy import ScriptedExpert
+
+    if metaworld_env.is_metaworld(task):
+        raise ConfigError(f"--expert drives the Piper's control loop; {task} has no Piper (its expert's demonstrations: "
+                          "dssp-sim collect)")
+    env = PiperEnv(task, seed=seed)
+
+    def episode(s, frames, ticks):
+        return run_episode(ScriptedExpert(env), env, s, None, frames, ticks, views)
+
+    result = EvalResult("expert", task)
+    _run_episodes(result, env, episode, n_episodes, seed, strips_dir, progress)
+    return result
+
+
+def _run_episodes(result: EvalResult, env, episode, n_episodes: int, seed: int, strips_dir: Path | None, progress: bool) -> None:
+    """Episodes seed, seed + 1, ... into ``result`` (and their strips into ``strips_dir``); the env closed after."""
     bar = None
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=n_episodes, desc=f"eval {task}", unit="episode")
+        bar = tqdm(total=n_episodes, desc=f"eval {result.task}", unit="episode")
     wall = []
     ticks: dict[str, list[float]] = {}
     try:
@@ -315,8 +350,8 @@ def evaluate(model_dir: Path, task: str, n_episodes: int, seed: int = 1000, thre
             if frames:
                 from dssp_sim.strips import save_strip
 
-                save_strip(frames, Path(strips_dir) / f"{task}_seed{seed + i}.png",
-                           f"{task} seed {seed + i}: {'success' if outcome.success else outcome.reason}")
+                save_strip(frames, Path(strips_dir) / f"{result.task}_seed{seed + i}.png",
+                           f"{result.task} seed {seed + i}: {'success' if outcome.success else outcome.reason}")
             if bar is not None:
                 bar.update(1)
                 bar.set_postfix(success=f"{result.successes}/{i + 1}")
@@ -326,8 +361,6 @@ def evaluate(model_dir: Path, task: str, n_episodes: int, seed: int = 1000, thre
         bar.close()
     result.latency_ms = {key: latency_stats(v) for key, v in ticks.items() if v}
     result.latency_ms["episode_wall_s_p50"] = float(np.median(wall)) if wall else None
-    result.z_rms = recent.rms()
-    return result
 
 
 def print_eval(result) -> None:

@@ -2,13 +2,14 @@
 
     dssp-sim collect --task tap|swap|put2|metaworld/NAME|metaworld-cue/NAME --episodes N --out PATH.zarr [--seed S] [--points P]
     dssp-sim record --out PATH.zarr [dssp-record's flags; --camera mujoco --can mujoco by default]
-    dssp-sim eval --model MODEL_DIR --task NAME --episodes N [--seed S] [--noise SIGMA] [--strips DIR] [--json PATH] [--force]
+    dssp-sim eval --model MODEL_DIR | --expert  --task NAME --episodes N [--seed S] [--noise SIGMA] [--strips DIR] [--json PATH] [--force]
                   [--rerun [URL] | --rerun-save PATH.rrd]
 
 ``record`` is ``dssp-record`` on the simulated rig (the task's scripted expert plays the leader arm).
 ``collect`` keeps only successful expert episodes and says how many it tried. ``eval`` drives the model
 through the real chain (simulated camera → point-cloud pipeline → runtime → safety → CAN → simulated arm)
-and prints the success rate with its 95 % Wilson interval and each episode's outcome.
+and prints the success rate with its 95 % Wilson interval and each episode's outcome; ``eval --expert`` drives the
+task's scripted expert through the same chain (the task's ceiling through the loop and its safety layer).
 Outputs (:mod:`dssp_core.output_guard`): ``collect`` appends only to a dataset ``dssp-sim collect`` wrote;
 ``eval --strips`` replaces a previous output of its own only with ``--force``, and
 never a folder with anything else in it; ``eval --json`` replaces an existing file only with ``--force``.
@@ -76,8 +77,12 @@ def parse_args(argv):
     c.add_argument("--seed", type=_non_negative, help="first scene seed (default: 0, or after the last one of the dataset appended to)")
     c.add_argument("--points", type=positive_int, help="points per cloud (default 256, the sim preset's; 512 for metaworld/NAME, DP3's)")
     c.add_argument("--no-progress", action="store_true")
-    e = sub.add_parser("eval", help="closed-loop evaluation of a model directory")
-    e.add_argument("--model", type=Path, required=True, help="model directory (python -m export.to_onnx)")
+    e = sub.add_parser("eval", help="closed-loop evaluation of a model directory (or of the task's scripted expert)")
+    who = e.add_mutually_exclusive_group(required=True)
+    who.add_argument("--model", type=Path, help="model directory (python -m export.to_onnx)")
+    who.add_argument("--expert", action="store_true",
+                     help="the task's scripted expert as the control loop's policy source, through the same camera, "
+                          "safety layer and CAN bus (Piper tasks)")
     e.add_argument("--task", type=_task, required=True, help=TASK_HELP)
     e.add_argument("--episodes", type=positive_int, default=20)
     e.add_argument("--seed", type=_non_negative, default=1000, help="first episode seed (default 1000: unseen in collection)")
@@ -113,6 +118,12 @@ def run(args) -> int:
     from dssp_data.rerun_views import check_views, open_views  # deferred: loads can
 
     check_views(args.rerun, args.rerun_save)  # every flag checked before anything is opened or written
+    if args.expert:
+        given = [flag for flag, on in (("--noise", args.noise != 0.0), ("--threads", args.threads is not None),
+                                       ("--precision", args.precision is not None), ("--kernel", args.kernel != "auto"),
+                                       ("--no-spin", args.no_spin)) if on]
+        if given:
+            raise ConfigError(f"{given[0]} is a model's setting: it goes with --model, not --expert")
     if args.json:
         check_output_file(args.json, force=args.force, flag="--json")
 

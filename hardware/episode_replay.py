@@ -2,128 +2,116 @@
 
     result = replay_episode("demo.zarr", 3, "can0", send=False)   # dry run: nothing is sent
 
-Every recorded action (dof,) in policy units goes through :class:`~hardware.safety.Safety` exactly as in
-``dssp-run`` (joint limits, per-tick step, stale feedback holds), at the dataset's control rate. A dry run
-(the default) reads the arm's feedback (if ``can`` is given) but neither enables nor commands it: it
-reports what the safety layer would do, starting from where the arm is. With ``send`` the arm is enabled
-and commanded, paced at the rate, and ends in a hold at the last command. Without ``can`` the dry run
-starts from the episode's first recorded state and assumes ideal tracking.
+The replay is the control loop of ``dssp-run`` (:class:`hardware.run_loop.Runner`) with the recorded episode as
+its policy source (:class:`hardware.policies.recorded.RecordedEpisode`): every recorded action (dof,) in policy
+units goes through :class:`~hardware.safety.Safety` exactly as a model's would (joint limits, per-tick step, stale
+feedback holds), one per tick at the dataset's control rate, and the loop ends in its final hold. A dry run (the
+default) reads the arm's feedback (if ``can`` is given) but neither enables nor commands it: it reports what the
+safety layer would do, starting from where the arm is. With ``send`` the arm is enabled and commanded. Without
+``can`` the episode runs against :class:`~hardware.ideal_robot.IdealRobot` (ideal tracking from the episode's first
+recorded state) on a simulated clock, so it takes no longer than its arithmetic.
 """
 
 from __future__ import annotations
 
-from collections import Counter
 from collections.abc import Callable
 
 import numpy as np
 
-from dssp_data.replay_buffer import ReplayBufferReader
-from dssp_core.errors import ConfigError, DSSPError
-from hardware.clock import REAL_CLOCK, Clock
-from hardware.pacing import Pacer
-from hardware.robot import ARM_DOF, RobotState, check_rate
+from dssp_core.errors import ConfigError
+from hardware.clock import REAL_CLOCK, Clock, FakeClock
+from hardware.ideal_robot import IdealRobot
+from hardware.policies.recorded import RecordedEpisode
+from hardware.rig import Rig
+from hardware.robot import ARM_DOF, check_rate
 from hardware.piper.limits import piper_description
-from hardware.safety import Safety, SafetyConfig
+from hardware.run_loop import LoopSettings, Runner
+from hardware.safety import SafetyConfig
+from hardware.subscribers import Subscriber, Tick
 
 FAR_START = 0.3
 """rad: a first action farther than this from the arm's position is pointed out (the safety layer ramps it)."""
 
 
+class _ReplayWatch(Subscriber):
+    """The distance of the first action from where the arm starts (pointed out when far), and the largest change the
+    safety layer made to a recorded action (policy units)."""
+
+    def __init__(self, first_action: np.ndarray, where: str, events: Callable[[str], None]):
+        self.first_action, self.where, self.events = first_action, where, events
+        self.distance: float | None = None
+        self.largest = 0.0
+
+    def on_start(self, loop) -> None:
+        state = loop.robot.state()
+        if state is None:
+            return
+        self.distance = float(np.max(np.abs(self.first_action - state.position)))
+        if self.distance > FAR_START:
+            self.events(f"note: the first action is {self.distance:.2f} rad from {self.where}: the safety layer ramps it "
+                        f"by at most {loop.safety_config.max_joint_step} rad per tick")
+
+    def on_tick(self, tick: Tick) -> None:
+        action, command = tick.record["action"], tick.record["command"]
+        if action is not None and command is not None:
+            self.largest = max(self.largest, float(np.max(np.abs(command - action))))
+
+
 def replay_episode(path, episode: int, can: str | None, *, send: bool = False, interface: str = "socketcan",
                    rate_hz: float | None = None, safety_config: SafetyConfig = SafetyConfig(),
-                   events: Callable[[str], None] = print, should_stop: Callable[[], bool] = lambda: False,
-                   feedback_timeout: float = 3.0, clock: Clock = REAL_CLOCK) -> dict:
+                   events: Callable[[str], None] = print,
+                   attach_stop: Callable[[Callable[[str], None] | None], None] = lambda request: None,
+                   feedback_timeout: float = 3.0, clock: Clock | None = None) -> dict:
     """Replay ``episode`` of dataset ``path``; returns a summary dict (ticks, commands sent, clips, holds,
-    largest change the safety layer made, final tracking error when sent). ``clock``: the timeline of the pacing,
-    the feedback wait and the safety layer's times (:mod:`hardware.clock`), the one the arms stamp their feedback
-    on."""
-    reader = ReplayBufferReader(path)
-    ep = reader.episode(episode, extras=False)
-    actions = ep.action.astype(np.float64)
-    dof = actions.shape[1]
-    if dof % ARM_DOF:
-        raise DSSPError(f"{path}: actions have {dof} values; a Piper replay needs 7 per arm [J1..J6 rad, gripper 0..1]")
+    largest change the safety layer made, final tracking error when sent, what ended it). ``attach_stop`` is given
+    the loop's stop request while the loop runs and None after (:meth:`hardware.cli.stops.Stops.during`): a stop
+    ends the replay between two commands in its hold, ``ended_by`` the stop's reason. ``clock``: the timeline of
+    the pacing, the feedback wait and the safety layer (:mod:`hardware.clock`), the one the arms stamp their
+    feedback on; None: the real clock with an arm, a simulated one without."""
+    source = RecordedEpisode.load(path, episode)
+    dof = source.actions.shape[1]
     if rate_hz is not None:
         rate = check_rate(rate_hz)
     else:
-        rate = reader.control_rate_hz  # a value that is not a rate: a DatasetError naming the attribute
+        rate = source.control_rate_hz  # a value that is not a rate: a DatasetError naming the attribute
         if rate is None:
             raise ConfigError(f"{path} does not record its control rate: pass --rate HZ")
         rate = check_rate(rate, flag=f"{path}'s control_rate_hz attribute")
     if send and can is None:
         raise ConfigError("--send needs --can (the arms to command)")
-    robot = None
     if can is not None:
-        from hardware.piper.piper_robot import open_robot
+        from hardware.piper.piper_robot import open_robot  # deferred: loads can
 
+        clock = clock or REAL_CLOCK
         robot = open_robot(can, interface=interface)
         if robot.dof != dof:
             raise ConfigError(f"the episode has {dof} action values but --can {can} gives {robot.dof} (7 per arm)")
-    described = robot.description if robot is not None else piper_description(dof // ARM_DOF)  # no arms: a Piper's
-    safety_config.check_speed(float(rate), described.max_joint_speed)
-    counts: Counter = Counter()
-    changed = 0.0
-    sent = 0
+    else:
+        clock = clock or FakeClock()
+        robot = IdealRobot(piper_description(dof // ARM_DOF), source.first_state, clock)  # no arms: a Piper's
+    safety_config.check_speed(float(rate), robot.description.max_joint_speed)
+    watch = _ReplayWatch(source.actions[0], "the recorded first state" if can is None else "the arm's position", events)
+    rig = Rig(None, robot, np.eye(4), safety_config, clock=clock)
+    runner = Runner(source, rig, None, LoopSettings(rate_hz=rate, dry_run=can is not None and not send,
+                                                    startup_timeout=feedback_timeout), subscribers=[watch])
     tracking = None
-    stopped = None
+    attach_stop(runner.request_stop)
     try:
-        if robot is not None:
-            robot.connect()
-            deadline = clock.now() + feedback_timeout
-            while (state := robot.state()) is None:
-                if clock.now() > deadline:
-                    raise DSSPError(f"no feedback from {can} within {feedback_timeout:g} s: check the bus and that the arm is powered")
-                clock.sleep(0.01)
-            start = state.position
-            where = "the arm's position"
-        else:
-            start = ep.state[0].astype(np.float64) if ep.state.shape[1] == dof else actions[0]
-            where = "the recorded first state"
-        distance = float(np.max(np.abs(actions[0] - start)))
-        if distance > FAR_START:
-            events(f"note: the first action is {distance:.2f} rad from {where}: the safety layer ramps it by at most "
-                   f"{safety_config.max_joint_step} rad per tick")
-        safety = Safety(safety_config, described.lower, described.upper, described.gripper, start)
-        if send:
-            robot.enable()
-        period = 1.0 / float(rate)
-        pacer = Pacer(clock, period)  # a late tick starts the schedule again: no burst of commands to catch up
-        last = start.copy()
-        for k, action in enumerate(actions):
-            if should_stop():
-                stopped = "stop requested"
-                break
-            now = clock.now()
-            if robot is not None:
+        with rig:
+            summary = runner.run()
+            if send and runner.fault is None:  # how far the arm is from the last command once it has settled
+                clock.sleep(min(1.0, 5.0 / rate))
                 state = robot.state()
-            else:
-                state = RobotState(last.copy(), now, ())
-            decision = safety.decide(action, now=now, camera_time=now, state=state)
-            for event in decision.events:
-                counts[event.kind] += 1
-            if decision.command is None:
-                stopped = f"safety fault: {safety.fault}"
-                break
-            changed = max(changed, float(np.max(np.abs(decision.command - action))))
-            last = decision.command
-            if send:
-                robot.command(decision.command)
-                sent += 1
-                pacer.wait()
-        final = safety.stop(clock.now(), stopped or "replay done")
-        if send and final.command is not None:  # end in a hold at the last safe command
-            robot.command(final.command)
-        if send:
-            clock.sleep(min(1.0, 5 * period))
-            state = robot.state()
-            if state is not None:
-                tracking = float(np.max(np.abs(state.position - last)))
+                if state is not None and runner.safety is not None:
+                    tracking = float(np.max(np.abs(state.position - runner.safety.last_safe)))
     finally:
-        if robot is not None:
-            robot.close()
+        attach_stop(None)
+        runner.close()
+    counts = summary["events"]
     return {
-        "episode": episode, "steps": len(actions), "rate_hz": float(rate), "sent": sent, "dry_run": not send,
+        "episode": episode, "steps": len(source.actions), "rate_hz": float(rate), "ticks": summary["ticks"],
+        "sent": summary["commands_sent"] if can is not None else 0, "dry_run": not send,
         "holds": counts.get("hold", 0), "clips": counts.get("clip", 0), "refused": counts.get("refuse", 0),
-        "max_change": changed, "tracking_error": tracking, "ended_by": stopped or "done",
-        "start_distance": distance,
+        "max_change": watch.largest, "tracking_error": tracking, "ended_by": summary["ended_by"],
+        "fault": summary["fault"], "start_distance": watch.distance,
     }

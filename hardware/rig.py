@@ -2,7 +2,7 @@
 
     rig = Rig(camera, robot, camera_to_base, SafetyConfig.load("safety.json"), recorders=[BusRecorder(...)])
     with rig:                                   # the camera, then the arms, then the CAN recorders
-        Runner(policy, rig, cloud_config, LoopSettings(rate_hz=10)).run()
+        Runner(ModelPolicy(policy, rate_hz=10), rig, cloud_config, LoopSettings(rate_hz=10)).run()
                                                 # closed in the reverse order, whatever ends the block
 
 Each part stays behind its own small interface with its fake: :class:`hardware.camera.base.Camera` (RealSense,
@@ -35,7 +35,8 @@ from hardware.safety import SafetyConfig
 class Rig:
     """The devices of one robot, opened and closed together.
 
-    camera: the depth camera (not started yet: :meth:`__enter__` starts it). robot: the arms as one vector (not
+    camera: the depth camera (not started yet: :meth:`__enter__` starts it), or None for a loop whose policy source
+    needs no point cloud (``dssp-replay``). robot: the arms as one vector (not
     connected yet). camera_to_base: (4, 4), the camera's pose in the robot-base frame. safety: the safety layer's
     settings. clock: the timeline of the camera's and the arms' timestamps. recorders: what else opens with the
     devices and closes after them (the CAN-bus recorders of ``dssp-run``), entered after the arms, whose
@@ -43,7 +44,7 @@ class Rig:
     run); None: the robot's.
     """
 
-    camera: Camera
+    camera: Camera | None
     robot: Robot
     camera_to_base: np.ndarray
     safety: SafetyConfig = field(default_factory=SafetyConfig)
@@ -79,7 +80,8 @@ class Rig:
         if self._open is not None:
             raise RuntimeError("the rig is already open")
         with contextlib.ExitStack() as stack:  # a part that fails to open closes the ones opened before it
-            stack.enter_context(self.camera)
+            if self.camera is not None:
+                stack.enter_context(self.camera)
             stack.enter_context(self.robot)
             for recorder in self.recorders:
                 stack.enter_context(recorder)

@@ -1,24 +1,26 @@
-"""The robot's control loop: camera → point cloud → runtime → safety → arms, at a fixed rate.
+"""The robot's control loop: camera → point cloud → policy source → safety → arms, at a fixed rate.
 
     rig = Rig(camera, robot, camera_to_base, SafetyConfig())          # hardware.rig: the devices, opened together
     with rig:
-        runner = Runner(policy, rig, cloud_config, LoopSettings(rate_hz=10))
-        summary = runner.run()    # until max_steps, a stop request (a signal, a lost output) or a fault
+        source = ModelPolicy(onnx_policy, rate_hz=10)                  # hardware.policies: what decides the action
+        runner = Runner(source, rig, cloud_config, LoopSettings(rate_hz=10))
+        summary = runner.run()    # until max_steps, the source's end, a stop request (a signal, a lost output) or a fault
 
 Each tick:
-1. take the newest camera frame and the newest joint feedback; if either is missing or stale, **hold**
-   (resend the last safe target) and leave the history alone (a frozen camera must not fill the
-   memory with copies of one frame);
-2. otherwise build the point cloud (``hardware.pointcloud``, the same pipeline that builds datasets),
-   and run the runtime's tick (``dssp_deploy.ChunkedControl``: the history every tick, a new chunk every
-   H_a ticks); an empty cloud, or a cloud or joint state with NaN/inf or a value far outside the model's
-   training range (refused by the runtime before any graph runs), is no observation: hold, the history left
-   alone; a chunk the runtime refuses (NaN/inf, an action outside the action range) is no action: hold, the
-   tick undone (``dssp_deploy.ranges``);
+1. take the newest camera frame and the newest joint feedback; if the feedback, or the camera of a source that
+   needs the point cloud, is missing or stale, **hold** (resend the last safe target) and leave the source alone
+   (a frozen camera must not fill the model's memory with copies of one frame);
+2. otherwise build the point cloud (``hardware.pointcloud``, the same pipeline that builds datasets) when the
+   source needs it, and ask the source for the action (:mod:`hardware.policies`: the exported model —
+   ``dssp_deploy.ChunkedControl``, the history every tick, a new chunk every H_a ticks —, a recorded episode, the
+   arm held); an empty cloud, or a cloud or joint state with NaN/inf or a value far outside the model's training
+   range (refused by the runtime before any graph runs), is no observation: hold, the history left alone; a chunk
+   the runtime refuses (NaN/inf, an action outside the action range) is no action: hold, the tick undone
+   (``dssp_deploy.ranges``);
 3. the safety layer turns the action into a command (limits, per-tick step; a deadline miss holds);
 4. send it (not with ``dry_run``), hand the tick to the subscribers (:mod:`hardware.subscribers`: the episode
    log, the status line, Rerun views, …), sleep to the next tick (:class:`hardware.pacing.Pacer`).
-A fault (arm error or e-stop, a send failure, a runtime error) ends the loop in a hold: nothing is sent
+A fault (arm error or e-stop, a send failure, an error in the source) ends the loop in a hold: nothing is sent
 after it. Shapes: cloud (P, C) float32; state, action and command (dof,) in policy units.
 
 Time: the tick times, the inputs' ages, the tick's deadline, the start-up waits and the pacing are read
@@ -37,13 +39,12 @@ from typing import Any
 
 import numpy as np
 
-from dssp_deploy.control_loop import ChunkedControl
-from dssp_deploy.onnx_policy import OnnxPolicy
 from dssp_deploy.ranges import ChunkOutOfRange, ObservationOutOfRange
 from dssp_core.errors import CameraError, ConfigError, DSSPError, NonFiniteObservation
 from hardware.robot import Robot, check_rate
 from hardware.pacing import Pacer, RateMeter, latency_stats
 from hardware.pointcloud import EmptyCloudError, PointCloudConfig, frame_to_cloud
+from hardware.policies import PolicySource
 from hardware.rig import Rig
 from hardware.safety import Safety, SafetyViolation
 from hardware.subscribers import Subscriber, Tick
@@ -54,10 +55,7 @@ class LoopSettings:
     rate_hz: float = 10.0
     max_steps: int | None = None  # None: until stopped
     dry_run: bool = False  # compute actions, send nothing (the arms are not enabled)
-    prefetch: bool = False  # start each chunk early in a background thread
-    seed: int | None = None  # diffusion noise seed (None: random)
     startup_timeout: float = 5.0  # s (of the runner's clock) to wait for the first frame and feedback
-    chunk_ms: float | None = None  # prefetch: the chunk latency its lead is chosen from (None: measured at start)
 
     def __post_init__(self):
         check_rate(self.rate_hz)
@@ -65,34 +63,26 @@ class LoopSettings:
             raise ConfigError(f"--max-steps must be at least 1, got {self.max_steps}")
 
 
-def check_fits(policy: OnnxPolicy, robot: Robot, cloud_config: PointCloudConfig) -> None:
-    """Refuse a model that does not fit this robot or camera pipeline — before anything moves."""
-    if policy.state_dim != robot.dof or policy.action_dim != robot.dof:
-        raise ConfigError(
-            f"the model takes a {policy.state_dim}-dim state and gives a {policy.action_dim}-dim action, but the robot has "
-            f"{robot.dof} values (7 per arm): pass one bus per arm the model was trained for (--can can0[,can1])"
-        )
-    model_points = policy.manifest["model_config"]["n_points"]
-    if cloud_config.n_points != model_points:
-        raise ConfigError(f"the point-cloud pipeline gives {cloud_config.n_points} points but the model was trained on {model_points}")
-
-
 class Runner:
-    def __init__(self, policy: OnnxPolicy, rig: Rig, cloud_config: PointCloudConfig, settings: LoopSettings,
+    def __init__(self, source: PolicySource, rig: Rig, cloud_config: PointCloudConfig | None, settings: LoopSettings,
                  subscribers: Sequence[Subscriber] = ()):
-        """``rig``: the camera, the arms, the safety settings and the clock (:class:`hardware.rig.Rig`; opened by
-        the caller, ``with rig:``), the limits the robot's own unless the rig narrows them. ``subscribers``: what
-        else happens on each tick — the episode log, the status line, Rerun views, … (:mod:`hardware.subscribers`),
-        told in this order; :meth:`close` gives them the summary."""
-        check_fits(policy, rig.robot, cloud_config)
-        self.policy, self.rig, self.camera, self.robot = policy, rig, rig.camera, rig.robot
+        """``source``: what decides the action (:mod:`hardware.policies`; checked here against the robot and the
+        point-cloud pipeline). ``rig``: the camera, the arms, the safety settings and the clock
+        (:class:`hardware.rig.Rig`; opened by the caller, ``with rig:``), the limits the robot's own unless the rig
+        narrows them; a rig without a camera runs only a source that needs no point cloud. ``cloud_config``: the
+        point-cloud pipeline's settings (None: the source needs none). ``subscribers``: what else happens on each
+        tick — the episode log, the status line, Rerun views, … (:mod:`hardware.subscribers`), told in this order;
+        :meth:`close` gives them the summary."""
+        if source.needs_cloud and (rig.camera is None or cloud_config is None):
+            raise ConfigError(f"the policy source {source.name!r} needs point clouds: give the rig a camera and the loop "
+                              "the point-cloud settings")
+        source.check(rig.description, cloud_config)
+        self.source, self.rig, self.camera, self.robot = source, rig, rig.camera, rig.robot
         self.cloud_config, self.camera_to_base = cloud_config, rig.camera_to_base
         self.safety_config, self.settings, self.limits = rig.safety, settings, rig.joint_limits()
         self.clock, self.subscribers = rig.clock, list(subscribers)
         self._closed = False
         self.period = 1.0 / settings.rate_hz
-        self.control = ChunkedControl(policy, rate_hz=settings.rate_hz, prefetch=settings.prefetch, seed=settings.seed,
-                                      chunk_ms_estimate=settings.chunk_ms)
         self.safety: Safety | None = None
         self.stop_reason: str | None = None
         self.fault: str | None = None
@@ -113,11 +103,12 @@ class Runner:
         self.stop_reason = self.stop_reason or why
 
     def start(self) -> None:
-        """Wait for the first frame and feedback, set up the safety layer, enable the arms (not in dry run).
-        A stop requested before the arms are enabled ends the start there: nothing is enabled or sent."""
+        """Wait for the first frame (a source that needs the point cloud) and feedback, set up the safety layer,
+        enable the arms (not in dry run), reset the source with the measured position. A stop requested before the
+        arms are enabled ends the start there: nothing is enabled or sent."""
         timeout = self.settings.startup_timeout
         deadline = self.clock.now() + timeout
-        if self._wait(self.camera.latest, deadline) is None and self.stop_reason is None:
+        if self.source.needs_cloud and self._wait(self.camera.latest, deadline) is None and self.stop_reason is None:
             raise CameraError(f"{self.camera.name}: no frame within {timeout:g} s; check the cable/USB3 port or the recording")
         state = self._wait(self.robot.state, deadline)
         if self.stop_reason is not None:
@@ -130,7 +121,7 @@ class Runner:
         self.safety = Safety(self.safety_config, lower, upper, gripper, state.position)
         if not self.settings.dry_run:
             self.robot.enable()
-        self.control.reset()
+        self.source.reset(np.array(state.position, dtype=np.float64))
         for subscriber in self.subscribers:
             subscriber.on_start(self)
 
@@ -148,7 +139,7 @@ class Runner:
         assert self.safety is not None, "start() first"
         t0 = self.clock.now()
         w0 = time.perf_counter()
-        frame = self.camera.latest()
+        frame = self.camera.latest() if self.camera is not None else None
         state = self.robot.state()
         record: dict[str, Any] = {"tick": self.ticks, "time": t0, "state": None, "action": None, "command": None, "held": False}
         cloud = None
@@ -156,58 +147,59 @@ class Runner:
         new_chunk = None
         deadline_missed = False
         cfg = self.safety_config
-        fresh = (
-            frame is not None
-            and state is not None
-            and t0 - frame.timestamp <= cfg.camera_timeout
-            and t0 - state.timestamp <= cfg.feedback_timeout
-        )
+        needs_cloud = self.source.needs_cloud
+        camera_fresh = frame is not None and t0 - frame.timestamp <= cfg.camera_timeout
+        fresh = state is not None and t0 - state.timestamp <= cfg.feedback_timeout and (camera_fresh or not needs_cloud)
         if frame is not None:
             record["frame_age_ms"] = 1e3 * (t0 - frame.timestamp)
         if state is not None:
             record["state"] = state.position
             record["feedback_age_ms"] = 1e3 * (t0 - state.timestamp)
-        if fresh and self.fault is None:
+        observed = fresh and self.fault is None
+        if observed and needs_cloud:
             c0 = time.perf_counter()
             try:
                 cloud, cloud_info = frame_to_cloud(frame, self.cloud_config, self.camera_to_base)
             except EmptyCloudError as exc:  # nothing in the workspace: no observation, hold
-                cloud, record["events"] = None, [f"no observation: {exc}"]
+                observed, record["events"] = False, [f"no observation: {exc}"]
                 self.event_counts["empty_cloud"] += 1
+            else:
+                if cloud_info.n_padded:
+                    record["cloud_padded"] = int(cloud_info.n_padded)
+                    self.event_counts["padded_cloud"] += 1
             record["cloud_ms"] = 1e3 * (time.perf_counter() - c0)
             self.latencies["cloud"].append(record["cloud_ms"])
-        if cloud is not None:
-            if cloud_info.n_padded:
-                record["cloud_padded"] = int(cloud_info.n_padded)
-                self.event_counts["padded_cloud"] += 1
+        if observed:
             try:
-                out, info = self.control.tick(cloud[None], state.position[None].astype(np.float32))
+                act = self.source.act(cloud, state.position)
             except (NonFiniteObservation, ObservationOutOfRange) as exc:  # refused before the history saw it: no observation, hold
                 cloud, record["events"] = None, [f"no observation: {exc}"]
                 self.event_counts["non_finite_observation" if isinstance(exc, NonFiniteObservation) else "observation_out_of_range"] += 1
             except ChunkOutOfRange as exc:  # refused, the tick undone: no action, hold
                 cloud, record["events"] = None, [f"no action: {exc}"]
                 self.event_counts["chunk_out_of_range"] += 1
-            except Exception as exc:  # the runtime failed: hold and end
-                self._fault(t0, f"runtime error: {exc}")
+            except Exception as exc:  # the source failed: hold and end
+                self._fault(t0, f"policy error ({self.source.name}): {exc}")
             else:
-                action = out[0].astype(np.float64)
+                action = None if act.action is None else np.asarray(act.action, dtype=np.float64)
                 record["action"] = action
-                record["observe_ms"] = info.observe_ms
-                self.latencies["observe"].append(info.observe_ms)
-                if info.chunk_ms is not None:
-                    record["chunk_ms"] = info.chunk_ms
-                    self.latencies["chunk"].append(info.chunk_ms)
-                if info.new_chunk and self.control.chunk is not None:
-                    new_chunk = self.control.chunk[0, self.control.chunk_offset:]  # (H - offset, A): the actions to come
+                if act.observe_ms is not None:
+                    record["observe_ms"] = act.observe_ms
+                    self.latencies["observe"].append(act.observe_ms)
+                if act.chunk_ms is not None:
+                    record["chunk_ms"] = act.chunk_ms
+                    self.latencies["chunk"].append(act.chunk_ms)
+                new_chunk = act.chunk
                 self.policy_ticks += 1
                 elapsed = self.clock.now() - t0
-                deadline_missed = info.over_budget or elapsed > self.period
-                record["events"] = list(info.events)
+                deadline_missed = act.over_budget or elapsed > self.period
+                record["events"] = list(act.events)
         now = self.clock.now()
+        # a source that takes no point cloud is not gated by the camera: the frame's time is the tick's own
+        camera_time = (frame.timestamp if frame else None) if needs_cloud else now
         try:
             decision = self.safety.decide(
-                action, now=now, camera_time=frame.timestamp if frame else None, state=self.robot.state(), deadline_missed=deadline_missed
+                action, now=now, camera_time=camera_time, state=self.robot.state(), deadline_missed=deadline_missed
             )
         except SafetyViolation as exc:
             self._fault(now, f"safety check failed: {exc}")
@@ -260,6 +252,9 @@ class Runner:
             while self.fault is None and self.stop_reason is None:
                 if self.settings.max_steps is not None and self.ticks >= self.settings.max_steps:
                     self.ended_by = "max steps"
+                    break
+                if self.source.done:
+                    self.ended_by = "done"
                     break
                 self.tick()
                 self.pacer.wait()

@@ -448,10 +448,10 @@ def test_the_robot_loop_holds_on_a_non_finite_cloud_and_keeps_it_out_of_the_hist
 
     with rig_loop(arm_export, tmp_path, monkeypatch, cloud_with_nan, pause=0.02) as (policy, runner, ticks):
         assert all(r["action"] is not None for r in ticks(5))
-        steps, count = policy.steps, runner.control.tick_count
+        steps, count = policy.steps, runner.source.control.tick_count
         poisoned["on"] = True
         held = ticks(3)
-        assert policy.steps == steps and runner.control.tick_count == count  # the history was not fed
+        assert policy.steps == steps and runner.source.control.tick_count == count  # the history was not fed
         for r in held:
             assert r["held"] and r["action"] is None and r["command"] is not None
             assert any(e.startswith("no observation: point_cloud") and "(0, 3, 1)=nan" in e for e in r["events"])

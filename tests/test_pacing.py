@@ -85,11 +85,12 @@ def test_latency_stats_of_the_finite_values():
 
 
 def test_the_replay_reads_its_times_from_its_clock(tmp_path, monkeypatch):
-    """dssp-replay without an arm on a fake clock: every action goes through the safety layer at the clock's time
-    (a dry run sends nothing, so it paces nothing), never at the machine's."""
+    """dssp-replay without an arm on a fake clock: the control loop paces on that clock, so every action goes
+    through the safety layer one period after the one before on the clock's timeline, never at the machine's."""
     from dssp_data.dataset_layout import Episode
     from dssp_data.replay_buffer_writer import write_replay_buffer
-    from hardware import episode_replay
+    from hardware import run_loop
+    from hardware.episode_replay import replay_episode
 
     steps = 12
     action = np.zeros((steps, 7), np.float32)
@@ -98,13 +99,13 @@ def test_the_replay_reads_its_times_from_its_clock(tmp_path, monkeypatch):
     write_replay_buffer(path, [Episode(np.zeros((steps, 4, 3), np.float32), action.copy(), action)],
                         attrs={"control_rate_hz": 20.0})
     seen = []
-    real_decide = episode_replay.Safety.decide
+    real_decide = run_loop.Safety.decide
 
     def decide(self, action, **kw):
         seen.append(kw["now"])
         return real_decide(self, action, **kw)
 
-    monkeypatch.setattr(episode_replay.Safety, "decide", decide)
-    result = episode_replay.replay_episode(path, 0, None, events=lambda _: None, clock=FakeClock(100.0))
-    assert result["steps"] == steps and result["ended_by"] == "done" and result["sent"] == 0
-    assert seen == [100.0] * steps
+    monkeypatch.setattr(run_loop.Safety, "decide", decide)
+    result = replay_episode(path, 0, None, events=lambda _: None, clock=FakeClock(100.0))
+    assert result["steps"] == result["ticks"] == steps and result["ended_by"] == "done" and result["sent"] == 0
+    assert seen == pytest.approx([100.0 + k / 20.0 for k in range(steps)], abs=1e-9)

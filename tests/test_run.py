@@ -34,6 +34,7 @@ from hardware.piper.can_simulator import SimulatedPiper
 from hardware.piper.limits import GRIPPER_STROKE_MAX, JointLimits
 from hardware.piper.piper_robot import PiperRobot
 from hardware.pointcloud import PointCloudConfig
+from hardware.policies.exported_model import ModelPolicy
 from hardware.rig import Rig
 from hardware.robot import Robot
 from hardware.run_log import RunLog, read_clouds, read_ticks
@@ -302,7 +303,7 @@ def rig(arm_export, tmp_path, request):
         with pytest.warns(UserWarning, match="20 Hz"):  # the model was trained at 50 Hz
             rig = Rig(camera, robot, camera.camera_to_base, getattr(request, "param", CAMERA_SAFETY), clock=clock,
                       limits=(LIMITS.lower, LIMITS.upper, GRIPPER))
-            runner = Runner(policy, rig, PointCloudConfig(n_points=64), LoopSettings(rate_hz=RATE, seed=0),
+            runner = Runner(ModelPolicy(policy, RATE, seed=0), rig, PointCloudConfig(n_points=64), LoopSettings(rate_hz=RATE),
                             subscribers=[RunLog(tmp_path / "log", {})])
         robot.step(0.0)
         runner.start()
@@ -353,14 +354,14 @@ def test_camera_frozen_holds_within_one_tick(rig):
 def test_slow_inference_holds_on_the_late_tick(rig):
     runner, _, _, ticks, clock = rig
     ticks(6)
-    denoise = runner.policy.denoise
+    denoise = runner.source.policy.denoise
 
     def slow(*args, **kwargs):
         clock.advance(2 * PERIOD)  # the chunk takes two periods of the loop's clock
         return denoise(*args, **kwargs)
 
-    runner.policy.denoise = slow
-    after = ticks(runner.policy.n_action_steps + 1)
+    runner.source.policy.denoise = slow
+    after = ticks(runner.source.policy.n_action_steps + 1)
     late = [r for r in after if "chunk_ms" in r]
     assert late and all(holds_for(r, "deadline") for r in late)
     on_time = [r for r in after if "chunk_ms" not in r]

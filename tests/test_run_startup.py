@@ -114,6 +114,7 @@ def test_start_up_gives_up_on_its_clock(arm_export):
     from hardware.piper.limits import JointLimits
     from hardware.pointcloud import PointCloudConfig
     from hardware.rig import Rig
+    from hardware.policies.exported_model import ModelPolicy
     from hardware.run_loop import LoopSettings, Runner
     from hardware.safety import SafetyConfig
 
@@ -121,7 +122,7 @@ def test_start_up_gives_up_on_its_clock(arm_export):
     limits = JointLimits.piper()
     rig = Rig(camera, SilentArm(), np.eye(4), SafetyConfig(), clock=clock,
               limits=(limits.lower, limits.upper, np.arange(7) == 6))
-    runner = Runner(OnnxPolicy(arm_export, threads=1), rig, PointCloudConfig(n_points=64),
+    runner = Runner(ModelPolicy(OnnxPolicy(arm_export, threads=1), 50.0), rig, PointCloudConfig(n_points=64),
                     LoopSettings(rate_hz=50.0, startup_timeout=2.0))
     with pytest.raises(DSSPError, match="no joint feedback within 2 s"):
         runner.start()

@@ -232,6 +232,7 @@ def rig_loop(arm_export, tmp_path, monkeypatch, edit_cloud, pause: float = 0.0):
     from hardware.piper.limits import JointLimits
     from hardware.piper.piper_robot import open_robot
     from hardware.pointcloud import PointCloudConfig
+    from hardware.policies.exported_model import ModelPolicy
     from hardware.rig import Rig
     from hardware.safety import SafetyConfig
 
@@ -251,7 +252,7 @@ def rig_loop(arm_export, tmp_path, monkeypatch, edit_cloud, pause: float = 0.0):
     try:
         with robot:
             rig = Rig(camera, robot, camera.camera_to_base, safety, limits=(limits.lower, limits.upper, np.arange(7) == 6))
-            runner = run_loop.Runner(policy, rig, PointCloudConfig(n_points=64), run_loop.LoopSettings(rate_hz=50.0, seed=0))
+            runner = run_loop.Runner(ModelPolicy(policy, 50.0, seed=0), rig, PointCloudConfig(n_points=64), run_loop.LoopSettings(rate_hz=50.0))
             runner.start()
 
             def ticks(n):
@@ -287,15 +288,15 @@ def test_the_robot_loop_holds_on_a_refused_observation_or_chunk(arm_export, tmp_
 
     with rig_loop(arm_export, tmp_path, monkeypatch, cloud_far_out) as (policy, runner, ticks):
         assert all(r["action"] is not None for r in ticks(4))
-        steps, count = policy.steps, runner.control.tick_count
+        steps, count = policy.steps, runner.source.control.tick_count
         far["on"] = True
         assert_held(ticks(3), "no observation: point_cloud", "(0, 3, 1)=50 >")
-        assert policy.steps == steps and runner.control.tick_count == count  # the history was not fed
+        assert policy.steps == steps and runner.source.control.tick_count == count  # the history was not fed
         assert runner.event_counts["observation_out_of_range"] == 3 and runner.fault is None
         far["on"] = False
         # the next chunk comes out NaN: refused at every tick it is due, the tick undone, held
         ha = policy.n_action_steps
-        while runner.control.tick_count % ha:  # up to the tick that takes the next chunk
+        while runner.source.control.tick_count % ha:  # up to the tick that takes the next chunk
             ticks(1)
         session = policy.sessions["denoiser"]
         policy.sessions["denoiser"] = Corrupted(session, (0, 1, 2), np.nan)

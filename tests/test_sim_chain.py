@@ -169,3 +169,27 @@ def test_state_token_noise_changes_the_actions_not_the_chain(sim_model):
     assert clean.episodes[0].info == again.episodes[0].info and clean.episodes[0].steps == again.episodes[0].steps
     assert noisy.state_token_noise == 0.15 and noisy.episodes[0].steps > 0
     assert 0.1 < clean.z_rms < 10 and noisy.to_dict()["noise_over_z_rms"] == pytest.approx(0.15 / noisy.z_rms)
+
+
+def test_the_scripted_expert_drives_the_same_loop(tmp_path, capsys):
+    """dssp-sim eval --expert: the task's expert as the control loop's policy source, through the safety layer and
+    the CAN bus — it passes every tap episode (the task's ceiling through the chain), its decision scored the same way."""
+    out = tmp_path / "expert.json"
+    assert sim_main(["eval", "--expert", "--task", "tap", "--episodes", "2", "--seed", "1000", "--json", str(out),
+                     "--no-progress"]) == 0
+    text = capsys.readouterr().out
+    assert "tap: success 2/2" in text and "memory decision: right in 2 of the 2" in text
+    result = json.loads(out.read_text())
+    assert result["model_dir"] == "expert" and [e["seed"] for e in result["episodes"]] == [1000, 1001]
+    assert all(e["success"] and e["holds"] == 0 and e["chunk_ms_p50"] is None for e in result["episodes"])
+
+
+@pytest.mark.parametrize("argv, fragment", [
+    (["--expert", "--noise", "0.1"], "--noise is a model's setting: it goes with --model, not --expert"),
+    (["--expert", "--task", "metaworld/reach"], "--expert drives the Piper's control loop"),
+])
+def test_expert_flags_that_do_not_apply_are_one_line(argv, fragment, capsys):
+    task = [] if "--task" in argv else ["--task", "tap"]
+    assert sim_main(["eval", *argv, *task, "--episodes", "1", "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and fragment in err[0], err

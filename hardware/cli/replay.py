@@ -2,8 +2,9 @@
 
     dssp-replay PATH --episode K [--can can0[,can1]|sim] [--send] [--rate HZ] [--safety FILE] [--interface IF]
 
-Without ``--can`` the episode runs against ideal tracking (no arm); with ``--can`` but without ``--send`` the
-arms are read, never commanded. Every way the process is stopped — any signal whose default would end it (Ctrl-C,
+It is ``dssp-run``'s control loop with the recorded episode as its policy source (:mod:`hardware.episode_replay`).
+Without ``--can`` the episode runs against ideal tracking (no arm, a simulated clock: as fast as it computes); with
+``--can`` but without ``--send`` the arms are read, never commanded, at the replay's rate. Every way the process is stopped — any signal whose default would end it (Ctrl-C,
 SIGTERM, SIGHUP, ...), or stdout/stderr going away (:mod:`hardware.cli.stops`) — stops between two commands and
 holds; exit code 128 + N for signal N (130 SIGINT, 143 SIGTERM, ...), 141 when stdout or stderr went away.
 """
@@ -40,8 +41,8 @@ def _replay(args, stops: Stops) -> int:
         print(f"stopped by {stops.reason} before the replay started; nothing was sent", file=sys.stderr)
         return stops.code
     result = replay_episode(args.path, args.episode, args.can, send=args.send, interface=args.interface,
-                            rate_hz=args.rate, safety_config=safety, should_stop=lambda: stops.reason is not None)
-    stopped = result["ended_by"] == "stop requested"  # the replay's word for should_stop(): the stop's own reason
+                            rate_hz=args.rate, safety_config=safety, attach_stop=stops.during)
+    stopped = stops.reason is not None and result["ended_by"] == stops.reason
     mode = f"sent {result['sent']} commands to {args.can}" if args.send else (
         f"dry run on {args.can} (nothing sent)" if args.can else "dry run without an arm (ideal tracking)")
     print(f"episode {result['episode']}: {result['steps']} actions at {result['rate_hz']:g} Hz, {mode}")
@@ -49,7 +50,9 @@ def _replay(args, stops: Stops) -> int:
           f"recorded action {result['max_change']:.4f}; first action {result['start_distance']:.3f} from the start")
     if result["tracking_error"] is not None:
         print(f"final tracking error {result['tracking_error']:.4f} (policy units)")
-    print(f"ended by: {stops.reason if stopped else result['ended_by']}")
+    print(f"ended by: {result['ended_by']}")
+    if result["fault"]:
+        return 1
     return stops.code if stopped else 0
 
 

@@ -1,12 +1,14 @@
 """``dssp-run``: run an exported DSSP model on the robot (or on the embedded simulated one).
 
-    dssp-run --model MODEL_DIR --camera l515|d435|d405|file:PATH|sim --can can0[,can1]|sim[:2]
+    dssp-run --model MODEL_DIR | --policy NAME[:ARG]  --camera l515|d435|d405|file:PATH|tabletop --can can0[,can1]|sim[:2]
              [--rate HZ] [--extrinsics FILE] [--pointcloud FILE] [--safety FILE] [--max-steps N] [--dry-run]
              [--log-dir DIR] [--prefetch] [--threads N] [--precision fp32|int8|int4] [--kernel auto|fused|standard] [--seed S] [--serial SERIAL] [--interface socketcan]
              [--allow-mismatch FIELD ...] [--rerun [URL]] [--rerun-save PATH.rrd]
 
 Opens the camera and the arm(s), warms the model up, then runs the control loop (``hardware.run_loop``):
-the history every tick, a new chunk every H_a ticks, every command through the safety layer. Prints a
+the history every tick, a new chunk every H_a ticks, every command through the safety layer. ``--policy NAME[:ARG]``
+runs another policy source of :data:`hardware.policies.REGISTRY` in the same loop instead of a model (``hold``: the
+arm held where it starts, a check of the rig; ``episode:PATH.zarr@K``: a recorded episode's actions). Prints a
 live one-line status, writes the episode log (``hardware.run_log``) and ends with a summary; ``--rerun`` /
 ``--rerun-save`` also show each tick in Rerun (:mod:`dssp_data.rerun_views`).
 The model carries its observation contract (``dssp_model.json`` ``observation`` and ``control_rate_hz``: the
@@ -51,7 +53,11 @@ logs them without enabling or commanding the arms (feedback is still read).
 def parse_args(argv):
     p = ArgumentParser(prog="dssp-run", description="Run a DSSP model on the robot.", epilog=EPILOG,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--model", type=Path, required=True, help="model directory (python -m export.to_onnx)")
+    source = p.add_mutually_exclusive_group(required=True)
+    source.add_argument("--model", type=Path, help="model directory (python -m export.to_onnx)")
+    source.add_argument("--policy", metavar="NAME[:ARG]",
+                        help="another policy source instead of a model (hardware.policies.REGISTRY): hold (the arm held "
+                             "where it starts: the rig checked end to end), episode:PATH.zarr@K (a recorded episode's actions)")
     p.add_argument("--camera", default="tabletop",
                    help="l515 | d435 | d405 | file:PATH (.bag/.db3) | tabletop (default: tabletop, the simulated one)")
     p.add_argument("--serial", help="RealSense serial number, when several are connected")
@@ -91,6 +97,15 @@ def check_args(args) -> None:
     from hardware.camera import check_camera_spec  # deferred: loads numpy
 
     check_camera_spec(args.camera, args.serial)
+    if args.policy is not None:
+        from hardware.policies import split_spec  # deferred: loads numpy
+
+        split_spec(args.policy)
+        for flag, given in (("--prefetch", args.prefetch), ("--allow-mismatch", args.allow_mismatch),
+                            ("--precision", args.precision), ("--threads", args.threads is not None),
+                            ("--seed", args.seed is not None), ("--no-spin", args.no_spin), ("--kernel", args.kernel != "auto")):
+            if given:
+                raise ConfigError(f"{flag} is a model's setting: it goes with --model, not --policy {args.policy}")
     from hardware.subscribers import check_subscribers  # deferred: loads numpy
 
     check_subscribers(args.subscribe)
@@ -172,6 +187,61 @@ def check_prefetch(policy, rate: float) -> float:
     return chunk_ms
 
 
+def model_source(args, described, cloud_config, safety_config, stops: Stops):
+    """``--model``: (the model's policy source, the point-cloud settings, the control rate, what the log says of it),
+    the model loaded and warmed up and the setup checked against its observation contract — one line for what
+    contradicts it, before any device opens."""
+    from dssp_data.observation import FRAME_ROBOT_BASE, ObservationContract, check_contract  # deferred: loads numpy
+    from dssp_deploy.manifest import observation_of  # deferred: loads numpy
+    from dssp_deploy.onnx_policy import OnnxPolicy  # deferred: loads numpy
+    from hardware.pointcloud import PointCloudConfig  # deferred: loads numpy
+    from hardware.policies.exported_model import ModelPolicy  # deferred: loads numpy
+
+    if not args.quiet and sys.stderr.isatty():  # a progress note for a person; logs and scripts get only the result
+        print(f"loading {args.model} (warm-up included)", file=sys.stderr)
+    policy = OnnxPolicy(args.model, threads=args.threads, precision=args.precision, kernel=args.kernel,
+                        background_chunks=args.prefetch, spinning=False if args.no_spin else None)
+    stops.check()
+    trained = observation_of(policy.manifest)
+    if cloud_config is None:  # the model's own settings; a model from data that recorded none: the defaults
+        cloud_config = trained.pointcloud or PointCloudConfig(n_points=policy.manifest["model_config"]["n_points"])
+    rate = control_rate(args, policy)
+    safety_config.check_speed(rate, described.max_joint_speed)  # before the prefetch lead is measured at this rate
+    chunk_ms = check_prefetch(policy, rate) if args.prefetch else None  # a lead the rate cannot hold: refused here
+    given = ObservationContract(pointcloud=cloud_config, frame=FRAME_ROBOT_BASE, state=described.layout,
+                                action=described.layout)
+    pointcloud_by = f"--pointcloud {args.pointcloud}" if args.pointcloud else "the default point-cloud settings"
+    overrides = check_contract(trained, given, trained_by=f"the model {args.model}", allow=args.allow_mismatch,
+                               given_by={"pointcloud": pointcloud_by, "frame": "the point-cloud pipeline",
+                                         "state": f"--can {args.can}", "action": f"--can {args.can}",
+                                         "control_rate_hz": "--rate"},
+                               extra=[("control_rate_hz", policy.control_rate_hz, args.rate)])
+    for o in overrides:
+        print(f"warning: running with {o['field']} = {o['given']} although the model was trained with {o['trained']} "
+              "(--allow-mismatch)", file=sys.stderr)
+    source = ModelPolicy(policy, rate, prefetch=args.prefetch, seed=args.seed, chunk_ms=chunk_ms)
+    about = {"model": str(args.model), "policy": source.describe(),
+             "manifest": {k: policy.manifest[k] for k in ("denoise_steps", "control_rate_hz") if k in policy.manifest},
+             "observation": trained.to_manifest(), "allowed_mismatches": overrides}
+    return source, cloud_config, rate, about
+
+
+DEFAULT_RATE_HZ = 10.0
+"""``--policy`` with a source made for no rate (``hold``) and no ``--rate``: a rate that holds nothing it could
+spoil (a model's rate is never guessed: a model without one needs --rate)."""
+
+
+def other_source_rate(args, source) -> float:
+    """``--policy``: --rate, else the rate the source was made for (a recording's), else :data:`DEFAULT_RATE_HZ`."""
+    from hardware.robot import check_rate  # deferred: loads numpy
+
+    if args.rate is not None:
+        return args.rate
+    if source.control_rate_hz is not None:
+        return check_rate(source.control_rate_hz, flag=f"--policy {args.policy}: the recording's control_rate_hz")
+    return DEFAULT_RATE_HZ
+
+
 def run(args, stops: Stops | None = None) -> int:
     """``args`` → exit code; ``stops``: the stop request main() installed (None: installed here)."""
     return run_stoppable(_run, args, stops, "no arm was enabled, nothing was sent")
@@ -180,12 +250,9 @@ def run(args, stops: Stops | None = None) -> int:
 def _run(args, stops: Stops) -> int:
     stops.check()
     check_args(args)
-    from dssp_deploy.onnx_policy import OnnxPolicy  # deferred: loads numpy
     from hardware.camera import TABLETOP, open_camera  # deferred: loads numpy
     from hardware.can_log import BusRecorder  # deferred: loads can
     from hardware.piper.piper_robot import open_robot  # deferred: loads can
-    from dssp_data.observation import FRAME_ROBOT_BASE, ObservationContract, check_contract  # deferred: loads can
-    from dssp_deploy.manifest import observation_of  # deferred: loads can
     from hardware.pointcloud import PointCloudConfig, load_extrinsics  # deferred: loads can
     from dssp_data.rerun_views import check_views, open_views  # deferred: loads numpy
     from hardware.run_log import RunLog  # deferred: loads numpy
@@ -193,7 +260,7 @@ def _run(args, stops: Stops) -> int:
     from hardware.subscribers.rerun_ticks import RerunTicks  # deferred: loads numpy
     from hardware.subscribers.status_line import StatusLine  # deferred: loads numpy
     from hardware.rig import Rig  # deferred: loads numpy
-    from hardware.run_loop import LoopSettings, Runner, check_fits, describe_ending  # deferred: loads numpy
+    from hardware.run_loop import LoopSettings, Runner, describe_ending  # deferred: loads numpy
     from hardware.safety import SafetyConfig  # deferred: loads numpy
 
     check_views(args.rerun, args.rerun_save)
@@ -215,33 +282,21 @@ def _run(args, stops: Stops) -> int:
                 "(a JSON file {\"camera_to_base\": 4x4}; see the README's calibration section)"
             )
         cloud_config = PointCloudConfig.load(args.pointcloud, "point-cloud settings") if args.pointcloud else None
-        if not args.quiet and sys.stderr.isatty():  # a progress note for a person; logs and scripts get only the result
-            print(f"loading {args.model} (warm-up included)", file=sys.stderr)
-        policy = OnnxPolicy(args.model, threads=args.threads, precision=args.precision, kernel=args.kernel,
-                            background_chunks=args.prefetch, spinning=False if args.no_spin else None)
-        stops.check()
-        trained = observation_of(policy.manifest)
-        if cloud_config is None:  # the model's own settings; a model from data that recorded none: the defaults
-            cloud_config = trained.pointcloud or PointCloudConfig(n_points=policy.manifest["model_config"]["n_points"])
-        rate = control_rate(args, policy)
+        if args.model is not None:
+            source, cloud_config, rate, about = model_source(args, described, cloud_config, safety_config, stops)
+        else:
+            from hardware.policies import open_policy  # deferred: loads numpy
+
+            source = open_policy(args.policy)
+            rate = other_source_rate(args, source)
+            cloud_config = cloud_config or PointCloudConfig()
+            about = {"policy": source.describe()}
         safety_config.check_speed(rate, described.max_joint_speed)
-        chunk_ms = check_prefetch(policy, rate) if args.prefetch else None  # a lead the rate cannot hold: refused here
-        given = ObservationContract(pointcloud=cloud_config, frame=FRAME_ROBOT_BASE, state=described.layout,
-                                    action=described.layout)
-        pointcloud_by = f"--pointcloud {args.pointcloud}" if args.pointcloud else "the default point-cloud settings"
-        overrides = check_contract(trained, given, trained_by=f"the model {args.model}", allow=args.allow_mismatch,
-                                   given_by={"pointcloud": pointcloud_by, "frame": "the point-cloud pipeline",
-                                             "state": f"--can {args.can}", "action": f"--can {args.can}",
-                                             "control_rate_hz": "--rate"},
-                                   extra=[("control_rate_hz", policy.control_rate_hz, args.rate)])
-        for o in overrides:
-            print(f"warning: running with {o['field']} = {o['given']} although the model was trained with {o['trained']} "
-                  "(--allow-mismatch)", file=sys.stderr)
-        check_fits(policy, robot, cloud_config)  # before any device is opened
+        source.check(described, cloud_config)  # before any device is opened
         stops.check()
-        settings = LoopSettings(rate_hz=rate, max_steps=args.max_steps, dry_run=args.dry_run, prefetch=args.prefetch,
-                                seed=args.seed, chunk_ms=chunk_ms)
-        print(f"graphs: {policy.kernel_note}", file=sys.stderr)  # which graphs run: the one start-up line about them
+        settings = LoopSettings(rate_hz=rate, max_steps=args.max_steps, dry_run=args.dry_run)
+        if args.model is not None:
+            print(f"graphs: {source.policy.kernel_note}", file=sys.stderr)  # which graphs run: the one start-up line about them
         views = open_views("dssp-run", args.rerun, args.rerun_save)  # flags checked (and a viewer started) before any device
         if views is not None:
             stack.callback(lambda: print(views.close_line()))
@@ -254,16 +309,14 @@ def _run(args, stops: Stops) -> int:
             BusRecorder(arm.channel, arm.interface, log_dir / f"can_{arm.channel}.blf", **arm.bus_options) for arm in robot.arms
         ]
         log = RunLog(log_dir, {
-            "model": str(args.model), "camera": args.camera, "can": args.can, "robot": described.to_dict(),
+            **about, "camera": args.camera, "can": args.can, "robot": described.to_dict(),
             "rate_hz": rate, "dry_run": args.dry_run,
             "camera_to_base": camera_to_base, "pointcloud": cloud_config.to_dict(), "safety": safety_config.to_dict(),
-            "manifest": {k: policy.manifest[k] for k in ("denoise_steps", "control_rate_hz") if k in policy.manifest},
-            "observation": trained.to_manifest(), "allowed_mismatches": overrides,
         })
         subscribers = [log, *([] if args.quiet else [StatusLine()]), *([RerunTicks(views)] if views is not None else []),
                        *open_subscribers(args.subscribe, log_dir)]
         rig = Rig(camera, robot, camera_to_base, safety_config, recorders=recorders)  # the limits: the robot's own
-        runner = Runner(policy, rig, cloud_config, settings, subscribers=subscribers)
+        runner = Runner(source, rig, cloud_config, settings, subscribers=subscribers)
         stops.during(runner.request_stop)  # a stop that came meanwhile, or any later: the runner's final hold
         try:
             with rig:  # the camera, the arms (simulators start first, so the recorders find their channels), the recorders

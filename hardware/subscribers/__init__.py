@@ -1,9 +1,9 @@
 """What happens on each tick of the control loop, besides control: subscribers.
 
-    runner = Runner(policy, rig, cloud_config, settings,
+    runner = Runner(source, rig, cloud_config, settings,
                     subscribers=[RunLog(log_dir, settings_dict), StatusLine(), RerunTicks(views)])
 
-The loop (:class:`hardware.run_loop.Runner`) controls: it reads the camera and the arms, runs the policy, passes
+The loop (:class:`hardware.run_loop.Runner`) controls: it reads the camera and the arms, asks the policy source, passes
 the action through the safety layer and sends the command. Everything else — the episode log, the live status
 line, the Rerun views, a CSV of the ticks — is a :class:`Subscriber`: told when the loop has started
 (:meth:`~Subscriber.on_start`), given every tick (:meth:`~Subscriber.on_tick`, a :class:`Tick`) and the summary at

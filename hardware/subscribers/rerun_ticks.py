@@ -16,7 +16,9 @@ class RerunTicks(Subscriber):
         self.next_tick = views.last_tick + 1
 
     def on_start(self, loop) -> None:
-        self.views.camera(loop.camera.latest().intrinsics.to_dict(), loop.camera_to_base)
+        frame = loop.camera.latest() if loop.camera is not None else None
+        if frame is not None:  # a source that needs no point cloud may start before the camera's first frame
+            self.views.camera(frame.intrinsics.to_dict(), loop.camera_to_base)
 
     def on_tick(self, tick: Tick) -> None:
         record, frame = tick.record, tick.frame
