@@ -15,6 +15,7 @@ import threading
 import time
 
 import pytest
+from waiting import wait_for
 
 from dssp_core.cli_runner import MAX_HOLD_S, in_thread_machinery, interrupts_at_safe_points, run_cli
 
@@ -25,9 +26,8 @@ def waiting_thread():
     gate = threading.Event()
     thread = threading.Thread(target=gate.wait, daemon=True)
     thread.start()
-    deadline = time.monotonic() + 10
-    while not in_thread_machinery(sys._current_frames().get(thread.ident)) and time.monotonic() < deadline:
-        time.sleep(0.001)
+    wait_for(lambda: in_thread_machinery(sys._current_frames().get(thread.ident)), timeout=10,
+             what="the thread blocked in threading's wait", poll=0.001)
     yield sys._current_frames()[thread.ident]
     gate.set()
     thread.join()

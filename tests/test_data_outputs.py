@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import snapshot
+from waiting import wait_for
 
 from dssp_data.data_cli import main as data_main
 from dssp_data.recording import can_log_dir
@@ -259,12 +260,11 @@ def _start(argv, cwd):
 
 def _wait_for_staging(proc, folder: Path, prefix: str, timeout: float = 60.0, old: frozenset = frozenset()) -> bool:
     """Wait until ``proc`` has started writing (a staging directory not in ``old`` exists); False if it ended first."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline and proc.poll() is None:
-        if any(n.startswith(prefix) and n not in old for n in os.listdir(folder)):
-            return True
-        time.sleep(0.01)
-    return False
+    def writing() -> bool:
+        return any(n.startswith(prefix) and n not in old for n in os.listdir(folder))
+
+    wait_for(lambda: writing() or proc.poll() is not None, timeout=timeout, what=f"{prefix}* or the command's end", poll=0.01)
+    return writing()
 
 
 @pytest.fixture(scope="module")

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from waiting import wait_for
 
 from dssp_core.errors import CameraError, DSSPError
 from hardware.camera.base import Camera
@@ -32,14 +33,15 @@ def wait_for_start_up_handler(proc: subprocess.Popen, timeout: float = 60.0) -> 
     """Wait until ``proc`` catches SIGTERM: main() has installed its start-up handler (Python itself catches
     only SIGINT), so the delays below count from there, whatever the machine's load did to the interpreter's
     own start-up (a Ctrl-C before that is Python's, not dssp-run's)."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline and proc.poll() is None:
+    def caught_or_ended() -> bool:
+        if proc.poll() is not None:
+            return True
         status = Path(f"/proc/{proc.pid}/status").read_text()
         caught = int(next(line.split()[1] for line in status.splitlines() if line.startswith("SigCgt:")), 16)
-        if caught >> (signal.SIGTERM - 1) & 1:
-            return
-        time.sleep(0.005)
-    raise AssertionError(f"dssp-run did not install its start-up handler within {timeout} s (exit code {proc.poll()})")
+        return bool(caught >> (signal.SIGTERM - 1) & 1)
+
+    wait_for(caught_or_ended, timeout=timeout, what="dssp-run's start-up handler", poll=0.005)
+    assert proc.poll() is None, f"dssp-run ended before it installed its start-up handler (exit code {proc.poll()})"
 
 
 @pytest.mark.parametrize("delay", [0.0, 0.3, 1.0, 2.0, 3.5])
