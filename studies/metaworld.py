@@ -480,8 +480,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.cost:
             print(cost(plan, plan["tasks"], record))
             return 0
-        if args.freeze:
-            print(f"plan {protocol.freeze_plan(record, plan, definition=definition_hash())} frozen in "
+        if args.freeze:  # again after the definition changed: the tasks already tested stay on the earlier one
+            tested = [t for t in plan["tasks"] if any((record / "evals").glob(f"{t}_*_test.json"))]
+            print(f"plan {protocol.freeze_plan(record, plan, tested, definition=definition_hash())} frozen in "
                   f"{record / protocol.FROZEN_NAME}; --split test runs it")
             return 0
         if args.report_only:  # the plan the record was made with
