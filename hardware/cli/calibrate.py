@@ -196,6 +196,9 @@ def _calibrate(args, stops: Stops, sim) -> int:
         mm, deg = distance(result.transform, truth)
         print(f"the twin's true {result.name} is {mm:.2f} mm / {deg:.3f} deg from it")
     result.check()
+    if stops.reason is not None:
+        print(f"stopped by {stops.reason}; nothing was written", file=sys.stderr)
+        return stops.code
     notes = (f"dssp-calibrate {args.mode}: {len(good)} views, OpenCV {result.method}, residuals {rms_mm:.2f} mm / "
              f"{rms_deg:.3f} deg RMS; board {board.squares_x}x{board.squares_y} {1e3 * board.square_m:g} mm {board.dictionary}")
     if args.mode == "eye-to-hand":
