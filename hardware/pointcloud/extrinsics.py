@@ -40,18 +40,19 @@ def identity() -> np.ndarray:
     return np.eye(4)
 
 
-def validate_extrinsics(matrix, source: str = "camera_to_base") -> np.ndarray:
-    """Check a camera->base transform and return it as (4, 4) float64; CalibrationError naming ``source``."""
+def validate_extrinsics(matrix, source: str = "camera_to_base", name: str = "camera_to_base") -> np.ndarray:
+    """Check a rigid transform (camera->base, or camera->gripper: ``name``) and return it as (4, 4) float64;
+    CalibrationError naming ``source`` and ``name``."""
     try:
         m = np.asarray(matrix, dtype=np.float64)
     except (TypeError, ValueError):
-        raise CalibrationError(f"{source}: camera_to_base must be a 4x4 array of numbers") from None
+        raise CalibrationError(f"{source}: {name} must be a 4x4 array of numbers") from None
     if m.shape != (4, 4):
-        raise CalibrationError(f"{source}: camera_to_base must be 4x4 (4 rows of 4 numbers), got shape {m.shape}")
+        raise CalibrationError(f"{source}: {name} must be 4x4 (4 rows of 4 numbers), got shape {m.shape}")
     if not np.all(np.isfinite(m)):
-        raise CalibrationError(f"{source}: camera_to_base holds NaN or infinite values; redo the calibration")
+        raise CalibrationError(f"{source}: {name} holds NaN or infinite values; redo the calibration")
     if not np.allclose(m[3], [0.0, 0.0, 0.0, 1.0], atol=1e-9):
-        raise CalibrationError(f"{source}: the last row of camera_to_base must be [0, 0, 0, 1], got {m[3].tolist()}")
+        raise CalibrationError(f"{source}: the last row of {name} must be [0, 0, 0, 1], got {m[3].tolist()}")
     r = m[:3, :3]
     err = float(np.abs(r.T @ r - np.eye(3)).max())
     if err > ROTATION_TOLERANCE:
@@ -120,7 +121,7 @@ WRIST_FRAME = "piper_flange"
 def save_camera_to_gripper(path: str | Path, camera_to_gripper, notes: str = "") -> Path:
     """Validate and write a wrist camera's calibration file atomically; returns the path."""
     path = Path(path).expanduser()
-    m = validate_extrinsics(camera_to_gripper, source=str(path))
+    m = validate_extrinsics(camera_to_gripper, source=str(path), name="camera_to_gripper")
     text = json.dumps({"camera_to_gripper": [[float(v) for v in row] for row in m], "frame": WRIST_FRAME,
                        "notes": str(notes)}, indent=2) + "\n"
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -138,4 +139,4 @@ def load_camera_to_gripper(path: str | Path) -> np.ndarray:
                                f"{sorted(values)}")
     if values.get("frame", WRIST_FRAME) != WRIST_FRAME:
         raise CalibrationError(f"{path}: frame must be {WRIST_FRAME!r}, got {values['frame']!r}")
-    return validate_extrinsics(values["camera_to_gripper"], source=str(path))
+    return validate_extrinsics(values["camera_to_gripper"], source=str(path), name="camera_to_gripper")
