@@ -2,10 +2,12 @@
 
     dssp-sim collect --task tap|swap|put2|metaworld/NAME|metaworld-cue/NAME --episodes N --out PATH.zarr [--seed S] [--points P]
     dssp-sim record --out PATH.zarr [dssp-record's flags; --camera mujoco --can mujoco by default]
+    dssp-sim calibrate --mode eye-to-hand|eye-in-hand --auto N --out calib.json [dssp-calibrate's flags]
     dssp-sim eval --model MODEL_DIR | --expert  --task NAME --episodes N [--seed S] [--noise SIGMA] [--strips DIR] [--json PATH] [--force]
                   [--smoothing none|ensemble [--ensemble-every N] [--ensemble-decay M]] [--rerun [URL] | --rerun-save PATH.rrd]
 
-``record`` is ``dssp-record`` on the simulated rig (the task's scripted expert plays the leader arm).
+``record`` is ``dssp-record`` on the simulated rig (the task's scripted expert plays the leader arm); ``calibrate`` is
+``dssp-calibrate`` on the calibration twin (:mod:`dssp_sim.calibration_twin`: a ChArUco board and a camera at known poses).
 ``collect`` keeps only successful expert episodes and says how many it tried. ``eval`` drives the model
 through the real chain (simulated camera → point-cloud pipeline → runtime → safety → CAN → simulated arm)
 and prints the success rate with its 95 % Wilson interval and each episode's outcome (``--smoothing ensemble``: the
@@ -72,6 +74,7 @@ def parse_args(argv):
     p = ArgumentParser(prog="dssp-sim", description="Memory tasks in a MuJoCo simulation of the AgileX Piper.")
     sub = p.add_subparsers(dest="command", required=True)
     sub.add_parser("record", help="dssp-record on the simulated rig (same flags; see dssp-sim record --help)")
+    sub.add_parser("calibrate", help="dssp-calibrate on the MuJoCo twin (same flags; see dssp-sim calibrate --help)")
     c = sub.add_parser("collect", help="expert demonstrations → a DP3 zarr dataset")
     c.add_argument("--task", type=_task, required=True, help=TASK_HELP)
     c.add_argument("--episodes", type=positive_int, required=True, help="successful episodes to keep")
@@ -155,6 +158,10 @@ def main(argv: list[str] | None = None) -> int:
         from dssp_sim.teleop import record_main
 
         return record_main(argv[1:])
+    if argv[:1] == ["calibrate"]:  # dssp-calibrate's own flags, on the twin
+        from dssp_sim.calibration_twin import calibrate_main
+
+        return calibrate_main(argv[1:])
     args = parse_args(argv)
     return run_cli(lambda: run(args))
 
