@@ -254,10 +254,11 @@ class PiperEnv:
 class DepthRenderThread:
     """One thread that owns a MuJoCo depth renderer and its GL context (a GL context is bound to the
     thread that made it current), so ``render_depth`` works from any thread: a capture thread, a test,
-    the main loop. ``render(data)`` -> (H, W) float32 metric depth (metres along the optical axis)."""
+    the main loop. ``render(data)`` -> (H, W) float32 metric depth (metres along the optical axis); with
+    ``depth=False`` the colour image instead, (H, W, 3) uint8 RGB."""
 
-    def __init__(self, model: mujoco.MjModel, size: tuple[int, int], camera_id: int) -> None:
-        self._model, self._size, self._camera_id = model, size, camera_id
+    def __init__(self, model: mujoco.MjModel, size: tuple[int, int], camera_id: int, depth: bool = True) -> None:
+        self._model, self._size, self._camera_id, self._depth = model, size, camera_id, depth
         self._requests: queue.Queue = queue.Queue()
         self._thread = threading.Thread(target=self._run, name="dssp-sim-render", daemon=True)
         self._thread.start()
@@ -287,7 +288,8 @@ class DepthRenderThread:
                 try:
                     if renderer is None:
                         renderer = mujoco.Renderer(self._model, *self._size)
-                        renderer.enable_depth_rendering()
+                        if self._depth:
+                            renderer.enable_depth_rendering()
                     renderer.update_scene(data, camera=self._camera_id)
                     reply.put((True, renderer.render()))
                 except Exception as e:  # handed to the caller

@@ -2,6 +2,7 @@
 
     result = evaluate("models/tap", "tap", n_episodes=20, seed=1000)
     result = evaluate(None, "tap", n_episodes=20, seed=1000)      # the scripted expert through the same loop
+    result = evaluate("models/tap", "tap", 20, smoothing="ensemble", ensemble_every=1)   # ACT's temporal ensembling
 
 Each episode: the MuJoCo env is reset with its seed; its depth render goes through the RealSense software
 device and the point-cloud pipeline (:class:`~dssp_sim.mujoco_camera.MujocoCamera`, ``hardware.pointcloud``);
@@ -94,6 +95,9 @@ class EvalResult:
     precision: str = ""  # the graphs that ran: "fp32", "int8" or "int4"; "fused" or "standard"
     kernel: str = ""
     z_rms: float | None = None  # RMS per element of the recent state tokens the denoiser saw, before noise
+    smoothing: str = "none"  # the control loop's (dssp_deploy.control_loop.SMOOTHINGS); the ensemble's settings or None
+    ensemble_every: int | None = None
+    ensemble_decay: float | None = None
 
     @property
     def successes(self) -> int:
@@ -123,7 +127,8 @@ class EvalResult:
                 "z_rms": self.z_rms,
                 "noise_over_z_rms": self.state_token_noise / self.z_rms if self.z_rms else None,
                 "failure_reasons": dict(self.reasons()), "decisions": self.decisions(), "latency_ms": self.latency_ms,
-                "precision": self.precision, "kernel": self.kernel,
+                "precision": self.precision, "kernel": self.kernel, "smoothing": self.smoothing,
+                "ensemble_every": self.ensemble_every, "ensemble_decay": self.ensemble_decay,
                 "episodes": [e.to_dict() for e in self.episodes]}
 
 
@@ -224,16 +229,17 @@ def run_episode(source: PolicySource, env, seed: int, cloud_config, frames: list
 
 
 def run_direct_episode(policy, env, seed: int, cloud_config, frames: list | None = None,
-                       latencies: dict[str, list[float]] | None = None) -> EpisodeOutcome:
+                       latencies: dict[str, list[float]] | None = None, smoothing: dict | None = None) -> EpisodeOutcome:
     """One closed-loop episode of an env whose arm is stepped directly, not over CAN (MetaWorld's Sawyer,
     :class:`~dssp_sim.metaworld_env.MetaWorldEnv`): render → point-cloud pipeline → runtime
-    (``dssp_deploy.ChunkedControl``: the history every tick, a chunk every H_a) → ``env.step``.
+    (``dssp_deploy.ChunkedControl``: the history every tick, a chunk every H_a) → ``env.step``. ``smoothing``:
+    ChunkedControl's smoothing keywords (``smoothing``, ``ensemble_every``, ``ensemble_decay``; None: none).
 
     A tick the runtime refuses (NaN/inf or an out-of-range observation, a refused chunk) holds (``env.hold()``)
     and is counted in ``holds`` and ``safety_events``; the next tick goes on."""
 
     env.reset(seed=seed)
-    loop = ChunkedControl(policy, rate_hz=env.control_rate_hz, seed=seed)
+    loop = ChunkedControl(policy, rate_hz=env.control_rate_hz, seed=seed, **(smoothing or {}))
     camera = MujocoCamera(env)
     holds, events = 0, Counter()
     stages: dict[str, list[float]] = {"cloud": [], "observe": [], "chunk": [], "tick": []}
@@ -274,9 +280,12 @@ STRIPS_DIR = OutputKind("a folder of episode strips", "dssp-sim eval", entries=(
 
 def evaluate(model_dir: Path | None, task: str, n_episodes: int, seed: int = 1000, threads: int | None = None,
              state_token_noise: float = 0.0, strips_dir: Path | None = None, progress: bool = True,
-             precision: str | None = None, kernel: str = "auto", spinning: bool | None = None, views=None) -> EvalResult:
+             precision: str | None = None, kernel: str = "auto", spinning: bool | None = None, views=None,
+             smoothing: str = "none", ensemble_every: int | None = None, ensemble_decay: float = 0.01) -> EvalResult:
     """Evaluate a model directory on ``task`` for ``n_episodes`` seeded episodes (seeds seed, seed+1, ...);
-    ``precision`` and ``kernel`` choose its graphs (:class:`dssp_deploy.onnx_policy.OnnxPolicy`); ``views``: Rerun
+    ``precision`` and ``kernel`` choose its graphs (:class:`dssp_deploy.onnx_policy.OnnxPolicy`); ``smoothing``,
+    ``ensemble_every`` and ``ensemble_decay``: the control loop's (:class:`dssp_deploy.control_loop.ChunkedControl`,
+    on either kind of task; checked before any episode runs); ``views``: Rerun
     views of every tick of every episode, on one timeline (the caller closes them). ``model_dir`` None: the task's
     scripted expert drives the same loop (:class:`dssp_sim.expert_policy.ScriptedExpert`; Piper tasks)."""
     from dssp_sim import metaworld_env  # deferred: loads mujoco
@@ -284,10 +293,17 @@ def evaluate(model_dir: Path | None, task: str, n_episodes: int, seed: int = 100
     if metaworld_env.is_metaworld(task) and views is not None:
         raise ConfigError("--rerun views show the Piper's control loop; MetaWorld evaluations have none (drop the flag)")
     if model_dir is None:
+        if smoothing != "none":
+            raise ConfigError("smoothing is the model's control loop's: the scripted expert gives each tick's action itself")
         return _evaluate_expert(task, n_episodes, seed, strips_dir, progress, views)
     policy = OnnxPolicy(model_dir, threads=threads, precision=precision, kernel=kernel, spinning=spinning)
     print(f"graphs: {policy.kernel_note}", file=sys.stderr)
     recent = policy.denoiser_inputs = _RecentStates(policy, state_token_noise, np.random.default_rng(seed))
+    options = {"smoothing": smoothing, "ensemble_every": ensemble_every, "ensemble_decay": ensemble_decay}
+    try:  # bad settings: one line now, not a failure in the first episode
+        settings = ChunkedControl(policy, rate_hz=policy.control_rate_hz, **options).smoothing_settings()
+    except ValueError as exc:
+        raise ConfigError(f"smoothing: {exc}") from None
     # The model's own point-cloud settings (its observation contract), as dssp-run uses them; a model trained on
     # data that recorded none sees the simulation's settings at its point count.
     n_points = policy.manifest["model_config"]["n_points"]
@@ -297,7 +313,7 @@ def evaluate(model_dir: Path | None, task: str, n_episodes: int, seed: int = 100
         cloud_config = observation_of(policy.manifest).pointcloud or metaworld_env.cloud_config(n_points)
 
         def episode(s, frames, ticks):
-            return run_direct_episode(policy, env, s, cloud_config, frames, ticks)
+            return run_direct_episode(policy, env, s, cloud_config, frames, ticks, options)
     else:
         from dssp_sim.env import PiperEnv
 
@@ -305,8 +321,10 @@ def evaluate(model_dir: Path | None, task: str, n_episodes: int, seed: int = 100
         cloud_config = observation_of(policy.manifest).pointcloud or cloud_config_for(n_points, task)
 
         def episode(s, frames, ticks):
-            return run_episode(ModelPolicy(policy, env.control_rate_hz, seed=s), env, s, cloud_config, frames, ticks, views)
-    result = EvalResult(str(model_dir), task, state_token_noise=state_token_noise, precision=policy.precision, kernel=policy.kernel)
+            return run_episode(ModelPolicy(policy, env.control_rate_hz, seed=s, **options), env, s, cloud_config, frames,
+                               ticks, views)
+    result = EvalResult(str(model_dir), task, state_token_noise=state_token_noise, precision=policy.precision, kernel=policy.kernel,
+                        **settings)
     _run_episodes(result, env, episode, n_episodes, seed, strips_dir, progress)
     result.z_rms = recent.rms()
     return result
@@ -367,7 +385,9 @@ def print_eval(result) -> None:
     lo, hi = result.interval()
     print(f"\n{result.task}: success {result.successes}/{len(result.episodes)} = {100 * result.success_rate:.0f} % "
           f"(95 % Wilson interval {100 * lo:.0f}–{100 * hi:.0f} %)" + (f", state-token noise σ={result.state_token_noise:g}" if result.state_token_noise else "")
-          + (f" ({result.state_token_noise / result.z_rms:.2f} x the tokens' RMS {result.z_rms:.2f})" if result.state_token_noise and result.z_rms else ""))
+          + (f" ({result.state_token_noise / result.z_rms:.2f} x the tokens' RMS {result.z_rms:.2f})" if result.state_token_noise and result.z_rms else "")
+          + (f", temporal ensembling (a chunk every {result.ensemble_every} ticks, decay {result.ensemble_decay:g})"
+             if result.smoothing == "ensemble" else ""))
     print("| seed | outcome | steps | detail | holds |")
     print("|---:|---|---:|---|---:|")
     for e in result.episodes:

@@ -101,9 +101,10 @@ class ArmXml:
     contact: str
 
 
-def arm_xml(prefix: str = "", base_pos=(0.0, 0.0, 0.0), base_quat=(1.0, 0.0, 0.0, 0.0)) -> ArmXml:
+def arm_xml(prefix: str = "", base_pos=(0.0, 0.0, 0.0), base_quat=(1.0, 0.0, 0.0, 0.0), flange_xml: str = "") -> ArmXml:
     """One Piper arm with every name prefixed by ``prefix``, its base at ``base_pos`` (3,) m with
-    orientation ``base_quat`` (4,) (w, x, y, z) in the world.
+    orientation ``base_quat`` (4,) (w, x, y, z) in the world. ``flange_xml``: bodies, sites or cameras fixed to
+    the flange (MJCF in the ``link6`` body's frame, DH frame 6; the calibration twin's board or wrist camera).
 
     Names: joints ``{p}joint1..6``, ``{p}finger_left/right``; actuators ``{p}act1..6``, ``{p}gripper``
     (control = stroke in metres); sites ``{p}tcp`` (tool centre point: z = approach, y = finger axis)
@@ -149,7 +150,7 @@ def arm_xml(prefix: str = "", base_pos=(0.0, 0.0, 0.0), base_quat=(1.0, 0.0, 0.0
         "</body>"
     )
 
-    inner = hand
+    inner = hand + flange_xml
     for i in range(5, -1, -1):  # build the chain from the flange back to link1
         pos, rot = dh_link_transform(i)
         quat = mat_to_quat(rot)
@@ -186,9 +187,9 @@ def arm_xml(prefix: str = "", base_pos=(0.0, 0.0, 0.0), base_quat=(1.0, 0.0, 0.0
 
 
 def scene_xml(objects_xml: str = "", arms: tuple[ArmXml, ...] | None = None, extra_contact: str = "",
-              extra_equality: str = "") -> str:
+              extra_equality: str = "", assets: str = "") -> str:
     """The full MJCF: table, arms (default one unprefixed arm at the origin), camera and ``objects_xml``
-    (bodies for <worldbody>, from the task)."""
+    (bodies for <worldbody>, from the task); ``assets``: textures, materials and meshes they use."""
     arms = (arm_xml(),) if arms is None else tuple(arms)
     xy = _fmt(camera_xyaxes())
     table = (
@@ -206,6 +207,7 @@ def scene_xml(objects_xml: str = "", arms: tuple[ArmXml, ...] | None = None, ext
     <map znear="0.01" zfar="20"/>
     <quality shadowsize="0"/>
   </visual>
+  <asset>{assets}</asset>
   <default>
     <geom solimp="0.95 0.99 0.001" solref="0.004 1"/>
   </default>

@@ -2,13 +2,16 @@
 
     dssp-sim collect --task tap|swap|put2|metaworld/NAME|metaworld-cue/NAME --episodes N --out PATH.zarr [--seed S] [--points P]
     dssp-sim record --out PATH.zarr [dssp-record's flags; --camera mujoco --can mujoco by default]
+    dssp-sim calibrate --mode eye-to-hand|eye-in-hand --auto N --out calib.json [dssp-calibrate's flags]
     dssp-sim eval --model MODEL_DIR | --expert  --task NAME --episodes N [--seed S] [--noise SIGMA] [--strips DIR] [--json PATH] [--force]
-                  [--rerun [URL] | --rerun-save PATH.rrd]
+                  [--smoothing none|ensemble [--ensemble-every N] [--ensemble-decay M]] [--rerun [URL] | --rerun-save PATH.rrd]
 
-``record`` is ``dssp-record`` on the simulated rig (the task's scripted expert plays the leader arm).
+``record`` is ``dssp-record`` on the simulated rig (the task's scripted expert plays the leader arm); ``calibrate`` is
+``dssp-calibrate`` on the calibration twin (:mod:`dssp_sim.calibration_twin`: a ChArUco board and a camera at known poses).
 ``collect`` keeps only successful expert episodes and says how many it tried. ``eval`` drives the model
 through the real chain (simulated camera → point-cloud pipeline → runtime → safety → CAN → simulated arm)
-and prints the success rate with its 95 % Wilson interval and each episode's outcome; ``eval --expert`` drives the
+and prints the success rate with its 95 % Wilson interval and each episode's outcome (``--smoothing ensemble``: the
+loop's temporal ensembling, as ``dssp-run``'s, on the Piper's and MetaWorld's tasks); ``eval --expert`` drives the
 task's scripted expert through the same chain (the task's ceiling through the loop and its safety layer).
 Outputs (:mod:`dssp_core.output_guard`): ``collect`` appends only to a dataset ``dssp-sim collect`` wrote;
 ``eval --strips`` replaces a previous output of its own only with ``--force``, and
@@ -29,6 +32,7 @@ from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import ConfigError
 from dssp_core.output_guard import OutputDir, check_output_file, write_output_text
 from dssp_data.rerun_views import add_rerun_flags
+from dssp_deploy.control_loop import add_smoothing_arguments, check_smoothing_arguments, smoothing_options
 from dssp_deploy.onnx_policy import add_runtime_arguments
 
 TASKS = ("tap", "swap", "put2")
@@ -70,6 +74,7 @@ def parse_args(argv):
     p = ArgumentParser(prog="dssp-sim", description="Memory tasks in a MuJoCo simulation of the AgileX Piper.")
     sub = p.add_subparsers(dest="command", required=True)
     sub.add_parser("record", help="dssp-record on the simulated rig (same flags; see dssp-sim record --help)")
+    sub.add_parser("calibrate", help="dssp-calibrate on the MuJoCo twin (same flags; see dssp-sim calibrate --help)")
     c = sub.add_parser("collect", help="expert demonstrations → a DP3 zarr dataset")
     c.add_argument("--task", type=_task, required=True, help=TASK_HELP)
     c.add_argument("--episodes", type=positive_int, required=True, help="successful episodes to keep")
@@ -89,6 +94,7 @@ def parse_args(argv):
     e.add_argument("--noise", type=float, default=0.0, help="σ of Gaussian noise on the recent state tokens (robustness test)")
     e.add_argument("--threads", type=int, help="ONNX Runtime threads")
     add_runtime_arguments(e)
+    add_smoothing_arguments(e)
     e.add_argument("--strips", type=Path, help="write a PNG strip of each episode here")
     e.add_argument("--json", type=Path, help="write the result here")
     e.add_argument("--force", action="store_true", help="replace an existing --json file and previous --strips")
@@ -121,9 +127,12 @@ def run(args) -> int:
     if args.expert:
         given = [flag for flag, on in (("--noise", args.noise != 0.0), ("--threads", args.threads is not None),
                                        ("--precision", args.precision is not None), ("--kernel", args.kernel != "auto"),
-                                       ("--no-spin", args.no_spin)) if on]
+                                       ("--no-spin", args.no_spin), ("--smoothing", args.smoothing != "none"),
+                                       ("--ensemble-every", args.ensemble_every is not None),
+                                       ("--ensemble-decay", args.ensemble_decay is not None)) if on]
         if given:
             raise ConfigError(f"{given[0]} is a model's setting: it goes with --model, not --expert")
+    check_smoothing_arguments(args)
     if args.json:
         check_output_file(args.json, force=args.force, flag="--json")
 
@@ -134,7 +143,7 @@ def run(args) -> int:
             stack.callback(lambda: print(views.close_line()))
         result = evaluate(args.model, args.task, args.episodes, seed=args.seed, threads=args.threads,
                           precision=args.precision, kernel=args.kernel, spinning=False if args.no_spin else None, state_token_noise=args.noise, strips_dir=strips.path if strips else None,
-                          progress=not args.no_progress, views=views)
+                          progress=not args.no_progress, views=views, **smoothing_options(args))
         if strips is not None:
             strips.commit()
     print_eval(result)
@@ -149,6 +158,10 @@ def main(argv: list[str] | None = None) -> int:
         from dssp_sim.teleop import record_main
 
         return record_main(argv[1:])
+    if argv[:1] == ["calibrate"]:  # dssp-calibrate's own flags, on the twin
+        from dssp_sim.calibration_twin import calibrate_main
+
+        return calibrate_main(argv[1:])
     args = parse_args(argv)
     return run_cli(lambda: run(args))
 

@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 
 import dssp_deploy.manifest  # noqa: F401  (defines the manifest's schema)
 import dssp_train.config  # noqa: F401
+import hardware.calibration.charuco  # noqa: F401  (the ChArUco board's schema)
 import hardware.camera.profiles
 import dssp_data.observation  # noqa: F401
 import hardware.pointcloud.extrinsics  # noqa: F401

@@ -9,6 +9,7 @@ from rrd import read_rrd, text_rows
 import numpy as np
 import pytest
 
+from dssp_core.errors import ConfigError
 from dssp_sim.sim_cli import main as sim_main
 from dssp_sim.env import PiperEnv
 from dssp_sim.evaluate import wilson_interval
@@ -171,6 +172,22 @@ def test_state_token_noise_changes_the_actions_not_the_chain(sim_model):
     assert 0.1 < clean.z_rms < 10 and noisy.to_dict()["noise_over_z_rms"] == pytest.approx(0.15 / noisy.z_rms)
 
 
+def test_temporal_ensembling_reaches_the_loop_and_the_record(sim_model):
+    """dssp-sim eval --smoothing ensemble: the Piper's loop computes a chunk every --ensemble-every ticks (it acted on
+    every tick it observed), and the result records the settings."""
+    from dssp_sim.evaluate import evaluate
+
+    result = evaluate(sim_model, "tap", 1, seed=3, threads=1, progress=False, smoothing="ensemble", ensemble_every=2,
+                      ensemble_decay=0.0)
+    record = result.to_dict()
+    assert (record["smoothing"], record["ensemble_every"], record["ensemble_decay"]) == ("ensemble", 2, 0.0)
+    acted, chunks = result.latency_ms["observe"]["n"], result.latency_ms["chunk"]["n"]
+    assert acted > 2 and chunks == (acted + 1) // 2
+    assert evaluate(sim_model, "tap", 0, progress=False).to_dict()["smoothing"] == "none"
+    with pytest.raises(ConfigError, match="ensemble_every must be a whole number of ticks from 1 to H_a"):
+        evaluate(sim_model, "tap", 1, progress=False, smoothing="ensemble", ensemble_every=1000)
+
+
 def test_the_scripted_expert_drives_the_same_loop(tmp_path, capsys):
     """dssp-sim eval --expert: the task's expert as the control loop's policy source, through the safety layer and
     the CAN bus — it passes every tap episode (the task's ceiling through the chain), its decision scored the same way."""
@@ -187,6 +204,8 @@ def test_the_scripted_expert_drives_the_same_loop(tmp_path, capsys):
 @pytest.mark.parametrize("argv, fragment", [
     (["--expert", "--noise", "0.1"], "--noise is a model's setting: it goes with --model, not --expert"),
     (["--expert", "--task", "metaworld/reach"], "--expert drives the Piper's control loop"),
+    (["--expert", "--smoothing", "ensemble"], "--smoothing is a model's setting: it goes with --model, not --expert"),
+    (["--model", "m", "--ensemble-decay", "0"], "--ensemble-decay is a setting of temporal ensembling: it goes with --smoothing ensemble"),
 ])
 def test_expert_flags_that_do_not_apply_are_one_line(argv, fragment, capsys):
     task = [] if "--task" in argv else ["--task", "tap"]

@@ -2,11 +2,14 @@
 
     dssp-run --model MODEL_DIR | --policy NAME[:ARG]  --camera l515|d435|d405|file:PATH|tabletop --can can0[,can1]|sim[:2]
              [--rate HZ] [--extrinsics FILE] [--pointcloud FILE] [--safety FILE] [--max-steps N] [--dry-run]
-             [--log-dir DIR] [--prefetch] [--threads N] [--precision fp32|int8|int4] [--kernel auto|fused|standard] [--seed S] [--serial SERIAL] [--interface socketcan]
+             [--log-dir DIR] [--prefetch | --smoothing none|ensemble [--ensemble-every N] [--ensemble-decay M]]
+             [--threads N] [--precision fp32|int8|int4] [--kernel auto|fused|standard] [--seed S] [--serial SERIAL] [--interface socketcan]
              [--allow-mismatch FIELD ...] [--rerun [URL]] [--rerun-save PATH.rrd]
 
 Opens the camera and the arm(s), warms the model up, then runs the control loop (``hardware.run_loop``):
-the history every tick, a new chunk every H_a ticks, every command through the safety layer. ``--policy NAME[:ARG]``
+the history every tick, a new chunk every H_a ticks (``--smoothing ensemble``: a chunk every ``--ensemble-every``
+ticks, the action the weighted mean of the kept chunks' predictions for the tick,
+:mod:`dssp_deploy.control_loop`), every command through the safety layer. ``--policy NAME[:ARG]``
 runs another policy source of :data:`hardware.policies.REGISTRY` in the same loop instead of a model (``hold``: the
 arm held where it starts, a check of the rig; ``episode:PATH.zarr@K``: a recorded episode's actions). Prints a
 live one-line status, writes the episode log (``hardware.run_log``) and ends with a summary; ``--rerun`` /
@@ -70,6 +73,9 @@ def parse_args(argv):
     p.add_argument("--max-steps", type=int, help="stop after N ticks (default: until Ctrl-C)")
     p.add_argument("--dry-run", action="store_true", help="compute and log actions, send nothing")
     p.add_argument("--prefetch", action="store_true", help="compute each chunk early in a background thread")
+    from dssp_deploy.control_loop import add_smoothing_arguments  # deferred: loads numpy
+
+    add_smoothing_arguments(p, also="not with --prefetch")
     p.add_argument("--threads", type=int, help="ONNX Runtime threads (default: all CPUs)")
     from dssp_deploy.onnx_policy import add_runtime_arguments  # deferred: loads numpy
 
@@ -103,9 +109,17 @@ def check_args(args) -> None:
         split_spec(args.policy)
         for flag, given in (("--prefetch", args.prefetch), ("--allow-mismatch", args.allow_mismatch),
                             ("--precision", args.precision), ("--threads", args.threads is not None),
-                            ("--seed", args.seed is not None), ("--no-spin", args.no_spin), ("--kernel", args.kernel != "auto")):
+                            ("--seed", args.seed is not None), ("--no-spin", args.no_spin), ("--kernel", args.kernel != "auto"),
+                            ("--smoothing", args.smoothing != "none"), ("--ensemble-every", args.ensemble_every is not None),
+                            ("--ensemble-decay", args.ensemble_decay is not None)):
             if given:
                 raise ConfigError(f"{flag} is a model's setting: it goes with --model, not --policy {args.policy}")
+    from dssp_deploy.control_loop import check_smoothing_arguments  # deferred: loads numpy
+
+    check_smoothing_arguments(args)
+    if args.smoothing == "ensemble" and args.prefetch:
+        raise ConfigError("--prefetch does not combine with --smoothing ensemble: ensembling computes each chunk in the "
+                          "tick that first uses it; run one or the other")
     from hardware.subscribers import check_subscribers  # deferred: loads numpy
 
     check_subscribers(args.subscribe)
@@ -192,6 +206,7 @@ def model_source(args, described, cloud_config, safety_config, stops: Stops):
     the model loaded and warmed up and the setup checked against its observation contract — one line for what
     contradicts it, before any device opens."""
     from dssp_data.observation import FRAME_ROBOT_BASE, ObservationContract, check_contract  # deferred: loads numpy
+    from dssp_deploy.control_loop import check_ensemble_every, smoothing_options  # deferred: loads numpy
     from dssp_deploy.manifest import observation_of  # deferred: loads numpy
     from dssp_deploy.onnx_policy import OnnxPolicy  # deferred: loads numpy
     from hardware.pointcloud import PointCloudConfig  # deferred: loads numpy
@@ -206,6 +221,7 @@ def model_source(args, described, cloud_config, safety_config, stops: Stops):
     if cloud_config is None:  # the model's own settings; a model from data that recorded none: the defaults
         cloud_config = trained.pointcloud or PointCloudConfig(n_points=policy.manifest["model_config"]["n_points"])
     rate = control_rate(args, policy)
+    check_ensemble_every(args.ensemble_every, policy, args.model)
     safety_config.check_speed(rate, described.max_joint_speed)  # before the prefetch lead is measured at this rate
     chunk_ms = check_prefetch(policy, rate) if args.prefetch else None  # a lead the rate cannot hold: refused here
     given = ObservationContract(pointcloud=cloud_config, frame=FRAME_ROBOT_BASE, state=described.layout,
@@ -219,7 +235,8 @@ def model_source(args, described, cloud_config, safety_config, stops: Stops):
     for o in overrides:
         print(f"warning: running with {o['field']} = {o['given']} although the model was trained with {o['trained']} "
               "(--allow-mismatch)", file=sys.stderr)
-    source = ModelPolicy(policy, rate, prefetch=args.prefetch, seed=args.seed, chunk_ms=chunk_ms)
+    source = ModelPolicy(policy, rate, prefetch=args.prefetch, seed=args.seed, chunk_ms=chunk_ms,
+                         **smoothing_options(args))  # the smoothing is in the log: source.describe()
     about = {"model": str(args.model), "policy": source.describe(),
              "manifest": {k: policy.manifest[k] for k in ("denoise_steps", "control_rate_hz") if k in policy.manifest},
              "observation": trained.to_manifest(), "allowed_mismatches": overrides}

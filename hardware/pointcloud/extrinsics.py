@@ -7,6 +7,14 @@
 robot-base frame: p_base = R @ p_cam + t. Without a calibration file (``load_extrinsics(None)``) the
 identity is used: clouds then stay in the camera frame, and the crop box must be given in camera
 coordinates. Every problem is a one-line :class:`~dssp_core.errors.CalibrationError`.
+
+A camera on the wrist has a file of its own (``dssp-calibrate --mode eye-in-hand``), which ``dssp-run`` and
+``dssp-record`` do not take (their camera is fixed):
+
+    {"camera_to_gripper": [[...], [...], [...], [0, 0, 0, 1]], "frame": "piper_flange", "notes": "..."}
+
+``camera_to_gripper`` maps a point in the camera's optical frame to the Piper's flange frame (DH frame 6,
+:func:`dssp_data.arm_kinematics.flange_pose`); :func:`save_camera_to_gripper`, :func:`load_camera_to_gripper`.
 """
 
 from __future__ import annotations
@@ -20,7 +28,7 @@ import numpy as np
 
 from dssp_core.files import atomic_write_text
 from dssp_core.errors import ConfigError
-from dssp_core.schema import Settings, setting
+from dssp_core.schema import Settings, read_json_object, setting
 from dssp_core.errors import CalibrationError
 
 ROTATION_TOLERANCE = 1e-3  # max |R^T R - I| entry and |det R - 1|: allows 4-5 printed decimals
@@ -32,18 +40,19 @@ def identity() -> np.ndarray:
     return np.eye(4)
 
 
-def validate_extrinsics(matrix, source: str = "camera_to_base") -> np.ndarray:
-    """Check a camera->base transform and return it as (4, 4) float64; CalibrationError naming ``source``."""
+def validate_extrinsics(matrix, source: str = "camera_to_base", name: str = "camera_to_base") -> np.ndarray:
+    """Check a rigid transform (camera->base, or camera->gripper: ``name``) and return it as (4, 4) float64;
+    CalibrationError naming ``source`` and ``name``."""
     try:
         m = np.asarray(matrix, dtype=np.float64)
     except (TypeError, ValueError):
-        raise CalibrationError(f"{source}: camera_to_base must be a 4x4 array of numbers") from None
+        raise CalibrationError(f"{source}: {name} must be a 4x4 array of numbers") from None
     if m.shape != (4, 4):
-        raise CalibrationError(f"{source}: camera_to_base must be 4x4 (4 rows of 4 numbers), got shape {m.shape}")
+        raise CalibrationError(f"{source}: {name} must be 4x4 (4 rows of 4 numbers), got shape {m.shape}")
     if not np.all(np.isfinite(m)):
-        raise CalibrationError(f"{source}: camera_to_base holds NaN or infinite values; redo the calibration")
+        raise CalibrationError(f"{source}: {name} holds NaN or infinite values; redo the calibration")
     if not np.allclose(m[3], [0.0, 0.0, 0.0, 1.0], atol=1e-9):
-        raise CalibrationError(f"{source}: the last row of camera_to_base must be [0, 0, 0, 1], got {m[3].tolist()}")
+        raise CalibrationError(f"{source}: the last row of {name} must be [0, 0, 0, 1], got {m[3].tolist()}")
     r = m[:3, :3]
     err = float(np.abs(r.T @ r - np.eye(3)).max())
     if err > ROTATION_TOLERANCE:
@@ -103,3 +112,31 @@ def save_extrinsics(path: str | Path, camera_to_base, frame: str = "base", notes
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(path, text)
     return path
+
+
+WRIST_FRAME = "piper_flange"
+"""The frame ``camera_to_gripper`` maps into: the Piper's flange, DH frame 6."""
+
+
+def save_camera_to_gripper(path: str | Path, camera_to_gripper, notes: str = "") -> Path:
+    """Validate and write a wrist camera's calibration file atomically; returns the path."""
+    path = Path(path).expanduser()
+    m = validate_extrinsics(camera_to_gripper, source=str(path), name="camera_to_gripper")
+    text = json.dumps({"camera_to_gripper": [[float(v) for v in row] for row in m], "frame": WRIST_FRAME,
+                       "notes": str(notes)}, indent=2) + "\n"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(path, text)
+    return path
+
+
+def load_camera_to_gripper(path: str | Path) -> np.ndarray:
+    """(4, 4) camera_to_gripper from a wrist camera's calibration file; one-line CalibrationError."""
+    path = Path(path).expanduser()
+    values = read_json_object(path, "calibration", error=CalibrationError)
+    unknown = sorted(set(values) - {"camera_to_gripper", "frame", "notes"})
+    if "camera_to_gripper" not in values or unknown:
+        raise CalibrationError(f"{path}: a wrist camera's calibration holds camera_to_gripper, frame and notes, got keys "
+                               f"{sorted(values)}")
+    if values.get("frame", WRIST_FRAME) != WRIST_FRAME:
+        raise CalibrationError(f"{path}: frame must be {WRIST_FRAME!r}, got {values['frame']!r}")
+    return validate_extrinsics(values["camera_to_gripper"], source=str(path), name="camera_to_gripper")

@@ -1,9 +1,11 @@
 """The exported model as the loop's policy source (``dssp-run --model``, ``dssp-sim eval``).
 
     source = ModelPolicy(OnnxPolicy("models/tap"), rate_hz=10, prefetch=False, seed=0)
+    source = ModelPolicy(OnnxPolicy("models/tap"), rate_hz=10, smoothing="ensemble", ensemble_every=1)   # ACT's
 
 Each tick runs the runtime's tick (:class:`dssp_deploy.control_loop.ChunkedControl`): the history every tick, a new
-chunk every H_a ticks (started early in a background thread with ``prefetch``). Its refusals pass through to the
+chunk every H_a ticks (started early in a background thread with ``prefetch``), or with ``smoothing="ensemble"`` a
+chunk every ``ensemble_every`` ticks and the weighted mean of the kept chunks' predictions. Its refusals pass through to the
 loop, which holds: an observation with NaN/inf or outside the trained ranges changes nothing (the history is left
 alone), a refused chunk undoes the tick. Shapes: cloud (P, C) float32, state and action (dof,).
 """
@@ -20,17 +22,19 @@ from hardware.policies import Act, PolicySource
 
 class ModelPolicy(PolicySource):
     """``policy``: the loaded runtime; ``rate_hz``: the loop's rate (the history is updated at it); ``prefetch``,
-    ``seed`` and ``chunk_ms``: :class:`~dssp_deploy.control_loop.ChunkedControl`'s (the chunk latency the prefetch
-    lead is chosen from; None: measured here)."""
+    ``seed``, ``chunk_ms`` (the chunk latency the prefetch lead is chosen from; None: measured here),
+    ``smoothing``, ``ensemble_every`` and ``ensemble_decay``: :class:`~dssp_deploy.control_loop.ChunkedControl`'s."""
 
     name = "model"
     needs_cloud = True
 
     def __init__(self, policy: OnnxPolicy, rate_hz: float, *, prefetch: bool = False, seed: int | None = None,
-                 chunk_ms: float | None = None):
+                 chunk_ms: float | None = None, smoothing: str = "none", ensemble_every: int | None = None,
+                 ensemble_decay: float = 0.01):
         self.policy = policy
         self.control_rate_hz = policy.control_rate_hz
-        self.control = ChunkedControl(policy, rate_hz=rate_hz, prefetch=prefetch, seed=seed, chunk_ms_estimate=chunk_ms)
+        self.control = ChunkedControl(policy, rate_hz=rate_hz, prefetch=prefetch, seed=seed, chunk_ms_estimate=chunk_ms,
+                                      smoothing=smoothing, ensemble_every=ensemble_every, ensemble_decay=ensemble_decay)
 
     def check(self, description, cloud_config) -> None:
         """Refuse a model that does not fit this robot or camera pipeline — before anything moves."""
@@ -52,9 +56,11 @@ class ModelPolicy(PolicySource):
         out, info = self.control.tick(cloud[None], state[None].astype(np.float32))
         chunk = None
         if info.new_chunk and self.control.chunk is not None:
-            chunk = self.control.chunk[0, self.control.chunk_offset:]  # (H - offset, A): the actions to come
+            # (H - offset, A): the new chunk's actions to come (ensembled: the newest chunk's, not the blend)
+            chunk = self.control.chunk[0, self.control.chunk_offset:]
         return Act(out[0].astype(np.float64), observe_ms=info.observe_ms, chunk_ms=info.chunk_ms, chunk=chunk,
                    over_budget=info.over_budget, events=list(info.events))
 
     def describe(self) -> dict:
-        return {"policy": self.name, "denoise_steps": self.policy.manifest.get("denoise_steps")}
+        return {"policy": self.name, "denoise_steps": self.policy.manifest.get("denoise_steps"),
+                **self.control.smoothing_settings()}

@@ -1,0 +1,222 @@
+"""``dssp-calibrate``: hand-eye calibration of a RealSense and a Piper with a ChArUco board.
+
+    dssp-calibrate --camera l515|d435|d405 --can can0 --mode eye-to-hand|eye-in-hand (--poses poses.json | --auto N)
+                   --out calib.json [--board board.json] [--force] [--rate HZ] [--safety FILE] [--serial SERIAL]
+                   [--interface socketcan]
+
+The arm visits each pose through the control loop and its safety layer (:mod:`hardware.calibration.tour`), a colour
+frame is taken once it has settled, the board is detected in each (:mod:`hardware.calibration.charuco`) and the
+camera solved for with OpenCV's hand-eye methods (:mod:`hardware.calibration.hand_eye`). It prints the result, the
+methods' disagreement and a table of the views (corners, reprojection, residual), then writes ``--out``:
+eye-to-hand the ``camera_to_base`` file ``dssp-run --extrinsics`` reads (:func:`hardware.pointcloud.save_extrinsics`),
+eye-in-hand a ``camera_to_gripper`` file of its own. A result that may not be trusted is refused with one line
+saying what is wrong and what to do, and nothing is written. ``dssp-sim calibrate`` (same flags,
+:mod:`dssp_sim.calibration_twin`) runs this on the MuJoCo twin, handed in as a :class:`SimulatedCalibrationRig`
+(this package never imports the simulation).
+Exit codes: 0 written, 1 the arm or camera failed during the tour, 2 bad input or a refused calibration, 128 + N
+stopped by signal N (the arm holds where it is), 141 stdout or stderr went away.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import sys
+from pathlib import Path
+from typing import Protocol
+
+from dssp_core.cli_runner import ArgumentParser, run_cli
+from dssp_core.errors import ConfigError
+from hardware.cli.stops import Stops
+
+MUJOCO = "mujoco"  # the camera and arm of the twin dssp-sim calibrate hands in
+MODES = ("eye-to-hand", "eye-in-hand")
+
+
+class SimulatedCalibrationRig(Protocol):
+    """What ``dssp-sim calibrate`` hands in (:class:`dssp_sim.calibration_twin.TwinRigs`)."""
+
+    def open(self, mode: str, board):
+        """A rig for ``mode`` showing ``board``: ``camera`` (a Camera with colour), ``robot`` (a Robot), ``clock``,
+        ``description`` (a phrase), ``truth()`` (the transform the calibration should find), ``close()``."""
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a whole number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def build_parser(sim: SimulatedCalibrationRig | None = None, prog: str = "dssp-calibrate") -> argparse.ArgumentParser:
+    p = ArgumentParser(prog=prog, description="Hand-eye calibration of the camera with a ChArUco board.")
+    default = MUJOCO if sim is not None else None
+    p.add_argument("--camera", default=default, required=sim is None,
+                   help="l515 | d435 | d405" + (" | mujoco (default: the twin's)" if sim else ""))
+    p.add_argument("--serial", help="RealSense serial number, when several are connected")
+    p.add_argument("--can", default=default, required=sim is None,
+                   help="the arm's CAN bus, e.g. can0" + (" | mujoco (default: the twin's arm)" if sim else ""))
+    p.add_argument("--interface", default="socketcan", help="python-can interface (default: socketcan)")
+    p.add_argument("--mode", choices=MODES, required=True,
+                   help="eye-to-hand: fixed camera, board on the gripper (writes camera_to_base); eye-in-hand: camera "
+                        "on the wrist, board on the table (writes camera_to_gripper)")
+    where = p.add_mutually_exclusive_group(required=True)
+    where.add_argument("--poses", type=Path, help="JSON of joint vectors (rad): {\"poses\": [[J1..J6], ...]}")
+    where.add_argument("--auto", type=_positive_int, metavar="N",
+                       help="N poses generated around the arm's position at start (put the board in view first)")
+    p.add_argument("--board", type=Path, help="board JSON (squares_x, squares_y, square_m, marker_m, dictionary; "
+                                              "default: 7 x 5 squares of 36 mm, DICT_4X4_50, A4)")
+    p.add_argument("--out", type=Path, required=True, help="the calibration JSON to write")
+    p.add_argument("--force", action="store_true", help="replace an existing --out")
+    p.add_argument("--rate", type=float, default=10.0, help="control rate of the moves, Hz (default 10)")
+    p.add_argument("--safety", type=Path, help="safety settings JSON (hardware.safety.SafetyConfig fields)")
+    return p
+
+
+def _check(args, sim) -> None:
+    """Every flag, before anything opens."""
+    from hardware.camera import check_camera_spec  # deferred: loads numpy
+    from hardware.camera.profiles import profile_names  # deferred: loads numpy
+    from hardware.robot import check_rate  # deferred: loads numpy
+
+    check_rate(args.rate)
+    camera, can = args.camera.strip().lower(), args.can.strip().lower()
+    if sim is not None:
+        if camera != MUJOCO or can != MUJOCO:
+            raise ConfigError("dssp-sim calibrate runs the twin: --camera mujoco --can mujoco (the defaults); calibrate "
+                              "a real robot with dssp-calibrate")
+        return
+    if camera not in profile_names():
+        raise ConfigError(f"--camera {args.camera}: calibration needs a live RealSense with colour: one of "
+                          f"{', '.join(profile_names())}")
+    check_camera_spec(camera, args.serial)
+    if can.startswith("sim") or can == MUJOCO:
+        raise ConfigError(f"--can {args.can}: dssp-calibrate drives a real arm; calibrate the twin with dssp-sim calibrate")
+
+
+def _table(views, detections, result) -> list[str]:
+    lines = [" pose  corners  reproj px  residual mm  residual deg"]
+    used = iter(result.residuals) if result is not None else None
+    for view, found in zip(views, detections):
+        if found.ok:
+            r = next(used) if used is not None else None
+            res = f"{r.mm:11.2f}  {r.deg:12.3f}" if r is not None else f"{'-':>11}  {'-':>12}"
+            lines.append(f"{view.index + 1:5d}  {found.corners:7d}  {found.reprojection_px:9.2f}  {res}")
+        else:
+            lines.append(f"{view.index + 1:5d}  {found.corners:7d}  {'-':>9}  {'-':>11}  {'-':>12}  refused: {found.reason}")
+    return lines
+
+
+def _matrix(m) -> str:
+    return "\n".join("  [" + ", ".join(f"{v: .6f}" for v in row) + "]" for row in m)
+
+
+def _calibrate(args, stops: Stops, sim) -> int:
+    import numpy as np  # deferred: loads numpy
+
+    from dssp_core.output_guard import check_output_file  # deferred: loads numpy
+    from dssp_data.arm_kinematics import flange_pose  # deferred: loads numpy
+    from hardware.calibration.charuco import detect_board, load_board  # deferred: loads cv2
+    from hardware.calibration.hand_eye import distance, solve_hand_eye  # deferred: loads cv2
+    from hardware.calibration.pose_plan import auto_poses, load_poses  # deferred: loads numpy
+    from hardware.calibration.tour import CalibrationTour  # deferred: loads numpy
+    from hardware.clock import REAL_CLOCK  # deferred: loads numpy
+    from hardware.piper.limits import MAX_JOINT_SPEED  # deferred: loads numpy
+    from hardware.pointcloud.extrinsics import save_camera_to_gripper, save_extrinsics  # deferred: loads numpy
+    from hardware.rig import Rig  # deferred: loads numpy
+    from hardware.run_loop import LoopSettings, Runner  # deferred: loads onnxruntime
+    from hardware.safety import SafetyConfig  # deferred: loads numpy
+
+    _check(args, sim)
+    board = load_board(args.board)
+    poses = load_poses(args.poses) if args.poses is not None else (lambda start: auto_poses(start, args.auto))
+    safety = SafetyConfig.load(args.safety, "safety") if args.safety else SafetyConfig()
+    safety.check_speed(args.rate, MAX_JOINT_SPEED)
+    check_output_file(args.out, force=args.force, flag="--out")
+    if stops.reason is not None:
+        print(f"stopped by {stops.reason} before the arm moved; nothing was sent", file=sys.stderr)
+        return stops.code
+    with contextlib.ExitStack() as stack:
+        if sim is not None:
+            twin = sim.open(args.mode, board)
+            stack.callback(twin.close)
+            camera, robot, clock, where = twin.camera, twin.robot, twin.clock, twin.description
+        else:
+            from hardware.camera import open_camera  # deferred: loads pyrealsense2
+            from hardware.piper.piper_robot import open_robot  # deferred: loads can
+
+            twin = None
+            camera = open_camera(args.camera, serial=args.serial, color=True)
+            robot = open_robot(args.can, interface=args.interface)
+            clock, where = REAL_CLOCK, f"{args.camera} and the arm on {args.can}"
+        print(f"{args.mode} with {where}; board {board.squares_x} x {board.squares_y} squares of "
+              f"{1e3 * board.square_m:g} mm ({board.dictionary}); moves at {args.rate:g} Hz through the safety layer")
+        stack.enter_context(camera)
+        tour = CalibrationTour(poses, camera, clock, gripper="close" if args.mode == "eye-to-hand" else "hold")
+        rig = Rig(None, robot, np.eye(4), safety, clock=clock)
+        with rig:
+            runner = Runner(tour, rig, None, LoopSettings(rate_hz=args.rate))
+            stops.during(runner.request_stop)
+            try:
+                summary = runner.run()
+            finally:
+                stops.during(None)
+                runner.close()
+        truth = twin.truth() if twin is not None else None
+    if summary["fault"]:
+        print(f"error: the tour ended by a fault: {summary['fault']}; the arm holds its last target", file=sys.stderr)
+        return 1
+    if stops.reason is not None and summary["ended_by"] == stops.reason:
+        print(f"stopped by {stops.reason} after {len(tour.views)} of {len(tour.poses)} poses; nothing was written",
+              file=sys.stderr)
+        return stops.code
+
+    views = tour.views
+    detections = [detect_board(v.frame.color, v.frame.intrinsics, board) for v in views]
+    good = [(v, d) for v, d in zip(views, detections) if d.ok]
+    try:
+        result = solve_hand_eye([flange_pose(v.joints) for v, _ in good], [d.board_to_camera for _, d in good],
+                                args.mode, centre=board.centre)
+    except Exception:
+        print("\n".join(_table(views, detections, None)))
+        raise
+    print("\n".join(_table(views, detections, result)))
+    rms_mm, rms_deg = result.rms
+    i, worst = result.worst
+    print(f"{result.name} (OpenCV's {result.method}; {len(good)} of {len(views)} views, rotation spread "
+          f"{result.rotation_spread_deg:.1f} deg about a second axis):\n{_matrix(result.transform)}")
+    print("the methods' disagreement with it: " + ", ".join(f"{name} {mm:.2f} mm / {deg:.3f} deg"
+                                                            for name, (mm, deg) in result.disagreement.items()))
+    print(f"residuals: {rms_mm:.2f} mm / {rms_deg:.3f} deg RMS; the worst against its limits, pose {good[i][0].index + 1}: "
+          f"{worst.mm:.2f} mm / {worst.deg:.3f} deg")
+    if truth is not None:
+        mm, deg = distance(result.transform, truth)
+        print(f"the twin's true {result.name} is {mm:.2f} mm / {deg:.3f} deg from it")
+    result.check()
+    if stops.reason is not None:
+        print(f"stopped by {stops.reason}; nothing was written", file=sys.stderr)
+        return stops.code
+    notes = (f"dssp-calibrate {args.mode}: {len(good)} views, OpenCV {result.method}, residuals {rms_mm:.2f} mm / "
+             f"{rms_deg:.3f} deg RMS; board {board.squares_x}x{board.squares_y} {1e3 * board.square_m:g} mm {board.dictionary}")
+    if args.mode == "eye-to-hand":
+        save_extrinsics(args.out, result.transform, frame="base", notes=notes)
+    else:
+        save_camera_to_gripper(args.out, result.transform, notes=notes)
+    print(f"wrote {args.out} ({result.name})")
+    return 0
+
+
+def main(argv: list[str] | None = None, sim: SimulatedCalibrationRig | None = None, prog: str = "dssp-calibrate") -> int:
+    stops = Stops()  # first: from here every stop is a clean one
+    try:
+        args = build_parser(sim, prog).parse_args(argv)
+        return run_cli(lambda: _calibrate(args, stops, sim))
+    finally:
+        stops.restore()
+
+
+if __name__ == "__main__":
+    sys.exit(main())
