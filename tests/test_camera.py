@@ -148,8 +148,9 @@ def test_db3_repeat_playback_and_colour(tmp_path):
     frames = _depths(3, seed=3, shape=(60, 80))
     rng = np.random.default_rng(3)
     colors = [rng.integers(0, 256, (60, 80, 3), dtype=np.uint8) for _ in frames]
-    path = record_depth(tmp_path / "c.db3", frames, small, UNIT, colors=colors, pace=False)
-    # real time: librealsense's non-real-time playback can stall at the loop point (its issue #10312)
+    # real time (librealsense's non-real-time playback can stall at the loop point, its issue #10312), so the file is
+    # written paced: played in real time, frames written at once arrive at once and the depth+colour sync can drop them
+    path = record_depth(tmp_path / "c.db3", frames, small, UNIT, colors=colors, pace=True)
     with RealSenseCamera(file=path, real_time=True, repeat_playback=True, color=True) as cam:
         f = cam.wait_for_frame(timeout=5)
         wait_for(lambda: cam.frames_received > 2 * len(frames), timeout=10, what="the recording looped twice")
