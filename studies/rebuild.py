@@ -21,6 +21,8 @@ What it rebuilds (:data:`SOURCES`):
 
 - ``reports/sampling/``: the sampling study's report (:mod:`studies.sampling`), and the README's ``sampling``
   block.
+- ``reports/calibration/``: the calibration twin's report (:mod:`studies.calibration_study`), and the hardware
+  README's ``calibration`` block.
 """
 
 from __future__ import annotations
@@ -40,7 +42,7 @@ from pathlib import Path
 from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import DSSPError
 from dssp_core.files import atomic_write_text
-from studies import distill_study, memory_tasks, metaworld, sampling, sim_study
+from studies import calibration_study, distill_study, memory_tasks, metaworld, sampling, sim_study
 from studies.demo import results_table
 from studies.stats import describe_p, paired_exact_test
 
@@ -81,6 +83,14 @@ def _sampling(root: Path, out: Path) -> list[str]:
     return [md.name, md.with_suffix(".json").name]
 
 
+def _calibration(root: Path, out: Path) -> list[str]:
+    record = root / "reports/calibration" / calibration_study.RECORD_DIR
+    if not calibration_study.load(record):
+        return []
+    md = calibration_study.write_report(record, out)
+    return [md.name, md.with_suffix(".json").name]
+
+
 def _metaworld(folder: str) -> Callable[[Path, Path], list[str]]:
     def build(root: Path, out: Path) -> list[str]:
         record = root / folder / metaworld.RECORD_DIR
@@ -100,6 +110,7 @@ SOURCES: dict[str, Callable[[Path, Path], list[str]]] = {
     "reports/sim": _sim,
     "reports/distill": _distill,
     "reports/sampling": _sampling,
+    "reports/calibration": _calibration,
 }
 """Report folder -> a function writing its rebuilt files into a folder, returning the names to compare."""
 
@@ -167,7 +178,8 @@ def readme_blocks(root: Path) -> dict[str, str]:
     demo = json.loads((root / "reports/demo/results.json").read_text())
     blocks = {"demo": results_table(demo["evals"]) + "\n", "sim_paired": sim_paired_table(root / "reports/sim/record"),
               "memory_test": memory_table(root / "reports/memory/record", "test"),
-              "sampling": sampling.readme_table(root / "reports/sampling" / sampling.RECORD_DIR)}
+              "sampling": sampling.readme_table(root / "reports/sampling" / sampling.RECORD_DIR),
+              "calibration": calibration_study.readme_table(root / "reports/calibration" / calibration_study.RECORD_DIR)}
     if (root / "reports/metaworld/record/plan.json").is_file():
         blocks["metaworld"] = metaworld.readme_table(root / "reports/metaworld/record")
     for block, (script, record) in BENCHMARK_BLOCKS.items():

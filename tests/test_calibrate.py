@@ -9,21 +9,18 @@ import json
 import numpy as np
 import pytest
 
-pytest.importorskip("cv2")
-pytest.importorskip("mujoco")
-
-from dssp_core.errors import CalibrationError, ConfigError  # noqa: E402
-from dssp_data.arm_kinematics import flange_pose  # noqa: E402
-from dssp_sim.calibration_twin import CalibrationTwin, TwinRig  # noqa: E402
-from dssp_sim.sim_cli import main as sim_main  # noqa: E402
-from hardware.calibration.charuco import CharucoBoardSpec, detect_board  # noqa: E402
-from hardware.calibration.hand_eye import distance, invert, solve_hand_eye  # noqa: E402
-from hardware.calibration.pose_plan import auto_poses, load_poses  # noqa: E402
-from hardware.calibration.tour import CalibrationTour  # noqa: E402
-from hardware.pointcloud.extrinsics import load_camera_to_gripper, load_extrinsics, save_camera_to_gripper, save_extrinsics  # noqa: E402
-from hardware.rig import Rig  # noqa: E402
-from hardware.run_loop import LoopSettings, Runner  # noqa: E402
-from hardware.safety import SafetyConfig  # noqa: E402
+from dssp_core.errors import CalibrationError, ConfigError
+from dssp_data.arm_kinematics import flange_pose
+from dssp_sim.calibration_twin import CalibrationTwin, TwinRig
+from dssp_sim.sim_cli import main as sim_main
+from hardware.calibration.charuco import CharucoBoardSpec, detect_board
+from hardware.calibration.hand_eye import distance, invert, solve_hand_eye
+from hardware.calibration.pose_plan import auto_poses, load_poses
+from hardware.calibration.tour import CalibrationTour
+from hardware.pointcloud.extrinsics import load_camera_to_gripper, load_extrinsics, save_camera_to_gripper, save_extrinsics
+from hardware.rig import Rig
+from hardware.run_loop import LoopSettings, Runner
+from hardware.safety import SafetyConfig
 
 BOUND_MM, BOUND_DEG = 2.0, 0.5
 POSES = 10
@@ -88,7 +85,15 @@ def test_dssp_sim_calibrate_writes_the_extrinsics_and_keeps_an_existing_file(tmp
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "exists; pass --force" in err, err
     assert out.read_bytes() == before
-    assert sim_main(argv + ["--force"]) == 0
+    record = tmp_path / "record.json"
+    assert sim_main(argv + ["--force", "--json", str(record)]) == 0
+    # --json keeps the calibration's record: every view's row, the written transform, the distance from the truth
+    kept = json.loads(record.read_text())
+    assert kept["mode"] == "eye-to-hand" and kept["result"] == "camera_to_base" and len(kept["views"]) == POSES
+    assert np.allclose(kept["transform"], load_extrinsics(out), atol=1e-9)
+    assert kept["truth_error"] == pytest.approx(list(distance(load_extrinsics(out), CalibrationTwin("eye-to-hand").truth())))
+    used = [v for v in kept["views"] if "residual_mm" in v]
+    assert used and np.sqrt(np.mean([v["residual_mm"] ** 2 for v in used])) == pytest.approx(kept["rms_mm"])
 
 
 def test_too_few_poses_are_refused_with_one_line(tmp_path, capsys):

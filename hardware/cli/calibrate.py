@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import json
 import sys
 from pathlib import Path
 from typing import Protocol
@@ -70,7 +71,9 @@ def build_parser(sim: SimulatedCalibrationRig | None = None, prog: str = "dssp-c
     p.add_argument("--board", type=Path, help="board JSON (squares_x, squares_y, square_m, marker_m, dictionary; "
                                               "default: 7 x 5 squares of 36 mm, DICT_4X4_50, A4)")
     p.add_argument("--out", type=Path, required=True, help="the calibration JSON to write")
-    p.add_argument("--force", action="store_true", help="replace an existing --out")
+    p.add_argument("--json", type=Path, help="also write the calibration's record here: the result, each view's row, the "
+                                             "methods' disagreement (and on the twin the distance from the true pose)")
+    p.add_argument("--force", action="store_true", help="replace an existing --out (and --json)")
     p.add_argument("--rate", type=float, default=10.0, help="control rate of the moves, Hz (default 10)")
     p.add_argument("--safety", type=Path, help="safety settings JSON (hardware.safety.SafetyConfig fields)")
     return p
@@ -136,6 +139,8 @@ def _calibrate(args, stops: Stops, sim) -> int:
     safety = SafetyConfig.load(args.safety, "safety") if args.safety else SafetyConfig()
     safety.check_speed(args.rate, MAX_JOINT_SPEED)
     check_output_file(args.out, force=args.force, flag="--out")
+    if args.json is not None:
+        check_output_file(args.json, force=args.force, flag="--json")
     if stops.reason is not None:
         print(f"stopped by {stops.reason} before the arm moved; nothing was sent", file=sys.stderr)
         return stops.code
@@ -192,9 +197,9 @@ def _calibrate(args, stops: Stops, sim) -> int:
                                                             for name, (mm, deg) in result.disagreement.items()))
     print(f"residuals: {rms_mm:.2f} mm / {rms_deg:.3f} deg RMS; the worst against its limits, pose {good[i][0].index + 1}: "
           f"{worst.mm:.2f} mm / {worst.deg:.3f} deg")
-    if truth is not None:
-        mm, deg = distance(result.transform, truth)
-        print(f"the twin's true {result.name} is {mm:.2f} mm / {deg:.3f} deg from it")
+    truth_error = distance(result.transform, truth) if truth is not None else None
+    if truth_error is not None:
+        print(f"the twin's true {result.name} is {truth_error[0]:.2f} mm / {truth_error[1]:.3f} deg from it")
     result.check()
     if stops.reason is not None:
         print(f"stopped by {stops.reason}; nothing was written", file=sys.stderr)
@@ -206,7 +211,38 @@ def _calibrate(args, stops: Stops, sim) -> int:
     else:
         save_camera_to_gripper(args.out, result.transform, notes=notes)
     print(f"wrote {args.out} ({result.name})")
+    if args.json is not None:
+        from dssp_core.output_guard import write_output_text  # deferred: loads numpy
+
+        record = calibration_record(args, board, views, detections, result, truth_error, where)
+        write_output_text(args.json, json.dumps(record, indent=1) + "\n", force=args.force, flag="--json")
+        print(f"wrote {args.json} (the calibration's record)")
     return 0
+
+
+def calibration_record(args, board, views, detections, result, truth_error, where: str) -> dict:
+    """What ``--json`` keeps of a calibration: the settings, each view's row (corners, reprojection, residual, or why
+    it was refused), the result, the methods' disagreement, the residuals' RMS and, on the twin, the distance of the
+    result from the true pose (mm, deg)."""
+    used = iter(result.residuals)
+    rows = []
+    for view, found in zip(views, detections):
+        row = {"pose": view.index + 1, "corners": int(found.corners), "joints": [float(v) for v in view.joints]}
+        if found.ok:
+            r = next(used)
+            row.update(reprojection_px=float(found.reprojection_px), residual_mm=float(r.mm), residual_deg=float(r.deg))
+        else:
+            row["refused"] = found.reason
+        rows.append(row)
+    rms_mm, rms_deg = result.rms
+    return {
+        "mode": args.mode, "rig": where, "rate_hz": args.rate, "poses": "auto" if args.poses is None else str(args.poses),
+        "board": board.to_dict(), "views": rows, "result": result.name, "method": result.method,
+        "transform": [[float(v) for v in row] for row in result.transform],
+        "disagreement": {name: [float(mm), float(deg)] for name, (mm, deg) in result.disagreement.items()},
+        "rms_mm": rms_mm, "rms_deg": rms_deg, "rotation_spread_deg": float(result.rotation_spread_deg),
+        "truth_error": None if truth_error is None else [float(truth_error[0]), float(truth_error[1])],
+    }
 
 
 def main(argv: list[str] | None = None, sim: SimulatedCalibrationRig | None = None, prog: str = "dssp-calibrate") -> int:
