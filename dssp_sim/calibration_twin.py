@@ -31,7 +31,7 @@ import mujoco
 import numpy as np
 
 from dssp_data.arm_kinematics import TCP_OFFSET
-from dssp_sim.env import DEPTH_UNIT, DepthRenderThread
+from dssp_sim.env import DEPTH_UNIT, ArmServos, DepthRenderThread
 from dssp_sim.ik import IKSolver
 from dssp_sim.mjcf import CAMERA_FOVY_DEG, CAMERA_NAME, CAMERA_POS, TIMESTEP, ArmIndex, arm_xml, scene_xml
 from dssp_sim.mujoco_arm import MujocoPiper
@@ -42,7 +42,7 @@ from hardware.camera.base import Camera, DepthFrame, Intrinsics
 from hardware.camera.software import SoftwareDepthCamera
 from hardware.clock import FakeClock
 from hardware.piper.arm import PiperArm
-from hardware.piper.limits import GRIPPER_STROKE_MAX, GRIPPER_STROKE_MIN, JOINT_LOWER, JOINT_UPPER
+from hardware.piper.limits import GRIPPER_STROKE_MIN
 from hardware.piper.piper_robot import PiperRobot
 
 SIZE = (480, 640)  # (H, W) of the renders: what ChArUco detection needs at these distances
@@ -128,7 +128,7 @@ def twin_xml(mode: str, board: CharucoBoardSpec) -> tuple[str, np.ndarray]:
     return xml, texture
 
 
-class CalibrationTwin:
+class CalibrationTwin(ArmServos):
     """The calibration scene of ``mode`` with ``board``: a MuJoCo model, its arm at a start pose that shows the board
     to the camera, and the low-level interface :class:`~dssp_sim.mujoco_arm.MujocoPiper` drives (``set_targets``,
     ``advance``, ``joint_positions``, ``gripper_stroke``). ``size``: (H, W) of the renders."""
@@ -186,12 +186,6 @@ class CalibrationTwin:
         return q
 
     # ------------------------------------------------------------------------------------------- what MujocoPiper drives
-    def set_targets(self, joints: np.ndarray, stroke: float) -> None:
-        q = np.clip(np.asarray(joints, dtype=np.float64).reshape(6), JOINT_LOWER, JOINT_UPPER)
-        with self.lock:
-            self.data.ctrl[self.arm.actuators] = q
-            self.data.ctrl[self.arm.gripper_actuator] = float(np.clip(stroke, GRIPPER_STROKE_MIN, GRIPPER_STROKE_MAX))
-
     def advance(self, dt: float) -> None:
         with self.lock:
             total = self._time_debt + dt
@@ -199,15 +193,6 @@ class CalibrationTwin:
             self._time_debt = total - n * TIMESTEP
             if n > 0:
                 mujoco.mj_step(self.model, self.data, nstep=n)
-
-    def joint_positions(self) -> np.ndarray:
-        with self.lock:
-            return self.data.qpos[self.arm.qpos].copy()
-
-    def gripper_stroke(self) -> float:
-        with self.lock:
-            stroke = self.data.qpos[self.arm.finger_qpos].sum()
-        return float(np.clip(stroke, GRIPPER_STROKE_MIN, GRIPPER_STROKE_MAX))
 
     # ------------------------------------------------------------------------------------------- poses and renders
     def _pose(self, xpos, xmat) -> np.ndarray:

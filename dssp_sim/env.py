@@ -53,7 +53,31 @@ DEPTH_MAX_M = 4.0  # farther than this (or nothing hit) reads 0
 _OPTICAL_IN_MJCAM = np.diag([1.0, -1.0, -1.0])
 
 
-class PiperEnv:
+class ArmServos:
+    """The simulated arm's servo targets and what it measures, under the scene's lock (what
+    :class:`~dssp_sim.mujoco_arm.MujocoPiper` drives): for a scene with ``data``, ``lock`` and ``arm``
+    (:class:`ArmIndex`) — the task env and the calibration twin."""
+
+    def set_targets(self, joints: np.ndarray, stroke: float) -> None:
+        """Servo targets: joints (6,) rad and gripper stroke (m), clamped to the Piper's limits."""
+        q = np.clip(np.asarray(joints, dtype=np.float64).reshape(6), JOINT_LOWER, JOINT_UPPER)
+        with self.lock:
+            self.data.ctrl[self.arm.actuators] = q
+            self.data.ctrl[self.arm.gripper_actuator] = float(np.clip(stroke, GRIPPER_STROKE_MIN, GRIPPER_STROKE_MAX))
+
+    def joint_positions(self) -> np.ndarray:
+        """(6,) float64 measured joint angles, rad."""
+        with self.lock:
+            return self.data.qpos[self.arm.qpos].copy()
+
+    def gripper_stroke(self) -> float:
+        """Measured distance between the finger pads, metres (0..0.07)."""
+        with self.lock:
+            stroke = self.data.qpos[self.arm.finger_qpos].sum()
+        return float(np.clip(stroke, GRIPPER_STROKE_MIN, GRIPPER_STROKE_MAX))
+
+
+class PiperEnv(ArmServos):
     """One Piper arm and ``task`` ("tap" | "swap" | "put2"), seeded by ``seed``.
 
     render_size: (H, W) pixels of the depth render (default: the task's, :func:`dssp_sim.settings.render_size_for`; 4:3 keeps the camera's 70 x 55 degree field of view;
@@ -119,13 +143,6 @@ class PiperEnv:
         return self._substeps // self._substeps_per_control
 
     # ------------------------------------------------------------------------------------------- low level
-    def set_targets(self, joints: np.ndarray, stroke: float) -> None:
-        """Servo targets: joints (6,) rad and gripper stroke (m), clamped to the Piper's limits."""
-        q = np.clip(np.asarray(joints, dtype=np.float64).reshape(6), JOINT_LOWER, JOINT_UPPER)
-        with self.lock:
-            self.data.ctrl[self.arm.actuators] = q
-            self.data.ctrl[self.arm.gripper_actuator] = float(np.clip(stroke, GRIPPER_STROKE_MIN, GRIPPER_STROKE_MAX))
-
     def advance(self, dt: float) -> None:
         """Simulate ``dt`` seconds (whole physics steps of 2 ms; the remainder is carried over to the next
         call). A task that needs it (the tap's press counter) watches every physics step; the task's
@@ -149,17 +166,6 @@ class PiperEnv:
                 self.task.on_substep(self)
         self._substeps += n
         self.task.update(self)
-
-    def joint_positions(self) -> np.ndarray:
-        """(6,) float64 measured joint angles, rad."""
-        with self.lock:
-            return self.data.qpos[self.arm.qpos].copy()
-
-    def gripper_stroke(self) -> float:
-        """Measured distance between the finger pads, metres (0..0.07)."""
-        with self.lock:
-            stroke = self.data.qpos[self.arm.finger_qpos].sum()
-        return float(np.clip(stroke, GRIPPER_STROKE_MIN, GRIPPER_STROKE_MAX))
 
     # ------------------------------------------------------------------------------------------- policy level
     def state(self) -> np.ndarray:

@@ -12,10 +12,10 @@ import math
 
 import numpy as np
 import pytest
+from test_policy_sources import run_dssp
 
 from dssp_deploy.control_loop import ChunkedControl
 from dssp_deploy.ranges import ChunkOutOfRange
-from hardware.cli.run import main as run_main
 from hardware.policies.exported_model import ModelPolicy
 from hardware.run_log import read_ticks
 
@@ -189,16 +189,6 @@ def test_the_model_source_shows_the_newest_chunk_and_logs_its_smoothing():
 
 
 # ----------------------------------------------------------------------------- dssp-run
-
-
-def run_dssp(capsys, *argv):
-    """dssp-run in-process: (exit code, stdout, stderr); a flag argparse refuses exits 2 with its one line."""
-    try:
-        code = run_main([str(a) for a in argv])
-    except SystemExit as exc:
-        code = exc.code
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 def test_dssp_run_with_temporal_ensembling_on_the_embedded_simulation(arm_export, tmp_path, capsys):
