@@ -67,6 +67,16 @@ def add_smoothing_arguments(parser, also: str = "") -> None:
                              "the older weigh more, as in ACT; 0: the plain mean)")
 
 
+def model_flags_given(args, *also: tuple[str, bool]) -> list[str]:
+    """The flags that only a model takes which ``args`` sets: those of
+    :func:`dssp_deploy.onnx_policy.add_runtime_arguments` and :func:`add_smoothing_arguments`, then ``also`` (a
+    command's own, as (flag, given)) — for a command run with another policy source, which refuses them."""
+    flags = (("--precision", args.precision is not None), ("--kernel", args.kernel != "auto"), ("--no-spin", args.no_spin),
+             ("--smoothing", args.smoothing != "none"), ("--ensemble-every", args.ensemble_every is not None),
+             ("--ensemble-decay", args.ensemble_decay is not None), *also)
+    return [flag for flag, given in flags if given]
+
+
 def check_smoothing_arguments(args) -> None:
     """:func:`add_smoothing_arguments`' flags, as far as they can be judged without the model (--ensemble-every's
     upper bound, the model's H_a: :func:`check_ensemble_every`); one ConfigError line."""

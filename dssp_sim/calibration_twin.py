@@ -33,7 +33,7 @@ import numpy as np
 from dssp_data.arm_kinematics import TCP_OFFSET
 from dssp_sim.env import DEPTH_UNIT, ArmServos, DepthRenderThread
 from dssp_sim.ik import IKSolver
-from dssp_sim.mjcf import CAMERA_FOVY_DEG, CAMERA_NAME, CAMERA_POS, TIMESTEP, ArmIndex, arm_xml, scene_xml
+from dssp_sim.mjcf import CAMERA_FOVY_DEG, CAMERA_NAME, CAMERA_POS, ArmIndex, arm_xml, fmt, mat_to_quat, scene_xml
 from dssp_sim.mujoco_arm import MujocoPiper
 from dssp_sim.tasks import HOME
 from hardware.calibration.charuco import CharucoBoardSpec, board_image
@@ -67,19 +67,9 @@ WRIST_PITCH_DEG = 30.0  # the approach axis at the start pose: down, tilted forw
 OPTICAL_IN_MJCAM = np.diag([1.0, -1.0, -1.0])  # optical frame (x right, y down, z forward) in MuJoCo's camera frame
 
 
-def _fmt(values) -> str:
-    return " ".join(f"{float(v):.9g}" for v in np.ravel(values))
-
-
 def _rot_y(deg: float) -> np.ndarray:
     c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
     return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
-
-
-def _quat(rot: np.ndarray) -> np.ndarray:
-    q = np.zeros(4)
-    mujoco.mju_mat2Quat(q, np.asarray(rot, np.float64).reshape(-1))
-    return q
 
 
 def board_assets(board: CharucoBoardSpec) -> tuple[str, np.ndarray]:
@@ -96,12 +86,12 @@ def board_assets(board: CharucoBoardSpec) -> tuple[str, np.ndarray]:
     assets = (f'<texture name="charuco" type="2d" builtin="flat" width="{image.shape[1]}" height="{image.shape[0]}" '
               'rgb1="1 1 1"/>'
               '<material name="charuco" texture="charuco" specular="0" shininess="0"/>'
-              f'<mesh name="charuco" vertex="{_fmt(vertex)}" texcoord="{_fmt(texcoord)}" face="{_fmt(face)}"/>')
+              f'<mesh name="charuco" vertex="{fmt(vertex)}" texcoord="{fmt(texcoord)}" face="{fmt(face)}"/>')
     return assets, np.repeat(image[:, :, None], 3, axis=2)
 
 
 def _board_body(pos, rot) -> str:
-    return (f'<body name="charuco" pos="{_fmt(pos)}" quat="{_fmt(_quat(rot))}">'
+    return (f'<body name="charuco" pos="{fmt(pos)}" quat="{fmt(mat_to_quat(rot))}">'
             '<geom name="charuco" type="mesh" mesh="charuco" material="charuco" contype="0" conaffinity="0" '
             'mass="0.02"/></body>')
 
@@ -120,8 +110,8 @@ def twin_xml(mode: str, board: CharucoBoardSpec) -> tuple[str, np.ndarray]:
     else:
         opt = _rot_y(WRIST_CAMERA_TILT_DEG)  # optical frame in the flange frame
         mj = opt @ OPTICAL_IN_MJCAM  # MuJoCo's camera frame: x, y columns
-        flange = (f'<camera name="{WRIST_CAMERA_NAME}" pos="{_fmt(WRIST_CAMERA_POS)}" '
-                  f'xyaxes="{_fmt(np.concatenate([mj[:, 0], mj[:, 1]]))}" fovy="{CAMERA_FOVY_DEG:.9g}"/>')
+        flange = (f'<camera name="{WRIST_CAMERA_NAME}" pos="{fmt(WRIST_CAMERA_POS)}" '
+                  f'xyaxes="{fmt(np.concatenate([mj[:, 0], mj[:, 1]]))}" fovy="{CAMERA_FOVY_DEG:.9g}"/>')
         rot = np.diag([1.0, -1.0, -1.0])  # face up: the board's z points down into the table
         objects = _board_body(np.array(TABLE_BOARD) + [0.0, 0.0, BOARD_THICKNESS + 1e-4] - rot @ centre, rot)
     xml = scene_xml(objects, arms=(arm_xml(flange_xml=flange),), assets=assets)
@@ -188,9 +178,7 @@ class CalibrationTwin(ArmServos):
     # ------------------------------------------------------------------------------------------- what MujocoPiper drives
     def advance(self, dt: float) -> None:
         with self.lock:
-            total = self._time_debt + dt
-            n = int(math.floor(total / TIMESTEP + 1e-9))
-            self._time_debt = total - n * TIMESTEP
+            n = self._whole_steps(dt)
             if n > 0:
                 mujoco.mj_step(self.model, self.data, nstep=n)
 

@@ -56,7 +56,15 @@ _OPTICAL_IN_MJCAM = np.diag([1.0, -1.0, -1.0])
 class ArmServos:
     """The simulated arm's servo targets and what it measures, under the scene's lock (what
     :class:`~dssp_sim.mujoco_arm.MujocoPiper` drives): for a scene with ``data``, ``lock`` and ``arm``
-    (:class:`ArmIndex`) — the task env and the calibration twin."""
+    (:class:`ArmIndex`), and ``_time_debt`` — the task env and the calibration twin."""
+
+    def _whole_steps(self, dt: float) -> int:
+        """The whole physics steps (of TIMESTEP) that ``dt`` seconds and the time carried over from the previous call
+        make; the remainder is carried over to the next (``_time_debt``)."""
+        total = self._time_debt + dt
+        n = int(math.floor(total / TIMESTEP + 1e-9))
+        self._time_debt = total - n * TIMESTEP
+        return n
 
     def set_targets(self, joints: np.ndarray, stroke: float) -> None:
         """Servo targets: joints (6,) rad and gripper stroke (m), clamped to the Piper's limits."""
@@ -153,9 +161,7 @@ class PiperEnv(ArmServos):
             self._advance(dt)
 
     def _advance(self, dt: float) -> None:
-        total = self._time_debt + dt
-        n = int(math.floor(total / TIMESTEP + 1e-9))
-        self._time_debt = total - n * TIMESTEP
+        n = self._whole_steps(dt)
         if n <= 0:
             return
         if type(self.task).on_substep is Task.on_substep:

@@ -68,8 +68,9 @@ SCENE_BIT = 1
 GRIPPER_BIT = 2
 
 
-def _fmt(values) -> str:
-    return " ".join(f"{float(v):.9g}" for v in values)
+def fmt(values) -> str:
+    """Numbers as an MJCF attribute value (any shape, flattened)."""
+    return " ".join(f"{float(v):.9g}" for v in np.ravel(values))
 
 
 def mat_to_quat(mat: np.ndarray) -> np.ndarray:
@@ -116,12 +117,12 @@ def arm_xml(prefix: str = "", base_pos=(0.0, 0.0, 0.0), base_quat=(1.0, 0.0, 0.0
     child_pos = [dh_link_transform(i)[0] for i in range(1, 6)] + [np.zeros(3)]
     link_shapes = {
         1: f'<geom type="cylinder" size="0.045 0.03" pos="0 0 -0.02" mass="0.8" {link_geom}/>',
-        2: (f'<geom type="capsule" fromto="0 0 0 {_fmt(child_pos[1])}" size="0.032" mass="1.0" {link_geom}/>'
+        2: (f'<geom type="capsule" fromto="0 0 0 {fmt(child_pos[1])}" size="0.032" mass="1.0" {link_geom}/>'
             f'<geom type="cylinder" fromto="0 0 -0.045 0 0 0.045" size="0.04" mass="0.2" {link_geom}/>'),
-        3: (f'<geom type="capsule" fromto="0 0 0 {_fmt(child_pos[2])}" size="0.03" mass="0.7" {link_geom}/>'
+        3: (f'<geom type="capsule" fromto="0 0 0 {fmt(child_pos[2])}" size="0.03" mass="0.7" {link_geom}/>'
             f'<geom type="cylinder" fromto="0 0 -0.04 0 0 0.04" size="0.035" mass="0.2" {link_geom}/>'),
         4: f'<geom type="capsule" fromto="0 0 -0.03 0 0 0.03" size="0.028" mass="0.3" {link_geom}/>',
-        5: f'<geom type="capsule" fromto="0 0 0 {_fmt(child_pos[4])}" size="0.027" mass="0.3" {link_geom}/>',
+        5: f'<geom type="capsule" fromto="0 0 0 {fmt(child_pos[4])}" size="0.027" mass="0.3" {link_geom}/>',
         6: f'<geom type="cylinder" fromto="0 0 -0.01 0 0 0.008" size="0.03" mass="0.1" {link_geom}/>',
     }
     grip = f'contype="{GRIPPER_BIT}" conaffinity="{SCENE_BIT}" group="0" condim="4"'
@@ -156,13 +157,13 @@ def arm_xml(prefix: str = "", base_pos=(0.0, 0.0, 0.0), base_quat=(1.0, 0.0, 0.0
         quat = mat_to_quat(rot)
         j = i + 1
         inner = (
-            f'<body name="{p}link{j}" pos="{_fmt(pos)}" quat="{_fmt(quat)}" gravcomp="1">'
+            f'<body name="{p}link{j}" pos="{fmt(pos)}" quat="{fmt(quat)}" gravcomp="1">'
             f'<joint name="{p}joint{j}" type="hinge" axis="0 0 1" range="{JOINT_LOWER[i]:.9g} {JOINT_UPPER[i]:.9g}" '
             f'armature="{JOINT_ARMATURE[i]:g}" damping="0.5"/>'
             f"{link_shapes[j]}{inner}</body>"
         )
     body = (
-        f'<body name="{p}base" pos="{_fmt(base_pos)}" quat="{_fmt(base_quat)}">'
+        f'<body name="{p}base" pos="{fmt(base_pos)}" quat="{fmt(base_quat)}">'
         f'<geom type="cylinder" fromto="0 0 0 0 0 0.1" size="0.05" {link_geom}/>'
         f"{inner}</body>"
     )
@@ -191,9 +192,9 @@ def scene_xml(objects_xml: str = "", arms: tuple[ArmXml, ...] | None = None, ext
     """The full MJCF: table, arms (default one unprefixed arm at the origin), camera and ``objects_xml``
     (bodies for <worldbody>, from the task); ``assets``: textures, materials and meshes they use."""
     arms = (arm_xml(),) if arms is None else tuple(arms)
-    xy = _fmt(camera_xyaxes())
+    xy = fmt(camera_xyaxes())
     table = (
-        f'<geom name="table" type="box" size="{_fmt(TABLE_HALF)}" pos="{_fmt(TABLE_CENTER)}" '
+        f'<geom name="table" type="box" size="{fmt(TABLE_HALF)}" pos="{fmt(TABLE_CENTER)}" '
         f'contype="{SCENE_BIT}" conaffinity="{SCENE_BIT | GRIPPER_BIT}" friction="1 0.01 0.001" '
         'rgba="0.55 0.45 0.35 1"/>'
     )
@@ -214,7 +215,7 @@ def scene_xml(objects_xml: str = "", arms: tuple[ArmXml, ...] | None = None, ext
   <worldbody>
     <light pos="0.3 0 1.5" dir="0 0 -1" directional="true" castshadow="false"/>
     {table}
-    <camera name="{CAMERA_NAME}" pos="{_fmt(CAMERA_POS)}" xyaxes="{xy}" fovy="{CAMERA_FOVY_DEG:.9g}"/>
+    <camera name="{CAMERA_NAME}" pos="{fmt(CAMERA_POS)}" xyaxes="{xy}" fovy="{CAMERA_FOVY_DEG:.9g}"/>
     {"".join(a.body for a in arms)}
     {objects_xml}
   </worldbody>

@@ -32,7 +32,7 @@ from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import ConfigError
 from dssp_core.output_guard import OutputDir, check_output_file, write_output_text
 from dssp_data.rerun_views import add_rerun_flags
-from dssp_deploy.control_loop import add_smoothing_arguments, check_smoothing_arguments, smoothing_options
+from dssp_deploy.control_loop import add_smoothing_arguments, check_smoothing_arguments, model_flags_given, smoothing_options
 from dssp_deploy.onnx_policy import add_runtime_arguments
 
 TASKS = ("tap", "swap", "put2")
@@ -125,11 +125,7 @@ def run(args) -> int:
 
     check_views(args.rerun, args.rerun_save)  # every flag checked before anything is opened or written
     if args.expert:
-        given = [flag for flag, on in (("--noise", args.noise != 0.0), ("--threads", args.threads is not None),
-                                       ("--precision", args.precision is not None), ("--kernel", args.kernel != "auto"),
-                                       ("--no-spin", args.no_spin), ("--smoothing", args.smoothing != "none"),
-                                       ("--ensemble-every", args.ensemble_every is not None),
-                                       ("--ensemble-decay", args.ensemble_decay is not None)) if on]
+        given = model_flags_given(args, ("--noise", args.noise != 0.0), ("--threads", args.threads is not None))
         if given:
             raise ConfigError(f"{given[0]} is a model's setting: it goes with --model, not --expert")
     check_smoothing_arguments(args)

@@ -107,13 +107,12 @@ def check_args(args) -> None:
         from hardware.policies import split_spec  # deferred: loads numpy
 
         split_spec(args.policy)
-        for flag, given in (("--prefetch", args.prefetch), ("--allow-mismatch", args.allow_mismatch),
-                            ("--precision", args.precision), ("--threads", args.threads is not None),
-                            ("--seed", args.seed is not None), ("--no-spin", args.no_spin), ("--kernel", args.kernel != "auto"),
-                            ("--smoothing", args.smoothing != "none"), ("--ensemble-every", args.ensemble_every is not None),
-                            ("--ensemble-decay", args.ensemble_decay is not None)):
-            if given:
-                raise ConfigError(f"{flag} is a model's setting: it goes with --model, not --policy {args.policy}")
+        from dssp_deploy.control_loop import model_flags_given  # deferred: loads numpy
+
+        given = model_flags_given(args, ("--prefetch", args.prefetch), ("--allow-mismatch", bool(args.allow_mismatch)),
+                                  ("--threads", args.threads is not None), ("--seed", args.seed is not None))
+        if given:
+            raise ConfigError(f"{given[0]} is a model's setting: it goes with --model, not --policy {args.policy}")
     from dssp_deploy.control_loop import check_smoothing_arguments  # deferred: loads numpy
 
     check_smoothing_arguments(args)
@@ -306,9 +305,9 @@ def _run(args, stops: Stops) -> int:
 
             source = open_policy(args.policy)
             rate = other_source_rate(args, source)
+            safety_config.check_speed(rate, described.max_joint_speed)
             cloud_config = cloud_config or PointCloudConfig()
             about = {"policy": source.describe()}
-        safety_config.check_speed(rate, described.max_joint_speed)
         source.check(described, cloud_config)  # before any device is opened
         stops.check()
         settings = LoopSettings(rate_hz=rate, max_steps=args.max_steps, dry_run=args.dry_run)
