@@ -9,15 +9,18 @@ What ``dssp-sim record`` (``dssp-record --camera mujoco --can mujoco``) records 
   be), which obeys those frames with MuJoCo physics and sends its feedback;
 - the camera is :class:`~dssp_sim.mujoco_camera.MujocoCamera` (depth through the RealSense software device).
 
-Time is simulated (:class:`SimClock`): per tick the session calls ``before_tick()`` (the leader sends its
-command at time t), samples every stream at t, then ``after_tick(dt)`` (the clock moves to t + dt, the
-follower moves dt and reports, the camera renders). Each call returns once the recorder's bus monitor has
-received every frame sent, so a recording is deterministic. Fault injection for tests and demos:
-``pause_feedback`` / ``resume_feedback`` and ``freeze_camera``.
+Time is simulated (:class:`SimClock`), and the recording loop's pacing moves it: the loop samples every stream at
+time t, then sleeps a period on the rig's clock, which is ``after_tick(dt)`` (the clock moves to t + dt, the
+follower moves dt and reports, the camera renders) and ``before_tick()`` (the leader sends its command for
+t + dt); a new episode's scene sends its first command at once. Each call returns once the recorder's bus
+monitor has received every frame sent, so a recording is deterministic. ``pace``: simulated seconds per wall
+second (None: as fast as the machine goes). Fault injection for tests and demos: ``pause_feedback`` /
+``resume_feedback`` and ``freeze_camera``.
 """
 
 from __future__ import annotations
 
+import time
 import uuid
 
 import numpy as np
@@ -36,21 +39,38 @@ from hardware.piper import codec
 
 
 class SimClock(FakeClock):
-    """Simulated time in seconds (a :class:`hardware.clock.Clock`): starts at 0, moves only when told
-    (``after_tick`` advances it one period)."""
+    """Simulated time in seconds (a :class:`hardware.clock.Clock`): starts at 0; :meth:`sleep` moves the rig
+    (``step(dt)``, given by the rig) and, with ``pace``, keeps to that many simulated seconds per wall second."""
+
+    def __init__(self, step, pace: float | None = None) -> None:
+        super().__init__(0.0)
+        self.step, self.pace = step, pace
+        self._origin: tuple[float, float] | None = None  # (simulated, wall) time the pace counts from
+
+    def sleep(self, dt: float) -> None:
+        if dt <= 0:
+            return
+        if self.pace and self._origin is None:
+            self._origin = (self.t, time.monotonic())
+        self.step(dt)
+        if self.pace:
+            ahead = self._origin[1] + (self.t - self._origin[0]) / self.pace - time.monotonic()
+            if ahead > 0:
+                time.sleep(ahead)
 
 
 class TeleopRig:
     """The simulated leader/follower pair and camera for ``task`` (tap, swap, put2).
 
     ``channel``: the virtual bus to listen on. ``camera``: the scene camera. ``clock``: the simulated
-    clock to stamp frames with. Episode ``k`` of a session uses the scene of seed ``seed + k``.
+    clock to stamp frames with, whose sleep moves the rig. Episode ``k`` of a session uses the scene of seed
+    ``seed + k``. ``pace``: simulated seconds per wall second (None: as fast as possible).
     """
 
-    def __init__(self, task: str = "tap", seed: int = 0) -> None:
+    def __init__(self, task: str = "tap", seed: int = 0, pace: float | None = None) -> None:
         self.task, self.seed = task, int(seed)
         self.env = PiperEnv(task, seed=self.seed)
-        self.clock = SimClock()
+        self.clock = SimClock(self._tick, pace)
         self.channel = f"dssp-teleop-{uuid.uuid4().hex[:8]}"
         self.follower = MujocoPiper(self.env, self.channel)
         self.camera = MujocoCamera(self.env)
@@ -76,6 +96,7 @@ class TeleopRig:
         self.follower.step(0.0)
         self.camera.capture()
         self._sync()
+        self.before_tick()
 
     def stop(self) -> None:
         self.camera.stop()
@@ -100,6 +121,7 @@ class TeleopRig:
         if not self.camera_frozen:
             self.camera.capture()
         self._sync()
+        self.before_tick()  # the expert's first command, sampled at this tick
         return self.episode_seed
 
     def end_episode(self) -> None:
@@ -121,6 +143,11 @@ class TeleopRig:
         if not self.camera_frozen:
             self.camera.capture()
         self._sync()
+
+    def _tick(self, dt: float) -> None:
+        """The loop sleeps ``dt``: the world moves, then the leader sends its command for the next tick."""
+        self.after_tick(dt)
+        self.before_tick()
 
     def episode_status(self):
         """The task's status (``done``, ``success``, ``reason``) of the current episode."""
@@ -144,12 +171,12 @@ class TeleopRigs:
     def default_cloud_config(self):
         return cloud_config_for()
 
-    def open(self, task: str, seed: int) -> TeleopRig:
+    def open(self, task: str, seed: int, pace: float | None = None) -> TeleopRig:
         try:
             make_task(task)
         except (KeyError, ValueError):
             raise ConfigError(f"--task-name {task!r} is not a simulated task: use tap, swap or put2") from None
-        return TeleopRig(task, seed=seed)
+        return TeleopRig(task, seed=seed, pace=pace)
 
 
 def record_main(argv: list[str] | None = None) -> int:

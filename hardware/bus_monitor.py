@@ -11,6 +11,8 @@ The monitor never sends. One thread receives every frame, stamps it on arrival w
 (``time.monotonic`` on a robot; the simulated clock in lockstep), decodes it (``hardware.piper.codec``)
 and writes it to the episode's log when one is open, so the decoded streams and the log hold exactly the
 same frames. ``wait_for_frames(n)`` blocks until ``n`` frames have arrived (lockstep simulation).
+:class:`ListeningArms` is the followers the monitors hear as the control loop's robot, one that never commands
+(``dssp-record``: the leader drives the follower itself).
 """
 
 from __future__ import annotations
@@ -23,10 +25,14 @@ from pathlib import Path
 
 import can
 
-from dssp_core.errors import CanError
+import numpy as np
+
+from dssp_core.errors import ArmError, CanError
 from hardware.can_reader import CanReader
 from hardware.leader import ArmReading, JointGripperTracker, LeaderTracker
 from hardware.piper import codec
+from hardware.piper.limits import piper_description
+from hardware.robot import ArmStatus, Robot, RobotDescription, RobotState
 
 _NAN = float("nan")
 ARM_ERROR_STATUSES = frozenset(range(0x01, 0x0B)) | {0x0E, 0x0F}
@@ -217,3 +223,50 @@ def oldest(readings: list[ArmReading]) -> float:
     """The oldest arrival time over several arms' readings (nan if any is missing)."""
     times = [r.time for r in readings]
     return _NAN if any(math.isnan(t) for t in times) else min(times)
+
+
+class ListeningArms(Robot):
+    """The follower arms heard by ``monitors`` (one per leader/follower pair, left first) as one robot that only
+    listens: :meth:`state` is the followers' feedback (dof = 7 per arm, policy units), :meth:`command`, :meth:`enable`
+    and :meth:`disable` refuse (ArmError) — the leaders drive the followers. The monitors are opened and closed by
+    their owner (the recording session), not here."""
+
+    def __init__(self, monitors: list[BusMonitor]) -> None:
+        self.monitors = list(monitors)
+        self.dof = 7 * len(self.monitors)
+        self._description = piper_description(len(self.monitors))
+
+    @property
+    def description(self) -> RobotDescription:
+        return self._description
+
+    def connect(self) -> None:
+        """Nothing to open: the monitors are already listening."""
+
+    def state(self) -> RobotState | None:
+        readings = [m.follower() for m in self.monitors]
+        if any(r.position is None for r in readings):
+            return None
+        status = []
+        for monitor in self.monitors:
+            error = monitor.follower_error()
+            status.append(ArmStatus(enabled=True, error=error is not None, detail=error or ""))
+        return RobotState(np.concatenate([r.position for r in readings]), oldest(readings), tuple(status))
+
+    def _refuse(self, what: str) -> None:
+        raise ArmError(f"{what}: the followers are driven by their leader arms; the recorder only listens")
+
+    def enable(self, timeout: float = 2.0) -> None:
+        self._refuse("enable")
+
+    def command(self, target: np.ndarray) -> None:
+        self._refuse("command")
+
+    def emergency_stop(self) -> None:
+        self._refuse("emergency stop")
+
+    def disable(self) -> None:
+        self._refuse("disable")
+
+    def close(self) -> None:
+        """Nothing to close: the monitors' owner stops them."""

@@ -8,9 +8,9 @@
     meter = RateMeter(); meter.mark(clock.now()); meter.rate()   # Hz over the last 50 ticks
     latency_stats([3.1, 2.9, 4.0])               # {"p50": 3.1, "p95": ..., "max": 4.0, "n": 3}
 
-``dssp-run``'s control loop (:mod:`hardware.run_loop`), the recording session (:mod:`hardware.record_session`,
-:mod:`hardware.recorder`), ``dssp-replay`` (:mod:`hardware.episode_replay`) and ``dssp-sim eval`` pace and measure
-themselves with these, so a tick's deadline, an overrun and a p95 mean the same thing in each.
+The control loop (:mod:`hardware.run_loop`: ``dssp-run``, ``dssp-record``, ``dssp-replay``, ``dssp-sim eval``) and
+the recorder (:mod:`hardware.recorder`) pace and measure themselves with these, so a tick's deadline, an overrun and
+a p95 mean the same thing in each.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ class Pacer:
     :meth:`wait` sleeps until the next tick's time. A tick that ends after that time is an **overrun**
     (counted); when it ends more than ``resync`` seconds late, the schedule starts again from now, so the loop
     does not race to catch up. ``resync=0`` (the control loop) starts again after every overrun; the recorder
-    allows up to one period of lag (``resync=period``), so that its samples stay on one grid through a short
+    allows up to one period of lag (``LoopSettings(resync=period)``), so that its samples stay on one grid through a short
     stall.
     """
 

@@ -1,7 +1,14 @@
-"""A recording session: operator commands, the fixed-rate loop, and committing or dropping each episode.
+"""A recording session: operator commands, episodes committed or dropped, as a subscriber of the control loop.
 
     session = RecordSession(recorder, dataset, monitors, clock, SessionSettings(), events=print)
     summary = session.run(controls)     # controls.poll() -> "start" | "keep" | "discard" | "quit" | None
+
+``run`` is ``dssp-run``'s loop (:class:`hardware.run_loop.Runner`) with the leader arm as its policy source
+(:class:`hardware.policies.leader_arm.LeaderArm`: the leader drives the follower over the bus, the loop commands
+nothing), the followers heard on the buses as its robot (:class:`hardware.bus_monitor.ListeningArms`) and this
+session as its subscriber: each tick it takes the operator's command, samples every stream
+(:class:`hardware.recorder.Recorder`, which records every tick, stale or not, with its problem flags) and ends
+episodes.
 
 Commands: ``start`` begins an episode (its CAN logs open, one per bus, under a partial name); ``keep`` ends
 it and appends it to the dataset (:class:`~dssp_data.recording.RecordingDataset`: one crash-safe
@@ -13,11 +20,11 @@ each after ``max_steps`` or, on the simulated rig, when the task is done (kept i
 append fails (a full disk, ...), the episode is written as a dataset of its own next to the dataset
 (``<dataset>.unsaved-<session>-<n>``) before the error ends the session.
 
-Timing: on a robot the loop ticks every 1 / rate seconds of its ``clock`` (:mod:`hardware.clock`:
-``REAL_CLOCK``, ``time.monotonic``; a tick that starts more than half a period late is flagged) and
-sleeps on it between ticks. With a :class:`~dssp_sim.teleop.TeleopRig` it runs in lockstep with the
-rig's simulated clock, as fast as it can or ``pace`` times the ``wall`` clock. The ``auto`` start-up
-wait (``ready_timeout``) is on ``clock``.
+Timing: the loop ticks every 1 / rate seconds of its ``clock`` (:mod:`hardware.clock`: ``REAL_CLOCK``,
+``time.monotonic``, on a robot; a tick that starts more than half a period late is flagged; up to a period late the
+ticks stay on their grid) and sleeps on it between ticks. With a :class:`~dssp_sim.teleop.TeleopRig` the clock is
+the rig's simulated one, whose sleep moves the simulation (lockstep). The ``auto`` start-up wait
+(``ready_timeout``) is on ``clock``.
 """
 
 from __future__ import annotations
@@ -31,24 +38,26 @@ from pathlib import Path
 from dssp_core.errors import DSSPError
 from dssp_data.recording import RecordingDataset, can_log_dir, can_log_name, partial_can_log_name
 from dssp_data.replay_buffer_writer import write_replay_buffer
-from hardware.bus_monitor import BusMonitor
-from hardware.clock import REAL_CLOCK, Clock
-from hardware.pacing import Pacer
+from hardware.bus_monitor import BusMonitor, ListeningArms
+from hardware.clock import Clock
+from hardware.policies.leader_arm import LeaderArm
 from hardware.recorder import Recorder, RecorderNotReady
+from hardware.rig import Rig
+from hardware.run_loop import LoopSettings, Runner
+from hardware.subscribers import Subscriber, Tick
 
 
 @dataclass(frozen=True)
 class SessionSettings:
     """max_steps: end (and keep) an episode after this many steps (None: only the operator ends it).
     auto: start episodes without a command; each ends after max_steps or when the simulated task is done.
-    episodes: end the session after this many kept episodes (None: only on quit). pace: lockstep only,
-    simulated seconds per wall second (None: as fast as possible). ready_timeout: seconds (of the session's
-    clock) ``auto`` waits for every stream before giving up. task: the task name stored with each episode."""
+    episodes: end the session after this many kept episodes (None: only on quit). ready_timeout: seconds (of the
+    session's clock) ``auto`` waits for every stream before giving up. task: the task name stored with each
+    episode."""
 
     max_steps: int | None = None
     auto: bool = False
     episodes: int | None = None
-    pace: float | None = None
     ready_timeout: float = 5.0
     task: str | None = None
 
@@ -67,22 +76,22 @@ class SessionSummary:
     n_episodes: int = 0
 
 
-class RecordSession:
+class RecordSession(Subscriber):
     """Runs the loop for ``recorder`` and appends kept episodes to ``dataset``.
 
     monitors: the recorder's bus monitors (their per-episode CAN logs go to ``<dataset>.can/``).
-    clock: the recorder's clock, the one its streams are stamped on (:data:`~hardware.clock.REAL_CLOCK` or
-    the rig's simulated clock). rig: the lockstep :class:`~dssp_sim.teleop.TeleopRig`, or None on a robot.
-    wall: the clock ``pace`` is kept on. events: prints one line per event (episode started, kept,
-    discarded, problems). status: shows the live one-line status (or None).
+    clock: the loop's and the recorder's clock, the one its streams are stamped on
+    (:data:`~hardware.clock.REAL_CLOCK` or the rig's simulated clock). rig: the lockstep
+    :class:`~dssp_sim.teleop.TeleopRig` (its scenes and task status), or None on a robot. events: prints one line
+    per event (episode started, kept, discarded, problems). status: shows the live one-line status (or None).
     """
 
     def __init__(self, recorder: Recorder, dataset: RecordingDataset, monitors: Sequence[BusMonitor],
-                 clock: Clock, settings: SessionSettings, *, rig=None, wall: Clock = REAL_CLOCK,
+                 clock: Clock, settings: SessionSettings, *, rig=None,
                  events: Callable[[str], None] = print, status: Callable[[str], None] | None = None,
                  session_tag: str | None = None) -> None:
         self.recorder, self.dataset, self.monitors = recorder, dataset, list(monitors)
-        self.clock, self.wall, self.settings, self.rig = clock, wall, settings, rig
+        self.clock, self.settings, self.rig = clock, settings, rig
         self.events, self.status = events, status
         self.session_tag = session_tag or time.strftime("%Y%m%d-%H%M%S")
         self.log_dir = can_log_dir(dataset.path)
@@ -91,10 +100,15 @@ class RecordSession:
         self._partial_logs: list[tuple[BusMonitor, Path]] = []
         self._episode_seed: int | None = None
         self._ready_deadline: float | None = None
+        self._ended = False
+        self.loop: Runner | None = None
+        self.controls = None
 
     def request_stop(self, why: str) -> None:
         """End the session at the next tick, discarding an unfinished episode (signal handlers call this)."""
         self._stop_reason = self._stop_reason or why
+        if self.loop is not None:
+            self.loop.request_stop(why)
 
     # ---- episodes ----------------------------------------------------------------------------------------
     def _start(self, quiet: bool = False) -> str | None:
@@ -257,58 +271,83 @@ class RecordSession:
     def _enough(self) -> bool:
         return self.settings.episodes is not None and len(self.summary.kept) >= self.settings.episodes
 
-    def run(self, controls) -> SessionSummary:
-        """Loop until quit, a stop request, or ``episodes`` kept; returns the summary."""
-        rec, period = self.recorder, self.recorder.period
-        lockstep = self.rig is not None
-        clock, wall = self.clock, self.wall
-        wall0, sim0 = wall.now(), clock.now()
-        pacer = Pacer(clock, period, resync=period)  # up to a period late: the samples stay on their grid
+    def _end(self, why: str | None = None) -> None:
+        """The session ends (``why``, when it was not said already): the loop stops before its next tick."""
+        if why is not None:
+            self.summary.ended_by = why
+        self._ended = True
+        if self.loop is not None:
+            self.loop.request_stop(self.summary.ended_by)
+
+    # ---- the loop's subscriber ---------------------------------------------------------------------------
+    def on_start(self, loop: Runner) -> None:
+        self.loop = loop
         if self.settings.auto:
-            self._ready_deadline = clock.now() + self.settings.ready_timeout
-        try:
-            while True:
-                if self._stop_reason is not None:
-                    if rec.recording:
-                        self._discard(f"stopped by {self._stop_reason} before keep")
-                    self.summary.ended_by = self._stop_reason
-                    break
-                if self._enough():
-                    self.summary.ended_by = f"{len(self.summary.kept)} episodes kept"
-                    break
-                if not self._handle(controls.poll()):
-                    break
-                if self.settings.auto and not rec.recording:
-                    problem = self._start(quiet=True)
-                    if problem is None:
-                        self._ready_deadline = clock.now() + self.settings.ready_timeout
-                    elif clock.now() > self._ready_deadline:
-                        raise DSSPError(f"{problem} (waited {self.settings.ready_timeout:g} s)")
-                if lockstep:
-                    self.rig.before_tick()
-                now = clock.now()
-                sample = rec.tick(now, scheduled=None if lockstep else pacer.next_tick)
-                if lockstep:
-                    self.rig.after_tick(period)
-                if self.status is not None:
-                    self.status(f"ep {self.dataset.n_episodes}  " + rec.status_line(sample)
-                                + f"  kept {len(self.summary.kept)} discarded {self.summary.discarded}")
-                if rec.recording and (self.settings.auto or self.settings.max_steps is not None):
-                    if self.settings.auto:
-                        self._auto_end()
-                    elif rec.steps >= self.settings.max_steps:
-                        self._keep("max steps")
-                if lockstep:
-                    if self.settings.pace:
-                        wall.sleep(wall0 + (clock.now() - sim0) / self.settings.pace - wall.now())
-                else:
-                    pacer.wait()
-        finally:
-            if rec.recording:  # an exception: nothing unconfirmed is kept
+            self._ready_deadline = self.clock.now() + self.settings.ready_timeout
+
+    def on_tick(self, tick: Tick) -> None:
+        """One tick of the loop: an automatic end (judged on the world after the last step: the task done, or
+        ``max_steps``), the operator's command, an automatic start, the sample, a ``max_steps`` keep."""
+        if self._ended:
+            return
+        rec = self.recorder
+        if self.settings.auto and rec.recording:
+            self._auto_end()
+        if self._enough():
+            self._end(f"{len(self.summary.kept)} episodes kept")
+            return
+        if not self._handle(self.controls.poll()):
+            self._end()
+            return
+        if self.settings.auto and not rec.recording:
+            problem = self._start(quiet=True)
+            if problem is None:
+                self._ready_deadline = self.clock.now() + self.settings.ready_timeout
+            elif self.clock.now() > self._ready_deadline:
+                raise DSSPError(f"{problem} (waited {self.settings.ready_timeout:g} s)")
+        sample = rec.tick(tick.record["time"], scheduled=tick.scheduled)
+        if self.status is not None:
+            self.status(f"ep {self.dataset.n_episodes}  " + rec.status_line(sample)
+                        + f"  kept {len(self.summary.kept)} discarded {self.summary.discarded}")
+        if rec.recording and not self.settings.auto and self.settings.max_steps is not None \
+                and rec.steps >= self.settings.max_steps:
+            self._keep("max steps")
+            if self._enough():
+                self._end(f"{len(self.summary.kept)} episodes kept")
+
+    def on_end(self, summary: dict) -> None:
+        """The loop ended: an unfinished episode is discarded (a stop request), or dropped quietly (an error)."""
+        rec = self.recorder
+        why = self._stop_reason or summary.get("ended_by") or "the loop ended"
+        if rec.recording:
+            if self._stop_reason is not None or not str(why).startswith("error"):
+                self._discard(f"stopped by {why} before keep")
+            else:  # an exception: nothing unconfirmed is kept
                 self._close_logs()
                 rec.abort()
                 self._drop_logs()
-            self.summary.n_episodes = self.dataset.n_episodes
+        if not self.summary.ended_by:
+            self.summary.ended_by = str(why)
+        self.summary.n_episodes = self.dataset.n_episodes
+
+    def run(self, controls) -> SessionSummary:
+        """The control loop (:class:`hardware.run_loop.Runner`) with the leader arm as its source and this session
+        as its subscriber, until quit, a stop request, or ``episodes`` kept; returns the summary.
+        ``controls.poll()`` gives the operator's next command (or None) once per tick."""
+        rec = self.recorder
+        self.controls = controls
+        rig = Rig(None, ListeningArms(self.monitors), rec.camera_to_base, clock=self.clock)
+        # up to a period late, the samples stay on their grid (a short stall is one late, flagged step)
+        settings = LoopSettings(rate_hz=rec.rate_hz, resync=rec.period)
+        runner = Runner(LeaderArm(self.monitors), rig, None, settings, subscribers=[self])
+        if self._stop_reason is not None:
+            runner.request_stop(self._stop_reason)
+        self.loop = runner
+        with rig:
+            try:
+                runner.run()
+            finally:
+                runner.close()
         return self.summary
 
 

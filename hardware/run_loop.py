@@ -23,6 +23,11 @@ Each tick:
 A fault (arm error or e-stop, a send failure, an error in the source) ends the loop in a hold: nothing is sent
 after it. Shapes: cloud (P, C) float32; state, action and command (dof,) in policy units.
 
+A source that commands nothing (:attr:`hardware.policies.PolicySource.commands` false: the leader arm of
+``dssp-record``, which drives its follower over the bus itself) runs the same loop without the safety layer: nothing
+is enabled, sent or held, the start waits for no stream (the subscribers — the recorder — judge the streams each
+tick), and the action is what the source reports for the log.
+
 Time: the tick times, the inputs' ages, the tick's deadline, the start-up waits and the pacing are read
 from the rig's ``clock`` (:mod:`hardware.clock`; ``time.monotonic`` by default), the clock the camera and the arms
 stamp their arrivals on. The latencies (``*_ms``) are compute cost, measured with ``time.perf_counter``
@@ -56,9 +61,12 @@ class LoopSettings:
     max_steps: int | None = None  # None: until stopped
     dry_run: bool = False  # compute actions, send nothing (the arms are not enabled)
     startup_timeout: float = 5.0  # s (of the runner's clock) to wait for the first frame and feedback
+    resync: float = 0.0  # s a tick may end late before the schedule starts again from now (hardware.pacing.Pacer)
 
     def __post_init__(self):
         check_rate(self.rate_hz)
+        if not 0.0 <= self.resync <= 10.0:
+            raise ConfigError(f"resync must be in [0, 10] s, got {self.resync!r}")
         if self.max_steps is not None and self.max_steps < 1:
             raise ConfigError(f"--max-steps must be at least 1, got {self.max_steps}")
 
@@ -94,7 +102,8 @@ class Runner:
         self.policy_ticks = 0
         self.event_counts: Counter = Counter()
         self.latencies: dict[str, list[float]] = {"cloud": [], "observe": [], "chunk": [], "tick": []}
-        self.pacer = Pacer(self.clock, self.period)  # resync at once: a late tick starts the schedule again
+        self.commanding = bool(source.commands)  # False: the loop only listens (no safety layer, nothing sent)
+        self.pacer = Pacer(self.clock, self.period, resync=settings.resync)
         self._rate = RateMeter()
 
     # ----------------------------------------------------------------- lifecycle
@@ -105,7 +114,14 @@ class Runner:
     def start(self) -> None:
         """Wait for the first frame (a source that needs the point cloud) and feedback, set up the safety layer,
         enable the arms (not in dry run), reset the source with the measured position. A stop requested before the
-        arms are enabled ends the start there: nothing is enabled or sent."""
+        arms are enabled ends the start there: nothing is enabled or sent. A source that commands nothing starts at
+        once (no stream awaited, no safety layer, the source reset with the feedback if there is any)."""
+        if not self.commanding:
+            state = self.robot.state()
+            self.source.reset(None if state is None else np.array(state.position, dtype=np.float64))
+            for subscriber in self.subscribers:
+                subscriber.on_start(self)
+            return
         timeout = self.settings.startup_timeout
         deadline = self.clock.now() + timeout
         if self.source.needs_cloud and self._wait(self.camera.latest, deadline) is None and self.stop_reason is None:
@@ -136,8 +152,8 @@ class Runner:
     # ----------------------------------------------------------------- one tick
     def tick(self) -> dict[str, Any]:
         """One control tick; returns its log record."""
-        assert self.safety is not None, "start() first"
-        t0 = self.clock.now()
+        assert self.safety is not None or not self.commanding, "start() first"
+        t0, scheduled = self.clock.now(), self.pacer.next_tick
         w0 = time.perf_counter()
         frame = self.camera.latest() if self.camera is not None else None
         state = self.robot.state()
@@ -195,6 +211,9 @@ class Runner:
                 deadline_missed = act.over_budget or elapsed > self.period
                 record["events"] = list(act.events)
         now = self.clock.now()
+        if not self.commanding:  # the source's action is a report; nothing is decided or sent
+            self._end_tick(record, w0, t0, scheduled, frame, cloud, new_chunk)
+            return record
         # a source that takes no point cloud is not gated by the camera: the frame's time is the tick's own
         camera_time = (frame.timestamp if frame else None) if needs_cloud else now
         try:
@@ -213,15 +232,19 @@ class Runner:
                 self.fault = self.safety.fault
             if decision.command is not None:
                 self._send(decision.command, record)
+        self._end_tick(record, w0, t0, scheduled, frame, cloud, new_chunk)
+        return record
+
+    def _end_tick(self, record: dict[str, Any], w0: float, t0: float, scheduled: float, frame, cloud, new_chunk) -> None:
+        """Count the tick and hand it to the subscribers."""
         record["tick_ms"] = 1e3 * (time.perf_counter() - w0)
         self.latencies["tick"].append(record["tick_ms"])
         self.holds += bool(record["held"])
         self.ticks += 1
         self._rate.mark(t0)
-        tick = Tick(record, frame, cloud, new_chunk, self)
+        tick = Tick(record, frame, cloud, new_chunk, self, scheduled)
         for subscriber in self.subscribers:
             subscriber.on_tick(tick)
-        return record
 
     def _send(self, command: np.ndarray, record: dict[str, Any]) -> None:
         record["command"] = command

@@ -176,3 +176,49 @@ def test_the_replay_is_the_loop_the_safety_layer_clips_a_jump(tmp_path):
     assert result["clips"] == steps - 3 and result["holds"] == 0  # from the jump on, every tick is a clipped step
     assert result["max_change"] == pytest.approx(0.5 - step)
     assert clock.now() == pytest.approx(5.0 + steps / 10.0)  # paced on its own clock: no wall time spent
+
+
+def test_a_source_that_commands_nothing_only_reports():
+    """The leader arm's shape (``commands`` false): the loop asks the source every tick and hands its report to the
+    subscribers, but enables, sends and holds nothing — even an action far outside every limit is never a command."""
+    from hardware.policies import Act, PolicySource
+    from hardware.subscribers import Subscriber
+
+    class Reporter(PolicySource):
+        name, needs_cloud, commands = "reporter", False, False
+
+        def act(self, cloud, state):
+            return Act(state + 5.0)
+
+    class Calls(IdealRobot):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            self.calls = []
+
+        def enable(self, timeout=2.0):
+            self.calls.append("enable")
+
+        def command(self, target):
+            self.calls.append("command")
+
+        def disable(self):
+            self.calls.append("disable")
+
+    class Seen(Subscriber):
+        def __init__(self):
+            self.ticks = []
+
+        def on_tick(self, tick):
+            self.ticks.append(tick)
+
+    clock = FakeClock(1.0)
+    robot = Calls(piper_description(1), np.zeros(7), clock=clock)
+    seen = Seen()
+    runner = Runner(Reporter(), Rig(None, robot, np.eye(4), SafetyConfig(disable_on_exit=True), clock=clock), None,
+                    LoopSettings(rate_hz=10.0, max_steps=6), subscribers=[seen])
+    summary = runner.run()
+    assert robot.calls == [] and summary["commands_sent"] == 0 and summary["holds"] == 0
+    assert summary["ticks"] == 6 and summary["ended_by"] == "max steps" and summary["fault"] is None
+    assert [t.record["command"] for t in seen.ticks] == [None] * 6
+    np.testing.assert_array_equal(seen.ticks[0].record["action"], np.full(7, 5.0))
+    assert [t.scheduled for t in seen.ticks] == pytest.approx(1.0 + 0.1 * np.arange(6))

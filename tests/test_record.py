@@ -12,7 +12,6 @@ import shutil
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -84,7 +83,7 @@ def test_leader_frames_decode_to_the_commanded_target():
 # ------------------------------------------------------------------------------------------------ end to end
 def test_record_kill_mid_episode_then_train(tmp_path, capsys):
     """Real time: a recording process killed mid-episode; paced at ``--sim-speed 3`` (2 s an episode), it is
-    killed 0.8 s into its second one."""
+    killed as soon as it says its second episode is recording (the episode's CAN log is open by then)."""
     out = tmp_path / "demo.zarr"
     assert record_main(["--out", str(out), "--auto", "--episodes", "3", "--quiet"]) == 0
     printed = capsys.readouterr().out
@@ -101,8 +100,7 @@ def test_record_kill_mid_episode_then_train(tmp_path, capsys):
     try:
         for line in proc.stdout:
             lines.append(line.strip())
-            if line.startswith("episode 4: recording"):
-                time.sleep(0.8)  # an episode takes 6 s of simulated time, 2 s at --sim-speed 3
+            if line.startswith("episode 4: recording"):  # 6 s of simulated time, 2 s at --sim-speed 3, to go
                 break
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=20)
@@ -149,7 +147,7 @@ def test_record_kill_mid_episode_then_train(tmp_path, capsys):
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP], ids=["SIGTERM", "SIGHUP"])
 def test_a_signal_discards_the_unfinished_episode(tmp_path, sig):
     """Real time: a signal into a recording process; paced at ``--sim-speed 4`` (1.5 s an episode), it is
-    signalled 0.3 s into its second one. Any stop signal (here also a closed terminal's SIGHUP) ends the session
+    signalled as soon as it says its second episode is recording. Any stop signal (here also a closed terminal's SIGHUP) ends the session
     the same way; the exit code is 128 + the signal's number."""
     out = tmp_path / "demo.zarr"
     proc = subprocess.Popen(
@@ -160,7 +158,6 @@ def test_a_signal_discards_the_unfinished_episode(tmp_path, sig):
         for line in proc.stdout:
             lines.append(line.strip())
             if line.startswith("episode 1: recording"):
-                time.sleep(0.3)
                 proc.send_signal(sig)
         proc.wait(timeout=20)
     finally:
@@ -320,7 +317,7 @@ def test_bad_input_is_one_line(tmp_path, capsys, args, message):
 # ------------------------------------------------------------------------------------------------ the robot's loop
 def test_the_robot_loop_on_its_clock(tmp_path):
     """The robot's path (no lockstep rig): a follower and a leader on one virtual bus heard by a bus monitor, a
-    camera, the session pacing itself. On a manual clock on which the devices move while the loop sleeps,
+    camera, the session pacing itself — ``dssp-run``'s loop with the leader arm as its source. On a manual clock on which the devices move while the loop sleeps,
     every time is exact: ticks one period apart, every stream fresh, and the one tick that started late
     (the tick before it took 1.6 periods) is flagged, with the camera frame it repeated."""
     import uuid
@@ -378,6 +375,15 @@ def test_the_robot_loop_on_its_clock(tmp_path):
                                 events=events.append, status=status)
         summary = session.run(Scripted(session, lambda s: None))
     assert summary.kept == [0], events
+    # dssp-run's loop, the leader arm its source, the followers heard and never commanded
+    from dssp_core.errors import ArmError
+    from hardware.policies.leader_arm import LeaderArm
+
+    loop = session.loop
+    assert isinstance(loop.source, LeaderArm) and loop.sent == 0 and loop.ended_by == "1 episodes kept"
+    assert loop.ticks >= 12 and loop.summary()["commands_sent"] == 0
+    with pytest.raises(ArmError, match="only listens"):
+        loop.robot.command(np.zeros(7))
     buffer = ReplayBuffer.load(tmp_path / "rt.zarr", extras=True)
     ep, info = buffer.episode(0), buffer.attrs["episode_info"][0]
     assert ep.n_steps == 12 and ep.point_cloud.shape == (12, 128, 3)
@@ -465,7 +471,7 @@ def test_a_second_recording_session_is_refused_before_any_device_opens(tmp_path,
     from conftest import one_error_line
 
     opened = []
-    monkeypatch.setattr(TeleopRigs, "open", lambda self, task, seed: opened.append(task))
+    monkeypatch.setattr(TeleopRigs, "open", lambda self, task, seed, pace=None: opened.append(task))
     out = tmp_path / "d.zarr"
     held = dataset_lock(out, doing="recorded into")  # the first session
     try:

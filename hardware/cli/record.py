@@ -65,9 +65,10 @@ class SimulatedRig(Protocol):
     def default_cloud_config(self): ...
     """The simulation's point-cloud settings (a :class:`~dssp_data.observation.PointCloudConfig`)."""
 
-    def open(self, task: str, seed: int): ...
-    """A rig (``channel``, ``camera``, ``clock``, ``control_rate_hz``, ``start(monitor)``, ``stop()``) for
-    ``task`` from scene ``seed``; raises ConfigError naming the task when there is no such task."""
+    def open(self, task: str, seed: int, pace: float | None = None): ...
+    """A rig (``channel``, ``camera``, ``clock`` — whose sleep moves the simulation —, ``control_rate_hz``,
+    ``start(monitor)``, ``stop()``) for ``task`` from scene ``seed``, run at ``pace`` simulated seconds per wall
+    second (None: as fast as possible); raises ConfigError naming the task when there is no such task."""
 
 
 def parse_args(argv, sim: SimulatedRig | None = None, prog: str = "dssp-record"):
@@ -301,7 +302,8 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
     rig = None
     if sim_can:
         seed = args.seed if args.seed is not None else _next_sim_seed(args.out)
-        rig = args.sim_rig.open(task, seed)
+        pace = args.sim_speed if args.sim_speed is not None else (0.0 if args.auto else 1.0)
+        rig = args.sim_rig.open(task, seed, pace or None)
         stack.callback(rig.stop)
         clock = rig.clock
         rate = args.rate or recorded_rate or rig.control_rate_hz
@@ -372,9 +374,7 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
     if dataset.calibration_changed:
         console.event("note: the camera calibration differs from the dataset's; it is stored with this session")
 
-    pace = args.sim_speed if args.sim_speed is not None else (0.0 if args.auto else 1.0)
-    settings = SessionSettings(max_steps=args.max_steps, auto=args.auto, episodes=args.episodes,
-                               pace=pace or None, task=task)
+    settings = SessionSettings(max_steps=args.max_steps, auto=args.auto, episodes=args.episodes, task=task)
     console.event(f"recording into {args.out} ({dataset.n_episodes} episodes so far) at {float(rate):g} Hz, "
                   f"action = {convention}" + ("" if args.auto else "; commands: s start, k keep, d discard, q quit"))
     return RecordSession(recorder, dataset, monitors, clock, settings, rig=rig, events=console.event,

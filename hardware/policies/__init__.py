@@ -3,6 +3,7 @@
     runner = Runner(ModelPolicy(onnx_policy, rate_hz=10), rig, cloud_config, settings)   # dssp-run, dssp-sim eval
     runner = Runner(RecordedEpisode.load("pick.zarr", 3), rig, None, settings)             # dssp-replay
     runner = Runner(open_policy("hold"), rig, cloud_config, settings)                      # dssp-run --policy hold
+    runner = Runner(LeaderArm(monitors), rig, None, settings, subscribers=[session])       # dssp-record
 
 The loop (:class:`hardware.run_loop.Runner`) reads the camera and the arms, asks its source for an action, passes
 the action through the safety layer and sends the command; what the source is — the exported model, a recorded
@@ -11,6 +12,8 @@ episode, the arm held where it is — changes nothing else. A source says whethe
 a robot it does not fit before anything opens (:meth:`~PolicySource.check`), is reset with the arm's measured
 position when the loop starts (:meth:`~PolicySource.reset`), gives one :class:`Act` per tick
 (:meth:`~PolicySource.act`), and may run out (:attr:`~PolicySource.done`: the loop then ends, ``ended by: done``).
+A source whose arms are driven by something else (:attr:`PolicySource.commands` false: the teleoperation leader
+arm, :mod:`hardware.policies.leader_arm`) only reports what that is: the loop then commands nothing.
 
 ``dssp-run --policy NAME[:ARG]`` runs the sources of :data:`REGISTRY` by name; a new one is one file in this
 folder and one line in :data:`REGISTRY` (hardware/README.md, "Policy sources", has the worked example,
@@ -57,7 +60,9 @@ class PolicySource:
 
     ``name`` goes into the run's log; ``needs_cloud``: the loop builds the point cloud for :meth:`act` (and holds
     while the camera is stale or the cloud empty); without it ``act`` gets None and the camera does not gate the
-    tick; ``control_rate_hz``: the rate the source was made for (a model's training data, a recording), or None.
+    tick; ``control_rate_hz``: the rate the source was made for (a model's training data, a recording), or None;
+    ``commands``: the loop sends the action through the safety layer to the arms (False: the arms are driven by
+    something else, the action is a report — the loop enables, sends and holds nothing).
     :meth:`act` may raise the runtime's refusals (``NonFiniteObservation``, ``ObservationOutOfRange``: no
     observation; ``ChunkOutOfRange``: no action): the loop holds and goes on; any other exception is a fault.
     """
@@ -65,13 +70,15 @@ class PolicySource:
     name: str = "policy"
     needs_cloud: bool = True
     control_rate_hz: float | None = None
+    commands: bool = True
 
     def check(self, description: RobotDescription, cloud_config: PointCloudConfig | None) -> None:
         """Refuse (ConfigError, one line) a robot or point-cloud pipeline this source does not fit — called before
         any device opens. The default takes any robot."""
 
-    def reset(self, state: np.ndarray) -> None:
-        """The loop starts: ``state`` (dof,) is the arm's measured position."""
+    def reset(self, state: np.ndarray | None) -> None:
+        """The loop starts: ``state`` (dof,) is the arm's measured position (None only for a source that commands
+        nothing, started before any feedback came)."""
 
     def act(self, cloud: np.ndarray | None, state: np.ndarray) -> Act:
         """The action for this tick from ``cloud`` (P, C) float32 (None unless :attr:`needs_cloud`) and the measured

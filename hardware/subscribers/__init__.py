@@ -39,7 +39,8 @@ class Tick:
     frame: the camera frame the tick read (None: none yet);
     cloud: the point cloud (P, C) float32 the policy saw, or None (no observation this tick);
     chunk: a new chunk's actions to come (H - offset, A) when the tick started one, else None;
-    loop: the loop itself, for what it counts (``ticks``, ``holds``, ``latencies``, ``event_counts``, ``rate()``).
+    loop: the loop itself, for what it counts (``ticks``, ``holds``, ``latencies``, ``event_counts``, ``rate()``);
+    scheduled: when the tick was due on the loop's clock (``record["time"]`` later than it: the tick started late).
     """
 
     record: dict[str, Any]
@@ -47,6 +48,7 @@ class Tick:
     cloud: np.ndarray | None
     chunk: np.ndarray | None
     loop: Runner
+    scheduled: float
 
 
 class Subscriber:
