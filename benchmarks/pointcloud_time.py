@@ -4,7 +4,7 @@
 
 Frames come from the simulated tabletop camera's renderer (``hardware.camera.tabletop``: table, boxes, 1 mm
 depth noise, 0.2 % invalid pixels; a new noise draw per frame), seen from the simulated camera pose, and
-go through ``hardware.pointcloud.frame_to_cloud`` with the default ``PointCloudConfig``. Prints the
+go through ``dssp_data.pointcloud.frame_to_cloud`` with the default ``PointCloudConfig``. Prints the
 config and a Markdown table of p50 / p95 milliseconds per stage and in total over the repeats (after a
 few warm-up frames; the first call, which builds the per-camera ray cache, is reported on its own).
 Rendering is not part of the measured pipeline. Needs numpy and fpsample only.
@@ -20,12 +20,12 @@ import time
 
 import numpy as np
 
-from hardware.camera.base import DepthFrame
+from dssp_data.pointcloud.depth_frame import DepthFrame
 from dssp_core.cli_runner import run_cli
 from dssp_core.output_guard import check_output_file, write_output_text
 from hardware.camera.tabletop import SimCamera
-from hardware.pointcloud import PointCloudConfig, frame_to_cloud
-from hardware.pointcloud.pipeline import STAGES
+from dssp_data.pointcloud import PointCloudConfig, frame_to_cloud
+from dssp_data.pointcloud.pipeline import STAGES
 
 
 def main(argv: list[str] | None = None) -> int:

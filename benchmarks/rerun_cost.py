@@ -3,7 +3,7 @@
     python benchmarks/rerun_cost.py [--ticks 300] [--rate 10] [--block 25] [--json PATH [--force]]
 
 A paced loop at ``--rate`` Hz does each tick's real work — a 640x480 L515-like depth frame from the simulated
-tabletop camera through ``hardware.pointcloud.frame_to_cloud`` (1024 points) — and, in alternate blocks of
+tabletop camera through ``dssp_data.pointcloud.frame_to_cloud`` (1024 points) — and, in alternate blocks of
 ``--block`` ticks, also queues that tick's views as ``dssp-run`` does (depth, cloud, a 7-value state and
 command, a 16-step chunk every 8 ticks, held, latencies; saved to a temporary .rrd), so both conditions see
 the same machine load. Prints the p50 / p95 of the tick's work with and without the views, their difference
@@ -24,9 +24,9 @@ from bench_output import check_json, emit
 
 from dssp_core.cli_runner import run_cli
 from dssp_data.rerun_views import open_views
-from hardware.camera.base import DepthFrame
+from dssp_data.pointcloud.depth_frame import DepthFrame
 from hardware.camera.tabletop import SimCamera
-from hardware.pointcloud import PointCloudConfig, frame_to_cloud
+from dssp_data.pointcloud import PointCloudConfig, frame_to_cloud
 
 
 def main(argv: list[str] | None = None) -> int:

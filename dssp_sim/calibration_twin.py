@@ -38,7 +38,8 @@ from dssp_sim.mujoco_arm import MujocoPiper
 from dssp_sim.tasks import HOME
 from hardware.calibration.charuco import CharucoBoardSpec, board_image
 from hardware.calibration.hand_eye import EYE_IN_HAND, EYE_TO_HAND, MODES, invert
-from hardware.camera.base import Camera, DepthFrame, Intrinsics
+from dssp_data.pointcloud.depth_frame import DepthFrame, Intrinsics
+from hardware.camera.base import Camera
 from hardware.camera.software import SoftwareDepthCamera
 from hardware.clock import FakeClock
 from hardware.piper.arm import PiperArm

@@ -1,7 +1,7 @@
 """Expert demonstrations in the simulation, written as a DP3 zarr dataset the trainer reads.
 
 Per control tick (10 Hz): the env is rendered through :class:`~dssp_sim.mujoco_camera.MujocoCamera` and the
-point-cloud pipeline (``hardware.pointcloud``, the one the robot runs) into point_cloud (P, 3); the
+point-cloud pipeline (``dssp_data.pointcloud``, the one the robot runs) into point_cloud (P, 3); the
 measured arm state (7,) [J1..J6 rad, gripper opening 0..1] is ``state``; the expert's target for this
 tick (7,), the command sent to the arm, is ``action``. Only successful episodes are kept; each kept
 episode is appended as soon as it ends (crash-safe: ``ReplayBufferWriter``).
@@ -31,7 +31,7 @@ from dssp_core.output_guard import OWN, OutputKind, check_append
 from dssp_data.attributes import zarr_attrs, zarr_generator
 from dssp_sim.mujoco_camera import MujocoCamera
 from dssp_sim.settings import cloud_config_for, sim_attrs
-from hardware.pointcloud import frame_to_cloud
+from dssp_data.pointcloud import frame_to_cloud
 
 SIM_DATASET = OutputKind("a simulation dataset", "dssp-sim collect", marker=False,
                          signature=lambda p: zarr_generator(p) == "dssp_sim.collect")

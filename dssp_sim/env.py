@@ -34,7 +34,7 @@ import numpy as np  # noqa: E402
 from dssp_sim.mjcf import CAMERA_NAME, TIMESTEP, ArmIndex, scene_xml  # noqa: E402
 from dssp_sim.tasks import HOME, HOME_TOLERANCE, START_JITTER, Task, TaskStatus, make_task  # noqa: E402
 from dssp_sim.settings import render_size_for  # noqa: E402
-from hardware.camera.base import Intrinsics  # noqa: E402
+from dssp_data.pointcloud.depth_frame import Intrinsics
 from hardware.piper.limits import (  # noqa: E402
     GRIPPER_STROKE_MAX,
     GRIPPER_STROKE_MIN,

@@ -5,7 +5,7 @@
     result = evaluate("models/tap", "tap", 20, smoothing="ensemble", ensemble_every=1)   # ACT's temporal ensembling
 
 Each episode: the MuJoCo env is reset with its seed; its depth render goes through the RealSense software
-device and the point-cloud pipeline (:class:`~dssp_sim.mujoco_camera.MujocoCamera`, ``hardware.pointcloud``);
+device and the point-cloud pipeline (:class:`~dssp_sim.mujoco_camera.MujocoCamera`, ``dssp_data.pointcloud``);
 the runtime (``dssp_deploy.OnnxPolicy``) runs the control loop of ``dssp-run`` (``hardware.run_loop.Runner``
 with the model as its policy source, ``hardware.policies.exported_model``: the history every tick, a chunk every H_a
 ticks, the safety layer); commands go as Piper CAN frames on a python-can ``virtual`` bus to
@@ -46,7 +46,7 @@ from dssp_sim.settings import cloud_config_for
 from hardware.pacing import latency_stats
 from hardware.piper.arm import PiperArm
 from hardware.piper.piper_robot import PiperRobot
-from hardware.pointcloud import frame_to_cloud
+from dssp_data.pointcloud import frame_to_cloud
 from hardware.policies import PolicySource
 from hardware.policies.exported_model import ModelPolicy
 from hardware.rig import Rig

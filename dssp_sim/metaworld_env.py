@@ -7,7 +7,7 @@
 
 The same policy-level interface as :class:`~dssp_sim.env.PiperEnv` (``reset``, ``state``, ``step``, ``status``,
 ``render_depth``), so :mod:`dssp_sim.collect` writes its demonstrations and :mod:`dssp_sim.evaluate` runs a model on
-it through the runtime, and the clouds come from the robot's own point-cloud pipeline (``hardware.pointcloud``)
+it through the runtime, and the clouds come from the robot's own point-cloud pipeline (``dssp_data.pointcloud``)
 through :class:`~dssp_sim.mujoco_camera.MujocoCamera`.
 
 DP3's protocol, as its MetaWorld wrapper and demonstration script do it:
@@ -56,7 +56,7 @@ from dssp_core.errors import ConfigError
 from dssp_data.observation import ObservationContract, PointCloudConfig, VectorLayout  # noqa: E402
 from dssp_sim.env import DepthRenderThread  # noqa: E402
 from dssp_sim.tasks import TaskStatus  # noqa: E402
-from hardware.camera.base import Intrinsics  # noqa: E402
+from dssp_data.pointcloud.depth_frame import Intrinsics
 
 PREFIX = "metaworld/"
 # This project's memory variant (not MetaWorld's own): the goal marker is a cue shown for the first CUE_STEPS steps of

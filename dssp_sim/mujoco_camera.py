@@ -3,7 +3,7 @@
 :class:`MujocoCamera` is a :class:`hardware.camera.base.Camera` whose frames are rendered from a
 :class:`~dssp_sim.env.PiperEnv` and injected into a software RealSense depth sensor, so the same
 conversion code as a live L515 turns them into ``DepthFrame`` s, and the same point-cloud pipeline
-(``hardware.pointcloud``) makes the clouds — for collected datasets and at evaluation alike.
+(``dssp_data.pointcloud``) makes the clouds — for collected datasets and at evaluation alike.
 
 Stepped: ``capture()`` renders the env as it is now (the caller advances the physics).
 """
@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from hardware.camera.base import Camera, DepthFrame
+from dssp_data.pointcloud.depth_frame import DepthFrame
+from hardware.camera.base import Camera
 from hardware.camera.software import SoftwareDepthCamera
 from dssp_core.errors import CameraError
 

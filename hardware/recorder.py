@@ -7,7 +7,7 @@
 
 Per tick (shapes in policy units, dof = 7 per arm, left then right):
 
-- the camera's newest frame -> point cloud (P, C) through ``hardware.pointcloud.frame_to_cloud``, the
+- the camera's newest frame -> point cloud (P, C) through ``dssp_data.pointcloud.frame_to_cloud``, the
   pipeline the robot runs at deployment (a repeated frame reuses its cloud);
 - every follower's feedback -> ``state`` (dof,) [J1..J6 rad, gripper opening];
 - every leader's latest command -> the command (dof,), the ``action`` of the ``leader_command``
@@ -50,9 +50,10 @@ from dssp_data.rerun_views import TickViews
 from dssp_core.errors import ConfigError, DSSPError
 from dssp_core.schema import Settings, setting
 from hardware.bus_monitor import BusMonitor, oldest
-from hardware.camera.base import Camera, DepthFrame
+from dssp_data.pointcloud.depth_frame import DepthFrame
+from hardware.camera.base import Camera
 from hardware.pacing import RateMeter, latency_stats
-from hardware.pointcloud import EmptyCloudError, PointCloudConfig, frame_to_cloud
+from dssp_data.pointcloud import EmptyCloudError, PointCloudConfig, frame_to_cloud
 
 _NAN = float("nan")
 

@@ -10,7 +10,7 @@ Each tick:
 1. take the newest camera frame and the newest joint feedback; if the feedback, or the camera of a source that
    needs the point cloud, is missing or stale, **hold** (resend the last safe target) and leave the source alone
    (a frozen camera must not fill the model's memory with copies of one frame);
-2. otherwise build the point cloud (``hardware.pointcloud``, the same pipeline that builds datasets) when the
+2. otherwise build the point cloud (``dssp_data.pointcloud``, the same pipeline that builds datasets) when the
    source needs it, and ask the source for the action (:mod:`hardware.policies`: the exported model —
    ``dssp_deploy.ChunkedControl``, the history every tick, a new chunk every H_a ticks —, a recorded episode, the
    arm held); an empty cloud, or a cloud or joint state with NaN/inf or a value far outside the model's training
@@ -48,7 +48,7 @@ from dssp_deploy.ranges import ChunkOutOfRange, ObservationOutOfRange
 from dssp_core.errors import CameraError, ConfigError, DSSPError, NonFiniteObservation
 from hardware.robot import Robot, check_rate
 from hardware.pacing import Pacer, RateMeter, latency_stats
-from hardware.pointcloud import EmptyCloudError, PointCloudConfig, frame_to_cloud
+from dssp_data.pointcloud import EmptyCloudError, PointCloudConfig, frame_to_cloud
 from hardware.policies import PolicySource
 from hardware.rig import Rig
 from hardware.safety import Safety, SafetyViolation

@@ -17,7 +17,7 @@ from hardware.calibration.charuco import CharucoBoardSpec, detect_board
 from hardware.calibration.hand_eye import distance, invert, solve_hand_eye
 from hardware.calibration.pose_plan import auto_poses, load_poses
 from hardware.calibration.tour import CalibrationTour
-from hardware.pointcloud.extrinsics import load_camera_to_gripper, load_extrinsics, save_camera_to_gripper, save_extrinsics
+from dssp_data.pointcloud.extrinsics import load_camera_to_gripper, load_extrinsics, save_camera_to_gripper, save_extrinsics
 from hardware.rig import Rig
 from hardware.run_loop import LoopSettings, Runner
 from hardware.safety import SafetyConfig

@@ -11,7 +11,7 @@ import pytest
 from dssp_core.errors import ConfigError
 
 from hardware.camera import open_camera, spec_forms
-from hardware.camera.base import Intrinsics
+from dssp_data.pointcloud.depth_frame import Intrinsics
 from hardware.camera.profiles import CameraProfile, load_profile, parse_version, profile_names
 from hardware.camera.realsense import (
     RealSenseCamera,

@@ -14,9 +14,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from dssp_core.errors import ConfigError
-from hardware.camera.base import DepthFrame, Intrinsics
+from dssp_data.pointcloud.depth_frame import DepthFrame, Intrinsics
 from dssp_core.errors import CalibrationError, CameraError
-from hardware.pointcloud import (
+from dssp_data.pointcloud import (
     EmptyCloudError,
     PointCloudConfig,
     deproject,
@@ -27,7 +27,7 @@ from hardware.pointcloud import (
     validate_extrinsics,
     voxel_downsample,
 )
-from hardware.pointcloud.pipeline import voxel_cells
+from dssp_data.pointcloud.pipeline import voxel_cells
 
 SMALL = Intrinsics(width=96, height=64, fx=83.3, fy=79.1, ppx=45.2, ppy=30.7)
 UNIT = 0.00025
@@ -376,7 +376,7 @@ def test_config_from_dict_rejects_unknown_keys():
 
 def test_pointcloud_imports_without_pyrealsense2():
     code = ("import sys; sys.modules['pyrealsense2'] = None; sys.modules['open3d'] = None\n"
-            "import hardware.pointcloud, hardware.camera\n"
+            "import dssp_data.pointcloud, hardware.camera\n"
             "from hardware.camera.tabletop import SimCamera\n"
             "print('ok')")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)

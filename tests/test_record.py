@@ -327,7 +327,7 @@ def test_the_robot_loop_on_its_clock(tmp_path):
     from hardware.camera.tabletop import SimCamera
     from hardware.leader import ScriptedLeader
     from hardware.piper.can_simulator import SimulatedPiper
-    from hardware.pointcloud import PointCloudConfig
+    from dssp_data.pointcloud import PointCloudConfig
     from hardware.record_session import RecordSession, SessionSettings
     from hardware.recorder import Recorder, StampedCamera
 

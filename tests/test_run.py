@@ -33,7 +33,7 @@ from hardware.piper.arm import PiperArm
 from hardware.piper.can_simulator import SimulatedPiper
 from hardware.piper.limits import GRIPPER_STROKE_MAX, JointLimits
 from hardware.piper.piper_robot import PiperRobot
-from hardware.pointcloud import PointCloudConfig
+from dssp_data.pointcloud import PointCloudConfig
 from hardware.policies.exported_model import ModelPolicy
 from hardware.rig import Rig
 from hardware.robot import Robot

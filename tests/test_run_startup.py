@@ -114,7 +114,7 @@ def test_start_up_gives_up_on_its_clock(arm_export):
     clock, polling on it; on a manual clock that takes no wall time, and the time it gave up at is exact."""
     from dssp_deploy.onnx_policy import OnnxPolicy
     from hardware.piper.limits import JointLimits
-    from hardware.pointcloud import PointCloudConfig
+    from dssp_data.pointcloud import PointCloudConfig
     from hardware.rig import Rig
     from hardware.policies.exported_model import ModelPolicy
     from hardware.run_loop import LoopSettings, Runner

@@ -231,7 +231,7 @@ def rig_loop(arm_export, tmp_path, monkeypatch, edit_cloud, pause: float = 0.0):
     from hardware.camera.tabletop import SimCamera
     from hardware.piper.limits import JointLimits
     from hardware.piper.piper_robot import open_robot
-    from hardware.pointcloud import PointCloudConfig
+    from dssp_data.pointcloud import PointCloudConfig
     from hardware.policies.exported_model import ModelPolicy
     from hardware.rig import Rig
     from hardware.safety import SafetyConfig

@@ -17,7 +17,7 @@ import dssp_train.config  # noqa: F401
 import hardware.calibration.charuco  # noqa: F401  (the ChArUco board's schema)
 import hardware.camera.profiles
 import dssp_data.observation  # noqa: F401
-import hardware.pointcloud.extrinsics  # noqa: F401
+import dssp_data.pointcloud.extrinsics  # noqa: F401
 import hardware.recorder  # noqa: F401
 import hardware.safety  # noqa: F401
 from dssp_core.errors import ConfigError
@@ -208,7 +208,7 @@ def test_every_number_has_a_physical_range():
 
 
 def test_unknown_and_missing_keys():
-    from hardware.pointcloud.extrinsics import CalibrationFile
+    from dssp_data.pointcloud.extrinsics import CalibrationFile
     from hardware.safety import SafetyConfig
 
     with pytest.raises(ConfigError, match="unknown safety setting.*max_joint_stp"):

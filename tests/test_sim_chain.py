@@ -19,7 +19,7 @@ from dssp_sim.mujoco_camera import MujocoCamera
 from dssp_data.replay_buffer import ReplayBuffer
 from hardware.piper.arm import PiperArm
 from hardware.piper.piper_robot import PiperRobot
-from hardware.pointcloud import frame_to_cloud
+from dssp_data.pointcloud import frame_to_cloud
 
 
 def test_wilson_interval_matches_the_formula_at_known_points():

@@ -12,7 +12,7 @@ from dssp_sim.env import CONTROL_RATE_HZ, DEPTH_MAX_M, DEPTH_MIN_M, DEPTH_UNIT, 
 from dssp_sim.experts import make_expert
 from dssp_data.arm_kinematics import flange_pose as dh_forward
 from dssp_sim.tasks import HOME, SLOT_PAD_HALF, SwapTask
-from hardware.camera.base import Intrinsics
+from dssp_data.pointcloud.depth_frame import Intrinsics
 from hardware.piper.limits import GRIPPER_STROKE_MAX, JOINT_LOWER, JOINT_UPPER, JointLimits
 
 

@@ -10,7 +10,7 @@ The board frame is OpenCV's: origin at the board's top-left outer corner as the 
 squares' rows (``squares_x``), y down the columns, z into the board (away from its printed face); metres.
 A detection is refused, with its reason, when it has fewer than ``min_corners`` ChArUco corners, when those
 corners lie on one line, or when the pose reprojects worse than ``max_reprojection_px`` (RMS over the corners).
-The intrinsics are the frame's (:class:`hardware.camera.base.Intrinsics`, no distortion: colour aligned to
+The intrinsics are the frame's (:class:`dssp_data.pointcloud.depth_frame.Intrinsics`, no distortion: colour aligned to
 depth carries the depth stream's intrinsics, so the pose is in the depth camera's optical frame — the frame the
 point clouds are deprojected in).
 """
@@ -26,7 +26,7 @@ import numpy as np
 
 from dssp_core.errors import ConfigError
 from dssp_core.schema import Settings, setting
-from hardware.camera.base import Intrinsics
+from dssp_data.pointcloud.depth_frame import Intrinsics
 
 DICTIONARIES = tuple(f"DICT_{n}X{n}_{k}" for n in (4, 5, 6, 7) for k in (50, 100, 250, 1000))
 """The ArUco dictionaries a board may use (OpenCV's predefined ones, by name)."""

@@ -26,7 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from dssp_core.errors import ArmError, CameraError, ConfigError
-from hardware.camera.base import Camera, DepthFrame
+from dssp_data.pointcloud.depth_frame import DepthFrame
+from hardware.camera.base import Camera
 from hardware.clock import Clock
 from hardware.policies import Act, PolicySource
 from hardware.robot import ARM_DOF

@@ -13,7 +13,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from dssp_core.errors import CameraError
-from hardware.camera.base import Camera, DepthFrame, Intrinsics
+from dssp_data.pointcloud.depth_frame import DepthFrame, Intrinsics
+from hardware.camera.base import Camera
 from hardware.camera.profiles import CameraProfile, load_profile, profile_names
 from hardware.camera.realsense import RealSenseCamera
 

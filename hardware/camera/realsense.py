@@ -22,7 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hardware.camera.base import Camera, DepthFrame, Intrinsics
+from dssp_data.pointcloud.depth_frame import DepthFrame, Intrinsics
+from hardware.camera.base import Camera
 from hardware.camera.profiles import CameraProfile, load_profile, parse_version
 from dssp_core.errors import CameraError
 

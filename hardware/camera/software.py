@@ -19,7 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hardware.camera.base import Camera, DepthFrame, Intrinsics
+from dssp_data.pointcloud.depth_frame import DepthFrame, Intrinsics
+from hardware.camera.base import Camera
 from hardware.camera.realsense import depth_frame_from_rs, import_rs
 from dssp_core.errors import CameraError
 from dssp_core.files import atomic_write

@@ -25,7 +25,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from dssp_core.errors import CameraError
-from hardware.camera.base import Camera, DepthFrame, Intrinsics
+from dssp_data.pointcloud.depth_frame import DepthFrame, Intrinsics
+from hardware.camera.base import Camera
 from hardware.camera.profiles import CameraProfile, load_profile
 from hardware.camera.software import SoftwareDepthCamera
 

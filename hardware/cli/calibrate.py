@@ -8,7 +8,7 @@ The arm visits each pose through the control loop and its safety layer (:mod:`ha
 frame is taken once it has settled, the board is detected in each (:mod:`hardware.calibration.charuco`) and the
 camera solved for with OpenCV's hand-eye methods (:mod:`hardware.calibration.hand_eye`). It prints the result, the
 methods' disagreement and a table of the views (corners, reprojection, residual), then writes ``--out``:
-eye-to-hand the ``camera_to_base`` file ``dssp-run --extrinsics`` reads (:func:`hardware.pointcloud.save_extrinsics`),
+eye-to-hand the ``camera_to_base`` file ``dssp-run --extrinsics`` reads (:func:`dssp_data.pointcloud.save_extrinsics`),
 eye-in-hand a ``camera_to_gripper`` file of its own. A result that may not be trusted is refused with one line
 saying what is wrong and what to do, and nothing is written. ``dssp-sim calibrate`` (same flags,
 :mod:`dssp_sim.calibration_twin`) runs this on the MuJoCo twin, handed in as a :class:`SimulatedCalibrationRig`
@@ -128,7 +128,7 @@ def _calibrate(args, stops: Stops, sim) -> int:
     from hardware.calibration.tour import CalibrationTour  # deferred: loads numpy
     from hardware.clock import REAL_CLOCK  # deferred: loads numpy
     from hardware.piper.limits import MAX_JOINT_SPEED  # deferred: loads numpy
-    from hardware.pointcloud.extrinsics import save_camera_to_gripper, save_extrinsics  # deferred: loads numpy
+    from dssp_data.pointcloud.extrinsics import save_camera_to_gripper, save_extrinsics  # deferred: loads numpy
     from hardware.rig import Rig  # deferred: loads numpy
     from hardware.run_loop import LoopSettings, Runner  # deferred: loads onnxruntime
     from hardware.safety import SafetyConfig  # deferred: loads numpy

@@ -253,7 +253,7 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
     from dssp_data.rerun_views import open_views  # deferred: loads numpy
     from hardware.bus_monitor import BusMonitor  # deferred: loads numpy
     from hardware.clock import REAL_CLOCK  # deferred: loads numpy
-    from hardware.pointcloud import PointCloudConfig, load_extrinsics  # deferred: loads numpy
+    from dssp_data.pointcloud import PointCloudConfig, load_extrinsics  # deferred: loads numpy
     from hardware.record_session import RecordSession, SessionSettings  # deferred: loads numpy
     from hardware.recorder import Recorder, RecordThresholds, StampedCamera  # deferred: loads numpy
     from hardware.robot import check_rate  # deferred: loads numpy

@@ -208,7 +208,7 @@ def model_source(args, described, cloud_config, safety_config, stops: Stops):
     from dssp_deploy.control_loop import check_ensemble_every, smoothing_options  # deferred: loads numpy
     from dssp_deploy.manifest import observation_of  # deferred: loads numpy
     from dssp_deploy.onnx_policy import OnnxPolicy  # deferred: loads numpy
-    from hardware.pointcloud import PointCloudConfig  # deferred: loads numpy
+    from dssp_data.pointcloud import PointCloudConfig  # deferred: loads numpy
     from hardware.policies.exported_model import ModelPolicy  # deferred: loads numpy
 
     if not args.quiet and sys.stderr.isatty():  # a progress note for a person; logs and scripts get only the result
@@ -269,7 +269,7 @@ def _run(args, stops: Stops) -> int:
     from hardware.camera import TABLETOP, open_camera  # deferred: loads numpy
     from hardware.can_log import BusRecorder  # deferred: loads can
     from hardware.piper.piper_robot import open_robot  # deferred: loads can
-    from hardware.pointcloud import PointCloudConfig, load_extrinsics  # deferred: loads can
+    from dssp_data.pointcloud import PointCloudConfig, load_extrinsics  # deferred: loads can
     from dssp_data.rerun_views import check_views, open_views  # deferred: loads numpy
     from hardware.run_log import RunLog  # deferred: loads numpy
     from hardware.subscribers import open_subscribers  # deferred: loads numpy

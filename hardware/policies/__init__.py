@@ -32,7 +32,7 @@ import numpy as np
 from dssp_core.errors import ConfigError
 
 if TYPE_CHECKING:  # annotations only: the loop's modules import this one
-    from hardware.pointcloud import PointCloudConfig
+    from dssp_data.pointcloud import PointCloudConfig
     from hardware.robot import RobotDescription
 
 

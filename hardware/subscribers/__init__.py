@@ -26,7 +26,7 @@ import numpy as np
 from dssp_core.errors import ConfigError
 
 if TYPE_CHECKING:  # the loop imports this module; the name is for the annotations only
-    from hardware.camera.base import DepthFrame
+    from dssp_data.pointcloud.depth_frame import DepthFrame
     from hardware.run_loop import Runner
 
 

@@ -38,10 +38,10 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from hardware.camera.base import DepthFrame, Intrinsics
+from dssp_data.pointcloud.depth_frame import DepthFrame, Intrinsics
 from dssp_core.errors import CameraError
 from dssp_data.observation import PointCloudConfig
-from hardware.pointcloud.extrinsics import validate_extrinsics
+from dssp_data.pointcloud.extrinsics import validate_extrinsics
 
 STAGES = ("clip", "deproject", "crop", "voxel", "sample", "pad", "color")
 _MAX_DENSE_VOXELS = 1 << 23  # above this many grid cells (32 MiB of scratch), voxel dedup sorts keys

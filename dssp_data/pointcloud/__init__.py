@@ -1,15 +1,15 @@
 """Depth frames to fixed-size point clouds: one pipeline for dataset building and for the robot.
 
-    from hardware.pointcloud import PointCloudConfig, frame_to_cloud, load_extrinsics
+    from dssp_data.pointcloud import PointCloudConfig, frame_to_cloud, load_extrinsics
     cloud, info = frame_to_cloud(frame, PointCloudConfig(), load_extrinsics("calib.json"))
     # cloud (1024, 3) float32 metres, robot-base frame
 
-numpy + fpsample only; imports without pyrealsense2.
+numpy only; imports without pyrealsense2.
 """
 
 from dssp_data.observation import PointCloudConfig
-from hardware.pointcloud.extrinsics import identity, load_extrinsics, save_extrinsics, validate_extrinsics
-from hardware.pointcloud.pipeline import (
+from dssp_data.pointcloud.extrinsics import identity, load_extrinsics, save_extrinsics, validate_extrinsics
+from dssp_data.pointcloud.pipeline import (
     CloudInfo,
     EmptyCloudError,
     deproject,
