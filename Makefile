@@ -3,7 +3,7 @@
 # on a GPU workstation use e.g. `make test TORCH=torch`.
 PYTHON ?= python3
 TORCH ?= torch==2.13.0
-EXTRAS ?= train,export,deploy,hardware,sim,viz,dev
+EXTRAS ?= train,export,deploy,hardware,sim,viz,ros,dev
 # Test workers (pytest-xdist), one per core; each test file runs whole in one worker (its fixtures built once).
 TEST_WORKERS ?= auto
 

@@ -6,6 +6,9 @@
     dssp-data split PATH --train OUT --val OUT (--val-ratio R | --val-episodes 1,5) [--seed S] [--drop-marked]
                     [--drop-episodes 3,7-9] [--force]
     dssp-data convert ROBOTWIN_DIR --out OUT.zarr [--episodes N] [--xyz] [--control-rate HZ] [--task NAME] [--force]
+    dssp-data convert BAGS --out OUT.zarr --extrinsics FILE [--pointcloud FILE] [--control-rate HZ] [--state-topic T]
+                      [--action-topic T] [--depth-topic T] [--info-topic T] [--joints J1,..,J7] [--gripper-open V]
+                      [--tolerance S] [--depth-unit M] [--episodes N] [--task NAME] [--force]
     dssp-data repair PATH
 
 Every problem with the input is one ``error: ...`` line and exit code 2: among them a chunk of the dataset that
@@ -30,7 +33,7 @@ import sys
 from pathlib import Path
 
 from dssp_core.cli_runner import ArgumentParser, run_cli
-from dssp_core.errors import DSSPError
+from dssp_core.errors import ConfigError, DSSPError
 
 EPILOG = """\
 info      episodes, lengths, rates, arrays, value ranges, attributes, recording metadata, problems found
@@ -39,7 +42,9 @@ view      PNG pictures of one episode: point clouds over time from three viewpoi
           with --rerun / --rerun-save PATH.rrd the episode in Rerun instead (cloud, depth, joints, ghost chunk)
 merge     concatenate datasets (episodes, per-episode metadata and CAN logs travel along)
 split     train/validation datasets by whole episodes (--drop-episodes leaves episodes out, e.g. lost ones)
-convert   RoboTwin raw HDF5 episodes (<task>/<config>/data/episode*.hdf5) to a DP3 zarr dataset
+convert   RoboTwin raw HDF5 episodes (<task>/<config>/data/episode*.hdf5), or ROS 2 bags (a bag folder with
+          metadata.yaml, or a folder of them: one episode per bag; joint states + depth + camera_info, aligned to
+          --control-rate, clouds by the robot's point-cloud pipeline), to a DP3 zarr dataset
 repair    cut off the steps of an interrupted write (every complete episode stays); lost data (a missing or
           corrupt chunk of a complete episode) cannot be repaired: exit 2, nothing changed
 """
@@ -83,14 +88,32 @@ def build_parser() -> argparse.ArgumentParser:
     split.add_argument("--drop-marked", action="store_true", help="leave out episodes recorded with problems")
     split.add_argument("--drop-episodes", help="leave out these episodes, e.g. 3,7-9 (those whose data is lost)")
 
-    convert = sub.add_parser("convert", help="RoboTwin raw HDF5 episodes -> DP3 zarr")
-    convert.add_argument("source", type=Path, help="RoboTwin <task>/<config> directory, its data/ directory, or one .hdf5")
+    convert = sub.add_parser("convert", help="RoboTwin raw HDF5 episodes or ROS 2 bags -> DP3 zarr")
+    convert.add_argument("source", type=Path, help="RoboTwin <task>/<config> directory, its data/ directory or one .hdf5; "
+                         "or a ROS 2 bag folder (metadata.yaml), or a folder of bags")
     convert.add_argument("--out", type=Path, required=True)
     convert.add_argument("--episodes", type=int, help="convert only the first N episodes")
-    convert.add_argument("--xyz", action="store_true", help="keep xyz only (drop the points' rgb)")
-    convert.add_argument("--control-rate", type=float, help="control rate of the episodes in Hz, stored as control_rate_hz")
+    convert.add_argument("--xyz", action="store_true", help="RoboTwin: keep xyz only (drop the points' rgb)")
+    convert.add_argument("--control-rate", type=float, help="control rate in Hz, stored as control_rate_hz (ROS 2 bags: "
+                         "the rate the streams are aligned to, default 10)")
     convert.add_argument("--task", help="task name stored with the data")
     convert.add_argument("--force", action="store_true", help="replace a dataset dssp-data made before at --out")
+    bag = convert.add_argument_group("ROS 2 bags (the rosbags library: pip install 'dssp[ros]')")
+    bag.add_argument("--extrinsics", type=Path, help="camera->robot-base calibration JSON (dssp-calibrate's; needed)")
+    bag.add_argument("--pointcloud", type=Path, help="point-cloud settings JSON (default: the robot's defaults)")
+    bag.add_argument("--state-topic", default="/joint_states", help="the arm's sensor_msgs/JointState (default: %(default)s)")
+    bag.add_argument("--action-topic", help="the leader's JointState: the action is its command (default: none, the "
+                     "action is the next tick's state)")
+    bag.add_argument("--depth-topic", default="/camera/camera/depth/image_rect_raw", help="16UC1 depth (default: %(default)s)")
+    bag.add_argument("--info-topic", default="/camera/camera/depth/camera_info", help="the depth camera's CameraInfo "
+                     "(default: %(default)s)")
+    bag.add_argument("--joints", default="joint1,joint2,joint3,joint4,joint5,joint6,joint7",
+                     help="the 7 joint names, J1..J6 then the gripper (default: piper_ros's, %(default)s)")
+    bag.add_argument("--gripper-open", type=float, default=0.07, help="the gripper value that is fully open (default: "
+                     "0.07, the Piper's stroke in metres)")
+    bag.add_argument("--tolerance", type=float, default=0.05, help="s: the oldest a stream's newest message may be at a "
+                     "tick before the bag is refused as unsynchronised (default: %(default)s)")
+    bag.add_argument("--depth-unit", type=float, default=0.001, help="metres per depth count (default: %(default)s, mm)")
 
     repair = sub.add_parser("repair", help="cut off the steps of an interrupted write")
     repair.add_argument("path", type=Path)
@@ -175,26 +198,62 @@ def _episode_list(text: str, option: str) -> list[int]:
 
 
 def _convert(args) -> int:
-    from dssp_data.robotwin_hdf5 import convert  # deferred: loads msgpack, numcodecs, numpy, …
-
     tty = sys.stderr.isatty()
 
     def progress(i, n, path):
         if tty:
             print(f"\rconverting {i + 1}/{n}: {path.name}\x1b[K", end="", file=sys.stderr, flush=True)
 
+    from dssp_data.rosbag2 import is_bag  # deferred: loads msgpack, numcodecs, numpy, …
+
+    bags = is_bag(args.source) or (args.source.is_dir() and any(is_bag(p) for p in args.source.iterdir()))
     try:
-        summary = convert(args.source, args.out, max_episodes=args.episodes, xyz_only=args.xyz,
-                          control_rate_hz=args.control_rate, task=args.task, force=args.force, progress=progress)
+        if bags:
+            summary = _convert_bags(args, progress)
+        else:
+            from dssp_data.robotwin_hdf5 import convert  # deferred: loads msgpack, numcodecs, numpy, …
+
+            summary = convert(args.source, args.out, max_episodes=args.episodes, xyz_only=args.xyz,
+                              control_rate_hz=args.control_rate, task=args.task, force=args.force, progress=progress)
     finally:
         if tty:
             print("\r\x1b[K", end="", file=sys.stderr, flush=True)
+    if bags:
+        action = ("the leader's command (" + args.action_topic + ")" if summary["action_convention"] == "leader_command"
+                  else "the state at the next tick")
+        print(f"wrote {args.out}: {summary['episodes']} episodes (one per bag), {summary['steps']} steps at "
+              f"{args.control_rate or 10.0:g} Hz (action = {action})")
+        return 0
     print(f"wrote {args.out}: {summary['episodes']} episodes, {summary['steps']} steps "
           f"(state = joint vector at t, action = joint vector at t + 1)")
     if args.control_rate is None:
         print("note: the control rate is not stored; pass --control-rate HZ (or give dssp-train --control-rate)",
               file=sys.stderr)
     return 0
+
+
+def _convert_bags(args, progress) -> dict:
+    """``dssp-data convert BAGS``: the flags -> :func:`dssp_data.rosbag2.convert`."""
+    from dssp_data.observation import PointCloudConfig  # deferred: loads numpy
+    from dssp_data.pointcloud import load_extrinsics  # deferred: loads numpy
+    from dssp_data.rosbag2 import Rosbag2Settings, convert  # deferred: loads msgpack, numcodecs, numpy, …
+
+    if args.xyz:
+        raise ConfigError("--xyz is for RoboTwin files; a bag's clouds follow --pointcloud (use_color false: xyz)")
+    if args.extrinsics is None:
+        raise ConfigError("--extrinsics is needed to convert ROS 2 bags: the workspace crop is in the robot-base frame "
+                          "(dssp-calibrate writes the file)")
+    cloud_config = PointCloudConfig.load(args.pointcloud, "point-cloud settings") if args.pointcloud else PointCloudConfig()
+    if cloud_config.use_color:
+        raise ConfigError("--pointcloud asks for colour (use_color): the ROS 2 converter builds xyz clouds from the depth "
+                          "topic only; set use_color false")
+    settings = Rosbag2Settings(
+        control_rate_hz=args.control_rate if args.control_rate is not None else 10.0,
+        state_topic=args.state_topic, action_topic=args.action_topic, depth_topic=args.depth_topic,
+        info_topic=args.info_topic, joints=tuple(j.strip() for j in args.joints.split(",")),
+        gripper_open=args.gripper_open, tolerance=args.tolerance, depth_unit=args.depth_unit)
+    return convert(args.source, args.out, settings, cloud_config, load_extrinsics(args.extrinsics),
+                   max_episodes=args.episodes, task=args.task, force=args.force, progress=progress)
 
 
 def _repair(args) -> int:
