@@ -29,6 +29,21 @@ The action at tick t is the weighted mean of every kept chunk's prediction for t
 decay 0 is the plain mean). It costs H_a / ensemble_every times the denoiser work of ``"none"``, and a chunk
 is computed in the tick that uses it, so it does not combine with prefetch. The history is updated every tick
 either way; a refused chunk undoes the tick and leaves the kept chunks as they were.
+
+Real-time chunking (``smoothing="rtc"``, Black et al. 2025) starts the next chunk every H_a ticks while the current
+one still executes, and conditions it to agree with the actions already committed: the denoiser (exported with
+``--inpainting``) pulls every DDIM step's clean prediction to the current chunk's actions for the ticks the new one
+covers, with weight 1 for the d ticks that execute while it is computed (d = the inference delay in ticks) and the
+ticks before the observation, then weights decaying to 0 over the rest of the overlap (RTC's soft mask,
+:func:`rtc_weights`). The new chunk takes over d ticks after its observation, at the action for that tick. On the
+robot it runs in a background thread and d comes from the measured chunk latency (as prefetch's lead); a tick with
+no chunk ready waits and is reported over budget.
+
+Inference delay in simulation (``injected_delay`` = d ticks, ``dssp-sim eval --inject-delay MS``): each chunk is
+computed at once but usable only d ticks after the observation it was computed from, as if the computation took
+that long; until a chunk is usable the tick has no action (``tick`` returns None: the caller holds). Without
+smoothing the loop then stalls: it holds d ticks, executes the H_a actions from the chunk's first, starts the next
+chunk, holds again. Ensembling takes each chunk in d ticks late, at the actions for the ticks it then covers.
 """
 
 from __future__ import annotations
@@ -47,9 +62,26 @@ from dssp_deploy.onnx_policy import OnnxPolicy
 from dssp_deploy.ranges import ChunkOutOfRange
 
 RATE_TOLERANCE = 0.05
-SMOOTHINGS = ("none", "ensemble")
+SMOOTHINGS = ("none", "ensemble", "rtc")
 """How a tick's action is taken from the chunks: ``none``, the current chunk's (a new one every H_a ticks);
-``ensemble``, the weighted mean of every kept chunk's prediction for the tick (module docstring)."""
+``ensemble``, the weighted mean of every kept chunk's prediction for the tick; ``rtc``, real-time chunking (the next
+chunk computed while the current one executes, inpainted to agree with it) (module docstring)."""
+
+
+def rtc_weights(horizon: int, offset: int, covered: int, delay: int) -> np.ndarray:
+    """Real-time chunking's soft mask (H,) for a new chunk: index i is the tick i - ``offset`` after its observation;
+    ``covered``: how many of the indices from 0 the current chunk has actions for; ``delay``: the ticks it still
+    executes while the new chunk is computed. Weight 1 for the indices before ``offset + delay`` (the past and the
+    committed ticks), then c (e^c - 1) / (e - 1) with c falling linearly from 1 towards 0 over the rest of the
+    covered indices (RTC's exponential decay), 0 where nothing is committed."""
+    w = np.zeros(horizon, np.float64)
+    frozen = min(covered, offset + delay)
+    w[:frozen] = 1.0
+    rest = covered - frozen
+    if rest > 0:
+        c = (rest - np.arange(rest)) / (rest + 1)
+        w[frozen:covered] = c * np.expm1(c) / np.expm1(1.0)
+    return w
 
 
 def add_smoothing_arguments(parser, also: str = "") -> None:
@@ -59,7 +91,8 @@ def add_smoothing_arguments(parser, also: str = "") -> None:
                         help="none (default): each tick's action from the current chunk, a new one every H_a ticks; "
                              "ensemble: a chunk every --ensemble-every ticks and the weighted mean of every kept chunk's "
                              "prediction for the tick (ACT's temporal ensembling; H_a / N times the denoiser work"
-                             + (f"; {also}" if also else "") + ")")
+                             + (f"; {also}" if also else "") + "); rtc: real-time chunking, the next chunk computed while "
+                             "the current one executes and inpainted to agree with it (a model exported with --inpainting)")
     parser.add_argument("--ensemble-every", type=int, metavar="N",
                         help="--smoothing ensemble: ticks between chunks, 1 to the model's H_a (default 1: every tick)")
     parser.add_argument("--ensemble-decay", type=float, metavar="M",
@@ -124,6 +157,19 @@ class TickInfo:
     predictions: int = 1  # how many chunks' predictions the action is the mean of (1 without ensembling)
 
 
+class _Computed:
+    """A denoiser call already made (injected delay: the chunk is ready, only its time has not come)."""
+
+    def __init__(self, chunk: np.ndarray, ms: float):
+        self._chunk, self._ms = chunk, ms
+
+    def done(self) -> bool:
+        return True
+
+    def result(self) -> tuple[np.ndarray, float]:
+        return self._chunk, self._ms
+
+
 class _Background:
     """One denoiser call on a thread; ``result()`` waits for it."""
 
@@ -170,6 +216,7 @@ class ChunkedControl:
         smoothing: str = "none",
         ensemble_every: int | None = None,
         ensemble_decay: float = 0.01,
+        injected_delay: int = 0,
     ):
         if smoothing not in SMOOTHINGS:
             raise ValueError(f"smoothing must be one of {', '.join(SMOOTHINGS)}, got {smoothing!r}")
@@ -187,6 +234,18 @@ class ChunkedControl:
             if not (number and math.isfinite(decay) and decay >= 0):
                 raise ValueError(f"ensemble_decay must be a finite number >= 0 (0: the plain mean), got {decay!r}")
             self.ensemble_every, self.ensemble_decay = int(every), float(decay)
+        if isinstance(injected_delay, bool) or not isinstance(injected_delay, (int, np.integer)) or injected_delay < 0:
+            raise ValueError(f"injected_delay must be a whole number of ticks >= 0, got {injected_delay!r}")
+        if injected_delay and prefetch:
+            raise ValueError("an injected delay simulates the chunk's computation time; prefetch runs it in the background "
+                             "for real: use one or the other")
+        if smoothing == "rtc":
+            if prefetch:
+                raise ValueError("real-time chunking computes the next chunk in the background itself; leave prefetch off")
+            if not policy.inpainting:
+                raise ValueError("real-time chunking needs a denoiser that takes the committed actions: export the model "
+                                 "with python -m export.to_onnx --inpainting")
+        self.injected_delay = int(injected_delay)
         self.policy = policy
         self.rate_hz = rate_hz or policy.control_rate_hz
         self.period_ms = 1e3 / self.rate_hz if self.rate_hz else None
@@ -211,6 +270,19 @@ class ChunkedControl:
                     f"a chunk takes {chunk_ms_estimate:.1f} ms = {self.lead} ticks at {self.rate_hz:g} Hz, but only "
                     f"H - action_offset - H_a = {spare} predicted actions can be dropped; run without prefetch or at a lower rate"
                 )
+        self.delay = self.injected_delay  # d: ticks from a chunk's observation to its first executed action
+        if smoothing == "rtc" and not injected_delay:
+            if self.period_ms is None:
+                raise ValueError("real-time chunking needs a tick rate: pass rate_hz (the manifest records none)")
+            if chunk_ms_estimate is None:
+                chunk_ms_estimate = self.measure_chunk_ms()
+            self.delay = max(1, math.ceil(chunk_ms_estimate / self.period_ms))
+            spare = policy.horizon - policy.action_offset - policy.n_action_steps
+            if self.delay > spare:
+                raise ValueError(
+                    f"a chunk takes {chunk_ms_estimate:.1f} ms = {self.delay} ticks at {self.rate_hz:g} Hz, but a chunk "
+                    f"covers only H - action_offset - H_a = {spare} ticks beyond its H_a: real-time chunking cannot keep up; "
+                    "run at a lower rate")
         self.reset()
 
     def measure_chunk_ms(self, iterations: int = 5) -> float:
@@ -221,6 +293,9 @@ class ChunkedControl:
             inputs["c_t"] = np.zeros((1, p.d_model), np.float32)
         if p.use_recent_states:
             inputs["z_recent"] = np.zeros((1, p.n_obs_steps, p.d_model), np.float32)
+        if p.inpainting:  # nothing committed: the plain chain, which costs the same
+            inputs["committed"] = np.zeros((1, p.horizon, p.action_dim), np.float32)
+            inputs["committed_weight"] = np.zeros((1, p.horizon, 1), np.float32)
         times = []
         for _ in range(iterations):
             t0 = time.perf_counter()
@@ -238,6 +313,10 @@ class ChunkedControl:
         self.chunk_offset = 0
         self.chunk_start = 0
         self.pending: _Background | None = None
+        self.in_flight: tuple[int, _Background | _Computed] | None = None  # (observation tick, the chunk's computation)
+        self.arriving: list[tuple[int, np.ndarray]] = []  # ensembling with an injected delay: not usable yet
+        self.exec_end = 0  # an injected delay without smoothing: the current chunk's last tick + 1
+        self.next_start = 0  # real-time chunking: the tick the next chunk starts at
         self.kept: list[tuple[int, np.ndarray]] = []
         self._last_tick_time: float | None = None
 
@@ -245,13 +324,15 @@ class ChunkedControl:
         """What the loop smooths with, for a run's log: {smoothing, ensemble_every, ensemble_decay} (None without
         ensembling)."""
         return {"smoothing": self.smoothing, "ensemble_every": self.ensemble_every,
-                "ensemble_decay": self.ensemble_decay}
+                "ensemble_decay": self.ensemble_decay, "rtc_delay_ticks": self.delay if self.smoothing == "rtc" else None,
+                "injected_delay_ticks": self.injected_delay}
 
     def _chunk_seed(self) -> int | None:
         return None if self.seed is None else self.seed + self.tick_count
 
-    def tick(self, point_cloud, agent_pos) -> tuple[np.ndarray, TickInfo]:
-        """Update the history with this tick's observation and return this tick's action (B, A).
+    def tick(self, point_cloud, agent_pos) -> tuple[np.ndarray | None, TickInfo]:
+        """Update the history with this tick's observation and return this tick's action (B, A) — None while no chunk
+        is usable yet (an injected delay, or real-time chunking's first chunk): hold.
 
         Raises NonFiniteObservation (NaN/inf in the observation) or ObservationOutOfRange before anything
         changes, and ChunkOutOfRange (a refused chunk) with the tick undone: hold this tick."""
@@ -293,6 +374,10 @@ class ChunkedControl:
         info = TickInfo(self.tick_count, 0, False, (time.perf_counter() - t0) * 1e3, events=info_events)
         if self.smoothing == "ensemble":
             return self._ensembled(info)
+        if self.smoothing == "rtc":
+            return self._real_time(info)
+        if self.injected_delay:
+            return self._stalled(info)
         t = self.tick_count
         ha = self.policy.n_action_steps
         if t % ha == 0:
@@ -322,17 +407,92 @@ class ChunkedControl:
         weighted mean of every kept chunk's prediction for this tick, oldest first with weight exp(-decay * i)."""
         t, offset = self.tick_count, self.policy.action_offset
         kept = self.kept
+        arriving = self.arriving
         if t % self.ensemble_every == 0:
             info.new_chunk = True
             chunk = self._chunk_now(info)  # a refused chunk raises here: the kept chunks are left as they were
-            kept = [*kept, (t, chunk)]
+            arriving = [*arriving, (t, chunk)]
             self.chunk, self.chunk_offset, self.chunk_start = chunk, offset, t  # the newest: what is shown as to come
-        # A chunk computed at tick s predicts ticks s .. s + H - offset - 1; the newest always covers t
+        # an injected delay: a chunk joins d ticks after its observation (none: at once)
+        kept = [*kept, *[(s, c) for s, c in arriving if t >= s + self.injected_delay]]
+        self.arriving = [(s, c) for s, c in arriving if t < s + self.injected_delay]
+        # A chunk computed at tick s predicts ticks s .. s + H - offset - 1; without a delay the newest always covers t
         # (t - s < ensemble_every <= H_a <= H - offset).
         self.kept = kept = [(s, c) for s, c in kept if offset + t - s < c.shape[1]]
+        if not kept:  # an injected delay: no chunk has come yet
+            info.predictions = 0
+            return None, info
         predictions = np.stack([c[:, offset + t - s] for s, c in kept])  # (n, B, A), oldest first
         weights = np.exp(-self.ensemble_decay * np.arange(len(kept)))  # ACT: the oldest weighs most
         action = np.tensordot(weights / weights.sum(), predictions.astype(np.float64), axes=1)
         info.chunk_index = offset + t - self.chunk_start
         info.predictions = len(kept)
         return action.astype(predictions.dtype), info
+
+    def _start_chunk(self, info: TickInfo, committed: np.ndarray | None = None, weight: np.ndarray | None = None):
+        """Start a chunk from this tick's history: computed now with an injected delay (a refused chunk raises here),
+        else in a background thread."""
+        inputs = self.policy.denoiser_inputs(committed, weight)
+        if self.injected_delay or not self.delay:
+            c0 = time.perf_counter()
+            chunk = self.policy.denoise(inputs, seed=self._chunk_seed())
+            return _Computed(chunk, (time.perf_counter() - c0) * 1e3)
+        return _Background(self.policy, inputs, self._chunk_seed())
+
+    def _take(self, info: TickInfo) -> tuple[int, np.ndarray]:
+        """The chunk in flight, now that its time has come: (its observation tick, chunk (B, H, A)); a chunk still
+        computing is waited for (over budget)."""
+        start, job = self.in_flight
+        self.in_flight = None  # taken, whether its chunk is used or refused
+        w0 = time.perf_counter()
+        if not job.done():
+            info.over_budget = True
+        chunk, info.chunk_ms = job.result()
+        info.waited_ms = (time.perf_counter() - w0) * 1e3
+        if info.over_budget:
+            info.events.append(f"chunk not ready at tick {info.tick}: waited {info.waited_ms:.1f} ms (over budget)")
+        info.new_chunk = True
+        return start, chunk
+
+    def _stalled(self, info: TickInfo) -> tuple[np.ndarray | None, TickInfo]:
+        """No smoothing with an injected delay: hold while a chunk computes, then its H_a actions from the first."""
+        t, offset, ha = self.tick_count, self.policy.action_offset, self.policy.n_action_steps
+        if self.in_flight is None and (self.chunk is None or t >= self.exec_end):
+            self.in_flight = (t, self._start_chunk(info))
+        if self.in_flight is not None and t >= self.in_flight[0] + self.injected_delay:
+            _, self.chunk = self._take(info)
+            self.chunk_offset, self.chunk_start, self.exec_end = offset, t, t + ha
+        if self.chunk is None or t >= self.exec_end:
+            return None, info
+        info.chunk_index = offset + t - self.chunk_start
+        return self.chunk[:, info.chunk_index], info
+
+    def _take_due(self, info: TickInfo) -> None:
+        """Real-time chunking: the chunk in flight becomes the current one once d ticks have passed since its observation."""
+        if self.in_flight is not None and self.tick_count >= self.in_flight[0] + self.delay:
+            self.chunk_start, self.chunk = self._take(info)
+            self.chunk_offset = self.policy.action_offset + (self.tick_count - self.chunk_start)
+
+    def _real_time(self, info: TickInfo) -> tuple[np.ndarray | None, TickInfo]:
+        """Real-time chunking: the chunk in flight takes over d ticks after its observation; a new one starts every
+        H_a ticks (once none is in flight) from this tick's history, inpainted with the current chunk's actions."""
+        t, offset, ha, horizon = self.tick_count, self.policy.action_offset, self.policy.n_action_steps, self.policy.horizon
+        self._take_due(info)
+        if self.in_flight is None and (self.chunk is None and t == 0 or t >= self.next_start):
+            committed = weight = None
+            if self.chunk is not None:  # new index i is the tick t + i - offset: the current chunk's index i + shift
+                shift = t - self.chunk_start
+                covered = max(0, horizon - shift)
+                committed = np.zeros_like(self.chunk)
+                committed[:, :covered] = self.chunk[:, shift:]
+                weight = rtc_weights(horizon, offset, covered, self.delay)[None, :, None]
+            self.in_flight = (t, self._start_chunk(info, committed, weight))
+            self.next_start = t + ha
+            self._take_due(info)  # no delay: the chunk takes over at once
+        if self.chunk is None:
+            return None, info
+        index = offset + t - self.chunk_start
+        if index >= horizon:  # the chunk ran out before the next took over (a delay beyond what H allows): hold
+            return None, info
+        info.chunk_index = index
+        return self.chunk[:, index], info

@@ -33,6 +33,8 @@ from dataclasses import dataclass
 from pathlib import Path, PurePosixPath, PureWindowsPath
 from typing import Any, ClassVar
 
+import numpy as np
+
 from dssp_data.observation import ObservationContract
 from dssp_deploy.external_data import MalformedGraph, external_locations
 from dssp_core.schema import MAX_DIM, MAX_LAYERS, MAX_RATE_HZ, MAX_STEPS, MAX_WIDTH
@@ -94,7 +96,7 @@ class ManifestFacts(Settings):
     exports that predate it have none: their chunks start at the current step)."""
 
     SECTION: ClassVar[str] = MANIFEST_NAME
-    OPTIONAL: ClassVar[tuple[str, ...]] = ("action_offset",)
+    OPTIONAL: ClassVar[tuple[str, ...]] = ("action_offset", "inpainting")
 
     point_dim: int = setting(3, choices=(3, 6))
     state_dim: int = _dim(7)
@@ -112,6 +114,7 @@ class ManifestFacts(Settings):
     history_state: list[str] = setting(default_factory=lambda: ["conv_state_0", "ssm_state_0", "conv_state_1", "ssm_state_1"],
                                        max_length=2 * MAX_LAYERS)
     control_rate_hz: float | None = setting(None, gt=0, le=MAX_RATE_HZ, unit="Hz")
+    inpainting: bool = setting(False)  # the denoiser takes the committed actions (real-time chunking)
 
     def validate(self) -> None:
         s = self.SECTION
@@ -228,19 +231,35 @@ def history_io(m) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
     return inputs, outputs
 
 
-def denoiser_io(m) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
-    """Inputs and outputs of the denoiser graph."""
+INPAINTING_INPUTS = ("committed", "committed_weight")
+"""The denoiser's extra inputs when exported with ``--inpainting``: the committed actions (B, H, A) raw units and
+their weights (B, H, 1) in [0, 1] (all zero: the plain chain)."""
+
+
+def no_inpainting(manifest: dict[str, Any], batch: int) -> dict[str, np.ndarray]:
+    """The inpainting inputs that leave the chain as it is (weights 0), for a denoiser exported with them; {} else."""
+    if not manifest.get("inpainting"):
+        return {}
+    h, a = manifest["horizon"], manifest["action_dim"]
+    return {"committed": np.zeros((batch, h, a), np.float32), "committed_weight": np.zeros((batch, h, 1), np.float32)}
+
+
+def denoiser_io(m, inpainting: bool = False) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """Inputs and outputs of the denoiser graph (``inpainting``: with :data:`INPAINTING_INPUTS`)."""
     inputs = []
     if m.use_history:
         inputs.append(tensor_spec("c_t", ["B", m.d_model]))
     if m.use_recent_states:
         inputs.append(tensor_spec("z_recent", ["B", m.n_obs_steps, m.d_model]))
     inputs.append(tensor_spec("noise", ["B", m.horizon, m.action_dim]))
+    if inpainting:
+        inputs.append(tensor_spec("committed", ["B", m.horizon, m.action_dim]))
+        inputs.append(tensor_spec("committed_weight", ["B", m.horizon, 1]))
     return inputs, [tensor_spec("action", ["B", m.horizon, m.action_dim])]
 
 
-def graph_io(m, graph: str) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
-    return history_io(m) if graph == HISTORY_GRAPH else denoiser_io(m)
+def graph_io(m, graph: str, inpainting: bool = False) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    return history_io(m) if graph == HISTORY_GRAPH else denoiser_io(m, inpainting)
 
 
 def _depends(name: str) -> tuple[str, ...]:
@@ -255,6 +274,7 @@ def _depends(name: str) -> tuple[str, ...]:
     return {
         "point_cloud": ("point_dim",), "agent_pos": ("state_dim",), "z_t": ("d_model",), "c_t": ("d_model",),
         "z_recent": ("n_obs_steps", "d_model"), "noise": ("horizon", "action_dim"), "action": ("horizon", "action_dim"),
+        "committed": ("horizon", "action_dim"), "committed_weight": ("horizon",),
     }.get(base, ())
 
 
@@ -309,7 +329,7 @@ def check_manifest(manifest: dict[str, Any], model_dir: Path) -> ManifestFacts:
             f"n_history_layers={model.n_history_layers} takes the state inputs {want_state}"
         )
     files = _check_files(manifest.get("files"), model_dir)
-    _check_graphs(manifest.get("graphs"), model, files, model_dir)
+    _check_graphs(manifest.get("graphs"), model, files, model_dir, facts.inpainting)
     _check_normalizers(manifest.get("normalizers"), model)
     source = facts_from(SourceFacts, manifest.get("source"))
     diffusion = manifest["model_config"].get("diffusion")
@@ -364,7 +384,7 @@ def _check_files(files: Any, model_dir: Path) -> dict[str, dict[str, Any]]:
     return files
 
 
-def _check_graphs(graphs: Any, model: ModelFacts, files: dict[str, Any], model_dir: Path) -> None:
+def _check_graphs(graphs: Any, model: ModelFacts, files: dict[str, Any], model_dir: Path, inpainting: bool = False) -> None:
     """Both graphs, their files (inside the directory, listed in ``files``) and the interface the facts give."""
     where = f"{MANIFEST_NAME} graphs"
     graphs = check_value(graphs, dict[str, Any], Spec(), where)
@@ -383,7 +403,7 @@ def _check_graphs(graphs: Any, model: ModelFacts, files: dict[str, Any], model_d
             model_file(model_dir, name, field)
             if name not in files:
                 raise ConfigError(f"{field} is {name!r}, which has no size and sha256 in {MANIFEST_NAME} files")
-        want = dict(zip(("inputs", "outputs"), graph_io(model, graph)))
+        want = dict(zip(("inputs", "outputs"), graph_io(model, graph, inpainting)))
         for io in ("inputs", "outputs"):
             field = f"{where}.{graph}.{io}"
             declared = check_value(spec[io], list[dict[str, Any]], Spec(), field)

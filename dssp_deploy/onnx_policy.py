@@ -158,6 +158,7 @@ class OnnxPolicy:
         self.denoise_steps, self.ddim_timesteps = m["denoise_steps"], list(m["ddim_timesteps"])
         self.control_rate_hz: float | None = m["control_rate_hz"]
         self.use_history, self.use_recent_states = m["use_history"], m["use_recent_states"]
+        self.inpainting = bool(m.get("inpainting", False))  # the denoiser takes committed actions (real-time chunking)
         self.history_state: list[str] = list(m["history_state"])
         self.ranges = model_ranges(m, self.point_dim)  # what observe() and denoise() accept (dssp_deploy.ranges)
         check_threads(threads)
@@ -276,8 +277,9 @@ class OnnxPolicy:
         return self.history.observe(pc, pos)
 
     # ------------------------------------------------------------------ chunks
-    def denoiser_inputs(self) -> dict[str, np.ndarray]:
-        """A copy of what the denoiser needs now (c_t, z_recent): safe to use from another thread."""
+    def denoiser_inputs(self, committed: np.ndarray | None = None, weight: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """A copy of what the denoiser needs now (c_t, z_recent; with an inpainting denoiser the committed actions
+        (B, H, A) raw units and their weights (B, H, 1), zero unless given): safe to use from another thread."""
         if self.recent is None:
             raise RuntimeError("act() before any observe(): feed at least one observation first")
         feeds = {}
@@ -285,6 +287,15 @@ class OnnxPolicy:
             feeds["c_t"] = self.context.copy()
         if self.use_recent_states:
             feeds["z_recent"] = self.recent.copy()
+        batch = self.recent.shape[0]
+        if (committed is not None or weight is not None) and not self.inpainting:
+            raise ValueError("this model's denoiser takes no committed actions: export it with --inpainting")
+        if self.inpainting:
+            shape = (batch, self.horizon, self.action_dim)
+            feeds["committed"] = np.zeros(shape, np.float32) if committed is None else \
+                np.ascontiguousarray(np.broadcast_to(committed, shape), dtype=np.float32)
+            feeds["committed_weight"] = np.zeros((batch, self.horizon, 1), np.float32) if weight is None else \
+                np.ascontiguousarray(np.broadcast_to(weight, (batch, self.horizon, 1)), dtype=np.float32)
         return feeds
 
     def noise(self, batch: int, seed: int | None = None) -> np.ndarray:

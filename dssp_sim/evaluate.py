@@ -52,6 +52,7 @@ from hardware.policies.exported_model import ModelPolicy
 from hardware.rig import Rig
 from hardware.run_loop import LoopSettings, Runner
 from hardware.safety import SafetyConfig
+from hardware.subscribers import Subscriber, Tick
 from hardware.subscribers.rerun_ticks import RerunTicks
 
 # Lockstep: inputs are fresh by construction; generous timeouts only catch a stalled bridge.
@@ -80,9 +81,41 @@ class EpisodeOutcome:
     safety_events: dict
     chunk_ms_p50: float | None
     decision: dict = field(default_factory=dict)  # the memory decision (dssp_sim.tasks.Task.decision)
+    jerk: dict = field(default_factory=dict)  # commanded jerk at chunk boundaries and elsewhere (command_jerk)
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+def command_jerk(commands: list, boundaries: list[bool], rate_hz: float) -> dict:
+    """The commanded joints' jerk per tick, ‖q[t+1] - 3 q[t] + 3 q[t-1] - q[t-2]‖ × rate³ (rad/s³, J1..J6 of each arm),
+    split into the ticks a new chunk took over at (t: its first command) and the others; ``commands``: each tick's
+    sent command (dof,) or None (nothing sent), ``boundaries``: whether a new chunk took over at that tick. Returns
+    {at_boundaries, boundary_ticks, elsewhere, other_ticks} (means; None where no tick of that kind had 4 commands)."""
+    at, off = [], []
+    for t in range(2, len(commands) - 1):
+        window = commands[t - 2 : t + 2]
+        if any(c is None for c in window):
+            continue
+        q = np.asarray(window, dtype=np.float64)
+        q = q.reshape(4, -1, 7)[:, :, :6].reshape(4, -1)  # the joints, not the grippers
+        jerk = float(np.linalg.norm(q[3] - 3 * q[2] + 3 * q[1] - q[0])) * rate_hz**3
+        (at if boundaries[t] else off).append(jerk)
+    return {"at_boundaries": float(np.mean(at)) if at else None, "boundary_ticks": len(at),
+            "elsewhere": float(np.mean(off)) if off else None, "other_ticks": len(off)}
+
+
+class _CommandTrace(Subscriber):
+    """Each tick's sent command and whether a new chunk took over (for :func:`command_jerk`)."""
+
+    def __init__(self):
+        self.commands: list = []
+        self.boundaries: list[bool] = []
+
+    def on_tick(self, tick: Tick) -> None:
+        command = tick.record.get("command")
+        self.commands.append(None if command is None else np.array(command, dtype=np.float64))
+        self.boundaries.append(tick.chunk is not None)
 
 
 @dataclass
@@ -98,6 +131,9 @@ class EvalResult:
     smoothing: str = "none"  # the control loop's (dssp_deploy.control_loop.SMOOTHINGS); the ensemble's settings or None
     ensemble_every: int | None = None
     ensemble_decay: float | None = None
+    injected_delay_ms: float = 0.0  # the inference delay simulated per chunk (--inject-delay), and in control ticks
+    injected_delay_ticks: int = 0
+    rtc_delay_ticks: int | None = None
 
     @property
     def successes(self) -> int:
@@ -129,7 +165,22 @@ class EvalResult:
                 "failure_reasons": dict(self.reasons()), "decisions": self.decisions(), "latency_ms": self.latency_ms,
                 "precision": self.precision, "kernel": self.kernel, "smoothing": self.smoothing,
                 "ensemble_every": self.ensemble_every, "ensemble_decay": self.ensemble_decay,
+                "injected_delay_ms": self.injected_delay_ms, "injected_delay_ticks": self.injected_delay_ticks,
+                "rtc_delay_ticks": self.rtc_delay_ticks, "boundary_jerk": self.boundary_jerk(),
                 "episodes": [e.to_dict() for e in self.episodes]}
+
+    def boundary_jerk(self) -> dict | None:
+        """The commanded joints' jerk (rad/s³, :func:`command_jerk`) at the ticks a new chunk took over and at the
+        other ticks, averaged over every such tick of every episode (None: no episode was traced)."""
+        traced = [e.jerk for e in self.episodes if e.jerk]
+        if not traced:
+            return None
+        out = {}
+        for kind, count in (("at_boundaries", "boundary_ticks"), ("elsewhere", "other_ticks")):
+            n = sum(j[count] for j in traced)
+            total = sum(j[kind] * j[count] for j in traced if j[kind] is not None)
+            out[kind], out[count] = (total / n if n else None), n
+        return out
 
 
 def _wait_for_feedback(robot, after: float, timeout: float = 2.0) -> None:
@@ -152,8 +203,8 @@ class _RecentStates:
         self.original = policy.denoiser_inputs
         self.mean_squares: list[float] = []
 
-    def __call__(self):
-        feeds = self.original()
+    def __call__(self, *args, **kwargs):
+        feeds = self.original(*args, **kwargs)
         if "z_recent" in feeds:
             z = feeds["z_recent"]
             self.mean_squares.append(float(np.mean(np.square(z, dtype=np.float64))))
@@ -196,10 +247,11 @@ def run_episode(source: PolicySource, env, seed: int, cloud_config, frames: list
             pumper.start()
             try:
                 camera.capture()
-                subscribers = [RerunTicks(views)] if views is not None else []
+                trace = _CommandTrace()
+                subscribers = [trace] + ([RerunTicks(views)] if views is not None else [])
                 runner = Runner(source, rig, cloud_config, LoopSettings(rate_hz=env.control_rate_hz), subscribers=subscribers)
                 if views is not None:
-                    views.text(subscribers[0].next_tick, "episode", f"{env.task.name} seed {seed}")
+                    views.text(subscribers[1].next_tick, "episode", f"{env.task.name} seed {seed}")
                 runner.start()
             finally:
                 stop_pump.set()
@@ -225,7 +277,8 @@ def run_episode(source: PolicySource, env, seed: int, cloud_config, frames: list
     reason = status.reason if status.done else f"fault: {runner.fault}"
     return EpisodeOutcome(seed=seed, success=bool(status.done and status.success), reason="" if status.success else reason,
                           steps=env.steps, info=dict(status.info), holds=runner.holds, safety_events=dict(runner.event_counts),
-                          chunk_ms_p50=float(np.median(chunk)) if chunk else None, decision=env.task.decision(dict(status.info)))
+                          chunk_ms_p50=float(np.median(chunk)) if chunk else None, decision=env.task.decision(dict(status.info)),
+                          jerk=command_jerk(trace.commands, trace.boundaries, env.control_rate_hz))
 
 
 def run_direct_episode(policy, env, seed: int, cloud_config, frames: list | None = None,
@@ -261,7 +314,12 @@ def run_direct_episode(policy, env, seed: int, cloud_config, frames: list | None
                 stages["observe"].append(info.observe_ms)
                 if info.chunk_ms is not None:
                     stages["chunk"].append(info.chunk_ms)
-                env.step(action[0])
+                if action is None:  # no chunk usable yet (an injected delay): hold
+                    holds += 1
+                    events["no_chunk_yet"] += 1
+                    env.hold()
+                else:
+                    env.step(action[0])
             stages["tick"].append((time.perf_counter() - t0) * 1e3)
             if frames is not None:
                 frames.append(frame.depth.copy())
@@ -281,11 +339,14 @@ STRIPS_DIR = OutputKind("a folder of episode strips", "dssp-sim eval", entries=(
 def evaluate(model_dir: Path | None, task: str, n_episodes: int, seed: int = 1000, threads: int | None = None,
              state_token_noise: float = 0.0, strips_dir: Path | None = None, progress: bool = True,
              precision: str | None = None, kernel: str = "auto", spinning: bool | None = None, views=None,
-             smoothing: str = "none", ensemble_every: int | None = None, ensemble_decay: float = 0.01) -> EvalResult:
+             smoothing: str = "none", ensemble_every: int | None = None, ensemble_decay: float = 0.01,
+             inject_delay_ms: float = 0.0) -> EvalResult:
     """Evaluate a model directory on ``task`` for ``n_episodes`` seeded episodes (seeds seed, seed+1, ...);
     ``precision`` and ``kernel`` choose its graphs (:class:`dssp_deploy.onnx_policy.OnnxPolicy`); ``smoothing``,
     ``ensemble_every`` and ``ensemble_decay``: the control loop's (:class:`dssp_deploy.control_loop.ChunkedControl`,
-    on either kind of task; checked before any episode runs); ``views``: Rerun
+    on either kind of task; checked before any episode runs); ``inject_delay_ms``: each chunk usable only that long
+    after its observation, in whole control ticks (rounded up: at 10 Hz 50 and 100 ms are one tick) — the inference
+    delay simulated in lockstep; ``views``: Rerun
     views of every tick of every episode, on one timeline (the caller closes them). ``model_dir`` None: the task's
     scripted expert drives the same loop (:class:`dssp_sim.expert_policy.ScriptedExpert`; Piper tasks)."""
     from dssp_sim import metaworld_env  # deferred: loads mujoco
@@ -297,13 +358,10 @@ def evaluate(model_dir: Path | None, task: str, n_episodes: int, seed: int = 100
             raise ConfigError("smoothing is the model's control loop's: the scripted expert gives each tick's action itself")
         return _evaluate_expert(task, n_episodes, seed, strips_dir, progress, views)
     policy = OnnxPolicy(model_dir, threads=threads, precision=precision, kernel=kernel, spinning=spinning)
-    print(f"graphs: {policy.kernel_note}", file=sys.stderr)
     recent = policy.denoiser_inputs = _RecentStates(policy, state_token_noise, np.random.default_rng(seed))
+    if not (math.isfinite(inject_delay_ms) and 0 <= inject_delay_ms <= 10_000):
+        raise ConfigError(f"--inject-delay must be in [0, 10000] ms, got {inject_delay_ms:g}")
     options = {"smoothing": smoothing, "ensemble_every": ensemble_every, "ensemble_decay": ensemble_decay}
-    try:  # bad settings: one line now, not a failure in the first episode
-        settings = ChunkedControl(policy, rate_hz=policy.control_rate_hz, **options).smoothing_settings()
-    except ValueError as exc:
-        raise ConfigError(f"smoothing: {exc}") from None
     # The model's own point-cloud settings (its observation contract), as dssp-run uses them; a model trained on
     # data that recorded none sees the simulation's settings at its point count.
     n_points = policy.manifest["model_config"]["n_points"]
@@ -323,8 +381,18 @@ def evaluate(model_dir: Path | None, task: str, n_episodes: int, seed: int = 100
         def episode(s, frames, ticks):
             return run_episode(ModelPolicy(policy, env.control_rate_hz, seed=s, **options), env, s, cloud_config, frames,
                                ticks, views)
+    # the delay in the loop's ticks (the simulation's rate); the options are read when each episode starts
+    delay_ticks = math.ceil(inject_delay_ms * env.control_rate_hz / 1000 - 1e-9) if inject_delay_ms > 0 else 0
+    options["injected_delay"] = delay_ticks
+    try:  # bad settings: one line now, not a failure in the first episode
+        settings = ChunkedControl(policy, rate_hz=env.control_rate_hz, **options).smoothing_settings()
+    except ValueError as exc:
+        raise ConfigError(f"smoothing: {exc}") from None
+    print(f"graphs: {policy.kernel_note}", file=sys.stderr)
     result = EvalResult(str(model_dir), task, state_token_noise=state_token_noise, precision=policy.precision, kernel=policy.kernel,
-                        **settings)
+                        smoothing=settings["smoothing"], ensemble_every=settings["ensemble_every"],
+                        ensemble_decay=settings["ensemble_decay"], injected_delay_ms=float(inject_delay_ms),
+                        injected_delay_ticks=delay_ticks, rtc_delay_ticks=settings["rtc_delay_ticks"])
     _run_episodes(result, env, episode, n_episodes, seed, strips_dir, progress)
     result.z_rms = recent.rms()
     return result
@@ -387,7 +455,14 @@ def print_eval(result) -> None:
           f"(95 % Wilson interval {100 * lo:.0f}–{100 * hi:.0f} %)" + (f", state-token noise σ={result.state_token_noise:g}" if result.state_token_noise else "")
           + (f" ({result.state_token_noise / result.z_rms:.2f} x the tokens' RMS {result.z_rms:.2f})" if result.state_token_noise and result.z_rms else "")
           + (f", temporal ensembling (a chunk every {result.ensemble_every} ticks, decay {result.ensemble_decay:g})"
-             if result.smoothing == "ensemble" else ""))
+             if result.smoothing == "ensemble" else "")
+          + (f", real-time chunking (d = {result.rtc_delay_ticks} ticks)" if result.smoothing == "rtc" else "")
+          + (f", inference delay {result.injected_delay_ms:g} ms injected ({result.injected_delay_ticks} ticks)"
+             if result.injected_delay_ms else ""))
+    jerk = result.boundary_jerk()
+    if jerk and jerk["at_boundaries"] is not None:
+        print(f"commanded jerk: {jerk['at_boundaries']:.1f} rad/s³ at the {jerk['boundary_ticks']} ticks a new chunk took "
+              f"over, {jerk['elsewhere'] or 0:.1f} at the other {jerk['other_ticks']}")
     print("| seed | outcome | steps | detail | holds |")
     print("|---:|---|---:|---|---:|")
     for e in result.episodes:

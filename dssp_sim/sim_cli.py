@@ -95,6 +95,9 @@ def parse_args(argv):
     e.add_argument("--threads", type=int, help="ONNX Runtime threads")
     add_runtime_arguments(e)
     add_smoothing_arguments(e)
+    e.add_argument("--inject-delay", type=float, default=0.0, metavar="MS",
+                   help="simulate an inference delay: each chunk usable MS ms after its observation (whole ticks, rounded "
+                        "up); the loop holds until then (compare --smoothing none|ensemble|rtc under delay)")
     e.add_argument("--strips", type=Path, help="write a PNG strip of each episode here")
     e.add_argument("--json", type=Path, help="write the result here")
     e.add_argument("--force", action="store_true", help="replace an existing --json file and previous --strips")
@@ -125,7 +128,8 @@ def run(args) -> int:
 
     check_views(args.rerun, args.rerun_save)  # every flag checked before anything is opened or written
     if args.expert:
-        given = model_flags_given(args, ("--noise", args.noise != 0.0), ("--threads", args.threads is not None))
+        given = model_flags_given(args, ("--noise", args.noise != 0.0), ("--threads", args.threads is not None),
+                                  ("--inject-delay", args.inject_delay != 0.0))
         if given:
             raise ConfigError(f"{given[0]} is a model's setting: it goes with --model, not --expert")
     check_smoothing_arguments(args)
@@ -139,7 +143,8 @@ def run(args) -> int:
             stack.callback(lambda: print(views.close_line()))
         result = evaluate(args.model, args.task, args.episodes, seed=args.seed, threads=args.threads,
                           precision=args.precision, kernel=args.kernel, spinning=False if args.no_spin else None, state_token_noise=args.noise, strips_dir=strips.path if strips else None,
-                          progress=not args.no_progress, views=views, **smoothing_options(args))
+                          progress=not args.no_progress, views=views, inject_delay_ms=args.inject_delay,
+                          **smoothing_options(args))
         if strips is not None:
             strips.commit()
     print_eval(result)

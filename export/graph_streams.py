@@ -18,7 +18,7 @@ import numpy as np
 
 from dssp_core.errors import ParityError
 from dssp_data.streaming_history import StreamingHistory
-from dssp_deploy.manifest import DENOISER_GRAPH, HISTORY_GRAPH
+from dssp_deploy.manifest import DENOISER_GRAPH, HISTORY_GRAPH, no_inpainting
 from dssp_deploy.onnx_policy import OnnxPolicy
 from dssp_deploy.ranges import ChunkOutOfRange
 
@@ -68,7 +68,8 @@ class GraphStream:
 
     def denoiser_inputs(self) -> dict[str, np.ndarray]:
         available = {"c_t": self.history.context, "z_recent": self.history.recent}
-        return {name: available[name] for name in self.denoiser_names if name != "noise"}
+        feeds = {name: available[name] for name in self.denoiser_names if name in available}
+        return {**feeds, **no_inpainting(self.manifest, self.history.recent.shape[0])}
 
     def act(self, noise: np.ndarray) -> np.ndarray:
         return self.denoiser_fn({**self.denoiser_inputs(), "noise": noise})[0]

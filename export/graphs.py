@@ -119,14 +119,18 @@ class HistoryStepGraph(nn.Module):
 class DenoiserGraph(nn.Module):
     """K DDIM steps from noise to a raw action chunk, every timestep-only quantity a constant.
 
-    forward(c_t (B, d) [if use_history], z_recent (B, N, d) [if use_recent_states], noise (B, H, A))
+    forward(c_t (B, d) [if use_history], z_recent (B, N, d) [if use_recent_states], noise (B, H, A)
+            [, committed (B, H, A) raw units, committed_weight (B, H, 1) in [0, 1] — with ``inpainting``])
         → action (B, H, A) in raw units.
+    With ``inpainting`` every step's clean prediction is pulled to the committed actions by their weights (real-time
+    chunking: the actions already sent while this chunk was computed; weight 0 everywhere is the plain chain).
     ``z_recent`` holds the last N ``z_t`` from the history step, oldest first; at the start of an
     episode the first observation's ``z`` repeats (as in training).
     """
 
-    def __init__(self, policy: DSSPPolicy, num_steps: int):
+    def __init__(self, policy: DSSPPolicy, num_steps: int, inpainting: bool = False):
         super().__init__()
+        self.inpainting = inpainting
         cfg = policy.cfg
         self.policy = policy = pruned_copy(policy, ("denoiser",))
         self.use_history = cfg.use_history
@@ -149,7 +153,11 @@ class DenoiserGraph(nn.Module):
         context = next(it) if self.use_history else None
         recent = next(it) if self.use_recent else None
         noise = next(it)
+        inpaint = None
+        if self.inpainting:
+            committed, weight = next(it), next(it)
+            inpaint = (self.policy.normalizers["action"].normalize(committed), weight)
         prefix = self.policy.build_prefix(context, recent)  # (B, L_p, d)
         table = self.table_type(*(getattr(self, f"table_{name}") for name in self.table_type._fields))
-        x = self.policy.sample_normalized(prefix, noise, self.num_steps, table, unrolled=True)  # (B, H, A)
+        x = self.policy.sample_normalized(prefix, noise, self.num_steps, table, unrolled=True, inpaint=inpaint)  # (B, H, A)
         return self.policy.normalizers["action"].unnormalize(x)

@@ -37,6 +37,7 @@ def build_manifest(
     source: dict[str, Any],
     exporter: dict[str, Any],
     versions: dict[str, str],
+    inpainting: bool = False,
 ) -> dict[str, Any]:
     """The manifest as a JSON-ready dict.
 
@@ -46,11 +47,12 @@ def build_manifest(
             training step.
         exporter: exporter name and version, ONNX opset, ONNX exporter used.
         versions: library versions (dssp, torch, onnx, onnxruntime, python).
+        inpainting: the denoiser takes the committed actions and their weights (``--inpainting``).
     """
     m = config.model
     graphs = {}
     for name in GRAPHS:
-        inputs, outputs = graph_io(m, name)
+        inputs, outputs = graph_io(m, name, inpainting)
         graphs[name] = {"files": files.get(name, {}), "inputs": inputs, "outputs": outputs}
     return {
         "kind": KIND,
@@ -72,6 +74,7 @@ def build_manifest(
         "use_recent_states": m.use_recent_states,
         "history_state": [s["name"] for s in history_state_specs(m)] if m.use_history else [],
         "control_rate_hz": config.control_rate_hz,
+        "inpainting": inpainting,
         "observation": config.observation.to_manifest(),
         "normalizers": normalizers,
         "runtime": {
@@ -80,6 +83,9 @@ def build_manifest(
             "history_state": "all zeros at the start of an episode; feed each *_out back as the next tick's input",
             "z_recent": "the last N z_t outputs, oldest first; at the start of an episode the first z_t repeats",
             "noise": "standard normal (B, H, A)",
+            **({"committed": "the actions already committed (B, H, A), raw units, and committed_weight (B, H, 1) in "
+                             "[0, 1]: every DDIM step's clean prediction is pulled to them (all zero: the plain chain)"}
+               if inpainting else {}),
             "act_every": f"one denoiser call every H_a = {m.n_action_steps} history steps; execute the H_a actions from "
                          f"index action_offset = {m.action_offset}",
             "tick_rate_hz": config.control_rate_hz,

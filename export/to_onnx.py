@@ -159,19 +159,20 @@ def quiet_tracing():
 
 
 # ----------------------------------------------------------------- tracing
-def example_inputs(config, graph: str, batch: int = 2) -> tuple:
+def example_inputs(config, graph: str, batch: int = 2, inpainting: bool = False) -> tuple:
     """Random inputs with the graph's shapes, B = ``batch`` (2, so no size-1 broadcast is baked in)."""
 
     gen = torch.Generator().manual_seed(0)
-    inputs, _ = graph_io(config.model, graph)
+    inputs, _ = graph_io(config.model, graph, inpainting)
     shapes = [[batch if d == "B" else config.model.n_points if d == "P" else d for d in s["shape"]] for s in inputs]
     return tuple(torch.randn(shape, generator=gen) for shape in shapes)
 
 
-def graph_modules(policy, denoise_steps: int) -> dict[str, Any]:
+def graph_modules(policy, denoise_steps: int, inpainting: bool = False) -> dict[str, Any]:
     """{graph name: the torch module that becomes it}."""
 
-    return {HISTORY_GRAPH: HistoryStepGraph(policy).eval(), DENOISER_GRAPH: DenoiserGraph(policy, denoise_steps).eval()}
+    return {HISTORY_GRAPH: HistoryStepGraph(policy).eval(),
+            DENOISER_GRAPH: DenoiserGraph(policy, denoise_steps, inpainting).eval()}
 
 
 def trace(module, example: tuple):
@@ -183,7 +184,7 @@ def trace(module, example: tuple):
 
 # -------------------------------------------------------------------- ONNX
 def write_onnx(module, example: tuple, path: Path, config, graph: str, opset: int, metadata: dict[str, str],
-               fused: bool = False) -> None:
+               fused: bool = False, inpainting: bool = False) -> None:
     """Export one graph module to ``path``; set the manifest's IO shapes and metadata; run the full checker.
 
     ``fused``: the module's Mamba layers use :data:`export.fused_ops.FUSED_OPS`, so the graph holds the
@@ -194,7 +195,7 @@ def write_onnx(module, example: tuple, path: Path, config, graph: str, opset: in
     """
     import onnx  # deferred: loads onnx
 
-    inputs, outputs = graph_io(config.model, graph)
+    inputs, outputs = graph_io(config.model, graph, inpainting)
     dynamic_axes = {s["name"]: {i: d for i, d in enumerate(s["shape"]) if isinstance(d, str)} for s in inputs + outputs}
     with torch.no_grad(), quiet_tracing():
         torch.onnx.export(
@@ -293,9 +294,12 @@ def export_model(
     verify_steps: int = 1000,
     force: bool = False,
     threads: int | None = None,
+    inpainting: bool = False,
     progress: Callable[[str], None] = print,
 ) -> dict[str, Any]:
     """Export RUN_DIR to MODEL_DIR; return a summary (files with sizes and node counts, parity report).
+    ``inpainting``: the denoiser graph also takes the committed actions and their weights (real-time chunking,
+    ``dssp-run --smoothing rtc``); with zero weights it is the plain chain.
 
     Raises:
         ExportError: bad input (nothing is written).
@@ -360,8 +364,8 @@ def export_model(
         timesteps = policy.schedule.inference_timesteps(k)
         stage(f"loaded {run_dir} ({'EMA' if ema else 'raw'} weights, step {source['step']}, sha256 {source['sha256'][:12]}{unrecorded})")
 
-        modules = graph_modules(policy, k)
-        examples = {g: example_inputs(config, g) for g in GRAPHS}
+        modules = graph_modules(policy, k, inpainting)
+        examples = {g: example_inputs(config, g, inpainting=inpainting) for g in GRAPHS}
         caching = "prefix cached" if config.model.timestep_decoupled else "prefix in every step (timestep_decoupled false)"
         stage(f"built {HISTORY_GRAPH} and {DENOISER_GRAPH} (K = {k} DDIM steps {timesteps}, {caching})")
 
@@ -384,6 +388,7 @@ def export_model(
                 "opset": opset if "onnx" in formats else None,
             },
             versions=library_versions(),
+            inpainting=inpainting,
         )
 
         if "torchscript" in formats:
@@ -394,7 +399,8 @@ def export_model(
             stage("TorchScript not requested")
         if "onnx" in formats:
             for g in GRAPHS:
-                write_onnx(modules[g], examples[g], staged.path / files[g]["onnx"], config, g, opset, metadata_props(manifest, g))
+                write_onnx(modules[g], examples[g], staged.path / files[g]["onnx"], config, g, opset, metadata_props(manifest, g),
+                           inpainting=inpainting)
             stage(f"wrote {', '.join(files[g]['onnx'] for g in GRAPHS)} (opset {opset}, onnx.checker full_check passed)")
         else:
             stage("ONNX not requested")
@@ -405,7 +411,7 @@ def export_model(
             for g in GRAPHS:  # the same modules, their Mamba layers now on the fused operators
                 use_fused_ops(modules[g])
                 write_onnx(modules[g], examples[g], staged.path / files[g][kind], config, g, opset, metadata_props(manifest, g),
-                           fused=True)
+                           fused=True, inpainting=inpainting)
             stage(f"wrote {', '.join(files[g][kind] for g in GRAPHS)} (fused Mamba operators)")
         elif kernel_note:
             progress(kernel_note)
@@ -495,6 +501,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--skip-verify", action="store_true", help="do not stream the parity check before finishing")
     p.add_argument("--verify-steps", type=int, default=1000, help="control ticks the parity check streams (default 1000)")
     p.add_argument("--threads", type=int, help="threads for the parity check (default: all CPUs of this process)")
+    p.add_argument("--inpainting", action="store_true",
+                   help="the denoiser also takes the committed actions and their weights, for real-time chunking "
+                        "(dssp-run --smoothing rtc); zero weights give the plain chain")
     p.add_argument("--force", action="store_true", help="replace MODEL_DIR when it holds a previous export")
     return p
 
@@ -519,6 +528,7 @@ def main(argv: list[str] | None = None) -> int:
                 verify_steps=args.verify_steps,
                 force=args.force,
                 threads=args.threads,
+                inpainting=args.inpainting,
             )
         except ParityError as exc:
             print(f"error: {exc}; nothing was written to {args.out}", file=sys.stderr)

@@ -70,7 +70,8 @@ import numpy as np
 from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import ExportError, ParityError
 from dssp_core.output_guard import check_output_file, write_output_text
-from dssp_deploy.manifest import DENOISER_GRAPH, FUSED, HISTORY_GRAPH, PRECISIONS, file_kind, read_graph, read_manifest
+from dssp_deploy.manifest import (DENOISER_GRAPH, FUSED, HISTORY_GRAPH, PRECISIONS, file_kind, no_inpainting, read_graph,
+                                   read_manifest)
 from dssp_deploy.sessions import check_threads, default_threads
 from dssp_train.config import TIMESTEP_SPACINGS
 from export.graph_streams import GraphFn, GraphStream, RuntimeStream, torchscript_graph
@@ -380,7 +381,8 @@ def check_traces(fns: dict[str, GraphFn], manifest: dict[str, Any], point_cloud:
     out = fns[HISTORY_GRAPH](feeds)
     e_z = worst(out[0], ref.z[at])  # (R, d)
     e_c = worst(out[1], ref.c[at]) if ref.c is not None else (0.0, None)
-    available = {"c_t": None if ref.context is None else ref.context[rows], "z_recent": ref.recent[rows], "noise": noise[rows, 0]}
+    available = {"c_t": None if ref.context is None else ref.context[rows], "z_recent": ref.recent[rows], "noise": noise[rows, 0],
+                 **no_inpainting(manifest, len(rows))}
     chunks = fns[DENOISER_GRAPH]({s["name"]: available[s["name"]] for s in manifest["graphs"][DENOISER_GRAPH]["inputs"]})[0]
     e_a = worst(chunks, ref.chunks[rows, 0], scale)  # (R, H, A)
     errors = {"z_t": e_z[0], "c_t": e_c[0], "state": None, "action": e_a[0]}

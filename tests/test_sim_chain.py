@@ -188,6 +188,27 @@ def test_temporal_ensembling_reaches_the_loop_and_the_record(sim_model):
         evaluate(sim_model, "tap", 1, progress=False, smoothing="ensemble", ensemble_every=1000)
 
 
+def test_inference_delay_and_real_time_chunking_reach_the_loop_and_the_record(sim_model, tmp_path):
+    """dssp-sim eval --inject-delay 150 (2 ticks at 10 Hz): without smoothing every chunk is waited for (2 holds a
+    chunk); with --smoothing rtc (the same run exported with --inpainting) only the first is, and the record has the
+    commanded jerk at the ticks a new chunk took over."""
+    from dssp_sim.evaluate import evaluate
+    from export.to_onnx import main as export_main
+
+    inpainting = tmp_path / "model_rtc"
+    assert export_main([str(sim_model.parent / "run"), "-o", str(inpainting), "--inpainting", "--skip-verify",
+                        "--quantize", "none", "--format", "onnx", "--no-fused"]) == 0
+    stalled = evaluate(inpainting, "tap", 1, seed=3, threads=1, progress=False, inject_delay_ms=150)
+    chunks = stalled.latency_ms["chunk"]["n"]
+    assert stalled.injected_delay_ticks == 2 and chunks > 2
+    assert stalled.episodes[0].safety_events.get("hold", 0) >= 2 * (chunks - 1)  # the loop waits for every chunk
+    rtc = evaluate(inpainting, "tap", 1, seed=3, threads=1, progress=False, smoothing="rtc", inject_delay_ms=150)
+    record = rtc.to_dict()
+    assert (record["smoothing"], record["injected_delay_ticks"], record["rtc_delay_ticks"]) == ("rtc", 2, 2)
+    jerk = record["boundary_jerk"]
+    assert jerk["boundary_ticks"] > 0 and jerk["other_ticks"] > 0 and jerk["at_boundaries"] > 0
+
+
 def test_the_scripted_expert_drives_the_same_loop(tmp_path, capsys):
     """dssp-sim eval --expert: the task's expert as the control loop's policy source, through the safety layer and
     the CAN bus — it passes every tap episode (the task's ceiling through the chain), its decision scored the same way."""

@@ -145,6 +145,7 @@ class DSSPPolicy(nn.Module):
         num_steps: int | None = None,
         table: Modulation | None = None,
         unrolled: bool = False,
+        inpaint: tuple[torch.Tensor, torch.Tensor] | None = None,
     ) -> torch.Tensor:
         """DDIM from noise (B, H, A) to a normalised action chunk (B, H, A), given the prefix (B, L_p, d); with
         gradients (a distilled student trains its K-step chain end to end), :meth:`sample_normalized` without.
@@ -152,7 +153,9 @@ class DSSPPolicy(nn.Module):
         The AdaLN parameters of the K timesteps are computed once (or given: ``table``, K rows) and each
         step takes its row; with ``timestep_decoupled`` the prefix runs once and its states serve every step (K = 1:
         prefix and action tokens in one pass).
-        ``unrolled`` runs the Mamba layers' traceable path (:meth:`Mamba.forward_unrolled`).
+        ``unrolled`` runs the Mamba layers' traceable path (:meth:`Mamba.forward_unrolled`). ``inpaint`` (target
+        (B, H, A) normalised, weight (B, H, 1)): every step's clean prediction is pulled to the target
+        (:meth:`~dssp_train.model.scheduler.DiffusionSchedule.ddim_step`): real-time chunking's committed actions.
         """
         den = self.denoiser
         timesteps = self.schedule.inference_timesteps(num_steps)
@@ -167,7 +170,7 @@ class DSSPPolicy(nn.Module):
                 x0 = den.denoise_modulated(states, x, table.at(k), unrolled)
             else:
                 x0 = den.forward_modulated(prefix, x, table.at(k), unrolled)
-            x = self.schedule.ddim_step(x0, t, x, num_steps)
+            x = self.schedule.ddim_step(x0, t, x, num_steps, inpaint)
         return x
 
     @torch.no_grad()

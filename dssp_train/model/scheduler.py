@@ -67,8 +67,13 @@ class DiffusionSchedule:
         a_prev = self.alphas_cumprod[prev] if prev >= 0 else self.final_alpha_cumprod
         return float(a_t), float(a_prev)
 
-    def ddim_step(self, model_output: torch.Tensor, t: int, sample: torch.Tensor, num_steps: int | None = None) -> torch.Tensor:
-        """One deterministic DDIM step (eta = 0) from x_t to x_prev."""
+    def ddim_step(self, model_output: torch.Tensor, t: int, sample: torch.Tensor, num_steps: int | None = None,
+                  inpaint: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+        """One deterministic DDIM step (eta = 0) from x_t to x_prev.
+
+        ``inpaint`` (target (B, H, A) normalised, weight (B, H, 1) in [0, 1]): the step's clean prediction is pulled to
+        the target, x0 <- weight * target + (1 - weight) * x0, before the step (real-time chunking's inpainting of the
+        actions already committed); weight 1 keeps the target exactly at the chain's end, weight 0 changes nothing."""
         a_t, a_prev = self.ddim_coefficients(t, num_steps)
         if self.cfg.prediction_type == "sample":
             x0 = model_output
@@ -78,6 +83,9 @@ class DiffusionSchedule:
             x0 = (sample - (1 - a_t) ** 0.5 * eps) / a_t**0.5
         if self.cfg.clip_sample:
             x0 = x0.clamp(-1.0, 1.0)
+        if inpaint is not None:
+            target, weight = inpaint
+            x0 = weight * target + (1 - weight) * x0
         return a_prev**0.5 * x0 + (1 - a_prev) ** 0.5 * eps
 
     # ------------------------------------------------- per-sample steps (distillation)

@@ -119,6 +119,9 @@ def check_args(args) -> None:
     if args.smoothing == "ensemble" and args.prefetch:
         raise ConfigError("--prefetch does not combine with --smoothing ensemble: ensembling computes each chunk in the "
                           "tick that first uses it; run one or the other")
+    if args.smoothing == "rtc" and args.prefetch:
+        raise ConfigError("--prefetch does not combine with --smoothing rtc: real-time chunking computes the next chunk "
+                          "in the background itself; drop --prefetch")
     from hardware.subscribers import check_subscribers  # deferred: loads numpy
 
     check_subscribers(args.subscribe)
@@ -214,7 +217,8 @@ def model_source(args, described, cloud_config, safety_config, stops: Stops):
     if not args.quiet and sys.stderr.isatty():  # a progress note for a person; logs and scripts get only the result
         print(f"loading {args.model} (warm-up included)", file=sys.stderr)
     policy = OnnxPolicy(args.model, threads=args.threads, precision=args.precision, kernel=args.kernel,
-                        background_chunks=args.prefetch, spinning=False if args.no_spin else None)
+                        background_chunks=args.prefetch or args.smoothing == "rtc",
+                        spinning=False if args.no_spin else None)
     stops.check()
     trained = observation_of(policy.manifest)
     if cloud_config is None:  # the model's own settings; a model from data that recorded none: the defaults
@@ -234,8 +238,11 @@ def model_source(args, described, cloud_config, safety_config, stops: Stops):
     for o in overrides:
         print(f"warning: running with {o['field']} = {o['given']} although the model was trained with {o['trained']} "
               "(--allow-mismatch)", file=sys.stderr)
-    source = ModelPolicy(policy, rate, prefetch=args.prefetch, seed=args.seed, chunk_ms=chunk_ms,
-                         **smoothing_options(args))  # the smoothing is in the log: source.describe()
+    try:  # real-time chunking measures the chunk here and refuses a model or rate it cannot serve
+        source = ModelPolicy(policy, rate, prefetch=args.prefetch, seed=args.seed, chunk_ms=chunk_ms,
+                             **smoothing_options(args))  # the smoothing is in the log: source.describe()
+    except ValueError as exc:
+        raise ConfigError(f"--smoothing {args.smoothing}: {exc}") from None
     about = {"model": str(args.model), "policy": source.describe(),
              "manifest": {k: policy.manifest[k] for k in ("denoise_steps", "control_rate_hz") if k in policy.manifest},
              "observation": trained.to_manifest(), "allowed_mismatches": overrides}

@@ -23,18 +23,20 @@ from hardware.policies import Act, PolicySource
 class ModelPolicy(PolicySource):
     """``policy``: the loaded runtime; ``rate_hz``: the loop's rate (the history is updated at it); ``prefetch``,
     ``seed``, ``chunk_ms`` (the chunk latency the prefetch lead is chosen from; None: measured here),
-    ``smoothing``, ``ensemble_every`` and ``ensemble_decay``: :class:`~dssp_deploy.control_loop.ChunkedControl`'s."""
+    ``smoothing``, ``ensemble_every``, ``ensemble_decay`` and ``injected_delay`` (simulation only):
+    :class:`~dssp_deploy.control_loop.ChunkedControl`'s."""
 
     name = "model"
     needs_cloud = True
 
     def __init__(self, policy: OnnxPolicy, rate_hz: float, *, prefetch: bool = False, seed: int | None = None,
                  chunk_ms: float | None = None, smoothing: str = "none", ensemble_every: int | None = None,
-                 ensemble_decay: float = 0.01):
+                 ensemble_decay: float = 0.01, injected_delay: int = 0):
         self.policy = policy
         self.control_rate_hz = policy.control_rate_hz
         self.control = ChunkedControl(policy, rate_hz=rate_hz, prefetch=prefetch, seed=seed, chunk_ms_estimate=chunk_ms,
-                                      smoothing=smoothing, ensemble_every=ensemble_every, ensemble_decay=ensemble_decay)
+                                      smoothing=smoothing, ensemble_every=ensemble_every, ensemble_decay=ensemble_decay,
+                                      injected_delay=injected_delay)
 
     def check(self, description, cloud_config) -> None:
         """Refuse a model that does not fit this robot or camera pipeline — before anything moves."""
@@ -58,7 +60,8 @@ class ModelPolicy(PolicySource):
         if info.new_chunk and self.control.chunk is not None:
             # (H - offset, A): the new chunk's actions to come (ensembled: the newest chunk's, not the blend)
             chunk = self.control.chunk[0, self.control.chunk_offset:]
-        return Act(out[0].astype(np.float64), observe_ms=info.observe_ms, chunk_ms=info.chunk_ms, chunk=chunk,
+        action = None if out is None else out[0].astype(np.float64)  # None: no chunk usable yet, hold
+        return Act(action, observe_ms=info.observe_ms, chunk_ms=info.chunk_ms, chunk=chunk,
                    over_budget=info.over_budget, events=list(info.events))
 
     def describe(self) -> dict:

@@ -1,0 +1,196 @@
+"""Real-time chunking and inference delay: the inpainting denoiser (``export.to_onnx --inpainting``) against PyTorch,
+the loop's schedules under an injected delay (``ChunkedControl(injected_delay=d)``) written out by hand on a stand-in
+runtime whose chunks are known numbers, and ``dssp-sim eval --inject-delay --smoothing rtc`` end to end."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import built_once, one_error_line
+from dssp_deploy.control_loop import ChunkedControl, rtc_weights
+from dssp_deploy.onnx_policy import OnnxPolicy
+
+
+def _inpainting_export(tmp_path_factory, request):
+    from conftest import _arm_export
+    from export.to_onnx import main as export_main
+
+    plain = _arm_export(tmp_path_factory, request, 1)
+
+    def build(root):
+        model = root / "model"
+        assert export_main([str(plain.parent / "run"), "-o", str(model), "--inpainting", "--skip-verify", "--quantize",
+                            "none", "--format", "onnx", "--no-fused"]) == 0
+        return (model,)
+
+    return plain, built_once(tmp_path_factory, request, "inpainting_export", build)[0]
+
+
+@pytest.fixture(scope="module")
+def exports(tmp_path_factory, request):
+    """(the arm model exported plainly, the same run exported with --inpainting)."""
+    return _inpainting_export(tmp_path_factory, request)
+
+
+def test_the_inpainting_denoiser_is_the_pytorch_chain_and_zero_weights_are_the_plain_one(exports):
+    from export.to_onnx import load_source
+
+    plain_dir, model_dir = exports
+    torch.set_num_threads(1)
+    policy, _, _ = load_source(plain_dir.parent / "run", True)
+    graph = OnnxPolicy(model_dir, threads=1, precision="fp32", kernel="standard")
+    plain = OnnxPolicy(plain_dir, threads=1, precision="fp32", kernel="standard")
+    assert graph.inpainting and not plain.inpainting
+    rng = np.random.default_rng(0)
+    pc, pos = graph.example_observation(rng)
+    for p in (graph, plain):
+        p.observe(pc, pos)
+        p.observe(pc, pos)
+    h, a = graph.horizon, graph.action_dim
+    committed = rng.uniform(-0.5, 0.5, (1, h, a)).astype(np.float32)
+    weight = np.linspace(1.0, 0.0, h, dtype=np.float32)[None, :, None]
+    noise = graph.noise(1, seed=3)
+    feeds = graph.denoiser_inputs(committed, weight)
+    chunk = graph.denoise(feeds, noise=noise)
+    with torch.no_grad():
+        prefix = policy.build_prefix(torch.from_numpy(feeds["c_t"]), torch.from_numpy(feeds["z_recent"]))
+        norm = policy.normalizers["action"]
+        want = norm.unnormalize(policy.sample_normalized(
+            prefix, torch.from_numpy(noise), graph.denoise_steps,
+            inpaint=(norm.normalize(torch.from_numpy(committed)), torch.from_numpy(weight)))).numpy()
+    np.testing.assert_allclose(chunk, want, atol=1e-5)  # parity with the training code's chain
+    np.testing.assert_allclose(chunk[0, 0], committed[0, 0], atol=1e-5)  # weight 1: the committed action itself
+    zero = graph.denoise(graph.denoiser_inputs(), noise=noise)
+    np.testing.assert_allclose(zero, plain.denoise(plain.denoiser_inputs(), noise=noise), atol=1e-5)
+    assert np.abs(chunk - zero).max() > 1e-2  # the weights change the chunk
+    with pytest.raises(ValueError, match="export it with --inpainting"):
+        plain.denoiser_inputs(committed, weight)
+
+
+def test_rtc_weights_freeze_the_past_and_the_delay_then_decay():
+    w = rtc_weights(horizon=8, offset=1, covered=6, delay=2)
+    assert w[:3].tolist() == [1.0, 1.0, 1.0] and w[6:].tolist() == [0.0, 0.0]
+    assert 1.0 > w[3] > w[4] > w[5] > 0.0
+    assert rtc_weights(8, 1, 2, 3).tolist() == [1.0, 1.0] + [0.0] * 6  # nothing committed beyond the old chunk's end
+    assert not rtc_weights(8, 0, 0, 2).any()
+
+
+class FakePolicy:
+    """What ChunkedControl uses of OnnxPolicy for chunks with an inpainting denoiser: chunk k (the k-th computed) holds
+    100 k + j at index j; each call's committed actions and weights are kept."""
+
+    def __init__(self, horizon=8, n_action_steps=3, action_offset=1):
+        self.horizon, self.n_action_steps, self.action_offset = horizon, n_action_steps, action_offset
+        self.control_rate_hz, self.inpainting, self.manifest = 10.0, True, {"denoise_steps": 3}
+        self.calls: list[dict] = []
+        self.history = ()
+
+    def reset(self):
+        self.history = ()
+
+    def observe(self, point_cloud, agent_pos):
+        self.history = (*self.history, float(np.asarray(agent_pos).ravel()[0]))
+
+    def denoiser_inputs(self, committed=None, weight=None):
+        return {"seen": len(self.history), "committed": committed, "weight": weight}
+
+    def denoise(self, inputs, noise=None, seed=None):
+        k = len(self.calls)
+        self.calls.append(inputs)
+        return (100.0 * k + np.arange(self.horizon, dtype=np.float32))[None, :, None]
+
+    def act(self, seed=None):
+        return self.denoise(self.denoiser_inputs(), seed=seed)
+
+
+def run(loop, ticks):
+    out = []
+    for t in range(ticks):
+        action, _ = loop.tick(np.zeros((4, 3), np.float32), np.array([float(t)], np.float32))
+        out.append(None if action is None else float(action[0, 0]))
+    return out
+
+
+def test_without_smoothing_a_delay_is_a_stall_before_every_chunk():
+    policy = FakePolicy(horizon=6, n_action_steps=2, action_offset=1)
+    actions = run(ChunkedControl(policy, injected_delay=2), 9)
+    # hold 2 ticks, chunk 0's H_a actions from its first (index offset), a new chunk, hold 2 ticks, ...
+    assert actions == [None, None, 1.0, 2.0, None, None, 101.0, 102.0, None]
+    assert [c["seen"] for c in policy.calls] == [1, 5, 9]  # each from the observation of the tick it started at
+
+
+def test_ensembling_takes_each_chunk_in_late_at_the_actions_for_the_ticks_it_then_covers():
+    policy = FakePolicy(horizon=8, n_action_steps=3, action_offset=1)
+    loop = ChunkedControl(policy, smoothing="ensemble", ensemble_every=1, ensemble_decay=0.0, injected_delay=1)
+    actions = run(loop, 4)
+    # tick t: chunk s (computed at s, usable from s + 1) predicts t with index 1 + t - s
+    assert actions[0] is None
+    assert actions[1] == 2.0  # chunk 0 only
+    assert actions[2] == pytest.approx((3.0 + 102.0) / 2)  # chunks 0 and 1
+    assert actions[3] == pytest.approx((4.0 + 103.0 + 202.0) / 3)
+
+
+def test_real_time_chunking_starts_early_inpaints_what_is_committed_and_takes_over_after_the_delay():
+    policy = FakePolicy(horizon=8, n_action_steps=3, action_offset=1)
+    loop = ChunkedControl(policy, smoothing="rtc", injected_delay=2)
+    actions = run(loop, 9)
+    # chunk 0 from tick 0 takes over at tick 2 (index 1 + 2); chunk 1 starts at tick 3, takes over at 5 (index 3), …
+    assert actions == [None, None, 3.0, 4.0, 5.0, 103.0, 104.0, 105.0, 203.0]
+    first, second = policy.calls[0], policy.calls[1]
+    assert first["committed"] is None and first["weight"] is None  # nothing committed before the first chunk
+    # chunk 1 (observation at tick 3): its index i is tick 3 + i - 1, chunk 0's index i + 3; chunk 0 covers 5 of them
+    np.testing.assert_array_equal(second["committed"][0, :, 0], [3, 4, 5, 6, 7, 0, 0, 0])
+    np.testing.assert_array_equal(second["weight"][0, :, 0], rtc_weights(8, 1, 5, 2))
+    assert second["seen"] == 4 and policy.calls[2]["seen"] == 7
+
+
+def test_a_delay_beyond_what_the_horizon_covers_holds_the_ticks_no_chunk_has():
+    policy = FakePolicy(horizon=8, n_action_steps=4, action_offset=1)  # H - offset = 7 < H_a + d = 8
+    actions = run(ChunkedControl(policy, smoothing="rtc", injected_delay=4), 13)
+    assert actions[:4] == [None] * 4 and actions[4:8] == [5.0, 6.0, 7.0, None]  # chunk 0 runs out at index 8
+    assert actions[8:12] == [105.0, 106.0, 107.0, None]
+
+
+def test_rtc_needs_an_inpainting_model_and_no_prefetch():
+    policy = FakePolicy()
+    policy.inpainting = False
+    with pytest.raises(ValueError, match="export the model with python -m export.to_onnx --inpainting"):
+        ChunkedControl(policy, smoothing="rtc", injected_delay=1)
+    with pytest.raises(ValueError, match="leave prefetch off"):
+        ChunkedControl(FakePolicy(), smoothing="rtc", prefetch=True, chunk_ms_estimate=1.0)
+    with pytest.raises(ValueError, match="injected_delay must be a whole number"):
+        ChunkedControl(FakePolicy(), injected_delay=-1)
+
+
+def test_dssp_sim_eval_refuses_rtc_without_an_inpainting_model_and_a_delay_for_the_expert(exports, capsys):
+    from dssp_sim.sim_cli import main as sim_main
+
+    plain_dir, _ = exports
+    code = sim_main(["eval", "--model", str(plain_dir), "--task", "tap", "--episodes", "1", "--smoothing", "rtc",
+                     "--no-progress"])
+    assert code == 2 and "export the model with python -m export.to_onnx --inpainting" in one_error_line(capsys.readouterr().err)
+    code = sim_main(["eval", "--expert", "--task", "tap", "--episodes", "1", "--inject-delay", "100", "--no-progress"])
+    assert code == 2 and "--inject-delay is a model's setting" in one_error_line(capsys.readouterr().err)
+
+
+def test_dssp_run_with_real_time_chunking_on_the_embedded_simulation(exports, tmp_path, capsys):
+    """On the robot's path the next chunk runs in a background thread; d comes from the measured chunk time (real
+    time, as the other dssp-run tests: nothing asserted depends on how fast the machine is)."""
+    from hardware.run_log import read_ticks
+    from test_policy_sources import run_dssp
+
+    _, model_dir = exports
+    log_dir = tmp_path / "log"
+    code, out, err = run_dssp(capsys, "--model", model_dir, "--smoothing", "rtc", "--camera", "tabletop", "--can", "sim",
+                              "--max-steps", "30", "--seed", "0", "--threads", "2", "--quiet", "--log-dir", log_dir)
+    assert code == 0, out + err
+    assert "ticks 30" in out and "ended by: max steps" in out
+    policy = json.loads((log_dir / "run.json").read_text())["settings"]["policy"]
+    assert policy["smoothing"] == "rtc" and policy["rtc_delay_ticks"] >= 1 and policy["injected_delay_ticks"] == 0
+    ticks = read_ticks(log_dir)
+    assert any(t.get("chunk_ms") is not None for t in ticks)
+    code, _, err = run_dssp(capsys, "--model", model_dir, "--smoothing", "rtc", "--prefetch", "--camera", "tabletop",
+                            "--can", "sim", "--log-dir", tmp_path / "log2")
+    assert code == 2 and "--prefetch does not combine with --smoothing rtc" in one_error_line(err)
