@@ -16,7 +16,8 @@ from dssp_core.files import atomic_write_text
 from studies.runner import Runner, Stage
 
 KEPT = ("task", "n", "successes", "failure_reasons", "decisions", "precision", "kernel", "latency_ms",
-        "state_token_noise", "z_rms")
+        "state_token_noise", "z_rms", "smoothing", "injected_delay_ms", "injected_delay_ticks", "rtc_delay_ticks",
+        "boundary_jerk")
 
 
 def compact(result: dict) -> dict:
@@ -24,7 +25,8 @@ def compact(result: dict) -> dict:
     kept = {k: result[k] for k in KEPT if k in result}
     if "episodes" in result:
         kept["episodes"] = [{"seed": e["seed"], "success": e["success"], "reason": e["reason"], "steps": e["steps"],
-                             "decision": e.get("decision", {})} for e in result["episodes"]]
+                             "decision": e.get("decision", {}), **({"holds": e["holds"]} if "holds" in e else {})}
+                            for e in result["episodes"]]
     return kept
 
 

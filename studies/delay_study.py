@@ -1,0 +1,263 @@
+"""The delay study: closed-loop success and the jerk at chunk boundaries against the inference delay, for the three
+ways of taking actions from chunks (none, temporal ensembling, real-time chunking).
+
+    python -m studies.delay_study [--tasks tap put2] [--workers 2] [--work runs/delay] [--report reports/delay]
+                                  [--report-only] [--quick]
+
+For each task (``tap``, ``put2``): collect the expert demonstrations, train DSSP once (preset ``sim``, training seed
+0), export it with ``--inpainting`` (the denoiser real-time chunking needs; with zero weights it is the plain chain,
+so one model serves the three modes), and evaluate every (smoothing, delay) cell in the MuJoCo twin, in lockstep, with
+the delay injected per chunk (``dssp-sim eval --inject-delay MS``: each chunk usable only that long after its
+observation, in whole 10 Hz ticks — 50 and 100 ms are both one tick, 200 ms two, 400 ms four). The modes:
+
+- ``none``: synchronous; the arm holds while a chunk is computed, then executes its H_a actions from the first;
+- ``ensemble``: ACT's temporal ensembling, a chunk every tick (decay 0.01), each taken in late at the actions for
+  the ticks it then covers;
+- ``rtc``: real-time chunking, the next chunk started H_a ticks after the previous one, inpainted to agree with the
+  actions still committed, taking over after the delay.
+
+Nothing is tuned here (the modes' settings are their defaults, fixed before any evaluation), and the evaluations
+use the **validation** seeds, the same scenes in every cell (paired). A cell's jerk is the commanded joints' jerk
+(rad/s³) at the ticks a new chunk took over, beside the other ticks' (:func:`dssp_sim.evaluate.command_jerk`).
+Differences between modes at each delay come with the exact paired test over the shared scenes (one training seed:
+the intervals cover the scenes only).
+
+Stages run on :class:`studies.runner.Runner` (side by side, one thread each, resumed); the record keeps each
+evaluation (``record/evals``); ``delay.md``, ``.json``, ``.png`` are rebuilt from it alone (``--report-only``,
+``python -m studies.rebuild``).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+from dssp_core.cli_runner import ArgumentParser, run_cli
+from dssp_core.errors import DSSPError
+from dssp_core.files import atomic_write_text
+from dssp_core.output_guard import write_output_figure
+from dssp_sim.evaluate import wilson_interval
+from studies import protocol
+from studies.evaluations import run_and_keep
+from studies.runner import Stage
+from studies.sim_study import pct
+from studies.stats import describe_p, paired_exact_test
+
+REPORT_NAME = "delay"
+PLAN = {
+    "tasks": {"tap": {"demos": 50, "steps": 3000}, "put2": {"demos": 50, "steps": 1500}},
+    "preset": "sim",
+    "seed": 0,
+    "delays_ms": [0, 50, 100, 200, 400],
+    "smoothings": ["none", "ensemble", "rtc"],
+    "episodes": 20,
+    "export_flags": ["--inpainting", "--quantize", "int8"],
+}
+QUICK_PLAN = {**PLAN, "tasks": {"tap": {"demos": 3, "steps": 10}}, "delays_ms": [0, 200], "episodes": 1,
+              "export_flags": ["--inpainting", "--skip-verify", "--quantize", "none"]}
+RECORD_DIR = "record"
+SPLIT = "validation"
+
+
+def cell(task: str, smoothing: str, delay: int) -> str:
+    return f"{task}_{smoothing}_d{delay}"
+
+
+def stages(plan: dict, tasks: list[str], record: Path) -> list[Stage]:
+    """Every stage of ``tasks``; a cell whose evaluation is in the record needs none."""
+    first = protocol.split_seeds(SPLIT, plan["episodes"])[0]
+    out: list[Stage] = []
+    for task in tasks:
+        spec, data, run, model = plan["tasks"][task], f"data_{task}.zarr", f"run_{task}", f"model_{task}"
+        cells = [Stage(f"eval_{cell(task, s, d)}", "dssp_sim.sim_cli:main",
+                       ("eval", "--model", model, "--task", task, "--episodes", str(plan["episodes"]), "--seed", str(first),
+                        "--smoothing", s, "--inject-delay", str(d), "--threads", "1", "--json",
+                        f"evals/{cell(task, s, d)}.json", "--force", "--no-progress"),
+                       after=(f"export_{task}",), outputs=(f"evals/{cell(task, s, d)}.json",))
+                 for d in plan["delays_ms"] for s in plan["smoothings"]
+                 if not (record / "evals" / f"{cell(task, s, d)}.json").is_file()]
+        if not cells:
+            continue
+        argv = ("--data", data, "--out", run, "--preset", plan["preset"], "--steps", str(spec["steps"]), "--seed",
+                str(plan["seed"]), "--no-progress", "--force")
+        out += [Stage(f"collect_{task}", "dssp_sim.sim_cli:main",
+                      ("collect", "--task", task, "--episodes", str(spec["demos"]), "--out", data, "--no-progress"),
+                      clean=(data,)),
+                Stage(f"train_{task}", "dssp_train.cli.train:main", argv, after=(f"collect_{task}",),
+                      resume=("--data", data, "--out", run, "--resume", "--no-progress"), started=f"{run}/checkpoint"),
+                Stage(f"export_{task}", "export.to_onnx:main", (run, "-o", model, "--threads", "1", "--force",
+                                                                *plan["export_flags"]), after=(f"train_{task}",)),
+                *cells]
+    return out
+
+
+def recorded(plan: dict, record: Path) -> dict:
+    """{cell: evaluation} of every cell of the plan the record holds."""
+    evals = {}
+    for task in plan["tasks"]:
+        for d in plan["delays_ms"]:
+            for s in plan["smoothings"]:
+                path = record / "evals" / f"{cell(task, s, d)}.json"
+                if path.is_file():
+                    evals[cell(task, s, d)] = json.loads(path.read_text())
+    return evals
+
+
+def summarise(evals: dict, plan: dict) -> dict:
+    """{task: {smoothing: {delay: {k, n, rate, wilson95, ticks, jerk_boundary, jerk_elsewhere, holds}}}}."""
+    table: dict = {}
+    for task in plan["tasks"]:
+        for s in plan["smoothings"]:
+            for d in plan["delays_ms"]:
+                r = evals.get(cell(task, s, d))
+                if r is None:
+                    continue
+                jerk = r.get("boundary_jerk") or {}
+                table.setdefault(task, {}).setdefault(s, {})[d] = {
+                    "k": r["successes"], "n": r["n"], "rate": r["successes"] / max(r["n"], 1),
+                    "wilson95": list(wilson_interval(r["successes"], r["n"])), "ticks": r.get("injected_delay_ticks"),
+                    "jerk_boundary": jerk.get("at_boundaries"), "jerk_elsewhere": jerk.get("elsewhere"),
+                    "holds": sum(e.get("holds", 0) for e in r["episodes"]) / max(r["n"], 1)}
+    return table
+
+
+def comparisons(evals: dict, plan: dict) -> list[dict]:
+    """RTC against each other mode at each delay: the exact paired test over the shared scenes."""
+    out = []
+    for task in plan["tasks"]:
+        for d in plan["delays_ms"]:
+            rtc = evals.get(cell(task, "rtc", d))
+            for other in ("none", "ensemble"):
+                b = evals.get(cell(task, other, d))
+                if rtc is None or b is None:
+                    continue
+                a_by = {e["seed"]: int(e["success"]) for e in rtc["episodes"]}
+                b_by = {e["seed"]: int(e["success"]) for e in b["episodes"]}
+                seeds = sorted(set(a_by) & set(b_by))
+                a, bb = [a_by[s] for s in seeds], [b_by[s] for s in seeds]
+                p = paired_exact_test(a, bb)
+                out.append({"task": task, "delay_ms": d, "vs": other, "n": len(seeds),
+                            "difference": (sum(a) - sum(bb)) / max(len(seeds), 1), "p": p, "verdict": describe_p(p)})
+    return out
+
+
+def write_report(plan: dict, record: Path, report: Path, shown_record: str | None = None) -> Path:
+    """``delay.md``, ``.json``, ``.png`` from the record alone."""
+    evals = recorded(plan, record)
+    if not evals:
+        raise DSSPError(f"{record} holds no evaluation of this plan; run the study first")
+    table = summarise(evals, plan)
+    tests = comparisons(evals, plan)
+    scenes = protocol.split_seeds(SPLIT, plan["episodes"])
+    lines = [
+        "# Inference delay: none, temporal ensembling and real-time chunking", "",
+        f"Rebuilt from `{shown_record or record}` by `python -m studies.delay_study --report-only`. DSSP, preset "
+        f"`{plan['preset']}`, trained once per task (demonstrations and steps {({t: (s['demos'], s['steps']) for t, s in plan['tasks'].items()})}, "
+        f"seed {plan['seed']}), exported with `--inpainting` at int8; {plan['episodes']} closed-loop episodes per cell in the MuJoCo "
+        f"twin on validation seeds {scenes[0]}–{scenes[-1]} (the same scenes in every cell; nothing here was tuned). "
+        "The delay is injected per chunk in lockstep, in whole 10 Hz ticks (50 and 100 ms are both one tick). Success with "
+        "95 % Wilson intervals (one training seed); jerk = the commanded joints' mean ‖third difference‖ × rate³ "
+        "(rad/s³) at the ticks a new chunk took over, and at the other ticks; holds = ticks per episode with no action "
+        "(the loop waiting for a chunk, or the safety layer holding).", "",
+    ]
+    for task, per_mode in table.items():
+        lines += [f"## {task}", "", "| delay (ticks) | " + " | ".join(f"{s} success" for s in per_mode) + " | "
+                  + " | ".join(f"{s} jerk at boundary / elsewhere | {s} holds" for s in per_mode) + " |",
+                  "|---|" + "---|" * len(per_mode) + "---|---:|" * len(per_mode)]
+        for d in plan["delays_ms"]:
+            rows = [per_mode[s].get(d) for s in per_mode]
+            ticks = next((r["ticks"] for r in rows if r is not None), None)
+            success = ["pending" if r is None else pct(r["k"], r["n"]) for r in rows]
+            jerk = []
+            for r in rows:
+                if r is None:
+                    jerk += ["-", "-"]
+                    continue
+                b, e = r["jerk_boundary"], r["jerk_elsewhere"]
+                jerk += [f"{b:.0f} / {e:.0f}" if b is not None and e is not None else "-", f"{r['holds']:.1f}"]
+            lines.append(f"| {d} ms ({ticks}) | " + " | ".join(success) + " | " + " | ".join(jerk) + " |")
+        lines.append("")
+    lines += ["## Real-time chunking against the other modes (exact paired test over the shared scenes)", "",
+              "| task | delay | vs | RTC − other | p | |", "|---|---:|---|---:|---:|---|"]
+    for t in tests:
+        lines.append(f"| {t['task']} | {t['delay_ms']} ms | {t['vs']} | {100 * t['difference']:+.0f} points | "
+                     f"{t['p']:.3g} | {t['verdict']} |")
+    lines += ["", f"![success and boundary jerk against the inference delay]({REPORT_NAME}.png)", ""]
+    report.mkdir(parents=True, exist_ok=True)
+    md = report / f"{REPORT_NAME}.md"
+    atomic_write_text(md, "\n".join(lines))
+    atomic_write_text(report / f"{REPORT_NAME}.json", json.dumps({"plan": plan, "summary": table, "paired_tests": tests},
+                                                                 indent=1, sort_keys=True) + "\n")
+    plot(table, plan, report / f"{REPORT_NAME}.png")
+    return md
+
+
+def plot(table: dict, plan: dict, path: Path) -> None:
+    import matplotlib  # here, not at the top: the study's command starts without it
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    tasks = list(table)
+    fig, axes = plt.subplots(2, len(tasks), figsize=(5.5 * len(tasks), 7.5), squeeze=False)
+    for col, task in enumerate(tasks):
+        for s, rows in table[task].items():
+            ds = [d for d in plan["delays_ms"] if d in rows]
+            rates = [100 * rows[d]["rate"] for d in ds]
+            lo = [100 * (rows[d]["rate"] - rows[d]["wilson95"][0]) for d in ds]
+            hi = [100 * (rows[d]["wilson95"][1] - rows[d]["rate"]) for d in ds]
+            axes[0][col].errorbar(ds, rates, yerr=[lo, hi], marker="o", capsize=3, label=s)
+            axes[1][col].plot(ds, [rows[d]["jerk_boundary"] if rows[d]["jerk_boundary"] is not None else float("nan")
+                                   for d in ds], marker="o", label=s)
+        axes[0][col].set(title=f"{task}: success (95 % Wilson)", xlabel="injected delay per chunk (ms)", ylabel="success %",
+                         ylim=(0, 105))
+        axes[1][col].set(title=f"{task}: commanded jerk at chunk boundaries", xlabel="injected delay per chunk (ms)",
+                         ylabel="rad/s³", ylim=(0, None))
+        for ax in (axes[0][col], axes[1][col]):
+            ax.set_xticks(plan["delays_ms"])
+            ax.legend(fontsize=8)
+    fig.tight_layout()
+    write_output_figure(path, fig, force=True, flag="--report")
+
+
+def readme_table(record: Path, plan: dict = PLAN) -> str:
+    """The README's ``delay`` block: success per mode at each delay, per task."""
+    table = summarise(recorded(plan, record), plan)
+    lines = [f"| task, mode ({plan['episodes']} validation episodes) | " + " | ".join(f"{d} ms" for d in plan["delays_ms"]) + " |",
+             "|---|" + "---:|" * len(plan["delays_ms"])]
+    for task, per_mode in table.items():
+        for s, rows in per_mode.items():
+            lines.append(f"| {task}, {s} | " + " | ".join(
+                "pending" if rows.get(d) is None else f"{100 * rows[d]['rate']:.0f} %" for d in plan["delays_ms"]) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = ArgumentParser(prog="python -m studies.delay_study", description=__doc__.split("\n\n")[0])
+    p.add_argument("--tasks", nargs="+", metavar="TASK", help="default: every task of the plan")
+    p.add_argument("--workers", type=int, default=2, help="stages side by side, one thread each (default 2)")
+    p.add_argument("--work", type=Path, default=Path("runs/delay"), help="datasets, runs, models, evaluations, logs")
+    p.add_argument("--report", type=Path, default=Path("reports/delay"), help="the report and its record")
+    p.add_argument("--report-only", action="store_true", help="run nothing: rebuild the report from the record")
+    p.add_argument("--quick", action="store_true", help="a tiny plan (tests)")
+    args = p.parse_args(argv)
+    plan = QUICK_PLAN if args.quick else PLAN
+    tasks = args.tasks or list(plan["tasks"])
+    if set(tasks) - set(plan["tasks"]):
+        p.error(f"--tasks: {', '.join(sorted(set(tasks) - set(plan['tasks'])))} not in the plan ({', '.join(plan['tasks'])})")
+
+    def _main() -> int:
+        record = args.report / RECORD_DIR
+        if not args.report_only:
+            protocol.note_provenance(record, plan, SPLIT)
+            run_and_keep(args.work, record, stages(plan, tasks, record), args.workers, ", ".join(tasks))
+        md = write_report(plan, record, args.report)
+        print(md.read_text())
+        return 0
+
+    return run_cli(_main)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
