@@ -40,6 +40,7 @@ from hardware.calibration.charuco import CharucoBoardSpec, board_image
 from hardware.calibration.hand_eye import EYE_IN_HAND, EYE_TO_HAND, MODES, invert
 from hardware.camera.base import Camera, DepthFrame, Intrinsics
 from hardware.camera.software import SoftwareDepthCamera
+from hardware.cli import calibrate
 from hardware.clock import FakeClock
 from hardware.piper.arm import PiperArm
 from hardware.piper.limits import GRIPPER_STROKE_MIN
@@ -328,6 +329,4 @@ class TwinRigs:
 
 def calibrate_main(argv: list[str] | None = None) -> int:
     """``dssp-sim calibrate``: ``dssp-calibrate`` on the twin (``--camera mujoco --can mujoco`` by default)."""
-    from hardware.cli.calibrate import main
-
-    return main(argv, sim=TwinRigs(), prog="dssp-sim calibrate")
+    return calibrate.main(argv, sim=TwinRigs(), prog="dssp-sim calibrate")
