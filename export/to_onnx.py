@@ -62,6 +62,7 @@ from dssp_deploy.manifest import (
 )
 from dssp_deploy.sessions import check_threads
 from dssp_train.config import TIMESTEP_SPACINGS as SPACINGS
+from dssp_train.model.mamba import Mamba
 from export.fused_ops import mark_unread_states
 from export.graphs import DenoiserGraph, HistoryStepGraph, check_exportable, use_fused_ops
 from export.manifest_writer import build_manifest, metadata_props, write_manifest
@@ -342,8 +343,6 @@ def export_model(
 
     with writer_lock(out_dir, what="model directory", flag="-o", error=ExportError), StagedDirectory(out_dir, force) as staged:
         policy, config, source = load_source(run_dir, ema)  # refuses a config.json edited since training
-        from dssp_train.model.mamba import Mamba
-
         if fused and not any(isinstance(m, Mamba) for m in policy.modules()):  # e.g. DP3: nothing to fuse
             fused, kernel_note = False, "fused graphs not written: the model has no Mamba layer (they would be its standard graphs)"
             n_stages -= 1

@@ -34,7 +34,7 @@ from dssp_train.training.ema import EMA
 from dssp_train.training.lr_schedule import cosine_with_warmup
 from dssp_train.training.memory import check_memory
 from dssp_train.training.dashboards import Dashboard, open_dashboard
-from dssp_train.training.distillation import DistillObjective
+from dssp_train.training.distillation import DistillObjective, init_student, load_teacher
 from dssp_train.training.train_log import RunLog, ValChunk, chunk_figure, plot_log
 
 VAL_SEED = 1234567
@@ -227,8 +227,6 @@ class Trainer:
         self.policy.to(self.device)
         self.teacher = None
         if config.distill.teacher:  # a few-step student: the teacher's weights and normalisers to start with
-            from dssp_train.training.distillation import init_student, load_teacher
-
             self.teacher = load_teacher(config, self.device)
             init_student(self.policy, self.teacher, config.distill.freeze_encoders)
 
