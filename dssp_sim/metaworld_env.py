@@ -171,7 +171,7 @@ def cloud_config(n_points: int | None = None) -> PointCloudConfig:
 def _import_metaworld():
     try:
         import metaworld  # deferred: loads gymnasium, imageio, metaworld, …
-        import metaworld.policies
+        import metaworld.policies  # deferred: loads gymnasium, imageio, metaworld, …
     except ImportError as e:
         raise ConfigError(f"MetaWorld is not installed ({e}); install it with: {INSTALL}") from None
     _patch_mocap_welds()

@@ -149,11 +149,11 @@ def run(args) -> int:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv[:1] == ["record"]:  # dssp-record's own flags, on the simulated rig
-        from dssp_sim.teleop import record_main
+        from dssp_sim.teleop import record_main  # deferred: loads can, mujoco, OpenGL, …
 
         return record_main(argv[1:])
     if argv[:1] == ["calibrate"]:  # dssp-calibrate's own flags, on the twin
-        from dssp_sim.calibration_twin import calibrate_main
+        from dssp_sim.calibration_twin import calibrate_main  # deferred: loads can, cv2, mujoco, …
 
         return calibrate_main(argv[1:])
     args = parse_args(argv)
