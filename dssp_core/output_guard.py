@@ -390,7 +390,7 @@ def write_output_text(path: str | os.PathLike, text: str, *, force: bool, flag: 
 def write_output_figure(path: str | os.PathLike, fig, *, force: bool, flag: str = "--out", dpi: int = 100,
                         error: type[DSSPError] = OutputError) -> Path:
     """:func:`write_output_file` for a matplotlib figure (PNG), which is closed afterwards."""
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # optional: matplotlib; the core imports the standard library only
 
     try:
         return write_output_file(path, lambda tmp: fig.savefig(tmp, format="png", dpi=dpi), force=force, flag=flag, error=error)

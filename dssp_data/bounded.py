@@ -257,6 +257,7 @@ class _BoundedNumcodec:
 
 def _codec_id(codec) -> str:
     """The numcodecs id of a zarr 3 codec or a numcodecs codec (``blosc``, ``zstd``, ``bytes``, ``sharding``...)."""
+    # deferred: loads msgpack, numcodecs, zarr
     from zarr.codecs import (BloscCodec, BytesCodec, Crc32cCodec, GzipCodec, ShardingCodec, TransposeCodec,
                              ZstdCodec)
 

@@ -129,13 +129,11 @@ def _info(args) -> int:
 
 
 def _view(args) -> int:
-    from dssp_data.view import render_episode  # deferred: loads numpy
+    from dssp_data.view import render_episode, rerun_episode  # deferred: loads msgpack, numcodecs, numpy, …
 
     if args.steps < 1:
         raise DSSPError(f"--steps must be at least 1, got {args.steps}")
     if args.rerun is not None or args.rerun_save is not None:
-        from dssp_data.view import rerun_episode
-
         print(rerun_episode(args.path, args.episode, args.rerun, args.rerun_save))
         return 0
     for path in render_episode(args.path, args.episode, args.out, columns=args.steps, video=args.video,

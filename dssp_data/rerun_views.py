@@ -60,7 +60,7 @@ _RAMP = np.array([[68, 1, 84], [33, 145, 140], [253, 231, 37]], np.float32)
 def require_rerun(flag: str = "--rerun"):
     """The ``rerun`` module, or a one-line :class:`ConfigError` saying how to install it."""
     try:
-        import rerun
+        import rerun  # optional: rerun-sdk (the viz extra), only for --rerun and --rerun-save
     except ImportError:
         raise ConfigError(f"{flag} needs rerun-sdk, which is not installed: {INSTALL_HINT}") from None
     return rerun
@@ -222,7 +222,7 @@ class TickViews:
     def __init__(self, stream: Any, save: Path | None = None, queue_size: int = QUEUE_SIZE, save_fd: int | None = None):
         """``save``: the recording's final path, written as ``PATH.partial``; ``save_fd``: that partial file's
         descriptor (:func:`open_views`; None: the partial file is put in place by its name)."""
-        import rerun as rr
+        import rerun as rr  # optional: rerun-sdk (the viz extra), only for --rerun and --rerun-save
 
         self._rr, self.stream, self.save, self._save_fd = rr, stream, save, save_fd
         self.logged = 0

@@ -42,7 +42,7 @@ _NUMBER = re.compile(r"(\d+)")
 
 def _h5py():
     try:
-        import h5py
+        import h5py  # optional: h5py (the train extra), only for RoboTwin's HDF5 episodes
     except ImportError:
         raise DatasetError("reading RoboTwin's HDF5 episodes needs h5py: pip install h5py") from None
     return h5py

@@ -119,7 +119,7 @@ def elf_problem(path: Path) -> str | None:
 
 @functools.lru_cache(maxsize=None)
 def _probe(path: Path, scan_path: str) -> Kernel:
-    import onnxruntime as ort
+    import onnxruntime as ort  # deferred: loads onnxruntime
 
     if not path.is_file():
         return Kernel(None, f"{path} is missing (build it with `make kernel`)")

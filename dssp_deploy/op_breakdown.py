@@ -26,7 +26,7 @@ def op_type_breakdown(path: Path, feeds: dict[str, np.ndarray], threads: int | N
     (``fused``: a graph with the fused Mamba operators). ``model`` and ``external``: the graph's checked bytes and
     those of its external data (``dssp_deploy.manifest.read_graph_files``; default: ``path``'s bytes, which may
     name no external data)."""
-    import onnxruntime as ort
+    import onnxruntime as ort  # deferred: loads onnxruntime
 
     options = session_options(threads, fused=fused)
     options.enable_profiling = True

@@ -311,11 +311,11 @@ def markdown(report: dict[str, Any]) -> str:
 
 def plot(report: dict[str, Any], path: Path, force: bool = False) -> None:
     try:
-        import matplotlib
+        import matplotlib  # optional: matplotlib, only for --plot
     except ImportError:
         raise SystemExit("error: --plot needs matplotlib (pip install matplotlib)") from None
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # deferred: loads matplotlib
     import matplotlib.ticker  # deferred: loads matplotlib
 
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4))

@@ -20,6 +20,7 @@ from pathlib import Path
 
 from dssp_core.errors import ConfigError
 from dssp_deploy.external_data import MalformedGraph, external_locations
+from dssp_deploy.mamba_kernel import register
 from dssp_deploy.manifest import ModelDirError
 
 
@@ -45,7 +46,7 @@ def session_options(threads: int | None = None, spinning: bool = False, fused: b
     """``SessionOptions`` with ``intra_op_num_threads`` set and thread spinning off unless asked for (then only
     during a run);
     ``fused``: with the fused Mamba operators registered (:mod:`dssp_deploy.mamba_kernel`)."""
-    import onnxruntime as ort
+    import onnxruntime as ort  # deferred: loads onnxruntime
 
     check_threads(threads)
 
@@ -58,8 +59,6 @@ def session_options(threads: int | None = None, spinning: bool = False, fused: b
     if spinning:  # spin inside a run only: the threads go to sleep when it returns
         options.add_session_config_entry("session.force_spinning_stop", "1")
     if fused:
-        from dssp_deploy.mamba_kernel import register
-
         register(options)
     return options
 
@@ -87,7 +86,7 @@ def open_session(model: Path | bytes, threads: int | None = None, spinning: bool
     """A CPU ``InferenceSession`` for one ``.onnx`` graph, given as its bytes (already checked) or its path (read
     here); ``external``: the checked bytes of the files its tensors' external data name (see
     :func:`add_external_data`); ``fused`` for a graph with the fused Mamba operators."""
-    import onnxruntime as ort
+    import onnxruntime as ort  # deferred: loads onnxruntime
 
     data = bytes(model) if isinstance(model, (bytes, bytearray, memoryview)) else Path(model).read_bytes()
     options = session_options(threads, spinning, fused)

@@ -41,6 +41,7 @@ from hardware.calibration.hand_eye import EYE_IN_HAND, EYE_TO_HAND, MODES, inver
 from dssp_data.pointcloud.depth_frame import DepthFrame, Intrinsics
 from hardware.camera.base import Camera
 from hardware.camera.software import SoftwareDepthCamera
+from hardware.cli import calibrate
 from hardware.clock import FakeClock
 from hardware.piper.arm import PiperArm
 from hardware.piper.limits import GRIPPER_STROKE_MIN
@@ -329,6 +330,4 @@ class TwinRigs:
 
 def calibrate_main(argv: list[str] | None = None) -> int:
     """``dssp-sim calibrate``: ``dssp-calibrate`` on the twin (``--camera mujoco --can mujoco`` by default)."""
-    from hardware.cli.calibrate import main
-
-    return main(argv, sim=TwinRigs(), prog="dssp-sim calibrate")
+    return calibrate.main(argv, sim=TwinRigs(), prog="dssp-sim calibrate")

@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from dssp_core.errors import OutputError
 from dssp_core.output_guard import OWN, OutputKind, check_append
@@ -142,8 +143,6 @@ def _collect_episodes(env, make_expert, cloud_config, task: str, n_episodes: int
     result = CollectResult()
     bar = None
     if progress:
-        from tqdm import tqdm
-
         bar = tqdm(total=n_episodes, desc=f"collect {task}", unit="episode")
     camera = MujocoCamera(env)
     attrs = (metaworld_env.dataset_attrs(env, camera, cloud_config) if metaworld_env.is_metaworld(task)

@@ -40,9 +40,11 @@ from dssp_deploy.control_loop import ChunkedControl
 from dssp_deploy.manifest import observation_of
 from dssp_deploy.onnx_policy import OnnxPolicy
 from dssp_deploy.ranges import ChunkOutOfRange, ObservationOutOfRange
+from dssp_sim.expert_policy import ScriptedExpert
 from dssp_sim.mujoco_arm import MujocoPiper
 from dssp_sim.mujoco_camera import MujocoCamera
 from dssp_sim.settings import cloud_config_for
+from dssp_sim.strips import save_strip
 from hardware.pacing import latency_stats
 from hardware.piper.arm import PiperArm
 from hardware.piper.piper_robot import PiperRobot
@@ -373,7 +375,7 @@ def evaluate(model_dir: Path | None, task: str, n_episodes: int, seed: int = 100
         def episode(s, frames, ticks):
             return run_direct_episode(policy, env, s, cloud_config, frames, ticks, options)
     else:
-        from dssp_sim.env import PiperEnv
+        from dssp_sim.env import PiperEnv  # deferred: loads mujoco
 
         env = PiperEnv(task, seed=seed)
         cloud_config = observation_of(policy.manifest).pointcloud or cloud_config_for(n_points, task)
@@ -401,8 +403,7 @@ def evaluate(model_dir: Path | None, task: str, n_episodes: int, seed: int = 100
 def _evaluate_expert(task: str, n_episodes: int, seed: int, strips_dir: Path | None, progress: bool, views) -> EvalResult:
     """``dssp-sim eval --expert``: the task's scripted expert as the loop's policy source."""
     from dssp_sim import metaworld_env  # deferred: loads mujoco
-    from dssp_sim.env import PiperEnv
-    from dssp_sim.expert_policy import ScriptedExpert
+    from dssp_sim.env import PiperEnv  # deferred: loads mujoco
 
     if metaworld_env.is_metaworld(task):
         raise ConfigError(f"--expert drives the Piper's control loop; {task} has no Piper (its expert's demonstrations: "
@@ -421,7 +422,7 @@ def _run_episodes(result: EvalResult, env, episode, n_episodes: int, seed: int, 
     """Episodes seed, seed + 1, ... into ``result`` (and their strips into ``strips_dir``); the env closed after."""
     bar = None
     if progress:
-        from tqdm import tqdm
+        from tqdm import tqdm  # deferred: loads tqdm; dssp-demo and the studies import this module at start-up
 
         bar = tqdm(total=n_episodes, desc=f"eval {result.task}", unit="episode")
     wall = []
@@ -434,8 +435,6 @@ def _run_episodes(result: EvalResult, env, episode, n_episodes: int, seed: int, 
             wall.append(time.perf_counter() - t0)
             result.episodes.append(outcome)
             if frames:
-                from dssp_sim.strips import save_strip
-
                 save_strip(frames, Path(strips_dir) / f"{result.task}_seed{seed + i}.png",
                            f"{result.task} seed {seed + i}: {'success' if outcome.success else outcome.reason}")
             if bar is not None:

@@ -171,7 +171,7 @@ def cloud_config(n_points: int | None = None) -> PointCloudConfig:
 def _import_metaworld():
     try:
         import metaworld  # deferred: loads gymnasium, imageio, metaworld, …
-        import metaworld.policies
+        import metaworld.policies  # deferred: loads gymnasium, imageio, metaworld, …
     except ImportError as e:
         raise ConfigError(f"MetaWorld is not installed ({e}); install it with: {INSTALL}") from None
     _patch_mocap_welds()
@@ -183,7 +183,7 @@ _patched = threading.Lock()
 
 def _patch_mocap_welds() -> None:
     """On a MuJoCo whose weld rows hold 12 numbers, metaworld's 11 get the 12th (0: the relative pose is given)."""
-    import metaworld.sawyer_xyz_env as sawyer
+    import metaworld.sawyer_xyz_env as sawyer  # optional: metaworld (make setup); only _import_metaworld calls this
 
     with _patched:
         base = sawyer.SawyerMocapBase

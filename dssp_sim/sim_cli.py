@@ -31,7 +31,7 @@ from pathlib import Path
 from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import ConfigError
 from dssp_core.output_guard import OutputDir, check_output_file, write_output_text
-from dssp_data.rerun_views import add_rerun_flags
+from dssp_data.rerun_views import add_rerun_flags, check_views, open_views
 from dssp_deploy.control_loop import add_smoothing_arguments, check_smoothing_arguments, model_flags_given, smoothing_options
 from dssp_deploy.onnx_policy import add_runtime_arguments
 
@@ -109,7 +109,7 @@ def parse_args(argv):
 
 def run(args) -> int:
     if args.command == "collect":
-        from dssp_sim.collect import collect
+        from dssp_sim.collect import collect  # deferred: loads hardware.camera, hardware.pointcloud
 
         result = collect(args.task, args.episodes, args.out, seed=args.seed, n_points=args.points, progress=not args.no_progress)
         failed = sum(result.failures.values())
@@ -124,8 +124,6 @@ def run(args) -> int:
 
     if not (math.isfinite(args.noise) and 0 <= args.noise <= 10):
         raise ConfigError(f"--noise must be a number in [0, 10] (σ in the tokens' units), got {args.noise}")
-    from dssp_data.rerun_views import check_views, open_views  # deferred: loads can
-
     check_views(args.rerun, args.rerun_save)  # every flag checked before anything is opened or written
     if args.expert:
         given = model_flags_given(args, ("--noise", args.noise != 0.0), ("--threads", args.threads is not None),
@@ -156,11 +154,11 @@ def run(args) -> int:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv[:1] == ["record"]:  # dssp-record's own flags, on the simulated rig
-        from dssp_sim.teleop import record_main
+        from dssp_sim.teleop import record_main  # deferred: loads can, mujoco, OpenGL, …
 
         return record_main(argv[1:])
     if argv[:1] == ["calibrate"]:  # dssp-calibrate's own flags, on the twin
-        from dssp_sim.calibration_twin import calibrate_main
+        from dssp_sim.calibration_twin import calibrate_main  # deferred: loads can, cv2, mujoco, …
 
         return calibrate_main(argv[1:])
     args = parse_args(argv)

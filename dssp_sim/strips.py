@@ -12,7 +12,7 @@ def save_strip(frames: list[np.ndarray], path: Path, title: str, n: int = 8) -> 
     import matplotlib  # deferred: loads matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # deferred: loads matplotlib
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -24,6 +24,6 @@ def export_model(*args, **kwargs):
 
 def verify_model(*args, **kwargs):
     """See :func:`export.verify.verify_model`."""
-    from export.verify import verify_model as _verify_model
+    from export.verify import verify_model as _verify_model  # deferred: loads dssp_train, asyncio, …
 
     return _verify_model(*args, **kwargs)

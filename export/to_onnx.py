@@ -45,10 +45,11 @@ from typing import Any
 
 import torch
 
+import dssp_train
 from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import ExportError, ParityError
 from dssp_core.staging import writer_lock
-from dssp_deploy.mamba_kernel import DOMAIN, OPSET_VERSION
+from dssp_deploy.mamba_kernel import DOMAIN, OPSET_VERSION, kernel
 from dssp_deploy.manifest import (
     DENOISER_GRAPH,
     GRAPHS,
@@ -61,10 +62,12 @@ from dssp_deploy.manifest import (
 )
 from dssp_deploy.sessions import check_threads
 from dssp_train.config import TIMESTEP_SPACINGS as SPACINGS
+from dssp_train.model.mamba import Mamba
 from export.fused_ops import mark_unread_states
-from export.graphs import DenoiserGraph, HistoryStepGraph, check_exportable
+from export.graphs import DenoiserGraph, HistoryStepGraph, check_exportable, use_fused_ops
 from export.manifest_writer import build_manifest, metadata_props, write_manifest
 from export.output_dir import StagedDirectory
+from export.quantize import QUANTIZERS
 from export.verify import file_sha256, verify_model
 from export.verify_report import check_report, describe_worst, format_report
 
@@ -131,7 +134,7 @@ def library_versions() -> dict[str, str]:
     try:
         dssp = importlib.metadata.version("dssp")
     except importlib.metadata.PackageNotFoundError:
-        from dssp_train import __version__ as dssp
+        dssp = dssp_train.__version__
     return {
         "dssp": dssp,
         "torch": torch.__version__,
@@ -326,8 +329,6 @@ def export_model(
     started = time.perf_counter()
     kernel_note = None
     if fused and "onnx" in formats:
-        from dssp_deploy.mamba_kernel import kernel
-
         found = kernel()
         fused = found.available
         if not fused:
@@ -346,8 +347,6 @@ def export_model(
 
     with writer_lock(out_dir, what="model directory", flag="-o", error=ExportError), StagedDirectory(out_dir, force) as staged:
         policy, config, source = load_source(run_dir, ema)  # refuses a config.json edited since training
-        from dssp_train.model.mamba import Mamba
-
         if fused and not any(isinstance(m, Mamba) for m in policy.modules()):  # e.g. DP3: nothing to fuse
             fused, kernel_note = False, "fused graphs not written: the model has no Mamba layer (they would be its standard graphs)"
             n_stages -= 1
@@ -405,8 +404,6 @@ def export_model(
         else:
             stage("ONNX not requested")
         if fused:
-            from export.graphs import use_fused_ops
-
             kind = file_kind("fp32", fused=True)
             for g in GRAPHS:  # the same modules, their Mamba layers now on the fused operators
                 use_fused_ops(modules[g])
@@ -416,8 +413,6 @@ def export_model(
         elif kernel_note:
             progress(kernel_note)
         if quantize:
-            from export.quantize import QUANTIZERS
-
             written = []
             for precision in quantize:
                 for is_fused in (False, True)[: 1 + fused]:
@@ -468,8 +463,6 @@ def format_summary(summary: dict[str, Any]) -> str:
     if report is None:
         lines.append("parity: not verified (--skip-verify); run python -m export.verify MODEL_DIR --checkpoint RUN_DIR")
     else:
-        from export.verify_report import describe_worst
-
         lines.append(
             f"parity: {', '.join(report['errors'])} vs PyTorch fp32 (training path) over {report['steps']} steps and "
             f"{report['chunks']} of {report.get('chunk_ticks_total', report['chunks'])} chunks: worst {describe_worst(report)} "

@@ -38,7 +38,7 @@ def load_trajectory(config: RunConfig, normalizers: dict, steps: int, seed: int 
         path = Path(config.dataset)
         reason = f"dataset {path} not found"
         if path.exists():
-            from dssp_data.replay_buffer import ReplayBuffer
+            from dssp_data.replay_buffer import ReplayBuffer  # deferred: loads msgpack, numcodecs, zarr, …
 
             try:
                 data = ReplayBuffer.load(path)

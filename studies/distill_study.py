@@ -261,7 +261,7 @@ def _plot(table: dict, path: Path, force: bool) -> None:
     import matplotlib  # here, not at the top: the study's command starts without it
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # here too, after matplotlib.use("Agg")
 
     tasks = list(table["tasks"])
     fig, axes = plt.subplots(1, max(1, len(tasks)), figsize=(4.5 * max(1, len(tasks)), 4), squeeze=False)

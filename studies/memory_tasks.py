@@ -267,7 +267,7 @@ def plot(figures: dict, path: Path) -> None:
     import matplotlib  # here, not at the top: the study's command starts without it
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # here too, after matplotlib.use("Agg")
 
     tasks = [t for t, rows in figures["tasks"].items() if rows]
     fig, axes = plt.subplots(1, max(len(tasks), 1), figsize=(5.5 * max(len(tasks), 1), 4), squeeze=False)

@@ -187,7 +187,7 @@ def plot(table: dict, plan: dict, path: Path) -> None:
     import matplotlib  # here, not at the top: the study's command starts without it
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # here too, after matplotlib.use("Agg")
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     for task, per_precision in table.items():

@@ -46,6 +46,8 @@ import sys
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
+
 from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import DSSPError
 from dssp_core.output_guard import OutputKind, check_output_files, claim_dir, write_output_figure, write_output_text
@@ -315,8 +317,6 @@ def write_report(results: dict, report_dir: Path, seconds: float, force: bool = 
 
 def _bars(ax, groups: list[str], series: list[tuple[str, list[tuple[int, int]]]], title: str) -> None:
     """Grouped bars of success % with Wilson intervals: ``series`` [(label, [(k, n) per group])]."""
-    import numpy as np
-
     width = 0.8 / max(len(series), 1)
     for i, (label, counts) in enumerate(series):
         rates, errs = [], [[], []]
@@ -335,7 +335,7 @@ def _plot(results: dict, table: dict, path: Path, force: bool = False) -> None:
     import matplotlib  # here, not at the top: the study's command starts without it
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # here too, after matplotlib.use("Agg")
 
     plan = results["plan"]
     tasks = list(table)

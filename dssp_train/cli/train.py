@@ -358,6 +358,7 @@ def run_training(args, make_config) -> int:
                         else:  # rank 0 moves a replaced run aside and creates --out
                             check_output(out, force=args.force, kind=RUN_DIR)
                     except OutputError:
+                        # deferred: loads safetensors, torch, tqdm
                         from dssp_train.training.checkpoint import checkpoint_dir
 
                         if RUN_DIR.owns(out):
@@ -385,6 +386,7 @@ def _train(args, out: Path, make_config) -> dict | None:
     """Train into ``out``; the summary on the main process, None on the others."""
     import torch  # deferred: loads torch, tqdm
 
+    from dssp_train.training.checkpoint import read_trainer_state  # deferred: loads safetensors, torch, tqdm
     from dssp_train.training.trainer import Trainer  # deferred: loads msgpack, numcodecs, safetensors, …
 
     given_flags(args)  # each flag's value first, named as typed
@@ -393,8 +395,6 @@ def _train(args, out: Path, make_config) -> dict | None:
     run_config = check_resume(args, out) if args.resume else None
     config = make_config(args, run_config)
     if args.resume and args.steps is None:
-        from dssp_train.training.checkpoint import read_trainer_state
-
         done = read_trainer_state(out)["step"]
         if done >= config.train.steps:  # nothing to train: nothing is read, written or reported as trained
             if int(os.environ.get("RANK", "0")) == 0:

@@ -66,7 +66,7 @@ def plot_log(log_path: Path, png_path: Path) -> None:
     import matplotlib  # deferred: loads matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # deferred: loads matplotlib
 
     rows = read_log(log_path)
     train = [r for r in rows if r["kind"] == "train"]

@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 import torch
 import torch.distributed as dist
+from tqdm.auto import tqdm
 
 from dssp_train.config import RunConfig, resolve_epochs
 from dssp_data.replay_buffer import ReplayBuffer
@@ -33,6 +34,7 @@ from dssp_train.training.ema import EMA
 from dssp_train.training.lr_schedule import cosine_with_warmup
 from dssp_train.training.memory import check_memory
 from dssp_train.training.dashboards import Dashboard, open_dashboard
+from dssp_train.training.distillation import DistillObjective, init_student, load_teacher
 from dssp_train.training.train_log import RunLog, ValChunk, chunk_figure, plot_log
 
 VAL_SEED = 1234567
@@ -225,8 +227,6 @@ class Trainer:
         self.policy.to(self.device)
         self.teacher = None
         if config.distill.teacher:  # a few-step student: the teacher's weights and normalisers to start with
-            from dssp_train.training.distillation import init_student, load_teacher
-
             self.teacher = load_teacher(config, self.device)
             init_student(self.policy, self.teacher, config.distill.freeze_encoders)
 
@@ -250,8 +250,6 @@ class Trainer:
         self.start_step = self.step  # where this process began: 0, or the checkpoint's step on --resume
         self.model = self.policy
         if self.teacher is not None:
-            from dssp_train.training.distillation import DistillObjective
-
             self.model = DistillObjective(self.policy, self.teacher, config)
         if self.world_size > 1:
             self.model = torch.nn.parallel.DistributedDataParallel(
@@ -353,8 +351,6 @@ class Trainer:
         tc = self.config.train
         bar = None
         if self.progress:
-            from tqdm.auto import tqdm
-
             bar = tqdm(total=tc.steps, initial=self.step, desc="dssp-train", unit="step", dynamic_ncols=True)
         last_val: dict[str, float] = {}
         t_log, n_log = time.perf_counter(), 0

@@ -72,7 +72,7 @@ def open_camera(spec: str, serial: str | None = None, color: bool = False, **kw)
         return RealSenseCamera(file=path, color=color, **kw)
     name = text.lower()
     if name == TABLETOP:
-        from hardware.camera.tabletop import SimCamera
+        from hardware.camera.tabletop import SimCamera  # deferred: loads hardware.camera.software, uuid
 
         return SimCamera(color=color, **kw)
     return RealSenseCamera(name, serial=serial, color=color, **kw)

@@ -35,7 +35,7 @@ _warned_distortion: set[str] = set()
 def import_rs():
     """The pyrealsense2 module, or a CameraError that says how to install it."""
     try:
-        import pyrealsense2 as rs
+        import pyrealsense2 as rs  # optional: pyrealsense2 (the hardware extra), imported on first use
     except ImportError as e:
         hint = ("install the system library: apt-get install -y libusb-1.0-0" if "libusb" in str(e)
                 else "install it: pip install pyrealsense2 (or pip install 'dssp[hardware]')")

@@ -150,7 +150,7 @@ def _calibrate(args, stops: Stops, sim) -> int:
             stack.callback(twin.close)
             camera, robot, clock, where = twin.camera, twin.robot, twin.clock, twin.description
         else:
-            from hardware.camera import open_camera  # deferred: loads pyrealsense2
+            from hardware.camera import open_camera  # deferred: loads numpy
             from hardware.piper.piper_robot import open_robot  # deferred: loads can
 
             twin = None

@@ -242,6 +242,7 @@ def _existing_attrs(out: Path) -> dict:
 def open_session(args, stack: contextlib.ExitStack, console: Console):
     """Open the devices and the dataset for ``args`` (closed by ``stack``); returns the RecordSession
     (its ``rig`` is the simulated rig, or None on a robot)."""
+    # deferred: loads msgpack, numcodecs, numpy, …
     from dssp_data.recording import (
         ACTION_CONVENTIONS,
         DEPTH_KEY,
@@ -319,7 +320,7 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
         camera_to_base = rig.camera.camera_to_base if args.extrinsics is None else load_extrinsics(args.extrinsics)
         frame = rig.camera.latest()
     else:
-        from hardware.camera import TABLETOP, open_camera
+        from hardware.camera import TABLETOP, open_camera  # deferred: loads numpy
 
         if args.extrinsics is None and args.camera.strip().lower() != TABLETOP:
             raise ConfigError("--extrinsics is needed with a real camera: the workspace crop is in the robot-base frame "
