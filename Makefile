@@ -3,7 +3,7 @@
 # on a GPU workstation use e.g. `make test TORCH=torch`.
 PYTHON ?= python3
 TORCH ?= torch==2.13.0
-EXTRAS ?= train,export,deploy,hardware,sim,viz,ros,dev
+EXTRAS ?= train,export,deploy,hardware,sim,viz,ros,lerobot,dev
 # Test workers (pytest-xdist), one per core; each test file runs whole in one worker (its fixtures built once).
 TEST_WORKERS ?= auto
 
@@ -26,11 +26,17 @@ system:
 # MetaWorld (dssp-sim's metaworld/NAME tasks) goes in without its dependencies: it declares mujoco==3.3.0 and runs on
 # the MuJoCo installed here (dssp_sim/metaworld_env.py says how); pip's resolver reports that declaration.
 METAWORLD ?= metaworld==3.1.1
+# LeRobot (the oracle of tests/test_lerobot.py: it writes and reads LeRobot v3 datasets) goes in without its dependencies:
+# it declares torch<2.11 and torchvision, and its dataset code runs on the torch installed here with the lerobot extra's
+# packages (tests/test_lerobot.py says how it stands in for torchvision).
+LEROBOT ?= lerobot==0.4.4
 
 setup: system
 	$(PYTHON) -m pip install --quiet "$(TORCH)" -e ".[$(EXTRAS)]"
 	@out=$$($(PYTHON) -m pip install --quiet --no-deps "$(METAWORLD)" 2>&1) || { echo "$$out"; exit 1; }; \
 	  echo "$$out" | grep -v "requires mujoco==\|dependency resolver\|^$$" || true
+	@out=$$($(PYTHON) -m pip install --quiet --no-deps "$(LEROBOT)" 2>&1) || { echo "$$out"; exit 1; }; \
+	  echo "$$out" | grep -v "lerobot .* requires \|dependency resolver\|^$$" || true
 	@$(MAKE) --no-print-directory kernel || echo "note: the fused Mamba kernel was not built; the standard ONNX graphs will run (see make kernel)"
 
 kernel: $(KERNEL)

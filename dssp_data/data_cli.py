@@ -1,4 +1,4 @@
-"""``dssp-data``: look at, check, combine and convert demonstration datasets (DP3 / RoboTwin zarr).
+"""``dssp-data``: look at, check, combine, convert and export demonstration datasets (DP3 / RoboTwin zarr).
 
     dssp-data info PATH [--json]
     dssp-data view PATH --episode K [--out DIR] [--steps N] [--video] [--rerun [URL] | --rerun-save PATH.rrd]
@@ -9,6 +9,9 @@
     dssp-data convert BAGS --out OUT.zarr --extrinsics FILE [--pointcloud FILE] [--control-rate HZ] [--state-topic T]
                       [--action-topic T] [--depth-topic T] [--info-topic T] [--joints J1,..,J7] [--gripper-open V]
                       [--tolerance S] [--depth-unit M] [--episodes N] [--task NAME] [--force]
+    dssp-data convert LEROBOT_ROOT --out OUT.zarr --extrinsics FILE [--pointcloud FILE] [--depth-key K]
+                      [--state-key observation.state] [--action-key action] [--episodes N] [--task NAME] [--force]
+    dssp-data export PATH --to lerobot --out DIR [--repo-id local/NAME] [--force]
     dssp-data repair PATH
 
 Every problem with the input is one ``error: ...`` line and exit code 2: among them a chunk of the dataset that
@@ -20,7 +23,7 @@ Replaying an episode on the arms is ``dssp-replay`` (:mod:`hardware.cli.replay`)
 
 Outputs: merge, split and convert write a new dataset, or replace one that dssp-data made (``--force``, with
 its ``.can`` CAN logs); a recorded, synthetic or any other dataset or folder there is refused and nothing is
-deleted. An output may not be an input or lie inside one. Ctrl-C stops with exit code 130 and leaves no
+deleted. ``export`` writes a new LeRobot dataset folder, or replaces one that ``dssp-data export`` made (``--force``). An output may not be an input or lie inside one. Ctrl-C stops with exit code 130 and leaves no
 temporary behind (``.OUT.tmp-*``); a killed command's temporaries are removed by the next one writing OUT.
 Output that a reader stops reading (``dssp-data info PATH | head``) ends the command quietly (exit code 141).
 """
@@ -44,14 +47,18 @@ merge     concatenate datasets (episodes, per-episode metadata and CAN logs trav
 split     train/validation datasets by whole episodes (--drop-episodes leaves episodes out, e.g. lost ones)
 convert   RoboTwin raw HDF5 episodes (<task>/<config>/data/episode*.hdf5), or ROS 2 bags (a bag folder with
           metadata.yaml, or a folder of them: one episode per bag; joint states + depth + camera_info, aligned to
-          --control-rate, clouds by the robot's point-cloud pipeline), to a DP3 zarr dataset
+          --control-rate, clouds by the robot's point-cloud pipeline), or a LeRobot v3 dataset (a folder with
+          meta/info.json: one episode per LeRobot episode; a uint16 depth feature with info.camera_intrinsics,
+          state and action features, clouds by the robot's point-cloud pipeline), to a DP3 zarr dataset
+export    a DP3 zarr dataset to a LeRobot v3 dataset (--to lerobot): state, action, point clouds and, when
+          recorded with its camera, depth; fps = control_rate_hz
 repair    cut off the steps of an interrupted write (every complete episode stays); lost data (a missing or
           corrupt chunk of a complete episode) cannot be repaired: exit 2, nothing changed
 """
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = ArgumentParser(prog="dssp-data", description="Look at, check, combine and convert datasets.",
+    p = ArgumentParser(prog="dssp-data", description="Look at, check, combine, convert and export datasets.",
                        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
@@ -88,9 +95,10 @@ def build_parser() -> argparse.ArgumentParser:
     split.add_argument("--drop-marked", action="store_true", help="leave out episodes recorded with problems")
     split.add_argument("--drop-episodes", help="leave out these episodes, e.g. 3,7-9 (those whose data is lost)")
 
-    convert = sub.add_parser("convert", help="RoboTwin raw HDF5 episodes or ROS 2 bags -> DP3 zarr")
+    convert = sub.add_parser("convert", help="RoboTwin raw HDF5 episodes, ROS 2 bags or a LeRobot v3 dataset -> DP3 zarr")
     convert.add_argument("source", type=Path, help="RoboTwin <task>/<config> directory, its data/ directory or one .hdf5; "
-                         "or a ROS 2 bag folder (metadata.yaml), or a folder of bags")
+                         "or a ROS 2 bag folder (metadata.yaml), or a folder of bags; or a LeRobot v3 dataset's root "
+                         "(meta/info.json)")
     convert.add_argument("--out", type=Path, required=True)
     convert.add_argument("--episodes", type=int, help="convert only the first N episodes")
     convert.add_argument("--xyz", action="store_true", help="RoboTwin: keep xyz only (drop the points' rgb)")
@@ -114,6 +122,19 @@ def build_parser() -> argparse.ArgumentParser:
     bag.add_argument("--tolerance", type=float, default=0.05, help="s: the oldest a stream's newest message may be at a "
                      "tick before the bag is refused as unsynchronised (default: %(default)s)")
     bag.add_argument("--depth-unit", type=float, default=0.001, help="metres per depth count (default: %(default)s, mm)")
+    lerobot = convert.add_argument_group("LeRobot v3 datasets (pyarrow: pip install 'dssp[lerobot]'; --extrinsics "
+                                         "needed, --pointcloud as for bags)")
+    lerobot.add_argument("--depth-key", help="the depth feature: uint16 (H, W) counts or float32 metres, with "
+                         "info.camera_intrinsics (default: the one feature named *depth* or holding intrinsics)")
+    lerobot.add_argument("--state-key", default="observation.state", help="the state feature (default: %(default)s)")
+    lerobot.add_argument("--action-key", default="action", help="the action feature (default: %(default)s)")
+
+    export = sub.add_parser("export", help="a DP3 zarr dataset -> a LeRobot v3 dataset")
+    export.add_argument("path", type=Path)
+    export.add_argument("--to", required=True, choices=["lerobot"], help="the format: lerobot (LeRobot v3)")
+    export.add_argument("--out", type=Path, required=True, help="the dataset's folder (its root)")
+    export.add_argument("--repo-id", help="the name to load it by, OWNER/NAME (default: local/<name of --out>)")
+    export.add_argument("--force", action="store_true", help="replace a LeRobot dataset dssp-data exported before at --out")
 
     repair = sub.add_parser("repair", help="cut off the steps of an interrupted write")
     repair.add_argument("path", type=Path)
@@ -202,11 +223,15 @@ def _convert(args) -> int:
         if tty:
             print(f"\rconverting {i + 1}/{n}: {path.name}\x1b[K", end="", file=sys.stderr, flush=True)
 
+    from dssp_data.lerobot_v3 import is_lerobot_root  # deferred: loads msgpack, numcodecs, numpy, …
     from dssp_data.rosbag2 import is_bag  # deferred: loads msgpack, numcodecs, numpy, …
 
-    bags = is_bag(args.source) or (args.source.is_dir() and any(is_bag(p) for p in args.source.iterdir()))
+    lerobot = is_lerobot_root(args.source)
+    bags = not lerobot and (is_bag(args.source) or (args.source.is_dir() and any(is_bag(p) for p in args.source.iterdir())))
     try:
-        if bags:
+        if lerobot:
+            summary = _convert_lerobot(args, progress)
+        elif bags:
             summary = _convert_bags(args, progress)
         else:
             from dssp_data.robotwin_hdf5 import convert  # deferred: loads msgpack, numcodecs, numpy, …
@@ -216,6 +241,11 @@ def _convert(args) -> int:
     finally:
         if tty:
             print("\r\x1b[K", end="", file=sys.stderr, flush=True)
+    if lerobot:
+        print(f"wrote {args.out}: {summary['episodes']} episodes (one per LeRobot episode), {summary['steps']} steps at "
+              f"{summary['fps']:g} Hz (clouds from {summary['depth_key']}, state = {summary['state_key']}, action = "
+              f"{summary['action_key']})")
+        return 0
     if bags:
         action = ("the leader's command (" + args.action_topic + ")" if summary["action_convention"] == "leader_command"
                   else "the state at the next tick")
@@ -254,6 +284,39 @@ def _convert_bags(args, progress) -> dict:
                    max_episodes=args.episodes, task=args.task, force=args.force, progress=progress)
 
 
+def _convert_lerobot(args, progress) -> dict:
+    """``dssp-data convert LEROBOT_ROOT``: the flags -> :func:`dssp_data.lerobot_v3.convert`."""
+    from dssp_data.lerobot_v3 import convert  # deferred: loads msgpack, numcodecs, numpy, …
+    from dssp_data.observation import PointCloudConfig  # deferred: loads numpy
+    from dssp_data.pointcloud import load_extrinsics  # deferred: loads numpy
+
+    if args.xyz:
+        raise ConfigError("--xyz is for RoboTwin files; a LeRobot dataset's clouds follow --pointcloud (use_color false: "
+                          "xyz)")
+    if args.control_rate is not None:
+        raise ConfigError("--control-rate is for RoboTwin files and ROS 2 bags; a LeRobot dataset's control rate is its "
+                          "fps (meta/info.json)")
+    if args.extrinsics is None:
+        raise ConfigError("--extrinsics is needed to convert a LeRobot dataset: the workspace crop is in the robot-base "
+                          "frame (dssp-calibrate writes the file)")
+    cloud_config = PointCloudConfig.load(args.pointcloud, "point-cloud settings") if args.pointcloud else PointCloudConfig()
+    return convert(args.source, args.out, cloud_config, load_extrinsics(args.extrinsics), depth_key=args.depth_key,
+                   state_key=args.state_key, action_key=args.action_key, max_episodes=args.episodes, task=args.task,
+                   force=args.force, progress=progress)
+
+
+def _export(args) -> int:
+    from dssp_data.lerobot_v3 import export  # deferred: loads msgpack, numcodecs, numpy, …
+
+    summary = export(args.path, args.out, repo_id=args.repo_id, force=args.force)
+    for note in summary["notes"]:
+        print(f"note: {note}", file=sys.stderr)
+    print(f"wrote {args.out}: a LeRobot v3 dataset of {summary['episodes']} episodes, {summary['frames']} frames at "
+          f"{summary['fps']} fps ({', '.join(summary['features'])}); load it with "
+          f"LeRobotDataset({summary['repo_id']!r}, root={str(args.out)!r})")
+    return 0
+
+
 def _repair(args) -> int:
     from dssp_data.edit import repair  # deferred: loads msgpack, numcodecs, numpy, …
 
@@ -270,7 +333,7 @@ def _repair(args) -> int:
 
 
 COMMANDS = {"info": _info, "view": _view, "merge": _merge, "split": _split,
-            "convert": _convert, "repair": _repair}
+            "convert": _convert, "export": _export, "repair": _repair}
 
 
 def _run(args) -> int:
