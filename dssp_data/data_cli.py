@@ -223,7 +223,7 @@ def _convert(args) -> int:
         if tty:
             print(f"\rconverting {i + 1}/{n}: {path.name}\x1b[K", end="", file=sys.stderr, flush=True)
 
-    from dssp_data.lerobot_v3 import is_lerobot_root  # deferred: loads msgpack, numcodecs, numpy, …
+    from dssp_data.lerobot import is_lerobot_root  # deferred: loads msgpack, numcodecs, numpy, …
     from dssp_data.rosbag2 import is_bag  # deferred: loads msgpack, numcodecs, numpy, …
 
     lerobot = is_lerobot_root(args.source)
@@ -285,8 +285,8 @@ def _convert_bags(args, progress) -> dict:
 
 
 def _convert_lerobot(args, progress) -> dict:
-    """``dssp-data convert LEROBOT_ROOT``: the flags -> :func:`dssp_data.lerobot_v3.convert`."""
-    from dssp_data.lerobot_v3 import convert  # deferred: loads msgpack, numcodecs, numpy, …
+    """``dssp-data convert LEROBOT_ROOT``: the flags -> :func:`dssp_data.lerobot.read.convert`."""
+    from dssp_data.lerobot import convert  # deferred: loads msgpack, numcodecs, numpy, …
     from dssp_data.observation import PointCloudConfig  # deferred: loads numpy
     from dssp_data.pointcloud import load_extrinsics  # deferred: loads numpy
 
@@ -306,7 +306,7 @@ def _convert_lerobot(args, progress) -> dict:
 
 
 def _export(args) -> int:
-    from dssp_data.lerobot_v3 import export  # deferred: loads msgpack, numcodecs, numpy, …
+    from dssp_data.lerobot import export  # deferred: loads msgpack, numcodecs, numpy, …
 
     summary = export(args.path, args.out, repo_id=args.repo_id, force=args.force)
     for note in summary["notes"]:

@@ -27,8 +27,8 @@ import pyarrow.parquet as pq
 import pytest
 
 from conftest import one_error_line, snapshot
-from dssp_data import lerobot_v3
 from dssp_data.data_cli import main as data_main
+from dssp_data.lerobot import write as lerobot_write
 from dssp_data.observation import PIPER_CHANNELS, PointCloudConfig
 from dssp_data.pointcloud import frame_to_cloud, save_extrinsics
 from dssp_data.pointcloud.depth_frame import DepthFrame
@@ -195,7 +195,7 @@ def test_exports_are_read_back_by_lerobot(source, tmp_path, capsys, calibration,
     exported = {"local/demo": tmp_path / "demo_lerobot", "local/tap": tmp_path / "tap_lerobot"}
     for dataset, target in zip((converted, tap), exported.values()):
         if dataset == tap:  # the synthetic one in several data files: one per episode
-            monkeypatch.setattr(lerobot_v3, "DATA_FILE_MB", 0)
+            monkeypatch.setattr(lerobot_write, "DATA_FILE_MB", 0)
         code, stdout, stderr = cli(capsys, "export", dataset, "--to", "lerobot", "--out", target)
         assert code == 0 and stderr == "", stderr
         assert "LeRobotDataset('local/" in stdout
