@@ -39,7 +39,8 @@ ticks before the observation, then weights decaying to 0 over the rest of the ov
 robot it runs in a background thread and d comes from the measured chunk latency (as prefetch's lead); a tick with
 no chunk ready waits and is reported over budget.
 
-Inference delay in simulation (``injected_delay`` = d ticks, ``dssp-sim eval --inject-delay MS``): each chunk is
+Inference delay in simulation (``injected_delay`` = d ticks, ``dssp-sim eval --inject-delay MS``; None, the default:
+real time, the robot's): each chunk is
 computed at once but usable only d ticks after the observation it was computed from, as if the computation took
 that long; until a chunk is usable the tick has no action (``tick`` returns None: the caller holds). Without
 smoothing the loop then stalls: it holds d ticks, executes the H_a actions from the chunk's first, starts the next
@@ -216,7 +217,7 @@ class ChunkedControl:
         smoothing: str = "none",
         ensemble_every: int | None = None,
         ensemble_decay: float = 0.01,
-        injected_delay: int = 0,
+        injected_delay: int | None = None,
     ):
         if smoothing not in SMOOTHINGS:
             raise ValueError(f"smoothing must be one of {', '.join(SMOOTHINGS)}, got {smoothing!r}")
@@ -234,9 +235,10 @@ class ChunkedControl:
             if not (number and math.isfinite(decay) and decay >= 0):
                 raise ValueError(f"ensemble_decay must be a finite number >= 0 (0: the plain mean), got {decay!r}")
             self.ensemble_every, self.ensemble_decay = int(every), float(decay)
-        if isinstance(injected_delay, bool) or not isinstance(injected_delay, (int, np.integer)) or injected_delay < 0:
+        if injected_delay is not None and (isinstance(injected_delay, bool) or not isinstance(injected_delay, (int, np.integer))
+                                           or injected_delay < 0):
             raise ValueError(f"injected_delay must be a whole number of ticks >= 0, got {injected_delay!r}")
-        if injected_delay and prefetch:
+        if injected_delay is not None and prefetch:
             raise ValueError("an injected delay simulates the chunk's computation time; prefetch runs it in the background "
                              "for real: use one or the other")
         if smoothing == "rtc":
@@ -245,7 +247,7 @@ class ChunkedControl:
             if not policy.inpainting:
                 raise ValueError("real-time chunking needs a denoiser that takes the committed actions: export the model "
                                  "with python -m export.to_onnx --inpainting")
-        self.injected_delay = int(injected_delay)
+        self.injected_delay = None if injected_delay is None else int(injected_delay)  # None: real time (the robot)
         self.policy = policy
         self.rate_hz = rate_hz or policy.control_rate_hz
         self.period_ms = 1e3 / self.rate_hz if self.rate_hz else None
@@ -270,8 +272,8 @@ class ChunkedControl:
                     f"a chunk takes {chunk_ms_estimate:.1f} ms = {self.lead} ticks at {self.rate_hz:g} Hz, but only "
                     f"H - action_offset - H_a = {spare} predicted actions can be dropped; run without prefetch or at a lower rate"
                 )
-        self.delay = self.injected_delay  # d: ticks from a chunk's observation to its first executed action
-        if smoothing == "rtc" and not injected_delay:
+        self.delay = self.injected_delay or 0  # d: ticks from a chunk's observation to its first executed action
+        if smoothing == "rtc" and injected_delay is None:
             if self.period_ms is None:
                 raise ValueError("real-time chunking needs a tick rate: pass rate_hz (the manifest records none)")
             if chunk_ms_estimate is None:
@@ -414,8 +416,8 @@ class ChunkedControl:
             arriving = [*arriving, (t, chunk)]
             self.chunk, self.chunk_offset, self.chunk_start = chunk, offset, t  # the newest: what is shown as to come
         # an injected delay: a chunk joins d ticks after its observation (none: at once)
-        kept = [*kept, *[(s, c) for s, c in arriving if t >= s + self.injected_delay]]
-        self.arriving = [(s, c) for s, c in arriving if t < s + self.injected_delay]
+        kept = [*kept, *[(s, c) for s, c in arriving if t >= s + self.delay]]
+        self.arriving = [(s, c) for s, c in arriving if t < s + self.delay]
         # A chunk computed at tick s predicts ticks s .. s + H - offset - 1; without a delay the newest always covers t
         # (t - s < ensemble_every <= H_a <= H - offset).
         self.kept = kept = [(s, c) for s, c in kept if offset + t - s < c.shape[1]]
@@ -433,7 +435,7 @@ class ChunkedControl:
         """Start a chunk from this tick's history: computed now with an injected delay (a refused chunk raises here),
         else in a background thread."""
         inputs = self.policy.denoiser_inputs(committed, weight)
-        if self.injected_delay or not self.delay:
+        if self.injected_delay is not None or not self.delay:
             c0 = time.perf_counter()
             chunk = self.policy.denoise(inputs, seed=self._chunk_seed())
             return _Computed(chunk, (time.perf_counter() - c0) * 1e3)
@@ -459,7 +461,7 @@ class ChunkedControl:
         t, offset, ha = self.tick_count, self.policy.action_offset, self.policy.n_action_steps
         if self.in_flight is None and (self.chunk is None or t >= self.exec_end):
             self.in_flight = (t, self._start_chunk(info))
-        if self.in_flight is not None and t >= self.in_flight[0] + self.injected_delay:
+        if self.in_flight is not None and t >= self.in_flight[0] + self.delay:
             _, self.chunk = self._take(info)
             self.chunk_offset, self.chunk_start, self.exec_end = offset, t, t + ha
         if self.chunk is None or t >= self.exec_end:

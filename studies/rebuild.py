@@ -23,6 +23,7 @@ What it rebuilds (:data:`SOURCES`):
   block.
 - ``reports/calibration/``: the calibration twin's report (:mod:`studies.calibration_study`), and the hardware
   README's ``calibration`` block.
+- ``reports/delay/``: the delay study's report (:mod:`studies.delay_study`), and the README's ``delay`` block.
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ from pathlib import Path
 from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import DSSPError
 from dssp_core.files import atomic_write_text
-from studies import calibration_study, distill_study, memory_tasks, metaworld, sampling, sim_study
+from studies import calibration_study, delay_study, distill_study, memory_tasks, metaworld, sampling, sim_study
 from studies.demo import results_table
 from studies.stats import describe_p, paired_exact_test
 
@@ -83,6 +84,12 @@ def _sampling(root: Path, out: Path) -> list[str]:
     return [md.name, md.with_suffix(".json").name]
 
 
+def _delay(root: Path, out: Path) -> list[str]:
+    record = root / "reports/delay" / delay_study.RECORD_DIR
+    md = delay_study.write_report(delay_study.PLAN, record, out, shown_record="reports/delay/record")
+    return [md.name, md.with_suffix(".json").name]
+
+
 def _calibration(root: Path, out: Path) -> list[str]:
     record = root / "reports/calibration" / calibration_study.RECORD_DIR
     if not calibration_study.load(record):
@@ -111,6 +118,7 @@ SOURCES: dict[str, Callable[[Path, Path], list[str]]] = {
     "reports/distill": _distill,
     "reports/sampling": _sampling,
     "reports/calibration": _calibration,
+    "reports/delay": _delay,
 }
 """Report folder -> a function writing its rebuilt files into a folder, returning the names to compare."""
 
@@ -179,7 +187,8 @@ def readme_blocks(root: Path) -> dict[str, str]:
     blocks = {"demo": results_table(demo["evals"]) + "\n", "sim_paired": sim_paired_table(root / "reports/sim/record"),
               "memory_test": memory_table(root / "reports/memory/record", "test"),
               "sampling": sampling.readme_table(root / "reports/sampling" / sampling.RECORD_DIR),
-              "calibration": calibration_study.readme_table(root / "reports/calibration" / calibration_study.RECORD_DIR)}
+              "calibration": calibration_study.readme_table(root / "reports/calibration" / calibration_study.RECORD_DIR),
+              "delay": delay_study.readme_table(root / "reports/delay" / delay_study.RECORD_DIR)}
     if (root / "reports/metaworld/record/plan.json").is_file():
         blocks["metaworld"] = metaworld.readme_table(root / "reports/metaworld/record")
     for block, (script, record) in BENCHMARK_BLOCKS.items():

@@ -146,6 +146,13 @@ def test_real_time_chunking_starts_early_inpaints_what_is_committed_and_takes_ov
     assert second["seen"] == 4 and policy.calls[2]["seen"] == 7
 
 
+def test_real_time_chunking_with_no_delay_acts_from_the_first_tick():
+    policy = FakePolicy(horizon=8, n_action_steps=3, action_offset=1)
+    actions = run(ChunkedControl(policy, smoothing="rtc", injected_delay=0), 7)
+    assert actions == [1.0, 2.0, 3.0, 101.0, 102.0, 103.0, 201.0]
+    np.testing.assert_array_equal(policy.calls[1]["weight"][0, :, 0], rtc_weights(8, 1, 5, 0))  # only the past frozen
+
+
 def test_a_delay_beyond_what_the_horizon_covers_holds_the_ticks_no_chunk_has():
     policy = FakePolicy(horizon=8, n_action_steps=4, action_offset=1)  # H - offset = 7 < H_a + d = 8
     actions = run(ChunkedControl(policy, smoothing="rtc", injected_delay=4), 13)
@@ -188,7 +195,7 @@ def test_dssp_run_with_real_time_chunking_on_the_embedded_simulation(exports, tm
     assert code == 0, out + err
     assert "ticks 30" in out and "ended by: max steps" in out
     policy = json.loads((log_dir / "run.json").read_text())["settings"]["policy"]
-    assert policy["smoothing"] == "rtc" and policy["rtc_delay_ticks"] >= 1 and policy["injected_delay_ticks"] == 0
+    assert policy["smoothing"] == "rtc" and policy["rtc_delay_ticks"] >= 1 and policy["injected_delay_ticks"] is None
     ticks = read_ticks(log_dir)
     assert any(t.get("chunk_ms") is not None for t in ticks)
     code, _, err = run_dssp(capsys, "--model", model_dir, "--smoothing", "rtc", "--prefetch", "--camera", "tabletop",

@@ -172,14 +172,14 @@ def test_none_is_the_default_loop():
         assert np.array_equal(x, y) and (i.new_chunk, i.chunk_index, i.predictions) == (j.new_chunk, j.chunk_index, 1)
     assert a.seeds == b.seeds and a.history == b.history and none.kept == []
     assert none.smoothing_settings() == {"smoothing": "none", "ensemble_every": None, "ensemble_decay": None,
-                                         "rtc_delay_ticks": None, "injected_delay_ticks": 0}
+                                         "rtc_delay_ticks": None, "injected_delay_ticks": None}
 
 
 def test_the_model_source_shows_the_newest_chunk_and_logs_its_smoothing():
     p = FakePolicy()
     source = ModelPolicy(p, 10.0, seed=0, smoothing="ensemble", ensemble_decay=0.0)
     assert source.describe() == {"policy": "model", "denoise_steps": 3, "smoothing": "ensemble", "ensemble_every": 1,
-                                 "ensemble_decay": 0.0, "rtc_delay_ticks": None, "injected_delay_ticks": 0}
+                                 "ensemble_decay": 0.0, "rtc_delay_ticks": None, "injected_delay_ticks": None}
     source.reset(np.zeros(1))
     cloud = np.zeros((4, 3), np.float32)
     source.act(cloud, np.zeros(1))

@@ -31,7 +31,7 @@ class ModelPolicy(PolicySource):
 
     def __init__(self, policy: OnnxPolicy, rate_hz: float, *, prefetch: bool = False, seed: int | None = None,
                  chunk_ms: float | None = None, smoothing: str = "none", ensemble_every: int | None = None,
-                 ensemble_decay: float = 0.01, injected_delay: int = 0):
+                 ensemble_decay: float = 0.01, injected_delay: int | None = None):
         self.policy = policy
         self.control_rate_hz = policy.control_rate_hz
         self.control = ChunkedControl(policy, rate_hz=rate_hz, prefetch=prefetch, seed=seed, chunk_ms_estimate=chunk_ms,
