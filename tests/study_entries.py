@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import json
 import os
-import time
+import threading
 from pathlib import Path
 
 
@@ -37,9 +37,10 @@ def record_call(argv: list[str]) -> int:
 
 
 def sleep_long(argv: list[str]) -> int:
-    """A stage that runs until it is stopped; writes its pid first."""
+    """A stage that runs until it is stopped; writes its pid first. It waits on an event nothing sets, so only
+    its end (the runner's SIGTERM, or a kill) ends it, however long the test takes to get there."""
     Path(argv[0]).write_text(str(os.getpid()))
-    time.sleep(120)
+    threading.Event().wait()
     return 0
 
 

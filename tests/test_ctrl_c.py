@@ -12,10 +12,9 @@ import concurrent.futures
 import signal
 import sys
 import threading
-import time
 
 import pytest
-from waiting import wait_for
+from waiting import until_interrupted, wait_for
 
 from dssp_core.cli_runner import MAX_HOLD_S, in_thread_machinery, interrupts_at_safe_points, run_cli
 
@@ -40,8 +39,7 @@ def test_a_ctrl_c_in_thread_machinery_is_raised_once_the_main_thread_is_out(wait
         assert handler is not signal.default_int_handler
         handler(signal.SIGINT, waiting_thread)  # held back: nothing raised here
         with pytest.raises(KeyboardInterrupt):
-            for _ in range(2000):  # about 10 s at most; the held Ctrl-C comes within milliseconds
-                time.sleep(0.005)
+            until_interrupted(timeout=10.0)  # the held Ctrl-C comes within milliseconds, here outside the machinery
         with pytest.raises(KeyboardInterrupt):
             handler(signal.SIGINT, sys._getframe())  # outside the machinery it is raised at once
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
@@ -90,8 +88,7 @@ def test_the_step_of_futures_wait_that_takes_the_locks_is_machinery():
     with interrupts_at_safe_points():
         signal.getsignal(signal.SIGINT)(signal.SIGINT, frames[0])  # held back
         with pytest.raises(KeyboardInterrupt):
-            for _ in range(2000):
-                time.sleep(0.005)
+            until_interrupted(timeout=10.0)
 
 
 def test_a_command_with_its_own_stop_handling_takes_sigint_over():
@@ -132,8 +129,7 @@ def test_a_ctrl_c_inside_a_finalizer_is_held_back_not_lost():
         with interrupts_at_safe_points():
             obj = Dropped()
             del obj  # its last reference: __del__ runs here
-            for _ in range(2000):  # about 10 s at most; the held Ctrl-C comes within milliseconds
-                time.sleep(0.005)
+            until_interrupted(timeout=10.0)  # the held Ctrl-C comes within milliseconds
     assert seen == [True, "returned"]
 
     class Member:

@@ -10,7 +10,6 @@ import shutil
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -267,6 +266,25 @@ def _wait_for_staging(proc, folder: Path, prefix: str, timeout: float = 60.0, ol
     return writing()
 
 
+def _chunks_staged(folder: Path, prefix: str, old: frozenset = frozenset()) -> int:
+    """How many point-cloud chunks the command has written so far into its staging directory (``prefix*``, not
+    one in ``old``): how far its copy has got (0 while there is no such directory)."""
+    for name in os.listdir(folder):
+        if name.startswith(prefix) and name not in old:
+            try:
+                return sum(not n.startswith(".") for n in os.listdir(folder / name / "data" / "point_cloud"))
+            except (FileNotFoundError, NotADirectoryError):  # not made yet, or already moved or removed
+                return 0
+    return 0
+
+
+def _wait_for_chunks(proc, folder: Path, prefix: str, chunks: int, timeout: float = 60.0,
+                     old: frozenset = frozenset()) -> None:
+    """Wait until ``proc`` has written ``chunks`` point-cloud chunks into its staging directory, or has ended."""
+    wait_for(lambda: _chunks_staged(folder, prefix, old) >= chunks or proc.poll() is not None, timeout=timeout,
+             what=f"{chunks} point-cloud chunks in {prefix}* or the command's end", poll=0.005)
+
+
 @pytest.fixture(scope="module")
 def big(tmp_path_factory):
     """Two datasets large enough that merging them takes a few seconds (120 episodes of 512 points each)."""
@@ -279,14 +297,15 @@ def big(tmp_path_factory):
 def test_ctrl_c_leaves_no_temporary_and_a_killed_run_is_swept(big):
     interrupted = 0
     # zarr's writes go on in their own thread after the main one is interrupted, and whether one lands after the
-    # temporary was removed depends on the moment: a dozen runs at different moments
-    runs = [(["merge", "m.zarr", "a.zarr", "b.zarr"], ".m.zarr.", 0.1 * k) for k in range(12)]
-    runs.append((["split", "a.zarr", "--train", "t.zarr", "--val", "v.zarr", "--val-ratio", "0.3"], ".t.zarr.", 0.3))
-    for argv, prefix, delay in runs:
+    # temporary was removed depends on the moment: a dozen runs at different moments of the copy, each once a
+    # number of point-cloud chunks is written (of the merge's 96 and the split's 34)
+    runs = [(["merge", "m.zarr", "a.zarr", "b.zarr"], ".m.zarr.", 2 * k) for k in range(12)]
+    runs.append((["split", "a.zarr", "--train", "t.zarr", "--val", "v.zarr", "--val-ratio", "0.3"], ".t.zarr.", 6))
+    for argv, prefix, chunks in runs:
         before = sorted(os.listdir(big))
         proc = _start(argv, big)
         started = _wait_for_staging(proc, big, prefix)
-        time.sleep(delay)
+        _wait_for_chunks(proc, big, prefix, chunks)
         proc.send_signal(signal.SIGINT)
         out, err = proc.communicate(timeout=120)
         assert "Traceback" not in err, err
@@ -319,9 +338,10 @@ def test_ctrl_c_leaves_no_temporary_and_a_killed_run_is_swept(big):
         (big / name).mkdir()
     (big / ".m.zarr.tmp-abcdef12").write_text("a file, not a staging folder")
     proc = _start(["merge", "m.zarr", "a.zarr", "b.zarr"], big)
-    assert _wait_for_staging(proc, big, ".m.zarr.tmp-", old=frozenset(stale + decoys) | {".m.zarr.tmp-abcdef12"})
+    old = frozenset(stale + decoys) | {".m.zarr.tmp-abcdef12"}
+    assert _wait_for_staging(proc, big, ".m.zarr.tmp-", old=old)
     assert not any((big / name).exists() for name in stale)  # swept before the new one was made
-    time.sleep(0.2)
+    _wait_for_chunks(proc, big, ".m.zarr.tmp-", 4, old=old)  # the Ctrl-C comes in the middle of the copy
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=120)
     assert "Traceback" not in err, err

@@ -446,7 +446,7 @@ def test_the_robot_loop_holds_on_a_non_finite_cloud_and_keeps_it_out_of_the_hist
             cloud[3, 1] = NAN
         return cloud
 
-    with rig_loop(arm_export, tmp_path, monkeypatch, cloud_with_nan, pause=0.02) as (policy, runner, ticks):
+    with rig_loop(arm_export, tmp_path, monkeypatch, cloud_with_nan) as (policy, runner, ticks):
         assert all(r["action"] is not None for r in ticks(5))
         steps, count = policy.steps, runner.source.control.tick_count
         poisoned["on"] = True

@@ -3,9 +3,11 @@ is refused rather than run at a guessed one, and the waits for the first frame a
 bounded on the loop's clock. What can be judged before a device opens is: a second writer of a log directory,
 default log names that would collide, a --prefetch lead the control rate cannot hold.
 
-The signal test is real time by nature (a signal into a real process at a point of its start-up, counted
-from the moment main() installs its handler); its verdict does not depend on where the signal lands: either start-up stops with nothing enabled, or the
-loop ends in its final hold — both exit 130, and neither may blame another cause.
+The signal test is real time by nature (a signal into a real process at a point of its start-up); the point is
+one the process shows from outside (:data:`START_UP`: a handler it caught, a file it made, a line it printed, a
+tick it logged), never a delay. Its verdict does not depend on where after that point the signal lands: either
+start-up stops with nothing enabled, or the loop ends in its final hold — both exit 130, and neither may blame
+another cause; from the log directory's claim on, the stop is the runner's and the summary says so.
 """
 
 from __future__ import annotations
@@ -14,50 +16,97 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
-from waiting import wait_for
+from waiting import Output, wait_for
 
 from dssp_core.errors import CameraError, DSSPError
+from dssp_core.staging import writer_lock_path
 from hardware.camera.base import Camera
 from hardware.cli.run import main as run_main
 from hardware.clock import FakeClock
 from hardware.piper.limits import piper_description
 from hardware.robot import Robot
+from hardware.run_log import read_ticks
+
+
+def catches(pid: int, signum: int) -> bool:
+    """Whether process ``pid`` has a handler for ``signum`` (its SigCgt mask under /proc)."""
+    status = Path(f"/proc/{pid}/status").read_text()
+    caught = int(next(line.split()[1] for line in status.splitlines() if line.startswith("SigCgt:")), 16)
+    return bool(caught >> (signum - 1) & 1)
 
 
 def wait_for_start_up_handler(proc: subprocess.Popen, timeout: float = 60.0) -> None:
     """Wait until ``proc`` catches SIGTERM: main() has installed its start-up handler (Python itself catches
-    only SIGINT), so the delays below count from there, whatever the machine's load did to the interpreter's
+    only SIGINT), so the moments below come after it, whatever the machine's load did to the interpreter's
     own start-up (a Ctrl-C before that is Python's, not dssp-run's)."""
-    def caught_or_ended() -> bool:
-        if proc.poll() is not None:
-            return True
-        status = Path(f"/proc/{proc.pid}/status").read_text()
-        caught = int(next(line.split()[1] for line in status.splitlines() if line.startswith("SigCgt:")), 16)
-        return bool(caught >> (signal.SIGTERM - 1) & 1)
-
-    wait_for(caught_or_ended, timeout=timeout, what="dssp-run's start-up handler", poll=0.005)
+    wait_for(lambda: proc.poll() is not None or catches(proc.pid, signal.SIGTERM), timeout=timeout,
+             what="dssp-run's start-up handler", poll=0.005)
     assert proc.poll() is None, f"dssp-run ended before it installed its start-up handler (exit code {proc.poll()})"
 
 
-@pytest.mark.parametrize("delay", [0.0, 0.3, 1.0, 2.0, 3.5])
-def test_ctrl_c_during_start_up_is_a_clean_stop(arm_export, tmp_path, delay):
+def ticks_logged(log_dir: Path) -> int:
+    try:
+        return len(read_ticks(log_dir))
+    except FileNotFoundError:
+        return 0
+
+
+# The moments of dssp-run's start-up seen from outside, in the order they come, and what shows each: its stop
+# handlers caught (main()'s first step; the imports follow), the log directory's lock file (the model loads
+# next), the "graphs:" line on stderr (the model loaded and checked; the last start-up check follows), the log
+# directory made (claimed: from here a stop is the runner's), a CAN log (the devices open; the runner waits for
+# the first frame and feedback, then enables the arm), the first logged tick (running).
+START_UP = ("handler", "log locked", "model loaded", "log claimed", "devices open", "first tick")
+RUNNERS = START_UP[START_UP.index("log claimed"):]  # the moments from which the runner ends the run
+
+
+def wait_for_start_up(proc: subprocess.Popen, output: Output, log_dir: Path, moment: str,
+                      timeout: float = 120.0) -> None:
+    """Wait until ``proc`` (a dssp-run on ``log_dir``, its pipes read by ``output``) has reached ``moment`` of
+    :data:`START_UP`, or has ended."""
+    what = f"dssp-run's start-up: {moment}"
+    if moment == "model loaded":  # a line it prints: waited for as it comes
+        output.wait_for_line("stderr", "graphs: ", timeout=timeout, what=what)
+        return
+    shown = {
+        "handler": lambda: catches(proc.pid, signal.SIGTERM),
+        "log locked": writer_lock_path(log_dir).exists,
+        "log claimed": log_dir.is_dir,
+        "devices open": lambda: any(log_dir.glob("can_*.blf")),
+        "first tick": lambda: ticks_logged(log_dir) >= 1,
+    }[moment]
+    wait_for(lambda: proc.poll() is not None or shown(), timeout=timeout, what=what, poll=0.005)
+
+
+@pytest.mark.parametrize("moment", START_UP)
+def test_ctrl_c_during_start_up_is_a_clean_stop(arm_export, tmp_path, moment):
+    log_dir = tmp_path / "log"
     proc = subprocess.Popen(
         [sys.executable, "-m", "hardware.cli.run", "--model", str(arm_export), "--camera", "tabletop", "--can", "sim",
-         "--log-dir", str(tmp_path / "log"), "--threads", "1", "--quiet"],
+         "--log-dir", str(log_dir), "--threads", "1", "--quiet"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env={**os.environ, "OMP_NUM_THREADS": "1"},
     )
-    wait_for_start_up_handler(proc)
-    time.sleep(delay)
-    proc.send_signal(signal.SIGINT)
-    out, err = proc.communicate(timeout=120)
-    assert proc.returncode == 130, (out, err)
+    output = Output(proc)
+    try:
+        wait_for_start_up_handler(proc)
+        wait_for_start_up(proc, output, log_dir, moment)
+        proc.send_signal(signal.SIGINT)
+        out, err = output.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 130, (moment, out, err)
     assert "Traceback" not in err and "cannot be imported" not in err, err
     assert "during start-up; no arm was enabled" in err or "ended by: SIGINT" in out, (out, err)
+    if moment in RUNNERS:  # the log was claimed before the signal: the runner ended the run and said why
+        assert "ended by: SIGINT" in out, (moment, out, err)
+    if moment == "first tick":  # the arm was enabled: the loop ended in its final hold, not the start-up
+        assert "during start-up" not in err, (moment, err)
 
 
 def test_a_model_without_a_control_rate_needs_rate(tiny_export, tmp_path, capsys):

@@ -4,9 +4,11 @@ exit code says which (128 + the signal's number; 141 for a lost stdout/stderr), 
 name the true reason, the final hold and the disable are on the CAN log, which is complete and readable.
 
 The signals are real time by nature (a signal into a real process); the moments are drawn from a seed, printed
-(``DSSP_STOP_SEED=N`` replays them). Whatever moment a signal lands at, the verdict is exact: either the start-up
-ended with nothing enabled or sent, or the loop ended in its final hold. A stop before the first tick, a run that
-failed before it, a failed print and dssp-replay's stop are checked in-process, where the stop lands exactly.
+(``DSSP_STOP_SEED=N`` replays them), each one the process shows from outside (a start-up moment of
+``test_run_startup.START_UP``, or a number of logged ticks), never a delay. Whatever moment a signal lands at,
+the verdict is exact: either the start-up ended with nothing enabled or sent, or the loop ended in its final
+hold. A stop before the first tick, a run that failed before it, a failed print and dssp-replay's stop are
+checked in-process, where the stop lands exactly.
 """
 
 from __future__ import annotations
@@ -24,7 +26,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from test_run import GRIPPER, assert_within_limits, sent_commands
-from waiting import wait_for
+from test_run_startup import START_UP, catches, ticks_logged, wait_for_start_up
+from waiting import Output, wait_for
 
 from dssp_core.errors import CameraError, DSSPError
 from hardware.can_log import read_log
@@ -51,20 +54,7 @@ def _start(arm_export, tmp_path, *extra, quiet=True):
         [sys.executable, "-m", "hardware.cli.run", "--model", str(arm_export), "--camera", "tabletop", "--can", "sim",
          "--log-dir", str(tmp_path / "log"), "--threads", "1", "--safety", str(safety), *(["--quiet"] if quiet else []),
          *extra],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=_env())
-
-
-def _catches(pid: int, signum: int) -> bool:
-    status = Path(f"/proc/{pid}/status").read_text()
-    caught = int(next(line.split()[1] for line in status.splitlines() if line.startswith("SigCgt:")), 16)
-    return bool(caught >> (signum - 1) & 1)
-
-
-def _ticks_logged(log_dir: Path) -> int:
-    try:
-        return len(read_ticks(log_dir))
-    except FileNotFoundError:
-        return 0
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env())
 
 
 def check_safe_stop(log_dir: Path, reason: str, err: str) -> dict | None:
@@ -101,10 +91,14 @@ def check_safe_stop(log_dir: Path, reason: str, err: str) -> dict | None:
 
 
 # ------------------------------------------------------------------------------------------------ the signals
-# Sends a fresh process (``sleep``, every signal at its default, no core file) each signal, and prints the numbers
-# of those it died of. A small process of its own starts them: forking the test process 62 times takes seconds.
+# Sends a fresh process (``cat`` reading a pipe, every signal at its default, no core file) each signal, and prints
+# the numbers of those it died of. The child's input is closed right after the signal is sent: a signal that ends a
+# process is acted on the next time the child runs, before it can see the end of its input; one it ignores is
+# dropped and the child ends on the end of its input; one that stops it is reported as a stop. So every wait ends
+# on a change of the child's state, none on a timer. A small process of its own starts them: forking the test
+# process 62 times takes seconds.
 ORACLE = """
-import json, os, resource, signal, subprocess, sys, time
+import json, os, resource, signal, subprocess
 
 def fresh():
     for signum in signal.valid_signals():
@@ -112,21 +106,21 @@ def fresh():
             signal.signal(signum, signal.SIG_DFL)
     resource.setrlimit(resource.RLIMIT_CORE, (0, 0))
 
-children = {int(s): subprocess.Popen(["sleep", "30"], preexec_fn=fresh) for s in signal.valid_signals()}
+children = {int(s): subprocess.Popen(["cat"], stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, preexec_fn=fresh)
+            for s in signal.valid_signals()}
 ends = []
 try:
     for signum, child in children.items():
         os.kill(child.pid, signum)
-    deadline, pending = time.monotonic() + 1.0, dict(children)
-    while pending and time.monotonic() < deadline:
-        for signum, child in list(pending.items()):
-            pid, status = os.waitpid(child.pid, os.WNOHANG | os.WUNTRACED)
-            if pid and os.WIFSIGNALED(status):
-                ends.append(signum)
-                child.returncode = -signum
-            if pid:
-                del pending[signum]
-        time.sleep(0.01)
+        child.stdin.close()
+    for signum, child in children.items():
+        _, status = os.waitpid(child.pid, os.WUNTRACED)  # it died, ended at the end of its input, or stopped
+        if os.WIFSTOPPED(status):
+            os.kill(child.pid, signal.SIGKILL)
+            _, status = os.waitpid(child.pid, 0)
+        elif os.WIFSIGNALED(status) and os.WTERMSIG(status) == signum:
+            ends.append(signum)
+        child.returncode = os.waitstatus_to_exitcode(status)
 finally:
     for child in children.values():
         if child.returncode is None:
@@ -154,26 +148,31 @@ def test_each_stop_signal_is_one_stop_request():
     before = {s: signal.getsignal(s) for s in stop_signals()}
     for signum in stop_signals():
         stops = Stops(streams=False)
-        told = []
+        told, asked = [], []
+        stop = stops.stop
+        stops.stop = lambda reason, code: asked.append(reason) or stop(reason, code)  # each request, the ignored too
+        second = signal.SIGUSR1 if signum != signal.SIGUSR1 else signal.SIGUSR2
         try:
             assert signum in stops.signals
             stops.during(told.append)
             os.kill(os.getpid(), signum)
             wait_for(lambda: stops.reason is not None, timeout=5, what=f"{signal_name(signum)} handled")
-            os.kill(os.getpid(), signal.SIGUSR1 if signum != signal.SIGUSR1 else signal.SIGUSR2)  # a second stop
-            time.sleep(0.01)
+            os.kill(os.getpid(), second)  # a second stop
+            wait_for(lambda: len(asked) == 2, timeout=5, what=f"the second stop, {signal_name(second)}, handled")
         finally:
             stops.restore()
+        assert asked == [signal_name(signum), signal_name(second)]
         assert (stops.reason, stops.code, told) == (signal_name(signum), 128 + signum, [signal_name(signum)])
     assert {s: signal.getsignal(s) for s in stop_signals()} == before
 
 
 def _moments(names):
-    """One random moment per signal (seeded): during start-up, ``delay`` s after the handler is installed, or
-    while running, after ``ticks`` logged ticks; the two kinds alternate, so both are always tried."""
+    """One random moment per signal (seeded): during start-up, once the process shows one of the moments of
+    ``START_UP`` before its first tick, or while running, after ``ticks`` logged ticks; the two kinds alternate,
+    so both are always tried."""
     rng = random.Random(SEED)
     kinds = ["start-up", "running"] if rng.random() < 0.5 else ["running", "start-up"]
-    return {name: (kinds[i % 2], round(rng.uniform(0.0, 2.0), 3) if kinds[i % 2] == "start-up" else rng.randint(1, 40))
+    return {name: (kinds[i % 2], rng.choice(START_UP[:-1]) if kinds[i % 2] == "start-up" else rng.randint(1, 40))
             for i, name in enumerate(names)}
 
 
@@ -192,16 +191,17 @@ def test_a_signal_at_a_random_moment_ends_in_the_safe_stop(arm_export, tmp_path,
     print(f"DSSP_STOP_SEED={SEED}: {signal_name(signum)} {kind} {when}")
     log_dir = tmp_path / "log"
     proc = _start(arm_export, tmp_path)
+    output = Output(proc)
     try:
-        wait_for(lambda: proc.poll() is not None or (_catches(proc.pid, signal.SIGTERM) and _catches(proc.pid, signum)),
+        wait_for(lambda: proc.poll() is not None or (catches(proc.pid, signal.SIGTERM) and catches(proc.pid, signum)),
                  timeout=60, what=f"{signal_name(signum)} caught (seed {SEED})", poll=0.002)
         if kind == "start-up":
-            time.sleep(when)
+            wait_for_start_up(proc, output, log_dir, when)
         else:
-            wait_for(lambda: proc.poll() is not None or _ticks_logged(log_dir) >= when, timeout=120,
+            wait_for(lambda: proc.poll() is not None or ticks_logged(log_dir) >= when, timeout=120,
                      what=f"{when} logged ticks (seed {SEED})", poll=0.01)
         proc.send_signal(signum)
-        out, err = (b.decode() for b in proc.communicate(timeout=60))
+        out, err = output.communicate(timeout=60)
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -221,7 +221,7 @@ def test_stdout_and_stderr_going_away_end_in_the_safe_stop(arm_export, tmp_path)
     log_dir = tmp_path / "log"
     proc = _start(arm_export, tmp_path)
     try:
-        wait_for(lambda: proc.poll() is not None or _ticks_logged(log_dir) >= 10, timeout=120, what="10 logged ticks",
+        wait_for(lambda: proc.poll() is not None or ticks_logged(log_dir) >= 10, timeout=120, what="10 logged ticks",
                  poll=0.01)
         proc.stdout.close()
         proc.stderr.close()
@@ -280,7 +280,8 @@ def test_a_stop_before_the_first_tick_is_logged_as_that_stop(arm_export, tmp_pat
 
     def signalled_start(self):
         os.kill(os.getpid(), signal.SIGHUP)
-        time.sleep(0.01)  # the handler runs
+        # the handler has run once it passed the stop on to this runner (dssp-run's stops.during)
+        wait_for(lambda: self.stop_reason is not None, timeout=5, what="SIGHUP handled")
         return start(self)
 
     monkeypatch.setattr(Runner, "start", signalled_start)

@@ -14,7 +14,6 @@ import shutil
 import subprocess
 import sys
 import textwrap
-import time
 
 import numpy as np
 import onnx
@@ -222,11 +221,11 @@ def widened_copy(model_dir, dst):
 
 
 @contextlib.contextmanager
-def rig_loop(arm_export, tmp_path, monkeypatch, edit_cloud, pause: float = 0.0):
+def rig_loop(arm_export, tmp_path, monkeypatch, edit_cloud):
     """The robot's loop (``hardware.run_loop.Runner``) on the simulated camera and arm, with every cloud passed
     through ``edit_cloud(cloud) -> cloud`` first: yields (policy, runner, ticks), ``ticks(n)`` the records of n
-    ticks (``pause`` seconds of wall time after each). Generous timeouts and no deadline hold: the only reason
-    to hold is what the test injects."""
+    ticks, each on a fresh frame, one right after the other: nothing here waits on the loop's period. Generous
+    timeouts and no deadline hold: the only reason to hold is what the test injects."""
     from hardware import run_loop
     from hardware.camera.tabletop import SimCamera
     from hardware.piper.limits import JointLimits
@@ -260,8 +259,6 @@ def rig_loop(arm_export, tmp_path, monkeypatch, edit_cloud, pause: float = 0.0):
                 for _ in range(n):
                     camera.capture()
                     out.append(runner.tick())
-                    if pause:
-                        time.sleep(pause)
                 return out
 
             yield policy, runner, ticks
