@@ -4,8 +4,8 @@ ways of taking actions from chunks (none, temporal ensembling, real-time chunkin
     python -m studies.delay_study [--tasks tap put2] [--workers 2] [--work runs/delay] [--report reports/delay]
                                   [--report-only] [--quick]
 
-For each task (``tap``, ``put2``): collect the expert demonstrations, train DSSP once (preset ``sim``, training seed
-0), export it with ``--inpainting`` (the denoiser real-time chunking needs; with zero weights it is the plain chain,
+For each task (``tap``, ``put2``): collect the expert demonstrations, train DSSP with each training seed of the plan
+(preset ``sim``), export each with ``--inpainting`` (the denoiser real-time chunking needs; with zero weights it is the plain chain,
 so one model serves the three modes), and evaluate every (smoothing, delay) cell in the MuJoCo twin, in lockstep, with
 the delay injected per chunk (``dssp-sim eval --inject-delay MS``: each chunk usable only that long after its
 observation, in whole 10 Hz ticks — 50 and 100 ms are both one tick, 200 ms two, 400 ms four). The modes:
@@ -19,8 +19,8 @@ observation, in whole 10 Hz ticks — 50 and 100 ms are both one tick, 200 ms tw
 Nothing is tuned here (the modes' settings are their defaults, fixed before any evaluation), and the evaluations
 use the **validation** seeds, the same scenes in every cell (paired). A cell's jerk is the commanded joints' jerk
 (rad/s³) at the ticks a new chunk took over, beside the other ticks' (:func:`dssp_sim.evaluate.command_jerk`).
-Differences between modes at each delay come with the exact paired test over the shared scenes (one training seed:
-the intervals cover the scenes only).
+Success rates come with the two-way cluster-bootstrap interval over training seeds and scenes, and differences
+between modes at each delay with the exact paired test over the shared scenes and seeds (:mod:`studies.stats`).
 
 Stages run on :class:`studies.runner.Runner` (side by side, one thread each, resumed); the record keeps each
 evaluation (``record/evals``); ``delay.md``, ``.json``, ``.png`` are rebuilt from it alone (``--report-only``,
@@ -37,31 +37,29 @@ from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import DSSPError
 from dssp_core.files import atomic_write_text
 from dssp_core.output_guard import write_output_figure
-from dssp_sim.evaluate import wilson_interval
 from studies import protocol
 from studies.evaluations import run_and_keep
 from studies.runner import Stage
-from studies.sim_study import pct
-from studies.stats import describe_p, paired_exact_test
+from studies.stats import cluster_bootstrap, describe_p, paired_difference, paired_exact_test
 
 REPORT_NAME = "delay"
 PLAN = {
     "tasks": {"tap": {"demos": 50, "steps": 3000}, "put2": {"demos": 50, "steps": 1500}},
     "preset": "sim",
-    "seed": 0,
+    "seeds": [0, 1],
     "delays_ms": [0, 50, 100, 200, 400],
     "smoothings": ["none", "ensemble", "rtc"],
     "episodes": 20,
     "export_flags": ["--inpainting", "--quantize", "int8"],
 }
-QUICK_PLAN = {**PLAN, "tasks": {"tap": {"demos": 3, "steps": 10}}, "delays_ms": [0, 200], "episodes": 1,
+QUICK_PLAN = {**PLAN, "tasks": {"tap": {"demos": 3, "steps": 10}}, "delays_ms": [0, 200], "episodes": 1, "seeds": [0],
               "export_flags": ["--inpainting", "--skip-verify", "--quantize", "none"]}
 RECORD_DIR = "record"
 SPLIT = "validation"
 
 
-def cell(task: str, smoothing: str, delay: int) -> str:
-    return f"{task}_{smoothing}_d{delay}"
+def cell(task: str, smoothing: str, delay: int, seed: int) -> str:
+    return f"{task}_{smoothing}_d{delay}_s{seed}"
 
 
 def stages(plan: dict, tasks: list[str], record: Path) -> list[Stage]:
@@ -69,26 +67,31 @@ def stages(plan: dict, tasks: list[str], record: Path) -> list[Stage]:
     first = protocol.split_seeds(SPLIT, plan["episodes"])[0]
     out: list[Stage] = []
     for task in tasks:
-        spec, data, run, model = plan["tasks"][task], f"data_{task}.zarr", f"run_{task}", f"model_{task}"
-        cells = [Stage(f"eval_{cell(task, s, d)}", "dssp_sim.sim_cli:main",
-                       ("eval", "--model", model, "--task", task, "--episodes", str(plan["episodes"]), "--seed", str(first),
-                        "--smoothing", s, "--inject-delay", str(d), "--threads", "1", "--json",
-                        f"evals/{cell(task, s, d)}.json", "--force", "--no-progress"),
-                       after=(f"export_{task}",), outputs=(f"evals/{cell(task, s, d)}.json",))
-                 for d in plan["delays_ms"] for s in plan["smoothings"]
-                 if not (record / "evals" / f"{cell(task, s, d)}.json").is_file()]
-        if not cells:
-            continue
-        argv = ("--data", data, "--out", run, "--preset", plan["preset"], "--steps", str(spec["steps"]), "--seed",
-                str(plan["seed"]), "--no-progress", "--force")
-        out += [Stage(f"collect_{task}", "dssp_sim.sim_cli:main",
-                      ("collect", "--task", task, "--episodes", str(spec["demos"]), "--out", data, "--no-progress"),
-                      clean=(data,)),
-                Stage(f"train_{task}", "dssp_train.cli.train:main", argv, after=(f"collect_{task}",),
+        spec, data = plan["tasks"][task], f"data_{task}.zarr"
+        task_stages: list[Stage] = []
+        for seed in plan["seeds"]:
+            run, model, key = f"run_{task}_s{seed}", f"model_{task}_s{seed}", f"{task}_s{seed}"
+            cells = [Stage(f"eval_{cell(task, s, d, seed)}", "dssp_sim.sim_cli:main",
+                           ("eval", "--model", model, "--task", task, "--episodes", str(plan["episodes"]), "--seed",
+                            str(first), "--smoothing", s, "--inject-delay", str(d), "--threads", "1", "--json",
+                            f"evals/{cell(task, s, d, seed)}.json", "--force", "--no-progress"),
+                           after=(f"export_{key}",), outputs=(f"evals/{cell(task, s, d, seed)}.json",))
+                     for d in plan["delays_ms"] for s in plan["smoothings"]
+                     if not (record / "evals" / f"{cell(task, s, d, seed)}.json").is_file()]
+            if not cells:
+                continue
+            argv = ("--data", data, "--out", run, "--preset", plan["preset"], "--steps", str(spec["steps"]), "--seed",
+                    str(seed), "--no-progress", "--force")
+            task_stages += [
+                Stage(f"train_{key}", "dssp_train.cli.train:main", argv, after=(f"collect_{task}",),
                       resume=("--data", data, "--out", run, "--resume", "--no-progress"), started=f"{run}/checkpoint"),
-                Stage(f"export_{task}", "export.to_onnx:main", (run, "-o", model, "--threads", "1", "--force",
-                                                                *plan["export_flags"]), after=(f"train_{task}",)),
+                Stage(f"export_{key}", "export.to_onnx:main", (run, "-o", model, "--threads", "1", "--force",
+                                                               *plan["export_flags"]), after=(f"train_{key}",)),
                 *cells]
+        if task_stages:
+            out += [Stage(f"collect_{task}", "dssp_sim.sim_cli:main",
+                          ("collect", "--task", task, "--episodes", str(spec["demos"]), "--out", data, "--no-progress"),
+                          clean=(data,)), *task_stages]
     return out
 
 
@@ -98,47 +101,64 @@ def recorded(plan: dict, record: Path) -> dict:
     for task in plan["tasks"]:
         for d in plan["delays_ms"]:
             for s in plan["smoothings"]:
-                path = record / "evals" / f"{cell(task, s, d)}.json"
-                if path.is_file():
-                    evals[cell(task, s, d)] = json.loads(path.read_text())
+                for seed in plan["seeds"]:
+                    path = record / "evals" / f"{cell(task, s, d, seed)}.json"
+                    if path.is_file():
+                        evals[cell(task, s, d, seed)] = json.loads(path.read_text())
     return evals
 
 
+def _grid(evals: dict, plan: dict, task: str, smoothing: str, delay: int) -> tuple[list[list[int]], list[dict]] | None:
+    """The (training seeds, scenes) success grid of a (task, mode, delay) and its evaluations; None until every seed's
+    evaluation is in."""
+    runs = [evals.get(cell(task, smoothing, delay, seed)) for seed in plan["seeds"]]
+    if any(r is None for r in runs):
+        return None
+    grid = [[int(e["success"]) for e in sorted(r["episodes"], key=lambda e: e["seed"])] for r in runs]
+    return grid, runs
+
+
 def summarise(evals: dict, plan: dict) -> dict:
-    """{task: {smoothing: {delay: {k, n, rate, wilson95, ticks, jerk_boundary, jerk_elsewhere, holds}}}}."""
+    """{task: {smoothing: {delay: {k, n, rate, interval95, ticks, jerk_boundary, jerk_elsewhere, holds}}}}: over every
+    training seed (pending cells left out), the interval the two-way cluster bootstrap over seeds and scenes."""
     table: dict = {}
     for task in plan["tasks"]:
         for s in plan["smoothings"]:
             for d in plan["delays_ms"]:
-                r = evals.get(cell(task, s, d))
-                if r is None:
+                got = _grid(evals, plan, task, s, d)
+                if got is None:
                     continue
-                jerk = r.get("boundary_jerk") or {}
+                grid, runs = got
+                rate, lo, hi = cluster_bootstrap(grid)
+                jerks = [r.get("boundary_jerk") or {} for r in runs]
+
+                def mean(key):
+                    values = [j[key] for j in jerks if j.get(key) is not None]
+                    return sum(values) / len(values) if values else None
+
+                n = sum(r["n"] for r in runs)
                 table.setdefault(task, {}).setdefault(s, {})[d] = {
-                    "k": r["successes"], "n": r["n"], "rate": r["successes"] / max(r["n"], 1),
-                    "wilson95": list(wilson_interval(r["successes"], r["n"])), "ticks": r.get("injected_delay_ticks"),
-                    "jerk_boundary": jerk.get("at_boundaries"), "jerk_elsewhere": jerk.get("elsewhere"),
-                    "holds": sum(e.get("holds", 0) for e in r["episodes"]) / max(r["n"], 1)}
+                    "k": sum(r["successes"] for r in runs), "n": n, "rate": rate, "interval95": [lo, hi],
+                    "ticks": runs[0].get("injected_delay_ticks"), "jerk_boundary": mean("at_boundaries"),
+                    "jerk_elsewhere": mean("elsewhere"),
+                    "holds": sum(e.get("holds", 0) for r in runs for e in r["episodes"]) / max(n, 1)}
     return table
 
 
 def comparisons(evals: dict, plan: dict) -> list[dict]:
-    """RTC against each other mode at each delay: the exact paired test over the shared scenes."""
+    """RTC against each other mode at each delay: the exact paired test over the shared scenes and training seeds."""
     out = []
     for task in plan["tasks"]:
         for d in plan["delays_ms"]:
-            rtc = evals.get(cell(task, "rtc", d))
+            rtc = _grid(evals, plan, task, "rtc", d)
             for other in ("none", "ensemble"):
-                b = evals.get(cell(task, other, d))
+                b = _grid(evals, plan, task, other, d)
                 if rtc is None or b is None:
                     continue
-                a_by = {e["seed"]: int(e["success"]) for e in rtc["episodes"]}
-                b_by = {e["seed"]: int(e["success"]) for e in b["episodes"]}
-                seeds = sorted(set(a_by) & set(b_by))
-                a, bb = [a_by[s] for s in seeds], [b_by[s] for s in seeds]
-                p = paired_exact_test([a], [bb])  # one training seed: a (1, scenes) grid each
-                out.append({"task": task, "delay_ms": d, "vs": other, "n": len(seeds),
-                            "difference": (sum(a) - sum(bb)) / max(len(seeds), 1), "p": p, "verdict": describe_p(p)})
+                diff, lo, hi = paired_difference(rtc[0], b[0])
+                p = paired_exact_test(rtc[0], b[0])
+                out.append({"task": task, "delay_ms": d, "vs": other, "n": sum(len(row) for row in rtc[0]),
+                            "difference": diff, "interval95": [lo, hi], "p": p, "verdict": describe_p(p)})
     return out
 
 
@@ -148,30 +168,37 @@ def write_report(plan: dict, record: Path, report: Path, shown_record: str | Non
     if not evals:
         raise DSSPError(f"{record} holds no evaluation of this plan; run the study first")
     table = summarise(evals, plan)
+    if not table:
+        raise DSSPError(f"{record} holds no cell with every training seed's evaluation ({plan['seeds']}) yet; run the "
+                        "study to fill it")
     tests = comparisons(evals, plan)
     scenes = protocol.split_seeds(SPLIT, plan["episodes"])
     lines = [
         "# Inference delay: none, temporal ensembling and real-time chunking", "",
         f"Rebuilt from `{shown_record or record}` by `python -m studies.delay_study --report-only`. DSSP, preset "
-        f"`{plan['preset']}`, trained once per task (demonstrations and steps {({t: (s['demos'], s['steps']) for t, s in plan['tasks'].items()})}, "
-        f"seed {plan['seed']}), exported with `--inpainting` at int8; {plan['episodes']} closed-loop episodes per cell in the MuJoCo "
-        f"twin on validation seeds {scenes[0]}–{scenes[-1]} (the same scenes in every cell; nothing here was tuned). "
-        "The delay is injected per chunk in lockstep, in whole 10 Hz ticks (50 and 100 ms are both one tick). Success with "
-        "95 % Wilson intervals (one training seed); jerk = the commanded joints' mean ‖third difference‖ × rate³ "
+        f"`{plan['preset']}`, trained per task with training seeds {plan['seeds']} (demonstrations and steps "
+        f"{({t: (s['demos'], s['steps']) for t, s in plan['tasks'].items()})}), each exported with `--inpainting` at int8; "
+        f"{plan['episodes']} closed-loop episodes per cell and seed in the MuJoCo twin on validation seeds "
+        f"{scenes[0]}–{scenes[-1]} (the same scenes in every cell; nothing here was tuned). The delay is injected per chunk "
+        "in lockstep, in whole 10 Hz ticks (50 and 100 ms are both one tick). Success over every training seed and scene, "
+        "with the 95 % two-way cluster-bootstrap interval over seeds and scenes; jerk = the commanded joints' mean ‖third difference‖ × rate³ "
         "(rad/s³) at the ticks a new chunk took over, and at the other ticks; holds = ticks per episode with no action "
         "(the loop waiting for a chunk, or the safety layer holding). The compute is not equal: `none` and `rtc` have one "
         "chunk in flight at a time, `ensemble` starts one every tick, so with a delay of d ticks it has d chunks in "
         "flight at once — d times the denoiser throughput of one computation that takes d ticks (on one CPU that "
         "also takes d ticks each, it could not keep up).", "",
     ]
-    for task, per_mode in table.items():
+    for task in table:
+        per_mode = {s: table[task].get(s, {}) for s in plan["smoothings"]}  # every mode: a missing cell is pending
         lines += [f"## {task}", "", "| delay (ticks) | " + " | ".join(f"{s} success" for s in per_mode) + " | "
                   + " | ".join(f"{s} jerk at boundary / elsewhere | {s} holds" for s in per_mode) + " |",
                   "|---|" + "---|" * len(per_mode) + "---|---:|" * len(per_mode)]
         for d in plan["delays_ms"]:
             rows = [per_mode[s].get(d) for s in per_mode]
             ticks = next((r["ticks"] for r in rows if r is not None), None)
-            success = ["pending" if r is None else pct(r["k"], r["n"]) for r in rows]
+            success = ["pending" if r is None else
+                       f"{100 * r['rate']:.0f} % ({r['k']}/{r['n']}; {100 * r['interval95'][0]:.0f}–{100 * r['interval95'][1]:.0f})"
+                       for r in rows]
             jerk = []
             for r in rows:
                 if r is None:
@@ -182,11 +209,12 @@ def write_report(plan: dict, record: Path, report: Path, shown_record: str | Non
                 jerk += [shown, f"{r['holds']:.1f}"]
             lines.append(f"| {d} ms ({ticks}) | " + " | ".join(success) + " | " + " | ".join(jerk) + " |")
         lines.append("")
-    lines += ["## Real-time chunking against the other modes (exact paired test over the shared scenes)", "",
-              "| task | delay | vs | RTC − other | exact paired test |", "|---|---:|---|---:|---|"]
+    lines += ["## Real-time chunking against the other modes (paired over the shared scenes and seeds)", "",
+              "| task | delay | vs | RTC − other (95 % bootstrap) | exact paired test |", "|---|---:|---|---:|---|"]
     for t in tests:
-        lines.append(f"| {t['task']} | {t['delay_ms']} ms | {t['vs']} | {100 * t['difference']:+.0f} points | "
-                     f"{t['verdict']} |")
+        lo, hi = t["interval95"]
+        lines.append(f"| {t['task']} | {t['delay_ms']} ms | {t['vs']} | {100 * t['difference']:+.0f} points "
+                     f"({100 * lo:+.0f} to {100 * hi:+.0f}) | {t['verdict']} |")
     lines += ["", f"![success and boundary jerk against the inference delay]({REPORT_NAME}.png)", ""]
     report.mkdir(parents=True, exist_ok=True)
     md = report / f"{REPORT_NAME}.md"
@@ -209,12 +237,12 @@ def plot(table: dict, plan: dict, path: Path) -> None:
         for s, rows in table[task].items():
             ds = [d for d in plan["delays_ms"] if d in rows]
             rates = [100 * rows[d]["rate"] for d in ds]
-            lo = [100 * (rows[d]["rate"] - rows[d]["wilson95"][0]) for d in ds]
-            hi = [100 * (rows[d]["wilson95"][1] - rows[d]["rate"]) for d in ds]
+            lo = [100 * (rows[d]["rate"] - rows[d]["interval95"][0]) for d in ds]
+            hi = [100 * (rows[d]["interval95"][1] - rows[d]["rate"]) for d in ds]
             axes[0][col].errorbar(ds, rates, yerr=[lo, hi], marker="o", capsize=3, label=s)
             axes[1][col].plot(ds, [rows[d]["jerk_boundary"] if rows[d]["jerk_boundary"] is not None else float("nan")
                                    for d in ds], marker="o", label=s)
-        axes[0][col].set(title=f"{task}: success (95 % Wilson)", xlabel="injected delay per chunk (ms)", ylabel="success %",
+        axes[0][col].set(title=f"{task}: success (95 % cluster bootstrap)", xlabel="injected delay per chunk (ms)", ylabel="success %",
                          ylim=(0, 105))
         axes[1][col].set(title=f"{task}: commanded jerk at chunk boundaries", xlabel="injected delay per chunk (ms)",
                          ylabel="rad/s³", ylim=(0, None))
@@ -228,7 +256,7 @@ def plot(table: dict, plan: dict, path: Path) -> None:
 def readme_table(record: Path, plan: dict = PLAN) -> str:
     """The README's ``delay`` block: success per mode at each delay, per task."""
     table = summarise(recorded(plan, record), plan)
-    lines = [f"| task, mode ({plan['episodes']} validation episodes) | " + " | ".join(f"{d} ms" for d in plan["delays_ms"]) + " |",
+    lines = [f"| task, mode ({len(plan['seeds'])} training seeds × {plan['episodes']} validation scenes) | " + " | ".join(f"{d} ms" for d in plan["delays_ms"]) + " |",
              "|---|" + "---:|" * len(plan["delays_ms"])]
     for task, per_mode in table.items():
         for s, rows in per_mode.items():

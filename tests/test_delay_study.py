@@ -1,6 +1,6 @@
 """The delay study's plan and report arithmetic (its figures are rebuilt from the committed record by
-``tests/test_rebuild``-style checks of ``python -m studies.rebuild --check``): every (mode, delay) cell one
-evaluation on the same validation scenes from one --inpainting export per task; the paired tests pair by scene."""
+``python -m studies.rebuild --check``, which the tests run): every (mode, delay, training seed) cell one evaluation
+on the same validation scenes from that seed's --inpainting export; the tests pair by scene and seed."""
 
 import json
 
@@ -11,18 +11,21 @@ def test_every_cell_is_an_evaluation_of_the_one_inpainting_export(tmp_path):
     plan = delay_study.PLAN
     stages = delay_study.stages(plan, ["tap"], tmp_path)
     names = [s.name for s in stages]
-    assert names[:3] == ["collect_tap", "train_tap", "export_tap"]
+    assert names[:3] == ["collect_tap", "train_tap_s0", "export_tap_s0"] and "train_tap_s1" in names
     assert "--inpainting" in stages[2].argv
+    train = list(stages[names.index("train_tap_s1")].argv)
+    assert train[train.index("--seed") + 1] == "1"
     cells = [s for s in stages if s.name.startswith("eval_")]
-    assert len(cells) == len(plan["delays_ms"]) * len(plan["smoothings"]) == 15
+    assert len(cells) == len(plan["delays_ms"]) * len(plan["smoothings"]) * len(plan["seeds"]) == 30
     first = str(protocol.split_seeds("validation", plan["episodes"])[0])
     for s in cells:
         argv = list(s.argv)
-        assert argv[argv.index("--seed") + 1] == first and argv[argv.index("--model") + 1] == "model_tap"
+        seed = s.name.rsplit("_s", 1)[1]
+        assert argv[argv.index("--seed") + 1] == first and argv[argv.index("--model") + 1] == f"model_tap_s{seed}"
     # a cell already in the record is not run again
     (tmp_path / "evals").mkdir()
-    (tmp_path / "evals" / "tap_rtc_d200.json").write_text("{}")
-    assert "eval_tap_rtc_d200" not in [s.name for s in delay_study.stages(plan, ["tap"], tmp_path)]
+    (tmp_path / "evals" / "tap_rtc_d200_s1.json").write_text("{}")
+    assert "eval_tap_rtc_d200_s1" not in [s.name for s in delay_study.stages(plan, ["tap"], tmp_path)]
 
 
 def _eval(successes, jerk=(30.0, 10.0)):
@@ -31,19 +34,26 @@ def _eval(successes, jerk=(30.0, 10.0)):
             "episodes": [{"seed": 1000 + i, "success": bool(s), "holds": 3} for i, s in enumerate(successes)]}
 
 
-def test_the_report_pairs_by_scene_and_says_what_is_not_significant(tmp_path):
-    plan = {**delay_study.PLAN, "tasks": {"tap": {"demos": 50, "steps": 3000}}, "delays_ms": [200], "episodes": 8}
+def test_the_report_pairs_by_scene_and_seed_and_says_what_is_not_significant(tmp_path):
+    plan = {**delay_study.PLAN, "tasks": {"tap": {"demos": 50, "steps": 3000}}, "delays_ms": [200], "episodes": 4,
+            "seeds": [0, 1]}
     evals = tmp_path / "record" / "evals"
     evals.mkdir(parents=True)
-    runs = {"none": [0] * 8, "ensemble": [1, 0, 1, 0, 1, 0, 1, 0], "rtc": [1] * 8}
+    runs = {"none": [0] * 4, "ensemble": [1, 0, 1, 0], "rtc": [1] * 4}
     for mode, outcome in runs.items():
-        (evals / f"tap_{mode}_d200.json").write_text(json.dumps(_eval(outcome)))
+        for seed in (0, 1):
+            (evals / f"tap_{mode}_d200_s{seed}.json").write_text(json.dumps(_eval(outcome)))
     md = delay_study.write_report(plan, tmp_path / "record", tmp_path / "report")
     record = json.loads((tmp_path / "report" / "delay.json").read_text())
     tests = {t["vs"]: t for t in record["paired_tests"]}
-    assert tests["none"]["difference"] == 1.0 and tests["none"]["p"] < 0.01  # 8 of 8 discordant pairs favour RTC
+    assert tests["none"]["difference"] == 1.0 and tests["none"]["p"] < 0.2  # every scene favours RTC, in both seeds
     assert tests["ensemble"]["difference"] == 0.5 and tests["ensemble"]["p"] > 0.05
     text = md.read_text()
     assert "not significant" in text and "| 200 ms (2) |" in text
-    assert record["summary"]["tap"]["rtc"]["200"]["holds"] == 3.0
+    assert record["summary"]["tap"]["rtc"]["200"]["holds"] == 3.0 and record["summary"]["tap"]["rtc"]["200"]["n"] == 8
+    assert record["summary"]["tap"]["ensemble"]["200"]["interval95"][0] < 0.5 < record["summary"]["tap"]["ensemble"]["200"]["interval95"][1]
+    # a seed not yet evaluated leaves the cell pending rather than reported on fewer seeds
+    (evals / "tap_rtc_d200_s1.json").unlink()
+    md = delay_study.write_report(plan, tmp_path / "record", tmp_path / "report")
+    assert "pending" in md.read_text()
     assert (tmp_path / "report" / "delay.png").is_file()
