@@ -18,6 +18,7 @@ Saving: every LeRobot checkpoint (``pretrained_model/``) also holds ``dssp_run/`
 
 from __future__ import annotations
 
+import logging
 from collections import deque
 from pathlib import Path
 from types import SimpleNamespace
@@ -68,6 +69,14 @@ def resolve_run_config(config: DSSPConfig, dataset_meta) -> RunConfig:
                               user_set=user_set)
 
 
+def _longest_episode(dataset_meta) -> int:
+    """The longest episode's frames (0 when the metadata does not say)."""
+    try:
+        return int(max(dataset_meta.episodes["length"]))
+    except (AttributeError, KeyError, TypeError, ValueError):
+        return 0
+
+
 def _range(stats: dict, key: str) -> np.ndarray:
     """(2, ...) the feature's min and max from LeRobot's statistics: what the min/max normalisers are fitted on."""
     return np.stack([np.asarray(stats[key]["min"], dtype=np.float64), np.asarray(stats[key]["max"], dtype=np.float64)])
@@ -82,6 +91,11 @@ class DSSPPolicy(PreTrainedPolicy):
         config.validate_features()
         if config.run_config is None:
             config.run_config = resolve_run_config(config, dataset_meta).to_dict()
+            longest = _longest_episode(dataset_meta)
+            if longest > config.history:
+                logging.warning("the dataset's episodes run up to %d frames, more than --policy.history=%d: a sample's "
+                                "trajectory starts at most %d frames before it (--policy.history=%d trains on whole "
+                                "histories)", longest, config.history, config.history - 1, longest)
         self.run_config = RunConfig.from_dict(config.run_config)
         self.model = Model(self.run_config.model)
         if dataset_stats is not None:
