@@ -74,7 +74,9 @@ sys.argv = ["lerobot-train", *sys.argv[2:]]
 from lerobot.scripts.lerobot_train import main
 main()
 '''
-# The saved LeRobot policy back through LeRobot: its processors and select_action on the dataset's first frames.
+# The saved LeRobot policy back through LeRobot: its processors, select_action on the dataset's first frames, and
+# predict_action_chunk (the streaming path) against the training path: the denoiser's prefix, and the chunk of the
+# same frames and noise (after 3 steps the chunk is much the same whatever the frames: the prefix is the check).
 RELOAD = r'''
 import json, sys
 import torch
@@ -89,14 +91,25 @@ cfg = PreTrainedConfig.from_pretrained(path)
 policy = get_policy_class(cfg.type).from_pretrained(path, config=cfg)
 pre, post = make_pre_post_processors(cfg, pretrained_path=path)
 ds = LeRobotDataset("local/tap", root=root)
+frames = [pre({k: ds[i][k] for k in ("observation.state", "observation.pointcloud")}) for i in range(5)]
 policy.reset()
-actions = []
-for i in range(4):
-    item = ds[i]
-    batch = pre({k: item[k] for k in ("observation.state", "observation.pointcloud")})
-    actions.append(post(policy.select_action(batch)))
-print(json.dumps({"type": cfg.type, "shape": list(actions[0].shape),
-                  "finite": all(bool(torch.isfinite(a).all()) for a in actions)}))
+actions = [post(policy.select_action(batch)) for batch in frames]
+policy.reset()
+m = policy.run_config.model
+gen = torch.Generator().manual_seed(0)
+worst = 0.0
+for i, batch in enumerate(frames):
+    noise = torch.randn((1, m.horizon, m.action_dim), generator=gen)
+    streamed = policy.predict_action_chunk(batch, noise=noise)
+    clouds = torch.stack([f["observation.pointcloud"] for f in frames[:i + 1]])
+    states = torch.cat([f["observation.state"] for f in frames[:i + 1]])
+    reference = policy.model.sample_trajectory_windows(clouds, states, torch.tensor([i]), noise)
+    # the denoiser's prefix [c_t, z_{t-N+1..t}]: streamed, and from the whole trajectory as in training
+    prefix = policy.model.build_prefix(policy._stream.context, policy._stream.recent)
+    trained, _ = policy.model.window_prefix(*policy.model.encode_trajectory(clouds, states), torch.tensor([i]))
+    worst = max(worst, float((streamed - reference).abs().max()), float((prefix - trained).abs().max()))
+print(json.dumps({"type": cfg.type, "shape": list(actions[0].shape), "steps": int(policy.optimizer_steps),
+                  "finite": all(bool(torch.isfinite(a).all()) for a in actions), "streamed_vs_training": worst}))
 '''
 
 
@@ -172,8 +185,9 @@ def test_lerobot_train_then_export_to_onnx(setup, tmp_path):
     # the LeRobot checkpoint itself reloads through LeRobot and acts
     proc = lerobot(tmp, paths, RELOAD, pretrained, root)
     assert proc.returncode == 0, proc.stderr[-4000:]
-    assert json.loads(proc.stdout.strip().splitlines()[-1]) == {"type": "dssp", "shape": [1, data.action_dim],
-                                                                "finite": True}
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert result.pop("streamed_vs_training") < 1e-4, result
+    assert result == {"type": "dssp", "shape": [1, data.action_dim], "steps": 3, "finite": True}
 
 
 def test_a_dataset_without_point_clouds_is_refused(setup, tmp_path):

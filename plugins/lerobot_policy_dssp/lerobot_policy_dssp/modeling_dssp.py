@@ -12,8 +12,11 @@ Normalisation stays inside the model: its min/max normalisers are fitted once fr
 
 Saving: every LeRobot checkpoint (``pretrained_model/``) also holds ``dssp_run/``, a dssp-train run directory
 (config.json, model.safetensors with the EMA weights, checkpoint/model.safetensors with the raw ones) that
-``python -m export.to_onnx`` exports. LeRobot's own ``model.safetensors`` holds the raw weights (what
-``--resume`` continues).
+``python -m export.to_onnx`` exports. LeRobot's own ``model.safetensors`` holds the raw weights and the count of
+optimizer steps (what ``--resume`` continues; the EMA starts again from the resumed weights).
+
+Inference (``select_action``, ``predict_action_chunk``): every call is the episode's next frame, taken into the
+history by dssp_train's streaming path (one history-encoder step per frame, as the robot's runtime runs it).
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ from lerobot.policies.pretrained import PreTrainedPolicy
 from dssp_data.lerobot.layout import feature_layout
 from dssp_train.config import RunConfig
 from dssp_train.model.policy import DSSPPolicy as Model
+from dssp_train.model.streaming import StreamingPolicy
 from dssp_train.training import checkpoint as ckpt
 from dssp_train.training.ema import EMA
 from dssp_train.training.trainer import resolve_data_facts
@@ -101,6 +105,8 @@ class DSSPPolicy(PreTrainedPolicy):
         if dataset_stats is not None:
             self.model.fit_normalizers(*(_range(dataset_stats, k) for k in (CLOUD_KEY, STATE_KEY, ACTION_KEY)))
         self._ema: EMA | None = None
+        # optimizer steps so far: in LeRobot's weights, so a resumed run's dssp_run/ records its true step
+        self.register_buffer("optimizer_steps", torch.zeros((), dtype=torch.long))
         self.reset()
 
     # ------------------------------------------------------------------ training
@@ -130,10 +136,12 @@ class DSSPPolicy(PreTrainedPolicy):
 
     def update(self) -> None:
         """After every optimizer step (lerobot-train calls it): dssp-train's EMA of the weights."""
-        if self._ema is None:
+        if self._ema is None:  # (after --resume: from the resumed weights, its decay at the resumed step)
             t = self.run_config.train
             self._ema = EMA(self.model, t.ema_power, t.ema_max_decay)
+            self._ema.step = int(self.optimizer_steps)
         self._ema.update(self.model)
+        self.optimizer_steps += 1
 
     # -------------------------------------------------------------------- saving
     def _save_pretrained(self, save_directory: Path) -> None:
@@ -142,37 +150,39 @@ class DSSPPolicy(PreTrainedPolicy):
 
     # ----------------------------------------------------------------- inference
     def reset(self) -> None:
-        self._clouds: list[torch.Tensor] = []
-        self._states: list[torch.Tensor] = []
+        """A new episode: the history is forgotten."""
+        self._stream: StreamingPolicy | None = None
         self._queue: deque[torch.Tensor] = deque()
 
     def _observe(self, batch: dict[str, torch.Tensor]) -> None:
-        """One frame: the cloud (B, P, C) or (P, C) (LeRobot's batching step leaves 2-D features as they are), the
-        state (B, S)."""
-        cloud, state = batch[CLOUD_KEY], batch[STATE_KEY]
-        self._clouds.append(cloud.unsqueeze(0) if cloud.dim() == 2 else cloud)
-        self._states.append(state.unsqueeze(0) if state.dim() == 1 else state)
+        """One frame into the history: the cloud (B, P, C) or (P, C) (LeRobot's batching step leaves 2-D features
+        as they are), the state (B, S) or (S,)."""
+        if self._stream is None:
+            self._stream = StreamingPolicy(self.model)
+        self._stream.observe(batch[CLOUD_KEY], batch[STATE_KEY])
 
     @torch.no_grad()
-    def predict_action_chunk(self, batch: dict[str, torch.Tensor], **kwargs) -> torch.Tensor:
-        """The batch is the next observation of the episode (since :meth:`reset`): (B, H, A), the chunk of the
-        window at this frame, conditioned on the whole history (encoded again for each chunk)."""
+    def predict_action_chunk(self, batch: dict[str, torch.Tensor], noise: torch.Tensor | None = None,
+                             **kwargs) -> torch.Tensor:
+        """The batch is the episode's next frame (since :meth:`reset`): the history takes it, one step of the
+        streaming path (:mod:`dssp_train.model.streaming`, what the exported graphs run); returns the chunk
+        (B, H, A) in raw units, from ``noise`` (B, H, A) or a fresh draw."""
         self._observe(batch)
-        clouds, states = torch.stack(self._clouds, 1), torch.stack(self._states, 1)  # (B, T, P, C), (B, T, S)
+        recent = self._stream.recent
         m = self.run_config.model
-        now = torch.tensor([clouds.shape[1] - 1], device=clouds.device)
-        noise = torch.randn((clouds.shape[0], 1, m.horizon, m.action_dim), device=clouds.device)
-        return torch.cat([self.model.sample_trajectory_windows(clouds[b], states[b], now, noise[b])
-                          for b in range(clouds.shape[0])])
+        if noise is None:
+            noise = torch.randn((recent.shape[0], m.horizon, m.action_dim), device=recent.device)
+        chunk = self.model.sample_normalized(self.model.build_prefix(self._stream.context, recent), noise)
+        return self.model.normalizers["action"].unnormalize(chunk)
 
     @torch.no_grad()
     def select_action(self, batch: dict[str, torch.Tensor], **kwargs) -> torch.Tensor:
-        """(B, A): the next action of the current chunk; a new chunk every H_a frames."""
+        """(B, A): the next action of the current chunk; a new chunk every H_a frames. Every call is a frame."""
         if self._queue:
             self._observe(batch)
         else:
             m = self.run_config.model
-            chunk = self.predict_action_chunk(batch)[:, m.action_offset:m.action_offset + m.n_action_steps]
+            chunk = self.predict_action_chunk(batch, **kwargs)[:, m.action_offset:m.action_offset + m.n_action_steps]
             self._queue.extend(chunk.transpose(0, 1))
         return self._queue.popleft()
 
@@ -181,7 +191,7 @@ def save_run(policy: DSSPPolicy, run_dir: Path) -> None:
     """A dssp-train run directory of the policy: config.json, model.safetensors (the EMA weights; the raw ones
     before the first optimizer step), checkpoint/model.safetensors (the raw weights), each recording the config."""
     config = policy.run_config
-    step = policy._ema.step if policy._ema is not None else 0
+    step = int(policy.optimizer_steps)
     meta = {"format_version": ckpt.FORMAT_VERSION, "step": str(step), **ckpt.config_record(config)}
     raw = policy.model.state_dict()
     (run_dir / "checkpoint").mkdir(parents=True, exist_ok=True)
