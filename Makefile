@@ -26,9 +26,10 @@ system:
 # MetaWorld (dssp-sim's metaworld/NAME tasks) goes in without its dependencies: it declares mujoco==3.3.0 and runs on
 # the MuJoCo installed here (dssp_sim/metaworld_env.py says how); pip's resolver reports that declaration.
 METAWORLD ?= metaworld==3.1.1
-# LeRobot (the oracle of tests/test_lerobot.py: it writes and reads LeRobot v3 datasets) goes in without its dependencies:
-# it declares torch<2.11 and torchvision, and its dataset code runs on the torch installed here with the lerobot extra's
-# packages (tests/test_lerobot.py says how it stands in for torchvision).
+# LeRobot (the oracle of tests/test_lerobot.py: it writes and reads LeRobot v3 datasets; lerobot-train with the DSSP
+# policy plugin, plugins/lerobot_policy_dssp) goes in without its dependencies: it declares torch<2.11 and torchvision,
+# and its dataset and training code runs on the torch installed here with the lerobot extra's packages
+# (tests/test_lerobot.py says how it stands in for torchvision). The plugin goes in editable, without dependencies.
 LEROBOT ?= lerobot==0.4.4
 
 setup: system
@@ -37,6 +38,7 @@ setup: system
 	  echo "$$out" | grep -v "requires mujoco==\|dependency resolver\|^$$" || true
 	@out=$$($(PYTHON) -m pip install --quiet --no-deps "$(LEROBOT)" 2>&1) || { echo "$$out"; exit 1; }; \
 	  echo "$$out" | grep -v "lerobot .* requires \|dependency resolver\|^$$" || true
+	$(PYTHON) -m pip install --quiet --no-deps -e plugins/lerobot_policy_dssp
 	@$(MAKE) --no-print-directory kernel || echo "note: the fused Mamba kernel was not built; the standard ONNX graphs will run (see make kernel)"
 
 kernel: $(KERNEL)
