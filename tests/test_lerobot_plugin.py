@@ -1,5 +1,6 @@
 """The LeRobot policy plugin (plugins/lerobot_policy_dssp): ``lerobot-train --policy.type=dssp`` trains DSSP on a
-dataset of ``dssp-data export --to lerobot``, and its checkpoint's ``dssp_run/`` exports with ``export.to_onnx``.
+dataset of ``dssp-data export --to lerobot``, or on a LeRobot dataset of depth (the clouds made by the robot's
+pipeline in a processor step), and its checkpoint's ``dssp_run/`` exports with ``export.to_onnx``.
 
 LeRobot runs as it does for a user, through its own training entry point, in a child process (as in
 tests/test_lerobot.py: a stand-in ``torchvision`` first on its path, the Hugging Face caches in the test's folder,
@@ -20,10 +21,14 @@ import numpy as np
 import pytest
 
 from dssp_data.data_cli import main as data_main
+from dssp_data.observation import FRAME_ROBOT_BASE, PointCloudConfig
+from dssp_data.pointcloud import frame_to_cloud, load_extrinsics, save_extrinsics
+from dssp_data.pointcloud.depth_frame import DepthFrame, Intrinsics
 from dssp_data.replay_buffer import ReplayBuffer
 from dssp_deploy import OnnxPolicy
 from dssp_train.data.synthetic import write_tap_count_dataset
 from export.to_onnx import main as export_main
+from hardware.camera.tabletop import Box, SimCamera, intrinsics_for
 
 ROOT = Path(__file__).resolve().parents[1]
 PLUGIN = ROOT / "plugins" / "lerobot_policy_dssp"
@@ -52,28 +57,66 @@ TORCHVISION = {  # what lerobot-train imports of torchvision; every name raises 
 }
 
 TRAIN = "from lerobot.scripts.lerobot_train import main; main()"
-# A LeRobot dataset without point clouds (depth and state), written by LeRobot, then lerobot-train on it.
-DEPTH_ONLY = r'''
-import sys
+# A LeRobot dataset of depth and state (no point clouds), written by LeRobot, then lerobot-train on it; after
+# training (job["check"]), the checkpoint's preprocessor back through LeRobot: the cloud it makes of frame 2's depth,
+# an action, and its refusal of a frame with no point in the crop.
+DEPTH_TRAIN = r"""
+import json, sys, traceback
 import numpy as np
+import torch
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
-
-root = sys.argv[1]
-intr = {"fx": 40.0, "fy": 40.0, "ppx": 16.0, "ppy": 12.0, "width": 32, "height": 24, "depth_unit": 0.001}
-features = {"observation.state": {"dtype": "float32", "shape": (2,), "names": ["a", "b"]},
-            "action": {"dtype": "float32", "shape": (2,), "names": ["a", "b"]},
-            "observation.depth": {"dtype": "uint16", "shape": (24, 32), "names": ["height", "width"],
-                                  "info": {"camera_intrinsics": intr}}}
-ds = LeRobotDataset.create(repo_id="local/depth", root=root, fps=10, features=features, use_videos=False)
-for t in range(6):
-    ds.add_frame({"observation.state": np.full(2, t, np.float32), "action": np.full(2, t, np.float32),
-                  "observation.depth": np.full((24, 32), 800, np.uint16), "task": "reach"})
-ds.save_episode()
-ds.finalize()
-sys.argv = ["lerobot-train", *sys.argv[2:]]
 from lerobot.scripts.lerobot_train import main
-main()
-'''
+
+job = json.loads(sys.argv[1])
+frames = np.load(job["frames"])
+depth = frames["depth"]
+for case in job["cases"]:  # each: a dataset, then lerobot-train on it
+    root = case["root"]
+    info = {"info": {"camera_intrinsics": case["intrinsics"]}} if case["intrinsics"] else {}
+    features = {"observation.state": {"dtype": "float32", "shape": (7,), "names": None},
+                "action": {"dtype": "float32", "shape": (7,), "names": None},
+                "observation.depth": {"dtype": "uint16", "shape": depth.shape[1:], "names": ["height", "width"],
+                                      **info}}
+    ds = LeRobotDataset.create(repo_id="local/depth", root=root, fps=10, features=features, use_videos=False)
+    for t in range(len(depth)):
+        ds.add_frame({"observation.state": frames["state"][t], "action": frames["state"][t] + np.float32(0.01),
+                      "observation.depth": depth[t], "task": "reach"})
+    ds.save_episode()
+    ds.finalize()
+    sys.argv = ["lerobot-train", *case["argv"]]
+    if len(job["cases"]) == 1:
+        main()
+        continue
+    try:  # several cases in one process: each one's traceback as the interpreter prints it, then a separator
+        main()
+    except Exception:
+        traceback.print_exc()
+    print("-- end of case", file=sys.stderr, flush=True)
+if job["check"]:
+    from lerobot.configs.policies import PreTrainedConfig
+    from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+
+    path = job["check"]
+    cfg = PreTrainedConfig.from_pretrained(path)
+    policy = get_policy_class(cfg.type).from_pretrained(path, config=cfg)
+    pre, post = make_pre_post_processors(cfg, pretrained_path=path)
+    item = LeRobotDataset("local/depth", root=job["cases"][0]["root"])[2]
+    batch = pre({k: item[k] for k in ("observation.state", "observation.depth")})
+    action = post(policy.select_action(batch))
+    # a training sample (B, T, H, W) of which one frame sees nothing inside the crop
+    T = cfg.history + policy.run_config.model.horizon - 1
+    empty = torch.zeros((1, T, *depth.shape[1:]), dtype=torch.int64)
+    try:
+        pre({"observation.state": torch.zeros((1, T, 7)), "observation.depth": empty,
+             "observation.depth_is_pad": torch.arange(T)[None] < cfg.history - 2, "index": torch.tensor([7]),
+             "episode_index": torch.tensor([0])})
+        refusal = None
+    except ValueError as exc:
+        refusal = str(exc)
+    np.savez(job["out"], cloud=batch["observation.pointcloud"].numpy(), depth=item["observation.depth"].numpy(),
+             action=action.numpy())
+    print(json.dumps({"keys": sorted(batch), "refusal": refusal}))
+"""
 # The saved LeRobot policy back through LeRobot: its processors, select_action on the dataset's first frames, and
 # predict_action_chunk (the streaming path) against the training path: the denoiser's prefix, and the chunk of the
 # same frames and noise (after 3 steps the chunk is much the same whatever the frames: the prefix is the check).
@@ -190,12 +233,99 @@ def test_lerobot_train_then_export_to_onnx(setup, tmp_path):
     assert result == {"type": "dssp", "shape": [1, data.action_dim], "steps": 3, "finite": True}
 
 
-def test_a_dataset_without_point_clouds_is_refused(setup, tmp_path):
-    tmp, paths, _, _ = setup
-    proc = lerobot(tmp, paths, DEPTH_ONLY, tmp_path / "depth", *train_args("local/depth", tmp_path / "depth",
-                                                                           tmp_path / "out"))
-    assert proc.returncode != 0
-    last = proc.stderr.strip().splitlines()[-1]
-    assert last.startswith("ValueError: the dataset has no observation.pointcloud feature"), proc.stderr[-4000:]
-    assert "dssp-data convert" in last and "dssp-data export --to lerobot" in last
-    assert not (tmp_path / "out" / "checkpoints").exists()
+@pytest.fixture(scope="module")
+def depth(setup) -> dict:
+    """One episode of the simulated tabletop camera's depth (160x120, noiseless) and a 7-value state: the frames
+    (.npz), the camera's calibration file and its intrinsics as a LeRobot depth feature's info holds them."""
+    tmp = setup[0]
+    camera = SimCamera(seed=0, intrinsics=intrinsics_for(160, 120, 70.0), noise_std=0.0, invalid_fraction=0.0,
+                       moving_box=lambda t: Box((0.1 + 0.2 * t, 0.0, 0.05), (0.08, 0.08, 0.1)))
+    t = np.arange(6) / 10
+    depth = np.stack([camera.render(s)[0] for s in t])
+    state = np.stack([np.sin(t + k) for k in range(7)], axis=1).astype(np.float32)
+    np.savez(tmp / "frames.npz", depth=depth, state=state)
+    save_extrinsics(tmp / "calib.json", camera.camera_to_base)
+    k = camera.intrinsics
+    return {"frames": tmp / "frames.npz", "calib": tmp / "calib.json", "intrinsics": {
+        "fx": k.fx, "fy": k.fy, "ppx": k.ppx, "ppy": k.ppy, "width": k.width, "height": k.height,
+        "depth_unit": camera.depth_unit}}
+
+
+def train_on_depth(setup, depth: dict, cases: list[tuple[Path, Path, bool, list[str]]], check=None):
+    """lerobot-train on depth datasets, in one child: each case (dataset root, output dir, whether the depth
+    feature has intrinsics, more arguments)."""
+    tmp, paths = setup[:2]
+    job = {"frames": str(depth["frames"]), "check": str(check) if check else None,
+           "out": str(cases[0][1] / "check.npz"),
+           "cases": [{"root": str(root), "intrinsics": depth["intrinsics"] if intrinsics else None,
+                      "argv": [*train_args("local/depth", root, out), *args]} for root, out, intrinsics, args in cases]}
+    return lerobot(tmp, paths, DEPTH_TRAIN, json.dumps(job))
+
+
+def test_lerobot_train_on_depth_makes_the_robots_clouds(setup, depth, tmp_path):
+    """A dataset of depth with its camera's intrinsics, and the camera's pose: trained on the clouds of the robot's
+    pipeline; the dssp_run/ exports and records the clouds' settings and frame; the saved preprocessor makes a
+    frame's cloud bit for bit as frame_to_cloud does."""
+    frames, calib, intr = depth["frames"], depth["calib"], depth["intrinsics"]
+    out = tmp_path / "train"
+    pretrained = out / "checkpoints" / "last" / "pretrained_model"
+    args = [f"--policy.extrinsics={calib}", "--policy.history=8"]  # the episode's 6 frames: the whole history
+    proc = train_on_depth(setup, depth, [(tmp_path / "depth", out, True, args)], check=pretrained)
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert "observation.depth" not in result["keys"] and "observation.pointcloud" in result["keys"]
+    assert result["refusal"].startswith("the depth frame observation.depth at dataset index 6 (episode 0) has no "
+                                        "point in the crop box"), result["refusal"]
+
+    cloud_config = PointCloudConfig(n_points=64)  # the tiny preset's clouds
+    run = pretrained / "dssp_run"
+    config = json.loads((run / "config.json").read_text())
+    assert config["observation"]["pointcloud"] == cloud_config.to_dict()
+    assert config["observation"]["frame"] == FRAME_ROBOT_BASE
+    assert {k: config["model"][k] for k in ("state_dim", "action_dim", "n_points", "point_dim")} == \
+        {"state_dim": 7, "action_dim": 7, "n_points": 64, "point_dim": 3}
+    saved = json.loads((pretrained / "config.json").read_text())
+    pinhole = {k: intr[k] for k in ("width", "height", "fx", "fy", "ppx", "ppy")}
+    assert saved["depth_camera"]["intrinsics"] == pinhole
+    assert "observation.pointcloud" in saved["input_features"] and "observation.depth" not in saved["input_features"]
+
+    check = np.load(out / "check.npz")
+    data = np.load(frames)
+    np.testing.assert_array_equal(check["depth"], data["depth"][2])
+    camera_to_base = load_extrinsics(calib)
+    intrinsics = Intrinsics(**pinhole)
+    expected, _ = frame_to_cloud(DepthFrame(depth=data["depth"][2], depth_unit=intr["depth_unit"],
+                                            intrinsics=intrinsics, timestamp=0.0, frame_number=2),
+                                 cloud_config, camera_to_base)
+    assert check["cloud"].dtype == np.float32 and check["cloud"].tobytes() == expected.tobytes()
+    assert check["action"].shape == (1, 7) and np.isfinite(check["action"]).all()
+
+    model = tmp_path / "model"
+    assert export_main([str(run), "-o", str(model), "--quantize", "none", "--format", "onnx", "--verify-steps", "20",
+                        "--threads", "1"]) == 0
+    manifest = json.loads((model / "dssp_model.json").read_text())
+    assert manifest["observation"]["frame"] == FRAME_ROBOT_BASE
+    policy = OnnxPolicy(model, threads=1)
+    for k in range(3):
+        cloud, _ = frame_to_cloud(DepthFrame(depth=data["depth"][k], depth_unit=intr["depth_unit"],
+                                             intrinsics=intrinsics, timestamp=0.0, frame_number=k),
+                                  cloud_config, camera_to_base)
+        policy.observe(cloud[None], data["state"][k:k + 1])
+    chunk = policy.act(seed=0)
+    assert chunk.shape == (1, config["model"]["horizon"], 7) and np.isfinite(chunk).all()
+
+
+def test_depth_without_its_camera_is_refused(setup, depth, tmp_path):
+    """Depth without its intrinsics, and depth with them but no --policy.extrinsics: one line each, no checkpoint."""
+    cases = [(tmp_path / f"depth{i}", tmp_path / f"out{i}", intrinsics, [])
+             for i, intrinsics in enumerate((False, True))]
+    proc = train_on_depth(setup, depth, cases)
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    runs = proc.stderr.split("-- end of case")[:2]
+    lasts = [run.strip().splitlines()[-1] for run in runs]
+    assert lasts[0].startswith("ValueError: the dataset's depth feature observation.depth has no info.camera_intrinsics"
+                               " {fx, fy, ppx, ppy, width, height, depth_unit}"), proc.stderr[-4000:]
+    assert lasts[1].startswith("ValueError: training on the depth feature observation.depth needs the camera's pose: "
+                               "give --policy.extrinsics=calib.json"), proc.stderr[-4000:]
+    assert all("Traceback" in run for run in runs)
+    assert not any((out / "checkpoints").exists() for _, out, _, _ in cases)

@@ -5,6 +5,11 @@ overrides as ``dssp-train --set`` takes them (``--policy.overrides='[model.d_mod
 (state, action and cloud sizes, the control rate = the dataset's fps, the observation contract) are filled from
 the dataset when the policy is built, and recorded in ``run_config`` (so a saved policy rebuilds without it).
 
+A dataset with no ``observation.pointcloud`` but a depth feature (``depth_key``) with its camera's intrinsics is
+trained on the clouds the robot's pipeline makes of each depth frame (``extrinsics``: the camera's pose, the file
+dssp-calibrate writes; ``pointcloud``: the point-cloud settings), in a processor step
+(:mod:`lerobot_policy_dssp.processor_dssp`); ``depth_camera`` records what that step needs.
+
 Every sample carries its episode's past: ``history`` frames up to the current one, and the ``horizon`` - 1 frames
 after it (the action chunk's targets); frames outside the episode come padded and are dropped.
 """
@@ -26,9 +31,11 @@ STATE_KEY = "observation.state"
 ACTION_KEY = "action"
 MAX_HISTORY = 100_000
 
+DEPTH_KEY = "observation.depth"
+
 REFUSE_NO_CLOUD = (
-    "the dataset has no observation.pointcloud feature: DSSP trains on point clouds; convert the dataset with "
-    "dssp-data convert (depth to clouds, with the camera's extrinsics) and then dssp-data export --to lerobot"
+    "the dataset has no observation.pointcloud feature and no depth feature {key} (--policy.depth_key): DSSP trains "
+    "on point clouds, from the dataset's clouds or from its depth with the camera's intrinsics"
 )
 
 
@@ -52,6 +59,14 @@ class DSSPConfig(PreTrainedConfig):
     # Frames of the past each sample carries (its own included): the history the model is trained on. Set it to
     # the longest episode (dssp-data inspect) for full-history training; older frames are not seen in training.
     history: int = 64
+    # Training on depth (a dataset without observation.pointcloud): the depth feature, the camera's pose (the JSON
+    # dssp-calibrate writes) and the point-cloud settings (a JSON file; default: the preset's, else the robot's
+    # defaults with the model's n_points).
+    depth_key: str = DEPTH_KEY
+    extrinsics: str | None = None
+    pointcloud: str | None = None
+    # What the depth-to-cloud step needs (filled from the dataset and the files above when the policy is first built).
+    depth_camera: dict | None = None
     # The resolved dssp_train RunConfig (filled from the dataset when the policy is first built).
     run_config: dict | None = None
     # The model keeps its own normalisers (fitted from the dataset's min/max): LeRobot's processors pass through.
@@ -102,7 +117,7 @@ class DSSPConfig(PreTrainedConfig):
 
     def validate_features(self) -> None:
         if CLOUD_KEY not in self.input_features:
-            raise ValueError(REFUSE_NO_CLOUD)
+            raise ValueError(REFUSE_NO_CLOUD.format(key=self.depth_key))
         for key in (STATE_KEY,):
             if key not in self.input_features:
                 raise ValueError(f"the dataset has no {key} feature; DSSP needs the robot's state")

@@ -8,7 +8,9 @@ the history encoder runs causally over the trajectory, the dynamics loss covers 
 is the mean over its samples.
 
 Normalisation stays inside the model: its min/max normalisers are fitted once from the dataset's statistics
-(``meta/stats.json``), and LeRobot's processors pass the features through (IDENTITY).
+(``meta/stats.json``), and LeRobot's processors pass the features through (IDENTITY). On a dataset of depth
+(:mod:`lerobot_policy_dssp.depth`) the depth feature is replaced by a cloud feature (P, 3), made by a processor
+step, and the cloud normaliser is fitted on the crop box of the point-cloud settings (the clouds lie inside it).
 
 Saving: every LeRobot checkpoint (``pretrained_model/``) also holds ``dssp_run/``, a dssp-train run directory
 (config.json, model.safetensors with the EMA weights, checkpoint/model.safetensors with the raw ones) that
@@ -28,6 +30,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import torch
+from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.policies.pretrained import PreTrainedPolicy
 
 from dssp_data.lerobot.layout import feature_layout
@@ -38,6 +41,7 @@ from dssp_train.training import checkpoint as ckpt
 from dssp_train.training.ema import EMA
 from dssp_train.training.trainer import resolve_data_facts
 from lerobot_policy_dssp.configuration_dssp import ACTION_KEY, CLOUD_KEY, STATE_KEY, DSSPConfig
+from lerobot_policy_dssp.depth import cloud_range, resolve_depth_camera
 
 RUN_DIR = "dssp_run"
 
@@ -50,9 +54,12 @@ def _facts(config: DSSPConfig, dataset_meta) -> SimpleNamespace:
     p, c = config.input_features[CLOUD_KEY].shape
     s = config.input_features[STATE_KEY].shape[0]
     a = config.output_features[ACTION_KEY].shape[0]
-    cloud = features[CLOUD_KEY].get("info") or {}
+    cloud = (features[CLOUD_KEY].get("info") or {}) if CLOUD_KEY in features else {}
     attrs = {}
-    if isinstance(cloud.get("pointcloud"), dict):
+    if config.depth_camera:  # clouds made from the depth: the settings they are made with, in the robot's base
+        attrs["pointcloud"] = config.depth_camera["pointcloud"]
+        attrs["pointcloud_frame"] = config.depth_camera["frame"]
+    elif isinstance(cloud.get("pointcloud"), dict):
         attrs["pointcloud"] = cloud["pointcloud"]
         if cloud.get("frame") is not None:
             attrs["pointcloud_frame"] = cloud["frame"]
@@ -71,6 +78,18 @@ def resolve_run_config(config: DSSPConfig, dataset_meta) -> RunConfig:
     user_set = {item.split("=", 1)[0] for item in config.overrides}
     return resolve_data_facts(config.run(), _facts(config, dataset_meta), str(dataset_meta.root), None,
                               user_set=user_set)
+
+
+def use_depth(config: DSSPConfig, dataset_meta) -> None:
+    """A dataset of depth: record what the depth-to-cloud step needs (``config.depth_camera``) and replace the depth
+    feature by the cloud feature (P, 3) it makes (so the model's sizes and the run's facts are a cloud's)."""
+    if dataset_meta is None:
+        raise ValueError("a new DSSP policy is built from a dataset (--dataset.repo_id / --dataset.root)")
+    config.depth_camera = resolve_depth_camera(config, dataset_meta)
+    features = {k: v for k, v in config.input_features.items() if k != config.depth_key}
+    n_points = config.depth_camera["pointcloud"]["n_points"]
+    features[CLOUD_KEY] = PolicyFeature(type=FeatureType.STATE, shape=(n_points, 3))
+    config.input_features = features
 
 
 def _longest_episode(dataset_meta) -> int:
@@ -92,6 +111,9 @@ class DSSPPolicy(PreTrainedPolicy):
 
     def __init__(self, config: DSSPConfig, dataset_stats=None, dataset_meta=None, **kwargs):
         super().__init__(config)
+        if config.run_config is None and CLOUD_KEY not in config.input_features \
+                and config.depth_key in config.input_features:
+            use_depth(config, dataset_meta)
         config.validate_features()
         if config.run_config is None:
             config.run_config = resolve_run_config(config, dataset_meta).to_dict()
@@ -103,7 +125,8 @@ class DSSPPolicy(PreTrainedPolicy):
         self.run_config = RunConfig.from_dict(config.run_config)
         self.model = Model(self.run_config.model)
         if dataset_stats is not None:
-            self.model.fit_normalizers(*(_range(dataset_stats, k) for k in (CLOUD_KEY, STATE_KEY, ACTION_KEY)))
+            clouds = cloud_range(config.depth_camera) if config.depth_camera else _range(dataset_stats, CLOUD_KEY)
+            self.model.fit_normalizers(clouds, *(_range(dataset_stats, k) for k in (STATE_KEY, ACTION_KEY)))
         self._ema: EMA | None = None
         # optimizer steps so far: in LeRobot's weights, so a resumed run's dssp_run/ records its true step
         self.register_buffer("optimizer_steps", torch.zeros((), dtype=torch.long))
