@@ -103,6 +103,12 @@ if job["check"]:
     item = LeRobotDataset("local/depth", root=job["cases"][0]["root"])[2]
     batch = pre({k: item[k] for k in ("observation.state", "observation.depth")})
     action = post(policy.select_action(batch))
+    # a training sample as LeRobot draws it: frame 2 with its history (the first 5 of T frames pad, outside the episode)
+    deltas = [k / 10 for k in range(1 - cfg.history, policy.run_config.model.horizon)]
+    sample = LeRobotDataset("local/depth", root=job["cases"][0]["root"],
+                            delta_timestamps={k: deltas for k in ("observation.state", "observation.depth")})[2]
+    keys = ("observation.state", "observation.depth", "observation.depth_is_pad")
+    window = pre({**{k: sample[k][None] for k in keys}, "index": torch.tensor([2]), "episode_index": torch.tensor([0])})
     # a training sample (B, T, H, W) of which one frame sees nothing inside the crop
     T = cfg.history + policy.run_config.model.horizon - 1
     empty = torch.zeros((1, T, *depth.shape[1:]), dtype=torch.int64)
@@ -114,7 +120,8 @@ if job["check"]:
     except ValueError as exc:
         refusal = str(exc)
     np.savez(job["out"], cloud=batch["observation.pointcloud"].numpy(), depth=item["observation.depth"].numpy(),
-             action=action.numpy())
+             action=action.numpy(), window=window["observation.pointcloud"][0].numpy(),
+             window_pad=window["observation.pointcloud_is_pad"][0].numpy())
     print(json.dumps({"keys": sorted(batch), "refusal": refusal}))
 """
 # The saved LeRobot policy back through LeRobot: its processors, select_action on the dataset's first frames, and
@@ -299,6 +306,14 @@ def test_lerobot_train_on_depth_makes_the_robots_clouds(setup, depth, tmp_path):
                                  cloud_config, camera_to_base)
     assert check["cloud"].dtype == np.float32 and check["cloud"].tobytes() == expected.tobytes()
     assert check["action"].shape == (1, 7) and np.isfinite(check["action"]).all()
+    # a training sample's clouds: frame 2 is the 8th of its window (--policy.history=8); the 5 frames before the
+    # episode's start are padding, with the cloud of the first frame
+    clouds = [frame_to_cloud(DepthFrame(depth=d, depth_unit=intr["depth_unit"], intrinsics=intrinsics, timestamp=0.0,
+                                        frame_number=0), cloud_config, camera_to_base)[0] for d in data["depth"]]
+    window, pad = check["window"], check["window_pad"]
+    assert pad.tolist() == [True] * 5 + [False] * (len(pad) - 5)
+    for j in range(len(window)):
+        np.testing.assert_array_equal(window[j], clouds[max(j - 5, 0)])
 
     model = tmp_path / "model"
     assert export_main([str(run), "-o", str(model), "--quantize", "none", "--format", "onnx", "--verify-steps", "20",
