@@ -59,7 +59,9 @@ TIME_KEYS = ("timestamp",)
 
 # ------------------------------------------------------------------------------------------- the features
 @dataclass(frozen=True)
-class _Depth:
+class DepthFeature:
+    """A dataset's depth feature: its key, dtype (uint16 counts or float32 metres), camera and metres per count."""
+
     key: str
     dtype: str
     intrinsics: Intrinsics
@@ -81,7 +83,10 @@ def _vector_feature(features: dict, key: str, flag: str, what: str, root: Path) 
     return int(feature["shape"][0])
 
 
-def _depth_feature(features: dict, key: str | None, root: Path) -> _Depth:
+def depth_feature(features: dict, key: str | None, root: Path) -> DepthFeature:
+    """The dataset's depth feature ``key`` (None: the one feature named like depth or carrying camera intrinsics),
+    checked: its dtype and shape, its ``info.camera_intrinsics``; a DatasetError line otherwise. Shared with the
+    LeRobot policy plugin, which builds the same clouds while training."""
     if key is None:
         found = [k for k, f in features.items() if k not in INDEX_FEATURES and (
             "depth" in k.lower() or isinstance(f.get("info"), dict) and "camera_intrinsics" in f["info"])]
@@ -126,7 +131,7 @@ def _depth_feature(features: dict, key: str | None, root: Path) -> _Depth:
         raise DatasetError(f"{where}: depth_unit must be metres per count in (0, 1], got {unit}")
     intrinsics = Intrinsics(width, height, float(camera["fx"]), float(camera["fy"]), float(camera["ppx"]),
                             float(camera["ppy"]))
-    return _Depth(key, dtype, intrinsics, unit)
+    return DepthFeature(key, dtype, intrinsics, unit)
 
 
 # ------------------------------------------------------------------------------------------- import
@@ -173,7 +178,7 @@ def _is_convention(value) -> bool:
         return False
 
 
-def _quantised(depth: np.ndarray, unit: float) -> np.ndarray:
+def quantised(depth: np.ndarray, unit: float) -> np.ndarray:
     """Depth in metres -> uint16 counts of ``unit`` (NaN, infinite, negative or out-of-range values: 0, no
     measurement)."""
     with np.errstate(invalid="ignore", over="ignore"):
@@ -198,7 +203,7 @@ def convert(source: Path, out: Path, cloud_config: PointCloudConfig, camera_to_b
     root = Path(source)
     info = read_info(root)
     features = info["features"]
-    depth = _depth_feature(features, depth_key, root)
+    depth = depth_feature(features, depth_key, root)
     state_dim = _vector_feature(features, state_key, "--state-key", "state", root)
     action_dim = _vector_feature(features, action_key, "--action-key", "action", root)
     refs = _episode_refs(pa, pq, root)
@@ -265,7 +270,7 @@ def convert(source: Path, out: Path, cloud_config: PointCloudConfig, camera_to_b
             "action_key": action_key}
 
 
-def _episode(pa, pc, table, ref: _EpisodeRef, path: Path, depth: _Depth, shape: tuple[int, ...], state_key: str,
+def _episode(pa, pc, table, ref: _EpisodeRef, path: Path, depth: DepthFeature, shape: tuple[int, ...], state_key: str,
              state_dim: int, action_key: str, action_dim: int, fps: float, cloud_config: PointCloudConfig,
              camera_to_base: np.ndarray) -> Episode:
     """One LeRobot episode's rows of ``table`` -> an Episode (clouds by the robot's pipeline)."""
@@ -285,7 +290,7 @@ def _episode(pa, pc, table, ref: _EpisodeRef, path: Path, depth: _Depth, shape: 
     raw = numpy_column(pa, pc, part, depth.key, shape, where).reshape(ref.length, shape[0], shape[1])
     if raw.dtype != np.dtype(depth.dtype):
         raise DatasetError(f"{where}: {depth.key} is stored as {raw.dtype}; its feature in {INFO_PATH} says {depth.dtype}")
-    counts = raw.astype(np.uint16) if depth.dtype == "uint16" else _quantised(raw, depth.depth_unit)
+    counts = raw.astype(np.uint16) if depth.dtype == "uint16" else quantised(raw, depth.depth_unit)
     if "timestamp" in part.column_names:
         times = numpy_column(pa, pc, part, "timestamp", (1,), where).reshape(-1).astype(np.float64)
     else:

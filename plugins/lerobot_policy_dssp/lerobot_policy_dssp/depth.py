@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from dssp_core.errors import DSSPError
-from dssp_data.lerobot.read import _depth_feature, _quantised
+from dssp_data.lerobot.read import depth_feature, quantised
 from dssp_data.observation import FRAME_ROBOT_BASE, PointCloudConfig
 from dssp_data.pointcloud import EmptyCloudError, frame_to_cloud, load_extrinsics
 from dssp_data.pointcloud.depth_frame import DepthFrame, Intrinsics
@@ -36,7 +36,7 @@ def resolve_depth_camera(config, dataset_meta) -> dict:
                          "height, depth_unit}: add the camera's intrinsics to its entry in meta/info.json (as "
                          "dssp_data/README.md describes) to train on its depth")
     try:
-        depth = _depth_feature(dataset_meta.features, key, Path(dataset_meta.root))
+        depth = depth_feature(dataset_meta.features, key, Path(dataset_meta.root))
     except DSSPError as exc:
         raise ValueError(str(exc)) from None
     if config.extrinsics is None:
@@ -85,7 +85,7 @@ class DepthClouds:
             raise ValueError(f"{self.key} frames are {depth.shape[-2:]}; its camera_intrinsics say ({h}, {w})")
         if self.dtype == "uint16":
             return depth.astype(np.uint16)
-        return _quantised(depth, self.depth_unit)
+        return quantised(depth, self.depth_unit)
 
     def cloud(self, counts: np.ndarray, where: str) -> np.ndarray:
         """One (H, W) uint16 frame -> its (P, 3) float32 cloud; ``where`` names the frame in a refusal."""
