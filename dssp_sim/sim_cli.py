@@ -109,7 +109,7 @@ def parse_args(argv):
 
 def run(args) -> int:
     if args.command == "collect":
-        from dssp_sim.collect import collect  # deferred: loads hardware.camera, hardware.pointcloud
+        from dssp_sim.collect import collect  # deferred: loads hardware.camera, dssp_data.pointcloud
 
         result = collect(args.task, args.episodes, args.out, seed=args.seed, n_points=args.points, progress=not args.no_progress)
         failed = sum(result.failures.values())
