@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import json
 import os
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -51,6 +51,7 @@ from dssp_data.recording import (
     episode_can_logs,
     episode_infos,
 )
+from dssp_data.dataset_layout import Episode
 from dssp_data.replay_buffer import ReplayBufferReader
 from dssp_data.replay_buffer_writer import ReplayBufferWriter, dataset_lock
 from dssp_data.zarr_chunks import check_dataset_tree
@@ -73,6 +74,30 @@ DATA_DATASET = OutputKind("a dataset", "dssp-data merge, split or convert", entr
 attribute is one of :data:`DATA_GENERATORS`, with its CAN logs at ``OUT.can`` (only ``episode_*.blf``)."""
 
 PER_EPISODE_ATTRS = ("episode_info", "recording_sessions")
+
+
+def write_converted(out: Path, attrs: dict, episodes: Iterable[tuple[str | None, Episode]], *, extra_keys: Sequence[str] = (),
+                    force: bool = False, flag: str = "--out") -> int:
+    """``dssp-data convert``'s output: the episodes, in order, as a new dataset at ``out`` with ``attrs``, written into a
+    staging folder beside it (removed on an error or Ctrl-C) and moved into place when complete, ``out`` checked
+    again first (:data:`DATA_DATASET`). ``episodes`` yields (what the episode came from, or None; the episode): it may
+    read its source lazily, one episode at a time; a refused episode's line names its source. Returns the steps."""
+    steps = 0
+    try:
+        with Staging(flag=flag, error=DatasetError) as staging:
+            tmp = staging.make(staging.reserve(out))
+            with ReplayBufferWriter(tmp, attrs=attrs, staged=True, extra_keys=extra_keys) as writer:
+                for source, episode in episodes:
+                    try:
+                        writer.add_episode(episode)
+                    except DatasetError as exc:
+                        raise (DatasetError(f"{source}: {exc}") if source else exc) from None
+                    steps += episode.n_steps
+            staging.commit([(tmp, out), (None, can_log_dir(out))],  # the output checked again first
+                           check=lambda: check_output(out, force=force, kind=DATA_DATASET, flag=flag, error=DatasetError))
+    finally:
+        settle_background_writes()
+    return steps
 
 
 def check_inputs(inputs: Sequence[str | os.PathLike]) -> None:

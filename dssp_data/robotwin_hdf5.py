@@ -28,12 +28,10 @@ from pathlib import Path
 import numpy as np
 
 from dssp_data.bounded import ChunkTooLarge, check_budget, decompress, human_size, nbytes_of
-from dssp_data.recording import ACTION_CONVENTIONS, can_log_dir
+from dssp_data.recording import ACTION_CONVENTIONS
 from dssp_data.dataset_layout import Episode
-from dssp_data.replay_buffer_writer import ReplayBufferWriter
 from dssp_core.errors import DatasetError
-from dssp_data.edit import DATA_DATASET, DATA_GENERATORS
-from dssp_core.staging import Staging, settle_background_writes
+from dssp_data.edit import DATA_DATASET, DATA_GENERATORS, write_converted
 from dssp_core.output_guard import check_output
 
 PARTS = ("left_arm", "left_gripper", "right_arm", "right_gripper")
@@ -239,23 +237,16 @@ def convert(source: str | os.PathLike, out: str | os.PathLike, *, max_episodes: 
         attrs["control_rate_hz"] = float(control_rate_hz)
     if task:
         attrs["task"] = task
-    steps = 0
-    try:
-        with Staging(flag=flag, error=DatasetError) as staging:
-            tmp = staging.make(staging.reserve(out))
-            with ReplayBufferWriter(tmp, attrs=attrs, staged=True) as writer:
-                for i, path in enumerate(files):
-                    if progress is not None:
-                        progress(i, len(files), path)
-                    vector, cloud = read_episode(path)
-                    try:
-                        episode = to_episode(vector, cloud, xyz_only)
-                        writer.add_episode(episode)
-                    except DatasetError as exc:
-                        raise DatasetError(f"{path}: {exc}") from None
-                    steps += episode.n_steps
-            staging.commit([(tmp, out), (None, can_log_dir(out))],  # the output checked again first
-                           check=lambda: check_output(out, force=force, kind=DATA_DATASET, flag=flag, error=DatasetError))
-    finally:
-        settle_background_writes()
+
+    def episodes():
+        for i, path in enumerate(files):
+            if progress is not None:
+                progress(i, len(files), path)
+            vector, cloud = read_episode(path)
+            try:
+                yield path, to_episode(vector, cloud, xyz_only)
+            except DatasetError as exc:
+                raise DatasetError(f"{path}: {exc}") from None
+
+    steps = write_converted(out, attrs, episodes(), force=force, flag=flag)
     return {"episodes": len(files), "steps": steps, "files": [p.name for p in files]}

@@ -37,14 +37,12 @@ import numpy as np
 
 from dssp_core.errors import ConfigError, DatasetError
 from dssp_core.output_guard import check_output
-from dssp_core.staging import Staging, settle_background_writes
 from dssp_data.dataset_layout import Episode
-from dssp_data.edit import DATA_DATASET, DATA_GENERATORS
+from dssp_data.edit import DATA_DATASET, DATA_GENERATORS, write_converted
 from dssp_data.observation import ObservationContract, PointCloudConfig, piper_layout
 from dssp_data.pointcloud import EmptyCloudError, frame_to_cloud, validate_extrinsics
 from dssp_data.pointcloud.depth_frame import DepthFrame, Intrinsics
-from dssp_data.recording import ACTION_CONVENTIONS, STATE_CONVENTION, can_log_dir
-from dssp_data.replay_buffer_writer import ReplayBufferWriter
+from dssp_data.recording import ACTION_CONVENTIONS, STATE_CONVENTION
 
 PIPER_JOINTS = ("joint1", "joint2", "joint3", "joint4", "joint5", "joint6", "joint7")
 """piper_ros's joint names: J1..J6, then the gripper."""
@@ -326,16 +324,5 @@ def convert(source: Path, out: Path, settings: Rosbag2Settings, cloud_config: Po
     if any(info["intrinsics"] != intrinsics for info in infos):
         raise DatasetError(f"{source}: the bags' depth cameras have different intrinsics; convert each setting "
                            "into its own dataset")
-    steps = 0
-    try:
-        with Staging(flag=flag, error=DatasetError) as staging:
-            tmp = staging.make(staging.reserve(out))
-            with ReplayBufferWriter(tmp, attrs=attrs, staged=True, extra_keys=TIME_KEYS) as writer:
-                for episode in episodes:
-                    writer.add_episode(episode)
-                    steps += episode.n_steps
-            staging.commit([(tmp, out), (None, can_log_dir(out))],  # the output checked again first
-                           check=lambda: check_output(out, force=force, kind=DATA_DATASET, flag=flag, error=DatasetError))
-    finally:
-        settle_background_writes()
+    steps = write_converted(out, attrs, ((None, e) for e in episodes), extra_keys=TIME_KEYS, force=force, flag=flag)
     return {"episodes": len(bags), "steps": steps, "files": [b.name for b in bags], "action_convention": convention}

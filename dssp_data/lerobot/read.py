@@ -22,10 +22,9 @@ import numpy as np
 
 from dssp_core.errors import ConfigError, DatasetError
 from dssp_core.output_guard import check_not_inside, check_output
-from dssp_core.staging import Staging, settle_background_writes
 from dssp_data import attributes
 from dssp_data.dataset_layout import Episode
-from dssp_data.edit import DATA_DATASET, DATA_GENERATORS
+from dssp_data.edit import DATA_DATASET, DATA_GENERATORS, write_converted
 from dssp_data.lerobot.layout import (
     EPISODES_DIR,
     INDEX_FEATURES,
@@ -43,8 +42,6 @@ from dssp_data.lerobot.layout import (
 from dssp_data.observation import FRAME_ROBOT_BASE, ObservationContract, PointCloudConfig
 from dssp_data.pointcloud import EmptyCloudError, frame_to_cloud, validate_extrinsics
 from dssp_data.pointcloud.depth_frame import DepthFrame, Intrinsics
-from dssp_data.recording import can_log_dir
-from dssp_data.replay_buffer_writer import ReplayBufferWriter
 
 __all__ = ["convert"]
 
@@ -245,27 +242,20 @@ def convert(source: Path, out: Path, cloud_config: PointCloudConfig, camera_to_b
     columns = ["episode_index", "frame_index", state_key, action_key, depth.key] + \
         (["timestamp"] if "timestamp" in features else [])
     shape = tuple(features[depth.key]["shape"])
-    steps = 0
-    try:
-        with Staging(flag=flag, error=DatasetError) as staging:
-            tmp = staging.make(staging.reserve(out))
-            with ReplayBufferWriter(tmp, attrs=attrs, staged=True, extra_keys=("depth", *TIME_KEYS)) as writer:
+
+    def episodes():
+        table, loaded = None, None
+        for i, ref in enumerate(refs):
+            if progress is not None:
+                progress(i, len(refs), Path(f"episode_{ref.index:06d}"))
+            path = data_files[(ref.chunk, ref.file)]
+            if loaded != path:  # one data file in memory at a time
                 table, loaded = None, None
-                for i, ref in enumerate(refs):
-                    if progress is not None:
-                        progress(i, len(refs), Path(f"episode_{ref.index:06d}"))
-                    path = data_files[(ref.chunk, ref.file)]
-                    if loaded != path:  # one data file in memory at a time
-                        table, loaded = None, None
-                        table, loaded = read_parquet(pa, pq, path, columns), path
-                    episode = _episode(pa, pc, table, ref, path, depth, shape, state_key, state_dim, action_key,
-                                       action_dim, fps, cloud_config, camera_to_base)
-                    writer.add_episode(episode)
-                    steps += episode.n_steps
-            staging.commit([(tmp, out), (None, can_log_dir(out))],  # the output checked again first
-                           check=lambda: check_output(out, force=force, kind=DATA_DATASET, flag=flag, error=DatasetError))
-    finally:
-        settle_background_writes()
+                table, loaded = read_parquet(pa, pq, path, columns), path
+            yield None, _episode(pa, pc, table, ref, path, depth, shape, state_key, state_dim, action_key, action_dim,
+                                 fps, cloud_config, camera_to_base)
+
+    steps = write_converted(out, attrs, episodes(), extra_keys=("depth", *TIME_KEYS), force=force, flag=flag)
     return {"episodes": len(refs), "steps": steps, "fps": fps, "depth_key": depth.key, "state_key": state_key,
             "action_key": action_key}
 
