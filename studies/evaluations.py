@@ -10,9 +10,12 @@ keeps each finished stage's seconds (``seconds/NAME.seconds``).
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
 
+from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.files import atomic_write_text
+from studies import protocol
 from studies.runner import Runner, Stage
 
 KEPT = ("task", "n", "successes", "failure_reasons", "decisions", "precision", "kernel", "latency_ms",
@@ -49,3 +52,35 @@ def run_and_keep(work: Path, record: Path, stage_list: list[Stage], workers: int
                 (record / "seconds").mkdir(parents=True, exist_ok=True)
                 atomic_write_text(record / "seconds" / f"{s.name}.seconds",
                                   f"{json.loads(runner.marker(s.name).read_text())['seconds']:.1f}\n")
+
+
+def study_main(argv: list[str] | None, name: str, doc: str, plan: dict, quick_plan: dict, split: str,
+               stages: Callable[[dict, list[str], Path], list[Stage]],
+               write_report: Callable[[dict, Path, Path], Path]) -> int:
+    """The command of a study whose stages evaluate on one ``split`` and whose report is rebuilt from its record
+    (``python -m studies.NAME [--tasks T ...] [--workers 2] [--work runs/NAME] [--report reports/NAME]
+    [--report-only] [--quick]``): its provenance noted, its stages run and their evaluations kept
+    (:func:`run_and_keep`), then the report written and printed."""
+    folder = name.removesuffix("_study")
+    p = ArgumentParser(prog=f"python -m studies.{name}", description=doc.split("\n\n")[0])
+    p.add_argument("--tasks", nargs="+", metavar="TASK", help="default: every task of the plan")
+    p.add_argument("--workers", type=int, default=2, help="stages side by side, one thread each (default 2)")
+    p.add_argument("--work", type=Path, default=Path(f"runs/{folder}"), help="datasets, runs, models, evaluations, logs")
+    p.add_argument("--report", type=Path, default=Path(f"reports/{folder}"), help="the report and its record")
+    p.add_argument("--report-only", action="store_true", help="run nothing: rebuild the report from the record")
+    p.add_argument("--quick", action="store_true", help="a tiny plan (tests)")
+    args = p.parse_args(argv)
+    plan = quick_plan if args.quick else plan
+    tasks = args.tasks or list(plan["tasks"])
+    if set(tasks) - set(plan["tasks"]):
+        p.error(f"--tasks: {', '.join(sorted(set(tasks) - set(plan['tasks'])))} not in the plan ({', '.join(plan['tasks'])})")
+
+    def _main() -> int:
+        record = args.report / "record"
+        if not args.report_only:
+            protocol.note_provenance(record, plan, split)
+            run_and_keep(args.work, record, stages(plan, tasks, record), args.workers, ", ".join(tasks))
+        print(write_report(plan, record, args.report).read_text())
+        return 0
+
+    return run_cli(_main)

@@ -24,14 +24,13 @@ import json
 import sys
 from pathlib import Path
 
-from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import DSSPError
 from dssp_core.files import atomic_write_text
 from dssp_core.output_guard import write_output_figure
 from dssp_deploy.manifest import PRECISIONS
 from dssp_sim.evaluate import wilson_interval
 from studies import memory_tasks, protocol
-from studies.evaluations import run_and_keep
+from studies.evaluations import study_main
 from studies.runner import Stage
 from studies.sim_study import pct
 
@@ -208,29 +207,7 @@ def plot(table: dict, plan: dict, path: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = ArgumentParser(prog="python -m studies.sampling", description=__doc__.split("\n\n")[0])
-    p.add_argument("--tasks", nargs="+", metavar="TASK", help="default: every task of the plan")
-    p.add_argument("--workers", type=int, default=2, help="stages side by side, one thread each (default 2)")
-    p.add_argument("--work", type=Path, default=Path("runs/sampling"), help="datasets, runs, models, evaluations, logs")
-    p.add_argument("--report", type=Path, default=Path("reports/sampling"), help="the report and its record")
-    p.add_argument("--report-only", action="store_true", help="run nothing: rebuild the report from the record")
-    p.add_argument("--quick", action="store_true", help="a tiny plan (tests)")
-    args = p.parse_args(argv)
-    plan = QUICK_PLAN if args.quick else PLAN
-    tasks = args.tasks or list(plan["tasks"])
-    if set(tasks) - set(plan["tasks"]):
-        p.error(f"--tasks: {', '.join(sorted(set(tasks) - set(plan['tasks'])))} not in the plan ({', '.join(plan['tasks'])})")
-
-    def _main() -> int:
-        record = args.report / RECORD_DIR
-        if not args.report_only:
-            protocol.note_provenance(record, plan, "validation")
-            run_and_keep(args.work, record, stages(plan, tasks, record), args.workers, ", ".join(tasks))
-        md = write_report(plan, record, args.report)
-        print(md.read_text())
-        return 0
-
-    return run_cli(_main)
+    return study_main(argv, 'sampling', __doc__, PLAN, QUICK_PLAN, "validation", stages, write_report)
 
 
 if __name__ == "__main__":
