@@ -260,35 +260,32 @@ class ChunkedControl:
                 stacklevel=2,
             )
         self.lead = 0
-        if prefetch:
-            if self.period_ms is None:
-                raise ValueError("prefetch needs a tick rate: pass rate_hz (the manifest records none)")
-            if chunk_ms_estimate is None:
-                chunk_ms_estimate = self.measure_chunk_ms()
-            self.lead = max(1, math.ceil(chunk_ms_estimate / self.period_ms))
-            spare = policy.horizon - policy.action_offset - policy.n_action_steps
-            if self.lead > spare:
-                raise ValueError(
-                    f"a chunk takes {chunk_ms_estimate:.1f} ms = {self.lead} ticks at {self.rate_hz:g} Hz, but only "
-                    f"H - action_offset - H_a = {spare} predicted actions can be dropped; run without prefetch or at a lower rate"
-                )
+        if prefetch:  # chunks start `lead` ticks early; their first `lead` actions, whose time has passed, are dropped
+            self.lead = self._ticks_ahead(chunk_ms_estimate, "prefetch", "predicted actions can be dropped; run without "
+                                          "prefetch or at a lower rate")
         self.delay = self.injected_delay or 0  # d: ticks from a chunk's observation to its first executed action
         if smoothing == "rtc" and injected_delay is None:
-            if self.period_ms is None:
-                raise ValueError("real-time chunking needs a tick rate: pass rate_hz (the manifest records none)")
-            if chunk_ms_estimate is None:
-                chunk_ms_estimate = self.measure_chunk_ms()
-            self.delay = max(1, math.ceil(chunk_ms_estimate / self.period_ms))
-            spare = policy.horizon - policy.action_offset - policy.n_action_steps
-            if self.delay > spare:
-                raise ValueError(
-                    f"a chunk takes {chunk_ms_estimate:.1f} ms = {self.delay} ticks at {self.rate_hz:g} Hz, but a chunk "
-                    f"covers only H - action_offset - H_a = {spare} ticks beyond its H_a: real-time chunking cannot keep up; "
-                    "run at a lower rate")
+            self.delay = self._ticks_ahead(chunk_ms_estimate, "real-time chunking", "ticks beyond its H_a are covered by "
+                                           "a chunk: real-time chunking cannot keep up; run at a lower rate")
         self.reset()
 
+    def _ticks_ahead(self, chunk_ms: float | None, what: str, beyond: str) -> int:
+        """The ticks a chunk takes (at least 1) from ``chunk_ms`` (None: measured here), which must fit in the
+        H - action_offset - H_a actions a chunk predicts beyond the H_a it executes; a one-line ValueError otherwise."""
+        p = self.policy
+        if self.period_ms is None:
+            raise ValueError(f"{what} needs a tick rate: pass rate_hz (the manifest records none)")
+        if chunk_ms is None:
+            chunk_ms = self.measure_chunk_ms()
+        ticks = max(1, math.ceil(chunk_ms / self.period_ms))
+        spare = p.horizon - p.action_offset - p.n_action_steps
+        if ticks > spare:
+            raise ValueError(f"a chunk takes {chunk_ms:.1f} ms = {ticks} ticks at {self.rate_hz:g} Hz, but only "
+                             f"H - action_offset - H_a = {spare} {beyond}")
+        return ticks
+
     def measure_chunk_ms(self, iterations: int = 5) -> float:
-        """Median denoiser latency (ms) on zeros, for choosing the prefetch lead."""
+        """Median denoiser latency (ms) on zeros, for choosing the prefetch lead or real-time chunking's delay."""
         p = self.policy
         inputs = {}
         if p.use_history:
