@@ -66,7 +66,7 @@ CUE_TASKS = ("reach", "push", "pick-place")  # tasks whose goal is only a marker
 CUE_STEPS = 10
 CUE_RADIUS_M = 0.04
 HIDDEN_RADIUS_M = 1e-6
-INSTALL = 'pip install --no-deps metaworld==3.1.1 && pip install "gymnasium>=1.1" imageio'
+INSTALL = "pip install --no-deps metaworld==3.1.1, with the sim extra (its gymnasium, imageio and scipy): pip install -e '.[sim]'"
 
 # The difficulty groups DP3 and the papers after it report MetaWorld by (Seo et al., 2022): all 50 tasks.
 DIFFICULTY: dict[str, tuple[str, ...]] = {
