@@ -239,6 +239,69 @@ def remove_created(created: list[Path]) -> None:
 METADATA_LIMIT = 256 << 20
 """Bytes a metadata file (a marker, a zarr group's attributes, a run's config.json) may hold."""
 
+SETTINGS_LIMIT = 16 << 20
+"""Bytes a file a user names may hold (settings, poses, a board, extrinsics, a model's manifest): 16 MiB, far above
+any real one (a 10,000-pose plan is under 1 MiB)."""
+
+
+def _kind(mode: int) -> str:
+    if stat.S_ISFIFO(mode):
+        return "a FIFO (named pipe)"
+    if stat.S_ISCHR(mode) or stat.S_ISBLK(mode):
+        return "a device"
+    if stat.S_ISSOCK(mode):
+        return "a socket"
+    if stat.S_ISDIR(mode):
+        return "a directory"
+    return "not a regular file"
+
+
+def read_input_bytes(path: str | os.PathLike, label: str, *, limit: int = SETTINGS_LIMIT,
+                     error: type[DSSPError] = DSSPError) -> bytes:
+    """The bytes of the file a user named, or one line (as ``error``, starting with ``label``) saying why not.
+
+    The one read of such files: it is opened without blocking and checked on the open descriptor, so a FIFO, a
+    device (``/dev/zero``), a socket or a directory is refused before a byte is read (a FIFO never blocks the
+    command, a device never fills its memory); a file larger than ``limit`` bytes is refused by its size, and
+    nothing beyond ``limit + 1`` bytes is ever read (a file that grows meanwhile). A symbolic link the user
+    gave is followed: the path came from them, not from a file.
+    """
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+    except FileNotFoundError:
+        raise error(f"{label} does not exist; check the path") from None
+    except OSError as exc:
+        if exc.errno == errno.ENXIO:  # a socket: it cannot be opened at all
+            with contextlib.suppress(OSError):
+                raise error(f"{label} is {_kind(os.stat(path).st_mode)}, not a file; give a regular file") from None
+        raise error(f"{label} cannot be read ({exc.strerror or exc}); check its permissions") from None
+    info = os.fstat(fd)
+    if not stat.S_ISREG(info.st_mode):
+        os.close(fd)
+        raise error(f"{label} is {_kind(info.st_mode)}, not a file; give a regular file")
+    with os.fdopen(fd, "rb") as f:
+        if info.st_size > limit:
+            raise error(f"{label} holds {info.st_size} bytes, more than the {limit} such a file may hold; "
+                        f"check that it is the right file")
+        try:
+            data = f.read(limit + 1)
+        except OSError as exc:
+            raise error(f"{label} cannot be read ({exc.strerror or exc}); check the file") from None
+    if len(data) > limit:
+        raise error(f"{label} holds more than the {limit} bytes such a file may hold (it grew while read); "
+                    f"check that it is the right file")
+    return data
+
+
+def read_input_text(path: str | os.PathLike, label: str, *, limit: int = SETTINGS_LIMIT,
+                    error: type[DSSPError] = DSSPError) -> str:
+    """:func:`read_input_bytes` as UTF-8 text; text that is not UTF-8 is one line too."""
+    data = read_input_bytes(path, label, limit=limit, error=error)
+    try:
+        return data.decode()
+    except UnicodeDecodeError:
+        raise error(f"{label} is not a text file; give a JSON file") from None
+
 
 def read_regular_text(path: str | os.PathLike, limit: int = METADATA_LIMIT) -> str | None:
     """The text of ``path`` if it is a regular file, read without following a link; None when there is no

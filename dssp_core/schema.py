@@ -28,6 +28,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import re
 import types
 import typing
 from collections.abc import Mapping
@@ -36,6 +37,7 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 from dssp_core.errors import ConfigError
+from dssp_core.files import read_input_bytes
 
 # Bounds shared by the training configs and the model manifest (a model past them is refused on load).
 MAX_DIM = 4096  # state / action channels
@@ -163,8 +165,35 @@ def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict:
     return out
 
 
+JSON_MAX_DEPTH = 64
+"""Nesting a JSON file may have (a settings file nests 3 deep; 64 leaves room and keeps the parser far from
+Python's recursion limit)."""
+
+_JSON_TOKENS = re.compile(r'"(?:[^"\\]|\\.)*"|[\[\]{}]')
+
+
+def json_depth(text: str, limit: int = JSON_MAX_DEPTH) -> int:
+    """The deepest nesting of arrays and objects in ``text`` (strings skipped), counted only up to ``limit + 1``:
+    the check runs before the parser, which would recurse once per level."""
+    depth = deepest = 0
+    for match in _JSON_TOKENS.finditer(text):
+        token = match.group()
+        if token in "[{":
+            depth += 1
+            if depth > deepest:
+                deepest = depth
+                if deepest > limit:
+                    break
+        elif token in "]}":
+            depth -= 1
+    return deepest
+
+
 def parse_json(text: str) -> Any:
-    """``json.loads`` that refuses a key given twice, and nesting too deep to parse, as ValueErrors."""
+    """``json.loads`` that refuses a key given twice, and nesting deeper than :data:`JSON_MAX_DEPTH`, as
+    ValueErrors."""
+    if json_depth(text) > JSON_MAX_DEPTH:
+        raise ValueError(f"nested more than {JSON_MAX_DEPTH} levels deep")
     try:
         return json.loads(text, object_pairs_hook=_no_duplicates)
     except RecursionError:
@@ -178,18 +207,13 @@ def read_json_object(path: str | Path, what: str | None, *, error: type[Exceptio
     that exists but holds no usable JSON object (e.g. how to restore it)."""
     label = f"{what} file {path}" if what else str(path)
     fix = f"; {hint}" if hint else ""
+    data = read_input_bytes(path, label, error=error)
     try:
-        values = parse_json(Path(path).read_text())
+        values = parse_json(data.decode())
     except DuplicateKey as exc:
         raise error(f"{label} gives the key {exc} twice; " + (hint or "keep one")) from None
-    except FileNotFoundError:
-        raise error(f"{label} does not exist; check the path") from None
-    except IsADirectoryError:
-        raise error(f"{label} is a directory; give the JSON file") from None
     except UnicodeDecodeError:
         raise error(f"{label} is not a text file" + (f" (damaged?){fix}" if hint else "; give a JSON file")) from None
-    except OSError as exc:
-        raise error(f"{label} cannot be read ({exc.strerror or exc}); check its permissions") from None
     except json.JSONDecodeError as exc:
         raise error(f"{label} is not valid JSON ({exc.msg} at line {exc.lineno}){fix}") from None
     except ValueError as exc:

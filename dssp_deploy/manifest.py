@@ -25,6 +25,7 @@ Shapes of the graph interface (E = expand * d_model, n = d_state, W = d_conv):
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import re
@@ -39,6 +40,7 @@ from dssp_data.observation import ObservationContract
 from dssp_deploy.external_data import MalformedGraph, external_locations
 from dssp_core.schema import MAX_DIM, MAX_LAYERS, MAX_RATE_HZ, MAX_STEPS, MAX_WIDTH
 from dssp_core.errors import ConfigError, DSSPError
+from dssp_core.files import read_input_bytes, read_input_text, read_regular_text
 from dssp_core.schema import Settings, Spec, check_value, parse_json, setting
 
 FORMAT_VERSION = "1"
@@ -285,11 +287,12 @@ def read_manifest(model_dir: Path) -> dict[str, Any]:
     path = model_dir / MANIFEST_NAME
     if not model_dir.is_dir():
         raise ModelDirError(f"model directory {model_dir} does not exist; create one with python -m export.to_onnx RUN_DIR -o {model_dir}")
-    if not path.is_file():
+    if not (path.exists() or path.is_symlink()):
         raise ModelDirError(f"{path} is missing: {model_dir} is not a DSSP model directory (python -m export.to_onnx makes one)")
+    text = read_input_text(path, str(path), error=ModelDirError)
     try:
-        manifest = parse_json(path.read_text())
-    except (OSError, ValueError) as exc:  # JSON errors, a key twice, nesting too deep, bad UTF-8
+        manifest = parse_json(text)
+    except ValueError as exc:  # JSON errors, a key twice, nesting too deep
         raise ModelDirError(f"{path} is unreadable ({exc}); {AGAIN}") from None
     if not isinstance(manifest, dict) or manifest.get("kind") != KIND:
         raise ModelDirError(f"{path} is not a DSSP model manifest (no \"kind\": \"{KIND}\"); {AGAIN}")
@@ -482,8 +485,8 @@ def model_file(model_dir: Path, name: Any, field: str) -> Path:
 def is_model_dir(path: Path) -> bool:
     """True when ``path`` holds a previous export of any format version (a manifest of this kind)."""
     try:
-        manifest = json.loads((Path(path) / MANIFEST_NAME).read_text())
-    except (OSError, ValueError):
+        manifest = parse_json(read_regular_text(Path(path) / MANIFEST_NAME) or "null")
+    except ValueError:
         return False
     return isinstance(manifest, dict) and manifest.get("kind") == KIND
 
@@ -525,17 +528,28 @@ def check_digest(path: Path, data: bytes, manifest: dict[str, Any], name: str) -
         )
 
 
+def read_listed(path: Path, manifest: dict[str, Any], name: str, label: str) -> bytes:
+    """The bytes of the manifest's file ``name`` at ``path``, read as :func:`~dssp_core.files.read_input_bytes`
+    reads (a regular file, never more than the size the manifest gives it), their size and sha256 checked."""
+    want = manifest["files"].get(name)
+    if want is None:
+        raise ModelDirError(f"{path} has no size and sha256 in {MANIFEST_NAME} files; {AGAIN}")
+    with contextlib.suppress(OSError):
+        if (size := path.stat().st_size) > want["bytes"]:  # larger than it was written: never read whole
+            raise ModelDirError(f"{path} is not the file this manifest was written for ({size} bytes; {MANIFEST_NAME} "
+                                f"says sha256 {want['sha256'][:12]}…, {want['bytes']} bytes): it comes from another export or "
+                                f"was changed; {AGAIN}, and copy model directories whole")
+    data = read_input_bytes(path, label, limit=want["bytes"], error=ModelDirError)
+    check_digest(path, data, manifest, name)
+    return data
+
+
 def read_graph(model_dir: Path, manifest: dict[str, Any], graph: str, fmt: str = "onnx") -> tuple[Path, bytes]:
     """(path, bytes) of one graph's file, its size and sha256 checked against the manifest.
 
     Open the graph from these bytes: what runs is what was checked."""
     path = graph_file(model_dir, manifest, graph, fmt)
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise ModelDirError(f"{path} cannot be read ({exc.strerror or exc}); {AGAIN}") from None
-    check_digest(path, data, manifest, manifest["graphs"][graph]["files"][fmt])
-    return path, data
+    return path, read_listed(path, manifest, manifest["graphs"][graph]["files"][fmt], str(path))
 
 
 def read_graph_files(model_dir: Path, manifest: dict[str, Any], graph: str, fmt: str = "onnx") -> tuple[Path, bytes, dict[str, bytes]]:
@@ -561,12 +575,7 @@ def read_graph_files(model_dir: Path, manifest: dict[str, Any], graph: str, fmt:
         if name not in manifest["files"]:
             raise ModelDirError(f"{path} keeps tensors in {file}, which has no size and sha256 in {MANIFEST_NAME} files "
                                 f"(every file the runtime loads must); {AGAIN}")
-        try:
-            blob = file.read_bytes()
-        except OSError as exc:
-            raise ModelDirError(f"{file} (the external data of {path.name}) cannot be read ({exc.strerror or exc}); {AGAIN}") from None
-        check_digest(file, blob, manifest, name)
-        external[location] = blob
+        external[location] = read_listed(file, manifest, name, f"{file} (the external data of {path.name})")
     return path, data, external
 
 

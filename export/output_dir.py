@@ -19,6 +19,7 @@ from pathlib import Path
 
 from dssp_core.output_guard import OutputDir, OutputKind, check_output
 from dssp_core.errors import ExportError
+from dssp_core.files import read_regular_text
 from dssp_deploy.manifest import MANIFEST_NAME, is_model_dir
 
 
@@ -26,7 +27,7 @@ def _is_own_model_dir(path: Path) -> bool:
     """A previous export: its manifest, and only the files the manifest lists (ONNX external data too)."""
     if not is_model_dir(path):
         return False
-    files = json.loads((path / MANIFEST_NAME).read_text()).get("files")
+    files = json.loads(read_regular_text(path / MANIFEST_NAME) or "{}").get("files")
     if not isinstance(files, dict):
         return all(p.suffix in (".onnx", ".pt", ".json", ".data") for p in path.iterdir())
     listed = set(files) | {MANIFEST_NAME}

@@ -326,10 +326,7 @@ def read_trainer_state(run_dir: Path) -> dict[str, Any] | None:
     if ckpt is None:
         return None
     path = ckpt / "trainer_state.json"
-    try:
-        state = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise CheckpointError(f"{path} is unreadable ({exc}); start a new run") from None
+    state = read_json_object(path, None, error=CheckpointError, hint="start a new run")
     if not isinstance(state, dict) or isinstance(state.get("step"), bool) or not isinstance(state.get("step"), int):
         raise CheckpointError(f"{path} does not record the checkpoint's step; start a new run")
     return state
@@ -345,10 +342,10 @@ def load_training_state(run_dir: Path) -> dict[str, Any]:
             f"{run_dir} has no checkpoint yet (it stopped before its first save): nothing to resume; "
             "start it over with --force (without --resume)"
         )
+    trainer_state = read_json_object(ckpt / "trainer_state.json", None, error=CheckpointError, hint="start a new run")
     try:
-        trainer_state = json.loads((ckpt / "trainer_state.json").read_text())
         groups = trainer_state.pop("param_groups")
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, AttributeError, KeyError, TypeError) as exc:
+    except KeyError as exc:
         raise CheckpointError(f"{ckpt / 'trainer_state.json'} is unreadable ({exc!r}); start a new run") from None
     return {
         "model": load_tensors(ckpt / "model.safetensors"),

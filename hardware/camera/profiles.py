@@ -8,7 +8,6 @@ really carries is read from the frame itself (``DepthFrame.depth_unit``). No pyr
 
 from __future__ import annotations
 
-import json
 import re
 from dataclasses import dataclass
 from functools import lru_cache
@@ -16,7 +15,7 @@ from pathlib import Path
 from typing import ClassVar
 
 from dssp_core.errors import ConfigError
-from dssp_core.schema import Settings, setting
+from dssp_core.schema import Settings, read_json_object, setting
 from dssp_core.errors import CameraError
 
 PROFILES_PATH = Path(__file__).with_name("profiles.json")
@@ -109,13 +108,8 @@ class CameraProfile(Settings):
 
 @lru_cache(maxsize=None)
 def _load_all(path: str) -> dict[str, CameraProfile]:
-    try:
-        data = json.loads(Path(path).read_text())
-    except FileNotFoundError:
-        raise CameraError(f"camera profiles file {path} is missing; reinstall the package") from None
-    except json.JSONDecodeError as e:
-        raise CameraError(f"camera profiles file {path} is not valid JSON (line {e.lineno}: {e.msg})") from None
-    if not isinstance(data, dict) or not data:
+    data = read_json_object(path, "camera profiles", error=CameraError, hint="reinstall the package")
+    if not data:
         raise CameraError(f"camera profiles file {path} must hold a non-empty JSON object of profiles")
     return {name: CameraProfile.from_entry(name, entry) for name, entry in data.items()}
 
