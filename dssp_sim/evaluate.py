@@ -29,14 +29,16 @@ import threading
 import time
 import uuid
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from dssp_core.errors import ConfigError, NonFiniteObservation
 from dssp_core.output_guard import OutputKind
-from dssp_deploy.control_loop import ChunkedControl
+from dssp_deploy.control_loop import ChunkedControl, check_ensemble_every
 from dssp_deploy.manifest import observation_of
 from dssp_deploy.onnx_policy import OnnxPolicy
 from dssp_deploy.ranges import ChunkOutOfRange, ObservationOutOfRange
@@ -338,6 +340,87 @@ STRIPS_DIR = OutputKind("a folder of episode strips", "dssp-sim eval", entries=(
 """``dssp-sim eval --strips``: one PNG per episode (``TASK_seedS.png``), written all at once."""
 
 
+@dataclass
+class Evaluation:
+    """An evaluation with every setting checked, its model loaded and its task built, before any output is opened
+    (:func:`prepare_evaluation`); :meth:`run` plays its episodes."""
+
+    result: EvalResult
+    env: Any
+    episode: Callable  # (seed, frames, ticks, views) -> EpisodeOutcome
+    n_episodes: int
+    seed: int
+    recent: _RecentStates | None = None
+
+    def run(self, strips_dir: Path | None = None, progress: bool = True, views=None) -> EvalResult:
+        """Episodes seed, seed + 1, ... (their strips into ``strips_dir``; ``views``: Rerun views of every tick, closed
+        by the caller); the environment is closed after."""
+        def episode(s, frames, ticks):
+            return self.episode(s, frames, ticks, views)
+
+        _run_episodes(self.result, self.env, episode, self.n_episodes, self.seed, strips_dir, progress)
+        if self.recent is not None:
+            self.result.z_rms = self.recent.rms()
+        return self.result
+
+
+def prepare_evaluation(model_dir: Path | None, task: str, n_episodes: int, seed: int = 1000, threads: int | None = None,
+                       state_token_noise: float = 0.0, precision: str | None = None, kernel: str = "auto",
+                       spinning: bool | None = None, views: bool = False, smoothing: str = "none",
+                       ensemble_every: int | None = None, ensemble_decay: float = 0.01,
+                       inject_delay_ms: float = 0.0) -> Evaluation:
+    """Check every setting against the model and the task, load the model and build the task; nothing is opened
+    or written. ``views``: whether Rerun views will be given to :meth:`Evaluation.run`. The arguments are
+    :func:`evaluate`'s."""
+    from dssp_sim import metaworld_env  # deferred: loads mujoco
+
+    if metaworld_env.is_metaworld(task) and views:
+        raise ConfigError("--rerun views show the Piper's control loop; MetaWorld evaluations have none (drop the flag)")
+    if not (math.isfinite(inject_delay_ms) and 0 <= inject_delay_ms <= 10_000):
+        raise ConfigError(f"--inject-delay must be in [0, 10000] ms, got {inject_delay_ms:g}")
+    if model_dir is None:
+        if smoothing != "none":
+            raise ConfigError("smoothing is the model's control loop's: the scripted expert gives each tick's action itself")
+        return _prepare_expert(task, n_episodes, seed)
+    policy = OnnxPolicy(model_dir, threads=threads, precision=precision, kernel=kernel, spinning=spinning)
+    check_ensemble_every(ensemble_every if smoothing == "ensemble" else None, policy, model_dir)
+    recent = policy.denoiser_inputs = _RecentStates(policy, state_token_noise, np.random.default_rng(seed))
+    options = {"smoothing": smoothing, "ensemble_every": ensemble_every, "ensemble_decay": ensemble_decay}
+    # The model's own point-cloud settings (its observation contract), as dssp-run uses them; a model trained on
+    # data that recorded none sees the simulation's settings at its point count.
+    n_points = policy.manifest["model_config"]["n_points"]
+    if metaworld_env.is_metaworld(task):
+        metaworld_env.check_model_dims(policy.manifest["model_config"], model_dir)
+        env = metaworld_env.MetaWorldEnv(task, seed=seed)
+        cloud_config = observation_of(policy.manifest).pointcloud or metaworld_env.cloud_config(n_points)
+
+        def episode(s, frames, ticks, views):
+            return run_direct_episode(policy, env, s, cloud_config, frames, ticks, options)
+    else:
+        from dssp_sim.env import PiperEnv  # deferred: loads mujoco
+
+        env = PiperEnv(task, seed=seed)
+        cloud_config = observation_of(policy.manifest).pointcloud or cloud_config_for(n_points, task)
+
+        def episode(s, frames, ticks, views):
+            return run_episode(ModelPolicy(policy, env.control_rate_hz, seed=s, **options), env, s, cloud_config, frames,
+                               ticks, views)
+    # the delay in the loop's ticks (the simulation's rate); the options are read when each episode starts
+    delay_ticks = math.ceil(inject_delay_ms * env.control_rate_hz / 1000 - 1e-9) if inject_delay_ms > 0 else 0
+    options["injected_delay"] = delay_ticks
+    try:  # bad settings: one line now, not a failure in the first episode
+        settings = ChunkedControl(policy, rate_hz=env.control_rate_hz, **options).smoothing_settings()
+    except ValueError as exc:
+        env.close()
+        raise ConfigError(f"smoothing: {exc}") from None
+    print(f"graphs: {policy.kernel_note}", file=sys.stderr)
+    result = EvalResult(str(model_dir), task, state_token_noise=state_token_noise, precision=policy.precision, kernel=policy.kernel,
+                        smoothing=settings["smoothing"], ensemble_every=settings["ensemble_every"],
+                        ensemble_decay=settings["ensemble_decay"], injected_delay_ms=float(inject_delay_ms),
+                        injected_delay_ticks=delay_ticks, rtc_delay_ticks=settings["rtc_delay_ticks"])
+    return Evaluation(result, env, episode, n_episodes, seed, recent)
+
+
 def evaluate(model_dir: Path | None, task: str, n_episodes: int, seed: int = 1000, threads: int | None = None,
              state_token_noise: float = 0.0, strips_dir: Path | None = None, progress: bool = True,
              precision: str | None = None, kernel: str = "auto", spinning: bool | None = None, views=None,
@@ -350,57 +433,15 @@ def evaluate(model_dir: Path | None, task: str, n_episodes: int, seed: int = 100
     after its observation, in whole control ticks (rounded up: at 10 Hz 50 and 100 ms are one tick) — the inference
     delay simulated in lockstep; ``views``: Rerun
     views of every tick of every episode, on one timeline (the caller closes them). ``model_dir`` None: the task's
-    scripted expert drives the same loop (:class:`dssp_sim.expert_policy.ScriptedExpert`; Piper tasks)."""
-    from dssp_sim import metaworld_env  # deferred: loads mujoco
-
-    if metaworld_env.is_metaworld(task) and views is not None:
-        raise ConfigError("--rerun views show the Piper's control loop; MetaWorld evaluations have none (drop the flag)")
-    if model_dir is None:
-        if smoothing != "none":
-            raise ConfigError("smoothing is the model's control loop's: the scripted expert gives each tick's action itself")
-        return _evaluate_expert(task, n_episodes, seed, strips_dir, progress, views)
-    policy = OnnxPolicy(model_dir, threads=threads, precision=precision, kernel=kernel, spinning=spinning)
-    recent = policy.denoiser_inputs = _RecentStates(policy, state_token_noise, np.random.default_rng(seed))
-    if not (math.isfinite(inject_delay_ms) and 0 <= inject_delay_ms <= 10_000):
-        raise ConfigError(f"--inject-delay must be in [0, 10000] ms, got {inject_delay_ms:g}")
-    options = {"smoothing": smoothing, "ensemble_every": ensemble_every, "ensemble_decay": ensemble_decay}
-    # The model's own point-cloud settings (its observation contract), as dssp-run uses them; a model trained on
-    # data that recorded none sees the simulation's settings at its point count.
-    n_points = policy.manifest["model_config"]["n_points"]
-    if metaworld_env.is_metaworld(task):
-        metaworld_env.check_model_dims(policy.manifest["model_config"], model_dir)
-        env = metaworld_env.MetaWorldEnv(task, seed=seed)
-        cloud_config = observation_of(policy.manifest).pointcloud or metaworld_env.cloud_config(n_points)
-
-        def episode(s, frames, ticks):
-            return run_direct_episode(policy, env, s, cloud_config, frames, ticks, options)
-    else:
-        from dssp_sim.env import PiperEnv  # deferred: loads mujoco
-
-        env = PiperEnv(task, seed=seed)
-        cloud_config = observation_of(policy.manifest).pointcloud or cloud_config_for(n_points, task)
-
-        def episode(s, frames, ticks):
-            return run_episode(ModelPolicy(policy, env.control_rate_hz, seed=s, **options), env, s, cloud_config, frames,
-                               ticks, views)
-    # the delay in the loop's ticks (the simulation's rate); the options are read when each episode starts
-    delay_ticks = math.ceil(inject_delay_ms * env.control_rate_hz / 1000 - 1e-9) if inject_delay_ms > 0 else 0
-    options["injected_delay"] = delay_ticks
-    try:  # bad settings: one line now, not a failure in the first episode
-        settings = ChunkedControl(policy, rate_hz=env.control_rate_hz, **options).smoothing_settings()
-    except ValueError as exc:
-        raise ConfigError(f"smoothing: {exc}") from None
-    print(f"graphs: {policy.kernel_note}", file=sys.stderr)
-    result = EvalResult(str(model_dir), task, state_token_noise=state_token_noise, precision=policy.precision, kernel=policy.kernel,
-                        smoothing=settings["smoothing"], ensemble_every=settings["ensemble_every"],
-                        ensemble_decay=settings["ensemble_decay"], injected_delay_ms=float(inject_delay_ms),
-                        injected_delay_ticks=delay_ticks, rtc_delay_ticks=settings["rtc_delay_ticks"])
-    _run_episodes(result, env, episode, n_episodes, seed, strips_dir, progress)
-    result.z_rms = recent.rms()
-    return result
+    scripted expert drives the same loop (:class:`dssp_sim.expert_policy.ScriptedExpert`; Piper tasks).
+    :func:`prepare_evaluation`, then :meth:`Evaluation.run`."""
+    evaluation = prepare_evaluation(model_dir, task, n_episodes, seed, threads, state_token_noise, precision, kernel,
+                                    spinning, views is not None, smoothing, ensemble_every, ensemble_decay,
+                                    inject_delay_ms)
+    return evaluation.run(strips_dir, progress, views)
 
 
-def _evaluate_expert(task: str, n_episodes: int, seed: int, strips_dir: Path | None, progress: bool, views) -> EvalResult:
+def _prepare_expert(task: str, n_episodes: int, seed: int) -> Evaluation:
     """``dssp-sim eval --expert``: the task's scripted expert as the loop's policy source."""
     from dssp_sim import metaworld_env  # deferred: loads mujoco
     from dssp_sim.env import PiperEnv  # deferred: loads mujoco
@@ -410,12 +451,10 @@ def _evaluate_expert(task: str, n_episodes: int, seed: int, strips_dir: Path | N
                           "dssp-sim collect)")
     env = PiperEnv(task, seed=seed)
 
-    def episode(s, frames, ticks):
+    def episode(s, frames, ticks, views):
         return run_episode(ScriptedExpert(env), env, s, None, frames, ticks, views)
 
-    result = EvalResult("expert", task)
-    _run_episodes(result, env, episode, n_episodes, seed, strips_dir, progress)
-    return result
+    return Evaluation(EvalResult("expert", task), env, episode, n_episodes, seed)
 
 
 def _run_episodes(result: EvalResult, env, episode, n_episodes: int, seed: int, strips_dir: Path | None, progress: bool) -> None:

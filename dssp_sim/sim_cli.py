@@ -120,7 +120,7 @@ def run(args) -> int:
             raise ConfigError(f"only {result.kept} of {args.episodes} expert episodes succeeded in {result.attempted} tries; "
                               "the dataset holds the successful ones — check the task's expert")
         return 0
-    from dssp_sim.evaluate import STRIPS_DIR, evaluate, print_eval  # deferred: loads can
+    from dssp_sim.evaluate import STRIPS_DIR, prepare_evaluation, print_eval  # deferred: loads can
 
     if not (math.isfinite(args.noise) and 0 <= args.noise <= 10):
         raise ConfigError(f"--noise must be a number in [0, 10] (σ in the tokens' units), got {args.noise}")
@@ -134,15 +134,19 @@ def run(args) -> int:
     if args.json:
         check_output_file(args.json, force=args.force, flag="--json")
 
+    # the model and the task loaded and every setting checked against them before an output is opened
+    evaluation = prepare_evaluation(args.model, args.task, args.episodes, seed=args.seed, threads=args.threads,
+                                    precision=args.precision, kernel=args.kernel,
+                                    spinning=False if args.no_spin else None, state_token_noise=args.noise,
+                                    views=bool(args.rerun or args.rerun_save), inject_delay_ms=args.inject_delay,
+                                    **smoothing_options(args))
     with contextlib.ExitStack() as stack:
+        stack.callback(evaluation.env.close)
         strips = stack.enter_context(OutputDir(args.strips, STRIPS_DIR, force=args.force, flag="--strips")) if args.strips else None
         views = open_views("dssp-sim eval", args.rerun, args.rerun_save)  # after --strips: a refused one saves no views
         if views is not None:
             stack.callback(lambda: print(views.close_line()))
-        result = evaluate(args.model, args.task, args.episodes, seed=args.seed, threads=args.threads,
-                          precision=args.precision, kernel=args.kernel, spinning=False if args.no_spin else None, state_token_noise=args.noise, strips_dir=strips.path if strips else None,
-                          progress=not args.no_progress, views=views, inject_delay_ms=args.inject_delay,
-                          **smoothing_options(args))
+        result = evaluation.run(strips.path if strips else None, progress=not args.no_progress, views=views)
         if strips is not None:
             strips.commit()
     print_eval(result)

@@ -171,13 +171,24 @@ def test_rtc_needs_an_inpainting_model_and_no_prefetch():
         ChunkedControl(FakePolicy(), injected_delay=-1)
 
 
-def test_dssp_sim_eval_refuses_rtc_without_an_inpainting_model_and_a_delay_for_the_expert(exports, capsys):
+def test_dssp_sim_eval_refuses_rtc_without_an_inpainting_model_and_a_delay_for_the_expert(exports, capsys, tmp_path):
+    """Refused before any output is opened: the refused run leaves no Rerun recording and no strips folder, so
+    the corrected command runs with the same outputs."""
     from dssp_sim.sim_cli import main as sim_main
 
     plain_dir, _ = exports
-    code = sim_main(["eval", "--model", str(plain_dir), "--task", "tap", "--episodes", "1", "--smoothing", "rtc",
-                     "--no-progress"])
-    assert code == 2 and "export the model with python -m export.to_onnx --inpainting" in one_error_line(capsys.readouterr().err)
+    outputs = ["--rerun-save", str(tmp_path / "eval.rrd"), "--strips", str(tmp_path / "strips")]
+    for refused, message in ((["--smoothing", "rtc"], "export the model with python -m export.to_onnx --inpainting"),
+                             (["--smoothing", "ensemble", "--ensemble-every", "99"], "--ensemble-every 99"),
+                             (["--inject-delay", "20000"], "--inject-delay must be in [0, 10000] ms")):
+        code = sim_main(["eval", "--model", str(plain_dir), "--task", "tap", "--episodes", "1", *refused, *outputs,
+                         "--no-progress"])
+        assert code == 2 and message in one_error_line(capsys.readouterr().err)
+        assert list(tmp_path.iterdir()) == []
+    code = sim_main(["eval", "--model", str(plain_dir), "--task", "tap", "--episodes", "1", *outputs, "--no-progress"])
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert (tmp_path / "eval.rrd").is_file() and len(list((tmp_path / "strips").glob("*.png"))) == 1
     code = sim_main(["eval", "--expert", "--task", "tap", "--episodes", "1", "--inject-delay", "100", "--no-progress"])
     assert code == 2 and "--inject-delay is a model's setting" in one_error_line(capsys.readouterr().err)
 
