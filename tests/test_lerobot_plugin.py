@@ -344,3 +344,36 @@ def test_depth_without_its_camera_is_refused(setup, depth, tmp_path):
                                "give --policy.extrinsics=calib.json"), proc.stderr[-4000:]
     assert all("Traceback" in run for run in runs)
     assert not any((out / "checkpoints").exists() for _, out, _, _ in cases)
+
+
+# lerobot-train several times in one process (its imports once): each case's traceback as the interpreter prints it
+TRAIN_CASES = r"""
+import json, sys, traceback
+from lerobot.scripts.lerobot_train import main
+
+for argv in json.loads(sys.argv[1]):
+    sys.argv = ["lerobot-train", *argv]
+    try:
+        main()
+    except Exception:
+        traceback.print_exc()
+    print("-- end of case", file=sys.stderr, flush=True)
+"""
+
+
+def test_a_history_out_of_range_or_over_the_read_budget_is_refused_before_training(setup, tmp_path, monkeypatch):
+    """--policy.history=0 is refused with its own message as the last line (not draccus' generic one), and a
+    history whose samples would take more than DSSP_READ_BUDGET is refused before LeRobot loads a sample."""
+    tmp, paths, root, _ = setup
+    monkeypatch.setenv("DSSP_READ_BUDGET", "8M")  # a sample of 100,000 frames of this dataset: about 40 MiB
+    cases = [[*train_args("local/tap", root, tmp_path / f"out{h}"), f"--policy.history={h}"] for h in (0, 100_000)]
+    proc = lerobot(tmp, paths, TRAIN_CASES, json.dumps(cases))
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    runs = proc.stderr.split("-- end of case")[:2]
+    lasts = [run.strip().splitlines()[-1] for run in runs]
+    assert lasts[0] == "ValueError: --policy.history must be in [1, 100000] frames, got 0", runs[0][-3000:]
+    assert lasts[1].startswith("ValueError: a training sample of --policy.history=100000 frames"), runs[1][-3000:]
+    assert "over the read budget of 8.0 MiB (DSSP_READ_BUDGET): lower --policy.history (the longest episode has " \
+           "40 frames)" in lasts[1]
+    assert "Start offline training" not in proc.stderr
+    assert not any((tmp_path / f"out{h}" / "checkpoints").exists() for h in (0, 100_000))

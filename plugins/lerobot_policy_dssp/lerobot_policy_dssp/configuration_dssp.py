@@ -75,14 +75,14 @@ class DSSPConfig(PreTrainedConfig):
                                  "ACTION": NormalizationMode.IDENTITY}
     )
 
-    def __post_init__(self):
-        super().__post_init__()
-        if not 1 <= self.history <= MAX_HISTORY:
-            raise ValueError(f"--policy.history must be in [1, {MAX_HISTORY}] frames, got {self.history}")
-        self.run()  # an unknown preset or a bad override is refused now, in one line
-
+    # Checked when first used (the dataset's frames to load, the policy built), not in __post_init__: draccus,
+    # which builds this config from lerobot-train's flags, would bury the refusal under its own generic line; from
+    # there it is the last line LeRobot prints.
     def run(self) -> RunConfig:
-        """The recorded RunConfig, or (before the dataset is seen) the preset with its overrides."""
+        """The recorded RunConfig, or (before the dataset is seen) the preset with its overrides; an unknown
+        preset, a bad override or a history outside [1, MAX_HISTORY] is refused in one line (ValueError)."""
+        if isinstance(self.history, bool) or not isinstance(self.history, int) or not 1 <= self.history <= MAX_HISTORY:
+            raise ValueError(f"--policy.history must be in [1, {MAX_HISTORY}] frames, got {self.history}")
         if self.run_config is not None:
             return RunConfig.from_dict(self.run_config)
         return apply_overrides(load_preset(self.preset), list(self.overrides))
@@ -90,6 +90,11 @@ class DSSPConfig(PreTrainedConfig):
     @property
     def horizon(self) -> int:
         return self.run().model.horizon
+
+    @property
+    def window(self) -> int:
+        """Frames each training sample carries: ``history`` up to its own, and the chunk's ``horizon`` - 1 after."""
+        return self.history + self.horizon - 1
 
     @property
     def observation_delta_indices(self) -> list[int]:

@@ -33,6 +33,7 @@ import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.policies.pretrained import PreTrainedPolicy
 
+from dssp_data.bounded import check_budget, human_size
 from dssp_data.lerobot.layout import feature_layout
 from dssp_train.config import RunConfig
 from dssp_train.model.policy import DSSPPolicy as Model
@@ -100,6 +101,21 @@ def _longest_episode(dataset_meta) -> int:
         return 0
 
 
+def check_sample_memory(config: DSSPConfig, dataset_meta) -> None:
+    """Refuse, before LeRobot loads a sample, a window whose frames take more than the read budget
+    (``DSSP_READ_BUDGET``, :func:`dssp_data.bounded.check_budget`): LeRobot loads ``config.window`` frames of every
+    ``observation.*`` feature and the action for each sample — outside the episode too, as padding — each element
+    at least a float32. A ValueError of one line naming the history, the size and what to do."""
+    frame = sum(int(np.prod(feature["shape"])) * 4 for key, feature in dataset_meta.features.items()
+                if key.startswith("observation.") or key == ACTION_KEY)
+    longest = _longest_episode(dataset_meta)
+    check_budget(config.window * frame,
+                 f"a training sample of --policy.history={config.history} frames (and the chunk's {config.horizon - 1} "
+                 f"after it; {human_size(frame)} per frame)",
+                 "lower --policy.history" + (f" (the longest episode has {longest} frames)" if longest else ""),
+                 error=ValueError)
+
+
 def _range(stats: dict, key: str) -> np.ndarray:
     """(2, ...) the feature's min and max from LeRobot's statistics: what the min/max normalisers are fitted on."""
     return np.stack([np.asarray(stats[key]["min"], dtype=np.float64), np.asarray(stats[key]["max"], dtype=np.float64)])
@@ -115,6 +131,8 @@ class DSSPPolicy(PreTrainedPolicy):
                 and config.depth_key in config.input_features:
             use_depth(config, dataset_meta)
         config.validate_features()
+        if dataset_meta is not None:
+            check_sample_memory(config, dataset_meta)
         if config.run_config is None:
             config.run_config = resolve_run_config(config, dataset_meta).to_dict()
             longest = _longest_episode(dataset_meta)
@@ -122,6 +140,11 @@ class DSSPPolicy(PreTrainedPolicy):
                 logging.warning("the dataset's episodes run up to %d frames, more than --policy.history=%d: a sample's "
                                 "trajectory starts at most %d frames before it (--policy.history=%d trains on whole "
                                 "histories)", longest, config.history, config.history - 1, longest)
+            elif longest and config.history > 2 * longest:
+                logging.warning("--policy.history=%d is more than twice the longest episode (%d frames): LeRobot loads "
+                                "every sample's %d frames, the padding beyond the episode included; "
+                                "--policy.history=%d trains on whole histories at a fraction of the cost",
+                                config.history, longest, config.window, longest)
         self.run_config = RunConfig.from_dict(config.run_config)
         self.model = Model(self.run_config.model)
         if dataset_stats is not None:
