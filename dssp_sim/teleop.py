@@ -144,6 +144,12 @@ class TeleopRig:
             self.camera.capture()
         self._sync()
 
+    def answer(self) -> None:
+        """The follower handles what it was sent so far (the joint-limit query) and reports, at the present time:
+        nothing moves, nothing renders."""
+        self.follower.step(0.0)
+        self._sync()
+
     def _tick(self, dt: float) -> None:
         """The loop sleeps ``dt``: the world moves, then the leader sends its command for the next tick."""
         self.after_tick(dt)

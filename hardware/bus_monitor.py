@@ -7,12 +7,18 @@
         ...
         frames = bus.end_log()
 
-The monitor never sends. One thread receives every frame, stamps it on arrival with ``clock()``
+The monitor commands nothing. One thread receives every frame, stamps it on arrival with ``clock()``
 (``time.monotonic`` on a robot; the simulated clock in lockstep), decodes it (``hardware.piper.codec``)
 and writes it to the episode's log when one is open, so the decoded streams and the log hold exactly the
 same frames. ``wait_for_frames(n)`` blocks until ``n`` frames have arrived (lockstep simulation).
 :class:`ListeningArms` is the followers the monitors hear as the control loop's robot, one that never commands
 (``dssp-record``: the leader drives the follower itself).
+
+The one frame a monitor sends is the joint-limit query (0x472, :meth:`BusMonitor.query_limits`), asked before
+recording starts (:meth:`hardware.rig.Rig.check_firmware_limits` from ``dssp-record``), as piper-sdk asks whenever it
+connects: a follower whose firmware limits are corrupted is refused before anything is recorded. It is a read of
+parameters: nothing moves and no mode changes. The answers (0x473) are heard like any frame; if the leader arm
+answers too, every answer counts (:class:`hardware.piper.firmware_limits.LimitAnswers` keeps their intersection).
 """
 
 from __future__ import annotations
@@ -31,8 +37,9 @@ from dssp_core.errors import ArmError, CanError
 from hardware.can_reader import CanReader
 from hardware.leader import ArmReading, JointGripperTracker, LeaderTracker
 from hardware.piper import codec
+from hardware.piper.firmware_limits import LimitAnswers
 from hardware.piper.limits import piper_description
-from hardware.robot import ArmStatus, Robot, RobotDescription, RobotState
+from hardware.robot import ArmStatus, FirmwareLimits, Robot, RobotDescription, RobotState
 
 _NAN = float("nan")
 ARM_ERROR_STATUSES = frozenset(range(0x01, 0x0B)) | {0x0E, 0x0F}
@@ -92,6 +99,7 @@ class BusMonitor:
         self.frames_received = 0
         self._follower = FollowerTracker()
         self._leader = LeaderTracker()
+        self._limits = LimitAnswers()  # the firmware joint limits (0x473) heard since start
         self._lock = threading.Condition()
         self._log: can.Listener | None = None
         self._log_frames = 0
@@ -109,6 +117,7 @@ class BusMonitor:
     def start(self) -> None:
         """Open the bus and start receiving (no-op if started). Raises CanError."""
         if self._reader.bus is None:
+            self._limits.clear()
             self._reader.start()
 
     def stop(self) -> None:
@@ -137,6 +146,8 @@ class BusMonitor:
             if message is not None:
                 self._follower.update(message, now)
                 self._leader.update(message, now)
+                if isinstance(message, codec.MotorLimitFeedback):
+                    self._limits.update(message)
             if self._log is not None:
                 self._write_log(frame)
             self.frames_received += 1
@@ -171,6 +182,25 @@ class BusMonitor:
         """The leader's latest commanded target (7,) in policy units, with arrival time."""
         with self._lock:
             return self._leader.reading()
+
+    def query_limits(self, send_timeout: float = 0.05) -> None:
+        """Send the joint-limit query (0x472, content 1) to every motor that has not answered since :meth:`start`:
+        the only frame a monitor sends. Raises CanError if it cannot be sent."""
+        self.check()
+        bus = self._reader.bus
+        if bus is None:
+            raise CanError(f"bus {self.channel!r} is not open: start() the monitor first")
+        for frame in self._limits.query_frames():
+            try:
+                bus.send(frame, timeout=send_timeout)
+            except (can.CanError, OSError, ValueError) as exc:
+                raise CanError(f"sending the joint-limit query on {self.channel!r} failed ({exc}); check the CAN "
+                               "link") from exc
+
+    def firmware_limits(self) -> FirmwareLimits:
+        """The joint limits J1..J6 the follower's firmware reported since :meth:`start` (NaN where not yet)."""
+        self.check()
+        return self._limits.limits(f"the arm on {self.name}", self.channel)
 
     def follower_error(self) -> str | None:
         """A fault the follower reports in its latest status frame, or None."""
@@ -228,8 +258,9 @@ def oldest(readings: list[ArmReading]) -> float:
 class ListeningArms(Robot):
     """The follower arms heard by ``monitors`` (one per leader/follower pair, left first) as one robot that only
     listens: :meth:`state` is the followers' feedback (dof = 7 per arm, policy units), :meth:`command`, :meth:`enable`
-    and :meth:`disable` refuse (ArmError) — the leaders drive the followers. The monitors are opened and closed by
-    their owner (the recording session), not here."""
+    and :meth:`disable` refuse (ArmError) — the leaders drive the followers; :meth:`query_firmware_limits` asks for
+    the followers' firmware joint limits, the one thing it sends. The monitors are opened and closed by their owner
+    (the recording session), not here."""
 
     def __init__(self, monitors: list[BusMonitor]) -> None:
         self.monitors = list(monitors)
@@ -252,6 +283,15 @@ class ListeningArms(Robot):
             error = monitor.follower_error()
             status.append(ArmStatus(enabled=True, error=error is not None, detail=error or ""))
         return RobotState(np.concatenate([r.position for r in readings]), oldest(readings), tuple(status))
+
+    def query_firmware_limits(self) -> None:
+        """The joint-limit query on every bus (:meth:`BusMonitor.query_limits`): the one frame the recorder sends."""
+        for monitor in self.monitors:
+            monitor.query_limits()
+
+    def firmware_limits(self) -> tuple[FirmwareLimits, ...]:
+        """Each follower's joint limits as its firmware reported them (NaN where not yet), left first."""
+        return tuple(monitor.firmware_limits() for monitor in self.monitors)
 
     def _refuse(self, what: str) -> None:
         raise ArmError(f"{what}: the followers are driven by their leader arms; the recorder only listens")

@@ -107,10 +107,46 @@ class RobotDescription:
                 "max_joint_speed": self.max_joint_speed, "feedback_hz": self.feedback_hz}
 
 
+@dataclass(frozen=True)
+class FirmwareLimits:
+    """The joint limits one arm's own firmware enforces, as the arm reports them (it clips targets to them, or faults).
+
+    lower, upper: (n,) float64 rad per joint, NaN for a joint that has not answered yet. max_speed: (n,) rad/s.
+    arm: who reported them, as a message names it ("the arm on can0"). resolution: rad, the step the firmware stores
+    its limits in (a limit within half of it of another is that one, rounded). advice: (n,) what to do when a joint's
+    limits are wrong (empty: a generic line). Nothing is checked on construction: a corrupted firmware reports
+    min = max or min > max, and that is what start-up looks for (:func:`hardware.safety.firmware_limits_problem`).
+    """
+
+    lower: np.ndarray
+    upper: np.ndarray
+    max_speed: np.ndarray
+    arm: str = "the arm"
+    resolution: float = 0.0
+    advice: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        arrays = [np.array(v, dtype=np.float64).reshape(-1) for v in (self.lower, self.upper, self.max_speed)]
+        if len({a.shape for a in arrays}) != 1:
+            raise ValueError(f"{self.arm}: lower, upper and max_speed must have one value per joint each")
+        for name, array in zip(("lower", "upper", "max_speed"), arrays):
+            array.setflags(write=False)
+            object.__setattr__(self, name, array)
+
+    @property
+    def missing(self) -> tuple[int, ...]:
+        """The joints (0-based) without an answer yet."""
+        return tuple(int(j) for j in np.flatnonzero(np.isnan(self.lower) | np.isnan(self.upper)))
+
+
 class Robot(ABC):
     """One or more arms as one vector. Every method raises ``dssp_core.errors.ArmError``/``CanError``.
 
-    ``description`` says what the robot is (:class:`RobotDescription`) without touching the hardware."""
+    ``description`` says what the robot is (:class:`RobotDescription`) without touching the hardware.
+    ``query_firmware_limits`` / ``firmware_limits`` read the joint limits the arms' own firmware enforces, which
+    start-up compares with the safety layer's before anything is enabled
+    (:meth:`hardware.rig.Rig.check_firmware_limits`); a robot whose hardware keeps no limits of its own keeps the
+    defaults (nothing to ask, nothing to check)."""
 
     dof: int
 
@@ -132,6 +168,15 @@ class Robot(ABC):
     @abstractmethod
     def command(self, target: np.ndarray) -> None:
         """Send absolute joint + gripper targets (dof,) in policy units. Callers go through the safety layer."""
+
+    def query_firmware_limits(self) -> None:
+        """Ask every arm that has not answered yet for the joint limits its firmware enforces (never blocks; the
+        answers come in :meth:`firmware_limits`). Default: nothing to ask."""
+
+    def firmware_limits(self) -> tuple[FirmwareLimits, ...]:
+        """What each arm's firmware has reported of its joint limits so far, in arm order (NaN where a joint has not
+        answered). Default: () — no arm keeps limits of its own."""
+        return ()
 
     @abstractmethod
     def emergency_stop(self) -> None: ...

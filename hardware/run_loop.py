@@ -21,7 +21,9 @@ Each tick:
 4. send it (not with ``dry_run``), hand the tick to the subscribers (:mod:`hardware.subscribers`: the episode
    log, the status line, Rerun views, …), sleep to the next tick (:class:`hardware.pacing.Pacer`).
 A fault (arm error or e-stop, a send failure, an error in the source) ends the loop in a hold: nothing is sent
-after it. Shapes: cloud (P, C) float32; state, action and command (dof,) in policy units.
+after it. Shapes: cloud (P, C) float32; state, action and command (dof,) in policy units. Before the first tick,
+:meth:`Runner.start` checks the joint limits the arms' firmware enforces against the safety layer's
+(:meth:`hardware.rig.Rig.check_firmware_limits`) and only then enables the arms.
 
 A source that commands nothing (:attr:`hardware.policies.PolicySource.commands` false: the leader arm of
 ``dssp-record``, which drives its follower over the bus itself) runs the same loop without the safety layer: nothing
@@ -112,10 +114,12 @@ class Runner:
         self.stop_reason = self.stop_reason or why
 
     def start(self) -> None:
-        """Wait for the first frame (a source that needs the point cloud) and feedback, set up the safety layer,
-        enable the arms (not in dry run), reset the source with the measured position. A stop requested before the
-        arms are enabled ends the start there: nothing is enabled or sent. A source that commands nothing starts at
-        once (no stream awaited, no safety layer, the source reset with the feedback if there is any)."""
+        """Wait for the first frame (a source that needs the point cloud) and feedback, check the joint limits the
+        arms' firmware enforces against the safety layer's (:meth:`hardware.rig.Rig.check_firmware_limits`: one line
+        and nothing enabled when they would clip or fault inside it; not in dry run, which sends nothing), set up the
+        safety layer, enable the arms (not in dry run), reset the source with the measured position. A stop requested
+        before the arms are enabled ends the start there: nothing is enabled or sent. A source that commands nothing
+        starts at once (no stream awaited, no safety layer, the source reset with the feedback if there is any)."""
         if not self.commanding:
             state = self.robot.state()
             self.source.reset(None if state is None else np.array(state.position, dtype=np.float64))
@@ -133,6 +137,10 @@ class Runner:
             raise DSSPError(
                 f"no joint feedback within {timeout:g} s: check the CAN bus (bitrate 1 Mbit/s, cabling) and that the arm is powered"
             )
+        if not self.settings.dry_run:  # before anything is enabled: the arms' own limits hold the safety layer's range
+            self.rig.check_firmware_limits(stopped=lambda: self.stop_reason is not None)
+            if self.stop_reason is not None:
+                return
         lower, upper, gripper = self.limits
         self.safety = Safety(self.safety_config, lower, upper, gripper, state.position)
         if not self.settings.dry_run:

@@ -19,10 +19,16 @@ clip, refusal, fault) is recorded with its time in :attr:`Safety.events`.
 
 The layer reads no clock: every time is passed in (``now``, ``camera_time``, ``state.timestamp``), all
 seconds on the loop's clock (:mod:`hardware.clock`), so ages and event times are whatever that clock says.
+
+Before anything is enabled, start-up reads the joint limits the arms' own firmware enforces and refuses those that
+would clip or fault inside what this layer lets the policy command (:func:`allowed_range`): empty (min = max),
+inverted (min > max) or narrower (:func:`firmware_limits_problem`; asked and waited for by
+:meth:`hardware.rig.Rig.check_firmware_limits`).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, field
 from typing import Any, ClassVar
 
@@ -30,7 +36,7 @@ import numpy as np
 
 from dssp_core.errors import ConfigError
 from dssp_core.schema import Settings, setting
-from hardware.robot import RobotState
+from hardware.robot import FirmwareLimits, RobotState
 
 
 @dataclass(frozen=True)
@@ -60,6 +66,52 @@ class SafetyConfig(Settings):
                 f"safety.max_joint_step {self.max_joint_step:g} rad per tick at {rate_hz:g} Hz is {speed:.3g} rad/s, "
                 f"above the arm's {max_joint_speed:g} rad/s: lower max_joint_step to at most {max_joint_speed / rate_hz:.4g}"
             )
+
+
+def allowed_range(config: SafetyConfig, lower, upper, gripper_mask) -> tuple[np.ndarray, np.ndarray]:
+    """What the safety layer lets the policy command: (lower (dof,), upper (dof,)), the limits with ``limit_margin``
+    kept away from each joint's (not the gripper's)."""
+    gripper = np.asarray(gripper_mask, bool)
+    margin = np.where(gripper, 0.0, config.limit_margin)
+    return np.asarray(lower, np.float64) + margin, np.asarray(upper, np.float64) - margin
+
+
+GENERIC_ADVICE = "reset the arm's joint limits with its maker's tool, then start again"
+
+
+def _deg(lo: float, hi: float) -> str:
+    return f"{math.degrees(lo):.1f}..{math.degrees(hi):.1f} deg"
+
+
+def firmware_limits_problem(reported: FirmwareLimits, lower, upper) -> str | None:
+    """Why the joint limits ``reported`` by an arm's firmware cannot serve the range ``lower``..``upper`` ((n,) rad,
+    that arm's joints in :func:`allowed_range`), as one line naming the arm, the joint, both ranges and what to do;
+    None when every joint's firmware range contains it. A joint is refused whose firmware range is missing (no
+    answer), empty (min = max), inverted (min > max) or narrower than the safety range by more than half the
+    firmware's ``resolution`` (it would clip or fault inside what the policy may command). The first such joint
+    is named."""
+    lower, upper = np.asarray(lower, np.float64), np.asarray(upper, np.float64)
+    if lower.shape != reported.lower.shape or upper.shape != reported.upper.shape:
+        raise ValueError(f"{reported.arm}: {reported.lower.size} joints reported, the safety range has {lower.size}")
+    tolerance = reported.resolution / 2
+    for j in range(lower.size):
+        lo, hi = float(reported.lower[j]), float(reported.upper[j])
+        if not (math.isfinite(lo) and math.isfinite(hi)):
+            what = "no answer"
+        elif lo == hi:
+            what = "empty: min = max"
+        elif lo > hi:
+            what = "inverted: min > max"
+        elif lo > lower[j] + tolerance or hi < upper[j] - tolerance:
+            what = "narrower"
+        else:
+            continue
+        advice = reported.advice[j] if j < len(reported.advice) else GENERIC_ADVICE
+        shown = "no limits" if what == "no answer" else _deg(lo, hi)
+        return (f"{reported.arm}: its firmware limits J{j + 1} to {shown} ({what}), but the safety settings let the "
+                f"policy command {_deg(lower[j], upper[j])} ({lower[j]:.4g}..{upper[j]:.4g} rad): the arm would clip "
+                f"or fault inside that range; {advice}")
+    return None
 
 
 @dataclass(frozen=True)
@@ -92,10 +144,8 @@ class Safety:
 
     def __init__(self, config: SafetyConfig, lower, upper, gripper_mask, start):
         self.config = config
-        lower, upper = np.asarray(lower, np.float64), np.asarray(upper, np.float64)
         self.gripper = np.asarray(gripper_mask, bool)
-        margin = np.where(self.gripper, 0.0, config.limit_margin)
-        self.lower, self.upper = lower + margin, upper - margin
+        self.lower, self.upper = allowed_range(config, lower, upper, self.gripper)
         if self.lower.shape != self.upper.shape or self.gripper.shape != self.lower.shape or np.any(self.lower > self.upper):
             raise ConfigError("safety limits: lower, upper and gripper mask must have one shape and lower <= upper (minus the margin)")
         self.dof = self.lower.shape[0]

@@ -9,7 +9,9 @@
 Controls: on a terminal single keys, s start, k stop and keep, d stop and discard, q quit; otherwise one
 command per line on stdin (s/start, k/keep, d/discard, q/quit). A live status line shows the episode, its
 step, the measured rate and the age of every stream (``!`` past its threshold). Each kept episode is
-appended to PATH.zarr crash-safely, with its raw CAN traffic in PATH.zarr.can/. ``dssp-sim record`` (same
+appended to PATH.zarr crash-safely, with its raw CAN traffic in PATH.zarr.can/. Before anything is recorded or
+written, the followers are asked for their firmware joint limits (0x472, the one frame the recorder sends) and one
+that does not answer, or whose limits are empty, inverted or narrower than the Piper's, is refused with one line. ``dssp-sim record`` (same
 flags, :mod:`dssp_sim.teleop`) records from the embedded simulation through this same code: ``--camera mujoco
 --can mujoco`` (its defaults: the MuJoCo Piper's camera and arms), the task's scripted expert playing the leader arm on a virtual bus. The
 simulation is handed in as a :class:`SimulatedRig` (this package never imports the simulation).
@@ -40,6 +42,7 @@ from dssp_core.output_guard import NEW, OutputKind, check_append
 from dssp_data.attributes import zarr_generator
 from dssp_data.observation import ObservationContract, piper_layout
 from hardware.cli.stops import Stops, run_stoppable
+from hardware.clock import FakeClock
 
 RECORDED_DATASET = OutputKind("a recorded dataset", "dssp-record", marker=False,
                               signature=lambda p: zarr_generator(p) == "dssp-record")
@@ -67,8 +70,23 @@ class SimulatedRig(Protocol):
 
     def open(self, task: str, seed: int, pace: float | None = None): ...
     """A rig (``channel``, ``camera``, ``clock`` — whose sleep moves the simulation —, ``control_rate_hz``,
-    ``start(monitor)``, ``stop()``) for ``task`` from scene ``seed``, run at ``pace`` simulated seconds per wall
-    second (None: as fast as possible); raises ConfigError naming the task when there is no such task."""
+    ``start(monitor)``, ``answer()`` — its arms handle what they were sent, at the present time: nothing moves —,
+    ``stop()``) for ``task`` from scene ``seed``, run at ``pace`` simulated seconds per wall second (None: as fast as
+    possible); raises ConfigError naming the task when there is no such task."""
+
+
+class _AnsweredInPlace(FakeClock):
+    """The wait for the simulated followers' answers to the joint-limit query, in lockstep without moving the
+    simulation: each sleep counts on this clock (for the timeout) and lets the rig's arms answer at the present time
+    (``answer()``), so the recording is the same with the check as without."""
+
+    def __init__(self, rig) -> None:
+        super().__init__()
+        self.rig = rig
+
+    def sleep(self, dt: float) -> None:
+        super().sleep(dt)
+        self.rig.answer()
 
 
 def parse_args(argv, sim: SimulatedRig | None = None, prog: str = "dssp-record"):
@@ -252,10 +270,11 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
     )
     from dssp_data.replay_buffer_writer import dataset_lock  # deferred: loads msgpack, numcodecs, numpy, …
     from dssp_data.rerun_views import open_views  # deferred: loads numpy
-    from hardware.bus_monitor import BusMonitor  # deferred: loads numpy
+    from hardware.bus_monitor import BusMonitor, ListeningArms  # deferred: loads numpy
     from hardware.clock import REAL_CLOCK  # deferred: loads numpy
     from dssp_data.pointcloud import PointCloudConfig, load_extrinsics  # deferred: loads numpy
     from hardware.record_session import RecordSession, SessionSettings  # deferred: loads numpy
+    from hardware.rig import Rig  # deferred: loads numpy
     from hardware.recorder import Recorder, RecordThresholds, StampedCamera  # deferred: loads numpy
     from hardware.robot import check_rate  # deferred: loads numpy
 
@@ -338,6 +357,11 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
             stack.enter_context(monitor)
         frame = raw_camera.wait_for_frame(5.0)
         camera = StampedCamera(raw_camera)
+
+    # Before anything is recorded or written: the followers' own joint limits, read with the one frame the recorder
+    # sends (0x472), must hold the range the robot is used in (hardware.rig.Rig.check_firmware_limits).
+    waiting = _AnsweredInPlace(rig) if sim_can else clock
+    Rig(None, ListeningArms(monitors), camera_to_base, clock=waiting).check_firmware_limits()
 
     n_arms = 1 if sim_can else len(monitors)
     recorder = Recorder(camera, monitors, cloud_config, camera_to_base, float(rate), action_convention=convention,

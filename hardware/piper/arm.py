@@ -3,7 +3,8 @@
 A receive thread keeps the latest feedback frame of each kind with its arrival time on the arm's clock
 (``hardware.clock``; wall time by default).
 Commands are sent synchronously; a frame that cannot be sent raises ``CanError``. The arm obeys joint
-targets only in CAN command mode with joint move mode (``set_joint_mode``), after ``enable``.
+targets only in CAN command mode with joint move mode (``set_joint_mode``), after ``enable``. ``query_limits`` asks
+the firmware for the joint limits it enforces (0x472); ``firmware_limits`` is what it answered (0x473) since connect.
 """
 
 from __future__ import annotations
@@ -17,10 +18,11 @@ import numpy as np
 
 from hardware.can_reader import CanReader
 from hardware.clock import REAL_CLOCK, Clock
-from hardware.robot import ArmStatus
+from hardware.robot import ArmStatus, FirmwareLimits
 from dssp_core.errors import ArmError, CanError
 from hardware.piper import codec
-from hardware.piper.codec import ArmStatusFeedback, GripperFeedback, JointFeedback, MotorLowSpeed
+from hardware.piper.codec import ArmStatusFeedback, GripperFeedback, JointFeedback, MotorLimitFeedback, MotorLowSpeed
+from hardware.piper.firmware_limits import LimitAnswers
 
 _FEEDBACK_TYPES = (ArmStatusFeedback, JointFeedback, GripperFeedback, MotorLowSpeed, codec.MotorHighSpeed)
 _NAN = float("nan")
@@ -90,6 +92,7 @@ class PiperArm:
         self._lock = threading.Lock()
         self._send_lock = threading.Lock()
         self._latest: dict[int, tuple[object, float]] = {}  # arbitration ID -> (message, arrival time)
+        self._limits = LimitAnswers()  # the firmware's joint limits (0x473) since connect
 
     def __repr__(self) -> str:
         return f"PiperArm({self.channel!r}, {self.interface!r})"
@@ -101,6 +104,7 @@ class PiperArm:
             return
         with self._lock:
             self._latest.clear()  # feedback from before a reconnect is not reused
+        self._limits.clear()
         self._reader.start()
 
     def close(self) -> None:
@@ -121,6 +125,8 @@ class PiperArm:
         if isinstance(message, _FEEDBACK_TYPES):
             with self._lock:
                 self._latest[frame.arbitration_id] = (message, now)
+        elif isinstance(message, MotorLimitFeedback):
+            self._limits.update(message)
 
     def _check_rx(self) -> None:
         if self._reader.error is not None:
@@ -139,6 +145,19 @@ class PiperArm:
                 except (can.CanError, OSError, ValueError) as exc:
                     raise CanError(f"sending frame 0x{frame.arbitration_id:03X} on {self.channel!r} failed ({exc}); "
                                    "check the CAN link and that the arm is powered") from exc
+
+    def query_limits(self) -> None:
+        """0x472 (content 1: angle limits and max speed) to every motor that has not answered since connect; the
+        answers arrive in :meth:`firmware_limits`. Sends nothing once all six have answered."""
+        self._check_rx()
+        frames = self._limits.query_frames()
+        if frames:
+            self._send(*frames)
+
+    def firmware_limits(self) -> FirmwareLimits:
+        """The joint limits J1..J6 the firmware reported (0x473) since connect, NaN for a motor without an answer."""
+        self._check_rx()
+        return self._limits.limits(f"the arm on {self.channel}", self.channel)
 
     def set_joint_mode(self, speed_percent: int = 50) -> None:
         """0x151: CAN command mode, joint move mode (MOVE J), speed ``speed_percent`` in 0..100."""

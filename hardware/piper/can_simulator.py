@@ -14,6 +14,11 @@ What it models (device units: joints (6,) radians, gripper stroke metres):
   set until an in-range target for that joint arrives; the arm keeps moving (to the clamped target).
 - 0x150 = 1: emergency stop, joints and gripper hold, arm status 0x01, targets ignored. 0x150 = 2: resume
   as the SDK documents it (a reset): e-stop and limit flags cleared, all motors disabled, standby mode.
+- 0x472 content 1 (motor 1..6) is answered at once with 0x473: the joint limits its firmware holds
+  (``firmware_limits``: by default the factory table, ``hardware.piper.limits.FIRMWARE_LOWER_DEG``/``UPPER_DEG``,
+  and ``max_joint_speed``). They are only reported — its motion keeps ``hardware.piper.limits`` — so a test can
+  give an arm corrupted ones (min = max, min > max, too narrow), or none at all (``answers_limit_query=False``:
+  firmware that does not answer). Content 2 (max acceleration) is not answered.
 - Fault injection for tests: ``pause_feedback``/``resume_feedback``, ``raise_error``/``clear_error``.
 
 Run it with its own thread (``start()``) or drive it deterministically (``start(thread=False)``, then
@@ -33,7 +38,9 @@ import numpy as np
 from dssp_core.errors import CanError
 from hardware.can_reader import CanReader
 from hardware.piper import codec
+from hardware.piper.firmware_limits import factory_limits
 from hardware.piper.limits import GRIPPER_STROKE_MAX, GRIPPER_STROKE_MIN, JOINT_LOWER, JOINT_UPPER
+from hardware.robot import FirmwareLimits
 
 REACHED_TOL = 1e-4  # rad: motion_status reports "reached" within this of every target
 WIRE_UNIT = math.radians(0.001)  # rad: resolution of joint angles on the bus
@@ -44,12 +51,15 @@ class SimulatedPiper:
 
     rate: feedback ticks per second. max_joint_speed: rad/s at 100 % speed, scalar or (6,).
     gripper_speed: m/s. initial_joints: (6,) radians (default zeros). ``bus_options`` go to ``can.Bus``.
+    firmware_limits: the joint limits it reports for 0x472 (None: the factory table at ``max_joint_speed``);
+    answers_limit_query: False for firmware that never answers 0x472.
     """
 
     def __init__(self, channel: str, interface: str = "virtual", *, rate: float = 200.0,
                  max_joint_speed: float | np.ndarray = 3.0, gripper_speed: float = 0.1,
                  initial_joints: np.ndarray | None = None, initial_stroke: float = 0.0,
-                 low_speed_divider: int = 1, bus_options: dict | None = None) -> None:
+                 low_speed_divider: int = 1, bus_options: dict | None = None,
+                 firmware_limits: FirmwareLimits | None = None, answers_limit_query: bool = True) -> None:
         if rate <= 0:
             raise ValueError(f"rate must be > 0 Hz, got {rate}")
         self.channel = channel
@@ -59,10 +69,15 @@ class SimulatedPiper:
         self.max_joint_speed = np.broadcast_to(np.asarray(max_joint_speed, dtype=np.float64), (6,)).copy()
         self.gripper_speed = float(gripper_speed)
         self.low_speed_divider = max(1, int(low_speed_divider))
+        self.firmware_limits = factory_limits(self.max_joint_speed) if firmware_limits is None else firmware_limits
+        if self.firmware_limits.lower.shape != (6,):
+            raise ValueError(f"firmware_limits must hold 6 joints, got {self.firmware_limits.lower.shape}")
+        self.answers_limit_query = bool(answers_limit_query)
         self.decoder = codec.Decoder()
         self.ticks = 0
         self.frames_sent = 0
         self.commands_received = 0
+        self.queries_received = 0  # 0x472 limit queries (answered or not)
 
         q0 = np.zeros(6) if initial_joints is None else np.asarray(initial_joints, dtype=np.float64).reshape(6)
         self._q = np.clip(q0, JOINT_LOWER, JOINT_UPPER)
@@ -193,6 +208,10 @@ class SimulatedPiper:
             elif m.code in (codec.GRIPPER_DISABLE, codec.GRIPPER_DISABLE_CLEAR):
                 self._gripper_enabled = False
                 self._stroke_target = self._stroke
+        elif isinstance(m, codec.MotorLimitQuery):
+            self.queries_received += 1
+            if self.answers_limit_query and m.content == codec.QUERY_ANGLE_SPEED and 1 <= m.motor <= 6:
+                self._answer_limits(m.motor)
         elif isinstance(m, codec.MotorEnable):
             self.commands_received += 1
             if m.motor in (codec.MOTOR_ALL, codec.MOTOR_ALL_FF):
@@ -217,6 +236,13 @@ class SimulatedPiper:
     def _hold(self) -> None:
         self._target = self._q.copy()
         self._stroke_target = self._stroke
+
+    def _answer_limits(self, motor: int) -> None:
+        """0x473 for ``motor`` 1..6 at once, as the firmware answers a query (counted in ``frames_sent``)."""
+        limits, j = self.firmware_limits, motor - 1
+        frame = codec.MotorLimitFeedback(motor, limits.upper[j], limits.lower[j], limits.max_speed[j]).to_frame()
+        self._reader.bus.send(frame, timeout=0.05)
+        self.frames_sent += 1
 
     # ---- physics ----------------------------------------------------------------------------------------------
     def track(self, q: np.ndarray, target: np.ndarray, dt: float, speed: np.ndarray) -> np.ndarray:

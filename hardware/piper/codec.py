@@ -2,9 +2,10 @@
 
 Every frame is classic CAN with an 11-bit ID and 8 data bytes; multi-byte fields are big-endian.
 The dataclasses hold SI units (radians, metres, N·m, rad/s, A, V, °C); the wire holds integers in
-0.001 degree (joints), 0.001 mm (gripper stroke), 0.001 N·m (gripper effort), 0.001 rad/s, 0.001 A,
-0.1 V. ``to_frame()`` range-checks every field (ValueError for NaN/inf or a value that does not fit
-its integer field); ``Decoder.decode`` turns any ``can.Message`` into one of these or None.
+0.001 degree (joints; 0.1 degree for the joint limits of 0x473), 0.001 mm (gripper stroke), 0.001 N·m
+(gripper effort), 0.001 rad/s, 0.001 A, 0.1 V. ``to_frame()`` range-checks every field (ValueError for NaN/inf
+or a value that does not fit its integer field); ``Decoder.decode`` turns any ``can.Message`` into one of these or
+None.
 
 Frames (fb = arm -> host, cmd = host -> arm):
 
@@ -14,6 +15,10 @@ Frames (fb = arm -> host, cmd = host -> arm):
 - 0x155..0x157 cmd ``JointCtrl``: int32 pairs (J1,J2) (J3,J4) (J5,J6) in 0.001 degree
 - 0x159 cmd ``GripperCtrl``: int32 stroke 0.001 mm, u16 effort 0.001 N·m (0..5000), u8 code, u8 set_zero (0xAE)
 - 0x471 cmd ``MotorEnable``: u8 motor (1..6 joint; 7 or 0xFF all, see MOTOR_ALL), u8 flag (1 off, 2 on)
+- 0x472 cmd ``MotorLimitQuery``: u8 motor (1..6), u8 content (1 angle limits and max speed, answered by 0x473;
+  2 max acceleration)
+- 0x473 fb ``MotorLimitFeedback``: u8 motor, int16 max angle 0.1 degree, int16 min angle 0.1 degree, u16 max joint
+  speed 0.001 rad/s (the limits the motor's firmware enforces; piper-sdk's ArmMsgFeedbackCurrentMotorAngleLimitMaxSpd)
 - 0x2A1 fb ``ArmStatusFeedback``: u8 ctrl_mode, arm_status, mode_feed, teach_status, motion_status,
   trajectory_num, u16 error code (high byte: joint-limit bits J1..J6, low byte: communication bits J1..J6)
 - 0x2A5..0x2A7 fb ``JointFeedback``: int32 pairs in 0.001 degree
@@ -40,6 +45,8 @@ MOTION_CTRL_2 = 0x151
 JOINT_CTRL_IDS = (0x155, 0x156, 0x157)
 GRIPPER_CTRL = 0x159
 MOTOR_ENABLE = 0x471
+MOTOR_LIMIT_QUERY = 0x472
+MOTOR_LIMIT_FEEDBACK = 0x473
 ARM_STATUS = 0x2A1
 JOINT_FEEDBACK_IDS = (0x2A5, 0x2A6, 0x2A7)
 GRIPPER_FEEDBACK = 0x2A8
@@ -61,6 +68,8 @@ MOTOR_DISABLE, MOTOR_ENABLE_FLAG = 0x01, 0x02
 # enables the gripper through 0x159; the simulator treats both 7 and 0xFF as "all".
 MOTOR_ALL = 7
 MOTOR_ALL_FF = 0xFF
+# 0x472 byte 1: what is asked (the SDK's SearchMotorMaxAngleSpdAccLimit search_content).
+QUERY_ANGLE_SPEED, QUERY_ACCELERATION = 0x01, 0x02
 
 ARM_STATUS_NAMES = {
     0x00: "normal", 0x01: "emergency stop", 0x02: "no solution", 0x03: "singularity",
@@ -74,6 +83,9 @@ DRIVER_FAULT_BITS = 0b0011_1111 | 0x80  # low-speed status: voltage, temps, curr
 GRIPPER_FAULT_BITS = 0b0011_1111  # gripper status: voltage, temps, current, sensor, driver error
 
 _MDEG_PER_RAD = 180_000.0 / math.pi
+_DECIDEG_PER_RAD = 1800.0 / math.pi  # 0x473's angle limits are in 0.1 degree
+LIMIT_RESOLUTION = math.radians(0.1)
+"""rad: the step a Piper's firmware keeps its joint limits in (0x473)."""
 _UM_PER_M = 1_000_000.0
 
 
@@ -233,6 +245,23 @@ class MotorEnable:
         return cls(*struct.unpack_from(">BB", data))
 
 
+@dataclass(frozen=True)
+class MotorLimitQuery:
+    """0x472: ask motor 1..6 for its limits; ``content`` 1 (angle limits and max speed, answered by 0x473) or 2 (max
+    acceleration). piper-sdk sends it for every motor when it connects (``SearchAllMotorMaxAngleSpd``)."""
+
+    motor: int
+    content: int = QUERY_ANGLE_SPEED
+    ID: ClassVar[int] = MOTOR_LIMIT_QUERY
+
+    def to_frame(self) -> can.Message:
+        return _frame(self.ID, struct.pack(">BB6x", _uint(self.motor, 8, "motor"), _uint(self.content, 8, "content")))
+
+    @classmethod
+    def from_data(cls, arbitration_id: int, data: bytes) -> "MotorLimitQuery":
+        return cls(*struct.unpack_from(">BB", data))
+
+
 # ---- feedback --------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class ArmStatusFeedback:
@@ -372,11 +401,36 @@ class MotorLowSpeed:
                    bus_current / 1000.0)
 
 
-PiperMessage = Union[MotionCtrl1, MotionCtrl2, JointCtrl, GripperCtrl, MotorEnable, ArmStatusFeedback,
-                     JointFeedback, GripperFeedback, MotorHighSpeed, MotorLowSpeed]
+@dataclass(frozen=True)
+class MotorLimitFeedback:
+    """0x473: the limits motor 1..6's firmware enforces, the answer to 0x472 content 1: max and min angle (rad; int16
+    in 0.1 degree on the wire), max joint speed (rad/s; u16 in 0.001 rad/s). Decoded as sent, whatever the values
+    (a corrupted firmware reports min = max or min > max)."""
+
+    motor: int
+    max_angle: float
+    min_angle: float
+    max_speed: float
+    ID: ClassVar[int] = MOTOR_LIMIT_FEEDBACK
+
+    def to_frame(self) -> can.Message:
+        return _frame(self.ID, struct.pack(">BhhHx", _uint(self.motor, 8, "motor"),
+                                           _scaled(self.max_angle, _DECIDEG_PER_RAD, *INT16, "max angle limit (rad)"),
+                                           _scaled(self.min_angle, _DECIDEG_PER_RAD, *INT16, "min angle limit (rad)"),
+                                           _scaled(self.max_speed, 1000.0, *UINT16, "max joint speed (rad/s)")))
+
+    @classmethod
+    def from_data(cls, arbitration_id: int, data: bytes) -> "MotorLimitFeedback":
+        motor, max_angle, min_angle, max_speed = struct.unpack_from(">BhhH", data)
+        return cls(motor, max_angle / _DECIDEG_PER_RAD, min_angle / _DECIDEG_PER_RAD, max_speed / 1000.0)
+
+
+PiperMessage = Union[MotionCtrl1, MotionCtrl2, JointCtrl, GripperCtrl, MotorEnable, MotorLimitQuery, ArmStatusFeedback,
+                     JointFeedback, GripperFeedback, MotorHighSpeed, MotorLowSpeed, MotorLimitFeedback]
 
 _BY_ID: dict[int, type] = {
     MOTION_CTRL_1: MotionCtrl1, MOTION_CTRL_2: MotionCtrl2, GRIPPER_CTRL: GripperCtrl, MOTOR_ENABLE: MotorEnable,
+    MOTOR_LIMIT_QUERY: MotorLimitQuery, MOTOR_LIMIT_FEEDBACK: MotorLimitFeedback,
     ARM_STATUS: ArmStatusFeedback, GRIPPER_FEEDBACK: GripperFeedback,
     **{i: JointCtrl for i in JOINT_CTRL_IDS}, **{i: JointFeedback for i in JOINT_FEEDBACK_IDS},
     **{i: MotorHighSpeed for i in HIGH_SPEED_IDS}, **{i: MotorLowSpeed for i in LOW_SPEED_IDS},

@@ -24,6 +24,12 @@ JOINT_UPPER = np.array([2.6179, 3.14, 0.0, 1.745, 1.22, 2.09439])
 JOINT_LOWER.setflags(write=False)
 JOINT_UPPER.setflags(write=False)
 
+# Joint limits (degrees), J1..J6, as the arm's firmware holds them (0x473 reports them in 0.1 degree): the round-degree
+# values of that table. The simulated arms report them, and a corrupted arm's limits are reset to them (0x474,
+# piper-sdk's MotorAngleLimitMaxSpdSet). Each range contains JOINT_LOWER..JOINT_UPPER.
+FIRMWARE_LOWER_DEG = (-150.0, 0.0, -170.0, -100.0, -70.0, -120.0)
+FIRMWARE_UPPER_DEG = (150.0, 180.0, 0.0, 100.0, 70.0, 120.0)
+
 # Joint speed (rad/s): AgileX rates the Piper's joints at 180 deg/s (J1, J3) to 225 deg/s (J4-J6); the
 # slowest, pi rad/s, bounds what a per-tick step times the control rate may ask of any joint.
 MAX_JOINT_SPEED = 3.14159

@@ -12,7 +12,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from hardware.robot import ARM_DOF, ArmStatus, Robot, RobotDescription, RobotState
+from hardware.robot import ARM_DOF, ArmStatus, FirmwareLimits, Robot, RobotDescription, RobotState
 from dssp_core.errors import ArmError, HardwareError
 from hardware.piper.arm import PiperArm
 from hardware.piper.limits import opening_to_stroke, piper_description, stroke_to_opening
@@ -72,6 +72,15 @@ class PiperRobot(Robot):
         """Enable every arm, each confirmed from its feedback within ``timeout`` s (else ArmError)."""
         for arm in self.arms:
             arm.enable(timeout)
+
+    def query_firmware_limits(self) -> None:
+        """0x472 to every motor of every arm that has not answered yet (:meth:`PiperArm.query_limits`)."""
+        for arm in self.arms:
+            arm.query_limits()
+
+    def firmware_limits(self) -> tuple[FirmwareLimits, ...]:
+        """Each arm's joint limits as its firmware reported them since connect (NaN where not yet)."""
+        return tuple(arm.firmware_limits() for arm in self.arms)
 
     def state(self) -> RobotState | None:
         """Position (dof,) in policy units and the OLDEST arrival time of the joint and gripper frames used;
