@@ -34,6 +34,7 @@ from dssp_core.output_guard import OutputDir, check_output_file, write_output_te
 from dssp_data.rerun_views import add_rerun_flags, check_views, open_views
 from dssp_deploy.control_loop import add_smoothing_arguments, check_smoothing_arguments, model_flags_given, smoothing_options
 from dssp_deploy.onnx_policy import add_runtime_arguments
+from hardware.cli.stops import Stops
 
 TASKS = ("tap", "swap", "put2")
 
@@ -158,9 +159,13 @@ def run(args) -> int:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv[:1] == ["record"]:  # dssp-record's own flags, on the simulated rig
-        from dssp_sim.teleop import record_main  # deferred: loads can, mujoco, OpenGL, …
+        stops = Stops()  # before the simulation's imports: a stop while they load ends in one line, not silently
+        try:
+            from dssp_sim.teleop import record_main  # deferred: loads can, mujoco, OpenGL, …
 
-        return record_main(argv[1:])
+            return record_main(argv[1:], stops)
+        finally:
+            stops.restore()
     if argv[:1] == ["calibrate"]:  # dssp-calibrate's own flags, on the twin
         from dssp_sim.calibration_twin import calibrate_main  # deferred: loads can, cv2, mujoco, …
 

@@ -185,7 +185,8 @@ class TeleopRigs:
         return TeleopRig(task, seed=seed, pace=pace)
 
 
-def record_main(argv: list[str] | None = None) -> int:
-    """``dssp-sim record``: ``dssp-record`` on the simulated rig (``--camera mujoco --can mujoco`` by default)."""
+def record_main(argv: list[str] | None = None, stops=None) -> int:
+    """``dssp-sim record``: ``dssp-record`` on the simulated rig (``--camera mujoco --can mujoco`` by default);
+    ``stops``: the stop request :func:`dssp_sim.sim_cli.main` installed before importing this module."""
 
-    return main(argv, sim=TeleopRigs(), prog="dssp-sim record")
+    return main(argv, sim=TeleopRigs(), prog="dssp-sim record", stops=stops)

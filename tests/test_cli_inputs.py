@@ -23,7 +23,7 @@ def _one_error_line(capsys, code: int) -> str:
 
 @pytest.mark.parametrize("text, words", [
     ('{"max_joint_step": 0.05, "max_joint_step": 5}', "gives the key max_joint_step twice"),
-    ("[" * 100_000 + "]" * 100_000, "nested too deeply"),
+    ("[" * 100_000 + "]" * 100_000, "nested more than 64 levels deep"),
     ('{"a": ' + "1" * 5000 + "}", "not a usable JSON object"),
     ("\xff\xfe garbage", "not a text file"),
 ])

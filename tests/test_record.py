@@ -171,6 +171,55 @@ def test_a_signal_discards_the_unfinished_episode(tmp_path, sig):
     assert not [p for p in can_log_dir(out).iterdir() if ".partial-" in p.name]
 
 
+def test_a_stop_before_any_kept_episode_says_what_was_written(tmp_path):
+    """Signalled as the first episode starts: nothing was kept, so the dataset was never created, and the summary
+    says so instead of naming it (and the empty CAN-log folder the session made is gone)."""
+    out = tmp_path / "demo.zarr"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "dssp_sim.sim_cli", "record", "--out", str(out), "--auto", "--sim-speed", "4", "--no-depth"],
+        stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env(), cwd=tmp_path)
+    lines = []
+    try:
+        for line in proc.stdout:
+            lines.append(line.strip())
+            if line.startswith("episode 0: recording"):
+                proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 128 + signal.SIGTERM, (lines, proc.stderr.read())
+    assert lines[-2].startswith("kept 0 episode(s) (0 steps); discarded 1") and lines[-2].endswith("ended by: SIGTERM")
+    assert lines[-1] == f"nothing was written: no episode was kept, so {out} was not created", lines
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+# A stop while dssp-sim record still imports the simulation: the signal arrives as dssp_sim.teleop starts to load.
+STOP_WHILE_IMPORTING = """
+import os, signal, sys
+
+class SignalOnImport:
+    def find_spec(self, name, path=None, target=None):
+        if name == "dssp_sim.teleop":
+            sys.meta_path.remove(self)
+            os.kill(os.getpid(), signal.SIGTERM)
+        return None
+
+sys.meta_path.insert(0, SignalOnImport())
+from dssp_sim.sim_cli import main
+sys.exit(main(["record", "--out", sys.argv[1], "--auto", "--episodes", "1"]))
+"""
+
+
+def test_a_stop_while_the_simulation_loads_is_one_line(tmp_path):
+    out = tmp_path / "demo.zarr"
+    proc = subprocess.run([sys.executable, "-c", STOP_WHILE_IMPORTING, str(out)], capture_output=True, text=True,
+                          env=_env(), cwd=tmp_path, timeout=60)
+    assert proc.returncode == 128 + signal.SIGTERM, proc.stderr
+    assert proc.stderr.strip().splitlines() == ["stopped by SIGTERM during start-up; nothing was recorded"], proc.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_an_interrupted_write_is_repaired_by_the_next_session(tmp_path, capsys):
     out = tmp_path / "demo.zarr"
     assert record_main(["--out", str(out), "--auto", "--episodes", "1", "--quiet", "--no-depth"]) == 0

@@ -415,6 +415,8 @@ def _record(args, stops: Stops) -> int:
     from dssp_data.recording import can_log_dir  # deferred: loads numpy
 
     console = Console(args.quiet)
+    logs = can_log_dir(args.out)
+    logs_existed = logs.exists() or logs.is_symlink()
     with contextlib.ExitStack() as stack:
         stack.callback(console.close)
         run = open_session(args, stack, console)
@@ -432,16 +434,27 @@ def _record(args, stops: Stops) -> int:
     failed = f", task failures: {summary.failed}" if summary.failed else ""
     print(f"kept {len(summary.kept)} episode(s) ({summary.steps} steps){problems}; discarded {summary.discarded}{failed}; "
           f"ended by: {summary.ended_by}")
-    print(f"dataset: {args.out} holds {summary.n_episodes} episodes; CAN logs in {can_log_dir(args.out)}")
+    if summary.n_episodes:
+        print(f"dataset: {args.out} holds {summary.n_episodes} episodes; CAN logs in {logs}")
+    else:  # a new dataset appears with its first kept episode; the log folder this session made holds nothing
+        if not logs_existed:
+            with contextlib.suppress(OSError):
+                logs.rmdir()
+        print(f"nothing was written: no episode was kept, so {args.out} was not created")
     return stops.code if stops.reason is not None and summary.ended_by == stops.reason else 0
 
 
-def main(argv: list[str] | None = None, sim: SimulatedRig | None = None, prog: str = "dssp-record") -> int:
-    stops = Stops()  # first: from here every stop is a clean one
+def main(argv: list[str] | None = None, sim: SimulatedRig | None = None, prog: str = "dssp-record",
+         stops: Stops | None = None) -> int:
+    """``stops``: the stop request a caller installed before its own imports (``dssp-sim record``); None: installed
+    here, first (from here every stop is a clean one), and restored at the end."""
+    own = stops is None
+    stops = stops or Stops()
     try:
         return run_cli(lambda: record(parse_args(argv, sim, prog), stops))
     finally:
-        stops.restore()
+        if own:
+            stops.restore()
 
 
 if __name__ == "__main__":
