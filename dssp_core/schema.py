@@ -200,16 +200,14 @@ def parse_json(text: str) -> Any:
         raise ValueError("nested too deeply to be a settings file") from None
 
 
-def read_json_object(path: str | Path, what: str | None, *, error: type[Exception] = ConfigError,
-                     hint: str | None = None) -> dict:
-    """A JSON object from a file, or one line naming the file and the problem: ``"{what} file {path} ..."``
-    (``what`` None: ``"{path} ..."``), raised as ``error``; ``hint`` replaces the generic advice on a file
-    that exists but holds no usable JSON object (e.g. how to restore it)."""
-    label = f"{what} file {path}" if what else str(path)
+def read_json(path: str | Path, label: str, *, error: type[Exception] = ConfigError, hint: str | None = None) -> Any:
+    """Any JSON value from a file a user names, read through :func:`~dssp_core.files.read_input_bytes` and
+    :func:`parse_json`, or one line starting with ``label`` raised as ``error``; ``hint`` replaces the generic advice
+    on a file that exists but holds no usable JSON (e.g. how to restore it)."""
     fix = f"; {hint}" if hint else ""
     data = read_input_bytes(path, label, error=error)
     try:
-        values = parse_json(data.decode())
+        return parse_json(data.decode())
     except DuplicateKey as exc:
         raise error(f"{label} gives the key {exc} twice; " + (hint or "keep one")) from None
     except UnicodeDecodeError:
@@ -218,8 +216,16 @@ def read_json_object(path: str | Path, what: str | None, *, error: type[Exceptio
         raise error(f"{label} is not valid JSON ({exc.msg} at line {exc.lineno}){fix}") from None
     except ValueError as exc:
         raise error(f"{label} is not a usable JSON object ({exc}){fix}") from None
+
+
+def read_json_object(path: str | Path, what: str | None, *, error: type[Exception] = ConfigError,
+                     hint: str | None = None) -> dict:
+    """A JSON object from a file (:func:`read_json`), or one line naming the file and the problem:
+    ``"{what} file {path} ..."`` (``what`` None: ``"{path} ..."``), raised as ``error``."""
+    label = f"{what} file {path}" if what else str(path)
+    values = read_json(path, label, error=error, hint=hint)
     if not isinstance(values, dict):
-        raise error(f"{label} must hold a JSON object, got {type(values).__name__}{fix}")
+        raise error(f"{label} must hold a JSON object, got {type(values).__name__}" + (f"; {hint}" if hint else ""))
     return values
 
 

@@ -97,11 +97,20 @@ def test_dssp_sim_calibrate_writes_the_extrinsics_and_keeps_an_existing_file(tmp
 
 
 def test_too_few_poses_are_refused_with_one_line(tmp_path, capsys):
+    """Too few poses are refused when parsed, before the twin opens; too few views with the board detected, by
+    the solve."""
     out = tmp_path / "calib.json"
-    assert sim_main(["calibrate", "--mode", "eye-to-hand", "--auto", "5", "--out", str(out)]) == 2
-    err = capsys.readouterr().err.strip()
-    assert err.count("\n") == 0 and "5 views with the board detected, 8 needed" in err, err
-    assert not out.exists()
+    with pytest.raises(SystemExit) as exited:
+        sim_main(["calibrate", "--mode", "eye-to-hand", "--auto", "5", "--out", str(out)])
+    assert exited.value.code == 2
+    captured = capsys.readouterr()
+    err = captured.err.strip()
+    assert err.count("\n") == 0 and "--auto: N must be 8 to 200 poses" in err, err
+    assert not out.exists() and "board" not in captured.out  # the twin was never opened
+    views = auto_poses(CalibrationTwin("eye-to-hand").start_pose(), 8)[:5]
+    grippers = [flange_pose(q) for q in views]
+    with pytest.raises(CalibrationError, match="5 views with the board detected, 8 needed"):
+        solve_hand_eye(grippers, grippers, "eye-to-hand")
 
 
 def test_rotations_about_one_axis_are_refused_with_one_line(tmp_path, capsys):

@@ -18,10 +18,12 @@ second unknown (the board on the gripper, or on the table) is averaged over the 
 pose is predicted for each view through the chain (base -> gripper -> board, seen from X) and compared with what
 the camera detected — the board centre's distance (mm) and the rotation between the two (degrees).
 
-Refusals (one line each, :class:`dssp_core.errors.CalibrationError`): fewer than ``MIN_POSES`` views; views whose
-rotations all share one axis (the solve is then underdetermined along it); a result whose residuals or whose
-methods' disagreement exceed :class:`Thresholds`. "The gripper" is the Piper's flange, DH frame 6
-(:func:`dssp_data.arm_kinematics.flange_pose`).
+Refusals (one line each, :class:`dssp_core.errors.CalibrationError`): views that cannot determine the camera
+(:class:`PoseSpread`: fewer than ``MIN_POSES`` views, fewer than ``MIN_POSES`` distinct orientations, or rotations
+that all share one axis, leaving the solve underdetermined along it); a result whose residuals or whose methods'
+disagreement exceed :class:`Thresholds`. A plan of poses is held to the same :class:`PoseSpread` before the arm
+moves (:func:`hardware.calibration.pose_plan.check_plan`), so a tour that cannot pass is never run. "The gripper" is
+the Piper's flange, DH frame 6 (:func:`dssp_data.arm_kinematics.flange_pose`).
 """
 
 from __future__ import annotations
@@ -47,6 +49,10 @@ with eight the residuals can show a bad view instead of absorbing it."""
 MIN_ROTATION_SPREAD_DEG = 5.0
 """The views' rotations (each relative to the first) must reach this far, RMS, about a second axis: rotations about
 one axis only leave the translation along it undetermined."""
+
+MIN_ORIENTATION_STEP_DEG = 1.0
+"""Views whose gripper orientations differ by less than this count as one orientation: the arm settles to about a
+degree (0.02 rad a joint), so a view that close to another repeats it and cannot show a bad view for what it is."""
 
 
 @dataclass(frozen=True)
@@ -177,27 +183,73 @@ def mean_transform(transforms: list[np.ndarray]) -> np.ndarray:
 def rotation_spread_deg(gripper_to_base: list[np.ndarray]) -> float:
     """RMS rotation (degrees) of the views about their second axis: the second singular value of the rotation
     vectors of each view relative to the first, over sqrt(n - 1). 0 when every rotation shares one axis."""
+    if len(gripper_to_base) < 3:
+        return 0.0
     r0 = gripper_to_base[0][:3, :3]
     vectors = np.array([cv2.Rodrigues(r0.T @ g[:3, :3])[0].reshape(3) for g in gripper_to_base[1:]])
-    if len(vectors) < 2:
-        return 0.0
     s = np.linalg.svd(vectors, compute_uv=False)
     return math.degrees(float(s[1]) / math.sqrt(len(vectors)))
 
 
+def distinct_orientations(gripper_to_base: list[np.ndarray], step_deg: float = MIN_ORIENTATION_STEP_DEG) -> int:
+    """How many of the views' gripper orientations lie at least ``step_deg`` from every one counted before them."""
+    kept: list[np.ndarray] = []
+    for g in gripper_to_base:
+        r = g[:3, :3]
+        if all(rotation_angle_deg(k.T @ r) >= step_deg for k in kept):
+            kept.append(r)
+    return len(kept)
+
+
+@dataclass(frozen=True)
+class PoseSpread:
+    """What a set of gripper poses gives the hand-eye solve, and the one rule for whether it is enough: a plan's
+    poses before the arm moves (:func:`hardware.calibration.pose_plan.check_plan`) and the views with the board
+    detected before the solve (:func:`check_views`) are held to it alike.
+
+    count: the poses. distinct: their orientations at least ``MIN_ORIENTATION_STEP_DEG`` apart
+    (:func:`distinct_orientations`). spread_deg: their RMS rotation about a second axis (:func:`rotation_spread_deg`).
+    min_poses, min_spread_deg: what the solve needs of ``count`` and ``distinct``, and of ``spread_deg``.
+    """
+
+    count: int
+    distinct: int
+    spread_deg: float
+    min_poses: int = MIN_POSES
+    min_spread_deg: float = MIN_ROTATION_SPREAD_DEG
+
+    @classmethod
+    def of(cls, gripper_to_base: list[np.ndarray], min_poses: int = MIN_POSES,
+           min_spread_deg: float = MIN_ROTATION_SPREAD_DEG) -> PoseSpread:
+        poses = [np.asarray(g, np.float64) for g in gripper_to_base]
+        return cls(len(poses), distinct_orientations(poses), rotation_spread_deg(poses), min_poses, min_spread_deg)
+
+    def problem(self, what: str) -> str | None:
+        """Why the solve cannot trust these poses (one line naming them as ``what``, e.g. "views with the board
+        detected", and what to do), or None."""
+        if self.count < self.min_poses:
+            return (f"{self.count} {what}, {self.min_poses} needed; give more poses (--auto N or --poses) with the "
+                    f"board in view")
+        if self.distinct < self.min_poses:
+            return (f"the {self.count} {what} turn the gripper to {self.distinct} distinct "
+                    f"orientation{'' if self.distinct == 1 else 's'} (at least "
+                    f"{MIN_ORIENTATION_STEP_DEG:g} deg apart), {self.min_poses} needed; give poses that tilt the wrist "
+                    f"differently, not the same pose again")
+        if self.spread_deg < self.min_spread_deg:
+            return (f"the {self.count} {what} rotate the gripper about one axis only ({self.spread_deg:.1f} deg RMS "
+                    f"about a second axis, {self.min_spread_deg:g} needed); add poses that tilt the wrist further "
+                    f"about other axes (J4 and J5 as well as J6)")
+        return None
+
+
 def check_views(gripper_to_base: list[np.ndarray], min_poses: int = MIN_POSES,
                 min_spread_deg: float = MIN_ROTATION_SPREAD_DEG) -> float:
-    """Refuse too few views, or views rotating about one axis only (one line each); returns the rotation spread."""
-    n = len(gripper_to_base)
-    if n < min_poses:
-        raise CalibrationError(f"calibration refused: {n} views with the board detected, {min_poses} needed; give more "
-                               f"poses (--auto N or --poses) with the board in view")
-    spread = rotation_spread_deg(gripper_to_base)
-    if spread < min_spread_deg:
-        raise CalibrationError(f"calibration refused: the {n} poses rotate the gripper about one axis only ({spread:.1f} "
-                               f"deg RMS about a second axis, {min_spread_deg:g} needed); add poses that tilt the wrist "
-                               f"about other axes (J4 and J5 as well as J6)")
-    return spread
+    """Refuse views that cannot determine the camera (:class:`PoseSpread`, one line); returns the rotation spread."""
+    spread = PoseSpread.of(gripper_to_base, min_poses, min_spread_deg)
+    problem = spread.problem("views with the board detected")
+    if problem is not None:
+        raise CalibrationError(f"calibration refused: {problem}")
+    return spread.spread_deg
 
 
 def _solve_one(method: int, gripper_to_base: list[np.ndarray], board_to_camera: list[np.ndarray], mode: str) -> np.ndarray:

@@ -16,6 +16,11 @@ with the joints measured then. After the last pose it goes back to where it star
 
 The gripper: ``gripper="close"`` commands it shut all along (a board held between the fingers stays gripped:
 eye-to-hand), ``"hold"`` keeps the opening it had at the start.
+
+The plan is checked before the arm moves (:func:`hardware.calibration.pose_plan.check_plan`, the hand-eye solve's own
+rule): given poses when the tour is made, generated ones when :meth:`CalibrationTour.reset` makes them from the
+measured start, before the first command — a plan that cannot pass is one line (ConfigError, named ``where``), never
+a tour.
 """
 
 from __future__ import annotations
@@ -27,10 +32,18 @@ import numpy as np
 
 from dssp_core.errors import ArmError, CameraError, ConfigError
 from dssp_data.pointcloud.depth_frame import DepthFrame
+from hardware.calibration.pose_plan import check_plan, check_poses
 from hardware.camera.base import Camera
 from hardware.clock import Clock
 from hardware.policies import Act, PolicySource
 from hardware.robot import ARM_DOF
+
+
+def check_robot(description) -> None:
+    """Refuse (one-line ConfigError) a robot the tour cannot calibrate with: it moves one arm."""
+    if description.dof != ARM_DOF:
+        raise ConfigError(f"calibration moves one arm ({ARM_DOF} values); the robot has {description.dof}: "
+                          "give one CAN bus")
 
 
 @dataclass
@@ -50,11 +63,12 @@ class CalibrationTour(PolicySource):
 
     def __init__(self, poses: np.ndarray, camera: Camera, clock: Clock, *, gripper: str = "hold",
                  settle_s: float = 0.5, still_rad: float = 0.002, reach_rad: float = 0.02, settle_timeout: float = 20.0,
-                 frame_timeout: float = 3.0, events=print) -> None:
+                 frame_timeout: float = 3.0, events=print, where: str = "the calibration plan") -> None:
         if gripper not in ("hold", "close"):
             raise ConfigError(f"gripper must be hold or close, got {gripper!r}")
+        self.where = where
         self._make_poses = poses if callable(poses) else None
-        self.poses = np.empty((0, 6)) if callable(poses) else np.asarray(poses, dtype=np.float64).reshape(-1, 6)
+        self.poses = np.empty((0, 6)) if callable(poses) else self._checked(poses)
         self.camera, self.clock, self.gripper = camera, clock, gripper
         self.settle_s, self.still_rad, self.reach_rad = settle_s, still_rad, reach_rad
         self.settle_timeout, self.frame_timeout = settle_timeout, frame_timeout
@@ -64,16 +78,17 @@ class CalibrationTour(PolicySource):
         self.k = 0
 
     def check(self, description, cloud_config) -> None:
-        if description.dof != ARM_DOF:
-            raise ConfigError(f"calibration moves one arm ({ARM_DOF} values); the robot has {description.dof}: "
-                              "give one CAN bus")
+        check_robot(description)
+
+    def _checked(self, poses) -> np.ndarray:
+        return check_plan(check_poses(poses, self.where), self.where)
 
     def reset(self, state: np.ndarray) -> None:
         state = np.asarray(state, dtype=np.float64)
         self.start = state.copy()
         self.opening = 0.0 if self.gripper == "close" else float(state[ARM_DOF - 1])
-        if self._make_poses is not None:
-            self.poses = np.asarray(self._make_poses(state[:6].copy()), dtype=np.float64).reshape(-1, 6)
+        if self._make_poses is not None:  # made from the measured start, checked before the first command
+            self.poses = self._checked(self._make_poses(state[:6].copy()))
         self.plan = [p for p in self.poses] + [state[:6].copy()]  # the poses, then back to the start
         self.views, self.k = [], 0
         self._begin_pose()
