@@ -268,7 +268,7 @@ def test_the_twins_flags_are_checked_before_it_opens(tmp_path, capsys, argv, wor
 
 
 @pytest.mark.parametrize("argv, words", [
-    (["--interface", "bogus"], "--interface bogus: not a python-can interface"),
+    (["--interface", "bogus"], "'bogus' is not a python-can interface"),
     (["--can", "can0,can1"], "calibration moves one arm"),
     (["--can", "sim"], "drives a real arm"),
 ])

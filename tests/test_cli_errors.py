@@ -165,3 +165,23 @@ def test_the_installed_command_says_it_in_one_line(command, tmp_path):
                           env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert_one_line(command, argv, done.returncode, done.stderr.strip().splitlines(), done.stdout,
                     f"unrecognized arguments: {UNKNOWN}")
+
+
+def test_every_can_interface_flag_is_checked_when_parsed(tmp_path, capsys, monkeypatch):
+    """Every parser with --interface takes python-can's interface names only (hardware.piper.bus.interface_name, or
+    argparse's choices where a command takes a few):
+    a name python-can lacks is one line before anything opens, not python-can's error when the bus opens."""
+    monkeypatch.chdir(tmp_path)
+    checked = []
+    for command in sorted(COMMANDS):
+        main = entry(command)
+        for words, parser in parsers(command):
+            action = parser._option_string_actions.get("--interface")
+            if action is None or subparsers(parser):
+                continue
+            argv = [*words, *required_args(parser), "--interface", "bogus"]
+            refusal = "invalid choice: 'bogus'" if action.choices else "'bogus' is not a python-can interface"
+            assert_one_line(command, argv, *outcome(main, argv, capsys), refusal)
+            checked.append(f"{command} {' '.join(words)}".strip())
+    assert {"dssp-run", "dssp-record", "dssp-replay", "dssp-calibrate", "dssp-sim record", "dssp-sim calibrate"} <= set(checked)
+    assert list(tmp_path.iterdir()) == []

@@ -41,6 +41,7 @@ from dssp_core.errors import ConfigError, DSSPError
 from dssp_core.output_guard import NEW, OutputKind, check_append
 from dssp_data.attributes import zarr_generator
 from dssp_data.observation import ObservationContract, piper_layout
+from hardware.piper.bus import interface_name
 from hardware.cli.stops import Stops, run_stoppable
 from hardware.clock import FakeClock
 
@@ -101,7 +102,7 @@ def parse_args(argv, sim: SimulatedRig | None = None, prog: str = "dssp-record")
     p.add_argument("--can", default=default, required=sim is None,
                    help="can0[,can1] (one bus per leader/follower pair: left, right)"
                         + (" | mujoco (default: mujoco, the MuJoCo Piper's arms)" if sim else ""))
-    p.add_argument("--interface", default="socketcan", help="python-can interface of real buses (default: socketcan)")
+    p.add_argument("--interface", default="socketcan", type=interface_name, help="python-can interface of real buses (default: socketcan)")
     p.add_argument("--out", type=Path, required=True, help="dataset to create or append to (PATH.zarr)")
     p.add_argument("--rate", type=float, help="recording rate in Hz (default: the dataset's, else the simulation's 10 Hz, else 10)")
     p.add_argument("--extrinsics", type=Path, help="camera->robot-base calibration JSON (needed with a real camera)")

@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 
 from dssp_core.cli_runner import ArgumentParser, run_cli
+from hardware.piper.bus import interface_name
 from hardware.cli.stops import Stops
 
 
@@ -24,7 +25,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("path", type=Path)
     p.add_argument("--episode", type=int, required=True)
     p.add_argument("--can", help="can0[,can1] (left, right) | sim | sim:2; without it: dry run without an arm")
-    p.add_argument("--interface", default="socketcan", help="python-can interface (default: socketcan)")
+    p.add_argument("--interface", default="socketcan", type=interface_name, help="python-can interface (default: socketcan)")
     p.add_argument("--send", action="store_true", help="enable the arms and command them (otherwise nothing is sent)")
     p.add_argument("--rate", type=float, help="replay rate in Hz (default: the dataset's control rate)")
     p.add_argument("--safety", type=Path, help="safety settings JSON (hardware.safety.SafetyConfig fields)")

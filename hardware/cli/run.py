@@ -40,6 +40,7 @@ from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import ConfigError, OutputError
 from dssp_core.output_guard import OutputKind, check_output, claim_dir
 from dssp_core.staging import writer_lock, writer_lock_path
+from hardware.piper.bus import interface_name
 from hardware.cli.stops import Stops, run_stoppable
 
 RUN_LOG = OutputKind("an episode log", "dssp-run")
@@ -65,7 +66,7 @@ def parse_args(argv):
                    help="l515 | d435 | d405 | file:PATH (.bag/.db3) | tabletop (default: tabletop, the simulated one)")
     p.add_argument("--serial", help="RealSense serial number, when several are connected")
     p.add_argument("--can", default="sim", help="can0[,can1] (one bus per arm: left, right) | sim | sim:2 (default: sim)")
-    p.add_argument("--interface", default="socketcan", help="python-can interface of real buses (default: socketcan)")
+    p.add_argument("--interface", default="socketcan", type=interface_name, help="python-can interface of real buses (default: socketcan)")
     p.add_argument("--rate", type=float, help="control rate in Hz (default: the model's training rate)")
     p.add_argument("--extrinsics", type=Path, help="camera→robot-base calibration JSON (needed with a real camera or a recording)")
     p.add_argument("--pointcloud", type=Path, help="point-cloud pipeline settings JSON (crop box, voxel, clip)")

@@ -11,16 +11,31 @@ from __future__ import annotations
 
 import socket
 import sys
-
-import can
+from typing import TYPE_CHECKING
 
 from dssp_core.errors import CanError
+
+if TYPE_CHECKING:
+    import can
 
 INTERFACES = ("socketcan", "virtual", "udp_multicast")
 DEFAULT_UDP_PORT = 43113  # python-can's default port for udp_multicast
 
 _IP_MULTICAST_ALL = getattr(socket, "IP_MULTICAST_ALL", 49)  # Linux values
 _IPV6_MULTICAST_ALL = getattr(socket, "IPV6_MULTICAST_ALL", 29)
+
+
+def interface_name(text: str) -> str:
+    """``--interface``: a python-can interface name (argparse ``type=``: checked when the flags are parsed, before
+    anything opens; python-can's own error would come only when the bus opens)."""
+    import argparse
+
+    import can  # deferred: python-can loads only when a command checks its flags or opens a bus
+
+    valid = can.interfaces.VALID_INTERFACES
+    if text not in valid:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a python-can interface; use one of {', '.join(sorted(valid))}")
+    return text
 
 
 def _hint(channel: str, interface: str) -> str:
@@ -52,6 +67,8 @@ def open_bus(channel: str, interface: str = "socketcan", **options) -> can.BusAB
 
     Raises CanError (one line) if the bus cannot be opened. ``hop_limit`` is forced to 0 for udp_multicast.
     """
+    import can  # deferred: python-can loads only when a command checks its flags or opens a bus
+
     if not channel:
         raise CanError("empty CAN channel name: give e.g. can0 (socketcan) or 239.74.163.2 (udp_multicast)")
     if interface == "udp_multicast":
