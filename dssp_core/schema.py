@@ -45,6 +45,16 @@ MAX_WIDTH = 65536
 MAX_LAYERS = 256
 MAX_STEPS = 4096  # N, H, H_a
 MAX_RATE_HZ = 1000.0  # control rate: the Piper's CAN feedback arrives at 200 Hz
+MIN_RATE_HZ = 0.1  # control rate: below 0.1 Hz a tick outlasts any sensible timeout
+
+
+def check_rate(rate, flag: str = "--rate") -> float:
+    """``rate`` in [MIN_RATE_HZ, MAX_RATE_HZ] Hz as a float, else a one-line ConfigError naming ``flag`` (the option
+    or the field that gave it): the control rates a dataset, a model or a robot may run at."""
+    if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not _finite(rate) \
+            or not MIN_RATE_HZ <= rate <= MAX_RATE_HZ:
+        raise ConfigError(f"{flag} must be in [{MIN_RATE_HZ:g}, {MAX_RATE_HZ:g}] Hz, got {rate!r}")
+    return float(rate)
 
 _REGISTRY: list[type] = []
 

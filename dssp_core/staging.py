@@ -33,12 +33,13 @@ import sys
 import threading
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
+from typing import ClassVar
 
 from dssp_core.errors import DSSPError, OutputError
 from dssp_core.files import make_dirs, replace_dirs, sibling_name
 
 __all__ = ["WriterLock", "writer_lock", "writer_lock_path", "Staging", "sweep_stale", "is_staging_name",
-           "PUT_IN_PLACE", "interrupts_deferred", "settle_background_writes"]
+           "staging_target", "PUT_IN_PLACE", "interrupts_deferred", "settle_background_writes"]
 
 
 # -------------------------------------------------------------------------------------- one writer
@@ -62,7 +63,13 @@ class WriterLock:
         lock = WriterLock(out, what="run directory", flag="--out")
         try: ...write...
         finally: lock.release()
+
+    :meth:`held_here` says whether this process holds the lock of an output (what a writer that is handed
+    the lock by its caller checks).
     """
+
+    _held: ClassVar[set[Path]] = set()
+    """The lock files this process holds."""
 
     def __init__(self, out: str | os.PathLike, *, what: str = "output", flag: str = "--out",
                  error: type[DSSPError] = OutputError, doing: str = "written") -> None:
@@ -104,6 +111,7 @@ class WriterLock:
             os.ftruncate(fd, 0)
             os.pwrite(fd, f"{doing} by pid {os.getpid()} on {socket.gethostname()}\n".encode(), 0)
             self._fd = fd
+            WriterLock._held.add(self.path)
             return
         raise error(f"could not take the lock {self.path}; try again")
 
@@ -111,11 +119,17 @@ class WriterLock:
     def held(self) -> bool:
         return self._fd is not None
 
+    @classmethod
+    def held_here(cls, out: str | os.PathLike) -> bool:
+        """True while this process holds the lock of the output at ``out``."""
+        return writer_lock_path(out) in cls._held
+
     def release(self) -> None:
         """Remove the lock file (while still holding it) and let go; idempotent."""
         fd, self._fd = self._fd, None
         if fd is None:
             return
+        WriterLock._held.discard(self.path)
         try:
             info, now = os.fstat(fd), os.stat(self.path, follow_symlinks=False)
             if (now.st_dev, now.st_ino) == (info.st_dev, info.st_ino):
@@ -158,6 +172,7 @@ def writer_lock(out: str | os.PathLike, *, what: str, flag: str = "--out", error
 # ------------------------------------------------------------------------------------------- staging
 _STAGE = r"\.(?:tmp-[0-9a-f]{8}|partial-[0-9a-f]{8})"
 _STAGING_NAME = re.compile(rf"^\..+{_STAGE}(?:\.can)?$")
+_STAGED_FOR = re.compile(rf"^\.(.+){_STAGE}$")
 _locks: dict[tuple[int, int], int] = {}
 """Staging directories this process holds an ``flock`` on: (device, inode) → open descriptor."""
 
@@ -166,6 +181,18 @@ def is_staging_name(name: str) -> bool:
     """True for the name of a staging directory (``.NAME.tmp-XXXXXXXX``, ``.NAME.partial-XXXXXXXX``, and
     such a name followed by ``.can``)."""
     return bool(_STAGING_NAME.match(name))
+
+
+def staging_target(path: str | os.PathLike) -> Path | None:
+    """The output a staging directory is built for (``.NAME.tmp-XXXXXXXX`` -> ``NAME`` beside it, a nested one
+    followed to its outermost output), or None when ``path`` is no staging directory's name."""
+    path = Path(path).absolute()
+    found = None
+    while True:
+        match = _STAGED_FOR.match(path.name)
+        if not match:
+            return found
+        path = found = path.with_name(match.group(1))
 
 
 def _lock_dir(path: Path) -> None:

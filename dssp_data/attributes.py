@@ -32,6 +32,7 @@ from pathlib import Path
 
 from dssp_core.errors import DatasetError
 from dssp_core.files import read_regular_text
+from dssp_core.schema import parse_json
 
 INTRINSICS_INTEGERS = ("width", "height")
 INTRINSICS_NUMBERS = ("fx", "fy", "ppx", "ppy")
@@ -180,6 +181,7 @@ def attribute_problems(attrs: Mapping, where: str | os.PathLike | None = None) -
 # ------------------------------------------------------------------------------------------- from disk
 def zarr_attrs(path: str | os.PathLike) -> dict | None:
     """The root attributes of a zarr group at ``path`` (format 2 or 3), read as JSON; None if it is not one.
+    ValueError for JSON that is not (nested too deep, a key given twice: :func:`~dssp_core.schema.parse_json`).
 
     Its metadata files are read only as regular files (:func:`~dssp_core.files.read_regular_text`), no link followed: with a
     linked ``.zgroup`` or ``zarr.json`` the folder is not a zarr group, with a linked ``.zattrs`` it has no
@@ -187,9 +189,9 @@ def zarr_attrs(path: str | os.PathLike) -> dict | None:
     path = Path(path)
     if read_regular_text(path / ".zgroup") is not None:
         text = read_regular_text(path / ".zattrs")
-        attrs = json.loads(text) if text is not None else {}
+        attrs = parse_json(text) if text is not None else {}
     elif (text := read_regular_text(path / "zarr.json")) is not None:
-        meta = json.loads(text)
+        meta = parse_json(text)
         attrs = meta.get("attributes", {}) if isinstance(meta, dict) else None
     else:
         return None

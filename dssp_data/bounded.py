@@ -174,7 +174,7 @@ def _stream(make: Callable[[], Any], data: bytes, limit: int, several: bool = Tr
             if getattr(decompressor, "unconsumed_tail", b"") or not getattr(decompressor, "needs_input", True):
                 raise _too_large(None, limit)
             raise ValueError("the compressed stream ends early")
-        rest = decompressor.unused_data
+        rest = decompressor.unused_data or b""
         if not several or not rest.strip(b"\0"):
             return bytes(out)
 
@@ -230,6 +230,29 @@ def decompress(codec_id: str, data, limit: int, config: dict | None = None):
             return _stream(lambda: lzma.LZMADecompressor(fmt, filters=filters), data, limit)
         return _stream(lambda: lzma.LZMADecompressor(fmt, memlimit=_LZMA_MEMORY + limit), data, limit)
     raise UnboundedCodec(codec_id)
+
+
+def decompress_frames(kind: str, data, limit: int) -> bytes:
+    """A stream of zstd or LZ4 frames (``kind``: ``"zstd"`` or ``"lz4"``, the LZ4 frame format; how ROS 2 bags
+    compress their messages and mcap chunks) decoded to at most ``limit`` bytes whatever the frames declare:
+    ChunkTooLarge beyond it, ValueError for bytes that are not such a stream. Uses the ``zstd`` module (the
+    standard library's from Python 3.14, ``backports.zstd`` before) and ``lz4``, which the bag reader brings."""
+    if kind == "zstd":
+        try:
+            from compression import zstd  # the standard library from Python 3.14
+        except ImportError:
+            from backports import zstd  # optional: the ros extra (rosbags needs it)
+        make, error = zstd.ZstdDecompressor, zstd.ZstdError
+    elif kind == "lz4":
+        import lz4.frame  # optional: the ros extra (rosbags needs it)
+
+        make, error = lz4.frame.LZ4FrameDecompressor, RuntimeError
+    else:
+        raise ValueError(f"unknown frame format {kind!r}")
+    try:
+        return _stream(make, bytes(memoryview(data).cast("B")), limit)
+    except error as exc:
+        raise ValueError(f"not a {kind} stream ({exc})") from None
 
 
 # ------------------------------------------------------------------------------------------- codec pipelines

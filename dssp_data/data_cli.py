@@ -224,10 +224,11 @@ def _convert(args) -> int:
             print(f"\rconverting {i + 1}/{n}: {path.name}\x1b[K", end="", file=sys.stderr, flush=True)
 
     from dssp_data.lerobot import is_lerobot_root  # deferred: loads msgpack, numcodecs, numpy, …
-    from dssp_data.rosbag2 import is_bag  # deferred: loads msgpack, numcodecs, numpy, …
+    from dssp_data.rosbag2 import looks_like_bag  # deferred: loads msgpack, numcodecs, numpy, …
 
     lerobot = is_lerobot_root(args.source)
-    bags = not lerobot and (is_bag(args.source) or (args.source.is_dir() and any(is_bag(p) for p in args.source.iterdir())))
+    bags = not lerobot and (looks_like_bag(args.source) or (
+        args.source.is_dir() and any(looks_like_bag(p) for p in args.source.iterdir())))
     try:
         if lerobot:
             summary = _convert_lerobot(args, progress)

@@ -155,6 +155,37 @@ def resolve_length(lengths: Mapping[str, int], last_end: int, allow_incomplete_t
     return last_end, 0
 
 
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+"""The largest magnitude a dataset's float32 arrays hold (3.4e38)."""
+
+
+def as_float32(values, what: str, remedy: str = "fix the episode", step: str = "step") -> np.ndarray:
+    """``values`` (T, ...) of numbers as float32, or one DatasetError line naming ``what`` (where the values come
+    from: a file, an episode, a key), the ``step`` (what the first axis counts: step, frame), the index and the
+    value: NaN, inf, or a number beyond float32's range, which would become inf (checked before the cast: no numpy
+    warning)."""
+    array = np.asarray(values)
+    if array.dtype != np.float32:
+        with np.errstate(all="ignore"):
+            big = (array > FLOAT32_MAX) | (array < -FLOAT32_MAX)
+        bad = np.argwhere(big)
+        if bad.size:
+            at = tuple(int(i) for i in bad[0])
+            index = f", index {list(at[1:]) if len(at) > 2 else at[1]}" if len(at) > 1 else ""
+            raise DatasetError(f"{what} holds {array[at].item()!r} at {step} {at[0]}{index}, beyond the range of float32 "
+                               f"(±{FLOAT32_MAX:.3g}), the number type of a dataset: {remedy}")
+        with np.errstate(all="ignore"):
+            array = array.astype(np.float32)
+    if not np.issubdtype(array.dtype, np.floating):
+        return array
+    bad = np.argwhere(~np.isfinite(array))
+    if bad.size:
+        at = tuple(int(i) for i in bad[0])
+        index = f", index {list(at[1:]) if len(at) > 2 else at[1]}" if len(at) > 1 else ""
+        raise DatasetError(f"{what} holds NaN or inf (first at {step} {at[0]}{index}: {array[at].item()!r}): {remedy}")
+    return array
+
+
 def first_bad_steps(values: np.ndarray) -> np.ndarray:
     """Indices of the steps (first axis) of ``values`` that hold NaN or inf."""
     return np.flatnonzero(~np.isfinite(values.reshape(values.shape[0], -1)).all(axis=1))

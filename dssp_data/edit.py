@@ -25,11 +25,13 @@ command with one line naming the key and the chunk, before the output replaces a
 names come from the inputs' ``episode_info``; each must stay inside that input's CAN-log folder
 (:func:`~dssp_data.recording.can_log_path`), checked for every episode before anything is written, and
 each log is copied only as a regular file of that folder (:func:`~dssp_core.files.copy_regular_file`: a
-linked folder or file, a FIFO or a device is refused with one line, never followed). ``repair`` holds the
-dataset's writer lock (:func:`~dssp_data.replay_buffer_writer.dataset_lock`: no recording session or collect
-meanwhile), refuses a dataset folder holding a symbolic link, and first checks every chunk of the complete
-episodes (decoding them): it cannot restore lost data, so a missing or corrupt chunk is an error and
-nothing on disk changes.
+linked folder or file, a FIFO or a device is refused with one line, never followed). ``merge``, ``split``,
+``repair`` and every ``convert`` (through :func:`write_converted`) are dataset writers
+(:func:`~dssp_data.replay_buffer_writer.dataset_writer`): each holds the writer lock of every dataset it writes
+from before its first look at its inputs (no recording session, collect or second command meanwhile; a second
+one gets one line naming the holder). ``repair`` refuses a dataset folder holding a symbolic link, and first
+checks every chunk of the complete episodes (decoding them): it cannot restore lost data, so a missing or
+corrupt chunk is an error and nothing on disk changes.
 """
 
 from __future__ import annotations
@@ -37,6 +39,7 @@ from __future__ import annotations
 import json
 import os
 from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -53,7 +56,7 @@ from dssp_data.recording import (
 )
 from dssp_data.dataset_layout import Episode
 from dssp_data.replay_buffer import ReplayBufferReader
-from dssp_data.replay_buffer_writer import ReplayBufferWriter, dataset_lock
+from dssp_data.replay_buffer_writer import ReplayBufferWriter, dataset_writer
 from dssp_data.zarr_chunks import check_dataset_tree
 from dssp_core.errors import ConfigError, DatasetError
 from dssp_core.staging import Staging, interrupts_deferred, settle_background_writes
@@ -76,23 +79,35 @@ attribute is one of :data:`DATA_GENERATORS`, with its CAN logs at ``OUT.can`` (o
 PER_EPISODE_ATTRS = ("episode_info", "recording_sessions")
 
 
-def write_converted(out: Path, attrs: dict, episodes: Iterable[tuple[str | None, Episode]], *, extra_keys: Sequence[str] = (),
+@dataclass(frozen=True)
+class ConvertedEpisode:
+    """One episode of a conversion: ``episode``, what it came from (``source``: a file, a bag, an episode of the
+    input; None when the episode's own messages say it), and root ``attrs`` it brings (the first episode's go
+    into the new dataset with it: what only the input's first episode tells, e.g. its camera)."""
+
+    source: str | None
+    episode: Episode
+    attrs: dict = field(default_factory=dict)
+
+
+def write_converted(out: Path, attrs: dict, episodes: Iterable[ConvertedEpisode], *, extra_keys: Sequence[str] = (),
                     force: bool = False, flag: str = "--out") -> int:
     """``dssp-data convert``'s output: the episodes, in order, as a new dataset at ``out`` with ``attrs``, written into a
     staging folder beside it (removed on an error or Ctrl-C) and moved into place when complete, ``out`` checked
-    again first (:data:`DATA_DATASET`). ``episodes`` yields (what the episode came from, or None; the episode): it may
-    read its source lazily, one episode at a time; a refused episode's line names its source. Returns the steps."""
+    again first (:data:`DATA_DATASET`). The caller is a :func:`~dssp_data.replay_buffer_writer.dataset_writer` of
+    ``out`` (it holds the dataset's writer lock from before its first look at the input). ``episodes`` may read
+    its source lazily, one episode at a time; a refused episode's line names its source. Returns the steps."""
     steps = 0
     try:
         with Staging(flag=flag, error=DatasetError) as staging:
             tmp = staging.make(staging.reserve(out))
             with ReplayBufferWriter(tmp, attrs=attrs, staged=True, extra_keys=extra_keys) as writer:
-                for source, episode in episodes:
+                for item in episodes:
                     try:
-                        writer.add_episode(episode)
+                        writer.add_episode(item.episode, attrs=item.attrs if writer.n_episodes == 0 else None)
                     except DatasetError as exc:
-                        raise (DatasetError(f"{source}: {exc}") if source else exc) from None
-                    steps += episode.n_steps
+                        raise (DatasetError(f"{item.source}: {exc}") if item.source else exc) from None
+                    steps += item.episode.n_steps
             staging.commit([(tmp, out), (None, can_log_dir(out))],  # the output checked again first
                            check=lambda: check_output(out, force=force, kind=DATA_DATASET, flag=flag, error=DatasetError))
     finally:
@@ -118,6 +133,12 @@ def check_data_output(out: str | os.PathLike, inputs: Sequence[str | os.PathLike
     check_not_inside(out, sources, flag=flag, error=DatasetError)
     check_not_inside(can_log_dir(out), sources, flag=flag, error=DatasetError)
     return check_output(out, force=force, kind=DATA_DATASET, flag=flag, error=DatasetError)
+
+
+def check_converted_output(arguments: dict) -> None:
+    """``dssp-data convert``'s output rule, from a converter's arguments (``out``, ``source``, ``force``, ``flag``):
+    :func:`check_data_output` with the source as the input (the output may not be it, lie inside it or hold it)."""
+    check_data_output(arguments["out"], [arguments["source"]], arguments["force"], arguments["flag"])
 
 
 def _common_extras(readers: Sequence[ReplayBufferReader]) -> tuple[list[str], list[str]]:
@@ -269,6 +290,14 @@ def _source(reader: ReplayBufferReader, **fields) -> dict:
     return source
 
 
+def _check_merge(arguments: dict) -> None:
+    if len(arguments["inputs"]) < 2:
+        raise DatasetError("merge needs at least two input datasets")
+    check_inputs(arguments["inputs"])
+    check_data_output(arguments["out"], arguments["inputs"], arguments["force"], arguments["flag"])
+
+
+@dataset_writer(out=None, check=_check_merge)
 def merge(out: str | os.PathLike, inputs: Sequence[str | os.PathLike], force: bool = False,
           drop_marked: bool = False, flag: str = "OUT") -> dict:
     """Concatenate the episodes of ``inputs`` (in order) into a new dataset ``out``.
@@ -278,10 +307,7 @@ def merge(out: str | os.PathLike, inputs: Sequence[str | os.PathLike], force: bo
     ``flag`` names ``out`` in messages. Returns the summary of :func:`_copy` plus ``warnings`` (lines to
     show the user) and ``dropped`` ({input: [episodes]}).
     """
-    if len(inputs) < 2:
-        raise DatasetError("merge needs at least two input datasets")
-    check_inputs(inputs)
-    check_data_output(out, inputs, force, flag)
+    _check_merge({"inputs": inputs, "out": out, "force": force, "flag": flag})
     readers = [ReplayBufferReader(p) for p in inputs]
     warnings = []
     for key, describe in (("control_rate_hz", attributes.control_rate), ("action convention", convention_name)):
@@ -336,6 +362,17 @@ def choose_validation(n_episodes: int, val_ratio: float | None = None, val_episo
     return chosen
 
 
+def _check_split(arguments: dict) -> None:
+    train, val, path, force = arguments["train_out"], arguments["val_out"], arguments["path"], arguments["force"]
+    if os.path.realpath(Path(train).absolute()) == os.path.realpath(Path(val).absolute()):
+        raise DatasetError("--train and --val must be different paths")
+    check_data_output(train, [path], force, "--train")
+    check_data_output(val, [path], force, "--val")
+    for out, other, flag in ((train, val, "--train"), (val, train, "--val")):
+        check_not_inside(out, [other, can_log_dir(other)], flag=flag, error=DatasetError)
+
+
+@dataset_writer(train_out="--train", val_out="--val", check=_check_split)
 def split(path: str | os.PathLike, train_out: str | os.PathLike, val_out: str | os.PathLike, *,
           val_ratio: float | None = None, val_episodes: Sequence[int] | None = None, seed: int = 0,
           force: bool = False, drop_marked: bool = False, drop_episodes: Sequence[int] = ()) -> dict:
@@ -348,10 +385,7 @@ def split(path: str | os.PathLike, train_out: str | os.PathLike, val_out: str | 
     """
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ConfigError(f"--seed must be a non-negative integer, got {seed!r}")
-    if os.path.realpath(Path(train_out).absolute()) == os.path.realpath(Path(val_out).absolute()):
-        raise DatasetError("--train and --val must be different paths")
-    check_data_output(train_out, [path], force, "--train")
-    check_data_output(val_out, [path], force, "--val")
+    _check_split({"train_out": train_out, "val_out": val_out, "path": path, "force": force})
     reader = ReplayBufferReader(path)
     named = sorted({int(i) for i in drop_episodes})
     bad = [i for i in named if not 0 <= i < reader.n_episodes]
@@ -383,6 +417,7 @@ def split(path: str | os.PathLike, train_out: str | os.PathLike, val_out: str | 
             "val_summary": val_summary}
 
 
+@dataset_writer(path="PATH", check=lambda a: ReplayBufferReader(a["path"], allow_incomplete_tail=True))
 def repair(path: str | os.PathLike) -> dict:
     """Cut off the steps an interrupted append left after the last episode end, and per-episode metadata
     beyond the last episode; set back to the last episode end an array whose metadata gives steps that no
@@ -391,17 +426,14 @@ def repair(path: str | os.PathLike) -> dict:
 
     Lost data cannot be repaired: a missing or corrupt chunk of a complete episode raises DatasetError
     (the key, the chunk, its steps and episodes) before anything on disk changes. The changes themselves
-    are made with Ctrl-C held back until they are done.
+    are made with Ctrl-C held back until they are done. It holds the dataset's writer lock throughout (no
+    recording session, collect or other writer meanwhile).
     """
-    ReplayBufferReader(path, allow_incomplete_tail=True)  # a missing or broken dataset is reported first
-    lock = dataset_lock(path, flag="PATH")  # no other writer (a recording session, a collect) meanwhile
-    try:
-        check_dataset_tree(path, appending=True)  # changed in place: no link to write through
-        # every chunk of the complete episodes is decoded
-        ReplayBufferReader(path, allow_incomplete_tail=True).check_chunks(decode=True)
-        return _repair(path)
-    finally:
-        lock.release()
+    ReplayBufferReader(path, allow_incomplete_tail=True)  # a missing or broken dataset
+    check_dataset_tree(path, appending=True)  # changed in place: no link to write through
+    # every chunk of the complete episodes is decoded
+    ReplayBufferReader(path, allow_incomplete_tail=True).check_chunks(decode=True)
+    return _repair(path)
 
 
 def _repair(path) -> dict:

@@ -23,7 +23,7 @@ from typing import Any, ClassVar
 
 from dssp_core.files import atomic_write_text
 from dssp_core.errors import ConfigError
-from dssp_core.schema import MAX_DIM, Settings, setting
+from dssp_core.schema import MAX_DIM, Settings, parse_json, setting
 
 SAMPLING_METHODS = ("fps",)
 MAX_RANGE_M = 20.0  # no depth camera of the toolkit measures farther; a larger value is a unit mistake (mm)
@@ -76,9 +76,11 @@ class PointCloudConfig(Settings):
     @classmethod
     def from_json(cls, text: str) -> "PointCloudConfig":
         try:
-            data = json.loads(text)
+            data = parse_json(text)
         except json.JSONDecodeError as e:
             raise ConfigError(f"point cloud config is not valid JSON (line {e.lineno}: {e.msg})") from None
+        except ValueError as e:  # a key given twice, nesting too deep
+            raise ConfigError(f"point cloud config is not usable JSON ({e})") from None
         return cls.from_dict(data)
 
     def save(self, path: str | Path) -> Path:

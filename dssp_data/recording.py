@@ -42,7 +42,7 @@ import numpy as np
 
 from dssp_data import attributes
 from dssp_data.dataset_layout import Episode
-from dssp_data.replay_buffer_writer import ReplayBufferWriter, dataset_lock
+from dssp_data.replay_buffer_writer import DATASET_WRITERS, DatasetWriter, ReplayBufferWriter, dataset_lock
 from dssp_core.errors import ConfigError, DatasetError
 from dssp_data.observation import ObservationContract, check_contract
 from dssp_core.staging import WriterLock
@@ -295,6 +295,9 @@ class RecordingDataset:
     def close(self) -> None:
         self.writer.close()
         self._lock.release()
+
+
+DATASET_WRITERS.append(DatasetWriter(RecordingDataset, (("path", "--out"),)))
 
 
 def flags_summary(flags: np.ndarray) -> dict[str, dict]:

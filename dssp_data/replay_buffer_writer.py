@@ -14,17 +14,23 @@ readers index such per-episode attributes by episode count.
 
 from __future__ import annotations
 
+import contextlib
+import functools
+import inspect
 import json
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import zarr
 import zarr.codecs
 
 from dssp_core.errors import DatasetError
-from dssp_core.staging import Staging, WriterLock, is_staging_name
+from dssp_core.files import make_dirs, remove_created
+from dssp_core.staging import Staging, WriterLock, is_staging_name, staging_target
 from dssp_data.dataset_layout import (
     CHUNK_STEPS,
     DATA_KEYS,
@@ -36,7 +42,7 @@ from dssp_data.dataset_layout import (
     check_extra_array,
     check_extra_name,
     describe_extras_layout,
-    first_bad_steps,
+    as_float32,
     extras_layout,
     resolve_length,
 )
@@ -53,7 +59,8 @@ from dssp_data.zarr_chunks import (
     find_unbacked,
 )
 
-__all__ = ["write_replay_buffer", "ReplayBufferWriter", "dataset_lock"]
+__all__ = ["write_replay_buffer", "ReplayBufferWriter", "dataset_lock", "dataset_writer", "DATASET_WRITERS",
+           "DatasetWriter", "require_dataset_lock"]
 
 
 # --------------------------------------------------------------------------- writing
@@ -81,14 +88,7 @@ def _validated_episode(episode: Episode, where: str,
             f"{where}: (P, C, S, A) = {got} does not match the dataset's {dims}: "
             f"resample the points or write a separate dataset"
         )
-    values = []
-    for key, array in zip(DATA_KEYS, (pc, state, action)):
-        with np.errstate(over="ignore"):
-            array = array.astype(np.float32, copy=False)
-        bad_steps = first_bad_steps(array)
-        if bad_steps.size:
-            raise DatasetError(f"{where}: {key} holds NaN or inf (first at step {bad_steps[0]}): fix the episode")
-        values.append(array)
+    values = [as_float32(array, f"{where}: {key}") for key, array in zip(DATA_KEYS, (pc, state, action))]
     extras = {}
     for name, array in dict(getattr(episode, "extras", None) or {}).items():
         check_extra_name(name, where)
@@ -118,7 +118,9 @@ def _check_attrs(attrs: dict | None) -> dict:
 
 
 def _write_store(path: Path, episodes: Sequence[Episode], attrs: dict, zarr_format: int) -> None:
-    """Write validated float32 episodes as a new store at ``path`` (a new or empty directory)."""
+    """Write validated float32 episodes as a new store at ``path`` (a new or empty directory; the writer lock
+    of the dataset it is for held)."""
+    require_dataset_lock(path)
     root = zarr.open_group(str(path), mode="w-", zarr_format=zarr_format, attributes=attrs)
     data = root.create_group("data")
     meta = root.create_group("meta")
@@ -153,6 +155,91 @@ def _check_replaceable(path: Path) -> None:
         )
 
 
+def _lock_target(path: str | os.PathLike) -> Path:
+    """The name a dataset's lock is taken for: links in the folders above resolved, so that two names for one
+    dataset share one lock."""
+    path = Path(path).absolute()
+    return Path(os.path.realpath(path.parent)) / path.name
+
+
+def dataset_lock(path: str | os.PathLike, *, flag: str = "path", doing: str = "written") -> WriterLock:
+    """One writer per dataset: the :class:`~dssp_core.staging.WriterLock` of the dataset at ``path``
+    (``.NAME.lock`` beside it, links in the folders above resolved, so that two names for one dataset share
+    one lock). Every dataset writer holds it (:data:`DATASET_WRITERS`, ``dssp-sim collect``, a recording
+    session); a second one gets one DatasetError line naming the holder (``flag``: the option that names the
+    dataset; ``doing``: what this writer does, as the line a second one gets says it)."""
+    return WriterLock(_lock_target(path), what="dataset", flag=flag, error=DatasetError, doing=doing)
+
+
+def require_dataset_lock(path: str | os.PathLike) -> None:
+    """Raise RuntimeError (a bug, not bad input) unless this process holds the writer lock of the dataset at
+    ``path`` — of the output it is staged for, when ``path`` is a staging directory. Every write of a dataset
+    passes here (a new store, an append), so a writer that does not take the lock cannot write."""
+    target = staging_target(path) or Path(path)
+    if not WriterLock.held_here(_lock_target(target)):
+        raise RuntimeError(f"{target} is written without its writer lock: a dataset writer takes it first "
+                           f"(dataset_writer, dataset_lock)")
+
+
+@dataclass(frozen=True)
+class DatasetWriter:
+    """One way a dataset is written: ``function`` (or class), and its parameters that name the datasets it
+    writes, each with the option that names it in messages (None: the call's own ``flag`` argument)."""
+
+    function: Callable
+    outputs: tuple[tuple[str, str | None], ...]
+
+    @property
+    def name(self) -> str:
+        return f"{self.function.__module__}.{self.function.__qualname__}"
+
+
+DATASET_WRITERS: list[DatasetWriter] = []
+"""Every dataset writer (:func:`dataset_writer` adds each; :class:`ReplayBufferWriter` takes the lock in its
+constructor): each holds the writer lock of every dataset it writes from before any work until it is done."""
+
+
+def dataset_writer(*, check: Callable[[Mapping[str, Any]], object] | None = None, **outputs: str | None):
+    """Mark a function that writes datasets: ``outputs`` maps each parameter naming a dataset it writes to the
+    option that names it in messages (None: the call's ``flag`` argument). The function runs holding the writer
+    lock (:func:`dataset_lock`) of each, taken before its body (a second writer of one of them gets one line
+    naming the holder, and nothing is done); the folders the locks need are created and, if still empty, removed
+    again. ``check(arguments)`` runs first, with the call's arguments by name: the rules of the output paths (an
+    output inside an input, under a file, over foreign data), so that a refused path creates no folder; the body
+    checks them again under the lock. The function is listed in :data:`DATASET_WRITERS`.
+
+        @dataset_writer(out=None, check=lambda a: check_data_output(a["out"], a["inputs"], a["force"], a["flag"]))
+        def merge(out, inputs, *, force=False, flag="OUT"): ...
+    """
+    def decorate(function: Callable) -> Callable:
+        signature = inspect.signature(function)
+
+        @functools.wraps(function)
+        def locked(*args, **kwargs):
+            bound = signature.bind(*args, **kwargs)
+            bound.apply_defaults()
+            if check is not None:
+                check(bound.arguments)
+            with contextlib.ExitStack() as stack:
+                seen = set()
+                for name, flag in outputs.items():
+                    path = Path(bound.arguments[name])
+                    flag = flag if flag is not None else bound.arguments.get("flag", "--out")
+                    if _lock_target(path) in seen:  # the same dataset twice: the function says why not
+                        continue
+                    seen.add(_lock_target(path))
+                    created = make_dirs(path.absolute().parent, flag=flag, error=DatasetError)
+                    stack.callback(remove_created, created)
+                    stack.enter_context(dataset_lock(path, flag=flag))
+                return function(*args, **kwargs)
+
+        DATASET_WRITERS.append(DatasetWriter(locked, tuple(outputs.items())))
+        return locked
+
+    return decorate
+
+
+@dataset_writer(path="path", check=lambda a: _check_replaceable(Path(a["path"])))
 def write_replay_buffer(path: str | os.PathLike, episodes: Sequence[Episode], attrs: dict | None = None,
                         zarr_format: int = 2) -> None:
     """Write ``episodes`` as a complete dataset at ``path``.
@@ -173,10 +260,18 @@ def write_replay_buffer(path: str | os.PathLike, episodes: Sequence[Episode], at
         attrs: JSON attributes for the root group (e.g. ``control_rate_hz``).
         zarr_format: 2 (default, what zarr-python 2.x and DP3 use) or 3.
 
+    It holds the dataset's writer lock while it writes (:func:`dataset_writer`).
+
     Raises:
         DatasetError: an episode is invalid, ``path`` holds something other
-            than a zarr dataset or an empty directory, or cannot be written.
+            than a zarr dataset or an empty directory, or cannot be written,
+            or another writer holds the dataset.
     """
+    _write_complete(path, episodes, attrs, zarr_format)
+
+
+def _write_complete(path: str | os.PathLike, episodes: Sequence[Episode], attrs: dict | None, zarr_format: int) -> None:
+    """:func:`write_replay_buffer` for a caller that holds the dataset's writer lock."""
     check_zarr_format(zarr_format)
     attrs = _check_attrs(attrs)
     if len(episodes) == 0:
@@ -191,18 +286,6 @@ def write_replay_buffer(path: str | os.PathLike, episodes: Sequence[Episode], at
         tmp = staging.make(staging.reserve(path))
         _write_store(tmp, checked, attrs, zarr_format)
         staging.commit([(tmp, path)])
-
-
-def dataset_lock(path: str | os.PathLike, *, flag: str = "path", doing: str = "written") -> WriterLock:
-    """One writer per dataset: the :class:`~dssp_core.staging.WriterLock` of the dataset at ``path``
-    (``.NAME.lock`` beside it, links in the folders above resolved, so that two names for one dataset share
-    one lock). Every writer that appends to a dataset or changes it in place holds it
-    (:class:`ReplayBufferWriter`, ``dssp-sim collect``, a recording session, ``dssp-data repair``); a second
-    one gets one DatasetError line naming the holder (``flag``: the option that names the dataset; ``doing``:
-    what this writer does, as the line a second one gets says it)."""
-    path = Path(path).absolute()
-    return WriterLock(Path(os.path.realpath(path.parent)) / path.name, what="dataset", flag=flag, error=DatasetError,
-                      doing=doing)
 
 
 class ReplayBufferWriter:
@@ -236,7 +319,8 @@ class ReplayBufferWriter:
             the first episode is written into it directly instead of beside it.
         lock: hold the dataset's writer lock (:func:`dataset_lock`) until :meth:`close`,
             so that a second writer of the same dataset is refused with one line;
-            False when the caller holds it already (a staged writer needs none).
+            False when the caller holds it already (a staged writer: the lock of the
+            output it is staged for), which is checked.
 
     An existing dataset is checked before anything is written: no symbolic link, FIFO
     or device anywhere in its folder (:func:`check_dataset_tree`), its structure and
@@ -267,7 +351,11 @@ class ReplayBufferWriter:
         self.unbacked_steps: dict[str, tuple[int, int, str]] = {}
         """Arrays whose metadata gave steps after the last episode end that no stored chunk held
         (``{key: (first such step, length, metadata file)}``); ``repair_incomplete_tail=True`` set them back."""
+        self._shown = staging_target(self.path) or self.path
+        """What messages call the dataset: the output, never a staging directory."""
         self._lock = dataset_lock(self.path) if lock and not staged else None
+        if self._lock is None:
+            require_dataset_lock(self.path)
         try:
             if self.path.is_symlink() or is_zarr_store(self.path) or (self.path.exists() and not self._is_empty_dir()):
                 self._open_existing(repair_incomplete_tail)
@@ -361,7 +449,7 @@ class ReplayBufferWriter:
         """
         if self._closed:
             raise ValueError("ReplayBufferWriter is closed")
-        where = f"{self.path}: episode {self._n_episodes}"
+        where = f"{self._shown}: episode {self._n_episodes}"
         brought = tuple(sorted(getattr(episode, "extras", None) or {}))
         if brought != self.extra_keys:
             raise DatasetError(
@@ -374,7 +462,7 @@ class ReplayBufferWriter:
             if self.staged and self._is_empty_dir() and is_staging_name(self.path.name):
                 _write_store(self.path, [episode], {**self._attrs, **attrs}, self.zarr_format)
             else:
-                write_replay_buffer(self.path, [episode], {**self._attrs, **attrs}, self.zarr_format)
+                _write_complete(self.path, [episode], {**self._attrs, **attrs}, self.zarr_format)
             self._group, arrays, _ = open_required(self.path, "r+")
             arrays.update({f"data/{name}": get_array(self._group, f"data/{name}", str(self.path))
                            for name in self.extra_keys})
@@ -417,3 +505,6 @@ class ReplayBufferWriter:
 
     def __exit__(self, *exc_info) -> None:
         self.close()
+
+
+DATASET_WRITERS.append(DatasetWriter(ReplayBufferWriter, (("path", "path"),)))

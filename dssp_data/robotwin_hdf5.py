@@ -20,19 +20,19 @@ before any data is read, naming the object; each dataset read must fit the read 
 
 from __future__ import annotations
 
-import math
 import os
 import re
 from pathlib import Path
 
 import numpy as np
 
-from dssp_data.bounded import ChunkTooLarge, check_budget, decompress, human_size, nbytes_of
-from dssp_data.recording import ACTION_CONVENTIONS
-from dssp_data.dataset_layout import Episode
 from dssp_core.errors import DatasetError
-from dssp_data.edit import DATA_DATASET, DATA_GENERATORS, write_converted
-from dssp_core.output_guard import check_output
+from dssp_data.bounded import ChunkTooLarge, check_budget, decompress, human_size, nbytes_of
+from dssp_data.dataset_layout import Episode, as_float32
+from dssp_data.edit import DATA_GENERATORS, ConvertedEpisode, check_converted_output, check_data_output, write_converted
+from dssp_core.schema import check_rate
+from dssp_data.recording import ACTION_CONVENTIONS
+from dssp_data.replay_buffer_writer import dataset_writer
 
 PARTS = ("left_arm", "left_gripper", "right_arm", "right_gripper")
 _NUMBER = re.compile(r"(\d+)")
@@ -154,9 +154,12 @@ def read_array(f, name: str, path: Path, dtype) -> np.ndarray:
                 raise DatasetError(f"{path}: /{name} chunk {info.chunk_offset} is corrupt (it does not decode: "
                                    f"{exc}): re-save or leave out the episode") from None
     try:
-        return np.asarray(node[()], dtype=dtype)
+        values = np.asarray(node[()])
     except Exception as exc:  # h5py raises OSError and others for damaged data
         raise DatasetError(f"{path}: /{name} cannot be read ({exc}): re-save or leave out the episode") from None
+    if np.dtype(dtype) == np.float32:  # a value beyond float32 is refused by name, never cast to inf
+        return as_float32(values, f"{path}: /{name}", "fix or leave out the episode")
+    return values.astype(dtype)
 
 
 def read_episode(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
@@ -201,9 +204,11 @@ def to_episode(vector: np.ndarray, cloud: np.ndarray, xyz_only: bool = False) ->
     if len(vector) < 2:
         raise DatasetError("an episode needs at least 2 steps (the action is the next step's joint vector)")
     points = cloud[:-1, :, :3] if xyz_only else cloud[:-1]
-    return Episode(point_cloud=points, state=vector[:-1].astype(np.float32), action=vector[1:].astype(np.float32))
+    vector = as_float32(vector, "/joint_action/vector", "fix or leave out the episode")
+    return Episode(point_cloud=points, state=vector[:-1], action=vector[1:])
 
 
+@dataset_writer(out=None, check=check_converted_output)
 def convert(source: str | os.PathLike, out: str | os.PathLike, *, max_episodes: int | None = None,
             xyz_only: bool = False, control_rate_hz: float | None = None, task: str | None = None,
             force: bool = False, progress=None, flag: str = "--out") -> dict:
@@ -213,18 +218,19 @@ def convert(source: str | os.PathLike, out: str | os.PathLike, *, max_episodes: 
     refused and nothing is deleted (:data:`~dssp_data.edit.DATA_DATASET`). The dataset is
     written into a staging directory beside ``out``, removed on an error or Ctrl-C. Its ``generator``
     attribute is ``dssp-data convert``. Returns {"episodes": n, "steps": n, "files": [names]}.
-    ``progress(i, n, path)`` is called per file.
+    ``progress(i, n, path)`` is called per file. It holds ``out``'s writer lock from the start
+    (:func:`~dssp_data.replay_buffer_writer.dataset_writer`), and ``out`` may not be ``source``, lie inside it or
+    hold it (:func:`~dssp_data.edit.check_data_output`).
     """
-    if control_rate_hz is not None and not (isinstance(control_rate_hz, (int, float)) and not isinstance(control_rate_hz, bool)
-                                            and math.isfinite(control_rate_hz) and control_rate_hz > 0):
-        raise DatasetError(f"--control-rate must be a rate in Hz (a number > 0), got {control_rate_hz!r}")
+    if control_rate_hz is not None:
+        check_rate(control_rate_hz, "--control-rate")
+    out = Path(out)
+    check_data_output(out, [source], force, flag)  # before the input is read: never into it, never over foreign data
     files = find_episodes(source)
     if max_episodes is not None:
         if max_episodes < 1:
             raise DatasetError(f"--episodes must be at least 1, got {max_episodes}")
         files = files[:max_episodes]
-    out = Path(out)
-    check_output(out, force=force, kind=DATA_DATASET, flag=flag, error=DatasetError)
     attrs = {
         "generator": DATA_GENERATORS["convert"],
         "source_format": "RoboTwin raw HDF5",
@@ -244,9 +250,10 @@ def convert(source: str | os.PathLike, out: str | os.PathLike, *, max_episodes: 
                 progress(i, len(files), path)
             vector, cloud = read_episode(path)
             try:
-                yield path, to_episode(vector, cloud, xyz_only)
+                episode = to_episode(vector, cloud, xyz_only)
             except DatasetError as exc:
                 raise DatasetError(f"{path}: {exc}") from None
+            yield ConvertedEpisode(str(path), episode)
 
     steps = write_converted(out, attrs, episodes(), force=force, flag=flag)
     return {"episodes": len(files), "steps": steps, "files": [p.name for p in files]}

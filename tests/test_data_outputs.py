@@ -220,7 +220,9 @@ def test_an_output_is_never_an_input_or_inside_one(tmp_path, capsys, inputs):
          "lies inside the input"),
         (["split", a, "--train", tmp_path / "v.zarr" / "t.zarr", "--val", tmp_path / "v.zarr", "--val-ratio", "0.5"],
          "lies inside the input"),
-        (["convert", raw, "--out", raw], "is not a dataset made by dssp-data"),
+        (["convert", raw, "--out", raw], "is also an input"),
+        (["convert", raw, "--out", raw / "data" / "x.zarr"], "lies inside the input"),
+        (["convert", raw, "--out", raw.parent], "holds the input"),
     ]
     for argv, fragment in cases:
         one_line_error(*run(capsys, *argv)[::2], fragment)
@@ -299,8 +301,9 @@ def test_ctrl_c_leaves_no_temporary_and_a_killed_run_is_swept(big):
     # zarr's writes go on in their own thread after the main one is interrupted, and whether one lands after the
     # temporary was removed depends on the moment: a dozen runs at different moments of the copy, each once a
     # number of point-cloud chunks is written (of the merge's 96 and the split's 34)
-    runs = [(["merge", "m.zarr", "a.zarr", "b.zarr"], ".m.zarr.", 2 * k) for k in range(12)]
-    runs.append((["split", "a.zarr", "--train", "t.zarr", "--val", "v.zarr", "--val-ratio", "0.3"], ".t.zarr.", 6))
+    # (the staging folders, not the writer's lock file .m.zarr.lock beside them)
+    runs = [(["merge", "m.zarr", "a.zarr", "b.zarr"], ".m.zarr.tmp-", 2 * k) for k in range(12)]
+    runs.append((["split", "a.zarr", "--train", "t.zarr", "--val", "v.zarr", "--val-ratio", "0.3"], ".t.zarr.tmp-", 6))
     for argv, prefix, chunks in runs:
         before = sorted(os.listdir(big))
         proc = _start(argv, big)

@@ -231,16 +231,17 @@ def test_convert_robotwin_hdf5(tmp_path, capsys):
 
 def test_convert_rejects_episodes_without_clouds(tmp_path, capsys):
     import h5py
-    path = tmp_path / "data" / "episode0.hdf5"
+    task = tmp_path / "task"
+    path = task / "data" / "episode0.hdf5"
     path.parent.mkdir(parents=True)
     with h5py.File(path, "w") as f:
         f["joint_action/vector"] = np.zeros((4, 14))
         f["pointcloud"] = np.zeros((4, 0))
-    code, _, err = run(capsys, "convert", tmp_path, "--out", tmp_path / "o.zarr")
+    code, _, err = run(capsys, "convert", task, "--out", tmp_path / "o.zarr")
     one_line_error(code, err, "collected without point clouds")
     assert not (tmp_path / "o.zarr").exists()
-    (tmp_path / "data" / "episode0.hdf5").write_bytes(b"not hdf5")
-    one_line_error(*run(capsys, "convert", tmp_path, "--out", tmp_path / "o.zarr")[::2], "not a readable HDF5 file")
+    path.write_bytes(b"not hdf5")
+    one_line_error(*run(capsys, "convert", task, "--out", tmp_path / "o.zarr")[::2], "not a readable HDF5 file")
     one_line_error(*run(capsys, "convert", tmp_path / "nowhere", "--out", tmp_path / "o.zarr")[::2], "does not exist")
 
 

@@ -21,6 +21,8 @@ ROOT = Path(__file__).resolve().parents[1]
 SOURCES = ("dssp_core", "dssp_data", "dssp_train", "export", "dssp_deploy", "hardware", "dssp_sim", "studies",
            "plugins", "benchmarks", "tests")
 
+# Standard-library modules of newer Pythons, imported where they exist (a backport stands in before).
+NEWER_STDLIB = {"compression": "zstd in the standard library from Python 3.14 (backports.zstd before)"}
 # Requirements of the packages installed with --no-deps (Makefile: METAWORLD, LEROBOT) that are not installed, and why.
 LEFT_OUT = {
     "metaworld": {"mujoco": "metaworld pins mujoco==3.3.0; it runs on the MuJoCo the sim extra installs"},
@@ -83,7 +85,7 @@ def test_every_third_party_import_comes_from_a_declared_distribution():
     assert {"numpy", "torch", "onnxruntime", "can", "zarr"} <= set(found)  # the walk sees the packages' imports
     problems = []
     for module, files in sorted(found.items()):
-        if module in ours or module in sys.stdlib_module_names or module == "__future__":
+        if module in ours or module in sys.stdlib_module_names or module in NEWER_STDLIB or module == "__future__":
             continue
         dists = {canonicalize_name(d) for d in provided.get(module, [])}
         where = ", ".join(sorted(files)[:3])

@@ -340,8 +340,8 @@ def test_convert_refuses_hdf5_files_that_pull_in_other_files(tmp_path, capsys, k
 def test_convert_reads_hdf5_data_within_bounds(tmp_path, capsys, kind, monkeypatch):
     import zlib
 
-    path = tmp_path / "data" / "episode0.hdf5"
-    path.parent.mkdir()
+    path = tmp_path / "task" / "data" / "episode0.hdf5"
+    path.parent.mkdir(parents=True)
     with _robotwin(path, without="cloud") as f:
         if kind == "deflate bomb":  # 20 kB on disk, 20 MiB decoded, in a chunk of 1.5 KiB
             d = f.create_dataset("pointcloud", shape=(4, 16, 6), dtype="f4", chunks=(4, 16, 6), compression="gzip")
@@ -355,7 +355,8 @@ def test_convert_reads_hdf5_data_within_bounds(tmp_path, capsys, kind, monkeypat
             fragment = "over the read budget of 4.0 GiB (DSSP_READ_BUDGET)"
     monkeypatch.delenv("DSSP_READ_BUDGET", raising=False)
     before = snapshot(tmp_path)
-    one_line_error(*run(capsys, "convert", tmp_path, "--out", tmp_path / "o.zarr")[::2], "/pointcloud", fragment)
+    one_line_error(*run(capsys, "convert", tmp_path / "task", "--out", tmp_path / "o.zarr")[::2], "/pointcloud",
+                   fragment)
     assert snapshot(tmp_path) == before
 
 

@@ -9,7 +9,7 @@ import os
 
 import numpy as np
 import pytest
-from rosbags.rosbag2 import Writer
+from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
 from conftest import one_error_line
@@ -52,10 +52,17 @@ def depth_image(t: float) -> np.ndarray:
 
 
 def write_bag(path, seconds=1.5, *, joint_hz=100.0, depth_hz=30.0, phase=0.004, info=True, leader=False,
-              encoding="16UC1", distortion=(0.0,) * 5, depth_gap=None):
-    """A bag like piper_ros + realsense2_camera record; ``depth_gap`` (start, end) s: no depth frame in between."""
+              encoding="16UC1", distortion=(0.0,) * 5, depth_gap=None, storage="sqlite3", compression=None,
+              joints_of=joints, k_of=None, image_bytes=None):
+    """A bag like piper_ros + realsense2_camera record; ``depth_gap`` (start, end) s: no depth frame in between;
+    ``storage`` sqlite3 or mcap, ``compression`` None, "message" (each message zstd) or "storage" (mcap's zstd
+    chunks); ``joints_of(t)``: the joint positions at t; ``k_of(k)``: the CameraInfo's K from the camera's;
+    ``image_bytes(data)``: a depth image's bytes from the camera's."""
     intr = CAMERA.intrinsics
-    with Writer(path, version=9) as writer:
+    writer = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3)
+    if compression is not None:
+        writer.set_compression(CompressionMode[compression.upper()], CompressionFormat.ZSTD)
+    with writer:
         conns = {
             "/joint_states": writer.add_connection("/joint_states", JointState.__msgtype__, typestore=TS),
             "/camera/camera/depth/image_rect_raw": writer.add_connection(
@@ -77,7 +84,7 @@ def write_bag(path, seconds=1.5, *, joint_hz=100.0, depth_hz=30.0, phase=0.004, 
             ns = int(round((t + 0.002) * 1e9))  # received a little after the sensor's stamp
             if kind == "joints":
                 names = [f"joint{i}" for i in range(1, 8)]
-                msg = JointState(header=header(t, "base_link"), name=names, position=joints(t),
+                msg = JointState(header=header(t, "base_link"), name=names, position=joints_of(t),
                                  velocity=np.zeros(0), effort=np.zeros(0))
                 writer.write(conns["/joint_states"], ns, TS.serialize_cdr(msg, JointState.__msgtype__))
                 if leader:
@@ -87,11 +94,13 @@ def write_bag(path, seconds=1.5, *, joint_hz=100.0, depth_hz=30.0, phase=0.004, 
                 continue
             depth = depth_image(t)
             data = depth.astype("<u2").tobytes() if encoding != "32FC1" else (depth * 0.00025).astype("<f4").tobytes()
+            data = data if image_bytes is None else image_bytes(data)
             image = Image(header=header(t), height=intr.height, width=intr.width, encoding=encoding, is_bigendian=0,
                           step=len(data) // intr.height, data=np.frombuffer(data, dtype=np.uint8))
             writer.write(conns["/camera/camera/depth/image_rect_raw"], ns, TS.serialize_cdr(image, Image.__msgtype__))
             if info:
                 k = np.array([intr.fx, 0, intr.ppx, 0, intr.fy, intr.ppy, 0, 0, 1], dtype=np.float64)
+                k = k if k_of is None else k_of(k)
                 camera_info = CameraInfo(header=header(t), height=intr.height, width=intr.width,
                                          distortion_model="plumb_bob", d=np.array(distortion, dtype=np.float64), k=k,
                                          r=np.eye(3).reshape(9), p=np.zeros(12), binning_x=0, binning_y=0,

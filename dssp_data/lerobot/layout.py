@@ -27,8 +27,6 @@ names as channels (:func:`feature_names` writes them, :func:`feature_layout` rea
 
 from __future__ import annotations
 
-import json
-import math
 import os
 import re
 import stat
@@ -39,11 +37,14 @@ from pathlib import Path
 import numpy as np
 
 from dssp_core.errors import ConfigError, DatasetError
+from dssp_core.schema import DuplicateKey, parse_json
+from dssp_data.bounded import check_budget, human_size
+from dssp_core.schema import check_rate
 from dssp_data.observation import VectorLayout
 
 __all__ = ["CODEBASE_VERSION", "INFO_PATH", "TASKS_PATH", "STATS_PATH", "EPISODES_DIR", "CHUNK_FILE", "DATA_PATH",
            "CHUNKS_SIZE", "INDEX_FEATURES", "INTRINSICS_KEYS", "pyarrow_modules", "is_lerobot_root", "named_path",
-           "open_regular", "read_info", "data_file", "read_parquet", "numpy_column", "to_numpy", "from_numpy",
+           "open_regular", "read_info", "data_file", "read_parquet", "decoded_size", "numpy_column", "to_numpy", "from_numpy",
            "list_array", "text_array", "feature_layout", "feature_names"]
 
 CODEBASE_VERSION = "v3.0"
@@ -59,6 +60,10 @@ CHUNKS_SIZE = 1000
 INDEX_FEATURES = ("timestamp", "frame_index", "episode_index", "index", "task_index")
 """The per-frame columns every LeRobot dataset holds after its own features."""
 INTRINSICS_KEYS = ("fx", "fy", "ppx", "ppy", "width", "height", "depth_unit")
+INFO_LIMIT = 16 << 20
+"""Bytes ``meta/info.json`` may hold (a dataset of a hundred features writes a few tens of KB)."""
+TEMPLATE_LIMIT = 1024
+"""Characters a file path template of ``meta/info.json`` may have."""
 
 
 def pyarrow_modules():
@@ -75,9 +80,9 @@ def pyarrow_modules():
 
 # ------------------------------------------------------------------------------------------- files of a root
 def is_lerobot_root(path: Path) -> bool:
-    """A LeRobot dataset's root: a folder holding ``meta/info.json``."""
+    """A LeRobot dataset's root: a folder holding ``meta/info.json`` (whatever it is: it is checked when read)."""
     path = Path(path)
-    return path.is_dir() and (path / INFO_PATH).is_file()
+    return path.is_dir() and os.path.lexists(path / INFO_PATH)
 
 
 def named_path(root: Path, rel: str, what: str, folder: bool = False) -> Path:
@@ -106,9 +111,10 @@ def named_path(root: Path, rel: str, what: str, folder: bool = False) -> Path:
 
 
 def open_regular(path: Path):
-    """The file at ``path`` opened for reading without following a link."""
+    """The file at ``path`` opened for reading without following a link and without blocking (a FIFO swapped in
+    is refused, never waited on)."""
     try:
-        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC)
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC | os.O_NONBLOCK)
     except OSError as exc:
         raise DatasetError(f"cannot read {path} ({exc.strerror or exc})") from None
     if not stat.S_ISREG(os.fstat(fd).st_mode):
@@ -127,25 +133,33 @@ def _check_root(root: Path) -> Path:
 
 
 def read_info(root: Path) -> dict:
-    """``meta/info.json`` of a v3 dataset, checked: a JSON object with ``codebase_version`` v3.x, ``fps`` > 0 and
-    ``features``; anything else is one line."""
+    """``meta/info.json`` of a v3 dataset, checked: a JSON object (at most :data:`INFO_LIMIT` bytes, no key twice,
+    nested at most :data:`~dssp_core.schema.JSON_MAX_DEPTH` deep) with ``codebase_version`` v3.x, ``fps`` a control
+    rate (:func:`~dssp_core.schema.check_rate`) and ``features``; anything else is one line."""
     root = _check_root(root)
     path = named_path(root, INFO_PATH, "its info file")
     with open_regular(path) as f:
-        raw = f.read(64 << 20)
+        raw = f.read(INFO_LIMIT + 1)
+    if len(raw) > INFO_LIMIT:
+        raise DatasetError(f"{path} holds more than the {INFO_LIMIT} bytes an info file may hold; check the dataset")
     try:
-        info = json.loads(raw)
-    except (ValueError, UnicodeDecodeError) as exc:
+        info = parse_json(raw.decode())
+    except DuplicateKey as exc:
+        raise DatasetError(f"{path} gives the key {exc} twice; keep one") from None
+    except UnicodeDecodeError:
+        raise DatasetError(f"{path} is not a text file") from None
+    except ValueError as exc:  # not JSON, nested too deep
         raise DatasetError(f"{path} is not valid JSON ({exc})") from None
     if not isinstance(info, dict):
         raise DatasetError(f"{path} must hold a JSON object")
     version = info.get("codebase_version")
     if not (isinstance(version, str) and re.fullmatch(r"v3(\.\d+)*", version)):
-        raise DatasetError(f"{root} is a LeRobot dataset of codebase_version {version!r}; only v3 datasets are read "
-                           "(convert an older one with lerobot's convert_dataset_v21_to_v30 first)")
-    fps = info.get("fps")
-    if isinstance(fps, bool) or not isinstance(fps, (int, float)) or not (math.isfinite(fps) and 0 < fps <= 1000):
-        raise DatasetError(f"{path}: fps must be a frame rate in (0, 1000] Hz, got {fps!r}")
+        raise DatasetError(f"{root} is a LeRobot dataset of codebase_version {_shown(version)}; only v3 datasets are "
+                           "read (convert an older one with lerobot's convert_dataset_v21_to_v30 first)")
+    try:
+        check_rate(info.get("fps"), "fps")
+    except ConfigError as exc:
+        raise DatasetError(f"{path}: {exc} (the frame rate, the dataset's control rate)") from None
     features = info.get("features")
     if not (isinstance(features, dict) and all(isinstance(f, dict) for f in features.values())):
         raise DatasetError(f"{path}: features must be an object of feature objects")
@@ -153,35 +167,99 @@ def read_info(root: Path) -> dict:
         shape = feature.get("shape")
         if not (isinstance(shape, list) and shape and all(isinstance(n, int) and not isinstance(n, bool) and n > 0
                                                           for n in shape)):
-            raise DatasetError(f"{path}: feature {key}'s shape must be a list of positive integers, got {shape!r}")
+            raise DatasetError(f"{path}: feature {key}'s shape must be a list of positive integers, got {_shown(shape)}")
         if not isinstance(feature.get("dtype"), str):
             raise DatasetError(f"{path}: feature {key} has no dtype")
     return info
 
 
+def _shown(value, limit: int = 80) -> str:
+    """``value`` for a message, cut to ``limit`` characters (a value from a file may be any size)."""
+    text = repr(value)
+    return text if len(text) <= limit else text[:limit - 5] + " ...'"
+
+
+_FIELDS = ("chunk_index", "file_index")
+_FIELD_SPEC = re.compile(r"(0?[1-9])?d?")
+"""The formats a data_path template may give its fields: an integer, zero-padded to at most 9 digits (``03d``)."""
+
+
 def data_file(root: Path, template, chunk: int, file: int) -> Path:
-    """The data file of (chunk, file) by the dataset's ``data_path`` template, which may name only those two."""
-    if not isinstance(template, str):
-        raise DatasetError(f"{root}: data_path in {INFO_PATH} must be a text template, got {template!r}")
-    try:
-        fields = {name for _, name, _, _ in string.Formatter().parse(template) if name is not None}
-        if not fields <= {"chunk_index", "file_index"}:
-            raise ValueError(f"it names {sorted(fields)}")
-        rel = template.format(chunk_index=chunk, file_index=file)
-    except (ValueError, IndexError, KeyError) as exc:
-        raise DatasetError(f"{root}: data_path {template!r} in {INFO_PATH} is not a template of chunk_index and "
-                           f"file_index ({exc})") from None
-    return named_path(root, rel, "the data file")
+    """The data file of (chunk, file) by the dataset's ``data_path`` template: text with ``{chunk_index}`` and
+    ``{file_index}`` fields, each formatted at most as an integer padded to 9 digits (``{chunk_index:03d}``); any
+    other field, conversion or format (a width that would fill memory) is refused before anything is formatted."""
+    problem = None
+    if not isinstance(template, str) or len(template) > TEMPLATE_LIMIT:
+        problem = f"a text of at most {TEMPLATE_LIMIT} characters"
+    else:
+        parts = []
+        try:
+            parsed = list(string.Formatter().parse(template))
+        except ValueError as exc:
+            parsed, problem = [], f"a template ({exc})"
+        for literal, name, spec, conversion in parsed:
+            parts.append(literal)
+            if name is None:
+                continue
+            if name not in _FIELDS or conversion or not _FIELD_SPEC.fullmatch(spec or ""):
+                problem = f"a template whose fields are {{chunk_index}} and {{file_index}}, formatted at most as :09d"
+                break
+            parts.append(format(chunk if name == "chunk_index" else file, spec or ""))
+    if problem:
+        raise DatasetError(f"{root}: data_path {_shown(template)} in {INFO_PATH} is not {problem}; LeRobot writes "
+                           f"{DATA_PATH!r}")
+    return named_path(root, "".join(parts), "the data file")
 
 
 def read_parquet(pa, pq, path: Path, columns: Sequence[str]):
-    """The ``columns`` of the parquet file at ``path`` (opened without following a link)."""
+    """The ``columns`` of the parquet file at ``path`` (opened without following a link), their decoded size as the
+    file's metadata declares it (:func:`decoded_size`) checked against the read budget before anything is read."""
     with open_regular(path) as f:
         try:
-            return pq.ParquetFile(f).read(columns=list(columns))
+            parquet = pq.ParquetFile(f)
+            need = decoded_size(parquet.metadata, columns)
+        except (OSError, ValueError, KeyError, TypeError, pa.ArrowException) as exc:
+            raise DatasetError(f"{path}: not a readable parquet file ({_first_line(exc)})") from None
+        check_budget(2 * need, f"{path}: the columns {', '.join(columns)} ({human_size(need)} decoded)",
+                     "convert a dataset with smaller data files")
+        try:
+            return parquet.read(columns=list(columns))
+        except (MemoryError, pa.ArrowMemoryError):
+            raise DatasetError(f"{path}: reading it ran out of memory although its metadata declares "
+                               f"{human_size(need)}: a damaged or crafted file") from None
         except (OSError, ValueError, KeyError, TypeError, pa.ArrowException) as exc:
             raise DatasetError(f"{path}: not a readable parquet file with the columns {', '.join(columns)} "
-                               f"({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
+                               f"({_first_line(exc)})") from None
+
+
+def _first_line(exc: BaseException) -> str:
+    return str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__
+
+
+_WIDTHS = {"BOOLEAN": 1, "INT32": 4, "INT64": 8, "INT96": 12, "FLOAT": 4, "DOUBLE": 8}
+_LIST_PARTS = {"list", "element", "item", "array", "bag"}
+
+
+def decoded_size(metadata, columns: Sequence[str]) -> int:
+    """Bytes the ``columns`` of a parquet file take decoded, from its metadata, before anything is read: per value of
+    every row group's column chunks its width (and 4 bytes of offsets and levels); strings at most their stored
+    bytes, or every value the whole dictionary when dictionary-encoded."""
+    total = 0
+    for g in range(metadata.num_row_groups):
+        group = metadata.row_group(g)
+        for c in range(group.num_columns):
+            chunk = group.column(c)
+            path = chunk.path_in_schema
+            if not any(path == name or path.startswith(name + ".")
+                       and set(path[len(name) + 1:].split(".")) <= _LIST_PARTS for name in columns):
+                continue
+            values, stored = int(chunk.num_values), int(chunk.total_uncompressed_size)
+            width = _WIDTHS.get(chunk.physical_type)
+            if width is not None:
+                total += values * (width + 4)
+            else:  # BYTE_ARRAY, FIXED_LEN_BYTE_ARRAY
+                total += values * (4 + (stored if chunk.has_dictionary_page else 0)) + stored
+    return total
 
 
 # ------------------------------------------------------------------------------------------- columns

@@ -6,9 +6,14 @@
 Import (:func:`convert`): one DP3 episode per LeRobot episode; each frame's depth becomes the cloud by the robot's
 pipeline (:func:`dssp_data.pointcloud.frame_to_cloud`, float32 metres first quantised to ``depth_unit``, 1 mm when
 not given); state and action are the two features; ``fps`` is ``control_rate_hz``. Refused with one line and
-nothing written: a dataset that is not v3, one without a depth feature or its intrinsics, video-encoded depth
-(lossy), missing or misshapen state/action, a file path from ``meta/info.json`` that leads outside the root (an
-absolute path, ``..``, a link). The layout and where a depth feature's camera is: :mod:`dssp_data.lerobot.layout`.
+nothing written: a dataset that is not v3, one without a depth feature or its intrinsics (checked by
+:class:`~dssp_data.pointcloud.depth_frame.Intrinsics`), video-encoded depth (lossy), missing or misshapen
+state/action, a value beyond float32 (named with its file, episode, key, frame and value), an ``fps`` outside the
+control rates, a file path from ``meta/info.json`` that leads outside the root (an absolute path, ``..``, a link) or
+whose template asks for other fields or formats, an output that is the root, lies inside it or holds it. Every
+parquet file and episode is checked against the read budget before it is read or allocated
+(:func:`~dssp_data.lerobot.layout.read_parquet`). The layout and where a depth feature's camera is:
+:mod:`dssp_data.lerobot.layout`.
 """
 
 from __future__ import annotations
@@ -21,10 +26,10 @@ from pathlib import Path
 import numpy as np
 
 from dssp_core.errors import ConfigError, DatasetError
-from dssp_core.output_guard import check_not_inside, check_output
 from dssp_data import attributes
-from dssp_data.dataset_layout import Episode
-from dssp_data.edit import DATA_DATASET, DATA_GENERATORS, write_converted
+from dssp_data.bounded import check_budget
+from dssp_data.dataset_layout import Episode, as_float32
+from dssp_data.edit import DATA_GENERATORS, ConvertedEpisode, check_converted_output, check_data_output, write_converted
 from dssp_data.lerobot.layout import (
     EPISODES_DIR,
     INDEX_FEATURES,
@@ -42,6 +47,7 @@ from dssp_data.lerobot.layout import (
 from dssp_data.observation import FRAME_ROBOT_BASE, ObservationContract, PointCloudConfig
 from dssp_data.pointcloud import EmptyCloudError, frame_to_cloud, validate_extrinsics
 from dssp_data.pointcloud.depth_frame import DepthFrame, Intrinsics
+from dssp_data.replay_buffer_writer import dataset_writer
 
 __all__ = ["convert"]
 
@@ -115,20 +121,17 @@ def depth_feature(features: dict, key: str | None, root: Path) -> DepthFeature:
     if missing or unknown:
         raise DatasetError(f"{where} {'lacks ' + ', '.join(missing) if missing else 'has unknown ' + ', '.join(unknown)}"
                            f" (it needs {', '.join(INTRINSICS_KEYS)}: pixels, and metres per depth count)")
-    numbers = {k: camera[k] for k in INTRINSICS_KEYS if k in camera}
-    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in numbers.values()):
-        raise DatasetError(f"{where} must hold finite numbers, got {camera}")
-    width, height = camera["width"], camera["height"]
-    if not (isinstance(width, int) and isinstance(height, int) and [height, width] == list(shape[:2])):
-        raise DatasetError(f"{where} says {width}x{height}; the feature's shape is {shape} (height, width)")
-    if not (camera["fx"] > 0 and camera["fy"] > 0):
-        raise DatasetError(f"{where}: fx and fy must be positive, got {camera['fx']}, {camera['fy']}")
-    unit = float(camera.get("depth_unit", DEFAULT_DEPTH_UNIT))
-    if not 0 < unit <= 1:
-        raise DatasetError(f"{where}: depth_unit must be metres per count in (0, 1], got {unit}")
-    intrinsics = Intrinsics(width, height, float(camera["fx"]), float(camera["fy"]), float(camera["ppx"]),
-                            float(camera["ppy"]))
-    return DepthFeature(key, dtype, intrinsics, unit)
+    try:
+        intrinsics = Intrinsics(*(camera[k] for k in ("width", "height", "fx", "fy", "ppx", "ppy")))
+    except ConfigError as exc:
+        raise DatasetError(f"{where}: {exc}") from None
+    if [intrinsics.height, intrinsics.width] != list(shape[:2]):
+        raise DatasetError(f"{where} says {intrinsics.width}x{intrinsics.height}; the feature's shape is {shape} "
+                           "(height, width)")
+    unit = camera.get("depth_unit", DEFAULT_DEPTH_UNIT)
+    if isinstance(unit, bool) or not isinstance(unit, (int, float)) or not (math.isfinite(unit) and 0 < unit <= 1):
+        raise DatasetError(f"{where}: depth_unit is {unit!r}; it must be metres per count in (0, 1]")
+    return DepthFeature(key, dtype, intrinsics, float(unit))
 
 
 # ------------------------------------------------------------------------------------------- import
@@ -185,19 +188,22 @@ def quantised(depth: np.ndarray, unit: float) -> np.ndarray:
     return counts.astype(np.uint16)
 
 
+@dataset_writer(out=None, check=check_converted_output)
 def convert(source: Path, out: Path, cloud_config: PointCloudConfig, camera_to_base: np.ndarray, *,
             depth_key: str | None = None, state_key: str = "observation.state", action_key: str = "action",
             max_episodes: int | None = None, task: str | None = None, force: bool = False,
             progress: Callable | None = None, flag: str = "--out") -> dict:
     """The LeRobot v3 dataset at ``source`` -> a new DP3 zarr dataset at ``out`` (one episode per LeRobot episode,
     clouds by the robot's pipeline), written in a staging folder and moved into place at the end; returns
-    {"episodes", "steps", "fps", "depth_key", "state_key", "action_key"}."""
+    {"episodes", "steps", "fps", "depth_key", "state_key", "action_key"}. It holds ``out``'s writer lock from the
+    start, and ``out`` may not be ``source``, lie inside it or hold it."""
     pa, pc, pq = pyarrow_modules()
     camera_to_base = validate_extrinsics(np.asarray(camera_to_base, dtype=np.float64))
     if cloud_config.use_color:
         raise ConfigError("--pointcloud asks for colour (use_color): the clouds of a LeRobot dataset are made from its "
                           "depth feature only; set use_color false")
-    root = Path(source)
+    root, out = Path(source), Path(out)
+    check_data_output(out, [root], force, flag)  # before the input is read: never into it, never over foreign data
     info = read_info(root)
     features = info["features"]
     depth = depth_feature(features, depth_key, root)
@@ -208,9 +214,6 @@ def convert(source: Path, out: Path, cloud_config: PointCloudConfig, camera_to_b
         if max_episodes < 1:
             raise DatasetError(f"--episodes must be at least 1, got {max_episodes}")
         refs = refs[:max_episodes]
-    out = Path(out)
-    check_not_inside(out, [root], flag=flag, error=DatasetError)
-    check_output(out, force=force, kind=DATA_DATASET, flag=flag, error=DatasetError)
     data_files = {(r.chunk, r.file): data_file(root, info.get("data_path"), r.chunk, r.file) for r in refs}
 
     fps = float(info["fps"])
@@ -252,8 +255,8 @@ def convert(source: Path, out: Path, cloud_config: PointCloudConfig, camera_to_b
             if loaded != path:  # one data file in memory at a time
                 table, loaded = None, None
                 table, loaded = read_parquet(pa, pq, path, columns), path
-            yield None, _episode(pa, pc, table, ref, path, depth, shape, state_key, state_dim, action_key, action_dim,
-                                 fps, cloud_config, camera_to_base)
+            yield ConvertedEpisode(None, _episode(pa, pc, table, ref, path, depth, shape, state_key, state_dim,
+                                                  action_key, action_dim, fps, cloud_config, camera_to_base))
 
     steps = write_converted(out, attrs, episodes(), extra_keys=("depth", *TIME_KEYS), force=force, flag=flag)
     return {"episodes": len(refs), "steps": steps, "fps": fps, "depth_key": depth.key, "state_key": state_key,
@@ -265,6 +268,11 @@ def _episode(pa, pc, table, ref: _EpisodeRef, path: Path, depth: DepthFeature, s
              camera_to_base: np.ndarray) -> Episode:
     """One LeRobot episode's rows of ``table`` -> an Episode (clouds by the robot's pipeline)."""
     where = f"{path} (episode {ref.index})"
+    pixels = shape[0] * shape[1]
+    per_frame = pixels * (2 + 2 + (8 if depth.dtype != "uint16" else 0)) + 8 * (state_dim + action_dim) + 16 + \
+        2 * cloud_config.n_points * cloud_config.point_dim * 4
+    check_budget(ref.length * per_frame, f"{where}: {ref.length} frames of {shape[1]}x{shape[0]} depth",
+                 "convert a dataset with shorter episodes")
     episodes = numpy_column(pa, pc, table, "episode_index", (1,), where).reshape(-1)
     rows = np.flatnonzero(episodes == ref.index)
     if rows.size != ref.length:
@@ -275,8 +283,11 @@ def _episode(pa, pc, table, ref: _EpisodeRef, path: Path, depth: DepthFeature, s
     frames = numpy_column(pa, pc, part, "frame_index", (1,), where).reshape(-1)
     if not np.array_equal(frames, np.arange(ref.length)):
         raise DatasetError(f"{where}: the frame_index values are not 0..{ref.length - 1}, each once")
-    state = numpy_column(pa, pc, part, state_key, (state_dim,), where).astype(np.float32)
-    action = numpy_column(pa, pc, part, action_key, (action_dim,), where).astype(np.float32)
+    remedy = "fix or leave out the episode"
+    state = as_float32(numpy_column(pa, pc, part, state_key, (state_dim,), where), f"{where}: {state_key}", remedy,
+                       "frame")
+    action = as_float32(numpy_column(pa, pc, part, action_key, (action_dim,), where), f"{where}: {action_key}", remedy,
+                        "frame")
     raw = numpy_column(pa, pc, part, depth.key, shape, where).reshape(ref.length, shape[0], shape[1])
     if raw.dtype != np.dtype(depth.dtype):
         raise DatasetError(f"{where}: {depth.key} is stored as {raw.dtype}; its feature in {INFO_PATH} says {depth.dtype}")
@@ -285,10 +296,6 @@ def _episode(pa, pc, table, ref: _EpisodeRef, path: Path, depth: DepthFeature, s
         times = numpy_column(pa, pc, part, "timestamp", (1,), where).reshape(-1).astype(np.float64)
     else:
         times = np.arange(ref.length) / fps
-    for name, values in ((state_key, state), (action_key, action)):
-        bad = np.flatnonzero(~np.all(np.isfinite(values), axis=1))
-        if bad.size:
-            raise DatasetError(f"{where}: {name} holds NaN or infinity at frame {int(bad[0])}")
     clouds = np.empty((ref.length, cloud_config.n_points, cloud_config.point_dim), np.float32)
     for k in range(ref.length):
         frame = DepthFrame(depth=counts[k], depth_unit=depth.depth_unit, intrinsics=depth.intrinsics,

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from dssp_core.errors import ConfigError, DatasetError
-from dssp_core.output_guard import OutputDir, OutputKind, check_not_inside
+from dssp_core.output_guard import OutputDir, OutputKind, check_not_inside, check_output
 from dssp_data import attributes
 from dssp_data.lerobot.layout import (
     CHUNK_FILE,
@@ -37,6 +37,7 @@ from dssp_data.lerobot.layout import (
 )
 from dssp_data.observation import FRAME_ROBOT_BASE
 from dssp_data.replay_buffer import ReplayBufferReader
+from dssp_data.replay_buffer_writer import dataset_writer
 
 __all__ = ["export", "LEROBOT_DATASET"]
 
@@ -204,12 +205,21 @@ def _next_file(chunk: int, file: int) -> tuple[int, int]:
     return (chunk + 1, 0) if file == CHUNKS_SIZE - 1 else (chunk, file + 1)
 
 
+def _check_export(arguments: dict) -> None:
+    check_not_inside(arguments["out"], [arguments["path"]], flag=arguments["flag"], error=DatasetError)
+    check_output(arguments["out"], force=arguments["force"], kind=LEROBOT_DATASET, flag=arguments["flag"],
+                 error=DatasetError)
+
+
+@dataset_writer(out=None, check=_check_export)
 def export(path: Path, out: Path, *, repo_id: str | None = None, force: bool = False, flag: str = "--out") -> dict:
     """The DP3 zarr dataset at ``path`` -> a LeRobot v3 dataset at ``out`` (built beside it and moved into place);
-    returns {"episodes", "frames", "fps", "features", "repo_id", "notes"}."""
+    returns {"episodes", "frames", "fps", "features", "repo_id", "notes"}. It holds ``out``'s writer lock from the
+    start; ``out`` is checked before the dataset is read."""
     pa, _, pq = pyarrow_modules()
     path, out = Path(path), Path(out)
     repo_id = _repo_id(repo_id, out)
+    _check_export({"out": out, "path": path, "force": force, "flag": flag})
     reader = ReplayBufferReader(path)
     rate = reader.control_rate_hz
     if rate is None:
@@ -218,7 +228,6 @@ def export(path: Path, out: Path, *, repo_id: str | None = None, force: bool = F
     if abs(rate - round(rate)) > 1e-9:
         raise DatasetError(f"{path}: control_rate_hz is {rate:g}; LeRobot's fps is a whole number of frames per second")
     fps = int(round(rate))
-    check_not_inside(out, [path], flag=flag, error=DatasetError)
     features, notes = _features(reader, path)
     tasks = _tasks(reader, path)
     task_list = list(dict.fromkeys(tasks))
