@@ -23,7 +23,8 @@ from hardware.clock import REAL_CLOCK, Clock, FakeClock
 from hardware.ideal_robot import IdealRobot
 from hardware.policies.recorded import RecordedEpisode
 from hardware.rig import Rig
-from hardware.robot import ARM_DOF, check_rate
+from dssp_core.schema import check_rate
+from hardware.robot import ARM_DOF
 from hardware.piper.limits import piper_description
 from hardware.run_loop import LoopSettings, Runner
 from hardware.safety import SafetyConfig

@@ -7,29 +7,14 @@ The policy's action and state are, per arm, [J1..J6 in radians, gripper opening 
 
 from __future__ import annotations
 
-import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from dssp_core.errors import ConfigError
 from dssp_data.observation import VectorLayout
 
 ARM_DOF = 7  # J1..J6 + gripper
-
-MIN_RATE_HZ, MAX_RATE_HZ = 0.1, 1000.0
-"""Control rates the loop can keep: below 0.1 Hz a tick outlasts any sensible timeout; the Piper's CAN
-feedback arrives at 200 Hz, so above 1000 Hz every tick would reuse the same feedback."""
-
-
-def check_rate(rate, flag: str = "--rate") -> float:
-    """``rate`` in [MIN_RATE_HZ, MAX_RATE_HZ] Hz as a float, else a one-line ConfigError naming ``flag``."""
-    if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not math.isfinite(rate) \
-            or not MIN_RATE_HZ <= rate <= MAX_RATE_HZ:
-        raise ConfigError(f"{flag} must be in [{MIN_RATE_HZ:g}, {MAX_RATE_HZ:g}] Hz, got {rate!r}")
-    return float(rate)
-
 
 @dataclass(frozen=True)
 class ArmStatus:

@@ -48,7 +48,7 @@ import numpy as np
 
 from dssp_deploy.ranges import ChunkOutOfRange, ObservationOutOfRange
 from dssp_core.errors import CameraError, ConfigError, DSSPError, NonFiniteObservation
-from hardware.robot import Robot, check_rate
+from dssp_core.schema import check_rate
 from hardware.pacing import Pacer, RateMeter, latency_stats
 from dssp_data.pointcloud import EmptyCloudError, PointCloudConfig, frame_to_cloud
 from hardware.policies import PolicySource

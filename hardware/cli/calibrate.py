@@ -32,6 +32,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Protocol
 
+from dssp_core.schema import check_rate
 from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import ConfigError, DSSPError, OutputError
 from hardware.piper.bus import interface_name
@@ -100,7 +101,6 @@ def _check(args, sim) -> None:
     """The rig's flags (camera, serial, bus, interface, rate), before anything opens."""
     from hardware.camera import check_camera_spec  # deferred: loads numpy
     from hardware.camera.profiles import profile_names  # deferred: loads numpy
-    from hardware.robot import check_rate  # deferred: loads numpy
 
     check_rate(args.rate)
     camera, can = args.camera.strip().lower(), args.can.strip().lower()

@@ -36,6 +36,7 @@ import time
 from pathlib import Path
 from typing import Protocol
 
+from dssp_core.schema import check_rate
 from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import ConfigError, DSSPError
 from dssp_core.output_guard import NEW, OutputKind, check_append
@@ -127,7 +128,6 @@ def parse_args(argv, sim: SimulatedRig | None = None, prog: str = "dssp-record")
         if value is not None and value < 1:
             raise ConfigError(f"--{name.replace('_', '-')} must be at least 1, got {value}")
     from hardware.camera import check_camera_spec  # deferred: loads numpy
-    from hardware.robot import check_rate  # deferred: loads numpy
 
     if args.rate is not None:
         check_rate(args.rate)
@@ -277,7 +277,6 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
     from hardware.record_session import RecordSession, SessionSettings  # deferred: loads numpy
     from hardware.rig import Rig  # deferred: loads numpy
     from hardware.recorder import Recorder, RecordThresholds, StampedCamera  # deferred: loads numpy
-    from hardware.robot import check_rate  # deferred: loads numpy
 
     sim_can = args.can.strip().lower().startswith(MUJOCO)
     sim_camera = args.camera.strip().lower() == MUJOCO

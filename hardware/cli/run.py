@@ -36,6 +36,7 @@ from pathlib import Path
 
 # Only the standard library and the core (dssp_core, no numpy) load before main() installs the stop request
 # (hardware.cli.stops): a Ctrl-C during the heavier imports (numpy, the runtime) is then a clean stop.
+from dssp_core.schema import check_rate
 from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import ConfigError, OutputError
 from dssp_core.output_guard import OutputKind, check_output, claim_dir
@@ -100,7 +101,6 @@ def parse_args(argv):
 def check_args(args) -> None:
     """Flags that can be judged without opening anything; one line each, before any device or model is touched."""
     from dssp_deploy.sessions import check_threads  # deferred: loads numpy
-    from hardware.robot import check_rate  # deferred: loads numpy
     from hardware.camera import check_camera_spec  # deferred: loads numpy
 
     check_camera_spec(args.camera, args.serial)
@@ -149,7 +149,6 @@ def control_rate(args, policy) -> float:
     if policy.control_rate_hz is None:
         raise ConfigError(f"{args.model} records no control rate (its dataset had none): pass --rate HZ, the rate "
                           "the demonstrations were recorded at")
-    from hardware.robot import check_rate  # deferred: loads numpy
 
     return check_rate(policy.control_rate_hz, flag=f"{args.model}'s control_rate_hz")
 
@@ -257,7 +256,6 @@ spoil (a model's rate is never guessed: a model without one needs --rate)."""
 
 def other_source_rate(args, source) -> float:
     """``--policy``: --rate, else the rate the source was made for (a recording's), else :data:`DEFAULT_RATE_HZ`."""
-    from hardware.robot import check_rate  # deferred: loads numpy
 
     if args.rate is not None:
         return args.rate
