@@ -113,6 +113,6 @@ def last_level_cache_bytes() -> int | None:
             continue
         unit = {"K": 2**10, "M": 2**20, "G": 2**30}.get(text[-1:].upper(), 1)
         digits = text[:-1] if text[-1:].isalpha() else text
-        if digits.isdigit():
+        if digits.isdecimal():
             sizes.append(int(digits) * unit)
     return max(sizes) if sizes else None

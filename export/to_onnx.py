@@ -103,7 +103,7 @@ def load_source(run_dir: Path, ema: bool = True):
         "weights": weights,
         "ema": ema,
         "sha256": file_sha256(path),
-        "step": int(step) if step and step.isdigit() else None,
+        "step": int(step) if step and step.isdecimal() else None,
     }
     return policy, config, source
 

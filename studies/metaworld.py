@@ -114,7 +114,7 @@ def select_tasks(items: list[str]) -> list[str]:
     for item in items:
         group, _, count = item.partition(":")
         if count:
-            if group not in mw.DIFFICULTY or not count.isdigit() or int(count) < 1:
+            if group not in mw.DIFFICULTY or not count.isdecimal() or int(count) < 1:
                 raise DSSPError(f"--tasks {item}: GROUP:N takes a group ({', '.join(mw.DIFFICULTY)}) and a count >= 1")
             names = sorted(mw.DIFFICULTY[group])[: int(count)]
         else:

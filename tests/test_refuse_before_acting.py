@@ -41,7 +41,7 @@ def nothing_opens(monkeypatch):
     import hardware.piper.piper_robot as piper_robot
 
     monkeypatch.setattr(camera, "open_camera", _refuse("a camera"))
-    monkeypatch.setattr(piper_robot, "open_robot", _refuse("a robot"))
+    monkeypatch.setattr(piper_robot.PiperRobot, "connect", _refuse("a robot"))
     monkeypatch.setattr(bus, "open_bus", _refuse("a CAN bus"))
     monkeypatch.setattr(twin.TwinRigs, "open", _refuse("the calibration twin"))
     monkeypatch.setattr(teleop.TeleopRigs, "open", _refuse("the simulated recording rig"))
@@ -100,6 +100,9 @@ CASES = {
                                                         "--interface", "bogus"], "not a python-can interface"),
     "run: a rate beyond the arm": ("dssp-run", ["--policy", "hold", "--camera", "tabletop", "--can", "sim",
                                                 "--rate", "5000"], "--rate"),
+    "run: an episode index that is a digit but no number": ("dssp-run", ["--policy", "episode:d.zarr@\u00b2",
+                                                                        "--camera", "tabletop", "--can", "sim"],
+                                                             "episode:PATH.zarr@K"),
     "record: an interface python-can lacks": ("dssp-record", ["--camera", "l515", "--can", "can0", "--out", "d.zarr",
                                                               "--interface", "bogus"], "not a python-can interface"),
     "record: a real camera without extrinsics": ("dssp-record", ["--camera", "l515", "--can", "can0",

@@ -49,7 +49,7 @@ class RecordedEpisode(PolicySource):
     def from_spec(cls, arg: str | None) -> RecordedEpisode:
         """``PATH.zarr@K`` (``--policy episode:PATH.zarr@K``)."""
         path, at, index = (arg or "").rpartition("@")
-        if not at or not path or not index.strip().isdigit():
+        if not at or not path or not index.strip().isdecimal():
             raise ConfigError(f"--policy episode:{arg or ''}: give the dataset and the episode as episode:PATH.zarr@K")
         return cls.load(path, int(index))
 
