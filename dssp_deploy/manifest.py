@@ -534,6 +534,8 @@ def read_listed(path: Path, manifest: dict[str, Any], name: str, label: str) -> 
     want = manifest["files"].get(name)
     if want is None:
         raise ModelDirError(f"{path} has no size and sha256 in {MANIFEST_NAME} files; {AGAIN}")
+    if not (path.exists() or path.is_symlink()):
+        raise ModelDirError(f"{label} is missing; {AGAIN}")
     with contextlib.suppress(OSError):
         if (size := path.stat().st_size) > want["bytes"]:  # larger than it was written: never read whole
             raise ModelDirError(f"{path} is not the file this manifest was written for ({size} bytes; {MANIFEST_NAME} "

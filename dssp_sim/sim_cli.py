@@ -30,7 +30,7 @@ from pathlib import Path
 
 from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import ConfigError
-from dssp_core.output_guard import OutputDir, check_output_file, write_output_text
+from dssp_core.output_guard import OutputDir, check_output, check_output_file, write_output_text
 from dssp_data.rerun_views import add_rerun_flags, check_views, open_views
 from dssp_deploy.control_loop import add_smoothing_arguments, check_smoothing_arguments, model_flags_given, smoothing_options
 from dssp_deploy.onnx_policy import add_runtime_arguments
@@ -134,6 +134,8 @@ def run(args) -> int:
     check_smoothing_arguments(args)
     if args.json:
         check_output_file(args.json, force=args.force, flag="--json")
+    if args.strips:
+        check_output(args.strips, force=args.force, kind=STRIPS_DIR, flag="--strips")  # made only once all is checked
 
     # the model and the task loaded and every setting checked against them before an output is opened
     evaluation = prepare_evaluation(args.model, args.task, args.episodes, seed=args.seed, threads=args.threads,

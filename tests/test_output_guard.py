@@ -18,6 +18,7 @@ import subprocess
 import sys
 import tempfile
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -348,12 +349,18 @@ def test_eval_replaces_its_strips_and_json_only_with_force(tmp_path, capsys, mon
 
     runs = []
 
-    def fake(model, task, n, seed=0, threads=None, state_token_noise=0.0, strips_dir=None, progress=True, **graphs):
-        runs.append(1)
-        (Path(strips_dir) / "tap_seed1.png").write_bytes(b"png %d" % len(runs))
-        return EvalResult(str(model), task, state_token_noise=len(runs))
+    class Fake:
+        env = SimpleNamespace(close=lambda: None)
 
-    monkeypatch.setattr(evaluate, "evaluate", fake)
+        def __init__(self, model, task, n, **settings):
+            self.model, self.task = model, task
+
+        def run(self, strips_dir=None, progress=True, views=None):
+            runs.append(1)
+            (Path(strips_dir) / "tap_seed1.png").write_bytes(b"png %d" % len(runs))
+            return EvalResult(str(self.model), self.task, state_token_noise=len(runs))
+
+    monkeypatch.setattr(evaluate, "prepare_evaluation", Fake)
 
     def run(out, force):
         return sim_main(["eval", "--model", "m", "--task", "tap", "--episodes", "1", "--strips", str(out),

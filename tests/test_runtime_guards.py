@@ -396,7 +396,7 @@ def changed(model_dir, tmp_path):
 
 def missing(model_dir, tmp_path):
     (model_dir / DATA).unlink()
-    return "history_step.onnx.data (the external data of history_step.onnx) cannot be read"
+    return "history_step.onnx.data (the external data of history_step.onnx) is missing"
 
 
 @pytest.mark.parametrize("damage", [outside_location, absolute_location, link_out, unlisted, changed, missing],
