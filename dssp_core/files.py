@@ -197,6 +197,38 @@ def check_parent(path: Path, flag: str, error: type[DSSPError]) -> None:
         raise error(f"cannot write {path}: {parent} is not writable; choose another {flag}")
 
 
+LONGEST_SIBLING = ".{name}.partial-XXXXXXXX"
+"""The longest name a write puts beside an output (a staging folder; atomic files and locks are shorter)."""
+
+
+def check_name_lengths(path: str | os.PathLike, flag: str, error: type[DSSPError]) -> None:
+    """Refuse, before any work, an output whose names — the folders still to be made, its own, and the longest name
+    a write puts beside it (:data:`LONGEST_SIBLING`) — are longer than the file system takes: the write would fail
+    only at its end (after a training, a calibration tour)."""
+    absolute = Path(os.path.abspath(path))
+    folder = absolute.parent
+    while True:
+        try:
+            if folder.is_dir():
+                break
+        except OSError:  # a name on the way is itself too long
+            pass
+        if folder.parent == folder:
+            return
+        folder = folder.parent
+    try:
+        limit = os.pathconf(folder, "PC_NAME_MAX")
+    except (OSError, ValueError):
+        return  # the file system does not say: the writes' own errors stand
+    names = [*absolute.relative_to(folder).parts[:-1], absolute.name, LONGEST_SIBLING.format(name=absolute.name)]
+    too_long = next((name for name in names if len(os.fsencode(name)) > limit), None)
+    if too_long is not None:
+        shown = str(path) if len(str(path)) <= 80 else str(path)[:80] + "…"
+        name = too_long if len(too_long) <= 40 else too_long[:40] + "…"
+        raise error(f"cannot write {shown}: the name {name!r} is longer than the {limit} bytes "
+                    f"{folder} takes (with the temporary name the write uses); choose a shorter {flag}")
+
+
 def make_dirs(path: str | os.PathLike, *, flag: str = "--out", error: type[DSSPError] = OutputError) -> list[Path]:
     """Create the folder ``path`` and its parents; returns the folders created (outermost first).
 

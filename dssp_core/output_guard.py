@@ -47,8 +47,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from dssp_core.errors import DSSPError, OutputError
-from dssp_core.files import (atomic_write, atomic_write_text, check_parent, make_dirs, read_regular_text,
-                             remove_created, sibling_name, text_writer)
+from dssp_core.files import (atomic_write, atomic_write_text, check_name_lengths, check_parent, make_dirs,
+                             read_regular_text, remove_created, sibling_name, text_writer)
 from dssp_core.staging import Staging, interrupts_deferred
 
 MARKER = ".dssp-output.json"
@@ -172,6 +172,7 @@ def check_output(path: str | os.PathLike, *, force: bool | None, kind: OutputKin
     ``force=None``: the command has no ``--force`` (its previous output is refused without the hint).
     """
     path = Path(path)
+    check_name_lengths(path, flag, error)
     found = _found(path, kind)
     if found == "foreign":
         raise error(_foreign_message(path, kind, flag))
@@ -221,6 +222,7 @@ def check_append(path: str | os.PathLike, *, kind: OutputKind, flag: str = "--ou
                  error: type[DSSPError] = OutputError) -> str:
     """For commands that add to their output: NEW or OWN (to be continued); anything else raises."""
     path = Path(path)
+    check_name_lengths(path, flag, error)
     found = _found(path, kind)
     if found == "foreign":
         raise error(_foreign_message(path, kind, flag))
@@ -357,6 +359,7 @@ def check_output_file(path: str | os.PathLike, *, force: bool, flag: str = "--ou
                       error: type[DSSPError] = OutputError) -> Path:
     """A new file may be written; an existing one only with ``force``; never over a directory or a symlink."""
     path = Path(path)
+    check_name_lengths(path, flag, error)
     if path.is_symlink() or (path.exists() and not path.is_file()):
         raise error(f"{path} exists and is not a file; choose another {flag} (nothing is deleted)")
     if path.exists() and not force:

@@ -907,3 +907,28 @@ def test_paths_under_a_file_and_outputs_inside_inputs_are_one_line(tmp_path):
     assert snapshot(tmp_path) == before
     check_not_inside(tmp_path, [tmp_path / "in"], contains=False)  # pictures beside a dataset are fine
     assert make_dirs(tmp_path / "a" / "b") == [tmp_path / "a", tmp_path / "a" / "b"]
+
+
+@settings(deadline=None, derandomize=True, database=None, max_examples=30,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(length=st.integers(1, 400), depth=st.integers(0, 2), kind=st.sampled_from(["file", "folder"]))
+def test_a_name_the_file_system_cannot_take_is_one_line_before_any_work(tmp_path, length, depth, kind):
+    """Every output check measures the names against the file system's limit, with the longest name a write puts
+    beside the output (a staging folder): a name that passes can be written with it, one that does not is one
+    OutputError line — never an OSError from the check itself, nor a failure only at the end of the work."""
+    from dssp_core.files import LONGEST_SIBLING
+
+    root = Path(tempfile.mkdtemp(dir=tmp_path))  # one folder per example
+    path = root.joinpath(*(["f" * length] * depth), "o" * length)
+    kind_of = OutputKind("a test output", "test", entries=("*.txt",))
+    try:
+        if kind == "file":
+            check_output_file(path, force=False, flag="--out")
+        else:
+            check_output(path, force=False, kind=kind_of, flag="--out")
+    except OutputError as exc:
+        assert "\n" not in str(exc) and "is longer than the" in str(exc) and "choose a shorter --out" in str(exc)
+        assert length + len(LONGEST_SIBLING.format(name="")) > os.pathconf(tmp_path, "PC_NAME_MAX")
+        return
+    path.parent.mkdir(parents=True, exist_ok=True)
+    (path.parent / LONGEST_SIBLING.format(name=path.name)).mkdir()

@@ -128,8 +128,8 @@ def _outputs(args) -> list[tuple[Path, str]]:
 
 def _check_outputs(args) -> None:
     """--out and --json before anything opens: the output guard's rules (a new file, or one replaced with --force;
-    never a folder or a link; in a folder this process may write), not one of the inputs, not each other, and names
-    the folder takes — the write's temporary name included (``.NAME.XXXXXXXX.tmp``)."""
+    never a folder or a link; in a folder this process may write; names the folder takes, the write's temporary
+    name included), not one of the inputs, not each other."""
     from dssp_core.output_guard import check_not_inside, check_output_file  # deferred: loads numpy
 
     inputs = [path for path in (args.poses, args.board, args.safety) if path is not None]
@@ -137,28 +137,10 @@ def _check_outputs(args) -> None:
         try:
             check_output_file(path, force=args.force, flag=flag)
             check_not_inside(path, inputs, flag=flag)
-            _check_names(path, flag)
         except OSError as exc:
             raise OutputError(f"cannot write {path} ({exc.strerror or exc}); choose another {flag}") from None
     if args.json is not None and os.path.realpath(args.json) == os.path.realpath(args.out):
         raise OutputError(f"--json {args.json} is the --out file; give the record a path of its own")
-
-
-def _check_names(path: Path, flag: str) -> None:
-    """Refuse a path whose names (the folders still to be made, the file, the write's temporary name beside it) are
-    longer than the file system takes (the write would fail only after the tour)."""
-    absolute = Path(os.path.abspath(path))
-    folder = next(parent for parent in absolute.parents if parent.is_dir())
-    try:
-        limit = os.pathconf(folder, "PC_NAME_MAX")
-    except (OSError, ValueError):
-        return  # the file system does not say: the guard's checks stand
-    missing = absolute.relative_to(folder).parts
-    names = [*missing, f".{absolute.name}.XXXXXXXX.tmp"]
-    too_long = [name for name in names if len(os.fsencode(name)) > limit]
-    if too_long:
-        raise OutputError(f"cannot write {path}: the name {too_long[0][:40]!r}... is longer than the {limit} bytes "
-                          f"{folder} takes (with the temporary name the write uses); choose a shorter {flag}")
 
 
 def _write(path: Path, flag: str, force: bool, write: Callable[[Path], None], what: str) -> str | None:
