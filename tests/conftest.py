@@ -165,7 +165,8 @@ def dual_arm_export(tmp_path_factory, request):
 
 
 def snapshot(root):
-    """Every path under ``root`` with what it is: a folder, a link and its target, or a file's sha256."""
+    """Every path under ``root`` with what it is: a folder, a link and its target, a file's sha256, or "special" (a
+    FIFO, socket or device: never opened)."""
     import hashlib
     from pathlib import Path
 
@@ -178,8 +179,10 @@ def snapshot(root):
                 found[rel] = "link:" + os.readlink(path)
             elif path.is_dir():
                 found[rel] = "dir"
-            else:
+            elif path.is_file():
                 found[rel] = hashlib.sha256(path.read_bytes()).hexdigest()
+            else:
+                found[rel] = "special"
     return found
 
 

@@ -6,7 +6,6 @@ refuses what it cannot convert faithfully, and never writes into its input. Ever
 
 from __future__ import annotations
 
-import hashlib
 import importlib
 import io
 import json
@@ -141,24 +140,6 @@ def refused(result: tuple[int, str, str], *fragments: str) -> str:
     for fragment in fragments:
         assert fragment in line, (fragment, line)
     return line
-
-
-def tree(root: Path) -> dict[str, str]:
-    """:func:`conftest.snapshot` that never opens a FIFO or device (it names them)."""
-    found = {}
-    for folder, dirs, files in os.walk(root):
-        for name in dirs + files:
-            path = Path(folder, name)
-            rel = str(path.relative_to(root))
-            if path.is_symlink():
-                found[rel] = "link:" + os.readlink(path)
-            elif path.is_dir():
-                found[rel] = "dir"
-            elif path.is_file():
-                found[rel] = hashlib.sha256(path.read_bytes()).hexdigest()
-            else:
-                found[rel] = "special"
-    return found
 
 
 @contextmanager
@@ -443,10 +424,10 @@ def test_metadata_files_that_are_not_files_are_refused_without_blocking(tmp_path
             os.mkfifo(path)
         else:
             path.write_text(content)
-        before = tree(tmp_path)
+        before = snapshot(tmp_path)
         with never_blocks():
             refused(cli(capsys, "convert", *argv[:1], "--out", out, *argv[1:]), fragment)
-        assert tree(tmp_path) == before, fragment
+        assert snapshot(tmp_path) == before, fragment
         restore()
     fifo = tmp_path / "settings.json"
     os.mkfifo(fifo)

@@ -144,25 +144,32 @@ def test_record_kill_mid_episode_then_train(tmp_path, capsys):
                        "--set", "train.val_every=5", "--no-progress"]) == 0
 
 
+def signalled_at(out: Path, start: str, sig: int, cwd: Path) -> tuple[subprocess.Popen, list[str]]:
+    """``dssp-sim record --auto`` into ``out`` (paced at ``--sim-speed 4``), sent ``sig`` when it prints a line that
+    starts with ``start``; (the finished process, its stdout lines)."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "dssp_sim.sim_cli", "record", "--out", str(out), "--auto", "--sim-speed", "4", "--no-depth"],
+        stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env(), cwd=cwd)
+    lines = []
+    try:
+        for line in proc.stdout:
+            lines.append(line.strip())
+            if line.startswith(start):
+                proc.send_signal(sig)
+        proc.wait(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    return proc, lines
+
+
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP], ids=["SIGTERM", "SIGHUP"])
 def test_a_signal_discards_the_unfinished_episode(tmp_path, sig):
     """Real time: a signal into a recording process; paced at ``--sim-speed 4`` (1.5 s an episode), it is
     signalled as soon as it says its second episode is recording. Any stop signal (here also a closed terminal's SIGHUP) ends the session
     the same way; the exit code is 128 + the signal's number."""
     out = tmp_path / "demo.zarr"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "dssp_sim.sim_cli", "record", "--out", str(out), "--auto", "--sim-speed", "4", "--no-depth"],
-        stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env(), cwd=tmp_path)
-    lines = []
-    try:
-        for line in proc.stdout:
-            lines.append(line.strip())
-            if line.startswith("episode 1: recording"):
-                proc.send_signal(sig)
-        proc.wait(timeout=20)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
+    proc, lines = signalled_at(out, "episode 1: recording", sig, tmp_path)
     name = signal.Signals(sig).name
     assert proc.returncode == 128 + sig, (lines, proc.stderr.read())
     assert any(x.startswith(f"episode 1: discarded (stopped by {name} before keep") for x in lines), lines
@@ -175,19 +182,7 @@ def test_a_stop_before_any_kept_episode_says_what_was_written(tmp_path):
     """Signalled as the first episode starts: nothing was kept, so the dataset was never created, and the summary
     says so instead of naming it (and the empty CAN-log folder the session made is gone)."""
     out = tmp_path / "demo.zarr"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "dssp_sim.sim_cli", "record", "--out", str(out), "--auto", "--sim-speed", "4", "--no-depth"],
-        stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env(), cwd=tmp_path)
-    lines = []
-    try:
-        for line in proc.stdout:
-            lines.append(line.strip())
-            if line.startswith("episode 0: recording"):
-                proc.send_signal(signal.SIGTERM)
-        proc.wait(timeout=20)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
+    proc, lines = signalled_at(out, "episode 0: recording", signal.SIGTERM, tmp_path)
     assert proc.returncode == 128 + signal.SIGTERM, (lines, proc.stderr.read())
     assert lines[-2].startswith("kept 0 episode(s) (0 steps); discarded 1") and lines[-2].endswith("ended by: SIGTERM")
     assert lines[-1] == f"nothing was written: no episode was kept, so {out} was not created", lines

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import one_error_line
+from conftest import one_error_line, snapshot
 
 START = [0.0, 1.2, -1.0, 0.0, 0.6, 0.0]
 
@@ -55,10 +55,6 @@ def nothing_opens(monkeypatch):
 
     monkeypatch.setattr(views, "open_views", no_views)
     yield
-
-
-def snapshot(root: Path) -> dict[str, bytes | None]:
-    return {str(p.relative_to(root)): (p.read_bytes() if p.is_file() else None) for p in sorted(root.rglob("*"))}
 
 
 def plan(folder: Path, poses) -> str:
