@@ -7,7 +7,7 @@ EXTRAS ?= train,export,deploy,hardware,sim,viz,ros,lerobot,dev
 # Test workers (pytest-xdist), one per core; each test file runs whole in one worker (its fixtures built once).
 TEST_WORKERS ?= auto
 
-.PHONY: system setup kernel demo test test-slow bench
+.PHONY: system setup kernel qgemm-bench demo test test-slow bench
 
 # The fused Mamba operators for ONNX Runtime (optional at run time; see dssp_deploy/kernel/). Built against
 # ONNX Runtime's C API headers: fetched from Debian 13's libonnxruntime-dev into build/ort-include, or taken
@@ -17,11 +17,16 @@ KERNEL := dssp_deploy/kernel/libdssp_mamba.so
 ORT_INCLUDE_DIR ?= build/ort-include
 KERNEL_FLAGS ?= -O3 -std=c++17 -fPIC -shared -fvisibility=hidden -fopenmp-simd -fno-trapping-math -Wall -Wextra
 
-# pyrealsense2 needs the system's libusb-1.0 (Debian/Ubuntu: apt-get install libusb-1.0-0).
+# pyrealsense2 needs the system's libusb-1.0 (Debian/Ubuntu: apt-get install libusb-1.0-0). The test of the int8
+# products (tests/test_qgemm.py) cross-builds their harness for aarch64 and runs it under qemu: g++-aarch64-linux-gnu
+# and qemu-user.
 system:
 	@ldconfig -p | grep -q 'libusb-1.0.so.0' || \
 	  { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && apt-get update -qq && apt-get install -y -qq libusb-1.0-0 >/dev/null; } || \
 	  { echo "error: libusb-1.0 is missing; install it (sudo apt-get install libusb-1.0-0) and run make again"; exit 2; }
+	@{ command -v aarch64-linux-gnu-g++ && command -v qemu-aarch64; } >/dev/null || \
+	  { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && apt-get update -qq && apt-get install -y -qq g++-aarch64-linux-gnu qemu-user >/dev/null; } || \
+	  { echo "error: the aarch64 cross compiler or qemu is missing; install them (sudo apt-get install g++-aarch64-linux-gnu qemu-user) and run make again"; exit 2; }
 
 # MetaWorld (dssp-sim's metaworld/NAME tasks) goes in without its dependencies: it declares mujoco==3.3.0 and runs on
 # the MuJoCo installed here (dssp_sim/metaworld_env.py says how); pip's resolver reports that declaration.
@@ -43,10 +48,23 @@ setup: system
 
 kernel: $(KERNEL)
 
-$(KERNEL): dssp_deploy/kernel/mamba_ops.cc dssp_deploy/kernel/scan_simd.inc
+$(KERNEL): dssp_deploy/kernel/mamba_ops.cc dssp_deploy/kernel/scan_simd.inc dssp_deploy/kernel/qgemm.h
 	@[ -f "$(ORT_INCLUDE_DIR)/onnxruntime_lite_custom_op.h" ] || dssp_deploy/kernel/fetch_ort_headers.sh "$(ORT_INCLUDE_DIR)"
 	$(CXX) $(KERNEL_FLAGS) -I"$(ORT_INCLUDE_DIR)" $< -o $@.tmp
 	@mv $@.tmp $@
+
+# The int8 products for a few rows (dssp_deploy/kernel/qgemm.h): the harness built with -O3, its parity line and
+# the time of 12-row products per path this CPU runs (DSSP_QGEMM_PATH=<path> times that one alone), then this
+# machine's read bandwidth to compare them with (numpy summing 512 MB once, best of 5, one thread).
+QGEMM_BENCH := build/qgemm/qgemm_bench
+
+qgemm-bench:
+	@mkdir -p build/qgemm
+	$(CXX) -O3 -std=c++17 -Wall -Wextra -o $(QGEMM_BENCH) dssp_deploy/kernel/qgemm_check.cc
+	$(QGEMM_BENCH) --bench
+	@$(PYTHON) -c "import time, numpy as np; a = np.ones(1 << 27, np.float32); \
+	  best = min(e - s for s, _, e in ((time.perf_counter(), a.sum(), time.perf_counter()) for _ in range(5))); \
+	  print(f'read bandwidth (numpy sum of 512 MB, best of 5, one thread): {a.nbytes / best / 1e9:.1f} GB/s')"
 
 demo: setup
 	dssp-demo --out runs/demo --force
