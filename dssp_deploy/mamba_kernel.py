@@ -28,6 +28,7 @@ from pathlib import Path
 DOMAIN = "ai.dssp"
 SCAN_OP = "SelectiveScan"
 CONV_OP = "CausalConv1d"
+BLOCK_OP = "MambaBlockQ8"  # a whole denoiser block on the action tokens, int8 weights (the int8 fused graphs)
 OPSET_VERSION = 1
 LIBRARY_NAME = "libdssp_mamba.so"
 LIBRARY_ENV = "DSSP_KERNEL"

@@ -15,8 +15,9 @@ from __future__ import annotations
 
 import torch
 
-from dssp_deploy.mamba_kernel import CONV_OP, DOMAIN, SCAN_OP
-from dssp_train.model.mamba import causal_conv
+from dssp_deploy.mamba_kernel import BLOCK_OP, CONV_OP, DOMAIN, SCAN_OP
+from dssp_train.model.denoiser import DenoiserBlock
+from dssp_train.model.mamba import Mamba, causal_conv
 from dssp_train.model.selective_scan import linear_scan_unrolled, selective_scan
 
 
@@ -90,3 +91,161 @@ def _names_read(nodes) -> set[str]:
             for sub in [attr.g] if attr.type == attr.GRAPH else list(attr.graphs):
                 names |= _names_read(sub.node)
     return names
+
+
+# ------------------------------------------------------------------------------------------------ the whole block
+def quantize_weight(w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """W (n, k) fp32 → (int8 (n, k), scale (n,)): symmetric per output row, scale = max|W[j]| / 127 (1 for a row of
+    zeros), rounded half to even — as ``dssp_deploy/kernel/qgemm.h`` ``pack`` quantizes."""
+    w = w.detach().float()
+    scale = w.abs().amax(dim=1) / 127.0
+    scale = torch.where(scale > 0, scale, torch.ones_like(scale))
+    q = torch.round(w / scale[:, None]).clamp(-127, 127).to(torch.int8)
+    return q, scale
+
+
+def quantize_rows(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """x (m, k) fp32 → (uint8 values as float (m, k), scale (m,), zero point (m,)): per row, asymmetric, the range
+    holding 0 — as ``qgemm.h`` ``quantize_rows`` does before every product."""
+    lo = x.amin(dim=1).clamp(max=0.0)
+    hi = x.amax(dim=1).clamp(min=0.0)
+    scale = (hi - lo) / 255.0
+    scale = torch.where(scale > 0, scale, torch.ones_like(scale))
+    zero = torch.round(-lo / scale).clamp(0, 255)
+    q = torch.round(x / scale[:, None] + zero[:, None]).clamp(0, 255)
+    return q, scale, zero
+
+
+def q8_linear(x: torch.Tensor, q: torch.Tensor, scale: torch.Tensor, bias: torch.Tensor | None = None) -> torch.Tensor:
+    """x (..., k) @ W.T with W as int8 rows ``q`` (n, k) and their ``scale`` (n,), the activations quantized per row:
+    the product ``MambaBlockQ8`` computes (the integer sums exact, here in float64)."""
+    shape = x.shape
+    xq, xs, zero = quantize_rows(x.reshape(-1, shape[-1]).float())
+    acc = (xq - zero[:, None]).double() @ q.double().t()
+    y = (acc * (xs[:, None].double() * scale[None, :].double())).float()
+    if bias is not None:
+        y = y + bias
+    return y.reshape(*shape[:-1], q.shape[0])
+
+
+def rms_norm(x: torch.Tensor, weight: torch.Tensor, eps: float) -> torch.Tensor:
+    return x * torch.rsqrt(x.pow(2).mean(-1, keepdim=True) + eps) * weight
+
+
+def block_reference(a, conv_state, ssm_state, mod, norm_w, in_q, in_s, conv_w, conv_b, xp_q, xp_s, dt_q, dt_s, dt_b,
+                    A, D, out_q, out_s, norm2_w, fc1_q, fc1_s, fc2_q, fc2_s, eps):  # noqa: N803 (the math's names)
+    """What ``ai.dssp::MambaBlockQ8`` computes, in PyTorch: a (B, L, d) → (a (B, L, d), the mixer's state after the L
+    tokens: conv (B, E, W), ssm (B, E, n)). ``mod`` (3, d) is the AdaLN row (shift, scale, gate) of the action
+    tokens; (0, d) for the prefix (no modulation, gate 1). Shapes: :class:`QuantizedMambaBlock`."""
+    E, R = conv_w.shape[1], dt_q.shape[1]  # noqa: N806
+    n = A.shape[1]
+    h = rms_norm(a, norm_w, eps)
+    if mod.shape[0]:
+        shift, scale, gate = mod.unbind(0)  # (d,) each
+        h = h * (1 + scale) + shift
+    xz = q8_linear(h, in_q, in_s)
+    x, z = xz[..., :E], xz[..., E:]
+    x, conv_after = causal_conv(x, conv_state, conv_w.t().unsqueeze(1), conv_b)
+    dbc = q8_linear(x, xp_q, xp_s)
+    dt_in, Bm, Cm = torch.split(dbc, [R, n, n], dim=-1)  # noqa: N806
+    dt = q8_linear(dt_in, dt_q, dt_s, dt_b)
+    y, ssm_after = selective_scan(x, dt, Bm, Cm, z, A, D, ssm_state, linear_scan_unrolled)
+    out = q8_linear(y, out_q, out_s)
+    a = a + (gate * out if mod.shape[0] else out)
+    if fc1_q.numel():
+        u, g = q8_linear(rms_norm(a, norm2_w, eps), fc1_q, fc1_s).chunk(2, dim=-1)
+        a = a + q8_linear(u * torch.nn.functional.silu(g), fc2_q, fc2_s)
+    return a, conv_after, ssm_after
+
+
+class _MambaBlockQ8(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, *inputs):
+        *tensors, eps, state_out = inputs
+        a, conv, ssm = block_reference(*tensors, eps)
+        if not state_out:  # as the operator allocates them: empty
+            conv, ssm = conv[:, :0], ssm[:, :0]
+        return a, conv, ssm
+
+    @staticmethod
+    def symbolic(g, *inputs):
+        *tensors, eps, state_out = inputs
+        a, conv, ssm = g.op(f"{DOMAIN}::{BLOCK_OP}", *tensors, eps_f=float(eps), state_out_i=int(state_out), outputs=3)
+        a.setType(tensors[0].type())
+        conv.setType(tensors[1].type())
+        ssm.setType(tensors[2].type())
+        return a, conv, ssm
+
+
+class QuantizedMambaBlock(torch.nn.Module):
+    """A denoiser block (:class:`dssp_train.model.denoiser.DenoiserBlock`, Mamba mixer, no MLP or the gated one) as
+    one ``ai.dssp::MambaBlockQ8`` node, its matrices as int8 rows with per-row scales — on the prefix (once per
+    chunk) and on the action tokens (every DDIM step), both reading the same weights.
+
+    :meth:`prefix`: p (B, L_p, d) → (p + mixer(norm(p)) + mlp, the state after it (conv (B, E, W), ssm (B, E, n))).
+    forward(a (B, H, d), prefix state, shift, scale, gate (1, d)) → a (B, H, d): ``a + gate *
+    mixer(modulate(norm(a), shift, scale))`` from the prefix's state, then ``+ mlp(norm2(.))``.
+    Weights: in_proj (2E, d), conv (W, E) + bias (E), x_proj (R + 2n, E), dt_proj (E, R) + bias (E), A (E, n),
+    D (E), out_proj (d, E), fc1 (2h, d), fc2 (d, h) — the int8 ones with their scales; the MLP's are empty
+    (shape (0, 0)) when the block has none.
+    """
+
+    def __init__(self, block):
+        super().__init__()
+        mixer = block.mixer
+        self.eps = block.norm.eps
+        self.d_state, self.d_conv = mixer.d_state, mixer.d_conv
+        self.register_buffer("norm_w", block.norm.weight.detach().clone())
+        for name, linear in (("in", mixer.in_proj), ("xp", mixer.x_proj), ("dt", mixer.dt_proj), ("out", mixer.out_proj)):
+            q, s = quantize_weight(linear.weight)
+            self.register_buffer(f"{name}_q", q)
+            self.register_buffer(f"{name}_s", s)
+        self.register_buffer("conv_w", mixer.conv1d.weight[:, 0].t().detach().clone())  # (W, E)
+        self.register_buffer("conv_b", mixer._conv_bias().detach().clone())
+        self.register_buffer("dt_b", mixer.dt_proj.bias.detach().clone())
+        self.register_buffer("A", -torch.exp(mixer.A_log.detach().float()))
+        self.register_buffer("D", mixer.D.detach().clone())
+        self.register_buffer("no_mod", torch.zeros(0, block.norm.weight.shape[0]))
+        if block.mlp_kind == "gated":
+            self.register_buffer("norm2_w", block.norm2.weight.detach().clone())
+            for name, linear in (("fc1", block.mlp.fc1), ("fc2", block.mlp.fc2)):
+                q, s = quantize_weight(linear.weight)
+                self.register_buffer(f"{name}_q", q)
+                self.register_buffer(f"{name}_s", s)
+        else:
+            self.register_buffer("norm2_w", torch.zeros(0))
+            for name in ("fc1", "fc2"):
+                self.register_buffer(f"{name}_q", torch.zeros((0, 0), dtype=torch.int8))
+                self.register_buffer(f"{name}_s", torch.zeros(0))
+
+    @staticmethod
+    def fits(block) -> bool:
+        """Whether the block can run as one node: a Mamba mixer, no MLP or the gated one (DiT's MLP has its own AdaLN)."""
+        return isinstance(block.mixer, Mamba) and block.mlp_kind in ("none", "gated")
+
+    def _run(self, a, conv_state, ssm_state, mod, state_out: bool):
+        return _MambaBlockQ8.apply(a, conv_state, ssm_state, mod, self.norm_w, self.in_q, self.in_s, self.conv_w,
+                                   self.conv_b, self.xp_q, self.xp_s, self.dt_q, self.dt_s, self.dt_b, self.A, self.D,
+                                   self.out_q, self.out_s, self.norm2_w, self.fc1_q, self.fc1_s, self.fc2_q,
+                                   self.fc2_s, self.eps, state_out)
+
+    def prefix(self, p):
+        batch, E = p.shape[0], self.A.shape[0]  # noqa: N806
+        conv0, ssm0 = p.new_zeros(batch, E, self.d_conv), p.new_zeros(batch, E, self.d_state)
+        p, conv, ssm = self._run(p, conv0, ssm0, self.no_mod, True)
+        return p, (conv, ssm)
+
+    def forward(self, a, state, shift, scale, gate):
+        conv_state, ssm_state = state
+        mod = torch.cat([shift, scale, gate], dim=0)  # (3, d): one timestep's row of the table
+        return self._run(a, conv_state, ssm_state, mod, False)[0]
+
+
+def use_fused_blocks(module: torch.nn.Module) -> int:
+    """Give every denoiser block of ``module`` that fits its :class:`QuantizedMambaBlock`; returns how many."""
+    count = 0
+    for block in module.modules():
+        if isinstance(block, DenoiserBlock) and QuantizedMambaBlock.fits(block):
+            block.fused_block = QuantizedMambaBlock(block)
+            count += 1
+    return count

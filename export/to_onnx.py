@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import copy
 import importlib.metadata
 import platform
 import sys
@@ -63,7 +64,7 @@ from dssp_deploy.manifest import (
 from dssp_deploy.sessions import check_threads
 from dssp_train.config import TIMESTEP_SPACINGS as SPACINGS
 from dssp_train.model.mamba import Mamba
-from export.fused_ops import mark_unread_states
+from export.fused_ops import mark_unread_states, use_fused_blocks
 from export.graphs import DenoiserGraph, HistoryStepGraph, check_exportable, use_fused_ops
 from export.manifest_writer import build_manifest, metadata_props, write_manifest
 from export.output_dir import StagedDirectory
@@ -236,6 +237,20 @@ def write_onnx(module, example: tuple, path: Path, config, graph: str, opset: in
     onnx.helper.set_model_props(model, metadata)
     onnx.save(model, str(path))
     onnx.checker.check_model(str(path), full_check=True)
+
+
+def write_block_graph(module, example: tuple, beside: Path, config, graph: str, opset: int, metadata: dict[str, str],
+                      inpainting: bool) -> Path | None:
+    """The graph to quantize into the int8 fused one, when ``module`` has denoiser blocks that run as one node each
+    (``ai.dssp::MambaBlockQ8``, int8 weights: :class:`export.fused_ops.QuantizedMambaBlock`): a copy of the fused
+    module with those blocks, written to a hidden file beside ``beside`` (the caller removes it); None when no block
+    fits (the fused graph itself is quantized)."""
+    blocks = copy.deepcopy(module)
+    if not use_fused_blocks(blocks):
+        return None
+    path = beside.with_name(f".{beside.stem}.blocks.onnx")
+    write_onnx(blocks, example, path, config, graph, opset, metadata, fused=True, inpainting=inpainting)
+    return path
 
 
 def has_fused_layers(module) -> bool:
@@ -418,7 +433,13 @@ def export_model(
                 for is_fused in (False, True)[: 1 + fused]:
                     src, dst = file_kind("fp32", is_fused), file_kind(precision, is_fused)
                     for g in GRAPHS:
-                        QUANTIZERS[precision](staged.path / files[g][src], staged.path / files[g][dst], metadata_props(manifest, g))
+                        source = staged.path / files[g][src]
+                        if precision == "int8" and is_fused:  # each denoiser block on the action tokens as one node
+                            source = write_block_graph(modules[g], examples[g], source, config, g, opset,
+                                                       metadata_props(manifest, g), inpainting) or source
+                        QUANTIZERS[precision](source, staged.path / files[g][dst], metadata_props(manifest, g))
+                        if source.name.startswith("."):
+                            source.unlink()
                         written.append(files[g][dst])
             stage(f"wrote {', '.join(written)} (ONNX Runtime quantization: {', '.join(quantize)})")
 

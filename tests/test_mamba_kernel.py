@@ -21,6 +21,20 @@ from dssp_train.model.selective_scan import linear_scan_unrolled, selective_scan
 IMPLEMENTATIONS = ["avx512", "avx2", "portable"]
 
 
+QGEMM_PATHS = ["portable", "avx2", "avx_vnni", "avx512_vnni"]  # dssp_deploy/kernel/qgemm.h's x86 paths
+
+
+def cpu_flags() -> set[str]:
+    return {word for line in open("/proc/cpuinfo") if line.startswith("flags") for word in line.split(":", 1)[1].split()}
+
+
+def qgemm_runs(path: str) -> bool:
+    """Whether this CPU has the instructions of a qgemm path (Linux's CPU flags)."""
+    need = {"portable": set(), "avx2": {"avx2", "fma"}, "avx_vnni": {"avx2", "fma", "avx_vnni"},
+            "avx512_vnni": {"avx2", "fma", "avx512f", "avx512bw", "avx512_vnni"}}[path]
+    return need <= cpu_flags()
+
+
 def cpu_runs(implementation: str) -> bool:
     """Whether this CPU has the instructions of an implementation (Linux's CPU flags)."""
     flags = {
@@ -204,3 +218,114 @@ def test_a_fused_graph_the_runtime_cannot_load_falls_back(tiny_export, tmp_path)
     with pytest.raises(ModelDirError, match="could not be loaded by ONNX Runtime") as err:
         OnnxPolicy(model, threads=1, precision="fp32", kernel="fused")
     assert "\n" not in str(err.value)
+
+
+# ------------------------------------------------------------ a whole denoiser block, int8
+BLOCK_INPUTS = ["a", "conv_state", "ssm_state", "mod", "norm_w", "in_q", "in_s", "conv_w", "conv_b", "xp_q", "xp_s",
+                "dt_q", "dt_s", "dt_b", "A", "D", "out_q", "out_s", "norm2_w", "fc1_q", "fc1_s", "fc2_q", "fc2_s"]
+
+
+def block_case(mlp: str, batch: int, seed: int = 0):
+    """A denoiser block of the sim preset's size with random weights (the AdaLN projection too), as
+    ``export.fused_ops.QuantizedMambaBlock`` holds it, and inputs: (the block module, the inputs by name)."""
+    import dataclasses
+
+    from dssp_train.config import load_preset
+    from dssp_train.model.denoiser import DenoiserBlock
+    from export.fused_ops import QuantizedMambaBlock
+
+    torch.manual_seed(seed)
+    m = dataclasses.replace(load_preset("sim").model, state_dim=7, action_dim=7)
+    block = DenoiserBlock(m.d_model, m.d_state, m.d_conv, m.expand, 0, mlp).eval()
+    with torch.no_grad():
+        for p in block.parameters():
+            p.add_(torch.randn_like(p) * 0.05)
+    fused = QuantizedMambaBlock(block)
+    E, W, n, d = block.mixer.d_inner, block.mixer.d_conv, block.mixer.d_state, m.d_model  # noqa: N806
+    values = {"a": torch.randn(batch, m.horizon, d), "conv_state": torch.randn(batch, E, W),
+              "ssm_state": torch.randn(batch, E, n) * 0.3, "mod": torch.randn(3, d) * 0.2}
+    values.update({name: getattr(fused, name) for name in BLOCK_INPUTS[4:]})
+    return fused, values
+
+
+def block_session(values: dict, eps: float, threads: int = 1, state_out: int = 0):
+    """A one-node graph of ``ai.dssp::MambaBlockQ8``, the weights as initializers (as an exported graph has them)."""
+    feeds = ["a", "conv_state", "ssm_state", "mod"]
+    initializers = [onnx.numpy_helper.from_array(values[name].numpy(), name) for name in BLOCK_INPUTS if name not in feeds]
+    node = helper.make_node(mamba_kernel.BLOCK_OP, BLOCK_INPUTS, ["out", "conv", "ssm"], domain=mamba_kernel.DOMAIN,
+                            eps=eps, state_out=state_out)
+    graph = helper.make_graph(
+        [node], "g", [helper.make_tensor_value_info(n, TensorProto.FLOAT, None) for n in feeds],
+        [helper.make_tensor_value_info(n, TensorProto.FLOAT, None) for n in ("out", "conv", "ssm")],
+        initializer=initializers)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17), helper.make_opsetid(mamba_kernel.DOMAIN, 1)])
+    session = ort.InferenceSession(model.SerializeToString(), session_options(threads, fused=True),
+                                   providers=["CPUExecutionProvider"])
+    return session, {name: values[name].numpy() for name in feeds}
+
+
+@pytest.mark.parametrize("mlp, batch, part", [("gated", 1, "actions"), ("gated", 2, "actions"), ("none", 1, "actions"),
+                                              ("gated", 2, "prefix")])
+def test_a_whole_int8_block_matches_its_pytorch_reference(mlp, batch, part, monkeypatch):
+    """One denoiser block: the operator against ``export.fused_ops.block_reference`` (the same per-row quantization,
+    the integer sums exact) on the action tokens (AdaLN, from a prefix's state) and on the prefix (no AdaLN, from
+    zeros, its state out), on every scan path and thread count; every qgemm path this CPU runs gives the same result
+    bit for bit (their integer sums are exact and their epilogue the same)."""
+    from export.fused_ops import block_reference
+
+    fused, values = block_case(mlp, batch)
+    state_out = int(part == "prefix")
+    if state_out:
+        values.update(mod=torch.zeros(0, values["a"].shape[-1]), conv_state=torch.zeros_like(values["conv_state"]),
+                      ssm_state=torch.zeros_like(values["ssm_state"]))
+    with torch.no_grad():
+        want = [t.numpy() for t in block_reference(*values.values(), fused.eps)]
+    if not state_out:
+        want = [want[0], want[1][:, :0], want[2][:, :0]]
+    outputs = {}
+    for scan in [i for i in IMPLEMENTATIONS if cpu_runs(i)]:
+        for threads in (1, 2):
+            monkeypatch.setenv("DSSP_SCAN_PATH", scan)
+            session, feeds = block_session(values, fused.eps, threads, state_out)
+            got = session.run(None, feeds)
+            for g, w in zip(got, want):
+                assert g.shape == w.shape
+                assert np.abs(g - w).max(initial=0) <= 1e-3 * np.abs(w).max(initial=1), (scan, threads)
+            outputs[(scan, threads)] = got
+    monkeypatch.setenv("DSSP_SCAN_PATH", "portable")
+    reference = outputs[("portable", 1)]
+    for path in QGEMM_PATHS:
+        monkeypatch.setenv("DSSP_QGEMM_PATH", path)
+        if not qgemm_runs(path):
+            with pytest.raises(Exception, match=path):
+                block_session(values, fused.eps, 1, state_out)[0].run(None, feeds)
+            continue
+        session, feeds = block_session(values, fused.eps, 1, state_out)
+        for g, r in zip(session.run(None, feeds), reference):
+            assert np.array_equal(g, r), path
+
+
+def test_the_int8_fused_denoiser_runs_each_block_as_one_node(tiny_export):
+    """The int8 fused denoiser: every block one MambaBlockQ8 node on the prefix and at each DDIM step, the blocks'
+    weights stored once (int8, read by the prefix's node and the K steps' alike), and its chunks as close to the fp32
+    graphs' as the standard int8 graphs' are."""
+    from collections import Counter
+
+    _, model_dir, _ = tiny_export
+    manifest = json.loads((model_dir / MANIFEST_NAME).read_text())
+    layers, steps = manifest["model_config"]["n_denoiser_layers"], manifest["denoise_steps"]
+    model = onnx.load(str(model_dir / "denoiser.int8.fused.onnx"))
+    ops = Counter(node.op_type for node in model.graph.node)
+    assert ops[mamba_kernel.BLOCK_OP] == layers * (steps + 1), ops
+    assert ops[mamba_kernel.SCAN_OP] == ops[mamba_kernel.CONV_OP] == 0
+    int8 = {t.name: int(np.prod(t.dims)) for t in model.graph.initializer if t.data_type == TensorProto.INT8}
+    blocks = {name: size for name, size in int8.items() if ".fused_block." in name and size}
+    assert len(blocks) == layers * 4, sorted(blocks)  # in_proj, x_proj, dt_proj, out_proj (the tiny preset: no MLP)
+    others = sum(size for name, size in int8.items() if name not in blocks)  # the actions' in and out projections
+    assert others < 0.1 * sum(blocks.values()), int8
+    standard = onnx.load(str(model_dir / "denoiser.int8.onnx"))
+    assert len(model.graph.node) < len(standard.graph.node) / 4
+    fp32 = run_chunk(OnnxPolicy(model_dir, threads=1, precision="fp32", kernel="standard"))
+    fused_error, standard_error = (np.abs(run_chunk(OnnxPolicy(model_dir, threads=1, precision="int8", kernel=kernel))
+                                          - fp32).max() for kernel in ("fused", "standard"))
+    assert fused_error <= 1.5 * standard_error, (fused_error, standard_error)

@@ -31,9 +31,12 @@
 #include "onnxruntime_cxx_api.h"
 #undef ORT_API_MANUAL_INIT
 #include "onnxruntime_lite_custom_op.h"
+#include "qgemm.h"
 
 #include <algorithm>
 #include <cmath>
+#include <map>
+#include <tuple>
 #include <cstdint>
 #include <cstdlib>
 #include <cstring>
@@ -298,11 +301,11 @@ void expect_shape(const char* name, const std::vector<int64_t>& got, const std::
 
 // The attribute state_out (int, default 1): 0 on a node whose state output nothing reads (export sets it on
 // the denoiser's action-token scans); h is then (batch, 0, n) and the state is never written back.
-int64_t state_out_attribute(const OrtKernelInfo* info) {
+int64_t state_out_attribute(const OrtKernelInfo* info, int64_t absent = 1) {
   try {
     return Ort::ConstKernelInfo(info).GetAttribute<int64_t>("state_out");
   } catch (const Ort::Exception&) {
-    return 1;  // absent
+    return absent;
   }
 }
 
@@ -382,6 +385,257 @@ struct CausalConv1d {
   }
 };
 
+// ------------------------------------------------------------------ a whole denoiser block (int8 weights)
+// ai.dssp::MambaBlockQ8: one block of the denoiser — on the action tokens for one DDIM step, or on the prefix —
+//
+//   h = rmsnorm(a) * (1 + scale) + shift                       AdaLN, mod = [shift; scale; gate] (3, d); the
+//                                                              prefix's mod is (0, d): h = rmsnorm(a), gate 1
+//   x, z = in_proj(h)                                          x, z (rows, E)
+//   x = silu(conv(x)) continuing from conv_state
+//   dt, B, C = x_proj(x); dt = dt_proj(dt) + dt_bias
+//   y = scan(x, dt, B, C, z) from ssm_state                    SelectiveScan's arithmetic
+//   a = a + gate * out_proj(y)
+//   a = a + fc2(u * silu(g)), [u, g] = fc1(rmsnorm2(a))        the gated MLP, when fc1 has rows
+//
+// inputs: a (batch, H, d); conv_state (batch, E, W); ssm_state (batch, E, n); mod (3, d); norm_w (d);
+//         in_q (2E, d) int8, in_s (2E); conv_w (W, E), conv_b (E); xp_q (R + 2n, E) int8, xp_s (R + 2n);
+//         dt_q (E, R) int8, dt_s (E), dt_b (E); A (E, n); D (E); out_q (d, E) int8, out_s (d);
+//         norm2_w (d); fc1_q (2h, d) int8, fc1_s (2h); fc2_q (d, h) int8, fc2_s (d) — the MLP's (0,)/(0, 0) without one
+// outputs: a (batch, H, d); the mixer's state after the tokens, conv (batch, E, W) and ssm (batch, E, n), with the
+// attribute state_out = 1 (the prefix's node; else both (batch, 0, .), never written). Attribute eps: the norms'.
+//
+// Every product multiplies the rows (batch * H, a dozen) by int8 weights with the activations quantized per row
+// (qgemm.h), the weights packed once for this CPU and shared by every node that reads the same initializer (the
+// K DDIM steps run each block's weights K times), the output columns split across ONNX Runtime's threads.
+
+namespace q = dssp::qgemm;
+
+// One packed copy of each weight initializer, shared by the nodes that read it: keyed by its address and shape,
+// held by the kernels that use it (the map keeps weak references), checked against a fingerprint of its bytes so a
+// buffer that a later session happens to place at the same address is packed anew.
+struct PackKey {
+  const void* data;
+  int64_t n, k;
+  int path;
+  bool operator<(const PackKey& o) const {
+    return std::tie(data, n, k, path) < std::tie(o.data, o.n, o.k, o.path);
+  }
+};
+
+struct PackEntry {
+  std::weak_ptr<const q::PackedWeights> packed;
+  uint64_t fingerprint;
+};
+
+uint64_t fingerprint(const int8_t* w, const float* scale, int64_t n, int64_t k) {
+  uint64_t h = 1469598103934665603ull;  // FNV-1a over the scales and 4096 bytes spread across the weights
+  auto mix = [&h](const void* p, size_t bytes) {
+    const auto* b = static_cast<const unsigned char*>(p);
+    for (size_t i = 0; i < bytes; ++i) h = (h ^ b[i]) * 1099511628211ull;
+  };
+  mix(scale, sizeof(float) * static_cast<size_t>(n));
+  const int64_t total = n * k, stride = std::max<int64_t>(1, total / 4096);
+  for (int64_t i = 0; i < total; i += stride) mix(w + i, 1);
+  return h;
+}
+
+std::shared_ptr<const q::PackedWeights> packed_weights(const int8_t* w, const float* scale, int64_t n, int64_t k,
+                                                       q::Path path) {
+  static std::mutex mutex;
+  static std::map<PackKey, PackEntry> cache;
+  const PackKey key{w, n, k, static_cast<int>(path)};
+  const uint64_t print = fingerprint(w, scale, n, k);
+  std::lock_guard<std::mutex> lock(mutex);
+  auto it = cache.find(key);
+  if (it != cache.end() && it->second.fingerprint == print)
+    if (auto held = it->second.packed.lock()) return held;
+  auto packed = std::make_shared<const q::PackedWeights>(q::pack_quantized(w, scale, static_cast<int>(n), static_cast<int>(k), path));
+  cache[key] = PackEntry{packed, print};
+  for (auto e = cache.begin(); e != cache.end();) e = e->second.packed.expired() ? cache.erase(e) : std::next(e);
+  return packed;
+}
+
+struct MatmulTask {
+  const q::QuantizedRows* x;
+  const q::PackedWeights* w;
+  const float* bias;
+  float* y;
+  int ldy;
+  int columns;  // per task
+};
+
+void run_matmul_task(void* data, size_t index) {
+  const MatmulTask& t = *static_cast<const MatmulTask*>(data);
+  const int begin = static_cast<int>(index) * t.columns;
+  q::matmul_range(*t.x, *t.w, t.bias, t.y, t.ldy, begin, std::min(begin + t.columns, t.w->n));
+}
+
+constexpr int kColumnsPerTask = 128;  // a multiple of every path's column block
+
+// y (m, w.n) = x (m, k) @ W.T (+ bias), the columns split across the session's threads
+void q8_matmul(Ort::KernelContext& ctx, const float* x, int m, int k, const q::PackedWeights& w, const float* bias,
+               float* y, q::QuantizedRows& rows) {
+  q::quantize_rows(x, m, k, rows, w.path);
+  MatmulTask task{&rows, &w, bias, y, w.n, kColumnsPerTask};
+  ctx.ParallelFor(run_matmul_task, static_cast<size_t>((w.n + kColumnsPerTask - 1) / kColumnsPerTask), 0, &task);
+}
+
+// out (m, d) = rmsnorm(x) * weight (, then * (1 + scale) + shift when scale is given)
+void rms_norm(const float* x, int64_t m, int64_t d, const float* weight, float eps, const float* shift,
+              const float* scale, float* out) {
+  for (int64_t i = 0; i < m; ++i) {
+    const float* xi = x + i * d;
+    float ss = 0.0f;
+    for (int64_t j = 0; j < d; ++j) ss += xi[j] * xi[j];
+    const float r = 1.0f / std::sqrt(ss / static_cast<float>(d) + eps);
+    float* oi = out + i * d;
+    for (int64_t j = 0; j < d; ++j) {
+      const float v = xi[j] * r * weight[j];
+      oi[j] = scale ? v * (1.0f + scale[j]) + shift[j] : v;
+    }
+  }
+}
+
+float attribute_float(const OrtKernelInfo* info, const char* name, float fallback) {
+  try {
+    return Ort::ConstKernelInfo(info).GetAttribute<float>(name);
+  } catch (const Ort::Exception&) {
+    return fallback;
+  }
+}
+
+// DSSP_QGEMM_PATH: auto (the fastest this CPU runs) or a path name of qgemm.h; one this CPU lacks is an error.
+q::Path choose_qgemm_path() {
+  std::string problem;
+  const q::Path path = q::choose_path(&problem);
+  if (!problem.empty()) ORT_CXX_API_THROW(std::string(problem), ORT_FAIL);
+  return path;
+}
+
+struct Weights {  // one int8 matrix input: its rows and scales, packed on first use
+  std::shared_ptr<const q::PackedWeights> packed;
+  const q::PackedWeights& get(const Ort::Custom::Tensor<int8_t>& w, const Ort::Custom::Tensor<float>& s, q::Path path,
+                              const char* name) {
+    const auto shape = w.Shape();
+    if (shape.size() != 2 || s.Shape() != std::vector<int64_t>{shape[0]})
+      ORT_CXX_API_THROW(std::string("MambaBlockQ8: ") + name + " must be (n, k) int8 with (n,) scales, got " +
+                            shape_str(shape) + " and " + shape_str(s.Shape()), ORT_INVALID_ARGUMENT);
+    if (!packed || source != w.Data() || packed->n != shape[0] || packed->k != shape[1]) {
+      packed = packed_weights(w.Data(), s.Data(), shape[0], shape[1], path);
+      source = w.Data();
+    }
+    return *packed;
+  }
+  const int8_t* source = nullptr;
+};
+
+struct MambaBlockQ8 {
+  MambaBlockQ8(const OrtApi*, const OrtKernelInfo* info)
+      : scan_path(choose_path()), qgemm_path(choose_qgemm_path()), eps(attribute_float(info, "eps", 1e-5f)),
+        state_out(state_out_attribute(info, 0) != 0) {}
+
+  Ort::Status Compute(OrtKernelContext* context, const Ort::Custom::Tensor<float>& a,
+                      const Ort::Custom::Tensor<float>& conv_state, const Ort::Custom::Tensor<float>& ssm_state,
+                      const Ort::Custom::Tensor<float>& mod, const Ort::Custom::Tensor<float>& norm_w,
+                      const Ort::Custom::Tensor<int8_t>& in_q, const Ort::Custom::Tensor<float>& in_s,
+                      const Ort::Custom::Tensor<float>& conv_w, const Ort::Custom::Tensor<float>& conv_b,
+                      const Ort::Custom::Tensor<int8_t>& xp_q, const Ort::Custom::Tensor<float>& xp_s,
+                      const Ort::Custom::Tensor<int8_t>& dt_q, const Ort::Custom::Tensor<float>& dt_s,
+                      const Ort::Custom::Tensor<float>& dt_b, const Ort::Custom::Tensor<float>& A,
+                      const Ort::Custom::Tensor<float>& D, const Ort::Custom::Tensor<int8_t>& out_q,
+                      const Ort::Custom::Tensor<float>& out_s, const Ort::Custom::Tensor<float>& norm2_w,
+                      const Ort::Custom::Tensor<int8_t>& fc1_q, const Ort::Custom::Tensor<float>& fc1_s,
+                      const Ort::Custom::Tensor<int8_t>& fc2_q, const Ort::Custom::Tensor<float>& fc2_s,
+                      Ort::Custom::Tensor<float>& out, Ort::Custom::Tensor<float>& conv_out,
+                      Ort::Custom::Tensor<float>& ssm_out) {
+    const auto as = a.Shape();
+    if (as.size() != 3) ORT_CXX_API_THROW("MambaBlockQ8: a must be (batch, H, d), got " + shape_str(as), ORT_INVALID_ARGUMENT);
+    const int64_t batch = as[0], L = as[1], d = as[2], m = batch * L;
+    const auto ws = conv_w.Shape(), ns = A.Shape();
+    if (ws.size() != 2 || ns.size() != 2) ORT_CXX_API_THROW("MambaBlockQ8: conv_w must be (W, E) and A (E, n)", ORT_INVALID_ARGUMENT);
+    const int64_t W = ws[0], E = ws[1], n = ns[1];
+    expect_shape("conv_state", conv_state.Shape(), {batch, E, W});
+    expect_shape("ssm_state", ssm_state.Shape(), {batch, E, n});
+    const bool modulated = !mod.Shape().empty() && mod.Shape()[0] != 0;
+    expect_shape("mod", mod.Shape(), {modulated ? 3 : 0, d});
+    expect_shape("norm_w", norm_w.Shape(), {d});
+    expect_shape("A", ns, {E, n});
+    Ort::KernelContext ctx(context);
+    const q::PackedWeights& w_in = in_w.get(in_q, in_s, qgemm_path, "in_proj");
+    const q::PackedWeights& w_xp = xp_w.get(xp_q, xp_s, qgemm_path, "x_proj");
+    const q::PackedWeights& w_dt = dt_w.get(dt_q, dt_s, qgemm_path, "dt_proj");
+    const q::PackedWeights& w_out = out_w.get(out_q, out_s, qgemm_path, "out_proj");
+    const int64_t R = w_dt.k;
+    if (w_in.n != 2 * E || w_in.k != d || w_xp.n != R + 2 * n || w_xp.k != E || w_dt.n != E || w_out.n != d || w_out.k != E)
+      ORT_CXX_API_THROW("MambaBlockQ8: the projections' shapes do not fit d = " + std::to_string(d) + ", E = " +
+                            std::to_string(E) + ", n = " + std::to_string(n), ORT_INVALID_ARGUMENT);
+    const bool mlp = fc1_q.NumberOfElement() > 0;
+    float* result = out.Allocate(as);
+    float* conv_after = conv_out.Allocate({batch, state_out ? E : 0, W});
+    float* ssm_after = ssm_out.Allocate({batch, state_out ? E : 0, n});
+    if (m == 0) return Ort::Status{nullptr};
+    const float* shift = modulated ? mod.Data() : nullptr;
+    const float *scale = modulated ? shift + d : nullptr, *gate = modulated ? shift + 2 * d : nullptr;
+
+    std::vector<float> h(m * d), xz(m * 2 * E), x(m * E), z(m * E), xc(m * E), state_after(state_out ? 0 : batch * E * W),
+        dbc(m * w_xp.n), dt_in(m * R), dt(m * E), Bm(m * n), Cm(m * n), y(m * E), o(m * d);
+    rms_norm(a.Data(), m, d, norm_w.Data(), eps, shift, scale, h.data());
+    q8_matmul(ctx, h.data(), m, d, w_in, nullptr, xz.data(), rows);
+    for (int64_t i = 0; i < m; ++i) {
+      std::memcpy(x.data() + i * E, xz.data() + i * 2 * E, sizeof(float) * E);
+      std::memcpy(z.data() + i * E, xz.data() + i * 2 * E + E, sizeof(float) * E);
+    }
+    ConvProblem cp{x.data(), conv_state.Data(), conv_w.Data(), conv_b.Data(), xc.data(),
+                   state_out ? conv_after : state_after.data(), batch, L, E, W};
+    const int64_t conv_blocks = (E + 255) / 256;
+    ConvTask conv_task{&cp, conv_blocks};
+    ctx.ParallelFor(run_conv_task, static_cast<size_t>(batch * conv_blocks), 0, &conv_task);
+    q8_matmul(ctx, xc.data(), m, E, w_xp, nullptr, dbc.data(), rows);
+    for (int64_t i = 0; i < m; ++i) {
+      const float* row = dbc.data() + i * w_xp.n;
+      std::memcpy(dt_in.data() + i * R, row, sizeof(float) * R);
+      std::memcpy(Bm.data() + i * n, row + R, sizeof(float) * n);
+      std::memcpy(Cm.data() + i * n, row + R + n, sizeof(float) * n);
+    }
+    q8_matmul(ctx, dt_in.data(), m, R, w_dt, dt_b.Data(), dt.data(), rows);
+    Problem sp{xc.data(), dt.data(), Bm.data(), Cm.data(), z.data(), A.Data(), D.Data(), ssm_state.Data(),
+               y.data(), state_out ? ssm_after : nullptr, batch, L, E, n};
+    const int64_t scan_blocks = (E + kBlock - 1) / kBlock;
+    Task scan_task{&sp, scan_path, scan_blocks};
+    ctx.ParallelFor(run_task, static_cast<size_t>(batch * scan_blocks), 0, &scan_task);
+    q8_matmul(ctx, y.data(), m, E, w_out, nullptr, o.data(), rows);
+    const float* a_in = a.Data();
+    for (int64_t i = 0; i < m; ++i)
+      for (int64_t j = 0; j < d; ++j) result[i * d + j] = a_in[i * d + j] + (gate ? gate[j] : 1.0f) * o[i * d + j];
+    if (!mlp) return Ort::Status{nullptr};
+
+    expect_shape("norm2_w", norm2_w.Shape(), {d});
+    const q::PackedWeights& w_fc1 = fc1_w.get(fc1_q, fc1_s, qgemm_path, "fc1");
+    const q::PackedWeights& w_fc2 = fc2_w.get(fc2_q, fc2_s, qgemm_path, "fc2");
+    const int64_t hidden = w_fc2.k;
+    if (w_fc1.n != 2 * hidden || w_fc1.k != d || w_fc2.n != d)
+      ORT_CXX_API_THROW("MambaBlockQ8: fc1 must be (2h, d) and fc2 (d, h) with d = " + std::to_string(d), ORT_INVALID_ARGUMENT);
+    std::vector<float> g(m * d), u(m * 2 * hidden), v(m * hidden);
+    rms_norm(result, m, d, norm2_w.Data(), eps, nullptr, nullptr, g.data());
+    q8_matmul(ctx, g.data(), m, d, w_fc1, nullptr, u.data(), rows);
+    for (int64_t i = 0; i < m; ++i)
+      for (int64_t j = 0; j < hidden; ++j) {
+        const float gj = u[i * 2 * hidden + hidden + j];
+        v[i * hidden + j] = u[i * 2 * hidden + j] * (gj / (1.0f + fast_exp(-gj)));
+      }
+    q8_matmul(ctx, v.data(), m, hidden, w_fc2, nullptr, o.data(), rows);
+    for (int64_t i = 0; i < m * d; ++i) result[i] += o[i];
+    return Ort::Status{nullptr};
+  }
+
+  Path scan_path;
+  q::Path qgemm_path;
+  float eps;
+  bool state_out;
+  Weights in_w, xp_w, dt_w, out_w, fc1_w, fc2_w;
+  q::QuantizedRows rows;
+};
+
 }  // namespace
 
 // The library's entry point, called by SessionOptions.register_custom_ops_library.
@@ -390,16 +644,18 @@ extern "C" __attribute__((visibility("default"))) OrtStatus* ORT_API_CALL Regist
   const OrtApi* api = api_base->GetApi(ORT_API_VERSION);
   if (api == nullptr) return nullptr;  // an older runtime: the session fails to load the graph, the caller falls back
   Ort::InitApi(api);
-  static std::unique_ptr<Ort::Custom::OrtLiteCustomOp> scan_op, conv_op;
+  static std::unique_ptr<Ort::Custom::OrtLiteCustomOp> scan_op, conv_op, block_op;
   static Ort::CustomOpDomain domain{nullptr};
   static std::once_flag once;
   try {
     std::call_once(once, [] {
       scan_op.reset(Ort::Custom::CreateLiteCustomOp<SelectiveScan>("SelectiveScan", "CPUExecutionProvider"));
       conv_op.reset(Ort::Custom::CreateLiteCustomOp<CausalConv1d>("CausalConv1d", "CPUExecutionProvider"));
+      block_op.reset(Ort::Custom::CreateLiteCustomOp<MambaBlockQ8>("MambaBlockQ8", "CPUExecutionProvider"));
       domain = Ort::CustomOpDomain(kDomain);
       domain.Add(scan_op.get());
       domain.Add(conv_op.get());
+      domain.Add(block_op.get());
     });
     Ort::UnownedSessionOptions(options).Add(domain);
   } catch (const std::exception& e) {

@@ -113,7 +113,12 @@ MLPS = {"gated": GatedMLP, "dit": DiTMLP}
 class DenoiserBlock(nn.Module):
     """A pre-norm block — ``norm``, the ``mixer`` (Mamba, or causal self-attention for ``backbone="transformer"``),
     then ``norm2`` and an MLP unless ``mlp`` is "none" — with its AdaLN projection: temb (B, d) → shift, scale,
-    gate (B, 3 * d), and the MLP's shift, scale, gate too for "dit" (B, 6 * d)."""
+    gate (B, 3 * d), and the MLP's shift, scale, gate too for "dit" (B, 6 * d).
+
+    The copies export traces into the int8 fused graphs get a submodule ``fused_block``
+    (``export.fused_ops.QuantizedMambaBlock``) that does the block's work — on the prefix (its state out), and on the
+    action tokens (norm, AdaLN, the Mamba mixer from the prefix's state, the gated residual, the MLP) — as one graph
+    node each; no other block has one."""
 
     def __init__(
         self,
@@ -230,6 +235,11 @@ class Denoiser(nn.Module):
         states = []
         p = prefix
         for layer in self.layers:
+            fused = getattr(layer, "fused_block", None)
+            if fused is not None:
+                p, state = fused.prefix(p)
+                states.append(state)
+                continue
             out, state = mixer_path(layer.mixer, unrolled)(layer.norm(p))
             p = layer.mlp_residual(p + out)
             states.append(state)
@@ -246,6 +256,10 @@ class Denoiser(nn.Module):
         a = self.embed_actions(x_tau)
         for i, (layer, state) in enumerate(zip(self.layers, prefix_states)):
             shift, scale, gate, *mlp_mod = mod.block(i)
+            fused = getattr(layer, "fused_block", None)
+            if fused is not None:
+                a = fused(a, state, shift, scale, gate)
+                continue
             out, _ = mixer_path(layer.mixer, unrolled)(modulate(layer.norm(a), shift, scale), state)
             a = layer.mlp_residual(a + gate.unsqueeze(1) * out, mlp_mod)
         return self.readout(a, mod)
