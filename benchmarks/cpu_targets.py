@@ -1,7 +1,7 @@
 """The CPU targets of one exported model in one run, with the fused Mamba kernel and without it.
 
     python benchmarks/cpu_targets.py MODEL_DIR --checkpoint RUN_DIR [--threads N] [--precision fp32|int8|int4]
-                                     [--quick] [--json PATH [--force]]
+                                     [--quick] [--json PATH] [--plot PATH] [--force]
 
 Batch 1, the model's point count, ``--threads`` ONNX Runtime threads (default: all CPUs; torch gets the same).
 For each graph set — the fused Mamba kernel's (``*.fused.onnx``) and the standard one — measures:
@@ -12,7 +12,11 @@ For each graph set — the fused Mamba kernel's (``*.fused.onnx``) and the stand
   chunk on the others), its p99 against the history step's p99 on the same sessions;
 
 and once: PyTorch eager (``--checkpoint``, the run the model was exported from) per chunk and per
-history step. Ratios are of medians measured in this run. DSSP against DP3, like for like, is
+history step. The roofline: this machine's read bandwidth (one core, numpy summing 256 MiB), and per graph set and
+precision the bytes of denoiser weights one chunk reads (``dssp_deploy.profile.roofline``: K + 1 passes with a
+cached prefix), the floor they imply, the achieved chunk and the ratio — on a CPU with VNNI also the fused int8
+chunk with the AVX2 paths forced (``DSSP_QGEMM_PATH=avx2 DSSP_SCAN_PATH=avx2``). ``--plot`` draws achieved against
+floor. Ratios are of medians measured in this run. DSSP against DP3, like for like, is
 ``benchmarks/dp3_comparison.py``.
 Prints the targets table (the robotwin preset's targets on a 2-core CPU); ``--json`` writes every figure.
 The runtime-only figures, without torch, are ``dssp-profile MODEL_DIR``.
@@ -33,10 +37,10 @@ from torch_comparison import check_source, eager_samples  # noqa: E402
 
 from dssp_core import machine  # noqa: E402
 from dssp_core.cli_runner import ArgumentParser, run_cli
-from dssp_deploy.latency import LatencyStats  # noqa: E402
-from dssp_deploy.manifest import PRECISIONS, read_manifest  # noqa: E402
+from dssp_deploy.latency import LatencyStats, memory_read_gbs, time_calls  # noqa: E402
+from dssp_deploy.manifest import PRECISIONS, file_kind, read_manifest  # noqa: E402
 from dssp_deploy.onnx_policy import DEFAULT_PRECISION, OnnxPolicy  # noqa: E402
-from dssp_deploy.profile import paths_and_threads, prefetch_ticks, random_observation  # noqa: E402
+from dssp_deploy.profile import paths_and_threads, prefetch_ticks, random_observation, roofline  # noqa: E402
 from dssp_deploy.sessions import check_threads, default_threads  # noqa: E402
 
 FULL = {"history": 300, "chunks": 30, "prefetch_ticks": 300, "torch_iterations": 10}
@@ -47,7 +51,10 @@ TARGETS = {  # robotwin preset, 1024 points, batch 1, 2 threads, p50
     "history_step_fp32_ms": 1.5,
     "ort_vs_eager_chunk": 5.0,
     "prefetch_tick_p99_over_history_p99": 1.5,
+    "chunk_over_floor": 1.5,
 }
+FORCED_AVX2 = {"DSSP_QGEMM_PATH": "avx2", "DSSP_SCAN_PATH": "avx2"}
+FORCED = "fused, avx2 forced"
 
 
 def runtime_figures(model_dir: Path, precision: str, threads: int, settings: dict) -> dict:
@@ -67,11 +74,52 @@ def runtime_figures(model_dir: Path, precision: str, threads: int, settings: dic
     return out
 
 
+def has_vnni() -> bool:
+    """Whether this CPU has VNNI (its int8 products' fastest path), so that forcing AVX2 measures another path."""
+    flags = {w for line in open("/proc/cpuinfo") if line.startswith("flags") for w in line.split(":", 1)[1].split()}
+    return bool({"avx512_vnni", "avx_vnni"} & flags) and "avx2" in flags
+
+
+def forced_avx2_chunk(model_dir: Path, precision: str, threads: int, settings: dict) -> float:
+    """The fused chunk's p50 (ms) with the kernel's AVX2 paths forced (its scan and its int8 products)."""
+    import os
+
+    saved = {k: os.environ.get(k) for k in FORCED_AVX2}
+    os.environ.update(FORCED_AVX2)
+    try:
+        policy = OnnxPolicy(model_dir, threads=threads, precision=precision, kernel="fused")
+        pc, pos = random_observation(policy, np.random.default_rng(0))
+        policy.observe(pc, pos)
+        return LatencyStats.of(time_calls(lambda: policy.act(seed=0), settings["chunks"])).p50
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def roofline_figures(model_dir: Path, manifest: dict, runtime: dict, precision: str, threads: int, settings: dict,
+                     read_gbs: float) -> dict:
+    """{graph set: {precision: roofline row}} for every chunk measured, and the forced AVX2 one on a VNNI CPU."""
+    out = {}
+    for kernel, r in runtime.items():
+        fused = kernel.startswith("fused")
+        out[kernel] = {p: roofline(model_dir, manifest, file_kind(p, fused), row["chunk_p50"], read_gbs)
+                       for p, row in r["precision"].items()}
+    if "fused" in runtime and has_vnni():
+        chunk = forced_avx2_chunk(model_dir, precision, threads, settings)
+        out[FORCED] = {precision: roofline(model_dir, manifest, file_kind(precision, True), chunk, read_gbs)}
+    return out
+
+
 def measure(model_dir: Path, checkpoint: Path, threads: int, precision: str, quick: bool) -> dict:
     settings = QUICK if quick else FULL
     torch.set_num_threads(threads)
     manifest = read_manifest(model_dir)
+    read_gbs = memory_read_gbs()
     runtime = runtime_figures(model_dir, precision, threads, settings)
+    lines = roofline_figures(model_dir, manifest, runtime, precision, threads, settings, read_gbs)
     policy = OnnxPolicy(model_dir, threads=threads, precision=precision, kernel="standard", warmup=0)
     pc, pos = (torch.from_numpy(a) for a in random_observation(policy, np.random.default_rng(0)))
     eager = eager_samples(checkpoint, manifest, pc, pos, {"iterations": settings["history"], "torch_iterations": settings["torch_iterations"]})
@@ -79,10 +127,10 @@ def measure(model_dir: Path, checkpoint: Path, threads: int, precision: str, qui
     return {"model_dir": str(model_dir), "checkpoint": str(checkpoint), "threads": threads, "precision": precision,
             "settings": settings, "runtime": runtime, "eager_torch": eager, "targets": TARGETS,
             "machine": machine.describe(), "denoise_steps": manifest["denoise_steps"], "torch_threads": torch.get_num_threads(),
-            "rows": rows(runtime, eager, precision)}
+            "read_gbs": read_gbs, "roofline": lines, "rows": rows(runtime, eager, precision, lines)}
 
 
-def rows(runtime: dict, eager: dict, precision: str) -> list[dict]:
+def rows(runtime: dict, eager: dict, precision: str, lines: dict) -> list[dict]:
     """The targets table: per figure, the value on each graph set and the target."""
     def per_kernel(fn):
         return {k: fn(r) for k, r in runtime.items()}
@@ -98,6 +146,10 @@ def rows(runtime: dict, eager: dict, precision: str) -> list[dict]:
          "values": per_kernel(lambda r: eager["denoiser_chunk"]["p50"] / r["precision"][precision]["chunk_p50"]), "target": ">= 5x"},
         {"figure": "tick p99 with prefetch / history step p99",
          "values": per_kernel(lambda r: r["prefetch"]["tick_p99_over_history_p99"] if r["prefetch"] else None), "target": "<= 1.5x"},
+        {"figure": f"chunk floor, {precision}: the denoiser's weights read {{passes}} times a chunk, ms",
+         "values": {k: lines[k][precision]["floor_ms"] for k in runtime}, "target": ""},
+        {"figure": f"chunk / floor, {precision}", "values": {k: lines[k][precision]["ratio"] for k in runtime},
+         "target": "<= 1.5x"},
     ]
     return out
 
@@ -105,14 +157,24 @@ def rows(runtime: dict, eager: dict, precision: str) -> list[dict]:
 def markdown(report: dict) -> str:
     kernels = list(report["runtime"])
     k = report["denoise_steps"]
-    head = {"fused": "fused Mamba kernel", "fused" + NO_SPIN: "fused, --no-spin", "standard": "standard graphs"}
+    head = {"fused": "fused Mamba kernel", "fused" + NO_SPIN: "fused, --no-spin", "standard": "standard graphs",
+            FORCED: "fused, AVX2 paths forced"}
     m = report["machine"]
     lines = [f"Model: {Path(report['model_dir']).name} — batch 1, {report['threads']} thread(s), medians of one run; {m['cpu']} "
              f"({m['cores']} cores, {', '.join(m['cpu_flags']) or 'no AVX2'}), onnxruntime {m.get('onnxruntime')}", "",
              "| figure | " + " | ".join(head[k] for k in kernels) + " | target |", "|---|" + "---:|" * len(kernels) + "---|"]
+    passes = next(iter(next(iter(report["roofline"].values())).values()))["passes"] if report.get("roofline") else k
     for row in report["rows"]:
         cells = " | ".join(f"{row['values'][k]:.2f}" if row["values"].get(k) is not None else "-" for k in kernels)
-        lines.append(f"| {row['figure'].format(k=k)} | {cells} | {row['target']} |")
+        lines.append(f"| {row['figure'].format(k=k, passes=passes)} | {cells} | {row['target']} |")
+    if report.get("roofline"):
+        lines += ["", f"Roofline: read bandwidth {report['read_gbs']:.1f} GB/s (one core, numpy summing 256 MiB); a chunk "
+                  f"reads the denoiser's weights {passes} times (K = {k} steps and the cached prefix):", "",
+                  "| graphs | precision | weights MiB | floor ms | chunk p50 ms | chunk / floor |", "|---|---|---:|---:|---:|---:|"]
+        for kernel, by_precision in report["roofline"].items():
+            for p, r in by_precision.items():
+                lines.append(f"| {head.get(kernel, kernel)} | {p} | {r['weights_mib']:.1f} | {r['floor_ms']:.2f} | "
+                             f"{r['chunk_ms']:.2f} | {r['ratio']:.2f} |")
     eager = report["eager_torch"]
     lines += ["", f"PyTorch eager (fp32, {report['torch_threads']} threads): chunk {eager['denoiser_chunk']['p50']:.1f} ms, "
               f"history step {eager['history_step']['p50']:.2f} ms"]
@@ -128,6 +190,32 @@ def markdown(report: dict) -> str:
     return "\n".join(lines)
 
 
+def plot_roofline(report: dict, path: Path, force: bool) -> None:
+    """Each chunk measured against its floor (bars: achieved, floor; the ratio on top), as a PNG."""
+    import matplotlib  # deferred: loads matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from dssp_core.output_guard import write_output_file
+
+    rows = [(f"{kernel}\n{p}", r) for kernel, by_precision in report["roofline"].items() for p, r in by_precision.items()]
+    fig, ax = plt.subplots(figsize=(1.6 * len(rows) + 2, 4))
+    x = np.arange(len(rows))
+    ax.bar(x - 0.2, [r["chunk_ms"] for _, r in rows], 0.4, label="chunk p50")
+    ax.bar(x + 0.2, [r["floor_ms"] for _, r in rows], 0.4, label=f"floor ({report['read_gbs']:.1f} GB/s)")
+    for i, (_, r) in enumerate(rows):
+        ax.annotate(f"{r['ratio']:.2f}x", (x[i] - 0.2, r["chunk_ms"]), ha="center", va="bottom", fontsize=8)
+    ax.set_xticks(x, [label for label, _ in rows], fontsize=8)
+    ax.set_ylabel("ms per chunk")
+    m = report["machine"]
+    ax.set_title(f"{Path(report['model_dir']).name}: {m['cpu']} ({', '.join(m['cpu_flags'])}), {report['threads']} threads",
+                 fontsize=9)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    write_output_file(path, lambda tmp: fig.savefig(tmp, format="png", dpi=100), force=force, flag="--plot")
+    plt.close(fig)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = ArgumentParser(prog="cpu_targets.py", description=__doc__.split("\n\n")[0])
     p.add_argument("model_dir", type=Path, help="a model directory (python -m export.to_onnx)")
@@ -136,14 +224,18 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--precision", choices=list(PRECISIONS), default=DEFAULT_PRECISION, help=f"the chunk's graphs (default {DEFAULT_PRECISION})")
     p.add_argument("--quick", action="store_true", help="short run (tests)")
     p.add_argument("--json", type=Path, help="write every figure here (a new file; --force replaces one)")
-    p.add_argument("--force", action="store_true", help="replace an existing --json file")
+    p.add_argument("--plot", type=Path, help="draw each chunk against its floor (a PNG; a new file, --force replaces one)")
+    p.add_argument("--force", action="store_true", help="replace an existing --json or --plot file")
     args = p.parse_args(argv)
 
     def _main() -> int:
         check_threads(args.threads)
         check_json(args.json, args.force)
+        check_json(args.plot, args.force)
         check_source(args.model_dir, args.checkpoint, read_manifest(args.model_dir))
         report = measure(args.model_dir, args.checkpoint, args.threads or default_threads(), args.precision, args.quick)
+        if args.plot:
+            plot_roofline(report, args.plot, args.force)
         return emit(report, markdown(report), args.json, args.force)
 
     return run_cli(_main)

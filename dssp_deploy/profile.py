@@ -10,7 +10,8 @@ Measures, for the model directory given (batch 1, the model's point count), with
   memory (DSSP's claim: constant);
 - achieved GFLOP/s against this machine's own float32 GEMM peak (numpy), and the chunk's floor on this
   machine: its flops at that peak, and — when the denoiser's weights exceed the last-level cache, so each
-  of the K DDIM steps reads them from memory again — K x weight bytes at the measured read bandwidth.
+  of the K DDIM steps (and the prefix once) reads them from memory again — (K + 1) x weight bytes at the
+  measured read bandwidth (:func:`weight_passes`, :func:`roofline`).
 - paths and threads: history step and chunk p50 on the fused Mamba kernel's graphs and on the standard
   ones, each at 1 thread and at ``--threads`` (default: all CPUs), with the speed-up of the threads — to
   extrapolate to a robot computer with more cores;
@@ -192,6 +193,23 @@ def run_profile(model_dir: Path, quick: bool, threads: int | None, precision: st
     }
 
 
+def weight_passes(manifest: dict) -> int:
+    """How often one chunk reads every denoiser weight: once per DDIM step, and once more for the prefix when its
+    state is computed once and serves the K steps (a Mamba denoiser with the timestep decoupled, K > 1)."""
+    steps = manifest["denoise_steps"]
+    return steps + 1 if steps > 1 and manifest["model_config"].get("timestep_decoupled", True) else steps
+
+
+def roofline(model_dir: Path, manifest: dict, fmt: str, chunk_ms: float, read_gbs: float) -> dict[str, Any]:
+    """One chunk against the least time reading its weights allows: the denoiser graph's bytes (``fmt``'s file: its
+    weights, nearly all of it) read :func:`weight_passes` times at ``read_gbs``; ``ratio`` = achieved / floor."""
+    weights = graph_file(model_dir, manifest, DENOISER_GRAPH, fmt).stat().st_size
+    passes = weight_passes(manifest)
+    floor = passes * weights / (read_gbs * 1e9) * 1e3
+    return {"graph": fmt, "weights_mib": weights / 2**20, "passes": passes, "read_gbs": read_gbs,
+            "floor_ms": floor, "chunk_ms": chunk_ms, "ratio": chunk_ms / floor}
+
+
 def chunk_floor(model_dir: Path, manifest: dict, chunk_flops_: int, peak_gflops: float, fmt: str = "onnx") -> dict[str, Any]:
     """The least time one chunk can take here: compute at the GEMM peak, or re-reading the weights per DDIM step.
 
@@ -207,11 +225,11 @@ def chunk_floor(model_dir: Path, manifest: dict, chunk_flops_: int, peak_gflops:
     bandwidth = memory_read_gbs()
     steps = manifest["denoise_steps"]
     streams = cache is None or weights > cache
-    stream_ms = steps * weights / (bandwidth * 1e9) * 1e3 if streams else None
+    stream_ms = weight_passes(manifest) * weights / (bandwidth * 1e9) * 1e3 if streams else None
     compute_ms = chunk_flops_ / (peak_gflops * 1e9) * 1e3
     return {"compute_ms": compute_ms, "weights_mib": weights / 2**20, "cache_mib": cache / 2**20 if cache else None,
             "cpu_cache_mib": cpu_cache / 2**20 if cpu_cache else None, "read_gbs_by_mib": dict(probe),
-            "read_gbs": bandwidth, "denoise_steps": steps, "weight_stream_ms": stream_ms,
+            "read_gbs": bandwidth, "denoise_steps": steps, "weight_passes": weight_passes(manifest), "weight_stream_ms": stream_ms,
             "floor_ms": max(compute_ms, stream_ms or 0.0)}
 
 
@@ -296,7 +314,8 @@ def markdown(report: dict[str, Any]) -> str:
              f"{f['cpu_cache_mib']:.0f} MiB)" if f.get("cpu_cache_mib") and f["cache_mib"] != f["cpu_cache_mib"]
              else f"{f['cache_mib']:.0f} MiB last-level cache" if f["cache_mib"] else "")
     stream = (f"{f['weights_mib']:.1f} MiB of weights{' > ' + cache if cache else ''}, "
-              f"re-read by each of the {f['denoise_steps']} DDIM steps at {f['read_gbs']:.1f} GB/s = {f['weight_stream_ms']:.1f} ms"
+              f"read {f['weight_passes']} times a chunk ({f['denoise_steps']} DDIM steps"
+              f"{' and the prefix' if f['weight_passes'] > f['denoise_steps'] else ''}) at {f['read_gbs']:.1f} GB/s = {f['weight_stream_ms']:.1f} ms"
               if f["weight_stream_ms"] is not None else f"{f['weights_mib']:.1f} MiB of weights stay in the {cache}")
     lines.append(f"Chunk floor on this machine: {f['floor_ms']:.1f} ms — compute at the GEMM peak {f['compute_ms']:.1f} ms; {stream}")
     for graph, label in (("history_step", "history step"), ("denoiser_chunk", "denoiser chunk")):

@@ -118,14 +118,31 @@ def test_torch_comparison_refuses_a_checkpoint_the_model_was_not_exported_from(t
     assert "cannot be read" in capsys.readouterr().err
 
 
+def cpu_flags() -> set[str]:
+    return {w for line in open("/proc/cpuinfo") if line.startswith("flags") for w in line.split(":", 1)[1].split()}
+
+
 def test_cpu_targets_table_has_every_row_on_both_graph_sets(tiny_export, tmp_path, capsys):
     run_dir, model_dir, _ = tiny_export
     out = tmp_path / "targets.json"
     bench = load_comparison("cpu_targets")
-    assert bench.main([str(model_dir), "--checkpoint", str(run_dir), "--quick", "--threads", "1", "--json", str(out)]) == 0
+    plot = tmp_path / "roofline.png"
+    assert bench.main([str(model_dir), "--checkpoint", str(run_dir), "--quick", "--threads", "1", "--json", str(out),
+                       "--plot", str(plot)]) == 0
     text = capsys.readouterr().out
     assert "| fused Mamba kernel | standard graphs | target |" in text and "| chunk, K = 10, int8, p50 ms |" in text
     report = json.loads(out.read_text())
+    # the roofline: every chunk against K + 1 reads of its own graph's weights at the measured bandwidth
+    manifest = json.loads((model_dir / "dssp_model.json").read_text())
+    assert report["read_gbs"] > 0 and plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    for kernel, by_precision in report["roofline"].items():
+        for precision, r in by_precision.items():
+            graph = "denoiser" + {"int8": ".int8", "fp32": ""}[precision] + ".fused" * kernel.startswith("fused") + ".onnx"
+            assert r["weights_mib"] == pytest.approx(manifest["files"][graph]["bytes"] / 2**20)
+            assert r["passes"] == 11 and r["floor_ms"] == pytest.approx(11 * manifest["files"][graph]["bytes"] / report["read_gbs"] / 1e6)
+            assert r["ratio"] == pytest.approx(r["chunk_ms"] / r["floor_ms"])
+    assert ("fused, avx2 forced" in report["roofline"]) == bool({"avx512_vnni", "avx_vnni"} & cpu_flags())
+    assert "| chunk / floor, int8 |" in text and "Roofline: read bandwidth" in text
     assert set(report["runtime"]) == {"fused", "standard"} and report["machine"]["cores"] >= 1
     for kernel, r in report["runtime"].items():
         assert set(r["precision"]) == {"int8", "fp32"} and all(p["threads"] == 1 and p["chunk_p50"] > 0 for p in r["precision"].values())
