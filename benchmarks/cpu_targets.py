@@ -36,6 +36,7 @@ from bench_output import check_json, emit  # noqa: E402
 from torch_comparison import check_source, eager_samples  # noqa: E402
 
 from dssp_core import machine  # noqa: E402
+from studies.protocol import code_commit  # noqa: E402
 from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_deploy.latency import LatencyStats, memory_read_gbs, time_calls  # noqa: E402
 from dssp_deploy.manifest import PRECISIONS, file_kind, read_manifest  # noqa: E402
@@ -127,7 +128,8 @@ def measure(model_dir: Path, checkpoint: Path, threads: int, precision: str, qui
     return {"model_dir": str(model_dir), "checkpoint": str(checkpoint), "threads": threads, "precision": precision,
             "settings": settings, "runtime": runtime, "eager_torch": eager, "targets": TARGETS,
             "machine": machine.describe(), "denoise_steps": manifest["denoise_steps"], "torch_threads": torch.get_num_threads(),
-            "read_gbs": read_gbs, "roofline": lines, "rows": rows(runtime, eager, precision, lines)}
+            "read_gbs": read_gbs, "roofline": lines, "rows": rows(runtime, eager, precision, lines),
+            "code_commit": code_commit(), "model_source": manifest.get("source")}
 
 
 def rows(runtime: dict, eager: dict, precision: str, lines: dict) -> list[dict]:
