@@ -289,20 +289,24 @@ def _kind(mode: int) -> str:
 
 
 def read_input_bytes(path: str | os.PathLike, label: str, *, limit: int = SETTINGS_LIMIT,
-                     error: type[DSSPError] = DSSPError) -> bytes:
+                     error: type[DSSPError] = DSSPError, follow_links: bool = True) -> bytes:
     """The bytes of the file a user named, or one line (as ``error``, starting with ``label``) saying why not.
 
     The one read of such files: it is opened without blocking and checked on the open descriptor, so a FIFO, a
     device (``/dev/zero``), a socket or a directory is refused before a byte is read (a FIFO never blocks the
     command, a device never fills its memory); a file larger than ``limit`` bytes is refused by its size, and
     nothing beyond ``limit + 1`` bytes is ever read (a file that grows meanwhile). A symbolic link the user
-    gave is followed: the path came from them, not from a file.
+    gave is followed: the path came from them, not from a file; ``follow_links=False`` for a file inside a folder
+    the user named (a dataset's metadata), where a link is refused.
     """
     try:
-        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC | (0 if follow_links else os.O_NOFOLLOW))
     except FileNotFoundError:
         raise error(f"{label} does not exist; check the path") from None
     except OSError as exc:
+        if exc.errno == errno.ELOOP and not follow_links:
+            raise error(f"{label} is a symbolic link: a folder's own files are read, no link is followed; replace "
+                        f"the link with the file") from None
         if exc.errno == errno.ENXIO:  # a socket: it cannot be opened at all
             with contextlib.suppress(OSError):
                 raise error(f"{label} is {_kind(os.stat(path).st_mode)}, not a file; give a regular file") from None
@@ -323,16 +327,6 @@ def read_input_bytes(path: str | os.PathLike, label: str, *, limit: int = SETTIN
         raise error(f"{label} holds more than the {limit} bytes such a file may hold (it grew while read); "
                     f"check that it is the right file")
     return data
-
-
-def read_input_text(path: str | os.PathLike, label: str, *, limit: int = SETTINGS_LIMIT,
-                    error: type[DSSPError] = DSSPError) -> str:
-    """:func:`read_input_bytes` as UTF-8 text; text that is not UTF-8 is one line too."""
-    data = read_input_bytes(path, label, limit=limit, error=error)
-    try:
-        return data.decode()
-    except UnicodeDecodeError:
-        raise error(f"{label} is not a text file; give a JSON file") from None
 
 
 def read_regular_text(path: str | os.PathLike, limit: int = METADATA_LIMIT) -> str | None:

@@ -202,20 +202,18 @@ def json_depth(text: str, limit: int = JSON_MAX_DEPTH) -> int:
 def parse_json(text: str) -> Any:
     """``json.loads`` that refuses a key given twice, and nesting deeper than :data:`JSON_MAX_DEPTH`, as
     ValueErrors."""
-    if json_depth(text) > JSON_MAX_DEPTH:
+    if json_depth(text) > JSON_MAX_DEPTH:  # before the parser, which recurses once per level
         raise ValueError(f"nested more than {JSON_MAX_DEPTH} levels deep")
-    try:
-        return json.loads(text, object_pairs_hook=_no_duplicates)
-    except RecursionError:
-        raise ValueError("nested too deeply to be a settings file") from None
+    return json.loads(text, object_pairs_hook=_no_duplicates)
 
 
-def read_json(path: str | Path, label: str, *, error: type[Exception] = ConfigError, hint: str | None = None) -> Any:
-    """Any JSON value from a file a user names, read through :func:`~dssp_core.files.read_input_bytes` and
-    :func:`parse_json`, or one line starting with ``label`` raised as ``error``; ``hint`` replaces the generic advice
-    on a file that exists but holds no usable JSON (e.g. how to restore it)."""
+def read_json(path: str | Path, label: str, *, error: type[Exception] = ConfigError, hint: str | None = None,
+              **read) -> Any:
+    """Any JSON value from a file a user names, read through :func:`~dssp_core.files.read_input_bytes` (``read``: its
+    ``limit`` and ``follow_links``) and :func:`parse_json`, or one line starting with ``label`` raised as ``error``;
+    ``hint`` replaces the generic advice on a file that exists but holds no usable JSON (e.g. how to restore it)."""
     fix = f"; {hint}" if hint else ""
-    data = read_input_bytes(path, label, error=error)
+    data = read_input_bytes(path, label, error=error, **read)
     try:
         return parse_json(data.decode())
     except DuplicateKey as exc:

@@ -241,7 +241,7 @@ def read_metadata(bag: Path) -> BagMetadata:
     from ruamel.yaml import YAML  # optional: the ros extra (rosbags needs it)
 
     where = f"{bag}/metadata.yaml"
-    data = read_input_bytes(bag / "metadata.yaml", where, limit=METADATA_LIMIT, error=DatasetError)
+    data = read_input_bytes(bag / "metadata.yaml", where, limit=METADATA_LIMIT, error=DatasetError, follow_links=False)
     try:
         text = data.decode()
         problem = _yaml_problem(text)

@@ -40,8 +40,8 @@ from dssp_data.observation import ObservationContract
 from dssp_deploy.external_data import MalformedGraph, external_locations
 from dssp_core.schema import MAX_DIM, MAX_LAYERS, MAX_RATE_HZ, MAX_STEPS, MAX_WIDTH
 from dssp_core.errors import ConfigError, DSSPError
-from dssp_core.files import read_input_bytes, read_input_text, read_regular_text
-from dssp_core.schema import Settings, Spec, check_value, parse_json, setting
+from dssp_core.files import read_input_bytes, read_regular_text
+from dssp_core.schema import Settings, Spec, check_value, parse_json, read_json, setting
 
 FORMAT_VERSION = "1"
 KIND = "dssp-model"
@@ -289,11 +289,7 @@ def read_manifest(model_dir: Path) -> dict[str, Any]:
         raise ModelDirError(f"model directory {model_dir} does not exist; create one with python -m export.to_onnx RUN_DIR -o {model_dir}")
     if not (path.exists() or path.is_symlink()):
         raise ModelDirError(f"{path} is missing: {model_dir} is not a DSSP model directory (python -m export.to_onnx makes one)")
-    text = read_input_text(path, str(path), error=ModelDirError)
-    try:
-        manifest = parse_json(text)
-    except ValueError as exc:  # JSON errors, a key twice, nesting too deep
-        raise ModelDirError(f"{path} is unreadable ({exc}); {AGAIN}") from None
+    manifest = read_json(path, str(path), error=ModelDirError, hint=AGAIN)
     if not isinstance(manifest, dict) or manifest.get("kind") != KIND:
         raise ModelDirError(f"{path} is not a DSSP model manifest (no \"kind\": \"{KIND}\"); {AGAIN}")
     if manifest.get("format_version") != FORMAT_VERSION:

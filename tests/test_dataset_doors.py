@@ -415,7 +415,7 @@ def test_metadata_files_that_are_not_files_are_refused_without_blocking(tmp_path
         (metadata, good_metadata[:len(good_metadata) // 3], [bag, *cal, *BAG_FLAGS], "metadata.yaml is not a"),
         (metadata, "\0\xff" * 100, [bag, *cal, *BAG_FLAGS], "metadata.yaml is not a"),
         (info, "fifo", [root, *cal], "meta/info.json is not a file"),
-        (info, deep_json, [root, *cal], "info.json is not valid JSON (nested more than 64 levels deep)"),
+        (info, deep_json, [root, *cal], "info.json is not a usable JSON object (nested more than 64 levels deep)"),
         (info, good_info[:-1] + ', "fps": 10}', [root, *cal], "gives the key fps twice"),
     ]
     for path, content, argv, fragment in cases:

@@ -37,9 +37,8 @@ from pathlib import Path
 import numpy as np
 
 from dssp_core.errors import ConfigError, DatasetError
-from dssp_core.schema import DuplicateKey, parse_json
+from dssp_core.schema import check_rate, read_json
 from dssp_data.bounded import check_budget, human_size
-from dssp_core.schema import check_rate
 from dssp_data.observation import VectorLayout
 
 __all__ = ["CODEBASE_VERSION", "INFO_PATH", "TASKS_PATH", "STATS_PATH", "EPISODES_DIR", "CHUNK_FILE", "DATA_PATH",
@@ -138,18 +137,7 @@ def read_info(root: Path) -> dict:
     rate (:func:`~dssp_core.schema.check_rate`) and ``features``; anything else is one line."""
     root = _check_root(root)
     path = named_path(root, INFO_PATH, "its info file")
-    with open_regular(path) as f:
-        raw = f.read(INFO_LIMIT + 1)
-    if len(raw) > INFO_LIMIT:
-        raise DatasetError(f"{path} holds more than the {INFO_LIMIT} bytes an info file may hold; check the dataset")
-    try:
-        info = parse_json(raw.decode())
-    except DuplicateKey as exc:
-        raise DatasetError(f"{path} gives the key {exc} twice; keep one") from None
-    except UnicodeDecodeError:
-        raise DatasetError(f"{path} is not a text file") from None
-    except ValueError as exc:  # not JSON, nested too deep
-        raise DatasetError(f"{path} is not valid JSON ({exc})") from None
+    info = read_json(path, str(path), error=DatasetError, limit=INFO_LIMIT, follow_links=False)
     if not isinstance(info, dict):
         raise DatasetError(f"{path} must hold a JSON object")
     version = info.get("codebase_version")
@@ -202,7 +190,7 @@ def data_file(root: Path, template, chunk: int, file: int) -> Path:
             if name is None:
                 continue
             if name not in _FIELDS or conversion or not _FIELD_SPEC.fullmatch(spec or ""):
-                problem = f"a template whose fields are {{chunk_index}} and {{file_index}}, formatted at most as :09d"
+                problem = "a template whose fields are {chunk_index} and {file_index}, formatted at most as :09d"
                 break
             parts.append(format(chunk if name == "chunk_index" else file, spec or ""))
     if problem:
