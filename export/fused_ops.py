@@ -241,11 +241,14 @@ class QuantizedMambaBlock(torch.nn.Module):
         return self._run(a, conv_state, ssm_state, mod, False)[0]
 
 
+def fitting_blocks(module: torch.nn.Module) -> list:
+    """The denoiser blocks of ``module`` that can run as one node (:meth:`QuantizedMambaBlock.fits`)."""
+    return [b for b in module.modules() if isinstance(b, DenoiserBlock) and QuantizedMambaBlock.fits(b)]
+
+
 def use_fused_blocks(module: torch.nn.Module) -> int:
     """Give every denoiser block of ``module`` that fits its :class:`QuantizedMambaBlock`; returns how many."""
-    count = 0
-    for block in module.modules():
-        if isinstance(block, DenoiserBlock) and QuantizedMambaBlock.fits(block):
-            block.fused_block = QuantizedMambaBlock(block)
-            count += 1
-    return count
+    blocks = fitting_blocks(module)
+    for block in blocks:
+        block.fused_block = QuantizedMambaBlock(block)
+    return len(blocks)

@@ -64,7 +64,7 @@ from dssp_deploy.manifest import (
 from dssp_deploy.sessions import check_threads
 from dssp_train.config import TIMESTEP_SPACINGS as SPACINGS
 from dssp_train.model.mamba import Mamba
-from export.fused_ops import mark_unread_states, use_fused_blocks
+from export.fused_ops import fitting_blocks, mark_unread_states, use_fused_blocks
 from export.graphs import DenoiserGraph, HistoryStepGraph, check_exportable, use_fused_ops
 from export.manifest_writer import build_manifest, metadata_props, write_manifest
 from export.output_dir import StagedDirectory
@@ -240,14 +240,12 @@ def write_onnx(module, example: tuple, path: Path, config, graph: str, opset: in
 
 
 def write_block_graph(module, example: tuple, beside: Path, config, graph: str, opset: int, metadata: dict[str, str],
-                      inpainting: bool) -> Path | None:
-    """The graph to quantize into the int8 fused one, when ``module`` has denoiser blocks that run as one node each
+                      inpainting: bool) -> Path:
+    """The graph to quantize into the int8 fused one when ``module`` has denoiser blocks that run as one node each
     (``ai.dssp::MambaBlockQ8``, int8 weights: :class:`export.fused_ops.QuantizedMambaBlock`): a copy of the fused
-    module with those blocks, written to a hidden file beside ``beside`` (the caller removes it); None when no block
-    fits (the fused graph itself is quantized)."""
+    module with those blocks, written to a hidden file beside ``beside`` (the caller removes it)."""
     blocks = copy.deepcopy(module)
-    if not use_fused_blocks(blocks):
-        return None
+    use_fused_blocks(blocks)
     path = beside.with_name(f".{beside.stem}.blocks.onnx")
     write_onnx(blocks, example, path, config, graph, opset, metadata, fused=True, inpainting=inpainting)
     return path
@@ -434,11 +432,12 @@ def export_model(
                     src, dst = file_kind("fp32", is_fused), file_kind(precision, is_fused)
                     for g in GRAPHS:
                         source = staged.path / files[g][src]
-                        if precision == "int8" and is_fused:  # each denoiser block on the action tokens as one node
+                        blocks = precision == "int8" and is_fused and fitting_blocks(modules[g])
+                        if blocks:  # each denoiser block as one node: a graph traced anew, then quantized
                             source = write_block_graph(modules[g], examples[g], source, config, g, opset,
-                                                       metadata_props(manifest, g), inpainting) or source
+                                                       metadata_props(manifest, g), inpainting)
                         QUANTIZERS[precision](source, staged.path / files[g][dst], metadata_props(manifest, g))
-                        if source.name.startswith("."):
+                        if blocks:
                             source.unlink()
                         written.append(files[g][dst])
             stage(f"wrote {', '.join(written)} (ONNX Runtime quantization: {', '.join(quantize)})")
