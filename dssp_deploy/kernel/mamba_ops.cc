@@ -512,20 +512,27 @@ q::Path choose_qgemm_path() {
   return path;
 }
 
-struct Weights {  // one int8 matrix input: its rows and scales, packed on first use
-  std::shared_ptr<const q::PackedWeights> packed;
-  const q::PackedWeights& get(const Ort::Custom::Tensor<int8_t>& w, const Ort::Custom::Tensor<float>& s, q::Path path,
-                              const char* name) {
+// One int8 matrix input of a node: its rows and scales, packed on first use and held while the node lives. Runs of
+// the same session may overlap (ONNX Runtime allows concurrent Run calls): the first use is guarded, and each run
+// holds what it got.
+struct Weights {
+  std::shared_ptr<const q::PackedWeights> get(const Ort::Custom::Tensor<int8_t>& w, const Ort::Custom::Tensor<float>& s,
+                                              q::Path path, const char* name) {
     const auto shape = w.Shape();
     if (shape.size() != 2 || s.Shape() != std::vector<int64_t>{shape[0]})
       ORT_CXX_API_THROW(std::string("MambaBlockQ8: ") + name + " must be (n, k) int8 with (n,) scales, got " +
                             shape_str(shape) + " and " + shape_str(s.Shape()), ORT_INVALID_ARGUMENT);
+    std::lock_guard<std::mutex> lock(mutex);
     if (!packed || source != w.Data() || packed->n != shape[0] || packed->k != shape[1]) {
       packed = packed_weights(w.Data(), s.Data(), shape[0], shape[1], path);
       source = w.Data();
     }
-    return *packed;
+    return packed;
   }
+
+ private:
+  std::mutex mutex;
+  std::shared_ptr<const q::PackedWeights> packed;
   const int8_t* source = nullptr;
 };
 
@@ -561,10 +568,14 @@ struct MambaBlockQ8 {
     expect_shape("norm_w", norm_w.Shape(), {d});
     expect_shape("A", ns, {E, n});
     Ort::KernelContext ctx(context);
-    const q::PackedWeights& w_in = in_w.get(in_q, in_s, qgemm_path, "in_proj");
-    const q::PackedWeights& w_xp = xp_w.get(xp_q, xp_s, qgemm_path, "x_proj");
-    const q::PackedWeights& w_dt = dt_w.get(dt_q, dt_s, qgemm_path, "dt_proj");
-    const q::PackedWeights& w_out = out_w.get(out_q, out_s, qgemm_path, "out_proj");
+    const auto held_in = in_w.get(in_q, in_s, qgemm_path, "in_proj");
+    const q::PackedWeights& w_in = *held_in;
+    const auto held_xp = xp_w.get(xp_q, xp_s, qgemm_path, "x_proj");
+    const q::PackedWeights& w_xp = *held_xp;
+    const auto held_dt = dt_w.get(dt_q, dt_s, qgemm_path, "dt_proj");
+    const q::PackedWeights& w_dt = *held_dt;
+    const auto held_out = out_w.get(out_q, out_s, qgemm_path, "out_proj");
+    const q::PackedWeights& w_out = *held_out;
     const int64_t R = w_dt.k;
     if (w_in.n != 2 * E || w_in.k != d || w_xp.n != R + 2 * n || w_xp.k != E || w_dt.n != E || w_out.n != d || w_out.k != E)
       ORT_CXX_API_THROW("MambaBlockQ8: the projections' shapes do not fit d = " + std::to_string(d) + ", E = " +
@@ -574,6 +585,7 @@ struct MambaBlockQ8 {
     float* conv_after = conv_out.Allocate({batch, state_out ? E : 0, W});
     float* ssm_after = ssm_out.Allocate({batch, state_out ? E : 0, n});
     if (m == 0) return Ort::Status{nullptr};
+    q::QuantizedRows rows;  // this run's quantized activations
     const float* shift = modulated ? mod.Data() : nullptr;
     const float *scale = modulated ? shift + d : nullptr, *gate = modulated ? shift + 2 * d : nullptr;
 
@@ -610,8 +622,10 @@ struct MambaBlockQ8 {
     if (!mlp) return Ort::Status{nullptr};
 
     expect_shape("norm2_w", norm2_w.Shape(), {d});
-    const q::PackedWeights& w_fc1 = fc1_w.get(fc1_q, fc1_s, qgemm_path, "fc1");
-    const q::PackedWeights& w_fc2 = fc2_w.get(fc2_q, fc2_s, qgemm_path, "fc2");
+    const auto held_fc1 = fc1_w.get(fc1_q, fc1_s, qgemm_path, "fc1");
+    const q::PackedWeights& w_fc1 = *held_fc1;
+    const auto held_fc2 = fc2_w.get(fc2_q, fc2_s, qgemm_path, "fc2");
+    const q::PackedWeights& w_fc2 = *held_fc2;
     const int64_t hidden = w_fc2.k;
     if (w_fc1.n != 2 * hidden || w_fc1.k != d || w_fc2.n != d)
       ORT_CXX_API_THROW("MambaBlockQ8: fc1 must be (2h, d) and fc2 (d, h) with d = " + std::to_string(d), ORT_INVALID_ARGUMENT);
@@ -633,7 +647,6 @@ struct MambaBlockQ8 {
   float eps;
   bool state_out;
   Weights in_w, xp_w, dt_w, out_w, fc1_w, fc2_w;
-  q::QuantizedRows rows;
 };
 
 }  // namespace
