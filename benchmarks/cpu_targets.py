@@ -77,7 +77,7 @@ def runtime_figures(model_dir: Path, precision: str, threads: int, settings: dic
 
 def has_vnni() -> bool:
     """Whether this CPU has VNNI (its int8 products' fastest path), so that forcing AVX2 measures another path."""
-    flags = {w for line in open("/proc/cpuinfo") if line.startswith("flags") for w in line.split(":", 1)[1].split()}
+    flags = set(machine.cpu()[1])
     return bool({"avx512_vnni", "avx_vnni"} & flags) and "avx2" in flags
 
 

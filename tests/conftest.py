@@ -3,6 +3,7 @@ and small tensor ops do not stall when another process shares the cores; Ctrl-C 
 
 import os
 import signal
+from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 # MuJoCo picks its OpenGL platform when it is first imported; every test module is imported at collection, in
@@ -72,7 +73,6 @@ def built_once(tmp_path_factory, request, name: str, build) -> tuple:
     reuse it. Tests treat such a fixture as read-only (they copy what they change)."""
     import json
     import shutil
-    from pathlib import Path
 
     from filelock import FileLock
 
@@ -168,7 +168,6 @@ def snapshot(root):
     """Every path under ``root`` with what it is: a folder, a link and its target, a file's sha256, or "special" (a
     FIFO, socket or device: never opened)."""
     import hashlib
-    from pathlib import Path
 
     found = {}
     for folder, dirs, files in os.walk(root, followlinks=False):
@@ -192,3 +191,22 @@ def pytest_terminal_summary(terminalreporter, config):
     seed = getattr(config.option, "randomly_seed", None)
     if seed is not None and getattr(config.option, "randomly_reorganize", True):
         terminalreporter.write_line(f"test order: random, --randomly-seed={seed}")
+
+
+def cpu_flags() -> set[str]:
+    """This CPU's feature words as Linux lists them (x86 ``flags``, aarch64 ``Features``): what a test of a CPU
+    feature asks."""
+    words = set()
+    for line in Path("/proc/cpuinfo").read_text().splitlines():
+        if line.startswith(("flags", "Features")):
+            words |= set(line.split(":", 1)[1].split())
+    return words
+
+
+QGEMM_X86_PATHS = {
+    "avx512_vnni": {"avx512f", "avx512bw", "avx512_vnni", "avx2", "fma"},
+    "avx_vnni": {"avx_vnni", "avx2", "fma"},
+    "avx2": {"avx2", "fma"},
+}
+"""dssp_deploy/kernel/qgemm.h's x86-64 paths, fastest first, and the CPU flags each needs."""
+

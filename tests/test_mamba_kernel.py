@@ -7,6 +7,7 @@ import shutil
 import numpy as np
 import onnxruntime as ort
 import pytest
+from conftest import QGEMM_X86_PATHS, cpu_flags
 import onnx
 import torch
 from onnx import TensorProto, helper
@@ -21,26 +22,17 @@ from dssp_train.model.selective_scan import linear_scan_unrolled, selective_scan
 IMPLEMENTATIONS = ["avx512", "avx2", "portable"]
 
 
-QGEMM_PATHS = ["portable", "avx2", "avx_vnni", "avx512_vnni"]  # dssp_deploy/kernel/qgemm.h's x86 paths
-
-
-def cpu_flags() -> set[str]:
-    return {word for line in open("/proc/cpuinfo") if line.startswith("flags") for word in line.split(":", 1)[1].split()}
+QGEMM_PATHS = ["portable", *QGEMM_X86_PATHS]  # dssp_deploy/kernel/qgemm.h's x86 paths
 
 
 def qgemm_runs(path: str) -> bool:
-    """Whether this CPU has the instructions of a qgemm path (Linux's CPU flags)."""
-    need = {"portable": set(), "avx2": {"avx2", "fma"}, "avx_vnni": {"avx2", "fma", "avx_vnni"},
-            "avx512_vnni": {"avx2", "fma", "avx512f", "avx512bw", "avx512_vnni"}}[path]
-    return need <= cpu_flags()
+    """Whether this CPU has the instructions of a qgemm path."""
+    return path == "portable" or QGEMM_X86_PATHS[path] <= cpu_flags()
 
 
 def cpu_runs(implementation: str) -> bool:
-    """Whether this CPU has the instructions of an implementation (Linux's CPU flags)."""
-    flags = {
-        word for line in open("/proc/cpuinfo") if line.startswith("flags") for word in line.split(":", 1)[1].split()
-    }
-    return {"avx512": {"avx512f", "avx2", "fma"}, "avx2": {"avx2", "fma"}, "portable": set()}[implementation] <= flags
+    """Whether this CPU has the instructions of a scan implementation."""
+    return {"avx512": {"avx512f", "avx2", "fma"}, "avx2": {"avx2", "fma"}, "portable": set()}[implementation] <= cpu_flags()
 
 
 @pytest.fixture(scope="module", autouse=True)

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import cpu_flags
 
 from dssp_deploy.manifest import file_kind, read_manifest
 
@@ -116,10 +117,6 @@ def test_torch_comparison_refuses_a_checkpoint_the_model_was_not_exported_from(t
     assert len(err) == 1 and "is not the run" in err[0]
     assert bench.main([str(model_dir), "--quick", "--checkpoint", str(tmp_path / "none"), "--threads", "1"]) == 2
     assert "cannot be read" in capsys.readouterr().err
-
-
-def cpu_flags() -> set[str]:
-    return {w for line in open("/proc/cpuinfo") if line.startswith("flags") for w in line.split(":", 1)[1].split()}
 
 
 def test_cpu_targets_table_has_every_row_on_both_graph_sets(tiny_export, tmp_path, capsys):

@@ -11,6 +11,7 @@ import subprocess
 from pathlib import Path
 
 import pytest
+from conftest import QGEMM_X86_PATHS, cpu_flags
 
 ROOT = Path(__file__).resolve().parents[1]
 KERNEL = ROOT / "dssp_deploy" / "kernel"
@@ -20,22 +21,8 @@ BUILD = ROOT / "build" / "qgemm"
 CROSS_TOOLS = ("aarch64-linux-gnu-g++", "qemu-aarch64")
 INSTALL_HINT = "`make setup` installs them (its `system` target: apt-get install g++-aarch64-linux-gnu qemu-user)"
 
-# The x86-64 paths and the /proc/cpuinfo flags each needs.
-X86_PATHS = {
-    "avx512_vnni": {"avx512f", "avx512bw", "avx512_vnni", "avx2", "fma"},
-    "avx_vnni": {"avx_vnni", "avx2", "fma"},
-    "avx2": {"avx2", "fma"},
-}
+X86_PATHS = QGEMM_X86_PATHS
 ARM_PATHS = ("neon", "neon_dot")
-
-
-def cpu_flags() -> set[str]:
-    """This CPU's feature words (x86 `flags`, aarch64 `Features`)."""
-    words = set()
-    for line in Path("/proc/cpuinfo").read_text().splitlines():
-        if line.startswith(("flags", "Features")):
-            words |= set(line.split(":", 1)[1].split())
-    return words
 
 
 def build(compiler: str, output: Path, *flags: str) -> Path:
