@@ -108,3 +108,18 @@ def test_aarch64_paths_match_under_qemu(cross, cpu, dot, monkeypatch):
     assert set(report["unavailable"]) == set(X86_PATHS) | ({"neon_dot"} if not dot else set()), report
     if not dot:
         assert "lacks the dot-product instructions" in report["unavailable"]["neon_dot"]
+
+
+def test_on_a_cpu_without_avx512_the_avx2_path_is_chosen_and_matches(monkeypatch):
+    """The x86-64 build on an emulated Haswell (AVX2 + FMA, no AVX-512, no VNNI: what many robot computers and
+    older workstations have), whatever CPU runs the suite: it picks avx2, which matches the reference, and names the
+    VNNI paths unavailable."""
+    monkeypatch.delenv("DSSP_QGEMM_PATH", raising=False)
+    assert platform.machine() == "x86_64", "the suite's machines are x86-64"
+    if shutil.which("qemu-x86_64") is None:
+        pytest.fail(f"qemu-x86_64 is missing; {INSTALL_HINT}")
+    binary = build("g++", BUILD / "qgemm_check_static", "-static")
+    code, report = run(["qemu-x86_64", "-cpu", "Haswell", str(binary)])
+    assert code == 0 and report["ok"] and report["best"] == "avx2", report
+    assert report["run"] == report["matched"] == ["portable", "avx2"], report
+    assert {"avx512_vnni", "avx_vnni"} <= set(report["unavailable"]), report
