@@ -48,7 +48,7 @@ setup: system
 
 kernel: $(KERNEL)
 
-$(KERNEL): dssp_deploy/kernel/mamba_ops.cc dssp_deploy/kernel/scan_simd.inc dssp_deploy/kernel/qgemm.h
+$(KERNEL): dssp_deploy/kernel/mamba_ops.cc dssp_deploy/kernel/mamba_block.h dssp_deploy/kernel/scan_simd.inc dssp_deploy/kernel/qgemm.h
 	@[ -f "$(ORT_INCLUDE_DIR)/onnxruntime_lite_custom_op.h" ] || dssp_deploy/kernel/fetch_ort_headers.sh "$(ORT_INCLUDE_DIR)"
 	$(CXX) $(KERNEL_FLAGS) -I"$(ORT_INCLUDE_DIR)" $< -o $@.tmp
 	@mv $@.tmp $@

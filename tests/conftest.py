@@ -210,3 +210,59 @@ QGEMM_X86_PATHS = {
 }
 """dssp_deploy/kernel/qgemm.h's x86-64 paths, fastest first, and the CPU flags each needs."""
 
+
+
+BLOCK_INPUTS = ["a", "conv_state", "ssm_state", "mod", "norm_w", "in_q", "in_s", "conv_w", "conv_b", "xp_q", "xp_s",
+                "dt_q", "dt_s", "dt_b", "A", "D", "out_q", "out_s", "norm2_w", "fc1_q", "fc1_s", "fc2_q", "fc2_s"]
+"""``ai.dssp::MambaBlockQ8``'s inputs in order (dssp_deploy/kernel/mamba_ops.cc)."""
+
+
+def block_case(mlp: str, batch: int, seed: int = 0):
+    """A denoiser block of the sim preset's size with random weights (the AdaLN projection too), as
+    ``export.fused_ops.QuantizedMambaBlock`` holds it, and inputs: (the block module, the inputs by name)."""
+    import dataclasses
+
+    from dssp_train.config import load_preset
+    from dssp_train.model.denoiser import DenoiserBlock
+    from export.fused_ops import QuantizedMambaBlock
+
+    torch.manual_seed(seed)
+    m = dataclasses.replace(load_preset("sim").model, state_dim=7, action_dim=7)
+    block = DenoiserBlock(m.d_model, m.d_state, m.d_conv, m.expand, 0, mlp).eval()
+    with torch.no_grad():
+        for p in block.parameters():
+            p.add_(torch.randn_like(p) * 0.05)
+    fused = QuantizedMambaBlock(block)
+    E, W, n, d = block.mixer.d_inner, block.mixer.d_conv, block.mixer.d_state, m.d_model  # noqa: N806
+    values = {"a": torch.randn(batch, m.horizon, d), "conv_state": torch.randn(batch, E, W),
+              "ssm_state": torch.randn(batch, E, n) * 0.3, "mod": torch.randn(3, d) * 0.2}
+    values.update({name: getattr(fused, name) for name in BLOCK_INPUTS[4:]})
+    return fused, values
+
+
+KERNEL_DIR = Path(__file__).resolve().parents[1] / "dssp_deploy" / "kernel"
+CROSS_TOOLS = ("aarch64-linux-gnu-g++", "qemu-aarch64")
+CROSS_HINT = "`make setup` installs them (its `system` target: apt-get install g++-aarch64-linux-gnu qemu-user)"
+
+
+def build_harness(source: str, compiler: str, output: Path, *flags: str) -> Path:
+    """A C++ harness of dssp_deploy/kernel (``source``, a file name there) compiled with -O2 into ``output``, again
+    only when the binary is older than a source or header of that folder; a missing compiler fails the test with
+    what installs it."""
+    import shutil
+    import subprocess
+
+    if shutil.which(compiler) is None:
+        hint = CROSS_HINT if compiler in CROSS_TOOLS else "install a C++17 compiler (Debian: apt-get install g++)"
+        pytest.fail(f"{compiler} is missing; {hint}")
+    sources = [p for p in KERNEL_DIR.iterdir() if p.suffix in (".h", ".inc", ".cc")]
+    if output.exists() and output.stat().st_mtime >= max(p.stat().st_mtime for p in sources):
+        return output
+    output.parent.mkdir(parents=True, exist_ok=True)
+    partial = output.with_name(f"{output.name}.{os.getpid()}.tmp")  # a build beside another one never clashes
+    command = [compiler, "-O2", "-std=c++17", "-Wall", "-Wextra", "-fopenmp-simd", "-fno-trapping-math", "-pthread",
+               *flags, "-o", str(partial), str(KERNEL_DIR / source)]
+    result = subprocess.run(command, capture_output=True, text=True)
+    assert result.returncode == 0, f"{compiler} failed:\n{result.stderr}"
+    os.replace(partial, output)
+    return output

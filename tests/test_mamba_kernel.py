@@ -7,7 +7,7 @@ import shutil
 import numpy as np
 import onnxruntime as ort
 import pytest
-from conftest import QGEMM_X86_PATHS, cpu_flags
+from conftest import BLOCK_INPUTS, QGEMM_X86_PATHS, block_case, cpu_flags
 import onnx
 import torch
 from onnx import TensorProto, helper
@@ -213,33 +213,6 @@ def test_a_fused_graph_the_runtime_cannot_load_falls_back(tiny_export, tmp_path)
 
 
 # ------------------------------------------------------------ a whole denoiser block, int8
-BLOCK_INPUTS = ["a", "conv_state", "ssm_state", "mod", "norm_w", "in_q", "in_s", "conv_w", "conv_b", "xp_q", "xp_s",
-                "dt_q", "dt_s", "dt_b", "A", "D", "out_q", "out_s", "norm2_w", "fc1_q", "fc1_s", "fc2_q", "fc2_s"]
-
-
-def block_case(mlp: str, batch: int, seed: int = 0):
-    """A denoiser block of the sim preset's size with random weights (the AdaLN projection too), as
-    ``export.fused_ops.QuantizedMambaBlock`` holds it, and inputs: (the block module, the inputs by name)."""
-    import dataclasses
-
-    from dssp_train.config import load_preset
-    from dssp_train.model.denoiser import DenoiserBlock
-    from export.fused_ops import QuantizedMambaBlock
-
-    torch.manual_seed(seed)
-    m = dataclasses.replace(load_preset("sim").model, state_dim=7, action_dim=7)
-    block = DenoiserBlock(m.d_model, m.d_state, m.d_conv, m.expand, 0, mlp).eval()
-    with torch.no_grad():
-        for p in block.parameters():
-            p.add_(torch.randn_like(p) * 0.05)
-    fused = QuantizedMambaBlock(block)
-    E, W, n, d = block.mixer.d_inner, block.mixer.d_conv, block.mixer.d_state, m.d_model  # noqa: N806
-    values = {"a": torch.randn(batch, m.horizon, d), "conv_state": torch.randn(batch, E, W),
-              "ssm_state": torch.randn(batch, E, n) * 0.3, "mod": torch.randn(3, d) * 0.2}
-    values.update({name: getattr(fused, name) for name in BLOCK_INPUTS[4:]})
-    return fused, values
-
-
 def block_session(values: dict, eps: float, threads: int = 1, state_out: int = 0):
     """A one-node graph of ``ai.dssp::MambaBlockQ8``, the weights as initializers (as an exported graph has them)."""
     feeds = ["a", "conv_state", "ssm_state", "mod"]

@@ -11,34 +11,18 @@ import subprocess
 from pathlib import Path
 
 import pytest
-from conftest import QGEMM_X86_PATHS, cpu_flags
+from conftest import CROSS_HINT, CROSS_TOOLS, QGEMM_X86_PATHS, build_harness, cpu_flags
 
 ROOT = Path(__file__).resolve().parents[1]
-KERNEL = ROOT / "dssp_deploy" / "kernel"
-HARNESS = KERNEL / "qgemm_check.cc"
-SOURCES = (KERNEL / "qgemm.h", HARNESS)
 BUILD = ROOT / "build" / "qgemm"
-CROSS_TOOLS = ("aarch64-linux-gnu-g++", "qemu-aarch64")
-INSTALL_HINT = "`make setup` installs them (its `system` target: apt-get install g++-aarch64-linux-gnu qemu-user)"
+HARNESS = "qgemm_check.cc"
 
 X86_PATHS = QGEMM_X86_PATHS
 ARM_PATHS = ("neon", "neon_dot")
 
 
 def build(compiler: str, output: Path, *flags: str) -> Path:
-    """The harness compiled with -O2 into build/qgemm/, again only when the binary is older than a source."""
-    if shutil.which(compiler) is None:
-        hint = INSTALL_HINT if compiler in CROSS_TOOLS else "install a C++17 compiler (Debian: apt-get install g++)"
-        pytest.fail(f"{compiler} is missing; {hint}")
-    if output.exists() and output.stat().st_mtime >= max(source.stat().st_mtime for source in SOURCES):
-        return output
-    BUILD.mkdir(parents=True, exist_ok=True)
-    partial = output.with_name(f"{output.name}.{os.getpid()}.tmp")  # a build beside another one never clashes
-    result = subprocess.run([compiler, "-O2", "-std=c++17", "-Wall", "-Wextra", *flags, "-o", str(partial), str(HARNESS)],
-                            capture_output=True, text=True)
-    assert result.returncode == 0, f"{compiler} failed:\n{result.stderr}"
-    os.replace(partial, output)
-    return output
+    return build_harness(HARNESS, compiler, output, *flags)
 
 
 def run(command: list[str], **env: str) -> tuple[int, dict]:
@@ -58,7 +42,7 @@ def native() -> Path:
 def cross() -> Path:
     missing = [tool for tool in CROSS_TOOLS if shutil.which(tool) is None]
     if missing:
-        pytest.fail(f"{', '.join(missing)} missing: the aarch64 build runs under qemu; {INSTALL_HINT}")
+        pytest.fail(f"{', '.join(missing)} missing: the aarch64 build runs under qemu; {CROSS_HINT}")
     # one static armv8-a build: neon_dot is compiled for armv8.2-a+dotprod by a function attribute and chosen at run time
     return build("aarch64-linux-gnu-g++", BUILD / "qgemm_check_aarch64", "-static")
 
@@ -117,7 +101,7 @@ def test_on_a_cpu_without_avx512_the_avx2_path_is_chosen_and_matches(monkeypatch
     monkeypatch.delenv("DSSP_QGEMM_PATH", raising=False)
     assert platform.machine() == "x86_64", "the suite's machines are x86-64"
     if shutil.which("qemu-x86_64") is None:
-        pytest.fail(f"qemu-x86_64 is missing; {INSTALL_HINT}")
+        pytest.fail(f"qemu-x86_64 is missing; {CROSS_HINT}")
     binary = build("g++", BUILD / "qgemm_check_static", "-static")
     code, report = run(["qemu-x86_64", "-cpu", "Haswell", str(binary)])
     assert code == 0 and report["ok"] and report["best"] == "avx2", report

@@ -31,261 +31,33 @@
 #include "onnxruntime_cxx_api.h"
 #undef ORT_API_MANUAL_INIT
 #include "onnxruntime_lite_custom_op.h"
-#include "qgemm.h"
+#include "mamba_block.h"
 
-#include <algorithm>
-#include <cmath>
 #include <map>
-#include <tuple>
-#include <cstdint>
-#include <cstdlib>
-#include <cstring>
 #include <memory>
 #include <mutex>
 #include <string>
+#include <tuple>
 #include <vector>
-
-#if (defined(__x86_64__) || defined(_M_X64)) && defined(__GNUC__) && !defined(__clang__)
-#include <immintrin.h>
-#define DSSP_HAVE_SIMD_PATHS 1
-#endif
 
 namespace {
 
+using namespace dssp::mamba;
+
 constexpr const char* kDomain = "ai.dssp";
-constexpr int64_t kBlock = 32;  // channels per task: enough tasks for a few threads, enough work per task
 
-// ------------------------------------------------------------------ scalar math (portable path)
-// exp by range reduction to [-ln2/2, ln2/2] and a degree-6 polynomial (relative error about 2e-7),
-// written without branches so the compiler vectorises the loops that call it.
-inline float fast_exp(float x) {
-  x = std::min(std::max(x, -87.3f), 88.7f);
-  constexpr float kRound = 12582912.0f;  // 1.5 * 2^23: adding and subtracting it rounds to the nearest integer
-  const float n = (x * 1.44269504088896341f + kRound) - kRound;
-  const float r = x - n * 0.693359375f + n * 2.12194440e-4f;
-  float p = 1.9875691500e-4f;
-  p = p * r + 1.3981999507e-3f;
-  p = p * r + 8.3334519073e-3f;
-  p = p * r + 4.1665795894e-2f;
-  p = p * r + 1.6666665459e-1f;
-  p = p * r + 5.0000001201e-1f;
-  p = p * r * r + r + 1.0f;
-  return p * __builtin_bit_cast(float, (static_cast<int32_t>(n) + 127) << 23);
+// ------------------------------------------------------------------ the operators
+// The scan path DSSP_SCAN_PATH asks for, or the session fails with the line that says why not.
+Path requested_scan_path() {
+  std::string problem;
+  const Path path = choose_path(&problem);
+  if (!problem.empty()) ORT_CXX_API_THROW(std::move(problem), ORT_FAIL);
+  return path;
 }
 
-inline float softplus(float x) {  // torch.nn.functional.softplus (beta 1, threshold 20)
-  return x > 20.0f ? x : std::log1p(std::exp(x));
-}
-
-inline float silu(float x) { return x / (1.0f + std::exp(-x)); }
-
-struct Problem {
-  const float *x, *dt, *B, *C, *z, *A, *D, *h0;
-  float *y, *h;  // h null: the state is not written (state_out 0)
-  int64_t batch, L, E, n;
-};
-
-// Channels [e0, e1) of batch row b; scratch holds 3 * L * (e1 - e0) floats.
-void scan_block_portable(const Problem& p, int64_t b, int64_t e0, int64_t e1, float* scratch) {
-  const int64_t L = p.L, E = p.E, n = p.n, w = e1 - e0;
-  float* delta = scratch;       // (L, w)
-  float* dx = scratch + L * w;  // (L, w) delta * x
-  float* gate = dx + L * w;     // (L, w) silu(z)
-  for (int64_t t = 0; t < L; ++t) {
-    const int64_t row = (b * L + t) * E + e0;
-    for (int64_t i = 0; i < w; ++i) {
-      const float d = softplus(p.dt[row + i]);
-      delta[t * w + i] = d;
-      dx[t * w + i] = d * p.x[row + i];
-      gate[t * w + i] = silu(p.z[row + i]);
-    }
-  }
-  std::vector<float> h(n);
-  for (int64_t i = 0; i < w; ++i) {
-    const int64_t e = e0 + i;
-    const float* A = p.A + e * n;
-    std::memcpy(h.data(), p.h0 + (b * E + e) * n, n * sizeof(float));
-    float* hp = h.data();
-    for (int64_t t = 0; t < L; ++t) {
-      const float d = delta[t * w + i], u = dx[t * w + i];
-      const float* Bt = p.B + (b * L + t) * n;
-      const float* Ct = p.C + (b * L + t) * n;
-      float acc = 0.0f;
-#pragma omp simd reduction(+ : acc)
-      for (int64_t k = 0; k < n; ++k) {
-        const float hk = fast_exp(d * A[k]) * hp[k] + u * Bt[k];
-        hp[k] = hk;
-        acc += Ct[k] * hk;
-      }
-      const int64_t at = (b * L + t) * E + e;
-      p.y[at] = (acc + p.D[e] * p.x[at]) * gate[t * w + i];
-    }
-    if (p.h) std::memcpy(p.h + (b * E + e) * n, hp, n * sizeof(float));
-  }
-}
-
-// ------------------------------------------------------------------ the SIMD paths
-// One loop (scan_simd.inc) compiled twice, inside a namespace per instruction set that defines its vector V.
-// GCC only: `#pragma GCC target` compiles a region for an instruction set the build's flags do not assume;
-// other compilers build the portable path alone.
-#ifdef DSSP_HAVE_SIMD_PATHS
-#pragma GCC push_options
-#pragma GCC target("avx2,fma")
-namespace avx2 {
-struct V {
-  using T = __m256;
-  static constexpr int kLanes = 8;
-  static T load(const float* p) { return _mm256_load_ps(p); }
-  static T loadu(const float* p) { return _mm256_loadu_ps(p); }
-  static void store(float* p, T v) { _mm256_store_ps(p, v); }
-  static void storeu(float* p, T v) { _mm256_storeu_ps(p, v); }
-  static T set1(float v) { return _mm256_set1_ps(v); }
-  static T broadcast(const float* p) { return _mm256_broadcast_ss(p); }
-  static T mul(T a, T b) { return _mm256_mul_ps(a, b); }
-  static T add(T a, T b) { return _mm256_add_ps(a, b); }
-  static T sub(T a, T b) { return _mm256_sub_ps(a, b); }
-  static T max(T a, T b) { return _mm256_max_ps(a, b); }
-  static T fmadd(T a, T b, T c) { return _mm256_fmadd_ps(a, b, c); }
-  static T add_exponent(T q, T t) {  // the low bits of t are round(y): shifted into the exponent field they add it
-    return _mm256_castsi256_ps(_mm256_add_epi32(_mm256_castps_si256(q), _mm256_slli_epi32(_mm256_castps_si256(t), 23)));
-  }
-};
-#include "scan_simd.inc"
-}  // namespace avx2
-#pragma GCC pop_options
-
-#pragma GCC push_options
-#pragma GCC target("avx512f,avx2,fma")
-#pragma GCC diagnostic push
-#pragma GCC diagnostic ignored "-Wmaybe-uninitialized"  // GCC 12's avx512fintrin.h (_mm512_undefined_*), not this code
-namespace avx512 {
-struct V {
-  using T = __m512;
-  static constexpr int kLanes = 16;
-  static T load(const float* p) { return _mm512_load_ps(p); }
-  static T loadu(const float* p) { return _mm512_loadu_ps(p); }
-  static void store(float* p, T v) { _mm512_store_ps(p, v); }
-  static void storeu(float* p, T v) { _mm512_storeu_ps(p, v); }
-  static T set1(float v) { return _mm512_set1_ps(v); }
-  static T broadcast(const float* p) { return _mm512_set1_ps(*p); }
-  static T mul(T a, T b) { return _mm512_mul_ps(a, b); }
-  static T add(T a, T b) { return _mm512_add_ps(a, b); }
-  static T sub(T a, T b) { return _mm512_sub_ps(a, b); }
-  static T max(T a, T b) { return _mm512_max_ps(a, b); }
-  static T fmadd(T a, T b, T c) { return _mm512_fmadd_ps(a, b, c); }
-  static T add_exponent(T q, T t) {
-    return _mm512_castsi512_ps(_mm512_add_epi32(_mm512_castps_si512(q), _mm512_slli_epi32(_mm512_castps_si512(t), 23)));
-  }
-};
-#include "scan_simd.inc"
-}  // namespace avx512
-#pragma GCC diagnostic pop
-#pragma GCC pop_options
-
-bool cpu_has_avx2() {
-  __builtin_cpu_init();
-  return __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma");
-}
-
-bool cpu_has_avx512() { return cpu_has_avx2() && __builtin_cpu_supports("avx512f"); }
-#endif
-
-// ------------------------------------------------------------------ the causal depthwise convolution
-// y_t = silu(bias + sum_j weight[j] * xe[t + 1 + j]) over xe = [state, x] (W + L steps), new state = the last
-// W steps of xe: Mamba's conv branch continuing from its state (zeros at a fresh start). Plain C++: the
-// loops over channels vectorise on any target, and the work is small next to the scan.
-struct ConvProblem {
-  const float *x, *state, *weight, *bias;  // weight (W, E)
-  float *y, *new_state;
-  int64_t batch, L, E, W;
-};
-
-#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
-#define CONV_CLONES __attribute__((target_clones("arch=x86-64-v3", "default")))  // an AVX2 + FMA build beside the baseline one
-#else
-#define CONV_CLONES
-#endif
-
-CONV_CLONES void conv_block(const ConvProblem& p, int64_t b, int64_t e0, int64_t e1) {
-  const int64_t L = p.L, E = p.E, W = p.W;
-  for (int64_t t = 0; t < L; ++t) {
-    float* y = p.y + (b * L + t) * E;
-    for (int64_t e = e0; e < e1; ++e) y[e] = p.bias ? p.bias[e] : 0.0f;
-    for (int64_t j = 0; j < W; ++j) {
-      const int64_t i = t + 1 + j;
-      const float* w = p.weight + j * E;
-      if (i >= W) {
-        const float* xi = p.x + (b * L + i - W) * E;
-#pragma omp simd
-        for (int64_t e = e0; e < e1; ++e) y[e] += w[e] * xi[e];
-      } else {
-        for (int64_t e = e0; e < e1; ++e) y[e] += w[e] * p.state[(b * E + e) * W + i];
-      }
-    }
-#pragma omp simd
-    for (int64_t e = e0; e < e1; ++e) y[e] = y[e] / (1.0f + fast_exp(-y[e]));
-  }
-  for (int64_t k = 0; k < W; ++k) {  // the new state: the last W steps of [state, x]
-    const int64_t i = L + k;
-    float* out = p.new_state + b * E * W + k;
-    if (i >= W) {
-      const float* xi = p.x + (b * L + i - W) * E;
-      for (int64_t e = e0; e < e1; ++e) out[e * W] = xi[e];
-    } else {
-      const float* si = p.state + b * E * W + i;
-      for (int64_t e = e0; e < e1; ++e) out[e * W] = si[e * W];
-    }
-  }
-}
-
-// ------------------------------------------------------------------ the operator
-enum class Path { kPortable, kAvx2, kAvx512 };
-
-const char* path_name(Path path) {
-  return path == Path::kAvx512 ? "avx512" : path == Path::kAvx2 ? "avx2" : "portable";
-}
-
-// DSSP_SCAN_PATH: auto (the widest this CPU runs), avx512, avx2 or portable; a path this CPU or build lacks is an error.
-Path choose_path() {
-  const char* env = std::getenv("DSSP_SCAN_PATH");
-  const std::string want = env ? env : "auto";
-  if (want != "auto" && want != "avx512" && want != "avx2" && want != "portable")
-    ORT_CXX_API_THROW("DSSP_SCAN_PATH=" + want + " is not one of auto, avx512, avx2, portable", ORT_INVALID_ARGUMENT);
-  if (want == "portable") return Path::kPortable;
-#ifdef DSSP_HAVE_SIMD_PATHS
-  const bool avx512 = cpu_has_avx512(), avx2 = cpu_has_avx2();
-  if (want == "avx512" && !avx512) ORT_CXX_API_THROW("DSSP_SCAN_PATH=avx512, but this CPU lacks AVX-512; unset it or use avx2 or portable", ORT_FAIL);
-  if (want == "avx2" && !avx2) ORT_CXX_API_THROW("DSSP_SCAN_PATH=avx2, but this CPU lacks AVX2 or FMA; unset it or use portable", ORT_FAIL);
-  if (want == "avx2") return Path::kAvx2;
-  return avx512 ? Path::kAvx512 : avx2 ? Path::kAvx2 : Path::kPortable;
-#else
-  if (want != "auto") ORT_CXX_API_THROW("DSSP_SCAN_PATH=" + want + ", but this library was built without the SIMD paths (they need x86-64 and GCC); unset it or use portable", ORT_FAIL);
-  return Path::kPortable;
-#endif
-}
-
-struct Task {
-  const Problem* problem;
-  Path path;
-  int64_t blocks_per_row;
-};
-
-void run_task(void* data, size_t index) {
-  const Task& task = *static_cast<const Task*>(data);
-  const Problem& p = *task.problem;
-  const int64_t b = static_cast<int64_t>(index) / task.blocks_per_row;
-  const int64_t e0 = (static_cast<int64_t>(index) % task.blocks_per_row) * kBlock;
-  const int64_t e1 = std::min(e0 + kBlock, p.E);
-  // 64-byte aligned (with w a multiple of the lanes the SIMD paths' transposed state and A are too: aligned loads)
-  const size_t floats = static_cast<size_t>(3 * p.L * (e1 - e0) + 32 * p.n) + 16;
-  std::unique_ptr<float[]> buffer(new float[floats]);
-  float* scratch = buffer.get();
-  while (reinterpret_cast<uintptr_t>(scratch) % 64) ++scratch;
-#ifdef DSSP_HAVE_SIMD_PATHS
-  if (task.path == Path::kAvx512 && (e1 - e0) % avx512::V::kLanes == 0) return avx512::scan_block(p, b, e0, e1, scratch);
-  if (task.path != Path::kPortable && (e1 - e0) % avx2::V::kLanes == 0) return avx2::scan_block(p, b, e0, e1, scratch);
-#endif
-  scan_block_portable(p, b, e0, e1, scratch);
+// ONNX Runtime's intra-op threads for the arithmetic's ParallelFor
+ParallelFor threads_of(Ort::KernelContext& ctx) {
+  return [&ctx](void (*fn)(void*, size_t), size_t count, void* data) { ctx.ParallelFor(fn, count, 0, data); };
 }
 
 std::string shape_str(const std::vector<int64_t>& s) {
@@ -310,7 +82,7 @@ int64_t state_out_attribute(const OrtKernelInfo* info, int64_t absent = 1) {
 }
 
 struct SelectiveScan {
-  SelectiveScan(const OrtApi*, const OrtKernelInfo* info) : path(choose_path()), state_out(state_out_attribute(info) != 0) {}
+  SelectiveScan(const OrtApi*, const OrtKernelInfo* info) : path(requested_scan_path()), state_out(state_out_attribute(info) != 0) {}
 
   Ort::Status Compute(OrtKernelContext* context, const Ort::Custom::Tensor<float>& x, const Ort::Custom::Tensor<float>& dt,
                       const Ort::Custom::Tensor<float>& B, const Ort::Custom::Tensor<float>& C,
@@ -339,27 +111,14 @@ struct SelectiveScan {
       return Ort::Status{nullptr};
     }
     const int64_t blocks = (E + kBlock - 1) / kBlock;
-    Task task{&p, path, blocks};
-    Ort::KernelContext ctx(context);
-    ctx.ParallelFor(run_task, static_cast<size_t>(batch * blocks), 0, &task);
+    ScanTask task{&p, path, blocks};
+    Ort::KernelContext(context).ParallelFor(run_scan_task, static_cast<size_t>(batch * blocks), 0, &task);
     return Ort::Status{nullptr};
   }
 
   Path path;
   bool state_out;
 };
-
-struct ConvTask {
-  const ConvProblem* problem;
-  int64_t blocks_per_row;
-};
-
-void run_conv_task(void* data, size_t index) {
-  const ConvTask& task = *static_cast<const ConvTask*>(data);
-  const int64_t b = static_cast<int64_t>(index) / task.blocks_per_row;
-  const int64_t e0 = (static_cast<int64_t>(index) % task.blocks_per_row) * 256;
-  conv_block(*task.problem, b, e0, std::min(e0 + 256, task.problem->E));
-}
 
 // ai.dssp::CausalConv1d(x (batch, L, E), state (batch, E, W), weight (W, E), bias (E)) -> (y (batch, L, E), new_state (batch, E, W))
 struct CausalConv1d {
@@ -455,47 +214,6 @@ std::shared_ptr<const q::PackedWeights> packed_weights(const int8_t* w, const fl
   return packed;
 }
 
-struct MatmulTask {
-  const q::QuantizedRows* x;
-  const q::PackedWeights* w;
-  const float* bias;
-  float* y;
-  int ldy;
-  int columns;  // per task
-};
-
-void run_matmul_task(void* data, size_t index) {
-  const MatmulTask& t = *static_cast<const MatmulTask*>(data);
-  const int begin = static_cast<int>(index) * t.columns;
-  q::matmul_range(*t.x, *t.w, t.bias, t.y, t.ldy, begin, std::min(begin + t.columns, t.w->n));
-}
-
-constexpr int kColumnsPerTask = 128;  // a multiple of every path's column block
-
-// y (m, w.n) = x (m, k) @ W.T (+ bias), the columns split across the session's threads
-void q8_matmul(Ort::KernelContext& ctx, const float* x, int m, int k, const q::PackedWeights& w, const float* bias,
-               float* y, q::QuantizedRows& rows) {
-  q::quantize_rows(x, m, k, rows, w.path);
-  MatmulTask task{&rows, &w, bias, y, w.n, kColumnsPerTask};
-  ctx.ParallelFor(run_matmul_task, static_cast<size_t>((w.n + kColumnsPerTask - 1) / kColumnsPerTask), 0, &task);
-}
-
-// out (m, d) = rmsnorm(x) * weight (, then * (1 + scale) + shift when scale is given)
-void rms_norm(const float* x, int64_t m, int64_t d, const float* weight, float eps, const float* shift,
-              const float* scale, float* out) {
-  for (int64_t i = 0; i < m; ++i) {
-    const float* xi = x + i * d;
-    float ss = 0.0f;
-    for (int64_t j = 0; j < d; ++j) ss += xi[j] * xi[j];
-    const float r = 1.0f / std::sqrt(ss / static_cast<float>(d) + eps);
-    float* oi = out + i * d;
-    for (int64_t j = 0; j < d; ++j) {
-      const float v = xi[j] * r * weight[j];
-      oi[j] = scale ? v * (1.0f + scale[j]) + shift[j] : v;
-    }
-  }
-}
-
 float attribute_float(const OrtKernelInfo* info, const char* name, float fallback) {
   try {
     return Ort::ConstKernelInfo(info).GetAttribute<float>(name);
@@ -538,7 +256,7 @@ struct Weights {
 
 struct MambaBlockQ8 {
   MambaBlockQ8(const OrtApi*, const OrtKernelInfo* info)
-      : scan_path(choose_path()), qgemm_path(choose_qgemm_path()), eps(attribute_float(info, "eps", 1e-5f)),
+      : scan_path(requested_scan_path()), qgemm_path(choose_qgemm_path()), eps(attribute_float(info, "eps", 1e-5f)),
         state_out(state_out_attribute(info, 0) != 0) {}
 
   Ort::Status Compute(OrtKernelContext* context, const Ort::Custom::Tensor<float>& a,
@@ -557,7 +275,7 @@ struct MambaBlockQ8 {
                       Ort::Custom::Tensor<float>& ssm_out) {
     const auto as = a.Shape();
     if (as.size() != 3) ORT_CXX_API_THROW("MambaBlockQ8: a must be (batch, H, d), got " + shape_str(as), ORT_INVALID_ARGUMENT);
-    const int64_t batch = as[0], L = as[1], d = as[2], m = batch * L;
+    const int64_t batch = as[0], L = as[1], d = as[2];
     const auto ws = conv_w.Shape(), ns = A.Shape();
     if (ws.size() != 2 || ns.size() != 2) ORT_CXX_API_THROW("MambaBlockQ8: conv_w must be (W, E) and A (E, n)", ORT_INVALID_ARGUMENT);
     const int64_t W = ws[0], E = ws[1], n = ns[1];
@@ -567,78 +285,38 @@ struct MambaBlockQ8 {
     expect_shape("mod", mod.Shape(), {modulated ? 3 : 0, d});
     expect_shape("norm_w", norm_w.Shape(), {d});
     expect_shape("A", ns, {E, n});
-    Ort::KernelContext ctx(context);
     const auto held_in = in_w.get(in_q, in_s, qgemm_path, "in_proj");
-    const q::PackedWeights& w_in = *held_in;
     const auto held_xp = xp_w.get(xp_q, xp_s, qgemm_path, "x_proj");
-    const q::PackedWeights& w_xp = *held_xp;
     const auto held_dt = dt_w.get(dt_q, dt_s, qgemm_path, "dt_proj");
-    const q::PackedWeights& w_dt = *held_dt;
     const auto held_out = out_w.get(out_q, out_s, qgemm_path, "out_proj");
-    const q::PackedWeights& w_out = *held_out;
-    const int64_t R = w_dt.k;
-    if (w_in.n != 2 * E || w_in.k != d || w_xp.n != R + 2 * n || w_xp.k != E || w_dt.n != E || w_out.n != d || w_out.k != E)
-      ORT_CXX_API_THROW("MambaBlockQ8: the projections' shapes do not fit d = " + std::to_string(d) + ", E = " +
-                            std::to_string(E) + ", n = " + std::to_string(n), ORT_INVALID_ARGUMENT);
     const bool mlp = fc1_q.NumberOfElement() > 0;
-    float* result = out.Allocate(as);
+    std::shared_ptr<const q::PackedWeights> held_fc1, held_fc2;
+    if (mlp) {
+      expect_shape("norm2_w", norm2_w.Shape(), {d});
+      held_fc1 = fc1_w.get(fc1_q, fc1_s, qgemm_path, "fc1");
+      held_fc2 = fc2_w.get(fc2_q, fc2_s, qgemm_path, "fc2");
+    }
+    BlockWeights weights;
+    weights.in = held_in.get(), weights.xp = held_xp.get(), weights.dt = held_dt.get(), weights.out = held_out.get();
+    weights.fc1 = held_fc1.get(), weights.fc2 = held_fc2.get();
+    weights.norm_w = norm_w.Data(), weights.conv_w = conv_w.Data(), weights.conv_b = conv_b.Data();
+    weights.dt_b = dt_b.Data(), weights.A = A.Data(), weights.D = D.Data(), weights.norm2_w = mlp ? norm2_w.Data() : nullptr;
+    weights.d = d, weights.E = E, weights.W = W, weights.n = n, weights.eps = eps;
+    try {
+      weights.check();
+    } catch (const std::invalid_argument& e) {
+      ORT_CXX_API_THROW(std::string(e.what()), ORT_INVALID_ARGUMENT);
+    }
+    BlockInputs inputs;
+    inputs.a = a.Data(), inputs.conv_state = conv_state.Data(), inputs.ssm_state = ssm_state.Data();
+    inputs.mod = modulated ? mod.Data() : nullptr, inputs.batch = batch, inputs.L = L;
+    BlockOutputs outputs;
+    outputs.a = out.Allocate(as);
     float* conv_after = conv_out.Allocate({batch, state_out ? E : 0, W});
     float* ssm_after = ssm_out.Allocate({batch, state_out ? E : 0, n});
-    if (m == 0) return Ort::Status{nullptr};
-    q::QuantizedRows rows;  // this run's quantized activations
-    const float* shift = modulated ? mod.Data() : nullptr;
-    const float *scale = modulated ? shift + d : nullptr, *gate = modulated ? shift + 2 * d : nullptr;
-
-    std::vector<float> h(m * d), xz(m * 2 * E), x(m * E), z(m * E), xc(m * E), state_after(state_out ? 0 : batch * E * W),
-        dbc(m * w_xp.n), dt_in(m * R), dt(m * E), Bm(m * n), Cm(m * n), y(m * E), o(m * d);
-    rms_norm(a.Data(), m, d, norm_w.Data(), eps, shift, scale, h.data());
-    q8_matmul(ctx, h.data(), m, d, w_in, nullptr, xz.data(), rows);
-    for (int64_t i = 0; i < m; ++i) {
-      std::memcpy(x.data() + i * E, xz.data() + i * 2 * E, sizeof(float) * E);
-      std::memcpy(z.data() + i * E, xz.data() + i * 2 * E + E, sizeof(float) * E);
-    }
-    ConvProblem cp{x.data(), conv_state.Data(), conv_w.Data(), conv_b.Data(), xc.data(),
-                   state_out ? conv_after : state_after.data(), batch, L, E, W};
-    const int64_t conv_blocks = (E + 255) / 256;
-    ConvTask conv_task{&cp, conv_blocks};
-    ctx.ParallelFor(run_conv_task, static_cast<size_t>(batch * conv_blocks), 0, &conv_task);
-    q8_matmul(ctx, xc.data(), m, E, w_xp, nullptr, dbc.data(), rows);
-    for (int64_t i = 0; i < m; ++i) {
-      const float* row = dbc.data() + i * w_xp.n;
-      std::memcpy(dt_in.data() + i * R, row, sizeof(float) * R);
-      std::memcpy(Bm.data() + i * n, row + R, sizeof(float) * n);
-      std::memcpy(Cm.data() + i * n, row + R + n, sizeof(float) * n);
-    }
-    q8_matmul(ctx, dt_in.data(), m, R, w_dt, dt_b.Data(), dt.data(), rows);
-    Problem sp{xc.data(), dt.data(), Bm.data(), Cm.data(), z.data(), A.Data(), D.Data(), ssm_state.Data(),
-               y.data(), state_out ? ssm_after : nullptr, batch, L, E, n};
-    const int64_t scan_blocks = (E + kBlock - 1) / kBlock;
-    Task scan_task{&sp, scan_path, scan_blocks};
-    ctx.ParallelFor(run_task, static_cast<size_t>(batch * scan_blocks), 0, &scan_task);
-    q8_matmul(ctx, y.data(), m, E, w_out, nullptr, o.data(), rows);
-    const float* a_in = a.Data();
-    for (int64_t i = 0; i < m; ++i)
-      for (int64_t j = 0; j < d; ++j) result[i * d + j] = a_in[i * d + j] + (gate ? gate[j] : 1.0f) * o[i * d + j];
-    if (!mlp) return Ort::Status{nullptr};
-
-    expect_shape("norm2_w", norm2_w.Shape(), {d});
-    const auto held_fc1 = fc1_w.get(fc1_q, fc1_s, qgemm_path, "fc1");
-    const q::PackedWeights& w_fc1 = *held_fc1;
-    const auto held_fc2 = fc2_w.get(fc2_q, fc2_s, qgemm_path, "fc2");
-    const q::PackedWeights& w_fc2 = *held_fc2;
-    const int64_t hidden = w_fc2.k;
-    if (w_fc1.n != 2 * hidden || w_fc1.k != d || w_fc2.n != d)
-      ORT_CXX_API_THROW("MambaBlockQ8: fc1 must be (2h, d) and fc2 (d, h) with d = " + std::to_string(d), ORT_INVALID_ARGUMENT);
-    std::vector<float> g(m * d), u(m * 2 * hidden), v(m * hidden);
-    rms_norm(result, m, d, norm2_w.Data(), eps, nullptr, nullptr, g.data());
-    q8_matmul(ctx, g.data(), m, d, w_fc1, nullptr, u.data(), rows);
-    for (int64_t i = 0; i < m; ++i)
-      for (int64_t j = 0; j < hidden; ++j) {
-        const float gj = u[i * 2 * hidden + hidden + j];
-        v[i * hidden + j] = u[i * 2 * hidden + j] * (gj / (1.0f + fast_exp(-gj)));
-      }
-    q8_matmul(ctx, v.data(), m, hidden, w_fc2, nullptr, o.data(), rows);
-    for (int64_t i = 0; i < m * d; ++i) result[i] += o[i];
+    outputs.conv_state = state_out ? conv_after : nullptr, outputs.ssm_state = state_out ? ssm_after : nullptr;
+    Ort::KernelContext ctx(context);
+    block_forward(weights, inputs, outputs, scan_path, threads_of(ctx));
     return Ort::Status{nullptr};
   }
 
@@ -682,7 +360,9 @@ extern "C" __attribute__((visibility("default"))) OrtStatus* ORT_API_CALL Regist
 extern "C" __attribute__((visibility("default"))) const char* DsspScanPath() {
   static thread_local std::string answer;
   try {
-    answer = path_name(choose_path());
+    std::string problem;
+    const Path path = choose_path(&problem);
+    answer = problem.empty() ? std::string(path_name(path)) : "invalid: " + problem;
   } catch (const std::exception& exc) {
     answer = std::string("invalid: ") + exc.what();
   } catch (...) {

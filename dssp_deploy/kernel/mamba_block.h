@@ -1,0 +1,438 @@
+// The fused Mamba arithmetic for the robot's CPU, free of any runtime: the selective scan, the causal depthwise
+// convolution and a whole int8 denoiser block. mamba_ops.cc binds them to ONNX Runtime as the ai.dssp operators;
+// block_check.cc runs the block alone (its parity on aarch64 under qemu, and its phases' times natively).
+// Header-only, C++17; the int8 products are qgemm.h's.
+//
+// Threads: every parallel part is handed to a ParallelFor(fn, count, data) that calls fn(data, i) once for each
+// i < count, on any threads in any order, and returns when all are done (ONNX Runtime's intra-op pool, or a
+// loop). Errors: std::invalid_argument for shapes and settings that cannot work, with one line that says why.
+
+#pragma once
+
+#include "qgemm.h"
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <cstdlib>
+#include <cstring>
+#include <functional>
+#include <memory>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+#if (defined(__x86_64__) || defined(_M_X64)) && defined(__GNUC__) && !defined(__clang__)
+#include <immintrin.h>
+#define DSSP_HAVE_SIMD_PATHS 1
+#endif
+
+namespace dssp::mamba {
+
+using ParallelFor = std::function<void(void (*fn)(void*, size_t), size_t count, void* data)>;
+
+constexpr int64_t kBlock = 32;  // scan channels per task: enough tasks for a few threads, enough work per task
+
+// ------------------------------------------------------------------ scalar math (portable path)
+// exp by range reduction to [-ln2/2, ln2/2] and a degree-6 polynomial (relative error about 2e-7),
+// written without branches so the compiler vectorises the loops that call it.
+inline float fast_exp(float x) {
+  x = std::min(std::max(x, -87.3f), 88.7f);
+  constexpr float kRound = 12582912.0f;  // 1.5 * 2^23: adding and subtracting it rounds to the nearest integer
+  const float n = (x * 1.44269504088896341f + kRound) - kRound;
+  const float r = x - n * 0.693359375f + n * 2.12194440e-4f;
+  float p = 1.9875691500e-4f;
+  p = p * r + 1.3981999507e-3f;
+  p = p * r + 8.3334519073e-3f;
+  p = p * r + 4.1665795894e-2f;
+  p = p * r + 1.6666665459e-1f;
+  p = p * r + 5.0000001201e-1f;
+  p = p * r * r + r + 1.0f;
+  return p * __builtin_bit_cast(float, (static_cast<int32_t>(n) + 127) << 23);
+}
+
+inline float softplus(float x) {  // torch.nn.functional.softplus (beta 1, threshold 20)
+  return x > 20.0f ? x : std::log1p(std::exp(x));
+}
+
+inline float silu(float x) { return x / (1.0f + std::exp(-x)); }
+
+struct Problem {
+  const float *x, *dt, *B, *C, *z, *A, *D, *h0;
+  float *y, *h;  // h null: the state is not written (state_out 0)
+  int64_t batch, L, E, n;
+};
+
+// Channels [e0, e1) of batch row b; scratch holds 3 * L * (e1 - e0) floats.
+inline void scan_block_portable(const Problem& p, int64_t b, int64_t e0, int64_t e1, float* scratch) {
+  const int64_t L = p.L, E = p.E, n = p.n, w = e1 - e0;
+  float* delta = scratch;       // (L, w)
+  float* dx = scratch + L * w;  // (L, w) delta * x
+  float* gate = dx + L * w;     // (L, w) silu(z)
+  for (int64_t t = 0; t < L; ++t) {
+    const int64_t row = (b * L + t) * E + e0;
+    for (int64_t i = 0; i < w; ++i) {
+      const float d = softplus(p.dt[row + i]);
+      delta[t * w + i] = d;
+      dx[t * w + i] = d * p.x[row + i];
+      gate[t * w + i] = silu(p.z[row + i]);
+    }
+  }
+  std::vector<float> h(n);
+  for (int64_t i = 0; i < w; ++i) {
+    const int64_t e = e0 + i;
+    const float* A = p.A + e * n;
+    std::memcpy(h.data(), p.h0 + (b * E + e) * n, n * sizeof(float));
+    float* hp = h.data();
+    for (int64_t t = 0; t < L; ++t) {
+      const float d = delta[t * w + i], u = dx[t * w + i];
+      const float* Bt = p.B + (b * L + t) * n;
+      const float* Ct = p.C + (b * L + t) * n;
+      float acc = 0.0f;
+#pragma omp simd reduction(+ : acc)
+      for (int64_t k = 0; k < n; ++k) {
+        const float hk = fast_exp(d * A[k]) * hp[k] + u * Bt[k];
+        hp[k] = hk;
+        acc += Ct[k] * hk;
+      }
+      const int64_t at = (b * L + t) * E + e;
+      p.y[at] = (acc + p.D[e] * p.x[at]) * gate[t * w + i];
+    }
+    if (p.h) std::memcpy(p.h + (b * E + e) * n, hp, n * sizeof(float));
+  }
+}
+
+// ------------------------------------------------------------------ the SIMD paths
+// One loop (scan_simd.inc) compiled twice, inside a namespace per instruction set that defines its vector V.
+// GCC only: `#pragma GCC target` compiles a region for an instruction set the build's flags do not assume;
+// other compilers build the portable path alone.
+#ifdef DSSP_HAVE_SIMD_PATHS
+#pragma GCC push_options
+#pragma GCC target("avx2,fma")
+namespace avx2 {
+struct V {
+  using T = __m256;
+  static constexpr int kLanes = 8;
+  static constexpr bool kScalef = false;
+  static T load(const float* p) { return _mm256_load_ps(p); }
+  static T loadu(const float* p) { return _mm256_loadu_ps(p); }
+  static void store(float* p, T v) { _mm256_store_ps(p, v); }
+  static void storeu(float* p, T v) { _mm256_storeu_ps(p, v); }
+  static T set1(float v) { return _mm256_set1_ps(v); }
+  static T broadcast(const float* p) { return _mm256_broadcast_ss(p); }
+  static T mul(T a, T b) { return _mm256_mul_ps(a, b); }
+  static T add(T a, T b) { return _mm256_add_ps(a, b); }
+  static T sub(T a, T b) { return _mm256_sub_ps(a, b); }
+  static T max(T a, T b) { return _mm256_max_ps(a, b); }
+  static T fmadd(T a, T b, T c) { return _mm256_fmadd_ps(a, b, c); }
+  static T add_exponent(T q, T t) {  // the low bits of t are round(y): shifted into the exponent field they add it
+    return _mm256_castsi256_ps(_mm256_add_epi32(_mm256_castps_si256(q), _mm256_slli_epi32(_mm256_castps_si256(t), 23)));
+  }
+};
+#include "scan_simd.inc"
+}  // namespace avx2
+#pragma GCC pop_options
+
+#pragma GCC push_options
+#pragma GCC target("avx512f,avx2,fma")
+#pragma GCC diagnostic push
+#pragma GCC diagnostic ignored "-Wmaybe-uninitialized"  // GCC 12's avx512fintrin.h (_mm512_undefined_*), not this code
+namespace avx512 {
+struct V {
+  using T = __m512;
+  static constexpr int kLanes = 16;
+  static constexpr bool kScalef = true;
+  static T round(T v) { return _mm512_roundscale_ps(v, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC); }
+  static T scalef(T q, T m) { return _mm512_scalef_ps(q, m); }  // q * 2^floor(m), m an integer here
+  static T load(const float* p) { return _mm512_load_ps(p); }
+  static T loadu(const float* p) { return _mm512_loadu_ps(p); }
+  static void store(float* p, T v) { _mm512_store_ps(p, v); }
+  static void storeu(float* p, T v) { _mm512_storeu_ps(p, v); }
+  static T set1(float v) { return _mm512_set1_ps(v); }
+  static T broadcast(const float* p) { return _mm512_set1_ps(*p); }
+  static T mul(T a, T b) { return _mm512_mul_ps(a, b); }
+  static T add(T a, T b) { return _mm512_add_ps(a, b); }
+  static T sub(T a, T b) { return _mm512_sub_ps(a, b); }
+  static T max(T a, T b) { return _mm512_max_ps(a, b); }
+  static T fmadd(T a, T b, T c) { return _mm512_fmadd_ps(a, b, c); }
+  static T add_exponent(T q, T t) {
+    return _mm512_castsi512_ps(_mm512_add_epi32(_mm512_castps_si512(q), _mm512_slli_epi32(_mm512_castps_si512(t), 23)));
+  }
+};
+#include "scan_simd.inc"
+}  // namespace avx512
+#pragma GCC diagnostic pop
+#pragma GCC pop_options
+
+inline bool cpu_has_avx2() {
+  __builtin_cpu_init();
+  return __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma");
+}
+
+inline bool cpu_has_avx512() { return cpu_has_avx2() && __builtin_cpu_supports("avx512f"); }
+#endif
+
+// ------------------------------------------------------------------ the causal depthwise convolution
+// y_t = silu(bias + sum_j weight[j] * xe[t + 1 + j]) over xe = [state, x] (W + L steps), new state = the last
+// W steps of xe: Mamba's conv branch continuing from its state (zeros at a fresh start). Plain C++: the
+// loops over channels vectorise on any target, and the work is small next to the scan.
+struct ConvProblem {
+  const float *x, *state, *weight, *bias;  // weight (W, E)
+  float *y, *new_state;
+  int64_t batch, L, E, W;
+};
+
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+#define CONV_CLONES __attribute__((target_clones("arch=x86-64-v3", "default")))  // an AVX2 + FMA build beside the baseline one
+#else
+#define CONV_CLONES
+#endif
+
+CONV_CLONES inline void conv_block(const ConvProblem& p, int64_t b, int64_t e0, int64_t e1) {
+  const int64_t L = p.L, E = p.E, W = p.W;
+  for (int64_t t = 0; t < L; ++t) {
+    float* y = p.y + (b * L + t) * E;
+    for (int64_t e = e0; e < e1; ++e) y[e] = p.bias ? p.bias[e] : 0.0f;
+    for (int64_t j = 0; j < W; ++j) {
+      const int64_t i = t + 1 + j;
+      const float* w = p.weight + j * E;
+      if (i >= W) {
+        const float* xi = p.x + (b * L + i - W) * E;
+#pragma omp simd
+        for (int64_t e = e0; e < e1; ++e) y[e] += w[e] * xi[e];
+      } else {
+        for (int64_t e = e0; e < e1; ++e) y[e] += w[e] * p.state[(b * E + e) * W + i];
+      }
+    }
+#pragma omp simd
+    for (int64_t e = e0; e < e1; ++e) y[e] = y[e] / (1.0f + fast_exp(-y[e]));
+  }
+  for (int64_t k = 0; k < W; ++k) {  // the new state: the last W steps of [state, x]
+    const int64_t i = L + k;
+    float* out = p.new_state + b * E * W + k;
+    if (i >= W) {
+      const float* xi = p.x + (b * L + i - W) * E;
+      for (int64_t e = e0; e < e1; ++e) out[e * W] = xi[e];
+    } else {
+      const float* si = p.state + b * E * W + i;
+      for (int64_t e = e0; e < e1; ++e) out[e * W] = si[e * W];
+    }
+  }
+}
+
+// ------------------------------------------------------------------ the scan's paths
+enum class Path { kPortable, kAvx2, kAvx512 };
+
+inline const char* path_name(Path path) {
+  return path == Path::kAvx512 ? "avx512" : path == Path::kAvx2 ? "avx2" : "portable";
+}
+
+// DSSP_SCAN_PATH: auto (the widest this CPU runs), avx512, avx2 or portable. A path this CPU or build lacks: the
+// fallback is returned and *error says why (empty when the choice holds).
+inline Path choose_path(std::string* error) {
+  error->clear();
+  const char* env = std::getenv("DSSP_SCAN_PATH");
+  const std::string want = env ? env : "auto";
+  if (want != "auto" && want != "avx512" && want != "avx2" && want != "portable") {
+    *error = "DSSP_SCAN_PATH=" + want + " is not one of auto, avx512, avx2, portable";
+    return Path::kPortable;
+  }
+  if (want == "portable") return Path::kPortable;
+#ifdef DSSP_HAVE_SIMD_PATHS
+  const bool avx512 = cpu_has_avx512(), avx2 = cpu_has_avx2();
+  if (want == "avx512" && !avx512) *error = "DSSP_SCAN_PATH=avx512, but this CPU lacks AVX-512; unset it or use avx2 or portable";
+  if (want == "avx2" && !avx2) *error = "DSSP_SCAN_PATH=avx2, but this CPU lacks AVX2 or FMA; unset it or use portable";
+  if (!error->empty()) return Path::kPortable;
+  if (want == "avx2") return Path::kAvx2;
+  return avx512 ? Path::kAvx512 : avx2 ? Path::kAvx2 : Path::kPortable;
+#else
+  if (want != "auto") *error = "DSSP_SCAN_PATH=" + want + ", but this library was built without the SIMD paths (they need x86-64 and GCC); unset it or use portable";
+  return Path::kPortable;
+#endif
+}
+
+struct ScanTask {
+  const Problem* problem;
+  Path path;
+  int64_t blocks_per_row;
+};
+
+inline void run_scan_task(void* data, size_t index) {
+  const ScanTask& task = *static_cast<const ScanTask*>(data);
+  const Problem& p = *task.problem;
+  const int64_t b = static_cast<int64_t>(index) / task.blocks_per_row;
+  const int64_t e0 = (static_cast<int64_t>(index) % task.blocks_per_row) * kBlock;
+  const int64_t e1 = std::min(e0 + kBlock, p.E);
+  // 64-byte aligned (with w a multiple of the lanes the SIMD paths' transposed state and A are too: aligned loads)
+  const size_t floats = static_cast<size_t>(3 * p.L * (e1 - e0) + 32 * p.n) + 16;
+  std::unique_ptr<float[]> buffer(new float[floats]);
+  float* scratch = buffer.get();
+  while (reinterpret_cast<uintptr_t>(scratch) % 64) ++scratch;
+#ifdef DSSP_HAVE_SIMD_PATHS
+  if (task.path == Path::kAvx512 && (e1 - e0) % avx512::V::kLanes == 0) return avx512::scan_block(p, b, e0, e1, scratch);
+  if (task.path != Path::kPortable && (e1 - e0) % avx2::V::kLanes == 0) return avx2::scan_block(p, b, e0, e1, scratch);
+#endif
+  scan_block_portable(p, b, e0, e1, scratch);
+}
+
+struct ConvTask {
+  const ConvProblem* problem;
+  int64_t blocks_per_row;
+};
+
+inline void run_conv_task(void* data, size_t index) {
+  const ConvTask& task = *static_cast<const ConvTask*>(data);
+  const int64_t b = static_cast<int64_t>(index) / task.blocks_per_row;
+  const int64_t e0 = (static_cast<int64_t>(index) % task.blocks_per_row) * 256;
+  conv_block(*task.problem, b, e0, std::min(e0 + 256, task.problem->E));
+}
+
+// out (m, d) = rmsnorm(x) * weight (, then * (1 + scale) + shift when scale is given)
+inline void rms_norm(const float* x, int64_t m, int64_t d, const float* weight, float eps, const float* shift,
+              const float* scale, float* out) {
+  for (int64_t i = 0; i < m; ++i) {
+    const float* xi = x + i * d;
+    float ss = 0.0f;
+    for (int64_t j = 0; j < d; ++j) ss += xi[j] * xi[j];
+    const float r = 1.0f / std::sqrt(ss / static_cast<float>(d) + eps);
+    float* oi = out + i * d;
+    for (int64_t j = 0; j < d; ++j) {
+      const float v = xi[j] * r * weight[j];
+      oi[j] = scale ? v * (1.0f + scale[j]) + shift[j] : v;
+    }
+  }
+}
+
+// ------------------------------------------------------------------ a whole denoiser block (int8 weights)
+// One block of the denoiser, on the action tokens for one DDIM step or on the prefix (ai.dssp::MambaBlockQ8):
+//
+//   h = rmsnorm(a) * (1 + scale) + shift                       AdaLN, mod = [shift; scale; gate] (3, d); the
+//                                                              prefix has none: h = rmsnorm(a), gate 1
+//   x, z = in_proj(h)                                          x, z (rows, E)
+//   x = silu(conv(x)) continuing from conv_state
+//   dt, B, C = x_proj(x); dt = dt_proj(dt) + dt_bias
+//   y = scan(x, dt, B, C, z) from ssm_state                    the selective scan above
+//   a = a + gate * out_proj(y)
+//   a = a + fc2(u * silu(g)), [u, g] = fc1(rmsnorm2(a))        the gated MLP, when the block has one
+//
+// Every product multiplies the rows (batch * L, a dozen) by int8 weights packed once (qgemm.h), the activations
+// quantized per row, the output columns split across the threads.
+
+namespace q = dssp::qgemm;
+
+// The block's parameters: the projections packed (fc1, fc2 null without the MLP), the rest as the graph holds it.
+//   in (2E, d), xp (R + 2n, E), dt (E, R), out (d, E), fc1 (2h, d), fc2 (d, h)
+//   norm_w (d), conv_w (W, E), conv_b (E), dt_b (E), A (E, n), D (E), norm2_w (d)
+struct BlockWeights {
+  const q::PackedWeights *in = nullptr, *xp = nullptr, *dt = nullptr, *out = nullptr, *fc1 = nullptr, *fc2 = nullptr;
+  const float *norm_w = nullptr, *conv_w = nullptr, *conv_b = nullptr, *dt_b = nullptr, *A = nullptr, *D = nullptr,
+              *norm2_w = nullptr;
+  int64_t d = 0, E = 0, W = 0, n = 0;
+  float eps = 1e-5f;
+
+  int64_t rank() const { return dt->k; }
+  int64_t hidden() const { return fc2 ? fc2->k : 0; }
+
+  // The projections' shapes against d, E and n: one line that says which does not fit.
+  void check() const {
+    if (!in || !xp || !dt || !out || (fc1 == nullptr) != (fc2 == nullptr))
+      throw std::invalid_argument("MambaBlockQ8: a projection is missing (fc1 and fc2 come together)");
+    const int64_t R = rank();
+    if (in->n != 2 * E || in->k != d || xp->n != R + 2 * n || xp->k != E || dt->n != E || out->n != d || out->k != E)
+      throw std::invalid_argument("MambaBlockQ8: the projections' shapes do not fit d = " + std::to_string(d) +
+                                  ", E = " + std::to_string(E) + ", n = " + std::to_string(n));
+    if (fc1 && (fc1->n != 2 * fc2->k || fc1->k != d || fc2->n != d))
+      throw std::invalid_argument("MambaBlockQ8: fc1 must be (2h, d) and fc2 (d, h) with d = " + std::to_string(d));
+  }
+};
+
+// a (batch, L, d); conv_state (batch, E, W); ssm_state (batch, E, n); mod (3, d) or null (the prefix)
+struct BlockInputs {
+  const float *a = nullptr, *conv_state = nullptr, *ssm_state = nullptr, *mod = nullptr;
+  int64_t batch = 0, L = 0;
+};
+
+// a (batch, L, d); the states after the L tokens, conv (batch, E, W) and ssm (batch, E, n), or null: not written
+struct BlockOutputs {
+  float *a = nullptr, *conv_state = nullptr, *ssm_state = nullptr;
+};
+
+struct MatmulTask {
+  const q::QuantizedRows* x;
+  const q::PackedWeights* w;
+  const float* bias;
+  float* y;
+  int ldy;
+  int columns;  // per task
+};
+
+inline void run_matmul_task(void* data, size_t index) {
+  const MatmulTask& t = *static_cast<const MatmulTask*>(data);
+  const int begin = static_cast<int>(index) * t.columns;
+  q::matmul_range(*t.x, *t.w, t.bias, t.y, t.ldy, begin, std::min(begin + t.columns, t.w->n));
+}
+
+constexpr int kColumnsPerTask = 128;  // a multiple of every path's column block
+
+// y (m, w.n) = x (m, k) @ W.T (+ bias), the columns split across the threads; rows holds x quantized
+inline void q8_matmul(const ParallelFor& parallel_for, const float* x, int64_t m, int64_t k, const q::PackedWeights& w,
+                      const float* bias, float* y, q::QuantizedRows& rows) {
+  q::quantize_rows(x, static_cast<int>(m), static_cast<int>(k), rows, w.path);
+  MatmulTask task{&rows, &w, bias, y, w.n, kColumnsPerTask};
+  parallel_for(run_matmul_task, static_cast<size_t>((w.n + kColumnsPerTask - 1) / kColumnsPerTask), &task);
+}
+
+// The block on in.L tokens of each of in.batch rows (see above); the weights checked by BlockWeights::check.
+inline void block_forward(const BlockWeights& w, const BlockInputs& in, const BlockOutputs& out, Path scan_path,
+                          const ParallelFor& parallel_for) {
+  const int64_t batch = in.batch, L = in.L, m = batch * L, d = w.d, E = w.E, W = w.W, n = w.n, R = w.rank();
+  if (m == 0) return;
+  q::QuantizedRows rows;  // this call's quantized activations
+  const float* shift = in.mod;
+  const float *scale = shift ? shift + d : nullptr, *gate = shift ? shift + 2 * d : nullptr;
+  std::vector<float> h(m * d), xz(m * 2 * E), x(m * E), z(m * E), xc(m * E),
+      conv_after(out.conv_state ? 0 : batch * E * W), dbc(m * w.xp->n), dt_in(m * R), dt(m * E), Bm(m * n),
+      Cm(m * n), y(m * E), o(m * d);
+  rms_norm(in.a, m, d, w.norm_w, w.eps, shift, scale, h.data());
+  q8_matmul(parallel_for, h.data(), m, d, *w.in, nullptr, xz.data(), rows);
+  for (int64_t i = 0; i < m; ++i) {
+    std::memcpy(x.data() + i * E, xz.data() + i * 2 * E, sizeof(float) * E);
+    std::memcpy(z.data() + i * E, xz.data() + i * 2 * E + E, sizeof(float) * E);
+  }
+  ConvProblem cp{x.data(), in.conv_state, w.conv_w, w.conv_b, xc.data(),
+                 out.conv_state ? out.conv_state : conv_after.data(), batch, L, E, W};
+  const int64_t conv_blocks = (E + 255) / 256;
+  ConvTask conv_task{&cp, conv_blocks};
+  parallel_for(run_conv_task, static_cast<size_t>(batch * conv_blocks), &conv_task);
+  q8_matmul(parallel_for, xc.data(), m, E, *w.xp, nullptr, dbc.data(), rows);
+  for (int64_t i = 0; i < m; ++i) {
+    const float* row = dbc.data() + i * w.xp->n;
+    std::memcpy(dt_in.data() + i * R, row, sizeof(float) * R);
+    std::memcpy(Bm.data() + i * n, row + R, sizeof(float) * n);
+    std::memcpy(Cm.data() + i * n, row + R + n, sizeof(float) * n);
+  }
+  q8_matmul(parallel_for, dt_in.data(), m, R, *w.dt, w.dt_b, dt.data(), rows);
+  Problem sp{xc.data(), dt.data(), Bm.data(), Cm.data(), z.data(), w.A, w.D, in.ssm_state, y.data(), out.ssm_state,
+             batch, L, E, n};
+  const int64_t scan_blocks = (E + kBlock - 1) / kBlock;
+  ScanTask scan_task{&sp, scan_path, scan_blocks};
+  parallel_for(run_scan_task, static_cast<size_t>(batch * scan_blocks), &scan_task);
+  q8_matmul(parallel_for, y.data(), m, E, *w.out, nullptr, o.data(), rows);
+  for (int64_t i = 0; i < m; ++i)
+    for (int64_t j = 0; j < d; ++j) out.a[i * d + j] = in.a[i * d + j] + (gate ? gate[j] : 1.0f) * o[i * d + j];
+  if (!w.fc1) return;
+
+  const int64_t hidden = w.hidden();
+  std::vector<float> g(m * d), u(m * 2 * hidden), v(m * hidden);
+  rms_norm(out.a, m, d, w.norm2_w, w.eps, nullptr, nullptr, g.data());
+  q8_matmul(parallel_for, g.data(), m, d, *w.fc1, nullptr, u.data(), rows);
+  for (int64_t i = 0; i < m; ++i)
+    for (int64_t j = 0; j < hidden; ++j) {
+      const float gj = u[i * 2 * hidden + hidden + j];
+      v[i * hidden + j] = u[i * 2 * hidden + j] * (gj / (1.0f + fast_exp(-gj)));
+    }
+  q8_matmul(parallel_for, v.data(), m, hidden, *w.fc2, nullptr, o.data(), rows);
+  for (int64_t i = 0; i < m * d; ++i) out.a[i] += o[i];
+}
+
+}  // namespace dssp::mamba

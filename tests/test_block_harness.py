@@ -1,0 +1,138 @@
+"""The fused int8 Mamba block without ONNX Runtime (dssp_deploy/kernel/block_check.cc over mamba_block.h, the code
+the ai.dssp::MambaBlockQ8 operator runs): built natively and for aarch64, where it runs under qemu on a CPU with
+the dot-product instructions and on one without, each against ``export.fused_ops.block_reference``."""
+
+import json
+import os
+import shutil
+import struct
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from conftest import CROSS_HINT, CROSS_TOOLS, block_case, build_harness
+
+BUILD = Path(__file__).resolve().parents[1] / "build" / "block"
+MAGIC = b"DSSPTENS"
+CASES = [("gated", 1, "actions"), ("none", 2, "actions"), ("gated", 2, "prefix")]
+
+
+def write_tensors(path: Path, tensors: dict[str, np.ndarray]) -> None:
+    """block_check.cc's tensor file: per tensor its name, 'f' (float32) or 'b' (int8), its shape and its values."""
+    with path.open("wb") as out:
+        out.write(MAGIC)
+        for name, value in tensors.items():
+            value = np.array(value, order="C")  # (ascontiguousarray would make a scalar (1,))
+            kind = {np.dtype(np.float32): b"f", np.dtype(np.int8): b"b"}[value.dtype]
+            out.write(struct.pack("<I", len(name)) + name.encode() + kind + struct.pack("<I", value.ndim))
+            out.write(struct.pack(f"<{value.ndim}q", *value.shape) + value.tobytes())
+
+
+def read_tensors(path: Path) -> dict[str, np.ndarray]:
+    data, at, out = path.read_bytes(), len(MAGIC), {}
+    assert data[:at] == MAGIC
+    while at < len(data):
+        (length,) = struct.unpack_from("<I", data, at)
+        name = data[at + 4:at + 4 + length].decode()
+        at += 4 + length
+        kind, (ndim,) = data[at:at + 1], struct.unpack_from("<I", data, at + 1)
+        shape = struct.unpack_from(f"<{ndim}q", data, at + 5)
+        at += 5 + 8 * ndim
+        dtype = np.float32 if kind == b"f" else np.int8
+        count = int(np.prod(shape))
+        out[name] = np.frombuffer(data, dtype, count, at).reshape(shape)
+        at += count * np.dtype(dtype).itemsize
+    return out
+
+
+def case(tmp_path: Path, mlp: str, batch: int, part: str) -> tuple[Path, list[np.ndarray]]:
+    """A block's inputs written for the harness, and what block_reference gives for them: (a, conv, ssm), the
+    states (batch, 0, .) on the action tokens (not written), after the tokens on the prefix."""
+    from export.fused_ops import block_reference
+
+    fused, values = block_case(mlp, batch)
+    if part == "prefix":
+        values.update(mod=torch.zeros(0, values["a"].shape[-1]), conv_state=torch.zeros_like(values["conv_state"]),
+                      ssm_state=torch.zeros_like(values["ssm_state"]))
+    with torch.no_grad():
+        want = [t.numpy() for t in block_reference(*values.values(), fused.eps)]
+    if part == "actions":
+        want = [want[0], want[1][:, :0], want[2][:, :0]]
+    path = tmp_path / f"{mlp}-{batch}-{part}.case"
+    write_tensors(path, {**{name: value.numpy() for name, value in values.items()},
+                         "eps": np.array(fused.eps, np.float32)})
+    return path, want
+
+
+def run(command: list[str], out: Path, **env: str) -> tuple[dict, dict[str, np.ndarray]]:
+    result = subprocess.run(command, capture_output=True, text=True, timeout=300, env={**os.environ, **env})
+    lines = result.stdout.strip().splitlines()
+    assert lines, f"{command[0]} printed nothing (exit {result.returncode}): {result.stderr}"
+    report = json.loads(lines[-1])
+    assert result.returncode == 0 and report["ok"], report
+    return report, read_tensors(out)
+
+
+def assert_close(got: dict[str, np.ndarray], want: list[np.ndarray], where) -> None:
+    for name, w in zip(("a", "conv", "ssm"), want):
+        g = got[name]
+        assert g.shape == w.shape, (where, name)
+        assert np.abs(g - w).max(initial=0) <= 1e-3 * np.abs(w).max(initial=1), (where, name)
+
+
+@pytest.fixture(scope="module")
+def native() -> Path:
+    return build_harness("block_check.cc", "g++", BUILD / "block_check")
+
+
+@pytest.fixture(scope="module")
+def cross() -> Path:
+    missing = [tool for tool in CROSS_TOOLS if shutil.which(tool) is None]
+    if missing:
+        pytest.fail(f"{', '.join(missing)} missing: the aarch64 build runs under qemu; {CROSS_HINT}")
+    return build_harness("block_check.cc", "aarch64-linux-gnu-g++", BUILD / "block_check_aarch64", "-static")
+
+
+@pytest.mark.parametrize("mlp, batch, part", CASES)
+def test_the_block_matches_its_reference_natively(native, tmp_path, mlp, batch, part, monkeypatch):
+    """The default paths, one thread and three (the columns and channels split across them give the same bits)."""
+    monkeypatch.delenv("DSSP_QGEMM_PATH", raising=False)
+    monkeypatch.delenv("DSSP_SCAN_PATH", raising=False)
+    path, want = case(tmp_path, mlp, batch, part)
+    out = tmp_path / "out"
+    _, one = run([str(native), str(path), str(out), "1"], out)
+    assert_close(one, want, "native")
+    report, three = run([str(native), str(path), str(out), "3"], out)
+    assert report["threads"] == 3
+    for name in one:
+        assert np.array_equal(one[name], three[name]), name
+
+
+@pytest.mark.parametrize("cpu, product", [("max", "neon_dot"), ("cortex-a53", "neon")])
+@pytest.mark.parametrize("mlp, batch, part", CASES)
+def test_the_block_matches_its_reference_on_aarch64_under_qemu(cross, tmp_path, cpu, product, mlp, batch, part,
+                                                               monkeypatch):
+    """On a CPU with sdot (neon_dot) and one without (neon): the products' paths give the same bits as the portable
+    one (their integer sums are exact), and the block matches the reference."""
+    monkeypatch.delenv("DSSP_QGEMM_PATH", raising=False)
+    monkeypatch.delenv("DSSP_SCAN_PATH", raising=False)
+    path, want = case(tmp_path, mlp, batch, part)
+    out = tmp_path / "out"
+    report, got = run(["qemu-aarch64", "-cpu", cpu, str(cross), str(path), str(out), "2"], out)
+    assert report["arch"] == "aarch64" and report["qgemm_path"] == product and report["scan_path"] == "portable", report
+    assert_close(got, want, (cpu, product))
+    _, portable = run(["qemu-aarch64", "-cpu", cpu, str(cross), str(path), str(out)], out, DSSP_QGEMM_PATH="portable")
+    for name in got:
+        assert np.array_equal(got[name], portable[name]), name
+
+
+def test_a_path_the_cpu_lacks_is_one_line_not_a_crash(cross, tmp_path):
+    path, _ = case(tmp_path, "gated", 1, "actions")
+    for env, word in ((dict(DSSP_SCAN_PATH="avx512"), "DSSP_SCAN_PATH=avx512"), (dict(DSSP_QGEMM_PATH="avx2"), "DSSP_QGEMM_PATH=avx2")):
+        result = subprocess.run(["qemu-aarch64", "-cpu", "max", str(cross), str(path), str(tmp_path / "out")],
+                                capture_output=True, text=True, timeout=300, env={**os.environ, **env})
+        report = json.loads(result.stdout.strip().splitlines()[-1])
+        assert result.returncode == 2 and report["path_error"].startswith(word), report
+        assert not (tmp_path / "out").exists()
