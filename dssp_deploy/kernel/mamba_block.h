@@ -390,48 +390,60 @@ inline void block_forward(const BlockWeights& w, const BlockInputs& in, const Bl
   q::QuantizedRows rows;  // this call's quantized activations
   const float* shift = in.mod;
   const float *scale = shift ? shift + d : nullptr, *gate = shift ? shift + 2 * d : nullptr;
-  std::vector<float> h(m * d), xz(m * 2 * E), x(m * E), z(m * E), xc(m * E),
-      conv_after(out.conv_state ? 0 : batch * E * W), dbc(m * w.xp->n), dt_in(m * R), dt(m * E), Bm(m * n),
-      Cm(m * n), y(m * E), o(m * d);
-  rms_norm(in.a, m, d, w.norm_w, w.eps, shift, scale, h.data());
-  q8_matmul(parallel_for, h.data(), m, d, *w.in, nullptr, xz.data(), rows);
+  // one uninitialised buffer for the call's activations (each is written before it is read)
+  const int64_t hidden = w.hidden(), xpn = w.xp->n;
+  const int64_t sizes[] = {m * d, m * 2 * E, m * E, m * E, m * E, out.conv_state ? 0 : batch * E * W, m * xpn, m * R,
+                           m * E, m * n, m * n, m * E, m * d, m * d, m * 2 * hidden, m * hidden};
+  int64_t total = 0;
+  for (int64_t size : sizes) total += (size + 15) / 16 * 16;
+  std::unique_ptr<float[]> buffer(new float[total]);
+  float* next = buffer.get();
+  auto take = [&next](int64_t size) {
+    float* at = next;
+    next += (size + 15) / 16 * 16;
+    return at;
+  };
+  float *h = take(sizes[0]), *xz = take(sizes[1]), *x = take(sizes[2]), *z = take(sizes[3]), *xc = take(sizes[4]),
+        *conv_after = take(sizes[5]), *dbc = take(sizes[6]), *dt_in = take(sizes[7]), *dt = take(sizes[8]),
+        *Bm = take(sizes[9]), *Cm = take(sizes[10]), *y = take(sizes[11]), *o = take(sizes[12]), *g = take(sizes[13]),
+        *u = take(sizes[14]), *v = take(sizes[15]);
+  rms_norm(in.a, m, d, w.norm_w, w.eps, shift, scale, h);
+  q8_matmul(parallel_for, h, m, d, *w.in, nullptr, xz, rows);
   for (int64_t i = 0; i < m; ++i) {
-    std::memcpy(x.data() + i * E, xz.data() + i * 2 * E, sizeof(float) * E);
-    std::memcpy(z.data() + i * E, xz.data() + i * 2 * E + E, sizeof(float) * E);
+    std::memcpy(x + i * E, xz + i * 2 * E, sizeof(float) * E);
+    std::memcpy(z + i * E, xz + i * 2 * E + E, sizeof(float) * E);
   }
-  ConvProblem cp{x.data(), in.conv_state, w.conv_w, w.conv_b, xc.data(),
-                 out.conv_state ? out.conv_state : conv_after.data(), batch, L, E, W};
+  ConvProblem cp{x, in.conv_state, w.conv_w, w.conv_b, xc,
+                 out.conv_state ? out.conv_state : conv_after, batch, L, E, W};
   const int64_t conv_blocks = (E + 255) / 256;
   ConvTask conv_task{&cp, conv_blocks};
   parallel_for(run_conv_task, static_cast<size_t>(batch * conv_blocks), &conv_task);
-  q8_matmul(parallel_for, xc.data(), m, E, *w.xp, nullptr, dbc.data(), rows);
+  q8_matmul(parallel_for, xc, m, E, *w.xp, nullptr, dbc, rows);
   for (int64_t i = 0; i < m; ++i) {
-    const float* row = dbc.data() + i * w.xp->n;
-    std::memcpy(dt_in.data() + i * R, row, sizeof(float) * R);
-    std::memcpy(Bm.data() + i * n, row + R, sizeof(float) * n);
-    std::memcpy(Cm.data() + i * n, row + R + n, sizeof(float) * n);
+    const float* row = dbc + i * w.xp->n;
+    std::memcpy(dt_in + i * R, row, sizeof(float) * R);
+    std::memcpy(Bm + i * n, row + R, sizeof(float) * n);
+    std::memcpy(Cm + i * n, row + R + n, sizeof(float) * n);
   }
-  q8_matmul(parallel_for, dt_in.data(), m, R, *w.dt, w.dt_b, dt.data(), rows);
-  Problem sp{xc.data(), dt.data(), Bm.data(), Cm.data(), z.data(), w.A, w.D, in.ssm_state, y.data(), out.ssm_state,
+  q8_matmul(parallel_for, dt_in, m, R, *w.dt, w.dt_b, dt, rows);
+  Problem sp{xc, dt, Bm, Cm, z, w.A, w.D, in.ssm_state, y, out.ssm_state,
              batch, L, E, n};
   const int64_t scan_blocks = (E + kBlock - 1) / kBlock;
   ScanTask scan_task{&sp, scan_path, scan_blocks};
   parallel_for(run_scan_task, static_cast<size_t>(batch * scan_blocks), &scan_task);
-  q8_matmul(parallel_for, y.data(), m, E, *w.out, nullptr, o.data(), rows);
+  q8_matmul(parallel_for, y, m, E, *w.out, nullptr, o, rows);
   for (int64_t i = 0; i < m; ++i)
     for (int64_t j = 0; j < d; ++j) out.a[i * d + j] = in.a[i * d + j] + (gate ? gate[j] : 1.0f) * o[i * d + j];
   if (!w.fc1) return;
 
-  const int64_t hidden = w.hidden();
-  std::vector<float> g(m * d), u(m * 2 * hidden), v(m * hidden);
-  rms_norm(out.a, m, d, w.norm2_w, w.eps, nullptr, nullptr, g.data());
-  q8_matmul(parallel_for, g.data(), m, d, *w.fc1, nullptr, u.data(), rows);
+  rms_norm(out.a, m, d, w.norm2_w, w.eps, nullptr, nullptr, g);
+  q8_matmul(parallel_for, g, m, d, *w.fc1, nullptr, u, rows);
   for (int64_t i = 0; i < m; ++i)
     for (int64_t j = 0; j < hidden; ++j) {
       const float gj = u[i * 2 * hidden + hidden + j];
       v[i * hidden + j] = u[i * 2 * hidden + j] * (gj / (1.0f + fast_exp(-gj)));
     }
-  q8_matmul(parallel_for, v.data(), m, hidden, *w.fc2, nullptr, o.data(), rows);
+  q8_matmul(parallel_for, v, m, hidden, *w.fc2, nullptr, o, rows);
   for (int64_t i = 0; i < m * d; ++i) out.a[i] += o[i];
 }
 
