@@ -114,6 +114,11 @@ struct V {
   using T = __m256;
   static constexpr int kLanes = 8;
   static constexpr bool kScalef = false;
+  static float sum(T v) {
+    __m128 s = _mm_add_ps(_mm256_castps256_ps128(v), _mm256_extractf128_ps(v, 1));
+    s = _mm_add_ps(s, _mm_movehl_ps(s, s));
+    return _mm_cvtss_f32(_mm_add_ss(s, _mm_movehdup_ps(s)));
+  }
   static T load(const float* p) { return _mm256_load_ps(p); }
   static T loadu(const float* p) { return _mm256_loadu_ps(p); }
   static void store(float* p, T v) { _mm256_store_ps(p, v); }
@@ -142,6 +147,7 @@ struct V {
   using T = __m512;
   static constexpr int kLanes = 16;
   static constexpr bool kScalef = true;
+  static float sum(T v) { return _mm512_reduce_add_ps(v); }
   static T round(T v) { return _mm512_roundscale_ps(v, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC); }
   static T scalef(T q, T m) { return _mm512_scalef_ps(q, m); }  // q * 2^floor(m), m an integer here
   static T load(const float* p) { return _mm512_load_ps(p); }
@@ -263,6 +269,10 @@ inline void run_scan_task(void* data, size_t index) {
   const int64_t b = static_cast<int64_t>(index) / task.blocks_per_row;
   const int64_t e0 = (static_cast<int64_t>(index) % task.blocks_per_row) * kBlock;
   const int64_t e1 = std::min(e0 + kBlock, p.E);
+#ifdef DSSP_HAVE_SIMD_PATHS
+  if (p.L == 1 && task.path == Path::kAvx512 && p.n % avx512::V::kLanes == 0) return avx512::scan_step(p, b, e0, e1);
+  if (p.L == 1 && task.path != Path::kPortable && p.n % avx2::V::kLanes == 0) return avx2::scan_step(p, b, e0, e1);
+#endif
   // 64-byte aligned (with w a multiple of the lanes the SIMD paths' transposed state and A are too: aligned loads)
   const size_t floats = static_cast<size_t>(3 * p.L * (e1 - e0) + 32 * p.n) + 16;
   std::unique_ptr<float[]> buffer(new float[floats]);
