@@ -1,7 +1,7 @@
 """The CPU targets of one exported model in one run, with the fused Mamba kernel and without it.
 
     python benchmarks/cpu_targets.py MODEL_DIR --checkpoint RUN_DIR [--threads N] [--precision fp32|int8|int4]
-                                     [--quick] [--json PATH] [--plot PATH] [--force]
+                                     [--k1-model DIR] [--quick] [--json PATH] [--plot PATH] [--force]
 
 Batch 1, the model's point count, ``--threads`` ONNX Runtime threads (default: all CPUs; torch gets the same).
 For each graph set — the fused Mamba kernel's (``*.fused.onnx``) and the standard one — measures:
@@ -15,8 +15,9 @@ and once: PyTorch eager (``--checkpoint``, the run the model was exported from) 
 history step. The roofline: this machine's read bandwidth (one core, numpy summing 256 MiB), and per graph set and
 precision the bytes of denoiser weights one chunk reads (``dssp_deploy.profile.roofline``: K + 1 passes with a
 cached prefix), the floor they imply, the achieved chunk and the ratio — on a CPU with VNNI also the fused int8
-chunk with the AVX2 paths forced (``DSSP_QGEMM_PATH=avx2 DSSP_SCAN_PATH=avx2``). ``--plot`` draws achieved against
-floor. Ratios are of medians measured in this run. DSSP against DP3, like for like, is
+chunk with the AVX2 paths forced (``DSSP_QGEMM_PATH=avx2 DSSP_SCAN_PATH=avx2``). ``--k1-model`` (the same run
+exported with ``--denoise-steps 1``, the distilled samplers' shape) adds its fused chunk on each path, the prefix and
+the step in one pass over the weights. ``--plot`` draws achieved against floor. Ratios are of medians measured in this run. DSSP against DP3, like for like, is
 ``benchmarks/dp3_comparison.py``.
 Prints the targets table (the robotwin preset's targets on a 2-core CPU); ``--json`` writes every figure.
 The runtime-only figures, without torch, are ``dssp-profile MODEL_DIR``.
@@ -37,7 +38,8 @@ from torch_comparison import check_source, eager_samples  # noqa: E402
 
 from dssp_core import machine  # noqa: E402
 from studies.protocol import code_commit  # noqa: E402
-from dssp_core.cli_runner import ArgumentParser, run_cli
+from dssp_core.cli_runner import ArgumentParser, run_cli  # noqa: E402
+from dssp_core.errors import ConfigError  # noqa: E402
 from dssp_deploy.latency import LatencyStats, memory_read_gbs, time_calls  # noqa: E402
 from dssp_deploy.manifest import PRECISIONS, file_kind, read_manifest  # noqa: E402
 from dssp_deploy.onnx_policy import DEFAULT_PRECISION, OnnxPolicy  # noqa: E402
@@ -56,6 +58,8 @@ TARGETS = {  # robotwin preset, 1024 points, batch 1, 2 threads, p50
 }
 FORCED_AVX2 = {"DSSP_QGEMM_PATH": "avx2", "DSSP_SCAN_PATH": "avx2"}
 FORCED = "fused, avx2 forced"
+FUSED = "fused"
+K1 = ", K = 1"  # the one-step model's rows (--k1-model)
 
 
 def runtime_figures(model_dir: Path, precision: str, threads: int, settings: dict) -> dict:
@@ -81,17 +85,17 @@ def has_vnni() -> bool:
     return bool({"avx512_vnni", "avx_vnni"} & flags) and "avx2" in flags
 
 
-def forced_avx2_chunk(model_dir: Path, precision: str, threads: int, settings: dict) -> float:
-    """The fused chunk's p50 (ms) with the kernel's AVX2 paths forced (its scan and its int8 products)."""
+def fused_chunk(model_dir: Path, precision: str, threads: int, chunks: int, env: dict[str, str] | None = None) -> float:
+    """The fused chunk's p50 (ms), with ``env`` set while the session is made (e.g. the AVX2 paths forced)."""
     import os
 
-    saved = {k: os.environ.get(k) for k in FORCED_AVX2}
-    os.environ.update(FORCED_AVX2)
+    saved = {k: os.environ.get(k) for k in env or {}}
+    os.environ.update(env or {})
     try:
         policy = OnnxPolicy(model_dir, threads=threads, precision=precision, kernel="fused")
         pc, pos = random_observation(policy, np.random.default_rng(0))
         policy.observe(pc, pos)
-        return LatencyStats.of(time_calls(lambda: policy.act(seed=0), settings["chunks"])).p50
+        return LatencyStats.of(time_calls(lambda: policy.act(seed=0), chunks)).p50
     finally:
         for k, v in saved.items():
             if v is None:
@@ -101,26 +105,33 @@ def forced_avx2_chunk(model_dir: Path, precision: str, threads: int, settings: d
 
 
 def roofline_figures(model_dir: Path, manifest: dict, runtime: dict, precision: str, threads: int, settings: dict,
-                     read_gbs: float) -> dict:
-    """{graph set: {precision: roofline row}} for every chunk measured, and the forced AVX2 one on a VNNI CPU."""
+                     read_gbs: float, k1_model: Path | None) -> dict:
+    """{graph set: {precision: roofline row}} for every chunk measured, the forced AVX2 one on a VNNI CPU, and the
+    one-step model's fused chunk (``--k1-model``) on each path."""
     out = {}
     for kernel, r in runtime.items():
         fused = kernel.startswith("fused")
         out[kernel] = {p: roofline(model_dir, manifest, file_kind(p, fused), row["chunk_p50"], read_gbs)
                        for p, row in r["precision"].items()}
-    if "fused" in runtime and has_vnni():
-        chunk = forced_avx2_chunk(model_dir, precision, threads, settings)
-        out[FORCED] = {precision: roofline(model_dir, manifest, file_kind(precision, True), chunk, read_gbs)}
+    paths = {FUSED: None} | ({FORCED: FORCED_AVX2} if "fused" in runtime and has_vnni() else {})
+    for name, env in paths.items():
+        if name == FORCED:
+            chunk = fused_chunk(model_dir, precision, threads, settings["chunks"], env)
+            out[FORCED] = {precision: roofline(model_dir, manifest, file_kind(precision, True), chunk, read_gbs)}
+        if k1_model is not None:
+            k1 = read_manifest(k1_model)
+            chunk = fused_chunk(k1_model, precision, threads, settings["chunks"], env)
+            out[name + K1] = {precision: roofline(k1_model, k1, file_kind(precision, True), chunk, read_gbs)}
     return out
 
 
-def measure(model_dir: Path, checkpoint: Path, threads: int, precision: str, quick: bool) -> dict:
+def measure(model_dir: Path, checkpoint: Path, threads: int, precision: str, quick: bool, k1_model: Path | None = None) -> dict:
     settings = QUICK if quick else FULL
     torch.set_num_threads(threads)
     manifest = read_manifest(model_dir)
     read_gbs = memory_read_gbs()
     runtime = runtime_figures(model_dir, precision, threads, settings)
-    lines = roofline_figures(model_dir, manifest, runtime, precision, threads, settings, read_gbs)
+    lines = roofline_figures(model_dir, manifest, runtime, precision, threads, settings, read_gbs, k1_model)
     policy = OnnxPolicy(model_dir, threads=threads, precision=precision, kernel="standard", warmup=0)
     pc, pos = (torch.from_numpy(a) for a in random_observation(policy, np.random.default_rng(0)))
     eager = eager_samples(checkpoint, manifest, pc, pos, {"iterations": settings["history"], "torch_iterations": settings["torch_iterations"]})
@@ -129,7 +140,8 @@ def measure(model_dir: Path, checkpoint: Path, threads: int, precision: str, qui
             "settings": settings, "runtime": runtime, "eager_torch": eager, "targets": TARGETS,
             "machine": machine.describe(), "denoise_steps": manifest["denoise_steps"], "torch_threads": torch.get_num_threads(),
             "read_gbs": read_gbs, "roofline": lines, "rows": rows(runtime, eager, precision, lines),
-            "code_commit": code_commit(), "model_source": manifest.get("source")}
+            "code_commit": code_commit(), "model_source": manifest.get("source"),
+            "k1_model": str(k1_model) if k1_model else None}
 
 
 def rows(runtime: dict, eager: dict, precision: str, lines: dict) -> list[dict]:
@@ -144,6 +156,8 @@ def rows(runtime: dict, eager: dict, precision: str, lines: dict) -> list[dict]:
          "required_met": {k: v <= TARGETS["chunk_ms"][1] for k, v in chunk.items()}},
         {"figure": "history step, fp32, p50 ms", "values": per_kernel(lambda r: r["precision"]["fp32"]["history_step_p50"]),
          "target": "<= 1.5"},
+        {"figure": f"history step, {precision}, p50 ms",
+         "values": per_kernel(lambda r: r["precision"][precision]["history_step_p50"]), "target": "<= 1"},
         {"figure": "ONNX Runtime vs eager PyTorch per chunk (eager fp32 / ORT)",
          "values": per_kernel(lambda r: eager["denoiser_chunk"]["p50"] / r["precision"][precision]["chunk_p50"]), "target": ">= 5x"},
         {"figure": "tick p99 with prefetch / history step p99",
@@ -153,6 +167,9 @@ def rows(runtime: dict, eager: dict, precision: str, lines: dict) -> list[dict]:
         {"figure": f"chunk / floor, {precision}", "values": {k: lines[k][precision]["ratio"] for k in runtime},
          "target": "<= 1.5x"},
     ]
+    if FUSED + K1 in lines:
+        out.insert(1, {"figure": f"chunk, K = 1, {precision}, p50 ms", "values": {FUSED: lines[FUSED + K1][precision]["chunk_ms"]},
+                       "target": "<= 3"})
     return out
 
 
@@ -160,7 +177,7 @@ def markdown(report: dict) -> str:
     kernels = list(report["runtime"])
     k = report["denoise_steps"]
     head = {"fused": "fused Mamba kernel", "fused" + NO_SPIN: "fused, --no-spin", "standard": "standard graphs",
-            FORCED: "fused, AVX2 paths forced"}
+            FORCED: "fused, AVX2 paths forced", FUSED + K1: "fused, K = 1", FORCED + K1: "fused, AVX2 paths forced, K = 1"}
     m = report["machine"]
     lines = [f"Model: {Path(report['model_dir']).name} — batch 1, {report['threads']} thread(s), medians of one run; {m['cpu']} "
              f"({m['cores']} cores, {', '.join(m['cpu_flags']) or 'no AVX2'}), onnxruntime {m.get('onnxruntime')}", "",
@@ -227,6 +244,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quick", action="store_true", help="short run (tests)")
     p.add_argument("--json", type=Path, help="write every figure here (a new file; --force replaces one)")
     p.add_argument("--plot", type=Path, help="draw each chunk against its floor (a PNG; a new file, --force replaces one)")
+    p.add_argument("--k1-model", type=Path, help="the same run exported with --denoise-steps 1: its fused chunk too")
     p.add_argument("--force", action="store_true", help="replace an existing --json or --plot file")
     args = p.parse_args(argv)
 
@@ -235,7 +253,14 @@ def main(argv: list[str] | None = None) -> int:
         check_json(args.json, args.force)
         check_json(args.plot, args.force)
         check_source(args.model_dir, args.checkpoint, read_manifest(args.model_dir))
-        report = measure(args.model_dir, args.checkpoint, args.threads or default_threads(), args.precision, args.quick)
+        if args.k1_model is not None:
+            k1 = read_manifest(args.k1_model)
+            check_source(args.k1_model, args.checkpoint, k1)
+            if k1["denoise_steps"] != 1:
+                raise ConfigError(f"--k1-model {args.k1_model} runs {k1['denoise_steps']} DDIM steps, not 1; export it with "
+                                  "python -m export.to_onnx RUN_DIR -o DIR --denoise-steps 1 --timestep-spacing trailing")
+        report = measure(args.model_dir, args.checkpoint, args.threads or default_threads(), args.precision, args.quick,
+                         args.k1_model)
         if args.plot:
             plot_roofline(report, args.plot, args.force)
         return emit(report, markdown(report), args.json, args.force)

@@ -124,21 +124,34 @@ def test_cpu_targets_table_has_every_row_on_both_graph_sets(tiny_export, tmp_pat
     out = tmp_path / "targets.json"
     bench = load_comparison("cpu_targets")
     plot = tmp_path / "roofline.png"
+    from export.to_onnx import main as export_main
+
+    k1 = tmp_path / "k1"
+    assert export_main([str(run_dir), "-o", str(k1), "--denoise-steps", "1", "--timestep-spacing", "trailing", "--skip-verify"]) == 0
+    capsys.readouterr()
+    assert bench.main([str(model_dir), "--checkpoint", str(run_dir), "--quick", "--threads", "1", "--k1-model", str(model_dir)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "runs 10 DDIM steps, not 1" in err[0] and "--denoise-steps 1" in err[0]
     assert bench.main([str(model_dir), "--checkpoint", str(run_dir), "--quick", "--threads", "1", "--json", str(out),
-                       "--plot", str(plot)]) == 0
+                       "--plot", str(plot), "--k1-model", str(k1)]) == 0
     text = capsys.readouterr().out
+    assert "| chunk, K = 1, int8, p50 ms |" in text and "| history step, int8, p50 ms |" in text
     assert "| fused Mamba kernel | standard graphs | target |" in text and "| chunk, K = 10, int8, p50 ms |" in text
     report = json.loads(out.read_text())
     # the roofline: every chunk against K + 1 reads of its own graph's weights at the measured bandwidth
     manifest = json.loads((model_dir / "dssp_model.json").read_text())
     assert report["read_gbs"] > 0 and plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    k1_manifest = json.loads((k1 / "dssp_model.json").read_text())
+    assert {"fused, K = 1"} <= set(report["roofline"]) and report["k1_model"] == str(k1)
     for kernel, by_precision in report["roofline"].items():
+        passes, files = (1, k1_manifest["files"]) if kernel.endswith("K = 1") else (11, manifest["files"])  # one step: prefix and actions in one pass
         for precision, r in by_precision.items():
             graph = "denoiser" + {"int8": ".int8", "fp32": ""}[precision] + ".fused" * kernel.startswith("fused") + ".onnx"
-            assert r["weights_mib"] == pytest.approx(manifest["files"][graph]["bytes"] / 2**20)
-            assert r["passes"] == 11 and r["floor_ms"] == pytest.approx(11 * manifest["files"][graph]["bytes"] / report["read_gbs"] / 1e6)
+            assert r["weights_mib"] == pytest.approx(files[graph]["bytes"] / 2**20)
+            assert r["passes"] == passes and r["floor_ms"] == pytest.approx(passes * files[graph]["bytes"] / report["read_gbs"] / 1e6)
             assert r["ratio"] == pytest.approx(r["chunk_ms"] / r["floor_ms"])
-    assert ("fused, avx2 forced" in report["roofline"]) == bool({"avx512_vnni", "avx_vnni"} & cpu_flags())
+    vnni = bool({"avx512_vnni", "avx_vnni"} & cpu_flags())
+    assert ("fused, avx2 forced" in report["roofline"]) == vnni == ("fused, avx2 forced, K = 1" in report["roofline"])
     assert "| chunk / floor, int8 |" in text and "Roofline: read bandwidth" in text
     assert set(report["runtime"]) == {"fused", "standard"} and report["machine"]["cores"] >= 1
     for kernel, r in report["runtime"].items():
