@@ -7,7 +7,7 @@ EXTRAS ?= train,export,deploy,hardware,sim,viz,ros,lerobot,dev
 # Test workers (pytest-xdist), one per core; each test file runs whole in one worker (its fixtures built once).
 TEST_WORKERS ?= auto
 
-.PHONY: system setup kernel qgemm-bench demo test test-slow bench
+.PHONY: system setup kernel kernel-aarch64 qgemm-bench block-bench demo test test-slow bench
 
 # The fused Mamba operators for ONNX Runtime (optional at run time; see dssp_deploy/kernel/). Built against
 # ONNX Runtime's C API headers: fetched from Debian 13's libonnxruntime-dev into build/ort-include, or taken
@@ -17,9 +17,9 @@ KERNEL := dssp_deploy/kernel/libdssp_mamba.so
 ORT_INCLUDE_DIR ?= build/ort-include
 KERNEL_FLAGS ?= -O3 -std=c++17 -fPIC -shared -fvisibility=hidden -fopenmp-simd -fno-trapping-math -Wall -Wextra
 
-# pyrealsense2 needs the system's libusb-1.0 (Debian/Ubuntu: apt-get install libusb-1.0-0). The test of the int8
-# products (tests/test_qgemm.py) cross-builds their harness for aarch64 and runs it under qemu: g++-aarch64-linux-gnu
-# and qemu-user.
+# pyrealsense2 needs the system's libusb-1.0 (Debian/Ubuntu: apt-get install libusb-1.0-0). The tests of the int8
+# products and of the int8 block (tests/test_qgemm.py, tests/test_block_harness.py) cross-build their harnesses for
+# aarch64 and run them under qemu: g++-aarch64-linux-gnu and qemu-user.
 system:
 	@ldconfig -p | grep -q 'libusb-1.0.so.0' || \
 	  { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && apt-get update -qq && apt-get install -y -qq libusb-1.0-0 >/dev/null; } || \
@@ -52,6 +52,28 @@ $(KERNEL): dssp_deploy/kernel/mamba_ops.cc dssp_deploy/kernel/mamba_block.h dssp
 	@[ -f "$(ORT_INCLUDE_DIR)/onnxruntime_lite_custom_op.h" ] || dssp_deploy/kernel/fetch_ort_headers.sh "$(ORT_INCLUDE_DIR)"
 	$(CXX) $(KERNEL_FLAGS) -I"$(ORT_INCLUDE_DIR)" $< -o $@.tmp
 	@mv $@.tmp $@
+
+# The library for an aarch64 robot computer (Jetson Orin, Raspberry Pi 5), cross-built here: copy it beside the
+# runtime there (or point DSSP_KERNEL at it).
+KERNEL_AARCH64 := build/aarch64/libdssp_mamba.so
+
+kernel-aarch64: $(KERNEL_AARCH64)
+
+$(KERNEL_AARCH64): dssp_deploy/kernel/mamba_ops.cc dssp_deploy/kernel/mamba_block.h dssp_deploy/kernel/scan_simd.inc dssp_deploy/kernel/qgemm.h
+	@[ -f "$(ORT_INCLUDE_DIR)/onnxruntime_lite_custom_op.h" ] || dssp_deploy/kernel/fetch_ort_headers.sh "$(ORT_INCLUDE_DIR)"
+	@mkdir -p $(dir $@)
+	aarch64-linux-gnu-g++ $(KERNEL_FLAGS) -I"$(ORT_INCLUDE_DIR)" $< -o $@.tmp
+	@mv $@.tmp $@
+
+# One denoiser step of int8 blocks at the robotwin preset's sizes without ONNX Runtime (dssp_deploy/kernel/
+# block_check.cc --bench), on one thread and on two: the step and each part of a block, in microseconds.
+BLOCK_BENCH := build/block/block_bench
+
+block-bench:
+	@mkdir -p build/block
+	$(CXX) -O3 -std=c++17 -Wall -Wextra -fopenmp-simd -fno-trapping-math -pthread -o $(BLOCK_BENCH) dssp_deploy/kernel/block_check.cc
+	$(BLOCK_BENCH) --bench 1
+	$(BLOCK_BENCH) --bench 2
 
 # The int8 products for a few rows (dssp_deploy/kernel/qgemm.h): the harness built with -O3, its parity line and
 # the time of 12-row products per path this CPU runs (DSSP_QGEMM_PATH=<path> times that one alone), then this
