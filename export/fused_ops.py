@@ -133,16 +133,24 @@ def rms_norm(x: torch.Tensor, weight: torch.Tensor, eps: float) -> torch.Tensor:
 
 
 def block_reference(a, conv_state, ssm_state, mod, norm_w, in_q, in_s, conv_w, conv_b, xp_q, xp_s, dt_q, dt_s, dt_b,
-                    A, D, out_q, out_s, norm2_w, fc1_q, fc1_s, fc2_q, fc2_s, eps):  # noqa: N803 (the math's names)
+                    A, D, out_q, out_s, norm2_w, fc1_q, fc1_s, fc2_q, fc2_s, eps, plain: int = 0):  # noqa: N803
     """What ``ai.dssp::MambaBlockQ8`` computes, in PyTorch: a (B, L, d) → (a (B, L, d), the mixer's state after the L
     tokens: conv (B, E, W), ssm (B, E, n)). ``mod`` (3, d) is the AdaLN row (shift, scale, gate) of the action
-    tokens; (0, d) for the prefix (no modulation, gate 1). Shapes: :class:`QuantizedMambaBlock`."""
+    tokens; (0, d) for the prefix alone (no modulation, gate 1). ``plain``: the first tokens that are the prefix
+    (unmodulated, gate 1) before the action tokens, in one pass. States (B, 0, W) and (B, 0, n) are zeros. Shapes:
+    :class:`QuantizedMambaBlock`."""
     E, R = conv_w.shape[1], dt_q.shape[1]  # noqa: N806
     n = A.shape[1]
+    if conv_state.shape[1] == 0:  # empty: a start from zeros
+        conv_state = a.new_zeros(a.shape[0], E, conv_w.shape[0])
+    if ssm_state.shape[1] == 0:
+        ssm_state = a.new_zeros(a.shape[0], E, n)
     h = rms_norm(a, norm_w, eps)
     if mod.shape[0]:
         shift, scale, gate = mod.unbind(0)  # (d,) each
-        h = h * (1 + scale) + shift
+        actions = torch.arange(a.shape[1]) >= plain  # (L,): the tokens AdaLN and the gate act on
+        h = torch.where(actions[:, None], h * (1 + scale) + shift, h)
+        gate = torch.where(actions[:, None], gate, torch.ones_like(gate))  # (L, d)
     xz = q8_linear(h, in_q, in_s)
     x, z = xz[..., :E], xz[..., E:]
     x, conv_after = causal_conv(x, conv_state, conv_w.t().unsqueeze(1), conv_b)
@@ -161,16 +169,17 @@ def block_reference(a, conv_state, ssm_state, mod, norm_w, in_q, in_s, conv_w, c
 class _MambaBlockQ8(torch.autograd.Function):
     @staticmethod
     def forward(ctx, *inputs):
-        *tensors, eps, state_out = inputs
-        a, conv, ssm = block_reference(*tensors, eps)
+        *tensors, eps, state_out, plain = inputs
+        a, conv, ssm = block_reference(*tensors, eps, plain)
         if not state_out:  # as the operator allocates them: empty
             conv, ssm = conv[:, :0], ssm[:, :0]
         return a, conv, ssm
 
     @staticmethod
     def symbolic(g, *inputs):
-        *tensors, eps, state_out = inputs
-        a, conv, ssm = g.op(f"{DOMAIN}::{BLOCK_OP}", *tensors, eps_f=float(eps), state_out_i=int(state_out), outputs=3)
+        *tensors, eps, state_out, plain = inputs
+        a, conv, ssm = g.op(f"{DOMAIN}::{BLOCK_OP}", *tensors, eps_f=float(eps), state_out_i=int(state_out),
+                            plain_i=int(plain), outputs=3)
         a.setType(tensors[0].type())
         conv.setType(tensors[1].type())
         ssm.setType(tensors[2].type())
@@ -223,17 +232,28 @@ class QuantizedMambaBlock(torch.nn.Module):
         """Whether the block can run as one node: a Mamba mixer, no MLP or the gated one (DiT's MLP has its own AdaLN)."""
         return isinstance(block.mixer, Mamba) and block.mlp_kind in ("none", "gated")
 
-    def _run(self, a, conv_state, ssm_state, mod, state_out: bool):
+    def _run(self, a, conv_state, ssm_state, mod, state_out: bool, plain: int = 0):
         return _MambaBlockQ8.apply(a, conv_state, ssm_state, mod, self.norm_w, self.in_q, self.in_s, self.conv_w,
                                    self.conv_b, self.xp_q, self.xp_s, self.dt_q, self.dt_s, self.dt_b, self.A, self.D,
                                    self.out_q, self.out_s, self.norm2_w, self.fc1_q, self.fc1_s, self.fc2_q,
-                                   self.fc2_s, self.eps, state_out)
+                                   self.fc2_s, self.eps, state_out, plain)
+
+    def _zero_state(self, x):
+        """Empty states (B, 0, W) and (B, 0, n): the operator starts from zeros without reading any."""
+        return x.new_zeros(x.shape[0], 0, self.d_conv), x.new_zeros(x.shape[0], 0, self.d_state)
 
     def prefix(self, p):
-        batch, E = p.shape[0], self.A.shape[0]  # noqa: N806
-        conv0, ssm0 = p.new_zeros(batch, E, self.d_conv), p.new_zeros(batch, E, self.d_state)
-        p, conv, ssm = self._run(p, conv0, ssm0, self.no_mod, True)
+        p, conv, ssm = self._run(p, *self._zero_state(p), self.no_mod, True)
         return p, (conv, ssm)
+
+    def joint(self, p, a, shift, scale, gate):
+        """The prefix p (B, L_p, d) and the action tokens a (B, H, d) in one pass (one DDIM step with the timestep
+        decoupled: the prefix unmodulated) → (p, a) after the block."""
+        plain = int(p.shape[1])  # a constant of the model (its prefix's length), an attribute of the node
+        seq = torch.cat([p, a], dim=1)
+        mod = torch.cat([shift, scale, gate], dim=0)
+        out = self._run(seq, *self._zero_state(seq), mod, False, plain)[0]
+        return out[:, :plain], out[:, plain:]
 
     def forward(self, a, state, shift, scale, gate):
         conv_state, ssm_state = state

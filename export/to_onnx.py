@@ -378,7 +378,8 @@ def export_model(
 
         modules = graph_modules(policy, k, inpainting)
         examples = {g: example_inputs(config, g, inpainting=inpainting) for g in GRAPHS}
-        caching = "prefix cached" if config.model.timestep_decoupled else "prefix in every step (timestep_decoupled false)"
+        caching = ("prefix in every step (timestep_decoupled false)" if not config.model.timestep_decoupled
+                   else "prefix cached" if k > 1 else "prefix and actions in one pass")
         stage(f"built {HISTORY_GRAPH} and {DENOISER_GRAPH} (K = {k} DDIM steps {timesteps}, {caching})")
 
         files: dict[str, dict[str, str]] = {g: {} for g in GRAPHS}

@@ -16,7 +16,7 @@ from conftest import CROSS_HINT, CROSS_TOOLS, block_case, build_harness
 
 BUILD = Path(__file__).resolve().parents[1] / "build" / "block"
 MAGIC = b"DSSPTENS"
-CASES = [("gated", 1, "actions"), ("none", 2, "actions"), ("gated", 2, "prefix")]
+CASES = [("gated", 1, "actions"), ("none", 2, "actions"), ("gated", 2, "prefix"), ("gated", 1, "joint")]
 
 
 def write_tensors(path: Path, tensors: dict[str, np.ndarray]) -> None:
@@ -49,20 +49,24 @@ def read_tensors(path: Path) -> dict[str, np.ndarray]:
 
 def case(tmp_path: Path, mlp: str, batch: int, part: str) -> tuple[Path, list[np.ndarray]]:
     """A block's inputs written for the harness, and what block_reference gives for them: (a, conv, ssm), the
-    states (batch, 0, .) on the action tokens (not written), after the tokens on the prefix."""
+    states after the tokens on the prefix alone, else (batch, 0, .) (not written)."""
     from export.fused_ops import block_reference
 
     fused, values = block_case(mlp, batch)
+    plain = 3 if part == "joint" else 0  # the prefix's tokens before the actions', in one pass
+    if part == "prefix":  # from zeros given, and from zeros as the exported graphs say it (empty states)
+        values.update(conv_state=torch.zeros_like(values["conv_state"]), ssm_state=torch.zeros_like(values["ssm_state"]))
+    if part == "joint":
+        values.update(conv_state=values["conv_state"][:, :0], ssm_state=values["ssm_state"][:, :0])
     if part == "prefix":
-        values.update(mod=torch.zeros(0, values["a"].shape[-1]), conv_state=torch.zeros_like(values["conv_state"]),
-                      ssm_state=torch.zeros_like(values["ssm_state"]))
+        values.update(mod=torch.zeros(0, values["a"].shape[-1]))
     with torch.no_grad():
-        want = [t.numpy() for t in block_reference(*values.values(), fused.eps)]
-    if part == "actions":
+        want = [t.numpy() for t in block_reference(*values.values(), fused.eps, plain)]
+    if part != "prefix":
         want = [want[0], want[1][:, :0], want[2][:, :0]]
     path = tmp_path / f"{mlp}-{batch}-{part}.case"
     write_tensors(path, {**{name: value.numpy() for name, value in values.items()},
-                         "eps": np.array(fused.eps, np.float32)})
+                         "eps": np.array(fused.eps, np.float32), "plain": np.array(plain, np.float32)})
     return path, want
 
 

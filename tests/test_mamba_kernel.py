@@ -214,12 +214,12 @@ def test_a_fused_graph_the_runtime_cannot_load_falls_back(tiny_export, tmp_path)
 
 
 # ------------------------------------------------------------ a whole denoiser block, int8
-def block_session(values: dict, eps: float, threads: int = 1, state_out: int = 0):
+def block_session(values: dict, eps: float, threads: int = 1, state_out: int = 0, plain: int = 0):
     """A one-node graph of ``ai.dssp::MambaBlockQ8``, the weights as initializers (as an exported graph has them)."""
     feeds = ["a", "conv_state", "ssm_state", "mod"]
     initializers = [onnx.numpy_helper.from_array(values[name].numpy(), name) for name in BLOCK_INPUTS if name not in feeds]
     node = helper.make_node(mamba_kernel.BLOCK_OP, BLOCK_INPUTS, ["out", "conv", "ssm"], domain=mamba_kernel.DOMAIN,
-                            eps=eps, state_out=state_out)
+                            eps=eps, state_out=state_out, plain=plain)
     graph = helper.make_graph(
         [node], "g", [helper.make_tensor_value_info(n, TensorProto.FLOAT, None) for n in feeds],
         [helper.make_tensor_value_info(n, TensorProto.FLOAT, None) for n in ("out", "conv", "ssm")],
@@ -231,28 +231,32 @@ def block_session(values: dict, eps: float, threads: int = 1, state_out: int = 0
 
 
 @pytest.mark.parametrize("mlp, batch, part", [("gated", 1, "actions"), ("gated", 2, "actions"), ("none", 1, "actions"),
-                                              ("gated", 2, "prefix")])
+                                              ("gated", 2, "prefix"), ("gated", 2, "joint")])
 def test_a_whole_int8_block_matches_its_pytorch_reference(mlp, batch, part, monkeypatch):
     """One denoiser block: the operator against ``export.fused_ops.block_reference`` (the same per-row quantization,
-    the integer sums exact) on the action tokens (AdaLN, from a prefix's state) and on the prefix (no AdaLN, from
-    zeros, its state out), on every scan path and thread count; every qgemm path this CPU runs gives the same result
-    bit for bit (their integer sums are exact and their epilogue the same)."""
+    the integer sums exact) on the action tokens (AdaLN, from a prefix's state), on the prefix (no AdaLN, from
+    zeros, its state out) and on both in one pass (the first 3 tokens plain), on every scan path and thread count;
+    every qgemm path this CPU runs gives the same result bit for bit (their integer sums are exact and their
+    epilogue the same)."""
     from export.fused_ops import block_reference
 
     fused, values = block_case(mlp, batch)
-    state_out = int(part == "prefix")
+    state_out, plain = int(part == "prefix"), 3 if part == "joint" else 0
+    if part == "prefix":  # from zeros given, and from zeros as the exported graphs say it (empty states)
+        values.update(conv_state=torch.zeros_like(values["conv_state"]), ssm_state=torch.zeros_like(values["ssm_state"]))
+    if part == "joint":
+        values.update(conv_state=values["conv_state"][:, :0], ssm_state=values["ssm_state"][:, :0])
     if state_out:
-        values.update(mod=torch.zeros(0, values["a"].shape[-1]), conv_state=torch.zeros_like(values["conv_state"]),
-                      ssm_state=torch.zeros_like(values["ssm_state"]))
+        values.update(mod=torch.zeros(0, values["a"].shape[-1]))
     with torch.no_grad():
-        want = [t.numpy() for t in block_reference(*values.values(), fused.eps)]
+        want = [t.numpy() for t in block_reference(*values.values(), fused.eps, plain)]
     if not state_out:
         want = [want[0], want[1][:, :0], want[2][:, :0]]
     outputs = {}
     for scan in [i for i in IMPLEMENTATIONS if cpu_runs(i)]:
         for threads in (1, 2):
             monkeypatch.setenv("DSSP_SCAN_PATH", scan)
-            session, feeds = block_session(values, fused.eps, threads, state_out)
+            session, feeds = block_session(values, fused.eps, threads, state_out, plain)
             got = session.run(None, feeds)
             for g, w in zip(got, want):
                 assert g.shape == w.shape
@@ -264,9 +268,9 @@ def test_a_whole_int8_block_matches_its_pytorch_reference(mlp, batch, part, monk
         monkeypatch.setenv("DSSP_QGEMM_PATH", path)
         if not qgemm_runs(path):
             with pytest.raises(Exception, match=path):
-                block_session(values, fused.eps, 1, state_out)[0].run(None, feeds)
+                block_session(values, fused.eps, 1, state_out, plain)[0].run(None, feeds)
             continue
-        session, feeds = block_session(values, fused.eps, 1, state_out)
+        session, feeds = block_session(values, fused.eps, 1, state_out, plain)
         for g, r in zip(session.run(None, feeds), reference):
             assert np.array_equal(g, r), path
 
@@ -291,6 +295,32 @@ def test_the_int8_fused_denoiser_runs_each_block_as_one_node(tiny_export):
     assert others < 0.1 * sum(blocks.values()), int8
     standard = onnx.load(str(model_dir / "denoiser.int8.onnx"))
     assert len(model.graph.node) < len(standard.graph.node) / 4
+    fp32 = run_chunk(OnnxPolicy(model_dir, threads=1, precision="fp32", kernel="standard"))
+    fused_error, standard_error = (np.abs(run_chunk(OnnxPolicy(model_dir, threads=1, precision="int8", kernel=kernel))
+                                          - fp32).max() for kernel in ("fused", "standard"))
+    assert fused_error <= 1.5 * standard_error, (fused_error, standard_error)
+
+
+def test_one_ddim_step_runs_prefix_and_actions_as_one_node_per_block(tiny_export, tmp_path):
+    """K = 1 (the distilled samplers' shape): the prefix and the action tokens in one pass, each block one
+    MambaBlockQ8 node with the prefix's tokens plain; its chunks as close to fp32's as the standard int8 graphs'."""
+    from collections import Counter
+
+    from export.to_onnx import main as export_main
+
+    run_dir, _, _ = tiny_export
+    model_dir = tmp_path / "k1"
+    assert export_main([str(run_dir), "-o", str(model_dir), "--denoise-steps", "1", "--timestep-spacing", "trailing",
+                        "--skip-verify"]) == 0
+    manifest = json.loads((model_dir / MANIFEST_NAME).read_text())
+    model = onnx.load(str(model_dir / "denoiser.int8.fused.onnx"))
+    ops = Counter(node.op_type for node in model.graph.node)
+    assert ops[mamba_kernel.BLOCK_OP] == manifest["model_config"]["n_denoiser_layers"] and ops[mamba_kernel.SCAN_OP] == 0
+    prefix = int(manifest["use_history"]) + int(manifest["use_recent_states"]) * manifest["n_obs_steps"]
+    for node in model.graph.node:
+        if node.op_type == mamba_kernel.BLOCK_OP:
+            attributes = {a.name: onnx.helper.get_attribute_value(a) for a in node.attribute}
+            assert attributes["plain"] == prefix and attributes["state_out"] == 0, attributes
     fp32 = run_chunk(OnnxPolicy(model_dir, threads=1, precision="fp32", kernel="standard"))
     fused_error, standard_error = (np.abs(run_chunk(OnnxPolicy(model_dir, threads=1, precision="int8", kernel=kernel))
                                           - fp32).max() for kernel in ("fused", "standard"))

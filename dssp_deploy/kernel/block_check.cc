@@ -6,8 +6,9 @@
 //
 // Tensor files (CASE, OUT): "DSSPTENS" then, per tensor, u32 name length, the name, u8 dtype ('f' float32,
 // 'b' int8), u32 ndim, ndim int64 dims, the values; little-endian. CASE holds MambaBlockQ8's inputs by their names
-// (a, conv_state, ssm_state, mod, norm_w, in_q, in_s, …, fc2_s: mamba_ops.cc) and eps (shape ()); mod (0, d) is
-// the prefix, whose states are written; OUT holds a, conv, ssm. The scan and product paths are the ones
+// (a, conv_state, ssm_state, mod, norm_w, in_q, in_s, …, fc2_s: mamba_ops.cc), eps (shape ()) and optionally
+// plain (shape (), the prefix tokens before the actions); mod (0, d) is the prefix alone, whose states are
+// written; OUT holds a, conv, ssm. The scan and product paths are the ones
 // DSSP_SCAN_PATH and DSSP_QGEMM_PATH choose. Exit 0 when the block ran, 2 when a path cannot run here (the JSON
 // line says why), 1 for a broken file.
 
@@ -210,12 +211,17 @@ int parity(const std::string& case_path, const std::string& out_path, int thread
   w.norm2_w = mlp ? need(t, "norm2_w", 'f', 1).f() : nullptr;
   w.d = d, w.E = E, w.W = W, w.n = n, w.eps = need(t, "eps", 'f', 0).f()[0];
   w.check();
-  if (need(t, "conv_state", 'f', 3).numel() != batch * E * W || need(t, "ssm_state", 'f', 3).numel() != batch * E * n ||
+  const Tensor& conv_state = need(t, "conv_state", 'f', 3);
+  const Tensor& ssm_state = need(t, "ssm_state", 'f', 3);  // either empty: a start from zeros
+  if ((conv_state.numel() && conv_state.numel() != batch * E * W) || (ssm_state.numel() && ssm_state.numel() != batch * E * n) ||
       mod.shape[1] != d || (!prefix && mod.shape[0] != 3))
     broken("the states or mod do not fit a");
   m::BlockInputs inputs;
-  inputs.a = a.f(), inputs.conv_state = t.at("conv_state").f(), inputs.ssm_state = t.at("ssm_state").f();
+  inputs.a = a.f(), inputs.conv_state = conv_state.numel() ? conv_state.f() : nullptr;
+  inputs.ssm_state = ssm_state.numel() ? ssm_state.f() : nullptr;
   inputs.mod = prefix ? nullptr : mod.f(), inputs.batch = batch, inputs.L = L;
+  if (t.count("plain")) inputs.plain = static_cast<int64_t>(need(t, "plain", 'f', 0).f()[0]);
+  if (inputs.plain < 0 || inputs.plain > L || (prefix && inputs.plain)) broken("plain does not fit a and mod");
   Tensors result{{"a", floats(a.shape)}, {"conv", floats({batch, prefix ? E : 0, W})}, {"ssm", floats({batch, prefix ? E : 0, n})}};
   m::BlockOutputs outputs;
   outputs.a = reinterpret_cast<float*>(result["a"].bytes.data());

@@ -58,7 +58,7 @@ inline float softplus(float x) {  // torch.nn.functional.softplus (beta 1, thres
 inline float silu(float x) { return x / (1.0f + std::exp(-x)); }
 
 struct Problem {
-  const float *x, *dt, *B, *C, *z, *A, *D, *h0;
+  const float *x, *dt, *B, *C, *z, *A, *D, *h0;  // h0 null: the state starts from zeros
   float *y, *h;  // h null: the state is not written (state_out 0)
   int64_t batch, L, E, n;
 };
@@ -82,7 +82,10 @@ inline void scan_block_portable(const Problem& p, int64_t b, int64_t e0, int64_t
   for (int64_t i = 0; i < w; ++i) {
     const int64_t e = e0 + i;
     const float* A = p.A + e * n;
-    std::memcpy(h.data(), p.h0 + (b * E + e) * n, n * sizeof(float));
+    if (p.h0)
+      std::memcpy(h.data(), p.h0 + (b * E + e) * n, n * sizeof(float));
+    else
+      std::fill(h.begin(), h.end(), 0.0f);
     float* hp = h.data();
     for (int64_t t = 0; t < L; ++t) {
       const float d = delta[t * w + i], u = dx[t * w + i];
@@ -183,7 +186,7 @@ inline bool cpu_has_avx512() { return cpu_has_avx2() && __builtin_cpu_supports("
 // W steps of xe: Mamba's conv branch continuing from its state (zeros at a fresh start). Plain C++: the
 // loops over channels vectorise on any target, and the work is small next to the scan.
 struct ConvProblem {
-  const float *x, *state, *weight, *bias;  // weight (W, E)
+  const float *x, *state, *weight, *bias;  // weight (W, E); state null: zeros
   float *y, *new_state;
   int64_t batch, L, E, W;
 };
@@ -207,7 +210,8 @@ CONV_CLONES inline void conv_block(const ConvProblem& p, int64_t b, int64_t e0, 
 #pragma omp simd
         for (int64_t e = e0; e < e1; ++e) y[e] += w[e] * xi[e];
       } else {
-        for (int64_t e = e0; e < e1; ++e) y[e] += w[e] * p.state[(b * E + e) * W + i];
+        if (p.state)
+          for (int64_t e = e0; e < e1; ++e) y[e] += w[e] * p.state[(b * E + e) * W + i];
       }
     }
 #pragma omp simd
@@ -220,8 +224,8 @@ CONV_CLONES inline void conv_block(const ConvProblem& p, int64_t b, int64_t e0, 
       const float* xi = p.x + (b * L + i - W) * E;
       for (int64_t e = e0; e < e1; ++e) out[e * W] = xi[e];
     } else {
-      const float* si = p.state + b * E * W + i;
-      for (int64_t e = e0; e < e1; ++e) out[e * W] = si[e * W];
+      const float* si = p.state ? p.state + b * E * W + i : nullptr;
+      for (int64_t e = e0; e < e1; ++e) out[e * W] = si ? si[e * W] : 0.0f;
     }
   }
 }
@@ -356,10 +360,13 @@ struct BlockWeights {
   }
 };
 
-// a (batch, L, d); conv_state (batch, E, W); ssm_state (batch, E, n); mod (3, d) or null (the prefix)
+// a (batch, L, d); conv_state (batch, E, W); ssm_state (batch, E, n), both null for a start from zeros; mod (3, d)
+// or null (the prefix alone).
+// plain: the first `plain` tokens of each row are the prefix, without AdaLN and gate 1, the rest the action
+// tokens (one DDIM step's [prefix, actions] in one pass); 0 when mod is null.
 struct BlockInputs {
   const float *a = nullptr, *conv_state = nullptr, *ssm_state = nullptr, *mod = nullptr;
-  int64_t batch = 0, L = 0;
+  int64_t batch = 0, L = 0, plain = 0;
 };
 
 // a (batch, L, d); the states after the L tokens, conv (batch, E, W) and ssm (batch, E, n), or null: not written
@@ -417,7 +424,11 @@ inline void block_forward(const BlockWeights& w, const BlockInputs& in, const Bl
         *conv_after = take(sizes[5]), *dbc = take(sizes[6]), *dt_in = take(sizes[7]), *dt = take(sizes[8]),
         *Bm = take(sizes[9]), *Cm = take(sizes[10]), *y = take(sizes[11]), *o = take(sizes[12]), *g = take(sizes[13]),
         *u = take(sizes[14]), *v = take(sizes[15]);
-  rms_norm(in.a, m, d, w.norm_w, w.eps, shift, scale, h);
+  for (int64_t b = 0; b < batch; ++b) {  // the prefix's tokens unmodulated, the actions' with AdaLN
+    const int64_t row = b * L, plain = shift ? in.plain : L;
+    rms_norm(in.a + row * d, plain, d, w.norm_w, w.eps, nullptr, nullptr, h + row * d);
+    rms_norm(in.a + (row + plain) * d, L - plain, d, w.norm_w, w.eps, shift, scale, h + (row + plain) * d);
+  }
   q8_matmul(parallel_for, h, m, d, *w.in, nullptr, xz, rows);
   for (int64_t i = 0; i < m; ++i) {
     std::memcpy(x + i * E, xz + i * 2 * E, sizeof(float) * E);
@@ -442,8 +453,13 @@ inline void block_forward(const BlockWeights& w, const BlockInputs& in, const Bl
   ScanTask scan_task{&sp, scan_path, scan_blocks};
   parallel_for(run_scan_task, static_cast<size_t>(batch * scan_blocks), &scan_task);
   q8_matmul(parallel_for, y, m, E, *w.out, nullptr, o, rows);
-  for (int64_t i = 0; i < m; ++i)
-    for (int64_t j = 0; j < d; ++j) out.a[i * d + j] = in.a[i * d + j] + (gate ? gate[j] : 1.0f) * o[i * d + j];
+  for (int64_t i = 0; i < m; ++i) {
+    const float* gi = gate && i % L >= in.plain ? gate : nullptr;
+    if (gi)
+      for (int64_t j = 0; j < d; ++j) out.a[i * d + j] = in.a[i * d + j] + gi[j] * o[i * d + j];
+    else
+      for (int64_t j = 0; j < d; ++j) out.a[i * d + j] = in.a[i * d + j] + o[i * d + j];
+  }
   if (!w.fc1) return;
 
   rms_norm(out.a, m, d, w.norm2_w, w.eps, nullptr, nullptr, g);

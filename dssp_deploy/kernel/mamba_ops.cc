@@ -145,23 +145,18 @@ struct CausalConv1d {
 };
 
 // ------------------------------------------------------------------ a whole denoiser block (int8 weights)
-// ai.dssp::MambaBlockQ8: one block of the denoiser — on the action tokens for one DDIM step, or on the prefix —
+// ai.dssp::MambaBlockQ8: one block of the denoiser — on the action tokens for one DDIM step, on the prefix, or on
+// both in one pass — with int8 weights: mamba_block.h's block_forward, whose comment gives the arithmetic.
 //
-//   h = rmsnorm(a) * (1 + scale) + shift                       AdaLN, mod = [shift; scale; gate] (3, d); the
-//                                                              prefix's mod is (0, d): h = rmsnorm(a), gate 1
-//   x, z = in_proj(h)                                          x, z (rows, E)
-//   x = silu(conv(x)) continuing from conv_state
-//   dt, B, C = x_proj(x); dt = dt_proj(dt) + dt_bias
-//   y = scan(x, dt, B, C, z) from ssm_state                    SelectiveScan's arithmetic
-//   a = a + gate * out_proj(y)
-//   a = a + fc2(u * silu(g)), [u, g] = fc1(rmsnorm2(a))        the gated MLP, when fc1 has rows
-//
-// inputs: a (batch, H, d); conv_state (batch, E, W); ssm_state (batch, E, n); mod (3, d); norm_w (d);
+// inputs: a (batch, H, d); conv_state (batch, E, W); ssm_state (batch, E, n) — (batch, 0, W) and (batch, 0, n): a
+//         start from zeros; mod (3, d); norm_w (d);
 //         in_q (2E, d) int8, in_s (2E); conv_w (W, E), conv_b (E); xp_q (R + 2n, E) int8, xp_s (R + 2n);
 //         dt_q (E, R) int8, dt_s (E), dt_b (E); A (E, n); D (E); out_q (d, E) int8, out_s (d);
 //         norm2_w (d); fc1_q (2h, d) int8, fc1_s (2h); fc2_q (d, h) int8, fc2_s (d) — the MLP's (0,)/(0, 0) without one
 // outputs: a (batch, H, d); the mixer's state after the tokens, conv (batch, E, W) and ssm (batch, E, n), with the
 // attribute state_out = 1 (the prefix's node; else both (batch, 0, .), never written). Attribute eps: the norms'.
+// Attribute plain (default 0): with mod (3, d), the first `plain` tokens of each row are the prefix, without AdaLN
+// and gate 1 — one DDIM step's [prefix, actions] in one pass (K = 1).
 //
 // Every product multiplies the rows (batch * H, a dozen) by int8 weights with the activations quantized per row
 // (qgemm.h), the weights packed once for this CPU and shared by every node that reads the same initializer (the
@@ -214,6 +209,14 @@ std::shared_ptr<const q::PackedWeights> packed_weights(const int8_t* w, const fl
   return packed;
 }
 
+int64_t int_attribute(const OrtKernelInfo* info, const char* name, int64_t fallback) {
+  try {
+    return Ort::ConstKernelInfo(info).GetAttribute<int64_t>(name);
+  } catch (const Ort::Exception&) {
+    return fallback;
+  }
+}
+
 float attribute_float(const OrtKernelInfo* info, const char* name, float fallback) {
   try {
     return Ort::ConstKernelInfo(info).GetAttribute<float>(name);
@@ -257,7 +260,7 @@ struct Weights {
 struct MambaBlockQ8 {
   MambaBlockQ8(const OrtApi*, const OrtKernelInfo* info)
       : scan_path(requested_scan_path()), qgemm_path(choose_qgemm_path()), eps(attribute_float(info, "eps", 1e-5f)),
-        state_out(state_out_attribute(info, 0) != 0) {}
+        state_out(state_out_attribute(info, 0) != 0), plain(int_attribute(info, "plain", 0)) {}
 
   Ort::Status Compute(OrtKernelContext* context, const Ort::Custom::Tensor<float>& a,
                       const Ort::Custom::Tensor<float>& conv_state, const Ort::Custom::Tensor<float>& ssm_state,
@@ -279,8 +282,10 @@ struct MambaBlockQ8 {
     const auto ws = conv_w.Shape(), ns = A.Shape();
     if (ws.size() != 2 || ns.size() != 2) ORT_CXX_API_THROW("MambaBlockQ8: conv_w must be (W, E) and A (E, n)", ORT_INVALID_ARGUMENT);
     const int64_t W = ws[0], E = ws[1], n = ns[1];
-    expect_shape("conv_state", conv_state.Shape(), {batch, E, W});
-    expect_shape("ssm_state", ssm_state.Shape(), {batch, E, n});
+    const bool conv_zero = conv_state.Shape() == std::vector<int64_t>{batch, 0, W};  // empty: a start from zeros
+    const bool ssm_zero = ssm_state.Shape() == std::vector<int64_t>{batch, 0, n};
+    if (!conv_zero) expect_shape("conv_state", conv_state.Shape(), {batch, E, W});
+    if (!ssm_zero) expect_shape("ssm_state", ssm_state.Shape(), {batch, E, n});
     const bool modulated = !mod.Shape().empty() && mod.Shape()[0] != 0;
     expect_shape("mod", mod.Shape(), {modulated ? 3 : 0, d});
     expect_shape("norm_w", norm_w.Shape(), {d});
@@ -308,8 +313,12 @@ struct MambaBlockQ8 {
       ORT_CXX_API_THROW(std::string(e.what()), ORT_INVALID_ARGUMENT);
     }
     BlockInputs inputs;
-    inputs.a = a.Data(), inputs.conv_state = conv_state.Data(), inputs.ssm_state = ssm_state.Data();
+    inputs.a = a.Data(), inputs.conv_state = conv_zero ? nullptr : conv_state.Data();
+    inputs.ssm_state = ssm_zero ? nullptr : ssm_state.Data();
     inputs.mod = modulated ? mod.Data() : nullptr, inputs.batch = batch, inputs.L = L;
+    inputs.plain = modulated ? plain : 0;
+    if (inputs.plain < 0 || inputs.plain > L)
+      ORT_CXX_API_THROW("MambaBlockQ8: plain = " + std::to_string(plain) + " prefix tokens, but a has " + std::to_string(L), ORT_INVALID_ARGUMENT);
     BlockOutputs outputs;
     outputs.a = out.Allocate(as);
     float* conv_after = conv_out.Allocate({batch, state_out ? E : 0, W});
@@ -324,6 +333,7 @@ struct MambaBlockQ8 {
   q::Path qgemm_path;
   float eps;
   bool state_out;
+  int64_t plain;
   Weights in_w, xp_w, dt_w, out_w, fc1_w, fc2_w;
 };
 

@@ -117,8 +117,8 @@ class DenoiserBlock(nn.Module):
 
     The copies export traces into the int8 fused graphs get a submodule ``fused_block``
     (``export.fused_ops.QuantizedMambaBlock``) that does the block's work — on the prefix (its state out), and on the
-    action tokens (norm, AdaLN, the Mamba mixer from the prefix's state, the gated residual, the MLP) — as one graph
-    node each; no other block has one."""
+    action tokens (norm, AdaLN, the Mamba mixer from the prefix's state, the gated residual, the MLP), or on both in
+    one pass (one DDIM step with the timestep decoupled) — as one graph node each; no other block has one."""
 
     def __init__(
         self,
@@ -216,6 +216,10 @@ class Denoiser(nn.Module):
         n_prefix = p.shape[1]
         for i, layer in enumerate(self.layers):
             shift, scale, gate, *mlp_mod = mod.block(i)
+            fused = getattr(layer, "fused_block", None)
+            if fused is not None and self.decoupled:
+                p, a = fused.joint(p, a, shift, scale, gate)
+                continue
             hp = layer.norm(p)
             if not self.decoupled:
                 hp = modulate(hp, shift, scale)
