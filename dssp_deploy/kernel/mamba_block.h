@@ -307,6 +307,7 @@ inline void rms_norm(const float* x, int64_t m, int64_t d, const float* weight, 
   for (int64_t i = 0; i < m; ++i) {
     const float* xi = x + i * d;
     float ss = 0.0f;
+#pragma omp simd reduction(+ : ss)
     for (int64_t j = 0; j < d; ++j) ss += xi[j] * xi[j];
     const float r = 1.0f / std::sqrt(ss / static_cast<float>(d) + eps);
     float* oi = out + i * d;
@@ -464,11 +465,12 @@ inline void block_forward(const BlockWeights& w, const BlockInputs& in, const Bl
 
   rms_norm(out.a, m, d, w.norm2_w, w.eps, nullptr, nullptr, g);
   q8_matmul(parallel_for, g, m, d, *w.fc1, nullptr, u, rows);
-  for (int64_t i = 0; i < m; ++i)
-    for (int64_t j = 0; j < hidden; ++j) {
-      const float gj = u[i * 2 * hidden + hidden + j];
-      v[i * hidden + j] = u[i * 2 * hidden + j] * (gj / (1.0f + fast_exp(-gj)));
-    }
+  for (int64_t i = 0; i < m; ++i) {
+    const float *ui = u + i * 2 * hidden, *gi = ui + hidden;
+    float* vi = v + i * hidden;
+#pragma omp simd
+    for (int64_t j = 0; j < hidden; ++j) vi[j] = ui[j] * (gi[j] / (1.0f + fast_exp(-gi[j])));
+  }
   q8_matmul(parallel_for, v, m, hidden, *w.fc2, nullptr, o, rows);
   for (int64_t i = 0; i < m * d; ++i) out.a[i] += o[i];
 }
