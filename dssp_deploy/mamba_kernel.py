@@ -29,6 +29,7 @@ DOMAIN = "ai.dssp"
 SCAN_OP = "SelectiveScan"
 CONV_OP = "CausalConv1d"
 BLOCK_OP = "MambaBlockQ8"  # a whole denoiser block on the action tokens, int8 weights (the int8 fused graphs)
+POOL_OP = "MaxOverPoints"  # the point encoder's max over the points, (B, P, F) -> (B, F)
 OPSET_VERSION = 1
 LIBRARY_NAME = "libdssp_mamba.so"
 LIBRARY_ENV = "DSSP_KERNEL"

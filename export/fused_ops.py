@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import torch
 
-from dssp_deploy.mamba_kernel import BLOCK_OP, CONV_OP, DOMAIN, SCAN_OP
+from dssp_deploy.mamba_kernel import BLOCK_OP, CONV_OP, DOMAIN, POOL_OP, SCAN_OP
 from dssp_train.model.denoiser import DenoiserBlock
 from dssp_train.model.mamba import Mamba, causal_conv
 from dssp_train.model.selective_scan import linear_scan_unrolled, selective_scan
@@ -47,13 +47,31 @@ class _CausalConv(torch.autograd.Function):
         return y, new_state
 
 
+class _MaxOverPoints(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x):
+        return x.amax(dim=-2)
+
+    @staticmethod
+    def symbolic(g, x):
+        y = g.op(f"{DOMAIN}::{POOL_OP}", x)
+        y.setType(x.type().with_sizes([None, None]))  # (batch, F)
+        return y
+
+
 class FusedOps:
-    """The operators :class:`dssp_train.model.mamba.Mamba` calls when its ``fused_ops`` is set."""
+    """The operators :class:`dssp_train.model.mamba.Mamba` and the point encoder call when their ``fused_ops`` is
+    set."""
 
     @staticmethod
     def selective_scan(x, dt, B, C, z, A, D, h0):  # noqa: N803
         """x, dt, z (batch, L, E), B, C (batch, L, n), A (E, n), D (E,), h0 (batch, E, n) → y (batch, L, E), h (batch, E, n)."""
         return _SelectiveScan.apply(x, dt, B, C, z, A, D, h0)
+
+    @staticmethod
+    def max_over_points(x):
+        """x (batch, P, F) → (batch, F): the max over the points."""
+        return _MaxOverPoints.apply(x)
 
     @staticmethod
     def causal_conv(x, state, weight, bias):

@@ -40,6 +40,7 @@ from torch import nn
 
 from dssp_core.errors import ConfigError
 from dssp_train.model.mamba import Mamba
+from dssp_train.model.obs_encoder import PointEncoder
 from dssp_train.model.policy import DSSPPolicy
 from export.fused_ops import FUSED_OPS
 
@@ -72,9 +73,9 @@ def pruned_copy(policy: DSSPPolicy, keep: tuple[str, ...]) -> DSSPPolicy:
 
 
 def use_fused_ops(module: nn.Module) -> None:
-    """Route every Mamba layer of ``module`` through the fused operators (:mod:`export.fused_ops`)."""
+    """Route every Mamba layer and point encoder of ``module`` through the fused operators (:mod:`export.fused_ops`)."""
     for layer in module.modules():
-        if isinstance(layer, Mamba):
+        if isinstance(layer, (Mamba, PointEncoder)):
             layer.fused_ops = FUSED_OPS
 
 

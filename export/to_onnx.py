@@ -252,7 +252,8 @@ def write_block_graph(module, example: tuple, beside: Path, config, graph: str, 
 
 
 def has_fused_layers(module) -> bool:
-    """Whether ``module`` has a Mamba layer routed through the fused operators (a Transformer denoiser has none)."""
+    """Whether ``module`` has a layer routed through the fused operators (a Mamba layer or the point encoder; a
+    Transformer denoiser has none)."""
     return any(getattr(m, "fused_ops", None) is not None for m in module.modules())
 
 

@@ -325,3 +325,21 @@ def test_one_ddim_step_runs_prefix_and_actions_as_one_node_per_block(tiny_export
     fused_error, standard_error = (np.abs(run_chunk(OnnxPolicy(model_dir, threads=1, precision="int8", kernel=kernel))
                                           - fp32).max() for kernel in ("fused", "standard"))
     assert fused_error <= 1.5 * standard_error, (fused_error, standard_error)
+
+
+@pytest.mark.parametrize("shape", [(1, 1024, 256), (2, 1, 70), (3, 37, 5)], ids=lambda s: "x".join(map(str, s)))
+def test_max_over_points_matches_pytorch_and_replaces_the_transpose_and_pool(shape, tiny_export, monkeypatch):
+    """ai.dssp::MaxOverPoints (batch, P, F) → (batch, F) equals torch's amax over the points, exactly, on one thread
+    and two; the fused history graph pools with it (no Transpose + GlobalMaxPool), the standard one does not."""
+    x = np.random.default_rng(sum(shape)).standard_normal(shape).astype(np.float32)
+    for threads in (1, 2):
+        session = op_session(mamba_kernel.POOL_OP, ["x"], ["y"], "portable", monkeypatch, threads)
+        (y,) = session.run(None, {"x": x})
+        assert np.array_equal(y, torch.from_numpy(x).amax(dim=1).numpy())
+    with pytest.raises(Exception, match="P >= 1"):
+        session.run(None, {"x": np.zeros((1, 0, 4), np.float32)})
+    _, model_dir, _ = tiny_export
+    ops = {kind: {n.op_type for n in onnx.load(str(model_dir / f"history_step{kind}.onnx")).graph.node}
+           for kind in (".fused", "")}
+    assert mamba_kernel.POOL_OP in ops[".fused"] and "GlobalMaxPool" not in ops[".fused"]
+    assert mamba_kernel.POOL_OP not in ops[""] and "GlobalMaxPool" in ops[""]

@@ -301,6 +301,20 @@ inline void run_conv_task(void* data, size_t index) {
   conv_block(*task.problem, b, e0, std::min(e0 + 256, task.problem->E));
 }
 
+// ------------------------------------------------------------------ the point encoder's pooling
+// y (batch, F) = the max over the P points of x (batch, P, F), features [f0, f1) of batch row b; P >= 1. In one
+// pass over x in its own layout (ONNX's GlobalMaxPool wants the points last: a transpose first).
+inline void max_over_points(const float* x, int64_t P, int64_t F, int64_t b, int64_t f0, int64_t f1, float* y) {
+  const float* xb = x + b * P * F;
+  float* yb = y + b * F;
+  std::memcpy(yb + f0, xb + f0, sizeof(float) * (f1 - f0));
+  for (int64_t p = 1; p < P; ++p) {
+    const float* xp = xb + p * F;
+#pragma omp simd
+    for (int64_t f = f0; f < f1; ++f) yb[f] = xp[f] > yb[f] ? xp[f] : yb[f];
+  }
+}
+
 // out (m, d) = rmsnorm(x) * weight (, then * (1 + scale) + shift when scale is given)
 inline void rms_norm(const float* x, int64_t m, int64_t d, const float* weight, float eps, const float* shift,
               const float* scale, float* out) {

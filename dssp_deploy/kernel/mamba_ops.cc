@@ -1,5 +1,6 @@
-// Mamba's fused CPU operators for ONNX Runtime (domain ai.dssp): the selective scan of one layer, and its
-// causal depthwise convolution (CausalConv1d, further down).
+// The fused CPU operators for ONNX Runtime (domain ai.dssp), over the arithmetic of mamba_block.h: the selective
+// scan of one Mamba layer, its causal depthwise convolution (CausalConv1d), a whole int8 denoiser block
+// (MambaBlockQ8) and the point encoder's max over the points (MaxOverPoints), further down.
 //
 //   ai.dssp::SelectiveScan(x, dt, B, C, z, A, D, h0) -> (y, h)
 //
@@ -140,6 +141,35 @@ struct CausalConv1d {
     const int64_t blocks = (E + 255) / 256;
     ConvTask task{&p, blocks};
     Ort::KernelContext(context).ParallelFor(run_conv_task, static_cast<size_t>(batch * blocks), 0, &task);
+    return Ort::Status{nullptr};
+  }
+};
+
+// ai.dssp::MaxOverPoints(x (batch, P, F)) -> y (batch, F): the max over the points (P >= 1), features split across
+// the threads in blocks of 64.
+struct PoolTask {
+  const float* x;
+  float* y;
+  int64_t P, F, blocks_per_row;
+};
+
+void run_pool_task(void* data, size_t index) {
+  const PoolTask& t = *static_cast<const PoolTask*>(data);
+  const int64_t b = static_cast<int64_t>(index) / t.blocks_per_row, f0 = (static_cast<int64_t>(index) % t.blocks_per_row) * 64;
+  max_over_points(t.x, t.P, t.F, b, f0, std::min(f0 + 64, t.F), t.y);
+}
+
+struct MaxOverPoints {
+  MaxOverPoints(const OrtApi*, const OrtKernelInfo*) {}
+
+  Ort::Status Compute(OrtKernelContext* context, const Ort::Custom::Tensor<float>& x, Ort::Custom::Tensor<float>& y) {
+    const auto xs = x.Shape();
+    if (xs.size() != 3 || xs[1] < 1)
+      ORT_CXX_API_THROW("MaxOverPoints: x must be (batch, P, F) with P >= 1, got " + shape_str(xs), ORT_INVALID_ARGUMENT);
+    const int64_t batch = xs[0], P = xs[1], F = xs[2];
+    PoolTask task{x.Data(), y.Allocate({batch, F}), P, F, (F + 63) / 64};
+    if (batch == 0 || F == 0) return Ort::Status{nullptr};
+    Ort::KernelContext(context).ParallelFor(run_pool_task, static_cast<size_t>(batch * task.blocks_per_row), 0, &task);
     return Ort::Status{nullptr};
   }
 };
@@ -345,7 +375,7 @@ extern "C" __attribute__((visibility("default"))) OrtStatus* ORT_API_CALL Regist
   const OrtApi* api = api_base->GetApi(ORT_API_VERSION);
   if (api == nullptr) return nullptr;  // an older runtime: the session fails to load the graph, the caller falls back
   Ort::InitApi(api);
-  static std::unique_ptr<Ort::Custom::OrtLiteCustomOp> scan_op, conv_op, block_op;
+  static std::unique_ptr<Ort::Custom::OrtLiteCustomOp> scan_op, conv_op, block_op, pool_op;
   static Ort::CustomOpDomain domain{nullptr};
   static std::once_flag once;
   try {
@@ -353,10 +383,12 @@ extern "C" __attribute__((visibility("default"))) OrtStatus* ORT_API_CALL Regist
       scan_op.reset(Ort::Custom::CreateLiteCustomOp<SelectiveScan>("SelectiveScan", "CPUExecutionProvider"));
       conv_op.reset(Ort::Custom::CreateLiteCustomOp<CausalConv1d>("CausalConv1d", "CPUExecutionProvider"));
       block_op.reset(Ort::Custom::CreateLiteCustomOp<MambaBlockQ8>("MambaBlockQ8", "CPUExecutionProvider"));
+      pool_op.reset(Ort::Custom::CreateLiteCustomOp<MaxOverPoints>("MaxOverPoints", "CPUExecutionProvider"));
       domain = Ort::CustomOpDomain(kDomain);
       domain.Add(scan_op.get());
       domain.Add(conv_op.get());
       domain.Add(block_op.get());
+      domain.Add(pool_op.get());
     });
     Ort::UnownedSessionOptions(options).Add(domain);
   } catch (const std::exception& e) {

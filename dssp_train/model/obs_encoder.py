@@ -40,9 +40,13 @@ class PointEncoder(nn.Module):
         self.mlp = nn.Sequential(*layers)
         self.final_projection = nn.Sequential(nn.Linear(prev, out_dim), nn.LayerNorm(out_dim))
 
+    fused_ops = None  # export's fused operators (export.fused_ops.FusedOps): the max over the points as one node
+
     def forward(self, points: torch.Tensor) -> torch.Tensor:
         features = self.mlp[:-1](points)  # all but the last ReLU: (..., P, widths[-1])
-        return self.final_projection(self.mlp[-1](max_over_points(features)))
+        fused = self.fused_ops is not None and features.dim() == 3
+        pooled = self.fused_ops.max_over_points(features) if fused else max_over_points(features)
+        return self.final_projection(self.mlp[-1](pooled))
 
 
 class StateEncoder(nn.Module):
