@@ -47,14 +47,14 @@ class _CausalConv(torch.autograd.Function):
         return y, new_state
 
 
-class _MaxOverPoints(torch.autograd.Function):
+class _LayerNormMaxOverPoints(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, x):
-        return x.amax(dim=-2)
+    def forward(ctx, x, weight, bias, eps):
+        return torch.nn.functional.layer_norm(x, (x.shape[-1],), weight, bias, eps).amax(dim=-2)
 
     @staticmethod
-    def symbolic(g, x):
-        y = g.op(f"{DOMAIN}::{POOL_OP}", x)
+    def symbolic(g, x, weight, bias, eps):
+        y = g.op(f"{DOMAIN}::{POOL_OP}", x, weight, bias, eps_f=float(eps))
         y.setType(x.type().with_sizes([None, None]))  # (batch, F)
         return y
 
@@ -69,9 +69,9 @@ class FusedOps:
         return _SelectiveScan.apply(x, dt, B, C, z, A, D, h0)
 
     @staticmethod
-    def max_over_points(x):
-        """x (batch, P, F) → (batch, F): the max over the points."""
-        return _MaxOverPoints.apply(x)
+    def layer_norm_max_over_points(x, norm: torch.nn.LayerNorm):
+        """x (batch, P, F) → (batch, F): the max over the points of ``norm`` (over F) of each."""
+        return _LayerNormMaxOverPoints.apply(x, norm.weight, norm.bias, norm.eps)
 
     @staticmethod
     def causal_conv(x, state, weight, bias):

@@ -327,19 +327,34 @@ def test_one_ddim_step_runs_prefix_and_actions_as_one_node_per_block(tiny_export
     assert fused_error <= 1.5 * standard_error, (fused_error, standard_error)
 
 
-@pytest.mark.parametrize("shape", [(1, 1024, 256), (2, 1, 70), (3, 37, 5)], ids=lambda s: "x".join(map(str, s)))
-def test_max_over_points_matches_pytorch_and_replaces_the_transpose_and_pool(shape, tiny_export, monkeypatch):
-    """ai.dssp::MaxOverPoints (batch, P, F) → (batch, F) equals torch's amax over the points, exactly, on one thread
-    and two; the fused history graph pools with it (no Transpose + GlobalMaxPool), the standard one does not."""
-    x = np.random.default_rng(sum(shape)).standard_normal(shape).astype(np.float32)
+@pytest.mark.parametrize("shape", [(1, 1024, 256), (2, 1, 70), (3, 300, 5)], ids=lambda s: "x".join(map(str, s)))
+def test_layer_norm_max_over_points_matches_pytorch_and_replaces_three_nodes(shape, tiny_export, monkeypatch):
+    """ai.dssp::LayerNormMaxOverPoints (batch, P, F) → (batch, F) equals torch's layer_norm then amax over the points
+    (to float rounding), on one thread and two (300 points: three runs of 128 combined); the fused history graph pools
+    with it (no LayerNormalization, Transpose or GlobalMaxPool left around the pooling), the standard one does not."""
+    rng = np.random.default_rng(sum(shape))
+    x = (rng.standard_normal(shape) * 3 + 1).astype(np.float32)
+    weight, bias = (rng.standard_normal(shape[-1]).astype(np.float32) for _ in range(2))
+    want = torch.nn.functional.layer_norm(torch.from_numpy(x).double(), (shape[-1],), torch.from_numpy(weight).double(),
+                                          torch.from_numpy(bias).double(), 1e-5).amax(dim=1).numpy()
+    graph = helper.make_graph(
+        [helper.make_node(mamba_kernel.POOL_OP, ["x", "w", "b"], ["y"], domain=mamba_kernel.DOMAIN, eps=1e-5)], "g",
+        [helper.make_tensor_value_info(n, TensorProto.FLOAT, None) for n in ("x", "w", "b")],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, None)])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17), helper.make_opsetid(mamba_kernel.DOMAIN, 1)])
+    outputs = []
     for threads in (1, 2):
-        session = op_session(mamba_kernel.POOL_OP, ["x"], ["y"], "portable", monkeypatch, threads)
-        (y,) = session.run(None, {"x": x})
-        assert np.array_equal(y, torch.from_numpy(x).amax(dim=1).numpy())
+        session = ort.InferenceSession(model.SerializeToString(), session_options(threads, fused=True),
+                                       providers=["CPUExecutionProvider"])
+        (y,) = session.run(None, {"x": x, "w": weight, "b": bias})
+        assert y.shape == want.shape and np.abs(y - want).max() <= 1e-5 * max(1.0, float(np.abs(want).max()))
+        outputs.append(y)
+    assert np.array_equal(*outputs)
     with pytest.raises(Exception, match="P >= 1"):
-        session.run(None, {"x": np.zeros((1, 0, 4), np.float32)})
+        session.run(None, {"x": np.zeros((1, 0, shape[-1]), np.float32), "w": weight, "b": bias})
     _, model_dir, _ = tiny_export
-    ops = {kind: {n.op_type for n in onnx.load(str(model_dir / f"history_step{kind}.onnx")).graph.node}
+    ops = {kind: [n.op_type for n in onnx.load(str(model_dir / f"history_step{kind}.onnx")).graph.node]
            for kind in (".fused", "")}
     assert mamba_kernel.POOL_OP in ops[".fused"] and "GlobalMaxPool" not in ops[".fused"]
+    assert ops[".fused"].count("LayerNormalization") == ops[""].count("LayerNormalization") - 1
     assert mamba_kernel.POOL_OP not in ops[""] and "GlobalMaxPool" in ops[""]

@@ -302,16 +302,26 @@ inline void run_conv_task(void* data, size_t index) {
 }
 
 // ------------------------------------------------------------------ the point encoder's pooling
-// y (batch, F) = the max over the P points of x (batch, P, F), features [f0, f1) of batch row b; P >= 1. In one
-// pass over x in its own layout (ONNX's GlobalMaxPool wants the points last: a transpose first).
-inline void max_over_points(const float* x, int64_t P, int64_t F, int64_t b, int64_t f0, int64_t f1, float* y) {
-  const float* xb = x + b * P * F;
-  float* yb = y + b * F;
-  std::memcpy(yb + f0, xb + f0, sizeof(float) * (f1 - f0));
-  for (int64_t p = 1; p < P; ++p) {
-    const float* xp = xb + p * F;
+// The running max y (F) over points [p0, p1) of x (P, F) after each point's LayerNorm over its F features:
+// (x - mean) / sqrt(var + eps) * weight + bias, the variance biased, as torch's layer_norm. In one pass over the
+// points in their own layout, nothing written but the max (the graph's LayerNorm + Transpose + GlobalMaxPool
+// write and read the (P, F) values twice).
+inline void layer_norm_max(const float* x, int64_t F, const float* weight, const float* bias, float eps, int64_t p0,
+                           int64_t p1, float* y) {
+  for (int64_t p = p0; p < p1; ++p) {
+    const float* xp = x + p * F;
+    float sum = 0.0f, squares = 0.0f;
+#pragma omp simd reduction(+ : sum)
+    for (int64_t f = 0; f < F; ++f) sum += xp[f];
+    const float mean = sum / static_cast<float>(F);
+#pragma omp simd reduction(+ : squares)
+    for (int64_t f = 0; f < F; ++f) squares += (xp[f] - mean) * (xp[f] - mean);
+    const float r = 1.0f / std::sqrt(squares / static_cast<float>(F) + eps);
 #pragma omp simd
-    for (int64_t f = f0; f < f1; ++f) yb[f] = xp[f] > yb[f] ? xp[f] : yb[f];
+    for (int64_t f = 0; f < F; ++f) {
+      const float v = (xp[f] - mean) * r * weight[f] + bias[f];
+      y[f] = v > y[f] ? v : y[f];
+    }
   }
 }
 

@@ -1,6 +1,6 @@
 // The fused CPU operators for ONNX Runtime (domain ai.dssp), over the arithmetic of mamba_block.h: the selective
 // scan of one Mamba layer, its causal depthwise convolution (CausalConv1d), a whole int8 denoiser block
-// (MambaBlockQ8) and the point encoder's max over the points (MaxOverPoints), further down.
+// (MambaBlockQ8) and the point encoder's last LayerNorm and max over the points (LayerNormMaxOverPoints), further down.
 //
 //   ai.dssp::SelectiveScan(x, dt, B, C, z, A, D, h0) -> (y, h)
 //
@@ -34,6 +34,7 @@
 #include "onnxruntime_lite_custom_op.h"
 #include "mamba_block.h"
 
+#include <limits>
 #include <map>
 #include <memory>
 #include <mutex>
@@ -145,33 +146,71 @@ struct CausalConv1d {
   }
 };
 
-// ai.dssp::MaxOverPoints(x (batch, P, F)) -> y (batch, F): the max over the points (P >= 1), features split across
-// the threads in blocks of 64.
+int64_t int_attribute(const OrtKernelInfo* info, const char* name, int64_t fallback) {
+  try {
+    return Ort::ConstKernelInfo(info).GetAttribute<int64_t>(name);
+  } catch (const Ort::Exception&) {
+    return fallback;
+  }
+}
+
+float attribute_float(const OrtKernelInfo* info, const char* name, float fallback) {
+  try {
+    return Ort::ConstKernelInfo(info).GetAttribute<float>(name);
+  } catch (const Ort::Exception&) {
+    return fallback;
+  }
+}
+
+// ai.dssp::LayerNormMaxOverPoints(x (batch, P, F), weight (F), bias (F)) -> y (batch, F): the max over the points
+// (P >= 1) of each point's LayerNorm (attribute eps): DP3's last LayerNorm and its pooling in one pass. The points
+// are split across the threads in runs of 128, each run's max kept apart, then the runs' maxima combined.
+constexpr int64_t kPointsPerTask = 128;
+
 struct PoolTask {
-  const float* x;
-  float* y;
-  int64_t P, F, blocks_per_row;
+  const float *x, *weight, *bias;
+  float eps;
+  float* partial;  // (batch * runs, F)
+  int64_t P, F, runs;
 };
 
 void run_pool_task(void* data, size_t index) {
   const PoolTask& t = *static_cast<const PoolTask*>(data);
-  const int64_t b = static_cast<int64_t>(index) / t.blocks_per_row, f0 = (static_cast<int64_t>(index) % t.blocks_per_row) * 64;
-  max_over_points(t.x, t.P, t.F, b, f0, std::min(f0 + 64, t.F), t.y);
+  const int64_t b = static_cast<int64_t>(index) / t.runs, p0 = (static_cast<int64_t>(index) % t.runs) * kPointsPerTask;
+  float* y = t.partial + static_cast<int64_t>(index) * t.F;
+  std::fill(y, y + t.F, -std::numeric_limits<float>::infinity());
+  layer_norm_max(t.x + b * t.P * t.F, t.F, t.weight, t.bias, t.eps, p0, std::min(p0 + kPointsPerTask, t.P), y);
 }
 
-struct MaxOverPoints {
-  MaxOverPoints(const OrtApi*, const OrtKernelInfo*) {}
+struct LayerNormMaxOverPoints {
+  LayerNormMaxOverPoints(const OrtApi*, const OrtKernelInfo* info) : eps(attribute_float(info, "eps", 1e-5f)) {}
 
-  Ort::Status Compute(OrtKernelContext* context, const Ort::Custom::Tensor<float>& x, Ort::Custom::Tensor<float>& y) {
+  Ort::Status Compute(OrtKernelContext* context, const Ort::Custom::Tensor<float>& x, const Ort::Custom::Tensor<float>& weight,
+                      const Ort::Custom::Tensor<float>& bias, Ort::Custom::Tensor<float>& y) {
     const auto xs = x.Shape();
     if (xs.size() != 3 || xs[1] < 1)
-      ORT_CXX_API_THROW("MaxOverPoints: x must be (batch, P, F) with P >= 1, got " + shape_str(xs), ORT_INVALID_ARGUMENT);
+      ORT_CXX_API_THROW("LayerNormMaxOverPoints: x must be (batch, P, F) with P >= 1, got " + shape_str(xs), ORT_INVALID_ARGUMENT);
     const int64_t batch = xs[0], P = xs[1], F = xs[2];
-    PoolTask task{x.Data(), y.Allocate({batch, F}), P, F, (F + 63) / 64};
+    expect_shape("weight", weight.Shape(), {F});
+    expect_shape("bias", bias.Shape(), {F});
+    float* out = y.Allocate({batch, F});
     if (batch == 0 || F == 0) return Ort::Status{nullptr};
-    Ort::KernelContext(context).ParallelFor(run_pool_task, static_cast<size_t>(batch * task.blocks_per_row), 0, &task);
+    const int64_t runs = (P + kPointsPerTask - 1) / kPointsPerTask;
+    std::vector<float> partial(static_cast<size_t>(batch * runs * F));
+    PoolTask task{x.Data(), weight.Data(), bias.Data(), eps, partial.data(), P, F, runs};
+    Ort::KernelContext(context).ParallelFor(run_pool_task, static_cast<size_t>(batch * runs), 0, &task);
+    for (int64_t b = 0; b < batch; ++b) {
+      float* yb = out + b * F;
+      std::memcpy(yb, partial.data() + b * runs * F, sizeof(float) * F);
+      for (int64_t r = 1; r < runs; ++r) {
+        const float* pr = partial.data() + (b * runs + r) * F;
+        for (int64_t f = 0; f < F; ++f) yb[f] = pr[f] > yb[f] ? pr[f] : yb[f];
+      }
+    }
     return Ort::Status{nullptr};
   }
+
+  float eps;
 };
 
 // ------------------------------------------------------------------ a whole denoiser block (int8 weights)
@@ -237,22 +276,6 @@ std::shared_ptr<const q::PackedWeights> packed_weights(const int8_t* w, const fl
   cache[key] = PackEntry{packed, print};
   for (auto e = cache.begin(); e != cache.end();) e = e->second.packed.expired() ? cache.erase(e) : std::next(e);
   return packed;
-}
-
-int64_t int_attribute(const OrtKernelInfo* info, const char* name, int64_t fallback) {
-  try {
-    return Ort::ConstKernelInfo(info).GetAttribute<int64_t>(name);
-  } catch (const Ort::Exception&) {
-    return fallback;
-  }
-}
-
-float attribute_float(const OrtKernelInfo* info, const char* name, float fallback) {
-  try {
-    return Ort::ConstKernelInfo(info).GetAttribute<float>(name);
-  } catch (const Ort::Exception&) {
-    return fallback;
-  }
 }
 
 // DSSP_QGEMM_PATH: auto (the fastest this CPU runs) or a path name of qgemm.h; one this CPU lacks is an error.
@@ -383,7 +406,7 @@ extern "C" __attribute__((visibility("default"))) OrtStatus* ORT_API_CALL Regist
       scan_op.reset(Ort::Custom::CreateLiteCustomOp<SelectiveScan>("SelectiveScan", "CPUExecutionProvider"));
       conv_op.reset(Ort::Custom::CreateLiteCustomOp<CausalConv1d>("CausalConv1d", "CPUExecutionProvider"));
       block_op.reset(Ort::Custom::CreateLiteCustomOp<MambaBlockQ8>("MambaBlockQ8", "CPUExecutionProvider"));
-      pool_op.reset(Ort::Custom::CreateLiteCustomOp<MaxOverPoints>("MaxOverPoints", "CPUExecutionProvider"));
+      pool_op.reset(Ort::Custom::CreateLiteCustomOp<LayerNormMaxOverPoints>("LayerNormMaxOverPoints", "CPUExecutionProvider"));
       domain = Ort::CustomOpDomain(kDomain);
       domain.Add(scan_op.get());
       domain.Add(conv_op.get());

@@ -40,12 +40,14 @@ class PointEncoder(nn.Module):
         self.mlp = nn.Sequential(*layers)
         self.final_projection = nn.Sequential(nn.Linear(prev, out_dim), nn.LayerNorm(out_dim))
 
-    fused_ops = None  # export's fused operators (export.fused_ops.FusedOps): the max over the points as one node
+    fused_ops = None  # export's fused operators (export.fused_ops.FusedOps): the last LayerNorm and the max as one node
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
-        features = self.mlp[:-1](points)  # all but the last ReLU: (..., P, widths[-1])
-        fused = self.fused_ops is not None and features.dim() == 3
-        pooled = self.fused_ops.max_over_points(features) if fused else max_over_points(features)
+        if self.fused_ops is not None and points.dim() == 3:
+            features = self.mlp[:-2](points)  # up to the last Linear: (B, P, widths[-1])
+            pooled = self.fused_ops.layer_norm_max_over_points(features, self.mlp[-2])
+        else:
+            pooled = max_over_points(self.mlp[:-1](points))  # all but the last ReLU, then the max over the points
         return self.final_projection(self.mlp[-1](pooled))
 
 
