@@ -306,17 +306,43 @@ inline void run_conv_task(void* data, size_t index) {
 // (x - mean) / sqrt(var + eps) * weight + bias, the variance biased, as torch's layer_norm. In one pass over the
 // points in their own layout, nothing written but the max (the graph's LayerNorm + Transpose + GlobalMaxPool
 // write and read the (P, F) values twice).
-inline void layer_norm_max(const float* x, int64_t F, const float* weight, const float* bias, float eps, int64_t p0,
-                           int64_t p1, float* y) {
-  for (int64_t p = p0; p < p1; ++p) {
+// Four points at a time: their sums are four independent chains (one point's would wait on each add).
+CONV_CLONES inline void layer_norm_max(const float* x, int64_t F, const float* weight, const float* bias, float eps,
+                                       int64_t p0, int64_t p1, float* y) {
+  constexpr int64_t kPoints = 4;
+  const float inv_f = 1.0f / static_cast<float>(F);
+  int64_t p = p0;
+  for (; p + kPoints <= p1; p += kPoints) {
+    const float *x0 = x + p * F, *x1 = x0 + F, *x2 = x1 + F, *x3 = x2 + F;
+    float s0 = 0.0f, s1 = 0.0f, s2 = 0.0f, s3 = 0.0f;
+#pragma omp simd reduction(+ : s0, s1, s2, s3)
+    for (int64_t f = 0; f < F; ++f) s0 += x0[f], s1 += x1[f], s2 += x2[f], s3 += x3[f];
+    const float m0 = s0 * inv_f, m1 = s1 * inv_f, m2 = s2 * inv_f, m3 = s3 * inv_f;
+    float q0 = 0.0f, q1 = 0.0f, q2 = 0.0f, q3 = 0.0f;
+#pragma omp simd reduction(+ : q0, q1, q2, q3)
+    for (int64_t f = 0; f < F; ++f) {
+      q0 += (x0[f] - m0) * (x0[f] - m0), q1 += (x1[f] - m1) * (x1[f] - m1);
+      q2 += (x2[f] - m2) * (x2[f] - m2), q3 += (x3[f] - m3) * (x3[f] - m3);
+    }
+    const float r0 = 1.0f / std::sqrt(q0 * inv_f + eps), r1 = 1.0f / std::sqrt(q1 * inv_f + eps);
+    const float r2 = 1.0f / std::sqrt(q2 * inv_f + eps), r3 = 1.0f / std::sqrt(q3 * inv_f + eps);
+#pragma omp simd
+    for (int64_t f = 0; f < F; ++f) {
+      const float v0 = (x0[f] - m0) * r0 * weight[f] + bias[f], v1 = (x1[f] - m1) * r1 * weight[f] + bias[f];
+      const float v2 = (x2[f] - m2) * r2 * weight[f] + bias[f], v3 = (x3[f] - m3) * r3 * weight[f] + bias[f];
+      const float a = v0 > v1 ? v0 : v1, c = v2 > v3 ? v2 : v3, v = a > c ? a : c;
+      y[f] = v > y[f] ? v : y[f];
+    }
+  }
+  for (; p < p1; ++p) {
     const float* xp = x + p * F;
     float sum = 0.0f, squares = 0.0f;
 #pragma omp simd reduction(+ : sum)
     for (int64_t f = 0; f < F; ++f) sum += xp[f];
-    const float mean = sum / static_cast<float>(F);
+    const float mean = sum * inv_f;
 #pragma omp simd reduction(+ : squares)
     for (int64_t f = 0; f < F; ++f) squares += (xp[f] - mean) * (xp[f] - mean);
-    const float r = 1.0f / std::sqrt(squares / static_cast<float>(F) + eps);
+    const float r = 1.0f / std::sqrt(squares * inv_f + eps);
 #pragma omp simd
     for (int64_t f = 0; f < F; ++f) {
       const float v = (xp[f] - mean) * r * weight[f] + bias[f];
