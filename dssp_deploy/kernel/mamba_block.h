@@ -1,5 +1,5 @@
-// The fused Mamba arithmetic for the robot's CPU, free of any runtime: the selective scan, the causal depthwise
-// convolution and a whole int8 denoiser block. mamba_ops.cc binds them to ONNX Runtime as the ai.dssp operators;
+// The fused arithmetic for the robot's CPU, free of any runtime: the selective scan, the causal depthwise
+// convolution, a whole int8 denoiser block, and the point encoder's last LayerNorm with its max over the points. mamba_ops.cc binds them to ONNX Runtime as the ai.dssp operators;
 // block_check.cc runs the block alone (its parity on aarch64 under qemu, and its phases' times natively).
 // Header-only, C++17; the int8 products are qgemm.h's.
 //
