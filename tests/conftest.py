@@ -2,7 +2,9 @@
 and small tensor ops do not stall when another process shares the cores; Ctrl-C as Python's default."""
 
 import os
+import shutil
 import signal
+import subprocess
 from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
@@ -72,7 +74,6 @@ def built_once(tmp_path_factory, request, name: str, build) -> tuple:
     the first worker builds it under a file lock in the run's shared temporary folder, the others wait and
     reuse it. Tests treat such a fixture as read-only (they copy what they change)."""
     import json
-    import shutil
 
     from filelock import FileLock
 
@@ -249,9 +250,6 @@ def build_harness(source: str, compiler: str, output: Path, *flags: str) -> Path
     """A C++ harness of dssp_deploy/kernel (``source``, a file name there) compiled with -O2 into ``output``, again
     only when the binary is older than a source or header of that folder; a missing compiler fails the test with
     what installs it."""
-    import shutil
-    import subprocess
-
     if shutil.which(compiler) is None:
         hint = CROSS_HINT if compiler in CROSS_TOOLS else "install a C++17 compiler (Debian: apt-get install g++)"
         pytest.fail(f"{compiler} is missing; {hint}")

@@ -1,6 +1,6 @@
 // The fused arithmetic for the robot's CPU, free of any runtime: the selective scan, the causal depthwise
-// convolution, a whole int8 denoiser block, and the point encoder's last LayerNorm with its max over the points. mamba_ops.cc binds them to ONNX Runtime as the ai.dssp operators;
-// block_check.cc runs the block alone (its parity on aarch64 under qemu, and its phases' times natively).
+// convolution, a whole int8 denoiser block, and the point encoder's last LayerNorm with its max over the points.
+// mamba_ops.cc binds them to ONNX Runtime as the ai.dssp operators; block_check.cc runs the block alone (its parity on aarch64 under qemu, and its phases' times natively).
 // Header-only, C++17; the int8 products are qgemm.h's.
 //
 // Threads: every parallel part is handed to a ParallelFor(fn, count, data) that calls fn(data, i) once for each
@@ -192,12 +192,12 @@ struct ConvProblem {
 };
 
 #if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
-#define CONV_CLONES __attribute__((target_clones("arch=x86-64-v3", "default")))  // an AVX2 + FMA build beside the baseline one
+#define DSSP_AVX2_CLONES __attribute__((target_clones("arch=x86-64-v3", "default")))  // an AVX2 + FMA build beside the baseline one
 #else
-#define CONV_CLONES
+#define DSSP_AVX2_CLONES
 #endif
 
-CONV_CLONES inline void conv_block(const ConvProblem& p, int64_t b, int64_t e0, int64_t e1) {
+DSSP_AVX2_CLONES inline void conv_block(const ConvProblem& p, int64_t b, int64_t e0, int64_t e1) {
   const int64_t L = p.L, E = p.E, W = p.W;
   for (int64_t t = 0; t < L; ++t) {
     float* y = p.y + (b * L + t) * E;
@@ -307,7 +307,7 @@ inline void run_conv_task(void* data, size_t index) {
 // points in their own layout, nothing written but the max (the graph's LayerNorm + Transpose + GlobalMaxPool
 // write and read the (P, F) values twice).
 // Four points at a time: their sums are four independent chains (one point's would wait on each add).
-CONV_CLONES inline void layer_norm_max(const float* x, int64_t F, const float* weight, const float* bias, float eps,
+DSSP_AVX2_CLONES inline void layer_norm_max(const float* x, int64_t F, const float* weight, const float* bias, float eps,
                                        int64_t p0, int64_t p1, float* y) {
   constexpr int64_t kPoints = 4;
   const float inv_f = 1.0f / static_cast<float>(F);

@@ -73,18 +73,20 @@ void expect_shape(const char* name, const std::vector<int64_t>& got, const std::
     ORT_CXX_API_THROW(std::string("SelectiveScan: ") + name + " has shape " + shape_str(got) + ", expected " + shape_str(want), ORT_INVALID_ARGUMENT);
 }
 
-// The attribute state_out (int, default 1): 0 on a node whose state output nothing reads (export sets it on
-// the denoiser's action-token scans); h is then (batch, 0, n) and the state is never written back.
-int64_t state_out_attribute(const OrtKernelInfo* info, int64_t absent = 1) {
+// A node's attribute `name`, or `fallback` when the node has none.
+template <class T>
+T attribute(const OrtKernelInfo* info, const char* name, T fallback) {
   try {
-    return Ort::ConstKernelInfo(info).GetAttribute<int64_t>("state_out");
+    return Ort::ConstKernelInfo(info).GetAttribute<T>(name);
   } catch (const Ort::Exception&) {
-    return absent;
+    return fallback;
   }
 }
 
+// The attribute state_out (int, default 1): 0 on a node whose state output nothing reads (export sets it on
+// the denoiser's action-token scans); h is then (batch, 0, n) and the state is never written back.
 struct SelectiveScan {
-  SelectiveScan(const OrtApi*, const OrtKernelInfo* info) : path(requested_scan_path()), state_out(state_out_attribute(info) != 0) {}
+  SelectiveScan(const OrtApi*, const OrtKernelInfo* info) : path(requested_scan_path()), state_out(attribute<int64_t>(info, "state_out", 1) != 0) {}
 
   Ort::Status Compute(OrtKernelContext* context, const Ort::Custom::Tensor<float>& x, const Ort::Custom::Tensor<float>& dt,
                       const Ort::Custom::Tensor<float>& B, const Ort::Custom::Tensor<float>& C,
@@ -146,22 +148,6 @@ struct CausalConv1d {
   }
 };
 
-int64_t int_attribute(const OrtKernelInfo* info, const char* name, int64_t fallback) {
-  try {
-    return Ort::ConstKernelInfo(info).GetAttribute<int64_t>(name);
-  } catch (const Ort::Exception&) {
-    return fallback;
-  }
-}
-
-float attribute_float(const OrtKernelInfo* info, const char* name, float fallback) {
-  try {
-    return Ort::ConstKernelInfo(info).GetAttribute<float>(name);
-  } catch (const Ort::Exception&) {
-    return fallback;
-  }
-}
-
 // ai.dssp::LayerNormMaxOverPoints(x (batch, P, F), weight (F), bias (F)) -> y (batch, F): the max over the points
 // (P >= 1) of each point's LayerNorm (attribute eps): DP3's last LayerNorm and its pooling in one pass. The points
 // are split across the threads in runs of 128, each run's max kept apart, then the runs' maxima combined.
@@ -183,7 +169,7 @@ void run_pool_task(void* data, size_t index) {
 }
 
 struct LayerNormMaxOverPoints {
-  LayerNormMaxOverPoints(const OrtApi*, const OrtKernelInfo* info) : eps(attribute_float(info, "eps", 1e-5f)) {}
+  LayerNormMaxOverPoints(const OrtApi*, const OrtKernelInfo* info) : eps(attribute(info, "eps", 1e-5f)) {}
 
   Ort::Status Compute(OrtKernelContext* context, const Ort::Custom::Tensor<float>& x, const Ort::Custom::Tensor<float>& weight,
                       const Ort::Custom::Tensor<float>& bias, Ort::Custom::Tensor<float>& y) {
@@ -312,8 +298,8 @@ struct Weights {
 
 struct MambaBlockQ8 {
   MambaBlockQ8(const OrtApi*, const OrtKernelInfo* info)
-      : scan_path(requested_scan_path()), qgemm_path(choose_qgemm_path()), eps(attribute_float(info, "eps", 1e-5f)),
-        state_out(state_out_attribute(info, 0) != 0), plain(int_attribute(info, "plain", 0)) {}
+      : scan_path(requested_scan_path()), qgemm_path(choose_qgemm_path()), eps(attribute(info, "eps", 1e-5f)),
+        state_out(attribute<int64_t>(info, "state_out", 0) != 0), plain(attribute<int64_t>(info, "plain", 0)) {}
 
   Ort::Status Compute(OrtKernelContext* context, const Ort::Custom::Tensor<float>& a,
                       const Ort::Custom::Tensor<float>& conv_state, const Ort::Custom::Tensor<float>& ssm_state,

@@ -280,6 +280,13 @@ inline void quantize_row_scalar(const float* x, int k, uint8_t* q, float* scale,
   for (int i = 0; i < k; ++i) q[i] = quantize_value(x[i], *scale, *zero);
 }
 
+// The row's parameters from the vector part's min and max and the scalar tail after it.
+inline void row_parameters_with_tail(const float* tail, int n, float mn, float mx, float* scale, int32_t* zero) {
+  float tail_mn, tail_mx;
+  minmax_scalar(tail, n, &tail_mn, &tail_mx);
+  row_parameters(tail_mn < mn ? tail_mn : mn, tail_mx > mx ? tail_mx : mx, scale, zero);
+}
+
 #if defined(DSSP_QGEMM_X86)
 // The same quantisation with AVX2, 16 values a step (every operation exact or correctly rounded: the same bytes).
 DSSP_QGEMM_TARGET_AVX2 inline void quantize_row_avx2(const float* x, int k, uint8_t* q, float* scale, int32_t* zero) {
@@ -293,15 +300,12 @@ DSSP_QGEMM_TARGET_AVX2 inline void quantize_row_avx2(const float* x, int k, uint
   alignas(32) float l8[8], h8[8];
   _mm256_store_ps(l8, lo);
   _mm256_store_ps(h8, hi);
-  float mn = 0.0f, mx = 0.0f, tail_mn, tail_mx;
+  float mn = 0.0f, mx = 0.0f;
   for (int j = 0; j < 8; ++j) {
     mn = l8[j] < mn ? l8[j] : mn;
     mx = h8[j] > mx ? h8[j] : mx;
   }
-  minmax_scalar(x + i, k - i, &tail_mn, &tail_mx);
-  mn = tail_mn < mn ? tail_mn : mn;
-  mx = tail_mx > mx ? tail_mx : mx;
-  row_parameters(mn, mx, scale, zero);
+  row_parameters_with_tail(x + i, k - i, mn, mx, scale, zero);
   const __m256 s = _mm256_set1_ps(*scale), vlo = _mm256_set1_ps(-256.0f), vhi = _mm256_set1_ps(256.0f);
   const __m256i z = _mm256_set1_epi32(*zero);
   i = 0;
@@ -332,11 +336,7 @@ inline void quantize_row_neon(const float* x, int k, uint8_t* q, float* scale, i
     lo = vminnmq_f32(v, lo);  // fminnm: a NaN in v keeps lo
     hi = vmaxnmq_f32(v, hi);
   }
-  float mn = vminvq_f32(lo), mx = vmaxvq_f32(hi), tail_mn, tail_mx;
-  minmax_scalar(x + i, k - i, &tail_mn, &tail_mx);
-  mn = tail_mn < mn ? tail_mn : mn;
-  mx = tail_mx > mx ? tail_mx : mx;
-  row_parameters(mn, mx, scale, zero);
+  row_parameters_with_tail(x + i, k - i, vminvq_f32(lo), vmaxvq_f32(hi), scale, zero);
   const float32x4_t s = vdupq_n_f32(*scale), vlo = vdupq_n_f32(-256.0f), vhi = vdupq_n_f32(256.0f);
   const int32x4_t z = vdupq_n_s32(*zero);
   i = 0;
