@@ -140,3 +140,19 @@ def test_a_path_the_cpu_lacks_is_one_line_not_a_crash(cross, tmp_path):
         report = json.loads(result.stdout.strip().splitlines()[-1])
         assert result.returncode == 2 and report["path_error"].startswith(word), report
         assert not (tmp_path / "out").exists()
+
+
+def test_on_a_cpu_without_avx512_the_block_takes_the_avx2_paths_and_matches(tmp_path, monkeypatch):
+    """The x86-64 build on an emulated Haswell (AVX2 + FMA, no AVX-512, no VNNI), whatever CPU runs the suite: the
+    block picks the avx2 scan and products by itself and matches the reference."""
+    monkeypatch.delenv("DSSP_QGEMM_PATH", raising=False)
+    monkeypatch.delenv("DSSP_SCAN_PATH", raising=False)
+    if shutil.which("qemu-x86_64") is None:
+        pytest.fail(f"qemu-x86_64 is missing; {CROSS_HINT}")
+    binary = build_harness("block_check.cc", "g++", BUILD / "block_check_static", "-static")
+    for mlp, batch, part in CASES:
+        path, want = case(tmp_path, mlp, batch, part)
+        out = tmp_path / "out"
+        report, got = run(["qemu-x86_64", "-cpu", "Haswell", str(binary), str(path), str(out), "2"], out)
+        assert (report["arch"], report["scan_path"], report["qgemm_path"]) == ("x86_64", "avx2", "avx2"), report
+        assert_close(got, want, ("Haswell", part))
