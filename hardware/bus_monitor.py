@@ -34,9 +34,9 @@ import can
 import numpy as np
 
 from dssp_core.errors import ArmError, CanError
-from hardware.can_reader import CanReader
 from hardware.leader import ArmReading, JointGripperTracker, LeaderTracker
 from hardware.piper import codec
+from hardware.piper.can_reader import CanReader
 from hardware.piper.firmware_limits import LimitAnswers
 from hardware.piper.limits import piper_description
 from hardware.robot import ArmStatus, FirmwareLimits, Robot, RobotDescription, RobotState

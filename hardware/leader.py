@@ -20,8 +20,8 @@ import can
 import numpy as np
 
 from dssp_core.errors import CanError
-from hardware.can_reader import CanReader
 from hardware.piper import codec
+from hardware.piper.can_reader import CanReader
 from hardware.piper.limits import opening_to_stroke, stroke_to_opening
 
 _NAN = float("nan")

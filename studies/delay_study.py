@@ -36,6 +36,8 @@ from pathlib import Path
 from dssp_core.errors import DSSPError
 from dssp_core.files import atomic_write_text
 from dssp_core.output_guard import write_output_figure
+from dssp_sim import sim_cli
+from dssp_train.cli import train
 from studies import protocol
 from studies.evaluations import study_main
 from studies.runner import Stage
@@ -63,6 +65,7 @@ def cell(task: str, smoothing: str, delay: int, seed: int) -> str:
 
 def stages(plan: dict, tasks: list[str], record: Path) -> list[Stage]:
     """Every stage of ``tasks``; a cell whose evaluation is in the record needs none."""
+    from export import to_onnx  # deferred: loads torch, which a stage's process imports after setting its threads
     first = protocol.split_seeds(SPLIT, plan["episodes"])[0]
     out: list[Stage] = []
     for task in tasks:
@@ -70,7 +73,7 @@ def stages(plan: dict, tasks: list[str], record: Path) -> list[Stage]:
         task_stages: list[Stage] = []
         for seed in plan["seeds"]:
             run, model, key = f"run_{task}_s{seed}", f"model_{task}_s{seed}", f"{task}_s{seed}"
-            cells = [Stage(f"eval_{cell(task, s, d, seed)}", "dssp_sim.sim_cli:main",
+            cells = [Stage(f"eval_{cell(task, s, d, seed)}", sim_cli.main,
                            ("eval", "--model", model, "--task", task, "--episodes", str(plan["episodes"]), "--seed",
                             str(first), "--smoothing", s, "--inject-delay", str(d), "--threads", "1", "--json",
                             f"evals/{cell(task, s, d, seed)}.json", "--force", "--no-progress"),
@@ -82,15 +85,14 @@ def stages(plan: dict, tasks: list[str], record: Path) -> list[Stage]:
             argv = ("--data", data, "--out", run, "--preset", plan["preset"], "--steps", str(spec["steps"]), "--seed",
                     str(seed), "--no-progress", "--force")
             task_stages += [
-                Stage(f"train_{key}", "dssp_train.cli.train:main", argv, after=(f"collect_{task}",),
+                Stage(f"train_{key}", train.main, argv, after=(f"collect_{task}",),
                       resume=("--data", data, "--out", run, "--resume", "--no-progress"), started=f"{run}/checkpoint"),
-                Stage(f"export_{key}", "export.to_onnx:main", (run, "-o", model, "--threads", "1", "--force",
-                                                               *plan["export_flags"]), after=(f"train_{key}",)),
+                Stage(f"export_{key}", to_onnx.main, (run, "-o", model, "--threads", "1", "--force",
+                                                      *plan["export_flags"]), after=(f"train_{key}",)),
                 *cells]
         if task_stages:
-            out += [Stage(f"collect_{task}", "dssp_sim.sim_cli:main",
-                          ("collect", "--task", task, "--episodes", str(spec["demos"]), "--out", data, "--no-progress"),
-                          clean=(data,)), *task_stages]
+            out += [Stage(f"collect_{task}", sim_cli.main, ("collect", "--task", task, "--episodes", str(spec["demos"]),
+                                                             "--out", data, "--no-progress"), clean=(data,)), *task_stages]
     return out
 
 

@@ -36,8 +36,10 @@ from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import DSSPError
 from dssp_core.files import atomic_write_text
 from dssp_core.output_guard import OutputDir, OutputKind
+from dssp_sim import sim_cli
 from dssp_sim.evaluate import print_latency
 from dssp_sim.sim_cli import positive_int
+from dssp_train.cli import train
 from studies.runner import Runner, Stage, StageFailed
 
 TASK = "tap"
@@ -51,20 +53,18 @@ markers, results.json."""
 
 def stages(steps: int, demos: int, episodes: int, seed: int) -> list[Stage]:
     """Collect, then for each model: train → export → evaluate (paths relative to ``--out``)."""
+    from export import to_onnx  # deferred: loads torch, which a stage's process imports after setting its threads
     data = f"{TASK}.zarr"
-    out = [Stage("collect", "dssp_sim.sim_cli:main", ("collect", "--task", TASK, "--episodes", str(demos), "--out", data,
-                                                       "--seed", str(seed), "--no-progress"))]
+    out = [Stage("collect", sim_cli.main, ("collect", "--task", TASK, "--episodes", str(demos), "--out", data,
+                                            "--seed", str(seed), "--no-progress"))]
     for name, (_, flags) in VARIANTS.items():
         out += [
-            Stage(f"train_{name}", "dssp_train.cli.train:main",
-                  ("--data", data, "--out", name, "--preset", "sim", "--steps", str(steps), "--seed", str(seed), *flags),
-                  after=("collect",)),
-            Stage(f"export_{name}", "export.to_onnx:main", (name, "-o", f"{name}_model", "--threads", "1"),
-                  after=(f"train_{name}",)),
-            Stage(f"eval_{name}", "dssp_sim.sim_cli:main",
-                  ("eval", "--model", f"{name}_model", "--task", TASK, "--episodes", str(episodes), "--seed",
-                   str(1000 + seed), "--threads", "1", "--json", f"evals/{name}.json"),
-                  after=(f"export_{name}",)),
+            Stage(f"train_{name}", train.main, ("--data", data, "--out", name, "--preset", "sim", "--steps", str(steps),
+                                                "--seed", str(seed), *flags), after=("collect",)),
+            Stage(f"export_{name}", to_onnx.main, (name, "-o", f"{name}_model", "--threads", "1"), after=(f"train_{name}",)),
+            Stage(f"eval_{name}", sim_cli.main, ("eval", "--model", f"{name}_model", "--task", TASK, "--episodes",
+                                                 str(episodes), "--seed", str(1000 + seed), "--threads", "1", "--json",
+                                                 f"evals/{name}.json"), after=(f"export_{name}",)),
         ]
     return out
 

@@ -41,7 +41,10 @@ from pathlib import Path
 from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import DSSPError
 from dssp_core.output_guard import OutputKind, check_output_files, claim_dir, write_output_figure, write_output_text
+from dssp_deploy import profile
+from dssp_sim import sim_cli
 from dssp_sim.evaluate import wilson_interval
+from dssp_train.cli import distill, synth, train
 from studies.evaluations import run_and_keep
 from studies.runner import Stage
 from studies.sim_study import PLAN as MEMORY_PLAN
@@ -101,13 +104,13 @@ def task_stages(task: str, plan: dict, record: Path, teachers: Path | None = Non
     todo = [(name, kind, k) for name, kind, k in cells(task, plan) if recorded(record, name) is None]
     if not todo:
         return []
+    from export import to_onnx  # deferred: loads torch, which a stage's process imports after setting its threads
     out: list[Stage] = []
     if teachers is None:
         data, teacher = f"data/{task}.zarr", f"runs/{task}_teacher"
-        out += [Stage(f"collect_{task}", "dssp_sim.sim_cli:main", ("collect", "--task", task, "--episodes",
-                                                                     str(plan["demos"][task]), "--out", data, "--no-progress"),
-                      clean=(data,)),
-                Stage(f"train_{task}_teacher", "dssp_train.cli.train:main",
+        out += [Stage(f"collect_{task}", sim_cli.main, ("collect", "--task", task, "--episodes", str(plan["demos"][task]),
+                                                          "--out", data, "--no-progress"), clean=(data,)),
+                Stage(f"train_{task}_teacher", train.main,
                       ("--data", data, "--out", teacher, "--preset", plan["preset"], "--steps", str(plan["steps"][task]),
                        "--seed", str(plan["seed"]), "--no-progress", "--force"), after=(f"collect_{task}",),
                       resume=("--data", data, "--out", teacher, "--resume", "--no-progress"), started=f"{teacher}/checkpoint")]
@@ -118,14 +121,14 @@ def task_stages(task: str, plan: dict, record: Path, teachers: Path | None = Non
         run, flags, ready = teacher, ("--denoise-steps", str(k), "--timestep-spacing", "trailing") if kind == "ddim" else (), trained
         if kind not in ("teacher", "ddim"):
             run, ready = f"runs/{name}", (f"distill_{name}",)
-            out.append(Stage(f"distill_{name}", "dssp_train.cli.distill:main",
+            out.append(Stage(f"distill_{name}", distill.main,
                              ("--teacher", teacher, "--steps", str(k), "--method", kind, "--out", run, "--train-steps",
                               str(plan["distill_steps"][task]), "--no-progress", "--force"), after=trained,
                              resume=("--out", run, "--resume", "--no-progress"), started=f"{run}/checkpoint"))
         model = f"models/{name}"
-        out += [Stage(f"export_{name}", "export.to_onnx:main", (run, "-o", model, *flags, "--threads", str(plan["threads"]),
-                                                                "--force", *plan["export_flags"]), after=ready),
-                Stage(f"eval_{name}", "dssp_sim.sim_cli:main",
+        out += [Stage(f"export_{name}", to_onnx.main, (run, "-o", model, *flags, "--threads", str(plan["threads"]),
+                                                       "--force", *plan["export_flags"]), after=ready),
+                Stage(f"eval_{name}", sim_cli.main,
                       ("eval", "--model", model, "--task", task, "--episodes", str(plan["eval_episodes"]), "--seed",
                        str(plan["eval_seed"]), "--threads", str(plan["threads"]), "--json", f"evals/{name}.json", "--force",
                        "--no-progress"), after=(f"export_{name}",), outputs=(f"evals/{name}.json",))]
@@ -139,18 +142,17 @@ def latency_stages(plan: dict, record: Path, others: list[Stage]) -> list[Stage]
     todo = [k for k in lat["denoise_steps"] if recorded(record, f"latency_k{k}") is None]
     if not todo:
         return []
+    from export import to_onnx  # deferred: loads torch, which a stage's process imports after setting its threads
     data, run = "data/latency.zarr", f"runs/latency_{lat['preset']}"
-    out = [Stage("latency_data", "dssp_train.cli.synth:main", ("--out", data, "--episodes", "2", "--points", str(lat["points"])),
-                 clean=(data,)),
-           Stage("latency_train", "dssp_train.cli.train:main", ("--data", data, "--out", run, "--preset", lat["preset"], "--steps",
-                                                                "1", "--set", "train.val_every=1", "--no-progress", "--force"),
-                 after=("latency_data",))]
-    out += [Stage(f"latency_export_k{k}", "export.to_onnx:main",
+    out = [Stage("latency_data", synth.main, ("--out", data, "--episodes", "2", "--points", str(lat["points"])), clean=(data,)),
+           Stage("latency_train", train.main, ("--data", data, "--out", run, "--preset", lat["preset"], "--steps", "1", "--set",
+                                               "train.val_every=1", "--no-progress", "--force"), after=("latency_data",))]
+    out += [Stage(f"latency_export_k{k}", to_onnx.main,
                   (run, "-o", f"models/latency_k{k}", "--denoise-steps", str(k), "--timestep-spacing", "trailing", "--verify-steps",
                    "50", "--threads", "1", "--force", *plan["export_flags"]), after=("latency_train",)) for k in todo]
     before = tuple(s.name for s in [*others, *out])
     for k in todo:
-        out.append(Stage(f"latency_profile_k{k}", "dssp_deploy.profile:main",
+        out.append(Stage(f"latency_profile_k{k}", profile.main,
                          (f"models/latency_k{k}", "--threads", str(lat["threads"]), "--json", f"evals/latency_k{k}.json", "--force",
                           *lat["profile_flags"]), after=before, outputs=(f"evals/latency_k{k}.json",)))
         before = (f"latency_profile_k{k}",)

@@ -35,6 +35,8 @@ from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import DSSPError
 from dssp_core.files import atomic_write_text
 from dssp_core.output_guard import write_output_figure
+from dssp_sim import sim_cli
+from dssp_train.cli import train
 from studies import protocol
 from studies.evaluations import run_and_keep
 from studies.runner import Stage
@@ -100,6 +102,7 @@ def train_argv(plan: dict, task: str, model: dict, seed: int, data: str, run: st
 def stages(plan: dict, split: str, tasks: list[str], record: Path, models: list[str] | None = None) -> list[Stage]:
     """Every stage of ``tasks`` for ``split`` (of ``models`` only, when given); a model whose evaluation is in the
     record needs none."""
+    from export import to_onnx  # deferred: loads torch, which a stage's process imports after setting its threads
     n = plan["episodes"][split]
     first = protocol.split_seeds(split, n)[0]
     out: list[Stage] = []
@@ -118,20 +121,19 @@ def stages(plan: dict, split: str, tasks: list[str], record: Path, models: list[
                 need_data = True
                 run, model_dir = f"runs/{key}", f"models/{key}"
                 out += [
-                    Stage(f"train_{key}", "dssp_train.cli.train:main", tuple(train_argv(plan, task, model, seed, data, run)),
+                    Stage(f"train_{key}", train.main, tuple(train_argv(plan, task, model, seed, data, run)),
                           after=(f"collect_{task}",), resume=("--data", data, "--out", run, "--resume", "--no-progress"),
                           started=f"{run}/checkpoint"),
-                    Stage(f"export_{key}", "export.to_onnx:main", (run, "-o", model_dir, "--force", "--threads", "1",
-                                                                   *plan["export_flags"]), after=(f"train_{key}",)),
-                    Stage(f"eval_{result}", "dssp_sim.sim_cli:main",
+                    Stage(f"export_{key}", to_onnx.main, (run, "-o", model_dir, "--force", "--threads", "1",
+                                                          *plan["export_flags"]), after=(f"train_{key}",)),
+                    Stage(f"eval_{result}", sim_cli.main,
                           ("eval", "--model", model_dir, "--task", task, "--episodes", str(n), "--seed", str(first),
                            "--threads", "1", "--json", f"evals/{result}.json", "--force", "--no-progress"),
                           after=(f"export_{key}",), outputs=(f"evals/{result}.json",)),
                 ]
         if need_data:
-            out.insert(0, Stage(f"collect_{task}", "dssp_sim.sim_cli:main",
-                                ("collect", "--task", task, "--episodes", str(spec["demos"]), "--out", data, "--no-progress"),
-                                clean=(data,)))
+            out.insert(0, Stage(f"collect_{task}", sim_cli.main, ("collect", "--task", task, "--episodes", str(spec["demos"]),
+                                                                   "--out", data, "--no-progress"), clean=(data,)))
     return out
 
 

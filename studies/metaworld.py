@@ -38,6 +38,8 @@ import numpy as np
 from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import DSSPError
 from dssp_core.files import atomic_write_text
+from dssp_sim import sim_cli
+from dssp_train.cli import train
 from studies import protocol
 from studies.evaluations import run_and_keep
 from studies.runner import Stage
@@ -165,6 +167,7 @@ def train_argv(plan: dict, task: str, model: dict, seed: int, data: str, run: st
 def stages(plan: dict, split: str, tasks: list[str], record: Path) -> list[Stage]:
     """Every stage of ``tasks`` for ``split`` not yet in the record: on validation every kept checkpoint is
     evaluated, on test the last one."""
+    from export import to_onnx  # deferred: loads torch, which a stage's process imports after setting its threads
     n = plan["episodes"][split]
     first = protocol.split_seeds(split, n)[0]
     kept = checkpoint_steps(plan)
@@ -181,23 +184,22 @@ def stages(plan: dict, split: str, tasks: list[str], record: Path) -> list[Stage
                 if not wanted:
                     continue
                 need_data = True
-                out.append(Stage(f"train_{key}", "dssp_train.cli.train:main",
-                                 tuple(train_argv(plan, task, model, seed, data, run)), after=(f"collect_{task}",),
-                                 resume=("--data", data, "--out", run, "--resume", "--no-progress"),
+                out.append(Stage(f"train_{key}", train.main, tuple(train_argv(plan, task, model, seed, data, run)),
+                                 after=(f"collect_{task}",), resume=("--data", data, "--out", run, "--resume", "--no-progress"),
                                  started=f"{run}/checkpoint"))
                 for step in wanted:
                     model_dir, result = f"models/{key}_step{step}", eval_name(task, name, seed, step, split)
                     out += [
-                        Stage(f"export_{key}_step{step}", "export.to_onnx:main",
+                        Stage(f"export_{key}_step{step}", to_onnx.main,
                               (f"{run}/snapshots/step_{step:07d}", "-o", model_dir, "--force", "--threads", "1",
                                *plan["export_flags"]), after=(f"train_{key}",)),
-                        Stage(f"eval_{result}", "dssp_sim.sim_cli:main",
+                        Stage(f"eval_{result}", sim_cli.main,
                               ("eval", "--model", model_dir, "--task", task_id(plan, task), "--episodes", str(n),
                                "--seed", str(first), "--threads", "1", "--json", f"evals/{result}.json", "--force",
                                "--no-progress"), after=(f"export_{key}_step{step}",), outputs=(f"evals/{result}.json",)),
                     ]
         if need_data:
-            out.insert(0, Stage(f"collect_{task}", "dssp_sim.sim_cli:main",
+            out.insert(0, Stage(f"collect_{task}", sim_cli.main,
                                 ("collect", "--task", task_id(plan, task), "--episodes", str(plan["demos"]), "--out", data,
                                  "--no-progress"), clean=(data,)))
     return out
@@ -413,13 +415,13 @@ def _measured(record: Path) -> dict | None:
     """{step_s, episode_s}: the record's median training step (None when its trainings ran elsewhere or none
     finished) and evaluation episode, in seconds; None without a finished evaluation."""
     folder = record / "seconds"
-    train = [float(p.read_text()) for p in folder.glob("train_*.seconds")] if folder.is_dir() else []
+    train_seconds = [float(p.read_text()) for p in folder.glob("train_*.seconds")] if folder.is_dir() else []
     evals = [(float(p.read_text()), p.stem[len("eval_"):]) for p in folder.glob("eval_*.seconds")] if folder.is_dir() else []
     if not evals:
         return None
     step_s = None
-    if train and not protocol.trained_elsewhere(record):
-        step_s = float(np.median(train)) / steps_of(json.loads((record / "plan.json").read_text()))
+    if train_seconds and not protocol.trained_elsewhere(record):
+        step_s = float(np.median(train_seconds)) / steps_of(json.loads((record / "plan.json").read_text()))
     per_episode = []
     for secs, name in evals:
         e = json.loads((record / "evals" / f"{name}.json").read_text())

@@ -1,8 +1,8 @@
 """The stage runner every study uses: stages are calls of the packages' Python entry points, run side by side
 in their own processes with one thread each, resumed after an interruption.
 
-    stages = [Stage("collect_tap", "dssp_sim.sim_cli:main", ("collect", "--task", "tap", ...)),
-              Stage("train_tap_dssp_s0", "dssp_train.cli.train:main", (...), after=("collect_tap",),
+    stages = [Stage("collect_tap", sim_cli.main, ("collect", "--task", "tap", ...)),
+              Stage("train_tap_dssp_s0", train.main, (...), after=("collect_tap",),
                     resume=("--data", ..., "--resume"), started="runs/tap_dssp_s0/checkpoint")]
     seconds = Runner(work, workers=2).run(stages)
 
@@ -10,11 +10,11 @@ in their own processes with one thread each, resumed after an interruption.
   stage's seconds and its call) only after the entry point returned 0, so a stage stopped halfway runs
   again. A stage whose ``started`` path exists but is not done runs its ``resume`` call instead (training:
   ``--resume`` from the last checkpoint).
-- Up to ``workers`` stages run at once, each a fresh process (multiprocessing's spawn) with
-  ``OMP_NUM_THREADS`` and friends at ``threads`` (default 1) before anything imports torch or ONNX Runtime,
-  its output in ``work/logs/NAME.log``, run in the work folder (relative paths in a call are the work
-  folder's). A stage starts when every stage it comes ``after`` is done; ``clean`` paths are removed before
-  it starts (a collection stopped halfway is collected again, not appended to).
+- Up to ``workers`` stages run at once, each a fresh process (multiprocessing's spawn) with ``OMP_NUM_THREADS`` and
+  friends at ``threads`` (default 1) before anything imports torch or ONNX Runtime (it is given the entry point by name,
+  ``"package.module:function"``, and imports it then), its output in ``work/logs/NAME.log``, run in the work folder
+  (relative paths in a call are the work folder's). A stage starts when every stage it comes ``after`` is done;
+  ``clean`` paths are removed before it starts (a collection stopped halfway is collected again, not appended to).
 - With ``echo``, each running stage's output is shown as it comes, line by line behind ``[NAME]`` (a progress
   bar, a line ended by a carriage return, at most every :data:`PROGRESS_EVERY_S`).
 - The first stage that fails stops the others and raises :class:`StageFailed`, one line: its name, its exit code,
@@ -48,10 +48,10 @@ PROGRESS_EVERY_S = 15.0
 
 @dataclass(frozen=True)
 class Stage:
-    """One call of an entry point (``"package.module:function"``, called with ``argv``, returning an exit code)."""
+    """One call of an entry point: a function of ``argv`` returning an exit code, kept as ``"module:function"``."""
 
     name: str
-    entry: str
+    entry: str | Callable[[list[str]], int | None]
     argv: tuple[str, ...]
     after: tuple[str, ...] = ()
     resume: tuple[str, ...] | None = None  # the call when ``started`` exists and the stage is not done
@@ -62,6 +62,8 @@ class Stage:
     def __post_init__(self):
         if not self.name or any(c in self.name for c in "/\\ ") or self.name.startswith("."):
             raise ValueError(f"a stage name must be a plain file name, got {self.name!r}")
+        if callable(self.entry):
+            object.__setattr__(self, "entry", f"{self.entry.__module__}:{self.entry.__name__}")
         if ":" not in self.entry:
             raise ValueError(f"a stage's entry must be 'module:function', got {self.entry!r}")
 

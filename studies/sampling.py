@@ -28,7 +28,9 @@ from dssp_core.errors import DSSPError
 from dssp_core.files import atomic_write_text
 from dssp_core.output_guard import write_output_figure
 from dssp_deploy.manifest import PRECISIONS
+from dssp_sim import sim_cli
 from dssp_sim.evaluate import wilson_interval
+from dssp_train.cli import train
 from studies import memory_tasks, protocol
 from studies.evaluations import study_main
 from studies.runner import Stage
@@ -54,6 +56,7 @@ def cell(task: str, k: int, precision: str) -> str:
 
 def stages(plan: dict, tasks: list[str], record: Path) -> list[Stage]:
     """Every stage of ``tasks``; a cell whose evaluation is in the record needs none."""
+    from export import to_onnx  # deferred: loads torch, which a stage's process imports after setting its threads
     first = protocol.split_seeds("validation", plan["episodes"])[0]
     out: list[Stage] = []
     for task in tasks:
@@ -61,21 +64,21 @@ def stages(plan: dict, tasks: list[str], record: Path) -> list[Stage]:
         task_stages: list[Stage] = []
         for k in plan["denoise_steps"]:
             model = f"models/{task}_k{k}"
-            cells = [Stage(f"eval_{cell(task, k, p)}", "dssp_sim.sim_cli:main",
+            cells = [Stage(f"eval_{cell(task, k, p)}", sim_cli.main,
                            ("eval", "--model", model, "--task", task, "--episodes", str(plan["episodes"]), "--seed", str(first),
                             "--precision", p, "--threads", "1", "--json", f"evals/{cell(task, k, p)}.json", "--force",
                             "--no-progress"), after=(f"export_{task}_k{k}",), outputs=(f"evals/{cell(task, k, p)}.json",))
                      for p in plan["precisions"] if not (record / "evals" / f"{cell(task, k, p)}.json").is_file()]
             if cells:
-                task_stages += [Stage(f"export_{task}_k{k}", "export.to_onnx:main",
+                task_stages += [Stage(f"export_{task}_k{k}", to_onnx.main,
                                       (run, "-o", model, "--denoise-steps", str(k), "--threads", "1", "--force"),
                                       after=(f"train_{task}",)), *cells]
         if task_stages:
             argv = ("--data", data, "--out", run, "--preset", plan["preset"], "--steps", str(spec["steps"]), "--seed",
                     str(plan["seed"]), "--no-progress", "--force")
-            out += [Stage(f"collect_{task}", "dssp_sim.sim_cli:main",
+            out += [Stage(f"collect_{task}", sim_cli.main,
                           ("collect", "--task", task, "--episodes", str(spec["demos"]), "--out", data, "--no-progress"), clean=(data,)),
-                    Stage(f"train_{task}", "dssp_train.cli.train:main", argv, after=(f"collect_{task}",),
+                    Stage(f"train_{task}", train.main, argv, after=(f"collect_{task}",),
                           resume=("--data", data, "--out", run, "--resume", "--no-progress"), started=f"{run}/checkpoint"),
                     *task_stages]
     return out

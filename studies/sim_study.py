@@ -51,7 +51,9 @@ import numpy as np
 from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import DSSPError
 from dssp_core.output_guard import OutputKind, check_output_files, claim_dir, write_output_figure, write_output_text
+from dssp_sim import sim_cli
 from dssp_sim.evaluate import wilson_interval
+from dssp_train.cli import train
 from studies.evaluations import run_and_keep
 from studies.runner import Runner, Stage
 
@@ -154,6 +156,7 @@ def train_argv(plan: dict, task: str, seed: int, flags: list[str], data: str, ru
 def stages(plan: dict, tasks: list[str], record: Path, seeds: list[int] | None = None) -> list[Stage]:
     """Every stage of ``tasks`` (the models of training ``seeds`` only, when given; module docstring); a model whose
     evaluations are all in ``record`` needs none, and of the others only the evaluations not recorded run."""
+    from export import to_onnx  # deferred: loads torch, which a stage's process imports after setting its threads
     out: list[Stage] = []
     for task in tasks:
         data = f"data/{task}.zarr"
@@ -165,23 +168,22 @@ def stages(plan: dict, tasks: list[str], record: Path, seeds: list[int] | None =
                 continue
             run, model = f"runs/{name}", f"models/{name}"
             task_stages += [
-                Stage(f"train_{name}", "dssp_train.cli.train:main", train_argv(plan, task, seed, flags, data, run),
+                Stage(f"train_{name}", train.main, train_argv(plan, task, seed, flags, data, run),
                       after=(f"collect_{task}",), resume=("--data", data, "--out", run, "--resume", "--no-progress"),
                       started=f"{run}/checkpoint"),
-                Stage(f"export_{name}", "export.to_onnx:main", (run, "-o", model, "--force", "--threads", "1",
-                                                                *plan["export_flags"]), after=(f"train_{name}",)),
+                Stage(f"export_{name}", to_onnx.main, (run, "-o", model, "--force", "--threads", "1",
+                                                       *plan["export_flags"]), after=(f"train_{name}",)),
             ]
             for sigma in pending:
                 result = eval_name(name, sigma)
                 task_stages.append(Stage(
-                    f"eval_{result}", "dssp_sim.sim_cli:main",
+                    f"eval_{result}", sim_cli.main,
                     ("eval", "--model", model, "--task", task, "--episodes", str(plan["eval_episodes"]), "--seed",
                      str(plan["eval_seed"]), "--noise", str(sigma), "--threads", "1", "--json", f"evals/{result}.json", "--force",
                      "--no-progress"), after=(f"export_{name}",), outputs=(f"evals/{result}.json",)))
         if task_stages:
-            out += [Stage(f"collect_{task}", "dssp_sim.sim_cli:main", ("collect", "--task", task, "--episodes",
-                                                                         str(plan["demos"][task]), "--out", data, "--no-progress"),
-                          clean=(data,)), *task_stages]
+            out += [Stage(f"collect_{task}", sim_cli.main, ("collect", "--task", task, "--episodes", str(plan["demos"][task]),
+                                                              "--out", data, "--no-progress"), clean=(data,)), *task_stages]
     return out
 
 

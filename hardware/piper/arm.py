@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import can
 import numpy as np
 
-from hardware.can_reader import CanReader
+from hardware.piper.can_reader import CanReader
 from hardware.clock import REAL_CLOCK, Clock
 from hardware.robot import ArmStatus, FirmwareLimits
 from dssp_core.errors import ArmError, CanError

@@ -36,8 +36,8 @@ import can
 import numpy as np
 
 from dssp_core.errors import CanError
-from hardware.can_reader import CanReader
 from hardware.piper import codec
+from hardware.piper.can_reader import CanReader
 from hardware.piper.firmware_limits import factory_limits
 from hardware.piper.limits import GRIPPER_STROKE_MAX, GRIPPER_STROKE_MIN, JOINT_LOWER, JOINT_UPPER
 from hardware.robot import FirmwareLimits

@@ -19,15 +19,34 @@ from __future__ import annotations
 import importlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
 from dssp_core.errors import ConfigError
 
-if TYPE_CHECKING:  # the loop imports this module; the name is for the annotations only
+if TYPE_CHECKING:  # annotations only
     from dssp_data.pointcloud.depth_frame import DepthFrame
-    from hardware.run_loop import Runner
+    from hardware.camera.base import Camera
+    from hardware.robot import Robot
+    from hardware.safety import SafetyConfig
+
+
+class Loop(Protocol):
+    """What a subscriber may use of the loop that tells it: its devices and settings, what it counts, a stop request."""
+
+    robot: Robot
+    camera: Camera | None
+    camera_to_base: np.ndarray  # (4, 4)
+    safety_config: SafetyConfig
+    settings: Any  # the loop's settings (dry_run, max_steps, …)
+    ticks: int
+    holds: int
+    event_counts: dict[str, int]
+    latencies: dict[str, list[float]]  # "cloud", "observe", "chunk", "tick" (ms)
+
+    def rate(self) -> float: ...
+    def request_stop(self, why: str) -> None: ...
 
 
 @dataclass(frozen=True)
@@ -47,14 +66,14 @@ class Tick:
     frame: DepthFrame | None
     cloud: np.ndarray | None
     chunk: np.ndarray | None
-    loop: Runner
+    loop: Loop
     scheduled: float
 
 
 class Subscriber:
     """Told of the loop's start, each tick and its end; every method does nothing unless overridden."""
 
-    def on_start(self, loop: Runner) -> None:
+    def on_start(self, loop: Loop) -> None:
         """The loop has its first frame and feedback and is about to tick (the arms enabled unless a dry run)."""
 
     def on_tick(self, tick: Tick) -> None:
