@@ -1,8 +1,8 @@
 """What the Rerun views cost the control loop, per tick, on this machine.
 
-    python benchmarks/rerun_cost.py [--ticks 300] [--rate 10] [--block 25] [--json PATH [--force]]
+    python benchmarks/rerun_cost.py [--ticks 300] [--control-rate 10] [--block 25] [--json PATH [--force]]
 
-A paced loop at ``--rate`` Hz does each tick's real work — a 640x480 L515-like depth frame from the simulated
+A paced loop at ``--control-rate`` Hz does each tick's real work — a 640x480 L515-like depth frame from the simulated
 tabletop camera through ``dssp_data.pointcloud.frame_to_cloud`` (1024 points) — and, in alternate blocks of
 ``--block`` ticks, also queues that tick's views as ``dssp-run`` does (depth, cloud, a 7-value state and
 command, a 16-step chunk every 8 ticks, held, latencies; saved to a temporary .rrd), so both conditions see
@@ -23,6 +23,7 @@ import numpy as np
 from bench_output import check_json, emit
 
 from dssp_core.cli_runner import run_cli
+from dssp_core.schema import DEFAULT_CONTROL_RATE_HZ
 from dssp_data.rerun_views import open_views
 from dssp_data.pointcloud.depth_frame import DepthFrame
 from hardware.camera.tabletop import SimCamera
@@ -32,7 +33,7 @@ from dssp_data.pointcloud import PointCloudConfig, frame_to_cloud
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--ticks", type=int, default=300, help="ticks per condition")
-    ap.add_argument("--rate", type=float, default=10.0, help="loop rate in Hz (the robot's: 10)")
+    ap.add_argument("--control-rate", type=float, default=DEFAULT_CONTROL_RATE_HZ, help="loop rate in Hz (default: the toolkit's)")
     ap.add_argument("--block", type=int, default=25, help="ticks per alternating block")
     ap.add_argument("--json", type=Path, help="also write the figures to this JSON file (a new one; --force replaces one)")
     ap.add_argument("--force", action="store_true", help="replace an existing --json file")
@@ -52,7 +53,7 @@ def _measure(args) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         views = open_views("rerun-cost", None, Path(tmp) / "cost.rrd")
         views.camera(cam.intrinsics.to_dict(), pose)
-        period, next_tick, tick = 1.0 / args.rate, time.perf_counter(), 0
+        period, next_tick, tick = 1.0 / args.control_rate, time.perf_counter(), 0
         for i in range(2 * args.ticks):
             on = (i // args.block) % 2 == 1
             t0 = time.perf_counter()
@@ -73,14 +74,14 @@ def _measure(args) -> int:
     p = {k: (float(np.percentile(v, 50)), float(np.percentile(v, 95))) for k, v in work.items()}
     report = {
         "machine": {"cpus": __import__("os").cpu_count(), "processor": platform.processor() or platform.machine()},
-        "ticks_per_condition": args.ticks, "rate_hz": args.rate,
+        "ticks_per_condition": args.ticks, "rate_hz": args.control_rate,
         "tick_work_ms": {k: {"p50": v[0], "p95": v[1]} for k, v in p.items()},
         "cost_ms_p50": p["on"][0] - p["off"][0], "cost_ms_p95": p["on"][1] - p["off"][1],
         "call_ms": {"p50": float(np.median(call)), "p95": float(np.percentile(call, 95)), "max": float(np.max(call))},
         **counts,
     }
     md = "\n".join([
-        f"Rerun views' cost per tick ({args.ticks} ticks per condition at {args.rate:g} Hz, alternating blocks of {args.block}):",
+        f"Rerun views' cost per tick ({args.ticks} ticks per condition at {args.control_rate:g} Hz, alternating blocks of {args.block}):",
         "", "| | p50 ms | p95 ms |", "|---|---:|---:|",
         f"| tick work without views | {p['off'][0]:.3f} | {p['off'][1]:.3f} |",
         f"| tick work with views | {p['on'][0]:.3f} | {p['on'][1]:.3f} |",

@@ -46,9 +46,11 @@ MAX_LAYERS = 256
 MAX_STEPS = 4096  # N, H, H_a
 MAX_RATE_HZ = 1000.0  # control rate: the Piper's CAN feedback arrives at 200 Hz
 MIN_RATE_HZ = 0.1  # control rate: below 0.1 Hz a tick outlasts any sensible timeout
+DEFAULT_CONTROL_RATE_HZ = 10.0  # the control rate where neither the data, the model nor --control-rate gives one
+CONTROL_RATE_FLAG = "--control-rate"  # every command's option for it (Hz)
 
 
-def check_rate(rate, flag: str = "--rate") -> float:
+def check_rate(rate, flag: str = CONTROL_RATE_FLAG) -> float:
     """``rate`` in [MIN_RATE_HZ, MAX_RATE_HZ] Hz as a float, else a one-line ConfigError naming ``flag`` (the option
     or the field that gave it): the control rates a dataset, a model or a robot may run at."""
     if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not _finite(rate) \

@@ -37,6 +37,7 @@ from pathlib import Path
 
 from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import ConfigError, DSSPError
+from dssp_core.schema import DEFAULT_CONTROL_RATE_HZ
 
 EPILOG = """\
 info      episodes, lengths, rates, arrays, value ranges, attributes, recording metadata, problems found
@@ -251,7 +252,7 @@ def _convert(args) -> int:
         action = ("the leader's command (" + args.action_topic + ")" if summary["action_convention"] == "leader_command"
                   else "the state at the next tick")
         print(f"wrote {args.out}: {summary['episodes']} episodes (one per bag), {summary['steps']} steps at "
-              f"{args.control_rate or 10.0:g} Hz (action = {action})")
+              f"{args.control_rate or DEFAULT_CONTROL_RATE_HZ:g} Hz (action = {action})")
         return 0
     print(f"wrote {args.out}: {summary['episodes']} episodes, {summary['steps']} steps "
           f"(state = joint vector at t, action = joint vector at t + 1)")
@@ -277,7 +278,7 @@ def _convert_bags(args, progress) -> dict:
         raise ConfigError("--pointcloud asks for colour (use_color): the ROS 2 converter builds xyz clouds from the depth "
                           "topic only; set use_color false")
     settings = Rosbag2Settings(
-        control_rate_hz=args.control_rate if args.control_rate is not None else 10.0,
+        **({} if args.control_rate is None else {"control_rate_hz": args.control_rate}),
         state_topic=args.state_topic, action_topic=args.action_topic, depth_topic=args.depth_topic,
         info_topic=args.info_topic, joints=tuple(j.strip() for j in args.joints.split(",")),
         gripper_open=args.gripper_open, tolerance=args.tolerance, depth_unit=args.depth_unit)

@@ -243,7 +243,7 @@ class RecordingDataset:
         if not _same_number(existing.get("control_rate_hz"), wanted.get("control_rate_hz")):
             raise DatasetError(
                 f"{where} was recorded at {existing.get('control_rate_hz')} Hz, this session runs at "
-                f"{wanted.get('control_rate_hz')} Hz: record at the dataset's rate (--rate) or into a new dataset"
+                f"{wanted.get('control_rate_hz')} Hz: record at the dataset's rate (--control-rate) or into a new dataset"
             )
         if convention_name(existing) != convention_name(wanted):
             raise DatasetError(

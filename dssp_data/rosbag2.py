@@ -64,7 +64,7 @@ from dssp_data.bounded import (
 )
 from dssp_data.dataset_layout import FLOAT32_MAX, Episode
 from dssp_data.edit import DATA_GENERATORS, ConvertedEpisode, check_converted_output, check_data_output, write_converted
-from dssp_core.schema import check_rate
+from dssp_core.schema import DEFAULT_CONTROL_RATE_HZ, check_rate
 from dssp_data.observation import ObservationContract, PointCloudConfig, piper_layout
 from dssp_data.pointcloud import EmptyCloudError, frame_to_cloud, validate_extrinsics
 from dssp_data.pointcloud.depth_frame import DepthFrame, Intrinsics
@@ -97,7 +97,7 @@ class Rosbag2Settings:
     tolerance: s, the oldest a stream's newest message may be at a tick. depth_unit: metres per depth count.
     """
 
-    control_rate_hz: float = 10.0
+    control_rate_hz: float = DEFAULT_CONTROL_RATE_HZ
     state_topic: str = "/joint_states"
     action_topic: str | None = None
     depth_topic: str = "/camera/camera/depth/image_rect_raw"

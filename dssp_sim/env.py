@@ -5,7 +5,7 @@ Two levels of use:
 - low level (what a CAN simulator drives): ``set_targets(joints (6,) rad, stroke m)`` then ``advance(dt s)``;
   read back ``joint_positions()`` (6,) rad and ``gripper_stroke()`` m;
 - policy level, in policy units (7,) = [J1..J6 rad, gripper opening 0..1, 1 = open]:
-  ``state()``, ``step(target)`` (one control period, 1 / ``CONTROL_RATE_HZ`` s), ``render_depth()``,
+  ``state()``, ``step(target)`` (one control period, 1 / ``control_rate_hz`` s), ``render_depth()``,
   ``status()``.
 
     env = PiperEnv("tap", seed=3)
@@ -34,6 +34,7 @@ import numpy as np  # noqa: E402
 from dssp_sim.mjcf import CAMERA_NAME, TIMESTEP, ArmIndex, scene_xml  # noqa: E402
 from dssp_sim.tasks import HOME, HOME_TOLERANCE, START_JITTER, Task, TaskStatus, make_task  # noqa: E402
 from dssp_sim.settings import render_size_for  # noqa: E402
+from dssp_core.schema import DEFAULT_CONTROL_RATE_HZ  # noqa: E402
 from dssp_data.pointcloud.depth_frame import Intrinsics
 from hardware.piper.limits import (  # noqa: E402
     GRIPPER_STROKE_MAX,
@@ -44,7 +45,6 @@ from hardware.piper.limits import (  # noqa: E402
     stroke_to_opening,
 )
 
-CONTROL_RATE_HZ = 10.0
 DEPTH_UNIT = 0.00025  # m per raw depth unit
 DEPTH_MIN_M = 0.25  # nearer than this reads 0 (L515 minimum range)
 DEPTH_MAX_M = 4.0  # farther than this (or nothing hit) reads 0
@@ -105,11 +105,11 @@ class PiperEnv(ArmServos):
             scene_xml(self.task.objects_xml(), extra_contact=self.task.extra_contact()))
         self.data = mujoco.MjData(self.model)
         self.arm = ArmIndex.find(self.model)
-        self.control_rate_hz = CONTROL_RATE_HZ
+        self.control_rate_hz = DEFAULT_CONTROL_RATE_HZ  # the simulated Piper runs at the toolkit's default rate
         self.max_steps = self.task.max_steps
         render_size = render_size or render_size_for(task)
         self.render_size = (int(render_size[0]), int(render_size[1]))
-        self._substeps_per_control = int(round(1.0 / (CONTROL_RATE_HZ * TIMESTEP)))
+        self._substeps_per_control = int(round(1.0 / (self.control_rate_hz * TIMESTEP)))
         self._camera_id = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_CAMERA, CAMERA_NAME)
         self._renderer: DepthRenderThread | None = None
         self._renderer_finalizer = None

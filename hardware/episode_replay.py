@@ -59,7 +59,7 @@ class _ReplayWatch(Subscriber):
 
 
 def replay_episode(path, episode: int, can: str | None, *, send: bool = False, interface: str = "socketcan",
-                   rate_hz: float | None = None, safety_config: SafetyConfig = SafetyConfig(),
+                   control_rate_hz: float | None = None, safety_config: SafetyConfig = SafetyConfig(),
                    events: Callable[[str], None] = print,
                    attach_stop: Callable[[Callable[[str], None] | None], None] = lambda request: None,
                    feedback_timeout: float = 3.0, clock: Clock | None = None) -> dict:
@@ -71,12 +71,12 @@ def replay_episode(path, episode: int, can: str | None, *, send: bool = False, i
     feedback on; None: the real clock with an arm, a simulated one without."""
     source = RecordedEpisode.load(path, episode)
     dof = source.actions.shape[1]
-    if rate_hz is not None:
-        rate = check_rate(rate_hz)
+    if control_rate_hz is not None:
+        rate = check_rate(control_rate_hz)
     else:
         rate = source.control_rate_hz  # a value that is not a rate: a DatasetError naming the attribute
         if rate is None:
-            raise ConfigError(f"{path} does not record its control rate: pass --rate HZ")
+            raise ConfigError(f"{path} does not record its control rate: pass --control-rate HZ")
         rate = check_rate(rate, flag=f"{path}'s control_rate_hz attribute")
     if send and can is None:
         raise ConfigError("--send needs --can (the arms to command)")
@@ -93,7 +93,7 @@ def replay_episode(path, episode: int, can: str | None, *, send: bool = False, i
     safety_config.check_speed(float(rate), robot.description.max_joint_speed)
     watch = _ReplayWatch(source.actions[0], "the recorded first state" if can is None else "the arm's position", events)
     rig = Rig(None, robot, np.eye(4), safety_config, clock=clock)
-    runner = Runner(source, rig, None, LoopSettings(rate_hz=rate, dry_run=can is not None and not send,
+    runner = Runner(source, rig, None, LoopSettings(control_rate_hz=rate, dry_run=can is not None and not send,
                                                     startup_timeout=feedback_timeout), subscribers=[watch])
     tracking = None
     attach_stop(runner.request_stop)

@@ -338,7 +338,7 @@ class RecordSession(Subscriber):
         self.controls = controls
         rig = Rig(None, ListeningArms(self.monitors), rec.camera_to_base, clock=self.clock)
         # up to a period late, the samples stay on their grid (a short stall is one late, flagged step)
-        settings = LoopSettings(rate_hz=rec.rate_hz, resync=rec.period)
+        settings = LoopSettings(control_rate_hz=rec.control_rate_hz, resync=rec.period)
         runner = Runner(LeaderArm(self.monitors), rig, None, settings, subscribers=[self])
         if self._stop_reason is not None:
             runner.request_stop(self._stop_reason)

@@ -1,6 +1,6 @@
 """The recording loop's tick: sample every stream, check its age, buffer the episode in memory.
 
-    recorder = Recorder(StampedCamera(camera), [BusMonitor("can0")], cloud_config, camera_to_base, rate_hz=10)
+    recorder = Recorder(StampedCamera(camera), [BusMonitor("can0")], cloud_config, camera_to_base, control_rate_hz=10)
     recorder.start(now)                 # refuses (RecorderNotReady) while a stream is missing
     sample = recorder.tick(now)         # once per control period
     episode, info = recorder.finish()   # Episode with extras + the episode's metadata; or recorder.abort()
@@ -48,7 +48,7 @@ from dssp_data.recording import (
 from dssp_data.dataset_layout import Episode
 from dssp_data.rerun_views import TickViews
 from dssp_core.errors import ConfigError, DSSPError
-from dssp_core.schema import Settings, setting
+from dssp_core.schema import Settings, check_rate, setting
 from hardware.bus_monitor import BusMonitor, oldest
 from dssp_data.pointcloud.depth_frame import DepthFrame
 from hardware.camera.base import Camera
@@ -135,24 +135,23 @@ class Recorder:
     """Samples the camera and the arms at each tick and buffers the current episode in memory.
 
     camera: the scene camera. monitors: one :class:`~hardware.bus_monitor.BusMonitor` per arm pair (left,
-    right). cloud_config / camera_to_base (4, 4): the point-cloud pipeline's settings. rate_hz: the target
+    right). cloud_config / camera_to_base (4, 4): the point-cloud pipeline's settings. control_rate_hz: the target
     control rate. action_convention: ``leader_command`` or ``next_state``. store_depth: keep each step's
     raw depth image (H, W) uint16 as the ``depth`` extra. views: Rerun views (:mod:`dssp_data.rerun_views`) of
     every recorded step (the caller closes them): depth, cloud, state, the action as the command, step problems.
     """
 
     def __init__(self, camera: StampedCamera, monitors: Sequence[BusMonitor], cloud_config: PointCloudConfig,
-                 camera_to_base: np.ndarray, rate_hz: float, *, action_convention: str = "leader_command",
+                 camera_to_base: np.ndarray, control_rate_hz: float, *, action_convention: str = "leader_command",
                  thresholds: RecordThresholds = RecordThresholds(), store_depth: bool = True,
                  views: TickViews | None = None) -> None:
         if action_convention not in ACTION_CONVENTIONS:
             raise ConfigError(f"action convention {action_convention!r} is not one of {', '.join(ACTION_CONVENTIONS)}")
-        if not (math.isfinite(rate_hz) and 0 < rate_hz <= 1000):
-            raise ConfigError(f"--rate must be in (0, 1000] Hz, got {rate_hz}")
+        check_rate(control_rate_hz)
         self.camera, self.monitors = camera, list(monitors)
         self.cloud_config = cloud_config
         self.camera_to_base = np.asarray(camera_to_base, dtype=np.float64)
-        self.rate_hz, self.period = float(rate_hz), 1.0 / float(rate_hz)
+        self.control_rate_hz, self.period = float(control_rate_hz), 1.0 / float(control_rate_hz)
         self.action_convention = action_convention
         self.thresholds = thresholds
         self.store_depth = store_depth
@@ -355,7 +354,7 @@ class Recorder:
         for name, limit in (("camera_repeat", th.max_dropped_fraction), ("late_tick", th.max_late_fraction)):
             if name in summary and summary[name]["steps"] > limit * n:
                 problems.append({"kind": name, **summary[name], "what": PROBLEM_TEXT[name]})
-        if math.isfinite(rate) and abs(rate - self.rate_hz) > th.rate_tolerance * self.rate_hz:
+        if math.isfinite(rate) and abs(rate - self.control_rate_hz) > th.rate_tolerance * self.control_rate_hz:
             problems.append({"kind": "rate", "measured_hz": round(rate, 3), "what": PROBLEM_TEXT["rate"]})
         ages = {key: latency_stats(values, digits=3) for key, values in self._ages.items()}
         if not self.needs_leader:
@@ -366,7 +365,7 @@ class Recorder:
             "recorded_steps": n,
             "duration_s": round(duration, 6),
             "rate_hz": round(rate, 4) if math.isfinite(rate) else None,
-            "target_rate_hz": self.rate_hz,
+            "target_rate_hz": self.control_rate_hz,
             "stream_age_ms": ages,
             "step_problems": summary,
             "problems": problems,

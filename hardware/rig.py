@@ -2,7 +2,7 @@
 
     rig = Rig(camera, robot, camera_to_base, SafetyConfig.load("safety.json"), recorders=[BusRecorder(...)])
     with rig:                                   # the camera, then the arms, then the CAN recorders
-        Runner(ModelPolicy(policy, rate_hz=10), rig, cloud_config, LoopSettings(rate_hz=10)).run()
+        Runner(ModelPolicy(policy, control_rate_hz=10), rig, cloud_config, LoopSettings(control_rate_hz=10)).run()
                                                 # closed in the reverse order, whatever ends the block
 
 Each part stays behind its own small interface with its fake: :class:`hardware.camera.base.Camera` (RealSense,

@@ -2,8 +2,8 @@
 
     rig = Rig(camera, robot, camera_to_base, SafetyConfig())          # hardware.rig: the devices, opened together
     with rig:
-        source = ModelPolicy(onnx_policy, rate_hz=10)                  # hardware.policies: what decides the action
-        runner = Runner(source, rig, cloud_config, LoopSettings(rate_hz=10))
+        source = ModelPolicy(onnx_policy, control_rate_hz=10)                  # hardware.policies: what decides the action
+        runner = Runner(source, rig, cloud_config, LoopSettings(control_rate_hz=10))
         summary = runner.run()    # until max_steps, the source's end, a stop request (a signal, a lost output) or a fault
 
 Each tick:
@@ -48,7 +48,7 @@ import numpy as np
 
 from dssp_deploy.ranges import ChunkOutOfRange, ObservationOutOfRange
 from dssp_core.errors import CameraError, ConfigError, DSSPError, NonFiniteObservation
-from dssp_core.schema import check_rate
+from dssp_core.schema import DEFAULT_CONTROL_RATE_HZ, check_rate
 from hardware.pacing import Pacer, RateMeter, latency_stats
 from dssp_data.pointcloud import EmptyCloudError, PointCloudConfig, frame_to_cloud
 from hardware.policies import PolicySource
@@ -59,14 +59,14 @@ from hardware.subscribers import Subscriber, Tick
 
 @dataclass(frozen=True)
 class LoopSettings:
-    rate_hz: float = 10.0
+    control_rate_hz: float = DEFAULT_CONTROL_RATE_HZ
     max_steps: int | None = None  # None: until stopped
     dry_run: bool = False  # compute actions, send nothing (the arms are not enabled)
     startup_timeout: float = 5.0  # s (of the runner's clock) to wait for the first frame and feedback
     resync: float = 0.0  # s a tick may end late before the schedule starts again from now (hardware.pacing.Pacer)
 
     def __post_init__(self):
-        check_rate(self.rate_hz)
+        check_rate(self.control_rate_hz)
         if not 0.0 <= self.resync <= 10.0:
             raise ConfigError(f"resync must be in [0, 10] s, got {self.resync!r}")
         if self.max_steps is not None and self.max_steps < 1:
@@ -92,7 +92,7 @@ class Runner:
         self.safety_config, self.settings, self.limits = rig.safety, settings, rig.joint_limits()
         self.clock, self.subscribers = rig.clock, list(subscribers)
         self._closed = False
-        self.period = 1.0 / settings.rate_hz
+        self.period = 1.0 / settings.control_rate_hz
         self.safety: Safety | None = None
         self.stop_reason: str | None = None
         self.fault: str | None = None
@@ -343,7 +343,7 @@ class Runner:
             "holds": self.holds,
             "overruns": self.overruns if overruns is None else overruns,
             "rate_hz": self.rate(),
-            "target_rate_hz": self.settings.rate_hz,
+            "target_rate_hz": self.settings.control_rate_hz,
             "dry_run": self.settings.dry_run,
             "ended_by": self.ended_by,
             "fault": self.fault,

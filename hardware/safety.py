@@ -57,14 +57,14 @@ class SafetyConfig(Settings):
     disable_on_exit: bool = setting(False)  # disable the motors after the final hold (arms without brakes drop!)
     limit_margin: float = setting(0.0, ge=0, lt=0.5, unit="rad")  # kept away from each joint limit
 
-    def check_speed(self, rate_hz: float, max_joint_speed: float) -> None:
-        """Refuse a per-tick joint step that, at ``rate_hz``, asks more than the arm's joint speed
+    def check_speed(self, control_rate_hz: float, max_joint_speed: float) -> None:
+        """Refuse a per-tick joint step that, at ``control_rate_hz``, asks more than the arm's joint speed
         (``max_joint_speed`` rad/s: the robot's, ``Robot.description``)."""
-        speed = self.max_joint_step * rate_hz
+        speed = self.max_joint_step * control_rate_hz
         if speed > max_joint_speed + 1e-9:
             raise ConfigError(
-                f"safety.max_joint_step {self.max_joint_step:g} rad per tick at {rate_hz:g} Hz is {speed:.3g} rad/s, "
-                f"above the arm's {max_joint_speed:g} rad/s: lower max_joint_step to at most {max_joint_speed / rate_hz:.4g}"
+                f"safety.max_joint_step {self.max_joint_step:g} rad per tick at {control_rate_hz:g} Hz is {speed:.3g} rad/s, "
+                f"above the arm's {max_joint_speed:g} rad/s: lower max_joint_step to at most {max_joint_speed / control_rate_hz:.4g}"
             )
 
 

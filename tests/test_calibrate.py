@@ -36,7 +36,7 @@ def tour_on_the_twin(mode: str, n: int = POSES):
                                    gripper="close" if mode == "eye-to-hand" else "hold", events=lambda line: None)
             loop_rig = Rig(None, rig.robot, np.eye(4), SafetyConfig(), clock=rig.clock)
             with loop_rig:
-                runner = Runner(tour, loop_rig, None, LoopSettings(rate_hz=10))
+                runner = Runner(tour, loop_rig, None, LoopSettings(control_rate_hz=10))
                 summary = runner.run()
                 runner.close()
         assert summary["fault"] is None and summary["ended_by"] == "done"

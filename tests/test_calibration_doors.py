@@ -219,7 +219,7 @@ def test_a_generated_plan_that_cannot_pass_is_refused_at_the_start_before_the_fi
     tour = CalibrationTour(lambda joints: np.repeat(joints[None], 12, axis=0), None, clock, where="--auto 12",
                            events=lambda line: None)
     with Rig(None, robot, np.eye(4), SafetyConfig(), clock=clock) as rig:
-        runner = Runner(tour, rig, None, LoopSettings(rate_hz=10))
+        runner = Runner(tour, rig, None, LoopSettings(control_rate_hz=10))
         with pytest.raises(ConfigError, match=r"--auto 12: a calibration plan that cannot pass: the 12 poses turn "
                                               r"the gripper to 1 distinct orientation"):
             runner.run()
@@ -259,8 +259,8 @@ def test_an_output_that_cannot_be_written_is_refused_before_the_rig_opens(tmp_pa
     (["--serial", "123"], "--serial 123: the twin has no RealSense"),
     (["--interface", "socketcan"], "--interface socketcan: the twin has no"),
     (["--camera", "d435"], "dssp-sim calibrate runs the twin"),
-    (["--rate", "0"], "--rate must be in"),
-    (["--rate", "100"], "above the arm's"),
+    (["--control-rate", "0"], "--control-rate must be in"),
+    (["--control-rate", "100"], "above the arm's"),
 ])
 def test_the_twins_flags_are_checked_before_it_opens(tmp_path, capsys, argv, words):
     line = refused(capsys, "--mode", "eye-to-hand", "--auto", 12, "--out", tmp_path / "calib.json", *argv)

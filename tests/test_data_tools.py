@@ -264,7 +264,7 @@ def test_replay_dry_run_and_on_the_simulated_arm(recorded, capsys):
     assert code == 0 and "dry run without an arm" in out and "0 clips, 0 holds" in out
     code, out, _ = run(capsys, "replay", recorded, "--episode", "0", "--can", "sim")
     assert code == 0 and "dry run on sim (nothing sent)" in out and "note: the first action is" in out
-    code, out, _ = run(capsys, "replay", recorded, "--episode", "1", "--can", "sim", "--send", "--rate", "60")  # 0.05 rad per tick at 60 Hz: 3 rad/s, within the arm's speed
+    code, out, _ = run(capsys, "replay", recorded, "--episode", "1", "--can", "sim", "--send", "--control-rate", "60")  # 0.05 rad per tick at 60 Hz: 3 rad/s, within the arm's speed
     steps = ReplayBuffer.load(recorded).episode_lengths()[1]
     assert code == 0 and f"sent {steps} commands to sim" in out and "ended by: done" in out
 
@@ -280,8 +280,8 @@ def test_replay_dry_run_and_on_the_simulated_arm(recorded, capsys):
     (["split", DP3, "--train", "a.zarr", "--val", "b.zarr", "--val-episodes", "0,1"], "at least one episode on each side"),
     (["split", DP3, "--train", "a.zarr", "--val", "b.zarr", "--val-episodes", "x"], "comma-separated integers"),
     (["replay", DP3, "--episode", "0"], "does not record its control rate"),
-    (["replay", DP3, "--episode", "0", "--rate", "100"], "above the arm's 3.14159 rad/s"),
-    (["replay", DP3, "--episode", "0", "--rate", "0"], "--rate must be in [0.1, 1000] Hz"),
+    (["replay", DP3, "--episode", "0", "--control-rate", "100"], "above the arm's 3.14159 rad/s"),
+    (["replay", DP3, "--episode", "0", "--control-rate", "0"], "--control-rate must be in [0.1, 1000] Hz"),
 ])
 def test_bad_input_is_one_line(tmp_path, capsys, monkeypatch, argv, fragment):
     monkeypatch.chdir(tmp_path)

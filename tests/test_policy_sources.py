@@ -56,7 +56,7 @@ def test_hold_runs_the_whole_rig_and_moves_nothing(tmp_path, capsys):
     assert "ticks 30" in out and "ended by: max steps" in out
     run = json.loads((log_dir / "run.json").read_text())
     assert run["settings"]["policy"] == {"policy": "hold"} and "model" not in run["settings"]
-    assert run["settings"]["rate_hz"] == 10.0  # no model, no --rate: the documented default
+    assert run["settings"]["rate_hz"] == 10.0  # no model, no --control-rate: the documented default
     ticks = read_ticks(log_dir)
     acted = [t for t in ticks if t["action"] is not None]
     assert acted and all(np.array_equal(t["action"], acted[0]["action"]) for t in acted)
@@ -73,7 +73,7 @@ def test_a_recorded_episode_in_dssp_run_ends_when_it_is_played(tmp_path, capsys)
     recorded = ReplayBuffer.load(data).episode(1).action.astype(np.float64)
     log_dir = tmp_path / "log"
     code, out, err = run_dssp(capsys, "--policy", f"episode:{data}@1", "--camera", "tabletop", "--can", "sim",
-                              "--max-steps", "500", "--log-dir", log_dir, "--quiet", "--rate", "20")
+                              "--max-steps", "500", "--log-dir", log_dir, "--quiet", "--control-rate", "20")
     assert code == 0, out + err
     assert "ended by: done" in out
     ticks = read_ticks(log_dir)
@@ -157,7 +157,7 @@ def test_an_episode_for_other_arms_is_refused_before_anything_opens(tmp_path, ca
 def test_a_source_that_needs_clouds_needs_a_camera():
     robot = IdealRobot(piper_description(1), np.zeros(7), FakeClock())
     with pytest.raises(ConfigError, match="needs point clouds"):
-        Runner(Hold(), Rig(None, robot, np.eye(4)), None, LoopSettings(rate_hz=10.0))
+        Runner(Hold(), Rig(None, robot, np.eye(4)), None, LoopSettings(control_rate_hz=10.0))
 
 
 def test_the_replay_is_the_loop_the_safety_layer_clips_a_jump(tmp_path):
@@ -215,7 +215,7 @@ def test_a_source_that_commands_nothing_only_reports():
     robot = Calls(piper_description(1), np.zeros(7), clock=clock)
     seen = Seen()
     runner = Runner(Reporter(), Rig(None, robot, np.eye(4), SafetyConfig(disable_on_exit=True), clock=clock), None,
-                    LoopSettings(rate_hz=10.0, max_steps=6), subscribers=[seen])
+                    LoopSettings(control_rate_hz=10.0, max_steps=6), subscribers=[seen])
     summary = runner.run()
     assert robot.calls == [] and summary["commands_sent"] == 0 and summary["holds"] == 0
     assert summary["ticks"] == 6 and summary["ended_by"] == "max steps" and summary["fault"] is None

@@ -405,7 +405,7 @@ def test_the_robot_loop_on_its_clock(tmp_path):
         clock.steps = [step]
         clock.sleep(0.05)
         recorder = Recorder(StampedCamera(camera, clock=clock), [monitor], PointCloudConfig(n_points=128),
-                            camera.camera_to_base, rate_hz=20.0, store_depth=False)
+                            camera.camera_to_base, control_rate_hz=20.0, store_depth=False)
         dataset = RecordingDataset(tmp_path / "rt.zarr", {"control_rate_hz": 20.0, "action_convention": "leader_command"},
                                    {"camera": "sim"}, RECORDED_KEYS)
         stack.callback(dataset.close)

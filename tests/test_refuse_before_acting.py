@@ -95,7 +95,7 @@ CASES = {
     "run: an interface python-can lacks": ("dssp-run", ["--model", "m", "--camera", "l515", "--can", "can0",
                                                         "--interface", "bogus"], "not a python-can interface"),
     "run: a rate beyond the arm": ("dssp-run", ["--policy", "hold", "--camera", "tabletop", "--can", "sim",
-                                                "--rate", "5000"], "--rate"),
+                                                "--control-rate", "5000"], "--control-rate"),
     "run: an episode index that is a digit but no number": ("dssp-run", ["--policy", "episode:d.zarr@\u00b2",
                                                                         "--camera", "tabletop", "--can", "sim"],
                                                              "episode:PATH.zarr@K"),

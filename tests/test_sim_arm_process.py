@@ -123,7 +123,7 @@ def test_two_arms_in_one_process_stay_apart():
 
 def test_sigint_ends_the_process_cleanly():
     group, port = endpoint(3)
-    proc, _ = start_sim(group, port, "--rate", "50")
+    proc, _ = start_sim(group, port, "--feedback-rate", "50")
     out, _ = stop_sim(proc, signal.SIGINT)
     assert "stopped after" in out
 
@@ -139,8 +139,8 @@ def test_bad_arguments_exit_2_with_one_error_line():
 
 @pytest.mark.parametrize("argv, needle", [
     ([], "--channel"),
-    (["--channel", "239.1.2.3", "--rate", "0"], "--rate"),
-    (["--channel", "239.1.2.3", "--rate", "nan"], "--rate"),
+    (["--channel", "239.1.2.3", "--feedback-rate", "0"], "--feedback-rate"),
+    (["--channel", "239.1.2.3", "--feedback-rate", "nan"], "--feedback-rate"),
     (["--channel", "239.1.2.3", "--duration", "-1"], "--duration"),
     (["--channel", "239.1.2.3", "--port", "70000"], "--port"),
     (["--channel", "239.1.2.3,,239.1.2.4"], "empty"),
@@ -156,7 +156,7 @@ def test_bad_arguments_in_process(argv, needle, capsys):
 
 def test_duration_on_a_virtual_channel(capsys):
     assert sim_arm_main(["--channel", f"sim-arm-cli-{os.getpid()}", "--interface", "virtual", "--duration", "0.2",
-                         "--rate", "100"]) == 0
+                         "--feedback-rate", "100"]) == 0
     out, err = capsys.readouterr()
     lines = out.strip().splitlines()
     assert len(lines) == 2 and "on virtual" in lines[0] and "stopped after" in lines[1] and err == ""

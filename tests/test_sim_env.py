@@ -8,7 +8,8 @@ import mujoco
 import numpy as np
 import pytest
 
-from dssp_sim.env import CONTROL_RATE_HZ, DEPTH_MAX_M, DEPTH_MIN_M, DEPTH_UNIT, PiperEnv
+from dssp_core.schema import DEFAULT_CONTROL_RATE_HZ
+from dssp_sim.env import DEPTH_MAX_M, DEPTH_MIN_M, DEPTH_UNIT, PiperEnv
 from dssp_sim.experts import make_expert
 from dssp_data.arm_kinematics import flange_pose as dh_forward
 from dssp_sim.tasks import HOME, SLOT_PAD_HALF, SwapTask
@@ -41,7 +42,7 @@ def test_model_joint_limits_are_the_pipers(tap_env):
                                    atol=1e-9)
     np.testing.assert_allclose(m.actuator_ctrlrange[arm.gripper_actuator], [0.0, GRIPPER_STROKE_MAX])
     assert m.nu == 7
-    assert tap_env.control_rate_hz == CONTROL_RATE_HZ == 10.0
+    assert tap_env.control_rate_hz == DEFAULT_CONTROL_RATE_HZ == 10.0
     lim = JointLimits.piper()
     assert lim.violations(tap_env.state()).size == 0
 

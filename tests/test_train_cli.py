@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from dssp_core.schema import DEFAULT_CONTROL_RATE_HZ
 import zarr
 from safetensors import safe_open
 
@@ -19,7 +20,6 @@ from dssp_train.cli.train import main as train_main
 from dssp_train.config import RunConfig, load_preset
 from dssp_data.replay_buffer import ReplayBuffer
 from dssp_data.replay_buffer_writer import write_replay_buffer
-from dssp_train.data import synthetic
 from dssp_train.data.synthetic import make_tap_count_episodes, write_tap_count_dataset
 from dssp_train.model.policy import DSSPPolicy
 from dssp_train.training.train_log import read_log
@@ -206,7 +206,7 @@ def test_happy_path_run_directory(happy, data):
     assert happy["proc"].returncode == 0, happy["proc"].stderr
     config = json.loads((out / "config.json").read_text())
     assert config["preset"] == "tiny"
-    assert config["control_rate_hz"] == synthetic.CONTROL_RATE_HZ
+    assert config["control_rate_hz"] == DEFAULT_CONTROL_RATE_HZ
     assert config["dataset"] == str(data)
     assert config["train"]["steps"] == 4
     m = config["model"]

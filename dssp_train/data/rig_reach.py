@@ -16,7 +16,7 @@ from dssp_data.dataset_layout import Episode
 from dssp_data.replay_buffer_writer import write_replay_buffer
 
 ARM_HOME = (0.0, 0.6, -0.6, 0.0, 0.4, 0.0, 0.8)  # one Piper: J1..J6 rad, gripper opening 0..1
-RATE_HZ = 50.0
+CONTROL_RATE_HZ = 50.0
 
 
 def write_rig_reach(path, n_episodes: int = 4, n_arms: int = 1, steps: int = 30, n_points: int = 64, seed: int = 0):
@@ -31,5 +31,5 @@ def write_rig_reach(path, n_episodes: int = 4, n_arms: int = 1, steps: int = 30,
         joints = (np.minimum(1.0, 2 * s) * home + np.sin(np.pi * s) * offset).astype(np.float32)
         cloud = rng.uniform(crop.crop_min, crop.crop_max, (steps, n_points, 3)).astype(np.float32)
         episodes.append(Episode(point_cloud=cloud, state=joints[:-1], action=joints[1:]))
-    write_replay_buffer(path, episodes, attrs={"control_rate_hz": RATE_HZ, "task": "reach"})
+    write_replay_buffer(path, episodes, attrs={"control_rate_hz": CONTROL_RATE_HZ, "task": "reach"})
     return path

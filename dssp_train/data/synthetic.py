@@ -43,6 +43,7 @@ import numpy as np
 from dssp_data.dataset_layout import Episode
 from dssp_data.replay_buffer_writer import write_replay_buffer
 from dssp_core.errors import ConfigError
+from dssp_core.schema import DEFAULT_CONTROL_RATE_HZ
 
 __all__ = [
     "CUE_STEPS", "DECISION_STEP", "EPISODE_LENGTH", "FIRST_PAUSE_STEPS", "NOISE_STD",
@@ -60,7 +61,6 @@ N_ARM_POINTS = 8
 N_CUE_POINTS = 8
 MIN_POINTS = N_ARM_POINTS + N_CUE_POINTS + 8
 NOISE_STD = 0.002
-CONTROL_RATE_HZ = 10.0
 CUE_CENTERS = {1: (-0.8, 1.0, 0.05), 2: (1.8, 1.0, 0.05)}
 MAX_EPISODES = 10_000
 MAX_POINTS = 100_000
@@ -174,6 +174,6 @@ def write_tap_count_dataset(path: str | os.PathLike, n_episodes: int, seed: int 
                             n_points: int = 64) -> Path:
     """Write :func:`make_tap_count_episodes` as a DP3 zarr dataset at ``path``; return the path."""
     episodes = make_tap_count_episodes(n_episodes, seed=seed, n_points=n_points)
-    attrs = {"control_rate_hz": CONTROL_RATE_HZ, "task": "tap_count", "generator": "dssp_train.data.synthetic"}
+    attrs = {"control_rate_hz": DEFAULT_CONTROL_RATE_HZ, "task": "tap_count", "generator": "dssp_train.data.synthetic"}
     write_replay_buffer(path, episodes, attrs=attrs)
     return Path(path)

@@ -1,7 +1,7 @@
 """The calibration tour: the arm visits each pose, waits until it is still, and a colour frame is taken there.
 
     tour = CalibrationTour(poses, camera, clock)               # poses (N, 6) rad, or a function of the start (6,)
-    Runner(tour, Rig(None, robot, np.eye(4), SafetyConfig(), clock=clock), None, LoopSettings(rate_hz=10)).run()
+    Runner(tour, Rig(None, robot, np.eye(4), SafetyConfig(), clock=clock), None, LoopSettings(control_rate_hz=10)).run()
     tour.views                                                 # one View per pose: the measured joints and the frame
 
 The tour is a policy source of the control loop (:mod:`hardware.policies`), so its moves go where every command

@@ -1,7 +1,7 @@
 """``dssp-calibrate``: hand-eye calibration of a RealSense and a Piper with a ChArUco board.
 
     dssp-calibrate --camera l515|d435|d405 --can can0 --mode eye-to-hand|eye-in-hand (--poses poses.json | --auto N)
-                   --out calib.json [--json record.json] [--board board.json] [--force] [--rate HZ] [--safety FILE]
+                   --out calib.json [--json record.json] [--board board.json] [--force] [--control-rate HZ] [--safety FILE]
                    [--serial SERIAL] [--interface socketcan]
 
 The arm visits each pose through the control loop and its safety layer (:mod:`hardware.calibration.tour`), a colour
@@ -32,7 +32,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Protocol
 
-from dssp_core.schema import check_rate
+from dssp_core.schema import DEFAULT_CONTROL_RATE_HZ, check_rate
 from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import ConfigError, DSSPError, OutputError
 from hardware.piper.bus import interface_name
@@ -92,7 +92,8 @@ def build_parser(sim: SimulatedCalibrationRig | None = None, prog: str = "dssp-c
     p.add_argument("--json", type=Path, help="also write the calibration's record here: the result, each view's row, the "
                                              "methods' disagreement (and on the twin the distance from the true pose)")
     p.add_argument("--force", action="store_true", help="replace an existing --out (and --json)")
-    p.add_argument("--rate", type=float, default=10.0, help="control rate of the moves, Hz (default 10)")
+    p.add_argument("--control-rate", type=float, default=DEFAULT_CONTROL_RATE_HZ,
+                   help=f"control rate of the moves, Hz (default {DEFAULT_CONTROL_RATE_HZ:g})")
     p.add_argument("--safety", type=Path, help="safety settings JSON (hardware.safety.SafetyConfig fields)")
     return p
 
@@ -102,7 +103,7 @@ def _check(args, sim) -> None:
     from hardware.camera import check_camera_spec  # deferred: loads numpy
     from hardware.camera.profiles import profile_names  # deferred: loads numpy
 
-    check_rate(args.rate)
+    check_rate(args.control_rate)
     camera, can = args.camera.strip().lower(), args.can.strip().lower()
     if sim is not None:
         if camera != MUJOCO or can != MUJOCO:
@@ -212,7 +213,7 @@ def _calibrate(args, stops: Stops, sim) -> int:
     else:
         poses, plan = (lambda start: auto_poses(start, args.auto)), f"--auto {args.auto}"  # checked at the start pose
     safety = SafetyConfig.load(args.safety, "safety") if args.safety else SafetyConfig()
-    safety.check_speed(args.rate, MAX_JOINT_SPEED)
+    safety.check_speed(args.control_rate, MAX_JOINT_SPEED)
     _check_outputs(args)
     if stops.reason is not None:
         print(f"stopped by {stops.reason} before the arm moved; nothing was sent", file=sys.stderr)
@@ -235,11 +236,11 @@ def _calibrate(args, stops: Stops, sim) -> int:
         tour = CalibrationTour(poses, camera, clock, gripper="close" if args.mode == "eye-to-hand" else "hold",
                                where=plan)
         print(f"{args.mode} with {where}; board {board.squares_x} x {board.squares_y} squares of "
-              f"{1e3 * board.square_m:g} mm ({board.dictionary}); moves at {args.rate:g} Hz through the safety layer")
+              f"{1e3 * board.square_m:g} mm ({board.dictionary}); moves at {args.control_rate:g} Hz through the safety layer")
         stack.enter_context(camera)
         rig = Rig(None, robot, np.eye(4), safety, clock=clock)
         with rig:
-            runner = Runner(tour, rig, None, LoopSettings(rate_hz=args.rate))
+            runner = Runner(tour, rig, None, LoopSettings(control_rate_hz=args.control_rate))
             stops.during(runner.request_stop)
             try:
                 summary = runner.run()
@@ -315,7 +316,7 @@ def calibration_record(args, board, views, detections, result, truth_error, wher
         rows.append(row)
     rms_mm, rms_deg = result.rms
     return {
-        "mode": args.mode, "rig": where, "rate_hz": args.rate, "poses": "auto" if args.poses is None else str(args.poses),
+        "mode": args.mode, "rig": where, "rate_hz": args.control_rate, "poses": "auto" if args.poses is None else str(args.poses),
         "board": board.to_dict(), "views": rows, "result": result.name, "method": result.method,
         "transform": [[float(v) for v in row] for row in result.transform],
         "disagreement": {name: [float(mm), float(deg)] for name, (mm, deg) in result.disagreement.items()},

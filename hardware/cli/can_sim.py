@@ -69,7 +69,7 @@ def _parser() -> argparse.ArgumentParser:
                    help="python-can interface (default: udp_multicast)")
     p.add_argument("--port", type=int, default=None,
                    help="UDP port for udp_multicast (default: python-can's 43113, or CAN_CONFIG's port)")
-    p.add_argument("--rate", type=float, default=200.0, help="feedback rate in Hz (default: 200)")
+    p.add_argument("--feedback-rate", type=float, default=200.0, help="feedback rate in Hz (default: 200)")
     p.add_argument("--duration", type=float, default=None, help="stop after this many seconds (default: run until "
                                                                  "SIGINT/SIGTERM)")
     return p
@@ -80,8 +80,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         args = _parser().parse_args(argv)
         channels = _channels(args.channel, args.interface)
-        if not (args.rate > 0 and args.rate <= 2000):
-            raise _ArgumentError(f"--rate {args.rate:g} is out of range: give 0 < rate <= 2000 Hz")
+        if not (args.feedback_rate > 0 and args.feedback_rate <= 2000):
+            raise _ArgumentError(f"--feedback-rate {args.feedback_rate:g} is out of range: give 0 < rate <= 2000 Hz")
         if args.duration is not None and not args.duration > 0:
             raise _ArgumentError(f"--duration {args.duration:g} must be > 0 seconds")
         if args.port is not None and not 1 <= args.port <= 65535:
@@ -96,7 +96,7 @@ def _run(args, channels: list[str]) -> int:
     from hardware.piper.can_simulator import SimulatedPiper  # deferred: loads can, numpy
 
     options = {"port": args.port} if args.port is not None and args.interface == "udp_multicast" else {}
-    sims = [SimulatedPiper(c, args.interface, rate=args.rate, bus_options=options) for c in channels]
+    sims = [SimulatedPiper(c, args.interface, rate=args.feedback_rate, bus_options=options) for c in channels]
     stop = threading.Event()
     stops = Stops(streams=False)
     stops.during(lambda _why: stop.set())
@@ -109,7 +109,7 @@ def _run(args, channels: list[str]) -> int:
             started.append(sim)
         port = f", port {args.port}" if options else ""
         print(f"dssp-sim-arm: {len(sims)} simulated Piper arm(s) on {args.interface} {','.join(channels)}"
-              f"{port} at {args.rate:g} Hz; stop with Ctrl-C or SIGTERM", flush=True)
+              f"{port} at {args.feedback_rate:g} Hz; stop with Ctrl-C or SIGTERM", flush=True)
         deadline = None if args.duration is None else start_time + args.duration
         while not stop.is_set():
             if deadline is not None and time.monotonic() >= deadline:

@@ -1,7 +1,7 @@
 """``dssp-record``: record teleoperated demonstrations (Piper leader -> follower, RealSense scene) into a dataset.
 
     dssp-record --camera l515|d435|d405|file:PATH|sim --can can0[,can1]|sim --out PATH.zarr
-                [--rate HZ] [--extrinsics FILE] [--task-name NAME] [--action leader|next-state]
+                [--control-rate HZ] [--extrinsics FILE] [--task-name NAME] [--action leader|next-state]
                 [--pointcloud FILE] [--thresholds FILE] [--max-steps N] [--episodes N] [--auto]
                 [--no-depth] [--seed S] [--sim-speed X] [--interface socketcan] [--serial SERIAL] [--quiet]
                 [--rerun [URL] | --rerun-save PATH.rrd]
@@ -36,7 +36,7 @@ import time
 from pathlib import Path
 from typing import Protocol
 
-from dssp_core.schema import check_rate
+from dssp_core.schema import DEFAULT_CONTROL_RATE_HZ, check_rate
 from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import ConfigError, DSSPError
 from dssp_core.output_guard import NEW, OutputKind, check_append
@@ -105,7 +105,7 @@ def parse_args(argv, sim: SimulatedRig | None = None, prog: str = "dssp-record")
                         + (" | mujoco (default: mujoco, the MuJoCo Piper's arms)" if sim else ""))
     p.add_argument("--interface", default="socketcan", type=interface_name, help="python-can interface of real buses (default: socketcan)")
     p.add_argument("--out", type=Path, required=True, help="dataset to create or append to (PATH.zarr)")
-    p.add_argument("--rate", type=float, help="recording rate in Hz (default: the dataset's, else the simulation's 10 Hz, else 10)")
+    p.add_argument("--control-rate", type=float, help="recording rate in Hz (default: the dataset's, else the simulation's 10 Hz, else 10)")
     p.add_argument("--extrinsics", type=Path, help="camera->robot-base calibration JSON (needed with a real camera)")
     p.add_argument("--pointcloud", type=Path, help="point-cloud settings JSON (default: the dataset's, else the robot's defaults)")
     p.add_argument("--task-name", help="task name stored with the data; on the simulation also its task (tap, swap, put2; default tap)")
@@ -129,8 +129,8 @@ def parse_args(argv, sim: SimulatedRig | None = None, prog: str = "dssp-record")
             raise ConfigError(f"--{name.replace('_', '-')} must be at least 1, got {value}")
     from hardware.camera import check_camera_spec  # deferred: loads numpy
 
-    if args.rate is not None:
-        check_rate(args.rate)
+    if args.control_rate is not None:
+        check_rate(args.control_rate)
 
     if not (sim is not None and args.camera.strip().lower() == MUJOCO):
         check_camera_spec(args.camera, args.serial)
@@ -326,9 +326,9 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
         rig = args.sim_rig.open(task, seed, pace or None)
         stack.callback(rig.stop)
         clock = rig.clock
-        rate = args.rate or recorded_rate or rig.control_rate_hz
+        rate = args.control_rate or recorded_rate or rig.control_rate_hz
         if abs(float(rate) - rig.control_rate_hz) > 1e-9:
-            given = "--rate" if args.rate else f"{args.out}'s control_rate_hz attribute"
+            given = "--control-rate" if args.control_rate else f"{args.out}'s control_rate_hz attribute"
             raise ConfigError(f"the simulation runs at {rig.control_rate_hz:g} Hz, {given} says {rate:g}: record it at "
                               f"{rig.control_rate_hz:g} Hz")
         monitors = [BusMonitor(rig.channel, "virtual", clock=clock, name="sim")]
@@ -348,7 +348,7 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
         if not 1 <= len(channels) <= 2 or any(not c for c in channels):
             raise ConfigError(f"--can {args.can!r} is invalid: give can0 or can0,can1 (left,right)")
         clock = REAL_CLOCK
-        rate = args.rate or recorded_rate or 10.0
+        rate = args.control_rate or recorded_rate or DEFAULT_CONTROL_RATE_HZ
         raw_camera = open_camera(args.camera, serial=args.serial, color=cloud_config.use_color)
         stack.enter_context(raw_camera)
         camera_to_base = load_extrinsics(args.extrinsics) if args.extrinsics else raw_camera.camera_to_base

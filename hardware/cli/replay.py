@@ -1,6 +1,6 @@
 """``dssp-replay``: send a recorded episode's actions to the arms through the safety layer (a dry run unless --send).
 
-    dssp-replay PATH --episode K [--can can0[,can1]|sim] [--send] [--rate HZ] [--safety FILE] [--interface IF]
+    dssp-replay PATH --episode K [--can can0[,can1]|sim] [--send] [--control-rate HZ] [--safety FILE] [--interface IF]
 
 It is ``dssp-run``'s control loop with the recorded episode as its policy source (:mod:`hardware.episode_replay`).
 Without ``--can`` the episode runs against ideal tracking (no arm, a simulated clock: as fast as it computes); with
@@ -27,7 +27,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--can", help="can0[,can1] (left, right) | sim | sim:2; without it: dry run without an arm")
     p.add_argument("--interface", default="socketcan", type=interface_name, help="python-can interface (default: socketcan)")
     p.add_argument("--send", action="store_true", help="enable the arms and command them (otherwise nothing is sent)")
-    p.add_argument("--rate", type=float, help="replay rate in Hz (default: the dataset's control rate)")
+    p.add_argument("--control-rate", type=float, help="replay rate in Hz (default: the dataset's control rate)")
     p.add_argument("--safety", type=Path, help="safety settings JSON (hardware.safety.SafetyConfig fields)")
 
     return p
@@ -42,7 +42,7 @@ def _replay(args, stops: Stops) -> int:
         print(f"stopped by {stops.reason} before the replay started; nothing was sent", file=sys.stderr)
         return stops.code
     result = replay_episode(args.path, args.episode, args.can, send=args.send, interface=args.interface,
-                            rate_hz=args.rate, safety_config=safety, attach_stop=stops.during)
+                            control_rate_hz=args.control_rate, safety_config=safety, attach_stop=stops.during)
     stopped = stops.reason is not None and result["ended_by"] == stops.reason
     mode = f"sent {result['sent']} commands to {args.can}" if args.send else (
         f"dry run on {args.can} (nothing sent)" if args.can else "dry run without an arm (ideal tracking)")
