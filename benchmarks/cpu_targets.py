@@ -41,7 +41,7 @@ from studies.protocol import code_commit  # noqa: E402
 from dssp_core.cli_runner import ArgumentParser, run_cli  # noqa: E402
 from dssp_core.errors import ConfigError  # noqa: E402
 from dssp_deploy.latency import LatencyStats, memory_read_gbs, time_calls  # noqa: E402
-from dssp_deploy.manifest import PRECISIONS, file_kind, read_manifest  # noqa: E402
+from dssp_deploy.manifest import PRECISIONS, Manifest, file_kind, read_manifest  # noqa: E402
 from dssp_deploy.onnx_policy import DEFAULT_PRECISION, OnnxPolicy  # noqa: E402
 from dssp_deploy.profile import paths_and_threads, prefetch_ticks, random_observation, roofline  # noqa: E402
 from dssp_deploy.sessions import check_threads, default_threads  # noqa: E402
@@ -104,7 +104,7 @@ def fused_chunk(model_dir: Path, precision: str, threads: int, chunks: int, env:
                 os.environ[k] = v
 
 
-def roofline_figures(model_dir: Path, manifest: dict, runtime: dict, precision: str, threads: int, settings: dict,
+def roofline_figures(model_dir: Path, manifest: Manifest, runtime: dict, precision: str, threads: int, settings: dict,
                      read_gbs: float, k1_model: Path | None) -> dict:
     """{graph set: {precision: roofline row}} for every chunk measured, the forced AVX2 one on a VNNI CPU, and the
     one-step model's fused chunk (``--k1-model``) on each path."""
@@ -138,9 +138,9 @@ def measure(model_dir: Path, checkpoint: Path, threads: int, precision: str, qui
     eager = {k: LatencyStats.of(v).to_dict() for k, v in eager.items()}
     return {"model_dir": str(model_dir), "checkpoint": str(checkpoint), "threads": threads, "precision": precision,
             "settings": settings, "runtime": runtime, "eager_torch": eager, "targets": TARGETS,
-            "machine": machine.describe(), "denoise_steps": manifest["denoise_steps"], "torch_threads": torch.get_num_threads(),
+            "machine": machine.describe(), "denoise_steps": manifest.contract.denoise_steps, "torch_threads": torch.get_num_threads(),
             "read_gbs": read_gbs, "roofline": lines, "rows": rows(runtime, eager, precision, lines),
-            "code_commit": code_commit(), "model_source": manifest.get("source"),
+            "code_commit": code_commit(), "model_source": manifest.data["source"],
             "k1_model": str(k1_model) if k1_model else None}
 
 
@@ -256,8 +256,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.k1_model is not None:
             k1 = read_manifest(args.k1_model)
             check_source(args.k1_model, args.checkpoint, k1)
-            if k1["denoise_steps"] != 1:
-                raise ConfigError(f"--k1-model {args.k1_model} runs {k1['denoise_steps']} DDIM steps, not 1; export it with "
+            if k1.contract.denoise_steps != 1:
+                raise ConfigError(f"--k1-model {args.k1_model} runs {k1.contract.denoise_steps} DDIM steps, not 1; export it with "
                                   "python -m export.to_onnx RUN_DIR -o DIR --denoise-steps 1 --timestep-spacing trailing")
         report = measure(args.model_dir, args.checkpoint, args.threads or default_threads(), args.precision, args.quick,
                          args.k1_model)

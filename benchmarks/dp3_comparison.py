@@ -88,15 +88,15 @@ def time_model(model_dir: Path, precision: str, threads: int, spinning: bool | N
     """Medians (ms) of one model's step and chunk at ``precision``, and the per-tick cost."""
     policy = OnnxPolicy(model_dir, threads=threads, precision=precision, kernel="auto", spinning=spinning)
     rng = np.random.default_rng(0)
-    pc, pos = policy.example_observation(rng, policy.n_points)
+    pc, pos = policy.example_observation(rng, policy.contract.n_points)
     policy.reset()
-    for _ in range(policy.n_obs_steps + 2):
+    for _ in range(policy.contract.n_obs_steps + 2):
         policy.observe(pc, pos)
     step = time_calls(lambda: policy.observe(pc, pos), repeats, warmup=WARMUP)
     chunk = time_calls(lambda: policy.act(seed=0), repeats, warmup=WARMUP)
     med = {"step_ms": float(np.median(step)), "chunk_ms": float(np.median(chunk))}
-    med["tick_ms"] = med["step_ms"] + med["chunk_ms"] / policy.n_action_steps
-    return {**med, "n_action_steps": policy.n_action_steps, "graphs": policy.kernel_note, "spinning": policy.spinning,
+    med["tick_ms"] = med["step_ms"] + med["chunk_ms"] / policy.contract.n_action_steps
+    return {**med, "n_action_steps": policy.contract.n_action_steps, "graphs": policy.kernel_note, "spinning": policy.spinning,
             "step_samples_ms": [round(s, 4) for s in step], "chunk_samples_ms": [round(s, 4) for s in chunk]}
 
 

@@ -77,12 +77,12 @@ def latency(model_dir: Path, run_dir: Path, threads: int, repeats: int) -> dict[
     feeds = {}
     for graph in ("history_step", "denoiser"):
         feeds[graph] = {
-            s["name"]: np.random.default_rng(0).standard_normal([1 if d == "B" else manifest["model_config"]["n_points"] if d == "P" else d for d in s["shape"]]).astype(np.float32)
-            for s in manifest["graphs"][graph]["inputs"]
+            s["name"]: np.random.default_rng(0).standard_normal([1 if d == "B" else manifest.contract.n_points if d == "P" else d for d in s["shape"]]).astype(np.float32)
+            for s in manifest.graphs[graph]["inputs"]
         }
     out = {}
-    for kind in manifest["graphs"]["denoiser"]["files"]:
-        files = {g: manifest["graphs"][g]["files"].get(kind) for g in feeds}
+    for kind in manifest.graphs["denoiser"]["files"]:
+        files = {g: manifest.graphs[g]["files"].get(kind) for g in feeds}
         if kind.startswith("onnx") and all(files.values()):
             fused = kind.endswith(FUSED)
             sessions = {g: open_session(read_graph(model_dir, manifest, g, kind)[1], threads, fused=fused) for g in files}
@@ -96,7 +96,7 @@ def latency(model_dir: Path, run_dir: Path, threads: int, repeats: int) -> dict[
     pc, pos = feeds["history_step"]["point_cloud"], feeds["history_step"]["agent_pos"]
     stream.observe(pc, pos)
     noise = feeds["denoiser"]["noise"]
-    k = manifest["denoise_steps"]
+    k = manifest.contract.denoise_steps
     out["torch_eager"] = {
         "history_step": median_ms(lambda: stream.observe(pc, pos), 10 * repeats),
         "denoiser": median_ms(lambda: stream.act(noise=noise, num_steps=k), repeats),

@@ -8,8 +8,8 @@ diffusion seed) and its episode log gives, per tick, the whole tick (``tick_ms``
 cloud, the model, the safety layer, the CAN send, the subscribers) and the model's part (``observe_ms`` +
 ``chunk_ms``). The loop's **overhead** is the difference, and **the loop's own part** that less the point cloud
 (``cloud_ms``): reading the devices, the safety layer, the CAN send, the subscribers. Their p50 and p99 over
-every tick of every repeat are reported, beside the whole tick's. Without ``--model`` a tiny model for the rig is trained and exported first
-(``dssp_train.data.rig_reach``, preset ``tiny``, 20 steps).
+every tick of every repeat are reported, beside the whole tick's. Without ``--model`` a tiny model for the rig is trained first
+(``dssp_train.data.rig_reach``, preset ``tiny``, 20 steps) and each checkout exports it with its own exporter.
 
 ``--compare PATH``: the same measurement of another checkout of this project (e.g. ``git worktree add
 /tmp/before COMMIT``), its packages first on ``PYTHONPATH``, in the same run and alternated with this one,
@@ -39,23 +39,31 @@ ROOT = Path(__file__).resolve().parent.parent
 RUN = ("import sys; from hardware.cli.run import main; sys.exit(main(sys.argv[1:]))")
 
 
-def build_model(root: Path) -> Path:
-    """A tiny model for one simulated Piper (the tests' ``arm_export``): its model directory."""
+def build_run(root: Path) -> Path:
+    """A tiny training run for one simulated Piper (the tests' ``arm_export``): its run directory."""
     import contextlib
     import io
 
     from dssp_train.cli.train import main as train_main
     from dssp_train.data.rig_reach import write_rig_reach
-    from export.to_onnx import main as export_main
 
     data = write_rig_reach(root / "arm.zarr")
     with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
         if train_main(["--data", str(data), "--out", str(root / "run"), "--preset", "tiny", "--steps", "20",
                        "--set", "train.val_every=20", "--no-progress"]) != 0:
             raise ConfigError("training the benchmark's tiny model failed")
-        if export_main([str(root / "run"), "-o", str(root / "model"), "--skip-verify"]) != 0:
-            raise ConfigError("exporting the benchmark's tiny model failed")
-    return root / "model"
+    return root / "run"
+
+
+def export_with(tree: Path, run: Path, out: Path) -> Path:
+    """``run`` exported by checkout ``tree``'s own exporter: a model directory its runtime reads (checkouts may write
+    different manifest formats)."""
+    env = {**os.environ, "PYTHONPATH": str(tree) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    done = subprocess.run([sys.executable, "-m", "export.to_onnx", str(run), "-o", str(out), "--skip-verify"], cwd=tree,
+                          env=env, capture_output=True, text=True)
+    if done.returncode != 0:
+        raise ConfigError(f"exporting the benchmark's tiny model with {tree} failed: {done.stderr.strip().splitlines()[-1:]}")
+    return out
 
 
 def commit_of(tree: Path) -> str:
@@ -100,12 +108,12 @@ def figures(values: list[float]) -> dict:
     return {"p50": round(float(np.median(v)), 4), "p99": round(float(np.percentile(v, 99)), 4), "n": int(v.size)}
 
 
-def measure(trees: dict[str, Path], model: Path, ticks: int, repeats: int) -> dict:
+def measure(trees: dict[str, Path], models: dict[str, Path], ticks: int, repeats: int) -> dict:
     samples = {name: ([], [], []) for name in trees}
     with tempfile.TemporaryDirectory() as tmp:
         for k in range(repeats):
             for i, (name, tree) in enumerate(trees.items()):  # alternated: both see the same machine
-                for kept, new in zip(samples[name], overheads(one_run(tree, model, ticks, Path(tmp) / f"{i}-{k}"))):
+                for kept, new in zip(samples[name], overheads(one_run(tree, models[name], ticks, Path(tmp) / f"{i}-{k}"))):
                     kept.extend(new)
     rows = [{"tree": name, "tick_ms": figures(w), "overhead_ms": figures(o), "loop_ms": figures(own)}
             for name, (w, o, own) in samples.items()]
@@ -145,8 +153,10 @@ def main(argv: list[str] | None = None) -> int:
         check_json(args.json, args.force)
         trees = {commit_of(t): t.resolve() for t in [ROOT, *args.compare]}
         with tempfile.TemporaryDirectory() as tmp:
-            model = args.model or build_model(Path(tmp))
-            report = measure(trees, model, args.ticks, args.repeats)
+            run = None if args.model else build_run(Path(tmp))
+            models = {name: args.model or export_with(tree, run, Path(tmp) / f"model-{i}")
+                      for i, (name, tree) in enumerate(trees.items())}
+            report = measure(trees, models, args.ticks, args.repeats)
         return emit(report, markdown(report), args.json, args.force)
 
     return run_cli(_main)

@@ -30,7 +30,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the benchmarks' shared helpers
 from bench_output import check_json, emit  # noqa: E402
 from dssp_deploy.latency import LatencyStats, time_calls  # noqa: E402
-from dssp_deploy.manifest import PRECISIONS, ModelDirError, read_graph, read_manifest
+from dssp_deploy.manifest import PRECISIONS, Manifest, ModelDirError, read_graph, read_manifest
 from dssp_deploy.onnx_policy import OnnxPolicy
 from dssp_deploy.profile import FULL as PROFILE_FULL, QUICK as PROFILE_QUICK, history_sweep, profile_components, random_observation
 from dssp_deploy.sessions import check_threads
@@ -45,46 +45,46 @@ ORT_VS_EAGER_CHUNK = 3.0  # ORT at least this many times faster than eager PyTor
 COMPONENTS = ("history_step", "denoiser_chunk")
 
 
-def check_source(model_dir: Path, checkpoint: Path, manifest: dict) -> None:
+def check_source(model_dir: Path, checkpoint: Path, manifest: Manifest) -> None:
     """``--checkpoint`` must be the run the model was exported from: its weights file's sha256 is the manifest's."""
-    source = manifest["source"]
-    path = Path(checkpoint) / source["weights"]
+    source = manifest.source
+    path = Path(checkpoint) / source.weights
     try:
         digest = hashlib.sha256(path.read_bytes()).hexdigest()
     except OSError as exc:
         raise ModelDirError(f"--checkpoint {checkpoint}: {path} cannot be read ({exc.strerror or exc}); give the run "
                             f"directory {model_dir} was exported from") from None
-    if digest != source["sha256"]:
-        raise ModelDirError(f"--checkpoint {checkpoint} is not the run {model_dir} was exported from ({source['weights']} "
-                            f"sha256 {digest[:12]}…, the model's source {source['sha256'][:12]}… of run "
-                            f"{source.get('run', '?')!r} step {source['step']}); give that run, or export this one")
+    if digest != source.sha256:
+        raise ModelDirError(f"--checkpoint {checkpoint} is not the run {model_dir} was exported from ({source.weights} "
+                            f"sha256 {digest[:12]}…, the model's source {source.sha256[:12]}… of run "
+                            f"{source.run or '?'!r} step {source.step}); give that run, or export this one")
 
 
-def eager_samples(checkpoint: Path, manifest: dict, pc, pos, settings: dict) -> dict[str, list[float]]:
-    policy, _ = load_policy(checkpoint, weights=manifest["source"]["weights"])
+def eager_samples(checkpoint: Path, manifest: Manifest, pc, pos, settings: dict) -> dict[str, list[float]]:
+    policy, _ = load_policy(checkpoint, weights=manifest.source.weights)
     stream = StreamingPolicy(policy)
     with torch.inference_mode():
         return {
             "history_step": time_calls(lambda: stream.observe(pc, pos), settings["iterations"]),
-            "denoiser_chunk": time_calls(lambda: stream.act(seed=0, num_steps=manifest["denoise_steps"]), settings["torch_iterations"]),
+            "denoiser_chunk": time_calls(lambda: stream.act(seed=0, num_steps=manifest.contract.denoise_steps), settings["torch_iterations"]),
         }
 
 
-def torchscript_samples(model_dir: Path, manifest: dict, pc, pos, settings: dict, rng) -> dict[str, list[float]] | None:
+def torchscript_samples(model_dir: Path, manifest: Manifest, pc, pos, settings: dict, rng) -> dict[str, list[float]] | None:
     """None when the model directory has no TorchScript graphs (export --format onnx)."""
-    if not all(manifest["graphs"][g]["files"].get("torchscript") for g in ("history_step", "denoiser")):
+    if not all(manifest.graphs[g]["files"].get("torchscript") for g in ("history_step", "denoiser")):
         return None
-    m = manifest["model_config"]
+    m, c = manifest.model, manifest.contract
     history = torch.jit.load(io.BytesIO(read_graph(model_dir, manifest, "history_step", "torchscript")[1]))
     denoiser = torch.jit.load(io.BytesIO(read_graph(model_dir, manifest, "denoiser", "torchscript")[1]))
-    state_specs = [s for s in manifest["graphs"]["history_step"]["inputs"] if s["name"] in manifest["history_state"]]
+    state_specs = [s for s in manifest.graphs["history_step"]["inputs"] if s["name"] in manifest.history_state]
     state = [torch.zeros([1, *s["shape"][1:]]) for s in state_specs]
     inputs = []
-    if manifest["use_history"]:
-        inputs.append(torch.zeros(1, m["d_model"]))
-    if manifest["use_recent_states"]:
-        inputs.append(torch.zeros(1, m["n_obs_steps"], m["d_model"]))
-    noise = torch.randn(1, m["horizon"], m["action_dim"], generator=rng)
+    if m.use_history:
+        inputs.append(torch.zeros(1, m.d_model))
+    if m.use_recent_states:
+        inputs.append(torch.zeros(1, c.n_obs_steps, m.d_model))
+    noise = torch.randn(1, c.horizon, c.action_dim, generator=rng)
     with torch.inference_mode():
         return {
             "history_step": time_calls(lambda: history(pc, pos, *state), settings["iterations"]),
@@ -113,7 +113,7 @@ def compare(model_dir: Path, checkpoint: Path | None, quick: bool, threads: int 
     if threads:
         torch.set_num_threads(threads)
     policy = OnnxPolicy(model_dir, threads=threads, precision=precision)
-    manifest, m = policy.manifest, policy.manifest["model_config"]
+    manifest, m = policy.manifest, policy.manifest.model_config
     ort = profile_components(policy, settings, np.random.default_rng(0))
     pc_np, pos_np = random_observation(policy, np.random.default_rng(0))
     policy.reset()

@@ -3,11 +3,12 @@
 ``export.to_onnx`` writes the manifest (``export/manifest_writer.py``) with the names, constants and graph
 interface defined here; this module reads it and trusts nothing in it unchecked. :func:`read_manifest`
 (the one reader: the runtime, ``dssp-run``, ``dssp-profile``, the simulation and ``export.verify`` all
-use it) refuses, with one :class:`ModelDirError` line naming the field, its value and what to do:
-- a scalar fact of the wrong type or out of range (:class:`ManifestFacts`, :class:`ModelFacts`,
-  :class:`SourceFacts`: strict types from :mod:`dssp_core.schema`);
-- facts that contradict each other: H_a > H, K DDIM timesteps for another K, ``model_config`` against the
-  top-level facts, ``history_state`` against the history layers;
+use it) returns a typed :class:`Manifest` or refuses, with one :class:`ModelDirError` line naming the field, its value and what to do:
+- a fact of the wrong type or out of range, or facts that contradict each other: the model's contract
+  (``contract``: :class:`~dssp_data.model_contract.ModelContract`, which validates itself once: 1 <= H_a <= H,
+  the DDIM timesteps strictly decreasing, the observation contract against the dimensions), the architecture
+  (``model_config``: :class:`ModelFacts`), the source (:class:`SourceFacts`), the timesteps against the trained
+  ones;
 - graph inputs/outputs other than the interface the facts give (:func:`graph_io`), normalisers of the wrong
   size;
 - a file name that does not stay inside the model directory (absolute, ``..``, or a symbolic link out),
@@ -27,7 +28,6 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
-import json
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -36,14 +36,13 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from dssp_data.observation import ObservationContract
+from dssp_data.model_contract import ModelContract
 from dssp_deploy.external_data import MalformedGraph, external_locations
-from dssp_core.schema import MAX_DIM, MAX_LAYERS, MAX_RATE_HZ, MAX_STEPS, MAX_WIDTH
 from dssp_core.errors import ConfigError, DSSPError
 from dssp_core.files import read_input_bytes, read_regular_text
-from dssp_core.schema import Settings, Spec, check_value, parse_json, read_json, setting
+from dssp_core.schema import MAX_LAYERS, MAX_STEPS, MAX_WIDTH, Settings, Spec, check_value, parse_json, read_json, setting
 
-FORMAT_VERSION = "1"
+FORMAT_VERSION = "2"
 KIND = "dssp-model"
 MANIFEST_NAME = "dssp_model.json"
 HISTORY_GRAPH = "history_step"
@@ -65,8 +64,6 @@ def file_suffix(kind: str) -> str:
         return ".pt"
     parts = kind.split("_")[1:]
     return "".join(f".{p}" for p in parts) + ".onnx"
-MAX_TIMESTEPS = 100_000  # DDPM training timesteps (dssp_train.config.DiffusionConfig)
-MAX_POINTS = 1_000_000
 NORMALIZER_STATS = ("scale", "offset", "input_min", "input_max")
 AGAIN = "export the model again (python -m export.to_onnx RUN_DIR -o MODEL_DIR)"
 _SHA256 = re.compile(r"[0-9a-f]{64}")
@@ -77,81 +74,17 @@ class ModelDirError(DSSPError):
 
 
 # ------------------------------------------------------------------------------- the schema
-def _dim(default: int):
-    return setting(default, ge=1, le=MAX_DIM)
-
-
 def _width(default: int):
     return setting(default, ge=1, le=MAX_WIDTH)
 
 
-def _steps(default: int):
-    return setting(default, ge=1, le=MAX_STEPS)
-
-
-# Every field must be in the manifest (``OPTIONAL`` ones may be left out); the defaults only describe a valid
-# example (a tiny one-arm model), for the schema's own tests — a manifest never gets them.
-@dataclass(frozen=True)
-class ManifestFacts(Settings):
-    """The manifest's top-level facts the runtime uses. N = n_obs_steps, H = horizon, H_a = n_action_steps,
-    K = denoise_steps; action_offset: the chunk's first executed action (N - 1 with DP3's alignment, 0 otherwise;
-    exports that predate it have none: their chunks start at the current step)."""
-
-    SECTION: ClassVar[str] = MANIFEST_NAME
-    OPTIONAL: ClassVar[tuple[str, ...]] = ("action_offset", "inpainting")
-
-    point_dim: int = setting(3, choices=(3, 6))
-    state_dim: int = _dim(7)
-    action_dim: int = _dim(7)
-    d_model: int = _width(64)
-    n_obs_steps: int = _steps(2)
-    horizon: int = _steps(4)
-    n_action_steps: int = _steps(3)
-    action_offset: int = setting(0, ge=0, le=MAX_STEPS)
-    denoise_steps: int = setting(10, ge=1, le=MAX_TIMESTEPS)
-    ddim_timesteps: list[int] = setting(default_factory=lambda: list(range(90, -1, -10)), ge=0, lt=MAX_TIMESTEPS,
-                                        min_length=1, max_length=MAX_TIMESTEPS)
-    use_history: bool = setting(True)
-    use_recent_states: bool = setting(True)
-    history_state: list[str] = setting(default_factory=lambda: ["conv_state_0", "ssm_state_0", "conv_state_1", "ssm_state_1"],
-                                       max_length=2 * MAX_LAYERS)
-    control_rate_hz: float | None = setting(None, gt=0, le=MAX_RATE_HZ, unit="Hz")
-    inpainting: bool = setting(False)  # the denoiser takes the committed actions (real-time chunking)
-
-    def validate(self) -> None:
-        s = self.SECTION
-        if self.n_action_steps > self.horizon:
-            raise ConfigError(f"{s}.n_action_steps (H_a) must be in [1, horizon={self.horizon}], got {self.n_action_steps}")
-        if self.action_offset not in (0, self.n_obs_steps - 1) or self.action_offset + self.n_action_steps > self.horizon:
-            raise ConfigError(f"{s}.action_offset must be 0 or n_obs_steps - 1 = {self.n_obs_steps - 1} with action_offset + "
-                              f"n_action_steps <= horizon = {self.horizon}, got {self.action_offset}")
-        if len(self.ddim_timesteps) != self.denoise_steps:
-            raise ConfigError(
-                f"{s}.ddim_timesteps must hold denoise_steps={self.denoise_steps} values, got {len(self.ddim_timesteps)}"
-            )
-        if any(a <= b for a, b in zip(self.ddim_timesteps, self.ddim_timesteps[1:])):
-            raise ConfigError(f"{s}.ddim_timesteps must decrease strictly (the sampler runs from noise to data), "
-                              f"got {self.ddim_timesteps}")
-        if not (self.use_history or self.use_recent_states):
-            raise ConfigError(f"{s}.use_history and {s}.use_recent_states are both false: the denoiser would see no observation")
-        if self.use_history != bool(self.history_state):
-            raise ConfigError(
-                f"{s}.history_state is {self.history_state!r} with use_history={str(self.use_history).lower()}: "
-                "a history encoder has state tensors, a model without one has none"
-            )
-
-
 @dataclass(frozen=True)
 class ModelFacts(Settings):
-    """The facts of ``model_config`` the runtime and ``dssp-profile`` use (the rest is left to training)."""
+    """The architecture the runtime and ``dssp-profile`` use, from ``model_config`` (the rest of it is left to
+    training; what the model promises the robot is its :class:`~dssp_data.model_contract.ModelContract`)."""
 
     SECTION: ClassVar[str] = f"{MANIFEST_NAME} model_config"
-    OPTIONAL: ClassVar[tuple[str, ...]] = ("history_window",)
 
-    point_dim: int = setting(3, choices=(3, 6))
-    state_dim: int = _dim(7)
-    action_dim: int = _dim(7)
-    n_points: int = setting(64, ge=1, le=MAX_POINTS)
     d_model: int = _width(64)
     d_state: int = _width(16)
     d_conv: int = setting(4, ge=1, le=64)
@@ -161,13 +94,15 @@ class ModelFacts(Settings):
     point_widths: list[int] = setting(default_factory=lambda: [32, 64, 128], ge=1, le=MAX_WIDTH, min_length=1, max_length=16)
     point_feature_dim: int = _width(64)
     state_widths: list[int] = setting(default_factory=lambda: [32, 32], ge=1, le=MAX_WIDTH, min_length=1, max_length=16)
-    n_obs_steps: int = _steps(2)
-    horizon: int = _steps(4)
-    n_action_steps: int = _steps(3)
     use_history: bool = setting(True)
     use_recent_states: bool = setting(True)
     timestep_decoupled: bool = setting(True)
-    history_window: int = setting(0, ge=0, le=MAX_STEPS)  # 0: the full history (exports that predate it have none)
+    history_window: int = setting(0, ge=0, le=MAX_STEPS)  # 0: the full history
+
+    def validate(self) -> None:
+        if not (self.use_history or self.use_recent_states):
+            raise ConfigError(f"{self.SECTION}.use_history and use_recent_states are both false: the denoiser would see "
+                              "no observation")
 
 
 @dataclass(frozen=True)
@@ -197,7 +132,7 @@ def facts_from(cls, values: Any):
     """``cls`` from the keys of ``values`` it knows (others are left alone); a missing key is a ConfigError."""
     if not isinstance(values, Mapping):
         raise ConfigError(f"{cls.SECTION} must be a JSON object, got {type(values).__name__}")
-    missing = [name for name in cls.field_names() if name not in values and name not in cls.OPTIONAL]
+    missing = [name for name in cls.field_names() if name not in values and name not in getattr(cls, "OPTIONAL", ())]
     if missing:
         raise ConfigError(f"{', '.join(f'{cls.SECTION}.{name}' for name in missing)} {'is' if len(missing) == 1 else 'are'} missing")
     return cls.from_dict({k: values[k] for k in cls.field_names() if k in values})
@@ -223,9 +158,10 @@ def history_state_specs(m, suffix: str = "") -> list[dict[str, Any]]:
     return specs
 
 
-def history_io(m) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
-    """Inputs and outputs of the history-step graph (no state and z_t only without a history encoder)."""
-    inputs = [tensor_spec("point_cloud", ["B", "P", m.point_dim]), tensor_spec("agent_pos", ["B", m.state_dim])]
+def history_io(c: ModelContract, m) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """Inputs and outputs of the history-step graph (no state and z_t only without a history encoder); ``c`` the
+    contract, ``m`` the architecture (``dssp_train.config.ModelConfig``, :class:`ModelFacts`)."""
+    inputs = [tensor_spec("point_cloud", ["B", "P", c.point_dim]), tensor_spec("agent_pos", ["B", c.state_dim])]
     outputs = [tensor_spec("z_t", ["B", m.d_model])]
     if m.use_history:
         inputs += history_state_specs(m)
@@ -233,35 +169,31 @@ def history_io(m) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
     return inputs, outputs
 
 
-INPAINTING_INPUTS = ("committed", "committed_weight")
-"""The denoiser's extra inputs when exported with ``--inpainting``: the committed actions (B, H, A) raw units and
-their weights (B, H, 1) in [0, 1] (all zero: the plain chain)."""
-
-
-def no_inpainting(manifest: dict[str, Any], batch: int) -> dict[str, np.ndarray]:
-    """The inpainting inputs that leave the chain as it is (weights 0), for a denoiser exported with them; {} else."""
-    if not manifest.get("inpainting"):
+def no_inpainting(c: ModelContract, batch: int) -> dict[str, np.ndarray]:
+    """The denoiser's extra inputs when exported with ``--inpainting`` — the committed actions (B, H, A) raw units and
+    their weights (B, H, 1) in [0, 1] — committing nothing (all zero: the plain chain); {} for a plain denoiser."""
+    if not c.inpainting:
         return {}
-    h, a = manifest["horizon"], manifest["action_dim"]
+    h, a = c.horizon, c.action_dim
     return {"committed": np.zeros((batch, h, a), np.float32), "committed_weight": np.zeros((batch, h, 1), np.float32)}
 
 
-def denoiser_io(m, inpainting: bool = False) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
-    """Inputs and outputs of the denoiser graph (``inpainting``: with :data:`INPAINTING_INPUTS`)."""
+def denoiser_io(c: ModelContract, m) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """Inputs and outputs of the denoiser graph (with those of :func:`no_inpainting` when ``c.inpainting``)."""
     inputs = []
     if m.use_history:
         inputs.append(tensor_spec("c_t", ["B", m.d_model]))
     if m.use_recent_states:
-        inputs.append(tensor_spec("z_recent", ["B", m.n_obs_steps, m.d_model]))
-    inputs.append(tensor_spec("noise", ["B", m.horizon, m.action_dim]))
-    if inpainting:
-        inputs.append(tensor_spec("committed", ["B", m.horizon, m.action_dim]))
-        inputs.append(tensor_spec("committed_weight", ["B", m.horizon, 1]))
-    return inputs, [tensor_spec("action", ["B", m.horizon, m.action_dim])]
+        inputs.append(tensor_spec("z_recent", ["B", c.n_obs_steps, m.d_model]))
+    inputs.append(tensor_spec("noise", ["B", c.horizon, c.action_dim]))
+    if c.inpainting:
+        inputs.append(tensor_spec("committed", ["B", c.horizon, c.action_dim]))
+        inputs.append(tensor_spec("committed_weight", ["B", c.horizon, 1]))
+    return inputs, [tensor_spec("action", ["B", c.horizon, c.action_dim])]
 
 
-def graph_io(m, graph: str, inpainting: bool = False) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
-    return history_io(m) if graph == HISTORY_GRAPH else denoiser_io(m, inpainting)
+def graph_io(c: ModelContract, m, graph: str) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    return history_io(c, m) if graph == HISTORY_GRAPH else denoiser_io(c, m)
 
 
 def _depends(name: str) -> tuple[str, ...]:
@@ -281,7 +213,39 @@ def _depends(name: str) -> tuple[str, ...]:
 
 
 # ------------------------------------------------------------------------------- the reader
-def read_manifest(model_dir: Path) -> dict[str, Any]:
+@dataclass(frozen=True)
+class Manifest:
+    """A model directory's ``dssp_model.json``, every fact the runtime uses checked (:func:`read_manifest`).
+
+    contract: what the model promises the robot; model: the architecture facts; source: where the weights came
+    from; graphs: per graph its files {kind: name} and interface (inputs, outputs: [{name, shape, dtype}]); files:
+    {name: {bytes, sha256, onnx_nodes?}}; normalizers: per normalised tensor its per-channel statistics; data: the
+    whole JSON as read (``model_config``: the training architecture; ``verification``, ``exporter``, ...)."""
+
+    contract: ModelContract
+    model: ModelFacts
+    source: SourceFacts
+    graphs: dict[str, Any]
+    files: dict[str, dict[str, Any]]
+    normalizers: dict[str, dict[str, list[float]]]
+    data: dict[str, Any]
+
+    @property
+    def history_state(self) -> list[str]:
+        """The history graph's state inputs, in order ([] without a history encoder)."""
+        return [s["name"] for s in history_state_specs(self.model)] if self.model.use_history else []
+
+    @property
+    def verification(self) -> dict[str, Any] | None:
+        return self.data.get("verification")
+
+    @property
+    def model_config(self) -> dict[str, Any]:
+        """The training ModelConfig as a dict: ``model_config`` with the contract's fields put back (FLOP counts)."""
+        return {**self.data["model_config"], **self.contract.model_fields()}
+
+
+def read_manifest(model_dir: Path) -> Manifest:
     """The manifest of a model directory, checked (see the module docstring), or a :class:`ModelDirError`."""
     model_dir = Path(model_dir)
     path = model_dir / MANIFEST_NAME
@@ -289,79 +253,41 @@ def read_manifest(model_dir: Path) -> dict[str, Any]:
         raise ModelDirError(f"model directory {model_dir} does not exist; create one with python -m export.to_onnx RUN_DIR -o {model_dir}")
     if not (path.exists() or path.is_symlink()):
         raise ModelDirError(f"{path} is missing: {model_dir} is not a DSSP model directory (python -m export.to_onnx makes one)")
-    manifest = read_json(path, str(path), error=ModelDirError, hint=AGAIN)
-    if not isinstance(manifest, dict) or manifest.get("kind") != KIND:
+    data = read_json(path, str(path), error=ModelDirError, hint=AGAIN)
+    if not isinstance(data, dict) or data.get("kind") != KIND:
         raise ModelDirError(f"{path} is not a DSSP model manifest (no \"kind\": \"{KIND}\"); {AGAIN}")
-    if manifest.get("format_version") != FORMAT_VERSION:
+    if data.get("format_version") != FORMAT_VERSION:
         raise ModelDirError(
-            f"{path} has format version {manifest.get('format_version')!r}, this runtime reads {FORMAT_VERSION!r}; "
+            f"{path} has format version {data.get('format_version')!r}, this runtime reads {FORMAT_VERSION!r}; "
             "export the model again with this version of dssp"
         )
     try:
-        check_manifest(manifest, model_dir)
+        return check_manifest(data, model_dir)
     except ConfigError as exc:
         raise ModelDirError(f"{model_dir}: {exc}; {AGAIN}") from None
-    return manifest
 
 
-def check_manifest(manifest: dict[str, Any], model_dir: Path) -> ManifestFacts:
-    """Check every fact the runtime uses; normalise them in place (e.g. an integer rate becomes a float).
-
-    Raises ConfigError (a fact: one line naming it) or ModelDirError (a path)."""
-    facts = facts_from(ManifestFacts, manifest)
-    model = facts_from(ModelFacts, manifest.get("model_config"))
-    for name in ("point_dim", "state_dim", "action_dim", "d_model", "n_obs_steps", "horizon", "n_action_steps",
-                 "use_history", "use_recent_states"):
-        top, inner = getattr(facts, name), getattr(model, name)
-        if top != inner:
-            raise ConfigError(
-                f"{MANIFEST_NAME}.{name} is {json.dumps(top)} but model_config.{name} is {json.dumps(inner)}: the manifest contradicts itself"
-            )
-    alignment = manifest["model_config"].get("action_alignment", "current")
-    if facts.action_offset != (model.n_obs_steps - 1 if alignment == "dp3" else 0):
-        raise ConfigError(f"{MANIFEST_NAME}.action_offset is {facts.action_offset} but model_config.action_alignment is "
-                          f"{json.dumps(alignment)} with n_obs_steps {model.n_obs_steps}: the manifest contradicts itself")
-    want_state = [s["name"] for s in history_state_specs(model)] if model.use_history else []
-    if facts.history_state != want_state:
-        raise ConfigError(
-            f"{MANIFEST_NAME}.history_state is {facts.history_state}, but the history graph of "
-            f"n_history_layers={model.n_history_layers} takes the state inputs {want_state}"
-        )
-    files = _check_files(manifest.get("files"), model_dir)
-    _check_graphs(manifest.get("graphs"), model, files, model_dir, facts.inpainting)
-    _check_normalizers(manifest.get("normalizers"), model)
-    source = facts_from(SourceFacts, manifest.get("source"))
-    diffusion = manifest["model_config"].get("diffusion")
-    trained = diffusion.get("num_train_timesteps") if isinstance(diffusion, Mapping) else None
-    if isinstance(trained, int) and not isinstance(trained, bool) and max(facts.ddim_timesteps) >= trained:
-        raise ConfigError(f"{MANIFEST_NAME}.ddim_timesteps reach {max(facts.ddim_timesteps)}, but the model was trained "
-                          f"on timesteps 0..{trained - 1} (model_config.diffusion.num_train_timesteps)")
-    runtime = manifest.get("runtime")
-    if isinstance(runtime, Mapping) and "tick_rate_hz" in runtime and runtime["tick_rate_hz"] != facts.control_rate_hz:
-        raise ConfigError(f"{MANIFEST_NAME} runtime.tick_rate_hz is {runtime['tick_rate_hz']!r} but control_rate_hz is "
-                          f"{facts.control_rate_hz!r}: the manifest contradicts itself")
-    observation = observation_of(manifest)
-    cloud = observation.pointcloud
-    for field, have, want in (("pointcloud.n_points", cloud and cloud.n_points, model.n_points),
-                              ("pointcloud.point_dim", cloud and cloud.point_dim, model.point_dim),
-                              ("state", observation.state and observation.state.dim, model.state_dim),
-                              ("action", observation.action and observation.action.dim, model.action_dim)):
-        if have is not None and have != want:
-            raise ConfigError(f"{MANIFEST_NAME} observation.{field} makes {have} values but the model takes {want}: "
-                              "the manifest contradicts itself")
-    manifest.update(facts.to_dict())
-    manifest["model_config"] = {**manifest["model_config"], **model.to_dict()}
-    manifest["source"] = {**manifest["source"], **source.to_dict()}
-    return facts
-
-
-def observation_of(manifest: dict[str, Any]) -> ObservationContract:
-    """The model's observation contract (``observation``; a field the training data did not record is
-    "unknown", i.e. None here; a manifest without the section knows none)."""
+def check_manifest(data: dict[str, Any], model_dir: Path) -> Manifest:
+    """Check every fact the runtime uses: the contract, the architecture, the files, the graphs' interface they
+    give, the normalisers, the source. Raises ConfigError (a fact: one line naming it) or ModelDirError (a path)."""
+    for key in ("contract", "model_config"):
+        if key not in data:
+            raise ConfigError(f"{MANIFEST_NAME}.{key} is missing")
     try:
-        return ObservationContract.from_manifest(manifest.get("observation"))
+        contract = ModelContract.from_json(data["contract"])
     except ConfigError as exc:
         raise ConfigError(f"{MANIFEST_NAME} {exc}") from None
+    model = facts_from(ModelFacts, data["model_config"])
+    diffusion = data["model_config"].get("diffusion")
+    trained = diffusion.get("num_train_timesteps") if isinstance(diffusion, Mapping) else None
+    if isinstance(trained, int) and not isinstance(trained, bool) and max(contract.ddim_timesteps) >= trained:
+        raise ConfigError(f"{MANIFEST_NAME} contract.ddim_timesteps reach {max(contract.ddim_timesteps)}, but the model was "
+                          f"trained on timesteps 0..{trained - 1} (model_config.diffusion.num_train_timesteps)")
+    files = _check_files(data.get("files"), model_dir)
+    graphs = _check_graphs(data.get("graphs"), contract, model, files, model_dir)
+    normalizers = _check_normalizers(data.get("normalizers"), contract)
+    source = facts_from(SourceFacts, data.get("source"))
+    return Manifest(contract, model, source, graphs, files, normalizers, data)
 
 
 def _check_files(files: Any, model_dir: Path) -> dict[str, dict[str, Any]]:
@@ -383,7 +309,7 @@ def _check_files(files: Any, model_dir: Path) -> dict[str, dict[str, Any]]:
     return files
 
 
-def _check_graphs(graphs: Any, model: ModelFacts, files: dict[str, Any], model_dir: Path, inpainting: bool = False) -> None:
+def _check_graphs(graphs: Any, contract: ModelContract, model: ModelFacts, files: dict[str, Any], model_dir: Path) -> dict[str, Any]:
     """Both graphs, their files (inside the directory, listed in ``files``) and the interface the facts give."""
     where = f"{MANIFEST_NAME} graphs"
     graphs = check_value(graphs, dict[str, Any], Spec(), where)
@@ -402,7 +328,7 @@ def _check_graphs(graphs: Any, model: ModelFacts, files: dict[str, Any], model_d
             model_file(model_dir, name, field)
             if name not in files:
                 raise ConfigError(f"{field} is {name!r}, which has no size and sha256 in {MANIFEST_NAME} files")
-        want = dict(zip(("inputs", "outputs"), graph_io(model, graph, inpainting)))
+        want = dict(zip(("inputs", "outputs"), graph_io(contract, model, graph)))
         for io in ("inputs", "outputs"):
             field = f"{where}.{graph}.{io}"
             declared = check_value(spec[io], list[dict[str, Any]], Spec(), field)
@@ -418,17 +344,18 @@ def _check_graphs(graphs: Any, model: ModelFacts, files: dict[str, Any], model_d
                 shape = check_value(d.get("shape"), list[int | str], Spec(max_length=16), f"{field}.{w['name']}.shape")
                 dtype = check_value(d.get("dtype"), str, Spec(choices=tuple(ONNX_TYPES)), f"{field}.{w['name']}.dtype")
                 if shape != w["shape"] or dtype != w["dtype"]:
-                    given = ", ".join(f"{k}={getattr(model, k)}" for k in _depends(w["name"]))
+                    given = ", ".join(f"{k}={getattr(model, k, None) or getattr(contract, k)}" for k in _depends(w["name"]))
                     raise ConfigError(f"{field}.{w['name']} is {dtype} {shape}, but {given} give {w['dtype']} {w['shape']}")
+    return graphs
 
 
-def _check_normalizers(normalizers: Any, model: ModelFacts) -> None:
+def _check_normalizers(normalizers: Any, contract: ModelContract) -> dict[str, Any]:
     """Per-channel statistics of the three normalised tensors, as many as the tensor has channels, finite, with
     scale > 0 and input_min <= input_max: the training ranges the runtime refuses observations and chunks outside
     of (:mod:`dssp_deploy.ranges`)."""
     where = f"{MANIFEST_NAME} normalizers"
     normalizers = check_value(normalizers, dict[str, Any], Spec(), where)
-    for name, size in (("point_cloud", model.point_dim), ("agent_pos", model.state_dim), ("action", model.action_dim)):
+    for name, size in (("point_cloud", contract.point_dim), ("agent_pos", contract.state_dim), ("action", contract.action_dim)):
         if name not in normalizers:
             raise ConfigError(f"{where}.{name} is missing")
         stats = check_value(normalizers[name], dict[str, Any], Spec(), f"{where}.{name}")
@@ -442,6 +369,7 @@ def _check_normalizers(normalizers: Any, model: ModelFacts) -> None:
                 raise ConfigError(f"{where}.{name}.scale must be > 0 (y = x * scale + offset), got {scale!r} for channel {c}")
             if not low <= high:
                 raise ConfigError(f"{where}.{name}: channel {c} has input_min {low!r} > input_max {high!r}")
+    return normalizers
 
 
 # ----------------------------------------------------------------------------- the files
@@ -487,10 +415,10 @@ def is_model_dir(path: Path) -> bool:
     return isinstance(manifest, dict) and manifest.get("kind") == KIND
 
 
-def graph_file(model_dir: Path, manifest: dict[str, Any], graph: str, fmt: str = "onnx") -> Path:
+def graph_file(model_dir: Path, manifest: Manifest, graph: str, fmt: str = "onnx") -> Path:
     """Path of one graph's file in a model directory (inside it); a clear error when it is not there."""
     field = f"{MANIFEST_NAME} graphs.{graph}.files.{fmt}"
-    name = manifest["graphs"][graph]["files"].get(fmt)
+    name = manifest.graphs[graph]["files"].get(fmt)
     if name is None:
         quantized = next((p for p, kind in PRECISIONS.items() if fmt.startswith(kind) and p != "fp32"), None)
         if fmt.endswith(FUSED):
@@ -510,9 +438,9 @@ def sha256_hex(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
 
 
-def check_digest(path: Path, data: bytes, manifest: dict[str, Any], name: str) -> None:
+def check_digest(path: Path, data: bytes, manifest: Manifest, name: str) -> None:
     """``data`` (the bytes of the manifest's file ``name``, read from ``path``) must have its size and sha256."""
-    want = manifest["files"].get(name)
+    want = manifest.files.get(name)
     if want is None:
         raise ModelDirError(f"{path} has no size and sha256 in {MANIFEST_NAME} files; {AGAIN}")
     got = sha256_hex(data)
@@ -524,10 +452,10 @@ def check_digest(path: Path, data: bytes, manifest: dict[str, Any], name: str) -
         )
 
 
-def read_listed(path: Path, manifest: dict[str, Any], name: str, label: str) -> bytes:
+def read_listed(path: Path, manifest: Manifest, name: str, label: str) -> bytes:
     """The bytes of the manifest's file ``name`` at ``path``, read as :func:`~dssp_core.files.read_input_bytes`
     reads (a regular file, never more than the size the manifest gives it), their size and sha256 checked."""
-    want = manifest["files"].get(name)
+    want = manifest.files.get(name)
     if want is None:
         raise ModelDirError(f"{path} has no size and sha256 in {MANIFEST_NAME} files; {AGAIN}")
     if not (path.exists() or path.is_symlink()):
@@ -542,15 +470,15 @@ def read_listed(path: Path, manifest: dict[str, Any], name: str, label: str) -> 
     return data
 
 
-def read_graph(model_dir: Path, manifest: dict[str, Any], graph: str, fmt: str = "onnx") -> tuple[Path, bytes]:
+def read_graph(model_dir: Path, manifest: Manifest, graph: str, fmt: str = "onnx") -> tuple[Path, bytes]:
     """(path, bytes) of one graph's file, its size and sha256 checked against the manifest.
 
     Open the graph from these bytes: what runs is what was checked."""
     path = graph_file(model_dir, manifest, graph, fmt)
-    return path, read_listed(path, manifest, manifest["graphs"][graph]["files"][fmt], str(path))
+    return path, read_listed(path, manifest, manifest.graphs[graph]["files"][fmt], str(path))
 
 
-def read_graph_files(model_dir: Path, manifest: dict[str, Any], graph: str, fmt: str = "onnx") -> tuple[Path, bytes, dict[str, bytes]]:
+def read_graph_files(model_dir: Path, manifest: Manifest, graph: str, fmt: str = "onnx") -> tuple[Path, bytes, dict[str, bytes]]:
     """(path, bytes, external data) of one ONNX graph: its file as :func:`read_graph` reads it, and the files its
     tensors' external data name, {location: bytes}. Each such file must be in the model directory (its location
     relative to the graph's folder: no absolute path, no '..', no symbolic link out) and have its own size and
@@ -562,7 +490,7 @@ def read_graph_files(model_dir: Path, manifest: dict[str, Any], graph: str, fmt:
         locations = external_locations(data)
     except MalformedGraph as exc:
         raise ModelDirError(f"{path} is not a well-formed ONNX graph ({exc}); {AGAIN}") from None
-    folder = PurePosixPath(manifest["graphs"][graph]["files"][fmt]).parent
+    folder = PurePosixPath(manifest.graphs[graph]["files"][fmt]).parent
     external = {}
     for location in locations:
         if location is None or not _is_inside_name(location):
@@ -570,16 +498,16 @@ def read_graph_files(model_dir: Path, manifest: dict[str, Any], graph: str, fmt:
                                 f"the model directory (absolute paths and '..' are refused); {AGAIN}")
         name = str(folder / location)
         file = model_file(model_dir, name, f"the external data of {path.name}")
-        if name not in manifest["files"]:
+        if name not in manifest.files:
             raise ModelDirError(f"{path} keeps tensors in {file}, which has no size and sha256 in {MANIFEST_NAME} files "
                                 f"(every file the runtime loads must); {AGAIN}")
         external[location] = read_listed(file, manifest, name, f"{file} (the external data of {path.name})")
     return path, data, external
 
 
-def check_session(session, manifest: dict[str, Any], graph: str, where: Path) -> None:
+def check_session(session, manifest: Manifest, graph: str, where: Path) -> None:
     """The session's inputs and outputs must be the manifest's, in name, rank, fixed dims and dtype."""
-    spec = manifest["graphs"][graph]
+    spec = manifest.graphs[graph]
     for kind, declared, actual in (
         ("input", spec["inputs"], session.get_inputs()),
         ("output", spec["outputs"], session.get_outputs()),

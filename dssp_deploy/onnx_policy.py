@@ -6,6 +6,7 @@
     policy.reset()
     policy.observe(point_cloud, agent_pos)     # every control tick: the history-update graph
     chunk = policy.act(seed=0)                 # every H_a ticks: the denoiser graph → (B, H, A) raw units
+    policy.contract.n_action_steps             # what the model promises (dssp_data.model_contract.ModelContract)
 
 The history is kept by :class:`dssp_data.streaming_history.StreamingHistory`, the state machine of the
 PyTorch streaming API (``dssp_train.model.streaming.StreamingPolicy``) too: the recurrent history state
@@ -43,15 +44,18 @@ from typing import Any
 import numpy as np
 
 from dssp_data.streaming_history import StreamingHistory, check_finite
+from dssp_data.model_contract import ModelContract
 from dssp_deploy.mamba_kernel import kernel as find_kernel
 from dssp_deploy.manifest import (
     DENOISER_GRAPH,
     GRAPHS,
     HISTORY_GRAPH,
     PRECISIONS,
+    Manifest,
     ModelDirError,
     check_session,
     file_kind,
+    no_inpainting,
     read_graph_files,
     read_manifest,
 )
@@ -69,10 +73,10 @@ QUANTIZED_ACTION_BOUND = 0.05
 verification, ``verification.quantized`` in the manifest), at which it is still run by default."""
 
 
-def quantized_action_error(manifest: dict[str, Any], precision: str) -> float | None:
+def quantized_action_error(manifest: Manifest, precision: str) -> float | None:
     """The worst action error of ``precision``'s graphs against fp32 that the export measured (a fraction of the
     action range), or None when the model was not verified."""
-    verification = manifest.get("verification")
+    verification = manifest.verification
     quantized = verification.get("quantized") if isinstance(verification, dict) else None
     if not isinstance(quantized, dict):
         return None
@@ -82,11 +86,11 @@ def quantized_action_error(manifest: dict[str, Any], precision: str) -> float | 
     return max(errors) if errors else None
 
 
-def default_precision(manifest: dict[str, Any]) -> tuple[str, str]:
+def default_precision(manifest: Manifest) -> tuple[str, str]:
     """(precision, why) when none is asked for: :data:`DEFAULT_PRECISION` if the model has those graphs and their
     measured error is within :data:`QUANTIZED_ACTION_BOUND`, else fp32."""
     kind = file_kind(DEFAULT_PRECISION)
-    if not all(kind in manifest["graphs"][g]["files"] for g in GRAPHS):
+    if not all(kind in manifest.graphs[g]["files"] for g in GRAPHS):
         return "fp32", f"; fp32: the model directory has no {DEFAULT_PRECISION} graphs"
     error = quantized_action_error(manifest, DEFAULT_PRECISION)
     if error is not None and error > QUANTIZED_ACTION_BOUND:
@@ -113,7 +117,7 @@ class GraphLoadError(ModelDirError):
     """ONNX Runtime could not load a graph file (which matched the manifest's size and sha256)."""
 
 
-def choose_graphs(manifest: dict[str, Any], precision: str, kernel: str = "auto") -> tuple[bool, str]:
+def choose_graphs(manifest: Manifest, precision: str, kernel: str = "auto") -> tuple[bool, str]:
     """(run the fused graphs?, why) for a model's manifest, the precision and the ``kernel`` choice.
 
     Raises :class:`ModelDirError` when ``kernel="fused"`` cannot be honoured."""
@@ -122,7 +126,7 @@ def choose_graphs(manifest: dict[str, Any], precision: str, kernel: str = "auto"
     if kernel == "standard":
         return False, "standard ONNX graphs (asked for)"
     kind = file_kind(precision, fused=True)
-    if not all(kind in manifest["graphs"][g]["files"] for g in GRAPHS):
+    if not all(kind in manifest.graphs[g]["files"] for g in GRAPHS):
         why = f"the model directory has no {precision} fused graphs; export it again with the kernel built (make kernel)"
     else:
         found = find_kernel()
@@ -149,18 +153,10 @@ class OnnxPolicy:
         if precision is not None and precision not in PRECISIONS:
             raise ModelDirError(f"precision must be one of {sorted(PRECISIONS)}, got {precision!r}")
         self.model_dir = Path(model_dir)
-        self.manifest: dict[str, Any] = read_manifest(self.model_dir)  # every fact checked, see dssp_deploy.manifest
+        self.manifest: Manifest = read_manifest(self.model_dir)  # every fact checked, see dssp_deploy.manifest
         m = self.manifest
-        self.point_dim, self.state_dim, self.action_dim = m["point_dim"], m["state_dim"], m["action_dim"]
-        self.d_model, self.n_points = m["d_model"], m["model_config"]["n_points"]
-        self.n_obs_steps, self.horizon, self.n_action_steps = m["n_obs_steps"], m["horizon"], m["n_action_steps"]
-        self.action_offset: int = m.get("action_offset", 0)  # execute chunk[:, action_offset : action_offset + H_a]
-        self.denoise_steps, self.ddim_timesteps = m["denoise_steps"], list(m["ddim_timesteps"])
-        self.control_rate_hz: float | None = m["control_rate_hz"]
-        self.use_history, self.use_recent_states = m["use_history"], m["use_recent_states"]
-        self.inpainting = bool(m.get("inpainting", False))  # the denoiser takes committed actions (real-time chunking)
-        self.history_state: list[str] = list(m["history_state"])
-        self.ranges = model_ranges(m, self.point_dim)  # what observe() and denoise() accept (dssp_deploy.ranges)
+        self.contract: ModelContract = m.contract  # what the model promises: dims, N, H, H_a, K, the rate, ...
+        self.ranges = model_ranges(m.normalizers, m.contract.point_dim)  # what observe() and denoise() accept
         check_threads(threads)
         total = threads or default_threads()
         # With chunks computed in the background (prefetch) the history step and the denoiser run at the same
@@ -177,7 +173,7 @@ class OnnxPolicy:
         # anything runs: a damaged model directory is refused as a whole, whichever graphs a fallback would take.
         chosen = file_kind(precision, self.fused)
         for graph in GRAPHS:
-            for kind in m["graphs"][graph]["files"]:
+            for kind in m.graphs[graph]["files"]:
                 if kind.startswith("onnx") and kind != chosen:
                     read_graph_files(self.model_dir, m, graph, kind)
         try:
@@ -187,10 +183,10 @@ class OnnxPolicy:
                 raise
             self.fused, self.kernel_note = False, f"{precision}, standard ONNX graphs (the fused graphs failed to load: {exc})"
             self.sessions = self._open_sessions()
-        self._state_specs = [s for s in m["graphs"][HISTORY_GRAPH]["inputs"] if s["name"] in self.history_state]
+        self._state_specs = [s for s in m.graphs[HISTORY_GRAPH]["inputs"] if s["name"] in m.history_state]
         self._history_outputs = [o.name for o in self.sessions[HISTORY_GRAPH].get_outputs()]
         self.history: StreamingHistory[np.ndarray] = StreamingHistory(
-            self.n_obs_steps, self._history_step, lambda tokens: np.stack(tokens, axis=1), self._zero_state
+            m.contract.n_obs_steps, self._history_step, lambda tokens: np.stack(tokens, axis=1), self._zero_state
         )
         if warmup:
             self.warmup(warmup)
@@ -249,7 +245,7 @@ class OnnxPolicy:
         """The history graph: pc (B, P, C), pos (B, S), state → z_t (B, d), c_t (B, d) or None, new state."""
         session = self.sessions[HISTORY_GRAPH]
         named = dict(zip(self._history_outputs, session.run(None, {"point_cloud": pc, "agent_pos": pos, **state})))
-        if not self.use_history:
+        if not self.manifest.model.use_history:
             return named["z_t"], None, state
         return named["z_t"], named["c_t"], {name: named[f"{name}_out"] for name in state}
 
@@ -263,13 +259,13 @@ class OnnxPolicy:
         graph runs, the state unchanged."""
         pc = _batch(point_cloud, 3, "point_cloud")
         pos = _batch(agent_pos, 2, "agent_pos")
-        if pc.shape[-1] < self.point_dim:
-            raise ValueError(f"point_cloud has {pc.shape[-1]} channels per point, the model needs {self.point_dim}")
-        if pos.shape[-1] != self.state_dim or pos.shape[0] != pc.shape[0]:
-            raise ValueError(f"agent_pos must be (B={pc.shape[0]}, S={self.state_dim}), got {pos.shape}")
+        if pc.shape[-1] < self.contract.point_dim:
+            raise ValueError(f"point_cloud has {pc.shape[-1]} channels per point, the model needs {self.contract.point_dim}")
+        if pos.shape[-1] != self.contract.state_dim or pos.shape[0] != pc.shape[0]:
+            raise ValueError(f"agent_pos must be (B={pc.shape[0]}, S={self.contract.state_dim}), got {pos.shape}")
         check_finite("point_cloud", pc)
         check_finite("agent_pos", pos)
-        pc = np.ascontiguousarray(pc[..., : self.point_dim])
+        pc = np.ascontiguousarray(pc[..., : self.contract.point_dim])
         for name, values in (("point_cloud", pc), ("agent_pos", pos)):
             wrong = self.ranges[name].outside(values)
             if wrong:
@@ -283,23 +279,20 @@ class OnnxPolicy:
         if self.recent is None:
             raise RuntimeError("act() before any observe(): feed at least one observation first")
         feeds = {}
-        if self.use_history:
+        if self.manifest.model.use_history:
             feeds["c_t"] = self.context.copy()
-        if self.use_recent_states:
+        if self.manifest.model.use_recent_states:
             feeds["z_recent"] = self.recent.copy()
-        batch = self.recent.shape[0]
-        if (committed is not None or weight is not None) and not self.inpainting:
+        if (committed is not None or weight is not None) and not self.contract.inpainting:
             raise ValueError("this model's denoiser takes no committed actions: export it with --inpainting")
-        if self.inpainting:
-            shape = (batch, self.horizon, self.action_dim)
-            feeds["committed"] = np.zeros(shape, np.float32) if committed is None else \
-                np.ascontiguousarray(np.broadcast_to(committed, shape), dtype=np.float32)
-            feeds["committed_weight"] = np.zeros((batch, self.horizon, 1), np.float32) if weight is None else \
-                np.ascontiguousarray(np.broadcast_to(weight, (batch, self.horizon, 1)), dtype=np.float32)
+        feeds.update(no_inpainting(self.contract, self.recent.shape[0]))
+        for name, given in (("committed", committed), ("committed_weight", weight)):
+            if given is not None:
+                feeds[name] = np.ascontiguousarray(np.broadcast_to(given, feeds[name].shape), dtype=np.float32)
         return feeds
 
     def noise(self, batch: int, seed: int | None = None) -> np.ndarray:
-        return np.random.default_rng(seed).standard_normal((batch, self.horizon, self.action_dim), dtype=np.float32)
+        return np.random.default_rng(seed).standard_normal((batch, self.contract.horizon, self.contract.action_dim), dtype=np.float32)
 
     def denoise(self, inputs: dict[str, np.ndarray], noise: np.ndarray | None = None, seed: int | None = None) -> np.ndarray:
         """Run the denoiser graph on given inputs: the action chunk (B, H, A) in raw units.
@@ -308,8 +301,8 @@ class OnnxPolicy:
         the margin (:mod:`dssp_deploy.ranges`): such a chunk is never returned."""
         batch = next(iter(inputs.values())).shape[0]
         noise = self.noise(batch, seed) if noise is None else _batch(noise, 3, "noise")
-        if noise.shape != (batch, self.horizon, self.action_dim):
-            raise ValueError(f"noise must have shape {(batch, self.horizon, self.action_dim)}, got {noise.shape}")
+        if noise.shape != (batch, self.contract.horizon, self.contract.action_dim):
+            raise ValueError(f"noise must have shape {(batch, self.contract.horizon, self.contract.action_dim)}, got {noise.shape}")
         chunk = self.sessions[DENOISER_GRAPH].run(None, {**inputs, "noise": noise})[0]
         wrong = self.ranges["action"].outside(chunk)
         if wrong:
@@ -323,7 +316,7 @@ class OnnxPolicy:
     def example_observation(self, rng: np.random.Generator, n_points: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """An observation the model accepts, drawn uniformly from the training ranges: point_cloud (1, P, point_dim)
         (P: ``n_points``, default the model's), agent_pos (1, S); for warm-up and timing."""
-        pc = self.ranges["point_cloud"].sample(rng, (1, n_points or self.n_points))
+        pc = self.ranges["point_cloud"].sample(rng, (1, n_points or self.contract.n_points))
         return pc, self.ranges["agent_pos"].sample(rng, (1,))
 
     def warmup(self, iterations: int = 2) -> None:

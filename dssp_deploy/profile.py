@@ -36,6 +36,7 @@ import numpy as np
 
 from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.output_guard import check_output_file, write_output_figure, write_output_text
+from dssp_core.schema import DEFAULT_CONTROL_RATE_HZ
 from dssp_deploy.control_loop import ChunkedControl
 from dssp_deploy.flops import chunk_flops, history_step_flops
 from dssp_deploy.latency import (
@@ -48,9 +49,11 @@ from dssp_deploy.latency import (
     resident_memory_mib,
     time_calls,
 )
-from dssp_deploy.manifest import DENOISER_GRAPH, HISTORY_GRAPH, file_kind, graph_file, read_graph_files, read_manifest
+from dssp_deploy.manifest import (DENOISER_GRAPH, HISTORY_GRAPH, Manifest, file_kind, graph_file, read_graph_files,
+                                   read_manifest)
 from dssp_deploy.onnx_policy import OnnxPolicy, add_runtime_arguments, choose_graphs
 from dssp_deploy.op_breakdown import elementwise_share, op_type_breakdown
+from dssp_deploy.schedules import Plain
 from dssp_deploy.sessions import check_threads, default_threads
 
 FULL = {"iterations": 300, "chunk_iterations": 100, "sweep": [10, 100, 1000, 3000, 10000], "window": 50,
@@ -110,9 +113,9 @@ def prefetch_ticks(model_dir: Path, precision: str, kernel: str, threads: int, t
     pc, pos = random_observation(policy, rng)
     policy.reset()
     alone = LatencyStats.of(time_calls(lambda: policy.observe(pc, pos), max(ticks, 20)))
-    rate = policy.control_rate_hz or 10.0
+    rate = policy.contract.control_rate_hz or DEFAULT_CONTROL_RATE_HZ
     try:
-        loop = ChunkedControl(policy, rate_hz=rate, prefetch=True, seed=0)
+        loop = ChunkedControl(policy, Plain(prefetch=True), control_rate_hz=rate, seed=0)
     except ValueError as exc:  # the chunk is too slow to be started early enough at this rate
         return {"rate_hz": rate, "ticks": 0, "possible": False, "reason": str(exc), "threads": dict(policy.threads),
                 "history_step_alone": alone.to_dict(), "tick_p99_over_history_p99": None}
@@ -127,7 +130,7 @@ def prefetch_ticks(model_dir: Path, precision: str, kernel: str, threads: int, t
         time.sleep(max(0.0, next_at - time.perf_counter()))
     loop.reset()
     ticks_stats = LatencyStats.of(tick_ms)
-    return {"rate_hz": rate, "ticks": ticks, "possible": True, "lead_ticks": loop.lead, "threads": dict(policy.threads),
+    return {"rate_hz": rate, "ticks": ticks, "possible": True, "lead_ticks": loop.schedule.lead, "threads": dict(policy.threads),
             "history_step_alone": alone.to_dict(), "tick": ticks_stats.to_dict(), "chunks_late": int(waited),
             "tick_p99_over_history_p99": ticks_stats.p99 / alone.p99}
 
@@ -155,7 +158,7 @@ def run_profile(model_dir: Path, quick: bool, threads: int | None, precision: st
     precision = policy.precision  # the default resolved
     rss_loaded = resident_memory_mib()
     manifest = policy.manifest
-    m = manifest["model_config"]
+    m = manifest.model_config
     components = profile_components(policy, settings, rng)
     stats = {k: LatencyStats.of(v).to_dict() for k, v in components.items()}
 
@@ -164,7 +167,7 @@ def run_profile(model_dir: Path, quick: bool, threads: int | None, precision: st
     sweep = history_sweep(lambda: policy.observe(pc, pos), settings["sweep"], settings["window"])
 
     peak = gemm_peak_gflops()
-    flops = {"history_step": history_step_flops(m, m["n_points"]), "denoiser_chunk": chunk_flops(m, manifest["denoise_steps"])}
+    flops = {"history_step": history_step_flops(m, m["n_points"]), "denoiser_chunk": chunk_flops(m, manifest.contract.denoise_steps)}
     achieved = {k: flops[k] / (stats[k]["p50"] / 1e3) / 1e9 for k in flops}
     floor = chunk_floor(model_dir, manifest, flops["denoiser_chunk"], peak, file_kind(precision, policy.fused))
     breakdown = graph_breakdowns(policy, model_dir, threads, runs=2 if quick else 5)
@@ -193,14 +196,14 @@ def run_profile(model_dir: Path, quick: bool, threads: int | None, precision: st
     }
 
 
-def weight_passes(manifest: dict) -> int:
+def weight_passes(manifest: Manifest) -> int:
     """How often one chunk reads every denoiser weight: once per DDIM step, and once more for the prefix when its
     state is computed once and serves the K steps (a Mamba denoiser with the timestep decoupled, K > 1)."""
-    steps = manifest["denoise_steps"]
-    return steps + 1 if steps > 1 and manifest["model_config"].get("timestep_decoupled", True) else steps
+    steps = manifest.contract.denoise_steps
+    return steps + 1 if steps > 1 and manifest.model.timestep_decoupled else steps
 
 
-def roofline(model_dir: Path, manifest: dict, fmt: str, chunk_ms: float, read_gbs: float) -> dict[str, Any]:
+def roofline(model_dir: Path, manifest: Manifest, fmt: str, chunk_ms: float, read_gbs: float) -> dict[str, Any]:
     """One chunk against the least time reading its weights allows: the denoiser graph's bytes (``fmt``'s file: its
     weights, nearly all of it) read :func:`weight_passes` times at ``read_gbs``; ``ratio`` = achieved / floor."""
     weights = graph_file(model_dir, manifest, DENOISER_GRAPH, fmt).stat().st_size
@@ -210,7 +213,7 @@ def roofline(model_dir: Path, manifest: dict, fmt: str, chunk_ms: float, read_gb
             "floor_ms": floor, "chunk_ms": chunk_ms, "ratio": chunk_ms / floor}
 
 
-def chunk_floor(model_dir: Path, manifest: dict, chunk_flops_: int, peak_gflops: float, fmt: str = "onnx") -> dict[str, Any]:
+def chunk_floor(model_dir: Path, manifest: Manifest, chunk_flops_: int, peak_gflops: float, fmt: str = "onnx") -> dict[str, Any]:
     """The least time one chunk can take here: compute at the GEMM peak, or re-reading the weights per DDIM step.
 
     The denoiser graph's file is almost entirely its weights; the K DDIM steps run every layer in turn, so
@@ -223,7 +226,7 @@ def chunk_floor(model_dir: Path, manifest: dict, chunk_flops_: int, peak_gflops:
     effective = effective_cache_bytes(probe)
     cache = min(c for c in (cpu_cache, effective) if c) if (cpu_cache or effective) else None
     bandwidth = memory_read_gbs()
-    steps = manifest["denoise_steps"]
+    steps = manifest.contract.denoise_steps
     streams = cache is None or weights > cache
     stream_ms = weight_passes(manifest) * weights / (bandwidth * 1e9) * 1e3 if streams else None
     compute_ms = chunk_flops_ / (peak_gflops * 1e9) * 1e3
@@ -239,7 +242,7 @@ def graph_breakdowns(policy: OnnxPolicy, model_dir: Path, threads: int | None, r
     pc, pos = random_observation(policy, rng)
     policy.reset()
     policy.observe(pc, pos)
-    history_feeds = {"point_cloud": pc, "agent_pos": pos, **policy.state} if policy.use_history else {"point_cloud": pc, "agent_pos": pos}
+    history_feeds = {"point_cloud": pc, "agent_pos": pos, **policy.state} if policy.manifest.model.use_history else {"point_cloud": pc, "agent_pos": pos}
     denoiser_feeds = {**policy.denoiser_inputs(), "noise": policy.noise(1, seed=0)}
     manifest, fmt = policy.manifest, file_kind(policy.precision, policy.fused)
     breakdowns = {}

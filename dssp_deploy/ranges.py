@@ -88,11 +88,10 @@ class Range:
         return rng.uniform(self.trained_min, self.trained_max, (*shape, len(self.trained_min))).astype(np.float32)
 
 
-def model_ranges(manifest: Mapping[str, Any], point_dim: int) -> dict[str, Range]:
-    """{"point_cloud", "agent_pos", "action": Range} from a manifest read by ``dssp_deploy.manifest.read_manifest``
-    (which checked the statistics: finite, one per channel, scale > 0, min <= max); the cloud's first ``point_dim``
-    channels."""
-    normalizers = manifest["normalizers"]
+def model_ranges(normalizers: Mapping[str, Any], point_dim: int) -> dict[str, Range]:
+    """{"point_cloud", "agent_pos", "action": Range} from a manifest's normalisers, as
+    ``dssp_deploy.manifest.read_manifest`` checked them (finite, one per channel, scale > 0, min <= max); the cloud's
+    first ``point_dim`` channels."""
     cloud = {k: v[:point_dim] for k, v in normalizers["point_cloud"].items()}
     return {"point_cloud": Range("point_cloud", cloud), "agent_pos": Range("agent_pos", normalizers["agent_pos"]),
             "action": Range("action chunk", normalizers["action"])}

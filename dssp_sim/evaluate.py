@@ -2,7 +2,7 @@
 
     result = evaluate("models/tap", "tap", n_episodes=20, seed=1000)
     result = evaluate(None, "tap", n_episodes=20, seed=1000)      # the scripted expert through the same loop
-    result = evaluate("models/tap", "tap", 20, smoothing="ensemble", ensemble_every=1)   # ACT's temporal ensembling
+    result = evaluate("models/tap", "tap", 20, schedule=Ensemble(every=1))   # ACT's temporal ensembling
 
 Each episode: the MuJoCo env is reset with its seed; its depth render goes through the RealSense software
 device and the point-cloud pipeline (:class:`~dssp_sim.mujoco_camera.MujocoCamera`, ``dssp_data.pointcloud``);
@@ -30,7 +30,7 @@ import time
 import uuid
 from collections import Counter
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -38,10 +38,10 @@ import numpy as np
 
 from dssp_core.errors import ConfigError, NonFiniteObservation
 from dssp_core.output_guard import OutputKind
-from dssp_deploy.control_loop import ChunkedControl, check_ensemble_every
-from dssp_deploy.manifest import observation_of
+from dssp_deploy.control_loop import ChunkedControl
 from dssp_deploy.onnx_policy import OnnxPolicy
 from dssp_deploy.ranges import ChunkOutOfRange, ObservationOutOfRange
+from dssp_deploy.schedules import Plain, Schedule, SimulatedDelay
 from dssp_sim.expert_policy import ScriptedExpert
 from dssp_sim.mujoco_arm import MujocoPiper
 from dssp_sim.mujoco_camera import MujocoCamera
@@ -49,6 +49,7 @@ from dssp_sim.settings import cloud_config_for
 from dssp_sim.strips import save_strip
 from hardware.pacing import latency_stats
 from hardware.piper.arm import PiperArm
+from hardware.cli.schedule_flags import refusal
 from hardware.piper.piper_robot import PiperRobot
 from dssp_data.pointcloud import frame_to_cloud
 from hardware.policies import PolicySource
@@ -91,7 +92,7 @@ class EpisodeOutcome:
         return asdict(self)
 
 
-def command_jerk(commands: list, boundaries: list[bool], rate_hz: float) -> dict:
+def command_jerk(commands: list, boundaries: list[bool], control_rate_hz: float) -> dict:
     """The commanded joints' jerk per tick, ‖q[t+1] - 3 q[t] + 3 q[t-1] - q[t-2]‖ × rate³ (rad/s³, J1..J6 of each arm),
     split into the ticks a new chunk took over at (t: its first command) and the others; ``commands``: each tick's
     sent command (dof,) or None (nothing sent), ``boundaries``: whether a new chunk took over at that tick. Returns
@@ -103,7 +104,7 @@ def command_jerk(commands: list, boundaries: list[bool], rate_hz: float) -> dict
             continue
         q = np.asarray(window, dtype=np.float64)
         q = q.reshape(4, -1, 7)[:, :, :6].reshape(4, -1)  # the joints, not the grippers
-        jerk = float(np.linalg.norm(q[3] - 3 * q[2] + 3 * q[1] - q[0])) * rate_hz**3
+        jerk = float(np.linalg.norm(q[3] - 3 * q[2] + 3 * q[1] - q[0])) * control_rate_hz**3
         (at if boundaries[t] else off).append(jerk)
     return {"at_boundaries": float(np.mean(at)) if at else None, "boundary_ticks": len(at),
             "elsewhere": float(np.mean(off)) if off else None, "other_ticks": len(off)}
@@ -132,7 +133,7 @@ class EvalResult:
     precision: str = ""  # the graphs that ran: "fp32", "int8" or "int4"; "fused" or "standard"
     kernel: str = ""
     z_rms: float | None = None  # RMS per element of the recent state tokens the denoiser saw, before noise
-    smoothing: str = "none"  # the control loop's (dssp_deploy.control_loop.SMOOTHINGS); the ensemble's settings or None
+    smoothing: str = "none"  # the loop's schedule (dssp_deploy.schedules.MODES); the ensemble's settings or None
     ensemble_every: int | None = None
     ensemble_decay: float | None = None
     injected_delay_ms: float = 0.0  # the inference delay simulated per chunk (--inject-delay), and in control ticks
@@ -253,7 +254,7 @@ def run_episode(source: PolicySource, env, seed: int, cloud_config, frames: list
                 camera.capture()
                 trace = _CommandTrace()
                 subscribers = [trace] + ([RerunTicks(views)] if views is not None else [])
-                runner = Runner(source, rig, cloud_config, LoopSettings(rate_hz=env.control_rate_hz), subscribers=subscribers)
+                runner = Runner(source, rig, cloud_config, LoopSettings(control_rate_hz=env.control_rate_hz), subscribers=subscribers)
                 if views is not None:
                     views.text(subscribers[1].next_tick, "episode", f"{env.task.name} seed {seed}")
                 runner.start()
@@ -286,17 +287,17 @@ def run_episode(source: PolicySource, env, seed: int, cloud_config, frames: list
 
 
 def run_direct_episode(policy, env, seed: int, cloud_config, frames: list | None = None,
-                       latencies: dict[str, list[float]] | None = None, smoothing: dict | None = None) -> EpisodeOutcome:
+                       latencies: dict[str, list[float]] | None = None, schedule: Schedule = Plain()) -> EpisodeOutcome:
     """One closed-loop episode of an env whose arm is stepped directly, not over CAN (MetaWorld's Sawyer,
     :class:`~dssp_sim.metaworld_env.MetaWorldEnv`): render → point-cloud pipeline → runtime
-    (``dssp_deploy.ChunkedControl``: the history every tick, a chunk every H_a) → ``env.step``. ``smoothing``:
-    ChunkedControl's smoothing keywords (``smoothing``, ``ensemble_every``, ``ensemble_decay``; None: none).
+    (``dssp_deploy.ChunkedControl``: the history every tick, a chunk every H_a) → ``env.step``. ``schedule``:
+    ChunkedControl's (a :mod:`dssp_deploy.schedules` config).
 
     A tick the runtime refuses (NaN/inf or an out-of-range observation, a refused chunk) holds (``env.hold()``)
     and is counted in ``holds`` and ``safety_events``; the next tick goes on."""
 
     env.reset(seed=seed)
-    loop = ChunkedControl(policy, rate_hz=env.control_rate_hz, seed=seed, **(smoothing or {}))
+    loop = ChunkedControl(policy, schedule, control_rate_hz=env.control_rate_hz, seed=seed)
     camera = MujocoCamera(env)
     holds, events = 0, Counter()
     stages: dict[str, list[float]] = {"cloud": [], "observe": [], "chunk": [], "tick": []}
@@ -318,7 +319,7 @@ def run_direct_episode(policy, env, seed: int, cloud_config, frames: list | None
                 stages["observe"].append(info.observe_ms)
                 if info.chunk_ms is not None:
                     stages["chunk"].append(info.chunk_ms)
-                if action is None:  # no chunk usable yet (an injected delay): hold
+                if action is None:  # no chunk usable yet (a simulated delay): hold
                     holds += 1
                     events["no_chunk_yet"] += 1
                     env.hold()
@@ -366,8 +367,7 @@ class Evaluation:
 
 def prepare_evaluation(model_dir: Path | None, task: str, n_episodes: int, seed: int = 1000, threads: int | None = None,
                        state_token_noise: float = 0.0, precision: str | None = None, kernel: str = "auto",
-                       spinning: bool | None = None, views: bool = False, smoothing: str = "none",
-                       ensemble_every: int | None = None, ensemble_decay: float = 0.01,
+                       spinning: bool | None = None, views: bool = False, schedule: Schedule = Plain(),
                        inject_delay_ms: float = 0.0) -> Evaluation:
     """Check every setting against the model and the task, load the model and build the task; nothing is opened
     or written. ``views``: whether Rerun views will be given to :meth:`Evaluation.run`. The arguments are
@@ -379,65 +379,59 @@ def prepare_evaluation(model_dir: Path | None, task: str, n_episodes: int, seed:
     if not (math.isfinite(inject_delay_ms) and 0 <= inject_delay_ms <= 10_000):
         raise ConfigError(f"--inject-delay must be in [0, 10000] ms, got {inject_delay_ms:g}")
     if model_dir is None:
-        if smoothing != "none":
+        if schedule != Plain():
             raise ConfigError("smoothing is the model's control loop's: the scripted expert gives each tick's action itself")
         return _prepare_expert(task, n_episodes, seed)
     policy = OnnxPolicy(model_dir, threads=threads, precision=precision, kernel=kernel, spinning=spinning)
-    check_ensemble_every(ensemble_every if smoothing == "ensemble" else None, policy, model_dir)
     recent = policy.denoiser_inputs = _RecentStates(policy, state_token_noise, np.random.default_rng(seed))
-    options = {"smoothing": smoothing, "ensemble_every": ensemble_every, "ensemble_decay": ensemble_decay}
     # The model's own point-cloud settings (its observation contract), as dssp-run uses them; a model trained on
     # data that recorded none sees the simulation's settings at its point count.
-    n_points = policy.manifest["model_config"]["n_points"]
+    n_points = policy.contract.n_points
     if metaworld_env.is_metaworld(task):
-        metaworld_env.check_model_dims(policy.manifest["model_config"], model_dir)
+        metaworld_env.check_model_dims(policy.contract, model_dir)
         env = metaworld_env.MetaWorldEnv(task, seed=seed)
-        cloud_config = observation_of(policy.manifest).pointcloud or metaworld_env.cloud_config(n_points)
+        cloud_config = policy.contract.observation.pointcloud or metaworld_env.cloud_config(n_points)
 
         def episode(s, frames, ticks, views):
-            return run_direct_episode(policy, env, s, cloud_config, frames, ticks, options)
+            return run_direct_episode(policy, env, s, cloud_config, frames, ticks, schedule)
     else:
         from dssp_sim.env import PiperEnv  # deferred: loads mujoco
 
         env = PiperEnv(task, seed=seed)
-        cloud_config = observation_of(policy.manifest).pointcloud or cloud_config_for(n_points, task)
+        cloud_config = policy.contract.observation.pointcloud or cloud_config_for(n_points, task)
 
         def episode(s, frames, ticks, views):
-            return run_episode(ModelPolicy(policy, env.control_rate_hz, seed=s, **options), env, s, cloud_config, frames,
+            return run_episode(ModelPolicy(policy, env.control_rate_hz, seed=s, schedule=schedule), env, s, cloud_config, frames,
                                ticks, views)
-    # the delay in the loop's ticks (the simulation's rate); the options are read when each episode starts
+    # the delay in the loop's ticks (the simulation's rate): the schedule's, read when each episode starts
     delay_ticks = math.ceil(inject_delay_ms * env.control_rate_hz / 1000 - 1e-9) if inject_delay_ms > 0 else 0
-    options["injected_delay"] = delay_ticks
+    schedule = replace(schedule, delay=SimulatedDelay(delay_ticks))
     try:  # bad settings: one line now, not a failure in the first episode
-        settings = ChunkedControl(policy, rate_hz=env.control_rate_hz, **options).smoothing_settings()
+        settings = ChunkedControl(policy, schedule, control_rate_hz=env.control_rate_hz).schedule.settings()
     except ValueError as exc:
         env.close()
-        raise ConfigError(f"smoothing: {exc}") from None
+        raise refusal(exc, "smoothing") from None
     print(f"graphs: {policy.kernel_note}", file=sys.stderr)
     result = EvalResult(str(model_dir), task, state_token_noise=state_token_noise, precision=policy.precision, kernel=policy.kernel,
-                        smoothing=settings["smoothing"], ensemble_every=settings["ensemble_every"],
-                        ensemble_decay=settings["ensemble_decay"], injected_delay_ms=float(inject_delay_ms),
-                        injected_delay_ticks=delay_ticks, rtc_delay_ticks=settings["rtc_delay_ticks"])
+                        injected_delay_ms=float(inject_delay_ms), **settings)
     return Evaluation(result, env, episode, n_episodes, seed, recent)
 
 
 def evaluate(model_dir: Path | None, task: str, n_episodes: int, seed: int = 1000, threads: int | None = None,
              state_token_noise: float = 0.0, strips_dir: Path | None = None, progress: bool = True,
              precision: str | None = None, kernel: str = "auto", spinning: bool | None = None, views=None,
-             smoothing: str = "none", ensemble_every: int | None = None, ensemble_decay: float = 0.01,
-             inject_delay_ms: float = 0.0) -> EvalResult:
+             schedule: Schedule = Plain(), inject_delay_ms: float = 0.0) -> EvalResult:
     """Evaluate a model directory on ``task`` for ``n_episodes`` seeded episodes (seeds seed, seed+1, ...);
-    ``precision`` and ``kernel`` choose its graphs (:class:`dssp_deploy.onnx_policy.OnnxPolicy`); ``smoothing``,
-    ``ensemble_every`` and ``ensemble_decay``: the control loop's (:class:`dssp_deploy.control_loop.ChunkedControl`,
-    on either kind of task; checked before any episode runs); ``inject_delay_ms``: each chunk usable only that long
-    after its observation, in whole control ticks (rounded up: at 10 Hz 50 and 100 ms are one tick) — the inference
+    ``precision`` and ``kernel`` choose its graphs (:class:`dssp_deploy.onnx_policy.OnnxPolicy`); ``schedule``: the
+    control loop's (a :mod:`dssp_deploy.schedules` config, on either kind of task; checked before any episode runs);
+    ``inject_delay_ms``: its delay, each chunk usable only that long after its observation, in whole control ticks
+    (rounded up: at 10 Hz 50 and 100 ms are one tick; :class:`~dssp_deploy.schedules.SimulatedDelay`) — the inference
     delay simulated in lockstep; ``views``: Rerun
     views of every tick of every episode, on one timeline (the caller closes them). ``model_dir`` None: the task's
     scripted expert drives the same loop (:class:`dssp_sim.expert_policy.ScriptedExpert`; Piper tasks).
     :func:`prepare_evaluation`, then :meth:`Evaluation.run`."""
     evaluation = prepare_evaluation(model_dir, task, n_episodes, seed, threads, state_token_noise, precision, kernel,
-                                    spinning, views is not None, smoothing, ensemble_every, ensemble_decay,
-                                    inject_delay_ms)
+                                    spinning, views is not None, schedule, inject_delay_ms)
     return evaluation.run(strips_dir, progress, views)
 
 

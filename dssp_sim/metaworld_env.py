@@ -53,6 +53,7 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
 from dssp_core.errors import ConfigError
+from dssp_data.model_contract import ModelContract  # noqa: E402
 from dssp_data.observation import ObservationContract, PointCloudConfig, VectorLayout  # noqa: E402
 from dssp_sim.env import DepthRenderThread  # noqa: E402
 from dssp_sim.tasks import TaskStatus  # noqa: E402
@@ -154,9 +155,9 @@ def difficulty_of(name: str) -> str:
     return next(group for group, names in DIFFICULTY.items() if name in names)
 
 
-def check_model_dims(model_config: dict, where) -> None:
+def check_model_dims(contract: ModelContract, where) -> None:
     """Refuse, before any episode, a model whose state or action is not MetaWorld's (9,) and (4,)."""
-    have = (model_config.get("state_dim"), model_config.get("action_dim"))
+    have = (contract.state_dim, contract.action_dim)
     if have != (len(STATE_CHANNELS), len(ACTION_CHANNELS)):
         raise ConfigError(f"{where} takes state ({have[0]},) and action ({have[1]},); MetaWorld's are (9,) and (4,): "
                           "evaluate a model trained on a `dssp-sim collect --task metaworld/NAME` dataset")

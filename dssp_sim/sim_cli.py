@@ -4,7 +4,7 @@
     dssp-sim record --out PATH.zarr [dssp-record's flags; --camera mujoco --can mujoco by default]
     dssp-sim calibrate --mode eye-to-hand|eye-in-hand --auto N --out calib.json [dssp-calibrate's flags]
     dssp-sim eval --model MODEL_DIR | --expert  --task NAME --episodes N [--seed S] [--noise SIGMA] [--strips DIR] [--json PATH] [--force]
-                  [--smoothing none|ensemble [--ensemble-every N] [--ensemble-decay M]] [--rerun [URL] | --rerun-save PATH.rrd]
+                  [--smoothing none|ensemble|rtc [--ensemble-every N] [--ensemble-decay M]] [--rerun [URL] | --rerun-save PATH.rrd]
 
 ``record`` is ``dssp-record`` on the simulated rig (the task's scripted expert plays the leader arm); ``calibrate`` is
 ``dssp-calibrate`` on the calibration twin (:mod:`dssp_sim.calibration_twin`: a ChArUco board and a camera at known poses).
@@ -32,8 +32,8 @@ from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import ConfigError
 from dssp_core.output_guard import OutputDir, check_output, check_output_file, write_output_text
 from dssp_data.rerun_views import add_rerun_flags, check_views, open_views
-from dssp_deploy.control_loop import add_smoothing_arguments, check_smoothing_arguments, model_flags_given, smoothing_options
 from dssp_deploy.onnx_policy import add_runtime_arguments
+from hardware.cli.schedule_flags import add_schedule_arguments, model_flags_given, schedule_of
 from hardware.cli.stops import Stops
 
 TASKS = ("tap", "swap", "put2")
@@ -95,7 +95,7 @@ def parse_args(argv):
     e.add_argument("--noise", type=float, default=0.0, help="σ of Gaussian noise on the recent state tokens (robustness test)")
     e.add_argument("--threads", type=int, help="ONNX Runtime threads")
     add_runtime_arguments(e)
-    add_smoothing_arguments(e)
+    add_schedule_arguments(e)
     e.add_argument("--inject-delay", type=float, default=0.0, metavar="MS",
                    help="simulate an inference delay: each chunk usable MS ms after its observation (whole ticks, rounded "
                         "up); the loop holds until then (compare --smoothing none|ensemble|rtc under delay)")
@@ -131,7 +131,7 @@ def run(args) -> int:
                                   ("--inject-delay", args.inject_delay != 0.0))
         if given:
             raise ConfigError(f"{given[0]} is a model's setting: it goes with --model, not --expert")
-    check_smoothing_arguments(args)
+    schedule = schedule_of(args)
     if args.json:
         check_output_file(args.json, force=args.force, flag="--json")
     if args.strips:
@@ -142,7 +142,7 @@ def run(args) -> int:
                                     precision=args.precision, kernel=args.kernel,
                                     spinning=False if args.no_spin else None, state_token_noise=args.noise,
                                     views=bool(args.rerun or args.rerun_save), inject_delay_ms=args.inject_delay,
-                                    **smoothing_options(args))
+                                    schedule=schedule)
     with contextlib.ExitStack() as stack:
         stack.callback(evaluation.env.close)
         strips = stack.enter_context(OutputDir(args.strips, STRIPS_DIR, force=args.force, flag="--strips")) if args.strips else None

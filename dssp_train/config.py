@@ -13,6 +13,7 @@ from importlib import resources
 from typing import ClassVar
 
 from dssp_core.errors import ConfigError
+from dssp_data.model_contract import ModelContract, check_chunk
 from dssp_data.observation import ObservationContract
 from dssp_core.schema import MAX_DIM, MAX_LAYERS, MAX_RATE_HZ, MAX_STEPS, MAX_WIDTH, Settings, parse_json, setting
 
@@ -111,15 +112,7 @@ class ModelConfig(Settings):
     diffusion: DiffusionConfig = setting(default_factory=DiffusionConfig)
 
     def validate(self):
-        _require(
-            self.n_action_steps <= self.horizon,
-            f"model.n_action_steps (H_a) must be in [1, horizon={self.horizon}], got {self.n_action_steps}",
-        )
-        _require(
-            self.action_offset + self.n_action_steps <= self.horizon,
-            f"model.action_alignment=dp3 executes the chunk from index N - 1 = {self.action_offset}: model.n_action_steps "
-            f"(H_a) must be at most horizon - N + 1 = {self.horizon - self.action_offset}, got {self.n_action_steps}",
-        )
+        check_chunk(self.n_obs_steps, self.horizon, self.n_action_steps, self.action_offset, self.SECTION)
         if "transformer" in (self.history_backbone, self.denoiser_backbone):
             _require(
                 self.d_model % self.transformer_heads == 0,
@@ -234,6 +227,15 @@ class RunConfig(Settings):
 
     def to_json(self) -> str:
         return json.dumps(self.to_dict(), indent=2, sort_keys=True)
+
+    def contract(self, ddim_timesteps: list[int], inpainting: bool = False) -> ModelContract:
+        """What a model of this run promises the robot, with the sampler export chose (K = len(ddim_timesteps)
+        timesteps; ``inpainting``: the denoiser takes the committed actions)."""
+        m = self.model
+        return ModelContract(point_dim=m.point_dim, n_points=m.n_points, state_dim=m.state_dim, action_dim=m.action_dim,
+                             n_obs_steps=m.n_obs_steps, horizon=m.horizon, n_action_steps=m.n_action_steps,
+                             action_offset=m.action_offset, ddim_timesteps=list(ddim_timesteps), inpainting=inpainting,
+                             control_rate_hz=self.control_rate_hz, observation=self.observation)
 
 
 def preset_names() -> list[str]:

@@ -18,7 +18,7 @@ import numpy as np
 
 from dssp_core.errors import ParityError
 from dssp_data.streaming_history import StreamingHistory
-from dssp_deploy.manifest import DENOISER_GRAPH, HISTORY_GRAPH, no_inpainting
+from dssp_deploy.manifest import DENOISER_GRAPH, HISTORY_GRAPH, Manifest, no_inpainting
 from dssp_deploy.onnx_policy import OnnxPolicy
 from dssp_deploy.ranges import ChunkOutOfRange
 
@@ -36,12 +36,12 @@ class GraphStream:
     (B, H, A) in raw units.
     """
 
-    def __init__(self, manifest: dict[str, Any], history: GraphFn, denoiser: GraphFn):
+    def __init__(self, manifest: Manifest, history: GraphFn, denoiser: GraphFn):
         self.manifest = manifest
         self.history_fn, self.denoiser_fn = history, denoiser
-        self.state_specs = manifest["graphs"][HISTORY_GRAPH]["inputs"][2:]
-        self.denoiser_names = [s["name"] for s in manifest["graphs"][DENOISER_GRAPH]["inputs"]]
-        self.history = StreamingHistory(manifest["n_obs_steps"], self._step, lambda ts: np.stack(ts, axis=1), self.zero_state)
+        self.state_specs = manifest.graphs[HISTORY_GRAPH]["inputs"][2:]
+        self.denoiser_names = [s["name"] for s in manifest.graphs[DENOISER_GRAPH]["inputs"]]
+        self.history = StreamingHistory(manifest.contract.n_obs_steps, self._step, lambda ts: np.stack(ts, axis=1), self.zero_state)
 
     def zero_state(self, batch: int) -> list[np.ndarray]:
         """The history state at an episode start: zeros, one array per manifest state input."""
@@ -51,7 +51,7 @@ class GraphStream:
         feeds = {"point_cloud": point_cloud, "agent_pos": agent_pos}
         feeds.update({s["name"]: v for s, v in zip(self.state_specs, states)})
         out = self.history_fn(feeds)
-        if not self.manifest["use_history"]:
+        if not self.manifest.model.use_history:
             return out[0], None, states
         return out[0], out[1], list(out[2:])
 
@@ -69,7 +69,7 @@ class GraphStream:
     def denoiser_inputs(self) -> dict[str, np.ndarray]:
         available = {"c_t": self.history.context, "z_recent": self.history.recent}
         feeds = {name: available[name] for name in self.denoiser_names if name in available}
-        return {**feeds, **no_inpainting(self.manifest, self.history.recent.shape[0])}
+        return {**feeds, **no_inpainting(self.manifest.contract, self.history.recent.shape[0])}
 
     def act(self, noise: np.ndarray) -> np.ndarray:
         return self.denoiser_fn({**self.denoiser_inputs(), "noise": noise})[0]

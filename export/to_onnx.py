@@ -163,12 +163,13 @@ def quiet_tracing():
 
 
 # ----------------------------------------------------------------- tracing
-def example_inputs(config, graph: str, batch: int = 2, inpainting: bool = False) -> tuple:
-    """Random inputs with the graph's shapes, B = ``batch`` (2, so no size-1 broadcast is baked in)."""
+def example_inputs(contract, model, graph: str, batch: int = 2) -> tuple:
+    """Random inputs with the graph's shapes (``contract``: the model's contract, ``model``: its architecture), B =
+    ``batch`` (2, so no size-1 broadcast is baked in)."""
 
     gen = torch.Generator().manual_seed(0)
-    inputs, _ = graph_io(config.model, graph, inpainting)
-    shapes = [[batch if d == "B" else config.model.n_points if d == "P" else d for d in s["shape"]] for s in inputs]
+    inputs, _ = graph_io(contract, model, graph)
+    shapes = [[batch if d == "B" else contract.n_points if d == "P" else d for d in s["shape"]] for s in inputs]
     return tuple(torch.randn(shape, generator=gen) for shape in shapes)
 
 
@@ -187,8 +188,8 @@ def trace(module, example: tuple):
 
 
 # -------------------------------------------------------------------- ONNX
-def write_onnx(module, example: tuple, path: Path, config, graph: str, opset: int, metadata: dict[str, str],
-               fused: bool = False, inpainting: bool = False) -> None:
+def write_onnx(module, example: tuple, path: Path, contract, model, graph: str, opset: int, metadata: dict[str, str],
+               fused: bool = False) -> None:
     """Export one graph module to ``path``; set the manifest's IO shapes and metadata; run the full checker.
 
     ``fused``: the module's Mamba layers use :data:`export.fused_ops.FUSED_OPS`, so the graph holds the
@@ -199,7 +200,7 @@ def write_onnx(module, example: tuple, path: Path, config, graph: str, opset: in
     """
     import onnx  # deferred: loads onnx
 
-    inputs, outputs = graph_io(config.model, graph, inpainting)
+    inputs, outputs = graph_io(contract, model, graph)
     dynamic_axes = {s["name"]: {i: d for i, d in enumerate(s["shape"]) if isinstance(d, str)} for s in inputs + outputs}
     with torch.no_grad(), quiet_tracing():
         torch.onnx.export(
@@ -239,15 +240,15 @@ def write_onnx(module, example: tuple, path: Path, config, graph: str, opset: in
     onnx.checker.check_model(str(path), full_check=True)
 
 
-def write_block_graph(module, example: tuple, beside: Path, config, graph: str, opset: int, metadata: dict[str, str],
-                      inpainting: bool) -> Path:
+def write_block_graph(module, example: tuple, beside: Path, contract, model, graph: str, opset: int,
+                      metadata: dict[str, str]) -> Path:
     """The graph to quantize into the int8 fused one when ``module`` has denoiser blocks that run as one node each
     (``ai.dssp::MambaBlockQ8``, int8 weights: :class:`export.fused_ops.QuantizedMambaBlock`): a copy of the fused
     module with those blocks, written to a hidden file beside ``beside`` (the caller removes it)."""
     blocks = copy.deepcopy(module)
     use_fused_blocks(blocks)
     path = beside.with_name(f".{beside.stem}.blocks.onnx")
-    write_onnx(blocks, example, path, config, graph, opset, metadata, fused=True, inpainting=inpainting)
+    write_onnx(blocks, example, path, contract, model, graph, opset, metadata, fused=True)
     return path
 
 
@@ -378,7 +379,8 @@ def export_model(
         stage(f"loaded {run_dir} ({'EMA' if ema else 'raw'} weights, step {source['step']}, sha256 {source['sha256'][:12]}{unrecorded})")
 
         modules = graph_modules(policy, k, inpainting)
-        examples = {g: example_inputs(config, g, inpainting=inpainting) for g in GRAPHS}
+        contract = config.contract(timesteps, inpainting)
+        examples = {g: example_inputs(contract, config.model, g) for g in GRAPHS}
         caching = ("prefix in every step (timestep_decoupled false)" if not config.model.timestep_decoupled
                    else "prefix cached" if k > 1 else "prefix and actions in one pass")
         stage(f"built {HISTORY_GRAPH} and {DENOISER_GRAPH} (K = {k} DDIM steps {timesteps}, {caching})")
@@ -390,8 +392,7 @@ def export_model(
                 files[g][kind] = f"{g}{file_suffix(kind)}"
         manifest = build_manifest(
             config,
-            denoise_steps=k,
-            ddim_timesteps=timesteps,
+            contract,
             normalizers={name: norm.stats() for name, norm in policy.normalizers.items()},
             files=files,
             source=source,
@@ -402,7 +403,6 @@ def export_model(
                 "opset": opset if "onnx" in formats else None,
             },
             versions=library_versions(),
-            inpainting=inpainting,
         )
 
         if "torchscript" in formats:
@@ -413,8 +413,8 @@ def export_model(
             stage("TorchScript not requested")
         if "onnx" in formats:
             for g in GRAPHS:
-                write_onnx(modules[g], examples[g], staged.path / files[g]["onnx"], config, g, opset, metadata_props(manifest, g),
-                           inpainting=inpainting)
+                write_onnx(modules[g], examples[g], staged.path / files[g]["onnx"], contract, config.model, g, opset,
+                           metadata_props(manifest, g))
             stage(f"wrote {', '.join(files[g]['onnx'] for g in GRAPHS)} (opset {opset}, onnx.checker full_check passed)")
         else:
             stage("ONNX not requested")
@@ -422,8 +422,8 @@ def export_model(
             kind = file_kind("fp32", fused=True)
             for g in GRAPHS:  # the same modules, their Mamba layers now on the fused operators
                 use_fused_ops(modules[g])
-                write_onnx(modules[g], examples[g], staged.path / files[g][kind], config, g, opset, metadata_props(manifest, g),
-                           fused=True, inpainting=inpainting)
+                write_onnx(modules[g], examples[g], staged.path / files[g][kind], contract, config.model, g, opset,
+                           metadata_props(manifest, g), fused=True)
             stage(f"wrote {', '.join(files[g][kind] for g in GRAPHS)} (fused Mamba operators)")
         elif kernel_note:
             progress(kernel_note)
@@ -436,8 +436,8 @@ def export_model(
                         source = staged.path / files[g][src]
                         blocks = precision == "int8" and is_fused and fitting_blocks(modules[g])
                         if blocks:  # each denoiser block as one node: a graph traced anew, then quantized
-                            source = write_block_graph(modules[g], examples[g], source, config, g, opset,
-                                                       metadata_props(manifest, g), inpainting)
+                            source = write_block_graph(modules[g], examples[g], source, contract, config.model, g, opset,
+                                                       metadata_props(manifest, g))
                         QUANTIZERS[precision](source, staged.path / files[g][dst], metadata_props(manifest, g))
                         if blocks:
                             source.unlink()

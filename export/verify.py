@@ -55,7 +55,6 @@ from __future__ import annotations
 
 import argparse
 import copy
-import dataclasses
 import hashlib
 import json
 import sys
@@ -70,8 +69,9 @@ import numpy as np
 from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import ExportError, ParityError
 from dssp_core.output_guard import check_output_file, write_output_text
-from dssp_deploy.manifest import (DENOISER_GRAPH, FUSED, HISTORY_GRAPH, PRECISIONS, file_kind, no_inpainting, read_graph,
-                                   read_manifest)
+from dssp_deploy.manifest import (DENOISER_GRAPH, FUSED, HISTORY_GRAPH, PRECISIONS, Manifest, file_kind, no_inpainting,
+                                   read_graph, read_manifest)
+from export.manifest_writer import architecture
 from dssp_deploy.sessions import check_threads, default_threads
 from dssp_train.config import TIMESTEP_SPACINGS
 from export.graph_streams import GraphFn, GraphStream, RuntimeStream, torchscript_graph
@@ -116,31 +116,32 @@ def file_sha256(path: Path) -> str:
     return digest.hexdigest()
 
 
-def load_checked_policy(manifest: dict[str, Any], run_dir: Path):
-    """The policy the manifest was exported from: same weights file, same sha256, same model config."""
+def load_checked_policy(manifest: Manifest, run_dir: Path):
+    """The policy the manifest was exported from: same weights file, same sha256, same model config and contract."""
 
     from dssp_train.training.checkpoint import load_policy  # deferred: loads safetensors, torch, tqdm
 
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise ExportError(f"run directory {run_dir} does not exist; pass the dssp-train --out directory the model was exported from")
-    source = manifest["source"]  # checked by read_manifest: weights is a name inside the run directory
-    weights = source["weights"]
+    source = manifest.source  # checked by read_manifest: weights is a name inside the run directory
+    weights = source.weights
     path = run_dir / weights
     if path.is_file():
         sha = file_sha256(path)
-        if sha != source["sha256"]:
-            run = f"run {source['run']!r}, " if source.get("run") else ""
+        if sha != source.sha256:
+            run = f"run {source.run!r}, " if source.run else ""
             raise ExportError(
                 f"{path} (sha256 {sha[:12]}) is not the checkpoint this model was exported from "
-                f"({run}{weights}, step {source['step']}, sha256 {source['sha256'][:12]}); pass that run directory, or export again"
+                f"({run}{weights}, step {source.step}, sha256 {source.sha256[:12]}); pass that run directory, or export again"
             )
     policy, config = load_policy(run_dir, weights=weights)
     # The timesteps' spacing may be chosen at export (--timestep-spacing); the policy samples as the graphs do.
-    spacing = (manifest["model_config"].get("diffusion") or {}).get("timestep_spacing")
+    spacing = (manifest.data["model_config"].get("diffusion") or {}).get("timestep_spacing")
     if spacing in TIMESTEP_SPACINGS:
         config.model.diffusion.timestep_spacing = spacing
-    if dataclasses.asdict(config.model) != manifest["model_config"]:
+    c = manifest.contract
+    if architecture(config.model) != manifest.data["model_config"] or config.contract(c.ddim_timesteps, c.inpainting) != c:
         raise ExportError(f"{run_dir}/config.json does not describe the exported model; pass the run directory it was exported from")
     return policy, config
 
@@ -251,12 +252,12 @@ def verify_model(
     torch.set_num_threads(threads)
     try:
         policy, config = load_checked_policy(manifest, run_dir)
-        traj = load_trajectory(config, manifest["normalizers"], steps, seed)
-        ticks, n_ticks = chunk_ticks(traj.length, manifest["n_action_steps"], chunks)
+        traj = load_trajectory(config, manifest.normalizers, steps, seed)
+        ticks, n_ticks = chunk_ticks(traj.length, manifest.contract.n_action_steps, chunks)
         rng = np.random.default_rng(seed)
-        noise = rng.standard_normal((len(ticks), batch, manifest["horizon"], manifest["action_dim"])).astype(np.float32)
+        noise = rng.standard_normal((len(ticks), batch, manifest.contract.horizon, manifest.contract.action_dim)).astype(np.float32)
         started = time.perf_counter()
-        reference = pytorch_reference(policy, traj.point_cloud, traj.agent_pos, ticks, noise, manifest["denoise_steps"])
+        reference = pytorch_reference(policy, traj.point_cloud, traj.agent_pos, ticks, noise, manifest.contract.denoise_steps)
         reference_s = time.perf_counter() - started
         if progress:
             progress(f"PyTorch reference on the training path: {traj.length} steps, {len(ticks)} of {n_ticks} chunks "
@@ -269,7 +270,7 @@ def verify_model(
         torch.set_num_threads(before)
 
 
-def _open_backends(model_dir: Path, manifest: dict[str, Any], threads: int) -> tuple[dict[str, Any], dict[str, dict[str, GraphFn]]]:
+def _open_backends(model_dir: Path, manifest: Manifest, threads: int) -> tuple[dict[str, Any], dict[str, dict[str, GraphFn]]]:
     """(streamed backends by file kind, the main one first; TorchScript graph functions to check in batch, or {}).
 
     Every ONNX kind the model directory has is streamed through the robot's runtime: ``onnx`` (the main
@@ -277,7 +278,7 @@ def _open_backends(model_dir: Path, manifest: dict[str, Any], threads: int) -> t
     both paths (figures against fp32, not bounded).
     """
     graphs = (HISTORY_GRAPH, DENOISER_GRAPH)
-    kinds = [kind for kind in manifest["graphs"][HISTORY_GRAPH]["files"] if all(kind in manifest["graphs"][g]["files"] for g in graphs)]
+    kinds = [kind for kind in manifest.graphs[HISTORY_GRAPH]["files"] if all(kind in manifest.graphs[g]["files"] for g in graphs)]
     if not ("onnx" in kinds or "torchscript" in kinds):
         raise ExportError(f"{model_dir} lists no ONNX or TorchScript graphs; export the model again")
     streamed: dict[str, Any] = {}
@@ -362,7 +363,7 @@ def compare_streamed(name: str, got: Streamed, ref: Reference, ticks: list[int],
     return errors, where
 
 
-def check_traces(fns: dict[str, GraphFn], manifest: dict[str, Any], point_cloud: np.ndarray, agent_pos: np.ndarray,
+def check_traces(fns: dict[str, GraphFn], manifest: Manifest, point_cloud: np.ndarray, agent_pos: np.ndarray,
                  ref: Reference, ticks: list[int], noise: np.ndarray, states_before: list, scale: np.ndarray):
     """TorchScript beside ONNX: both graphs once, on a batch of TRACE_CHECKS compared ticks (first, middle, last).
 
@@ -372,7 +373,7 @@ def check_traces(fns: dict[str, GraphFn], manifest: dict[str, Any], point_cloud:
     """
     rows = np.round(np.linspace(0, len(ticks) - 1, TRACE_CHECKS)).astype(int).tolist()  # indices may repeat
     at = [ticks[r] for r in rows]
-    specs = manifest["graphs"][HISTORY_GRAPH]["inputs"][2:]
+    specs = manifest.graphs[HISTORY_GRAPH]["inputs"][2:]
     feeds = {"point_cloud": point_cloud[at], "agent_pos": agent_pos[at]}
     for i, spec in enumerate(specs):
         feeds[spec["name"]] = np.concatenate([
@@ -382,8 +383,8 @@ def check_traces(fns: dict[str, GraphFn], manifest: dict[str, Any], point_cloud:
     e_z = worst(out[0], ref.z[at])  # (R, d)
     e_c = worst(out[1], ref.c[at]) if ref.c is not None else (0.0, None)
     available = {"c_t": None if ref.context is None else ref.context[rows], "z_recent": ref.recent[rows], "noise": noise[rows, 0],
-                 **no_inpainting(manifest, len(rows))}
-    chunks = fns[DENOISER_GRAPH]({s["name"]: available[s["name"]] for s in manifest["graphs"][DENOISER_GRAPH]["inputs"]})[0]
+                 **no_inpainting(manifest.contract, len(rows))}
+    chunks = fns[DENOISER_GRAPH]({s["name"]: available[s["name"]] for s in manifest.graphs[DENOISER_GRAPH]["inputs"]})[0]
     e_a = worst(chunks, ref.chunks[rows, 0], scale)  # (R, H, A)
     errors = {"z_t": e_z[0], "c_t": e_c[0], "state": None, "action": e_a[0]}
     where = {
@@ -404,11 +405,11 @@ def _stream_and_compare(model_dir, manifest, policy, traj, ref: Reference, ticks
     seconds = {"stream": round(time.perf_counter() - clock, 2)}
 
     clock = time.perf_counter()
-    scale = np.asarray(manifest["normalizers"]["action"]["scale"], dtype=np.float64)  # (A,): raw → normalised units
+    scale = np.asarray(manifest.normalizers["action"]["scale"], dtype=np.float64)  # (A,): raw → normalised units
     errors, where = {}, {}
     for name in [main, *BOUNDED_ALSO]:
         if name in backends:
-            errors[name], where[name] = compare_streamed(name, got, ref, ticks, scale, manifest["history_state"])
+            errors[name], where[name] = compare_streamed(name, got, ref, ticks, scale, manifest.history_state)
     trace, checked = None, {}
     if traced:
         errors["torchscript"], where["torchscript"], rows, t_chunks = check_traces(
@@ -421,7 +422,7 @@ def _stream_and_compare(model_dir, manifest, policy, traj, ref: Reference, ticks
     figures = [(v, name, f) for name, e in errors.items() for f, v in e.items() if v is not None]
     worst_value, worst_name, worst_figure = max(figures, key=lambda x: x[0])
     flagged = _flagged(ref, ticks, noise, scale, main, got.chunks[main], got.inputs, trace)
-    check = _float64_check(policy, manifest["denoise_steps"], scale, flagged) if flagged else None
+    check = _float64_check(policy, manifest.contract.denoise_steps, scale, flagged) if flagged else None
     if check:
         seconds["float64"] = round(time.perf_counter() - clock, 2)
     report: dict[str, Any] = {
@@ -459,7 +460,7 @@ def _stream_and_compare(model_dir, manifest, policy, traj, ref: Reference, ticks
 
 def _quantized_figures(manifest, got: Streamed, name: str, scale: np.ndarray, lat: dict) -> dict[str, Any]:
     """A quantized backend (``onnx_int8``, ``onnx_int4_fused``, ...) against the fp32 graphs of its own path (not bounded)."""
-    action = manifest["normalizers"]["action"]
+    action = manifest.normalizers["action"]
     span = np.asarray(action["input_max"]) - np.asarray(action["input_min"])
     fp32 = "onnx_fused" if name.endswith(FUSED) and "onnx_fused" in got.chunks else "onnx"
     q_chunks, fp32_chunks = np.stack(got.chunks[name]), np.stack(got.chunks[fp32])

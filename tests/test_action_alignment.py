@@ -11,6 +11,7 @@ import torch
 from dssp_core.errors import ConfigError
 from dssp_deploy import OnnxPolicy
 from dssp_deploy.control_loop import ChunkedControl
+from dssp_deploy.schedules import MeasuredDelay, Plain
 from dssp_deploy.manifest import MANIFEST_NAME, ModelDirError
 from dssp_train.config import apply_overrides, load_preset
 from dssp_train.model.policy import DSSPPolicy
@@ -45,8 +46,7 @@ def dp3_copy(model_dir, tmp_path):
     copy = tmp_path / "model"
     shutil.copytree(model_dir, copy)
     manifest = json.loads((copy / MANIFEST_NAME).read_text())
-    manifest["action_offset"] = manifest["n_obs_steps"] - 1
-    manifest["model_config"]["action_alignment"] = "dp3"
+    manifest["contract"]["action_offset"] = manifest["contract"]["n_obs_steps"] - 1
     (copy / MANIFEST_NAME).write_text(json.dumps(manifest))
     return copy, manifest
 
@@ -55,8 +55,8 @@ def test_the_control_loop_executes_the_chunk_from_the_manifests_offset(tiny_expo
     _, model_dir, data = tiny_export
     model, manifest = dp3_copy(model_dir, tmp_path)
     policy = OnnxPolicy(model, threads=1)
-    offset, ha = policy.action_offset, policy.n_action_steps
-    assert offset == manifest["n_obs_steps"] - 1 == 1 and OnnxPolicy(model_dir, threads=1).action_offset == 0
+    offset, ha = policy.contract.action_offset, policy.contract.n_action_steps
+    assert offset == manifest["contract"]["n_obs_steps"] - 1 == 1 and OnnxPolicy(model_dir, threads=1).contract.action_offset == 0
     loop = ChunkedControl(policy, seed=0)
     rng = np.random.default_rng(0)
     obs = [policy.example_observation(rng, 32) for _ in range(2 * ha)]
@@ -67,15 +67,15 @@ def test_the_control_loop_executes_the_chunk_from_the_manifests_offset(tiny_expo
     chunk = reference.act(seed=0)
     assert all(np.array_equal(ticks[j][0], chunk[:, offset + j]) for j in range(ha))
     with pytest.raises(ValueError, match="H - action_offset - H_a = 0 predicted actions can be dropped"):
-        ChunkedControl(policy, rate_hz=10, prefetch=True, chunk_ms_estimate=50.0)  # H_a = H - N + 1 leaves none
+        ChunkedControl(policy, Plain(prefetch=True, delay=MeasuredDelay(50.0)), control_rate_hz=10)  # H_a = H - N + 1 leaves none
 
 
-def test_a_manifest_whose_offset_contradicts_its_alignment_is_refused(tiny_export, tmp_path):
+def test_a_manifest_whose_offset_is_neither_the_current_step_nor_n_minus_1_is_refused(tiny_export, tmp_path):
     _, model_dir, _ = tiny_export
     model, manifest = dp3_copy(model_dir, tmp_path)
-    manifest["model_config"]["action_alignment"] = "current"
+    manifest["contract"]["action_offset"] = 2
     (model / MANIFEST_NAME).write_text(json.dumps(manifest))
-    with pytest.raises(ModelDirError, match="action_offset is 1 but model_config.action_alignment is \"current\"") as err:
+    with pytest.raises(ModelDirError, match="contract.action_offset must be 0 or n_obs_steps - 1 = 1, got 2") as err:
         OnnxPolicy(model, threads=1)
     assert "\n" not in str(err.value)
 
@@ -91,5 +91,5 @@ def test_export_records_the_offset(tmp_path):
     assert export_main([str(tmp_path / "run"), "-o", str(tmp_path / "model"), "--skip-verify", "--quantize", "none",
                         "--no-fused", "--format", "onnx"]) == 0
     manifest = json.loads((tmp_path / "model" / MANIFEST_NAME).read_text())
-    assert manifest["action_offset"] == manifest["n_obs_steps"] - 1 and manifest["model_config"]["action_alignment"] == "dp3"
-    assert OnnxPolicy(tmp_path / "model", threads=1).action_offset == manifest["action_offset"]
+    assert manifest["contract"]["action_offset"] == manifest["contract"]["n_obs_steps"] - 1
+    assert OnnxPolicy(tmp_path / "model", threads=1).contract.action_offset == manifest["contract"]["action_offset"]

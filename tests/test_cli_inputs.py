@@ -45,7 +45,7 @@ def test_a_huge_integer_in_a_number_field(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("argv", [
-    ["dssp-run", "--model", "m", "--rate", "abc"],
+    ["dssp-run", "--model", "m", "--control-rate", "abc"],
     ["dssp-sim", "collect", "--task", "tap", "--episodes", "1", "--out", "x.zarr", "--seed", "-1"],
     ["dssp-sim", "eval", "--model", "m", "--task", "tap", "--seed", "-1"],
     ["dssp-record", "--out", "x.zarr", "--max-steps", "x"],
@@ -130,9 +130,9 @@ def _edited_copy(model_dir, tmp_path, edit):
 
 
 @pytest.mark.parametrize("edit, words", [
-    (lambda m: m.update(ddim_timesteps=sorted(m["ddim_timesteps"])), "must decrease strictly"),
-    (lambda m: m["runtime"].update(tick_rate_hz=123.0), "runtime.tick_rate_hz is 123.0"),
-    (lambda m: m.update(ddim_timesteps=[5000] + m["ddim_timesteps"][1:]), "ddim_timesteps"),
+    (lambda m: m["contract"].update(ddim_timesteps=sorted(m["contract"]["ddim_timesteps"])), "must decrease strictly"),
+    (lambda m: m["contract"].update(n_action_steps=m["contract"]["horizon"] + 1), "n_action_steps (H_a) must be in [1, horizon"),
+    (lambda m: m["contract"].update(ddim_timesteps=[5000] + m["contract"]["ddim_timesteps"][1:]), "ddim_timesteps"),
 ])
 def test_a_manifest_that_contradicts_itself(arm_export, tmp_path, edit, words):
     from dssp_deploy.manifest import read_manifest

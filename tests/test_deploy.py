@@ -11,6 +11,7 @@ import pytest
 
 from dssp_deploy import OnnxPolicy
 from dssp_deploy.control_loop import ChunkedControl
+from dssp_deploy.schedules import MeasuredDelay, Plain
 from dssp_deploy.manifest import MANIFEST_NAME, ModelDirError
 
 
@@ -83,7 +84,7 @@ def test_quantized_graphs_run_on_request_and_their_absence_is_named(tiny_export,
         assert "int8" in session.get_modelmeta().custom_metadata_map["quantization"]
         assert "quantization" not in fp32.sessions[graph].get_modelmeta().custom_metadata_map
     pcs, states = long_trajectory(data)
-    noise = np.random.default_rng(0).standard_normal((1, fp32.horizon, fp32.action_dim)).astype(np.float32)
+    noise = np.random.default_rng(0).standard_normal((1, fp32.contract.horizon, fp32.contract.action_dim)).astype(np.float32)
     for t in range(20):
         fp32.observe(pcs[t], states[t])
         int8.observe(pcs[t], states[t])
@@ -97,8 +98,8 @@ def test_recent_tokens_pad_with_the_first_and_reset_forgets(tiny_export):
     p = OnnxPolicy(model_dir, threads=1)
     pcs, states = long_trajectory(data, 5)
     z0 = p.observe(pcs[0], states[0])
-    assert p.recent.shape == (1, p.n_obs_steps, p.manifest["d_model"])
-    assert np.array_equal(p.recent, np.repeat(z0[:, None], p.n_obs_steps, axis=1))
+    assert p.recent.shape == (1, p.contract.n_obs_steps, p.manifest.model.d_model)
+    assert np.array_equal(p.recent, np.repeat(z0[:, None], p.contract.n_obs_steps, axis=1))
     first = p.act(seed=1)
     before = p.recent.copy()
     z1 = p.observe(pcs[1], states[1])
@@ -234,7 +235,7 @@ def test_control_loop_updates_history_every_tick_and_chunks_every_h_a(tiny_expor
     p = OnnxPolicy(model_dir, threads=1)
     loop = ChunkedControl(p, seed=0)
     pcs, states = long_trajectory(data, 12)
-    ha = p.n_action_steps
+    ha = p.contract.n_action_steps
     infos = [loop.tick(pcs[t], states[t])[1] for t in range(12)]
     assert p.steps == 12
     assert [i.new_chunk for i in infos] == [t % ha == 0 for t in range(12)]
@@ -244,9 +245,9 @@ def test_control_loop_updates_history_every_tick_and_chunks_every_h_a(tiny_expor
 def test_prefetch_starts_early_drops_passed_actions_and_matches_its_history(tiny_export):
     _, model_dir, data = tiny_export
     p = OnnxPolicy(model_dir, threads=1)
-    ha, lead = p.n_action_steps, 1
-    loop = ChunkedControl(p, rate_hz=10, prefetch=True, seed=0, chunk_ms_estimate=50.0)  # 50 ms at 10 Hz: 1 tick
-    assert loop.lead == lead
+    ha, lead = p.contract.n_action_steps, 1
+    loop = ChunkedControl(p, Plain(prefetch=True, delay=MeasuredDelay(50.0)), control_rate_hz=10, seed=0)  # 50 ms at 10 Hz: 1 tick
+    assert loop.schedule.lead == lead
     pcs, states = long_trajectory(data, 2 * ha + 1)
     actions = [loop.tick(pcs[t], states[t]) for t in range(2 * ha + 1)]
     # Reference: the chunk for ticks [ha, 2 ha) computed from the history at tick ha - lead, actions from index lead.
@@ -259,14 +260,14 @@ def test_prefetch_starts_early_drops_passed_actions_and_matches_its_history(tiny
         assert info.chunk_index == lead + j
         np.testing.assert_allclose(action, expected[:, lead + j], atol=1e-6)
     with pytest.raises(ValueError, match="H - action_offset - H_a = 1 predicted actions can be dropped"):
-        ChunkedControl(p, rate_hz=10, prefetch=True, chunk_ms_estimate=1000.0)
+        ChunkedControl(p, Plain(prefetch=True, delay=MeasuredDelay(1000.0)), control_rate_hz=10)
 
 
 def test_over_budget_chunks_are_reported_not_silent(tiny_export):
     _, model_dir, data = tiny_export
     p = OnnxPolicy(model_dir, threads=1)
     with pytest.warns(UserWarning, match="trained on data at 10 Hz"):
-        loop = ChunkedControl(p, rate_hz=1e5, seed=0)  # a 10 us budget: every chunk tick is over it
+        loop = ChunkedControl(p, control_rate_hz=1e5, seed=0)  # a 10 us budget: every chunk tick is over it
     pcs, states = long_trajectory(data, 1)
     _, info = loop.tick(pcs[0], states[0])
     assert info.over_budget and any("over budget" in e for e in info.events)
@@ -275,11 +276,11 @@ def test_over_budget_chunks_are_reported_not_silent(tiny_export):
 def test_running_at_another_rate_than_trained_warns(tiny_export):
     _, model_dir, _ = tiny_export
     p = OnnxPolicy(model_dir, threads=1)
-    assert p.control_rate_hz == 10.0
+    assert p.contract.control_rate_hz == 10.0
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        ChunkedControl(p, rate_hz=30)
-        ChunkedControl(p, rate_hz=10)
+        ChunkedControl(p, control_rate_hz=30)
+        ChunkedControl(p, control_rate_hz=10)
     assert len(caught) == 1 and "10 Hz" in str(caught[0].message)
 
 

@@ -103,9 +103,9 @@ def test_the_student_exports_with_parity_and_its_k_in_the_manifest(teacher, tmp_
     assert distill_main(["--teacher", str(run), "--steps", "2", "--out", str(out), "--train-steps", "4", *FAST]) == 0
     assert export_main([str(out), "-o", str(model), "--quantize", "none"]) == 0  # parity is proven, as on every export
     manifest = json.loads((model / "dssp_model.json").read_text())
-    assert manifest["denoise_steps"] == 2 and manifest["ddim_timesteps"] == [99, 49]
+    assert manifest["contract"]["ddim_timesteps"] == [99, 49]  # K = 2
     policy = OnnxPolicy(model, threads=1)
-    assert policy.denoise_steps == 2
+    assert policy.contract.denoise_steps == 2
 
 
 def test_the_teacher_exports_at_k_1_from_the_noise_level_with_parity(teacher, tmp_path):
@@ -117,7 +117,7 @@ def test_the_teacher_exports_at_k_1_from_the_noise_level_with_parity(teacher, tm
     assert export_main([str(run), "-o", str(model), "--denoise-steps", "1", "--timestep-spacing", "trailing",
                         "--quantize", "none", "--no-fused"]) == 0
     manifest = json.loads((model / "dssp_model.json").read_text())
-    assert manifest["ddim_timesteps"] == [99] and manifest["model_config"]["diffusion"]["timestep_spacing"] == "trailing"
+    assert manifest["contract"]["ddim_timesteps"] == [99] and manifest["model_config"]["diffusion"]["timestep_spacing"] == "trailing"
     assert json.loads((run / "config.json").read_text())["model"]["diffusion"]["timestep_spacing"] == "leading"  # run untouched
 
 
@@ -172,7 +172,7 @@ def test_the_distillation_study_writes_its_report(tmp_path, capsys):
     assert set(latency) == {"10", "1"} and latency["10"]["of_k10"] == 1.0 and latency["1"]["chunk_ms"] > 0
     assert "## The chunk on the `tiny` preset" in md and (report / f"{REPORT_NAME}.png").read_bytes()[:4] == b"\x89PNG"
     manifest = json.loads((work / "models" / "tap_trajectory_k1" / "dssp_model.json").read_text())
-    assert manifest["ddim_timesteps"] == [99]
+    assert manifest["contract"]["ddim_timesteps"] == [99]
     seconds = {f.stem for f in (report / "record" / "seconds").glob("*.seconds")}
     assert seconds == {p.stem for p in (work / "done").glob("*.json")} and "latency_profile_k1" in seconds
     capsys.readouterr()

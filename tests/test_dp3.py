@@ -124,13 +124,14 @@ def test_dp3_exports_as_an_observation_graph_and_a_denoiser_graph(dp3_model):
     from dssp_deploy.onnx_policy import OnnxPolicy
 
     manifest = json.loads((dp3_model / "dssp_model.json").read_text())
-    assert manifest["use_history"] is False and manifest["history_state"] == []
+    history_inputs = [s["name"] for s in manifest["graphs"]["history_step"]["inputs"]]
+    assert manifest["model_config"]["use_history"] is False and history_inputs == ["point_cloud", "agent_pos"]
     assert manifest["model_config"]["denoiser_backbone"] == "unet"
     assert not any("fused" in name for name in manifest["files"])  # no Mamba layer: nothing to fuse
     assert manifest["verification"]["passed"] is True
     policy = OnnxPolicy(dp3_model, threads=1, precision="fp32")
     rng = np.random.default_rng(0)
-    pc, pos = policy.example_observation(rng, policy.n_points)
+    pc, pos = policy.example_observation(rng, policy.contract.n_points)
     policy.reset()
     for _ in range(3):
         policy.observe(pc, pos)

@@ -105,36 +105,38 @@ def test_export_passes_parity_over_1000_steps(exported, trained_run):
     for name, q in report["quantized"].items():  # each against the fp32 graphs of its own path, not bounded
         assert q["against"] == ("onnx_fused" if name.endswith("_fused") else "onnx") and 0 < q["action_max_abs_vs_fp32"] < 1.0
     manifest = read_manifest(out)
-    assert manifest["verification"]["passed"]
+    assert manifest.verification["passed"]
     assert sorted(os.listdir(out)) == sorted(
         ["dssp_model.json", "history_step.pt", "denoiser.pt"]
         + [f"{g}{suffix}.onnx" for g in ("history_step", "denoiser")
            for suffix in ("", ".fused", ".int8", ".int8.fused", ".int4", ".int4.fused")]
     )
     assert leftovers(out.parent) == []
-    assert manifest["source"]["sha256"] == verify_module.file_sha256(trained_run / "model.safetensors")
+    assert manifest.source.sha256 == verify_module.file_sha256(trained_run / "model.safetensors")
     # the run's identity, not where it lived on the training machine
-    assert manifest["source"]["run"] == trained_run.name and "run_dir" not in manifest["source"]
+    assert manifest.source.run == trained_run.name and "run_dir" not in manifest.data["source"]
     assert str(trained_run.parent) not in (out / "dssp_model.json").read_text()
-    for name, info in manifest["files"].items():
+    for name, info in manifest.files.items():
         assert info["bytes"] == (out / name).stat().st_size and info["sha256"] == verify_module.file_sha256(out / name)
 
 
 def test_graphs_match_the_manifest_and_carry_metadata(exported):
     out, _ = exported
     manifest = read_manifest(out)
-    m = manifest["model_config"]
-    assert manifest["denoise_steps"] == 10 and manifest["ddim_timesteps"] == [90, 80, 70, 60, 50, 40, 30, 20, 10, 0]
-    assert (manifest["n_obs_steps"], manifest["horizon"], manifest["n_action_steps"]) == (2, 4, 3)
-    assert manifest["control_rate_hz"] == 10.0
-    assert set(manifest["normalizers"]) == {"point_cloud", "agent_pos", "action"}
-    assert set(manifest["versions"]) >= {"dssp", "torch", "onnx", "onnxruntime"}
-    assert manifest["history_state"] == ["conv_state_0", "ssm_state_0", "conv_state_1", "ssm_state_1"]
-    inner = 2 * m["d_model"]
-    history_inputs = manifest["graphs"]["history_step"]["inputs"]
+    m, c = manifest.model, manifest.contract
+    assert c.denoise_steps == 10 and c.ddim_timesteps == [90, 80, 70, 60, 50, 40, 30, 20, 10, 0]
+    assert (c.n_obs_steps, c.horizon, c.n_action_steps) == (2, 4, 3)
+    assert c.control_rate_hz == 10.0
+    assert set(manifest.normalizers) == {"point_cloud", "agent_pos", "action"}
+    assert set(manifest.data["versions"]) >= {"dssp", "torch", "onnx", "onnxruntime"}
+    assert manifest.history_state == ["conv_state_0", "ssm_state_0", "conv_state_1", "ssm_state_1"]
+    # each fact once: the contract's fields are not repeated at the top or in model_config
+    assert not set(manifest.data) & set(c.to_dict()) and not set(manifest.data["model_config"]) & set(c.model_fields())
+    inner = 2 * m.d_model
+    history_inputs = manifest.graphs["history_step"]["inputs"]
     assert history_inputs[2] == {"name": "conv_state_0", "shape": ["B", inner, 4], "dtype": "float32"}
-    assert history_inputs[3] == {"name": "ssm_state_0", "shape": ["B", inner, m["d_state"]], "dtype": "float32"}
-    for graph, spec in manifest["graphs"].items():
+    assert history_inputs[3] == {"name": "ssm_state_0", "shape": ["B", inner, m.d_state], "dtype": "float32"}
+    for graph, spec in manifest.graphs.items():
         for kind in ("onnx", "onnx_int8", "onnx_int4", "onnx_fused", "onnx_int4_fused"):
             path = out / spec["files"][kind]
             onnx.checker.check_model(str(path), full_check=True)
@@ -143,10 +145,9 @@ def test_graphs_match_the_manifest_and_carry_metadata(exported):
             for got, want in ((session.get_inputs(), spec["inputs"]), (session.get_outputs(), spec["outputs"])):
                 assert [(g.name, g.shape, ONNX_TYPES[g.type]) for g in got] == [(w["name"], w["shape"], w["dtype"]) for w in want]
             props = {p.key: p.value for p in onnx.load(str(path), load_external_data=False).metadata_props}
-            assert props["graph"] == graph and props["format_version"] == manifest["format_version"]
-            assert props["source_sha256"] == manifest["source"]["sha256"]
-            assert json.loads(props["ddim_timesteps"]) == manifest["ddim_timesteps"]
-            assert int(props["n_action_steps"]) == 3 and json.loads(props["model_config"]) == m
+            assert props["graph"] == graph and props["format_version"] == manifest.data["format_version"]
+            assert props["source_sha256"] == manifest.source.sha256
+            assert props["contract_sha256"] == c.digest() and "n_action_steps" not in props
             assert json.loads(props["inputs"]) == spec["inputs"]
     ops = {n.op_type for n in onnx.load(str(out / "history_step.onnx")).graph.node}
     assert "GlobalMaxPool" in ops and "ReduceMax" not in ops  # the fast form of the point max-pool
@@ -163,7 +164,7 @@ def test_batch_and_point_count_are_dynamic(exported, trained_run):
     stream = StreamingPolicy(policy)
     stream.observe(pc, pos)
     want_chunk = stream.act(noise=noise)
-    states = {s["name"]: np.zeros([3, *s["shape"][1:]], np.float32) for s in manifest["graphs"]["history_step"]["inputs"][2:]}
+    states = {s["name"]: np.zeros([3, *s["shape"][1:]], np.float32) for s in manifest.graphs["history_step"]["inputs"][2:]}
     feeds = {"point_cloud": pc, "agent_pos": pos, **states}
     history = ort.InferenceSession(str(out / "history_step.onnx"), providers=["CPUExecutionProvider"])
     z_t, c_t, *_ = history.run(None, feeds)
@@ -209,12 +210,12 @@ def test_graphs_run_where_torch_cannot_be_imported(exported, trained_run):
             z_t, c_t, *states = graphs["history_step"].run(None, feeds)
             return z_t, c_t, states
 
-        history = StreamingHistory(manifest["n_obs_steps"], step, lambda ts: np.stack(ts, axis=1),
+        history = StreamingHistory(manifest["contract"]["n_obs_steps"], step, lambda ts: np.stack(ts, axis=1),
                                    lambda b: [np.zeros([b] + s["shape"][1:], np.float32) for s in specs])
         rng = np.random.default_rng(0)
         for t in range(5):
             history.observe(rng.normal(size=(1, 24, 3)).astype(np.float32), rng.uniform(size=(1, 2)).astype(np.float32))
-        noise = rng.standard_normal((1, manifest["horizon"], manifest["action_dim"])).astype(np.float32)
+        noise = rng.standard_normal((1, manifest["contract"]["horizon"], manifest["contract"]["action_dim"])).astype(np.float32)
         chunk = graphs["denoiser"].run(None, {{"c_t": history.context, "z_recent": history.recent, "noise": noise}})[0]
         print(json.dumps({{"chunk": chunk.tolist(), "torch_loaded": "torch" in sys.modules and sys.modules["torch"] is not None}}))
         """
@@ -244,12 +245,12 @@ def test_variants_export_and_verify(tmp_path, overrides):
     summary = export_model(run, tmp_path / "model", fmt="onnx", quantize=(), verify_steps=60, threads=1, progress=lambda _: None)
     assert summary["verification"]["passed"] and set(summary["verification"]["errors"]) == {"onnx", "onnx_fused"}
     manifest = read_manifest(tmp_path / "model")
-    names = lambda graph, io: [s["name"] for s in manifest["graphs"][graph][io]]  # noqa: E731
+    names = lambda graph, io: [s["name"] for s in manifest.graphs[graph][io]]  # noqa: E731
     if "model.use_history=false" in overrides:
         assert names("history_step", "inputs") == ["point_cloud", "agent_pos"]
         assert names("history_step", "outputs") == ["z_t"]
         assert names("denoiser", "inputs") == ["z_recent", "noise"]
-        assert manifest["history_state"] == []
+        assert manifest.history_state == []
     elif "model.use_recent_states=false" in overrides:
         assert names("denoiser", "inputs") == ["c_t", "noise"]
     else:
@@ -263,8 +264,8 @@ def test_raw_weights_and_other_step_count(trained_run, tmp_path, capsys):
     args = [str(trained_run), "-o", str(out), "--no-ema", "--denoise-steps", "4", "--format", "torchscript", "--skip-verify"]
     assert export_main(args) == 0
     manifest = read_manifest(out)
-    assert manifest["source"]["weights"] == "checkpoint/model.safetensors" and not manifest["source"]["ema"]
-    assert manifest["ddim_timesteps"] == [75, 50, 25, 0] and manifest["verification"] is None
+    assert manifest.source.weights == "checkpoint/model.safetensors" and not manifest.source.ema
+    assert manifest.contract.ddim_timesteps == [75, 50, 25, 0] and manifest.verification is None
     assert sorted(os.listdir(out)) == ["denoiser.pt", "dssp_model.json", "history_step.pt"]
     assert verify_main([str(out), "--checkpoint", str(trained_run), "--steps", "30", "--threads", "1"]) == 0
     assert "PASS" in capsys.readouterr().out
@@ -428,11 +429,11 @@ def test_output_path_rules(tmp_path, capsys):
 
     model = tmp_path / "model"
     assert export_main([str(run), "-o", str(model), *fast]) == 0
-    first = read_manifest(model)["files"]
+    first = read_manifest(model).files
     assert export_main([str(run), "-o", str(model), *fast]) == 2
     assert "pass --force" in one_error_line(capsys.readouterr().err)
     assert export_main([str(run), "-o", str(model), "--force", "--format", "both", "--skip-verify", "--quantize", "none", "--no-fused"]) == 0
-    assert set(read_manifest(model)["files"]) == set(first) | {"history_step.pt", "denoiser.pt"}
+    assert set(read_manifest(model).files) == set(first) | {"history_step.pt", "denoiser.pt"}
     assert leftovers(tmp_path) == []
 
 

@@ -45,10 +45,11 @@ def test_a_window_model_exports_verifies_and_runs(tmp_path, capsys):
     assert export_main([str(run), "-o", str(model), "--quantize", "none", "--format", "onnx", "--verify-steps", "200"]) == 0
     assert "PASS" in capsys.readouterr().out
     manifest = json.loads((model / MANIFEST_NAME).read_text())
-    assert manifest["history_state"] == ["z_window", "z_seen"] and manifest["model_config"]["history_window"] == 5
+    assert [s["name"] for s in manifest["graphs"]["history_step"]["inputs"][2:]] == ["z_window", "z_seen"]
+    assert manifest["model_config"]["history_window"] == 5
     policy = OnnxPolicy(model, threads=1)
     rng = np.random.default_rng(0)
     for _ in range(7):
         policy.observe(*policy.example_observation(rng, 24))
-    assert policy.state["z_window"].shape == (1, 5, manifest["d_model"]) and policy.state["z_seen"].tolist() == [[5.0]]
+    assert policy.state["z_window"].shape == (1, 5, manifest["model_config"]["d_model"]) and policy.state["z_seen"].tolist() == [[5.0]]
     assert np.isfinite(policy.act(seed=0)).all()

@@ -224,7 +224,7 @@ def test_lerobot_train_then_export_to_onnx(setup, tmp_path):
                         "--threads", "1"])
     assert code == 0
     manifest = json.loads((model / "dssp_model.json").read_text())
-    assert manifest["control_rate_hz"] == 10.0 and manifest["source"]["step"] == 3 and manifest["source"]["ema"]
+    assert manifest["contract"]["control_rate_hz"] == 10.0 and manifest["source"]["step"] == 3 and manifest["source"]["ema"]
     policy = OnnxPolicy(model, threads=1)
     episode = data.episode(0)
     for k in range(3):
@@ -319,7 +319,7 @@ def test_lerobot_train_on_depth_makes_the_robots_clouds(setup, depth, tmp_path):
     assert export_main([str(run), "-o", str(model), "--quantize", "none", "--format", "onnx", "--verify-steps", "20",
                         "--threads", "1"]) == 0
     manifest = json.loads((model / "dssp_model.json").read_text())
-    assert manifest["observation"]["frame"] == FRAME_ROBOT_BASE
+    assert manifest["contract"]["observation"]["frame"] == FRAME_ROBOT_BASE
     policy = OnnxPolicy(model, threads=1)
     for k in range(3):
         cloud, _ = frame_to_cloud(DepthFrame(depth=data["depth"][k], depth_unit=intr["depth_unit"],

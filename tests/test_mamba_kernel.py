@@ -137,7 +137,7 @@ def test_action_token_scans_do_not_write_the_state_nobody_reads(tiny_export, mon
              if n.op_type == mamba_kernel.SCAN_OP]
     marked = [n for n in scans if any(a.name == "state_out" and a.i == 0 for a in n.attribute)]
     layers = manifest["model_config"]["n_denoiser_layers"]
-    assert len(marked) == manifest["denoise_steps"] * layers and len(scans) == len(marked) + layers  # the prefix's are read
+    assert len(marked) == len(manifest["contract"]["ddim_timesteps"]) * layers and len(scans) == len(marked) + layers  # the prefix's are read
     history = onnx.load(str(model_dir / manifest["graphs"]["history_step"]["files"]["onnx_fused"])).graph.node
     assert not any(a.name == "state_out" for n in history for a in n.attribute)  # the history step's state is its output
 
@@ -283,7 +283,7 @@ def test_the_int8_fused_denoiser_runs_each_block_as_one_node(tiny_export):
 
     _, model_dir, _ = tiny_export
     manifest = json.loads((model_dir / MANIFEST_NAME).read_text())
-    layers, steps = manifest["model_config"]["n_denoiser_layers"], manifest["denoise_steps"]
+    layers, steps = manifest["model_config"]["n_denoiser_layers"], len(manifest["contract"]["ddim_timesteps"])
     model = onnx.load(str(model_dir / "denoiser.int8.fused.onnx"))
     ops = Counter(node.op_type for node in model.graph.node)
     assert ops[mamba_kernel.BLOCK_OP] == layers * (steps + 1), ops
@@ -316,7 +316,8 @@ def test_one_ddim_step_runs_prefix_and_actions_as_one_node_per_block(tiny_export
     model = onnx.load(str(model_dir / "denoiser.int8.fused.onnx"))
     ops = Counter(node.op_type for node in model.graph.node)
     assert ops[mamba_kernel.BLOCK_OP] == manifest["model_config"]["n_denoiser_layers"] and ops[mamba_kernel.SCAN_OP] == 0
-    prefix = int(manifest["use_history"]) + int(manifest["use_recent_states"]) * manifest["n_obs_steps"]
+    m = manifest["model_config"]
+    prefix = int(m["use_history"]) + int(m["use_recent_states"]) * manifest["contract"]["n_obs_steps"]
     for node in model.graph.node:
         if node.op_type == mamba_kernel.BLOCK_OP:
             attributes = {a.name: onnx.helper.get_attribute_value(a) for a in node.attribute}

@@ -105,27 +105,27 @@ def shape_dim(orig, m):
 
 
 FIELDS = [
-    # top-level facts
-    (("point_dim",), "point_dim", lambda o, m: NOT_INT | st.integers(-5, 10) | st.just(DELETE)),
-    (("state_dim",), "state_dim", count(4096)),
-    (("action_dim",), "action_dim", count(4096)),
-    (("d_model",), "d_model", count(65536)),
-    (("n_obs_steps",), "n_obs_steps", count(4096)),
-    (("horizon",), "horizon", count(4096)),
-    (("n_action_steps",), "n_action_steps",
-     lambda o, m: NOT_INT | st.integers(-5, 0) | st.integers(m["horizon"] + 1, m["horizon"] + 50) | st.integers(1, m["horizon"])),
-    (("denoise_steps",), "denoise_steps", lambda o, m: NOT_INT | st.integers(-5, 0) | st.integers(1, 50) | st.just(DELETE)),
-    (("ddim_timesteps",), "ddim_timesteps",
-     lambda o, m: st.sampled_from(["90", 5, None, {}, DELETE]) | st.lists(st.integers(0, 99), max_size=20).filter(lambda v: len(v) != len(o))
+    # the contract
+    (("contract", "point_dim"), "point_dim", lambda o, m: NOT_INT | st.integers(-5, 10) | st.just(DELETE)),
+    (("contract", "state_dim"), "state_dim", count(4096)),
+    (("contract", "action_dim"), "action_dim", count(4096)),
+    (("contract", "n_obs_steps"), "n_obs_steps", count(4096)),
+    (("contract", "horizon"), "horizon", count(4096)),
+    (("contract", "n_action_steps"), "n_action_steps",
+     lambda o, m: NOT_INT | st.integers(-5, 0) | st.integers(m["contract"]["horizon"] + 1, m["contract"]["horizon"] + 50)),
+    (("contract", "ddim_timesteps"), "ddim_timesteps",
+     lambda o, m: st.sampled_from(["90", 5, None, {}, [], DELETE])
+     | st.lists(st.integers(0, 99), min_size=2, max_size=20).filter(lambda v: any(a <= b for a, b in zip(v, v[1:])))
      | st.sampled_from([[-1] + o[1:], [2.5] + o[1:], [True] + o[1:], [10**6] + o[1:]])),
-    (("use_history",), "use_history", lambda o, m: NOT_BOOL | st.just(not o)),
-    (("use_recent_states",), "use_recent_states", lambda o, m: NOT_BOOL | st.just(not o)),
-    (("history_state",), "history_state",
-     lambda o, m: st.sampled_from(["conv_state_0", None, 3, [1, 2], DELETE]) | st.lists(st.text(max_size=8), max_size=6)),
-    (("control_rate_hz",), "control_rate_hz",
+    (("contract", "control_rate_hz"), "control_rate_hz",
      lambda o, m: st.sampled_from(["50", True, [], {}, NAN, INF, -INF, DELETE]) | st.floats(-1e6, 0) | st.floats(1000.001, 1e9)),
-    # model_config: the runtime reads n_points; dssp-profile the widths and layer counts; the rest must agree
-    (("model_config", "n_points"), "n_points", count(1_000_000, checked_against_graphs=False)),  # P is dynamic
+    (("contract", "n_points"), "n_points", count(1_000_000, checked_against_graphs=False)),  # P is dynamic
+    (("contract", "observation"), "observation", lambda o, m: st.sampled_from([3, "x", [], DELETE])),
+    (("contract",), "contract", lambda o, m: st.sampled_from([None, [], "x", DELETE])),
+    # model_config: dssp-profile reads the widths and layer counts; the graphs' interface follows from the rest
+    (("model_config", "d_model"), "d_model", count(65536)),
+    (("model_config", "use_history"), "use_history", lambda o, m: NOT_BOOL | st.just(not o)),
+    (("model_config", "use_recent_states"), "use_recent_states", lambda o, m: NOT_BOOL | st.just(not o)),
     (("model_config", "d_state"), "d_state", count(65536)),
     (("model_config", "d_conv"), "d_conv", count(64)),
     (("model_config", "expand"), "expand", count(16)),
@@ -135,9 +135,6 @@ FIELDS = [
     (("model_config", "point_widths"), "point_widths", lambda o, m: st.sampled_from([[], "64", [0], [64.5], [True], None])),
     (("model_config", "state_widths"), "state_widths", lambda o, m: st.sampled_from([[], "64", [0], [64.5], [True], None])),
     (("model_config", "timestep_decoupled"), "timestep_decoupled", lambda o, m: NOT_BOOL),
-    (("model_config", "horizon"), "horizon", lambda o, m: st.integers(1, 64)),
-    (("model_config", "state_dim"), "state_dim", lambda o, m: st.integers(1, 64)),
-    (("model_config", "use_history"), "use_history", lambda o, m: st.just(not o)),
     (("model_config",), "model_config", lambda o, m: st.sampled_from([None, [], "tiny", DELETE])),
     # the graph interface, against the facts
     (("graphs", "denoiser", "inputs", -1, "shape", 1), "noise", shape_dim),
@@ -191,9 +188,11 @@ def test_the_unchanged_copy_loads(model, scratch):
     _, good = model
     write(scratch, good)
     policy = OnnxPolicy(scratch, threads=1, warmup=0)
-    assert (policy.state_dim, policy.action_dim, policy.n_points) == (7, 7, 64)
-    assert policy.control_rate_hz == 50.0 and 1 <= policy.n_action_steps <= policy.horizon
-    assert len(policy.ddim_timesteps) == policy.denoise_steps and policy.history_state == good["history_state"]
+    c = policy.contract
+    assert (c.state_dim, c.action_dim, c.n_points) == (7, 7, 64)
+    assert c.control_rate_hz == 50.0 and 1 <= c.n_action_steps <= c.horizon
+    assert len(c.ddim_timesteps) == c.denoise_steps
+    assert policy.manifest.history_state == [s["name"] for s in good["graphs"]["history_step"]["inputs"][2:]]
 
 
 @pytest.mark.parametrize("path, token, bad", FIELDS, ids=[".".join(map(str, f[0])) for f in FIELDS])
@@ -214,8 +213,8 @@ def test_a_wrong_manifest_field_is_refused_at_load(model, scratch, path, token, 
 @pytest.mark.parametrize(
     "change, token",
     [
-        (lambda m: m.update(n_action_steps=m["horizon"] + 2), "n_action_steps"),  # a few commands, then IndexError
-        (lambda m: m.update(n_action_steps=0), "n_action_steps"),  # modulo by zero
+        (lambda m: m["contract"].update(n_action_steps=m["contract"]["horizon"] + 2), "n_action_steps"),  # a few commands, then IndexError
+        (lambda m: m["contract"].update(n_action_steps=0), "n_action_steps"),  # modulo by zero
         (lambda m: m["graphs"]["denoiser"]["files"].update(onnx="/etc/passwd"), "files.onnx"),
         (lambda m: m["files"]["denoiser.onnx"].update(sha256="0" * 64), "sha256"),
     ],
@@ -245,7 +244,7 @@ def test_dssp_run_exits_2_before_any_arm_is_opened_or_enabled(model, tmp_path, m
 
 def test_dssp_run_command_exits_2_on_h_a_above_the_horizon(model, tmp_path):
     model_dir, good = model
-    bad = copy_model(model_dir, tmp_path / "bad", with_value(good, ("n_action_steps",), good["horizon"] + 1))
+    bad = copy_model(model_dir, tmp_path / "bad", with_value(good, ("contract", "n_action_steps"), good["contract"]["horizon"] + 1))
     out = subprocess.run(
         [sys.executable, "-m", "hardware.cli.run", "--model", str(bad), "--camera", "tabletop", "--can", "sim",
          "--max-steps", "5", "--log-dir", str(tmp_path / "log"), "--threads", "1", "--quiet"],

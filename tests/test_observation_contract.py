@@ -46,12 +46,12 @@ def test_the_contract_goes_from_the_dataset_into_the_run_and_the_manifest(record
     model_dir, run_dir = recorded_model
     config = json.loads((run_dir / "config.json").read_text())
     manifest = json.loads((model_dir / "dssp_model.json").read_text())
-    for observation in (config["observation"], manifest["observation"]):
+    for observation in (config["observation"], manifest["contract"]["observation"]):
         assert observation["pointcloud"]["crop_min"] == CROP["crop_min"]
         assert observation["pointcloud"]["crop_max"] == CROP["crop_max"]
         assert observation["pointcloud"]["n_points"] == 48
         assert observation["state"] == observation["action"] == piper_layout(1).to_dict()
-    assert manifest["control_rate_hz"] == 10.0
+    assert manifest["contract"]["control_rate_hz"] == 10.0
 
 
 def run(model_dir, log_dir, *extra):
@@ -94,7 +94,7 @@ def test_dssp_run_refuses_another_crop_before_motion_and_runs_with_the_models_ow
 
 def test_dssp_run_refuses_another_rate_and_another_number_of_arms(recorded_model, tmp_path, capsys):
     model_dir, _ = recorded_model
-    assert run(model_dir, tmp_path / "a", "--rate", "20") == 2
+    assert run(model_dir, tmp_path / "a", "--control-rate", "20") == 2
     line = capsys.readouterr().err.strip()
     assert "control_rate_hz = 20 but the model" in line and "has 10" in line and "--allow-mismatch control_rate_hz" in line
     assert run(model_dir, tmp_path / "b", "--allow-mismatch", "crop") == 2
@@ -105,7 +105,7 @@ def test_data_without_a_contract_trains_and_the_manifest_says_unknown(tiny_expor
     run_dir, model_dir, _ = tiny_export
     assert json.loads((run_dir / "config.json").read_text())["observation"] == {
         "pointcloud": None, "frame": None, "state": None, "action": None}
-    assert set(json.loads((model_dir / "dssp_model.json").read_text())["observation"].values()) == {UNKNOWN}
+    assert set(json.loads((model_dir / "dssp_model.json").read_text())["contract"]["observation"].values()) == {UNKNOWN}
 
 
 def test_contract_checks_compare_only_what_both_sides_know():

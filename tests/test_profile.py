@@ -62,7 +62,7 @@ def test_profile_runs_where_torch_cannot_be_imported(tiny_export, tmp_path):
     assert floor["read_gbs"] > 0 and 0 < floor["compute_ms"] <= floor["floor_ms"] and "Chunk floor on this machine" in out.stdout
     assert [int(k) for k in floor["read_gbs_by_mib"]] == [2, 4, 8, 12, 16, 24, 32, 64, 128]  # the cache this process gets
     assert floor["cpu_cache_mib"] is None or floor["cache_mib"] is None or floor["cache_mib"] <= floor["cpu_cache_mib"]
-    ran = read_manifest(model_dir)["graphs"]["denoiser"]["files"][file_kind(report["precision"], report["kernel"] == "fused")]
+    ran = read_manifest(model_dir).graphs["denoiser"]["files"][file_kind(report["precision"], report["kernel"] == "fused")]
     assert floor["weights_mib"] * 2**20 == (model_dir / ran).stat().st_size
     assert png_path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     # both graph sets, each at 1 thread (--threads 1), and the prefetched tick on the same model
@@ -177,7 +177,7 @@ def test_the_chunk_spins_only_while_it_runs_and_only_with_threads_to_spin(tiny_e
     for threads, spinning, spins in ((2, None, True), (2, False, False), (1, None, False), (2, True, True)):
         policy = OnnxPolicy(model_dir, threads=threads, spinning=spinning)
         assert policy.spinning is spins
-        policy.observe(np.zeros((32, 3), np.float32), np.zeros(policy.state_dim, np.float32))
+        policy.observe(np.zeros((32, 3), np.float32), np.zeros(policy.contract.state_dim, np.float32))
         chunks.append(policy.act(seed=0))
     assert all(np.array_equal(c, chunks[0]) for c in chunks)
     assert OnnxPolicy(model_dir, threads=2, background_chunks=True).spinning is False  # the chunk's one thread

@@ -1,7 +1,8 @@
 """Real-time chunking and inference delay: the inpainting denoiser (``export.to_onnx --inpainting``) against PyTorch,
-the loop's schedules under an injected delay (``ChunkedControl(injected_delay=d)``) written out by hand on a stand-in
+the loop's schedules under a simulated delay (``SimulatedDelay(d)``) written out by hand on a stand-in
 runtime whose chunks are known numbers, and ``dssp-sim eval --inject-delay --smoothing rtc`` end to end."""
 
+import dataclasses
 import json
 
 import numpy as np
@@ -9,8 +10,10 @@ import pytest
 import torch
 
 from conftest import built_once, one_error_line
-from dssp_deploy.control_loop import ChunkedControl, rtc_weights
+from dssp_data.model_contract import ModelContract
+from dssp_deploy.control_loop import ChunkedControl
 from dssp_deploy.onnx_policy import OnnxPolicy
+from dssp_deploy.schedules import Ensemble, Plain, RealTimeChunking, SimulatedDelay, config_for, rtc_weights
 
 
 def _inpainting_export(tmp_path_factory, request):
@@ -42,13 +45,13 @@ def test_the_inpainting_denoiser_is_the_pytorch_chain_and_zero_weights_are_the_p
     policy, _, _ = load_source(plain_dir.parent / "run", True)
     graph = OnnxPolicy(model_dir, threads=1, precision="fp32", kernel="standard")
     plain = OnnxPolicy(plain_dir, threads=1, precision="fp32", kernel="standard")
-    assert graph.inpainting and not plain.inpainting
+    assert graph.contract.inpainting and not plain.contract.inpainting
     rng = np.random.default_rng(0)
     pc, pos = graph.example_observation(rng)
     for p in (graph, plain):
         p.observe(pc, pos)
         p.observe(pc, pos)
-    h, a = graph.horizon, graph.action_dim
+    h, a = graph.contract.horizon, graph.contract.action_dim
     committed = rng.uniform(-0.5, 0.5, (1, h, a)).astype(np.float32)
     weight = np.linspace(1.0, 0.0, h, dtype=np.float32)[None, :, None]
     noise = graph.noise(1, seed=3)
@@ -58,7 +61,7 @@ def test_the_inpainting_denoiser_is_the_pytorch_chain_and_zero_weights_are_the_p
         prefix = policy.build_prefix(torch.from_numpy(feeds["c_t"]), torch.from_numpy(feeds["z_recent"]))
         norm = policy.normalizers["action"]
         want = norm.unnormalize(policy.sample_normalized(
-            prefix, torch.from_numpy(noise), graph.denoise_steps,
+            prefix, torch.from_numpy(noise), graph.contract.denoise_steps,
             inpaint=(norm.normalize(torch.from_numpy(committed)), torch.from_numpy(weight)))).numpy()
     np.testing.assert_allclose(chunk, want, atol=1e-5)  # parity with the training code's chain
     np.testing.assert_allclose(chunk[0, 0], committed[0, 0], atol=1e-5)  # weight 1: the committed action itself
@@ -82,8 +85,10 @@ class FakePolicy:
     100 k + j at index j; each call's committed actions and weights are kept."""
 
     def __init__(self, horizon=8, n_action_steps=3, action_offset=1):
-        self.horizon, self.n_action_steps, self.action_offset = horizon, n_action_steps, action_offset
-        self.control_rate_hz, self.inpainting, self.manifest = 10.0, True, {"denoise_steps": 3}
+        self.horizon = horizon
+        self.contract = ModelContract(n_obs_steps=action_offset + 1, horizon=horizon, n_action_steps=n_action_steps,
+                                      action_offset=action_offset, ddim_timesteps=[2, 1, 0], inpainting=True,
+                                      control_rate_hz=10.0)
         self.calls: list[dict] = []
         self.history = ()
 
@@ -115,15 +120,23 @@ def run(loop, ticks):
 
 def test_without_smoothing_a_delay_is_a_stall_before_every_chunk():
     policy = FakePolicy(horizon=6, n_action_steps=2, action_offset=1)
-    actions = run(ChunkedControl(policy, injected_delay=2), 9)
+    actions = run(ChunkedControl(policy, Plain(delay=SimulatedDelay(2))), 9)
     # hold 2 ticks, chunk 0's H_a actions from its first (index offset), a new chunk, hold 2 ticks, ...
     assert actions == [None, None, 1.0, 2.0, None, None, 101.0, 102.0, None]
     assert [c["seen"] for c in policy.calls] == [1, 5, 9]  # each from the observation of the tick it started at
 
 
+def test_prefetch_under_a_delay_starts_each_chunk_that_many_ticks_early_and_drops_its_passed_actions():
+    policy = FakePolicy(horizon=8, n_action_steps=3, action_offset=1)
+    actions = run(ChunkedControl(policy, Plain(prefetch=True, delay=SimulatedDelay(2))), 9)
+    # the first chunk is needed at once: a stall of 2 ticks; then each one starts 2 ticks before its first tick
+    assert actions == [None, None, 1.0, 2.0, 3.0, 103.0, 104.0, 105.0, 203.0]
+    assert [c["seen"] for c in policy.calls] == [1, 4, 7]
+
+
 def test_ensembling_takes_each_chunk_in_late_at_the_actions_for_the_ticks_it_then_covers():
     policy = FakePolicy(horizon=8, n_action_steps=3, action_offset=1)
-    loop = ChunkedControl(policy, smoothing="ensemble", ensemble_every=1, ensemble_decay=0.0, injected_delay=1)
+    loop = ChunkedControl(policy, Ensemble(every=1, decay=0.0, delay=SimulatedDelay(1)))
     actions = run(loop, 4)
     # tick t: chunk s (computed at s, usable from s + 1) predicts t with index 1 + t - s
     assert actions[0] is None
@@ -134,7 +147,7 @@ def test_ensembling_takes_each_chunk_in_late_at_the_actions_for_the_ticks_it_the
 
 def test_real_time_chunking_starts_early_inpaints_what_is_committed_and_takes_over_after_the_delay():
     policy = FakePolicy(horizon=8, n_action_steps=3, action_offset=1)
-    loop = ChunkedControl(policy, smoothing="rtc", injected_delay=2)
+    loop = ChunkedControl(policy, RealTimeChunking(delay=SimulatedDelay(2)))
     actions = run(loop, 9)
     # chunk 0 from tick 0 takes over at tick 2 (index 1 + 2); chunk 1 starts at tick 3, takes over at 5 (index 3), …
     assert actions == [None, None, 3.0, 4.0, 5.0, 103.0, 104.0, 105.0, 203.0]
@@ -148,27 +161,29 @@ def test_real_time_chunking_starts_early_inpaints_what_is_committed_and_takes_ov
 
 def test_real_time_chunking_with_no_delay_acts_from_the_first_tick():
     policy = FakePolicy(horizon=8, n_action_steps=3, action_offset=1)
-    actions = run(ChunkedControl(policy, smoothing="rtc", injected_delay=0), 7)
+    actions = run(ChunkedControl(policy, RealTimeChunking(delay=SimulatedDelay(0))), 7)
     assert actions == [1.0, 2.0, 3.0, 101.0, 102.0, 103.0, 201.0]
     np.testing.assert_array_equal(policy.calls[1]["weight"][0, :, 0], rtc_weights(8, 1, 5, 0))  # only the past frozen
 
 
 def test_a_delay_beyond_what_the_horizon_covers_holds_the_ticks_no_chunk_has():
     policy = FakePolicy(horizon=8, n_action_steps=4, action_offset=1)  # H - offset = 7 < H_a + d = 8
-    actions = run(ChunkedControl(policy, smoothing="rtc", injected_delay=4), 13)
+    actions = run(ChunkedControl(policy, RealTimeChunking(delay=SimulatedDelay(4))), 13)
     assert actions[:4] == [None] * 4 and actions[4:8] == [5.0, 6.0, 7.0, None]  # chunk 0 runs out at index 8
     assert actions[8:12] == [105.0, 106.0, 107.0, None]
 
 
 def test_rtc_needs_an_inpainting_model_and_no_prefetch():
     policy = FakePolicy()
-    policy.inpainting = False
+    policy.contract = dataclasses.replace(policy.contract, inpainting=False)
     with pytest.raises(ValueError, match="export the model with python -m export.to_onnx --inpainting"):
-        ChunkedControl(policy, smoothing="rtc", injected_delay=1)
-    with pytest.raises(ValueError, match="leave prefetch off"):
-        ChunkedControl(FakePolicy(), smoothing="rtc", prefetch=True, chunk_ms_estimate=1.0)
-    with pytest.raises(ValueError, match="injected_delay must be a whole number"):
-        ChunkedControl(FakePolicy(), injected_delay=-1)
+        ChunkedControl(policy, RealTimeChunking(delay=SimulatedDelay(1)))
+    with pytest.raises(TypeError, match="prefetch"):  # real-time chunking has no prefetch setting
+        RealTimeChunking(prefetch=True)
+    with pytest.raises(ValueError, match="real-time chunking computes the next chunk in the background itself"):
+        config_for("rtc", prefetch=True)
+    with pytest.raises(ValueError, match="SimulatedDelay.ticks must be a whole number of ticks >= 0"):
+        SimulatedDelay(-1)
 
 
 def test_dssp_sim_eval_refuses_rtc_without_an_inpainting_model_and_a_delay_for_the_expert(exports, capsys, tmp_path):

@@ -303,7 +303,7 @@ def rig(arm_export, tmp_path, request):
         with pytest.warns(UserWarning, match="20 Hz"):  # the model was trained at 50 Hz
             rig = Rig(camera, robot, camera.camera_to_base, getattr(request, "param", CAMERA_SAFETY), clock=clock,
                       limits=(LIMITS.lower, LIMITS.upper, GRIPPER))
-            runner = Runner(ModelPolicy(policy, RATE, seed=0), rig, PointCloudConfig(n_points=64), LoopSettings(rate_hz=RATE),
+            runner = Runner(ModelPolicy(policy, RATE, seed=0), rig, PointCloudConfig(n_points=64), LoopSettings(control_rate_hz=RATE),
                             subscribers=[RunLog(tmp_path / "log", {})])
         robot.step(0.0)
         runner.start()
@@ -361,7 +361,7 @@ def test_slow_inference_holds_on_the_late_tick(rig):
         return denoise(*args, **kwargs)
 
     runner.source.policy.denoise = slow
-    after = ticks(runner.source.policy.n_action_steps + 1)
+    after = ticks(runner.source.policy.contract.n_action_steps + 1)
     late = [r for r in after if "chunk_ms" in r]
     assert late and all(holds_for(r, "deadline") for r in late)
     on_time = [r for r in after if "chunk_ms" not in r]

@@ -114,18 +114,17 @@ def test_a_model_without_a_control_rate_needs_rate(tiny_export, tmp_path, capsys
     import json
 
     manifest = json.loads((model_dir / "dssp_model.json").read_text())
-    if manifest.get("control_rate_hz") is not None:
+    if manifest["contract"]["control_rate_hz"] is not None:
         import shutil
 
         copy = tmp_path / "model"
         shutil.copytree(model_dir, copy)
-        manifest["control_rate_hz"] = None
-        manifest["runtime"]["tick_rate_hz"] = None
+        manifest["contract"]["control_rate_hz"] = None
         (copy / "dssp_model.json").write_text(json.dumps(manifest))
         model_dir = copy
     code = run_main(["--model", str(model_dir), "--max-steps", "3", "--quiet", "--log-dir", str(tmp_path / "log")])
     err = capsys.readouterr().err
-    assert code == 2 and "records no control rate" in err and "--rate" in err, err
+    assert code == 2 and "records no control rate" in err and "--control-rate" in err, err
     assert not (tmp_path / "log").exists()
 
 
@@ -174,7 +173,7 @@ def test_start_up_gives_up_on_its_clock(arm_export):
     rig = Rig(camera, SilentArm(), np.eye(4), SafetyConfig(), clock=clock,
               limits=(limits.lower, limits.upper, np.arange(7) == 6))
     runner = Runner(ModelPolicy(OnnxPolicy(arm_export, threads=1), 50.0), rig, PointCloudConfig(n_points=64),
-                    LoopSettings(rate_hz=50.0, startup_timeout=2.0))
+                    LoopSettings(control_rate_hz=50.0, startup_timeout=2.0))
     with pytest.raises(DSSPError, match="no joint feedback within 2 s"):
         runner.start()
     assert 102.0 < clock.now() <= 102.005 + 1e-9  # the first poll past the deadline

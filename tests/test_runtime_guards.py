@@ -24,6 +24,7 @@ from hypothesis import strategies as st
 from dssp_core.errors import DSSPError, NonFiniteObservation
 from dssp_deploy import mamba_kernel
 from dssp_deploy.control_loop import ChunkedControl
+from dssp_deploy.schedules import MeasuredDelay, Plain
 from dssp_deploy.manifest import MANIFEST_NAME, ModelDirError, sha256_hex
 from dssp_deploy.onnx_policy import OnnxPolicy
 from dssp_deploy.ranges import MARGIN, ChunkOutOfRange, ObservationOutOfRange
@@ -180,9 +181,9 @@ def test_a_chunk_outside_the_action_range_is_never_returned(tiny_export, precisi
 def test_a_refused_chunk_undoes_its_tick_and_the_next_tick_takes_a_new_one(tiny_export, prefetch):
     _, model_dir, data = tiny_export
     p, q = OnnxPolicy(model_dir, threads=1), OnnxPolicy(model_dir, threads=1, warmup=0)
-    options = dict(rate_hz=10, prefetch=True, chunk_ms_estimate=50.0) if prefetch else {}  # lead: 1 tick at 10 Hz
+    options = dict(schedule=Plain(prefetch=True, delay=MeasuredDelay(50.0)), control_rate_hz=10) if prefetch else {}  # lead: 1 tick
     loop = ChunkedControl(p, seed=0, **options)
-    ha, lead = p.n_action_steps, loop.lead
+    ha, lead = p.contract.n_action_steps, loop.schedule.lead
     clouds, states = trajectory(data, 3 * ha)
     session = p.sessions["denoiser"]
     corrupted = Corrupted(session, (0, 0, 0), np.nan)
@@ -193,7 +194,7 @@ def test_a_refused_chunk_undoes_its_tick_and_the_next_tick_takes_a_new_one(tiny_
     p.sessions["denoiser"] = corrupted  # in the tick: computed at tick ha
     with pytest.raises(ChunkOutOfRange, match=r"^action chunk .*=nan \(not finite\)"):
         loop.tick(clouds[ha], states[ha])
-    assert loop.tick_count == p.steps == ha and loop.pending is None  # the tick undone: its observation not kept
+    assert loop.tick_count == p.steps == ha and loop.schedule.in_flight is None  # the tick undone: its observation not kept
     p.sessions["denoiser"] = session
     # The next tick is tick ha again: a new chunk, in the tick, from the history without the refused observation.
     for t in [*range(ha), *range(ha + 1, 2 * ha + 1)]:
@@ -201,7 +202,7 @@ def test_a_refused_chunk_undoes_its_tick_and_the_next_tick_takes_a_new_one(tiny_
         if t == ha + 1:
             expected = q.act(seed=ha)
     action, info = loop.tick(clouds[ha + 1], states[ha + 1])
-    assert info.new_chunk and info.chunk_index == p.action_offset and np.array_equal(action, expected[:, p.action_offset])
+    assert info.new_chunk and info.chunk_index == p.contract.action_offset and np.array_equal(action, expected[:, p.contract.action_offset])
     for t in range(ha + 2, 2 * ha + 1):
         action, info = loop.tick(clouds[t], states[t])
         assert np.isfinite(action).all()
@@ -251,7 +252,7 @@ def rig_loop(arm_export, tmp_path, monkeypatch, edit_cloud):
     try:
         with robot:
             rig = Rig(camera, robot, camera.camera_to_base, safety, limits=(limits.lower, limits.upper, np.arange(7) == 6))
-            runner = run_loop.Runner(ModelPolicy(policy, 50.0, seed=0), rig, PointCloudConfig(n_points=64), run_loop.LoopSettings(rate_hz=50.0))
+            runner = run_loop.Runner(ModelPolicy(policy, 50.0, seed=0), rig, PointCloudConfig(n_points=64), run_loop.LoopSettings(control_rate_hz=50.0))
             runner.start()
 
             def ticks(n):
@@ -292,7 +293,7 @@ def test_the_robot_loop_holds_on_a_refused_observation_or_chunk(arm_export, tmp_
         assert runner.event_counts["observation_out_of_range"] == 3 and runner.fault is None
         far["on"] = False
         # the next chunk comes out NaN: refused at every tick it is due, the tick undone, held
-        ha = policy.n_action_steps
+        ha = policy.contract.n_action_steps
         while runner.source.control.tick_count % ha:  # up to the tick that takes the next chunk
             ticks(1)
         session = policy.sessions["denoiser"]

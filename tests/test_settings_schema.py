@@ -289,9 +289,9 @@ def test_dssp_run_refuses_bad_settings_files(tmp_path, capsys, flag, content, fi
 
 @pytest.mark.parametrize("argv, words", [
     (["--camera", "foo"], "unknown camera 'foo'"),
-    (["--rate", "0"], "--rate must be in [0.1, 1000] Hz"),
-    (["--rate", "nan"], "--rate must be in [0.1, 1000] Hz"),
-    (["--rate", "1e-300"], "--rate must be in [0.1, 1000] Hz"),
+    (["--control-rate", "0"], "--control-rate must be in [0.1, 1000] Hz"),
+    (["--control-rate", "nan"], "--control-rate must be in [0.1, 1000] Hz"),
+    (["--control-rate", "1e-300"], "--control-rate must be in [0.1, 1000] Hz"),
     (["--max-steps", "0"], "--max-steps must be at least 1"),
     (["--threads", "0"], "--threads must be in [1, "),
     (["--threads", "100000"], "--threads must be in [1, "),
@@ -308,7 +308,7 @@ def test_dssp_run_refuses_a_step_faster_than_the_arm(tmp_path, capsys):
 
     path = tmp_path / "safety.json"
     path.write_text(json.dumps({"max_joint_step": 0.4}))
-    code = run.main(["--model", str(tmp_path / "no-model"), "--safety", str(path), "--rate", "20", "--quiet"])
+    code = run.main(["--model", str(tmp_path / "no-model"), "--safety", str(path), "--control-rate", "20", "--quiet"])
     line = _one_line_exit_2(capsys, code)
     assert "rad/s" in line and "max_joint_step" in line
 
@@ -331,7 +331,7 @@ def test_dssp_record_refuses_bad_settings_files(tmp_path, capsys, flag, content,
 
 @pytest.mark.parametrize("argv, words", [
     (["--camera", "foo"], "unknown camera 'foo'"),
-    (["--rate", "0"], "--rate must be in [0.1, 1000] Hz"),
+    (["--control-rate", "0"], "--control-rate must be in [0.1, 1000] Hz"),
 ])
 def test_dssp_record_flags_are_checked_first(tmp_path, capsys, argv, words):
     from hardware.cli import record

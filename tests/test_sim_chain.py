@@ -12,6 +12,7 @@ import pytest
 from dssp_core.errors import ConfigError
 from dssp_sim.sim_cli import main as sim_main
 from dssp_sim.env import PiperEnv
+from dssp_deploy.schedules import Ensemble, RealTimeChunking
 from dssp_sim.evaluate import wilson_interval
 from dssp_sim.settings import cloud_config_for
 from dssp_sim.mujoco_arm import MujocoPiper
@@ -177,15 +178,14 @@ def test_temporal_ensembling_reaches_the_loop_and_the_record(sim_model):
     every tick it observed), and the result records the settings."""
     from dssp_sim.evaluate import evaluate
 
-    result = evaluate(sim_model, "tap", 1, seed=3, threads=1, progress=False, smoothing="ensemble", ensemble_every=2,
-                      ensemble_decay=0.0)
+    result = evaluate(sim_model, "tap", 1, seed=3, threads=1, progress=False, schedule=Ensemble(every=2, decay=0.0))
     record = result.to_dict()
     assert (record["smoothing"], record["ensemble_every"], record["ensemble_decay"]) == ("ensemble", 2, 0.0)
     acted, chunks = result.latency_ms["observe"]["n"], result.latency_ms["chunk"]["n"]
     assert acted > 2 and chunks == (acted + 1) // 2
     assert evaluate(sim_model, "tap", 0, progress=False).to_dict()["smoothing"] == "none"
     with pytest.raises(ConfigError, match=r"--ensemble-every 1000: .* executes H_a = 4 actions of a chunk"):
-        evaluate(sim_model, "tap", 1, progress=False, smoothing="ensemble", ensemble_every=1000)
+        evaluate(sim_model, "tap", 1, progress=False, schedule=Ensemble(every=1000))
 
 
 def test_inference_delay_and_real_time_chunking_reach_the_loop_and_the_record(sim_model, tmp_path):
@@ -202,7 +202,8 @@ def test_inference_delay_and_real_time_chunking_reach_the_loop_and_the_record(si
     chunks = stalled.latency_ms["chunk"]["n"]
     assert stalled.injected_delay_ticks == 2 and chunks > 2
     assert stalled.episodes[0].safety_events.get("hold", 0) >= 2 * (chunks - 1)  # the loop waits for every chunk
-    rtc = evaluate(inpainting, "tap", 1, seed=3, threads=1, progress=False, smoothing="rtc", inject_delay_ms=150)
+    rtc = evaluate(inpainting, "tap", 1, seed=3, threads=1, progress=False, schedule=RealTimeChunking(),
+                   inject_delay_ms=150)
     record = rtc.to_dict()
     assert (record["smoothing"], record["injected_delay_ticks"], record["rtc_delay_ticks"]) == ("rtc", 2, 2)
     jerk = record["boundary_jerk"]

@@ -1,4 +1,4 @@
-"""Temporal ensembling of overlapping chunks (``ChunkedControl(smoothing="ensemble")``, ACT): the action of a tick is
+"""Temporal ensembling of overlapping chunks (``ChunkedControl(policy, Ensemble())``, ACT): the action of a tick is
 the weighted mean of every kept chunk's prediction for it, oldest first with weight exp(-decay * i).
 
 The loop's arithmetic is checked on a stand-in for the runtime whose chunks are known numbers (chunk k, computed at
@@ -7,6 +7,7 @@ is written out by hand; ``dssp-run --smoothing ensemble`` then runs end to end o
 time, as the other dssp-run tests: nothing asserted depends on how fast the machine is).
 """
 
+import dataclasses
 import json
 import math
 
@@ -14,8 +15,10 @@ import numpy as np
 import pytest
 from test_policy_sources import run_dssp
 
+from dssp_data.model_contract import ModelContract
 from dssp_deploy.control_loop import ChunkedControl
 from dssp_deploy.ranges import ChunkOutOfRange
+from dssp_deploy.schedules import Ensemble, Plain, config_for
 from hardware.policies.exported_model import ModelPolicy
 from hardware.run_log import read_ticks
 
@@ -27,9 +30,9 @@ class FakePolicy:
     refused ones) raise ChunkOutOfRange instead."""
 
     def __init__(self, horizon=4, n_action_steps=2, action_offset=1, refuse=()):
-        self.horizon, self.n_action_steps, self.action_offset = horizon, n_action_steps, action_offset
-        self.control_rate_hz = 10.0
-        self.manifest = {"denoise_steps": 3}
+        self.horizon = horizon
+        self.contract = ModelContract(n_obs_steps=action_offset + 1, horizon=horizon, n_action_steps=n_action_steps,
+                                      action_offset=action_offset, ddim_timesteps=[2, 1, 0], control_rate_hz=10.0)
         self.refuse = set(refuse)
         self.calls = 0
         self.seeds: list = []  # the seed of each chunk given
@@ -66,7 +69,7 @@ def blend(*values, decay):
 def test_every_tick_the_action_is_the_weighted_mean_of_the_kept_predictions(decay):
     # H = 4, offset 1: a chunk covers 3 ticks (indices 1, 2, 3); a new chunk every tick (the default).
     p = FakePolicy()
-    loop = ChunkedControl(p, seed=10, smoothing="ensemble", ensemble_decay=decay)
+    loop = ChunkedControl(p, Ensemble(decay=decay), seed=10)
     expected = {
         0: [1.0],                     # chunk 0 at index 1: the only one, its own action
         1: [2.0, 101.0],              # chunk 0 index 2, chunk 1 index 1
@@ -80,20 +83,20 @@ def test_every_tick_the_action_is_the_weighted_mean_of_the_kept_predictions(deca
         assert action.shape == (1, 2) and action.dtype == np.float32
         np.testing.assert_allclose(action, [[want, -want]], rtol=1e-6)
         assert info.new_chunk and info.chunk_ms is not None and info.predictions == len(predictions)
-        assert info.chunk_index == p.action_offset  # of the newest chunk, computed on this tick
-        assert [s for s, _ in loop.kept] == list(range(max(0, t - 2), t + 1))
+        assert info.chunk_index == p.contract.action_offset  # of the newest chunk, computed on this tick
+        assert [s for s, _ in loop.schedule.kept] == list(range(max(0, t - 2), t + 1))
     assert action[0, 0] != pytest.approx(np.mean(expected[4])) or decay == 0.0  # the weights matter
     if decay == 0.0:
         np.testing.assert_allclose(action, [[np.mean(expected[4]), -np.mean(expected[4])]], rtol=1e-6)
     assert p.seeds == [10 + t for t in range(5)]  # a chunk's seed: seed + the tick it is computed at
     assert p.history == tuple(float(t) for t in range(5))  # the history step ran every tick
     loop.reset()
-    assert loop.kept == [] and loop.tick_count == 0 and p.history == ()
+    assert loop.schedule.kept == [] and loop.tick_count == 0 and p.history == ()
 
 
 def test_the_oldest_prediction_weighs_most():
     p = FakePolicy()
-    loop = ChunkedControl(p, smoothing="ensemble", ensemble_decay=5.0)  # weights 1, e^-5: nearly chunk 0's alone
+    loop = ChunkedControl(p, Ensemble(decay=5.0))  # weights 1, e^-5: nearly chunk 0's alone
     tick(loop, 0)
     action, _ = tick(loop, 1)
     assert abs(action[0, 0] - 2.0) < abs(action[0, 0] - 101.0)
@@ -103,7 +106,7 @@ def test_the_oldest_prediction_weighs_most():
 def test_a_chunk_every_h_a_ticks_blends_only_where_chunks_overlap():
     # H = 8, offset 1, H_a = 4: a chunk covers 7 ticks, one every 4 ticks overlaps the next for 3.
     p = FakePolicy(horizon=8, n_action_steps=4, action_offset=1)
-    loop = ChunkedControl(p, seed=0, smoothing="ensemble", ensemble_every=4, ensemble_decay=0.0)
+    loop = ChunkedControl(p, Ensemble(every=4, decay=0.0), seed=0)
     seen = [tick(loop, t) for t in range(12)]
     assert [info.new_chunk for _, info in seen] == [t % 4 == 0 for t in range(12)]
     assert [info.chunk_ms is not None for _, info in seen] == [t % 4 == 0 for t in range(12)]
@@ -122,16 +125,16 @@ def test_a_chunk_every_h_a_ticks_blends_only_where_chunks_overlap():
 
 def test_a_refused_chunk_leaves_the_kept_chunks_and_the_history_and_the_next_tick_recomputes():
     p = FakePolicy(refuse={2})  # the third act() call: the chunk of tick 2
-    loop = ChunkedControl(p, seed=0, smoothing="ensemble", ensemble_decay=0.0)
+    loop = ChunkedControl(p, Ensemble(decay=0.0), seed=0)
     tick(loop, 0)
     tick(loop, 1)
-    kept = [(s, c.copy()) for s, c in loop.kept]
+    kept = [(s, c.copy()) for s, c in loop.schedule.kept]
     history = p.history
     with pytest.raises(ChunkOutOfRange):
         tick(loop, 99)  # refused: this observation must not stay in the history
     assert loop.tick_count == 2 and p.history is history == (0.0, 1.0)
-    assert [s for s, _ in loop.kept] == [s for s, _ in kept]
-    assert all(np.array_equal(c, k) for (_, c), (_, k) in zip(loop.kept, kept))
+    assert [s for s, _ in loop.schedule.kept] == [s for s, _ in kept]
+    assert all(np.array_equal(c, k) for (_, c), (_, k) in zip(loop.schedule.kept, kept))
     # The next tick is tick 2 again: a new chunk (the third one given, with tick 2's seed) joins the same two.
     action, info = tick(loop, 2)
     assert info.new_chunk and info.predictions == 3 and p.seeds == [0, 1, 2]
@@ -142,22 +145,25 @@ def test_a_refused_chunk_leaves_the_kept_chunks_and_the_history_and_the_next_tic
 
 def test_ensembling_does_not_combine_with_prefetch_and_bad_settings_are_refused():
     p = FakePolicy()
-    with pytest.raises(ValueError, match="does not combine with prefetch"):
-        ChunkedControl(p, rate_hz=10, prefetch=True, chunk_ms_estimate=50.0, smoothing="ensemble")
-    for options, words in (({"ensemble_every": 0}, "from 1 to H_a = 2, got 0"),
-                           ({"ensemble_every": 3}, "from 1 to H_a = 2, got 3"),
-                           ({"ensemble_every": 1.5}, "whole number"),
-                           ({"ensemble_decay": -0.1}, "finite number >= 0"),
-                           ({"ensemble_decay": float("nan")}, "finite number >= 0")):
+    with pytest.raises(TypeError, match="prefetch"):  # ensembling has no prefetch setting
+        Ensemble(prefetch=True)
+    with pytest.raises(ValueError, match="does not combine with smoothing ensemble"):  # named as a command line does
+        config_for("ensemble", prefetch=True)
+    for options, words in (({"every": 0}, "at least 1 \\(ticks between chunks\\), got 0"),
+                           ({"every": 1.5}, "whole number"),
+                           ({"decay": -0.1}, "finite number >= 0"),
+                           ({"decay": float("nan")}, "finite number >= 0")):
         with pytest.raises(ValueError, match=words):
-            ChunkedControl(p, smoothing="ensemble", **options)
+            Ensemble(**options)
+    with pytest.raises(ValueError, match="Ensemble.every 3: the model executes H_a = 2 actions .* \\(1 to 2\\)"):
+        ChunkedControl(p, Ensemble(every=3))  # checked against the policy's H_a
     with pytest.raises(ValueError, match="smoothing must be one of none, ensemble"):
-        ChunkedControl(p, smoothing="average")
+        config_for("average")
 
 
 def test_none_is_the_default_loop():
     a, b = FakePolicy(refuse={1}), FakePolicy(refuse={1})
-    default, none = ChunkedControl(a, seed=3), ChunkedControl(b, seed=3, smoothing="none")
+    default, none = ChunkedControl(a, seed=3), ChunkedControl(b, Plain(), seed=3)
     for t in range(7):
         results = []
         for loop in (default, none):
@@ -170,14 +176,14 @@ def test_none_is_the_default_loop():
             continue
         (x, i), (y, j) = results
         assert np.array_equal(x, y) and (i.new_chunk, i.chunk_index, i.predictions) == (j.new_chunk, j.chunk_index, 1)
-    assert a.seeds == b.seeds and a.history == b.history and none.kept == []
-    assert none.smoothing_settings() == {"smoothing": "none", "ensemble_every": None, "ensemble_decay": None,
+    assert a.seeds == b.seeds and a.history == b.history and not hasattr(none.schedule, "kept")  # keeps no chunks
+    assert none.schedule.settings() == {"smoothing": "none", "ensemble_every": None, "ensemble_decay": None,
                                          "rtc_delay_ticks": None, "injected_delay_ticks": None}
 
 
 def test_the_model_source_shows_the_newest_chunk_and_logs_its_smoothing():
     p = FakePolicy()
-    source = ModelPolicy(p, 10.0, seed=0, smoothing="ensemble", ensemble_decay=0.0)
+    source = ModelPolicy(p, 10.0, seed=0, schedule=Ensemble(decay=0.0))
     assert source.describe() == {"policy": "model", "denoise_steps": 3, "smoothing": "ensemble", "ensemble_every": 1,
                                  "ensemble_decay": 0.0, "rtc_delay_ticks": None, "injected_delay_ticks": None}
     source.reset(np.zeros(1))
@@ -258,8 +264,8 @@ def test_metaworlds_direct_loop_ensembles_too():
             return np.zeros((1, self.horizon, 4), np.float32)
 
     p = Still()
-    p.control_rate_hz = None  # made for no rate: the loop runs at the env's without a warning
+    p.contract = dataclasses.replace(p.contract, control_rate_hz=None)  # made for no rate: the loop runs at the env's without a warning
     with mw.MetaWorldEnv("metaworld/reach", seed=0) as env:
-        outcome = run_direct_episode(p, env, 0, mw.cloud_config(512), smoothing={"smoothing": "ensemble"})
+        outcome = run_direct_episode(p, env, 0, mw.cloud_config(512), schedule=Ensemble())
     assert outcome.holds == 0 and outcome.steps == len(p.seeds) == len(p.history) > 1
     assert p.seeds == list(range(len(p.seeds)))  # the episode's seed (0) + the tick

@@ -1,22 +1,22 @@
 """``dssp-run``: run an exported DSSP model on the robot (or on the embedded simulated one).
 
     dssp-run --model MODEL_DIR | --policy NAME[:ARG]  --camera l515|d435|d405|file:PATH|tabletop --can can0[,can1]|sim[:2]
-             [--rate HZ] [--extrinsics FILE] [--pointcloud FILE] [--safety FILE] [--max-steps N] [--dry-run]
-             [--log-dir DIR] [--prefetch | --smoothing none|ensemble [--ensemble-every N] [--ensemble-decay M]]
+             [--control-rate HZ] [--extrinsics FILE] [--pointcloud FILE] [--safety FILE] [--max-steps N] [--dry-run]
+             [--log-dir DIR] [--prefetch | --smoothing none|ensemble|rtc [--ensemble-every N] [--ensemble-decay M]]
              [--threads N] [--precision fp32|int8|int4] [--kernel auto|fused|standard] [--seed S] [--serial SERIAL] [--interface socketcan]
              [--allow-mismatch FIELD ...] [--rerun [URL]] [--rerun-save PATH.rrd]
 
 Opens the camera and the arm(s), warms the model up, then runs the control loop (``hardware.run_loop``):
 the history every tick, a new chunk every H_a ticks (``--smoothing ensemble``: a chunk every ``--ensemble-every``
 ticks, the action the weighted mean of the kept chunks' predictions for the tick,
-:mod:`dssp_deploy.control_loop`), every command through the safety layer. ``--policy NAME[:ARG]``
+:mod:`dssp_deploy.schedules`), every command through the safety layer. ``--policy NAME[:ARG]``
 runs another policy source of :data:`hardware.policies.REGISTRY` in the same loop instead of a model (``hold``: the
 arm held where it starts, a check of the rig; ``episode:PATH.zarr@K``: a recorded episode's actions). Prints a
 live one-line status, writes the episode log (``hardware.run_log``) and ends with a summary; ``--rerun`` /
 ``--rerun-save`` also show each tick in Rerun (:mod:`dssp_data.rerun_views`).
 The model carries its observation contract (``dssp_model.json`` ``observation`` and ``control_rate_hz``: the
 point-cloud settings, the state/action layout per arm, the control rate); its point-cloud settings are the
-default, and a setup that contradicts it (``--pointcloud``, ``--can`` with another number of arms, ``--rate``)
+default, and a setup that contradicts it (``--pointcloud``, ``--can`` with another number of arms, ``--control-rate``)
 is refused before anything is opened, one line naming the field, both values and ``--allow-mismatch FIELD``.
 Every way the process is stopped — any signal whose default would end it (SIGINT, SIGTERM, SIGHUP, SIGQUIT, ...),
 or stdout/stderr going away — is one stop request (:mod:`hardware.cli.stops`): the loop ends in its final hold (and
@@ -31,12 +31,11 @@ import argparse
 import contextlib
 import sys
 import time
-import warnings
 from pathlib import Path
 
 # Only the standard library and the core (dssp_core, no numpy) load before main() installs the stop request
 # (hardware.cli.stops): a Ctrl-C during the heavier imports (numpy, the runtime) is then a clean stop.
-from dssp_core.schema import check_rate
+from dssp_core.schema import DEFAULT_CONTROL_RATE_HZ, check_rate
 from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import ConfigError, OutputError
 from dssp_core.output_guard import OutputKind, check_output, claim_dir
@@ -68,16 +67,16 @@ def parse_args(argv):
     p.add_argument("--serial", help="RealSense serial number, when several are connected")
     p.add_argument("--can", default="sim", help="can0[,can1] (one bus per arm: left, right) | sim | sim:2 (default: sim)")
     p.add_argument("--interface", default="socketcan", type=interface_name, help="python-can interface of real buses (default: socketcan)")
-    p.add_argument("--rate", type=float, help="control rate in Hz (default: the model's training rate)")
+    p.add_argument("--control-rate", type=float, help="control rate in Hz (default: the model's training rate)")
     p.add_argument("--extrinsics", type=Path, help="camera→robot-base calibration JSON (needed with a real camera or a recording)")
     p.add_argument("--pointcloud", type=Path, help="point-cloud pipeline settings JSON (crop box, voxel, clip)")
     p.add_argument("--safety", type=Path, help="safety settings JSON (hardware.safety.SafetyConfig fields)")
     p.add_argument("--max-steps", type=int, help="stop after N ticks (default: until Ctrl-C)")
     p.add_argument("--dry-run", action="store_true", help="compute and log actions, send nothing")
     p.add_argument("--prefetch", action="store_true", help="compute each chunk early in a background thread")
-    from dssp_deploy.control_loop import add_smoothing_arguments  # deferred: loads numpy
+    from hardware.cli.schedule_flags import add_schedule_arguments  # deferred: loads numpy
 
-    add_smoothing_arguments(p, also="not with --prefetch")
+    add_schedule_arguments(p, also="not with --prefetch")
     p.add_argument("--threads", type=int, help="ONNX Runtime threads (default: all CPUs)")
     from dssp_deploy.onnx_policy import add_runtime_arguments  # deferred: loads numpy
 
@@ -98,36 +97,27 @@ def parse_args(argv):
     return p.parse_args(argv)
 
 
-def check_args(args) -> None:
-    """Flags that can be judged without opening anything; one line each, before any device or model is touched."""
+def check_args(args):
+    """Flags judged without opening anything (one line each, before any device or model is touched); the schedule."""
     from dssp_deploy.sessions import check_threads  # deferred: loads numpy
     from hardware.camera import check_camera_spec  # deferred: loads numpy
+    from hardware.cli.schedule_flags import model_flags_given, schedule_of  # deferred: loads numpy
 
     check_camera_spec(args.camera, args.serial)
     if args.policy is not None:
         from hardware.policies import split_spec  # deferred: loads numpy
 
         split_spec(args.policy)
-        from dssp_deploy.control_loop import model_flags_given  # deferred: loads numpy
-
         given = model_flags_given(args, ("--prefetch", args.prefetch), ("--allow-mismatch", bool(args.allow_mismatch)),
                                   ("--threads", args.threads is not None), ("--seed", args.seed is not None))
         if given:
             raise ConfigError(f"{given[0]} is a model's setting: it goes with --model, not --policy {args.policy}")
-    from dssp_deploy.control_loop import check_smoothing_arguments  # deferred: loads numpy
-
-    check_smoothing_arguments(args)
-    if args.smoothing == "ensemble" and args.prefetch:
-        raise ConfigError("--prefetch does not combine with --smoothing ensemble: ensembling computes each chunk in the "
-                          "tick that first uses it; run one or the other")
-    if args.smoothing == "rtc" and args.prefetch:
-        raise ConfigError("--prefetch does not combine with --smoothing rtc: real-time chunking computes the next chunk "
-                          "in the background itself; drop --prefetch")
+    schedule = schedule_of(args)
     from hardware.subscribers import check_subscribers  # deferred: loads numpy
 
     check_subscribers(args.subscribe)
-    if args.rate is not None:
-        check_rate(args.rate)
+    if args.control_rate is not None:
+        check_rate(args.control_rate)
     if args.max_steps is not None and args.max_steps < 1:
         raise ConfigError(f"--max-steps must be at least 1, got {args.max_steps}")
     check_threads(args.threads)
@@ -139,18 +129,19 @@ def check_args(args) -> None:
     for field in args.allow_mismatch:
         if field not in known:
             raise ConfigError(f"--allow-mismatch {field}: not a field of the observation contract; one of {', '.join(known)}")
+    return schedule
 
 
 def control_rate(args, policy) -> float:
-    """--rate, else the rate the model's training data was recorded at; a model without one needs --rate.
-    (A --rate that contradicts the model's is refused with the rest of the contract, in _run.)"""
-    if args.rate is not None:
-        return args.rate
-    if policy.control_rate_hz is None:
-        raise ConfigError(f"{args.model} records no control rate (its dataset had none): pass --rate HZ, the rate "
+    """--control-rate, else the rate the model's training data was recorded at; a model without one needs --control-rate.
+    (A --control-rate that contradicts the model's is refused with the rest of the contract, in _run.)"""
+    if args.control_rate is not None:
+        return args.control_rate
+    if policy.contract.control_rate_hz is None:
+        raise ConfigError(f"{args.model} records no control rate (its dataset had none): pass --control-rate HZ, the rate "
                           "the demonstrations were recorded at")
 
-    return check_rate(policy.control_rate_hz, flag=f"{args.model}'s control_rate_hz")
+    return check_rate(policy.contract.control_rate_hz, flag=f"{args.model}'s control_rate_hz")
 
 
 def log_stamp() -> str:
@@ -187,31 +178,14 @@ def lock_log_dir(log_dir: Path | None, stack: contextlib.ExitStack) -> Path:
     raise ConfigError(f"{chosen.parent} holds 999 logs named {chosen.name}[-N]; pass --log-dir DIR")
 
 
-def check_prefetch(policy, rate: float) -> float:
-    """--prefetch: the chunk latency (ms, measured once here, before any device opens) and that the lead it needs
-    at ``rate`` fits the model's horizon; one line otherwise. The run's loop chooses its lead from the same value."""
-
-    from dssp_deploy.control_loop import ChunkedControl  # deferred: loads numpy
-
-    with warnings.catch_warnings():  # a rate other than the model's is warned about once, by the loop itself
-        warnings.simplefilter("ignore")
-        chunk_ms = ChunkedControl(policy, rate_hz=rate).measure_chunk_ms()
-        try:
-            ChunkedControl(policy, rate_hz=rate, prefetch=True, chunk_ms_estimate=chunk_ms)
-        except ValueError as exc:
-            raise ConfigError(f"--prefetch at {rate:g} Hz: {exc}") from None
-    return chunk_ms
-
-
-def model_source(args, described, cloud_config, safety_config, stops: Stops):
+def model_source(args, schedule, described, cloud_config, safety_config, stops: Stops):
     """``--model``: (the model's policy source, the point-cloud settings, the control rate, what the log says of it),
-    the model loaded and warmed up and the setup checked against its observation contract — one line for what
-    contradicts it, before any device opens."""
+    the model loaded and warmed up, the setup checked against its observation contract and ``schedule`` against the
+    model — one line for what contradicts them, before any device opens."""
     from dssp_data.observation import FRAME_ROBOT_BASE, ObservationContract, check_contract  # deferred: loads numpy
-    from dssp_deploy.control_loop import check_ensemble_every, smoothing_options  # deferred: loads numpy
-    from dssp_deploy.manifest import observation_of  # deferred: loads numpy
     from dssp_deploy.onnx_policy import OnnxPolicy  # deferred: loads numpy
     from dssp_data.pointcloud import PointCloudConfig  # deferred: loads numpy
+    from hardware.cli.schedule_flags import refusal  # deferred: loads numpy
     from hardware.policies.exported_model import ModelPolicy  # deferred: loads numpy
 
     if not args.quiet and sys.stderr.isatty():  # a progress note for a person; logs and scripts get only the result
@@ -220,48 +194,41 @@ def model_source(args, described, cloud_config, safety_config, stops: Stops):
                         background_chunks=args.prefetch or args.smoothing == "rtc",
                         spinning=False if args.no_spin else None)
     stops.check()
-    trained = observation_of(policy.manifest)
+    trained = policy.contract.observation
     if cloud_config is None:  # the model's own settings; a model from data that recorded none: the defaults
-        cloud_config = trained.pointcloud or PointCloudConfig(n_points=policy.manifest["model_config"]["n_points"])
+        cloud_config = trained.pointcloud or PointCloudConfig(n_points=policy.contract.n_points)
     rate = control_rate(args, policy)
-    check_ensemble_every(args.ensemble_every, policy, args.model)
     safety_config.check_speed(rate, described.max_joint_speed)  # before the prefetch lead is measured at this rate
-    chunk_ms = check_prefetch(policy, rate) if args.prefetch else None  # a lead the rate cannot hold: refused here
     given = ObservationContract(pointcloud=cloud_config, frame=FRAME_ROBOT_BASE, state=described.layout,
                                 action=described.layout)
     pointcloud_by = f"--pointcloud {args.pointcloud}" if args.pointcloud else "the default point-cloud settings"
     overrides = check_contract(trained, given, trained_by=f"the model {args.model}", allow=args.allow_mismatch,
                                given_by={"pointcloud": pointcloud_by, "frame": "the point-cloud pipeline",
                                          "state": f"--can {args.can}", "action": f"--can {args.can}",
-                                         "control_rate_hz": "--rate"},
-                               extra=[("control_rate_hz", policy.control_rate_hz, args.rate)])
+                                         "control_rate_hz": "--control-rate"},
+                               extra=[("control_rate_hz", policy.contract.control_rate_hz, args.control_rate)])
     for o in overrides:
         print(f"warning: running with {o['field']} = {o['given']} although the model was trained with {o['trained']} "
               "(--allow-mismatch)", file=sys.stderr)
-    try:  # real-time chunking measures the chunk here and refuses a model or rate it cannot serve
-        source = ModelPolicy(policy, rate, prefetch=args.prefetch, seed=args.seed, chunk_ms=chunk_ms,
-                             **smoothing_options(args))  # the smoothing is in the log: source.describe()
+    try:  # the prefetch lead or real-time chunking's delay measured once, here: a model or rate it cannot serve refused
+        source = ModelPolicy(policy, rate, seed=args.seed, schedule=schedule)  # the schedule is in the log: describe()
     except ValueError as exc:
-        raise ConfigError(f"--smoothing {args.smoothing}: {exc}") from None
+        raise refusal(exc, f"--prefetch at {rate:g} Hz" if args.prefetch else f"--smoothing {args.smoothing}") from None
     about = {"model": str(args.model), "policy": source.describe(),
-             "manifest": {k: policy.manifest[k] for k in ("denoise_steps", "control_rate_hz") if k in policy.manifest},
+             "manifest": {"denoise_steps": policy.contract.denoise_steps, "control_rate_hz": policy.contract.control_rate_hz},
              "observation": trained.to_manifest(), "allowed_mismatches": overrides}
     return source, cloud_config, rate, about
 
 
-DEFAULT_RATE_HZ = 10.0
-"""``--policy`` with a source made for no rate (``hold``) and no ``--rate``: a rate that holds nothing it could
-spoil (a model's rate is never guessed: a model without one needs --rate)."""
-
-
 def other_source_rate(args, source) -> float:
-    """``--policy``: --rate, else the rate the source was made for (a recording's), else :data:`DEFAULT_RATE_HZ`."""
-
-    if args.rate is not None:
-        return args.rate
+    """``--policy``: --control-rate, else the rate the source was made for (a recording's), else
+    :data:`~dssp_core.schema.DEFAULT_CONTROL_RATE_HZ` (a source made for no rate, ``hold``: a rate that holds nothing
+    it could spoil; a model's rate is never guessed: a model without one needs --control-rate)."""
+    if args.control_rate is not None:
+        return args.control_rate
     if source.control_rate_hz is not None:
         return check_rate(source.control_rate_hz, flag=f"--policy {args.policy}: the recording's control_rate_hz")
-    return DEFAULT_RATE_HZ
+    return DEFAULT_CONTROL_RATE_HZ
 
 
 def run(args, stops: Stops | None = None) -> int:
@@ -271,7 +238,7 @@ def run(args, stops: Stops | None = None) -> int:
 
 def _run(args, stops: Stops) -> int:
     stops.check()
-    check_args(args)
+    schedule = check_args(args)
     from hardware.camera import TABLETOP, open_camera  # deferred: loads numpy
     from hardware.can_log import BusRecorder  # deferred: loads can
     from hardware.piper.piper_robot import open_robot  # deferred: loads can
@@ -293,8 +260,8 @@ def _run(args, stops: Stops) -> int:
         safety_config = SafetyConfig.load(args.safety, "safety") if args.safety else SafetyConfig()
         robot = open_robot(args.can, interface=args.interface)  # not connected yet: what it is, from itself
         described = robot.description
-        if args.rate is not None:
-            safety_config.check_speed(args.rate, described.max_joint_speed)
+        if args.control_rate is not None:
+            safety_config.check_speed(args.control_rate, described.max_joint_speed)
         simulated_camera = args.camera.strip().lower() == TABLETOP
         if args.extrinsics:
             camera_to_base = load_extrinsics(args.extrinsics)
@@ -305,7 +272,7 @@ def _run(args, stops: Stops) -> int:
             )
         cloud_config = PointCloudConfig.load(args.pointcloud, "point-cloud settings") if args.pointcloud else None
         if args.model is not None:
-            source, cloud_config, rate, about = model_source(args, described, cloud_config, safety_config, stops)
+            source, cloud_config, rate, about = model_source(args, schedule, described, cloud_config, safety_config, stops)
         else:
             from hardware.policies import open_policy  # deferred: loads numpy
 
@@ -316,7 +283,7 @@ def _run(args, stops: Stops) -> int:
             about = {"policy": source.describe()}
         source.check(described, cloud_config)  # before any device is opened
         stops.check()
-        settings = LoopSettings(rate_hz=rate, max_steps=args.max_steps, dry_run=args.dry_run)
+        settings = LoopSettings(control_rate_hz=rate, max_steps=args.max_steps, dry_run=args.dry_run)
         if args.model is not None:
             print(f"graphs: {source.policy.kernel_note}", file=sys.stderr)  # which graphs run: the one start-up line about them
         views = open_views("dssp-run", args.rerun, args.rerun_save)  # flags checked (and a viewer started) before any device

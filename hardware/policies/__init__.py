@@ -1,6 +1,6 @@
 """What decides the action on each tick of the control loop: policy sources.
 
-    runner = Runner(ModelPolicy(onnx_policy, rate_hz=10), rig, cloud_config, settings)   # dssp-run, dssp-sim eval
+    runner = Runner(ModelPolicy(onnx_policy, control_rate_hz=10), rig, cloud_config, settings)   # dssp-run, dssp-sim eval
     runner = Runner(RecordedEpisode.load("pick.zarr", 3), rig, None, settings)             # dssp-replay
     runner = Runner(open_policy("hold"), rig, cloud_config, settings)                      # dssp-run --policy hold
     runner = Runner(LeaderArm(monitors), rig, None, settings, subscribers=[session])       # dssp-record
@@ -31,7 +31,7 @@ import numpy as np
 
 from dssp_core.errors import ConfigError
 
-if TYPE_CHECKING:  # annotations only: the loop's modules import this one
+if TYPE_CHECKING:  # annotations only: checking --policy (split_spec) loads neither
     from dssp_data.pointcloud import PointCloudConfig
     from hardware.robot import RobotDescription
 
