@@ -17,7 +17,8 @@ precision the bytes of denoiser weights one chunk reads (``dssp_deploy.profile.r
 cached prefix), the floor they imply, the achieved chunk and the ratio — on a CPU with VNNI also the fused int8
 chunk with the AVX2 paths forced (``DSSP_QGEMM_PATH=avx2 DSSP_SCAN_PATH=avx2``). ``--k1-model`` (the same run
 exported with ``--denoise-steps 1``, the distilled samplers' shape) adds its fused chunk on each path, the prefix and
-the step in one pass over the weights. ``--plot`` draws achieved against floor. Ratios are of medians measured in this run. DSSP against DP3, like for like, is
+the step in one pass over the weights. ``--plot`` draws achieved against floor. Ratios are of medians measured in this
+run. DSSP against DP3, like for like, is
 ``benchmarks/dp3_comparison.py``.
 Prints the targets table (the robotwin preset's targets on a 2-core CPU); ``--json`` writes every figure.
 The runtime-only figures, without torch, are ``dssp-profile MODEL_DIR``.
@@ -37,7 +38,6 @@ from bench_output import check_json, emit  # noqa: E402
 from torch_comparison import check_source, eager_samples  # noqa: E402
 
 from dssp_core import machine  # noqa: E402
-from studies.protocol import code_commit  # noqa: E402
 from dssp_core.cli_runner import ArgumentParser, run_cli  # noqa: E402
 from dssp_core.errors import ConfigError  # noqa: E402
 from dssp_deploy.latency import LatencyStats, memory_read_gbs, time_calls  # noqa: E402
@@ -45,6 +45,7 @@ from dssp_deploy.manifest import PRECISIONS, Manifest, file_kind, read_manifest 
 from dssp_deploy.onnx_policy import DEFAULT_PRECISION, OnnxPolicy  # noqa: E402
 from dssp_deploy.profile import paths_and_threads, prefetch_ticks, random_observation, roofline  # noqa: E402
 from dssp_deploy.sessions import check_threads, default_threads  # noqa: E402
+from studies.protocol import code_commit  # noqa: E402
 
 FULL = {"history": 300, "chunks": 30, "prefetch_ticks": 300, "torch_iterations": 10}
 QUICK = {"history": 20, "chunks": 3, "prefetch_ticks": 20, "torch_iterations": 2}
@@ -74,8 +75,15 @@ def runtime_figures(model_dir: Path, precision: str, threads: int, settings: dic
             if row["threads"] == threads and (row["kernel"] == "fused" or not no_spin):
                 key = row["kernel"] + (NO_SPIN if no_spin else "")
                 out.setdefault(key, {"precision": {}})["precision"][p] = row
-    for kernel, r in out.items():  # the prefetched chunk: as the runtime runs it (spinning when it has 2 threads or more)
-        r["prefetch"] = None if kernel.endswith(NO_SPIN) else prefetch_ticks(model_dir, precision, kernel, threads, settings["prefetch_ticks"], rng)
+    for (
+        kernel,
+        r,
+    ) in out.items():  # the prefetched chunk: as the runtime runs it (spinning when it has 2 threads or more)
+        r["prefetch"] = (
+            None
+            if kernel.endswith(NO_SPIN)
+            else prefetch_ticks(model_dir, precision, kernel, threads, settings["prefetch_ticks"], rng)
+        )
     return out
 
 
@@ -104,15 +112,25 @@ def fused_chunk(model_dir: Path, precision: str, threads: int, chunks: int, env:
                 os.environ[k] = v
 
 
-def roofline_figures(model_dir: Path, manifest: Manifest, runtime: dict, precision: str, threads: int, settings: dict,
-                     read_gbs: float, k1_model: Path | None) -> dict:
+def roofline_figures(
+    model_dir: Path,
+    manifest: Manifest,
+    runtime: dict,
+    precision: str,
+    threads: int,
+    settings: dict,
+    read_gbs: float,
+    k1_model: Path | None,
+) -> dict:
     """{graph set: {precision: roofline row}} for every chunk measured, the forced AVX2 one on a VNNI CPU, and the
     one-step model's fused chunk (``--k1-model``) on each path."""
     out = {}
     for kernel, r in runtime.items():
         fused = kernel.startswith("fused")
-        out[kernel] = {p: roofline(model_dir, manifest, file_kind(p, fused), row["chunk_p50"], read_gbs)
-                       for p, row in r["precision"].items()}
+        out[kernel] = {
+            p: roofline(model_dir, manifest, file_kind(p, fused), row["chunk_p50"], read_gbs)
+            for p, row in r["precision"].items()
+        }
     paths = {FUSED: None} | ({FORCED: FORCED_AVX2} if "fused" in runtime and has_vnni() else {})
     for name, env in paths.items():
         if name == FORCED:
@@ -125,7 +143,9 @@ def roofline_figures(model_dir: Path, manifest: Manifest, runtime: dict, precisi
     return out
 
 
-def measure(model_dir: Path, checkpoint: Path, threads: int, precision: str, quick: bool, k1_model: Path | None = None) -> dict:
+def measure(
+    model_dir: Path, checkpoint: Path, threads: int, precision: str, quick: bool, k1_model: Path | None = None
+) -> dict:
     settings = QUICK if quick else FULL
     torch.set_num_threads(threads)
     manifest = read_manifest(model_dir)
@@ -134,69 +154,137 @@ def measure(model_dir: Path, checkpoint: Path, threads: int, precision: str, qui
     lines = roofline_figures(model_dir, manifest, runtime, precision, threads, settings, read_gbs, k1_model)
     policy = OnnxPolicy(model_dir, threads=threads, precision=precision, kernel="standard", warmup=0)
     pc, pos = (torch.from_numpy(a) for a in random_observation(policy, np.random.default_rng(0)))
-    eager = eager_samples(checkpoint, manifest, pc, pos, {"iterations": settings["history"], "torch_iterations": settings["torch_iterations"]})
+    eager = eager_samples(
+        checkpoint,
+        manifest,
+        pc,
+        pos,
+        {"iterations": settings["history"], "torch_iterations": settings["torch_iterations"]},
+    )
     eager = {k: LatencyStats.of(v).to_dict() for k, v in eager.items()}
-    return {"model_dir": str(model_dir), "checkpoint": str(checkpoint), "threads": threads, "precision": precision,
-            "settings": settings, "runtime": runtime, "eager_torch": eager, "targets": TARGETS,
-            "machine": machine.describe(), "denoise_steps": manifest.contract.denoise_steps, "torch_threads": torch.get_num_threads(),
-            "read_gbs": read_gbs, "roofline": lines, "rows": rows(runtime, eager, precision, lines),
-            "code_commit": code_commit(), "model_source": manifest.data["source"],
-            "k1_model": str(k1_model) if k1_model else None}
+    return {
+        "model_dir": str(model_dir),
+        "checkpoint": str(checkpoint),
+        "threads": threads,
+        "precision": precision,
+        "settings": settings,
+        "runtime": runtime,
+        "eager_torch": eager,
+        "targets": TARGETS,
+        "machine": machine.describe(),
+        "denoise_steps": manifest.contract.denoise_steps,
+        "torch_threads": torch.get_num_threads(),
+        "read_gbs": read_gbs,
+        "roofline": lines,
+        "rows": rows(runtime, eager, precision, lines),
+        "code_commit": code_commit(),
+        "model_source": manifest.data["source"],
+        "k1_model": str(k1_model) if k1_model else None,
+    }
 
 
 def rows(runtime: dict, eager: dict, precision: str, lines: dict) -> list[dict]:
     """The targets table: per figure, the value on each graph set and the target."""
+
     def per_kernel(fn):
         return {k: fn(r) for k, r in runtime.items()}
 
     chunk = per_kernel(lambda r: r["precision"][precision]["chunk_p50"])
     out = [
-        {"figure": f"chunk, K = {{k}}, {precision}, p50 ms", "values": chunk, "target": "<= 25 (required <= 50)",
-         "met": {k: v <= TARGETS["chunk_ms"][0] for k, v in chunk.items()},
-         "required_met": {k: v <= TARGETS["chunk_ms"][1] for k, v in chunk.items()}},
-        {"figure": "history step, fp32, p50 ms", "values": per_kernel(lambda r: r["precision"]["fp32"]["history_step_p50"]),
-         "target": "<= 1.5"},
-        {"figure": f"history step, {precision}, p50 ms",
-         "values": per_kernel(lambda r: r["precision"][precision]["history_step_p50"]), "target": "<= 1"},
-        {"figure": "ONNX Runtime vs eager PyTorch per chunk (eager fp32 / ORT)",
-         "values": per_kernel(lambda r: eager["denoiser_chunk"]["p50"] / r["precision"][precision]["chunk_p50"]), "target": ">= 5x"},
-        {"figure": "tick p99 with prefetch / history step p99",
-         "values": per_kernel(lambda r: r["prefetch"]["tick_p99_over_history_p99"] if r["prefetch"] else None), "target": "<= 1.5x"},
-        {"figure": f"chunk floor, {precision}: the denoiser's weights read {{passes}} times a chunk, ms",
-         "values": {k: lines[k][precision]["floor_ms"] for k in runtime}, "target": ""},
-        {"figure": f"chunk / floor, {precision}", "values": {k: lines[k][precision]["ratio"] for k in runtime},
-         "target": "<= 1.5x"},
+        {
+            "figure": f"chunk, K = {{k}}, {precision}, p50 ms",
+            "values": chunk,
+            "target": "<= 25 (required <= 50)",
+            "met": {k: v <= TARGETS["chunk_ms"][0] for k, v in chunk.items()},
+            "required_met": {k: v <= TARGETS["chunk_ms"][1] for k, v in chunk.items()},
+        },
+        {
+            "figure": "history step, fp32, p50 ms",
+            "values": per_kernel(lambda r: r["precision"]["fp32"]["history_step_p50"]),
+            "target": "<= 1.5",
+        },
+        {
+            "figure": f"history step, {precision}, p50 ms",
+            "values": per_kernel(lambda r: r["precision"][precision]["history_step_p50"]),
+            "target": "<= 1",
+        },
+        {
+            "figure": "ONNX Runtime vs eager PyTorch per chunk (eager fp32 / ORT)",
+            "values": per_kernel(lambda r: eager["denoiser_chunk"]["p50"] / r["precision"][precision]["chunk_p50"]),
+            "target": ">= 5x",
+        },
+        {
+            "figure": "tick p99 with prefetch / history step p99",
+            "values": per_kernel(lambda r: r["prefetch"]["tick_p99_over_history_p99"] if r["prefetch"] else None),
+            "target": "<= 1.5x",
+        },
+        {
+            "figure": f"chunk floor, {precision}: the denoiser's weights read {{passes}} times a chunk, ms",
+            "values": {k: lines[k][precision]["floor_ms"] for k in runtime},
+            "target": "",
+        },
+        {
+            "figure": f"chunk / floor, {precision}",
+            "values": {k: lines[k][precision]["ratio"] for k in runtime},
+            "target": "<= 1.5x",
+        },
     ]
     if FUSED + K1 in lines:
-        out.insert(1, {"figure": f"chunk, K = 1, {precision}, p50 ms", "values": {FUSED: lines[FUSED + K1][precision]["chunk_ms"]},
-                       "target": "<= 3"})
+        out.insert(
+            1,
+            {
+                "figure": f"chunk, K = 1, {precision}, p50 ms",
+                "values": {FUSED: lines[FUSED + K1][precision]["chunk_ms"]},
+                "target": "<= 3",
+            },
+        )
     return out
 
 
 def markdown(report: dict) -> str:
     kernels = list(report["runtime"])
     k = report["denoise_steps"]
-    head = {"fused": "fused Mamba kernel", "fused" + NO_SPIN: "fused, --no-spin", "standard": "standard graphs",
-            FORCED: "fused, AVX2 paths forced", FUSED + K1: "fused, K = 1", FORCED + K1: "fused, AVX2 paths forced, K = 1"}
+    head = {
+        "fused": "fused Mamba kernel",
+        "fused" + NO_SPIN: "fused, --no-spin",
+        "standard": "standard graphs",
+        FORCED: "fused, AVX2 paths forced",
+        FUSED + K1: "fused, K = 1",
+        FORCED + K1: "fused, AVX2 paths forced, K = 1",
+    }
     m = report["machine"]
-    lines = [f"Model: {Path(report['model_dir']).name} — batch 1, {report['threads']} thread(s), medians of one run; {m['cpu']} "
-             f"({m['cores']} cores, {', '.join(m['cpu_flags']) or 'no AVX2'}), onnxruntime {m.get('onnxruntime')}", "",
-             "| figure | " + " | ".join(head[k] for k in kernels) + " | target |", "|---|" + "---:|" * len(kernels) + "---|"]
+    lines = [
+        f"Model: {Path(report['model_dir']).name} — batch 1, {report['threads']} thread(s), medians of one run; {m['cpu']} "
+        f"({m['cores']} cores, {', '.join(m['cpu_flags']) or 'no AVX2'}), onnxruntime {m.get('onnxruntime')}",
+        "",
+        "| figure | " + " | ".join(head[k] for k in kernels) + " | target |",
+        "|---|" + "---:|" * len(kernels) + "---|",
+    ]
     passes = next(iter(next(iter(report["roofline"].values())).values()))["passes"] if report.get("roofline") else k
     for row in report["rows"]:
         cells = " | ".join(f"{row['values'][k]:.2f}" if row["values"].get(k) is not None else "-" for k in kernels)
         lines.append(f"| {row['figure'].format(k=k, passes=passes)} | {cells} | {row['target']} |")
     if report.get("roofline"):
-        lines += ["", f"Roofline: read bandwidth {report['read_gbs']:.1f} GB/s (one core, numpy summing 256 MiB); a chunk "
-                  f"reads the denoiser's weights {passes} times (K = {k} steps and the cached prefix):", "",
-                  "| graphs | precision | weights MiB | floor ms | chunk p50 ms | chunk / floor |", "|---|---|---:|---:|---:|---:|"]
+        lines += [
+            "",
+            f"Roofline: read bandwidth {report['read_gbs']:.1f} GB/s (one core, numpy summing 256 MiB); a chunk "
+            f"reads the denoiser's weights {passes} times (K = {k} steps and the cached prefix):",
+            "",
+            "| graphs | precision | weights MiB | floor ms | chunk p50 ms | chunk / floor |",
+            "|---|---|---:|---:|---:|---:|",
+        ]
         for kernel, by_precision in report["roofline"].items():
             for p, r in by_precision.items():
-                lines.append(f"| {head.get(kernel, kernel)} | {p} | {r['weights_mib']:.1f} | {r['floor_ms']:.2f} | "
-                             f"{r['chunk_ms']:.2f} | {r['ratio']:.2f} |")
+                lines.append(
+                    f"| {head.get(kernel, kernel)} | {p} | {r['weights_mib']:.1f} | {r['floor_ms']:.2f} | "
+                    f"{r['chunk_ms']:.2f} | {r['ratio']:.2f} |"
+                )
     eager = report["eager_torch"]
-    lines += ["", f"PyTorch eager (fp32, {report['torch_threads']} threads): chunk {eager['denoiser_chunk']['p50']:.1f} ms, "
-              f"history step {eager['history_step']['p50']:.2f} ms"]
+    lines += [
+        "",
+        f"PyTorch eager (fp32, {report['torch_threads']} threads): chunk {eager['denoiser_chunk']['p50']:.1f} ms, "
+        f"history step {eager['history_step']['p50']:.2f} ms",
+    ]
     for kernel, r in report["runtime"].items():
         pf = r["prefetch"]
         if pf is None:
@@ -204,8 +292,10 @@ def markdown(report: dict) -> str:
         if not pf["possible"]:
             lines.append(f"{head[kernel]}: prefetch not possible ({pf['reason']})")
             continue
-        lines.append(f"{head[kernel]}: prefetched tick p50 {pf['tick']['p50']:.2f} / p99 {pf['tick']['p99']:.2f} ms, history step alone p99 "
-                     f"{pf['history_step_alone']['p99']:.2f} ms, chunks late {pf['chunks_late']} of {pf['ticks']} ticks")
+        lines.append(
+            f"{head[kernel]}: prefetched tick p50 {pf['tick']['p50']:.2f} / p99 {pf['tick']['p99']:.2f} ms, history step alone p99 "
+            f"{pf['history_step_alone']['p99']:.2f} ms, chunks late {pf['chunks_late']} of {pf['ticks']} ticks"
+        )
     return "\n".join(lines)
 
 
@@ -215,9 +305,12 @@ def plot_roofline(report: dict, path: Path, force: bool) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
     from dssp_core.output_guard import write_output_file
 
-    rows = [(f"{kernel}\n{p}", r) for kernel, by_precision in report["roofline"].items() for p, r in by_precision.items()]
+    rows = [
+        (f"{kernel}\n{p}", r) for kernel, by_precision in report["roofline"].items() for p, r in by_precision.items()
+    ]
     fig, ax = plt.subplots(figsize=(1.6 * len(rows) + 2, 4))
     x = np.arange(len(rows))
     ax.bar(x - 0.2, [r["chunk_ms"] for _, r in rows], 0.4, label="chunk p50")
@@ -227,8 +320,10 @@ def plot_roofline(report: dict, path: Path, force: bool) -> None:
     ax.set_xticks(x, [label for label, _ in rows], fontsize=8)
     ax.set_ylabel("ms per chunk")
     m = report["machine"]
-    ax.set_title(f"{Path(report['model_dir']).name}: {m['cpu']} ({', '.join(m['cpu_flags'])}), {report['threads']} threads",
-                 fontsize=9)
+    ax.set_title(
+        f"{Path(report['model_dir']).name}: {m['cpu']} ({', '.join(m['cpu_flags'])}), {report['threads']} threads",
+        fontsize=9,
+    )
     ax.legend(fontsize=8)
     fig.tight_layout()
     write_output_file(path, lambda tmp: fig.savefig(tmp, format="png", dpi=100), force=force, flag="--plot")
@@ -238,12 +333,21 @@ def plot_roofline(report: dict, path: Path, force: bool) -> None:
 def main(argv: list[str] | None = None) -> int:
     p = ArgumentParser(prog="cpu_targets.py", description=__doc__.split("\n\n")[0])
     p.add_argument("model_dir", type=Path, help="a model directory (python -m export.to_onnx)")
-    p.add_argument("--checkpoint", type=Path, required=True, help="the run directory it was exported from (PyTorch eager)")
+    p.add_argument(
+        "--checkpoint", type=Path, required=True, help="the run directory it was exported from (PyTorch eager)"
+    )
     p.add_argument("--threads", type=int, help="ONNX Runtime and torch threads (default: all CPUs)")
-    p.add_argument("--precision", choices=list(PRECISIONS), default=DEFAULT_PRECISION, help=f"the chunk's graphs (default {DEFAULT_PRECISION})")
+    p.add_argument(
+        "--precision",
+        choices=list(PRECISIONS),
+        default=DEFAULT_PRECISION,
+        help=f"the chunk's graphs (default {DEFAULT_PRECISION})",
+    )
     p.add_argument("--quick", action="store_true", help="short run (tests)")
     p.add_argument("--json", type=Path, help="write every figure here (a new file; --force replaces one)")
-    p.add_argument("--plot", type=Path, help="draw each chunk against its floor (a PNG; a new file, --force replaces one)")
+    p.add_argument(
+        "--plot", type=Path, help="draw each chunk against its floor (a PNG; a new file, --force replaces one)"
+    )
     p.add_argument("--k1-model", type=Path, help="the same run exported with --denoise-steps 1: its fused chunk too")
     p.add_argument("--force", action="store_true", help="replace an existing --json or --plot file")
     args = p.parse_args(argv)
@@ -257,10 +361,18 @@ def main(argv: list[str] | None = None) -> int:
             k1 = read_manifest(args.k1_model)
             check_source(args.k1_model, args.checkpoint, k1)
             if k1.contract.denoise_steps != 1:
-                raise ConfigError(f"--k1-model {args.k1_model} runs {k1.contract.denoise_steps} DDIM steps, not 1; export it with "
-                                  "python -m export.to_onnx RUN_DIR -o DIR --denoise-steps 1 --timestep-spacing trailing")
-        report = measure(args.model_dir, args.checkpoint, args.threads or default_threads(), args.precision, args.quick,
-                         args.k1_model)
+                raise ConfigError(
+                    f"--k1-model {args.k1_model} runs {k1.contract.denoise_steps} DDIM steps, not 1; export it with "
+                    "python -m export.to_onnx RUN_DIR -o DIR --denoise-steps 1 --timestep-spacing trailing"
+                )
+        report = measure(
+            args.model_dir,
+            args.checkpoint,
+            args.threads or default_threads(),
+            args.precision,
+            args.quick,
+            args.k1_model,
+        )
         if args.plot:
             plot_roofline(report, args.plot, args.force)
         return emit(report, markdown(report), args.json, args.force)

@@ -49,16 +49,26 @@ from dssp_deploy.onnx_policy import OnnxPolicy  # noqa: E402
 from dssp_deploy.sessions import check_threads, default_threads  # noqa: E402
 
 SCALES = {
-    "paper": {"n_points": 1024, "state_dim": 14, "action_dim": 14, "models": {
-        "dssp": ("DSSP, the paper's size", "robotwin", []),
-        "dp3": ("DP3, its own size", "dp3", []),
-        "dp3_equal": ("DP3 at DSSP's parameter count", "dp3", ["model.unet_down_dims=[200,400,800]"]),
-    }},
-    "sim": {"n_points": 256, "state_dim": 7, "action_dim": 7, "models": {
-        "dssp": ("DSSP (sim preset)", "sim", []),
-        "dp3": ("DP3, its own size", "dp3", []),
-        "dp3_equal": ("DP3 at DSSP's parameter count (dp3_sim)", "dp3_sim", []),
-    }},
+    "paper": {
+        "n_points": 1024,
+        "state_dim": 14,
+        "action_dim": 14,
+        "models": {
+            "dssp": ("DSSP, the paper's size", "robotwin", []),
+            "dp3": ("DP3, its own size", "dp3", []),
+            "dp3_equal": ("DP3 at DSSP's parameter count", "dp3", ["model.unet_down_dims=[200,400,800]"]),
+        },
+    },
+    "sim": {
+        "n_points": 256,
+        "state_dim": 7,
+        "action_dim": 7,
+        "models": {
+            "dssp": ("DSSP (sim preset)", "sim", []),
+            "dp3": ("DP3, its own size", "dp3", []),
+            "dp3_equal": ("DP3 at DSSP's parameter count (dp3_sim)", "dp3_sim", []),
+        },
+    },
 }
 QUICK_OVERRIDES = {"dp3": ["model.unet_down_dims=[32,64,128]"]}  # --quick: DP3's own size is a 1 GB export
 PRECISIONS = ("fp32", "int8")
@@ -71,8 +81,13 @@ def export_model(name: str, preset: str, overrides: list[str], scale: dict, fold
     from dssp_train.training.checkpoint import load_policy
     from export.to_onnx import main as export_main
 
-    run = make_untrained_run(preset, folder / f"{name}_run", scale["state_dim"], scale["action_dim"],
-                             overrides=[f"model.n_points={scale['n_points']}", *overrides])
+    run = make_untrained_run(
+        preset,
+        folder / f"{name}_run",
+        scale["state_dim"],
+        scale["action_dim"],
+        overrides=[f"model.n_points={scale['n_points']}", *overrides],
+    )
     policy, _ = load_policy(run)
     params = sum(p.numel() for p in policy.parameters())
     del policy
@@ -96,17 +111,34 @@ def time_model(model_dir: Path, precision: str, threads: int, spinning: bool | N
     chunk = time_calls(lambda: policy.act(seed=0), repeats, warmup=WARMUP)
     med = {"step_ms": float(np.median(step)), "chunk_ms": float(np.median(chunk))}
     med["tick_ms"] = med["step_ms"] + med["chunk_ms"] / policy.contract.n_action_steps
-    return {**med, "n_action_steps": policy.contract.n_action_steps, "graphs": policy.kernel_note, "spinning": policy.spinning,
-            "step_samples_ms": [round(s, 4) for s in step], "chunk_samples_ms": [round(s, 4) for s in chunk]}
+    return {
+        **med,
+        "n_action_steps": policy.contract.n_action_steps,
+        "graphs": policy.kernel_note,
+        "spinning": policy.spinning,
+        "step_samples_ms": [round(s, 4) for s in step],
+        "chunk_samples_ms": [round(s, 4) for s in chunk],
+    }
 
 
-def compare(scale_name: str, precisions: tuple[str, ...], threads: int, spinning: bool | None, repeats: int,
-            quick: bool = False) -> dict:
+def compare(
+    scale_name: str, precisions: tuple[str, ...], threads: int, spinning: bool | None, repeats: int, quick: bool = False
+) -> dict:
     scale = SCALES[scale_name]
-    out: dict = {"scale": scale_name, "problem": {k: scale[k] for k in ("n_points", "state_dim", "action_dim")},
-                 "settings": {"threads": threads, "spinning": "runtime default" if spinning is None else spinning,
-                              "warmup": WARMUP, "repeats": repeats, "quick": quick, "batch": 1},
-                 "machine": machine.describe(), "models": {}}
+    out: dict = {
+        "scale": scale_name,
+        "problem": {k: scale[k] for k in ("n_points", "state_dim", "action_dim")},
+        "settings": {
+            "threads": threads,
+            "spinning": "runtime default" if spinning is None else spinning,
+            "warmup": WARMUP,
+            "repeats": repeats,
+            "quick": quick,
+            "batch": 1,
+        },
+        "machine": machine.describe(),
+        "models": {},
+    }
     with tempfile.TemporaryDirectory(prefix="dp3_comparison_") as tmp:
         for name, (label, preset, overrides) in scale["models"].items():
             overrides = overrides + (QUICK_OVERRIDES.get(name, []) if quick else [])
@@ -115,11 +147,18 @@ def compare(scale_name: str, precisions: tuple[str, ...], threads: int, spinning
             for precision in precisions:
                 row["precisions"][precision] = time_model(model_dir, precision, threads, spinning, repeats)
             out["models"][name] = row
-    out["ratios"] = {precision: {other: {kind: out["models"][other]["precisions"][precision][kind]
-                                         / out["models"]["dssp"]["precisions"][precision][kind]
-                                         for kind in ("tick_ms", "chunk_ms", "step_ms")}
-                                 for other in out["models"] if other != "dssp"}
-                     for precision in precisions}
+    out["ratios"] = {
+        precision: {
+            other: {
+                kind: out["models"][other]["precisions"][precision][kind]
+                / out["models"]["dssp"]["precisions"][precision][kind]
+                for kind in ("tick_ms", "chunk_ms", "step_ms")
+            }
+            for other in out["models"]
+            if other != "dssp"
+        }
+        for precision in precisions
+    }
     return out
 
 
@@ -128,7 +167,8 @@ def markdown(r: dict) -> str:
     lines = [
         f"{m['cpu']} ({m['cores']} cores); onnxruntime {m.get('onnxruntime')}; {s['threads']} threads, spinning: "
         f"{s['spinning']}; batch 1, {p['n_points']} points, state {p['state_dim']}, action {p['action_dim']}; medians of "
-        f"{s['repeats']} calls after {s['warmup']} warm-up" + (" (--quick: DP3's own size shrunk)" if s["quick"] else ""),
+        f"{s['repeats']} calls after {s['warmup']} warm-up"
+        + (" (--quick: DP3's own size shrunk)" if s["quick"] else ""),
         "",
         "| model | parameters | precision | step ms | chunk ms | tick ms (step + chunk / H_a) | DP3 / DSSP per tick | per chunk |",
         "|---|---:|---|---:|---:|---:|---:|---:|",
@@ -137,8 +177,10 @@ def markdown(r: dict) -> str:
         for precision, t in row["precisions"].items():
             ratio = r["ratios"][precision].get(name)
             cells = ("—", "—") if ratio is None else (f"{ratio['tick_ms']:.1f}x", f"{ratio['chunk_ms']:.1f}x")
-            lines.append(f"| {row['label']} | {row['params'] / 1e6:.2f} M | {precision} | {t['step_ms']:.2f} | {t['chunk_ms']:.2f} | "
-                         f"{t['tick_ms']:.2f} (H_a = {t['n_action_steps']}) | {cells[0]} | {cells[1]} |")
+            lines.append(
+                f"| {row['label']} | {row['params'] / 1e6:.2f} M | {precision} | {t['step_ms']:.2f} | {t['chunk_ms']:.2f} | "
+                f"{t['tick_ms']:.2f} (H_a = {t['n_action_steps']}) | {cells[0]} | {cells[1]} |"
+            )
     heads = []
     for name, row in r["models"].items():
         if name == "dssp":
@@ -154,9 +196,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--scale", choices=list(SCALES), default="paper", help="the models and problem size (default paper)")
     p.add_argument("--precisions", nargs="+", choices=list(PRECISIONS), default=list(PRECISIONS))
     p.add_argument("--threads", type=int, help="ONNX Runtime threads of every model (default: all CPUs)")
-    p.add_argument("--no-spin", action="store_true", help="no model's threads spin (default: the runtime's policy for all)")
+    p.add_argument(
+        "--no-spin", action="store_true", help="no model's threads spin (default: the runtime's policy for all)"
+    )
     p.add_argument("--repeats", type=int, help=f"timed calls per figure (default {REPEATS}; --quick {QUICK_REPEATS})")
-    p.add_argument("--quick", action="store_true", help=f"short run for tests: {QUICK_REPEATS} calls, DP3's own size shrunk")
+    p.add_argument(
+        "--quick", action="store_true", help=f"short run for tests: {QUICK_REPEATS} calls, DP3's own size shrunk"
+    )
     p.add_argument("--json", type=Path, help="write every figure here (a new file; --force replaces one)")
     p.add_argument("--force", action="store_true", help="replace an existing --json file")
     args = p.parse_args(argv)
@@ -167,8 +213,14 @@ def main(argv: list[str] | None = None) -> int:
         if repeats < 1:
             raise ConfigError(f"--repeats must be at least 1, got {repeats}")
         check_json(args.json, args.force)
-        report = compare(args.scale, tuple(args.precisions), args.threads or default_threads(), False if args.no_spin else None,
-                         repeats, args.quick)
+        report = compare(
+            args.scale,
+            tuple(args.precisions),
+            args.threads or default_threads(),
+            False if args.no_spin else None,
+            repeats,
+            args.quick,
+        )
         return emit(report, markdown(report), args.json, args.force)
 
     return run_cli(_main)

@@ -28,23 +28,25 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dssp_train.config import apply_overrides, load_preset
-from dssp_train.model.policy import DSSPPolicy
-from dssp_train.training import checkpoint as ckpt
+from dssp_core.cli_runner import run_cli
+from dssp_core.output_guard import OutputDir, OutputKind, check_output_file, write_output_text
 from dssp_deploy.latency import time_calls
 from dssp_deploy.manifest import FUSED, read_graph, read_manifest
 from dssp_deploy.sessions import default_threads, open_session
-from dssp_core.cli_runner import run_cli
-from dssp_core.output_guard import OutputDir, OutputKind, check_output_file, write_output_text
+from dssp_train.config import apply_overrides, load_preset
+from dssp_train.model.policy import DSSPPolicy
+from dssp_train.training import checkpoint as ckpt
 from export.to_onnx import export_model, format_summary
 
-REPORT_DIR = OutputKind("an export report directory", "benchmarks/export_report.py",
-                        entries=("*_run", "*_model", "report.json"))
+REPORT_DIR = OutputKind(
+    "an export report directory", "benchmarks/export_report.py", entries=("*_run", "*_model", "report.json")
+)
 """``--out``: PRESET_run/ (untrained runs), PRESET_model/ (their exports), report.json."""
 
 
-def make_untrained_run(preset: str, run_dir: Path, state_dim: int = 14, action_dim: int = 14, seed: int = 0,
-                       overrides: list[str] = ()) -> Path:
+def make_untrained_run(
+    preset: str, run_dir: Path, state_dim: int = 14, action_dim: int = 14, seed: int = 0, overrides: list[str] = ()
+) -> Path:
     """A run directory (config.json, model.safetensors) holding an untrained ``preset`` policy (``overrides``:
     ``section.field=value`` items, as dssp-train's ``--set``)."""
     config = apply_overrides(load_preset(preset), list(overrides))
@@ -59,7 +61,9 @@ def make_untrained_run(preset: str, run_dir: Path, state_dim: int = 14, action_d
     )
     run_dir.mkdir(parents=True, exist_ok=True)
     ckpt.save_config(run_dir, config)
-    ckpt.save_tensors(run_dir / "model.safetensors", policy.state_dict(), {"format_version": ckpt.FORMAT_VERSION, "step": "0"})
+    ckpt.save_tensors(
+        run_dir / "model.safetensors", policy.state_dict(), {"format_version": ckpt.FORMAT_VERSION, "step": "0"}
+    )
     return run_dir
 
 
@@ -77,7 +81,9 @@ def latency(model_dir: Path, run_dir: Path, threads: int, repeats: int) -> dict[
     feeds = {}
     for graph in ("history_step", "denoiser"):
         feeds[graph] = {
-            s["name"]: np.random.default_rng(0).standard_normal([1 if d == "B" else manifest.contract.n_points if d == "P" else d for d in s["shape"]]).astype(np.float32)
+            s["name"]: np.random.default_rng(0)
+            .standard_normal([1 if d == "B" else manifest.contract.n_points if d == "P" else d for d in s["shape"]])
+            .astype(np.float32)
             for s in manifest.graphs[graph]["inputs"]
         }
     out = {}
@@ -85,7 +91,9 @@ def latency(model_dir: Path, run_dir: Path, threads: int, repeats: int) -> dict[
         files = {g: manifest.graphs[g]["files"].get(kind) for g in feeds}
         if kind.startswith("onnx") and all(files.values()):
             fused = kind.endswith(FUSED)
-            sessions = {g: open_session(read_graph(model_dir, manifest, g, kind)[1], threads, fused=fused) for g in files}
+            sessions = {
+                g: open_session(read_graph(model_dir, manifest, g, kind)[1], threads, fused=fused) for g in files
+            }
             out[kind] = {
                 g: median_ms(lambda g=g: sessions[g].run(None, feeds[g]), repeats if g == "denoiser" else 10 * repeats)
                 for g in feeds
@@ -113,10 +121,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, default=default_threads())
     p.add_argument("--repeats", type=int, default=20)
     p.add_argument("--quantize", action="store_true", help="also write and measure the int8 and int4 graphs")
-    p.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE",
-                   help="a config field of the untrained runs, e.g. model.denoiser_mlp=none (the 28.1 M robotwin)")
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="SECTION.FIELD=VALUE",
+        help="a config field of the untrained runs, e.g. model.denoiser_mlp=none (the 28.1 M robotwin)",
+    )
     p.add_argument("--json", help="write the figures here (default OUT/report.json)")
-    p.add_argument("--force", action="store_true", help="replace a previous report in --out and an existing --json file")
+    p.add_argument(
+        "--force", action="store_true", help="replace a previous report in --out and an existing --json file"
+    )
     args = p.parse_args(argv)
     return run_cli(lambda: _report(args))
 
@@ -134,7 +149,10 @@ def _report(args) -> int:
             model_dir = out / f"{name}_model"
             print(f"== {name}: {run_dir} -> {model_dir}", flush=True)
             summary = export_model(
-                run_dir, model_dir, verify_steps=args.verify_steps, threads=args.threads,
+                run_dir,
+                model_dir,
+                verify_steps=args.verify_steps,
+                threads=args.threads,
                 quantize=("int8", "int4") if args.quantize else (),
             )
             print(format_summary(summary), flush=True)

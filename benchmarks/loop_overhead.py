@@ -36,7 +36,7 @@ from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parent.parent
-RUN = ("import sys; from hardware.cli.run import main; sys.exit(main(sys.argv[1:]))")
+RUN = "import sys; from hardware.cli.run import main; sys.exit(main(sys.argv[1:]))"
 
 
 def build_run(root: Path) -> Path:
@@ -49,8 +49,24 @@ def build_run(root: Path) -> Path:
 
     data = write_rig_reach(root / "arm.zarr")
     with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
-        if train_main(["--data", str(data), "--out", str(root / "run"), "--preset", "tiny", "--steps", "20",
-                       "--set", "train.val_every=20", "--no-progress"]) != 0:
+        if (
+            train_main(
+                [
+                    "--data",
+                    str(data),
+                    "--out",
+                    str(root / "run"),
+                    "--preset",
+                    "tiny",
+                    "--steps",
+                    "20",
+                    "--set",
+                    "train.val_every=20",
+                    "--no-progress",
+                ]
+            )
+            != 0
+        ):
             raise ConfigError("training the benchmark's tiny model failed")
     return root / "run"
 
@@ -59,10 +75,17 @@ def export_with(tree: Path, run: Path, out: Path) -> Path:
     """``run`` exported by checkout ``tree``'s own exporter: a model directory its runtime reads (checkouts may write
     different manifest formats)."""
     env = {**os.environ, "PYTHONPATH": str(tree) + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    done = subprocess.run([sys.executable, "-m", "export.to_onnx", str(run), "-o", str(out), "--skip-verify"], cwd=tree,
-                          env=env, capture_output=True, text=True)
+    done = subprocess.run(
+        [sys.executable, "-m", "export.to_onnx", str(run), "-o", str(out), "--skip-verify"],
+        cwd=tree,
+        env=env,
+        capture_output=True,
+        text=True,
+    )
     if done.returncode != 0:
-        raise ConfigError(f"exporting the benchmark's tiny model with {tree} failed: {done.stderr.strip().splitlines()[-1:]}")
+        raise ConfigError(
+            f"exporting the benchmark's tiny model with {tree} failed: {done.stderr.strip().splitlines()[-1:]}"
+        )
     return out
 
 
@@ -71,17 +94,37 @@ def commit_of(tree: Path) -> str:
     head = subprocess.run(["git", "-C", str(tree), "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
     if head.returncode != 0:
         return str(tree)
-    dirty = subprocess.run(["git", "-C", str(tree), "status", "--porcelain", "--untracked-files=no"],
-                           capture_output=True, text=True)
+    dirty = subprocess.run(
+        ["git", "-C", str(tree), "status", "--porcelain", "--untracked-files=no"], capture_output=True, text=True
+    )
     return head.stdout.strip() + ("+changes" if dirty.stdout.strip() else "")
 
 
 def one_run(tree: Path, model: Path, ticks: int, log_dir: Path) -> list[dict]:
     """``dssp-run`` of checkout ``tree`` for ``ticks`` ticks; every tick's record from its episode log."""
-    env = {**os.environ, "PYTHONPATH": str(tree) + os.pathsep + os.environ.get("PYTHONPATH", ""),
-           "OMP_NUM_THREADS": "1"}
-    argv = ["--model", str(model), "--camera", "tabletop", "--can", "sim", "--max-steps", str(ticks),
-            "--log-dir", str(log_dir), "--seed", "0", "--threads", "1", "--quiet", "--no-can-log"]
+    env = {
+        **os.environ,
+        "PYTHONPATH": str(tree) + os.pathsep + os.environ.get("PYTHONPATH", ""),
+        "OMP_NUM_THREADS": "1",
+    }
+    argv = [
+        "--model",
+        str(model),
+        "--camera",
+        "tabletop",
+        "--can",
+        "sim",
+        "--max-steps",
+        str(ticks),
+        "--log-dir",
+        str(log_dir),
+        "--seed",
+        "0",
+        "--threads",
+        "1",
+        "--quiet",
+        "--no-can-log",
+    ]
     done = subprocess.run([sys.executable, "-c", RUN, *argv], cwd=tree, env=env, capture_output=True, text=True)
     if done.returncode != 0:
         raise ConfigError(f"dssp-run of {tree} failed ({done.returncode}): {done.stderr.strip().splitlines()[-1:]}")
@@ -113,23 +156,36 @@ def measure(trees: dict[str, Path], models: dict[str, Path], ticks: int, repeats
     with tempfile.TemporaryDirectory() as tmp:
         for k in range(repeats):
             for i, (name, tree) in enumerate(trees.items()):  # alternated: both see the same machine
-                for kept, new in zip(samples[name], overheads(one_run(tree, models[name], ticks, Path(tmp) / f"{i}-{k}"))):
+                for kept, new in zip(
+                    samples[name], overheads(one_run(tree, models[name], ticks, Path(tmp) / f"{i}-{k}"))
+                ):
                     kept.extend(new)
-    rows = [{"tree": name, "tick_ms": figures(w), "overhead_ms": figures(o), "loop_ms": figures(own)}
-            for name, (w, o, own) in samples.items()]
+    rows = [
+        {"tree": name, "tick_ms": figures(w), "overhead_ms": figures(o), "loop_ms": figures(own)}
+        for name, (w, o, own) in samples.items()
+    ]
     return {"machine": machine.describe(), "ticks": ticks, "repeats": repeats, "rows": rows}
 
 
 def markdown(report: dict) -> str:
-    lines = ["| checkout | the loop's own p50 ms | p99 ms | overhead (with the cloud) p50 ms | p99 ms | whole tick p50 ms "
-             "| p99 ms | ticks with the model |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    lines = [
+        "| checkout | the loop's own p50 ms | p99 ms | overhead (with the cloud) p50 ms | p99 ms | whole tick p50 ms "
+        "| p99 ms | ticks with the model |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|",
+    ]
     for r in report["rows"]:
         own, o, t = r["loop_ms"], r["overhead_ms"], r["tick_ms"]
-        lines.append(f"| {r['tree']} | {own['p50']:.3f} | {own['p99']:.3f} | {o['p50']:.3f} | {o['p99']:.3f} | "
-                     f"{t['p50']:.3f} | {t['p99']:.3f} | {o['n']} |")
+        lines.append(
+            f"| {r['tree']} | {own['p50']:.3f} | {own['p99']:.3f} | {o['p50']:.3f} | {o['p99']:.3f} | "
+            f"{t['p50']:.3f} | {t['p99']:.3f} | {o['n']} |"
+        )
     m = report["machine"]
-    lines += ["", f"{report['repeats']} runs of {report['ticks']} ticks each, alternated; {m.get('cpu')} "
-                  f"({m.get('cores')} cores), onnxruntime {m.get('onnxruntime')}; overhead = tick − (observe + chunk); the loop's own part = overhead − the point cloud."]
+    lines += [
+        "",
+        f"{report['repeats']} runs of {report['ticks']} ticks each, alternated; {m.get('cpu')} "
+        f"({m.get('cores')} cores), onnxruntime {m.get('onnxruntime')}; overhead = "
+        "tick − (observe + chunk); the loop's own part = overhead − the point cloud.",
+    ]
     return "\n".join(lines)
 
 
@@ -138,8 +194,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--model", type=Path, help="a model for one Piper (default: a tiny one, trained here)")
     p.add_argument("--ticks", type=int, default=400, help="ticks per run (default 400)")
     p.add_argument("--repeats", type=int, default=3, help="runs per checkout (default 3)")
-    p.add_argument("--compare", type=Path, nargs="*", default=[], metavar="PATH",
-                   help="other checkouts of this project, measured in the same run")
+    p.add_argument(
+        "--compare",
+        type=Path,
+        nargs="*",
+        default=[],
+        metavar="PATH",
+        help="other checkouts of this project, measured in the same run",
+    )
     p.add_argument("--json", type=Path)
     p.add_argument("--force", action="store_true")
     args = p.parse_args(argv)
@@ -154,8 +216,10 @@ def main(argv: list[str] | None = None) -> int:
         trees = {commit_of(t): t.resolve() for t in [ROOT, *args.compare]}
         with tempfile.TemporaryDirectory() as tmp:
             run = None if args.model else build_run(Path(tmp))
-            models = {name: args.model or export_with(tree, run, Path(tmp) / f"model-{i}")
-                      for i, (name, tree) in enumerate(trees.items())}
+            models = {
+                name: args.model or export_with(tree, run, Path(tmp) / f"model-{i}")
+                for i, (name, tree) in enumerate(trees.items())
+            }
             report = measure(trees, models, args.ticks, args.repeats)
         return emit(report, markdown(report), args.json, args.force)
 

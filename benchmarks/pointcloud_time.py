@@ -20,12 +20,12 @@ import time
 
 import numpy as np
 
-from dssp_data.pointcloud.depth_frame import DepthFrame
 from dssp_core.cli_runner import run_cli
 from dssp_core.output_guard import check_output_file, write_output_text
-from hardware.camera.tabletop import SimCamera
 from dssp_data.pointcloud import PointCloudConfig, frame_to_cloud
+from dssp_data.pointcloud.depth_frame import DepthFrame
 from dssp_data.pointcloud.pipeline import STAGES
+from hardware.camera.tabletop import SimCamera
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -49,8 +49,14 @@ def _measure(args) -> int:
 
     def next_frame(i: int) -> DepthFrame:
         depth, color = cam.render(i / cam.fps)
-        return DepthFrame(depth=depth, depth_unit=cam.depth_unit, intrinsics=cam.intrinsics,
-                          timestamp=time.monotonic(), frame_number=i, color=color)
+        return DepthFrame(
+            depth=depth,
+            depth_unit=cam.depth_unit,
+            intrinsics=cam.intrinsics,
+            timestamp=time.monotonic(),
+            frame_number=i,
+            color=color,
+        )
 
     t = time.perf_counter()
     _, first_info = frame_to_cloud(next_frame(0), config, pose)
@@ -77,12 +83,16 @@ def _measure(args) -> int:
 
     intr = cam.intrinsics
     print(f"# Point cloud pipeline: {intr.width}x{intr.height} depth -> {config.n_points} points")
-    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, Python "
-          f"{platform.python_version()}, numpy {np.__version__}; {args.repeats} frames after {args.warmup} warm-up")
+    print(
+        f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, Python "
+        f"{platform.python_version()}, numpy {np.__version__}; {args.repeats} frames after {args.warmup} warm-up"
+    )
     print(f"config: {json.dumps(config.to_dict())}")
     n = {k: int(np.median([getattr(i, k) for i in infos])) for k in ("n_valid", "n_in_crop", "n_after_voxel")}
-    print(f"points (median): {intr.width * intr.height} pixels -> {n['n_valid']} valid -> {n['n_in_crop']} in "
-          f"crop -> {n['n_after_voxel']} after voxel -> {config.n_points}")
+    print(
+        f"points (median): {intr.width * intr.height} pixels -> {n['n_valid']} valid -> {n['n_in_crop']} in "
+        f"crop -> {n['n_after_voxel']} after voxel -> {config.n_points}"
+    )
     print()
     print("| stage | p50 ms | p95 ms |")
     print("|---|---:|---:|")
@@ -91,17 +101,24 @@ def _measure(args) -> int:
     print(f"| **total** | **{pct(rows['total'], 50):.2f}** | **{pct(rows['total'], 95):.2f}** |")
     print(f"| total, wall clock around the call | {pct(rows['wall'], 50):.2f} | {pct(rows['wall'], 95):.2f} |")
     print()
-    print(f"first call (builds the ray cache): {first_ms:.1f} ms; sim rendering (not in the pipeline): "
-          f"p50 {pct(render_ms, 50):.2f} ms")
+    print(
+        f"first call (builds the ray cache): {first_ms:.1f} ms; sim rendering (not in the pipeline): "
+        f"p50 {pct(render_ms, 50):.2f} ms"
+    )
     target = 10.0
     verdict = "meets" if pct(rows["wall"], 50) <= target else "MISSES"
     print(f"target p50 <= {target:g} ms: {verdict}")
 
     if args.json:
-        out = {"config": config.to_dict(), "repeats": args.repeats, "first_call_ms": first_ms,
-               "first_info": first_info.to_dict(), "points_median": n,
-               "p50_ms": {k: pct(v, 50) for k, v in rows.items()},
-               "p95_ms": {k: pct(v, 95) for k, v in rows.items()}}
+        out = {
+            "config": config.to_dict(),
+            "repeats": args.repeats,
+            "first_call_ms": first_ms,
+            "first_info": first_info.to_dict(),
+            "points_median": n,
+            "p50_ms": {k: pct(v, 50) for k, v in rows.items()},
+            "p95_ms": {k: pct(v, 95) for k, v in rows.items()},
+        }
         write_output_text(args.json, json.dumps(out, indent=2), force=args.force, flag="--json")
     return 0
 

@@ -29,12 +29,23 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the benchmarks' shared helpers
 from bench_output import check_json, emit  # noqa: E402
+
+from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_deploy.latency import LatencyStats, time_calls  # noqa: E402
 from dssp_deploy.manifest import PRECISIONS, Manifest, ModelDirError, read_graph, read_manifest
 from dssp_deploy.onnx_policy import OnnxPolicy
-from dssp_deploy.profile import FULL as PROFILE_FULL, QUICK as PROFILE_QUICK, history_sweep, profile_components, random_observation
+from dssp_deploy.profile import (
+    FULL as PROFILE_FULL,
+)
+from dssp_deploy.profile import (
+    QUICK as PROFILE_QUICK,
+)
+from dssp_deploy.profile import (
+    history_sweep,
+    profile_components,
+    random_observation,
+)
 from dssp_deploy.sessions import check_threads
-from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_train.model.history_encoder import CausalTransformer
 from dssp_train.model.streaming import StreamingPolicy
 from dssp_train.training.checkpoint import load_policy
@@ -52,12 +63,16 @@ def check_source(model_dir: Path, checkpoint: Path, manifest: Manifest) -> None:
     try:
         digest = hashlib.sha256(path.read_bytes()).hexdigest()
     except OSError as exc:
-        raise ModelDirError(f"--checkpoint {checkpoint}: {path} cannot be read ({exc.strerror or exc}); give the run "
-                            f"directory {model_dir} was exported from") from None
+        raise ModelDirError(
+            f"--checkpoint {checkpoint}: {path} cannot be read ({exc.strerror or exc}); give the run "
+            f"directory {model_dir} was exported from"
+        ) from None
     if digest != source.sha256:
-        raise ModelDirError(f"--checkpoint {checkpoint} is not the run {model_dir} was exported from ({source.weights} "
-                            f"sha256 {digest[:12]}…, the model's source {source.sha256[:12]}… of run "
-                            f"{source.run or '?'!r} step {source.step}); give that run, or export this one")
+        raise ModelDirError(
+            f"--checkpoint {checkpoint} is not the run {model_dir} was exported from ({source.weights} "
+            f"sha256 {digest[:12]}…, the model's source {source.sha256[:12]}… of run "
+            f"{source.run or '?'!r} step {source.step}); give that run, or export this one"
+        )
 
 
 def eager_samples(checkpoint: Path, manifest: Manifest, pc, pos, settings: dict) -> dict[str, list[float]]:
@@ -66,11 +81,15 @@ def eager_samples(checkpoint: Path, manifest: Manifest, pc, pos, settings: dict)
     with torch.inference_mode():
         return {
             "history_step": time_calls(lambda: stream.observe(pc, pos), settings["iterations"]),
-            "denoiser_chunk": time_calls(lambda: stream.act(seed=0, num_steps=manifest.contract.denoise_steps), settings["torch_iterations"]),
+            "denoiser_chunk": time_calls(
+                lambda: stream.act(seed=0, num_steps=manifest.contract.denoise_steps), settings["torch_iterations"]
+            ),
         }
 
 
-def torchscript_samples(model_dir: Path, manifest: Manifest, pc, pos, settings: dict, rng) -> dict[str, list[float]] | None:
+def torchscript_samples(
+    model_dir: Path, manifest: Manifest, pc, pos, settings: dict, rng
+) -> dict[str, list[float]] | None:
     """None when the model directory has no TorchScript graphs (export --format onnx)."""
     if not all(manifest.graphs[g]["files"].get("torchscript") for g in ("history_step", "denoiser")):
         return None
@@ -132,14 +151,25 @@ def compare(model_dir: Path, checkpoint: Path | None, quick: bool, threads: int 
     stats = {b: {k: LatencyStats.of(v).to_dict() for k, v in s.items()} for b, s in backends.items()}
     medians = {b: {k: float(np.median(v)) for k, v in s.items()} for b, s in backends.items()}
     ratios = {b: {k: medians[b][k] / medians["ort"][k] for k in COMPONENTS} for b in medians if b != "ort"}
-    sweep = [{"length": r["length"], "dssp_ort_ms": r["p50_ms"], "transformer_torch_ms": t, "ratio": t / r["p50_ms"]}
-             for r, t in zip(dssp_sweep, tf)]
+    sweep = [
+        {"length": r["length"], "dssp_ort_ms": r["p50_ms"], "transformer_torch_ms": t, "ratio": t / r["p50_ms"]}
+        for r, t in zip(dssp_sweep, tf)
+    ]
     return {
-        "model_dir": str(model_dir), "checkpoint": str(checkpoint) if checkpoint else None, "precision": precision,
-        "machine": {"processor": platform.processor() or platform.machine(), "threads": threads,
-                    "torch": torch.__version__, "torch_threads": torch.get_num_threads()},
+        "model_dir": str(model_dir),
+        "checkpoint": str(checkpoint) if checkpoint else None,
+        "precision": precision,
+        "machine": {
+            "processor": platform.processor() or platform.machine(),
+            "threads": threads,
+            "torch": torch.__version__,
+            "torch_threads": torch.get_num_threads(),
+        },
         "settings": {"quick": quick, **settings},
-        "median_ms": medians, "latency_ms": stats, "ratio_to_ort": ratios, "history_sweep": sweep,
+        "median_ms": medians,
+        "latency_ms": stats,
+        "ratio_to_ort": ratios,
+        "history_sweep": sweep,
         "target_ort_vs_eager_chunk": ORT_VS_EAGER_CHUNK,
     }
 
@@ -148,10 +178,13 @@ def markdown(report: dict) -> str:
     med, ratios = report["median_ms"], report["ratio_to_ort"]
     names = {"eager": "PyTorch eager", "torchscript": "TorchScript"}
     others = [b for b in names if b in med]
-    lines = [f"Model: {report['model_dir']} ({report['precision']} ONNX graphs; PyTorch in fp32, torch "
-             f"{report['machine']['torch']}, {report['machine']['torch_threads']} threads) — medians, same run", "",
-             "| component | ONNX Runtime ms | " + " | ".join(f"{names[b]} ms | {names[b]} / ORT" for b in others) + " |",
-             "|---|---:|" + "---:|---:|" * len(others)]
+    lines = [
+        f"Model: {report['model_dir']} ({report['precision']} ONNX graphs; PyTorch in fp32, torch "
+        f"{report['machine']['torch']}, {report['machine']['torch_threads']} threads) — medians, same run",
+        "",
+        "| component | ONNX Runtime ms | " + " | ".join(f"{names[b]} ms | {names[b]} / ORT" for b in others) + " |",
+        "|---|---:|" + "---:|---:|" * len(others),
+    ]
     for key, label in (("history_step", "history step"), ("denoiser_chunk", "denoiser chunk")):
         cells = "".join(f" {med[b][key]:.2f} | {ratios[b][key]:.1f}x |" for b in others)
         lines.append(f"| {label} | {med['ort'][key]:.2f} |{cells}")
@@ -159,14 +192,22 @@ def markdown(report: dict) -> str:
         lines += ["", "PyTorch eager: not measured (give --checkpoint RUN_DIR, the run the model was exported from)"]
     else:
         ratio, target = ratios["eager"]["denoiser_chunk"], report["target_ort_vs_eager_chunk"]
-        lines += ["", f"ONNX Runtime vs PyTorch eager per chunk: eager takes {ratio:.1f}x ORT's time (target ≥ {target:g}x: "
-                      f"{'met' if ratio >= target else 'not met'})"]
+        lines += [
+            "",
+            f"ONNX Runtime vs PyTorch eager per chunk: eager takes {ratio:.1f}x ORT's time (target ≥ {target:g}x: "
+            f"{'met' if ratio >= target else 'not met'})",
+        ]
     if "torchscript" not in med:
         lines.append("TorchScript: not measured (the model directory has no *.pt graphs)")
-    lines += ["", "| history length | DSSP step (ORT) ms | causal Transformer, full history (torch) ms | Transformer / DSSP |",
-              "|---:|---:|---:|---:|"]
+    lines += [
+        "",
+        "| history length | DSSP step (ORT) ms | causal Transformer, full history (torch) ms | Transformer / DSSP |",
+        "|---:|---:|---:|---:|",
+    ]
     for r in report["history_sweep"]:
-        lines.append(f"| {r['length']} | {r['dssp_ort_ms']:.3f} | {r['transformer_torch_ms']:.2f} | {r['ratio']:.1f}x |")
+        lines.append(
+            f"| {r['length']} | {r['dssp_ort_ms']:.3f} | {r['transformer_torch_ms']:.2f} | {r['ratio']:.1f}x |"
+        )
     return "\n".join(lines)
 
 
@@ -174,7 +215,9 @@ def main(argv: list[str] | None = None) -> int:
     p = ArgumentParser(prog="torch_comparison.py", description=__doc__.split("\n\n")[0])
     p.add_argument("model_dir", type=Path, help="a model directory (python -m export.to_onnx)")
     p.add_argument("--checkpoint", type=Path, help="the run directory it was exported from, for PyTorch eager")
-    p.add_argument("--precision", choices=sorted(PRECISIONS), default="fp32", help="ONNX graphs to time (PyTorch runs in fp32)")
+    p.add_argument(
+        "--precision", choices=sorted(PRECISIONS), default="fp32", help="ONNX graphs to time (PyTorch runs in fp32)"
+    )
     p.add_argument("--quick", action="store_true", help="short run (tests)")
     p.add_argument("--threads", type=int, help="ONNX Runtime and torch intra-op threads (default: all CPUs)")
     p.add_argument("--json", type=Path, help="write every figure here (a new file; --force replaces one)")

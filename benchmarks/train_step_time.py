@@ -25,15 +25,14 @@ import sys
 
 import torch
 
+from dssp_core.cli_runner import run_cli
+from dssp_core.errors import DSSPError
+from dssp_core.output_guard import check_output_file, write_output_text
+from dssp_deploy.latency import time_calls
 from dssp_train.config import load_preset, resolve_epochs
 from dssp_train.model.history_encoder import HistoryEncoder
 from dssp_train.model.policy import DSSPPolicy
 from dssp_train.training.ema import EMA
-from dssp_deploy.latency import time_calls
-from dssp_core.cli_runner import run_cli
-from dssp_core.errors import DSSPError
-from dssp_core.output_guard import check_output_file, write_output_text
-
 
 # One typical task per paper preset: (trajectory length T, state size S, action size A, demonstrations).
 # MetaWorld: DP3's episodes of 200 steps, agent_pos 9, action 4; Adroit: at most 200 steps (the hammer and
@@ -96,16 +95,31 @@ def history_fwd_bwd_fn(length: int, device: str = "cpu"):
 
 
 def row(label: str, times: list[float]) -> dict:
-    return {"what": label, "median_ms": statistics.median(times), "min_ms": min(times), "max_ms": max(times), "n": len(times)}
+    return {
+        "what": label,
+        "median_ms": statistics.median(times),
+        "min_ms": min(times),
+        "max_ms": max(times),
+        "n": len(times),
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--repeats", type=int, default=5)
-    p.add_argument("--robotwin-length", type=int, default=300, help="trajectory length for the robotwin step (RoboTwin averages 100-640)")
+    p.add_argument(
+        "--robotwin-length",
+        type=int,
+        default=300,
+        help="trajectory length for the robotwin step (RoboTwin averages 100-640)",
+    )
     p.add_argument("--history-length", type=int, default=600)
-    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="where to train (cuda: a GPU machine's step time)")
-    p.add_argument("--paper", action="store_true", help="the paper presets' step times and what one task's budget costs")
+    p.add_argument(
+        "--device", default="cpu", choices=["cpu", "cuda"], help="where to train (cuda: a GPU machine's step time)"
+    )
+    p.add_argument(
+        "--paper", action="store_true", help="the paper presets' step times and what one task's budget costs"
+    )
     p.add_argument("--json", help="also write the figures as JSON here (a new file; --force replaces one)")
     p.add_argument("--force", action="store_true", help="replace an existing --json file")
     args = p.parse_args(argv)
@@ -137,14 +151,22 @@ def markdown(report: dict) -> str:
     rows = report["rows"]
     if report.get("paper"):
         lines = ["| preset | step (median ms; min-max) | budget | steps | one task |", "|---|---:|---|---:|---:|"]
-        lines += [f"| {r['what']} | {r['median_ms']:.1f} ({r['min_ms']:.1f}-{r['max_ms']:.1f}) | {r['epochs']} epochs x "
-                  f"{r['demos']} demos | {r['steps']:,} | {r['hours']:.1f} h ({r['hours'] / 24:.1f} days) |" for r in rows]
+        lines += [
+            f"| {r['what']} | {r['median_ms']:.1f} ({r['min_ms']:.1f}-{r['max_ms']:.1f}) | {r['epochs']} epochs x "
+            f"{r['demos']} demos | {r['steps']:,} | {r['hours']:.1f} h ({r['hours'] / 24:.1f} days) |"
+            for r in rows
+        ]
     else:
         lines = ["| what | median ms | min ms | max ms | n |", "|---|---:|---:|---:|---:|"]
-        lines += [f"| {r['what']} | {r['median_ms']:.1f} | {r['min_ms']:.1f} | {r['max_ms']:.1f} | {r['n']} |" for r in rows]
+        lines += [
+            f"| {r['what']} | {r['median_ms']:.1f} | {r['min_ms']:.1f} | {r['max_ms']:.1f} | {r['n']} |" for r in rows
+        ]
     m = report["machine"]
     where = m.get("gpu") or f"{m.get('cpu')}, {m.get('threads')} threads"
-    return "\n".join(lines) + f"\n\nMeasured on {where}, torch {m.get('torch')} ({report['repeats']} timed steps per row after one warm-up)."
+    return (
+        "\n".join(lines)
+        + f"\n\nMeasured on {where}, torch {m.get('torch')} ({report['repeats']} timed steps per row after one warm-up)."
+    )
 
 
 def _report(args, rows: list[dict], paper: bool = False) -> int:
@@ -170,8 +192,16 @@ def _paper_costs(args) -> int:
         timing = row(label, time_calls(fn, args.repeats, warmup=1))
         cfg = load_preset(preset)
         steps = resolve_epochs(cfg, demos).train.steps
-        rows.append({**timing, "preset": preset, "epochs": cfg.train.epochs, "demos": demos, "steps": steps,
-                     "hours": timing["median_ms"] * steps / 3.6e6})
+        rows.append(
+            {
+                **timing,
+                "preset": preset,
+                "epochs": cfg.train.epochs,
+                "demos": demos,
+                "steps": steps,
+                "hours": timing["median_ms"] * steps / 3.6e6,
+            }
+        )
         print(f"measured: {label}", flush=True)
     return _report(args, rows, paper=True)
 

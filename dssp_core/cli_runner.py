@@ -83,13 +83,14 @@ def _settle_after_interrupt() -> None:
 # leaves that lock held (CPython bpo-20319), and zarr's thread then blocks for ever when it completes the
 # future; the process never ends. So a Ctrl-C is raised only once the main thread runs outside these modules.
 _STDLIB = os.path.dirname(threading.__file__)
-_UNSAFE = tuple(os.path.join(_STDLIB, name) for name in ("threading.py", "queue.py", "concurrent" + os.sep,
-                                                         "asyncio" + os.sep))
+_UNSAFE = tuple(
+    os.path.join(_STDLIB, name) for name in ("threading.py", "queue.py", "concurrent" + os.sep, "asyncio" + os.sep)
+)
 # An exception raised inside a finalizer (``__del__``, a weakref callback, which the garbage collector may run
 # between any two bytecodes) is printed as "Exception ignored in ..." and dropped: that Ctrl-C would be lost.
 _FINALIZERS = tuple(os.path.join(_STDLIB, name) for name in ("weakref.py", "_weakrefset.py"))
-RETRY_S = 0.01     # how often a held-back Ctrl-C looks again for a safe point
-MAX_HOLD_S = 5.0   # a Ctrl-C held back longer than this is raised wherever the main thread is
+RETRY_S = 0.01  # how often a held-back Ctrl-C looks again for a safe point
+MAX_HOLD_S = 5.0  # a Ctrl-C held back longer than this is raised wherever the main thread is
 
 
 def is_default_interrupt_handler(handler) -> bool:
@@ -121,8 +122,10 @@ def interrupts_at_safe_points(clock: Callable[[], float] = time.monotonic) -> It
     it (:func:`in_a_finalizer`): there it is held back and raised a few milliseconds later, once the main
     thread is elsewhere (at most :data:`MAX_HOLD_S` later). Only in the main thread and where SIGINT has
     Python's default handler; elsewhere a no-op."""
-    if (threading.current_thread() is not threading.main_thread()
-            or signal.getsignal(signal.SIGINT) is not signal.default_int_handler):
+    if (
+        threading.current_thread() is not threading.main_thread()
+        or signal.getsignal(signal.SIGINT) is not signal.default_int_handler
+    ):
         yield
         return
     # since: when the Ctrl-C being held came (None: none held); retry: a retry's interruption not yet handled

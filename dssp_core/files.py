@@ -89,12 +89,15 @@ def _no_link_below(base: Path, path: Path, error: type[DSSPError]) -> None:
             raise error(f"cannot read {folder} ({exc.strerror or exc})") from None
         if stat.S_ISLNK(info.st_mode) or not stat.S_ISDIR(info.st_mode):
             what = "a symbolic link" if stat.S_ISLNK(info.st_mode) else "not a folder"
-            raise error(f"{folder} is {what}: only a folder's own files are copied (nothing is copied through a "
-                        f"link); move the files into a real folder")
+            raise error(
+                f"{folder} is {what}: only a folder's own files are copied (nothing is copied through a "
+                f"link); move the files into a real folder"
+            )
 
 
-def copy_regular_file(src: str | os.PathLike, dst: str | os.PathLike, *, inside: str | os.PathLike,
-                      error: type[DSSPError] = DSSPError) -> Path:
+def copy_regular_file(
+    src: str | os.PathLike, dst: str | os.PathLike, *, inside: str | os.PathLike, error: type[DSSPError] = DSSPError
+) -> Path:
     """Copy ``src``, a regular file in the folder ``inside``, to the new file ``dst`` (mode and times kept).
 
     The one way files are copied out of a user's folder: nothing is followed out of it. ``inside`` and every
@@ -109,17 +112,22 @@ def copy_regular_file(src: str | os.PathLike, dst: str | os.PathLike, *, inside:
         fd = os.open(src, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
     except OSError as exc:
         if exc.errno == errno.ELOOP:
-            raise error(f"{src} is a symbolic link: only a folder's own files are copied; replace the link with the "
-                        f"file") from None
+            raise error(
+                f"{src} is a symbolic link: only a folder's own files are copied; replace the link with the file"
+            ) from None
         raise error(f"cannot read {src} ({exc.strerror or exc})") from None
     try:
         info = os.fstat(fd)
         if not stat.S_ISREG(info.st_mode):
-            raise error(f"{src} is not a regular file (a FIFO, socket or device): only regular files are copied; "
-                        f"remove it")
+            raise error(
+                f"{src} is not a regular file (a FIFO, socket or device): only regular files are copied; remove it"
+            )
         try:
-            out = os.open(dst, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC,
-                          stat.S_IMODE(info.st_mode) | stat.S_IWUSR)
+            out = os.open(
+                dst,
+                os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC,
+                stat.S_IMODE(info.st_mode) | stat.S_IWUSR,
+            )
         except OSError as exc:
             raise error(f"cannot write {dst} ({exc.strerror or exc})") from None
         try:
@@ -225,8 +233,10 @@ def check_name_lengths(path: str | os.PathLike, flag: str, error: type[DSSPError
     if too_long is not None:
         shown = str(path) if len(str(path)) <= 80 else str(path)[:80] + "…"
         name = too_long if len(too_long) <= 40 else too_long[:40] + "…"
-        raise error(f"cannot write {shown}: the name {name!r} is longer than the {limit} bytes "
-                    f"{folder} takes (with the temporary name the write uses); choose a shorter {flag}")
+        raise error(
+            f"cannot write {shown}: the name {name!r} is longer than the {limit} bytes "
+            f"{folder} takes (with the temporary name the write uses); choose a shorter {flag}"
+        )
 
 
 def make_dirs(path: str | os.PathLike, *, flag: str = "--out", error: type[DSSPError] = OutputError) -> list[Path]:
@@ -288,8 +298,14 @@ def _kind(mode: int) -> str:
     return "not a regular file"
 
 
-def read_input_bytes(path: str | os.PathLike, label: str, *, limit: int = SETTINGS_LIMIT,
-                     error: type[DSSPError] = DSSPError, follow_links: bool = True) -> bytes:
+def read_input_bytes(
+    path: str | os.PathLike,
+    label: str,
+    *,
+    limit: int = SETTINGS_LIMIT,
+    error: type[DSSPError] = DSSPError,
+    follow_links: bool = True,
+) -> bytes:
     """The bytes of the file a user named, or one line (as ``error``, starting with ``label``) saying why not.
 
     The one read of such files: it is opened without blocking and checked on the open descriptor, so a FIFO, a
@@ -305,8 +321,10 @@ def read_input_bytes(path: str | os.PathLike, label: str, *, limit: int = SETTIN
         raise error(f"{label} does not exist; check the path") from None
     except OSError as exc:
         if exc.errno == errno.ELOOP and not follow_links:
-            raise error(f"{label} is a symbolic link: a folder's own files are read, no link is followed; replace "
-                        f"the link with the file") from None
+            raise error(
+                f"{label} is a symbolic link: a folder's own files are read, no link is followed; replace "
+                f"the link with the file"
+            ) from None
         if exc.errno == errno.ENXIO:  # a socket: it cannot be opened at all
             with contextlib.suppress(OSError):
                 raise error(f"{label} is {_kind(os.stat(path).st_mode)}, not a file; give a regular file") from None
@@ -317,15 +335,19 @@ def read_input_bytes(path: str | os.PathLike, label: str, *, limit: int = SETTIN
         raise error(f"{label} is {_kind(info.st_mode)}, not a file; give a regular file")
     with os.fdopen(fd, "rb") as f:
         if info.st_size > limit:
-            raise error(f"{label} holds {info.st_size} bytes, more than the {limit} such a file may hold; "
-                        f"check that it is the right file")
+            raise error(
+                f"{label} holds {info.st_size} bytes, more than the {limit} such a file may hold; "
+                f"check that it is the right file"
+            )
         try:
             data = f.read(limit + 1)
         except OSError as exc:
             raise error(f"{label} cannot be read ({exc.strerror or exc}); check the file") from None
     if len(data) > limit:
-        raise error(f"{label} holds more than the {limit} bytes such a file may hold (it grew while read); "
-                    f"check that it is the right file")
+        raise error(
+            f"{label} holds more than the {limit} bytes such a file may hold (it grew while read); "
+            f"check that it is the right file"
+        )
     return data
 
 

@@ -31,8 +31,13 @@ def cpu() -> tuple[str, list[str]]:
 def describe() -> dict:
     """CPU model and features, cores, OS, Python and the installed versions of :data:`PACKAGES` (none imported)."""
     name, flags = cpu()
-    info = {"cpu": name, "cpu_flags": flags, "cores": os.cpu_count(), "os": platform.platform(),
-            "python": platform.python_version()}
+    info = {
+        "cpu": name,
+        "cpu_flags": flags,
+        "cores": os.cpu_count(),
+        "os": platform.platform(),
+        "python": platform.python_version(),
+    }
     for package in PACKAGES:
         try:
             info[package] = metadata.version(package)

@@ -47,8 +47,17 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from dssp_core.errors import DSSPError, OutputError
-from dssp_core.files import (atomic_write, atomic_write_text, check_name_lengths, check_parent, make_dirs,
-                             read_regular_text, remove_created, sibling_name, text_writer)
+from dssp_core.files import (
+    atomic_write,
+    atomic_write_text,
+    check_name_lengths,
+    check_parent,
+    make_dirs,
+    read_regular_text,
+    remove_created,
+    sibling_name,
+    text_writer,
+)
 from dssp_core.staging import Staging, interrupts_deferred
 
 MARKER = ".dssp-output.json"
@@ -58,8 +67,19 @@ NEW, OWN = "new", "own"
 """What :func:`check_output` found: nothing (or an empty directory), or a previous output of the kind."""
 
 __all__ = [
-    "MARKER", "NEW", "OWN", "OutputKind", "check_output", "check_append", "claim_dir", "OutputDir",
-    "check_output_file", "check_output_files", "write_output_text", "write_output_file", "write_output_figure",
+    "MARKER",
+    "NEW",
+    "OWN",
+    "OutputKind",
+    "check_output",
+    "check_append",
+    "claim_dir",
+    "OutputDir",
+    "check_output_file",
+    "check_output_files",
+    "write_output_text",
+    "write_output_file",
+    "write_output_figure",
     "check_not_inside",
 ]
 
@@ -165,8 +185,14 @@ def _foreign_message(path: Path, kind: OutputKind, flag: str) -> str:
     return f"{path} exists and is not {kind.what} made by {kind.command}; choose another {flag} (nothing is deleted)"
 
 
-def check_output(path: str | os.PathLike, *, force: bool | None, kind: OutputKind, flag: str = "--out",
-                 error: type[DSSPError] = OutputError) -> str:
+def check_output(
+    path: str | os.PathLike,
+    *,
+    force: bool | None,
+    kind: OutputKind,
+    flag: str = "--out",
+    error: type[DSSPError] = OutputError,
+) -> str:
     """Whether the command may write ``kind`` at ``path``: returns NEW or OWN (only with ``force``), else raises.
 
     ``force=None``: the command has no ``--force`` (its previous output is refused without the hint).
@@ -194,14 +220,24 @@ def _check_companion(path: Path, kind: OutputKind, found: str, flag: str, error:
     if found == NEW:
         if companion.is_dir() and not companion.is_symlink() and not os.listdir(companion):
             return  # an empty folder: nothing to lose
-        raise error(f"{companion} exists without {path.name} (it belongs to another dataset?); choose another {flag} "
-                    f"(nothing is deleted)")
+        raise error(
+            f"{companion} exists without {path.name} (it belongs to another dataset?); choose another {flag} "
+            f"(nothing is deleted)"
+        )
     if not kind.owns_companion(companion):
-        raise error(f"{companion} holds files {kind.command} does not write; choose another {flag} (nothing is deleted)")
+        raise error(
+            f"{companion} holds files {kind.command} does not write; choose another {flag} (nothing is deleted)"
+        )
 
 
-def check_not_inside(out: str | os.PathLike, inputs: Iterable[str | os.PathLike], *, flag: str = "--out",
-                     error: type[DSSPError] = OutputError, contains: bool = True) -> None:
+def check_not_inside(
+    out: str | os.PathLike,
+    inputs: Iterable[str | os.PathLike],
+    *,
+    flag: str = "--out",
+    error: type[DSSPError] = OutputError,
+    contains: bool = True,
+) -> None:
     """Refuse an output that is one of ``inputs`` or lies inside one (symbolic links resolved).
 
     ``contains``: also refuse an output that holds an input (replacing the output would delete it).
@@ -212,14 +248,17 @@ def check_not_inside(out: str | os.PathLike, inputs: Iterable[str | os.PathLike]
         if target == source:
             raise error(f"{out} is also an input ({item}); choose another {flag} (nothing is written)")
         if source in target.parents:
-            raise error(f"{out} lies inside the input {item}; writing there would change it: choose another {flag} "
-                        f"(nothing is written)")
+            raise error(
+                f"{out} lies inside the input {item}; writing there would change it: choose another {flag} "
+                f"(nothing is written)"
+            )
         if contains and target in source.parents:
             raise error(f"{out} holds the input {item}; choose another {flag} (nothing is written)")
 
 
-def check_append(path: str | os.PathLike, *, kind: OutputKind, flag: str = "--out",
-                 error: type[DSSPError] = OutputError) -> str:
+def check_append(
+    path: str | os.PathLike, *, kind: OutputKind, flag: str = "--out", error: type[DSSPError] = OutputError
+) -> str:
     """For commands that add to their output: NEW or OWN (to be continued); anything else raises."""
     path = Path(path)
     check_name_lengths(path, flag, error)
@@ -231,8 +270,14 @@ def check_append(path: str | os.PathLike, *, kind: OutputKind, flag: str = "--ou
     return found
 
 
-def claim_dir(path: str | os.PathLike, *, kind: OutputKind, flag: str = "--out", resume: bool = False,
-              error: type[DSSPError] = OutputError) -> Path:
+def claim_dir(
+    path: str | os.PathLike,
+    *,
+    kind: OutputKind,
+    flag: str = "--out",
+    resume: bool = False,
+    error: type[DSSPError] = OutputError,
+) -> Path:
     """Create ``path`` (and its parents) for ``kind`` and write its marker.
 
     A missing or empty directory is claimed; with ``resume`` a previous output of the kind is continued
@@ -269,8 +314,17 @@ class OutputDir:
     run to ``--resume``). Parent directories this command created are removed with it.
     """
 
-    def __init__(self, out: str | os.PathLike, kind: OutputKind, *, force: bool = False, flag: str = "--out",
-                 staged: bool = True, keep_partial: bool = False, error: type[DSSPError] = OutputError):
+    def __init__(
+        self,
+        out: str | os.PathLike,
+        kind: OutputKind,
+        *,
+        force: bool = False,
+        flag: str = "--out",
+        staged: bool = True,
+        keep_partial: bool = False,
+        error: type[DSSPError] = OutputError,
+    ):
         self.out = Path(out).absolute()
         self.kind, self.force, self.flag, self.staged = kind, force, flag, staged
         self.keep_partial, self.error = keep_partial, error
@@ -303,7 +357,9 @@ class OutputDir:
             self.kind.write_marker(self.path)
         except OSError as exc:
             self._rollback()
-            raise self.error(f"cannot write to {self.out.parent} ({exc.strerror or exc}); choose a writable {self.flag}") from None
+            raise self.error(
+                f"cannot write to {self.out.parent} ({exc.strerror or exc}); choose a writable {self.flag}"
+            ) from None
         except BaseException:
             self._rollback()
             raise
@@ -355,8 +411,9 @@ def _empty(path: Path) -> bool:
 
 
 # ------------------------------------------------------------------------------------------- single files
-def check_output_file(path: str | os.PathLike, *, force: bool, flag: str = "--out",
-                      error: type[DSSPError] = OutputError) -> Path:
+def check_output_file(
+    path: str | os.PathLike, *, force: bool, flag: str = "--out", error: type[DSSPError] = OutputError
+) -> Path:
     """A new file may be written; an existing one only with ``force``; never over a directory or a symlink."""
     path = Path(path)
     check_name_lengths(path, flag, error)
@@ -368,8 +425,15 @@ def check_output_file(path: str | os.PathLike, *, force: bool, flag: str = "--ou
     return path
 
 
-def write_output_file(path: str | os.PathLike, write: Callable[[str], None], *, force: bool, flag: str = "--out",
-                      error: type[DSSPError] = OutputError, suffix: str = ".tmp") -> Path:
+def write_output_file(
+    path: str | os.PathLike,
+    write: Callable[[str], None],
+    *,
+    force: bool,
+    flag: str = "--out",
+    error: type[DSSPError] = OutputError,
+    suffix: str = ".tmp",
+) -> Path:
     """Check ``path`` (:func:`check_output_file`), create its parents, and call ``write(tmp)`` atomically.
 
     ``suffix``: the temporary file's ending, for writers that take the format from the name (``".tmp.gif"``).
@@ -384,24 +448,35 @@ def write_output_file(path: str | os.PathLike, write: Callable[[str], None], *, 
     return path
 
 
-def write_output_text(path: str | os.PathLike, text: str, *, force: bool, flag: str = "--out",
-                      error: type[DSSPError] = OutputError) -> Path:
+def write_output_text(
+    path: str | os.PathLike, text: str, *, force: bool, flag: str = "--out", error: type[DSSPError] = OutputError
+) -> Path:
     """:func:`write_output_file` for text (JSON, Markdown)."""
     return write_output_file(path, text_writer(text), force=force, flag=flag, error=error)
 
 
-def write_output_figure(path: str | os.PathLike, fig, *, force: bool, flag: str = "--out", dpi: int = 100,
-                        error: type[DSSPError] = OutputError) -> Path:
+def write_output_figure(
+    path: str | os.PathLike,
+    fig,
+    *,
+    force: bool,
+    flag: str = "--out",
+    dpi: int = 100,
+    error: type[DSSPError] = OutputError,
+) -> Path:
     """:func:`write_output_file` for a matplotlib figure (PNG), which is closed afterwards."""
     import matplotlib.pyplot as plt  # optional: matplotlib; the core imports the standard library only
 
     try:
-        return write_output_file(path, lambda tmp: fig.savefig(tmp, format="png", dpi=dpi), force=force, flag=flag, error=error)
+        return write_output_file(
+            path, lambda tmp: fig.savefig(tmp, format="png", dpi=dpi), force=force, flag=flag, error=error
+        )
     finally:
         plt.close(fig)
 
 
-def check_output_files(paths: Iterable[str | os.PathLike], *, force: bool, flag: str = "--out",
-                       error: type[DSSPError] = OutputError) -> list[Path]:
+def check_output_files(
+    paths: Iterable[str | os.PathLike], *, force: bool, flag: str = "--out", error: type[DSSPError] = OutputError
+) -> list[Path]:
     """:func:`check_output_file` for several files at once (all are checked before any is written)."""
     return [check_output_file(p, force=force, flag=flag, error=error) for p in paths]

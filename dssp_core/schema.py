@@ -53,10 +53,15 @@ CONTROL_RATE_FLAG = "--control-rate"  # every command's option for it (Hz)
 def check_rate(rate, flag: str = CONTROL_RATE_FLAG) -> float:
     """``rate`` in [MIN_RATE_HZ, MAX_RATE_HZ] Hz as a float, else a one-line ConfigError naming ``flag`` (the option
     or the field that gave it): the control rates a dataset, a model or a robot may run at."""
-    if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not _finite(rate) \
-            or not MIN_RATE_HZ <= rate <= MAX_RATE_HZ:
+    if (
+        isinstance(rate, bool)
+        or not isinstance(rate, (int, float))
+        or not _finite(rate)
+        or not MIN_RATE_HZ <= rate <= MAX_RATE_HZ
+    ):
         raise ConfigError(f"{flag} must be in [{MIN_RATE_HZ:g}, {MAX_RATE_HZ:g}] Hz, got {rate!r}")
     return float(rate)
+
 
 _REGISTRY: list[type] = []
 
@@ -99,8 +104,19 @@ def _num(v: float) -> str:
     return f"{v:g}" if isinstance(v, float) else str(v)
 
 
-def setting(default: Any = MISSING, *, default_factory: Any = MISSING, ge=None, gt=None, le=None, lt=None,
-            unit: str = "", choices=None, min_length: int | None = None, max_length: int | None = None):
+def setting(
+    default: Any = MISSING,
+    *,
+    default_factory: Any = MISSING,
+    ge=None,
+    gt=None,
+    le=None,
+    lt=None,
+    unit: str = "",
+    choices=None,
+    min_length: int | None = None,
+    max_length: int | None = None,
+):
     """A dataclass field with its range, unit and choices (see the module docstring)."""
     spec = Spec(ge, gt, le, lt, unit, tuple(choices) if choices is not None else None, min_length, max_length)
     return dataclasses.field(default=default, default_factory=default_factory, metadata={"spec": spec})
@@ -138,11 +154,18 @@ class Settings:
         known = cls.field_names()
         unknown = sorted(set(values) - set(known))
         if unknown:
-            raise ConfigError(f"unknown {cls.SECTION} setting(s) {', '.join(map(str, unknown))}; known: {', '.join(known)}")
-        missing = [f.name for f in dataclasses.fields(cls)
-                   if f.default is MISSING and f.default_factory is MISSING and f.name not in values]
+            raise ConfigError(
+                f"unknown {cls.SECTION} setting(s) {', '.join(map(str, unknown))}; known: {', '.join(known)}"
+            )
+        missing = [
+            f.name
+            for f in dataclasses.fields(cls)
+            if f.default is MISSING and f.default_factory is MISSING and f.name not in values
+        ]
         if missing:
-            raise ConfigError(f"{cls.SECTION} settings lack {', '.join(missing)}; add {'it' if len(missing) == 1 else 'them'}")
+            raise ConfigError(
+                f"{cls.SECTION} settings lack {', '.join(missing)}; add {'it' if len(missing) == 1 else 'them'}"
+            )
         return cls(**values)
 
     def to_dict(self) -> dict[str, Any]:
@@ -209,8 +232,9 @@ def parse_json(text: str) -> Any:
     return json.loads(text, object_pairs_hook=_no_duplicates)
 
 
-def read_json(path: str | Path, label: str, *, error: type[Exception] = ConfigError, hint: str | None = None,
-              **read) -> Any:
+def read_json(
+    path: str | Path, label: str, *, error: type[Exception] = ConfigError, hint: str | None = None, **read
+) -> Any:
     """Any JSON value from a file a user names, read through :func:`~dssp_core.files.read_input_bytes` (``read``: its
     ``limit`` and ``follow_links``) and :func:`parse_json`, or one line starting with ``label`` raised as ``error``;
     ``hint`` replaces the generic advice on a file that exists but holds no usable JSON (e.g. how to restore it)."""
@@ -228,8 +252,9 @@ def read_json(path: str | Path, label: str, *, error: type[Exception] = ConfigEr
         raise error(f"{label} is not a usable JSON object ({exc}){fix}") from None
 
 
-def read_json_object(path: str | Path, what: str | None, *, error: type[Exception] = ConfigError,
-                     hint: str | None = None) -> dict:
+def read_json_object(
+    path: str | Path, what: str | None, *, error: type[Exception] = ConfigError, hint: str | None = None
+) -> dict:
     """A JSON object from a file (:func:`read_json`), or one line naming the file and the problem:
     ``"{what} file {path} ..."`` (``what`` None: ``"{path} ..."``), raised as ``error``."""
     label = f"{what} file {path}" if what else str(path)
@@ -354,12 +379,16 @@ def check_value(value: Any, tp: Any, spec: Spec, name: str) -> Any:
         if fixed and len(value) != len(items):
             _fail(name, describe(tp), Spec(), value)
         n = len(value)
-        if (spec.min_length is not None and n < spec.min_length) or (spec.max_length is not None and n > spec.max_length):
+        if (spec.min_length is not None and n < spec.min_length) or (
+            spec.max_length is not None and n > spec.max_length
+        ):
             bounds = f"{spec.min_length or 0}..{spec.max_length if spec.max_length is not None else 'any'}"
             raise ConfigError(f"{name} must hold {bounds} values, got {n}: {_show(value)}")
         item_spec = dataclasses.replace(spec, min_length=None, max_length=None)
-        checked = [check_value(v, items[i] if fixed else (items[0] if items else Any), item_spec, f"{name}[{i}]")
-                   for i, v in enumerate(value)]
+        checked = [
+            check_value(v, items[i] if fixed else (items[0] if items else Any), item_spec, f"{name}[{i}]")
+            for i, v in enumerate(value)
+        ]
         return tuple(checked) if origin is tuple else checked
     if dataclasses.is_dataclass(tp):
         if isinstance(value, tp):

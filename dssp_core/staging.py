@@ -38,8 +38,18 @@ from typing import ClassVar
 from dssp_core.errors import DSSPError, OutputError
 from dssp_core.files import make_dirs, replace_dirs, sibling_name
 
-__all__ = ["WriterLock", "writer_lock", "writer_lock_path", "Staging", "sweep_stale", "is_staging_name",
-           "staging_target", "PUT_IN_PLACE", "interrupts_deferred", "settle_background_writes"]
+__all__ = [
+    "WriterLock",
+    "writer_lock",
+    "writer_lock_path",
+    "Staging",
+    "sweep_stale",
+    "is_staging_name",
+    "staging_target",
+    "PUT_IN_PLACE",
+    "interrupts_deferred",
+    "settle_background_writes",
+]
 
 
 # -------------------------------------------------------------------------------------- one writer
@@ -71,8 +81,15 @@ class WriterLock:
     _held: ClassVar[set[Path]] = set()
     """The lock files this process holds."""
 
-    def __init__(self, out: str | os.PathLike, *, what: str = "output", flag: str = "--out",
-                 error: type[DSSPError] = OutputError, doing: str = "written") -> None:
+    def __init__(
+        self,
+        out: str | os.PathLike,
+        *,
+        what: str = "output",
+        flag: str = "--out",
+        error: type[DSSPError] = OutputError,
+        doing: str = "written",
+    ) -> None:
 
         self.path = writer_lock_path(out)
         self._fd: int | None = None
@@ -84,8 +101,10 @@ class WriterLock:
             try:
                 fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC | os.O_NONBLOCK, 0o644)
             except OSError as exc:
-                raise error(f"cannot open the lock file {self.path} ({exc.strerror or exc}): it must be a regular "
-                            f"file, not a link; remove it or choose another {flag}") from None
+                raise error(
+                    f"cannot open the lock file {self.path} ({exc.strerror or exc}): it must be a regular "
+                    f"file, not a link; remove it or choose another {flag}"
+                ) from None
             info = os.fstat(fd)
             if not stat.S_ISREG(info.st_mode):
                 os.close(fd)
@@ -99,8 +118,10 @@ class WriterLock:
                     os.close(fd)
                 if " by " not in holder:  # a lock file that does not say what its holder does
                     holder = f"written by {holder}"
-                raise error(f"{Path(out)} is being {holder}: one writer per {what} at a time; wait for "
-                            f"it to finish or choose another {flag}") from None
+                raise error(
+                    f"{Path(out)} is being {holder}: one writer per {what} at a time; wait for "
+                    f"it to finish or choose another {flag}"
+                ) from None
             try:
                 now = os.stat(self.path, follow_symlinks=False)
             except OSError:
@@ -147,8 +168,14 @@ class WriterLock:
 
 
 @contextlib.contextmanager
-def writer_lock(out: str | os.PathLike, *, what: str, flag: str = "--out", error: type[DSSPError] = OutputError,
-                doing: str = "written") -> Iterator[WriterLock]:
+def writer_lock(
+    out: str | os.PathLike,
+    *,
+    what: str,
+    flag: str = "--out",
+    error: type[DSSPError] = OutputError,
+    doing: str = "written",
+) -> Iterator[WriterLock]:
     """Hold the :class:`WriterLock` of ``out`` inside the block (every command's one writer per output).
 
     The folders above ``out`` that the lock file needs are created first (a path under a file is one line
@@ -309,7 +336,9 @@ class Staging:
         try:
             os.mkdir(path)
         except OSError as exc:
-            raise self.error(f"cannot write to {path.parent} ({exc.strerror or exc}); choose a writable {self.flag}") from None
+            raise self.error(
+                f"cannot write to {path.parent} ({exc.strerror or exc}); choose a writable {self.flag}"
+            ) from None
         self.hold(path)
         return path
 

@@ -13,4 +13,3 @@ The plumbing every command shares (errors, atomic files, the output guard, schem
 Imports numpy, zarr, numcodecs and dssp_core only; never torch or another DSSP package. Importing the package
 loads nothing: import the module you need.
 """
-

@@ -27,7 +27,6 @@ import json
 import math
 import os
 from collections.abc import Callable, Iterable, Mapping
-
 from pathlib import Path
 
 from dssp_core.errors import DatasetError
@@ -82,8 +81,7 @@ def action_convention(attrs: Mapping, where=None) -> str | None:
     if value is None:
         return None
     if not isinstance(value, str) or not value.split(":", 1)[0].strip():
-        raise _bad(where, "action_convention", value, "a text \"<name>: <what the action is>\"",
-                   "'leader_command: ...'")
+        raise _bad(where, "action_convention", value, 'a text "<name>: <what the action is>"', "'leader_command: ...'")
     return value
 
 
@@ -148,8 +146,11 @@ def camera_to_base(attrs: Mapping, where=None) -> list | None:
     value = attrs.get("camera_to_base")
     if value is None:
         return None
-    if not (isinstance(value, list) and len(value) == 4
-            and all(isinstance(row, list) and len(row) == 4 and all(_is_number(v) for v in row) for row in value)):
+    if not (
+        isinstance(value, list)
+        and len(value) == 4
+        and all(isinstance(row, list) and len(row) == 4 and all(_is_number(v) for v in row) for row in value)
+    ):
         raise _bad(where, "camera_to_base", value, "a 4x4 matrix of finite numbers", "[[1, 0, 0, 0], ...]")
     return value
 
@@ -217,4 +218,3 @@ def made_by(path: str | os.PathLike, generators: Iterable[str]) -> bool:
     other datasets by an older ``dssp-data merge``/``split`` (which copied its first input's generator)."""
     attrs = zarr_attrs(path) or {}
     return attrs.get("generator") in tuple(generators) and "merged_from" not in attrs and "split_from" not in attrs
-

@@ -43,8 +43,19 @@ _UNITS = {"": 1, "k": 1 << 10, "m": 1 << 20, "g": 1 << 30, "t": 1 << 40}
 
 COMPRESSORS = ("blosc", "zstd", "lz4", "zlib", "gzip", "bz2", "lzma")
 """Decompressing codecs (numcodecs ids) whose output :func:`decompress` bounds."""
-SAFE_CODECS = ("shuffle", "crc32", "crc32c", "adler32", "fletcher32", "jenkins_lookup3",
-               "delta", "fixedscaleoffset", "quantize", "astype", "bitround")
+SAFE_CODECS = (
+    "shuffle",
+    "crc32",
+    "crc32c",
+    "adler32",
+    "fletcher32",
+    "jenkins_lookup3",
+    "delta",
+    "fixedscaleoffset",
+    "quantize",
+    "astype",
+    "bitround",
+)
 """Codecs (numcodecs ids) whose output is no larger than a bounded input allows: checksums, byte shuffles,
 numeric filters (at most 8 bytes per element)."""
 _LZMA_MEMORY = 256 << 20
@@ -71,8 +82,10 @@ def read_budget() -> int:
     match = re.fullmatch(r"(\d+(?:\.\d+)?)\s*([kmgt]?)i?b?", text.lower())
     value = float(match.group(1)) * _UNITS[match.group(2)] if match else 0.0
     if not match or not math.isfinite(value) or value < 1:
-        raise ConfigError(f"{READ_BUDGET_ENV}={text!r} is not a size: give bytes, or a number with K, M, G or T "
-                          f"(e.g. {READ_BUDGET_ENV}=16G)")
+        raise ConfigError(
+            f"{READ_BUDGET_ENV}={text!r} is not a size: give bytes, or a number with K, M, G or T "
+            f"(e.g. {READ_BUDGET_ENV}=16G)"
+        )
     return int(value)
 
 
@@ -88,8 +101,10 @@ def check_budget(nbytes: int, what: str, remedy: str, error: type[DatasetError] 
     """Refuse a read of ``nbytes`` (``what`` it reads, e.g. ``"demo.zarr: data/depth steps 0..99"``) over the budget."""
     budget = read_budget()
     if nbytes > budget:
-        raise error(f"{what} needs {human_size(nbytes)} in memory, over the read budget of {human_size(budget)} "
-                    f"({READ_BUDGET_ENV}): {remedy}, or raise {READ_BUDGET_ENV} (e.g. {READ_BUDGET_ENV}=16G)")
+        raise error(
+            f"{what} needs {human_size(nbytes)} in memory, over the read budget of {human_size(budget)} "
+            f"({READ_BUDGET_ENV}): {remedy}, or raise {READ_BUDGET_ENV} (e.g. {READ_BUDGET_ENV}=16G)"
+        )
 
 
 def nbytes_of(shape, dtype) -> int:
@@ -150,15 +165,17 @@ def zstd_content_size(data: bytes | memoryview) -> int | None:
         return None
     if len(data) < start + width:
         raise ValueError("truncated zstd frame header")
-    value = int.from_bytes(bytes(data[start:start + width]), "little")
+    value = int.from_bytes(bytes(data[start : start + width]), "little")
     return value + 256 if width == 2 else value
 
 
 def _too_large(declared: int | None, limit: int) -> ChunkTooLarge:
     """``declared``: the size the stream declares, None when decoding it ran past ``limit``."""
     size = f"{human_size(declared)}, more than" if declared is not None else "more than"
-    return ChunkTooLarge(f"it decodes to {size} the {human_size(limit)} a chunk of this array holds: a "
-                         f"decompression bomb or a damaged file")
+    return ChunkTooLarge(
+        f"it decodes to {size} the {human_size(limit)} a chunk of this array holds: a "
+        f"decompression bomb or a damaged file"
+    )
 
 
 def _stream(make: Callable[[], Any], data: bytes, limit: int, several: bool = True) -> bytes:
@@ -266,8 +283,10 @@ class _BoundedNumcodec:
     def decode(self, buf, out=None):
         decoded = decompress(self.codec_id, buf, self.limit, self.codec.get_config())
         if out is not None:
-            np.copyto(np.frombuffer(memoryview(out).cast("B"), np.uint8),
-                      np.frombuffer(memoryview(decoded).cast("B"), np.uint8))
+            np.copyto(
+                np.frombuffer(memoryview(out).cast("B"), np.uint8),
+                np.frombuffer(memoryview(decoded).cast("B"), np.uint8),
+            )
             return out
         return decoded
 
@@ -281,11 +300,17 @@ class _BoundedNumcodec:
 def _codec_id(codec) -> str:
     """The numcodecs id of a zarr 3 codec or a numcodecs codec (``blosc``, ``zstd``, ``bytes``, ``sharding``...)."""
     # deferred: loads msgpack, numcodecs, zarr
-    from zarr.codecs import (BloscCodec, BytesCodec, Crc32cCodec, GzipCodec, ShardingCodec, TransposeCodec,
-                             ZstdCodec)
+    from zarr.codecs import BloscCodec, BytesCodec, Crc32cCodec, GzipCodec, ShardingCodec, TransposeCodec, ZstdCodec
 
-    native = {BloscCodec: "blosc", ZstdCodec: "zstd", GzipCodec: "gzip", Crc32cCodec: "crc32c", BytesCodec: "bytes",
-              TransposeCodec: "transpose", ShardingCodec: "sharding"}
+    native = {
+        BloscCodec: "blosc",
+        ZstdCodec: "zstd",
+        GzipCodec: "gzip",
+        Crc32cCodec: "crc32c",
+        BytesCodec: "bytes",
+        TransposeCodec: "transpose",
+        ShardingCodec: "sharding",
+    }
     for cls, name in native.items():
         if isinstance(codec, cls):
             return name
@@ -347,12 +372,17 @@ def _bounded_codec(codec, chunk_nbytes: int, n_elements: int):
                 return numcodec
             raise UnboundedCodec(name)
 
-        return V2Codec(filters=tuple(bound(f) for f in filters) or None,
-                       compressor=None if codec.compressor is None else bound(codec.compressor))
+        return V2Codec(
+            filters=tuple(bound(f) for f in filters) or None,
+            compressor=None if codec.compressor is None else bound(codec.compressor),
+        )
     name = _codec_id(codec)
     if isinstance(codec, ShardingCodec):
-        return replace(codec, codecs=tuple(_bounded_codec(c, chunk_nbytes, n_elements) for c in codec.codecs),
-                       index_codecs=tuple(_bounded_codec(c, chunk_nbytes, n_elements) for c in codec.index_codecs))
+        return replace(
+            codec,
+            codecs=tuple(_bounded_codec(c, chunk_nbytes, n_elements) for c in codec.codecs),
+            index_codecs=tuple(_bounded_codec(c, chunk_nbytes, n_elements) for c in codec.index_codecs),
+        )
     if name in COMPRESSORS:
         if _BOUNDED_BYTES is None:
             _BOUNDED_BYTES = _bytes_codec_class()

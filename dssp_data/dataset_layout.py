@@ -113,9 +113,15 @@ REPAIR_REMEDY = "cut them off with dssp-data repair PATH (or load with allow_inc
 SHAPE_REMEDY = "dssp-data repair PATH sets it back to the last episode end (nothing stored is lost)"
 
 
-def resolve_length(lengths: Mapping[str, int], last_end: int, allow_incomplete_tail: bool, where: str,
-                    remedy: str = REPAIR_REMEDY, unbacked: Mapping[str, tuple[int, int, str]] | None = None,
-                    shape_remedy: str = SHAPE_REMEDY) -> tuple[int, int]:
+def resolve_length(
+    lengths: Mapping[str, int],
+    last_end: int,
+    allow_incomplete_tail: bool,
+    where: str,
+    remedy: str = REPAIR_REMEDY,
+    unbacked: Mapping[str, tuple[int, int, str]] | None = None,
+    shape_remedy: str = SHAPE_REMEDY,
+) -> tuple[int, int]:
     """Return (number of steps to keep, number of trailing steps dropped).
 
     ``lengths`` maps each data key to its length along time. Steps after
@@ -172,8 +178,10 @@ def as_float32(values, what: str, remedy: str = "fix the episode", step: str = "
         if bad.size:
             at = tuple(int(i) for i in bad[0])
             index = f", index {list(at[1:]) if len(at) > 2 else at[1]}" if len(at) > 1 else ""
-            raise DatasetError(f"{what} holds {array[at].item()!r} at {step} {at[0]}{index}, beyond the range of float32 "
-                               f"(±{FLOAT32_MAX:.3g}), the number type of a dataset: {remedy}")
+            raise DatasetError(
+                f"{what} holds {array[at].item()!r} at {step} {at[0]}{index}, beyond the range of float32 "
+                f"(±{FLOAT32_MAX:.3g}), the number type of a dataset: {remedy}"
+            )
         with np.errstate(all="ignore"):
             array = array.astype(np.float32)
     if not np.issubdtype(array.dtype, np.floating):
@@ -207,8 +215,7 @@ def check_extra_name(name: str, where: str) -> None:
     """An extra's name is one path component that is not a required key."""
     if not isinstance(name, str) or not name or "/" in name or name.startswith(".") or name in DATA_KEYS:
         raise DatasetError(
-            f"{where}: {name!r} cannot name an extra per-step array: use a plain name other than "
-            f"{', '.join(DATA_KEYS)}"
+            f"{where}: {name!r} cannot name an extra per-step array: use a plain name other than {', '.join(DATA_KEYS)}"
         )
 
 
@@ -232,4 +239,6 @@ def extras_layout(extras: Mapping[str, np.ndarray]) -> dict[str, tuple[str, tupl
 def describe_extras_layout(layout: Mapping[str, tuple[str, tuple[int, ...]]]) -> str:
     if not layout:
         return "none"
-    return ", ".join(f"{name} {np.dtype(dt).name}{list(shape) if shape else ''}" for name, (dt, shape) in layout.items())
+    return ", ".join(
+        f"{name} {np.dtype(dt).name}{list(shape) if shape else ''}" for name, (dt, shape) in layout.items()
+    )

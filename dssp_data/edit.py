@@ -45,8 +45,13 @@ from pathlib import Path
 import numpy as np
 import zarr
 
-from dssp_data import attributes
+from dssp_core.errors import ConfigError, DatasetError
 from dssp_core.files import copy_regular_file
+from dssp_core.output_guard import OutputKind, check_not_inside, check_output
+from dssp_core.staging import Staging, interrupts_deferred, settle_background_writes
+from dssp_data import attributes
+from dssp_data.attributes import ZARR_ENTRIES, zarr_generator
+from dssp_data.dataset_layout import Episode
 from dssp_data.recording import (
     can_log_dir,
     can_log_name,
@@ -54,15 +59,9 @@ from dssp_data.recording import (
     episode_can_logs,
     episode_infos,
 )
-from dssp_data.dataset_layout import Episode
 from dssp_data.replay_buffer import ReplayBufferReader
 from dssp_data.replay_buffer_writer import ReplayBufferWriter, dataset_writer
 from dssp_data.zarr_chunks import check_dataset_tree
-from dssp_core.errors import ConfigError, DatasetError
-from dssp_core.staging import Staging, interrupts_deferred, settle_background_writes
-from dssp_core.output_guard import OutputKind, check_not_inside, check_output
-from dssp_data.attributes import ZARR_ENTRIES, zarr_generator
-
 
 DATA_GENERATORS = {"merge": "dssp-data merge", "split": "dssp-data split", "convert": "dssp-data convert"}
 """The ``generator`` attribute each ``dssp-data`` command writes into the datasets it makes."""
@@ -70,9 +69,15 @@ _LEGACY_DATA_GENERATORS = ("dssp-data convert (RoboTwin raw HDF5)",)
 """What older versions of ``dssp-data convert`` wrote (merge and split copied their input's generator:
 their older outputs are not recognised, so they are never replaced)."""
 
-DATA_DATASET = OutputKind("a dataset", "dssp-data merge, split or convert", entries=ZARR_ENTRIES, marker=False,
-                          signature=lambda p: zarr_generator(p) in (*DATA_GENERATORS.values(), *_LEGACY_DATA_GENERATORS),
-                          companion=".can", companion_entries=("episode_*.blf",))
+DATA_DATASET = OutputKind(
+    "a dataset",
+    "dssp-data merge, split or convert",
+    entries=ZARR_ENTRIES,
+    marker=False,
+    signature=lambda p: zarr_generator(p) in (*DATA_GENERATORS.values(), *_LEGACY_DATA_GENERATORS),
+    companion=".can",
+    companion_entries=("episode_*.blf",),
+)
 """``dssp-data merge OUT``, ``split --train/--val``, ``convert --out``: a zarr dataset whose ``generator``
 attribute is one of :data:`DATA_GENERATORS`, with its CAN logs at ``OUT.can`` (only ``episode_*.blf``)."""
 
@@ -90,8 +95,15 @@ class ConvertedEpisode:
     attrs: dict = field(default_factory=dict)
 
 
-def write_converted(out: Path, attrs: dict, episodes: Iterable[ConvertedEpisode], *, extra_keys: Sequence[str] = (),
-                    force: bool = False, flag: str = "--out") -> int:
+def write_converted(
+    out: Path,
+    attrs: dict,
+    episodes: Iterable[ConvertedEpisode],
+    *,
+    extra_keys: Sequence[str] = (),
+    force: bool = False,
+    flag: str = "--out",
+) -> int:
     """``dssp-data convert``'s output: the episodes, in order, as a new dataset at ``out`` with ``attrs``, written into a
     staging folder beside it (removed on an error or Ctrl-C) and moved into place when complete, ``out`` checked
     again first (:data:`DATA_DATASET`). The caller is a :func:`~dssp_data.replay_buffer_writer.dataset_writer` of
@@ -108,8 +120,10 @@ def write_converted(out: Path, attrs: dict, episodes: Iterable[ConvertedEpisode]
                     except DatasetError as exc:
                         raise (DatasetError(f"{item.source}: {exc}") if item.source else exc) from None
                     steps += item.episode.n_steps
-            staging.commit([(tmp, out), (None, can_log_dir(out))],  # the output checked again first
-                           check=lambda: check_output(out, force=force, kind=DATA_DATASET, flag=flag, error=DatasetError))
+            staging.commit(
+                [(tmp, out), (None, can_log_dir(out))],  # the output checked again first
+                check=lambda: check_output(out, force=force, kind=DATA_DATASET, flag=flag, error=DatasetError),
+            )
     finally:
         settle_background_writes()
     return steps
@@ -122,12 +136,15 @@ def check_inputs(inputs: Sequence[str | os.PathLike]) -> None:
         real = os.path.realpath(Path(item).absolute())
         if real in seen:
             also = "" if str(seen[real]) == str(item) else f" (as {seen[real]} and {item})"
-            raise DatasetError(f"{item} is given twice{also}: every episode of it would be in the output twice; "
-                               f"give each input once")
+            raise DatasetError(
+                f"{item} is given twice{also}: every episode of it would be in the output twice; give each input once"
+            )
         seen[real] = item
 
 
-def check_data_output(out: str | os.PathLike, inputs: Sequence[str | os.PathLike], force: bool, flag: str = "OUT") -> str:
+def check_data_output(
+    out: str | os.PathLike, inputs: Sequence[str | os.PathLike], force: bool, flag: str = "OUT"
+) -> str:
     """Where ``dssp-data`` merge, split or convert may write a dataset (see the module docstring): NEW or OWN."""
     sources = [p for item in inputs for p in (Path(item), can_log_dir(item))]
     check_not_inside(out, sources, flag=flag, error=DatasetError)
@@ -143,6 +160,7 @@ def check_converted_output(arguments: dict) -> None:
 
 def _common_extras(readers: Sequence[ReplayBufferReader]) -> tuple[list[str], list[str]]:
     """(extras every input holds with the same dtype and trailing shape, the others)."""
+
     def layout(reader, name):
         shape, dtype = reader.arrays[f"data/{name}"]
         return str(dtype), tuple(shape[1:])
@@ -167,8 +185,10 @@ def _check_parts(parts: Sequence[tuple[ReplayBufferReader, Sequence[int]]], out:
     dims = {_dims(r) for r in readers}
     if len(dims) > 1:
         listing = ", ".join(f"{r.path}: {_dims(r)}" for r in readers)
-        raise DatasetError(f"the inputs differ in (points, point dims, state dims, action dims) ({listing}): "
-                           f"they cannot form one dataset")
+        raise DatasetError(
+            f"the inputs differ in (points, point dims, state dims, action dims) ({listing}): "
+            f"they cannot form one dataset"
+        )
     if sum(len(indices) for _, indices in parts) == 0:
         raise DatasetError("no episodes to write")
     for reader in readers:  # their attributes travel into the output: one of the wrong type is refused here
@@ -182,8 +202,9 @@ def _check_parts(parts: Sequence[tuple[ReplayBufferReader, Sequence[int]]], out:
     return logs_of
 
 
-def _stage(parts: Sequence[tuple[ReplayBufferReader, Sequence[int]]], tmp: Path, attrs: dict, logs_of: dict,
-           staging: Staging) -> dict:
+def _stage(
+    parts: Sequence[tuple[ReplayBufferReader, Sequence[int]]], tmp: Path, attrs: dict, logs_of: dict, staging: Staging
+) -> dict:
     """Write the chosen episodes of each reader, in order, as a new dataset in the staging directory ``tmp``
     (CAN logs in its ``.can`` companion)."""
     readers = [reader for reader, _ in parts]
@@ -210,8 +231,9 @@ def _stage(parts: Sequence[tuple[ReplayBufferReader, Sequence[int]]], tmp: Path,
                             if not tmp_logs.is_dir():
                                 staging.make(tmp_logs)
                             new_name = can_log_name(index, bus)
-                            copy_regular_file(src, tmp_logs / new_name, inside=can_log_dir(reader.path),
-                                              error=DatasetError)
+                            copy_regular_file(
+                                src, tmp_logs / new_name, inside=can_log_dir(reader.path), error=DatasetError
+                            )
                             logs[bus] = new_name
                             n_logs += 1
                     info["can_logs"] = logs
@@ -228,8 +250,9 @@ def _stage(parts: Sequence[tuple[ReplayBufferReader, Sequence[int]]], tmp: Path,
     return {"episodes": len(infos), "steps": steps, "dropped_extras": dropped, "can_logs": n_logs}
 
 
-def _copy(jobs: Sequence[tuple[Sequence[tuple[ReplayBufferReader, Sequence[int]]], Path, dict, str]],
-          force: bool) -> list[dict]:
+def _copy(
+    jobs: Sequence[tuple[Sequence[tuple[ReplayBufferReader, Sequence[int]]], Path, dict, str]], force: bool
+) -> list[dict]:
     """Write each job (parts = [(reader, episode indices)], output, root attributes, its flag) as a new dataset.
 
     Every output is checked first (output path, dimensions, the CAN-log names of every episode), then
@@ -274,8 +297,11 @@ def _json_key(value) -> str:
 
 def marked_episodes(reader: ReplayBufferReader) -> list[int]:
     """Episodes whose recording metadata lists problems (stale streams, dropped frames, ...)."""
-    return [i for i, info in enumerate(episode_infos(reader.attrs, reader.n_episodes, reader.path))
-            if info and info.get("problems")]
+    return [
+        i
+        for i, info in enumerate(episode_infos(reader.attrs, reader.n_episodes, reader.path))
+        if info and info.get("problems")
+    ]
 
 
 def _base_attrs(attrs: dict) -> dict:
@@ -298,8 +324,13 @@ def _check_merge(arguments: dict) -> None:
 
 
 @dataset_writer(out=None, check=_check_merge)
-def merge(out: str | os.PathLike, inputs: Sequence[str | os.PathLike], force: bool = False,
-          drop_marked: bool = False, flag: str = "OUT") -> dict:
+def merge(
+    out: str | os.PathLike,
+    inputs: Sequence[str | os.PathLike],
+    force: bool = False,
+    drop_marked: bool = False,
+    flag: str = "OUT",
+) -> dict:
     """Concatenate the episodes of ``inputs`` (in order) into a new dataset ``out``.
 
     The inputs must agree on (P, C, S, A), and on ``control_rate_hz`` and the action convention where
@@ -314,16 +345,23 @@ def merge(out: str | os.PathLike, inputs: Sequence[str | os.PathLike], force: bo
         values = {str(r.path): describe(r.attrs, r.path) for r in readers}
         known = {v for v in values.values() if v is not None}
         if len(known) > 1:
-            raise DatasetError(f"the inputs differ in {key} ({values}): episodes with different meanings cannot be "
-                               f"merged")
+            raise DatasetError(
+                f"the inputs differ in {key} ({values}): episodes with different meanings cannot be merged"
+            )
         if known and None in values.values():
             missing = [p for p, v in values.items() if v is None]
-            warnings.append(f"{key} is not recorded in {', '.join(missing)}: the merged dataset says "
-                            f"{next(iter(known))} for all episodes")
-    clouds = {_json_key(attributes.pointcloud(r.attrs, r.path)) for r in readers if r.attrs.get("pointcloud") is not None}
+            warnings.append(
+                f"{key} is not recorded in {', '.join(missing)}: the merged dataset says "
+                f"{next(iter(known))} for all episodes"
+            )
+    clouds = {
+        _json_key(attributes.pointcloud(r.attrs, r.path)) for r in readers if r.attrs.get("pointcloud") is not None
+    }
     if len(clouds) > 1:
-        warnings.append("the inputs were made with different point-cloud settings (attribute pointcloud); "
-                        "the first input's are kept")
+        warnings.append(
+            "the inputs were made with different point-cloud settings (attribute pointcloud); "
+            "the first input's are kept"
+        )
     attrs = _base_attrs(readers[0].attrs)
     for r in readers[1:]:
         for key, value in _base_attrs(r.attrs).items():
@@ -335,14 +373,17 @@ def merge(out: str | os.PathLike, inputs: Sequence[str | os.PathLike], force: bo
     (summary,) = _copy([(parts, Path(out), attrs, flag)], force)
     summary["dropped"] = {k: v for k, v in dropped.items() if v}
     if summary["dropped_extras"]:
-        warnings.append(f"per-step arrays not held by every input (or stored differently) were left out: "
-                        f"{', '.join('data/' + n for n in summary['dropped_extras'])}")
+        warnings.append(
+            f"per-step arrays not held by every input (or stored differently) were left out: "
+            f"{', '.join('data/' + n for n in summary['dropped_extras'])}"
+        )
     summary["warnings"] = warnings
     return summary
 
 
-def choose_validation(n_episodes: int, val_ratio: float | None = None, val_episodes: Sequence[int] | None = None,
-                      seed: int = 0) -> list[int]:
+def choose_validation(
+    n_episodes: int, val_ratio: float | None = None, val_episodes: Sequence[int] | None = None, seed: int = 0
+) -> list[int]:
     """Sorted validation episode indices: the given ones, or round(val_ratio * E) drawn with ``seed``
     (at least 1, at most E - 1)."""
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
@@ -351,7 +392,9 @@ def choose_validation(n_episodes: int, val_ratio: float | None = None, val_episo
         chosen = sorted(set(int(i) for i in val_episodes))
         bad = [i for i in chosen if not 0 <= i < n_episodes]
         if bad:
-            raise DatasetError(f"validation episode(s) {bad} out of range: the dataset holds episodes 0..{n_episodes - 1}")
+            raise DatasetError(
+                f"validation episode(s) {bad} out of range: the dataset holds episodes 0..{n_episodes - 1}"
+            )
     else:
         if val_ratio is None or not 0 < val_ratio < 1:
             raise DatasetError(f"the validation ratio must be in (0, 1), got {val_ratio}")
@@ -373,9 +416,18 @@ def _check_split(arguments: dict) -> None:
 
 
 @dataset_writer(train_out="--train", val_out="--val", check=_check_split)
-def split(path: str | os.PathLike, train_out: str | os.PathLike, val_out: str | os.PathLike, *,
-          val_ratio: float | None = None, val_episodes: Sequence[int] | None = None, seed: int = 0,
-          force: bool = False, drop_marked: bool = False, drop_episodes: Sequence[int] = ()) -> dict:
+def split(
+    path: str | os.PathLike,
+    train_out: str | os.PathLike,
+    val_out: str | os.PathLike,
+    *,
+    val_ratio: float | None = None,
+    val_episodes: Sequence[int] | None = None,
+    seed: int = 0,
+    force: bool = False,
+    drop_marked: bool = False,
+    drop_episodes: Sequence[int] = (),
+) -> dict:
     """Write the episodes of ``path`` into a training and a validation dataset (whole episodes each).
 
     ``drop_marked`` first leaves out the episodes recorded with problems, and ``drop_episodes`` the
@@ -390,8 +442,9 @@ def split(path: str | os.PathLike, train_out: str | os.PathLike, val_out: str | 
     named = sorted({int(i) for i in drop_episodes})
     bad = [i for i in named if not 0 <= i < reader.n_episodes]
     if bad:
-        raise DatasetError(f"episode(s) {bad} to drop are out of range: the dataset holds episodes "
-                           f"0..{reader.n_episodes - 1}")
+        raise DatasetError(
+            f"episode(s) {bad} to drop are out of range: the dataset holds episodes 0..{reader.n_episodes - 1}"
+        )
     marked = marked_episodes(reader) if drop_marked else []
     keep = [i for i in range(reader.n_episodes) if i not in set(marked) | set(named)]
     if val_episodes is not None:
@@ -408,13 +461,28 @@ def split(path: str | os.PathLike, train_out: str | os.PathLike, val_out: str | 
         val = [keep[i] for i in choose_validation(len(keep), val_ratio, None, seed)]
     train = [i for i in keep if i not in set(val)]
     base = _base_attrs(reader.attrs)
-    jobs = [([(reader, indices)], Path(target),
-             dict(base, split_from=_source(reader, part=part, episodes=indices, seed=seed),
-                  generator=DATA_GENERATORS["split"]), f"--{part}")
-            for part, indices, target in (("train", train, train_out), ("val", val, val_out))]
+    jobs = [
+        (
+            [(reader, indices)],
+            Path(target),
+            dict(
+                base,
+                split_from=_source(reader, part=part, episodes=indices, seed=seed),
+                generator=DATA_GENERATORS["split"],
+            ),
+            f"--{part}",
+        )
+        for part, indices, target in (("train", train, train_out), ("val", val, val_out))
+    ]
     train_summary, val_summary = _copy(jobs, force)
-    return {"train": train, "val": val, "dropped": marked, "left_out": named, "train_summary": train_summary,
-            "val_summary": val_summary}
+    return {
+        "train": train,
+        "val": val,
+        "dropped": marked,
+        "left_out": named,
+        "train_summary": train_summary,
+        "val_summary": val_summary,
+    }
 
 
 @dataset_writer(path="PATH", check=lambda a: ReplayBufferReader(a["path"], allow_incomplete_tail=True))
@@ -439,8 +507,14 @@ def repair(path: str | os.PathLike) -> dict:
 def _repair(path) -> dict:
     reader = ReplayBufferReader(path, allow_incomplete_tail=True)
     unbacked = reader.unbacked_steps
-    cut = max([shape[0] - reader.n_steps for key, (shape, _) in reader.arrays.items()
-               if key.startswith("data/") and key not in unbacked] + [0])
+    cut = max(
+        [
+            shape[0] - reader.n_steps
+            for key, (shape, _) in reader.arrays.items()
+            if key.startswith("data/") and key not in unbacked
+        ]
+        + [0]
+    )
     raw = attributes.episode_info(reader.attrs, reader.path)
     extra_infos = max(0, len(raw) - reader.n_episodes) if raw is not None else 0
     try:
@@ -450,8 +524,12 @@ def _repair(path) -> dict:
                     pass
             if extra_infos:
                 zarr.open_group(str(path), mode="r+", use_consolidated=False).attrs.update(
-                    {"episode_info": raw[: reader.n_episodes]})
+                    {"episode_info": raw[: reader.n_episodes]}
+                )
     finally:
         settle_background_writes()
-    return {"dropped_steps": cut, "dropped_infos": extra_infos,
-            "reset_shapes": {key: [start, length] for key, (start, length, _) in unbacked.items()}}
+    return {
+        "dropped_steps": cut,
+        "dropped_infos": extra_infos,
+        "reset_shapes": {key: [start, length] for key, (start, length, _) in unbacked.items()},
+    }

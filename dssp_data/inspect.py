@@ -29,7 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
+from dssp_core.errors import DatasetError
 from dssp_data import attributes
+from dssp_data.dataset_layout import DATA_KEYS
 from dssp_data.recording import (
     FLAGS_KEY,
     PROBLEM_TEXT,
@@ -38,9 +40,7 @@ from dssp_data.recording import (
     episode_can_logs,
     episode_infos,
 )
-from dssp_data.dataset_layout import DATA_KEYS
 from dssp_data.replay_buffer import ReplayBufferReader
-from dssp_core.errors import DatasetError
 
 MAX_JOINT_JUMP = 0.5
 """rad: a recorded joint action changing more than this in one step is reported (a teleoperation glitch)."""
@@ -93,12 +93,20 @@ def inspect_dataset(path: str | os.PathLike) -> dict:
     problems: list[str] = []
     notes: list[str] = []
     for key, n in unstored.items():
-        notes.append(f"{key}: {n} chunk(s) are not stored and read as the fill value (zarr 3 leaves out chunks that "
-                     f"hold only it); this array does not record that every chunk was written")
+        notes.append(
+            f"{key}: {n} chunk(s) are not stored and read as the fill value (zarr 3 leaves out chunks that "
+            f"hold only it); this array does not record that every chunk was written"
+        )
     recorded = _is_recorded(attrs)
     where = str(path)
-    for name in ("action_convention", "pointcloud", "camera_intrinsics", "camera_to_base", "camera_depth_unit",
-                 "recording_sessions"):
+    for name in (
+        "action_convention",
+        "pointcloud",
+        "camera_intrinsics",
+        "camera_to_base",
+        "camera_depth_unit",
+        "recording_sessions",
+    ):
         _checked(attributes.READERS[name], attrs, where, problems)
 
     state_lo = state_hi = action_lo = action_hi = cloud_lo = cloud_hi = None
@@ -157,15 +165,25 @@ def inspect_dataset(path: str | os.PathLike) -> dict:
 
     # ---- problems with the values --------------------------------------------------------------------
     for key, (start, length, meta) in reader.unbacked_steps.items():
-        problems.append(f"{key} has {length} steps in its metadata ({meta}) but no chunk is stored for steps "
-                        f"{start}..{length - 1}, after the last episode end ({reader.n_steps}): its shape does not match "
-                        f"the stored data (edited metadata, or a write that stopped right after growing the array); "
-                        f"`dssp-data repair` sets it back to {reader.n_steps} steps (nothing stored is lost)")
-    tail = max([shape[0] - reader.n_steps for key, (shape, _) in reader.arrays.items()
-                if key.startswith("data/") and key not in reader.unbacked_steps] + [0])
+        problems.append(
+            f"{key} has {length} steps in its metadata ({meta}) but no chunk is stored for steps "
+            f"{start}..{length - 1}, after the last episode end ({reader.n_steps}): its shape does not match "
+            f"the stored data (edited metadata, or a write that stopped right after growing the array); "
+            f"`dssp-data repair` sets it back to {reader.n_steps} steps (nothing stored is lost)"
+        )
+    tail = max(
+        [
+            shape[0] - reader.n_steps
+            for key, (shape, _) in reader.arrays.items()
+            if key.startswith("data/") and key not in reader.unbacked_steps
+        ]
+        + [0]
+    )
     if tail:
-        problems.append(f"{tail} steps after the last episode end: a write was interrupted; they "
-                        f"are ignored (remove them with `dssp-data repair`; the next dssp-record session also does)")
+        problems.append(
+            f"{tail} steps after the last episode end: a write was interrupted; they "
+            f"are ignored (remove them with `dssp-data repair`; the next dssp-record session also does)"
+        )
     for key, episodes in nonfinite.items():
         if episodes:
             problems.append(f"data/{key} holds NaN or inf in episode(s) {_episode_list(episodes)}: training refuses it")
@@ -173,18 +191,23 @@ def inspect_dataset(path: str | os.PathLike) -> dict:
     if short:
         problems.append(f"episode(s) {_episode_list(short)} have a single step")
     if zero_clouds:
-        problems.append(f"all-zero point clouds in episode(s) {_episode_list(sorted(zero_clouds))} "
-                        f"({sum(zero_clouds.values())} steps)")
+        problems.append(
+            f"all-zero point clouds in episode(s) {_episode_list(sorted(zero_clouds))} "
+            f"({sum(zero_clouds.values())} steps)"
+        )
     for i, s, size in jumps:
-        problems.append(f"episode {i}: the action jumps by {size:.2f} rad at step {s} (more than {MAX_JOINT_JUMP} rad "
-                        f"in one step: a teleoperation glitch?)")
+        problems.append(
+            f"episode {i}: the action jumps by {size:.2f} rad at step {s} (more than {MAX_JOINT_JUMP} rad "
+            f"in one step: a teleoperation glitch?)"
+        )
     if backwards:
         problems.append(f"timestamps do not increase in episode(s) {_episode_list(backwards)}")
     for i, n in gaps.items():
         problems.append(f"episode {i}: {n} gap(s) longer than {GAP_PERIODS:g} periods between steps")
     if attrs.get("control_rate_hz") is None:
         (problems if recorded else notes).append(
-            "the control rate is not recorded (attribute control_rate_hz): pass --control-rate to dssp-train")
+            "the control rate is not recorded (attribute control_rate_hz): pass --control-rate to dssp-train"
+        )
     if attrs.get("action_convention") is None:
         notes.append("the action convention is not recorded (attribute action_convention)")
     for key in ("point_cloud", "state", "action"):
@@ -238,20 +261,28 @@ def inspect_dataset(path: str | os.PathLike) -> dict:
         files = sorted(p.name for p in log_dir.iterdir() if p.is_file() and not p.name.startswith("."))
         partial = [f for f in files if ".partial-" in f]
         if partial:
-            notes.append(f"CAN logs of {len(partial)} unfinished episode(s) (a crash or kill while recording): "
-                         f"{', '.join(partial[:4])}" + (" ..." if len(partial) > 4 else ""))
+            notes.append(
+                f"CAN logs of {len(partial)} unfinished episode(s) (a crash or kill while recording): "
+                f"{', '.join(partial[:4])}" + (" ..." if len(partial) > 4 else "")
+            )
         orphans = [f for f in files if ".partial-" not in f and f not in referenced]
         if orphans and recorded:
-            notes.append(f"CAN logs that belong to no episode (an append interrupted after the log was renamed): "
-                         f"{', '.join(orphans[:4])}" + (" ..." if len(orphans) > 4 else ""))
+            notes.append(
+                f"CAN logs that belong to no episode (an append interrupted after the log was renamed): "
+                f"{', '.join(orphans[:4])}" + (" ..." if len(orphans) > 4 else "")
+            )
     sessions = attrs.get("recording_sessions")
     if isinstance(sessions, list) and len(sessions) > 1 and all(isinstance(x, Mapping) for x in sessions):
         keys = ("camera_to_base", "camera_intrinsics", "camera_depth_unit")
         first = sessions[0] if isinstance(sessions[0], dict) else {}
-        changed = [k for k, s in enumerate(sessions) if isinstance(s, dict) and any(s.get(x) != first.get(x) for x in keys)]
+        changed = [
+            k for k, s in enumerate(sessions) if isinstance(s, dict) and any(s.get(x) != first.get(x) for x in keys)
+        ]
         if changed:
-            notes.append(f"the camera calibration differs between recording sessions ({_episode_list(changed)} vs 0): "
-                         f"each session's calibration is in recording_sessions")
+            notes.append(
+                f"the camera calibration differs between recording sessions ({_episode_list(changed)} vs 0): "
+                f"each session's calibration is in recording_sessions"
+            )
 
     measured = [info["rate_hz"] for info in infos if info and isinstance(info.get("rate_hz"), (int, float))]
     return {
@@ -261,9 +292,14 @@ def inspect_dataset(path: str | os.PathLike) -> dict:
         "n_steps": reader.n_steps,
         "episode_lengths": [int(n) for n in lengths],
         "control_rate_hz": rate,
-        "measured_rate_hz": ({"mean": float(np.mean(measured)), "min": float(np.min(measured)), "max": float(np.max(measured))}
-                             if measured else None),
-        "action_convention": attrs.get("action_convention") if isinstance(attrs.get("action_convention"), str) else None,
+        "measured_rate_hz": (
+            {"mean": float(np.mean(measured)), "min": float(np.min(measured)), "max": float(np.max(measured))}
+            if measured
+            else None
+        ),
+        "action_convention": attrs.get("action_convention")
+        if isinstance(attrs.get("action_convention"), str)
+        else None,
         "arrays": {k: {"shape": list(shape), "dtype": str(dtype)} for k, (shape, dtype) in reader.arrays.items()},
         "ranges": {
             "state": _range_rows(state_lo, state_hi),
@@ -307,15 +343,24 @@ def format_report(report: dict) -> str:
     out = []
     lengths = report["episode_lengths"]
     out.append(f"dataset     {report['path']} (zarr format {report['zarr_format']})")
-    out.append(f"episodes    {report['n_episodes']}, {report['n_steps']} steps; length min {min(lengths)} / median "
-               f"{int(np.median(lengths))} / max {max(lengths)}")
+    out.append(
+        f"episodes    {report['n_episodes']}, {report['n_steps']} steps; length min {min(lengths)} / median "
+        f"{int(np.median(lengths))} / max {max(lengths)}"
+    )
     if len(lengths) <= 30:
         out.append(f"lengths     {lengths}")
     rate = report["control_rate_hz"]
     invalid = rate is None and report["attributes"].get("control_rate_hz") is not None
-    out.append(f"rate        {f'{rate:g} Hz (control_rate_hz)' if rate else 'control_rate_hz is not a rate (see problems)' if invalid else 'not recorded'}"
-               + (f"; measured {report['measured_rate_hz']['mean']:.3f} Hz (min {report['measured_rate_hz']['min']:.3f}, "
-                  f"max {report['measured_rate_hz']['max']:.3f})" if report["measured_rate_hz"] else ""))
+    out.append(
+        "rate        "
+        f"{f'{rate:g} Hz (control_rate_hz)' if rate else 'control_rate_hz is not a rate (see problems)' if invalid else 'not recorded'}"
+        + (
+            f"; measured {report['measured_rate_hz']['mean']:.3f} Hz (min {report['measured_rate_hz']['min']:.3f}, "
+            f"max {report['measured_rate_hz']['max']:.3f})"
+            if report["measured_rate_hz"]
+            else ""
+        )
+    )
     out.append(f"action      {report['action_convention'] or 'convention not recorded'}")
     out.append("arrays")
     for key, a in report["arrays"].items():
@@ -329,7 +374,10 @@ def format_report(report: dict) -> str:
         out.append(f"  {d:4d}  {s}  {a}")
     names = ["x", "y", "z", "r", "g", "b"]
     cloud = report["ranges"]["point_cloud"]
-    out.append("  point_cloud " + ", ".join(f"{names[c] if c < 6 else c} {_fmt(lo)} .. {_fmt(hi)}" for c, (lo, hi) in enumerate(cloud)))
+    out.append(
+        "  point_cloud "
+        + ", ".join(f"{names[c] if c < 6 else c} {_fmt(lo)} .. {_fmt(hi)}" for c, (lo, hi) in enumerate(cloud))
+    )
     if report["attributes"]:
         out.append("attributes")
         for key, value in report["attributes"].items():
@@ -337,8 +385,10 @@ def format_report(report: dict) -> str:
                 out.append(f"  {key}: {len(value)} session(s)")
                 for k, s in enumerate(value):
                     if isinstance(s, dict):
-                        out.append(f"    {k}: {s.get('started')} camera {s.get('camera')} can {s.get('can')} "
-                                   f"{s.get('rate_hz')} Hz, host {s.get('host')}")
+                        out.append(
+                            f"    {k}: {s.get('started')} camera {s.get('camera')} can {s.get('can')} "
+                            f"{s.get('rate_hz')} Hz, host {s.get('host')}"
+                        )
             else:
                 out.append(f"  {key}: {_short(value)}")
     recorded = [e for e in report["episodes"] if "started" in e]
@@ -349,10 +399,14 @@ def format_report(report: dict) -> str:
             sim = e.get("sim")
             sim_text = f"  seed {sim.get('seed')}" if sim else ""
             rate_text = f"{e['rate_hz']:.2f} Hz" if isinstance(e.get("rate_hz"), (int, float)) else "- Hz"
-            out.append(f"  {e['index']:4d}  {e['steps']:5d} steps  {rate_text:>9s}  {state_text:8s} {e.get('started')}  "
-                       f"{e.get('ended_by')}{sim_text}")
+            out.append(
+                f"  {e['index']:4d}  {e['steps']:5d} steps  {rate_text:>9s}  {state_text:8s} {e.get('started')}  "
+                f"{e.get('ended_by')}{sim_text}"
+            )
     if report["step_problems"]:
-        out.append("flagged steps  " + ", ".join(f"{PROBLEM_TEXT.get(k, k)}: {v}" for k, v in report["step_problems"].items()))
+        out.append(
+            "flagged steps  " + ", ".join(f"{PROBLEM_TEXT.get(k, k)}: {v}" for k, v in report["step_problems"].items())
+        )
     out.append(f"problems    {len(report['problems']) or 'none found'}")
     out.extend(f"  - {p}" for p in report["problems"])
     if report["notes"]:

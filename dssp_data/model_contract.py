@@ -28,8 +28,16 @@ MAX_POINTS = 1_000_000
 MAX_TIMESTEPS = 100_000  # DDPM training timesteps
 # The training config's model fields the contract carries (action_alignment as action_offset): a manifest's
 # model_config records the rest.
-CONTRACT_FIELDS = ("point_dim", "n_points", "state_dim", "action_dim", "n_obs_steps", "horizon", "n_action_steps",
-                   "action_alignment")
+CONTRACT_FIELDS = (
+    "point_dim",
+    "n_points",
+    "state_dim",
+    "action_dim",
+    "n_obs_steps",
+    "horizon",
+    "n_action_steps",
+    "action_alignment",
+)
 
 
 def check_chunk(n_obs_steps: int, horizon: int, n_action_steps: int, action_offset: int, section: str) -> None:
@@ -37,12 +45,16 @@ def check_chunk(n_obs_steps: int, horizon: int, n_action_steps: int, action_offs
     start at the current step (0) or at the oldest recent observation (N - 1, DP3's alignment); else one
     ConfigError line naming ``section``'s fields."""
     if action_offset not in (0, n_obs_steps - 1):
-        raise ConfigError(f"{section}.action_offset must be 0 or n_obs_steps - 1 = {n_obs_steps - 1}, got {action_offset}")
+        raise ConfigError(
+            f"{section}.action_offset must be 0 or n_obs_steps - 1 = {n_obs_steps - 1}, got {action_offset}"
+        )
     if action_offset + n_action_steps > horizon:
         if not action_offset:
             raise ConfigError(f"{section}.n_action_steps (H_a) must be in [1, horizon={horizon}], got {n_action_steps}")
-        raise ConfigError(f"{section}.n_action_steps (H_a) must be at most horizon - N + 1 = {horizon - action_offset}, got "
-                          f"{n_action_steps}: DP3's alignment executes the chunk from index N - 1 = {action_offset}")
+        raise ConfigError(
+            f"{section}.n_action_steps (H_a) must be at most horizon - N + 1 = {horizon - action_offset}, got "
+            f"{n_action_steps}: DP3's alignment executes the chunk from index N - 1 = {action_offset}"
+        )
 
 
 @dataclass(frozen=True)
@@ -63,8 +75,9 @@ class ModelContract(Settings):
     horizon: int = setting(4, ge=1, le=MAX_STEPS)
     n_action_steps: int = setting(3, ge=1, le=MAX_STEPS)
     action_offset: int = setting(0, ge=0, le=MAX_STEPS)
-    ddim_timesteps: list[int] = setting(default_factory=lambda: list(range(90, -1, -10)), ge=0, lt=MAX_TIMESTEPS,
-                                        min_length=1, max_length=MAX_TIMESTEPS)
+    ddim_timesteps: list[int] = setting(
+        default_factory=lambda: list(range(90, -1, -10)), ge=0, lt=MAX_TIMESTEPS, min_length=1, max_length=MAX_TIMESTEPS
+    )
     inpainting: bool = setting(False)
     control_rate_hz: float | None = setting(None, gt=0, le=MAX_RATE_HZ, unit="Hz")
     observation: ObservationContract = setting(default_factory=ObservationContract)
@@ -73,13 +86,17 @@ class ModelContract(Settings):
         check_chunk(self.n_obs_steps, self.horizon, self.n_action_steps, self.action_offset, self.SECTION)
         steps = self.ddim_timesteps
         if any(a <= b for a, b in zip(steps, steps[1:])):
-            raise ConfigError(f"{self.SECTION}.ddim_timesteps must decrease strictly (the sampler runs from noise to "
-                              f"data), got {steps}")
+            raise ConfigError(
+                f"{self.SECTION}.ddim_timesteps must decrease strictly (the sampler runs from noise to "
+                f"data), got {steps}"
+            )
         o = self.observation
-        for field, have, want in (("pointcloud.n_points", o.pointcloud and o.pointcloud.n_points, self.n_points),
-                                  ("pointcloud.point_dim", o.pointcloud and o.pointcloud.point_dim, self.point_dim),
-                                  ("state", o.state and o.state.dim, self.state_dim),
-                                  ("action", o.action and o.action.dim, self.action_dim)):
+        for field, have, want in (
+            ("pointcloud.n_points", o.pointcloud and o.pointcloud.n_points, self.n_points),
+            ("pointcloud.point_dim", o.pointcloud and o.pointcloud.point_dim, self.point_dim),
+            ("state", o.state and o.state.dim, self.state_dim),
+            ("action", o.action and o.action.dim, self.action_dim),
+        ):
             if have is not None and have != want:
                 raise ConfigError(f"{self.SECTION}.observation.{field} makes {have} values but the model takes {want}")
 
@@ -91,9 +108,16 @@ class ModelContract(Settings):
     def model_fields(self) -> dict:
         """The training config's model fields this contract carries (:data:`CONTRACT_FIELDS`), as training had them
         (DP3's alignment is an offset of N - 1, with N = 1 the same chunk as the current one)."""
-        return {"point_dim": self.point_dim, "n_points": self.n_points, "state_dim": self.state_dim,
-                "action_dim": self.action_dim, "n_obs_steps": self.n_obs_steps, "horizon": self.horizon,
-                "n_action_steps": self.n_action_steps, "action_alignment": "dp3" if self.action_offset else "current"}
+        return {
+            "point_dim": self.point_dim,
+            "n_points": self.n_points,
+            "state_dim": self.state_dim,
+            "action_dim": self.action_dim,
+            "n_obs_steps": self.n_obs_steps,
+            "horizon": self.horizon,
+            "n_action_steps": self.n_action_steps,
+            "action_alignment": "dp3" if self.action_offset else "current",
+        }
 
     def to_json(self) -> dict:
         """JSON for ``dssp_model.json``: the observation contract's unknown fields as ``"unknown"``."""

@@ -21,8 +21,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
 
-from dssp_core.files import atomic_write_text
 from dssp_core.errors import ConfigError
+from dssp_core.files import atomic_write_text
 from dssp_core.schema import MAX_DIM, Settings, parse_json, setting
 
 SAMPLING_METHODS = ("fps",)
@@ -59,11 +59,13 @@ class PointCloudConfig(Settings):
 
     def validate(self) -> None:
         if not self.depth_near < self.depth_far:
-            raise ConfigError(f"pointcloud.depth_near ({self.depth_near}) must be below depth_far "
-                              f"({self.depth_far}), metres")
+            raise ConfigError(
+                f"pointcloud.depth_near ({self.depth_near}) must be below depth_far ({self.depth_far}), metres"
+            )
         if not all(a < b for a, b in zip(self.crop_min, self.crop_max)):
-            raise ConfigError(f"pointcloud.crop_min {list(self.crop_min)} must be below crop_max "
-                              f"{list(self.crop_max)} on every axis")
+            raise ConfigError(
+                f"pointcloud.crop_min {list(self.crop_min)} must be below crop_max {list(self.crop_max)} on every axis"
+            )
 
     @property
     def point_dim(self) -> int:
@@ -136,8 +138,11 @@ class ObservationContract(Settings):
         """The contract recorded in a dataset's attributes (``pointcloud``, ``state_layout``, ``action_layout``);
         a present but invalid attribute is a one-line ConfigError naming ``where`` and the attribute."""
         values: dict[str, Any] = {}
-        for key, field, kind in (("pointcloud", "pointcloud", PointCloudConfig), ("state_layout", "state", VectorLayout),
-                                 ("action_layout", "action", VectorLayout)):
+        for key, field, kind in (
+            ("pointcloud", "pointcloud", PointCloudConfig),
+            ("state_layout", "state", VectorLayout),
+            ("action_layout", "action", VectorLayout),
+        ):
             if attrs.get(key) is None:
                 continue
             try:
@@ -147,8 +152,10 @@ class ObservationContract(Settings):
         if "pointcloud" in values:  # a dataset names its clouds' frame when it is not the robot's base
             frame = attrs.get("pointcloud_frame", FRAME_ROBOT_BASE)
             if not isinstance(frame, str) or not frame:
-                raise ConfigError(f"{where}'s pointcloud_frame attribute must be a non-empty string, got {frame!r}; "
-                                  "fix or remove the attribute")
+                raise ConfigError(
+                    f"{where}'s pointcloud_frame attribute must be a non-empty string, got {frame!r}; "
+                    "fix or remove the attribute"
+                )
             values["frame"] = frame
         return cls(**values)
 
@@ -182,7 +189,9 @@ def _flat(prefix: str, value: Any) -> dict[str, Any]:
     if value is None:
         return {prefix: None}
     if isinstance(value, Settings):
-        return {k: v for name in value.field_names() for k, v in _flat(f"{prefix}.{name}", getattr(value, name)).items()}
+        return {
+            k: v for name in value.field_names() for k, v in _flat(f"{prefix}.{name}", getattr(value, name)).items()
+        }
     return {prefix: value}
 
 
@@ -207,9 +216,16 @@ def _differs(a: Any, b: Any) -> bool:
     return a != b
 
 
-def check_contract(trained: ObservationContract, given: ObservationContract, *, trained_by: str,
-                   given_by: str | dict[str, str], allow: tuple[str, ...] | list[str] = (), remedy: str | None = None,
-                   extra: tuple[tuple[str, Any, Any], ...] | list[tuple[str, Any, Any]] = ()) -> list[dict[str, Any]]:
+def check_contract(
+    trained: ObservationContract,
+    given: ObservationContract,
+    *,
+    trained_by: str,
+    given_by: str | dict[str, str],
+    allow: tuple[str, ...] | list[str] = (),
+    remedy: str | None = None,
+    extra: tuple[tuple[str, Any, Any], ...] | list[tuple[str, Any, Any]] = (),
+) -> list[dict[str, Any]]:
     """Refuse a setup that contradicts the training contract, one line naming the field, both values and the
     flag that overrides; returns the overridden mismatches (``allow`` names them) for the log.
 
@@ -225,8 +241,10 @@ def check_contract(trained: ObservationContract, given: ObservationContract, *, 
             overridden.append({"field": key, "trained": _json(want), "given": _json(have)})
             continue
         by = given_by if isinstance(given_by, str) else given_by[key.split(".")[0]]
-        raise ConfigError(f"{by} gives {key} = {_show(have)} but {trained_by} has {_show(want)}: " + (
-            remedy or f"use the same settings, or pass --allow-mismatch {key} to run anyway (written to the log)"))
+        raise ConfigError(
+            f"{by} gives {key} = {_show(have)} but {trained_by} has {_show(want)}: "
+            + (remedy or f"use the same settings, or pass --allow-mismatch {key} to run anyway (written to the log)")
+        )
     return overridden
 
 
@@ -242,4 +260,3 @@ def _json(value: Any) -> Any:
 
 def _show(value: Any) -> str:
     return f"{value:g}" if isinstance(value, float) else str(_json(value))
-

@@ -40,12 +40,12 @@ from pathlib import Path
 
 import numpy as np
 
+from dssp_core.errors import ConfigError, DatasetError
+from dssp_core.staging import WriterLock
 from dssp_data import attributes
 from dssp_data.dataset_layout import Episode
-from dssp_data.replay_buffer_writer import DATASET_WRITERS, DatasetWriter, ReplayBufferWriter, dataset_lock
-from dssp_core.errors import ConfigError, DatasetError
 from dssp_data.observation import ObservationContract, check_contract
-from dssp_core.staging import WriterLock
+from dssp_data.replay_buffer_writer import DATASET_WRITERS, DatasetWriter, ReplayBufferWriter, dataset_lock
 
 TIME_KEYS = ("timestamp", "camera_timestamp", "state_timestamp", "action_timestamp")
 FRAME_KEY = "camera_frame"
@@ -55,13 +55,13 @@ RECORDED_KEYS = TIME_KEYS + (FRAME_KEY, FLAGS_KEY)
 """Extras every recorded episode carries (``depth`` is optional)."""
 
 STEP_PROBLEMS = {
-    "camera_stale": 1,     # the newest frame was older than the camera threshold
-    "camera_repeat": 2,    # no new frame since the previous step (a dropped frame)
-    "feedback_stale": 4,   # the follower's newest joint/gripper feedback was older than its threshold
-    "leader_stale": 8,     # the leader's newest command was older than its threshold
-    "late_tick": 16,       # the step was sampled later than half a period after its schedule
-    "empty_cloud": 32,     # no point in the crop box: the previous step's cloud was repeated
-    "arm_error": 64,       # the follower reported an error or e-stop
+    "camera_stale": 1,  # the newest frame was older than the camera threshold
+    "camera_repeat": 2,  # no new frame since the previous step (a dropped frame)
+    "feedback_stale": 4,  # the follower's newest joint/gripper feedback was older than its threshold
+    "leader_stale": 8,  # the leader's newest command was older than its threshold
+    "late_tick": 16,  # the step was sampled later than half a period after its schedule
+    "empty_cloud": 32,  # no point in the crop box: the previous step's cloud was repeated
+    "arm_error": 64,  # the follower reported an error or e-stop
 }
 """Bit of each per-step problem in ``data/step_problems``."""
 
@@ -79,7 +79,7 @@ PROBLEM_TEXT = {
 ACTION_CONVENTIONS = {
     "leader_command": "leader_command: the leader arm's joint/gripper target at this step (policy units)",
     "next_state": "next_state: the follower's measured state at the next step (RoboTwin's convention; "
-                  "the last step of each episode is dropped)",
+    "the last step of each episode is dropped)",
 }
 STATE_CONVENTION = "follower's measured [J1..J6 rad, gripper opening 0..1] per arm (left, right)"
 
@@ -131,13 +131,15 @@ def can_log_path(dataset: str | os.PathLike, name, episode: int | None = None) -
     if relative.is_absolute() or ".." in relative.parts:
         raise DatasetError(f"{what} names {name!r}, a path outside the CAN-log folder {folder}: {remedy}")
     if folder.is_symlink():
-        raise DatasetError(f"{what} names {name!r} in {folder}, which is a symbolic link (it may lead anywhere): "
-                           f"{remedy}")
+        raise DatasetError(
+            f"{what} names {name!r} in {folder}, which is a symbolic link (it may lead anywhere): {remedy}"
+        )
     path = folder / relative
     base, real = os.path.realpath(folder), os.path.realpath(path)
     if real == base or os.path.commonpath([base, real]) != base:
-        raise DatasetError(f"{what} names {name!r}, which leads outside the CAN-log folder {folder} (a symbolic "
-                           f"link?): {remedy}")
+        raise DatasetError(
+            f"{what} names {name!r}, which leads outside the CAN-log folder {folder} (a symbolic link?): {remedy}"
+        )
     return path
 
 
@@ -146,8 +148,10 @@ def episode_can_logs(dataset: str | os.PathLike, info: Mapping | None, episode: 
     (the files need not exist)."""
     logs = (info or {}).get("can_logs") or {}
     if not isinstance(logs, Mapping):
-        raise DatasetError(f"{dataset}: episode_info[{episode}].can_logs is {type(logs).__name__}, not an object "
-                           f"{{bus: file name}}: fix episode_info or leave the episode out")
+        raise DatasetError(
+            f"{dataset}: episode_info[{episode}].can_logs is {type(logs).__name__}, not an object "
+            f"{{bus: file name}}: fix episode_info or leave the episode out"
+        )
     return {str(bus): can_log_path(dataset, name, episode) for bus, name in logs.items()}
 
 
@@ -176,15 +180,19 @@ def check_can_log_dir(dataset: str | os.PathLike) -> None:
     or copied through it elsewhere. Anything else raises DatasetError naming it (nothing is written)."""
     folder = can_log_dir(dataset)
     if folder.is_symlink() or (folder.exists() and not folder.is_dir()):
-        raise DatasetError(f"{folder} is {'a symbolic link' if folder.is_symlink() else 'not a folder'}: a dataset's "
-                           f"CAN logs are kept in a real folder beside it; move it away (nothing was written)")
+        raise DatasetError(
+            f"{folder} is {'a symbolic link' if folder.is_symlink() else 'not a folder'}: a dataset's "
+            f"CAN logs are kept in a real folder beside it; move it away (nothing was written)"
+        )
     if not folder.exists():
         return
     for entry in os.scandir(folder):
         if entry.is_symlink() or not (entry.is_file(follow_symlinks=False) or entry.is_dir(follow_symlinks=False)):
             kind = "a symbolic link" if entry.is_symlink() else "not a regular file"
-            raise DatasetError(f"{folder}: {entry.name} is {kind}: a dataset's CAN logs must be its own files; "
-                               f"move it away (nothing was written)")
+            raise DatasetError(
+                f"{folder}: {entry.name} is {kind}: a dataset's CAN logs must be its own files; "
+                f"move it away (nothing was written)"
+            )
 
 
 def _same_number(a, b) -> bool:
@@ -212,8 +220,14 @@ class RecordingDataset:
     (:func:`~dssp_data.zarr_chunks.check_dataset_tree`, :func:`check_can_log_dir`).
     """
 
-    def __init__(self, path: str | os.PathLike, dataset_attrs: dict, session: dict, extra_keys: Sequence[str],
-                 lock: WriterLock | None = None):
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        dataset_attrs: dict,
+        session: dict,
+        extra_keys: Sequence[str],
+        lock: WriterLock | None = None,
+    ):
         """``lock``: the dataset's writer lock when the caller took it already (``dssp-record`` takes it before
         it opens any device); it is released by :meth:`close` too."""
         self.path = Path(path)
@@ -222,8 +236,9 @@ class RecordingDataset:
         self._lock = lock if lock is not None else dataset_lock(self.path, flag="--out", doing="recorded into")
         try:
             check_can_log_dir(self.path)
-            self.writer = ReplayBufferWriter(self.path, attrs=None, repair_incomplete_tail=True, extra_keys=extra_keys,
-                                             lock=False)
+            self.writer = ReplayBufferWriter(
+                self.path, attrs=None, repair_incomplete_tail=True, extra_keys=extra_keys, lock=False
+            )
             self.repaired_steps = self.writer.dropped_tail_steps
             self.new = self.writer.n_episodes == 0  # an existing dataset holds at least one episode
             if self.new:
@@ -251,9 +266,13 @@ class RecordingDataset:
                 f"{convention_name(wanted)!r}: use the same --action or a new dataset"
             )
         try:
-            check_contract(ObservationContract.from_attrs(existing, where), ObservationContract.from_attrs(wanted, "this session"),
-                           trained_by=where, given_by="this session",
-                           remedy="record with the dataset's settings (leave out --pointcloud) or into a new dataset")
+            check_contract(
+                ObservationContract.from_attrs(existing, where),
+                ObservationContract.from_attrs(wanted, "this session"),
+                trained_by=where,
+                given_by="this session",
+                remedy="record with the dataset's settings (leave out --pointcloud) or into a new dataset",
+            )
         except ConfigError as exc:
             raise DatasetError(str(exc)) from None
         if (existing.get("pointcloud") is None) != (wanted.get("pointcloud") is None):

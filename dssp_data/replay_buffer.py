@@ -23,7 +23,8 @@ and appending carry them (:attr:`~dssp_data.dataset_layout.Episode.extras`), and
 exactly the extras the dataset holds, so every array keeps one entry per step.
 
 Crashes: a crash in the middle of an append
-(:class:`~dssp_data.replay_buffer_writer.ReplayBufferWriter`) leaves every earlier episode intact, followed by steps that belong to no episode. :meth:`ReplayBuffer.load`
+(:class:`~dssp_data.replay_buffer_writer.ReplayBufferWriter`) leaves every earlier episode intact, followed by steps
+that belong to no episode. :meth:`ReplayBuffer.load`
 reports such a tail as an error unless ``allow_incomplete_tail=True``, which drops exactly those steps and records
 how many in :attr:`ReplayBuffer.dropped_tail_steps`. Attributes given with an episode are written before its data,
 so after a crash they may describe one episode more than ``meta/episode_ends`` holds: readers index such
@@ -51,8 +52,8 @@ from dssp_data.bounded import check_budget, nbytes_of
 from dssp_data.dataset_layout import (
     DATA_KEYS,
     ENDS_KEY,
-    Episode,
     REQUIRED_KEYS,
+    Episode,
     check_data_structure,
     check_ends_structure,
     check_episode_ends,
@@ -62,7 +63,7 @@ from dssp_data.dataset_layout import (
     first_bad_steps,
     resolve_length,
 )
-from dssp_data.zarr_chunks import open_extra_arrays, open_required, read_checked, StoredArray, find_unbacked
+from dssp_data.zarr_chunks import StoredArray, find_unbacked, open_extra_arrays, open_required, read_checked
 
 __all__ = ["ReplayBuffer", "ReplayBufferReader"]
 
@@ -86,9 +87,15 @@ class ReplayBuffer:
         path: where it was loaded from (None for a buffer built in memory).
     """
 
-    def __init__(self, point_cloud: np.ndarray, state: np.ndarray, action: np.ndarray,
-                 episode_ends: np.ndarray, attrs: dict | None = None,
-                 extras: Mapping[str, np.ndarray] | None = None):
+    def __init__(
+        self,
+        point_cloud: np.ndarray,
+        state: np.ndarray,
+        action: np.ndarray,
+        episode_ends: np.ndarray,
+        attrs: dict | None = None,
+        extras: Mapping[str, np.ndarray] | None = None,
+    ):
         """Wrap in-memory arrays (shapes as in the class docstring) after validating them.
 
         Data arrays are converted to float32 and episode_ends to int64;
@@ -116,8 +123,14 @@ class ReplayBuffer:
             checked_extras[name] = check_extra_array(name, np.asarray(array), int(ends[-1]), where)
         self._set(values, ends, attrs, 0, checked_extras)
 
-    def _set(self, values: Mapping[str, np.ndarray], ends: np.ndarray, attrs: dict | None,
-             dropped_tail_steps: int, extras: Mapping[str, np.ndarray] | None = None) -> None:
+    def _set(
+        self,
+        values: Mapping[str, np.ndarray],
+        ends: np.ndarray,
+        attrs: dict | None,
+        dropped_tail_steps: int,
+        extras: Mapping[str, np.ndarray] | None = None,
+    ) -> None:
         self.point_cloud = values["data/point_cloud"]
         self.state = values["data/state"]
         self.action = values["data/action"]
@@ -128,8 +141,9 @@ class ReplayBuffer:
         self.path = None
 
     @classmethod
-    def load(cls, path: str | os.PathLike, *, allow_incomplete_tail: bool = False,
-             extras: bool | Sequence[str] = False) -> ReplayBuffer:
+    def load(
+        cls, path: str | os.PathLike, *, allow_incomplete_tail: bool = False, extras: bool | Sequence[str] = False
+    ) -> ReplayBuffer:
         """Read a dataset (zarr format 2 or 3) into memory and validate it.
 
         Data arrays are converted to float32. Arrays under ``data/`` other than
@@ -153,11 +167,21 @@ class ReplayBuffer:
         lengths = {key: arrays[key].shape[0] for key in REQUIRED_KEYS[:3]}
         lengths.update({f"data/{name}": array.shape[0] for name, array in extra_arrays.items()})
         data_arrays = {**arrays, **{f"data/{name}": a for name, a in extra_arrays.items()}}
-        n_steps, dropped = resolve_length(lengths, int(ends[-1]), allow_incomplete_tail, where,
-                                           unbacked=find_unbacked(data_arrays, int(ends[-1]), where))
-        need = sum(n_steps * (nbytes_of(arrays[key].shape[1:], arrays[key].dtype)
-                              + (0 if arrays[key].dtype == np.float32 else nbytes_of(arrays[key].shape[1:], np.float32)))
-                   for key in REQUIRED_KEYS[:3])
+        n_steps, dropped = resolve_length(
+            lengths,
+            int(ends[-1]),
+            allow_incomplete_tail,
+            where,
+            unbacked=find_unbacked(data_arrays, int(ends[-1]), where),
+        )
+        need = sum(
+            n_steps
+            * (
+                nbytes_of(arrays[key].shape[1:], arrays[key].dtype)
+                + (0 if arrays[key].dtype == np.float32 else nbytes_of(arrays[key].shape[1:], np.float32))
+            )
+            for key in REQUIRED_KEYS[:3]
+        )
         need += sum(n_steps * nbytes_of(array.shape[1:], array.dtype) for array in extra_arrays.values())
         check_budget(need, f"{where}: loading {n_steps} steps", "read it one episode at a time (ReplayBufferReader)")
         values = {}
@@ -166,8 +190,9 @@ class ReplayBuffer:
             with np.errstate(over="ignore"):
                 values[key] = raw.astype(np.float32, copy=False)
             check_finite_values(key, values[key], ends, where)
-        extra_values = {name: read_checked(array, f"data/{name}", where, n_steps, ends)
-                        for name, array in extra_arrays.items()}
+        extra_values = {
+            name: read_checked(array, f"data/{name}", where, n_steps, ends) for name, array in extra_arrays.items()
+        }
         buffer = cls.__new__(cls)
         buffer._set(values, ends, group.attrs.asdict(), dropped, extra_values)
         buffer.path = path
@@ -226,13 +251,19 @@ class ReplayBuffer:
         """Episode ``i`` as float32 views into this buffer: (T_i, P, C), (T_i, S), (T_i, A), and views
         (T_i, ...) of the loaded extras."""
         start, end = self.episode_range(i)
-        return Episode(self.point_cloud[start:end], self.state[start:end], self.action[start:end],
-                       {name: array[start:end] for name, array in self.extras.items()})
+        return Episode(
+            self.point_cloud[start:end],
+            self.state[start:end],
+            self.action[start:end],
+            {name: array[start:end] for name, array in self.extras.items()},
+        )
 
     def __repr__(self) -> str:
-        return (f"ReplayBuffer(n_episodes={self.n_episodes}, n_steps={self.n_steps}, "
-                f"point_cloud=({self.n_points}, {self.point_dim}), state_dim={self.state_dim}, "
-                f"action_dim={self.action_dim})")
+        return (
+            f"ReplayBuffer(n_episodes={self.n_episodes}, n_steps={self.n_steps}, "
+            f"point_cloud=({self.n_points}, {self.point_dim}), state_dim={self.state_dim}, "
+            f"action_dim={self.action_dim})"
+        )
 
 
 class ReplayBufferReader:
@@ -267,8 +298,9 @@ class ReplayBufferReader:
         lengths.update({f"data/{name}": array.shape[0] for name, array in extras.items()})
         self._arrays = {**{k: v for k, v in arrays.items()}, **{f"data/{n}": a for n, a in extras.items()}}
         self.unbacked_steps = find_unbacked(self._arrays, int(ends[-1]), where)
-        n_steps, dropped = resolve_length(lengths, int(ends[-1]), allow_incomplete_tail, where,
-                                           unbacked=self.unbacked_steps)
+        n_steps, dropped = resolve_length(
+            lengths, int(ends[-1]), allow_incomplete_tail, where, unbacked=self.unbacked_steps
+        )
         self._stored = {key: StoredArray(array, key, where) for key, array in self._arrays.items()}
         self.zarr_format = group.metadata.zarr_format
         self.attrs = group.attrs.asdict()
@@ -300,7 +332,9 @@ class ReplayBufferReader:
     def episode_range(self, i: int) -> tuple[int, int]:
         """(start, end) step indices of episode ``i`` (0 <= i < E)."""
         if not 0 <= i < self.n_episodes:
-            raise DatasetError(f"{self.path}: episode {i} is out of range: the dataset holds episodes 0..{self.n_episodes - 1}")
+            raise DatasetError(
+                f"{self.path}: episode {i} is out of range: the dataset holds episodes 0..{self.n_episodes - 1}"
+            )
         return (int(self.episode_ends[i - 1]) if i > 0 else 0), int(self.episode_ends[i])
 
     def read(self, key: str, start: int = 0, end: int | None = None) -> np.ndarray:
@@ -333,7 +367,7 @@ class ReplayBufferReader:
             DatasetError: the first missing or broken chunk (key, chunk, steps, episodes, what to do).
         """
         unstored = {}
-        for key in (sorted(self._arrays) if keys is None else keys):
+        for key in sorted(self._arrays) if keys is None else keys:
             if key not in self._stored:
                 raise DatasetError(f"{self.path}: no array {key}")
             stored = self._stored[key]

@@ -36,39 +36,49 @@ from dssp_data.dataset_layout import (
     DATA_KEYS,
     ENDS_CHUNK,
     ENDS_KEY,
-    Episode,
     EXTRA_CHUNK_BYTES,
+    Episode,
+    as_float32,
     check_data_structure,
     check_extra_array,
     check_extra_name,
     describe_extras_layout,
-    as_float32,
     extras_layout,
     resolve_length,
 )
 from dssp_data.zarr_chunks import (
     EVERY_CHUNK_ATTR,
     WRITE_CONFIG,
+    StoredArray,
     check_zarr_format,
     compressor_kwargs,
-    open_extra_arrays,
+    find_unbacked,
     get_array,
     is_zarr_store,
+    open_extra_arrays,
     open_required,
-    StoredArray,
-    find_unbacked,
 )
 
-__all__ = ["write_replay_buffer", "ReplayBufferWriter", "dataset_lock", "dataset_writer", "DATASET_WRITERS",
-           "DatasetWriter", "require_dataset_lock"]
+__all__ = [
+    "write_replay_buffer",
+    "ReplayBufferWriter",
+    "dataset_lock",
+    "dataset_writer",
+    "DATASET_WRITERS",
+    "DatasetWriter",
+    "require_dataset_lock",
+]
 
 
 # --------------------------------------------------------------------------- writing
 
 
-def _validated_episode(episode: Episode, where: str,
-                       dims: tuple[int, int, int, int] | None = None,
-                       layout: Mapping[str, tuple[str, tuple[int, ...]]] | None = None) -> Episode:
+def _validated_episode(
+    episode: Episode,
+    where: str,
+    dims: tuple[int, int, int, int] | None = None,
+    layout: Mapping[str, tuple[str, tuple[int, ...]]] | None = None,
+) -> Episode:
     """Return ``episode`` as float32 arrays (extras as given) after checking shapes and values.
 
     ``dims`` = (P, C, S, A) and ``layout`` = the extras' {name: (dtype, trailing shape)}
@@ -103,8 +113,7 @@ def _validated_episode(episode: Episode, where: str,
 
 def _episode_dims(episode: Episode) -> tuple[int, int, int, int]:
     """(P, C, S, A) of an episode."""
-    return (episode.point_cloud.shape[1], episode.point_cloud.shape[2],
-            episode.state.shape[1], episode.action.shape[1])
+    return (episode.point_cloud.shape[1], episode.point_cloud.shape[2], episode.state.shape[1], episode.action.shape[1])
 
 
 def _check_attrs(attrs: dict | None) -> dict:
@@ -112,8 +121,9 @@ def _check_attrs(attrs: dict | None) -> dict:
     try:
         json.dumps(attrs)
     except (TypeError, ValueError) as exc:
-        raise DatasetError(f"dataset attributes are not JSON-serialisable ({exc}): use plain numbers, "
-                           f"strings, lists and dicts") from exc
+        raise DatasetError(
+            f"dataset attributes are not JSON-serialisable ({exc}): use plain numbers, strings, lists and dicts"
+        ) from exc
     return attrs
 
 
@@ -128,13 +138,19 @@ def _write_store(path: Path, episodes: Sequence[Episode], attrs: dict, zarr_form
     codec = {**compressor_kwargs(zarr_format), "config": WRITE_CONFIG, "attributes": {EVERY_CHUNK_ATTR: True}}
     for key in DATA_KEYS:
         values = np.concatenate([getattr(ep, key) for ep in episodes], axis=0)
-        array = data.create_array(key, shape=values.shape, dtype=np.float32,
-                                  chunks=(CHUNK_STEPS,) + values.shape[1:], **codec)
+        array = data.create_array(
+            key, shape=values.shape, dtype=np.float32, chunks=(CHUNK_STEPS,) + values.shape[1:], **codec
+        )
         array[...] = values
     for name in sorted(episodes[0].extras):
         values = np.concatenate([ep.extras[name] for ep in episodes], axis=0)
-        array = data.create_array(name, shape=values.shape, dtype=values.dtype,
-                                  chunks=(_extra_chunk_steps(values),) + values.shape[1:], **codec)
+        array = data.create_array(
+            name,
+            shape=values.shape,
+            dtype=values.dtype,
+            chunks=(_extra_chunk_steps(values),) + values.shape[1:],
+            **codec,
+        )
         array[...] = values
     ends = np.cumsum([ep.n_steps for ep in episodes], dtype=np.int64)
     array = meta.create_array("episode_ends", shape=ends.shape, dtype=np.int64, chunks=(ENDS_CHUNK,), **codec)
@@ -148,7 +164,9 @@ def _extra_chunk_steps(values: np.ndarray) -> int:
 
 
 def _check_replaceable(path: Path) -> None:
-    if path.is_symlink() or (path.exists() and not (path.is_dir() and (is_zarr_store(path) or not any(path.iterdir())))):
+    if path.is_symlink() or (
+        path.exists() and not (path.is_dir() and (is_zarr_store(path) or not any(path.iterdir())))
+    ):
         raise DatasetError(
             f"{path} exists and is not a zarr dataset or an empty directory: refusing to replace it; "
             f"choose another path or remove it"
@@ -177,8 +195,10 @@ def require_dataset_lock(path: str | os.PathLike) -> None:
     passes here (a new store, an append), so a writer that does not take the lock cannot write."""
     target = staging_target(path) or Path(path)
     if not WriterLock.held_here(_lock_target(target)):
-        raise RuntimeError(f"{target} is written without its writer lock: a dataset writer takes it first "
-                           f"(dataset_writer, dataset_lock)")
+        raise RuntimeError(
+            f"{target} is written without its writer lock: a dataset writer takes it first "
+            f"(dataset_writer, dataset_lock)"
+        )
 
 
 @dataclass(frozen=True)
@@ -211,6 +231,7 @@ def dataset_writer(*, check: Callable[[Mapping[str, Any]], object] | None = None
         @dataset_writer(out=None, check=lambda a: check_data_output(a["out"], a["inputs"], a["force"], a["flag"]))
         def merge(out, inputs, *, force=False, flag="OUT"): ...
     """
+
     def decorate(function: Callable) -> Callable:
         signature = inspect.signature(function)
 
@@ -240,8 +261,9 @@ def dataset_writer(*, check: Callable[[Mapping[str, Any]], object] | None = None
 
 
 @dataset_writer(path="path", check=lambda a: _check_replaceable(Path(a["path"])))
-def write_replay_buffer(path: str | os.PathLike, episodes: Sequence[Episode], attrs: dict | None = None,
-                        zarr_format: int = 2) -> None:
+def write_replay_buffer(
+    path: str | os.PathLike, episodes: Sequence[Episode], attrs: dict | None = None, zarr_format: int = 2
+) -> None:
     """Write ``episodes`` as a complete dataset at ``path``.
 
     Each episode holds point_cloud (T_i, P, C), state (T_i, S) and action
@@ -327,9 +349,17 @@ class ReplayBufferWriter:
     its chunks as above.
     """
 
-    def __init__(self, path: str | os.PathLike, attrs: dict | None = None, zarr_format: int = 2,
-                 *, repair_incomplete_tail: bool = False, extra_keys: Sequence[str] = (), staged: bool = False,
-                 lock: bool = True):
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        attrs: dict | None = None,
+        zarr_format: int = 2,
+        *,
+        repair_incomplete_tail: bool = False,
+        extra_keys: Sequence[str] = (),
+        staged: bool = False,
+        lock: bool = True,
+    ):
         check_zarr_format(zarr_format)
         self.path = Path(path)
         self.staged = staged
@@ -386,11 +416,15 @@ class ReplayBufferWriter:
         data_keys = [key for key in arrays if key != ENDS_KEY]
         lengths = {key: arrays[key].shape[0] for key in data_keys}
         self.unbacked_steps = find_unbacked(arrays, int(ends[-1]), where)
-        n_steps, dropped = resolve_length(lengths, int(ends[-1]), repair_incomplete_tail, where,
-                                           remedy="open the writer with repair_incomplete_tail=True to cut them off",
-                                           unbacked=self.unbacked_steps,
-                                           shape_remedy="open the writer with repair_incomplete_tail=True to set it "
-                                                        "back (nothing stored is lost)")
+        n_steps, dropped = resolve_length(
+            lengths,
+            int(ends[-1]),
+            repair_incomplete_tail,
+            where,
+            remedy="open the writer with repair_incomplete_tail=True to cut them off",
+            unbacked=self.unbacked_steps,
+            shape_remedy="open the writer with repair_incomplete_tail=True to set it back (nothing stored is lost)",
+        )
         # Every chunk of the episodes must be stored and hold a whole frame (lost data is not appended to),
         # and the last one, which the next append reads back and rewrites, must decode.
         arrays = {key: array.with_config(WRITE_CONFIG) for key, array in arrays.items()}
@@ -412,8 +446,12 @@ class ReplayBufferWriter:
         self.zarr_format = group.metadata.zarr_format
         self._group = group
         self._arrays = arrays
-        self._dims = (arrays["data/point_cloud"].shape[1], arrays["data/point_cloud"].shape[2],
-                      arrays["data/state"].shape[1], arrays["data/action"].shape[1])
+        self._dims = (
+            arrays["data/point_cloud"].shape[1],
+            arrays["data/point_cloud"].shape[2],
+            arrays["data/state"].shape[1],
+            arrays["data/action"].shape[1],
+        )
         self._layout = extras_layout({name: extras[name] for name in self.extra_keys})
         self._n_steps = n_steps
         self._n_episodes = int(ends.shape[0])
@@ -464,8 +502,9 @@ class ReplayBufferWriter:
             else:
                 _write_complete(self.path, [episode], {**self._attrs, **attrs}, self.zarr_format)
             self._group, arrays, _ = open_required(self.path, "r+")
-            arrays.update({f"data/{name}": get_array(self._group, f"data/{name}", str(self.path))
-                           for name in self.extra_keys})
+            arrays.update(
+                {f"data/{name}": get_array(self._group, f"data/{name}", str(self.path)) for name in self.extra_keys}
+            )
             self._arrays = {key: array.with_config(WRITE_CONFIG) for key, array in arrays.items()}
             self._dims = _episode_dims(episode)
             self._layout = extras_layout(episode.extras)

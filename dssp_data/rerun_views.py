@@ -47,8 +47,8 @@ from typing import Any
 
 import numpy as np
 
-from dssp_data.arm_kinematics import ARM_VALUES, tool_points
 from dssp_core.errors import ConfigError
+from dssp_data.arm_kinematics import ARM_VALUES, tool_points
 
 QUEUE_SIZE = 256  # ticks of views waiting for the worker; beyond it they are dropped (and counted)
 INSTALL_HINT = 'pip install -e ".[viz]" (or pip install rerun-sdk)'
@@ -68,10 +68,21 @@ def require_rerun(flag: str = "--rerun"):
 
 def add_rerun_flags(parser, what: str = "each control tick") -> None:
     """``--rerun [URL]`` and ``--rerun-save PATH.rrd`` on an argparse parser."""
-    parser.add_argument("--rerun", nargs="?", const="spawn", default=None, metavar="URL",
-                        help=f"show {what} in Rerun: spawn a viewer, or connect to one at URL (e.g. rerun+http://HOST:9876/proxy)")
-    parser.add_argument("--rerun-save", type=Path, default=None, metavar="PATH.rrd",
-                        help=f"save the Rerun views of {what} to a file (no viewer; open it later with `rerun PATH.rrd`)")
+    parser.add_argument(
+        "--rerun",
+        nargs="?",
+        const="spawn",
+        default=None,
+        metavar="URL",
+        help=f"show {what} in Rerun: spawn a viewer, or connect to one at URL (e.g. rerun+http://HOST:9876/proxy)",
+    )
+    parser.add_argument(
+        "--rerun-save",
+        type=Path,
+        default=None,
+        metavar="PATH.rrd",
+        help=f"save the Rerun views of {what} to a file (no viewer; open it later with `rerun PATH.rrd`)",
+    )
 
 
 def check_views(connect: str | None, save: Path | None) -> None:
@@ -85,13 +96,17 @@ def check_views(connect: str | None, save: Path | None) -> None:
         try:
             rr.GrpcSink(connect)  # parses the address; connects only once a recording is given it
         except Exception as exc:  # noqa: BLE001 - rerun's parse errors are RuntimeErrors of its own wording
-            raise ConfigError(f"--rerun {connect!r} is not a Rerun viewer's address ({' '.join(str(exc).split())}); "
-                              "give e.g. rerun+http://127.0.0.1:9876/proxy, or --rerun alone to start a viewer") from None
+            raise ConfigError(
+                f"--rerun {connect!r} is not a Rerun viewer's address ({' '.join(str(exc).split())}); "
+                "give e.g. rerun+http://127.0.0.1:9876/proxy, or --rerun alone to start a viewer"
+            ) from None
     if save is not None:
         save = Path(save)
         if save.suffix != ".rrd" or not save.stem:
-            raise ConfigError(f"--rerun-save {save}: a Rerun recording is a .rrd file; name it e.g. "
-                              f"{save.with_suffix('.rrd') if save.name else 'views.rrd'}")
+            raise ConfigError(
+                f"--rerun-save {save}: a Rerun recording is a .rrd file; name it e.g. "
+                f"{save.with_suffix('.rrd') if save.name else 'views.rrd'}"
+            )
         if save.is_dir() and not save.is_symlink():
             raise ConfigError(f"--rerun-save {save} is a folder; give a new .rrd file name")
         if save.exists() or save.is_symlink():
@@ -103,11 +118,15 @@ def check_views(connect: str | None, save: Path | None) -> None:
             raise ConfigError(f"--rerun-save {save}: the folder {save.parent} is not writable; choose another one")
         partial = _partial(save)
         if partial.is_symlink():
-            raise ConfigError(f"--rerun-save {save}: {partial} is a symbolic link; remove it (a recording is never "
-                              "written through a link)")
+            raise ConfigError(
+                f"--rerun-save {save}: {partial} is a symbolic link; remove it (a recording is never "
+                "written through a link)"
+            )
         if partial.exists():
-            raise ConfigError(f"--rerun-save {save}: {partial} exists (a recording that did not finish?); move it "
-                              "away or choose another name")
+            raise ConfigError(
+                f"--rerun-save {save}: {partial} exists (a recording that did not finish?); move it "
+                "away or choose another name"
+            )
 
 
 def open_views(app: str, connect: str | None, save: Path | None, queue_size: int = QUEUE_SIZE) -> TickViews | None:
@@ -148,11 +167,17 @@ def _create_partial(save: Path) -> int:
     partial = _partial(save)
     folder = os.open(save.parent, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
     try:
-        return os.open(partial.name, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC | getattr(os, "O_NOFOLLOW", 0),
-                       0o644, dir_fd=folder)
+        return os.open(
+            partial.name,
+            os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC | getattr(os, "O_NOFOLLOW", 0),
+            0o644,
+            dir_fd=folder,
+        )
     except FileExistsError:
-        raise ConfigError(f"--rerun-save {save}: {partial} appeared meanwhile (a link or another recording); move it "
-                          "away or choose another name") from None
+        raise ConfigError(
+            f"--rerun-save {save}: {partial} appeared meanwhile (a link or another recording); move it "
+            "away or choose another name"
+        ) from None
     except OSError as exc:
         raise ConfigError(f"--rerun-save {save}: cannot create {partial} ({exc.strerror or exc})") from None
     finally:
@@ -200,7 +225,9 @@ def _publish(fd: int, save: Path) -> None:
         try:
             os.link(partial, save, follow_symlinks=False)
         except FileExistsError:
-            raise ConfigError(f"{save} appeared while the views were written; the recording stays at {partial}") from None
+            raise ConfigError(
+                f"{save} appeared while the views were written; the recording stays at {partial}"
+            ) from None
         os.unlink(partial)
     finally:
         os.close(fd)
@@ -239,7 +266,9 @@ class TickViews:
     # ----------------------------------------------------------------------- the caller's side (cheap)
     def camera(self, intrinsics: dict, camera_to_base: np.ndarray) -> None:
         """The camera's pose (4, 4) in the base frame and its pinhole (``width, height, fx, fy, ppx, ppy`` pixels)."""
-        self._put(("camera", None, {"intrinsics": dict(intrinsics), "camera_to_base": np.asarray(camera_to_base, np.float64)}))
+        self._put(
+            ("camera", None, {"intrinsics": dict(intrinsics), "camera_to_base": np.asarray(camera_to_base, np.float64)})
+        )
 
     def tick(self, tick: int, wait: bool = False, **views: Any) -> bool:
         """Queue one tick's views (keyword arguments, all optional): ``depth`` (H, W) uint16 with ``depth_unit`` m,
@@ -285,8 +314,9 @@ class TickViews:
     def close_line(self, unit: str = "ticks") -> str:
         """:meth:`close`, then the one line the commands print: what was logged and dropped, and the file saved."""
         counts = self.close()
-        return (f"rerun views: {counts['logged']} {unit} logged, {counts['dropped']} dropped"
-                + (f"; saved to {self.save}" if self.save is not None else ""))
+        return f"rerun views: {counts['logged']} {unit} logged, {counts['dropped']} dropped" + (
+            f"; saved to {self.save}" if self.save is not None else ""
+        )
 
     def __enter__(self) -> TickViews:
         return self
@@ -317,14 +347,35 @@ class TickViews:
 
     def _log_camera(self, intrinsics: dict, camera_to_base: np.ndarray) -> None:
         rr, log = self._rr, self.stream.log
-        log("world/camera", rr.Transform3D(translation=camera_to_base[:3, 3], mat3x3=camera_to_base[:3, :3]), static=True)
-        log("world/camera/depth", rr.Pinhole(focal_length=[intrinsics["fx"], intrinsics["fy"]],
-                                             principal_point=[intrinsics["ppx"], intrinsics["ppy"]],
-                                             resolution=[intrinsics["width"], intrinsics["height"]],
-                                             camera_xyz=rr.ViewCoordinates.RDF), static=True)
+        log(
+            "world/camera",
+            rr.Transform3D(translation=camera_to_base[:3, 3], mat3x3=camera_to_base[:3, :3]),
+            static=True,
+        )
+        log(
+            "world/camera/depth",
+            rr.Pinhole(
+                focal_length=[intrinsics["fx"], intrinsics["fy"]],
+                principal_point=[intrinsics["ppx"], intrinsics["ppy"]],
+                resolution=[intrinsics["width"], intrinsics["height"]],
+                camera_xyz=rr.ViewCoordinates.RDF,
+            ),
+            static=True,
+        )
 
-    def _log_tick(self, tick: int, depth=None, depth_unit: float | None = None, cloud=None, state=None, command=None,
-                  chunk=None, held: bool | None = None, events=(), latency_ms: dict | None = None) -> None:
+    def _log_tick(
+        self,
+        tick: int,
+        depth=None,
+        depth_unit: float | None = None,
+        cloud=None,
+        state=None,
+        command=None,
+        chunk=None,
+        held: bool | None = None,
+        events=(),
+        latency_ms: dict | None = None,
+    ) -> None:
         rr = self._rr
 
         def log(*args, **kwargs) -> None:  # each call, then the interpreter to a waiting control loop (sleep(0) yields)
@@ -345,7 +396,7 @@ class TickViews:
                     if entity not in self._named:  # the series' names, once
                         log(entity, rr.SeriesLines(names=[f"{name} {j}" for j in JOINT_NAMES]), static=True)
                         self._named.add(entity)
-                    log(entity, rr.Scalars(value[arm * ARM_VALUES:(arm + 1) * ARM_VALUES]))
+                    log(entity, rr.Scalars(value[arm * ARM_VALUES : (arm + 1) * ARM_VALUES]))
         if state is not None and np.asarray(state).shape[-1] % ARM_VALUES == 0:
             for arm, point in enumerate(tool_points(state)[0]):
                 log(f"world/arm{arm}/gripper", rr.Points3D(point[None], radii=0.01))

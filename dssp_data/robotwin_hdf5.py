@@ -27,10 +27,10 @@ from pathlib import Path
 import numpy as np
 
 from dssp_core.errors import DatasetError
+from dssp_core.schema import check_rate
 from dssp_data.bounded import ChunkTooLarge, check_budget, decompress, human_size, nbytes_of
 from dssp_data.dataset_layout import Episode, as_float32
 from dssp_data.edit import DATA_GENERATORS, ConvertedEpisode, check_converted_output, check_data_output, write_converted
-from dssp_core.schema import check_rate
 from dssp_data.recording import ACTION_CONVENTIONS
 from dssp_data.replay_buffer_writer import dataset_writer
 
@@ -57,12 +57,15 @@ def find_episodes(source: str | os.PathLike) -> list[Path]:
     for folder in (source, source / "data"):
         files = [p for p in folder.glob("*.hdf5") if p.is_file()] if folder.is_dir() else []
         if files:
+
             def number(p: Path):
                 m = _NUMBER.findall(p.stem)
                 return (int(m[-1]) if m else -1, p.name)
 
             return sorted(files, key=number)
-    raise DatasetError(f"no .hdf5 episodes in {source} or {source / 'data'}: point to RoboTwin's <task>/<config> directory")
+    raise DatasetError(
+        f"no .hdf5 episodes in {source} or {source / 'data'}: point to RoboTwin's <task>/<config> directory"
+    )
 
 
 def check_self_contained(f, path: Path) -> None:
@@ -127,32 +130,43 @@ def read_array(f, name: str, path: Path, dtype) -> np.ndarray:
     filters = [plist.get_filter(i)[0] for i in range(plist.get_nfilters())]
     for code in filters:
         if code not in _FILTERS:
-            raise DatasetError(f"{path}: /{name} is compressed with the HDF5 filter {code}, whose decoded size this "
-                               f"reader cannot bound: re-save the episode uncompressed or with gzip")
+            raise DatasetError(
+                f"{path}: /{name} is compressed with the HDF5 filter {code}, whose decoded size this "
+                f"reader cannot bound: re-save the episode uncompressed or with gzip"
+            )
     if filters.count(1) > 1:
-        raise DatasetError(f"{path}: /{name} is compressed twice with deflate: re-save the episode uncompressed or "
-                           f"with gzip")
+        raise DatasetError(
+            f"{path}: /{name} is compressed twice with deflate: re-save the episode uncompressed or with gzip"
+        )
     if 1 in filters and node.chunks is not None:
         chunk_nbytes = nbytes_of(node.chunks, stored)
-        check_budget(chunk_nbytes, f"{path}: one chunk of /{name} (chunk shape {node.chunks})",
-                     "re-save the episode with smaller chunks")
+        check_budget(
+            chunk_nbytes,
+            f"{path}: one chunk of /{name} (chunk shape {node.chunks})",
+            "re-save the episode with smaller chunks",
+        )
         deflate_bit = 1 << filters.index(1)
         for i in range(node.id.get_num_chunks()):
             info = node.id.get_chunk_info(i)
             if info.filter_mask & deflate_bit:
                 continue  # stored without deflate: as large as it is on disk
             if info.size > 2 * chunk_nbytes + (1 << 16):
-                raise DatasetError(f"{path}: /{name} chunk {info.chunk_offset} is corrupt ({human_size(info.size)} "
-                                   f"stored, more than a chunk of {human_size(chunk_nbytes)} takes): re-save the episode")
+                raise DatasetError(
+                    f"{path}: /{name} chunk {info.chunk_offset} is corrupt ({human_size(info.size)} "
+                    f"stored, more than a chunk of {human_size(chunk_nbytes)} takes): re-save the episode"
+                )
             _, raw = node.id.read_direct_chunk(info.chunk_offset)
             try:
                 decompress("zlib", raw, chunk_nbytes)
             except ChunkTooLarge as exc:
-                raise DatasetError(f"{path}: /{name} chunk {info.chunk_offset} is corrupt ({exc}): re-save or leave "
-                                   f"out the episode") from None
+                raise DatasetError(
+                    f"{path}: /{name} chunk {info.chunk_offset} is corrupt ({exc}): re-save or leave out the episode"
+                ) from None
             except Exception as exc:
-                raise DatasetError(f"{path}: /{name} chunk {info.chunk_offset} is corrupt (it does not decode: "
-                                   f"{exc}): re-save or leave out the episode") from None
+                raise DatasetError(
+                    f"{path}: /{name} chunk {info.chunk_offset} is corrupt (it does not decode: "
+                    f"{exc}): re-save or leave out the episode"
+                ) from None
     try:
         values = np.asarray(node[()])
     except Exception as exc:  # h5py raises OSError and others for damaged data
@@ -182,20 +196,26 @@ def read_episode(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
             parts = [p.reshape(len(p), -1) for p in parts]
             vector = np.concatenate(parts, axis=1)
         else:
-            raise DatasetError(f"{path}: no /joint_action/vector (nor left_arm, left_gripper, right_arm, right_gripper): "
-                               f"not a RoboTwin episode")
+            raise DatasetError(
+                f"{path}: no /joint_action/vector (nor left_arm, left_gripper, right_arm, right_gripper): "
+                f"not a RoboTwin episode"
+            )
         if "pointcloud" not in f:
             raise DatasetError(f"{path}: no /pointcloud: collect with data_type.pointcloud enabled in the task config")
         cloud = read_array(f, "pointcloud", path, np.float32)
     if vector.ndim != 2 or vector.shape[0] == 0:
         raise DatasetError(f"{path}: /joint_action/vector has shape {vector.shape}; expected (T, D)")
     if cloud.size == 0 or cloud.ndim != 3:
-        raise DatasetError(f"{path}: /pointcloud is empty or not (T, N, C) (shape {cloud.shape}): the episode was "
-                           f"collected without point clouds (data_type.pointcloud)")
+        raise DatasetError(
+            f"{path}: /pointcloud is empty or not (T, N, C) (shape {cloud.shape}): the episode was "
+            f"collected without point clouds (data_type.pointcloud)"
+        )
     if cloud.shape[0] != vector.shape[0]:
         raise DatasetError(f"{path}: /pointcloud has {cloud.shape[0]} steps but the joint vector {vector.shape[0]}")
     if cloud.shape[2] not in (3, 6):
-        raise DatasetError(f"{path}: /pointcloud points have {cloud.shape[2]} values; expected 3 (xyz) or 6 (xyz + rgb)")
+        raise DatasetError(
+            f"{path}: /pointcloud points have {cloud.shape[2]} values; expected 3 (xyz) or 6 (xyz + rgb)"
+        )
     return vector, cloud
 
 
@@ -209,9 +229,18 @@ def to_episode(vector: np.ndarray, cloud: np.ndarray, xyz_only: bool = False) ->
 
 
 @dataset_writer(out=None, check=check_converted_output)
-def convert(source: str | os.PathLike, out: str | os.PathLike, *, max_episodes: int | None = None,
-            xyz_only: bool = False, control_rate_hz: float | None = None, task: str | None = None,
-            force: bool = False, progress=None, flag: str = "--out") -> dict:
+def convert(
+    source: str | os.PathLike,
+    out: str | os.PathLike,
+    *,
+    max_episodes: int | None = None,
+    xyz_only: bool = False,
+    control_rate_hz: float | None = None,
+    task: str | None = None,
+    force: bool = False,
+    progress=None,
+    flag: str = "--out",
+) -> dict:
     """Convert RoboTwin episodes from ``source`` into the DP3 dataset ``out`` (written whole, then renamed).
 
     ``out`` must be new, or a dataset ``dssp-data`` made (replaced only with ``force``); anything else is

@@ -52,7 +52,7 @@ import numpy as np
 
 from dssp_core.errors import ConfigError, DatasetError, DSSPError
 from dssp_core.files import read_input_bytes
-from dssp_core.schema import JSON_MAX_DEPTH
+from dssp_core.schema import DEFAULT_CONTROL_RATE_HZ, JSON_MAX_DEPTH, check_rate
 from dssp_data.bounded import (
     READ_BUDGET_ENV,
     ChunkTooLarge,
@@ -64,7 +64,6 @@ from dssp_data.bounded import (
 )
 from dssp_data.dataset_layout import FLOAT32_MAX, Episode
 from dssp_data.edit import DATA_GENERATORS, ConvertedEpisode, check_converted_output, check_data_output, write_converted
-from dssp_core.schema import DEFAULT_CONTROL_RATE_HZ, check_rate
 from dssp_data.observation import ObservationContract, PointCloudConfig, piper_layout
 from dssp_data.pointcloud import EmptyCloudError, frame_to_cloud, validate_extrinsics
 from dssp_data.pointcloud.depth_frame import DepthFrame, Intrinsics
@@ -110,7 +109,9 @@ class Rosbag2Settings:
     def __post_init__(self) -> None:
         check_rate(self.control_rate_hz, "--control-rate")
         if len(self.joints) != 7 or len(set(self.joints)) != 7 or not all(self.joints):
-            raise ConfigError(f"--joints must name 7 different joints (J1..J6, then the gripper), got {','.join(self.joints)}")
+            raise ConfigError(
+                f"--joints must name 7 different joints (J1..J6, then the gripper), got {','.join(self.joints)}"
+            )
         if not (math.isfinite(self.gripper_open) and self.gripper_open > 0):
             raise ConfigError(f"--gripper-open must be a positive number, got {self.gripper_open!r}")
         if not (math.isfinite(self.tolerance) and 0 < self.tolerance <= 10):
@@ -124,8 +125,11 @@ class Rosbag2Settings:
 
     def topics(self) -> list[tuple[str, str, str]]:
         """(flag, topic, the message type it must carry) of every topic read."""
-        topics = [("--state-topic", self.state_topic, JOINT_STATE), ("--depth-topic", self.depth_topic, IMAGE),
-                  ("--info-topic", self.info_topic, CAMERA_INFO)]
+        topics = [
+            ("--state-topic", self.state_topic, JOINT_STATE),
+            ("--depth-topic", self.depth_topic, IMAGE),
+            ("--info-topic", self.info_topic, CAMERA_INFO),
+        ]
         if self.action_topic:
             topics.append(("--action-topic", self.action_topic, JOINT_STATE))
         return topics
@@ -174,21 +178,27 @@ def find_bags(source: Path) -> list[Path]:
     if not source.is_dir():
         raise DatasetError(f"{source} is not a ROS 2 bag folder (no metadata.yaml) nor a folder of bags")
     if looks_like_bag(source):
-        raise DatasetError(f"{source} holds a bag's storage files but no metadata.yaml (ros2 bag record was stopped "
-                           "before it wrote it?); ros2 bag reindex restores it")
+        raise DatasetError(
+            f"{source} holds a bag's storage files but no metadata.yaml (ros2 bag record was stopped "
+            "before it wrote it?); ros2 bag reindex restores it"
+        )
     bags = []
     for path in sorted(source.iterdir()):
         if path.name.startswith("."):
             continue
         if path.is_symlink():
-            raise DatasetError(f"{path} is a link; a folder of bags is read from its own bag folders only (copy the "
-                               "bag in, or give it directly)")
+            raise DatasetError(
+                f"{path} is a link; a folder of bags is read from its own bag folders only (copy the "
+                "bag in, or give it directly)"
+            )
         if not path.is_dir():
             raise DatasetError(f"{path} is not a bag folder; a folder of bags holds bag folders only (move it out)")
         if not is_bag(path):
-            raise DatasetError(f"{path} is a folder without metadata.yaml: not a complete bag (ros2 bag record was "
-                               f"stopped before it wrote it? ros2 bag reindex restores it); restore it or move it out "
-                               f"of {source}")
+            raise DatasetError(
+                f"{path} is a folder without metadata.yaml: not a complete bag (ros2 bag record was "
+                f"stopped before it wrote it? ros2 bag reindex restores it); restore it or move it out "
+                f"of {source}"
+            )
         bags.append(path)
     if not bags:
         raise DatasetError(f"{source} holds no ROS 2 bag (a folder with metadata.yaml); record with ros2 bag record")
@@ -202,8 +212,9 @@ def _check_inside(bag: Path) -> None:
         if path.is_symlink():
             raise DatasetError(f"{bag}: {path.name} is a link or lies outside the bag folder; copy the bag's files in")
         if not path.is_file():
-            raise DatasetError(f"{bag}: {path.name} is not a regular file; a bag folder holds its metadata.yaml and "
-                               "storage files only")
+            raise DatasetError(
+                f"{bag}: {path.name} is not a regular file; a bag folder holds its metadata.yaml and storage files only"
+            )
 
 
 @dataclass(frozen=True)
@@ -251,8 +262,10 @@ def read_metadata(bag: Path) -> BagMetadata:
     except Exception as exc:  # ruamel's parser and scanner errors
         problem = f"it is not valid YAML: {' '.join(str(exc).split())[:200]}"
     if problem:
-        raise DatasetError(f"{where} is not a bag's metadata ({problem}); a recording cut short? ros2 bag reindex "
-                           "rebuilds it from the storage files")
+        raise DatasetError(
+            f"{where} is not a bag's metadata ({problem}); a recording cut short? ros2 bag reindex "
+            "rebuilds it from the storage files"
+        )
     try:
         info = values["rosbag2_bagfile_information"]
         storage = info["storage_identifier"]
@@ -260,12 +273,16 @@ def read_metadata(bag: Path) -> BagMetadata:
         topics = {t["topic_metadata"]["name"]: t["topic_metadata"]["type"] for t in info["topics_with_message_count"]}
         mode = str(info.get("compression_mode") or "").lower()
         fmt = str(info.get("compression_format") or "").lower()
-        if not (isinstance(names, list) and all(isinstance(n, str) and n for n in names)
-                and all(isinstance(k, str) and isinstance(v, str) for k, v in topics.items())):
+        if not (
+            isinstance(names, list)
+            and all(isinstance(n, str) and n for n in names)
+            and all(isinstance(k, str) and isinstance(v, str) for k, v in topics.items())
+        ):
             raise TypeError("relative_file_paths and the topics must be lists of names")
     except (KeyError, TypeError, AttributeError) as exc:
-        raise DatasetError(f"{where} is not a rosbag2 metadata file ({type(exc).__name__}: {exc}); ros2 bag reindex "
-                           "rebuilds it") from None
+        raise DatasetError(
+            f"{where} is not a rosbag2 metadata file ({type(exc).__name__}: {exc}); ros2 bag reindex rebuilds it"
+        ) from None
     if storage not in STORAGES:
         raise DatasetError(f"{where}: storage {storage!r} is not read here (only {', '.join(STORAGES)})")
     if mode in ("", "none"):
@@ -273,17 +290,21 @@ def read_metadata(bag: Path) -> BagMetadata:
     elif mode == "message" and fmt == "zstd":
         compression = "message"
     elif mode == "file":
-        raise DatasetError(f"{where}: the bag is compressed as whole files (compression_mode: file), whose size is not "
-                           "known before they are decompressed; decompress it first (ros2 bag convert to an "
-                           "uncompressed bag)")
+        raise DatasetError(
+            f"{where}: the bag is compressed as whole files (compression_mode: file), whose size is not "
+            "known before they are decompressed; decompress it first (ros2 bag convert to an "
+            "uncompressed bag)"
+        )
     else:
         raise DatasetError(f"{where}: compression {mode!r} / {fmt!r} is not read here (none, or zstd messages)")
     files = []
     for name in names:
         path = bag / Path(name).name  # as rosbag2 does: the files lie in the bag folder
         if not path.is_file():
-            raise DatasetError(f"{where} lists the storage file {name}, which is missing; a recording cut short? "
-                               "(ros2 bag reindex rebuilds the metadata from the files there)")
+            raise DatasetError(
+                f"{where} lists the storage file {name}, which is missing; a recording cut short? "
+                "(ros2 bag reindex rebuilds the metadata from the files there)"
+            )
         files.append(path)
     return BagMetadata(storage, tuple(files), compression, topics)
 
@@ -296,11 +317,15 @@ def _sqlite_sizes(meta: BagMetadata, bag: Path) -> dict[str, tuple[int, int]]:
         uri = f"file:{urllib.parse.quote(str(path.absolute()))}?mode=ro&immutable=1"
         try:
             with contextlib.closing(sqlite3.connect(uri, uri=True)) as db:
-                rows = db.execute("SELECT topics.name, count(*), max(length(messages.data)) FROM messages "
-                                  "JOIN topics ON messages.topic_id = topics.id GROUP BY topics.name").fetchall()
+                rows = db.execute(
+                    "SELECT topics.name, count(*), max(length(messages.data)) FROM messages "
+                    "JOIN topics ON messages.topic_id = topics.id GROUP BY topics.name"
+                ).fetchall()
         except sqlite3.Error as exc:
-            raise DatasetError(f"{bag}: {path.name} is not a readable sqlite3 bag file ({exc}); a recording cut "
-                               "short? convert the bags that are complete") from None
+            raise DatasetError(
+                f"{bag}: {path.name} is not a readable sqlite3 bag file ({exc}); a recording cut "
+                "short? convert the bags that are complete"
+            ) from None
         for topic, count, largest in rows:
             before = sizes.get(topic, (0, 0))
             sizes[topic] = (before[0] + int(count), max(before[1], int(largest or 0)))
@@ -308,8 +333,11 @@ def _sqlite_sizes(meta: BagMetadata, bag: Path) -> dict[str, tuple[int, int]]:
 
 
 def _check_message(nbytes: int, bag: Path, topic: str) -> None:
-    check_budget(nbytes * DECODED_FACTOR, f"{bag}: a message of {topic} ({human_size(nbytes)})",
-                 "convert bags with smaller messages")
+    check_budget(
+        nbytes * DECODED_FACTOR,
+        f"{bag}: a message of {topic} ({human_size(nbytes)})",
+        "convert bags with smaller messages",
+    )
 
 
 @contextlib.contextmanager
@@ -323,14 +351,18 @@ def _bounded_decoding(bag: Path) -> Iterator[None]:
 
     def chunk(kind: str | None) -> Callable[[bytes, int], bytes]:
         def decode(data: bytes, size: int) -> bytes:
-            check_budget(size, f"{bag}: an mcap chunk ({human_size(size)} declared)", "convert bags with smaller chunks")
+            check_budget(
+                size, f"{bag}: an mcap chunk ({human_size(size)} declared)", "convert bags with smaller chunks"
+            )
             if kind is None:
                 return data
             try:
                 return decompress_frames(kind, data, size)
             except ChunkTooLarge:
-                raise DatasetError(f"{bag}: an mcap chunk decodes to more than the {human_size(size)} it declares: a "
-                                   "damaged or crafted file") from None
+                raise DatasetError(
+                    f"{bag}: an mcap chunk decodes to more than the {human_size(size)} it declares: a "
+                    "damaged or crafted file"
+                ) from None
 
         return decode
 
@@ -339,19 +371,26 @@ def _bounded_decoding(bag: Path) -> Iterator[None]:
         def decompress(data: bytes) -> bytes:
             declared = _zstd_declared(data)
             if declared is not None:
-                check_budget(declared * DECODED_FACTOR, f"{bag}: a compressed message ({human_size(declared)} "
-                             "declared)", "convert bags with smaller messages")
+                check_budget(
+                    declared * DECODED_FACTOR,
+                    f"{bag}: a compressed message ({human_size(declared)} declared)",
+                    "convert bags with smaller messages",
+                )
             limit = declared if declared is not None else read_budget() // DECODED_FACTOR
             try:
                 return decompress_frames("zstd", data, limit)
             except ChunkTooLarge:
                 if declared is not None:
-                    raise DatasetError(f"{bag}: a compressed message decodes to more than the {human_size(limit)} it "
-                                       "declares: a damaged or crafted file") from None
-                raise DatasetError(f"{bag}: a compressed message decodes to more than {human_size(limit)}, the largest "
-                                   f"message the read budget of {human_size(read_budget())} ({READ_BUDGET_ENV}) allows "
-                                   f"(decoding takes {DECODED_FACTOR} times its size): convert bags with smaller "
-                                   f"messages, or raise {READ_BUDGET_ENV}") from None
+                    raise DatasetError(
+                        f"{bag}: a compressed message decodes to more than the {human_size(limit)} it "
+                        "declares: a damaged or crafted file"
+                    ) from None
+                raise DatasetError(
+                    f"{bag}: a compressed message decodes to more than {human_size(limit)}, the largest "
+                    f"message the read budget of {human_size(read_budget())} ({READ_BUDGET_ENV}) allows "
+                    f"(decoding takes {DECODED_FACTOR} times its size): convert bags with smaller "
+                    f"messages, or raise {READ_BUDGET_ENV}"
+                ) from None
 
         @staticmethod
         def open(*args, **kwargs):
@@ -379,11 +418,14 @@ def _zstd_declared(data: bytes) -> int | None:
 def _unreadable(bag: Path, exc: BaseException) -> DatasetError:
     """A library's error on a damaged bag as one line."""
     if isinstance(exc, MemoryError):
-        return DatasetError(f"{bag}: reading it ran out of memory; lower DSSP_READ_BUDGET to have such bags refused "
-                            "before they are read")
+        return DatasetError(
+            f"{bag}: reading it ran out of memory; lower DSSP_READ_BUDGET to have such bags refused "
+            "before they are read"
+        )
     text = " ".join(str(exc).split())[:200] or type(exc).__name__
-    return DatasetError(f"{bag}: not a readable ROS 2 bag ({text}); a recording cut short? convert the bags that are "
-                        "complete")
+    return DatasetError(
+        f"{bag}: not a readable ROS 2 bag ({text}); a recording cut short? convert the bags that are complete"
+    )
 
 
 # ------------------------------------------------------------------------------------------- messages
@@ -409,8 +451,10 @@ def _joint_vector(msg, settings: Rosbag2Settings, bag: Path, topic: str, t: floa
     names = list(msg.name)
     missing = [j for j in settings.joints if j not in names]
     if missing:
-        raise DatasetError(f"{bag}: {topic} has no joint {', '.join(missing)} (it has {', '.join(names) or 'none'}); "
-                           "name the joints with --joints J1,..,J6,GRIPPER")
+        raise DatasetError(
+            f"{bag}: {topic} has no joint {', '.join(missing)} (it has {', '.join(names) or 'none'}); "
+            "name the joints with --joints J1,..,J6,GRIPPER"
+        )
     position = np.asarray(msg.position, dtype=np.float64)
     if len(position) != len(names):
         raise DatasetError(f"{bag}: {topic} gives {len(position)} positions for {len(names)} joint names")
@@ -419,38 +463,49 @@ def _joint_vector(msg, settings: Rosbag2Settings, bag: Path, topic: str, t: floa
     bad = np.flatnonzero(~np.isfinite(vector) | (np.abs(vector) > FLOAT32_MAX))
     if bad.size:
         joint = settings.joints[int(bad[0])]
-        raise DatasetError(f"{bag}: {topic}'s message at {t:.9f} s gives {joint} = {float(position[names.index(joint)])!r}: "
-                           f"not a finite position within the range of float32 (±{FLOAT32_MAX:.3g}); leave out the bag")
+        raise DatasetError(
+            f"{bag}: {topic}'s message at {t:.9f} s gives {joint} = {float(position[names.index(joint)])!r}: "
+            f"not a finite position within the range of float32 (±{FLOAT32_MAX:.3g}); leave out the bag"
+        )
     return vector
 
 
 def _intrinsics(msg, bag: Path, topic: str) -> Intrinsics:
     k = np.asarray(msg.k, dtype=np.float64)
     if k.shape != (9,):
-        raise DatasetError(f"{bag}: {topic} has no usable intrinsics (K = {k.tolist()}); the clouds need the depth "
-                           "camera's calibration")
+        raise DatasetError(
+            f"{bag}: {topic} has no usable intrinsics (K = {k.tolist()}); the clouds need the depth "
+            "camera's calibration"
+        )
     try:
-        return Intrinsics.rectified(int(msg.width), int(msg.height), float(k[0]), float(k[4]), float(k[2]),
-                                    float(k[5]), msg.d)
+        return Intrinsics.rectified(
+            int(msg.width), int(msg.height), float(k[0]), float(k[4]), float(k[2]), float(k[5]), msg.d
+        )
     except ConfigError as exc:
-        raise DatasetError(f"{bag}: {topic}: {exc} (K = {k.tolist()}, {msg.width}x{msg.height}, "
-                           f"{msg.distortion_model}); record the rectified depth stream (image_rect_raw) with its "
-                           "camera_info") from None
+        raise DatasetError(
+            f"{bag}: {topic}: {exc} (K = {k.tolist()}, {msg.width}x{msg.height}, "
+            f"{msg.distortion_model}); record the rectified depth stream (image_rect_raw) with its "
+            "camera_info"
+        ) from None
 
 
 def _depth(msg, intrinsics: Intrinsics, bag: Path, topic: str, t: float) -> np.ndarray:
     if msg.encoding not in DEPTH_ENCODINGS:
         raise DatasetError(f"{bag}: {topic} is {msg.encoding!r}; depth must be 16UC1 (millimetres) or mono16")
     if (msg.width, msg.height) != (intrinsics.width, intrinsics.height):
-        raise DatasetError(f"{bag}: {topic} frames are {msg.width}x{msg.height}, its camera_info says "
-                           f"{intrinsics.width}x{intrinsics.height}")
+        raise DatasetError(
+            f"{bag}: {topic} frames are {msg.width}x{msg.height}, its camera_info says "
+            f"{intrinsics.width}x{intrinsics.height}"
+        )
     size = len(msg.data)
     if msg.step < 2 * msg.width or msg.step % 2 or size != msg.step * msg.height:
-        raise DatasetError(f"{bag}: {topic}'s frame at {t:.9f} s holds {size} bytes for {msg.height} rows of {msg.step} "
-                           f"(16-bit pixels: rows of an even number of bytes, at least {2 * msg.width}): a damaged "
-                           "image; leave out the bag")
+        raise DatasetError(
+            f"{bag}: {topic}'s frame at {t:.9f} s holds {size} bytes for {msg.height} rows of {msg.step} "
+            f"(16-bit pixels: rows of an even number of bytes, at least {2 * msg.width}): a damaged "
+            "image; leave out the bag"
+        )
     data = np.frombuffer(msg.data, dtype=">u2" if msg.is_bigendian else "<u2")
-    rows = data.reshape(msg.height, msg.step // 2)[:, :msg.width]
+    rows = data.reshape(msg.height, msg.step // 2)[:, : msg.width]
     return np.ascontiguousarray(rows, dtype=np.uint16)
 
 
@@ -460,9 +515,11 @@ def _newest(stream: _Stream, ticks: np.ndarray, tolerance: float, bag: Path) -> 
     age = ticks - stream.times[index]
     worst = int(np.argmax(age))
     if age[worst] > tolerance:
-        raise DatasetError(f"{bag}: the streams are not synchronised: {stream.topic}'s newest message is "
-                           f"{age[worst]:.3f} s old at {ticks[worst] - ticks[0]:.3f} s (tolerance {tolerance:g} s); "
-                           "record the topics together, or allow more with --tolerance")
+        raise DatasetError(
+            f"{bag}: the streams are not synchronised: {stream.topic}'s newest message is "
+            f"{age[worst]:.3f} s old at {ticks[worst] - ticks[0]:.3f} s (tolerance {tolerance:g} s); "
+            "record the topics together, or allow more with --tolerance"
+        )
     return index
 
 
@@ -491,8 +548,10 @@ class _Bag:
             try:
                 msg = self.typestore.deserialize_cdr(raw, connection.msgtype)
             except Exception as exc:  # a message whose bytes do not decode as its type
-                raise DatasetError(f"{self.bag}: a message of {topic} does not decode as {connection.msgtype} "
-                                   f"({' '.join(str(exc).split())[:120] or type(exc).__name__}): a damaged bag") from None
+                raise DatasetError(
+                    f"{self.bag}: a message of {topic} does not decode as {connection.msgtype} "
+                    f"({' '.join(str(exc).split())[:120] or type(exc).__name__}): a damaged bag"
+                ) from None
             yield received, msg
 
     def read(self, topic: str, decode: Callable) -> _Stream:
@@ -504,8 +563,11 @@ class _Bag:
             times.append(t)
             values.append(decode(msg, t))
             if len(times) * KEPT_PER_MESSAGE > budget:
-                check_budget(len(times) * KEPT_PER_MESSAGE, f"{self.bag}: the messages of {topic} (more than "
-                             f"{len(times)})", "convert shorter bags")
+                check_budget(
+                    len(times) * KEPT_PER_MESSAGE,
+                    f"{self.bag}: the messages of {topic} (more than {len(times)})",
+                    "convert shorter bags",
+                )
         if not times:
             raise DatasetError(f"{self.bag}: {topic} holds no message")
         order = np.argsort(times, kind="stable")
@@ -520,12 +582,16 @@ def read_bag(bag: Path, settings: Rosbag2Settings, cloud_config: PointCloudConfi
     wanted = settings.topics()
     missing = list(dict.fromkeys(t for _, t, _ in wanted if t not in meta.topics))
     if missing:
-        raise DatasetError(f"{bag}: no topic {', '.join(missing)} in the bag (it has {', '.join(sorted(meta.topics))}); "
-                           "name the topics with --state-topic, --depth-topic, --info-topic, --action-topic")
+        raise DatasetError(
+            f"{bag}: no topic {', '.join(missing)} in the bag (it has {', '.join(sorted(meta.topics))}); "
+            "name the topics with --state-topic, --depth-topic, --info-topic, --action-topic"
+        )
     for flag, topic, msgtype in wanted:
         if meta.topics[topic] != msgtype:
-            raise DatasetError(f"{bag}: {topic} carries {meta.topics[topic]}, not the {msgtype} {flag} names; name "
-                               f"a topic of that type with {flag}")
+            raise DatasetError(
+                f"{bag}: {topic} carries {meta.topics[topic]}, not the {msgtype} {flag} names; name "
+                f"a topic of that type with {flag}"
+            )
     if meta.storage == "sqlite3":
         sizes = _sqlite_sizes(meta, bag)
         for topic in dict.fromkeys(t for _, t, _ in wanted):
@@ -533,7 +599,9 @@ def read_bag(bag: Path, settings: Rosbag2Settings, cloud_config: PointCloudConfi
             if meta.compression is None:  # compressed messages are checked by the size their frames declare
                 _check_message(largest, bag, topic)
             if topic != settings.depth_topic:
-                check_budget(count * KEPT_PER_MESSAGE, f"{bag}: the {count} messages of {topic}", "convert shorter bags")
+                check_budget(
+                    count * KEPT_PER_MESSAGE, f"{bag}: the {count} messages of {topic}", "convert shorter bags"
+                )
     with _bounded_decoding(bag):
         try:
             reader = Reader(bag)
@@ -557,11 +625,15 @@ def _read(bag: _Bag, settings: Rosbag2Settings, cloud_config: PointCloudConfig, 
     info = bag.read(settings.info_topic, lambda m, t: _intrinsics(m, where, settings.info_topic))
     intrinsics = info.values[0]
     if any(i != intrinsics for i in info.values):
-        raise DatasetError(f"{where}: {settings.info_topic}'s intrinsics change during the bag; convert one setting "
-                           "per bag")
+        raise DatasetError(
+            f"{where}: {settings.info_topic}'s intrinsics change during the bag; convert one setting per bag"
+        )
     state = bag.read(settings.state_topic, lambda m, t: _joint_vector(m, settings, where, settings.state_topic, t))
-    action = bag.read(settings.action_topic, lambda m, t: _joint_vector(m, settings, where, settings.action_topic, t)) \
-        if settings.action_topic else None
+    action = (
+        bag.read(settings.action_topic, lambda m, t: _joint_vector(m, settings, where, settings.action_topic, t))
+        if settings.action_topic
+        else None
+    )
     depth = bag.read(settings.depth_topic, lambda m, t: None)  # times only: frames are decoded below, one at a time
     streams = [s for s in (state, action, depth) if s is not None]
     start = max(s.times[0] for s in streams)
@@ -569,11 +641,16 @@ def _read(bag: _Bag, settings: Rosbag2Settings, cloud_config: PointCloudConfig, 
     period = 1.0 / settings.control_rate_hz
     n = int(math.floor((end - start) / period + 1e-9)) + 1 if end >= start else 0
     if n < 2:
-        raise DatasetError(f"{where}: the topics overlap for {max(end - start, 0):.3f} s, less than two ticks at "
-                           f"{settings.control_rate_hz:g} Hz")
+        raise DatasetError(
+            f"{where}: the topics overlap for {max(end - start, 0):.3f} s, less than two ticks at "
+            f"{settings.control_rate_hz:g} Hz"
+        )
     step_bytes = 2 * cloud_config.n_points * cloud_config.point_dim * 4 + 14 * 4 + 8 * (len(TIME_KEYS) + 4)
-    check_budget(n * step_bytes, f"{where}: {n} ticks at {settings.control_rate_hz:g} Hz ({end - start:.3f} s)",
-                 "check the bag's header stamps, or convert shorter bags")
+    check_budget(
+        n * step_bytes,
+        f"{where}: {n} ticks at {settings.control_rate_hz:g} Hz ({end - start:.3f} s)",
+        "check the bag's header stamps, or convert shorter bags",
+    )
     ticks = start + period * np.arange(n)
     picks = {s.topic: _newest(s, ticks, settings.tolerance, where) for s in streams}
 
@@ -585,17 +662,27 @@ def _read(bag: _Bag, settings: Rosbag2Settings, cloud_config: PointCloudConfig, 
             continue
         i = needed[position]
         t = float(depth.times[i])
-        frame = DepthFrame(depth=_depth(msg, intrinsics, where, settings.depth_topic, t), depth_unit=settings.depth_unit,
-                           intrinsics=intrinsics, timestamp=t, frame_number=i)
+        frame = DepthFrame(
+            depth=_depth(msg, intrinsics, where, settings.depth_topic, t),
+            depth_unit=settings.depth_unit,
+            intrinsics=intrinsics,
+            timestamp=t,
+            frame_number=i,
+        )
         try:
             cloud_of[i], _ = frame_to_cloud(frame, cloud_config, camera_to_base)
         except EmptyCloudError as exc:
-            raise DatasetError(f"{where}: the depth frame at {t - ticks[0]:.3f} s has no point in the workspace "
-                               f"({exc}); check --extrinsics and the crop of --pointcloud") from None
+            raise DatasetError(
+                f"{where}: the depth frame at {t - ticks[0]:.3f} s has no point in the workspace "
+                f"({exc}); check --extrinsics and the crop of --pointcloud"
+            ) from None
     clouds = [cloud_of[int(i)] for i in picks[depth.topic]]
     states = np.stack([state.values[i] for i in picks[state.topic]])
-    times = {"timestamp": ticks, "camera_timestamp": depth.times[picks[depth.topic]],
-             "state_timestamp": state.times[picks[state.topic]]}
+    times = {
+        "timestamp": ticks,
+        "camera_timestamp": depth.times[picks[depth.topic]],
+        "state_timestamp": state.times[picks[state.topic]],
+    }
     if action is not None:
         actions = np.stack([action.values[i] for i in picks[action.topic]])
         times["action_timestamp"] = action.times[picks[action.topic]]
@@ -604,15 +691,29 @@ def _read(bag: _Bag, settings: Rosbag2Settings, cloud_config: PointCloudConfig, 
         actions, keep = states[1:], slice(0, n - 1)
         times["action_timestamp"] = times["state_timestamp"][1:]
     extras = {key: (np.asarray(v, dtype=np.float64) - ticks[0])[keep] for key, v in times.items()}
-    episode = Episode(point_cloud=np.stack(clouds)[keep].astype(np.float32), state=states[keep].astype(np.float32),
-                      action=actions.astype(np.float32), extras=extras)
+    episode = Episode(
+        point_cloud=np.stack(clouds)[keep].astype(np.float32),
+        state=states[keep].astype(np.float32),
+        action=actions.astype(np.float32),
+        extras=extras,
+    )
     return episode, {"intrinsics": intrinsics.to_dict(), "ticks": n}
 
 
 @dataset_writer(out=None, check=check_converted_output)
-def convert(source: Path, out: Path, settings: Rosbag2Settings, cloud_config: PointCloudConfig,
-            camera_to_base: np.ndarray, *, max_episodes: int | None = None, task: str | None = None,
-            force: bool = False, progress: Callable | None = None, flag: str = "--out") -> dict:
+def convert(
+    source: Path,
+    out: Path,
+    settings: Rosbag2Settings,
+    cloud_config: PointCloudConfig,
+    camera_to_base: np.ndarray,
+    *,
+    max_episodes: int | None = None,
+    task: str | None = None,
+    force: bool = False,
+    progress: Callable | None = None,
+    flag: str = "--out",
+) -> dict:
     """The bags of ``source`` -> a new dataset at ``out`` (one episode per bag, read one at a time), written in a
     staging folder and moved into place at the end; returns {"episodes", "steps", "files", "action_convention"}.
     It holds ``out``'s writer lock from the start, and ``out`` may not be ``source``, lie inside it or hold it."""
@@ -638,10 +739,15 @@ def convert(source: Path, out: Path, settings: Rosbag2Settings, cloud_config: Po
         "camera_to_base": camera_to_base.tolist(),
         "camera_depth_unit": float(settings.depth_unit),
         "timestamps": "data/*timestamp: seconds since each episode's first tick (the bag's header stamps)",
-        "rosbag2_topics": {"state": settings.state_topic, "action": settings.action_topic,
-                           "depth": settings.depth_topic, "camera_info": settings.info_topic,
-                           "joints": list(settings.joints), "gripper_open": settings.gripper_open,
-                           "tolerance_s": settings.tolerance},
+        "rosbag2_topics": {
+            "state": settings.state_topic,
+            "action": settings.action_topic,
+            "depth": settings.depth_topic,
+            "camera_info": settings.info_topic,
+            "joints": list(settings.joints),
+            "gripper_open": settings.gripper_open,
+            "tolerance_s": settings.tolerance,
+        },
         **({"task": task} if task else {}),
     }
 
@@ -654,8 +760,10 @@ def convert(source: Path, out: Path, settings: Rosbag2Settings, cloud_config: Po
             if first is None:
                 first = info["intrinsics"]
             elif info["intrinsics"] != first:
-                raise DatasetError(f"{bag}: its depth camera's intrinsics differ from {bags[0].name}'s; convert each "
-                                   "setting into its own dataset")
+                raise DatasetError(
+                    f"{bag}: its depth camera's intrinsics differ from {bags[0].name}'s; convert each "
+                    "setting into its own dataset"
+                )
             yield ConvertedEpisode(None, episode, {"camera_intrinsics": first})
 
     steps = write_converted(out, attrs, episodes(), extra_keys=TIME_KEYS, force=force, flag=flag)

@@ -127,8 +127,15 @@ def picture_paths(path: str | os.PathLike, episode: int, out_dir: str | os.PathL
     return [out_dir / n for n in names]
 
 
-def render_episode(path: str | os.PathLike, episode: int, out_dir: str | os.PathLike, *, columns: int = 5,
-                   video: bool = False, force: bool = False) -> list[Path]:
+def render_episode(
+    path: str | os.PathLike,
+    episode: int,
+    out_dir: str | os.PathLike,
+    *,
+    columns: int = 5,
+    video: bool = False,
+    force: bool = False,
+) -> list[Path]:
     """Write the pictures of episode ``episode`` of dataset ``path`` into ``out_dir``; returns their paths.
 
     Only the files of :func:`picture_paths` are written (atomically); one that exists is replaced only
@@ -165,7 +172,9 @@ def render_episode(path: str | os.PathLike, episode: int, out_dir: str | os.Path
                 ax.set_title(title, fontsize=8, color="red" if problems else "black")
             if col == 0:
                 ax.text2D(-0.12, 0.5, view, transform=ax.transAxes, rotation=90, va="center", fontsize=9)
-    fig.suptitle(f"{path.name}  episode {episode}: point clouds ({ep.point_cloud.shape[1]} points, metres)", fontsize=10)
+    fig.suptitle(
+        f"{path.name}  episode {episode}: point clouds ({ep.point_cloud.shape[1]} points, metres)", fontsize=10
+    )
     fig.subplots_adjust(left=0.03, right=0.99, bottom=0.01, top=0.9, wspace=0.05, hspace=0.08)
     clouds_png = out_dir / f"{stem}_clouds.png"
     write_output_file(clouds_png, lambda tmp: fig.savefig(tmp, format="png", dpi=110), force=force, flag="--out")
@@ -201,8 +210,11 @@ def render_episode(path: str | os.PathLike, episode: int, out_dir: str | os.Path
                 ax.set_visible(False)
                 continue
             now = ep.extras["timestamp"]
-            for key, label in (("camera_timestamp", "camera"), ("state_timestamp", "follower state"),
-                               ("action_timestamp", "leader command")):
+            for key, label in (
+                ("camera_timestamp", "camera"),
+                ("state_timestamp", "follower state"),
+                ("action_timestamp", "leader command"),
+            ):
                 ax.plot(t, (now - ep.extras[key]) * 1e3, lw=1.0, label=label)
             for a, b in spans:
                 ax.axvspan(a, b, color="red", alpha=0.15, lw=0)
@@ -212,8 +224,11 @@ def render_episode(path: str | os.PathLike, episode: int, out_dir: str | os.Path
             ax.grid(alpha=0.3)
     for col in range(n_cols):
         axes[-1, col].set_xlabel(t_label, fontsize=8)
-    legend = "" if not spans else "\nred: steps with " + ", ".join(
-        sorted({n for f in np.unique(flags) for n in problem_names(f)}))
+    legend = (
+        ""
+        if not spans
+        else "\nred: steps with " + ", ".join(sorted({n for f in np.unique(flags) for n in problem_names(f)}))
+    )
     fig.suptitle(f"{path.name}  episode {episode}: state (solid) and action (dashed){legend}", fontsize=10)
     fig.tight_layout(rect=(0, 0, 1, 0.95 if spans else 0.97))
     traj_png = out_dir / f"{stem}_trajectories.png"
@@ -239,26 +254,36 @@ def _write_gif(plt, ep, t: np.ndarray, flags, target: Path, title: str, force: b
         ax.cla()
         _draw_cloud(ax, ep.point_cloud[s], limits, VIEWS[0][1], VIEWS[0][2])
         problems = problem_names(flags[s]) if flags is not None else []
-        ax.set_title(f"{title}\nstep {s}  t = {t[s]:.2f}" + (f"  {', '.join(problems)}" if problems else ""),
-                     fontsize=8, color="red" if problems else "black")
+        ax.set_title(
+            f"{title}\nstep {s}  t = {t[s]:.2f}" + (f"  {', '.join(problems)}" if problems else ""),
+            fontsize=8,
+            color="red" if problems else "black",
+        )
         return ()
 
     period = float(np.median(np.diff(t[steps]))) if len(steps) > 1 else 0.1
     animation = FuncAnimation(fig, draw, frames=len(steps), blit=False)
     writer = PillowWriter(fps=max(1.0, min(30.0, 1.0 / max(period, 1e-3))))
-    write_output_file(target, lambda tmp: animation.save(tmp, writer=writer), force=force, flag="--out", suffix=".tmp.gif")
+    write_output_file(
+        target, lambda tmp: animation.save(tmp, writer=writer), force=force, flag="--out", suffix=".tmp.gif"
+    )
     plt.close(fig)
     return target
 
 
-def rerun_episode(path: str | os.PathLike, episode: int, connect: str | None, save: Path | None, horizon: int = 16) -> str:
+def rerun_episode(
+    path: str | os.PathLike, episode: int, connect: str | None, save: Path | None, horizon: int = 16
+) -> str:
     """Log episode ``episode`` of dataset ``path`` to Rerun (``connect``: "spawn" or a viewer's URL; ``save``: a new
     .rrd file); returns the views' closing line — every step is logged (the queue waits, nothing is dropped)."""
 
     path = Path(path)
     reader = ReplayBufferReader(path, allow_incomplete_tail=True)
     ep = reader.episode(episode, check_finite=False)
-    intrinsics, to_base = attributes.camera_intrinsics(reader.attrs, path), attributes.camera_to_base(reader.attrs, path)
+    intrinsics, to_base = (
+        attributes.camera_intrinsics(reader.attrs, path),
+        attributes.camera_to_base(reader.attrs, path),
+    )
     unit = attributes.depth_unit(reader.attrs, path)
     depth, flags = ep.extras.get("depth"), ep.extras.get(FLAGS_KEY)
     views = open_views("dssp-data view", connect, save)
@@ -267,7 +292,15 @@ def rerun_episode(path: str | os.PathLike, episode: int, connect: str | None, sa
             views.camera(intrinsics, np.asarray(to_base, np.float64))
         views.text(0, "episode", f"{path.name} episode {episode}: {ep.n_steps} steps")
         for t in range(ep.n_steps):
-            views.tick(t, wait=True, cloud=ep.point_cloud[t], state=ep.state[t], command=ep.action[t],
-                       chunk=ep.action[t: t + horizon], depth=depth[t] if depth is not None else None, depth_unit=unit,
-                       events=problem_names(flags[t]) if flags is not None else ())
+            views.tick(
+                t,
+                wait=True,
+                cloud=ep.point_cloud[t],
+                state=ep.state[t],
+                command=ep.action[t],
+                chunk=ep.action[t : t + horizon],
+                depth=depth[t] if depth is not None else None,
+                depth_unit=unit,
+                events=problem_names(flags[t]) if flags is not None else (),
+            )
     return views.close_line("steps")  # closed already: the counts

@@ -61,11 +61,13 @@ from dssp_core.errors import DatasetError
 from dssp_data.bounded import (
     ChunkTooLarge,
     UnboundedCodec,
-    blosc_problem as _blosc_problem,
     bounded_pipeline,
     check_budget,
     human_size,
     nbytes_of,
+)
+from dssp_data.bounded import (
+    blosc_problem as _blosc_problem,
 )
 from dssp_data.dataset_layout import (
     DATA_KEYS,
@@ -100,15 +102,19 @@ def check_dataset_tree(path: str | os.PathLike, *, appending: bool = False) -> N
     writer writes only into a dataset's own folders)."""
     path = Path(path)
     if appending and path.is_symlink():
-        raise DatasetError(f"{path} is a symbolic link: appending writes only into a dataset's own folder; give the "
-                           f"dataset's real path ({os.path.realpath(path)}) (nothing was written)")
+        raise DatasetError(
+            f"{path} is a symbolic link: appending writes only into a dataset's own folder; give the "
+            f"dataset's real path ({os.path.realpath(path)}) (nothing was written)"
+        )
     folders = [path]
     while folders:
         folder = folders.pop()
         try:
             entries = list(os.scandir(folder))
         except OSError as exc:
-            raise DatasetError(f"cannot list {folder} ({exc.strerror or exc}): check the dataset's permissions") from None
+            raise DatasetError(
+                f"cannot list {folder} ({exc.strerror or exc}): check the dataset's permissions"
+            ) from None
         for entry in entries:
             relative = os.path.relpath(entry.path, path)
             if entry.is_symlink():
@@ -120,8 +126,9 @@ def check_dataset_tree(path: str | os.PathLike, *, appending: bool = False) -> N
             if entry.is_dir(follow_symlinks=False):
                 folders.append(Path(entry.path))
             elif not entry.is_file(follow_symlinks=False):
-                raise DatasetError(f"{path}: {relative} is not a regular file (a FIFO, socket or device): remove it "
-                                   f"from the dataset")
+                raise DatasetError(
+                    f"{path}: {relative} is not a regular file (a FIFO, socket or device): remove it from the dataset"
+                )
 
 
 def _open_group(path: Path, mode: str) -> zarr.Group:
@@ -199,8 +206,10 @@ class StoredArray:
         grid = getattr(metadata, "chunk_grid", None)
         chunk_shape = getattr(grid, "chunk_shape", None)
         if chunk_shape is None or len(chunk_shape) != len(array.shape) or min(chunk_shape, default=1) < 1:
-            raise DatasetError(f"{where}: {key} uses a chunk grid this reader does not know ({type(grid).__name__}): "
-                               f"rewrite it with regular chunks")
+            raise DatasetError(
+                f"{where}: {key} uses a chunk grid this reader does not know ({type(grid).__name__}): "
+                f"rewrite it with regular chunks"
+            )
         self.chunk_shape = tuple(int(n) for n in chunk_shape)
         self.grid = tuple(-(-int(n) // c) for n, c in zip(array.shape, self.chunk_shape))
         self.dtype = np.dtype(array.dtype)
@@ -241,8 +250,10 @@ class StoredArray:
             try:
                 self._stored = frozenset(sync(_collect(self.array.store.list_prefix(self.array.path))))
             except Exception as exc:
-                raise DatasetError(f"{self.where}: cannot list the chunks of {self.key} ({_describe(exc)}); "
-                                   f"the store may be corrupt: check the disk and restore the dataset from a copy") from exc
+                raise DatasetError(
+                    f"{self.where}: cannot list the chunks of {self.key} ({_describe(exc)}); "
+                    f"the store may be corrupt: check the disk and restore the dataset from a copy"
+                ) from exc
         return self._stored
 
     def _steps(self, c: int) -> tuple[int, int]:
@@ -275,11 +286,17 @@ class StoredArray:
         a, b = self._steps(c)
         if self.key == ENDS_KEY:
             fill = self.array.fill_value
-            also = (f" — or a writer left it out because it held only the fill value {fill}, and then episodes "
-                    f"{a}..{b - 1} are empty;" if what.startswith("is missing") else ":")
-            return DatasetError(f"{self.where}: {self.key} chunk {c} (episodes {a}..{b - 1}) {what}: the episode "
-                                f"boundaries are lost{also} restore the dataset from a copy or rewrite {self.key} "
-                                f"(dssp-data repair cannot restore lost data)")
+            also = (
+                f" — or a writer left it out because it held only the fill value {fill}, and then episodes "
+                f"{a}..{b - 1} are empty;"
+                if what.startswith("is missing")
+                else ":"
+            )
+            return DatasetError(
+                f"{self.where}: {self.key} chunk {c} (episodes {a}..{b - 1}) {what}: the episode "
+                f"boundaries are lost{also} restore the dataset from a copy or rewrite {self.key} "
+                f"(dssp-data repair cannot restore lost data)"
+            )
         span = _episode_span(ends, a, b)
         if span is None:
             where = f"steps {a}..{b - 1}"
@@ -288,11 +305,14 @@ class StoredArray:
             i, j = span
             episodes = f"episode {i}" if i == j else f"episodes {i}..{j}"
             where = f"steps {a}..{b - 1}, {episodes}"
-            remedy = (f"re-record or re-convert {episodes}, or leave {'it' if i == j else 'them'} out with "
-                      f"dssp-data split {self.where} --train OUT --val OUT --val-ratio R "
-                      f"--drop-episodes {i if i == j else f'{i}-{j}'}")
-        return DatasetError(f"{self.where}: {self.key} chunk {c} ({where}) {what}: {remedy} "
-                            f"(dssp-data repair cannot restore lost data)")
+            remedy = (
+                f"re-record or re-convert {episodes}, or leave {'it' if i == j else 'them'} out with "
+                f"dssp-data split {self.where} --train OUT --val OUT --val-ratio R "
+                f"--drop-episodes {i if i == j else f'{i}-{j}'}"
+            )
+        return DatasetError(
+            f"{self.where}: {self.key} chunk {c} ({where}) {what}: {remedy} (dssp-data repair cannot restore lost data)"
+        )
 
     def _time_chunks(self, start: int, end: int) -> range:
         if end <= start:
@@ -303,8 +323,12 @@ class StoredArray:
     def missing(self, start: int, end: int) -> list[tuple[int, str]]:
         """(time chunk, store key) of each chunk that steps [start, end) need and the store does not list."""
         stored = self.stored()
-        return [(c, key) for c in self._time_chunks(start, end) for key in map(self.store_key, self.coords(c))
-                if key not in stored]
+        return [
+            (c, key)
+            for c in self._time_chunks(start, end)
+            for key in map(self.store_key, self.coords(c))
+            if key not in stored
+        ]
 
     def check_present(self, start: int, end: int, ends: np.ndarray | None) -> int:
         """Raise DatasetError for the first chunk of steps [start, end) that is not stored, if ``strict``;
@@ -371,8 +395,11 @@ class StoredArray:
     def _decode(self, c: int, coords: tuple[int, ...], ends: np.ndarray | None) -> np.ndarray:
         """The whole chunk at ``coords`` (its full chunk shape), checked and decoded within its size
         (:mod:`dssp_data.bounded`: no decoding stage may produce more than a chunk holds)."""
-        check_budget(self.chunk_nbytes, f"{self.where}: one chunk of {self.key} (chunk shape {self.chunk_shape})",
-                     f"rewrite it with smaller chunks (its chunk shape is in {self.metadata_file})")
+        check_budget(
+            self.chunk_nbytes,
+            f"{self.where}: one chunk of {self.key} (chunk shape {self.chunk_shape})",
+            f"rewrite it with smaller chunks (its chunk shape is in {self.metadata_file})",
+        )
         key = self.store_key(coords)
         prototype = default_buffer_prototype()
         pipeline = self._bounded_pipeline()
@@ -383,9 +410,15 @@ class StoredArray:
                 size = None
             # compressed data is at most a little larger than what it decodes to (at most 8 bytes per element
             # in any stage): never fetch more than twice that
-            if size is not None and size > 2 * max(self.chunk_nbytes, 8 * (self.chunk_nbytes // self.dtype.itemsize)) + (1 << 16):
-                raise self._lost(c, f"is corrupt ({human_size(size)} stored, more than a chunk of "
-                                    f"{human_size(self.chunk_nbytes)} takes; {key})", ends)
+            if size is not None and size > 2 * max(
+                self.chunk_nbytes, 8 * (self.chunk_nbytes // self.dtype.itemsize)
+            ) + (1 << 16):
+                raise self._lost(
+                    c,
+                    f"is corrupt ({human_size(size)} stored, more than a chunk of "
+                    f"{human_size(self.chunk_nbytes)} takes; {key})",
+                    ends,
+                )
             buffer = None if size is None else sync(self.array.store.get(key, prototype=prototype))
         except DatasetError:
             raise
@@ -421,8 +454,11 @@ class StoredArray:
         shape = tuple(int(n) for n in self.array.shape)
         start, end = max(0, start), min(end, shape[0])
         rows = (max(0, end - start),) + shape[1:]
-        check_budget(nbytes_of(rows, self.dtype), f"{self.where}: reading {self.key} steps {start}..{end - 1}",
-                     f"read fewer steps at a time (its shape is in {self.metadata_file})")
+        check_budget(
+            nbytes_of(rows, self.dtype),
+            f"{self.where}: reading {self.key} steps {start}..{end - 1}",
+            f"read fewer steps at a time (its shape is in {self.metadata_file})",
+        )
         out = np.empty(rows, dtype=self.dtype)
         self.check_present(start, end, ends)
         size = self.chunk_shape[0]
@@ -440,8 +476,9 @@ class StoredArray:
         return out
 
 
-def read_checked(array: zarr.Array, key: str, where: str, end: int | None = None,
-          ends: np.ndarray | None = None) -> np.ndarray:
+def read_checked(
+    array: zarr.Array, key: str, where: str, end: int | None = None, ends: np.ndarray | None = None
+) -> np.ndarray:
     """Steps [0, end) of ``array`` (all of it if ``end`` is None) through the checked path."""
     return StoredArray(array, key, where).read(0, int(array.shape[0]) if end is None else end, ends)
 
@@ -480,7 +517,9 @@ def open_extra_arrays(group: zarr.Group, where: str, which: bool | Sequence[str]
     try:
         names = sorted(set(group["data"].array_keys()) - set(DATA_KEYS))
     except Exception as exc:
-        raise DatasetError(f"{where}: cannot list data/ ({_describe(exc)}); the store may be corrupt: rewrite it") from exc
+        raise DatasetError(
+            f"{where}: cannot list data/ ({_describe(exc)}); the store may be corrupt: rewrite it"
+        ) from exc
     if which is not True:
         wanted = list(which)
         missing = [name for name in wanted if name not in names]

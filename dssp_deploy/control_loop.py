@@ -51,8 +51,13 @@ class ChunkedControl:
     config, checked against the policy and the rate here (a one-line ValueError), running as ``self.schedule``;
     ``control_rate_hz``: the tick rate (default: the model's); ``seed``: a chunk's seed is ``seed`` + its tick (None: random)."""
 
-    def __init__(self, policy: OnnxPolicy, schedule: Schedule = Plain(), control_rate_hz: float | None = None,
-                 seed: int | None = None):
+    def __init__(
+        self,
+        policy: OnnxPolicy,
+        schedule: Schedule = Plain(),
+        control_rate_hz: float | None = None,
+        seed: int | None = None,
+    ):
         self.policy = policy
         self.control_rate_hz = control_rate_hz or policy.contract.control_rate_hz
         self.period_ms = 1e3 / self.control_rate_hz if self.control_rate_hz else None

@@ -82,7 +82,7 @@ def _tensor_location(data: bytes, start: int, end: int) -> tuple[bool, str | Non
             key = text = None
             for n, w, v in _fields(data, *value):
                 if w == 2 and n in (ENTRY_KEY, ENTRY_VALUE):
-                    s = data[v[0]:v[1]].decode("utf-8", errors="replace")
+                    s = data[v[0] : v[1]].decode("utf-8", errors="replace")
                     key, text = (s, text) if n == ENTRY_KEY else (key, s)
             if key == "location":
                 location = text

@@ -52,7 +52,11 @@ def observation_flops(cfg: dict, n_points: int) -> int:
         widths.append(512)
     point = n_points * _mlp([cfg["point_dim"], *widths]) + 2 * widths[-1] * cfg["point_feature_dim"]
     state = _mlp([cfg["state_dim"], *cfg["state_widths"]])
-    fuse = 0 if cfg.get("denoiser_backbone") == "unet" else 2 * (cfg["point_feature_dim"] + cfg["state_widths"][-1]) * cfg["d_model"]
+    fuse = (
+        0
+        if cfg.get("denoiser_backbone") == "unet"
+        else 2 * (cfg["point_feature_dim"] + cfg["state_widths"][-1]) * cfg["d_model"]
+    )
     return point + state + fuse
 
 
@@ -74,8 +78,14 @@ def unet_flops(cfg: dict) -> int:
     levels = list(zip([a, *dims[:-1]], dims))
     lengths = [h // 2**i for i in range(len(dims))]
 
-    def block(c_in: int, c_out: int, n: int) -> int:  # two convs, the FiLM projection, a 1x1 residual if the width changes
-        return 2 * n * k * (c_in * c_out + c_out * c_out) + 2 * cond * 2 * c_out + (2 * n * c_in * c_out if c_in != c_out else 0)
+    def block(
+        c_in: int, c_out: int, n: int
+    ) -> int:  # two convs, the FiLM projection, a 1x1 residual if the width changes
+        return (
+            2 * n * k * (c_in * c_out + c_out * c_out)
+            + 2 * cond * 2 * c_out
+            + (2 * n * c_in * c_out if c_in != c_out else 0)
+        )
 
     total = 0
     for i, (c_in, c_out) in enumerate(levels):
@@ -85,7 +95,9 @@ def unet_flops(cfg: dict) -> int:
     total += 2 * block(dims[-1], dims[-1], lengths[-1])
     for j, (c_in, c_out) in enumerate(reversed(levels[1:])):
         n = lengths[-1 - j]
-        total += block(2 * c_out, c_in, n) + block(c_in, c_in, n) + 2 * n * 4 * c_in * c_in  # ConvTranspose1d k4 stride 2
+        total += (
+            block(2 * c_out, c_in, n) + block(c_in, c_in, n) + 2 * n * 4 * c_in * c_in
+        )  # ConvTranspose1d k4 stride 2
     return total + 2 * h * k * dims[0] * dims[0] + 2 * h * dims[0] * a  # the head
 
 
@@ -96,7 +108,9 @@ def chunk_flops(cfg: dict, denoise_steps: int) -> int:
         return denoise_steps * unet_flops(cfg)
     n_prefix = int(cfg["use_history"]) + (cfg["n_obs_steps"] if cfg["use_recent_states"] else 0)
     h = cfg["horizon"]
-    if cfg.get("denoiser_backbone", "mamba") == "transformer":  # an action token attends to the prefix and the tokens before it
+    if (
+        cfg.get("denoiser_backbone", "mamba") == "transformer"
+    ):  # an action token attends to the prefix and the tokens before it
         mixer = attention_token_flops(cfg, n_prefix + (h + 1) / 2)
     else:
         mixer = mamba_token_flops(cfg)

@@ -106,8 +106,10 @@ def elf_problem(path: Path) -> str | None:
     e_type, _, phoff, shoff, phentsize, phnum, shentsize, shnum = struct.unpack_from(order + fmt, data, 16)
     if e_type != ET_DYN:
         return f"is not a shared library (ELF type {e_type})"
-    for what, offset, entsize, count, (want, fields) in (("program header", phoff, phentsize, phnum, layout["segment"]),
-                                                       ("section header", shoff, shentsize, shnum, layout["section"])):
+    for what, offset, entsize, count, (want, fields) in (
+        ("program header", phoff, phentsize, phnum, layout["segment"]),
+        ("section header", shoff, shentsize, shnum, layout["section"]),
+    ):
         if count and (entsize != want or offset + count * entsize > size):
             return f"is truncated (its {what} table ends at byte {offset + count * entsize}, the file has {size})"
         for i in range(count):
@@ -139,7 +141,9 @@ def _probe(path: Path, scan_path: str) -> Kernel:
         implementation = fn().decode()
     except (OSError, AttributeError):
         implementation = "unknown"
-    if implementation.startswith("invalid"):  # "invalid: " + the library's reason (an unknown value, or a path this CPU lacks)
+    if implementation.startswith(
+        "invalid"
+    ):  # "invalid: " + the library's reason (an unknown value, or a path this CPU lacks)
         why = implementation.partition(":")[2].strip() or f"DSSP_SCAN_PATH={scan_path!r} cannot be used here; unset it"
         return Kernel(None, why)
     return Kernel(path, implementation=implementation)

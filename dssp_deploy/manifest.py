@@ -36,11 +36,21 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from dssp_data.model_contract import ModelContract
-from dssp_deploy.external_data import MalformedGraph, external_locations
 from dssp_core.errors import ConfigError, DSSPError
 from dssp_core.files import read_input_bytes, read_regular_text
-from dssp_core.schema import MAX_LAYERS, MAX_STEPS, MAX_WIDTH, Settings, Spec, check_value, parse_json, read_json, setting
+from dssp_core.schema import (
+    MAX_LAYERS,
+    MAX_STEPS,
+    MAX_WIDTH,
+    Settings,
+    Spec,
+    check_value,
+    parse_json,
+    read_json,
+    setting,
+)
+from dssp_data.model_contract import ModelContract
+from dssp_deploy.external_data import MalformedGraph, external_locations
 
 FORMAT_VERSION = "2"
 KIND = "dssp-model"
@@ -49,7 +59,11 @@ HISTORY_GRAPH = "history_step"
 DENOISER_GRAPH = "denoiser"
 GRAPHS = (HISTORY_GRAPH, DENOISER_GRAPH)
 ONNX_TYPES = {"float32": "tensor(float)", "int64": "tensor(int64)"}
-PRECISIONS = {"fp32": "onnx", "int8": "onnx_int8", "int4": "onnx_int4"}  # the runtime's precision → the manifest's file kind
+PRECISIONS = {
+    "fp32": "onnx",
+    "int8": "onnx_int8",
+    "int4": "onnx_int4",
+}  # the runtime's precision → the manifest's file kind
 FUSED = "_fused"  # file kind suffix of the graphs with the fused Mamba operators (dssp_deploy.mamba_kernel)
 
 
@@ -64,6 +78,8 @@ def file_suffix(kind: str) -> str:
         return ".pt"
     parts = kind.split("_")[1:]
     return "".join(f".{p}" for p in parts) + ".onnx"
+
+
 NORMALIZER_STATS = ("scale", "offset", "input_min", "input_max")
 AGAIN = "export the model again (python -m export.to_onnx RUN_DIR -o MODEL_DIR)"
 _SHA256 = re.compile(r"[0-9a-f]{64}")
@@ -91,7 +107,9 @@ class ModelFacts(Settings):
     expand: int = setting(2, ge=1, le=16)
     n_history_layers: int = setting(2, ge=1, le=MAX_LAYERS)
     n_denoiser_layers: int = setting(4, ge=1, le=MAX_LAYERS)
-    point_widths: list[int] = setting(default_factory=lambda: [32, 64, 128], ge=1, le=MAX_WIDTH, min_length=1, max_length=16)
+    point_widths: list[int] = setting(
+        default_factory=lambda: [32, 64, 128], ge=1, le=MAX_WIDTH, min_length=1, max_length=16
+    )
     point_feature_dim: int = _width(64)
     state_widths: list[int] = setting(default_factory=lambda: [32, 32], ge=1, le=MAX_WIDTH, min_length=1, max_length=16)
     use_history: bool = setting(True)
@@ -101,8 +119,10 @@ class ModelFacts(Settings):
 
     def validate(self) -> None:
         if not (self.use_history or self.use_recent_states):
-            raise ConfigError(f"{self.SECTION}.use_history and use_recent_states are both false: the denoiser would see "
-                              "no observation")
+            raise ConfigError(
+                f"{self.SECTION}.use_history and use_recent_states are both false: the denoiser would see "
+                "no observation"
+            )
 
 
 @dataclass(frozen=True)
@@ -134,7 +154,9 @@ def facts_from(cls, values: Any):
         raise ConfigError(f"{cls.SECTION} must be a JSON object, got {type(values).__name__}")
     missing = [name for name in cls.field_names() if name not in values and name not in getattr(cls, "OPTIONAL", ())]
     if missing:
-        raise ConfigError(f"{', '.join(f'{cls.SECTION}.{name}' for name in missing)} {'is' if len(missing) == 1 else 'are'} missing")
+        raise ConfigError(
+            f"{', '.join(f'{cls.SECTION}.{name}' for name in missing)} {'is' if len(missing) == 1 else 'are'} missing"
+        )
     return cls.from_dict({k: values[k] for k in cls.field_names() if k in values})
 
 
@@ -149,7 +171,10 @@ def history_state_specs(m, suffix: str = "") -> list[dict[str, Any]]:
 
     ``m``: anything with the model's attributes (``dssp_train.config.ModelConfig``, :class:`ModelFacts`)."""
     if getattr(m, "history_window", 0):
-        return [tensor_spec(f"z_window{suffix}", ["B", m.history_window, m.d_model]), tensor_spec(f"z_seen{suffix}", ["B", 1])]
+        return [
+            tensor_spec(f"z_window{suffix}", ["B", m.history_window, m.d_model]),
+            tensor_spec(f"z_seen{suffix}", ["B", 1]),
+        ]
     inner = m.expand * m.d_model
     specs = []
     for i in range(m.n_history_layers):
@@ -206,9 +231,15 @@ def _depends(name: str) -> tuple[str, ...]:
     if base == "z_window":
         return ("history_window", "d_model")
     return {
-        "point_cloud": ("point_dim",), "agent_pos": ("state_dim",), "z_t": ("d_model",), "c_t": ("d_model",),
-        "z_recent": ("n_obs_steps", "d_model"), "noise": ("horizon", "action_dim"), "action": ("horizon", "action_dim"),
-        "committed": ("horizon", "action_dim"), "committed_weight": ("horizon",),
+        "point_cloud": ("point_dim",),
+        "agent_pos": ("state_dim",),
+        "z_t": ("d_model",),
+        "c_t": ("d_model",),
+        "z_recent": ("n_obs_steps", "d_model"),
+        "noise": ("horizon", "action_dim"),
+        "action": ("horizon", "action_dim"),
+        "committed": ("horizon", "action_dim"),
+        "committed_weight": ("horizon",),
     }.get(base, ())
 
 
@@ -250,12 +281,16 @@ def read_manifest(model_dir: Path) -> Manifest:
     model_dir = Path(model_dir)
     path = model_dir / MANIFEST_NAME
     if not model_dir.is_dir():
-        raise ModelDirError(f"model directory {model_dir} does not exist; create one with python -m export.to_onnx RUN_DIR -o {model_dir}")
+        raise ModelDirError(
+            f"model directory {model_dir} does not exist; create one with python -m export.to_onnx RUN_DIR -o {model_dir}"
+        )
     if not (path.exists() or path.is_symlink()):
-        raise ModelDirError(f"{path} is missing: {model_dir} is not a DSSP model directory (python -m export.to_onnx makes one)")
+        raise ModelDirError(
+            f"{path} is missing: {model_dir} is not a DSSP model directory (python -m export.to_onnx makes one)"
+        )
     data = read_json(path, str(path), error=ModelDirError, hint=AGAIN)
     if not isinstance(data, dict) or data.get("kind") != KIND:
-        raise ModelDirError(f"{path} is not a DSSP model manifest (no \"kind\": \"{KIND}\"); {AGAIN}")
+        raise ModelDirError(f'{path} is not a DSSP model manifest (no "kind": "{KIND}"); {AGAIN}')
     if data.get("format_version") != FORMAT_VERSION:
         raise ModelDirError(
             f"{path} has format version {data.get('format_version')!r}, this runtime reads {FORMAT_VERSION!r}; "
@@ -281,8 +316,10 @@ def check_manifest(data: dict[str, Any], model_dir: Path) -> Manifest:
     diffusion = data["model_config"].get("diffusion")
     trained = diffusion.get("num_train_timesteps") if isinstance(diffusion, Mapping) else None
     if isinstance(trained, int) and not isinstance(trained, bool) and max(contract.ddim_timesteps) >= trained:
-        raise ConfigError(f"{MANIFEST_NAME} contract.ddim_timesteps reach {max(contract.ddim_timesteps)}, but the model was "
-                          f"trained on timesteps 0..{trained - 1} (model_config.diffusion.num_train_timesteps)")
+        raise ConfigError(
+            f"{MANIFEST_NAME} contract.ddim_timesteps reach {max(contract.ddim_timesteps)}, but the model was "
+            f"trained on timesteps 0..{trained - 1} (model_config.diffusion.num_train_timesteps)"
+        )
     files = _check_files(data.get("files"), model_dir)
     graphs = _check_graphs(data.get("graphs"), contract, model, files, model_dir)
     normalizers = _check_normalizers(data.get("normalizers"), contract)
@@ -309,13 +346,17 @@ def _check_files(files: Any, model_dir: Path) -> dict[str, dict[str, Any]]:
     return files
 
 
-def _check_graphs(graphs: Any, contract: ModelContract, model: ModelFacts, files: dict[str, Any], model_dir: Path) -> dict[str, Any]:
+def _check_graphs(
+    graphs: Any, contract: ModelContract, model: ModelFacts, files: dict[str, Any], model_dir: Path
+) -> dict[str, Any]:
     """Both graphs, their files (inside the directory, listed in ``files``) and the interface the facts give."""
     where = f"{MANIFEST_NAME} graphs"
     graphs = check_value(graphs, dict[str, Any], Spec(), where)
     missing = [g for g in GRAPHS if g not in graphs]
     if missing:
-        raise ConfigError(f"{', '.join(f'{where}.{g}' for g in missing)} {'is' if len(missing) == 1 else 'are'} missing")
+        raise ConfigError(
+            f"{', '.join(f'{where}.{g}' for g in missing)} {'is' if len(missing) == 1 else 'are'} missing"
+        )
     for graph in GRAPHS:
         spec = check_value(graphs[graph], dict[str, Any], Spec(), f"{where}.{graph}")
         for key in ("files", "inputs", "outputs"):
@@ -344,8 +385,12 @@ def _check_graphs(graphs: Any, contract: ModelContract, model: ModelFacts, files
                 shape = check_value(d.get("shape"), list[int | str], Spec(max_length=16), f"{field}.{w['name']}.shape")
                 dtype = check_value(d.get("dtype"), str, Spec(choices=tuple(ONNX_TYPES)), f"{field}.{w['name']}.dtype")
                 if shape != w["shape"] or dtype != w["dtype"]:
-                    given = ", ".join(f"{k}={getattr(model, k, None) or getattr(contract, k)}" for k in _depends(w["name"]))
-                    raise ConfigError(f"{field}.{w['name']} is {dtype} {shape}, but {given} give {w['dtype']} {w['shape']}")
+                    given = ", ".join(
+                        f"{k}={getattr(model, k, None) or getattr(contract, k)}" for k in _depends(w["name"])
+                    )
+                    raise ConfigError(
+                        f"{field}.{w['name']} is {dtype} {shape}, but {given} give {w['dtype']} {w['shape']}"
+                    )
     return graphs
 
 
@@ -355,7 +400,11 @@ def _check_normalizers(normalizers: Any, contract: ModelContract) -> dict[str, A
     of (:mod:`dssp_deploy.ranges`)."""
     where = f"{MANIFEST_NAME} normalizers"
     normalizers = check_value(normalizers, dict[str, Any], Spec(), where)
-    for name, size in (("point_cloud", contract.point_dim), ("agent_pos", contract.state_dim), ("action", contract.action_dim)):
+    for name, size in (
+        ("point_cloud", contract.point_dim),
+        ("agent_pos", contract.state_dim),
+        ("action", contract.action_dim),
+    ):
         if name not in normalizers:
             raise ConfigError(f"{where}.{name} is missing")
         stats = check_value(normalizers[name], dict[str, Any], Spec(), f"{where}.{name}")
@@ -366,7 +415,9 @@ def _check_normalizers(normalizers: Any, contract: ModelContract) -> dict[str, A
                 raise ConfigError(f"{field} must hold {size} values (one per channel), got {len(values)}")
         for c, (scale, low, high) in enumerate(zip(stats["scale"], stats["input_min"], stats["input_max"])):
             if not scale > 0:
-                raise ConfigError(f"{where}.{name}.scale must be > 0 (y = x * scale + offset), got {scale!r} for channel {c}")
+                raise ConfigError(
+                    f"{where}.{name}.scale must be > 0 (y = x * scale + offset), got {scale!r} for channel {c}"
+                )
             if not low <= high:
                 raise ConfigError(f"{where}.{name}: channel {c} has input_min {low!r} > input_max {high!r}")
     return normalizers
@@ -462,9 +513,11 @@ def read_listed(path: Path, manifest: Manifest, name: str, label: str) -> bytes:
         raise ModelDirError(f"{label} is missing; {AGAIN}")
     with contextlib.suppress(OSError):
         if (size := path.stat().st_size) > want["bytes"]:  # larger than it was written: never read whole
-            raise ModelDirError(f"{path} is not the file this manifest was written for ({size} bytes; {MANIFEST_NAME} "
-                                f"says sha256 {want['sha256'][:12]}…, {want['bytes']} bytes): it comes from another export or "
-                                f"was changed; {AGAIN}, and copy model directories whole")
+            raise ModelDirError(
+                f"{path} is not the file this manifest was written for ({size} bytes; {MANIFEST_NAME} "
+                f"says sha256 {want['sha256'][:12]}…, {want['bytes']} bytes): it comes from another export or "
+                f"was changed; {AGAIN}, and copy model directories whole"
+            )
     data = read_input_bytes(path, label, limit=want["bytes"], error=ModelDirError)
     check_digest(path, data, manifest, name)
     return data
@@ -478,7 +531,9 @@ def read_graph(model_dir: Path, manifest: Manifest, graph: str, fmt: str = "onnx
     return path, read_listed(path, manifest, manifest.graphs[graph]["files"][fmt], str(path))
 
 
-def read_graph_files(model_dir: Path, manifest: Manifest, graph: str, fmt: str = "onnx") -> tuple[Path, bytes, dict[str, bytes]]:
+def read_graph_files(
+    model_dir: Path, manifest: Manifest, graph: str, fmt: str = "onnx"
+) -> tuple[Path, bytes, dict[str, bytes]]:
     """(path, bytes, external data) of one ONNX graph: its file as :func:`read_graph` reads it, and the files its
     tensors' external data name, {location: bytes}. Each such file must be in the model directory (its location
     relative to the graph's folder: no absolute path, no '..', no symbolic link out) and have its own size and
@@ -494,13 +549,17 @@ def read_graph_files(model_dir: Path, manifest: Manifest, graph: str, fmt: str =
     external = {}
     for location in locations:
         if location is None or not _is_inside_name(location):
-            raise ModelDirError(f"{path} keeps tensors in external data at {location!r}, which is not a file name inside "
-                                f"the model directory (absolute paths and '..' are refused); {AGAIN}")
+            raise ModelDirError(
+                f"{path} keeps tensors in external data at {location!r}, which is not a file name inside "
+                f"the model directory (absolute paths and '..' are refused); {AGAIN}"
+            )
         name = str(folder / location)
         file = model_file(model_dir, name, f"the external data of {path.name}")
         if name not in manifest.files:
-            raise ModelDirError(f"{path} keeps tensors in {file}, which has no size and sha256 in {MANIFEST_NAME} files "
-                                f"(every file the runtime loads must); {AGAIN}")
+            raise ModelDirError(
+                f"{path} keeps tensors in {file}, which has no size and sha256 in {MANIFEST_NAME} files "
+                f"(every file the runtime loads must); {AGAIN}"
+            )
         external[location] = read_listed(file, manifest, name, f"{file} (the external data of {path.name})")
     return path, data, external
 

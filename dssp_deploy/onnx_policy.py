@@ -43,8 +43,8 @@ from typing import Any
 
 import numpy as np
 
-from dssp_data.streaming_history import StreamingHistory, check_finite
 from dssp_data.model_contract import ModelContract
+from dssp_data.streaming_history import StreamingHistory, check_finite
 from dssp_deploy.mamba_kernel import kernel as find_kernel
 from dssp_deploy.manifest import (
     DENOISER_GRAPH,
@@ -80,8 +80,11 @@ def quantized_action_error(manifest: Manifest, precision: str) -> float | None:
     quantized = verification.get("quantized") if isinstance(verification, dict) else None
     if not isinstance(quantized, dict):
         return None
-    errors = [q.get("action_max_abs_over_range") for name, q in quantized.items()
-              if isinstance(q, dict) and name.removeprefix("onnx_").removesuffix("_fused") == precision]
+    errors = [
+        q.get("action_max_abs_over_range")
+        for name, q in quantized.items()
+        if isinstance(q, dict) and name.removeprefix("onnx_").removesuffix("_fused") == precision
+    ]
     errors = [float(e) for e in errors if isinstance(e, (int, float))]
     return max(errors) if errors else None
 
@@ -94,23 +97,35 @@ def default_precision(manifest: Manifest) -> tuple[str, str]:
         return "fp32", f"; fp32: the model directory has no {DEFAULT_PRECISION} graphs"
     error = quantized_action_error(manifest, DEFAULT_PRECISION)
     if error is not None and error > QUANTIZED_ACTION_BOUND:
-        return "fp32", (f"; fp32: its {DEFAULT_PRECISION} graphs' actions were {100 * error:.1f} % of the action range off "
-                        f"fp32's at export (more than {100 * QUANTIZED_ACTION_BOUND:.0f} %); --precision {DEFAULT_PRECISION} "
-                        "runs them anyway")
+        return "fp32", (
+            f"; fp32: its {DEFAULT_PRECISION} graphs' actions were {100 * error:.1f} % of the action range off "
+            f"fp32's at export (more than {100 * QUANTIZED_ACTION_BOUND:.0f} %); --precision {DEFAULT_PRECISION} "
+            "runs them anyway"
+        )
     return DEFAULT_PRECISION, ""
 
 
 def add_runtime_arguments(parser) -> None:
     """``--precision`` and ``--kernel``: which of a model directory's graphs a command runs."""
-    parser.add_argument("--precision", choices=list(PRECISIONS),
-                        help=f"the model's graphs to run: {', '.join(PRECISIONS)} (default {DEFAULT_PRECISION} when the model has "
-                             "them, else fp32; export writes all three)")
-    parser.add_argument("--kernel", choices=KERNELS, default="auto",
-                        help="fused: the fused Mamba kernel's graphs (make kernel), standard: the plain ONNX graphs, "
-                             "auto (default): fused when the library loads, else standard")
-    parser.add_argument("--no-spin", action="store_true",
-                        help="the chunk's threads sleep between its operators (default: with 2 threads or more they spin "
-                             "while a chunk runs, never between chunks; slower when another busy process shares the cores)")
+    parser.add_argument(
+        "--precision",
+        choices=list(PRECISIONS),
+        help=f"the model's graphs to run: {', '.join(PRECISIONS)} (default {DEFAULT_PRECISION} when the model has "
+        "them, else fp32; export writes all three)",
+    )
+    parser.add_argument(
+        "--kernel",
+        choices=KERNELS,
+        default="auto",
+        help="fused: the fused Mamba kernel's graphs (make kernel), standard: the plain ONNX graphs, "
+        "auto (default): fused when the library loads, else standard",
+    )
+    parser.add_argument(
+        "--no-spin",
+        action="store_true",
+        help="the chunk's threads sleep between its operators (default: with 2 threads or more they spin "
+        "while a chunk runs, never between chunks; slower when another busy process shares the cores)",
+    )
 
 
 class GraphLoadError(ModelDirError):
@@ -127,7 +142,9 @@ def choose_graphs(manifest: Manifest, precision: str, kernel: str = "auto") -> t
         return False, "standard ONNX graphs (asked for)"
     kind = file_kind(precision, fused=True)
     if not all(kind in manifest.graphs[g]["files"] for g in GRAPHS):
-        why = f"the model directory has no {precision} fused graphs; export it again with the kernel built (make kernel)"
+        why = (
+            f"the model directory has no {precision} fused graphs; export it again with the kernel built (make kernel)"
+        )
     else:
         found = find_kernel()
         if found.available:
@@ -148,8 +165,16 @@ def _batch(x, rank: int, name: str) -> np.ndarray:
 
 
 class OnnxPolicy:
-    def __init__(self, model_dir: str | Path, threads: int | None = None, spinning: bool | None = None, warmup: int = 2,
-                 precision: str | None = None, kernel: str = "auto", background_chunks: bool = False):
+    def __init__(
+        self,
+        model_dir: str | Path,
+        threads: int | None = None,
+        spinning: bool | None = None,
+        warmup: int = 2,
+        precision: str | None = None,
+        kernel: str = "auto",
+        background_chunks: bool = False,
+    ):
         if precision is not None and precision not in PRECISIONS:
             raise ModelDirError(f"precision must be one of {sorted(PRECISIONS)}, got {precision!r}")
         self.model_dir = Path(model_dir)
@@ -161,7 +186,9 @@ class OnnxPolicy:
         total = threads or default_threads()
         # With chunks computed in the background (prefetch) the history step and the denoiser run at the same
         # time: the history gets one thread and the denoiser the others, so they do not compete for cores.
-        self.threads = {HISTORY_GRAPH: 1, DENOISER_GRAPH: max(1, total - 1)} if background_chunks else dict.fromkeys(GRAPHS, total)
+        self.threads = (
+            {HISTORY_GRAPH: 1, DENOISER_GRAPH: max(1, total - 1)} if background_chunks else dict.fromkeys(GRAPHS, total)
+        )
         self.spinning = self.threads[DENOISER_GRAPH] > 1 if spinning is None else bool(spinning)
         why_precision = ""
         if precision is None:
@@ -181,7 +208,10 @@ class OnnxPolicy:
         except GraphLoadError as exc:  # ONNX Runtime refused a fused graph (not a file or interface mismatch)
             if not self.fused or kernel == "fused":
                 raise
-            self.fused, self.kernel_note = False, f"{precision}, standard ONNX graphs (the fused graphs failed to load: {exc})"
+            self.fused, self.kernel_note = (
+                False,
+                f"{precision}, standard ONNX graphs (the fused graphs failed to load: {exc})",
+            )
             self.sessions = self._open_sessions()
         self._state_specs = [s for s in m.graphs[HISTORY_GRAPH]["inputs"] if s["name"] in m.history_state]
         self._history_outputs = [o.name for o in self.sessions[HISTORY_GRAPH].get_outputs()]
@@ -195,7 +225,9 @@ class OnnxPolicy:
         sessions = {}
         for graph in (HISTORY_GRAPH, DENOISER_GRAPH):
             # size and sha256 checked, of the graph and of each file of external data it names
-            path, data, external = read_graph_files(self.model_dir, self.manifest, graph, file_kind(self.precision, self.fused))
+            path, data, external = read_graph_files(
+                self.model_dir, self.manifest, graph, file_kind(self.precision, self.fused)
+            )
             try:
                 spin = self.spinning and graph == DENOISER_GRAPH  # a history step is too short to gain from it
                 # the checked bytes, not the paths again
@@ -204,7 +236,9 @@ class OnnxPolicy:
                 raise
             except Exception as exc:  # onnxruntime raises its own exception types
                 first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-                raise GraphLoadError(f"{path} could not be loaded by ONNX Runtime ({first}); export the model again") from None
+                raise GraphLoadError(
+                    f"{path} could not be loaded by ONNX Runtime ({first}); export the model again"
+                ) from None
             check_session(session, self.manifest, graph, path)
             sessions[graph] = session
         return sessions
@@ -260,7 +294,9 @@ class OnnxPolicy:
         pc = _batch(point_cloud, 3, "point_cloud")
         pos = _batch(agent_pos, 2, "agent_pos")
         if pc.shape[-1] < self.contract.point_dim:
-            raise ValueError(f"point_cloud has {pc.shape[-1]} channels per point, the model needs {self.contract.point_dim}")
+            raise ValueError(
+                f"point_cloud has {pc.shape[-1]} channels per point, the model needs {self.contract.point_dim}"
+            )
         if pos.shape[-1] != self.contract.state_dim or pos.shape[0] != pc.shape[0]:
             raise ValueError(f"agent_pos must be (B={pc.shape[0]}, S={self.contract.state_dim}), got {pos.shape}")
         check_finite("point_cloud", pc)
@@ -273,7 +309,9 @@ class OnnxPolicy:
         return self.history.observe(pc, pos)
 
     # ------------------------------------------------------------------ chunks
-    def denoiser_inputs(self, committed: np.ndarray | None = None, weight: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    def denoiser_inputs(
+        self, committed: np.ndarray | None = None, weight: np.ndarray | None = None
+    ) -> dict[str, np.ndarray]:
         """A copy of what the denoiser needs now (c_t, z_recent; with an inpainting denoiser the committed actions
         (B, H, A) raw units and their weights (B, H, 1), zero unless given): safe to use from another thread."""
         if self.recent is None:
@@ -292,9 +330,13 @@ class OnnxPolicy:
         return feeds
 
     def noise(self, batch: int, seed: int | None = None) -> np.ndarray:
-        return np.random.default_rng(seed).standard_normal((batch, self.contract.horizon, self.contract.action_dim), dtype=np.float32)
+        return np.random.default_rng(seed).standard_normal(
+            (batch, self.contract.horizon, self.contract.action_dim), dtype=np.float32
+        )
 
-    def denoise(self, inputs: dict[str, np.ndarray], noise: np.ndarray | None = None, seed: int | None = None) -> np.ndarray:
+    def denoise(
+        self, inputs: dict[str, np.ndarray], noise: np.ndarray | None = None, seed: int | None = None
+    ) -> np.ndarray:
         """Run the denoiser graph on given inputs: the action chunk (B, H, A) in raw units.
 
         Raises :class:`ChunkOutOfRange` for a chunk with NaN/inf or an action outside the action range plus
@@ -302,7 +344,9 @@ class OnnxPolicy:
         batch = next(iter(inputs.values())).shape[0]
         noise = self.noise(batch, seed) if noise is None else _batch(noise, 3, "noise")
         if noise.shape != (batch, self.contract.horizon, self.contract.action_dim):
-            raise ValueError(f"noise must have shape {(batch, self.contract.horizon, self.contract.action_dim)}, got {noise.shape}")
+            raise ValueError(
+                f"noise must have shape {(batch, self.contract.horizon, self.contract.action_dim)}, got {noise.shape}"
+            )
         chunk = self.sessions[DENOISER_GRAPH].run(None, {**inputs, "noise": noise})[0]
         wrong = self.ranges["action"].outside(chunk)
         if wrong:
@@ -313,7 +357,9 @@ class OnnxPolicy:
         """The action chunk (B, H, A) for the current history, from the given noise or a seeded draw."""
         return self.denoise(self.denoiser_inputs(), noise, seed)
 
-    def example_observation(self, rng: np.random.Generator, n_points: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def example_observation(
+        self, rng: np.random.Generator, n_points: int | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """An observation the model accepts, drawn uniformly from the training ranges: point_cloud (1, P, point_dim)
         (P: ``n_points``, default the model's), agent_pos (1, S); for warm-up and timing."""
         pc = self.ranges["point_cloud"].sample(rng, (1, n_points or self.contract.n_points))

@@ -20,8 +20,16 @@ import numpy as np
 from dssp_deploy.sessions import add_external_data, session_options
 
 
-def op_type_breakdown(path: Path, feeds: dict[str, np.ndarray], threads: int | None = None, runs: int = 5, warmup: int = 2,
-                      fused: bool = False, model: bytes | None = None, external: dict[str, bytes] | None = None) -> list[dict]:
+def op_type_breakdown(
+    path: Path,
+    feeds: dict[str, np.ndarray],
+    threads: int | None = None,
+    runs: int = 5,
+    warmup: int = 2,
+    fused: bool = False,
+    model: bytes | None = None,
+    external: dict[str, bytes] | None = None,
+) -> list[dict]:
     """Kernel time per run by operator type, over ``runs`` profiled calls after ``warmup`` calls
     (``fused``: a graph with the fused Mamba operators). ``model`` and ``external``: the graph's checked bytes and
     those of its external data (``dssp_deploy.manifest.read_graph_files``; default: ``path``'s bytes, which may

@@ -49,17 +49,38 @@ from dssp_deploy.latency import (
     resident_memory_mib,
     time_calls,
 )
-from dssp_deploy.manifest import (DENOISER_GRAPH, HISTORY_GRAPH, Manifest, file_kind, graph_file, read_graph_files,
-                                   read_manifest)
+from dssp_deploy.manifest import (
+    DENOISER_GRAPH,
+    HISTORY_GRAPH,
+    Manifest,
+    file_kind,
+    graph_file,
+    read_graph_files,
+    read_manifest,
+)
 from dssp_deploy.onnx_policy import OnnxPolicy, add_runtime_arguments, choose_graphs
 from dssp_deploy.op_breakdown import elementwise_share, op_type_breakdown
 from dssp_deploy.schedules import Plain
 from dssp_deploy.sessions import check_threads, default_threads
 
-FULL = {"iterations": 300, "chunk_iterations": 100, "sweep": [10, 100, 1000, 3000, 10000], "window": 50,
-        "matrix_iterations": 100, "matrix_chunks": 20, "prefetch_ticks": 300}
-QUICK = {"iterations": 20, "chunk_iterations": 5, "sweep": [10, 100, 300], "window": 10,
-         "matrix_iterations": 10, "matrix_chunks": 3, "prefetch_ticks": 24}
+FULL = {
+    "iterations": 300,
+    "chunk_iterations": 100,
+    "sweep": [10, 100, 1000, 3000, 10000],
+    "window": 50,
+    "matrix_iterations": 100,
+    "matrix_chunks": 20,
+    "prefetch_ticks": 300,
+}
+QUICK = {
+    "iterations": 20,
+    "chunk_iterations": 5,
+    "sweep": [10, 100, 300],
+    "window": 10,
+    "matrix_iterations": 10,
+    "matrix_chunks": 3,
+    "prefetch_ticks": 24,
+}
 # The runtime's latency targets for the robotwin preset (1024 points, batch 1) on a 2-core CPU.
 TARGETS = {
     "history_step_p50_ms": 1.5,
@@ -96,8 +117,16 @@ def paths_and_threads(model_dir: Path, precision: str, threads: int, settings: d
             policy.reset()
             history = LatencyStats.of(time_calls(lambda: policy.observe(pc, pos), settings["matrix_iterations"]))
             chunk = LatencyStats.of(time_calls(lambda: policy.act(seed=0), settings["matrix_chunks"]))
-            rows.append({"kernel": kernel, "threads": n, "spinning": policy.spinning, "history_step_p50": history.p50,
-                         "history_step_p99": history.p99, "chunk_p50": chunk.p50})
+            rows.append(
+                {
+                    "kernel": kernel,
+                    "threads": n,
+                    "spinning": policy.spinning,
+                    "history_step_p50": history.p50,
+                    "history_step_p99": history.p99,
+                    "chunk_p50": chunk.p50,
+                }
+            )
     for row in rows:
         one = next(r for r in rows if r["kernel"] == row["kernel"] and r["threads"] == 1)
         row["history_speedup_vs_1"] = one["history_step_p50"] / row["history_step_p50"]
@@ -117,8 +146,15 @@ def prefetch_ticks(model_dir: Path, precision: str, kernel: str, threads: int, t
     try:
         loop = ChunkedControl(policy, Plain(prefetch=True), control_rate_hz=rate, seed=0)
     except ValueError as exc:  # the chunk is too slow to be started early enough at this rate
-        return {"rate_hz": rate, "ticks": 0, "possible": False, "reason": str(exc), "threads": dict(policy.threads),
-                "history_step_alone": alone.to_dict(), "tick_p99_over_history_p99": None}
+        return {
+            "rate_hz": rate,
+            "ticks": 0,
+            "possible": False,
+            "reason": str(exc),
+            "threads": dict(policy.threads),
+            "history_step_alone": alone.to_dict(),
+            "tick_p99_over_history_p99": None,
+        }
     period = 1.0 / rate
     tick_ms, waited, next_at = [], 0, time.perf_counter()
     for _ in range(ticks):
@@ -130,9 +166,17 @@ def prefetch_ticks(model_dir: Path, precision: str, kernel: str, threads: int, t
         time.sleep(max(0.0, next_at - time.perf_counter()))
     loop.reset()
     ticks_stats = LatencyStats.of(tick_ms)
-    return {"rate_hz": rate, "ticks": ticks, "possible": True, "lead_ticks": loop.schedule.lead, "threads": dict(policy.threads),
-            "history_step_alone": alone.to_dict(), "tick": ticks_stats.to_dict(), "chunks_late": int(waited),
-            "tick_p99_over_history_p99": ticks_stats.p99 / alone.p99}
+    return {
+        "rate_hz": rate,
+        "ticks": ticks,
+        "possible": True,
+        "lead_ticks": loop.schedule.lead,
+        "threads": dict(policy.threads),
+        "history_step_alone": alone.to_dict(),
+        "tick": ticks_stats.to_dict(),
+        "chunks_late": int(waited),
+        "tick_p99_over_history_p99": ticks_stats.p99 / alone.p99,
+    }
 
 
 def history_sweep(step, lengths: list[int], window: int) -> list[dict[str, float]]:
@@ -148,8 +192,14 @@ def history_sweep(step, lengths: list[int], window: int) -> list[dict[str, float
     return rows
 
 
-def run_profile(model_dir: Path, quick: bool, threads: int | None, precision: str | None = None,
-                kernel: str = "auto", spinning: bool | None = None) -> dict[str, Any]:
+def run_profile(
+    model_dir: Path,
+    quick: bool,
+    threads: int | None,
+    precision: str | None = None,
+    kernel: str = "auto",
+    spinning: bool | None = None,
+) -> dict[str, Any]:
     """Every figure of one profiling run of the model directory (see the module's docstring)."""
     settings = QUICK if quick else FULL
     rng = np.random.default_rng(0)
@@ -167,7 +217,10 @@ def run_profile(model_dir: Path, quick: bool, threads: int | None, precision: st
     sweep = history_sweep(lambda: policy.observe(pc, pos), settings["sweep"], settings["window"])
 
     peak = gemm_peak_gflops()
-    flops = {"history_step": history_step_flops(m, m["n_points"]), "denoiser_chunk": chunk_flops(m, manifest.contract.denoise_steps)}
+    flops = {
+        "history_step": history_step_flops(m, m["n_points"]),
+        "denoiser_chunk": chunk_flops(m, manifest.contract.denoise_steps),
+    }
     achieved = {k: flops[k] / (stats[k]["p50"] / 1e3) / 1e9 for k in flops}
     floor = chunk_floor(model_dir, manifest, flops["denoiser_chunk"], peak, file_kind(precision, policy.fused))
     breakdown = graph_breakdowns(policy, model_dir, threads, runs=2 if quick else 5)
@@ -182,7 +235,11 @@ def run_profile(model_dir: Path, quick: bool, threads: int | None, precision: st
         "kernel_note": note,
         "paths_and_threads": matrix,
         "prefetch": prefetch,
-        "machine": {"processor": platform.processor() or platform.machine(), "threads": threads, "gemm_peak_gflops": peak},
+        "machine": {
+            "processor": platform.processor() or platform.machine(),
+            "threads": threads,
+            "gemm_peak_gflops": peak,
+        },
         "settings": {"quick": quick, **settings},
         "memory_mib": {"before_load": rss_before, "after_load": rss_loaded, "after_profile": resident_memory_mib()},
         "latency_ms": stats,
@@ -209,11 +266,20 @@ def roofline(model_dir: Path, manifest: Manifest, fmt: str, chunk_ms: float, rea
     weights = graph_file(model_dir, manifest, DENOISER_GRAPH, fmt).stat().st_size
     passes = weight_passes(manifest)
     floor = passes * weights / (read_gbs * 1e9) * 1e3
-    return {"graph": fmt, "weights_mib": weights / 2**20, "passes": passes, "read_gbs": read_gbs,
-            "floor_ms": floor, "chunk_ms": chunk_ms, "ratio": chunk_ms / floor}
+    return {
+        "graph": fmt,
+        "weights_mib": weights / 2**20,
+        "passes": passes,
+        "read_gbs": read_gbs,
+        "floor_ms": floor,
+        "chunk_ms": chunk_ms,
+        "ratio": chunk_ms / floor,
+    }
 
 
-def chunk_floor(model_dir: Path, manifest: Manifest, chunk_flops_: int, peak_gflops: float, fmt: str = "onnx") -> dict[str, Any]:
+def chunk_floor(
+    model_dir: Path, manifest: Manifest, chunk_flops_: int, peak_gflops: float, fmt: str = "onnx"
+) -> dict[str, Any]:
     """The least time one chunk can take here: compute at the GEMM peak, or re-reading the weights per DDIM step.
 
     The denoiser graph's file is almost entirely its weights; the K DDIM steps run every layer in turn, so
@@ -230,10 +296,18 @@ def chunk_floor(model_dir: Path, manifest: Manifest, chunk_flops_: int, peak_gfl
     streams = cache is None or weights > cache
     stream_ms = weight_passes(manifest) * weights / (bandwidth * 1e9) * 1e3 if streams else None
     compute_ms = chunk_flops_ / (peak_gflops * 1e9) * 1e3
-    return {"compute_ms": compute_ms, "weights_mib": weights / 2**20, "cache_mib": cache / 2**20 if cache else None,
-            "cpu_cache_mib": cpu_cache / 2**20 if cpu_cache else None, "read_gbs_by_mib": dict(probe),
-            "read_gbs": bandwidth, "denoise_steps": steps, "weight_passes": weight_passes(manifest), "weight_stream_ms": stream_ms,
-            "floor_ms": max(compute_ms, stream_ms or 0.0)}
+    return {
+        "compute_ms": compute_ms,
+        "weights_mib": weights / 2**20,
+        "cache_mib": cache / 2**20 if cache else None,
+        "cpu_cache_mib": cpu_cache / 2**20 if cpu_cache else None,
+        "read_gbs_by_mib": dict(probe),
+        "read_gbs": bandwidth,
+        "denoise_steps": steps,
+        "weight_passes": weight_passes(manifest),
+        "weight_stream_ms": stream_ms,
+        "floor_ms": max(compute_ms, stream_ms or 0.0),
+    }
 
 
 def graph_breakdowns(policy: OnnxPolicy, model_dir: Path, threads: int | None, runs: int) -> dict[str, list[dict]]:
@@ -242,13 +316,24 @@ def graph_breakdowns(policy: OnnxPolicy, model_dir: Path, threads: int | None, r
     pc, pos = random_observation(policy, rng)
     policy.reset()
     policy.observe(pc, pos)
-    history_feeds = {"point_cloud": pc, "agent_pos": pos, **policy.state} if policy.manifest.model.use_history else {"point_cloud": pc, "agent_pos": pos}
+    history_feeds = (
+        {"point_cloud": pc, "agent_pos": pos, **policy.state}
+        if policy.manifest.model.use_history
+        else {"point_cloud": pc, "agent_pos": pos}
+    )
     denoiser_feeds = {**policy.denoiser_inputs(), "noise": policy.noise(1, seed=0)}
     manifest, fmt = policy.manifest, file_kind(policy.precision, policy.fused)
     breakdowns = {}
-    for name, graph, feeds in (("history_step", HISTORY_GRAPH, history_feeds), ("denoiser_chunk", DENOISER_GRAPH, denoiser_feeds)):
-        path, data, external = read_graph_files(model_dir, manifest, graph, fmt)  # the checked bytes, as the runtime loads them
-        breakdowns[name] = op_type_breakdown(path, feeds, threads, runs, fused=policy.fused, model=data, external=external)
+    for name, graph, feeds in (
+        ("history_step", HISTORY_GRAPH, history_feeds),
+        ("denoiser_chunk", DENOISER_GRAPH, denoiser_feeds),
+    ):
+        path, data, external = read_graph_files(
+            model_dir, manifest, graph, fmt
+        )  # the checked bytes, as the runtime loads them
+        breakdowns[name] = op_type_breakdown(
+            path, feeds, threads, runs, fused=policy.fused, model=data, external=external
+        )
     return breakdowns
 
 
@@ -259,7 +344,17 @@ def target_rows(report: dict[str, Any]) -> list[tuple[str, float, float, bool, s
 
     def upper(name, measured, target, unit):
         met = measured <= target
-        rows.append((name, measured, target, met, "met" if met else f"{measured / target:.2f}x the target ({measured - target:+.3g} {unit})".replace(" )", ")")))
+        rows.append(
+            (
+                name,
+                measured,
+                target,
+                met,
+                "met"
+                if met
+                else f"{measured / target:.2f}x the target ({measured - target:+.3g} {unit})".replace(" )", ")"),
+            )
+        )
 
     upper("history step p50 ms", lat["history_step"]["p50"], TARGETS["history_step_p50_ms"], "ms")
     upper("history step p95 ms", lat["history_step"]["p95"], TARGETS["history_step_p95_ms"], "ms")
@@ -268,10 +363,19 @@ def target_rows(report: dict[str, Any]) -> list[tuple[str, float, float, bool, s
     if floor > TARGETS["denoiser_chunk_p50_ms"]:
         rows[-1] = (*rows[-1][:4], rows[-1][4] + f"; this machine's floor for it is {floor:.3g} ms")
     growth = abs(sweep[-1]["p50_ms"] / sweep[0]["p50_ms"] - 1)
-    upper(f"history step cost change {sweep[0]['length']} → {sweep[-1]['length']} steps (fraction)", growth, TARGETS["history_growth_10k"], "")
+    upper(
+        f"history step cost change {sweep[0]['length']} → {sweep[-1]['length']} steps (fraction)",
+        growth,
+        TARGETS["history_growth_10k"],
+        "",
+    )
     if report["prefetch"]["possible"]:
-        upper("tick p99 with prefetch / history step p99", report["prefetch"]["tick_p99_over_history_p99"],
-              TARGETS["prefetch_tick_p99_over_history_p99"], "")
+        upper(
+            "tick p99 with prefetch / history step p99",
+            report["prefetch"]["tick_p99_over_history_p99"],
+            TARGETS["prefetch_tick_p99_over_history_p99"],
+            "",
+        )
     return rows
 
 
@@ -284,47 +388,77 @@ def markdown(report: dict[str, Any]) -> str:
         "| component | p50 ms | p95 ms | p99 ms | max ms | GFLOP/s | of peak |",
         "|---|---:|---:|---:|---:|---:|---:|",
     ]
-    for key, label in (("history_step", "history step (ORT)"), ("denoiser_chunk", "denoiser chunk (ORT)"), ("chunk_tick", "chunk tick: both (ORT)")):
+    for key, label in (
+        ("history_step", "history step (ORT)"),
+        ("denoiser_chunk", "denoiser chunk (ORT)"),
+        ("chunk_tick", "chunk tick: both (ORT)"),
+    ):
         s = lat[key]
         gf = report["achieved_gflops"].get(key)
         extra = f"{gf:.1f} | {100 * report['fraction_of_peak'][key]:.1f} %" if gf is not None else " | "
         lines.append(f"| {label} | {s['p50']:.2f} | {s['p95']:.2f} | {s['p99']:.2f} | {s['max']:.2f} | {extra} |")
-    lines += ["", "| graphs | threads | history step p50 ms | p99 ms | chunk p50 ms | history speed-up | chunk speed-up |",
-              "|---|---:|---:|---:|---:|---:|---:|"]
+    lines += [
+        "",
+        "| graphs | threads | history step p50 ms | p99 ms | chunk p50 ms | history speed-up | chunk speed-up |",
+        "|---|---:|---:|---:|---:|---:|---:|",
+    ]
     for r in report["paths_and_threads"]:
         spin = ", --no-spin" if r["threads"] > 1 and not r["spinning"] else ""
-        lines.append(f"| {r['kernel']}{spin} | {r['threads']} | {r['history_step_p50']:.2f} | {r['history_step_p99']:.2f} | {r['chunk_p50']:.2f} | "
-                     f"{r['history_speedup_vs_1']:.2f}x | {r['chunk_speedup_vs_1']:.2f}x |")
+        lines.append(
+            f"| {r['kernel']}{spin} | {r['threads']} | {r['history_step_p50']:.2f} | {r['history_step_p99']:.2f} | {r['chunk_p50']:.2f} | "
+            f"{r['history_speedup_vs_1']:.2f}x | {r['chunk_speedup_vs_1']:.2f}x |"
+        )
     pf = report["prefetch"]
     if not pf["possible"]:
         lines += ["", f"Prefetch: not possible here ({pf['reason']})"]
     else:
-        lines += ["", f"Prefetch: {pf['ticks']} real-time ticks at {pf['rate_hz']:g} Hz, each chunk started {pf['lead_ticks']} tick(s) early "
-                  f"(history {pf['threads']['history_step']} thread, chunk {pf['threads']['denoiser']}): tick p50 {pf['tick']['p50']:.2f} ms, "
-                  f"p99 {pf['tick']['p99']:.2f} ms against the history step alone p99 {pf['history_step_alone']['p99']:.2f} ms "
-                  f"({pf['tick_p99_over_history_p99']:.2f}x); chunks late: {pf['chunks_late']}"]
+        lines += [
+            "",
+            f"Prefetch: {pf['ticks']} real-time ticks at {pf['rate_hz']:g} Hz, each chunk started {pf['lead_ticks']} tick(s) early "
+            f"(history {pf['threads']['history_step']} thread, chunk {pf['threads']['denoiser']}): tick p50 {pf['tick']['p50']:.2f} ms, "
+            f"p99 {pf['tick']['p99']:.2f} ms against the history step alone p99 {pf['history_step_alone']['p99']:.2f} ms "
+            f"({pf['tick_p99_over_history_p99']:.2f}x); chunks late: {pf['chunks_late']}",
+        ]
     lines += ["", "| history length | DSSP step p50 ms | RSS MiB |", "|---:|---:|---:|"]
     for r in report["history_sweep"]:
         lines.append(f"| {r['length']} | {r['p50_ms']:.3f} | {r['rss_mib']:.0f} |")
     sweep = report["history_sweep"]
     growth = sweep[-1]["p50_ms"] / sweep[0]["p50_ms"] - 1
-    lines += ["", f"DSSP per-step cost at {sweep[-1]['length']} steps vs {sweep[0]['length']}: {100 * growth:+.1f} %; "
-              f"memory {sweep[-1]['rss_mib'] - sweep[0]['rss_mib']:+.1f} MiB"]
+    lines += [
+        "",
+        f"DSSP per-step cost at {sweep[-1]['length']} steps vs {sweep[0]['length']}: {100 * growth:+.1f} %; "
+        f"memory {sweep[-1]['rss_mib'] - sweep[0]['rss_mib']:+.1f} MiB",
+    ]
     mem = report["memory_mib"]
-    lines.append(f"Resident memory: {mem['before_load']:.0f} MiB before load, {mem['after_load']:.0f} after, {mem['after_profile']:.0f} at the end")
+    lines.append(
+        f"Resident memory: {mem['before_load']:.0f} MiB before load, {mem['after_load']:.0f} after, {mem['after_profile']:.0f} at the end"
+    )
     f = report["chunk_floor"]
-    cache = (f"{f['cache_mib']:.0f} MiB of cache this process gets (measured; the CPU's last-level cache: "
-             f"{f['cpu_cache_mib']:.0f} MiB)" if f.get("cpu_cache_mib") and f["cache_mib"] != f["cpu_cache_mib"]
-             else f"{f['cache_mib']:.0f} MiB last-level cache" if f["cache_mib"] else "")
-    stream = (f"{f['weights_mib']:.1f} MiB of weights{' > ' + cache if cache else ''}, "
-              f"read {f['weight_passes']} times a chunk ({f['denoise_steps']} DDIM steps"
-              f"{' and the prefix' if f['weight_passes'] > f['denoise_steps'] else ''}) at {f['read_gbs']:.1f} GB/s = {f['weight_stream_ms']:.1f} ms"
-              if f["weight_stream_ms"] is not None else f"{f['weights_mib']:.1f} MiB of weights stay in the {cache}")
-    lines.append(f"Chunk floor on this machine: {f['floor_ms']:.1f} ms — compute at the GEMM peak {f['compute_ms']:.1f} ms; {stream}")
+    cache = (
+        f"{f['cache_mib']:.0f} MiB of cache this process gets (measured; the CPU's last-level cache: "
+        f"{f['cpu_cache_mib']:.0f} MiB)"
+        if f.get("cpu_cache_mib") and f["cache_mib"] != f["cpu_cache_mib"]
+        else f"{f['cache_mib']:.0f} MiB last-level cache"
+        if f["cache_mib"]
+        else ""
+    )
+    stream = (
+        f"{f['weights_mib']:.1f} MiB of weights{' > ' + cache if cache else ''}, "
+        f"read {f['weight_passes']} times a chunk ({f['denoise_steps']} DDIM steps"
+        f"{' and the prefix' if f['weight_passes'] > f['denoise_steps'] else ''}) "
+        f"at {f['read_gbs']:.1f} GB/s = {f['weight_stream_ms']:.1f} ms"
+        if f["weight_stream_ms"] is not None
+        else f"{f['weights_mib']:.1f} MiB of weights stay in the {cache}"
+    )
+    lines.append(
+        f"Chunk floor on this machine: {f['floor_ms']:.1f} ms — compute at the GEMM peak {f['compute_ms']:.1f} ms; {stream}"
+    )
     for graph, label in (("history_step", "history step"), ("denoiser_chunk", "denoiser chunk")):
         rows = report["op_breakdown"][graph]
         top = ", ".join(f"{r['op']} {100 * r['share']:.0f} % ({r['nodes']} nodes)" for r in rows[:5])
-        lines.append(f"Where the {label} goes (ORT profiler, kernel time): {top}; elementwise/copy ops {100 * elementwise_share(rows):.0f} %")
+        lines.append(
+            f"Where the {label} goes (ORT profiler, kernel time): {top}; elementwise/copy ops {100 * elementwise_share(rows):.0f} %"
+        )
     lines += ["", "| target (robotwin preset, 2-core CPU) | measured | target | |", "|---|---:|---:|---|"]
     for name, measured, target, _, how in target_rows(report):
         lines.append(f"| {name} | {measured:.3g} | {target:.3g} | {how} |")
@@ -343,7 +477,13 @@ def plot(report: dict[str, Any], path: Path, force: bool = False) -> None:
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4))
     sweep = report["history_sweep"]
     ax1.plot([r["length"] for r in sweep], [r["p50_ms"] for r in sweep], "o-", label="DSSP (Mamba, ORT)")
-    ax1.set(xscale="log", yscale="log", xlabel="history length (steps)", ylabel="one history update, p50 ms", title="Per-step cost vs history")
+    ax1.set(
+        xscale="log",
+        yscale="log",
+        xlabel="history length (steps)",
+        ylabel="one history update, p50 ms",
+        title="Per-step cost vs history",
+    )
     ax1.legend()
     samples = [report["samples_ms"][k] for k in ("history_step", "denoiser_chunk")]
     bins = np.geomspace(min(map(min, samples)) * 0.9, max(map(max, samples)) * 1.1, 50)
@@ -375,7 +515,9 @@ def main(argv: list[str] | None = None) -> int:
             if path is not None:
                 check_output_file(path, force=args.force, flag=flag)
         t0 = time.perf_counter()
-        report = run_profile(args.model_dir, args.quick, args.threads, args.precision, args.kernel, False if args.no_spin else None)
+        report = run_profile(
+            args.model_dir, args.quick, args.threads, args.precision, args.kernel, False if args.no_spin else None
+        )
         report["profile_seconds"] = time.perf_counter() - t0
         print(markdown(report))
         if args.json:

@@ -73,15 +73,18 @@ class Range:
         where = np.argwhere(bad)
         listed = ", ".join(self._describe(values, tuple(int(i) for i in idx)) for idx in where[:MAX_LISTED])
         more = f" and {len(where) - MAX_LISTED} more" if len(where) > MAX_LISTED else ""
-        return (f"{self.name} {list(values.shape)} has {len(where)} value(s) outside the model's range: {listed}{more}; "
-                f"a channel's range is its training range widened by {self.slack:.4g} ({MARGIN:g} x the widest channel span)")
+        return (
+            f"{self.name} {list(values.shape)} has {len(where)} value(s) outside the model's range: {listed}{more}; "
+            f"a channel's range is its training range widened by {self.slack:.4g} ({MARGIN:g} x the widest channel span)"
+        )
 
     def _describe(self, values: np.ndarray, index: tuple[int, ...]) -> str:
         value, c = values[index], index[-1]
         if not np.isfinite(value):
             return f"{index}={value} (not finite)"
         side, bound = (">", self.upper[c]) if value > self.upper[c] else ("<", self.lower[c])
-        return f"{index}={value:.6g} {side} {bound:.6g} (channel {c}: training range [{self.trained_min[c]:.6g}, {self.trained_max[c]:.6g}])"
+        trained = f"[{self.trained_min[c]:.6g}, {self.trained_max[c]:.6g}]"
+        return f"{index}={value:.6g} {side} {bound:.6g} (channel {c}: training range {trained})"
 
     def sample(self, rng: np.random.Generator, shape: tuple[int, ...]) -> np.ndarray:
         """Values (*shape, C) float32 drawn uniformly from the training range (an observation that is accepted)."""
@@ -93,5 +96,8 @@ def model_ranges(normalizers: Mapping[str, Any], point_dim: int) -> dict[str, Ra
     ``dssp_deploy.manifest.read_manifest`` checked them (finite, one per channel, scale > 0, min <= max); the cloud's
     first ``point_dim`` channels."""
     cloud = {k: v[:point_dim] for k, v in normalizers["point_cloud"].items()}
-    return {"point_cloud": Range("point_cloud", cloud), "agent_pos": Range("agent_pos", normalizers["agent_pos"]),
-            "action": Range("action chunk", normalizers["action"])}
+    return {
+        "point_cloud": Range("point_cloud", cloud),
+        "agent_pos": Range("agent_pos", normalizers["agent_pos"]),
+        "action": Range("action chunk", normalizers["action"]),
+    }

@@ -82,8 +82,10 @@ class MeasuredDelay:
         ticks = max(1, math.ceil(chunk_ms / loop.period_ms))
         spare = p.contract.horizon - p.contract.action_offset - p.contract.n_action_steps
         if ticks > spare:
-            raise ValueError(f"a chunk takes {chunk_ms:.1f} ms = {ticks} ticks at {loop.control_rate_hz:g} Hz, but only "
-                             f"H - action_offset - H_a = {spare} {beyond}")
+            raise ValueError(
+                f"a chunk takes {chunk_ms:.1f} ms = {ticks} ticks at {loop.control_rate_hz:g} Hz, but only "
+                f"H - action_offset - H_a = {spare} {beyond}"
+            )
         return ticks
 
     def start(self, loop: ChunkedControl, inputs: dict[str, np.ndarray]) -> Future:  # a refusal: from result()
@@ -155,8 +157,10 @@ class Ensemble(Schedule):
     decay: float = 0.01
     mode = "ensemble"
     title = "temporal ensembling"
-    refuses = {"prefetch": "{prefetch} does not combine with {smoothing} ensemble: ensembling computes each chunk in the "
-                           "tick that first uses it; run one or the other"}
+    refuses = {
+        "prefetch": "{prefetch} does not combine with {smoothing} ensemble: ensembling computes each chunk in the "
+        "tick that first uses it; run one or the other"
+    }
 
     def __post_init__(self):
         if not _number(self.every, (int, np.integer)):
@@ -176,8 +180,10 @@ class RealTimeChunking(Schedule):
     chunk ready waits and is reported over budget."""
 
     mode = "rtc"
-    refuses = {"prefetch": "{prefetch} does not combine with {smoothing} rtc: real-time chunking computes the next chunk "
-                           "in the background itself; drop {prefetch}"}
+    refuses = {
+        "prefetch": "{prefetch} does not combine with {smoothing} rtc: real-time chunking computes the next chunk "
+        "in the background itself; drop {prefetch}"
+    }
 
 
 MODES: dict[str, type[Schedule]] = {config.mode: config for config in (Plain, Ensemble, RealTimeChunking)}
@@ -193,8 +199,10 @@ def config_for(smoothing: str = "none", **given) -> Schedule:
     for key in given:
         if key not in {f.name for f in fields(config)}:
             owner = next(c for c in MODES.values() if key in {f.name for f in fields(c)})
-            raise SettingError(config.refuses.get(key) or f"{{{key}}} is a setting of {owner.title}: it goes with "
-                                                          f"{{smoothing}} {owner.mode}")
+            raise SettingError(
+                config.refuses.get(key)
+                or f"{{{key}}} is a setting of {owner.title}: it goes with {{smoothing}} {owner.mode}"
+            )
     return config(**given)
 
 
@@ -212,8 +220,13 @@ class _Running:
     def settings(self) -> dict:
         """For a run's log: {smoothing (the mode), ensemble_every, ensemble_decay, rtc_delay_ticks, injected_delay_ticks}."""
         delay = self.config.delay
-        return {"smoothing": self.config.mode, "ensemble_every": None, "ensemble_decay": None, "rtc_delay_ticks": None,
-                "injected_delay_ticks": delay.ticks if isinstance(delay, SimulatedDelay) else None}
+        return {
+            "smoothing": self.config.mode,
+            "ensemble_every": None,
+            "ensemble_decay": None,
+            "rtc_delay_ticks": None,
+            "injected_delay_ticks": delay.ticks if isinstance(delay, SimulatedDelay) else None,
+        }
 
     def _take(self, info: TickInfo) -> tuple[int, np.ndarray]:
         """The chunk in flight, its time come: (its observation tick, chunk (B, H, A)); waited for if still computing."""
@@ -235,8 +248,13 @@ class PlainRun(_Running):
 
     def __init__(self, config: Plain, loop: ChunkedControl):
         super().__init__(config, loop)
-        self.lead = config.delay.ahead_ticks(loop, "prefetch", "predicted actions can be dropped; run without prefetch "
-                                             "or at a lower rate") if config.prefetch else 0
+        self.lead = (
+            config.delay.ahead_ticks(
+                loop, "prefetch", "predicted actions can be dropped; run without prefetch or at a lower rate"
+            )
+            if config.prefetch
+            else 0
+        )
 
     def reset(self) -> None:
         super().reset()
@@ -269,15 +287,23 @@ class EnsembleRun(_Running):
     def __init__(self, config: Ensemble, loop: ChunkedControl):
         super().__init__(config, loop)
         if config.every > (ha := loop.policy.contract.n_action_steps):
-            raise SettingError("{every} {got}: the model executes H_a = {ha} actions of a chunk, so a chunk is needed "
-                               "at least every {ha} ticks (1 to {ha})", got=config.every, ha=ha)
+            raise SettingError(
+                "{every} {got}: the model executes H_a = {ha} actions of a chunk, so a chunk is needed "
+                "at least every {ha} ticks (1 to {ha})",
+                got=config.every,
+                ha=ha,
+            )
 
     def reset(self) -> None:
         super().reset()
         self.kept, self.arriving = [], []
 
     def settings(self) -> dict:
-        return {**super().settings(), "ensemble_every": int(self.config.every), "ensemble_decay": float(self.config.decay)}
+        return {
+            **super().settings(),
+            "ensemble_every": int(self.config.every),
+            "ensemble_decay": float(self.config.decay),
+        }
 
     def act(self, t: int, info: TickInfo) -> np.ndarray | None:
         offset, d, arriving = self.policy.contract.action_offset, self.config.delay.now_ticks, self.arriving
@@ -307,10 +333,15 @@ class RealTimeRun(_Running):
     def __init__(self, config: RealTimeChunking, loop: ChunkedControl):
         super().__init__(config, loop)
         if not loop.policy.contract.inpainting:
-            raise ValueError("real-time chunking needs a denoiser that takes the committed actions: export the model "
-                             "with python -m export.to_onnx --inpainting")
-        self.delay = config.delay.ahead_ticks(loop, "real-time chunking", "ticks beyond its H_a are covered by a chunk: "
-                                              "real-time chunking cannot keep up; run at a lower rate")
+            raise ValueError(
+                "real-time chunking needs a denoiser that takes the committed actions: export the model "
+                "with python -m export.to_onnx --inpainting"
+            )
+        self.delay = config.delay.ahead_ticks(
+            loop,
+            "real-time chunking",
+            "ticks beyond its H_a are covered by a chunk: real-time chunking cannot keep up; run at a lower rate",
+        )
 
     def reset(self) -> None:
         super().reset()

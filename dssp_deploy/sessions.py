@@ -74,15 +74,23 @@ def add_external_data(options, model: bytes, external: Mapping[str, bytes] | Non
     external = external or {}
     unchecked = [loc for loc in locations if loc not in external]
     if unchecked:
-        raise ModelDirError(f"the graph keeps tensors in external data at {unchecked[0]!r}, which was not read and checked "
-                            "from the model directory (dssp_deploy.manifest.read_graph_files); refused")
+        raise ModelDirError(
+            f"the graph keeps tensors in external data at {unchecked[0]!r}, which was not read and checked "
+            "from the model directory (dssp_deploy.manifest.read_graph_files); refused"
+        )
     if locations:
-        options.add_external_initializers_from_files_in_memory(locations, [external[loc] for loc in locations],
-                                                                [len(external[loc]) for loc in locations])
+        options.add_external_initializers_from_files_in_memory(
+            locations, [external[loc] for loc in locations], [len(external[loc]) for loc in locations]
+        )
 
 
-def open_session(model: Path | bytes, threads: int | None = None, spinning: bool = False, fused: bool = False,
-                 external: Mapping[str, bytes] | None = None):
+def open_session(
+    model: Path | bytes,
+    threads: int | None = None,
+    spinning: bool = False,
+    fused: bool = False,
+    external: Mapping[str, bytes] | None = None,
+):
     """A CPU ``InferenceSession`` for one ``.onnx`` graph, given as its bytes (already checked) or its path (read
     here); ``external``: the checked bytes of the files its tensors' external data name (see
     :func:`add_external_data`); ``fused`` for a graph with the fused Mamba operators."""

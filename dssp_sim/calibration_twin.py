@@ -31,14 +31,14 @@ import mujoco
 import numpy as np
 
 from dssp_data.arm_kinematics import TCP_OFFSET
+from dssp_data.pointcloud.depth_frame import DepthFrame, Intrinsics
 from dssp_sim.env import DEPTH_UNIT, ArmServos, DepthRenderThread
 from dssp_sim.ik import IKSolver
 from dssp_sim.mjcf import CAMERA_FOVY_DEG, CAMERA_NAME, CAMERA_POS, ArmIndex, arm_xml, fmt, mat_to_quat, scene_xml
 from dssp_sim.mujoco_arm import MujocoPiper
 from dssp_sim.tasks import HOME
 from hardware.calibration.charuco import CharucoBoardSpec, board_image
-from hardware.calibration.hand_eye import EYE_IN_HAND, EYE_TO_HAND, MODES, invert
-from dssp_data.pointcloud.depth_frame import DepthFrame, Intrinsics
+from hardware.calibration.hand_eye import EYE_TO_HAND, MODES, invert
 from hardware.camera.base import Camera
 from hardware.camera.software import SoftwareDepthCamera
 from hardware.cli import calibrate
@@ -64,7 +64,9 @@ EYE_TO_HAND_BOARD = (0.5, 0.0, 0.25)
 EYE_TO_HAND_TILT_DEG = 30.0  # the board faces this far below the camera (facing it squarely, J5 is at its limit)
 TABLE_BOARD = (0.45, 0.0, 0.0)
 WRIST_HEIGHT = 0.25  # m above the table board of the wrist camera at the start pose
-WRIST_PITCH_DEG = 30.0  # the approach axis at the start pose: down, tilted forward (pointing straight down, J5 is at its limit)
+WRIST_PITCH_DEG = (
+    30.0  # the approach axis at the start pose: down, tilted forward (pointing straight down, J5 is at its limit)
+)
 
 OPTICAL_IN_MJCAM = np.diag([1.0, -1.0, -1.0])  # optical frame (x right, y down, z forward) in MuJoCo's camera frame
 
@@ -85,17 +87,21 @@ def board_assets(board: CharucoBoardSpec) -> tuple[str, np.ndarray]:
     vertex = [x0, y0, 0, x1, y0, 0, x1, y1, 0, x0, y1, 0, x0, y0, z, x1, y0, z, x1, y1, z, x0, y1, z]
     texcoord = [0, 0, 1, 0, 1, 1, 0, 1] * 2
     face = [0, 2, 1, 0, 3, 2, 4, 5, 6, 4, 6, 7, 0, 1, 5, 0, 5, 4, 1, 2, 6, 1, 6, 5, 2, 3, 7, 2, 7, 6, 3, 0, 4, 3, 4, 7]
-    assets = (f'<texture name="charuco" type="2d" builtin="flat" width="{image.shape[1]}" height="{image.shape[0]}" '
-              'rgb1="1 1 1"/>'
-              '<material name="charuco" texture="charuco" specular="0" shininess="0"/>'
-              f'<mesh name="charuco" vertex="{fmt(vertex)}" texcoord="{fmt(texcoord)}" face="{fmt(face)}"/>')
+    assets = (
+        f'<texture name="charuco" type="2d" builtin="flat" width="{image.shape[1]}" height="{image.shape[0]}" '
+        'rgb1="1 1 1"/>'
+        '<material name="charuco" texture="charuco" specular="0" shininess="0"/>'
+        f'<mesh name="charuco" vertex="{fmt(vertex)}" texcoord="{fmt(texcoord)}" face="{fmt(face)}"/>'
+    )
     return assets, np.repeat(image[:, :, None], 3, axis=2)
 
 
 def _board_body(pos, rot) -> str:
-    return (f'<body name="charuco" pos="{fmt(pos)}" quat="{fmt(mat_to_quat(rot))}">'
-            '<geom name="charuco" type="mesh" mesh="charuco" material="charuco" contype="0" conaffinity="0" '
-            'mass="0.02"/></body>')
+    return (
+        f'<body name="charuco" pos="{fmt(pos)}" quat="{fmt(mat_to_quat(rot))}">'
+        '<geom name="charuco" type="mesh" mesh="charuco" material="charuco" contype="0" conaffinity="0" '
+        'mass="0.02"/></body>'
+    )
 
 
 def twin_xml(mode: str, board: CharucoBoardSpec) -> tuple[str, np.ndarray]:
@@ -112,8 +118,10 @@ def twin_xml(mode: str, board: CharucoBoardSpec) -> tuple[str, np.ndarray]:
     else:
         opt = _rot_y(WRIST_CAMERA_TILT_DEG)  # optical frame in the flange frame
         mj = opt @ OPTICAL_IN_MJCAM  # MuJoCo's camera frame: x, y columns
-        flange = (f'<camera name="{WRIST_CAMERA_NAME}" pos="{fmt(WRIST_CAMERA_POS)}" '
-                  f'xyaxes="{fmt(np.concatenate([mj[:, 0], mj[:, 1]]))}" fovy="{CAMERA_FOVY_DEG:.9g}"/>')
+        flange = (
+            f'<camera name="{WRIST_CAMERA_NAME}" pos="{fmt(WRIST_CAMERA_POS)}" '
+            f'xyaxes="{fmt(np.concatenate([mj[:, 0], mj[:, 1]]))}" fovy="{CAMERA_FOVY_DEG:.9g}"/>'
+        )
         rot = np.diag([1.0, -1.0, -1.0])  # face up: the board's z points down into the table
         objects = _board_body(np.array(TABLE_BOARD) + [0.0, 0.0, BOARD_THICKNESS + 1e-4] - rot @ centre, rot)
     xml = scene_xml(objects, arms=(arm_xml(flange_xml=flange),), assets=assets)
@@ -133,13 +141,14 @@ class CalibrationTwin(ArmServos):
         self.model.vis.global_.offheight = max(self.model.vis.global_.offheight, self.size[0])
         tex = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_TEXTURE, "charuco")
         adr = self.model.tex_adr[tex]
-        self.model.tex_data[adr:adr + texture.size] = texture.reshape(-1)
+        self.model.tex_data[adr : adr + texture.size] = texture.reshape(-1)
         self.data = mujoco.MjData(self.model)
         self.arm = ArmIndex.find(self.model)
         self.lock = threading.RLock()
         self._time_debt = 0.0
-        self.camera_id = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_CAMERA,
-                                           CAMERA_NAME if mode == EYE_TO_HAND else WRIST_CAMERA_NAME)
+        self.camera_id = mujoco.mj_name2id(
+            self.model, mujoco.mjtObj.mjOBJ_CAMERA, CAMERA_NAME if mode == EYE_TO_HAND else WRIST_CAMERA_NAME
+        )
         self.board_body = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, "charuco")
         self.flange_body = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, "link6")
         self._renderers: dict[bool, DepthRenderThread] = {}
@@ -165,7 +174,9 @@ class CalibrationTwin(ArmServos):
             # The approach axis down and WRIST_PITCH_DEG forward, the flange's x backwards and up: the camera (at -x
             # of the flange, tilted towards -x of the flange) looks forward and down at the board from WRIST_HEIGHT.
             a = math.radians(WRIST_PITCH_DEG)
-            rot = np.column_stack([[-math.cos(a), 0.0, -math.sin(a)], [0.0, 1.0, 0.0], [math.sin(a), 0.0, -math.cos(a)]])
+            rot = np.column_stack(
+                [[-math.cos(a), 0.0, -math.sin(a)], [0.0, 1.0, 0.0], [math.sin(a), 0.0, -math.cos(a)]]
+            )
             opt = rot @ _rot_y(WRIST_CAMERA_TILT_DEG)
             cam_offset = rot @ np.array(WRIST_CAMERA_POS)
             cam = np.array(TABLE_BOARD) - opt[:, 2] * (WRIST_HEIGHT / -opt[2, 2])  # its axis through the board

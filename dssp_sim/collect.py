@@ -30,12 +30,16 @@ from tqdm import tqdm
 from dssp_core.errors import OutputError
 from dssp_core.output_guard import OWN, OutputKind, check_append
 from dssp_data.attributes import zarr_attrs, zarr_generator
+from dssp_data.pointcloud import frame_to_cloud
 from dssp_sim.mujoco_camera import MujocoCamera
 from dssp_sim.settings import cloud_config_for, sim_attrs
-from dssp_data.pointcloud import frame_to_cloud
 
-SIM_DATASET = OutputKind("a simulation dataset", "dssp-sim collect", marker=False,
-                         signature=lambda p: zarr_generator(p) == "dssp_sim.collect")
+SIM_DATASET = OutputKind(
+    "a simulation dataset",
+    "dssp-sim collect",
+    marker=False,
+    signature=lambda p: zarr_generator(p) == "dssp_sim.collect",
+)
 """``dssp-sim collect --out``: a zarr dataset whose ``generator`` attribute is ``dssp_sim.collect`` (appended to)."""
 
 
@@ -63,7 +67,12 @@ def expert_episode(env, expert, camera: MujocoCamera, cloud_config, seed: int):
         status = env.status()
         if status.done:
             break
-    return np.stack(clouds).astype(np.float32), np.stack(states).astype(np.float32), np.stack(actions).astype(np.float32), status
+    return (
+        np.stack(clouds).astype(np.float32),
+        np.stack(states).astype(np.float32),
+        np.stack(actions).astype(np.float32),
+        status,
+    )
 
 
 def check_collect_output(out: Path, task: str) -> None:
@@ -71,8 +80,10 @@ def check_collect_output(out: Path, task: str) -> None:
     if check_append(out, kind=SIM_DATASET, flag="--out") == OWN:
         have = (zarr_attrs(out) or {}).get("task")
         if have != task:
-            raise OutputError(f"{out} holds {have!r} demonstrations, not {task!r}; collect {task!r} into another --out "
-                              "(nothing is changed)")
+            raise OutputError(
+                f"{out} holds {have!r} demonstrations, not {task!r}; collect {task!r} into another --out "
+                "(nothing is changed)"
+            )
 
 
 def first_seed(out: Path, seed: int | None) -> int:
@@ -87,13 +98,22 @@ def first_seed(out: Path, seed: int | None) -> int:
         return 0
     next_seed = attrs.get("next_seed")
     if isinstance(next_seed, bool) or not isinstance(next_seed, int) or next_seed < 0:
-        raise OutputError(f"{out} does not record which scene seeds it holds; give --seed S, a seed past those "
-                          "already collected (or collect into another --out)")
+        raise OutputError(
+            f"{out} does not record which scene seeds it holds; give --seed S, a seed past those "
+            "already collected (or collect into another --out)"
+        )
     return next_seed
 
 
-def collect(task: str, n_episodes: int, out: Path, seed: int | None = None, n_points: int | None = None,
-            max_attempts: int | None = None, progress: bool = True) -> CollectResult:
+def collect(
+    task: str,
+    n_episodes: int,
+    out: Path,
+    seed: int | None = None,
+    n_points: int | None = None,
+    max_attempts: int | None = None,
+    progress: bool = True,
+) -> CollectResult:
     """Append ``n_episodes`` successful expert episodes of ``task`` to ``out`` (seeds seed, seed+1, ...).
 
     ``seed`` None: 0 for a new dataset, the seed after the last one tried when appending (``first_seed``).
@@ -115,8 +135,9 @@ def _task_env(task: str, seed: int, n_points: int | None):
     from dssp_sim import metaworld_env  # deferred: loads mujoco
 
     if metaworld_env.is_metaworld(task):  # DP3's protocol: whole 200-step episodes, kept at 5 successful steps
-        env = metaworld_env.MetaWorldEnv(task, seed=seed, success_steps=metaworld_env.DEMO_SUCCESS_STEPS,
-                                         stop_on_success=False)
+        env = metaworld_env.MetaWorldEnv(
+            task, seed=seed, success_steps=metaworld_env.DEMO_SUCCESS_STEPS, stop_on_success=False
+        )
         return env, metaworld_env.MetaWorldExpert, metaworld_env.cloud_config(n_points)
     from dssp_sim.env import PiperEnv  # deferred: loads mujoco
     from dssp_sim.experts import make_expert  # deferred: loads mujoco
@@ -124,18 +145,21 @@ def _task_env(task: str, seed: int, n_points: int | None):
     return PiperEnv(task, seed=seed), make_expert, cloud_config_for(n_points, task)
 
 
-def _collect(task: str, n_episodes: int, out: Path, seed: int, n_points: int | None, max_attempts: int | None,
-             progress: bool) -> CollectResult:
+def _collect(
+    task: str, n_episodes: int, out: Path, seed: int, n_points: int | None, max_attempts: int | None, progress: bool
+) -> CollectResult:
     env, make_expert, cloud_config = _task_env(task, seed, n_points)
     try:
-        return _collect_episodes(env, make_expert, cloud_config, task, n_episodes, out, seed,
-                                 max_attempts or 2 * n_episodes + 5, progress)
+        return _collect_episodes(
+            env, make_expert, cloud_config, task, n_episodes, out, seed, max_attempts or 2 * n_episodes + 5, progress
+        )
     finally:
         env.close()
 
 
-def _collect_episodes(env, make_expert, cloud_config, task: str, n_episodes: int, out: Path, seed: int,
-                      max_attempts: int, progress: bool) -> CollectResult:
+def _collect_episodes(
+    env, make_expert, cloud_config, task: str, n_episodes: int, out: Path, seed: int, max_attempts: int, progress: bool
+) -> CollectResult:
     from dssp_data.dataset_layout import Episode  # deferred: loads mujoco
     from dssp_data.replay_buffer_writer import ReplayBufferWriter  # deferred: loads mujoco
     from dssp_sim import metaworld_env  # deferred: loads mujoco
@@ -145,8 +169,11 @@ def _collect_episodes(env, make_expert, cloud_config, task: str, n_episodes: int
     if progress:
         bar = tqdm(total=n_episodes, desc=f"collect {task}", unit="episode")
     camera = MujocoCamera(env)
-    attrs = (metaworld_env.dataset_attrs(env, camera, cloud_config) if metaworld_env.is_metaworld(task)
-             else sim_attrs(task, env, camera, cloud_config))
+    attrs = (
+        metaworld_env.dataset_attrs(env, camera, cloud_config)
+        if metaworld_env.is_metaworld(task)
+        else sim_attrs(task, env, camera, cloud_config)
+    )
     with camera, ReplayBufferWriter(out, attrs=attrs, lock=False) as writer:
         episode_seed = seed
         while result.kept < n_episodes and result.attempted < max_attempts:
@@ -156,8 +183,9 @@ def _collect_episodes(env, make_expert, cloud_config, task: str, n_episodes: int
             result.attempted += 1
             episode_seed += 1
             if status.success:
-                writer.add_episode(Episode(point_cloud=clouds, state=states, action=actions),
-                                   attrs={"next_seed": episode_seed})
+                writer.add_episode(
+                    Episode(point_cloud=clouds, state=states, action=actions), attrs={"next_seed": episode_seed}
+                )
                 result.kept += 1
                 result.steps.append(len(states))
                 if bar is not None:

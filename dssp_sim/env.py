@@ -31,11 +31,11 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
-from dssp_sim.mjcf import CAMERA_NAME, TIMESTEP, ArmIndex, scene_xml  # noqa: E402
-from dssp_sim.tasks import HOME, HOME_TOLERANCE, START_JITTER, Task, TaskStatus, make_task  # noqa: E402
-from dssp_sim.settings import render_size_for  # noqa: E402
 from dssp_core.schema import DEFAULT_CONTROL_RATE_HZ  # noqa: E402
 from dssp_data.pointcloud.depth_frame import Intrinsics
+from dssp_sim.mjcf import CAMERA_NAME, TIMESTEP, ArmIndex, scene_xml  # noqa: E402
+from dssp_sim.settings import render_size_for  # noqa: E402
+from dssp_sim.tasks import HOME, HOME_TOLERANCE, START_JITTER, Task, TaskStatus, make_task  # noqa: E402
 from hardware.piper.limits import (  # noqa: E402
     GRIPPER_STROKE_MAX,
     GRIPPER_STROKE_MIN,
@@ -88,7 +88,8 @@ class ArmServos:
 class PiperEnv(ArmServos):
     """One Piper arm and ``task`` ("tap" | "swap" | "put2"), seeded by ``seed``.
 
-    render_size: (H, W) pixels of the depth render (default: the task's, :func:`dssp_sim.settings.render_size_for`; 4:3 keeps the camera's 70 x 55 degree field of view;
+    render_size: (H, W) pixels of the depth render (default: the task's, :func:`dssp_sim.settings.render_size_for`;
+    4:3 keeps the camera's 70 x 55 degree field of view;
     another aspect keeps the vertical field of view). Attributes: ``task`` (the :class:`Task`), ``model``,
     ``data`` (MuJoCo), ``control_rate_hz``, ``max_steps`` (the task's step budget), ``steps`` (control
     periods simulated since reset, also counted when driven through ``advance``), ``arm`` (an
@@ -102,7 +103,8 @@ class PiperEnv(ArmServos):
     def __init__(self, task: str, seed: int = 0, render_size: tuple[int, int] | None = None) -> None:
         self.task: Task = make_task(task)
         self.model = mujoco.MjModel.from_xml_string(
-            scene_xml(self.task.objects_xml(), extra_contact=self.task.extra_contact()))
+            scene_xml(self.task.objects_xml(), extra_contact=self.task.extra_contact())
+        )
         self.data = mujoco.MjData(self.model)
         self.arm = ArmIndex.find(self.model)
         self.control_rate_hz = DEFAULT_CONTROL_RATE_HZ  # the simulated Piper runs at the toolkit's default rate
@@ -209,8 +211,12 @@ class PiperEnv(ArmServos):
         if n == 0:
             return False
         pairs = self.data.contact.geom[:n]
-        return bool(np.any(((pairs[:, 0] == geom_a) & (pairs[:, 1] == geom_b))
-                           | ((pairs[:, 0] == geom_b) & (pairs[:, 1] == geom_a))))
+        return bool(
+            np.any(
+                ((pairs[:, 0] == geom_a) & (pairs[:, 1] == geom_b))
+                | ((pairs[:, 0] == geom_b) & (pairs[:, 1] == geom_a))
+            )
+        )
 
     # ------------------------------------------------------------------------------------------- camera
     def intrinsics(self) -> Intrinsics:

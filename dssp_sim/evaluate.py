@@ -38,6 +38,7 @@ import numpy as np
 
 from dssp_core.errors import ConfigError, NonFiniteObservation
 from dssp_core.output_guard import OutputKind
+from dssp_data.pointcloud import frame_to_cloud
 from dssp_deploy.control_loop import ChunkedControl
 from dssp_deploy.onnx_policy import OnnxPolicy
 from dssp_deploy.ranges import ChunkOutOfRange, ObservationOutOfRange
@@ -47,11 +48,10 @@ from dssp_sim.mujoco_arm import MujocoPiper
 from dssp_sim.mujoco_camera import MujocoCamera
 from dssp_sim.settings import cloud_config_for
 from dssp_sim.strips import save_strip
+from hardware.cli.schedule_flags import refusal
 from hardware.pacing import latency_stats
 from hardware.piper.arm import PiperArm
-from hardware.cli.schedule_flags import refusal
 from hardware.piper.piper_robot import PiperRobot
-from dssp_data.pointcloud import frame_to_cloud
 from hardware.policies import PolicySource
 from hardware.policies.exported_model import ModelPolicy
 from hardware.rig import Rig
@@ -106,8 +106,12 @@ def command_jerk(commands: list, boundaries: list[bool], control_rate_hz: float)
         q = q.reshape(4, -1, 7)[:, :, :6].reshape(4, -1)  # the joints, not the grippers
         jerk = float(np.linalg.norm(q[3] - 3 * q[2] + 3 * q[1] - q[0])) * control_rate_hz**3
         (at if boundaries[t] else off).append(jerk)
-    return {"at_boundaries": float(np.mean(at)) if at else None, "boundary_ticks": len(at),
-            "elsewhere": float(np.mean(off)) if off else None, "other_ticks": len(off)}
+    return {
+        "at_boundaries": float(np.mean(at)) if at else None,
+        "boundary_ticks": len(at),
+        "elsewhere": float(np.mean(off)) if off else None,
+        "other_ticks": len(off),
+    }
 
 
 class _CommandTrace(Subscriber):
@@ -158,21 +162,38 @@ class EvalResult:
         """The memory decision apart from the manipulation: episodes that reached it, how many decided right, and
         what was chosen (e.g. tap's count of presses, its confusion row)."""
         reached = [e.decision for e in self.episodes if e.decision.get("reached")]
-        return {"reached": len(reached), "correct": sum(bool(d["correct"]) for d in reached),
-                "choices": dict(Counter(d["choice"] for d in reached))}
+        return {
+            "reached": len(reached),
+            "correct": sum(bool(d["correct"]) for d in reached),
+            "choices": dict(Counter(d["choice"] for d in reached)),
+        }
 
     def to_dict(self) -> dict:
         lo, hi = self.interval()
-        return {"model_dir": self.model_dir, "task": self.task, "n": len(self.episodes), "successes": self.successes,
-                "success_rate": self.success_rate, "wilson95": [lo, hi], "state_token_noise": self.state_token_noise,
-                "z_rms": self.z_rms,
-                "noise_over_z_rms": self.state_token_noise / self.z_rms if self.z_rms else None,
-                "failure_reasons": dict(self.reasons()), "decisions": self.decisions(), "latency_ms": self.latency_ms,
-                "precision": self.precision, "kernel": self.kernel, "smoothing": self.smoothing,
-                "ensemble_every": self.ensemble_every, "ensemble_decay": self.ensemble_decay,
-                "injected_delay_ms": self.injected_delay_ms, "injected_delay_ticks": self.injected_delay_ticks,
-                "rtc_delay_ticks": self.rtc_delay_ticks, "boundary_jerk": self.boundary_jerk(),
-                "episodes": [e.to_dict() for e in self.episodes]}
+        return {
+            "model_dir": self.model_dir,
+            "task": self.task,
+            "n": len(self.episodes),
+            "successes": self.successes,
+            "success_rate": self.success_rate,
+            "wilson95": [lo, hi],
+            "state_token_noise": self.state_token_noise,
+            "z_rms": self.z_rms,
+            "noise_over_z_rms": self.state_token_noise / self.z_rms if self.z_rms else None,
+            "failure_reasons": dict(self.reasons()),
+            "decisions": self.decisions(),
+            "latency_ms": self.latency_ms,
+            "precision": self.precision,
+            "kernel": self.kernel,
+            "smoothing": self.smoothing,
+            "ensemble_every": self.ensemble_every,
+            "ensemble_decay": self.ensemble_decay,
+            "injected_delay_ms": self.injected_delay_ms,
+            "injected_delay_ticks": self.injected_delay_ticks,
+            "rtc_delay_ticks": self.rtc_delay_ticks,
+            "boundary_jerk": self.boundary_jerk(),
+            "episodes": [e.to_dict() for e in self.episodes],
+        }
 
     def boundary_jerk(self) -> dict | None:
         """The commanded joints' jerk (rad/s³, :func:`command_jerk`) at the ticks a new chunk took over and at the
@@ -221,8 +242,15 @@ class _RecentStates:
         return float(np.sqrt(np.mean(self.mean_squares))) if self.mean_squares else None
 
 
-def run_episode(source: PolicySource, env, seed: int, cloud_config, frames: list | None = None,
-                latencies: dict[str, list[float]] | None = None, views=None) -> EpisodeOutcome:
+def run_episode(
+    source: PolicySource,
+    env,
+    seed: int,
+    cloud_config,
+    frames: list | None = None,
+    latencies: dict[str, list[float]] | None = None,
+    views=None,
+) -> EpisodeOutcome:
     """One closed-loop episode (env already constructed; it is reset here with ``seed``) of the control loop with
     ``source`` deciding (:mod:`hardware.policies`; reset by the loop at its start). ``cloud_config``: the
     point-cloud settings (None: a source that needs no cloud).
@@ -254,7 +282,13 @@ def run_episode(source: PolicySource, env, seed: int, cloud_config, frames: list
                 camera.capture()
                 trace = _CommandTrace()
                 subscribers = [trace] + ([RerunTicks(views)] if views is not None else [])
-                runner = Runner(source, rig, cloud_config, LoopSettings(control_rate_hz=env.control_rate_hz), subscribers=subscribers)
+                runner = Runner(
+                    source,
+                    rig,
+                    cloud_config,
+                    LoopSettings(control_rate_hz=env.control_rate_hz),
+                    subscribers=subscribers,
+                )
                 if views is not None:
                     views.text(subscribers[1].next_tick, "episode", f"{env.task.name} seed {seed}")
                 runner.start()
@@ -280,14 +314,29 @@ def run_episode(source: PolicySource, env, seed: int, cloud_config, frames: list
         for key, values in runner.latencies.items():
             latencies.setdefault(key, []).extend(values)
     reason = status.reason if status.done else f"fault: {runner.fault}"
-    return EpisodeOutcome(seed=seed, success=bool(status.done and status.success), reason="" if status.success else reason,
-                          steps=env.steps, info=dict(status.info), holds=runner.holds, safety_events=dict(runner.event_counts),
-                          chunk_ms_p50=float(np.median(chunk)) if chunk else None, decision=env.task.decision(dict(status.info)),
-                          jerk=command_jerk(trace.commands, trace.boundaries, env.control_rate_hz))
+    return EpisodeOutcome(
+        seed=seed,
+        success=bool(status.done and status.success),
+        reason="" if status.success else reason,
+        steps=env.steps,
+        info=dict(status.info),
+        holds=runner.holds,
+        safety_events=dict(runner.event_counts),
+        chunk_ms_p50=float(np.median(chunk)) if chunk else None,
+        decision=env.task.decision(dict(status.info)),
+        jerk=command_jerk(trace.commands, trace.boundaries, env.control_rate_hz),
+    )
 
 
-def run_direct_episode(policy, env, seed: int, cloud_config, frames: list | None = None,
-                       latencies: dict[str, list[float]] | None = None, schedule: Schedule = Plain()) -> EpisodeOutcome:
+def run_direct_episode(
+    policy,
+    env,
+    seed: int,
+    cloud_config,
+    frames: list | None = None,
+    latencies: dict[str, list[float]] | None = None,
+    schedule: Schedule = Plain(),
+) -> EpisodeOutcome:
     """One closed-loop episode of an env whose arm is stepped directly, not over CAN (MetaWorld's Sawyer,
     :class:`~dssp_sim.metaworld_env.MetaWorldEnv`): render → point-cloud pipeline → runtime
     (``dssp_deploy.ChunkedControl``: the history every tick, a chunk every H_a) → ``env.step``. ``schedule``:
@@ -333,8 +382,16 @@ def run_direct_episode(policy, env, seed: int, cloud_config, frames: list | None
         for key, values in stages.items():
             latencies.setdefault(key, []).extend(values)
     chunk = stages["chunk"]
-    return EpisodeOutcome(seed=seed, success=status.success, reason=status.reason, steps=env.steps, info=dict(status.info),
-                          holds=holds, safety_events=dict(events), chunk_ms_p50=float(np.median(chunk)) if chunk else None)
+    return EpisodeOutcome(
+        seed=seed,
+        success=status.success,
+        reason=status.reason,
+        steps=env.steps,
+        info=dict(status.info),
+        holds=holds,
+        safety_events=dict(events),
+        chunk_ms_p50=float(np.median(chunk)) if chunk else None,
+    )
 
 
 STRIPS_DIR = OutputKind("a folder of episode strips", "dssp-sim eval", entries=("*.png",))
@@ -356,6 +413,7 @@ class Evaluation:
     def run(self, strips_dir: Path | None = None, progress: bool = True, views=None) -> EvalResult:
         """Episodes seed, seed + 1, ... (their strips into ``strips_dir``; ``views``: Rerun views of every tick, closed
         by the caller); the environment is closed after."""
+
         def episode(s, frames, ticks):
             return self.episode(s, frames, ticks, views)
 
@@ -365,22 +423,36 @@ class Evaluation:
         return self.result
 
 
-def prepare_evaluation(model_dir: Path | None, task: str, n_episodes: int, seed: int = 1000, threads: int | None = None,
-                       state_token_noise: float = 0.0, precision: str | None = None, kernel: str = "auto",
-                       spinning: bool | None = None, views: bool = False, schedule: Schedule = Plain(),
-                       inject_delay_ms: float = 0.0) -> Evaluation:
+def prepare_evaluation(
+    model_dir: Path | None,
+    task: str,
+    n_episodes: int,
+    seed: int = 1000,
+    threads: int | None = None,
+    state_token_noise: float = 0.0,
+    precision: str | None = None,
+    kernel: str = "auto",
+    spinning: bool | None = None,
+    views: bool = False,
+    schedule: Schedule = Plain(),
+    inject_delay_ms: float = 0.0,
+) -> Evaluation:
     """Check every setting against the model and the task, load the model and build the task; nothing is opened
     or written. ``views``: whether Rerun views will be given to :meth:`Evaluation.run`. The arguments are
     :func:`evaluate`'s."""
     from dssp_sim import metaworld_env  # deferred: loads mujoco
 
     if metaworld_env.is_metaworld(task) and views:
-        raise ConfigError("--rerun views show the Piper's control loop; MetaWorld evaluations have none (drop the flag)")
+        raise ConfigError(
+            "--rerun views show the Piper's control loop; MetaWorld evaluations have none (drop the flag)"
+        )
     if not (math.isfinite(inject_delay_ms) and 0 <= inject_delay_ms <= 10_000):
         raise ConfigError(f"--inject-delay must be in [0, 10000] ms, got {inject_delay_ms:g}")
     if model_dir is None:
         if schedule != Plain():
-            raise ConfigError("smoothing is the model's control loop's: the scripted expert gives each tick's action itself")
+            raise ConfigError(
+                "smoothing is the model's control loop's: the scripted expert gives each tick's action itself"
+            )
         return _prepare_expert(task, n_episodes, seed)
     policy = OnnxPolicy(model_dir, threads=threads, precision=precision, kernel=kernel, spinning=spinning)
     recent = policy.denoiser_inputs = _RecentStates(policy, state_token_noise, np.random.default_rng(seed))
@@ -401,8 +473,16 @@ def prepare_evaluation(model_dir: Path | None, task: str, n_episodes: int, seed:
         cloud_config = policy.contract.observation.pointcloud or cloud_config_for(n_points, task)
 
         def episode(s, frames, ticks, views):
-            return run_episode(ModelPolicy(policy, env.control_rate_hz, seed=s, schedule=schedule), env, s, cloud_config, frames,
-                               ticks, views)
+            return run_episode(
+                ModelPolicy(policy, env.control_rate_hz, seed=s, schedule=schedule),
+                env,
+                s,
+                cloud_config,
+                frames,
+                ticks,
+                views,
+            )
+
     # the delay in the loop's ticks (the simulation's rate): the schedule's, read when each episode starts
     delay_ticks = math.ceil(inject_delay_ms * env.control_rate_hz / 1000 - 1e-9) if inject_delay_ms > 0 else 0
     schedule = replace(schedule, delay=SimulatedDelay(delay_ticks))
@@ -412,15 +492,34 @@ def prepare_evaluation(model_dir: Path | None, task: str, n_episodes: int, seed:
         env.close()
         raise refusal(exc, "smoothing") from None
     print(f"graphs: {policy.kernel_note}", file=sys.stderr)
-    result = EvalResult(str(model_dir), task, state_token_noise=state_token_noise, precision=policy.precision, kernel=policy.kernel,
-                        injected_delay_ms=float(inject_delay_ms), **settings)
+    result = EvalResult(
+        str(model_dir),
+        task,
+        state_token_noise=state_token_noise,
+        precision=policy.precision,
+        kernel=policy.kernel,
+        injected_delay_ms=float(inject_delay_ms),
+        **settings,
+    )
     return Evaluation(result, env, episode, n_episodes, seed, recent)
 
 
-def evaluate(model_dir: Path | None, task: str, n_episodes: int, seed: int = 1000, threads: int | None = None,
-             state_token_noise: float = 0.0, strips_dir: Path | None = None, progress: bool = True,
-             precision: str | None = None, kernel: str = "auto", spinning: bool | None = None, views=None,
-             schedule: Schedule = Plain(), inject_delay_ms: float = 0.0) -> EvalResult:
+def evaluate(
+    model_dir: Path | None,
+    task: str,
+    n_episodes: int,
+    seed: int = 1000,
+    threads: int | None = None,
+    state_token_noise: float = 0.0,
+    strips_dir: Path | None = None,
+    progress: bool = True,
+    precision: str | None = None,
+    kernel: str = "auto",
+    spinning: bool | None = None,
+    views=None,
+    schedule: Schedule = Plain(),
+    inject_delay_ms: float = 0.0,
+) -> EvalResult:
     """Evaluate a model directory on ``task`` for ``n_episodes`` seeded episodes (seeds seed, seed+1, ...);
     ``precision`` and ``kernel`` choose its graphs (:class:`dssp_deploy.onnx_policy.OnnxPolicy`); ``schedule``: the
     control loop's (a :mod:`dssp_deploy.schedules` config, on either kind of task; checked before any episode runs);
@@ -430,8 +529,20 @@ def evaluate(model_dir: Path | None, task: str, n_episodes: int, seed: int = 100
     views of every tick of every episode, on one timeline (the caller closes them). ``model_dir`` None: the task's
     scripted expert drives the same loop (:class:`dssp_sim.expert_policy.ScriptedExpert`; Piper tasks).
     :func:`prepare_evaluation`, then :meth:`Evaluation.run`."""
-    evaluation = prepare_evaluation(model_dir, task, n_episodes, seed, threads, state_token_noise, precision, kernel,
-                                    spinning, views is not None, schedule, inject_delay_ms)
+    evaluation = prepare_evaluation(
+        model_dir,
+        task,
+        n_episodes,
+        seed,
+        threads,
+        state_token_noise,
+        precision,
+        kernel,
+        spinning,
+        views is not None,
+        schedule,
+        inject_delay_ms,
+    )
     return evaluation.run(strips_dir, progress, views)
 
 
@@ -441,8 +552,10 @@ def _prepare_expert(task: str, n_episodes: int, seed: int) -> Evaluation:
     from dssp_sim.env import PiperEnv  # deferred: loads mujoco
 
     if metaworld_env.is_metaworld(task):
-        raise ConfigError(f"--expert drives the Piper's control loop; {task} has no Piper (its expert's demonstrations: "
-                          "dssp-sim collect)")
+        raise ConfigError(
+            f"--expert drives the Piper's control loop; {task} has no Piper (its expert's demonstrations: "
+            "dssp-sim collect)"
+        )
     env = PiperEnv(task, seed=seed)
 
     def episode(s, frames, ticks, views):
@@ -451,7 +564,9 @@ def _prepare_expert(task: str, n_episodes: int, seed: int) -> Evaluation:
     return Evaluation(EvalResult("expert", task), env, episode, n_episodes, seed)
 
 
-def _run_episodes(result: EvalResult, env, episode, n_episodes: int, seed: int, strips_dir: Path | None, progress: bool) -> None:
+def _run_episodes(
+    result: EvalResult, env, episode, n_episodes: int, seed: int, strips_dir: Path | None, progress: bool
+) -> None:
     """Episodes seed, seed + 1, ... into ``result`` (and their strips into ``strips_dir``); the env closed after."""
     bar = None
     if progress:
@@ -468,8 +583,11 @@ def _run_episodes(result: EvalResult, env, episode, n_episodes: int, seed: int, 
             wall.append(time.perf_counter() - t0)
             result.episodes.append(outcome)
             if frames:
-                save_strip(frames, Path(strips_dir) / f"{result.task}_seed{seed + i}.png",
-                           f"{result.task} seed {seed + i}: {'success' if outcome.success else outcome.reason}")
+                save_strip(
+                    frames,
+                    Path(strips_dir) / f"{result.task}_seed{seed + i}.png",
+                    f"{result.task} seed {seed + i}: {'success' if outcome.success else outcome.reason}",
+                )
             if bar is not None:
                 bar.update(1)
                 bar.set_postfix(success=f"{result.successes}/{i + 1}")
@@ -483,18 +601,33 @@ def _run_episodes(result: EvalResult, env, episode, n_episodes: int, seed: int, 
 
 def print_eval(result) -> None:
     lo, hi = result.interval()
-    print(f"\n{result.task}: success {result.successes}/{len(result.episodes)} = {100 * result.success_rate:.0f} % "
-          f"(95 % Wilson interval {100 * lo:.0f}–{100 * hi:.0f} %)" + (f", state-token noise σ={result.state_token_noise:g}" if result.state_token_noise else "")
-          + (f" ({result.state_token_noise / result.z_rms:.2f} x the tokens' RMS {result.z_rms:.2f})" if result.state_token_noise and result.z_rms else "")
-          + (f", temporal ensembling (a chunk every {result.ensemble_every} ticks, decay {result.ensemble_decay:g})"
-             if result.smoothing == "ensemble" else "")
-          + (f", real-time chunking (d = {result.rtc_delay_ticks} ticks)" if result.smoothing == "rtc" else "")
-          + (f", inference delay {result.injected_delay_ms:g} ms injected ({result.injected_delay_ticks} ticks)"
-             if result.injected_delay_ms else ""))
+    print(
+        f"\n{result.task}: success {result.successes}/{len(result.episodes)} = {100 * result.success_rate:.0f} % "
+        f"(95 % Wilson interval {100 * lo:.0f}–{100 * hi:.0f} %)"
+        + (f", state-token noise σ={result.state_token_noise:g}" if result.state_token_noise else "")
+        + (
+            f" ({result.state_token_noise / result.z_rms:.2f} x the tokens' RMS {result.z_rms:.2f})"
+            if result.state_token_noise and result.z_rms
+            else ""
+        )
+        + (
+            f", temporal ensembling (a chunk every {result.ensemble_every} ticks, decay {result.ensemble_decay:g})"
+            if result.smoothing == "ensemble"
+            else ""
+        )
+        + (f", real-time chunking (d = {result.rtc_delay_ticks} ticks)" if result.smoothing == "rtc" else "")
+        + (
+            f", inference delay {result.injected_delay_ms:g} ms injected ({result.injected_delay_ticks} ticks)"
+            if result.injected_delay_ms
+            else ""
+        )
+    )
     jerk = result.boundary_jerk()
     if jerk and jerk["at_boundaries"] is not None:
-        print(f"commanded jerk: {jerk['at_boundaries']:.1f} rad/s³ at the {jerk['boundary_ticks']} ticks a new chunk took "
-              f"over, {jerk['elsewhere'] or 0:.1f} at the other {jerk['other_ticks']}")
+        print(
+            f"commanded jerk: {jerk['at_boundaries']:.1f} rad/s³ at the {jerk['boundary_ticks']} ticks a new chunk took "
+            f"over, {jerk['elsewhere'] or 0:.1f} at the other {jerk['other_ticks']}"
+        )
     print("| seed | outcome | steps | detail | holds |")
     print("|---:|---|---:|---|---:|")
     for e in result.episodes:
@@ -507,15 +640,22 @@ def print_eval(result) -> None:
 
     direct = is_metaworld(result.task)
     if not direct:  # MetaWorld's tasks (and the cue variant, whose success is the decision) hold no separate one
-        print(f"memory decision: right in {d['correct']} of the {d['reached']} episodes that reached it ("
-              + ", ".join(f"{k} × {v}" for k, v in sorted(d["choices"].items())) + ")")
+        print(
+            f"memory decision: right in {d['correct']} of the {d['reached']} episodes that reached it ("
+            + ", ".join(f"{k} × {v}" for k, v in sorted(d["choices"].items()))
+            + ")"
+        )
     print_latency(result.latency_ms, tick="whole tick (cloud + policy + step)" if direct else None)
 
 
 def print_latency(lat: dict, tick: str | None = None) -> None:
     """The control loop's latencies over every tick of the evaluation (ms); ``tick``: what a whole tick holds."""
-    labels = {"cloud": "point cloud (pipeline)", "observe": "history step (ORT)", "chunk": "denoiser chunk (ORT)",
-              "tick": tick or "whole tick (cloud + policy + safety + CAN)"}
+    labels = {
+        "cloud": "point cloud (pipeline)",
+        "observe": "history step (ORT)",
+        "chunk": "denoiser chunk (ORT)",
+        "tick": tick or "whole tick (cloud + policy + safety + CAN)",
+    }
     print("\n| stage | p50 ms | p95 ms | max ms | ticks |")
     print("|---|---:|---:|---:|---:|")
     for key, label in labels.items():

@@ -34,11 +34,11 @@ from dssp_sim.tasks import (
     CUBE_HALF,
     CYLINDER_RADIUS,
     HOME,
-    SLOT_PAD_HALF,
     PRESS_DEPTH,
+    SLOT_PAD_HALF,
+    TAP_PRESSES,
     Put2Task,
     SwapTask,
-    TAP_PRESSES,
     TapTask,
 )
 from hardware.piper.limits import GRIPPER_STROKE_MAX, JOINT_LOWER, JOINT_UPPER
@@ -130,11 +130,16 @@ class Expert:
         ``xy_for_rotation`` (default: pos's xy); the search starts at ``seed`` (6,) (default: the current
         command)."""
         pos = np.asarray(pos, dtype=np.float64)
-        q = self.ik.solve(pos, self.rotation(pos[:2] if xy_for_rotation is None else xy_for_rotation),
-                          seed=self.q_cmd if seed is None else seed)
+        q = self.ik.solve(
+            pos,
+            self.rotation(pos[:2] if xy_for_rotation is None else xy_for_rotation),
+            seed=self.q_cmd if seed is None else seed,
+        )
         err_p, err_r = self.ik.last_error
         if err_p > 2e-3 or err_r > 2e-2:
-            raise RuntimeError(f"{type(self).__name__}: no IK solution for {pos} (errors {err_p:.3g} m, {err_r:.3g} rad)")
+            raise RuntimeError(
+                f"{type(self).__name__}: no IK solution for {pos} (errors {err_p:.3g} m, {err_r:.3g} rad)"
+            )
         return q
 
     def rotation(self, xy) -> np.ndarray:
@@ -185,8 +190,16 @@ class Expert:
         tcp, rot = self.env.tcp_pose()
         return rot.T @ (obj - tcp)
 
-    def pick(self, k: int, half_height: float, width: float, hover_tip_z: float, grip_tip_z: float,
-             open_g: float, clear_z: float) -> Iterator[Command]:
+    def pick(
+        self,
+        k: int,
+        half_height: float,
+        width: float,
+        hover_tip_z: float,
+        grip_tip_z: float,
+        open_g: float,
+        clear_z: float,
+    ) -> Iterator[Command]:
         """Object k (``width`` m across the fingers, ``half_height`` m): hover with the fingertips at
         ``hover_tip_z``, descend until they are at ``grip_tip_z``, close, and lift straight up until the
         object's bottom is at ``clear_z``."""
@@ -202,8 +215,16 @@ class Expert:
         lift = self.solve([tcp[0], tcp[1], clear_z + half_height - offset[2]], xy)
         yield from self.move(lift, phase="lift")
 
-    def place(self, k: int, half_height: float, target_xy, surface_z: float, clear_z: float,
-              open_g: float, retreat_tip_z: float) -> Iterator[Command]:
+    def place(
+        self,
+        k: int,
+        half_height: float,
+        target_xy,
+        surface_z: float,
+        clear_z: float,
+        open_g: float,
+        retreat_tip_z: float,
+    ) -> Iterator[Command]:
         """Carry object k (held) over ``target_xy`` with its bottom at ``clear_z``, lower it until its
         bottom is ``RELEASE_DROP`` above ``surface_z``, open, and retreat until the fingertips are at
         ``retreat_tip_z``."""

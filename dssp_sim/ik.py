@@ -33,8 +33,15 @@ class IKSolver:
     matched.
     """
 
-    def __init__(self, model: mujoco.MjModel, prefix: str = "", damping: float = 0.02,
-                 max_iters: int = 200, pos_tol: float = 1e-4, rot_tol: float = 1e-3) -> None:
+    def __init__(
+        self,
+        model: mujoco.MjModel,
+        prefix: str = "",
+        damping: float = 0.02,
+        max_iters: int = 200,
+        pos_tol: float = 1e-4,
+        rot_tol: float = 1e-3,
+    ) -> None:
         self.model = model
         self.data = mujoco.MjData(model)
         self.index = ArmIndex.find(model, prefix)
@@ -76,7 +83,7 @@ class IKSolver:
                 jac = np.vstack([self._jacp[:, dofs], 0.3 * self._jacr[:, dofs]])
             if err_p < self.pos_tol and err_r < self.rot_tol:
                 break
-            lam2 = self.damping ** 2
+            lam2 = self.damping**2
             dq = jac.T @ np.linalg.solve(jac @ jac.T + lam2 * np.eye(jac.shape[0]), e)
             step = float(np.abs(dq).max())
             if step > 0.2:

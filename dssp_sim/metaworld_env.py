@@ -55,9 +55,9 @@ import numpy as np  # noqa: E402
 from dssp_core.errors import ConfigError
 from dssp_data.model_contract import ModelContract  # noqa: E402
 from dssp_data.observation import ObservationContract, PointCloudConfig, VectorLayout  # noqa: E402
+from dssp_data.pointcloud.depth_frame import Intrinsics
 from dssp_sim.env import DepthRenderThread  # noqa: E402
 from dssp_sim.tasks import TaskStatus  # noqa: E402
-from dssp_data.pointcloud.depth_frame import Intrinsics
 
 PREFIX = "metaworld/"
 # This project's memory variant (not MetaWorld's own): the goal marker is a cue shown for the first CUE_STEPS steps of
@@ -71,13 +71,49 @@ INSTALL = "pip install --no-deps metaworld==3.1.1, with the sim extra (its gymna
 
 # The difficulty groups DP3 and the papers after it report MetaWorld by (Seo et al., 2022): all 50 tasks.
 DIFFICULTY: dict[str, tuple[str, ...]] = {
-    "easy": ("button-press", "button-press-topdown", "button-press-topdown-wall", "button-press-wall", "coffee-button",
-             "dial-turn", "door-close", "door-lock", "door-open", "door-unlock", "drawer-close", "drawer-open",
-             "faucet-close", "faucet-open", "handle-press", "handle-press-side", "handle-pull", "handle-pull-side",
-             "lever-pull", "plate-slide", "plate-slide-back", "plate-slide-back-side", "plate-slide-side", "reach",
-             "reach-wall", "window-close", "window-open", "peg-unplug-side"),
-    "medium": ("basketball", "bin-picking", "box-close", "coffee-pull", "coffee-push", "hammer", "peg-insert-side",
-               "push-wall", "soccer", "sweep", "sweep-into"),
+    "easy": (
+        "button-press",
+        "button-press-topdown",
+        "button-press-topdown-wall",
+        "button-press-wall",
+        "coffee-button",
+        "dial-turn",
+        "door-close",
+        "door-lock",
+        "door-open",
+        "door-unlock",
+        "drawer-close",
+        "drawer-open",
+        "faucet-close",
+        "faucet-open",
+        "handle-press",
+        "handle-press-side",
+        "handle-pull",
+        "handle-pull-side",
+        "lever-pull",
+        "plate-slide",
+        "plate-slide-back",
+        "plate-slide-back-side",
+        "plate-slide-side",
+        "reach",
+        "reach-wall",
+        "window-close",
+        "window-open",
+        "peg-unplug-side",
+    ),
+    "medium": (
+        "basketball",
+        "bin-picking",
+        "box-close",
+        "coffee-pull",
+        "coffee-push",
+        "hammer",
+        "peg-insert-side",
+        "push-wall",
+        "soccer",
+        "sweep",
+        "sweep-into",
+    ),
     "hard": ("assembly", "hand-insert", "pick-out-of-hole", "pick-place", "push", "push-back"),
     "very_hard": ("shelf-place", "disassemble", "stick-pull", "stick-push", "pick-place-wall"),
 }
@@ -94,8 +130,17 @@ DEPTH_FAR_M = 1.5
 CROP_MIN = (-0.5, -1.5, -0.795)
 CROP_MAX = (1.0, -0.4, 100.0)
 FRAME = "dp3_metaworld: DP3's MetaWorld cloud frame (the corner2 camera at the origin, rotated as DP3's wrapper does)"
-STATE_CHANNELS = ("hand x m", "hand y m", "hand z m", "right finger x m", "right finger y m", "right finger z m",
-                  "left finger x m", "left finger y m", "left finger z m")
+STATE_CHANNELS = (
+    "hand x m",
+    "hand y m",
+    "hand z m",
+    "right finger x m",
+    "right finger y m",
+    "right finger z m",
+    "left finger x m",
+    "left finger y m",
+    "left finger z m",
+)
 ACTION_CHANNELS = ("dx 0.01 m", "dy 0.01 m", "dz 0.01 m", "gripper effort -1..1")
 
 
@@ -126,12 +171,13 @@ def task_name(task: str) -> str:
     """``metaworld/door-open`` -> ``door-open`` (``metaworld-cue/reach`` -> ``reach``); an unknown task is a
     one-line ConfigError."""
     if is_cue(task):
-        name = task[len(CUE_PREFIX):]
+        name = task[len(CUE_PREFIX) :]
         if name not in CUE_TASKS:
-            raise ConfigError(f"unknown MetaWorld cue task {name!r}; choose one of {', '.join(CUE_TASKS)} "
-                              f"(as {CUE_PREFIX}NAME)")
+            raise ConfigError(
+                f"unknown MetaWorld cue task {name!r}; choose one of {', '.join(CUE_TASKS)} (as {CUE_PREFIX}NAME)"
+            )
         return name
-    name = task[len(PREFIX):] if is_metaworld(task) else task
+    name = task[len(PREFIX) :] if is_metaworld(task) else task
     if name not in TASKS:
         raise ConfigError(f"unknown MetaWorld task {name!r}; choose one of {', '.join(TASKS)} (as metaworld/NAME)")
     return name
@@ -159,14 +205,23 @@ def check_model_dims(contract: ModelContract, where) -> None:
     """Refuse, before any episode, a model whose state or action is not MetaWorld's (9,) and (4,)."""
     have = (contract.state_dim, contract.action_dim)
     if have != (len(STATE_CHANNELS), len(ACTION_CHANNELS)):
-        raise ConfigError(f"{where} takes state ({have[0]},) and action ({have[1]},); MetaWorld's are (9,) and (4,): "
-                          "evaluate a model trained on a `dssp-sim collect --task metaworld/NAME` dataset")
+        raise ConfigError(
+            f"{where} takes state ({have[0]},) and action ({have[1]},); MetaWorld's are (9,) and (4,): "
+            "evaluate a model trained on a `dssp-sim collect --task metaworld/NAME` dataset"
+        )
 
 
 def cloud_config(n_points: int | None = None) -> PointCloudConfig:
     """DP3's MetaWorld clouds: its crop in its frame, every cropped point, farthest point sampling."""
-    return PointCloudConfig(n_points=n_points or N_POINTS, depth_near=0.01, depth_far=DEPTH_FAR_M, crop_min=CROP_MIN,
-                            crop_max=CROP_MAX, voxel_size=0.0, sampling="fps")
+    return PointCloudConfig(
+        n_points=n_points or N_POINTS,
+        depth_near=0.01,
+        depth_far=DEPTH_FAR_M,
+        crop_min=CROP_MIN,
+        crop_max=CROP_MAX,
+        voxel_size=0.0,
+        sampling="fps",
+    )
 
 
 def _import_metaworld():
@@ -212,8 +267,14 @@ class MetaWorldEnv:
     success_steps: steps with the task's success flag set that make the episode a success (1 for evaluation,
     :data:`DEMO_SUCCESS_STEPS` for demonstrations); stop_on_success: end the episode once it is one."""
 
-    def __init__(self, task: str, seed: int = 0, success_steps: int = 1, stop_on_success: bool = True,
-                 render_size: tuple[int, int] = RENDER_SIZE):
+    def __init__(
+        self,
+        task: str,
+        seed: int = 0,
+        success_steps: int = 1,
+        stop_on_success: bool = True,
+        render_size: tuple[int, int] = RENDER_SIZE,
+    ):
         metaworld = _import_metaworld()
         self.task, self.name = task_id(task), task_name(task)
         self.cue_steps = CUE_STEPS if is_cue(task) else None
@@ -251,8 +312,13 @@ class MetaWorldEnv:
     def state(self) -> np.ndarray:
         """(9,) [hand xyz, right fingertip xyz, left fingertip xyz] m."""
         with self.lock:
-            return np.concatenate([self.env.get_endeff_pos(), self.env._get_site_pos("rightEndEffector"),
-                                   self.env._get_site_pos("leftEndEffector")]).astype(np.float32)
+            return np.concatenate(
+                [
+                    self.env.get_endeff_pos(),
+                    self.env._get_site_pos("rightEndEffector"),
+                    self.env._get_site_pos("leftEndEffector"),
+                ]
+            ).astype(np.float32)
 
     def step(self, action) -> None:
         """One policy step: MetaWorld's step (its 5 physics steps) with ``action`` (4,)."""
@@ -287,8 +353,9 @@ class MetaWorldEnv:
             info = {"success_steps": self.succeeded, "first_success_step": self.first_success}
             if self.cue_steps is not None:
                 info["cue_steps"] = self.cue_steps
-            return TaskStatus(done=done, success=done and success, reason="" if success or not done else "timeout",
-                              info=info)
+            return TaskStatus(
+                done=done, success=done and success, reason="" if success or not done else "timeout", info=info
+            )
 
     # ------------------------------------------------------------------------------------------- camera
     def intrinsics(self) -> Intrinsics:
@@ -345,17 +412,33 @@ def dataset_attrs(env: MetaWorldEnv, camera, config: PointCloudConfig) -> dict:
         "control_rate_hz": float(env.control_rate_hz),
         "task": env.task,
         "generator": "dssp_sim.collect",
-        "benchmark": {"name": "metaworld", "version": getattr(metaworld, "__version__", "3.1.1"), "task": f"{env.name}-v3",
-                      "difficulty": difficulty_of(env.name), "protocol": "DP3", "episode_steps": EPISODE_STEPS,
-                      "demo_success_steps": DEMO_SUCCESS_STEPS,
-                      **({"variant": f"this project's memory variant: the goal marker, a {CUE_RADIUS_M * 100:.0f} cm "
-                                     f"sphere, is shown for the first {env.cue_steps} steps, then hidden",
-                          "cue_steps": env.cue_steps} if env.cue_steps is not None else {})},
+        "benchmark": {
+            "name": "metaworld",
+            "version": getattr(metaworld, "__version__", "3.1.1"),
+            "task": f"{env.name}-v3",
+            "difficulty": difficulty_of(env.name),
+            "protocol": "DP3",
+            "episode_steps": EPISODE_STEPS,
+            "demo_success_steps": DEMO_SUCCESS_STEPS,
+            **(
+                {
+                    "variant": f"this project's memory variant: the goal marker, a {CUE_RADIUS_M * 100:.0f} cm "
+                    f"sphere, is shown for the first {env.cue_steps} steps, then hidden",
+                    "cue_steps": env.cue_steps,
+                }
+                if env.cue_steps is not None
+                else {}
+            ),
+        },
         "action_convention": "the scripted expert's action as DP3 stores it: hand displacement in 1/100 m and gripper "
-                             "effort, unclipped (MetaWorld clips it to [-1, 1] when it steps)",
+        "effort, unclipped (MetaWorld clips it to [-1, 1] when it steps)",
         "state_convention": "measured [hand xyz, right fingertip xyz, left fingertip xyz] m (DP3's agent_pos)",
-        **ObservationContract(pointcloud=config, frame=FRAME, state=VectorLayout(arms=1, channels=STATE_CHANNELS),
-                              action=VectorLayout(arms=1, channels=ACTION_CHANNELS)).attrs(),
+        **ObservationContract(
+            pointcloud=config,
+            frame=FRAME,
+            state=VectorLayout(arms=1, channels=STATE_CHANNELS),
+            action=VectorLayout(arms=1, channels=ACTION_CHANNELS),
+        ).attrs(),
         "camera_intrinsics": camera.intrinsics.to_dict(),
         "camera_depth_unit": float(camera.depth_unit),
         "camera_to_base": camera.camera_to_base.tolist(),

@@ -104,12 +104,12 @@ class ArmXml:
 
 def arm_xml(prefix: str = "", base_pos=(0.0, 0.0, 0.0), base_quat=(1.0, 0.0, 0.0, 0.0), flange_xml: str = "") -> ArmXml:
     """One Piper arm with every name prefixed by ``prefix``, its base at ``base_pos`` (3,) m with
-    orientation ``base_quat`` (4,) (w, x, y, z) in the world. ``flange_xml``: bodies, sites or cameras fixed to
-    the flange (MJCF in the ``link6`` body's frame, DH frame 6; the calibration twin's board or wrist camera).
+        orientation ``base_quat`` (4,) (w, x, y, z) in the world. ``flange_xml``: bodies, sites or cameras fixed to
+        the flange (MJCF in the ``link6`` body's frame, DH frame 6; the calibration twin's board or wrist camera).
 
-    Names: joints ``{p}joint1..6``, ``{p}finger_left/right``; actuators ``{p}act1..6``, ``{p}gripper``
-    (control = stroke in metres); sites ``{p}tcp`` (tool centre point: z = approach, y = finger axis)
-; bodies ``{p}base``, ``{p}link1..6``, ``{p}hand``, ``{p}finger_left/right``.
+        Names: joints ``{p}joint1..6``, ``{p}finger_left/right``; actuators ``{p}act1..6``, ``{p}gripper``
+        (control = stroke in metres); sites ``{p}tcp`` (tool centre point: z = approach, y = finger axis)
+    ; bodies ``{p}base``, ``{p}link1..6``, ``{p}hand``, ``{p}finger_left/right``.
     """
     p = prefix
     link_geom = 'contype="0" conaffinity="0" group="0" rgba="0.75 0.75 0.78 1"'
@@ -117,10 +117,14 @@ def arm_xml(prefix: str = "", base_pos=(0.0, 0.0, 0.0), base_quat=(1.0, 0.0, 0.0
     child_pos = [dh_link_transform(i)[0] for i in range(1, 6)] + [np.zeros(3)]
     link_shapes = {
         1: f'<geom type="cylinder" size="0.045 0.03" pos="0 0 -0.02" mass="0.8" {link_geom}/>',
-        2: (f'<geom type="capsule" fromto="0 0 0 {fmt(child_pos[1])}" size="0.032" mass="1.0" {link_geom}/>'
-            f'<geom type="cylinder" fromto="0 0 -0.045 0 0 0.045" size="0.04" mass="0.2" {link_geom}/>'),
-        3: (f'<geom type="capsule" fromto="0 0 0 {fmt(child_pos[2])}" size="0.03" mass="0.7" {link_geom}/>'
-            f'<geom type="cylinder" fromto="0 0 -0.04 0 0 0.04" size="0.035" mass="0.2" {link_geom}/>'),
+        2: (
+            f'<geom type="capsule" fromto="0 0 0 {fmt(child_pos[1])}" size="0.032" mass="1.0" {link_geom}/>'
+            f'<geom type="cylinder" fromto="0 0 -0.045 0 0 0.045" size="0.04" mass="0.2" {link_geom}/>'
+        ),
+        3: (
+            f'<geom type="capsule" fromto="0 0 0 {fmt(child_pos[2])}" size="0.03" mass="0.7" {link_geom}/>'
+            f'<geom type="cylinder" fromto="0 0 -0.04 0 0 0.04" size="0.035" mass="0.2" {link_geom}/>'
+        ),
         4: f'<geom type="capsule" fromto="0 0 -0.03 0 0 0.03" size="0.028" mass="0.3" {link_geom}/>',
         5: f'<geom type="capsule" fromto="0 0 0 {fmt(child_pos[4])}" size="0.027" mass="0.3" {link_geom}/>',
         6: f'<geom type="cylinder" fromto="0 0 -0.01 0 0 0.008" size="0.03" mass="0.1" {link_geom}/>',
@@ -179,16 +183,18 @@ def arm_xml(prefix: str = "", base_pos=(0.0, 0.0, 0.0), base_quat=(1.0, 0.0, 0.0
         f'<fixed name="{p}stroke"><joint joint="{p}finger_left" coef="1"/>'
         f'<joint joint="{p}finger_right" coef="1"/></fixed>'
     )
-    equality = (
-        f'<joint joint1="{p}finger_left" joint2="{p}finger_right" polycoef="0 1 0 0 0" '
-        f'solref="0.005 1"/>'
-    )
+    equality = f'<joint joint1="{p}finger_left" joint2="{p}finger_right" polycoef="0 1 0 0 0" solref="0.005 1"/>'
     contact = f'<exclude body1="{p}hand" body2="{p}link6"/>'
     return ArmXml(prefix=p, body=body, actuator=actuator, tendon=tendon, equality=equality, contact=contact)
 
 
-def scene_xml(objects_xml: str = "", arms: tuple[ArmXml, ...] | None = None, extra_contact: str = "",
-              extra_equality: str = "", assets: str = "") -> str:
+def scene_xml(
+    objects_xml: str = "",
+    arms: tuple[ArmXml, ...] | None = None,
+    extra_contact: str = "",
+    extra_equality: str = "",
+    assets: str = "",
+) -> str:
     """The full MJCF: table, arms (default one unprefixed arm at the origin), camera and ``objects_xml``
     (bodies for <worldbody>, from the task); ``assets``: textures, materials and meshes they use."""
     arms = (arm_xml(),) if arms is None else tuple(arms)

@@ -24,8 +24,13 @@ def mjcf_limits(env, max_speed: float | np.ndarray) -> FirmwareLimits:
     """The joint ranges J1..J6 of ``env``'s MJCF (``model.jnt_range`` of the arm's hinges) as firmware limits, with
     ``max_speed`` rad/s per joint."""
     ranges = env.model.jnt_range[env.model.dof_jntid[env.arm.dof]]  # (6, 2): the arm's hinges, J1..J6
-    return FirmwareLimits(ranges[:, 0], ranges[:, 1], np.broadcast_to(np.asarray(max_speed, dtype=np.float64), (6,)),
-                          arm="the MJCF", resolution=codec.LIMIT_RESOLUTION)
+    return FirmwareLimits(
+        ranges[:, 0],
+        ranges[:, 1],
+        np.broadcast_to(np.asarray(max_speed, dtype=np.float64), (6,)),
+        arm="the MJCF",
+        resolution=codec.LIMIT_RESOLUTION,
+    )
 
 
 class MujocoPiper(SimulatedPiper):
@@ -33,7 +38,9 @@ class MujocoPiper(SimulatedPiper):
         """env: a :class:`dssp_sim.env.PiperEnv` (already reset); the arm starts where the env's arm is. ``kwargs`` go
         to :class:`SimulatedPiper` (``firmware_limits``: by default the MJCF's joint ranges)."""
         self.env = env
-        super().__init__(channel, interface, initial_joints=env.joint_positions(), initial_stroke=env.gripper_stroke(), **kwargs)
+        super().__init__(
+            channel, interface, initial_joints=env.joint_positions(), initial_stroke=env.gripper_stroke(), **kwargs
+        )
         if kwargs.get("firmware_limits") is None:
             self.firmware_limits = mjcf_limits(env, self.max_joint_speed)
         self.sync_from_env()

@@ -12,10 +12,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from dssp_core.errors import CameraError
 from dssp_data.pointcloud.depth_frame import DepthFrame
 from hardware.camera.base import Camera
 from hardware.camera.software import SoftwareDepthCamera
-from dssp_core.errors import CameraError
 
 
 class MujocoCamera(Camera):

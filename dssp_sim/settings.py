@@ -36,8 +36,14 @@ def render_size_for(task: str | None = None) -> tuple[int, int]:
 
 def cloud_config_for(n_points: int | None = None, task: str | None = None) -> PointCloudConfig:
     """The simulation's point-cloud settings for ``task`` with ``n_points`` points (default :data:`SIM_N_POINTS`)."""
-    return PointCloudConfig(n_points=n_points or SIM_N_POINTS, depth_near=0.1, depth_far=2.0, crop_min=SIM_CROP_MIN,
-                            crop_max=SIM_CROP_MAX, voxel_size=TASK_OBSERVATION.get(task, {}).get("voxel_size", SIM_VOXEL))
+    return PointCloudConfig(
+        n_points=n_points or SIM_N_POINTS,
+        depth_near=0.1,
+        depth_far=2.0,
+        crop_min=SIM_CROP_MIN,
+        crop_max=SIM_CROP_MAX,
+        voxel_size=TASK_OBSERVATION.get(task, {}).get("voxel_size", SIM_VOXEL),
+    )
 
 
 def sim_attrs(task: str, env, camera, cloud_config: PointCloudConfig) -> dict:

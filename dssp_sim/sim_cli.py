@@ -39,8 +39,10 @@ from hardware.cli.stops import Stops
 TASKS = ("tap", "swap", "put2")
 
 
-TASK_HELP = (" | ".join(TASKS) + " | metaworld/NAME (a MetaWorld v3 task) | metaworld-cue/NAME (reach, push, "
-             "pick-place with the goal shown for 10 steps, then hidden)")
+TASK_HELP = (
+    " | ".join(TASKS) + " | metaworld/NAME (a MetaWorld v3 task) | metaworld-cue/NAME (reach, push, "
+    "pick-place with the goal shown for 10 steps, then hidden)"
+)
 
 
 def _task(name: str) -> str:
@@ -52,8 +54,9 @@ def _task(name: str) -> str:
         except ConfigError as e:
             raise argparse.ArgumentTypeError(str(e)) from None
     if name not in TASKS:
-        raise argparse.ArgumentTypeError(f"unknown task {name!r}; choose one of {', '.join(TASKS)}, metaworld/NAME or "
-                                         "metaworld-cue/NAME")
+        raise argparse.ArgumentTypeError(
+            f"unknown task {name!r}; choose one of {', '.join(TASKS)}, metaworld/NAME or metaworld-cue/NAME"
+        )
     return name
 
 
@@ -79,26 +82,48 @@ def parse_args(argv):
     c = sub.add_parser("collect", help="expert demonstrations → a DP3 zarr dataset")
     c.add_argument("--task", type=_task, required=True, help=TASK_HELP)
     c.add_argument("--episodes", type=positive_int, required=True, help="successful episodes to keep")
-    c.add_argument("--out", type=Path, required=True, help="dataset path (.zarr; a dataset dssp-sim collect wrote is appended to)")
-    c.add_argument("--seed", type=_non_negative, help="first scene seed (default: 0, or after the last one of the dataset appended to)")
-    c.add_argument("--points", type=positive_int, help="points per cloud (default 256, the sim preset's; 512 for metaworld/NAME, DP3's)")
+    c.add_argument(
+        "--out", type=Path, required=True, help="dataset path (.zarr; a dataset dssp-sim collect wrote is appended to)"
+    )
+    c.add_argument(
+        "--seed",
+        type=_non_negative,
+        help="first scene seed (default: 0, or after the last one of the dataset appended to)",
+    )
+    c.add_argument(
+        "--points",
+        type=positive_int,
+        help="points per cloud (default 256, the sim preset's; 512 for metaworld/NAME, DP3's)",
+    )
     c.add_argument("--no-progress", action="store_true")
     e = sub.add_parser("eval", help="closed-loop evaluation of a model directory (or of the task's scripted expert)")
     who = e.add_mutually_exclusive_group(required=True)
     who.add_argument("--model", type=Path, help="model directory (python -m export.to_onnx)")
-    who.add_argument("--expert", action="store_true",
-                     help="the task's scripted expert as the control loop's policy source, through the same camera, "
-                          "safety layer and CAN bus (Piper tasks)")
+    who.add_argument(
+        "--expert",
+        action="store_true",
+        help="the task's scripted expert as the control loop's policy source, through the same camera, "
+        "safety layer and CAN bus (Piper tasks)",
+    )
     e.add_argument("--task", type=_task, required=True, help=TASK_HELP)
     e.add_argument("--episodes", type=positive_int, default=20)
-    e.add_argument("--seed", type=_non_negative, default=1000, help="first episode seed (default 1000: unseen in collection)")
-    e.add_argument("--noise", type=float, default=0.0, help="σ of Gaussian noise on the recent state tokens (robustness test)")
+    e.add_argument(
+        "--seed", type=_non_negative, default=1000, help="first episode seed (default 1000: unseen in collection)"
+    )
+    e.add_argument(
+        "--noise", type=float, default=0.0, help="σ of Gaussian noise on the recent state tokens (robustness test)"
+    )
     e.add_argument("--threads", type=int, help="ONNX Runtime threads")
     add_runtime_arguments(e)
     add_schedule_arguments(e)
-    e.add_argument("--inject-delay", type=float, default=0.0, metavar="MS",
-                   help="simulate an inference delay: each chunk usable MS ms after its observation (whole ticks, rounded "
-                        "up); the loop holds until then (compare --smoothing none|ensemble|rtc under delay)")
+    e.add_argument(
+        "--inject-delay",
+        type=float,
+        default=0.0,
+        metavar="MS",
+        help="simulate an inference delay: each chunk usable MS ms after its observation (whole ticks, rounded "
+        "up); the loop holds until then (compare --smoothing none|ensemble|rtc under delay)",
+    )
     e.add_argument("--strips", type=Path, help="write a PNG strip of each episode here")
     e.add_argument("--json", type=Path, help="write the result here")
     e.add_argument("--force", action="store_true", help="replace an existing --json file and previous --strips")
@@ -112,14 +137,24 @@ def run(args) -> int:
     if args.command == "collect":
         from dssp_sim.collect import collect  # deferred: loads hardware.camera, dssp_data.pointcloud
 
-        result = collect(args.task, args.episodes, args.out, seed=args.seed, n_points=args.points, progress=not args.no_progress)
+        result = collect(
+            args.task, args.episodes, args.out, seed=args.seed, n_points=args.points, progress=not args.no_progress
+        )
         failed = sum(result.failures.values())
-        print(f"{args.out}: kept {result.kept} successful {args.task} episodes of {result.attempted} tried"
-              + (f" ({failed} failed: {dict(result.failures)})" if failed else "")
-              + (f"; {sum(result.steps)} steps, {min(result.steps)}–{max(result.steps)} per episode" if result.steps else ""))
+        print(
+            f"{args.out}: kept {result.kept} successful {args.task} episodes of {result.attempted} tried"
+            + (f" ({failed} failed: {dict(result.failures)})" if failed else "")
+            + (
+                f"; {sum(result.steps)} steps, {min(result.steps)}–{max(result.steps)} per episode"
+                if result.steps
+                else ""
+            )
+        )
         if result.kept < args.episodes:
-            raise ConfigError(f"only {result.kept} of {args.episodes} expert episodes succeeded in {result.attempted} tries; "
-                              "the dataset holds the successful ones — check the task's expert")
+            raise ConfigError(
+                f"only {result.kept} of {args.episodes} expert episodes succeeded in {result.attempted} tries; "
+                "the dataset holds the successful ones — check the task's expert"
+            )
         return 0
     from dssp_sim.evaluate import STRIPS_DIR, prepare_evaluation, print_eval  # deferred: loads can
 
@@ -127,8 +162,12 @@ def run(args) -> int:
         raise ConfigError(f"--noise must be a number in [0, 10] (σ in the tokens' units), got {args.noise}")
     check_views(args.rerun, args.rerun_save)  # every flag checked before anything is opened or written
     if args.expert:
-        given = model_flags_given(args, ("--noise", args.noise != 0.0), ("--threads", args.threads is not None),
-                                  ("--inject-delay", args.inject_delay != 0.0))
+        given = model_flags_given(
+            args,
+            ("--noise", args.noise != 0.0),
+            ("--threads", args.threads is not None),
+            ("--inject-delay", args.inject_delay != 0.0),
+        )
         if given:
             raise ConfigError(f"{given[0]} is a model's setting: it goes with --model, not --expert")
     schedule = schedule_of(args)
@@ -138,14 +177,27 @@ def run(args) -> int:
         check_output(args.strips, force=args.force, kind=STRIPS_DIR, flag="--strips")  # made only once all is checked
 
     # the model and the task loaded and every setting checked against them before an output is opened
-    evaluation = prepare_evaluation(args.model, args.task, args.episodes, seed=args.seed, threads=args.threads,
-                                    precision=args.precision, kernel=args.kernel,
-                                    spinning=False if args.no_spin else None, state_token_noise=args.noise,
-                                    views=bool(args.rerun or args.rerun_save), inject_delay_ms=args.inject_delay,
-                                    schedule=schedule)
+    evaluation = prepare_evaluation(
+        args.model,
+        args.task,
+        args.episodes,
+        seed=args.seed,
+        threads=args.threads,
+        precision=args.precision,
+        kernel=args.kernel,
+        spinning=False if args.no_spin else None,
+        state_token_noise=args.noise,
+        views=bool(args.rerun or args.rerun_save),
+        inject_delay_ms=args.inject_delay,
+        schedule=schedule,
+    )
     with contextlib.ExitStack() as stack:
         stack.callback(evaluation.env.close)
-        strips = stack.enter_context(OutputDir(args.strips, STRIPS_DIR, force=args.force, flag="--strips")) if args.strips else None
+        strips = (
+            stack.enter_context(OutputDir(args.strips, STRIPS_DIR, force=args.force, flag="--strips"))
+            if args.strips
+            else None
+        )
         views = open_views("dssp-sim eval", args.rerun, args.rerun_save)  # after --strips: a refused one saves no views
         if views is not None:
             stack.callback(lambda: print(views.close_line()))

@@ -109,15 +109,19 @@ class TaskStatus:
 
 
 def _free_body(name: str, geom: str, rgba: str) -> str:
-    return (f'<body name="{name}" pos="0 0 0.5"><freejoint name="{name}"/>'
-            f'<geom name="{name}" {geom} mass="0.05" friction="1 0.01 0.001" condim="4" '
-            f'contype="{SCENE_BIT}" conaffinity="{SCENE_BIT | GRIPPER_BIT}" rgba="{rgba}"/></body>')
+    return (
+        f'<body name="{name}" pos="0 0 0.5"><freejoint name="{name}"/>'
+        f'<geom name="{name}" {geom} mass="0.05" friction="1 0.01 0.001" condim="4" '
+        f'contype="{SCENE_BIT}" conaffinity="{SCENE_BIT | GRIPPER_BIT}" rgba="{rgba}"/></body>'
+    )
 
 
 def _static_box(name: str, half, pos, rgba: str = "0.5 0.5 0.55 1") -> str:
-    return (f'<geom name="{name}" type="box" size="{half[0]:.6g} {half[1]:.6g} {half[2]:.6g}" '
-            f'pos="{pos[0]:.6g} {pos[1]:.6g} {pos[2]:.6g}" contype="{SCENE_BIT}" '
-            f'conaffinity="{SCENE_BIT | GRIPPER_BIT}" rgba="{rgba}"/>')
+    return (
+        f'<geom name="{name}" type="box" size="{half[0]:.6g} {half[1]:.6g} {half[2]:.6g}" '
+        f'pos="{pos[0]:.6g} {pos[1]:.6g} {pos[2]:.6g}" contype="{SCENE_BIT}" '
+        f'conaffinity="{SCENE_BIT | GRIPPER_BIT}" rgba="{rgba}"/>'
+    )
 
 
 def yaw_quat(yaw: float) -> np.ndarray:
@@ -228,9 +232,9 @@ class _Objects:
 
     def place(self, data, k: int, pos, yaw: float = 0.0) -> None:
         a = self.qpos[k]
-        data.qpos[a:a + 3] = pos
-        data.qpos[a + 3:a + 7] = yaw_quat(yaw)
-        data.qvel[self.dof[k]:self.dof[k] + 6] = 0.0
+        data.qpos[a : a + 3] = pos
+        data.qpos[a + 3 : a + 7] = yaw_quat(yaw)
+        data.qvel[self.dof[k] : self.dof[k] + 6] = 0.0
 
     def pos(self, data, k: int) -> np.ndarray:
         return data.xpos[self.bodies[k]].copy()
@@ -240,7 +244,7 @@ class _Objects:
         return math.atan2(m[1, 0], m[0, 0])
 
     def speed(self, data, k: int) -> float:
-        return float(np.linalg.norm(data.qvel[self.dof[k]:self.dof[k] + 3]))
+        return float(np.linalg.norm(data.qvel[self.dof[k] : self.dof[k] + 3]))
 
     def upright(self, data, k: int, any_face: bool = False) -> bool:
         m = data.xmat[self.bodies[k]].reshape(3, 3)
@@ -369,8 +373,9 @@ class SwapTask(Task):
             for s in "ACB"
         )
         cube = _free_body("cube", f'type="box" size="{CUBE_HALF} {CUBE_HALF} {CUBE_HALF}"', "0.8 0.2 0.2 1")
-        cyl = _free_body("cylinder", f'type="cylinder" size="{CYLINDER_RADIUS} {CYLINDER_HALF_HEIGHT}"',
-                         "0.2 0.3 0.8 1")
+        cyl = _free_body(
+            "cylinder", f'type="cylinder" size="{CYLINDER_RADIUS} {CYLINDER_HALF_HEIGHT}"', "0.2 0.3 0.8 1"
+        )
         return pads + cube + cyl
 
     def bind(self, env) -> None:
@@ -395,8 +400,11 @@ class SwapTask(Task):
             raise ValueError(f"swap: unknown reset options {sorted(options)}")
         if first not in ("A", "B"):
             raise ValueError(f"swap: first must be 'A' or 'B', got {first!r}")
-        self.slots = {"A": centre + [0.0, SLOT_SPACING], "B": centre + [0.0, -SLOT_SPACING],
-                      "C": centre + [SLOT_BUFFER_AHEAD, 0.0]}
+        self.slots = {
+            "A": centre + [0.0, SLOT_SPACING],
+            "B": centre + [0.0, -SLOT_SPACING],
+            "C": centre + [SLOT_BUFFER_AHEAD, 0.0],
+        }
         for s, body in self._slot_bodies.items():
             env.model.body_pos[body] = [*self.slots[s], 0.0]
         self.first = first
@@ -431,13 +439,22 @@ class SwapTask(Task):
         """A move: an object coming to rest (not held) in a slot other than the one it last rested in."""
         for k in range(2):
             slot = self.slot_of(env, k)
-            if slot and slot != self._rest[k] and not self.objects.held(env, k) and self.objects.speed(env.data, k) <= REST_SPEED:
+            if (
+                slot
+                and slot != self._rest[k]
+                and not self.objects.held(env, k)
+                and self.objects.speed(env.data, k) <= REST_SPEED
+            ):
                 self.moves.append(f"{SWAP_OBJECTS[k]} {self._rest[k]}->{slot}")
                 self._rest[k] = slot
 
     def progress(self, env) -> dict:
-        return {"slots": {SWAP_OBJECTS[k]: self.slot_of(env, k) for k in range(2)}, "first": self.first,
-                "moves": list(self.moves), "plan": [f"{SWAP_OBJECTS[k]} {a}->{b}" for k, a, b in self.plan()]}
+        return {
+            "slots": {SWAP_OBJECTS[k]: self.slot_of(env, k) for k in range(2)},
+            "first": self.first,
+            "moves": list(self.moves),
+            "plan": [f"{SWAP_OBJECTS[k]} {a}->{b}" for k, a, b in self.plan()],
+        }
 
     @staticmethod
     def decision(info: dict) -> dict:
@@ -450,12 +467,17 @@ class SwapTask(Task):
         return {"reached": True, "correct": moves[1] == plan[1], "choice": moves[1]}
 
     def failure(self, env) -> str:
-        return self.objects.dropped(env, lambda k: self.objects.upright(env.data, k, any_face=(k == 0)) and bool(self.slot_of(env, k)))
+        return self.objects.dropped(
+            env, lambda k: self.objects.upright(env.data, k, any_face=(k == 0)) and bool(self.slot_of(env, k))
+        )
 
     def goal_reached(self, env) -> bool:
         for k in range(2):
-            if (self.slot_of(env, k) != self.goal[k] or self.objects.held(env, k)
-                    or self.objects.speed(env.data, k) > REST_SPEED):
+            if (
+                self.slot_of(env, k) != self.goal[k]
+                or self.objects.held(env, k)
+                or self.objects.speed(env.data, k) > REST_SPEED
+            ):
                 return False
         return env.at_home()
 
@@ -538,7 +560,7 @@ class Put2Task(Task):
         return self.bins[bin_name] + along * np.array([-s, c])
 
     def bin_of(self, env, k: int) -> str:
-        """"source" | "basket" if block k lies inside that bin (below its wall tops), else ""."""
+        """ "source" | "basket" if block k lies inside that bin (below its wall tops), else ""."""
         p = self.objects.pos(env.data, k)
         if p[2] > BIN_WALL_TOP:
             return ""
@@ -583,12 +605,17 @@ class Put2Task(Task):
         return {"reached": True, "correct": True, "choice": "back for the second"}
 
     def failure(self, env) -> str:
-        return self.objects.dropped(env, lambda k: bool(self.bin_of(env, k)) and self.objects.upright(env.data, k, any_face=True))
+        return self.objects.dropped(
+            env, lambda k: bool(self.bin_of(env, k)) and self.objects.upright(env.data, k, any_face=True)
+        )
 
     def goal_reached(self, env) -> bool:
         for k in range(2):
-            if (self.bin_of(env, k) != "basket" or self.objects.held(env, k)
-                    or self.objects.speed(env.data, k) > REST_SPEED):
+            if (
+                self.bin_of(env, k) != "basket"
+                or self.objects.held(env, k)
+                or self.objects.speed(env.data, k) > REST_SPEED
+            ):
                 return False
         return env.at_home()
 

@@ -13,9 +13,9 @@ from importlib import resources
 from typing import ClassVar
 
 from dssp_core.errors import ConfigError
+from dssp_core.schema import MAX_DIM, MAX_LAYERS, MAX_RATE_HZ, MAX_STEPS, MAX_WIDTH, Settings, parse_json, setting
 from dssp_data.model_contract import ModelContract, check_chunk
 from dssp_data.observation import ObservationContract
-from dssp_core.schema import MAX_DIM, MAX_LAYERS, MAX_RATE_HZ, MAX_STEPS, MAX_WIDTH, Settings, parse_json, setting
 
 HISTORY_BACKBONES = ("mamba", "transformer")
 # What follows the mixer in each denoiser block (README, "The paper's size"): nothing (the Mamba block alone),
@@ -63,8 +63,10 @@ class DiffusionConfig(Settings):
             self.num_inference_steps <= self.num_train_timesteps,
             f"model.diffusion.num_inference_steps must be in [1, {self.num_train_timesteps}], got {self.num_inference_steps}",
         )
-        _require(self.beta_start <= self.beta_end,
-                 f"model.diffusion.beta_start ({self.beta_start}) must not exceed beta_end ({self.beta_end})")
+        _require(
+            self.beta_start <= self.beta_end,
+            f"model.diffusion.beta_start ({self.beta_start}) must not exceed beta_end ({self.beta_end})",
+        )
 
 
 @dataclass
@@ -86,7 +88,9 @@ class ModelConfig(Settings):
     n_history_layers: int = setting(2, ge=1, le=MAX_LAYERS)
     n_denoiser_layers: int = setting(8, ge=1, le=MAX_LAYERS)
     # Observation encoder E_obs (DP3's point encoder and state MLP).
-    point_widths: list[int] = setting(default_factory=lambda: [64, 128, 256], ge=1, le=MAX_WIDTH, min_length=1, max_length=16)
+    point_widths: list[int] = setting(
+        default_factory=lambda: [64, 128, 256], ge=1, le=MAX_WIDTH, min_length=1, max_length=16
+    )
     point_feature_dim: int = setting(128, ge=1, le=MAX_WIDTH)
     state_widths: list[int] = setting(default_factory=lambda: [64, 64], ge=1, le=MAX_WIDTH, min_length=1, max_length=16)
     # Horizons.
@@ -105,7 +109,9 @@ class ModelConfig(Settings):
     timestep_decoupled: bool = setting(True)
     dynamics_weight: float = setting(0.05, ge=0, le=1000)
     # DP3's UNet (denoiser_backbone "unet"): the widths of its levels, conv kernel, GroupNorm groups, step embedding.
-    unet_down_dims: list[int] = setting(default_factory=lambda: [512, 1024, 2048], ge=1, le=MAX_WIDTH, min_length=1, max_length=8)
+    unet_down_dims: list[int] = setting(
+        default_factory=lambda: [512, 1024, 2048], ge=1, le=MAX_WIDTH, min_length=1, max_length=8
+    )
     unet_kernel_size: int = setting(5, ge=1, le=31)
     unet_n_groups: int = setting(8, ge=1, le=MAX_WIDTH)
     unet_step_embed_dim: int = setting(128, ge=2, le=MAX_WIDTH)
@@ -134,15 +140,23 @@ class ModelConfig(Settings):
         )
         groups, dims = self.unet_n_groups, self.unet_down_dims
         bad = [d for d in dims if d % groups]
-        _require(not bad, f"model.unet_down_dims must be multiples of model.unet_n_groups={groups} (GroupNorm), got {dims}")
-        _require(self.unet_kernel_size % 2 == 1, f"model.unet_kernel_size must be odd (same padding), got {self.unet_kernel_size}")
+        _require(
+            not bad, f"model.unet_down_dims must be multiples of model.unet_n_groups={groups} (GroupNorm), got {dims}"
+        )
+        _require(
+            self.unet_kernel_size % 2 == 1,
+            f"model.unet_kernel_size must be odd (same padding), got {self.unet_kernel_size}",
+        )
         halvings = 2 ** (len(dims) - 1)
         _require(
             self.horizon % halvings == 0,
             f"model.unet_down_dims has {len(dims)} levels, which halve the horizon {len(dims) - 1} times: model.horizon must "
             f"be a multiple of {halvings}, got {self.horizon}",
         )
-        _require(self.unet_step_embed_dim % 2 == 0, f"model.unet_step_embed_dim must be even (sin and cos), got {self.unet_step_embed_dim}")
+        _require(
+            self.unet_step_embed_dim % 2 == 0,
+            f"model.unet_step_embed_dim must be even (sin and cos), got {self.unet_step_embed_dim}",
+        )
 
     @property
     def action_offset(self) -> int:
@@ -219,7 +233,9 @@ class RunConfig(Settings):
     model: ModelConfig = setting(default_factory=ModelConfig)
     train: TrainConfig = setting(default_factory=TrainConfig)
     preset: str = setting("custom")
-    control_rate_hz: float | None = setting(None, gt=0, le=MAX_RATE_HZ, unit="Hz")  # the data's rate; the runtime must match it
+    control_rate_hz: float | None = setting(
+        None, gt=0, le=MAX_RATE_HZ, unit="Hz"
+    )  # the data's rate; the runtime must match it
     dataset: str | None = setting(None)
     # The observation contract the dataset records (point-cloud settings, state/action layout; null: unknown).
     observation: ObservationContract = setting(default_factory=ObservationContract)
@@ -232,10 +248,20 @@ class RunConfig(Settings):
         """What a model of this run promises the robot, with the sampler export chose (K = len(ddim_timesteps)
         timesteps; ``inpainting``: the denoiser takes the committed actions)."""
         m = self.model
-        return ModelContract(point_dim=m.point_dim, n_points=m.n_points, state_dim=m.state_dim, action_dim=m.action_dim,
-                             n_obs_steps=m.n_obs_steps, horizon=m.horizon, n_action_steps=m.n_action_steps,
-                             action_offset=m.action_offset, ddim_timesteps=list(ddim_timesteps), inpainting=inpainting,
-                             control_rate_hz=self.control_rate_hz, observation=self.observation)
+        return ModelContract(
+            point_dim=m.point_dim,
+            n_points=m.n_points,
+            state_dim=m.state_dim,
+            action_dim=m.action_dim,
+            n_obs_steps=m.n_obs_steps,
+            horizon=m.horizon,
+            n_action_steps=m.n_action_steps,
+            action_offset=m.action_offset,
+            ddim_timesteps=list(ddim_timesteps),
+            inpainting=inpainting,
+            control_rate_hz=self.control_rate_hz,
+            observation=self.observation,
+        )
 
 
 def preset_names() -> list[str]:

@@ -4,7 +4,8 @@
     python -m export.verify MODEL_DIR --checkpoint RUN_DIR   # parity with the PyTorch model
 
 Modules: ``graphs`` (the torch modules that are traced), ``to_onnx`` (the exporter), ``verify`` (parity),
-``manifest_writer`` (writes ``dssp_model.json``; the format is :mod:`dssp_deploy.manifest`), ``output_dir`` (all-or-nothing model directories), ``quantize``
+``manifest_writer`` (writes ``dssp_model.json``; the format is :mod:`dssp_deploy.manifest`), ``output_dir``
+(all-or-nothing model directories), ``quantize``
 (int8), ``trajectory`` (what verification streams); errors are :mod:`dssp_core.errors`.
 The names below import lazily, so ``import export`` does not import torch.
 """
@@ -12,7 +13,15 @@ The names below import lazily, so ``import export`` does not import torch.
 from dssp_core.errors import ExportError, ParityError
 from dssp_deploy.manifest import FORMAT_VERSION, MANIFEST_NAME, read_manifest
 
-__all__ = ["ExportError", "FORMAT_VERSION", "MANIFEST_NAME", "ParityError", "export_model", "read_manifest", "verify_model"]
+__all__ = [
+    "ExportError",
+    "FORMAT_VERSION",
+    "MANIFEST_NAME",
+    "ParityError",
+    "export_model",
+    "read_manifest",
+    "verify_model",
+]
 
 
 def export_model(*args, **kwargs):

@@ -150,8 +150,33 @@ def rms_norm(x: torch.Tensor, weight: torch.Tensor, eps: float) -> torch.Tensor:
     return x * torch.rsqrt(x.pow(2).mean(-1, keepdim=True) + eps) * weight
 
 
-def block_reference(a, conv_state, ssm_state, mod, norm_w, in_q, in_s, conv_w, conv_b, xp_q, xp_s, dt_q, dt_s, dt_b,
-                    A, D, out_q, out_s, norm2_w, fc1_q, fc1_s, fc2_q, fc2_s, eps, plain: int = 0):  # noqa: N803
+def block_reference(
+    a,
+    conv_state,
+    ssm_state,
+    mod,
+    norm_w,
+    in_q,
+    in_s,
+    conv_w,
+    conv_b,
+    xp_q,
+    xp_s,
+    dt_q,
+    dt_s,
+    dt_b,
+    A,
+    D,
+    out_q,
+    out_s,
+    norm2_w,
+    fc1_q,
+    fc1_s,
+    fc2_q,
+    fc2_s,
+    eps,
+    plain: int = 0,
+):  # noqa: N803
     """What ``ai.dssp::MambaBlockQ8`` computes, in PyTorch: a (B, L, d) → (a (B, L, d), the mixer's state after the L
     tokens: conv (B, E, W), ssm (B, E, n)). ``mod`` (3, d) is the AdaLN row (shift, scale, gate) of the action
     tokens; (0, d) for the prefix alone (no modulation, gate 1). ``plain``: the first tokens that are the prefix
@@ -196,8 +221,14 @@ class _MambaBlockQ8(torch.autograd.Function):
     @staticmethod
     def symbolic(g, *inputs):
         *tensors, eps, state_out, plain = inputs
-        a, conv, ssm = g.op(f"{DOMAIN}::{BLOCK_OP}", *tensors, eps_f=float(eps), state_out_i=int(state_out),
-                            plain_i=int(plain), outputs=3)
+        a, conv, ssm = g.op(
+            f"{DOMAIN}::{BLOCK_OP}",
+            *tensors,
+            eps_f=float(eps),
+            state_out_i=int(state_out),
+            plain_i=int(plain),
+            outputs=3,
+        )
         a.setType(tensors[0].type())
         conv.setType(tensors[1].type())
         ssm.setType(tensors[2].type())
@@ -223,7 +254,12 @@ class QuantizedMambaBlock(torch.nn.Module):
         self.eps = block.norm.eps
         self.d_state, self.d_conv = mixer.d_state, mixer.d_conv
         self.register_buffer("norm_w", block.norm.weight.detach().clone())
-        for name, linear in (("in", mixer.in_proj), ("xp", mixer.x_proj), ("dt", mixer.dt_proj), ("out", mixer.out_proj)):
+        for name, linear in (
+            ("in", mixer.in_proj),
+            ("xp", mixer.x_proj),
+            ("dt", mixer.dt_proj),
+            ("out", mixer.out_proj),
+        ):
             q, s = quantize_weight(linear.weight)
             self.register_buffer(f"{name}_q", q)
             self.register_buffer(f"{name}_s", s)
@@ -251,10 +287,34 @@ class QuantizedMambaBlock(torch.nn.Module):
         return isinstance(block.mixer, Mamba) and block.mlp_kind in ("none", "gated")
 
     def _run(self, a, conv_state, ssm_state, mod, state_out: bool, plain: int = 0):
-        return _MambaBlockQ8.apply(a, conv_state, ssm_state, mod, self.norm_w, self.in_q, self.in_s, self.conv_w,
-                                   self.conv_b, self.xp_q, self.xp_s, self.dt_q, self.dt_s, self.dt_b, self.A, self.D,
-                                   self.out_q, self.out_s, self.norm2_w, self.fc1_q, self.fc1_s, self.fc2_q,
-                                   self.fc2_s, self.eps, state_out, plain)
+        return _MambaBlockQ8.apply(
+            a,
+            conv_state,
+            ssm_state,
+            mod,
+            self.norm_w,
+            self.in_q,
+            self.in_s,
+            self.conv_w,
+            self.conv_b,
+            self.xp_q,
+            self.xp_s,
+            self.dt_q,
+            self.dt_s,
+            self.dt_b,
+            self.A,
+            self.D,
+            self.out_q,
+            self.out_s,
+            self.norm2_w,
+            self.fc1_q,
+            self.fc1_s,
+            self.fc2_q,
+            self.fc2_s,
+            self.eps,
+            state_out,
+            plain,
+        )
 
     def _zero_state(self, x):
         """Empty states (B, 0, W) and (B, 0, n): the operator starts from zeros without reading any."""

@@ -12,7 +12,6 @@ import io
 import warnings
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -41,7 +40,9 @@ class GraphStream:
         self.history_fn, self.denoiser_fn = history, denoiser
         self.state_specs = manifest.graphs[HISTORY_GRAPH]["inputs"][2:]
         self.denoiser_names = [s["name"] for s in manifest.graphs[DENOISER_GRAPH]["inputs"]]
-        self.history = StreamingHistory(manifest.contract.n_obs_steps, self._step, lambda ts: np.stack(ts, axis=1), self.zero_state)
+        self.history = StreamingHistory(
+            manifest.contract.n_obs_steps, self._step, lambda ts: np.stack(ts, axis=1), self.zero_state
+        )
 
     def zero_state(self, batch: int) -> list[np.ndarray]:
         """The history state at an episode start: zeros, one array per manifest state input."""
@@ -106,8 +107,10 @@ class RuntimeStream:
         try:
             return self.policy.act(noise=noise)
         except ChunkOutOfRange as exc:
-            raise ParityError(f"the {self.name} graphs give a chunk the runtime refuses: {exc}; export the model again "
-                              "from finite weights, and report it with the run's config.json if it persists") from None
+            raise ParityError(
+                f"the {self.name} graphs give a chunk the runtime refuses: {exc}; export the model again "
+                "from finite weights, and report it with the run's config.json if it persists"
+            ) from None
 
 
 def torchscript_graph(path: Path, data: bytes | None = None) -> GraphFn:

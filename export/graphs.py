@@ -160,5 +160,7 @@ class DenoiserGraph(nn.Module):
             inpaint = (self.policy.normalizers["action"].normalize(committed), weight)
         prefix = self.policy.build_prefix(context, recent)  # (B, L_p, d)
         table = self.table_type(*(getattr(self, f"table_{name}") for name in self.table_type._fields))
-        x = self.policy.sample_normalized(prefix, noise, self.num_steps, table, unrolled=True, inpaint=inpaint)  # (B, H, A)
+        x = self.policy.sample_normalized(
+            prefix, noise, self.num_steps, table, unrolled=True, inpaint=inpaint
+        )  # (B, H, A)
         return self.policy.normalizers["action"].unnormalize(x)

@@ -73,11 +73,16 @@ def build_manifest(
             "history_state": "all zeros at the start of an episode; feed each *_out back as the next tick's input",
             "z_recent": "the last N z_t outputs, oldest first; at the start of an episode the first z_t repeats",
             "noise": "standard normal (B, H, A)",
-            **({"committed": "the actions already committed (B, H, A), raw units, and committed_weight (B, H, 1) in "
-                             "[0, 1]: every DDIM step's clean prediction is pulled to them (all zero: the plain chain)"}
-               if contract.inpainting else {}),
+            **(
+                {
+                    "committed": "the actions already committed (B, H, A), raw units, and committed_weight (B, H, 1) in "
+                    "[0, 1]: every DDIM step's clean prediction is pulled to them (all zero: the plain chain)"
+                }
+                if contract.inpainting
+                else {}
+            ),
             "act_every": "one denoiser call every H_a history steps; execute the H_a actions from index "
-                         "contract.action_offset, at contract.control_rate_hz",
+            "contract.action_offset, at contract.control_rate_hz",
         },
         "source": source,
         "exporter": exporter,

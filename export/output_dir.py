@@ -17,9 +17,9 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from dssp_core.output_guard import OutputDir, OutputKind, check_output
 from dssp_core.errors import ExportError
 from dssp_core.files import read_regular_text
+from dssp_core.output_guard import OutputDir, OutputKind, check_output
 from dssp_deploy.manifest import MANIFEST_NAME, is_model_dir
 
 

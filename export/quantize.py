@@ -33,8 +33,9 @@ def _quiet_root(fn):
     """Run ``fn()`` with the root and onnxruntime loggers at ERROR: the quantizers log hints and every node they skip."""
     import onnxruntime.quantization.matmul_nbits_quantizer  # noqa: F401 (creates its logger)
 
-    loggers = [logging.getLogger()] + [logging.getLogger(name) for name in list(logging.root.manager.loggerDict)
-                                       if name.startswith("onnxruntime")]
+    loggers = [logging.getLogger()] + [
+        logging.getLogger(name) for name in list(logging.root.manager.loggerDict) if name.startswith("onnxruntime")
+    ]
     levels = [logger.level for logger in loggers]
     for logger in loggers:
         logger.setLevel(logging.ERROR)
@@ -60,24 +61,43 @@ def quantize_int8(src: Path, dst: Path, metadata: dict[str, str]) -> None:
 
     with tempfile.TemporaryDirectory(dir=Path(dst).parent) as tmp:
         raw = Path(tmp) / "int8.onnx"
-        _quiet_root(lambda: quantize_dynamic(src, raw, op_types_to_quantize=QUANTIZED_OPS, per_channel=True,
-                                             weight_type=QuantType.QInt8, reduce_range=True))
+        _quiet_root(
+            lambda: quantize_dynamic(
+                src,
+                raw,
+                op_types_to_quantize=QUANTIZED_OPS,
+                per_channel=True,
+                weight_type=QuantType.QInt8,
+                reduce_range=True,
+            )
+        )
         model = onnx.load(str(raw))
-    _save(model, dst, metadata, "int8 dynamic (onnxruntime.quantization), MatMul/Gemm weights per channel, 7-bit (reduce_range)")
+    _save(
+        model,
+        dst,
+        metadata,
+        "int8 dynamic (onnxruntime.quantization), MatMul/Gemm weights per channel, 7-bit (reduce_range)",
+    )
 
 
 def quantize_int4(src: Path, dst: Path, metadata: dict[str, str]) -> None:
     """Write the int4 weight-only graph of ``src`` (an fp32 ``.onnx``) to ``dst``, with ``metadata`` as its metadata_props."""
     import onnx  # deferred: loads onnx
+
     # deferred: loads onnx, onnxruntime
     from onnxruntime.quantization.matmul_nbits_quantizer import DefaultWeightOnlyQuantConfig, MatMulNBitsQuantizer
 
-    config = DefaultWeightOnlyQuantConfig(block_size=INT4_BLOCK, is_symmetric=True, accuracy_level=INT4_ACCURACY_LEVEL,
-                                          op_types_to_quantize=("MatMul",))
+    config = DefaultWeightOnlyQuantConfig(
+        block_size=INT4_BLOCK, is_symmetric=True, accuracy_level=INT4_ACCURACY_LEVEL, op_types_to_quantize=("MatMul",)
+    )
     quantizer = MatMulNBitsQuantizer(onnx.load(str(src)), algo_config=config)
     _quiet_root(quantizer.process)
-    _save(quantizer.model.model, dst, metadata,
-          f"int4 weight-only (onnxruntime MatMulNBits), blocks of {INT4_BLOCK}, symmetric, accuracy_level {INT4_ACCURACY_LEVEL}")
+    _save(
+        quantizer.model.model,
+        dst,
+        metadata,
+        f"int4 weight-only (onnxruntime MatMulNBits), blocks of {INT4_BLOCK}, symmetric, accuracy_level {INT4_ACCURACY_LEVEL}",
+    )
 
 
 QUANTIZERS = {"int8": quantize_int8, "int4": quantize_int4}

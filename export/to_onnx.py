@@ -92,7 +92,9 @@ def load_source(run_dir: Path, ema: bool = True):
         raise ExportError(f"run directory {run_dir} does not exist; pass a dssp-train --out directory")
     weights = WEIGHTS[ema]
     if not ema and not (run_dir / weights).is_file():
-        raise ExportError(f"{run_dir / weights} is missing: --no-ema needs the run's checkpoint folder; drop --no-ema to export the EMA weights")
+        raise ExportError(
+            f"{run_dir / weights} is missing: --no-ema needs the run's checkpoint folder; drop --no-ema to export the EMA weights"
+        )
     policy, config = load_policy(run_dir, weights=weights)
     check_exportable(policy)
     path = run_dir / weights
@@ -116,9 +118,11 @@ def check_finite_weights(policy, path: Path) -> None:
     for name, tensor in policy.state_dict().items():
         if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
             count = int((~torch.isfinite(tensor)).sum())
-            raise ExportError(f"{path}: tensor {name} {list(tensor.shape)} holds {count} non-finite value(s) (NaN/inf); "
-                              "nothing was exported: export an earlier checkpoint of the run, or train again (the loss "
-                              "diverged: a lower learning rate)")
+            raise ExportError(
+                f"{path}: tensor {name} {list(tensor.shape)} holds {count} non-finite value(s) (NaN/inf); "
+                "nothing was exported: export an earlier checkpoint of the run, or train again (the loss "
+                "diverged: a lower learning rate)"
+            )
 
 
 def without_local_paths(report: dict[str, Any], dataset: str | None) -> dict[str, Any]:
@@ -158,7 +162,9 @@ def quiet_tracing():
         warnings.filterwarnings("ignore", category=FutureWarning)
         warnings.filterwarnings("ignore", category=torch.jit.TracerWarning)
         warnings.filterwarnings("ignore", message="no signature found")
-        warnings.filterwarnings("ignore", message="Constant folding - Only steps=1")  # harmless: such slices stay in the graph
+        warnings.filterwarnings(
+            "ignore", message="Constant folding - Only steps=1"
+        )  # harmless: such slices stay in the graph
         yield
 
 
@@ -176,8 +182,10 @@ def example_inputs(contract, model, graph: str, batch: int = 2) -> tuple:
 def graph_modules(policy, denoise_steps: int, inpainting: bool = False) -> dict[str, Any]:
     """{graph name: the torch module that becomes it}."""
 
-    return {HISTORY_GRAPH: HistoryStepGraph(policy).eval(),
-            DENOISER_GRAPH: DenoiserGraph(policy, denoise_steps, inpainting).eval()}
+    return {
+        HISTORY_GRAPH: HistoryStepGraph(policy).eval(),
+        DENOISER_GRAPH: DenoiserGraph(policy, denoise_steps, inpainting).eval(),
+    }
 
 
 def trace(module, example: tuple):
@@ -188,8 +196,17 @@ def trace(module, example: tuple):
 
 
 # -------------------------------------------------------------------- ONNX
-def write_onnx(module, example: tuple, path: Path, contract, model, graph: str, opset: int, metadata: dict[str, str],
-               fused: bool = False) -> None:
+def write_onnx(
+    module,
+    example: tuple,
+    path: Path,
+    contract,
+    model,
+    graph: str,
+    opset: int,
+    metadata: dict[str, str],
+    fused: bool = False,
+) -> None:
     """Export one graph module to ``path``; set the manifest's IO shapes and metadata; run the full checker.
 
     ``fused``: the module's Mamba layers use :data:`export.fused_ops.FUSED_OPS`, so the graph holds the
@@ -240,8 +257,9 @@ def write_onnx(module, example: tuple, path: Path, contract, model, graph: str, 
     onnx.checker.check_model(str(path), full_check=True)
 
 
-def write_block_graph(module, example: tuple, beside: Path, contract, model, graph: str, opset: int,
-                      metadata: dict[str, str]) -> Path:
+def write_block_graph(
+    module, example: tuple, beside: Path, contract, model, graph: str, opset: int, metadata: dict[str, str]
+) -> Path:
     """The graph to quantize into the int8 fused one when ``module`` has denoiser blocks that run as one node each
     (``ai.dssp::MambaBlockQ8``, int8 weights: :class:`export.fused_ops.QuantizedMambaBlock`): a copy of the fused
     module with those blocks, written to a hidden file beside ``beside`` (the caller removes it)."""
@@ -326,7 +344,9 @@ def export_model(
     from dssp_train.training.checkpoint import config_recorded  # deferred: loads safetensors
 
     if opset not in SUPPORTED_OPSETS:
-        raise ExportError(f"--opset {opset} is not supported; use {SUPPORTED_OPSETS.start}..{SUPPORTED_OPSETS.stop - 1} (default {DEFAULT_OPSET})")
+        raise ExportError(
+            f"--opset {opset} is not supported; use {SUPPORTED_OPSETS.start}..{SUPPORTED_OPSETS.stop - 1} (default {DEFAULT_OPSET})"
+        )
     if fmt not in FORMATS:
         raise ExportError(f"--format must be one of {', '.join(FORMATS)}, got {fmt!r}")
     if quantize is None:  # the default: every precision, when there are ONNX graphs to quantize
@@ -336,7 +356,9 @@ def export_model(
     if unknown:
         raise ExportError(f"--quantize takes {', '.join(QUANTIZED)} or none, got {', '.join(unknown)}")
     if quantize and "onnx" not in FORMATS[fmt]:
-        raise ExportError(f"--quantize {' '.join(quantize)} quantizes the ONNX graphs; use --format onnx or both, or --quantize none")
+        raise ExportError(
+            f"--quantize {' '.join(quantize)} quantizes the ONNX graphs; use --format onnx or both, or --quantize none"
+        )
     if verify and verify_steps < 1:
         raise ExportError(f"--verify-steps must be >= 1, got {verify_steps}")
     formats = FORMATS[fmt]
@@ -360,13 +382,22 @@ def export_model(
         progress(f"[{clock[1]}/{n_stages}] {message} ({now - clock[0]:.1f} s)")
         clock[0] = now
 
-    with writer_lock(out_dir, what="model directory", flag="-o", error=ExportError), StagedDirectory(out_dir, force) as staged:
+    with (
+        writer_lock(out_dir, what="model directory", flag="-o", error=ExportError),
+        StagedDirectory(out_dir, force) as staged,
+    ):
         policy, config, source = load_source(run_dir, ema)  # refuses a config.json edited since training
         if fused and not any(isinstance(m, Mamba) for m in policy.modules()):  # e.g. DP3: nothing to fuse
-            fused, kernel_note = False, "fused graphs not written: the model has no Mamba layer (they would be its standard graphs)"
+            fused, kernel_note = (
+                False,
+                "fused graphs not written: the model has no Mamba layer (they would be its standard graphs)",
+            )
             n_stages -= 1
-        unrecorded = "" if config_recorded(run_dir / WEIGHTS[ema]) else (
-            "; its config is not recorded (saved by an older version): config.json taken as it is")
+        unrecorded = (
+            ""
+            if config_recorded(run_dir / WEIGHTS[ema])
+            else ("; its config is not recorded (saved by an older version): config.json taken as it is")
+        )
         diffusion = config.model.diffusion
         if timestep_spacing is not None:
             if timestep_spacing not in SPACINGS:
@@ -374,19 +405,32 @@ def export_model(
             diffusion.timestep_spacing = timestep_spacing  # the policy's schedule reads these same settings
         k = diffusion.num_inference_steps if denoise_steps is None else denoise_steps
         if not 1 <= k <= diffusion.num_train_timesteps:
-            raise ExportError(f"--denoise-steps must be in [1, {diffusion.num_train_timesteps}] (the training timesteps), got {k}")
+            raise ExportError(
+                f"--denoise-steps must be in [1, {diffusion.num_train_timesteps}] (the training timesteps), got {k}"
+            )
         timesteps = policy.schedule.inference_timesteps(k)
-        stage(f"loaded {run_dir} ({'EMA' if ema else 'raw'} weights, step {source['step']}, sha256 {source['sha256'][:12]}{unrecorded})")
+        stage(
+            f"loaded {run_dir} ({'EMA' if ema else 'raw'} weights, step {source['step']}, sha256 {source['sha256'][:12]}{unrecorded})"
+        )
 
         modules = graph_modules(policy, k, inpainting)
         contract = config.contract(timesteps, inpainting)
         examples = {g: example_inputs(contract, config.model, g) for g in GRAPHS}
-        caching = ("prefix in every step (timestep_decoupled false)" if not config.model.timestep_decoupled
-                   else "prefix cached" if k > 1 else "prefix and actions in one pass")
+        caching = (
+            "prefix in every step (timestep_decoupled false)"
+            if not config.model.timestep_decoupled
+            else "prefix cached"
+            if k > 1
+            else "prefix and actions in one pass"
+        )
         stage(f"built {HISTORY_GRAPH} and {DENOISER_GRAPH} (K = {k} DDIM steps {timesteps}, {caching})")
 
         files: dict[str, dict[str, str]] = {g: {} for g in GRAPHS}
-        onnx_kinds = [file_kind(p, f) for p in ("fp32", *quantize) for f in (False, True)[: 1 + fused]] if "onnx" in formats else []
+        onnx_kinds = (
+            [file_kind(p, f) for p in ("fp32", *quantize) for f in (False, True)[: 1 + fused]]
+            if "onnx" in formats
+            else []
+        )
         for g in GRAPHS:
             for kind in onnx_kinds + (["torchscript"] if "torchscript" in formats else []):
                 files[g][kind] = f"{g}{file_suffix(kind)}"
@@ -413,17 +457,36 @@ def export_model(
             stage("TorchScript not requested")
         if "onnx" in formats:
             for g in GRAPHS:
-                write_onnx(modules[g], examples[g], staged.path / files[g]["onnx"], contract, config.model, g, opset,
-                           metadata_props(manifest, g))
-            stage(f"wrote {', '.join(files[g]['onnx'] for g in GRAPHS)} (opset {opset}, onnx.checker full_check passed)")
+                write_onnx(
+                    modules[g],
+                    examples[g],
+                    staged.path / files[g]["onnx"],
+                    contract,
+                    config.model,
+                    g,
+                    opset,
+                    metadata_props(manifest, g),
+                )
+            stage(
+                f"wrote {', '.join(files[g]['onnx'] for g in GRAPHS)} (opset {opset}, onnx.checker full_check passed)"
+            )
         else:
             stage("ONNX not requested")
         if fused:
             kind = file_kind("fp32", fused=True)
             for g in GRAPHS:  # the same modules, their Mamba layers now on the fused operators
                 use_fused_ops(modules[g])
-                write_onnx(modules[g], examples[g], staged.path / files[g][kind], contract, config.model, g, opset,
-                           metadata_props(manifest, g), fused=True)
+                write_onnx(
+                    modules[g],
+                    examples[g],
+                    staged.path / files[g][kind],
+                    contract,
+                    config.model,
+                    g,
+                    opset,
+                    metadata_props(manifest, g),
+                    fused=True,
+                )
             stage(f"wrote {', '.join(files[g][kind] for g in GRAPHS)} (fused Mamba operators)")
         elif kernel_note:
             progress(kernel_note)
@@ -436,8 +499,16 @@ def export_model(
                         source = staged.path / files[g][src]
                         blocks = precision == "int8" and is_fused and fitting_blocks(modules[g])
                         if blocks:  # each denoiser block as one node: a graph traced anew, then quantized
-                            source = write_block_graph(modules[g], examples[g], source, contract, config.model, g, opset,
-                                                       metadata_props(manifest, g))
+                            source = write_block_graph(
+                                modules[g],
+                                examples[g],
+                                source,
+                                contract,
+                                config.model,
+                                g,
+                                opset,
+                                metadata_props(manifest, g),
+                            )
                         QUANTIZERS[precision](source, staged.path / files[g][dst], metadata_props(manifest, g))
                         if blocks:
                             source.unlink()
@@ -500,25 +571,58 @@ def format_summary(summary: dict[str, Any]) -> str:
 
 # ---------------------------------------------------------------------- CLI
 def build_parser() -> argparse.ArgumentParser:
-    p = ArgumentParser(prog="python -m export.to_onnx", description="Export a DSSP run directory to ONNX / TorchScript graphs.")
+    p = ArgumentParser(
+        prog="python -m export.to_onnx", description="Export a DSSP run directory to ONNX / TorchScript graphs."
+    )
     p.add_argument("run_dir", metavar="RUN_DIR", help="a dssp-train run directory (config.json, model.safetensors)")
     p.add_argument("-o", "--out", required=True, metavar="MODEL_DIR", help="the model directory to create")
-    p.add_argument("--denoise-steps", type=int, metavar="K", help="DDIM steps inside the denoiser graph (default: the config's, 10)")
-    p.add_argument("--timestep-spacing", choices=SPACINGS, help="where the K timesteps sit: leading [90..0] or trailing "
-                                                                "[99..9] (default: the config's; trailing lets K = 1 start from noise)")
-    p.add_argument("--opset", type=int, default=DEFAULT_OPSET, help=f"ONNX opset, {SUPPORTED_OPSETS.start}..{SUPPORTED_OPSETS.stop - 1} (default {DEFAULT_OPSET})")
+    p.add_argument(
+        "--denoise-steps",
+        type=int,
+        metavar="K",
+        help="DDIM steps inside the denoiser graph (default: the config's, 10)",
+    )
+    p.add_argument(
+        "--timestep-spacing",
+        choices=SPACINGS,
+        help="where the K timesteps sit: leading [90..0] or trailing "
+        "[99..9] (default: the config's; trailing lets K = 1 start from noise)",
+    )
+    p.add_argument(
+        "--opset",
+        type=int,
+        default=DEFAULT_OPSET,
+        help=f"ONNX opset, {SUPPORTED_OPSETS.start}..{SUPPORTED_OPSETS.stop - 1} (default {DEFAULT_OPSET})",
+    )
     p.add_argument("--format", dest="fmt", default="both", choices=list(FORMATS), help="graphs to write (default both)")
-    p.add_argument("--no-ema", action="store_true", help="export the raw weights (RUN_DIR/checkpoint/model.safetensors), not the EMA ones")
-    p.add_argument("--quantize", nargs="+", metavar="PRECISION", choices=[*QUANTIZED, "none"],
-                   help=f"quantized graphs to write beside the fp32 ONNX ones: {' '.join(QUANTIZED)} (default: both) or none")
-    p.add_argument("--no-fused", action="store_true",
-                   help="do not write the *.fused.onnx graphs (written by default when the fused Mamba kernel loads)")
+    p.add_argument(
+        "--no-ema",
+        action="store_true",
+        help="export the raw weights (RUN_DIR/checkpoint/model.safetensors), not the EMA ones",
+    )
+    p.add_argument(
+        "--quantize",
+        nargs="+",
+        metavar="PRECISION",
+        choices=[*QUANTIZED, "none"],
+        help=f"quantized graphs to write beside the fp32 ONNX ones: {' '.join(QUANTIZED)} (default: both) or none",
+    )
+    p.add_argument(
+        "--no-fused",
+        action="store_true",
+        help="do not write the *.fused.onnx graphs (written by default when the fused Mamba kernel loads)",
+    )
     p.add_argument("--skip-verify", action="store_true", help="do not stream the parity check before finishing")
-    p.add_argument("--verify-steps", type=int, default=1000, help="control ticks the parity check streams (default 1000)")
+    p.add_argument(
+        "--verify-steps", type=int, default=1000, help="control ticks the parity check streams (default 1000)"
+    )
     p.add_argument("--threads", type=int, help="threads for the parity check (default: all CPUs of this process)")
-    p.add_argument("--inpainting", action="store_true",
-                   help="the denoiser also takes the committed actions and their weights, for real-time chunking "
-                        "(dssp-run --smoothing rtc); zero weights give the plain chain")
+    p.add_argument(
+        "--inpainting",
+        action="store_true",
+        help="the denoiser also takes the committed actions and their weights, for real-time chunking "
+        "(dssp-run --smoothing rtc); zero weights give the plain chain",
+    )
     p.add_argument("--force", action="store_true", help="replace MODEL_DIR when it holds a previous export")
     return p
 

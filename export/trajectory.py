@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from dssp_train.config import RunConfig
 from dssp_core.errors import DSSPError
+from dssp_train.config import RunConfig
 
 
 @dataclass
@@ -55,7 +55,9 @@ def load_trajectory(config: RunConfig, normalizers: dict, steps: int, seed: int 
     return synthetic_trajectory(m.n_points, m.point_dim, normalizers, steps, seed, reason)
 
 
-def synthetic_trajectory(n_points: int, point_dim: int, normalizers: dict, steps: int, seed: int, reason: str = "") -> Trajectory:
+def synthetic_trajectory(
+    n_points: int, point_dim: int, normalizers: dict, steps: int, seed: int, reason: str = ""
+) -> Trajectory:
     """A drifting cloud (T, P, C) and a random walk (T, S) inside the normalisers' fitted ranges."""
     rng = np.random.default_rng(seed)
     pc_lo, pc_hi = (np.asarray(normalizers["point_cloud"][k], dtype=np.float64) for k in ("input_min", "input_max"))

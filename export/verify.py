@@ -69,12 +69,21 @@ import numpy as np
 from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import ExportError, ParityError
 from dssp_core.output_guard import check_output_file, write_output_text
-from dssp_deploy.manifest import (DENOISER_GRAPH, FUSED, HISTORY_GRAPH, PRECISIONS, Manifest, file_kind, no_inpainting,
-                                   read_graph, read_manifest)
-from export.manifest_writer import architecture
+from dssp_deploy.manifest import (
+    DENOISER_GRAPH,
+    FUSED,
+    HISTORY_GRAPH,
+    PRECISIONS,
+    Manifest,
+    file_kind,
+    no_inpainting,
+    read_graph,
+    read_manifest,
+)
 from dssp_deploy.sessions import check_threads, default_threads
 from dssp_train.config import TIMESTEP_SPACINGS
 from export.graph_streams import GraphFn, GraphStream, RuntimeStream, torchscript_graph
+from export.manifest_writer import architecture
 from export.trajectory import load_trajectory
 from export.verify_report import ACTION_UNITS, MODEL_UNITS, check_report, format_report
 
@@ -84,6 +93,8 @@ CHUNKS = 8  # action chunks compared by default, spread over the trajectory
 BLOCK = 64  # ticks per block of the reference's sequence path, chunks per batch of its denoiser
 TRACE_CHECKS = 3  # rows of the TorchScript check: the traces were made with batch 2
 MAX_FLAGGED = 4  # chunks above the bound evaluated in float64
+
+
 # ------------------------------------------------------------------ helpers
 def worst(got, want, scale: np.ndarray | None = None) -> tuple[float, tuple[int, ...] | None]:
     """Max abs difference, times ``scale`` (broadcast on the last axis) if given, and where it is.
@@ -123,7 +134,9 @@ def load_checked_policy(manifest: Manifest, run_dir: Path):
 
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
-        raise ExportError(f"run directory {run_dir} does not exist; pass the dssp-train --out directory the model was exported from")
+        raise ExportError(
+            f"run directory {run_dir} does not exist; pass the dssp-train --out directory the model was exported from"
+        )
     source = manifest.source  # checked by read_manifest: weights is a name inside the run directory
     weights = source.weights
     path = run_dir / weights
@@ -141,8 +154,13 @@ def load_checked_policy(manifest: Manifest, run_dir: Path):
     if spacing in TIMESTEP_SPACINGS:
         config.model.diffusion.timestep_spacing = spacing
     c = manifest.contract
-    if architecture(config.model) != manifest.data["model_config"] or config.contract(c.ddim_timesteps, c.inpainting) != c:
-        raise ExportError(f"{run_dir}/config.json does not describe the exported model; pass the run directory it was exported from")
+    if (
+        architecture(config.model) != manifest.data["model_config"]
+        or config.contract(c.ddim_timesteps, c.inpainting) != c
+    ):
+        raise ExportError(
+            f"{run_dir}/config.json does not describe the exported model; pass the run directory it was exported from"
+        )
     return policy, config
 
 
@@ -177,8 +195,9 @@ class Reference:
     chunks: np.ndarray
 
 
-def pytorch_reference(policy, point_cloud: np.ndarray, agent_pos: np.ndarray, ticks: list[int], noise: np.ndarray,
-                      num_steps: int) -> Reference:
+def pytorch_reference(
+    policy, point_cloud: np.ndarray, agent_pos: np.ndarray, ticks: list[int], noise: np.ndarray, num_steps: int
+) -> Reference:
     """The training path over one episode: point_cloud (T, P, C), agent_pos (T, S), chunk ``ticks`` (K,),
     noise (K, B, H, A) → :class:`Reference`. Every chunk's denoiser call is one batch (in blocks of ``BLOCK``)."""
     import torch  # deferred: loads torch, tqdm
@@ -186,13 +205,26 @@ def pytorch_reference(policy, point_cloud: np.ndarray, agent_pos: np.ndarray, ti
     steps = agent_pos.shape[0]
     with torch.no_grad():
         pc, pos = torch.from_numpy(point_cloud), torch.from_numpy(agent_pos)
-        z = torch.cat([policy.encode_observations(pc[None, i : i + BLOCK], pos[None, i : i + BLOCK]) for i in range(0, steps, BLOCK)], dim=1)
+        z = torch.cat(
+            [
+                policy.encode_observations(pc[None, i : i + BLOCK], pos[None, i : i + BLOCK])
+                for i in range(0, steps, BLOCK)
+            ],
+            dim=1,
+        )
         c, state = None, []
         encoder = policy.history_encoder
         if encoder is not None and encoder.window:  # exportable: a Mamba stack over a window of T_h steps
-            c = torch.cat([encoder(z[:, max(0, i - encoder.window + 1) : i + BLOCK])[:, min(i, encoder.window - 1):]
-                           for i in range(0, steps, BLOCK)], dim=1)  # (1, T, d): each block with the window before it
-            last = (torch.arange(steps - encoder.window, steps)).clamp(min=0)  # the final window, the first z before the start
+            c = torch.cat(
+                [
+                    encoder(z[:, max(0, i - encoder.window + 1) : i + BLOCK])[:, min(i, encoder.window - 1) :]
+                    for i in range(0, steps, BLOCK)
+                ],
+                dim=1,
+            )  # (1, T, d): each block with the window before it
+            last = (torch.arange(steps - encoder.window, steps)).clamp(
+                min=0
+            )  # the final window, the first z before the start
             state = [z[:, last].numpy(), np.full((1, 1), min(steps, encoder.window), np.float32)]  # z_window, z_seen
         elif encoder is not None:  # exportable: a Mamba stack over the full history
             net, parts, layers = encoder.net, [], None
@@ -208,10 +240,14 @@ def pytorch_reference(policy, point_cloud: np.ndarray, agent_pos: np.ndarray, ti
         count, batch = noise.shape[:2]
         prefix = policy.build_prefix(context, recent).repeat_interleave(batch, dim=0)  # (K B, L_p, d)
         flat_noise = torch.from_numpy(noise.reshape(count * batch, *noise.shape[2:]))
-        chunks = torch.cat([
-            policy.normalizers["action"].unnormalize(policy.sample_normalized(prefix[i : i + BLOCK], flat_noise[i : i + BLOCK], num_steps))
-            for i in range(0, count * batch, BLOCK)
-        ])
+        chunks = torch.cat(
+            [
+                policy.normalizers["action"].unnormalize(
+                    policy.sample_normalized(prefix[i : i + BLOCK], flat_noise[i : i + BLOCK], num_steps)
+                )
+                for i in range(0, count * batch, BLOCK)
+            ]
+        )
     return Reference(
         z=z[0].numpy(),
         c=None if c is None else c[0].numpy(),
@@ -240,7 +276,6 @@ def verify_model(
     """
     import torch  # deferred: loads torch, tqdm
 
-
     if steps < 1:
         raise ExportError(f"--steps must be >= 1, got {steps}")
     if chunks < 0:
@@ -255,13 +290,19 @@ def verify_model(
         traj = load_trajectory(config, manifest.normalizers, steps, seed)
         ticks, n_ticks = chunk_ticks(traj.length, manifest.contract.n_action_steps, chunks)
         rng = np.random.default_rng(seed)
-        noise = rng.standard_normal((len(ticks), batch, manifest.contract.horizon, manifest.contract.action_dim)).astype(np.float32)
+        noise = rng.standard_normal(
+            (len(ticks), batch, manifest.contract.horizon, manifest.contract.action_dim)
+        ).astype(np.float32)
         started = time.perf_counter()
-        reference = pytorch_reference(policy, traj.point_cloud, traj.agent_pos, ticks, noise, manifest.contract.denoise_steps)
+        reference = pytorch_reference(
+            policy, traj.point_cloud, traj.agent_pos, ticks, noise, manifest.contract.denoise_steps
+        )
         reference_s = time.perf_counter() - started
         if progress:
-            progress(f"PyTorch reference on the training path: {traj.length} steps, {len(ticks)} of {n_ticks} chunks "
-                     f"({reference_s:.1f} s); streaming the exported graphs ({traj.source})")
+            progress(
+                f"PyTorch reference on the training path: {traj.length} steps, {len(ticks)} of {n_ticks} chunks "
+                f"({reference_s:.1f} s); streaming the exported graphs ({traj.source})"
+            )
         report = _stream_and_compare(model_dir, manifest, policy, traj, reference, ticks, noise, threads, batch)
         report["seconds"] = {"reference": round(reference_s, 2), **report["seconds"]}
         report.update(chunk_ticks_total=n_ticks, seed=seed)
@@ -270,7 +311,9 @@ def verify_model(
         torch.set_num_threads(before)
 
 
-def _open_backends(model_dir: Path, manifest: Manifest, threads: int) -> tuple[dict[str, Any], dict[str, dict[str, GraphFn]]]:
+def _open_backends(
+    model_dir: Path, manifest: Manifest, threads: int
+) -> tuple[dict[str, Any], dict[str, dict[str, GraphFn]]]:
     """(streamed backends by file kind, the main one first; TorchScript graph functions to check in batch, or {}).
 
     Every ONNX kind the model directory has is streamed through the robot's runtime: ``onnx`` (the main
@@ -278,7 +321,11 @@ def _open_backends(model_dir: Path, manifest: Manifest, threads: int) -> tuple[d
     both paths (figures against fp32, not bounded).
     """
     graphs = (HISTORY_GRAPH, DENOISER_GRAPH)
-    kinds = [kind for kind in manifest.graphs[HISTORY_GRAPH]["files"] if all(kind in manifest.graphs[g]["files"] for g in graphs)]
+    kinds = [
+        kind
+        for kind in manifest.graphs[HISTORY_GRAPH]["files"]
+        if all(kind in manifest.graphs[g]["files"] for g in graphs)
+    ]
     if not ("onnx" in kinds or "torchscript" in kinds):
         raise ExportError(f"{model_dir} lists no ONNX or TorchScript graphs; export the model again")
     streamed: dict[str, Any] = {}
@@ -295,7 +342,9 @@ def _open_backends(model_dir: Path, manifest: Manifest, threads: int) -> tuple[d
         streamed = {"onnx": RuntimeStream(model_dir, threads), **streamed}  # the robot's own runtime code
     for kind, (precision, fused) in onnx_kinds.items():
         if kind != "onnx" and kind in kinds:
-            streamed[kind] = RuntimeStream(model_dir, threads, precision=precision, kernel="fused" if fused else "standard")
+            streamed[kind] = RuntimeStream(
+                model_dir, threads, precision=precision, kernel="fused" if fused else "standard"
+            )
     return streamed, traced
 
 
@@ -314,13 +363,22 @@ class Streamed:
     times: dict[str, dict[str, list[float]]]
 
 
-def stream(backends: dict[str, Any], point_cloud: np.ndarray, agent_pos: np.ndarray, ticks: list[int], noise: np.ndarray) -> Streamed:
+def stream(
+    backends: dict[str, Any], point_cloud: np.ndarray, agent_pos: np.ndarray, ticks: list[int], noise: np.ndarray
+) -> Streamed:
     """Every tick through every backend (B copies of point_cloud (T, P, C), agent_pos (T, S)); a chunk from
     noise (K, B, H, A) at each compared tick. The first backend is the main one."""
     main = next(iter(backends))
     batch = noise.shape[1]
-    out = Streamed({n: [] for n in backends}, {n: [] for n in backends}, {n: [] for n in backends}, {}, [], [],
-                   {n: {"history_step": [], "denoiser": []} for n in backends})
+    out = Streamed(
+        {n: [] for n in backends},
+        {n: [] for n in backends},
+        {n: [] for n in backends},
+        {},
+        [],
+        [],
+        {n: {"history_step": [], "denoiser": []} for n in backends},
+    )
     at = {t: k for k, t in enumerate(ticks)}
     for t in range(agent_pos.shape[0]):
         pc = np.repeat(point_cloud[t][None], batch, axis=0)  # (B, P, C)
@@ -342,8 +400,9 @@ def stream(backends: dict[str, Any], point_cloud: np.ndarray, agent_pos: np.ndar
     return out
 
 
-def compare_streamed(name: str, got: Streamed, ref: Reference, ticks: list[int], scale: np.ndarray,
-                     state_names: list[str]) -> tuple[dict[str, float], dict[str, dict | None]]:
+def compare_streamed(
+    name: str, got: Streamed, ref: Reference, ticks: list[int], scale: np.ndarray, state_names: list[str]
+) -> tuple[dict[str, float], dict[str, dict | None]]:
     """(errors, where) of one streamed backend: z_t and c_t at every tick, the state after the last tick
     (model units), the compared chunks (normalised action units: raw error times ``scale`` (A,))."""
     steps = len(got.z[name])
@@ -363,8 +422,17 @@ def compare_streamed(name: str, got: Streamed, ref: Reference, ticks: list[int],
     return errors, where
 
 
-def check_traces(fns: dict[str, GraphFn], manifest: Manifest, point_cloud: np.ndarray, agent_pos: np.ndarray,
-                 ref: Reference, ticks: list[int], noise: np.ndarray, states_before: list, scale: np.ndarray):
+def check_traces(
+    fns: dict[str, GraphFn],
+    manifest: Manifest,
+    point_cloud: np.ndarray,
+    agent_pos: np.ndarray,
+    ref: Reference,
+    ticks: list[int],
+    noise: np.ndarray,
+    states_before: list,
+    scale: np.ndarray,
+):
     """TorchScript beside ONNX: both graphs once, on a batch of TRACE_CHECKS compared ticks (first, middle, last).
 
     The history graph gets each tick's observation and the streamed main backend's state before it; the
@@ -376,15 +444,24 @@ def check_traces(fns: dict[str, GraphFn], manifest: Manifest, point_cloud: np.nd
     specs = manifest.graphs[HISTORY_GRAPH]["inputs"][2:]
     feeds = {"point_cloud": point_cloud[at], "agent_pos": agent_pos[at]}
     for i, spec in enumerate(specs):
-        feeds[spec["name"]] = np.concatenate([
-            states_before[r][i][:1] if states_before[r] else np.zeros([1, *spec["shape"][1:]], np.float32) for r in rows
-        ])
+        feeds[spec["name"]] = np.concatenate(
+            [
+                states_before[r][i][:1] if states_before[r] else np.zeros([1, *spec["shape"][1:]], np.float32)
+                for r in rows
+            ]
+        )
     out = fns[HISTORY_GRAPH](feeds)
     e_z = worst(out[0], ref.z[at])  # (R, d)
     e_c = worst(out[1], ref.c[at]) if ref.c is not None else (0.0, None)
-    available = {"c_t": None if ref.context is None else ref.context[rows], "z_recent": ref.recent[rows], "noise": noise[rows, 0],
-                 **no_inpainting(manifest.contract, len(rows))}
-    chunks = fns[DENOISER_GRAPH]({s["name"]: available[s["name"]] for s in manifest.graphs[DENOISER_GRAPH]["inputs"]})[0]
+    available = {
+        "c_t": None if ref.context is None else ref.context[rows],
+        "z_recent": ref.recent[rows],
+        "noise": noise[rows, 0],
+        **no_inpainting(manifest.contract, len(rows)),
+    }
+    chunks = fns[DENOISER_GRAPH]({s["name"]: available[s["name"]] for s in manifest.graphs[DENOISER_GRAPH]["inputs"]})[
+        0
+    ]
     e_a = worst(chunks, ref.chunks[rows, 0], scale)  # (R, H, A)
     errors = {"z_t": e_z[0], "c_t": e_c[0], "state": None, "action": e_a[0]}
     where = {
@@ -396,8 +473,9 @@ def check_traces(fns: dict[str, GraphFn], manifest: Manifest, point_cloud: np.nd
     return errors, where, rows, chunks
 
 
-def _stream_and_compare(model_dir, manifest, policy, traj, ref: Reference, ticks: list[int], noise: np.ndarray,
-                        threads: int, batch: int) -> dict[str, Any]:
+def _stream_and_compare(
+    model_dir, manifest, policy, traj, ref: Reference, ticks: list[int], noise: np.ndarray, threads: int, batch: int
+) -> dict[str, Any]:
     backends, traced = _open_backends(model_dir, manifest, threads)
     main = next(iter(backends))  # the deployed graphs: ONNX (or TorchScript when it is all there is)
     clock = time.perf_counter()
@@ -413,7 +491,15 @@ def _stream_and_compare(model_dir, manifest, policy, traj, ref: Reference, ticks
     trace, checked = None, {}
     if traced:
         errors["torchscript"], where["torchscript"], rows, t_chunks = check_traces(
-            traced["torchscript"], manifest, traj.point_cloud, traj.agent_pos, ref, ticks, noise, got.states_before, scale
+            traced["torchscript"],
+            manifest,
+            traj.point_cloud,
+            traj.agent_pos,
+            ref,
+            ticks,
+            noise,
+            got.states_before,
+            scale,
         )
         trace, checked = (rows, t_chunks), {"torchscript": [ticks[r] for r in rows]}
     seconds["batch_checks"] = round(time.perf_counter() - clock, 2)
@@ -443,16 +529,22 @@ def _stream_and_compare(model_dir, manifest, policy, traj, ref: Reference, ticks
         "errors": errors,
         "where": where,
         "worst": worst_value,
-        "worst_at": {"backend": worst_name, "figure": worst_figure,
-                     "units": ACTION_UNITS if worst_figure == "action" else MODEL_UNITS,
-                     **(where[worst_name][worst_figure] or {})},
+        "worst_at": {
+            "backend": worst_name,
+            "figure": worst_figure,
+            "units": ACTION_UNITS if worst_figure == "action" else MODEL_UNITS,
+            **(where[worst_name][worst_figure] or {}),
+        },
         "action_float64_check": check,
         "passed": bool(worst_value <= BOUND),
         "latency_ms": {name: {graph: _median_ms(ts) for graph, ts in per.items()} for name, per in got.times.items()},
         "seconds": seconds,
     }
-    quantized = {name: _quantized_figures(manifest, got, name, scale, report["latency_ms"]) for name in backends
-                 if name not in (main, *BOUNDED_ALSO) and name != "torchscript"}
+    quantized = {
+        name: _quantized_figures(manifest, got, name, scale, report["latency_ms"])
+        for name in backends
+        if name not in (main, *BOUNDED_ALSO) and name != "torchscript"
+    }
     if quantized:
         report["quantized"] = quantized
     return report
@@ -486,8 +578,16 @@ def _at_chunk(index: tuple[int, ...] | None, ticks: list[int]) -> dict[str, int]
     return None if index is None else {"step": ticks[index[0]], "horizon": index[-2], "channel": index[-1]}
 
 
-def _flagged(ref: Reference, ticks: list[int], noise: np.ndarray, scale: np.ndarray, main: str, main_chunks: list,
-             main_inputs: list[dict], trace: tuple[list[int], np.ndarray] | None) -> list[dict]:
+def _flagged(
+    ref: Reference,
+    ticks: list[int],
+    noise: np.ndarray,
+    scale: np.ndarray,
+    main: str,
+    main_chunks: list,
+    main_inputs: list[dict],
+    trace: tuple[list[int], np.ndarray] | None,
+) -> list[dict]:
     """The compared chunks where a graph's action error exceeds the bound, worst first (at most MAX_FLAGGED per graph).
 
     ``trace``: (rows, chunks (R, H, A)) of the TorchScript check, or None. Each entry: {"step", "inputs":
@@ -508,21 +608,28 @@ def _flagged(ref: Reference, ticks: list[int], noise: np.ndarray, scale: np.ndar
     err = (np.abs(np.stack(main_chunks).astype(np.float64) - ref.chunks) * scale).reshape(len(ticks), -1).max(axis=1)
     for k in over(err):
         got = main_inputs[k]
-        found.append({
-            "step": ticks[k],
-            "inputs": {"torch": ref_inputs(k, batch), main: (got.get("c_t"), got.get("z_recent", ref_inputs(k, batch)[1]), noise[k])},
-            "chunks": {"torch": ref.chunks[k], main: main_chunks[k]},
-        })
+        found.append(
+            {
+                "step": ticks[k],
+                "inputs": {
+                    "torch": ref_inputs(k, batch),
+                    main: (got.get("c_t"), got.get("z_recent", ref_inputs(k, batch)[1]), noise[k]),
+                },
+                "chunks": {"torch": ref.chunks[k], main: main_chunks[k]},
+            }
+        )
     if trace is not None:
         rows, chunks = trace
         err = (np.abs(chunks.astype(np.float64) - ref.chunks[rows, 0]) * scale).reshape(len(rows), -1).max(axis=1)
         for j in over(err):
             k = rows[j]
-            found.append({
-                "step": ticks[k],
-                "inputs": {"torch": ref_inputs(k, 1), "torchscript": ref_inputs(k, 1)},
-                "chunks": {"torch": ref.chunks[k, :1], "torchscript": chunks[j : j + 1]},
-            })
+            found.append(
+                {
+                    "step": ticks[k],
+                    "inputs": {"torch": ref_inputs(k, 1), "torchscript": ref_inputs(k, 1)},
+                    "chunks": {"torch": ref.chunks[k, :1], "torchscript": chunks[j : j + 1]},
+                }
+            )
     return found
 
 
@@ -566,13 +673,23 @@ def _ratio(a: float | None, b: float | None) -> float | None:
 
 # ---------------------------------------------------------------------- CLI
 def build_parser() -> argparse.ArgumentParser:
-    p = ArgumentParser(prog="python -m export.verify", description="Check an exported model directory against its checkpoint.")
+    p = ArgumentParser(
+        prog="python -m export.verify", description="Check an exported model directory against its checkpoint."
+    )
     p.add_argument("model_dir", help="the exported model directory (dssp_model.json)")
-    p.add_argument("--checkpoint", required=True, metavar="RUN_DIR", help="the dssp-train run directory it was exported from")
+    p.add_argument(
+        "--checkpoint", required=True, metavar="RUN_DIR", help="the dssp-train run directory it was exported from"
+    )
     p.add_argument("--steps", type=int, default=1000, help="control ticks to stream (default 1000)")
-    p.add_argument("--chunks", type=int, default=CHUNKS,
-                   help=f"action chunks to compare, spread over the trajectory (default {CHUNKS}; 0: every chunk)")
-    p.add_argument("--threads", type=int, help="ONNX Runtime and torch intra-op threads (default: all CPUs of this process)")
+    p.add_argument(
+        "--chunks",
+        type=int,
+        default=CHUNKS,
+        help=f"action chunks to compare, spread over the trajectory (default {CHUNKS}; 0: every chunk)",
+    )
+    p.add_argument(
+        "--threads", type=int, help="ONNX Runtime and torch intra-op threads (default: all CPUs of this process)"
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of the noise (and of a synthetic trajectory)")
     p.add_argument("--batch", type=int, default=1, help="stream B copies of the trajectory at once (default 1)")
     p.add_argument("--json", metavar="PATH", help="also write the report as JSON")
@@ -593,11 +710,21 @@ def main(argv: list[str] | None = None) -> int:
             raise ExportError(f"--chunks must be >= 0 (0: every chunk), got {args.chunks}")
         if args.json:
             check_output_file(args.json, force=args.force, flag="--json", error=ExportError)
-        report = verify_model(Path(args.model_dir), Path(args.checkpoint), args.steps, args.threads, args.seed, args.batch,
-                              print, chunks=args.chunks)
+        report = verify_model(
+            Path(args.model_dir),
+            Path(args.checkpoint),
+            args.steps,
+            args.threads,
+            args.seed,
+            args.batch,
+            print,
+            chunks=args.chunks,
+        )
         print(format_report(report))
         if args.json:
-            write_output_text(args.json, json.dumps(report, indent=2) + "\n", force=args.force, flag="--json", error=ExportError)
+            write_output_text(
+                args.json, json.dumps(report, indent=2) + "\n", force=args.force, flag="--json", error=ExportError
+            )
         try:
             check_report(report)
         except ParityError as exc:

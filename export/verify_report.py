@@ -9,7 +9,6 @@ from typing import Any
 
 from dssp_core.errors import ParityError
 
-
 FIGURES = ("z_t", "c_t", "state", "action")
 ACTION_UNITS = "normalised action units (1 = half the channel's fitted range)"
 MODEL_UNITS = "model units"
@@ -43,15 +42,22 @@ def format_report(report: dict[str, Any]) -> str:
     shown = ", ".join(map(str, ticks)) if len(ticks) <= 8 else ", ".join(map(str, ticks[:6])) + f", ..., {ticks[-1]}"
     total = report.get("chunk_ticks_total", report["chunks"])
     lines = [
-        (f"parity over {report['steps']} steps x batch {report['batch']} ({report['trajectory']}): the exported graphs "
-         f"vs PyTorch fp32 on the training path, max abs error, bound {report['bound']:g}"),
-        (f"  reference: z_t and c_t of every step (c_t from the sequence path over the whole trajectory), "
-         f"{report['chunks']} of {total} chunks (steps {shown}) in one batch, same noise"),
+        (
+            f"parity over {report['steps']} steps x batch {report['batch']} ({report['trajectory']}): the exported graphs "
+            f"vs PyTorch fp32 on the training path, max abs error, bound {report['bound']:g}"
+        ),
+        (
+            f"  reference: z_t and c_t of every step (c_t from the sequence path over the whole trajectory), "
+            f"{report['chunks']} of {total} chunks (steps {shown}) in one batch, same noise"
+        ),
         f"  {'':<12}" + "".join(f"{f:>11}" for f in FIGURES),
     ]
     for name, e in report["errors"].items():
-        how = (f"one batch at steps {', '.join(map(str, report['batch_checked'][name]))}, denoiser on the reference's inputs"
-               if name in report["batch_checked"] else "streamed; state after the last step")
+        how = (
+            f"one batch at steps {', '.join(map(str, report['batch_checked'][name]))}, denoiser on the reference's inputs"
+            if name in report["batch_checked"]
+            else "streamed; state after the last step"
+        )
         cells = "".join(f"{e[f]:>11.2e}" if e[f] is not None else f"{'-':>11}" for f in FIGURES)
         lines.append(f"  {name:<12}{cells}   ({how})")
     lines.append(f"  units: z_t, c_t, state in {MODEL_UNITS}; action in {ACTION_UNITS}")
@@ -76,7 +82,9 @@ def format_report(report: dict[str, Any]) -> str:
     if "seconds" in report:
         lines.append("  time, s: " + ", ".join(f"{k.replace('_', ' ')} {v:.1f}" for k, v in report["seconds"].items()))
     verdict = "<=" if report["passed"] else ">"
-    lines.append(f"  {'PASS' if report['passed'] else 'FAIL'}: worst {describe_worst(report)} {verdict} bound {report['bound']:g}")
+    lines.append(
+        f"  {'PASS' if report['passed'] else 'FAIL'}: worst {describe_worst(report)} {verdict} bound {report['bound']:g}"
+    )
     return "\n".join(lines)
 
 
@@ -85,8 +93,10 @@ def check_report(report: dict[str, Any]) -> None:
     if report["passed"]:
         return
     w = report["worst_at"]
-    what = (f"{w['backend']} {w['figure']} differs from PyTorch fp32 by {report['worst']:.2e} {_units(w['figure'])}"
-            f"{_place(w)}, above the bound {report['bound']:g}")
+    what = (
+        f"{w['backend']} {w['figure']} differs from PyTorch fp32 by {report['worst']:.2e} {_units(w['figure'])}"
+        f"{_place(w)}, above the bound {report['bound']:g}"
+    )
     check = report.get("action_float64_check")
     others = [v for e in report["errors"].values() for f, v in e.items() if f != "action" and v is not None]
     if w["figure"] == "action" and check and check["graphs_vs_float64"] and max(others, default=0.0) <= report["bound"]:
@@ -95,8 +105,10 @@ def check_report(report: dict[str, Any]) -> None:
         ratio = graph64 / torch64 if torch64 > 0 else float("inf")
         measured = f"redone in float64 on each one's own inputs, PyTorch fp32 is {torch64:.1e} away and {name} {graph64:.1e} ({ratio:.1f}x)"
         if ratio <= 2.0:
-            advice = (f"{measured}: the model amplifies fp32 rounding as much in PyTorch, not the export; "
-                      "to keep the graphs anyway, export with --skip-verify")
+            advice = (
+                f"{measured}: the model amplifies fp32 rounding as much in PyTorch, not the export; "
+                "to keep the graphs anyway, export with --skip-verify"
+            )
         else:
             advice = f"{measured}: the exported graph loses precision; please report it with the run's config.json"
     else:

@@ -30,7 +30,6 @@ from collections.abc import Callable
 from pathlib import Path
 
 import can
-
 import numpy as np
 
 from dssp_core.errors import ArmError, CanError
@@ -65,7 +64,6 @@ class FollowerTracker(JointGripperTracker):
             return
         self.frames += 1
 
-
     def error(self) -> str | None:
         """What the latest 0x2A1 reports as a fault (e-stop, error status, error bits), or None."""
         s = self.status
@@ -77,7 +75,9 @@ class FollowerTracker(JointGripperTracker):
         if s.joint_limit_bits:
             problems.append("joint limit " + ",".join(f"J{i + 1}" for i in range(6) if s.joint_limit_bits >> i & 1))
         if s.comm_error_bits:
-            problems.append("communication error " + ",".join(f"J{i + 1}" for i in range(6) if s.comm_error_bits >> i & 1))
+            problems.append(
+                "communication error " + ",".join(f"J{i + 1}" for i in range(6) if s.comm_error_bits >> i & 1)
+            )
         return "; ".join(problems) or None
 
 
@@ -89,8 +89,15 @@ class BusMonitor:
     every frame; ``decoder.counts`` counts them by outcome. ``check()`` raises the receive thread's error.
     """
 
-    def __init__(self, channel: str, interface: str = "socketcan", *, clock: Callable[[], float] = time.monotonic,
-                 bus_options: dict | None = None, name: str | None = None) -> None:
+    def __init__(
+        self,
+        channel: str,
+        interface: str = "socketcan",
+        *,
+        clock: Callable[[], float] = time.monotonic,
+        bus_options: dict | None = None,
+        name: str | None = None,
+    ) -> None:
         self.channel, self.interface = channel, interface
         self.name = name or channel
         self.clock = clock
@@ -107,8 +114,15 @@ class BusMonitor:
         """Why the current episode's log stopped early, or None."""
         number = can.util.channel2int(self.name)
         self._log_channel = number if number is not None and 0 <= number <= 0xFFFF else None
-        self._reader = CanReader(channel, interface, bus_options, name=f"bus-monitor-{channel}",
-                                 on_frame=self._receive, counts=self.decoder.counts, on_error=self._wake)
+        self._reader = CanReader(
+            channel,
+            interface,
+            bus_options,
+            name=f"bus-monitor-{channel}",
+            on_frame=self._receive,
+            counts=self.decoder.counts,
+            on_error=self._wake,
+        )
 
     def __repr__(self) -> str:
         return f"BusMonitor({self.channel!r}, {self.interface!r})"
@@ -194,8 +208,9 @@ class BusMonitor:
             try:
                 bus.send(frame, timeout=send_timeout)
             except (can.CanError, OSError, ValueError) as exc:
-                raise CanError(f"sending the joint-limit query on {self.channel!r} failed ({exc}); check the CAN "
-                               "link") from exc
+                raise CanError(
+                    f"sending the joint-limit query on {self.channel!r} failed ({exc}); check the CAN link"
+                ) from exc
 
     def firmware_limits(self) -> FirmwareLimits:
         """The joint limits J1..J6 the follower's firmware reported since :meth:`start` (NaN where not yet)."""
@@ -220,8 +235,10 @@ class BusMonitor:
                 self.check()
                 left = deadline - time.monotonic()
                 if left <= 0:
-                    raise CanError(f"bus {self.channel!r}: {self.frames_received} of {n} expected frames arrived "
-                                   f"within {timeout:g} s")
+                    raise CanError(
+                        f"bus {self.channel!r}: {self.frames_received} of {n} expected frames arrived "
+                        f"within {timeout:g} s"
+                    )
                 self._lock.wait(min(left, 0.05))
 
     # ---- raw log ------------------------------------------------------------------------------------------

@@ -11,9 +11,8 @@ not see its own frames on another socket of the same process: record those from 
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import threading
+from pathlib import Path
 
 import can
 from can.util import channel2int

@@ -19,13 +19,13 @@ from collections.abc import Callable
 import numpy as np
 
 from dssp_core.errors import ConfigError
+from dssp_core.schema import check_rate
 from hardware.clock import REAL_CLOCK, Clock, FakeClock
 from hardware.ideal_robot import IdealRobot
+from hardware.piper.limits import piper_description
 from hardware.policies.recorded import RecordedEpisode
 from hardware.rig import Rig
-from dssp_core.schema import check_rate
 from hardware.robot import ARM_DOF
-from hardware.piper.limits import piper_description
 from hardware.run_loop import LoopSettings, Runner
 from hardware.safety import SafetyConfig
 from hardware.subscribers import Subscriber, Tick
@@ -49,8 +49,10 @@ class _ReplayWatch(Subscriber):
             return
         self.distance = float(np.max(np.abs(self.first_action - state.position)))
         if self.distance > FAR_START:
-            self.events(f"note: the first action is {self.distance:.2f} rad from {self.where}: the safety layer ramps it "
-                        f"by at most {loop.safety_config.max_joint_step} rad per tick")
+            self.events(
+                f"note: the first action is {self.distance:.2f} rad from {self.where}: the safety layer ramps it "
+                f"by at most {loop.safety_config.max_joint_step} rad per tick"
+            )
 
     def on_tick(self, tick: Tick) -> None:
         action, command = tick.record["action"], tick.record["command"]
@@ -58,11 +60,20 @@ class _ReplayWatch(Subscriber):
             self.largest = max(self.largest, float(np.max(np.abs(command - action))))
 
 
-def replay_episode(path, episode: int, can: str | None, *, send: bool = False, interface: str = "socketcan",
-                   control_rate_hz: float | None = None, safety_config: SafetyConfig = SafetyConfig(),
-                   events: Callable[[str], None] = print,
-                   attach_stop: Callable[[Callable[[str], None] | None], None] = lambda request: None,
-                   feedback_timeout: float = 3.0, clock: Clock | None = None) -> dict:
+def replay_episode(
+    path,
+    episode: int,
+    can: str | None,
+    *,
+    send: bool = False,
+    interface: str = "socketcan",
+    control_rate_hz: float | None = None,
+    safety_config: SafetyConfig = SafetyConfig(),
+    events: Callable[[str], None] = print,
+    attach_stop: Callable[[Callable[[str], None] | None], None] = lambda request: None,
+    feedback_timeout: float = 3.0,
+    clock: Clock | None = None,
+) -> dict:
     """Replay ``episode`` of dataset ``path``; returns a summary dict (ticks, commands sent, clips, holds,
     largest change the safety layer made, final tracking error when sent, what ended it). ``attach_stop`` is given
     the loop's stop request while the loop runs and None after (:meth:`hardware.cli.stops.Stops.during`): a stop
@@ -93,8 +104,13 @@ def replay_episode(path, episode: int, can: str | None, *, send: bool = False, i
     safety_config.check_speed(float(rate), robot.description.max_joint_speed)
     watch = _ReplayWatch(source.actions[0], "the recorded first state" if can is None else "the arm's position", events)
     rig = Rig(None, robot, np.eye(4), safety_config, clock=clock)
-    runner = Runner(source, rig, None, LoopSettings(control_rate_hz=rate, dry_run=can is not None and not send,
-                                                    startup_timeout=feedback_timeout), subscribers=[watch])
+    runner = Runner(
+        source,
+        rig,
+        None,
+        LoopSettings(control_rate_hz=rate, dry_run=can is not None and not send, startup_timeout=feedback_timeout),
+        subscribers=[watch],
+    )
     tracking = None
     attach_stop(runner.request_stop)
     try:
@@ -110,9 +126,18 @@ def replay_episode(path, episode: int, can: str | None, *, send: bool = False, i
         runner.close()
     counts = summary["events"]
     return {
-        "episode": episode, "steps": len(source.actions), "rate_hz": float(rate), "ticks": summary["ticks"],
-        "sent": summary["commands_sent"] if can is not None else 0, "dry_run": not send,
-        "holds": counts.get("hold", 0), "clips": counts.get("clip", 0), "refused": counts.get("refuse", 0),
-        "max_change": watch.largest, "tracking_error": tracking, "ended_by": summary["ended_by"],
-        "fault": summary["fault"], "start_distance": watch.distance,
+        "episode": episode,
+        "steps": len(source.actions),
+        "rate_hz": float(rate),
+        "ticks": summary["ticks"],
+        "sent": summary["commands_sent"] if can is not None else 0,
+        "dry_run": not send,
+        "holds": counts.get("hold", 0),
+        "clips": counts.get("clip", 0),
+        "refused": counts.get("refuse", 0),
+        "max_change": watch.largest,
+        "tracking_error": tracking,
+        "ended_by": summary["ended_by"],
+        "fault": summary["fault"],
+        "start_distance": watch.distance,
     }

@@ -89,7 +89,6 @@ class LeaderTracker(JointGripperTracker):
         self.frames += 1
 
 
-
 def leader_frames(target: np.ndarray, speed_percent: int = 100, gripper_effort: float = 1.0) -> list[can.Message]:
     """The frames a leader sends for one target (7,) in policy units: 0x151 (CAN command, joint mode,
     ``speed_percent``), 0x155..0x157 (joints, rad) and 0x159 (stroke = opening * 0.07 m, enable code).
@@ -98,9 +97,11 @@ def leader_frames(target: np.ndarray, speed_percent: int = 100, gripper_effort: 
     if target.shape != (7,) or not np.all(np.isfinite(target)):
         raise ValueError(f"a leader target is 7 finite values [J1..J6 rad, opening], got {target.tolist()}")
     stroke = float(opening_to_stroke(min(max(target[6], 0.0), 1.0)))
-    return ([codec.MotionCtrl2(codec.CTRL_MODE_CAN, codec.MOVE_MODE_J, speed_percent).to_frame()]
-            + codec.joint_ctrl_frames(target[:6])
-            + [codec.GripperCtrl(stroke, gripper_effort, codec.GRIPPER_ENABLE).to_frame()])
+    return (
+        [codec.MotionCtrl2(codec.CTRL_MODE_CAN, codec.MOVE_MODE_J, speed_percent).to_frame()]
+        + codec.joint_ctrl_frames(target[:6])
+        + [codec.GripperCtrl(stroke, gripper_effort, codec.GRIPPER_ENABLE).to_frame()]
+    )
 
 
 class ScriptedLeader:
@@ -112,8 +113,16 @@ class ScriptedLeader:
     every frame sent.
     """
 
-    def __init__(self, channel: str, interface: str = "virtual", *, script: Callable[[], np.ndarray | None] | None = None,
-                 speed_percent: int = 100, bus_options: dict | None = None, send_timeout: float = 0.05) -> None:
+    def __init__(
+        self,
+        channel: str,
+        interface: str = "virtual",
+        *,
+        script: Callable[[], np.ndarray | None] | None = None,
+        speed_percent: int = 100,
+        bus_options: dict | None = None,
+        send_timeout: float = 0.05,
+    ) -> None:
         self.channel, self.interface = channel, interface
         self.script = script
         self.speed_percent = int(speed_percent)
@@ -149,7 +158,9 @@ class ScriptedLeader:
             try:
                 bus.send(frame, timeout=self.send_timeout)
             except (can.CanError, OSError, ValueError) as exc:
-                raise CanError(f"scripted leader: sending 0x{frame.arbitration_id:03X} on {self.channel!r} failed ({exc})") from exc
+                raise CanError(
+                    f"scripted leader: sending 0x{frame.arbitration_id:03X} on {self.channel!r} failed ({exc})"
+                ) from exc
             self.frames_sent += 1
 
     def send(self, target: np.ndarray) -> None:

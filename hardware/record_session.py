@@ -86,10 +86,19 @@ class RecordSession(Subscriber):
     per event (episode started, kept, discarded, problems). status: shows the live one-line status (or None).
     """
 
-    def __init__(self, recorder: Recorder, dataset: RecordingDataset, monitors: Sequence[BusMonitor],
-                 clock: Clock, settings: SessionSettings, *, rig=None,
-                 events: Callable[[str], None] = print, status: Callable[[str], None] | None = None,
-                 session_tag: str | None = None) -> None:
+    def __init__(
+        self,
+        recorder: Recorder,
+        dataset: RecordingDataset,
+        monitors: Sequence[BusMonitor],
+        clock: Clock,
+        settings: SessionSettings,
+        *,
+        rig=None,
+        events: Callable[[str], None] = print,
+        status: Callable[[str], None] | None = None,
+        session_tag: str | None = None,
+    ) -> None:
         self.recorder, self.dataset, self.monitors = recorder, dataset, list(monitors)
         self.clock, self.settings, self.rig = clock, settings, rig
         self.events, self.status = events, status
@@ -191,8 +200,16 @@ class RecordSession(Subscriber):
             logs[monitor.name] = final.name
         self._partial_logs = []
         log_errors = {m.name: m.log_error for m in self.monitors if m.log_error}
-        info.update({"ended_by": ended_by, "task": self.settings.task, "can_logs": logs, "can_frames": frames,
-                     **({"can_log_errors": log_errors} if log_errors else {}), **(extra_info or {})})
+        info.update(
+            {
+                "ended_by": ended_by,
+                "task": self.settings.task,
+                "can_logs": logs,
+                "can_frames": frames,
+                **({"can_log_errors": log_errors} if log_errors else {}),
+                **(extra_info or {}),
+            }
+        )
         try:
             self.dataset.commit(episode, info)
         except (DSSPError, OSError) as exc:
@@ -211,7 +228,9 @@ class RecordSession(Subscriber):
     def _rescue(self, episode, info: dict, exc: BaseException) -> None:
         """The append failed: write the episode as a dataset of its own next to the dataset, so it is not lost."""
 
-        target = self.dataset.path.with_name(f"{self.dataset.path.name}.unsaved-{self.session_tag}-{len(self.summary.kept)}")
+        target = self.dataset.path.with_name(
+            f"{self.dataset.path.name}.unsaved-{self.session_tag}-{len(self.summary.kept)}"
+        )
         try:
             write_replay_buffer(target, [episode], {**self.dataset.writer.attrs, "episode_info": [info]})
             self.events(f"error: appending the episode failed ({exc}); it was saved to {target}")
@@ -307,10 +326,17 @@ class RecordSession(Subscriber):
                 raise DSSPError(f"{problem} (waited {self.settings.ready_timeout:g} s)")
         sample = rec.tick(tick.record["time"], scheduled=tick.scheduled)
         if self.status is not None:
-            self.status(f"ep {self.dataset.n_episodes}  " + rec.status_line(sample)
-                        + f"  kept {len(self.summary.kept)} discarded {self.summary.discarded}")
-        if rec.recording and not self.settings.auto and self.settings.max_steps is not None \
-                and rec.steps >= self.settings.max_steps:
+            self.status(
+                f"ep {self.dataset.n_episodes}  "
+                + rec.status_line(sample)
+                + f"  kept {len(self.summary.kept)} discarded {self.summary.discarded}"
+            )
+        if (
+            rec.recording
+            and not self.settings.auto
+            and self.settings.max_steps is not None
+            and rec.steps >= self.settings.max_steps
+        ):
             self._keep("max steps")
             if self._enough():
                 self._end(f"{len(self.summary.kept)} episodes kept")

@@ -35,6 +35,11 @@ from typing import ClassVar
 
 import numpy as np
 
+from dssp_core.errors import ConfigError, DSSPError
+from dssp_core.schema import Settings, check_rate, setting
+from dssp_data.dataset_layout import Episode
+from dssp_data.pointcloud import EmptyCloudError, PointCloudConfig, frame_to_cloud
+from dssp_data.pointcloud.depth_frame import DepthFrame
 from dssp_data.recording import (
     ACTION_CONVENTIONS,
     DEPTH_KEY,
@@ -45,15 +50,10 @@ from dssp_data.recording import (
     flags_summary,
     problem_names,
 )
-from dssp_data.dataset_layout import Episode
 from dssp_data.rerun_views import TickViews
-from dssp_core.errors import ConfigError, DSSPError
-from dssp_core.schema import Settings, check_rate, setting
 from hardware.bus_monitor import BusMonitor, oldest
-from dssp_data.pointcloud.depth_frame import DepthFrame
 from hardware.camera.base import Camera
 from hardware.pacing import RateMeter, latency_stats
-from dssp_data.pointcloud import EmptyCloudError, PointCloudConfig, frame_to_cloud
 
 _NAN = float("nan")
 
@@ -141,10 +141,19 @@ class Recorder:
     every recorded step (the caller closes them): depth, cloud, state, the action as the command, step problems.
     """
 
-    def __init__(self, camera: StampedCamera, monitors: Sequence[BusMonitor], cloud_config: PointCloudConfig,
-                 camera_to_base: np.ndarray, control_rate_hz: float, *, action_convention: str = "leader_command",
-                 thresholds: RecordThresholds = RecordThresholds(), store_depth: bool = True,
-                 views: TickViews | None = None) -> None:
+    def __init__(
+        self,
+        camera: StampedCamera,
+        monitors: Sequence[BusMonitor],
+        cloud_config: PointCloudConfig,
+        camera_to_base: np.ndarray,
+        control_rate_hz: float,
+        *,
+        action_convention: str = "leader_command",
+        thresholds: RecordThresholds = RecordThresholds(),
+        store_depth: bool = True,
+        views: TickViews | None = None,
+    ) -> None:
         if action_convention not in ACTION_CONVENTIONS:
             raise ConfigError(f"action convention {action_convention!r} is not one of {', '.join(ACTION_CONVENTIONS)}")
         check_rate(control_rate_hz)
@@ -179,8 +188,9 @@ class Recorder:
         state = None if any(r.position is None for r in followers) else np.concatenate([r.position for r in followers])
         command = None if any(r.position is None for r in leaders) else np.concatenate([r.position for r in leaders])
         errors = [f"{m.name}: {e}" for m in self.monitors if (e := m.follower_error())]
-        sample = Sample(now, frame, camera_time, state, oldest(followers), command, oldest(leaders),
-                        "; ".join(errors) or None)
+        sample = Sample(
+            now, frame, camera_time, state, oldest(followers), command, oldest(leaders), "; ".join(errors) or None
+        )
         th = self.thresholds
         if frame is None or not now - camera_time <= th.camera_age:
             sample.flags |= STEP_PROBLEMS["camera_stale"]
@@ -204,8 +214,12 @@ class Recorder:
         self._clouds: list[np.ndarray] = []
         self._states: list[np.ndarray] = []
         self._commands: list[np.ndarray] = []
-        self._times: dict[str, list[float]] = {"timestamp": [], "camera_timestamp": [], "state_timestamp": [],
-                                               "action_timestamp": []}
+        self._times: dict[str, list[float]] = {
+            "timestamp": [],
+            "camera_timestamp": [],
+            "state_timestamp": [],
+            "action_timestamp": [],
+        }
         self._frames: list[int] = []
         self._flags: list[int] = []
         self._depth: list[np.ndarray] = []
@@ -228,7 +242,9 @@ class Recorder:
             problems.append(f"no follower feedback on {', '.join(missing)} (is the follower arm powered?)")
         if self.needs_leader and sample.command is None:
             missing = [m.name for m in self.monitors if m.leader().position is None]
-            problems.append(f"no leader commands on {', '.join(missing)} (is the leader arm on the bus, in leader mode?)")
+            problems.append(
+                f"no leader commands on {', '.join(missing)} (is the leader arm on the bus, in leader mode?)"
+            )
         if sample.arm_error:
             problems.append(f"arm error: {sample.arm_error}")
         if sample.frame is not None:
@@ -289,8 +305,15 @@ class Recorder:
         for key in self._ages:
             self._ages[key].append(sample.age_ms(key))
         if self.views is not None:  # references to this step's arrays, never modified afterwards
-            self.views.tick(self.views.last_tick + 1, depth=frame.depth, depth_unit=frame.depth_unit, cloud=cloud,
-                            state=self._states[-1], command=self._commands[-1], events=problem_names(sample.flags))
+            self.views.tick(
+                self.views.last_tick + 1,
+                depth=frame.depth,
+                depth_unit=frame.depth_unit,
+                cloud=cloud,
+                state=self._states[-1],
+                command=self._commands[-1],
+                events=problem_names(sample.flags),
+            )
         for name, bit in STEP_PROBLEMS.items():
             if sample.flags & bit:
                 self.episode_counts[name] += 1
@@ -335,8 +358,9 @@ class Recorder:
         extras[FLAGS_KEY] = flags[keep]
         if self.store_depth:
             extras[DEPTH_KEY] = np.stack(self._depth)[keep]
-        episode = Episode(point_cloud=np.stack(self._clouds)[keep].astype(np.float32), state=state[keep],
-                          action=action, extras=extras)
+        episode = Episode(
+            point_cloud=np.stack(self._clouds)[keep].astype(np.float32), state=state[keep], action=action, extras=extras
+        )
         info = self._info(times["timestamp"], flags)
         self._reset_buffers()
         return episode, info

@@ -105,10 +105,12 @@ class Rig:
             if now > deadline:
                 silent = next(arm for arm in reported if arm.missing)
                 joints = ",".join(f"J{j + 1}" for j in silent.missing)
-                raise ArmError(f"{silent.arm} did not answer the joint-limit query (0x472) for {joints} within "
-                               f"{LIMIT_QUERY_TIMEOUT:g} s, so its firmware limits are unknown: check that it is "
-                               "powered and on this bus; an arm that sends feedback but never answers needs a newer "
-                               "firmware (AgileX's Piper tool), then start again")
+                raise ArmError(
+                    f"{silent.arm} did not answer the joint-limit query (0x472) for {joints} within "
+                    f"{LIMIT_QUERY_TIMEOUT:g} s, so its firmware limits are unknown: check that it is "
+                    "powered and on this bus; an arm that sends feedback but never answers needs a newer "
+                    "firmware (AgileX's Piper tool), then start again"
+                )
             if now >= next_query:
                 robot.query_firmware_limits()
                 next_query = now + LIMIT_QUERY_REPEAT

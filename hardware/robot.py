@@ -16,6 +16,7 @@ from dssp_data.observation import VectorLayout
 
 ARM_DOF = 7  # J1..J6 + gripper
 
+
 @dataclass(frozen=True)
 class ArmStatus:
     """Status of one arm, decoded from its feedback."""
@@ -87,9 +88,16 @@ class RobotDescription:
 
     def to_dict(self) -> dict:
         """JSON-ready (the run log states the robot it ran on)."""
-        return {"model": self.model, "arms": self.layout.arms, "channels": list(self.layout.channels),
-                "lower": self.lower.tolist(), "upper": self.upper.tolist(), "gripper": self.gripper.tolist(),
-                "max_joint_speed": self.max_joint_speed, "feedback_hz": self.feedback_hz}
+        return {
+            "model": self.model,
+            "arms": self.layout.arms,
+            "channels": list(self.layout.channels),
+            "lower": self.lower.tolist(),
+            "upper": self.upper.tolist(),
+            "gripper": self.gripper.tolist(),
+            "max_joint_speed": self.max_joint_speed,
+            "feedback_hz": self.feedback_hz,
+        }
 
 
 @dataclass(frozen=True)

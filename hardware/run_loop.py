@@ -40,17 +40,17 @@ from __future__ import annotations
 
 import time
 from collections import Counter
-from dataclasses import dataclass
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from dssp_deploy.ranges import ChunkOutOfRange, ObservationOutOfRange
 from dssp_core.errors import CameraError, ConfigError, DSSPError, NonFiniteObservation
 from dssp_core.schema import DEFAULT_CONTROL_RATE_HZ, check_rate
-from hardware.pacing import Pacer, RateMeter, latency_stats
 from dssp_data.pointcloud import EmptyCloudError, PointCloudConfig, frame_to_cloud
+from dssp_deploy.ranges import ChunkOutOfRange, ObservationOutOfRange
+from hardware.pacing import Pacer, RateMeter, latency_stats
 from hardware.policies import PolicySource
 from hardware.rig import Rig
 from hardware.safety import Safety, SafetyViolation
@@ -74,8 +74,14 @@ class LoopSettings:
 
 
 class Runner:
-    def __init__(self, source: PolicySource, rig: Rig, cloud_config: PointCloudConfig | None, settings: LoopSettings,
-                 subscribers: Sequence[Subscriber] = ()):
+    def __init__(
+        self,
+        source: PolicySource,
+        rig: Rig,
+        cloud_config: PointCloudConfig | None,
+        settings: LoopSettings,
+        subscribers: Sequence[Subscriber] = (),
+    ):
         """``source``: what decides the action (:mod:`hardware.policies`; checked here against the robot and the
         point-cloud pipeline). ``rig``: the camera, the arms, the safety settings and the clock
         (:class:`hardware.rig.Rig`; opened by the caller, ``with rig:``), the limits the robot's own unless the rig
@@ -84,8 +90,10 @@ class Runner:
         tick — the episode log, the status line, Rerun views, … (:mod:`hardware.subscribers`), told in this order;
         :meth:`close` gives them the summary."""
         if source.needs_cloud and (rig.camera is None or cloud_config is None):
-            raise ConfigError(f"the policy source {source.name!r} needs point clouds: give the rig a camera and the loop "
-                              "the point-cloud settings")
+            raise ConfigError(
+                f"the policy source {source.name!r} needs point clouds: give the rig a camera and the loop "
+                "the point-cloud settings"
+            )
         source.check(rig.description, cloud_config)
         self.source, self.rig, self.camera, self.robot = source, rig, rig.camera, rig.robot
         self.cloud_config, self.camera_to_base = cloud_config, rig.camera_to_base
@@ -129,7 +137,9 @@ class Runner:
         timeout = self.settings.startup_timeout
         deadline = self.clock.now() + timeout
         if self.source.needs_cloud and self._wait(self.camera.latest, deadline) is None and self.stop_reason is None:
-            raise CameraError(f"{self.camera.name}: no frame within {timeout:g} s; check the cable/USB3 port or the recording")
+            raise CameraError(
+                f"{self.camera.name}: no frame within {timeout:g} s; check the cable/USB3 port or the recording"
+            )
         state = self._wait(self.robot.state, deadline)
         if self.stop_reason is not None:
             return
@@ -165,7 +175,14 @@ class Runner:
         w0 = time.perf_counter()
         frame = self.camera.latest() if self.camera is not None else None
         state = self.robot.state()
-        record: dict[str, Any] = {"tick": self.ticks, "time": t0, "state": None, "action": None, "command": None, "held": False}
+        record: dict[str, Any] = {
+            "tick": self.ticks,
+            "time": t0,
+            "state": None,
+            "action": None,
+            "command": None,
+            "held": False,
+        }
         cloud = None
         action = None
         new_chunk = None
@@ -196,9 +213,14 @@ class Runner:
         if observed:
             try:
                 act = self.source.act(cloud, state.position)
-            except (NonFiniteObservation, ObservationOutOfRange) as exc:  # refused before the history saw it: no observation, hold
+            except (
+                NonFiniteObservation,
+                ObservationOutOfRange,
+            ) as exc:  # refused before the history saw it: no observation, hold
                 cloud, record["events"] = None, [f"no observation: {exc}"]
-                self.event_counts["non_finite_observation" if isinstance(exc, NonFiniteObservation) else "observation_out_of_range"] += 1
+                self.event_counts[
+                    "non_finite_observation" if isinstance(exc, NonFiniteObservation) else "observation_out_of_range"
+                ] += 1
             except ChunkOutOfRange as exc:  # refused, the tick undone: no action, hold
                 cloud, record["events"] = None, [f"no action: {exc}"]
                 self.event_counts["chunk_out_of_range"] += 1
@@ -243,7 +265,9 @@ class Runner:
         self._end_tick(record, w0, t0, scheduled, frame, cloud, new_chunk)
         return record
 
-    def _end_tick(self, record: dict[str, Any], w0: float, t0: float, scheduled: float, frame, cloud, new_chunk) -> None:
+    def _end_tick(
+        self, record: dict[str, Any], w0: float, t0: float, scheduled: float, frame, cloud, new_chunk
+    ) -> None:
         """Count the tick and hand it to the subscribers."""
         record["tick_ms"] = 1e3 * (time.perf_counter() - w0)
         self.latencies["tick"].append(record["tick_ms"])

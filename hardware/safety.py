@@ -108,9 +108,11 @@ def firmware_limits_problem(reported: FirmwareLimits, lower, upper) -> str | Non
             continue
         advice = reported.advice[j] if j < len(reported.advice) else GENERIC_ADVICE
         shown = "no limits" if what == "no answer" else _deg(lo, hi)
-        return (f"{reported.arm}: its firmware limits J{j + 1} to {shown} ({what}), but the safety settings let the "
-                f"policy command {_deg(lower[j], upper[j])} ({lower[j]:.4g}..{upper[j]:.4g} rad): the arm would clip "
-                f"or fault inside that range; {advice}")
+        return (
+            f"{reported.arm}: its firmware limits J{j + 1} to {shown} ({what}), but the safety settings let the "
+            f"policy command {_deg(lower[j], upper[j])} ({lower[j]:.4g}..{upper[j]:.4g} rad): the arm would clip "
+            f"or fault inside that range; {advice}"
+        )
     return None
 
 
@@ -146,8 +148,14 @@ class Safety:
         self.config = config
         self.gripper = np.asarray(gripper_mask, bool)
         self.lower, self.upper = allowed_range(config, lower, upper, self.gripper)
-        if self.lower.shape != self.upper.shape or self.gripper.shape != self.lower.shape or np.any(self.lower > self.upper):
-            raise ConfigError("safety limits: lower, upper and gripper mask must have one shape and lower <= upper (minus the margin)")
+        if (
+            self.lower.shape != self.upper.shape
+            or self.gripper.shape != self.lower.shape
+            or np.any(self.lower > self.upper)
+        ):
+            raise ConfigError(
+                "safety limits: lower, upper and gripper mask must have one shape and lower <= upper (minus the margin)"
+            )
         self.dof = self.lower.shape[0]
         self.max_step = np.where(self.gripper, config.max_gripper_step, config.max_joint_step)
         start = np.asarray(start, np.float64)
@@ -158,7 +166,8 @@ class Safety:
         if outside.size:
             raise ConfigError(
                 f"the robot starts outside its limits on entries {outside.tolist()} (position {np.round(start[outside], 3).tolist()}, "
-                f"limits {np.round(self.lower[outside], 3).tolist()}..{np.round(self.upper[outside], 3).tolist()}): move it inside by hand first"
+                f"limits {np.round(self.lower[outside], 3).tolist()}..{np.round(self.upper[outside], 3).tolist()}): "
+                "move it inside by hand first"
             )
         self.fault: str | None = None
         self.events: list[SafetyEvent] = []
@@ -190,7 +199,11 @@ class Safety:
             if self.fault is not None:
                 return decision
             if state is not None:
-                bad = [f"arm {i}: {s.detail or ('e-stop' if s.estop else 'error')}" for i, s in enumerate(state.status) if s.estop or s.error]
+                bad = [
+                    f"arm {i}: {s.detail or ('e-stop' if s.estop else 'error')}"
+                    for i, s in enumerate(state.status)
+                    if s.estop or s.error
+                ]
                 if bad:
                     self.fault = "; ".join(bad)
                     self._event(now, "fault", f"{self.fault}: commands stopped", decision)
@@ -201,12 +214,20 @@ class Safety:
                 return self._hold(now, "no joint feedback yet", decision)
             age = now - state.timestamp
             if age > self.config.feedback_timeout:
-                return self._hold(now, f"joint feedback is {1e3 * age:.0f} ms old (> {1e3 * self.config.feedback_timeout:.0f} ms)", decision)
+                return self._hold(
+                    now,
+                    f"joint feedback is {1e3 * age:.0f} ms old (> {1e3 * self.config.feedback_timeout:.0f} ms)",
+                    decision,
+                )
             if camera_time is None:
                 return self._hold(now, "no camera frame", decision)
             age = now - camera_time
             if age > self.config.camera_timeout:
-                return self._hold(now, f"camera frame is {1e3 * age:.0f} ms old (> {1e3 * self.config.camera_timeout:.0f} ms)", decision)
+                return self._hold(
+                    now,
+                    f"camera frame is {1e3 * age:.0f} ms old (> {1e3 * self.config.camera_timeout:.0f} ms)",
+                    decision,
+                )
             if action is None:
                 return self._hold(now, "no action this tick", decision)
             try:

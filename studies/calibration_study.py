@@ -38,31 +38,45 @@ def run(report: Path, poses: int, force: bool) -> None:
     record.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as tmp:
         for mode in MODES:
-            argv = ["--mode", mode, "--auto", str(poses), "--out", str(Path(tmp) / f"{mode}.json"),
-                    "--json", str(record / f"{mode}.json")] + (["--force"] if force else [])
+            argv = [
+                "--mode",
+                mode,
+                "--auto",
+                str(poses),
+                "--out",
+                str(Path(tmp) / f"{mode}.json"),
+                "--json",
+                str(record / f"{mode}.json"),
+            ] + (["--force"] if force else [])
             if calibrate_main(argv) != 0:
                 raise DSSPError(f"dssp-sim calibrate --mode {mode} failed (its lines are above); nothing else was run")
 
 
 def load(record: Path) -> dict[str, dict]:
     """MODE -> its record, for the modes recorded."""
-    return {mode: json.loads((record / f"{mode}.json").read_text()) for mode in MODES if (record / f"{mode}.json").is_file()}
+    return {
+        mode: json.loads((record / f"{mode}.json").read_text()) for mode in MODES if (record / f"{mode}.json").is_file()
+    }
 
 
 def summary_table(records: dict[str, dict]) -> str:
     """One row per mode: views used, OpenCV's method, the distance from the true pose, residuals, disagreement."""
-    lines = ["| mode | result | views used | method | from the true pose | residuals (RMS) | worst view | methods' largest disagreement |",
-             "|---|---|---:|---|---:|---:|---:|---:|"]
+    lines = [
+        "| mode | result | views used | method | from the true pose | residuals (RMS) | worst view | methods' largest disagreement |",
+        "|---|---|---:|---|---:|---:|---:|---:|",
+    ]
     for mode, r in records.items():
         used = [v for v in r["views"] if "residual_mm" in v]
         worst = max(used, key=lambda v: v["residual_mm"])
         dis_mm = max((d[0] for d in r["disagreement"].values()), default=0.0)
         dis_deg = max((d[1] for d in r["disagreement"].values()), default=0.0)
         truth = r["truth_error"]
-        lines.append(f"| {mode} | {r['result']} | {len(used)} / {len(r['views'])} | {r['method']} | "
-                     + (f"{truth[0]:.2f} mm / {truth[1]:.3f}°" if truth else "—")
-                     + f" | {r['rms_mm']:.2f} mm / {r['rms_deg']:.3f}° | {worst['residual_mm']:.2f} mm / {worst['residual_deg']:.3f}° "
-                     f"| {dis_mm:.2f} mm / {dis_deg:.3f}° |")
+        lines.append(
+            f"| {mode} | {r['result']} | {len(used)} / {len(r['views'])} | {r['method']} | "
+            + (f"{truth[0]:.2f} mm / {truth[1]:.3f}°" if truth else "—")
+            + f" | {r['rms_mm']:.2f} mm / {r['rms_deg']:.3f}° | {worst['residual_mm']:.2f} mm / {worst['residual_deg']:.3f}° "
+            f"| {dis_mm:.2f} mm / {dis_deg:.3f}° |"
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -71,8 +85,10 @@ def readme_table(record: Path) -> str:
     records = load(record)
     if not records:
         return "(not run yet: python -m studies.calibration_study)\n"
-    return summary_table(records) + (f"\nThe twin's bound: {BOUND[0]:g} mm / {BOUND[1]:g}° from the true pose, in each mode "
-                                     f"({'held' if all(within(r) for r in records.values()) else 'NOT held'}).\n")
+    return summary_table(records) + (
+        f"\nThe twin's bound: {BOUND[0]:g} mm / {BOUND[1]:g}° from the true pose, in each mode "
+        f"({'held' if all(within(r) for r in records.values()) else 'NOT held'}).\n"
+    )
 
 
 def within(r: dict) -> bool:
@@ -85,33 +101,58 @@ def write_report(record: Path, out: Path, shown_record: str = "reports/calibrati
     if not records:
         raise DSSPError(f"{record} holds no calibration record; run python -m studies.calibration_study")
     out.mkdir(parents=True, exist_ok=True)
-    lines = ["# Hand-eye calibration on the MuJoCo twin", "",
-             f"Rebuilt from `{shown_record}` by `python -m studies.calibration_study --report-only` (the records: "
-             "`python -m studies.calibration_study`, which runs `dssp-sim calibrate --auto N --json` in each mode). "
-             "The twin knows the camera's true pose, so each result is compared with it; on a real robot only the "
-             "residuals and the methods' disagreement are there to judge by (hardware/README.md, Calibration).", "",
-             summary_table(records).rstrip("\n"), "",
-             "![each view's residual, both modes](calibration.png)", ""]
+    lines = [
+        "# Hand-eye calibration on the MuJoCo twin",
+        "",
+        f"Rebuilt from `{shown_record}` by `python -m studies.calibration_study --report-only` (the records: "
+        "`python -m studies.calibration_study`, which runs `dssp-sim calibrate --auto N --json` in each mode). "
+        "The twin knows the camera's true pose, so each result is compared with it; on a real robot only the "
+        "residuals and the methods' disagreement are there to judge by (hardware/README.md, Calibration).",
+        "",
+        summary_table(records).rstrip("\n"),
+        "",
+        "![each view's residual, both modes](calibration.png)",
+        "",
+    ]
     for mode, r in records.items():
         b = r["board"]
-        lines += [f"## {mode}", "",
-                  f"{r['rig']}; board {b['squares_x']} x {b['squares_y']} squares of {1e3 * b['square_m']:g} mm "
-                  f"({b['dictionary']}); poses: {r['poses']}; the arm moved at {r['rate_hz']:g} Hz through the safety "
-                  f"layer; rotation spread about a second axis {r['rotation_spread_deg']:.1f}°.", "",
-                  "| pose | corners | reprojection px | residual mm | residual ° |", "|---:|---:|---:|---:|---:|"]
+        lines += [
+            f"## {mode}",
+            "",
+            f"{r['rig']}; board {b['squares_x']} x {b['squares_y']} squares of {1e3 * b['square_m']:g} mm "
+            f"({b['dictionary']}); poses: {r['poses']}; the arm moved at {r['rate_hz']:g} Hz through the safety "
+            f"layer; rotation spread about a second axis {r['rotation_spread_deg']:.1f}°.",
+            "",
+            "| pose | corners | reprojection px | residual mm | residual ° |",
+            "|---:|---:|---:|---:|---:|",
+        ]
         for v in r["views"]:
             if "residual_mm" in v:
-                lines.append(f"| {v['pose']} | {v['corners']} | {v['reprojection_px']:.2f} | {v['residual_mm']:.2f} | "
-                             f"{v['residual_deg']:.3f} |")
+                lines.append(
+                    f"| {v['pose']} | {v['corners']} | {v['reprojection_px']:.2f} | {v['residual_mm']:.2f} | "
+                    f"{v['residual_deg']:.3f} |"
+                )
             else:
                 lines.append(f"| {v['pose']} | {v['corners']} | refused: {v['refused']} | | |")
-        lines += ["", f"{r['result']} ({r['method']}):", "", "```",
-                  *("[" + ", ".join(f"{x: .6f}" for x in row) + "]" for row in r["transform"]), "```", ""]
+        lines += [
+            "",
+            f"{r['result']} ({r['method']}):",
+            "",
+            "```",
+            *("[" + ", ".join(f"{x: .6f}" for x in row) + "]" for row in r["transform"]),
+            "```",
+            "",
+        ]
     md = out / "calibration.md"
     atomic_write_text(md, "\n".join(lines))
-    summary = {mode: {k: r[k] for k in ("result", "method", "truth_error", "rms_mm", "rms_deg", "rotation_spread_deg")}
-               | {"views": len(r["views"]), "within_bound": within(r)} for mode, r in records.items()}
-    atomic_write_text(out / "calibration.json", json.dumps({"bound_mm_deg": list(BOUND), "modes": summary}, indent=2) + "\n")
+    summary = {
+        mode: {k: r[k] for k in ("result", "method", "truth_error", "rms_mm", "rms_deg", "rotation_spread_deg")}
+        | {"views": len(r["views"]), "within_bound": within(r)}
+        for mode, r in records.items()
+    }
+    atomic_write_text(
+        out / "calibration.json", json.dumps({"bound_mm_deg": list(BOUND), "modes": summary}, indent=2) + "\n"
+    )
     _plot(records, out / "calibration.png")
     return md
 

@@ -53,8 +53,14 @@ PLAN = {
     "episodes": 20,
     "export_flags": ["--inpainting", "--quantize", "int8"],
 }
-QUICK_PLAN = {**PLAN, "tasks": {"tap": {"demos": 3, "steps": 10}}, "delays_ms": [0, 200], "episodes": 1, "seeds": [0],
-              "export_flags": ["--inpainting", "--skip-verify", "--quantize", "none"]}
+QUICK_PLAN = {
+    **PLAN,
+    "tasks": {"tap": {"demos": 3, "steps": 10}},
+    "delays_ms": [0, 200],
+    "episodes": 1,
+    "seeds": [0],
+    "export_flags": ["--inpainting", "--skip-verify", "--quantize", "none"],
+}
 RECORD_DIR = "record"
 SPLIT = "validation"
 
@@ -66,6 +72,7 @@ def cell(task: str, smoothing: str, delay: int, seed: int) -> str:
 def stages(plan: dict, tasks: list[str], record: Path) -> list[Stage]:
     """Every stage of ``tasks``; a cell whose evaluation is in the record needs none."""
     from export import to_onnx  # deferred: loads torch, which a stage's process imports after setting its threads
+
     first = protocol.split_seeds(SPLIT, plan["episodes"])[0]
     out: list[Stage] = []
     for task in tasks:
@@ -73,26 +80,81 @@ def stages(plan: dict, tasks: list[str], record: Path) -> list[Stage]:
         task_stages: list[Stage] = []
         for seed in plan["seeds"]:
             run, model, key = f"run_{task}_s{seed}", f"model_{task}_s{seed}", f"{task}_s{seed}"
-            cells = [Stage(f"eval_{cell(task, s, d, seed)}", sim_cli.main,
-                           ("eval", "--model", model, "--task", task, "--episodes", str(plan["episodes"]), "--seed",
-                            str(first), "--smoothing", s, "--inject-delay", str(d), "--threads", "1", "--json",
-                            f"evals/{cell(task, s, d, seed)}.json", "--force", "--no-progress"),
-                           after=(f"export_{key}",), outputs=(f"evals/{cell(task, s, d, seed)}.json",))
-                     for d in plan["delays_ms"] for s in plan["smoothings"]
-                     if not (record / "evals" / f"{cell(task, s, d, seed)}.json").is_file()]
+            cells = [
+                Stage(
+                    f"eval_{cell(task, s, d, seed)}",
+                    sim_cli.main,
+                    (
+                        "eval",
+                        "--model",
+                        model,
+                        "--task",
+                        task,
+                        "--episodes",
+                        str(plan["episodes"]),
+                        "--seed",
+                        str(first),
+                        "--smoothing",
+                        s,
+                        "--inject-delay",
+                        str(d),
+                        "--threads",
+                        "1",
+                        "--json",
+                        f"evals/{cell(task, s, d, seed)}.json",
+                        "--force",
+                        "--no-progress",
+                    ),
+                    after=(f"export_{key}",),
+                    outputs=(f"evals/{cell(task, s, d, seed)}.json",),
+                )
+                for d in plan["delays_ms"]
+                for s in plan["smoothings"]
+                if not (record / "evals" / f"{cell(task, s, d, seed)}.json").is_file()
+            ]
             if not cells:
                 continue
-            argv = ("--data", data, "--out", run, "--preset", plan["preset"], "--steps", str(spec["steps"]), "--seed",
-                    str(seed), "--no-progress", "--force")
+            argv = (
+                "--data",
+                data,
+                "--out",
+                run,
+                "--preset",
+                plan["preset"],
+                "--steps",
+                str(spec["steps"]),
+                "--seed",
+                str(seed),
+                "--no-progress",
+                "--force",
+            )
             task_stages += [
-                Stage(f"train_{key}", train.main, argv, after=(f"collect_{task}",),
-                      resume=("--data", data, "--out", run, "--resume", "--no-progress"), started=f"{run}/checkpoint"),
-                Stage(f"export_{key}", to_onnx.main, (run, "-o", model, "--threads", "1", "--force",
-                                                      *plan["export_flags"]), after=(f"train_{key}",)),
-                *cells]
+                Stage(
+                    f"train_{key}",
+                    train.main,
+                    argv,
+                    after=(f"collect_{task}",),
+                    resume=("--data", data, "--out", run, "--resume", "--no-progress"),
+                    started=f"{run}/checkpoint",
+                ),
+                Stage(
+                    f"export_{key}",
+                    to_onnx.main,
+                    (run, "-o", model, "--threads", "1", "--force", *plan["export_flags"]),
+                    after=(f"train_{key}",),
+                ),
+                *cells,
+            ]
         if task_stages:
-            out += [Stage(f"collect_{task}", sim_cli.main, ("collect", "--task", task, "--episodes", str(spec["demos"]),
-                                                             "--out", data, "--no-progress"), clean=(data,)), *task_stages]
+            out += [
+                Stage(
+                    f"collect_{task}",
+                    sim_cli.main,
+                    ("collect", "--task", task, "--episodes", str(spec["demos"]), "--out", data, "--no-progress"),
+                    clean=(data,),
+                ),
+                *task_stages,
+            ]
     return out
 
 
@@ -139,10 +201,15 @@ def summarise(evals: dict, plan: dict) -> dict:
 
                 n = sum(r["n"] for r in runs)
                 table.setdefault(task, {}).setdefault(s, {})[d] = {
-                    "k": sum(r["successes"] for r in runs), "n": n, "rate": rate, "interval95": [lo, hi],
-                    "ticks": runs[0].get("injected_delay_ticks"), "jerk_boundary": mean("at_boundaries"),
+                    "k": sum(r["successes"] for r in runs),
+                    "n": n,
+                    "rate": rate,
+                    "interval95": [lo, hi],
+                    "ticks": runs[0].get("injected_delay_ticks"),
+                    "jerk_boundary": mean("at_boundaries"),
                     "jerk_elsewhere": mean("elsewhere"),
-                    "holds": sum(e.get("holds", 0) for r in runs for e in r["episodes"]) / max(n, 1)}
+                    "holds": sum(e.get("holds", 0) for r in runs for e in r["episodes"]) / max(n, 1),
+                }
     return table
 
 
@@ -158,8 +225,18 @@ def comparisons(evals: dict, plan: dict) -> list[dict]:
                     continue
                 diff, lo, hi = paired_difference(rtc[0], b[0])
                 p = paired_exact_test(rtc[0], b[0])
-                out.append({"task": task, "delay_ms": d, "vs": other, "n": sum(len(row) for row in rtc[0]),
-                            "difference": diff, "interval95": [lo, hi], "p": p, "verdict": describe_p(p)})
+                out.append(
+                    {
+                        "task": task,
+                        "delay_ms": d,
+                        "vs": other,
+                        "n": sum(len(row) for row in rtc[0]),
+                        "difference": diff,
+                        "interval95": [lo, hi],
+                        "p": p,
+                        "verdict": describe_p(p),
+                    }
+                )
     return out
 
 
@@ -170,58 +247,83 @@ def write_report(plan: dict, record: Path, report: Path, shown_record: str | Non
         raise DSSPError(f"{record} holds no evaluation of this plan; run the study first")
     table = summarise(evals, plan)
     if not table:
-        raise DSSPError(f"{record} holds no cell with every training seed's evaluation ({plan['seeds']}) yet; run the "
-                        "study to fill it")
+        raise DSSPError(
+            f"{record} holds no cell with every training seed's evaluation ({plan['seeds']}) yet; run the "
+            "study to fill it"
+        )
     tests = comparisons(evals, plan)
     scenes = protocol.split_seeds(SPLIT, plan["episodes"])
     lines = [
-        "# Inference delay: none, temporal ensembling and real-time chunking", "",
+        "# Inference delay: none, temporal ensembling and real-time chunking",
+        "",
         f"Rebuilt from `{shown_record or record}` by `python -m studies.delay_study --report-only`. DSSP, preset "
         f"`{plan['preset']}`, trained per task with training seeds {plan['seeds']} (demonstrations and steps "
-        f"{({t: (s['demos'], s['steps']) for t, s in plan['tasks'].items()})}), each exported with `--inpainting` at int8; "
+        f"{ ({t: (s['demos'], s['steps']) for t, s in plan['tasks'].items()}) }), each exported with `--inpainting` at int8; "
         f"{plan['episodes']} closed-loop episodes per cell and seed in the MuJoCo twin on validation seeds "
         f"{scenes[0]}–{scenes[-1]} (the same scenes in every cell; nothing here was tuned). The delay is injected per chunk "
         "in lockstep, in whole 10 Hz ticks (50 and 100 ms are both one tick). Success over every training seed and scene, "
-        "with the 95 % two-way cluster-bootstrap interval over seeds and scenes; jerk = the commanded joints' mean ‖third difference‖ × rate³ "
+        "with the 95 % two-way cluster-bootstrap interval over seeds and "
+        "scenes; jerk = the commanded joints' mean ‖third difference‖ × rate³ "
         "(rad/s³) at the ticks a new chunk took over, and at the other ticks; holds = ticks per episode with no action "
         "(the loop waiting for a chunk, or the safety layer holding). The compute is not equal: `none` and `rtc` have one "
         "chunk in flight at a time, `ensemble` starts one every tick, so with a delay of d ticks it has d chunks in "
         "flight at once — d times the denoiser throughput of one computation that takes d ticks (on one CPU that "
-        "also takes d ticks each, it could not keep up).", "",
+        "also takes d ticks each, it could not keep up).",
+        "",
     ]
     for task in table:
         per_mode = {s: table[task].get(s, {}) for s in plan["smoothings"]}  # every mode: a missing cell is pending
-        lines += [f"## {task}", "", "| delay (ticks) | " + " | ".join(f"{s} success" for s in per_mode) + " | "
-                  + " | ".join(f"{s} jerk at boundary / elsewhere | {s} holds" for s in per_mode) + " |",
-                  "|---|" + "---|" * len(per_mode) + "---|---:|" * len(per_mode)]
+        lines += [
+            f"## {task}",
+            "",
+            "| delay (ticks) | "
+            + " | ".join(f"{s} success" for s in per_mode)
+            + " | "
+            + " | ".join(f"{s} jerk at boundary / elsewhere | {s} holds" for s in per_mode)
+            + " |",
+            "|---|" + "---|" * len(per_mode) + "---|---:|" * len(per_mode),
+        ]
         for d in plan["delays_ms"]:
             rows = [per_mode[s].get(d) for s in per_mode]
             ticks = next((r["ticks"] for r in rows if r is not None), None)
-            success = ["pending" if r is None else
-                       f"{100 * r['rate']:.0f} % ({r['k']}/{r['n']}; {100 * r['interval95'][0]:.0f}–{100 * r['interval95'][1]:.0f})"
-                       for r in rows]
+            success = [
+                "pending"
+                if r is None
+                else f"{100 * r['rate']:.0f} % ({r['k']}/{r['n']}; {100 * r['interval95'][0]:.0f}–{100 * r['interval95'][1]:.0f})"
+                for r in rows
+            ]
             jerk = []
             for r in rows:
                 if r is None:
                     jerk += ["-", "-"]
                     continue
                 b, e = r["jerk_boundary"], r["jerk_elsewhere"]
-                shown = "-" if b is None else f"{b:.0f} / " + ("– (every tick a new chunk)" if e is None else f"{e:.0f}")
+                shown = (
+                    "-" if b is None else f"{b:.0f} / " + ("– (every tick a new chunk)" if e is None else f"{e:.0f}")
+                )
                 jerk += [shown, f"{r['holds']:.1f}"]
             lines.append(f"| {d} ms ({ticks}) | " + " | ".join(success) + " | " + " | ".join(jerk) + " |")
         lines.append("")
-    lines += ["## Real-time chunking against the other modes (paired over the shared scenes and seeds)", "",
-              "| task | delay | vs | RTC − other (95 % bootstrap) | exact paired test |", "|---|---:|---|---:|---|"]
+    lines += [
+        "## Real-time chunking against the other modes (paired over the shared scenes and seeds)",
+        "",
+        "| task | delay | vs | RTC − other (95 % bootstrap) | exact paired test |",
+        "|---|---:|---|---:|---|",
+    ]
     for t in tests:
         lo, hi = t["interval95"]
-        lines.append(f"| {t['task']} | {t['delay_ms']} ms | {t['vs']} | {100 * t['difference']:+.0f} points "
-                     f"({100 * lo:+.0f} to {100 * hi:+.0f}) | {t['verdict']} |")
+        lines.append(
+            f"| {t['task']} | {t['delay_ms']} ms | {t['vs']} | {100 * t['difference']:+.0f} points "
+            f"({100 * lo:+.0f} to {100 * hi:+.0f}) | {t['verdict']} |"
+        )
     lines += ["", f"![success and boundary jerk against the inference delay]({REPORT_NAME}.png)", ""]
     report.mkdir(parents=True, exist_ok=True)
     md = report / f"{REPORT_NAME}.md"
     atomic_write_text(md, "\n".join(lines))
-    atomic_write_text(report / f"{REPORT_NAME}.json", json.dumps({"plan": plan, "summary": table, "paired_tests": tests},
-                                                                 indent=1, sort_keys=True) + "\n")
+    atomic_write_text(
+        report / f"{REPORT_NAME}.json",
+        json.dumps({"plan": plan, "summary": table, "paired_tests": tests}, indent=1, sort_keys=True) + "\n",
+    )
     plot(table, plan, report / f"{REPORT_NAME}.png")
     return md
 
@@ -241,12 +343,24 @@ def plot(table: dict, plan: dict, path: Path) -> None:
             lo = [100 * (rows[d]["rate"] - rows[d]["interval95"][0]) for d in ds]
             hi = [100 * (rows[d]["interval95"][1] - rows[d]["rate"]) for d in ds]
             axes[0][col].errorbar(ds, rates, yerr=[lo, hi], marker="o", capsize=3, label=s)
-            axes[1][col].plot(ds, [rows[d]["jerk_boundary"] if rows[d]["jerk_boundary"] is not None else float("nan")
-                                   for d in ds], marker="o", label=s)
-        axes[0][col].set(title=f"{task}: success (95 % cluster bootstrap)", xlabel="injected delay per chunk (ms)", ylabel="success %",
-                         ylim=(0, 105))
-        axes[1][col].set(title=f"{task}: commanded jerk at chunk boundaries", xlabel="injected delay per chunk (ms)",
-                         ylabel="rad/s³", ylim=(0, None))
+            axes[1][col].plot(
+                ds,
+                [rows[d]["jerk_boundary"] if rows[d]["jerk_boundary"] is not None else float("nan") for d in ds],
+                marker="o",
+                label=s,
+            )
+        axes[0][col].set(
+            title=f"{task}: success (95 % cluster bootstrap)",
+            xlabel="injected delay per chunk (ms)",
+            ylabel="success %",
+            ylim=(0, 105),
+        )
+        axes[1][col].set(
+            title=f"{task}: commanded jerk at chunk boundaries",
+            xlabel="injected delay per chunk (ms)",
+            ylabel="rad/s³",
+            ylim=(0, None),
+        )
         for ax in (axes[0][col], axes[1][col]):
             ax.set_xticks(plan["delays_ms"])
             ax.legend(fontsize=8)
@@ -257,17 +371,26 @@ def plot(table: dict, plan: dict, path: Path) -> None:
 def readme_table(record: Path, plan: dict = PLAN) -> str:
     """The README's ``delay`` block: success per mode at each delay, per task."""
     table = summarise(recorded(plan, record), plan)
-    lines = [f"| task, mode ({len(plan['seeds'])} training seeds × {plan['episodes']} validation scenes) | " + " | ".join(f"{d} ms" for d in plan["delays_ms"]) + " |",
-             "|---|" + "---:|" * len(plan["delays_ms"])]
+    lines = [
+        f"| task, mode ({len(plan['seeds'])} training seeds × {plan['episodes']} validation scenes) | "
+        + " | ".join(f"{d} ms" for d in plan["delays_ms"])
+        + " |",
+        "|---|" + "---:|" * len(plan["delays_ms"]),
+    ]
     for task, per_mode in table.items():
         for s, rows in per_mode.items():
-            lines.append(f"| {task}, {s} | " + " | ".join(
-                "pending" if rows.get(d) is None else f"{100 * rows[d]['rate']:.0f} %" for d in plan["delays_ms"]) + " |")
+            lines.append(
+                f"| {task}, {s} | "
+                + " | ".join(
+                    "pending" if rows.get(d) is None else f"{100 * rows[d]['rate']:.0f} %" for d in plan["delays_ms"]
+                )
+                + " |"
+            )
     return "\n".join(lines) + "\n"
 
 
 def main(argv: list[str] | None = None) -> int:
-    return study_main(argv, 'delay_study', __doc__, PLAN, QUICK_PLAN, SPLIT, stages, write_report)
+    return study_main(argv, "delay_study", __doc__, PLAN, QUICK_PLAN, SPLIT, stages, write_report)
 
 
 if __name__ == "__main__":

@@ -44,9 +44,19 @@ from studies.runner import Runner, Stage, StageFailed
 
 TASK = "tap"
 VARIANTS = {"dssp": ("DSSP (full history)", []), "reactive": ("reactive baseline (no history)", ["--no-history"])}
-DEMO_DIR = OutputKind("a demo directory", "dssp-demo",
-                      entries=(f"{TASK}.zarr", *VARIANTS, *(f"{name}_model" for name in VARIANTS), "evals", "logs", "done",
-                               "results.json"))
+DEMO_DIR = OutputKind(
+    "a demo directory",
+    "dssp-demo",
+    entries=(
+        f"{TASK}.zarr",
+        *VARIANTS,
+        *(f"{name}_model" for name in VARIANTS),
+        "evals",
+        "logs",
+        "done",
+        "results.json",
+    ),
+)
 """``dssp-demo --out``: the dataset, both runs and model directories, their evaluations, logs, the stages' done
 markers, results.json."""
 
@@ -54,23 +64,56 @@ markers, results.json."""
 def stages(steps: int, demos: int, episodes: int, seed: int) -> list[Stage]:
     """Collect, then for each model: train → export → evaluate (paths relative to ``--out``)."""
     from export import to_onnx  # deferred: loads torch, which a stage's process imports after setting its threads
+
     data = f"{TASK}.zarr"
-    out = [Stage("collect", sim_cli.main, ("collect", "--task", TASK, "--episodes", str(demos), "--out", data,
-                                            "--seed", str(seed), "--no-progress"))]
+    out = [
+        Stage(
+            "collect",
+            sim_cli.main,
+            ("collect", "--task", TASK, "--episodes", str(demos), "--out", data, "--seed", str(seed), "--no-progress"),
+        )
+    ]
     for name, (_, flags) in VARIANTS.items():
         out += [
-            Stage(f"train_{name}", train.main, ("--data", data, "--out", name, "--preset", "sim", "--steps", str(steps),
-                                                "--seed", str(seed), *flags), after=("collect",)),
-            Stage(f"export_{name}", to_onnx.main, (name, "-o", f"{name}_model", "--threads", "1"), after=(f"train_{name}",)),
-            Stage(f"eval_{name}", sim_cli.main, ("eval", "--model", f"{name}_model", "--task", TASK, "--episodes",
-                                                 str(episodes), "--seed", str(1000 + seed), "--threads", "1", "--json",
-                                                 f"evals/{name}.json"), after=(f"export_{name}",)),
+            Stage(
+                f"train_{name}",
+                train.main,
+                ("--data", data, "--out", name, "--preset", "sim", "--steps", str(steps), "--seed", str(seed), *flags),
+                after=("collect",),
+            ),
+            Stage(
+                f"export_{name}",
+                to_onnx.main,
+                (name, "-o", f"{name}_model", "--threads", "1"),
+                after=(f"train_{name}",),
+            ),
+            Stage(
+                f"eval_{name}",
+                sim_cli.main,
+                (
+                    "eval",
+                    "--model",
+                    f"{name}_model",
+                    "--task",
+                    TASK,
+                    "--episodes",
+                    str(episodes),
+                    "--seed",
+                    str(1000 + seed),
+                    "--threads",
+                    "1",
+                    "--json",
+                    f"evals/{name}.json",
+                ),
+                after=(f"export_{name}",),
+            ),
         ]
     return out
 
 
-def run_demo(out: Path, steps: int = 3000, demos: int = 50, episodes: int = 20, seed: int = 0,
-             force: bool = False) -> dict:
+def run_demo(
+    out: Path, steps: int = 3000, demos: int = 50, episodes: int = 20, seed: int = 0, force: bool = False
+) -> dict:
     with OutputDir(out, DEMO_DIR, force=force, staged=False) as target:
         results = _run_demo(Path(out), steps, demos, episodes, seed)
         target.commit()
@@ -79,12 +122,16 @@ def run_demo(out: Path, steps: int = 3000, demos: int = 50, episodes: int = 20, 
 
 def _run_demo(out: Path, steps: int, demos: int, episodes: int, seed: int) -> dict:
     t_start = time.perf_counter()
-    print(f"collect {demos} expert demonstrations of '{TASK}', then for each model, side by side: train ({steps} steps, "
-          f"sim preset) → export (parity checked) → evaluate ({episodes} closed-loop episodes)", flush=True)
+    print(
+        f"collect {demos} expert demonstrations of '{TASK}', then for each model, side by side: train ({steps} steps, "
+        f"sim preset) → export (parity checked) → evaluate ({episodes} closed-loop episodes)",
+        flush=True,
+    )
     (out / "evals").mkdir(exist_ok=True)
     try:
         ran = Runner(out, workers=len(VARIANTS), echo=True, say=lambda line: print(line, flush=True)).run(
-            stages(steps, demos, episodes, seed))
+            stages(steps, demos, episodes, seed)
+        )
     except StageFailed as failed:  # --out goes on failure: keep the log where the message says
         fd, kept = tempfile.mkstemp(prefix=f"dssp-demo-{failed.stage}-", suffix=".log")
         os.close(fd)
@@ -94,15 +141,25 @@ def _run_demo(out: Path, steps: int, demos: int, episodes: int, seed: int) -> di
     timings = {f"{name}_s": seconds for name, seconds in ran.items()}
     evals = {name: json.loads((out / "evals" / f"{name}.json").read_text()) for name in VARIANTS}
     timings["total_s"] = time.perf_counter() - t_start
-    print(f"\nTask '{TASK}', {episodes} unseen episodes each, closed loop through camera → cloud → runtime → safety → CAN → arm:\n")
+    print(
+        f"\nTask '{TASK}', {episodes} unseen episodes each, closed loop through camera → cloud → runtime → safety → CAN → arm:\n"
+    )
     print(results_table(evals))
     print("\nDSSP's control loop, every tick of its evaluation (one ONNX Runtime thread):")
     print_latency(evals["dssp"]["latency_ms"])
     print(f"\ntotal {timings['total_s'] / 60:.1f} min; {out / 'results.json'} holds every figure")
     for name, r in evals.items():  # the model directories by their names in --out (the record may move)
         r["model_dir"] = f"{name}_model"
-    results = {"task": TASK, "steps": steps, "demos": demos, "episodes": episodes, "seed": seed, "timings": timings,
-               "machine": machine.describe(), "evals": evals}
+    results = {
+        "task": TASK,
+        "steps": steps,
+        "demos": demos,
+        "episodes": episodes,
+        "seed": seed,
+        "timings": timings,
+        "machine": machine.describe(),
+        "evals": evals,
+    }
     atomic_write_text(out / "results.json", json.dumps(results, indent=2) + "\n")
     return results
 
@@ -115,14 +172,19 @@ def results_table(evals: dict) -> str:
         lo, hi = r["wilson95"]
         failures = ", ".join(f"{k} × {v}" for k, v in Counter(r["failure_reasons"]).most_common()) or "—"
         graphs = f"{r.get('precision', '?')}, {r.get('kernel', '?')}"
-        lines.append(f"| {VARIANTS[name][0]} | {r['successes']}/{r['n']} = {100 * r['success_rate']:.0f} % | "
-                     f"{100 * lo:.0f}–{100 * hi:.0f} % | {graphs} | {failures} |")
+        lines.append(
+            f"| {VARIANTS[name][0]} | {r['successes']}/{r['n']} = {100 * r['success_rate']:.0f} % | "
+            f"{100 * lo:.0f}–{100 * hi:.0f} % | {graphs} | {failures} |"
+        )
     return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = ArgumentParser(prog="dssp-demo", description="The whole chain on the simulated Piper: collect, train DSSP and the "
-                                                     "reactive baseline, export, evaluate (tap).")
+    p = ArgumentParser(
+        prog="dssp-demo",
+        description="The whole chain on the simulated Piper: collect, train DSSP and the "
+        "reactive baseline, export, evaluate (tap).",
+    )
     p.add_argument("--out", type=Path, required=True, help="working directory (new or empty; make demo: runs/demo)")
     p.add_argument("--force", action="store_true", help="replace a previous demo in --out")
     p.add_argument("--steps", type=positive_int, default=3000, help="training steps per model (default 3000)")

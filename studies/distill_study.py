@@ -68,13 +68,25 @@ PLAN = {
     "latency": {"preset": "robotwin", "points": 1024, "threads": 2, "denoise_steps": [10, 2, 1], "profile_flags": []},
     "export_flags": [],  # parity is checked on every export of the study
 }
-QUICK_PLAN = {**PLAN, "steps": {"tap": 20}, "demos": {"tap": 3}, "distill_steps": {"tap": 4}, "student_steps": [1],
-              "method_tasks": [], "eval_episodes": 1, "export_flags": ["--skip-verify", "--quantize", "none"],
-              "latency": {"preset": "tiny", "points": 64, "threads": 1, "denoise_steps": [10, 1], "profile_flags": ["--quick"]}}
+QUICK_PLAN = {
+    **PLAN,
+    "steps": {"tap": 20},
+    "demos": {"tap": 3},
+    "distill_steps": {"tap": 4},
+    "student_steps": [1],
+    "method_tasks": [],
+    "eval_episodes": 1,
+    "export_flags": ["--skip-verify", "--quantize", "none"],
+    "latency": {"preset": "tiny", "points": 64, "threads": 1, "denoise_steps": [10, 1], "profile_flags": ["--quick"]},
+}
 LATENCY = "latency"
 """The part of the study ``--tasks`` names beside the plan's tasks: the chunk's cost on the latency preset."""
-WORK_DIR = OutputKind("a distillation-study work directory", "python -m studies.distill_study", entries=WORK_ENTRIES,
-                      signature=lambda p: (p / "logs").is_dir())
+WORK_DIR = OutputKind(
+    "a distillation-study work directory",
+    "python -m studies.distill_study",
+    entries=WORK_ENTRIES,
+    signature=lambda p: (p / "logs").is_dir(),
+)
 REPORT_SUFFIXES = (".md", ".json", ".png")
 
 
@@ -93,8 +105,10 @@ def teacher_run(teachers: Path, task: str, plan: dict) -> Path:
     name = f"{task}_dssp_s{plan['seed']}"
     teacher = teachers.resolve() / "runs" / name
     if not (teacher / "model.safetensors").is_file() or not (teachers / "done" / f"train_{name}.json").is_file():
-        raise DSSPError(f"{teacher} is not a finished training of the study in {teachers}; run python -m studies.sim_study "
-                        f"--work {teachers} --tasks {task} first, or drop --teachers")
+        raise DSSPError(
+            f"{teacher} is not a finished training of the study in {teachers}; run python -m studies.sim_study "
+            f"--work {teachers} --tasks {task} first, or drop --teachers"
+        )
     return teacher
 
 
@@ -105,33 +119,105 @@ def task_stages(task: str, plan: dict, record: Path, teachers: Path | None = Non
     if not todo:
         return []
     from export import to_onnx  # deferred: loads torch, which a stage's process imports after setting its threads
+
     out: list[Stage] = []
     if teachers is None:
         data, teacher = f"data/{task}.zarr", f"runs/{task}_teacher"
-        out += [Stage(f"collect_{task}", sim_cli.main, ("collect", "--task", task, "--episodes", str(plan["demos"][task]),
-                                                          "--out", data, "--no-progress"), clean=(data,)),
-                Stage(f"train_{task}_teacher", train.main,
-                      ("--data", data, "--out", teacher, "--preset", plan["preset"], "--steps", str(plan["steps"][task]),
-                       "--seed", str(plan["seed"]), "--no-progress", "--force"), after=(f"collect_{task}",),
-                      resume=("--data", data, "--out", teacher, "--resume", "--no-progress"), started=f"{teacher}/checkpoint")]
+        out += [
+            Stage(
+                f"collect_{task}",
+                sim_cli.main,
+                ("collect", "--task", task, "--episodes", str(plan["demos"][task]), "--out", data, "--no-progress"),
+                clean=(data,),
+            ),
+            Stage(
+                f"train_{task}_teacher",
+                train.main,
+                (
+                    "--data",
+                    data,
+                    "--out",
+                    teacher,
+                    "--preset",
+                    plan["preset"],
+                    "--steps",
+                    str(plan["steps"][task]),
+                    "--seed",
+                    str(plan["seed"]),
+                    "--no-progress",
+                    "--force",
+                ),
+                after=(f"collect_{task}",),
+                resume=("--data", data, "--out", teacher, "--resume", "--no-progress"),
+                started=f"{teacher}/checkpoint",
+            ),
+        ]
         trained: tuple[str, ...] = (f"train_{task}_teacher",)
     else:
         teacher, trained = str(teacher_run(teachers, task, plan)), ()
     for name, kind, k in todo:
-        run, flags, ready = teacher, ("--denoise-steps", str(k), "--timestep-spacing", "trailing") if kind == "ddim" else (), trained
+        run, flags, ready = (
+            teacher,
+            ("--denoise-steps", str(k), "--timestep-spacing", "trailing") if kind == "ddim" else (),
+            trained,
+        )
         if kind not in ("teacher", "ddim"):
             run, ready = f"runs/{name}", (f"distill_{name}",)
-            out.append(Stage(f"distill_{name}", distill.main,
-                             ("--teacher", teacher, "--steps", str(k), "--method", kind, "--out", run, "--train-steps",
-                              str(plan["distill_steps"][task]), "--no-progress", "--force"), after=trained,
-                             resume=("--out", run, "--resume", "--no-progress"), started=f"{run}/checkpoint"))
+            out.append(
+                Stage(
+                    f"distill_{name}",
+                    distill.main,
+                    (
+                        "--teacher",
+                        teacher,
+                        "--steps",
+                        str(k),
+                        "--method",
+                        kind,
+                        "--out",
+                        run,
+                        "--train-steps",
+                        str(plan["distill_steps"][task]),
+                        "--no-progress",
+                        "--force",
+                    ),
+                    after=trained,
+                    resume=("--out", run, "--resume", "--no-progress"),
+                    started=f"{run}/checkpoint",
+                )
+            )
         model = f"models/{name}"
-        out += [Stage(f"export_{name}", to_onnx.main, (run, "-o", model, *flags, "--threads", str(plan["threads"]),
-                                                       "--force", *plan["export_flags"]), after=ready),
-                Stage(f"eval_{name}", sim_cli.main,
-                      ("eval", "--model", model, "--task", task, "--episodes", str(plan["eval_episodes"]), "--seed",
-                       str(plan["eval_seed"]), "--threads", str(plan["threads"]), "--json", f"evals/{name}.json", "--force",
-                       "--no-progress"), after=(f"export_{name}",), outputs=(f"evals/{name}.json",))]
+        out += [
+            Stage(
+                f"export_{name}",
+                to_onnx.main,
+                (run, "-o", model, *flags, "--threads", str(plan["threads"]), "--force", *plan["export_flags"]),
+                after=ready,
+            ),
+            Stage(
+                f"eval_{name}",
+                sim_cli.main,
+                (
+                    "eval",
+                    "--model",
+                    model,
+                    "--task",
+                    task,
+                    "--episodes",
+                    str(plan["eval_episodes"]),
+                    "--seed",
+                    str(plan["eval_seed"]),
+                    "--threads",
+                    str(plan["threads"]),
+                    "--json",
+                    f"evals/{name}.json",
+                    "--force",
+                    "--no-progress",
+                ),
+                after=(f"export_{name}",),
+                outputs=(f"evals/{name}.json",),
+            ),
+        ]
     return out
 
 
@@ -143,18 +229,77 @@ def latency_stages(plan: dict, record: Path, others: list[Stage]) -> list[Stage]
     if not todo:
         return []
     from export import to_onnx  # deferred: loads torch, which a stage's process imports after setting its threads
+
     data, run = "data/latency.zarr", f"runs/latency_{lat['preset']}"
-    out = [Stage("latency_data", synth.main, ("--out", data, "--episodes", "2", "--points", str(lat["points"])), clean=(data,)),
-           Stage("latency_train", train.main, ("--data", data, "--out", run, "--preset", lat["preset"], "--steps", "1", "--set",
-                                               "train.val_every=1", "--no-progress", "--force"), after=("latency_data",))]
-    out += [Stage(f"latency_export_k{k}", to_onnx.main,
-                  (run, "-o", f"models/latency_k{k}", "--denoise-steps", str(k), "--timestep-spacing", "trailing", "--verify-steps",
-                   "50", "--threads", "1", "--force", *plan["export_flags"]), after=("latency_train",)) for k in todo]
+    out = [
+        Stage(
+            "latency_data",
+            synth.main,
+            ("--out", data, "--episodes", "2", "--points", str(lat["points"])),
+            clean=(data,),
+        ),
+        Stage(
+            "latency_train",
+            train.main,
+            (
+                "--data",
+                data,
+                "--out",
+                run,
+                "--preset",
+                lat["preset"],
+                "--steps",
+                "1",
+                "--set",
+                "train.val_every=1",
+                "--no-progress",
+                "--force",
+            ),
+            after=("latency_data",),
+        ),
+    ]
+    out += [
+        Stage(
+            f"latency_export_k{k}",
+            to_onnx.main,
+            (
+                run,
+                "-o",
+                f"models/latency_k{k}",
+                "--denoise-steps",
+                str(k),
+                "--timestep-spacing",
+                "trailing",
+                "--verify-steps",
+                "50",
+                "--threads",
+                "1",
+                "--force",
+                *plan["export_flags"],
+            ),
+            after=("latency_train",),
+        )
+        for k in todo
+    ]
     before = tuple(s.name for s in [*others, *out])
     for k in todo:
-        out.append(Stage(f"latency_profile_k{k}", profile.main,
-                         (f"models/latency_k{k}", "--threads", str(lat["threads"]), "--json", f"evals/latency_k{k}.json", "--force",
-                          *lat["profile_flags"]), after=before, outputs=(f"evals/latency_k{k}.json",)))
+        out.append(
+            Stage(
+                f"latency_profile_k{k}",
+                profile.main,
+                (
+                    f"models/latency_k{k}",
+                    "--threads",
+                    str(lat["threads"]),
+                    "--json",
+                    f"evals/latency_k{k}.json",
+                    "--force",
+                    *lat["profile_flags"],
+                ),
+                after=before,
+                outputs=(f"evals/latency_k{k}.json",),
+            )
+        )
         before = (f"latency_profile_k{k}",)
     return out
 
@@ -165,14 +310,20 @@ def stages(plan: dict, parts: list[str], record: Path, teachers: Path | None = N
     return out + (latency_stages(plan, record, out) if LATENCY in parts else [])
 
 
-def run_study(plan: dict, parts: list[str], work: Path, record: Path, workers: int, teachers: Path | None = None) -> None:
+def run_study(
+    plan: dict, parts: list[str], work: Path, record: Path, workers: int, teachers: Path | None = None
+) -> None:
     """Claim ``work`` for the study and run (or resume) every stage of ``parts``, keeping every finished evaluation,
     profile and stage time in ``record``. ``teachers``: a simulation study's work folder whose seed-``plan["seed"]``
     DSSP runs are the teachers (not trained again; their students train on the datasets they trained on)."""
     stage_list = stages(plan, parts, record, teachers)  # refuses unfinished teachers before anything is written
     claim_dir(work, kind=WORK_DIR, flag="--work", resume=True)
     for task in parts:
-        names = [f"latency_k{k}" for k in plan["latency"]["denoise_steps"]] if task == LATENCY else [c for c, _, _ in cells(task, plan)]
+        names = (
+            [f"latency_k{k}" for k in plan["latency"]["denoise_steps"]]
+            if task == LATENCY
+            else [c for c, _, _ in cells(task, plan)]
+        )
         if all(recorded(record, name) is not None for name in names):
             print(f"{task}: every cell recorded ({record})")
     run_and_keep(work, record, stage_list, workers, ", ".join(parts), seconds=True)
@@ -195,19 +346,32 @@ def summarise(evals: dict, latency: dict, plan: dict) -> dict:
             r = evals.get(name)
             if r is not None:
                 tasks.setdefault(task, {})[name] = {
-                    "kind": kind, "steps": k, "k": r["successes"], "n": r["n"], "rate": r["successes"] / max(r["n"], 1),
-                    "wilson95": list(wilson_interval(r["successes"], r["n"])), "chunk_ms": r["latency_ms"].get("chunk", {}).get("p50")}
+                    "kind": kind,
+                    "steps": k,
+                    "k": r["successes"],
+                    "n": r["n"],
+                    "rate": r["successes"] / max(r["n"], 1),
+                    "wilson95": list(wilson_interval(r["successes"], r["n"])),
+                    "chunk_ms": r["latency_ms"].get("chunk", {}).get("p50"),
+                }
     lat = {}
     base = latency.get(10) or latency.get("10")
     for k, f in latency.items():
         chunk = f["latency_ms"]["denoiser_chunk"]["p50"]
-        lat[int(k)] = {"chunk_ms": chunk, "of_k10": chunk / base["latency_ms"]["denoiser_chunk"]["p50"] if base else None,
-                       "path": f"{f['precision']}, {f['kernel']}"}
+        lat[int(k)] = {
+            "chunk_ms": chunk,
+            "of_k10": chunk / base["latency_ms"]["denoiser_chunk"]["p50"] if base else None,
+            "path": f"{f['precision']}, {f['kernel']}",
+        }
     return {"tasks": tasks, "latency": lat}
 
 
-LABELS = {"teacher": "teacher (DDIM, 10 steps)", "ddim": "teacher, DDIM at K trailing steps (no distillation)",
-          "consistency": "student: consistency distillation", "trajectory": "student: trajectory distillation"}
+LABELS = {
+    "teacher": "teacher (DDIM, 10 steps)",
+    "ddim": "teacher, DDIM at K trailing steps (no distillation)",
+    "consistency": "student: consistency distillation",
+    "trajectory": "student: trajectory distillation",
+}
 
 
 def report_files(report_dir: Path) -> list[Path]:
@@ -215,8 +379,15 @@ def report_files(report_dir: Path) -> list[Path]:
     return [report_dir / f"{REPORT_NAME}{suffix}" for suffix in REPORT_SUFFIXES]
 
 
-def write_report(evals: dict, latency: dict, plan: dict, report_dir: Path, seconds: float, force: bool = False,
-                 pending: list[str] = ()) -> Path:
+def write_report(
+    evals: dict,
+    latency: dict,
+    plan: dict,
+    report_dir: Path,
+    seconds: float,
+    force: bool = False,
+    pending: list[str] = (),
+) -> Path:
     """The report's three files; ``pending``: the cells not run yet, listed."""
     check_output_files(report_files(report_dir), force=force, flag="--report")
     table = summarise(evals, latency, plan)
@@ -233,28 +404,45 @@ def write_report(evals: dict, latency: dict, plan: dict, report_dir: Path, secon
     for task, rows in table["tasks"].items():
         lines += [f"## {task}", "", "| sampler | K | success | chunk ms (sim model) |", "|---|---:|---|---:|"]
         for row in rows.values():
-            lines.append(f"| {LABELS[row['kind']]} | {row['steps']} | {pct(row['k'], row['n'])} | "
-                         f"{row['chunk_ms']:.2f} |" if row["chunk_ms"] else f"| {LABELS[row['kind']]} | {row['steps']} | "
-                         f"{pct(row['k'], row['n'])} | - |")
+            lines.append(
+                f"| {LABELS[row['kind']]} | {row['steps']} | {pct(row['k'], row['n'])} | {row['chunk_ms']:.2f} |"
+                if row["chunk_ms"]
+                else f"| {LABELS[row['kind']]} | {row['steps']} | {pct(row['k'], row['n'])} | - |"
+            )
         lines.append("")
     if table["latency"]:
         lat = plan["latency"]
-        lines += [f"## The chunk on the `{lat['preset']}` preset", "",
-                  f"`dssp-profile` ({lat['threads']} threads, the runtime's default graphs) of one `{lat['preset']}` model exported at each K:",
-                  "", "| K | chunk ms (p50) | of K = 10 | graphs |", "|---:|---:|---:|---|"]
+        lines += [
+            f"## The chunk on the `{lat['preset']}` preset",
+            "",
+            f"`dssp-profile` ({lat['threads']} threads, the runtime's default graphs) of one `{lat['preset']}` model exported at each K:",
+            "",
+            "| K | chunk ms (p50) | of K = 10 | graphs |",
+            "|---:|---:|---:|---|",
+        ]
         for k, row in sorted(table["latency"].items(), reverse=True):
             ratio = f"{row['of_k10']:.2f}" if row["of_k10"] is not None else "-"
             lines.append(f"| {k} | {row['chunk_ms']:.2f} | {ratio} | {row['path']} |")
         lines.append("")
     if pending:
-        lines += [f"**Partial report**: {len(pending)} cell(s) of the plan are pending (not run yet): "
-                  + ", ".join(f"`{n}`" for n in pending) + ".", ""]
+        lines += [
+            f"**Partial report**: {len(pending)} cell(s) of the plan are pending (not run yet): "
+            + ", ".join(f"`{n}`" for n in pending)
+            + ".",
+            "",
+        ]
     lines += [f"![success against K]({REPORT_NAME}.png)", ""]
     md, js, png = report_files(report_dir)
     write_output_text(md, "\n".join(lines), force=force, flag="--report")
-    write_output_text(js, json.dumps({"plan": plan, "summary": table, "evals": evals, "latency": latency,
-                                      "pending": list(pending)}, indent=2) + "\n",
-                      force=force, flag="--report")
+    write_output_text(
+        js,
+        json.dumps(
+            {"plan": plan, "summary": table, "evals": evals, "latency": latency, "pending": list(pending)}, indent=2
+        )
+        + "\n",
+        force=force,
+        flag="--report",
+    )
     _plot(table, png, force)
     return md
 
@@ -282,17 +470,32 @@ def _plot(table: dict, path: Path, force: bool) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     p = ArgumentParser(prog="python -m studies.distill_study", description=__doc__.split("\n")[0])
-    p.add_argument("--work", type=Path, default=Path("runs/distill_study"), help="datasets, runs, models, evaluations, logs")
+    p.add_argument(
+        "--work", type=Path, default=Path("runs/distill_study"), help="datasets, runs, models, evaluations, logs"
+    )
     p.add_argument("--report", type=Path, default=Path("reports/distill"), help="where the report and its record go")
-    p.add_argument("--tasks", nargs="+", metavar="TASK", help=f"run only these parts' stages ({', '.join(TASKS)}, {LATENCY}; "
-                                                               "default: all, then the report)")
+    p.add_argument(
+        "--tasks",
+        nargs="+",
+        metavar="TASK",
+        help=f"run only these parts' stages ({', '.join(TASKS)}, {LATENCY}; default: all, then the report)",
+    )
     p.add_argument("--quick", action="store_true", help="a tiny plan (tests): tap only, a few steps, one episode")
-    p.add_argument("--teachers", type=Path, metavar="STUDY_WORK", help="take the teachers from a simulation study's work "
-                   "folder (python -m studies.sim_study: its seed-0 DSSP runs) instead of training them")
+    p.add_argument(
+        "--teachers",
+        type=Path,
+        metavar="STUDY_WORK",
+        help="take the teachers from a simulation study's work "
+        "folder (python -m studies.sim_study: its seed-0 DSSP runs) instead of training them",
+    )
     p.add_argument("--workers", type=int, default=2, help="stages side by side, one thread each (default 2)")
     p.add_argument("--force", action="store_true", help="replace the report's files if they exist")
-    p.add_argument("--report-only", action="store_true", help="run no stage: write the report from the record "
-                   f"(--report/{RECORD_DIR}), the cells not run yet listed as pending")
+    p.add_argument(
+        "--report-only",
+        action="store_true",
+        help="run no stage: write the report from the record "
+        f"(--report/{RECORD_DIR}), the cells not run yet listed as pending",
+    )
     args = p.parse_args(argv)
     plan = QUICK_PLAN if args.quick else PLAN
     parts = [*plan["demos"], LATENCY]
@@ -316,7 +519,9 @@ def main(argv: list[str] | None = None) -> int:
         evals, latency, pending = recorded_results(plan, record)
         if not evals:
             raise DSSPError(f"{record} holds no evaluation of this plan; run the study first")
-        md = write_report(evals, latency, plan, args.report, stage_seconds(args.work, record), force=args.force, pending=pending)
+        md = write_report(
+            evals, latency, plan, args.report, stage_seconds(args.work, record), force=args.force, pending=pending
+        )
         print(f"report: {md}")
         return 0
 

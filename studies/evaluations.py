@@ -18,22 +18,46 @@ from dssp_core.files import atomic_write_text
 from studies import protocol
 from studies.runner import Runner, Stage
 
-KEPT = ("task", "n", "successes", "failure_reasons", "decisions", "precision", "kernel", "latency_ms",
-        "state_token_noise", "z_rms", "smoothing", "injected_delay_ms", "injected_delay_ticks", "rtc_delay_ticks",
-        "boundary_jerk")
+KEPT = (
+    "task",
+    "n",
+    "successes",
+    "failure_reasons",
+    "decisions",
+    "precision",
+    "kernel",
+    "latency_ms",
+    "state_token_noise",
+    "z_rms",
+    "smoothing",
+    "injected_delay_ms",
+    "injected_delay_ticks",
+    "rtc_delay_ticks",
+    "boundary_jerk",
+)
 
 
 def compact(result: dict) -> dict:
     """What the record keeps of one evaluation, or of one profile (it has no episodes; module docstring)."""
     kept = {k: result[k] for k in KEPT if k in result}
     if "episodes" in result:
-        kept["episodes"] = [{"seed": e["seed"], "success": e["success"], "reason": e["reason"], "steps": e["steps"],
-                             "decision": e.get("decision", {}), **({"holds": e["holds"]} if "holds" in e else {})}
-                            for e in result["episodes"]]
+        kept["episodes"] = [
+            {
+                "seed": e["seed"],
+                "success": e["success"],
+                "reason": e["reason"],
+                "steps": e["steps"],
+                "decision": e.get("decision", {}),
+                **({"holds": e["holds"]} if "holds" in e else {}),
+            }
+            for e in result["episodes"]
+        ]
     return kept
 
 
-def run_and_keep(work: Path, record: Path, stage_list: list[Stage], workers: int, what: str, seconds: bool = False) -> None:
+def run_and_keep(
+    work: Path, record: Path, stage_list: list[Stage], workers: int, what: str, seconds: bool = False
+) -> None:
     """Run the stages in ``work`` (``workers`` at a time) and keep every finished stage's evaluations (its
     ``outputs``) in ``record`` at the same relative paths — also when a stage fails or the study is stopped.
     ``seconds``: keep each finished stage's seconds too (``record/seconds/NAME.seconds``, from its done marker)."""
@@ -47,16 +71,27 @@ def run_and_keep(work: Path, record: Path, stage_list: list[Stage], workers: int
             for output in s.outputs:
                 if runner.done(s.name) and (work / output).is_file():
                     (record / output).parent.mkdir(parents=True, exist_ok=True)
-                    atomic_write_text(record / output, json.dumps(compact(json.loads((work / output).read_text())), indent=1) + "\n")
+                    atomic_write_text(
+                        record / output, json.dumps(compact(json.loads((work / output).read_text())), indent=1) + "\n"
+                    )
             if seconds and runner.done(s.name):
                 (record / "seconds").mkdir(parents=True, exist_ok=True)
-                atomic_write_text(record / "seconds" / f"{s.name}.seconds",
-                                  f"{json.loads(runner.marker(s.name).read_text())['seconds']:.1f}\n")
+                atomic_write_text(
+                    record / "seconds" / f"{s.name}.seconds",
+                    f"{json.loads(runner.marker(s.name).read_text())['seconds']:.1f}\n",
+                )
 
 
-def study_main(argv: list[str] | None, name: str, doc: str, plan: dict, quick_plan: dict, split: str,
-               stages: Callable[[dict, list[str], Path], list[Stage]],
-               write_report: Callable[[dict, Path, Path], Path]) -> int:
+def study_main(
+    argv: list[str] | None,
+    name: str,
+    doc: str,
+    plan: dict,
+    quick_plan: dict,
+    split: str,
+    stages: Callable[[dict, list[str], Path], list[Stage]],
+    write_report: Callable[[dict, Path, Path], Path],
+) -> int:
     """The command of a study whose stages evaluate on one ``split`` and whose report is rebuilt from its record
     (``python -m studies.NAME [--tasks T ...] [--workers 2] [--work runs/NAME] [--report reports/NAME]
     [--report-only] [--quick]``): its provenance noted, its stages run and their evaluations kept
@@ -65,7 +100,9 @@ def study_main(argv: list[str] | None, name: str, doc: str, plan: dict, quick_pl
     p = ArgumentParser(prog=f"python -m studies.{name}", description=doc.split("\n\n")[0])
     p.add_argument("--tasks", nargs="+", metavar="TASK", help="default: every task of the plan")
     p.add_argument("--workers", type=int, default=2, help="stages side by side, one thread each (default 2)")
-    p.add_argument("--work", type=Path, default=Path(f"runs/{folder}"), help="datasets, runs, models, evaluations, logs")
+    p.add_argument(
+        "--work", type=Path, default=Path(f"runs/{folder}"), help="datasets, runs, models, evaluations, logs"
+    )
     p.add_argument("--report", type=Path, default=Path(f"reports/{folder}"), help="the report and its record")
     p.add_argument("--report-only", action="store_true", help="run nothing: rebuild the report from the record")
     p.add_argument("--quick", action="store_true", help="a tiny plan (tests)")
@@ -73,7 +110,9 @@ def study_main(argv: list[str] | None, name: str, doc: str, plan: dict, quick_pl
     plan = quick_plan if args.quick else plan
     tasks = args.tasks or list(plan["tasks"])
     if set(tasks) - set(plan["tasks"]):
-        p.error(f"--tasks: {', '.join(sorted(set(tasks) - set(plan['tasks'])))} not in the plan ({', '.join(plan['tasks'])})")
+        p.error(
+            f"--tasks: {', '.join(sorted(set(tasks) - set(plan['tasks'])))} not in the plan ({', '.join(plan['tasks'])})"
+        )
 
     def _main() -> int:
         record = args.report / "record"

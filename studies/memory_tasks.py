@@ -27,9 +27,9 @@ from __future__ import annotations
 
 import json
 import sys
+from pathlib import Path
 
 import numpy as np
-from pathlib import Path
 
 from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import DSSPError
@@ -44,19 +44,25 @@ from studies.stats import cluster_bootstrap, describe_p, paired_difference, pair
 
 REPORT_NAME = "memory"
 PLAN = {
-    "tasks": {"tap": {"demos": 50, "steps": 3000}, "swap": {"demos": 150, "steps": 3000}, "put2": {"demos": 150, "steps": 1500}},
+    "tasks": {
+        "tap": {"demos": 50, "steps": 3000},
+        "swap": {"demos": 150, "steps": 3000},
+        "put2": {"demos": 150, "steps": 1500},
+    },
     "models": {
         "dssp": {"preset": "sim", "flags": []},
         "dp3_sim": {"preset": "dp3_sim", "flags": []},
         "wo_history": {"preset": "sim", "flags": ["--no-history"]},
     },
     # Table 5's ablations of DSSP, on tap only
-    "ablations": {"tap": {
-        "no_timestep_decoupling": {"preset": "sim", "flags": ["--no-timestep-decoupling"]},
-        "no_recent_states": {"preset": "sim", "flags": ["--no-recent-states"]},
-        "no_dynamics_loss": {"preset": "sim", "flags": ["--no-dynamics-loss"]},
-        "transformer_denoiser": {"preset": "sim", "flags": ["--denoiser-backbone", "transformer"]},
-    }},
+    "ablations": {
+        "tap": {
+            "no_timestep_decoupling": {"preset": "sim", "flags": ["--no-timestep-decoupling"]},
+            "no_recent_states": {"preset": "sim", "flags": ["--no-recent-states"]},
+            "no_dynamics_loss": {"preset": "sim", "flags": ["--no-dynamics-loss"]},
+            "transformer_denoiser": {"preset": "sim", "flags": ["--denoiser-backbone", "transformer"]},
+        }
+    },
     # trained on a GPU: the study prints their commands
     "gpu_models": {"dp3": {"preset": "dp3", "flags": []}},
     "seeds": [0, 1, 2],
@@ -77,9 +83,13 @@ QUICK_PLAN = {
     "export_flags": ["--skip-verify", "--quantize", "none"],
 }
 LABELS = {
-    "dssp": "DSSP (full history)", "dp3_sim": "DP3 (sim size, 0.71 M)", "dp3": "DP3 (its own size, 262 M)",
-    "wo_history": "DSSP w/o history", "no_timestep_decoupling": "w/o timestep decoupling",
-    "no_recent_states": "w/o recent states", "no_dynamics_loss": "w/o dynamics loss",
+    "dssp": "DSSP (full history)",
+    "dp3_sim": "DP3 (sim size, 0.71 M)",
+    "dp3": "DP3 (its own size, 262 M)",
+    "wo_history": "DSSP w/o history",
+    "no_timestep_decoupling": "w/o timestep decoupling",
+    "no_recent_states": "w/o recent states",
+    "no_dynamics_loss": "w/o dynamics loss",
     "transformer_denoiser": "w/ Transformer denoiser",
 }
 RECORD_DIR = "record"
@@ -95,14 +105,28 @@ def eval_name(task: str, model: str, seed: int, split: str) -> str:
 
 
 def train_argv(plan: dict, task: str, model: dict, seed: int, data: str, run: str) -> list[str]:
-    return ["--data", data, "--out", run, "--preset", model["preset"], "--steps", str(plan["tasks"][task]["steps"]),
-            "--seed", str(seed), "--no-progress", "--force", *model["flags"]]
+    return [
+        "--data",
+        data,
+        "--out",
+        run,
+        "--preset",
+        model["preset"],
+        "--steps",
+        str(plan["tasks"][task]["steps"]),
+        "--seed",
+        str(seed),
+        "--no-progress",
+        "--force",
+        *model["flags"],
+    ]
 
 
 def stages(plan: dict, split: str, tasks: list[str], record: Path, models: list[str] | None = None) -> list[Stage]:
     """Every stage of ``tasks`` for ``split`` (of ``models`` only, when given); a model whose evaluation is in the
     record needs none."""
     from export import to_onnx  # deferred: loads torch, which a stage's process imports after setting its threads
+
     n = plan["episodes"][split]
     first = protocol.split_seeds(split, n)[0]
     out: list[Stage] = []
@@ -121,19 +145,54 @@ def stages(plan: dict, split: str, tasks: list[str], record: Path, models: list[
                 need_data = True
                 run, model_dir = f"runs/{key}", f"models/{key}"
                 out += [
-                    Stage(f"train_{key}", train.main, tuple(train_argv(plan, task, model, seed, data, run)),
-                          after=(f"collect_{task}",), resume=("--data", data, "--out", run, "--resume", "--no-progress"),
-                          started=f"{run}/checkpoint"),
-                    Stage(f"export_{key}", to_onnx.main, (run, "-o", model_dir, "--force", "--threads", "1",
-                                                          *plan["export_flags"]), after=(f"train_{key}",)),
-                    Stage(f"eval_{result}", sim_cli.main,
-                          ("eval", "--model", model_dir, "--task", task, "--episodes", str(n), "--seed", str(first),
-                           "--threads", "1", "--json", f"evals/{result}.json", "--force", "--no-progress"),
-                          after=(f"export_{key}",), outputs=(f"evals/{result}.json",)),
+                    Stage(
+                        f"train_{key}",
+                        train.main,
+                        tuple(train_argv(plan, task, model, seed, data, run)),
+                        after=(f"collect_{task}",),
+                        resume=("--data", data, "--out", run, "--resume", "--no-progress"),
+                        started=f"{run}/checkpoint",
+                    ),
+                    Stage(
+                        f"export_{key}",
+                        to_onnx.main,
+                        (run, "-o", model_dir, "--force", "--threads", "1", *plan["export_flags"]),
+                        after=(f"train_{key}",),
+                    ),
+                    Stage(
+                        f"eval_{result}",
+                        sim_cli.main,
+                        (
+                            "eval",
+                            "--model",
+                            model_dir,
+                            "--task",
+                            task,
+                            "--episodes",
+                            str(n),
+                            "--seed",
+                            str(first),
+                            "--threads",
+                            "1",
+                            "--json",
+                            f"evals/{result}.json",
+                            "--force",
+                            "--no-progress",
+                        ),
+                        after=(f"export_{key}",),
+                        outputs=(f"evals/{result}.json",),
+                    ),
                 ]
         if need_data:
-            out.insert(0, Stage(f"collect_{task}", sim_cli.main, ("collect", "--task", task, "--episodes", str(spec["demos"]),
-                                                                   "--out", data, "--no-progress"), clean=(data,)))
+            out.insert(
+                0,
+                Stage(
+                    f"collect_{task}",
+                    sim_cli.main,
+                    ("collect", "--task", task, "--episodes", str(spec["demos"]), "--out", data, "--no-progress"),
+                    clean=(data,),
+                ),
+            )
     return out
 
 
@@ -143,13 +202,18 @@ def gpu_commands(plan: dict, tasks: list[str]) -> list[str]:
         for task in tasks:
             for seed in plan["seeds"]:
                 key = f"{task}_{name}_s{seed}"
-                lines.append("dssp-train " + " ".join(train_argv(plan, task, model, seed, f"data/{task}.zarr", f"runs/{key}"))
-                             + " --device cuda")
+                lines.append(
+                    "dssp-train "
+                    + " ".join(train_argv(plan, task, model, seed, f"data/{task}.zarr", f"runs/{key}"))
+                    + " --device cuda"
+                )
     return lines
 
 
 # ------------------------------------------------------------------------------------------------ report
-def grid(record: Path, task: str, model: str, seeds: list[int], split: str) -> tuple[list[list[int]], list[int], list[dict]] | None:
+def grid(
+    record: Path, task: str, model: str, seeds: list[int], split: str
+) -> tuple[list[list[int]], list[int], list[dict]] | None:
     """(outcomes (R, S), scene seeds, the R evaluations) of one model, or None until all its seeds are recorded."""
     evals = []
     for seed in seeds:
@@ -160,7 +224,9 @@ def grid(record: Path, task: str, model: str, seeds: list[int], split: str) -> t
     scenes = [e["seed"] for e in evals[0]["episodes"]]
     for r in evals[1:]:
         if [e["seed"] for e in r["episodes"]] != scenes:
-            raise DSSPError(f"{task}/{model}: the training seeds were evaluated on different scenes; the study pairs them")
+            raise DSSPError(
+                f"{task}/{model}: the training seeds were evaluated on different scenes; the study pairs them"
+            )
     return [[int(e["success"]) for e in r["episodes"]] for r in evals], scenes, evals
 
 
@@ -185,7 +251,7 @@ def report_lines(plan: dict, record: Path, split: str, shown_record: str | None 
         "",
         f"Rebuilt from `{shown_record or record}` by `python -m studies.memory_tasks --split {split} --report-only`. "
         f"Scenes: {split} seeds {scene_seeds[0]}–{scene_seeds[-1]} ({n} per model and training seed, the same for every "
-        f"model); training seeds {seeds}; steps per task {({t: s['steps'] for t, s in plan['tasks'].items()})}. "
+        f"model); training seeds {seeds}; steps per task { ({t: s['steps'] for t, s in plan['tasks'].items()}) }. "
         "Success: mean over training seeds and scenes, 95 % two-way cluster-bootstrap interval (training seeds × scenes). "
         "Δ vs DSSP: paired difference (same scenes) with its interval and the exact paired sign-flip test.",
     ]
@@ -198,9 +264,14 @@ def report_lines(plan: dict, record: Path, split: str, shown_record: str | None 
     for task in plan["tasks"]:
         models = models_of(plan, task)
         rows, base = {}, grid(record, task, "dssp", seeds, split)
-        lines += ["", f"## {task}", "",
-                  "| model | success % (95 % CI) | per training seed | Δ vs DSSP (95 % CI) | paired test | memory decision right / reached | failures |",
-                  "|---|---|---|---|---|---|---|"]
+        lines += [
+            "",
+            f"## {task}",
+            "",
+            "| model | success % (95 % CI) | per training seed | Δ vs DSSP (95 "
+            "% CI) | paired test | memory decision right / reached | failures |",
+            "|---|---|---|---|---|---|---|",
+        ]
         for name in models:
             g = grid(record, task, name, seeds, split)
             if g is None:
@@ -216,9 +287,16 @@ def report_lines(plan: dict, record: Path, split: str, shown_record: str | None 
                 for k, v in e["failure_reasons"].items():
                     reasons[k] = reasons.get(k, 0) + v
             fails = ", ".join(f"{k} × {v}" for k, v in sorted(reasons.items())) or "—"
-            row = {"success": mean, "ci": [lo, hi], "per_seed": [sum(o) for o in outcomes], "episodes": len(outcomes[0]),
-                   "decision_right": right, "decision_reached": reached, "failures": reasons,
-                   "choices": _merge(e["decisions"]["choices"] for e in evals)}
+            row = {
+                "success": mean,
+                "ci": [lo, hi],
+                "per_seed": [sum(o) for o in outcomes],
+                "episodes": len(outcomes[0]),
+                "decision_right": right,
+                "decision_reached": reached,
+                "failures": reasons,
+                "choices": _merge(e["decisions"]["choices"] for e in evals),
+            }
             delta = test = "—"
             if name != "dssp" and base is not None:
                 d, dlo, dhi = paired_difference(outcomes, base[0])
@@ -227,16 +305,25 @@ def report_lines(plan: dict, record: Path, split: str, shown_record: str | None 
                 delta, test = f"{100 * d:+.0f} ({100 * dlo:+.0f} to {100 * dhi:+.0f})", describe_p(p)
             rows[name] = row
             decision = f"{right}/{reached}" + (f" ({100 * right / reached:.0f} %)" if reached else "")
-            lines.append(f"| {LABELS.get(name, name)} | {_pct(mean)} ({_pct(lo)}–{_pct(hi)}) | {per_seed} | {delta} | {test} | "
-                         f"{decision} | {fails} |")
+            lines.append(
+                f"| {LABELS.get(name, name)} | {_pct(mean)} ({_pct(lo)}–{_pct(hi)}) | {per_seed} | {delta} | {test} | "
+                f"{decision} | {fails} |"
+            )
         for name in plan["gpu_models"]:
             lines.append(f"| {LABELS.get(name, name)} | not run: a GPU model (commands below) | | | | | |")
         if task == "tap" and rows:
             counts = sorted({c for r in rows.values() for c in r["choices"]}, key=lambda c: int(c.split()[0]))
-            lines += ["", "tap's memory decision: presses counted at the end of each episode (3 is right), all training seeds:", "",
-                      "| model | " + " | ".join(counts) + " |", "|---|" + "---:|" * len(counts)]
+            lines += [
+                "",
+                "tap's memory decision: presses counted at the end of each episode (3 is right), all training seeds:",
+                "",
+                "| model | " + " | ".join(counts) + " |",
+                "|---|" + "---:|" * len(counts),
+            ]
             for name, r in rows.items():
-                lines.append(f"| {LABELS.get(name, name)} | " + " | ".join(str(r['choices'].get(c, 0)) for c in counts) + " |")
+                lines.append(
+                    f"| {LABELS.get(name, name)} | " + " | ".join(str(r["choices"].get(c, 0)) for c in counts) + " |"
+                )
         figures["tasks"][task] = rows
     lines += ["", "DP3 at its own size (the `dp3` preset) trains on a GPU; its commands for this plan:", "", "```"]
     lines += gpu_commands(plan, list(plan["tasks"])) + ["```", ""]
@@ -258,7 +345,9 @@ def write_report(plan: dict, record: Path, report: Path, split: str, shown_recor
     lines += [f"![success and memory decision per model]({md.with_suffix('.png').name})", ""]
     report.mkdir(parents=True, exist_ok=True)
     atomic_write_text(md, "\n".join(lines))
-    atomic_write_text(report / f"{REPORT_NAME}_{split}.json", json.dumps({"plan": plan, **figures}, indent=1, sort_keys=True) + "\n")
+    atomic_write_text(
+        report / f"{REPORT_NAME}_{split}.json", json.dumps({"plan": plan, **figures}, indent=1, sort_keys=True) + "\n"
+    )
     plot(figures, md.with_suffix(".png"))
     return md
 
@@ -278,8 +367,14 @@ def plot(figures: dict, path: Path) -> None:
         names = list(rows)
         x = np.arange(len(names))
         success = [100 * rows[n]["success"] for n in names]
-        err = [[100 * (rows[n]["success"] - rows[n]["ci"][0]) for n in names], [100 * (rows[n]["ci"][1] - rows[n]["success"]) for n in names]]
-        decision = [100 * rows[n]["decision_right"] / rows[n]["decision_reached"] if rows[n]["decision_reached"] else 0 for n in names]
+        err = [
+            [100 * (rows[n]["success"] - rows[n]["ci"][0]) for n in names],
+            [100 * (rows[n]["ci"][1] - rows[n]["success"]) for n in names],
+        ]
+        decision = [
+            100 * rows[n]["decision_right"] / rows[n]["decision_reached"] if rows[n]["decision_reached"] else 0
+            for n in names
+        ]
         ax.bar(x - 0.2, success, 0.4, yerr=err, capsize=3, label="success (95 % cluster bootstrap)")
         ax.bar(x + 0.2, decision, 0.4, label="memory decision right (of reached)")
         ax.set(xticks=x, ylim=(0, 105), ylabel="%", title=f"{task} ({figures['split']} split)")
@@ -289,8 +384,9 @@ def plot(figures: dict, path: Path) -> None:
     write_output_figure(path, fig, force=True, flag="--report")
 
 
-def run_study(plan: dict, split: str, tasks: list[str], work: Path, report: Path, workers: int,
-              models: list[str] | None = None) -> Path:
+def run_study(
+    plan: dict, split: str, tasks: list[str], work: Path, report: Path, workers: int, models: list[str] | None = None
+) -> Path:
     record = report / RECORD_DIR
     if split == "test":
         protocol.check_frozen(record, plan)
@@ -308,7 +404,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--workers", type=int, default=2, help="stages side by side, one thread each (default 2)")
     p.add_argument("--work", type=Path, default=Path("runs/memory"), help="datasets, runs, models, evaluations, logs")
     p.add_argument("--report", type=Path, default=Path("reports/memory"), help="the report and its record")
-    p.add_argument("--freeze", action="store_true", help="freeze the plan for the test split (after choosing on validation)")
+    p.add_argument(
+        "--freeze", action="store_true", help="freeze the plan for the test split (after choosing on validation)"
+    )
     p.add_argument("--report-only", action="store_true", help="run nothing: rebuild the report from the record")
     p.add_argument("--quick", action="store_true", help="a tiny plan (tests)")
     args = p.parse_args(argv)
@@ -319,15 +417,19 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"--tasks: {', '.join(unknown)} not in the plan ({', '.join(plan['tasks'])})")
     known = {m for t in tasks for m in models_of(plan, t)}
     if args.models and set(args.models) - known:
-        p.error(f"--models: {', '.join(sorted(set(args.models) - known))} not in the plan's models for these tasks "
-                f"({', '.join(sorted(known))})")
+        p.error(
+            f"--models: {', '.join(sorted(set(args.models) - known))} not in the plan's models for these tasks "
+            f"({', '.join(sorted(known))})"
+        )
 
     def _main() -> int:
         record = args.report / RECORD_DIR
         if args.freeze:
             tested = [t for t in plan["tasks"] if any((record / "evals").glob(f"{t}_*_test.json"))]
-            print(f"plan {protocol.freeze_plan(record, plan, tested)} frozen in {record / protocol.FROZEN_NAME} on task "
-                  f"definition {protocol.task_definition_hash()}; --split test runs it")
+            print(
+                f"plan {protocol.freeze_plan(record, plan, tested)} frozen in {record / protocol.FROZEN_NAME} on task "
+                f"definition {protocol.task_definition_hash()}; --split test runs it"
+            )
             return 0
         if args.report_only:
             md = write_report(plan, record, args.report, args.split)

@@ -49,14 +49,30 @@ REPORT_NAME = "metaworld"
 RECORD_DIR = "record"
 TOP = 5  # the paper's metric: the mean of the top five evaluations
 # MetaWorld's horizons in the paper (its Table of MetaWorld hyper-parameters; DP3's MetaWorld config has the same)
-HORIZONS = ["--set", "model.n_obs_steps=2", "--set", "model.horizon=4", "--set", "model.n_action_steps=3",
-            "--set", "model.n_points=512"]
+HORIZONS = [
+    "--set",
+    "model.n_obs_steps=2",
+    "--set",
+    "model.horizon=4",
+    "--set",
+    "model.n_action_steps=3",
+    "--set",
+    "model.n_points=512",
+]
 PLAN = {
     "suite": "metaworld",
     # two tasks of each difficulty group, the first two of each in alphabetical order (chosen before any result),
     # one of each group first so that a partial run covers every group
-    "tasks": ["button-press", "basketball", "assembly", "disassemble",
-              "button-press-topdown", "bin-picking", "hand-insert", "pick-place-wall"],
+    "tasks": [
+        "button-press",
+        "basketball",
+        "assembly",
+        "disassemble",
+        "button-press-topdown",
+        "bin-picking",
+        "hand-insert",
+        "pick-place-wall",
+    ],
     "demos": 10,
     "epochs": 100,  # the paper trains 1000 epochs; an epoch is one step per training episode (README, "Epochs")
     "evaluations": 5,  # kept checkpoints, evenly along training, each evaluated on the validation seeds
@@ -73,8 +89,11 @@ PLAN = {
 PAPER_PLAN = {
     **PLAN,
     "epochs": 1000,
-    "models": {"dssp": {"preset": "metaworld", "flags": []}, "dp3": {"preset": "dp3", "flags": HORIZONS},
-               "wo_history": {"preset": "metaworld", "flags": ["--no-history"]}},
+    "models": {
+        "dssp": {"preset": "metaworld", "flags": []},
+        "dp3": {"preset": "dp3", "flags": HORIZONS},
+        "wo_history": {"preset": "metaworld", "flags": ["--no-history"]},
+    },
 }
 # This project's memory variant (dssp_sim.metaworld_env: the goal shown for the first 10 steps, then hidden), same
 # protocol and budget as PLAN; no paper to compare with.
@@ -96,8 +115,10 @@ QUICK_PLAN = {
 }
 LABELS = {"dssp": "DSSP", "dp3_sim": "DP3 (sim size)", "dp3": "DP3 (its own size)", "wo_history": "DSSP w/o history"}
 # The paper's MetaWorld table (mean ± std over 3 seeds, the top-5 metric), per difficulty group.
-PAPER = {"dssp": {"easy": (90.5, 2.1), "medium": (67.4, 4.1), "hard": (54.6, 2.4), "very_hard": (71.3, 3.8)},
-         "dp3": {"easy": (87.3, 2.2), "medium": (44.5, 8.7), "hard": (32.7, 7.7), "very_hard": (39.4, 9.0)}}
+PAPER = {
+    "dssp": {"easy": (90.5, 2.1), "medium": (67.4, 4.1), "hard": (54.6, 2.4), "very_hard": (71.3, 3.8)},
+    "dp3": {"easy": (87.3, 2.2), "medium": (44.5, 8.7), "hard": (32.7, 7.7), "very_hard": (39.4, 9.0)},
+}
 PAPER_TASKS = {"easy": 21, "medium": 4, "hard": 4, "very_hard": 5}
 PAPER_EPOCHS = 1000
 PAPER_DEMOS = 10
@@ -159,15 +180,31 @@ def eval_name(task: str, model: str, seed: int, step: int, split: str) -> str:
 
 def train_argv(plan: dict, task: str, model: dict, seed: int, data: str, run: str) -> list[str]:
     steps = steps_of(plan)
-    return ["--data", data, "--out", run, "--preset", model["preset"], "--steps", str(steps), "--seed", str(seed),
-            "--no-holdout", "--set", f"train.keep_every={steps // plan['evaluations']}", "--no-progress", "--force",
-            *model["flags"]]
+    return [
+        "--data",
+        data,
+        "--out",
+        run,
+        "--preset",
+        model["preset"],
+        "--steps",
+        str(steps),
+        "--seed",
+        str(seed),
+        "--no-holdout",
+        "--set",
+        f"train.keep_every={steps // plan['evaluations']}",
+        "--no-progress",
+        "--force",
+        *model["flags"],
+    ]
 
 
 def stages(plan: dict, split: str, tasks: list[str], record: Path) -> list[Stage]:
     """Every stage of ``tasks`` for ``split`` not yet in the record: on validation every kept checkpoint is
     evaluated, on test the last one."""
     from export import to_onnx  # deferred: loads torch, which a stage's process imports after setting its threads
+
     n = plan["episodes"][split]
     first = protocol.split_seeds(split, n)[0]
     kept = checkpoint_steps(plan)
@@ -179,29 +216,84 @@ def stages(plan: dict, split: str, tasks: list[str], record: Path) -> list[Stage
             for seed in plan["seeds"]:
                 key = f"{task}_{name}_s{seed}"
                 run = f"runs/{key}"
-                wanted = [s for s in (kept if split == "validation" else kept[-1:])
-                          if not (record / "evals" / f"{eval_name(task, name, seed, s, split)}.json").is_file()]
+                wanted = [
+                    s
+                    for s in (kept if split == "validation" else kept[-1:])
+                    if not (record / "evals" / f"{eval_name(task, name, seed, s, split)}.json").is_file()
+                ]
                 if not wanted:
                     continue
                 need_data = True
-                out.append(Stage(f"train_{key}", train.main, tuple(train_argv(plan, task, model, seed, data, run)),
-                                 after=(f"collect_{task}",), resume=("--data", data, "--out", run, "--resume", "--no-progress"),
-                                 started=f"{run}/checkpoint"))
+                out.append(
+                    Stage(
+                        f"train_{key}",
+                        train.main,
+                        tuple(train_argv(plan, task, model, seed, data, run)),
+                        after=(f"collect_{task}",),
+                        resume=("--data", data, "--out", run, "--resume", "--no-progress"),
+                        started=f"{run}/checkpoint",
+                    )
+                )
                 for step in wanted:
                     model_dir, result = f"models/{key}_step{step}", eval_name(task, name, seed, step, split)
                     out += [
-                        Stage(f"export_{key}_step{step}", to_onnx.main,
-                              (f"{run}/snapshots/step_{step:07d}", "-o", model_dir, "--force", "--threads", "1",
-                               *plan["export_flags"]), after=(f"train_{key}",)),
-                        Stage(f"eval_{result}", sim_cli.main,
-                              ("eval", "--model", model_dir, "--task", task_id(plan, task), "--episodes", str(n),
-                               "--seed", str(first), "--threads", "1", "--json", f"evals/{result}.json", "--force",
-                               "--no-progress"), after=(f"export_{key}_step{step}",), outputs=(f"evals/{result}.json",)),
+                        Stage(
+                            f"export_{key}_step{step}",
+                            to_onnx.main,
+                            (
+                                f"{run}/snapshots/step_{step:07d}",
+                                "-o",
+                                model_dir,
+                                "--force",
+                                "--threads",
+                                "1",
+                                *plan["export_flags"],
+                            ),
+                            after=(f"train_{key}",),
+                        ),
+                        Stage(
+                            f"eval_{result}",
+                            sim_cli.main,
+                            (
+                                "eval",
+                                "--model",
+                                model_dir,
+                                "--task",
+                                task_id(plan, task),
+                                "--episodes",
+                                str(n),
+                                "--seed",
+                                str(first),
+                                "--threads",
+                                "1",
+                                "--json",
+                                f"evals/{result}.json",
+                                "--force",
+                                "--no-progress",
+                            ),
+                            after=(f"export_{key}_step{step}",),
+                            outputs=(f"evals/{result}.json",),
+                        ),
                     ]
         if need_data:
-            out.insert(0, Stage(f"collect_{task}", sim_cli.main,
-                                ("collect", "--task", task_id(plan, task), "--episodes", str(plan["demos"]), "--out", data,
-                                 "--no-progress"), clean=(data,)))
+            out.insert(
+                0,
+                Stage(
+                    f"collect_{task}",
+                    sim_cli.main,
+                    (
+                        "collect",
+                        "--task",
+                        task_id(plan, task),
+                        "--episodes",
+                        str(plan["demos"]),
+                        "--out",
+                        data,
+                        "--no-progress",
+                    ),
+                    clean=(data,),
+                ),
+            )
     return out
 
 
@@ -251,7 +343,9 @@ def figures_of(plan: dict, record: Path) -> dict:
             if all(t is not None for t in tests):
                 scenes = [e["seed"] for e in tests[0]["episodes"]]
                 if any([e["seed"] for e in t["episodes"]] != scenes for t in tests):
-                    raise DSSPError(f"{task}/{name}: the training seeds were tested on different scenes; the study pairs them")
+                    raise DSSPError(
+                        f"{task}/{name}: the training seeds were tested on different scenes; the study pairs them"
+                    )
                 grid = [[int(e["success"]) for e in t["episodes"]] for t in tests]
                 mean, lo, hi = cluster_bootstrap(grid)
                 row["test"] = {"grid": grid, "success": mean, "ci": [lo, hi]}
@@ -270,9 +364,11 @@ def figures_of(plan: dict, record: Path) -> dict:
         for name in model_order(plan):
             vals = [out["tasks"][t][name].get("top5", {}).get("mean") for t in tasks]
             tests = [out["tasks"][t][name].get("test", {}).get("success") for t in tasks]
-            g[name] = {"tasks": len(tasks),
-                       "top5": float(np.mean(vals)) if None not in vals else None,
-                       "test": float(np.mean(tests)) if None not in tests else None}
+            g[name] = {
+                "tasks": len(tasks),
+                "top5": float(np.mean(vals)) if None not in vals else None,
+                "test": float(np.mean(tests)) if None not in tests else None,
+            }
         out["groups"][group] = g
     return out
 
@@ -286,21 +382,31 @@ def report_lines(plan: dict, record: Path, shown_record: str | None = None) -> t
     steps, kept = steps_of(plan), checkpoint_steps(plan)
     ratio = plan["epochs"] / PAPER_EPOCHS
     memory = is_memory(plan)
-    title = ("# MetaWorld with a cue that disappears (this project's memory variant): DSSP, DP3 and DSSP w/o history"
-             if memory else "# MetaWorld under DP3's protocol: DSSP, DP3 and DSSP w/o history")
+    title = (
+        "# MetaWorld with a cue that disappears (this project's memory variant): DSSP, DP3 and DSSP w/o history"
+        if memory
+        else "# MetaWorld under DP3's protocol: DSSP, DP3 and DSSP w/o history"
+    )
     lines = [
         title,
         "",
-        *(["The variant (`metaworld-cue/NAME`, dssp_sim/metaworld_env.py) is this project's, not MetaWorld's: the "
-           "task's goal marker, a 4 cm sphere, is in the clouds for the first 10 steps of an episode, then hidden; the "
-           "expert knows the goal throughout, a policy only from what it remembers. The paper reports no such task.", ""]
-          if memory else []),
+        *(
+            [
+                "The variant (`metaworld-cue/NAME`, dssp_sim/metaworld_env.py) is this project's, not MetaWorld's: the "
+                "task's goal marker, a 4 cm sphere, is in the clouds for the first 10 steps of an episode, then hidden; the "
+                "expert knows the goal throughout, a policy only from what it remembers. The paper reports no such task.",
+                "",
+            ]
+            if memory
+            else []
+        ),
         f"Rebuilt from `{shown_record or record}` by `python -m studies.metaworld{' --memory' if memory else ''} "
         "--report-only`. "
         f"{plan['demos']} expert demonstrations per task (MetaWorld's scripted policies, demonstration seeds from 0), "
         f"512-point clouds in DP3's frame; training seeds {plan['seeds']}; {plan['epochs']} epochs = {steps} steps "
         f"({ratio:.2f} of the paper's {PAPER_EPOCHS} epochs); models "
-        + ", ".join(f"{LABELS.get(n, n)} (`--preset {plan['models'][n]['preset']}`)" for n in model_order(plan)) + ".",
+        + ", ".join(f"{LABELS.get(n, n)} (`--preset {plan['models'][n]['preset']}`)" for n in model_order(plan))
+        + ".",
         "",
         f"**Paper metric** (validation seeds): each training seed's checkpoints at steps {kept} are evaluated on "
         f"{plan['episodes']['validation']} episodes; per seed the mean of the top {TOP} (of {len(kept)}), then mean ± std "
@@ -317,9 +423,13 @@ def report_lines(plan: dict, record: Path, shown_record: str | None = None) -> t
     names = model_order(plan)
     if not memory:
         lines += ["", "## Per difficulty group, beside the paper", "", *group_table(figures, names, ratio)]
-    lines += ["", "## Per task", "",
-              "| task | model | top-5 (mean ± std over seeds) | per seed | test success % (95 % CI) | Δ vs DSSP | paired test |",
-              "|---|---|---|---|---|---|---|"]
+    lines += [
+        "",
+        "## Per task",
+        "",
+        "| task | model | top-5 (mean ± std over seeds) | per seed | test success % (95 % CI) | Δ vs DSSP | paired test |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for task, rows in figures["tasks"].items():
         for name, row in rows.items():
             t5 = row.get("top5")
@@ -327,7 +437,11 @@ def report_lines(plan: dict, record: Path, shown_record: str | None = None) -> t
             seeds = ", ".join(f"{100 * v:.0f}" for v in t5["per_seed"]) if t5 else ""
             t = row.get("test")
             test = f"{100 * t['success']:.0f} ({100 * t['ci'][0]:.0f}–{100 * t['ci'][1]:.0f})" if t else "pending"
-            delta = f"{100 * t['delta']:+.0f} ({100 * t['delta_ci'][0]:+.0f} to {100 * t['delta_ci'][1]:+.0f})" if t and "delta" in t else "—"
+            delta = (
+                f"{100 * t['delta']:+.0f} ({100 * t['delta_ci'][0]:+.0f} to {100 * t['delta_ci'][1]:+.0f})"
+                if t and "delta" in t
+                else "—"
+            )
             p = describe_p(t["p"]) if t and "p" in t else "—"
             lines.append(f"| {task} | {LABELS.get(name, name)} | {top} | {seeds} | {test} | {delta} | {p} |")
     lines.append("")
@@ -337,17 +451,29 @@ def report_lines(plan: dict, record: Path, shown_record: str | None = None) -> t
 def group_table(figures: dict, names: list[str], ratio: float) -> list[str]:
     """Per difficulty group: this study's figures beside the paper's table, and the budget (the report's
     section and the README's ``metaworld`` block)."""
-    lines = ["| group (tasks here / paper's) | " + " | ".join(f"{LABELS.get(n, n)} top-5" for n in names) + " | "
-             + " | ".join(f"{LABELS.get(n, n)} test" for n in names) + " | paper DSSP | paper DP3 |",
-             "|---|" + "---:|" * (2 * len(names) + 2)]
+    lines = [
+        "| group (tasks here / paper's) | "
+        + " | ".join(f"{LABELS.get(n, n)} top-5" for n in names)
+        + " | "
+        + " | ".join(f"{LABELS.get(n, n)} test" for n in names)
+        + " | paper DSSP | paper DP3 |",
+        "|---|" + "---:|" * (2 * len(names) + 2),
+    ]
     for group, g in figures["groups"].items():
         paper = [f"{PAPER[m][group][0]} ± {PAPER[m][group][1]}" for m in ("dssp", "dp3")]
-        lines.append(f"| {group} ({g[names[0]]['tasks']} / {PAPER_TASKS[group]}) | "
-                     + " | ".join(_cell(g[n]["top5"]) for n in names) + " | "
-                     + " | ".join(_cell(g[n]["test"]) for n in names) + f" | {paper[0]} | {paper[1]} |")
-    lines += ["", f"Budget: {ratio:.2f} of the paper's epochs, the models at the sizes named above (the paper's DSSP "
-                  "is the `metaworld` preset, 45 M parameters, and its DP3 is DP3's own size); the paper's figures "
-                  "average its 34 tasks, these the tasks run here. No claim beyond this budget."]
+        lines.append(
+            f"| {group} ({g[names[0]]['tasks']} / {PAPER_TASKS[group]}) | "
+            + " | ".join(_cell(g[n]["top5"]) for n in names)
+            + " | "
+            + " | ".join(_cell(g[n]["test"]) for n in names)
+            + f" | {paper[0]} | {paper[1]} |"
+        )
+    lines += [
+        "",
+        f"Budget: {ratio:.2f} of the paper's epochs, the models at the sizes named above (the paper's DSSP "
+        "is the `metaworld` preset, 45 M parameters, and its DP3 is DP3's own size); the paper's figures "
+        "average its 34 tasks, these the tasks run here. No claim beyond this budget.",
+    ]
     return lines
 
 
@@ -363,7 +489,9 @@ def write_report(plan: dict, record: Path, report: Path, shown_record: str | Non
     report.mkdir(parents=True, exist_ok=True)
     md = report / f"{REPORT_NAME}.md"
     atomic_write_text(md, "\n".join(lines))
-    atomic_write_text(report / f"{REPORT_NAME}.json", json.dumps({"plan": plan, **figures}, indent=1, sort_keys=True) + "\n")
+    atomic_write_text(
+        report / f"{REPORT_NAME}.json", json.dumps({"plan": plan, **figures}, indent=1, sort_keys=True) + "\n"
+    )
     return md
 
 
@@ -373,29 +501,37 @@ def cost(plan: dict, tasks: list[str], record: Path) -> str:
     runs = len(tasks) * len(plan["models"]) * len(plan["seeds"])
     steps = runs * steps_of(plan)
     episodes = runs * (plan["evaluations"] * plan["episodes"]["validation"] + plan["episodes"]["test"])
-    lines = [f"{len(tasks)} tasks x {len(plan['models'])} models x {len(plan['seeds'])} seeds = {runs} trainings of "
-             f"{steps_of(plan)} steps ({steps} in all), {runs * plan['evaluations']} exports, {episodes} evaluation episodes"]
+    lines = [
+        f"{len(tasks)} tasks x {len(plan['models'])} models x {len(plan['seeds'])} seeds = {runs} trainings of "
+        f"{steps_of(plan)} steps ({steps} in all), {runs * plan['evaluations']} exports, {episodes} evaluation episodes"
+    ]
     gpu = _gpu_step_ms() if any(m["preset"] == "metaworld" for m in plan["models"].values()) else None
     if gpu is not None:
         ms, where = gpu
-        lines.append(f"on {where} (reports/gpu, the `metaworld` preset's step, {ms:.0f} ms): the trainings take about "
-                     f"{steps * ms / 3.6e6:.0f} GPU-hours at the paper's DSSP size, one after another (DP3 at its own "
-                     "size and the smaller models differ; evaluation is extra)")
+        lines.append(
+            f"on {where} (reports/gpu, the `metaworld` preset's step, {ms:.0f} ms): the trainings take about "
+            f"{steps * ms / 3.6e6:.0f} GPU-hours at the paper's DSSP size, one after another (DP3 at its own "
+            "size and the smaller models differ; evaluation is extra)"
+        )
     seconds = _measured(record)
     if seconds is None:
         lines.append("no seconds measured yet: the record has no finished evaluation")
         return "\n".join(lines)
     evals_h = episodes * seconds["episode_s"] / 3600
     if seconds["step_s"] is None:
-        lines.append(f"measured by this record's runs: {seconds['episode_s']:.1f} s per evaluation episode, one core: "
-                     f"about {evals_h:.0f} core-hours of evaluation on that machine (its trainings ran elsewhere, "
-                     "record/trained_elsewhere.json)")
+        lines.append(
+            f"measured by this record's runs: {seconds['episode_s']:.1f} s per evaluation episode, one core: "
+            f"about {evals_h:.0f} core-hours of evaluation on that machine (its trainings ran elsewhere, "
+            "record/trained_elsewhere.json)"
+        )
     else:
-        lines.append(f"measured by this record's runs: {seconds['step_s'] * 1e3:.0f} ms per training step (its plan's "
-                     f"models), {seconds['episode_s']:.1f} s per evaluation episode, one core each: about "
-                     f"{(steps * seconds['step_s']) / 3600 + evals_h:.0f} core-hours on that machine (larger models "
-                     "train slower: the paper's 45 M-parameter preset is a GPU job, `benchmarks/train_step_time.py "
-                     "--paper` times its step)")
+        lines.append(
+            f"measured by this record's runs: {seconds['step_s'] * 1e3:.0f} ms per training step (its plan's "
+            f"models), {seconds['episode_s']:.1f} s per evaluation episode, one core each: about "
+            f"{(steps * seconds['step_s']) / 3600 + evals_h:.0f} core-hours on that machine (larger models "
+            "train slower: the paper's 45 M-parameter preset is a GPU job, `benchmarks/train_step_time.py "
+            "--paper` times its step)"
+        )
     return "\n".join(lines)
 
 
@@ -416,7 +552,11 @@ def _measured(record: Path) -> dict | None:
     finished) and evaluation episode, in seconds; None without a finished evaluation."""
     folder = record / "seconds"
     train_seconds = [float(p.read_text()) for p in folder.glob("train_*.seconds")] if folder.is_dir() else []
-    evals = [(float(p.read_text()), p.stem[len("eval_"):]) for p in folder.glob("eval_*.seconds")] if folder.is_dir() else []
+    evals = (
+        [(float(p.read_text()), p.stem[len("eval_") :]) for p in folder.glob("eval_*.seconds")]
+        if folder.is_dir()
+        else []
+    )
     if not evals:
         return None
     step_s = None
@@ -444,22 +584,38 @@ def run_study(plan: dict, split: str, tasks: list[str], work: Path, report: Path
 def main(argv: list[str] | None = None) -> int:
     p = ArgumentParser(prog="python -m studies.metaworld", description=__doc__.split("\n\n")[0])
     p.add_argument("--split", choices=list(protocol.SPLITS), default="validation")
-    p.add_argument("--tasks", nargs="+", metavar="TASK",
-                   help="names, groups (easy, medium, hard, very_hard), GROUP:N (its first N alphabetically) or all "
-                        "(default: the plan's 8 tasks, two of each group)")
-    p.add_argument("--only", nargs="+", metavar="TASK",
-                   help="run only these of the plan's tasks now (the plan, and what it freezes, stays whole)")
+    p.add_argument(
+        "--tasks",
+        nargs="+",
+        metavar="TASK",
+        help="names, groups (easy, medium, hard, very_hard), GROUP:N (its first N alphabetically) or all "
+        "(default: the plan's 8 tasks, two of each group)",
+    )
+    p.add_argument(
+        "--only",
+        nargs="+",
+        metavar="TASK",
+        help="run only these of the plan's tasks now (the plan, and what it freezes, stays whole)",
+    )
     p.add_argument("--workers", type=int, default=2, help="stages side by side, one thread each (default 2)")
-    p.add_argument("--memory", action="store_true",
-                   help="the memory variant (metaworld-cue/NAME: reach and push, the goal shown for 10 steps, then "
-                        "hidden), same protocol and budget; work and report default to runs/ and reports/metaworld_cue")
+    p.add_argument(
+        "--memory",
+        action="store_true",
+        help="the memory variant (metaworld-cue/NAME: reach and push, the goal shown for 10 steps, then "
+        "hidden), same protocol and budget; work and report default to runs/ and reports/metaworld_cue",
+    )
     p.add_argument("--work", type=Path, help="datasets, runs, models, evaluations, logs (default runs/metaworld)")
     p.add_argument("--report", type=Path, help="the report and its record (default reports/metaworld)")
-    p.add_argument("--freeze", action="store_true", help="freeze the plan for the test split (after the validation split)")
+    p.add_argument(
+        "--freeze", action="store_true", help="freeze the plan for the test split (after the validation split)"
+    )
     p.add_argument("--report-only", action="store_true", help="run nothing: rebuild the report from the record")
-    p.add_argument("--paper-budget", action="store_true",
-                   help="the paper's budget and sizes (1000 epochs, the 45 M-parameter `metaworld` preset, DP3's own "
-                        "size): a GPU job")
+    p.add_argument(
+        "--paper-budget",
+        action="store_true",
+        help="the paper's budget and sizes (1000 epochs, the 45 M-parameter `metaworld` preset, DP3's own "
+        "size): a GPU job",
+    )
     p.add_argument("--cost", action="store_true", help="run nothing: print what the plan on --tasks asks for")
     p.add_argument("--quick", action="store_true", help="a tiny plan (tests)")
     args = p.parse_args(argv)
@@ -484,8 +640,10 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         if args.freeze:  # again after the definition changed: the tasks already tested stay on the earlier one
             tested = [t for t in plan["tasks"] if any((record / "evals").glob(f"{t}_*_test.json"))]
-            print(f"plan {protocol.freeze_plan(record, plan, tested, definition=definition_hash())} frozen in "
-                  f"{record / protocol.FROZEN_NAME}; --split test runs it")
+            print(
+                f"plan {protocol.freeze_plan(record, plan, tested, definition=definition_hash())} frozen in "
+                f"{record / protocol.FROZEN_NAME}; --split test runs it"
+            )
             return 0
         if args.report_only:  # the plan the record was made with
             ran = record / "plan.json"

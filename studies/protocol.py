@@ -79,8 +79,12 @@ def code_commit() -> str:
     root = Path(__file__).resolve().parent.parent
     try:
         head = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10)
-        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no", "--", ".",
-                                ":(exclude)reports"], capture_output=True, text=True, timeout=10)
+        dirty = subprocess.run(
+            ["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no", "--", ".", ":(exclude)reports"],
+            capture_output=True,
+            text=True,
+            timeout=10,
+        )
     except (OSError, subprocess.TimeoutExpired):
         return "unknown"
     if head.returncode != 0:
@@ -91,12 +95,18 @@ def code_commit() -> str:
 def provenance(plan: dict, tasks: Iterable[str] | None = None, definition: str | None = None) -> dict:
     """What a record states about how it was made (module docstring); ``tasks``: the tasks the run was started for;
     ``definition``: the hash of a benchmark defined elsewhere (MetaWorld's), instead of :func:`task_definition_hash`."""
-    return {"task_definition": definition or task_definition_hash(), "plan": plan_hash(plan), "commit": code_commit(),
-            "machine": machine.describe(), **({"tasks": sorted(tasks)} if tasks is not None else {})}
+    return {
+        "task_definition": definition or task_definition_hash(),
+        "plan": plan_hash(plan),
+        "commit": code_commit(),
+        "machine": machine.describe(),
+        **({"tasks": sorted(tasks)} if tasks is not None else {}),
+    }
 
 
-def note_provenance(record_dir: Path, plan: dict, split: str, tasks: Iterable[str] | None = None,
-                    definition: str | None = None) -> None:
+def note_provenance(
+    record_dir: Path, plan: dict, split: str, tasks: Iterable[str] | None = None, definition: str | None = None
+) -> None:
     """Add this run's provenance to the record's list for ``split`` (a resumed study on other code or another
     machine adds an entry; the same one again adds none)."""
     path = Path(record_dir) / f"provenance_{split}.json"
@@ -121,12 +131,19 @@ def freeze_plan(record_dir: Path, plan: dict, tested: Iterable[str] = (), defini
     if path.is_file():
         frozen = json.loads(path.read_text())
         if frozen.get("plan") != digest:
-            raise DSSPError(f"{path} froze plan {frozen.get('plan')}, this plan is {digest}: a plan changed after its test run "
-                            "is a new study (another --report folder)")
+            raise DSSPError(
+                f"{path} froze plan {frozen.get('plan')}, this plan is {digest}: a plan changed after its test run "
+                "is a new study (another --report folder)"
+            )
         if frozen.get("task_definition") == current:
             return digest
-        earlier = [*frozen.get("earlier", []), {"task_definition": frozen.get("task_definition"), "tested": sorted(tested)}]
-        atomic_write_text(path, json.dumps({"plan": digest, "task_definition": current, "earlier": earlier}, indent=2) + "\n")
+        earlier = [
+            *frozen.get("earlier", []),
+            {"task_definition": frozen.get("task_definition"), "tested": sorted(tested)},
+        ]
+        atomic_write_text(
+            path, json.dumps({"plan": digest, "task_definition": current, "earlier": earlier}, indent=2) + "\n"
+        )
         return digest
     path.parent.mkdir(parents=True, exist_ok=True)  # a plan may be frozen before its first run
     atomic_write_text(path, json.dumps({"plan": digest, "task_definition": current}, indent=2) + "\n")
@@ -139,15 +156,21 @@ def check_frozen(record_dir: Path, plan: dict, definition: str | None = None) ->
     current = definition or task_definition_hash()
     path = Path(record_dir) / FROZEN_NAME
     if not path.is_file():
-        raise DSSPError(f"the test split needs a frozen plan and {path} does not exist: run the validation split, choose "
-                        "on it, then --freeze (the plan's hash is kept; the test seeds stay untouched until then)")
+        raise DSSPError(
+            f"the test split needs a frozen plan and {path} does not exist: run the validation split, choose "
+            "on it, then --freeze (the plan's hash is kept; the test seeds stay untouched until then)"
+        )
     frozen = json.loads(path.read_text())
     if frozen.get("plan") != plan_hash(plan):
-        raise DSSPError(f"the plan changed since it was frozen ({frozen.get('plan')} -> {plan_hash(plan)}): the test split "
-                        "evaluates only the frozen plan; a changed plan is a new study")
+        raise DSSPError(
+            f"the plan changed since it was frozen ({frozen.get('plan')} -> {plan_hash(plan)}): the test split "
+            "evaluates only the frozen plan; a changed plan is a new study"
+        )
     if frozen.get("task_definition") != current:
-        raise DSSPError(f"the task definition changed since the plan was frozen ({frozen.get('task_definition')} -> "
-                        f"{current}): a changed task is a new study")
+        raise DSSPError(
+            f"the task definition changed since the plan was frozen ({frozen.get('task_definition')} -> "
+            f"{current}): a changed task is a new study"
+        )
 
 
 TRAINED_ELSEWHERE = "trained_elsewhere.json"
@@ -173,12 +196,15 @@ def describe_run(prov: dict, split: str | None = None, definition: str = "task d
     m = prov.get("machine", {})
     said = [part for part in (split, ", ".join(prov.get("tasks") or ())) if part]
     label = f" ({': '.join(said)})" if said else ""
-    return (f"Run{label} on: {definition} {prov.get('task_definition')}, plan {prov.get('plan')}, code {prov.get('commit')}; "
-            f"{m.get('cpu')} ({m.get('cores')} cores), onnxruntime {m.get('onnxruntime')}, torch {m.get('torch')}.")
+    return (
+        f"Run{label} on: {definition} {prov.get('task_definition')}, plan {prov.get('plan')}, code {prov.get('commit')}; "
+        f"{m.get('cpu')} ({m.get('cores')} cores), onnxruntime {m.get('onnxruntime')}, torch {m.get('torch')}."
+    )
 
 
 def describe_trained_elsewhere(entry: dict, labels: dict[str, str]) -> str:
     """The report's line for one :func:`trained_elsewhere` entry."""
-    return (f"Trained elsewhere ({', '.join(labels.get(m, m) for m in entry['models'])}; {', '.join(entry['tasks'])}; "
-            f"training seeds {entry['seeds']}): {entry['machine']}; {entry['how']} (code {entry['code']}).")
-
+    return (
+        f"Trained elsewhere ({', '.join(labels.get(m, m) for m in entry['models'])}; {', '.join(entry['tasks'])}; "
+        f"training seeds {entry['seeds']}): {entry['machine']}; {entry['how']} (code {entry['code']})."
+    )

@@ -16,7 +16,8 @@ What it rebuilds (:data:`SOURCES`):
   (the Quick start's table, from ``reports/demo/results.json``), ``sim_paired`` (the earlier simulation
   study's comparisons with DSSP and their exact paired tests, from ``reports/sim/record``), and the CPU tables
   ``cpu_targets``, ``dp3_paper``, ``dp3_sim``, ``gpu_train_paper`` (rendered by the benchmark scripts' own
-  ``markdown`` from their records in ``reports/cpu/`` and ``reports/gpu/``), ``memory_test`` (the memory study's test-split tables, from its record), ``metaworld`` (the MetaWorld study's
+  ``markdown`` from their records in ``reports/cpu/`` and ``reports/gpu/``), ``memory_test`` (the memory study's
+  test-split tables, from its record), ``metaworld`` (the MetaWorld study's
   per-group table beside the paper's, from ``reports/metaworld/record`` once it holds a plan).
 
 - ``reports/sampling/``: the sampling study's report (:mod:`studies.sampling`), and the README's ``sampling``
@@ -56,7 +57,9 @@ def _memory(root: Path, out: Path) -> list[str]:
     for split in ("validation", "test"):
         if any((record / "evals").glob(f"*_{split}.json")):
             with contextlib.redirect_stdout(io.StringIO()):
-                md = memory_tasks.write_report(memory_tasks.PLAN, record, out, split, shown_record="reports/memory/record")
+                md = memory_tasks.write_report(
+                    memory_tasks.PLAN, record, out, split, shown_record="reports/memory/record"
+                )
             written += [md.name, md.with_suffix(".json").name]
     return written
 
@@ -65,7 +68,9 @@ def _sim(root: Path, out: Path) -> list[str]:
     record = root / "reports/sim" / sim_study.RECORD_DIR
     results, pending = sim_study.recorded_results(sim_study.PLAN, record)
     with contextlib.redirect_stdout(io.StringIO()):
-        md = sim_study.write_report(results, out, sim_study.stage_seconds(out / "no-work", record), force=True, pending=pending)
+        md = sim_study.write_report(
+            results, out, sim_study.stage_seconds(out / "no-work", record), force=True, pending=pending
+        )
     return [md.name, md.with_suffix(".json").name]
 
 
@@ -73,8 +78,15 @@ def _distill(root: Path, out: Path) -> list[str]:
     record = root / "reports/distill" / distill_study.RECORD_DIR
     evals, latency, pending = distill_study.recorded_results(distill_study.PLAN, record)
     with contextlib.redirect_stdout(io.StringIO()):
-        md = distill_study.write_report(evals, latency, distill_study.PLAN, out, distill_study.stage_seconds(out / "no-work", record),
-                                        force=True, pending=pending)
+        md = distill_study.write_report(
+            evals,
+            latency,
+            distill_study.PLAN,
+            out,
+            distill_study.stage_seconds(out / "no-work", record),
+            force=True,
+            pending=pending,
+        )
     return [md.name, md.with_suffix(".json").name]
 
 
@@ -103,8 +115,9 @@ def _metaworld(folder: str) -> Callable[[Path, Path], list[str]]:
         record = root / folder / metaworld.RECORD_DIR
         if not (record / "plan.json").is_file():
             return []
-        md = metaworld.write_report(json.loads((record / "plan.json").read_text()), record, out,
-                                    shown_record=f"{folder}/record")
+        md = metaworld.write_report(
+            json.loads((record / "plan.json").read_text()), record, out, shown_record=f"{folder}/record"
+        )
         return [md.name, md.with_suffix(".json").name]
 
     return build
@@ -123,12 +136,20 @@ SOURCES: dict[str, Callable[[Path, Path], list[str]]] = {
 """Report folder -> a function writing its rebuilt files into a folder, returning the names to compare."""
 
 
-SIM_COMPARED = ("reactive", "window10", "no_timestep_decoupling", "no_recent_states", "no_dynamics_loss", "transformer_denoiser")
+SIM_COMPARED = (
+    "reactive",
+    "window10",
+    "no_timestep_decoupling",
+    "no_recent_states",
+    "no_dynamics_loss",
+    "transformer_denoiser",
+)
 
 
 def sim_paired_table(record: Path) -> str:
     """The earlier simulation study's comparisons with DSSP, paired on its scenes (seeds 1000…), from its record: each
     model's success, the difference and the exact paired test (:mod:`studies.stats`)."""
+
     def grid(task: str, variant: str, seeds: list[int]) -> list[list[int]] | None:
         rows = [sim_study.recorded(record, f"{task}_{variant}_s{seed}") for seed in seeds]
         if any(r is None for r in rows):
@@ -138,7 +159,10 @@ def sim_paired_table(record: Path) -> str:
             raise DSSPError(f"{record}: {task}/{variant} seeds were evaluated on different scenes")
         return [[int(e["success"]) for e in r["episodes"]] for r in rows]
 
-    lines = ["| task | training seeds × scenes | model | DSSP | model's | Δ | paired exact test |", "|---|---|---|---:|---:|---:|---|"]
+    lines = [
+        "| task | training seeds × scenes | model | DSSP | model's | Δ | paired exact test |",
+        "|---|---|---|---:|---:|---:|---|",
+    ]
     plan = sim_study.PLAN
     for task in plan["demos"]:
         seeds = sorted(set(plan["seeds"][task]) | set(plan["ablation_seeds"].get(task, [])))
@@ -148,8 +172,10 @@ def sim_paired_table(record: Path) -> str:
             if not used or base is None or other is None:
                 continue
             a, b = sum(map(sum, base)) / (len(used) * len(base[0])), sum(map(sum, other)) / (len(used) * len(other[0]))
-            lines.append(f"| {task} | {len(used)} × {len(base[0])} | {sim_study.VARIANT_LABELS.get(variant, variant)} | "
-                         f"{100 * a:.0f} % | {100 * b:.0f} % | {100 * (b - a):+.0f} | {describe_p(paired_exact_test(other, base))} |")
+            lines.append(
+                f"| {task} | {len(used)} × {len(base[0])} | {sim_study.VARIANT_LABELS.get(variant, variant)} | "
+                f"{100 * a:.0f} % | {100 * b:.0f} % | {100 * (b - a):+.0f} | {describe_p(paired_exact_test(other, base))} |"
+            )
     return "\n".join(lines) + "\n"
 
 
@@ -162,7 +188,7 @@ def memory_table(record: Path, split: str) -> str:
             continue
         start = lines.index(f"## {task}") + 2
         end = next(i for i, line in enumerate(lines[start:]) if not line.startswith("|"))
-        table = [line for line in lines[start:start + end] if "| pending |" not in line]
+        table = [line for line in lines[start : start + end] if "| pending |" not in line]
         out += [f"`{task}`, {split} split:", "", *table, ""]
     return "\n".join(out) if out else "(no task evaluated yet)\n"
 
@@ -184,11 +210,14 @@ def benchmark(root: Path, name: str):
 def readme_blocks(root: Path) -> dict[str, str]:
     """NAME -> the README figure block's body, rebuilt from its record."""
     demo = json.loads((root / "reports/demo/results.json").read_text())
-    blocks = {"demo": results_table(demo["evals"]) + "\n", "sim_paired": sim_paired_table(root / "reports/sim/record"),
-              "memory_test": memory_table(root / "reports/memory/record", "test"),
-              "sampling": sampling.readme_table(root / "reports/sampling" / sampling.RECORD_DIR),
-              "calibration": calibration_study.readme_table(root / "reports/calibration" / calibration_study.RECORD_DIR),
-              "delay": delay_study.readme_table(root / "reports/delay" / delay_study.RECORD_DIR)}
+    blocks = {
+        "demo": results_table(demo["evals"]) + "\n",
+        "sim_paired": sim_paired_table(root / "reports/sim/record"),
+        "memory_test": memory_table(root / "reports/memory/record", "test"),
+        "sampling": sampling.readme_table(root / "reports/sampling" / sampling.RECORD_DIR),
+        "calibration": calibration_study.readme_table(root / "reports/calibration" / calibration_study.RECORD_DIR),
+        "delay": delay_study.readme_table(root / "reports/delay" / delay_study.RECORD_DIR),
+    }
     if (root / "reports/metaworld/record/plan.json").is_file():
         blocks["metaworld"] = metaworld.readme_table(root / "reports/metaworld/record")
     for block, (script, record) in BENCHMARK_BLOCKS.items():
@@ -217,8 +246,10 @@ def rebuild(root: Path, check: bool) -> list[str]:
         def replace(m: re.Match) -> str:
             name = m.group("name")
             if name not in blocks:
-                raise DSSPError(f"{readme.relative_to(root)} has a figure block {name!r} that nothing rebuilds; known: "
-                                f"{', '.join(blocks)}")
+                raise DSSPError(
+                    f"{readme.relative_to(root)} has a figure block {name!r} that nothing rebuilds; known: "
+                    f"{', '.join(blocks)}"
+                )
             seen.add(name)
             return m.group(1) + blocks[name] + m.group(4)
 
@@ -229,8 +260,10 @@ def rebuild(root: Path, check: bool) -> list[str]:
                 atomic_write_text(readme, new_text)
     missing = set(blocks) - seen
     if missing:
-        raise DSSPError(f"no README has the figure block(s) {', '.join(sorted(missing))} (<!-- figures: NAME --> ... "
-                        "<!-- /figures -->)")
+        raise DSSPError(
+            f"no README has the figure block(s) {', '.join(sorted(missing))} (<!-- figures: NAME --> ... "
+            "<!-- /figures -->)"
+        )
     for folder, build in SOURCES.items():
         if not (root / folder).is_dir():
             continue
@@ -255,7 +288,9 @@ def readmes(root: Path) -> list[Path]:
 
 def main(argv: list[str] | None = None) -> int:
     p = ArgumentParser(prog="python -m studies.rebuild", description=__doc__.split("\n\n")[0])
-    p.add_argument("--check", action="store_true", help="change nothing: list what differs from its record, exit 1 if anything")
+    p.add_argument(
+        "--check", action="store_true", help="change nothing: list what differs from its record, exit 1 if anything"
+    )
     p.add_argument("--root", type=Path, default=Path(__file__).resolve().parent.parent, help="the project's root")
     args = p.parse_args(argv)
 

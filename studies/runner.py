@@ -57,7 +57,9 @@ class Stage:
     resume: tuple[str, ...] | None = None  # the call when ``started`` exists and the stage is not done
     started: str | None = None  # a path (relative to the work folder, or absolute) left by an attempt stopped halfway
     outputs: tuple[str, ...] = field(default=())  # what the stage writes (for the record's copies)
-    clean: tuple[str, ...] = ()  # paths (in the work folder) an attempt stopped halfway leaves, removed before it runs again
+    clean: tuple[
+        str, ...
+    ] = ()  # paths (in the work folder) an attempt stopped halfway leaves, removed before it runs again
 
     def __post_init__(self):
         if not self.name or any(c in self.name for c in "/\\ ") or self.name.startswith("."):
@@ -93,8 +95,9 @@ class StageFailed(DSSPError):
 
     def __init__(self, stage: str, entry: str, code: int | None, log: Path, last: str):
         self.stage, self.code, self.log, self.last = stage, code, log, last
-        super().__init__(f"stage {stage} ({entry}) failed with exit code {code}: {last} (log: {log}); "
-                         "run the study again to resume")
+        super().__init__(
+            f"stage {stage} ({entry}) failed with exit code {code}: {last} (log: {log}); run the study again to resume"
+        )
 
 
 class _Echo:
@@ -164,8 +167,9 @@ def _restore_sigterm(previous) -> None:
 class Runner:
     """Runs a study's stages in ``work`` (``done/``, ``logs/``): see the module docstring."""
 
-    def __init__(self, work: Path, workers: int = 1, threads: int = 1, say: Callable[[str], None] = print,
-                 echo: bool = False):
+    def __init__(
+        self, work: Path, workers: int = 1, threads: int = 1, say: Callable[[str], None] = print, echo: bool = False
+    ):
         if workers < 1 or threads < 1:
             raise DSSPError(f"workers and threads must be at least 1, got {workers} and {threads}")
         self.work, self.workers, self.threads, self.say, self.echo = Path(work), workers, threads, say, echo
@@ -180,7 +184,11 @@ class Runner:
     def seconds(self) -> dict[str, float]:
         """Every done stage's seconds (the compute a study took, resumed and parallel runs included)."""
         folder = self.work / "done"
-        return {p.stem: json.loads(p.read_text())["seconds"] for p in sorted(folder.glob("*.json"))} if folder.is_dir() else {}
+        return (
+            {p.stem: json.loads(p.read_text())["seconds"] for p in sorted(folder.glob("*.json"))}
+            if folder.is_dir()
+            else {}
+        )
 
     def _path(self, path: str) -> Path:
         return Path(path) if os.path.isabs(path) else self.work / path
@@ -214,10 +222,17 @@ class Runner:
                         pending.remove(s)
                         for path in s.clean:
                             self._remove(path)
-                        argv = list(s.resume) if s.resume is not None and s.started and self._path(s.started).exists() else list(s.argv)
+                        argv = (
+                            list(s.resume)
+                            if s.resume is not None and s.started and self._path(s.started).exists()
+                            else list(s.argv)
+                        )
                         log = self.work / "logs" / f"{s.name}.log"
-                        proc = self.context.Process(target=_call, args=(s.entry, argv, str(log.resolve()), self.threads,
-                                                                                str(self.work.resolve())), name=s.name)
+                        proc = self.context.Process(
+                            target=_call,
+                            args=(s.entry, argv, str(log.resolve()), self.threads, str(self.work.resolve())),
+                            name=s.name,
+                        )
                         proc.start()
                         running[s.name] = (s, proc, time.perf_counter(), argv)
                         if self.echo:
@@ -238,8 +253,10 @@ class Runner:
                     if proc.exitcode != 0:
                         raise self._failure(s, proc.exitcode)
                     seconds = time.perf_counter() - t0
-                    atomic_write_text(self.marker(name), json.dumps(
-                        {"seconds": round(seconds, 1), "entry": s.entry, "argv": argv}, indent=1) + "\n")
+                    atomic_write_text(
+                        self.marker(name),
+                        json.dumps({"seconds": round(seconds, 1), "entry": s.entry, "argv": argv}, indent=1) + "\n",
+                    )
                     ran[name] = seconds
                     self.say(f"  {name}: done in {seconds:.0f} s")
                 time.sleep(POLL_S)

@@ -45,8 +45,13 @@ PLAN = {
     "precisions": list(PRECISIONS),
     "episodes": 20,
 }
-QUICK_PLAN = {**PLAN, "tasks": {"tap": {"demos": 3, "steps": 10}}, "denoise_steps": [2, 1], "precisions": ["fp32", "int8"],
-              "episodes": 1}
+QUICK_PLAN = {
+    **PLAN,
+    "tasks": {"tap": {"demos": 3, "steps": 10}},
+    "denoise_steps": [2, 1],
+    "precisions": ["fp32", "int8"],
+    "episodes": 1,
+}
 RECORD_DIR = "record"
 
 
@@ -57,6 +62,7 @@ def cell(task: str, k: int, precision: str) -> str:
 def stages(plan: dict, tasks: list[str], record: Path) -> list[Stage]:
     """Every stage of ``tasks``; a cell whose evaluation is in the record needs none."""
     from export import to_onnx  # deferred: loads torch, which a stage's process imports after setting its threads
+
     first = protocol.split_seeds("validation", plan["episodes"])[0]
     out: list[Stage] = []
     for task in tasks:
@@ -64,23 +70,77 @@ def stages(plan: dict, tasks: list[str], record: Path) -> list[Stage]:
         task_stages: list[Stage] = []
         for k in plan["denoise_steps"]:
             model = f"models/{task}_k{k}"
-            cells = [Stage(f"eval_{cell(task, k, p)}", sim_cli.main,
-                           ("eval", "--model", model, "--task", task, "--episodes", str(plan["episodes"]), "--seed", str(first),
-                            "--precision", p, "--threads", "1", "--json", f"evals/{cell(task, k, p)}.json", "--force",
-                            "--no-progress"), after=(f"export_{task}_k{k}",), outputs=(f"evals/{cell(task, k, p)}.json",))
-                     for p in plan["precisions"] if not (record / "evals" / f"{cell(task, k, p)}.json").is_file()]
+            cells = [
+                Stage(
+                    f"eval_{cell(task, k, p)}",
+                    sim_cli.main,
+                    (
+                        "eval",
+                        "--model",
+                        model,
+                        "--task",
+                        task,
+                        "--episodes",
+                        str(plan["episodes"]),
+                        "--seed",
+                        str(first),
+                        "--precision",
+                        p,
+                        "--threads",
+                        "1",
+                        "--json",
+                        f"evals/{cell(task, k, p)}.json",
+                        "--force",
+                        "--no-progress",
+                    ),
+                    after=(f"export_{task}_k{k}",),
+                    outputs=(f"evals/{cell(task, k, p)}.json",),
+                )
+                for p in plan["precisions"]
+                if not (record / "evals" / f"{cell(task, k, p)}.json").is_file()
+            ]
             if cells:
-                task_stages += [Stage(f"export_{task}_k{k}", to_onnx.main,
-                                      (run, "-o", model, "--denoise-steps", str(k), "--threads", "1", "--force"),
-                                      after=(f"train_{task}",)), *cells]
+                task_stages += [
+                    Stage(
+                        f"export_{task}_k{k}",
+                        to_onnx.main,
+                        (run, "-o", model, "--denoise-steps", str(k), "--threads", "1", "--force"),
+                        after=(f"train_{task}",),
+                    ),
+                    *cells,
+                ]
         if task_stages:
-            argv = ("--data", data, "--out", run, "--preset", plan["preset"], "--steps", str(spec["steps"]), "--seed",
-                    str(plan["seed"]), "--no-progress", "--force")
-            out += [Stage(f"collect_{task}", sim_cli.main,
-                          ("collect", "--task", task, "--episodes", str(spec["demos"]), "--out", data, "--no-progress"), clean=(data,)),
-                    Stage(f"train_{task}", train.main, argv, after=(f"collect_{task}",),
-                          resume=("--data", data, "--out", run, "--resume", "--no-progress"), started=f"{run}/checkpoint"),
-                    *task_stages]
+            argv = (
+                "--data",
+                data,
+                "--out",
+                run,
+                "--preset",
+                plan["preset"],
+                "--steps",
+                str(spec["steps"]),
+                "--seed",
+                str(plan["seed"]),
+                "--no-progress",
+                "--force",
+            )
+            out += [
+                Stage(
+                    f"collect_{task}",
+                    sim_cli.main,
+                    ("collect", "--task", task, "--episodes", str(spec["demos"]), "--out", data, "--no-progress"),
+                    clean=(data,),
+                ),
+                Stage(
+                    f"train_{task}",
+                    train.main,
+                    argv,
+                    after=(f"collect_{task}",),
+                    resume=("--data", data, "--out", run, "--resume", "--no-progress"),
+                    started=f"{run}/checkpoint",
+                ),
+                *task_stages,
+            ]
     return out
 
 
@@ -106,9 +166,13 @@ def summarise(evals: dict, plan: dict) -> dict:
                 if r is None:
                     continue
                 table.setdefault(task, {}).setdefault(precision, {})[k] = {
-                    "k": r["successes"], "n": r["n"], "rate": r["successes"] / max(r["n"], 1),
+                    "k": r["successes"],
+                    "n": r["n"],
+                    "rate": r["successes"] / max(r["n"], 1),
                     "wilson95": list(wilson_interval(r["successes"], r["n"])),
-                    "chunk_ms": r["latency_ms"].get("chunk", {}).get("p50"), "kernel": r.get("kernel")}
+                    "chunk_ms": r["latency_ms"].get("chunk", {}).get("p50"),
+                    "kernel": r.get("kernel"),
+                }
     return table
 
 
@@ -136,35 +200,53 @@ def write_report(plan: dict, record: Path, report: Path, shown_record: str | Non
     scenes = protocol.split_seeds("validation", plan["episodes"])
     kernels = sorted({row["kernel"] for t in table.values() for p in t.values() for row in p.values() if row["kernel"]})
     lines = [
-        "# Sampling: DDIM steps K and weight precision against closed-loop success", "",
+        "# Sampling: DDIM steps K and weight precision against closed-loop success",
+        "",
         f"Rebuilt from `{shown_record or record}` by `python -m studies.sampling --report-only`. DSSP, preset `{plan['preset']}`, "
-        f"trained once per task (steps {({t: s['steps'] for t, s in plan['tasks'].items()})}, seed {plan['seed']}), exported "
+        f"trained once per task (steps { ({t: s['steps'] for t, s in plan['tasks'].items()}) }, seed {plan['seed']}), exported "
         f"once per K; {plan['episodes']} closed-loop episodes per cell on validation seeds {scenes[0]}–{scenes[-1]} (K and the "
         f"precision are choices: validation, not a test result); graphs run: {', '.join(kernels) or '-'} Mamba path. Success "
         "with 95 % Wilson intervals (one training seed); chunk = the denoiser's median time during the evaluation (one "
-        "ONNX Runtime thread, beside MuJoCo).", "",
+        "ONNX Runtime thread, beside MuJoCo).",
+        "",
     ]
     for task, per_precision in table.items():
-        lines += [f"## {task}", "", "| K | " + " | ".join(f"{p} success | {p} chunk ms" for p in per_precision) + " |",
-                  "|---:|" + "---|---:|" * len(per_precision)]
+        lines += [
+            f"## {task}",
+            "",
+            "| K | " + " | ".join(f"{p} success | {p} chunk ms" for p in per_precision) + " |",
+            "|---:|" + "---|---:|" * len(per_precision),
+        ]
         for k in plan["denoise_steps"]:
             cells = []
             for rows in per_precision.values():
                 row = rows.get(k)
-                cells += ["pending", "-"] if row is None else [pct(row["k"], row["n"]), f"{row['chunk_ms']:.2f}" if row["chunk_ms"] else "-"]
+                cells += (
+                    ["pending", "-"]
+                    if row is None
+                    else [pct(row["k"], row["n"]), f"{row['chunk_ms']:.2f}" if row["chunk_ms"] else "-"]
+                )
             lines.append(f"| {k} | " + " | ".join(cells) + " |")
         lines.append("")
-    lines += [f"Eligible as the runtime's default precision (success inside fp32's 95 % interval on every task at K = "
-              f"{choice['at_denoise_steps']}):", ""]
+    lines += [
+        f"Eligible as the runtime's default precision (success inside fp32's 95 % interval on every task at K = "
+        f"{choice['at_denoise_steps']}):",
+        "",
+    ]
     for precision, v in choice["per_precision"].items():
-        lines.append(f"- {precision}: {'eligible' if v['inside_fp32_interval'] else 'not eligible'} ("
-                     + ", ".join(f"{t} " + ("inside" if ok else "outside") for t, ok in v["per_task"].items()) + ")")
+        lines.append(
+            f"- {precision}: {'eligible' if v['inside_fp32_interval'] else 'not eligible'} ("
+            + ", ".join(f"{t} " + ("inside" if ok else "outside") for t, ok in v["per_task"].items())
+            + ")"
+        )
     lines += ["", f"![success and chunk cost against K]({REPORT_NAME}.png)", ""]
     report.mkdir(parents=True, exist_ok=True)
     md = report / f"{REPORT_NAME}.md"
     atomic_write_text(md, "\n".join(lines))
-    atomic_write_text(report / f"{REPORT_NAME}.json", json.dumps({"plan": plan, "summary": table, "eligible_precisions": choice},
-                                                                 indent=1, sort_keys=True) + "\n")
+    atomic_write_text(
+        report / f"{REPORT_NAME}.json",
+        json.dumps({"plan": plan, "summary": table, "eligible_precisions": choice}, indent=1, sort_keys=True) + "\n",
+    )
     plot(table, plan, report / f"{REPORT_NAME}.png")
     return md
 
@@ -174,14 +256,24 @@ def readme_table(record: Path, plan: dict = PLAN) -> str:
     precisions are eligible as the runtime's default (:func:`eligible_precisions`)."""
     table = summarise(recorded(plan, record), plan)
     k, precisions = plan["denoise_steps"][0], plan["precisions"]
-    lines = [f"| task (K = {k}, {plan['episodes']} validation episodes) | " + " | ".join(precisions) + " |",
-             "|---|" + "---:|" * len(precisions)]
+    lines = [
+        f"| task (K = {k}, {plan['episodes']} validation episodes) | " + " | ".join(precisions) + " |",
+        "|---|" + "---:|" * len(precisions),
+    ]
     for task, per_precision in table.items():
         cells = [per_precision.get(p, {}).get(k) for p in precisions]
-        lines.append(f"| {task} | " + " | ".join("pending" if c is None else pct(c["k"], c["n"]).split(" (")[0] for c in cells) + " |")
+        lines.append(
+            f"| {task} | "
+            + " | ".join("pending" if c is None else pct(c["k"], c["n"]).split(" (")[0] for c in cells)
+            + " |"
+        )
     verdict = eligible_precisions(table, plan)["per_precision"]
-    lines += ["", "Eligible as the default precision (inside fp32's 95 % interval on every task): "
-              + ", ".join(f"{p} {'yes' if v['inside_fp32_interval'] else 'no'}" for p, v in verdict.items() if p != "fp32") + "."]
+    lines += [
+        "",
+        "Eligible as the default precision (inside fp32's 95 % interval on every task): "
+        + ", ".join(f"{p} {'yes' if v['inside_fp32_interval'] else 'no'}" for p, v in verdict.items() if p != "fp32")
+        + ".",
+    ]
     return "\n".join(lines) + "\n"
 
 
@@ -210,7 +302,7 @@ def plot(table: dict, plan: dict, path: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return study_main(argv, 'sampling', __doc__, PLAN, QUICK_PLAN, "validation", stages, write_report)
+    return study_main(argv, "sampling", __doc__, PLAN, QUICK_PLAN, "validation", stages, write_report)
 
 
 if __name__ == "__main__":

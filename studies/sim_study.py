@@ -80,28 +80,51 @@ PLAN = {
     "eval_episodes": 20,
     "eval_seed": 1000,
     # σ in the tokens' units (each evaluation measures their RMS per element, reported beside σ)
-    "robustness": {"task": "tap", "seed": 0, "variants": ["dssp", "window10", "reactive"],
-                   "sigmas": [0.05, 0.10, 0.15, 0.3, 0.5, 1.0, 2.0]},
+    "robustness": {
+        "task": "tap",
+        "seed": 0,
+        "variants": ["dssp", "window10", "reactive"],
+        "sigmas": [0.05, 0.10, 0.15, 0.3, 0.5, 1.0, 2.0],
+    },
     "export_flags": [],  # parity is checked on every export of the study
 }
-QUICK_PLAN = {**PLAN, "steps": {"tap": 20}, "demos": {"tap": 3}, "seeds": {"tap": [0]}, "eval_episodes": 1,
-              "export_flags": ["--skip-verify", "--quantize", "none"],  # the export tests prove parity and quantize; this checks the plumbing
-              "ablations": {"window3": ["--history-window", "3"]}, "ablation_seeds": {"tap": [0]},
-              "robustness": {"task": "tap", "seed": 0, "variants": ["dssp", "window3", "reactive"], "sigmas": [0.1]}}
+QUICK_PLAN = {
+    **PLAN,
+    "steps": {"tap": 20},
+    "demos": {"tap": 3},
+    "seeds": {"tap": [0]},
+    "eval_episodes": 1,
+    "export_flags": [
+        "--skip-verify",
+        "--quantize",
+        "none",
+    ],  # the export tests prove parity and quantize; this checks the plumbing
+    "ablations": {"window3": ["--history-window", "3"]},
+    "ablation_seeds": {"tap": [0]},
+    "robustness": {"task": "tap", "seed": 0, "variants": ["dssp", "window3", "reactive"], "sigmas": [0.1]},
+}
 WORK_ENTRIES = ("data", "runs", "models", "evals", "logs", "done")
 """What a study's work folder holds (the runner's ``logs/`` and ``done/``; older work folders are recognised by
 ``logs/``)."""
-WORK_DIR = OutputKind("a study work directory", "python -m studies.sim_study", entries=WORK_ENTRIES,
-                      signature=lambda p: (p / "logs").is_dir())
+WORK_DIR = OutputKind(
+    "a study work directory",
+    "python -m studies.sim_study",
+    entries=WORK_ENTRIES,
+    signature=lambda p: (p / "logs").is_dir(),
+)
 """``--work``: data/, runs/, models/, evals/, logs/, done/ (continued by the next run)."""
 REPORT_SUFFIXES = (".md", ".json", ".png")
 RECORD_DIR = "record"
 """Under ``--report``: evals/NAME.json and seconds/STAGE.seconds of every finished stage (see the module's docstring)."""
 VARIANT_LABELS = {
-    "dssp": "DSSP (full history)", "reactive": "reactive baseline (short window: N recent states)",
-    "no_timestep_decoupling": "w/o timestep decoupling", "no_recent_states": "w/o recent states",
-    "no_dynamics_loss": "w/o dynamics loss", "transformer_denoiser": "w/ Transformer denoiser",
-    "window10": "w/o full history (window T_h = 10)", "window3": "window T_h = 3",
+    "dssp": "DSSP (full history)",
+    "reactive": "reactive baseline (short window: N recent states)",
+    "no_timestep_decoupling": "w/o timestep decoupling",
+    "no_recent_states": "w/o recent states",
+    "no_dynamics_loss": "w/o dynamics loss",
+    "transformer_denoiser": "w/ Transformer denoiser",
+    "window10": "w/o full history (window T_h = 10)",
+    "window3": "window T_h = 3",
 }
 # Table 5's rows: the main variants under the paper's names, then the ablations.
 TABLE5_LABELS = {"dssp": "full (DSSP)", "reactive": "w/o history (reactive baseline)"}
@@ -117,7 +140,9 @@ def stage_seconds(work: Path, record: Path | None = None) -> float:
     """Compute time of every stage of the study so far, resumed and parallel runs included: the stage times kept in
     ``record`` (from every machine that ran part of it) and the done stages of ``work``, each stage counted once."""
     folder = record / "seconds" if record is not None else None
-    seconds = {f.stem: float(f.read_text()) for f in sorted(folder.glob("*.seconds"))} if folder and folder.is_dir() else {}
+    seconds = (
+        {f.stem: float(f.read_text()) for f in sorted(folder.glob("*.seconds"))} if folder and folder.is_dir() else {}
+    )
     return sum({**seconds, **Runner(work).seconds()}.values())
 
 
@@ -132,13 +157,27 @@ def model_runs(plan: dict, task: str) -> list[tuple[int, str, list[str], list[fl
     σs for its models."""
     rob = plan["robustness"]
     seeds = dict.fromkeys([*plan["seeds"][task], *plan["ablation_seeds"].get(task, [])])
-    return [(seed, variant, flags, [0.0, *(rob["sigmas"] if (task, seed) == (rob["task"], rob["seed"]) and variant in rob["variants"] else [])])
-            for seed in seeds for variant, flags in [
-                *(plan["variants"].items() if seed in plan["seeds"][task] else []),
-                *(plan["ablations"].items() if seed in plan["ablation_seeds"].get(task, []) else [])]]
+    return [
+        (
+            seed,
+            variant,
+            flags,
+            [
+                0.0,
+                *(rob["sigmas"] if (task, seed) == (rob["task"], rob["seed"]) and variant in rob["variants"] else []),
+            ],
+        )
+        for seed in seeds
+        for variant, flags in [
+            *(plan["variants"].items() if seed in plan["seeds"][task] else []),
+            *(plan["ablations"].items() if seed in plan["ablation_seeds"].get(task, []) else []),
+        ]
+    ]
 
 
-def models(plan: dict, tasks: list[str], seeds: list[int] | None = None) -> Iterator[tuple[str, int, str, list[str], list[float]]]:
+def models(
+    plan: dict, tasks: list[str], seeds: list[int] | None = None
+) -> Iterator[tuple[str, int, str, list[str], list[float]]]:
     """(task, seed, variant, training flags, noise levels) of every model of ``tasks`` (of training ``seeds`` only,
     when given)."""
     for task in tasks:
@@ -149,14 +188,28 @@ def models(plan: dict, tasks: list[str], seeds: list[int] | None = None) -> Iter
 
 def train_argv(plan: dict, task: str, seed: int, flags: list[str], data: str, run: str) -> tuple[str, ...]:
     """``dssp-train``'s arguments for one model: the plan's preset and steps for ``task``."""
-    return ("--data", data, "--out", run, "--preset", plan["preset"], "--steps", str(plan["steps"][task]), "--seed", str(seed),
-            "--no-progress", "--force", *flags)
+    return (
+        "--data",
+        data,
+        "--out",
+        run,
+        "--preset",
+        plan["preset"],
+        "--steps",
+        str(plan["steps"][task]),
+        "--seed",
+        str(seed),
+        "--no-progress",
+        "--force",
+        *flags,
+    )
 
 
 def stages(plan: dict, tasks: list[str], record: Path, seeds: list[int] | None = None) -> list[Stage]:
     """Every stage of ``tasks`` (the models of training ``seeds`` only, when given; module docstring); a model whose
     evaluations are all in ``record`` needs none, and of the others only the evaluations not recorded run."""
     from export import to_onnx  # deferred: loads torch, which a stage's process imports after setting its threads
+
     out: list[Stage] = []
     for task in tasks:
         data = f"data/{task}.zarr"
@@ -168,26 +221,66 @@ def stages(plan: dict, tasks: list[str], record: Path, seeds: list[int] | None =
                 continue
             run, model = f"runs/{name}", f"models/{name}"
             task_stages += [
-                Stage(f"train_{name}", train.main, train_argv(plan, task, seed, flags, data, run),
-                      after=(f"collect_{task}",), resume=("--data", data, "--out", run, "--resume", "--no-progress"),
-                      started=f"{run}/checkpoint"),
-                Stage(f"export_{name}", to_onnx.main, (run, "-o", model, "--force", "--threads", "1",
-                                                       *plan["export_flags"]), after=(f"train_{name}",)),
+                Stage(
+                    f"train_{name}",
+                    train.main,
+                    train_argv(plan, task, seed, flags, data, run),
+                    after=(f"collect_{task}",),
+                    resume=("--data", data, "--out", run, "--resume", "--no-progress"),
+                    started=f"{run}/checkpoint",
+                ),
+                Stage(
+                    f"export_{name}",
+                    to_onnx.main,
+                    (run, "-o", model, "--force", "--threads", "1", *plan["export_flags"]),
+                    after=(f"train_{name}",),
+                ),
             ]
             for sigma in pending:
                 result = eval_name(name, sigma)
-                task_stages.append(Stage(
-                    f"eval_{result}", sim_cli.main,
-                    ("eval", "--model", model, "--task", task, "--episodes", str(plan["eval_episodes"]), "--seed",
-                     str(plan["eval_seed"]), "--noise", str(sigma), "--threads", "1", "--json", f"evals/{result}.json", "--force",
-                     "--no-progress"), after=(f"export_{name}",), outputs=(f"evals/{result}.json",)))
+                task_stages.append(
+                    Stage(
+                        f"eval_{result}",
+                        sim_cli.main,
+                        (
+                            "eval",
+                            "--model",
+                            model,
+                            "--task",
+                            task,
+                            "--episodes",
+                            str(plan["eval_episodes"]),
+                            "--seed",
+                            str(plan["eval_seed"]),
+                            "--noise",
+                            str(sigma),
+                            "--threads",
+                            "1",
+                            "--json",
+                            f"evals/{result}.json",
+                            "--force",
+                            "--no-progress",
+                        ),
+                        after=(f"export_{name}",),
+                        outputs=(f"evals/{result}.json",),
+                    )
+                )
         if task_stages:
-            out += [Stage(f"collect_{task}", sim_cli.main, ("collect", "--task", task, "--episodes", str(plan["demos"][task]),
-                                                              "--out", data, "--no-progress"), clean=(data,)), *task_stages]
+            out += [
+                Stage(
+                    f"collect_{task}",
+                    sim_cli.main,
+                    ("collect", "--task", task, "--episodes", str(plan["demos"][task]), "--out", data, "--no-progress"),
+                    clean=(data,),
+                ),
+                *task_stages,
+            ]
     return out
 
 
-def run_study(plan: dict, tasks: list[str], work: Path, record: Path, workers: int, seeds: list[int] | None = None) -> None:
+def run_study(
+    plan: dict, tasks: list[str], work: Path, record: Path, workers: int, seeds: list[int] | None = None
+) -> None:
     """Claim ``work`` for the study and run (or resume) the stages of ``tasks`` and training ``seeds`` (default: all),
     keeping every finished evaluation and stage time in ``record``."""
     claim_dir(work, kind=WORK_DIR, flag="--work", resume=True)
@@ -277,42 +370,74 @@ def write_report(results: dict, report_dir: Path, seconds: float, force: bool = 
                 continue
             seeds = ", ".join(f"{s}: {v}" for s, v in sorted(row["per_seed"].items()))
             reasons = ", ".join(f"{k} × {v}" for k, v in sorted(row["reasons"].items())) or "—"
-            lines.append(f"| {task} | {VARIANT_LABELS.get(variant, variant)} | {pct(row['k'], row['n'])} | {seeds} | {reasons} |")
+            lines.append(
+                f"| {task} | {VARIANT_LABELS.get(variant, variant)} | {pct(row['k'], row['n'])} | {seeds} | {reasons} |"
+            )
     ablation_tasks = [t for t in plan["ablation_seeds"] if t in table and any(v in table[t] for v in plan["ablations"])]
     if ablation_tasks:
         seeds = ", ".join(f"`{t}` seeds {plan['ablation_seeds'][t]}" for t in ablation_tasks)
-        lines += ["", f"Ablations (paper Table 5, and Table 3's window): each row one change to DSSP, trained and evaluated "
-                  f"as above ({seeds}; rows pooled over those seeds only). The Transformer history encoder of Table 3 is "
-                  "not here: it does not export (over the full history its state grows).", "",
-                  "| model | " + " | ".join(f"`{t}`" for t in ablation_tasks) + " |", "|---|" + "---|" * len(ablation_tasks)]
+        lines += [
+            "",
+            f"Ablations (paper Table 5, and Table 3's window): each row one change to DSSP, trained and evaluated "
+            f"as above ({seeds}; rows pooled over those seeds only). The Transformer history encoder of Table 3 is "
+            "not here: it does not export (over the full history its state grows).",
+            "",
+            "| model | " + " | ".join(f"`{t}`" for t in ablation_tasks) + " |",
+            "|---|" + "---|" * len(ablation_tasks),
+        ]
         for variant in [*plan["variants"], *plan["ablations"]]:
             cells = []
             for task in ablation_tasks:
                 names = [f"{task}_{variant}_s{seed}" for seed in plan["ablation_seeds"][task]]
                 rs = [results["evals"][n] for n in names if n in results["evals"]]
-                cells.append(pct(sum(r["successes"] for r in rs), sum(r["n"] for r in rs)) + ("" if len(rs) == len(names) else
-                             f" (seeds so far: {len(rs)} of {len(names)})") if rs else "pending")
-            lines.append(f"| {TABLE5_LABELS.get(variant, VARIANT_LABELS.get(variant, variant))} | " + " | ".join(cells) + " |")
+                cells.append(
+                    pct(sum(r["successes"] for r in rs), sum(r["n"] for r in rs))
+                    + ("" if len(rs) == len(names) else f" (seeds so far: {len(rs)} of {len(names)})")
+                    if rs
+                    else "pending"
+                )
+            lines.append(
+                f"| {TABLE5_LABELS.get(variant, VARIANT_LABELS.get(variant, variant))} | " + " | ".join(cells) + " |"
+            )
     if results["robustness"]:
         rob = plan["robustness"]
         rms = _z_rms(results, rob)
-        lines += ["", f"Robustness (paper Table 4): Gaussian noise σ on the N most recent state tokens at inference, "
-                  f"task `{rob['task']}`, training seed {rob['seed']}. σ is in the tokens' units"
-                  + (f"; their RMS per element is {rms:.2f} (DSSP, noise-free), so σ / RMS is in the second column." if rms else "."),
-                  "", "| σ | σ / RMS | " + " | ".join(VARIANT_LABELS.get(v, v) for v in rob["variants"]) + " |",
-                  "|---:|---:|" + "---|" * len(rob["variants"])]
+        lines += [
+            "",
+            f"Robustness (paper Table 4): Gaussian noise σ on the N most recent state tokens at inference, "
+            f"task `{rob['task']}`, training seed {rob['seed']}. σ is in the tokens' units"
+            + (
+                f"; their RMS per element is {rms:.2f} (DSSP, noise-free), so σ / RMS is in the second column."
+                if rms
+                else "."
+            ),
+            "",
+            "| σ | σ / RMS | " + " | ".join(VARIANT_LABELS.get(v, v) for v in rob["variants"]) + " |",
+            "|---:|---:|" + "---|" * len(rob["variants"]),
+        ]
         for sigma in [0.0, *rob["sigmas"]]:
-            cells = [pct(r["successes"], r["n"]) if r else "pending" for r in (_rob_result(results, rob, v, sigma) for v in rob["variants"])]
+            cells = [
+                pct(r["successes"], r["n"]) if r else "pending"
+                for r in (_rob_result(results, rob, v, sigma) for v in rob["variants"])
+            ]
             lines.append(f"| {sigma:g} | {sigma / rms:.2f} | " if rms else f"| {sigma:g} | — | ")
             lines[-1] += " | ".join(cells) + " |"
     if pending:
-        lines += ["", f"**Partial report**: {len(pending)} evaluation(s) of the plan are pending (not run yet): "
-                  + ", ".join(f"`{n}`" for n in pending) + ". Rows pool the seeds run so far."]
+        lines += [
+            "",
+            f"**Partial report**: {len(pending)} evaluation(s) of the plan are pending (not run yet): "
+            + ", ".join(f"`{n}`" for n in pending)
+            + ". Rows pool the seeds run so far.",
+        ]
     lines += ["", f"![success rates]({REPORT_NAME}.png)", ""]
     md, js, png = report_files(report_dir)
     write_output_text(md, "\n".join(lines), force=force, flag="--report")
-    write_output_text(js, json.dumps({"summary": table, **results, "pending": list(pending)}, indent=2) + "\n",
-                      force=force, flag="--report")
+    write_output_text(
+        js,
+        json.dumps({"summary": table, **results, "pending": list(pending)}, indent=2) + "\n",
+        force=force,
+        flag="--report",
+    )
     _plot(results, table, png, force)
     return md
 
@@ -328,7 +453,14 @@ def _bars(ax, groups: list[str], series: list[tuple[str, list[tuple[int, int]]]]
             rates.append(100 * p)
             errs[0].append(100 * (p - lo))
             errs[1].append(100 * (hi - p))
-        ax.bar(np.arange(len(groups)) + (i - (len(series) - 1) / 2) * width, rates, width, yerr=errs, capsize=3, label=label)
+        ax.bar(
+            np.arange(len(groups)) + (i - (len(series) - 1) / 2) * width,
+            rates,
+            width,
+            yerr=errs,
+            capsize=3,
+            label=label,
+        )
     ax.set(xticks=np.arange(len(groups)), xticklabels=groups, ylabel="success %", ylim=(0, 105), title=title)
     ax.legend(fontsize=7)
 
@@ -346,8 +478,12 @@ def _plot(results: dict, table: dict, path: Path, force: bool = False) -> None:
     fig, axes = plt.subplots(1, panels, figsize=(5.5 * panels, 4), squeeze=False)
     axes = list(axes[0])
     counts = lambda task, v: (table[task].get(v, {"k": 0})["k"], table[task].get(v, {"n": 0})["n"])  # noqa: E731
-    _bars(axes.pop(0), tasks, [(VARIANT_LABELS.get(v, v), [counts(t, v) for t in tasks]) for v in plan["variants"]],
-          "Closed-loop success (95 % Wilson)")
+    _bars(
+        axes.pop(0),
+        tasks,
+        [(VARIANT_LABELS.get(v, v), [counts(t, v) for t in tasks]) for v in plan["variants"]],
+        "Closed-loop success (95 % Wilson)",
+    )
     if ablation_tasks:
         series = []
         for v in [*plan["variants"], *plan["ablations"]]:
@@ -365,9 +501,18 @@ def _plot(results: dict, table: dict, path: Path, force: bool = False) -> None:
         sigmas = [0.0, *rob["sigmas"]]
         for variant in rob["variants"]:
             done = [(s, r) for s in sigmas if (r := _rob_result(results, rob, variant, s))]
-            ax.plot([s / rms for s, _ in done], [100 * r["successes"] / max(r["n"], 1) for _, r in done], "o-",
-                    label=VARIANT_LABELS.get(variant, variant))
-        ax.set(xlabel="σ / RMS of the recent state tokens", ylabel="success %", ylim=(0, 105), title=f"Robustness ({rob['task']})")
+            ax.plot(
+                [s / rms for s, _ in done],
+                [100 * r["successes"] / max(r["n"], 1) for _, r in done],
+                "o-",
+                label=VARIANT_LABELS.get(variant, variant),
+            )
+        ax.set(
+            xlabel="σ / RMS of the recent state tokens",
+            ylabel="success %",
+            ylim=(0, 105),
+            title=f"Robustness ({rob['task']})",
+        )
         ax.legend(fontsize=7)
     fig.tight_layout()
     write_output_figure(path, fig, force=force, flag="--report")
@@ -375,16 +520,30 @@ def _plot(results: dict, table: dict, path: Path, force: bool = False) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     p = ArgumentParser(prog="python -m studies.sim_study", description=__doc__.split("\n\n")[0])
-    p.add_argument("--work", type=Path, default=Path("runs/sim_experiment"), help="datasets, runs, models, evaluations, logs")
+    p.add_argument(
+        "--work", type=Path, default=Path("runs/sim_experiment"), help="datasets, runs, models, evaluations, logs"
+    )
     p.add_argument("--report", type=Path, default=Path("reports/sim"), help="where the report and its record go")
     p.add_argument("--quick", action="store_true", help="a tiny plan (tests): 3 demos, 20 steps, 1 episode")
     p.add_argument("--workers", type=int, default=2, help="stages side by side, one thread each (default 2)")
-    p.add_argument("--tasks", nargs="+", metavar="TASK", help="run only these tasks' stages (default: all, then the report)")
-    p.add_argument("--seeds", nargs="+", type=int, metavar="SEED", help="run only the models of these training seeds "
-                   "(with --tasks: split one task's models across processes; no report)")
+    p.add_argument(
+        "--tasks", nargs="+", metavar="TASK", help="run only these tasks' stages (default: all, then the report)"
+    )
+    p.add_argument(
+        "--seeds",
+        nargs="+",
+        type=int,
+        metavar="SEED",
+        help="run only the models of these training seeds "
+        "(with --tasks: split one task's models across processes; no report)",
+    )
     p.add_argument("--force", action="store_true", help="replace the report's files if they exist")
-    p.add_argument("--report-only", action="store_true", help="run no stage: write the report from the record "
-                   f"(--report/{RECORD_DIR}), the evaluations not run yet listed as pending")
+    p.add_argument(
+        "--report-only",
+        action="store_true",
+        help="run no stage: write the report from the record "
+        f"(--report/{RECORD_DIR}), the evaluations not run yet listed as pending",
+    )
     args = p.parse_args(argv)
     plan = QUICK_PLAN if args.quick else PLAN
     unknown = [t for t in args.tasks or [] if t not in plan["demos"]]
@@ -406,8 +565,10 @@ def main(argv: list[str] | None = None) -> int:
         if not args.report_only:
             run_study(plan, args.tasks or list(plan["demos"]), args.work, record, args.workers, args.seeds)
             if partial:
-                print(f"stages of {args.tasks or 'every task'}{f' seeds {args.seeds}' if args.seeds else ''} done (kept in "
-                      f"{record}); run without --tasks and --seeds for the report")
+                print(
+                    f"stages of {args.tasks or 'every task'}{f' seeds {args.seeds}' if args.seeds else ''} done (kept in "
+                    f"{record}); run without --tasks and --seeds for the report"
+                )
                 return 0
         results, pending = recorded_results(plan, record)
         if not results["evals"]:

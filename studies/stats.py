@@ -50,12 +50,15 @@ def _resampled_means(grids: list[np.ndarray], samples: int, seed: int) -> np.nda
     for i, g in enumerate(grids):
         # mean over the resampled (seed, scene) cells: the rows' means at the resampled columns
         picked = g[rows]  # (samples, r, s)
-        out[:, i] = np.take_along_axis(picked, np.broadcast_to(cols[:, None, :], picked.shape[:2] + (s,)), axis=2).mean(axis=(1, 2))
+        out[:, i] = np.take_along_axis(picked, np.broadcast_to(cols[:, None, :], picked.shape[:2] + (s,)), axis=2).mean(
+            axis=(1, 2)
+        )
     return out
 
 
-def cluster_bootstrap(outcomes, samples: int = BOOTSTRAP_SAMPLES, seed: int = BOOTSTRAP_SEED,
-                      alpha: float = ALPHA) -> tuple[float, float, float]:
+def cluster_bootstrap(
+    outcomes, samples: int = BOOTSTRAP_SAMPLES, seed: int = BOOTSTRAP_SEED, alpha: float = ALPHA
+) -> tuple[float, float, float]:
     """(mean, low, high): the success rate of an (R, S) grid and its (1 - alpha) two-way cluster-bootstrap interval."""
     grid = _grid(outcomes)
     means = _resampled_means([grid], samples, seed)[:, 0]
@@ -63,8 +66,9 @@ def cluster_bootstrap(outcomes, samples: int = BOOTSTRAP_SAMPLES, seed: int = BO
     return float(grid.mean()), float(lo), float(hi)
 
 
-def paired_difference(a, b, samples: int = BOOTSTRAP_SAMPLES, seed: int = BOOTSTRAP_SEED,
-                      alpha: float = ALPHA) -> tuple[float, float, float]:
+def paired_difference(
+    a, b, samples: int = BOOTSTRAP_SAMPLES, seed: int = BOOTSTRAP_SEED, alpha: float = ALPHA
+) -> tuple[float, float, float]:
     """(difference, low, high): mean(a) - mean(b) of two (R, S) grids on the same scenes, with its two-way
     cluster-bootstrap interval (the same resampled seeds and scenes for both)."""
     ga, gb = _grid(a), _grid(b)

@@ -98,8 +98,24 @@ def _build_tiny_export(root):
 
     data = write_tap_count_dataset(root / "tap.zarr", 6, seed=0, n_points=32)
     run_dir, model_dir = root / "run", root / "model"
-    assert train_main(["--data", str(data), "--out", str(run_dir), "--preset", "tiny", "--steps", "30",
-                       "--set", "train.val_every=30", "--no-progress"]) == 0
+    assert (
+        train_main(
+            [
+                "--data",
+                str(data),
+                "--out",
+                str(run_dir),
+                "--preset",
+                "tiny",
+                "--steps",
+                "30",
+                "--set",
+                "train.val_every=30",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     assert export_main([str(run_dir), "-o", str(model_dir), "--skip-verify"]) == 0
     return run_dir, model_dir, data
 
@@ -145,8 +161,24 @@ def _arm_export(tmp_path_factory, request, n_arms: int):
     def build(root):
         data = write_arm_dataset(root / "arm.zarr", n_arms=n_arms)
         run_dir, model_dir = root / "run", root / "model"
-        assert train_main(["--data", str(data), "--out", str(run_dir), "--preset", "tiny", "--steps", "20",
-                           "--set", "train.val_every=20", "--no-progress"]) == 0
+        assert (
+            train_main(
+                [
+                    "--data",
+                    str(data),
+                    "--out",
+                    str(run_dir),
+                    "--preset",
+                    "tiny",
+                    "--steps",
+                    "20",
+                    "--set",
+                    "train.val_every=20",
+                    "--no-progress",
+                ]
+            )
+            == 0
+        )
         assert export_main([str(run_dir), "-o", str(model_dir), "--skip-verify"]) == 0
         return (model_dir,)
 
@@ -212,9 +244,31 @@ QGEMM_X86_PATHS = {
 """dssp_deploy/kernel/qgemm.h's x86-64 paths, fastest first, and the CPU flags each needs."""
 
 
-
-BLOCK_INPUTS = ["a", "conv_state", "ssm_state", "mod", "norm_w", "in_q", "in_s", "conv_w", "conv_b", "xp_q", "xp_s",
-                "dt_q", "dt_s", "dt_b", "A", "D", "out_q", "out_s", "norm2_w", "fc1_q", "fc1_s", "fc2_q", "fc2_s"]
+BLOCK_INPUTS = [
+    "a",
+    "conv_state",
+    "ssm_state",
+    "mod",
+    "norm_w",
+    "in_q",
+    "in_s",
+    "conv_w",
+    "conv_b",
+    "xp_q",
+    "xp_s",
+    "dt_q",
+    "dt_s",
+    "dt_b",
+    "A",
+    "D",
+    "out_q",
+    "out_s",
+    "norm2_w",
+    "fc1_q",
+    "fc1_s",
+    "fc2_q",
+    "fc2_s",
+]
 """``ai.dssp::MambaBlockQ8``'s inputs in order (dssp_deploy/kernel/mamba_ops.cc)."""
 
 
@@ -235,8 +289,12 @@ def block_case(mlp: str, batch: int, seed: int = 0):
             p.add_(torch.randn_like(p) * 0.05)
     fused = QuantizedMambaBlock(block)
     E, W, n, d = block.mixer.d_inner, block.mixer.d_conv, block.mixer.d_state, m.d_model  # noqa: N806
-    values = {"a": torch.randn(batch, m.horizon, d), "conv_state": torch.randn(batch, E, W),
-              "ssm_state": torch.randn(batch, E, n) * 0.3, "mod": torch.randn(3, d) * 0.2}
+    values = {
+        "a": torch.randn(batch, m.horizon, d),
+        "conv_state": torch.randn(batch, E, W),
+        "ssm_state": torch.randn(batch, E, n) * 0.3,
+        "mod": torch.randn(3, d) * 0.2,
+    }
     values.update({name: getattr(fused, name) for name in BLOCK_INPUTS[4:]})
     return fused, values
 
@@ -258,8 +316,20 @@ def build_harness(source: str, compiler: str, output: Path, *flags: str) -> Path
         return output
     output.parent.mkdir(parents=True, exist_ok=True)
     partial = output.with_name(f"{output.name}.{os.getpid()}.tmp")  # a build beside another one never clashes
-    command = [compiler, "-O2", "-std=c++17", "-Wall", "-Wextra", "-fopenmp-simd", "-fno-trapping-math", "-pthread",
-               *flags, "-o", str(partial), str(KERNEL_DIR / source)]
+    command = [
+        compiler,
+        "-O2",
+        "-std=c++17",
+        "-Wall",
+        "-Wextra",
+        "-fopenmp-simd",
+        "-fno-trapping-math",
+        "-pthread",
+        *flags,
+        "-o",
+        str(partial),
+        str(KERNEL_DIR / source),
+    ]
     result = subprocess.run(command, capture_output=True, text=True)
     assert result.returncode == 0, f"{compiler} failed:\n{result.stderr}"
     os.replace(partial, output)

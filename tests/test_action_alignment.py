@@ -7,20 +7,21 @@ import shutil
 import numpy as np
 import pytest
 import torch
+from conftest import SET_SMALL
 
 from dssp_core.errors import ConfigError
 from dssp_deploy import OnnxPolicy
 from dssp_deploy.control_loop import ChunkedControl
-from dssp_deploy.schedules import MeasuredDelay, Plain
 from dssp_deploy.manifest import MANIFEST_NAME, ModelDirError
+from dssp_deploy.schedules import MeasuredDelay, Plain
 from dssp_train.config import apply_overrides, load_preset
 from dssp_train.model.policy import DSSPPolicy
 
-from conftest import SET_SMALL
-
 
 def tiny_model(alignment: str):
-    config = apply_overrides(load_preset("tiny"), [f"model.action_alignment={alignment}", "model.state_dim=2", "model.action_dim=2"])
+    config = apply_overrides(
+        load_preset("tiny"), [f"model.action_alignment={alignment}", "model.state_dim=2", "model.action_dim=2"]
+    )
     return config.model
 
 
@@ -56,7 +57,10 @@ def test_the_control_loop_executes_the_chunk_from_the_manifests_offset(tiny_expo
     model, manifest = dp3_copy(model_dir, tmp_path)
     policy = OnnxPolicy(model, threads=1)
     offset, ha = policy.contract.action_offset, policy.contract.n_action_steps
-    assert offset == manifest["contract"]["n_obs_steps"] - 1 == 1 and OnnxPolicy(model_dir, threads=1).contract.action_offset == 0
+    assert (
+        offset == manifest["contract"]["n_obs_steps"] - 1 == 1
+        and OnnxPolicy(model_dir, threads=1).contract.action_offset == 0
+    )
     loop = ChunkedControl(policy, seed=0)
     rng = np.random.default_rng(0)
     obs = [policy.example_observation(rng, 32) for _ in range(2 * ha)]
@@ -67,7 +71,9 @@ def test_the_control_loop_executes_the_chunk_from_the_manifests_offset(tiny_expo
     chunk = reference.act(seed=0)
     assert all(np.array_equal(ticks[j][0], chunk[:, offset + j]) for j in range(ha))
     with pytest.raises(ValueError, match="H - action_offset - H_a = 0 predicted actions can be dropped"):
-        ChunkedControl(policy, Plain(prefetch=True, delay=MeasuredDelay(50.0)), control_rate_hz=10)  # H_a = H - N + 1 leaves none
+        ChunkedControl(
+            policy, Plain(prefetch=True, delay=MeasuredDelay(50.0)), control_rate_hz=10
+        )  # H_a = H - N + 1 leaves none
 
 
 def test_a_manifest_whose_offset_is_neither_the_current_step_nor_n_minus_1_is_refused(tiny_export, tmp_path):
@@ -86,10 +92,40 @@ def test_export_records_the_offset(tmp_path):
     from export.to_onnx import main as export_main
 
     data = write_tap_count_dataset(tmp_path / "tap.zarr", 3, seed=0, n_points=24)
-    assert train_main(["--data", str(data), "--out", str(tmp_path / "run"), "--steps", "2", "--no-progress", *SET_SMALL,
-                       "--set", "model.action_alignment=dp3", "--no-holdout"]) == 0
-    assert export_main([str(tmp_path / "run"), "-o", str(tmp_path / "model"), "--skip-verify", "--quantize", "none",
-                        "--no-fused", "--format", "onnx"]) == 0
+    assert (
+        train_main(
+            [
+                "--data",
+                str(data),
+                "--out",
+                str(tmp_path / "run"),
+                "--steps",
+                "2",
+                "--no-progress",
+                *SET_SMALL,
+                "--set",
+                "model.action_alignment=dp3",
+                "--no-holdout",
+            ]
+        )
+        == 0
+    )
+    assert (
+        export_main(
+            [
+                str(tmp_path / "run"),
+                "-o",
+                str(tmp_path / "model"),
+                "--skip-verify",
+                "--quantize",
+                "none",
+                "--no-fused",
+                "--format",
+                "onnx",
+            ]
+        )
+        == 0
+    )
     manifest = json.loads((tmp_path / "model" / MANIFEST_NAME).read_text())
     assert manifest["contract"]["action_offset"] == manifest["contract"]["n_obs_steps"] - 1
     assert OnnxPolicy(tmp_path / "model", threads=1).contract.action_offset == manifest["contract"]["action_offset"]

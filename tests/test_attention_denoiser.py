@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from conftest import SET_SMALL
 
 from dssp_train.cli.train import main as train_main
 from dssp_train.config import apply_overrides, load_preset
@@ -18,12 +19,15 @@ from dssp_train.model.policy import DSSPPolicy
 from dssp_train.model.streaming import StreamingPolicy
 from dssp_train.training.checkpoint import load_policy
 
-from conftest import SET_SMALL
-
 pytestmark = pytest.mark.filterwarnings("ignore:`torch.jit.load` is deprecated:DeprecationWarning")
 
-TRANSFORMER = ["model.d_model=32", "model.d_state=8", "model.n_denoiser_layers=2", "model.denoiser_backbone=transformer",
-               "model.transformer_heads=4"]
+TRANSFORMER = [
+    "model.d_model=32",
+    "model.d_state=8",
+    "model.n_denoiser_layers=2",
+    "model.denoiser_backbone=transformer",
+    "model.transformer_heads=4",
+]
 
 
 def build(*overrides: str, seed: int = 0) -> DSSPPolicy:
@@ -126,8 +130,22 @@ def trained_run(tmp_path_factory):
     root = tmp_path_factory.mktemp("attention")
     data = write_tap_count_dataset(root / "tap.zarr", 4, seed=0, n_points=24)
     run = root / "run"
-    args = ["--data", str(data), "--out", str(run), "--preset", "tiny", "--steps", "3", "--no-progress",
-            *SET_SMALL, "--set", "model.transformer_heads=4", "--denoiser-backbone", "transformer"]
+    args = [
+        "--data",
+        str(data),
+        "--out",
+        str(run),
+        "--preset",
+        "tiny",
+        "--steps",
+        "3",
+        "--no-progress",
+        *SET_SMALL,
+        "--set",
+        "model.transformer_heads=4",
+        "--denoiser-backbone",
+        "transformer",
+    ]
     assert train_main(args) == 0
     return run
 
@@ -155,8 +173,12 @@ def test_export_verifies_and_the_runtime_matches_pytorch(trained_run, tmp_path, 
     from export.to_onnx import main as export_main
 
     model = tmp_path / "model"
-    assert export_main([str(trained_run), "-o", str(model), "--quantize", "none", "--verify-steps", "60",
-                        "--threads", "1"]) == 0
+    assert (
+        export_main(
+            [str(trained_run), "-o", str(model), "--quantize", "none", "--verify-steps", "60", "--threads", "1"]
+        )
+        == 0
+    )
     assert "PASS" in capsys.readouterr().out
     manifest = json.loads((model / "dssp_model.json").read_text())
     report = manifest["verification"]

@@ -35,9 +35,9 @@ def read_tensors(path: Path) -> dict[str, np.ndarray]:
     assert data[:at] == MAGIC
     while at < len(data):
         (length,) = struct.unpack_from("<I", data, at)
-        name = data[at + 4:at + 4 + length].decode()
+        name = data[at + 4 : at + 4 + length].decode()
         at += 4 + length
-        kind, (ndim,) = data[at:at + 1], struct.unpack_from("<I", data, at + 1)
+        kind, (ndim,) = data[at : at + 1], struct.unpack_from("<I", data, at + 1)
         shape = struct.unpack_from(f"<{ndim}q", data, at + 5)
         at += 5 + 8 * ndim
         dtype = np.float32 if kind == b"f" else np.int8
@@ -55,7 +55,9 @@ def case(tmp_path: Path, mlp: str, batch: int, part: str) -> tuple[Path, list[np
     fused, values = block_case(mlp, batch)
     plain = 3 if part == "joint" else 0  # the prefix's tokens before the actions', in one pass
     if part == "prefix":  # from zeros given, and from zeros as the exported graphs say it (empty states)
-        values.update(conv_state=torch.zeros_like(values["conv_state"]), ssm_state=torch.zeros_like(values["ssm_state"]))
+        values.update(
+            conv_state=torch.zeros_like(values["conv_state"]), ssm_state=torch.zeros_like(values["ssm_state"])
+        )
     if part == "joint":
         values.update(conv_state=values["conv_state"][:, :0], ssm_state=values["ssm_state"][:, :0])
     if part == "prefix":
@@ -65,8 +67,14 @@ def case(tmp_path: Path, mlp: str, batch: int, part: str) -> tuple[Path, list[np
     if part != "prefix":
         want = [want[0], want[1][:, :0], want[2][:, :0]]
     path = tmp_path / f"{mlp}-{batch}-{part}.case"
-    write_tensors(path, {**{name: value.numpy() for name, value in values.items()},
-                         "eps": np.array(fused.eps, np.float32), "plain": np.array(plain, np.float32)})
+    write_tensors(
+        path,
+        {
+            **{name: value.numpy() for name, value in values.items()},
+            "eps": np.array(fused.eps, np.float32),
+            "plain": np.array(plain, np.float32),
+        },
+    )
     return path, want
 
 
@@ -116,8 +124,9 @@ def test_the_block_matches_its_reference_natively(native, tmp_path, mlp, batch, 
 
 @pytest.mark.parametrize("cpu, product", [("max", "neon_dot"), ("cortex-a53", "neon")])
 @pytest.mark.parametrize("mlp, batch, part", CASES)
-def test_the_block_matches_its_reference_on_aarch64_under_qemu(cross, tmp_path, cpu, product, mlp, batch, part,
-                                                               monkeypatch):
+def test_the_block_matches_its_reference_on_aarch64_under_qemu(
+    cross, tmp_path, cpu, product, mlp, batch, part, monkeypatch
+):
     """On a CPU with sdot (neon_dot) and one without (neon): the products' paths give the same bits as the portable
     one (their integer sums are exact), and the block matches the reference."""
     monkeypatch.delenv("DSSP_QGEMM_PATH", raising=False)
@@ -134,9 +143,17 @@ def test_the_block_matches_its_reference_on_aarch64_under_qemu(cross, tmp_path, 
 
 def test_a_path_the_cpu_lacks_is_one_line_not_a_crash(cross, tmp_path):
     path, _ = case(tmp_path, "gated", 1, "actions")
-    for env, word in ((dict(DSSP_SCAN_PATH="avx512"), "DSSP_SCAN_PATH=avx512"), (dict(DSSP_QGEMM_PATH="avx2"), "DSSP_QGEMM_PATH=avx2")):
-        result = subprocess.run(["qemu-aarch64", "-cpu", "max", str(cross), str(path), str(tmp_path / "out")],
-                                capture_output=True, text=True, timeout=300, env={**os.environ, **env})
+    for env, word in (
+        (dict(DSSP_SCAN_PATH="avx512"), "DSSP_SCAN_PATH=avx512"),
+        (dict(DSSP_QGEMM_PATH="avx2"), "DSSP_QGEMM_PATH=avx2"),
+    ):
+        result = subprocess.run(
+            ["qemu-aarch64", "-cpu", "max", str(cross), str(path), str(tmp_path / "out")],
+            capture_output=True,
+            text=True,
+            timeout=300,
+            env={**os.environ, **env},
+        )
         report = json.loads(result.stdout.strip().splitlines()[-1])
         assert result.returncode == 2 and report["path_error"].startswith(word), report
         assert not (tmp_path / "out").exists()

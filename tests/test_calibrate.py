@@ -11,13 +11,18 @@ import pytest
 
 from dssp_core.errors import CalibrationError, ConfigError
 from dssp_data.arm_kinematics import flange_pose
+from dssp_data.pointcloud.extrinsics import (
+    load_camera_to_gripper,
+    load_extrinsics,
+    save_camera_to_gripper,
+    save_extrinsics,
+)
 from dssp_sim.calibration_twin import CalibrationTwin, TwinRig
 from dssp_sim.sim_cli import main as sim_main
 from hardware.calibration.charuco import CharucoBoardSpec, detect_board
 from hardware.calibration.hand_eye import distance, invert, solve_hand_eye
 from hardware.calibration.pose_plan import auto_poses, load_poses
 from hardware.calibration.tour import CalibrationTour
-from dssp_data.pointcloud.extrinsics import load_camera_to_gripper, load_extrinsics, save_camera_to_gripper, save_extrinsics
 from hardware.rig import Rig
 from hardware.run_loop import LoopSettings, Runner
 from hardware.safety import SafetyConfig
@@ -32,8 +37,13 @@ def tour_on_the_twin(mode: str, n: int = POSES):
     rig = TwinRig(mode, board)
     try:
         with rig.camera:
-            tour = CalibrationTour(lambda start: auto_poses(start, n), rig.camera, rig.clock,
-                                   gripper="close" if mode == "eye-to-hand" else "hold", events=lambda line: None)
+            tour = CalibrationTour(
+                lambda start: auto_poses(start, n),
+                rig.camera,
+                rig.clock,
+                gripper="close" if mode == "eye-to-hand" else "hold",
+                events=lambda line: None,
+            )
             loop_rig = Rig(None, rig.robot, np.eye(4), SafetyConfig(), clock=rig.clock)
             with loop_rig:
                 runner = Runner(tour, loop_rig, None, LoopSettings(control_rate_hz=10))
@@ -52,8 +62,9 @@ def test_the_twin_recovers_the_camera_pose(mode, tmp_path):
     assert len(views) == POSES
     detections = [detect_board(v.frame.color, v.frame.intrinsics, board) for v in views]
     assert all(d.ok for d in detections), [d.reason for d in detections]
-    result = solve_hand_eye([flange_pose(v.joints) for v in views], [d.board_to_camera for d in detections], mode,
-                            centre=board.centre)
+    result = solve_hand_eye(
+        [flange_pose(v.joints) for v in views], [d.board_to_camera for d in detections], mode, centre=board.centre
+    )
     result.check()
     mm, deg = distance(result.transform, truth)
     assert mm <= BOUND_MM and deg <= BOUND_DEG, (mm, deg)
@@ -91,7 +102,9 @@ def test_dssp_sim_calibrate_writes_the_extrinsics_and_keeps_an_existing_file(tmp
     kept = json.loads(record.read_text())
     assert kept["mode"] == "eye-to-hand" and kept["result"] == "camera_to_base" and len(kept["views"]) == POSES
     assert np.allclose(kept["transform"], load_extrinsics(out), atol=1e-9)
-    assert kept["truth_error"] == pytest.approx(list(distance(load_extrinsics(out), CalibrationTwin("eye-to-hand").truth())))
+    assert kept["truth_error"] == pytest.approx(
+        list(distance(load_extrinsics(out), CalibrationTwin("eye-to-hand").truth()))
+    )
     used = [v for v in kept["views"] if "residual_mm" in v]
     assert used and np.sqrt(np.mean([v["residual_mm"] ** 2 for v in used])) == pytest.approx(kept["rms_mm"])
 
@@ -154,7 +167,10 @@ def test_a_view_off_the_chain_is_refused_naming_it():
         m[:3, :3], m[:3, 3] = cv2.Rodrigues(np.asarray(rvec, float))[0], t
         return m
 
-    camera_to_base, board_to_gripper = pose([0.3, -2.0, 0.4], [0.9, 0.05, 0.5]), pose([0.1, 0.2, -0.3], [0.0, 0.02, 0.1])
+    camera_to_base, board_to_gripper = (
+        pose([0.3, -2.0, 0.4], [0.9, 0.05, 0.5]),
+        pose([0.1, 0.2, -0.3], [0.0, 0.02, 0.1]),
+    )
     grippers = [pose(rng.normal(0, 0.3, 3) + [0, 3.0, 0], rng.normal([0.4, 0, 0.3], 0.05)) for _ in range(10)]
     boards = [invert(camera_to_base) @ g @ board_to_gripper for g in grippers]
     exact = solve_hand_eye(grippers, boards, "eye-to-hand")

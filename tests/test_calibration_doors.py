@@ -16,10 +16,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import one_error_line
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from conftest import one_error_line
 from dssp_core import files
 from dssp_core.errors import CalibrationError, ConfigError
 from dssp_data.arm_kinematics import flange_pose
@@ -38,8 +38,13 @@ from hardware.safety import SafetyConfig
 
 START = np.array([0.0, 1.2, -1.0, 0.0, 0.6, 0.0])  # a pose inside the limits, the wrist away from its singularity
 GOOD = auto_poses(START, 16)  # a plan that passes (as many poses as the plans drawn below hold at most)
-HYPOTHESIS = {"deadline": None, "derandomize": True, "database": None, "max_examples": 25,
-              "suppress_health_check": [HealthCheck.function_scoped_fixture]}
+HYPOTHESIS = {
+    "deadline": None,
+    "derandomize": True,
+    "database": None,
+    "max_examples": 25,
+    "suppress_health_check": [HealthCheck.function_scoped_fixture],
+}
 
 
 class NeverOpened:
@@ -54,8 +59,9 @@ def run(capsys, *argv, sim=None):
     ``sim`` is False: (exit code, stdout, stderr); a flag argparse refuses exits 2 with its one line."""
     sim = NeverOpened() if sim is None else sim or None
     try:
-        code = calibrate_main([str(a) for a in argv], sim=sim, prog="dssp-calibrate" if sim is None else
-                              "dssp-sim calibrate")
+        code = calibrate_main(
+            [str(a) for a in argv], sim=sim, prog="dssp-calibrate" if sim is None else "dssp-sim calibrate"
+        )
     except SystemExit as exc:
         code = exc.code
     out, err = capsys.readouterr()
@@ -132,9 +138,14 @@ def test_a_file_that_is_not_a_file_is_one_line_before_the_rig_opens(tmp_path, ca
 
 
 # -- poses that are not numbers, a key given twice -------------------------------------------------------------------
-NOT_NUMBERS = st.one_of(st.sampled_from(["0.1", "1e-3", "", "nan"]), st.text(max_size=6), st.booleans(), st.none(),
-                        st.lists(st.floats(-1, 1), min_size=1, max_size=2), st.dictionaries(st.text(max_size=2),
-                                                                                            st.integers(), max_size=1))
+NOT_NUMBERS = st.one_of(
+    st.sampled_from(["0.1", "1e-3", "", "nan"]),
+    st.text(max_size=6),
+    st.booleans(),
+    st.none(),
+    st.lists(st.floats(-1, 1), min_size=1, max_size=2),
+    st.dictionaries(st.text(max_size=2), st.integers(), max_size=1),
+)
 
 
 @settings(**HYPOTHESIS)
@@ -150,7 +161,7 @@ def test_a_joint_that_is_not_a_number_is_refused_naming_it(tmp_path_factory, i, 
 
 
 @settings(**HYPOTHESIS)
-@given(i=st.integers(0, len(GOOD) - 1), j=st.integers(0, 5), big=st.sampled_from([10 ** 400, -(10 ** 309)]))
+@given(i=st.integers(0, len(GOOD) - 1), j=st.integers(0, 5), big=st.sampled_from([10**400, -(10**309)]))
 def test_a_joint_beyond_any_float_is_refused_naming_it(tmp_path_factory, i, j, big):
     poses = GOOD.tolist()
     poses[i][j] = big
@@ -172,10 +183,15 @@ def test_poses_given_twice_are_refused_not_one_of_them_toured(tmp_path, capsys, 
 
 # -- a plan that cannot pass is refused before anything moves --------------------------------------------------------
 @settings(**HYPOTHESIS)
-@given(count=st.integers(1, 16), distinct=st.integers(1, 16), scale=st.sampled_from([0.0, 0.005, 0.03, 0.2, 1.0]),
-       joints=st.sampled_from(["all", "J6 only"]))
-def test_a_plan_is_held_to_the_solves_own_rule_before_the_rig_opens(tmp_path_factory, capsys, count, distinct, scale,
-                                                                    joints):
+@given(
+    count=st.integers(1, 16),
+    distinct=st.integers(1, 16),
+    scale=st.sampled_from([0.0, 0.005, 0.03, 0.2, 1.0]),
+    joints=st.sampled_from(["all", "J6 only"]),
+)
+def test_a_plan_is_held_to_the_solves_own_rule_before_the_rig_opens(
+    tmp_path_factory, capsys, count, distinct, scale, joints
+):
     """A plan of ``distinct`` poses, repeated up to ``count``, spread ``scale`` times the generated plan's: refused
     exactly when its views, detected perfectly, would be refused by the solve (one rule, PoseSpread), and then
     before the rig opens — too few poses, too few distinct orientations, rotations about one axis or too small."""
@@ -216,12 +232,16 @@ def test_a_generated_plan_that_cannot_pass_is_refused_at_the_start_before_the_fi
     clock = FakeClock()
     start = np.append(START, 1.0)
     robot = IdealRobot(piper_description(1), start, clock)
-    tour = CalibrationTour(lambda joints: np.repeat(joints[None], 12, axis=0), None, clock, where="--auto 12",
-                           events=lambda line: None)
+    tour = CalibrationTour(
+        lambda joints: np.repeat(joints[None], 12, axis=0), None, clock, where="--auto 12", events=lambda line: None
+    )
     with Rig(None, robot, np.eye(4), SafetyConfig(), clock=clock) as rig:
         runner = Runner(tour, rig, None, LoopSettings(control_rate_hz=10))
-        with pytest.raises(ConfigError, match=r"--auto 12: a calibration plan that cannot pass: the 12 poses turn "
-                                              r"the gripper to 1 distinct orientation"):
+        with pytest.raises(
+            ConfigError,
+            match=r"--auto 12: a calibration plan that cannot pass: the 12 poses turn "
+            r"the gripper to 1 distinct orientation",
+        ):
             runner.run()
         runner.close()
     assert np.array_equal(robot.position, start)  # at most the final hold, where it stood
@@ -245,8 +265,18 @@ def output_cases(tmp_path: Path) -> dict[str, tuple[list, str]]:
     }
 
 
-@pytest.mark.parametrize("case", ["--json is --out", "--out is the poses", "a name too long", "a folder too long",
-                                  "under a file", "a folder", "an existing --json"])
+@pytest.mark.parametrize(
+    "case",
+    [
+        "--json is --out",
+        "--out is the poses",
+        "a name too long",
+        "a folder too long",
+        "under a file",
+        "a folder",
+        "an existing --json",
+    ],
+)
 def test_an_output_that_cannot_be_written_is_refused_before_the_rig_opens(tmp_path, capsys, case):
     argv, words = output_cases(tmp_path)[case]
     before = sorted(p.name for p in tmp_path.iterdir())
@@ -255,26 +285,45 @@ def test_an_output_that_cannot_be_written_is_refused_before_the_rig_opens(tmp_pa
     assert sorted(p.name for p in tmp_path.iterdir()) == before
 
 
-@pytest.mark.parametrize("argv, words", [
-    (["--serial", "123"], "--serial 123: the twin has no RealSense"),
-    (["--interface", "socketcan"], "--interface socketcan: the twin has no"),
-    (["--camera", "d435"], "dssp-sim calibrate runs the twin"),
-    (["--control-rate", "0"], "--control-rate must be in"),
-    (["--control-rate", "100"], "above the arm's"),
-])
+@pytest.mark.parametrize(
+    "argv, words",
+    [
+        (["--serial", "123"], "--serial 123: the twin has no RealSense"),
+        (["--interface", "socketcan"], "--interface socketcan: the twin has no"),
+        (["--camera", "d435"], "dssp-sim calibrate runs the twin"),
+        (["--control-rate", "0"], "--control-rate must be in"),
+        (["--control-rate", "100"], "above the arm's"),
+    ],
+)
 def test_the_twins_flags_are_checked_before_it_opens(tmp_path, capsys, argv, words):
     line = refused(capsys, "--mode", "eye-to-hand", "--auto", 12, "--out", tmp_path / "calib.json", *argv)
     assert words in line, line
 
 
-@pytest.mark.parametrize("argv, words", [
-    (["--interface", "bogus"], "'bogus' is not a python-can interface"),
-    (["--can", "can0,can1"], "calibration moves one arm"),
-    (["--can", "sim"], "drives a real arm"),
-])
+@pytest.mark.parametrize(
+    "argv, words",
+    [
+        (["--interface", "bogus"], "'bogus' is not a python-can interface"),
+        (["--can", "can0,can1"], "calibration moves one arm"),
+        (["--can", "sim"], "drives a real arm"),
+    ],
+)
 def test_the_robots_flags_are_checked_before_anything_opens(tmp_path, capsys, argv, words):
-    code, out, err = run(capsys, "--camera", "d435", "--can", "can0", "--mode", "eye-to-hand", "--auto", 12, "--out",
-                         tmp_path / "calib.json", *argv, sim=False)
+    code, out, err = run(
+        capsys,
+        "--camera",
+        "d435",
+        "--can",
+        "can0",
+        "--mode",
+        "eye-to-hand",
+        "--auto",
+        12,
+        "--out",
+        tmp_path / "calib.json",
+        *argv,
+        sim=False,
+    )
     assert code == 2 and words in one_error_line(err), err
     assert "board 7 x 5" not in out  # refused before the rig was opened and announced
 
@@ -307,8 +356,18 @@ def test_an_output_that_fails_after_the_tour_is_kept_and_printed(tmp_path, capsy
 
     monkeypatch.setattr(files, "atomic_write_text", full_disk)
     rigs = FolderTakenRigs(folder)
-    code, out, err = run(capsys, "--mode", "eye-to-hand", "--auto", MIN_POSES, "--out", folder / "calib.json",
-                         "--json", records / "record.json", sim=rigs)
+    code, out, err = run(
+        capsys,
+        "--mode",
+        "eye-to-hand",
+        "--auto",
+        MIN_POSES,
+        "--out",
+        folder / "calib.json",
+        "--json",
+        records / "record.json",
+        sim=rigs,
+    )
     assert code == 2, err
     line = one_error_line(err)
     assert "is a file, not a folder" in line and "No space left on device" in line, line
@@ -328,7 +387,12 @@ def test_when_the_temporary_folder_fails_too_the_line_says_what_is_left(tmp_path
 
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "missing"))
     (tmp_path / "a-file").write_text("x")
-    line = _write(tmp_path / "a-file" / "calib.json", "--out", False, lambda path: files.atomic_write_text(path, "{}"),
-                  "camera_to_base")
+    line = _write(
+        tmp_path / "a-file" / "calib.json",
+        "--out",
+        False,
+        lambda path: files.atomic_write_text(path, "{}"),
+        "camera_to_base",
+    )
     assert "is a file, not a folder" in line and "could not be kept in the temporary folder either" in line, line
     assert "\n" not in line and not (tmp_path / "missing").exists()

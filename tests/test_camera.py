@@ -7,11 +7,11 @@ import time
 
 import numpy as np
 import pytest
+from waiting import wait_for
 
-from dssp_core.errors import ConfigError
-
-from hardware.camera import open_camera, spec_forms
+from dssp_core.errors import CameraError, ConfigError
 from dssp_data.pointcloud.depth_frame import Intrinsics
+from hardware.camera import open_camera, spec_forms
 from hardware.camera.profiles import CameraProfile, load_profile, parse_version, profile_names
 from hardware.camera.realsense import (
     RealSenseCamera,
@@ -19,10 +19,8 @@ from hardware.camera.realsense import (
     choose_device,
     sdk_version,
 )
-from hardware.camera.tabletop import Box, SimCamera
 from hardware.camera.software import SoftwareDepthCamera, record_depth
-from waiting import wait_for
-from dssp_core.errors import CameraError
+from hardware.camera.tabletop import Box, SimCamera
 
 INTR = Intrinsics(width=640, height=480, fx=457.1, fy=455.9, ppx=318.7, ppy=243.2)
 UNIT = 0.00025
@@ -42,7 +40,8 @@ def _depths(n: int, seed: int = 0, shape=(480, 640)) -> list[np.ndarray]:
 def _same_intrinsics(a: Intrinsics, b: Intrinsics) -> bool:
     """Equal up to float32 storage (the SDK keeps intrinsics as float32)."""
     return (a.width, a.height) == (b.width, b.height) and np.allclose(
-        [a.fx, a.fy, a.ppx, a.ppy], [b.fx, b.fy, b.ppx, b.ppy], rtol=1e-6, atol=0)
+        [a.fx, a.fy, a.ppx, a.ppy], [b.fx, b.fy, b.ppx, b.ppy], rtol=1e-6, atol=0
+    )
 
 
 def _one_line_error(fn, *args, **kw) -> str:
@@ -172,8 +171,9 @@ def test_recording_errors_are_one_line(tmp_path):
     assert ".bag or .db3" in _one_line_error(RealSenseCamera, file=tmp_path / "x.txt")
     msg = _one_line_error(record_depth, tmp_path / "x.bag", _depths(1), INTR, UNIT)
     assert str(tmp_path / "x.bag") in msg and ".db3" in msg  # pyrealsense2 2.59 writes rosbag2 only
-    depth_only = record_depth(tmp_path / "d.db3", _depths(2, shape=(60, 80)),
-                              Intrinsics(80, 60, 70.0, 70.0, 40.0, 30.0), UNIT, pace=False)
+    depth_only = record_depth(
+        tmp_path / "d.db3", _depths(2, shape=(60, 80)), Intrinsics(80, 60, 70.0, 70.0, 40.0, 30.0), UNIT, pace=False
+    )
     assert "no colour stream" in _one_line_error(RealSenseCamera(file=depth_only, color=True).start)
     _one_line_error(record_depth, tmp_path / "empty.db3", [], INTR, UNIT, pace=False)
     assert not (tmp_path / "empty.db3").exists()
@@ -292,8 +292,9 @@ def test_open_camera_specs(tmp_path):
     cam = open_camera(" D435 ", serial="123", color=True)
     assert isinstance(cam, RealSenseCamera) and cam.profile.name == "d435" and cam.serial == "123" and cam.color
     assert open_camera("d405").profile.depth_unit == 0.0001
-    rec = record_depth(tmp_path / "r.db3", _depths(1, shape=(60, 80)),
-                       Intrinsics(80, 60, 70.0, 70.0, 40.0, 30.0), UNIT, pace=False)
+    rec = record_depth(
+        tmp_path / "r.db3", _depths(1, shape=(60, 80)), Intrinsics(80, 60, 70.0, 70.0, 40.0, 30.0), UNIT, pace=False
+    )
     cam = open_camera(f"file:{rec}", repeat_playback=True)
     assert cam.file == rec and cam.repeat_playback
     sim = open_camera("tabletop", seed=5)

@@ -7,23 +7,31 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import SMALL
 from safetensors.torch import load_file
 
+from dssp_core.errors import CheckpointError, DSSPError
 from dssp_train.cli.train import main as train_main
 from dssp_train.config import apply_overrides, load_preset
 from dssp_train.data.synthetic import write_tap_count_dataset
-from dssp_core.errors import CheckpointError, DSSPError
 from dssp_train.training import checkpoint as ckpt
 from dssp_train.training.checkpoint import load_policy
 from dssp_train.training.train_log import read_log
 from dssp_train.training.trainer import Trainer
 
-from conftest import SMALL
-
 K = 3  # the interrupted run stops after K steps; the full run has 2 K
 # conftest's SMALL model and batch, checkpointing every K steps
-OVERRIDES = [*[o for o in SMALL if o.startswith("model.") or o.startswith("train.batch_size") or o.startswith("train.val_windows")],
-             "train.warmup_steps=2", "train.log_every=1", f"train.val_every={K}", f"train.save_every={K}"]
+OVERRIDES = [
+    *[
+        o
+        for o in SMALL
+        if o.startswith("model.") or o.startswith("train.batch_size") or o.startswith("train.val_windows")
+    ],
+    "train.warmup_steps=2",
+    "train.log_every=1",
+    f"train.val_every={K}",
+    f"train.save_every={K}",
+]
 CHECKPOINT_FILES = ("model.safetensors", "ema.safetensors", "optimizer.safetensors", "rng.safetensors")
 ALLOWED_SUFFIXES = {".json", ".jsonl", ".png", ".safetensors"}
 
@@ -133,8 +141,9 @@ def test_resume_of_a_finished_run_changes_nothing(runs, tmp_path, capsys):
     assert train_main(resume_args(runs["data"], run)) == 0
     captured = capsys.readouterr()
     assert captured.out == ""  # no summary: nothing was trained
-    assert captured.err.strip() == (f"{run} has completed its {2 * K} steps: nothing to train; continue it with "
-                                    f"--resume --steps N (N > {2 * K})")
+    assert captured.err.strip() == (
+        f"{run} has completed its {2 * K} steps: nothing to train; continue it with --resume --steps N (N > {2 * K})"
+    )
     assert snapshot(run) == before
     assert_same_final_state(run, runs["straight"])
     assert [r["step"] for r in read_log(run / "log.jsonl") if r["kind"] == "train"] == list(range(1, 2 * K + 1))
@@ -198,7 +207,9 @@ def strip_config_record(run: Path) -> None:
         with safe_open(str(path), "pt") as f:
             meta = dict(f.metadata())
         assert {"config", "config_sha256"} <= set(meta), path
-        save_file(load_file(str(path)), str(path), metadata={k: v for k, v in meta.items() if not k.startswith("config")})
+        save_file(
+            load_file(str(path)), str(path), metadata={k: v for k, v in meta.items() if not k.startswith("config")}
+        )
     state_path = run / "checkpoint" / "trainer_state.json"
     state = json.loads(state_path.read_text())
     del state["config"], state["config_sha256"]
@@ -224,14 +235,16 @@ def test_weights_that_do_not_fit_the_config(runs, tmp_path, capsys, edit, kind):
     recorded still gets the tensors' own explanation."""
     run = copy_run(runs, tmp_path, "edited")  # stopped halfway: --resume has steps to train
     edit_config(run, "model", **edit)
-    (field, value), = edit.items()
+    ((field, value),) = edit.items()
     trained = json.loads((runs["straight"] / "config.json").read_text())["model"][field]
     named = f"model.{field} {value} (trained: {trained})"
 
     with pytest.raises(CheckpointError) as info:
         load_policy(run)
     assert "\n" not in str(info.value) and named in str(info.value)
-    assert f"{run / 'config.json'} differs from the config {run / 'model.safetensors'} was trained with" in str(info.value)
+    assert f"{run / 'config.json'} differs from the config {run / 'model.safetensors'} was trained with" in str(
+        info.value
+    )
     assert train_main(resume_args(runs["data"], run)) == 2
     line = one_error_line(capsys.readouterr())
     assert named in line and str(run / "checkpoint" / "trainer_state.json") in line
@@ -245,7 +258,9 @@ def test_weights_that_do_not_fit_the_config(runs, tmp_path, capsys, edit, kind):
     assert str(run / "model.safetensors") in message
     assert kind in message
     assert "Use the config.json saved with these weights, or retrain" in message
-    named = [n for n in tensor_names | {f"denoiser.layers.2.{s}" for s in ("norm.weight", "mixer.A_log")} if n in message]
+    named = [
+        n for n in tensor_names | {f"denoiser.layers.2.{s}" for s in ("norm.weight", "mixer.A_log")} if n in message
+    ]
     assert named, message
 
     # --resume reports it the same way: one line, exit code 2 (after the warning that the config is not recorded).
@@ -268,12 +283,15 @@ def test_every_weights_file_records_the_config_it_was_trained_with(runs):
     assert state["config_sha256"] == ckpt.config_sha256(text) and state["config"] == json.loads(text)
 
 
-@pytest.mark.parametrize("section,values,named", [
-    ("train", {"lr": 0.5}, "train.lr 0.5 (trained: 0.001)"),
-    ("train", {"seed": 7, "batch_size": 3}, "train.batch_size 3 (trained: 4), train.seed 7 (trained: 0)"),
-    (None, {"control_rate_hz": 30.0}, "control_rate_hz 30.0 (trained: 10.0)"),
-    ("model", {"dynamics_weight": 0.0}, "model.dynamics_weight 0.0 (trained: 0.05)"),
-])
+@pytest.mark.parametrize(
+    "section,values,named",
+    [
+        ("train", {"lr": 0.5}, "train.lr 0.5 (trained: 0.001)"),
+        ("train", {"seed": 7, "batch_size": 3}, "train.batch_size 3 (trained: 4), train.seed 7 (trained: 0)"),
+        (None, {"control_rate_hz": 30.0}, "control_rate_hz 30.0 (trained: 10.0)"),
+        ("model", {"dynamics_weight": 0.0}, "model.dynamics_weight 0.0 (trained: 0.05)"),
+    ],
+)
 def test_resume_refuses_a_config_edited_after_training(runs, tmp_path, capsys, section, values, named):
     """Fields the tensors cannot tell: the checkpoint's recorded config does; nothing in the run changes."""
     from conftest import snapshot
@@ -284,7 +302,9 @@ def test_resume_refuses_a_config_edited_after_training(runs, tmp_path, capsys, s
     assert train_main(resume_args(runs["data"], run)) == 2
     line = one_error_line(capsys.readouterr())
     assert named in line, line
-    assert line.startswith(f"error: {run / 'config.json'} differs from the config {run / 'checkpoint' / 'trainer_state.json'}")
+    assert line.startswith(
+        f"error: {run / 'config.json'} differs from the config {run / 'checkpoint' / 'trainer_state.json'}"
+    )
     assert "put the trained values back in config.json" in line
     assert snapshot(run) == before
 
@@ -305,9 +325,13 @@ def test_a_checkpoint_without_a_recorded_config_resumes_with_a_warning(runs, tmp
     run = copy_run(runs, tmp_path)
     strip_config_record(run)
     assert train_main(resume_args(runs["data"], run)) == 0
-    warnings = [line for line in capsys.readouterr().err.splitlines() if line.startswith("warning: ") and "config" in line]
-    assert warnings == [f"warning: {run / 'checkpoint' / 'trainer_state.json'} does not record the config it was trained "
-                        f"with (saved by an older version): {run / 'config.json'} is taken as it is"]
+    warnings = [
+        line for line in capsys.readouterr().err.splitlines() if line.startswith("warning: ") and "config" in line
+    ]
+    assert warnings == [
+        f"warning: {run / 'checkpoint' / 'trainer_state.json'} does not record the config it was trained "
+        f"with (saved by an older version): {run / 'config.json'} is taken as it is"
+    ]
     assert_same_final_state(run, runs["straight"])  # and its next checkpoint records it
 
 
@@ -328,7 +352,9 @@ def test_export_refuses_a_config_edited_after_training(runs, tmp_path, capsys):
     assert not (tmp_path / "out").exists()
     # The raw weights (--no-ema) record it too.
     assert export_main([str(run), "-o", str(model), "--no-ema", *FAST_EXPORT]) == 2
-    assert f"differs from the config {run / 'checkpoint' / 'model.safetensors'} was trained" in one_error_line(capsys.readouterr())
+    assert f"differs from the config {run / 'checkpoint' / 'model.safetensors'} was trained" in one_error_line(
+        capsys.readouterr()
+    )
 
 
 def test_export_takes_a_run_without_a_recorded_config_and_says_so(runs, tmp_path, capsys):
@@ -342,7 +368,10 @@ def test_export_takes_a_run_without_a_recorded_config_and_says_so(runs, tmp_path
     assert export_main([str(run), "-o", str(tmp_path / "model"), *FAST_EXPORT]) == 0
     captured = capsys.readouterr()
     loaded = [line for line in captured.out.splitlines() if " loaded " in line]
-    assert len(loaded) == 1 and "its config is not recorded (saved by an older version): config.json taken as it is" in loaded[0]
+    assert (
+        len(loaded) == 1
+        and "its config is not recorded (saved by an older version): config.json taken as it is" in loaded[0]
+    )
     assert "error" not in captured.err
 
 
@@ -374,7 +403,9 @@ def test_corrupt_model_safetensors(runs, tmp_path, damage):
     shutil.copytree(runs["straight"], run)
     path = run / "model.safetensors"
     raw = path.read_bytes()
-    path.write_bytes({"garbage": b"this is not a safetensors file", "truncated": raw[: len(raw) // 2], "empty": b""}[damage])
+    path.write_bytes(
+        {"garbage": b"this is not a safetensors file", "truncated": raw[: len(raw) // 2], "empty": b""}[damage]
+    )
     with pytest.raises(CheckpointError, match="not a readable safetensors file") as info:
         load_policy(run)
     assert "\n" not in str(info.value)
@@ -393,9 +424,7 @@ def test_corrupt_checkpoint_file_on_resume(runs, tmp_path, capsys, name):
     run = copy_run(runs, tmp_path)
     (run / "checkpoint" / name).write_bytes(b"\x00garbage")
     with pytest.raises(CheckpointError) as info:
-        Trainer(
-            ckpt.load_config(run), runs["data"], run, device="cpu", resume=True, progress=False
-        )
+        Trainer(ckpt.load_config(run), runs["data"], run, device="cpu", resume=True, progress=False)
     assert name in str(info.value) and "\n" not in str(info.value)
     assert train_main(resume_args(runs["data"], run)) == 2
     assert name in one_error_line(capsys.readouterr())
@@ -415,7 +444,8 @@ def test_resume_without_checkpoint_folder(runs, tmp_path, capsys):
     (run / "model.safetensors").unlink()
     assert train_main(resume_args(runs["data"], run)) == 2
     assert one_error_line(capsys.readouterr()) == (
-        f"error: {run} has no checkpoint yet (stopped before step {K}'s save): start it over with --force")
+        f"error: {run} has no checkpoint yet (stopped before step {K}'s save): start it over with --force"
+    )
 
 
 def test_error_classes_are_user_errors():
@@ -541,14 +571,19 @@ def test_kept_snapshots_are_run_directories_of_their_step(runs, tmp_path):
     straight, resumed = tmp_path / "straight", tmp_path / "resumed"
     assert train_main([*train_args(runs["data"], straight), "--set", f"train.keep_every={K}"]) == 0
     assert sorted(p.name for p in (straight / "snapshots").iterdir()) == [f"step_{K:07d}", f"step_{2 * K:07d}"]
-    assert_same_tensors(straight / "snapshots" / f"step_{2 * K:07d}" / "model.safetensors", straight / "model.safetensors")
+    assert_same_tensors(
+        straight / "snapshots" / f"step_{2 * K:07d}" / "model.safetensors", straight / "model.safetensors"
+    )
     policy, config = load_policy(straight / "snapshots" / f"step_{K:07d}")
     assert config.train.keep_every == K and ckpt.weights_metadata(
-        straight / "snapshots" / f"step_{K:07d}" / "model.safetensors")["step"] == str(K)
+        straight / "snapshots" / f"step_{K:07d}" / "model.safetensors"
+    )["step"] == str(K)
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(Trainer, "train_step", lambda self, _f=Interrupt(K): _f(self))
         assert train_main([*train_args(runs["data"], resumed), "--set", f"train.keep_every={K}"]) == 130
     assert train_main(resume_args(runs["data"], resumed)) == 0
     for step in (K, 2 * K):
         name = f"step_{step:07d}"
-        assert_same_tensors(resumed / "snapshots" / name / "model.safetensors", straight / "snapshots" / name / "model.safetensors")
+        assert_same_tensors(
+            resumed / "snapshots" / name / "model.safetensors", straight / "snapshots" / name / "model.safetensors"
+        )

@@ -55,8 +55,12 @@ def parser_of(main, argv: list[str]) -> argparse.ArgumentParser:
 
 
 def subparsers(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
-    return {name: sub for action in parser._actions if isinstance(action, argparse._SubParsersAction)
-            for name, sub in action.choices.items()}
+    return {
+        name: sub
+        for action in parser._actions
+        if isinstance(action, argparse._SubParsersAction)
+        for name, sub in action.choices.items()
+    }
 
 
 def parsers(command: str) -> list[tuple[list[str], argparse.ArgumentParser]]:
@@ -73,6 +77,7 @@ def parsers(command: str) -> list[tuple[list[str], argparse.ArgumentParser]]:
 
 def required_args(parser: argparse.ArgumentParser) -> list[str]:
     """Values for every required argument of ``parser`` that its types accept (so only the flag added is wrong)."""
+
     def value(action) -> list[str]:
         convert = parser._registry_get("type", action.type, action.type)
         if action.choices:
@@ -93,8 +98,11 @@ def required_args(parser: argparse.ArgumentParser) -> list[str]:
     for action in parser._actions:
         if isinstance(action, argparse._SubParsersAction) or not (action.required or action in chosen):
             continue
-        args += (value(action) if not action.option_strings else [action.option_strings[0], *value(action)]) if action.nargs != 0 \
+        args += (
+            (value(action) if not action.option_strings else [action.option_strings[0], *value(action)])
+            if action.nargs != 0
             else [action.option_strings[0]]
+        )
     return args
 
 
@@ -161,10 +169,22 @@ def test_the_installed_command_says_it_in_one_line(command, tmp_path):
         exe = [path]
     words, parser = next((w, p) for w, p in parsers(command) if not subparsers(p))
     argv = [*words, *required_args(parser), UNKNOWN]
-    done = subprocess.run([*exe, *argv], cwd=tmp_path, capture_output=True, text=True, timeout=120,
-                          env={**os.environ, "OMP_NUM_THREADS": "1"})
-    assert_one_line(command, argv, done.returncode, done.stderr.strip().splitlines(), done.stdout,
-                    f"unrecognized arguments: {UNKNOWN}")
+    done = subprocess.run(
+        [*exe, *argv],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "OMP_NUM_THREADS": "1"},
+    )
+    assert_one_line(
+        command,
+        argv,
+        done.returncode,
+        done.stderr.strip().splitlines(),
+        done.stdout,
+        f"unrecognized arguments: {UNKNOWN}",
+    )
 
 
 def test_every_can_interface_flag_is_checked_when_parsed(tmp_path, capsys, monkeypatch):
@@ -183,5 +203,7 @@ def test_every_can_interface_flag_is_checked_when_parsed(tmp_path, capsys, monke
             refusal = "invalid choice: 'bogus'" if action.choices else "'bogus' is not a python-can interface"
             assert_one_line(command, argv, *outcome(main, argv, capsys), refusal)
             checked.append(f"{command} {' '.join(words)}".strip())
-    assert {"dssp-run", "dssp-record", "dssp-replay", "dssp-calibrate", "dssp-sim record", "dssp-sim calibrate"} <= set(checked)
+    assert {"dssp-run", "dssp-record", "dssp-replay", "dssp-calibrate", "dssp-sim record", "dssp-sim calibrate"} <= set(
+        checked
+    )
     assert list(tmp_path.iterdir()) == []

@@ -19,17 +19,17 @@ import zarr
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
+from dssp_core.errors import DatasetError
+from dssp_data.bounded import blosc_problem as _blosc_problem
 from dssp_data.data_cli import main as data_main
+from dssp_data.dataset_layout import Episode
 from dssp_data.edit import merge, repair, split
 from dssp_data.inspect import inspect_dataset
 from dssp_data.recording import can_log_dir
-from dssp_data.zarr_chunks import EVERY_CHUNK_ATTR
-from dssp_data.dataset_layout import Episode
 from dssp_data.replay_buffer import ReplayBuffer, ReplayBufferReader
 from dssp_data.replay_buffer_writer import ReplayBufferWriter, write_replay_buffer
-from dssp_data.bounded import blosc_problem as _blosc_problem
 from dssp_data.view import render_episode
-from dssp_core.errors import DatasetError
+from dssp_data.zarr_chunks import EVERY_CHUNK_ATTR
 
 FORMATS = (2, 3)
 LENGTHS = (60, 90, 70)
@@ -47,17 +47,24 @@ def make_episodes(lengths=LENGTHS, seed=0):
     episodes, start = [], 0
     for n in lengths:
         action = rng.normal(size=(n, 7)).astype(np.float32)
-        action[max(0, 200 - start):] = 0.0
-        episodes.append(Episode(rng.normal(size=(n, 8, 3)).astype(np.float32), rng.normal(size=(n, 7)).astype(np.float32),
-                                action, {"step_problems": np.zeros(n, np.uint8),
-                                         "timestamp": np.arange(n, dtype=np.float64) / 10.0}))
+        action[max(0, 200 - start) :] = 0.0
+        episodes.append(
+            Episode(
+                rng.normal(size=(n, 8, 3)).astype(np.float32),
+                rng.normal(size=(n, 7)).astype(np.float32),
+                action,
+                {"step_problems": np.zeros(n, np.uint8), "timestamp": np.arange(n, dtype=np.float64) / 10.0},
+            )
+        )
         start += n
     return episodes
 
 
 def write_dataset(path, zarr_format, episodes=None):
     episodes = make_episodes() if episodes is None else episodes
-    infos = [{"index": i, "can_logs": {"can0": f"episode_{i:06d}.can0.blf"}, "problems": []} for i in range(len(episodes))]
+    infos = [
+        {"index": i, "can_logs": {"can0": f"episode_{i:06d}.can0.blf"}, "problems": []} for i in range(len(episodes))
+    ]
     write_replay_buffer(path, episodes, attrs={"control_rate_hz": 10.0, "episode_info": infos}, zarr_format=zarr_format)
     can_log_dir(path).mkdir()
     for i in range(len(episodes)):
@@ -209,8 +216,14 @@ def test_truncated_chunk_is_exit_2_not_a_crash(tmp_path, originals, zarr_format)
     path = copy_dataset(originals[0][zarr_format], tmp_path / "ds.zarr")
     target = chunk_file(path, "data/action", 1)
     target.write_bytes(target.read_bytes()[:-7])
-    result = subprocess.run([sys.executable, "-m", "dssp_data.data_cli", "info", str(path)],
-                            capture_output=True, text=True, timeout=120, check=False, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    result = subprocess.run(
+        [sys.executable, "-m", "dssp_data.data_cli", "info", str(path)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+        env={**os.environ, "OMP_NUM_THREADS": "1"},
+    )
     lines = result.stderr.strip().splitlines()
     assert result.returncode == 2, (result.returncode, result.stderr)
     assert len(lines) == 1 and lines[0].startswith("error: "), result.stderr
@@ -223,8 +236,10 @@ def test_missing_chunk_is_lost_data_and_can_be_left_out(tmp_path, originals):
     (path / "data" / "action" / "2.0").unlink()  # a chunk of zeros: stored, so its absence is lost data
     code, out, err = cli("info", path)
     assert code == 2 and "problems" not in out
-    assert ("data/action chunk 2 (steps 200..219, episode 2) is missing (no data/action/2.0 in the store): "
-            "re-record or re-convert episode 2, or leave it out with dssp-data split") in err
+    assert (
+        "data/action chunk 2 (steps 200..219, episode 2) is missing (no data/action/2.0 in the store): "
+        "re-record or re-convert episode 2, or leave it out with dssp-data split"
+    ) in err
     assert "--drop-episodes 2 (dssp-data repair cannot restore lost data)" in err
     code, _, err = cli("repair", path)
     assert code == 2 and "data/action chunk 2" in err
@@ -250,7 +265,9 @@ def _write_with_zarr_defaults(path, zarr_format, values):
 
 def _default_values():
     episodes = make_episodes()
-    values = {f"data/{k}": np.concatenate([getattr(e, k) for e in episodes]) for k in ("point_cloud", "state", "action")}
+    values = {
+        f"data/{k}": np.concatenate([getattr(e, k) for e in episodes]) for k in ("point_cloud", "state", "action")
+    }
     values["data/step_problems"] = np.zeros(sum(LENGTHS), np.uint8)
     values["meta/episode_ends"] = ENDS.astype(np.int64)
     return values
@@ -342,8 +359,11 @@ def test_an_enlarged_shape_is_a_metadata_mismatch_not_an_interrupted_write(tmp_p
 
 def test_blosc_frame_check():
     rng = np.random.default_rng(0)
-    for values in (rng.normal(size=5000).astype(np.float32), np.zeros(5000, np.float32),
-                   rng.integers(0, 256, 5000).astype(np.uint8)):  # compressible, all zeros, incompressible
+    for values in (
+        rng.normal(size=5000).astype(np.float32),
+        np.zeros(5000, np.float32),
+        rng.integers(0, 256, 5000).astype(np.uint8),
+    ):  # compressible, all zeros, incompressible
         for shuffle in (numcodecs.Blosc.SHUFFLE, numcodecs.Blosc.NOSHUFFLE):
             frame = np.frombuffer(numcodecs.Blosc(cname="zstd", clevel=3, shuffle=shuffle).encode(values), np.uint8)
             assert _blosc_problem(lambda a, b, f=frame: f[a:b], frame.size, values.nbytes) is None
@@ -368,7 +388,9 @@ def test_merge_refuses_can_logs_outside_the_dataset(tmp_path, originals, name):
     assert "\n" not in str(info.value)
     code, _, err = cli("merge", tmp_path / "out.zarr", path, originals[0][2])
     assert code == 2 and err.count("\n") == 1 and "can_logs names" in err
-    code, _, err = cli("split", path, "--train", tmp_path / "t.zarr", "--val", tmp_path / "v.zarr", "--val-ratio", "0.3")
+    code, _, err = cli(
+        "split", path, "--train", tmp_path / "t.zarr", "--val", tmp_path / "v.zarr", "--val-ratio", "0.3"
+    )
     assert code == 2 and "can_logs names" in err
     assert sorted(os.listdir(tmp_path)) == listing  # nothing written
 
@@ -407,18 +429,36 @@ def recode(path, key, **codecs):
     values, chunks, attrs = old[...], old.chunks, old.attrs.asdict()
     parent, name = key.rsplit("/", 1)
     del root[parent][name]
-    new = root[parent].create_array(name, shape=values.shape, dtype=values.dtype, chunks=chunks, attributes=attrs,
-                                    config={"write_empty_chunks": True}, **codecs)
+    new = root[parent].create_array(
+        name,
+        shape=values.shape,
+        dtype=values.dtype,
+        chunks=chunks,
+        attributes=attrs,
+        config={"write_empty_chunks": True},
+        **codecs,
+    )
     new[...] = values
 
 
 ZERO_GIB = np.zeros(1 << 30, np.uint8)  # untouched pages: no memory until read
 BOMBS = {  # (zarr format, codecs of data/state, a small stored chunk that decodes to far more than 2.7 KiB)
     "zstd": (2, {"compressors": numcodecs.Zstd(level=1)}, lambda: numcodecs.Zstd(level=1).encode(ZERO_GIB)),
-    "zstd, zarr 3": (3, {"compressors": zarr.codecs.ZstdCodec(level=1)}, lambda: numcodecs.Zstd(level=1).encode(ZERO_GIB)),
-    "gzip, zarr 3": (3, {"compressors": zarr.codecs.GzipCodec()}, lambda: numcodecs.GZip(9).encode(ZERO_GIB[:32 << 20])),
-    "blosc behind a filter": (2, {"compressors": numcodecs.Blosc(cname="zstd"), "filters": [numcodecs.Delta("<f4")]},
-                              lambda: numcodecs.Blosc(cname="zstd", clevel=9).encode(ZERO_GIB[:32 << 20])),
+    "zstd, zarr 3": (
+        3,
+        {"compressors": zarr.codecs.ZstdCodec(level=1)},
+        lambda: numcodecs.Zstd(level=1).encode(ZERO_GIB),
+    ),
+    "gzip, zarr 3": (
+        3,
+        {"compressors": zarr.codecs.GzipCodec()},
+        lambda: numcodecs.GZip(9).encode(ZERO_GIB[: 32 << 20]),
+    ),
+    "blosc behind a filter": (
+        2,
+        {"compressors": numcodecs.Blosc(cname="zstd"), "filters": [numcodecs.Delta("<f4")]},
+        lambda: numcodecs.Blosc(cname="zstd", clevel=9).encode(ZERO_GIB[: 32 << 20]),
+    ),
 }
 
 
@@ -438,9 +478,12 @@ def bombed(tmp_path, originals, name, c=0, folder="bombed.zarr"):
 def test_a_decompression_bomb_is_one_line_in_every_reader(tmp_path, originals, name):
     path = bombed(tmp_path, originals, name)
     last = bombed(tmp_path, originals, name, c=2, folder="last.zarr")  # the chunk an append reads back
-    readers = ((lambda: ReplayBuffer.load(path), 0), (lambda: ReplayBufferReader(path).episode(0), 0),
-               (lambda: ReplayBufferReader(path).check_chunks(decode=True), 0),
-               (lambda: ReplayBufferWriter(last, extra_keys=EXTRAS), 2))
+    readers = (
+        (lambda: ReplayBuffer.load(path), 0),
+        (lambda: ReplayBufferReader(path).episode(0), 0),
+        (lambda: ReplayBufferReader(path).check_chunks(decode=True), 0),
+        (lambda: ReplayBufferWriter(last, extra_keys=EXTRAS), 2),
+    )
     for read, c in readers:
         with pytest.raises(DatasetError) as info:
             read()
@@ -471,8 +514,13 @@ def test_a_decompression_bomb_takes_no_memory(tmp_path, originals):
     path = bombed(tmp_path, originals, "zstd")
     runs = {}
     for which in (originals[0][2], path):
-        proc = subprocess.run([sys.executable, "-c", PEAK, str(which)], capture_output=True, text=True, timeout=300,
-                              env={**os.environ, "OMP_NUM_THREADS": "1"})
+        proc = subprocess.run(
+            [sys.executable, "-c", PEAK, str(which)],
+            capture_output=True,
+            text=True,
+            timeout=300,
+            env={**os.environ, "OMP_NUM_THREADS": "1"},
+        )
         assert proc.returncode == 0, proc.stderr
         message, peak_mib = proc.stdout.strip().rsplit("\n", 1)
         runs[str(which)] = (message, int(peak_mib))
@@ -491,7 +539,9 @@ def test_reads_beyond_the_read_budget_are_one_line(tmp_path, originals, monkeypa
     np.testing.assert_array_equal(ep.state, originals[1].episode(1).state)
     code, out, err = cli("info", path)  # reads one episode at a time
     assert code == 1 and err == "" and "episodes    3, 220 steps" in out  # 1: the random actions jump
-    monkeypatch.setenv("DSSP_READ_BUDGET", "9000")  # an episode's 8640 bytes of clouds fit, their 9600-byte chunks do not
+    monkeypatch.setenv(
+        "DSSP_READ_BUDGET", "9000"
+    )  # an episode's 8640 bytes of clouds fit, their 9600-byte chunks do not
     with pytest.raises(DatasetError) as info:
         ReplayBufferReader(path).episode(1)
     assert_names(info, "one chunk of data/point_cloud")

@@ -25,8 +25,12 @@ def waiting_thread():
     gate = threading.Event()
     thread = threading.Thread(target=gate.wait, daemon=True)
     thread.start()
-    wait_for(lambda: in_thread_machinery(sys._current_frames().get(thread.ident)), timeout=10,
-             what="the thread blocked in threading's wait", poll=0.001)
+    wait_for(
+        lambda: in_thread_machinery(sys._current_frames().get(thread.ident)),
+        timeout=10,
+        what="the thread blocked in threading's wait",
+        poll=0.001,
+    )
     yield sys._current_frames()[thread.ident]
     gate.set()
     thread.join()

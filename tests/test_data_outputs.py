@@ -18,8 +18,8 @@ from conftest import snapshot
 from waiting import wait_for
 
 from dssp_data.data_cli import main as data_main
-from dssp_data.recording import can_log_dir
 from dssp_data.dataset_layout import Episode
+from dssp_data.recording import can_log_dir
 from dssp_data.replay_buffer import ReplayBuffer
 from dssp_data.replay_buffer_writer import write_replay_buffer
 from dssp_train.data.synthetic import write_tap_count_dataset
@@ -46,15 +46,24 @@ def one_line_error(code, err, *fragments):
 
 def episodes(n, seed=0, steps=3):
     rng = np.random.default_rng(seed)
-    return [Episode(rng.normal(size=(steps, 4, 3)).astype(np.float32), rng.normal(size=(steps, 7)).astype(np.float32),
-                    rng.normal(size=(steps, 7)).astype(np.float32)) for _ in range(n)]
+    return [
+        Episode(
+            rng.normal(size=(steps, 4, 3)).astype(np.float32),
+            rng.normal(size=(steps, 7)).astype(np.float32),
+            rng.normal(size=(steps, 7)).astype(np.float32),
+        )
+        for _ in range(n)
+    ]
 
 
 def recorded(path: Path, n: int = 3, seed: int = 0, **attrs) -> Path:
     """A dataset as dssp-record leaves it: generator dssp-record, CAN logs in ``path.can``."""
     infos = [{"index": i, "can_logs": {"can0": f"episode_{i:06d}.can0.blf"}, "problems": []} for i in range(n)]
-    write_replay_buffer(path, episodes(n, seed), attrs={"generator": "dssp-record", "control_rate_hz": 10.0,
-                                                        "episode_info": infos, **attrs})
+    write_replay_buffer(
+        path,
+        episodes(n, seed),
+        attrs={"generator": "dssp-record", "control_rate_hz": 10.0, "episode_info": infos, **attrs},
+    )
     can_log_dir(path).mkdir()
     for i in range(n):
         (can_log_dir(path) / f"episode_{i:06d}.can0.blf").write_bytes(b"log %d" % i)
@@ -106,7 +115,9 @@ def commands(inputs, out, force):
 FOREIGN = {
     "a recorded dataset and its CAN logs": lambda p: recorded(p, n=5, seed=7),
     "a synthetic dataset": lambda p: write_tap_count_dataset(p, 2, n_points=24),
-    "an older merge output": lambda p: plain(p, merged_from=[{"path": "x.zarr", "episodes": 3}], generator="dssp-record"),
+    "an older merge output": lambda p: plain(
+        p, merged_from=[{"path": "x.zarr", "episodes": 3}], generator="dssp-record"
+    ),
     "a folder with a file": lambda p: (p.mkdir(), (p / "notes.txt").write_text("keep me")),
     "a file": lambda p: p.write_text("not a dataset"),
 }
@@ -155,8 +166,10 @@ def test_own_output_is_replaced_only_with_force_together_with_its_can_logs(tmp_p
     assert ReplayBuffer.load(out).attrs["generator"] == "dssp-data convert"
     assert run(capsys, "merge", out, b, a, "--force")[0] == 0  # and a dataset with CAN logs
     assert sorted(os.listdir(can_log_dir(out))) == [f"episode_{i:06d}.can0.blf" for i in range(3, 6)]
-    assert run(capsys, "split", out, "--train", tmp_path / "t.zarr", "--val", out, "--val-episodes", "0",
-               "--force")[0] == 2  # the input itself is never an output
+    assert (
+        run(capsys, "split", out, "--train", tmp_path / "t.zarr", "--val", out, "--val-episodes", "0", "--force")[0]
+        == 2
+    )  # the input itself is never an output
     train, val = tmp_path / "t.zarr", tmp_path / "v.zarr"
     assert run(capsys, "split", out, "--train", train, "--val", val, "--val-episodes", "0")[0] == 0
     assert run(capsys, "split", out, "--train", train, "--val", val, "--val-episodes", "1", "--force")[0] == 0
@@ -216,10 +229,14 @@ def test_an_output_is_never_an_input_or_inside_one(tmp_path, capsys, inputs):
         (["merge", tmp_path / "m.zarr", a, b, Path(str(a) + "/")], "is given twice"),
         (["merge", tmp_path / "m.zarr", a, b, a.parent / "." / a.name], "is given twice"),
         (["split", a, "--train", a, "--val", tmp_path / "v.zarr", "--val-ratio", "0.5", "--force"], "is also an input"),
-        (["split", a, "--train", a / "meta" / "t.zarr", "--val", tmp_path / "v.zarr", "--val-ratio", "0.5"],
-         "lies inside the input"),
-        (["split", a, "--train", tmp_path / "v.zarr" / "t.zarr", "--val", tmp_path / "v.zarr", "--val-ratio", "0.5"],
-         "lies inside the input"),
+        (
+            ["split", a, "--train", a / "meta" / "t.zarr", "--val", tmp_path / "v.zarr", "--val-ratio", "0.5"],
+            "lies inside the input",
+        ),
+        (
+            ["split", a, "--train", tmp_path / "v.zarr" / "t.zarr", "--val", tmp_path / "v.zarr", "--val-ratio", "0.5"],
+            "lies inside the input",
+        ),
         (["convert", raw, "--out", raw], "is also an input"),
         (["convert", raw, "--out", raw / "data" / "x.zarr"], "lies inside the input"),
         (["convert", raw, "--out", raw.parent], "holds the input"),
@@ -246,8 +263,13 @@ def test_a_negative_seed_is_refused(tmp_path, capsys, inputs):
 
 # ------------------------------------------------------------------ 6. a closed pipe
 def test_info_into_a_closed_pipe_ends_quietly():
-    proc = subprocess.Popen([sys.executable, "-m", "dssp_data.data_cli", "info", str(DP3)], cwd=ROOT, env=ENV,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "dssp_data.data_cli", "info", str(DP3)],
+        cwd=ROOT,
+        env=ENV,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
     proc.stdout.close()  # the reader is gone before anything is written (``| head -0``)
     err = proc.stderr.read().decode()
     assert proc.wait(timeout=120) == 141 and err == "", err
@@ -255,16 +277,25 @@ def test_info_into_a_closed_pipe_ends_quietly():
 
 # ------------------------------------------------------------------ 2. Ctrl-C and kill -9
 def _start(argv, cwd):
-    return subprocess.Popen([sys.executable, "-m", "dssp_data.data_cli", *map(str, argv)], cwd=cwd, env=ENV,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(
+        [sys.executable, "-m", "dssp_data.data_cli", *map(str, argv)],
+        cwd=cwd,
+        env=ENV,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
 
 
 def _wait_for_staging(proc, folder: Path, prefix: str, timeout: float = 60.0, old: frozenset = frozenset()) -> bool:
     """Wait until ``proc`` has started writing (a staging directory not in ``old`` exists); False if it ended first."""
+
     def writing() -> bool:
         return any(n.startswith(prefix) and n not in old for n in os.listdir(folder))
 
-    wait_for(lambda: writing() or proc.poll() is not None, timeout=timeout, what=f"{prefix}* or the command's end", poll=0.01)
+    wait_for(
+        lambda: writing() or proc.poll() is not None, timeout=timeout, what=f"{prefix}* or the command's end", poll=0.01
+    )
     return writing()
 
 
@@ -280,11 +311,16 @@ def _chunks_staged(folder: Path, prefix: str, old: frozenset = frozenset()) -> i
     return 0
 
 
-def _wait_for_chunks(proc, folder: Path, prefix: str, chunks: int, timeout: float = 60.0,
-                     old: frozenset = frozenset()) -> None:
+def _wait_for_chunks(
+    proc, folder: Path, prefix: str, chunks: int, timeout: float = 60.0, old: frozenset = frozenset()
+) -> None:
     """Wait until ``proc`` has written ``chunks`` point-cloud chunks into its staging directory, or has ended."""
-    wait_for(lambda: _chunks_staged(folder, prefix, old) >= chunks or proc.poll() is not None, timeout=timeout,
-             what=f"{chunks} point-cloud chunks in {prefix}* or the command's end", poll=0.005)
+    wait_for(
+        lambda: _chunks_staged(folder, prefix, old) >= chunks or proc.poll() is not None,
+        timeout=timeout,
+        what=f"{chunks} point-cloud chunks in {prefix}* or the command's end",
+        poll=0.005,
+    )
 
 
 @pytest.fixture(scope="module")

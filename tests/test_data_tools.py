@@ -10,11 +10,11 @@ import pytest
 import zarr
 
 from dssp_data.data_cli import main as data_main
-from hardware.cli.replay import main as replay_main
-from dssp_data.recording import can_log_dir, episode_infos
 from dssp_data.dataset_layout import Episode
+from dssp_data.recording import can_log_dir, episode_infos
 from dssp_data.replay_buffer import ReplayBuffer
 from dssp_data.replay_buffer_writer import write_replay_buffer
+from hardware.cli.replay import main as replay_main
 
 FIXTURES = Path(__file__).parent / "fixtures"
 DP3 = FIXTURES / "dp3_zarr2_tiny.zarr"
@@ -75,10 +75,18 @@ def test_info_on_a_recorded_dataset(recorded, capsys):
     assert code == 0
     assert "episodes    2," in out and "rate        10 Hz (control_rate_hz); measured 10.000 Hz" in out
     assert "action      leader_command: the leader arm's joint/gripper target" in out
-    for key in ("data/timestamp", "data/camera_timestamp", "data/state_timestamp", "data/action_timestamp",
-                "data/camera_frame", "data/step_problems", "data/depth", "(120, 256, 3)"):
+    for key in (
+        "data/timestamp",
+        "data/camera_timestamp",
+        "data/state_timestamp",
+        "data/action_timestamp",
+        "data/camera_frame",
+        "data/step_problems",
+        "data/depth",
+        "(120, 256, 3)",
+    ):
         assert key in out
-    assert "camera_to_base: [[" in out and "camera_intrinsics: {\"width\": 160" in out
+    assert "camera_to_base: [[" in out and 'camera_intrinsics: {"width": 160' in out
     assert "recording_sessions: 1 session(s)" in out
     assert "recorded episodes" in out and "clean" in out and "auto: task done  seed 0" in out
     assert "problems    none found" in out
@@ -142,8 +150,9 @@ def test_merge_and_split_round_trip(recorded, tmp_path, capsys):
     assert [i["index"] for i in infos] == list(range(2 * n))
     assert [i["session"] for i in infos] == [0] * n + [1] * n and len(buffer.attrs["recording_sessions"]) == 2
     assert all((can_log_dir(merged) / f"episode_{i:06d}.sim.blf").is_file() for i in range(2 * n))
-    assert buffer.attrs["merged_from"] == [{"path": str(p), "episodes": n, "generator": "dssp-record"}
-                                           for p in (recorded, again)]
+    assert buffer.attrs["merged_from"] == [
+        {"path": str(p), "episodes": n, "generator": "dssp-record"} for p in (recorded, again)
+    ]
     assert buffer.attrs["generator"] == "dssp-data merge"
 
     train, val = tmp_path / "train.zarr", tmp_path / "val.zarr"
@@ -158,8 +167,19 @@ def test_merge_and_split_round_trip(recorded, tmp_path, capsys):
     assert [i["sim"]["seed"] for i in v.attrs["episode_info"]] == [1, 0]
     assert (can_log_dir(val) / "episode_000001.sim.blf").is_file()
 
-    code, out, _ = run(capsys, "split", merged, "--train", tmp_path / "t2.zarr", "--val", tmp_path / "v2.zarr",
-                       "--val-ratio", "0.25", "--seed", "3")
+    code, out, _ = run(
+        capsys,
+        "split",
+        merged,
+        "--train",
+        tmp_path / "t2.zarr",
+        "--val",
+        tmp_path / "v2.zarr",
+        "--val-ratio",
+        "0.25",
+        "--seed",
+        "3",
+    )
     assert code == 0
     assert ReplayBuffer.load(tmp_path / "v2.zarr").n_episodes == 1
     assert ReplayBuffer.load(tmp_path / "t2.zarr").n_episodes == 2 * n - 1
@@ -167,8 +187,14 @@ def test_merge_and_split_round_trip(recorded, tmp_path, capsys):
 
 def test_merge_keeps_only_shared_extras(tmp_path, capsys):
     rng = np.random.default_rng(0)
-    episodes = [Episode(rng.normal(size=(t, 8, 6)).astype(np.float32), rng.normal(size=(t, 14)).astype(np.float32),
-                        rng.normal(size=(t, 14)).astype(np.float32)) for t in (2, 5)]
+    episodes = [
+        Episode(
+            rng.normal(size=(t, 8, 6)).astype(np.float32),
+            rng.normal(size=(t, 14)).astype(np.float32),
+            rng.normal(size=(t, 14)).astype(np.float32),
+        )
+        for t in (2, 5)
+    ]
     plain = tmp_path / "plain.zarr"
     write_replay_buffer(plain, episodes)
     code, out, err = run(capsys, "merge", tmp_path / "m.zarr", DP3, plain)
@@ -183,6 +209,7 @@ def test_merge_keeps_only_shared_extras(tmp_path, capsys):
 def write_robotwin_episode(path, vector, cloud):
     """An episode in RoboTwin's raw layout, as its collection writes it (joint_action/*, pointcloud)."""
     import h5py
+
     path.parent.mkdir(parents=True, exist_ok=True)
     with h5py.File(path, "w") as f:
         f["joint_action/left_arm"] = vector[:, 0:6]
@@ -231,6 +258,7 @@ def test_convert_robotwin_hdf5(tmp_path, capsys):
 
 def test_convert_rejects_episodes_without_clouds(tmp_path, capsys):
     import h5py
+
     task = tmp_path / "task"
     path = task / "data" / "episode0.hdf5"
     path.parent.mkdir(parents=True)
@@ -264,25 +292,33 @@ def test_replay_dry_run_and_on_the_simulated_arm(recorded, capsys):
     assert code == 0 and "dry run without an arm" in out and "0 clips, 0 holds" in out
     code, out, _ = run(capsys, "replay", recorded, "--episode", "0", "--can", "sim")
     assert code == 0 and "dry run on sim (nothing sent)" in out and "note: the first action is" in out
-    code, out, _ = run(capsys, "replay", recorded, "--episode", "1", "--can", "sim", "--send", "--control-rate", "60")  # 0.05 rad per tick at 60 Hz: 3 rad/s, within the arm's speed
+    code, out, _ = run(
+        capsys, "replay", recorded, "--episode", "1", "--can", "sim", "--send", "--control-rate", "60"
+    )  # 0.05 rad per tick at 60 Hz: 3 rad/s, within the arm's speed
     steps = ReplayBuffer.load(recorded).episode_lengths()[1]
     assert code == 0 and f"sent {steps} commands to sim" in out and "ended by: done" in out
 
 
 # ------------------------------------------------------------------------------------------------ bad input
-@pytest.mark.parametrize("argv, fragment", [
-    (["info", "nowhere.zarr"], "does not exist"),
-    (["info", FIXTURES / "dp3_zarr2_tiny.json"], "is a file, not a zarr dataset"),
-    (["view", DP3, "--episode", "7"], "episode 7 is out of range"),
-    (["view", DP3, "--episode", "0", "--steps", "0"], "--steps must be at least 1"),
-    (["merge", "out.zarr", DP3], "merge needs at least two input datasets"),
-    (["split", DP3, "--train", "a.zarr", "--val", "a.zarr", "--val-ratio", "0.5"], "must be different paths"),
-    (["split", DP3, "--train", "a.zarr", "--val", "b.zarr", "--val-episodes", "0,1"], "at least one episode on each side"),
-    (["split", DP3, "--train", "a.zarr", "--val", "b.zarr", "--val-episodes", "x"], "comma-separated integers"),
-    (["replay", DP3, "--episode", "0"], "does not record its control rate"),
-    (["replay", DP3, "--episode", "0", "--control-rate", "100"], "above the arm's 3.14159 rad/s"),
-    (["replay", DP3, "--episode", "0", "--control-rate", "0"], "--control-rate must be in [0.1, 1000] Hz"),
-])
+@pytest.mark.parametrize(
+    "argv, fragment",
+    [
+        (["info", "nowhere.zarr"], "does not exist"),
+        (["info", FIXTURES / "dp3_zarr2_tiny.json"], "is a file, not a zarr dataset"),
+        (["view", DP3, "--episode", "7"], "episode 7 is out of range"),
+        (["view", DP3, "--episode", "0", "--steps", "0"], "--steps must be at least 1"),
+        (["merge", "out.zarr", DP3], "merge needs at least two input datasets"),
+        (["split", DP3, "--train", "a.zarr", "--val", "a.zarr", "--val-ratio", "0.5"], "must be different paths"),
+        (
+            ["split", DP3, "--train", "a.zarr", "--val", "b.zarr", "--val-episodes", "0,1"],
+            "at least one episode on each side",
+        ),
+        (["split", DP3, "--train", "a.zarr", "--val", "b.zarr", "--val-episodes", "x"], "comma-separated integers"),
+        (["replay", DP3, "--episode", "0"], "does not record its control rate"),
+        (["replay", DP3, "--episode", "0", "--control-rate", "100"], "above the arm's 3.14159 rad/s"),
+        (["replay", DP3, "--episode", "0", "--control-rate", "0"], "--control-rate must be in [0.1, 1000] Hz"),
+    ],
+)
 def test_bad_input_is_one_line(tmp_path, capsys, monkeypatch, argv, fragment):
     monkeypatch.chdir(tmp_path)
     one_line_error(*run(capsys, *argv)[::2], fragment)
@@ -290,44 +326,81 @@ def test_bad_input_is_one_line(tmp_path, capsys, monkeypatch, argv, fragment):
 
 def test_split_can_leave_out_marked_episodes(tmp_path, capsys):
     rng = np.random.default_rng(1)
-    episodes = [Episode(rng.normal(size=(3, 4, 3)).astype(np.float32), rng.normal(size=(3, 7)).astype(np.float32),
-                        rng.normal(size=(3, 7)).astype(np.float32)) for _ in range(4)]
+    episodes = [
+        Episode(
+            rng.normal(size=(3, 4, 3)).astype(np.float32),
+            rng.normal(size=(3, 7)).astype(np.float32),
+            rng.normal(size=(3, 7)).astype(np.float32),
+        )
+        for _ in range(4)
+    ]
     infos = [{"problems": [{"kind": "camera_stale", "steps": 2, "first_step": 0}]}, None, {"problems": []}, {}]
     path = tmp_path / "m.zarr"
     write_replay_buffer(path, episodes, attrs={"episode_info": infos})
-    code, out, _ = run(capsys, "split", path, "--train", tmp_path / "t.zarr", "--val", tmp_path / "v.zarr",
-                       "--val-ratio", "0.3", "--drop-marked")
+    code, out, _ = run(
+        capsys,
+        "split",
+        path,
+        "--train",
+        tmp_path / "t.zarr",
+        "--val",
+        tmp_path / "v.zarr",
+        "--val-ratio",
+        "0.3",
+        "--drop-marked",
+    )
     assert code == 0 and "left out episodes [0] (recorded with problems)" in out
     t, v = ReplayBuffer.load(tmp_path / "t.zarr"), ReplayBuffer.load(tmp_path / "v.zarr")
     assert (t.n_episodes, v.n_episodes) == (2, 1)
     assert sorted(t.attrs["split_from"]["episodes"] + v.attrs["split_from"]["episodes"]) == [1, 2, 3]
-    code, _, err = run(capsys, "split", path, "--train", tmp_path / "t2.zarr", "--val", tmp_path / "v2.zarr",
-                       "--val-episodes", "0", "--drop-marked")
+    code, _, err = run(
+        capsys,
+        "split",
+        path,
+        "--train",
+        tmp_path / "t2.zarr",
+        "--val",
+        tmp_path / "v2.zarr",
+        "--val-episodes",
+        "0",
+        "--drop-marked",
+    )
     one_line_error(code, err, "validation episode(s) [0] were recorded with problems")
 
 
 # ------------------------------------------------------------------------------------------------ attributes
-@pytest.mark.parametrize("value, shown", [(-10, "-10"), (float("nan"), "NaN"), (0, "0"), ("10", "'10'"),
-                                          ("abc", "'abc'"), (True, "true")])
+@pytest.mark.parametrize(
+    "value, shown", [(-10, "-10"), (float("nan"), "NaN"), (0, "0"), ("10", "'10'"), ("abc", "'abc'"), (True, "true")]
+)
 def test_info_lists_a_control_rate_that_is_not_a_rate(tmp_path, capsys, value, shown):
     path = tmp_path / "d.zarr"
-    write_replay_buffer(path, [Episode(np.zeros((3, 4, 3), np.float32), np.ones((3, 2), np.float32),
-                                       np.ones((3, 2), np.float32))], attrs={"control_rate_hz": value})
+    write_replay_buffer(
+        path,
+        [Episode(np.zeros((3, 4, 3), np.float32), np.ones((3, 2), np.float32), np.ones((3, 2), np.float32))],
+        attrs={"control_rate_hz": value},
+    )
     code, out, _ = run(capsys, "info", path)
     assert code == 1 and "rate        control_rate_hz is not a rate (see problems)" in out, out
     assert f"  - attribute control_rate_hz is {shown}, not a rate in Hz (a number > 0); fix it with" in out, out
     assert "the control rate is not recorded" not in out and "problems    none found" not in out
     report = json.loads(run(capsys, "info", path, "--json")[1])
     assert report["control_rate_hz"] is None
-    one_line_error(*run(capsys, "view", path, "--episode", "0", "--out", tmp_path / "v")[::2],
-                   "attribute control_rate_hz is")
+    one_line_error(
+        *run(capsys, "view", path, "--episode", "0", "--out", tmp_path / "v")[::2], "attribute control_rate_hz is"
+    )
     assert not (tmp_path / "v").exists()
 
 
 def test_episode_info_of_the_wrong_type_is_a_problem_not_missing_metadata(tmp_path, capsys):
     rng = np.random.default_rng(3)
-    eps = [Episode(rng.normal(size=(3, 4, 3)).astype(np.float32), rng.normal(size=(3, 2)).astype(np.float32),
-                   rng.normal(size=(3, 2)).astype(np.float32)) for _ in range(2)]
+    eps = [
+        Episode(
+            rng.normal(size=(3, 4, 3)).astype(np.float32),
+            rng.normal(size=(3, 2)).astype(np.float32),
+            rng.normal(size=(3, 2)).astype(np.float32),
+        )
+        for _ in range(2)
+    ]
     path = tmp_path / "d.zarr"
     write_replay_buffer(path, eps, attrs={"episode_info": "hello", "control_rate_hz": 10.0})
     code, out, _ = run(capsys, "info", path)
@@ -336,9 +409,13 @@ def test_episode_info_of_the_wrong_type_is_a_problem_not_missing_metadata(tmp_pa
     write_replay_buffer(other, eps, attrs={"control_rate_hz": 10.0, "camera_to_base": [[1, 2]]})
     write_replay_buffer(good, eps, attrs={"control_rate_hz": 10.0})
     listing = sorted(p.name for p in tmp_path.iterdir())
-    for argv, fragment in ((["merge", tmp_path / "m.zarr", good, path], "attribute episode_info is 'hello'"),
-                           (["merge", tmp_path / "m.zarr", good, other], "attribute camera_to_base is [[1, 2]]"),
-                           (["split", path, "--train", tmp_path / "t.zarr", "--val", tmp_path / "v.zarr",
-                             "--val-ratio", "0.5"], "attribute episode_info is 'hello'")):
+    for argv, fragment in (
+        (["merge", tmp_path / "m.zarr", good, path], "attribute episode_info is 'hello'"),
+        (["merge", tmp_path / "m.zarr", good, other], "attribute camera_to_base is [[1, 2]]"),
+        (
+            ["split", path, "--train", tmp_path / "t.zarr", "--val", tmp_path / "v.zarr", "--val-ratio", "0.5"],
+            "attribute episode_info is 'hello'",
+        ),
+    ):
         one_line_error(*run(capsys, *argv)[::2], fragment)
     assert sorted(p.name for p in tmp_path.iterdir()) == listing

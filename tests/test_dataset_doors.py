@@ -26,11 +26,12 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
+from conftest import one_error_line, snapshot
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
+from test_rosbag2 import CAMERA, CLOUD, write_bag
 
 import dssp_data
-from conftest import one_error_line, snapshot
 from dssp_core.errors import ConfigError, DatasetError
 from dssp_core.staging import writer_lock_path
 from dssp_data.data_cli import main as data_main
@@ -46,7 +47,6 @@ from dssp_data.replay_buffer_writer import (
     dataset_lock,
     write_replay_buffer,
 )
-from test_rosbag2 import CAMERA, CLOUD, write_bag
 
 ROOT = Path(__file__).resolve().parents[1]
 HYPOTHESIS = {"deadline": None, "derandomize": True, "database": None, "max_examples": 60}
@@ -55,8 +55,14 @@ HYPOTHESIS = {"deadline": None, "derandomize": True, "database": None, "max_exam
 # ------------------------------------------------------------------------------------------- inputs
 def episodes(n: int, seed: int = 0, steps: int = 3, points: int = 4) -> list[Episode]:
     rng = np.random.default_rng(seed)
-    return [Episode(rng.normal(size=(steps, points, 3)).astype(np.float32), rng.normal(size=(steps, 7)).astype(np.float32),
-                    rng.normal(size=(steps, 7)).astype(np.float32)) for _ in range(n)]
+    return [
+        Episode(
+            rng.normal(size=(steps, points, 3)).astype(np.float32),
+            rng.normal(size=(steps, 7)).astype(np.float32),
+            rng.normal(size=(steps, 7)).astype(np.float32),
+        )
+        for _ in range(n)
+    ]
 
 
 def zarr_dataset(path: Path, n: int = 2, seed: int = 0) -> Path:
@@ -87,12 +93,19 @@ BAG_FLAGS = ["--depth-unit", "0.00025"]
 def lerobot_dataset(root: Path, tmp: Path, frames: int = 4) -> Path:
     """A LeRobot v3 dataset (dssp-data export of a dataset with depth and its camera) at ``root``."""
     depth = np.stack([CAMERA.render(k / 10)[0] for k in range(frames)])
-    ep = Episode(np.zeros((frames, 8, 3), np.float32), np.zeros((frames, 7), np.float32),
-                 np.zeros((frames, 7), np.float32), extras={"depth": depth})
+    ep = Episode(
+        np.zeros((frames, 8, 3), np.float32),
+        np.zeros((frames, 7), np.float32),
+        np.zeros((frames, 7), np.float32),
+        extras={"depth": depth},
+    )
     intr = CAMERA.intrinsics
     source = tmp / f"{root.name}_source.zarr"
-    write_replay_buffer(source, [ep], attrs={"control_rate_hz": 10.0, "camera_depth_unit": CAMERA.depth_unit,
-                                             "camera_intrinsics": intr.to_dict()})
+    write_replay_buffer(
+        source,
+        [ep],
+        attrs={"control_rate_hz": 10.0, "camera_depth_unit": CAMERA.depth_unit, "camera_intrinsics": intr.to_dict()},
+    )
     with redirect_stdout(io.StringIO()):
         assert data_main(["export", str(source), "--to", "lerobot", "--out", str(root)]) == 0
     shutil.rmtree(source)
@@ -112,7 +125,9 @@ def rewrite_column(path: Path, name: str, values: np.ndarray) -> None:
     table = pq.ParquetFile(path).read()
     rows, n = values.shape
     flat = pa.Array.from_buffers(pa.from_numpy_dtype(values.dtype), values.size, [None, pa.py_buffer(values.ravel())])
-    offsets = pa.Array.from_buffers(pa.int32(), rows + 1, [None, pa.py_buffer(np.arange(0, rows * n + 1, n, dtype=np.int32))])
+    offsets = pa.Array.from_buffers(
+        pa.int32(), rows + 1, [None, pa.py_buffer(np.arange(0, rows * n + 1, n, dtype=np.int32))]
+    )
     column = pa.ListArray.from_arrays(offsets, flat)
     pq.write_table(table.set_column(table.schema.get_field_index(name), name, column), path)
 
@@ -145,6 +160,7 @@ def refused(result: tuple[int, str, str], *fragments: str) -> str:
 @contextmanager
 def never_blocks(seconds: float = 20.0):
     """Fail instead of hanging when something inside blocks (a FIFO opened for reading)."""
+
     def stop(signum, frame):
         raise TimeoutError("blocked")
 
@@ -184,8 +200,12 @@ def _writer_calls(tmp: Path) -> dict[str, tuple]:
         "dssp_data.edit.split": (lambda: edit.split(a, out, val, val_episodes=[0]), [val]),
         "dssp_data.edit.repair": (lambda: edit.repair(a), [a]),
         "dssp_data.robotwin_hdf5.convert": (lambda: robotwin_hdf5.convert(raw, out), [out]),
-        "dssp_data.rosbag2.convert": (lambda: rosbag2.convert(bag, out, rosbag2.Rosbag2Settings(depth_unit=0.00025),
-                                                              cloud, CAMERA.camera_to_base), [out]),
+        "dssp_data.rosbag2.convert": (
+            lambda: rosbag2.convert(
+                bag, out, rosbag2.Rosbag2Settings(depth_unit=0.00025), cloud, CAMERA.camera_to_base
+            ),
+            [out],
+        ),
         "dssp_data.lerobot.read.convert": (lambda: lerobot.convert(root, out, cloud, CAMERA.camera_to_base), [out]),
         "dssp_data.lerobot.write.export": (lambda: lerobot.export(a, tmp / "exported"), [tmp / "exported"]),
     }
@@ -206,8 +226,9 @@ for lock in locks:
 def held_by_another_process(paths: list[Path]):
     """The dataset locks of ``paths`` held by a child process (the one writer whose work is under way); its pid."""
     targets = [str(Path(os.path.realpath(p.parent)) / p.name) for p in paths]
-    child = subprocess.Popen([sys.executable, "-c", HOLDER, *targets], cwd=ROOT, stdin=subprocess.PIPE,
-                             stdout=subprocess.PIPE, text=True)
+    child = subprocess.Popen(
+        [sys.executable, "-c", HOLDER, *targets], cwd=ROOT, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+    )
     try:
         assert child.stdout.readline() == "held\n"
         yield child.pid
@@ -255,9 +276,11 @@ def test_a_second_command_is_refused_while_the_first_writes_and_the_first_comple
     out = tmp_path / "out.zarr"
     assert data_main(["merge", str(out), str(b), str(c)]) == 0  # an earlier output there, that --force replaces
     capsys.readouterr()
-    seconds = {"merge": ["merge", out, c, b, "--force"],
-               "split": ["split", c, "--train", out, "--val", tmp_path / "v.zarr", "--val-ratio", "0.5", "--force"],
-               "convert": ["convert", raw, "--out", out, "--force"]}
+    seconds = {
+        "merge": ["merge", out, c, b, "--force"],
+        "split": ["split", c, "--train", out, "--val", tmp_path / "v.zarr", "--val-ratio", "0.5", "--force"],
+        "convert": ["convert", raw, "--out", out, "--force"],
+    }
     real, results = ReplayBufferWriter.add_episode, {}
 
     def add_episode(writer, episode, attrs=None):
@@ -292,11 +315,14 @@ def replace_message(bag: Path, topic: str, data: bytes) -> None:
     """The first message of ``topic`` in the bag's sqlite3 file becomes ``data`` (as stored)."""
     [db] = bag.glob("*.db3")
     with sqlite3.connect(db) as con:
-        con.execute("UPDATE messages SET data = ? WHERE id = (SELECT min(messages.id) FROM messages JOIN topics ON "
-                    "messages.topic_id = topics.id WHERE topics.name = ?)", (data, topic))
+        con.execute(
+            "UPDATE messages SET data = ? WHERE id = (SELECT min(messages.id) FROM messages JOIN topics ON "
+            "messages.topic_id = topics.id WHERE topics.name = ?)",
+            (data, topic),
+        )
 
 
-READERS = r'''
+READERS = r"""
 import contextlib, io, json, os, resource, sys
 from dssp_data.data_cli import main
 job = json.load(open(sys.argv[1]))
@@ -308,7 +334,7 @@ for case in job:
         code = main(case["argv"])
     results.append({"code": code, "err": err.getvalue(), "rss_kb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss})
 json.dump({"base_kb": base, "results": results}, open(sys.argv[2], "w"))
-'''
+"""
 
 
 def test_every_reader_refuses_an_input_over_the_read_budget_before_allocating_it(tmp_path):
@@ -324,17 +350,29 @@ def test_every_reader_refuses_an_input_over_the_read_budget_before_allocating_it
     with h5py.File(raw / "data" / "episode0.hdf5", "w") as f:
         f["joint_action/vector"] = np.zeros((4, 14))
         f.create_dataset("pointcloud", shape=(4, 10**6, 10**4), dtype="f4", chunks=(1, 1000, 100))  # 160 GB declared
-    declared, undeclared = (write_bag(src / name, seconds=0.5, compression="message") for name in ("declared", "undeclared"))
+    declared, undeclared = (
+        write_bag(src / name, seconds=0.5, compression="message") for name in ("declared", "undeclared")
+    )
     replace_message(declared, "/camera/camera/depth/image_rect_raw", zstd_bomb(1 << 30))
     replace_message(undeclared, "/camera/camera/depth/image_rect_raw", zstd_bomb(1 << 30, declare=False))
-    plain, chunked = write_bag(src / "plain", seconds=0.5), write_bag(src / "chunked", seconds=0.5, storage="mcap",
-                                                                        compression="storage")
+    plain, chunked = (
+        write_bag(src / "plain", seconds=0.5),
+        write_bag(src / "chunked", seconds=0.5, storage="mcap", compression="storage"),
+    )
     root = lerobot_dataset(src / "lerobot", tmp_path, frames=40)  # 40 frames of 160 x 120 depth: 1.5 MiB decoded
     cases = [
         (["info", big_chunks], "1M", "one chunk of data/point_cloud"),
         (["convert", raw, "--out", outs / "raw.zarr"], "1M", "/pointcloud (shape (4, 1000000, 10000))"),
-        (["convert", declared, "--out", outs / "d.zarr", *cal, *BAG_FLAGS], "64M", "a compressed message (1.0 GiB declared)"),
-        (["convert", undeclared, "--out", outs / "u.zarr", *cal, *BAG_FLAGS], "64M", "a compressed message decodes to more"),
+        (
+            ["convert", declared, "--out", outs / "d.zarr", *cal, *BAG_FLAGS],
+            "64M",
+            "a compressed message (1.0 GiB declared)",
+        ),
+        (
+            ["convert", undeclared, "--out", outs / "u.zarr", *cal, *BAG_FLAGS],
+            "64M",
+            "a compressed message decodes to more",
+        ),
         (["convert", plain, "--out", outs / "p.zarr", *cal, *BAG_FLAGS], "256K", "a message of /camera/camera/depth"),
         (["convert", chunked, "--out", outs / "c.zarr", *cal, *BAG_FLAGS], "256K", "an mcap chunk"),
         (["convert", root, "--out", outs / "l.zarr", *cal], "1M", "file-000.parquet: the columns"),
@@ -342,14 +380,23 @@ def test_every_reader_refuses_an_input_over_the_read_budget_before_allocating_it
     job = [{"argv": [str(a) for a in argv], "budget": budget} for argv, budget, _ in cases]
     (tmp_path / "job.json").write_text(json.dumps(job))
     before = snapshot(tmp_path)
-    proc = subprocess.run([sys.executable, "-c", READERS, str(tmp_path / "job.json"), str(tmp_path / "result.json")],
-                          cwd=ROOT, capture_output=True, text=True, timeout=300,
-                          env={**os.environ, "OMP_NUM_THREADS": "1"})
+    proc = subprocess.run(
+        [sys.executable, "-c", READERS, str(tmp_path / "job.json"), str(tmp_path / "result.json")],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, "OMP_NUM_THREADS": "1"},
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     result = json.loads((tmp_path / "result.json").read_text())
     for (argv, budget, fragment), got in zip(cases, result["results"]):
-        line = refused((got["code"], "", got["err"]), fragment, "over the read budget" if "decodes" not in fragment
-                       else "read budget", "DSSP_READ_BUDGET")
+        line = refused(
+            (got["code"], "", got["err"]),
+            fragment,
+            "over the read budget" if "decodes" not in fragment else "read budget",
+            "DSSP_READ_BUDGET",
+        )
         assert line, argv
     peak = max(r["rss_kb"] for r in result["results"]) - result["base_kb"]
     assert peak < 300 << 10, f"the readers grew by {peak >> 10} MiB"  # the bombs declare 1 GiB each
@@ -358,9 +405,13 @@ def test_every_reader_refuses_an_input_over_the_read_budget_before_allocating_it
 
 
 @settings(**HYPOTHESIS)
-@given(spec=st.one_of(st.from_regex(r"[<>^=]?[+ -]?#?0?[0-9]{0,7}[,_]?(\.[0-9]{0,3})?[dxXsfe%]?", fullmatch=True),
-                      st.text(alphabet="<>^=+- #_,.0123456789dxXsrfe%{}!", max_size=14)),
-       field=st.sampled_from(["chunk_index", "file_index", "0", "", "chunk_index.real", "chunk_index[0]"]))
+@given(
+    spec=st.one_of(
+        st.from_regex(r"[<>^=]?[+ -]?#?0?[0-9]{0,7}[,_]?(\.[0-9]{0,3})?[dxXsfe%]?", fullmatch=True),
+        st.text(alphabet="<>^=+- #_,.0123456789dxXsrfe%{}!", max_size=14),
+    ),
+    field=st.sampled_from(["chunk_index", "file_index", "0", "", "chunk_index.real", "chunk_index[0]"]),
+)
 @example(spec=">2000000", field="chunk_index")
 @example(spec="09999999d", field="file_index")
 @example(spec="03d", field="chunk_index")
@@ -384,10 +435,15 @@ def test_a_data_path_template_is_formatted_only_with_small_integer_fields(tmp_pa
 
 def test_a_huge_format_width_in_info_json_is_one_short_line(tmp_path, capsys):
     root = lerobot_dataset(tmp_path / "lerobot", tmp_path)
-    edit_info(root, lambda info: info.update(data_path="data/chunk-{chunk_index:>2000000000}/file-{file_index:03d}.parquet"))
+    edit_info(
+        root, lambda info: info.update(data_path="data/chunk-{chunk_index:>2000000000}/file-{file_index:03d}.parquet")
+    )
     before = snapshot(tmp_path)
-    line = refused(cli(capsys, "convert", root, "--out", tmp_path / "o.zarr", *calibration(tmp_path / "cal")),
-                   "data_path", "is not a template whose fields are {chunk_index} and {file_index}")
+    line = refused(
+        cli(capsys, "convert", root, "--out", tmp_path / "o.zarr", *calibration(tmp_path / "cal")),
+        "data_path",
+        "is not a template whose fields are {chunk_index} and {file_index}",
+    )
     assert len(line) < 400
     assert {k: v for k, v in snapshot(tmp_path).items() if not k.startswith("cal")} == before
 
@@ -412,7 +468,7 @@ def test_metadata_files_that_are_not_files_are_refused_without_blocking(tmp_path
         (metadata, "fifo", [bag, *cal, *BAG_FLAGS], "metadata.yaml is not a regular file"),
         (metadata, "a: " + "[" * 5000 + "]" * 5000, [bag, *cal, *BAG_FLAGS], "nests more than 64 levels deep"),
         (metadata, "a: &x [1]\nb: *x\n", [bag, *cal, *BAG_FLAGS], "YAML alias"),
-        (metadata, good_metadata[:len(good_metadata) // 3], [bag, *cal, *BAG_FLAGS], "metadata.yaml is not a"),
+        (metadata, good_metadata[: len(good_metadata) // 3], [bag, *cal, *BAG_FLAGS], "metadata.yaml is not a"),
         (metadata, "\0\xff" * 100, [bag, *cal, *BAG_FLAGS], "metadata.yaml is not a"),
         (info, "fifo", [root, *cal], "meta/info.json is not a file"),
         (info, deep_json, [root, *cal], "info.json is not a usable JSON object (nested more than 64 levels deep)"),
@@ -448,7 +504,7 @@ def test_damaged_bags_and_frames_are_one_line(tmp_path, capsys):
 
     def cut(path: Path, keep: float = 0.5) -> None:
         data = path.read_bytes()
-        path.write_bytes(data[:int(len(data) * keep)])
+        path.write_bytes(data[: int(len(data) * keep)])
 
     cases = {}
     bag = write_bag(tmp_path / "cut_sqlite", seconds=0.5)
@@ -469,20 +525,36 @@ def test_damaged_bags_and_frames_are_one_line(tmp_path, capsys):
     replace_message(bag, "/joint_states", b"\x00\x01\x00\x00\xff\xff\xff\x7f")
     cases[bag] = ([], "a message of /joint_states does not decode as sensor_msgs/msg/JointState")
     bag = write_bag(tmp_path / "other_type", seconds=0.5)
-    cases[bag] = (["--state-topic", "/camera/camera/depth/camera_info"],
-                  "/camera/camera/depth/camera_info carries sensor_msgs/msg/CameraInfo, not the sensor_msgs/msg/JointState "
-                  "--state-topic names")
+    cases[bag] = (
+        ["--state-topic", "/camera/camera/depth/camera_info"],
+        "/camera/camera/depth/camera_info carries sensor_msgs/msg/CameraInfo, not the sensor_msgs/msg/JointState "
+        "--state-topic names",
+    )
     for bag, (extra, fragment) in cases.items():
         before = snapshot(tmp_path)
         refused(cli(capsys, "convert", bag, "--out", tmp_path / "o.zarr", *cal, *extra), str(bag), fragment)
         assert snapshot(tmp_path) == before, bag
 
 
-@pytest.mark.parametrize("argv", [
-    ["view", "{dataset}", "--episode", "²"],
-    ["split", "{dataset}", "--train", "{tmp}/t.zarr", "--val", "{tmp}/v.zarr", "--val-episodes", "²"],
-    ["split", "{dataset}", "--train", "{tmp}/t.zarr", "--val", "{tmp}/v.zarr", "--val-ratio", "0.5", "--drop-episodes", "1-²"],
-])
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["view", "{dataset}", "--episode", "²"],
+        ["split", "{dataset}", "--train", "{tmp}/t.zarr", "--val", "{tmp}/v.zarr", "--val-episodes", "²"],
+        [
+            "split",
+            "{dataset}",
+            "--train",
+            "{tmp}/t.zarr",
+            "--val",
+            "{tmp}/v.zarr",
+            "--val-ratio",
+            "0.5",
+            "--drop-episodes",
+            "1-²",
+        ],
+    ],
+)
 def test_an_episode_index_that_is_a_digit_but_no_number_is_one_line(tmp_path, capsys, argv):
     dataset = zarr_dataset(tmp_path / "d.zarr", 3)
     before = snapshot(tmp_path)
@@ -500,8 +572,9 @@ def test_a_folder_of_bags_never_skips_a_bag(tmp_path, capsys):
     cut = write_bag(bags / "b", seconds=0.5)
     (cut / "metadata.yaml").unlink()
     out = tmp_path / "o.zarr"
-    refused(cli(capsys, "convert", bags, "--out", out, *cal), f"{cut} is a folder without metadata.yaml",
-            "ros2 bag reindex")
+    refused(
+        cli(capsys, "convert", bags, "--out", out, *cal), f"{cut} is a folder without metadata.yaml", "ros2 bag reindex"
+    )
     refused(cli(capsys, "convert", cut, "--out", out, *cal), f"{cut} holds a bag's storage files but no metadata.yaml")
     shutil.rmtree(cut)
     elsewhere = write_bag(tmp_path / "elsewhere", seconds=0.5)
@@ -520,16 +593,26 @@ GOOD = (160, 120, 114.25, 114.25, 79.5, 59.5)
 
 
 @settings(**HYPOTHESIS)
-@given(field=st.sampled_from(FIELDS), value=st.one_of(
-    st.floats(allow_nan=True, allow_infinity=True), st.integers(-10**12, 10**12), st.booleans(), st.none(),
-    st.text(max_size=3)))
+@given(
+    field=st.sampled_from(FIELDS),
+    value=st.one_of(
+        st.floats(allow_nan=True, allow_infinity=True),
+        st.integers(-(10**12), 10**12),
+        st.booleans(),
+        st.none(),
+        st.text(max_size=3),
+    ),
+)
 def test_intrinsics_are_checked_once_every_field_finite_and_in_range(field, value):
     values = dict(zip(FIELDS, GOOD), **{field: value})
-    ok = {"width": lambda v: isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= MAX_IMAGE_SIDE,
-          "height": lambda v: isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= MAX_IMAGE_SIDE,
-          "fx": lambda v: _number(v) and 0 < v <= MAX_FOCAL_PX, "fy": lambda v: _number(v) and 0 < v <= MAX_FOCAL_PX,
-          "ppx": lambda v: _number(v) and 0 <= v <= values["width"],
-          "ppy": lambda v: _number(v) and 0 <= v <= values["height"]}
+    ok = {
+        "width": lambda v: isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= MAX_IMAGE_SIDE,
+        "height": lambda v: isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= MAX_IMAGE_SIDE,
+        "fx": lambda v: _number(v) and 0 < v <= MAX_FOCAL_PX,
+        "fy": lambda v: _number(v) and 0 < v <= MAX_FOCAL_PX,
+        "ppx": lambda v: _number(v) and 0 <= v <= values["width"],
+        "ppy": lambda v: _number(v) and 0 <= v <= values["height"],
+    }
     expected = all(ok[k](values[k]) for k in FIELDS)
     try:
         Intrinsics(**values)
@@ -546,31 +629,51 @@ def _number(v) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
-@pytest.mark.parametrize("k, distortion, fragment", [
-    (lambda k: np.array([np.inf, 0, 79.5, 0, 114.25, 59.5, 0, 0, 1]), (0.0,) * 5, "fx is inf"),
-    (lambda k: np.array([114.25, 0, np.nan, 0, 114.25, 59.5, 0, 0, 1]), (0.0,) * 5, "ppx is nan"),
-    (None, (0.0, float("nan"), 0.0, 0.0, 0.0), "lens distortion D[1] is nan"),
-])
+@pytest.mark.parametrize(
+    "k, distortion, fragment",
+    [
+        (lambda k: np.array([np.inf, 0, 79.5, 0, 114.25, 59.5, 0, 0, 1]), (0.0,) * 5, "fx is inf"),
+        (lambda k: np.array([114.25, 0, np.nan, 0, 114.25, 59.5, 0, 0, 1]), (0.0,) * 5, "ppx is nan"),
+        (None, (0.0, float("nan"), 0.0, 0.0, 0.0), "lens distortion D[1] is nan"),
+    ],
+)
 def test_a_bags_camera_info_is_checked_field_by_field(tmp_path, capsys, k, distortion, fragment):
     bag = write_bag(tmp_path / "bag", seconds=0.5, k_of=k, distortion=distortion)
-    refused(cli(capsys, "convert", bag, "--out", tmp_path / "o.zarr", *calibration(tmp_path / "cal"), *BAG_FLAGS),
-            "/camera/camera/depth/camera_info: camera intrinsics: " + fragment)
+    refused(
+        cli(capsys, "convert", bag, "--out", tmp_path / "o.zarr", *calibration(tmp_path / "cal"), *BAG_FLAGS),
+        "/camera/camera/depth/camera_info: camera intrinsics: " + fragment,
+    )
 
 
 @pytest.mark.parametrize("fps", [1e-300, 0.05, 2000, float("nan"), "10", True])
 def test_a_lerobot_fps_outside_the_control_rates_is_refused(tmp_path, capsys, fps):
     root = edit_info(lerobot_dataset(tmp_path / "lerobot", tmp_path), lambda info: info.update(fps=fps))
-    refused(cli(capsys, "convert", root, "--out", tmp_path / "o.zarr", *calibration(tmp_path / "cal")),
-            "meta/info.json: fps must be in [0.1, 1000] Hz")
+    refused(
+        cli(capsys, "convert", root, "--out", tmp_path / "o.zarr", *calibration(tmp_path / "cal")),
+        "meta/info.json: fps must be in [0.1, 1000] Hz",
+    )
     assert not (tmp_path / "o.zarr").exists()
 
 
 def test_robotwin_and_bag_rates_share_the_control_rate_bounds(tmp_path, capsys):
     raw, bag = robotwin(tmp_path / "raw"), write_bag(tmp_path / "bag", seconds=0.5)
-    refused(cli(capsys, "convert", raw, "--out", tmp_path / "o.zarr", "--control-rate", "1e-300"),
-            "--control-rate must be in [0.1, 1000] Hz")
-    refused(cli(capsys, "convert", bag, "--out", tmp_path / "o.zarr", "--control-rate", "2000",
-                *calibration(tmp_path / "cal")), "--control-rate must be in [0.1, 1000] Hz")
+    refused(
+        cli(capsys, "convert", raw, "--out", tmp_path / "o.zarr", "--control-rate", "1e-300"),
+        "--control-rate must be in [0.1, 1000] Hz",
+    )
+    refused(
+        cli(
+            capsys,
+            "convert",
+            bag,
+            "--out",
+            tmp_path / "o.zarr",
+            "--control-rate",
+            "2000",
+            *calibration(tmp_path / "cal"),
+        ),
+        "--control-rate must be in [0.1, 1000] Hz",
+    )
 
 
 # ------------------------------------------------------------------------------------------- 6. never into the input
@@ -583,12 +686,19 @@ def test_convert_never_writes_into_its_input(tmp_path, capsys, monkeypatch):
         monkeypatch.setattr(module, name, lambda *a, **k: pytest.fail("the input was read"))
     cal = calibration(tmp_path / "cal")
     src = tmp_path / "src"
-    sources = {"robotwin": (robotwin(src / "raw"), []), "bag": (write_bag(src / "bag", seconds=0.5), [*cal, *BAG_FLAGS]),
-               "lerobot": (lerobot_dataset(src / "lerobot", tmp_path), cal)}
+    sources = {
+        "robotwin": (robotwin(src / "raw"), []),
+        "bag": (write_bag(src / "bag", seconds=0.5), [*cal, *BAG_FLAGS]),
+        "lerobot": (lerobot_dataset(src / "lerobot", tmp_path), cal),
+    }
     before = snapshot(tmp_path)
     for kind, (source, flags) in sources.items():
-        for out, fragment in ((source, "is also an input"), (source / "x.zarr", "lies inside the input"),
-                              (source / "data" / "x.zarr", "lies inside the input"), (src, "holds the input")):
+        for out, fragment in (
+            (source, "is also an input"),
+            (source / "x.zarr", "lies inside the input"),
+            (source / "data" / "x.zarr", "lies inside the input"),
+            (src, "holds the input"),
+        ):
             refused(cli(capsys, "convert", source, "--out", out, *flags), fragment, "choose another --out")
         assert snapshot(tmp_path) == before, kind
 
@@ -635,5 +745,7 @@ def test_the_writer_names_the_output_never_its_staging_folder(tmp_path):
             convert_two(out)
     finally:
         DATASET_WRITERS.pop()
-    assert str(info.value) == f"{out}: episode 1: state holds NaN or inf (first at step 1, index 2: nan): fix the episode"
+    assert (
+        str(info.value) == f"{out}: episode 1: state holds NaN or inf (first at step 1, index 2: nan): fix the episode"
+    )
     assert os.listdir(tmp_path) == []

@@ -46,9 +46,23 @@ def ddp_run(tmp_path_factory):
     data = write_tap_count_dataset(root / "data.zarr", 5, seed=0, n_points=24)
     out = root / "run"
     cmd = [
-        sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", str(WORLD_SIZE),
-        "-m", "dssp_train.cli.train",
-        "--data", str(data), "--out", str(out), "--steps", str(STEPS), "--device", "cpu", "--no-progress",
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--standalone",
+        "--nproc_per_node",
+        str(WORLD_SIZE),
+        "-m",
+        "dssp_train.cli.train",
+        "--data",
+        str(data),
+        "--out",
+        str(out),
+        "--steps",
+        str(STEPS),
+        "--device",
+        "cpu",
+        "--no-progress",
     ]
     for item in SMALL:
         cmd += ["--set", item]

@@ -29,14 +29,23 @@ def test_every_cell_is_an_evaluation_of_the_one_inpainting_export(tmp_path):
 
 
 def _eval(successes, jerk=(30.0, 10.0)):
-    return {"n": len(successes), "successes": sum(successes), "injected_delay_ticks": 2,
-            "boundary_jerk": {"at_boundaries": jerk[0], "elsewhere": jerk[1]},
-            "episodes": [{"seed": 1000 + i, "success": bool(s), "holds": 3} for i, s in enumerate(successes)]}
+    return {
+        "n": len(successes),
+        "successes": sum(successes),
+        "injected_delay_ticks": 2,
+        "boundary_jerk": {"at_boundaries": jerk[0], "elsewhere": jerk[1]},
+        "episodes": [{"seed": 1000 + i, "success": bool(s), "holds": 3} for i, s in enumerate(successes)],
+    }
 
 
 def test_the_report_pairs_by_scene_and_seed_and_says_what_is_not_significant(tmp_path):
-    plan = {**delay_study.PLAN, "tasks": {"tap": {"demos": 50, "steps": 3000}}, "delays_ms": [200], "episodes": 4,
-            "seeds": [0, 1]}
+    plan = {
+        **delay_study.PLAN,
+        "tasks": {"tap": {"demos": 50, "steps": 3000}},
+        "delays_ms": [200],
+        "episodes": 4,
+        "seeds": [0, 1],
+    }
     evals = tmp_path / "record" / "evals"
     evals.mkdir(parents=True)
     runs = {"none": [0] * 4, "ensemble": [1, 0, 1, 0], "rtc": [1] * 4}
@@ -51,7 +60,11 @@ def test_the_report_pairs_by_scene_and_seed_and_says_what_is_not_significant(tmp
     text = md.read_text()
     assert "not significant" in text and "| 200 ms (2) |" in text
     assert record["summary"]["tap"]["rtc"]["200"]["holds"] == 3.0 and record["summary"]["tap"]["rtc"]["200"]["n"] == 8
-    assert record["summary"]["tap"]["ensemble"]["200"]["interval95"][0] < 0.5 < record["summary"]["tap"]["ensemble"]["200"]["interval95"][1]
+    assert (
+        record["summary"]["tap"]["ensemble"]["200"]["interval95"][0]
+        < 0.5
+        < record["summary"]["tap"]["ensemble"]["200"]["interval95"][1]
+    )
     # a seed not yet evaluated leaves the cell pending rather than reported on fewer seeds
     (evals / "tap_rtc_d200_s1.json").unlink()
     md = delay_study.write_report(plan, tmp_path / "record", tmp_path / "report")

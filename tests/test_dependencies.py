@@ -18,8 +18,19 @@ from packaging.requirements import Requirement
 from packaging.utils import canonicalize_name
 
 ROOT = Path(__file__).resolve().parents[1]
-SOURCES = ("dssp_core", "dssp_data", "dssp_train", "export", "dssp_deploy", "hardware", "dssp_sim", "studies",
-           "plugins", "benchmarks", "tests")
+SOURCES = (
+    "dssp_core",
+    "dssp_data",
+    "dssp_train",
+    "export",
+    "dssp_deploy",
+    "hardware",
+    "dssp_sim",
+    "studies",
+    "plugins",
+    "benchmarks",
+    "tests",
+)
 
 # Standard-library modules of newer Pythons, imported where they exist (a backport stands in before).
 NEWER_STDLIB = {"compression": "zstd in the standard library from Python 3.14 (backports.zstd before)"}
@@ -29,7 +40,7 @@ LEFT_OUT = {
     "lerobot": {
         "torch": "lerobot declares torch<2.11; its dataset and training code runs on the torch installed here",
         "torchvision": "PyPI's torchvision does not import beside the local torch wheel; tests/test_lerobot.py "
-                       "stands in for the one function LeRobot's dataset code uses",
+        "stands in for the one function LeRobot's dataset code uses",
         "torchcodec": "video decoding: DSSP's LeRobot datasets hold no video",
         "pynput": "keyboard teleoperation",
         "cmake": "building LeRobot's optional native extras",
@@ -92,8 +103,10 @@ def test_every_third_party_import_comes_from_a_declared_distribution():
         if not dists:
             problems.append(f"{module} (imported by {where}) is installed by no distribution: declare it in an extra")
         elif not dists & known:
-            problems.append(f"{module} (imported by {where}) comes from {', '.join(sorted(dists))}, which no extra "
-                            f"of pyproject.toml declares")
+            problems.append(
+                f"{module} (imported by {where}) comes from {', '.join(sorted(dists))}, which no extra "
+                f"of pyproject.toml declares"
+            )
     assert not problems, "\n".join(problems)
 
 
@@ -113,8 +126,10 @@ def test_each_requirement_of_a_package_installed_without_its_dependencies_is_her
         try:
             metadata.version(name)
         except metadata.PackageNotFoundError:
-            missing.append(f"{package} needs {requirement}, which is not installed: declare it in an extra, or name "
-                           f"it in LEFT_OUT with the reason")
+            missing.append(
+                f"{package} needs {requirement}, which is not installed: declare it in an extra, or name "
+                f"it in LEFT_OUT with the reason"
+            )
     assert not missing, "\n".join(missing)
     stale = set(left_out) - {canonicalize_name(r.name) for r in base}
     assert not stale, f"LEFT_OUT names requirements {package} no longer has: {sorted(stale)}"

@@ -11,8 +11,8 @@ import pytest
 
 from dssp_deploy import OnnxPolicy
 from dssp_deploy.control_loop import ChunkedControl
-from dssp_deploy.schedules import MeasuredDelay, Plain
 from dssp_deploy.manifest import MANIFEST_NAME, ModelDirError
+from dssp_deploy.schedules import MeasuredDelay, Plain
 
 
 def long_trajectory(data_path, length=1000):
@@ -65,7 +65,9 @@ def test_runtime_chunks_equal_pytorch_streaming_over_1000_steps(tiny_export):
         worst_context = max(worst_context, float(np.abs(runtime.context - c_ref.numpy()).max()))
         if t % config.model.n_action_steps == 0:
             noise = rng.standard_normal((1, config.model.horizon, config.model.action_dim)).astype(np.float32)
-            worst_chunk = max(worst_chunk, float(np.abs(runtime.act(noise=noise) - stream.act(noise=torch.from_numpy(noise))).max()))
+            worst_chunk = max(
+                worst_chunk, float(np.abs(runtime.act(noise=noise) - stream.act(noise=torch.from_numpy(noise))).max())
+            )
     assert worst_context <= 1e-4 and worst_chunk <= 1e-4, (worst_context, worst_chunk)
 
 
@@ -76,7 +78,9 @@ def test_quantized_graphs_run_on_request_and_their_absence_is_named(tiny_export,
     with pytest.raises(ModelDirError, match="precision must be one of"):
         OnnxPolicy(model_dir, precision="fp16")
     int8_dir = tmp_path / "int8"
-    assert export_main([str(run_dir), "-o", str(int8_dir), "--skip-verify", "--quantize", "int8", "--format", "onnx"]) == 0
+    assert (
+        export_main([str(run_dir), "-o", str(int8_dir), "--skip-verify", "--quantize", "int8", "--format", "onnx"]) == 0
+    )
     with pytest.raises(ModelDirError, match="--quantize int4"):
         OnnxPolicy(int8_dir, precision="int4")
     fp32, int8 = OnnxPolicy(int8_dir, threads=1, precision="fp32"), OnnxPolicy(int8_dir, threads=1)  # int8: the default
@@ -84,7 +88,11 @@ def test_quantized_graphs_run_on_request_and_their_absence_is_named(tiny_export,
         assert "int8" in session.get_modelmeta().custom_metadata_map["quantization"]
         assert "quantization" not in fp32.sessions[graph].get_modelmeta().custom_metadata_map
     pcs, states = long_trajectory(data)
-    noise = np.random.default_rng(0).standard_normal((1, fp32.contract.horizon, fp32.contract.action_dim)).astype(np.float32)
+    noise = (
+        np.random.default_rng(0)
+        .standard_normal((1, fp32.contract.horizon, fp32.contract.action_dim))
+        .astype(np.float32)
+    )
     for t in range(20):
         fp32.observe(pcs[t], states[t])
         int8.observe(pcs[t], states[t])
@@ -137,7 +145,10 @@ def test_the_streaming_history_state_machine(library):
     history.observe(array([[3.0], [4.0]]))
     history.observe(array([[5.0], [6.0]]))
     history.observe(array([[7.0], [8.0]]))
-    assert np.asarray(history.recent)[0, :, 0].tolist() == [3, 5, 7] and np.asarray(history.context)[:, 0].tolist() == [16, 20]
+    assert np.asarray(history.recent)[0, :, 0].tolist() == [3, 5, 7] and np.asarray(history.context)[:, 0].tolist() == [
+        16,
+        20,
+    ]
     kept = (history.steps, np.asarray(history.recent).copy(), np.asarray(history.state).copy())
     with pytest.raises(ValueError, match="refused"):
         history.observe(array([[-100.0], [0.0]]))
@@ -157,8 +168,11 @@ def test_non_finite_values_are_named_and_refused():
     check_finite("agent_pos", np.zeros((1, 3)))
     bad = np.zeros((1, 8, 3), np.float32)
     bad[0, 2, 1], bad[0, 5] = np.nan, np.inf
-    with pytest.raises(NonFiniteObservation, match=r"^point_cloud \[1, 8, 3\] has 4 non-finite value\(s\) at \(0, 2, 1\)=nan, "
-                       r"\(0, 5, 0\)=inf, \(0, 5, 1\)=inf, \(0, 5, 2\)=inf; the observation was not used"):
+    with pytest.raises(
+        NonFiniteObservation,
+        match=r"^point_cloud \[1, 8, 3\] has 4 non-finite value\(s\) at \(0, 2, 1\)=nan, "
+        r"\(0, 5, 0\)=inf, \(0, 5, 1\)=inf, \(0, 5, 2\)=inf; the observation was not used",
+    ):
         check_finite("point_cloud", bad)
     assert issubclass(NonFiniteObservation, ValueError)
 
@@ -246,7 +260,9 @@ def test_prefetch_starts_early_drops_passed_actions_and_matches_its_history(tiny
     _, model_dir, data = tiny_export
     p = OnnxPolicy(model_dir, threads=1)
     ha, lead = p.contract.n_action_steps, 1
-    loop = ChunkedControl(p, Plain(prefetch=True, delay=MeasuredDelay(50.0)), control_rate_hz=10, seed=0)  # 50 ms at 10 Hz: 1 tick
+    loop = ChunkedControl(
+        p, Plain(prefetch=True, delay=MeasuredDelay(50.0)), control_rate_hz=10, seed=0
+    )  # 50 ms at 10 Hz: 1 tick
     assert loop.schedule.lead == lead
     pcs, states = long_trajectory(data, 2 * ha + 1)
     actions = [loop.tick(pcs[t], states[t]) for t in range(2 * ha + 1)]
@@ -305,8 +321,12 @@ def test_int8_measured_too_far_off_at_export_is_not_the_default(tiny_export, tmp
     shutil.copytree(model_dir, copy)
     manifest = json.loads((copy / MANIFEST_NAME).read_text())
     if error is not None:
-        manifest["verification"] = {"quantized": {"onnx_int8": {"action_max_abs_over_range": 0.01},
-                                                  "onnx_int8_fused": {"action_max_abs_over_range": error}}}
+        manifest["verification"] = {
+            "quantized": {
+                "onnx_int8": {"action_max_abs_over_range": 0.01},
+                "onnx_int8_fused": {"action_max_abs_over_range": error},
+            }
+        }
     (copy / MANIFEST_NAME).write_text(json.dumps(manifest))
     policy = OnnxPolicy(copy, threads=1)
     assert policy.precision == runs

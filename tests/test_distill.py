@@ -4,8 +4,8 @@ import json
 
 import pytest
 import torch
-
 from conftest import one_error_line
+
 from dssp_train.cli.distill import main as distill_main
 from dssp_train.config import DiffusionConfig
 from dssp_train.model.scheduler import DiffusionSchedule
@@ -23,8 +23,26 @@ def teacher(tmp_path_factory):
 
     root = tmp_path_factory.mktemp("teacher")
     data = write_tap_count_dataset(root / "tap.zarr", 6, seed=0, n_points=32)
-    assert train_main(["--data", str(data), "--out", str(root / "run"), "--preset", "tiny", "--steps", "60",
-                       "--set", "train.val_every=60", "--set", "model.d_model=32", "--no-progress"]) == 0
+    assert (
+        train_main(
+            [
+                "--data",
+                str(data),
+                "--out",
+                str(root / "run"),
+                "--preset",
+                "tiny",
+                "--steps",
+                "60",
+                "--set",
+                "train.val_every=60",
+                "--set",
+                "model.d_model=32",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     return root / "run", data
 
 
@@ -35,11 +53,15 @@ def teacher_gap(policy, teacher, data, steps: int) -> float:
     ep = ReplayBuffer.load(data).episode(0)
     pc, pos = torch.from_numpy(ep.point_cloud), torch.from_numpy(ep.state)
     starts = torch.arange(0, 36, 3)
-    noise = torch.randn((len(starts), policy.cfg.horizon, policy.cfg.action_dim), generator=torch.Generator().manual_seed(3))
+    noise = torch.randn(
+        (len(starts), policy.cfg.horizon, policy.cfg.action_dim), generator=torch.Generator().manual_seed(3)
+    )
     with torch.no_grad():
         prefix, _ = teacher.window_prefix(*teacher.encode_trajectory(pc, pos), starts)
         want = teacher.sample_normalized(prefix, noise)
-        got = policy.sample_normalized(policy.window_prefix(*policy.encode_trajectory(pc, pos), starts)[0], noise, steps)
+        got = policy.sample_normalized(
+            policy.window_prefix(*policy.encode_trajectory(pc, pos), starts)[0], noise, steps
+        )
     return float((got - want).pow(2).mean())
 
 
@@ -63,11 +85,23 @@ def test_per_sample_steps_are_the_ddim_step(num_steps):
 def test_a_student_is_an_ordinary_run_of_the_teacher_sampling_in_k_steps(method, teacher, tmp_path, capsys):
     run, data = teacher
     out = tmp_path / "student"
-    assert distill_main(["--teacher", str(run), "--steps", "1", "--out", str(out), "--method", method,
-                         "--train-steps", "6", *FAST]) == 0
+    assert (
+        distill_main(
+            ["--teacher", str(run), "--steps", "1", "--out", str(out), "--method", method, "--train-steps", "6", *FAST]
+        )
+        == 0
+    )
     config = json.loads((out / "config.json").read_text())
-    assert config["distill"] == {"teacher": str(run.resolve()), "method": method, "teacher_steps": 10, "freeze_encoders": True}
-    assert config["model"]["diffusion"]["num_inference_steps"] == 1 and config["model"]["diffusion"]["timestep_spacing"] == "trailing"
+    assert config["distill"] == {
+        "teacher": str(run.resolve()),
+        "method": method,
+        "teacher_steps": 10,
+        "freeze_encoders": True,
+    }
+    assert (
+        config["model"]["diffusion"]["num_inference_steps"] == 1
+        and config["model"]["diffusion"]["timestep_spacing"] == "trailing"
+    )
     assert config["dataset"] == str(data) and config["train"]["steps"] == 6
     rows = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
     assert {"distill", "teacher_mse"} <= set(rows[0]) and (out / "loss.png").read_bytes()[:4] == b"\x89PNG"
@@ -76,7 +110,9 @@ def test_a_student_is_an_ordinary_run_of_the_teacher_sampling_in_k_steps(method,
     mine_sd, their_sd = student.state_dict(), theirs.state_dict()
     frozen = [k for k in mine_sd if k.split(".")[0] in ENCODER_PARTS or k.startswith("normalizers")]
     assert frozen and all(torch.equal(mine_sd[k], their_sd[k]) for k in frozen)  # the teacher's encoders, unchanged
-    assert any(not torch.equal(mine_sd[k], their_sd[k]) for k in mine_sd if k.startswith("denoiser"))  # its denoiser trained
+    assert any(
+        not torch.equal(mine_sd[k], their_sd[k]) for k in mine_sd if k.startswith("denoiser")
+    )  # its denoiser trained
     assert student.schedule.inference_timesteps() == [99]
 
 
@@ -84,8 +120,28 @@ def test_trajectory_distillation_brings_one_step_to_the_teachers_chunks(teacher,
     run, data = teacher
     theirs, _ = load_policy(run)
     out = tmp_path / "k1"
-    assert distill_main(["--teacher", str(run), "--steps", "1", "--out", str(out), "--method", "trajectory",
-                         "--train-steps", "60", "--lr", "1e-3", "--batch-size", "16", "--no-progress"]) == 0
+    assert (
+        distill_main(
+            [
+                "--teacher",
+                str(run),
+                "--steps",
+                "1",
+                "--out",
+                str(out),
+                "--method",
+                "trajectory",
+                "--train-steps",
+                "60",
+                "--lr",
+                "1e-3",
+                "--batch-size",
+                "16",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     student, _ = load_policy(out)
     untrained = load_policy(run)[0]
     untrained.cfg.diffusion.timestep_spacing = "trailing"  # the teacher itself, sampled in one trailing step
@@ -114,11 +170,31 @@ def test_the_teacher_exports_at_k_1_from_the_noise_level_with_parity(teacher, tm
 
     run, _ = teacher
     model = tmp_path / "k1"
-    assert export_main([str(run), "-o", str(model), "--denoise-steps", "1", "--timestep-spacing", "trailing",
-                        "--quantize", "none", "--no-fused"]) == 0
+    assert (
+        export_main(
+            [
+                str(run),
+                "-o",
+                str(model),
+                "--denoise-steps",
+                "1",
+                "--timestep-spacing",
+                "trailing",
+                "--quantize",
+                "none",
+                "--no-fused",
+            ]
+        )
+        == 0
+    )
     manifest = json.loads((model / "dssp_model.json").read_text())
-    assert manifest["contract"]["ddim_timesteps"] == [99] and manifest["model_config"]["diffusion"]["timestep_spacing"] == "trailing"
-    assert json.loads((run / "config.json").read_text())["model"]["diffusion"]["timestep_spacing"] == "leading"  # run untouched
+    assert (
+        manifest["contract"]["ddim_timesteps"] == [99]
+        and manifest["model_config"]["diffusion"]["timestep_spacing"] == "trailing"
+    )
+    assert (
+        json.loads((run / "config.json").read_text())["model"]["diffusion"]["timestep_spacing"] == "leading"
+    )  # run untouched
 
 
 def test_a_stopped_student_resumes_with_its_own_config(teacher, tmp_path):
@@ -131,12 +207,15 @@ def test_a_stopped_student_resumes_with_its_own_config(teacher, tmp_path):
     assert json.loads((out / "config.json").read_text())["distill"]["teacher"] == str(run.resolve())
 
 
-@pytest.mark.parametrize("args,message", [
-    (lambda run, out: ["--teacher", str(run), "--steps", "10", "--out", out], "not fewer than the teacher's 10"),
-    (lambda run, out: ["--teacher", str(run) + "_missing", "--steps", "1", "--out", out], "_missing"),
-    (lambda run, out: ["--steps", "1", "--out", out], "needs --teacher RUN_DIR and --steps K"),
-    (lambda run, out: ["--teacher", str(run), "--steps", "0", "--out", out], "num_inference_steps"),
-])
+@pytest.mark.parametrize(
+    "args,message",
+    [
+        (lambda run, out: ["--teacher", str(run), "--steps", "10", "--out", out], "not fewer than the teacher's 10"),
+        (lambda run, out: ["--teacher", str(run) + "_missing", "--steps", "1", "--out", out], "_missing"),
+        (lambda run, out: ["--steps", "1", "--out", out], "needs --teacher RUN_DIR and --steps K"),
+        (lambda run, out: ["--teacher", str(run), "--steps", "0", "--out", out], "num_inference_steps"),
+    ],
+)
 def test_bad_requests_are_one_error_line(args, message, teacher, tmp_path, capsys):
     run, _ = teacher
     assert distill_main(args(run, str(tmp_path / "s")) + FAST) == 2
@@ -151,7 +230,10 @@ def test_a_student_is_not_a_teacher_and_resume_keeps_its_config(teacher, tmp_pat
     capsys.readouterr()
     assert distill_main(["--teacher", str(out), "--steps", "1", "--out", str(tmp_path / "s2"), *FAST]) == 2
     assert "is itself a distilled student" in one_error_line(capsys.readouterr().err)
-    assert distill_main(["--out", str(out), "--resume", "--method", "trajectory", "--train-steps", "4", "--no-progress"]) == 2
+    assert (
+        distill_main(["--out", str(out), "--resume", "--method", "trajectory", "--train-steps", "4", "--no-progress"])
+        == 2
+    )
     assert "only --train-steps may change (got --method)" in one_error_line(capsys.readouterr().err)
     assert distill_main(["--out", str(run), "--resume", "--train-steps", "100", "--no-progress"]) == 2
     assert "not a distilled student" in one_error_line(capsys.readouterr().err)
@@ -159,7 +241,8 @@ def test_a_student_is_not_a_teacher_and_resume_keeps_its_config(teacher, tmp_pat
 
 @pytest.mark.slow
 def test_the_distillation_study_writes_its_report(tmp_path, capsys):
-    from studies.distill_study import REPORT_NAME, main as study_main
+    from studies.distill_study import REPORT_NAME
+    from studies.distill_study import main as study_main
 
     work, report = tmp_path / "work", tmp_path / "report"
     assert study_main(["--work", str(work), "--report", str(report), "--quick", "--workers", "2"]) == 0
@@ -178,15 +261,27 @@ def test_the_distillation_study_writes_its_report(tmp_path, capsys):
     capsys.readouterr()
     assert study_main(["--work", str(work), "--report", str(report), "--quick", "--force"]) == 0  # resumes: all done
     assert "every cell recorded" in capsys.readouterr().out
-    assert {f.stem for f in (report / "record" / "evals").glob("*.json")} == {*data["evals"], "latency_k10", "latency_k1"}
+    assert {f.stem for f in (report / "record" / "evals").glob("*.json")} == {
+        *data["evals"],
+        "latency_k10",
+        "latency_k1",
+    }
     # another machine without the work directory trains nothing: the report's record holds every evaluation
     assert study_main(["--work", str(tmp_path / "elsewhere"), "--report", str(report), "--quick", "--force"]) == 0
     assert not (tmp_path / "elsewhere" / "runs").exists()
     assert json.loads((report / f"{REPORT_NAME}.json").read_text())["evals"] == data["evals"]
     # the report from the record alone: a cell not run yet is listed as pending
     (report / "record" / "evals" / "tap_ddim_k1.json").unlink()
-    assert study_main(["--work", str(tmp_path / "elsewhere"), "--report", str(report), "--quick", "--force", "--report-only"]) == 0
-    assert "**Partial report**: 1 cell(s) of the plan are pending (not run yet): `tap_ddim_k1`" in (report / f"{REPORT_NAME}.md").read_text()
+    assert (
+        study_main(
+            ["--work", str(tmp_path / "elsewhere"), "--report", str(report), "--quick", "--force", "--report-only"]
+        )
+        == 0
+    )
+    assert (
+        "**Partial report**: 1 cell(s) of the plan are pending (not run yet): `tap_ddim_k1`"
+        in (report / f"{REPORT_NAME}.md").read_text()
+    )
     assert json.loads((report / f"{REPORT_NAME}.json").read_text())["pending"] == ["tap_ddim_k1"]
 
 
@@ -219,7 +314,9 @@ def test_the_study_takes_its_teachers_from_a_simulation_study(tmp_path, monkeypa
     assert set(evals) == {"tap_teacher_k10", "tap_ddim_k1", "tap_trajectory_k1"} and latency == {}
     assert not any(s.name.startswith(("collect", "train")) for s in seen)  # nothing collected or trained again
     distill = next(s for s in seen if s.name.startswith("distill"))
-    assert distill.entry == "dssp_train.cli.distill:main" and distill.argv[distill.argv.index("--teacher") + 1] == str(teacher.resolve())
+    assert distill.entry == "dssp_train.cli.distill:main" and distill.argv[distill.argv.index("--teacher") + 1] == str(
+        teacher.resolve()
+    )
     exports = {s.name: s.argv[0] for s in seen if s.name.startswith("export")}
     assert exports["export_tap_teacher_k10"] == exports["export_tap_ddim_k1"] == str(teacher.resolve())
     assert not (tmp_path / "work2" / "data").exists()

@@ -39,17 +39,25 @@ def test_the_dp3_preset_is_dp3s_robotwin_configuration():
 
 
 def test_the_small_dp3_preset_has_the_sim_presets_parameter_count():
-    sim = sum(p.numel() for p in DSSPPolicy(apply_overrides(load_preset("sim"), ["model.state_dim=7", "model.action_dim=7"]).model).parameters())
+    sim = sum(
+        p.numel()
+        for p in DSSPPolicy(
+            apply_overrides(load_preset("sim"), ["model.state_dim=7", "model.action_dim=7"]).model
+        ).parameters()
+    )
     dp3 = sum(p.numel() for p in DSSPPolicy(dp3_config()).parameters())
     assert abs(dp3 / sim - 1) < 0.1, (dp3, sim)
 
 
-@pytest.mark.parametrize("override, says", [
-    ("model.d_model=64", "model.d_model must be point_feature_dim + state_widths[-1] = 96"),
-    ("model.horizon=6", "model.horizon must be a multiple of 4"),
-    ("model.unet_down_dims=[32,44,64]", "multiples of model.unet_n_groups=8"),
-    ("model.unet_kernel_size=4", "model.unet_kernel_size must be odd"),
-])
+@pytest.mark.parametrize(
+    "override, says",
+    [
+        ("model.d_model=64", "model.d_model must be point_feature_dim + state_widths[-1] = 96"),
+        ("model.horizon=6", "model.horizon must be a multiple of 4"),
+        ("model.unet_down_dims=[32,44,64]", "multiples of model.unet_n_groups=8"),
+        ("model.unet_kernel_size=4", "model.unet_kernel_size must be odd"),
+    ],
+)
 def test_a_unet_config_that_cannot_be_built_is_one_line(override, says):
     with pytest.raises(ConfigError, match=None) as info:
         dp3_config(extra=(override,))
@@ -89,15 +97,24 @@ def test_the_flop_count_is_the_unets_own():
         elif isinstance(module, nn.Conv1d):
             macs[0] += output.numel() * module.in_channels * module.kernel_size[0]
         else:  # ConvTranspose1d: every input position meets every output channel through the kernel
-            macs[0] += inputs[0].shape[0] * inputs[0].shape[2] * module.in_channels * module.out_channels * module.kernel_size[0]
+            macs[0] += (
+                inputs[0].shape[0]
+                * inputs[0].shape[2]
+                * module.in_channels
+                * module.out_channels
+                * module.kernel_size[0]
+            )
 
     step = {id(m) for m in den.step_encoder.modules()}
     for m in den.modules():
         if isinstance(m, (nn.Linear, nn.Conv1d, nn.ConvTranspose1d)) and id(m) not in step:
             m.register_forward_hook(count)
     with torch.no_grad():
-        den.denoise_modulated(torch.zeros(1, cfg.prefix_length * cfg.d_model), torch.zeros(1, cfg.horizon, cfg.action_dim),
-                              den.modulation(torch.tensor([5])))
+        den.denoise_modulated(
+            torch.zeros(1, cfg.prefix_length * cfg.d_model),
+            torch.zeros(1, cfg.horizon, cfg.action_dim),
+            den.modulation(torch.tensor([5])),
+        )
     assert unet_flops(cfg.to_dict()) == 2 * macs[0]
     assert chunk_flops(cfg.to_dict(), 10) == 10 * 2 * macs[0]
 
@@ -105,18 +122,35 @@ def test_the_flop_count_is_the_unets_own():
 @pytest.fixture(scope="module")
 def dp3_model(tmp_path_factory):
     """A briefly trained small DP3 for one simulated Piper, exported with its parity verified."""
+    from conftest import write_arm_dataset
+
     from dssp_train.cli.train import main as train_main
     from export.to_onnx import main as export_main
-
-    from conftest import write_arm_dataset
 
     root = tmp_path_factory.mktemp("dp3")
     data = write_arm_dataset(root / "arm.zarr", n_points=256)  # one Piper: state = action = 7, clouds in the sim's crop
     sets = [a for item in [*SMALL_UNET, "train.val_every=10"] for a in ("--set", item)]
-    assert train_main(["--data", str(data), "--out", str(root / "run"), "--preset", "dp3_sim", "--steps", "10", *sets,
-                       "--no-progress"]) == 0
+    assert (
+        train_main(
+            [
+                "--data",
+                str(data),
+                "--out",
+                str(root / "run"),
+                "--preset",
+                "dp3_sim",
+                "--steps",
+                "10",
+                *sets,
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     # export verifies parity of every graph against the PyTorch policy and fails above its bound
-    assert export_main([str(root / "run"), "-o", str(root / "model"), "--quantize", "none", "--verify-steps", "20"]) == 0
+    assert (
+        export_main([str(root / "run"), "-o", str(root / "model"), "--quantize", "none", "--verify-steps", "20"]) == 0
+    )
     return root / "model"
 
 
@@ -144,8 +178,29 @@ def test_dssp_sim_eval_runs_dp3(dp3_model, tmp_path, capsys):
     from dssp_sim.sim_cli import main as sim_main
 
     out = tmp_path / "eval.json"
-    assert sim_main(["eval", "--model", str(dp3_model), "--task", "tap", "--episodes", "1", "--seed", "5",
-                     "--json", str(out), "--threads", "1", "--no-progress", "--precision", "fp32"]) == 0
+    assert (
+        sim_main(
+            [
+                "eval",
+                "--model",
+                str(dp3_model),
+                "--task",
+                "tap",
+                "--episodes",
+                "1",
+                "--seed",
+                "5",
+                "--json",
+                str(out),
+                "--threads",
+                "1",
+                "--no-progress",
+                "--precision",
+                "fp32",
+            ]
+        )
+        == 0
+    )
     record = json.loads(out.read_text())
     assert record["n"] == 1 and record["episodes"][0]["steps"] > 0
 
@@ -154,8 +209,25 @@ def test_dssp_run_runs_dp3_on_the_embedded_simulation(dp3_model, tmp_path, capsy
     from hardware.cli.run import main as run_main
 
     log_dir = tmp_path / "log"
-    code = run_main(["--model", str(dp3_model), "--camera", "tabletop", "--can", "sim", "--max-steps", "30",
-                     "--log-dir", str(log_dir), "--seed", "0", "--threads", "1", "--quiet"])
+    code = run_main(
+        [
+            "--model",
+            str(dp3_model),
+            "--camera",
+            "tabletop",
+            "--can",
+            "sim",
+            "--max-steps",
+            "30",
+            "--log-dir",
+            str(log_dir),
+            "--seed",
+            "0",
+            "--threads",
+            "1",
+            "--quiet",
+        ]
+    )
     out = capsys.readouterr().out
     assert code == 0, out
     assert "ticks 30" in out and "ended by: max steps" in out

@@ -7,10 +7,15 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-TINY = {"n_points": 32, "state_dim": 3, "action_dim": 3, "models": {
-    "dssp": ("DSSP (tiny)", "tiny", ["model.d_model=32", "model.n_denoiser_layers=2"]),
-    "dp3_equal": ("DP3 (small)", "dp3_sim", ["model.unet_down_dims=[16,32]"]),
-}}
+TINY = {
+    "n_points": 32,
+    "state_dim": 3,
+    "action_dim": 3,
+    "models": {
+        "dssp": ("DSSP (tiny)", "tiny", ["model.d_model=32", "model.n_denoiser_layers=2"]),
+        "dp3_equal": ("DP3 (small)", "dp3_sim", ["model.unet_down_dims=[16,32]"]),
+    },
+}
 
 
 @pytest.fixture(scope="module")
@@ -51,7 +56,9 @@ def test_both_run_through_the_same_runtime_with_the_same_settings(bench, tmp_pat
     assert out.read_text() == before
 
 
-@pytest.mark.parametrize("extra", [["--repeats", "0"], ["--threads", "0"], ["--scale", "huge"], ["--precisions", "fp16"]])
+@pytest.mark.parametrize(
+    "extra", [["--repeats", "0"], ["--threads", "0"], ["--scale", "huge"], ["--precisions", "fp16"]]
+)
 def test_bad_input_is_one_error_line(bench, capsys, extra):
     try:
         code = bench.main(["--quick", *extra])

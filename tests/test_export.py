@@ -12,7 +12,10 @@ import onnx
 import onnxruntime as ort
 import pytest
 import torch
+from conftest import one_error_line
 
+from dssp_deploy.manifest import read_manifest
+from dssp_deploy.sessions import session_options
 from dssp_train.cli.train import main as train_main
 from dssp_train.config import apply_overrides, load_preset
 from dssp_train.data.synthetic import write_tap_count_dataset
@@ -22,15 +25,18 @@ from dssp_train.training import checkpoint as ckpt
 from dssp_train.training.checkpoint import load_policy
 from export import verify as verify_module
 from export import verify_report
-from dssp_deploy.manifest import read_manifest
-from dssp_deploy.sessions import session_options
 from export.to_onnx import export_model
 from export.to_onnx import main as export_main
 from export.verify import main as verify_main
 
-from conftest import one_error_line
-
-SMALL = ["model.d_model=32", "model.d_state=8", "model.n_denoiser_layers=2", "train.batch_size=4", "train.val_windows=4", "train.warmup_steps=1"]
+SMALL = [
+    "model.d_model=32",
+    "model.d_state=8",
+    "model.n_denoiser_layers=2",
+    "train.batch_size=4",
+    "train.val_windows=4",
+    "train.warmup_steps=1",
+]
 ONNX_TYPES = {"tensor(float)": "float32"}
 pytestmark = pytest.mark.filterwarnings("ignore:`torch.jit.load` is deprecated:DeprecationWarning")
 
@@ -42,8 +48,6 @@ def one_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(before)
-
-
 
 
 def leftovers(folder: Path) -> list[str]:
@@ -92,7 +96,9 @@ def test_export_passes_parity_over_1000_steps(exported, trained_run):
     out, summary = exported
     report = summary["verification"]
     assert report["passed"] and report["steps"] == 1000 and report["chunk_ticks_total"] == 334
-    assert report["chunks"] == verify_module.CHUNKS and report["chunk_ticks"][0] == 0 and report["chunk_ticks"][-1] == 999
+    assert (
+        report["chunks"] == verify_module.CHUNKS and report["chunk_ticks"][0] == 0 and report["chunk_ticks"][-1] == 999
+    )
     quantized = ["onnx_int8", "onnx_int8_fused", "onnx_int4", "onnx_int4_fused"]
     assert set(report["errors"]) == {"onnx", "onnx_fused", "torchscript"}
     assert sorted(report["streamed"]) == sorted(["onnx", "onnx_fused", *quantized])
@@ -103,13 +109,19 @@ def test_export_passes_parity_over_1000_steps(exported, trained_run):
     assert report["units"]["action"].startswith("normalised") and report["worst_at"]["backend"] in report["errors"]
     assert sorted(report["quantized"]) == sorted(quantized)
     for name, q in report["quantized"].items():  # each against the fp32 graphs of its own path, not bounded
-        assert q["against"] == ("onnx_fused" if name.endswith("_fused") else "onnx") and 0 < q["action_max_abs_vs_fp32"] < 1.0
+        assert (
+            q["against"] == ("onnx_fused" if name.endswith("_fused") else "onnx")
+            and 0 < q["action_max_abs_vs_fp32"] < 1.0
+        )
     manifest = read_manifest(out)
     assert manifest.verification["passed"]
     assert sorted(os.listdir(out)) == sorted(
         ["dssp_model.json", "history_step.pt", "denoiser.pt"]
-        + [f"{g}{suffix}.onnx" for g in ("history_step", "denoiser")
-           for suffix in ("", ".fused", ".int8", ".int8.fused", ".int4", ".int4.fused")]
+        + [
+            f"{g}{suffix}.onnx"
+            for g in ("history_step", "denoiser")
+            for suffix in ("", ".fused", ".int8", ".int8.fused", ".int4", ".int4.fused")
+        ]
     )
     assert leftovers(out.parent) == []
     assert manifest.source.sha256 == verify_module.file_sha256(trained_run / "model.safetensors")
@@ -143,7 +155,9 @@ def test_graphs_match_the_manifest_and_carry_metadata(exported):
             options = session_options(1, fused=kind.endswith("_fused"))
             session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
             for got, want in ((session.get_inputs(), spec["inputs"]), (session.get_outputs(), spec["outputs"])):
-                assert [(g.name, g.shape, ONNX_TYPES[g.type]) for g in got] == [(w["name"], w["shape"], w["dtype"]) for w in want]
+                assert [(g.name, g.shape, ONNX_TYPES[g.type]) for g in got] == [
+                    (w["name"], w["shape"], w["dtype"]) for w in want
+                ]
             props = {p.key: p.value for p in onnx.load(str(path), load_external_data=False).metadata_props}
             assert props["graph"] == graph and props["format_version"] == manifest.data["format_version"]
             assert props["source_sha256"] == manifest.source.sha256
@@ -164,7 +178,9 @@ def test_batch_and_point_count_are_dynamic(exported, trained_run):
     stream = StreamingPolicy(policy)
     stream.observe(pc, pos)
     want_chunk = stream.act(noise=noise)
-    states = {s["name"]: np.zeros([3, *s["shape"][1:]], np.float32) for s in manifest.graphs["history_step"]["inputs"][2:]}
+    states = {
+        s["name"]: np.zeros([3, *s["shape"][1:]], np.float32) for s in manifest.graphs["history_step"]["inputs"][2:]
+    }
     feeds = {"point_cloud": pc, "agent_pos": pos, **states}
     history = ort.InferenceSession(str(out / "history_step.onnx"), providers=["CPUExecutionProvider"])
     z_t, c_t, *_ = history.run(None, feeds)
@@ -242,7 +258,9 @@ def test_graphs_run_where_torch_cannot_be_imported(exported, trained_run):
 )
 def test_variants_export_and_verify(tmp_path, overrides):
     run = save_run(tmp_path / "run", *overrides)
-    summary = export_model(run, tmp_path / "model", fmt="onnx", quantize=(), verify_steps=60, threads=1, progress=lambda _: None)
+    summary = export_model(
+        run, tmp_path / "model", fmt="onnx", quantize=(), verify_steps=60, threads=1, progress=lambda _: None
+    )
     assert summary["verification"]["passed"] and set(summary["verification"]["errors"]) == {"onnx", "onnx_fused"}
     manifest = read_manifest(tmp_path / "model")
     names = lambda graph, io: [s["name"] for s in manifest.graphs[graph][io]]  # noqa: E731
@@ -255,13 +273,28 @@ def test_variants_export_and_verify(tmp_path, overrides):
         assert names("denoiser", "inputs") == ["c_t", "noise"]
     else:
         assert names("denoiser", "inputs") == ["c_t", "z_recent", "noise"]
-    assert sorted(os.listdir(tmp_path / "model")) == ["denoiser.fused.onnx", "denoiser.onnx", "dssp_model.json",
-                                                      "history_step.fused.onnx", "history_step.onnx"]
+    assert sorted(os.listdir(tmp_path / "model")) == [
+        "denoiser.fused.onnx",
+        "denoiser.onnx",
+        "dssp_model.json",
+        "history_step.fused.onnx",
+        "history_step.onnx",
+    ]
 
 
 def test_raw_weights_and_other_step_count(trained_run, tmp_path, capsys):
     out = tmp_path / "raw"
-    args = [str(trained_run), "-o", str(out), "--no-ema", "--denoise-steps", "4", "--format", "torchscript", "--skip-verify"]
+    args = [
+        str(trained_run),
+        "-o",
+        str(out),
+        "--no-ema",
+        "--denoise-steps",
+        "4",
+        "--format",
+        "torchscript",
+        "--skip-verify",
+    ]
     assert export_main(args) == 0
     manifest = read_manifest(out)
     assert manifest.source.weights == "checkpoint/model.safetensors" and not manifest.source.ema
@@ -287,8 +320,13 @@ def test_float64_check_measures_distances_to_float64_in_normalised_units(tmp_pat
             exact[name] = policy.normalizers["action"].unnormalize(x).numpy()
         policy.float()
     scale = policy.normalizers["action"].scale.numpy().astype(np.float64)  # (A,)
-    flagged = [{"step": 6, "inputs": {"torch": (context, recent, noise), "onnx": (context, other, noise)},
-                "chunks": {"torch": exact["torch"] + 3e-4, "onnx": exact["onnx"] - 5e-3}}]
+    flagged = [
+        {
+            "step": 6,
+            "inputs": {"torch": (context, recent, noise), "onnx": (context, other, noise)},
+            "chunks": {"torch": exact["torch"] + 3e-4, "onnx": exact["onnx"] - 5e-3},
+        }
+    ]
     check = verify_module._float64_check(policy, 10, scale, flagged)
     assert check["chunks_checked"] == 1 and check["steps"] == [6] and check["units"].startswith("normalised")
     assert check["torch_fp32_vs_float64"] == pytest.approx(3e-4 * scale.max(), rel=1e-3)
@@ -311,10 +349,17 @@ def test_action_errors_are_judged_in_normalised_units():
 def fake_report(torch64: float, graph64: float) -> dict:
     errors = {"onnx": {"z_t": 1e-6, "c_t": 2e-6, "state": 1e-6, "action": 4.4e-4}}
     return {
-        "passed": False, "bound": 1e-4, "worst": 4.4e-4, "errors": errors,
+        "passed": False,
+        "bound": 1e-4,
+        "worst": 4.4e-4,
+        "errors": errors,
         "worst_at": {"backend": "onnx", "figure": "action", "step": 417, "horizon": 2, "channel": 3},
-        "action_float64_check": {"chunks_checked": 1, "steps": [417], "torch_fp32_vs_float64": torch64,
-                                 "graphs_vs_float64": {"onnx": graph64}},
+        "action_float64_check": {
+            "chunks_checked": 1,
+            "steps": [417],
+            "torch_fp32_vs_float64": torch64,
+            "graphs_vs_float64": {"onnx": graph64},
+        },
     }
 
 
@@ -322,11 +367,15 @@ def test_the_failure_says_what_it_measured():
     with pytest.raises(verify_module.ParityError) as info:
         verify_report.check_report(fake_report(6.8e-5, 4.4e-4))
     message = str(info.value)
-    assert message.startswith("onnx action differs from PyTorch fp32 by 4.40e-04 normalised action units at step 417, "
-                              "horizon 2, action channel 3, above the bound 0.0001; ")
+    assert message.startswith(
+        "onnx action differs from PyTorch fp32 by 4.40e-04 normalised action units at step 417, "
+        "horizon 2, action channel 3, above the bound 0.0001; "
+    )
     assert "PyTorch fp32 is 6.8e-05 away and onnx 4.4e-04 (6.5x): the exported graph loses precision" in message
     assert "alike" not in message and "\n" not in message
-    with pytest.raises(verify_module.ParityError, match=r"\(1\.1x\): the model amplifies fp32 rounding as much in PyTorch"):
+    with pytest.raises(
+        verify_module.ParityError, match=r"\(1\.1x\): the model amplifies fp32 rounding as much in PyTorch"
+    ):
         verify_report.check_report(fake_report(4.0e-4, 4.4e-4))
 
 
@@ -378,8 +427,11 @@ def test_bad_run_directory_or_option(tmp_path, capsys, damage, extra, message):
     assert not (tmp_path / "out").exists()
 
 
-@pytest.mark.parametrize("prefix, value", [("history_encoder.", float("nan")), ("denoiser.", float("inf")),
-                                           ("normalizers.action.", float("-inf"))], ids=["nan", "inf", "normaliser"])
+@pytest.mark.parametrize(
+    "prefix, value",
+    [("history_encoder.", float("nan")), ("denoiser.", float("inf")), ("normalizers.action.", float("-inf"))],
+    ids=["nan", "inf", "normaliser"],
+)
 def test_non_finite_weights_are_named_and_nothing_is_written(tmp_path, capsys, prefix, value):
     from safetensors import safe_open
     from safetensors.torch import load_file, save_file
@@ -432,7 +484,23 @@ def test_output_path_rules(tmp_path, capsys):
     first = read_manifest(model).files
     assert export_main([str(run), "-o", str(model), *fast]) == 2
     assert "pass --force" in one_error_line(capsys.readouterr().err)
-    assert export_main([str(run), "-o", str(model), "--force", "--format", "both", "--skip-verify", "--quantize", "none", "--no-fused"]) == 0
+    assert (
+        export_main(
+            [
+                str(run),
+                "-o",
+                str(model),
+                "--force",
+                "--format",
+                "both",
+                "--skip-verify",
+                "--quantize",
+                "none",
+                "--no-fused",
+            ]
+        )
+        == 0
+    )
     assert set(read_manifest(model).files) == set(first) | {"history_step.pt", "denoiser.pt"}
     assert leftovers(tmp_path) == []
 

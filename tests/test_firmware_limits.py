@@ -106,8 +106,12 @@ def test_any_answer_reads_the_same_in_the_sdk_and_in_our_decoder(data):
 
 
 @settings(max_examples=100, deadline=None)
-@given(motor=st.integers(1, 6), max_angle=st.integers(-32768, 32767), min_angle=st.integers(-32768, 32767),
-       max_speed=st.integers(0, 65535))
+@given(
+    motor=st.integers(1, 6),
+    max_angle=st.integers(-32768, 32767),
+    min_angle=st.integers(-32768, 32767),
+    max_speed=st.integers(0, 65535),
+)
 def test_the_sdk_reads_our_answer_to_the_intended_integers(motor, max_angle, min_angle, max_speed):
     message = codec.MotorLimitFeedback(motor, max_angle * DECIDEG, min_angle * DECIDEG, max_speed / 1000)
     assert sdk_reads(message.to_frame()) == (motor, max_angle, min_angle, max_speed)
@@ -197,8 +201,10 @@ angles = st.floats(-3.2, 3.2, allow_nan=False)
 
 
 @settings(max_examples=300, deadline=None)
-@given(firmware=st.lists(st.tuples(angles, angles), min_size=6, max_size=6),
-       allowed=st.lists(st.tuples(angles, angles).map(sorted), min_size=6, max_size=6))
+@given(
+    firmware=st.lists(st.tuples(angles, angles), min_size=6, max_size=6),
+    allowed=st.lists(st.tuples(angles, angles).map(sorted), min_size=6, max_size=6),
+)
 def test_limits_are_accepted_iff_each_firmware_range_holds_the_safety_range(firmware, allowed):
     reported = FirmwareLimits([lo for lo, _ in firmware], [hi for _, hi in firmware], np.full(6, 3.0), arm="the arm")
     lower, upper = np.array(allowed).T
@@ -206,8 +212,11 @@ def test_limits_are_accepted_iff_each_firmware_range_holds_the_safety_range(firm
     problem = firmware_limits_problem(reported, lower, upper)
     assert (problem is None) == holds, problem
     if problem is not None:  # one line: the arm, the first bad joint, both ranges, what to do
-        j = next(i for i, ((lo, hi), (a_lo, a_hi)) in enumerate(zip(firmware, allowed))
-                 if not (lo < hi and lo <= a_lo and hi >= a_hi))
+        j = next(
+            i
+            for i, ((lo, hi), (a_lo, a_hi)) in enumerate(zip(firmware, allowed))
+            if not (lo < hi and lo <= a_lo and hi >= a_hi)
+        )
         assert problem.startswith(f"the arm: its firmware limits J{j + 1} to ") and "\n" not in problem
         assert f"{math.degrees(lower[j]):.1f}..{math.degrees(upper[j]):.1f} deg" in problem and "start again" in problem
 
@@ -228,9 +237,12 @@ def test_a_firmware_limit_within_half_its_step_of_the_safety_range_is_that_range
 
 
 @settings(max_examples=200, deadline=None)
-@given(answers=st.lists(st.lists(st.tuples(angles, angles), min_size=6, max_size=6), min_size=1, max_size=3),
-       allowed=st.lists(st.tuples(angles, st.floats(0.01, 3.0)).map(lambda a: (a[0], a[0] + a[1])), min_size=6,
-                        max_size=6))
+@given(
+    answers=st.lists(st.lists(st.tuples(angles, angles), min_size=6, max_size=6), min_size=1, max_size=3),
+    allowed=st.lists(
+        st.tuples(angles, st.floats(0.01, 3.0)).map(lambda a: (a[0], a[0] + a[1])), min_size=6, max_size=6
+    ),
+)
 def test_several_answers_on_one_bus_are_refused_iff_one_of_them_is(answers, allowed):
     """A repeated query, or a leader answering beside its follower: what is kept of a motor's answers is refused
     exactly when one of them alone would be — a bad answer is never hidden by a good one."""
@@ -295,8 +307,11 @@ def test_an_unanswered_query_is_refused_after_its_timeout_on_the_rigs_clock():
     clock, arm = FakeClock(start=100.0), QuietArm()
     arm.clock = clock
     rig = Rig(None, arm, np.eye(4), SafetyConfig(), clock=clock)
-    with pytest.raises(ArmError, match=r"^the arm on can0 did not answer the joint-limit query \(0x472\) for "
-                                       r"J1,J2,J3,J4,J5,J6 within 1 s.*start again$"):
+    with pytest.raises(
+        ArmError,
+        match=r"^the arm on can0 did not answer the joint-limit query \(0x472\) for "
+        r"J1,J2,J3,J4,J5,J6 within 1 s.*start again$",
+    ):
         rig.check_firmware_limits()
     assert 101.0 < clock.now() <= 101.005 + 1e-9 and rig_module.LIMIT_QUERY_TIMEOUT == 1.0
     np.testing.assert_allclose(np.diff(arm.queries), 0.1, atol=0.0051)
@@ -309,6 +324,7 @@ def test_an_unanswered_query_is_refused_after_its_timeout_on_the_rigs_clock():
 def test_the_limits_checked_are_the_rigs_less_the_safety_margin():
     """The range the firmware must hold is what the safety layer lets the policy command: a firmware J1 of
     +-149 deg is refused under the nominal +-150 deg, and accepted with a 0.05 rad margin or narrower rig limits."""
+
     class Reporting(QuietArm):
         def firmware_limits(self):
             reported = with_joint(0, -149.0, 149.0)
@@ -351,8 +367,21 @@ def test_dssp_run_refuses_corrupted_firmware_limits_before_enabling(kind, tmp_pa
 
     simulated_arms(monkeypatch, kind)
     log_dir = tmp_path / "log"
-    code = run_main(["--policy", "hold", "--camera", "tabletop", "--can", "sim", "--max-steps", "3", "--quiet",
-                     "--log-dir", str(log_dir)])
+    code = run_main(
+        [
+            "--policy",
+            "hold",
+            "--camera",
+            "tabletop",
+            "--can",
+            "sim",
+            "--max-steps",
+            "3",
+            "--quiet",
+            "--log-dir",
+            str(log_dir),
+        ]
+    )
     captured = capsys.readouterr()
     line = one_error_line(captured.err)
     _, joint, words = CORRUPTED[kind]
@@ -370,8 +399,21 @@ def test_dssp_run_refuses_corrupted_firmware_limits_before_enabling(kind, tmp_pa
 def test_dssp_run_with_healthy_limits_reads_them_then_enables(tmp_path, capsys):
     from hardware.cli.run import main as run_main
 
-    code = run_main(["--policy", "hold", "--camera", "tabletop", "--can", "sim", "--max-steps", "3", "--quiet",
-                     "--log-dir", str(tmp_path / "log")])
+    code = run_main(
+        [
+            "--policy",
+            "hold",
+            "--camera",
+            "tabletop",
+            "--can",
+            "sim",
+            "--max-steps",
+            "3",
+            "--quiet",
+            "--log-dir",
+            str(tmp_path / "log"),
+        ]
+    )
     assert code == 0, capsys.readouterr()
     ids = bus_ids(tmp_path / "log")
     enabled = ids.index(codec.MOTOR_ENABLE)
@@ -383,8 +425,22 @@ def test_a_dry_run_sends_nothing_not_even_the_query(tmp_path, capsys, monkeypatc
     from hardware.cli.run import main as run_main
 
     simulated_arms(monkeypatch, "empty")  # a dry run enables nothing: the limits are not its to judge
-    code = run_main(["--policy", "hold", "--camera", "tabletop", "--can", "sim", "--max-steps", "3", "--quiet",
-                     "--dry-run", "--log-dir", str(tmp_path / "log")])
+    code = run_main(
+        [
+            "--policy",
+            "hold",
+            "--camera",
+            "tabletop",
+            "--can",
+            "sim",
+            "--max-steps",
+            "3",
+            "--quiet",
+            "--dry-run",
+            "--log-dir",
+            str(tmp_path / "log"),
+        ]
+    )
     assert code == 0, capsys.readouterr()
     ids = bus_ids(tmp_path / "log")
     assert codec.MOTOR_LIMIT_QUERY not in ids and not MOTION_IDS & set(ids)
@@ -404,8 +460,19 @@ def test_dssp_record_refuses_a_follower_with_corrupted_limits_before_recording(k
     heard = can.Bus(interface="virtual", channel=name)
     follower.start()
     try:
-        code = record_main(["--camera", "tabletop", "--can", name, "--interface", "virtual",
-                            "--out", str(tmp_path / "demo.zarr"), "--quiet"])
+        code = record_main(
+            [
+                "--camera",
+                "tabletop",
+                "--can",
+                name,
+                "--interface",
+                "virtual",
+                "--out",
+                str(tmp_path / "demo.zarr"),
+                "--quiet",
+            ]
+        )
     finally:
         follower.stop()
     sent = []

@@ -5,13 +5,12 @@ import json
 
 import numpy as np
 import torch
+from conftest import SET_SMALL
 
 from dssp_deploy import OnnxPolicy
 from dssp_deploy.manifest import MANIFEST_NAME
 from dssp_train.config import apply_overrides, load_preset
 from dssp_train.model.history_encoder import HistoryEncoder
-
-from conftest import SET_SMALL
 
 
 def test_the_streaming_window_equals_the_training_path_from_a_zero_state():
@@ -39,10 +38,29 @@ def test_a_window_model_exports_verifies_and_runs(tmp_path, capsys):
 
     data = write_tap_count_dataset(tmp_path / "tap.zarr", 3, seed=0, n_points=24)
     run, model = tmp_path / "run", tmp_path / "model"
-    assert train_main(["--data", str(data), "--out", str(run), "--steps", "2", "--no-progress", *SET_SMALL,
-                       "--history-window", "5", "--no-holdout"]) == 0
+    assert (
+        train_main(
+            [
+                "--data",
+                str(data),
+                "--out",
+                str(run),
+                "--steps",
+                "2",
+                "--no-progress",
+                *SET_SMALL,
+                "--history-window",
+                "5",
+                "--no-holdout",
+            ]
+        )
+        == 0
+    )
     # parity against PyTorch's streaming step over 1000 ticks, the standard and fused graphs alike
-    assert export_main([str(run), "-o", str(model), "--quantize", "none", "--format", "onnx", "--verify-steps", "200"]) == 0
+    assert (
+        export_main([str(run), "-o", str(model), "--quantize", "none", "--format", "onnx", "--verify-steps", "200"])
+        == 0
+    )
     assert "PASS" in capsys.readouterr().out
     manifest = json.loads((model / MANIFEST_NAME).read_text())
     assert [s["name"] for s in manifest["graphs"]["history_step"]["inputs"][2:]] == ["z_window", "z_seen"]
@@ -51,5 +69,7 @@ def test_a_window_model_exports_verifies_and_runs(tmp_path, capsys):
     rng = np.random.default_rng(0)
     for _ in range(7):
         policy.observe(*policy.example_observation(rng, 24))
-    assert policy.state["z_window"].shape == (1, 5, manifest["model_config"]["d_model"]) and policy.state["z_seen"].tolist() == [[5.0]]
+    assert policy.state["z_window"].shape == (1, 5, manifest["model_config"]["d_model"]) and policy.state[
+        "z_seen"
+    ].tolist() == [[5.0]]
     assert np.isfinite(policy.act(seed=0)).all()

@@ -18,24 +18,28 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from test_data_outputs import ENV, run
+from test_data_outputs import one_line_error as data_outputs_error
 
-from dssp_data.data_cli import main as data_main
 from dssp_core.errors import DatasetError
 from dssp_core.files import copy_regular_file
 from dssp_core.staging import writer_lock_path
 from dssp_data.attributes import zarr_attrs
-from dssp_data.recording import RECORDED_KEYS, RecordingDataset, can_log_dir
+from dssp_data.data_cli import main as data_main
 from dssp_data.dataset_layout import Episode
+from dssp_data.recording import RECORDED_KEYS, RecordingDataset, can_log_dir
 from dssp_data.replay_buffer import ReplayBuffer
 from dssp_data.replay_buffer_writer import ReplayBufferWriter, dataset_lock, write_replay_buffer
 
-from test_data_outputs import ENV, run
-from test_data_outputs import one_line_error as data_outputs_error
-
 ROOT = Path(__file__).resolve().parents[1]
 SECRET = b"secret: not part of any dataset\n"
-SETTINGS = {"deadline": None, "derandomize": True, "database": None, "max_examples": 12,
-            "suppress_health_check": [HealthCheck.too_slow, HealthCheck.function_scoped_fixture]}
+SETTINGS = {
+    "deadline": None,
+    "derandomize": True,
+    "database": None,
+    "max_examples": 12,
+    "suppress_health_check": [HealthCheck.too_slow, HealthCheck.function_scoped_fixture],
+}
 
 
 def one_line_error(code, err, *fragments):
@@ -53,15 +57,22 @@ def one_line(exc_info, *fragments):
 
 def episodes(n, seed=0, steps=3):
     rng = np.random.default_rng(seed)
-    return [Episode(rng.normal(size=(steps, 4, 3)).astype(np.float32), rng.normal(size=(steps, 7)).astype(np.float32),
-                    rng.normal(size=(steps, 7)).astype(np.float32)) for _ in range(n)]
+    return [
+        Episode(
+            rng.normal(size=(steps, 4, 3)).astype(np.float32),
+            rng.normal(size=(steps, 7)).astype(np.float32),
+            rng.normal(size=(steps, 7)).astype(np.float32),
+        )
+        for _ in range(n)
+    ]
 
 
 def recorded(path: Path, n: int = 2, seed: int = 0) -> Path:
     """A recorded dataset with one CAN log per episode in ``path.can``."""
     infos = [{"index": i, "can_logs": {"can0": f"episode_{i:06d}.can0.blf"}, "problems": []} for i in range(n)]
-    write_replay_buffer(path, episodes(n, seed), attrs={"generator": "dssp-record", "control_rate_hz": 10.0,
-                                                        "episode_info": infos})
+    write_replay_buffer(
+        path, episodes(n, seed), attrs={"generator": "dssp-record", "control_rate_hz": 10.0, "episode_info": infos}
+    )
     can_log_dir(path).mkdir()
     for i in range(n):
         (can_log_dir(path) / f"episode_{i:06d}.can0.blf").write_bytes(b"log %d" % i)
@@ -167,8 +178,12 @@ def test_merge_and_split_copy_only_the_inputs_own_regular_files(tmp_path, capsys
     before = snapshot(tmp_path)
     started = time.monotonic()
     one_line_error(*run(capsys, "merge", tmp_path / "m.zarr", a, b)[::2], str(b.name))
-    one_line_error(*run(capsys, "split", b, "--train", tmp_path / "t.zarr", "--val", tmp_path / "v.zarr",
-                        "--val-episodes", "1")[::2], str(b.name))
+    one_line_error(
+        *run(capsys, "split", b, "--train", tmp_path / "t.zarr", "--val", tmp_path / "v.zarr", "--val-episodes", "1")[
+            ::2
+        ],
+        str(b.name),
+    )
     assert time.monotonic() - started < 30  # a FIFO is refused, never waited on
     assert snapshot(tmp_path) == before  # nothing written, no temporary left
     assert holds_secret(tmp_path, outside) == []
@@ -234,9 +249,11 @@ def test_appending_refuses_a_link_anywhere_in_the_dataset(tmp_path_factory, data
     shutil.rmtree(victim) if victim.is_dir() else victim.unlink()
     os.symlink(elsewhere, victim)
     before = snapshot(tmp), snapshot(elsewhere) if elsewhere.is_dir() else elsewhere.read_bytes()
-    for attempt in (lambda: ReplayBufferWriter(path).add_episode(episodes(1, seed=5)[0]),
-                    lambda: ReplayBufferWriter(path, repair_incomplete_tail=True),
-                    lambda: RecordingDataset(path, {"control_rate_hz": 10.0}, {}, ())):
+    for attempt in (
+        lambda: ReplayBufferWriter(path).add_episode(episodes(1, seed=5)[0]),
+        lambda: ReplayBufferWriter(path, repair_incomplete_tail=True),
+        lambda: RecordingDataset(path, {"control_rate_hz": 10.0}, {}, ()),
+    ):
         with pytest.raises(DatasetError) as info:
             attempt()
         one_line(info, "symbolic link")
@@ -323,16 +340,27 @@ def _crafted(kind: str, folder: Path) -> tuple[Path, str]:
     return path, "/pointcloud"
 
 
-@pytest.mark.parametrize("kind", ["external link", "external link to a group", "soft link through an external link",
-                                  "external storage", "virtual dataset"])
+@pytest.mark.parametrize(
+    "kind",
+    [
+        "external link",
+        "external link to a group",
+        "soft link through an external link",
+        "external storage",
+        "virtual dataset",
+    ],
+)
 def test_convert_refuses_hdf5_files_that_pull_in_other_files(tmp_path, capsys, kind):
     path, name = _crafted(kind, tmp_path / "task")
     with h5py.File(path, "r") as f:  # h5py itself reads the other file's values through it
         read = {"external link to a group": "observation/pc", "soft link through an external link": "pointcloud"}
         assert (f[read.get(kind, name)][()] == (9.0 if kind == "external storage" else 7.0)).all()
     before = snapshot(tmp_path)
-    one_line_error(*run(capsys, "convert", tmp_path / "task", "--out", tmp_path / "o.zarr")[::2],
-                   f"{path}: {name}", "self-contained")
+    one_line_error(
+        *run(capsys, "convert", tmp_path / "task", "--out", tmp_path / "o.zarr")[::2],
+        f"{path}: {name}",
+        "self-contained",
+    )
     assert snapshot(tmp_path) == before
 
 
@@ -355,8 +383,9 @@ def test_convert_reads_hdf5_data_within_bounds(tmp_path, capsys, kind, monkeypat
             fragment = "over the read budget of 4.0 GiB (DSSP_READ_BUDGET)"
     monkeypatch.delenv("DSSP_READ_BUDGET", raising=False)
     before = snapshot(tmp_path)
-    one_line_error(*run(capsys, "convert", tmp_path / "task", "--out", tmp_path / "o.zarr")[::2], "/pointcloud",
-                   fragment)
+    one_line_error(
+        *run(capsys, "convert", tmp_path / "task", "--out", tmp_path / "o.zarr")[::2], "/pointcloud", fragment
+    )
     assert snapshot(tmp_path) == before
 
 
@@ -368,8 +397,10 @@ def test_a_second_writer_of_a_dataset_is_refused_and_the_first_untouched(tmp_pat
     first.add_episode(episodes(1, seed=1)[0])
     before = snapshot(path)
     pid = f"pid {os.getpid()}"
-    for attempt, doing in ((lambda: ReplayBufferWriter(path), "is being written by"),
-                           (lambda: RecordingDataset(path, {"control_rate_hz": 10.0}, {}, ()), "is being written by")):
+    for attempt, doing in (
+        (lambda: ReplayBufferWriter(path), "is being written by"),
+        (lambda: RecordingDataset(path, {"control_rate_hz": 10.0}, {}, ()), "is being written by"),
+    ):
         with pytest.raises(DatasetError) as info:
             attempt()
         one_line(info, doing, pid, "one writer per dataset")
@@ -402,9 +433,26 @@ def test_a_second_collect_into_one_dataset_is_refused(tmp_path):
     lock = dataset_lock(out, flag="--out")
     try:
         before = snapshot(tmp_path)
-        proc = subprocess.run([sys.executable, "-m", "dssp_sim.sim_cli", "collect", "--task", "tap", "--episodes", "1",
-                               "--out", str(out), "--no-progress"], cwd=ROOT, env=ENV, capture_output=True, text=True,
-                              timeout=300)
+        proc = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "dssp_sim.sim_cli",
+                "collect",
+                "--task",
+                "tap",
+                "--episodes",
+                "1",
+                "--out",
+                str(out),
+                "--no-progress",
+            ],
+            cwd=ROOT,
+            env=ENV,
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
         assert proc.returncode == 2, proc.stderr
         lines = proc.stderr.strip().splitlines()
         assert len(lines) == 1 and lines[0].startswith("error: ") and f"pid {os.getpid()}" in lines[0], proc.stderr

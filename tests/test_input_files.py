@@ -20,11 +20,23 @@ from dssp_core.errors import DSSPError
 from dssp_core.files import SETTINGS_LIMIT, read_input_bytes
 from dssp_core.schema import JSON_MAX_DEPTH, Settings, all_schemas, json_depth, parse_json, read_json_object
 
-SETTINGS = {"deadline": None, "derandomize": True, "database": None, "max_examples": 40,
-            "suppress_health_check": [HealthCheck.function_scoped_fixture]}
+SETTINGS = {
+    "deadline": None,
+    "derandomize": True,
+    "database": None,
+    "max_examples": 40,
+    "suppress_health_check": [HealthCheck.function_scoped_fixture],
+}
 # Every module that defines a settings file kind (their Settings subclasses register when imported).
-SCHEMA_MODULES = ("hardware.safety", "dssp_data.observation", "dssp_data.pointcloud.extrinsics", "hardware.recorder",
-                  "hardware.camera.profiles", "hardware.calibration.charuco", "dssp_deploy.manifest")
+SCHEMA_MODULES = (
+    "hardware.safety",
+    "dssp_data.observation",
+    "dssp_data.pointcloud.extrinsics",
+    "hardware.recorder",
+    "hardware.camera.profiles",
+    "hardware.calibration.charuco",
+    "dssp_deploy.manifest",
+)
 
 
 def returns_within(call, seconds: float = 20.0):
@@ -84,8 +96,13 @@ def make(kind: str, folder: Path, payload: bytes = b"{}") -> Path:
     return path
 
 
-NOT_FILES = {"fifo": "FIFO", "directory": "directory", "socket": "socket", "device": "device",
-             "link-to-device": "device"}
+NOT_FILES = {
+    "fifo": "FIFO",
+    "directory": "directory",
+    "socket": "socket",
+    "device": "device",
+    "link-to-device": "device",
+}
 
 
 @settings(**SETTINGS)
@@ -162,8 +179,12 @@ HOSTILE = {
 def hostile(kind: str, folder: Path) -> Path:
     if kind in ("fifo", "device", "directory"):
         return make(kind, folder)
-    payload = {"large": b" " * (SETTINGS_LIMIT + 1) + b"{}", "not-utf8": b'{"a": "\xff"}',
-               "deep": b"[" * 10_000 + b"]" * 10_000, "twice": b'{"a": 1, "a": 2}'}[kind]
+    payload = {
+        "large": b" " * (SETTINGS_LIMIT + 1) + b"{}",
+        "not-utf8": b'{"a": "\xff"}',
+        "deep": b"[" * 10_000 + b"]" * 10_000,
+        "twice": b'{"a": 1, "a": 2}',
+    }[kind]
     return make("file", folder, payload)
 
 

@@ -25,8 +25,7 @@ def modules(package: str) -> list[str]:
 def test_import_contracts_hold():
     exe = shutil.which("lint-imports")
     assert exe is not None, "lint-imports is not installed (pip install -e '.[dev]')"
-    proc = subprocess.run([exe, str(ROOT / "pyproject.toml")], cwd=ROOT, capture_output=True, text=True,
-                          timeout=300)
+    proc = subprocess.run([exe, str(ROOT / "pyproject.toml")], cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-2000:]
     assert "broken" not in proc.stdout.lower().replace("0 broken", "")
 
@@ -54,8 +53,14 @@ print(json.dumps({"failed": failed, "loaded": sorted(m for m in sys.modules if m
 def test_every_robot_side_module_imports_where_torch_cannot():
     names = [m for p in ROBOT_SIDE for m in modules(p)]
     assert len(names) > 60
-    proc = subprocess.run([sys.executable, "-c", BLOCKED, json.dumps(names)], cwd=ROOT, capture_output=True, text=True,
-                          timeout=300, env={**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")})
+    proc = subprocess.run(
+        [sys.executable, "-c", BLOCKED, json.dumps(names)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")},
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     result = json.loads(proc.stdout.strip().splitlines()[-1])
     assert result == {"failed": {}, "loaded": []}
@@ -69,8 +74,9 @@ def test_module_names_are_unique_across_packages():
 def test_the_core_and_dssp_run_load_without_numpy():
     """dssp-run installs its stop handling before numpy and the runtime load (a Ctrl-C during those imports is a
     clean stop), so what it imports at module level — the core included — must not pull numpy in."""
-    code = ("import sys; import dssp_core.output_guard, dssp_core.staging, dssp_core.cli_runner, dssp_core.schema, "
-            "hardware.cli.run; print(sorted(m for m in sys.modules if m.split('.')[0] in ('numpy', 'zarr', 'torch')))")
+    code = (
+        "import sys; import dssp_core.output_guard, dssp_core.staging, dssp_core.cli_runner, dssp_core.schema, "
+        "hardware.cli.run; print(sorted(m for m in sys.modules if m.split('.')[0] in ('numpy', 'zarr', 'torch')))"
+    )
     proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0 and proc.stdout.strip() == "[]", proc.stdout + proc.stderr[-2000:]
-

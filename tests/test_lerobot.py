@@ -25,47 +25,63 @@ import pyarrow as pa
 import pyarrow.compute  # noqa: F401  (loaded here, not by the first conversion: the tests add no module)
 import pyarrow.parquet as pq
 import pytest
-
 from conftest import one_error_line, snapshot
+
 from dssp_data.data_cli import main as data_main
+from dssp_data.dataset_layout import Episode
 from dssp_data.lerobot import write as lerobot_write
 from dssp_data.observation import PIPER_CHANNELS, PointCloudConfig
 from dssp_data.pointcloud import frame_to_cloud, save_extrinsics
 from dssp_data.pointcloud.depth_frame import DepthFrame
 from dssp_data.replay_buffer import ReplayBuffer
 from dssp_data.replay_buffer_writer import write_replay_buffer
-from dssp_data.dataset_layout import Episode
 from dssp_train.data.synthetic import write_tap_count_dataset
 from hardware.camera.tabletop import Box, SimCamera, intrinsics_for
 
 # noiseless, so a frame is a function of its time; a box sliding along the table, so each frame is its own
-CAMERA = SimCamera(seed=0, intrinsics=intrinsics_for(160, 120, 70.0), noise_std=0.0, invalid_fraction=0.0,
-                   moving_box=lambda t: Box((0.1 + 0.2 * t, 0.0, 0.05), (0.08, 0.08, 0.1)))
+CAMERA = SimCamera(
+    seed=0,
+    intrinsics=intrinsics_for(160, 120, 70.0),
+    noise_std=0.0,
+    invalid_fraction=0.0,
+    moving_box=lambda t: Box((0.1 + 0.2 * t, 0.0, 0.05), (0.08, 0.08, 0.1)),
+)
 CLOUD = PointCloudConfig(n_points=128)
 FPS = 10
 LENGTHS = (6, 5)
 TASKS = ("push the box", "push the box back")
-INTRINSICS = {"fx": CAMERA.intrinsics.fx, "fy": CAMERA.intrinsics.fy, "ppx": CAMERA.intrinsics.ppx,
-              "ppy": CAMERA.intrinsics.ppy, "width": 160, "height": 120, "depth_unit": CAMERA.depth_unit}
+INTRINSICS = {
+    "fx": CAMERA.intrinsics.fx,
+    "fy": CAMERA.intrinsics.fy,
+    "ppx": CAMERA.intrinsics.ppx,
+    "ppy": CAMERA.intrinsics.ppy,
+    "width": 160,
+    "height": 120,
+    "depth_unit": CAMERA.depth_unit,
+}
 FEATURES = {
     "observation.state": {"dtype": "float32", "shape": [7], "names": list(PIPER_CHANNELS)},
     "action": {"dtype": "float32", "shape": [7], "names": list(PIPER_CHANNELS)},
-    "observation.depth": {"dtype": "uint16", "shape": [120, 160], "names": ["height", "width"],
-                          "info": {"camera_intrinsics": INTRINSICS}},
+    "observation.depth": {
+        "dtype": "uint16",
+        "shape": [120, 160],
+        "names": ["height", "width"],
+        "info": {"camera_intrinsics": INTRINSICS},
+    },
 }
 
 TORCHVISION = {
     "__init__.py": '"""A stand-in for torchvision: lerobot\'s dataset modules import it; nothing here may be called."""\n'
-                   "from . import io, transforms  # noqa: F401\n\n\n"
-                   "def set_video_backend(backend):\n"
-                   "    raise RuntimeError('the torchvision stand-in decodes no video')\n",
+    "from . import io, transforms  # noqa: F401\n\n\n"
+    "def set_video_backend(backend):\n"
+    "    raise RuntimeError('the torchvision stand-in decodes no video')\n",
     "io.py": "",
     "transforms.py": "class ToTensor:\n"
-                     "    def __call__(self, picture):\n"
-                     "        raise RuntimeError('the torchvision stand-in converts no image')\n",
+    "    def __call__(self, picture):\n"
+    "        raise RuntimeError('the torchvision stand-in converts no image')\n",
 }
 
-ORACLE = r'''
+ORACLE = r"""
 import json, sys
 import numpy as np
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
@@ -101,7 +117,7 @@ else:
         out[f"{name}|window"] = window[start + 1]["action"].numpy()
         out[f"{name}|last_pad"] = last["action_is_pad"].numpy()
     np.savez(job["out"], **out)
-'''
+"""
 
 
 def run_oracle(tmp: Path, job: dict) -> None:
@@ -112,11 +128,18 @@ def run_oracle(tmp: Path, job: dict) -> None:
         for name, text in TORCHVISION.items():
             (package / name).write_text(text)
     (tmp / "job.json").write_text(json.dumps(job))
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(package.parent), *filter(None, [os.environ.get("PYTHONPATH")])]),
-           "HF_HOME": str(tmp / "hf"), "HF_HUB_OFFLINE": "1", "HF_DATASETS_OFFLINE": "1", "OMP_NUM_THREADS": "1",
-           "TQDM_DISABLE": "1"}
-    proc = subprocess.run([sys.executable, "-c", ORACLE, str(tmp / "job.json")], capture_output=True, text=True,
-                          env=env, timeout=300)
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join([str(package.parent), *filter(None, [os.environ.get("PYTHONPATH")])]),
+        "HF_HOME": str(tmp / "hf"),
+        "HF_HUB_OFFLINE": "1",
+        "HF_DATASETS_OFFLINE": "1",
+        "OMP_NUM_THREADS": "1",
+        "TQDM_DISABLE": "1",
+    }
+    proc = subprocess.run(
+        [sys.executable, "-c", ORACLE, str(tmp / "job.json")], capture_output=True, text=True, env=env, timeout=300
+    )
     assert proc.returncode == 0, proc.stderr[-4000:]
 
 
@@ -126,8 +149,18 @@ def frames() -> dict[str, np.ndarray]:
     for e, n in enumerate(LENGTHS):
         t = np.arange(n) / FPS + 2.0 * e
         data[f"observation.depth/{e}"] = np.stack([CAMERA.render(s)[0] for s in t])
-        state = np.stack([0.3 * np.sin(t), 1.0 + 0.1 * t, -0.8 + 0 * t, 0.05 * t, 0.3 + 0 * t, -0.2 + 0 * t,
-                          0.5 + 0.4 * np.sin(2 * t)], axis=1).astype(np.float32)
+        state = np.stack(
+            [
+                0.3 * np.sin(t),
+                1.0 + 0.1 * t,
+                -0.8 + 0 * t,
+                0.05 * t,
+                0.3 + 0 * t,
+                -0.2 + 0 * t,
+                0.5 + 0.4 * np.sin(2 * t),
+            ],
+            axis=1,
+        ).astype(np.float32)
         data[f"observation.state/{e}"] = state
         data[f"action/{e}"] = (state + 0.01).astype(np.float32)
     return data
@@ -140,8 +173,18 @@ def source(tmp_path_factory):
     data = frames()
     np.savez(tmp / "frames.npz", **data)
     root = tmp / "source"
-    run_oracle(tmp, {"mode": "write", "frames": str(tmp / "frames.npz"), "features": FEATURES, "root": str(root),
-                     "fps": FPS, "lengths": list(LENGTHS), "tasks": list(TASKS)})
+    run_oracle(
+        tmp,
+        {
+            "mode": "write",
+            "frames": str(tmp / "frames.npz"),
+            "features": FEATURES,
+            "root": str(root),
+            "fps": FPS,
+            "lengths": list(LENGTHS),
+            "tasks": list(TASKS),
+        },
+    )
     return root, data
 
 
@@ -199,8 +242,11 @@ def test_exports_are_read_back_by_lerobot(source, tmp_path, capsys, calibration,
         code, stdout, stderr = cli(capsys, "export", dataset, "--to", "lerobot", "--out", target)
         assert code == 0 and stderr == "", stderr
         assert "LeRobotDataset('local/" in stdout
-    assert sorted(p.name for p in (exported["local/tap"] / "data/chunk-000").iterdir()) == \
-        ["file-000.parquet", "file-001.parquet", "file-002.parquet"]
+    assert sorted(p.name for p in (exported["local/tap"] / "data/chunk-000").iterdir()) == [
+        "file-000.parquet",
+        "file-001.parquet",
+        "file-002.parquet",
+    ]
 
     # and back: the export (DATA_FILE_MB is still 0: one file per episode) converts to the dataset it was made from
     split = tmp_path / "demo_split"
@@ -210,12 +256,32 @@ def test_exports_are_read_back_by_lerobot(source, tmp_path, capsys, calibration,
     for key in ("point_cloud", "state", "action"):
         np.testing.assert_array_equal(getattr(again, key), getattr(buffer, key))
     assert list(again.episode_lengths()) == list(LENGTHS)
-    assert {k: again.attrs[k] for k in ("state_layout", "action_layout", "action_convention", "episode_tasks",
-                                        "camera_intrinsics", "camera_depth_unit", "control_rate_hz")} == \
-        {k: buffer.attrs[k] for k in ("state_layout", "action_layout", "action_convention", "episode_tasks",
-                                      "camera_intrinsics", "camera_depth_unit", "control_rate_hz")}
-    run_oracle(tmp_path, {"mode": "read", "roots": {k: str(v) for k, v in exported.items()},
-                          "out": str(tmp_path / "read.npz")})
+    assert {
+        k: again.attrs[k]
+        for k in (
+            "state_layout",
+            "action_layout",
+            "action_convention",
+            "episode_tasks",
+            "camera_intrinsics",
+            "camera_depth_unit",
+            "control_rate_hz",
+        )
+    } == {
+        k: buffer.attrs[k]
+        for k in (
+            "state_layout",
+            "action_layout",
+            "action_convention",
+            "episode_tasks",
+            "camera_intrinsics",
+            "camera_depth_unit",
+            "control_rate_hz",
+        )
+    }
+    run_oracle(
+        tmp_path, {"mode": "read", "roots": {k: str(v) for k, v in exported.items()}, "out": str(tmp_path / "read.npz")}
+    )
     read = np.load(tmp_path / "read.npz")
 
     # the converted LeRobot dataset, round trip: LeRobot -> zarr -> LeRobot gives LeRobot the same frames back
@@ -230,10 +296,11 @@ def test_exports_are_read_back_by_lerobot(source, tmp_path, capsys, calibration,
     assert list(read["local/demo|task"]) == [TASKS[0]] * LENGTHS[0] + [TASKS[1]] * LENGTHS[1]
     np.testing.assert_array_equal(read["local/demo|episode_index"], np.repeat([0, 1], LENGTHS))
     np.testing.assert_array_equal(read["local/demo|frame_index"], np.concatenate([np.arange(n) for n in LENGTHS]))
-    np.testing.assert_allclose(read["local/demo|timestamp"],
-                               np.concatenate([np.arange(n) / FPS for n in LENGTHS]).astype(np.float32))
+    np.testing.assert_allclose(
+        read["local/demo|timestamp"], np.concatenate([np.arange(n) / FPS for n in LENGTHS]).astype(np.float32)
+    )
     start = LENGTHS[0]
-    np.testing.assert_array_equal(read["local/demo|window"], buffer.action[start + 1:start + 3])
+    np.testing.assert_array_equal(read["local/demo|window"], buffer.action[start + 1 : start + 3])
     assert read["local/demo|last_pad"].tolist() == [False, True]  # past the episode's end
     for key, wrote in FEATURES.items():  # the features LeRobot wrote come back as they were
         assert {k: list(v) if k == "shape" else v for k, v in meta["features"][key].items() if k in wrote} == wrote, key
@@ -256,8 +323,9 @@ def test_exports_are_read_back_by_lerobot(source, tmp_path, capsys, calibration,
         np.testing.assert_allclose(ours_stats[key]["mean"], their_stats[key]["mean"], rtol=1e-5, atol=1e-6)
         np.testing.assert_allclose(ours_stats[key]["std"], their_stats[key]["std"], rtol=1e-4, atol=5e-4)  # channels
     loaded = json.loads(str(read["local/demo|stats"]))
-    np.testing.assert_allclose(loaded["observation.pointcloud"]["mean"], buffer.point_cloud.reshape(-1, 3).mean(0),
-                               rtol=1e-5)
+    np.testing.assert_allclose(
+        loaded["observation.pointcloud"]["mean"], buffer.point_cloud.reshape(-1, 3).mean(0), rtol=1e-5
+    )
 
     # a synthetic dataset: no depth, one task
     tap_buffer = ReplayBuffer.load(tap)
@@ -349,15 +417,18 @@ def _state_shape(info):
     info["features"]["observation.state"]["shape"] = [8]
 
 
-@pytest.mark.parametrize("edit, message", [
-    (_no_intrinsics, "observation.depth has no camera intrinsics; add info.camera_intrinsics"),
-    (_video_depth, "observation.depth is stored as video; depth in a video is not supported (the codecs are lossy"),
-    (_version_2, "codebase_version 'v2.1'; only v3 datasets are read"),
-    (_outside, "the data file '../elsewhere/chunk-000/file-000.parquet' leads outside the dataset's folder"),
-    (_absolute, "the data file '/tmp/chunk-000/file-000.parquet' leads outside the dataset's folder"),
-    (_no_state, "no feature 'observation.state' in meta/info.json"),
-    (_state_shape, "observation.state has 7 values where its shape [8] says 8"),
-])
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (_no_intrinsics, "observation.depth has no camera intrinsics; add info.camera_intrinsics"),
+        (_video_depth, "observation.depth is stored as video; depth in a video is not supported (the codecs are lossy"),
+        (_version_2, "codebase_version 'v2.1'; only v3 datasets are read"),
+        (_outside, "the data file '../elsewhere/chunk-000/file-000.parquet' leads outside the dataset's folder"),
+        (_absolute, "the data file '/tmp/chunk-000/file-000.parquet' leads outside the dataset's folder"),
+        (_no_state, "no feature 'observation.state' in meta/info.json"),
+        (_state_shape, "observation.state has 7 values where its shape [8] says 8"),
+    ],
+)
 def test_refusals_are_one_line_and_write_nothing(source, tmp_path, capsys, calibration, edit, message):
     root, _ = source
     copy = edited(root, tmp_path, edit)
@@ -390,8 +461,10 @@ def test_more_refusals(source, tmp_path, capsys, calibration):
     assert not out.exists()
     # export: a dataset without a control rate, and one whose rate is no whole number of frames per second
     episode = Episode(np.zeros((3, 8, 3), np.float32), np.zeros((3, 2), np.float32), np.zeros((3, 2), np.float32))
-    for attrs, message in (({}, "has no control_rate_hz attribute"), ({"control_rate_hz": 7.5}, "is 7.5; LeRobot's fps "
-                                                                                             "is a whole number")):
+    for attrs, message in (
+        ({}, "has no control_rate_hz attribute"),
+        ({"control_rate_hz": 7.5}, "is 7.5; LeRobot's fps is a whole number"),
+    ):
         plain = tmp_path / "plain.zarr"
         write_replay_buffer(plain, [episode], attrs=attrs)
         code, _, stderr = cli(capsys, "export", plain, "--to", "lerobot", "--out", tmp_path / "plain_lerobot")

@@ -34,25 +34,27 @@ ROOT = Path(__file__).resolve().parents[1]
 PLUGIN = ROOT / "plugins" / "lerobot_policy_dssp"
 
 _REFUSE = "    raise RuntimeError('the torchvision stand-in {}')\n"
-_REFUSING_MODULE = ('"""Imported by lerobot\'s processors at module level; nothing of it is called."""\n\n\n'
-                    "def __getattr__(name):\n"
-                    "    def _refuse(*args, **kwargs):\n"
-                    "        raise RuntimeError(f'the torchvision stand-in has no {name}')\n"
-                    "    return _refuse\n")
+_REFUSING_MODULE = (
+    '"""Imported by lerobot\'s processors at module level; nothing of it is called."""\n\n\n'
+    "def __getattr__(name):\n"
+    "    def _refuse(*args, **kwargs):\n"
+    "        raise RuntimeError(f'the torchvision stand-in has no {name}')\n"
+    "    return _refuse\n"
+)
 TORCHVISION = {  # what lerobot-train imports of torchvision; every name raises if called (none is, for array data)
     "__init__.py": '"""A stand-in for torchvision: lerobot imports it; nothing here may be called."""\n'
-                   "from . import io, transforms  # noqa: F401\n\n\n"
-                   "def set_video_backend(backend):\n" + _REFUSE.format("decodes no video"),
+    "from . import io, transforms  # noqa: F401\n\n\n"
+    "def set_video_backend(backend):\n" + _REFUSE.format("decodes no video"),
     "io.py": "",
     "transforms/__init__.py": "from . import functional, v2  # noqa: F401\n\n\n"
-                              "class ToTensor:\n"
-                              "    def __call__(self, picture):\n" + _REFUSE.replace("    r", "        r").format(
-                                  "converts no image"),
+    "class ToTensor:\n"
+    "    def __call__(self, picture):\n" + _REFUSE.replace("    r", "        r").format("converts no image"),
     "transforms/functional.py": _REFUSING_MODULE,
     "transforms/v2/__init__.py": "import torch\n\nfrom . import functional  # noqa: F401\n\n\n"
-                                 "class Transform(torch.nn.Module):\n"
-                                 "    def forward(self, *inputs):\n" + _REFUSE.replace("    r", "        r").format(
-                                     "transforms nothing") + "\n\nclass Identity(Transform):\n    pass\n",
+    "class Transform(torch.nn.Module):\n"
+    "    def forward(self, *inputs):\n"
+    + _REFUSE.replace("    r", "        r").format("transforms nothing")
+    + "\n\nclass Identity(Transform):\n    pass\n",
     "transforms/v2/functional.py": _REFUSING_MODULE,
 }
 
@@ -127,7 +129,7 @@ if job["check"]:
 # The saved LeRobot policy back through LeRobot: its processors, select_action on the dataset's first frames, and
 # predict_action_chunk (the streaming path) against the training path: the denoiser's prefix, and the chunk of the
 # same frames and noise (after 3 steps the chunk is much the same whatever the frames: the prefix is the check).
-RELOAD = r'''
+RELOAD = r"""
 import json, sys
 import torch
 from lerobot.utils.import_utils import register_third_party_plugins
@@ -160,7 +162,7 @@ for i, batch in enumerate(frames):
     worst = max(worst, float((streamed - reference).abs().max()), float((prefix - trained).abs().max()))
 print(json.dumps({"type": cfg.type, "shape": list(actions[0].shape), "steps": int(policy.optimizer_steps),
                   "finite": all(bool(torch.isfinite(a).all()) for a in actions), "streamed_vs_training": worst}))
-'''
+"""
 
 
 def write_plugin_path(tmp: Path) -> list[str]:
@@ -178,17 +180,36 @@ def write_plugin_path(tmp: Path) -> list[str]:
 
 
 def lerobot(tmp: Path, paths: list[str], script: str, *args) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([*paths, *filter(None, [os.environ.get("PYTHONPATH")])]),
-           "HF_HOME": str(tmp / "hf"), "HF_HUB_OFFLINE": "1", "HF_DATASETS_OFFLINE": "1", "OMP_NUM_THREADS": "1",
-           "TQDM_DISABLE": "1", "WANDB_MODE": "disabled"}
-    return subprocess.run([sys.executable, "-c", script, *map(str, args)], capture_output=True, text=True, env=env,
-                          cwd=ROOT, timeout=300)
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join([*paths, *filter(None, [os.environ.get("PYTHONPATH")])]),
+        "HF_HOME": str(tmp / "hf"),
+        "HF_HUB_OFFLINE": "1",
+        "HF_DATASETS_OFFLINE": "1",
+        "OMP_NUM_THREADS": "1",
+        "TQDM_DISABLE": "1",
+        "WANDB_MODE": "disabled",
+    }
+    return subprocess.run(
+        [sys.executable, "-c", script, *map(str, args)], capture_output=True, text=True, env=env, cwd=ROOT, timeout=300
+    )
 
 
 def train_args(repo_id: str, root: Path, out: Path) -> list[str]:
-    return [f"--dataset.repo_id={repo_id}", f"--dataset.root={root}", "--policy.type=dssp", "--steps=3",
-            "--batch_size=2", "--num_workers=0", f"--output_dir={out}", "--wandb.enable=false", "--policy.device=cpu",
-            "--policy.push_to_hub=false", "--save_freq=3", "--seed=0"]
+    return [
+        f"--dataset.repo_id={repo_id}",
+        f"--dataset.root={root}",
+        "--policy.type=dssp",
+        "--steps=3",
+        "--batch_size=2",
+        "--num_workers=0",
+        f"--output_dir={out}",
+        "--wandb.enable=false",
+        "--policy.device=cpu",
+        "--policy.push_to_hub=false",
+        "--save_freq=3",
+        "--seed=0",
+    ]
 
 
 @pytest.fixture(scope="module")
@@ -208,27 +229,43 @@ def test_lerobot_train_then_export_to_onnx(setup, tmp_path):
     assert proc.returncode == 0, proc.stderr[-4000:]
     pretrained = out / "checkpoints" / "last" / "pretrained_model"
     run = pretrained / "dssp_run"
-    assert {p.name for p in pretrained.iterdir()} >= {"config.json", "model.safetensors", "policy_preprocessor.json",
-                                                     "dssp_run"}
-    assert {str(p.relative_to(run)) for p in run.rglob("*")} == {"config.json", "model.safetensors", "checkpoint",
-                                                                "checkpoint/model.safetensors"}
+    assert {p.name for p in pretrained.iterdir()} >= {
+        "config.json",
+        "model.safetensors",
+        "policy_preprocessor.json",
+        "dssp_run",
+    }
+    assert {str(p.relative_to(run)) for p in run.rglob("*")} == {
+        "config.json",
+        "model.safetensors",
+        "checkpoint",
+        "checkpoint/model.safetensors",
+    }
     config = json.loads((run / "config.json").read_text())
     data = ReplayBuffer.load(source)
     assert config["preset"] == "tiny" and config["control_rate_hz"] == 10.0
-    assert {k: config["model"][k] for k in ("state_dim", "action_dim", "n_points")} == \
-        {"state_dim": data.state_dim, "action_dim": data.action_dim, "n_points": data.n_points}
+    assert {k: config["model"][k] for k in ("state_dim", "action_dim", "n_points")} == {
+        "state_dim": data.state_dim,
+        "action_dim": data.action_dim,
+        "n_points": data.n_points,
+    }
     assert json.loads((pretrained / "config.json").read_text())["run_config"] == config  # recorded by LeRobot too
 
     model = tmp_path / "model"
-    code = export_main([str(run), "-o", str(model), "--quantize", "none", "--format", "onnx", "--verify-steps", "40",
-                        "--threads", "1"])
+    code = export_main(
+        [str(run), "-o", str(model), "--quantize", "none", "--format", "onnx", "--verify-steps", "40", "--threads", "1"]
+    )
     assert code == 0
     manifest = json.loads((model / "dssp_model.json").read_text())
-    assert manifest["contract"]["control_rate_hz"] == 10.0 and manifest["source"]["step"] == 3 and manifest["source"]["ema"]
+    assert (
+        manifest["contract"]["control_rate_hz"] == 10.0
+        and manifest["source"]["step"] == 3
+        and manifest["source"]["ema"]
+    )
     policy = OnnxPolicy(model, threads=1)
     episode = data.episode(0)
     for k in range(3):
-        policy.observe(episode.point_cloud[k:k + 1], episode.state[k:k + 1])
+        policy.observe(episode.point_cloud[k : k + 1], episode.state[k : k + 1])
     chunk = policy.act(seed=0)
     assert chunk.shape == (1, config["model"]["horizon"], data.action_dim) and np.isfinite(chunk).all()
 
@@ -245,27 +282,51 @@ def depth(setup) -> dict:
     """One episode of the simulated tabletop camera's depth (160x120, noiseless) and a 7-value state: the frames
     (.npz), the camera's calibration file and its intrinsics as a LeRobot depth feature's info holds them."""
     tmp = setup[0]
-    camera = SimCamera(seed=0, intrinsics=intrinsics_for(160, 120, 70.0), noise_std=0.0, invalid_fraction=0.0,
-                       moving_box=lambda t: Box((0.1 + 0.2 * t, 0.0, 0.05), (0.08, 0.08, 0.1)))
+    camera = SimCamera(
+        seed=0,
+        intrinsics=intrinsics_for(160, 120, 70.0),
+        noise_std=0.0,
+        invalid_fraction=0.0,
+        moving_box=lambda t: Box((0.1 + 0.2 * t, 0.0, 0.05), (0.08, 0.08, 0.1)),
+    )
     t = np.arange(6) / 10
     depth = np.stack([camera.render(s)[0] for s in t])
     state = np.stack([np.sin(t + k) for k in range(7)], axis=1).astype(np.float32)
     np.savez(tmp / "frames.npz", depth=depth, state=state)
     save_extrinsics(tmp / "calib.json", camera.camera_to_base)
     k = camera.intrinsics
-    return {"frames": tmp / "frames.npz", "calib": tmp / "calib.json", "intrinsics": {
-        "fx": k.fx, "fy": k.fy, "ppx": k.ppx, "ppy": k.ppy, "width": k.width, "height": k.height,
-        "depth_unit": camera.depth_unit}}
+    return {
+        "frames": tmp / "frames.npz",
+        "calib": tmp / "calib.json",
+        "intrinsics": {
+            "fx": k.fx,
+            "fy": k.fy,
+            "ppx": k.ppx,
+            "ppy": k.ppy,
+            "width": k.width,
+            "height": k.height,
+            "depth_unit": camera.depth_unit,
+        },
+    }
 
 
 def train_on_depth(setup, depth: dict, cases: list[tuple[Path, Path, bool, list[str]]], check=None):
     """lerobot-train on depth datasets, in one child: each case (dataset root, output dir, whether the depth
     feature has intrinsics, more arguments)."""
     tmp, paths = setup[:2]
-    job = {"frames": str(depth["frames"]), "check": str(check) if check else None,
-           "out": str(cases[0][1] / "check.npz"),
-           "cases": [{"root": str(root), "intrinsics": depth["intrinsics"] if intrinsics else None,
-                      "argv": [*train_args("local/depth", root, out), *args]} for root, out, intrinsics, args in cases]}
+    job = {
+        "frames": str(depth["frames"]),
+        "check": str(check) if check else None,
+        "out": str(cases[0][1] / "check.npz"),
+        "cases": [
+            {
+                "root": str(root),
+                "intrinsics": depth["intrinsics"] if intrinsics else None,
+                "argv": [*train_args("local/depth", root, out), *args],
+            }
+            for root, out, intrinsics, args in cases
+        ],
+    }
     return lerobot(tmp, paths, DEPTH_TRAIN, json.dumps(job))
 
 
@@ -281,16 +342,21 @@ def test_lerobot_train_on_depth_makes_the_robots_clouds(setup, depth, tmp_path):
     assert proc.returncode == 0, proc.stderr[-4000:]
     result = json.loads(proc.stdout.strip().splitlines()[-1])
     assert "observation.depth" not in result["keys"] and "observation.pointcloud" in result["keys"]
-    assert result["refusal"].startswith("the depth frame observation.depth at dataset index 6 (episode 0) has no "
-                                        "point in the crop box"), result["refusal"]
+    assert result["refusal"].startswith(
+        "the depth frame observation.depth at dataset index 6 (episode 0) has no point in the crop box"
+    ), result["refusal"]
 
     cloud_config = PointCloudConfig(n_points=64)  # the tiny preset's clouds
     run = pretrained / "dssp_run"
     config = json.loads((run / "config.json").read_text())
     assert config["observation"]["pointcloud"] == cloud_config.to_dict()
     assert config["observation"]["frame"] == FRAME_ROBOT_BASE
-    assert {k: config["model"][k] for k in ("state_dim", "action_dim", "n_points", "point_dim")} == \
-        {"state_dim": 7, "action_dim": 7, "n_points": 64, "point_dim": 3}
+    assert {k: config["model"][k] for k in ("state_dim", "action_dim", "n_points", "point_dim")} == {
+        "state_dim": 7,
+        "action_dim": 7,
+        "n_points": 64,
+        "point_dim": 3,
+    }
     saved = json.loads((pretrained / "config.json").read_text())
     pinhole = {k: intr[k] for k in ("width", "height", "fx", "fy", "ppx", "ppy")}
     assert saved["depth_camera"]["intrinsics"] == pinhole
@@ -301,47 +367,86 @@ def test_lerobot_train_on_depth_makes_the_robots_clouds(setup, depth, tmp_path):
     np.testing.assert_array_equal(check["depth"], data["depth"][2])
     camera_to_base = load_extrinsics(calib)
     intrinsics = Intrinsics(**pinhole)
-    expected, _ = frame_to_cloud(DepthFrame(depth=data["depth"][2], depth_unit=intr["depth_unit"],
-                                            intrinsics=intrinsics, timestamp=0.0, frame_number=2),
-                                 cloud_config, camera_to_base)
+    expected, _ = frame_to_cloud(
+        DepthFrame(
+            depth=data["depth"][2], depth_unit=intr["depth_unit"], intrinsics=intrinsics, timestamp=0.0, frame_number=2
+        ),
+        cloud_config,
+        camera_to_base,
+    )
     assert check["cloud"].dtype == np.float32 and check["cloud"].tobytes() == expected.tobytes()
     assert check["action"].shape == (1, 7) and np.isfinite(check["action"]).all()
     # a training sample's clouds: frame 2 is the 8th of its window (--policy.history=8); the 5 frames before the
     # episode's start are padding, with the cloud of the first frame
-    clouds = [frame_to_cloud(DepthFrame(depth=d, depth_unit=intr["depth_unit"], intrinsics=intrinsics, timestamp=0.0,
-                                        frame_number=0), cloud_config, camera_to_base)[0] for d in data["depth"]]
+    clouds = [
+        frame_to_cloud(
+            DepthFrame(depth=d, depth_unit=intr["depth_unit"], intrinsics=intrinsics, timestamp=0.0, frame_number=0),
+            cloud_config,
+            camera_to_base,
+        )[0]
+        for d in data["depth"]
+    ]
     window, pad = check["window"], check["window_pad"]
     assert pad.tolist() == [True] * 5 + [False] * (len(pad) - 5)
     for j in range(len(window)):
         np.testing.assert_array_equal(window[j], clouds[max(j - 5, 0)])
 
     model = tmp_path / "model"
-    assert export_main([str(run), "-o", str(model), "--quantize", "none", "--format", "onnx", "--verify-steps", "20",
-                        "--threads", "1"]) == 0
+    assert (
+        export_main(
+            [
+                str(run),
+                "-o",
+                str(model),
+                "--quantize",
+                "none",
+                "--format",
+                "onnx",
+                "--verify-steps",
+                "20",
+                "--threads",
+                "1",
+            ]
+        )
+        == 0
+    )
     manifest = json.loads((model / "dssp_model.json").read_text())
     assert manifest["contract"]["observation"]["frame"] == FRAME_ROBOT_BASE
     policy = OnnxPolicy(model, threads=1)
     for k in range(3):
-        cloud, _ = frame_to_cloud(DepthFrame(depth=data["depth"][k], depth_unit=intr["depth_unit"],
-                                             intrinsics=intrinsics, timestamp=0.0, frame_number=k),
-                                  cloud_config, camera_to_base)
-        policy.observe(cloud[None], data["state"][k:k + 1])
+        cloud, _ = frame_to_cloud(
+            DepthFrame(
+                depth=data["depth"][k],
+                depth_unit=intr["depth_unit"],
+                intrinsics=intrinsics,
+                timestamp=0.0,
+                frame_number=k,
+            ),
+            cloud_config,
+            camera_to_base,
+        )
+        policy.observe(cloud[None], data["state"][k : k + 1])
     chunk = policy.act(seed=0)
     assert chunk.shape == (1, config["model"]["horizon"], 7) and np.isfinite(chunk).all()
 
 
 def test_depth_without_its_camera_is_refused(setup, depth, tmp_path):
     """Depth without its intrinsics, and depth with them but no --policy.extrinsics: one line each, no checkpoint."""
-    cases = [(tmp_path / f"depth{i}", tmp_path / f"out{i}", intrinsics, [])
-             for i, intrinsics in enumerate((False, True))]
+    cases = [
+        (tmp_path / f"depth{i}", tmp_path / f"out{i}", intrinsics, []) for i, intrinsics in enumerate((False, True))
+    ]
     proc = train_on_depth(setup, depth, cases)
     assert proc.returncode == 0, proc.stderr[-4000:]
     runs = proc.stderr.split("-- end of case")[:2]
     lasts = [run.strip().splitlines()[-1] for run in runs]
-    assert lasts[0].startswith("ValueError: the dataset's depth feature observation.depth has no info.camera_intrinsics"
-                               " {fx, fy, ppx, ppy, width, height, depth_unit}"), proc.stderr[-4000:]
-    assert lasts[1].startswith("ValueError: training on the depth feature observation.depth needs the camera's pose: "
-                               "give --policy.extrinsics=calib.json"), proc.stderr[-4000:]
+    assert lasts[0].startswith(
+        "ValueError: the dataset's depth feature observation.depth has no info.camera_intrinsics"
+        " {fx, fy, ppx, ppy, width, height, depth_unit}"
+    ), proc.stderr[-4000:]
+    assert lasts[1].startswith(
+        "ValueError: training on the depth feature observation.depth needs the camera's pose: "
+        "give --policy.extrinsics=calib.json"
+    ), proc.stderr[-4000:]
     assert all("Traceback" in run for run in runs)
     assert not any((out / "checkpoints").exists() for _, out, _, _ in cases)
 
@@ -373,7 +478,9 @@ def test_a_history_out_of_range_or_over_the_read_budget_is_refused_before_traini
     lasts = [run.strip().splitlines()[-1] for run in runs]
     assert lasts[0] == "ValueError: --policy.history must be in [1, 100000] frames, got 0", runs[0][-3000:]
     assert lasts[1].startswith("ValueError: a training sample of --policy.history=100000 frames"), runs[1][-3000:]
-    assert "over the read budget of 8.0 MiB (DSSP_READ_BUDGET): lower --policy.history (the longest episode has " \
-           "40 frames)" in lasts[1]
+    assert (
+        "over the read budget of 8.0 MiB (DSSP_READ_BUDGET): lower --policy.history (the longest episode has "
+        "40 frames)" in lasts[1]
+    )
     assert "Start offline training" not in proc.stderr
     assert not any((tmp_path / f"out{h}" / "checkpoints").exists() for h in (0, 100_000))

@@ -10,6 +10,7 @@ from dssp_train.model.mamba import Mamba
 from dssp_train.model.mamba_stack import MambaStack
 from dssp_train.model.selective_scan import linear_scan, linear_scan_unrolled
 
+
 # Parameter names and shapes of mamba_ssm.Mamba(d_model, d_state, d_conv, expand) (mamba_simple.py).
 def mamba_ssm_shapes(d_model, d_state, d_conv, expand):
     d_inner = expand * d_model

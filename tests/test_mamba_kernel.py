@@ -5,11 +5,11 @@ import json
 import shutil
 
 import numpy as np
+import onnx
 import onnxruntime as ort
 import pytest
-from conftest import BLOCK_INPUTS, QGEMM_X86_PATHS, block_case, cpu_flags
-import onnx
 import torch
+from conftest import BLOCK_INPUTS, QGEMM_X86_PATHS, block_case, cpu_flags
 from onnx import TensorProto, helper
 
 from dssp_deploy import mamba_kernel
@@ -32,26 +32,37 @@ def qgemm_runs(path: str) -> bool:
 
 def cpu_runs(implementation: str) -> bool:
     """Whether this CPU has the instructions of a scan implementation."""
-    return {"avx512": {"avx512f", "avx2", "fma"}, "avx2": {"avx2", "fma"}, "portable": set()}[implementation] <= cpu_flags()
+    return {"avx512": {"avx512f", "avx2", "fma"}, "avx2": {"avx2", "fma"}, "portable": set()}[
+        implementation
+    ] <= cpu_flags()
 
 
 @pytest.fixture(scope="module", autouse=True)
 def built_kernel():
     found = mamba_kernel.kernel()
-    assert found.available, f"the fused Mamba kernel is not built here ({found.reason}); run `make kernel` (make setup does)"
+    assert found.available, (
+        f"the fused Mamba kernel is not built here ({found.reason}); run `make kernel` (make setup does)"
+    )
     return found
 
 
-def op_session(op: str, inputs: list[str], outputs: list[str], implementation: str, monkeypatch, threads: int | None = None):
+def op_session(
+    op: str, inputs: list[str], outputs: list[str], implementation: str, monkeypatch, threads: int | None = None
+):
     """A one-node graph of ``ai.dssp::op`` (its implementation chosen by DSSP_SCAN_PATH when the session is made)."""
     monkeypatch.setenv("DSSP_SCAN_PATH", implementation)
     graph = helper.make_graph(
-        [helper.make_node(op, inputs, outputs, domain=mamba_kernel.DOMAIN)], "g",
+        [helper.make_node(op, inputs, outputs, domain=mamba_kernel.DOMAIN)],
+        "g",
         [helper.make_tensor_value_info(n, TensorProto.FLOAT, None) for n in inputs],
         [helper.make_tensor_value_info(n, TensorProto.FLOAT, None) for n in outputs],
     )
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17), helper.make_opsetid(mamba_kernel.DOMAIN, 1)])
-    return ort.InferenceSession(model.SerializeToString(), session_options(threads, fused=True), providers=["CPUExecutionProvider"])
+    model = helper.make_model(
+        graph, opset_imports=[helper.make_opsetid("", 17), helper.make_opsetid(mamba_kernel.DOMAIN, 1)]
+    )
+    return ort.InferenceSession(
+        model.SerializeToString(), session_options(threads, fused=True), providers=["CPUExecutionProvider"]
+    )
 
 
 # batch, tokens, channels E, state n: the model's shapes, and odd ones (n and E not multiples of 8, one token with
@@ -65,9 +76,16 @@ def test_selective_scan_matches_pytorch(implementation, shape, monkeypatch):
     b, length, e, n = shape
     rng = np.random.default_rng(sum(shape))
     f32 = lambda *s, scale=1.0, shift=0.0: (rng.standard_normal(s) * scale + shift).astype(np.float32)  # noqa: E731
-    feeds = {"x": f32(b, length, e), "dt": f32(b, length, e, scale=2.0, shift=-3.0), "B": f32(b, length, n), "C": f32(b, length, n),
-             "z": f32(b, length, e, scale=3.0), "A": -np.exp(rng.uniform(0, np.log(n), (e, n))).astype(np.float32),
-             "D": f32(e), "h0": f32(b, e, n)}
+    feeds = {
+        "x": f32(b, length, e),
+        "dt": f32(b, length, e, scale=2.0, shift=-3.0),
+        "B": f32(b, length, n),
+        "C": f32(b, length, n),
+        "z": f32(b, length, e, scale=3.0),
+        "A": -np.exp(rng.uniform(0, np.log(n), (e, n))).astype(np.float32),
+        "D": f32(e),
+        "h0": f32(b, e, n),
+    }
     feeds["dt"][0, 0, :3] = [25.0, -40.0, 0.0]  # softplus's linear branch, its far tail, its middle
     if not cpu_runs(implementation):  # asking for it is a one-line error, not a crash or a silent fallback
         with pytest.raises(Exception, match=f"DSSP_SCAN_PATH={implementation}, but this CPU lacks"):
@@ -77,18 +95,26 @@ def test_selective_scan_matches_pytorch(implementation, shape, monkeypatch):
     assert mamba_kernel.kernel().implementation == implementation
     y, h = session.run(None, feeds)
     t = {k: torch.from_numpy(v).double() for k, v in feeds.items()}
-    y_ref, h_ref = selective_scan(t["x"], t["dt"], t["B"], t["C"], t["z"], t["A"], t["D"], t["h0"], linear_scan_unrolled)
+    y_ref, h_ref = selective_scan(
+        t["x"], t["dt"], t["B"], t["C"], t["z"], t["A"], t["D"], t["h0"], linear_scan_unrolled
+    )
     assert y.shape == (b, length, e) and h.shape == (b, e, n)
     assert np.abs(y - y_ref.numpy()).max() <= 2e-6 * max(1.0, float(y_ref.abs().max()))
     assert np.abs(h - h_ref.numpy()).max() <= 2e-6 * max(1.0, float(h_ref.abs().max()))
 
 
-@pytest.mark.parametrize("shape", [(1, 8, 1024, 4), (2, 3, 40, 4), (1, 1, 24, 4), (2, 6, 20, 3)], ids=lambda s: "x".join(map(str, s)))
+@pytest.mark.parametrize(
+    "shape", [(1, 8, 1024, 4), (2, 3, 40, 4), (1, 1, 24, 4), (2, 6, 20, 3)], ids=lambda s: "x".join(map(str, s))
+)
 def test_causal_conv_matches_pytorch(shape, monkeypatch):
     b, length, e, w = shape
     rng = np.random.default_rng(sum(shape))
-    feeds = {"x": rng.standard_normal((b, length, e)).astype(np.float32), "state": rng.standard_normal((b, e, w)).astype(np.float32),
-             "weight": rng.standard_normal((w, e)).astype(np.float32), "bias": rng.standard_normal(e).astype(np.float32)}
+    feeds = {
+        "x": rng.standard_normal((b, length, e)).astype(np.float32),
+        "state": rng.standard_normal((b, e, w)).astype(np.float32),
+        "weight": rng.standard_normal((w, e)).astype(np.float32),
+        "bias": rng.standard_normal(e).astype(np.float32),
+    }
     session = op_session(mamba_kernel.CONV_OP, list(feeds), ["y", "new_state"], "auto", monkeypatch)
     y, new_state = session.run(None, feeds)
     t = {k: torch.from_numpy(v).double() for k, v in feeds.items()}
@@ -97,11 +123,24 @@ def test_causal_conv_matches_pytorch(shape, monkeypatch):
 
 
 def test_a_wrong_shape_is_an_error_not_a_crash(monkeypatch):
-    session = op_session(mamba_kernel.SCAN_OP, ["x", "dt", "B", "C", "z", "A", "D", "h0"], ["y", "h"], "auto", monkeypatch)
+    session = op_session(
+        mamba_kernel.SCAN_OP, ["x", "dt", "B", "C", "z", "A", "D", "h0"], ["y", "h"], "auto", monkeypatch
+    )
     z = lambda *s: np.zeros(s, np.float32)  # noqa: E731
     with pytest.raises(Exception, match="SelectiveScan: h0 has shape \\(1, 8, 3\\), expected \\(1, 8, 4\\)"):
-        session.run(None, {"x": z(1, 2, 8), "dt": z(1, 2, 8), "B": z(1, 2, 4), "C": z(1, 2, 4), "z": z(1, 2, 8), "A": z(8, 4),
-                           "D": z(8), "h0": z(1, 8, 3)})
+        session.run(
+            None,
+            {
+                "x": z(1, 2, 8),
+                "dt": z(1, 2, 8),
+                "B": z(1, 2, 4),
+                "C": z(1, 2, 4),
+                "z": z(1, 2, 8),
+                "A": z(8, 4),
+                "D": z(8),
+                "h0": z(1, 8, 3),
+            },
+        )
 
 
 # ------------------------------------------------------------ the runtime's choice
@@ -119,10 +158,15 @@ def test_fused_graphs_run_by_default_and_match_the_standard_ones(tiny_export, mo
     assert default.kernel == "fused" and default.precision == DEFAULT_PRECISION
     widest = next(i for i in IMPLEMENTATIONS if cpu_runs(i))  # auto: the widest this CPU runs
     assert default.kernel_note == f"{DEFAULT_PRECISION}, fused Mamba kernel ({widest}, libdssp_mamba.so)"
-    fused, standard = OnnxPolicy(model_dir, threads=1, precision="fp32"), OnnxPolicy(model_dir, threads=1, precision="fp32", kernel="standard")
+    fused, standard = (
+        OnnxPolicy(model_dir, threads=1, precision="fp32"),
+        OnnxPolicy(model_dir, threads=1, precision="fp32", kernel="standard"),
+    )
     assert fused.kernel == "fused" and standard.kernel_note == "fp32, standard ONNX graphs (asked for)"
     assert np.abs(run_chunk(fused) - run_chunk(standard)).max() <= 1e-4
-    for implementation in [i for i in IMPLEMENTATIONS if i != widest and cpu_runs(i)]:  # the others, through the whole runtime
+    for implementation in [
+        i for i in IMPLEMENTATIONS if i != widest and cpu_runs(i)
+    ]:  # the others, through the whole runtime
         monkeypatch.setenv("DSSP_SCAN_PATH", implementation)
         other = OnnxPolicy(model_dir, threads=1, precision="fp32")
         assert other.kernel_note == f"fp32, fused Mamba kernel ({implementation}, libdssp_mamba.so)"
@@ -133,28 +177,48 @@ def test_action_token_scans_do_not_write_the_state_nobody_reads(tiny_export, mon
     """Export marks the denoiser's action-token scans state_out = 0; the kernel then returns an empty state."""
     _, model_dir, _ = tiny_export
     manifest = json.loads((model_dir / MANIFEST_NAME).read_text())
-    scans = [n for n in onnx.load(str(model_dir / manifest["graphs"]["denoiser"]["files"]["onnx_fused"])).graph.node
-             if n.op_type == mamba_kernel.SCAN_OP]
+    scans = [
+        n
+        for n in onnx.load(str(model_dir / manifest["graphs"]["denoiser"]["files"]["onnx_fused"])).graph.node
+        if n.op_type == mamba_kernel.SCAN_OP
+    ]
     marked = [n for n in scans if any(a.name == "state_out" and a.i == 0 for a in n.attribute)]
     layers = manifest["model_config"]["n_denoiser_layers"]
-    assert len(marked) == len(manifest["contract"]["ddim_timesteps"]) * layers and len(scans) == len(marked) + layers  # the prefix's are read
+    assert (
+        len(marked) == len(manifest["contract"]["ddim_timesteps"]) * layers and len(scans) == len(marked) + layers
+    )  # the prefix's are read
     history = onnx.load(str(model_dir / manifest["graphs"]["history_step"]["files"]["onnx_fused"])).graph.node
-    assert not any(a.name == "state_out" for n in history for a in n.attribute)  # the history step's state is its output
+    assert not any(
+        a.name == "state_out" for n in history for a in n.attribute
+    )  # the history step's state is its output
 
     names = ["x", "dt", "B", "C", "z", "A", "D", "h0"]
     rng = np.random.default_rng(0)
-    feeds = {"x": rng.normal(size=(1, 4, 16)), "dt": rng.normal(size=(1, 4, 16)), "B": rng.normal(size=(1, 4, 8)),
-             "C": rng.normal(size=(1, 4, 8)), "z": rng.normal(size=(1, 4, 16)), "A": -rng.uniform(0.5, 4, (16, 8)),
-             "D": rng.normal(size=16), "h0": rng.normal(size=(1, 16, 8))}
+    feeds = {
+        "x": rng.normal(size=(1, 4, 16)),
+        "dt": rng.normal(size=(1, 4, 16)),
+        "B": rng.normal(size=(1, 4, 8)),
+        "C": rng.normal(size=(1, 4, 8)),
+        "z": rng.normal(size=(1, 4, 16)),
+        "A": -rng.uniform(0.5, 4, (16, 8)),
+        "D": rng.normal(size=16),
+        "h0": rng.normal(size=(1, 16, 8)),
+    }
     feeds = {k: v.astype(np.float32) for k, v in feeds.items()}
     graph = helper.make_graph(
-        [helper.make_node(mamba_kernel.SCAN_OP, names, ["y", "h"], domain=mamba_kernel.DOMAIN, state_out=0)], "g",
+        [helper.make_node(mamba_kernel.SCAN_OP, names, ["y", "h"], domain=mamba_kernel.DOMAIN, state_out=0)],
+        "g",
         [helper.make_tensor_value_info(n, TensorProto.FLOAT, None) for n in names],
-        [helper.make_tensor_value_info(n, TensorProto.FLOAT, None) for n in ("y", "h")])
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17), helper.make_opsetid(mamba_kernel.DOMAIN, 1)])
+        [helper.make_tensor_value_info(n, TensorProto.FLOAT, None) for n in ("y", "h")],
+    )
+    model = helper.make_model(
+        graph, opset_imports=[helper.make_opsetid("", 17), helper.make_opsetid(mamba_kernel.DOMAIN, 1)]
+    )
     for implementation in [i for i in IMPLEMENTATIONS if cpu_runs(i)]:
         monkeypatch.setenv("DSSP_SCAN_PATH", implementation)
-        y, h = ort.InferenceSession(model.SerializeToString(), session_options(1, fused=True), providers=["CPUExecutionProvider"]).run(None, feeds)
+        y, h = ort.InferenceSession(
+            model.SerializeToString(), session_options(1, fused=True), providers=["CPUExecutionProvider"]
+        ).run(None, feeds)
         y_full, _ = op_session(mamba_kernel.SCAN_OP, names, ["y", "h"], implementation, monkeypatch).run(None, feeds)
         assert h.shape == (1, 0, 8) and np.array_equal(y, y_full)
 
@@ -164,7 +228,10 @@ def test_a_missing_or_broken_library_falls_back_to_the_standard_graphs(tiny_expo
     want = run_chunk(OnnxPolicy(model_dir, threads=1, kernel="standard"))  # int8, the default precision
     broken = tmp_path / "libdssp_mamba.so"
     broken.write_bytes(b"\x7fELF not really a library")
-    for library, reason in ((tmp_path / "missing.so", "is missing (build it with `make kernel`)"), (broken, "failed to load")):
+    for library, reason in (
+        (tmp_path / "missing.so", "is missing (build it with `make kernel`)"),
+        (broken, "failed to load"),
+    ):
         monkeypatch.setenv(mamba_kernel.LIBRARY_ENV, str(library))
         policy = OnnxPolicy(model_dir, threads=1)
         assert policy.kernel == "standard" and reason in policy.kernel_note and "\n" not in policy.kernel_note
@@ -174,7 +241,8 @@ def test_a_missing_or_broken_library_falls_back_to_the_standard_graphs(tiny_expo
         assert "\n" not in str(err.value)
     monkeypatch.setenv(mamba_kernel.LIBRARY_ENV, "off")
     assert OnnxPolicy(model_dir, threads=1).kernel_note == (
-        f"{DEFAULT_PRECISION}, standard ONNX graphs (the fused Mamba kernel is unavailable: DSSP_KERNEL=off)")
+        f"{DEFAULT_PRECISION}, standard ONNX graphs (the fused Mamba kernel is unavailable: DSSP_KERNEL=off)"
+    )
 
 
 def test_a_model_without_fused_graphs_runs_the_standard_ones(tiny_export, tmp_path):
@@ -207,7 +275,9 @@ def test_a_fused_graph_the_runtime_cannot_load_falls_back(tiny_export, tmp_path)
     manifest["files"][name].update(bytes=len(data), sha256=sha256_hex(data))
     (model / MANIFEST_NAME).write_text(json.dumps(manifest))
     policy = OnnxPolicy(model, threads=1, precision="fp32")
-    assert policy.kernel == "standard" and policy.kernel_note.startswith("fp32, standard ONNX graphs (the fused graphs failed to load:")
+    assert policy.kernel == "standard" and policy.kernel_note.startswith(
+        "fp32, standard ONNX graphs (the fused graphs failed to load:"
+    )
     with pytest.raises(ModelDirError, match="could not be loaded by ONNX Runtime") as err:
         OnnxPolicy(model, threads=1, precision="fp32", kernel="fused")
     assert "\n" not in str(err.value)
@@ -217,21 +287,44 @@ def test_a_fused_graph_the_runtime_cannot_load_falls_back(tiny_export, tmp_path)
 def block_session(values: dict, eps: float, threads: int = 1, state_out: int = 0, plain: int = 0):
     """A one-node graph of ``ai.dssp::MambaBlockQ8``, the weights as initializers (as an exported graph has them)."""
     feeds = ["a", "conv_state", "ssm_state", "mod"]
-    initializers = [onnx.numpy_helper.from_array(values[name].numpy(), name) for name in BLOCK_INPUTS if name not in feeds]
-    node = helper.make_node(mamba_kernel.BLOCK_OP, BLOCK_INPUTS, ["out", "conv", "ssm"], domain=mamba_kernel.DOMAIN,
-                            eps=eps, state_out=state_out, plain=plain)
+    initializers = [
+        onnx.numpy_helper.from_array(values[name].numpy(), name) for name in BLOCK_INPUTS if name not in feeds
+    ]
+    node = helper.make_node(
+        mamba_kernel.BLOCK_OP,
+        BLOCK_INPUTS,
+        ["out", "conv", "ssm"],
+        domain=mamba_kernel.DOMAIN,
+        eps=eps,
+        state_out=state_out,
+        plain=plain,
+    )
     graph = helper.make_graph(
-        [node], "g", [helper.make_tensor_value_info(n, TensorProto.FLOAT, None) for n in feeds],
+        [node],
+        "g",
+        [helper.make_tensor_value_info(n, TensorProto.FLOAT, None) for n in feeds],
         [helper.make_tensor_value_info(n, TensorProto.FLOAT, None) for n in ("out", "conv", "ssm")],
-        initializer=initializers)
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17), helper.make_opsetid(mamba_kernel.DOMAIN, 1)])
-    session = ort.InferenceSession(model.SerializeToString(), session_options(threads, fused=True),
-                                   providers=["CPUExecutionProvider"])
+        initializer=initializers,
+    )
+    model = helper.make_model(
+        graph, opset_imports=[helper.make_opsetid("", 17), helper.make_opsetid(mamba_kernel.DOMAIN, 1)]
+    )
+    session = ort.InferenceSession(
+        model.SerializeToString(), session_options(threads, fused=True), providers=["CPUExecutionProvider"]
+    )
     return session, {name: values[name].numpy() for name in feeds}
 
 
-@pytest.mark.parametrize("mlp, batch, part", [("gated", 1, "actions"), ("gated", 2, "actions"), ("none", 1, "actions"),
-                                              ("gated", 2, "prefix"), ("gated", 2, "joint")])
+@pytest.mark.parametrize(
+    "mlp, batch, part",
+    [
+        ("gated", 1, "actions"),
+        ("gated", 2, "actions"),
+        ("none", 1, "actions"),
+        ("gated", 2, "prefix"),
+        ("gated", 2, "joint"),
+    ],
+)
 def test_a_whole_int8_block_matches_its_pytorch_reference(mlp, batch, part, monkeypatch):
     """One denoiser block: the operator against ``export.fused_ops.block_reference`` (the same per-row quantization,
     the integer sums exact) on the action tokens (AdaLN, from a prefix's state), on the prefix (no AdaLN, from
@@ -243,7 +336,9 @@ def test_a_whole_int8_block_matches_its_pytorch_reference(mlp, batch, part, monk
     fused, values = block_case(mlp, batch)
     state_out, plain = int(part == "prefix"), 3 if part == "joint" else 0
     if part == "prefix":  # from zeros given, and from zeros as the exported graphs say it (empty states)
-        values.update(conv_state=torch.zeros_like(values["conv_state"]), ssm_state=torch.zeros_like(values["ssm_state"]))
+        values.update(
+            conv_state=torch.zeros_like(values["conv_state"]), ssm_state=torch.zeros_like(values["ssm_state"])
+        )
     if part == "joint":
         values.update(conv_state=values["conv_state"][:, :0], ssm_state=values["ssm_state"][:, :0])
     if state_out:
@@ -296,8 +391,10 @@ def test_the_int8_fused_denoiser_runs_each_block_as_one_node(tiny_export):
     standard = onnx.load(str(model_dir / "denoiser.int8.onnx"))
     assert len(model.graph.node) < len(standard.graph.node) / 4
     fp32 = run_chunk(OnnxPolicy(model_dir, threads=1, precision="fp32", kernel="standard"))
-    fused_error, standard_error = (np.abs(run_chunk(OnnxPolicy(model_dir, threads=1, precision="int8", kernel=kernel))
-                                          - fp32).max() for kernel in ("fused", "standard"))
+    fused_error, standard_error = (
+        np.abs(run_chunk(OnnxPolicy(model_dir, threads=1, precision="int8", kernel=kernel)) - fp32).max()
+        for kernel in ("fused", "standard")
+    )
     assert fused_error <= 1.5 * standard_error, (fused_error, standard_error)
 
 
@@ -310,12 +407,27 @@ def test_one_ddim_step_runs_prefix_and_actions_as_one_node_per_block(tiny_export
 
     run_dir, _, _ = tiny_export
     model_dir = tmp_path / "k1"
-    assert export_main([str(run_dir), "-o", str(model_dir), "--denoise-steps", "1", "--timestep-spacing", "trailing",
-                        "--skip-verify"]) == 0
+    assert (
+        export_main(
+            [
+                str(run_dir),
+                "-o",
+                str(model_dir),
+                "--denoise-steps",
+                "1",
+                "--timestep-spacing",
+                "trailing",
+                "--skip-verify",
+            ]
+        )
+        == 0
+    )
     manifest = json.loads((model_dir / MANIFEST_NAME).read_text())
     model = onnx.load(str(model_dir / "denoiser.int8.fused.onnx"))
     ops = Counter(node.op_type for node in model.graph.node)
-    assert ops[mamba_kernel.BLOCK_OP] == manifest["model_config"]["n_denoiser_layers"] and ops[mamba_kernel.SCAN_OP] == 0
+    assert (
+        ops[mamba_kernel.BLOCK_OP] == manifest["model_config"]["n_denoiser_layers"] and ops[mamba_kernel.SCAN_OP] == 0
+    )
     m = manifest["model_config"]
     prefix = int(m["use_history"]) + int(m["use_recent_states"]) * manifest["contract"]["n_obs_steps"]
     for node in model.graph.node:
@@ -323,8 +435,10 @@ def test_one_ddim_step_runs_prefix_and_actions_as_one_node_per_block(tiny_export
             attributes = {a.name: onnx.helper.get_attribute_value(a) for a in node.attribute}
             assert attributes["plain"] == prefix and attributes["state_out"] == 0, attributes
     fp32 = run_chunk(OnnxPolicy(model_dir, threads=1, precision="fp32", kernel="standard"))
-    fused_error, standard_error = (np.abs(run_chunk(OnnxPolicy(model_dir, threads=1, precision="int8", kernel=kernel))
-                                          - fp32).max() for kernel in ("fused", "standard"))
+    fused_error, standard_error = (
+        np.abs(run_chunk(OnnxPolicy(model_dir, threads=1, precision="int8", kernel=kernel)) - fp32).max()
+        for kernel in ("fused", "standard")
+    )
     assert fused_error <= 1.5 * standard_error, (fused_error, standard_error)
 
 
@@ -336,17 +450,31 @@ def test_layer_norm_max_over_points_matches_pytorch_and_replaces_three_nodes(sha
     rng = np.random.default_rng(sum(shape))
     x = (rng.standard_normal(shape) * 3 + 1).astype(np.float32)
     weight, bias = (rng.standard_normal(shape[-1]).astype(np.float32) for _ in range(2))
-    want = torch.nn.functional.layer_norm(torch.from_numpy(x).double(), (shape[-1],), torch.from_numpy(weight).double(),
-                                          torch.from_numpy(bias).double(), 1e-5).amax(dim=1).numpy()
+    want = (
+        torch.nn.functional.layer_norm(
+            torch.from_numpy(x).double(),
+            (shape[-1],),
+            torch.from_numpy(weight).double(),
+            torch.from_numpy(bias).double(),
+            1e-5,
+        )
+        .amax(dim=1)
+        .numpy()
+    )
     graph = helper.make_graph(
-        [helper.make_node(mamba_kernel.POOL_OP, ["x", "w", "b"], ["y"], domain=mamba_kernel.DOMAIN, eps=1e-5)], "g",
+        [helper.make_node(mamba_kernel.POOL_OP, ["x", "w", "b"], ["y"], domain=mamba_kernel.DOMAIN, eps=1e-5)],
+        "g",
         [helper.make_tensor_value_info(n, TensorProto.FLOAT, None) for n in ("x", "w", "b")],
-        [helper.make_tensor_value_info("y", TensorProto.FLOAT, None)])
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17), helper.make_opsetid(mamba_kernel.DOMAIN, 1)])
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, None)],
+    )
+    model = helper.make_model(
+        graph, opset_imports=[helper.make_opsetid("", 17), helper.make_opsetid(mamba_kernel.DOMAIN, 1)]
+    )
     outputs = []
     for threads in (1, 2):
-        session = ort.InferenceSession(model.SerializeToString(), session_options(threads, fused=True),
-                                       providers=["CPUExecutionProvider"])
+        session = ort.InferenceSession(
+            model.SerializeToString(), session_options(threads, fused=True), providers=["CPUExecutionProvider"]
+        )
         (y,) = session.run(None, {"x": x, "w": weight, "b": bias})
         assert y.shape == want.shape and np.abs(y - want).max() <= 1e-5 * max(1.0, float(np.abs(want).max()))
         outputs.append(y)
@@ -354,8 +482,10 @@ def test_layer_norm_max_over_points_matches_pytorch_and_replaces_three_nodes(sha
     with pytest.raises(Exception, match="P >= 1"):
         session.run(None, {"x": np.zeros((1, 0, shape[-1]), np.float32), "w": weight, "b": bias})
     _, model_dir, _ = tiny_export
-    ops = {kind: [n.op_type for n in onnx.load(str(model_dir / f"history_step{kind}.onnx")).graph.node]
-           for kind in (".fused", "")}
+    ops = {
+        kind: [n.op_type for n in onnx.load(str(model_dir / f"history_step{kind}.onnx")).graph.node]
+        for kind in (".fused", "")
+    }
     assert mamba_kernel.POOL_OP in ops[".fused"] and "GlobalMaxPool" not in ops[".fused"]
     assert ops[".fused"].count("LayerNormalization") == ops[""].count("LayerNormalization") - 1
     assert mamba_kernel.POOL_OP not in ops[""] and "GlobalMaxPool" in ops[""]

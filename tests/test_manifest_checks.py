@@ -19,14 +19,18 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from dssp_core.errors import NonFiniteObservation
 from dssp_deploy import OnnxPolicy
 from dssp_deploy.control_loop import ChunkedControl
 from dssp_deploy.manifest import MANIFEST_NAME, ModelDirError
-from dssp_core.errors import NonFiniteObservation
 
 EXAMPLES = 6  # per field: ~50 fields, each example rewrites the manifest of one copied model directory
-FAST = settings(max_examples=EXAMPLES, deadline=None, derandomize=True,
-                suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+FAST = settings(
+    max_examples=EXAMPLES,
+    deadline=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture],
+)
 DELETE = object()  # the key is removed
 NAN, INF = float("nan"), float("inf")
 
@@ -90,7 +94,7 @@ NOT_BOOL = st.sampled_from(["true", "false", 1, 0, None])
 
 
 def outside(lo, hi):
-    return st.integers(-10**6, lo - 1) | st.integers(hi + 1, hi + 10**6)
+    return st.integers(-(10**6), lo - 1) | st.integers(hi + 1, hi + 10**6)
 
 
 def count(hi, lo=1, checked_against_graphs=True):
@@ -111,14 +115,33 @@ FIELDS = [
     (("contract", "action_dim"), "action_dim", count(4096)),
     (("contract", "n_obs_steps"), "n_obs_steps", count(4096)),
     (("contract", "horizon"), "horizon", count(4096)),
-    (("contract", "n_action_steps"), "n_action_steps",
-     lambda o, m: NOT_INT | st.integers(-5, 0) | st.integers(m["contract"]["horizon"] + 1, m["contract"]["horizon"] + 50)),
-    (("contract", "ddim_timesteps"), "ddim_timesteps",
-     lambda o, m: st.sampled_from(["90", 5, None, {}, [], DELETE])
-     | st.lists(st.integers(0, 99), min_size=2, max_size=20).filter(lambda v: any(a <= b for a, b in zip(v, v[1:])))
-     | st.sampled_from([[-1] + o[1:], [2.5] + o[1:], [True] + o[1:], [10**6] + o[1:]])),
-    (("contract", "control_rate_hz"), "control_rate_hz",
-     lambda o, m: st.sampled_from(["50", True, [], {}, NAN, INF, -INF, DELETE]) | st.floats(-1e6, 0) | st.floats(1000.001, 1e9)),
+    (
+        ("contract", "n_action_steps"),
+        "n_action_steps",
+        lambda o, m: (
+            NOT_INT | st.integers(-5, 0) | st.integers(m["contract"]["horizon"] + 1, m["contract"]["horizon"] + 50)
+        ),
+    ),
+    (
+        ("contract", "ddim_timesteps"),
+        "ddim_timesteps",
+        lambda o, m: (
+            st.sampled_from(["90", 5, None, {}, [], DELETE])
+            | st.lists(st.integers(0, 99), min_size=2, max_size=20).filter(
+                lambda v: any(a <= b for a, b in zip(v, v[1:]))
+            )
+            | st.sampled_from([[-1] + o[1:], [2.5] + o[1:], [True] + o[1:], [10**6] + o[1:]])
+        ),
+    ),
+    (
+        ("contract", "control_rate_hz"),
+        "control_rate_hz",
+        lambda o, m: (
+            st.sampled_from(["50", True, [], {}, NAN, INF, -INF, DELETE])
+            | st.floats(-1e6, 0)
+            | st.floats(1000.001, 1e9)
+        ),
+    ),
     (("contract", "n_points"), "n_points", count(1_000_000, checked_against_graphs=False)),  # P is dynamic
     (("contract", "observation"), "observation", lambda o, m: st.sampled_from([3, "x", [], DELETE])),
     (("contract",), "contract", lambda o, m: st.sampled_from([None, [], "x", DELETE])),
@@ -130,18 +153,42 @@ FIELDS = [
     (("model_config", "d_conv"), "d_conv", count(64)),
     (("model_config", "expand"), "expand", count(16)),
     (("model_config", "n_history_layers"), "n_history_layers", count(256)),
-    (("model_config", "n_denoiser_layers"), "n_denoiser_layers", lambda o, m: NOT_INT | outside(1, 256) | st.just(DELETE)),
+    (
+        ("model_config", "n_denoiser_layers"),
+        "n_denoiser_layers",
+        lambda o, m: NOT_INT | outside(1, 256) | st.just(DELETE),
+    ),
     (("model_config", "point_feature_dim"), "point_feature_dim", lambda o, m: NOT_INT | outside(1, 65536)),
-    (("model_config", "point_widths"), "point_widths", lambda o, m: st.sampled_from([[], "64", [0], [64.5], [True], None])),
-    (("model_config", "state_widths"), "state_widths", lambda o, m: st.sampled_from([[], "64", [0], [64.5], [True], None])),
+    (
+        ("model_config", "point_widths"),
+        "point_widths",
+        lambda o, m: st.sampled_from([[], "64", [0], [64.5], [True], None]),
+    ),
+    (
+        ("model_config", "state_widths"),
+        "state_widths",
+        lambda o, m: st.sampled_from([[], "64", [0], [64.5], [True], None]),
+    ),
     (("model_config", "timestep_decoupled"), "timestep_decoupled", lambda o, m: NOT_BOOL),
     (("model_config",), "model_config", lambda o, m: st.sampled_from([None, [], "tiny", DELETE])),
     # the graph interface, against the facts
     (("graphs", "denoiser", "inputs", -1, "shape", 1), "noise", shape_dim),
     (("graphs", "denoiser", "inputs", -1, "shape", 2), "noise", shape_dim),
-    (("graphs", "denoiser", "inputs", -1, "shape"), "noise", lambda o, m: st.sampled_from([["B", 4], ["B", 4, 7, 1], "B,4,7", None])),
-    (("graphs", "denoiser", "inputs", -1, "dtype"), "noise", lambda o, m: st.sampled_from(["float64", "int64", "tensor(float)", 3, None])),
-    (("graphs", "denoiser", "inputs", -1, "name"), "inputs", lambda o, m: st.text(max_size=10) | st.sampled_from([None, 3])),
+    (
+        ("graphs", "denoiser", "inputs", -1, "shape"),
+        "noise",
+        lambda o, m: st.sampled_from([["B", 4], ["B", 4, 7, 1], "B,4,7", None]),
+    ),
+    (
+        ("graphs", "denoiser", "inputs", -1, "dtype"),
+        "noise",
+        lambda o, m: st.sampled_from(["float64", "int64", "tensor(float)", 3, None]),
+    ),
+    (
+        ("graphs", "denoiser", "inputs", -1, "name"),
+        "inputs",
+        lambda o, m: st.text(max_size=10) | st.sampled_from([None, 3]),
+    ),
     (("graphs", "denoiser", "inputs", 1, "shape", 1), "z_recent", shape_dim),
     (("graphs", "denoiser", "inputs", 0, "shape", 1), "c_t", shape_dim),
     (("graphs", "denoiser", "outputs", 0, "shape", 2), "action", shape_dim),
@@ -149,31 +196,70 @@ FIELDS = [
     (("graphs", "history_step", "inputs", 1, "shape", 1), "agent_pos", shape_dim),
     (("graphs", "history_step", "inputs", 2, "shape", 1), "conv_state_0", shape_dim),
     (("graphs", "history_step", "inputs", 3, "shape", 2), "ssm_state_0", shape_dim),
-    (("graphs", "history_step", "inputs", 2, "name"), "inputs", lambda o, m: st.sampled_from(["ssm_state_0", "conv_state_9", "", None])),
+    (
+        ("graphs", "history_step", "inputs", 2, "name"),
+        "inputs",
+        lambda o, m: st.sampled_from(["ssm_state_0", "conv_state_9", "", None]),
+    ),
     (("graphs", "history_step", "outputs", 1, "shape", 1), "c_t", shape_dim),
     (("graphs", "history_step", "outputs"), "outputs", lambda o, m: st.sampled_from([[], None, {}, o[:-1], "z_t"])),
     # graph files: inside the model directory, with a size and sha256 in files
-    (("graphs", "history_step", "files", "onnx"), "files.onnx",
-     lambda o, m: st.sampled_from(["../history_step.onnx", "/etc/passwd", "missing.onnx", "", ".", "C:\\x.onnx", "a/../../x", 3, None])
-     | st.text(alphabet="abc./", min_size=1, max_size=12).filter(lambda v: v not in m["files"])),
-    (("graphs", "denoiser", "files"), "graphs.denoiser", lambda o, m: st.sampled_from([None, "denoiser.onnx", ["denoiser.onnx"], DELETE])),
+    (
+        ("graphs", "history_step", "files", "onnx"),
+        "files.onnx",
+        lambda o, m: (
+            st.sampled_from(
+                ["../history_step.onnx", "/etc/passwd", "missing.onnx", "", ".", "C:\\x.onnx", "a/../../x", 3, None]
+            )
+            | st.text(alphabet="abc./", min_size=1, max_size=12).filter(lambda v: v not in m["files"])
+        ),
+    ),
+    (
+        ("graphs", "denoiser", "files"),
+        "graphs.denoiser",
+        lambda o, m: st.sampled_from([None, "denoiser.onnx", ["denoiser.onnx"], DELETE]),
+    ),
     (("graphs", "denoiser"), "denoiser", lambda o, m: st.sampled_from([None, [], DELETE])),
-    (("files", "denoiser.onnx", "sha256"), "sha256",
-     lambda o, m: st.text(alphabet="0123456789abcdef", min_size=64, max_size=64) | st.sampled_from(["", "xyz", 5, None, o.upper(), DELETE])),
-    (("files", "history_step.onnx", "bytes"), "bytes", lambda o, m: st.integers(0, 10**8) | st.integers(-10**6, -1) | st.sampled_from(["1", 1.5, None])),
+    (
+        ("files", "denoiser.onnx", "sha256"),
+        "sha256",
+        lambda o, m: (
+            st.text(alphabet="0123456789abcdef", min_size=64, max_size=64)
+            | st.sampled_from(["", "xyz", 5, None, o.upper(), DELETE])
+        ),
+    ),
+    (
+        ("files", "history_step.onnx", "bytes"),
+        "bytes",
+        lambda o, m: st.integers(0, 10**8) | st.integers(-(10**6), -1) | st.sampled_from(["1", 1.5, None]),
+    ),
     (("files", "history_step.onnx"), "sha256", lambda o, m: st.just(DELETE)),
     (("files",), "files", lambda o, m: st.sampled_from([None, [], "history_step.onnx", DELETE])),
     # normalisers (export.verify reads them)
-    (("normalizers", "action", "scale"), "normalizers.action.scale",
-     lambda o, m: st.sampled_from([None, "x", [1.0] * 3, [NAN] * 7, [INF] * 7, ["1"] * 7, DELETE])
-     | st.lists(st.floats(-10, 10), max_size=12).filter(lambda v: len(v) != 7)),
+    (
+        ("normalizers", "action", "scale"),
+        "normalizers.action.scale",
+        lambda o, m: (
+            st.sampled_from([None, "x", [1.0] * 3, [NAN] * 7, [INF] * 7, ["1"] * 7, DELETE])
+            | st.lists(st.floats(-10, 10), max_size=12).filter(lambda v: len(v) != 7)
+        ),
+    ),
     (("normalizers", "agent_pos"), "agent_pos", lambda o, m: st.sampled_from([None, {}, DELETE])),
     # the training ranges the runtime refuses observations outside of: input_min <= input_max per channel
-    (("normalizers", "agent_pos", "input_min"), "normalizers.agent_pos",
-     lambda o, m: st.sampled_from([[NAN] * 7, [1e3] * 7, DELETE]) | st.lists(st.floats(2, 1e6), min_size=7, max_size=7)),
+    (
+        ("normalizers", "agent_pos", "input_min"),
+        "normalizers.agent_pos",
+        lambda o, m: (
+            st.sampled_from([[NAN] * 7, [1e3] * 7, DELETE]) | st.lists(st.floats(2, 1e6), min_size=7, max_size=7)
+        ),
+    ),
     # where it came from: an identity, no path
     (("source", "sha256"), "source.sha256", lambda o, m: st.sampled_from(["", "abc", None, 3, o.upper(), DELETE])),
-    (("source", "weights"), "source.weights", lambda o, m: st.sampled_from(["../model.safetensors", "/abs/model.safetensors", "", None, DELETE])),
+    (
+        ("source", "weights"),
+        "source.weights",
+        lambda o, m: st.sampled_from(["../model.safetensors", "/abs/model.safetensors", "", None, DELETE]),
+    ),
     (("source", "step"), "source.step", lambda o, m: st.sampled_from([-1, "30", 1.5, DELETE])),
     (("source", "ema"), "source.ema", lambda o, m: NOT_BOOL),
     (("source", "run"), "source.run", lambda o, m: st.sampled_from(["/home/me/runs/x", "a/b", "", "..", 3])),
@@ -213,7 +299,10 @@ def test_a_wrong_manifest_field_is_refused_at_load(model, scratch, path, token, 
 @pytest.mark.parametrize(
     "change, token",
     [
-        (lambda m: m["contract"].update(n_action_steps=m["contract"]["horizon"] + 2), "n_action_steps"),  # a few commands, then IndexError
+        (
+            lambda m: m["contract"].update(n_action_steps=m["contract"]["horizon"] + 2),
+            "n_action_steps",
+        ),  # a few commands, then IndexError
         (lambda m: m["contract"].update(n_action_steps=0), "n_action_steps"),  # modulo by zero
         (lambda m: m["graphs"]["denoiser"]["files"].update(onnx="/etc/passwd"), "files.onnx"),
         (lambda m: m["files"]["denoiser.onnx"].update(sha256="0" * 64), "sha256"),
@@ -233,8 +322,23 @@ def test_dssp_run_exits_2_before_any_arm_is_opened_or_enabled(model, tmp_path, m
     monkeypatch.setattr(piper_robot.PiperRobot, "connect", lambda self: opened.append(self) or real_connect(self))
     monkeypatch.setattr(piper_robot.PiperRobot, "enable", lambda self, *a, **k: enabled.append(self))
     log_dir = tmp_path / "log"
-    code = run_main(["--model", str(bad), "--camera", "tabletop", "--can", "sim", "--max-steps", "5",
-                     "--log-dir", str(log_dir), "--threads", "1", "--quiet"])
+    code = run_main(
+        [
+            "--model",
+            str(bad),
+            "--camera",
+            "tabletop",
+            "--can",
+            "sim",
+            "--max-steps",
+            "5",
+            "--log-dir",
+            str(log_dir),
+            "--threads",
+            "1",
+            "--quiet",
+        ]
+    )
     err = capsys.readouterr().err
     errors = [line for line in err.splitlines() if line.startswith("error:")]
     assert code == 2 and "Traceback" not in err, err
@@ -244,11 +348,32 @@ def test_dssp_run_exits_2_before_any_arm_is_opened_or_enabled(model, tmp_path, m
 
 def test_dssp_run_command_exits_2_on_h_a_above_the_horizon(model, tmp_path):
     model_dir, good = model
-    bad = copy_model(model_dir, tmp_path / "bad", with_value(good, ("contract", "n_action_steps"), good["contract"]["horizon"] + 1))
+    bad = copy_model(
+        model_dir, tmp_path / "bad", with_value(good, ("contract", "n_action_steps"), good["contract"]["horizon"] + 1)
+    )
     out = subprocess.run(
-        [sys.executable, "-m", "hardware.cli.run", "--model", str(bad), "--camera", "tabletop", "--can", "sim",
-         "--max-steps", "5", "--log-dir", str(tmp_path / "log"), "--threads", "1", "--quiet"],
-        capture_output=True, text=True, timeout=120, env={**os.environ, "OMP_NUM_THREADS": "1"},
+        [
+            sys.executable,
+            "-m",
+            "hardware.cli.run",
+            "--model",
+            str(bad),
+            "--camera",
+            "tabletop",
+            "--can",
+            "sim",
+            "--max-steps",
+            "5",
+            "--log-dir",
+            str(tmp_path / "log"),
+            "--threads",
+            "1",
+            "--quiet",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "OMP_NUM_THREADS": "1"},
     )
     assert out.returncode == 2, out.stderr
     assert "n_action_steps" in out.stderr and "Traceback" not in out.stderr
@@ -264,8 +389,23 @@ def other_export(arm_export, tmp_path_factory):
     run_dir = arm_export.parent / "run"
     assert (run_dir / "config.json").is_file()
     out = tmp_path_factory.mktemp("other") / "model"
-    assert export_main([str(run_dir), "-o", str(out), "--skip-verify", "--format", "onnx", "--quantize", "none",
-                        "--denoise-steps", "4"]) == 0
+    assert (
+        export_main(
+            [
+                str(run_dir),
+                "-o",
+                str(out),
+                "--skip-verify",
+                "--format",
+                "onnx",
+                "--quantize",
+                "none",
+                "--denoise-steps",
+                "4",
+            ]
+        )
+        == 0
+    )
     return out
 
 
@@ -398,7 +538,12 @@ def test_the_streaming_api_refuses_the_same(arm_export):
     for t in range(3):
         stream.observe(clouds[t], states[t])
         ref.observe(clouds[t], states[t])
-    kept = (stream.steps, stream.recent.clone(), stream.context.clone(), [[s.clone() for s in layer] for layer in stream.history_state])
+    kept = (
+        stream.steps,
+        stream.recent.clone(),
+        stream.context.clone(),
+        [[s.clone() for s in layer] for layer in stream.history_state],
+    )
     bad = states[3].copy()
     bad[2] = NAN
     with pytest.raises(NonFiniteObservation, match=r"agent_pos .* \(0, 2\)=nan"):

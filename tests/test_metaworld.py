@@ -3,15 +3,14 @@ plain zarr-python reads the way DP3's ReplayBuffer does, and the whole chain (co
 
 import json
 
-from conftest import SET_SMALL, one_error_line
-
-from dssp_core.errors import ConfigError, DSSPError
-from dssp_sim import metaworld_env as mw  # before mujoco: it sets MUJOCO_GL=egl
-
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 import zarr  # noqa: E402
+from conftest import SET_SMALL, one_error_line
+
+from dssp_core.errors import ConfigError, DSSPError
+from dssp_sim import metaworld_env as mw  # before mujoco: it sets MUJOCO_GL=egl
 from dssp_sim.sim_cli import main as sim_main
 
 TASK = "reach"  # the quickest expert
@@ -59,6 +58,7 @@ def test_the_cue_variant_shows_the_goal_for_ten_steps_then_hides_it():
     assert mw.task_id("metaworld-cue/reach") == "metaworld-cue/reach" and mw.task_id("reach") == "metaworld/reach"
     with pytest.raises(ConfigError, match="unknown MetaWorld cue task 'door-open'"):
         mw.task_name("metaworld-cue/door-open")
+
     def depth_at_goal(env) -> tuple[float, float]:
         """(depth rendered where the goal projects, m; the goal's own depth, m) — in the camera's optical frame."""
         raw, unit, intr, _ = env.render_depth()
@@ -79,7 +79,9 @@ def test_the_cue_variant_shows_the_goal_for_ten_steps_then_hides_it():
         assert seen == 0.0 or seen > goal + 0.05  # what lies behind it (or nothing within range)
         assert np.array_equal(env.data.site_xpos[env._goal_site], env.env._target_pos)  # hidden, not moved
         env.reset(3)  # a new episode shows it again; the expert, which knows the goal, still succeeds
-        assert env.cue_shown() and depth_at_goal(env)[0] == pytest.approx(depth_at_goal(env)[1] - mw.CUE_RADIUS_M, abs=0.01)
+        assert env.cue_shown() and depth_at_goal(env)[0] == pytest.approx(
+            depth_at_goal(env)[1] - mw.CUE_RADIUS_M, abs=0.01
+        )
         expert = mw.MetaWorldExpert(env)
         while not env.status().done:
             env.step(expert.act(env))
@@ -89,7 +91,9 @@ def test_the_cue_variant_shows_the_goal_for_ten_steps_then_hides_it():
 @pytest.fixture(scope="module")
 def demos(tmp_path_factory):
     out = tmp_path_factory.mktemp("mw") / "reach.zarr"
-    assert sim_main(["collect", "--task", f"metaworld/{TASK}", "--episodes", "2", "--out", str(out), "--no-progress"]) == 0
+    assert (
+        sim_main(["collect", "--task", f"metaworld/{TASK}", "--episodes", "2", "--out", str(out), "--no-progress"]) == 0
+    )
     return out
 
 
@@ -109,7 +113,9 @@ def test_demonstrations_are_a_dp3_zarr_read_the_way_dp3_reads_it(demos):
         codec = a.metadata.compressor.get_config()
         assert (codec["id"], codec["cname"], codec["clevel"], codec["shuffle"]) == ("blosc", "zstd", 3, 1)
     # the clouds lie in DP3's crop box of its cloud frame and are farthest-point samples (no repeats)
-    assert (cloud >= np.array(mw.CROP_MIN, np.float32) - 1e-6).all() and (cloud <= np.array(mw.CROP_MAX, np.float32) + 1e-6).all()
+    assert (cloud >= np.array(mw.CROP_MIN, np.float32) - 1e-6).all() and (
+        cloud <= np.array(mw.CROP_MAX, np.float32) + 1e-6
+    ).all()
     assert len(np.unique(cloud[0], axis=0)) == 512
     # the state is the hand and the two fingertips; the first action moves the hand toward the goal
     assert np.allclose(state[0, :3], state[0, 3:6], atol=0.1) and np.allclose(state[0, :3], state[0, 6:9], atol=0.1)
@@ -125,13 +131,48 @@ def test_train_export_and_evaluate_on_metaworld(demos, tmp_path, capsys):
     from export.to_onnx import main as export_main
 
     run, model = tmp_path / "run", tmp_path / "model"
-    assert train_main(["--data", str(demos), "--out", str(run), "--preset", "tiny", "--steps", "4", "--no-holdout",
-                       "--set", "model.n_points=512", *SET_SMALL, "--no-progress"]) == 0
+    assert (
+        train_main(
+            [
+                "--data",
+                str(demos),
+                "--out",
+                str(run),
+                "--preset",
+                "tiny",
+                "--steps",
+                "4",
+                "--no-holdout",
+                "--set",
+                "model.n_points=512",
+                *SET_SMALL,
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     assert json.loads((run / "config.json").read_text())["observation"]["frame"] == mw.FRAME
     assert export_main([str(run), "-o", str(model), "--skip-verify", "--quantize", "none"]) == 0
     out = tmp_path / "eval.json"
-    assert sim_main(["eval", "--model", str(model), "--task", f"metaworld/{TASK}", "--episodes", "1", "--threads", "1",
-                     "--json", str(out), "--no-progress"]) == 0
+    assert (
+        sim_main(
+            [
+                "eval",
+                "--model",
+                str(model),
+                "--task",
+                f"metaworld/{TASK}",
+                "--episodes",
+                "1",
+                "--threads",
+                "1",
+                "--json",
+                str(out),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     result = json.loads(out.read_text())
     assert result["task"] == f"metaworld/{TASK}" and result["n"] == 1
     episode = result["episodes"][0]
@@ -142,21 +183,46 @@ def test_train_export_and_evaluate_on_metaworld(demos, tmp_path, capsys):
     assert "memory decision" not in out and "whole tick (cloud + policy + step)" in out
 
     # Rerun views of MetaWorld episodes are refused with one line
-    assert sim_main(["eval", "--model", str(model), "--task", f"metaworld/{TASK}", "--episodes", "1",
-                     "--rerun-save", str(tmp_path / "v.rrd"), "--no-progress"]) == 2
+    assert (
+        sim_main(
+            [
+                "eval",
+                "--model",
+                str(model),
+                "--task",
+                f"metaworld/{TASK}",
+                "--episodes",
+                "1",
+                "--rerun-save",
+                str(tmp_path / "v.rrd"),
+                "--no-progress",
+            ]
+        )
+        == 2
+    )
     assert "metaworld" in one_error_line(capsys.readouterr().err).lower()
 
 
 def test_a_model_of_other_dimensions_is_refused_before_any_episode(tiny_export, capsys):
     _, model, _ = tiny_export  # trained on a Piper dataset: state (7,), action (7,)
-    assert sim_main(["eval", "--model", str(model), "--task", f"metaworld/{TASK}", "--episodes", "1", "--no-progress"]) == 2
+    assert (
+        sim_main(["eval", "--model", str(model), "--task", f"metaworld/{TASK}", "--episodes", "1", "--no-progress"])
+        == 2
+    )
     assert "MetaWorld's are (9,) and (4,)" in one_error_line(capsys.readouterr().err)
 
 
 # ---------------------------------------------------------------------------------------------- the study
 def _fake_mw_eval(record, name, scenes, wins):
-    result = {"task": "x", "n": len(scenes), "successes": sum(wins), "failure_reasons": {},
-              "episodes": [{"seed": s, "success": bool(w), "reason": "", "steps": 50, "decision": {}} for s, w in zip(scenes, wins)]}
+    result = {
+        "task": "x",
+        "n": len(scenes),
+        "successes": sum(wins),
+        "failure_reasons": {},
+        "episodes": [
+            {"seed": s, "success": bool(w), "reason": "", "steps": 50, "decision": {}} for s, w in zip(scenes, wins)
+        ],
+    }
     (record / "evals").mkdir(parents=True, exist_ok=True)
     (record / "evals" / f"{name}.json").write_text(json.dumps(result))
 
@@ -165,7 +231,11 @@ def test_the_study_selects_tasks_and_plans_every_checkpoints_evaluation():
     from studies import metaworld as study
     from studies.protocol import split_seeds
 
-    assert study.select_tasks(["easy:2", "hard:1", "button-press"]) == ["button-press", "button-press-topdown", "assembly"]
+    assert study.select_tasks(["easy:2", "hard:1", "button-press"]) == [
+        "button-press",
+        "button-press-topdown",
+        "assembly",
+    ]
     with pytest.raises(DSSPError, match="GROUP:N"):
         study.select_tasks(["tricky:2"])
     plan = {**study.PLAN, "tasks": ["reach"], "seeds": [0]}
@@ -182,7 +252,9 @@ def test_the_study_selects_tasks_and_plans_every_checkpoints_evaluation():
     assert evals[0].argv[evals[0].argv.index("--seed") + 1] == str(split_seeds("test", 50)[0])
     memory = study.stages({**study.MEMORY_PLAN, "seeds": [0]}, "validation", ["reach"], Path("/nonexistent"))
     assert memory[0].argv[:3] == ("collect", "--task", "metaworld-cue/reach")
-    assert all(s.argv[s.argv.index("--task") + 1] == "metaworld-cue/reach" for s in memory if s.name.startswith("eval_"))
+    assert all(
+        s.argv[s.argv.index("--task") + 1] == "metaworld-cue/reach" for s in memory if s.name.startswith("eval_")
+    )
     assert study.main(["--memory", "--tasks", "door-open", "--cost"]) == 2  # not a cue task: one line, nothing runs
 
 
@@ -190,8 +262,13 @@ def test_the_report_gives_the_papers_metric_and_the_paired_test_split(tmp_path):
     from studies import metaworld as study
     from studies.stats import paired_exact_test
 
-    plan = {**study.PLAN, "tasks": ["button-press", "assembly"], "seeds": [0, 1], "evaluations": 5,
-            "episodes": {"validation": 4, "test": 6}}
+    plan = {
+        **study.PLAN,
+        "tasks": ["button-press", "assembly"],
+        "seeds": [0, 1],
+        "evaluations": 5,
+        "episodes": {"validation": 4, "test": 6},
+    }
     val, test = list(range(1000, 1004)), list(range(10000, 10006))
     rates = {"dssp": [0, 1, 2, 3, 4, 4], "dp3_sim": [1, 1, 1, 1, 1, 0]}  # wins per checkpoint (6 numbers: 5 used)
     for task in plan["tasks"]:
@@ -199,15 +276,26 @@ def test_the_report_gives_the_papers_metric_and_the_paired_test_split(tmp_path):
             for seed in (0, 1):
                 for k, step in enumerate(study.checkpoint_steps(plan)):
                     wins = rates[name][k + seed]
-                    _fake_mw_eval(tmp_path, study.eval_name(task, name, seed, step, "validation"), val, [1] * wins + [0] * (4 - wins))
-                _fake_mw_eval(tmp_path, study.eval_name(task, name, seed, 1000, "test"), test,
-                              [1] * 6 if name == "dssp" else [0, 0, 0, 0, 0, 1])
+                    _fake_mw_eval(
+                        tmp_path,
+                        study.eval_name(task, name, seed, step, "validation"),
+                        val,
+                        [1] * wins + [0] * (4 - wins),
+                    )
+                _fake_mw_eval(
+                    tmp_path,
+                    study.eval_name(task, name, seed, 1000, "test"),
+                    test,
+                    [1] * 6 if name == "dssp" else [0, 0, 0, 0, 0, 1],
+                )
     lines, figures = study.report_lines(plan, tmp_path, shown_record="reports/metaworld/record")
     text = "\n".join(lines)
     row = figures["tasks"]["button-press"]["dssp"]
     # seed 0: 0,1,2,3,4 of 4 -> mean of the top five = 0.5; seed 1: 1,2,3,4,4 -> 0.7
     assert row["top5"]["per_seed"] == [pytest.approx(0.5), pytest.approx(0.7)]
-    assert study.paper_metric([0.1, 0.9, 0.5, 0.2, 0.3, 0.8, 0.7], top=5) == pytest.approx((0.9 + 0.8 + 0.7 + 0.5 + 0.3) / 5)
+    assert study.paper_metric([0.1, 0.9, 0.5, 0.2, 0.3, 0.8, 0.7], top=5) == pytest.approx(
+        (0.9 + 0.8 + 0.7 + 0.5 + 0.3) / 5
+    )
     dp3 = figures["tasks"]["assembly"]["dp3_sim"]["test"]
     assert dp3["success"] == pytest.approx(1 / 6) and dp3["delta"] == pytest.approx(-5 / 6)
     assert dp3["p"] == pytest.approx(paired_exact_test([[0, 0, 0, 0, 0, 1]] * 2, [[1] * 6] * 2))

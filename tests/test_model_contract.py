@@ -14,11 +14,14 @@ def contract(**changes) -> ModelContract:
     return dataclasses.replace(ModelContract(), **changes)
 
 
-@pytest.mark.parametrize("n, h, ha, offset, words", [
-    (2, 4, 5, 0, "contract.n_action_steps (H_a) must be in [1, horizon=4], got 5"),
-    (3, 8, 7, 2, "contract.n_action_steps (H_a) must be at most horizon - N + 1 = 6, got 7: DP3's alignment"),
-    (3, 8, 2, 1, "contract.action_offset must be 0 or n_obs_steps - 1 = 2, got 1"),
-])
+@pytest.mark.parametrize(
+    "n, h, ha, offset, words",
+    [
+        (2, 4, 5, 0, "contract.n_action_steps (H_a) must be in [1, horizon=4], got 5"),
+        (3, 8, 7, 2, "contract.n_action_steps (H_a) must be at most horizon - N + 1 = 6, got 7: DP3's alignment"),
+        (3, 8, 2, 1, "contract.action_offset must be 0 or n_obs_steps - 1 = 2, got 1"),
+    ],
+)
 def test_the_executed_slice_must_lie_in_the_chunk(n, h, ha, offset, words):
     with pytest.raises(ConfigError) as err:
         check_chunk(n, h, ha, offset, "contract")
@@ -30,7 +33,9 @@ def test_the_executed_slice_must_lie_in_the_chunk(n, h, ha, offset, words):
 
 
 def test_the_training_config_checks_the_chunk_with_the_same_rule():
-    with pytest.raises(ConfigError, match=r"^--set model.n_action_steps=9: model.n_action_steps \(H_a\) must be in \[1, horizon="):
+    with pytest.raises(
+        ConfigError, match=r"^--set model.n_action_steps=9: model.n_action_steps \(H_a\) must be in \[1, horizon="
+    ):
         apply_overrides(load_preset("tiny"), ["model.n_action_steps=9"])
 
 
@@ -65,12 +70,18 @@ def test_json_round_trip_every_field_required_and_the_digest_follows_the_facts()
 def test_the_run_builds_the_contract_and_model_config_keeps_the_rest(alignment):
     from export.manifest_writer import architecture
 
-    config = apply_overrides(load_preset("tiny"), [f"model.action_alignment={alignment}", "model.state_dim=7",
-                                                   "model.action_dim=7", "control_rate_hz=50"])
+    config = apply_overrides(
+        load_preset("tiny"),
+        [f"model.action_alignment={alignment}", "model.state_dim=7", "model.action_dim=7", "control_rate_hz=50"],
+    )
     c = config.contract([90, 45, 0], inpainting=True)
     m = config.model
-    assert (c.n_obs_steps, c.horizon, c.n_action_steps, c.action_offset) == (m.n_obs_steps, m.horizon, m.n_action_steps,
-                                                                             m.action_offset)
+    assert (c.n_obs_steps, c.horizon, c.n_action_steps, c.action_offset) == (
+        m.n_obs_steps,
+        m.horizon,
+        m.n_action_steps,
+        m.action_offset,
+    )
     assert c.control_rate_hz == 50.0 and c.inpainting and c.denoise_steps == 3 and c.observation == config.observation
     kept = architecture(m)
     assert not set(kept) & set(CONTRACT_FIELDS)  # each fact once

@@ -7,6 +7,7 @@ import json
 
 import pytest
 
+from dssp_core.errors import ConfigError
 from dssp_data.observation import (
     FRAME_ROBOT_BASE,
     UNKNOWN,
@@ -16,11 +17,16 @@ from dssp_data.observation import (
     contract_mismatches,
     piper_layout,
 )
-from dssp_core.errors import ConfigError
 
 # A crop the simulation does not use by default (its own: (0.05, -0.35, 0.005) .. (0.60, 0.35, 0.10)).
-CROP = {"n_points": 48, "depth_near": 0.1, "depth_far": 2.0, "crop_min": [0.05, -0.3, 0.005],
-        "crop_max": [0.55, 0.3, 0.12], "voxel_size": 0.01}
+CROP = {
+    "n_points": 48,
+    "depth_near": 0.1,
+    "depth_far": 2.0,
+    "crop_min": [0.05, -0.3, 0.005],
+    "crop_max": [0.55, 0.3, 0.12],
+    "voxel_size": 0.01,
+}
 
 
 @pytest.fixture(scope="module")
@@ -34,10 +40,42 @@ def recorded_model(tmp_path_factory):
     crop = root / "crop.json"
     crop.write_text(json.dumps(CROP))
     data, run_dir, model_dir = root / "rec.zarr", root / "run", root / "model"
-    assert record_main(["--out", str(data), "--pointcloud", str(crop), "--auto", "--episodes", "2", "--max-steps", "12",
-                        "--no-depth", "--quiet"]) == 0
-    assert train_main(["--data", str(data), "--out", str(run_dir), "--preset", "tiny", "--steps", "2",
-                       "--set", "train.val_every=2", "--no-progress"]) == 0
+    assert (
+        record_main(
+            [
+                "--out",
+                str(data),
+                "--pointcloud",
+                str(crop),
+                "--auto",
+                "--episodes",
+                "2",
+                "--max-steps",
+                "12",
+                "--no-depth",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
+    assert (
+        train_main(
+            [
+                "--data",
+                str(data),
+                "--out",
+                str(run_dir),
+                "--preset",
+                "tiny",
+                "--steps",
+                "2",
+                "--set",
+                "train.val_every=2",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     assert export_main([str(run_dir), "-o", str(model_dir), "--skip-verify", "--quantize", "none"]) == 0
     return model_dir, run_dir
 
@@ -57,12 +95,30 @@ def test_the_contract_goes_from_the_dataset_into_the_run_and_the_manifest(record
 def run(model_dir, log_dir, *extra):
     from hardware.cli.run import main as run_main
 
-    return run_main(["--model", str(model_dir), "--camera", "tabletop", "--can", "sim", "--max-steps", "3",
-                     "--log-dir", str(log_dir), "--threads", "1", "--quiet", "--no-can-log", *extra])
+    return run_main(
+        [
+            "--model",
+            str(model_dir),
+            "--camera",
+            "tabletop",
+            "--can",
+            "sim",
+            "--max-steps",
+            "3",
+            "--log-dir",
+            str(log_dir),
+            "--threads",
+            "1",
+            "--quiet",
+            "--no-can-log",
+            *extra,
+        ]
+    )
 
 
-def test_dssp_run_refuses_another_crop_before_motion_and_runs_with_the_models_own(recorded_model, tmp_path, capsys,
-                                                                                   monkeypatch):
+def test_dssp_run_refuses_another_crop_before_motion_and_runs_with_the_models_own(
+    recorded_model, tmp_path, capsys, monkeypatch
+):
     from hardware.piper import piper_robot
 
     model_dir, _ = recorded_model
@@ -85,18 +141,23 @@ def test_dssp_run_refuses_another_crop_before_motion_and_runs_with_the_models_ow
     assert opened, "the run connected the arm"
     capsys.readouterr()
 
-    assert run(model_dir, tmp_path / "allowed", "--pointcloud", str(other), "--allow-mismatch", "pointcloud.crop_max") == 0
+    assert (
+        run(model_dir, tmp_path / "allowed", "--pointcloud", str(other), "--allow-mismatch", "pointcloud.crop_max") == 0
+    )
     assert "warning: running with pointcloud.crop_max" in capsys.readouterr().err
     settings = json.loads((tmp_path / "allowed" / "run.json").read_text())["settings"]
-    assert settings["allowed_mismatches"] == [{"field": "pointcloud.crop_max", "trained": CROP["crop_max"],
-                                               "given": [0.8, 0.4, 0.5]}]
+    assert settings["allowed_mismatches"] == [
+        {"field": "pointcloud.crop_max", "trained": CROP["crop_max"], "given": [0.8, 0.4, 0.5]}
+    ]
 
 
 def test_dssp_run_refuses_another_rate_and_another_number_of_arms(recorded_model, tmp_path, capsys):
     model_dir, _ = recorded_model
     assert run(model_dir, tmp_path / "a", "--control-rate", "20") == 2
     line = capsys.readouterr().err.strip()
-    assert "control_rate_hz = 20 but the model" in line and "has 10" in line and "--allow-mismatch control_rate_hz" in line
+    assert (
+        "control_rate_hz = 20 but the model" in line and "has 10" in line and "--allow-mismatch control_rate_hz" in line
+    )
     assert run(model_dir, tmp_path / "b", "--allow-mismatch", "crop") == 2
     assert "--allow-mismatch crop: not a field" in capsys.readouterr().err
 
@@ -104,7 +165,11 @@ def test_dssp_run_refuses_another_rate_and_another_number_of_arms(recorded_model
 def test_data_without_a_contract_trains_and_the_manifest_says_unknown(tiny_export):
     run_dir, model_dir, _ = tiny_export
     assert json.loads((run_dir / "config.json").read_text())["observation"] == {
-        "pointcloud": None, "frame": None, "state": None, "action": None}
+        "pointcloud": None,
+        "frame": None,
+        "state": None,
+        "action": None,
+    }
     assert set(json.loads((model_dir / "dssp_model.json").read_text())["contract"]["observation"].values()) == {UNKNOWN}
 
 
@@ -114,8 +179,13 @@ def test_contract_checks_compare_only_what_both_sides_know():
     given = ObservationContract(pointcloud=PointCloudConfig(), state=piper_layout(2), action=piper_layout(2))
     assert [m[0] for m in contract_mismatches(trained, given)] == ["pointcloud.voxel_size", "state.arms"]
     with pytest.raises(ConfigError, match=r"^--can can0,can1 gives state.arms = 2 but the model m has 1"):
-        check_contract(trained, given, trained_by="the model m", allow=["pointcloud.voxel_size"],
-                       given_by={"pointcloud": "--pointcloud p.json", "state": "--can can0,can1"})
+        check_contract(
+            trained,
+            given,
+            trained_by="the model m",
+            allow=["pointcloud.voxel_size"],
+            given_by={"pointcloud": "--pointcloud p.json", "state": "--can can0,can1"},
+        )
 
 
 def test_dssp_record_refuses_appending_with_other_settings(tmp_path, capsys):

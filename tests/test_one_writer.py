@@ -10,7 +10,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
+from conftest import SET_SMALL, one_error_line, snapshot
+from test_train_inputs import data, trained  # noqa: F401 (fixtures: a small dataset, a finished 2-step run)
 
 from dssp_core.staging import WriterLock, writer_lock_path
 from dssp_train.cli.distill import main as distill_main
@@ -19,15 +20,14 @@ from dssp_train.training.train_log import read_log
 from dssp_train.training.trainer import Trainer
 from export.to_onnx import main as export_main
 
-from conftest import SET_SMALL, one_error_line, snapshot
-from test_train_inputs import data, trained  # noqa: F401 (fixtures: a small dataset, a finished 2-step run)
-
 FAST_EXPORT = ["--format", "onnx", "--skip-verify", "--quantize", "none", "--no-fused"]
 
 
 def held_by_me(line: str, out: Path, what: str, flag: str) -> None:
-    assert line == (f"error: {out} is being written by pid {os.getpid()} on {os.uname().nodename}: one writer per {what} "
-                    f"at a time; wait for it to finish or choose another {flag}"), line
+    assert line == (
+        f"error: {out} is being written by pid {os.getpid()} on {os.uname().nodename}: one writer per {what} "
+        f"at a time; wait for it to finish or choose another {flag}"
+    ), line
 
 
 def test_a_second_dssp_train_into_a_run_being_trained_is_refused(data, tmp_path, capsys, monkeypatch):
@@ -68,19 +68,49 @@ def test_a_second_dssp_train_process_is_refused(trained, data, tmp_path):
     shutil.copytree(trained, run)
     before = snapshot(run)
     with WriterLock(run, what="run directory"):
-        done = subprocess.run([sys.executable, "-m", "dssp_train.cli.train", "--data", str(data), "--out", str(run),
-                               "--resume", "--steps", "4", "--no-progress"], capture_output=True, text=True, timeout=300,
-                              env={**os.environ, "OMP_NUM_THREADS": "1"})
+        done = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "dssp_train.cli.train",
+                "--data",
+                str(data),
+                "--out",
+                str(run),
+                "--resume",
+                "--steps",
+                "4",
+                "--no-progress",
+            ],
+            capture_output=True,
+            text=True,
+            timeout=300,
+            env={**os.environ, "OMP_NUM_THREADS": "1"},
+        )
     assert done.returncode == 2, done.stderr
     line = one_error_line(done.stderr)
-    assert line.startswith(f"error: {run} is being written by pid {os.getpid()} ") and "one writer per run directory" in line
+    assert (
+        line.startswith(f"error: {run} is being written by pid {os.getpid()} ")
+        and "one writer per run directory" in line
+    )
     assert done.stdout == "" and snapshot(run) == before
 
 
 def test_a_second_dssp_distill_is_refused(trained, tmp_path, capsys):
     out = tmp_path / "student"
     shutil.copytree(trained, out)  # a previous run there, which --force would replace
-    argv = ["--teacher", str(trained), "--steps", "1", "--out", str(out), "--force", "--train-steps", "2", "--no-progress"]
+    argv = [
+        "--teacher",
+        str(trained),
+        "--steps",
+        "1",
+        "--out",
+        str(out),
+        "--force",
+        "--train-steps",
+        "2",
+        "--no-progress",
+    ]
     before = snapshot(out)
     with WriterLock(out, what="run directory"):
         assert distill_main(argv) == 2

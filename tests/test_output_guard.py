@@ -26,24 +26,32 @@ from conftest import snapshot
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
-from dssp_deploy.profile import main as profile_main
-from dssp_sim.sim_cli import main as sim_main
+from dssp_core.errors import DSSPError, OutputError
 from dssp_core.files import replace_dir
-from dssp_train.cli.synth import main as synth_main
-from dssp_train.cli.train import main as train_main
+from dssp_core.output_guard import (
+    MARKER,
+    NEW,
+    OWN,
+    OutputDir,
+    OutputKind,
+    check_append,
+    check_output,
+    check_output_file,
+    claim_dir,
+    write_output_file,
+    write_output_text,
+)
+from dssp_data.attributes import zarr_attrs, zarr_generator
 from dssp_data.dataset_layout import Episode
 from dssp_data.replay_buffer import ReplayBuffer
 from dssp_data.replay_buffer_writer import write_replay_buffer
-from dssp_core.errors import DSSPError
-from dssp_core.output_guard import (
-    MARKER, NEW, OWN, OutputDir, OutputKind, check_append, check_output, check_output_file, claim_dir,
-    write_output_file, write_output_text,
-)
-from dssp_train.cli.train import RUN_DIR
+from dssp_deploy.profile import main as profile_main
 from dssp_sim.collect import SIM_DATASET
+from dssp_sim.sim_cli import main as sim_main
 from dssp_train.cli.synth import SYNTH_DATASET
-from dssp_core.errors import OutputError
-from dssp_data.attributes import zarr_attrs, zarr_generator
+from dssp_train.cli.synth import main as synth_main
+from dssp_train.cli.train import RUN_DIR
+from dssp_train.cli.train import main as train_main
 from export.to_onnx import main as export_main
 from studies.sim_study import REPORT_NAME
 from studies.sim_study import main as study_main
@@ -68,8 +76,14 @@ def load_script(name: str):
 
 def tiny_episodes(n: int) -> list[Episode]:
     rng = np.random.default_rng(0)
-    return [Episode(point_cloud=rng.random((3, 4, 3), dtype=np.float32), state=rng.random((3, 2), dtype=np.float32),
-                    action=rng.random((3, 2), dtype=np.float32)) for _ in range(n)]
+    return [
+        Episode(
+            point_cloud=rng.random((3, 4, 3), dtype=np.float32),
+            state=rng.random((3, 2), dtype=np.float32),
+            action=rng.random((3, 2), dtype=np.float32),
+        )
+        for _ in range(n)
+    ]
 
 
 def write_dataset(path: Path, generator: str, n: int = 2, **attrs) -> Path:
@@ -117,7 +131,9 @@ def synth(out, force, episodes=2):
 
 
 def train(out, force):
-    return train_main(["--data", str(out.parent / "missing.zarr"), "--out", str(out), "--steps", "1", "--no-progress", *flag(force)])
+    return train_main(
+        ["--data", str(out.parent / "missing.zarr"), "--out", str(out), "--steps", "1", "--no-progress", *flag(force)]
+    )
 
 
 def collect(out, force):
@@ -126,13 +142,39 @@ def collect(out, force):
 
 
 def eval_strips(out, force):
-    return sim_main(["eval", "--model", str(out.parent / "missing_model"), "--task", "tap", "--episodes", "1",
-                     "--strips", str(out), "--no-progress", *flag(force)])
+    return sim_main(
+        [
+            "eval",
+            "--model",
+            str(out.parent / "missing_model"),
+            "--task",
+            "tap",
+            "--episodes",
+            "1",
+            "--strips",
+            str(out),
+            "--no-progress",
+            *flag(force),
+        ]
+    )
 
 
 def eval_json(out, force):
-    return sim_main(["eval", "--model", str(out.parent / "missing_model"), "--task", "tap", "--episodes", "1",
-                     "--json", str(out), "--no-progress", *flag(force)])
+    return sim_main(
+        [
+            "eval",
+            "--model",
+            str(out.parent / "missing_model"),
+            "--task",
+            "tap",
+            "--episodes",
+            "1",
+            "--json",
+            str(out),
+            "--no-progress",
+            *flag(force),
+        ]
+    )
 
 
 def profile_json(out, force):
@@ -156,13 +198,15 @@ def export(out, force):
 
 
 def export_report(out, force):
-    return load_script("export_report").main(["--out", str(out), "--preset", "tiny", "--verify-steps", "1",
-                                              "--repeats", "1", *flag(force)])
+    return load_script("export_report").main(
+        ["--out", str(out), "--preset", "tiny", "--verify-steps", "1", "--repeats", "1", *flag(force)]
+    )
 
 
 def export_report_json(out, force):
-    return load_script("export_report").main(["--out", str(out.parent / "report_dir"), "--json", str(out),
-                                              "--preset", "tiny", *flag(force)])
+    return load_script("export_report").main(
+        ["--out", str(out.parent / "report_dir"), "--json", str(out), "--preset", "tiny", *flag(force)]
+    )
 
 
 def pointcloud_json(out, force):
@@ -363,8 +407,23 @@ def test_eval_replaces_its_strips_and_json_only_with_force(tmp_path, capsys, mon
     monkeypatch.setattr(evaluate, "prepare_evaluation", Fake)
 
     def run(out, force):
-        return sim_main(["eval", "--model", "m", "--task", "tap", "--episodes", "1", "--strips", str(out),
-                         "--json", str(out.parent / "eval.json"), "--no-progress", *flag(force)])
+        return sim_main(
+            [
+                "eval",
+                "--model",
+                "m",
+                "--task",
+                "tap",
+                "--episodes",
+                "1",
+                "--strips",
+                str(out),
+                "--json",
+                str(out.parent / "eval.json"),
+                "--no-progress",
+                *flag(force),
+            ]
+        )
 
     out = tmp_path / "strips"
     assert run(out, False) == 0
@@ -380,8 +439,11 @@ def test_profile_replaces_its_files_only_with_force(tmp_path, capsys, monkeypatc
 
     def fake(*args):
         runs.append(1)
-        return {"history_sweep": [{"length": 1, "p50_ms": 1.0}, {"length": 10, "p50_ms": 2.0 + len(runs)}], "torch": {},
-                "samples_ms": {"history_step": [1.0, 2.0], "denoiser_chunk": [3.0, 4.0]}}
+        return {
+            "history_sweep": [{"length": 1, "p50_ms": 1.0}, {"length": 10, "p50_ms": 2.0 + len(runs)}],
+            "torch": {},
+            "samples_ms": {"history_step": [1.0, 2.0], "denoiser_chunk": [3.0, 4.0]},
+        }
 
     monkeypatch.setattr(profile, "run_profile", fake)
     monkeypatch.setattr(profile, "markdown", lambda report: "table")
@@ -407,8 +469,9 @@ def test_study_continues_its_work_and_replaces_its_report_only_with_force(tmp_pa
         calls.append([s.name for s in stage_list])
         first = next(s for s in stage_list if s.outputs)
         (record / "evals").mkdir(parents=True, exist_ok=True)
-        (record / first.outputs[0]).write_text(json.dumps({"successes": len(calls) % 2, "n": 1, "failure_reasons": {},
-                                                           "episodes": []}))
+        (record / first.outputs[0]).write_text(
+            json.dumps({"successes": len(calls) % 2, "n": 1, "failure_reasons": {}, "episodes": []})
+        )
 
     monkeypatch.setattr(sim_study, "run_and_keep", fake_run_and_keep)
     work, report = tmp_path / "work", tmp_path / "report"
@@ -485,16 +548,27 @@ def build(path: Path, names: list[str], dirs: set[str], marker: str | None) -> N
         (path / MARKER).write_text(marker)
 
 
-MARKERS = st.sampled_from([None, json.dumps({"command": "test-cmd", "output": "a test output"}),
-                           json.dumps({"command": "other", "output": "a test output"}), "not json"])
+MARKERS = st.sampled_from(
+    [
+        None,
+        json.dumps({"command": "test-cmd", "output": "a test output"}),
+        json.dumps({"command": "other", "output": "a test output"}),
+        "not json",
+    ]
+)
 
 
 OWN_MARKER = json.dumps({"command": "test-cmd", "output": "a test output"})
 
 
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(names=st.lists(st.sampled_from(NAMES), unique=True), dirs=st.sets(st.sampled_from(NAMES)), marker=MARKERS,
-       force=st.booleans(), staged=st.booleans())
+@given(
+    names=st.lists(st.sampled_from(NAMES), unique=True),
+    dirs=st.sets(st.sampled_from(NAMES)),
+    marker=MARKERS,
+    force=st.booleans(),
+    staged=st.booleans(),
+)
 @example(names=["a.json", "x.png", ".b.partial-xy"], dirs={"b"}, marker=OWN_MARKER, force=True, staged=False)
 @example(names=["a.json", "x.png"], dirs=set(), marker=OWN_MARKER, force=True, staged=True)
 @example(names=["a.json", "notes.txt"], dirs=set(), marker=OWN_MARKER, force=True, staged=True)
@@ -506,8 +580,7 @@ def test_guard_replaces_only_its_own_folders(names, dirs, marker, force, staged)
         build(out, names, dirs, marker)
         content = [n for n in os.listdir(out) if n != MARKER]
         own_marker = marker is not None and "test-cmd" in marker
-        expected = (NEW if not content
-                    else OWN if own_marker and all(KIND.expected(n) for n in content) else "refused")
+        expected = NEW if not content else OWN if own_marker and all(KIND.expected(n) for n in content) else "refused"
         before = snapshot(root)
         try:
             found = check_output(out, force=force, kind=KIND)
@@ -687,8 +760,8 @@ def test_the_robot_commands_never_touch_a_foreign_output(run, tmp_path, capsys):
 
 
 def test_dssp_run_never_reuses_a_log(tmp_path, capsys):
-    from hardware.cli.run import RUN_LOG
     from dssp_core.output_guard import claim_dir
+    from hardware.cli.run import RUN_LOG
 
     out = claim_dir(tmp_path / "log", kind=RUN_LOG, flag="--log-dir")
     (out / "run.json").write_text("{}")
@@ -744,10 +817,21 @@ def test_only_stale_staging_folders_of_the_same_output_are_swept(tmp_path):
     from dssp_core.staging import Staging, sweep_stale
 
     out = tmp_path / "m.zarr"
-    stale = [".m.zarr.tmp-0123abcd", ".m.zarr.partial-89abcdef", "..m.zarr.tmp-0123abcd.tmp-4567cdef",
-             ".m.zarr.tmp-0123abcd.can"]
-    kept = [".m.zarr.old-0123abcd", ".m.zarr.tmp-nothex00", ".m.zarr.tmp-0123abc", "..m.zarr.tmp-0123abcd",
-            ".x.zarr.tmp-0123abcd", ".m.zarr.tmp-0123abcd.can.bak", "m.zarr.tmp-0123abcd"]
+    stale = [
+        ".m.zarr.tmp-0123abcd",
+        ".m.zarr.partial-89abcdef",
+        "..m.zarr.tmp-0123abcd.tmp-4567cdef",
+        ".m.zarr.tmp-0123abcd.can",
+    ]
+    kept = [
+        ".m.zarr.old-0123abcd",
+        ".m.zarr.tmp-nothex00",
+        ".m.zarr.tmp-0123abc",
+        "..m.zarr.tmp-0123abcd",
+        ".x.zarr.tmp-0123abcd",
+        ".m.zarr.tmp-0123abcd.can.bak",
+        "m.zarr.tmp-0123abcd",
+    ]
     for name in stale + kept:
         (tmp_path / name).mkdir()
         (tmp_path / name / "chunk").write_text(name)
@@ -860,7 +944,12 @@ def test_a_command_interrupted_after_its_outputs_were_in_place_names_them(tmp_pa
 def test_datasets_made_by_dssp_data_are_recognised_with_their_can_logs(tmp_path):
     from dssp_data.edit import DATA_DATASET
 
-    for generator in ("dssp-data merge", "dssp-data split", "dssp-data convert", "dssp-data convert (RoboTwin raw HDF5)"):
+    for generator in (
+        "dssp-data merge",
+        "dssp-data split",
+        "dssp-data convert",
+        "dssp-data convert (RoboTwin raw HDF5)",
+    ):
         path = write_dataset(tmp_path / f"{generator}.zarr", generator)
         assert DATA_DATASET.owns(path) and check_output(path, force=True, kind=DATA_DATASET) == OWN
     for generator in ("dssp-record", "dssp_train.data.synthetic", "dssp_sim.collect", "dssp-data"):
@@ -888,19 +977,22 @@ def test_datasets_made_by_dssp_data_are_recognised_with_their_can_logs(tmp_path)
 
 
 def test_paths_under_a_file_and_outputs_inside_inputs_are_one_line(tmp_path):
-    from dssp_core.output_guard import check_not_inside
     from dssp_core.files import make_dirs
+    from dssp_core.output_guard import check_not_inside
 
     a_file = tmp_path / "f"
     a_file.write_text("x")
     before = snapshot(tmp_path)
-    for check in (lambda: check_output_file(a_file / "r.json", force=True),
-                  lambda: check_output(a_file / "sub" / "out", force=True, kind=KIND),
-                  lambda: make_dirs(a_file / "sub"), lambda: make_dirs(a_file),
-                  lambda: write_output_text(a_file / "r.json", "x", force=True),
-                  lambda: check_not_inside(tmp_path / "in" / "x", [tmp_path / "in"]),
-                  lambda: check_not_inside(tmp_path / "in", [tmp_path / "in" / "."]),
-                  lambda: check_not_inside(tmp_path, [tmp_path / "in"])):
+    for check in (
+        lambda: check_output_file(a_file / "r.json", force=True),
+        lambda: check_output(a_file / "sub" / "out", force=True, kind=KIND),
+        lambda: make_dirs(a_file / "sub"),
+        lambda: make_dirs(a_file),
+        lambda: write_output_text(a_file / "r.json", "x", force=True),
+        lambda: check_not_inside(tmp_path / "in" / "x", [tmp_path / "in"]),
+        lambda: check_not_inside(tmp_path / "in", [tmp_path / "in" / "."]),
+        lambda: check_not_inside(tmp_path, [tmp_path / "in"]),
+    ):
         with pytest.raises(OutputError) as info:
             check()
         assert "\n" not in str(info.value) and "choose" in str(info.value)
@@ -909,8 +1001,13 @@ def test_paths_under_a_file_and_outputs_inside_inputs_are_one_line(tmp_path):
     assert make_dirs(tmp_path / "a" / "b") == [tmp_path / "a", tmp_path / "a" / "b"]
 
 
-@settings(deadline=None, derandomize=True, database=None, max_examples=30,
-          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(
+    deadline=None,
+    derandomize=True,
+    database=None,
+    max_examples=30,
+    suppress_health_check=[HealthCheck.function_scoped_fixture],
+)
 @given(length=st.integers(1, 400), depth=st.integers(0, 2), kind=st.sampled_from(["file", "folder"]))
 def test_a_name_the_file_system_cannot_take_is_one_line_before_any_work(tmp_path, length, depth, kind):
     """Every output check measures the names against the file system's limit, with the longest name a write puts

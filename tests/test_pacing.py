@@ -96,8 +96,9 @@ def test_the_replay_reads_its_times_from_its_clock(tmp_path, monkeypatch):
     action = np.zeros((steps, 7), np.float32)
     action[:, 0] = np.linspace(0.0, 0.1, steps)
     path = tmp_path / "ep.zarr"
-    write_replay_buffer(path, [Episode(np.zeros((steps, 4, 3), np.float32), action.copy(), action)],
-                        attrs={"control_rate_hz": 20.0})
+    write_replay_buffer(
+        path, [Episode(np.zeros((steps, 4, 3), np.float32), action.copy(), action)], attrs={"control_rate_hz": 20.0}
+    )
     seen = []
     real_decide = run_loop.Safety.decide
 

@@ -39,15 +39,23 @@ def roundtrip(message):
     return out
 
 
-@pytest.mark.parametrize("message", [
-    MotionCtrl1(codec.ESTOP_STOP), MotionCtrl1(codec.ESTOP_RESUME, 3, 4),
-    MotionCtrl2(1, 1, 50), MotionCtrl2(0, 4, 100, 0xAD, 7, 2),
-    MotorEnable(7, 2), MotorEnable(3, 1), MotorEnable(0xFF, 2),
-    ArmStatusFeedback(1, 4, 1, 0, 1, 9, 0x3F2A), ArmStatusFeedback(),
-    MotorHighSpeed(6, speed=-1.234, current=2.5, position=-123456),
-    MotorLowSpeed(1, voltage=24.6, driver_temp=-5, motor_temp=-40, status=0x40, bus_current=1.25),
-    MotorLowSpeed(6, voltage=0.0, driver_temp=120, motor_temp=127, status=0xFF, bus_current=65.535),
-])
+@pytest.mark.parametrize(
+    "message",
+    [
+        MotionCtrl1(codec.ESTOP_STOP),
+        MotionCtrl1(codec.ESTOP_RESUME, 3, 4),
+        MotionCtrl2(1, 1, 50),
+        MotionCtrl2(0, 4, 100, 0xAD, 7, 2),
+        MotorEnable(7, 2),
+        MotorEnable(3, 1),
+        MotorEnable(0xFF, 2),
+        ArmStatusFeedback(1, 4, 1, 0, 1, 9, 0x3F2A),
+        ArmStatusFeedback(),
+        MotorHighSpeed(6, speed=-1.234, current=2.5, position=-123456),
+        MotorLowSpeed(1, voltage=24.6, driver_temp=-5, motor_temp=-40, status=0x40, bus_current=1.25),
+        MotorLowSpeed(6, voltage=0.0, driver_temp=120, motor_temp=127, status=0xFF, bus_current=65.535),
+    ],
+)
 def test_exact_roundtrip_of_integer_and_fixed_point_frames(message):
     assert roundtrip(message) == message
 
@@ -185,11 +193,22 @@ ALL_IDS = sorted(codec.KNOWN_IDS)
     arbitration_id=st.one_of(st.sampled_from(ALL_IDS), st.integers(0, 0x7FF), st.integers(0, 2**29 + 5)),
     data=st.binary(min_size=0, max_size=64),
     dlc=st.one_of(st.none(), st.integers(0, 64)),
-    extended=st.booleans(), remote=st.booleans(), error=st.booleans(), fd=st.booleans(),
+    extended=st.booleans(),
+    remote=st.booleans(),
+    error=st.booleans(),
+    fd=st.booleans(),
 )
 def test_decoder_never_raises_and_counts_every_frame(arbitration_id, data, dlc, extended, remote, error, fd):
-    frame = can.Message(arbitration_id=arbitration_id, data=data, dlc=dlc, is_extended_id=extended,
-                        is_remote_frame=remote, is_error_frame=error, is_fd=fd, check=False)
+    frame = can.Message(
+        arbitration_id=arbitration_id,
+        data=data,
+        dlc=dlc,
+        is_extended_id=extended,
+        is_remote_frame=remote,
+        is_error_frame=error,
+        is_fd=fd,
+        check=False,
+    )
     d = Decoder()
     out = d.decode(frame)
     assert sum(d.counts.values()) == 1

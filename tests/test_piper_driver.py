@@ -13,18 +13,18 @@ from concurrent.futures import TimeoutError as FutureTimeout
 import can
 import numpy as np
 import pytest
+from waiting import wait_for
 
 from dssp_core.errors import ArmError, CanError
-from hardware.clock import FakeClock
 from dssp_data.observation import piper_layout
+from hardware.clock import FakeClock
 from hardware.piper import codec
 from hardware.piper.arm import PiperArm
 from hardware.piper.bus import open_bus
+from hardware.piper.can_simulator import SimulatedPiper
 from hardware.piper.limits import GRIPPER_STROKE_MAX, JOINT_LOWER, JOINT_UPPER
 from hardware.piper.piper_robot import PiperRobot, open_robot
-from hardware.piper.can_simulator import SimulatedPiper
 from hardware.robot import RobotDescription
-from waiting import wait_for
 
 MDEG = math.radians(0.001)  # joint resolution on the wire (rad)
 UM = 1e-6  # gripper resolution on the wire (m)
@@ -34,14 +34,18 @@ def channel(tag: str) -> str:
     return f"test-{tag}-{uuid.uuid4().hex[:10]}"
 
 
-
-
 def synced(arm: PiperArm, sim: SimulatedPiper) -> None:
     """Wait until the driver's joint and gripper feedback equal the simulator's state."""
+
     def same():
         fb = arm.feedback()
-        return (fb.joints is not None and fb.gripper is not None
-                and np.allclose(fb.joints, sim.joints, atol=MDEG) and abs(fb.gripper.stroke - sim.gripper_stroke) <= UM)
+        return (
+            fb.joints is not None
+            and fb.gripper is not None
+            and np.allclose(fb.joints, sim.joints, atol=MDEG)
+            and abs(fb.gripper.stroke - sim.gripper_stroke) <= UM
+        )
+
     wait_for(same, what="feedback equal to the simulator")
 
 
@@ -371,8 +375,11 @@ def test_bad_commands_raise_arm_error(rig):
 
 
 def test_open_bus_errors_are_one_line():
-    for ch, interface, needle in [("", "virtual", "empty"), ("dssp-no-such-can9", "socketcan", "ip link set"),
-                                  ("10.1.2.3", "udp_multicast", "multicast group")]:
+    for ch, interface, needle in [
+        ("", "virtual", "empty"),
+        ("dssp-no-such-can9", "socketcan", "ip link set"),
+        ("10.1.2.3", "udp_multicast", "multicast group"),
+    ]:
         with pytest.raises(CanError, match=needle) as info:
             open_bus(ch, interface)
         assert "\n" not in str(info.value)
@@ -382,8 +389,10 @@ def test_open_bus_errors_are_one_line():
 def test_two_arms_are_fourteen_values_left_then_right():
     left_ch, right_ch = channel("left"), channel("right")
     q_left, q_right = np.array([0.1, 0.2, -0.3, 0.4, -0.5, 0.6]), np.array([-0.6, 1.5, -1.4, 0.3, 0.2, -0.1])
-    sims = [SimulatedPiper(left_ch, initial_joints=q_left, initial_stroke=0.014),
-            SimulatedPiper(right_ch, initial_joints=q_right, initial_stroke=0.056)]
+    sims = [
+        SimulatedPiper(left_ch, initial_joints=q_left, initial_stroke=0.014),
+        SimulatedPiper(right_ch, initial_joints=q_right, initial_stroke=0.056),
+    ]
     arms = [PiperArm(left_ch, "virtual"), PiperArm(right_ch, "virtual")]
     robot = PiperRobot(arms, speed_percent=80, gripper_effort=1.5, simulators=sims)
     for sim in sims:
@@ -425,6 +434,7 @@ def test_open_robot_sim(spec, dof):
         wait_for(robot.state)
         robot.enable(3.0)
         target = np.tile([0.2, 0.3, -0.2, 0.1, -0.1, 0.25, 0.6], dof // 7)
+
         def commanded_and_reached() -> bool:  # the arms' threads move them on wall time
             robot.command(target)
             return np.allclose(robot.state().position, target, atol=2 * MDEG)

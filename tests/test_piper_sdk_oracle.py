@@ -16,18 +16,16 @@ import can
 import numpy as np
 import pytest
 from piper_sdk import C_PiperInterface_V2
+from waiting import wait_for
 
 from hardware.piper import codec
 from hardware.piper.arm import PiperArm
-from hardware.piper.limits import JOINT_LOWER, JOINT_UPPER
 from hardware.piper.can_simulator import SimulatedPiper
-from waiting import wait_for
+from hardware.piper.limits import JOINT_LOWER, JOINT_UPPER
 
 MDEG = math.radians(0.001)
 # The SDK opens its bus with python-can's deprecated ``bustype=`` argument.
 pytestmark = pytest.mark.filterwarnings("ignore:The 'bustype' argument is deprecated:DeprecationWarning")
-
-
 
 
 @pytest.fixture
@@ -124,6 +122,7 @@ def test_sdk_drives_the_simulator_and_reads_its_feedback(sdk_channel):
         wait_for(lambda: sdk.GetArmEnableStatus() == [True] * 6, what="SDK sees drivers enabled")
 
         target = [20000, 30000, -25000, 10000, -15000, 45000]  # 0.001 degree
+
         def commanded_and_reached() -> bool:  # the simulator's thread moves it on wall time
             sdk.MotionCtrl_2(0x01, 0x01, 100, 0x00)  # as the SDK's demos do before each joint command
             sdk.JointCtrl(*target)

@@ -13,9 +13,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from dssp_core.errors import ConfigError
-from dssp_data.pointcloud.depth_frame import DepthFrame, Intrinsics
-from dssp_core.errors import CalibrationError, CameraError
+from dssp_core.errors import CalibrationError, CameraError, ConfigError
 from dssp_data.pointcloud import (
     EmptyCloudError,
     PointCloudConfig,
@@ -27,12 +25,14 @@ from dssp_data.pointcloud import (
     validate_extrinsics,
     voxel_downsample,
 )
+from dssp_data.pointcloud.depth_frame import DepthFrame, Intrinsics
 from dssp_data.pointcloud.pipeline import voxel_cells
 
 SMALL = Intrinsics(width=96, height=64, fx=83.3, fy=79.1, ppx=45.2, ppy=30.7)
 UNIT = 0.00025
-EVERYWHERE = dict(crop_min=(-50.0, -50.0, -50.0), crop_max=(50.0, 50.0, 50.0), voxel_size=0.0,
-                  depth_near=0.0, depth_far=20.0)
+EVERYWHERE = dict(
+    crop_min=(-50.0, -50.0, -50.0), crop_max=(50.0, 50.0, 50.0), voxel_size=0.0, depth_near=0.0, depth_far=20.0
+)
 
 
 def _depth(shape=(64, 96), seed=0, invalid=0.1, hi=9000) -> np.ndarray:
@@ -88,8 +88,7 @@ def test_deprojection_matches_rs_pointcloud():
 
 # -- extrinsics in the pipeline ------------------------------------------------------------------------------
 @settings(max_examples=15, deadline=None)
-@given(angles=st.tuples(*[st.floats(-180, 180)] * 3),
-       t=st.tuples(*[st.floats(-2, 2)] * 3))
+@given(angles=st.tuples(*[st.floats(-180, 180)] * 3), t=st.tuples(*[st.floats(-2, 2)] * 3))
 def test_extrinsic_applied(angles, t):
     a, b, c = (math.radians(x) for x in angles)
     rx = np.array([[1, 0, 0], [0, math.cos(a), -math.sin(a)], [0, math.sin(a), math.cos(a)]])
@@ -134,8 +133,12 @@ def test_depth_clip():
     depth[:, :32] = 800  # 0.2 m
     depth[:, 32:64] = 4000  # 1.0 m
     depth[:, 64:] = 12000  # 3.0 m
-    cfg = PointCloudConfig(n_points=100, depth_near=0.5, depth_far=2.0, **{k: v for k, v in EVERYWHERE.items()
-                                                                            if not k.startswith("depth")})
+    cfg = PointCloudConfig(
+        n_points=100,
+        depth_near=0.5,
+        depth_far=2.0,
+        **{k: v for k, v in EVERYWHERE.items() if not k.startswith("depth")},
+    )
     cloud, info = frame_to_cloud(_frame(depth), cfg)
     assert info.n_valid == 64 * 32
     assert np.allclose(cloud[:, 2], 1.0)
@@ -302,17 +305,23 @@ def test_extrinsics_roundtrip(tmp_path):
     np.testing.assert_array_equal(load_extrinsics(None), np.eye(4))
 
 
-@pytest.mark.parametrize("content, words", [
-    ("{not json", "not valid JSON"),
-    ('{"frame": "base"}', "camera_to_base"),
-    ('{"camera_to_base": [[1, 0, 0], [0, 1, 0], [0, 0, 1]]}', "a list of 4 lists of 4 finite numbers"),
-    ('{"camera_to_base": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, NaN], [0, 0, 0, 1]]}', "camera_to_base[2][3] must be a finite number"),
-    ('{"camera_to_base": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 1, 1]]}', "last row"),
-    ('{"camera_to_base": [[2, 0, 0, 0], [0, 2, 0, 0], [0, 0, 2, 0], [0, 0, 0, 1]]}', "orthonormal"),
-    ('{"camera_to_base": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, -1, 0], [0, 0, 0, 1]]}', "determinant"),
-    ('{"camera_to_base": [[1, 0, 0, 900], [0, 1, 0, 50], [0, 0, 1, 600], [0, 0, 0, 1]]}', "metres"),
-    ('{"camera_to_base": [[1, 0, 0, "a"], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}', "finite number"),
-])
+@pytest.mark.parametrize(
+    "content, words",
+    [
+        ("{not json", "not valid JSON"),
+        ('{"frame": "base"}', "camera_to_base"),
+        ('{"camera_to_base": [[1, 0, 0], [0, 1, 0], [0, 0, 1]]}', "a list of 4 lists of 4 finite numbers"),
+        (
+            '{"camera_to_base": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, NaN], [0, 0, 0, 1]]}',
+            "camera_to_base[2][3] must be a finite number",
+        ),
+        ('{"camera_to_base": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 1, 1]]}', "last row"),
+        ('{"camera_to_base": [[2, 0, 0, 0], [0, 2, 0, 0], [0, 0, 2, 0], [0, 0, 0, 1]]}', "orthonormal"),
+        ('{"camera_to_base": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, -1, 0], [0, 0, 0, 1]]}', "determinant"),
+        ('{"camera_to_base": [[1, 0, 0, 900], [0, 1, 0, 50], [0, 0, 1, 600], [0, 0, 0, 1]]}', "metres"),
+        ('{"camera_to_base": [[1, 0, 0, "a"], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}', "finite number"),
+    ],
+)
 def test_calibration_file_errors(tmp_path, content, words):
     path = tmp_path / "calib.json"
     path.write_text(content)
@@ -339,8 +348,15 @@ def test_calibration_missing_and_save_rejects(tmp_path):
 
 # -- config ------------------------------------------------------------------------------------------------
 def test_config_roundtrip(tmp_path):
-    cfg = PointCloudConfig(n_points=512, depth_near=0.2, depth_far=1.5, crop_min=[-0.3, -0.3, 0.0],
-                           crop_max=(0.3, 0.3, 0.4), voxel_size=0.005, use_color=True)
+    cfg = PointCloudConfig(
+        n_points=512,
+        depth_near=0.2,
+        depth_far=1.5,
+        crop_min=[-0.3, -0.3, 0.0],
+        crop_max=(0.3, 0.3, 0.4),
+        voxel_size=0.005,
+        use_color=True,
+    )
     assert cfg.crop_min == (-0.3, -0.3, 0.0) and cfg.point_dim == 6
     assert PointCloudConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
     assert PointCloudConfig.load(cfg.save(tmp_path / "pc.json")) == cfg
@@ -348,18 +364,21 @@ def test_config_roundtrip(tmp_path):
     assert (d.n_points, d.sampling, d.use_color, d.point_dim) == (1024, "fps", False, 3)
 
 
-@pytest.mark.parametrize("kw, words", [
-    (dict(n_points=0), "n_points"),
-    (dict(n_points=10.5), "n_points"),
-    (dict(depth_near=1.0, depth_far=0.5), "depth_near"),
-    (dict(depth_far=float("nan")), "depth_far"),
-    (dict(voxel_size=-0.01), "voxel_size"),
-    (dict(voxel_size=5.0), "voxel_size must be a number in [0, 1] m"),
-    (dict(crop_min=(0.0, 0.0, 1.0), crop_max=(1.0, 1.0, 0.5)), "crop_min"),
-    (dict(crop_min=(0.0, 0.0)), "crop_min"),
-    (dict(use_color="yes"), "use_color"),
-    (dict(sampling="random"), "sampling"),
-])
+@pytest.mark.parametrize(
+    "kw, words",
+    [
+        (dict(n_points=0), "n_points"),
+        (dict(n_points=10.5), "n_points"),
+        (dict(depth_near=1.0, depth_far=0.5), "depth_near"),
+        (dict(depth_far=float("nan")), "depth_far"),
+        (dict(voxel_size=-0.01), "voxel_size"),
+        (dict(voxel_size=5.0), "voxel_size must be a number in [0, 1] m"),
+        (dict(crop_min=(0.0, 0.0, 1.0), crop_max=(1.0, 1.0, 0.5)), "crop_min"),
+        (dict(crop_min=(0.0, 0.0)), "crop_min"),
+        (dict(use_color="yes"), "use_color"),
+        (dict(sampling="random"), "sampling"),
+    ],
+)
 def test_config_validation(kw, words):
     with pytest.raises(ConfigError) as exc:
         PointCloudConfig(**kw)
@@ -375,10 +394,12 @@ def test_config_from_dict_rejects_unknown_keys():
 
 
 def test_pointcloud_imports_without_pyrealsense2():
-    code = ("import sys; sys.modules['pyrealsense2'] = None; sys.modules['open3d'] = None\n"
-            "import dssp_data.pointcloud, hardware.camera\n"
-            "from hardware.camera.tabletop import SimCamera\n"
-            "print('ok')")
+    code = (
+        "import sys; sys.modules['pyrealsense2'] = None; sys.modules['open3d'] = None\n"
+        "import dssp_data.pointcloud, hardware.camera\n"
+        "from hardware.camera.tabletop import SimCamera\n"
+        "print('ok')"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "ok"

@@ -26,18 +26,24 @@ def make_policy(*overrides: str, seed: int = 0) -> DSSPPolicy:
 
 def trajectory(seed: int = 0, length: int = T):
     g = torch.Generator().manual_seed(seed)
-    return torch.randn(length, P, 3, generator=g), torch.randn(length, S, generator=g), torch.randn(length, A, generator=g)
+    return (
+        torch.randn(length, P, 3, generator=g),
+        torch.randn(length, S, generator=g),
+        torch.randn(length, A, generator=g),
+    )
 
 
 HISTORY_VARIANTS = [
     [],
     ["model.history_window=5"],
-    ["model.history_backbone=\"transformer\""],
-    ["model.history_backbone=\"transformer\"", "model.history_window=4"],
+    ['model.history_backbone="transformer"'],
+    ['model.history_backbone="transformer"', "model.history_window=4"],
 ]
 
 
-@pytest.mark.parametrize("overrides", HISTORY_VARIANTS, ids=["mamba", "mamba-window", "transformer", "transformer-window"])
+@pytest.mark.parametrize(
+    "overrides", HISTORY_VARIANTS, ids=["mamba", "mamba-window", "transformer", "transformer-window"]
+)
 def test_streaming_context_equals_training_path(overrides):
     policy = make_policy(*overrides)
     pc, pos, _ = trajectory()
@@ -48,7 +54,9 @@ def test_streaming_context_equals_training_path(overrides):
     assert (c_stream - c_seq).abs().max().item() <= 1e-5
 
 
-@pytest.mark.parametrize("overrides", HISTORY_VARIANTS, ids=["mamba", "mamba-window", "transformer", "transformer-window"])
+@pytest.mark.parametrize(
+    "overrides", HISTORY_VARIANTS, ids=["mamba", "mamba-window", "transformer", "transformer-window"]
+)
 def test_context_is_causal(overrides):
     policy = make_policy(*overrides)
     pc, pos, _ = trajectory()

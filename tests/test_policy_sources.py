@@ -13,7 +13,6 @@ import textwrap
 
 import numpy as np
 import pytest
-
 from conftest import one_error_line, write_arm_dataset
 from test_run import GRIPPER, WIRE, assert_within_limits, sent_commands
 
@@ -50,8 +49,20 @@ def test_hold_runs_the_whole_rig_and_moves_nothing(tmp_path, capsys):
     """The bring-up check: the camera, the cloud, the safety layer, the log and the bus all run; every command is
     the position the arm started at."""
     log_dir = tmp_path / "log"
-    code, out, err = run_dssp(capsys, "--policy", "hold", "--camera", "tabletop", "--can", "sim", "--max-steps", "30",
-                              "--log-dir", log_dir, "--quiet")
+    code, out, err = run_dssp(
+        capsys,
+        "--policy",
+        "hold",
+        "--camera",
+        "tabletop",
+        "--can",
+        "sim",
+        "--max-steps",
+        "30",
+        "--log-dir",
+        log_dir,
+        "--quiet",
+    )
     assert code == 0, out + err
     assert "ticks 30" in out and "ended by: max steps" in out
     run = json.loads((log_dir / "run.json").read_text())
@@ -72,8 +83,22 @@ def test_a_recorded_episode_in_dssp_run_ends_when_it_is_played(tmp_path, capsys)
     data = write_arm_dataset(tmp_path / "d.zarr", n_episodes=2, steps=25)
     recorded = ReplayBuffer.load(data).episode(1).action.astype(np.float64)
     log_dir = tmp_path / "log"
-    code, out, err = run_dssp(capsys, "--policy", f"episode:{data}@1", "--camera", "tabletop", "--can", "sim",
-                              "--max-steps", "500", "--log-dir", log_dir, "--quiet", "--control-rate", "20")
+    code, out, err = run_dssp(
+        capsys,
+        "--policy",
+        f"episode:{data}@1",
+        "--camera",
+        "tabletop",
+        "--can",
+        "sim",
+        "--max-steps",
+        "500",
+        "--log-dir",
+        log_dir,
+        "--quiet",
+        "--control-rate",
+        "20",
+    )
     assert code == 0, out + err
     assert "ended by: done" in out
     ticks = read_ticks(log_dir)
@@ -118,8 +143,20 @@ def test_a_new_source_is_one_module_and_one_registry_line(tmp_path, capsys, monk
     monkeypatch.syspath_prepend(str(tmp_path))
     monkeypatch.setitem(policies.REGISTRY, "sweep", "sweep_source:Sweep")
     log_dir = tmp_path / "log"
-    code, out, err = run_dssp(capsys, "--policy", "sweep:0.2", "--camera", "tabletop", "--can", "sim", "--max-steps", "20",
-                              "--log-dir", log_dir, "--quiet")
+    code, out, err = run_dssp(
+        capsys,
+        "--policy",
+        "sweep:0.2",
+        "--camera",
+        "tabletop",
+        "--can",
+        "sim",
+        "--max-steps",
+        "20",
+        "--log-dir",
+        log_dir,
+        "--quiet",
+    )
     assert code == 0, out + err
     ticks = [t for t in read_ticks(log_dir) if t["action"] is not None]
     assert len(ticks) >= 2
@@ -131,15 +168,21 @@ def test_a_new_source_is_one_module_and_one_registry_line(tmp_path, capsys, monk
     assert_within_limits(sent_commands(blf), STEP)
 
 
-@pytest.mark.parametrize("argv, fragment", [
-    (["--policy", "nope"], "--policy nope: no such policy source; choose from episode, hold"),
-    (["--policy", "hold:3"], "--policy hold:3: hold takes no argument"),
-    (["--policy", "episode:data.zarr"], "give the dataset and the episode as episode:PATH.zarr@K"),
-    (["--policy", "hold", "--prefetch"], "--prefetch is a model's setting: it goes with --model, not --policy hold"),
-    (["--policy", "hold", "--precision", "int8"], "--precision is a model's setting"),
-    (["--policy", "hold", "--model", "m"], "not allowed with argument"),
-    ([], "one of the arguments --model --policy is required"),
-])
+@pytest.mark.parametrize(
+    "argv, fragment",
+    [
+        (["--policy", "nope"], "--policy nope: no such policy source; choose from episode, hold"),
+        (["--policy", "hold:3"], "--policy hold:3: hold takes no argument"),
+        (["--policy", "episode:data.zarr"], "give the dataset and the episode as episode:PATH.zarr@K"),
+        (
+            ["--policy", "hold", "--prefetch"],
+            "--prefetch is a model's setting: it goes with --model, not --policy hold",
+        ),
+        (["--policy", "hold", "--precision", "int8"], "--precision is a model's setting"),
+        (["--policy", "hold", "--model", "m"], "not allowed with argument"),
+        ([], "one of the arguments --model --policy is required"),
+    ],
+)
 def test_a_bad_policy_is_one_line_before_anything_opens(tmp_path, capsys, monkeypatch, argv, fragment):
     monkeypatch.chdir(tmp_path)
     code, _, err = run_dssp(capsys, *argv, "--log-dir", tmp_path / "log")
@@ -167,8 +210,11 @@ def test_the_replay_is_the_loop_the_safety_layer_clips_a_jump(tmp_path):
     action = np.zeros((steps, 7), np.float32)
     action[3:, 0] = 0.5
     path = tmp_path / "jump.zarr"
-    write_replay_buffer(path, [Episode(np.zeros((steps, 4, 3), np.float32), np.zeros((steps, 7), np.float32), action)],
-                        attrs={"control_rate_hz": 10.0})
+    write_replay_buffer(
+        path,
+        [Episode(np.zeros((steps, 4, 3), np.float32), np.zeros((steps, 7), np.float32), action)],
+        attrs={"control_rate_hz": 10.0},
+    )
     clock = FakeClock(5.0)
     result = replay_episode(path, 0, None, events=lambda _: None, clock=clock)
     step = SafetyConfig().max_joint_step
@@ -214,8 +260,13 @@ def test_a_source_that_commands_nothing_only_reports():
     clock = FakeClock(1.0)
     robot = Calls(piper_description(1), np.zeros(7), clock=clock)
     seen = Seen()
-    runner = Runner(Reporter(), Rig(None, robot, np.eye(4), SafetyConfig(disable_on_exit=True), clock=clock), None,
-                    LoopSettings(control_rate_hz=10.0, max_steps=6), subscribers=[seen])
+    runner = Runner(
+        Reporter(),
+        Rig(None, robot, np.eye(4), SafetyConfig(disable_on_exit=True), clock=clock),
+        None,
+        LoopSettings(control_rate_hz=10.0, max_steps=6),
+        subscribers=[seen],
+    )
     summary = runner.run()
     assert robot.calls == [] and summary["commands_sent"] == 0 and summary["holds"] == 0
     assert summary["ticks"] == 6 and summary["ended_by"] == "max steps" and summary["fault"] is None

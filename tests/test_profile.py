@@ -39,10 +39,19 @@ def test_profile_runs_where_torch_cannot_be_imported(tiny_export, tmp_path):
         print("loaded:", sorted(m for m in ("torch", "dssp_train", "export", "onnx") if sys.modules.get(m) is not None))
         """
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
-                         env={**os.environ, "OMP_NUM_THREADS": "1"})
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, "OMP_NUM_THREADS": "1"},
+    )
     assert out.returncode == 0, out.stderr
-    assert "loaded: []" in out.stdout and "| history step (ORT) |" in out.stdout and "Chunk floor on this machine" in out.stdout
+    assert (
+        "loaded: []" in out.stdout
+        and "| history step (ORT) |" in out.stdout
+        and "Chunk floor on this machine" in out.stdout
+    )
     assert "PyTorch" not in out.stdout and "Transformer" not in out.stdout
     report = json.loads(json_path.read_text())
     assert "torch" not in report and 0 < report["latency_ms"]["denoiser_chunk"]["p50"]
@@ -59,14 +68,33 @@ def test_profile_runs_where_torch_cannot_be_imported(tiny_export, tmp_path):
     assert any("MatMul" in op for op in ops) and "MambaBlockQ8" in ops  # the int8 fused graph ran: a node per block
     assert "| denoiser chunk p50 ms |" in out.stdout and "Where the denoiser chunk goes" in out.stdout
     floor = report["chunk_floor"]  # the least a chunk can take here, from this machine's own peak and bandwidth
-    assert floor["read_gbs"] > 0 and 0 < floor["compute_ms"] <= floor["floor_ms"] and "Chunk floor on this machine" in out.stdout
-    assert [int(k) for k in floor["read_gbs_by_mib"]] == [2, 4, 8, 12, 16, 24, 32, 64, 128]  # the cache this process gets
+    assert (
+        floor["read_gbs"] > 0
+        and 0 < floor["compute_ms"] <= floor["floor_ms"]
+        and "Chunk floor on this machine" in out.stdout
+    )
+    assert [int(k) for k in floor["read_gbs_by_mib"]] == [
+        2,
+        4,
+        8,
+        12,
+        16,
+        24,
+        32,
+        64,
+        128,
+    ]  # the cache this process gets
     assert floor["cpu_cache_mib"] is None or floor["cache_mib"] is None or floor["cache_mib"] <= floor["cpu_cache_mib"]
-    ran = read_manifest(model_dir).graphs["denoiser"]["files"][file_kind(report["precision"], report["kernel"] == "fused")]
+    ran = read_manifest(model_dir).graphs["denoiser"]["files"][
+        file_kind(report["precision"], report["kernel"] == "fused")
+    ]
     assert floor["weights_mib"] * 2**20 == (model_dir / ran).stat().st_size
     assert png_path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     # both graph sets, each at 1 thread (--threads 1), and the prefetched tick on the same model
-    assert report["kernel"] == "fused" and [(r["kernel"], r["threads"]) for r in report["paths_and_threads"]] == [("fused", 1), ("standard", 1)]
+    assert report["kernel"] == "fused" and [(r["kernel"], r["threads"]) for r in report["paths_and_threads"]] == [
+        ("fused", 1),
+        ("standard", 1),
+    ]
     assert all(r["chunk_p50"] > 0 and r["chunk_speedup_vs_1"] == 1.0 for r in report["paths_and_threads"])
     prefetch = report["prefetch"]
     assert prefetch["ticks"] == report["settings"]["prefetch_ticks"] and prefetch["lead_ticks"] >= 1
@@ -86,15 +114,23 @@ def test_torch_comparison_reports_medians_and_ratios_to_the_runtime(tiny_export,
     run_dir, model_dir, _ = tiny_export
     out = tmp_path / "comparison.json"
     bench = load_comparison()
-    assert bench.main([str(model_dir), "--checkpoint", str(run_dir), "--quick", "--threads", "1", "--json", str(out)]) == 0
+    assert (
+        bench.main([str(model_dir), "--checkpoint", str(run_dir), "--quick", "--threads", "1", "--json", str(out)]) == 0
+    )
     text = capsys.readouterr().out
-    assert "| history step |" in text and "| denoiser chunk |" in text and "ONNX Runtime vs PyTorch eager per chunk" in text
+    assert (
+        "| history step |" in text
+        and "| denoiser chunk |" in text
+        and "ONNX Runtime vs PyTorch eager per chunk" in text
+    )
     report = json.loads(out.read_text())
     for backend in ("ort", "eager", "torchscript"):
         assert all(report["median_ms"][backend][k] > 0 for k in ("history_step", "denoiser_chunk"))
     for backend in ("eager", "torchscript"):
         ratios = report["ratio_to_ort"][backend]
-        assert ratios["denoiser_chunk"] == pytest.approx(report["median_ms"][backend]["denoiser_chunk"] / report["median_ms"]["ort"]["denoiser_chunk"])
+        assert ratios["denoiser_chunk"] == pytest.approx(
+            report["median_ms"][backend]["denoiser_chunk"] / report["median_ms"]["ort"]["denoiser_chunk"]
+        )
     assert [r["length"] for r in report["history_sweep"]] == bench.QUICK["sweep"]
     assert all(r["dssp_ort_ms"] > 0 and r["transformer_torch_ms"] > 0 for r in report["history_sweep"])
     # without --checkpoint: TorchScript and the sweep only, and the table says why eager is missing
@@ -127,13 +163,40 @@ def test_cpu_targets_table_has_every_row_on_both_graph_sets(tiny_export, tmp_pat
     from export.to_onnx import main as export_main
 
     k1 = tmp_path / "k1"
-    assert export_main([str(run_dir), "-o", str(k1), "--denoise-steps", "1", "--timestep-spacing", "trailing", "--skip-verify"]) == 0
+    assert (
+        export_main(
+            [str(run_dir), "-o", str(k1), "--denoise-steps", "1", "--timestep-spacing", "trailing", "--skip-verify"]
+        )
+        == 0
+    )
     capsys.readouterr()
-    assert bench.main([str(model_dir), "--checkpoint", str(run_dir), "--quick", "--threads", "1", "--k1-model", str(model_dir)]) == 2
+    assert (
+        bench.main(
+            [str(model_dir), "--checkpoint", str(run_dir), "--quick", "--threads", "1", "--k1-model", str(model_dir)]
+        )
+        == 2
+    )
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "runs 10 DDIM steps, not 1" in err[0] and "--denoise-steps 1" in err[0]
-    assert bench.main([str(model_dir), "--checkpoint", str(run_dir), "--quick", "--threads", "1", "--json", str(out),
-                       "--plot", str(plot), "--k1-model", str(k1)]) == 0
+    assert (
+        bench.main(
+            [
+                str(model_dir),
+                "--checkpoint",
+                str(run_dir),
+                "--quick",
+                "--threads",
+                "1",
+                "--json",
+                str(out),
+                "--plot",
+                str(plot),
+                "--k1-model",
+                str(k1),
+            ]
+        )
+        == 0
+    )
     text = capsys.readouterr().out
     assert "| chunk, K = 1, int8, p50 ms |" in text and "| history step, int8, p50 ms |" in text
     assert "| fused Mamba kernel | standard graphs | target |" in text and "| chunk, K = 10, int8, p50 ms |" in text
@@ -144,21 +207,31 @@ def test_cpu_targets_table_has_every_row_on_both_graph_sets(tiny_export, tmp_pat
     k1_manifest = json.loads((k1 / "dssp_model.json").read_text())
     assert {"fused, K = 1"} <= set(report["roofline"]) and report["k1_model"] == str(k1)
     for kernel, by_precision in report["roofline"].items():
-        passes, files = (1, k1_manifest["files"]) if kernel.endswith("K = 1") else (11, manifest["files"])  # one step: prefix and actions in one pass
+        passes, files = (
+            (1, k1_manifest["files"]) if kernel.endswith("K = 1") else (11, manifest["files"])
+        )  # one step: prefix and actions in one pass
         for precision, r in by_precision.items():
-            graph = "denoiser" + {"int8": ".int8", "fp32": ""}[precision] + ".fused" * kernel.startswith("fused") + ".onnx"
+            graph = (
+                "denoiser" + {"int8": ".int8", "fp32": ""}[precision] + ".fused" * kernel.startswith("fused") + ".onnx"
+            )
             assert r["weights_mib"] == pytest.approx(files[graph]["bytes"] / 2**20)
-            assert r["passes"] == passes and r["floor_ms"] == pytest.approx(passes * files[graph]["bytes"] / report["read_gbs"] / 1e6)
+            assert r["passes"] == passes and r["floor_ms"] == pytest.approx(
+                passes * files[graph]["bytes"] / report["read_gbs"] / 1e6
+            )
             assert r["ratio"] == pytest.approx(r["chunk_ms"] / r["floor_ms"])
     vnni = bool({"avx512_vnni", "avx_vnni"} & cpu_flags())
     assert ("fused, avx2 forced" in report["roofline"]) == vnni == ("fused, avx2 forced, K = 1" in report["roofline"])
     assert "| chunk / floor, int8 |" in text and "Roofline: read bandwidth" in text
     assert set(report["runtime"]) == {"fused", "standard"} and report["machine"]["cores"] >= 1
     for kernel, r in report["runtime"].items():
-        assert set(r["precision"]) == {"int8", "fp32"} and all(p["threads"] == 1 and p["chunk_p50"] > 0 for p in r["precision"].values())
+        assert set(r["precision"]) == {"int8", "fp32"} and all(
+            p["threads"] == 1 and p["chunk_p50"] > 0 for p in r["precision"].values()
+        )
         assert r["prefetch"]["possible"] and r["prefetch"]["threads"] == {"history_step": 1, "denoiser": 1}
     eager_ratio = next(row for row in report["rows"] if row["figure"].startswith("ONNX Runtime vs eager"))["values"]
-    assert eager_ratio["fused"] == pytest.approx(report["eager_torch"]["denoiser_chunk"]["p50"] / report["runtime"]["fused"]["precision"]["int8"]["chunk_p50"])
+    assert eager_ratio["fused"] == pytest.approx(
+        report["eager_torch"]["denoiser_chunk"]["p50"] / report["runtime"]["fused"]["precision"]["int8"]["chunk_p50"]
+    )
 
 
 def test_the_chunk_spins_only_while_it_runs_and_only_with_threads_to_spin(tiny_export):
@@ -181,16 +254,35 @@ def test_the_chunk_spins_only_while_it_runs_and_only_with_threads_to_spin(tiny_e
         chunks.append(policy.act(seed=0))
     assert all(np.array_equal(c, chunks[0]) for c in chunks)
     assert OnnxPolicy(model_dir, threads=2, background_chunks=True).spinning is False  # the chunk's one thread
-    rows = paths_and_threads(model_dir, "int8", 2, {"matrix_iterations": 2, "matrix_chunks": 1}, np.random.default_rng(0))
+    rows = paths_and_threads(
+        model_dir, "int8", 2, {"matrix_iterations": 2, "matrix_chunks": 1}, np.random.default_rng(0)
+    )
     assert [(r["kernel"], r["threads"], r["spinning"]) for r in rows] == [
-        ("fused", 1, False), ("fused", 2, True), ("fused", 2, False), ("standard", 1, False), ("standard", 2, True), ("standard", 2, False)]
+        ("fused", 1, False),
+        ("fused", 2, True),
+        ("fused", 2, False),
+        ("standard", 1, False),
+        ("standard", 2, True),
+        ("standard", 2, False),
+    ]
 
 
 def test_chunk_flops_count_each_denoiser_blocks_mixer_and_mlp():
     from dssp_deploy.flops import attention_token_flops, chunk_flops, mamba_token_flops, mlp_token_flops
 
-    cfg = {"d_model": 64, "d_state": 16, "expand": 2, "d_conv": 4, "n_denoiser_layers": 2, "horizon": 4, "action_dim": 2,
-           "n_obs_steps": 2, "use_history": True, "use_recent_states": True, "timestep_decoupled": True}
+    cfg = {
+        "d_model": 64,
+        "d_state": 16,
+        "expand": 2,
+        "d_conv": 4,
+        "n_denoiser_layers": 2,
+        "horizon": 4,
+        "action_dim": 2,
+        "n_obs_steps": 2,
+        "use_history": True,
+        "use_recent_states": True,
+        "timestep_decoupled": True,
+    }
     k, tokens = 10, 3 + 10 * 4  # the prefix (c_t and 2 z) once, then K passes over H action tokens
     none = chunk_flops(cfg, k)
     assert chunk_flops({**cfg, "denoiser_mlp": "none"}, k) == none  # an export without the field: Mamba-only blocks

@@ -19,6 +19,7 @@ import pytest
 import zarr
 from waiting import World, wait_for
 
+from dssp_core.errors import DatasetError
 from dssp_data.recording import (
     FLAGS_KEY,
     STEP_PROBLEMS,
@@ -26,9 +27,8 @@ from dssp_data.recording import (
     episode_infos,
 )
 from dssp_data.replay_buffer import ReplayBuffer, ReplayBufferReader
-from dssp_core.errors import DatasetError
-from hardware.can_log import read_log
 from dssp_sim.teleop import TeleopRigs, record_main
+from hardware.can_log import read_log
 from hardware.cli.record import Console, LineControls, open_session, parse_args
 from hardware.leader import LeaderTracker, leader_frames
 from hardware.piper import codec
@@ -38,7 +38,11 @@ WIRE = 2e-5  # 0.001 degree in rad, 1 µm of stroke in opening units (x 1/0.07)
 
 
 def _env():
-    return {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    return {
+        **os.environ,
+        "OMP_NUM_THREADS": "1",
+        "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""),
+    }
 
 
 class Scripted:
@@ -93,9 +97,27 @@ def test_record_kill_mid_episode_then_train(tmp_path, capsys):
 
     # A second session appends; it is killed (SIGKILL) in the middle of its second episode.
     proc = subprocess.Popen(
-        [sys.executable, "-m", "dssp_sim.sim_cli", "record", "--out", str(out), "--auto", "--episodes", "20",
-         "--sim-speed", "3", "--quiet"],
-        stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env(), cwd=tmp_path)
+        [
+            sys.executable,
+            "-m",
+            "dssp_sim.sim_cli",
+            "record",
+            "--out",
+            str(out),
+            "--auto",
+            "--episodes",
+            "20",
+            "--sim-speed",
+            "3",
+            "--quiet",
+        ],
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=_env(),
+        cwd=tmp_path,
+    )
     lines = []
     try:
         for line in proc.stdout:
@@ -140,16 +162,49 @@ def test_record_kill_mid_episode_then_train(tmp_path, capsys):
 
     from dssp_train.cli.train import main as train_main
 
-    assert train_main(["--data", str(out), "--preset", "sim", "--steps", "5", "--out", str(tmp_path / "run"),
-                       "--set", "train.val_every=5", "--no-progress"]) == 0
+    assert (
+        train_main(
+            [
+                "--data",
+                str(out),
+                "--preset",
+                "sim",
+                "--steps",
+                "5",
+                "--out",
+                str(tmp_path / "run"),
+                "--set",
+                "train.val_every=5",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
 
 
 def signalled_at(out: Path, start: str, sig: int, cwd: Path) -> tuple[subprocess.Popen, list[str]]:
     """``dssp-sim record --auto`` into ``out`` (paced at ``--sim-speed 4``), sent ``sig`` when it prints a line that
     starts with ``start``; (the finished process, its stdout lines)."""
     proc = subprocess.Popen(
-        [sys.executable, "-m", "dssp_sim.sim_cli", "record", "--out", str(out), "--auto", "--sim-speed", "4", "--no-depth"],
-        stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env(), cwd=cwd)
+        [
+            sys.executable,
+            "-m",
+            "dssp_sim.sim_cli",
+            "record",
+            "--out",
+            str(out),
+            "--auto",
+            "--sim-speed",
+            "4",
+            "--no-depth",
+        ],
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=_env(),
+        cwd=cwd,
+    )
     lines = []
     try:
         for line in proc.stdout:
@@ -208,8 +263,14 @@ sys.exit(main(["record", "--out", sys.argv[1], "--auto", "--episodes", "1"]))
 
 def test_a_stop_while_the_simulation_loads_is_one_line(tmp_path):
     out = tmp_path / "demo.zarr"
-    proc = subprocess.run([sys.executable, "-c", STOP_WHILE_IMPORTING, str(out)], capture_output=True, text=True,
-                          env=_env(), cwd=tmp_path, timeout=60)
+    proc = subprocess.run(
+        [sys.executable, "-c", STOP_WHILE_IMPORTING, str(out)],
+        capture_output=True,
+        text=True,
+        env=_env(),
+        cwd=tmp_path,
+        timeout=60,
+    )
     assert proc.returncode == 128 + signal.SIGTERM, proc.stderr
     assert proc.stderr.strip().splitlines() == ["stopped by SIGTERM during start-up; nothing was recorded"], proc.stderr
     assert list(tmp_path.iterdir()) == []
@@ -266,8 +327,10 @@ def test_stream_problems_mark_the_episode(tmp_path, capsys):
 
     summary, events = run_session(["--out", str(out), "--quiet", "--sim-speed", "0", "--no-depth"], plan)
     assert summary.kept == [0, 1] and summary.kept_with_problems == [0]
-    assert any(e.startswith("episode 0: kept with PROBLEMS") and "missing follower feedback" in e and "stale camera" in e
-               for e in events), events
+    assert any(
+        e.startswith("episode 0: kept with PROBLEMS") and "missing follower feedback" in e and "stale camera" in e
+        for e in events
+    ), events
     assert "episode 1: kept, 45 steps, 10.00 Hz, clean" in events
 
     reader = ReplayBufferReader(out)
@@ -293,8 +356,10 @@ def test_stream_problems_mark_the_episode(tmp_path, capsys):
     capsys.readouterr()
     assert data_main(["info", str(out)]) == 1  # it lists problems
     text = capsys.readouterr().out
-    assert "episode 0 was recorded with problems: stale camera at 8 step(s) from step 33; missing follower feedback " \
-           "at 9 step(s) from step 12; dropped camera frames at 10 step(s) from step 31" in text
+    assert (
+        "episode 0 was recorded with problems: stale camera at 8 step(s) from step 33; missing follower feedback "
+        "at 9 step(s) from step 12; dropped camera frames at 10 step(s) from step 31" in text
+    )
     assert "PROBLEMS" in text and "episode 1 was recorded" not in text
 
     clean, again = tmp_path / "clean.zarr", tmp_path / "again.zarr"
@@ -326,8 +391,10 @@ def test_operator_commands_from_lines(tmp_path):
 
 def test_next_state_convention(tmp_path):
     out = tmp_path / "next.zarr"
-    summary, _ = run_session(["--out", str(out), "--quiet", "--auto", "--episodes", "1", "--action", "next-state",
-                              "--no-depth"], lambda s: None)
+    summary, _ = run_session(
+        ["--out", str(out), "--quiet", "--auto", "--episodes", "1", "--action", "next-state", "--no-depth"],
+        lambda s: None,
+    )
     buffer = ReplayBuffer.load(out, extras=True)
     ep = buffer.episode(0)
     info = buffer.attrs["episode_info"][0]
@@ -340,17 +407,23 @@ def test_next_state_convention(tmp_path):
         run_session(["--out", str(out), "--quiet", "--auto", "--episodes", "1", "--no-depth"], lambda s: None)
 
 
-@pytest.mark.parametrize("args, message", [
-    (["--can", "mujoco", "--camera", "l515"], "--can mujoco records the MuJoCo scene"),
-    (["--can", "can0", "--camera", "mujoco"], "it goes with --camera mujoco, and --camera mujoco with --can mujoco"),
-    (["--can", "mujoco:2"], "the simulated rig has one leader/follower pair"),
-    (["--can", "sim"], "the simulated rig's arms are spelled mujoco"),  # the spelling before two simulators
-    (["--camera", "sim"], "camera 'sim' is ambiguous"),
-    (["--can", "can0", "--camera", "tabletop", "--auto"], "--auto on a robot needs --max-steps"),
-    (["--task-name", "juggle"], "is not a simulated task"),
-    (["--max-steps", "0"], "--max-steps must be at least 1"),
-    (["--thresholds", "missing.json"], "thresholds file missing.json does not exist"),
-])
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--can", "mujoco", "--camera", "l515"], "--can mujoco records the MuJoCo scene"),
+        (
+            ["--can", "can0", "--camera", "mujoco"],
+            "it goes with --camera mujoco, and --camera mujoco with --can mujoco",
+        ),
+        (["--can", "mujoco:2"], "the simulated rig has one leader/follower pair"),
+        (["--can", "sim"], "the simulated rig's arms are spelled mujoco"),  # the spelling before two simulators
+        (["--camera", "sim"], "camera 'sim' is ambiguous"),
+        (["--can", "can0", "--camera", "tabletop", "--auto"], "--auto on a robot needs --max-steps"),
+        (["--task-name", "juggle"], "is not a simulated task"),
+        (["--max-steps", "0"], "--max-steps must be at least 1"),
+        (["--thresholds", "missing.json"], "thresholds file missing.json does not exist"),
+    ],
+)
 def test_bad_input_is_one_line(tmp_path, capsys, args, message):
     assert record_main(["--out", str(tmp_path / "x.zarr"), "--quiet"] + args) == 2
     err = capsys.readouterr().err.strip().splitlines()
@@ -361,17 +434,18 @@ def test_bad_input_is_one_line(tmp_path, capsys, args, message):
 # ------------------------------------------------------------------------------------------------ the robot's loop
 def test_the_robot_loop_on_its_clock(tmp_path):
     """The robot's path (no lockstep rig): a follower and a leader on one virtual bus heard by a bus monitor, a
-    camera, the session pacing itself — ``dssp-run``'s loop with the leader arm as its source. On a manual clock on which the devices move while the loop sleeps,
+    camera, the session pacing itself — ``dssp-run``'s loop with the leader arm as its source. On a manual clock on
+    which the devices move while the loop sleeps,
     every time is exact: ticks one period apart, every stream fresh, and the one tick that started late
     (the tick before it took 1.6 periods) is flagged, with the camera frame it repeated."""
     import uuid
 
+    from dssp_data.pointcloud import PointCloudConfig
     from dssp_data.recording import RECORDED_KEYS, RecordingDataset
     from hardware.bus_monitor import BusMonitor
     from hardware.camera.tabletop import SimCamera
     from hardware.leader import ScriptedLeader
     from hardware.piper.can_simulator import SimulatedPiper
-    from dssp_data.pointcloud import PointCloudConfig
     from hardware.record_session import RecordSession, SessionSettings
     from hardware.recorder import Recorder, StampedCamera
 
@@ -404,10 +478,20 @@ def test_the_robot_loop_on_its_clock(tmp_path):
         leader.send_frames([codec.MotorEnable(codec.MOTOR_ALL, codec.MOTOR_ENABLE_FLAG).to_frame()])
         clock.steps = [step]
         clock.sleep(0.05)
-        recorder = Recorder(StampedCamera(camera, clock=clock), [monitor], PointCloudConfig(n_points=128),
-                            camera.camera_to_base, control_rate_hz=20.0, store_depth=False)
-        dataset = RecordingDataset(tmp_path / "rt.zarr", {"control_rate_hz": 20.0, "action_convention": "leader_command"},
-                                   {"camera": "sim"}, RECORDED_KEYS)
+        recorder = Recorder(
+            StampedCamera(camera, clock=clock),
+            [monitor],
+            PointCloudConfig(n_points=128),
+            camera.camera_to_base,
+            control_rate_hz=20.0,
+            store_depth=False,
+        )
+        dataset = RecordingDataset(
+            tmp_path / "rt.zarr",
+            {"control_rate_hz": 20.0, "action_convention": "leader_command"},
+            {"camera": "sim"},
+            RECORDED_KEYS,
+        )
         stack.callback(dataset.close)
         started, events = clock.now(), []
 
@@ -415,8 +499,15 @@ def test_the_robot_loop_on_its_clock(tmp_path):
             if recorder.steps == 6:
                 clock.advance(1.6 * 0.05)
 
-        session = RecordSession(recorder, dataset, [monitor], clock, SessionSettings(max_steps=12, auto=True, episodes=1),
-                                events=events.append, status=status)
+        session = RecordSession(
+            recorder,
+            dataset,
+            [monitor],
+            clock,
+            SessionSettings(max_steps=12, auto=True, episodes=1),
+            events=events.append,
+            status=status,
+        )
         summary = session.run(Scripted(session, lambda s: None))
     assert summary.kept == [0], events
     # dssp-run's loop, the leader arm its source, the followers heard and never commanded
@@ -489,8 +580,11 @@ def test_a_failed_append_saves_the_episode_aside(tmp_path):
     console.event = events.append
     with pytest.raises(OSError, match="No space left"):
         with contextlib.ExitStack() as stack:
-            session = open_session(parse_args(["--out", str(out), "--quiet", "--sim-speed", "0", "--no-depth"], sim=TeleopRigs()), stack,
-                                   console)
+            session = open_session(
+                parse_args(["--out", str(out), "--quiet", "--sim-speed", "0", "--no-depth"], sim=TeleopRigs()),
+                stack,
+                console,
+            )
             session.run(Scripted(session, plan))
     saved = [e for e in events if e.startswith("error: appending the episode failed")]
     assert len(saved) == 1, events
@@ -511,8 +605,9 @@ def test_one_recording_session_per_dataset(tmp_path):
 
 
 def test_a_second_recording_session_is_refused_before_any_device_opens(tmp_path, capsys, monkeypatch):
-    from dssp_data.replay_buffer_writer import dataset_lock
     from conftest import one_error_line
+
+    from dssp_data.replay_buffer_writer import dataset_lock
 
     opened = []
     monkeypatch.setattr(TeleopRigs, "open", lambda self, task, seed, pace=None: opened.append(task))

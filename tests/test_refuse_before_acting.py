@@ -12,7 +12,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from conftest import one_error_line, snapshot
 
 START = [0.0, 1.2, -1.0, 0.0, 0.6, 0.0]
@@ -71,8 +70,14 @@ def commands():
     from hardware.cli.replay import main as replay
     from hardware.cli.run import main as run
 
-    return {"dssp-calibrate": calibrate, "dssp-sim calibrate": sim_calibrate, "dssp-sim": sim_main,
-            "dssp-run": run, "dssp-record": record, "dssp-replay": replay}
+    return {
+        "dssp-calibrate": calibrate,
+        "dssp-sim calibrate": sim_calibrate,
+        "dssp-sim": sim_main,
+        "dssp-run": run,
+        "dssp-record": record,
+        "dssp-replay": replay,
+    }
 
 
 RIG = ["--mode", "eye-to-hand", "--camera", "l515", "--can", "can0"]  # a real rig for dssp-calibrate
@@ -82,29 +87,65 @@ CASES = {
     "calibrate: --auto too few to solve": ("dssp-calibrate", [*RIG, "--auto", "3", "--out", "c.json"], "--auto"),
     "calibrate: --auto far too many": ("dssp-calibrate", [*RIG, "--auto", "100000", "--out", "c.json"], "--auto"),
     "calibrate: three poses": ("dssp-calibrate", [*RIG, "--poses", "PLAN_THREE", "--out", "c.json"], "cannot pass"),
-    "calibrate: twelve identical poses": ("dssp-calibrate", [*RIG, "--poses", "PLAN_SAME", "--out", "c.json"],
-                                          "cannot pass"),
+    "calibrate: twelve identical poses": (
+        "dssp-calibrate",
+        [*RIG, "--poses", "PLAN_SAME", "--out", "c.json"],
+        "cannot pass",
+    ),
     "calibrate: an output under a file": ("dssp-calibrate", [*RIG, "--auto", "12", "--out", "plain/c.json"], "plain"),
     "twin: three poses": ("dssp-sim calibrate", [*TWIN, "--poses", "PLAN_THREE", "--out", "c.json"], "cannot pass"),
     "twin: --auto too few": ("dssp-sim calibrate", [*TWIN, "--auto", "5", "--out", "c.json"], "--auto"),
-    "eval: a delay for the expert": ("dssp-sim", ["eval", "--expert", "--task", "tap", "--inject-delay", "100",
-                                                 "--rerun-save", "eval.rrd", "--strips", "strips"],
-                                     "--inject-delay is a model's setting"),
-    "eval: a delay beyond 10 s": ("dssp-sim", ["eval", "--model", "model", "--task", "tap", "--inject-delay", "20000",
-                                              "--rerun-save", "eval.rrd"], "--inject-delay must be in"),
-    "run: an interface python-can lacks": ("dssp-run", ["--model", "m", "--camera", "l515", "--can", "can0",
-                                                        "--interface", "bogus"], "not a python-can interface"),
-    "run: a rate beyond the arm": ("dssp-run", ["--policy", "hold", "--camera", "tabletop", "--can", "sim",
-                                                "--control-rate", "5000"], "--control-rate"),
-    "run: an episode index that is a digit but no number": ("dssp-run", ["--policy", "episode:d.zarr@\u00b2",
-                                                                        "--camera", "tabletop", "--can", "sim"],
-                                                             "episode:PATH.zarr@K"),
-    "record: an interface python-can lacks": ("dssp-record", ["--camera", "l515", "--can", "can0", "--out", "d.zarr",
-                                                              "--interface", "bogus"], "not a python-can interface"),
-    "record: a real camera without extrinsics": ("dssp-record", ["--camera", "l515", "--can", "can0",
-                                                                 "--out", "d.zarr"], "--extrinsics"),
-    "replay: a recording that is not there": ("dssp-replay", ["missing.zarr", "--episode", "0", "--can", "sim",
-                                                              "--send"], "missing.zarr"),
+    "eval: a delay for the expert": (
+        "dssp-sim",
+        [
+            "eval",
+            "--expert",
+            "--task",
+            "tap",
+            "--inject-delay",
+            "100",
+            "--rerun-save",
+            "eval.rrd",
+            "--strips",
+            "strips",
+        ],
+        "--inject-delay is a model's setting",
+    ),
+    "eval: a delay beyond 10 s": (
+        "dssp-sim",
+        ["eval", "--model", "model", "--task", "tap", "--inject-delay", "20000", "--rerun-save", "eval.rrd"],
+        "--inject-delay must be in",
+    ),
+    "run: an interface python-can lacks": (
+        "dssp-run",
+        ["--model", "m", "--camera", "l515", "--can", "can0", "--interface", "bogus"],
+        "not a python-can interface",
+    ),
+    "run: a rate beyond the arm": (
+        "dssp-run",
+        ["--policy", "hold", "--camera", "tabletop", "--can", "sim", "--control-rate", "5000"],
+        "--control-rate",
+    ),
+    "run: an episode index that is a digit but no number": (
+        "dssp-run",
+        ["--policy", "episode:d.zarr@\u00b2", "--camera", "tabletop", "--can", "sim"],
+        "episode:PATH.zarr@K",
+    ),
+    "record: an interface python-can lacks": (
+        "dssp-record",
+        ["--camera", "l515", "--can", "can0", "--out", "d.zarr", "--interface", "bogus"],
+        "not a python-can interface",
+    ),
+    "record: a real camera without extrinsics": (
+        "dssp-record",
+        ["--camera", "l515", "--can", "can0", "--out", "d.zarr"],
+        "--extrinsics",
+    ),
+    "replay: a recording that is not there": (
+        "dssp-replay",
+        ["missing.zarr", "--episode", "0", "--can", "sim", "--send"],
+        "missing.zarr",
+    ),
 }
 
 
@@ -113,8 +154,10 @@ def test_a_refused_plan_or_flag_opens_nothing_and_writes_nothing(case, tmp_path,
     command, argv, words = CASES[case]
     monkeypatch.chdir(tmp_path)
     (tmp_path / "plain").write_text("a file, not a folder")
-    plans = {"PLAN_THREE": plan(tmp_path, [START] * 1 + [np.add(START, [0, 0, 0, 0.3, 0, 0]).tolist()] * 2),
-             "PLAN_SAME": plan(tmp_path, [START] * 12)}
+    plans = {
+        "PLAN_THREE": plan(tmp_path, [START] * 1 + [np.add(START, [0, 0, 0, 0.3, 0, 0]).tolist()] * 2),
+        "PLAN_SAME": plan(tmp_path, [START] * 12),
+    }
     argv = [plans.get(a, a) for a in argv]
     before = snapshot(tmp_path)
     main = commands()[command]

@@ -13,10 +13,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
+from dssp_core.errors import DatasetError
 from dssp_data.dataset_layout import Episode
 from dssp_data.replay_buffer import ReplayBuffer, ReplayBufferReader
 from dssp_data.replay_buffer_writer import ReplayBufferWriter, write_replay_buffer
-from dssp_core.errors import DatasetError
 
 FIXTURES = Path(__file__).parent / "fixtures"
 P, C, S, A = 8, 6, 14, 14
@@ -134,8 +134,11 @@ def test_reads_store_written_by_zarr2(tmp_path):
 
     # The values follow the formulas in make_dp3_zarr2_fixture.expected_arrays.
     t = np.arange(7, dtype=np.float32)
-    point_cloud = (t[:, None, None] + 0.01 * np.arange(8, dtype=np.float32)[None, :, None]
-                   + 0.001 * np.arange(6, dtype=np.float32)[None, None, :]).astype(np.float32)
+    point_cloud = (
+        t[:, None, None]
+        + 0.01 * np.arange(8, dtype=np.float32)[None, :, None]
+        + 0.001 * np.arange(6, dtype=np.float32)[None, None, :]
+    ).astype(np.float32)
     state = (t[:, None] * 0.5 - np.arange(14, dtype=np.float32)[None, :] * 0.25).astype(np.float32)
     np.testing.assert_array_equal(buffer.point_cloud, point_cloud)
     np.testing.assert_array_equal(buffer.state, state)
@@ -149,8 +152,13 @@ def test_reads_store_written_by_zarr2(tmp_path):
 
 def test_in_memory_buffer_is_validated():
     arrays = raw_arrays()
-    buffer = ReplayBuffer(arrays["data/point_cloud"], arrays["data/state"], arrays["data/action"],
-                          arrays["meta/episode_ends"].astype(np.int32), attrs={"control_rate_hz": 5})
+    buffer = ReplayBuffer(
+        arrays["data/point_cloud"],
+        arrays["data/state"],
+        arrays["data/action"],
+        arrays["meta/episode_ends"].astype(np.int32),
+        attrs={"control_rate_hz": 5},
+    )
     assert buffer.episode_ends.dtype == np.int64 and buffer.control_rate_hz == 5.0
     with pytest.raises(DatasetError, match="episode 1 is empty"):
         ReplayBuffer(arrays["data/point_cloud"], arrays["data/state"], arrays["data/action"], [3, 3, 7])
@@ -162,18 +170,21 @@ def test_in_memory_buffer_is_validated():
 def _set(key, value):
     def mutate(arrays):
         arrays[key] = value(arrays) if callable(value) else value
+
     return mutate
 
 
 def _drop(key):
     def mutate(arrays):
         del arrays[key]
+
     return mutate
 
 
 def _poison(key, index, value):
     def mutate(arrays):
         arrays[key][index] = value
+
     return mutate
 
 
@@ -182,28 +193,42 @@ BROKEN = {
     "missing state": (_drop("data/state"), ["missing key data/state"]),
     "missing action": (_drop("data/action"), ["missing key data/action"]),
     "missing episode_ends": (_drop("meta/episode_ends"), ["missing key meta/episode_ends"]),
-    "length mismatch": (_set("data/state", lambda a: a["data/state"][:6]),
-                        ["differ in length", "data/state: 6", "data/point_cloud: 7"]),
+    "length mismatch": (
+        _set("data/state", lambda a: a["data/state"][:6]),
+        ["differ in length", "data/state: 6", "data/point_cloud: 7"],
+    ),
     "ends empty": (_set("meta/episode_ends", np.zeros(0, np.int64)), ["meta/episode_ends is empty"]),
     "ends 2-D": (_set("meta/episode_ends", np.array([[3, 7]], np.int64)), ["meta/episode_ends", "1-D"]),
     "ends float": (_set("meta/episode_ends", np.array([3.0, 7.0])), ["meta/episode_ends", "integer"]),
-    "ends repeat": (_set("meta/episode_ends", np.array([3, 3, 7], np.int64)),
-                    ["not strictly increasing", "episode 1 is empty"]),
+    "ends repeat": (
+        _set("meta/episode_ends", np.array([3, 3, 7], np.int64)),
+        ["not strictly increasing", "episode 1 is empty"],
+    ),
     "ends decrease": (_set("meta/episode_ends", np.array([5, 3, 7], np.int64)), ["episode 1 is empty"]),
     "first end 0": (_set("meta/episode_ends", np.array([0, 3, 7], np.int64)), ["episode 0 is empty"]),
     "first end negative": (_set("meta/episode_ends", np.array([-1, 7], np.int64)), ["out of range"]),
-    "data longer": (_set("meta/episode_ends", np.array([3, 5], np.int64)),
-                    ["2 steps after the last episode end", "incomplete episode", "allow_incomplete_tail"]),
-    "data shorter": (_set("meta/episode_ends", np.array([3, 9], np.int64)),
-                     ["meta/episode_ends[-1] = 9 is out of range", "only 7 steps"]),
-    "nan point": (_poison("data/point_cloud", (5, 2, 1), np.nan),
-                  ["data/point_cloud", "NaN or inf", "step 5", "episode 1"]),
+    "data longer": (
+        _set("meta/episode_ends", np.array([3, 5], np.int64)),
+        ["2 steps after the last episode end", "incomplete episode", "allow_incomplete_tail"],
+    ),
+    "data shorter": (
+        _set("meta/episode_ends", np.array([3, 9], np.int64)),
+        ["meta/episode_ends[-1] = 9 is out of range", "only 7 steps"],
+    ),
+    "nan point": (
+        _poison("data/point_cloud", (5, 2, 1), np.nan),
+        ["data/point_cloud", "NaN or inf", "step 5", "episode 1"],
+    ),
     "inf action": (_poison("data/action", (1, 0), np.inf), ["data/action", "step 1", "episode 0"]),
     "nan state": (_poison("data/state", (3, 13), np.nan), ["data/state", "step 3", "episode 1"]),
-    "point dim 4": (_set("data/point_cloud", lambda a: np.zeros((7, P, 4), np.float32)),
-                    ["data/point_cloud", "C = 3 (xyz) or 6"]),
-    "point cloud 2-D": (_set("data/point_cloud", lambda a: np.zeros((7, P * C), np.float32)),
-                        ["data/point_cloud has shape (7, 48)", "(T, P, C)"]),
+    "point dim 4": (
+        _set("data/point_cloud", lambda a: np.zeros((7, P, 4), np.float32)),
+        ["data/point_cloud", "C = 3 (xyz) or 6"],
+    ),
+    "point cloud 2-D": (
+        _set("data/point_cloud", lambda a: np.zeros((7, P * C), np.float32)),
+        ["data/point_cloud has shape (7, 48)", "(T, P, C)"],
+    ),
     "state 3-D": (_set("data/state", lambda a: np.zeros((7, 2, 7), np.float32)), ["data/state", "2-D (T, S)"]),
     "action 1-D": (_set("data/action", lambda a: np.zeros(7, np.float32)), ["data/action", "2-D (T, A)"]),
     "bool state": (_set("data/state", lambda a: np.zeros((7, S), bool)), ["data/state has dtype bool", "float"]),
@@ -308,13 +333,16 @@ def test_write_refuses_to_replace_other_directories(tmp_path):
     assert (tmp_path / "keep" / "precious.txt").read_text() == "x"
 
 
-@pytest.mark.parametrize("episodes, match", [
-    ([], "no episodes"),
-    (make_episodes([0]), "episode 0: the episode is empty"),
-    (make_episodes([2]) + make_episodes([2], n_points=5), r"episode 1: \(P, C, S, A\) = \(5, 6, 14, 14\)"),
-    (make_episodes([2], point_dim=4), "episode 0: point_cloud has shape"),
-    ([Episode(np.zeros((3, 4, 3)), np.zeros((2, 1)), np.zeros((3, 1)))], "differ in length"),
-])
+@pytest.mark.parametrize(
+    "episodes, match",
+    [
+        ([], "no episodes"),
+        (make_episodes([0]), "episode 0: the episode is empty"),
+        (make_episodes([2]) + make_episodes([2], n_points=5), r"episode 1: \(P, C, S, A\) = \(5, 6, 14, 14\)"),
+        (make_episodes([2], point_dim=4), "episode 0: point_cloud has shape"),
+        ([Episode(np.zeros((3, 4, 3)), np.zeros((2, 1)), np.zeros((3, 1)))], "differ in length"),
+    ],
+)
 def test_write_validates_episodes(tmp_path, episodes, match):
     with pytest.raises(DatasetError, match=match):
         write_replay_buffer(tmp_path / "ds.zarr", episodes)
@@ -448,11 +476,13 @@ def episode_lists(draw):
     episodes = []
     for _ in range(draw(st.integers(1, 4))):
         t = draw(st.integers(1, 6))
-        episodes.append(Episode(
-            point_cloud=draw(hnp.arrays(np.float32, (t, n_points, point_dim), elements=floats)),
-            state=draw(hnp.arrays(np.float32, (t, state_dim), elements=floats)),
-            action=draw(hnp.arrays(np.float32, (t, action_dim), elements=floats)),
-        ))
+        episodes.append(
+            Episode(
+                point_cloud=draw(hnp.arrays(np.float32, (t, n_points, point_dim), elements=floats)),
+                state=draw(hnp.arrays(np.float32, (t, state_dim), elements=floats)),
+                action=draw(hnp.arrays(np.float32, (t, action_dim), elements=floats)),
+            )
+        )
     return episodes
 
 
@@ -473,9 +503,13 @@ def test_reads_any_chunk_layout_chunk_by_chunk(data, zarr_format):
     """Other tools chunk along every axis (and zarr 2 may name chunks ``3/0``): reading whole chunks and
     cutting out the steps asked for gives exactly what zarr itself reads."""
     arrays = raw_arrays((5, 9, 3))
-    chunks = {key: tuple(data.draw(st.integers(1 if axis == 0 else max(1, n // 3), n), label=f"{key} chunk {axis}")
-                         for axis, n in enumerate(value.shape))
-              for key, value in arrays.items()}
+    chunks = {
+        key: tuple(
+            data.draw(st.integers(1 if axis == 0 else max(1, n // 3), n), label=f"{key} chunk {axis}")
+            for axis, n in enumerate(value.shape)
+        )
+        for key, value in arrays.items()
+    }
     separator = data.draw(st.sampled_from([".", "/"])) if zarr_format == 2 else None
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "ds.zarr"
@@ -483,8 +517,9 @@ def test_reads_any_chunk_layout_chunk_by_chunk(data, zarr_format):
         for key, value in arrays.items():
             parent, name = key.rsplit("/", 1)
             extra = {"chunk_key_encoding": {"name": "v2", "separator": separator}} if separator else {}
-            root.require_group(parent).create_array(name, data=value, chunks=chunks[key],
-                                                    config={"write_empty_chunks": True}, **extra)
+            root.require_group(parent).create_array(
+                name, data=value, chunks=chunks[key], config={"write_empty_chunks": True}, **extra
+            )
         buffer = ReplayBuffer.load(path, extras=True)
         for key in ("point_cloud", "state", "action"):
             np.testing.assert_array_equal(getattr(buffer, key), arrays[f"data/{key}"])
@@ -504,10 +539,18 @@ def test_reads_any_chunk_layout_chunk_by_chunk(data, zarr_format):
 def with_extras(episodes, seed=0):
     """The episodes with a float64 timestamp (T,) and a uint16 image (T, 3, 4) per step."""
     rng = np.random.default_rng(seed)
-    return [Episode(ep.point_cloud, ep.state, ep.action,
-                    extras={"timestamp": np.arange(ep.n_steps) * 0.1 + rng.normal(),
-                            "depth": rng.integers(0, 4000, (ep.n_steps, 3, 4)).astype(np.uint16)})
-            for ep in episodes]
+    return [
+        Episode(
+            ep.point_cloud,
+            ep.state,
+            ep.action,
+            extras={
+                "timestamp": np.arange(ep.n_steps) * 0.1 + rng.normal(),
+                "depth": rng.integers(0, 4000, (ep.n_steps, 3, 4)).astype(np.uint16),
+            },
+        )
+        for ep in episodes
+    ]
 
 
 @pytest.mark.parametrize("zarr_format", [2, 3])
@@ -547,17 +590,29 @@ def test_extras_must_line_up(tmp_path):
     with pytest.raises(DatasetError, match="data/frame is missing: the dataset was written without it"):
         ReplayBufferWriter(path, extra_keys=["depth", "frame", "timestamp"])
     with ReplayBufferWriter(path, extra_keys=["depth", "timestamp"]) as writer:
-        bad = Episode(episodes[1].point_cloud, episodes[1].state, episodes[1].action,
-                      extras={"timestamp": episodes[1].extras["timestamp"]})
+        bad = Episode(
+            episodes[1].point_cloud,
+            episodes[1].state,
+            episodes[1].action,
+            extras={"timestamp": episodes[1].extras["timestamp"]},
+        )
         with pytest.raises(DatasetError, match="the episode brings extras \\[timestamp\\]"):
             writer.add_episode(bad)
-        wrong = Episode(*(getattr(episodes[1], k) for k in ("point_cloud", "state", "action")),
-                        extras={"timestamp": episodes[1].extras["timestamp"],
-                                "depth": episodes[1].extras["depth"].astype(np.float32)})
-        with pytest.raises(DatasetError, match="do not match the dataset's \\(depth uint16\\[3, 4\\], timestamp float64\\)"):
+        wrong = Episode(
+            *(getattr(episodes[1], k) for k in ("point_cloud", "state", "action")),
+            extras={
+                "timestamp": episodes[1].extras["timestamp"],
+                "depth": episodes[1].extras["depth"].astype(np.float32),
+            },
+        )
+        with pytest.raises(
+            DatasetError, match="do not match the dataset's \\(depth uint16\\[3, 4\\], timestamp float64\\)"
+        ):
             writer.add_episode(wrong)
-        short = Episode(*(getattr(episodes[1], k) for k in ("point_cloud", "state", "action")),
-                        extras={"timestamp": np.zeros(2), "depth": episodes[1].extras["depth"]})
+        short = Episode(
+            *(getattr(episodes[1], k) for k in ("point_cloud", "state", "action")),
+            extras={"timestamp": np.zeros(2), "depth": episodes[1].extras["depth"]},
+        )
         with pytest.raises(DatasetError, match="extra timestamp has shape \\(2,\\); expected \\(4, ...\\)"):
             writer.add_episode(short)
         assert writer.n_episodes == 1
@@ -611,19 +666,22 @@ def test_a_control_rate_that_is_not_a_rate_is_refused_naming_the_attribute(tmp_p
     assert ReplayBuffer.load(path).control_rate_hz is None
 
 
-@pytest.mark.parametrize("name, value, fragment", [
-    ("episode_info", "hello", "attribute episode_info is 'hello', not a list"),
-    ("episode_info", [{"index": 0}, 5], "attribute episode_info[1] is 5, not an object or null"),
-    ("recording_sessions", {"a": 1}, "attribute recording_sessions is"),
-    ("action_convention", 7, "attribute action_convention is 7"),
-    ("pointcloud", "default", "attribute pointcloud is 'default', not an object"),
-    ("camera_intrinsics", [1, 2], "attribute camera_intrinsics is [1, 2]"),
-    ("camera_intrinsics", {"width": True, "fx": 1.0}, "attribute camera_intrinsics.width is true"),
-    ("camera_intrinsics", {"width": 4, "fx": "600"}, "attribute camera_intrinsics.fx is '600'"),
-    ("camera_to_base", [[1, 0, 0, 0]] * 3, "attribute camera_to_base is"),
-    ("camera_to_base", [[1, 0, 0, "x"]] * 4, "not a 4x4 matrix of finite numbers"),
-    ("camera_depth_unit", -0.001, "attribute camera_depth_unit is -0.001"),
-])
+@pytest.mark.parametrize(
+    "name, value, fragment",
+    [
+        ("episode_info", "hello", "attribute episode_info is 'hello', not a list"),
+        ("episode_info", [{"index": 0}, 5], "attribute episode_info[1] is 5, not an object or null"),
+        ("recording_sessions", {"a": 1}, "attribute recording_sessions is"),
+        ("action_convention", 7, "attribute action_convention is 7"),
+        ("pointcloud", "default", "attribute pointcloud is 'default', not an object"),
+        ("camera_intrinsics", [1, 2], "attribute camera_intrinsics is [1, 2]"),
+        ("camera_intrinsics", {"width": True, "fx": 1.0}, "attribute camera_intrinsics.width is true"),
+        ("camera_intrinsics", {"width": 4, "fx": "600"}, "attribute camera_intrinsics.fx is '600'"),
+        ("camera_to_base", [[1, 0, 0, 0]] * 3, "attribute camera_to_base is"),
+        ("camera_to_base", [[1, 0, 0, "x"]] * 4, "not a 4x4 matrix of finite numbers"),
+        ("camera_depth_unit", -0.001, "attribute camera_depth_unit is -0.001"),
+    ],
+)
 def test_every_attribute_reader_refuses_a_wrong_type_naming_it(name, value, fragment):
     from dssp_data import attributes
     from dssp_data.recording import episode_infos
@@ -637,9 +695,15 @@ def test_every_attribute_reader_refuses_a_wrong_type_naming_it(name, value, frag
     if name == "episode_info":  # never read as "no metadata"
         with pytest.raises(DatasetError, match="episode_info"):
             episode_infos(attrs, 2, "d.zarr")
-    valid = {"control_rate_hz": 10, "action_convention": "leader_command: x", "episode_info": [None, {"index": 1}],
-             "recording_sessions": [{}], "pointcloud": {"n_points": 8}, "camera_depth_unit": 0.00025,
-             "camera_intrinsics": {"width": 4, "height": 3, "fx": 1.0, "fy": 1, "ppx": 2.0, "ppy": 1.5},
-             "camera_to_base": [[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}
+    valid = {
+        "control_rate_hz": 10,
+        "action_convention": "leader_command: x",
+        "episode_info": [None, {"index": 1}],
+        "recording_sessions": [{}],
+        "pointcloud": {"n_points": 8},
+        "camera_depth_unit": 0.00025,
+        "camera_intrinsics": {"width": 4, "height": 3, "fx": 1.0, "fy": 1, "ppx": 2.0, "ppy": 1.5},
+        "camera_to_base": [[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]],
+    }
     assert attributes.attribute_problems(valid, "d.zarr") == {}
     assert attributes.control_rate(valid) == 10.0 and isinstance(attributes.control_rate(valid), float)

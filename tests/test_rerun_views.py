@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from rrd import read_rrd, text_rows
 
+from dssp_core.errors import ConfigError
 from dssp_data.arm_kinematics import ARM_VALUES, flange_pose, tool_points
 from dssp_data.data_cli import main as data_main
-from dssp_core.errors import ConfigError
 from dssp_data.rerun_views import height_colors, open_views
 from dssp_sim.teleop import record_main
 from hardware.cli.run import main as run_main
@@ -27,8 +27,27 @@ def one_error_line(capsys) -> str:
 
 def test_dssp_run_views_match_its_tick_log(arm_export, tmp_path, capsys):
     rrd, log_dir = tmp_path / "run.rrd", tmp_path / "log"
-    code = run_main(["--model", str(arm_export), "--camera", "tabletop", "--can", "sim", "--max-steps", "30", "--log-dir",
-                     str(log_dir), "--seed", "0", "--threads", "1", "--quiet", "--rerun-save", str(rrd)])
+    code = run_main(
+        [
+            "--model",
+            str(arm_export),
+            "--camera",
+            "tabletop",
+            "--can",
+            "sim",
+            "--max-steps",
+            "30",
+            "--log-dir",
+            str(log_dir),
+            "--seed",
+            "0",
+            "--threads",
+            "1",
+            "--quiet",
+            "--rerun-save",
+            str(rrd),
+        ]
+    )
     out = capsys.readouterr().out
     assert code == 0, out
     assert "rerun views: 30 ticks logged, 0 dropped; saved to" in out and not rrd.with_name("run.rrd.partial").exists()
@@ -39,7 +58,9 @@ def test_dssp_run_views_match_its_tick_log(arm_export, tmp_path, capsys):
     assert ticks["world/cloud"] == [t["tick"] for t in log if t["cloud_index"] is not None]
     assert ticks["joints/arm0/state"] == [t["tick"] for t in log if t["state"] is not None]
     assert ticks["joints/arm0/command"] == [t["tick"] for t in log if t["command"] is not None]
-    assert ticks["world/arm0/chunk"] == [t["tick"] for t in log if t.get("chunk_ms") is not None]  # a ghost per new chunk
+    assert ticks["world/arm0/chunk"] == [
+        t["tick"] for t in log if t.get("chunk_ms") is not None
+    ]  # a ghost per new chunk
     assert ticks["world/arm0/chunk"] and ticks["world/camera/depth"] == list(range(30))
     assert {"world/camera", "world/camera/depth", "world"} <= static
     assert "Pinhole:image_from_camera" in components["world/camera/depth"]
@@ -49,8 +70,23 @@ def test_dssp_run_views_match_its_tick_log(arm_export, tmp_path, capsys):
 
 def test_a_recording_and_its_dataset_in_rerun(tmp_path, capsys):
     data, rec_rrd, view_rrd = tmp_path / "rec.zarr", tmp_path / "rec.rrd", tmp_path / "view.rrd"
-    assert record_main(["--out", str(data), "--auto", "--episodes", "1", "--max-steps", "12", "--quiet",
-                        "--rerun-save", str(rec_rrd)]) == 0
+    assert (
+        record_main(
+            [
+                "--out",
+                str(data),
+                "--auto",
+                "--episodes",
+                "1",
+                "--max-steps",
+                "12",
+                "--quiet",
+                "--rerun-save",
+                str(rec_rrd),
+            ]
+        )
+        == 0
+    )
     assert "rerun views: 12 steps logged, 0 dropped" in capsys.readouterr().out
     ticks, static, _ = read_rrd(rec_rrd)
     assert ticks["world/cloud"] == ticks["world/camera/depth"] == ticks["joints/arm0/state"] == list(range(12))
@@ -59,8 +95,14 @@ def test_a_recording_and_its_dataset_in_rerun(tmp_path, capsys):
     assert data_main(["view", str(data), "--episode", "0", "--rerun-save", str(view_rrd)]) == 0
     assert "rerun views: 12 steps logged" in capsys.readouterr().out
     ticks, static, _ = read_rrd(view_rrd)
-    for entity in ("world/cloud", "world/camera/depth", "joints/arm0/state", "joints/arm0/command", "world/arm0/chunk",
-                   "world/arm0/gripper"):
+    for entity in (
+        "world/cloud",
+        "world/camera/depth",
+        "joints/arm0/state",
+        "joints/arm0/command",
+        "world/arm0/chunk",
+        "world/arm0/gripper",
+    ):
         assert ticks[entity] == list(range(12)), entity
     assert "world/camera" in static and text_rows(view_rrd, "episode") == ["rec.zarr episode 0: 12 steps"]
     # the PNGs stay the default; a saved view is never replaced
@@ -89,8 +131,21 @@ def test_flags_are_checked_before_anything_runs(arm_export, tmp_path, capsys, mo
     assert run_main(["--model", str(arm_export), "--max-steps", "1", "--rerun-save", str(tmp_path / "x.txt")]) == 2
     assert "a Rerun recording is a .rrd file" in one_error_line(capsys)
     monkeypatch.setitem(sys.modules, "rerun", None)  # rerun-sdk not installed
-    assert run_main(["--model", str(arm_export), "--max-steps", "1", "--log-dir", str(tmp_path / "log"),
-                     "--rerun-save", str(tmp_path / "new.rrd")]) == 2
+    assert (
+        run_main(
+            [
+                "--model",
+                str(arm_export),
+                "--max-steps",
+                "1",
+                "--log-dir",
+                str(tmp_path / "log"),
+                "--rerun-save",
+                str(tmp_path / "new.rrd"),
+            ]
+        )
+        == 2
+    )
     line = one_error_line(capsys)
     assert "--rerun-save needs rerun-sdk" in line and 'pip install -e ".[viz]"' in line
     assert not (tmp_path / "log").exists()  # nothing ran
@@ -142,14 +197,19 @@ def test_rerun_url_connects_to_a_running_viewer_or_server(tmp_path):
     from waiting import wait_for
 
     received, port = tmp_path / "received.rrd", _free_port()
-    server = subprocess.Popen([shutil.which("rerun") or "rerun", "--port", str(port), "--save", str(received)],
-                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    server = subprocess.Popen(
+        [shutil.which("rerun") or "rerun", "--port", str(port), "--save", str(received)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         wait_for(lambda: received.exists() or server.poll() is not None, timeout=30)
         views = open_views("test", f"rerun+http://127.0.0.1:{port}/proxy", None)
         for t in range(5):
             views.tick(t, held=t == 3, state=np.zeros(7))
         assert views.close() == {"logged": 5, "dropped": 0}
+
         def all_received():
             try:
                 return len(read_rrd(received)[0].get("safety/held", [])) == 5
@@ -214,15 +274,20 @@ def _dssp_record(tmp, flags):
 def _dssp_sim_eval(tmp, flags):
     from dssp_sim.sim_cli import main as sim_main
 
-    return sim_main(["eval", "--model", str(tmp / "model"), "--task", "tap", "--episodes", "1", "--no-progress", *flags])
+    return sim_main(
+        ["eval", "--model", str(tmp / "model"), "--task", "tap", "--episodes", "1", "--no-progress", *flags]
+    )
 
 
 def _dssp_data_view(tmp, flags):
     return data_main(["view", str(tmp / "data" / "d.zarr"), "--episode", "0", *flags])
 
 
-@pytest.mark.parametrize("command", [_dssp_run, _dssp_record, _dssp_sim_eval, _dssp_data_view],
-                         ids=["dssp-run", "dssp-record", "dssp-sim eval", "dssp-data view"])
+@pytest.mark.parametrize(
+    "command",
+    [_dssp_run, _dssp_record, _dssp_sim_eval, _dssp_data_view],
+    ids=["dssp-run", "dssp-record", "dssp-sim eval", "dssp-data view"],
+)
 def test_bad_view_flags_are_one_line_before_anything_opens(command, tmp_path, capsys):
     """Each command that takes --rerun / --rerun-save refuses a bad value with one line (exit 2) before it opens
     anything: nothing is written, the target of a planted link is untouched."""

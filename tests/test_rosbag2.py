@@ -9,10 +9,10 @@ import os
 
 import numpy as np
 import pytest
+from conftest import one_error_line
 from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
-from conftest import one_error_line
 from dssp_data.data_cli import main as data_main
 from dssp_data.observation import PointCloudConfig
 from dssp_data.pointcloud import frame_to_cloud, save_extrinsics
@@ -30,8 +30,13 @@ RegionOfInterest = TS.types["sensor_msgs/msg/RegionOfInterest"]
 
 T0 = 1_700_000_000.0  # the bag's clock: header stamps in seconds since the epoch
 # noiseless, so a frame is a function of its time; a box sliding along the table, so each frame is its own
-CAMERA = SimCamera(seed=0, intrinsics=intrinsics_for(160, 120, 70.0), noise_std=0.0, invalid_fraction=0.0,
-                   moving_box=lambda t: Box((0.1 + 0.2 * t, 0.0, 0.05), (0.08, 0.08, 0.1)))
+CAMERA = SimCamera(
+    seed=0,
+    intrinsics=intrinsics_for(160, 120, 70.0),
+    noise_std=0.0,
+    invalid_fraction=0.0,
+    moving_box=lambda t: Box((0.1 + 0.2 * t, 0.0, 0.05), (0.08, 0.08, 0.1)),
+)
 CLOUD = PointCloudConfig(n_points=128)
 
 
@@ -51,9 +56,24 @@ def depth_image(t: float) -> np.ndarray:
     return depth
 
 
-def write_bag(path, seconds=1.5, *, joint_hz=100.0, depth_hz=30.0, phase=0.004, info=True, leader=False,
-              encoding="16UC1", distortion=(0.0,) * 5, depth_gap=None, storage="sqlite3", compression=None,
-              joints_of=joints, k_of=None, image_bytes=None):
+def write_bag(
+    path,
+    seconds=1.5,
+    *,
+    joint_hz=100.0,
+    depth_hz=30.0,
+    phase=0.004,
+    info=True,
+    leader=False,
+    encoding="16UC1",
+    distortion=(0.0,) * 5,
+    depth_gap=None,
+    storage="sqlite3",
+    compression=None,
+    joints_of=joints,
+    k_of=None,
+    image_bytes=None,
+):
     """A bag like piper_ros + realsense2_camera record; ``depth_gap`` (start, end) s: no depth frame in between;
     ``storage`` sqlite3 or mcap, ``compression`` None, "message" (each message zstd) or "storage" (mcap's zstd
     chunks); ``joints_of(t)``: the joint positions at t; ``k_of(k)``: the CameraInfo's K from the camera's;
@@ -66,10 +86,13 @@ def write_bag(path, seconds=1.5, *, joint_hz=100.0, depth_hz=30.0, phase=0.004, 
         conns = {
             "/joint_states": writer.add_connection("/joint_states", JointState.__msgtype__, typestore=TS),
             "/camera/camera/depth/image_rect_raw": writer.add_connection(
-                "/camera/camera/depth/image_rect_raw", Image.__msgtype__, typestore=TS),
+                "/camera/camera/depth/image_rect_raw", Image.__msgtype__, typestore=TS
+            ),
         }
         if info:
-            conns["info"] = writer.add_connection("/camera/camera/depth/camera_info", CameraInfo.__msgtype__, typestore=TS)
+            conns["info"] = writer.add_connection(
+                "/camera/camera/depth/camera_info", CameraInfo.__msgtype__, typestore=TS
+            )
         if leader:
             conns["leader"] = writer.add_connection("/leader/joint_states", JointState.__msgtype__, typestore=TS)
         events = []
@@ -84,28 +107,53 @@ def write_bag(path, seconds=1.5, *, joint_hz=100.0, depth_hz=30.0, phase=0.004, 
             ns = int(round((t + 0.002) * 1e9))  # received a little after the sensor's stamp
             if kind == "joints":
                 names = [f"joint{i}" for i in range(1, 8)]
-                msg = JointState(header=header(t, "base_link"), name=names, position=joints_of(t),
-                                 velocity=np.zeros(0), effort=np.zeros(0))
+                msg = JointState(
+                    header=header(t, "base_link"),
+                    name=names,
+                    position=joints_of(t),
+                    velocity=np.zeros(0),
+                    effort=np.zeros(0),
+                )
                 writer.write(conns["/joint_states"], ns, TS.serialize_cdr(msg, JointState.__msgtype__))
                 if leader:
-                    ahead = JointState(header=header(t, "base_link"), name=names, position=joints(t + 0.1),
-                                       velocity=np.zeros(0), effort=np.zeros(0))
+                    ahead = JointState(
+                        header=header(t, "base_link"),
+                        name=names,
+                        position=joints(t + 0.1),
+                        velocity=np.zeros(0),
+                        effort=np.zeros(0),
+                    )
                     writer.write(conns["leader"], ns, TS.serialize_cdr(ahead, JointState.__msgtype__))
                 continue
             depth = depth_image(t)
             data = depth.astype("<u2").tobytes() if encoding != "32FC1" else (depth * 0.00025).astype("<f4").tobytes()
             data = data if image_bytes is None else image_bytes(data)
-            image = Image(header=header(t), height=intr.height, width=intr.width, encoding=encoding, is_bigendian=0,
-                          step=len(data) // intr.height, data=np.frombuffer(data, dtype=np.uint8))
+            image = Image(
+                header=header(t),
+                height=intr.height,
+                width=intr.width,
+                encoding=encoding,
+                is_bigendian=0,
+                step=len(data) // intr.height,
+                data=np.frombuffer(data, dtype=np.uint8),
+            )
             writer.write(conns["/camera/camera/depth/image_rect_raw"], ns, TS.serialize_cdr(image, Image.__msgtype__))
             if info:
                 k = np.array([intr.fx, 0, intr.ppx, 0, intr.fy, intr.ppy, 0, 0, 1], dtype=np.float64)
                 k = k if k_of is None else k_of(k)
-                camera_info = CameraInfo(header=header(t), height=intr.height, width=intr.width,
-                                         distortion_model="plumb_bob", d=np.array(distortion, dtype=np.float64), k=k,
-                                         r=np.eye(3).reshape(9), p=np.zeros(12), binning_x=0, binning_y=0,
-                                         roi=RegionOfInterest(x_offset=0, y_offset=0, height=0, width=0,
-                                                              do_rectify=False))
+                camera_info = CameraInfo(
+                    header=header(t),
+                    height=intr.height,
+                    width=intr.width,
+                    distortion_model="plumb_bob",
+                    d=np.array(distortion, dtype=np.float64),
+                    k=k,
+                    r=np.eye(3).reshape(9),
+                    p=np.zeros(12),
+                    binning_x=0,
+                    binning_y=0,
+                    roi=RegionOfInterest(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False),
+                )
                 writer.write(conns["info"], ns, TS.serialize_cdr(camera_info, CameraInfo.__msgtype__))
     return path
 
@@ -194,11 +242,14 @@ def test_what_cannot_be_converted_faithfully_is_one_line(tmp_path, capsys, calib
     # the tolerance is printed, and raising it lets the same bag through (the gap is 0.4 s)
     code, _, stderr = convert(capsys, tmp_path / "unsynchronised", tmp_path / "u.zarr", *calibration)
     assert "tolerance 0.05 s" in one_error_line(stderr)
-    code, _, stderr = convert(capsys, tmp_path / "unsynchronised", tmp_path / "u.zarr", *calibration, "--tolerance", "0.5")
+    code, _, stderr = convert(
+        capsys, tmp_path / "unsynchronised", tmp_path / "u.zarr", *calibration, "--tolerance", "0.5"
+    )
     assert code == 0, stderr
     # a wrong joint name, a missing calibration
-    code, _, stderr = convert(capsys, tmp_path / "unsynchronised", tmp_path / "j.zarr", *calibration,
-                              "--joints", "a,b,c,d,e,f,g")
+    code, _, stderr = convert(
+        capsys, tmp_path / "unsynchronised", tmp_path / "j.zarr", *calibration, "--joints", "a,b,c,d,e,f,g"
+    )
     assert code == 2 and "has no joint a, b, c" in one_error_line(stderr)
     code, _, stderr = convert(capsys, tmp_path / "unsynchronised", tmp_path / "c.zarr")
     assert code == 2 and "--extrinsics is needed" in one_error_line(stderr)

@@ -8,8 +8,8 @@ import json
 import numpy as np
 import pytest
 import torch
-
 from conftest import built_once, one_error_line
+
 from dssp_data.model_contract import ModelContract
 from dssp_deploy.control_loop import ChunkedControl
 from dssp_deploy.onnx_policy import OnnxPolicy
@@ -18,14 +18,30 @@ from dssp_deploy.schedules import Ensemble, Plain, RealTimeChunking, SimulatedDe
 
 def _inpainting_export(tmp_path_factory, request):
     from conftest import _arm_export
+
     from export.to_onnx import main as export_main
 
     plain = _arm_export(tmp_path_factory, request, 1)
 
     def build(root):
         model = root / "model"
-        assert export_main([str(plain.parent / "run"), "-o", str(model), "--inpainting", "--skip-verify", "--quantize",
-                            "none", "--format", "onnx", "--no-fused"]) == 0
+        assert (
+            export_main(
+                [
+                    str(plain.parent / "run"),
+                    "-o",
+                    str(model),
+                    "--inpainting",
+                    "--skip-verify",
+                    "--quantize",
+                    "none",
+                    "--format",
+                    "onnx",
+                    "--no-fused",
+                ]
+            )
+            == 0
+        )
         return (model,)
 
     return plain, built_once(tmp_path_factory, request, "inpainting_export", build)[0]
@@ -60,9 +76,14 @@ def test_the_inpainting_denoiser_is_the_pytorch_chain_and_zero_weights_are_the_p
     with torch.no_grad():
         prefix = policy.build_prefix(torch.from_numpy(feeds["c_t"]), torch.from_numpy(feeds["z_recent"]))
         norm = policy.normalizers["action"]
-        want = norm.unnormalize(policy.sample_normalized(
-            prefix, torch.from_numpy(noise), graph.contract.denoise_steps,
-            inpaint=(norm.normalize(torch.from_numpy(committed)), torch.from_numpy(weight)))).numpy()
+        want = norm.unnormalize(
+            policy.sample_normalized(
+                prefix,
+                torch.from_numpy(noise),
+                graph.contract.denoise_steps,
+                inpaint=(norm.normalize(torch.from_numpy(committed)), torch.from_numpy(weight)),
+            )
+        ).numpy()
     np.testing.assert_allclose(chunk, want, atol=1e-5)  # parity with the training code's chain
     np.testing.assert_allclose(chunk[0, 0], committed[0, 0], atol=1e-5)  # weight 1: the committed action itself
     zero = graph.denoise(graph.denoiser_inputs(), noise=noise)
@@ -86,9 +107,15 @@ class FakePolicy:
 
     def __init__(self, horizon=8, n_action_steps=3, action_offset=1):
         self.horizon = horizon
-        self.contract = ModelContract(n_obs_steps=action_offset + 1, horizon=horizon, n_action_steps=n_action_steps,
-                                      action_offset=action_offset, ddim_timesteps=[2, 1, 0], inpainting=True,
-                                      control_rate_hz=10.0)
+        self.contract = ModelContract(
+            n_obs_steps=action_offset + 1,
+            horizon=horizon,
+            n_action_steps=n_action_steps,
+            action_offset=action_offset,
+            ddim_timesteps=[2, 1, 0],
+            inpainting=True,
+            control_rate_hz=10.0,
+        )
         self.calls: list[dict] = []
         self.history = ()
 
@@ -193,11 +220,14 @@ def test_dssp_sim_eval_refuses_rtc_without_an_inpainting_model_and_a_delay_for_t
 
     plain_dir, _ = exports
     outputs = ["--rerun-save", str(tmp_path / "eval.rrd"), "--strips", str(tmp_path / "strips")]
-    for refused, message in ((["--smoothing", "rtc"], "export the model with python -m export.to_onnx --inpainting"),
-                             (["--smoothing", "ensemble", "--ensemble-every", "99"], "--ensemble-every 99"),
-                             (["--inject-delay", "20000"], "--inject-delay must be in [0, 10000] ms")):
-        code = sim_main(["eval", "--model", str(plain_dir), "--task", "tap", "--episodes", "1", *refused, *outputs,
-                         "--no-progress"])
+    for refused, message in (
+        (["--smoothing", "rtc"], "export the model with python -m export.to_onnx --inpainting"),
+        (["--smoothing", "ensemble", "--ensemble-every", "99"], "--ensemble-every 99"),
+        (["--inject-delay", "20000"], "--inject-delay must be in [0, 10000] ms"),
+    ):
+        code = sim_main(
+            ["eval", "--model", str(plain_dir), "--task", "tap", "--episodes", "1", *refused, *outputs, "--no-progress"]
+        )
         assert code == 2 and message in one_error_line(capsys.readouterr().err)
         assert list(tmp_path.iterdir()) == []
     code = sim_main(["eval", "--model", str(plain_dir), "--task", "tap", "--episodes", "1", *outputs, "--no-progress"])
@@ -211,19 +241,50 @@ def test_dssp_sim_eval_refuses_rtc_without_an_inpainting_model_and_a_delay_for_t
 def test_dssp_run_with_real_time_chunking_on_the_embedded_simulation(exports, tmp_path, capsys):
     """On the robot's path the next chunk runs in a background thread; d comes from the measured chunk time (real
     time, as the other dssp-run tests: nothing asserted depends on how fast the machine is)."""
-    from hardware.run_log import read_ticks
     from test_policy_sources import run_dssp
+
+    from hardware.run_log import read_ticks
 
     _, model_dir = exports
     log_dir = tmp_path / "log"
-    code, out, err = run_dssp(capsys, "--model", model_dir, "--smoothing", "rtc", "--camera", "tabletop", "--can", "sim",
-                              "--max-steps", "30", "--seed", "0", "--threads", "2", "--quiet", "--log-dir", log_dir)
+    code, out, err = run_dssp(
+        capsys,
+        "--model",
+        model_dir,
+        "--smoothing",
+        "rtc",
+        "--camera",
+        "tabletop",
+        "--can",
+        "sim",
+        "--max-steps",
+        "30",
+        "--seed",
+        "0",
+        "--threads",
+        "2",
+        "--quiet",
+        "--log-dir",
+        log_dir,
+    )
     assert code == 0, out + err
     assert "ticks 30" in out and "ended by: max steps" in out
     policy = json.loads((log_dir / "run.json").read_text())["settings"]["policy"]
     assert policy["smoothing"] == "rtc" and policy["rtc_delay_ticks"] >= 1 and policy["injected_delay_ticks"] is None
     ticks = read_ticks(log_dir)
     assert any(t.get("chunk_ms") is not None for t in ticks)
-    code, _, err = run_dssp(capsys, "--model", model_dir, "--smoothing", "rtc", "--prefetch", "--camera", "tabletop",
-                            "--can", "sim", "--log-dir", tmp_path / "log2")
+    code, _, err = run_dssp(
+        capsys,
+        "--model",
+        model_dir,
+        "--smoothing",
+        "rtc",
+        "--prefetch",
+        "--camera",
+        "tabletop",
+        "--can",
+        "sim",
+        "--log-dir",
+        tmp_path / "log2",
+    )
     assert code == 2 and "--prefetch does not combine with --smoothing rtc" in one_error_line(err)

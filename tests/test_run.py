@@ -23,6 +23,7 @@ import numpy as np
 import pytest
 from waiting import World, wait_for
 
+from dssp_data.pointcloud import PointCloudConfig
 from dssp_deploy.onnx_policy import OnnxPolicy
 from hardware.camera.base import Camera
 from hardware.camera.tabletop import SimCamera
@@ -33,7 +34,6 @@ from hardware.piper.arm import PiperArm
 from hardware.piper.can_simulator import SimulatedPiper
 from hardware.piper.limits import GRIPPER_STROKE_MAX, JointLimits
 from hardware.piper.piper_robot import PiperRobot
-from dssp_data.pointcloud import PointCloudConfig
 from hardware.policies.exported_model import ModelPolicy
 from hardware.rig import Rig
 from hardware.robot import Robot
@@ -82,8 +82,27 @@ def test_dssp_run_on_the_embedded_simulation(arm_export, tmp_path, capsys):
     logged, sent and kept within the limits is checked exactly. The fault injection below shows that fresh
     inputs are commanded every tick."""
     log_dir = tmp_path / "log"
-    code = run_main(["--model", str(arm_export), "--camera", "tabletop", "--can", "sim", "--max-steps", "60",
-                     "--log-dir", str(log_dir), "--seed", "0", "--threads", "1", "--quiet", "--subscribe", "csv"])
+    code = run_main(
+        [
+            "--model",
+            str(arm_export),
+            "--camera",
+            "tabletop",
+            "--can",
+            "sim",
+            "--max-steps",
+            "60",
+            "--log-dir",
+            str(log_dir),
+            "--seed",
+            "0",
+            "--threads",
+            "1",
+            "--quiet",
+            "--subscribe",
+            "csv",
+        ]
+    )
     out = capsys.readouterr().out
     assert code == 0, out
     assert "ticks 60" in out and "ended by: max steps" in out
@@ -124,8 +143,25 @@ def test_an_unknown_subscriber_is_refused_before_anything_opens(arm_export, tmp_
 
 def test_two_arms_as_one_14_value_robot(dual_arm_export, tmp_path, capsys):
     log_dir = tmp_path / "log"
-    code = run_main(["--model", str(dual_arm_export), "--camera", "tabletop", "--can", "sim:2", "--max-steps", "40",
-                     "--log-dir", str(log_dir), "--seed", "0", "--threads", "1", "--quiet"])
+    code = run_main(
+        [
+            "--model",
+            str(dual_arm_export),
+            "--camera",
+            "tabletop",
+            "--can",
+            "sim:2",
+            "--max-steps",
+            "40",
+            "--log-dir",
+            str(log_dir),
+            "--seed",
+            "0",
+            "--threads",
+            "1",
+            "--quiet",
+        ]
+    )
     assert code == 0, capsys.readouterr()
     ticks = [t for t in read_ticks(log_dir) if t["command"] is not None]
     assert ticks and all(len(t["command"]) == 14 and len(t["state"]) == 14 for t in ticks)
@@ -134,14 +170,30 @@ def test_two_arms_as_one_14_value_robot(dual_arm_export, tmp_path, capsys):
     assert [b.name.rsplit("-", 1)[-1] for b in blfs] == ["left.blf", "right.blf"]
     for side, blf in enumerate(blfs):  # the left arm gets values 0..6, the right arm 7..13
         commands = sent_commands(blf)
-        assert np.allclose(commands[: len(logged)], logged[:, 7 * side: 7 * side + 7], atol=WIRE)
+        assert np.allclose(commands[: len(logged)], logged[:, 7 * side : 7 * side + 7], atol=WIRE)
         assert_within_limits(commands, np.where(GRIPPER, 0.2, 0.05))
 
 
 def test_dry_run_sends_nothing(arm_export, tmp_path, capsys):
     log_dir = tmp_path / "log"
-    code = run_main(["--model", str(arm_export), "--camera", "tabletop", "--can", "sim", "--max-steps", "30",
-                     "--dry-run", "--log-dir", str(log_dir), "--threads", "1", "--quiet"])
+    code = run_main(
+        [
+            "--model",
+            str(arm_export),
+            "--camera",
+            "tabletop",
+            "--can",
+            "sim",
+            "--max-steps",
+            "30",
+            "--dry-run",
+            "--log-dir",
+            str(log_dir),
+            "--threads",
+            "1",
+            "--quiet",
+        ]
+    )
     assert code == 0 and "[dry run]" in capsys.readouterr().out
     [blf] = log_dir.glob("can_*.blf")
     decoder = codec.Decoder()
@@ -152,10 +204,14 @@ def test_dry_run_sends_nothing(arm_export, tmp_path, capsys):
 
 
 def test_bad_input_fails_before_motion(arm_export, tmp_path, capsys):
-    code = run_main(["--model", str(arm_export), "--can", "sim:2", "--max-steps", "5", "--log-dir", str(tmp_path / "a")])
+    code = run_main(
+        ["--model", str(arm_export), "--can", "sim:2", "--max-steps", "5", "--log-dir", str(tmp_path / "a")]
+    )
     err = capsys.readouterr().err
     assert code == 2 and "robot has 14 values" in err and "Traceback" not in err
-    code = run_main(["--model", str(arm_export), "--camera", "d435", "--max-steps", "5", "--log-dir", str(tmp_path / "b")])
+    code = run_main(
+        ["--model", str(arm_export), "--camera", "d435", "--max-steps", "5", "--log-dir", str(tmp_path / "b")]
+    )
     assert code == 2 and "--extrinsics is needed" in capsys.readouterr().err
     code = run_main(["--model", str(tmp_path / "missing"), "--max-steps", "5"])
     assert code == 2 and "does not exist" in capsys.readouterr().err
@@ -165,12 +221,32 @@ def test_sigterm_ends_in_a_hold(arm_export, tmp_path, capsys):
     """Real time: a signal into a running process (it is sent once 20 ticks are logged, whenever that is)."""
     log_dir = tmp_path / "log"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "hardware.cli.run", "--model", str(arm_export), "--camera", "tabletop", "--can", "sim",
-         "--log-dir", str(log_dir), "--threads", "1"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env={**os.environ, "OMP_NUM_THREADS": "1"},
+        [
+            sys.executable,
+            "-m",
+            "hardware.cli.run",
+            "--model",
+            str(arm_export),
+            "--camera",
+            "tabletop",
+            "--can",
+            "sim",
+            "--log-dir",
+            str(log_dir),
+            "--threads",
+            "1",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "OMP_NUM_THREADS": "1"},
     )
-    wait_for(lambda: proc.poll() is not None or ((log_dir / "ticks.jsonl").exists() and len(read_ticks(log_dir)) >= 20),
-             timeout=120, what="20 logged ticks", poll=0.1)
+    wait_for(
+        lambda: proc.poll() is not None or ((log_dir / "ticks.jsonl").exists() and len(read_ticks(log_dir)) >= 20),
+        timeout=120,
+        what="20 logged ticks",
+        poll=0.1,
+    )
     # a second dssp-run on the same log directory: one line naming the running one, nothing of it touched
     assert run_main(["--model", str(arm_export), "--log-dir", str(log_dir), "--quiet"]) == 2
     assert f"is being written by pid {proc.pid}" in capsys.readouterr().err
@@ -301,10 +377,21 @@ def rig(arm_export, tmp_path, request):
     blf = tmp_path / "bus.blf"
     with camera, robot, BusRecorder(robot.channel, "virtual", blf):
         with pytest.warns(UserWarning, match="20 Hz"):  # the model was trained at 50 Hz
-            rig = Rig(camera, robot, camera.camera_to_base, getattr(request, "param", CAMERA_SAFETY), clock=clock,
-                      limits=(LIMITS.lower, LIMITS.upper, GRIPPER))
-            runner = Runner(ModelPolicy(policy, RATE, seed=0), rig, PointCloudConfig(n_points=64), LoopSettings(control_rate_hz=RATE),
-                            subscribers=[RunLog(tmp_path / "log", {})])
+            rig = Rig(
+                camera,
+                robot,
+                camera.camera_to_base,
+                getattr(request, "param", CAMERA_SAFETY),
+                clock=clock,
+                limits=(LIMITS.lower, LIMITS.upper, GRIPPER),
+            )
+            runner = Runner(
+                ModelPolicy(policy, RATE, seed=0),
+                rig,
+                PointCloudConfig(n_points=64),
+                LoopSettings(control_rate_hz=RATE),
+                subscribers=[RunLog(tmp_path / "log", {})],
+            )
         robot.step(0.0)
         runner.start()
         clock.steps = [robot.step, camera.step]

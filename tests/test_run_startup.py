@@ -43,8 +43,12 @@ def wait_for_start_up_handler(proc: subprocess.Popen, timeout: float = 60.0) -> 
     """Wait until ``proc`` catches SIGTERM: main() has installed its start-up handler (Python itself catches
     only SIGINT), so the moments below come after it, whatever the machine's load did to the interpreter's
     own start-up (a Ctrl-C before that is Python's, not dssp-run's)."""
-    wait_for(lambda: proc.poll() is not None or catches(proc.pid, signal.SIGTERM), timeout=timeout,
-             what="dssp-run's start-up handler", poll=0.005)
+    wait_for(
+        lambda: proc.poll() is not None or catches(proc.pid, signal.SIGTERM),
+        timeout=timeout,
+        what="dssp-run's start-up handler",
+        poll=0.005,
+    )
     assert proc.poll() is None, f"dssp-run ended before it installed its start-up handler (exit code {proc.poll()})"
 
 
@@ -61,11 +65,12 @@ def ticks_logged(log_dir: Path) -> int:
 # directory made (claimed: from here a stop is the runner's), a CAN log (the devices open; the runner waits for
 # the first frame and feedback, then enables the arm), the first logged tick (running).
 START_UP = ("handler", "log locked", "model loaded", "log claimed", "devices open", "first tick")
-RUNNERS = START_UP[START_UP.index("log claimed"):]  # the moments from which the runner ends the run
+RUNNERS = START_UP[START_UP.index("log claimed") :]  # the moments from which the runner ends the run
 
 
-def wait_for_start_up(proc: subprocess.Popen, output: Output, log_dir: Path, moment: str,
-                      timeout: float = 120.0) -> None:
+def wait_for_start_up(
+    proc: subprocess.Popen, output: Output, log_dir: Path, moment: str, timeout: float = 120.0
+) -> None:
     """Wait until ``proc`` (a dssp-run on ``log_dir``, its pipes read by ``output``) has reached ``moment`` of
     :data:`START_UP`, or has ended."""
     what = f"dssp-run's start-up: {moment}"
@@ -86,9 +91,26 @@ def wait_for_start_up(proc: subprocess.Popen, output: Output, log_dir: Path, mom
 def test_ctrl_c_during_start_up_is_a_clean_stop(arm_export, tmp_path, moment):
     log_dir = tmp_path / "log"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "hardware.cli.run", "--model", str(arm_export), "--camera", "tabletop", "--can", "sim",
-         "--log-dir", str(log_dir), "--threads", "1", "--quiet"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env={**os.environ, "OMP_NUM_THREADS": "1"},
+        [
+            sys.executable,
+            "-m",
+            "hardware.cli.run",
+            "--model",
+            str(arm_export),
+            "--camera",
+            "tabletop",
+            "--can",
+            "sim",
+            "--log-dir",
+            str(log_dir),
+            "--threads",
+            "1",
+            "--quiet",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "OMP_NUM_THREADS": "1"},
     )
     output = Output(proc)
     try:
@@ -160,20 +182,30 @@ class StillCamera(Camera):
 def test_start_up_gives_up_on_its_clock(arm_export):
     """No joint feedback, or no camera frame: start-up gives up after ``startup_timeout`` s of the runner's
     clock, polling on it; on a manual clock that takes no wall time, and the time it gave up at is exact."""
+    from dssp_data.pointcloud import PointCloudConfig
     from dssp_deploy.onnx_policy import OnnxPolicy
     from hardware.piper.limits import JointLimits
-    from dssp_data.pointcloud import PointCloudConfig
-    from hardware.rig import Rig
     from hardware.policies.exported_model import ModelPolicy
+    from hardware.rig import Rig
     from hardware.run_loop import LoopSettings, Runner
     from hardware.safety import SafetyConfig
 
     clock, camera = FakeClock(start=100.0), StillCamera(object())
     limits = JointLimits.piper()
-    rig = Rig(camera, SilentArm(), np.eye(4), SafetyConfig(), clock=clock,
-              limits=(limits.lower, limits.upper, np.arange(7) == 6))
-    runner = Runner(ModelPolicy(OnnxPolicy(arm_export, threads=1), 50.0), rig, PointCloudConfig(n_points=64),
-                    LoopSettings(control_rate_hz=50.0, startup_timeout=2.0))
+    rig = Rig(
+        camera,
+        SilentArm(),
+        np.eye(4),
+        SafetyConfig(),
+        clock=clock,
+        limits=(limits.lower, limits.upper, np.arange(7) == 6),
+    )
+    runner = Runner(
+        ModelPolicy(OnnxPolicy(arm_export, threads=1), 50.0),
+        rig,
+        PointCloudConfig(n_points=64),
+        LoopSettings(control_rate_hz=50.0, startup_timeout=2.0),
+    )
     with pytest.raises(DSSPError, match="no joint feedback within 2 s"):
         runner.start()
     assert 102.0 < clock.now() <= 102.005 + 1e-9  # the first poll past the deadline
@@ -193,8 +225,9 @@ def _devices_opened(monkeypatch) -> list[str]:
     return opened
 
 
-def test_a_second_writer_of_a_log_directory_gets_one_line_before_anything_opens(arm_export, tmp_path, capsys,
-                                                                                 monkeypatch):
+def test_a_second_writer_of_a_log_directory_gets_one_line_before_anything_opens(
+    arm_export, tmp_path, capsys, monkeypatch
+):
     """One writer per log directory: while another run holds it (here a lock taken in this process, as a first
     dssp-run would), the second is refused with one line naming the holder, before the model or any device, and
     nothing of the first's is touched."""
@@ -243,8 +276,9 @@ def test_default_log_directories_never_collide(arm_export, tmp_path, capsys, mon
     assert sorted(p.name for p in root.iterdir()) == ["20260101-120000", "20260101-120000-3"]  # no lock left
 
 
-def test_a_prefetch_lead_the_rate_cannot_hold_is_refused_before_anything_opens(arm_export, tmp_path, capsys,
-                                                                               monkeypatch):
+def test_a_prefetch_lead_the_rate_cannot_hold_is_refused_before_anything_opens(
+    arm_export, tmp_path, capsys, monkeypatch
+):
     """--prefetch: the chunk's latency is measured once, before any device opens; a lead that does not fit the
     horizon at the control rate is one line (here a chunk of 1 s at 50 Hz), and the loop chooses its lead from
     that same measurement (it is not measured again after the devices opened)."""
@@ -255,8 +289,20 @@ def test_a_prefetch_lead_the_rate_cannot_hold_is_refused_before_anything_opens(a
     measured = []
     monkeypatch.setattr(ChunkedControl, "measure_chunk_ms", lambda self, iterations=5: measured.append(1) or 1000.0)
     opened = _devices_opened(monkeypatch)
-    code = run_main(["--model", str(arm_export), "--prefetch", "--log-dir", str(tmp_path / "log"), "--quiet",
-                     "--max-steps", "3", "--threads", "1"])
+    code = run_main(
+        [
+            "--model",
+            str(arm_export),
+            "--prefetch",
+            "--log-dir",
+            str(tmp_path / "log"),
+            "--quiet",
+            "--max-steps",
+            "3",
+            "--threads",
+            "1",
+        ]
+    )
     line = one_error_line(capsys.readouterr().err)
     assert code == 2 and "--prefetch at 50 Hz: a chunk takes 1000.0 ms = 50 ticks" in line, line
     assert "run without prefetch or at a lower rate" in line
@@ -265,6 +311,18 @@ def test_a_prefetch_lead_the_rate_cannot_hold_is_refused_before_anything_opens(a
     monkeypatch.undo()
     measured.clear()
     monkeypatch.setattr(ChunkedControl, "measure_chunk_ms", lambda self, iterations=5: measured.append(1) or 5.0)
-    code = run_main(["--model", str(arm_export), "--prefetch", "--log-dir", str(tmp_path / "log"), "--quiet",
-                     "--max-steps", "5", "--threads", "1"])
+    code = run_main(
+        [
+            "--model",
+            str(arm_export),
+            "--prefetch",
+            "--log-dir",
+            str(tmp_path / "log"),
+            "--quiet",
+            "--max-steps",
+            "5",
+            "--threads",
+            "1",
+        ]
+    )
     assert code == 0 and measured == [1], capsys.readouterr()

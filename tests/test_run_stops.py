@@ -37,8 +37,20 @@ from hardware.piper import codec
 from hardware.run_log import read_ticks
 
 SEED = int(os.environ.get("DSSP_STOP_SEED", time.time_ns() % 2**31))
-LISTED = ("SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT", "SIGUSR1", "SIGUSR2", "SIGALRM", "SIGPIPE", "SIGXCPU", "SIGXFSZ",
-          "SIGVTALRM", "SIGPROF")
+LISTED = (
+    "SIGINT",
+    "SIGTERM",
+    "SIGHUP",
+    "SIGQUIT",
+    "SIGUSR1",
+    "SIGUSR2",
+    "SIGALRM",
+    "SIGPIPE",
+    "SIGXCPU",
+    "SIGXFSZ",
+    "SIGVTALRM",
+    "SIGPROF",
+)
 NUMBERS = {signal_name(s): s for s in stop_signals()}
 MAX_STEP = np.where(GRIPPER, 0.2, 0.05)
 
@@ -51,10 +63,30 @@ def _start(arm_export, tmp_path, *extra, quiet=True):
     safety = tmp_path / "safety.json"
     safety.write_text(json.dumps({"disable_on_exit": True}))
     return subprocess.Popen(
-        [sys.executable, "-m", "hardware.cli.run", "--model", str(arm_export), "--camera", "tabletop", "--can", "sim",
-         "--log-dir", str(tmp_path / "log"), "--threads", "1", "--safety", str(safety), *(["--quiet"] if quiet else []),
-         *extra],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env())
+        [
+            sys.executable,
+            "-m",
+            "hardware.cli.run",
+            "--model",
+            str(arm_export),
+            "--camera",
+            "tabletop",
+            "--can",
+            "sim",
+            "--log-dir",
+            str(tmp_path / "log"),
+            "--threads",
+            "1",
+            "--safety",
+            str(safety),
+            *(["--quiet"] if quiet else []),
+            *extra,
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=_env(),
+    )
 
 
 def check_safe_stop(log_dir: Path, reason: str, err: str) -> dict | None:
@@ -172,8 +204,10 @@ def _moments(names):
     so both are always tried."""
     rng = random.Random(SEED)
     kinds = ["start-up", "running"] if rng.random() < 0.5 else ["running", "start-up"]
-    return {name: (kinds[i % 2], rng.choice(START_UP[:-1]) if kinds[i % 2] == "start-up" else rng.randint(1, 40))
-            for i, name in enumerate(names)}
+    return {
+        name: (kinds[i % 2], rng.choice(START_UP[:-1]) if kinds[i % 2] == "start-up" else rng.randint(1, 40))
+        for i, name in enumerate(names)
+    }
 
 
 MOMENTS = _moments(LISTED + ("real-time",))
@@ -193,13 +227,21 @@ def test_a_signal_at_a_random_moment_ends_in_the_safe_stop(arm_export, tmp_path,
     proc = _start(arm_export, tmp_path)
     output = Output(proc)
     try:
-        wait_for(lambda: proc.poll() is not None or (catches(proc.pid, signal.SIGTERM) and catches(proc.pid, signum)),
-                 timeout=60, what=f"{signal_name(signum)} caught (seed {SEED})", poll=0.002)
+        wait_for(
+            lambda: proc.poll() is not None or (catches(proc.pid, signal.SIGTERM) and catches(proc.pid, signum)),
+            timeout=60,
+            what=f"{signal_name(signum)} caught (seed {SEED})",
+            poll=0.002,
+        )
         if kind == "start-up":
             wait_for_start_up(proc, output, log_dir, when)
         else:
-            wait_for(lambda: proc.poll() is not None or ticks_logged(log_dir) >= when, timeout=120,
-                     what=f"{when} logged ticks (seed {SEED})", poll=0.01)
+            wait_for(
+                lambda: proc.poll() is not None or ticks_logged(log_dir) >= when,
+                timeout=120,
+                what=f"{when} logged ticks (seed {SEED})",
+                poll=0.01,
+            )
         proc.send_signal(signum)
         out, err = output.communicate(timeout=60)
     finally:
@@ -221,8 +263,12 @@ def test_stdout_and_stderr_going_away_end_in_the_safe_stop(arm_export, tmp_path)
     log_dir = tmp_path / "log"
     proc = _start(arm_export, tmp_path)
     try:
-        wait_for(lambda: proc.poll() is not None or ticks_logged(log_dir) >= 10, timeout=120, what="10 logged ticks",
-                 poll=0.01)
+        wait_for(
+            lambda: proc.poll() is not None or ticks_logged(log_dir) >= 10,
+            timeout=120,
+            what="10 logged ticks",
+            poll=0.01,
+        )
         proc.stdout.close()
         proc.stderr.close()
         proc.wait(timeout=60)
@@ -253,8 +299,21 @@ class _Terminal(io.StringIO):
 def _run_in_process(arm_export, tmp_path, *extra):
     safety = tmp_path / "safety.json"
     safety.write_text(json.dumps({"disable_on_exit": True}))
-    return run_main(["--model", str(arm_export), "--log-dir", str(tmp_path / "log"), "--threads", "1", "--seed", "0",
-                     "--safety", str(safety), *extra])
+    return run_main(
+        [
+            "--model",
+            str(arm_export),
+            "--log-dir",
+            str(tmp_path / "log"),
+            "--threads",
+            "1",
+            "--seed",
+            "0",
+            "--safety",
+            str(safety),
+            *extra,
+        ]
+    )
 
 
 def test_a_failed_print_is_a_stop_not_a_traceback(arm_export, tmp_path, capsys, monkeypatch):

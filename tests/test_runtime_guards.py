@@ -24,10 +24,10 @@ from hypothesis import strategies as st
 from dssp_core.errors import DSSPError, NonFiniteObservation
 from dssp_deploy import mamba_kernel
 from dssp_deploy.control_loop import ChunkedControl
-from dssp_deploy.schedules import MeasuredDelay, Plain
 from dssp_deploy.manifest import MANIFEST_NAME, ModelDirError, sha256_hex
 from dssp_deploy.onnx_policy import OnnxPolicy
 from dssp_deploy.ranges import MARGIN, ChunkOutOfRange, ObservationOutOfRange
+from dssp_deploy.schedules import MeasuredDelay, Plain
 from dssp_deploy.sessions import open_session
 
 PRECISIONS = ["fp32", "int8", "int4"]
@@ -77,7 +77,10 @@ class Corrupted:
 @pytest.mark.parametrize("precision", PRECISIONS)
 def test_far_out_observations_are_refused_on_every_precision(tiny_export, precision):
     _, model_dir, data = tiny_export
-    p, ref = OnnxPolicy(model_dir, threads=1, precision=precision), OnnxPolicy(model_dir, threads=1, precision=precision, warmup=0)
+    p, ref = (
+        OnnxPolicy(model_dir, threads=1, precision=precision),
+        OnnxPolicy(model_dir, threads=1, precision=precision, warmup=0),
+    )
     clouds, states = trajectory(data, 7)
     for t in range(3):
         p.observe(clouds[t], states[t])
@@ -92,11 +95,24 @@ def test_far_out_observations_are_refused_on_every_precision(tiny_export, precis
     cloud = clouds[3].copy()
     cloud[5, 2] = 1e3  # a millimetre reading among metres
     cloud[7, 0] = -1e6
-    bad_cases.append((cloud, states[3], ObservationOutOfRange,
-                      ("point_cloud [1, 32, 3] has 2 value(s)", "(0, 5, 2)=1000 > ", f"(0, 7, 0)=-1e+06 < {cloud_lower[0]:.6g}")))
+    bad_cases.append(
+        (
+            cloud,
+            states[3],
+            ObservationOutOfRange,
+            ("point_cloud [1, 32, 3] has 2 value(s)", "(0, 5, 2)=1000 > ", f"(0, 7, 0)=-1e+06 < {cloud_lower[0]:.6g}"),
+        )
+    )
     state = states[3].copy()
     state[0] = pos_upper[0] + 1e-3  # just past the bound
-    bad_cases.append((clouds[3], state, ObservationOutOfRange, (f"(0, 0)=", f"> {pos_upper[0]:.6g}", "channel 0: training range [0, 1]")))
+    bad_cases.append(
+        (
+            clouds[3],
+            state,
+            ObservationOutOfRange,
+            ("(0, 0)=", f"> {pos_upper[0]:.6g}", "channel 0: training range [0, 1]"),
+        )
+    )
     for bad in (np.nan, np.inf):
         state = states[3].copy()
         state[0] = bad
@@ -122,10 +138,17 @@ def fp32_policy(tiny_export):
 
 
 @settings(max_examples=40, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow])
-@given(name=st.sampled_from(["point_cloud", "agent_pos"]), channel=st.integers(0, 2), inside=st.booleans(),
-       where=st.floats(1e-3, 0.999), beyond=st.floats(1e-3, 1e12), above=st.booleans())
-def test_the_accepted_range_is_the_training_range_widened_by_the_margin(fp32_policy, tiny_export, name, channel, inside,
-                                                                       where, beyond, above):
+@given(
+    name=st.sampled_from(["point_cloud", "agent_pos"]),
+    channel=st.integers(0, 2),
+    inside=st.booleans(),
+    where=st.floats(1e-3, 0.999),
+    beyond=st.floats(1e-3, 1e12),
+    above=st.booleans(),
+)
+def test_the_accepted_range_is_the_training_range_widened_by_the_margin(
+    fp32_policy, tiny_export, name, channel, inside, where, beyond, above
+):
     """Inside each channel's bounds — the manifest's input_min/max (what the normaliser maps to [-1, 1]) widened
     by MARGIN x the widest span — accepted; outside, refused naming the entry."""
     p = fp32_policy
@@ -138,7 +161,9 @@ def test_the_accepted_range_is_the_training_range_widened_by_the_margin(fp32_pol
     slack = MARGIN * (high - low).max()
     channel %= len(low)
     lower, upper = low[channel] - slack, high[channel] + slack
-    np.testing.assert_allclose([p.ranges[name].lower[channel], p.ranges[name].upper[channel]], [lower, upper], rtol=1e-6)
+    np.testing.assert_allclose(
+        [p.ranges[name].lower[channel], p.ranges[name].upper[channel]], [lower, upper], rtol=1e-6
+    )
     span = upper - lower
     value = lower + where * span if inside else (upper + beyond * span if above else lower - beyond * span)
     cloud, state = clouds[0].copy(), states[0].copy()
@@ -165,14 +190,18 @@ def test_a_chunk_outside_the_action_range_is_never_returned(tiny_export, precisi
     actions = p.ranges["action"]
     assert np.all(good >= actions.lower) and np.all(good <= actions.upper)
     session = p.sessions["denoiser"]
-    for index, value, tokens in (((0, 2, 1), np.nan, ("(0, 2, 1)=nan (not finite)",)),
-                                 ((0, 0, 0), -np.inf, ("(0, 0, 0)=-inf (not finite)",)),
-                                 ((0, 3, 1), actions.upper[1] + 1.0, ("(0, 3, 1)=", f"> {actions.upper[1]:.6g}")),
-                                 ((0, 1, 0), actions.lower[0] - 1e-3, ("(0, 1, 0)=", f"< {actions.lower[0]:.6g}"))):
+    for index, value, tokens in (
+        ((0, 2, 1), np.nan, ("(0, 2, 1)=nan (not finite)",)),
+        ((0, 0, 0), -np.inf, ("(0, 0, 0)=-inf (not finite)",)),
+        ((0, 3, 1), actions.upper[1] + 1.0, ("(0, 3, 1)=", f"> {actions.upper[1]:.6g}")),
+        ((0, 1, 0), actions.lower[0] - 1e-3, ("(0, 1, 0)=", f"< {actions.lower[0]:.6g}")),
+    ):
         p.sessions["denoiser"] = Corrupted(session, index, value)
         with pytest.raises(ChunkOutOfRange) as info:
             p.act(seed=0)
-        one_line(info, "action chunk [1, 4, 2] has 1 value(s) outside the model's range", *tokens, "the chunk was not used")
+        one_line(
+            info, "action chunk [1, 4, 2] has 1 value(s) outside the model's range", *tokens, "the chunk was not used"
+        )
     p.sessions["denoiser"] = Corrupted(session, (0, 0, 0), actions.upper[0])  # on the bound: accepted
     assert p.act(seed=0)[0, 0, 0] == np.float32(actions.upper[0])
 
@@ -181,7 +210,9 @@ def test_a_chunk_outside_the_action_range_is_never_returned(tiny_export, precisi
 def test_a_refused_chunk_undoes_its_tick_and_the_next_tick_takes_a_new_one(tiny_export, prefetch):
     _, model_dir, data = tiny_export
     p, q = OnnxPolicy(model_dir, threads=1), OnnxPolicy(model_dir, threads=1, warmup=0)
-    options = dict(schedule=Plain(prefetch=True, delay=MeasuredDelay(50.0)), control_rate_hz=10) if prefetch else {}  # lead: 1 tick
+    options = (
+        dict(schedule=Plain(prefetch=True, delay=MeasuredDelay(50.0)), control_rate_hz=10) if prefetch else {}
+    )  # lead: 1 tick
     loop = ChunkedControl(p, seed=0, **options)
     ha, lead = p.contract.n_action_steps, loop.schedule.lead
     clouds, states = trajectory(data, 3 * ha)
@@ -194,7 +225,9 @@ def test_a_refused_chunk_undoes_its_tick_and_the_next_tick_takes_a_new_one(tiny_
     p.sessions["denoiser"] = corrupted  # in the tick: computed at tick ha
     with pytest.raises(ChunkOutOfRange, match=r"^action chunk .*=nan \(not finite\)"):
         loop.tick(clouds[ha], states[ha])
-    assert loop.tick_count == p.steps == ha and loop.schedule.in_flight is None  # the tick undone: its observation not kept
+    assert (
+        loop.tick_count == p.steps == ha and loop.schedule.in_flight is None
+    )  # the tick undone: its observation not kept
     p.sessions["denoiser"] = session
     # The next tick is tick ha again: a new chunk, in the tick, from the history without the refused observation.
     for t in [*range(ha), *range(ha + 1, 2 * ha + 1)]:
@@ -202,7 +235,11 @@ def test_a_refused_chunk_undoes_its_tick_and_the_next_tick_takes_a_new_one(tiny_
         if t == ha + 1:
             expected = q.act(seed=ha)
     action, info = loop.tick(clouds[ha + 1], states[ha + 1])
-    assert info.new_chunk and info.chunk_index == p.contract.action_offset and np.array_equal(action, expected[:, p.contract.action_offset])
+    assert (
+        info.new_chunk
+        and info.chunk_index == p.contract.action_offset
+        and np.array_equal(action, expected[:, p.contract.action_offset])
+    )
     for t in range(ha + 2, 2 * ha + 1):
         action, info = loop.tick(clouds[t], states[t])
         assert np.isfinite(action).all()
@@ -227,11 +264,11 @@ def rig_loop(arm_export, tmp_path, monkeypatch, edit_cloud):
     through ``edit_cloud(cloud) -> cloud`` first: yields (policy, runner, ticks), ``ticks(n)`` the records of n
     ticks, each on a fresh frame, one right after the other: nothing here waits on the loop's period. Generous
     timeouts and no deadline hold: the only reason to hold is what the test injects."""
+    from dssp_data.pointcloud import PointCloudConfig
     from hardware import run_loop
     from hardware.camera.tabletop import SimCamera
     from hardware.piper.limits import JointLimits
     from hardware.piper.piper_robot import open_robot
-    from dssp_data.pointcloud import PointCloudConfig
     from hardware.policies.exported_model import ModelPolicy
     from hardware.rig import Rig
     from hardware.safety import SafetyConfig
@@ -251,8 +288,15 @@ def rig_loop(arm_export, tmp_path, monkeypatch, edit_cloud):
     camera.capture()
     try:
         with robot:
-            rig = Rig(camera, robot, camera.camera_to_base, safety, limits=(limits.lower, limits.upper, np.arange(7) == 6))
-            runner = run_loop.Runner(ModelPolicy(policy, 50.0, seed=0), rig, PointCloudConfig(n_points=64), run_loop.LoopSettings(control_rate_hz=50.0))
+            rig = Rig(
+                camera, robot, camera.camera_to_base, safety, limits=(limits.lower, limits.upper, np.arange(7) == 6)
+            )
+            runner = run_loop.Runner(
+                ModelPolicy(policy, 50.0, seed=0),
+                rig,
+                PointCloudConfig(n_points=64),
+                run_loop.LoopSettings(control_rate_hz=50.0),
+            )
             runner.start()
 
             def ticks(n):
@@ -340,8 +384,14 @@ def external(tiny_export, tmp_path):
     _, model_dir, data = tiny_export
     dst = tmp_path / "model"
     shutil.copytree(model_dir, dst)
-    onnx.save(onnx.load(str(model_dir / GRAPH)), str(dst / GRAPH), save_as_external_data=True, all_tensors_to_one_file=True,
-              location=DATA, size_threshold=0)
+    onnx.save(
+        onnx.load(str(model_dir / GRAPH)),
+        str(dst / GRAPH),
+        save_as_external_data=True,
+        all_tensors_to_one_file=True,
+        location=DATA,
+        size_threshold=0,
+    )
     rehash(dst, GRAPH, DATA)
     return dst, first_chunk(model_dir, data), data
 
@@ -361,7 +411,9 @@ def test_listed_external_data_is_loaded_from_the_checked_bytes_not_the_current_d
     (elsewhere / DATA).write_bytes(bytes((model_dir / DATA).stat().st_size))  # zeros, where ONNX Runtime used to look
     os.chdir(elsewhere)
     assert np.array_equal(first_chunk(model_dir, data), want)
-    with pytest.raises(ModelDirError, match="external data at 'history_step.onnx.data', which was not read and checked"):
+    with pytest.raises(
+        ModelDirError, match="external data at 'history_step.onnx.data', which was not read and checked"
+    ):
         open_session((model_dir / GRAPH).read_bytes())  # its bytes alone: the file it names is not taken from anywhere
 
 
@@ -400,12 +452,16 @@ def missing(model_dir, tmp_path):
     return "history_step.onnx.data (the external data of history_step.onnx) is missing"
 
 
-@pytest.mark.parametrize("damage", [outside_location, absolute_location, link_out, unlisted, changed, missing],
-                         ids=lambda f: f.__name__)
+@pytest.mark.parametrize(
+    "damage", [outside_location, absolute_location, link_out, unlisted, changed, missing], ids=lambda f: f.__name__
+)
 def test_external_data_outside_the_model_directory_or_its_manifest_is_refused(external, tmp_path, damage):
     model_dir, _, _ = external
     token = damage(model_dir, tmp_path)
-    for precision, kernel in (("fp32", "standard"), ("int8", "auto")):  # the graph that runs, or one a fallback would take
+    for precision, kernel in (
+        ("fp32", "standard"),
+        ("int8", "auto"),
+    ):  # the graph that runs, or one a fallback would take
         with pytest.raises(ModelDirError) as info:
             OnnxPolicy(model_dir, threads=1, precision=precision, kernel=kernel, warmup=0)
         one_line(info, token)
@@ -418,8 +474,12 @@ def test_a_truncated_kernel_library_is_not_loaded_and_the_standard_graphs_run(ti
     assert mamba_kernel.elf_problem(built) is None
     data = built.read_bytes()
     truncated = tmp_path / "libdssp_mamba.so"
-    for size, token in ((len(data) // 2, "is truncated (its segment"), (len(data) - 1, "is truncated (its section header table"),
-                        (40, "is truncated (40 bytes, shorter than its ELF header)"), (3, "is not an ELF shared library")):
+    for size, token in (
+        (len(data) // 2, "is truncated (its segment"),
+        (len(data) - 1, "is truncated (its section header table"),
+        (40, "is truncated (40 bytes, shorter than its ELF header)"),
+        (3, "is not an ELF shared library"),
+    ):
         truncated.write_bytes(data[:size])
         assert token in mamba_kernel.elf_problem(truncated)
     truncated.write_bytes(data[: len(data) // 2])
@@ -440,4 +500,7 @@ def test_a_truncated_kernel_library_is_not_loaded_and_the_standard_graphs_run(ti
     assert out.returncode == 0, out.stderr
     note = out.stdout.strip()
     assert "\n" not in note and note.startswith("int8, standard ONNX graphs (the fused Mamba kernel is unavailable: ")
-    assert f"{truncated.resolve()} failed to load: it is truncated (its segment" in note and "rebuild it with `make kernel`" in note
+    assert (
+        f"{truncated.resolve()} failed to load: it is truncated (its segment" in note
+        and "rebuild it with `make kernel`" in note
+    )

@@ -59,7 +59,12 @@ def test_every_stale_or_bad_input_holds_the_last_safe_target(kwargs, reason):
     s = make()
     first = s.decide(START + 0.02, now=5.0, camera_time=5.0, state=state(5.0)).command
     now = 5.1
-    args = {"action": START + 0.04, "camera_time": now, "state": state(now - kwargs.pop("feedback_age", 0.0)), "deadline_missed": False}
+    args = {
+        "action": START + 0.04,
+        "camera_time": now,
+        "state": state(now - kwargs.pop("feedback_age", 0.0)),
+        "deadline_missed": False,
+    }
     args.update(kwargs)
     d = s.decide(args.pop("action"), now=now, **args)
     assert d.held and np.array_equal(d.command, first)

@@ -250,8 +250,12 @@ def test_policy_sampling_matches_diffusers_ddim(prediction_type, decoupled, thre
     policy = tiny_policy(prediction_type, decoupled)
     torch.set_num_threads(threads)
     m = policy.cfg
-    assert dataclasses.asdict(m.diffusion) == {**DP3, "num_inference_steps": 10, "prediction_type": prediction_type,
-                                              "timestep_spacing": "leading"}
+    assert dataclasses.asdict(m.diffusion) == {
+        **DP3,
+        "num_inference_steps": 10,
+        "prediction_type": prediction_type,
+        "timestep_spacing": "leading",
+    }
     prefix = policy_prefix(policy, 4)
     noise = torch.randn((4, m.horizon, m.action_dim), generator=torch.Generator().manual_seed(5))
 

@@ -12,12 +12,12 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+import dssp_data.observation  # noqa: F401
+import dssp_data.pointcloud.extrinsics  # noqa: F401
 import dssp_deploy.manifest  # noqa: F401  (defines the manifest's schema)
 import dssp_train.config  # noqa: F401
 import hardware.calibration.charuco  # noqa: F401  (the ChArUco board's schema)
 import hardware.camera.profiles
-import dssp_data.observation  # noqa: F401
-import dssp_data.pointcloud.extrinsics  # noqa: F401
 import hardware.recorder  # noqa: F401
 import hardware.safety  # noqa: F401
 from dssp_core.errors import ConfigError
@@ -31,8 +31,17 @@ SAMPLES = {
 }
 """A valid JSON object for each schema whose fields have no defaults."""
 
-EXPECTED = {"SafetyConfig", "PointCloudConfig", "RecordThresholds", "CalibrationFile", "DiffusionConfig", "ModelConfig",
-            "TrainConfig", "RunConfig", "CameraProfile"}
+EXPECTED = {
+    "SafetyConfig",
+    "PointCloudConfig",
+    "RecordThresholds",
+    "CalibrationFile",
+    "DiffusionConfig",
+    "ModelConfig",
+    "TrainConfig",
+    "RunConfig",
+    "CameraProfile",
+}
 
 
 def valid_sample(cls) -> dict:
@@ -49,7 +58,9 @@ def schema_fields():
     for cls in all_schemas():
         hints = typing.get_type_hints(cls)
         for f in dataclasses.fields(cls):
-            out.append(pytest.param(cls, f.name, hints[f.name], f.metadata.get("spec", Spec()), id=f"{cls.__name__}.{f.name}"))
+            out.append(
+                pytest.param(cls, f.name, hints[f.name], f.metadata.get("spec", Spec()), id=f"{cls.__name__}.{f.name}")
+            )
     return out
 
 
@@ -74,23 +85,45 @@ def _core(tp):
     return rest[0], type(None) in args
 
 
-JSON_SCALARS = st.one_of(st.text(max_size=8), st.integers(-10**6, 10**6), st.floats(allow_nan=True, allow_infinity=True),
-                         st.booleans(), st.none())
-JSON_VALUES = st.one_of(JSON_SCALARS, st.lists(JSON_SCALARS, max_size=3), st.dictionaries(st.text(max_size=4), JSON_SCALARS, max_size=2))
+JSON_SCALARS = st.one_of(
+    st.text(max_size=8),
+    st.integers(-(10**6), 10**6),
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.booleans(),
+    st.none(),
+)
+JSON_VALUES = st.one_of(
+    JSON_SCALARS, st.lists(JSON_SCALARS, max_size=3), st.dictionaries(st.text(max_size=4), JSON_SCALARS, max_size=2)
+)
 
 
 def wrong_type(tp):
     """Values that are not of the annotated type (never a valid value, whatever the range)."""
     core, optional = _core(tp)
     nothing = st.nothing() if optional else st.none()
-    containers = st.one_of(st.lists(JSON_SCALARS, max_size=3), st.dictionaries(st.text(max_size=4), JSON_SCALARS, max_size=2))
+    containers = st.one_of(
+        st.lists(JSON_SCALARS, max_size=3), st.dictionaries(st.text(max_size=4), JSON_SCALARS, max_size=2)
+    )
     if core is bool:
-        return st.one_of(st.text(max_size=8), st.sampled_from(["false", "true", "0", "no"]), st.integers(), st.floats(), nothing, containers)
+        return st.one_of(
+            st.text(max_size=8),
+            st.sampled_from(["false", "true", "0", "no"]),
+            st.integers(),
+            st.floats(),
+            nothing,
+            containers,
+        )
     if core is int:
         return st.one_of(st.text(max_size=8), st.booleans(), st.floats(), nothing, containers)
     if core is float:
-        return st.one_of(st.text(max_size=8), st.sampled_from(["0.1", "1"]), st.booleans(), nothing, containers,
-                         st.sampled_from([math.nan, math.inf, -math.inf]))
+        return st.one_of(
+            st.text(max_size=8),
+            st.sampled_from(["0.1", "1"]),
+            st.booleans(),
+            nothing,
+            containers,
+            st.sampled_from([math.nan, math.inf, -math.inf]),
+        )
     if core is str:
         return st.one_of(st.integers(), st.floats(), st.booleans(), nothing, containers)
     origin = typing.get_origin(core)
@@ -101,14 +134,22 @@ def wrong_type(tp):
         n = len(items) if fixed else 2
         bad_items = st.lists(item_wrong, min_size=1, max_size=1).map(lambda bad: bad + [None] * 0)
         with_bad_item = st.tuples(bad_items, st.integers(0, n - 1)).map(lambda t: [t[0][0]] * n)
-        strategies = [st.text(max_size=8), st.integers(), st.floats(), st.booleans(), nothing, with_bad_item,
-                      st.dictionaries(st.text(max_size=4), JSON_SCALARS, max_size=2)]
+        strategies = [
+            st.text(max_size=8),
+            st.integers(),
+            st.floats(),
+            st.booleans(),
+            nothing,
+            with_bad_item,
+            st.dictionaries(st.text(max_size=4), JSON_SCALARS, max_size=2),
+        ]
         if fixed:
             strategies.append(st.lists(st.floats(-1, 1), min_size=0, max_size=len(items) - 1))
         return st.one_of(*strategies)
     if dataclasses.is_dataclass(core):
-        return st.one_of(st.text(max_size=8), st.integers(), st.floats(), st.booleans(), nothing,
-                         st.lists(JSON_SCALARS, max_size=3))
+        return st.one_of(
+            st.text(max_size=8), st.integers(), st.floats(), st.booleans(), nothing, st.lists(JSON_SCALARS, max_size=3)
+        )
     if core is typing.Any or typing.get_origin(core) is dict:
         return st.nothing()
     raise AssertionError(f"no wrong-type strategy for {tp!r}")
@@ -140,14 +181,22 @@ def out_of_range(tp, spec: Spec):
         if spec.choices:
             options.append(st.integers(-1000, 1000).filter(lambda v: v not in spec.choices))
         if low is not None:
-            options.append(st.integers(max_value=math.ceil(low) - (0 if spec.gt is not None and low == int(low) else 1)).filter(lambda v: not spec.in_range(v)))
+            options.append(
+                st.integers(max_value=math.ceil(low) - (0 if spec.gt is not None and low == int(low) else 1)).filter(
+                    lambda v: not spec.in_range(v)
+                )
+            )
         if high is not None:
             options.append(st.integers(min_value=math.floor(high)).filter(lambda v: not spec.in_range(v)))
     else:
         if low is not None:
-            options.append(st.floats(max_value=low, allow_nan=False, allow_infinity=False).filter(lambda v: not spec.in_range(v)))
+            options.append(
+                st.floats(max_value=low, allow_nan=False, allow_infinity=False).filter(lambda v: not spec.in_range(v))
+            )
         if high is not None:
-            options.append(st.floats(min_value=high, allow_nan=False, allow_infinity=False).filter(lambda v: not spec.in_range(v)))
+            options.append(
+                st.floats(min_value=high, allow_nan=False, allow_infinity=False).filter(lambda v: not spec.in_range(v))
+            )
     return st.one_of(*options) if options else st.nothing()
 
 
@@ -167,7 +216,11 @@ def _assert_refused(cls, name: str, value) -> None:
 
 
 @pytest.mark.parametrize("cls, name, tp, spec", schema_fields())
-@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.filter_too_much])
+@settings(
+    max_examples=25,
+    deadline=None,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.filter_too_much],
+)
 @given(data=st.data())
 def test_wrong_type_is_refused_naming_the_field(cls, name, tp, spec, data):
     strategy = wrong_type(tp)
@@ -177,15 +230,20 @@ def test_wrong_type_is_refused_naming_the_field(cls, name, tp, spec, data):
 
 
 @pytest.mark.parametrize("cls, name, tp, spec", schema_fields())
-@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.filter_too_much])
+@settings(
+    max_examples=25,
+    deadline=None,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.filter_too_much],
+)
 @given(data=st.data())
 def test_out_of_range_is_refused_naming_the_field(cls, name, tp, spec, data):
     strategy = out_of_range(tp, spec)
     core, _ = _core(tp)
     if strategy.is_empty:
         # Only booleans, free text, nested sections and objects have no range.
-        assert core in (bool, str) or dataclasses.is_dataclass(core) or typing.get_origin(core) is dict, \
+        assert core in (bool, str) or dataclasses.is_dataclass(core) or typing.get_origin(core) is dict, (
             f"{cls.__name__}.{name} ({tp!r}) declares no range: give it one with setting(ge=..., le=...)"
+        )
         return
     _assert_refused(cls, name, data.draw(strategy))
 
@@ -203,8 +261,9 @@ def test_every_number_has_a_physical_range():
                     core = typing.get_args(core)[0]
             spec = f.metadata.get("spec", Spec())
             if core in (int, float):
-                assert spec.choices or ((spec.ge is not None or spec.gt is not None) and (spec.le is not None or spec.lt is not None)), \
-                    f"{cls.__name__}.{f.name} has no range"
+                assert spec.choices or (
+                    (spec.ge is not None or spec.gt is not None) and (spec.le is not None or spec.lt is not None)
+                ), f"{cls.__name__}.{f.name} has no range"
 
 
 def test_unknown_and_missing_keys():
@@ -251,13 +310,16 @@ def _one_line_exit_2(capsys, code: int) -> str:
     return errors[0]
 
 
-@pytest.mark.parametrize("content, field", [
-    ({"disable_on_exit": "false"}, "safety.disable_on_exit"),
-    ({"limit_margin": "0.1"}, "safety.limit_margin"),
-    ({"max_joint_step": 2.0}, "safety.max_joint_step"),
-    ({"camera_timeout": float("nan")}, "safety.camera_timeout"),
-    ({"deadline_hold": 1}, "safety.deadline_hold"),
-])
+@pytest.mark.parametrize(
+    "content, field",
+    [
+        ({"disable_on_exit": "false"}, "safety.disable_on_exit"),
+        ({"limit_margin": "0.1"}, "safety.limit_margin"),
+        ({"max_joint_step": 2.0}, "safety.max_joint_step"),
+        ({"camera_timeout": float("nan")}, "safety.camera_timeout"),
+        ({"deadline_hold": 1}, "safety.deadline_hold"),
+    ],
+)
 def test_dssp_run_refuses_a_bad_safety_file_before_anything_opens(tmp_path, capsys, monkeypatch, content, field):
     from hardware.cli import run
 
@@ -271,13 +333,16 @@ def test_dssp_run_refuses_a_bad_safety_file_before_anything_opens(tmp_path, caps
     assert opened == []
 
 
-@pytest.mark.parametrize("flag, content, field", [
-    ("--pointcloud", {"n_points": "1024"}, "pointcloud.n_points"),
-    ("--pointcloud", {"crop_min": [0, 0, -500]}, "pointcloud.crop_min[2]"),
-    ("--pointcloud", {"use_color": "yes"}, "pointcloud.use_color"),
-    ("--extrinsics", {"camera_to_base": IDENTITY, "frame": 3}, "calibration.frame"),
-    ("--extrinsics", {"camera_to_base": [[1, 0, 0, 0]]}, "calibration.camera_to_base"),
-])
+@pytest.mark.parametrize(
+    "flag, content, field",
+    [
+        ("--pointcloud", {"n_points": "1024"}, "pointcloud.n_points"),
+        ("--pointcloud", {"crop_min": [0, 0, -500]}, "pointcloud.crop_min[2]"),
+        ("--pointcloud", {"use_color": "yes"}, "pointcloud.use_color"),
+        ("--extrinsics", {"camera_to_base": IDENTITY, "frame": 3}, "calibration.frame"),
+        ("--extrinsics", {"camera_to_base": [[1, 0, 0, 0]]}, "calibration.camera_to_base"),
+    ],
+)
 def test_dssp_run_refuses_bad_settings_files(tmp_path, capsys, flag, content, field):
     from hardware.cli import run
 
@@ -287,15 +352,18 @@ def test_dssp_run_refuses_bad_settings_files(tmp_path, capsys, flag, content, fi
     assert field in _one_line_exit_2(capsys, code)
 
 
-@pytest.mark.parametrize("argv, words", [
-    (["--camera", "foo"], "unknown camera 'foo'"),
-    (["--control-rate", "0"], "--control-rate must be in [0.1, 1000] Hz"),
-    (["--control-rate", "nan"], "--control-rate must be in [0.1, 1000] Hz"),
-    (["--control-rate", "1e-300"], "--control-rate must be in [0.1, 1000] Hz"),
-    (["--max-steps", "0"], "--max-steps must be at least 1"),
-    (["--threads", "0"], "--threads must be in [1, "),
-    (["--threads", "100000"], "--threads must be in [1, "),
-])
+@pytest.mark.parametrize(
+    "argv, words",
+    [
+        (["--camera", "foo"], "unknown camera 'foo'"),
+        (["--control-rate", "0"], "--control-rate must be in [0.1, 1000] Hz"),
+        (["--control-rate", "nan"], "--control-rate must be in [0.1, 1000] Hz"),
+        (["--control-rate", "1e-300"], "--control-rate must be in [0.1, 1000] Hz"),
+        (["--max-steps", "0"], "--max-steps must be at least 1"),
+        (["--threads", "0"], "--threads must be in [1, "),
+        (["--threads", "100000"], "--threads must be in [1, "),
+    ],
+)
 def test_dssp_run_flags_are_checked_first(tmp_path, capsys, argv, words):
     from hardware.cli import run
 
@@ -313,11 +381,14 @@ def test_dssp_run_refuses_a_step_faster_than_the_arm(tmp_path, capsys):
     assert "rad/s" in line and "max_joint_step" in line
 
 
-@pytest.mark.parametrize("flag, content, field", [
-    ("--thresholds", {"camera_age": "0.2"}, "thresholds.camera_age"),
-    ("--thresholds", {"late_tick": 5}, "thresholds.late_tick"),
-    ("--pointcloud", {"voxel_size": 10}, "pointcloud.voxel_size"),
-])
+@pytest.mark.parametrize(
+    "flag, content, field",
+    [
+        ("--thresholds", {"camera_age": "0.2"}, "thresholds.camera_age"),
+        ("--thresholds", {"late_tick": 5}, "thresholds.late_tick"),
+        ("--pointcloud", {"voxel_size": 10}, "pointcloud.voxel_size"),
+    ],
+)
 def test_dssp_record_refuses_bad_settings_files(tmp_path, capsys, flag, content, field):
     from dssp_sim.teleop import record_main
 
@@ -329,10 +400,13 @@ def test_dssp_record_refuses_bad_settings_files(tmp_path, capsys, flag, content,
     assert not out.exists()
 
 
-@pytest.mark.parametrize("argv, words", [
-    (["--camera", "foo"], "unknown camera 'foo'"),
-    (["--control-rate", "0"], "--control-rate must be in [0.1, 1000] Hz"),
-])
+@pytest.mark.parametrize(
+    "argv, words",
+    [
+        (["--camera", "foo"], "unknown camera 'foo'"),
+        (["--control-rate", "0"], "--control-rate must be in [0.1, 1000] Hz"),
+    ],
+)
 def test_dssp_record_flags_are_checked_first(tmp_path, capsys, argv, words):
     from hardware.cli import record
 
@@ -342,18 +416,21 @@ def test_dssp_record_flags_are_checked_first(tmp_path, capsys, argv, words):
     assert not out.exists()
 
 
-@pytest.mark.parametrize("override, field", [
-    ("model.d_model=abc", "model.d_model"),
-    ("model.d_model=64.5", "model.d_model"),
-    ("model.d_model=true", "model.d_model"),
-    ("train.lr=NaN", "train.lr"),
-    ("model.n_action_steps=0", "model.n_action_steps"),
-    ("model.diffusion.clip_sample=1", "model.diffusion.clip_sample"),
-])
+@pytest.mark.parametrize(
+    "override, field",
+    [
+        ("model.d_model=abc", "model.d_model"),
+        ("model.d_model=64.5", "model.d_model"),
+        ("model.d_model=true", "model.d_model"),
+        ("train.lr=NaN", "train.lr"),
+        ("model.n_action_steps=0", "model.n_action_steps"),
+        ("model.diffusion.clip_sample=1", "model.diffusion.clip_sample"),
+    ],
+)
 def test_dssp_train_set_is_type_checked(tmp_path, capsys, override, field):
-    from dssp_train.cli import train
-
     from conftest import write_arm_dataset
+
+    from dssp_train.cli import train
 
     data = tmp_path / "d.zarr"
     write_arm_dataset(data, n_episodes=2, steps=10, n_points=16)

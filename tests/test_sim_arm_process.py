@@ -16,11 +16,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import waiting
 
 from hardware.cli.can_sim import main as sim_arm_main
 from hardware.piper.arm import PiperArm
 from hardware.piper.piper_robot import open_robot
-import waiting
 
 REPO = Path(__file__).resolve().parents[1]
 MDEG = np.radians(0.001)
@@ -39,9 +39,24 @@ def start_sim(channels: str, port: int, *extra: str) -> tuple[subprocess.Popen, 
     env["PYTHONPATH"] = os.pathsep.join(p for p in (str(REPO), env.get("PYTHONPATH", "")) if p)
     env["CAN_CONFIG"] = json.dumps({"hop_limit": 0, "port": port})
     proc = subprocess.Popen(
-        [sys.executable, "-m", "hardware.cli.can_sim", "--channel", channels, "--interface", "udp_multicast",
-         "--port", str(port), *extra],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO, env=env)
+        [
+            sys.executable,
+            "-m",
+            "hardware.cli.can_sim",
+            "--channel",
+            channels,
+            "--interface",
+            "udp_multicast",
+            "--port",
+            str(port),
+            *extra,
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=REPO,
+        env=env,
+    )
     ready, _, _ = select.select([proc.stdout], [], [], 30.0)
     if not ready:
         proc.kill()
@@ -129,25 +144,33 @@ def test_sigint_ends_the_process_cleanly():
 
 
 def test_bad_arguments_exit_2_with_one_error_line():
-    proc = subprocess.run([sys.executable, "-m", "hardware.cli.can_sim", "--channel", "10.0.0.1"],
-                          capture_output=True, text=True, cwd=REPO, timeout=60,
-                          env={**os.environ, "PYTHONPATH": str(REPO)})
+    proc = subprocess.run(
+        [sys.executable, "-m", "hardware.cli.can_sim", "--channel", "10.0.0.1"],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+        timeout=60,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+    )
     assert proc.returncode == 2 and proc.stdout == ""
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: ") and "multicast group" in lines[0]
 
 
-@pytest.mark.parametrize("argv, needle", [
-    ([], "--channel"),
-    (["--channel", "239.1.2.3", "--feedback-rate", "0"], "--feedback-rate"),
-    (["--channel", "239.1.2.3", "--feedback-rate", "nan"], "--feedback-rate"),
-    (["--channel", "239.1.2.3", "--duration", "-1"], "--duration"),
-    (["--channel", "239.1.2.3", "--port", "70000"], "--port"),
-    (["--channel", "239.1.2.3,,239.1.2.4"], "empty"),
-    (["--channel", "239.1.2.3,239.1.2.3"], "twice"),
-    (["--channel", "can0"], "multicast group"),
-    (["--channel", "x", "--interface", "socketcan"], "--interface"),
-])
+@pytest.mark.parametrize(
+    "argv, needle",
+    [
+        ([], "--channel"),
+        (["--channel", "239.1.2.3", "--feedback-rate", "0"], "--feedback-rate"),
+        (["--channel", "239.1.2.3", "--feedback-rate", "nan"], "--feedback-rate"),
+        (["--channel", "239.1.2.3", "--duration", "-1"], "--duration"),
+        (["--channel", "239.1.2.3", "--port", "70000"], "--port"),
+        (["--channel", "239.1.2.3,,239.1.2.4"], "empty"),
+        (["--channel", "239.1.2.3,239.1.2.3"], "twice"),
+        (["--channel", "can0"], "multicast group"),
+        (["--channel", "x", "--interface", "socketcan"], "--interface"),
+    ],
+)
 def test_bad_arguments_in_process(argv, needle, capsys):
     assert sim_arm_main(argv) == 2
     out, err = capsys.readouterr()
@@ -155,8 +178,21 @@ def test_bad_arguments_in_process(argv, needle, capsys):
 
 
 def test_duration_on_a_virtual_channel(capsys):
-    assert sim_arm_main(["--channel", f"sim-arm-cli-{os.getpid()}", "--interface", "virtual", "--duration", "0.2",
-                         "--feedback-rate", "100"]) == 0
+    assert (
+        sim_arm_main(
+            [
+                "--channel",
+                f"sim-arm-cli-{os.getpid()}",
+                "--interface",
+                "virtual",
+                "--duration",
+                "0.2",
+                "--feedback-rate",
+                "100",
+            ]
+        )
+        == 0
+    )
     out, err = capsys.readouterr()
     lines = out.strip().splitlines()
     assert len(lines) == 2 and "on virtual" in lines[0] and "stopped after" in lines[1] and err == ""

@@ -4,23 +4,22 @@ software device; expert collection into a DP3 dataset; closed-loop evaluation th
 import json
 import threading
 
-from rrd import read_rrd, text_rows
-
 import numpy as np
 import pytest
+from rrd import read_rrd, text_rows
 
 from dssp_core.errors import ConfigError
-from dssp_sim.sim_cli import main as sim_main
-from dssp_sim.env import PiperEnv
+from dssp_data.pointcloud import frame_to_cloud
+from dssp_data.replay_buffer import ReplayBuffer
 from dssp_deploy.schedules import Ensemble, RealTimeChunking
+from dssp_sim.env import PiperEnv
 from dssp_sim.evaluate import wilson_interval
-from dssp_sim.settings import cloud_config_for
 from dssp_sim.mujoco_arm import MujocoPiper
 from dssp_sim.mujoco_camera import MujocoCamera
-from dssp_data.replay_buffer import ReplayBuffer
+from dssp_sim.settings import cloud_config_for
+from dssp_sim.sim_cli import main as sim_main
 from hardware.piper.arm import PiperArm
 from hardware.piper.piper_robot import PiperRobot
-from dssp_data.pointcloud import frame_to_cloud
 
 
 def test_wilson_interval_matches_the_formula_at_known_points():
@@ -105,7 +104,10 @@ def test_swap_sees_its_small_objects_in_a_finer_cloud():
 
 def test_collect_writes_a_dp3_dataset_of_successful_episodes(tmp_path, capsys):
     out = tmp_path / "tap.zarr"
-    assert sim_main(["collect", "--task", "tap", "--episodes", "2", "--out", str(out), "--no-progress", "--points", "128"]) == 0
+    assert (
+        sim_main(["collect", "--task", "tap", "--episodes", "2", "--out", str(out), "--no-progress", "--points", "128"])
+        == 0
+    )
     assert "kept 2 successful tap episodes of 2 tried" in capsys.readouterr().out
     buffer = ReplayBuffer.load(out)
     assert buffer.n_episodes == 2
@@ -114,7 +116,25 @@ def test_collect_writes_a_dp3_dataset_of_successful_episodes(tmp_path, capsys):
     assert buffer.attrs["control_rate_hz"] == 10.0 and buffer.attrs["task"] == "tap"
     assert buffer.attrs["pointcloud"]["n_points"] == 128 and len(buffer.attrs["camera_to_base"]) == 4
     # appending keeps what was there
-    assert sim_main(["collect", "--task", "tap", "--episodes", "1", "--out", str(out), "--seed", "7", "--no-progress", "--points", "128"]) == 0
+    assert (
+        sim_main(
+            [
+                "collect",
+                "--task",
+                "tap",
+                "--episodes",
+                "1",
+                "--out",
+                str(out),
+                "--seed",
+                "7",
+                "--no-progress",
+                "--points",
+                "128",
+            ]
+        )
+        == 0
+    )
     assert ReplayBuffer.load(out).n_episodes == 3
 
 
@@ -122,7 +142,9 @@ def test_bad_input_is_one_line(tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
         sim_main(["collect", "--task", "juggle", "--episodes", "1", "--out", str(tmp_path / "x.zarr")])
     assert exc.value.code == 2 and "unknown task 'juggle'" in capsys.readouterr().err
-    assert sim_main(["eval", "--model", str(tmp_path / "none"), "--task", "tap", "--episodes", "1", "--no-progress"]) == 2
+    assert (
+        sim_main(["eval", "--model", str(tmp_path / "none"), "--task", "tap", "--episodes", "1", "--no-progress"]) == 2
+    )
     assert "does not exist" in capsys.readouterr().err
 
 
@@ -135,8 +157,24 @@ def sim_model(tmp_path_factory):
     root = tmp_path_factory.mktemp("sim_model")
     data = root / "tap.zarr"
     assert sim_main(["collect", "--task", "tap", "--episodes", "3", "--out", str(data), "--no-progress"]) == 0
-    assert train_main(["--data", str(data), "--out", str(root / "run"), "--preset", "sim", "--steps", "20",
-                       "--set", "train.val_every=20", "--no-progress"]) == 0
+    assert (
+        train_main(
+            [
+                "--data",
+                str(data),
+                "--out",
+                str(root / "run"),
+                "--preset",
+                "sim",
+                "--steps",
+                "20",
+                "--set",
+                "train.val_every=20",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     assert export_main([str(root / "run"), "-o", str(root / "model"), "--skip-verify", "--quantize", "none"]) == 0
     return root / "model"
 
@@ -145,14 +183,39 @@ def test_eval_runs_the_whole_chain(sim_model, tmp_path, capsys):
     out = tmp_path / "eval.json"
     strips = tmp_path / "strips"
     rrd = tmp_path / "eval.rrd"
-    assert sim_main(["eval", "--model", str(sim_model), "--task", "tap", "--episodes", "2", "--seed", "5",
-                     "--json", str(out), "--strips", str(strips), "--threads", "1", "--no-progress", "--rerun-save", str(rrd)]) == 0
+    assert (
+        sim_main(
+            [
+                "eval",
+                "--model",
+                str(sim_model),
+                "--task",
+                "tap",
+                "--episodes",
+                "2",
+                "--seed",
+                "5",
+                "--json",
+                str(out),
+                "--strips",
+                str(strips),
+                "--threads",
+                "1",
+                "--no-progress",
+                "--rerun-save",
+                str(rrd),
+            ]
+        )
+        == 0
+    )
     text = capsys.readouterr().out
     assert "tap: success" in text and "Wilson interval" in text and "| 5 |" in text and "| 6 |" in text
     # the Rerun views: both episodes on one timeline, one step per tick
     steps = [e["steps"] for e in json.loads(out.read_text())["episodes"]]
     ticks, _, _ = read_rrd(rrd)
-    assert ticks["safety/held"] == list(range(sum(steps))) and f"rerun views: {sum(steps)} ticks logged, 0 dropped" in text
+    assert (
+        ticks["safety/held"] == list(range(sum(steps))) and f"rerun views: {sum(steps)} ticks logged, 0 dropped" in text
+    )
     assert text_rows(rrd, "episode") == ["tap seed 5", "tap seed 6"] and ticks["world/arm0/chunk"]
     result = json.loads(out.read_text())
     assert result["n"] == 2 and len(result["episodes"]) == 2
@@ -196,14 +259,30 @@ def test_inference_delay_and_real_time_chunking_reach_the_loop_and_the_record(si
     from export.to_onnx import main as export_main
 
     inpainting = tmp_path / "model_rtc"
-    assert export_main([str(sim_model.parent / "run"), "-o", str(inpainting), "--inpainting", "--skip-verify",
-                        "--quantize", "none", "--format", "onnx", "--no-fused"]) == 0
+    assert (
+        export_main(
+            [
+                str(sim_model.parent / "run"),
+                "-o",
+                str(inpainting),
+                "--inpainting",
+                "--skip-verify",
+                "--quantize",
+                "none",
+                "--format",
+                "onnx",
+                "--no-fused",
+            ]
+        )
+        == 0
+    )
     stalled = evaluate(inpainting, "tap", 1, seed=3, threads=1, progress=False, inject_delay_ms=150)
     chunks = stalled.latency_ms["chunk"]["n"]
     assert stalled.injected_delay_ticks == 2 and chunks > 2
     assert stalled.episodes[0].safety_events.get("hold", 0) >= 2 * (chunks - 1)  # the loop waits for every chunk
-    rtc = evaluate(inpainting, "tap", 1, seed=3, threads=1, progress=False, schedule=RealTimeChunking(),
-                   inject_delay_ms=150)
+    rtc = evaluate(
+        inpainting, "tap", 1, seed=3, threads=1, progress=False, schedule=RealTimeChunking(), inject_delay_ms=150
+    )
     record = rtc.to_dict()
     assert (record["smoothing"], record["injected_delay_ticks"], record["rtc_delay_ticks"]) == ("rtc", 2, 2)
     jerk = record["boundary_jerk"]
@@ -214,8 +293,24 @@ def test_the_scripted_expert_drives_the_same_loop(tmp_path, capsys):
     """dssp-sim eval --expert: the task's expert as the control loop's policy source, through the safety layer and
     the CAN bus — it passes every tap episode (the task's ceiling through the chain), its decision scored the same way."""
     out = tmp_path / "expert.json"
-    assert sim_main(["eval", "--expert", "--task", "tap", "--episodes", "2", "--seed", "1000", "--json", str(out),
-                     "--no-progress"]) == 0
+    assert (
+        sim_main(
+            [
+                "eval",
+                "--expert",
+                "--task",
+                "tap",
+                "--episodes",
+                "2",
+                "--seed",
+                "1000",
+                "--json",
+                str(out),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     text = capsys.readouterr().out
     assert "tap: success 2/2" in text and "memory decision: right in 2 of the 2" in text
     result = json.loads(out.read_text())
@@ -223,12 +318,21 @@ def test_the_scripted_expert_drives_the_same_loop(tmp_path, capsys):
     assert all(e["success"] and e["holds"] == 0 and e["chunk_ms_p50"] is None for e in result["episodes"])
 
 
-@pytest.mark.parametrize("argv, fragment", [
-    (["--expert", "--noise", "0.1"], "--noise is a model's setting: it goes with --model, not --expert"),
-    (["--expert", "--task", "metaworld/reach"], "--expert drives the Piper's control loop"),
-    (["--expert", "--smoothing", "ensemble"], "--smoothing is a model's setting: it goes with --model, not --expert"),
-    (["--model", "m", "--ensemble-decay", "0"], "--ensemble-decay is a setting of temporal ensembling: it goes with --smoothing ensemble"),
-])
+@pytest.mark.parametrize(
+    "argv, fragment",
+    [
+        (["--expert", "--noise", "0.1"], "--noise is a model's setting: it goes with --model, not --expert"),
+        (["--expert", "--task", "metaworld/reach"], "--expert drives the Piper's control loop"),
+        (
+            ["--expert", "--smoothing", "ensemble"],
+            "--smoothing is a model's setting: it goes with --model, not --expert",
+        ),
+        (
+            ["--model", "m", "--ensemble-decay", "0"],
+            "--ensemble-decay is a setting of temporal ensembling: it goes with --smoothing ensemble",
+        ),
+    ],
+)
 def test_expert_flags_that_do_not_apply_are_one_line(argv, fragment, capsys):
     task = [] if "--task" in argv else ["--task", "tap"]
     assert sim_main(["eval", *argv, *task, "--episodes", "1", "--no-progress"]) == 2

@@ -1,19 +1,18 @@
 """The simulated Piper workcell (dssp_sim): model, servo tracking, gripper, depth rendering, determinism."""
 
-import dssp_sim  # noqa: F401  (first: sets MUJOCO_GL before MuJoCo is imported)
-
 import math
 
 import mujoco
 import numpy as np
 import pytest
 
+import dssp_sim  # noqa: F401  (first: sets MUJOCO_GL before MuJoCo is imported)
 from dssp_core.schema import DEFAULT_CONTROL_RATE_HZ
+from dssp_data.arm_kinematics import flange_pose as dh_forward
+from dssp_data.pointcloud.depth_frame import Intrinsics
 from dssp_sim.env import DEPTH_MAX_M, DEPTH_MIN_M, DEPTH_UNIT, PiperEnv
 from dssp_sim.experts import make_expert
-from dssp_data.arm_kinematics import flange_pose as dh_forward
 from dssp_sim.tasks import HOME, SLOT_PAD_HALF, SwapTask
-from dssp_data.pointcloud.depth_frame import Intrinsics
 from hardware.piper.limits import GRIPPER_STROKE_MAX, JOINT_LOWER, JOINT_UPPER, JointLimits
 
 
@@ -38,8 +37,7 @@ def test_model_joint_limits_are_the_pipers(tap_env):
         jid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, f"joint{i + 1}")
         np.testing.assert_allclose(m.jnt_range[jid], [JOINT_LOWER[i], JOINT_UPPER[i]], atol=1e-9)
         assert m.jnt_limited[jid]
-        np.testing.assert_allclose(m.actuator_ctrlrange[arm.actuators[i]], [JOINT_LOWER[i], JOINT_UPPER[i]],
-                                   atol=1e-9)
+        np.testing.assert_allclose(m.actuator_ctrlrange[arm.actuators[i]], [JOINT_LOWER[i], JOINT_UPPER[i]], atol=1e-9)
     np.testing.assert_allclose(m.actuator_ctrlrange[arm.gripper_actuator], [0.0, GRIPPER_STROKE_MAX])
     assert m.nu == 7
     assert tap_env.control_rate_hz == DEFAULT_CONTROL_RATE_HZ == 10.0
@@ -70,8 +68,7 @@ def test_two_arms_are_a_small_step():
     assert set(left.actuators).isdisjoint(right.actuators)
     d = mujoco.MjData(m)
     mujoco.mj_kinematics(m, d)
-    np.testing.assert_allclose(d.site_xpos[left.tcp_site] - d.site_xpos[right.tcp_site], [0.0, 0.6, 0.0],
-                               atol=1e-9)
+    np.testing.assert_allclose(d.site_xpos[left.tcp_site] - d.site_xpos[right.tcp_site], [0.0, 0.6, 0.0], atol=1e-9)
 
 
 def test_set_targets_clamps_to_the_limits(tap_env):

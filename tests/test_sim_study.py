@@ -16,7 +16,8 @@ ENTRY = "study_entries"  # tests/ is on sys.path (pytest puts it there; spawned 
 
 @pytest.mark.slow
 def test_the_study_command_writes_its_report(tmp_path, capsys):
-    from studies.sim_study import REPORT_NAME, main as study_main
+    from studies.sim_study import REPORT_NAME
+    from studies.sim_study import main as study_main
 
     work, report = tmp_path / "work", tmp_path / "report"
     assert study_main(["--work", str(work), "--report", str(report), "--quick", "--workers", "2"]) == 0
@@ -25,7 +26,10 @@ def test_the_study_command_writes_its_report(tmp_path, capsys):
     assert "| window T_h = 3 | " in md and "| full (DSSP) | " in md  # the ablation table
     assert (report / f"{REPORT_NAME}.png").read_bytes()[:4] == b"\x89PNG"
     data = json.loads((report / f"{REPORT_NAME}.json").read_text())
-    assert set(data["evals"]) == {"tap_dssp_s0", "tap_reactive_s0", "tap_window3_s0"} and data["summary"]["tap"]["dssp"]["n"] == 1
+    assert (
+        set(data["evals"]) == {"tap_dssp_s0", "tap_reactive_s0", "tap_window3_s0"}
+        and data["summary"]["tap"]["dssp"]["n"] == 1
+    )
     rms = data["evals"]["tap_dssp_s0"]["z_rms"]  # σ is also read against the tokens' own scale
     assert rms > 0 and f"| 0.1 | {0.1 / rms:.2f} |" in md
     assert set(data["robustness"]) == {f"tap_{v}_s0_noise0.1" for v in ("dssp", "window3", "reactive")}
@@ -61,7 +65,8 @@ R/record): what the long end-to-end test above produces, kept so that the record
 
 
 def test_the_study_resumes_from_its_record_and_reports_from_it(tmp_path, capsys):
-    from studies.sim_study import REPORT_NAME, main as study_main
+    from studies.sim_study import REPORT_NAME
+    from studies.sim_study import main as study_main
 
     report = tmp_path / "report"
     shutil.copytree(QUICK_RECORD, report / "record")
@@ -106,13 +111,22 @@ def test_the_stages_are_calls_of_entry_points_in_dependency_order(tmp_path):
     noisy = by_name["eval_tap_dssp_s0_noise0.1"]
     assert noisy.after == ("export_tap_dssp_s0",) and noisy.outputs == ("evals/tap_dssp_s0_noise0.1.json",)
     assert noisy.argv[noisy.argv.index("--noise") + 1] == "0.1" and noisy.argv[noisy.argv.index("--threads") + 1] == "1"
-    assert "--history-window" in by_name["train_tap_window3_s0"].argv and "--no-history" in by_name["train_tap_reactive_s0"].argv
+    assert (
+        "--history-window" in by_name["train_tap_window3_s0"].argv
+        and "--no-history" in by_name["train_tap_reactive_s0"].argv
+    )
 
 
 def test_a_training_stopped_halfway_is_resumed_not_taken_for_done(tmp_path):
-    train = next(s for s in sim_study.stages(sim_study.PLAN, ["tap"], tmp_path / "record") if s.name == "train_tap_dssp_s0")
+    train = next(
+        s for s in sim_study.stages(sim_study.PLAN, ["tap"], tmp_path / "record") if s.name == "train_tap_dssp_s0"
+    )
     assert "--force" in train.argv and "--preset" in train.argv and "--resume" not in train.argv
-    assert "--resume" in train.resume and "--force" not in train.resume and train.resume[train.resume.index("--out") + 1] == "runs/tap_dssp_s0"
+    assert (
+        "--resume" in train.resume
+        and "--force" not in train.resume
+        and train.resume[train.resume.index("--out") + 1] == "runs/tap_dssp_s0"
+    )
     work = tmp_path / "work"
     (work / train.started).mkdir(parents=True)  # a checkpoint, but the stage never finished (no done marker)
     assert train.started == "runs/tap_dssp_s0/checkpoint"
@@ -139,9 +153,13 @@ def test_a_collection_stopped_halfway_is_collected_again_not_appended_to(tmp_pat
 
 def test_seeds_split_a_tasks_models_across_processes(tmp_path, capsys):
     plan = {**sim_study.QUICK_PLAN, "seeds": {"tap": [0, 1]}, "ablation_seeds": {"tap": [1]}}
-    trained = [s.name for s in sim_study.stages(plan, ["tap"], tmp_path / "record", seeds=[1]) if s.name.startswith("train")]
+    trained = [
+        s.name for s in sim_study.stages(plan, ["tap"], tmp_path / "record", seeds=[1]) if s.name.startswith("train")
+    ]
     assert trained == ["train_tap_dssp_s1", "train_tap_reactive_s1", "train_tap_window3_s1"]
-    trained = [s.name for s in sim_study.stages(plan, ["tap"], tmp_path / "record", seeds=[0]) if s.name.startswith("train")]
+    trained = [
+        s.name for s in sim_study.stages(plan, ["tap"], tmp_path / "record", seeds=[0]) if s.name.startswith("train")
+    ]
     assert trained == ["train_tap_dssp_s0", "train_tap_reactive_s0"]
     with pytest.raises(SystemExit):
         sim_study.main(["--work", str(tmp_path / "w"), "--quick", "--seeds", "7"])

@@ -1,12 +1,11 @@
 """The memory tasks of dssp_sim and their scripted experts: success, every failure reason, and the
 aliased moments (same observation, different expert action) that make each task need memory."""
 
-import dssp_sim  # noqa: F401  (first: sets MUJOCO_GL before MuJoCo is imported)
-
 import mujoco
 import numpy as np
 import pytest
 
+import dssp_sim  # noqa: F401  (first: sets MUJOCO_GL before MuJoCo is imported)
 from dssp_sim.env import PiperEnv
 from dssp_sim.experts import MAX_GRIPPER_STEP, MAX_JOINT_STEP, make_expert
 from dssp_sim.tasks import BIN_FLOOR, BLOCK_HALF, HOME, SLOT_TOLERANCE, TAP_PRESSES
@@ -19,8 +18,7 @@ def _episode(env, render: bool = False, expert=None):
     expert = expert or make_expert(env)
     log = []
     while not env.status().done:
-        record = {"state": env.state(), "info": env.status().info,
-                  "depth": env.render_depth()[0] if render else None}
+        record = {"state": env.state(), "info": env.status().info, "depth": env.render_depth()[0] if render else None}
         record["action"] = expert.act(env)
         record["phase"] = expert.phase
         log.append(record)
@@ -58,19 +56,32 @@ def test_the_experts_memory_decision_is_scored_right(task):
         assert info["reaches"] == [1, 1, 0]  # one reach for each block, none after both
 
 
-@pytest.mark.parametrize("task, info, reached, correct", [
-    ("tap", {"presses": 2}, True, False),
-    ("tap", {"presses": 4}, True, False),
-    ("swap", {"moves": [], "plan": ["cube A->C", "cylinder B->A", "cube C->B"]}, False, None),
-    ("swap", {"moves": ["cube A->C", "cube C->B"], "plan": ["cube A->C", "cylinder B->A", "cube C->B"]}, True, False),
-    ("swap", {"moves": ["cube A->C"], "plan": ["cube A->C", "cylinder B->A", "cube C->B"]}, True, False),
-    ("put2", {"in_basket": 0, "reaches": [3, 0, 0]}, False, None),
-    ("put2", {"in_basket": 1, "reaches": [1, 0, 0]}, True, False),
-    ("put2", {"in_basket": 1, "reaches": [1, 1, 0]}, True, True),
-    ("put2", {"in_basket": 2, "reaches": [1, 1, 0]}, True, True),
-    ("put2", {"in_basket": 2, "reaches": [1, 1, 1]}, True, False),  # back into the source bin after both: memory failed
-    ("put2", {"in_basket": 1, "reaches": [1, 1, 2]}, True, False),  # one taken out again after both were in
-])
+@pytest.mark.parametrize(
+    "task, info, reached, correct",
+    [
+        ("tap", {"presses": 2}, True, False),
+        ("tap", {"presses": 4}, True, False),
+        ("swap", {"moves": [], "plan": ["cube A->C", "cylinder B->A", "cube C->B"]}, False, None),
+        (
+            "swap",
+            {"moves": ["cube A->C", "cube C->B"], "plan": ["cube A->C", "cylinder B->A", "cube C->B"]},
+            True,
+            False,
+        ),
+        ("swap", {"moves": ["cube A->C"], "plan": ["cube A->C", "cylinder B->A", "cube C->B"]}, True, False),
+        ("put2", {"in_basket": 0, "reaches": [3, 0, 0]}, False, None),
+        ("put2", {"in_basket": 1, "reaches": [1, 0, 0]}, True, False),
+        ("put2", {"in_basket": 1, "reaches": [1, 1, 0]}, True, True),
+        ("put2", {"in_basket": 2, "reaches": [1, 1, 0]}, True, True),
+        (
+            "put2",
+            {"in_basket": 2, "reaches": [1, 1, 1]},
+            True,
+            False,
+        ),  # back into the source bin after both: memory failed
+        ("put2", {"in_basket": 1, "reaches": [1, 1, 2]}, True, False),  # one taken out again after both were in
+    ],
+)
 def test_a_wrong_or_unreached_memory_decision_is_told_apart(task, info, reached, correct):
     from dssp_sim.tasks import TASKS
 
@@ -184,8 +195,11 @@ DEPTH_MAD_TOL = 0.5e-3  # m, mean absolute depth difference over pixels valid in
 
 def _decision(log, phase, after_phase, pred=lambda r: True, nth=0):
     """Index of the ``nth`` step whose action starts ``phase`` right after ``after_phase``."""
-    hits = [i for i in range(1, len(log)) if log[i]["phase"] == phase and log[i - 1]["phase"] == after_phase
-            and pred(log[i])]
+    hits = [
+        i
+        for i in range(1, len(log))
+        if log[i]["phase"] == phase and log[i - 1]["phase"] == after_phase and pred(log[i])
+    ]
     return hits[nth]
 
 
@@ -201,8 +215,8 @@ def _assert_aliased(a, b, log_a, ia, log_b, ib):
     assert np.abs(a["action"] - b["action"]).max() > 5 * STATE_TOL
     n = min(4, len(log_a) - ia, len(log_b) - ib)  # an episode may end (success) within the chunk
     assert n >= 2
-    chunk_a = np.array([r["action"] for r in log_a[ia:ia + n]])
-    chunk_b = np.array([r["action"] for r in log_b[ib:ib + n]])
+    chunk_a = np.array([r["action"] for r in log_a[ia : ia + n]])
+    chunk_b = np.array([r["action"] for r in log_b[ib : ib + n]])
     assert np.abs(chunk_a - chunk_b).max() > 0.05
 
 

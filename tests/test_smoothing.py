@@ -31,8 +31,14 @@ class FakePolicy:
 
     def __init__(self, horizon=4, n_action_steps=2, action_offset=1, refuse=()):
         self.horizon = horizon
-        self.contract = ModelContract(n_obs_steps=action_offset + 1, horizon=horizon, n_action_steps=n_action_steps,
-                                      action_offset=action_offset, ddim_timesteps=[2, 1, 0], control_rate_hz=10.0)
+        self.contract = ModelContract(
+            n_obs_steps=action_offset + 1,
+            horizon=horizon,
+            n_action_steps=n_action_steps,
+            action_offset=action_offset,
+            ddim_timesteps=[2, 1, 0],
+            control_rate_hz=10.0,
+        )
         self.refuse = set(refuse)
         self.calls = 0
         self.seeds: list = []  # the seed of each chunk given
@@ -71,10 +77,10 @@ def test_every_tick_the_action_is_the_weighted_mean_of_the_kept_predictions(deca
     p = FakePolicy()
     loop = ChunkedControl(p, Ensemble(decay=decay), seed=10)
     expected = {
-        0: [1.0],                     # chunk 0 at index 1: the only one, its own action
-        1: [2.0, 101.0],              # chunk 0 index 2, chunk 1 index 1
-        2: [3.0, 102.0, 201.0],       # chunk 0 index 3 (its last), chunk 1 index 2, chunk 2 index 1
-        3: [103.0, 202.0, 301.0],     # chunk 0 covers no more ticks: dropped
+        0: [1.0],  # chunk 0 at index 1: the only one, its own action
+        1: [2.0, 101.0],  # chunk 0 index 2, chunk 1 index 1
+        2: [3.0, 102.0, 201.0],  # chunk 0 index 3 (its last), chunk 1 index 2, chunk 2 index 1
+        3: [103.0, 202.0, 301.0],  # chunk 0 covers no more ticks: dropped
         4: [203.0, 302.0, 401.0],
     }
     for t, predictions in expected.items():
@@ -149,10 +155,12 @@ def test_ensembling_does_not_combine_with_prefetch_and_bad_settings_are_refused(
         Ensemble(prefetch=True)
     with pytest.raises(ValueError, match="does not combine with smoothing ensemble"):  # named as a command line does
         config_for("ensemble", prefetch=True)
-    for options, words in (({"every": 0}, "at least 1 \\(ticks between chunks\\), got 0"),
-                           ({"every": 1.5}, "whole number"),
-                           ({"decay": -0.1}, "finite number >= 0"),
-                           ({"decay": float("nan")}, "finite number >= 0")):
+    for options, words in (
+        ({"every": 0}, "at least 1 \\(ticks between chunks\\), got 0"),
+        ({"every": 1.5}, "whole number"),
+        ({"decay": -0.1}, "finite number >= 0"),
+        ({"decay": float("nan")}, "finite number >= 0"),
+    ):
         with pytest.raises(ValueError, match=words):
             Ensemble(**options)
     with pytest.raises(ValueError, match="Ensemble.every 3: the model executes H_a = 2 actions .* \\(1 to 2\\)"):
@@ -177,15 +185,27 @@ def test_none_is_the_default_loop():
         (x, i), (y, j) = results
         assert np.array_equal(x, y) and (i.new_chunk, i.chunk_index, i.predictions) == (j.new_chunk, j.chunk_index, 1)
     assert a.seeds == b.seeds and a.history == b.history and not hasattr(none.schedule, "kept")  # keeps no chunks
-    assert none.schedule.settings() == {"smoothing": "none", "ensemble_every": None, "ensemble_decay": None,
-                                         "rtc_delay_ticks": None, "injected_delay_ticks": None}
+    assert none.schedule.settings() == {
+        "smoothing": "none",
+        "ensemble_every": None,
+        "ensemble_decay": None,
+        "rtc_delay_ticks": None,
+        "injected_delay_ticks": None,
+    }
 
 
 def test_the_model_source_shows_the_newest_chunk_and_logs_its_smoothing():
     p = FakePolicy()
     source = ModelPolicy(p, 10.0, seed=0, schedule=Ensemble(decay=0.0))
-    assert source.describe() == {"policy": "model", "denoise_steps": 3, "smoothing": "ensemble", "ensemble_every": 1,
-                                 "ensemble_decay": 0.0, "rtc_delay_ticks": None, "injected_delay_ticks": None}
+    assert source.describe() == {
+        "policy": "model",
+        "denoise_steps": 3,
+        "smoothing": "ensemble",
+        "ensemble_every": 1,
+        "ensemble_decay": 0.0,
+        "rtc_delay_ticks": None,
+        "injected_delay_ticks": None,
+    }
     source.reset(np.zeros(1))
     cloud = np.zeros((4, 3), np.float32)
     source.act(cloud, np.zeros(1))
@@ -200,8 +220,26 @@ def test_the_model_source_shows_the_newest_chunk_and_logs_its_smoothing():
 
 def test_dssp_run_with_temporal_ensembling_on_the_embedded_simulation(arm_export, tmp_path, capsys):
     log_dir = tmp_path / "log"
-    code, out, err = run_dssp(capsys, "--model", arm_export, "--smoothing", "ensemble", "--camera", "tabletop", "--can",
-                              "sim", "--max-steps", "20", "--seed", "0", "--threads", "1", "--quiet", "--log-dir", log_dir)
+    code, out, err = run_dssp(
+        capsys,
+        "--model",
+        arm_export,
+        "--smoothing",
+        "ensemble",
+        "--camera",
+        "tabletop",
+        "--can",
+        "sim",
+        "--max-steps",
+        "20",
+        "--seed",
+        "0",
+        "--threads",
+        "1",
+        "--quiet",
+        "--log-dir",
+        log_dir,
+    )
     assert code == 0, out + err
     assert "ticks 20" in out and "ended by: max steps" in out
     run = json.loads((log_dir / "run.json").read_text())
@@ -220,16 +258,28 @@ def one_error_line(err):
     return lines[0]
 
 
-@pytest.mark.parametrize("argv, line", [
-    (["--smoothing", "ensemble", "--prefetch"],
-     "error: --prefetch does not combine with --smoothing ensemble: ensembling computes each chunk in the tick that "
-     "first uses it; run one or the other"),
-    (["--smoothing", "ensemble", "--ensemble-every", "0"],
-     "error: --ensemble-every must be at least 1 (ticks between chunks), got 0"),
-    (["--smoothing", "ensemble", "--ensemble-decay", "-1"],
-     "error: --ensemble-decay must be a finite number >= 0 (0: the plain mean), got -1.0"),
-    (["--ensemble-every", "2"], "error: --ensemble-every is a setting of temporal ensembling: it goes with --smoothing ensemble"),
-])
+@pytest.mark.parametrize(
+    "argv, line",
+    [
+        (
+            ["--smoothing", "ensemble", "--prefetch"],
+            "error: --prefetch does not combine with --smoothing ensemble: ensembling computes each chunk in the tick that "
+            "first uses it; run one or the other",
+        ),
+        (
+            ["--smoothing", "ensemble", "--ensemble-every", "0"],
+            "error: --ensemble-every must be at least 1 (ticks between chunks), got 0",
+        ),
+        (
+            ["--smoothing", "ensemble", "--ensemble-decay", "-1"],
+            "error: --ensemble-decay must be a finite number >= 0 (0: the plain mean), got -1.0",
+        ),
+        (
+            ["--ensemble-every", "2"],
+            "error: --ensemble-every is a setting of temporal ensembling: it goes with --smoothing ensemble",
+        ),
+    ],
+)
 def test_bad_smoothing_flags_are_one_line_before_anything_opens(tmp_path, capsys, monkeypatch, argv, line):
     monkeypatch.chdir(tmp_path)
     code, _, err = run_dssp(capsys, "--model", tmp_path / "no-model", *argv, "--log-dir", tmp_path / "log")
@@ -246,8 +296,19 @@ def test_smoothing_is_a_models_setting(tmp_path, capsys, monkeypatch):
 
 
 def test_a_chunk_every_more_than_h_a_ticks_is_refused_with_the_model(arm_export, tmp_path, capsys):
-    code, _, err = run_dssp(capsys, "--model", arm_export, "--smoothing", "ensemble", "--ensemble-every", "99",
-                            "--threads", "1", "--log-dir", tmp_path / "log")
+    code, _, err = run_dssp(
+        capsys,
+        "--model",
+        arm_export,
+        "--smoothing",
+        "ensemble",
+        "--ensemble-every",
+        "99",
+        "--threads",
+        "1",
+        "--log-dir",
+        tmp_path / "log",
+    )
     assert code == 2 and "--ensemble-every 99: " in one_error_line(err) and "(1 to " in err
     assert not (tmp_path / "log").exists()
 
@@ -264,7 +325,9 @@ def test_metaworlds_direct_loop_ensembles_too():
             return np.zeros((1, self.horizon, 4), np.float32)
 
     p = Still()
-    p.contract = dataclasses.replace(p.contract, control_rate_hz=None)  # made for no rate: the loop runs at the env's without a warning
+    p.contract = dataclasses.replace(
+        p.contract, control_rate_hz=None
+    )  # made for no rate: the loop runs at the env's without a warning
     with mw.MetaWorldEnv("metaworld/reach", seed=0) as env:
         outcome = run_direct_episode(p, env, 0, mw.cloud_config(512), schedule=Ensemble())
     assert outcome.holds == 0 and outcome.steps == len(p.seeds) == len(p.history) > 1

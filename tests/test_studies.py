@@ -10,22 +10,23 @@ from pathlib import Path
 import numpy as np
 import pytest
 from scipy.stats import binomtest
+from waiting import wait_for
 
 from dssp_core.errors import DSSPError
 from studies import protocol
 from studies.runner import Runner, Stage
 from studies.stats import cluster_bootstrap, describe_p, paired_difference, paired_exact_test
-from waiting import wait_for
-
 
 ENTRY = "study_entries"  # tests/ is on sys.path (pytest puts it there; spawned stages inherit it)
 
 
 def test_stages_run_in_order_in_their_folder_with_one_thread_and_are_not_run_twice(tmp_path):
     work = tmp_path / "work"
-    stages = [Stage("second", f"{ENTRY}:needs", ("out/a.json",), after=("first",)),
-              Stage("first", f"{ENTRY}:write_marker", ("out/a.json",)),
-              Stage("other", f"{ENTRY}:write_marker", ("out/b.json", "x"))]
+    stages = [
+        Stage("second", f"{ENTRY}:needs", ("out/a.json",), after=("first",)),
+        Stage("first", f"{ENTRY}:write_marker", ("out/a.json",)),
+        Stage("other", f"{ENTRY}:write_marker", ("out/b.json", "x")),
+    ]
     said: list[str] = []
     ran = Runner(work, workers=2, say=said.append).run(stages)
     assert set(ran) == {"first", "second", "other"}
@@ -39,19 +40,31 @@ def test_stages_run_in_order_in_their_folder_with_one_thread_and_are_not_run_twi
 
 def test_a_failed_stage_stops_the_study_with_one_line_and_runs_again_next_time(tmp_path):
     work = tmp_path / "work"
-    stages = [Stage("bad", f"{ENTRY}:fail", ("x",)), Stage("after_bad", f"{ENTRY}:write_marker", ("out/c.json",), after=("bad",))]
+    stages = [
+        Stage("bad", f"{ENTRY}:fail", ("x",)),
+        Stage("after_bad", f"{ENTRY}:write_marker", ("out/c.json",), after=("bad",)),
+    ]
     with pytest.raises(DSSPError) as info:
         Runner(work, say=lambda _: None).run(stages)
     message = str(info.value)
-    assert "stage bad" in message and "exit code 3" in message and "something broke: x" in message and "\n" not in message
+    assert (
+        "stage bad" in message and "exit code 3" in message and "something broke: x" in message and "\n" not in message
+    )
     assert not (work / "done/bad.json").exists() and not (work / "out/c.json").exists()
 
 
 def test_with_echo_each_stage_is_shown_line_by_line_behind_its_name(tmp_path):
     said: list[str] = []
     Runner(tmp_path, workers=2, echo=True, say=said.append).run(
-        [Stage("a", f"{ENTRY}:chatter", ()), Stage("b", f"{ENTRY}:write_marker", ("m.json",))])
-    assert [line for line in said if line.startswith("[a]")] == ["[a] one", "[a] bar 1", "[a] bar 2", "[a] 1", "[a] no newline"]
+        [Stage("a", f"{ENTRY}:chatter", ()), Stage("b", f"{ENTRY}:write_marker", ("m.json",))]
+    )
+    assert [line for line in said if line.startswith("[a]")] == [
+        "[a] one",
+        "[a] bar 1",
+        "[a] bar 2",
+        "[a] 1",
+        "[a] no newline",
+    ]
     assert "[b] wrote m.json" in said
     assert (tmp_path / "logs/a.log").read_bytes() == b"one\n\rbar 1\rbar 2\n1\nno newline"
 
@@ -59,9 +72,15 @@ def test_with_echo_each_stage_is_shown_line_by_line_behind_its_name(tmp_path):
 def test_the_demo_stops_at_a_failed_stage_with_its_log_kept_outside_out(tmp_path, monkeypatch, capsys):
     import studies.demo as demo
 
-    monkeypatch.setattr(demo, "stages", lambda *args: [Stage("first", f"{ENTRY}:write_marker", ("m.json",)),
-                                                       Stage("bad", f"{ENTRY}:fail", ("x",), after=("first",)),
-                                                       Stage("never", f"{ENTRY}:write_marker", ("n.json",), after=("bad",))])
+    monkeypatch.setattr(
+        demo,
+        "stages",
+        lambda *args: [
+            Stage("first", f"{ENTRY}:write_marker", ("m.json",)),
+            Stage("bad", f"{ENTRY}:fail", ("x",), after=("first",)),
+            Stage("never", f"{ENTRY}:write_marker", ("n.json",), after=("bad",)),
+        ],
+    )
     out = tmp_path / "demo"
     assert demo.main(["--out", str(out), "--steps", "1", "--demos", "1", "--episodes", "1"]) == 2
     err = capsys.readouterr().err.strip()
@@ -90,8 +109,10 @@ def test_a_stage_stopped_halfway_resumes_or_starts_clean(tmp_path):
     (work / "partial").mkdir(parents=True)
     (work / "half.zarr").mkdir()
     (work / "half.zarr/junk").write_text("left by a collection stopped halfway")
-    stages = [Stage("train", f"{ENTRY}:write_marker", ("out/fresh.json",), resume=("out/resumed.json",), started="partial"),
-              Stage("collect", f"{ENTRY}:write_marker", ("half.zarr/new.json",), clean=("half.zarr",))]
+    stages = [
+        Stage("train", f"{ENTRY}:write_marker", ("out/fresh.json",), resume=("out/resumed.json",), started="partial"),
+        Stage("collect", f"{ENTRY}:write_marker", ("half.zarr/new.json",), clean=("half.zarr",)),
+    ]
     Runner(work, say=lambda _: None).run(stages)
     assert (work / "out/resumed.json").is_file() and not (work / "out/fresh.json").exists()
     assert sorted(p.name for p in (work / "half.zarr").iterdir()) == ["new.json"]
@@ -195,13 +216,28 @@ def test_the_cluster_bootstrap_is_wider_than_pooling_when_seeds_differ_and_is_de
 
 # ---------------------------------------------------------------------------------------------- the memory study
 def _fake_eval(record: Path, name: str, scenes: list[int], wins: list[int], presses: list[int]) -> None:
-    episodes = [{"seed": s, "success": bool(w), "reason": "" if w else "timeout", "steps": 60,
-                 "decision": {"reached": True, "correct": p == 3, "choice": f"{p} presses"}} for s, w, p in zip(scenes, wins, presses)]
-    result = {"task": "tap", "n": len(scenes), "successes": sum(wins),
-              "failure_reasons": {"timeout": len(wins) - sum(wins)} if len(wins) > sum(wins) else {},
-              "decisions": {"reached": len(scenes), "correct": sum(p == 3 for p in presses),
-                            "choices": {f"{p} presses": presses.count(p) for p in set(presses)}},
-              "episodes": episodes}
+    episodes = [
+        {
+            "seed": s,
+            "success": bool(w),
+            "reason": "" if w else "timeout",
+            "steps": 60,
+            "decision": {"reached": True, "correct": p == 3, "choice": f"{p} presses"},
+        }
+        for s, w, p in zip(scenes, wins, presses)
+    ]
+    result = {
+        "task": "tap",
+        "n": len(scenes),
+        "successes": sum(wins),
+        "failure_reasons": {"timeout": len(wins) - sum(wins)} if len(wins) > sum(wins) else {},
+        "decisions": {
+            "reached": len(scenes),
+            "correct": sum(p == 3 for p in presses),
+            "choices": {f"{p} presses": presses.count(p) for p in set(presses)},
+        },
+        "episodes": episodes,
+    }
     (record / "evals").mkdir(parents=True, exist_ok=True)
     (record / "evals" / f"{name}.json").write_text(json.dumps(result))
 
@@ -225,8 +261,14 @@ def test_the_memory_report_pairs_every_model_with_dssp_and_marks_what_is_pending
     assert "| 2 presses | 3 presses | 4 presses |" in text and "not a test result" in text
     assert "reports/memory/record" in text and str(tmp_path) not in text
     # trainings run on another machine are stated; a malformed statement is refused, not skipped
-    elsewhere = {"models": ["wo_history"], "tasks": ["tap"], "seeds": [0, 1], "machine": "a GPU", "how": "side by side",
-                 "code": "abc"}
+    elsewhere = {
+        "models": ["wo_history"],
+        "tasks": ["tap"],
+        "seeds": [0, 1],
+        "machine": "a GPU",
+        "how": "side by side",
+        "code": "abc",
+    }
     (tmp_path / "trained_elsewhere.json").write_text(json.dumps([elsewhere]))
     text = "\n".join(memory_tasks.report_lines(plan, tmp_path, "validation")[0])
     assert "Trained elsewhere (DSSP w/o history; tap; training seeds [0, 1]): a GPU; side by side (code abc)." in text
@@ -235,10 +277,16 @@ def test_the_memory_report_pairs_every_model_with_dssp_and_marks_what_is_pending
         memory_tasks.report_lines(plan, tmp_path, "validation")
     (tmp_path / "trained_elsewhere.json").unlink()
     # each run's line names its split and tasks, so two runs of one plan on different tasks read apart
-    run = {"task_definition": "d", "plan": "p", "commit": "c", "tasks": ["tap", "swap"],
-           "machine": {"cpu": "X", "cores": 2, "onnxruntime": "1", "torch": "2"}}
+    run = {
+        "task_definition": "d",
+        "plan": "p",
+        "commit": "c",
+        "tasks": ["tap", "swap"],
+        "machine": {"cpu": "X", "cores": 2, "onnxruntime": "1", "torch": "2"},
+    }
     assert protocol.describe_run(run, "test", definition="benchmark definition") == (
-        "Run (test: tap, swap) on: benchmark definition d, plan p, code c; X (2 cores), onnxruntime 1, torch 2.")
+        "Run (test: tap, swap) on: benchmark definition d, plan p, code c; X (2 cores), onnxruntime 1, torch 2."
+    )
     assert protocol.describe_run({**run, "tasks": []}).startswith("Run on: task definition d,")
     _fake_eval(tmp_path, "tap_dssp_s1_validation", scenes[::-1], [1] * 10, [3] * 10)
     with pytest.raises(DSSPError, match="different scenes"):
@@ -259,7 +307,9 @@ def test_the_quick_memory_study_runs_end_to_end_and_locks_the_test_split(tmp_pat
     assert memory_tasks.main([*base, "--freeze"]) == 0
     assert memory_tasks.main([*base, "--split", "test"]) == 0  # the trained models are reused: only evaluations run
     evals = sorted(p.name for p in (report / "record/evals").iterdir())
-    assert len(evals) == 2 * 3 * 2 and all(json.loads((report / "record/evals" / e).read_text())["n"] == 2 for e in evals)
+    assert len(evals) == 2 * 3 * 2 and all(
+        json.loads((report / "record/evals" / e).read_text())["n"] == 2 for e in evals
+    )
     trains = [p for p in (work / "done").glob("train_*.json")]
     assert len(trains) == 3 * 2
     assert memory_tasks.main([*base, "--split", "test", "--report-only"]) == 0
@@ -287,14 +337,25 @@ def test_sigterm_stops_the_running_stages_and_keeps_what_finished(tmp_path):
     import sys
 
     work = tmp_path / "work"
-    code = (f"import sys; sys.path.insert(0, {str(Path(__file__).parent)!r}); from studies.runner import Runner, Stage; "
-            f"Runner({str(work)!r}, workers=2, say=print).run([Stage('quick', 'study_entries:write_marker', ('done.json',)), "
-            f"Stage('long', 'study_entries:sleep_long', ('pid',))])")
+    code = (
+        f"import sys; sys.path.insert(0, {str(Path(__file__).parent)!r}); from studies.runner import Runner, Stage; "
+        f"Runner({str(work)!r}, workers=2, say=print).run([Stage('quick', 'study_entries:write_marker', ('done.json',)), "
+        f"Stage('long', 'study_entries:sleep_long', ('pid',))])"
+    )
     # started the way a background launch is: SIGINT ignored, so only SIGTERM can stop it
-    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
-    wait_for(lambda: (work / "pid").is_file() and (work / "done/quick.json").is_file(), timeout=60,
-             what="the first stage done and the second started", poll=0.1)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN),
+    )
+    wait_for(
+        lambda: (work / "pid").is_file() and (work / "done/quick.json").is_file(),
+        timeout=60,
+        what="the first stage done and the second started",
+        poll=0.1,
+    )
     stage_pid = int((work / "pid").read_text())
     proc.send_signal(signal.SIGTERM)
     proc.wait(timeout=30)

@@ -4,7 +4,6 @@ import numpy as np
 import pytest
 
 from dssp_core.errors import ConfigError
-
 from dssp_data.replay_buffer import ReplayBuffer
 from dssp_train.data.synthetic import (
     CUE_CENTERS,
@@ -73,7 +72,7 @@ def test_observation_aliasing():
     assert np.abs(one.point_cloud[CUE_STEPS:17] - two.point_cloud[CUE_STEPS:17]).max() < 10 * NOISE_STD
     # ... what the expert does next.
     last = FIRST_PAUSE_STEPS[-1]
-    assert np.abs(one.action[last:last + 5] - two.action[last:last + 5]).max() > 0.1
+    assert np.abs(one.action[last : last + 5] - two.action[last : last + 5]).max() > 0.1
     assert one.action[last, 0] > 0 and two.action[last, 1] > 0
 
 
@@ -101,14 +100,20 @@ def test_write_dataset(tmp_path):
     np.testing.assert_array_equal(buffer.episode(3).point_cloud, expected[3].point_cloud)
 
 
-@pytest.mark.parametrize("kwargs,message", [
-    ({"seed": -1}, r"seed must be an integer in \[0, 9223372036854775807\], got -1"),
-    ({"n_episodes": 0}, r"n_episodes must be an integer in \[1, 10000\], got 0"),
-    ({"n_episodes": 10_001}, r"n_episodes must be an integer in \[1, 10000\], got 10001"),
-    ({"n_points": 100_001}, r"n_points must be an integer in \[24, 100000\], got 100001"),
-    ({"n_episodes": 1000, "n_points": 20_000}, r"n_episodes 1000 x n_points 20000 make 9.6 GB of point clouds, more than "
-                                               r"the 2 GB the generator holds in memory; lower n_episodes or n_points"),
-])
+@pytest.mark.parametrize(
+    "kwargs,message",
+    [
+        ({"seed": -1}, r"seed must be an integer in \[0, 9223372036854775807\], got -1"),
+        ({"n_episodes": 0}, r"n_episodes must be an integer in \[1, 10000\], got 0"),
+        ({"n_episodes": 10_001}, r"n_episodes must be an integer in \[1, 10000\], got 10001"),
+        ({"n_points": 100_001}, r"n_points must be an integer in \[24, 100000\], got 100001"),
+        (
+            {"n_episodes": 1000, "n_points": 20_000},
+            r"n_episodes 1000 x n_points 20000 make 9.6 GB of point clouds, more than "
+            r"the 2 GB the generator holds in memory; lower n_episodes or n_points",
+        ),
+    ],
+)
 def test_out_of_bounds_requests_are_refused_before_any_work(kwargs, message, tmp_path):
     args = {"n_episodes": 2, "seed": 0, "n_points": 24, **kwargs}
     with pytest.raises(ConfigError, match=f"^{message}$"):

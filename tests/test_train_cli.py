@@ -11,21 +11,20 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from dssp_core.schema import DEFAULT_CONTROL_RATE_HZ
 import zarr
+from conftest import SET_SMALL, one_error_line
 from safetensors import safe_open
 
+from dssp_core.schema import DEFAULT_CONTROL_RATE_HZ
+from dssp_data.replay_buffer import ReplayBuffer
+from dssp_data.replay_buffer_writer import write_replay_buffer
 from dssp_train.cli.params import main as params_main
 from dssp_train.cli.train import main as train_main
 from dssp_train.config import RunConfig, load_preset
-from dssp_data.replay_buffer import ReplayBuffer
-from dssp_data.replay_buffer_writer import write_replay_buffer
 from dssp_train.data.synthetic import make_tap_count_episodes, write_tap_count_dataset
 from dssp_train.model.policy import DSSPPolicy
 from dssp_train.training.train_log import read_log
 from dssp_train.training.trainer import Trainer
-
-from conftest import SET_SMALL, one_error_line
 
 TRAIN_KEYS = {"kind", "step", "loss", "diffusion", "dynamics", "lr", "steps_per_s", "windows_per_s"}
 VAL_KEYS = {"kind", "step", "on_train_episodes", "val_diffusion", "val_action_mse"}
@@ -39,8 +38,6 @@ def subprocess_env() -> dict[str, str]:
 
 def cli(*args) -> list[str]:
     return [sys.executable, "-m", "dssp_train.cli.train", *map(str, args)]
-
-
 
 
 # ---------------------------------------------------------------------- data
@@ -95,23 +92,62 @@ def error_cases(data: Path, nan_data: Path, not_zarr: Path, tmp: Path, happy_out
         ("missing dataset", ["--data", tmp / "nope.zarr", "--out", fresh, *base], "does not exist"),
         ("not zarr", ["--data", not_zarr, "--out", fresh, *base], "is not a zarr group"),
         ("nan action", ["--data", nan_data, "--out", fresh, *base], "data/action holds NaN or inf"),
-        ("unknown preset", ["--data", data, "--out", fresh, "--preset", "nosuch", "--no-progress"], "unknown preset 'nosuch'"),
-        ("bad set key", ["--data", data, "--out", fresh, *base, "--set", "model.nosuch=3"], "unknown field 'model.nosuch'"),
-        ("bad set section", ["--data", data, "--out", fresh, *base, "--set", "optim.lr=3"], "'optim' is not a config section"),
-        ("set without =", ["--data", data, "--out", fresh, *base, "--set", "model.d_model"], "must look like section.field=value"),
-        ("bad set value", ["--data", data, "--out", fresh, *base, "--set", "model.expand=0"], "--set model.expand=0: model.expand must be an integer in [1, 16], got 0"),
+        (
+            "unknown preset",
+            ["--data", data, "--out", fresh, "--preset", "nosuch", "--no-progress"],
+            "unknown preset 'nosuch'",
+        ),
+        (
+            "bad set key",
+            ["--data", data, "--out", fresh, *base, "--set", "model.nosuch=3"],
+            "unknown field 'model.nosuch'",
+        ),
+        (
+            "bad set section",
+            ["--data", data, "--out", fresh, *base, "--set", "optim.lr=3"],
+            "'optim' is not a config section",
+        ),
+        (
+            "set without =",
+            ["--data", data, "--out", fresh, *base, "--set", "model.d_model"],
+            "must look like section.field=value",
+        ),
+        (
+            "bad set value",
+            ["--data", data, "--out", fresh, *base, "--set", "model.expand=0"],
+            "--set model.expand=0: model.expand must be an integer in [1, 16], got 0",
+        ),
         ("out holds a run", ["--data", data, "--out", happy_out, *base], "already holds a run"),
         ("resume without run", ["--data", data, "--out", fresh, "--resume", "--no-progress"], "config.json is missing"),
         ("device cuda", ["--data", data, "--out", fresh, *base, "--device", "cuda"], "CUDA is not available"),
-        ("point_dim 6 on xyz", ["--data", data, "--out", fresh, *base, "--set", "model.point_dim=6"], "model.point_dim=6 needs xyz+rgb"),
+        (
+            "point_dim 6 on xyz",
+            ["--data", data, "--out", fresh, *base, "--set", "model.point_dim=6"],
+            "model.point_dim=6 needs xyz+rgb",
+        ),
         ("resume with preset", ["--data", data, "--out", happy_out, "--resume", "--preset", "tiny"], "drop --preset"),
-        ("resume with set", ["--data", data, "--out", happy_out, "--resume", "--set", "model.d_model=64"], "only --steps may change"),
+        (
+            "resume with set",
+            ["--data", data, "--out", happy_out, "--resume", "--set", "model.d_model=64"],
+            "only --steps may change",
+        ),
     ]
 
 
 CASE_NAMES = [
-    "missing dataset", "not zarr", "nan action", "unknown preset", "bad set key", "bad set section", "set without =",
-    "bad set value", "out holds a run", "resume without run", "device cuda", "point_dim 6 on xyz", "resume with preset",
+    "missing dataset",
+    "not zarr",
+    "nan action",
+    "unknown preset",
+    "bad set key",
+    "bad set section",
+    "set without =",
+    "bad set value",
+    "out holds a run",
+    "resume without run",
+    "device cuda",
+    "point_dim 6 on xyz",
+    "resume with preset",
     "resume with set",
 ]
 SUBPROCESS_CASES = ["missing dataset", "not zarr", "nan action", "device cuda"]
@@ -135,8 +171,10 @@ def test_bad_input_via_subprocess(data, nan_data, not_zarr, happy, tmp_path):
     cases = {}
     for name in SUBPROCESS_CASES:  # each into its own --out: they run at the same time (one writer per run directory)
         (tmp_path / name).mkdir()
-        cases[name] = {n: (argv, phrase) for n, argv, phrase in error_cases(data, nan_data, not_zarr, tmp_path / name,
-                                                                             happy["out"])}[name]
+        cases[name] = {
+            n: (argv, phrase)
+            for n, argv, phrase in error_cases(data, nan_data, not_zarr, tmp_path / name, happy["out"])
+        }[name]
     procs = {
         name: subprocess.Popen(
             cli(*cases[name][0]), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=subprocess_env()
@@ -171,7 +209,8 @@ def test_a_run_stopped_before_its_first_checkpoint_is_started_over_with_force(da
     assert train_main(["--data", str(data), "--out", str(out), "--steps", "4", "--no-progress", *SET_SMALL]) == 130
     monkeypatch.undo()
     assert capsys.readouterr().err.strip().splitlines()[-1] == (
-        "interrupted after step 1, before step 2's save: no checkpoint was kept; start the run over by adding --force")
+        "interrupted after step 1, before step 2's save: no checkpoint was kept; start the run over by adding --force"
+    )
     assert (out / "config.json").is_file() and (out / "log.jsonl").is_file() and not (out / "checkpoint").exists()
 
     no_checkpoint = f"error: {out} has no checkpoint yet (stopped before step 2's save): start it over with --force"
@@ -180,7 +219,10 @@ def test_a_run_stopped_before_its_first_checkpoint_is_started_over_with_force(da
     assert train_main(["--data", str(data), "--out", str(out), "--no-progress", *SET_SMALL]) == 2
     assert one_error_line(capsys.readouterr().err) == no_checkpoint + ", or choose another --out"
 
-    assert train_main(["--data", str(data), "--out", str(out), "--steps", "2", "--force", "--no-progress", *SET_SMALL]) == 0
+    assert (
+        train_main(["--data", str(data), "--out", str(out), "--steps", "2", "--force", "--no-progress", *SET_SMALL])
+        == 0
+    )
     capsys.readouterr()
     assert json.loads((out / "checkpoint" / "trainer_state.json").read_text())["step"] == 2
     assert json.loads((out / "config.json").read_text())["train"]["steps"] == 2
@@ -225,7 +267,9 @@ def test_happy_path_run_directory(happy, data):
     for r in train:
         assert set(r) == TRAIN_KEYS | DYNAMICS_KEYS
         assert all(math.isfinite(r[k]) for k in (TRAIN_KEYS | DYNAMICS_KEYS) - {"kind", "step"})
-        assert all(-1 <= r[k] <= 1 for k in DYNAMICS_KEYS) and r["dyn_cos"] == pytest.approx(1 - r["dynamics"], abs=1e-5)
+        assert all(-1 <= r[k] <= 1 for k in DYNAMICS_KEYS) and r["dyn_cos"] == pytest.approx(
+            1 - r["dynamics"], abs=1e-5
+        )
         assert r["steps_per_s"] > 0 and r["lr"] >= 0
         assert r["loss"] == pytest.approx(r["diffusion"] + m["dynamics_weight"] * r["dynamics"], rel=1e-5)
         assert r["windows_per_s"] == pytest.approx(r["steps_per_s"] * config["train"]["batch_size"], rel=1e-9)
@@ -275,7 +319,12 @@ def test_epochs_are_passes_over_the_training_trajectories(data, tmp_path, capsys
     lines = captured.err.splitlines()
     assert "budget: 6 steps (2 epochs x 3 training episodes), 4 windows per step" in lines
     warning = [line for line in lines if "validation holdout" in line]
-    assert len(warning) == 1 and warning[0].startswith("warning: ") and "takes 1 of 4 episodes" in warning[0] and "--no-holdout" in warning[0]
+    assert (
+        len(warning) == 1
+        and warning[0].startswith("warning: ")
+        and "takes 1 of 4 episodes" in warning[0]
+        and "--no-holdout" in warning[0]
+    )
 
     assert train_main([*common, "--out", str(tmp_path / "b"), "--epochs", "1", "--no-holdout"]) == 0
     captured = capsys.readouterr()
@@ -288,7 +337,9 @@ def test_the_paper_cost_table_is_each_presets_step_times_its_budget(tmp_path, ca
     the task's demonstrations), every demonstration trained on; each step built at its task's shapes."""
     import importlib.util
 
-    spec = importlib.util.spec_from_file_location("bench_train_step_time", Path(__file__).parents[1] / "benchmarks" / "train_step_time.py")
+    spec = importlib.util.spec_from_file_location(
+        "bench_train_step_time", Path(__file__).parents[1] / "benchmarks" / "train_step_time.py"
+    )
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
     built = []
@@ -313,20 +364,31 @@ def test_the_paper_cost_table_is_each_presets_step_times_its_budget(tmp_path, ca
 def test_the_step_time_benchmark_needs_only_torch_numpy_and_tqdm():
     """On a GPU machine the benchmark runs from a checkout (``PYTHONPATH=.``) with no dataset or runtime stack."""
     script = Path(__file__).parents[1] / "benchmarks" / "train_step_time.py"
-    code = ("import runpy, sys\n"
-            "for name in ('zarr', 'numcodecs', 'onnx', 'onnxruntime', 'safetensors', 'matplotlib', 'mujoco', 'can'):\n"
-            "    sys.modules[name] = None  # importing any of these now fails\n"
-            f"sys.argv = ['train_step_time.py', '--help']\nrunpy.run_path({str(script)!r}, run_name='__main__')\n")
+    code = (
+        "import runpy, sys\n"
+        "for name in ('zarr', 'numcodecs', 'onnx', 'onnxruntime', 'safetensors', 'matplotlib', 'mujoco', 'can'):\n"
+        "    sys.modules[name] = None  # importing any of these now fails\n"
+        f"sys.argv = ['train_step_time.py', '--help']\nrunpy.run_path({str(script)!r}, run_name='__main__')\n"
+    )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0 and "--paper" in proc.stdout, proc.stderr
 
 
-@pytest.mark.parametrize("flags,message", [
-    (["--steps", "3", "--epochs", "2"], "--steps and --epochs (or their --set) both set the training budget; keep one"),
-    (["--epochs", "2", "--set", "train.steps=3"], "--steps and --epochs (or their --set) both set the training budget; keep one"),
-    (["--no-holdout", "--val-ratio", "0.2"], "both set train.val_ratio; keep one"),
-    (["--epochs", "-1"], "--epochs"),
-])
+@pytest.mark.parametrize(
+    "flags,message",
+    [
+        (
+            ["--steps", "3", "--epochs", "2"],
+            "--steps and --epochs (or their --set) both set the training budget; keep one",
+        ),
+        (
+            ["--epochs", "2", "--set", "train.steps=3"],
+            "--steps and --epochs (or their --set) both set the training budget; keep one",
+        ),
+        (["--no-holdout", "--val-ratio", "0.2"], "both set train.val_ratio; keep one"),
+        (["--epochs", "-1"], "--epochs"),
+    ],
+)
 def test_budget_flags_that_contradict_are_one_error_line(flags, message, data, tmp_path, capsys):
     assert train_main(["--data", str(data), "--out", str(tmp_path / "run"), "--no-progress", *SET_SMALL, *flags]) == 2
     assert message in one_error_line(capsys.readouterr().err)
@@ -339,8 +401,13 @@ def test_the_paper_presets_follow_the_papers_budget_and_steps_give_way():
     for preset, epochs in (("metaworld", 1000), ("adroit", 3000), ("robotwin", 3000)):
         config = config_from_args(build_parser().parse_args(["--data", "d", "--out", "o", "--preset", preset]))
         assert config.train.epochs == epochs and config.train.val_ratio == 0.0 and config.model.denoiser_mlp == "gated"
-        assert config.model.action_alignment == "dp3" and config.model.n_action_steps == config.model.horizon - config.model.n_obs_steps + 1
-    config = config_from_args(build_parser().parse_args(["--data", "d", "--out", "o", "--preset", "adroit", "--steps", "50"]))
+        assert (
+            config.model.action_alignment == "dp3"
+            and config.model.n_action_steps == config.model.horizon - config.model.n_obs_steps + 1
+        )
+    config = config_from_args(
+        build_parser().parse_args(["--data", "d", "--out", "o", "--preset", "adroit", "--steps", "50"])
+    )
     assert config.train.steps == 50 and config.train.epochs == 0  # asked-for steps replace the preset's epochs
 
 
@@ -358,15 +425,22 @@ ABLATIONS = [
 @pytest.mark.parametrize("flags,field,value", ABLATIONS, ids=[a[0][0] for a in ABLATIONS])
 def test_ablation_flags_train_and_land_in_config(flags, field, value, data, tmp_path, capsys):
     out = tmp_path / "run"
-    assert train_main(["--data", str(data), "--out", str(out), "--steps", "3", "--no-progress", *SET_SMALL, *flags]) == 0
+    assert (
+        train_main(["--data", str(data), "--out", str(out), "--steps", "3", "--no-progress", *SET_SMALL, *flags]) == 0
+    )
     summary = json.loads(capsys.readouterr().out)
     assert summary["step"] == 3 and math.isfinite(summary["val_action_mse"])
     model = json.loads((out / "config.json").read_text())["model"]
     assert model[field] == value
     defaults = load_preset("tiny").model
-    for name, default in (("use_history", True), ("timestep_decoupled", True), ("use_recent_states", True),
-                          ("history_backbone", "mamba"), ("history_window", 0),
-                          ("dynamics_weight", defaults.dynamics_weight)):
+    for name, default in (
+        ("use_history", True),
+        ("timestep_decoupled", True),
+        ("use_recent_states", True),
+        ("history_backbone", "mamba"),
+        ("history_window", 0),
+        ("dynamics_weight", defaults.dynamics_weight),
+    ):
         if name != field:
             assert model[name] == default, name
 
@@ -409,7 +483,7 @@ def test_params_total_equals_the_models_parameter_count(capsys):
     rows = [line for line in lines[2:end] if line.split()]
     assert sum(int(re.findall(r"([\d,]+)\s+[\d.]+\s*$", r)[0].replace(",", "")) for r in rows) == expected
     # the paper's size: the preset's block (Mamba + GatedMLP) lands within 3 % of 44.3 M; every alternative is listed
-    variants = {tuple(line.split()[:2]): line for line in lines[end + 2:]}
+    variants = {tuple(line.split()[:2]): line for line in lines[end + 2 :]}
     assert set(variants) == {(b, m) for b in ("mamba", "transformer") for m in ("none", "gated", "dit")}
     own = variants[("mamba", "gated")]
     assert own.endswith("<- this config") and abs(expected / 44.3e6 - 1) <= 0.03

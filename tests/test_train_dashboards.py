@@ -9,14 +9,13 @@ import sys
 from pathlib import Path
 
 import pytest
+from conftest import SET_SMALL, one_error_line
 
 from dssp_train.cli.distill import main as distill_main
 from dssp_train.cli.train import main as train_main
 from dssp_train.data.synthetic import write_tap_count_dataset
 from dssp_train.training.train_log import read_log
 from dssp_train.training.trainer import Trainer
-
-from conftest import SET_SMALL, one_error_line
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 INSTALL = 'pip install -e ".[viz]"'
@@ -101,12 +100,29 @@ def test_a_resumed_run_continues_its_tensorboard_without_the_steps_after_the_che
         return real(self)
 
     monkeypatch.setattr(Trainer, "train_step", stop_after_3)
-    assert train_main(["--data", str(data), "--out", str(run), "--steps", "6", "--no-progress", *SET_SMALL,
-                       "--log", "tensorboard"]) == 130
+    assert (
+        train_main(
+            [
+                "--data",
+                str(data),
+                "--out",
+                str(run),
+                "--steps",
+                "6",
+                "--no-progress",
+                *SET_SMALL,
+                "--log",
+                "tensorboard",
+            ]
+        )
+        == 130
+    )
     monkeypatch.undo()
     first = tensorboard_events(run)
     assert [event.step for event in first.Scalars("loss")] == [1, 2, 3]
-    assert train_main(["--data", str(data), "--out", str(run), "--resume", "--no-progress", "--log", "tensorboard"]) == 0
+    assert (
+        train_main(["--data", str(data), "--out", str(run), "--resume", "--no-progress", "--log", "tensorboard"]) == 0
+    )
     assert len(list((run / "tensorboard").glob("events.out.tfevents.*"))) == 2  # appended to the same folder
     acc = tensorboard_events(run)
     assert [event.step for event in acc.Scalars("loss")] == [1, 2, 3, 4, 5, 6]  # the first process's step 3 is purged
@@ -138,11 +154,11 @@ def wandb_records(path: Path) -> list:
         if left < 7:  # the rest of the block is padding
             pos += left
             continue
-        _, length, kind = struct.unpack("<IHB", raw[pos:pos + 7])
+        _, length, kind = struct.unpack("<IHB", raw[pos : pos + 7])
         if kind == 0:  # zeroed tail of a block
             pos += left
             continue
-        pending += raw[pos + 7:pos + 7 + length]
+        pending += raw[pos + 7 : pos + 7 + length]
         pos += 7 + length
         if kind in (1, 4):
             record = wandb_internal_pb2.Record()
@@ -209,10 +225,17 @@ def test_a_resumed_run_logs_to_the_same_wandb_id(data, tmp_path):
     run = tmp_path / "run"
     train(data, run, "--steps", "2", "--log", "wandb")
     run_id = (run / "wandb" / "run_id").read_text().strip()
-    assert train_main(["--data", str(data), "--out", str(run), "--resume", "--steps", "4", "--no-progress", "--log", "wandb"]) == 0
+    assert (
+        train_main(
+            ["--data", str(data), "--out", str(run), "--resume", "--steps", "4", "--no-progress", "--log", "wandb"]
+        )
+        == 0
+    )
     assert (run / "wandb" / "run_id").read_text().strip() == run_id
     folders = offline_runs(run)  # W&B names a second folder of the same id in the same second with a "-1" suffix
-    assert len(folders) == 2 and all(re.fullmatch(rf"offline-run-\d{{8}}_\d{{6}}-{run_id}(-\d+)?", f.name) for f in folders), folders
+    assert len(folders) == 2 and all(
+        re.fullmatch(rf"offline-run-\d{{8}}_\d{{6}}-{run_id}(-\d+)?", f.name) for f in folders
+    ), folders
     resumed = wandb_history(wandb_records(folders[1] / f"run-{run_id}.wandb"))
     assert sorted({row["step"] for row in resumed}) == [3, 4]
 
@@ -220,7 +243,9 @@ def test_a_resumed_run_logs_to_the_same_wandb_id(data, tmp_path):
 # ------------------------------------------------------------------ refusals
 @pytest.mark.parametrize("dashboard", ["tensorboard", "wandb"])
 @pytest.mark.parametrize("command", ["dssp-train", "dssp-distill"])
-def test_a_missing_package_is_one_line_before_anything_is_trained(dashboard, command, data, tmp_path, capsys, monkeypatch):
+def test_a_missing_package_is_one_line_before_anything_is_trained(
+    dashboard, command, data, tmp_path, capsys, monkeypatch
+):
     monkeypatch.setitem(sys.modules, dashboard, None)  # import fails as if not installed
 
     def no_training(*args, **kwargs):
@@ -231,17 +256,24 @@ def test_a_missing_package_is_one_line_before_anything_is_trained(dashboard, com
     if command == "dssp-train":
         code = train_main(["--data", str(data), "--out", str(out), "--steps", "2", "--no-progress", "--log", dashboard])
     else:
-        code = distill_main(["--teacher", str(tmp_path / "teacher"), "--steps", "1", "--out", str(out), "--log", dashboard])
+        code = distill_main(
+            ["--teacher", str(tmp_path / "teacher"), "--steps", "1", "--out", str(out), "--log", dashboard]
+        )
     assert code == 2
-    assert one_error_line(capsys.readouterr().err) == f"error: --log {dashboard} needs the {dashboard} package: {INSTALL}"
+    assert (
+        one_error_line(capsys.readouterr().err) == f"error: --log {dashboard} needs the {dashboard} package: {INSTALL}"
+    )
     assert not out.exists()
 
 
 @pytest.mark.parametrize("main", [train_main, distill_main], ids=["dssp-train", "dssp-distill"])
 def test_an_unknown_dashboard_is_one_line_naming_the_choices(main, data, tmp_path, capsys):
     out = tmp_path / "run"
-    argv = (["--data", str(data), "--out", str(out), "--steps", "2"] if main is train_main
-            else ["--teacher", str(tmp_path / "teacher"), "--steps", "1", "--out", str(out)])
+    argv = (
+        ["--data", str(data), "--out", str(out), "--steps", "2"]
+        if main is train_main
+        else ["--teacher", str(tmp_path / "teacher"), "--steps", "1", "--out", str(out)]
+    )
     assert main([*argv, "--no-progress", "--log", "tensorbored"]) == 2
     captured = capsys.readouterr()
     assert captured.out == ""
@@ -254,10 +286,26 @@ def test_the_log_flag_is_not_part_of_the_run_config_and_a_resume_may_change_it(d
     train(data, run, "--steps", "2")
     config = (run / "config.json").read_text()
     assert not (run / "tensorboard").exists()
-    assert train_main(["--data", str(data), "--out", str(run), "--resume", "--steps", "4", "--no-progress",
-                       "--log", "tensorboard"]) == 0
+    assert (
+        train_main(
+            [
+                "--data",
+                str(data),
+                "--out",
+                str(run),
+                "--resume",
+                "--steps",
+                "4",
+                "--no-progress",
+                "--log",
+                "tensorboard",
+            ]
+        )
+        == 0
+    )
     assert (run / "config.json").read_text().replace('"steps": 4', '"steps": 2') == config  # only --steps changed
     acc = tensorboard_events(run)
     assert [event.step for event in acc.Scalars("loss")] == [3, 4]  # the dashboard starts where the resume does
     assert [event.value for event in acc.Scalars("loss")] == pytest.approx(
-        [value for step, value in logged_scalars(run)["loss"] if step > 2], rel=1e-6)
+        [value for step, value in logged_scalars(run)["loss"] if step > 2], rel=1e-6
+    )

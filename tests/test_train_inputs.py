@@ -12,6 +12,8 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import SET_SMALL, SMALL, one_error_line, write_arm_dataset
+from waiting import wait_for
 
 from dssp_train.cli.params import main as params_main
 from dssp_train.cli.synth import main as synth_main
@@ -23,19 +25,13 @@ from dssp_train.training import memory
 from dssp_train.training.train_log import read_log
 from dssp_train.training.trainer import Trainer
 
-from conftest import SET_SMALL, SMALL, one_error_line, write_arm_dataset
-from waiting import wait_for
-
-
-
-
 
 def refused(capsys, main, argv) -> str:
     """Run ``main(argv)``: exit code 2, nothing on stdout, one error line (returned without "error: ")."""
     assert main([str(a) for a in argv]) == 2
     captured = capsys.readouterr()
     assert captured.out == ""
-    return one_error_line(captured.err)[len("error: "):]
+    return one_error_line(captured.err)[len("error: ") :]
 
 
 @pytest.fixture(scope="module")
@@ -65,16 +61,35 @@ def snapshot(path: Path) -> dict[str, bytes]:
 # ------------------------------------------------------------------ 1. the control rate
 def test_control_rate_that_contradicts_the_dataset_is_refused(data, tmp_path, capsys):
     out = tmp_path / "run"
-    line = refused(capsys, train_main, ["--data", data, "--out", out, "--control-rate", "20", "--no-progress", *SET_SMALL])
-    assert line == (f"--control-rate 20 Hz contradicts the 10 Hz that {data} records; "
-                    "drop --control-rate (the recorded rate is used)")
+    line = refused(
+        capsys, train_main, ["--data", data, "--out", out, "--control-rate", "20", "--no-progress", *SET_SMALL]
+    )
+    assert line == (
+        f"--control-rate 20 Hz contradicts the 10 Hz that {data} records; "
+        "drop --control-rate (the recorded rate is used)"
+    )
     assert not out.exists()
 
 
 def test_control_rate_equal_to_the_dataset_is_accepted(data, tmp_path, capsys):
     out = tmp_path / "run"
-    assert train_main(["--data", str(data), "--out", str(out), "--control-rate", "10", "--steps", "1", "--no-progress",
-                       *SET_SMALL]) == 0
+    assert (
+        train_main(
+            [
+                "--data",
+                str(data),
+                "--out",
+                str(out),
+                "--control-rate",
+                "10",
+                "--steps",
+                "1",
+                "--no-progress",
+                *SET_SMALL,
+            ]
+        )
+        == 0
+    )
     assert "--control-rate" not in capsys.readouterr().err  # no rate warning (the budget and holdout lines only)
     assert json.loads((out / "config.json").read_text())["control_rate_hz"] == 10.0
 
@@ -94,8 +109,11 @@ FLAG_ERRORS = [
     (["--val-ratio", "1"], "--val-ratio must be a number in [0, 1), got 1.0"),
     (["--seed", "-1"], "--seed must be an integer in [0, 9223372036854775807], got -1"),
     (["--history-window", "-1"], "--history-window must be an integer in [0, 1000000], got -1"),
-    (["--no-history", "--no-recent-states"], "--no-recent-states: model.use_history and model.use_recent_states cannot "
-                                             "both be off: the denoiser would see no observation"),
+    (
+        ["--no-history", "--no-recent-states"],
+        "--no-recent-states: model.use_history and model.use_recent_states cannot "
+        "both be off: the denoiser would see no observation",
+    ),
 ]
 
 
@@ -114,24 +132,38 @@ def test_a_bad_steps_on_resume_names_the_flag(trained, data, capsys):
 
 
 # ------------------------------------------------------------------ 3. --set: one source per field, config fields only
-@pytest.mark.parametrize("argv,message", [
-    (["--steps", "2", "--set", "train.steps=6"], "--steps and --set train.steps=6 both set train.steps; keep one"),
-    (["--history-window", "3", "--set", "model.history_window=4"],
-     "--history-window and --set model.history_window=4 both set model.history_window; keep one"),
-    (["--no-history", "--set", "model.use_history=true"],
-     "--no-history and --set model.use_history=true both set model.use_history; keep one"),
-    (["--set", "train.lr=0.1", "--set", "train.lr=0.2"], "--set train.lr=0.1 and --set train.lr=0.2 both set train.lr; keep one"),
-])
+@pytest.mark.parametrize(
+    "argv,message",
+    [
+        (["--steps", "2", "--set", "train.steps=6"], "--steps and --set train.steps=6 both set train.steps; keep one"),
+        (
+            ["--history-window", "3", "--set", "model.history_window=4"],
+            "--history-window and --set model.history_window=4 both set model.history_window; keep one",
+        ),
+        (
+            ["--no-history", "--set", "model.use_history=true"],
+            "--no-history and --set model.use_history=true both set model.use_history; keep one",
+        ),
+        (
+            ["--set", "train.lr=0.1", "--set", "train.lr=0.2"],
+            "--set train.lr=0.1 and --set train.lr=0.2 both set train.lr; keep one",
+        ),
+    ],
+)
 def test_one_field_set_twice_is_refused(data, tmp_path, capsys, argv, message):
     assert refused(capsys, train_main, ["--data", data, "--out", tmp_path / "run", *argv]) == message
     assert not (tmp_path / "run").exists()
 
 
-@pytest.mark.parametrize("item", ["preset=robotwin", "dataset=/etc/passwd", "control_rate_hz=20", "model={}", "train=1"])
+@pytest.mark.parametrize(
+    "item", ["preset=robotwin", "dataset=/etc/passwd", "control_rate_hz=20", "model={}", "train=1"]
+)
 def test_set_takes_only_model_and_train_fields(data, tmp_path, capsys, item):
     line = refused(capsys, train_main, ["--data", data, "--out", tmp_path / "run", "--set", item])
-    assert line == (f"--set {item}: --set takes model.* and train.* fields, one at a time (e.g. model.d_model=256); "
-                    "preset comes from --preset, dataset comes from --data, control_rate_hz comes from --control-rate")
+    assert line == (
+        f"--set {item}: --set takes model.* and train.* fields, one at a time (e.g. model.d_model=256); "
+        "preset comes from --preset, dataset comes from --data, control_rate_hz comes from --control-rate"
+    )
     assert not (tmp_path / "run").exists()
 
 
@@ -155,7 +187,10 @@ def test_resume_on_another_dataset_is_refused(trained, data, tmp_path, capsys):
     before = snapshot(run)
     for other in (same_dims, other_dims):
         line = refused(capsys, train_main, ["--data", other, "--out", run, "--resume", "--steps", "4", "--no-progress"])
-        assert line == f"{run} was trained on {os.path.realpath(data)}; --resume continues it on the same --data (got {other})"
+        assert (
+            line
+            == f"{run} was trained on {os.path.realpath(data)}; --resume continues it on the same --data (got {other})"
+        )
         assert "override" not in line
         assert snapshot(run) == before
 
@@ -169,8 +204,9 @@ def test_resume_on_a_dataset_changed_in_place_is_refused(tmp_path, capsys):
     write_tap_count_dataset(path, 6, seed=0, n_points=24)  # two episodes more, same path and dimensions
     before = snapshot(run)
     line = refused(capsys, train_main, ["--data", path, "--out", run, "--resume", "--steps", "4", "--no-progress"])
-    assert line.startswith(f"{path} changed since {run} was trained on it (4 episodes, 160 steps then; 6 episodes, "
-                           "240 steps now)")
+    assert line.startswith(
+        f"{path} changed since {run} was trained on it (4 episodes, 160 steps then; 6 episodes, 240 steps now)"
+    )
     assert snapshot(run) == before
 
 
@@ -198,7 +234,9 @@ def test_resume_with_steps_not_past_the_checkpoint_is_refused(trained, data, tmp
 
 def test_resume_with_a_contradicting_control_rate_is_refused(trained, data, tmp_path, capsys):
     run = copy_of(trained, tmp_path)
-    line = refused(capsys, train_main, ["--data", data, "--out", run, "--resume", "--steps", "3", "--control-rate", "20"])
+    line = refused(
+        capsys, train_main, ["--data", data, "--out", run, "--resume", "--steps", "3", "--control-rate", "20"]
+    )
     assert "--control-rate 20 Hz contradicts the 10 Hz" in line
 
 
@@ -211,11 +249,28 @@ def test_resume_may_record_a_control_rate_the_run_lacked(tmp_path, capsys):
     run = tmp_path / "run"
     assert train_main(["--data", str(path), "--out", str(run), "--steps", "2", "--no-progress", *SET_SMALL]) == 0
     assert "--control-rate" in capsys.readouterr().err
-    assert train_main(["--data", str(path), "--out", str(run), "--resume", "--steps", "3", "--control-rate", "15",
-                       "--no-progress"]) == 0
+    assert (
+        train_main(
+            [
+                "--data",
+                str(path),
+                "--out",
+                str(run),
+                "--resume",
+                "--steps",
+                "3",
+                "--control-rate",
+                "15",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     assert "--control-rate" not in capsys.readouterr().err
     assert json.loads((run / "config.json").read_text())["control_rate_hz"] == 15.0
-    line = refused(capsys, train_main, ["--data", path, "--out", run, "--resume", "--steps", "4", "--control-rate", "30"])
+    line = refused(
+        capsys, train_main, ["--data", path, "--out", run, "--resume", "--steps", "4", "--control-rate", "30"]
+    )
     assert line == "--control-rate 30 Hz contradicts the run's control rate of 15 Hz; drop --control-rate"
 
 
@@ -239,7 +294,9 @@ def test_ctrl_c_after_a_checkpoint_says_where_it_is_and_how_to_continue(data, tm
     monkeypatch.undo()
     err = capsys.readouterr().err.strip().splitlines()[-1]  # after the budget and holdout lines
     command = f"dssp-train --data {data} --out {out} --resume"
-    assert err == f"interrupted after step 3; the checkpoint of step 2 is in {out / 'checkpoint'}: continue with {command}"
+    assert (
+        err == f"interrupted after step 3; the checkpoint of step 2 is in {out / 'checkpoint'}: continue with {command}"
+    )
     # The advice works.
     assert train_main(command.split()[1:] + ["--no-progress"]) == 0
     assert [r["step"] for r in read_log(out / "log.jsonl") if r["kind"] == "train"] == [1, 2, 3, 4, 5, 6]
@@ -266,7 +323,8 @@ def test_ctrl_c_before_the_first_step_says_so(data, tmp_path, capsys, monkeypatc
     captured = capsys.readouterr()
     assert captured.out == ""  # no summary
     assert captured.err.strip().splitlines()[-1] == (
-        "interrupted before the first step: no checkpoint was kept; start the run over by adding --force")
+        "interrupted before the first step: no checkpoint was kept; start the run over by adding --force"
+    )
     assert read_log(out / "log.jsonl") == [] and not (out / "checkpoint").exists()
 
 
@@ -281,7 +339,8 @@ def test_ctrl_c_of_a_resume_before_its_first_step_changes_nothing(trained, data,
     command = f"dssp-train --data {data} --out {run} --resume --steps 4"
     assert capsys.readouterr().err.strip().splitlines()[-1] == (
         f"interrupted before any step past the checkpoint's step 2; the checkpoint of step 2 is in {run / 'checkpoint'}: "
-        f"continue with {command}")
+        f"continue with {command}"
+    )
     assert snapshot(run) == before
     assert train_main(command.split()[1:] + ["--no-progress"]) == 0
     assert [r["step"] for r in read_log(run / "log.jsonl") if r["kind"] == "train"] == [1, 2, 3, 4]
@@ -291,21 +350,40 @@ def test_ctrl_c_of_a_run_replacing_another_puts_the_other_back(trained, data, tm
     run = copy_of(trained, tmp_path)
     before = snapshot(run)
     interrupt_at(monkeypatch, 1)
-    assert train_main(["--data", str(data), "--out", str(run), "--steps", "4", "--force", "--no-progress", *SET_SMALL]) == 130
+    assert (
+        train_main(["--data", str(data), "--out", str(run), "--steps", "4", "--force", "--no-progress", *SET_SMALL])
+        == 130
+    )
     assert capsys.readouterr().err.strip().splitlines()[-1] == (
-        f"interrupted after step 1; this run is discarded and the previous run in {run} is back as it was")
+        f"interrupted after step 1; this run is discarded and the previous run in {run} is back as it was"
+    )
     assert snapshot(run) == before
 
 
 def test_sigterm_stops_like_ctrl_c_and_keeps_the_checkpoint(data, tmp_path):
     out = tmp_path / "run"
-    argv = ["--data", str(data), "--out", str(out), "--steps", "100000", "--no-progress",
-            *[a for item in SMALL if not item.startswith("train.val_every") for a in ("--set", item)],
-            "--set", "train.val_every=100000"]
+    argv = [
+        "--data",
+        str(data),
+        "--out",
+        str(out),
+        "--steps",
+        "100000",
+        "--no-progress",
+        *[a for item in SMALL if not item.startswith("train.val_every") for a in ("--set", item)],
+        "--set",
+        "train.val_every=100000",
+    ]
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONWARNINGS": "ignore"}
-    proc = subprocess.Popen([sys.executable, "-m", "dssp_train.cli.train", *argv], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env=env)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "dssp_train.cli.train", *argv],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
     try:
+
         def checkpointed() -> bool:
             assert proc.poll() is None, proc.communicate()
             return (out / "checkpoint" / "trainer_state.json").is_file()
@@ -318,15 +396,21 @@ def test_sigterm_stops_like_ctrl_c_and_keeps_the_checkpoint(data, tmp_path):
             proc.kill()
     assert proc.returncode == 130, stderr
     assert stdout == ""
-    match = re.fullmatch(r"interrupted after step (\d+); the checkpoint of step (\d+) is in (.+): continue with "
-                         r"dssp-train --data (.+) --out (.+) --resume", stderr.strip().splitlines()[-1])
+    match = re.fullmatch(
+        r"interrupted after step (\d+); the checkpoint of step (\d+) is in (.+): continue with "
+        r"dssp-train --data (.+) --out (.+) --resume",
+        stderr.strip().splitlines()[-1],
+    )
     assert match, stderr
     stopped, saved = int(match[1]), int(match[2])
     assert saved % 2 == 0 and 2 <= saved <= stopped and match[3] == str(out / "checkpoint")
     assert (match[4], match[5]) == (str(data), str(out))
     assert json.loads((out / "checkpoint" / "trainer_state.json").read_text())["step"] == saved
     # It continues from there.
-    assert train_main(["--data", str(data), "--out", str(out), "--resume", "--steps", str(saved + 2), "--no-progress"]) == 0
+    assert (
+        train_main(["--data", str(data), "--out", str(out), "--resume", "--steps", str(saved + 2), "--no-progress"])
+        == 0
+    )
 
 
 def test_the_sigterm_handler_is_put_back(data, tmp_path, capsys):
@@ -337,10 +421,13 @@ def test_the_sigterm_handler_is_put_back(data, tmp_path, capsys):
 
 # ------------------------------------------------------------------ 8. dssp-params
 def test_params_state_dim_zero_names_the_flag(capsys):
-    assert refused(capsys, params_main, ["--preset", "tiny", "--state-dim", "0"]) == \
-        "--state-dim must be an integer in [1, 4096], got 0"
+    assert (
+        refused(capsys, params_main, ["--preset", "tiny", "--state-dim", "0"])
+        == "--state-dim must be an integer in [1, 4096], got 0"
+    )
     assert refused(capsys, params_main, ["--preset", "tiny", "--set", "model.action_dim=0"]).startswith(
-        "--set model.action_dim=0: counting parameters needs model.action_dim of at least 1")
+        "--set model.action_dim=0: counting parameters needs model.action_dim of at least 1"
+    )
 
 
 def test_params_counts_a_huge_model_without_allocating_it(capsys):
@@ -363,12 +450,18 @@ def test_params_meta_count_equals_the_real_model(capsys):
     assert int(total.split()[1].replace(",", "")) == sum(p.numel() for p in DSSPPolicy(config.model).parameters())
 
 
-@pytest.mark.parametrize("damage,message", [
-    (lambda c: os.urandom(64) + b"\xff\xfe", "config.json is not a text file (damaged?)"),
-    (lambda c: json.dumps({k: v for k, v in c.items() if k != "model"}).encode(), "config.json lacks its model section"),
-    (lambda c: b"[1, 2]", "config.json must hold a JSON object, got list"),
-    (lambda c: json.dumps({**c, "model": {**c["model"], "state_dim": 0}}).encode(), "has model.state_dim=0"),
-])
+@pytest.mark.parametrize(
+    "damage,message",
+    [
+        (lambda c: os.urandom(64) + b"\xff\xfe", "config.json is not a text file (damaged?)"),
+        (
+            lambda c: json.dumps({k: v for k, v in c.items() if k != "model"}).encode(),
+            "config.json lacks its model section",
+        ),
+        (lambda c: b"[1, 2]", "config.json must hold a JSON object, got list"),
+        (lambda c: json.dumps({**c, "model": {**c["model"], "state_dim": 0}}).encode(), "has model.state_dim=0"),
+    ],
+)
 def test_params_on_a_damaged_run_config_is_one_line(trained, tmp_path, capsys, damage, message):
     run = copy_of(trained, tmp_path)
     config = json.loads((run / "config.json").read_text())
@@ -379,22 +472,31 @@ def test_params_on_a_damaged_run_config_is_one_line(trained, tmp_path, capsys, d
 
 
 def test_params_run_refuses_dimension_flags_and_run_fields(trained, capsys):
-    assert refused(capsys, params_main, ["--run", trained, "--state-dim", "3"]) == \
-        "--state-dim is for --preset; a run's dimensions come from its config.json (drop --state-dim)"
+    assert (
+        refused(capsys, params_main, ["--run", trained, "--state-dim", "3"])
+        == "--state-dim is for --preset; a run's dimensions come from its config.json (drop --state-dim)"
+    )
     assert refused(capsys, params_main, ["--preset", "tiny", "--set", "preset=robotwin"]).startswith(
-        "--set preset=robotwin: --set takes model.* and train.* fields")
+        "--set preset=robotwin: --set takes model.* and train.* fields"
+    )
 
 
 # ------------------------------------------------------------------ 9. dssp-synth
-@pytest.mark.parametrize("argv,message", [
-    (["--seed", "-1"], "--seed must be an integer in [0, 9223372036854775807], got -1"),
-    (["--points", "10000000"], "--points must be an integer in [24, 100000], got 10000000"),
-    (["--points", "10"], "--points must be an integer in [24, 100000], got 10"),
-    (["--episodes", "100000"], "--episodes must be an integer in [1, 10000], got 100000"),
-    (["--episodes", "0"], "--episodes must be an integer in [1, 10000], got 0"),
-    (["--episodes", "10000", "--points", "10000"], "--episodes 10000 x --points 10000 make 48.0 GB of point clouds, "
-                                                   "more than the 2 GB the generator holds in memory; lower --episodes or --points"),
-])
+@pytest.mark.parametrize(
+    "argv,message",
+    [
+        (["--seed", "-1"], "--seed must be an integer in [0, 9223372036854775807], got -1"),
+        (["--points", "10000000"], "--points must be an integer in [24, 100000], got 10000000"),
+        (["--points", "10"], "--points must be an integer in [24, 100000], got 10"),
+        (["--episodes", "100000"], "--episodes must be an integer in [1, 10000], got 100000"),
+        (["--episodes", "0"], "--episodes must be an integer in [1, 10000], got 0"),
+        (
+            ["--episodes", "10000", "--points", "10000"],
+            "--episodes 10000 x --points 10000 make 48.0 GB of point clouds, "
+            "more than the 2 GB the generator holds in memory; lower --episodes or --points",
+        ),
+    ],
+)
 def test_synth_bad_flags(tmp_path, capsys, argv, message):
     out = tmp_path / "d.zarr"
     assert refused(capsys, synth_main, ["--out", out, *argv]) == message
@@ -409,18 +511,38 @@ def ram_24gb(monkeypatch):
 
 
 def test_a_step_that_cannot_fit_in_memory_is_refused(data, tmp_path, capsys, ram_24gb):
-    line = refused(capsys, train_main, ["--data", data, "--out", tmp_path / "run", "--device", "cpu",
-                                        "--set", "model.history_window=1000000"])
-    assert re.fullmatch(r"one training step needs about [\d.]+ [GT]B \([\d,]+ parameters with gradients, AdamW and EMA "
-                        r"state: [\d.]+ MB; activations for the longest episode, 40 steps: [\d.]+ [GT]B\) but only "
-                        r"24.0 GB is available in RAM; lower model.d_model, model.expand, model.d_state, "
-                        r"model.history_window or train.batch_size", line), line
+    line = refused(
+        capsys,
+        train_main,
+        ["--data", data, "--out", tmp_path / "run", "--device", "cpu", "--set", "model.history_window=1000000"],
+    )
+    assert re.fullmatch(
+        r"one training step needs about [\d.]+ [GT]B \([\d,]+ parameters with gradients, AdamW and EMA "
+        r"state: [\d.]+ MB; activations for the longest episode, 40 steps: [\d.]+ [GT]B\) but only "
+        r"24.0 GB is available in RAM; lower model.d_model, model.expand, model.d_state, "
+        r"model.history_window or train.batch_size",
+        line,
+    ), line
     assert not (tmp_path / "run").exists()
 
 
 def test_wide_layers_that_cannot_fit_are_refused(data, tmp_path, capsys, ram_24gb):
-    line = refused(capsys, train_main, ["--data", data, "--out", tmp_path / "run", "--device", "cpu",
-                                        "--set", "model.expand=16", "--set", "model.d_model=4096"])
+    line = refused(
+        capsys,
+        train_main,
+        [
+            "--data",
+            data,
+            "--out",
+            tmp_path / "run",
+            "--device",
+            "cpu",
+            "--set",
+            "model.expand=16",
+            "--set",
+            "model.d_model=4096",
+        ],
+    )
     assert re.match(r"one training step needs about 1\d\d\.\d GB \(5,458,\d{3},\d{3} parameters", line), line
     assert "but only 24.0 GB is available in RAM" in line
 
@@ -503,8 +625,13 @@ print(json.dumps({"need": peak - held + 8 * params,
 
 @pytest.mark.skipif(not Path("/proc/self/clear_refs").is_file(), reason="needs Linux /proc")
 def test_the_memory_estimate_stays_below_a_measured_step(tmp_path):
-    proc = subprocess.run([sys.executable, "-c", MEASURE, str(tmp_path / "d.zarr"), str(tmp_path / "run")],
-                          capture_output=True, text=True, env={**os.environ, "OMP_NUM_THREADS": "1"}, timeout=300)
+    proc = subprocess.run(
+        [sys.executable, "-c", MEASURE, str(tmp_path / "d.zarr"), str(tmp_path / "run")],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "OMP_NUM_THREADS": "1"},
+        timeout=300,
+    )
     assert proc.returncode == 0, proc.stderr
     result = json.loads(proc.stdout.strip().splitlines()[-1])
     assert 0.3 * result["need"] < result["estimate"] <= result["need"], result

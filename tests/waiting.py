@@ -56,6 +56,7 @@ class Output:
     def wait_for_line(self, stream: str, text: str, timeout: float = 60.0, what: str | None = None) -> bool:
         """True once a line of ``stream`` holds ``text``; False if the stream ended first (the process ended);
         AssertionError after ``timeout`` seconds of neither."""
+
         def seen() -> bool:
             return any(text in line for line in self._lines[stream])
 

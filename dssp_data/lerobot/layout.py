@@ -41,10 +41,33 @@ from dssp_core.schema import check_rate, read_json
 from dssp_data.bounded import check_budget, human_size
 from dssp_data.observation import VectorLayout
 
-__all__ = ["CODEBASE_VERSION", "INFO_PATH", "TASKS_PATH", "STATS_PATH", "EPISODES_DIR", "CHUNK_FILE", "DATA_PATH",
-           "CHUNKS_SIZE", "INDEX_FEATURES", "INTRINSICS_KEYS", "pyarrow_modules", "is_lerobot_root", "named_path",
-           "open_regular", "read_info", "data_file", "read_parquet", "decoded_size", "numpy_column", "to_numpy", "from_numpy",
-           "list_array", "text_array", "feature_layout", "feature_names"]
+__all__ = [
+    "CODEBASE_VERSION",
+    "INFO_PATH",
+    "TASKS_PATH",
+    "STATS_PATH",
+    "EPISODES_DIR",
+    "CHUNK_FILE",
+    "DATA_PATH",
+    "CHUNKS_SIZE",
+    "INDEX_FEATURES",
+    "INTRINSICS_KEYS",
+    "pyarrow_modules",
+    "is_lerobot_root",
+    "named_path",
+    "open_regular",
+    "read_info",
+    "data_file",
+    "read_parquet",
+    "decoded_size",
+    "numpy_column",
+    "to_numpy",
+    "from_numpy",
+    "list_array",
+    "text_array",
+    "feature_layout",
+    "feature_names",
+]
 
 CODEBASE_VERSION = "v3.0"
 """What :func:`dssp_data.lerobot.write.export` writes (LeRobot 0.4's format)."""
@@ -72,8 +95,9 @@ def pyarrow_modules():
         import pyarrow.compute as pc  # optional: the lerobot extra
         import pyarrow.parquet as pq  # optional: the lerobot extra
     except ImportError:
-        raise ConfigError("LeRobot datasets are parquet files: reading and writing them needs pyarrow "
-                          "(pip install 'dssp[lerobot]')") from None
+        raise ConfigError(
+            "LeRobot datasets are parquet files: reading and writing them needs pyarrow (pip install 'dssp[lerobot]')"
+        ) from None
     return pa, pc, pq
 
 
@@ -89,8 +113,10 @@ def named_path(root: Path, rel: str, what: str, folder: bool = False) -> Path:
     anywhere on the way (each part checked without following it); a regular file (``folder``: a folder)."""
     parts = Path(rel).parts
     if not rel or Path(rel).is_absolute() or ".." in parts or "\\" in rel:
-        raise DatasetError(f"{root}: {what} {rel!r} leads outside the dataset's folder; a LeRobot dataset names its "
-                           "files relative to its root")
+        raise DatasetError(
+            f"{root}: {what} {rel!r} leads outside the dataset's folder; a LeRobot dataset names its "
+            "files relative to its root"
+        )
     path = root
     for i, part in enumerate(parts):
         path = path / part
@@ -101,11 +127,13 @@ def named_path(root: Path, rel: str, what: str, folder: bool = False) -> Path:
         except OSError as exc:
             raise DatasetError(f"cannot read {path} ({exc.strerror or exc})") from None
         if stat.S_ISLNK(info.st_mode):
-            raise DatasetError(f"{root}: {'/'.join(parts[:i + 1])} is a link; a LeRobot dataset is read from its own "
-                               "files only (download it with --local-dir, not as the hub cache's links)")
+            raise DatasetError(
+                f"{root}: {'/'.join(parts[: i + 1])} is a link; a LeRobot dataset is read from its own "
+                "files only (download it with --local-dir, not as the hub cache's links)"
+            )
         file = i == len(parts) - 1 and not folder
         if file and not stat.S_ISREG(info.st_mode) or not file and not stat.S_ISDIR(info.st_mode):
-            raise DatasetError(f"{root}: {'/'.join(parts[:i + 1])} is not a {'file' if file else 'folder'}")
+            raise DatasetError(f"{root}: {'/'.join(parts[: i + 1])} is not a {'file' if file else 'folder'}")
     return path
 
 
@@ -142,8 +170,10 @@ def read_info(root: Path) -> dict:
         raise DatasetError(f"{path} must hold a JSON object")
     version = info.get("codebase_version")
     if not (isinstance(version, str) and re.fullmatch(r"v3(\.\d+)*", version)):
-        raise DatasetError(f"{root} is a LeRobot dataset of codebase_version {_shown(version)}; only v3 datasets are "
-                           "read (convert an older one with lerobot's convert_dataset_v21_to_v30 first)")
+        raise DatasetError(
+            f"{root} is a LeRobot dataset of codebase_version {_shown(version)}; only v3 datasets are "
+            "read (convert an older one with lerobot's convert_dataset_v21_to_v30 first)"
+        )
     try:
         check_rate(info.get("fps"), "fps")
     except ConfigError as exc:
@@ -153,9 +183,14 @@ def read_info(root: Path) -> dict:
         raise DatasetError(f"{path}: features must be an object of feature objects")
     for key, feature in features.items():
         shape = feature.get("shape")
-        if not (isinstance(shape, list) and shape and all(isinstance(n, int) and not isinstance(n, bool) and n > 0
-                                                          for n in shape)):
-            raise DatasetError(f"{path}: feature {key}'s shape must be a list of positive integers, got {_shown(shape)}")
+        if not (
+            isinstance(shape, list)
+            and shape
+            and all(isinstance(n, int) and not isinstance(n, bool) and n > 0 for n in shape)
+        ):
+            raise DatasetError(
+                f"{path}: feature {key}'s shape must be a list of positive integers, got {_shown(shape)}"
+            )
         if not isinstance(feature.get("dtype"), str):
             raise DatasetError(f"{path}: feature {key} has no dtype")
     return info
@@ -164,7 +199,7 @@ def read_info(root: Path) -> dict:
 def _shown(value, limit: int = 80) -> str:
     """``value`` for a message, cut to ``limit`` characters (a value from a file may be any size)."""
     text = repr(value)
-    return text if len(text) <= limit else text[:limit - 5] + " ...'"
+    return text if len(text) <= limit else text[: limit - 5] + " ...'"
 
 
 _FIELDS = ("chunk_index", "file_index")
@@ -194,8 +229,9 @@ def data_file(root: Path, template, chunk: int, file: int) -> Path:
                 break
             parts.append(format(chunk if name == "chunk_index" else file, spec or ""))
     if problem:
-        raise DatasetError(f"{root}: data_path {_shown(template)} in {INFO_PATH} is not {problem}; LeRobot writes "
-                           f"{DATA_PATH!r}")
+        raise DatasetError(
+            f"{root}: data_path {_shown(template)} in {INFO_PATH} is not {problem}; LeRobot writes {DATA_PATH!r}"
+        )
     return named_path(root, "".join(parts), "the data file")
 
 
@@ -208,16 +244,22 @@ def read_parquet(pa, pq, path: Path, columns: Sequence[str]):
             need = decoded_size(parquet.metadata, columns)
         except (OSError, ValueError, KeyError, TypeError, pa.ArrowException) as exc:
             raise DatasetError(f"{path}: not a readable parquet file ({_first_line(exc)})") from None
-        check_budget(2 * need, f"{path}: the columns {', '.join(columns)} ({human_size(need)} decoded)",
-                     "convert a dataset with smaller data files")
+        check_budget(
+            2 * need,
+            f"{path}: the columns {', '.join(columns)} ({human_size(need)} decoded)",
+            "convert a dataset with smaller data files",
+        )
         try:
             return parquet.read(columns=list(columns))
         except (MemoryError, pa.ArrowMemoryError):
-            raise DatasetError(f"{path}: reading it ran out of memory although its metadata declares "
-                               f"{human_size(need)}: a damaged or crafted file") from None
+            raise DatasetError(
+                f"{path}: reading it ran out of memory although its metadata declares "
+                f"{human_size(need)}: a damaged or crafted file"
+            ) from None
         except (OSError, ValueError, KeyError, TypeError, pa.ArrowException) as exc:
-            raise DatasetError(f"{path}: not a readable parquet file with the columns {', '.join(columns)} "
-                               f"({_first_line(exc)})") from None
+            raise DatasetError(
+                f"{path}: not a readable parquet file with the columns {', '.join(columns)} ({_first_line(exc)})"
+            ) from None
 
 
 def _first_line(exc: BaseException) -> str:
@@ -238,8 +280,10 @@ def decoded_size(metadata, columns: Sequence[str]) -> int:
         for c in range(group.num_columns):
             chunk = group.column(c)
             path = chunk.path_in_schema
-            if not any(path == name or path.startswith(name + ".")
-                       and set(path[len(name) + 1:].split(".")) <= _LIST_PARTS for name in columns):
+            if not any(
+                path == name or path.startswith(name + ".") and set(path[len(name) + 1 :].split(".")) <= _LIST_PARTS
+                for name in columns
+            ):
                 continue
             values, stored = int(chunk.num_values), int(chunk.total_uncompressed_size)
             width = _WIDTHS.get(chunk.physical_type)
@@ -268,13 +312,16 @@ def numpy_column(pa, pc, table, name: str, shape: tuple[int, ...], where: str) -
         if values.null_count:
             raise DatasetError(f"{where}: {name} holds empty (null) values")
         if not _is_list(pa, values.type):
-            raise DatasetError(f"{where}: {name} is {table.schema.field(name).type}, not an array of shape "
-                               f"{list(shape)}")
+            raise DatasetError(
+                f"{where}: {name} is {table.schema.field(name).type}, not an array of shape {list(shape)}"
+            )
         lengths = to_numpy(pa, pc.list_value_length(values))
         if lengths.size and not np.all(lengths == dim):
             bad = int(np.argmax(lengths != dim))
-            raise DatasetError(f"{where}: {name} has {int(lengths[bad])} values where its shape {list(shape)} says "
-                               f"{dim} (row {bad}{', axis ' + str(depth) if len(shape) > 1 else ''})")
+            raise DatasetError(
+                f"{where}: {name} has {int(lengths[bad])} values where its shape {list(shape)} says "
+                f"{dim} (row {bad}{', axis ' + str(depth) if len(shape) > 1 else ''})"
+            )
         values = values.flatten()
     if values.null_count:
         raise DatasetError(f"{where}: {name} holds empty (null) values")
@@ -320,8 +367,11 @@ def text_array(pa, texts: Sequence[str], large: bool = False):
     data = [t.encode() for t in texts]
     offsets = np.zeros(len(data) + 1, np.int64 if large else np.int32)
     offsets[1:] = np.cumsum([len(d) for d in data], dtype=np.int64)
-    return pa.Array.from_buffers(pa.large_string() if large else pa.string(), len(data),
-                                 [None, from_numpy(pa, offsets).buffers()[1], pa.py_buffer(b"".join(data))])
+    return pa.Array.from_buffers(
+        pa.large_string() if large else pa.string(),
+        len(data),
+        [None, from_numpy(pa, offsets).buffers()[1], pa.py_buffer(b"".join(data))],
+    )
 
 
 # ------------------------------------------------------------------------------------------- the features' names
@@ -340,8 +390,11 @@ def feature_layout(feature: dict, dim: int) -> VectorLayout | None:
             arms = len({m.group(1) for m in blocks})
             per = dim // arms
             channels = [m.group(2) for m in blocks[:per]]
-            if arms > 1 and dim == arms * per and all(
-                    m.group(1) == str(i // per) and m.group(2) == channels[i % per] for i, m in enumerate(blocks)):
+            if (
+                arms > 1
+                and dim == arms * per
+                and all(m.group(1) == str(i // per) and m.group(2) == channels[i % per] for i, m in enumerate(blocks))
+            ):
                 return VectorLayout(arms=arms, channels=tuple(channels))
         return VectorLayout(arms=1, channels=tuple(names))
     except ConfigError:
@@ -359,4 +412,3 @@ def feature_names(layout: dict | None, dim: int) -> list[str] | None:
     if layout.arms == 1:
         return list(layout.channels)
     return [f"arm{a} {c}" for a in range(layout.arms) for c in layout.channels]
-

@@ -64,13 +64,18 @@ def _stats(values: np.ndarray) -> dict[str, np.ndarray]:
     mean = np.zeros(rows.shape[1])
     step = max(1, (8 << 20) // max(1, rows.shape[1]))
     for start in range(0, rows.shape[0], step):
-        mean += rows[start:start + step].sum(axis=0, dtype=np.float64)
+        mean += rows[start : start + step].sum(axis=0, dtype=np.float64)
     mean /= rows.shape[0]
     square = np.zeros(rows.shape[1])
     for start in range(0, rows.shape[0], step):
-        square += ((rows[start:start + step].astype(np.float64) - mean) ** 2).sum(axis=0)
-    stats = {"min": rows.min(axis=0), "max": rows.max(axis=0), "mean": mean, "std": np.sqrt(square / rows.shape[0]),
-             "count": np.array([frames], dtype=np.int64)}
+        square += ((rows[start : start + step].astype(np.float64) - mean) ** 2).sum(axis=0)
+    stats = {
+        "min": rows.min(axis=0),
+        "max": rows.max(axis=0),
+        "mean": mean,
+        "std": np.sqrt(square / rows.shape[0]),
+        "count": np.array([frames], dtype=np.int64),
+    }
     keep = max(1, QUANTILE_VALUES // rows.shape[1])
     sample = rows if rows.shape[0] <= keep else rows[np.linspace(0, rows.shape[0] - 1, keep).round().astype(np.int64)]
     quantiles = np.quantile(sample.astype(np.float64), QUANTILES, axis=0)
@@ -87,9 +92,13 @@ def _aggregate(per_episode: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray
     means = np.stack([s["mean"] for s in per_episode])
     mean = (means * counts).sum(axis=0) / total
     variance = ((np.stack([s["std"] for s in per_episode]) ** 2 + (means - mean) ** 2) * counts).sum(axis=0) / total
-    out = {"min": np.min(np.stack([s["min"] for s in per_episode]), axis=0),
-           "max": np.max(np.stack([s["max"] for s in per_episode]), axis=0),
-           "mean": mean, "std": np.sqrt(variance), "count": total.astype(np.int64)}
+    out = {
+        "min": np.min(np.stack([s["min"] for s in per_episode]), axis=0),
+        "max": np.max(np.stack([s["max"] for s in per_episode]), axis=0),
+        "mean": mean,
+        "std": np.sqrt(variance),
+        "count": total.astype(np.int64),
+    }
     for key in per_episode[0]:
         if key.startswith("q"):
             out[key] = (np.stack([s[key] for s in per_episode]) * counts).sum(axis=0) / total
@@ -136,26 +145,44 @@ def _arrow_field(pa, key: str, feature: dict):
     if len(shape) == 1:
         return pa.field(key, pa.list_(pa.field("element", dtype), shape[0]))
     kind = pa.list_(pa.field("element", pa.list_(pa.field("element", dtype))))
-    return pa.field(key, kind, metadata={"ARROW:extension:name": ARRAY2D,
-                                         "ARROW:extension:metadata": json.dumps([list(shape), feature["dtype"]])})
+    return pa.field(
+        key,
+        kind,
+        metadata={
+            "ARROW:extension:name": ARRAY2D,
+            "ARROW:extension:metadata": json.dumps([list(shape), feature["dtype"]]),
+        },
+    )
 
 
 def _features(reader: ReplayBufferReader, path: Path) -> tuple[dict, list[str]]:
     """The LeRobot features of the dataset (and the notes on what is left out)."""
     attrs, notes = reader.attrs, []
     (_, p, c), (_, s), (_, a) = (reader.arrays[f"data/{k}"][0] for k in ("point_cloud", "state", "action"))
-    cloud_info = {k: v for k, v in (("pointcloud", attributes.pointcloud(attrs, path)),
-                                    ("frame", attrs.get("pointcloud_frame", FRAME_ROBOT_BASE)
-                                     if attrs.get("pointcloud") is not None else None),
-                                    ("camera_to_base", attributes.camera_to_base(attrs, path))) if v is not None}
+    cloud_info = {
+        k: v
+        for k, v in (
+            ("pointcloud", attributes.pointcloud(attrs, path)),
+            ("frame", attrs.get("pointcloud_frame", FRAME_ROBOT_BASE) if attrs.get("pointcloud") is not None else None),
+            ("camera_to_base", attributes.camera_to_base(attrs, path)),
+        )
+        if v is not None
+    }
     convention = attributes.action_convention(attrs, path)
     features = {
         "observation.state": {"dtype": "float32", "shape": [s], "names": feature_names(attrs.get("state_layout"), s)},
-        "action": {"dtype": "float32", "shape": [a], "names": feature_names(attrs.get("action_layout"), a),
-                   **({"info": {"convention": convention}} if convention else {})},
-        "observation.pointcloud": {"dtype": "float32", "shape": [p, c],
-                                   "names": ["points", "xyz" if c == 3 else "xyzrgb"],
-                                   **({"info": cloud_info} if cloud_info else {})},
+        "action": {
+            "dtype": "float32",
+            "shape": [a],
+            "names": feature_names(attrs.get("action_layout"), a),
+            **({"info": {"convention": convention}} if convention else {}),
+        },
+        "observation.pointcloud": {
+            "dtype": "float32",
+            "shape": [p, c],
+            "names": ["points", "xyz" if c == 3 else "xyzrgb"],
+            **({"info": cloud_info} if cloud_info else {}),
+        },
     }
     if "depth" in reader.extra_keys:
         shape, dtype = reader.arrays["data/depth"]
@@ -166,12 +193,18 @@ def _features(reader: ReplayBufferReader, path: Path) -> tuple[dict, list[str]]:
         elif camera is None or unit is None or any(k not in camera for k in INTRINSICS_KEYS[:6]):
             notes.append("data/depth left out: the dataset has no camera_intrinsics and camera_depth_unit attributes")
         elif [camera["height"], camera["width"]] != list(shape[1:]):
-            raise DatasetError(f"{path}: data/depth frames are {shape[2]}x{shape[1]}, its camera_intrinsics say "
-                               f"{camera['width']}x{camera['height']}")
+            raise DatasetError(
+                f"{path}: data/depth frames are {shape[2]}x{shape[1]}, its camera_intrinsics say "
+                f"{camera['width']}x{camera['height']}"
+            )
         else:
             intrinsics = {k: camera[k] for k in INTRINSICS_KEYS[:6]}
-            features["observation.depth"] = {"dtype": "uint16", "shape": list(shape[1:]), "names": ["height", "width"],
-                                             "info": {"camera_intrinsics": {**intrinsics, "depth_unit": unit}}}
+            features["observation.depth"] = {
+                "dtype": "uint16",
+                "shape": list(shape[1:]),
+                "names": ["height", "width"],
+                "info": {"camera_intrinsics": {**intrinsics, "depth_unit": unit}},
+            }
     for key in INDEX_FEATURES:
         features[key] = {"dtype": "float32" if key == "timestamp" else "int64", "shape": [1], "names": None}
     return features, notes
@@ -190,15 +223,38 @@ def _tasks(reader: ReplayBufferReader, path: Path) -> list[str]:
 
 def _pandas_index_metadata(pa) -> bytes:
     """The metadata pandas reads a parquet file's index from: ``tasks.parquet`` is a pandas frame indexed by task."""
-    return json.dumps({
-        "index_columns": ["__index_level_0__"],
-        "column_indexes": [{"name": None, "field_name": None, "pandas_type": "unicode", "numpy_type": "object",
-                            "metadata": {"encoding": "UTF-8"}}],
-        "columns": [{"name": "task_index", "field_name": "task_index", "pandas_type": "int64", "numpy_type": "int64",
-                     "metadata": None},
-                    {"name": None, "field_name": "__index_level_0__", "pandas_type": "unicode", "numpy_type": "object",
-                     "metadata": None}],
-        "attributes": {}, "creator": {"library": "pyarrow", "version": pa.__version__}}).encode()
+    return json.dumps(
+        {
+            "index_columns": ["__index_level_0__"],
+            "column_indexes": [
+                {
+                    "name": None,
+                    "field_name": None,
+                    "pandas_type": "unicode",
+                    "numpy_type": "object",
+                    "metadata": {"encoding": "UTF-8"},
+                }
+            ],
+            "columns": [
+                {
+                    "name": "task_index",
+                    "field_name": "task_index",
+                    "pandas_type": "int64",
+                    "numpy_type": "int64",
+                    "metadata": None,
+                },
+                {
+                    "name": None,
+                    "field_name": "__index_level_0__",
+                    "pandas_type": "unicode",
+                    "numpy_type": "object",
+                    "metadata": None,
+                },
+            ],
+            "attributes": {},
+            "creator": {"library": "pyarrow", "version": pa.__version__},
+        }
+    ).encode()
 
 
 def _next_file(chunk: int, file: int) -> tuple[int, int]:
@@ -207,8 +263,9 @@ def _next_file(chunk: int, file: int) -> tuple[int, int]:
 
 def _check_export(arguments: dict) -> None:
     check_not_inside(arguments["out"], [arguments["path"]], flag=arguments["flag"], error=DatasetError)
-    check_output(arguments["out"], force=arguments["force"], kind=LEROBOT_DATASET, flag=arguments["flag"],
-                 error=DatasetError)
+    check_output(
+        arguments["out"], force=arguments["force"], kind=LEROBOT_DATASET, flag=arguments["flag"], error=DatasetError
+    )
 
 
 @dataset_writer(out=None, check=_check_export)
@@ -223,8 +280,10 @@ def export(path: Path, out: Path, *, repo_id: str | None = None, force: bool = F
     reader = ReplayBufferReader(path)
     rate = reader.control_rate_hz
     if rate is None:
-        raise DatasetError(f"{path} has no control_rate_hz attribute; a LeRobot dataset needs its frame rate (fps): "
-                           "record or convert the dataset with its control rate")
+        raise DatasetError(
+            f"{path} has no control_rate_hz attribute; a LeRobot dataset needs its frame rate (fps): "
+            "record or convert the dataset with its control rate"
+        )
     if abs(rate - round(rate)) > 1e-9:
         raise DatasetError(f"{path}: control_rate_hz is {rate:g}; LeRobot's fps is a whole number of frames per second")
     fps = int(round(rate))
@@ -233,9 +292,10 @@ def export(path: Path, out: Path, *, repo_id: str | None = None, force: bool = F
     task_list = list(dict.fromkeys(tasks))
     task_index = {t: i for i, t in enumerate(task_list)}
     with_depth = "observation.depth" in features
-    schema = pa.schema([_arrow_field(pa, k, f) for k, f in features.items()],
-                       metadata={"huggingface": json.dumps({"info": {"features": {
-                           k: _hf_feature(f) for k, f in features.items()}}})})
+    schema = pa.schema(
+        [_arrow_field(pa, k, f) for k, f in features.items()],
+        metadata={"huggingface": json.dumps({"info": {"features": {k: _hf_feature(f) for k, f in features.items()}}})},
+    )
     episode_rows, episode_stats = [], []
     with OutputDir(out, LEROBOT_DATASET, force=force, flag=flag, error=DatasetError) as target:
         root = target.path
@@ -244,16 +304,20 @@ def export(path: Path, out: Path, *, repo_id: str | None = None, force: bool = F
             for e in range(reader.n_episodes):
                 episode = reader.episode(e, extras=["depth"] if with_depth else False)
                 n = episode.n_steps
-                values = {"observation.state": episode.state, "action": episode.action,
-                          "observation.pointcloud": episode.point_cloud,
-                          **({"observation.depth": episode.extras["depth"]} if with_depth else {}),
-                          "timestamp": (np.arange(n) / fps).astype(np.float32),
-                          "frame_index": np.arange(n, dtype=np.int64),
-                          "episode_index": np.full(n, e, dtype=np.int64),
-                          "index": np.arange(frames, frames + n, dtype=np.int64),
-                          "task_index": np.full(n, task_index[tasks[e]], dtype=np.int64)}
-                table = pa.Table.from_arrays([_arrow_column(pa, values[k], f) for k, f in features.items()],
-                                             schema=schema)
+                values = {
+                    "observation.state": episode.state,
+                    "action": episode.action,
+                    "observation.pointcloud": episode.point_cloud,
+                    **({"observation.depth": episode.extras["depth"]} if with_depth else {}),
+                    "timestamp": (np.arange(n) / fps).astype(np.float32),
+                    "frame_index": np.arange(n, dtype=np.int64),
+                    "episode_index": np.full(n, e, dtype=np.int64),
+                    "index": np.arange(frames, frames + n, dtype=np.int64),
+                    "task_index": np.full(n, task_index[tasks[e]], dtype=np.int64),
+                }
+                table = pa.Table.from_arrays(
+                    [_arrow_column(pa, values[k], f) for k, f in features.items()], schema=schema
+                )
                 if writer is not None:  # LeRobot's rule: a new file when this episode would take it past the size
                     size = data_file.stat().st_size / (1 << 20)
                     if size + size / (frames - file_start) * n >= DATA_FILE_MB:
@@ -266,32 +330,60 @@ def export(path: Path, out: Path, *, repo_id: str | None = None, force: bool = F
                 writer.write_table(table)
                 stats = {k: _stats(values[k]) for k in features}
                 episode_stats.append(stats)
-                episode_rows.append({"episode_index": e, "tasks": [tasks[e]], "length": n, "data/chunk_index": chunk,
-                                     "data/file_index": file, "dataset_from_index": frames,
-                                     "dataset_to_index": frames + n, "stats": stats})
+                episode_rows.append(
+                    {
+                        "episode_index": e,
+                        "tasks": [tasks[e]],
+                        "length": n,
+                        "data/chunk_index": chunk,
+                        "data/file_index": file,
+                        "dataset_from_index": frames,
+                        "dataset_to_index": frames + n,
+                        "stats": stats,
+                    }
+                )
                 frames += n
             if writer is not None:
                 writer.close()
                 writer = None
             _write_episodes(pa, pq, root, features, episode_rows)
             _write_tasks(pa, pq, root, task_list)
-            _write_json(root / STATS_PATH, {k: {s: v.tolist() for s, v in _aggregate([st[k] for st in episode_stats])
-                                                .items()} for k in features})
-            _write_json(root / INFO_PATH, {
-                "codebase_version": CODEBASE_VERSION, "robot_type": _robot_type(reader.attrs),
-                "total_episodes": reader.n_episodes,
-                "total_frames": frames, "total_tasks": len(task_list), "chunks_size": CHUNKS_SIZE,
-                "data_files_size_in_mb": DATA_FILE_MB, "video_files_size_in_mb": VIDEO_FILE_MB, "fps": fps,
-                "splits": {"train": f"0:{reader.n_episodes}"}, "data_path": DATA_PATH, "video_path": None,
-                "features": features})
+            _write_json(
+                root / STATS_PATH,
+                {k: {s: v.tolist() for s, v in _aggregate([st[k] for st in episode_stats]).items()} for k in features},
+            )
+            _write_json(
+                root / INFO_PATH,
+                {
+                    "codebase_version": CODEBASE_VERSION,
+                    "robot_type": _robot_type(reader.attrs),
+                    "total_episodes": reader.n_episodes,
+                    "total_frames": frames,
+                    "total_tasks": len(task_list),
+                    "chunks_size": CHUNKS_SIZE,
+                    "data_files_size_in_mb": DATA_FILE_MB,
+                    "video_files_size_in_mb": VIDEO_FILE_MB,
+                    "fps": fps,
+                    "splits": {"train": f"0:{reader.n_episodes}"},
+                    "data_path": DATA_PATH,
+                    "video_path": None,
+                    "features": features,
+                },
+            )
         except OSError as exc:
             raise DatasetError(f"cannot write {out} ({exc.strerror or exc}); choose a writable {flag}") from None
         finally:
             if writer is not None:  # an error or Ctrl-C half-way: the staged folder goes, its file is closed first
                 writer.close()
         target.commit()
-    return {"episodes": reader.n_episodes, "frames": frames, "fps": fps, "features": list(features)[:-5],
-            "repo_id": repo_id, "notes": notes}
+    return {
+        "episodes": reader.n_episodes,
+        "frames": frames,
+        "fps": fps,
+        "features": list(features)[:-5],
+        "repo_id": repo_id,
+        "notes": notes,
+    }
 
 
 def _robot_type(attrs: dict) -> str | None:
@@ -334,8 +426,11 @@ def _write_episodes(pa, pq, root: Path, features: dict, rows: list[dict]) -> Non
 
 def _write_tasks(pa, pq, root: Path, tasks: list[str]) -> None:
     """``meta/tasks.parquet``: task_index with the task texts as the pandas index (what LeRobot looks tasks up by)."""
-    schema = pa.schema([pa.field("task_index", pa.int64()), pa.field("__index_level_0__", pa.large_string())],
-                       metadata={"pandas": _pandas_index_metadata(pa)})
-    table = pa.Table.from_arrays([from_numpy(pa, np.arange(len(tasks), dtype=np.int64)),
-                                  text_array(pa, tasks, large=True)], schema=schema)
+    schema = pa.schema(
+        [pa.field("task_index", pa.int64()), pa.field("__index_level_0__", pa.large_string())],
+        metadata={"pandas": _pandas_index_metadata(pa)},
+    )
+    table = pa.Table.from_arrays(
+        [from_numpy(pa, np.arange(len(tasks), dtype=np.int64)), text_array(pa, tasks, large=True)], schema=schema
+    )
     pq.write_table(table, root / TASKS_PATH, compression="snappy")

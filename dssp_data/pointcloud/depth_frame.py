@@ -43,20 +43,28 @@ class Intrinsics:
     def __post_init__(self) -> None:
         for name in ("width", "height"):
             value = getattr(self, name)
-            if not (isinstance(value, numbers.Integral) and not isinstance(value, bool)
-                    and 1 <= value <= MAX_IMAGE_SIDE):
-                raise ConfigError(f"camera intrinsics: {name} is {value!r}; it must be a whole number of pixels in "
-                                  f"[1, {MAX_IMAGE_SIDE}]")
-        ranges = {"fx": (0.0, MAX_FOCAL_PX, "in (0, {hi:g}]"), "fy": (0.0, MAX_FOCAL_PX, "in (0, {hi:g}]"),
-                  "ppx": (0.0, float(self.width), "inside the image, [0, {hi:g}]"),
-                  "ppy": (0.0, float(self.height), "inside the image, [0, {hi:g}]")}
+            if not (
+                isinstance(value, numbers.Integral) and not isinstance(value, bool) and 1 <= value <= MAX_IMAGE_SIDE
+            ):
+                raise ConfigError(
+                    f"camera intrinsics: {name} is {value!r}; it must be a whole number of pixels in "
+                    f"[1, {MAX_IMAGE_SIDE}]"
+                )
+        ranges = {
+            "fx": (0.0, MAX_FOCAL_PX, "in (0, {hi:g}]"),
+            "fy": (0.0, MAX_FOCAL_PX, "in (0, {hi:g}]"),
+            "ppx": (0.0, float(self.width), "inside the image, [0, {hi:g}]"),
+            "ppy": (0.0, float(self.height), "inside the image, [0, {hi:g}]"),
+        }
         for name, (low, high, where) in ranges.items():
             value = getattr(self, name)
             number = isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
             inside = number and (low < value if name in ("fx", "fy") else low <= value) and value <= high
             if not inside:
-                raise ConfigError(f"camera intrinsics: {name} is {value!r}; it must be a finite number of pixels "
-                                  f"{where.format(hi=high)}")
+                raise ConfigError(
+                    f"camera intrinsics: {name} is {value!r}; it must be a finite number of pixels "
+                    f"{where.format(hi=high)}"
+                )
 
     @classmethod
     def rectified(cls, width, height, fx, fy, ppx, ppy, distortion: Sequence[float] = ()) -> Intrinsics:
@@ -65,8 +73,10 @@ class Intrinsics:
         values = np.asarray(distortion, dtype=np.float64).reshape(-1)
         bad = np.flatnonzero(~np.isfinite(values) | (np.abs(values) > DISTORTION_TOLERANCE))
         if bad.size:
-            raise ConfigError(f"camera intrinsics: lens distortion D[{int(bad[0])}] is {float(values[bad[0]])!r}; the "
-                              "clouds are made from a rectified image, whose distortion is zero")
+            raise ConfigError(
+                f"camera intrinsics: lens distortion D[{int(bad[0])}] is {float(values[bad[0]])!r}; the "
+                "clouds are made from a rectified image, whose distortion is zero"
+            )
         return cls(width, height, fx, fy, ppx, ppy)
 
     def to_dict(self) -> dict:

@@ -26,10 +26,9 @@ from typing import ClassVar
 
 import numpy as np
 
+from dssp_core.errors import CalibrationError, ConfigError
 from dssp_core.files import atomic_write_text
-from dssp_core.errors import ConfigError
 from dssp_core.schema import Settings, read_json_object, setting
-from dssp_core.errors import CalibrationError
 
 ROTATION_TOLERANCE = 1e-3  # max |R^T R - I| entry and |det R - 1|: allows 4-5 printed decimals
 MAX_TRANSLATION_M = 10.0  # a camera farther than this from the base is a unit mistake (mm instead of m)
@@ -56,16 +55,21 @@ def validate_extrinsics(matrix, source: str = "camera_to_base", name: str = "cam
     r = m[:3, :3]
     err = float(np.abs(r.T @ r - np.eye(3)).max())
     if err > ROTATION_TOLERANCE:
-        raise CalibrationError(f"{source}: the rotation part is not orthonormal (max |R^T R - I| = {err:.2g} > "
-                               f"{ROTATION_TOLERANCE:g}); store a rotation matrix, not a scaled one")
+        raise CalibrationError(
+            f"{source}: the rotation part is not orthonormal (max |R^T R - I| = {err:.2g} > "
+            f"{ROTATION_TOLERANCE:g}); store a rotation matrix, not a scaled one"
+        )
     det = float(np.linalg.det(r))
     if abs(det - 1.0) > ROTATION_TOLERANCE:
-        raise CalibrationError(f"{source}: the rotation has determinant {det:.4g}, not +1 (a reflection or a "
-                               f"flipped axis); check the axis convention")
+        raise CalibrationError(
+            f"{source}: the rotation has determinant {det:.4g}, not +1 (a reflection or a "
+            f"flipped axis); check the axis convention"
+        )
     dist = float(np.linalg.norm(m[:3, 3]))
     if dist > MAX_TRANSLATION_M:
-        raise CalibrationError(f"{source}: the camera is {dist:.4g} m from the base; translations must be in "
-                               f"metres, not millimetres")
+        raise CalibrationError(
+            f"{source}: the camera is {dist:.4g} m from the base; translations must be in metres, not millimetres"
+        )
     return m
 
 
@@ -107,8 +111,13 @@ def save_extrinsics(path: str | Path, camera_to_base, frame: str = "base", notes
     """Validate and write a calibration file atomically (temporary file + rename). Returns the path."""
     path = Path(path).expanduser()
     m = validate_extrinsics(camera_to_base, source=str(path))
-    text = json.dumps({"camera_to_base": [[float(v) for v in row] for row in m], "frame": str(frame),
-                       "notes": str(notes)}, indent=2) + "\n"
+    text = (
+        json.dumps(
+            {"camera_to_base": [[float(v) for v in row] for row in m], "frame": str(frame), "notes": str(notes)},
+            indent=2,
+        )
+        + "\n"
+    )
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(path, text)
     return path
@@ -122,8 +131,13 @@ def save_camera_to_gripper(path: str | Path, camera_to_gripper, notes: str = "")
     """Validate and write a wrist camera's calibration file atomically; returns the path."""
     path = Path(path).expanduser()
     m = validate_extrinsics(camera_to_gripper, source=str(path), name="camera_to_gripper")
-    text = json.dumps({"camera_to_gripper": [[float(v) for v in row] for row in m], "frame": WRIST_FRAME,
-                       "notes": str(notes)}, indent=2) + "\n"
+    text = (
+        json.dumps(
+            {"camera_to_gripper": [[float(v) for v in row] for row in m], "frame": WRIST_FRAME, "notes": str(notes)},
+            indent=2,
+        )
+        + "\n"
+    )
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(path, text)
     return path
@@ -135,8 +149,9 @@ def load_camera_to_gripper(path: str | Path) -> np.ndarray:
     values = read_json_object(path, "calibration", error=CalibrationError)
     unknown = sorted(set(values) - {"camera_to_gripper", "frame", "notes"})
     if "camera_to_gripper" not in values or unknown:
-        raise CalibrationError(f"{path}: a wrist camera's calibration holds camera_to_gripper, frame and notes, got keys "
-                               f"{sorted(values)}")
+        raise CalibrationError(
+            f"{path}: a wrist camera's calibration holds camera_to_gripper, frame and notes, got keys {sorted(values)}"
+        )
     if values.get("frame", WRIST_FRAME) != WRIST_FRAME:
         raise CalibrationError(f"{path}: frame must be {WRIST_FRAME!r}, got {values['frame']!r}")
     return validate_extrinsics(values["camera_to_gripper"], source=str(path), name="camera_to_gripper")

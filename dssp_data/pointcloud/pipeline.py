@@ -38,9 +38,9 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from dssp_data.pointcloud.depth_frame import DepthFrame, Intrinsics
 from dssp_core.errors import CameraError
 from dssp_data.observation import PointCloudConfig
+from dssp_data.pointcloud.depth_frame import DepthFrame, Intrinsics
 from dssp_data.pointcloud.extrinsics import validate_extrinsics
 
 STAGES = ("clip", "deproject", "crop", "voxel", "sample", "pad", "color")
@@ -94,9 +94,13 @@ def camera_rays(intrinsics: Intrinsics) -> np.ndarray:
     w, h = intrinsics.width, intrinsics.height
     u = (np.arange(w, dtype=np.float64) - intrinsics.ppx) / intrinsics.fx
     v = (np.arange(h, dtype=np.float64) - intrinsics.ppy) / intrinsics.fy
-    return np.stack([np.broadcast_to(u[None, :], (h, w)).reshape(-1),
-                     np.broadcast_to(v[:, None], (h, w)).reshape(-1),
-                     np.ones(h * w)])
+    return np.stack(
+        [
+            np.broadcast_to(u[None, :], (h, w)).reshape(-1),
+            np.broadcast_to(v[:, None], (h, w)).reshape(-1),
+            np.ones(h * w),
+        ]
+    )
 
 
 def _base_rays(intrinsics: Intrinsics, camera_to_base: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -208,8 +212,9 @@ def farthest_point_indices(points: np.ndarray, n_samples: int) -> np.ndarray:
 
 
 # -- the pipeline ------------------------------------------------------------------------------------------
-def frame_to_cloud(frame: DepthFrame, config: PointCloudConfig,
-                   camera_to_base: np.ndarray | None = None) -> tuple[np.ndarray, CloudInfo]:
+def frame_to_cloud(
+    frame: DepthFrame, config: PointCloudConfig, camera_to_base: np.ndarray | None = None
+) -> tuple[np.ndarray, CloudInfo]:
     """One :class:`DepthFrame` -> (cloud, info).
 
     camera_to_base: (4, 4) camera->robot-base transform (``load_extrinsics``); None = identity.
@@ -217,13 +222,17 @@ def frame_to_cloud(frame: DepthFrame, config: PointCloudConfig,
     [0, 1] as channels 3..5 when config.use_color (the frame must carry colour).
     Raises EmptyCloudError (with ``.info``) when nothing is left after the clip and crop.
     """
-    return depth_to_cloud(frame.depth, frame.depth_unit, frame.intrinsics, config, camera_to_base,
-                          color=frame.color)
+    return depth_to_cloud(frame.depth, frame.depth_unit, frame.intrinsics, config, camera_to_base, color=frame.color)
 
 
-def depth_to_cloud(depth: np.ndarray, depth_unit: float, intrinsics: Intrinsics, config: PointCloudConfig,
-                   camera_to_base: np.ndarray | None = None,
-                   color: np.ndarray | None = None) -> tuple[np.ndarray, CloudInfo]:
+def depth_to_cloud(
+    depth: np.ndarray,
+    depth_unit: float,
+    intrinsics: Intrinsics,
+    config: PointCloudConfig,
+    camera_to_base: np.ndarray | None = None,
+    color: np.ndarray | None = None,
+) -> tuple[np.ndarray, CloudInfo]:
     """:func:`frame_to_cloud` on raw arrays: depth (H, W) uint16 raw units (metres = depth * depth_unit),
     color (H, W, 3) uint8 RGB aligned to depth or None. Same outputs."""
     t_start = time.perf_counter()
@@ -276,11 +285,15 @@ def depth_to_cloud(depth: np.ndarray, depth_unit: float, intrinsics: Intrinsics,
     if n_in_crop == 0:
         info = CloudInfo(h * w, n_valid, 0, 0, config.n_points, config.n_points, _total(timings, t_start))
         if n_valid == 0:
-            msg = (f"no valid depth in [{config.depth_near:g}, {config.depth_far:g}] m in the frame; check that "
-                   f"the camera sees the workspace and the depth clip")
+            msg = (
+                f"no valid depth in [{config.depth_near:g}, {config.depth_far:g}] m in the frame; check that "
+                f"the camera sees the workspace and the depth clip"
+            )
         else:
-            msg = (f"none of the {n_valid} valid depth points is inside the crop box {list(config.crop_min)}.."
-                   f"{list(config.crop_max)} m; check camera_to_base (calibration) and the crop box")
+            msg = (
+                f"none of the {n_valid} valid depth points is inside the crop box {list(config.crop_min)}.."
+                f"{list(config.crop_max)} m; check camera_to_base (calibration) and the crop box"
+            )
         raise EmptyCloudError(msg, info)
 
     # 4. voxel
@@ -315,8 +328,7 @@ def depth_to_cloud(depth: np.ndarray, depth_unit: float, intrinsics: Intrinsics,
         cloud = np.ascontiguousarray(pts)
     timings["color"] = _ms(t)
 
-    info = CloudInfo(h * w, n_valid, n_in_crop, n_after_voxel, config.n_points, n_padded,
-                     _total(timings, t_start))
+    info = CloudInfo(h * w, n_valid, n_in_crop, n_after_voxel, config.n_points, n_padded, _total(timings, t_start))
     return cloud, info
 
 

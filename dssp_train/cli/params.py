@@ -1,22 +1,20 @@
 """``dssp-params``: the parameter breakdown of a preset (or of a trained run).
 
-    dssp-params --preset robotwin [--state-dim 14 --action-dim 14] [--set model.d_model=256]
-    dssp-params --run RUN_DIR
+dssp-params --preset robotwin [--state-dim 14 --action-dim 14] [--set model.d_model=256]
+dssp-params --run RUN_DIR
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 import dataclasses
+import sys
 
 from dssp_core.cli_runner import ArgumentParser, run_cli
-from dssp_train.cli.train import set_fields
-from dssp_core.schema import MAX_DIM
-from dssp_train.config import apply_overrides, load_preset, preset_names
 from dssp_core.errors import ConfigError
-from dssp_core.schema import Spec, check_value
-
+from dssp_core.schema import MAX_DIM, Spec, check_value
+from dssp_train.cli.train import set_fields
+from dssp_train.config import apply_overrides, load_preset, preset_names
 
 DEFAULT_DIM = 14  # RoboTwin's two arms
 
@@ -40,7 +38,10 @@ def main(argv: list[str] | None = None) -> int:
         from dssp_train.training.checkpoint import load_config  # deferred: loads safetensors, torch, tqdm
 
         sets = set_fields(args.set, "preset, dataset and control_rate_hz describe a run and change no parameter")
-        dims = {"model.state_dim": ("--state-dim", args.state_dim), "model.action_dim": ("--action-dim", args.action_dim)}
+        dims = {
+            "model.state_dim": ("--state-dim", args.state_dim),
+            "model.action_dim": ("--action-dim", args.action_dim),
+        }
         for key, (flag, value) in dims.items():
             if value is None:
                 continue
@@ -59,8 +60,10 @@ def main(argv: list[str] | None = None) -> int:
         m = config.model
         for key in ("model.state_dim", "model.action_dim"):
             if getattr(m, key.split(".")[1]) < 1:
-                raise ConfigError(f"--set {sets.get(key, key)}: counting parameters needs {key} of at least 1 "
-                                  f"(0 means 'from the dataset', which dssp-params has none of)")
+                raise ConfigError(
+                    f"--set {sets.get(key, key)}: counting parameters needs {key} of at least 1 "
+                    f"(0 means 'from the dataset', which dssp-params has none of)"
+                )
         print(
             f"preset {config.preset}: d_model {m.d_model}, d_state {m.d_state}, expand {m.expand}, "
             f"{m.n_history_layers} history + {m.n_denoiser_layers} denoiser layers ({m.denoiser_backbone}, MLP {m.denoiser_mlp}), "
@@ -80,13 +83,17 @@ def block_variants(model) -> str:
     """The total for each denoiser block composition (model.denoiser_mlp) and mixer (model.denoiser_backbone) at
     this config's sizes, against the paper's 44.3 M; the config's own marked."""
 
-    lines = [f"denoiser blocks (model.denoiser_backbone, model.denoiser_mlp): total, vs the paper's {PAPER_PARAMS / 1e6:.1f} M"]
+    lines = [
+        f"denoiser blocks (model.denoiser_backbone, model.denoiser_mlp): total, vs the paper's {PAPER_PARAMS / 1e6:.1f} M"
+    ]
     for backbone in ("mamba", "transformer"):
         for mlp in ("none", "gated", "dit"):
             variant = dataclasses.replace(model, denoiser_backbone=backbone, denoiser_mlp=mlp)
             total = sum(p.numel() for p in meta_policy(variant).parameters())
             mark = "  <- this config" if (backbone, mlp) == (model.denoiser_backbone, model.denoiser_mlp) else ""
-            lines.append(f"  {backbone:<11} {mlp:<5} {total / 1e6:7.2f} M  {100 * (total / PAPER_PARAMS - 1):+6.1f} %{mark}")
+            lines.append(
+                f"  {backbone:<11} {mlp:<5} {total / 1e6:7.2f} M  {100 * (total / PAPER_PARAMS - 1):+6.1f} %{mark}"
+            )
     return "\n".join(lines)
 
 

@@ -15,9 +15,13 @@ from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.output_guard import OutputKind, check_output
 from dssp_data.attributes import ZARR_ENTRIES, made_by
 
-
-SYNTH_DATASET = OutputKind("a synthetic dataset", "dssp-synth", entries=ZARR_ENTRIES, marker=False,
-                           signature=lambda p: made_by(p, ("dssp_train.data.synthetic",)))
+SYNTH_DATASET = OutputKind(
+    "a synthetic dataset",
+    "dssp-synth",
+    entries=ZARR_ENTRIES,
+    marker=False,
+    signature=lambda p: made_by(p, ("dssp_train.data.synthetic",)),
+)
 """``dssp-synth --out``: a zarr dataset whose ``generator`` attribute is ``dssp_train.data.synthetic``."""
 
 

@@ -60,9 +60,13 @@ def _run_signature(path: Path) -> bool:
     return isinstance(config, dict) and "model" in config and "train" in config
 
 
-RUN_DIR = OutputKind("a run directory", "dssp-train",
-                     entries=("config.json", "model.safetensors", "checkpoint", "log.jsonl", "loss.png", "tensorboard", "wandb"),
-                     signature=_run_signature, marker=False)
+RUN_DIR = OutputKind(
+    "a run directory",
+    "dssp-train",
+    entries=("config.json", "model.safetensors", "checkpoint", "log.jsonl", "loss.png", "tensorboard", "wandb"),
+    signature=_run_signature,
+    marker=False,
+)
 """``dssp-train --out``: config.json (a JSON object with ``model`` and ``train``), model.safetensors,
 checkpoint/, log.jsonl, loss.png, and the dashboards' tensorboard/ and wandb/ (``--log``) — recognised by its
 config.json, no marker added."""
@@ -70,33 +74,69 @@ config.json, no marker added."""
 
 def build_parser() -> argparse.ArgumentParser:
     p = ArgumentParser(prog="dssp-train", description=__doc__.split("\n\n")[0].strip("`"))
-    p.add_argument("--data", required=True, help="DP3/RoboTwin zarr dataset (data/point_cloud, data/state, data/action, meta/episode_ends)")
-    p.add_argument("--preset", default=None, help=f"model and training preset: {', '.join(preset_names())} (default tiny)")
+    p.add_argument(
+        "--data",
+        required=True,
+        help="DP3/RoboTwin zarr dataset (data/point_cloud, data/state, data/action, meta/episode_ends)",
+    )
+    p.add_argument(
+        "--preset", default=None, help=f"model and training preset: {', '.join(preset_names())} (default tiny)"
+    )
     p.add_argument("--out", required=True, help="run directory to create (or to continue with --resume)")
-    p.add_argument("--steps", type=int, help="total optimisation steps (with --resume: the new total, past the checkpoint's step)")
+    p.add_argument(
+        "--steps", type=int, help="total optimisation steps (with --resume: the new total, past the checkpoint's step)"
+    )
     p.add_argument("--seed", type=int, help="seed for initialisation, episode split and sampling")
     p.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="default: cuda when available")
     p.add_argument("--batch-size", type=int, help="action windows sampled from each trajectory per step")
     p.add_argument("--lr", type=float, help="peak learning rate")
-    p.add_argument("--epochs", type=int, help="passes over the training trajectories (steps = epochs x training episodes); "
-                                                "instead of --steps")
+    p.add_argument(
+        "--epochs",
+        type=int,
+        help="passes over the training trajectories (steps = epochs x training episodes); instead of --steps",
+    )
     p.add_argument("--val-ratio", type=float, help="fraction of episodes held out for validation")
-    p.add_argument("--no-holdout", action="store_true", help="train on every episode (train.val_ratio 0), as the paper does with "
-                                                             "its 10 MetaWorld/Adroit demonstrations; validation reports on training episodes")
-    p.add_argument("--control-rate", type=float, help="control rate of the data in Hz, when the dataset does not record it "
-                   "(a recorded rate must not be contradicted)")
+    p.add_argument(
+        "--no-holdout",
+        action="store_true",
+        help="train on every episode (train.val_ratio 0), as the paper does with "
+        "its 10 MetaWorld/Adroit demonstrations; validation reports on training episodes",
+    )
+    p.add_argument(
+        "--control-rate",
+        type=float,
+        help="control rate of the data in Hz, when the dataset does not record it "
+        "(a recorded rate must not be contradicted)",
+    )
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
     p.add_argument("--force", action="store_true", help="replace a previous run in --out (once the new one completes)")
     ablations = p.add_argument_group("ablations (paper Tables 3 and 5)")
-    ablations.add_argument("--no-history", action="store_true", help="no history encoder: DSSP without history (the reactive baseline; DP3 itself: --preset dp3_sim or dp3)")
-    ablations.add_argument("--no-timestep-decoupling", action="store_true", help="AdaLN modulates the prefix tokens too")
+    ablations.add_argument(
+        "--no-history",
+        action="store_true",
+        help="no history encoder: DSSP without history (the reactive baseline; DP3 itself: --preset dp3_sim or dp3)",
+    )
+    ablations.add_argument(
+        "--no-timestep-decoupling", action="store_true", help="AdaLN modulates the prefix tokens too"
+    )
     ablations.add_argument("--no-recent-states", action="store_true", help="prefix is [c_t] only")
     ablations.add_argument("--no-dynamics-loss", action="store_true", help="lambda = 0")
     ablations.add_argument("--history-backbone", choices=["mamba", "transformer"], help="history encoder backbone")
-    ablations.add_argument("--history-window", type=int, help="encode only the last T_h observations (0 = full history)")
-    ablations.add_argument("--denoiser-backbone", choices=["mamba", "transformer"],
-                           help="denoiser blocks' mixer: Mamba, or causal self-attention (Table 5's w/ Trans.)")
-    p.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE", help="any other config field, e.g. model.d_model=256")
+    ablations.add_argument(
+        "--history-window", type=int, help="encode only the last T_h observations (0 = full history)"
+    )
+    ablations.add_argument(
+        "--denoiser-backbone",
+        choices=["mamba", "transformer"],
+        help="denoiser blocks' mixer: Mamba, or causal self-attention (Table 5's w/ Trans.)",
+    )
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="SECTION.FIELD=VALUE",
+        help="any other config field, e.g. model.d_model=256",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_log_flag(p)
     return p
@@ -105,9 +145,13 @@ def build_parser() -> argparse.ArgumentParser:
 def add_log_flag(p: argparse.ArgumentParser) -> None:
     """``--log tensorboard|wandb|none`` on ``p``: the dashboard the run logs to besides log.jsonl. Checked by
     ``run_training`` (one line naming the allowed values, or the package to install), not by argparse."""
-    p.add_argument("--log", default="none", metavar="{" + ",".join(DASHBOARDS) + "}",
-                   help="dashboard besides log.jsonl: tensorboard (RUN_DIR/tensorboard), wandb (RUN_DIR/wandb, offline unless "
-                        "WANDB_MODE says otherwise) or none (default); needs the viz extra")
+    p.add_argument(
+        "--log",
+        default="none",
+        metavar="{" + ",".join(DASHBOARDS) + "}",
+        help="dashboard besides log.jsonl: tensorboard (RUN_DIR/tensorboard), wandb (RUN_DIR/wandb, offline unless "
+        "WANDB_MODE says otherwise) or none (default); needs the viz extra",
+    )
 
 
 # Flags that set one config field: (flag, argparse dest, field).
@@ -139,7 +183,9 @@ def _field(key: str):
     *sections, name = key.split(".")
     for section in sections:
         cls = typing.get_type_hints(cls)[section]
-    return typing.get_type_hints(cls)[name], {f.name: f for f in dataclasses.fields(cls)}[name].metadata.get("spec", Spec())
+    return typing.get_type_hints(cls)[name], {f.name: f for f in dataclasses.fields(cls)}[name].metadata.get(
+        "spec", Spec()
+    )
 
 
 def check_flag(flag: str, key: str, value):
@@ -231,7 +277,7 @@ def config_from_args(args, run_config: RunConfig | None = None) -> RunConfig:
 
 
 def _first_save(out: Path) -> str:
-    """"step N's save" for the run in ``out`` (its config.json), or "its first save"."""
+    """ "step N's save" for the run in ``out`` (its config.json), or "its first save"."""
     from dssp_train.training.checkpoint import first_save_step, load_config  # deferred: loads safetensors, torch, tqdm
 
     try:
@@ -243,8 +289,10 @@ def _first_save(out: Path) -> str:
 def no_checkpoint_message(out: Path) -> str:
     """Why the run in ``out`` cannot be continued when it holds no checkpoint, and what to do."""
     if (out / "model.safetensors").is_file():  # written with every checkpoint: this one was removed since
-        return (f"{out / 'checkpoint'} is missing, so the run cannot be continued (its model.safetensors stays usable "
-                "for export): start it over with --force")
+        return (
+            f"{out / 'checkpoint'} is missing, so the run cannot be continued (its model.safetensors stays usable "
+            "for export): start it over with --force"
+        )
     return f"{out} has no checkpoint yet (stopped before {_first_save(out)}): start it over with --force"
 
 
@@ -262,10 +310,14 @@ def check_resume(args, out: Path) -> RunConfig:
         raise CheckpointError(no_checkpoint_message(out))
     where = checkpoint_dir(out) / "trainer_state.json"
     if not check_recorded_config(out, config, state, where):
-        warnings.warn(f"{where} does not record the config it was trained with (saved by an older version): "
-                      f"{out / 'config.json'} is taken as it is")
+        warnings.warn(
+            f"{where} does not record the config it was trained with (saved by an older version): "
+            f"{out / 'config.json'} is taken as it is"
+        )
     if args.steps is not None and args.steps <= state["step"]:
-        raise ConfigError(f"--steps must be larger than the checkpoint's step {state['step']} to continue (got {args.steps})")
+        raise ConfigError(
+            f"--steps must be larger than the checkpoint's step {state['step']} to continue (got {args.steps})"
+        )
     return config
 
 
@@ -353,7 +405,9 @@ def run_training(args, make_config) -> int:
                 if not args.resume:
                     try:  # before anything else: a run that may not be replaced stops here
                         if is_main:
-                            target = stack.enter_context(OutputDir(out, RUN_DIR, force=args.force, staged=False, keep_partial=True))
+                            target = stack.enter_context(
+                                OutputDir(out, RUN_DIR, force=args.force, staged=False, keep_partial=True)
+                            )
                             replaced = target.found == OWN
                         else:  # rank 0 moves a replaced run aside and creates --out
                             check_output(out, force=args.force, kind=RUN_DIR)
@@ -364,8 +418,10 @@ def run_training(args, make_config) -> int:
                         if RUN_DIR.owns(out):
                             if checkpoint_dir(out) is None:
                                 raise OutputError(f"{no_checkpoint_message(out)}, or choose another --out") from None
-                            raise OutputError(f"{out} already holds a run; continue it with --resume, pass --force to replace it "
-                                              "or choose another --out") from None
+                            raise OutputError(
+                                f"{out} already holds a run; continue it with --resume, pass --force to replace it "
+                                "or choose another --out"
+                            ) from None
                         raise
                 summary = _train(args, out, make_config)
                 if target is not None:
@@ -398,22 +454,37 @@ def _train(args, out: Path, make_config) -> dict | None:
         done = read_trainer_state(out)["step"]
         if done >= config.train.steps:  # nothing to train: nothing is read, written or reported as trained
             if int(os.environ.get("RANK", "0")) == 0:
-                print(f"{out} has completed its {config.train.steps} steps: nothing to train; continue it with "
-                      f"--resume {getattr(args, 'steps_flag', '--steps')} N (N > {done})", file=sys.stderr)
+                print(
+                    f"{out} has completed its {config.train.steps} steps: nothing to train; continue it with "
+                    f"--resume {getattr(args, 'steps_flag', '--steps')} N (N > {done})",
+                    file=sys.stderr,
+                )
             return None
     if not Path(args.data).exists():
-        raise DSSPError(f"dataset {args.data} does not exist; pass a DP3/RoboTwin .zarr directory (dssp-synth makes one)")
+        raise DSSPError(
+            f"dataset {args.data} does not exist; pass a DP3/RoboTwin .zarr directory (dssp-synth makes one)"
+        )
     device = args.device if args.device != "auto" else ("cuda" if torch.cuda.is_available() else "cpu")
     trainer = Trainer(
-        config, args.data, out, device=device, resume=args.resume, progress=not args.no_progress,
-        control_rate_hz=args.control_rate, user_set=set_fields(args.set), dashboard=args.log,
+        config,
+        args.data,
+        out,
+        device=device,
+        resume=args.resume,
+        progress=not args.no_progress,
+        control_rate_hz=args.control_rate,
+        user_set=set_fields(args.set),
+        dashboard=args.log,
     )
     args.trainer = trainer
     if trainer.is_main:
         for note in trainer.notes:
             print(note, file=sys.stderr)
     if trainer.is_main and trainer.config.control_rate_hz is None:
-        print(f"warning: {args.data} does not record its control rate; pass --control-rate HZ so the runtime can match it", file=sys.stderr)
+        print(
+            f"warning: {args.data} does not record its control rate; pass --control-rate HZ so the runtime can match it",
+            file=sys.stderr,
+        )
     summary = trainer.run()
     return summary if trainer.is_main else None
 

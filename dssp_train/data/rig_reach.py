@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from dssp_data.observation import PointCloudConfig
 from dssp_data.dataset_layout import Episode
+from dssp_data.observation import PointCloudConfig
 from dssp_data.replay_buffer_writer import write_replay_buffer
 
 ARM_HOME = (0.0, 0.6, -0.6, 0.0, 0.4, 0.0, 0.8)  # one Piper: J1..J6 rad, gripper opening 0..1

@@ -40,14 +40,23 @@ from pathlib import Path
 
 import numpy as np
 
-from dssp_data.dataset_layout import Episode
-from dssp_data.replay_buffer_writer import write_replay_buffer
 from dssp_core.errors import ConfigError
 from dssp_core.schema import DEFAULT_CONTROL_RATE_HZ
+from dssp_data.dataset_layout import Episode
+from dssp_data.replay_buffer_writer import write_replay_buffer
 
 __all__ = [
-    "CUE_STEPS", "DECISION_STEP", "EPISODE_LENGTH", "FIRST_PAUSE_STEPS", "NOISE_STD",
-    "chunk_decision", "count_taps", "expert_decision", "make_tap_count_episodes", "tap_count_states", "write_tap_count_dataset",
+    "CUE_STEPS",
+    "DECISION_STEP",
+    "EPISODE_LENGTH",
+    "FIRST_PAUSE_STEPS",
+    "NOISE_STD",
+    "chunk_decision",
+    "count_taps",
+    "expert_decision",
+    "make_tap_count_episodes",
+    "tap_count_states",
+    "write_tap_count_dataset",
 ]
 
 CUE_STEPS = 3
@@ -76,11 +85,13 @@ def tap_count_states(n_taps: int) -> np.ndarray:
         raise ValueError(f"n_taps must be 1 or 2, got {n_taps}")
     ramp = np.arange(1, RAMP_STEPS + 1) / RAMP_STEPS  # 0.2, 0.4, ..., 1.0
     zeros = np.zeros(RAMP_STEPS)
-    tap = np.concatenate([
-        np.stack([zeros, ramp], axis=1),        # y up
-        np.stack([zeros, 1.0 - ramp], axis=1),  # y down, ends at home
-        np.zeros((PAUSE_STEPS, 2)),             # pause at home
-    ])
+    tap = np.concatenate(
+        [
+            np.stack([zeros, ramp], axis=1),  # y up
+            np.stack([zeros, 1.0 - ramp], axis=1),  # y down, ends at home
+            np.zeros((PAUSE_STEPS, 2)),  # pause at home
+        ]
+    )
     park = np.stack([ramp, zeros], axis=1)
     states = np.concatenate([np.zeros((CUE_STEPS, 2))] + [tap] * n_taps + [park])
     hold = np.repeat(states[-1:], EPISODE_LENGTH - len(states), axis=0)
@@ -135,18 +146,22 @@ def _episode(seed: int, i: int, scene: tuple[np.ndarray, np.ndarray, np.ndarray]
     cloud[:, :n_table] = table
     arm_center = np.concatenate([states, np.full((EPISODE_LENGTH, 1), ARM_HEIGHT)], axis=1)
     cloud[:, n_table:] = arm_center[:, None, :] + arm[None]
-    cloud[:CUE_STEPS, n_table - N_CUE_POINTS:n_table] = np.asarray(CUE_CENTERS[n_taps]) + cue
+    cloud[:CUE_STEPS, n_table - N_CUE_POINTS : n_table] = np.asarray(CUE_CENTERS[n_taps]) + cue
     cloud += np.random.default_rng((seed, 2, i)).normal(0.0, NOISE_STD, size=cloud.shape)
     return Episode(point_cloud=cloud.astype(np.float32), state=states, action=actions)
 
 
-def check_tap_count_size(n_episodes: int, seed: int, n_points: int,
-                         names: tuple[str, str, str] = ("n_episodes", "seed", "n_points")) -> None:
+def check_tap_count_size(
+    n_episodes: int, seed: int, n_points: int, names: tuple[str, str, str] = ("n_episodes", "seed", "n_points")
+) -> None:
     """Refuse (ConfigError, one line naming ``names``) a request outside the task's bounds: 1..MAX_EPISODES
     episodes, a seed >= 0, MIN_POINTS..MAX_POINTS points, at most MAX_CLOUD_BYTES of point clouds in all."""
     episodes_name, seed_name, points_name = names
-    for name, value, low, high in ((episodes_name, n_episodes, 1, MAX_EPISODES), (seed_name, seed, 0, MAX_SEED),
-                                   (points_name, n_points, MIN_POINTS, MAX_POINTS)):
+    for name, value, low, high in (
+        (episodes_name, n_episodes, 1, MAX_EPISODES),
+        (seed_name, seed, 0, MAX_SEED),
+        (points_name, n_points, MIN_POINTS, MAX_POINTS),
+    ):
         if isinstance(value, bool) or not isinstance(value, numbers.Integral) or not low <= value <= high:
             raise ConfigError(f"{name} must be an integer in [{low}, {high}], got {value!r}")
     size = n_episodes * EPISODE_LENGTH * n_points * 3 * 4
@@ -170,8 +185,7 @@ def make_tap_count_episodes(n_episodes: int, seed: int = 0, n_points: int = 64) 
     return [_episode(seed, i, scene) for i in range(n_episodes)]
 
 
-def write_tap_count_dataset(path: str | os.PathLike, n_episodes: int, seed: int = 0,
-                            n_points: int = 64) -> Path:
+def write_tap_count_dataset(path: str | os.PathLike, n_episodes: int, seed: int = 0, n_points: int = 64) -> Path:
     """Write :func:`make_tap_count_episodes` as a DP3 zarr dataset at ``path``; return the path."""
     episodes = make_tap_count_episodes(n_episodes, seed=seed, n_points=n_points)
     attrs = {"control_rate_hz": DEFAULT_CONTROL_RATE_HZ, "task": "tap_count", "generator": "dssp_train.data.synthetic"}

@@ -167,7 +167,14 @@ class Denoiser(nn.Module):
         self.time_embed = TimestepEmbedding(d)
         self.layers = nn.ModuleList(
             DenoiserBlock(
-                d, cfg.d_state, cfg.d_conv, cfg.expand, i, cfg.denoiser_mlp, cfg.denoiser_backbone, cfg.transformer_heads
+                d,
+                cfg.d_state,
+                cfg.d_conv,
+                cfg.expand,
+                i,
+                cfg.denoiser_mlp,
+                cfg.denoiser_backbone,
+                cfg.transformer_heads,
             )
             for i in range(cfg.n_denoiser_layers)
         )
@@ -226,7 +233,9 @@ class Denoiser(nn.Module):
             ha = modulate(layer.norm(a), shift, scale)
             out, _ = mixer_path(layer.mixer, unrolled)(torch.cat([hp, ha], dim=1))
             op, oa = out[:, :n_prefix], out[:, n_prefix:]
-            p = layer.mlp_residual(p + (op if self.decoupled else gate.unsqueeze(1) * op), () if self.decoupled else mlp_mod)
+            p = layer.mlp_residual(
+                p + (op if self.decoupled else gate.unsqueeze(1) * op), () if self.decoupled else mlp_mod
+            )
             a = layer.mlp_residual(a + gate.unsqueeze(1) * oa, mlp_mod)
         return self.readout(a, mod)
 

@@ -41,7 +41,13 @@ class CausalTransformer(nn.Module):
     def __init__(self, d_model: int, n_layer: int, n_heads: int):
         super().__init__()
         layer = nn.TransformerEncoderLayer(
-            d_model, n_heads, dim_feedforward=4 * d_model, dropout=0.0, activation="gelu", batch_first=True, norm_first=True
+            d_model,
+            n_heads,
+            dim_feedforward=4 * d_model,
+            dropout=0.0,
+            activation="gelu",
+            batch_first=True,
+            norm_first=True,
         )
         self.encoder = nn.TransformerEncoder(layer, n_layer, enable_nested_tensor=False)
         self.norm_f = nn.LayerNorm(d_model)

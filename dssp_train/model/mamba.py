@@ -81,9 +81,9 @@ class Mamba(nn.Module):
             nn.init.uniform_(self.dt_proj.weight, -dt_init_std, dt_init_std)
         else:
             raise ValueError(f"dt_init must be 'constant' or 'random', got {dt_init!r}")
-        dt = torch.exp(
-            torch.rand(self.d_inner) * (math.log(dt_max) - math.log(dt_min)) + math.log(dt_min)
-        ).clamp(min=dt_init_floor)
+        dt = torch.exp(torch.rand(self.d_inner) * (math.log(dt_max) - math.log(dt_min)) + math.log(dt_min)).clamp(
+            min=dt_init_floor
+        )
         inv_dt = dt + torch.log(-torch.expm1(-dt))  # inverse of softplus
         with torch.no_grad():
             self.dt_proj.bias.copy_(inv_dt)
@@ -133,15 +133,21 @@ class Mamba(nn.Module):
 
     def _sequence(self, hidden_states: torch.Tensor, state: MambaState | None, scan) -> tuple[torch.Tensor, MambaState]:
         """hidden_states (B, L, d_model) → out (B, L, d_model), state; ``scan(a, b, h0)`` as :func:`linear_scan`."""
-        x, z = self.in_proj(hidden_states).split(self.d_inner, dim=-1)  # (B, L, d_inner) each; one Split node when exported
+        x, z = self.in_proj(hidden_states).split(
+            self.d_inner, dim=-1
+        )  # (B, L, d_inner) each; one Split node when exported
 
         conv_state = x.new_zeros(x.shape[0], self.d_inner, self.d_conv) if state is None else state[0]
         if self.fused_ops is not None:
-            x, new_conv_state = self.fused_ops.causal_conv(x, conv_state, self.conv1d.weight[:, 0].t(), self._conv_bias())
+            x, new_conv_state = self.fused_ops.causal_conv(
+                x, conv_state, self.conv1d.weight[:, 0].t(), self._conv_bias()
+            )
         else:
             x, new_conv_state = causal_conv(x, conv_state, self.conv1d.weight, self.conv1d.bias)  # (B, L, d_inner)
 
-        y, last = self._selective_scan(x, z, None if state is None else state[1], scan)  # (B, L, d_inner), (B, d_inner, d_state)
+        y, last = self._selective_scan(
+            x, z, None if state is None else state[1], scan
+        )  # (B, L, d_inner), (B, d_inner, d_state)
         return self.out_proj(y), (new_conv_state, last)
 
     # ----------------------------------------------------------- recurrent path
@@ -157,7 +163,9 @@ class Mamba(nn.Module):
         conv_state, ssm_state = state
         x, z = self.in_proj(hidden_states).split(self.d_inner, dim=-1)  # (B, d_inner)
         if self.fused_ops is not None:
-            x, conv_state = self.fused_ops.causal_conv(x.unsqueeze(1), conv_state, self.conv1d.weight[:, 0].t(), self._conv_bias())
+            x, conv_state = self.fused_ops.causal_conv(
+                x.unsqueeze(1), conv_state, self.conv1d.weight[:, 0].t(), self._conv_bias()
+            )
             x = x[:, 0]
         else:  # one token: the window's dot product with the kernel, cheaper than a convolution
             conv_state = torch.cat([conv_state[:, :, 1:], x.unsqueeze(-1)], dim=-1)
@@ -173,7 +181,9 @@ class Mamba(nn.Module):
     def _conv_bias(self) -> torch.Tensor:
         return self.conv1d.bias if self.conv1d.bias is not None else self.conv1d.weight.new_zeros(self.d_inner)
 
-    def _selective_scan(self, x: torch.Tensor, z: torch.Tensor, h0: torch.Tensor | None, scan) -> tuple[torch.Tensor, torch.Tensor]:
+    def _selective_scan(
+        self, x: torch.Tensor, z: torch.Tensor, h0: torch.Tensor | None, scan
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """x, z (B, L, d_inner), h0 (B, d_inner, d_state) or None → y * silu(z) (B, L, d_inner), the last state.
 
         With :attr:`fused_ops` set (the exported fused graphs), its ``selective_scan`` does the work of
@@ -181,7 +191,9 @@ class Mamba(nn.Module):
         """
         dt, B, C = torch.split(self.x_proj(x), [self.dt_rank, self.d_state, self.d_state], dim=-1)
         dt = self.dt_proj(dt)  # (B, L, d_inner), before softplus
-        A = -torch.exp(self.A_log.to(torch.promote_types(self.A_log.dtype, torch.float32)))  # (d_inner, d_state), fp32 or wider
+        A = -torch.exp(
+            self.A_log.to(torch.promote_types(self.A_log.dtype, torch.float32))
+        )  # (d_inner, d_state), fp32 or wider
         if self.fused_ops is not None:
             if h0 is None:
                 h0 = x.new_zeros(x.shape[0], self.d_inner, self.d_state)
@@ -189,7 +201,9 @@ class Mamba(nn.Module):
         return selective_scan(x, dt, B, C, z, A, self.D, h0, scan)
 
 
-def causal_conv(x: torch.Tensor, state: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+def causal_conv(
+    x: torch.Tensor, state: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Mamba's conv branch: the causal depthwise convolution continuing from ``state``, then SiLU.
 
     Args:

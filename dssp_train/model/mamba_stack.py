@@ -65,7 +65,9 @@ class MambaStack(nn.Module):
     def init_state(self, batch_size: int, device=None) -> StackState:
         return [layer.mixer.init_state(batch_size, device) for layer in self.layers]
 
-    def forward(self, x: torch.Tensor, state: StackState | None = None, unrolled: bool = False) -> tuple[torch.Tensor, StackState]:
+    def forward(
+        self, x: torch.Tensor, state: StackState | None = None, unrolled: bool = False
+    ) -> tuple[torch.Tensor, StackState]:
         """Sequence path: x (B, L, d_model) → (B, L, d_model) and the state after the last token (``unrolled``: each
         layer's traceable :meth:`Mamba.forward_unrolled`, for export over a few tokens)."""
         new_state = []

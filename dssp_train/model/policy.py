@@ -67,13 +67,17 @@ class DSSPPolicy(nn.Module):
             parts.append(recent)
         return torch.cat(parts, dim=1)
 
-    def encode_trajectory(self, point_cloud: torch.Tensor, agent_pos: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+    def encode_trajectory(
+        self, point_cloud: torch.Tensor, agent_pos: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
         """One raw trajectory (T, P, C), (T, S) → its state tokens z (1, T, d) and context tokens c (1, T, d)
         (None without a history encoder), each causal."""
         z = self.encode_observations(point_cloud.unsqueeze(0), agent_pos.unsqueeze(0))
         return z, (self.history_encoder(z) if self.history_encoder is not None else None)
 
-    def window_prefix(self, z: torch.Tensor, c: torch.Tensor | None, starts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def window_prefix(
+        self, z: torch.Tensor, c: torch.Tensor | None, starts: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """The prefix (B, L_p, d) of the windows starting at ``starts`` (B,) of one encoded trajectory (z, c: (1, T, d)),
         and the indices (B, H) of their target actions."""
         obs_idx, act_idx = self.trajectory_windows(z.shape[1], starts)
@@ -126,7 +130,12 @@ class DSSPPolicy(nn.Module):
             z_hat = self.dynamics(c[0, :-1], a_norm[:-1])
             dyn = dynamics_loss(z_hat, z[0, 1:])
             diagnostics = dynamics_diagnostics(z_hat, z[0])
-        return {"loss": diffusion + self.cfg.dynamics_weight * dyn, "diffusion": diffusion, "dynamics": dyn, **diagnostics}
+        return {
+            "loss": diffusion + self.cfg.dynamics_weight * dyn,
+            "diffusion": diffusion,
+            "dynamics": dyn,
+            **diagnostics,
+        }
 
     def forward(self, *args, **kwargs) -> dict[str, torch.Tensor]:
         """Same as :meth:`compute_loss` (what DistributedDataParallel calls)."""

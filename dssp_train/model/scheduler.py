@@ -67,8 +67,14 @@ class DiffusionSchedule:
         a_prev = self.alphas_cumprod[prev] if prev >= 0 else self.final_alpha_cumprod
         return float(a_t), float(a_prev)
 
-    def ddim_step(self, model_output: torch.Tensor, t: int, sample: torch.Tensor, num_steps: int | None = None,
-                  inpaint: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+    def ddim_step(
+        self,
+        model_output: torch.Tensor,
+        t: int,
+        sample: torch.Tensor,
+        num_steps: int | None = None,
+        inpaint: tuple[torch.Tensor, torch.Tensor] | None = None,
+    ) -> torch.Tensor:
         """One deterministic DDIM step (eta = 0) from x_t to x_prev.
 
         ``inpaint`` (target (B, H, A) normalised, weight (B, H, 1) in [0, 1]): the step's clean prediction is pulled to
@@ -94,8 +100,9 @@ class DiffusionSchedule:
         table = torch.cat([self.final_alpha_cumprod.reshape(1), self.alphas_cumprod]).to(t.device)
         return table[t + 1]
 
-    def predicted_x0_eps(self, model_output: torch.Tensor, sample: torch.Tensor, t: torch.Tensor,
-                         clip: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+    def predicted_x0_eps(
+        self, model_output: torch.Tensor, sample: torch.Tensor, t: torch.Tensor, clip: bool = True
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """(x0, eps) the model's output implies at x_t = ``sample`` (B, H, A), timesteps t (B,), as :meth:`ddim_step`
         takes them (eps from the unclipped x0, x0 clipped with ``clip_sample`` unless ``clip`` is false)."""
         a_t = self.alpha_prod(t).to(sample.dtype).reshape(-1, *([1] * (sample.dim() - 1)))
@@ -111,4 +118,3 @@ class DiffusionSchedule:
         """Deterministic DDIM to timesteps t_to (B,) (-1: the clean end) from a prediction (x0, eps), each (B, H, A)."""
         a_to = self.alpha_prod(t_to).to(x0.dtype).reshape(-1, *([1] * (x0.dim() - 1)))
         return a_to.sqrt() * x0 + (1 - a_to).sqrt() * eps
-

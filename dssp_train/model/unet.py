@@ -65,8 +65,9 @@ class ConvBlock(nn.Sequential):
     """(B, C_in, L) -> (B, C_out, L): Conv1d (same padding) + GroupNorm + Mish."""
 
     def __init__(self, c_in: int, c_out: int, kernel_size: int, n_groups: int):
-        super().__init__(nn.Conv1d(c_in, c_out, kernel_size, padding=kernel_size // 2), nn.GroupNorm(n_groups, c_out),
-                         nn.Mish())
+        super().__init__(
+            nn.Conv1d(c_in, c_out, kernel_size, padding=kernel_size // 2), nn.GroupNorm(n_groups, c_out), nn.Mish()
+        )
 
 
 class FiLMResidualBlock(nn.Module):
@@ -101,13 +102,20 @@ class UNetDenoiser(nn.Module):
             return FiLMResidualBlock(c_in, c_out, cond, k, groups)
 
         self.down = nn.ModuleList(
-            nn.ModuleList([block(c_in, c_out), block(c_out, c_out),
-                           nn.Conv1d(c_out, c_out, 3, stride=2, padding=1) if i < len(levels) - 1 else nn.Identity()])
+            nn.ModuleList(
+                [
+                    block(c_in, c_out),
+                    block(c_out, c_out),
+                    nn.Conv1d(c_out, c_out, 3, stride=2, padding=1) if i < len(levels) - 1 else nn.Identity(),
+                ]
+            )
             for i, (c_in, c_out) in enumerate(levels)
         )
         self.mid = nn.ModuleList([block(dims[-1], dims[-1]), block(dims[-1], dims[-1])])
         self.up = nn.ModuleList(  # one level per downsampling, each back to twice the length
-            nn.ModuleList([block(2 * c_out, c_in), block(c_in, c_in), nn.ConvTranspose1d(c_in, c_in, 4, stride=2, padding=1)])
+            nn.ModuleList(
+                [block(2 * c_out, c_in), block(c_in, c_in), nn.ConvTranspose1d(c_in, c_in, 4, stride=2, padding=1)]
+            )
             for c_in, c_out in reversed(levels[1:])
         )
         self.head = nn.Sequential(ConvBlock(dims[0], dims[0], k, groups), nn.Conv1d(dims[0], cfg.action_dim, 1))
@@ -126,8 +134,9 @@ class UNetDenoiser(nn.Module):
         """Training path: prefix (B, L_p, d), x_tau (B, H, A), timesteps (B,) -> x0_hat (B, H, A)."""
         return self.forward_modulated(prefix, x_tau, self.modulation(timesteps))
 
-    def forward_modulated(self, prefix: torch.Tensor, x_tau: torch.Tensor, mod: StepTable,
-                          unrolled: bool = False) -> torch.Tensor:
+    def forward_modulated(
+        self, prefix: torch.Tensor, x_tau: torch.Tensor, mod: StepTable, unrolled: bool = False
+    ) -> torch.Tensor:
         """:meth:`forward` with the step embeddings given (B rows or one shared by the batch)."""
         return self.denoise_modulated(self.encode_prefix(prefix), x_tau, mod)
 
@@ -135,8 +144,9 @@ class UNetDenoiser(nn.Module):
         """The global condition: prefix (B, L_p, d) -> (B, L_p * d)."""
         return prefix.flatten(1)
 
-    def denoise_modulated(self, global_cond: torch.Tensor, x_tau: torch.Tensor, mod: StepTable,
-                          unrolled: bool = False) -> torch.Tensor:
+    def denoise_modulated(
+        self, global_cond: torch.Tensor, x_tau: torch.Tensor, mod: StepTable, unrolled: bool = False
+    ) -> torch.Tensor:
         """x0_hat (B, H, A) from the global condition (B, G), x_tau (B, H, A) and the step embeddings (B or 1, e)."""
         step = mod.embedding.expand(x_tau.shape[0], -1)
         cond = torch.cat([step, global_cond], dim=-1)

@@ -58,7 +58,9 @@ def save_tensors(path: Path, tensors: dict[str, torch.Tensor], metadata: dict[st
 def load_tensors(path: Path) -> dict[str, torch.Tensor]:
     path = Path(path)
     if not path.is_file():
-        raise CheckpointError(f"{path} is missing: train a model first (dssp-train) or point at a complete run directory")
+        raise CheckpointError(
+            f"{path} is missing: train a model first (dssp-train) or point at a complete run directory"
+        )
     try:
         return load_file(str(path))
     except (SafetensorError, OSError, ValueError) as exc:
@@ -81,7 +83,9 @@ def load_state_into(module: nn.Module, tensors: dict[str, torch.Tensor], source:
     if unexpected:
         problems.append(f"{len(unexpected)} unexpected (e.g. {', '.join(unexpected[:3])})")
     if mismatched:
-        problems.append(f"{len(mismatched)} with another shape (checkpoint vs config, e.g. {'; '.join(mismatched[:3])})")
+        problems.append(
+            f"{len(mismatched)} with another shape (checkpoint vs config, e.g. {'; '.join(mismatched[:3])})"
+        )
     if problems:
         raise CheckpointError(
             f"{source} does not fit its config: tensors {'; '.join(problems)}. "
@@ -102,7 +106,9 @@ def load_config(run_dir: Path) -> RunConfig:
     """``RUN_DIR/config.json`` as a validated RunConfig; every problem is one CheckpointError naming the file."""
     path = Path(run_dir) / "config.json"
     if not path.is_file():
-        raise CheckpointError(f"{path} is missing: {run_dir} is not a DSSP run directory (dssp-train --out creates one)")
+        raise CheckpointError(
+            f"{path} is missing: {run_dir} is not a DSSP run directory (dssp-train --out creates one)"
+        )
     values = read_json_object(path, None, error=CheckpointError, hint=RESTORE_HINT)
     try:
         config = RunConfig.from_dict(values)
@@ -110,12 +116,16 @@ def load_config(run_dir: Path) -> RunConfig:
         raise CheckpointError(f"{path} is not a valid DSSP config: {exc}") from None
     missing = [key for key in ("model", "train") if not isinstance(values.get(key), dict)]
     if missing:
-        raise CheckpointError(f"{path} lacks its {' and '.join(missing)} section{'s' if len(missing) > 1 else ''}: "
-                              f"it is not a complete run config; {RESTORE_HINT}")
+        raise CheckpointError(
+            f"{path} lacks its {' and '.join(missing)} section{'s' if len(missing) > 1 else ''}: "
+            f"it is not a complete run config; {RESTORE_HINT}"
+        )
     m = config.model
     if m.state_dim < 1 or m.action_dim < 1:
-        raise CheckpointError(f"{path} has model.state_dim={m.state_dim} and model.action_dim={m.action_dim}, but a run "
-                              f"records its dataset's (at least 1); {RESTORE_HINT}")
+        raise CheckpointError(
+            f"{path} has model.state_dim={m.state_dim} and model.action_dim={m.action_dim}, but a run "
+            f"records its dataset's (at least 1); {RESTORE_HINT}"
+        )
     return config
 
 
@@ -179,7 +189,9 @@ def _show(value: Any) -> str:
     return json.dumps(value) if not isinstance(value, str) else value
 
 
-def check_recorded_config(run_dir: Path, config: RunConfig, record: Mapping[str, Any] | None, where: Path | str) -> bool:
+def check_recorded_config(
+    run_dir: Path, config: RunConfig, record: Mapping[str, Any] | None, where: Path | str
+) -> bool:
     """Refuse a config.json that differs from the config ``where`` (a weights file, a trainer_state.json) records.
 
     ``record``: the safetensors metadata or the trainer state holding ``config`` and ``config_sha256``. Returns
@@ -191,7 +203,9 @@ def check_recorded_config(run_dir: Path, config: RunConfig, record: Mapping[str,
         return False
     digest = record.get(CONFIG_HASH_KEY)
     now_text = canonical_config(config)
-    if isinstance(record.get(CONFIG_KEY), str) and config_sha256(now_text) == digest == config_sha256(record[CONFIG_KEY]):
+    if isinstance(record.get(CONFIG_KEY), str) and config_sha256(now_text) == digest == config_sha256(
+        record[CONFIG_KEY]
+    ):
         return True
     differences = config_differences(_recorded_values(record.get(CONFIG_KEY), digest, str(where)), json.loads(now_text))
     if not differences:
@@ -288,7 +302,11 @@ def save_training_state(
     tmp = Path(tempfile.mkdtemp(dir=run_dir, prefix=PARTIAL_PREFIX))
     record = config_record(config) if config is not None else {}
     if config is not None:
-        trainer_state = {**trainer_state, CONFIG_KEY: json.loads(record[CONFIG_KEY]), CONFIG_HASH_KEY: record[CONFIG_HASH_KEY]}
+        trainer_state = {
+            **trainer_state,
+            CONFIG_KEY: json.loads(record[CONFIG_KEY]),
+            CONFIG_HASH_KEY: record[CONFIG_HASH_KEY],
+        }
     try:
         os.chmod(tmp, 0o777 & ~_umask())
         meta = {"format_version": FORMAT_VERSION, "step": str(trainer_state["step"]), **record}

@@ -82,8 +82,11 @@ def open_dashboard(name: str, run_dir: Path, config: Mapping[str, Any], resume_s
 
 def scalars_of(values: Mapping[str, Any]) -> dict[str, float]:
     """The finite real numbers of a ``log.jsonl`` row, by name, without ``step`` (bools and the rest left out)."""
-    return {key: float(value) for key, value in values.items()
-            if key != "step" and isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)}
+    return {
+        key: float(value)
+        for key, value in values.items()
+        if key != "step" and isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    }
 
 
 def figure_image(fig: Any) -> np.ndarray:
@@ -149,13 +152,21 @@ class WandbDashboard:
         mode = os.environ.get("WANDB_MODE") or "offline"
         try:
             self.run = wandb.init(
-                mode=mode, dir=str(run_dir), project=WANDB_PROJECT, name=run_dir.resolve().name, config=dict(config),
-                id=run_id, resume="allow" if run_id else None, settings=wandb.Settings(console="off"),
+                mode=mode,
+                dir=str(run_dir),
+                project=WANDB_PROJECT,
+                name=run_dir.resolve().name,
+                config=dict(config),
+                id=run_id,
+                resume="allow" if run_id else None,
+                settings=wandb.Settings(console="off"),
             )
         except Exception as exc:  # noqa: BLE001 - wandb's errors (no login online, a bad WANDB_MODE) share no base
             reason = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
-            raise DSSPError(f"--log wandb: W&B could not start the run in {mode} mode ({reason}); "
-                            "unset WANDB_MODE to log offline, or run wandb login") from None
+            raise DSSPError(
+                f"--log wandb: W&B could not start the run in {mode} mode ({reason}); "
+                "unset WANDB_MODE to log offline, or run wandb login"
+            ) from None
 
         atomic_write_text(id_file, self.run.id + "\n")
         self.run.define_metric("step")

@@ -56,8 +56,10 @@ def load_teacher(config: RunConfig, device: torch.device) -> DSSPPolicy:
     mine.pop("diffusion"), theirs.pop("diffusion")
     if mine != theirs:
         differ = sorted(k for k in mine if mine[k] != theirs.get(k))
-        raise ConfigError(f"the student's model differs from its teacher {run_dir} in {', '.join(differ)}; a student "
-                          "keeps the teacher's architecture (dssp-distill builds its config from the teacher)")
+        raise ConfigError(
+            f"the student's model differs from its teacher {run_dir} in {', '.join(differ)}; a student "
+            "keeps the teacher's architecture (dssp-distill builds its config from the teacher)"
+        )
     teacher, _ = load_policy(run_dir)
     teacher.to(device).eval()
     teacher.requires_grad_(False)
@@ -102,7 +104,9 @@ class DistillObjective(nn.Module):
 
     def _prefixes(self, point_cloud, agent_pos, starts):
         with torch.no_grad():
-            teacher_prefix, act_idx = self.teacher.window_prefix(*self.teacher.encode_trajectory(point_cloud, agent_pos), starts)
+            teacher_prefix, act_idx = self.teacher.window_prefix(
+                *self.teacher.encode_trajectory(point_cloud, agent_pos), starts
+            )
         if self.freeze_encoders:
             return teacher_prefix, teacher_prefix, act_idx
         student_prefix, _ = self.student.window_prefix(*self.student.encode_trajectory(point_cloud, agent_pos), starts)
@@ -120,8 +124,10 @@ class DistillObjective(nn.Module):
         loss = self._consistency(prefix, teacher_prefix, x0, generator)
         with torch.no_grad():  # the yardstick on a few windows: the teacher's full chain is not the objective's cost
             few = slice(0, GAP_WINDOWS)
-            gap = F.mse_loss(self.student.ddim_chain(prefix[few].detach(), noise[few]),
-                             self.teacher.sample_normalized(teacher_prefix[few], noise[few], self.teacher_steps))
+            gap = F.mse_loss(
+                self.student.ddim_chain(prefix[few].detach(), noise[few]),
+                self.teacher.sample_normalized(teacher_prefix[few], noise[few], self.teacher_steps),
+            )
         return {"loss": loss, "distill": loss, "teacher_mse": gap}
 
     @torch.no_grad()
@@ -140,7 +146,9 @@ class DistillObjective(nn.Module):
             x0_t, eps_t = schedule.predicted_x0_eps(self.teacher.denoiser(teacher_prefix, x_hi, t_hi), x_hi, t_hi)
             x_lo = schedule.ddim_jump(x0_t, eps_t, t_lo)
             clean = (t_lo < 0).reshape(-1, 1, 1)
-            own, _ = schedule.predicted_x0_eps(self.target(prefix.detach(), x_lo, t_lo.clamp(min=0)), x_lo, t_lo.clamp(min=0))
+            own, _ = schedule.predicted_x0_eps(
+                self.target(prefix.detach(), x_lo, t_lo.clamp(min=0)), x_lo, t_lo.clamp(min=0)
+            )
             target = torch.where(clean, x_lo, own)
         # unclipped, so the gradient reaches every output
         pred, _ = schedule.predicted_x0_eps(self.student.denoiser(prefix, x_hi, t_hi), x_hi, t_hi, clip=False)

@@ -129,8 +129,10 @@ def available_bytes(device: torch.device) -> int | None:
     except (OSError, ValueError, IndexError):
         pass
     cgroup = Path("/sys/fs/cgroup")
-    for limit_name, usage_name in (("memory.max", "memory.current"),
-                                   ("memory/memory.limit_in_bytes", "memory/memory.usage_in_bytes")):
+    for limit_name, usage_name in (
+        ("memory.max", "memory.current"),
+        ("memory/memory.limit_in_bytes", "memory/memory.usage_in_bytes"),
+    ):
         limit, usage = _read_int(cgroup / limit_name), _read_int(cgroup / usage_name)
         if limit is not None and usage is not None and limit < 2**60:  # "max" or a huge v1 value: no limit
             found.append(max(0, limit - usage))

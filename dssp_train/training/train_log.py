@@ -3,7 +3,8 @@ the figure of a validation chunk the dashboards show (:func:`chunk_figure`).
 
 Each line has ``"kind": "train"`` (step, loss, diffusion, dynamics, lr, steps_per_s, windows_per_s; with the
 dynamics loss also dyn_cos, dyn_cos_mean, dyn_cos_prev: the predictor's and two trivial predictors' cosines;
-a distilled student logs loss, distill and teacher_mse instead of the diffusion and dynamics losses) or ``"kind": "val"`` (step, val_diffusion, val_action_mse). Lines are flushed as written, so a
+a distilled student logs loss, distill and teacher_mse instead of the diffusion and dynamics losses) or ``"kind":
+"val"`` (step, val_diffusion, val_action_mse). Lines are flushed as written, so a
 crashed run keeps its log up to the crash.
 """
 
@@ -30,7 +31,9 @@ class RunLog:
     def __init__(self, path: Path, append: bool = False, resume_step: int | None = None):
         self.path = Path(path)
         if resume_step is not None and self.path.exists():
-            kept = [line for line, row in _parsed_lines(self.path) if row is not None and row.get("step", 0) <= resume_step]
+            kept = [
+                line for line, row in _parsed_lines(self.path) if row is not None and row.get("step", 0) <= resume_step
+            ]
             atomic_write_text(self.path, "".join(line + "\n" for line in kept))
             append = True
         self._file = open(self.path, "a" if append else "w")
@@ -84,7 +87,11 @@ def plot_log(log_path: Path, png_path: Path) -> None:
                 axes[0].plot(steps, [r["dynamics"] for r in train], label="dynamics 1-cos (train)")
     if diagnostics:  # the dynamics predictor against trivial guesses of z_{t+1}: a collapsed z shows here
         steps = [r["step"] for r in diagnostics]
-        for key, label in (("dyn_cos", "g_phi(c_t, a_t)"), ("dyn_cos_prev", "z_t (persistence)"), ("dyn_cos_mean", "episode mean z")):
+        for key, label in (
+            ("dyn_cos", "g_phi(c_t, a_t)"),
+            ("dyn_cos_prev", "z_t (persistence)"),
+            ("dyn_cos_mean", "episode mean z"),
+        ):
             axes[2].plot(steps, [r[key] for r in diagnostics], label=label)
         axes[2].set(xlabel="step", ylabel="cosine to z_{t+1}", title="Dynamics predictor vs trivial predictors")
         axes[2].legend()
@@ -94,7 +101,9 @@ def plot_log(log_path: Path, png_path: Path) -> None:
         axes[1].plot(steps, [r["val_action_mse"] for r in val], "o-", color="C3")
     axes[0].set(xlabel="step", ylabel="loss", yscale="log", title="Training losses")
     axes[0].legend()
-    axes[1].set(xlabel="step", ylabel="MSE (normalised units)", yscale="log", title="Validation: sampled action chunk error")
+    axes[1].set(
+        xlabel="step", ylabel="MSE (normalised units)", yscale="log", title="Validation: sampled action chunk error"
+    )
     fig.tight_layout()
     fig.savefig(png_path, dpi=100)
     plt.close(fig)
@@ -138,7 +147,10 @@ def chunk_figure(chunk: ValChunk, max_dims: int = 14):
         ax.tick_params(labelsize=7)
     axes[0].legend(fontsize=7)
     where = "held-out" if chunk.held_out else "training"
-    fig.suptitle(f"validation chunk: {where} episode {chunk.episode}, window at step {chunk.start}\n"
-                 "sampled (EMA) vs expert, raw units; executed actions shaded", fontsize=9)
+    fig.suptitle(
+        f"validation chunk: {where} episode {chunk.episode}, window at step {chunk.start}\n"
+        "sampled (EMA) vs expert, raw units; executed actions shaded",
+        fontsize=9,
+    )
     fig.tight_layout()
     return fig

@@ -24,17 +24,17 @@ import torch
 import torch.distributed as dist
 from tqdm.auto import tqdm
 
-from dssp_train.config import RunConfig, resolve_epochs
-from dssp_data.replay_buffer import ReplayBuffer
 from dssp_core.errors import CheckpointError, ConfigError, DSSPError
 from dssp_data.observation import ObservationContract
+from dssp_data.replay_buffer import ReplayBuffer
+from dssp_train.config import RunConfig, resolve_epochs
 from dssp_train.model.policy import DSSPPolicy
 from dssp_train.training import checkpoint as ckpt
+from dssp_train.training.dashboards import Dashboard, open_dashboard
+from dssp_train.training.distillation import DistillObjective, init_student, load_teacher
 from dssp_train.training.ema import EMA
 from dssp_train.training.lr_schedule import cosine_with_warmup
 from dssp_train.training.memory import check_memory
-from dssp_train.training.dashboards import Dashboard, open_dashboard
-from dssp_train.training.distillation import DistillObjective, init_student, load_teacher
 from dssp_train.training.train_log import RunLog, ValChunk, chunk_figure, plot_log
 
 VAL_SEED = 1234567
@@ -62,8 +62,15 @@ def split_episodes(n_episodes: int, val_ratio: float, seed: int) -> tuple[list[i
     return sorted(order[n_val:]), sorted(order[:n_val])
 
 
-def resolve_data_facts(config: RunConfig, data: ReplayBuffer, data_path: str, control_rate_hz: float | None,
-                       *, resume: bool = False, user_set: Collection[str] = ()) -> RunConfig:
+def resolve_data_facts(
+    config: RunConfig,
+    data: ReplayBuffer,
+    data_path: str,
+    control_rate_hz: float | None,
+    *,
+    resume: bool = False,
+    user_set: Collection[str] = (),
+) -> RunConfig:
     """Fill the dimensions, the control rate and the observation contract from the dataset; refuse what does not fit.
 
     ``control_rate_hz``: the rate the user gave (``--control-rate``); it must agree with the rate the dataset
@@ -77,32 +84,49 @@ def resolve_data_facts(config: RunConfig, data: ReplayBuffer, data_path: str, co
             f"model.point_dim={m.point_dim} needs xyz+rgb clouds but {data_path} has {data.point_dim} channels per point; "
             + ("--resume continues a run on the same --data it was trained on" if resume else "use model.point_dim=3")
         )
-    for name, have, what in (("state_dim", data.state_dim, "state values"), ("action_dim", data.action_dim, "action values"),
-                             ("n_points", data.n_points, "points per cloud")):
+    for name, have, what in (
+        ("state_dim", data.state_dim, "state values"),
+        ("action_dim", data.action_dim, "action values"),
+        ("n_points", data.n_points, "points per cloud"),
+    ):
         want = getattr(m, name)
         if want == have or (name != "n_points" and not want):
             setattr(m, name, have)
             continue
         if resume:
-            raise ConfigError(f"the run's config has model.{name}={want} but {data_path} has {have} {what}: it was trained on "
-                              "other data; --resume continues it on the same --data")
+            raise ConfigError(
+                f"the run's config has model.{name}={want} but {data_path} has {have} {what}: it was trained on "
+                "other data; --resume continues it on the same --data"
+            )
         if name != "n_points" or f"model.{name}" in user_set:
-            raise ConfigError(f"--set model.{name}={want} but {data_path} has {have} {what}; drop the override to use the dataset's")
+            raise ConfigError(
+                f"--set model.{name}={want} but {data_path} has {have} {what}; drop the override to use the dataset's"
+            )
         setattr(m, name, have)  # the preset's cloud size: the dataset's is used
     if not resume or config.dataset is None:
         config.dataset = str(data_path)
     recorded = data.control_rate_hz
-    if control_rate_hz is not None and recorded is not None and not math.isclose(control_rate_hz, recorded, rel_tol=1e-9):
-        raise ConfigError(f"--control-rate {control_rate_hz:g} Hz contradicts the {recorded:g} Hz that {data_path} records; "
-                          "drop --control-rate (the recorded rate is used)")
+    if (
+        control_rate_hz is not None
+        and recorded is not None
+        and not math.isclose(control_rate_hz, recorded, rel_tol=1e-9)
+    ):
+        raise ConfigError(
+            f"--control-rate {control_rate_hz:g} Hz contradicts the {recorded:g} Hz that {data_path} records; "
+            "drop --control-rate (the recorded rate is used)"
+        )
     rate = control_rate_hz if control_rate_hz is not None else recorded
     if resume and config.control_rate_hz is not None:  # the run's rate stays; a contradiction is refused
         if rate is not None and not math.isclose(rate, config.control_rate_hz, rel_tol=1e-9):
             if control_rate_hz is not None:
-                raise ConfigError(f"--control-rate {rate:g} Hz contradicts the run's control rate of "
-                                  f"{config.control_rate_hz:g} Hz; drop --control-rate")
-            raise ConfigError(f"{data_path} now records {rate:g} Hz but the run was trained at {config.control_rate_hz:g} Hz: "
-                              "the dataset changed since; start a new run (--force, or another --out)")
+                raise ConfigError(
+                    f"--control-rate {rate:g} Hz contradicts the run's control rate of "
+                    f"{config.control_rate_hz:g} Hz; drop --control-rate"
+                )
+            raise ConfigError(
+                f"{data_path} now records {rate:g} Hz but the run was trained at {config.control_rate_hz:g} Hz: "
+                "the dataset changed since; start a new run (--force, or another --out)"
+            )
     elif rate is not None:
         config.control_rate_hz = float(rate)
     recorded_contract = ObservationContract.from_attrs(data.attrs, str(data_path))
@@ -110,8 +134,10 @@ def resolve_data_facts(config: RunConfig, data: ReplayBuffer, data_path: str, co
         config.observation = recorded_contract
     pointcloud = config.observation.pointcloud
     if pointcloud is not None and pointcloud.n_points != m.n_points:
-        raise ConfigError(f"{data_path}'s pointcloud attribute says {pointcloud.n_points} points per cloud but its clouds "
-                          f"hold {m.n_points}: fix the attribute")
+        raise ConfigError(
+            f"{data_path}'s pointcloud attribute says {pointcloud.n_points} points per cloud but its clouds "
+            f"hold {m.n_points}: fix the attribute"
+        )
     RunConfig.from_dict(config.to_dict())  # re-validate
     return config
 
@@ -134,7 +160,9 @@ def check_resume_data(run_dir: Path, config: RunConfig, data: ReplayBuffer, data
     recorded = state.get("dataset") if isinstance(state.get("dataset"), dict) else None
     trained_on = (recorded or {}).get("path") or config.dataset
     if trained_on is not None and os.path.realpath(trained_on) != os.path.realpath(data_path):
-        raise ConfigError(f"{run_dir} was trained on {trained_on}; --resume continues it on the same --data (got {data_path})")
+        raise ConfigError(
+            f"{run_dir} was trained on {trained_on}; --resume continues it on the same --data (got {data_path})"
+        )
     if recorded is not None:
         now = dataset_identity(data, data_path)
         if any(recorded.get(k) != now[k] for k in ("n_episodes", "n_steps", "episode_ends_sha256")):
@@ -153,7 +181,11 @@ def budget_notes(config: RunConfig, n_train: int, n_val: int) -> list[str]:
     """The lines a run prints at its start: its budget in steps (and epochs), and a warning about a costly holdout."""
     tc = config.train
     epochs = tc.steps / n_train
-    how = f"{tc.epochs} epochs x {n_train} training episodes" if tc.epochs else f"train.steps, {epochs:.4g} epochs of {n_train} training episodes"
+    how = (
+        f"{tc.epochs} epochs x {n_train} training episodes"
+        if tc.epochs
+        else f"train.steps, {epochs:.4g} epochs of {n_train} training episodes"
+    )
     notes = [f"budget: {tc.steps} steps ({how}), {tc.batch_size} windows per step"]
     if n_val and n_train < FEW_TRAINING_EPISODES:
         notes.append(
@@ -203,14 +235,17 @@ class Trainer:
         # On --resume the caller passes the run's own config (dssp-train does).
         if resume:
             check_resume_data(self.run_dir, config, self.data, data_path)
-        self.config = config = resolve_data_facts(config, self.data, str(data_path), control_rate_hz,
-                                                  resume=resume, user_set=user_set)
+        self.config = config = resolve_data_facts(
+            config, self.data, str(data_path), control_rate_hz, resume=resume, user_set=user_set
+        )
         self.dataset_identity = dataset_identity(self.data, data_path)
         tc = config.train
 
         self.train_ids, self.val_ids = split_episodes(self.data.n_episodes, tc.val_ratio, tc.seed)
         if not self.train_ids:
-            raise DSSPError(f"{data_path} has no training episodes left after the validation split; lower train.val_ratio")
+            raise DSSPError(
+                f"{data_path} has no training episodes left after the validation split; lower train.val_ratio"
+            )
         if tc.epochs and not resume:  # a resumed run keeps the steps it resolved (or the --steps it was given)
             self.config = config = resolve_epochs(config, len(self.train_ids))
             tc = config.train
@@ -282,7 +317,9 @@ class Trainer:
         self.step += 1
         values = {k: float(v.detach()) for k, v in losses.items()}
         if not all(math.isfinite(v) for v in values.values()):
-            raise DSSPError(f"the loss became non-finite at step {self.step} ({values}); lower train.lr or check the data")
+            raise DSSPError(
+                f"the loss became non-finite at step {self.step} ({values}); lower train.lr or check the data"
+            )
         return values
 
     @torch.no_grad()
@@ -307,9 +344,13 @@ class Trainer:
             if i == 0 and self.dashboard != "none":
                 k = len(starts) // 2
                 self.val_chunk = ValChunk(
-                    episode=(self.val_ids or self.train_ids)[0], start=int(starts[k]), steps=act_idx[k].cpu().numpy(),
-                    sampled=pred[k].cpu().numpy(), expert=ep.action[act_idx[k]].cpu().numpy(),
-                    executed=(executed.start, executed.stop), held_out=not self.val_on_train,
+                    episode=(self.val_ids or self.train_ids)[0],
+                    start=int(starts[k]),
+                    steps=act_idx[k].cpu().numpy(),
+                    sampled=pred[k].cpu().numpy(),
+                    expert=ep.action[act_idx[k]].cpu().numpy(),
+                    executed=(executed.start, executed.stop),
+                    held_out=not self.val_on_train,
                 )
             diff += float(losses["diffusion"]) * len(starts)
             mse += float(err) * len(starts)
@@ -360,13 +401,19 @@ class Trainer:
                 n_log += 1
                 if bar is not None:
                     bar.update(1)
-                    bar.set_postfix({k: f"{values[k]:.4f}" for k in ("diffusion", "dynamics", "distill") if k in values})
+                    bar.set_postfix(
+                        {k: f"{values[k]:.4f}" for k in ("diffusion", "dynamics", "distill") if k in values}
+                    )
                 if self.step % tc.log_every == 0 or self.step == tc.steps:
                     elapsed = time.perf_counter() - t_log
                     rate = n_log / max(elapsed, 1e-9)
                     if log is not None:
-                        row = {"lr": self.lr_schedule.get_last_lr()[0], "steps_per_s": rate,
-                               "windows_per_s": rate * tc.batch_size * self.world_size, **values}
+                        row = {
+                            "lr": self.lr_schedule.get_last_lr()[0],
+                            "steps_per_s": rate,
+                            "windows_per_s": rate * tc.batch_size * self.world_size,
+                            **values,
+                        }
                         log.write("train", step=self.step, **row)
                         dashboard.log_scalars(self.step, row)
                     t_log, n_log = time.perf_counter(), 0
@@ -410,7 +457,12 @@ class Trainer:
             self.policy,
             self.ema.model,
             self.optimizer,
-            {"step": self.step, "ema_step": self.ema.step, "world_size": self.world_size, "dataset": self.dataset_identity},
+            {
+                "step": self.step,
+                "ema_step": self.ema.step,
+                "world_size": self.world_size,
+                "dataset": self.dataset_identity,
+            },
             {"generator": self.generator.get_state(), "torch": torch.get_rng_state()},
             config=self.config,
         )
@@ -438,15 +490,19 @@ class Trainer:
         try:
             self.optimizer.load_state_dict(state["optimizer"])
         except (ValueError, KeyError, RuntimeError) as exc:
-            raise DSSPError(f"{where / 'optimizer.safetensors'} does not fit this model ({exc}); start a new run") from None
+            raise DSSPError(
+                f"{where / 'optimizer.safetensors'} does not fit this model ({exc}); start a new run"
+            ) from None
         try:
             self.step = int(state["trainer_state"]["step"])
             self.ema.step = int(state["trainer_state"]["ema_step"])
         except (KeyError, TypeError, ValueError) as exc:
             raise CheckpointError(f"{where / 'trainer_state.json'} lacks the step ({exc!r}); start a new run") from None
         if self.step > self.config.train.steps:
-            raise ConfigError(f"train.steps={self.config.train.steps} is below the checkpoint's step {self.step}; "
-                              "continue with a larger --steps")
+            raise ConfigError(
+                f"train.steps={self.config.train.steps} is below the checkpoint's step {self.step}; "
+                "continue with a larger --steps"
+            )
         self.lr_schedule.last_epoch = self.step
         for group, factor in zip(self.optimizer.param_groups, self.lr_schedule.lr_lambdas):
             group["lr"] = group["initial_lr"] * factor(self.step)

@@ -57,13 +57,17 @@ class CharucoBoardSpec(Settings):
 
     def validate(self) -> None:
         if self.marker_m >= self.square_m:
-            raise ConfigError(f"board.marker_m ({self.marker_m:g} m) must be smaller than board.square_m "
-                              f"({self.square_m:g} m): the marker sits inside a white square")
+            raise ConfigError(
+                f"board.marker_m ({self.marker_m:g} m) must be smaller than board.square_m "
+                f"({self.square_m:g} m): the marker sits inside a white square"
+            )
         markers = self.squares_x * self.squares_y // 2
         size = int(re.fullmatch(r"DICT_\dX\d_(\d+)", self.dictionary).group(1))
         if markers > size:
-            raise ConfigError(f"board: {self.squares_x} x {self.squares_y} squares need {markers} markers but "
-                              f"{self.dictionary} has {size}; choose a larger dictionary")
+            raise ConfigError(
+                f"board: {self.squares_x} x {self.squares_y} squares need {markers} markers but "
+                f"{self.dictionary} has {size}; choose a larger dictionary"
+            )
 
     @property
     def size_m(self) -> tuple[float, float]:
@@ -115,8 +119,14 @@ def camera_matrix(intrinsics: Intrinsics) -> np.ndarray:
     return np.array([[intrinsics.fx, 0.0, intrinsics.ppx], [0.0, intrinsics.fy, intrinsics.ppy], [0.0, 0.0, 1.0]])
 
 
-def detect_board(color: np.ndarray | None, intrinsics: Intrinsics, board: CharucoBoardSpec, *,
-                 min_corners: int = MIN_CORNERS, max_reprojection_px: float = MAX_REPROJECTION_PX) -> BoardDetection:
+def detect_board(
+    color: np.ndarray | None,
+    intrinsics: Intrinsics,
+    board: CharucoBoardSpec,
+    *,
+    min_corners: int = MIN_CORNERS,
+    max_reprojection_px: float = MAX_REPROJECTION_PX,
+) -> BoardDetection:
     """Find ``board`` in ``color`` (H, W, 3) uint8 RGB (or (H, W) grey) and its pose in the camera frame.
 
     The corners come from OpenCV's ``CharucoDetector`` (markers, then the chessboard corners between them, refined

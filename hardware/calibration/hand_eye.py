@@ -39,8 +39,12 @@ from dssp_core.errors import CalibrationError
 EYE_TO_HAND, EYE_IN_HAND = "eye-to-hand", "eye-in-hand"
 MODES = (EYE_TO_HAND, EYE_IN_HAND)
 
-METHODS = {"TSAI": cv2.CALIB_HAND_EYE_TSAI, "PARK": cv2.CALIB_HAND_EYE_PARK,
-           "HORAUD": cv2.CALIB_HAND_EYE_HORAUD, "DANIILIDIS": cv2.CALIB_HAND_EYE_DANIILIDIS}
+METHODS = {
+    "TSAI": cv2.CALIB_HAND_EYE_TSAI,
+    "PARK": cv2.CALIB_HAND_EYE_PARK,
+    "HORAUD": cv2.CALIB_HAND_EYE_HORAUD,
+    "DANIILIDIS": cv2.CALIB_HAND_EYE_DANIILIDIS,
+}
 
 MIN_POSES = 8
 """Views with a detected board the solve needs. Three with two distinct rotation axes determine X without noise;
@@ -106,7 +110,7 @@ class HandEyeResult:
     def rms(self) -> tuple[float, float]:
         mm = np.array([r.mm for r in self.residuals])
         deg = np.array([r.deg for r in self.residuals])
-        return float(np.sqrt(np.mean(mm ** 2))), float(np.sqrt(np.mean(deg ** 2)))
+        return float(np.sqrt(np.mean(mm**2))), float(np.sqrt(np.mean(deg**2)))
 
     @property
     def worst(self) -> tuple[int, Residual]:
@@ -129,17 +133,23 @@ class HandEyeResult:
         i, worst = self.worst
         dis_mm, dis_deg = self.max_disagreement
         if worst.mm > t.max_mm or worst.deg > t.max_deg:
-            return (f"view {i + 1}'s board is {worst.mm:.1f} mm / {worst.deg:.2f} deg from where the chain puts it "
-                    f"(limits {t.max_mm:g} mm / {t.max_deg:g} deg): check that the board is rigid and was not moving, or "
-                    f"drop that pose and calibrate again")
+            return (
+                f"view {i + 1}'s board is {worst.mm:.1f} mm / {worst.deg:.2f} deg from where the chain puts it "
+                f"(limits {t.max_mm:g} mm / {t.max_deg:g} deg): check that the board is rigid and was not moving, or "
+                f"drop that pose and calibrate again"
+            )
         if rms_mm > t.rms_mm or rms_deg > t.rms_deg:
-            return (f"the residuals are {rms_mm:.1f} mm / {rms_deg:.2f} deg RMS (limits {t.rms_mm:g} mm / "
-                    f"{t.rms_deg:g} deg): check the board's size (--board), that it is flat and rigid, and the arm's "
-                    f"settling, then calibrate again")
+            return (
+                f"the residuals are {rms_mm:.1f} mm / {rms_deg:.2f} deg RMS (limits {t.rms_mm:g} mm / "
+                f"{t.rms_deg:g} deg): check the board's size (--board), that it is flat and rigid, and the arm's "
+                f"settling, then calibrate again"
+            )
         if dis_mm > t.disagreement_mm or dis_deg > t.disagreement_deg:
-            return (f"OpenCV's methods disagree by {dis_mm:.1f} mm / {dis_deg:.2f} deg (limits {t.disagreement_mm:g} mm / "
-                    f"{t.disagreement_deg:g} deg): the poses constrain the camera weakly; add poses that tilt the "
-                    f"wrist further about different axes")
+            return (
+                f"OpenCV's methods disagree by {dis_mm:.1f} mm / {dis_deg:.2f} deg (limits {t.disagreement_mm:g} mm / "
+                f"{t.disagreement_deg:g} deg): the poses constrain the camera weakly; add poses that tilt the "
+                f"wrist further about different axes"
+            )
         return None
 
     def check(self) -> None:
@@ -219,8 +229,12 @@ class PoseSpread:
     min_spread_deg: float = MIN_ROTATION_SPREAD_DEG
 
     @classmethod
-    def of(cls, gripper_to_base: list[np.ndarray], min_poses: int = MIN_POSES,
-           min_spread_deg: float = MIN_ROTATION_SPREAD_DEG) -> PoseSpread:
+    def of(
+        cls,
+        gripper_to_base: list[np.ndarray],
+        min_poses: int = MIN_POSES,
+        min_spread_deg: float = MIN_ROTATION_SPREAD_DEG,
+    ) -> PoseSpread:
         poses = [np.asarray(g, np.float64) for g in gripper_to_base]
         return cls(len(poses), distinct_orientations(poses), rotation_spread_deg(poses), min_poses, min_spread_deg)
 
@@ -228,22 +242,29 @@ class PoseSpread:
         """Why the solve cannot trust these poses (one line naming them as ``what``, e.g. "views with the board
         detected", and what to do), or None."""
         if self.count < self.min_poses:
-            return (f"{self.count} {what}, {self.min_poses} needed; give more poses (--auto N or --poses) with the "
-                    f"board in view")
+            return (
+                f"{self.count} {what}, {self.min_poses} needed; give more poses (--auto N or --poses) with the "
+                f"board in view"
+            )
         if self.distinct < self.min_poses:
-            return (f"the {self.count} {what} turn the gripper to {self.distinct} distinct "
-                    f"orientation{'' if self.distinct == 1 else 's'} (at least "
-                    f"{MIN_ORIENTATION_STEP_DEG:g} deg apart), {self.min_poses} needed; give poses that tilt the wrist "
-                    f"differently, not the same pose again")
+            return (
+                f"the {self.count} {what} turn the gripper to {self.distinct} distinct "
+                f"orientation{'' if self.distinct == 1 else 's'} (at least "
+                f"{MIN_ORIENTATION_STEP_DEG:g} deg apart), {self.min_poses} needed; give poses that tilt the wrist "
+                f"differently, not the same pose again"
+            )
         if self.spread_deg < self.min_spread_deg:
-            return (f"the {self.count} {what} rotate the gripper about one axis only ({self.spread_deg:.1f} deg RMS "
-                    f"about a second axis, {self.min_spread_deg:g} needed); add poses that tilt the wrist further "
-                    f"about other axes (J4 and J5 as well as J6)")
+            return (
+                f"the {self.count} {what} rotate the gripper about one axis only ({self.spread_deg:.1f} deg RMS "
+                f"about a second axis, {self.min_spread_deg:g} needed); add poses that tilt the wrist further "
+                f"about other axes (J4 and J5 as well as J6)"
+            )
         return None
 
 
-def check_views(gripper_to_base: list[np.ndarray], min_poses: int = MIN_POSES,
-                min_spread_deg: float = MIN_ROTATION_SPREAD_DEG) -> float:
+def check_views(
+    gripper_to_base: list[np.ndarray], min_poses: int = MIN_POSES, min_spread_deg: float = MIN_ROTATION_SPREAD_DEG
+) -> float:
     """Refuse views that cannot determine the camera (:class:`PoseSpread`, one line); returns the rotation spread."""
     spread = PoseSpread.of(gripper_to_base, min_poses, min_spread_deg)
     problem = spread.problem("views with the board detected")
@@ -252,17 +273,25 @@ def check_views(gripper_to_base: list[np.ndarray], min_poses: int = MIN_POSES,
     return spread.spread_deg
 
 
-def _solve_one(method: int, gripper_to_base: list[np.ndarray], board_to_camera: list[np.ndarray], mode: str) -> np.ndarray:
+def _solve_one(
+    method: int, gripper_to_base: list[np.ndarray], board_to_camera: list[np.ndarray], mode: str
+) -> np.ndarray:
     hand = gripper_to_base if mode == EYE_IN_HAND else [invert(g) for g in gripper_to_base]
-    r, t = cv2.calibrateHandEye([h[:3, :3] for h in hand], [h[:3, 3] for h in hand],
-                                [c[:3, :3] for c in board_to_camera], [c[:3, 3] for c in board_to_camera], method=method)
+    r, t = cv2.calibrateHandEye(
+        [h[:3, :3] for h in hand],
+        [h[:3, 3] for h in hand],
+        [c[:3, :3] for c in board_to_camera],
+        [c[:3, 3] for c in board_to_camera],
+        method=method,
+    )
     x = np.eye(4)
     x[:3, :3], x[:3, 3] = r, np.asarray(t).reshape(3)
     return x
 
 
-def residuals(x: np.ndarray, gripper_to_base: list[np.ndarray], board_to_camera: list[np.ndarray], mode: str,
-              centre: np.ndarray) -> tuple[np.ndarray, list[Residual]]:
+def residuals(
+    x: np.ndarray, gripper_to_base: list[np.ndarray], board_to_camera: list[np.ndarray], mode: str, centre: np.ndarray
+) -> tuple[np.ndarray, list[Residual]]:
     """The second unknown averaged through ``x`` (the board on the gripper, or in the base frame), and each view's
     residual: the board predicted through the chain vs. detected, at the board point ``centre`` (3,)."""
     if mode == EYE_TO_HAND:  # board_to_gripper = base_to_gripper @ camera_to_base @ board_to_camera
@@ -279,9 +308,14 @@ def residuals(x: np.ndarray, gripper_to_base: list[np.ndarray], board_to_camera:
     return target, out
 
 
-def solve_hand_eye(gripper_to_base: list[np.ndarray], board_to_camera: list[np.ndarray], mode: str,
-                   centre: np.ndarray | None = None, thresholds: Thresholds = Thresholds(),
-                   min_poses: int = MIN_POSES) -> HandEyeResult:
+def solve_hand_eye(
+    gripper_to_base: list[np.ndarray],
+    board_to_camera: list[np.ndarray],
+    mode: str,
+    centre: np.ndarray | None = None,
+    thresholds: Thresholds = Thresholds(),
+    min_poses: int = MIN_POSES,
+) -> HandEyeResult:
     """Solve for the camera (see the module docstring). ``gripper_to_base`` and ``board_to_camera``: one (4, 4) each
     per view, in the same order. ``centre``: the board point residuals are measured at (default the origin).
     Too few views or a degenerate set raise CalibrationError; the residual thresholds are checked by
@@ -301,12 +335,21 @@ def solve_hand_eye(gripper_to_base: list[np.ndarray], board_to_camera: list[np.n
             continue
         by_method[name] = x
         target, res = residuals(x, gripper_to_base, board_to_camera, mode, centre)
-        scored[name] = (float(np.sqrt(np.mean([r.mm ** 2 for r in res]))), target, res)
+        scored[name] = (float(np.sqrt(np.mean([r.mm**2 for r in res]))), target, res)
     if not scored:
-        raise CalibrationError("calibration refused: none of OpenCV's hand-eye methods found a solution; check the poses")
+        raise CalibrationError(
+            "calibration refused: none of OpenCV's hand-eye methods found a solution; check the poses"
+        )
     best = min(scored, key=lambda name: scored[name][0])
     x = by_method[best]
-    return HandEyeResult(mode=mode, transform=x, method=best, by_method=by_method,
-                         disagreement={n: distance(m, x) for n, m in by_method.items() if n != best},
-                         target=scored[best][1], residuals=scored[best][2], rotation_spread_deg=spread,
-                         thresholds=thresholds)
+    return HandEyeResult(
+        mode=mode,
+        transform=x,
+        method=best,
+        by_method=by_method,
+        disagreement={n: distance(m, x) for n, m in by_method.items() if n != best},
+        target=scored[best][1],
+        residuals=scored[best][2],
+        rotation_spread_deg=spread,
+        thresholds=thresholds,
+    )

@@ -63,30 +63,37 @@ def check_poses(poses, where: str = "poses") -> np.ndarray:
         for i, pose in enumerate(poses):
             for j, value in enumerate(pose):
                 if not _is_number(value):
-                    raise ConfigError(f"{where}: pose {i + 1} gives J{j + 1} as {value!r:.40}, not a number; write "
-                                      f"the angle as a JSON number in radians (0.1, not \"0.1\")")
+                    raise ConfigError(
+                        f"{where}: pose {i + 1} gives J{j + 1} as {value!r:.40}, not a number; write "
+                        f'the angle as a JSON number in radians (0.1, not "0.1")'
+                    )
                 if not math.isfinite(_as_float(value)):
-                    raise ConfigError(f"{where}: pose {i + 1} gives J{j + 1} as {value!r:.40}, not a finite number "
-                                      f"of radians")
+                    raise ConfigError(
+                        f"{where}: pose {i + 1} gives J{j + 1} as {value!r:.40}, not a finite number of radians"
+                    )
     else:
-        raise ConfigError(f"{where}: poses must be a list of joint vectors (J1..J6, rad), each a list of "
-                          f"{N_JOINTS} numbers")
+        raise ConfigError(
+            f"{where}: poses must be a list of joint vectors (J1..J6, rad), each a list of {N_JOINTS} numbers"
+        )
     try:
         array = np.array(rows, dtype=np.float64)
     except (TypeError, ValueError, OverflowError):
         array = None
     if array is None or array.ndim != 2 or array.shape[1] != N_JOINTS or not 1 <= len(array) <= MAX_POSES:
         shape = "ragged lists" if array is None else f"shape {array.shape}"
-        raise ConfigError(f"{where}: give 1 to {MAX_POSES} poses of {N_JOINTS} joint angles each (J1..J6, rad), "
-                          f"got {shape}")
+        raise ConfigError(
+            f"{where}: give 1 to {MAX_POSES} poses of {N_JOINTS} joint angles each (J1..J6, rad), got {shape}"
+        )
     for i, pose in enumerate(array):
         if not np.all(np.isfinite(pose)):
             raise ConfigError(f"{where}: pose {i + 1} holds NaN or infinite values")
         outside = np.flatnonzero((pose < JOINT_LOWER) | (pose > JOINT_UPPER))
         if outside.size:
             j = int(outside[0])
-            raise ConfigError(f"{where}: pose {i + 1} has J{j + 1} = {pose[j]:.4g} rad, outside the Piper's "
-                              f"{JOINT_LOWER[j]:.4g}..{JOINT_UPPER[j]:.4g} rad (angles are radians)")
+            raise ConfigError(
+                f"{where}: pose {i + 1} has J{j + 1} = {pose[j]:.4g} rad, outside the Piper's "
+                f"{JOINT_LOWER[j]:.4g}..{JOINT_UPPER[j]:.4g} rad (angles are radians)"
+            )
     return array
 
 
@@ -95,7 +102,8 @@ def check_plan(poses: np.ndarray, where: str) -> np.ndarray:
     detected perfectly, would be refused by the hand-eye solve (:class:`~hardware.calibration.hand_eye.PoseSpread`,
     on the flange poses of the planned joints); returns the poses."""
     problem = PoseSpread.of([flange_pose(q) for q in np.asarray(poses, np.float64).reshape(-1, N_JOINTS)]).problem(
-        "poses")
+        "poses"
+    )
     if problem is not None:
         raise ConfigError(f"{where}: a calibration plan that cannot pass: {problem}")
     return poses
@@ -111,8 +119,10 @@ def read_poses(path) -> np.ndarray:
     data = read_json(path, label)
     if isinstance(data, dict):
         if set(data) - {"poses", "notes"} or "poses" not in data:
-            raise ConfigError(f"{label}: a JSON object needs the key \"poses\" (a list of joint vectors) and "
-                              f"may have \"notes\", got keys {sorted(data)}")
+            raise ConfigError(
+                f'{label}: a JSON object needs the key "poses" (a list of joint vectors) and '
+                f'may have "notes", got keys {sorted(data)}'
+            )
         data = data["poses"]
     if not isinstance(data, list):
         raise ConfigError(f"{label}: poses must be a list of joint vectors (J1..J6, rad)")
@@ -138,8 +148,9 @@ def _halton(i: int, base: int) -> float:
 def check_pose_count(n: int, flag: str = "--auto") -> int:
     """``n`` poses to generate: MIN_POSES (what the solve needs) to MAX_POSES; else a one-line ConfigError."""
     if isinstance(n, bool) or not isinstance(n, int) or not MIN_POSES <= n <= MAX_POSES:
-        raise ConfigError(f"{flag} must be {MIN_POSES} to {MAX_POSES} poses (the solve needs {MIN_POSES} views), "
-                          f"got {n!r}")
+        raise ConfigError(
+            f"{flag} must be {MIN_POSES} to {MAX_POSES} poses (the solve needs {MIN_POSES} views), got {n!r}"
+        )
     return n
 
 

@@ -42,8 +42,9 @@ from hardware.robot import ARM_DOF
 def check_robot(description) -> None:
     """Refuse (one-line ConfigError) a robot the tour cannot calibrate with: it moves one arm."""
     if description.dof != ARM_DOF:
-        raise ConfigError(f"calibration moves one arm ({ARM_DOF} values); the robot has {description.dof}: "
-                          "give one CAN bus")
+        raise ConfigError(
+            f"calibration moves one arm ({ARM_DOF} values); the robot has {description.dof}: give one CAN bus"
+        )
 
 
 @dataclass
@@ -61,9 +62,21 @@ class CalibrationTour(PolicySource):
     name = "calibration"
     needs_cloud = False
 
-    def __init__(self, poses: np.ndarray, camera: Camera, clock: Clock, *, gripper: str = "hold",
-                 settle_s: float = 0.5, still_rad: float = 0.002, reach_rad: float = 0.02, settle_timeout: float = 20.0,
-                 frame_timeout: float = 3.0, events=print, where: str = "the calibration plan") -> None:
+    def __init__(
+        self,
+        poses: np.ndarray,
+        camera: Camera,
+        clock: Clock,
+        *,
+        gripper: str = "hold",
+        settle_s: float = 0.5,
+        still_rad: float = 0.002,
+        reach_rad: float = 0.02,
+        settle_timeout: float = 20.0,
+        frame_timeout: float = 3.0,
+        events=print,
+        where: str = "the calibration plan",
+    ) -> None:
         if gripper not in ("hold", "close"):
             raise ConfigError(f"gripper must be hold or close, got {gripper!r}")
         self.where = where
@@ -126,8 +139,10 @@ class CalibrationTour(PolicySource):
                     return Act(np.append(target, self.opening), events=["back at the start pose"])
                 self._settled_at = now
             elif now - self._since > self.settle_timeout:
-                raise ArmError(f"{self._label()} not reached and still within {self.settle_timeout:g} s (off by "
-                               f"{off:.3f} rad, moving {moving:.4f} rad in {self.settle_s:g} s); check the arm and its load")
+                raise ArmError(
+                    f"{self._label()} not reached and still within {self.settle_timeout:g} s (off by "
+                    f"{off:.3f} rad, moving {moving:.4f} rad in {self.settle_s:g} s); check the arm and its load"
+                )
         else:
             frame = self.camera.latest()
             if frame is not None and frame.timestamp >= self._settled_at:
@@ -138,6 +153,8 @@ class CalibrationTour(PolicySource):
                 self.k += 1
                 self._begin_pose()
             elif now - self._settled_at > self.frame_timeout:
-                raise CameraError(f"{self.camera.name}: no frame within {self.frame_timeout:g} s of the arm settling at "
-                                  f"{self._label()}; check the camera")
+                raise CameraError(
+                    f"{self.camera.name}: no frame within {self.frame_timeout:g} s of the arm settling at "
+                    f"{self._label()}; check the camera"
+                )
         return Act(np.append(self.plan[min(self.k, len(self.plan) - 1)], self.opening), events=events)

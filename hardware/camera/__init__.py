@@ -20,7 +20,17 @@ from hardware.camera.realsense import RealSenseCamera
 
 TABLETOP = "tabletop"  # the spec of the simulated tabletop camera (hardware.camera.tabletop)
 
-__all__ = ["TABLETOP", "Camera", "CameraProfile", "DepthFrame", "Intrinsics", "check_camera_spec", "load_profile", "open_camera", "spec_forms"]
+__all__ = [
+    "TABLETOP",
+    "Camera",
+    "CameraProfile",
+    "DepthFrame",
+    "Intrinsics",
+    "check_camera_spec",
+    "load_profile",
+    "open_camera",
+    "spec_forms",
+]
 
 
 def spec_forms() -> str:
@@ -34,21 +44,27 @@ def check_camera_spec(spec: str, serial: str | None = None) -> None:
         raise CameraError(f"camera spec must be one of {spec_forms()}, got {spec!r}")
     text = spec.strip()
     if text.lower().startswith("file:"):
-        path = text[len("file:"):]
+        path = text[len("file:") :]
         if not path:
             raise CameraError("camera spec file: needs a path, e.g. file:episode.db3")
         if serial is not None:
             raise CameraError("a serial number selects a live camera; it cannot be used with file:PATH")
         if not Path(path).expanduser().is_file():
-            raise CameraError(f"camera recording {path} does not exist (or is not a file); give a .bag or .db3 recording")
+            raise CameraError(
+                f"camera recording {path} does not exist (or is not a file); give a .bag or .db3 recording"
+            )
         return
     name = text.lower()
     if name == "sim":  # the spelling before there were two simulators
-        raise CameraError("camera 'sim' is ambiguous: the simulated tabletop camera is 'tabletop'; the MuJoCo Piper's "
-                          "camera is 'mujoco' (dssp-sim record only)")
+        raise CameraError(
+            "camera 'sim' is ambiguous: the simulated tabletop camera is 'tabletop'; the MuJoCo Piper's "
+            "camera is 'mujoco' (dssp-sim record only)"
+        )
     if name == "mujoco":
-        raise CameraError("camera 'mujoco' is the MuJoCo Piper's and exists only under dssp-sim (dssp-sim record); "
-                          f"here use one of {spec_forms()}")
+        raise CameraError(
+            "camera 'mujoco' is the MuJoCo Piper's and exists only under dssp-sim (dssp-sim record); "
+            f"here use one of {spec_forms()}"
+        )
     if name == TABLETOP:
         if serial is not None:
             raise CameraError(f"a serial number selects a live camera; it cannot be used with {TABLETOP}")
@@ -68,7 +84,7 @@ def open_camera(spec: str, serial: str | None = None, color: bool = False, **kw)
     check_camera_spec(spec, serial)
     text = spec.strip()
     if text.lower().startswith("file:"):
-        path = text[len("file:"):]
+        path = text[len("file:") :]
         return RealSenseCamera(file=path, color=color, **kw)
     name = text.lower()
     if name == TABLETOP:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import time
 from abc import ABC, abstractmethod
+
 from dssp_core.errors import CameraError
 from dssp_data.pointcloud.depth_frame import DepthFrame
 
@@ -34,14 +35,15 @@ class Camera(ABC):
     def wait_for_frame(self, timeout: float = 5.0) -> DepthFrame:
         """Block until a frame is available (raises ``CameraError`` after ``timeout`` seconds)."""
 
-
         deadline = time.monotonic() + timeout
         while True:
             frame = self.latest()
             if frame is not None:
                 return frame
             if time.monotonic() > deadline:
-                raise CameraError(f"{self.name}: no frame within {timeout:g} s; check the cable/USB3 port or the recording")
+                raise CameraError(
+                    f"{self.name}: no frame within {timeout:g} s; check the cable/USB3 port or the recording"
+                )
             time.sleep(0.002)
 
     def __enter__(self) -> "Camera":

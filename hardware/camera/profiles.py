@@ -14,9 +14,8 @@ from functools import lru_cache
 from pathlib import Path
 from typing import ClassVar
 
-from dssp_core.errors import ConfigError
+from dssp_core.errors import CameraError, ConfigError
 from dssp_core.schema import Settings, read_json_object, setting
-from dssp_core.errors import CameraError
 
 PROFILES_PATH = Path(__file__).with_name("profiles.json")
 
@@ -81,7 +80,9 @@ class CameraProfile(Settings):
         if not self.product_line or not self.device_name:
             raise ConfigError(f"camera profile {self.name!r}: product_line and device_name must be non-empty")
         if self.removed_in_sdk is not None and not _VERSION_RE.match(self.removed_in_sdk):
-            raise ConfigError(f"camera profile {self.name!r}: removed_in_sdk must look like '2.54', got {self.removed_in_sdk!r}")
+            raise ConfigError(
+                f"camera profile {self.name!r}: removed_in_sdk must look like '2.54', got {self.removed_in_sdk!r}"
+            )
 
     @classmethod
     def from_entry(cls, name: str, data: dict) -> "CameraProfile":

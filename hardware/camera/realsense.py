@@ -22,10 +22,10 @@ from pathlib import Path
 
 import numpy as np
 
+from dssp_core.errors import CameraError
 from dssp_data.pointcloud.depth_frame import DepthFrame, Intrinsics
 from hardware.camera.base import Camera
 from hardware.camera.profiles import CameraProfile, load_profile, parse_version
-from dssp_core.errors import CameraError
 
 RECORDING_SUFFIXES = (".bag", ".db3")
 
@@ -37,8 +37,11 @@ def import_rs():
     try:
         import pyrealsense2 as rs  # optional: pyrealsense2 (the hardware extra), imported on first use
     except ImportError as e:
-        hint = ("install the system library: apt-get install -y libusb-1.0-0" if "libusb" in str(e)
-                else "install it: pip install pyrealsense2 (or pip install 'dssp[hardware]')")
+        hint = (
+            "install the system library: apt-get install -y libusb-1.0-0"
+            if "libusb" in str(e)
+            else "install it: pip install pyrealsense2 (or pip install 'dssp[hardware]')"
+        )
         raise CameraError(f"pyrealsense2 cannot be imported ({e}); {hint}") from None
     return rs
 
@@ -51,9 +54,11 @@ def sdk_version() -> str:
 
 def l515_sdk_message(version: str) -> str:
     """The one-line explanation for an L515 requested on a librealsense that no longer supports it."""
-    return (f"the L515 needs librealsense <= 2.53, but pyrealsense2 {version} is installed (L500 support was "
-            f"removed in 2.54); use Python 3.10 with `pip install pyrealsense2==2.53.1.*`, or build librealsense "
-            f"<= 2.53 from source; L515 recordings still play on this SDK with file:PATH")
+    return (
+        f"the L515 needs librealsense <= 2.53, but pyrealsense2 {version} is installed (L500 support was "
+        f"removed in 2.54); use Python 3.10 with `pip install pyrealsense2==2.53.1.*`, or build librealsense "
+        f"<= 2.53 from source; L515 recordings still play on this SDK with file:PATH"
+    )
 
 
 def check_sdk_support(profile: CameraProfile, version: str | None = None) -> None:
@@ -68,8 +73,10 @@ def check_sdk_support(profile: CameraProfile, version: str | None = None) -> Non
         return
     if profile.product_line == "L500":
         raise CameraError(l515_sdk_message(version))
-    raise CameraError(f"the {profile.device_name} is not supported by librealsense {version} (removed in "
-                      f"{profile.removed_in_sdk}); install an older pyrealsense2 (< {profile.removed_in_sdk})")
+    raise CameraError(
+        f"the {profile.device_name} is not supported by librealsense {version} (removed in "
+        f"{profile.removed_in_sdk}); install an older pyrealsense2 (< {profile.removed_in_sdk})"
+    )
 
 
 def intrinsics_from_rs(intr) -> Intrinsics:
@@ -80,10 +87,19 @@ def intrinsics_from_rs(intr) -> Intrinsics:
         model = str(getattr(intr, "model", "?"))
         if model not in _warned_distortion:
             _warned_distortion.add(model)
-            warnings.warn(f"depth stream reports distortion {model} {coeffs}; point clouds ignore it "
-                          f"(pinhole deprojection)", RuntimeWarning, stacklevel=3)
-    return Intrinsics(width=int(intr.width), height=int(intr.height), fx=float(intr.fx), fy=float(intr.fy),
-                      ppx=float(intr.ppx), ppy=float(intr.ppy))
+            warnings.warn(
+                f"depth stream reports distortion {model} {coeffs}; point clouds ignore it (pinhole deprojection)",
+                RuntimeWarning,
+                stacklevel=3,
+            )
+    return Intrinsics(
+        width=int(intr.width),
+        height=int(intr.height),
+        fx=float(intr.fx),
+        fy=float(intr.fy),
+        ppx=float(intr.ppx),
+        ppy=float(intr.ppy),
+    )
 
 
 def _clean_unit(unit: float) -> float:
@@ -106,8 +122,10 @@ def depth_frame_from_rs(depth_frame, color_frame=None, *, arrival: float | None 
     intr = intrinsics_from_rs(depth_frame.profile.as_video_stream_profile().get_intrinsics())
     depth = np.asanyarray(depth_frame.get_data())
     if depth.dtype != np.uint16 or depth.shape != (intr.height, intr.width):
-        raise CameraError(f"depth frame is {depth.dtype} {depth.shape}, expected uint16 "
-                          f"({intr.height}, {intr.width}); request the z16 depth format")
+        raise CameraError(
+            f"depth frame is {depth.dtype} {depth.shape}, expected uint16 "
+            f"({intr.height}, {intr.width}); request the z16 depth format"
+        )
     depth = np.array(depth, copy=True)
     color = None
     if color_frame:
@@ -117,12 +135,20 @@ def depth_frame_from_rs(depth_frame, color_frame=None, *, arrival: float | None 
         if fmt not in (rs.format.rgb8, rs.format.bgr8) or data.ndim != 3 or data.shape[2] != 3:
             raise CameraError(f"colour format {fmt} is not supported; request rgb8 (or bgr8)")
         if data.shape[:2] != depth.shape:
-            raise CameraError(f"colour is {data.shape[1]}x{data.shape[0]} but depth is {depth.shape[1]}x"
-                              f"{depth.shape[0]}; align colour to depth (rs.align(rs.stream.depth)) first")
+            raise CameraError(
+                f"colour is {data.shape[1]}x{data.shape[0]} but depth is {depth.shape[1]}x"
+                f"{depth.shape[0]}; align colour to depth (rs.align(rs.stream.depth)) first"
+            )
         color = np.array(data[..., ::-1] if fmt == rs.format.bgr8 else data, dtype=np.uint8, copy=True)
-    return DepthFrame(depth=depth, depth_unit=_clean_unit(depth_frame.get_units()), intrinsics=intr,
-                      timestamp=arrival, frame_number=int(depth_frame.get_frame_number()),
-                      device_timestamp_ms=float(depth_frame.get_timestamp()), color=color)
+    return DepthFrame(
+        depth=depth,
+        depth_unit=_clean_unit(depth_frame.get_units()),
+        intrinsics=intr,
+        timestamp=arrival,
+        frame_number=int(depth_frame.get_frame_number()),
+        device_timestamp_ms=float(depth_frame.get_timestamp()),
+        color=color,
+    )
 
 
 def list_devices() -> list[dict]:
@@ -131,9 +157,12 @@ def list_devices() -> list[dict]:
     out = []
     for dev in rs.context().query_devices():
         info = {}
-        for key, field in (("name", rs.camera_info.name), ("serial", rs.camera_info.serial_number),
-                           ("product_line", rs.camera_info.product_line),
-                           ("firmware", rs.camera_info.firmware_version)):
+        for key, field in (
+            ("name", rs.camera_info.name),
+            ("serial", rs.camera_info.serial_number),
+            ("product_line", rs.camera_info.product_line),
+            ("firmware", rs.camera_info.firmware_version),
+        ):
             try:
                 info[key] = dev.get_info(field) if dev.supports(field) else ""
             except RuntimeError:
@@ -158,27 +187,36 @@ def choose_device(profile: CameraProfile, devices: list[dict], serial: str | Non
         l515 = ""
         if sdk is not None and parse_version(sdk) >= (2, 54):
             l515 = f"; an L515 is never listed by pyrealsense2 {sdk} (use librealsense <= 2.53 for it)"
-        raise CameraError(f"no RealSense device connected (looking for a {profile.device_name}); check the USB3 "
-                          f"cable and port (lsusb should show an Intel 8086: device), the udev rules "
-                          f"(99-realsense-libusb.rules), and that no other program (realsense-viewer) holds the "
-                          f"camera{l515}")
+        raise CameraError(
+            f"no RealSense device connected (looking for a {profile.device_name}); check the USB3 "
+            f"cable and port (lsusb should show an Intel 8086: device), the udev rules "
+            f"(99-realsense-libusb.rules), and that no other program (realsense-viewer) holds the "
+            f"camera{l515}"
+        )
     if serial is not None:
         for d in devices:
             if d["serial"] == str(serial):
                 if profile.device_name.lower() not in d["name"].lower():
-                    raise CameraError(f"device {serial} is a {d['name']}, not a {profile.device_name}; use the "
-                                      f"profile that matches it or another --serial (connected: "
-                                      f"{describe_devices(devices)})")
+                    raise CameraError(
+                        f"device {serial} is a {d['name']}, not a {profile.device_name}; use the "
+                        f"profile that matches it or another --serial (connected: "
+                        f"{describe_devices(devices)})"
+                    )
                 return d
-        raise CameraError(f"no RealSense device with serial {serial}; connected: {describe_devices(devices)}; "
-                          f"check --serial")
+        raise CameraError(
+            f"no RealSense device with serial {serial}; connected: {describe_devices(devices)}; check --serial"
+        )
     matching = [d for d in devices if profile.device_name.lower() in d["name"].lower()]
     if not matching:
-        raise CameraError(f"no {profile.device_name} connected; connected: {describe_devices(devices)}; use the "
-                          f"profile that matches the camera or plug in the {profile.device_name}")
+        raise CameraError(
+            f"no {profile.device_name} connected; connected: {describe_devices(devices)}; use the "
+            f"profile that matches the camera or plug in the {profile.device_name}"
+        )
     if len(matching) > 1:
-        raise CameraError(f"{len(matching)} {profile.device_name} cameras connected "
-                          f"({describe_devices(matching)}); choose one with --serial")
+        raise CameraError(
+            f"{len(matching)} {profile.device_name} cameras connected "
+            f"({describe_devices(matching)}); choose one with --serial"
+        )
     return matching[0]
 
 
@@ -201,9 +239,18 @@ class RealSenseCamera(Camera):
     the frames were recorded.
     """
 
-    def __init__(self, profile: str | CameraProfile | None = None, *, serial: str | None = None,
-                 file: str | Path | None = None, color: bool = False, repeat_playback: bool = False,
-                 real_time: bool = True, poll_timeout: float = 0.2, sdk: str | None = None) -> None:
+    def __init__(
+        self,
+        profile: str | CameraProfile | None = None,
+        *,
+        serial: str | None = None,
+        file: str | Path | None = None,
+        color: bool = False,
+        repeat_playback: bool = False,
+        real_time: bool = True,
+        poll_timeout: float = 0.2,
+        sdk: str | None = None,
+    ) -> None:
         if file is not None and (profile is not None or serial is not None):
             raise CameraError("give either a camera profile (with an optional serial) or file=PATH, not both")
         if file is None and profile is None:
@@ -302,11 +349,14 @@ class RealSenseCamera(Camera):
         line = msg.strip().splitlines()[0] if msg.strip() else "unknown error"
         if self.file is not None:
             if "resolve" in line.lower() and self.color:
-                return (f"recording {self.file} has no colour stream matching the request ({line}); "
-                        f"open it without color")
+                return (
+                    f"recording {self.file} has no colour stream matching the request ({line}); open it without color"
+                )
             return f"cannot play recording {self.file} ({line}); check that it is a librealsense .bag/.db3 recording"
-        return (f"{self.name}: cannot start {self.profile.width}x{self.profile.height} depth @ {self.profile.fps} fps "
-                f"({line}); check the USB3 connection and that no other program uses the camera")
+        return (
+            f"{self.name}: cannot start {self.profile.width}x{self.profile.height} depth @ {self.profile.fps} fps "
+            f"({line}); check the USB3 connection and that no other program uses the camera"
+        )
 
     def _set_depth_unit(self, rs, dev) -> None:
         """Ask the depth sensor for the profile's unit when it is settable (D4xx); L515's is fixed."""

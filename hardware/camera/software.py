@@ -19,11 +19,11 @@ from pathlib import Path
 
 import numpy as np
 
+from dssp_core.errors import CameraError
+from dssp_core.files import atomic_write
 from dssp_data.pointcloud.depth_frame import DepthFrame, Intrinsics
 from hardware.camera.base import Camera
 from hardware.camera.realsense import depth_frame_from_rs, import_rs
-from dssp_core.errors import CameraError
-from dssp_core.files import atomic_write
 
 
 def _rs_intrinsics(rs, intr: Intrinsics):
@@ -51,8 +51,14 @@ class SoftwareDepthCamera(Camera):
 
     name = "software"
 
-    def __init__(self, intrinsics: Intrinsics, depth_unit: float, fps: int = 30, color: bool = False,
-                 record_to: str | Path | None = None) -> None:
+    def __init__(
+        self,
+        intrinsics: Intrinsics,
+        depth_unit: float,
+        fps: int = 30,
+        color: bool = False,
+        record_to: str | Path | None = None,
+    ) -> None:
         if not (isinstance(depth_unit, (int, float)) and 0 < depth_unit <= 0.01):
             raise CameraError(f"depth_unit must be metres per raw unit in (0, 0.01], got {depth_unit!r}")
         if not (isinstance(fps, int) and fps > 0):
@@ -128,8 +134,15 @@ class SoftwareDepthCamera(Camera):
             raise CameraError("color given but the software camera was made with color=False")
         return np.ascontiguousarray(depth), None if color is None else np.ascontiguousarray(color)
 
-    def inject(self, depth: np.ndarray, color: np.ndarray | None = None, *, frame_number: int | None = None,
-               timestamp_ms: float | None = None, timeout: float = 1.0):
+    def inject(
+        self,
+        depth: np.ndarray,
+        color: np.ndarray | None = None,
+        *,
+        frame_number: int | None = None,
+        timestamp_ms: float | None = None,
+        timeout: float = 1.0,
+    ):
         """Inject one frame; return the ``(rs.depth_frame, rs.video_frame | None)`` the syncer hands back.
 
         depth: (H, W) uint16 raw units; color: (H, W, 3) uint8 RGB (required iff ``color=True``).
@@ -166,8 +179,10 @@ class SoftwareDepthCamera(Camera):
             ok, frames = self._syncer.try_wait_for_frames(remaining_ms)
             if not ok:
                 missing = "depth" if not depth_frame else "colour"
-                raise CameraError(f"software camera: injected frame {number} did not come out of the syncer "
-                                  f"({missing} missing after {timeout:g} s)")
+                raise CameraError(
+                    f"software camera: injected frame {number} did not come out of the syncer "
+                    f"({missing} missing after {timeout:g} s)"
+                )
             d = frames.get_depth_frame()
             if d and d.get_frame_number() == number:
                 depth_frame = d
@@ -178,8 +193,14 @@ class SoftwareDepthCamera(Camera):
             if depth_frame and (color_frame or not self.color):
                 return depth_frame, color_frame
 
-    def push(self, depth: np.ndarray, color: np.ndarray | None = None, *, frame_number: int | None = None,
-             timestamp_ms: float | None = None) -> DepthFrame:
+    def push(
+        self,
+        depth: np.ndarray,
+        color: np.ndarray | None = None,
+        *,
+        frame_number: int | None = None,
+        timestamp_ms: float | None = None,
+    ) -> DepthFrame:
         """Inject one frame and return it as a :class:`DepthFrame` (also kept as ``latest()``)."""
         depth_frame, color_frame = self.inject(depth, color, frame_number=frame_number, timestamp_ms=timestamp_ms)
         frame = depth_frame_from_rs(depth_frame, color_frame)
@@ -210,8 +231,15 @@ class SoftwareDepthCamera(Camera):
         self._device = None
 
 
-def record_depth(path: str | Path, frames: Iterable[np.ndarray], intrinsics: Intrinsics, depth_unit: float,
-                 fps: int = 30, colors: Iterable[np.ndarray] | None = None, pace: bool = True) -> Path:
+def record_depth(
+    path: str | Path,
+    frames: Iterable[np.ndarray],
+    intrinsics: Intrinsics,
+    depth_unit: float,
+    fps: int = 30,
+    colors: Iterable[np.ndarray] | None = None,
+    pace: bool = True,
+) -> Path:
     """Write depth frames (each (H, W) uint16 raw units; optional colours (H, W, 3) uint8 RGB) to a recording.
 
     path: the file to write; pyrealsense2 2.59 records rosbag2 only, so it must end in ``.db3`` there

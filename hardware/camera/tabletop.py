@@ -219,11 +219,22 @@ class SimCamera(Camera):
     ``start()`` runs a capture thread at ``fps``; ``start(thread=False)`` + ``capture()`` steps by hand.
     """
 
-    def __init__(self, profile: str | CameraProfile = "l515", *, seed: int = 0, fps: int | None = None,
-                 color: bool = False, noise_std: float = 0.001, invalid_fraction: float = 0.002,
-                 scene: TableScene | None = None, moving_box: Callable[[float], Box | None] | None = None,
-                 camera_to_base: np.ndarray | None = None, intrinsics: Intrinsics | None = None,
-                 hfov_deg: float = 70.0, max_range: float = 9.0) -> None:
+    def __init__(
+        self,
+        profile: str | CameraProfile = "l515",
+        *,
+        seed: int = 0,
+        fps: int | None = None,
+        color: bool = False,
+        noise_std: float = 0.001,
+        invalid_fraction: float = 0.002,
+        scene: TableScene | None = None,
+        moving_box: Callable[[float], Box | None] | None = None,
+        camera_to_base: np.ndarray | None = None,
+        intrinsics: Intrinsics | None = None,
+        hfov_deg: float = 70.0,
+        max_range: float = 9.0,
+    ) -> None:
         self.profile = profile if isinstance(profile, CameraProfile) else load_profile(profile)
         self.fps = int(fps or self.profile.fps)
         if self.fps <= 0:
@@ -261,8 +272,9 @@ class SimCamera(Camera):
     def _reset_rng(self) -> None:
         self._rng = np.random.default_rng(self.seed)
         # A pool of Gaussian noise twice the image size; each frame reads it from a random offset.
-        self._noise = (self._rng.standard_normal(2 * self._n_pixels, dtype=np.float32)
-                       * np.float32(self.noise_std / self.depth_unit))
+        self._noise = self._rng.standard_normal(2 * self._n_pixels, dtype=np.float32) * np.float32(
+            self.noise_std / self.depth_unit
+        )
         self._frame_number = 0
 
     # -- rendering -----------------------------------------------------------------------------------------
@@ -280,7 +292,7 @@ class SimCamera(Camera):
         scaled = depth_m * np.float32(1.0 / self.depth_unit)
         if self.noise_std > 0:
             offset = int(self._rng.integers(0, self._n_pixels))
-            scaled += self._noise[offset:offset + self._n_pixels].reshape(h, w)
+            scaled += self._noise[offset : offset + self._n_pixels].reshape(h, w)
         limit = min(self.max_range / self.depth_unit, 65535.0)
         bad = ~(scaled <= limit)  # also catches inf / nan
         np.rint(scaled, out=scaled)

@@ -32,11 +32,11 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Protocol
 
-from dssp_core.schema import DEFAULT_CONTROL_RATE_HZ, check_rate
 from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import ConfigError, DSSPError, OutputError
-from hardware.piper.bus import interface_name
+from dssp_core.schema import DEFAULT_CONTROL_RATE_HZ, check_rate
 from hardware.cli.stops import Stops
+from hardware.piper.bus import interface_name
 
 MUJOCO = "mujoco"  # the camera and arm of the twin dssp-sim calibrate hands in
 MODES = ("eye-to-hand", "eye-in-hand")
@@ -71,29 +71,57 @@ def build_parser(sim: SimulatedCalibrationRig | None = None, prog: str = "dssp-c
 
     p = ArgumentParser(prog=prog, description="Hand-eye calibration of the camera with a ChArUco board.")
     default = MUJOCO if sim is not None else None
-    p.add_argument("--camera", default=default, required=sim is None,
-                   help="l515 | d435 | d405" + (" | mujoco (default: the twin's)" if sim else ""))
+    p.add_argument(
+        "--camera",
+        default=default,
+        required=sim is None,
+        help="l515 | d435 | d405" + (" | mujoco (default: the twin's)" if sim else ""),
+    )
     not_twin = " (not on the twin)" if sim else ""
     p.add_argument("--serial", help="RealSense serial number, when several are connected" + not_twin)
-    p.add_argument("--can", default=default, required=sim is None,
-                   help="the arm's CAN bus, e.g. can0" + (" | mujoco (default: the twin's arm)" if sim else ""))
+    p.add_argument(
+        "--can",
+        default=default,
+        required=sim is None,
+        help="the arm's CAN bus, e.g. can0" + (" | mujoco (default: the twin's arm)" if sim else ""),
+    )
     p.add_argument("--interface", type=interface_name, help=f"python-can interface (default: {INTERFACE})" + not_twin)
-    p.add_argument("--mode", choices=MODES, required=True,
-                   help="eye-to-hand: fixed camera, board on the gripper (writes camera_to_base); eye-in-hand: camera "
-                        "on the wrist, board on the table (writes camera_to_gripper)")
+    p.add_argument(
+        "--mode",
+        choices=MODES,
+        required=True,
+        help="eye-to-hand: fixed camera, board on the gripper (writes camera_to_base); eye-in-hand: camera "
+        "on the wrist, board on the table (writes camera_to_gripper)",
+    )
     where = p.add_mutually_exclusive_group(required=True)
-    where.add_argument("--poses", type=Path, help="JSON of joint vectors (rad): {\"poses\": [[J1..J6], ...]}")
-    where.add_argument("--auto", type=_pose_count, metavar="N",
-                       help=f"N poses ({MIN_POSES} to {MAX_POSES}) generated around the arm's position at start (put "
-                            f"the board in view first)")
-    p.add_argument("--board", type=Path, help="board JSON (squares_x, squares_y, square_m, marker_m, dictionary; "
-                                              "default: 7 x 5 squares of 36 mm, DICT_4X4_50, A4)")
+    where.add_argument("--poses", type=Path, help='JSON of joint vectors (rad): {"poses": [[J1..J6], ...]}')
+    where.add_argument(
+        "--auto",
+        type=_pose_count,
+        metavar="N",
+        help=f"N poses ({MIN_POSES} to {MAX_POSES}) generated around the arm's position at start (put "
+        f"the board in view first)",
+    )
+    p.add_argument(
+        "--board",
+        type=Path,
+        help="board JSON (squares_x, squares_y, square_m, marker_m, dictionary; "
+        "default: 7 x 5 squares of 36 mm, DICT_4X4_50, A4)",
+    )
     p.add_argument("--out", type=Path, required=True, help="the calibration JSON to write")
-    p.add_argument("--json", type=Path, help="also write the calibration's record here: the result, each view's row, the "
-                                             "methods' disagreement (and on the twin the distance from the true pose)")
+    p.add_argument(
+        "--json",
+        type=Path,
+        help="also write the calibration's record here: the result, each view's row, the "
+        "methods' disagreement (and on the twin the distance from the true pose)",
+    )
     p.add_argument("--force", action="store_true", help="replace an existing --out (and --json)")
-    p.add_argument("--control-rate", type=float, default=DEFAULT_CONTROL_RATE_HZ,
-                   help=f"control rate of the moves, Hz (default {DEFAULT_CONTROL_RATE_HZ:g})")
+    p.add_argument(
+        "--control-rate",
+        type=float,
+        default=DEFAULT_CONTROL_RATE_HZ,
+        help=f"control rate of the moves, Hz (default {DEFAULT_CONTROL_RATE_HZ:g})",
+    )
     p.add_argument("--safety", type=Path, help="safety settings JSON (hardware.safety.SafetyConfig fields)")
     return p
 
@@ -107,19 +135,27 @@ def _check(args, sim) -> None:
     camera, can = args.camera.strip().lower(), args.can.strip().lower()
     if sim is not None:
         if camera != MUJOCO or can != MUJOCO:
-            raise ConfigError("dssp-sim calibrate runs the twin: --camera mujoco --can mujoco (the defaults); calibrate "
-                              "a real robot with dssp-calibrate")
+            raise ConfigError(
+                "dssp-sim calibrate runs the twin: --camera mujoco --can mujoco (the defaults); calibrate "
+                "a real robot with dssp-calibrate"
+            )
         for flag, value in (("--serial", args.serial), ("--interface", args.interface)):
             if value is not None:
-                raise ConfigError(f"{flag} {value}: the twin has no RealSense and no CAN interface to choose; leave "
-                                  f"{flag} out (it is dssp-calibrate's, for a real robot)")
+                raise ConfigError(
+                    f"{flag} {value}: the twin has no RealSense and no CAN interface to choose; leave "
+                    f"{flag} out (it is dssp-calibrate's, for a real robot)"
+                )
         return
     if camera not in profile_names():
-        raise ConfigError(f"--camera {args.camera}: calibration needs a live RealSense with colour: one of "
-                          f"{', '.join(profile_names())}")
+        raise ConfigError(
+            f"--camera {args.camera}: calibration needs a live RealSense with colour: one of "
+            f"{', '.join(profile_names())}"
+        )
     check_camera_spec(camera, args.serial)
     if can.startswith("sim") or can == MUJOCO:
-        raise ConfigError(f"--can {args.can}: dssp-calibrate drives a real arm; calibrate the twin with dssp-sim calibrate")
+        raise ConfigError(
+            f"--can {args.can}: dssp-calibrate drives a real arm; calibrate the twin with dssp-sim calibrate"
+        )
 
 
 def _outputs(args) -> list[tuple[Path, str]]:
@@ -166,8 +202,10 @@ def _write(path: Path, flag: str, force: bool, write: Callable[[Path], None], wh
             if kept is not None:
                 with contextlib.suppress(OSError):
                     os.unlink(kept)
-            return (f"{problem} — and the {what} could not be kept in the temporary folder either ({again}): the "
-                    f"result printed above is all there is")
+            return (
+                f"{problem} — and the {what} could not be kept in the temporary folder either ({again}): the "
+                f"result printed above is all there is"
+            )
         return f"{problem} — the {what} is kept in {kept} (and printed above): move it where it belongs"
     print(f"wrote {path} ({what})")
     return None
@@ -182,7 +220,9 @@ def _table(views, detections, result) -> list[str]:
             res = f"{r.mm:11.2f}  {r.deg:12.3f}" if r is not None else f"{'-':>11}  {'-':>12}"
             lines.append(f"{view.index + 1:5d}  {found.corners:7d}  {found.reprojection_px:9.2f}  {res}")
         else:
-            lines.append(f"{view.index + 1:5d}  {found.corners:7d}  {'-':>9}  {'-':>11}  {'-':>12}  refused: {found.reason}")
+            lines.append(
+                f"{view.index + 1:5d}  {found.corners:7d}  {'-':>9}  {'-':>11}  {'-':>12}  refused: {found.reason}"
+            )
     return lines
 
 
@@ -193,7 +233,9 @@ def _matrix(m) -> str:
 def _calibrate(args, stops: Stops, sim) -> int:
     import numpy as np  # deferred: loads numpy
 
+    from dssp_core.files import atomic_write_text  # deferred: with the rest
     from dssp_data.arm_kinematics import flange_pose  # deferred: loads numpy
+    from dssp_data.pointcloud.extrinsics import save_camera_to_gripper, save_extrinsics  # deferred: loads numpy
     from hardware.calibration.charuco import detect_board, load_board  # deferred: loads cv2
     from hardware.calibration.hand_eye import distance, solve_hand_eye  # deferred: loads cv2
     from hardware.calibration.pose_plan import auto_poses, load_poses  # deferred: loads numpy
@@ -203,8 +245,6 @@ def _calibrate(args, stops: Stops, sim) -> int:
     from hardware.rig import Rig  # deferred: loads numpy
     from hardware.run_loop import LoopSettings, Runner  # deferred: loads onnxruntime
     from hardware.safety import SafetyConfig  # deferred: loads numpy
-    from dssp_core.files import atomic_write_text  # deferred: with the rest
-    from dssp_data.pointcloud.extrinsics import save_camera_to_gripper, save_extrinsics  # deferred: loads numpy
 
     _check(args, sim)  # every flag, before a device opens or a file is written
     board = load_board(args.board)
@@ -233,10 +273,13 @@ def _calibrate(args, stops: Stops, sim) -> int:
             check_robot(robot.description)  # one arm, before the camera or the bus opens
             camera = open_camera(args.camera, serial=args.serial, color=True)  # not started yet
             clock, where = REAL_CLOCK, f"{args.camera} and the arm on {args.can}"
-        tour = CalibrationTour(poses, camera, clock, gripper="close" if args.mode == "eye-to-hand" else "hold",
-                               where=plan)
-        print(f"{args.mode} with {where}; board {board.squares_x} x {board.squares_y} squares of "
-              f"{1e3 * board.square_m:g} mm ({board.dictionary}); moves at {args.control_rate:g} Hz through the safety layer")
+        tour = CalibrationTour(
+            poses, camera, clock, gripper="close" if args.mode == "eye-to-hand" else "hold", where=plan
+        )
+        print(
+            f"{args.mode} with {where}; board {board.squares_x} x {board.squares_y} squares of "
+            f"{1e3 * board.square_m:g} mm ({board.dictionary}); moves at {args.control_rate:g} Hz through the safety layer"
+        )
         stack.enter_context(camera)
         rig = Rig(None, robot, np.eye(4), safety, clock=clock)
         with rig:
@@ -252,28 +295,40 @@ def _calibrate(args, stops: Stops, sim) -> int:
         print(f"error: the tour ended by a fault: {summary['fault']}; the arm holds its last target", file=sys.stderr)
         return 1
     if stops.reason is not None and summary["ended_by"] == stops.reason:
-        print(f"stopped by {stops.reason} after {len(tour.views)} of {len(tour.poses)} poses; nothing was written",
-              file=sys.stderr)
+        print(
+            f"stopped by {stops.reason} after {len(tour.views)} of {len(tour.poses)} poses; nothing was written",
+            file=sys.stderr,
+        )
         return stops.code
 
     views = tour.views
     detections = [detect_board(v.frame.color, v.frame.intrinsics, board) for v in views]
     good = [(v, d) for v, d in zip(views, detections) if d.ok]
     try:
-        result = solve_hand_eye([flange_pose(v.joints) for v, _ in good], [d.board_to_camera for _, d in good],
-                                args.mode, centre=board.centre)
+        result = solve_hand_eye(
+            [flange_pose(v.joints) for v, _ in good],
+            [d.board_to_camera for _, d in good],
+            args.mode,
+            centre=board.centre,
+        )
     except Exception:
         print("\n".join(_table(views, detections, None)))
         raise
     print("\n".join(_table(views, detections, result)))
     rms_mm, rms_deg = result.rms
     i, worst = result.worst
-    print(f"{result.name} (OpenCV's {result.method}; {len(good)} of {len(views)} views, rotation spread "
-          f"{result.rotation_spread_deg:.1f} deg about a second axis):\n{_matrix(result.transform)}")
-    print("the methods' disagreement with it: " + ", ".join(f"{name} {mm:.2f} mm / {deg:.3f} deg"
-                                                            for name, (mm, deg) in result.disagreement.items()))
-    print(f"residuals: {rms_mm:.2f} mm / {rms_deg:.3f} deg RMS; the worst against its limits, pose {good[i][0].index + 1}: "
-          f"{worst.mm:.2f} mm / {worst.deg:.3f} deg")
+    print(
+        f"{result.name} (OpenCV's {result.method}; {len(good)} of {len(views)} views, rotation spread "
+        f"{result.rotation_spread_deg:.1f} deg about a second axis):\n{_matrix(result.transform)}"
+    )
+    print(
+        "the methods' disagreement with it: "
+        + ", ".join(f"{name} {mm:.2f} mm / {deg:.3f} deg" for name, (mm, deg) in result.disagreement.items())
+    )
+    print(
+        f"residuals: {rms_mm:.2f} mm / {rms_deg:.3f} deg RMS; the worst against its limits, pose {good[i][0].index + 1}: "
+        f"{worst.mm:.2f} mm / {worst.deg:.3f} deg"
+    )
     truth_error = distance(result.transform, truth) if truth is not None else None
     if truth_error is not None:
         print(f"the twin's true {result.name} is {truth_error[0]:.2f} mm / {truth_error[1]:.3f} deg from it")
@@ -281,19 +336,27 @@ def _calibrate(args, stops: Stops, sim) -> int:
     if stops.reason is not None:
         print(f"stopped by {stops.reason}; nothing was written", file=sys.stderr)
         return stops.code
-    notes = (f"dssp-calibrate {args.mode}: {len(good)} views, OpenCV {result.method}, residuals {rms_mm:.2f} mm / "
-             f"{rms_deg:.3f} deg RMS; board {board.squares_x}x{board.squares_y} {1e3 * board.square_m:g} mm {board.dictionary}")
+    notes = (
+        f"dssp-calibrate {args.mode}: {len(good)} views, OpenCV {result.method}, residuals {rms_mm:.2f} mm / "
+        f"{rms_deg:.3f} deg RMS; board {board.squares_x}x{board.squares_y} {1e3 * board.square_m:g} mm {board.dictionary}"
+    )
     if args.mode == "eye-to-hand":
+
         def calibration(path: Path) -> None:
             save_extrinsics(path, result.transform, frame="base", notes=notes)
     else:
+
         def calibration(path: Path) -> None:
             save_camera_to_gripper(path, result.transform, notes=notes)
+
     problems = [_write(args.out, "--out", args.force, calibration, result.name)]
     if args.json is not None:
-        text = json.dumps(calibration_record(args, board, views, detections, result, truth_error, where), indent=1) + "\n"
-        problems.append(_write(args.json, "--json", args.force, lambda path: atomic_write_text(path, text),
-                               "calibration record"))
+        text = (
+            json.dumps(calibration_record(args, board, views, detections, result, truth_error, where), indent=1) + "\n"
+        )
+        problems.append(
+            _write(args.json, "--json", args.force, lambda path: atomic_write_text(path, text), "calibration record")
+        )
     problems = [problem for problem in problems if problem is not None]
     if problems:
         raise OutputError("; ".join(problems))
@@ -316,16 +379,26 @@ def calibration_record(args, board, views, detections, result, truth_error, wher
         rows.append(row)
     rms_mm, rms_deg = result.rms
     return {
-        "mode": args.mode, "rig": where, "rate_hz": args.control_rate, "poses": "auto" if args.poses is None else str(args.poses),
-        "board": board.to_dict(), "views": rows, "result": result.name, "method": result.method,
+        "mode": args.mode,
+        "rig": where,
+        "rate_hz": args.control_rate,
+        "poses": "auto" if args.poses is None else str(args.poses),
+        "board": board.to_dict(),
+        "views": rows,
+        "result": result.name,
+        "method": result.method,
         "transform": [[float(v) for v in row] for row in result.transform],
         "disagreement": {name: [float(mm), float(deg)] for name, (mm, deg) in result.disagreement.items()},
-        "rms_mm": rms_mm, "rms_deg": rms_deg, "rotation_spread_deg": float(result.rotation_spread_deg),
+        "rms_mm": rms_mm,
+        "rms_deg": rms_deg,
+        "rotation_spread_deg": float(result.rotation_spread_deg),
         "truth_error": None if truth_error is None else [float(truth_error[0]), float(truth_error[1])],
     }
 
 
-def main(argv: list[str] | None = None, sim: SimulatedCalibrationRig | None = None, prog: str = "dssp-calibrate") -> int:
+def main(
+    argv: list[str] | None = None, sim: SimulatedCalibrationRig | None = None, prog: str = "dssp-calibrate"
+) -> int:
     stops = Stops()  # first: from here every stop is a clean one
     try:
         args = build_parser(sim, prog).parse_args(argv)

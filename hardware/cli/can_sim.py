@@ -47,7 +47,8 @@ def _channels(text: str, interface: str) -> list[str]:
                 ok = False
             if not ok:
                 raise argparse.ArgumentTypeError(
-                    f"--channel {c!r} is not a multicast group address: use e.g. 239.74.163.2 with udp_multicast")
+                    f"--channel {c!r} is not a multicast group address: use e.g. 239.74.163.2 with udp_multicast"
+                )
     return channels
 
 
@@ -62,16 +63,28 @@ class _Parser(ArgumentParser):
 
 def _parser() -> argparse.ArgumentParser:
     p = _Parser(
-        prog="dssp-sim-arm", formatter_class=argparse.RawDescriptionHelpFormatter, epilog=EPILOG,
-        description="Simulated AgileX Piper arms speaking the Piper CAN protocol, one per channel.")
+        prog="dssp-sim-arm",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=EPILOG,
+        description="Simulated AgileX Piper arms speaking the Piper CAN protocol, one per channel.",
+    )
     p.add_argument("--channel", required=True, help="channel per arm, comma-separated (see below)")
-    p.add_argument("--interface", default="udp_multicast", choices=("udp_multicast", "virtual"),
-                   help="python-can interface (default: udp_multicast)")
-    p.add_argument("--port", type=int, default=None,
-                   help="UDP port for udp_multicast (default: python-can's 43113, or CAN_CONFIG's port)")
+    p.add_argument(
+        "--interface",
+        default="udp_multicast",
+        choices=("udp_multicast", "virtual"),
+        help="python-can interface (default: udp_multicast)",
+    )
+    p.add_argument(
+        "--port",
+        type=int,
+        default=None,
+        help="UDP port for udp_multicast (default: python-can's 43113, or CAN_CONFIG's port)",
+    )
     p.add_argument("--feedback-rate", type=float, default=200.0, help="feedback rate in Hz (default: 200)")
-    p.add_argument("--duration", type=float, default=None, help="stop after this many seconds (default: run until "
-                                                                 "SIGINT/SIGTERM)")
+    p.add_argument(
+        "--duration", type=float, default=None, help="stop after this many seconds (default: run until SIGINT/SIGTERM)"
+    )
     return p
 
 
@@ -108,8 +121,11 @@ def _run(args, channels: list[str]) -> int:
             sim.start()
             started.append(sim)
         port = f", port {args.port}" if options else ""
-        print(f"dssp-sim-arm: {len(sims)} simulated Piper arm(s) on {args.interface} {','.join(channels)}"
-              f"{port} at {args.feedback_rate:g} Hz; stop with Ctrl-C or SIGTERM", flush=True)
+        print(
+            f"dssp-sim-arm: {len(sims)} simulated Piper arm(s) on {args.interface} {','.join(channels)}"
+            f"{port} at {args.feedback_rate:g} Hz; stop with Ctrl-C or SIGTERM",
+            flush=True,
+        )
         deadline = None if args.duration is None else start_time + args.duration
         while not stop.is_set():
             if deadline is not None and time.monotonic() >= deadline:
@@ -125,8 +141,10 @@ def _run(args, channels: list[str]) -> int:
                 failure = failure or exc
         stops.restore()
     elapsed = time.monotonic() - start_time
-    summary = "; ".join(f"{sim.channel}: {sim.ticks} ticks, {sim.frames_sent} frames sent, "
-                        f"{sim.commands_received} commands received" for sim in started)
+    summary = "; ".join(
+        f"{sim.channel}: {sim.ticks} ticks, {sim.frames_sent} frames sent, {sim.commands_received} commands received"
+        for sim in started
+    )
     print(f"dssp-sim-arm: stopped after {elapsed:.1f} s; {summary}", flush=True)
     if failure is not None:
         raise failure

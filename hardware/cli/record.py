@@ -36,18 +36,19 @@ import time
 from pathlib import Path
 from typing import Protocol
 
-from dssp_core.schema import DEFAULT_CONTROL_RATE_HZ, check_rate
 from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import ConfigError, DSSPError
 from dssp_core.output_guard import NEW, OutputKind, check_append
+from dssp_core.schema import DEFAULT_CONTROL_RATE_HZ, check_rate
 from dssp_data.attributes import zarr_generator
 from dssp_data.observation import ObservationContract, piper_layout
-from hardware.piper.bus import interface_name
 from hardware.cli.stops import Stops, run_stoppable
 from hardware.clock import FakeClock
+from hardware.piper.bus import interface_name
 
-RECORDED_DATASET = OutputKind("a recorded dataset", "dssp-record", marker=False,
-                              signature=lambda p: zarr_generator(p) == "dssp-record")
+RECORDED_DATASET = OutputKind(
+    "a recorded dataset", "dssp-record", marker=False, signature=lambda p: zarr_generator(p) == "dssp-record"
+)
 """``dssp-record --out``: a zarr dataset whose ``generator`` attribute is ``dssp-record`` (appended to)."""
 
 EPILOG = """\
@@ -60,17 +61,28 @@ follower was told to do and what dssp-run sends; "next-state" records the follow
 
 MUJOCO = "mujoco"  # the camera and arms of the simulated rig dssp-sim record hands in (SimulatedRig)
 KEYS = {"s": "start", " ": "start", "k": "keep", "d": "discard", "q": "quit"}
-WORDS = {"s": "start", "start": "start", "k": "keep", "keep": "keep", "d": "discard", "discard": "discard",
-         "q": "quit", "quit": "quit", "exit": "quit"}
+WORDS = {
+    "s": "start",
+    "start": "start",
+    "k": "keep",
+    "keep": "keep",
+    "d": "discard",
+    "discard": "discard",
+    "q": "quit",
+    "quit": "quit",
+    "exit": "quit",
+}
 
 
 class SimulatedRig(Protocol):
     """What ``--can sim`` needs from a simulation (``dssp-sim record`` passes :class:`dssp_sim.teleop.TeleopRigs`)."""
 
     def default_cloud_config(self): ...
+
     """The simulation's point-cloud settings (a :class:`~dssp_data.observation.PointCloudConfig`)."""
 
     def open(self, task: str, seed: int, pace: float | None = None): ...
+
     """A rig (``channel``, ``camera``, ``clock`` — whose sleep moves the simulation —, ``control_rate_hz``,
     ``start(monitor)``, ``answer()`` — its arms handle what they were sent, at the present time: nothing moves —,
     ``stop()``) for ``task`` from scene ``seed``, run at ``pace`` simulated seconds per wall second (None: as fast as
@@ -93,30 +105,66 @@ class _AnsweredInPlace(FakeClock):
 
 def parse_args(argv, sim: SimulatedRig | None = None, prog: str = "dssp-record"):
     """``argv`` → the arguments; ``sim``: the simulation ``--can sim`` records from (None: a robot only)."""
-    p = ArgumentParser(prog=prog, description="Record teleoperated demonstrations into a DP3 zarr dataset.",
-                                epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = ArgumentParser(
+        prog=prog,
+        description="Record teleoperated demonstrations into a DP3 zarr dataset.",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     default = MUJOCO if sim is not None else None
-    p.add_argument("--camera", default=default, required=sim is None,
-                   help="l515 | d435 | d405 | file:PATH (.bag/.db3) | tabletop"
-                        + (" | mujoco (default: mujoco, the MuJoCo Piper's)" if sim else ""))
+    p.add_argument(
+        "--camera",
+        default=default,
+        required=sim is None,
+        help="l515 | d435 | d405 | file:PATH (.bag/.db3) | tabletop"
+        + (" | mujoco (default: mujoco, the MuJoCo Piper's)" if sim else ""),
+    )
     p.add_argument("--serial", help="RealSense serial number, when several are connected")
-    p.add_argument("--can", default=default, required=sim is None,
-                   help="can0[,can1] (one bus per leader/follower pair: left, right)"
-                        + (" | mujoco (default: mujoco, the MuJoCo Piper's arms)" if sim else ""))
-    p.add_argument("--interface", default="socketcan", type=interface_name, help="python-can interface of real buses (default: socketcan)")
+    p.add_argument(
+        "--can",
+        default=default,
+        required=sim is None,
+        help="can0[,can1] (one bus per leader/follower pair: left, right)"
+        + (" | mujoco (default: mujoco, the MuJoCo Piper's arms)" if sim else ""),
+    )
+    p.add_argument(
+        "--interface",
+        default="socketcan",
+        type=interface_name,
+        help="python-can interface of real buses (default: socketcan)",
+    )
     p.add_argument("--out", type=Path, required=True, help="dataset to create or append to (PATH.zarr)")
-    p.add_argument("--control-rate", type=float, help="recording rate in Hz (default: the dataset's, else the simulation's 10 Hz, else 10)")
+    p.add_argument(
+        "--control-rate",
+        type=float,
+        help="recording rate in Hz (default: the dataset's, else the simulation's 10 Hz, else 10)",
+    )
     p.add_argument("--extrinsics", type=Path, help="camera->robot-base calibration JSON (needed with a real camera)")
-    p.add_argument("--pointcloud", type=Path, help="point-cloud settings JSON (default: the dataset's, else the robot's defaults)")
-    p.add_argument("--task-name", help="task name stored with the data; on the simulation also its task (tap, swap, put2; default tap)")
-    p.add_argument("--action", choices=["leader", "next-state"], default="leader", help="what `action` holds (see below)")
+    p.add_argument(
+        "--pointcloud", type=Path, help="point-cloud settings JSON (default: the dataset's, else the robot's defaults)"
+    )
+    p.add_argument(
+        "--task-name",
+        help="task name stored with the data; on the simulation also its task (tap, swap, put2; default tap)",
+    )
+    p.add_argument(
+        "--action", choices=["leader", "next-state"], default="leader", help="what `action` holds (see below)"
+    )
     p.add_argument("--thresholds", type=Path, help="stream thresholds JSON (hardware.recorder.RecordThresholds fields)")
     p.add_argument("--max-steps", type=int, help="end (and keep) an episode after N steps")
     p.add_argument("--episodes", type=int, help="end the session after N kept episodes")
     p.add_argument("--auto", action="store_true", help="start and end episodes without the operator (see below)")
-    p.add_argument("--no-depth", action="store_true", help="do not store the raw depth images (the clouds cannot be rebuilt then)")
-    p.add_argument("--seed", type=int, help="simulation: scene seed of the first episode (default: after the dataset's last)")
-    p.add_argument("--sim-speed", type=float, help="simulation: simulated seconds per second (default 1, with --auto as fast as possible)")
+    p.add_argument(
+        "--no-depth", action="store_true", help="do not store the raw depth images (the clouds cannot be rebuilt then)"
+    )
+    p.add_argument(
+        "--seed", type=int, help="simulation: scene seed of the first episode (default: after the dataset's last)"
+    )
+    p.add_argument(
+        "--sim-speed",
+        type=float,
+        help="simulation: simulated seconds per second (default 1, with --auto as fast as possible)",
+    )
     p.add_argument("--quiet", action="store_true", help="no live status line")
     from dssp_data.rerun_views import add_rerun_flags, check_views  # deferred: loads numpy
 
@@ -135,17 +183,22 @@ def parse_args(argv, sim: SimulatedRig | None = None, prog: str = "dssp-record")
     if not (sim is not None and args.camera.strip().lower() == MUJOCO):
         check_camera_spec(args.camera, args.serial)
     if args.sim_speed is not None and not (args.sim_speed == 0 or 0.01 <= args.sim_speed <= 100):
-        raise ConfigError(f"--sim-speed must be 0 (as fast as possible) or in [0.01, 100] simulated seconds per second, "
-                          f"got {args.sim_speed:g}")
+        raise ConfigError(
+            f"--sim-speed must be 0 (as fast as possible) or in [0.01, 100] simulated seconds per second, "
+            f"got {args.sim_speed:g}"
+        )
     if args.seed is not None and args.seed < 0:
         raise ConfigError(f"--seed must be >= 0, got {args.seed}")
     can = args.can.strip().lower()
     if sim is None and (can.startswith("sim") or can.startswith(MUJOCO)):
-        raise ConfigError(f"--can {args.can}: dssp-record drives real buses; record the simulation with dssp-sim record "
-                          "(same flags)")
+        raise ConfigError(
+            f"--can {args.can}: dssp-record drives real buses; record the simulation with dssp-sim record (same flags)"
+        )
     if sim is not None and can.startswith("sim"):  # the spelling before there were two simulators
-        raise ConfigError(f"--can {args.can}: the simulated rig's arms are spelled mujoco (--camera mujoco --can mujoco, "
-                          "the defaults)")
+        raise ConfigError(
+            f"--can {args.can}: the simulated rig's arms are spelled mujoco (--camera mujoco --can mujoco, "
+            "the defaults)"
+        )
     args.sim_rig = sim
     return args
 
@@ -232,8 +285,11 @@ def _next_sim_seed(out: Path) -> int:
     reader = ReplayBufferReader(out, allow_incomplete_tail=True)  # a broken dataset: its one-line DatasetError
     from dssp_data.recording import episode_infos  # deferred: loads msgpack, numcodecs, numpy, …
 
-    seeds = [info["sim"]["seed"] for info in episode_infos(reader.attrs, reader.n_episodes, out)
-             if info and isinstance(info.get("sim"), dict) and isinstance(info["sim"].get("seed"), int)]
+    seeds = [
+        info["sim"]["seed"]
+        for info in episode_infos(reader.attrs, reader.n_episodes, out)
+        if info and isinstance(info.get("sim"), dict) and isinstance(info["sim"].get("seed"), int)
+    ]
     return max(seeds) + 1 if seeds else reader.n_episodes
 
 
@@ -243,11 +299,14 @@ def _check_no_orphan_can_logs(out: Path) -> None:
 
     logs = can_log_dir(out)
     if logs.is_symlink() or (logs.exists() and not logs.is_dir()):
-        raise ConfigError(f"{logs} exists and is not a folder of CAN logs; move it away or choose another --out "
-                          "(nothing is deleted)")
+        raise ConfigError(
+            f"{logs} exists and is not a folder of CAN logs; move it away or choose another --out (nothing is deleted)"
+        )
     if logs.is_dir() and any(p.name != LOCK_NAME for p in logs.iterdir()):
-        raise ConfigError(f"{logs} holds CAN logs of a dataset that is not there ({out}); move them away or choose "
-                          "another --out (nothing is deleted)")
+        raise ConfigError(
+            f"{logs} holds CAN logs of a dataset that is not there ({out}); move them away or choose "
+            "another --out (nothing is deleted)"
+        )
 
 
 def _existing_attrs(out: Path) -> dict:
@@ -262,6 +321,7 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
     """Open the devices and the dataset for ``args`` (closed by ``stack``); returns the RecordSession
     (its ``rig`` is the simulated rig, or None on a robot)."""
     # deferred: loads msgpack, numcodecs, numpy, …
+    from dssp_data.pointcloud import PointCloudConfig, load_extrinsics  # deferred: loads numpy
     from dssp_data.recording import (
         ACTION_CONVENTIONS,
         DEPTH_KEY,
@@ -273,18 +333,19 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
     from dssp_data.rerun_views import open_views  # deferred: loads numpy
     from hardware.bus_monitor import BusMonitor, ListeningArms  # deferred: loads numpy
     from hardware.clock import REAL_CLOCK  # deferred: loads numpy
-    from dssp_data.pointcloud import PointCloudConfig, load_extrinsics  # deferred: loads numpy
     from hardware.record_session import RecordSession, SessionSettings  # deferred: loads numpy
-    from hardware.rig import Rig  # deferred: loads numpy
     from hardware.recorder import Recorder, RecordThresholds, StampedCamera  # deferred: loads numpy
+    from hardware.rig import Rig  # deferred: loads numpy
 
     sim_can = args.can.strip().lower().startswith(MUJOCO)
     sim_camera = args.camera.strip().lower() == MUJOCO
     if sim_can and args.can.strip().lower() != MUJOCO:
         raise ConfigError(f"--can {args.can}: the simulated rig has one leader/follower pair; use --can mujoco")
     if sim_can != sim_camera:
-        raise ConfigError("--can mujoco records the MuJoCo scene in lockstep with simulated time: it goes with --camera "
-                          "mujoco, and --camera mujoco with --can mujoco")
+        raise ConfigError(
+            "--can mujoco records the MuJoCo scene in lockstep with simulated time: it goes with --camera "
+            "mujoco, and --camera mujoco with --can mujoco"
+        )
     if args.auto and not sim_can and args.max_steps is None:
         raise ConfigError("--auto on a robot needs --max-steps: nothing else ends an episode")
     # one writer per dataset, before any device opens: a second session stops here, touching nothing
@@ -309,8 +370,9 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
         try:
             cloud_config = PointCloudConfig.from_dict(existing["pointcloud"])
         except ConfigError as exc:
-            raise ConfigError(f"{args.out}'s pointcloud attribute: {exc} (give --pointcloud FILE, or fix the "
-                              "attribute)") from None
+            raise ConfigError(
+                f"{args.out}'s pointcloud attribute: {exc} (give --pointcloud FILE, or fix the attribute)"
+            ) from None
     elif sim_can:
         cloud_config = args.sim_rig.default_cloud_config()
     else:
@@ -329,8 +391,10 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
         rate = args.control_rate or recorded_rate or rig.control_rate_hz
         if abs(float(rate) - rig.control_rate_hz) > 1e-9:
             given = "--control-rate" if args.control_rate else f"{args.out}'s control_rate_hz attribute"
-            raise ConfigError(f"the simulation runs at {rig.control_rate_hz:g} Hz, {given} says {rate:g}: record it at "
-                              f"{rig.control_rate_hz:g} Hz")
+            raise ConfigError(
+                f"the simulation runs at {rig.control_rate_hz:g} Hz, {given} says {rate:g}: record it at "
+                f"{rig.control_rate_hz:g} Hz"
+            )
         monitors = [BusMonitor(rig.channel, "virtual", clock=clock, name="sim")]
         monitors[0].start()
         stack.callback(monitors[0].stop)
@@ -342,8 +406,10 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
         from hardware.camera import TABLETOP, open_camera  # deferred: loads numpy
 
         if args.extrinsics is None and args.camera.strip().lower() != TABLETOP:
-            raise ConfigError("--extrinsics is needed with a real camera: the workspace crop is in the robot-base frame "
-                              "(a JSON file {\"camera_to_base\": 4x4})")
+            raise ConfigError(
+                "--extrinsics is needed with a real camera: the workspace crop is in the robot-base frame "
+                '(a JSON file {"camera_to_base": 4x4})'
+            )
         channels = [c.strip() for c in args.can.split(",")]
         if not 1 <= len(channels) <= 2 or any(not c for c in channels):
             raise ConfigError(f"--can {args.can!r} is invalid: give can0 or can0,can1 (left,right)")
@@ -364,8 +430,17 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
     Rig(None, ListeningArms(monitors), camera_to_base, clock=waiting).check_firmware_limits()
 
     n_arms = 1 if sim_can else len(monitors)
-    recorder = Recorder(camera, monitors, cloud_config, camera_to_base, float(rate), action_convention=convention,
-                        thresholds=thresholds, store_depth=not args.no_depth, views=views)
+    recorder = Recorder(
+        camera,
+        monitors,
+        cloud_config,
+        camera_to_base,
+        float(rate),
+        action_convention=convention,
+        thresholds=thresholds,
+        store_depth=not args.no_depth,
+        views=views,
+    )
     calibration = {
         "camera_to_base": [[float(v) for v in row] for row in camera_to_base],
         "camera_intrinsics": frame.intrinsics.to_dict(),
@@ -384,26 +459,48 @@ def open_session(args, stack: contextlib.ExitStack, console: Console):
     }
     session_tag = time.strftime("%Y%m%d-%H%M%S") + f"-{os.getpid()}"
     session = {
-        "tag": session_tag, "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "host": socket.gethostname(),
-        "camera": args.camera, "can": args.can, "interface": "virtual" if sim_can else args.interface,
-        "rate_hz": float(rate), "clock": "simulated" if sim_can else "monotonic", "action_convention": convention,
-        **calibration, "pointcloud": cloud_config.to_dict(), "thresholds": thresholds.to_dict(),
-        "store_depth": not args.no_depth, "task": task,
+        "tag": session_tag,
+        "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        "host": socket.gethostname(),
+        "camera": args.camera,
+        "can": args.can,
+        "interface": "virtual" if sim_can else args.interface,
+        "rate_hz": float(rate),
+        "clock": "simulated" if sim_can else "monotonic",
+        "action_convention": convention,
+        **calibration,
+        "pointcloud": cloud_config.to_dict(),
+        "thresholds": thresholds.to_dict(),
+        "store_depth": not args.no_depth,
+        "task": task,
     }
     extra_keys = RECORDED_KEYS + (() if args.no_depth else (DEPTH_KEY,))
     dataset = RecordingDataset(args.out, dataset_attrs, session, extra_keys, lock=lock)
     stack.callback(dataset.close)
     if dataset.repaired_steps:
-        console.event(f"warning: {args.out} ended with {dataset.repaired_steps} steps of an episode whose write was "
-                      f"interrupted; they were cut off (every complete episode is intact)")
+        console.event(
+            f"warning: {args.out} ended with {dataset.repaired_steps} steps of an episode whose write was "
+            f"interrupted; they were cut off (every complete episode is intact)"
+        )
     if dataset.calibration_changed:
         console.event("note: the camera calibration differs from the dataset's; it is stored with this session")
 
     settings = SessionSettings(max_steps=args.max_steps, auto=args.auto, episodes=args.episodes, task=task)
-    console.event(f"recording into {args.out} ({dataset.n_episodes} episodes so far) at {float(rate):g} Hz, "
-                  f"action = {convention}" + ("" if args.auto else "; commands: s start, k keep, d discard, q quit"))
-    return RecordSession(recorder, dataset, monitors, clock, settings, rig=rig, events=console.event,
-                         status=console.status, session_tag=session_tag)
+    console.event(
+        f"recording into {args.out} ({dataset.n_episodes} episodes so far) at {float(rate):g} Hz, "
+        f"action = {convention}" + ("" if args.auto else "; commands: s start, k keep, d discard, q quit")
+    )
+    return RecordSession(
+        recorder,
+        dataset,
+        monitors,
+        clock,
+        settings,
+        rig=rig,
+        events=console.event,
+        status=console.status,
+        session_tag=session_tag,
+    )
 
 
 def record(args, stops: Stops | None = None) -> int:
@@ -429,11 +526,16 @@ def _record(args, stops: Stops) -> int:
         except OSError as exc:  # the disk, the dataset's directory: one line, like every other error
             raise DSSPError(f"writing {args.out} failed: {exc}") from exc
 
-    problems = f", {len(summary.kept_with_problems)} with problems (episodes {', '.join(map(str, summary.kept_with_problems))})" \
-        if summary.kept_with_problems else ""
+    problems = (
+        f", {len(summary.kept_with_problems)} with problems (episodes {', '.join(map(str, summary.kept_with_problems))})"
+        if summary.kept_with_problems
+        else ""
+    )
     failed = f", task failures: {summary.failed}" if summary.failed else ""
-    print(f"kept {len(summary.kept)} episode(s) ({summary.steps} steps){problems}; discarded {summary.discarded}{failed}; "
-          f"ended by: {summary.ended_by}")
+    print(
+        f"kept {len(summary.kept)} episode(s) ({summary.steps} steps){problems}; discarded {summary.discarded}{failed}; "
+        f"ended by: {summary.ended_by}"
+    )
     if summary.n_episodes:
         print(f"dataset: {args.out} holds {summary.n_episodes} episodes; CAN logs in {logs}")
     else:  # a new dataset appears with its first kept episode; the log folder this session made holds nothing
@@ -444,8 +546,12 @@ def _record(args, stops: Stops) -> int:
     return stops.code if stops.reason is not None and summary.ended_by == stops.reason else 0
 
 
-def main(argv: list[str] | None = None, sim: SimulatedRig | None = None, prog: str = "dssp-record",
-         stops: Stops | None = None) -> int:
+def main(
+    argv: list[str] | None = None,
+    sim: SimulatedRig | None = None,
+    prog: str = "dssp-record",
+    stops: Stops | None = None,
+) -> int:
     """``stops``: the stop request a caller installed before its own imports (``dssp-sim record``); None: installed
     here, first (from here every stop is a clean one), and restored at the end."""
     own = stops is None

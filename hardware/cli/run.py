@@ -33,15 +33,16 @@ import sys
 import time
 from pathlib import Path
 
-# Only the standard library and the core (dssp_core, no numpy) load before main() installs the stop request
-# (hardware.cli.stops): a Ctrl-C during the heavier imports (numpy, the runtime) is then a clean stop.
-from dssp_core.schema import DEFAULT_CONTROL_RATE_HZ, check_rate
 from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import ConfigError, OutputError
 from dssp_core.output_guard import OutputKind, check_output, claim_dir
+
+# Only the standard library and the core (dssp_core, no numpy) load before main() installs the stop request
+# (hardware.cli.stops): a Ctrl-C during the heavier imports (numpy, the runtime) is then a clean stop.
+from dssp_core.schema import DEFAULT_CONTROL_RATE_HZ, check_rate
 from dssp_core.staging import writer_lock, writer_lock_path
-from hardware.piper.bus import interface_name
 from hardware.cli.stops import Stops, run_stoppable
+from hardware.piper.bus import interface_name
 
 RUN_LOG = OutputKind("an episode log", "dssp-run")
 """``dssp-run --log-dir``: a new directory for one run's log (marked); an existing log is never reused."""
@@ -55,20 +56,39 @@ logs them without enabling or commanding the arms (feedback is still read).
 
 
 def parse_args(argv):
-    p = ArgumentParser(prog="dssp-run", description="Run a DSSP model on the robot.", epilog=EPILOG,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = ArgumentParser(
+        prog="dssp-run",
+        description="Run a DSSP model on the robot.",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     source = p.add_mutually_exclusive_group(required=True)
     source.add_argument("--model", type=Path, help="model directory (python -m export.to_onnx)")
-    source.add_argument("--policy", metavar="NAME[:ARG]",
-                        help="another policy source instead of a model (hardware.policies.REGISTRY): hold (the arm held "
-                             "where it starts: the rig checked end to end), episode:PATH.zarr@K (a recorded episode's actions)")
-    p.add_argument("--camera", default="tabletop",
-                   help="l515 | d435 | d405 | file:PATH (.bag/.db3) | tabletop (default: tabletop, the simulated one)")
+    source.add_argument(
+        "--policy",
+        metavar="NAME[:ARG]",
+        help="another policy source instead of a model (hardware.policies.REGISTRY): hold (the arm held "
+        "where it starts: the rig checked end to end), episode:PATH.zarr@K (a recorded episode's actions)",
+    )
+    p.add_argument(
+        "--camera",
+        default="tabletop",
+        help="l515 | d435 | d405 | file:PATH (.bag/.db3) | tabletop (default: tabletop, the simulated one)",
+    )
     p.add_argument("--serial", help="RealSense serial number, when several are connected")
-    p.add_argument("--can", default="sim", help="can0[,can1] (one bus per arm: left, right) | sim | sim:2 (default: sim)")
-    p.add_argument("--interface", default="socketcan", type=interface_name, help="python-can interface of real buses (default: socketcan)")
+    p.add_argument(
+        "--can", default="sim", help="can0[,can1] (one bus per arm: left, right) | sim | sim:2 (default: sim)"
+    )
+    p.add_argument(
+        "--interface",
+        default="socketcan",
+        type=interface_name,
+        help="python-can interface of real buses (default: socketcan)",
+    )
     p.add_argument("--control-rate", type=float, help="control rate in Hz (default: the model's training rate)")
-    p.add_argument("--extrinsics", type=Path, help="camera→robot-base calibration JSON (needed with a real camera or a recording)")
+    p.add_argument(
+        "--extrinsics", type=Path, help="camera→robot-base calibration JSON (needed with a real camera or a recording)"
+    )
     p.add_argument("--pointcloud", type=Path, help="point-cloud pipeline settings JSON (crop box, voxel, clip)")
     p.add_argument("--safety", type=Path, help="safety settings JSON (hardware.safety.SafetyConfig fields)")
     p.add_argument("--max-steps", type=int, help="stop after N ticks (default: until Ctrl-C)")
@@ -83,14 +103,26 @@ def parse_args(argv):
     add_runtime_arguments(p)
     p.add_argument("--seed", type=int, help="diffusion noise seed (default: random)")
     p.add_argument("--log-dir", type=Path, help="episode log directory (default: runs/dssp-run/YYYYmmdd-HHMMSS[-N])")
-    p.add_argument("--no-can-log", action="store_true", help="do not write the raw CAN traffic (.blf per bus) into the log")
-    p.add_argument("--allow-mismatch", action="append", default=[], metavar="FIELD",
-                   help="run although FIELD of the setup differs from the model's training data (e.g. pointcloud.crop_min, "
-                        "control_rate_hz); written to the log; repeatable")
+    p.add_argument(
+        "--no-can-log", action="store_true", help="do not write the raw CAN traffic (.blf per bus) into the log"
+    )
+    p.add_argument(
+        "--allow-mismatch",
+        action="append",
+        default=[],
+        metavar="FIELD",
+        help="run although FIELD of the setup differs from the model's training data (e.g. pointcloud.crop_min, "
+        "control_rate_hz); written to the log; repeatable",
+    )
     p.add_argument("--quiet", action="store_true", help="no live status line")
-    p.add_argument("--subscribe", action="append", default=[], metavar="NAME",
-                   help="also hand every tick to the subscriber NAME (hardware.subscribers.REGISTRY: csv = "
-                        "LOG_DIR/ticks.csv); repeatable")
+    p.add_argument(
+        "--subscribe",
+        action="append",
+        default=[],
+        metavar="NAME",
+        help="also hand every tick to the subscriber NAME (hardware.subscribers.REGISTRY: csv = "
+        "LOG_DIR/ticks.csv); repeatable",
+    )
     from dssp_data.rerun_views import add_rerun_flags  # deferred: loads numpy
 
     add_rerun_flags(p)
@@ -108,8 +140,13 @@ def check_args(args):
         from hardware.policies import split_spec  # deferred: loads numpy
 
         split_spec(args.policy)
-        given = model_flags_given(args, ("--prefetch", args.prefetch), ("--allow-mismatch", bool(args.allow_mismatch)),
-                                  ("--threads", args.threads is not None), ("--seed", args.seed is not None))
+        given = model_flags_given(
+            args,
+            ("--prefetch", args.prefetch),
+            ("--allow-mismatch", bool(args.allow_mismatch)),
+            ("--threads", args.threads is not None),
+            ("--seed", args.seed is not None),
+        )
         if given:
             raise ConfigError(f"{given[0]} is a model's setting: it goes with --model, not --policy {args.policy}")
     schedule = schedule_of(args)
@@ -128,7 +165,9 @@ def check_args(args):
     known = [*contract_fields(), "control_rate_hz"]
     for field in args.allow_mismatch:
         if field not in known:
-            raise ConfigError(f"--allow-mismatch {field}: not a field of the observation contract; one of {', '.join(known)}")
+            raise ConfigError(
+                f"--allow-mismatch {field}: not a field of the observation contract; one of {', '.join(known)}"
+            )
     return schedule
 
 
@@ -138,8 +177,10 @@ def control_rate(args, policy) -> float:
     if args.control_rate is not None:
         return args.control_rate
     if policy.contract.control_rate_hz is None:
-        raise ConfigError(f"{args.model} records no control rate (its dataset had none): pass --control-rate HZ, the rate "
-                          "the demonstrations were recorded at")
+        raise ConfigError(
+            f"{args.model} records no control rate (its dataset had none): pass --control-rate HZ, the rate "
+            "the demonstrations were recorded at"
+        )
 
     return check_rate(policy.contract.control_rate_hz, flag=f"{args.model}'s control_rate_hz")
 
@@ -183,40 +224,65 @@ def model_source(args, schedule, described, cloud_config, safety_config, stops: 
     the model loaded and warmed up, the setup checked against its observation contract and ``schedule`` against the
     model — one line for what contradicts them, before any device opens."""
     from dssp_data.observation import FRAME_ROBOT_BASE, ObservationContract, check_contract  # deferred: loads numpy
-    from dssp_deploy.onnx_policy import OnnxPolicy  # deferred: loads numpy
     from dssp_data.pointcloud import PointCloudConfig  # deferred: loads numpy
+    from dssp_deploy.onnx_policy import OnnxPolicy  # deferred: loads numpy
     from hardware.cli.schedule_flags import refusal  # deferred: loads numpy
     from hardware.policies.exported_model import ModelPolicy  # deferred: loads numpy
 
     if not args.quiet and sys.stderr.isatty():  # a progress note for a person; logs and scripts get only the result
         print(f"loading {args.model} (warm-up included)", file=sys.stderr)
-    policy = OnnxPolicy(args.model, threads=args.threads, precision=args.precision, kernel=args.kernel,
-                        background_chunks=args.prefetch or args.smoothing == "rtc",
-                        spinning=False if args.no_spin else None)
+    policy = OnnxPolicy(
+        args.model,
+        threads=args.threads,
+        precision=args.precision,
+        kernel=args.kernel,
+        background_chunks=args.prefetch or args.smoothing == "rtc",
+        spinning=False if args.no_spin else None,
+    )
     stops.check()
     trained = policy.contract.observation
     if cloud_config is None:  # the model's own settings; a model from data that recorded none: the defaults
         cloud_config = trained.pointcloud or PointCloudConfig(n_points=policy.contract.n_points)
     rate = control_rate(args, policy)
     safety_config.check_speed(rate, described.max_joint_speed)  # before the prefetch lead is measured at this rate
-    given = ObservationContract(pointcloud=cloud_config, frame=FRAME_ROBOT_BASE, state=described.layout,
-                                action=described.layout)
+    given = ObservationContract(
+        pointcloud=cloud_config, frame=FRAME_ROBOT_BASE, state=described.layout, action=described.layout
+    )
     pointcloud_by = f"--pointcloud {args.pointcloud}" if args.pointcloud else "the default point-cloud settings"
-    overrides = check_contract(trained, given, trained_by=f"the model {args.model}", allow=args.allow_mismatch,
-                               given_by={"pointcloud": pointcloud_by, "frame": "the point-cloud pipeline",
-                                         "state": f"--can {args.can}", "action": f"--can {args.can}",
-                                         "control_rate_hz": "--control-rate"},
-                               extra=[("control_rate_hz", policy.contract.control_rate_hz, args.control_rate)])
+    overrides = check_contract(
+        trained,
+        given,
+        trained_by=f"the model {args.model}",
+        allow=args.allow_mismatch,
+        given_by={
+            "pointcloud": pointcloud_by,
+            "frame": "the point-cloud pipeline",
+            "state": f"--can {args.can}",
+            "action": f"--can {args.can}",
+            "control_rate_hz": "--control-rate",
+        },
+        extra=[("control_rate_hz", policy.contract.control_rate_hz, args.control_rate)],
+    )
     for o in overrides:
-        print(f"warning: running with {o['field']} = {o['given']} although the model was trained with {o['trained']} "
-              "(--allow-mismatch)", file=sys.stderr)
+        print(
+            f"warning: running with {o['field']} = {o['given']} although the model was trained with {o['trained']} "
+            "(--allow-mismatch)",
+            file=sys.stderr,
+        )
     try:  # the prefetch lead or real-time chunking's delay measured once, here: a model or rate it cannot serve refused
         source = ModelPolicy(policy, rate, seed=args.seed, schedule=schedule)  # the schedule is in the log: describe()
     except ValueError as exc:
         raise refusal(exc, f"--prefetch at {rate:g} Hz" if args.prefetch else f"--smoothing {args.smoothing}") from None
-    about = {"model": str(args.model), "policy": source.describe(),
-             "manifest": {"denoise_steps": policy.contract.denoise_steps, "control_rate_hz": policy.contract.control_rate_hz},
-             "observation": trained.to_manifest(), "allowed_mismatches": overrides}
+    about = {
+        "model": str(args.model),
+        "policy": source.describe(),
+        "manifest": {
+            "denoise_steps": policy.contract.denoise_steps,
+            "control_rate_hz": policy.contract.control_rate_hz,
+        },
+        "observation": trained.to_manifest(),
+        "allowed_mismatches": overrides,
+    }
     return source, cloud_config, rate, about
 
 
@@ -239,18 +305,18 @@ def run(args, stops: Stops | None = None) -> int:
 def _run(args, stops: Stops) -> int:
     stops.check()
     schedule = check_args(args)
+    from dssp_data.pointcloud import PointCloudConfig, load_extrinsics  # deferred: loads can
+    from dssp_data.rerun_views import check_views, open_views  # deferred: loads numpy
     from hardware.camera import TABLETOP, open_camera  # deferred: loads numpy
     from hardware.can_log import BusRecorder  # deferred: loads can
     from hardware.piper.piper_robot import open_robot  # deferred: loads can
-    from dssp_data.pointcloud import PointCloudConfig, load_extrinsics  # deferred: loads can
-    from dssp_data.rerun_views import check_views, open_views  # deferred: loads numpy
+    from hardware.rig import Rig  # deferred: loads numpy
     from hardware.run_log import RunLog  # deferred: loads numpy
+    from hardware.run_loop import LoopSettings, Runner, describe_ending  # deferred: loads numpy
+    from hardware.safety import SafetyConfig  # deferred: loads numpy
     from hardware.subscribers import open_subscribers  # deferred: loads numpy
     from hardware.subscribers.rerun_ticks import RerunTicks  # deferred: loads numpy
     from hardware.subscribers.status_line import StatusLine  # deferred: loads numpy
-    from hardware.rig import Rig  # deferred: loads numpy
-    from hardware.run_loop import LoopSettings, Runner, describe_ending  # deferred: loads numpy
-    from hardware.safety import SafetyConfig  # deferred: loads numpy
 
     check_views(args.rerun, args.rerun_save)
     with contextlib.ExitStack() as stack:  # the log directory's lock, the views: released and closed on every exit
@@ -268,11 +334,13 @@ def _run(args, stops: Stops) -> int:
         elif not simulated_camera:
             raise ConfigError(
                 "--extrinsics is needed with a real camera or a recording: the workspace crop is in the robot-base frame "
-                "(a JSON file {\"camera_to_base\": 4x4}; see the README's calibration section)"
+                '(a JSON file {"camera_to_base": 4x4}; see the README\'s calibration section)'
             )
         cloud_config = PointCloudConfig.load(args.pointcloud, "point-cloud settings") if args.pointcloud else None
         if args.model is not None:
-            source, cloud_config, rate, about = model_source(args, schedule, described, cloud_config, safety_config, stops)
+            source, cloud_config, rate, about = model_source(
+                args, schedule, described, cloud_config, safety_config, stops
+            )
         else:
             from hardware.policies import open_policy  # deferred: loads numpy
 
@@ -285,8 +353,12 @@ def _run(args, stops: Stops) -> int:
         stops.check()
         settings = LoopSettings(control_rate_hz=rate, max_steps=args.max_steps, dry_run=args.dry_run)
         if args.model is not None:
-            print(f"graphs: {source.policy.kernel_note}", file=sys.stderr)  # which graphs run: the one start-up line about them
-        views = open_views("dssp-run", args.rerun, args.rerun_save)  # flags checked (and a viewer started) before any device
+            print(
+                f"graphs: {source.policy.kernel_note}", file=sys.stderr
+            )  # which graphs run: the one start-up line about them
+        views = open_views(
+            "dssp-run", args.rerun, args.rerun_save
+        )  # flags checked (and a viewer started) before any device
         if views is not None:
             stack.callback(lambda: print(views.close_line()))
         stops.check()  # the last moment a stop raises; from here it is the runner's, and the log records it
@@ -294,21 +366,41 @@ def _run(args, stops: Stops) -> int:
         camera = open_camera(args.camera, serial=args.serial)  # not started yet
         if simulated_camera and not args.extrinsics:
             camera_to_base = camera.camera_to_base  # the simulated camera's own mounting
-        recorders = [] if args.no_can_log else [
-            BusRecorder(arm.channel, arm.interface, log_dir / f"can_{arm.channel}.blf", **arm.bus_options) for arm in robot.arms
+        recorders = (
+            []
+            if args.no_can_log
+            else [
+                BusRecorder(arm.channel, arm.interface, log_dir / f"can_{arm.channel}.blf", **arm.bus_options)
+                for arm in robot.arms
+            ]
+        )
+        log = RunLog(
+            log_dir,
+            {
+                **about,
+                "camera": args.camera,
+                "can": args.can,
+                "robot": described.to_dict(),
+                "rate_hz": rate,
+                "dry_run": args.dry_run,
+                "camera_to_base": camera_to_base,
+                "pointcloud": cloud_config.to_dict(),
+                "safety": safety_config.to_dict(),
+            },
+        )
+        subscribers = [
+            log,
+            *([] if args.quiet else [StatusLine()]),
+            *([RerunTicks(views)] if views is not None else []),
+            *open_subscribers(args.subscribe, log_dir),
         ]
-        log = RunLog(log_dir, {
-            **about, "camera": args.camera, "can": args.can, "robot": described.to_dict(),
-            "rate_hz": rate, "dry_run": args.dry_run,
-            "camera_to_base": camera_to_base, "pointcloud": cloud_config.to_dict(), "safety": safety_config.to_dict(),
-        })
-        subscribers = [log, *([] if args.quiet else [StatusLine()]), *([RerunTicks(views)] if views is not None else []),
-                       *open_subscribers(args.subscribe, log_dir)]
         rig = Rig(camera, robot, camera_to_base, safety_config, recorders=recorders)  # the limits: the robot's own
         runner = Runner(source, rig, cloud_config, settings, subscribers=subscribers)
         stops.during(runner.request_stop)  # a stop that came meanwhile, or any later: the runner's final hold
         try:
-            with rig:  # the camera, the arms (simulators start first, so the recorders find their channels), the recorders
+            with (
+                rig
+            ):  # the camera, the arms (simulators start first, so the recorders find their channels), the recorders
                 summary = runner.run()
         except BaseException as exc:
             if runner.ended_by is None:  # a device failed to open: the run never started, its reason is this error
@@ -332,12 +424,18 @@ def print_summary(summary: dict, log_dir: Path) -> None:
         s = lat.get(key)
         return f"{s['p50']:.1f} / {s['p95']:.1f} / {s['max']:.1f}" if s else "-"
 
-    print(f"ticks {summary['ticks']} ({summary['policy_ticks']} with the policy), {summary['rate_hz']:.1f} Hz "
-          f"(target {summary['target_rate_hz']:g}), commands sent {summary['commands_sent']}, holds {summary['holds']}"
-          + (" [dry run]" if summary["dry_run"] else ""))
-    print(f"latency p50 / p95 / max ms: cloud {fmt('cloud')}, observe {fmt('observe')}, chunk {fmt('chunk')}, tick {fmt('tick')}")
-    print(f"safety events: {summary['events'] or 'none'}; ended by: {summary['ended_by']}"
-          + ("; motors disabled" if summary.get("disabled") else ""))
+    print(
+        f"ticks {summary['ticks']} ({summary['policy_ticks']} with the policy), {summary['rate_hz']:.1f} Hz "
+        f"(target {summary['target_rate_hz']:g}), commands sent {summary['commands_sent']}, holds {summary['holds']}"
+        + (" [dry run]" if summary["dry_run"] else "")
+    )
+    print(
+        f"latency p50 / p95 / max ms: cloud {fmt('cloud')}, observe {fmt('observe')}, chunk {fmt('chunk')}, tick {fmt('tick')}"
+    )
+    print(
+        f"safety events: {summary['events'] or 'none'}; ended by: {summary['ended_by']}"
+        + ("; motors disabled" if summary.get("disabled") else "")
+    )
     print(f"episode log: {log_dir}")
 
 

@@ -43,8 +43,9 @@ LOST_STREAM_CODE = 128 + 13
 """The exit code after stdout or stderr went away: as for SIGPIPE (its reader went away), as shells report it."""
 
 # signal(7): the default action ignores ("Ign"), stops ("Stop") or continues ("Cont") the process: not a stop.
-_NOT_ENDING = frozenset({"SIGCHLD", "SIGCLD", "SIGCONT", "SIGURG", "SIGWINCH", "SIGTSTP", "SIGTTIN", "SIGTTOU",
-                         "SIGINFO"})
+_NOT_ENDING = frozenset(
+    {"SIGCHLD", "SIGCLD", "SIGCONT", "SIGURG", "SIGWINCH", "SIGTSTP", "SIGTTIN", "SIGTTOU", "SIGINFO"}
+)
 _UNCATCHABLE = frozenset({"SIGKILL", "SIGSTOP"})
 _OWN_FAULTS = frozenset({"SIGSEGV", "SIGBUS", "SIGFPE", "SIGILL"})
 

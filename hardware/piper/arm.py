@@ -16,13 +16,13 @@ from dataclasses import dataclass
 import can
 import numpy as np
 
-from hardware.piper.can_reader import CanReader
-from hardware.clock import REAL_CLOCK, Clock
-from hardware.robot import ArmStatus, FirmwareLimits
 from dssp_core.errors import ArmError, CanError
+from hardware.clock import REAL_CLOCK, Clock
 from hardware.piper import codec
+from hardware.piper.can_reader import CanReader
 from hardware.piper.codec import ArmStatusFeedback, GripperFeedback, JointFeedback, MotorLimitFeedback, MotorLowSpeed
 from hardware.piper.firmware_limits import LimitAnswers
+from hardware.robot import ArmStatus, FirmwareLimits
 
 _FEEDBACK_TYPES = (ArmStatusFeedback, JointFeedback, GripperFeedback, MotorLowSpeed, codec.MotorHighSpeed)
 _NAN = float("nan")
@@ -76,9 +76,17 @@ class PiperArm:
     compares them; a ``FakeClock`` in tests).
     """
 
-    def __init__(self, channel: str, interface: str = "socketcan", *, bus_options: dict | None = None,
-                 send_timeout: float = 0.05, gripper_effort: float = 1.0, stale_after: float = 0.5,
-                 clock: Clock = REAL_CLOCK) -> None:
+    def __init__(
+        self,
+        channel: str,
+        interface: str = "socketcan",
+        *,
+        bus_options: dict | None = None,
+        send_timeout: float = 0.05,
+        gripper_effort: float = 1.0,
+        stale_after: float = 0.5,
+        clock: Clock = REAL_CLOCK,
+    ) -> None:
         self.channel = channel
         self.interface = interface
         self.bus_options = dict(bus_options or {})
@@ -87,8 +95,14 @@ class PiperArm:
         self.stale_after = stale_after
         self.clock = clock
         self.decoder = codec.Decoder()
-        self._reader = CanReader(channel, interface, bus_options, name=f"piper-rx-{channel}",
-                                 on_frame=self._receive, counts=self.decoder.counts)
+        self._reader = CanReader(
+            channel,
+            interface,
+            bus_options,
+            name=f"piper-rx-{channel}",
+            on_frame=self._receive,
+            counts=self.decoder.counts,
+        )
         self._lock = threading.Lock()
         self._send_lock = threading.Lock()
         self._latest: dict[int, tuple[object, float]] = {}  # arbitration ID -> (message, arrival time)
@@ -130,8 +144,10 @@ class PiperArm:
 
     def _check_rx(self) -> None:
         if self._reader.error is not None:
-            raise CanError(f"receiving from CAN bus {self.channel!r} failed: {self._reader.error}; "
-                           "check the CAN link, then reconnect")
+            raise CanError(
+                f"receiving from CAN bus {self.channel!r} failed: {self._reader.error}; "
+                "check the CAN link, then reconnect"
+            )
 
     # ---- sending ----------------------------------------------------------------------------------------------
     def _send(self, *frames: can.Message) -> None:
@@ -143,8 +159,10 @@ class PiperArm:
                 try:
                     bus.send(frame, timeout=self.send_timeout)
                 except (can.CanError, OSError, ValueError) as exc:
-                    raise CanError(f"sending frame 0x{frame.arbitration_id:03X} on {self.channel!r} failed ({exc}); "
-                                   "check the CAN link and that the arm is powered") from exc
+                    raise CanError(
+                        f"sending frame 0x{frame.arbitration_id:03X} on {self.channel!r} failed ({exc}); "
+                        "check the CAN link and that the arm is powered"
+                    ) from exc
 
     def query_limits(self) -> None:
         """0x472 (content 1: angle limits and max speed) to every motor that has not answered since connect; the
@@ -200,8 +218,10 @@ class PiperArm:
     def disable(self) -> None:
         """0x471 (all motors off) and 0x159 with the disable code. A real arm drops: support it first."""
         stroke = self.feedback().gripper_stroke
-        self._send(codec.MotorEnable(codec.MOTOR_ALL, codec.MOTOR_DISABLE).to_frame(),
-                   codec.GripperCtrl(stroke or 0.0, 0.0, codec.GRIPPER_DISABLE).to_frame())
+        self._send(
+            codec.MotorEnable(codec.MOTOR_ALL, codec.MOTOR_DISABLE).to_frame(),
+            codec.GripperCtrl(stroke or 0.0, 0.0, codec.GRIPPER_DISABLE).to_frame(),
+        )
 
     def enable(self, timeout: float = 2.0) -> None:
         """Enable all motors and the gripper; return once feedback received after the request shows all six
@@ -218,8 +238,10 @@ class PiperArm:
                 return
             now = self.clock()
             if now >= deadline:
-                raise ArmError(f"arm on {self.channel!r} did not confirm enable within {timeout:g} s "
-                               f"({self._enable_problem(fb)}); check its power, cable and e-stop, then retry")
+                raise ArmError(
+                    f"arm on {self.channel!r} did not confirm enable within {timeout:g} s "
+                    f"({self._enable_problem(fb)}); check its power, cable and e-stop, then retry"
+                )
             if now >= next_send:
                 frames = [codec.MotorEnable(codec.MOTOR_ALL, codec.MOTOR_ENABLE_FLAG).to_frame()]
                 stroke = self.feedback().gripper_stroke
@@ -265,8 +287,9 @@ class PiperArm:
         drivers_time = min(t for _, t in drivers) if all(m is not None for m, _ in drivers) else _NAN
         gripper, gripper_time = get(codec.GRIPPER_FEEDBACK)
         status, status_time = get(codec.ARM_STATUS)
-        return PiperFeedback(joints, joints_time, gripper, gripper_time, status, status_time,
-                             tuple(m for m, _ in drivers), drivers_time)
+        return PiperFeedback(
+            joints, joints_time, gripper, gripper_time, status, status_time, tuple(m for m, _ in drivers), drivers_time
+        )
 
     def feedback(self) -> PiperFeedback:
         """The latest feedback (never blocks). Raises CanError if the receive thread stopped on an error."""

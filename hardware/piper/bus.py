@@ -34,7 +34,9 @@ def interface_name(text: str) -> str:
 
     valid = can.interfaces.VALID_INTERFACES
     if text not in valid:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a python-can interface; use one of {', '.join(sorted(valid))}")
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not a python-can interface; use one of {', '.join(sorted(valid))}"
+        )
     return text
 
 

@@ -34,10 +34,18 @@ class CanReader:
     without it each waits ``RECEIVE_TIMEOUT``. ``bus`` is the open bus (None when closed).
     """
 
-    def __init__(self, channel: str, interface: str, bus_options: dict | None = None, *, name: str = "",
-                 on_frame: Callable[[can.Message], None] | None = None,
-                 counts: MutableMapping[str, int] | None = None, tick: Callable[[], float] | None = None,
-                 on_error: Callable[[BaseException], None] | None = None) -> None:
+    def __init__(
+        self,
+        channel: str,
+        interface: str,
+        bus_options: dict | None = None,
+        *,
+        name: str = "",
+        on_frame: Callable[[can.Message], None] | None = None,
+        counts: MutableMapping[str, int] | None = None,
+        tick: Callable[[], float] | None = None,
+        on_error: Callable[[BaseException], None] | None = None,
+    ) -> None:
         self.channel, self.interface = channel, interface
         self.bus_options = dict(bus_options or {})
         self.name = name or f"can-rx-{channel}"

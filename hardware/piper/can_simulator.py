@@ -55,11 +55,21 @@ class SimulatedPiper:
     answers_limit_query: False for firmware that never answers 0x472.
     """
 
-    def __init__(self, channel: str, interface: str = "virtual", *, rate: float = 200.0,
-                 max_joint_speed: float | np.ndarray = 3.0, gripper_speed: float = 0.1,
-                 initial_joints: np.ndarray | None = None, initial_stroke: float = 0.0,
-                 low_speed_divider: int = 1, bus_options: dict | None = None,
-                 firmware_limits: FirmwareLimits | None = None, answers_limit_query: bool = True) -> None:
+    def __init__(
+        self,
+        channel: str,
+        interface: str = "virtual",
+        *,
+        rate: float = 200.0,
+        max_joint_speed: float | np.ndarray = 3.0,
+        gripper_speed: float = 0.1,
+        initial_joints: np.ndarray | None = None,
+        initial_stroke: float = 0.0,
+        low_speed_divider: int = 1,
+        bus_options: dict | None = None,
+        firmware_limits: FirmwareLimits | None = None,
+        answers_limit_query: bool = True,
+    ) -> None:
         if rate <= 0:
             raise ValueError(f"rate must be > 0 Hz, got {rate}")
         self.channel = channel
@@ -98,8 +108,15 @@ class SimulatedPiper:
 
         self._lock = threading.RLock()
         self._last = self._next_tick = 0.0  # monotonic times of the last feedback round and the next one
-        self._reader = CanReader(channel, interface, bus_options, name=f"sim-piper-{channel}",
-                                 on_frame=self._handle_frame, counts=self.decoder.counts, tick=self._tick)
+        self._reader = CanReader(
+            channel,
+            interface,
+            bus_options,
+            name=f"sim-piper-{channel}",
+            on_frame=self._handle_frame,
+            counts=self.decoder.counts,
+            tick=self._tick,
+        )
 
     def __repr__(self) -> str:
         return f"SimulatedPiper({self.channel!r}, {self.interface!r})"
@@ -282,17 +299,22 @@ class SimulatedPiper:
         with self._lock:
             reached = bool(np.all(np.abs(self._q - self._target) <= REACHED_TOL))
             status = codec.ArmStatusFeedback(
-                ctrl_mode=self._ctrl_mode, arm_status=self._arm_status(), mode_feed=self._move_mode,
+                ctrl_mode=self._ctrl_mode,
+                arm_status=self._arm_status(),
+                mode_feed=self._move_mode,
                 motion_status=0 if reached else 1,
-                error_code=((self._limit_bits << 8) | self._injected_bits) & 0xFFFF)
+                error_code=((self._limit_bits << 8) | self._injected_bits) & 0xFFFF,
+            )
             frames = [status.to_frame()]
             frames += [codec.JointFeedback(i, self._q[2 * i], self._q[2 * i + 1]).to_frame() for i in range(3)]
             gripper_status = 0x80 | (codec.ENABLED_BIT if self._gripper_enabled else 0)  # bit 7: homed
             effort = self._effort if self._gripper_enabled else 0.0
             frames.append(codec.GripperFeedback(self._stroke, effort, gripper_status).to_frame())
             if self.ticks % self.low_speed_divider == 0:
-                frames += [codec.MotorLowSpeed(j + 1, status=codec.ENABLED_BIT if self._joint_enabled[j] else 0)
-                           .to_frame() for j in range(6)]
+                frames += [
+                    codec.MotorLowSpeed(j + 1, status=codec.ENABLED_BIT if self._joint_enabled[j] else 0).to_frame()
+                    for j in range(6)
+                ]
             return frames
 
     def _send_feedback(self) -> None:

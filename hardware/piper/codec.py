@@ -72,10 +72,21 @@ MOTOR_ALL_FF = 0xFF
 QUERY_ANGLE_SPEED, QUERY_ACCELERATION = 0x01, 0x02
 
 ARM_STATUS_NAMES = {
-    0x00: "normal", 0x01: "emergency stop", 0x02: "no solution", 0x03: "singularity",
-    0x04: "target angle beyond joint limit", 0x05: "joint communication error", 0x06: "joint brake not released",
-    0x07: "collision", 0x08: "overspeed during drag teaching", 0x09: "joint status error", 0x0A: "other error",
-    0x0B: "teach recording", 0x0C: "teach replay", 0x0D: "teach paused", 0x0E: "main controller over temperature",
+    0x00: "normal",
+    0x01: "emergency stop",
+    0x02: "no solution",
+    0x03: "singularity",
+    0x04: "target angle beyond joint limit",
+    0x05: "joint communication error",
+    0x06: "joint brake not released",
+    0x07: "collision",
+    0x08: "overspeed during drag teaching",
+    0x09: "joint status error",
+    0x0A: "other error",
+    0x0B: "teach recording",
+    0x0C: "teach replay",
+    0x0D: "teach paused",
+    0x0E: "main controller over temperature",
     0x0F: "release resistor over temperature",
 }
 ENABLED_BIT = 1 << 6  # driver / gripper "enabled" bit in 0x261-0x266 and 0x2A8 status bytes
@@ -137,9 +148,15 @@ class MotionCtrl1:
     ID: ClassVar[int] = MOTION_CTRL_1
 
     def to_frame(self) -> can.Message:
-        return _frame(self.ID, struct.pack(">BBB5x", _uint(self.emergency_stop, 8, "emergency_stop"),
-                                           _uint(self.track_ctrl, 8, "track_ctrl"),
-                                           _uint(self.drag_teach, 8, "drag_teach")))
+        return _frame(
+            self.ID,
+            struct.pack(
+                ">BBB5x",
+                _uint(self.emergency_stop, 8, "emergency_stop"),
+                _uint(self.track_ctrl, 8, "track_ctrl"),
+                _uint(self.drag_teach, 8, "drag_teach"),
+            ),
+        )
 
     @classmethod
     def from_data(cls, arbitration_id: int, data: bytes) -> "MotionCtrl1":
@@ -162,11 +179,18 @@ class MotionCtrl2:
         speed = _uint(self.speed_percent, 8, "speed_percent")
         if speed > 100:
             raise ValueError(f"speed_percent must be in 0..100, got {speed}")
-        return _frame(self.ID, struct.pack(">BBBBBB2x", _uint(self.ctrl_mode, 8, "ctrl_mode"),
-                                           _uint(self.move_mode, 8, "move_mode"), speed,
-                                           _uint(self.mit_mode, 8, "mit_mode"),
-                                           _uint(self.residence_time, 8, "residence_time"),
-                                           _uint(self.installation_pos, 8, "installation_pos")))
+        return _frame(
+            self.ID,
+            struct.pack(
+                ">BBBBBB2x",
+                _uint(self.ctrl_mode, 8, "ctrl_mode"),
+                _uint(self.move_mode, 8, "move_mode"),
+                speed,
+                _uint(self.mit_mode, 8, "mit_mode"),
+                _uint(self.residence_time, 8, "residence_time"),
+                _uint(self.installation_pos, 8, "installation_pos"),
+            ),
+        )
 
     @classmethod
     def from_data(cls, arbitration_id: int, data: bytes) -> "MotionCtrl2":
@@ -186,8 +210,14 @@ class JointCtrl:
         return JOINT_CTRL_IDS[self.pair]
 
     def to_frame(self) -> can.Message:
-        return _frame(self.ID, struct.pack(">ii", rad_to_mdeg(self.first, f"J{2 * self.pair + 1} target"),
-                                           rad_to_mdeg(self.second, f"J{2 * self.pair + 2} target")))
+        return _frame(
+            self.ID,
+            struct.pack(
+                ">ii",
+                rad_to_mdeg(self.first, f"J{2 * self.pair + 1} target"),
+                rad_to_mdeg(self.second, f"J{2 * self.pair + 2} target"),
+            ),
+        )
 
     @classmethod
     def from_data(cls, arbitration_id: int, data: bytes) -> "JointCtrl":
@@ -216,8 +246,12 @@ class GripperCtrl:
     def to_frame(self) -> can.Message:
         stroke = _scaled(self.stroke, _UM_PER_M, *INT32, "gripper stroke (m)")
         effort = _scaled(self.effort, 1000.0, 0, 5000, "gripper effort (N·m)")
-        return _frame(self.ID, struct.pack(">iHBB", stroke, effort, _uint(self.code, 8, "gripper code"),
-                                           _uint(self.set_zero, 8, "set_zero")))
+        return _frame(
+            self.ID,
+            struct.pack(
+                ">iHBB", stroke, effort, _uint(self.code, 8, "gripper code"), _uint(self.set_zero, 8, "set_zero")
+            ),
+        )
 
     @classmethod
     def from_data(cls, arbitration_id: int, data: bytes) -> "GripperCtrl":
@@ -287,11 +321,21 @@ class ArmStatusFeedback:
         return self.error_code & 0x3F
 
     def to_frame(self) -> can.Message:
-        fields = (self.ctrl_mode, self.arm_status, self.mode_feed, self.teach_status, self.motion_status,
-                  self.trajectory_num)
+        fields = (
+            self.ctrl_mode,
+            self.arm_status,
+            self.mode_feed,
+            self.teach_status,
+            self.motion_status,
+            self.trajectory_num,
+        )
         names = ("ctrl_mode", "arm_status", "mode_feed", "teach_status", "motion_status", "trajectory_num")
-        return _frame(self.ID, struct.pack(">BBBBBBH", *(_uint(v, 8, n) for v, n in zip(fields, names)),
-                                           _uint(self.error_code, 16, "error_code")))
+        return _frame(
+            self.ID,
+            struct.pack(
+                ">BBBBBBH", *(_uint(v, 8, n) for v, n in zip(fields, names)), _uint(self.error_code, 16, "error_code")
+            ),
+        )
 
     @classmethod
     def from_data(cls, arbitration_id: int, data: bytes) -> "ArmStatusFeedback":
@@ -311,8 +355,14 @@ class JointFeedback:
         return JOINT_FEEDBACK_IDS[self.pair]
 
     def to_frame(self) -> can.Message:
-        return _frame(self.ID, struct.pack(">ii", rad_to_mdeg(self.first, f"J{2 * self.pair + 1} angle"),
-                                           rad_to_mdeg(self.second, f"J{2 * self.pair + 2} angle")))
+        return _frame(
+            self.ID,
+            struct.pack(
+                ">ii",
+                rad_to_mdeg(self.first, f"J{2 * self.pair + 1} angle"),
+                rad_to_mdeg(self.second, f"J{2 * self.pair + 2} angle"),
+            ),
+        )
 
     @classmethod
     def from_data(cls, arbitration_id: int, data: bytes) -> "JointFeedback":
@@ -334,9 +384,15 @@ class GripperFeedback:
         return bool(self.status & ENABLED_BIT)
 
     def to_frame(self) -> can.Message:
-        return _frame(self.ID, struct.pack(">ihBx", _scaled(self.stroke, _UM_PER_M, *INT32, "gripper stroke (m)"),
-                                           _scaled(self.effort, 1000.0, *INT16, "gripper effort (N·m)"),
-                                           _uint(self.status, 8, "gripper status")))
+        return _frame(
+            self.ID,
+            struct.pack(
+                ">ihBx",
+                _scaled(self.stroke, _UM_PER_M, *INT32, "gripper stroke (m)"),
+                _scaled(self.effort, 1000.0, *INT16, "gripper effort (N·m)"),
+                _uint(self.status, 8, "gripper status"),
+            ),
+        )
 
     @classmethod
     def from_data(cls, arbitration_id: int, data: bytes) -> "GripperFeedback":
@@ -358,9 +414,15 @@ class MotorHighSpeed:
         return HIGH_SPEED_IDS[self.motor - 1]
 
     def to_frame(self) -> can.Message:
-        return _frame(self.ID, struct.pack(">hhi", _scaled(self.speed, 1000.0, *INT16, "motor speed (rad/s)"),
-                                           _scaled(self.current, 1000.0, *INT16, "motor current (A)"),
-                                           _scaled(self.position, 1.0, *INT32, "motor position")))
+        return _frame(
+            self.ID,
+            struct.pack(
+                ">hhi",
+                _scaled(self.speed, 1000.0, *INT16, "motor speed (rad/s)"),
+                _scaled(self.current, 1000.0, *INT16, "motor current (A)"),
+                _scaled(self.position, 1.0, *INT32, "motor position"),
+            ),
+        )
 
     @classmethod
     def from_data(cls, arbitration_id: int, data: bytes) -> "MotorHighSpeed":
@@ -388,17 +450,29 @@ class MotorLowSpeed:
         return bool(self.status & ENABLED_BIT)
 
     def to_frame(self) -> can.Message:
-        return _frame(self.ID, struct.pack(">HhbBH", _scaled(self.voltage, 10.0, *UINT16, "voltage (V)"),
-                                           _scaled(self.driver_temp, 1.0, *INT16, "driver temperature (°C)"),
-                                           _scaled(self.motor_temp, 1.0, -128, 127, "motor temperature (°C)"),
-                                           _uint(self.status, 8, "driver status"),
-                                           _scaled(self.bus_current, 1000.0, *UINT16, "bus current (A)")))
+        return _frame(
+            self.ID,
+            struct.pack(
+                ">HhbBH",
+                _scaled(self.voltage, 10.0, *UINT16, "voltage (V)"),
+                _scaled(self.driver_temp, 1.0, *INT16, "driver temperature (°C)"),
+                _scaled(self.motor_temp, 1.0, -128, 127, "motor temperature (°C)"),
+                _uint(self.status, 8, "driver status"),
+                _scaled(self.bus_current, 1000.0, *UINT16, "bus current (A)"),
+            ),
+        )
 
     @classmethod
     def from_data(cls, arbitration_id: int, data: bytes) -> "MotorLowSpeed":
         voltage, driver_temp, motor_temp, status, bus_current = struct.unpack_from(">HhbBH", data)
-        return cls(LOW_SPEED_IDS.index(arbitration_id) + 1, voltage / 10.0, driver_temp, motor_temp, status,
-                   bus_current / 1000.0)
+        return cls(
+            LOW_SPEED_IDS.index(arbitration_id) + 1,
+            voltage / 10.0,
+            driver_temp,
+            motor_temp,
+            status,
+            bus_current / 1000.0,
+        )
 
 
 @dataclass(frozen=True)
@@ -414,10 +488,16 @@ class MotorLimitFeedback:
     ID: ClassVar[int] = MOTOR_LIMIT_FEEDBACK
 
     def to_frame(self) -> can.Message:
-        return _frame(self.ID, struct.pack(">BhhHx", _uint(self.motor, 8, "motor"),
-                                           _scaled(self.max_angle, _DECIDEG_PER_RAD, *INT16, "max angle limit (rad)"),
-                                           _scaled(self.min_angle, _DECIDEG_PER_RAD, *INT16, "min angle limit (rad)"),
-                                           _scaled(self.max_speed, 1000.0, *UINT16, "max joint speed (rad/s)")))
+        return _frame(
+            self.ID,
+            struct.pack(
+                ">BhhHx",
+                _uint(self.motor, 8, "motor"),
+                _scaled(self.max_angle, _DECIDEG_PER_RAD, *INT16, "max angle limit (rad)"),
+                _scaled(self.min_angle, _DECIDEG_PER_RAD, *INT16, "min angle limit (rad)"),
+                _scaled(self.max_speed, 1000.0, *UINT16, "max joint speed (rad/s)"),
+            ),
+        )
 
     @classmethod
     def from_data(cls, arbitration_id: int, data: bytes) -> "MotorLimitFeedback":
@@ -425,15 +505,34 @@ class MotorLimitFeedback:
         return cls(motor, max_angle / _DECIDEG_PER_RAD, min_angle / _DECIDEG_PER_RAD, max_speed / 1000.0)
 
 
-PiperMessage = Union[MotionCtrl1, MotionCtrl2, JointCtrl, GripperCtrl, MotorEnable, MotorLimitQuery, ArmStatusFeedback,
-                     JointFeedback, GripperFeedback, MotorHighSpeed, MotorLowSpeed, MotorLimitFeedback]
+PiperMessage = Union[
+    MotionCtrl1,
+    MotionCtrl2,
+    JointCtrl,
+    GripperCtrl,
+    MotorEnable,
+    MotorLimitQuery,
+    ArmStatusFeedback,
+    JointFeedback,
+    GripperFeedback,
+    MotorHighSpeed,
+    MotorLowSpeed,
+    MotorLimitFeedback,
+]
 
 _BY_ID: dict[int, type] = {
-    MOTION_CTRL_1: MotionCtrl1, MOTION_CTRL_2: MotionCtrl2, GRIPPER_CTRL: GripperCtrl, MOTOR_ENABLE: MotorEnable,
-    MOTOR_LIMIT_QUERY: MotorLimitQuery, MOTOR_LIMIT_FEEDBACK: MotorLimitFeedback,
-    ARM_STATUS: ArmStatusFeedback, GRIPPER_FEEDBACK: GripperFeedback,
-    **{i: JointCtrl for i in JOINT_CTRL_IDS}, **{i: JointFeedback for i in JOINT_FEEDBACK_IDS},
-    **{i: MotorHighSpeed for i in HIGH_SPEED_IDS}, **{i: MotorLowSpeed for i in LOW_SPEED_IDS},
+    MOTION_CTRL_1: MotionCtrl1,
+    MOTION_CTRL_2: MotionCtrl2,
+    GRIPPER_CTRL: GripperCtrl,
+    MOTOR_ENABLE: MotorEnable,
+    MOTOR_LIMIT_QUERY: MotorLimitQuery,
+    MOTOR_LIMIT_FEEDBACK: MotorLimitFeedback,
+    ARM_STATUS: ArmStatusFeedback,
+    GRIPPER_FEEDBACK: GripperFeedback,
+    **{i: JointCtrl for i in JOINT_CTRL_IDS},
+    **{i: JointFeedback for i in JOINT_FEEDBACK_IDS},
+    **{i: MotorHighSpeed for i in HIGH_SPEED_IDS},
+    **{i: MotorLowSpeed for i in LOW_SPEED_IDS},
 }
 KNOWN_IDS = frozenset(_BY_ID)
 
@@ -447,8 +546,7 @@ class Decoder:
     contradict each other). Decoded frames count as ``decoded``.
     """
 
-    REASONS = ("error_frame", "remote_frame", "extended_id", "bad_id", "fd_frame", "unknown_id", "bad_dlc",
-               "malformed")
+    REASONS = ("error_frame", "remote_frame", "extended_id", "bad_id", "fd_frame", "unknown_id", "bad_dlc", "malformed")
 
     def __init__(self) -> None:
         self.counts: Counter[str] = Counter()

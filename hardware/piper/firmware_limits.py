@@ -27,17 +27,23 @@ from hardware.robot import FirmwareLimits
 def reset_advice(channel: str, joint: int) -> str:
     """What to do about joint ``joint`` (0-based) of the arm on ``channel`` when its firmware limits are wrong."""
     lo, hi = FIRMWARE_LOWER_DEG[joint], FIRMWARE_UPPER_DEG[joint]
-    return (f"reset J{joint + 1}'s limits to {lo:g}..{hi:g} deg with AgileX's Piper tool or piper-sdk "
-            f"(C_PiperInterface_V2({channel!r}).MotorAngleLimitMaxSpdSet(motor_num={joint + 1}, "
-            f"max_angle_limit={round(10 * hi)}, min_angle_limit={round(10 * lo)}), in 0.1 deg), then start again")
+    return (
+        f"reset J{joint + 1}'s limits to {lo:g}..{hi:g} deg with AgileX's Piper tool or piper-sdk "
+        f"(C_PiperInterface_V2({channel!r}).MotorAngleLimitMaxSpdSet(motor_num={joint + 1}, "
+        f"max_angle_limit={round(10 * hi)}, min_angle_limit={round(10 * lo)}), in 0.1 deg), then start again"
+    )
 
 
 def factory_limits(max_speed: float | np.ndarray) -> FirmwareLimits:
     """The limits a Piper's firmware holds as shipped (:data:`~hardware.piper.limits.FIRMWARE_LOWER_DEG` /
     ``UPPER_DEG``), with ``max_speed`` rad/s per joint: what a simulated arm reports unless told otherwise."""
-    return FirmwareLimits(np.radians(FIRMWARE_LOWER_DEG), np.radians(FIRMWARE_UPPER_DEG),
-                          np.broadcast_to(np.asarray(max_speed, dtype=np.float64), (N_JOINTS,)),
-                          arm="the factory table", resolution=codec.LIMIT_RESOLUTION)
+    return FirmwareLimits(
+        np.radians(FIRMWARE_LOWER_DEG),
+        np.radians(FIRMWARE_UPPER_DEG),
+        np.broadcast_to(np.asarray(max_speed, dtype=np.float64), (N_JOINTS,)),
+        arm="the factory table",
+        resolution=codec.LIMIT_RESOLUTION,
+    )
 
 
 class LimitAnswers:
@@ -76,5 +82,11 @@ class LimitAnswers:
         for the advice."""
         with self._lock:
             lower, upper, speed = self._lower.copy(), self._upper.copy(), self._speed.copy()
-        return FirmwareLimits(lower, upper, speed, arm=arm, resolution=codec.LIMIT_RESOLUTION,
-                              advice=tuple(reset_advice(channel, j) for j in range(N_JOINTS)))
+        return FirmwareLimits(
+            lower,
+            upper,
+            speed,
+            arm=arm,
+            resolution=codec.LIMIT_RESOLUTION,
+            advice=tuple(reset_advice(channel, j) for j in range(N_JOINTS)),
+        )

@@ -112,6 +112,12 @@ def piper_description(n_arms: int = 1) -> RobotDescription:
     per arm [J1..J6 rad within ``JOINT_LOWER/UPPER``, gripper opening 0..1], the slowest joint's speed, the
     feedback rate."""
     limits = JointLimits.piper().tile(n_arms)
-    return RobotDescription(model="AgileX Piper", layout=piper_layout(n_arms), lower=limits.lower, upper=limits.upper,
-                            gripper=np.tile(np.arange(ARM_DOF) == ARM_DOF - 1, n_arms),
-                            max_joint_speed=MAX_JOINT_SPEED, feedback_hz=FEEDBACK_HZ)
+    return RobotDescription(
+        model="AgileX Piper",
+        layout=piper_layout(n_arms),
+        lower=limits.lower,
+        upper=limits.upper,
+        gripper=np.tile(np.arange(ARM_DOF) == ARM_DOF - 1, n_arms),
+        max_joint_speed=MAX_JOINT_SPEED,
+        feedback_hz=FEEDBACK_HZ,
+    )

@@ -12,11 +12,11 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from hardware.robot import ARM_DOF, ArmStatus, FirmwareLimits, Robot, RobotDescription, RobotState
 from dssp_core.errors import ArmError, HardwareError
 from hardware.piper.arm import PiperArm
-from hardware.piper.limits import opening_to_stroke, piper_description, stroke_to_opening
 from hardware.piper.can_simulator import SimulatedPiper
+from hardware.piper.limits import opening_to_stroke, piper_description, stroke_to_opening
+from hardware.robot import ARM_DOF, ArmStatus, FirmwareLimits, Robot, RobotDescription, RobotState
 
 
 class PiperRobot(Robot):
@@ -24,8 +24,14 @@ class PiperRobot(Robot):
     ``gripper_effort``: N·m for every gripper command. ``simulators`` are started by ``connect`` and stopped
     by ``close`` (``open_robot("sim")`` fills them; tests use them to inject faults)."""
 
-    def __init__(self, arms: Sequence[PiperArm], *, speed_percent: int = 50, gripper_effort: float = 1.0,
-                 simulators: Sequence[SimulatedPiper] = ()) -> None:
+    def __init__(
+        self,
+        arms: Sequence[PiperArm],
+        *,
+        speed_percent: int = 50,
+        gripper_effort: float = 1.0,
+        simulators: Sequence[SimulatedPiper] = (),
+    ) -> None:
         if not 1 <= len(arms) <= 2:
             raise ArmError(f"a Piper robot has 1 or 2 arms, got {len(arms)}")
         if not 0 <= speed_percent <= 100:
@@ -106,7 +112,7 @@ class PiperRobot(Robot):
         if target.shape != (self.dof,) or not np.all(np.isfinite(target)):
             raise ArmError(f"robot target must be {self.dof} finite values, got shape {target.shape}")
         for i, arm in enumerate(self.arms):
-            t = target[i * ARM_DOF:(i + 1) * ARM_DOF]
+            t = target[i * ARM_DOF : (i + 1) * ARM_DOF]
             arm.set_joint_mode(self.speed_percent)
             arm.command_joints(t[:6])
             arm.command_gripper(float(opening_to_stroke(t[6])), self.gripper_effort)
@@ -148,8 +154,9 @@ class PiperRobot(Robot):
 _SIM_SPEC = re.compile(r"^sim(?::(\d+))?$")
 
 
-def open_robot(spec: str, interface: str = "socketcan", *, bus_options: dict | None = None,
-               **robot_options) -> PiperRobot:
+def open_robot(
+    spec: str, interface: str = "socketcan", *, bus_options: dict | None = None, **robot_options
+) -> PiperRobot:
     """A PiperRobot from a spec (not yet connected; use ``with open_robot(...) as robot``).
 
     spec: ``can0`` or ``can0,can1`` (one bus per arm, left first, on ``interface``), or ``sim`` / ``sim:2``
@@ -171,4 +178,3 @@ def open_robot(spec: str, interface: str = "socketcan", *, bus_options: dict | N
     if not spec or any(not c for c in channels) or len(channels) > 2:
         raise ArmError(f"robot spec {spec!r} is invalid: give can0, can0,can1 (left,right), sim or sim:2")
     return PiperRobot([PiperArm(ch, interface, bus_options=bus_options) for ch in channels], **robot_options)
-

@@ -109,8 +109,10 @@ def split_spec(spec: str) -> tuple[str, str | None]:
     name, colon, arg = spec.partition(":")
     name = name.strip()
     if name not in REGISTRY:
-        raise ConfigError(f"--policy {spec}: no such policy source; choose from {', '.join(sorted(REGISTRY))} "
-                          "(or --model DIR for an exported model)")
+        raise ConfigError(
+            f"--policy {spec}: no such policy source; choose from {', '.join(sorted(REGISTRY))} "
+            "(or --model DIR for an exported model)"
+        )
     return name, (arg if colon else None)
 
 

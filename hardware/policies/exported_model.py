@@ -28,7 +28,9 @@ class ModelPolicy(PolicySource):
     name = "model"
     needs_cloud = True
 
-    def __init__(self, policy: OnnxPolicy, control_rate_hz: float, *, seed: int | None = None, schedule: Schedule = Plain()):
+    def __init__(
+        self, policy: OnnxPolicy, control_rate_hz: float, *, seed: int | None = None, schedule: Schedule = Plain()
+    ):
         self.policy, self.control_rate_hz = policy, control_rate_hz
         self.control = ChunkedControl(policy, schedule, control_rate_hz=control_rate_hz, seed=seed)
 
@@ -37,7 +39,8 @@ class ModelPolicy(PolicySource):
         policy, dof = self.policy, description.dof
         if policy.contract.state_dim != dof or policy.contract.action_dim != dof:
             raise ConfigError(
-                f"the model takes a {policy.contract.state_dim}-dim state and gives a {policy.contract.action_dim}-dim action, but the robot has "
+                f"the model takes a {policy.contract.state_dim}-dim state and gives "
+                f"a {policy.contract.action_dim}-dim action, but the robot has "
                 f"{dof} values (7 per arm): pass one bus per arm the model was trained for (--can can0[,can1])"
             )
         model_points = policy.contract.n_points
@@ -53,11 +56,20 @@ class ModelPolicy(PolicySource):
         chunk, shown = None, self.control.schedule
         if info.new_chunk and shown.chunk is not None:
             # (H - offset, A): the new chunk's actions to come (ensembled: the newest chunk's, not the blend)
-            chunk = shown.chunk[0, shown.chunk_offset:]
+            chunk = shown.chunk[0, shown.chunk_offset :]
         action = None if out is None else out[0].astype(np.float64)  # None: no chunk usable yet, hold
-        return Act(action, observe_ms=info.observe_ms, chunk_ms=info.chunk_ms, chunk=chunk,
-                   over_budget=info.over_budget, events=list(info.events))
+        return Act(
+            action,
+            observe_ms=info.observe_ms,
+            chunk_ms=info.chunk_ms,
+            chunk=chunk,
+            over_budget=info.over_budget,
+            events=list(info.events),
+        )
 
     def describe(self) -> dict:
-        return {"policy": self.name, "denoise_steps": self.policy.contract.denoise_steps,
-                **self.control.schedule.settings()}
+        return {
+            "policy": self.name,
+            "denoise_steps": self.policy.contract.denoise_steps,
+            **self.control.schedule.settings(),
+        }

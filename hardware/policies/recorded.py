@@ -41,7 +41,9 @@ class RecordedEpisode(PolicySource):
         actions = ep.action.astype(np.float64)
         dof = actions.shape[1]
         if dof % ARM_DOF:
-            raise DSSPError(f"{path}: actions have {dof} values; a Piper replay needs 7 per arm [J1..J6 rad, gripper 0..1]")
+            raise DSSPError(
+                f"{path}: actions have {dof} values; a Piper replay needs 7 per arm [J1..J6 rad, gripper 0..1]"
+            )
         first = ep.state[0].astype(np.float64) if ep.state.shape[1] == dof else actions[0]
         return cls(actions, first, reader.control_rate_hz, f"{path} episode {episode}")
 
@@ -55,8 +57,10 @@ class RecordedEpisode(PolicySource):
 
     def check(self, description, cloud_config) -> None:
         if description.dof != self.actions.shape[1]:
-            raise ConfigError(f"{self.where} has {self.actions.shape[1]} action values but the robot has {description.dof} "
-                              "(7 per arm): pass one bus per recorded arm (--can can0[,can1])")
+            raise ConfigError(
+                f"{self.where} has {self.actions.shape[1]} action values but the robot has {description.dof} "
+                "(7 per arm): pass one bus per recorded arm (--can can0[,can1])"
+            )
 
     def reset(self, state: np.ndarray) -> None:
         self.next = 0

@@ -30,16 +30,23 @@ class CsvLog(Subscriber):
         dof = loop.robot.dof
         self._file = open(self.path, "x", newline="")  # a new file: never one that was there
         self._writer = csv.writer(self._file)
-        self._writer.writerow(["tick", "time", "held", *(f"command_{i}" for i in range(dof)),
-                               *(f"{k}_ms" for k in LATENCIES)])
+        self._writer.writerow(
+            ["tick", "time", "held", *(f"command_{i}" for i in range(dof)), *(f"{k}_ms" for k in LATENCIES)]
+        )
         self._dof = dof
 
     def on_tick(self, tick: Tick) -> None:
         r = tick.record
         command = r["command"]
-        self._writer.writerow([r["tick"], f"{r['time']:.6f}", int(bool(r["held"])),
-                               *([f"{v:.6f}" for v in command] if command is not None else [""] * self._dof),
-                               *("" if r.get(f"{k}_ms") is None else f"{r[f'{k}_ms']:.3f}" for k in LATENCIES)])
+        self._writer.writerow(
+            [
+                r["tick"],
+                f"{r['time']:.6f}",
+                int(bool(r["held"])),
+                *([f"{v:.6f}" for v in command] if command is not None else [""] * self._dof),
+                *("" if r.get(f"{k}_ms") is None else f"{r[f'{k}_ms']:.3f}" for k in LATENCIES),
+            ]
+        )
         self._file.flush()
 
     def on_end(self, summary) -> None:

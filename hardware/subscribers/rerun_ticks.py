@@ -25,8 +25,15 @@ class RerunTicks(Subscriber):
         events = [f"{e['kind']}: {e['detail']}" for e in record.get("safety", []) if e["kind"] != "clip"]
         events += record.get("events", [])
         self.views.tick(
-            self.next_tick, depth=frame.depth if frame is not None else None,
-            depth_unit=frame.depth_unit if frame is not None else None, cloud=tick.cloud, state=record["state"],
-            command=record["command"], chunk=tick.chunk, held=record["held"], events=events,
-            latency_ms={k: record.get(f"{k}_ms") for k in ("cloud", "observe", "chunk", "tick")})
+            self.next_tick,
+            depth=frame.depth if frame is not None else None,
+            depth_unit=frame.depth_unit if frame is not None else None,
+            cloud=tick.cloud,
+            state=record["state"],
+            command=record["command"],
+            chunk=tick.chunk,
+            held=record["held"],
+            events=events,
+            latency_ms={k: record.get(f"{k}_ms") for k in ("cloud", "observe", "chunk", "tick")},
+        )
         self.next_tick += 1

@@ -41,9 +41,11 @@ def control_status(tick: Tick) -> str:
         return f"{np.median(values):.1f}" if values else "-"
 
     events = " ".join(f"{k}={v}" for k, v in sorted(loop.event_counts.items())) or "none"
-    return (f"tick {loop.ticks:5d}  {loop.rate():5.1f} Hz  cloud {p50('cloud')} ms  observe {p50('observe')} ms  "
-            f"chunk {p50('chunk')} ms  tick {p50('tick')} ms  holds {loop.holds}  events: {events}"
-            + ("  [dry run]" if loop.settings.dry_run else ""))
+    return (
+        f"tick {loop.ticks:5d}  {loop.rate():5.1f} Hz  cloud {p50('cloud')} ms  observe {p50('observe')} ms  "
+        f"chunk {p50('chunk')} ms  tick {p50('tick')} ms  holds {loop.holds}  events: {events}"
+        + ("  [dry run]" if loop.settings.dry_run else "")
+    )
 
 
 class StatusLine(Subscriber):

@@ -7,7 +7,7 @@ importing the package registers the depth-to-cloud processor step too, so a save
 reloads.
 """
 
-from lerobot_policy_dssp.configuration_dssp import DSSPConfig
 from lerobot_policy_dssp import processor_dssp  # noqa: F401  (registers the step dssp_depth_to_cloud)
+from lerobot_policy_dssp.configuration_dssp import DSSPConfig
 
 __all__ = ["DSSPConfig"]

@@ -71,8 +71,11 @@ class DSSPConfig(PreTrainedConfig):
     run_config: dict | None = None
     # The model keeps its own normalisers (fitted from the dataset's min/max): LeRobot's processors pass through.
     normalization_mapping: dict[str, NormalizationMode] = field(
-        default_factory=lambda: {"VISUAL": NormalizationMode.IDENTITY, "STATE": NormalizationMode.IDENTITY,
-                                 "ACTION": NormalizationMode.IDENTITY}
+        default_factory=lambda: {
+            "VISUAL": NormalizationMode.IDENTITY,
+            "STATE": NormalizationMode.IDENTITY,
+            "ACTION": NormalizationMode.IDENTITY,
+        }
     )
 
     # Checked when first used (the dataset's frames to load, the policy built), not in __post_init__: draccus,

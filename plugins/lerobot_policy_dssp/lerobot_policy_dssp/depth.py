@@ -32,16 +32,20 @@ def resolve_depth_camera(config, dataset_meta) -> dict:
     feature = dataset_meta.features[key]
     info = feature.get("info")
     if not (isinstance(info, dict) and isinstance(info.get("camera_intrinsics"), dict)):
-        raise ValueError(f"the dataset's depth feature {key} has no info.camera_intrinsics {{fx, fy, ppx, ppy, width, "
-                         "height, depth_unit}: add the camera's intrinsics to its entry in meta/info.json (as "
-                         "dssp_data/README.md describes) to train on its depth")
+        raise ValueError(
+            f"the dataset's depth feature {key} has no info.camera_intrinsics {{fx, fy, ppx, ppy, width, "
+            "height, depth_unit}: add the camera's intrinsics to its entry in meta/info.json (as "
+            "dssp_data/README.md describes) to train on its depth"
+        )
     try:
         depth = depth_feature(dataset_meta.features, key, Path(dataset_meta.root))
     except DSSPError as exc:
         raise ValueError(str(exc)) from None
     if config.extrinsics is None:
-        raise ValueError(f"training on the depth feature {key} needs the camera's pose: give --policy.extrinsics="
-                         "calib.json (the file dssp-calibrate writes); the clouds are made in the robot's base frame")
+        raise ValueError(
+            f"training on the depth feature {key} needs the camera's pose: give --policy.extrinsics="
+            "calib.json (the file dssp-calibrate writes); the clouds are made in the robot's base frame"
+        )
     try:
         camera_to_base = load_extrinsics(config.extrinsics)
         if config.pointcloud is not None:
@@ -52,10 +56,18 @@ def resolve_depth_camera(config, dataset_meta) -> dict:
     except DSSPError as exc:
         raise ValueError(str(exc)) from None
     if cloud.use_color:
-        raise ValueError(f"the point-cloud settings ask for colour (use_color) but {key} is depth alone: set "
-                         "use_color false")
-    return {"key": key, "dtype": depth.dtype, "intrinsics": depth.intrinsics.to_dict(), "depth_unit": depth.depth_unit,
-            "camera_to_base": camera_to_base.tolist(), "pointcloud": cloud.to_dict(), "frame": FRAME_ROBOT_BASE}
+        raise ValueError(
+            f"the point-cloud settings ask for colour (use_color) but {key} is depth alone: set use_color false"
+        )
+    return {
+        "key": key,
+        "dtype": depth.dtype,
+        "intrinsics": depth.intrinsics.to_dict(),
+        "depth_unit": depth.depth_unit,
+        "camera_to_base": camera_to_base.tolist(),
+        "pointcloud": cloud.to_dict(),
+        "frame": FRAME_ROBOT_BASE,
+    }
 
 
 def cloud_range(depth_camera: dict) -> np.ndarray:
@@ -89,8 +101,9 @@ class DepthClouds:
 
     def cloud(self, counts: np.ndarray, where: str) -> np.ndarray:
         """One (H, W) uint16 frame -> its (P, 3) float32 cloud; ``where`` names the frame in a refusal."""
-        frame = DepthFrame(depth=counts, depth_unit=self.depth_unit, intrinsics=self.intrinsics, timestamp=0.0,
-                           frame_number=0)
+        frame = DepthFrame(
+            depth=counts, depth_unit=self.depth_unit, intrinsics=self.intrinsics, timestamp=0.0, frame_number=0
+        )
         try:
             return frame_to_cloud(frame, self.config, self.camera_to_base)[0]
         except EmptyCloudError as exc:
@@ -116,9 +129,10 @@ class DepthClouds:
                 if index is None:
                     where = f"the depth frame {self.key}" + (f" {j}" if t > 1 else "")
                 else:
-                    where = (f"the depth frame {self.key} at dataset index {int(index[i]) + j - current}"
-                             + (f" (episode {int(episode[i])})" if episode is not None else ""))
+                    where = f"the depth frame {self.key} at dataset index {int(index[i]) + j - current}" + (
+                        f" (episode {int(episode[i])})" if episode is not None else ""
+                    )
                 out[i, j] = self.cloud(rows[i, j], where)
             out[i, :first] = out[i, first]
-            out[i, last + 1:] = out[i, last]
+            out[i, last + 1 :] = out[i, last]
         return out.reshape(*lead, self.config.n_points, 3)

@@ -68,8 +68,9 @@ def _facts(config: DSSPConfig, dataset_meta) -> SimpleNamespace:
         layout = feature_layout(features[key], dim)
         if layout is not None:
             attrs[name] = layout.to_dict()
-    return SimpleNamespace(point_dim=c, state_dim=s, action_dim=a, n_points=p, control_rate_hz=float(dataset_meta.fps),
-                           attrs=attrs)
+    return SimpleNamespace(
+        point_dim=c, state_dim=s, action_dim=a, n_points=p, control_rate_hz=float(dataset_meta.fps), attrs=attrs
+    )
 
 
 def resolve_run_config(config: DSSPConfig, dataset_meta) -> RunConfig:
@@ -77,8 +78,9 @@ def resolve_run_config(config: DSSPConfig, dataset_meta) -> RunConfig:
     if dataset_meta is None:
         raise ValueError("a new DSSP policy is built from a dataset (--dataset.repo_id / --dataset.root)")
     user_set = {item.split("=", 1)[0] for item in config.overrides}
-    return resolve_data_facts(config.run(), _facts(config, dataset_meta), str(dataset_meta.root), None,
-                              user_set=user_set)
+    return resolve_data_facts(
+        config.run(), _facts(config, dataset_meta), str(dataset_meta.root), None, user_set=user_set
+    )
 
 
 def use_depth(config: DSSPConfig, dataset_meta) -> None:
@@ -106,14 +108,19 @@ def check_sample_memory(config: DSSPConfig, dataset_meta) -> None:
     (``DSSP_READ_BUDGET``, :func:`dssp_data.bounded.check_budget`): LeRobot loads ``config.window`` frames of every
     ``observation.*`` feature and the action for each sample — outside the episode too, as padding — each element
     at least a float32. A ValueError of one line naming the history, the size and what to do."""
-    frame = sum(int(np.prod(feature["shape"])) * 4 for key, feature in dataset_meta.features.items()
-                if key.startswith("observation.") or key == ACTION_KEY)
+    frame = sum(
+        int(np.prod(feature["shape"])) * 4
+        for key, feature in dataset_meta.features.items()
+        if key.startswith("observation.") or key == ACTION_KEY
+    )
     longest = _longest_episode(dataset_meta)
-    check_budget(config.window * frame,
-                 f"a training sample of --policy.history={config.history} frames (and the chunk's {config.horizon - 1} "
-                 f"after it; {human_size(frame)} per frame)",
-                 "lower --policy.history" + (f" (the longest episode has {longest} frames)" if longest else ""),
-                 error=ValueError)
+    check_budget(
+        config.window * frame,
+        f"a training sample of --policy.history={config.history} frames (and the chunk's {config.horizon - 1} "
+        f"after it; {human_size(frame)} per frame)",
+        "lower --policy.history" + (f" (the longest episode has {longest} frames)" if longest else ""),
+        error=ValueError,
+    )
 
 
 def _range(stats: dict, key: str) -> np.ndarray:
@@ -127,8 +134,11 @@ class DSSPPolicy(PreTrainedPolicy):
 
     def __init__(self, config: DSSPConfig, dataset_stats=None, dataset_meta=None, **kwargs):
         super().__init__(config)
-        if config.run_config is None and CLOUD_KEY not in config.input_features \
-                and config.depth_key in config.input_features:
+        if (
+            config.run_config is None
+            and CLOUD_KEY not in config.input_features
+            and config.depth_key in config.input_features
+        ):
             use_depth(config, dataset_meta)
         config.validate_features()
         if dataset_meta is not None:
@@ -137,14 +147,25 @@ class DSSPPolicy(PreTrainedPolicy):
             config.run_config = resolve_run_config(config, dataset_meta).to_dict()
             longest = _longest_episode(dataset_meta)
             if longest > config.history:
-                logging.warning("the dataset's episodes run up to %d frames, more than --policy.history=%d: a sample's "
-                                "trajectory starts at most %d frames before it (--policy.history=%d trains on whole "
-                                "histories)", longest, config.history, config.history - 1, longest)
+                logging.warning(
+                    "the dataset's episodes run up to %d frames, more than --policy.history=%d: a sample's "
+                    "trajectory starts at most %d frames before it (--policy.history=%d trains on whole "
+                    "histories)",
+                    longest,
+                    config.history,
+                    config.history - 1,
+                    longest,
+                )
             elif longest and config.history > 2 * longest:
-                logging.warning("--policy.history=%d is more than twice the longest episode (%d frames): LeRobot loads "
-                                "every sample's %d frames, the padding beyond the episode included; "
-                                "--policy.history=%d trains on whole histories at a fraction of the cost",
-                                config.history, longest, config.window, longest)
+                logging.warning(
+                    "--policy.history=%d is more than twice the longest episode (%d frames): LeRobot loads "
+                    "every sample's %d frames, the padding beyond the episode included; "
+                    "--policy.history=%d trains on whole histories at a fraction of the cost",
+                    config.history,
+                    longest,
+                    config.window,
+                    longest,
+                )
         self.run_config = RunConfig.from_dict(config.run_config)
         self.model = Model(self.run_config.model)
         if dataset_stats is not None:
@@ -162,8 +183,10 @@ class DSSPPolicy(PreTrainedPolicy):
         for p in self.model.parameters():
             if p.requires_grad:
                 (no_decay if getattr(p, "_no_weight_decay", False) else decay).append(p)
-        return [{"params": decay, "weight_decay": self.run_config.train.weight_decay},
-                {"params": no_decay, "weight_decay": 0.0}]
+        return [
+            {"params": decay, "weight_decay": self.run_config.train.weight_decay},
+            {"params": no_decay, "weight_decay": 0.0},
+        ]
 
     def forward(self, batch: dict[str, torch.Tensor], reduction: str = "mean") -> tuple[torch.Tensor, dict]:
         clouds, states, actions = batch[CLOUD_KEY], batch[STATE_KEY], batch[ACTION_KEY]
@@ -174,8 +197,9 @@ class DSSPPolicy(PreTrainedPolicy):
             frames = torch.nonzero(inside[b]).flatten()
             first, last = int(frames[0]), int(frames[-1]) + 1  # the episode's frames are contiguous
             start = torch.tensor([current - first], device=actions.device)
-            results.append(self.model.compute_loss(clouds[b, first:last], states[b, first:last],
-                                                   actions[b, first:last], start))
+            results.append(
+                self.model.compute_loss(clouds[b, first:last], states[b, first:last], actions[b, first:last], start)
+            )
         per_sample = torch.stack([r["loss"] for r in results])
         info = {k: float(torch.stack([r[k].detach() for r in results]).mean()) for k in ("diffusion", "dynamics")}
         return (per_sample if reduction == "none" else per_sample.mean()), info
@@ -208,8 +232,9 @@ class DSSPPolicy(PreTrainedPolicy):
         self._stream.observe(batch[CLOUD_KEY], batch[STATE_KEY])
 
     @torch.no_grad()
-    def predict_action_chunk(self, batch: dict[str, torch.Tensor], noise: torch.Tensor | None = None,
-                             **kwargs) -> torch.Tensor:
+    def predict_action_chunk(
+        self, batch: dict[str, torch.Tensor], noise: torch.Tensor | None = None, **kwargs
+    ) -> torch.Tensor:
         """The batch is the episode's next frame (since :meth:`reset`): the history takes it, one step of the
         streaming path (:mod:`dssp_train.model.streaming`, what the exported graphs run); returns the chunk
         (B, H, A) in raw units, from ``noise`` (B, H, A) or a fresh draw."""
@@ -228,7 +253,7 @@ class DSSPPolicy(PreTrainedPolicy):
             self._observe(batch)
         else:
             m = self.run_config.model
-            chunk = self.predict_action_chunk(batch, **kwargs)[:, m.action_offset:m.action_offset + m.n_action_steps]
+            chunk = self.predict_action_chunk(batch, **kwargs)[:, m.action_offset : m.action_offset + m.n_action_steps]
             self._queue.extend(chunk.transpose(0, 1))
         return self._queue.popleft()
 

@@ -62,11 +62,19 @@ class DepthToCloudStep(ProcessorStep):
         complementary = dict(transition.get(TransitionKey.COMPLEMENTARY_DATA) or {})
         depth = observation.pop(key)
         pad = observation.pop(key + PAD, complementary.pop(key + PAD, None))  # (in both where LeRobot batches)
-        as_numpy = (lambda x: None if x is None else x.detach().cpu().numpy() if torch.is_tensor(x) else np.asarray(x))
+
+        def as_numpy(x):
+            return None if x is None else x.detach().cpu().numpy() if torch.is_tensor(x) else np.asarray(x)
+
         depth = as_numpy(depth)
         t = depth.shape[1] if depth.ndim == 4 else 1
-        clouds = self._clouds(depth, as_numpy(pad), self.history - 1 if t > 1 else 0,
-                              as_numpy(complementary.get("index")), as_numpy(complementary.get("episode_index")))
+        clouds = self._clouds(
+            depth,
+            as_numpy(pad),
+            self.history - 1 if t > 1 else 0,
+            as_numpy(complementary.get("index")),
+            as_numpy(complementary.get("episode_index")),
+        )
         observation[CLOUD_KEY] = torch.from_numpy(clouds)
         if pad is not None:
             observation[CLOUD_KEY + PAD] = complementary[CLOUD_KEY + PAD] = pad
@@ -96,17 +104,24 @@ def make_dssp_pre_post_processors(
         AddBatchDimensionProcessorStep(),
         *([DepthToCloudStep(depth_camera=config.depth_camera, history=config.history)] if config.depth_camera else []),
         DeviceProcessorStep(device=config.device),
-        NormalizerProcessorStep(features={**config.input_features, **config.output_features},
-                                norm_map=config.normalization_mapping, stats=dataset_stats),
+        NormalizerProcessorStep(
+            features={**config.input_features, **config.output_features},
+            norm_map=config.normalization_mapping,
+            stats=dataset_stats,
+        ),
     ]
     output_steps = [
-        UnnormalizerProcessorStep(features=config.output_features, norm_map=config.normalization_mapping,
-                                  stats=dataset_stats),
+        UnnormalizerProcessorStep(
+            features=config.output_features, norm_map=config.normalization_mapping, stats=dataset_stats
+        ),
         DeviceProcessorStep(device="cpu"),
     ]
     return (
         Observations(steps=input_steps, name=POLICY_PREPROCESSOR_DEFAULT_NAME),
         Actions(
-            steps=output_steps, name=POLICY_POSTPROCESSOR_DEFAULT_NAME,
-            to_transition=policy_action_to_transition, to_output=transition_to_policy_action),
+            steps=output_steps,
+            name=POLICY_POSTPROCESSOR_DEFAULT_NAME,
+            to_transition=policy_action_to_transition,
+            to_output=transition_to_policy_action,
+        ),
     )
