@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import CROSS_HINT, CROSS_TOOLS, block_case, build_harness
+from conftest import CROSS_HINT, CROSS_TOOLS, ROOT, block_case, build_harness
 
-BUILD = Path(__file__).resolve().parents[1] / "build" / "block"
+BUILD = ROOT / "build" / "block"
 MAGIC = b"DSSPTENS"
 CASES = [("gated", 1, "actions"), ("none", 2, "actions"), ("gated", 2, "prefix"), ("gated", 1, "joint")]
 

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import one_error_line
+from conftest import CALIBRATION_START, one_error_line, refusal
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -36,8 +36,7 @@ from hardware.rig import Rig
 from hardware.run_loop import LoopSettings, Runner
 from hardware.safety import SafetyConfig
 
-START = np.array([0.0, 1.2, -1.0, 0.0, 0.6, 0.0])  # a pose inside the limits, the wrist away from its singularity
-GOOD = auto_poses(START, 16)  # a plan that passes (as many poses as the plans drawn below hold at most)
+GOOD = auto_poses(CALIBRATION_START, 16)  # a plan that passes (as many poses as the plans drawn below hold at most)
 HYPOTHESIS = {
     "deadline": None,
     "derandomize": True,
@@ -69,9 +68,8 @@ def run(capsys, *argv, sim=None):
 
 
 def refused(capsys, *argv, sim=None) -> str:
-    code, _, err = run(capsys, *argv, sim=sim)
-    assert code == 2, err
-    return one_error_line(err)
+    """The :func:`conftest.refusal` line of the command on ``argv`` (``run``)."""
+    return refusal(run(capsys, *argv, sim=sim))
 
 
 def write_plan(path: Path, poses) -> Path:
@@ -173,7 +171,7 @@ def test_a_joint_beyond_any_float_is_refused_naming_it(tmp_path_factory, i, j, b
 
 @pytest.mark.parametrize("second", ["first", "last"])
 def test_poses_given_twice_are_refused_not_one_of_them_toured(tmp_path, capsys, second):
-    other = auto_poses(START + 0.05, 12)
+    other = auto_poses(CALIBRATION_START + 0.05, 12)
     lists = [json.dumps(GOOD.tolist()), json.dumps(other.tolist())][:: 1 if second == "last" else -1]
     path = tmp_path / "poses.json"
     path.write_text(f'{{"poses": {lists[0]}, "notes": "x", "poses": {lists[1]}}}')
@@ -196,10 +194,10 @@ def test_a_plan_is_held_to_the_solves_own_rule_before_the_rig_opens(
     exactly when its views, detected perfectly, would be refused by the solve (one rule, PoseSpread), and then
     before the rig opens — too few poses, too few distinct orientations, rotations about one axis or too small."""
     distinct = min(distinct, count)
-    offsets = (GOOD - START) * scale
+    offsets = (GOOD - CALIBRATION_START) * scale
     if joints == "J6 only":
         offsets[:, :5] = 0.0
-    plan = (START + offsets[:distinct])[np.arange(count) % distinct]
+    plan = (CALIBRATION_START + offsets[:distinct])[np.arange(count) % distinct]
     grippers = [flange_pose(q) for q in plan]
     solvable = PoseSpread.of(grippers).problem("poses") is None
     try:
@@ -230,7 +228,7 @@ def test_auto_is_bounded_when_parsed(tmp_path, capsys, n):
 def test_a_generated_plan_that_cannot_pass_is_refused_at_the_start_before_the_first_move():
     """--auto's poses come from where the arm starts: they are checked there, before the first command."""
     clock = FakeClock()
-    start = np.append(START, 1.0)
+    start = np.append(CALIBRATION_START, 1.0)
     robot = IdealRobot(piper_description(1), start, clock)
     tour = CalibrationTour(
         lambda joints: np.repeat(joints[None], 12, axis=0), None, clock, where="--auto 12", events=lambda line: None

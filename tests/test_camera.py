@@ -7,6 +7,7 @@ import time
 
 import numpy as np
 import pytest
+from conftest import DEPTH_UNIT, one_line_message
 from waiting import wait_for
 
 from dssp_core.errors import CameraError, ConfigError
@@ -23,7 +24,6 @@ from hardware.camera.software import SoftwareDepthCamera, record_depth
 from hardware.camera.tabletop import Box, SimCamera
 
 INTR = Intrinsics(width=640, height=480, fx=457.1, fy=455.9, ppx=318.7, ppy=243.2)
-UNIT = 0.00025
 
 
 def _depths(n: int, seed: int = 0, shape=(480, 640)) -> list[np.ndarray]:
@@ -45,10 +45,12 @@ def _same_intrinsics(a: Intrinsics, b: Intrinsics) -> bool:
 
 
 def _one_line_error(fn, *args, **kw) -> str:
+    """``fn(*args, **kw)`` raises a CameraError: its :func:`conftest.one_line_message`, stripped and more than a
+    word."""
     with pytest.raises(CameraError) as exc:
         fn(*args, **kw)
-    msg = str(exc.value)
-    assert "\n" not in msg and msg.strip() == msg and len(msg) > 20
+    msg = one_line_message(exc)
+    assert msg.strip() == msg and len(msg) > 20
     return msg
 
 
@@ -84,7 +86,7 @@ def test_parse_version():
 def test_software_camera_returns_injected_depth_and_intrinsics():
     frames = _depths(3)
     t_before = time.monotonic()
-    with SoftwareDepthCamera(INTR, UNIT, fps=30) as cam:
+    with SoftwareDepthCamera(INTR, DEPTH_UNIT, fps=30) as cam:
         assert cam.latest() is None
         out = [cam.push(d) for d in frames]
         assert cam.latest() is out[-1]
@@ -92,7 +94,7 @@ def test_software_camera_returns_injected_depth_and_intrinsics():
         assert f.depth.dtype == np.uint16 and f.depth.shape == (480, 640)
         np.testing.assert_array_equal(f.depth, d)
         assert _same_intrinsics(f.intrinsics, INTR)
-        assert f.depth_unit == UNIT
+        assert f.depth_unit == DEPTH_UNIT
         assert f.frame_number == i
         assert f.device_timestamp_ms == pytest.approx(i * 1000 / 30)
         assert f.color is None
@@ -118,7 +120,7 @@ def test_software_camera_colour_and_bad_input():
 
 def test_db3_recording_plays_back_through_rs_pipeline(tmp_path):
     frames = _depths(4, seed=2)
-    path = record_depth(tmp_path / "rec.db3", frames, INTR, UNIT, fps=30, pace=False)
+    path = record_depth(tmp_path / "rec.db3", frames, INTR, DEPTH_UNIT, fps=30, pace=False)
     assert path.is_file() and not [p for p in tmp_path.iterdir() if p.name != "rec.db3"]
     cam = open_camera(f"file:{path}", real_time=False)
     assert isinstance(cam, RealSenseCamera)
@@ -138,7 +140,7 @@ def test_db3_recording_plays_back_through_rs_pipeline(tmp_path):
     for number, f in seen.items():
         np.testing.assert_array_equal(f.depth, frames[number])
         assert _same_intrinsics(f.intrinsics, INTR)
-        assert f.depth_unit == UNIT
+        assert f.depth_unit == DEPTH_UNIT
         assert f.device_timestamp_ms == pytest.approx(number * 1000 / 30, abs=1e-3)
 
 
@@ -149,7 +151,7 @@ def test_db3_repeat_playback_and_colour(tmp_path):
     colors = [rng.integers(0, 256, (60, 80, 3), dtype=np.uint8) for _ in frames]
     # real time (librealsense's non-real-time playback can stall at the loop point, its issue #10312), so the file is
     # written paced: played in real time, frames written at once arrive at once and the depth+colour sync can drop them
-    path = record_depth(tmp_path / "c.db3", frames, small, UNIT, colors=colors, pace=True)
+    path = record_depth(tmp_path / "c.db3", frames, small, DEPTH_UNIT, colors=colors, pace=True)
     with RealSenseCamera(file=path, real_time=True, repeat_playback=True, color=True) as cam:
         f = cam.wait_for_frame(timeout=5)
         wait_for(lambda: cam.frames_received > 2 * len(frames), timeout=10, what="the recording looped twice")
@@ -169,13 +171,17 @@ def test_recording_errors_are_one_line(tmp_path):
     assert "does not exist" in msg
     (tmp_path / "x.txt").write_text("hi")
     assert ".bag or .db3" in _one_line_error(RealSenseCamera, file=tmp_path / "x.txt")
-    msg = _one_line_error(record_depth, tmp_path / "x.bag", _depths(1), INTR, UNIT)
+    msg = _one_line_error(record_depth, tmp_path / "x.bag", _depths(1), INTR, DEPTH_UNIT)
     assert str(tmp_path / "x.bag") in msg and ".db3" in msg  # pyrealsense2 2.59 writes rosbag2 only
     depth_only = record_depth(
-        tmp_path / "d.db3", _depths(2, shape=(60, 80)), Intrinsics(80, 60, 70.0, 70.0, 40.0, 30.0), UNIT, pace=False
+        tmp_path / "d.db3",
+        _depths(2, shape=(60, 80)),
+        Intrinsics(80, 60, 70.0, 70.0, 40.0, 30.0),
+        DEPTH_UNIT,
+        pace=False,
     )
     assert "no colour stream" in _one_line_error(RealSenseCamera(file=depth_only, color=True).start)
-    _one_line_error(record_depth, tmp_path / "empty.db3", [], INTR, UNIT, pace=False)
+    _one_line_error(record_depth, tmp_path / "empty.db3", [], INTR, DEPTH_UNIT, pace=False)
     assert not (tmp_path / "empty.db3").exists()
     _one_line_error(RealSenseCamera, "d435", file=tmp_path / "a.db3")
     _one_line_error(RealSenseCamera)
@@ -293,7 +299,11 @@ def test_open_camera_specs(tmp_path):
     assert isinstance(cam, RealSenseCamera) and cam.profile.name == "d435" and cam.serial == "123" and cam.color
     assert open_camera("d405").profile.depth_unit == 0.0001
     rec = record_depth(
-        tmp_path / "r.db3", _depths(1, shape=(60, 80)), Intrinsics(80, 60, 70.0, 70.0, 40.0, 30.0), UNIT, pace=False
+        tmp_path / "r.db3",
+        _depths(1, shape=(60, 80)),
+        Intrinsics(80, 60, 70.0, 70.0, 40.0, 30.0),
+        DEPTH_UNIT,
+        pace=False,
     )
     cam = open_camera(f"file:{rec}", repeat_playback=True)
     assert cam.file == rec and cam.repeat_playback

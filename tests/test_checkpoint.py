@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import SMALL
+from conftest import FAST_EXPORT, SMALL, one_error_line
 from safetensors.torch import load_file
 
 from dssp_core.errors import CheckpointError, DSSPError
@@ -96,14 +96,6 @@ def assert_same_final_state(run: Path, reference: Path) -> None:
     state = json.loads((run / "checkpoint" / "trainer_state.json").read_text())
     assert state == json.loads((reference / "checkpoint" / "trainer_state.json").read_text())
     assert state["step"] == 2 * K
-
-
-def one_error_line(captured) -> str:
-    lines = captured.err.strip().splitlines()
-    assert len(lines) == 1, captured.err
-    assert lines[0].startswith("error: ")
-    assert "Traceback" not in captured.err
-    return lines[0]
 
 
 # ------------------------------------------------------------------- (a) resume
@@ -246,7 +238,7 @@ def test_weights_that_do_not_fit_the_config(runs, tmp_path, capsys, edit, kind):
         info.value
     )
     assert train_main(resume_args(runs["data"], run)) == 2
-    line = one_error_line(capsys.readouterr())
+    line = one_error_line(capsys.readouterr().err)
     assert named in line and str(run / "checkpoint" / "trainer_state.json") in line
 
     strip_config_record(run)
@@ -300,7 +292,7 @@ def test_resume_refuses_a_config_edited_after_training(runs, tmp_path, capsys, s
     edit_config(run, section, **values)
     before = snapshot(run)
     assert train_main(resume_args(runs["data"], run)) == 2
-    line = one_error_line(capsys.readouterr())
+    line = one_error_line(capsys.readouterr().err)
     assert named in line, line
     assert line.startswith(
         f"error: {run / 'config.json'} differs from the config {run / 'checkpoint' / 'trainer_state.json'}"
@@ -335,9 +327,6 @@ def test_a_checkpoint_without_a_recorded_config_resumes_with_a_warning(runs, tmp
     assert_same_final_state(run, runs["straight"])  # and its next checkpoint records it
 
 
-FAST_EXPORT = ["--format", "onnx", "--skip-verify", "--quantize", "none", "--no-fused"]
-
-
 def test_export_refuses_a_config_edited_after_training(runs, tmp_path, capsys):
     from export.to_onnx import main as export_main
 
@@ -346,14 +335,14 @@ def test_export_refuses_a_config_edited_after_training(runs, tmp_path, capsys):
     edit_config(run, "model", n_action_steps=2)
     model = tmp_path / "out" / "model"
     assert export_main([str(run), "-o", str(model), *FAST_EXPORT]) == 2
-    line = one_error_line(capsys.readouterr())
+    line = one_error_line(capsys.readouterr().err)
     assert f"{run / 'config.json'} differs from the config {run / 'model.safetensors'} was trained with" in line
     assert "model.n_action_steps 2 (trained: 3)" in line
     assert not (tmp_path / "out").exists()
     # The raw weights (--no-ema) record it too.
     assert export_main([str(run), "-o", str(model), "--no-ema", *FAST_EXPORT]) == 2
     assert f"differs from the config {run / 'checkpoint' / 'model.safetensors'} was trained" in one_error_line(
-        capsys.readouterr()
+        capsys.readouterr().err
     )
 
 
@@ -382,7 +371,7 @@ def test_missing_config_json(runs, tmp_path, capsys):
     with pytest.raises(CheckpointError, match="config.json is missing"):
         load_policy(run)
     assert train_main(resume_args(runs["data"], run)) == 2
-    assert "config.json is missing" in one_error_line(capsys.readouterr())
+    assert "config.json is missing" in one_error_line(capsys.readouterr().err)
 
 
 def test_invalid_config_json(runs, tmp_path):
@@ -427,7 +416,7 @@ def test_corrupt_checkpoint_file_on_resume(runs, tmp_path, capsys, name):
         Trainer(ckpt.load_config(run), runs["data"], run, device="cpu", resume=True, progress=False)
     assert name in str(info.value) and "\n" not in str(info.value)
     assert train_main(resume_args(runs["data"], run)) == 2
-    assert name in one_error_line(capsys.readouterr())
+    assert name in one_error_line(capsys.readouterr().err)
 
 
 def test_resume_without_checkpoint_folder(runs, tmp_path, capsys):
@@ -437,13 +426,13 @@ def test_resume_without_checkpoint_folder(runs, tmp_path, capsys):
         ckpt.load_training_state(run)
     assert ckpt.read_trainer_state(run) is None and ckpt.checkpoint_dir(run) is None
     assert train_main(resume_args(runs["data"], run)) == 2
-    line = one_error_line(capsys.readouterr())
+    line = one_error_line(capsys.readouterr().err)
     assert f"{run / 'checkpoint'} is missing, so the run cannot be continued" in line
     assert "model.safetensors stays usable" in line and "start it over with --force" in line
     # Without model.safetensors either, the run stopped before its first save (step K).
     (run / "model.safetensors").unlink()
     assert train_main(resume_args(runs["data"], run)) == 2
-    assert one_error_line(capsys.readouterr()) == (
+    assert one_error_line(capsys.readouterr().err) == (
         f"error: {run} has no checkpoint yet (stopped before step {K}'s save): start it over with --force"
     )
 

@@ -13,13 +13,12 @@ import shutil
 import subprocess
 import sys
 import tomllib
-from pathlib import Path
 
 import pytest
+from conftest import ROOT, refusal
 
 from dssp_core.cli_runner import ArgumentParser
 
-ROOT = Path(__file__).resolve().parents[1]
 MODULE_TOOLS = {"python -m export.to_onnx": "export.to_onnx:main", "python -m export.verify": "export.verify:main"}
 COMMANDS = {**tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"], **MODULE_TOOLS}
 UNKNOWN = "--no-such-flag"
@@ -106,22 +105,22 @@ def required_args(parser: argparse.ArgumentParser) -> list[str]:
     return args
 
 
-def outcome(main, argv: list[str], capsys) -> tuple[int, list[str], str]:
+def outcome(main, argv: list[str], capsys) -> tuple[int, str, str]:
+    """``main(argv)`` in-process: (exit code, stdout, stderr)."""
     try:
         code = main(argv)
     except SystemExit as exc:
         code = exc.code
     captured = capsys.readouterr()
-    return code, captured.err.strip().splitlines(), captured.out
+    return code, captured.out, captured.err
 
 
-def assert_one_line(command: str, argv: list[str], code, lines: list[str], out: str, words: str) -> str:
-    where = f"{command} {' '.join(argv)}"
-    assert code == 2, (where, code, lines)
-    assert len(lines) == 1 and lines[0].startswith("error: "), (where, lines)
-    assert words in lines[0] and lines[0].endswith(" --help)"), (where, lines[0])
-    assert out == "", (where, out)
-    return lines[0]
+def assert_one_line(command: str, argv: list[str], result: tuple[int, str, str], words: str) -> str:
+    """The :func:`conftest.refusal` line of ``command argv`` (its ``result``) holds ``words`` and ends by pointing
+    at ``--help``."""
+    line = refusal(result, words)
+    assert line.endswith(" --help)"), (f"{command} {' '.join(argv)}", line)
+    return line
 
 
 @pytest.mark.parametrize("command", sorted(COMMANDS))
@@ -141,7 +140,7 @@ def test_an_unknown_flag_is_one_line(command, tmp_path, capsys, monkeypatch):
     assert leaves
     for words, parser in leaves:
         argv = [*words, *required_args(parser), UNKNOWN]
-        line = assert_one_line(command, argv, *outcome(main, argv, capsys), f"unrecognized arguments: {UNKNOWN}")
+        line = assert_one_line(command, argv, outcome(main, argv, capsys), f"unrecognized arguments: {UNKNOWN}")
         assert line.startswith(f"error: {parser.prog.split()[0]}"), line
     assert list(tmp_path.iterdir()) == []  # nothing ran
 
@@ -153,7 +152,7 @@ def test_a_missing_required_argument_is_one_line(command, tmp_path, capsys, monk
     cases = [(words, p) for words, p in parsers(command) if required_args(p) or subparsers(p)]
     assert cases, f"{command} has no required argument"
     for words, parser in cases:
-        line = assert_one_line(command, words, *outcome(main, list(words), capsys), "required")
+        line = assert_one_line(command, words, outcome(main, list(words), capsys), "required")
         assert line.startswith(f"error: {parser.prog}: "), line
     assert list(tmp_path.iterdir()) == []
 
@@ -177,14 +176,7 @@ def test_the_installed_command_says_it_in_one_line(command, tmp_path):
         timeout=120,
         env={**os.environ, "OMP_NUM_THREADS": "1"},
     )
-    assert_one_line(
-        command,
-        argv,
-        done.returncode,
-        done.stderr.strip().splitlines(),
-        done.stdout,
-        f"unrecognized arguments: {UNKNOWN}",
-    )
+    assert_one_line(command, argv, (done.returncode, done.stdout, done.stderr), f"unrecognized arguments: {UNKNOWN}")
 
 
 def test_every_can_interface_flag_is_checked_when_parsed(tmp_path, capsys, monkeypatch):
@@ -200,8 +192,8 @@ def test_every_can_interface_flag_is_checked_when_parsed(tmp_path, capsys, monke
             if action is None or subparsers(parser):
                 continue
             argv = [*words, *required_args(parser), "--interface", "bogus"]
-            refusal = "invalid choice: 'bogus'" if action.choices else "'bogus' is not a python-can interface"
-            assert_one_line(command, argv, *outcome(main, argv, capsys), refusal)
+            expected = "invalid choice: 'bogus'" if action.choices else "'bogus' is not a python-can interface"
+            assert_one_line(command, argv, outcome(main, argv, capsys), expected)
             checked.append(f"{command} {' '.join(words)}".strip())
     assert {"dssp-run", "dssp-record", "dssp-replay", "dssp-calibrate", "dssp-sim record", "dssp-sim calibrate"} <= set(
         checked

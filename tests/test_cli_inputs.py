@@ -9,16 +9,10 @@ import shutil
 import subprocess
 
 import pytest
+from conftest import refusal
 
 from dssp_core.errors import ConfigError
 from dssp_core.schema import read_json_object
-
-
-def _one_error_line(capsys, code: int) -> str:
-    err = capsys.readouterr().err.strip().splitlines()
-    assert code == 2, err
-    assert len(err) == 1 and err[0].startswith("error: "), err
-    return err[0]
 
 
 @pytest.mark.parametrize(
@@ -43,7 +37,8 @@ def test_a_huge_integer_in_a_number_field(tmp_path, capsys):
 
     path = tmp_path / "safety.json"
     path.write_text('{"max_joint_step": ' + "1" * 400 + "}")
-    line = _one_error_line(capsys, run_main(["--model", str(tmp_path / "m"), "--safety", str(path), "--quiet"]))
+    code = run_main(["--model", str(tmp_path / "m"), "--safety", str(path), "--quiet"])
+    line = refusal((code, *capsys.readouterr()))
     assert "safety.max_joint_step must be a finite number" in line
 
 
@@ -77,14 +72,14 @@ def test_sim_eval_refuses_a_non_finite_noise(tmp_path, capsys):
     from dssp_sim.sim_cli import main as sim_main
 
     code = sim_main(["eval", "--model", str(tmp_path / "m"), "--task", "tap", "--noise", "nan", "--no-progress"])
-    assert "--noise must be a number in [0, 10]" in _one_error_line(capsys, code)
+    assert "--noise must be a number in [0, 10]" in refusal((code, *capsys.readouterr()))
 
 
 def test_dssp_run_names_a_missing_recording(tmp_path, capsys):
     from hardware.cli.run import main as run_main
 
     code = run_main(["--model", str(tmp_path / "m"), "--camera", f"file:{tmp_path / 'none.bag'}", "--quiet"])
-    line = _one_error_line(capsys, code)
+    line = refusal((code, *capsys.readouterr()))
     assert "none.bag does not exist" in line
 
 
@@ -95,7 +90,7 @@ def test_dssp_record_will_not_write_into_another_recording_s_can_logs(tmp_path, 
     logs.mkdir()
     (logs / "episode_000000.sim.blf").write_text("another recording")
     code = record_main(["--out", str(tmp_path / "rec.zarr"), "--quiet", "--auto", "--episodes", "1"])
-    assert "holds CAN logs of a dataset that is not there" in _one_error_line(capsys, code)
+    assert "holds CAN logs of a dataset that is not there" in refusal((code, *capsys.readouterr()))
     assert (logs / "episode_000000.sim.blf").read_text() == "another recording"
     assert not (tmp_path / "rec.zarr").exists()
 

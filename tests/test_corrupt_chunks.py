@@ -16,6 +16,7 @@ import numcodecs
 import numpy as np
 import pytest
 import zarr
+from conftest import copy_dataset, one_line_message, snapshot
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
@@ -72,20 +73,10 @@ def write_dataset(path, zarr_format, episodes=None):
     return path
 
 
-def copy_dataset(src, dst):
-    shutil.copytree(src, dst)
-    shutil.copytree(can_log_dir(src), can_log_dir(dst))
-    return dst
-
-
 def chunk_file(path, key, c):
     """The file of time chunk ``c`` of ``key`` (first chunk along the other axes), named as zarr names it."""
     array = zarr.open_group(str(path), mode="r", use_consolidated=False)[key]
     return Path(path) / key / array.metadata.encode_chunk_key((c,) + (0,) * (array.ndim - 1))
-
-
-def snapshot(path):
-    return {p.relative_to(path).as_posix(): p.read_bytes() for p in sorted(Path(path).rglob("*")) if p.is_file()}
 
 
 def cli(*argv):
@@ -97,8 +88,8 @@ def cli(*argv):
 
 
 def assert_names(exc_info, key, c=None):
-    message = str(exc_info.value)
-    assert "\n" not in message and key in message, message
+    """The raised error's message is one line naming ``key`` (and time chunk ``c``, if given)."""
+    message = one_line_message(exc_info, key)
     if c is not None:
         assert f"chunk {c} " in message, message
 

@@ -14,60 +14,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import snapshot
+from conftest import DP3_DATASET, ONE_THREAD_ENV, ROOT, episodes, recorded, refusal, run_data_cli, snapshot
 from waiting import wait_for
 
-from dssp_data.data_cli import main as data_main
-from dssp_data.dataset_layout import Episode
 from dssp_data.recording import can_log_dir
 from dssp_data.replay_buffer import ReplayBuffer
 from dssp_data.replay_buffer_writer import write_replay_buffer
 from dssp_train.data.synthetic import write_tap_count_dataset
-
-ROOT = Path(__file__).resolve().parents[1]
-DP3 = ROOT / "tests" / "fixtures" / "dp3_zarr2_tiny.zarr"
-ENV = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
-
-
-def run(capsys, *argv):
-    """dssp-data in-process: (exit code, stdout, stderr)."""
-    code = data_main([str(a) for a in argv])
-    captured = capsys.readouterr()
-    return code, captured.out, captured.err
-
-
-def one_line_error(code, err, *fragments):
-    lines = err.strip().splitlines()
-    assert code == 2 and len(lines) == 1 and lines[0].startswith("error: "), err
-    for fragment in fragments:
-        assert fragment in lines[0], err
-    return lines[0]
-
-
-def episodes(n, seed=0, steps=3):
-    rng = np.random.default_rng(seed)
-    return [
-        Episode(
-            rng.normal(size=(steps, 4, 3)).astype(np.float32),
-            rng.normal(size=(steps, 7)).astype(np.float32),
-            rng.normal(size=(steps, 7)).astype(np.float32),
-        )
-        for _ in range(n)
-    ]
-
-
-def recorded(path: Path, n: int = 3, seed: int = 0, **attrs) -> Path:
-    """A dataset as dssp-record leaves it: generator dssp-record, CAN logs in ``path.can``."""
-    infos = [{"index": i, "can_logs": {"can0": f"episode_{i:06d}.can0.blf"}, "problems": []} for i in range(n)]
-    write_replay_buffer(
-        path,
-        episodes(n, seed),
-        attrs={"generator": "dssp-record", "control_rate_hz": 10.0, "episode_info": infos, **attrs},
-    )
-    can_log_dir(path).mkdir()
-    for i in range(n):
-        (can_log_dir(path) / f"episode_{i:06d}.can0.blf").write_bytes(b"log %d" % i)
-    return path
 
 
 def plain(path: Path, n: int = 3, seed: int = 1, **attrs) -> Path:
@@ -132,7 +85,7 @@ def test_merge_split_convert_never_replace_what_they_did_not_make(tmp_path, caps
     before = snapshot(tmp_path)
     for force in (False, True):
         for name, argv in commands(inputs, out, force).items():
-            line = one_line_error(*run(capsys, *argv)[::2], str(out))
+            line = refusal(run_data_cli(capsys, *argv), str(out))
             assert "is not a dataset made by dssp-data merge, split or convert" in line, (name, line)
             assert "nothing is deleted" in line and "pass --force" not in line, (name, line)
             assert snapshot(tmp_path) == before, (name, force)
@@ -145,50 +98,52 @@ def test_can_logs_without_their_dataset_are_never_replaced(tmp_path, capsys, inp
     before = snapshot(tmp_path)
     for force in (False, True):
         for name, argv in commands(inputs, out, force).items():
-            one_line_error(*run(capsys, *argv)[::2], f"{can_log_dir(out)} exists without X.zarr", "nothing is deleted")
+            refusal(run_data_cli(capsys, *argv), f"{can_log_dir(out)} exists without X.zarr", "nothing is deleted")
             assert snapshot(tmp_path) == before, name
 
 
 def test_own_output_is_replaced_only_with_force_together_with_its_can_logs(tmp_path, capsys, inputs):
     a, b, raw = inputs
     out = tmp_path / "m.zarr"
-    assert run(capsys, "merge", out, a, b)[0] == 0
+    assert run_data_cli(capsys, "merge", out, a, b)[0] == 0
     assert sorted(os.listdir(can_log_dir(out))) == [f"episode_{i:06d}.can0.blf" for i in range(3)]
     assert ReplayBuffer.load(out).attrs["generator"] == "dssp-data merge"
 
     before = snapshot(tmp_path)
-    one_line_error(*run(capsys, "merge", out, a, b)[::2], "already holds a dataset from dssp-data", "pass --force")
+    refusal(run_data_cli(capsys, "merge", out, a, b), "already holds a dataset from dssp-data", "pass --force")
     assert snapshot(tmp_path) == before
 
     # replaced by a dataset without CAN logs: the old CAN logs go with the old dataset
-    assert run(capsys, "convert", raw, "--out", out, "--force")[0] == 0
+    assert run_data_cli(capsys, "convert", raw, "--out", out, "--force")[0] == 0
     assert ReplayBuffer.load(out).n_episodes == 2 and not can_log_dir(out).exists()
     assert ReplayBuffer.load(out).attrs["generator"] == "dssp-data convert"
-    assert run(capsys, "merge", out, b, a, "--force")[0] == 0  # and a dataset with CAN logs
+    assert run_data_cli(capsys, "merge", out, b, a, "--force")[0] == 0  # and a dataset with CAN logs
     assert sorted(os.listdir(can_log_dir(out))) == [f"episode_{i:06d}.can0.blf" for i in range(3, 6)]
     assert (
-        run(capsys, "split", out, "--train", tmp_path / "t.zarr", "--val", out, "--val-episodes", "0", "--force")[0]
+        run_data_cli(
+            capsys, "split", out, "--train", tmp_path / "t.zarr", "--val", out, "--val-episodes", "0", "--force"
+        )[0]
         == 2
     )  # the input itself is never an output
     train, val = tmp_path / "t.zarr", tmp_path / "v.zarr"
-    assert run(capsys, "split", out, "--train", train, "--val", val, "--val-episodes", "0")[0] == 0
-    assert run(capsys, "split", out, "--train", train, "--val", val, "--val-episodes", "1", "--force")[0] == 0
+    assert run_data_cli(capsys, "split", out, "--train", train, "--val", val, "--val-episodes", "0")[0] == 0
+    assert run_data_cli(capsys, "split", out, "--train", train, "--val", val, "--val-episodes", "1", "--force")[0] == 0
     assert ReplayBuffer.load(val).attrs["split_from"]["episodes"] == [1]
     assert leftovers(tmp_path) == [] and leftovers(a.parent) == []
 
     # an older convert output (its generator named the source format) is recognised as convert's own
     legacy = plain(tmp_path / "legacy.zarr", generator="dssp-data convert (RoboTwin raw HDF5)")
-    assert run(capsys, "convert", raw, "--out", legacy, "--force")[0] == 0
+    assert run_data_cli(capsys, "convert", raw, "--out", legacy, "--force")[0] == 0
     assert ReplayBuffer.load(legacy).n_episodes == 2
 
 
 def test_an_own_output_whose_can_folder_holds_other_files_is_refused(tmp_path, capsys, inputs):
     a, b, _ = inputs
     out = tmp_path / "m.zarr"
-    assert run(capsys, "merge", out, a, b)[0] == 0
+    assert run_data_cli(capsys, "merge", out, a, b)[0] == 0
     (can_log_dir(out) / "notes.txt").write_text("mine")
     before = snapshot(tmp_path)
-    one_line_error(*run(capsys, "merge", out, a, b, "--force")[::2], "holds files", "nothing is deleted")
+    refusal(run_data_cli(capsys, "merge", out, a, b, "--force"), "holds files", "nothing is deleted")
     assert snapshot(tmp_path) == before
 
 
@@ -209,7 +164,7 @@ def test_outputs_under_a_file_or_an_unwritable_folder_are_one_line(tmp_path, cap
         (["view", a, "--episode", "0", "--out", "/proc/views"], "/proc"),
     ]
     for argv, fragment in cases:
-        line = one_line_error(*run(capsys, *argv)[::2], fragment)
+        line = refusal(run_data_cli(capsys, *argv), fragment)
         assert "choose" in line, line
     assert snapshot(tmp_path) == before
 
@@ -242,12 +197,12 @@ def test_an_output_is_never_an_input_or_inside_one(tmp_path, capsys, inputs):
         (["convert", raw, "--out", raw.parent], "holds the input"),
     ]
     for argv, fragment in cases:
-        one_line_error(*run(capsys, *argv)[::2], fragment)
+        refusal(run_data_cli(capsys, *argv), fragment)
         assert snapshot(tmp_path) == before, argv
     os.symlink(a, tmp_path / "link.zarr")
     before = snapshot(tmp_path)
-    one_line_error(*run(capsys, "merge", tmp_path / "m.zarr", a, tmp_path / "link.zarr")[::2], "is given twice")
-    one_line_error(*run(capsys, "view", a, "--episode", "0", "--out", tmp_path / "link.zarr" / "meta")[::2], "inside")
+    refusal(run_data_cli(capsys, "merge", tmp_path / "m.zarr", a, tmp_path / "link.zarr"), "is given twice")
+    refusal(run_data_cli(capsys, "view", a, "--episode", "0", "--out", tmp_path / "link.zarr" / "meta"), "inside")
     assert snapshot(tmp_path) == before
 
 
@@ -256,17 +211,17 @@ def test_a_negative_seed_is_refused(tmp_path, capsys, inputs):
     a, _, _ = inputs
     before = snapshot(tmp_path)
     argv = ["split", a, "--train", tmp_path / "t.zarr", "--val", tmp_path / "v.zarr", "--val-ratio", "0.5"]
-    one_line_error(*run(capsys, *argv, "--seed", "-1")[::2], "--seed must be a non-negative integer, got -1")
+    refusal(run_data_cli(capsys, *argv, "--seed", "-1"), "--seed must be a non-negative integer, got -1")
     assert snapshot(tmp_path) == before
-    assert run(capsys, *argv, "--seed", "0")[0] == 0
+    assert run_data_cli(capsys, *argv, "--seed", "0")[0] == 0
 
 
 # ------------------------------------------------------------------ 6. a closed pipe
 def test_info_into_a_closed_pipe_ends_quietly():
     proc = subprocess.Popen(
-        [sys.executable, "-m", "dssp_data.data_cli", "info", str(DP3)],
+        [sys.executable, "-m", "dssp_data.data_cli", "info", str(DP3_DATASET)],
         cwd=ROOT,
-        env=ENV,
+        env=ONE_THREAD_ENV,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
     )
@@ -280,7 +235,7 @@ def _start(argv, cwd):
     return subprocess.Popen(
         [sys.executable, "-m", "dssp_data.data_cli", *map(str, argv)],
         cwd=cwd,
-        env=ENV,
+        env=ONE_THREAD_ENV,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,

@@ -1,13 +1,12 @@
-"""``dssp-data``: info on a DP3 dataset and on a recorded one, pictures, merge / split / convert round trips,
+"""``dssp-data``: info on a DP3_DATASET dataset and on a recorded one, pictures, merge / split / convert round trips,
 repair after an interrupted write, replay through the safety layer, and one-line errors for bad input."""
 
 import json
-import shutil
-from pathlib import Path
 
 import numpy as np
 import pytest
 import zarr
+from conftest import DP3_DATASET, FIXTURES, copy_dataset, refusal
 
 from dssp_data.data_cli import main as data_main
 from dssp_data.dataset_layout import Episode
@@ -16,9 +15,6 @@ from dssp_data.replay_buffer import ReplayBuffer
 from dssp_data.replay_buffer_writer import write_replay_buffer
 from hardware.cli.replay import main as replay_main
 
-FIXTURES = Path(__file__).parent / "fixtures"
-DP3 = FIXTURES / "dp3_zarr2_tiny.zarr"
-
 
 def run(capsys, *argv):
     """dssp-data in-process (``replay ...`` runs dssp-replay): (exit code, stdout, stderr)."""
@@ -26,11 +22,6 @@ def run(capsys, *argv):
     code = main([str(a) for a in argv[1:]] if argv[0] == "replay" else [str(a) for a in argv])
     captured = capsys.readouterr()
     return code, captured.out, captured.err
-
-
-def one_line_error(code, err, fragment):
-    lines = err.strip().splitlines()
-    assert code == 2 and len(lines) == 1 and lines[0].startswith("error: ") and fragment in lines[0], err
 
 
 @pytest.fixture(scope="module")
@@ -43,16 +34,9 @@ def recorded(tmp_path_factory):
     return path
 
 
-def copy_dataset(src, dst):
-    shutil.copytree(src, dst)
-    if can_log_dir(src).is_dir():
-        shutil.copytree(can_log_dir(src), can_log_dir(dst))
-    return dst
-
-
 # ------------------------------------------------------------------------------------------------ info
 def test_info_on_a_dp3_dataset(capsys):
-    code, out, _ = run(capsys, "info", DP3)
+    code, out, _ = run(capsys, "info", DP3_DATASET)
     assert code == 0
     assert "episodes    2, 7 steps; length min 3 / median 3 / max 4" in out
     assert "lengths     [3, 4]" in out
@@ -64,7 +48,7 @@ def test_info_on_a_dp3_dataset(capsys):
     assert "problems    none found" in out
     assert "the control rate is not recorded" in out
 
-    code, out, _ = run(capsys, "info", DP3, "--json")
+    code, out, _ = run(capsys, "info", DP3_DATASET, "--json")
     report = json.loads(out)
     assert report["episode_lengths"] == [3, 4] and report["arrays"]["data/state"]["shape"] == [7, 14]
     assert report["ranges"]["state"][0] == [0.0, 3.0]
@@ -125,7 +109,9 @@ def test_view_writes_pictures(recorded, tmp_path, capsys):
     assert code == 0
     clouds, traj = tmp_path / "views" / "rec_ep1_clouds.png", tmp_path / "views" / "rec_ep1_trajectories.png"
     assert f"wrote {clouds}" in out and _is_png(clouds) and _is_png(traj)
-    code, out, _ = run(capsys, "view", DP3, "--episode", "0", "--out", tmp_path / "dp3", "--steps", "3", "--video")
+    code, out, _ = run(
+        capsys, "view", DP3_DATASET, "--episode", "0", "--out", tmp_path / "dp3", "--steps", "3", "--video"
+    )
     assert code == 0
     assert _is_png(tmp_path / "dp3" / "dp3_zarr2_tiny_ep0_clouds.png")
     assert (tmp_path / "dp3" / "dp3_zarr2_tiny_ep0.gif").read_bytes()[:6] == b"GIF89a"
@@ -197,7 +183,7 @@ def test_merge_keeps_only_shared_extras(tmp_path, capsys):
     ]
     plain = tmp_path / "plain.zarr"
     write_replay_buffer(plain, episodes)
-    code, out, err = run(capsys, "merge", tmp_path / "m.zarr", DP3, plain)
+    code, out, err = run(capsys, "merge", tmp_path / "m.zarr", DP3_DATASET, plain)
     assert code == 0 and "4 episodes, 14 steps" in out
     assert "warning: per-step arrays not held by every input (or stored differently) were left out: data/img" in err
     merged = ReplayBuffer.load(tmp_path / "m.zarr", extras=True)
@@ -247,8 +233,10 @@ def test_convert_robotwin_hdf5(tmp_path, capsys):
 
     code, text, _ = run(capsys, "convert", task / "data" / "episode1.hdf5", "--out", tmp_path / "xyz.zarr", "--xyz")
     assert code == 0 and ReplayBuffer.load(tmp_path / "xyz.zarr").point_cloud.shape == (3, 16, 3)
-    code, _, err = run(capsys, "convert", task, "--out", out)
-    one_line_error(code, err, "already holds a dataset from dssp-data merge, split or convert; pass --force")
+    refusal(
+        run(capsys, "convert", task, "--out", out),
+        "already holds a dataset from dssp-data merge, split or convert; pass --force",
+    )
     assert run(capsys, "convert", task, "--out", out, "--force", "--episodes", "1")[0] == 0
     assert ReplayBuffer.load(out).n_episodes == 1
 
@@ -265,12 +253,11 @@ def test_convert_rejects_episodes_without_clouds(tmp_path, capsys):
     with h5py.File(path, "w") as f:
         f["joint_action/vector"] = np.zeros((4, 14))
         f["pointcloud"] = np.zeros((4, 0))
-    code, _, err = run(capsys, "convert", task, "--out", tmp_path / "o.zarr")
-    one_line_error(code, err, "collected without point clouds")
+    refusal(run(capsys, "convert", task, "--out", tmp_path / "o.zarr"), "collected without point clouds")
     assert not (tmp_path / "o.zarr").exists()
     path.write_bytes(b"not hdf5")
-    one_line_error(*run(capsys, "convert", task, "--out", tmp_path / "o.zarr")[::2], "not a readable HDF5 file")
-    one_line_error(*run(capsys, "convert", tmp_path / "nowhere", "--out", tmp_path / "o.zarr")[::2], "does not exist")
+    refusal(run(capsys, "convert", task, "--out", tmp_path / "o.zarr"), "not a readable HDF5 file")
+    refusal(run(capsys, "convert", tmp_path / "nowhere", "--out", tmp_path / "o.zarr"), "does not exist")
 
 
 # ------------------------------------------------------------------------------------------------ repair, replay
@@ -305,23 +292,29 @@ def test_replay_dry_run_and_on_the_simulated_arm(recorded, capsys):
     [
         (["info", "nowhere.zarr"], "does not exist"),
         (["info", FIXTURES / "dp3_zarr2_tiny.json"], "is a file, not a zarr dataset"),
-        (["view", DP3, "--episode", "7"], "episode 7 is out of range"),
-        (["view", DP3, "--episode", "0", "--steps", "0"], "--steps must be at least 1"),
-        (["merge", "out.zarr", DP3], "merge needs at least two input datasets"),
-        (["split", DP3, "--train", "a.zarr", "--val", "a.zarr", "--val-ratio", "0.5"], "must be different paths"),
+        (["view", DP3_DATASET, "--episode", "7"], "episode 7 is out of range"),
+        (["view", DP3_DATASET, "--episode", "0", "--steps", "0"], "--steps must be at least 1"),
+        (["merge", "out.zarr", DP3_DATASET], "merge needs at least two input datasets"),
         (
-            ["split", DP3, "--train", "a.zarr", "--val", "b.zarr", "--val-episodes", "0,1"],
+            ["split", DP3_DATASET, "--train", "a.zarr", "--val", "a.zarr", "--val-ratio", "0.5"],
+            "must be different paths",
+        ),
+        (
+            ["split", DP3_DATASET, "--train", "a.zarr", "--val", "b.zarr", "--val-episodes", "0,1"],
             "at least one episode on each side",
         ),
-        (["split", DP3, "--train", "a.zarr", "--val", "b.zarr", "--val-episodes", "x"], "comma-separated integers"),
-        (["replay", DP3, "--episode", "0"], "does not record its control rate"),
-        (["replay", DP3, "--episode", "0", "--control-rate", "100"], "above the arm's 3.14159 rad/s"),
-        (["replay", DP3, "--episode", "0", "--control-rate", "0"], "--control-rate must be in [0.1, 1000] Hz"),
+        (
+            ["split", DP3_DATASET, "--train", "a.zarr", "--val", "b.zarr", "--val-episodes", "x"],
+            "comma-separated integers",
+        ),
+        (["replay", DP3_DATASET, "--episode", "0"], "does not record its control rate"),
+        (["replay", DP3_DATASET, "--episode", "0", "--control-rate", "100"], "above the arm's 3.14159 rad/s"),
+        (["replay", DP3_DATASET, "--episode", "0", "--control-rate", "0"], "--control-rate must be in [0.1, 1000] Hz"),
     ],
 )
 def test_bad_input_is_one_line(tmp_path, capsys, monkeypatch, argv, fragment):
     monkeypatch.chdir(tmp_path)
-    one_line_error(*run(capsys, *argv)[::2], fragment)
+    refusal(run(capsys, *argv), fragment)
 
 
 def test_split_can_leave_out_marked_episodes(tmp_path, capsys):
@@ -353,7 +346,7 @@ def test_split_can_leave_out_marked_episodes(tmp_path, capsys):
     t, v = ReplayBuffer.load(tmp_path / "t.zarr"), ReplayBuffer.load(tmp_path / "v.zarr")
     assert (t.n_episodes, v.n_episodes) == (2, 1)
     assert sorted(t.attrs["split_from"]["episodes"] + v.attrs["split_from"]["episodes"]) == [1, 2, 3]
-    code, _, err = run(
+    result = run(
         capsys,
         "split",
         path,
@@ -365,7 +358,7 @@ def test_split_can_leave_out_marked_episodes(tmp_path, capsys):
         "0",
         "--drop-marked",
     )
-    one_line_error(code, err, "validation episode(s) [0] were recorded with problems")
+    refusal(result, "validation episode(s) [0] were recorded with problems")
 
 
 # ------------------------------------------------------------------------------------------------ attributes
@@ -385,9 +378,7 @@ def test_info_lists_a_control_rate_that_is_not_a_rate(tmp_path, capsys, value, s
     assert "the control rate is not recorded" not in out and "problems    none found" not in out
     report = json.loads(run(capsys, "info", path, "--json")[1])
     assert report["control_rate_hz"] is None
-    one_line_error(
-        *run(capsys, "view", path, "--episode", "0", "--out", tmp_path / "v")[::2], "attribute control_rate_hz is"
-    )
+    refusal(run(capsys, "view", path, "--episode", "0", "--out", tmp_path / "v"), "attribute control_rate_hz is")
     assert not (tmp_path / "v").exists()
 
 
@@ -417,5 +408,5 @@ def test_episode_info_of_the_wrong_type_is_a_problem_not_missing_metadata(tmp_pa
             "attribute episode_info is 'hello'",
         ),
     ):
-        one_line_error(*run(capsys, *argv)[::2], fragment)
+        refusal(run(capsys, *argv), fragment)
     assert sorted(p.name for p in tmp_path.iterdir()) == listing

@@ -26,10 +26,10 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
-from conftest import one_error_line, snapshot
+from conftest import CAMERA, CLOUD, ROOT, calibration_flags, episodes, one_error_line, refusal, snapshot
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
-from test_rosbag2 import CAMERA, CLOUD, write_bag
+from ros_bags import write_bag
 
 import dssp_data
 from dssp_core.errors import ConfigError, DatasetError
@@ -37,7 +37,6 @@ from dssp_core.staging import writer_lock_path
 from dssp_data.data_cli import main as data_main
 from dssp_data.dataset_layout import Episode
 from dssp_data.lerobot.layout import data_file
-from dssp_data.pointcloud import save_extrinsics
 from dssp_data.pointcloud.depth_frame import MAX_FOCAL_PX, MAX_IMAGE_SIDE, Intrinsics
 from dssp_data.replay_buffer import ReplayBuffer
 from dssp_data.replay_buffer_writer import (
@@ -48,23 +47,10 @@ from dssp_data.replay_buffer_writer import (
     write_replay_buffer,
 )
 
-ROOT = Path(__file__).resolve().parents[1]
 HYPOTHESIS = {"deadline": None, "derandomize": True, "database": None, "max_examples": 60}
 
 
 # ------------------------------------------------------------------------------------------- inputs
-def episodes(n: int, seed: int = 0, steps: int = 3, points: int = 4) -> list[Episode]:
-    rng = np.random.default_rng(seed)
-    return [
-        Episode(
-            rng.normal(size=(steps, points, 3)).astype(np.float32),
-            rng.normal(size=(steps, 7)).astype(np.float32),
-            rng.normal(size=(steps, 7)).astype(np.float32),
-        )
-        for _ in range(n)
-    ]
-
-
 def zarr_dataset(path: Path, n: int = 2, seed: int = 0) -> Path:
     write_replay_buffer(path, episodes(n, seed), attrs={"control_rate_hz": 10.0, "task": "t"})
     return path
@@ -77,14 +63,6 @@ def robotwin(folder: Path, vector=None) -> Path:
         f["joint_action/vector"] = np.zeros((4, 14)) if vector is None else vector
         f["pointcloud"] = np.full((4, 8, 6), 0.5, np.float32)
     return folder
-
-
-def calibration(folder: Path) -> list[str]:
-    """--extrinsics and --pointcloud for the bags of test_rosbag2 (its camera) and the LeRobot datasets here."""
-    folder.mkdir(parents=True, exist_ok=True)
-    save_extrinsics(folder / "calib.json", CAMERA.camera_to_base)
-    (folder / "cloud.json").write_text(json.dumps(CLOUD.to_dict()))
-    return ["--extrinsics", str(folder / "calib.json"), "--pointcloud", str(folder / "cloud.json")]
 
 
 BAG_FLAGS = ["--depth-unit", "0.00025"]
@@ -146,14 +124,11 @@ def cli(capsys, *argv) -> tuple[int, str, str]:
 
 
 def refused(result: tuple[int, str, str], *fragments: str) -> str:
-    """One ``error: …`` line (exit 2, nothing on stdout, no warning, no internal staging path) holding ``fragments``."""
-    code, out, err = result
-    assert code == 2 and out == "", (code, out, err)
-    line = one_error_line(err)
+    """The :func:`conftest.refusal` line of a ``cli`` result (exit 2, nothing on stdout, one ``error: …`` line holding
+    ``fragments``, so no warning either), naming no internal staging path, and short."""
+    line = refusal(result, *fragments)
     assert ".tmp-" not in line and ".partial-" not in line, line
     assert len(line) < 1000, line
-    for fragment in fragments:
-        assert fragment in line, (fragment, line)
     return line
 
 
@@ -342,7 +317,7 @@ def test_every_reader_refuses_an_input_over_the_read_budget_before_allocating_it
     DSSP_READ_BUDGET with an input over it: one line naming the budget, and the process's peak memory stays far
     below what the input declares (two bags' messages declare 1 GiB each, from 32 KiB on disk)."""
     src, outs = tmp_path / "src", tmp_path / "outs"
-    cal = calibration(src)
+    cal = calibration_flags(src)
     big_chunks = tmp_path / "z.zarr"
     write_replay_buffer(big_chunks, episodes(1, points=4000))  # a chunk of 100 x 4000 points: 4.6 MiB
     raw = src / "raw"
@@ -440,7 +415,7 @@ def test_a_huge_format_width_in_info_json_is_one_short_line(tmp_path, capsys):
     )
     before = snapshot(tmp_path)
     line = refused(
-        cli(capsys, "convert", root, "--out", tmp_path / "o.zarr", *calibration(tmp_path / "cal")),
+        cli(capsys, "convert", root, "--out", tmp_path / "o.zarr", *calibration_flags(tmp_path / "cal")),
         "data_path",
         "is not a template whose fields are {chunk_index} and {file_index}",
     )
@@ -452,7 +427,7 @@ def test_a_huge_format_width_in_info_json_is_one_short_line(tmp_path, capsys):
 def test_metadata_files_that_are_not_files_are_refused_without_blocking(tmp_path, capsys):
     """A FIFO never blocks, a device never fills memory, deep nesting and a key given twice are one line: ROS 2
     metadata.yaml, LeRobot meta/info.json, --pointcloud and --extrinsics."""
-    cal = calibration(tmp_path / "cal")
+    cal = calibration_flags(tmp_path / "cal")
     bag, root = write_bag(tmp_path / "bag", seconds=0.5), lerobot_dataset(tmp_path / "lerobot", tmp_path)
     out = tmp_path / "o.zarr"
     metadata, info = bag / "metadata.yaml", root / "meta" / "info.json"
@@ -500,7 +475,7 @@ def test_metadata_files_that_are_not_files_are_refused_without_blocking(tmp_path
 def test_damaged_bags_and_frames_are_one_line(tmp_path, capsys):
     """What a crash of `ros2 bag record` leaves (a cut sqlite3 or mcap file, a cut metadata.yaml), a depth image
     whose bytes do not make its rows, a message that does not decode as its type, a topic of another type."""
-    cal = [*calibration(tmp_path / "cal"), *BAG_FLAGS]
+    cal = [*calibration_flags(tmp_path / "cal"), *BAG_FLAGS]
 
     def cut(path: Path, keep: float = 0.5) -> None:
         data = path.read_bytes()
@@ -566,7 +541,7 @@ def test_an_episode_index_that_is_a_digit_but_no_number_is_one_line(tmp_path, ca
 # ------------------------------------------------------------------------------------------- 5. refused, not accepted
 def test_a_folder_of_bags_never_skips_a_bag(tmp_path, capsys):
     """A folder without metadata.yaml (a recording cut short) and a linked bag are refused by name, not skipped."""
-    cal = [*calibration(tmp_path / "cal"), *BAG_FLAGS]
+    cal = [*calibration_flags(tmp_path / "cal"), *BAG_FLAGS]
     bags = tmp_path / "bags"
     write_bag(bags / "a", seconds=0.5)
     cut = write_bag(bags / "b", seconds=0.5)
@@ -640,7 +615,7 @@ def _number(v) -> bool:
 def test_a_bags_camera_info_is_checked_field_by_field(tmp_path, capsys, k, distortion, fragment):
     bag = write_bag(tmp_path / "bag", seconds=0.5, k_of=k, distortion=distortion)
     refused(
-        cli(capsys, "convert", bag, "--out", tmp_path / "o.zarr", *calibration(tmp_path / "cal"), *BAG_FLAGS),
+        cli(capsys, "convert", bag, "--out", tmp_path / "o.zarr", *calibration_flags(tmp_path / "cal"), *BAG_FLAGS),
         "/camera/camera/depth/camera_info: camera intrinsics: " + fragment,
     )
 
@@ -649,7 +624,7 @@ def test_a_bags_camera_info_is_checked_field_by_field(tmp_path, capsys, k, disto
 def test_a_lerobot_fps_outside_the_control_rates_is_refused(tmp_path, capsys, fps):
     root = edit_info(lerobot_dataset(tmp_path / "lerobot", tmp_path), lambda info: info.update(fps=fps))
     refused(
-        cli(capsys, "convert", root, "--out", tmp_path / "o.zarr", *calibration(tmp_path / "cal")),
+        cli(capsys, "convert", root, "--out", tmp_path / "o.zarr", *calibration_flags(tmp_path / "cal")),
         "meta/info.json: fps must be in [0.1, 1000] Hz",
     )
     assert not (tmp_path / "o.zarr").exists()
@@ -670,7 +645,7 @@ def test_robotwin_and_bag_rates_share_the_control_rate_bounds(tmp_path, capsys):
             tmp_path / "o.zarr",
             "--control-rate",
             "2000",
-            *calibration(tmp_path / "cal"),
+            *calibration_flags(tmp_path / "cal"),
         ),
         "--control-rate must be in [0.1, 1000] Hz",
     )
@@ -684,7 +659,7 @@ def test_convert_never_writes_into_its_input(tmp_path, capsys, monkeypatch):
 
     for module, name in ((robotwin_hdf5, "read_episode"), (rosbag2, "read_bag"), (lerobot_read, "read_info")):
         monkeypatch.setattr(module, name, lambda *a, **k: pytest.fail("the input was read"))
-    cal = calibration(tmp_path / "cal")
+    cal = calibration_flags(tmp_path / "cal")
     src = tmp_path / "src"
     sources = {
         "robotwin": (robotwin(src / "raw"), []),
@@ -707,7 +682,7 @@ def test_convert_never_writes_into_its_input(tmp_path, capsys, monkeypatch):
 def test_a_value_beyond_float32_names_the_input_and_warns_of_nothing(tmp_path, capsys):
     """1e300 in a bag's joint state, a LeRobot state and a RoboTwin joint vector: one line naming the input, the key,
     the value; no numpy warning, no staging folder in the line."""
-    cal = calibration(tmp_path / "cal")
+    cal = calibration_flags(tmp_path / "cal")
     bag = write_bag(tmp_path / "bag", seconds=0.5, joints_of=lambda t: np.array([0.1, 1e300, 0, 0, 0, 0, 0.01]))
     vector = np.zeros((4, 14))
     vector[2, 5] = 1e300

@@ -14,10 +14,10 @@ import tomllib
 from pathlib import Path
 
 import pytest
+from conftest import ROOT
 from packaging.requirements import Requirement
 from packaging.utils import canonicalize_name
 
-ROOT = Path(__file__).resolve().parents[1]
 SOURCES = (
     "dssp_core",
     "dssp_data",

@@ -14,12 +14,11 @@ from __future__ import annotations
 
 import functools
 import math
-import uuid
 
 import can
 import numpy as np
 import pytest
-from conftest import one_error_line
+from conftest import channel, one_error_line
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from piper_sdk import C_PiperInterface_V2
@@ -46,10 +45,6 @@ DECIDEG = math.radians(0.1)  # one wire unit of a firmware limit (rad)
 FACTORY = factory_limits(3.0)
 # What the firmware must never send before its limits are read: enable, e-stop/reset, mode, joints, gripper.
 MOTION_IDS = {codec.MOTOR_ENABLE, codec.MOTION_CTRL_1, codec.MOTION_CTRL_2, *codec.JOINT_CTRL_IDS, codec.GRIPPER_CTRL}
-
-
-def channel(tag: str) -> str:
-    return f"test-{tag}-{uuid.uuid4().hex[:10]}"
 
 
 def with_joint(joint: int, lo_deg: float, hi_deg: float) -> FirmwareLimits:

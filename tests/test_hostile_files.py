@@ -16,22 +16,19 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+from conftest import ONE_THREAD_ENV, ROOT, episodes, one_line_message, recorded, refusal, run_data_cli, snapshot
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from test_data_outputs import ENV, run
-from test_data_outputs import one_line_error as data_outputs_error
 
 from dssp_core.errors import DatasetError
 from dssp_core.files import copy_regular_file
 from dssp_core.staging import writer_lock_path
 from dssp_data.attributes import zarr_attrs
 from dssp_data.data_cli import main as data_main
-from dssp_data.dataset_layout import Episode
 from dssp_data.recording import RECORDED_KEYS, RecordingDataset, can_log_dir
 from dssp_data.replay_buffer import ReplayBuffer
 from dssp_data.replay_buffer_writer import ReplayBufferWriter, dataset_lock, write_replay_buffer
 
-ROOT = Path(__file__).resolve().parents[1]
 SECRET = b"secret: not part of any dataset\n"
 SETTINGS = {
     "deadline": None,
@@ -40,63 +37,6 @@ SETTINGS = {
     "max_examples": 12,
     "suppress_health_check": [HealthCheck.too_slow, HealthCheck.function_scoped_fixture],
 }
-
-
-def one_line_error(code, err, *fragments):
-    assert "Traceback" not in err
-    return data_outputs_error(code, err, *fragments)
-
-
-def one_line(exc_info, *fragments):
-    message = str(exc_info.value)
-    assert "\n" not in message, message
-    for fragment in fragments:
-        assert fragment in message, message
-    return message
-
-
-def episodes(n, seed=0, steps=3):
-    rng = np.random.default_rng(seed)
-    return [
-        Episode(
-            rng.normal(size=(steps, 4, 3)).astype(np.float32),
-            rng.normal(size=(steps, 7)).astype(np.float32),
-            rng.normal(size=(steps, 7)).astype(np.float32),
-        )
-        for _ in range(n)
-    ]
-
-
-def recorded(path: Path, n: int = 2, seed: int = 0) -> Path:
-    """A recorded dataset with one CAN log per episode in ``path.can``."""
-    infos = [{"index": i, "can_logs": {"can0": f"episode_{i:06d}.can0.blf"}, "problems": []} for i in range(n)]
-    write_replay_buffer(
-        path, episodes(n, seed), attrs={"generator": "dssp-record", "control_rate_hz": 10.0, "episode_info": infos}
-    )
-    can_log_dir(path).mkdir()
-    for i in range(n):
-        (can_log_dir(path) / f"episode_{i:06d}.can0.blf").write_bytes(b"log %d" % i)
-    return path
-
-
-def snapshot(root):
-    """Every path under ``root`` with what it is: a folder, a link and its target, a FIFO, or a file's bytes
-    (a FIFO is never opened)."""
-    found = {}
-    for folder, dirs, files in os.walk(root, followlinks=False):
-        for name in dirs + files:
-            path = Path(folder, name)
-            info = path.lstat()
-            rel = str(path.relative_to(root))
-            if stat.S_ISLNK(info.st_mode):
-                found[rel] = "link:" + os.readlink(path)
-            elif stat.S_ISDIR(info.st_mode):
-                found[rel] = "dir"
-            elif stat.S_ISREG(info.st_mode):
-                found[rel] = path.read_bytes()
-            else:
-                found[rel] = "special"
-    return found
 
 
 def secret_file(folder: Path) -> Path:
@@ -123,18 +63,18 @@ def holds_secret(root: Path, outside: Path) -> list[str]:
 @pytest.mark.parametrize("where", ["beside", "old name in the CAN-log folder"])
 def test_a_lock_file_planted_as_a_link_is_refused_and_its_target_untouched(tmp_path, capsys, where):
     victim = secret_file(tmp_path / "elsewhere")
-    path = recorded(tmp_path / "d.zarr")
+    path = recorded(tmp_path / "d.zarr", n=2)
     link = writer_lock_path(path) if where == "beside" else can_log_dir(path) / ".recording.lock"
     os.symlink(victim, link)
     before = snapshot(tmp_path)
     with pytest.raises(DatasetError) as info:
         RecordingDataset(path, {"control_rate_hz": 10.0}, {}, RECORDED_KEYS)
-    one_line(info, str(link.name))
+    one_line_message(info, str(link.name))
     if where == "beside":
         with pytest.raises(DatasetError) as info:
             ReplayBufferWriter(path)
-        one_line(info, "not a link")
-        one_line_error(*run(capsys, "repair", path)[::2], "not a link")
+        one_line_message(info, "not a link")
+        refusal(run_data_cli(capsys, "repair", path), "not a link")
     assert victim.read_bytes() == SECRET  # never truncated, never written
     assert snapshot(tmp_path) == before
 
@@ -173,15 +113,15 @@ def _plant(kind: str, path: Path, outside: Path) -> None:
 def test_merge_and_split_copy_only_the_inputs_own_regular_files(tmp_path, capsys, kind):
     outside = tmp_path / "outside"
     secret_file(outside)
-    a, b = recorded(tmp_path / "a.zarr"), recorded(tmp_path / "b.zarr", seed=1)
+    a, b = recorded(tmp_path / "a.zarr", n=2), recorded(tmp_path / "b.zarr", n=2, seed=1)
     _plant(kind, b, outside)
     before = snapshot(tmp_path)
     started = time.monotonic()
-    one_line_error(*run(capsys, "merge", tmp_path / "m.zarr", a, b)[::2], str(b.name))
-    one_line_error(
-        *run(capsys, "split", b, "--train", tmp_path / "t.zarr", "--val", tmp_path / "v.zarr", "--val-episodes", "1")[
-            ::2
-        ],
+    refusal(run_data_cli(capsys, "merge", tmp_path / "m.zarr", a, b), str(b.name))
+    refusal(
+        run_data_cli(
+            capsys, "split", b, "--train", tmp_path / "t.zarr", "--val", tmp_path / "v.zarr", "--val-episodes", "1"
+        ),
         str(b.name),
     )
     assert time.monotonic() - started < 30  # a FIFO is refused, never waited on
@@ -227,7 +167,7 @@ def test_copy_regular_file_refuses_every_link_on_the_way_and_anything_not_regula
             os.symlink(tmp / "fifo", src)
     with pytest.raises(DatasetError) as info:
         copy_regular_file(src, tmp / "out.blf", inside=inside, error=DatasetError)
-    one_line(info)
+    one_line_message(info)
     assert not (tmp / "out.blf").exists()
 
 
@@ -256,7 +196,7 @@ def test_appending_refuses_a_link_anywhere_in_the_dataset(tmp_path_factory, data
     ):
         with pytest.raises(DatasetError) as info:
             attempt()
-        one_line(info, "symbolic link")
+        one_line_message(info, "symbolic link")
     assert data_main(["repair", str(path)]) == 2
     assert (snapshot(tmp), snapshot(elsewhere) if elsewhere.is_dir() else elsewhere.read_bytes()) == before
     assert not writer_lock_path(path).exists()  # every refused writer let go of the lock
@@ -281,8 +221,8 @@ def test_readers_refuse_links_and_special_files_inside_a_dataset(tmp_path, capsy
     started = time.monotonic()
     with pytest.raises(DatasetError) as info:
         ReplayBuffer.load(path)
-    one_line(info, "data/state")
-    one_line_error(*run(capsys, "info", path)[::2], "data/state")
+    one_line_message(info, "data/state")
+    refusal(run_data_cli(capsys, "info", path), "data/state")
     assert time.monotonic() - started < 30  # neither /dev/zero nor the FIFO is read
 
 
@@ -356,8 +296,8 @@ def test_convert_refuses_hdf5_files_that_pull_in_other_files(tmp_path, capsys, k
         read = {"external link to a group": "observation/pc", "soft link through an external link": "pointcloud"}
         assert (f[read.get(kind, name)][()] == (9.0 if kind == "external storage" else 7.0)).all()
     before = snapshot(tmp_path)
-    one_line_error(
-        *run(capsys, "convert", tmp_path / "task", "--out", tmp_path / "o.zarr")[::2],
+    refusal(
+        run_data_cli(capsys, "convert", tmp_path / "task", "--out", tmp_path / "o.zarr"),
         f"{path}: {name}",
         "self-contained",
     )
@@ -383,9 +323,7 @@ def test_convert_reads_hdf5_data_within_bounds(tmp_path, capsys, kind, monkeypat
             fragment = "over the read budget of 4.0 GiB (DSSP_READ_BUDGET)"
     monkeypatch.delenv("DSSP_READ_BUDGET", raising=False)
     before = snapshot(tmp_path)
-    one_line_error(
-        *run(capsys, "convert", tmp_path / "task", "--out", tmp_path / "o.zarr")[::2], "/pointcloud", fragment
-    )
+    refusal(run_data_cli(capsys, "convert", tmp_path / "task", "--out", tmp_path / "o.zarr"), "/pointcloud", fragment)
     assert snapshot(tmp_path) == before
 
 
@@ -403,8 +341,8 @@ def test_a_second_writer_of_a_dataset_is_refused_and_the_first_untouched(tmp_pat
     ):
         with pytest.raises(DatasetError) as info:
             attempt()
-        one_line(info, doing, pid, "one writer per dataset")
-    one_line_error(*run(capsys, "repair", path)[::2], pid)
+        one_line_message(info, doing, pid, "one writer per dataset")
+    refusal(run_data_cli(capsys, "repair", path), pid)
     first.add_episode(episodes(1, seed=2)[0])  # the first goes on as if nothing happened
     first.close()
     assert snapshot(path) != before and ReplayBuffer.load(path).n_episodes == 4
@@ -419,7 +357,7 @@ def test_a_recording_session_holds_the_dataset_against_other_writers(tmp_path):
     try:
         with pytest.raises(DatasetError) as info:
             ReplayBufferWriter(path)
-        one_line(info, "is being recorded into by", f"pid {os.getpid()}")
+        one_line_message(info, "is being recorded into by", f"pid {os.getpid()}")
     finally:
         session.close()
     ReplayBufferWriter(path).close()
@@ -448,7 +386,7 @@ def test_a_second_collect_into_one_dataset_is_refused(tmp_path):
                 "--no-progress",
             ],
             cwd=ROOT,
-            env=ENV,
+            env=ONE_THREAD_ENV,
             capture_output=True,
             text=True,
             timeout=300,

@@ -13,6 +13,7 @@ import threading
 from pathlib import Path
 
 import pytest
+from conftest import one_line_message
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -66,13 +67,13 @@ def unblock(fifo: Path) -> None:
 
 
 def one_line(outcome, *fragments) -> str:
+    """The refusal an ``outcome`` (kind, value) holds: a DSSPError whose :func:`conftest.one_line_message` holds each
+    of ``fragments`` and is short."""
     kind, value = outcome
     assert kind == "error", f"expected a refusal, got {kind}: {value!r}"
     assert isinstance(value, DSSPError), f"{type(value).__name__}: {value}"
-    message = str(value)
-    assert "\n" not in message and len(message) < 400, message
-    for fragment in fragments:
-        assert fragment in message, message
+    message = one_line_message(value, *fragments)
+    assert len(message) < 400, message
     return message
 
 

@@ -7,9 +7,9 @@ import shutil
 import subprocess
 import sys
 from collections import Counter
-from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+from conftest import ROOT
+
 PACKAGES = ("dssp_core", "dssp_data", "dssp_train", "export", "dssp_deploy", "hardware", "dssp_sim", "studies")
 ROBOT_SIDE = ("dssp_core", "dssp_data", "dssp_deploy", "hardware", "dssp_sim")
 

@@ -25,28 +25,17 @@ import pyarrow as pa
 import pyarrow.compute  # noqa: F401  (loaded here, not by the first conversion: the tests add no module)
 import pyarrow.parquet as pq
 import pytest
-from conftest import one_error_line, snapshot
+from conftest import CAMERA, CLOUD, calibration_flags, one_error_line, run_data_cli, snapshot
 
-from dssp_data.data_cli import main as data_main
 from dssp_data.dataset_layout import Episode
 from dssp_data.lerobot import write as lerobot_write
-from dssp_data.observation import PIPER_CHANNELS, PointCloudConfig
-from dssp_data.pointcloud import frame_to_cloud, save_extrinsics
+from dssp_data.observation import PIPER_CHANNELS
+from dssp_data.pointcloud import frame_to_cloud
 from dssp_data.pointcloud.depth_frame import DepthFrame
 from dssp_data.replay_buffer import ReplayBuffer
 from dssp_data.replay_buffer_writer import write_replay_buffer
 from dssp_train.data.synthetic import write_tap_count_dataset
-from hardware.camera.tabletop import Box, SimCamera, intrinsics_for
 
-# noiseless, so a frame is a function of its time; a box sliding along the table, so each frame is its own
-CAMERA = SimCamera(
-    seed=0,
-    intrinsics=intrinsics_for(160, 120, 70.0),
-    noise_std=0.0,
-    invalid_fraction=0.0,
-    moving_box=lambda t: Box((0.1 + 0.2 * t, 0.0, 0.05), (0.08, 0.08, 0.1)),
-)
-CLOUD = PointCloudConfig(n_points=128)
 FPS = 10
 LENGTHS = (6, 5)
 TASKS = ("push the box", "push the box back")
@@ -190,22 +179,14 @@ def source(tmp_path_factory):
 
 @pytest.fixture()
 def calibration(tmp_path):
-    path = tmp_path / "calib.json"
-    save_extrinsics(path, CAMERA.camera_to_base)
-    cloud = tmp_path / "cloud.json"
-    cloud.write_text(json.dumps(CLOUD.to_dict()))
-    return ["--extrinsics", str(path), "--pointcloud", str(cloud)]
-
-
-def cli(capsys, *argv):
-    code = data_main([str(a) for a in argv])
-    return code, *capsys.readouterr()
+    """The LeRobot datasets' calibration flags (:func:`conftest.calibration_flags`)."""
+    return calibration_flags(tmp_path)
 
 
 def test_a_lerobot_dataset_becomes_episodes_with_the_robots_clouds(source, tmp_path, capsys, calibration):
     root, data = source
     out = tmp_path / "demo.zarr"
-    code, stdout, stderr = cli(capsys, "convert", root, "--out", out, *calibration)
+    code, stdout, stderr = run_data_cli(capsys, "convert", root, "--out", out, *calibration)
     assert code == 0, stderr
     assert "2 episodes (one per LeRobot episode), 11 steps at 10 Hz" in stdout
     buffer = ReplayBuffer.load(out, extras=True)
@@ -233,13 +214,13 @@ def test_a_lerobot_dataset_becomes_episodes_with_the_robots_clouds(source, tmp_p
 def test_exports_are_read_back_by_lerobot(source, tmp_path, capsys, calibration, monkeypatch):
     root, data = source
     converted = tmp_path / "demo.zarr"
-    assert cli(capsys, "convert", root, "--out", converted, *calibration)[0] == 0
+    assert run_data_cli(capsys, "convert", root, "--out", converted, *calibration)[0] == 0
     tap = write_tap_count_dataset(tmp_path / "tap.zarr", 3, seed=0, n_points=32)
     exported = {"local/demo": tmp_path / "demo_lerobot", "local/tap": tmp_path / "tap_lerobot"}
     for dataset, target in zip((converted, tap), exported.values()):
         if dataset == tap:  # the synthetic one in several data files: one per episode
             monkeypatch.setattr(lerobot_write, "DATA_FILE_MB", 0)
-        code, stdout, stderr = cli(capsys, "export", dataset, "--to", "lerobot", "--out", target)
+        code, stdout, stderr = run_data_cli(capsys, "export", dataset, "--to", "lerobot", "--out", target)
         assert code == 0 and stderr == "", stderr
         assert "LeRobotDataset('local/" in stdout
     assert sorted(p.name for p in (exported["local/tap"] / "data/chunk-000").iterdir()) == [
@@ -250,8 +231,8 @@ def test_exports_are_read_back_by_lerobot(source, tmp_path, capsys, calibration,
 
     # and back: the export (DATA_FILE_MB is still 0: one file per episode) converts to the dataset it was made from
     split = tmp_path / "demo_split"
-    assert cli(capsys, "export", converted, "--to", "lerobot", "--out", split)[0] == 0
-    assert cli(capsys, "convert", split, "--out", tmp_path / "again.zarr", *calibration)[0] == 0
+    assert run_data_cli(capsys, "export", converted, "--to", "lerobot", "--out", split)[0] == 0
+    assert run_data_cli(capsys, "convert", split, "--out", tmp_path / "again.zarr", *calibration)[0] == 0
     again, buffer = (ReplayBuffer.load(p, extras=True) for p in (tmp_path / "again.zarr", converted))
     for key in ("point_cloud", "state", "action"):
         np.testing.assert_array_equal(getattr(again, key), getattr(buffer, key))
@@ -340,15 +321,15 @@ def test_export_refuses_to_overwrite_and_replaces_its_own(source, tmp_path, caps
     root, _ = source
     tap = write_tap_count_dataset(tmp_path / "tap.zarr", 2, seed=0, n_points=24)
     out = tmp_path / "tap_lerobot"
-    assert cli(capsys, "export", tap, "--to", "lerobot", "--out", out)[0] == 0
+    assert run_data_cli(capsys, "export", tap, "--to", "lerobot", "--out", out)[0] == 0
     before = snapshot(out)
-    code, _, stderr = cli(capsys, "export", tap, "--to", "lerobot", "--out", out)
+    code, _, stderr = run_data_cli(capsys, "export", tap, "--to", "lerobot", "--out", out)
     assert code == 2 and "pass --force" in one_error_line(stderr) and snapshot(out) == before
-    assert cli(capsys, "export", tap, "--to", "lerobot", "--out", out, "--force")[0] == 0
+    assert run_data_cli(capsys, "export", tap, "--to", "lerobot", "--out", out, "--force")[0] == 0
     foreign = tmp_path / "copy"
     shutil.copytree(root, foreign)
     before = snapshot(foreign)
-    code, _, stderr = cli(capsys, "export", tap, "--to", "lerobot", "--out", foreign, "--force")
+    code, _, stderr = run_data_cli(capsys, "export", tap, "--to", "lerobot", "--out", foreign, "--force")
     assert code == 2 and "is not a LeRobot dataset made by dssp-data export" in one_error_line(stderr)
     assert snapshot(foreign) == before
 
@@ -370,7 +351,7 @@ def test_depth_in_metres_gives_the_clouds_of_its_counts(source, tmp_path, capsys
     index = table.schema.get_field_index("observation.depth")
     pq.write_table(table.set_column(index, "observation.depth", column), path)
     out = tmp_path / "metres.zarr"
-    code, stdout, stderr = cli(capsys, "convert", copy, "--out", out, *calibration, "--episodes", "1")
+    code, stdout, stderr = run_data_cli(capsys, "convert", copy, "--out", out, *calibration, "--episodes", "1")
     assert code == 0 and "1 episodes" in stdout, stderr
     ep = ReplayBuffer.load(out, extras=True).episode(0)
     np.testing.assert_array_equal(ep.extras["depth"], data["observation.depth/0"])
@@ -433,7 +414,7 @@ def test_refusals_are_one_line_and_write_nothing(source, tmp_path, capsys, calib
     root, _ = source
     copy = edited(root, tmp_path, edit)
     before = set(os.listdir(tmp_path))
-    code, _, stderr = cli(capsys, "convert", copy, "--out", tmp_path / "out.zarr", *calibration)
+    code, _, stderr = run_data_cli(capsys, "convert", copy, "--out", tmp_path / "out.zarr", *calibration)
     assert code == 2 and message in one_error_line(stderr), stderr
     assert set(os.listdir(tmp_path)) == before  # no dataset, no staging folder
 
@@ -441,9 +422,9 @@ def test_refusals_are_one_line_and_write_nothing(source, tmp_path, capsys, calib
 def test_more_refusals(source, tmp_path, capsys, calibration):
     root, _ = source
     out = tmp_path / "out.zarr"
-    code, _, stderr = cli(capsys, "convert", root, "--out", out)
+    code, _, stderr = run_data_cli(capsys, "convert", root, "--out", out)
     assert code == 2 and "--extrinsics is needed to convert a LeRobot dataset" in one_error_line(stderr)
-    code, _, stderr = cli(capsys, "convert", root, "--out", out, *calibration, "--control-rate", "15")
+    code, _, stderr = run_data_cli(capsys, "convert", root, "--out", out, *calibration, "--control-rate", "15")
     assert code == 2 and "a LeRobot dataset's control rate is its fps" in one_error_line(stderr)
     # a data file that is a link out of the dataset's folder
     copy = tmp_path / "linked"
@@ -451,12 +432,12 @@ def test_more_refusals(source, tmp_path, capsys, calibration):
     data = copy / "data/chunk-000/file-000.parquet"
     shutil.move(data, tmp_path / "outside.parquet")
     data.symlink_to(tmp_path / "outside.parquet")
-    code, _, stderr = cli(capsys, "convert", copy, "--out", out, *calibration)
+    code, _, stderr = run_data_cli(capsys, "convert", copy, "--out", out, *calibration)
     assert code == 2 and "data/chunk-000/file-000.parquet is a link" in one_error_line(stderr)
     # a data file cut short
     data.unlink()
     data.write_bytes((tmp_path / "outside.parquet").read_bytes()[:200])
-    code, _, stderr = cli(capsys, "convert", copy, "--out", out, *calibration)
+    code, _, stderr = run_data_cli(capsys, "convert", copy, "--out", out, *calibration)
     assert code == 2 and "file-000.parquet: not a readable parquet file" in one_error_line(stderr)
     assert not out.exists()
     # export: a dataset without a control rate, and one whose rate is no whole number of frames per second
@@ -467,9 +448,9 @@ def test_more_refusals(source, tmp_path, capsys, calibration):
     ):
         plain = tmp_path / "plain.zarr"
         write_replay_buffer(plain, [episode], attrs=attrs)
-        code, _, stderr = cli(capsys, "export", plain, "--to", "lerobot", "--out", tmp_path / "plain_lerobot")
+        code, _, stderr = run_data_cli(capsys, "export", plain, "--to", "lerobot", "--out", tmp_path / "plain_lerobot")
         assert code == 2 and message in one_error_line(stderr), stderr
         assert not (tmp_path / "plain_lerobot").exists()
         shutil.rmtree(plain)
-    code, _, stderr = cli(capsys, "export", root, "--to", "lerobot", "--out", tmp_path / "x")
+    code, _, stderr = run_data_cli(capsys, "export", root, "--to", "lerobot", "--out", tmp_path / "x")
     assert code == 2 and one_error_line(stderr)  # a LeRobot folder is no zarr dataset

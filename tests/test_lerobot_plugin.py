@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import ROOT
 
 from dssp_data.data_cli import main as data_main
 from dssp_data.observation import FRAME_ROBOT_BASE, PointCloudConfig
@@ -30,7 +31,6 @@ from dssp_train.data.synthetic import write_tap_count_dataset
 from export.to_onnx import main as export_main
 from hardware.camera.tabletop import Box, SimCamera, intrinsics_for
 
-ROOT = Path(__file__).resolve().parents[1]
 PLUGIN = ROOT / "plugins" / "lerobot_policy_dssp"
 
 _REFUSE = "    raise RuntimeError('the torchvision stand-in {}')\n"

@@ -16,6 +16,7 @@ import sys
 
 import numpy as np
 import pytest
+from conftest import assert_policy_state_kept, one_line_message, policy_state, rig_loop
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -76,9 +77,7 @@ def refused(model_dir, manifest, token: str) -> str:
     write(model_dir, manifest)
     with pytest.raises(ModelDirError) as info:
         OnnxPolicy(model_dir, threads=1, warmup=0)
-    message = str(info.value)
-    assert "\n" not in message and token in message, message
-    return message
+    return one_line_message(info, token)
 
 
 def copy_model(model_dir, dst, manifest=None):
@@ -484,17 +483,6 @@ def policies(arm_export):
     return OnnxPolicy(arm_export, threads=1), OnnxPolicy(arm_export, threads=1)
 
 
-def snapshot(p: OnnxPolicy):
-    return p.steps, p.recent.copy(), p.context.copy(), {k: v.copy() for k, v in p.state.items()}
-
-
-def assert_same_state(a, b):
-    assert a[0] == b[0]
-    for x, y in zip(a[1:3], b[1:3]):
-        assert np.array_equal(x, y)
-    assert a[3].keys() == b[3].keys() and all(np.array_equal(a[3][k], b[3][k]) for k in a[3])
-
-
 @settings(max_examples=12, deadline=None, derandomize=True)
 @given(
     where=st.sampled_from(["point_cloud", "agent_pos"]),
@@ -515,12 +503,12 @@ def test_a_non_finite_observation_is_refused_and_leaves_the_history_unchanged(po
     flat = index % target.size
     target.flat[flat] = value
     entry = (0, *np.unravel_index(flat, target.shape))
-    kept = snapshot(p)
+    kept = policy_state(p)
     with pytest.raises(NonFiniteObservation) as info:
         p.observe(cloud, state)
     message = str(info.value)
     assert message.startswith(where) and str(tuple(int(i) for i in entry)) in message and "\n" not in message
-    assert_same_state(snapshot(p), kept)
+    assert_policy_state_kept(p, kept)
     for t in range(before, before + 4):  # the episode goes on as if the bad observation had never come
         p.observe(clouds[t], states[t])
         ref.observe(clouds[t], states[t])
@@ -580,8 +568,6 @@ def test_the_chunked_loop_skips_a_non_finite_observation(arm_export):
 
 
 def test_the_robot_loop_holds_on_a_non_finite_cloud_and_keeps_it_out_of_the_history(arm_export, tmp_path, monkeypatch):
-    from test_runtime_guards import rig_loop
-
     poisoned = {"on": False}
 
     def cloud_with_nan(cloud):

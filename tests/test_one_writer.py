@@ -10,8 +10,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from conftest import SET_SMALL, one_error_line, snapshot
-from test_train_inputs import data, trained  # noqa: F401 (fixtures: a small dataset, a finished 2-step run)
+from conftest import FAST_EXPORT, SET_SMALL, one_error_line, snapshot
 
 from dssp_core.staging import WriterLock, writer_lock_path
 from dssp_train.cli.distill import main as distill_main
@@ -19,8 +18,6 @@ from dssp_train.cli.train import main as train_main
 from dssp_train.training.train_log import read_log
 from dssp_train.training.trainer import Trainer
 from export.to_onnx import main as export_main
-
-FAST_EXPORT = ["--format", "onnx", "--skip-verify", "--quantize", "none", "--no-fused"]
 
 
 def held_by_me(line: str, out: Path, what: str, flag: str) -> None:

@@ -22,7 +22,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from conftest import snapshot
+from conftest import ROOT, one_error_line, snapshot
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
@@ -56,17 +56,8 @@ from export.to_onnx import main as export_main
 from studies.sim_study import REPORT_NAME
 from studies.sim_study import main as study_main
 
-ROOT = Path(__file__).resolve().parents[1]
-
 
 # ------------------------------------------------------------------------------------------------ helpers
-def error_line(capsys) -> str:
-    captured = capsys.readouterr()
-    lines = captured.err.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("error: "), captured.err
-    return lines[0]
-
-
 def load_script(name: str):
     spec = importlib.util.spec_from_file_location(f"bench_{name}", ROOT / "benchmarks" / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
@@ -241,7 +232,7 @@ FILE_COMMANDS = {
 def refused_unchanged(capsys, root: Path, run, out: Path, force: bool) -> str:
     before = snapshot(root)
     assert run(out, force) == 2
-    line = error_line(capsys)
+    line = one_error_line(capsys.readouterr().err)
     assert snapshot(root) == before, line
     return line
 
@@ -348,7 +339,7 @@ def test_the_demo_replaces_its_own_output_with_force_and_restores_it_on_failure(
     monkeypatch.setattr(module, "_run_demo", failing)
     before = snapshot(tmp_path)
     assert demo(out, True) == 2
-    assert "training dssp failed" in error_line(capsys)
+    assert "training dssp failed" in one_error_line(capsys.readouterr().err)
     assert snapshot(tmp_path) == before  # the previous demo is back, untouched
 
 
@@ -778,7 +769,7 @@ def test_dssp_data_view_replaces_its_pictures_only_with_force(tmp_path, capsys):
     (pictures / "d_ep0_trajectories.png").write_text("someone's picture")
     before = snapshot(tmp_path)
     assert data_main(["view", str(data), "--episode", "0", "--out", str(pictures)]) == 2
-    line = error_line(capsys)
+    line = one_error_line(capsys.readouterr().err)
     assert "d_ep0_trajectories.png exists; pass --force" in line, line
     assert snapshot(tmp_path) == before  # checked before drawing: not even the clouds picture was written
     assert data_main(["view", str(data), "--episode", "0", "--out", str(pictures), "--force"]) == 0

@@ -5,6 +5,7 @@ import math
 import can
 import numpy as np
 import pytest
+from conftest import MDEG, UM
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -23,9 +24,6 @@ from hardware.piper.codec import (
     MotorLowSpeed,
 )
 from hardware.piper.limits import GRIPPER_STROKE_MAX, JOINT_LOWER, JOINT_UPPER, JointLimits
-
-MDEG = math.radians(0.001)  # one wire unit of a joint angle, in radians
-UM = 1e-6  # one wire unit of a gripper stroke, in metres
 
 
 def roundtrip(message):

@@ -5,14 +5,13 @@ exact; the driver's receive thread still runs, so reads of its feedback wait (bo
 """
 
 import json
-import math
-import uuid
 from concurrent.futures import ThreadPoolExecutor
 from concurrent.futures import TimeoutError as FutureTimeout
 
 import can
 import numpy as np
 import pytest
+from conftest import MDEG, UM, channel
 from waiting import wait_for
 
 from dssp_core.errors import ArmError, CanError
@@ -25,13 +24,6 @@ from hardware.piper.can_simulator import SimulatedPiper
 from hardware.piper.limits import GRIPPER_STROKE_MAX, JOINT_LOWER, JOINT_UPPER
 from hardware.piper.piper_robot import PiperRobot, open_robot
 from hardware.robot import RobotDescription
-
-MDEG = math.radians(0.001)  # joint resolution on the wire (rad)
-UM = 1e-6  # gripper resolution on the wire (m)
-
-
-def channel(tag: str) -> str:
-    return f"test-{tag}-{uuid.uuid4().hex[:10]}"
 
 
 def synced(arm: PiperArm, sim: SimulatedPiper) -> None:

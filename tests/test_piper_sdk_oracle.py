@@ -15,6 +15,7 @@ import uuid
 import can
 import numpy as np
 import pytest
+from conftest import MDEG
 from piper_sdk import C_PiperInterface_V2
 from waiting import wait_for
 
@@ -23,7 +24,6 @@ from hardware.piper.arm import PiperArm
 from hardware.piper.can_simulator import SimulatedPiper
 from hardware.piper.limits import JOINT_LOWER, JOINT_UPPER
 
-MDEG = math.radians(0.001)
 # The SDK opens its bus with python-can's deprecated ``bustype=`` argument.
 pytestmark = pytest.mark.filterwarnings("ignore:The 'bustype' argument is deprecated:DeprecationWarning")
 

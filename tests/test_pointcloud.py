@@ -10,6 +10,7 @@ import sys
 
 import numpy as np
 import pytest
+from conftest import DEPTH_UNIT, one_line_message
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -29,7 +30,6 @@ from dssp_data.pointcloud.depth_frame import DepthFrame, Intrinsics
 from dssp_data.pointcloud.pipeline import voxel_cells
 
 SMALL = Intrinsics(width=96, height=64, fx=83.3, fy=79.1, ppx=45.2, ppy=30.7)
-UNIT = 0.00025
 EVERYWHERE = dict(
     crop_min=(-50.0, -50.0, -50.0), crop_max=(50.0, 50.0, 50.0), voxel_size=0.0, depth_near=0.0, depth_far=20.0
 )
@@ -42,7 +42,7 @@ def _depth(shape=(64, 96), seed=0, invalid=0.1, hi=9000) -> np.ndarray:
     return d
 
 
-def _frame(depth, intr=SMALL, unit=UNIT, color=None) -> DepthFrame:
+def _frame(depth, intr=SMALL, unit=DEPTH_UNIT, color=None) -> DepthFrame:
     return DepthFrame(depth=depth, depth_unit=unit, intrinsics=intr, timestamp=0.0, frame_number=0, color=color)
 
 
@@ -58,8 +58,9 @@ def _transform(rot, t) -> np.ndarray:
 
 
 def _one_line(exc_info) -> str:
-    msg = str(exc_info.value)
-    assert "\n" not in msg and len(msg) > 15
+    """The raised error's :func:`conftest.one_line_message`, which says more than a word."""
+    msg = one_line_message(exc_info)
+    assert len(msg) > 15
     return msg
 
 
@@ -70,7 +71,7 @@ def test_deprojection_matches_rs_pointcloud():
     from hardware.camera.software import SoftwareDepthCamera
 
     depth = _depth()
-    with SoftwareDepthCamera(SMALL, UNIT) as cam:
+    with SoftwareDepthCamera(SMALL, DEPTH_UNIT) as cam:
         depth_frame, _ = cam.inject(depth)
         vertices = np.asanyarray(rs.pointcloud().calculate(depth_frame).get_vertices())
         vertices = vertices.view(np.float32).reshape(-1, 3).copy()

@@ -13,15 +13,13 @@ import textwrap
 
 import numpy as np
 import pytest
-from conftest import one_error_line, write_arm_dataset
-from test_run import GRIPPER, WIRE, assert_within_limits, sent_commands
+from conftest import GRIPPER, WIRE, assert_within_limits, one_error_line, run_dssp, sent_commands, write_arm_dataset
 
 from dssp_core.errors import ConfigError
 from dssp_data.dataset_layout import Episode
 from dssp_data.replay_buffer import ReplayBuffer
 from dssp_data.replay_buffer_writer import write_replay_buffer
 from hardware import policies
-from hardware.cli.run import main as run_main
 from hardware.clock import FakeClock
 from hardware.episode_replay import replay_episode
 from hardware.ideal_robot import IdealRobot
@@ -33,16 +31,6 @@ from hardware.run_loop import LoopSettings, Runner
 from hardware.safety import SafetyConfig
 
 STEP = np.where(GRIPPER, SafetyConfig().max_gripper_step, SafetyConfig().max_joint_step)
-
-
-def run_dssp(capsys, *argv):
-    """dssp-run in-process: (exit code, stdout, stderr); a flag argparse refuses exits 2 with its one line."""
-    try:
-        code = run_main([str(a) for a in argv])
-    except SystemExit as exc:
-        code = exc.code
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 def test_hold_runs_the_whole_rig_and_moves_nothing(tmp_path, capsys):

@@ -7,15 +7,12 @@ import shutil
 import subprocess
 import sys
 import textwrap
-from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import cpu_flags
+from conftest import ROOT, cpu_flags
 
 from dssp_deploy.manifest import file_kind, read_manifest
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def load_comparison(name: str = "torch_comparison"):

@@ -11,9 +11,8 @@ import subprocess
 from pathlib import Path
 
 import pytest
-from conftest import CROSS_HINT, CROSS_TOOLS, QGEMM_X86_PATHS, build_harness, cpu_flags
+from conftest import CROSS_HINT, CROSS_TOOLS, QGEMM_X86_PATHS, ROOT, build_harness, cpu_flags
 
-ROOT = Path(__file__).resolve().parents[1]
 BUILD = ROOT / "build" / "qgemm"
 HARNESS = "qgemm_check.cc"
 

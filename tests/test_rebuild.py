@@ -4,14 +4,12 @@ from __future__ import annotations
 
 import json
 import shutil
-from pathlib import Path
 
 import pytest
+from conftest import ROOT
 
 from dssp_core.errors import DSSPError
 from studies.rebuild import main, rebuild
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_every_report_and_readme_figure_matches_its_record(capsys):

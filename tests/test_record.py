@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zarr
+from conftest import ROOT, WIRE
 from waiting import World, wait_for
 
 from dssp_core.errors import DatasetError
@@ -33,15 +34,12 @@ from hardware.cli.record import Console, LineControls, open_session, parse_args
 from hardware.leader import LeaderTracker, leader_frames
 from hardware.piper import codec
 
-REPO = Path(__file__).resolve().parents[1]
-WIRE = 2e-5  # 0.001 degree in rad, 1 µm of stroke in opening units (x 1/0.07)
-
 
 def _env():
     return {
         **os.environ,
         "OMP_NUM_THREADS": "1",
-        "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""),
+        "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""),
     }
 
 

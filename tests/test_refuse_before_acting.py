@@ -12,9 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import one_error_line, snapshot
-
-START = [0.0, 1.2, -1.0, 0.0, 0.6, 0.0]
+from conftest import CALIBRATION_START, one_error_line, snapshot
 
 
 class Opened(AssertionError):
@@ -155,8 +153,10 @@ def test_a_refused_plan_or_flag_opens_nothing_and_writes_nothing(case, tmp_path,
     monkeypatch.chdir(tmp_path)
     (tmp_path / "plain").write_text("a file, not a folder")
     plans = {
-        "PLAN_THREE": plan(tmp_path, [START] * 1 + [np.add(START, [0, 0, 0, 0.3, 0, 0]).tolist()] * 2),
-        "PLAN_SAME": plan(tmp_path, [START] * 12),
+        "PLAN_THREE": plan(
+            tmp_path, [CALIBRATION_START] * 1 + [np.add(CALIBRATION_START, [0, 0, 0, 0.3, 0, 0]).tolist()] * 2
+        ),
+        "PLAN_SAME": plan(tmp_path, [CALIBRATION_START] * 12),
     }
     argv = [plans.get(a, a) for a in argv]
     before = snapshot(tmp_path)

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zarr
+from conftest import DP3_DATASET, FIXTURES
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
@@ -18,7 +19,6 @@ from dssp_data.dataset_layout import Episode
 from dssp_data.replay_buffer import ReplayBuffer, ReplayBufferReader
 from dssp_data.replay_buffer_writer import ReplayBufferWriter, write_replay_buffer
 
-FIXTURES = Path(__file__).parent / "fixtures"
 P, C, S, A = 8, 6, 14, 14
 
 
@@ -124,7 +124,7 @@ def test_format_3_layout(tmp_path):
 def test_reads_store_written_by_zarr2(tmp_path):
     """The fixture was written by zarr-python 2.x exactly as DP3 does (make_dp3_zarr2_fixture.py)."""
     expected = json.loads((FIXTURES / "dp3_zarr2_tiny.json").read_text())
-    buffer = ReplayBuffer.load(FIXTURES / "dp3_zarr2_tiny.zarr")
+    buffer = ReplayBuffer.load(DP3_DATASET)
 
     np.testing.assert_array_equal(buffer.episode_ends, expected["episode_ends"])
     assert list(buffer.point_cloud.shape) == expected["shapes"]["point_cloud"]
@@ -409,7 +409,7 @@ def test_writer_rejects_invalid_existing_dataset(tmp_path):
 
 def test_writer_refuses_datasets_with_other_arrays(tmp_path):
     path = tmp_path / "dp3.zarr"
-    shutil.copytree(FIXTURES / "dp3_zarr2_tiny.zarr", path)
+    shutil.copytree(DP3_DATASET, path)
     with pytest.raises(DatasetError, match="data/img exists"):
         ReplayBufferWriter(path)
 

@@ -8,6 +8,7 @@ import threading
 
 import numpy as np
 import pytest
+from conftest import one_error_line
 from rrd import read_rrd, text_rows
 
 from dssp_core.errors import ConfigError
@@ -17,12 +18,6 @@ from dssp_data.rerun_views import height_colors, open_views
 from dssp_sim.teleop import record_main
 from hardware.cli.run import main as run_main
 from hardware.run_log import read_ticks
-
-
-def one_error_line(capsys) -> str:
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1, err
-    return err[0]
 
 
 def test_dssp_run_views_match_its_tick_log(arm_export, tmp_path, capsys):
@@ -107,7 +102,7 @@ def test_a_recording_and_its_dataset_in_rerun(tmp_path, capsys):
     assert "world/camera" in static and text_rows(view_rrd, "episode") == ["rec.zarr episode 0: 12 steps"]
     # the PNGs stay the default; a saved view is never replaced
     assert data_main(["view", str(data), "--episode", "0", "--rerun-save", str(view_rrd)]) == 2
-    assert "view.rrd exists" in one_error_line(capsys)
+    assert "view.rrd exists" in one_error_line(capsys.readouterr().err)
 
 
 def test_a_full_queue_drops_and_counts_instead_of_blocking(tmp_path):
@@ -127,9 +122,9 @@ def test_a_full_queue_drops_and_counts_instead_of_blocking(tmp_path):
 def test_flags_are_checked_before_anything_runs(arm_export, tmp_path, capsys, monkeypatch):
     (tmp_path / "old.rrd").write_bytes(b"")
     assert run_main(["--model", str(arm_export), "--max-steps", "1", "--rerun-save", str(tmp_path / "old.rrd")]) == 2
-    assert "old.rrd exists; choose a new file name" in one_error_line(capsys)
+    assert "old.rrd exists; choose a new file name" in one_error_line(capsys.readouterr().err)
     assert run_main(["--model", str(arm_export), "--max-steps", "1", "--rerun-save", str(tmp_path / "x.txt")]) == 2
-    assert "a Rerun recording is a .rrd file" in one_error_line(capsys)
+    assert "a Rerun recording is a .rrd file" in one_error_line(capsys.readouterr().err)
     monkeypatch.setitem(sys.modules, "rerun", None)  # rerun-sdk not installed
     assert (
         run_main(
@@ -146,7 +141,7 @@ def test_flags_are_checked_before_anything_runs(arm_export, tmp_path, capsys, mo
         )
         == 2
     )
-    line = one_error_line(capsys)
+    line = one_error_line(capsys.readouterr().err)
     assert "--rerun-save needs rerun-sdk" in line and 'pip install -e ".[viz]"' in line
     assert not (tmp_path / "log").exists()  # nothing ran
     with pytest.raises(ConfigError, match="--rerun needs rerun-sdk"):
@@ -303,7 +298,7 @@ def test_bad_view_flags_are_one_line_before_anything_opens(command, tmp_path, ca
     for name, (flags, words) in BAD_VIEWS.items():
         flags = [f.format(tmp=tmp_path) for f in flags]
         assert command(tmp_path, flags) == 2, name
-        line = one_error_line(capsys)
+        line = one_error_line(capsys.readouterr().err)
         assert words in line and line.startswith("error: "), (name, line)
         assert snapshot(tmp_path) == before, name
 

@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 import torch
-from conftest import built_once, one_error_line
+from conftest import built_once, one_error_line, run_dssp
 
 from dssp_data.model_contract import ModelContract
 from dssp_deploy.control_loop import ChunkedControl
@@ -241,8 +241,6 @@ def test_dssp_sim_eval_refuses_rtc_without_an_inpainting_model_and_a_delay_for_t
 def test_dssp_run_with_real_time_chunking_on_the_embedded_simulation(exports, tmp_path, capsys):
     """On the robot's path the next chunk runs in a background thread; d comes from the measured chunk time (real
     time, as the other dssp-run tests: nothing asserted depends on how fast the machine is)."""
-    from test_policy_sources import run_dssp
-
     from hardware.run_log import read_ticks
 
     _, model_dir = exports

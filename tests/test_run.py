@@ -21,6 +21,7 @@ import uuid
 
 import numpy as np
 import pytest
+from conftest import GRIPPER, LIMITS, WIRE, assert_within_limits, sent_commands
 from waiting import World, wait_for
 
 from dssp_data.pointcloud import PointCloudConfig
@@ -32,7 +33,6 @@ from hardware.cli.run import main as run_main
 from hardware.piper import codec
 from hardware.piper.arm import PiperArm
 from hardware.piper.can_simulator import SimulatedPiper
-from hardware.piper.limits import GRIPPER_STROKE_MAX, JointLimits
 from hardware.piper.piper_robot import PiperRobot
 from hardware.policies.exported_model import ModelPolicy
 from hardware.rig import Rig
@@ -41,39 +41,6 @@ from hardware.run_log import RunLog, read_clouds, read_ticks
 from hardware.run_loop import LoopSettings, Runner
 from hardware.safety import SafetyConfig
 from hardware.subscribers import Subscriber
-
-LIMITS = JointLimits.piper()
-GRIPPER = np.arange(7) == 6
-WIRE = 2e-5  # 0.001 degree on the wire, in rad (and 1 µm of stroke)
-
-
-def sent_commands(blf_path):
-    """The joint+gripper commands on the bus, (n, 7) in policy units, from the 0x155-0x157 + 0x159 frames."""
-    decoder = codec.Decoder()
-    commands, joints = [], {}
-    gripper = None
-    for frame in read_log(blf_path):
-        msg = decoder.decode(frame)
-        if isinstance(msg, codec.JointCtrl):
-            joints[msg.pair] = (msg.first, msg.second)
-            if msg.pair == 2:
-                assert set(joints) == {0, 1, 2}, "joint frames out of order"
-                commands.append([*joints[0], *joints[1], *joints[2], np.nan])
-                joints = {}
-        elif isinstance(msg, codec.GripperCtrl) and msg.code == codec.GRIPPER_ENABLE:
-            gripper = msg.stroke / GRIPPER_STROKE_MAX
-            if commands and np.isnan(commands[-1][6]):
-                commands[-1][6] = gripper
-    return np.array(commands).reshape(-1, 7)
-
-
-def assert_within_limits(commands, max_step):
-    assert np.all(commands[:, :6] >= LIMITS.lower[:6] - WIRE) and np.all(commands[:, :6] <= LIMITS.upper[:6] + WIRE)
-    grip = commands[:, 6][~np.isnan(commands[:, 6])]
-    assert np.all(grip >= -WIRE) and np.all(grip <= 1 + WIRE)
-    steps = np.abs(np.diff(commands, axis=0))
-    steps = np.where(np.isnan(steps), 0, steps)
-    assert np.all(steps <= max_step + 2 * WIRE), steps.max(axis=0)
 
 
 # ----------------------------------------------------------------------------- the command

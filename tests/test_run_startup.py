@@ -16,27 +16,18 @@ import os
 import signal
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import START_UP, catches, wait_for_start_up
 from waiting import Output, wait_for
 
 from dssp_core.errors import CameraError, DSSPError
-from dssp_core.staging import writer_lock_path
 from hardware.camera.base import Camera
 from hardware.cli.run import main as run_main
 from hardware.clock import FakeClock
 from hardware.piper.limits import piper_description
 from hardware.robot import Robot
-from hardware.run_log import read_ticks
-
-
-def catches(pid: int, signum: int) -> bool:
-    """Whether process ``pid`` has a handler for ``signum`` (its SigCgt mask under /proc)."""
-    status = Path(f"/proc/{pid}/status").read_text()
-    caught = int(next(line.split()[1] for line in status.splitlines() if line.startswith("SigCgt:")), 16)
-    return bool(caught >> (signum - 1) & 1)
 
 
 def wait_for_start_up_handler(proc: subprocess.Popen, timeout: float = 60.0) -> None:
@@ -52,39 +43,7 @@ def wait_for_start_up_handler(proc: subprocess.Popen, timeout: float = 60.0) -> 
     assert proc.poll() is None, f"dssp-run ended before it installed its start-up handler (exit code {proc.poll()})"
 
 
-def ticks_logged(log_dir: Path) -> int:
-    try:
-        return len(read_ticks(log_dir))
-    except FileNotFoundError:
-        return 0
-
-
-# The moments of dssp-run's start-up seen from outside, in the order they come, and what shows each: its stop
-# handlers caught (main()'s first step; the imports follow), the log directory's lock file (the model loads
-# next), the "graphs:" line on stderr (the model loaded and checked; the last start-up check follows), the log
-# directory made (claimed: from here a stop is the runner's), a CAN log (the devices open; the runner waits for
-# the first frame and feedback, then enables the arm), the first logged tick (running).
-START_UP = ("handler", "log locked", "model loaded", "log claimed", "devices open", "first tick")
 RUNNERS = START_UP[START_UP.index("log claimed") :]  # the moments from which the runner ends the run
-
-
-def wait_for_start_up(
-    proc: subprocess.Popen, output: Output, log_dir: Path, moment: str, timeout: float = 120.0
-) -> None:
-    """Wait until ``proc`` (a dssp-run on ``log_dir``, its pipes read by ``output``) has reached ``moment`` of
-    :data:`START_UP`, or has ended."""
-    what = f"dssp-run's start-up: {moment}"
-    if moment == "model loaded":  # a line it prints: waited for as it comes
-        output.wait_for_line("stderr", "graphs: ", timeout=timeout, what=what)
-        return
-    shown = {
-        "handler": lambda: catches(proc.pid, signal.SIGTERM),
-        "log locked": writer_lock_path(log_dir).exists,
-        "log claimed": log_dir.is_dir,
-        "devices open": lambda: any(log_dir.glob("can_*.blf")),
-        "first tick": lambda: ticks_logged(log_dir) >= 1,
-    }[moment]
-    wait_for(lambda: proc.poll() is not None or shown(), timeout=timeout, what=what, poll=0.005)
 
 
 @pytest.mark.parametrize("moment", START_UP)

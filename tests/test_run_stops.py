@@ -5,7 +5,7 @@ name the true reason, the final hold and the disable are on the CAN log, which i
 
 The signals are real time by nature (a signal into a real process); the moments are drawn from a seed, printed
 (``DSSP_STOP_SEED=N`` replays them), each one the process shows from outside (a start-up moment of
-``test_run_startup.START_UP``, or a number of logged ticks), never a delay. Whatever moment a signal lands at,
+``conftest.START_UP``, or a number of logged ticks), never a delay. Whatever moment a signal lands at,
 the verdict is exact: either the start-up ended with nothing enabled or sent, or the loop ended in its final
 hold. A stop before the first tick, a run that failed before it, a failed print and dssp-replay's stop are
 checked in-process, where the stop lands exactly.
@@ -25,8 +25,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_run import GRIPPER, assert_within_limits, sent_commands
-from test_run_startup import START_UP, catches, ticks_logged, wait_for_start_up
+from conftest import GRIPPER, START_UP, assert_within_limits, catches, sent_commands, ticks_logged, wait_for_start_up
 from waiting import Output, wait_for
 
 from dssp_core.errors import CameraError, DSSPError

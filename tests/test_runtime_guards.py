@@ -7,7 +7,6 @@
 - a truncated fused-kernel library: not loaded (it would kill the process with SIGBUS), the standard graphs run.
 """
 
-import contextlib
 import json
 import os
 import shutil
@@ -18,6 +17,7 @@ import textwrap
 import numpy as np
 import onnx
 import pytest
+from conftest import assert_policy_state_kept, one_line_message, policy_state, rig_loop
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -39,22 +39,6 @@ def trajectory(data_path, length: int):
 
     buf = ReplayBuffer.load(data_path)
     return buf.point_cloud[:length], buf.state[:length]
-
-
-def snapshot(p: OnnxPolicy):
-    return p.steps, p.recent.copy(), p.context.copy(), {k: v.copy() for k, v in p.state.items()}
-
-
-def assert_unchanged(p: OnnxPolicy, kept) -> None:
-    steps, recent, context, state = snapshot(p)
-    assert steps == kept[0] and np.array_equal(recent, kept[1]) and np.array_equal(context, kept[2])
-    assert all(np.array_equal(state[k], kept[3][k]) for k in kept[3])
-
-
-def one_line(exc: pytest.ExceptionInfo, *tokens: str) -> str:
-    message = str(exc.value)
-    assert "\n" not in message and all(t in message for t in tokens), message
-    return message
 
 
 class Corrupted:
@@ -85,7 +69,7 @@ def test_far_out_observations_are_refused_on_every_precision(tiny_export, precis
     for t in range(3):
         p.observe(clouds[t], states[t])
         ref.observe(clouds[t], states[t])
-    kept = snapshot(p)
+    kept = policy_state(p)
     pos_upper, cloud_lower = p.ranges["agent_pos"].upper, p.ranges["point_cloud"].lower
     bad_cases = []
     for value, where in ((1e30, "(0, 1)=1e+30 > "), (-1e30, "(0, 1)=-1e+30 < ")):
@@ -123,8 +107,8 @@ def test_far_out_observations_are_refused_on_every_precision(tiny_export, precis
     for cloud, state, error, tokens in bad_cases:
         with pytest.raises(error) as info:
             p.observe(cloud, state)
-        one_line(info, *tokens, "the observation was not used")
-        assert_unchanged(p, kept)  # refused before any graph ran
+        one_line_message(info, *tokens, "the observation was not used")
+        assert_policy_state_kept(p, kept)  # refused before any graph ran
     assert issubclass(ObservationOutOfRange, DSSPError)
     for t in range(3, 7):  # in range: accepted, the episode goes on as if the refused ones never came
         p.observe(clouds[t], states[t])
@@ -176,7 +160,7 @@ def test_the_accepted_range_is_the_training_range_widened_by_the_margin(
     else:
         with pytest.raises(ObservationOutOfRange) as info:
             p.observe(cloud, state)
-        one_line(info, f"{name} ", f"{index}=", ">" if above else "<")
+        one_line_message(info, f"{name} ", f"{index}=", ">" if above else "<")
         assert p.steps == 0
 
 
@@ -199,7 +183,7 @@ def test_a_chunk_outside_the_action_range_is_never_returned(tiny_export, precisi
         p.sessions["denoiser"] = Corrupted(session, index, value)
         with pytest.raises(ChunkOutOfRange) as info:
             p.act(seed=0)
-        one_line(
+        one_line_message(
             info, "action chunk [1, 4, 2] has 1 value(s) outside the model's range", *tokens, "the chunk was not used"
         )
     p.sessions["denoiser"] = Corrupted(session, (0, 0, 0), actions.upper[0])  # on the bound: accepted
@@ -244,72 +228,6 @@ def test_a_refused_chunk_undoes_its_tick_and_the_next_tick_takes_a_new_one(tiny_
         action, info = loop.tick(clouds[t], states[t])
         assert np.isfinite(action).all()
     assert loop.tick_count == p.steps == 2 * ha
-
-
-def widened_copy(model_dir, dst):
-    """A copy of ``model_dir`` whose manifest accepts the simulated rig's observations (joints near zero, the
-    sim camera's tabletop): the loop tests hold for the reason they inject, not for the fixture's narrow data."""
-    shutil.copytree(model_dir, dst)
-    manifest = json.loads((dst / MANIFEST_NAME).read_text())
-    for name, low, high in (("agent_pos", -1.0, 1.0), ("point_cloud", -1.0, 1.0)):
-        stats = manifest["normalizers"][name]
-        stats["input_min"], stats["input_max"] = [low] * len(stats["input_min"]), [high] * len(stats["input_max"])
-    (dst / MANIFEST_NAME).write_text(json.dumps(manifest))
-    return dst
-
-
-@contextlib.contextmanager
-def rig_loop(arm_export, tmp_path, monkeypatch, edit_cloud):
-    """The robot's loop (``hardware.run_loop.Runner``) on the simulated camera and arm, with every cloud passed
-    through ``edit_cloud(cloud) -> cloud`` first: yields (policy, runner, ticks), ``ticks(n)`` the records of n
-    ticks, each on a fresh frame, one right after the other: nothing here waits on the loop's period. Generous
-    timeouts and no deadline hold: the only reason to hold is what the test injects."""
-    from dssp_data.pointcloud import PointCloudConfig
-    from hardware import run_loop
-    from hardware.camera.tabletop import SimCamera
-    from hardware.piper.limits import JointLimits
-    from hardware.piper.piper_robot import open_robot
-    from hardware.policies.exported_model import ModelPolicy
-    from hardware.rig import Rig
-    from hardware.safety import SafetyConfig
-
-    real_cloud = run_loop.frame_to_cloud
-
-    def edited(frame, config, camera_to_base=None):
-        cloud, info = real_cloud(frame, config, camera_to_base)
-        return edit_cloud(cloud), info
-
-    monkeypatch.setattr(run_loop, "frame_to_cloud", edited)
-    policy = OnnxPolicy(widened_copy(arm_export, tmp_path / "model"), threads=1)  # accepts the rig's observations
-    limits = JointLimits.piper()
-    camera, robot = SimCamera(seed=0), open_robot("sim")
-    safety = SafetyConfig(camera_timeout=2.0, feedback_timeout=2.0, deadline_hold=False)
-    camera.start(thread=False)
-    camera.capture()
-    try:
-        with robot:
-            rig = Rig(
-                camera, robot, camera.camera_to_base, safety, limits=(limits.lower, limits.upper, np.arange(7) == 6)
-            )
-            runner = run_loop.Runner(
-                ModelPolicy(policy, 50.0, seed=0),
-                rig,
-                PointCloudConfig(n_points=64),
-                run_loop.LoopSettings(control_rate_hz=50.0),
-            )
-            runner.start()
-
-            def ticks(n):
-                out = []
-                for _ in range(n):
-                    camera.capture()
-                    out.append(runner.tick())
-                return out
-
-            yield policy, runner, ticks
-            runner.finish("test over")
-    finally:
-        camera.stop()
 
 
 def test_the_robot_loop_holds_on_a_refused_observation_or_chunk(arm_export, tmp_path, monkeypatch):
@@ -464,7 +382,7 @@ def test_external_data_outside_the_model_directory_or_its_manifest_is_refused(ex
     ):  # the graph that runs, or one a fallback would take
         with pytest.raises(ModelDirError) as info:
             OnnxPolicy(model_dir, threads=1, precision=precision, kernel=kernel, warmup=0)
-        one_line(info, token)
+        one_line_message(info, token)
 
 
 # ------------------------------------------------------------------------------ the kernel library

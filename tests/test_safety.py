@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from conftest import GRIPPER
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -12,7 +13,6 @@ from hardware.safety import Safety, SafetyConfig
 
 LOWER = np.array([-2.6179, 0.0, -2.967, -1.745, -1.22, -2.0944, 0.0])
 UPPER = np.array([2.6179, 3.14, 0.0, 1.745, 1.22, 2.0944, 1.0])
-GRIPPER = np.array([False] * 6 + [True])
 START = np.array([0.0, 0.5, -0.5, 0.0, 0.3, 0.0, 0.5])
 
 

@@ -9,6 +9,7 @@ import math
 import typing
 
 import pytest
+from conftest import one_line_message, refusal
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -210,8 +211,7 @@ def _assert_refused(cls, name: str, value) -> None:
     values[name] = value
     with pytest.raises(ConfigError) as info:
         cls.from_dict(values)
-    message = str(info.value)
-    assert "\n" not in message
+    message = one_line_message(info)
     assert f"{cls.SECTION}.{name}" in message or name in message, message
 
 
@@ -302,14 +302,6 @@ def test_schema_refuses_an_annotation_it_cannot_check():
 
 
 # ------------------------------------------------------------------------------ the CLIs
-def _one_line_exit_2(capsys, code: int) -> str:
-    err = capsys.readouterr().err.strip().splitlines()
-    assert code == 2, err
-    errors = [line for line in err if line.startswith("error: ")]
-    assert len(errors) == 1, err
-    return errors[0]
-
-
 @pytest.mark.parametrize(
     "content, field",
     [
@@ -328,7 +320,7 @@ def test_dssp_run_refuses_a_bad_safety_file_before_anything_opens(tmp_path, caps
     path = tmp_path / "safety.json"
     path.write_text(json.dumps(content).replace("NaN", "NaN"))
     code = run.main(["--model", str(tmp_path / "no-model"), "--safety", str(path), "--quiet"])
-    line = _one_line_exit_2(capsys, code)
+    line = refusal((code, *capsys.readouterr()))
     assert field in line and str(path) in line
     assert opened == []
 
@@ -349,7 +341,7 @@ def test_dssp_run_refuses_bad_settings_files(tmp_path, capsys, flag, content, fi
     path = tmp_path / "settings.json"
     path.write_text(json.dumps(content))
     code = run.main(["--model", str(tmp_path / "no-model"), flag, str(path), "--quiet"])
-    assert field in _one_line_exit_2(capsys, code)
+    assert field in refusal((code, *capsys.readouterr()))
 
 
 @pytest.mark.parametrize(
@@ -368,7 +360,7 @@ def test_dssp_run_flags_are_checked_first(tmp_path, capsys, argv, words):
     from hardware.cli import run
 
     code = run.main(["--model", str(tmp_path / "no-model"), "--quiet", *argv])
-    assert words in _one_line_exit_2(capsys, code)
+    assert words in refusal((code, *capsys.readouterr()))
 
 
 def test_dssp_run_refuses_a_step_faster_than_the_arm(tmp_path, capsys):
@@ -377,7 +369,7 @@ def test_dssp_run_refuses_a_step_faster_than_the_arm(tmp_path, capsys):
     path = tmp_path / "safety.json"
     path.write_text(json.dumps({"max_joint_step": 0.4}))
     code = run.main(["--model", str(tmp_path / "no-model"), "--safety", str(path), "--control-rate", "20", "--quiet"])
-    line = _one_line_exit_2(capsys, code)
+    line = refusal((code, *capsys.readouterr()))
     assert "rad/s" in line and "max_joint_step" in line
 
 
@@ -396,7 +388,7 @@ def test_dssp_record_refuses_bad_settings_files(tmp_path, capsys, flag, content,
     path.write_text(json.dumps(content))
     out = tmp_path / "rec.zarr"
     code = record_main(["--out", str(out), flag, str(path), "--quiet", "--auto", "--episodes", "1"])
-    assert field in _one_line_exit_2(capsys, code)
+    assert field in refusal((code, *capsys.readouterr()))
     assert not out.exists()
 
 
@@ -412,7 +404,7 @@ def test_dssp_record_flags_are_checked_first(tmp_path, capsys, argv, words):
 
     out = tmp_path / "rec.zarr"
     code = record.main(["--out", str(out), "--quiet", "--can", "can0", "--camera", "tabletop", *argv])
-    assert words in _one_line_exit_2(capsys, code)
+    assert words in refusal((code, *capsys.readouterr()))
     assert not out.exists()
 
 
@@ -435,5 +427,5 @@ def test_dssp_train_set_is_type_checked(tmp_path, capsys, override, field):
     data = tmp_path / "d.zarr"
     write_arm_dataset(data, n_episodes=2, steps=10, n_points=16)
     code = train.main(["--data", str(data), "--preset", "tiny", "--out", str(tmp_path / "run"), "--set", override])
-    line = _one_line_exit_2(capsys, code)
+    line = refusal((code, *capsys.readouterr()))
     assert field in line and override in line

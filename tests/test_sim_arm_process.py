@@ -12,18 +12,15 @@ import signal
 import socket
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 import waiting
+from conftest import MDEG, ROOT
 
 from hardware.cli.can_sim import main as sim_arm_main
 from hardware.piper.arm import PiperArm
 from hardware.piper.piper_robot import open_robot
-
-REPO = Path(__file__).resolve().parents[1]
-MDEG = np.radians(0.001)
 
 
 def endpoint(k: int) -> tuple[str, int]:
@@ -36,7 +33,7 @@ def endpoint(k: int) -> tuple[str, int]:
 
 def start_sim(channels: str, port: int, *extra: str) -> tuple[subprocess.Popen, str]:
     env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(REPO), env.get("PYTHONPATH", "")) if p)
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(ROOT), env.get("PYTHONPATH", "")) if p)
     env["CAN_CONFIG"] = json.dumps({"hop_limit": 0, "port": port})
     proc = subprocess.Popen(
         [
@@ -54,7 +51,7 @@ def start_sim(channels: str, port: int, *extra: str) -> tuple[subprocess.Popen, 
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
-        cwd=REPO,
+        cwd=ROOT,
         env=env,
     )
     ready, _, _ = select.select([proc.stdout], [], [], 30.0)
@@ -148,9 +145,9 @@ def test_bad_arguments_exit_2_with_one_error_line():
         [sys.executable, "-m", "hardware.cli.can_sim", "--channel", "10.0.0.1"],
         capture_output=True,
         text=True,
-        cwd=REPO,
+        cwd=ROOT,
         timeout=60,
-        env={**os.environ, "PYTHONPATH": str(REPO)},
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
     )
     assert proc.returncode == 2 and proc.stdout == ""
     lines = proc.stderr.strip().splitlines()

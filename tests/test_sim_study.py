@@ -4,14 +4,12 @@ report rebuilt from it, resuming on another machine, and splitting the study acr
 import dataclasses
 import json
 import shutil
-from pathlib import Path
 
 import pytest
+from conftest import FIXTURES, STUDY_ENTRIES
 
 from studies import sim_study
 from studies.runner import Runner
-
-ENTRY = "study_entries"  # tests/ is on sys.path (pytest puts it there; spawned stages inherit it)
 
 
 @pytest.mark.slow
@@ -59,7 +57,7 @@ def test_the_study_command_writes_its_report(tmp_path, capsys):
     assert "--tasks: swap not in the plan (tap)" in capsys.readouterr().err
 
 
-QUICK_RECORD = Path(__file__).parent / "fixtures" / "sim_study_quick_record"
+QUICK_RECORD = FIXTURES / "sim_study_quick_record"
 """The record of one whole quick-plan study (``python -m studies.sim_study --work W --report R --quick``, then
 R/record): what the long end-to-end test above produces, kept so that the record's uses are tested in seconds."""
 
@@ -130,7 +128,8 @@ def test_a_training_stopped_halfway_is_resumed_not_taken_for_done(tmp_path):
     work = tmp_path / "work"
     (work / train.started).mkdir(parents=True)  # a checkpoint, but the stage never finished (no done marker)
     assert train.started == "runs/tap_dssp_s0/checkpoint"
-    stage = dataclasses.replace(train, entry=f"{ENTRY}:record_call", after=())  # the call it makes, not the training
+    # the call it makes, not the training
+    stage = dataclasses.replace(train, entry=f"{STUDY_ENTRIES}:record_call", after=())
     Runner(work, say=lambda _: None).run([stage])
     assert [json.loads(line) for line in (work / "calls.jsonl").read_text().splitlines()] == [list(train.resume)]
     assert Runner(work, say=lambda _: None).run([stage]) == {}  # finished: not run again
@@ -144,7 +143,7 @@ def test_a_collection_stopped_halfway_is_collected_again_not_appended_to(tmp_pat
     work = tmp_path / "work"
     partial = work / "data" / "tap.zarr"
     (partial / "data").mkdir(parents=True)  # a collection interrupted before its stage finished (no done marker)
-    stage = dataclasses.replace(collect, entry=f"{ENTRY}:write_marker", argv=("data/tap.zarr/meta",))
+    stage = dataclasses.replace(collect, entry=f"{STUDY_ENTRIES}:write_marker", argv=("data/tap.zarr/meta",))
     Runner(work, say=lambda _: None).run([stage])
     assert sorted(p.name for p in partial.iterdir()) == ["meta"]  # removed before the stage: collect would append to it
     assert Runner(work, say=lambda _: None).run([stage]) == {}

@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 import pytest
-from test_policy_sources import run_dssp
+from conftest import one_error_line, run_dssp
 
 from dssp_data.model_contract import ModelContract
 from dssp_deploy.control_loop import ChunkedControl
@@ -249,13 +249,6 @@ def test_dssp_run_with_temporal_ensembling_on_the_embedded_simulation(arm_export
     acted = [t for t in read_ticks(log_dir) if t["action"] is not None]
     assert len(acted) == run["summary"]["policy_ticks"]
     assert all(t.get("chunk_ms") is not None for t in acted)  # a chunk on every tick the model acted
-
-
-def one_error_line(err):
-    assert "Traceback" not in err, err
-    lines = err.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("error: "), err
-    return lines[0]
 
 
 @pytest.mark.parametrize(

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import STUDY_ENTRIES
 from scipy.stats import binomtest
 from waiting import wait_for
 
@@ -17,15 +18,13 @@ from studies import protocol
 from studies.runner import Runner, Stage
 from studies.stats import cluster_bootstrap, describe_p, paired_difference, paired_exact_test
 
-ENTRY = "study_entries"  # tests/ is on sys.path (pytest puts it there; spawned stages inherit it)
-
 
 def test_stages_run_in_order_in_their_folder_with_one_thread_and_are_not_run_twice(tmp_path):
     work = tmp_path / "work"
     stages = [
-        Stage("second", f"{ENTRY}:needs", ("out/a.json",), after=("first",)),
-        Stage("first", f"{ENTRY}:write_marker", ("out/a.json",)),
-        Stage("other", f"{ENTRY}:write_marker", ("out/b.json", "x")),
+        Stage("second", f"{STUDY_ENTRIES}:needs", ("out/a.json",), after=("first",)),
+        Stage("first", f"{STUDY_ENTRIES}:write_marker", ("out/a.json",)),
+        Stage("other", f"{STUDY_ENTRIES}:write_marker", ("out/b.json", "x")),
     ]
     said: list[str] = []
     ran = Runner(work, workers=2, say=said.append).run(stages)
@@ -41,8 +40,8 @@ def test_stages_run_in_order_in_their_folder_with_one_thread_and_are_not_run_twi
 def test_a_failed_stage_stops_the_study_with_one_line_and_runs_again_next_time(tmp_path):
     work = tmp_path / "work"
     stages = [
-        Stage("bad", f"{ENTRY}:fail", ("x",)),
-        Stage("after_bad", f"{ENTRY}:write_marker", ("out/c.json",), after=("bad",)),
+        Stage("bad", f"{STUDY_ENTRIES}:fail", ("x",)),
+        Stage("after_bad", f"{STUDY_ENTRIES}:write_marker", ("out/c.json",), after=("bad",)),
     ]
     with pytest.raises(DSSPError) as info:
         Runner(work, say=lambda _: None).run(stages)
@@ -56,7 +55,7 @@ def test_a_failed_stage_stops_the_study_with_one_line_and_runs_again_next_time(t
 def test_with_echo_each_stage_is_shown_line_by_line_behind_its_name(tmp_path):
     said: list[str] = []
     Runner(tmp_path, workers=2, echo=True, say=said.append).run(
-        [Stage("a", f"{ENTRY}:chatter", ()), Stage("b", f"{ENTRY}:write_marker", ("m.json",))]
+        [Stage("a", f"{STUDY_ENTRIES}:chatter", ()), Stage("b", f"{STUDY_ENTRIES}:write_marker", ("m.json",))]
     )
     assert [line for line in said if line.startswith("[a]")] == [
         "[a] one",
@@ -76,9 +75,9 @@ def test_the_demo_stops_at_a_failed_stage_with_its_log_kept_outside_out(tmp_path
         demo,
         "stages",
         lambda *args: [
-            Stage("first", f"{ENTRY}:write_marker", ("m.json",)),
-            Stage("bad", f"{ENTRY}:fail", ("x",), after=("first",)),
-            Stage("never", f"{ENTRY}:write_marker", ("n.json",), after=("bad",)),
+            Stage("first", f"{STUDY_ENTRIES}:write_marker", ("m.json",)),
+            Stage("bad", f"{STUDY_ENTRIES}:fail", ("x",), after=("first",)),
+            Stage("never", f"{STUDY_ENTRIES}:write_marker", ("n.json",), after=("bad",)),
         ],
     )
     out = tmp_path / "demo"
@@ -110,23 +109,35 @@ def test_a_stage_stopped_halfway_resumes_or_starts_clean(tmp_path):
     (work / "half.zarr").mkdir()
     (work / "half.zarr/junk").write_text("left by a collection stopped halfway")
     stages = [
-        Stage("train", f"{ENTRY}:write_marker", ("out/fresh.json",), resume=("out/resumed.json",), started="partial"),
-        Stage("collect", f"{ENTRY}:write_marker", ("half.zarr/new.json",), clean=("half.zarr",)),
+        Stage(
+            "train",
+            f"{STUDY_ENTRIES}:write_marker",
+            ("out/fresh.json",),
+            resume=("out/resumed.json",),
+            started="partial",
+        ),
+        Stage("collect", f"{STUDY_ENTRIES}:write_marker", ("half.zarr/new.json",), clean=("half.zarr",)),
     ]
     Runner(work, say=lambda _: None).run(stages)
     assert (work / "out/resumed.json").is_file() and not (work / "out/fresh.json").exists()
     assert sorted(p.name for p in (work / "half.zarr").iterdir()) == ["new.json"]
     with pytest.raises(DSSPError, match="inside its work folder"):
-        Runner(work, say=lambda _: None).run([Stage("escape", f"{ENTRY}:write_marker", ("y",), clean=("../outside",))])
+        Runner(work, say=lambda _: None).run(
+            [Stage("escape", f"{STUDY_ENTRIES}:write_marker", ("y",), clean=("../outside",))]
+        )
 
 
 def test_stages_that_cannot_run_are_named(tmp_path):
     with pytest.raises(DSSPError, match="no stage makes"):
-        Runner(tmp_path, say=lambda _: None).run([Stage("a", f"{ENTRY}:write_marker", ("z",), after=("missing",))])
+        Runner(tmp_path, say=lambda _: None).run(
+            [Stage("a", f"{STUDY_ENTRIES}:write_marker", ("z",), after=("missing",))]
+        )
     with pytest.raises(DSSPError, match="repeat"):
-        Runner(tmp_path, say=lambda _: None).run([Stage("a", f"{ENTRY}:fail", ()), Stage("a", f"{ENTRY}:fail", ())])
+        Runner(tmp_path, say=lambda _: None).run(
+            [Stage("a", f"{STUDY_ENTRIES}:fail", ()), Stage("a", f"{STUDY_ENTRIES}:fail", ())]
+        )
     with pytest.raises(ValueError, match="plain file name"):
-        Stage("a/b", f"{ENTRY}:fail", ())
+        Stage("a/b", f"{STUDY_ENTRIES}:fail", ())
 
 
 # ---------------------------------------------------------------------------------------------- protocol

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zarr
-from conftest import SET_SMALL, one_error_line
+from conftest import PNG_SIGNATURE, ROOT, SET_SMALL, one_error_line
 from safetensors import safe_open
 
 from dssp_core.schema import DEFAULT_CONTROL_RATE_HZ
@@ -29,7 +29,6 @@ from dssp_train.training.trainer import Trainer
 TRAIN_KEYS = {"kind", "step", "loss", "diffusion", "dynamics", "lr", "steps_per_s", "windows_per_s"}
 VAL_KEYS = {"kind", "step", "on_train_episodes", "val_diffusion", "val_action_mse"}
 DYNAMICS_KEYS = {"dyn_cos", "dyn_cos_mean", "dyn_cos_prev"}  # the dynamics loss's diagnostics
-PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
 def subprocess_env() -> dict[str, str]:
@@ -41,11 +40,6 @@ def cli(*args) -> list[str]:
 
 
 # ---------------------------------------------------------------------- data
-@pytest.fixture(scope="module")
-def data(tmp_path_factory) -> Path:
-    return write_tap_count_dataset(tmp_path_factory.mktemp("data") / "tap.zarr", 4, seed=0, n_points=24)
-
-
 @pytest.fixture(scope="module")
 def nan_data(tmp_path_factory) -> Path:
     path = write_tap_count_dataset(tmp_path_factory.mktemp("nan") / "nan.zarr", 3, seed=0, n_points=24)
@@ -337,9 +331,7 @@ def test_the_paper_cost_table_is_each_presets_step_times_its_budget(tmp_path, ca
     the task's demonstrations), every demonstration trained on; each step built at its task's shapes."""
     import importlib.util
 
-    spec = importlib.util.spec_from_file_location(
-        "bench_train_step_time", Path(__file__).parents[1] / "benchmarks" / "train_step_time.py"
-    )
+    spec = importlib.util.spec_from_file_location("bench_train_step_time", ROOT / "benchmarks" / "train_step_time.py")
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
     built = []
@@ -363,7 +355,7 @@ def test_the_paper_cost_table_is_each_presets_step_times_its_budget(tmp_path, ca
 
 def test_the_step_time_benchmark_needs_only_torch_numpy_and_tqdm():
     """On a GPU machine the benchmark runs from a checkout (``PYTHONPATH=.``) with no dataset or runtime stack."""
-    script = Path(__file__).parents[1] / "benchmarks" / "train_step_time.py"
+    script = ROOT / "benchmarks" / "train_step_time.py"
     code = (
         "import runpy, sys\n"
         "for name in ('zarr', 'numcodecs', 'onnx', 'onnxruntime', 'safetensors', 'matplotlib', 'mujoco', 'can'):\n"

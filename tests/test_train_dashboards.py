@@ -9,15 +9,13 @@ import sys
 from pathlib import Path
 
 import pytest
-from conftest import SET_SMALL, one_error_line
+from conftest import PNG_SIGNATURE, SET_SMALL, one_error_line
 
 from dssp_train.cli.distill import main as distill_main
 from dssp_train.cli.train import main as train_main
-from dssp_train.data.synthetic import write_tap_count_dataset
 from dssp_train.training.train_log import read_log
 from dssp_train.training.trainer import Trainer
 
-PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 INSTALL = 'pip install -e ".[viz]"'
 
 
@@ -30,12 +28,6 @@ def offline_wandb(tmp_path, monkeypatch):
         folder = tmp_path / "wandb_home" / name.lower()
         folder.mkdir(parents=True)
         monkeypatch.setenv(name, str(folder))
-
-
-@pytest.fixture(scope="module")
-def data(tmp_path_factory) -> Path:
-    """4 tap-count episodes, 24 points per cloud (one held out for validation)."""
-    return write_tap_count_dataset(tmp_path_factory.mktemp("data") / "tap.zarr", 4, seed=0, n_points=24)
 
 
 def train(data: Path, out: Path, *flags: str) -> None:

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import SET_SMALL, SMALL, one_error_line, write_arm_dataset
+from conftest import SET_SMALL, SMALL, refusal, snapshot, write_arm_dataset
 from waiting import wait_for
 
 from dssp_train.cli.params import main as params_main
@@ -27,35 +27,16 @@ from dssp_train.training.trainer import Trainer
 
 
 def refused(capsys, main, argv) -> str:
-    """Run ``main(argv)``: exit code 2, nothing on stdout, one error line (returned without "error: ")."""
-    assert main([str(a) for a in argv]) == 2
-    captured = capsys.readouterr()
-    assert captured.out == ""
-    return one_error_line(captured.err)[len("error: ") :]
-
-
-@pytest.fixture(scope="module")
-def data(tmp_path_factory) -> Path:
-    """4 tap-count episodes, 24 points per cloud, recorded at 10 Hz."""
-    return write_tap_count_dataset(tmp_path_factory.mktemp("data") / "tap.zarr", 4, seed=0, n_points=24)
-
-
-@pytest.fixture(scope="module")
-def trained(tmp_path_factory, data) -> Path:
-    """A finished 2-step run on ``data`` (checkpoint at step 2)."""
-    out = tmp_path_factory.mktemp("trained") / "run"
-    assert train_main(["--data", str(data), "--out", str(out), "--steps", "2", "--no-progress", *SET_SMALL]) == 0
-    return out
+    """Run ``main(argv)``: its :func:`conftest.refusal` (exit code 2, nothing on stdout, one error line), the line
+    returned without "error: "."""
+    code = main([str(a) for a in argv])
+    return refusal((code, *capsys.readouterr()))[len("error: ") :]
 
 
 def copy_of(run: Path, tmp_path: Path) -> Path:
     dst = tmp_path / "run"
     shutil.copytree(run, dst)
     return dst
-
-
-def snapshot(path: Path) -> dict[str, bytes]:
-    return {str(p.relative_to(path)): p.read_bytes() for p in sorted(path.rglob("*")) if p.is_file()}
 
 
 # ------------------------------------------------------------------ 1. the control rate
