@@ -50,6 +50,11 @@ DEFAULT_CONTROL_RATE_HZ = 10.0  # the control rate where neither the data, the m
 CONTROL_RATE_FLAG = "--control-rate"  # every command's option for it (Hz)
 
 
+def control_rate_setting():
+    """A settings field for a control rate that may be unknown (None): the range :func:`check_rate` checks."""
+    return setting(None, ge=MIN_RATE_HZ, le=MAX_RATE_HZ, unit="Hz")
+
+
 def check_rate(rate, flag: str = CONTROL_RATE_FLAG) -> float:
     """``rate`` in [MIN_RATE_HZ, MAX_RATE_HZ] Hz as a float, else a one-line ConfigError naming ``flag`` (the option
     or the field that gave it): the control rates a dataset, a model or a robot may run at."""

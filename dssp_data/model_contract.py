@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 from dssp_core.errors import ConfigError
-from dssp_core.schema import MAX_DIM, MAX_RATE_HZ, MAX_STEPS, Settings, setting
+from dssp_core.schema import MAX_DIM, MAX_STEPS, Settings, control_rate_setting, setting
 from dssp_data.observation import ObservationContract
 
 MAX_POINTS = 1_000_000
@@ -79,7 +79,7 @@ class ModelContract(Settings):
         default_factory=lambda: list(range(90, -1, -10)), ge=0, lt=MAX_TIMESTEPS, min_length=1, max_length=MAX_TIMESTEPS
     )
     inpainting: bool = setting(False)
-    control_rate_hz: float | None = setting(None, gt=0, le=MAX_RATE_HZ, unit="Hz")
+    control_rate_hz: float | None = control_rate_setting()
     observation: ObservationContract = setting(default_factory=ObservationContract)
 
     def validate(self) -> None:

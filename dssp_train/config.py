@@ -13,7 +13,16 @@ from importlib import resources
 from typing import ClassVar
 
 from dssp_core.errors import ConfigError
-from dssp_core.schema import MAX_DIM, MAX_LAYERS, MAX_RATE_HZ, MAX_STEPS, MAX_WIDTH, Settings, parse_json, setting
+from dssp_core.schema import (
+    MAX_DIM,
+    MAX_LAYERS,
+    MAX_STEPS,
+    MAX_WIDTH,
+    Settings,
+    control_rate_setting,
+    parse_json,
+    setting,
+)
 from dssp_data.model_contract import ModelContract, check_chunk
 from dssp_data.observation import ObservationContract
 
@@ -233,9 +242,7 @@ class RunConfig(Settings):
     model: ModelConfig = setting(default_factory=ModelConfig)
     train: TrainConfig = setting(default_factory=TrainConfig)
     preset: str = setting("custom")
-    control_rate_hz: float | None = setting(
-        None, gt=0, le=MAX_RATE_HZ, unit="Hz"
-    )  # the data's rate; the runtime must match it
+    control_rate_hz: float | None = control_rate_setting()  # the data's rate; the runtime must match it
     dataset: str | None = setting(None)
     # The observation contract the dataset records (point-cloud settings, state/action layout; null: unknown).
     observation: ObservationContract = setting(default_factory=ObservationContract)

@@ -78,7 +78,7 @@ def test_control_rate_equal_to_the_dataset_is_accepted(data, tmp_path, capsys):
 @pytest.mark.parametrize("value", ["0", "-5", "nan", "2000"])
 def test_control_rate_out_of_range_names_the_flag(data, tmp_path, capsys, value):
     line = refused(capsys, train_main, ["--data", data, "--out", tmp_path / "run", "--control-rate", value, *SET_SMALL])
-    assert line.startswith("--control-rate must be a ") and "(0, 1000] Hz" in line
+    assert line.startswith("--control-rate must be a ") and "[0.1, 1000] Hz" in line
     assert not (tmp_path / "run").exists()
 
 
