@@ -26,18 +26,6 @@ from dssp_data.observation import ObservationContract
 
 MAX_POINTS = 1_000_000
 MAX_TIMESTEPS = 100_000  # DDPM training timesteps
-# The training config's model fields the contract carries (action_alignment as action_offset): a manifest's
-# model_config records the rest.
-CONTRACT_FIELDS = (
-    "point_dim",
-    "n_points",
-    "state_dim",
-    "action_dim",
-    "n_obs_steps",
-    "horizon",
-    "n_action_steps",
-    "action_alignment",
-)
 
 
 def check_chunk(n_obs_steps: int, horizon: int, n_action_steps: int, action_offset: int, section: str) -> None:
@@ -135,3 +123,8 @@ class ModelContract(Settings):
     def digest(self) -> str:
         """sha256 of the contract's canonical JSON: what each ONNX file's metadata carries of it."""
         return hashlib.sha256(json.dumps(self.to_json(), sort_keys=True).encode()).hexdigest()
+
+
+CONTRACT_FIELDS = tuple(ModelContract().model_fields())
+"""The training config's model fields the contract carries (action_alignment as action_offset): a manifest's
+model_config records the rest."""

@@ -31,6 +31,7 @@ import hashlib
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path, PurePosixPath, PureWindowsPath
 from typing import Any, ClassVar
 
@@ -261,7 +262,7 @@ class Manifest:
     normalizers: dict[str, dict[str, list[float]]]
     data: dict[str, Any]
 
-    @property
+    @cached_property
     def history_state(self) -> list[str]:
         """The history graph's state inputs, in order ([] without a history encoder)."""
         return [s["name"] for s in history_state_specs(self.model)] if self.model.use_history else []

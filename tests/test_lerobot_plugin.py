@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import ROOT
+from conftest import CAMERA, ROOT
 
 from dssp_data.data_cli import main as data_main
 from dssp_data.observation import FRAME_ROBOT_BASE, PointCloudConfig
@@ -29,7 +29,6 @@ from dssp_data.replay_buffer import ReplayBuffer
 from dssp_deploy import OnnxPolicy
 from dssp_train.data.synthetic import write_tap_count_dataset
 from export.to_onnx import main as export_main
-from hardware.camera.tabletop import Box, SimCamera, intrinsics_for
 
 PLUGIN = ROOT / "plugins" / "lerobot_policy_dssp"
 
@@ -282,19 +281,12 @@ def depth(setup) -> dict:
     """One episode of the simulated tabletop camera's depth (160x120, noiseless) and a 7-value state: the frames
     (.npz), the camera's calibration file and its intrinsics as a LeRobot depth feature's info holds them."""
     tmp = setup[0]
-    camera = SimCamera(
-        seed=0,
-        intrinsics=intrinsics_for(160, 120, 70.0),
-        noise_std=0.0,
-        invalid_fraction=0.0,
-        moving_box=lambda t: Box((0.1 + 0.2 * t, 0.0, 0.05), (0.08, 0.08, 0.1)),
-    )
     t = np.arange(6) / 10
-    depth = np.stack([camera.render(s)[0] for s in t])
+    depth = np.stack([CAMERA.render(s)[0] for s in t])
     state = np.stack([np.sin(t + k) for k in range(7)], axis=1).astype(np.float32)
     np.savez(tmp / "frames.npz", depth=depth, state=state)
-    save_extrinsics(tmp / "calib.json", camera.camera_to_base)
-    k = camera.intrinsics
+    save_extrinsics(tmp / "calib.json", CAMERA.camera_to_base)
+    k = CAMERA.intrinsics
     return {
         "frames": tmp / "frames.npz",
         "calib": tmp / "calib.json",
@@ -305,7 +297,7 @@ def depth(setup) -> dict:
             "ppy": k.ppy,
             "width": k.width,
             "height": k.height,
-            "depth_unit": camera.depth_unit,
+            "depth_unit": CAMERA.depth_unit,
         },
     }
 
