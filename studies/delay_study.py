@@ -34,14 +34,12 @@ import sys
 from pathlib import Path
 
 from dssp_core.errors import DSSPError
-from dssp_core.files import atomic_write_text
 from dssp_core.output_guard import write_output_figure
-from dssp_sim import sim_cli
-from dssp_train.cli import train
 from studies import protocol
-from studies.evaluations import study_main
+from studies.evaluations import study_main, write_md_and_json
 from studies.runner import Stage
 from studies.stats import cluster_bootstrap, describe_p, paired_difference, paired_exact_test
+from studies.study_stages import collect_stage, eval_stage, export_stage, train_stage
 
 REPORT_NAME = "delay"
 PLAN = {
@@ -71,90 +69,32 @@ def cell(task: str, smoothing: str, delay: int, seed: int) -> str:
 
 def stages(plan: dict, tasks: list[str], record: Path) -> list[Stage]:
     """Every stage of ``tasks``; a cell whose evaluation is in the record needs none."""
-    from export import to_onnx  # deferred: loads torch, which a stage's process imports after setting its threads
-
-    first = protocol.split_seeds(SPLIT, plan["episodes"])[0]
+    n = plan["episodes"]
+    first = protocol.split_seeds(SPLIT, n)[0]
     out: list[Stage] = []
     for task in tasks:
         spec, data = plan["tasks"][task], f"data_{task}.zarr"
         task_stages: list[Stage] = []
         for seed in plan["seeds"]:
             run, model, key = f"run_{task}_s{seed}", f"model_{task}_s{seed}", f"{task}_s{seed}"
+            ready = (f"export_{key}",)
+            names = {cell(task, s, d, seed): (s, d) for d in plan["delays_ms"] for s in plan["smoothings"]}
             cells = [
-                Stage(
-                    f"eval_{cell(task, s, d, seed)}",
-                    sim_cli.main,
-                    (
-                        "eval",
-                        "--model",
-                        model,
-                        "--task",
-                        task,
-                        "--episodes",
-                        str(plan["episodes"]),
-                        "--seed",
-                        str(first),
-                        "--smoothing",
-                        s,
-                        "--inject-delay",
-                        str(d),
-                        "--threads",
-                        "1",
-                        "--json",
-                        f"evals/{cell(task, s, d, seed)}.json",
-                        "--force",
-                        "--no-progress",
-                    ),
-                    after=(f"export_{key}",),
-                    outputs=(f"evals/{cell(task, s, d, seed)}.json",),
-                )
-                for d in plan["delays_ms"]
-                for s in plan["smoothings"]
-                if not (record / "evals" / f"{cell(task, s, d, seed)}.json").is_file()
+                eval_stage(name, model, task, n, first, "--smoothing", s, "--inject-delay", str(d), after=ready)
+                for name, (s, d) in names.items()
+                if not (record / "evals" / f"{name}.json").is_file()
             ]
             if not cells:
                 continue
-            argv = (
-                "--data",
-                data,
-                "--out",
-                run,
-                "--preset",
-                plan["preset"],
-                "--steps",
-                str(spec["steps"]),
-                "--seed",
-                str(seed),
-                "--no-progress",
-                "--force",
-            )
             task_stages += [
-                Stage(
-                    f"train_{key}",
-                    train.main,
-                    argv,
-                    after=(f"collect_{task}",),
-                    resume=("--data", data, "--out", run, "--resume", "--no-progress"),
-                    started=f"{run}/checkpoint",
-                ),
-                Stage(
-                    f"export_{key}",
-                    to_onnx.main,
-                    (run, "-o", model, "--threads", "1", "--force", *plan["export_flags"]),
-                    after=(f"train_{key}",),
+                train_stage(key, data, run, plan["preset"], spec["steps"], seed, after=(f"collect_{task}",)),
+                export_stage(
+                    key, run, model, "--threads", "1", "--force", *plan["export_flags"], after=(f"train_{key}",)
                 ),
                 *cells,
             ]
         if task_stages:
-            out += [
-                Stage(
-                    f"collect_{task}",
-                    sim_cli.main,
-                    ("collect", "--task", task, "--episodes", str(spec["demos"]), "--out", data, "--no-progress"),
-                    clean=(data,),
-                ),
-                *task_stages,
-            ]
+            out += [collect_stage(task, task, spec["demos"], data), *task_stages]
     return out
 
 
@@ -317,13 +257,7 @@ def write_report(plan: dict, record: Path, report: Path, shown_record: str | Non
             f"({100 * lo:+.0f} to {100 * hi:+.0f}) | {t['verdict']} |"
         )
     lines += ["", f"![success and boundary jerk against the inference delay]({REPORT_NAME}.png)", ""]
-    report.mkdir(parents=True, exist_ok=True)
-    md = report / f"{REPORT_NAME}.md"
-    atomic_write_text(md, "\n".join(lines))
-    atomic_write_text(
-        report / f"{REPORT_NAME}.json",
-        json.dumps({"plan": plan, "summary": table, "paired_tests": tests}, indent=1, sort_keys=True) + "\n",
-    )
+    md = write_md_and_json(report, REPORT_NAME, lines, {"plan": plan, "summary": table, "paired_tests": tests})
     plot(table, plan, report / f"{REPORT_NAME}.png")
     return md
 

@@ -74,6 +74,8 @@ def stages(steps: int, demos: int, episodes: int, seed: int) -> list[Stage]:
         )
     ]
     for name, (_, flags) in VARIANTS.items():
+        model = f"{name}_model"
+        evaluate = ("eval", "--model", model, "--task", TASK, "--episodes", str(episodes), "--seed", str(1000 + seed))
         out += [
             Stage(
                 f"train_{name}",
@@ -81,30 +83,11 @@ def stages(steps: int, demos: int, episodes: int, seed: int) -> list[Stage]:
                 ("--data", data, "--out", name, "--preset", "sim", "--steps", str(steps), "--seed", str(seed), *flags),
                 after=("collect",),
             ),
-            Stage(
-                f"export_{name}",
-                to_onnx.main,
-                (name, "-o", f"{name}_model", "--threads", "1"),
-                after=(f"train_{name}",),
-            ),
+            Stage(f"export_{name}", to_onnx.main, (name, "-o", model, "--threads", "1"), after=(f"train_{name}",)),
             Stage(
                 f"eval_{name}",
                 sim_cli.main,
-                (
-                    "eval",
-                    "--model",
-                    f"{name}_model",
-                    "--task",
-                    TASK,
-                    "--episodes",
-                    str(episodes),
-                    "--seed",
-                    str(1000 + seed),
-                    "--threads",
-                    "1",
-                    "--json",
-                    f"evals/{name}.json",
-                ),
+                (*evaluate, "--threads", "1", "--json", f"evals/{name}.json"),
                 after=(f"export_{name}",),
             ),
         ]

@@ -42,13 +42,13 @@ from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import DSSPError
 from dssp_core.output_guard import OutputKind, check_output_files, claim_dir, write_output_figure, write_output_text
 from dssp_deploy import profile
-from dssp_sim import sim_cli
 from dssp_sim.evaluate import wilson_interval
 from dssp_train.cli import distill, synth, train
 from studies.evaluations import run_and_keep
 from studies.runner import Stage
 from studies.sim_study import PLAN as MEMORY_PLAN
 from studies.sim_study import RECORD_DIR, WORK_ENTRIES, pct, recorded, stage_seconds
+from studies.study_stages import collect_stage, eval_stage, export_stage, train_stage
 
 REPORT_NAME = "distill"
 TASKS = ("tap", "put2", "swap")
@@ -118,38 +118,13 @@ def task_stages(task: str, plan: dict, record: Path, teachers: Path | None = Non
     todo = [(name, kind, k) for name, kind, k in cells(task, plan) if recorded(record, name) is None]
     if not todo:
         return []
-    from export import to_onnx  # deferred: loads torch, which a stage's process imports after setting its threads
-
     out: list[Stage] = []
     if teachers is None:
-        data, teacher = f"data/{task}.zarr", f"runs/{task}_teacher"
+        data, teacher, collected = f"data/{task}.zarr", f"runs/{task}_teacher", (f"collect_{task}",)
         out += [
-            Stage(
-                f"collect_{task}",
-                sim_cli.main,
-                ("collect", "--task", task, "--episodes", str(plan["demos"][task]), "--out", data, "--no-progress"),
-                clean=(data,),
-            ),
-            Stage(
-                f"train_{task}_teacher",
-                train.main,
-                (
-                    "--data",
-                    data,
-                    "--out",
-                    teacher,
-                    "--preset",
-                    plan["preset"],
-                    "--steps",
-                    str(plan["steps"][task]),
-                    "--seed",
-                    str(plan["seed"]),
-                    "--no-progress",
-                    "--force",
-                ),
-                after=(f"collect_{task}",),
-                resume=("--data", data, "--out", teacher, "--resume", "--no-progress"),
-                started=f"{teacher}/checkpoint",
+            collect_stage(task, task, plan["demos"][task], data),
+            train_stage(
+                f"{task}_teacher", data, teacher, plan["preset"], plan["steps"][task], plan["seed"], after=collected
             ),
         ]
         trained: tuple[str, ...] = (f"train_{task}_teacher",)
@@ -163,59 +138,19 @@ def task_stages(task: str, plan: dict, record: Path, teachers: Path | None = Non
         )
         if kind not in ("teacher", "ddim"):
             run, ready = f"runs/{name}", (f"distill_{name}",)
+            argv = ("--teacher", teacher, "--steps", str(k), "--method", kind, "--out", run)
+            argv += ("--train-steps", str(plan["distill_steps"][task]), "--no-progress", "--force")
+            resume = ("--out", run, "--resume", "--no-progress")
             out.append(
-                Stage(
-                    f"distill_{name}",
-                    distill.main,
-                    (
-                        "--teacher",
-                        teacher,
-                        "--steps",
-                        str(k),
-                        "--method",
-                        kind,
-                        "--out",
-                        run,
-                        "--train-steps",
-                        str(plan["distill_steps"][task]),
-                        "--no-progress",
-                        "--force",
-                    ),
-                    after=trained,
-                    resume=("--out", run, "--resume", "--no-progress"),
-                    started=f"{run}/checkpoint",
-                )
+                Stage(f"distill_{name}", distill.main, argv, after=trained, resume=resume, started=f"{run}/checkpoint")
             )
-        model = f"models/{name}"
+        model, threads = f"models/{name}", plan["threads"]
         out += [
-            Stage(
-                f"export_{name}",
-                to_onnx.main,
-                (run, "-o", model, *flags, "--threads", str(plan["threads"]), "--force", *plan["export_flags"]),
-                after=ready,
+            export_stage(
+                name, run, model, *flags, "--threads", str(threads), "--force", *plan["export_flags"], after=ready
             ),
-            Stage(
-                f"eval_{name}",
-                sim_cli.main,
-                (
-                    "eval",
-                    "--model",
-                    model,
-                    "--task",
-                    task,
-                    "--episodes",
-                    str(plan["eval_episodes"]),
-                    "--seed",
-                    str(plan["eval_seed"]),
-                    "--threads",
-                    str(plan["threads"]),
-                    "--json",
-                    f"evals/{name}.json",
-                    "--force",
-                    "--no-progress",
-                ),
-                after=(f"export_{name}",),
-                outputs=(f"evals/{name}.json",),
+            eval_stage(
+                name, model, task, plan["eval_episodes"], plan["eval_seed"], after=(f"export_{name}",), threads=threads
             ),
         ]
     return out
@@ -231,6 +166,7 @@ def latency_stages(plan: dict, record: Path, others: list[Stage]) -> list[Stage]
     from export import to_onnx  # deferred: loads torch, which a stage's process imports after setting its threads
 
     data, run = "data/latency.zarr", f"runs/latency_{lat['preset']}"
+    argv = ("--data", data, "--out", run, "--preset", lat["preset"], "--steps", "1", "--set", "train.val_every=1")
     out = [
         Stage(
             "latency_data",
@@ -238,68 +174,23 @@ def latency_stages(plan: dict, record: Path, others: list[Stage]) -> list[Stage]
             ("--out", data, "--episodes", "2", "--points", str(lat["points"])),
             clean=(data,),
         ),
-        Stage(
-            "latency_train",
-            train.main,
-            (
-                "--data",
-                data,
-                "--out",
-                run,
-                "--preset",
-                lat["preset"],
-                "--steps",
-                "1",
-                "--set",
-                "train.val_every=1",
-                "--no-progress",
-                "--force",
-            ),
-            after=("latency_data",),
-        ),
+        Stage("latency_train", train.main, (*argv, "--no-progress", "--force"), after=("latency_data",)),
     ]
+    options = ("--timestep-spacing", "trailing", "--verify-steps", "50", "--threads", "1", "--force")
     out += [
         Stage(
             f"latency_export_k{k}",
             to_onnx.main,
-            (
-                run,
-                "-o",
-                f"models/latency_k{k}",
-                "--denoise-steps",
-                str(k),
-                "--timestep-spacing",
-                "trailing",
-                "--verify-steps",
-                "50",
-                "--threads",
-                "1",
-                "--force",
-                *plan["export_flags"],
-            ),
+            (run, "-o", f"models/latency_k{k}", "--denoise-steps", str(k), *options, *plan["export_flags"]),
             after=("latency_train",),
         )
         for k in todo
     ]
     before = tuple(s.name for s in [*others, *out])
     for k in todo:
-        out.append(
-            Stage(
-                f"latency_profile_k{k}",
-                profile.main,
-                (
-                    f"models/latency_k{k}",
-                    "--threads",
-                    str(lat["threads"]),
-                    "--json",
-                    f"evals/latency_k{k}.json",
-                    "--force",
-                    *lat["profile_flags"],
-                ),
-                after=before,
-                outputs=(f"evals/latency_k{k}.json",),
-            )
-        )
+        model, path = f"models/latency_k{k}", f"evals/latency_k{k}.json"
+        argv = (model, "--threads", str(lat["threads"]), "--json", path, "--force", *lat["profile_flags"])
+        out.append(Stage(f"latency_profile_k{k}", profile.main, argv, after=before, outputs=(path,)))
         before = (f"latency_profile_k{k}",)
     return out
 

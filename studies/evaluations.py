@@ -4,7 +4,8 @@ A record keeps, of each closed-loop evaluation (``dssp-sim eval --json``), what 
 its counts, failure reasons, memory decisions, graphs and latency, the state-token noise and the tokens' RMS, and
 each episode's scene seed, outcome, steps and memory decision; of a latency profile (``dssp-profile --json``), its
 graphs and latency. The per-tick details stay in the work folder. A study whose report sums its compute time also
-keeps each finished stage's seconds (``seconds/NAME.seconds``).
+keeps each finished stage's seconds (``seconds/NAME.seconds``). A report rebuilt from the record is written by
+:func:`write_md_and_json`.
 """
 
 from __future__ import annotations
@@ -80,6 +81,16 @@ def run_and_keep(
                     record / "seconds" / f"{s.name}.seconds",
                     f"{json.loads(runner.marker(s.name).read_text())['seconds']:.1f}\n",
                 )
+
+
+def write_md_and_json(report: Path, name: str, lines: list[str], figures: dict) -> Path:
+    """A report rebuilt from its record: ``report/NAME.md`` (``lines``) and ``report/NAME.json`` (``figures``, keys
+    sorted); returns the ``.md``."""
+    report.mkdir(parents=True, exist_ok=True)
+    md = report / f"{name}.md"
+    atomic_write_text(md, "\n".join(lines))
+    atomic_write_text(report / f"{name}.json", json.dumps(figures, indent=1, sort_keys=True) + "\n")
+    return md
 
 
 def study_main(

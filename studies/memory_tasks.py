@@ -33,14 +33,12 @@ import numpy as np
 
 from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import DSSPError
-from dssp_core.files import atomic_write_text
 from dssp_core.output_guard import write_output_figure
-from dssp_sim import sim_cli
-from dssp_train.cli import train
 from studies import protocol
-from studies.evaluations import run_and_keep
+from studies.evaluations import run_and_keep, write_md_and_json
 from studies.runner import Stage
 from studies.stats import cluster_bootstrap, describe_p, paired_difference, paired_exact_test
+from studies.study_stages import collect_stage, eval_stage, export_stage, train_argv, train_stage
 
 REPORT_NAME = "memory"
 PLAN = {
@@ -104,35 +102,14 @@ def eval_name(task: str, model: str, seed: int, split: str) -> str:
     return f"{task}_{model}_s{seed}_{split}"
 
 
-def train_argv(plan: dict, task: str, model: dict, seed: int, data: str, run: str) -> list[str]:
-    return [
-        "--data",
-        data,
-        "--out",
-        run,
-        "--preset",
-        model["preset"],
-        "--steps",
-        str(plan["tasks"][task]["steps"]),
-        "--seed",
-        str(seed),
-        "--no-progress",
-        "--force",
-        *model["flags"],
-    ]
-
-
 def stages(plan: dict, split: str, tasks: list[str], record: Path, models: list[str] | None = None) -> list[Stage]:
     """Every stage of ``tasks`` for ``split`` (of ``models`` only, when given); a model whose evaluation is in the
     record needs none."""
-    from export import to_onnx  # deferred: loads torch, which a stage's process imports after setting its threads
-
     n = plan["episodes"][split]
     first = protocol.split_seeds(split, n)[0]
     out: list[Stage] = []
     for task in tasks:
-        spec = plan["tasks"][task]
-        data = f"data/{task}.zarr"
+        spec, data, collected = plan["tasks"][task], f"data/{task}.zarr", (f"collect_{task}",)
         need_data = False
         for name, model in models_of(plan, task).items():
             if models is not None and name not in models:
@@ -145,54 +122,14 @@ def stages(plan: dict, split: str, tasks: list[str], record: Path, models: list[
                 need_data = True
                 run, model_dir = f"runs/{key}", f"models/{key}"
                 out += [
-                    Stage(
-                        f"train_{key}",
-                        train.main,
-                        tuple(train_argv(plan, task, model, seed, data, run)),
-                        after=(f"collect_{task}",),
-                        resume=("--data", data, "--out", run, "--resume", "--no-progress"),
-                        started=f"{run}/checkpoint",
+                    train_stage(key, data, run, model["preset"], spec["steps"], seed, *model["flags"], after=collected),
+                    export_stage(
+                        key, run, model_dir, "--force", "--threads", "1", *plan["export_flags"], after=(f"train_{key}",)
                     ),
-                    Stage(
-                        f"export_{key}",
-                        to_onnx.main,
-                        (run, "-o", model_dir, "--force", "--threads", "1", *plan["export_flags"]),
-                        after=(f"train_{key}",),
-                    ),
-                    Stage(
-                        f"eval_{result}",
-                        sim_cli.main,
-                        (
-                            "eval",
-                            "--model",
-                            model_dir,
-                            "--task",
-                            task,
-                            "--episodes",
-                            str(n),
-                            "--seed",
-                            str(first),
-                            "--threads",
-                            "1",
-                            "--json",
-                            f"evals/{result}.json",
-                            "--force",
-                            "--no-progress",
-                        ),
-                        after=(f"export_{key}",),
-                        outputs=(f"evals/{result}.json",),
-                    ),
+                    eval_stage(result, model_dir, task, n, first, after=(f"export_{key}",)),
                 ]
         if need_data:
-            out.insert(
-                0,
-                Stage(
-                    f"collect_{task}",
-                    sim_cli.main,
-                    ("collect", "--task", task, "--episodes", str(spec["demos"]), "--out", data, "--no-progress"),
-                    clean=(data,),
-                ),
-            )
+            out.insert(0, collect_stage(task, task, spec["demos"], data))
     return out
 
 
@@ -201,12 +138,9 @@ def gpu_commands(plan: dict, tasks: list[str]) -> list[str]:
     for name, model in plan["gpu_models"].items():
         for task in tasks:
             for seed in plan["seeds"]:
-                key = f"{task}_{name}_s{seed}"
-                lines.append(
-                    "dssp-train "
-                    + " ".join(train_argv(plan, task, model, seed, f"data/{task}.zarr", f"runs/{key}"))
-                    + " --device cuda"
-                )
+                data, run, steps = f"data/{task}.zarr", f"runs/{task}_{name}_s{seed}", plan["tasks"][task]["steps"]
+                argv = train_argv(data, run, model["preset"], steps, seed, *model["flags"])
+                lines.append("dssp-train " + " ".join(argv) + " --device cuda")
     return lines
 
 
@@ -341,13 +275,9 @@ def _merge(dicts) -> dict:
 def write_report(plan: dict, record: Path, report: Path, split: str, shown_record: str | None = None) -> Path:
     """``memory_SPLIT.md`` (tables), ``.json`` (every figure) and ``.png`` (the plot), from the record alone."""
     lines, figures = report_lines(plan, record, split, shown_record)
-    md = report / f"{REPORT_NAME}_{split}.md"
-    lines += [f"![success and memory decision per model]({md.with_suffix('.png').name})", ""]
-    report.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(md, "\n".join(lines))
-    atomic_write_text(
-        report / f"{REPORT_NAME}_{split}.json", json.dumps({"plan": plan, **figures}, indent=1, sort_keys=True) + "\n"
-    )
+    name = f"{REPORT_NAME}_{split}"
+    lines += [f"![success and memory decision per model]({name}.png)", ""]
+    md = write_md_and_json(report, name, lines, {"plan": plan, **figures})
     plot(figures, md.with_suffix(".png"))
     return md
 

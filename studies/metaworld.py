@@ -38,12 +38,11 @@ import numpy as np
 from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import DSSPError
 from dssp_core.files import atomic_write_text
-from dssp_sim import sim_cli
-from dssp_train.cli import train
 from studies import protocol
-from studies.evaluations import run_and_keep
+from studies.evaluations import run_and_keep, write_md_and_json
 from studies.runner import Stage
 from studies.stats import cluster_bootstrap, describe_p, paired_difference, paired_exact_test
+from studies.study_stages import collect_stage, eval_stage, export_stage, train_stage
 
 REPORT_NAME = "metaworld"
 RECORD_DIR = "record"
@@ -178,41 +177,20 @@ def eval_name(task: str, model: str, seed: int, step: int, split: str) -> str:
     return f"{task}_{model}_s{seed}_step{step}_{split}"
 
 
-def train_argv(plan: dict, task: str, model: dict, seed: int, data: str, run: str) -> list[str]:
-    steps = steps_of(plan)
-    return [
-        "--data",
-        data,
-        "--out",
-        run,
-        "--preset",
-        model["preset"],
-        "--steps",
-        str(steps),
-        "--seed",
-        str(seed),
-        "--no-holdout",
-        "--set",
-        f"train.keep_every={steps // plan['evaluations']}",
-        "--no-progress",
-        "--force",
-        *model["flags"],
-    ]
-
-
 def stages(plan: dict, split: str, tasks: list[str], record: Path) -> list[Stage]:
     """Every stage of ``tasks`` for ``split`` not yet in the record: on validation every kept checkpoint is
     evaluated, on test the last one."""
-    from export import to_onnx  # deferred: loads torch, which a stage's process imports after setting its threads
-
     n = plan["episodes"][split]
     first = protocol.split_seeds(split, n)[0]
-    kept = checkpoint_steps(plan)
+    kept, steps = checkpoint_steps(plan), steps_of(plan)
+    keeping = ("--no-holdout", "--set", f"train.keep_every={steps // plan['evaluations']}")
+    export_options = ("--force", "--threads", "1", *plan["export_flags"])
     out: list[Stage] = []
     for task in tasks:
-        data = f"data/{task}.zarr"
+        data, collected, sim_task = f"data/{task}.zarr", (f"collect_{task}",), task_id(plan, task)
         need_data = False
         for name, model in plan["models"].items():
+            preset, flags = model["preset"], model["flags"]
             for seed in plan["seeds"]:
                 key = f"{task}_{name}_s{seed}"
                 run = f"runs/{key}"
@@ -224,76 +202,16 @@ def stages(plan: dict, split: str, tasks: list[str], record: Path) -> list[Stage
                 if not wanted:
                     continue
                 need_data = True
-                out.append(
-                    Stage(
-                        f"train_{key}",
-                        train.main,
-                        tuple(train_argv(plan, task, model, seed, data, run)),
-                        after=(f"collect_{task}",),
-                        resume=("--data", data, "--out", run, "--resume", "--no-progress"),
-                        started=f"{run}/checkpoint",
-                    )
-                )
+                out.append(train_stage(key, data, run, preset, steps, seed, *flags, after=collected, options=keeping))
                 for step in wanted:
-                    model_dir, result = f"models/{key}_step{step}", eval_name(task, name, seed, step, split)
+                    ckpt, snapshot = f"{key}_step{step}", f"{run}/snapshots/step_{step:07d}"
+                    result = eval_name(task, name, seed, step, split)
                     out += [
-                        Stage(
-                            f"export_{key}_step{step}",
-                            to_onnx.main,
-                            (
-                                f"{run}/snapshots/step_{step:07d}",
-                                "-o",
-                                model_dir,
-                                "--force",
-                                "--threads",
-                                "1",
-                                *plan["export_flags"],
-                            ),
-                            after=(f"train_{key}",),
-                        ),
-                        Stage(
-                            f"eval_{result}",
-                            sim_cli.main,
-                            (
-                                "eval",
-                                "--model",
-                                model_dir,
-                                "--task",
-                                task_id(plan, task),
-                                "--episodes",
-                                str(n),
-                                "--seed",
-                                str(first),
-                                "--threads",
-                                "1",
-                                "--json",
-                                f"evals/{result}.json",
-                                "--force",
-                                "--no-progress",
-                            ),
-                            after=(f"export_{key}_step{step}",),
-                            outputs=(f"evals/{result}.json",),
-                        ),
+                        export_stage(ckpt, snapshot, f"models/{ckpt}", *export_options, after=(f"train_{key}",)),
+                        eval_stage(result, f"models/{ckpt}", sim_task, n, first, after=(f"export_{ckpt}",)),
                     ]
         if need_data:
-            out.insert(
-                0,
-                Stage(
-                    f"collect_{task}",
-                    sim_cli.main,
-                    (
-                        "collect",
-                        "--task",
-                        task_id(plan, task),
-                        "--episodes",
-                        str(plan["demos"]),
-                        "--out",
-                        data,
-                        "--no-progress",
-                    ),
-                    clean=(data,),
-                ),
-            )
+            out.insert(0, collect_stage(task, sim_task, plan["demos"], data))
     return out
 
 
@@ -486,13 +404,7 @@ def readme_table(record: Path) -> str:
 def write_report(plan: dict, record: Path, report: Path, shown_record: str | None = None) -> Path:
     """``metaworld.md`` and ``metaworld.json`` (every figure), from the record alone."""
     lines, figures = report_lines(plan, record, shown_record)
-    report.mkdir(parents=True, exist_ok=True)
-    md = report / f"{REPORT_NAME}.md"
-    atomic_write_text(md, "\n".join(lines))
-    atomic_write_text(
-        report / f"{REPORT_NAME}.json", json.dumps({"plan": plan, **figures}, indent=1, sort_keys=True) + "\n"
-    )
-    return md
+    return write_md_and_json(report, REPORT_NAME, lines, {"plan": plan, **figures})
 
 
 def cost(plan: dict, tasks: list[str], record: Path) -> str:

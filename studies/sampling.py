@@ -25,16 +25,14 @@ import sys
 from pathlib import Path
 
 from dssp_core.errors import DSSPError
-from dssp_core.files import atomic_write_text
 from dssp_core.output_guard import write_output_figure
 from dssp_deploy.manifest import PRECISIONS
-from dssp_sim import sim_cli
 from dssp_sim.evaluate import wilson_interval
-from dssp_train.cli import train
 from studies import memory_tasks, protocol
-from studies.evaluations import study_main
+from studies.evaluations import study_main, write_md_and_json
 from studies.runner import Stage
 from studies.sim_study import pct
+from studies.study_stages import collect_stage, eval_stage, export_stage, train_stage
 
 REPORT_NAME = "sampling"
 PLAN = {
@@ -61,84 +59,28 @@ def cell(task: str, k: int, precision: str) -> str:
 
 def stages(plan: dict, tasks: list[str], record: Path) -> list[Stage]:
     """Every stage of ``tasks``; a cell whose evaluation is in the record needs none."""
-    from export import to_onnx  # deferred: loads torch, which a stage's process imports after setting its threads
-
-    first = protocol.split_seeds("validation", plan["episodes"])[0]
+    n = plan["episodes"]
+    first = protocol.split_seeds("validation", n)[0]
     out: list[Stage] = []
     for task in tasks:
         spec, data, run = plan["tasks"][task], f"data/{task}.zarr", f"runs/{task}_dssp_s{plan['seed']}"
         task_stages: list[Stage] = []
+        trained = (f"train_{task}",)
         for k in plan["denoise_steps"]:
-            model = f"models/{task}_k{k}"
+            model, ready = f"models/{task}_k{k}", (f"export_{task}_k{k}",)
             cells = [
-                Stage(
-                    f"eval_{cell(task, k, p)}",
-                    sim_cli.main,
-                    (
-                        "eval",
-                        "--model",
-                        model,
-                        "--task",
-                        task,
-                        "--episodes",
-                        str(plan["episodes"]),
-                        "--seed",
-                        str(first),
-                        "--precision",
-                        p,
-                        "--threads",
-                        "1",
-                        "--json",
-                        f"evals/{cell(task, k, p)}.json",
-                        "--force",
-                        "--no-progress",
-                    ),
-                    after=(f"export_{task}_k{k}",),
-                    outputs=(f"evals/{cell(task, k, p)}.json",),
-                )
+                eval_stage(cell(task, k, p), model, task, n, first, "--precision", p, after=ready)
                 for p in plan["precisions"]
                 if not (record / "evals" / f"{cell(task, k, p)}.json").is_file()
             ]
-            if cells:
-                task_stages += [
-                    Stage(
-                        f"export_{task}_k{k}",
-                        to_onnx.main,
-                        (run, "-o", model, "--denoise-steps", str(k), "--threads", "1", "--force"),
-                        after=(f"train_{task}",),
-                    ),
-                    *cells,
-                ]
+            if not cells:
+                continue
+            options = ("--denoise-steps", str(k), "--threads", "1", "--force")
+            task_stages += [export_stage(f"{task}_k{k}", run, model, *options, after=trained), *cells]
         if task_stages:
-            argv = (
-                "--data",
-                data,
-                "--out",
-                run,
-                "--preset",
-                plan["preset"],
-                "--steps",
-                str(spec["steps"]),
-                "--seed",
-                str(plan["seed"]),
-                "--no-progress",
-                "--force",
-            )
             out += [
-                Stage(
-                    f"collect_{task}",
-                    sim_cli.main,
-                    ("collect", "--task", task, "--episodes", str(spec["demos"]), "--out", data, "--no-progress"),
-                    clean=(data,),
-                ),
-                Stage(
-                    f"train_{task}",
-                    train.main,
-                    argv,
-                    after=(f"collect_{task}",),
-                    resume=("--data", data, "--out", run, "--resume", "--no-progress"),
-                    started=f"{run}/checkpoint",
-                ),
+                collect_stage(task, task, spec["demos"], data),
+                train_stage(task, data, run, plan["preset"], spec["steps"], plan["seed"], after=(f"collect_{task}",)),
                 *task_stages,
             ]
     return out
@@ -240,13 +182,7 @@ def write_report(plan: dict, record: Path, report: Path, shown_record: str | Non
             + ")"
         )
     lines += ["", f"![success and chunk cost against K]({REPORT_NAME}.png)", ""]
-    report.mkdir(parents=True, exist_ok=True)
-    md = report / f"{REPORT_NAME}.md"
-    atomic_write_text(md, "\n".join(lines))
-    atomic_write_text(
-        report / f"{REPORT_NAME}.json",
-        json.dumps({"plan": plan, "summary": table, "eligible_precisions": choice}, indent=1, sort_keys=True) + "\n",
-    )
+    md = write_md_and_json(report, REPORT_NAME, lines, {"plan": plan, "summary": table, "eligible_precisions": choice})
     plot(table, plan, report / f"{REPORT_NAME}.png")
     return md
 

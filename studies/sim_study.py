@@ -51,11 +51,10 @@ import numpy as np
 from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import DSSPError
 from dssp_core.output_guard import OutputKind, check_output_files, claim_dir, write_output_figure, write_output_text
-from dssp_sim import sim_cli
 from dssp_sim.evaluate import wilson_interval
-from dssp_train.cli import train
 from studies.evaluations import run_and_keep
 from studies.runner import Runner, Stage
+from studies.study_stages import collect_stage, eval_stage, export_stage, train_stage
 
 REPORT_NAME = "sim_memory_tasks"
 PLAN = {
@@ -186,95 +185,32 @@ def models(
                 yield task, seed, variant, flags, sigmas
 
 
-def train_argv(plan: dict, task: str, seed: int, flags: list[str], data: str, run: str) -> tuple[str, ...]:
-    """``dssp-train``'s arguments for one model: the plan's preset and steps for ``task``."""
-    return (
-        "--data",
-        data,
-        "--out",
-        run,
-        "--preset",
-        plan["preset"],
-        "--steps",
-        str(plan["steps"][task]),
-        "--seed",
-        str(seed),
-        "--no-progress",
-        "--force",
-        *flags,
-    )
-
-
 def stages(plan: dict, tasks: list[str], record: Path, seeds: list[int] | None = None) -> list[Stage]:
     """Every stage of ``tasks`` (the models of training ``seeds`` only, when given; module docstring); a model whose
     evaluations are all in ``record`` needs none, and of the others only the evaluations not recorded run."""
-    from export import to_onnx  # deferred: loads torch, which a stage's process imports after setting its threads
-
+    n, first = plan["eval_episodes"], plan["eval_seed"]
     out: list[Stage] = []
     for task in tasks:
-        data = f"data/{task}.zarr"
+        data, collected = f"data/{task}.zarr", (f"collect_{task}",)
         task_stages: list[Stage] = []
         for _, seed, variant, flags, sigmas in models(plan, [task], seeds):
             name = f"{task}_{variant}_s{seed}"
             pending = [sigma for sigma in sigmas if recorded(record, eval_name(name, sigma)) is None]
             if not pending:
                 continue
-            run, model = f"runs/{name}", f"models/{name}"
+            run, model, ready = f"runs/{name}", f"models/{name}", (f"export_{name}",)
             task_stages += [
-                Stage(
-                    f"train_{name}",
-                    train.main,
-                    train_argv(plan, task, seed, flags, data, run),
-                    after=(f"collect_{task}",),
-                    resume=("--data", data, "--out", run, "--resume", "--no-progress"),
-                    started=f"{run}/checkpoint",
+                train_stage(name, data, run, plan["preset"], plan["steps"][task], seed, *flags, after=collected),
+                export_stage(
+                    name, run, model, "--force", "--threads", "1", *plan["export_flags"], after=(f"train_{name}",)
                 ),
-                Stage(
-                    f"export_{name}",
-                    to_onnx.main,
-                    (run, "-o", model, "--force", "--threads", "1", *plan["export_flags"]),
-                    after=(f"train_{name}",),
+                *(
+                    eval_stage(eval_name(name, sigma), model, task, n, first, "--noise", str(sigma), after=ready)
+                    for sigma in pending
                 ),
             ]
-            for sigma in pending:
-                result = eval_name(name, sigma)
-                task_stages.append(
-                    Stage(
-                        f"eval_{result}",
-                        sim_cli.main,
-                        (
-                            "eval",
-                            "--model",
-                            model,
-                            "--task",
-                            task,
-                            "--episodes",
-                            str(plan["eval_episodes"]),
-                            "--seed",
-                            str(plan["eval_seed"]),
-                            "--noise",
-                            str(sigma),
-                            "--threads",
-                            "1",
-                            "--json",
-                            f"evals/{result}.json",
-                            "--force",
-                            "--no-progress",
-                        ),
-                        after=(f"export_{name}",),
-                        outputs=(f"evals/{result}.json",),
-                    )
-                )
         if task_stages:
-            out += [
-                Stage(
-                    f"collect_{task}",
-                    sim_cli.main,
-                    ("collect", "--task", task, "--episodes", str(plan["demos"][task]), "--out", data, "--no-progress"),
-                    clean=(data,),
-                ),
-                *task_stages,
-            ]
+            out += [collect_stage(task, task, plan["demos"][task], data), *task_stages]
     return out
 
 
