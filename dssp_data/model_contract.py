@@ -15,6 +15,7 @@ with A = action_dim, executed from index ``action_offset`` for H_a actions.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 from dataclasses import dataclass
@@ -128,3 +129,12 @@ class ModelContract(Settings):
 CONTRACT_FIELDS = tuple(ModelContract().model_fields())
 """The training config's model fields the contract carries (action_alignment as action_offset): a manifest's
 model_config records the rest."""
+
+
+def contract_setting(name: str, default, *, unset: int | None = None):
+    """The training config's field for the contract's field ``name``, with the contract's range and choices (declared
+    once, here) and the config's ``default``; ``unset``: a value the config also takes, meaning "from the dataset"."""
+    spec = next(f.metadata["spec"] for f in dataclasses.fields(ModelContract) if f.name == name)
+    if unset is not None:
+        spec = dataclasses.replace(spec, ge=unset)
+    return dataclasses.field(default=default, metadata={"spec": spec})

@@ -14,16 +14,14 @@ from typing import ClassVar
 
 from dssp_core.errors import ConfigError
 from dssp_core.schema import (
-    MAX_DIM,
     MAX_LAYERS,
-    MAX_STEPS,
     MAX_WIDTH,
     Settings,
     control_rate_setting,
     parse_json,
     setting,
 )
-from dssp_data.model_contract import ModelContract, check_chunk
+from dssp_data.model_contract import ModelContract, check_chunk, contract_setting
 from dssp_data.observation import ObservationContract
 
 HISTORY_BACKBONES = ("mamba", "transformer")
@@ -84,11 +82,11 @@ class ModelConfig(Settings):
 
     SECTION: ClassVar[str] = "model"
 
-    # Data interface (filled from the dataset when 0).
-    point_dim: int = setting(3, choices=(3, 6))  # 3 = xyz, 6 = xyz + rgb
-    state_dim: int = setting(0, ge=0, le=MAX_DIM)
-    action_dim: int = setting(0, ge=0, le=MAX_DIM)
-    n_points: int = setting(1024, ge=1, le=1_000_000)
+    # Data interface (filled from the dataset when 0). The contract's fields: declared by ModelContract.
+    point_dim: int = contract_setting("point_dim", 3)  # 3 = xyz, 6 = xyz + rgb
+    state_dim: int = contract_setting("state_dim", 0, unset=0)
+    action_dim: int = contract_setting("action_dim", 0, unset=0)
+    n_points: int = contract_setting("n_points", 1024)
     # Widths.
     d_model: int = setting(512, ge=1, le=MAX_WIDTH)
     d_state: int = setting(64, ge=1, le=MAX_WIDTH)
@@ -103,9 +101,9 @@ class ModelConfig(Settings):
     point_feature_dim: int = setting(128, ge=1, le=MAX_WIDTH)
     state_widths: list[int] = setting(default_factory=lambda: [64, 64], ge=1, le=MAX_WIDTH, min_length=1, max_length=16)
     # Horizons.
-    n_obs_steps: int = setting(3, ge=1, le=MAX_STEPS)  # N
-    horizon: int = setting(8, ge=1, le=MAX_STEPS)  # H
-    n_action_steps: int = setting(6, ge=1, le=MAX_STEPS)  # H_a
+    n_obs_steps: int = contract_setting("n_obs_steps", 3)  # N
+    horizon: int = contract_setting("horizon", 8)  # H
+    n_action_steps: int = contract_setting("n_action_steps", 6)  # H_a
     action_alignment: str = setting("current", choices=ACTION_ALIGNMENTS)
     # History encoder G_psi and ablation switches (paper Tables 3 and 5).
     history_backbone: str = setting("mamba", choices=HISTORY_BACKBONES)

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -130,7 +131,8 @@ def parse_args(argv):
 
 
 def check_args(args):
-    """Flags judged without opening anything (one line each, before any device or model is touched); the schedule."""
+    """Flags judged without opening anything (one line each, before any device or model is touched): (the schedule,
+    the loop's settings; their rate --control-rate's, else the default until the source gives its own)."""
     from dssp_deploy.sessions import check_threads  # deferred: loads numpy
     from hardware.camera import check_camera_spec  # deferred: loads numpy
     from hardware.cli.schedule_flags import model_flags_given, schedule_of  # deferred: loads numpy
@@ -153,10 +155,10 @@ def check_args(args):
     from hardware.subscribers import check_subscribers  # deferred: loads numpy
 
     check_subscribers(args.subscribe)
-    if args.control_rate is not None:
-        check_rate(args.control_rate)
-    if args.max_steps is not None and args.max_steps < 1:
-        raise ConfigError(f"--max-steps must be at least 1, got {args.max_steps}")
+    from hardware.run_loop import LoopSettings  # deferred: loads numpy
+
+    rate = DEFAULT_CONTROL_RATE_HZ if args.control_rate is None else args.control_rate  # None: the source's, later
+    settings = LoopSettings(control_rate_hz=rate, max_steps=args.max_steps, dry_run=args.dry_run)
     check_threads(args.threads)
     if args.seed is not None and args.seed < 0:
         raise ConfigError(f"--seed must be >= 0, got {args.seed}")
@@ -168,7 +170,7 @@ def check_args(args):
             raise ConfigError(
                 f"--allow-mismatch {field}: not a field of the observation contract; one of {', '.join(known)}"
             )
-    return schedule
+    return schedule, settings
 
 
 def control_rate(args, policy) -> float:
@@ -181,8 +183,7 @@ def control_rate(args, policy) -> float:
             f"{args.model} records no control rate (its dataset had none): pass --control-rate HZ, the rate "
             "the demonstrations were recorded at"
         )
-
-    return check_rate(policy.contract.control_rate_hz, flag=f"{args.model}'s control_rate_hz")
+    return policy.contract.control_rate_hz  # in range: the contract checked it
 
 
 def log_stamp() -> str:
@@ -304,7 +305,7 @@ def run(args, stops: Stops | None = None) -> int:
 
 def _run(args, stops: Stops) -> int:
     stops.check()
-    schedule = check_args(args)
+    schedule, settings = check_args(args)
     from dssp_data.pointcloud import PointCloudConfig, load_extrinsics  # deferred: loads can
     from dssp_data.rerun_views import check_views, open_views  # deferred: loads numpy
     from hardware.camera import TABLETOP, open_camera  # deferred: loads numpy
@@ -312,7 +313,7 @@ def _run(args, stops: Stops) -> int:
     from hardware.piper.piper_robot import open_robot  # deferred: loads can
     from hardware.rig import Rig  # deferred: loads numpy
     from hardware.run_log import RunLog  # deferred: loads numpy
-    from hardware.run_loop import LoopSettings, Runner, describe_ending  # deferred: loads numpy
+    from hardware.run_loop import Runner, describe_ending  # deferred: loads numpy
     from hardware.safety import SafetyConfig  # deferred: loads numpy
     from hardware.subscribers import open_subscribers  # deferred: loads numpy
     from hardware.subscribers.rerun_ticks import RerunTicks  # deferred: loads numpy
@@ -327,7 +328,7 @@ def _run(args, stops: Stops) -> int:
         robot = open_robot(args.can, interface=args.interface)  # not connected yet: what it is, from itself
         described = robot.description
         if args.control_rate is not None:
-            safety_config.check_speed(args.control_rate, described.max_joint_speed)
+            safety_config.check_speed(settings.control_rate_hz, described.max_joint_speed)
         simulated_camera = args.camera.strip().lower() == TABLETOP
         if args.extrinsics:
             camera_to_base = load_extrinsics(args.extrinsics)
@@ -351,7 +352,8 @@ def _run(args, stops: Stops) -> int:
             about = {"policy": source.describe()}
         source.check(described, cloud_config)  # before any device is opened
         stops.check()
-        settings = LoopSettings(control_rate_hz=rate, max_steps=args.max_steps, dry_run=args.dry_run)
+        if rate != settings.control_rate_hz:  # the source's rate, checked where it was read
+            settings = dataclasses.replace(settings, control_rate_hz=rate)
         if args.model is not None:
             print(
                 f"graphs: {source.policy.kernel_note}", file=sys.stderr
