@@ -149,7 +149,6 @@ class CalibrationTwin(ArmServos):
         self.camera_id = mujoco.mj_name2id(
             self.model, mujoco.mjtObj.mjOBJ_CAMERA, CAMERA_NAME if mode == EYE_TO_HAND else WRIST_CAMERA_NAME
         )
-        self.board_body = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, "charuco")
         self.flange_body = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, "link6")
         self._renderers: dict[bool, DepthRenderThread] = {}
         start = self.start_pose()
@@ -211,10 +210,6 @@ class CalibrationTwin(ArmServos):
     def flange_to_base(self) -> np.ndarray:
         with self.lock:
             return self._pose(self.data.xpos[self.flange_body], self.data.xmat[self.flange_body])
-
-    def board_to_base(self) -> np.ndarray:
-        with self.lock:
-            return self._pose(self.data.xpos[self.board_body], self.data.xmat[self.board_body])
 
     def truth(self) -> np.ndarray:
         """The transform the calibration must recover: camera_to_base (eye-to-hand; fixed) or camera_to_gripper

@@ -19,7 +19,7 @@ from pathlib import Path
 
 from dssp_core.errors import ExportError
 from dssp_core.files import read_regular_text
-from dssp_core.output_guard import OutputDir, OutputKind, check_output
+from dssp_core.output_guard import OutputDir, OutputKind
 from dssp_deploy.manifest import MANIFEST_NAME, is_model_dir
 
 
@@ -36,11 +36,6 @@ def _is_own_model_dir(path: Path) -> bool:
 
 MODEL_DIR = OutputKind("a DSSP model directory", "python -m export.to_onnx", signature=_is_own_model_dir, marker=False)
 """``python -m export.to_onnx -o``: recognised by its manifest; no marker file is added to a model directory."""
-
-
-def check_destination(out: Path, force: bool) -> None:
-    """Refuse a destination that cannot be (re)placed; see the module docstring for the rules."""
-    check_output(out, force=force, kind=MODEL_DIR, flag="-o", error=ExportError)
 
 
 class StagedDirectory(OutputDir):

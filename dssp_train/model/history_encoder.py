@@ -74,11 +74,6 @@ class HistoryEncoder(nn.Module):
         """True when the streaming state is a recurrent state of constant size (Mamba over the full history)."""
         return self.backbone == "mamba" and self.window == 0
 
-    @property
-    def has_constant_state(self) -> bool:
-        """True when the streaming state has a constant size: the recurrent state, or a window of T_h tokens."""
-        return self.is_recurrent or self.window > 0
-
     def _encode(self, z: torch.Tensor, unrolled: bool = False) -> torch.Tensor:
         """Run the backbone over whole sequences from a fresh start: (B, L, d) → (B, L, d) (``unrolled``: Mamba's
         traceable path, for export)."""

@@ -54,13 +54,6 @@ def _scan_inplace(a: torch.Tensor, x: torch.Tensor, reverse: bool = False) -> No
             x[:, target].addcmul_(a[:, target], x[:, source])
 
 
-def _scan(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Out-of-place scan without autograd: returns h, leaves ``a`` and ``b`` untouched."""
-    x = b.clone(memory_format=torch.contiguous_format)
-    _scan_inplace(a.clone(memory_format=torch.contiguous_format), x)
-    return x
-
-
 class _LinearScan(torch.autograd.Function):
     @staticmethod
     def forward(ctx, a: torch.Tensor, b: torch.Tensor, h0: torch.Tensor) -> torch.Tensor:

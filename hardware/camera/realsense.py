@@ -280,7 +280,6 @@ class RealSenseCamera(Camera):
         self._latest: DepthFrame | None = None
         self._error: str | None = None
         self._frames = 0
-        self._incomplete = 0
         self._finished = False
         self.device: dict = {}
 
@@ -341,7 +340,6 @@ class RealSenseCamera(Camera):
         self._align = rs.align(rs.stream.depth) if self.color else None
         self._stop.clear()
         self._error, self._latest, self._frames, self._finished = None, None, 0, False
-        self._incomplete = 0
         self._thread = threading.Thread(target=self._run, name=f"camera-{self.name}", daemon=True)
         self._thread.start()
 
@@ -385,8 +383,7 @@ class RealSenseCamera(Camera):
                 depth = frames.get_depth_frame()
                 color = frames.get_color_frame() if self.color else None
                 if not depth or (self.color and not color):
-                    self._incomplete += 1  # a frameset without depth or colour: wait for a complete one
-                    continue
+                    continue  # a frameset without depth or colour: wait for a complete one
                 frame = depth_frame_from_rs(depth, color, arrival=arrival)
                 with self._lock:
                     self._latest = frame
@@ -409,11 +406,6 @@ class RealSenseCamera(Camera):
     def frames_received(self) -> int:
         """How many frames the capture thread has converted since ``start()``."""
         return self._frames
-
-    @property
-    def incomplete_framesets(self) -> int:
-        """Framesets skipped since ``start()`` because their depth (or requested colour) part was missing."""
-        return self._incomplete
 
     @property
     def playback_finished(self) -> bool:
