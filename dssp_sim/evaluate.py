@@ -143,6 +143,7 @@ class EvalResult:
     injected_delay_ms: float = 0.0  # the inference delay simulated per chunk (--inject-delay), and in control ticks
     injected_delay_ticks: int = 0
     rtc_delay_ticks: int | None = None
+    model: dict | None = None  # the model scored (scored_model); None: the expert
 
     @property
     def successes(self) -> int:
@@ -172,6 +173,7 @@ class EvalResult:
         lo, hi = self.interval()
         return {
             "model_dir": self.model_dir,
+            "model": self.model,
             "task": self.task,
             "n": len(self.episodes),
             "successes": self.successes,
@@ -499,9 +501,20 @@ def prepare_evaluation(
         precision=policy.precision,
         kernel=policy.kernel,
         injected_delay_ms=float(inject_delay_ms),
+        model=scored_model(policy),
         **settings,
     )
     return Evaluation(result, env, episode, n_episodes, seed, recent)
+
+
+def scored_model(policy) -> dict:
+    """What names the model an evaluation scored: its weights' sha256, training run and step (the manifest's
+    ``source``) and the sha256 of its ``dssp_model.json``, which holds every graph file's sha256."""
+    from dssp_deploy.manifest import MANIFEST_NAME, sha256_hex  # deferred: loads numpy
+
+    source = policy.manifest.source
+    manifest = sha256_hex((Path(policy.model_dir) / MANIFEST_NAME).read_bytes())
+    return {"weights_sha256": source.sha256, "run": source.run, "step": source.step, "manifest_sha256": manifest}
 
 
 def evaluate(

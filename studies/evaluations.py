@@ -20,6 +20,7 @@ from studies import protocol
 from studies.runner import Runner, Stage
 
 KEPT = (
+    "model",  # the model it scored (dssp_sim.evaluate.scored_model)
     "task",
     "n",
     "successes",

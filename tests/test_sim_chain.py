@@ -1,6 +1,7 @@
 """The simulation behind the robot's own interfaces: MuJoCo under the Piper CAN protocol and the RealSense
 software device; expert collection into a DP3 dataset; closed-loop evaluation through the whole chain."""
 
+import hashlib
 import json
 import threading
 
@@ -219,6 +220,13 @@ def test_eval_runs_the_whole_chain(sim_model, tmp_path, capsys):
     assert text_rows(rrd, "episode") == ["tap seed 5", "tap seed 6"] and ticks["world/arm0/chunk"]
     result = json.loads(out.read_text())
     assert result["n"] == 2 and len(result["episodes"]) == 2
+    manifest = json.loads((sim_model / "dssp_model.json").read_text())
+    assert result["model"] == {  # the record names the model it scored
+        "weights_sha256": manifest["source"]["sha256"],
+        "run": "run",
+        "step": manifest["source"]["step"],
+        "manifest_sha256": hashlib.sha256((sim_model / "dssp_model.json").read_bytes()).hexdigest(),
+    }
     for e in result["episodes"]:
         assert e["steps"] > 0 and (e["success"] or e["reason"])  # every failure has a reason
         assert e["chunk_ms_p50"] > 0
