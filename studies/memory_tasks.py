@@ -37,7 +37,7 @@ from dssp_core.output_guard import write_output_figure
 from studies import protocol
 from studies.evaluations import run_and_keep, write_md_and_json
 from studies.runner import Stage
-from studies.stats import cluster_bootstrap, describe_p, paired_difference, paired_exact_test
+from studies.stats import FAMILY_NOTE, cluster_bootstrap, compare, describe_p, disagreements
 from studies.study_stages import collect_stage, eval_stage, export_stage, train_argv, train_stage
 
 REPORT_NAME = "memory"
@@ -187,7 +187,7 @@ def report_lines(plan: dict, record: Path, split: str, shown_record: str | None 
         f"Scenes: {split} seeds {scene_seeds[0]}–{scene_seeds[-1]} ({n} per model and training seed, the same for every "
         f"model); training seeds {seeds}; steps per task { ({t: s['steps'] for t, s in plan['tasks'].items()}) }. "
         "Success: mean over training seeds and scenes, 95 % two-way cluster-bootstrap interval (training seeds × scenes). "
-        "Δ vs DSSP: paired difference (same scenes) with its interval and the exact paired sign-flip test.",
+        "Δ vs DSSP: paired difference (same scenes) with its interval. " + FAMILY_NOTE,
     ]
     for prov in runs:
         lines += ["", protocol.describe_run(prov)]
@@ -203,13 +203,16 @@ def report_lines(plan: dict, record: Path, split: str, shown_record: str | None 
             f"## {task}",
             "",
             "| model | success % (95 % CI) | per training seed | Δ vs DSSP (95 "
-            "% CI) | paired test | memory decision right / reached | failures |",
-            "|---|---|---|---|---|---|---|",
+            "% CI) | paired test | seed test | memory decision right / reached | failures |",
+            "|---|---|---|---|---|---|---|---|",
         ]
+        grids = {name: grid(record, task, name, seeds, split) for name in models}
+        others = {name: g[0] for name, g in grids.items() if name != "dssp" and g is not None}
+        comparisons = compare(others, base[0]) if base is not None else {}
         for name in models:
-            g = grid(record, task, name, seeds, split)
+            g = grids[name]
             if g is None:
-                lines.append(f"| {LABELS.get(name, name)} | pending | | | | | |")
+                lines.append(f"| {LABELS.get(name, name)} | pending | | | | | | |")
                 continue
             outcomes, _, evals = g
             mean, lo, hi = cluster_bootstrap(outcomes)
@@ -231,20 +234,32 @@ def report_lines(plan: dict, record: Path, split: str, shown_record: str | None 
                 "failures": reasons,
                 "choices": _merge(e["decisions"]["choices"] for e in evals),
             }
-            delta = test = "—"
-            if name != "dssp" and base is not None:
-                d, dlo, dhi = paired_difference(outcomes, base[0])
-                p = paired_exact_test(outcomes, base[0])
-                row.update(delta=d, delta_ci=[dlo, dhi], p=p)
-                delta, test = f"{100 * d:+.0f} ({100 * dlo:+.0f} to {100 * dhi:+.0f})", describe_p(p)
+            delta = test = seed_test = "—"
+            if name in comparisons:
+                c = comparisons[name]
+                (dlo, dhi), d = c["ci"], c["delta"]
+                row.update(
+                    delta=d, delta_ci=[dlo, dhi], **{k: c[k] for k in ("p", "p_holm", "p_seeds", "p_seeds_holm")}
+                )
+                delta = f"{100 * d:+.0f} ({100 * dlo:+.0f} to {100 * dhi:+.0f})"
+                test, seed_test = (
+                    describe_p(c["p"], holm_p=c["p_holm"]),
+                    describe_p(c["p_seeds"], holm_p=c["p_seeds_holm"]),
+                )
             rows[name] = row
             decision = f"{right}/{reached}" + (f" ({100 * right / reached:.0f} %)" if reached else "")
             lines.append(
                 f"| {LABELS.get(name, name)} | {_pct(mean)} ({_pct(lo)}–{_pct(hi)}) | {per_seed} | {delta} | {test} | "
-                f"{decision} | {fails} |"
+                f"{seed_test} | {decision} | {fails} |"
             )
         for name in plan["gpu_models"]:
-            lines.append(f"| {LABELS.get(name, name)} | not run: a GPU model (commands below) | | | | | |")
+            lines.append(f"| {LABELS.get(name, name)} | not run: a GPU model (commands below) | | | | | | |")
+        disagree = disagreements(comparisons, LABELS)
+        lines += (
+            ["", "Where the paired test and the interval disagree:", "", *[f"- {x}" for x in disagree]]
+            if disagree
+            else []
+        )
         if task == "tap" and rows:
             counts = sorted({c for r in rows.values() for c in r["choices"]}, key=lambda c: int(c.split()[0]))
             lines += [

@@ -46,7 +46,7 @@ from dssp_core.errors import DSSPError
 from dssp_core.files import atomic_write_text
 from studies import calibration_study, delay_study, distill_study, memory_tasks, metaworld, sampling, sim_study
 from studies.demo import results_table
-from studies.stats import describe_p, paired_exact_test
+from studies.stats import describe_p, holm, paired_exact_test
 
 BLOCK = re.compile(r"(<!-- figures: (?P<name>[a-z0-9_]+) -->\n)(?P<body>.*?)(<!-- /figures -->)", re.S)
 
@@ -159,10 +159,7 @@ def sim_paired_table(record: Path) -> str:
             raise DSSPError(f"{record}: {task}/{variant} seeds were evaluated on different scenes")
         return [[int(e["success"]) for e in r["episodes"]] for r in rows]
 
-    lines = [
-        "| task | training seeds × scenes | model | DSSP | model's | Δ | paired exact test |",
-        "|---|---|---|---:|---:|---:|---|",
-    ]
+    rows = []
     plan = sim_study.PLAN
     for task in plan["demos"]:
         seeds = sorted(set(plan["seeds"][task]) | set(plan["ablation_seeds"].get(task, [])))
@@ -172,10 +169,18 @@ def sim_paired_table(record: Path) -> str:
             if not used or base is None or other is None:
                 continue
             a, b = sum(map(sum, base)) / (len(used) * len(base[0])), sum(map(sum, other)) / (len(used) * len(other[0]))
-            lines.append(
-                f"| {task} | {len(used)} × {len(base[0])} | {sim_study.VARIANT_LABELS.get(variant, variant)} | "
-                f"{100 * a:.0f} % | {100 * b:.0f} % | {100 * (b - a):+.0f} | {describe_p(paired_exact_test(other, base))} |"
+            rows.append(
+                (
+                    f"| {task} | {len(used)} × {len(base[0])} | {sim_study.VARIANT_LABELS.get(variant, variant)} | "
+                    f"{100 * a:.0f} % | {100 * b:.0f} % | {100 * (b - a):+.0f} | ",
+                    paired_exact_test(other, base),
+                )
             )
+    lines = [
+        "| task | training seeds × scenes | model | DSSP | model's | Δ | paired exact test (Holm over the table) |",
+        "|---|---|---|---:|---:|---:|---|",
+        *(row + describe_p(p, holm_p=h) + " |" for (row, p), h in zip(rows, holm([p for _, p in rows]))),
+    ]
     return "\n".join(lines) + "\n"
 
 

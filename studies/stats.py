@@ -14,13 +14,21 @@ weights and episodes of one scene share its layout, so neither seeds nor scenes 
   mean success over their seeds. Under the null hypothesis (the two models are exchangeable on every
   scene) each scene's difference is as likely negated; the p-value is the exact probability, over all
   2^S sign patterns, of a total at least as far from zero as the observed one, computed by convolution
-  (the differences are multiples of 1 / R). With one training seed it is the exact McNemar test.
+  (the differences are multiples of 1 / R). With one training seed it is the exact McNemar test. It answers
+  "do these trained networks succeed equally often on scenes like these?": the training seeds are fixed.
+- :func:`seed_permutation_test`: the exact two-sample permutation test on the training seeds' success rates
+  (each seed's mean over the same scenes). It answers "does the method succeed equally often, over training
+  runs?": the seeds are the sample. With R training seeds per method its smallest p-value is 2 / C(2R, R)
+  (0.1 for 3 seeds, 0.0079 for 5).
+- :func:`holm`: Holm's step-down adjustment of a table's p-values (the family: every comparison the table
+  states), so that the chance of any false claim in the table stays under alpha.
 
 Every function is deterministic (a fixed generator), so a report rebuilt from its record is identical.
 """
 
 from __future__ import annotations
 
+import itertools
 import math
 from fractions import Fraction
 
@@ -110,7 +118,93 @@ def paired_exact_test(a, b) -> float:
     return float(Fraction(extreme, 2 ** len(steps)))
 
 
-def describe_p(p: float, alpha: float = ALPHA) -> str:
-    """``p = 0.012`` or ``p = 0.41, not significant``."""
-    shown = f"{p:.2g}" if p >= 0.001 else f"{p:.1e}"
-    return f"p = {shown}" + ("" if p < alpha else ", not significant")
+def seed_permutation_test(a, b) -> float:
+    """Two-sided exact p-value that two methods' training seeds ((R_a, S) and (R_b, S) grids on the same S scenes)
+    succeed equally often: every split of the R_a + R_b seed rates into groups of R_a and R_b, counted when its
+    difference of means is at least as far from zero as the observed one (module docstring)."""
+    ga, gb = _grid(a), _grid(b)
+    if ga.shape[1] != gb.shape[1]:
+        raise ValueError(f"paired grids must share their scenes: {ga.shape[1]} and {gb.shape[1]} scenes")
+    ra = ga.shape[0]
+    rates = [int(x) for x in np.concatenate([ga.sum(1), gb.sum(1)])]  # successes per seed, over the same scenes
+    total, rb = sum(rates), len(rates) - ra
+
+    def gap(group: tuple[int, ...]) -> Fraction:  # |mean(a) - mean(b)| in successes per seed, exactly
+        first = sum(rates[i] for i in group)
+        return abs(Fraction(first, ra) - Fraction(total - first, rb))
+
+    observed = gap(tuple(range(ra)))
+    splits = list(itertools.combinations(range(len(rates)), ra))
+    return float(Fraction(sum(gap(g) >= observed for g in splits), len(splits)))
+
+
+def holm(pvalues) -> list[float]:
+    """Holm's step-down adjusted p-values of one family of comparisons, in the given order: the i-th smallest p
+    times (m - i + 1), kept non-decreasing, at most 1."""
+    ps = [float(p) for p in pvalues]
+    m, adjusted, running = len(ps), [0.0] * len(ps), 0.0
+    for rank, i in enumerate(sorted(range(m), key=lambda i: ps[i])):
+        running = max(running, min(1.0, (m - rank) * ps[i]))
+        adjusted[i] = running
+    return adjusted
+
+
+def describe_p(p: float, alpha: float = ALPHA, holm_p: float | None = None) -> str:
+    """``p = 0.012``, ``p = 0.41, not significant``; with Holm's adjusted p of its table: ``p = 0.012, Holm 0.048``
+    or ``p = 0.042, Holm 0.13, not significant`` (significance judged on Holm's)."""
+    judged = p if holm_p is None else holm_p
+    shown = f"p = {_p(p)}" + ("" if holm_p is None else f", Holm {_p(holm_p)}")
+    return shown + ("" if judged < alpha else ", not significant")
+
+
+def _p(p: float) -> str:
+    return f"{p:.2g}" if p >= 0.001 else f"{p:.1e}"
+
+
+FAMILY_NOTE = (
+    "Paired test: the exact sign-flip test over scenes (these trained networks, on these scenes); seed test: the exact "
+    "permutation test over training seeds (the method, over training runs). Each is Holm-corrected within its table "
+    "(the family: every comparison the table states), and judged on Holm's p."
+)
+
+
+def compare(rows: dict[str, tuple], base) -> dict[str, dict]:
+    """Every row's comparison with ``base`` ((R, S) grid), Holm-corrected within ``rows`` (one table): ``rows`` maps a
+    name to its (R, S) grid; returns per name the difference and its interval (``delta``, ``ci``), the paired test over
+    scenes (``p``, ``p_holm``) and the test over training seeds (``p_seeds``, ``p_seeds_holm``)."""
+    out = {}
+    for name, grid in rows.items():
+        d, lo, hi = paired_difference(grid, base)
+        out[name] = {"delta": d, "ci": [lo, hi], "p": paired_exact_test(grid, base)}
+        out[name]["p_seeds"] = seed_permutation_test(grid, base)
+    for key in ("p", "p_seeds"):
+        for name, adjusted in zip(out, holm([c[key] for c in out.values()])):
+            out[name][f"{key}_holm"] = adjusted
+    return out
+
+
+def agrees(p_holm: float, ci) -> bool:
+    """Whether a Holm-judged test and a difference's interval say the same: significant exactly when the interval
+    leaves out 0."""
+    return (p_holm < ALPHA) == (ci[0] > 0 or ci[1] < 0)
+
+
+def disagreements(comparisons: dict[str, dict], labels: dict[str, str]) -> list[str]:
+    """One sentence per comparison (``ci``, ``p_holm``) whose Holm-judged paired test and interval disagree, saying
+    which holds."""
+    out = []
+    for name, c in comparisons.items():
+        if agrees(c["p_holm"], c["ci"]):
+            continue
+        lo, hi = (f"{100 * x:+.0f}" for x in c["ci"])
+        if c["p_holm"] < ALPHA:
+            out.append(
+                f"{labels.get(name, name)}: the paired test is significant (Holm p = {_p(c['p_holm'])}) but the interval "
+                f"({lo} to {hi}) includes 0: the difference holds on these scenes for these networks, not beyond them."
+            )
+        else:
+            out.append(
+                f"{labels.get(name, name)}: the interval ({lo} to {hi}) leaves out 0 but the paired test is not significant "
+                f"after Holm (p = {_p(c['p_holm'])}): the difference is not established; the test holds."
+            )
+    return out

@@ -300,12 +300,16 @@ def test_the_report_gives_the_papers_metric_and_the_paired_test_split(tmp_path):
     assert dp3["success"] == pytest.approx(1 / 6) and dp3["delta"] == pytest.approx(-5 / 6)
     assert dp3["p"] == pytest.approx(paired_exact_test([[0, 0, 0, 0, 0, 1]] * 2, [[1] * 6] * 2))
     assert figures["groups"]["easy"]["dssp"]["top5"] == pytest.approx(0.6)
-    assert "| easy (1 / 21) | 60.0 |" in text and "90.5 ± 2.1" in text and "87.3 ± 2.2" in text
+    # the group's top-5 with its std over training seeds (0.5 and 0.7), beside the paper's mean ± std
+    assert "| easy (1 / 21) | 60.0 ± 10.0 |" in text and "90.5 ± 2.1" in text and "87.3 ± 2.2" in text
+    assert figures["groups"]["easy"]["dssp"]["test_ci"][0] <= figures["groups"]["easy"]["dssp"]["test"]
+    assert dp3["p_holm"] >= dp3["p"] and f"Holm {dp3['p_holm']:.2g}" in text
     assert "| button-press | DSSP w/o history | pending |" in text  # never a made-up row
-    assert "optimistic" in text and "0.10 of the paper's 1000 epochs" in text
+    assert "plain mean of them all, no selection" in text and "optimistic" not in text  # top 5 of 5 checkpoints
+    assert "0.10 of the paper's 1000 epochs" in text
     (tmp_path / "plan.json").write_text(json.dumps(plan))  # the README's block: the same table, from the record
     block = study.readme_table(tmp_path)
-    assert block.startswith("| group (tasks here / paper's) |") and "| easy (1 / 21) | 60.0 |" in block
+    assert block.startswith("| group (tasks here / paper's) |") and "| easy (1 / 21) | 60.0 ± 10.0 |" in block
     assert block.rstrip().endswith("No claim beyond this budget.") and block in text + "\n"
 
 
