@@ -7,6 +7,7 @@ overrides are ``section.field=value`` strings (``model.d_model=256``, ``train.ba
 
 from __future__ import annotations
 
+import copy
 import json
 from dataclasses import dataclass
 from importlib import resources
@@ -180,6 +181,9 @@ class ModelConfig(Settings):
         return self.use_history and self.dynamics_weight > 0
 
 
+SAMPLINGS = ("trajectory", "windows")  # TrainConfig.sampling
+
+
 @dataclass
 class TrainConfig(Settings):
     """Optimisation and bookkeeping of one training run."""
@@ -205,6 +209,10 @@ class TrainConfig(Settings):
     # > 0: also keep the EMA weights every ``keep_every`` steps as RUN/snapshots/step_NNNNNNN/ (model.safetensors and
     # config.json: a run directory export.to_onnx reads), for evaluations along training (the MetaWorld metric)
     keep_every: int = setting(0, ge=0, le=100_000_000)
+    # How a step's windows are drawn: "trajectory" (the paper's, Appendix C.1: batch_size windows of one training
+    # trajectory, encoded whole) or "windows" (DP3's: batch_size windows drawn uniformly from every training
+    # trajectory's windows; a model without history only, which needs no trajectory encoded whole).
+    sampling: str = setting("trajectory", choices=SAMPLINGS)
     log_every: int = setting(10, ge=1, le=100_000_000)
     seed: int = setting(0, ge=0, le=2**63 - 1)
 
@@ -245,6 +253,19 @@ class RunConfig(Settings):
     # The observation contract the dataset records (point-cloud settings, state/action layout; null: unknown).
     observation: ObservationContract = setting(default_factory=ObservationContract)
     distill: DistillConfig = setting(default_factory=DistillConfig)  # a distilled student's teacher and method
+
+    def validate(self) -> None:
+        if self.train.sampling == "windows":
+            _require(
+                not self.model.use_history,
+                "train.sampling=windows draws windows from anywhere in the data, which a model with history cannot "
+                "train on (its context needs the trajectory before each window): set model.use_history=false or "
+                "train.sampling=trajectory",
+            )
+            _require(
+                not self.distill.teacher,
+                "train.sampling=windows is not used for distillation: the student trains on trajectories",
+            )
 
     def to_json(self) -> str:
         return json.dumps(self.to_dict(), indent=2, sort_keys=True)
@@ -294,8 +315,10 @@ def load_preset(name: str) -> RunConfig:
 
 
 def apply_overrides(config: RunConfig, overrides: list[str]) -> RunConfig:
-    """Apply ``section.field=value`` overrides (value parsed as JSON, else kept as a string)."""
+    """Apply ``section.field=value`` overrides (value parsed as JSON, else kept as a string), in any order: only the
+    result must be valid; when it is not, the error names the first override after which the config was not."""
     data = config.to_dict()
+    steps = []
     for item in overrides:
         _require("=" in item, f"override {item!r} must look like section.field=value, e.g. model.d_model=256")
         key, raw = item.split("=", 1)
@@ -310,9 +333,14 @@ def apply_overrides(config: RunConfig, overrides: list[str]) -> RunConfig:
             node = node[part]
         _require(parts[-1] in node, f"override {item!r}: unknown field {key!r}")
         node[parts[-1]] = value
-        try:
-            RunConfig.from_dict(data)
-        except ConfigError as exc:
-            shown = item if len(item) <= 60 else item[:57] + "..."
-            raise ConfigError(f"--set {shown}: {exc}") from None
-    return RunConfig.from_dict(data)
+        steps.append((item, copy.deepcopy(data)))
+    try:
+        return RunConfig.from_dict(data)
+    except ConfigError:
+        for item, state in steps:
+            try:
+                RunConfig.from_dict(state)
+            except ConfigError as exc:
+                shown = item if len(item) <= 60 else item[:57] + "..."
+                raise ConfigError(f"--set {shown}: {exc}") from None
+        raise

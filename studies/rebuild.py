@@ -44,7 +44,16 @@ from pathlib import Path
 from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import DSSPError
 from dssp_core.files import atomic_write_text
-from studies import calibration_study, delay_study, distill_study, memory_tasks, metaworld, sampling, sim_study
+from studies import (
+    baseline_tuning,
+    calibration_study,
+    delay_study,
+    distill_study,
+    memory_tasks,
+    metaworld,
+    sampling,
+    sim_study,
+)
 from studies.demo import results_table
 from studies.stats import describe_p, holm, paired_exact_test
 
@@ -102,6 +111,14 @@ def _delay(root: Path, out: Path) -> list[str]:
     return [md.name, md.with_suffix(".json").name]
 
 
+def _baseline_tuning(root: Path, out: Path) -> list[str]:
+    record = root / "reports/baseline_tuning/record"
+    if not (record / "evals").is_dir():
+        return []
+    md = baseline_tuning.write_report(baseline_tuning.PLAN, record, out, shown_record="reports/baseline_tuning/record")
+    return [md.name, md.with_suffix(".json").name]
+
+
 def _calibration(root: Path, out: Path) -> list[str]:
     record = root / "reports/calibration" / calibration_study.RECORD_DIR
     if not calibration_study.load(record):
@@ -132,6 +149,7 @@ SOURCES: dict[str, Callable[[Path, Path], list[str]]] = {
     "reports/sampling": _sampling,
     "reports/calibration": _calibration,
     "reports/delay": _delay,
+    "reports/baseline_tuning": _baseline_tuning,
 }
 """Report folder -> a function writing its rebuilt files into a folder, returning the names to compare."""
 

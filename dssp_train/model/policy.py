@@ -5,6 +5,9 @@ Training is trajectory-wise (paper Appendix C.1): one whole trajectory is encode
 starting at t is conditioned only on ``c_t`` and ``z_{t-N+1..t}`` (indices before 0 repeat the
 first observation) and predicts ``a_t .. a_{t+H-1}`` (indices past the end repeat the last action).
 
+A model without history may instead train on windows drawn from anywhere in the data, DP3's way
+(``train.sampling = "windows"``, :meth:`DSSPPolicy.compute_window_loss`): the same windows, the same loss.
+
 Raw (unnormalised) shapes at the boundary:
     point_cloud (T, P, C) or (B, T, P, C); agent_pos (T, S); action (T, A); action chunk (B, H, A).
 """
@@ -116,13 +119,7 @@ class DSSPPolicy(nn.Module):
         z, c = self.encode_trajectory(point_cloud, agent_pos)
         a_norm = self.normalizers["action"].normalize(action)  # (T, A)
         prefix, act_idx = self.window_prefix(z, c, starts)
-        x0 = a_norm[act_idx]  # (B, H, A)
-        noise = torch.randn(x0.shape, generator=generator).to(x0.device)
-        timesteps = torch.randint(0, self.cfg.diffusion.num_train_timesteps, (x0.shape[0],), generator=generator)
-        timesteps = timesteps.to(x0.device)
-        pred = self.denoiser(prefix, self.schedule.add_noise(x0, noise, timesteps), timesteps)
-        target = x0 if self.cfg.diffusion.prediction_type == "sample" else noise
-        diffusion = F.mse_loss(pred, target)
+        diffusion = self.diffusion_loss(prefix, a_norm[act_idx], generator)
 
         dyn = diffusion.new_zeros(())
         diagnostics = {}
@@ -137,9 +134,38 @@ class DSSPPolicy(nn.Module):
             **diagnostics,
         }
 
-    def forward(self, *args, **kwargs) -> dict[str, torch.Tensor]:
-        """Same as :meth:`compute_loss` (what DistributedDataParallel calls)."""
-        return self.compute_loss(*args, **kwargs)
+    def compute_window_loss(
+        self,
+        point_cloud: torch.Tensor,
+        agent_pos: torch.Tensor,
+        action: torch.Tensor,
+        generator: torch.Generator | None = None,
+    ) -> dict[str, torch.Tensor]:
+        """Losses on B windows drawn from anywhere in the data (DP3's sampling; a model without history only).
+
+        Args:
+            point_cloud (B, N, P, C), agent_pos (B, N, S): each window's N recent raw observations.
+            action (B, H, A): each window's raw target actions.
+        Returns:
+            {"loss", "diffusion", "dynamics"} scalars (no dynamics loss without a history)."""
+        if self.cfg.use_history:
+            raise ValueError("windows from anywhere in the data need a model without history (model.use_history=false)")
+        prefix = self.build_prefix(None, self.encode_observations(point_cloud, agent_pos))
+        diffusion = self.diffusion_loss(prefix, self.normalizers["action"].normalize(action), generator)
+        return {"loss": diffusion, "diffusion": diffusion, "dynamics": diffusion.new_zeros(())}
+
+    def diffusion_loss(self, prefix: torch.Tensor, x0: torch.Tensor, generator: torch.Generator | None) -> torch.Tensor:
+        """The denoising loss of normalised chunks x0 (B, H, A) given their prefixes (B, L_p, d): noise and a timestep
+        drawn per chunk, the prediction compared with x0 or the noise (``diffusion.prediction_type``)."""
+        noise = torch.randn(x0.shape, generator=generator).to(x0.device)
+        timesteps = torch.randint(0, self.cfg.diffusion.num_train_timesteps, (x0.shape[0],), generator=generator)
+        timesteps = timesteps.to(x0.device)
+        pred = self.denoiser(prefix, self.schedule.add_noise(x0, noise, timesteps), timesteps)
+        return F.mse_loss(pred, x0 if self.cfg.diffusion.prediction_type == "sample" else noise)
+
+    def forward(self, *args, windows: bool = False, **kwargs) -> dict[str, torch.Tensor]:
+        """:meth:`compute_loss`, or with ``windows`` :meth:`compute_window_loss` (what DistributedDataParallel calls)."""
+        return self.compute_window_loss(*args, **kwargs) if windows else self.compute_loss(*args, **kwargs)
 
     # --------------------------------------------------------------- sampling
     @torch.no_grad()

@@ -297,18 +297,40 @@ class Trainer:
         t = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32)).to(self.device)  # noqa: E731
         return TrajectoryTensors(t(ep.point_cloud), t(ep.state), t(ep.action))
 
+    def _window_count(self, length: int) -> int:
+        """How many windows a trajectory of ``length`` steps has: starts 0 ... T - H_a (H_a real actions in each)."""
+        return max(1, length - self.config.model.n_action_steps + 1)
+
     def _sample_starts(self, length: int, count: int) -> torch.Tensor:
         """Window starts t ~ U{0, ..., T - H_a} (at least H_a real actions in every window)."""
-        high = max(1, length - self.config.model.n_action_steps + 1)
-        return torch.randint(0, high, (count,), generator=self.generator).to(self.device)
+        return torch.randint(0, self._window_count(length), (count,), generator=self.generator).to(self.device)
+
+    def _sample_windows(self, count: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``count`` windows drawn uniformly from every training trajectory's windows (DP3's sampling, with
+        replacement where DP3 shuffles epochs: each window as likely, and a resumed run draws on from its generator's
+        state): point_cloud (B, N, P, C), agent_pos (B, N, S), action (B, H, A), raw."""
+        counts = torch.tensor([self._window_count(ep.length) for ep in self.train_eps])
+        ends = counts.cumsum(0)
+        drawn = torch.randint(0, int(ends[-1]), (count,), generator=self.generator)
+        which = torch.searchsorted(ends, drawn, right=True)
+        parts = []
+        for i in which.unique().tolist():
+            ep, picked = self.train_eps[i], drawn[which == i]
+            starts = (picked - (ends[i] - counts[i])).to(self.device)
+            obs_idx, act_idx = self.policy.trajectory_windows(ep.length, starts)
+            parts.append((ep.point_cloud[obs_idx], ep.agent_pos[obs_idx], ep.action[act_idx]))
+        return tuple(torch.cat(x) for x in zip(*parts))
 
     # -------------------------------------------------------------- training
     def train_step(self) -> dict[str, float]:
         tc = self.config.train
-        ep = self.train_eps[int(torch.randint(len(self.train_eps), (1,), generator=self.generator))]
-        starts = self._sample_starts(ep.length, tc.batch_size)
         self.model.train()
-        losses = self.model(ep.point_cloud, ep.agent_pos, ep.action, starts, self.generator)
+        if tc.sampling == "windows":
+            losses = self.model(*self._sample_windows(tc.batch_size), self.generator, windows=True)
+        else:
+            ep = self.train_eps[int(torch.randint(len(self.train_eps), (1,), generator=self.generator))]
+            starts = self._sample_starts(ep.length, tc.batch_size)
+            losses = self.model(ep.point_cloud, ep.agent_pos, ep.action, starts, self.generator)
         self.optimizer.zero_grad(set_to_none=True)
         losses["loss"].backward()
         self.optimizer.step()
