@@ -45,6 +45,7 @@ from dssp_core import machine  # noqa: E402
 from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import ConfigError
 from dssp_deploy.latency import time_calls  # noqa: E402
+from dssp_deploy.manifest import DENOISER_GRAPH  # noqa: E402
 from dssp_deploy.onnx_policy import OnnxPolicy  # noqa: E402
 from dssp_deploy.sessions import check_threads, default_threads  # noqa: E402
 
@@ -115,6 +116,8 @@ def time_model(model_dir: Path, precision: str, threads: int, spinning: bool | N
         **med,
         "n_action_steps": policy.contract.n_action_steps,
         "graphs": policy.kernel_note,
+        # what the denoiser's quantization covered (export.quantize's note; none at fp32)
+        "quantization": policy.sessions[DENOISER_GRAPH].get_modelmeta().custom_metadata_map.get("quantization"),
         "spinning": policy.spinning,
         "step_samples_ms": [round(s, 4) for s in step],
         "chunk_samples_ms": [round(s, 4) for s in chunk],
@@ -162,6 +165,15 @@ def compare(
     return out
 
 
+def precision_cell(row: dict, precision: str, timed: dict) -> str:
+    """The precision a row ran at, saying where DP3's UNet convolutions stayed fp32 in its "int8" graph: before
+    ``export.quantize`` quantized convolutions (a record without its ``quantization`` note), or if it did not."""
+    unet = row["preset"].startswith("dp3")
+    if precision == "int8" and unet and "Conv" not in (timed.get("quantization") or ""):
+        return "int8 (UNet convolutions fp32)"
+    return precision
+
+
 def markdown(r: dict) -> str:
     s, p, m = r["settings"], r["problem"], r["machine"]
     lines = [
@@ -178,7 +190,8 @@ def markdown(r: dict) -> str:
             ratio = r["ratios"][precision].get(name)
             cells = ("—", "—") if ratio is None else (f"{ratio['tick_ms']:.1f}x", f"{ratio['chunk_ms']:.1f}x")
             lines.append(
-                f"| {row['label']} | {row['params'] / 1e6:.2f} M | {precision} | {t['step_ms']:.2f} | {t['chunk_ms']:.2f} | "
+                f"| {row['label']} | {row['params'] / 1e6:.2f} M | {precision_cell(row, precision, t)} | {t['step_ms']:.2f} | "
+                f"{t['chunk_ms']:.2f} | "
                 f"{t['tick_ms']:.2f} (H_a = {t['n_action_steps']}) | {cells[0]} | {cells[1]} |"
             )
     heads = []
@@ -188,6 +201,12 @@ def markdown(r: dict) -> str:
         per = ", ".join(f"{precision} {ratios[name]['tick_ms']:.1f}x" for precision, ratios in r["ratios"].items())
         heads.append(f"{row['label']}: {per}")
     lines += ["", "DP3's tick / DSSP's tick at the same precision — " + "; ".join(heads) + "."]
+    if any(precision_cell(row, p, t) != p for row in r["models"].values() for p, t in row["precisions"].items()):
+        lines += [
+            "",
+            "Where DP3's int8 row is marked, its UNet's convolutions ran fp32 (this record predates the exporter's "
+            "quantized convolutions): its int8 ratios are not at one precision, and the row awaits a new run.",
+        ]
     return "\n".join(lines)
 
 

@@ -1,7 +1,9 @@
 """Quantized versions of the exported ONNX graphs, both with ONNX Runtime's own quantizers.
 
-- int8 (:func:`quantize_int8`): dynamic quantization. Weights of every MatMul/Gemm become int8 (per output
-  channel, 7-bit range: ``reduce_range``), activations are quantized to uint8 on the fly at run time.
+- int8 (:func:`quantize_int8`): dynamic quantization. Weights of every MatMul/Gemm and of every full convolution
+  (DP3's UNet: ``ConvInteger``) become int8 (per output channel, 7-bit range: ``reduce_range``), activations are
+  quantized to uint8 on the fly at run time. A depthwise convolution (Mamba's causal one: 4 taps per channel) stays
+  fp32: its weights are a few kilobytes, and it is one of the fused operators where the kernel loads.
   Why 7 bits: on x86-64 CPUs without VNNI (AVX2 only) ONNX Runtime multiplies uint8 activations by int8 weights
   with VPMADDUBSW, which adds pairs of products in int16 and saturates: 2 x 255 x 127 overflows, 2 x 255 x 63
   does not (a CPU with VNNI adds in int32 and never saturates). With full-range weights, on an AVX2-only CPU
@@ -24,7 +26,7 @@ import logging
 import tempfile
 from pathlib import Path
 
-QUANTIZED_OPS = ["MatMul", "Gemm"]
+QUANTIZED_OPS = ["MatMul", "Gemm", "Conv"]
 INT4_BLOCK = 32
 INT4_ACCURACY_LEVEL = 4
 
@@ -59,6 +61,8 @@ def quantize_int8(src: Path, dst: Path, metadata: dict[str, str]) -> None:
     import onnx  # deferred: loads onnx
     from onnxruntime.quantization import QuantType, quantize_dynamic  # deferred: loads onnx, onnxruntime
 
+    convs = [n for n in onnx.load(str(src)).graph.node if n.op_type == "Conv"]
+    depthwise = [n.name for n in convs if _group(n) > 1]
     with tempfile.TemporaryDirectory(dir=Path(dst).parent) as tmp:
         raw = Path(tmp) / "int8.onnx"
         _quiet_root(
@@ -66,6 +70,7 @@ def quantize_int8(src: Path, dst: Path, metadata: dict[str, str]) -> None:
                 src,
                 raw,
                 op_types_to_quantize=QUANTIZED_OPS,
+                nodes_to_exclude=depthwise,
                 per_channel=True,
                 weight_type=QuantType.QInt8,
                 reduce_range=True,
@@ -76,8 +81,14 @@ def quantize_int8(src: Path, dst: Path, metadata: dict[str, str]) -> None:
         model,
         dst,
         metadata,
-        "int8 dynamic (onnxruntime.quantization), MatMul/Gemm weights per channel, 7-bit (reduce_range)",
+        f"int8 dynamic (onnxruntime.quantization), MatMul/Gemm{' and Conv' * (len(convs) > len(depthwise))} weights "
+        "per channel, 7-bit (reduce_range)",
     )
+
+
+def _group(node) -> int:
+    """A Conv node's ``group`` attribute (1 when absent: a full convolution)."""
+    return next((a.i for a in node.attribute if a.name == "group"), 1)
 
 
 def quantize_int4(src: Path, dst: Path, metadata: dict[str, str]) -> None:

@@ -47,6 +47,11 @@ def test_both_run_through_the_same_runtime_with_the_same_settings(bench, tmp_pat
         assert ratio["tick_ms"] == pytest.approx(b["tick_ms"] / a["tick_ms"])
         assert ratio["chunk_ms"] == pytest.approx(b["chunk_ms"] / a["chunk_ms"])
     assert text.count("| DP3 (small) |") == 2 and text.count("| DSSP (tiny) |") == 2
+    # like for like: DP3's int8 graph quantizes its UNet's convolutions too, and its row says int8 alone
+    assert "and Conv" in dp3["precisions"]["int8"]["quantization"] and dp3["precisions"]["fp32"]["quantization"] is None
+    assert "| DP3 (small) | " in text and "UNet convolutions fp32" not in text
+    old = {**dp3, "precisions": {"int8": {k: v for k, v in dp3["precisions"]["int8"].items() if k != "quantization"}}}
+    assert bench.precision_cell(old, "int8", old["precisions"]["int8"]) == "int8 (UNet convolutions fp32)"
     # an existing --json is kept unless --force
     before = out.read_text()
     assert bench.main(args) == 2

@@ -165,6 +165,12 @@ def test_graphs_match_the_manifest_and_carry_metadata(exported):
             assert json.loads(props["inputs"]) == spec["inputs"]
     ops = {n.op_type for n in onnx.load(str(out / "history_step.onnx")).graph.node}
     assert "GlobalMaxPool" in ops and "ReduceMax" not in ops  # the fast form of the point max-pool
+    # int8: the products quantized, Mamba's depthwise causal convolution kept fp32 (a full one would be ConvInteger)
+    int8 = onnx.load(str(out / manifest.graphs["denoiser"]["files"]["onnx_int8"]))
+    int8_ops = {n.op_type for n in int8.graph.node}
+    assert "DynamicQuantizeMatMul" in int8_ops or "MatMulInteger" in int8_ops
+    assert "Conv" in int8_ops and "ConvInteger" not in int8_ops
+    assert "MatMul/Gemm weights" in {p.key: p.value for p in int8.metadata_props}["quantization"]
 
 
 def test_batch_and_point_count_are_dynamic(exported, trained_run):

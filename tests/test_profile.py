@@ -225,10 +225,12 @@ def test_cpu_targets_table_has_every_row_on_both_graph_sets(tiny_export, tmp_pat
             p["threads"] == 1 and p["chunk_p50"] > 0 for p in r["precision"].values()
         )
         assert r["prefetch"]["possible"] and r["prefetch"]["threads"] == {"history_step": 1, "denoiser": 1}
-    eager_ratio = next(row for row in report["rows"] if row["figure"].startswith("ONNX Runtime vs eager"))["values"]
-    assert eager_ratio["fused"] == pytest.approx(
-        report["eager_torch"]["denoiser_chunk"]["p50"] / report["runtime"]["fused"]["precision"]["int8"]["chunk_p50"]
+    table = bench.rows(report["runtime"], report["eager_torch"], report["precision"], report["roofline"])
+    eager_ratio = next(row for row in table if row["figure"].startswith("ONNX Runtime vs eager"))["values"]
+    assert eager_ratio["fused"] == pytest.approx(  # like for like: fp32 against fp32
+        report["eager_torch"]["denoiser_chunk"]["p50"] / report["runtime"]["fused"]["precision"]["fp32"]["chunk_p50"]
     )
+    assert "| ONNX Runtime vs eager PyTorch per chunk, both fp32 (eager / ORT) |" in text
 
 
 def test_the_chunk_spins_only_while_it_runs_and_only_with_threads_to_spin(tiny_export):
