@@ -65,6 +65,7 @@ def run_and_keep(
     ``seconds``: keep each finished stage's seconds too (``record/seconds/NAME.seconds``, from its done marker)."""
     (work / "evals").mkdir(parents=True, exist_ok=True)
     runner = Runner(work, workers=workers)
+    code = protocol.code_commit()  # each evaluation kept names the code that made it, beside the model it scored
     print(f"{len(stage_list)} stage(s) for {what}, {workers} at a time")
     try:
         runner.run(stage_list)
@@ -73,9 +74,8 @@ def run_and_keep(
             for output in s.outputs:
                 if runner.done(s.name) and (work / output).is_file():
                     (record / output).parent.mkdir(parents=True, exist_ok=True)
-                    atomic_write_text(
-                        record / output, json.dumps(compact(json.loads((work / output).read_text())), indent=1) + "\n"
-                    )
+                    kept = {**compact(json.loads((work / output).read_text())), "code_commit": code}
+                    atomic_write_text(record / output, json.dumps(kept, indent=1) + "\n")
             if seconds and runner.done(s.name):
                 (record / "seconds").mkdir(parents=True, exist_ok=True)
                 atomic_write_text(
@@ -129,7 +129,7 @@ def study_main(
     def _main() -> int:
         record = args.report / "record"
         if not args.report_only:
-            protocol.note_provenance(record, plan, split)
+            protocol.note_provenance(record, plan, split, allow_changes=args.quick)
             run_and_keep(args.work, record, stages(plan, tasks, record), args.workers, ", ".join(tasks))
         print(write_report(plan, record, args.report).read_text())
         return 0

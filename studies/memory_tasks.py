@@ -336,7 +336,7 @@ def run_study(
     if split == "test":
         protocol.check_frozen(record, plan)
     stage_list = stages(plan, split, tasks, record, models)
-    protocol.note_provenance(record, plan, split, tasks)
+    protocol.note_provenance(record, plan, split, tasks, allow_changes=plan is QUICK_PLAN)
     run_and_keep(work, record, stage_list, workers, f"{', '.join(tasks)} on the {split} split")
     return write_report(plan, record, report, split)
 
@@ -352,6 +352,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--freeze", action="store_true", help="freeze the plan for the test split (after choosing on validation)"
     )
+    p.add_argument("--reason", help="with --freeze, again on a changed task definition: why (kept in the record)")
     p.add_argument("--report-only", action="store_true", help="run nothing: rebuild the report from the record")
     p.add_argument("--quick", action="store_true", help="a tiny plan (tests)")
     args = p.parse_args(argv)
@@ -372,7 +373,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.freeze:
             tested = [t for t in plan["tasks"] if any((record / "evals").glob(f"{t}_*_test.json"))]
             print(
-                f"plan {protocol.freeze_plan(record, plan, tested)} frozen in {record / protocol.FROZEN_NAME} on task "
+                f"plan {protocol.freeze_plan(record, plan, tested, reason=args.reason)} frozen in {record / protocol.FROZEN_NAME} on task "
                 f"definition {protocol.task_definition_hash()}; --split test runs it"
             )
             return 0

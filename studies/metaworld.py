@@ -530,12 +530,16 @@ def _measured(record: Path) -> dict | None:
     return {"step_s": step_s, "episode_s": float(np.median(per_episode))}
 
 
-def run_study(plan: dict, split: str, tasks: list[str], work: Path, report: Path, workers: int) -> Path:
+def run_study(
+    plan: dict, split: str, tasks: list[str], work: Path, report: Path, workers: int, quick: bool = False
+) -> Path:
+    """Run ``plan``'s stages for ``tasks`` on ``split`` and rebuild the report (``quick``: a test plan, which may run
+    on uncommitted code)."""
     record = report / RECORD_DIR
     if split == "test":
         protocol.check_frozen(record, plan, definition_hash())
     stage_list = stages(plan, split, tasks, record)
-    protocol.note_provenance(record, plan, split, tasks, definition_hash())
+    protocol.note_provenance(record, plan, split, tasks, definition_hash(), allow_changes=quick)
     record.mkdir(parents=True, exist_ok=True)
     atomic_write_text(record / "plan.json", json.dumps(plan, indent=1, sort_keys=True) + "\n")
     run_and_keep(work, record, stage_list, workers, f"MetaWorld {', '.join(tasks)} on the {split} split", seconds=True)
@@ -570,6 +574,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--freeze", action="store_true", help="freeze the plan for the test split (after the validation split)"
     )
+    p.add_argument("--reason", help="with --freeze, again on a changed benchmark definition: why (kept in the record)")
     p.add_argument("--report-only", action="store_true", help="run nothing: rebuild the report from the record")
     p.add_argument(
         "--paper-budget",
@@ -602,7 +607,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.freeze:  # again after the definition changed: the tasks already tested stay on the earlier one
             tested = [t for t in plan["tasks"] if any((record / "evals").glob(f"{t}_*_test.json"))]
             print(
-                f"plan {protocol.freeze_plan(record, plan, tested, definition=definition_hash())} frozen in "
+                f"plan {protocol.freeze_plan(record, plan, tested, definition=definition_hash(), reason=args.reason)} "
+                "frozen in "
                 f"{record / protocol.FROZEN_NAME}; --split test runs it"
             )
             return 0
@@ -614,7 +620,7 @@ def main(argv: list[str] | None = None) -> int:
             outside = [t for t in only if t not in plan["tasks"]]
             if outside:
                 raise DSSPError(f"--only {' '.join(outside)}: not in the plan's tasks ({', '.join(plan['tasks'])})")
-            md = run_study(plan, args.split, only, args.work, args.report, args.workers)
+            md = run_study(plan, args.split, only, args.work, args.report, args.workers, quick=args.quick)
         print(md.read_text())
         return 0
 

@@ -21,7 +21,8 @@ from __future__ import annotations
 import hashlib
 import json
 import subprocess
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
+from datetime import datetime, timezone
 from pathlib import Path
 
 import dssp_sim
@@ -105,29 +106,49 @@ def provenance(plan: dict, tasks: Iterable[str] | None = None, definition: str |
 
 
 def note_provenance(
-    record_dir: Path, plan: dict, split: str, tasks: Iterable[str] | None = None, definition: str | None = None
+    record_dir: Path,
+    plan: dict,
+    split: str,
+    tasks: Iterable[str] | None = None,
+    definition: str | None = None,
+    allow_changes: bool = False,
 ) -> None:
     """Add this run's provenance to the record's list for ``split`` (a resumed study on other code or another
-    machine adds an entry; the same one again adds none)."""
+    machine adds an entry; the same one again adds none). Code with uncommitted changes is refused: a record names
+    the commit that made it (``allow_changes``: a quick plan's record, which reports nothing)."""
     path = Path(record_dir) / f"provenance_{split}.json"
     runs = json.loads(path.read_text()) if path.is_file() else []
     now = provenance(plan, tasks, definition)
+    if now["commit"].endswith("+changes") and not allow_changes:
+        raise DSSPError(
+            f"the code has uncommitted changes ({now['commit']}): commit them first, so that {path.parent} names the "
+            "code that made it"
+        )
     if not runs or runs[-1] != now:
         path.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_text(path, json.dumps(runs + [now], indent=1) + "\n")
 
 
-def freeze_plan(record_dir: Path, plan: dict, tested: Iterable[str] = (), definition: str | None = None) -> str:
-    """Freeze ``plan`` for the test split: write its hash and the task definition's beside the record (once; a
-    different frozen plan there is refused: a new plan is a new study).
+def freeze_plan(
+    record_dir: Path,
+    plan: dict,
+    tested: Iterable[str] = (),
+    definition: str | None = None,
+    reason: str | None = None,
+    now: Callable[[], datetime] = lambda: datetime.now(timezone.utc),
+) -> str:
+    """Freeze ``plan`` for the test split: write its hash and the task definition's beside the record, with when
+    (``now``, UTC) and at which commit (once; a different frozen plan there is refused: a new plan is a new study).
 
     Freezing the same plan again after the task definition changed (a scorer fixed on validation evidence, say)
-    moves the freeze to the new definition and keeps the earlier one in ``earlier`` with the tasks whose test
-    evaluations were already in the record (``tested``): those stay as they were run (each run's provenance names
-    its definition), and only tasks tested from now on run on the new one."""
+    needs a ``reason``: it moves the freeze to the new definition, recording the reason, the time and the commit,
+    and keeps the earlier freeze in ``earlier`` with the tasks whose test evaluations were already in the record
+    (``tested``): those stay as they were run (each run's provenance names its definition), and only tasks tested
+    from now on run on the new one."""
     path = Path(record_dir) / FROZEN_NAME
     digest = plan_hash(plan)
     current = definition or task_definition_hash()
+    stamp = {"at": now().isoformat(timespec="seconds"), "commit": code_commit()}
     if path.is_file():
         frozen = json.loads(path.read_text())
         if frozen.get("plan") != digest:
@@ -137,16 +158,18 @@ def freeze_plan(record_dir: Path, plan: dict, tested: Iterable[str] = (), defini
             )
         if frozen.get("task_definition") == current:
             return digest
-        earlier = [
-            *frozen.get("earlier", []),
-            {"task_definition": frozen.get("task_definition"), "tested": sorted(tested)},
-        ]
-        atomic_write_text(
-            path, json.dumps({"plan": digest, "task_definition": current, "earlier": earlier}, indent=2) + "\n"
-        )
+        if not (reason or "").strip():
+            raise DSSPError(
+                f"the task definition changed since {path} froze the plan ({frozen.get('task_definition')} -> "
+                f"{current}): freezing it again needs --reason TEXT, which the record keeps"
+            )
+        previous = {k: v for k, v in frozen.items() if k != "earlier"}
+        earlier = [*frozen.get("earlier", []), {**previous, "tested": sorted(tested)}]
+        entry = {"plan": digest, "task_definition": current, **stamp, "reason": reason.strip(), "earlier": earlier}
+        atomic_write_text(path, json.dumps(entry, indent=2) + "\n")
         return digest
     path.parent.mkdir(parents=True, exist_ok=True)  # a plan may be frozen before its first run
-    atomic_write_text(path, json.dumps({"plan": digest, "task_definition": current}, indent=2) + "\n")
+    atomic_write_text(path, json.dumps({"plan": digest, "task_definition": current, **stamp}, indent=2) + "\n")
     return digest
 
 

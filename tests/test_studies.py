@@ -5,6 +5,7 @@ from __future__ import annotations
 import itertools
 import json
 import os
+from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
@@ -166,12 +167,17 @@ def test_the_test_split_runs_only_the_frozen_plan(tmp_path):
     (tmp_path / protocol.FROZEN_NAME).write_text(json.dumps({**frozen, "task_definition": "0" * 16}))
     with pytest.raises(DSSPError, match="task definition changed"):
         protocol.check_frozen(tmp_path, plan)
-    # the same plan frozen again on the changed definition: the earlier one kept with the tasks tested on it
-    assert protocol.freeze_plan(tmp_path, plan, tested=["tap"]) == digest
+    # the same plan frozen again on the changed definition needs a reason; the earlier freeze is kept with the tasks
+    # tested on it, the new one says why, when and at which commit
+    with pytest.raises(DSSPError, match=r"needs --reason TEXT"):
+        protocol.freeze_plan(tmp_path, plan, tested=["tap"], reason="  ")
+    when = datetime(2026, 12, 7, 8, 0, tzinfo=timezone.utc)
+    assert protocol.freeze_plan(tmp_path, plan, tested=["tap"], reason="scorer fixed", now=lambda: when) == digest
     protocol.check_frozen(tmp_path, plan)
     refrozen = json.loads((tmp_path / protocol.FROZEN_NAME).read_text())
-    assert refrozen["task_definition"] == protocol.task_definition_hash()
-    assert refrozen["earlier"] == [{"task_definition": "0" * 16, "tested": ["tap"]}]
+    assert refrozen["task_definition"] == protocol.task_definition_hash() and refrozen["reason"] == "scorer fixed"
+    assert refrozen["at"] == "2026-12-07T08:00:00+00:00" and refrozen["commit"] == protocol.code_commit()
+    assert refrozen["earlier"] == [{**frozen, "task_definition": "0" * 16, "tested": ["tap"]}]
     with pytest.raises(DSSPError, match="a new study"):  # still: never another plan
         protocol.freeze_plan(tmp_path, tuned)
 
@@ -180,8 +186,23 @@ def test_a_plan_fixed_before_any_run_can_be_frozen_into_a_new_record_folder(tmp_
     record = tmp_path / "reports" / "study" / "record"  # nothing there yet
     plan = {"tasks": ["reach"], "seeds": [0]}
     digest = protocol.freeze_plan(record, plan, definition="ab" * 8)
-    assert json.loads((record / protocol.FROZEN_NAME).read_text()) == {"plan": digest, "task_definition": "ab" * 8}
+    frozen = json.loads((record / protocol.FROZEN_NAME).read_text())
+    assert {k: frozen[k] for k in ("plan", "task_definition", "commit")} == {
+        "plan": digest,
+        "task_definition": "ab" * 8,
+        "commit": protocol.code_commit(),
+    }
+    assert datetime.fromisoformat(frozen["at"]).tzinfo is not None  # when, in UTC
     protocol.check_frozen(record, plan, definition="ab" * 8)
+
+
+def test_a_study_on_uncommitted_code_is_refused_unless_its_plan_is_quick(tmp_path, monkeypatch):
+    monkeypatch.setattr(protocol, "code_commit", lambda: "ab" * 20 + "+changes")
+    with pytest.raises(DSSPError, match="uncommitted changes .*commit them first"):
+        protocol.note_provenance(tmp_path, {"a": 1}, "validation")
+    assert not (tmp_path / "provenance_validation.json").exists()
+    protocol.note_provenance(tmp_path, {"a": 1}, "validation", allow_changes=True)
+    assert json.loads((tmp_path / "provenance_validation.json").read_text())[0]["commit"].endswith("+changes")
 
 
 def test_provenance_names_the_task_the_code_and_the_machine():
