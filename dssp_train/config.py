@@ -16,6 +16,7 @@ from typing import ClassVar
 from dssp_core.errors import ConfigError
 from dssp_core.schema import (
     MAX_LAYERS,
+    MAX_STEPS,
     MAX_WIDTH,
     Settings,
     control_rate_setting,
@@ -116,6 +117,10 @@ class ModelConfig(Settings):
     use_recent_states: bool = setting(True)
     timestep_decoupled: bool = setting(True)
     dynamics_weight: float = setting(0.05, ge=0, le=1000)
+    # Training-time real-time chunking (Black et al., arXiv 2512.05964): each training chunk gets its first d actions,
+    # d ~ U{0, ..., committed_prefix_max}, given clean and flagged by a learned embedding, and no loss on them, so
+    # that at run time the actions committed while a chunk computes condition it directly (no guidance). 0: off.
+    committed_prefix_max: int = setting(0, ge=0, le=MAX_STEPS)
     # DP3's UNet (denoiser_backbone "unet"): the widths of its levels, conv kernel, GroupNorm groups, step embedding.
     unet_down_dims: list[int] = setting(
         default_factory=lambda: [512, 1024, 2048], ge=1, le=MAX_WIDTH, min_length=1, max_length=8
@@ -134,6 +139,17 @@ class ModelConfig(Settings):
             )
         if self.denoiser_backbone == "unet":
             self._validate_unet()
+        if self.committed_prefix_max:
+            _require(
+                self.denoiser_backbone != "unet" and self.action_offset == 0,
+                "model.committed_prefix_max (training-time real-time chunking) needs a Mamba or Transformer denoiser "
+                "and the current action alignment (the committed actions start the chunk)",
+            )
+            _require(
+                self.committed_prefix_max < self.horizon,
+                f"model.committed_prefix_max must leave an action to predict: at most horizon - 1 = {self.horizon - 1}, "
+                f"got {self.committed_prefix_max}",
+            )
         _require(
             self.use_history or self.use_recent_states,
             "model.use_history and model.use_recent_states cannot both be off: the denoiser would see no observation",

@@ -164,6 +164,8 @@ class Denoiser(nn.Module):
         self.horizon = cfg.horizon
         self.action_in = nn.Linear(cfg.action_dim, d)
         self.action_pos = nn.Parameter(torch.zeros(cfg.horizon, d))
+        # training-time real-time chunking: what marks an action token as committed (given clean), else None
+        self.committed_embed = nn.Parameter(torch.zeros(d)) if cfg.committed_prefix_max else None
         self.time_embed = TimestepEmbedding(d)
         self.layers = nn.ModuleList(
             DenoiserBlock(
@@ -207,19 +209,27 @@ class Denoiser(nn.Module):
             layer.modulation = None
 
     # ------------------------------------------------------------ full forward
-    def forward(self, prefix: torch.Tensor, x_tau: torch.Tensor, timesteps: torch.Tensor) -> torch.Tensor:
-        """Training path over the whole sequence: prefix (B, L_p, d), x_tau (B, H, A), timesteps (B,) → x0_hat (B, H, A)."""
-        return self.forward_modulated(prefix, x_tau, self.modulation(timesteps))
+    def forward(
+        self, prefix: torch.Tensor, x_tau: torch.Tensor, timesteps: torch.Tensor, committed: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """Training path over the whole sequence: prefix (B, L_p, d), x_tau (B, H, A), timesteps (B,) → x0_hat (B, H, A);
+        ``committed`` (B, H) 0/1: the action tokens given clean (training-time real-time chunking)."""
+        return self.forward_modulated(prefix, x_tau, self.modulation(timesteps), committed=committed)
 
     def forward_modulated(
-        self, prefix: torch.Tensor, x_tau: torch.Tensor, mod: Modulation, unrolled: bool = False
+        self,
+        prefix: torch.Tensor,
+        x_tau: torch.Tensor,
+        mod: Modulation,
+        unrolled: bool = False,
+        committed: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """:meth:`forward` with the AdaLN parameters given: prefix (B, L_p, d), x_tau (B, H, A) → x0_hat (B, H, A).
 
         ``mod`` has B rows or one (shared by the batch); ``unrolled`` runs the mixers' ``forward_unrolled``
-        (:meth:`Mamba.forward_unrolled`; the same as ``forward`` for attention).
+        (:meth:`Mamba.forward_unrolled`; the same as ``forward`` for attention); ``committed`` as in :meth:`forward`.
         """
-        p, a = prefix, self.embed_actions(x_tau)
+        p, a = prefix, self.embed_actions(x_tau, committed)
         n_prefix = p.shape[1]
         for i, layer in enumerate(self.layers):
             shift, scale, gate, *mlp_mod = mod.block(i)
@@ -263,10 +273,16 @@ class Denoiser(nn.Module):
         return self.denoise_modulated(prefix_states, x_tau, self.modulation(timesteps))
 
     def denoise_modulated(
-        self, prefix_states: list[MixerState], x_tau: torch.Tensor, mod: Modulation, unrolled: bool = False
+        self,
+        prefix_states: list[MixerState],
+        x_tau: torch.Tensor,
+        mod: Modulation,
+        unrolled: bool = False,
+        committed: torch.Tensor | None = None,
     ) -> torch.Tensor:
-        """:meth:`denoise` with the AdaLN parameters given (B rows or one): x_tau (B, H, A) → x0_hat (B, H, A)."""
-        a = self.embed_actions(x_tau)
+        """:meth:`denoise` with the AdaLN parameters given (B rows or one): x_tau (B, H, A) → x0_hat (B, H, A);
+        ``committed`` as in :meth:`forward`."""
+        a = self.embed_actions(x_tau, committed)
         for i, (layer, state) in enumerate(zip(self.layers, prefix_states)):
             shift, scale, gate, *mlp_mod = mod.block(i)
             fused = getattr(layer, "fused_block", None)
@@ -278,9 +294,12 @@ class Denoiser(nn.Module):
         return self.readout(a, mod)
 
     # ----------------------------------------------------------------- helpers
-    def embed_actions(self, x_tau: torch.Tensor) -> torch.Tensor:
-        """x_tau (B, H, A) → action tokens (B, H, d)."""
-        return self.action_in(x_tau) + self.action_pos
+    def embed_actions(self, x_tau: torch.Tensor, committed: torch.Tensor | None = None) -> torch.Tensor:
+        """x_tau (B, H, A) → action tokens (B, H, d); the tokens ``committed`` (B, H) marks get the committed embedding."""
+        tokens = self.action_in(x_tau) + self.action_pos
+        if committed is not None and self.committed_embed is not None:
+            tokens = tokens + committed.unsqueeze(-1).to(tokens.dtype) * self.committed_embed
+        return tokens
 
     def readout(self, a: torch.Tensor, mod: Modulation) -> torch.Tensor:
         """Action tokens (B, H, d) → x0_hat (B, H, A) through the final AdaLN."""

@@ -160,8 +160,16 @@ class DSSPPolicy(nn.Module):
         noise = torch.randn(x0.shape, generator=generator).to(x0.device)
         timesteps = torch.randint(0, self.cfg.diffusion.num_train_timesteps, (x0.shape[0],), generator=generator)
         timesteps = timesteps.to(x0.device)
-        pred = self.denoiser(prefix, self.schedule.add_noise(x0, noise, timesteps), timesteps)
-        return F.mse_loss(pred, x0 if self.cfg.diffusion.prediction_type == "sample" else noise)
+        x_tau = self.schedule.add_noise(x0, noise, timesteps)
+        target = x0 if self.cfg.diffusion.prediction_type == "sample" else noise
+        if not self.cfg.committed_prefix_max:
+            return F.mse_loss(self.denoiser(prefix, x_tau, timesteps), target)
+        # training-time real-time chunking: the first d actions given clean and marked, the loss on the others only
+        d = torch.randint(0, self.cfg.committed_prefix_max + 1, (x0.shape[0], 1), generator=generator).to(x0.device)
+        committed = torch.arange(x0.shape[1], device=x0.device).unsqueeze(0) < d  # (B, H)
+        pred = self.denoiser(prefix, torch.where(committed.unsqueeze(-1), x0, x_tau), timesteps, committed)
+        free = (~committed).unsqueeze(-1).to(pred.dtype)
+        return ((pred - target) ** 2 * free).sum() / (free.sum() * x0.shape[-1])
 
     def forward(self, *args, windows: bool = False, **kwargs) -> dict[str, torch.Tensor]:
         """:meth:`compute_loss`, or with ``windows`` :meth:`compute_window_loss` (what DistributedDataParallel calls)."""
@@ -191,6 +199,8 @@ class DSSPPolicy(nn.Module):
         ``unrolled`` runs the Mamba layers' traceable path (:meth:`Mamba.forward_unrolled`). ``inpaint`` (target
         (B, H, A) normalised, weight (B, H, 1)): every step's clean prediction is pulled to the target
         (:meth:`~dssp_train.model.scheduler.DiffusionSchedule.ddim_step`): real-time chunking's committed actions.
+        A model trained with committed prefixes (``committed_prefix_max``) is given the fully committed actions
+        (weight 1) clean and marked instead, at every step, and keeps them exactly; it ignores partial weights.
         """
         den = self.denoiser
         timesteps = self.schedule.inference_timesteps(num_steps)
@@ -199,12 +209,20 @@ class DSSPPolicy(nn.Module):
         # The prefix's states serve the K steps; one step needs none: it runs [prefix, x] in one pass (each weight
         # read once per chunk instead of twice).
         states = den.encode_prefix(prefix, unrolled) if self.cfg.timestep_decoupled and len(timesteps) > 1 else None
+        committed = None
+        if inpaint is not None and self.cfg.committed_prefix_max:  # trained on committed actions: given, not guided
+            target, weight = inpaint
+            mask = weight >= 1.0  # (B, H, 1): the actions fully committed; a partial weight is guidance's, not used
+            committed = mask.squeeze(-1)
+            inpaint = (target, mask.to(target.dtype))
+        marked = {} if committed is None else {"committed": committed}
         x = noise
         for k, t in enumerate(timesteps):
+            given = x if committed is None else torch.where(inpaint[1] > 0, inpaint[0], x)
             if states is not None:
-                x0 = den.denoise_modulated(states, x, table.at(k), unrolled)
+                x0 = den.denoise_modulated(states, given, table.at(k), unrolled, **marked)
             else:
-                x0 = den.forward_modulated(prefix, x, table.at(k), unrolled)
+                x0 = den.forward_modulated(prefix, given, table.at(k), unrolled, **marked)
             x = self.schedule.ddim_step(x0, t, x, num_steps, inpaint)
         return x
 
