@@ -114,6 +114,21 @@ def command_jerk(commands: list, boundaries: list[bool], control_rate_hz: float)
     }
 
 
+class _Waits:
+    """A policy source that counts the ticks it answered with no action (waiting for a chunk), else the source."""
+
+    def __init__(self, source: PolicySource):
+        self.source, self.count = source, 0
+
+    def act(self, cloud, state):
+        out = self.source.act(cloud, state)
+        self.count += out.action is None
+        return out
+
+    def __getattr__(self, name: str):
+        return getattr(self.source, name)
+
+
 class _CommandTrace(Subscriber):
     """Each tick's sent command and whether a new chunk took over (for :func:`command_jerk`)."""
 
@@ -144,6 +159,7 @@ class EvalResult:
     injected_delay_ticks: int = 0
     rtc_delay_ticks: int | None = None
     model: dict | None = None  # the model scored (scored_model); None: the expert
+    limit_excludes_holds: bool = False  # the task's step limit did not count the ticks the loop held
 
     @property
     def successes(self) -> int:
@@ -193,6 +209,7 @@ class EvalResult:
             "injected_delay_ms": self.injected_delay_ms,
             "injected_delay_ticks": self.injected_delay_ticks,
             "rtc_delay_ticks": self.rtc_delay_ticks,
+            "limit_excludes_holds": self.limit_excludes_holds,
             "boundary_jerk": self.boundary_jerk(),
             "episodes": [e.to_dict() for e in self.episodes],
         }
@@ -252,16 +269,22 @@ def run_episode(
     frames: list | None = None,
     latencies: dict[str, list[float]] | None = None,
     views=None,
+    limit_excludes_holds: bool = False,
 ) -> EpisodeOutcome:
     """One closed-loop episode (env already constructed; it is reset here with ``seed``) of the control loop with
     ``source`` deciding (:mod:`hardware.policies`; reset by the loop at its start). ``cloud_config``: the
-    point-cloud settings (None: a source that needs no cloud).
+    point-cloud settings (None: a source that needs no cloud). ``limit_excludes_holds``: each tick the source waits
+    for a chunk (it answers no action; a refused observation or chunk is no wait) adds one to the task's step limit,
+    so that waiting is not scored as running out of time.
 
     ``frames`` collects each tick's depth image; ``latencies`` each tick's latencies in ms by stage
     (cloud, observe, chunk, tick), when given; ``views`` (:class:`dssp_data.rerun_views.TickViews`) get every
     tick, continuing their timeline after the previous episode's."""
 
     env.reset(seed=seed)
+    waits = _Waits(source)
+    if limit_excludes_holds:
+        source = waits
     channel = f"dssp-eval-{uuid.uuid4().hex[:8]}"
     arm = MujocoPiper(env, channel)
     arm.start(thread=False)
@@ -299,11 +322,12 @@ def run_episode(
                 pumper.join()
             status = env.status()
             while not status.done and runner.fault is None:
-                before = time.monotonic()
+                before, waited = time.monotonic(), waits.count
                 arm.step(period)
                 camera.capture()
                 _wait_for_feedback(robot, before)
                 runner.tick()
+                env.max_steps += waits.count - waited
                 if frames is not None:
                     frames.append(camera.latest().depth.copy())
                 status = env.status()
@@ -438,12 +462,15 @@ def prepare_evaluation(
     views: bool = False,
     schedule: Schedule = Plain(),
     inject_delay_ms: float = 0.0,
+    limit_excludes_holds: bool = False,
 ) -> Evaluation:
     """Check every setting against the model and the task, load the model and build the task; nothing is opened
     or written. ``views``: whether Rerun views will be given to :meth:`Evaluation.run`. The arguments are
     :func:`evaluate`'s."""
     from dssp_sim import metaworld_env  # deferred: loads mujoco
 
+    if metaworld_env.is_metaworld(task) and limit_excludes_holds:
+        raise ConfigError("--limit-excludes-holds counts the Piper loop's holds; MetaWorld evaluations have none")
     if metaworld_env.is_metaworld(task) and views:
         raise ConfigError(
             "--rerun views show the Piper's control loop; MetaWorld evaluations have none (drop the flag)"
@@ -483,6 +510,7 @@ def prepare_evaluation(
                 frames,
                 ticks,
                 views,
+                limit_excludes_holds,
             )
 
     # the delay in the loop's ticks (the simulation's rate): the schedule's, read when each episode starts
@@ -501,6 +529,7 @@ def prepare_evaluation(
         precision=policy.precision,
         kernel=policy.kernel,
         injected_delay_ms=float(inject_delay_ms),
+        limit_excludes_holds=limit_excludes_holds,
         model=scored_model(policy),
         **settings,
     )
@@ -532,6 +561,7 @@ def evaluate(
     views=None,
     schedule: Schedule = Plain(),
     inject_delay_ms: float = 0.0,
+    limit_excludes_holds: bool = False,
 ) -> EvalResult:
     """Evaluate a model directory on ``task`` for ``n_episodes`` seeded episodes (seeds seed, seed+1, ...);
     ``precision`` and ``kernel`` choose its graphs (:class:`dssp_deploy.onnx_policy.OnnxPolicy`); ``schedule``: the
@@ -555,6 +585,7 @@ def evaluate(
         views is not None,
         schedule,
         inject_delay_ms,
+        limit_excludes_holds,
     )
     return evaluation.run(strips_dir, progress, views)
 

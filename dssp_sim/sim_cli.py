@@ -115,7 +115,18 @@ def parse_args(argv):
     )
     e.add_argument("--threads", type=int, help="ONNX Runtime threads")
     add_runtime_arguments(e)
-    add_schedule_arguments(e)
+    e.add_argument(
+        "--prefetch",
+        action="store_true",
+        help="start each chunk early, by the delay (--inject-delay), and drop its passed actions (dssp-run's)",
+    )
+    add_schedule_arguments(e, also="not with --prefetch")
+    e.add_argument(
+        "--limit-excludes-holds",
+        action="store_true",
+        help="a tick the loop holds (waiting for a chunk) does not count toward the task's step limit: success "
+        "scored on the task, not on the wait (Piper tasks)",
+    )
     e.add_argument(
         "--inject-delay",
         type=float,
@@ -167,6 +178,8 @@ def run(args) -> int:
             ("--noise", args.noise != 0.0),
             ("--threads", args.threads is not None),
             ("--inject-delay", args.inject_delay != 0.0),
+            ("--prefetch", args.prefetch),
+            ("--limit-excludes-holds", args.limit_excludes_holds),
         )
         if given:
             raise ConfigError(f"{given[0]} is a model's setting: it goes with --model, not --expert")
@@ -190,6 +203,7 @@ def run(args) -> int:
         views=bool(args.rerun or args.rerun_save),
         inject_delay_ms=args.inject_delay,
         schedule=schedule,
+        limit_excludes_holds=args.limit_excludes_holds,
     )
     with contextlib.ExitStack() as stack:
         stack.callback(evaluation.env.close)

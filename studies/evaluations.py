@@ -35,6 +35,7 @@ KEPT = (
     "injected_delay_ms",
     "injected_delay_ticks",
     "rtc_delay_ticks",
+    "limit_excludes_holds",
     "boundary_jerk",
 )
 

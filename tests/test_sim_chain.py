@@ -339,6 +339,9 @@ def test_the_scripted_expert_drives_the_same_loop(tmp_path, capsys):
             ["--model", "m", "--ensemble-decay", "0"],
             "--ensemble-decay is a setting of temporal ensembling: it goes with --smoothing ensemble",
         ),
+        (["--expert", "--prefetch"], "--prefetch is a model's setting: it goes with --model, not --expert"),
+        (["--expert", "--limit-excludes-holds"], "--limit-excludes-holds is a model's setting"),
+        (["--model", "m", "--prefetch", "--smoothing", "ensemble"], "--prefetch does not combine with --smoothing"),
     ],
 )
 def test_expert_flags_that_do_not_apply_are_one_line(argv, fragment, capsys):
@@ -346,3 +349,25 @@ def test_expert_flags_that_do_not_apply_are_one_line(argv, fragment, capsys):
     assert sim_main(["eval", *argv, *task, "--episodes", "1", "--no-progress"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and fragment in err[0], err
+
+
+def test_holds_can_be_left_out_of_the_step_limit_and_prefetch_hides_the_delay(sim_model):
+    """--limit-excludes-holds: each tick spent waiting for a chunk lengthens the episode's budget by one, so waiting
+    is not scored as running out of time; --prefetch starts each chunk early by the delay, so the loop does not wait."""
+    from dssp_deploy.schedules import Plain
+    from dssp_sim.evaluate import evaluate
+    from dssp_sim.tasks import make_task
+
+    limit = make_task("tap").max_steps
+    run = lambda **kw: evaluate(sim_model, "tap", 1, seed=1000, threads=1, progress=False, inject_delay_ms=200, **kw)  # noqa: E731
+    counted, excluded = run(), run(limit_excludes_holds=True)
+    for result in (counted, excluded):
+        assert not result.episodes[0].success, "the briefly trained model is not expected to solve tap"
+    assert counted.episodes[0].steps == limit and counted.episodes[0].holds > 0
+    held = excluded.episodes[0].holds
+    assert held > 0 and excluded.episodes[0].steps == limit + held  # the same budget of ticks that moved
+    assert not excluded.episodes[0].safety_events.get("observation_out_of_range")  # every hold here was a wait
+    assert excluded.to_dict()["limit_excludes_holds"] and not counted.to_dict()["limit_excludes_holds"]
+    prefetched = run(schedule=Plain(prefetch=True))
+    assert prefetched.episodes[0].holds < counted.episodes[0].holds
+    assert prefetched.episodes[0].steps == limit
