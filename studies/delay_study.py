@@ -69,6 +69,32 @@ QUICK_PLAN = {
 }
 RECORD_DIR = "record"
 SPLIT = "validation"
+CONTROL_RATE_HZ = 10  # the twin's: a delay of d ms is ceil(d / 100) ticks
+
+
+UNEQUAL_COMPUTE = (
+    "The compute is not equal: `none` and `rtc` have one chunk in flight at a time, `ensemble` starts one every tick, so "
+    "with a delay of d ticks it has d chunks in flight at once — d times the denoiser throughput of one computation that "
+    "takes d ticks (on one CPU that also takes d ticks each, it could not keep up)."
+)
+
+
+def ticks_of(delay_ms: int) -> int:
+    """The injected delay in whole control ticks (rounded up, as ``dssp-sim eval --inject-delay`` counts it)."""
+    return -(-delay_ms * CONTROL_RATE_HZ // 1000)
+
+
+def eval_flags(plan: dict, mode: str, delay_ms: int) -> tuple[str, ...]:
+    """``dssp-sim eval``'s flags for ``mode`` at ``delay_ms``: the plan's mode flags (default ``--smoothing MODE``;
+    ``{every}``: the delay in ticks, at least 1), the delay, then the plan's ``eval_flags``."""
+    spec = plan.get("modes", {}).get(mode, {"flags": ["--smoothing", mode]})
+    flags = (f.format(every=max(1, ticks_of(delay_ms))) for f in spec["flags"])
+    return (*flags, "--inject-delay", str(delay_ms), *plan.get("eval_flags", []))
+
+
+def model_of(plan: dict, mode: str) -> str:
+    """Which of a seed's models ``mode`` evaluates: "plain" (the preset's), or a name in the plan's ``models``."""
+    return plan.get("modes", {}).get(mode, {}).get("model", "plain")
 
 
 def cell(task: str, smoothing: str, delay: int, seed: int) -> str:
@@ -84,23 +110,36 @@ def stages(plan: dict, tasks: list[str], record: Path) -> list[Stage]:
         spec, data = plan["tasks"][task], f"data_{task}.zarr"
         task_stages: list[Stage] = []
         for seed in plan["seeds"]:
-            run, model, key = f"run_{task}_s{seed}", f"model_{task}_s{seed}", f"{task}_s{seed}"
-            ready = (f"export_{key}",)
-            names = {cell(task, s, d, seed): (s, d) for d in plan["delays_ms"] for s in plan["smoothings"]}
-            cells = [
-                eval_stage(name, model, task, n, first, "--smoothing", s, "--inject-delay", str(d), after=ready)
-                for name, (s, d) in names.items()
-                if not (record / "evals" / f"{name}.json").is_file()
-            ]
-            if not cells:
-                continue
-            task_stages += [
-                train_stage(key, data, run, plan["preset"], spec["steps"], seed, after=(f"collect_{task}",)),
-                export_stage(
-                    key, run, model, "--threads", "1", "--force", *plan["export_flags"], after=(f"train_{key}",)
-                ),
-                *cells,
-            ]
+            for variant, train_flags in {"plain": (), **plan.get("models", {})}.items():
+                suffix = "" if variant == "plain" else f"_{variant}"
+                run, model, key = (
+                    f"run_{task}{suffix}_s{seed}",
+                    f"model_{task}{suffix}_s{seed}",
+                    f"{task}{suffix}_s{seed}",
+                )
+                ready = (f"export_{key}",)
+                names = {
+                    cell(task, s, d, seed): (s, d)
+                    for d in plan["delays_ms"]
+                    for s in plan["smoothings"]
+                    if model_of(plan, s) == variant
+                }
+                cells = [
+                    eval_stage(name, model, task, n, first, *eval_flags(plan, s, d), after=ready)
+                    for name, (s, d) in names.items()
+                    if not (record / "evals" / f"{name}.json").is_file()
+                ]
+                if not cells:
+                    continue
+                task_stages += [
+                    train_stage(
+                        key, data, run, plan["preset"], spec["steps"], seed, *train_flags, after=(f"collect_{task}",)
+                    ),
+                    export_stage(
+                        key, run, model, "--threads", "1", "--force", *plan["export_flags"], after=(f"train_{key}",)
+                    ),
+                    *cells,
+                ]
         if task_stages:
             out += [collect_stage(task, task, spec["demos"], data), *task_stages]
     return out
@@ -168,7 +207,7 @@ def comparisons(evals: dict, plan: dict) -> list[dict]:
     for task in plan["tasks"]:
         for d in plan["delays_ms"]:
             rtc = _grid(evals, plan, task, "rtc", d)
-            for other in ("none", "ensemble"):
+            for other in (s for s in plan["smoothings"] if s != "rtc"):
                 b = _grid(evals, plan, task, other, d)
                 if rtc is None or b is None:
                     continue
@@ -189,8 +228,10 @@ def comparisons(evals: dict, plan: dict) -> list[dict]:
     return out
 
 
-def write_report(plan: dict, record: Path, report: Path, shown_record: str | None = None) -> Path:
-    """``delay.md``, ``.json``, ``.png`` from the record alone."""
+def write_report(
+    plan: dict, record: Path, report: Path, shown_record: str | None = None, command: str = "studies.delay_study"
+) -> Path:
+    """``delay.md``, ``.json``, ``.png`` from the record alone (``command``: the study that rebuilds it)."""
     evals = recorded(plan, record)
     if not evals:
         raise DSSPError(f"{record} holds no evaluation of this plan; run the study first")
@@ -203,9 +244,9 @@ def write_report(plan: dict, record: Path, report: Path, shown_record: str | Non
     tests = comparisons(evals, plan)
     scenes = protocol.split_seeds(SPLIT, plan["episodes"])
     lines = [
-        "# Inference delay: none, temporal ensembling and real-time chunking",
+        plan.get("title", "# Inference delay: none, temporal ensembling and real-time chunking"),
         "",
-        f"Rebuilt from `{shown_record or record}` by `python -m studies.delay_study --report-only`. DSSP, preset "
+        f"Rebuilt from `{shown_record or record}` by `python -m {command} --report-only`. DSSP, preset "
         f"`{plan['preset']}`, trained per task with training seeds {plan['seeds']} (demonstrations and steps "
         f"{ ({t: (s['demos'], s['steps']) for t, s in plan['tasks'].items()}) }), each exported with `--inpainting` at int8; "
         f"{plan['episodes']} closed-loop episodes per cell and seed in the MuJoCo twin on validation seeds "
@@ -214,10 +255,7 @@ def write_report(plan: dict, record: Path, report: Path, shown_record: str | Non
         "with the 95 % two-way cluster-bootstrap interval over seeds and "
         "scenes; jerk = the commanded joints' mean ‖third difference‖ × rate³ "
         "(rad/s³) at the ticks a new chunk took over, and at the other ticks; holds = ticks per episode with no action "
-        "(the loop waiting for a chunk, or the safety layer holding). The compute is not equal: `none` and `rtc` have one "
-        "chunk in flight at a time, `ensemble` starts one every tick, so with a delay of d ticks it has d chunks in "
-        "flight at once — d times the denoiser throughput of one computation that takes d ticks (on one CPU that "
-        "also takes d ticks each, it could not keep up).",
+        "(the loop waiting for a chunk, or the safety layer holding). " + plan.get("about", UNEQUAL_COMPUTE),
         "",
     ]
     for task in table:

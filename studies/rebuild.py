@@ -47,6 +47,7 @@ from dssp_core.files import atomic_write_text
 from studies import (
     baseline_tuning,
     calibration_study,
+    delay_fair,
     delay_study,
     distill_study,
     memory_tasks,
@@ -119,6 +120,16 @@ def _baseline_tuning(root: Path, out: Path) -> list[str]:
     return [md.name, md.with_suffix(".json").name]
 
 
+def _delay_fair(root: Path, out: Path) -> list[str]:
+    record = root / "reports/delay_fair/record"
+    if not (record / "evals").is_dir():
+        return []
+    md = delay_study.write_report(
+        delay_fair.FAIR_PLAN, record, out, shown_record="reports/delay_fair/record", command="studies.delay_fair"
+    )
+    return [md.name, md.with_suffix(".json").name]
+
+
 def _calibration(root: Path, out: Path) -> list[str]:
     record = root / "reports/calibration" / calibration_study.RECORD_DIR
     if not calibration_study.load(record):
@@ -150,6 +161,7 @@ SOURCES: dict[str, Callable[[Path, Path], list[str]]] = {
     "reports/calibration": _calibration,
     "reports/delay": _delay,
     "reports/baseline_tuning": _baseline_tuning,
+    "reports/delay_fair": _delay_fair,
 }
 """Report folder -> a function writing its rebuilt files into a folder, returning the names to compare."""
 

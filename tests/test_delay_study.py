@@ -70,3 +70,31 @@ def test_the_report_pairs_by_scene_and_seed_and_says_what_is_not_significant(tmp
     md = delay_study.write_report(plan, tmp_path / "record", tmp_path / "report")
     assert "pending" in md.read_text()
     assert (tmp_path / "report" / "delay.png").is_file()
+
+
+def test_the_fair_study_gives_each_mode_its_robot_compute_and_leaves_waits_out_of_the_limit(tmp_path):
+    from studies import delay_fair
+
+    plan = delay_fair.FAIR_PLAN
+    stages = {s.name: s for s in delay_study.stages(plan, ["tap"], tmp_path)}
+    assert [delay_study.ticks_of(d) for d in plan["delays_ms"]] == [0, 1, 2, 4]  # distinct ticks
+    for d in plan["delays_ms"]:
+        argv = stages[f"eval_{delay_study.cell('tap', 'ensemble', d, 0)}"].argv
+        assert argv[argv.index("--ensemble-every") + 1] == str(max(1, delay_study.ticks_of(d)))  # one chunk in flight
+        for mode in plan["smoothings"]:
+            argv = stages[f"eval_{delay_study.cell('tap', mode, d, 0)}"].argv
+            assert "--limit-excludes-holds" in argv and argv[argv.index("--inject-delay") + 1] == str(d)
+    assert "--prefetch" in stages[f"eval_{delay_study.cell('tap', 'prefetch', 100, 0)}"].argv
+    trained = stages[f"eval_{delay_study.cell('tap', 'rtc_trained', 200, 1)}"].argv
+    assert trained[trained.index("--model") + 1] == "model_tap_trained_rtc_s1" and "rtc" in trained
+    assert "model.committed_prefix_max=4" in stages["train_tap_trained_rtc_s1"].argv
+    assert "model.committed_prefix_max=4" not in stages["train_tap_s1"].argv
+    # the earlier plan's stages are what they were: --smoothing MODE --inject-delay MS, nothing more
+    old = {s.name: s.argv for s in delay_study.stages(delay_study.PLAN, ["tap"], tmp_path)}
+    argv = old[f"eval_{delay_study.cell('tap', 'ensemble', 400, 0)}"]
+    assert argv[argv.index("--seed") + 2 : argv.index("--threads")] == (
+        "--smoothing",
+        "ensemble",
+        "--inject-delay",
+        "400",
+    )
