@@ -149,6 +149,7 @@ class CalibrationTwin(ArmServos):
         self.camera_id = mujoco.mj_name2id(
             self.model, mujoco.mjtObj.mjOBJ_CAMERA, CAMERA_NAME if mode == EYE_TO_HAND else WRIST_CAMERA_NAME
         )
+        self.board_body = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, "charuco")
         self.flange_body = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, "link6")
         self._renderers: dict[bool, DepthRenderThread] = {}
         start = self.start_pose()
