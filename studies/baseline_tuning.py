@@ -165,6 +165,14 @@ def write_report(plan: dict, record: Path, report: Path, shown_record: str | Non
             lines.append(
                 f"| {LABELS.get(name, name)} | {row['steps']} × {batch} | {'; '.join(cells)} | {row['chosen_lr'] or 'pending'} |"
             )
+        edge = [
+            LABELS.get(name, name)
+            for name, row in models.items()
+            if row["chosen_lr"] is not None
+            and float(row["chosen_lr"]) in (min(plan["models"][name]["lrs"]), max(plan["models"][name]["lrs"]))
+        ]
+        if edge:
+            lines += ["", f"Chosen at an edge of its grid, so the grid may not hold its best rate: {'; '.join(edge)}."]
     lines.append("")
     return write_md_and_json(report, REPORT_NAME, lines, {"plan": plan, "tasks": figures})
 

@@ -47,3 +47,8 @@ def test_the_choice_is_the_most_successes_and_a_tie_keeps_the_recipes_rate(tmp_p
     md = study.write_report(plan, tmp_path, tmp_path / "report").read_text()
     assert "| DP3, DP3's recipe, UNet [128,256,512] | 750 × 128 | 0.0001: pending; " in md
     assert "0.0003: 60 % (12/20; " in md and "| 3000 × 32 |" in md
+    # a choice at the smallest or largest rate tried says so (the best may lie beyond the grid)
+    assert (
+        "Chosen at an edge of its grid, so the grid may not hold its best rate: DSSP (sim); DP3, DP3's recipe, UNet [32,48,64]."
+        in md
+    )
