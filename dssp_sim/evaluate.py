@@ -465,8 +465,14 @@ def prepare_evaluation(
     limit_excludes_holds: bool = False,
 ) -> Evaluation:
     """Check every setting against the model and the task, load the model and build the task; nothing is opened
-    or written. ``views``: whether Rerun views will be given to :meth:`Evaluation.run`. The arguments are
-    :func:`evaluate`'s."""
+    or written. Episodes are seeded ``seed``, ``seed`` + 1, ...; ``precision`` and ``kernel`` choose the graphs
+    (:class:`dssp_deploy.onnx_policy.OnnxPolicy`); ``schedule``: the control loop's (a :mod:`dssp_deploy.schedules`
+    config, on either kind of task); ``inject_delay_ms``: its delay, each chunk usable only that long after its
+    observation, in whole control ticks (rounded up: at 10 Hz 50 and 100 ms are one tick;
+    :class:`~dssp_deploy.schedules.SimulatedDelay`) — the inference delay simulated in lockstep;
+    ``limit_excludes_holds``: the ticks spent waiting for a chunk leave the step limit (:func:`run_episode`);
+    ``views``: whether Rerun views will be given to :meth:`Evaluation.run`. ``model_dir`` None: the task's scripted
+    expert drives the same loop (:class:`dssp_sim.expert_policy.ScriptedExpert`; Piper tasks)."""
     from dssp_sim import metaworld_env  # deferred: loads mujoco
 
     if metaworld_env.is_metaworld(task) and limit_excludes_holds:
@@ -550,43 +556,17 @@ def evaluate(
     model_dir: Path | None,
     task: str,
     n_episodes: int,
-    seed: int = 1000,
-    threads: int | None = None,
-    state_token_noise: float = 0.0,
+    *,
     strips_dir: Path | None = None,
     progress: bool = True,
-    precision: str | None = None,
-    kernel: str = "auto",
-    spinning: bool | None = None,
     views=None,
-    schedule: Schedule = Plain(),
-    inject_delay_ms: float = 0.0,
-    limit_excludes_holds: bool = False,
+    **settings,
 ) -> EvalResult:
-    """Evaluate a model directory on ``task`` for ``n_episodes`` seeded episodes (seeds seed, seed+1, ...);
-    ``precision`` and ``kernel`` choose its graphs (:class:`dssp_deploy.onnx_policy.OnnxPolicy`); ``schedule``: the
-    control loop's (a :mod:`dssp_deploy.schedules` config, on either kind of task; checked before any episode runs);
-    ``inject_delay_ms``: its delay, each chunk usable only that long after its observation, in whole control ticks
-    (rounded up: at 10 Hz 50 and 100 ms are one tick; :class:`~dssp_deploy.schedules.SimulatedDelay`) — the inference
-    delay simulated in lockstep; ``views``: Rerun
-    views of every tick of every episode, on one timeline (the caller closes them). ``model_dir`` None: the task's
-    scripted expert drives the same loop (:class:`dssp_sim.expert_policy.ScriptedExpert`; Piper tasks).
-    :func:`prepare_evaluation`, then :meth:`Evaluation.run`."""
-    evaluation = prepare_evaluation(
-        model_dir,
-        task,
-        n_episodes,
-        seed,
-        threads,
-        state_token_noise,
-        precision,
-        kernel,
-        spinning,
-        views is not None,
-        schedule,
-        inject_delay_ms,
-        limit_excludes_holds,
-    )
+    """Evaluate a model directory on ``task`` for ``n_episodes`` seeded episodes: :func:`prepare_evaluation` with
+    ``settings`` (its keyword arguments: seed, threads, precision, kernel, schedule, inject_delay_ms, ...), then
+    :meth:`Evaluation.run` (each episode's strip into ``strips_dir``; ``views``: Rerun views of every tick of every
+    episode, on one timeline, closed by the caller)."""
+    evaluation = prepare_evaluation(model_dir, task, n_episodes, views=views is not None, **settings)
     return evaluation.run(strips_dir, progress, views)
 
 

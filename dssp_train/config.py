@@ -7,7 +7,6 @@ overrides are ``section.field=value`` strings (``model.d_model=256``, ``train.ba
 
 from __future__ import annotations
 
-import copy
 import json
 from dataclasses import dataclass
 from importlib import resources
@@ -334,29 +333,34 @@ def apply_overrides(config: RunConfig, overrides: list[str]) -> RunConfig:
     """Apply ``section.field=value`` overrides (value parsed as JSON, else kept as a string), in any order: only the
     result must be valid; when it is not, the error names the first override after which the config was not."""
     data = config.to_dict()
-    steps = []
     for item in overrides:
-        _require("=" in item, f"override {item!r} must look like section.field=value, e.g. model.d_model=256")
-        key, raw = item.split("=", 1)
-        try:
-            value = parse_json(raw)
-        except ValueError:  # not JSON (a bare word), or a number too long to parse: checked as a string
-            value = raw
-        node = data
-        parts = key.split(".")
-        for part in parts[:-1]:
-            _require(isinstance(node.get(part), dict), f"override {item!r}: {part!r} is not a config section")
-            node = node[part]
-        _require(parts[-1] in node, f"override {item!r}: unknown field {key!r}")
-        node[parts[-1]] = value
-        steps.append((item, copy.deepcopy(data)))
+        _set_override(data, item)
     try:
         return RunConfig.from_dict(data)
-    except ConfigError:
-        for item, state in steps:
+    except ConfigError:  # applied again one by one: the first after which the config is invalid is named
+        data = config.to_dict()
+        for item in overrides:
+            _set_override(data, item)
             try:
-                RunConfig.from_dict(state)
+                RunConfig.from_dict(data)
             except ConfigError as exc:
                 shown = item if len(item) <= 60 else item[:57] + "..."
                 raise ConfigError(f"--set {shown}: {exc}") from None
         raise
+
+
+def _set_override(data: dict, item: str) -> None:
+    """Set one ``section.field=value`` override in the config's dict ``data`` (the field must exist)."""
+    _require("=" in item, f"override {item!r} must look like section.field=value, e.g. model.d_model=256")
+    key, raw = item.split("=", 1)
+    try:
+        value = parse_json(raw)
+    except ValueError:  # not JSON (a bare word), or a number too long to parse: checked as a string
+        value = raw
+    node = data
+    parts = key.split(".")
+    for part in parts[:-1]:
+        _require(isinstance(node.get(part), dict), f"override {item!r}: {part!r} is not a config section")
+        node = node[part]
+    _require(parts[-1] in node, f"override {item!r}: unknown field {key!r}")
+    node[parts[-1]] = value

@@ -43,7 +43,7 @@ from studies.stats import (
     cluster_bootstrap,
     describe_p,
     disagreements,
-    holm,
+    holm_family,
     paired_difference,
     paired_exact_test,
 )
@@ -223,8 +223,9 @@ def comparisons(evals: dict, plan: dict) -> list[dict]:
                         "p": paired_exact_test(rtc[0], b[0]),
                     }
                 )
-    for c, p_holm in zip(out, holm([c["p"] for c in out])):
-        c.update(p_holm=p_holm, verdict=describe_p(c["p"], holm_p=p_holm), agree=agrees(p_holm, c["interval95"]))
+    holm_family(out, keys=("p",))
+    for c in out:
+        c.update(verdict=describe_p(c["p"], holm_p=c["p_holm"]), agree=agrees(c["p_holm"], c["interval95"]))
     return out
 
 

@@ -37,7 +37,7 @@ from dssp_core.output_guard import write_output_figure
 from studies import protocol
 from studies.evaluations import run_and_keep, write_md_and_json
 from studies.runner import Stage
-from studies.stats import FAMILY_NOTE, cluster_bootstrap, compare, describe_p, disagreements
+from studies.stats import FAMILY_NOTE, cluster_bootstrap, compare, describe_p, disagreements, holm_family
 from studies.study_stages import collect_stage, eval_stage, export_stage, train_argv, train_stage
 
 REPORT_NAME = "memory"
@@ -208,7 +208,8 @@ def report_lines(plan: dict, record: Path, split: str, shown_record: str | None 
         ]
         grids = {name: grid(record, task, name, seeds, split) for name in models}
         others = {name: g[0] for name, g in grids.items() if name != "dssp" and g is not None}
-        comparisons = compare(others, base[0]) if base is not None else {}
+        comparisons = {name: compare(g, base[0]) for name, g in others.items()} if base is not None else {}
+        holm_family(comparisons.values())
         for name in models:
             g = grids[name]
             if g is None:

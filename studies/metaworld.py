@@ -41,7 +41,7 @@ from dssp_core.files import atomic_write_text
 from studies import protocol
 from studies.evaluations import run_and_keep, write_md_and_json
 from studies.runner import Stage
-from studies.stats import FAMILY_NOTE, cluster_bootstrap, compare, describe_p, disagreements, holm
+from studies.stats import FAMILY_NOTE, cluster_bootstrap, compare, describe_p, disagreements, holm_family
 from studies.study_stages import collect_stage, eval_stage, export_stage, train_stage
 
 REPORT_NAME = "metaworld"
@@ -269,28 +269,15 @@ def figures_of(plan: dict, record: Path) -> dict:
                 row["test"] = {"grid": grid, "success": mean, "ci": [lo, hi]}
             rows[name] = row
         out["tasks"][task] = rows
-    compared = {  # the per-task table's comparisons with DSSP: one family for Holm
-        (task, name): row["test"]["grid"]
-        for task, rows in out["tasks"].items()
+    comparisons = [  # each task's models against its DSSP: the per-task table's family for Holm
+        (row["test"], compare(row["test"]["grid"], rows["dssp"]["test"]["grid"]))
+        for rows in out["tasks"].values()
         for name, row in rows.items()
         if name != "dssp" and "test" in row and "test" in rows.get("dssp", {})
-    }
-    by_task: dict = {}
-    for (task, name), grid in compared.items():
-        by_task.setdefault(task, {})[name] = grid
-    comparisons = {}
-    for task, grids in by_task.items():  # each task against its own DSSP, then Holm over the whole table
-        base = out["tasks"][task]["dssp"]["test"]["grid"]
-        comparisons.update({(task, name): c for name, c in compare(grids, base).items()})
-    for (task, name), p, ps in zip(
-        comparisons,
-        holm([c["p"] for c in comparisons.values()]),
-        holm([c["p_seeds"] for c in comparisons.values()]),
-    ):
-        c = comparisons[(task, name)]
-        out["tasks"][task][name]["test"].update(
-            delta=c["delta"], delta_ci=c["ci"], p=c["p"], p_holm=p, p_seeds=c["p_seeds"], p_seeds_holm=ps
-        )
+    ]
+    holm_family(c for _, c in comparisons)
+    for test, c in comparisons:
+        test.update(delta_ci=c.pop("ci"), **c)
     for group in mw.DIFFICULTY:
         tasks = [t for t in plan["tasks"] if mw.difficulty_of(t) == group]
         if not tasks:

@@ -168,19 +168,25 @@ FAMILY_NOTE = (
 )
 
 
-def compare(rows: dict[str, tuple], base) -> dict[str, dict]:
-    """Every row's comparison with ``base`` ((R, S) grid), Holm-corrected within ``rows`` (one table): ``rows`` maps a
-    name to its (R, S) grid; returns per name the difference and its interval (``delta``, ``ci``), the paired test over
-    scenes (``p``, ``p_holm``) and the test over training seeds (``p_seeds``, ``p_seeds_holm``)."""
-    out = {}
-    for name, grid in rows.items():
-        d, lo, hi = paired_difference(grid, base)
-        out[name] = {"delta": d, "ci": [lo, hi], "p": paired_exact_test(grid, base)}
-        out[name]["p_seeds"] = seed_permutation_test(grid, base)
-    for key in ("p", "p_seeds"):
-        for name, adjusted in zip(out, holm([c[key] for c in out.values()])):
-            out[name][f"{key}_holm"] = adjusted
-    return out
+def compare(grid, base) -> dict:
+    """One row's comparison with ``base`` ((R, S) grids on the same scenes): the difference and its interval (``delta``,
+    ``ci``), the paired test over scenes (``p``) and the test over training seeds (``p_seeds``)."""
+    d, lo, hi = paired_difference(grid, base)
+    return {
+        "delta": d,
+        "ci": [lo, hi],
+        "p": paired_exact_test(grid, base),
+        "p_seeds": seed_permutation_test(grid, base),
+    }
+
+
+def holm_family(comparisons, keys=("p", "p_seeds")) -> None:
+    """Holm-correct one table's comparisons (the family: every one it states) in place: ``KEY_holm`` beside each of
+    their ``keys``."""
+    comparisons = list(comparisons)
+    for key in keys:
+        for c, adjusted in zip(comparisons, holm([c[key] for c in comparisons])):
+            c[f"{key}_holm"] = adjusted
 
 
 def agrees(p_holm: float, ci) -> bool:

@@ -9,6 +9,7 @@ each process draws its own trajectory, so a step sees ``world_size`` trajectorie
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import math
 import os
@@ -305,12 +306,17 @@ class Trainer:
         """Window starts t ~ U{0, ..., T - H_a} (at least H_a real actions in every window)."""
         return torch.randint(0, self._window_count(length), (count,), generator=self.generator).to(self.device)
 
+    @functools.cached_property
+    def _windows(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per training trajectory, its window count and the running total (E,), (E,): computed once."""
+        counts = torch.tensor([self._window_count(ep.length) for ep in self.train_eps])
+        return counts, counts.cumsum(0)
+
     def _sample_windows(self, count: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """``count`` windows drawn uniformly from every training trajectory's windows (DP3's sampling, with
         replacement where DP3 shuffles epochs: each window as likely, and a resumed run draws on from its generator's
         state): point_cloud (B, N, P, C), agent_pos (B, N, S), action (B, H, A), raw."""
-        counts = torch.tensor([self._window_count(ep.length) for ep in self.train_eps])
-        ends = counts.cumsum(0)
+        counts, ends = self._windows
         drawn = torch.randint(0, int(ends[-1]), (count,), generator=self.generator)
         which = torch.searchsorted(ends, drawn, right=True)
         parts = []
