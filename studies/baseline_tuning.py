@@ -5,8 +5,9 @@ validation seeds, so that the memory tasks' test tables compare each at its best
                                       [--report reports/baseline_tuning] [--report-only] [--quick]
 
 Every model of the plan trains on the same data and sees the same number of training windows per task (the
-memory study's DSSP budget: steps × 32 windows), at each of its learning rates (three each: the same budget of
-configurations), training seed 0, and is evaluated in closed loop on the same validation scenes. DP3's recipe
+memory study's DSSP budget: steps × 32 windows), at each of its learning rates (the same four each, 1e-4 to 3e-3:
+the same budget of configurations; widened from three when two of DP3's sizes chose the largest), training seed 0,
+and is evaluated in closed loop on the same validation scenes. DP3's recipe
 (preset ``dp3_recipe``): its optimiser (AdamW, betas 0.95/0.999, weight decay 1e-6), its cosine schedule with a
 linear warm-up, its EMA (power 0.75, at most 0.9999), its min/max normalisation and its sampling — windows drawn
 from the whole dataset, 128 per step (``train.sampling=windows``) — with DP3's own learning rate first among those
@@ -39,12 +40,12 @@ PLAN = {
         for task, spec in memory_tasks.PLAN["tasks"].items()
     },
     "models": {
-        "dssp": {"preset": "sim", "batch": 32, "lrs": [1e-3, 3e-4, 3e-3], "flags": []},
+        "dssp": {"preset": "sim", "batch": 32, "lrs": [1e-3, 3e-4, 3e-3, 1e-4], "flags": []},
         **{
             name: {
                 "preset": "dp3_recipe",
                 "batch": 128,
-                "lrs": [1e-4, 3e-4, 1e-3],
+                "lrs": [1e-4, 3e-4, 1e-3, 3e-3],
                 "flags": ["--set", f"model.unet_down_dims={dims}"],
             }
             for name, dims in DP3_SIZES.items()
@@ -132,13 +133,14 @@ def write_report(plan: dict, record: Path, report: Path, shown_record: str | Non
     """``baseline_tuning.md`` and ``.json`` from the record alone."""
     figures = chosen(plan, record)
     scenes = protocol.split_seeds("validation", plan["episodes"])
+    budgets = ", ".join(f"{task} {spec['windows']}" for task, spec in plan["tasks"].items())
     lines = [
         "# The baselines' tuning on validation seeds: DSSP and DP3 with DP3's recipe at three sizes",
         "",
         f"Rebuilt from `{shown_record or record}` by `python -m studies.baseline_tuning --report-only`. Training seed "
         f"{plan['seed']}, {plan['episodes']} closed-loop episodes per configuration on validation scenes {scenes[0]}–"
         f"{scenes[-1]} (a choice: not a test result); the same training windows per task for every model "
-        f"({ {t: s['windows'] for t, s in plan['tasks'].items()} }), "
+        f"({budgets}), "
         f"{max(len(m['lrs']) for m in plan['models'].values())} learning rates each. Success with its 95 % "
         "Wilson interval; **chosen**: the most successes (a tie: the recipe's own rate, listed first).",
     ]
