@@ -36,7 +36,7 @@ REPORT_NAME = "baseline_tuning"
 DP3_SIZES = {"dp3_0.7m": "[32,48,64]", "dp3_4.8m": "[64,128,256]", "dp3_17m": "[128,256,512]"}
 PLAN = {
     "tasks": {
-        task: {"demos": spec["demos"], "windows": spec["steps"] * 32}
+        task: {"demos": spec["demos"], "windows": spec["steps"] * memory_tasks.SIM_BATCH}
         for task, spec in memory_tasks.PLAN["tasks"].items()
     },
     "models": {

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import json
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +35,7 @@ import numpy as np
 from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import DSSPError
 from dssp_core.output_guard import write_output_figure
+from dssp_train.config import load_preset
 from studies import protocol
 from studies.evaluations import run_and_keep, write_md_and_json
 from studies.runner import Stage
@@ -91,11 +93,30 @@ LABELS = {
     "transformer_denoiser": "w/ Transformer denoiser",
 }
 RECORD_DIR = "record"
+SIM_BATCH = load_preset("sim").train.batch_size  # a task's ``steps`` count its training windows at this batch
 
 
 def models_of(plan: dict, task: str) -> dict[str, dict]:
     """The models trained for ``task``: the plan's models, then the task's ablations."""
     return {**plan["models"], **plan["ablations"].get(task, {})}
+
+
+def seeds_of(plan: dict, model: dict) -> list[int]:
+    """The training seeds of ``model``: its own ``seeds`` where it names them, else the plan's."""
+    return model.get("seeds", plan["seeds"])
+
+
+def training_of(plan: dict, task: str, model: dict) -> tuple[int, tuple[str, ...]]:
+    """(steps, flags) that train ``model`` on ``task``. A model with its own ``batch`` sees the task's training
+    windows (its ``steps`` at the ``sim`` preset's :data:`SIM_BATCH` per step) in steps of that batch; a model with
+    an ``lr`` per task trains at the task's rate."""
+    steps, flags = plan["tasks"][task]["steps"], tuple(model["flags"])
+    if "batch" in model:
+        steps = max(1, steps * SIM_BATCH // model["batch"])
+        flags += ("--set", f"train.batch_size={model['batch']}")
+    if "lr" in model:
+        flags += ("--set", f"train.lr={model['lr'][task]:g}")
+    return steps, flags
 
 
 def eval_name(task: str, model: str, seed: int, split: str) -> str:
@@ -114,7 +135,8 @@ def stages(plan: dict, split: str, tasks: list[str], record: Path, models: list[
         for name, model in models_of(plan, task).items():
             if models is not None and name not in models:
                 continue
-            for seed in plan["seeds"]:
+            steps, flags = training_of(plan, task, model)
+            for seed in seeds_of(plan, model):
                 key = f"{task}_{name}_s{seed}"
                 result = eval_name(task, name, seed, split)
                 if (record / "evals" / f"{result}.json").is_file():
@@ -122,7 +144,7 @@ def stages(plan: dict, split: str, tasks: list[str], record: Path, models: list[
                 need_data = True
                 run, model_dir = f"runs/{key}", f"models/{key}"
                 out += [
-                    train_stage(key, data, run, model["preset"], spec["steps"], seed, *model["flags"], after=collected),
+                    train_stage(key, data, run, model["preset"], steps, seed, *flags, after=collected),
                     export_stage(
                         key, run, model_dir, "--force", "--threads", "1", *plan["export_flags"], after=(f"train_{key}",)
                     ),
@@ -137,9 +159,10 @@ def gpu_commands(plan: dict, tasks: list[str]) -> list[str]:
     lines = []
     for name, model in plan["gpu_models"].items():
         for task in tasks:
-            for seed in plan["seeds"]:
-                data, run, steps = f"data/{task}.zarr", f"runs/{task}_{name}_s{seed}", plan["tasks"][task]["steps"]
-                argv = train_argv(data, run, model["preset"], steps, seed, *model["flags"])
+            steps, flags = training_of(plan, task, model)
+            for seed in seeds_of(plan, model):
+                data, run = f"data/{task}.zarr", f"runs/{task}_{name}_s{seed}"
+                argv = train_argv(data, run, model["preset"], steps, seed, *flags)
                 lines.append("dssp-train " + " ".join(argv) + " --device cuda")
     return lines
 
@@ -168,36 +191,53 @@ def _pct(x: float) -> str:
     return f"{100 * x:.0f}"
 
 
-def report_lines(plan: dict, record: Path, split: str, shown_record: str | None = None) -> tuple[list[str], dict]:
+def _seeds_text(plan: dict, labels: dict[str, str]) -> str:
+    """The plan's training seeds, and those of each model that names its own."""
+    own = {
+        name: model["seeds"]
+        for task in plan["tasks"]
+        for name, model in models_of(plan, task).items()
+        if "seeds" in model and model["seeds"] != plan["seeds"]
+    }
+    return str(plan["seeds"]) + "".join(f" ({labels.get(n, n)}: {seeds})" for n, seeds in own.items())
+
+
+def report_lines(
+    plan: dict,
+    record: Path,
+    split: str,
+    shown_record: str | None = None,
+    command: str = "studies.memory_tasks",
+    labels: dict[str, str] = LABELS,
+) -> tuple[list[str], dict]:
     """The report's Markdown lines and its figures, from the record alone (``shown_record``: how the report names the
-    record's folder; default its path)."""
+    record's folder, default its path; ``command``: the study's module; ``labels``: the models' names)."""
     figures: dict = {"split": split, "tasks": {}}
     prov_path = record / f"provenance_{split}.json"
     runs = json.loads(prov_path.read_text()) if prov_path.is_file() else []
     runs = [runs] if isinstance(runs, dict) else runs  # one run, written as an object
     if not isinstance(runs, list) or not all(isinstance(r, dict) for r in runs):
         raise DSSPError(f"{prov_path} must hold a list of runs' provenance (objects); write it again with this study")
-    seeds = plan["seeds"]
     n = plan["episodes"][split]
     scene_seeds = protocol.split_seeds(split, n)
     lines = [
         f"# Memory tasks, {split} split: DSSP against DP3 and DSSP without history",
         "",
-        f"Rebuilt from `{shown_record or record}` by `python -m studies.memory_tasks --split {split} --report-only`. "
+        f"Rebuilt from `{shown_record or record}` by `python -m {command} --split {split} --report-only`. "
         f"Scenes: {split} seeds {scene_seeds[0]}–{scene_seeds[-1]} ({n} per model and training seed, the same for every "
-        f"model); training seeds {seeds}; steps per task { ({t: s['steps'] for t, s in plan['tasks'].items()}) }. "
+        f"model); training seeds {_seeds_text(plan, labels)}; steps per task { ({t: s['steps'] for t, s in plan['tasks'].items()}) }. "
         "Success: mean over training seeds and scenes, 95 % two-way cluster-bootstrap interval (training seeds × scenes). "
         "Δ vs DSSP: paired difference (same scenes) with its interval. " + FAMILY_NOTE,
     ]
     for prov in runs:
         lines += ["", protocol.describe_run(prov)]
     for other in protocol.trained_elsewhere(record):
-        lines += ["", protocol.describe_trained_elsewhere(other, LABELS)]
+        lines += ["", protocol.describe_trained_elsewhere(other, labels)]
     if split == "validation":
         lines += ["", "Validation seeds: the plan is chosen on these, so these figures are not a test result."]
     for task in plan["tasks"]:
         models = models_of(plan, task)
-        rows, base = {}, grid(record, task, "dssp", seeds, split)
+        rows, base = {}, grid(record, task, "dssp", seeds_of(plan, models["dssp"]), split)
         lines += [
             "",
             f"## {task}",
@@ -206,14 +246,14 @@ def report_lines(plan: dict, record: Path, split: str, shown_record: str | None 
             "% CI) | paired test | seed test | memory decision right / reached | failures |",
             "|---|---|---|---|---|---|---|---|",
         ]
-        grids = {name: grid(record, task, name, seeds, split) for name in models}
+        grids = {name: grid(record, task, name, seeds_of(plan, model), split) for name, model in models.items()}
         others = {name: g[0] for name, g in grids.items() if name != "dssp" and g is not None}
         comparisons = {name: compare(g, base[0]) for name, g in others.items()} if base is not None else {}
         holm_family(comparisons.values())
         for name in models:
             g = grids[name]
             if g is None:
-                lines.append(f"| {LABELS.get(name, name)} | pending | | | | | | |")
+                lines.append(f"| {labels.get(name, name)} | pending | | | | | | |")
                 continue
             outcomes, _, evals = g
             mean, lo, hi = cluster_bootstrap(outcomes)
@@ -250,12 +290,12 @@ def report_lines(plan: dict, record: Path, split: str, shown_record: str | None 
             rows[name] = row
             decision = f"{right}/{reached}" + (f" ({100 * right / reached:.0f} %)" if reached else "")
             lines.append(
-                f"| {LABELS.get(name, name)} | {_pct(mean)} ({_pct(lo)}–{_pct(hi)}) | {per_seed} | {delta} | {test} | "
+                f"| {labels.get(name, name)} | {_pct(mean)} ({_pct(lo)}–{_pct(hi)}) | {per_seed} | {delta} | {test} | "
                 f"{seed_test} | {decision} | {fails} |"
             )
         for name in plan["gpu_models"]:
-            lines.append(f"| {LABELS.get(name, name)} | not run: a GPU model (commands below) | | | | | | |")
-        disagree = disagreements(comparisons, LABELS)
+            lines.append(f"| {labels.get(name, name)} | not run: a GPU model (commands below) | | | | | | |")
+        disagree = disagreements(comparisons, labels)
         lines += (
             ["", "Where the paired test and the interval disagree:", "", *[f"- {x}" for x in disagree]]
             if disagree
@@ -272,7 +312,7 @@ def report_lines(plan: dict, record: Path, split: str, shown_record: str | None 
             ]
             for name, r in rows.items():
                 lines.append(
-                    f"| {LABELS.get(name, name)} | " + " | ".join(str(r["choices"].get(c, 0)) for c in counts) + " |"
+                    f"| {labels.get(name, name)} | " + " | ".join(str(r["choices"].get(c, 0)) for c in counts) + " |"
                 )
         figures["tasks"][task] = rows
     lines += ["", "DP3 at its own size (the `dp3` preset) trains on a GPU; its commands for this plan:", "", "```"]
@@ -288,17 +328,26 @@ def _merge(dicts) -> dict:
     return out
 
 
-def write_report(plan: dict, record: Path, report: Path, split: str, shown_record: str | None = None) -> Path:
-    """``memory_SPLIT.md`` (tables), ``.json`` (every figure) and ``.png`` (the plot), from the record alone."""
-    lines, figures = report_lines(plan, record, split, shown_record)
+def write_report(
+    plan: dict,
+    record: Path,
+    report: Path,
+    split: str,
+    shown_record: str | None = None,
+    command: str = "studies.memory_tasks",
+    labels: dict[str, str] = LABELS,
+) -> Path:
+    """``memory_SPLIT.md`` (tables), ``.json`` (every figure) and ``.png`` (the plot), from the record alone
+    (:func:`report_lines`)."""
+    lines, figures = report_lines(plan, record, split, shown_record, command, labels)
     name = f"{REPORT_NAME}_{split}"
     lines += [f"![success and memory decision per model]({name}.png)", ""]
     md = write_md_and_json(report, name, lines, {"plan": plan, **figures})
-    plot(figures, md.with_suffix(".png"))
+    plot(figures, md.with_suffix(".png"), labels)
     return md
 
 
-def plot(figures: dict, path: Path) -> None:
+def plot(figures: dict, path: Path, labels: dict[str, str] = LABELS) -> None:
     """Per task: each model's success with its cluster-bootstrap interval, and its memory decision's accuracy among
     the episodes that reached it."""
     import matplotlib  # here, not at the top: the study's command starts without it
@@ -324,32 +373,51 @@ def plot(figures: dict, path: Path) -> None:
         ax.bar(x - 0.2, success, 0.4, yerr=err, capsize=3, label="success (95 % cluster bootstrap)")
         ax.bar(x + 0.2, decision, 0.4, label="memory decision right (of reached)")
         ax.set(xticks=x, ylim=(0, 105), ylabel="%", title=f"{task} ({figures['split']} split)")
-        ax.set_xticklabels([LABELS.get(n, n) for n in names], rotation=20, ha="right", fontsize=7)
+        ax.set_xticklabels([labels.get(n, n) for n in names], rotation=20, ha="right", fontsize=7)
         ax.legend(fontsize=7)
     fig.tight_layout()
     write_output_figure(path, fig, force=True, flag="--report")
 
 
 def run_study(
-    plan: dict, split: str, tasks: list[str], work: Path, report: Path, workers: int, models: list[str] | None = None
+    plan: dict,
+    split: str,
+    tasks: list[str],
+    work: Path,
+    report: Path,
+    workers: int,
+    models: list[str] | None = None,
+    quick: bool = False,
+    **shown,
 ) -> Path:
+    """Run ``plan``'s stages of ``tasks`` on ``split`` not in the record yet, keep their evaluations and write the report
+    (``shown``: :func:`write_report`'s ``command`` and ``labels``)."""
     record = report / RECORD_DIR
     if split == "test":
         protocol.check_frozen(record, plan)
     stage_list = stages(plan, split, tasks, record, models)
-    protocol.note_provenance(record, plan, split, tasks, allow_changes=plan is QUICK_PLAN)
+    protocol.note_provenance(record, plan, split, tasks, allow_changes=quick)
     run_and_keep(work, record, stage_list, workers, f"{', '.join(tasks)} on the {split} split")
-    return write_report(plan, record, report, split)
+    return write_report(plan, record, report, split, **shown)
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = ArgumentParser(prog="python -m studies.memory_tasks", description=__doc__.split("\n\n")[0])
+def main(
+    argv: list[str] | None = None,
+    plan_of: Callable[[bool], dict] = lambda quick: QUICK_PLAN if quick else PLAN,
+    command: str = "studies.memory_tasks",
+    doc: str = __doc__,
+    labels: dict[str, str] = LABELS,
+) -> int:
+    """The study's command on the plan ``plan_of(--quick)`` (another study of this shape passes its own plan, module
+    name, docstring and labels; its defaults: ``runs/NAME`` and ``reports/NAME``)."""
+    name = command.removeprefix("studies.").removesuffix("_tasks")
+    p = ArgumentParser(prog=f"python -m {command}", description=doc.split("\n\n")[0])
     p.add_argument("--split", choices=list(protocol.SPLITS), default="validation")
     p.add_argument("--tasks", nargs="+", metavar="TASK", help="default: every task of the plan")
     p.add_argument("--models", nargs="+", metavar="MODEL", help="only these models (default: every model of the plan)")
     p.add_argument("--workers", type=int, default=2, help="stages side by side, one thread each (default 2)")
-    p.add_argument("--work", type=Path, default=Path("runs/memory"), help="datasets, runs, models, evaluations, logs")
-    p.add_argument("--report", type=Path, default=Path("reports/memory"), help="the report and its record")
+    p.add_argument("--work", type=Path, default=Path(f"runs/{name}"), help="datasets, runs, models, evaluations, logs")
+    p.add_argument("--report", type=Path, default=Path(f"reports/{name}"), help="the report and its record")
     p.add_argument(
         "--freeze", action="store_true", help="freeze the plan for the test split (after choosing on validation)"
     )
@@ -357,19 +425,20 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--report-only", action="store_true", help="run nothing: rebuild the report from the record")
     p.add_argument("--quick", action="store_true", help="a tiny plan (tests)")
     args = p.parse_args(argv)
-    plan = QUICK_PLAN if args.quick else PLAN
-    tasks = args.tasks or list(plan["tasks"])
-    unknown = [t for t in tasks if t not in plan["tasks"]]
-    if unknown:
-        p.error(f"--tasks: {', '.join(unknown)} not in the plan ({', '.join(plan['tasks'])})")
-    known = {m for t in tasks for m in models_of(plan, t)}
-    if args.models and set(args.models) - known:
-        p.error(
-            f"--models: {', '.join(sorted(set(args.models) - known))} not in the plan's models for these tasks "
-            f"({', '.join(sorted(known))})"
-        )
+    shown = {"command": command, "labels": labels}
 
     def _main() -> int:
+        plan = plan_of(args.quick)
+        tasks = args.tasks or list(plan["tasks"])
+        unknown = [t for t in tasks if t not in plan["tasks"]]
+        if unknown:
+            p.error(f"--tasks: {', '.join(unknown)} not in the plan ({', '.join(plan['tasks'])})")
+        known = {m for t in tasks for m in models_of(plan, t)}
+        if args.models and set(args.models) - known:
+            p.error(
+                f"--models: {', '.join(sorted(set(args.models) - known))} not in the plan's models for these tasks "
+                f"({', '.join(sorted(known))})"
+            )
         record = args.report / RECORD_DIR
         if args.freeze:
             tested = [t for t in plan["tasks"] if any((record / "evals").glob(f"{t}_*_test.json"))]
@@ -379,9 +448,11 @@ def main(argv: list[str] | None = None) -> int:
             )
             return 0
         if args.report_only:
-            md = write_report(plan, record, args.report, args.split)
+            md = write_report(plan, record, args.report, args.split, **shown)
         else:
-            md = run_study(plan, args.split, tasks, args.work, args.report, args.workers, args.models)
+            md = run_study(
+                plan, args.split, tasks, args.work, args.report, args.workers, args.models, args.quick, **shown
+            )
         print(md.read_text())
         return 0
 

@@ -50,6 +50,7 @@ from studies import (
     delay_fair,
     delay_study,
     distill_study,
+    memory_fair,
     memory_tasks,
     metaworld,
     sampling,
@@ -70,6 +71,25 @@ def _memory(root: Path, out: Path) -> list[str]:
                 md = memory_tasks.write_report(
                     memory_tasks.PLAN, record, out, split, shown_record="reports/memory/record"
                 )
+            written += [md.name, md.with_suffix(".json").name]
+    return written
+
+
+def _memory_fair(root: Path, out: Path) -> list[str]:
+    record = root / "reports/memory_fair" / memory_tasks.RECORD_DIR
+    written = []
+    for split in ("validation", "test"):
+        if any((record / "evals").glob(f"*_{split}.json")):
+            plan = memory_fair.fair_plan(root / memory_fair.TUNING.relative_to(memory_fair.ROOT))
+            md = memory_tasks.write_report(
+                plan,
+                record,
+                out,
+                split,
+                shown_record="reports/memory_fair/record",
+                command="studies.memory_fair",
+                labels=memory_fair.LABELS,
+            )
             written += [md.name, md.with_suffix(".json").name]
     return written
 
@@ -153,6 +173,7 @@ def _metaworld(folder: str) -> Callable[[Path, Path], list[str]]:
 
 SOURCES: dict[str, Callable[[Path, Path], list[str]]] = {
     "reports/memory": _memory,
+    "reports/memory_fair": _memory_fair,
     "reports/metaworld": _metaworld("reports/metaworld"),
     "reports/metaworld_cue": _metaworld("reports/metaworld_cue"),
     "reports/sim": _sim,

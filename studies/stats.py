@@ -49,15 +49,17 @@ def _grid(outcomes) -> np.ndarray:
 
 
 def _resampled_means(grids: list[np.ndarray], samples: int, seed: int) -> np.ndarray:
-    """(samples, len(grids)): the mean of each grid over the same resampled seeds and scenes."""
+    """(samples, len(grids)): the mean of each grid over the same resampled scenes, and the same resampled seeds
+    where a grid has as many as the first (each its own draw of its seeds otherwise)."""
     r, s = grids[0].shape
     rng = np.random.default_rng(seed)
     rows = rng.integers(0, r, (samples, r))
     cols = rng.integers(0, s, (samples, s))
     out = np.empty((samples, len(grids)))
     for i, g in enumerate(grids):
+        own = rows if g.shape[0] == r else rng.integers(0, g.shape[0], (samples, g.shape[0]))
         # mean over the resampled (seed, scene) cells: the rows' means at the resampled columns
-        picked = g[rows]  # (samples, r, s)
+        picked = g[own]  # (samples, R, s)
         out[:, i] = np.take_along_axis(picked, np.broadcast_to(cols[:, None, :], picked.shape[:2] + (s,)), axis=2).mean(
             axis=(1, 2)
         )
@@ -77,13 +79,12 @@ def cluster_bootstrap(
 def paired_difference(
     a, b, samples: int = BOOTSTRAP_SAMPLES, seed: int = BOOTSTRAP_SEED, alpha: float = ALPHA
 ) -> tuple[float, float, float]:
-    """(difference, low, high): mean(a) - mean(b) of two (R, S) grids on the same scenes, with its two-way
-    cluster-bootstrap interval (the same resampled seeds and scenes for both)."""
+    """(difference, low, high): mean(a) - mean(b) of two (R_a, S) and (R_b, S) grids on the same scenes, with its
+    two-way cluster-bootstrap interval: the same resampled scenes for both; the same resampled seeds where R_a = R_b,
+    each model's own draw of its seeds otherwise."""
     ga, gb = _grid(a), _grid(b)
     if ga.shape[1] != gb.shape[1]:
         raise ValueError(f"paired grids must share their scenes: {ga.shape[1]} and {gb.shape[1]} scenes")
-    if ga.shape[0] != gb.shape[0]:
-        raise ValueError(f"paired grids must have as many training seeds: {ga.shape[0]} and {gb.shape[0]}")
     means = _resampled_means([ga, gb], samples, seed)
     diff = means[:, 0] - means[:, 1]
     lo, hi = np.quantile(diff, [alpha / 2, 1 - alpha / 2])

@@ -243,6 +243,11 @@ def test_the_cluster_bootstrap_is_wider_than_pooling_when_seeds_differ_and_is_de
     assert (d, dlo, dhi) == (1.0, 1.0, 1.0)
     with pytest.raises(ValueError, match="share their scenes"):
         paired_difference(np.ones((3, 30)), np.ones((3, 31)))
+    # five training seeds against three: each model resamples its own seeds, the scenes stay paired
+    five = np.ones((5, 30))
+    five[0] = 0  # one of five seeds fails everywhere: the interval spreads over which seeds are drawn
+    d, dlo, dhi = paired_difference(five, np.zeros((3, 30)))
+    assert d == pytest.approx(0.8) and 0 < dlo < 0.8 < dhi + 1e-12 and dhi == 1.0
     assert describe_p(0.2) == "p = 0.2, not significant" and describe_p(0.004) == "p = 0.004"
 
 
