@@ -1,7 +1,7 @@
 """The baselines' tuning: DSSP and DP3 (trained with DP3's recipe, at three sizes) with the same tuning budget on
-validation seeds, so that the memory tasks' test tables compare each at its best.
+validation seeds, so that the memory tasks' and MetaWorld's test tables compare each at its best.
 
-    python -m studies.baseline_tuning [--tasks tap swap put2] [--workers 2] [--work runs/baseline_tuning]
+    python -m studies.baseline_tuning [--tasks tap swap put2 button-press ...] [--workers 2] [--work runs/baseline_tuning]
                                       [--report reports/baseline_tuning] [--report-only] [--quick]
 
 Every model of the plan trains on the same data and sees the same number of training windows per task (the
@@ -15,8 +15,14 @@ tried. Decided here where DP3's recipe assumes its own budget: the warm-up is 10
 not DP3's 500 (which assumes some 10^5 steps; here DP3 runs 750 on tap). The sizes: the ``sim`` preset's parameter
 count (0.71 M) and about 4.8 M and 17 M (UNet widths ×2 and ×4).
 
+MetaWorld: one task of each difficulty group (the MetaWorld plan's first four: button-press, basketball, assembly,
+disassemble), trained as :mod:`studies.metaworld` trains (its 10 demonstrations, all trained on, its 100 epochs as
+1000 steps of 32 windows, its horizons), the last weights evaluated; one rate per model for the whole suite, as DP3
+uses one configuration for all of MetaWorld, chosen on the four tasks' successes pooled.
+
 The report picks each model's learning rate by its validation success (a tie: the first in the plan's order, the
-recipe's own); those choices are what a test plan may use. One training seed and 20 scenes per configuration:
+recipe's own); those choices are what a test plan may use (:mod:`studies.memory_fair`, ``studies.metaworld
+--fair``). One training seed and 20 scenes per configuration:
 the choice is noisy, and the report gives the Wilson interval of each cell to show how much.
 """
 
@@ -26,30 +32,49 @@ import json
 import sys
 from pathlib import Path
 
-from studies import memory_tasks, protocol
+from dssp_core.errors import DSSPError
+from studies import memory_tasks, metaworld, protocol
 from studies.evaluations import study_main, write_md_and_json
 from studies.runner import Stage
 from studies.sim_study import pct
-from studies.study_stages import collect_stage, eval_stage, export_stage, train_stage
+from studies.study_stages import (
+    DP3_LABELS,
+    DP3_SIZES,
+    SIM_BATCH,
+    collect_stage,
+    dp3_recipe,
+    eval_stage,
+    export_stage,
+    train_stage,
+)
 
 REPORT_NAME = "baseline_tuning"
-DP3_SIZES = {"dp3_0.7m": "[32,48,64]", "dp3_4.8m": "[64,128,256]", "dp3_17m": "[128,256,512]"}
+# the choices a test plan reads: this checkout's committed report (studies.memory_fair, studies.metaworld --fair)
+ROOT = Path(__file__).resolve().parents[1]
+CHOICES = ROOT / "reports" / REPORT_NAME / f"{REPORT_NAME}.json"
 PLAN = {
     "tasks": {
-        task: {"demos": spec["demos"], "windows": spec["steps"] * memory_tasks.SIM_BATCH}
-        for task, spec in memory_tasks.PLAN["tasks"].items()
+        **{
+            task: {"demos": spec["demos"], "windows": spec["steps"] * SIM_BATCH}
+            for task, spec in memory_tasks.PLAN["tasks"].items()
+        },
+        # MetaWorld: one task of each difficulty group (the MetaWorld plan's first four), trained as that study
+        # trains (its demonstrations, epochs and horizons, every demonstration trained on); one rate per model for
+        # the suite, chosen on the four pooled
+        **{
+            task: {
+                "sim_task": metaworld.task_id(metaworld.PLAN, task),
+                "suite": "metaworld",
+                "demos": metaworld.PLAN["demos"],
+                "windows": metaworld.steps_of(metaworld.PLAN) * SIM_BATCH,
+                "flags": ["--no-holdout", *metaworld.HORIZONS],
+            }
+            for task in metaworld.PLAN["tasks"][:4]
+        },
     },
     "models": {
         "dssp": {"preset": "sim", "batch": 32, "lrs": [1e-3, 3e-4, 3e-3, 1e-4], "flags": []},
-        **{
-            name: {
-                "preset": "dp3_recipe",
-                "batch": 128,
-                "lrs": [1e-4, 3e-4, 1e-3, 3e-3],
-                "flags": ["--set", f"model.unet_down_dims={dims}"],
-            }
-            for name, dims in DP3_SIZES.items()
-        },
+        **{name: {**dp3_recipe(name), "lrs": [1e-4, 3e-4, 1e-3, 3e-3]} for name in DP3_SIZES},
     },
     "seed": 0,
     "episodes": 20,
@@ -70,7 +95,7 @@ QUICK_PLAN = {
     "episodes": 1,
     "export_flags": ["--skip-verify", "--quantize", "none"],
 }
-LABELS = {"dssp": "DSSP (sim)", **{name: f"DP3, DP3's recipe, UNet {dims}" for name, dims in DP3_SIZES.items()}}
+LABELS = {"dssp": "DSSP (sim)", **DP3_LABELS}
 
 
 def cell(task: str, model: str, lr: float) -> str:
@@ -88,6 +113,8 @@ def stages(plan: dict, tasks: list[str], record: Path) -> list[Stage]:
     out: list[Stage] = []
     for task in tasks:
         data, collected, task_stages = f"data/{task}.zarr", (f"collect_{task}",), []
+        spec = plan["tasks"][task]
+        sim_task = spec.get("sim_task", task)
         for name, model in plan["models"].items():
             for lr in model["lrs"]:
                 key = cell(task, name, lr)
@@ -97,20 +124,36 @@ def stages(plan: dict, tasks: list[str], record: Path) -> list[Stage]:
                 flags = (*model["flags"], "--set", f"train.lr={lr:g}", "--set", f"train.batch_size={model['batch']}")
                 steps = steps_of(plan, task, name)
                 task_stages += [
-                    train_stage(key, data, run, model["preset"], steps, plan["seed"], *flags, after=collected),
+                    train_stage(
+                        key,
+                        data,
+                        run,
+                        model["preset"],
+                        steps,
+                        plan["seed"],
+                        *flags,
+                        *spec.get("flags", ()),
+                        after=collected,
+                    ),
                     export_stage(
                         key, run, model_dir, "--force", "--threads", "1", *plan["export_flags"], after=(f"train_{key}",)
                     ),
-                    eval_stage(key, model_dir, task, plan["episodes"], first, after=(f"export_{key}",)),
+                    eval_stage(key, model_dir, sim_task, plan["episodes"], first, after=(f"export_{key}",)),
                 ]
         if task_stages:
-            out += [collect_stage(task, task, plan["tasks"][task]["demos"], data), *task_stages]
+            out += [collect_stage(task, sim_task, spec["demos"], data), *task_stages]
     return out
 
 
+def _best(results: dict, lrs: list[float]) -> str | None:
+    """The rate with the most successes (a tie: the first in the plan's order), or None until every rate is
+    recorded."""
+    return max(results, key=lambda lr: results[lr][0]) if len(results) == len(lrs) else None
+
+
 def chosen(plan: dict, record: Path) -> dict:
-    """Per task and model: every learning rate's validation (successes, n) and the chosen one (the most successes; a
-    tie: the first in the plan's order), or None until all of the model's configurations are recorded."""
+    """Per task and model: every learning rate's validation (successes, n) and the chosen one (:func:`_best`); a task
+    of a suite takes the rate chosen on the suite's tasks pooled (:func:`pooled`)."""
     out: dict = {}
     for task in plan["tasks"]:
         for name, model in plan["models"].items():
@@ -120,12 +163,35 @@ def chosen(plan: dict, record: Path) -> dict:
                 if path.is_file():
                     e = json.loads(path.read_text())
                     results[f"{lr:g}"] = [e["successes"], e["n"]]
-            best = max(results, key=lambda lr: results[lr][0]) if len(results) == len(model["lrs"]) else None
             out.setdefault(task, {})[name] = {
                 "results": results,
-                "chosen_lr": best,
+                "chosen_lr": _best(results, model["lrs"]),
                 "steps": steps_of(plan, task, name),
             }
+    for suite, rows in pooled(plan, out).items():
+        for task in suite_tasks(plan, suite):
+            for name, row in rows.items():
+                out[task][name]["chosen_lr"] = row["chosen_lr"]
+    return out
+
+
+def suite_tasks(plan: dict, suite: str) -> list[str]:
+    return [task for task, spec in plan["tasks"].items() if spec.get("suite") == suite]
+
+
+def pooled(plan: dict, figures: dict) -> dict:
+    """Per suite and model: each rate's successes over the suite's tasks pooled, and the rate chosen on them (None
+    until every task has every rate)."""
+    out: dict = {}
+    for suite in sorted({spec["suite"] for spec in plan["tasks"].values() if "suite" in spec}):
+        tasks = suite_tasks(plan, suite)
+        for name, model in plan["models"].items():
+            results = {}
+            for lr in (f"{lr:g}" for lr in model["lrs"]):
+                cells = [figures[task][name]["results"].get(lr) for task in tasks]
+                if all(cells):
+                    results[lr] = [sum(k for k, _ in cells), sum(n for _, n in cells)]
+            out.setdefault(suite, {})[name] = {"results": results, "chosen_lr": _best(results, model["lrs"])}
     return out
 
 
@@ -148,35 +214,75 @@ def write_report(plan: dict, record: Path, report: Path, shown_record: str | Non
     for prov in json.loads(path.read_text()) if path.is_file() else []:
         lines += ["", protocol.describe_run(prov, "validation")]
     for task, models in figures.items():
-        lines += [
-            "",
-            f"## {task}",
-            "",
-            "| model | steps × batch | learning rate: success (95 % CI) | chosen |",
-            "|---|---|---|---|",
-        ]
-        for name, row in models.items():
-            cells = []
-            for lr in plan["models"][name]["lrs"]:
-                k_n = row["results"].get(f"{lr:g}")
-                if k_n is None:
-                    cells.append(f"{lr:g}: pending")
-                    continue
-                cells.append(f"{lr:g}: {pct(*k_n)}")
-            batch = plan["models"][name]["batch"]
-            lines.append(
-                f"| {LABELS.get(name, name)} | {row['steps']} × {batch} | {'; '.join(cells)} | {row['chosen_lr'] or 'pending'} |"
-            )
-        edge = [
-            LABELS.get(name, name)
-            for name, row in models.items()
-            if row["chosen_lr"] is not None
-            and float(row["chosen_lr"]) in (min(plan["models"][name]["lrs"]), max(plan["models"][name]["lrs"]))
-        ]
-        if edge:
-            lines += ["", f"Chosen at an edge of its grid, so the grid may not hold its best rate: {'; '.join(edge)}."]
+        suite = plan["tasks"][task].get("suite")
+        lines += ["", f"## {task}" + (f" ({suite}: the rate is chosen on the suite's tasks pooled)" if suite else "")]
+        lines += _table(plan, models, pooled_from=suite)
+    for suite, models in pooled(plan, figures).items():
+        lines += ["", f"## {suite}: {', '.join(suite_tasks(plan, suite))} pooled"]
+        lines += _table(plan, models)
     lines.append("")
-    return write_md_and_json(report, REPORT_NAME, lines, {"plan": plan, "tasks": figures})
+    return write_md_and_json(
+        report, REPORT_NAME, lines, {"plan": plan, "tasks": figures, "suites": pooled(plan, figures)}
+    )
+
+
+def _table(plan: dict, models: dict, pooled_from: str | None = None) -> list[str]:
+    """One task's (or one suite's pooled) table: each rate's success and the chosen rate, and a note where a choice
+    lies at an edge of its grid (on a suite's task the choice is the suite's, noted in its own table)."""
+    lines = [
+        "",
+        "| model | steps × batch | learning rate: success (95 % CI) | chosen |",
+        "|---|---|---|---|",
+    ]
+    for name, row in models.items():
+        lrs = plan["models"][name]["lrs"]
+        cells = [
+            f"{lr:g}: {pct(*row['results'][f'{lr:g}']) if f'{lr:g}' in row['results'] else 'pending'}" for lr in lrs
+        ]
+        steps = f"{row['steps']} × {plan['models'][name]['batch']}" if "steps" in row else "—"
+        choice = (
+            f"{row['chosen_lr']} ({pooled_from})" if pooled_from and row["chosen_lr"] else row["chosen_lr"] or "pending"
+        )
+        lines.append(f"| {LABELS.get(name, name)} | {steps} | {'; '.join(cells)} | {choice} |")
+    edge = [
+        LABELS.get(name, name)
+        for name, row in models.items()
+        if not pooled_from
+        and row["chosen_lr"] is not None
+        and float(row["chosen_lr"]) in (min(plan["models"][name]["lrs"]), max(plan["models"][name]["lrs"]))
+    ]
+    if edge:
+        lines += ["", f"Chosen at an edge of its grid, so the grid may not hold its best rate: {'; '.join(edge)}."]
+    return lines
+
+
+def read_choices(path: Path = CHOICES) -> dict:
+    """The figures of the tuning's report at ``path`` (``baseline_tuning.json``), or one line saying how to make
+    them."""
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise DSSPError(
+            f"cannot read the tuning report {path} ({exc}): rebuild it with python -m studies.baseline_tuning"
+        ) from exc
+
+
+def chosen_rates(choices: dict, keys: list[str], where: str = "tasks") -> dict[str, dict[str, float]]:
+    """{model: {key: learning rate}}: every model's rate chosen on each task (``where="tasks"``) or suite
+    (``"suites"``) of ``keys``, refused in one line, with the command that completes it, while one is pending."""
+    out: dict[str, dict[str, float]] = {}
+    for key in keys:
+        rows = choices.get(where, {}).get(key, {})
+        tasks = suite_tasks(PLAN, key) if where == "suites" else [key]
+        for name in PLAN["models"]:
+            rate = rows.get(name, {}).get("chosen_lr")
+            if rate is None:
+                raise DSSPError(
+                    f"the learning rate of {name} on {key} is not chosen yet: run python -m studies.baseline_tuning "
+                    f"--tasks {' '.join(tasks)}, then commit its record"
+                )
+            out.setdefault(name, {})[key] = float(rate)
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -23,60 +23,27 @@ commands.
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 
-from dssp_core.errors import DSSPError
 from studies import baseline_tuning, memory_tasks
+from studies.study_stages import DP3_SIZES, dp3_recipe
 
-ROOT = Path(__file__).resolve().parents[1]  # the checkout whose tuning report the plan is built from
-TUNING = ROOT / "reports" / "baseline_tuning" / "baseline_tuning.json"
 HEADLINE_SEEDS = [0, 1, 2, 3, 4]
 OTHER_SEEDS = [0, 1, 2]
-DP3_RECIPE = {"preset": "dp3_recipe", "batch": baseline_tuning.PLAN["models"]["dp3_0.7m"]["batch"]}
 LABELS = {**baseline_tuning.LABELS, **memory_tasks.LABELS}
 
 
-def chosen_rates(tuning: dict, tasks: list[str]) -> dict[str, dict[str, float]]:
-    """{model: {task: learning rate}} chosen by the tuning report's figures (``baseline_tuning.json``'s "tasks")."""
-    out: dict[str, dict[str, float]] = {}
-    for task in tasks:
-        for name, row in tuning["tasks"].get(task, {}).items():
-            if row["chosen_lr"] is None:
-                raise DSSPError(
-                    f"the learning rate of {name} on {task} is not chosen yet: run python -m studies.baseline_tuning "
-                    f"--tasks {task}, then commit its record"
-                )
-            out.setdefault(name, {})[task] = float(row["chosen_lr"])
-    missing = [name for name in baseline_tuning.PLAN["models"] if set(out.get(name, {})) != set(tasks)]
-    if missing:
-        raise DSSPError(
-            f"the tuning report holds no choice for {', '.join(missing)} on every task: run python -m "
-            f"studies.baseline_tuning --tasks {' '.join(tasks)}"
-        )
-    return out
-
-
-def fair_plan(tuning_path: Path = TUNING) -> dict:
-    """The plan of this study, from the tuning's report at ``tuning_path``."""
-    try:
-        tuning = json.loads(tuning_path.read_text())
-    except (OSError, ValueError) as exc:
-        raise DSSPError(
-            f"cannot read the tuning report {tuning_path} ({exc}): rebuild it with python -m studies.baseline_tuning"
-        ) from exc
+def fair_plan(choices: Path = baseline_tuning.CHOICES) -> dict:
+    """The plan of this study, with the rates the tuning's report at ``choices`` chose."""
     tasks = memory_tasks.PLAN["tasks"]
-    lrs = chosen_rates(tuning, list(tasks))
+    lrs = baseline_tuning.chosen_rates(baseline_tuning.read_choices(choices), list(tasks))
     dssp = {"preset": "sim", "flags": [], "lr": lrs["dssp"]}
     return {
         **memory_tasks.PLAN,
         "models": {
             "dssp": dssp,
-            **{
-                name: {**DP3_RECIPE, "flags": list(baseline_tuning.PLAN["models"][name]["flags"]), "lr": lrs[name]}
-                for name in baseline_tuning.DP3_SIZES
-            },
+            **{name: {**dp3_recipe(name), "lr": lrs[name]} for name in DP3_SIZES},
             "wo_history": {**dssp, "flags": ["--no-history"], "seeds": OTHER_SEEDS},
         },
         "ablations": {
@@ -85,8 +52,8 @@ def fair_plan(tuning_path: Path = TUNING) -> dict:
         },
         "gpu_models": {
             "dp3": {
-                **DP3_RECIPE,
                 "preset": "dp3",
+                "batch": dp3_recipe("dp3_0.7m")["batch"],
                 "flags": ["--set", "train.sampling=windows"],
                 "lr": {task: baseline_tuning.PLAN["models"]["dp3_0.7m"]["lrs"][0] for task in tasks},
             }
@@ -117,7 +84,7 @@ def quick_plan() -> dict:
 def main(argv: list[str] | None = None) -> int:
     return memory_tasks.main(
         argv,
-        plan_of=lambda quick: quick_plan() if quick else fair_plan(TUNING),
+        plan_of=lambda quick: quick_plan() if quick else fair_plan(baseline_tuning.CHOICES),
         command="studies.memory_fair",
         doc=__doc__,
         labels=LABELS,

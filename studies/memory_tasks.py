@@ -35,12 +35,19 @@ import numpy as np
 from dssp_core.cli_runner import ArgumentParser, run_cli
 from dssp_core.errors import DSSPError
 from dssp_core.output_guard import write_output_figure
-from dssp_train.config import load_preset
 from studies import protocol
 from studies.evaluations import run_and_keep, write_md_and_json
 from studies.runner import Stage
 from studies.stats import FAMILY_NOTE, cluster_bootstrap, compare, describe_p, disagreements, holm_family
-from studies.study_stages import collect_stage, eval_stage, export_stage, train_argv, train_stage
+from studies.study_stages import (
+    collect_stage,
+    eval_stage,
+    export_stage,
+    seeds_of,
+    train_argv,
+    train_stage,
+    training_of,
+)
 
 REPORT_NAME = "memory"
 PLAN = {
@@ -93,30 +100,11 @@ LABELS = {
     "transformer_denoiser": "w/ Transformer denoiser",
 }
 RECORD_DIR = "record"
-SIM_BATCH = load_preset("sim").train.batch_size  # a task's ``steps`` count its training windows at this batch
 
 
 def models_of(plan: dict, task: str) -> dict[str, dict]:
     """The models trained for ``task``: the plan's models, then the task's ablations."""
     return {**plan["models"], **plan["ablations"].get(task, {})}
-
-
-def seeds_of(plan: dict, model: dict) -> list[int]:
-    """The training seeds of ``model``: its own ``seeds`` where it names them, else the plan's."""
-    return model.get("seeds", plan["seeds"])
-
-
-def training_of(plan: dict, task: str, model: dict) -> tuple[int, tuple[str, ...]]:
-    """(steps, flags) that train ``model`` on ``task``. A model with its own ``batch`` sees the task's training
-    windows (its ``steps`` at the ``sim`` preset's :data:`SIM_BATCH` per step) in steps of that batch; a model with
-    an ``lr`` per task trains at the task's rate."""
-    steps, flags = plan["tasks"][task]["steps"], tuple(model["flags"])
-    if "batch" in model:
-        steps = max(1, steps * SIM_BATCH // model["batch"])
-        flags += ("--set", f"train.batch_size={model['batch']}")
-    if "lr" in model:
-        flags += ("--set", f"train.lr={model['lr'][task]:g}")
-    return steps, flags
 
 
 def eval_name(task: str, model: str, seed: int, split: str) -> str:
@@ -135,7 +123,7 @@ def stages(plan: dict, split: str, tasks: list[str], record: Path, models: list[
         for name, model in models_of(plan, task).items():
             if models is not None and name not in models:
                 continue
-            steps, flags = training_of(plan, task, model)
+            steps, flags = training_of(plan["tasks"][task]["steps"], model, task)
             for seed in seeds_of(plan, model):
                 key = f"{task}_{name}_s{seed}"
                 result = eval_name(task, name, seed, split)
@@ -159,7 +147,7 @@ def gpu_commands(plan: dict, tasks: list[str]) -> list[str]:
     lines = []
     for name, model in plan["gpu_models"].items():
         for task in tasks:
-            steps, flags = training_of(plan, task, model)
+            steps, flags = training_of(plan["tasks"][task]["steps"], model, task)
             for seed in seeds_of(plan, model):
                 data, run = f"data/{task}.zarr", f"runs/{task}_{name}_s{seed}"
                 argv = train_argv(data, run, model["preset"], steps, seed, *flags)

@@ -42,7 +42,18 @@ from studies import protocol
 from studies.evaluations import run_and_keep, write_md_and_json
 from studies.runner import Stage
 from studies.stats import FAMILY_NOTE, cluster_bootstrap, compare, describe_p, disagreements, holm_family
-from studies.study_stages import collect_stage, eval_stage, export_stage, train_stage
+from studies.study_stages import (
+    DP3_LABELS,
+    DP3_SIZES,
+    collect_stage,
+    dp3_recipe,
+    eval_stage,
+    export_stage,
+    model_steps,
+    seeds_of,
+    train_stage,
+    training_of,
+)
 
 REPORT_NAME = "metaworld"
 RECORD_DIR = "record"
@@ -112,7 +123,40 @@ QUICK_PLAN = {
     "episodes": {"validation": 1, "test": 1},
     "export_flags": ["--skip-verify", "--quantize", "none"],
 }
-LABELS = {"dssp": "DSSP", "dp3_sim": "DP3 (sim size)", "dp3": "DP3 (its own size)", "wo_history": "DSSP w/o history"}
+LABELS = {
+    "dssp": "DSSP",
+    "dp3_sim": "DP3 (sim size)",
+    **DP3_LABELS,
+    "dp3": "DP3 (its own size)",
+    "wo_history": "DSSP w/o history",
+}
+FAIR_SEEDS = {"headline": [0, 1, 2, 3, 4], "other": [0, 1, 2]}  # DSSP and DP3; DSSP w/o history
+
+
+def fair_plan(choices: Path | None = None) -> dict:
+    """The plan with every model at its best (``--fair``): :data:`PLAN`'s tasks, demonstrations and budget; DSSP and
+    DP3 with its recipe at three sizes (the same training windows), each at the one rate its tuning chose for the
+    suite (:mod:`studies.baseline_tuning`'s report at ``choices``, default the committed one), training seeds 0–4;
+    DSSP w/o history at DSSP's rate, seeds 0–2."""
+    from studies import baseline_tuning  # here: the tuning imports this study's plan
+
+    rates = baseline_tuning.chosen_rates(
+        baseline_tuning.read_choices(choices or baseline_tuning.CHOICES), ["metaworld"], "suites"
+    )
+    lr = {name: by_suite["metaworld"] for name, by_suite in rates.items()}
+    dssp = {"preset": "sim", "flags": HORIZONS, "lr": lr["dssp"]}
+    return {
+        **PLAN,
+        "tuned_by": "studies.baseline_tuning",
+        "models": {
+            "dssp": dssp,
+            **{name: {**dp3_recipe(name, *HORIZONS), "lr": lr[name]} for name in DP3_SIZES},
+            "wo_history": {**dssp, "flags": [*HORIZONS, "--no-history"], "seeds": FAIR_SEEDS["other"]},
+        },
+        "seeds": FAIR_SEEDS["headline"],
+    }
+
+
 # The paper's MetaWorld table (mean ± std over 3 seeds, the top-5 metric), per difficulty group.
 PAPER = {
     "dssp": {"easy": (90.5, 2.1), "medium": (67.4, 4.1), "hard": (54.6, 2.4), "very_hard": (71.3, 3.8)},
@@ -150,17 +194,26 @@ def task_id(plan: dict, task: str) -> str:
     return f"{plan.get('suite', 'metaworld')}/{task}"
 
 
+def is_fair(plan: dict) -> bool:
+    """Whether ``plan`` is :func:`fair_plan`'s (its rates chosen by the tuning)."""
+    return "tuned_by" in plan
+
+
 def is_memory(plan: dict) -> bool:
     return plan.get("suite") == "metaworld-cue"
 
 
-def steps_of(plan: dict) -> int:
-    return plan["epochs"] * plan["demos"]
+def steps_of(plan: dict, model: str | None = None) -> int:
+    """The training steps of the plan's ``model`` (default: at the ``sim`` preset's batch, an epoch one step per
+    demonstration): a model with its own batch takes the same windows in its own steps."""
+    steps = plan["epochs"] * plan["demos"]
+    return model_steps(steps, plan["models"][model]) if model else steps
 
 
-def checkpoint_steps(plan: dict) -> list[int]:
-    """The kept checkpoints' steps: ``evaluations`` of them, evenly along training, the last at the end."""
-    steps, k = steps_of(plan), plan["evaluations"]
+def checkpoint_steps(plan: dict, model: str | None = None) -> list[int]:
+    """The kept checkpoints' steps: ``evaluations`` of them, evenly along ``model``'s training, the last at the
+    end."""
+    steps, k = steps_of(plan, model), plan["evaluations"]
     if steps % k:
         raise DSSPError(f"{steps} steps do not divide into {k} evaluations; change the plan's epochs or evaluations")
     return [steps // k * (i + 1) for i in range(k)]
@@ -182,16 +235,16 @@ def stages(plan: dict, split: str, tasks: list[str], record: Path) -> list[Stage
     evaluated, on test the last one."""
     n = plan["episodes"][split]
     first = protocol.split_seeds(split, n)[0]
-    kept, steps = checkpoint_steps(plan), steps_of(plan)
-    keeping = ("--no-holdout", "--set", f"train.keep_every={steps // plan['evaluations']}")
     export_options = ("--force", "--threads", "1", *plan["export_flags"])
     out: list[Stage] = []
     for task in tasks:
         data, collected, sim_task = f"data/{task}.zarr", (f"collect_{task}",), task_id(plan, task)
         need_data = False
         for name, model in plan["models"].items():
-            preset, flags = model["preset"], model["flags"]
-            for seed in plan["seeds"]:
+            steps, flags = training_of(steps_of(plan), model, task)
+            kept, preset = checkpoint_steps(plan, name), model["preset"]
+            keeping = ("--no-holdout", "--set", f"train.keep_every={steps // plan['evaluations']}")
+            for seed in seeds_of(plan, model):
                 key = f"{task}_{name}_s{seed}"
                 run = f"runs/{key}"
                 wanted = [
@@ -242,14 +295,14 @@ def figures_of(plan: dict, record: Path) -> dict:
     """Every figure the report states, from the record alone: per task and model, the paper's metric per training
     seed (validation) and the last checkpoint's test grid; per difficulty group, the means over its tasks."""
     mw = _mw()
-    kept = checkpoint_steps(plan)
     out: dict = {"tasks": {}, "groups": {}}
     for task in plan["tasks"]:
         rows = {}
         for name in model_order(plan):
             row: dict = {}
             per_seed = []
-            for seed in plan["seeds"]:
+            kept, seeds = checkpoint_steps(plan, name), seeds_of(plan, plan["models"][name])
+            for seed in seeds:
                 evals = [_load(record, task, name, seed, s, "validation") for s in kept]
                 if any(e is None for e in evals):
                     per_seed = None
@@ -257,7 +310,7 @@ def figures_of(plan: dict, record: Path) -> dict:
                 per_seed.append(paper_metric([e["successes"] / e["n"] for e in evals]))
             if per_seed is not None:
                 row["top5"] = {"per_seed": per_seed, "mean": float(np.mean(per_seed)), "std": float(np.std(per_seed))}
-            tests = [_load(record, task, name, seed, kept[-1], "test") for seed in plan["seeds"]]
+            tests = [_load(record, task, name, seed, kept[-1], "test") for seed in seeds]
             if all(t is not None for t in tests):
                 scenes = [e["seed"] for e in tests[0]["episodes"]]
                 if any([e["seed"] for e in t["episodes"]] != scenes for t in tests):
@@ -314,9 +367,13 @@ def report_lines(plan: dict, record: Path, shown_record: str | None = None) -> t
     steps, kept = steps_of(plan), checkpoint_steps(plan)
     ratio = plan["epochs"] / PAPER_EPOCHS
     memory = is_memory(plan)
+    fair = is_fair(plan)
     title = (
         "# MetaWorld with a cue that disappears (this project's memory variant): DSSP, DP3 and DSSP w/o history"
         if memory
+        else "# MetaWorld under DP3's protocol, every model at its best: DSSP, DP3 with its recipe at three sizes, "
+        "DSSP w/o history"
+        if fair
         else "# MetaWorld under DP3's protocol: DSSP, DP3 and DSSP w/o history"
     )
     lines = [
@@ -332,13 +389,23 @@ def report_lines(plan: dict, record: Path, shown_record: str | None = None) -> t
             if memory
             else []
         ),
-        f"Rebuilt from `{shown_record or record}` by `python -m studies.metaworld{' --memory' if memory else ''} "
+        f"Rebuilt from `{shown_record or record}` by `python -m studies.metaworld{' --memory' * memory}{' --fair' * fair} "
         "--report-only`. "
         f"{plan['demos']} expert demonstrations per task (MetaWorld's scripted policies, demonstration seeds from 0), "
         f"512-point clouds in DP3's frame; training seeds {plan['seeds']}; {plan['epochs']} epochs = {steps} steps "
         f"({ratio:.2f} of the paper's {PAPER_EPOCHS} epochs); models "
         + ", ".join(f"{LABELS.get(n, n)} (`--preset {plan['models'][n]['preset']}`)" for n in model_order(plan))
-        + ".",
+        + "."
+        + (
+            " Each model at the learning rate its tuning chose for the suite on validation seeds "
+            "(`reports/baseline_tuning`): "
+            + ", ".join(f"{LABELS.get(n, n)} {m['lr']:g}" for n, m in plan["models"].items())
+            + f". DP3 takes the same training windows as DSSP in steps of {plan['models']['dp3_0.7m']['batch']} "
+            f"(its checkpoints at the same fractions of its training); {LABELS['wo_history']} has training seeds "
+            f"{plan['models']['wo_history']['seeds']}."
+            if fair
+            else ""
+        ),
         "",
         f"**Paper metric** (validation seeds): each training seed's checkpoints at steps {kept} are evaluated on "
         f"{plan['episodes']['validation']} episodes; per seed the mean of the top {TOP} (of {len(kept)}), then mean ± std "
@@ -446,12 +513,13 @@ def write_report(plan: dict, record: Path, report: Path, shown_record: str | Non
 def cost(plan: dict, tasks: list[str], record: Path) -> str:
     """What ``plan`` on ``tasks`` asks for, and what it would take on this study's machine, from the seconds its
     record keeps (training steps per second and evaluation seconds per episode, measured here)."""
-    runs = len(tasks) * len(plan["models"]) * len(plan["seeds"])
-    steps = runs * steps_of(plan)
+    seeds = {name: len(seeds_of(plan, model)) for name, model in plan["models"].items()}
+    runs = len(tasks) * sum(seeds.values())
+    steps = len(tasks) * sum(n * steps_of(plan, name) for name, n in seeds.items())
     episodes = runs * (plan["evaluations"] * plan["episodes"]["validation"] + plan["episodes"]["test"])
     lines = [
-        f"{len(tasks)} tasks x {len(plan['models'])} models x {len(plan['seeds'])} seeds = {runs} trainings of "
-        f"{steps_of(plan)} steps ({steps} in all), {runs * plan['evaluations']} exports, {episodes} evaluation episodes"
+        f"{len(tasks)} tasks x ({' + '.join(f'{n} seeds of {name}' for name, n in seeds.items())}) = {runs} trainings "
+        f"({steps} steps in all), {runs * plan['evaluations']} exports, {episodes} evaluation episodes"
     ]
     gpu = _gpu_step_ms() if any(m["preset"] == "metaworld" for m in plan["models"].values()) else None
     if gpu is not None:
@@ -556,6 +624,13 @@ def main(argv: list[str] | None = None) -> int:
         help="the memory variant (metaworld-cue/NAME: reach and push, the goal shown for 10 steps, then "
         "hidden), same protocol and budget; work and report default to runs/ and reports/metaworld_cue",
     )
+    p.add_argument(
+        "--fair",
+        action="store_true",
+        help="every model at its best: DP3 with its recipe at three sizes, each model at the rate its tuning chose "
+        "(studies.baseline_tuning), five training seeds on DSSP and DP3; work and report default to runs/ and "
+        "reports/metaworld_fair",
+    )
     p.add_argument("--work", type=Path, help="datasets, runs, models, evaluations, logs (default runs/metaworld)")
     p.add_argument("--report", type=Path, help="the report and its record (default reports/metaworld)")
     p.add_argument(
@@ -573,14 +648,18 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quick", action="store_true", help="a tiny plan (tests)")
     args = p.parse_args(argv)
 
-    folder = "metaworld_cue" if args.memory else "metaworld"
+    folder = "metaworld_cue" if args.memory else "metaworld_fair" if args.fair else "metaworld"
     args.work = args.work or Path("runs") / folder
     args.report = args.report or Path("reports") / folder
     if args.memory and args.paper_budget:
         p.error("--memory runs this project's variant at the plan's budget; the paper has no such task (drop one)")
+    if args.fair and (args.memory or args.paper_budget or args.quick):
+        p.error("--fair is the plan's tasks and budget with tuned models: drop --memory, --paper-budget and --quick")
 
     def _main() -> int:
-        plan = dict(QUICK_PLAN if args.quick else PAPER_PLAN if args.paper_budget else PLAN)
+        plan = dict(
+            QUICK_PLAN if args.quick else PAPER_PLAN if args.paper_budget else fair_plan() if args.fair else PLAN
+        )
         if args.memory:
             plan = {**plan, "suite": "metaworld-cue", "tasks": MEMORY_PLAN["tasks"] if not args.quick else ["reach"]}
         if args.tasks:

@@ -80,7 +80,7 @@ def _memory_fair(root: Path, out: Path) -> list[str]:
     written = []
     for split in ("validation", "test"):
         if any((record / "evals").glob(f"*_{split}.json")):
-            plan = memory_fair.fair_plan(root / memory_fair.TUNING.relative_to(memory_fair.ROOT))
+            plan = memory_fair.fair_plan(root / baseline_tuning.CHOICES.relative_to(baseline_tuning.ROOT))
             md = memory_tasks.write_report(
                 plan,
                 record,

@@ -10,7 +10,47 @@ from __future__ import annotations
 
 from dssp_sim import sim_cli
 from dssp_train.cli import train
+from dssp_train.config import load_preset
 from studies.runner import Stage
+
+SIM_BATCH = load_preset("sim").train.batch_size  # a plan's steps count its training windows at this batch
+# DP3 trained with DP3's recipe (the ``dp3_recipe`` preset: its batch of windows drawn across the dataset) at the
+# sizes the studies sweep: the ``sim`` preset's parameter count (0.71 M), and UNet widths x2 and x4 (4.8 M, 17 M)
+DP3_SIZES = {"dp3_0.7m": "[32,48,64]", "dp3_4.8m": "[64,128,256]", "dp3_17m": "[128,256,512]"}
+DP3_LABELS = {name: f"DP3, DP3's recipe, UNet {dims}" for name, dims in DP3_SIZES.items()}
+
+
+def dp3_recipe(name: str, *flags: str) -> dict:
+    """A plan's model: DP3 at the size ``name`` of :data:`DP3_SIZES` with its recipe, ``flags`` first."""
+    return {
+        "preset": "dp3_recipe",
+        "batch": load_preset("dp3_recipe").train.batch_size,
+        "flags": [*flags, "--set", f"model.unet_down_dims={DP3_SIZES[name]}"],
+    }
+
+
+def seeds_of(plan: dict, model: dict) -> list[int]:
+    """The training seeds of a plan's ``model``: its own ``seeds`` where it names them, else the plan's."""
+    return model.get("seeds", plan["seeds"])
+
+
+def model_steps(steps: int, model: dict) -> int:
+    """The steps in which a plan's ``model`` takes the training windows of ``steps`` steps at the ``sim`` preset's
+    :data:`SIM_BATCH`: as many, or fewer of its own larger ``batch``."""
+    return max(1, steps * SIM_BATCH // model["batch"]) if "batch" in model else steps
+
+
+def training_of(steps: int, model: dict, task: str) -> tuple[int, tuple[str, ...]]:
+    """(steps, flags) that train a plan's ``model`` on ``task`` with the training windows of ``steps`` steps
+    (:func:`model_steps`; its batch set where it has its own) at its ``lr`` where it has one (one rate, or one per
+    task)."""
+    flags = tuple(model["flags"])
+    if "batch" in model:
+        flags += ("--set", f"train.batch_size={model['batch']}")
+    if "lr" in model:
+        rate = model["lr"][task] if isinstance(model["lr"], dict) else model["lr"]
+        flags += ("--set", f"train.lr={rate:g}")
+    return model_steps(steps, model), flags
 
 
 def collect_stage(key: str, task: str, demos: int, data: str) -> Stage:

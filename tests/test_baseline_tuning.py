@@ -52,3 +52,44 @@ def test_the_choice_is_the_most_successes_and_a_tie_keeps_the_recipes_rate(tmp_p
         "Chosen at an edge of its grid, so the grid may not hold its best rate: DP3, DP3's recipe, UNet [32,48,64]."
         in md
     )
+
+
+def test_metaworld_is_tuned_as_its_study_trains_with_one_rate_for_the_suite(tmp_path):
+    from studies import metaworld
+
+    suite = ["button-press", "basketball", "assembly", "disassemble"]
+    assert [t for t, spec in study.PLAN["tasks"].items() if spec.get("suite") == "metaworld"] == suite
+    by_name = {s.name: s for s in study.stages(study.PLAN, ["button-press"], tmp_path)}
+    assert by_name["collect_button-press"].argv[:3] == ("collect", "--task", "metaworld/button-press")
+    train = by_name["train_button-press_dp3_4.8m_lr0.001"].argv
+    assert train[train.index("--steps") + 1] == str(metaworld.steps_of(metaworld.PLAN) * 32 // 128)
+    assert "--no-holdout" in train and " ".join(metaworld.HORIZONS) in " ".join(train)
+    assert "metaworld/button-press" in by_name["eval_button-press_dssp_lr0.001"].argv
+
+    plan = {
+        **study.PLAN,
+        "tasks": {t: study.PLAN["tasks"][t] for t in suite},
+        "models": {"dssp": study.PLAN["models"]["dssp"]},
+    }
+    (tmp_path / "evals").mkdir()
+    wins = {
+        "button-press": [20, 19, 3, 0],
+        "basketball": [0, 5, 9, 0],
+        "assembly": [0, 2, 9, 0],
+        "disassemble": [1, 1, 1, 1],
+    }
+    for task, ks in wins.items():
+        for lr, k in zip(plan["models"]["dssp"]["lrs"], ks):
+            (tmp_path / "evals" / f"{study.cell(task, 'dssp', lr)}.json").write_text(
+                json.dumps({"successes": k, "n": 20})
+            )
+    figures = study.chosen(plan, tmp_path)
+    pooled = study.pooled(plan, figures)["metaworld"]["dssp"]
+    assert pooled["results"]["0.001"] == [21, 80] and pooled["chosen_lr"] == "0.0003"  # 27 of 80, not a task's best
+    assert {figures[t]["dssp"]["chosen_lr"] for t in suite} == {"0.0003"}
+    md = study.write_report(plan, tmp_path, tmp_path / "report").read_text()
+    assert "## metaworld: button-press, basketball, assembly, disassemble pooled" in md
+    assert "| 0.0003 (metaworld) |" in md and "0.0003: 34 % (27/80; " in md
+    # one task missing a rate: the suite's choice waits for it
+    (tmp_path / "evals" / f"{study.cell('assembly', 'dssp', 3e-3)}.json").unlink()
+    assert study.chosen(plan, tmp_path)["button-press"]["dssp"]["chosen_lr"] is None

@@ -9,6 +9,7 @@ import pytest
 
 from dssp_core.errors import DSSPError
 from studies import baseline_tuning, memory_fair, memory_tasks
+from studies.study_stages import SIM_BATCH, seeds_of
 
 
 def _tuning(tmp_path, chosen=None):
@@ -34,7 +35,7 @@ def test_each_model_trains_at_its_chosen_rate_on_the_same_windows(tmp_path):
         "train.lr=0.0003" in dssp and dssp[dssp.index("--steps") + 1] == "3000" and "train.batch_size=128" not in dssp
     )
     # the same windows: steps × batch equal for DSSP (the sim preset's 32) and DP3 (128)
-    assert 3000 * memory_tasks.SIM_BATCH == 750 * 128
+    assert 3000 * SIM_BATCH == 750 * 128
     # five seeds on the headline rows, three for DSSP w/o history and the ablations (at DSSP's rate)
     for name, seeds in (("dssp", 5), ("dp3_0.7m", 5), ("wo_history", 3), ("no_dynamics_loss", 3)):
         assert len([s for s in stages if s.startswith(f"train_tap_{name}_s")]) == seeds, name
@@ -53,9 +54,9 @@ def test_a_pending_tuning_is_refused_with_the_command_that_completes_it(tmp_path
     path.write_text(json.dumps(report))
     with pytest.raises(DSSPError, match=r"dp3_4.8m on swap is not chosen yet: run python -m studies.baseline_tuning"):
         memory_fair.fair_plan(path)
-    del report["tasks"]["put2"]
+    del report["tasks"]["swap"]
     path.write_text(json.dumps(report))
-    with pytest.raises(DSSPError, match="swap"):
+    with pytest.raises(DSSPError, match="dssp on swap is not chosen yet"):
         memory_fair.fair_plan(path)
     (tmp_path / "folder").mkdir()
     with pytest.raises(DSSPError, match="cannot read the tuning report"):
@@ -68,7 +69,7 @@ def test_the_report_pairs_five_seeds_against_three(tmp_path):
     scenes = list(range(1000, 1010))
     rng = np.random.default_rng(0)
     for name, model in plan["models"].items():
-        for seed in memory_tasks.seeds_of(plan, model):
+        for seed in seeds_of(plan, model):
             wins = rng.integers(0, 2, 10) if name != "dssp" else np.ones(10, int)
             episodes = [
                 {"seed": s, "success": bool(w), "presses": 3, "reason": "success" if w else "wrong count"}
@@ -100,7 +101,7 @@ def test_a_pending_tuning_stops_the_command_in_one_line(tmp_path, capsys, monkey
     report = json.loads(path.read_text())
     report["tasks"]["tap"]["dssp"]["chosen_lr"] = None
     path.write_text(json.dumps(report))
-    monkeypatch.setattr(memory_fair, "TUNING", path)
+    monkeypatch.setattr(baseline_tuning, "CHOICES", path)
     assert memory_fair.main(["--report-only", "--report", str(tmp_path / "r")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "dssp on tap is not chosen yet" in err[0]

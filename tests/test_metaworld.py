@@ -327,3 +327,42 @@ def test_the_quick_study_runs_end_to_end_and_locks_the_test_split(tmp_path, caps
     assert set(figures["tasks"]["reach"]) == {"dssp", "dp3_sim", "wo_history"}
     assert all("top5" in r and "test" in r for r in figures["tasks"]["reach"].values())
     assert len(list((tmp_path / "rep" / "record" / "evals").glob("*.json"))) == 3 * 2 * (2 + 1)
+
+
+def test_the_fair_plan_trains_each_model_at_its_tuned_rate_on_the_same_windows(tmp_path, capsys, monkeypatch):
+    from pathlib import Path
+
+    from studies import baseline_tuning
+    from studies import metaworld as study
+
+    choices = tmp_path / "baseline_tuning.json"
+    rates = {"dssp": "0.0003", "dp3_0.7m": "0.001", "dp3_4.8m": "0.003", "dp3_17m": None}
+    choices.write_text(json.dumps({"suites": {"metaworld": {n: {"chosen_lr": r} for n, r in rates.items()}}}))
+    with pytest.raises(
+        DSSPError, match="dp3_17m on metaworld is not chosen yet: run python -m studies.baseline_tuning"
+    ):
+        study.fair_plan(choices)
+    monkeypatch.setattr(baseline_tuning, "CHOICES", choices)
+    assert study.main(["--fair", "--cost"]) == 2
+    one_error_line(capsys.readouterr().err, "--tasks button-press basketball assembly disassemble")
+    rates["dp3_17m"] = "0.0001"
+    choices.write_text(json.dumps({"suites": {"metaworld": {n: {"chosen_lr": r} for n, r in rates.items()}}}))
+    plan = {**study.fair_plan(choices), "tasks": ["reach"]}
+    stages = {s.name: s.argv for s in study.stages(plan, "test", ["reach"], Path("/nonexistent"))}
+    dp3 = stages["train_reach_dp3_4.8m_s4"]
+    assert dp3[dp3.index("--steps") + 1] == "250" and "train.keep_every=50" in dp3 and "--no-holdout" in dp3
+    assert "train.lr=0.003" in dp3 and "train.batch_size=128" in dp3 and "model.unet_down_dims=[64,128,256]" in dp3
+    assert " ".join(study.HORIZONS) in " ".join(dp3)
+    assert "eval_reach_dp3_4.8m_s4_step250_test" in stages and "eval_reach_dssp_s4_step1000_test" in stages
+    assert "train.lr=0.0003" in stages["train_reach_wo_history_s2"] and "train_reach_wo_history_s3" not in stages
+    # the report pairs five seeds of DSSP with three of DSSP w/o history on the same scenes
+    scenes = list(range(10000, 10050))
+    for name, seeds in (("dssp", 5), ("wo_history", 3)):
+        step = study.checkpoint_steps(plan, name)[-1]
+        for seed in range(seeds):
+            _fake_mw_eval(tmp_path, study.eval_name("reach", name, seed, step, "test"), scenes, [name == "dssp"] * 50)
+    lines, figures = study.report_lines(plan, tmp_path)
+    text = "\n".join(lines)
+    assert "python -m studies.metaworld --fair --report-only" in text and "DSSP 0.0003" in text
+    row = figures["tasks"]["reach"]["wo_history"]["test"]
+    assert row["delta"] == -1.0 and row["p_seeds"] == pytest.approx(1 / 56)  # 5 against 3 seeds: C(8, 3) splits
