@@ -40,6 +40,7 @@ from studies.evaluations import run_and_keep, write_md_and_json
 from studies.runner import Stage
 from studies.stats import FAMILY_NOTE, cluster_bootstrap, compare, describe_p, disagreements, holm_family
 from studies.study_stages import (
+    SIM_BATCH,
     collect_stage,
     eval_stage,
     export_stage,
@@ -208,12 +209,15 @@ def report_lines(
         raise DSSPError(f"{prov_path} must hold a list of runs' provenance (objects); write it again with this study")
     n = plan["episodes"][split]
     scene_seeds = protocol.split_seeds(split, n)
+    task_steps = ", ".join(f"{task} {spec['steps']}" for task, spec in plan["tasks"].items())
     lines = [
         f"# Memory tasks, {split} split: DSSP against DP3 and DSSP without history",
         "",
         f"Rebuilt from `{shown_record or record}` by `python -m {command} --split {split} --report-only`. "
         f"Scenes: {split} seeds {scene_seeds[0]}–{scene_seeds[-1]} ({n} per model and training seed, the same for every "
-        f"model); training seeds {_seeds_text(plan, labels)}; steps per task { ({t: s['steps'] for t, s in plan['tasks'].items()}) }. "
+        f"model); training seeds {_seeds_text(plan, labels)}; training steps per task "
+        f"{task_steps} (at {SIM_BATCH} windows a step; "
+        "a model with its own batch takes the same windows in fewer). "
         "Success: mean over training seeds and scenes, 95 % two-way cluster-bootstrap interval (training seeds × scenes). "
         "Δ vs DSSP: paired difference (same scenes) with its interval. " + FAMILY_NOTE,
     ]
