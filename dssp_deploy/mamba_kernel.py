@@ -7,8 +7,8 @@ every model directory has, never do. So the kernel is optional: :func:`kernel` s
 and the runtime (:class:`dssp_deploy.onnx_policy.OnnxPolicy`) falls back to the standard graphs when it
 does not, saying why in one line.
 
-``DSSP_SCAN_PATH=auto|avx512|avx2|portable`` chooses the library's implementation (see the C++ source;
-auto, the default, is the widest this CPU runs).
+``DSSP_SCAN_PATH=auto|avx512|avx2|neon|portable`` chooses the library's implementation (see the C++ source;
+auto, the default, is the widest this CPU runs; neon is the aarch64 build's).
 
 Before the library is loaded its ELF headers are checked (:func:`elf_problem`): loading a truncated library
 maps pages past the end of the file, and the first touch of one kills the process (SIGBUS) — no exception
@@ -34,7 +34,7 @@ OPSET_VERSION = 1
 LIBRARY_NAME = "libdssp_mamba.so"
 LIBRARY_ENV = "DSSP_KERNEL"
 DEFAULT_LIBRARY = Path(__file__).resolve().parent / "kernel" / LIBRARY_NAME
-SCAN_PATHS = ("auto", "avx512", "avx2", "portable")  # the values of DSSP_SCAN_PATH
+SCAN_PATHS = ("auto", "avx512", "avx2", "neon", "portable")  # the values of DSSP_SCAN_PATH
 
 
 @dataclass(frozen=True)
@@ -43,7 +43,7 @@ class Kernel:
 
     path: Path | None
     reason: str = ""
-    implementation: str = ""  # "avx512", "avx2" or "portable": what the library runs on this CPU
+    implementation: str = ""  # "avx512", "avx2", "neon" or "portable": what the library runs on this CPU
 
     @property
     def available(self) -> bool:

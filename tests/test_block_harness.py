@@ -1,6 +1,7 @@
 """The fused int8 Mamba block without ONNX Runtime (dssp_deploy/kernel/block_check.cc over mamba_block.h, the code
 the ai.dssp::MambaBlockQ8 operator runs): built natively and for aarch64, where it runs under qemu on a CPU with
-the dot-product instructions and on one without, each against ``export.fused_ops.block_reference``."""
+the dot-product instructions and on one without (the neon scan, and the portable one when asked for), each against
+``export.fused_ops.block_reference``."""
 
 import json
 import os
@@ -16,7 +17,13 @@ from conftest import CROSS_HINT, CROSS_TOOLS, ROOT, block_case, build_harness
 
 BUILD = ROOT / "build" / "block"
 MAGIC = b"DSSPTENS"
-CASES = [("gated", 1, "actions"), ("none", 2, "actions"), ("gated", 2, "prefix"), ("gated", 1, "joint")]
+CASES = [
+    ("gated", 1, "actions"),
+    ("none", 2, "actions"),
+    ("gated", 2, "prefix"),
+    ("gated", 1, "joint"),
+    ("gated", 2, "step"),
+]
 
 
 def write_tensors(path: Path, tensors: dict[str, np.ndarray]) -> None:
@@ -49,7 +56,8 @@ def read_tensors(path: Path) -> dict[str, np.ndarray]:
 
 def case(tmp_path: Path, mlp: str, batch: int, part: str) -> tuple[Path, list[np.ndarray]]:
     """A block's inputs written for the harness, and what block_reference gives for them: (a, conv, ssm), the
-    states after the tokens on the prefix alone, else (batch, 0, .) (not written)."""
+    states after the tokens on the prefix alone, else (batch, 0, .) (not written). "step" is one prefix token from
+    the given states, its states written: the scan's one-token path."""
     from export.fused_ops import block_reference
 
     fused, values = block_case(mlp, batch)
@@ -60,11 +68,13 @@ def case(tmp_path: Path, mlp: str, batch: int, part: str) -> tuple[Path, list[np
         )
     if part == "joint":
         values.update(conv_state=values["conv_state"][:, :0], ssm_state=values["ssm_state"][:, :0])
-    if part == "prefix":
+    if part == "step":
+        values.update(a=values["a"][:, :1])
+    if part in ("prefix", "step"):
         values.update(mod=torch.zeros(0, values["a"].shape[-1]))
     with torch.no_grad():
         want = [t.numpy() for t in block_reference(*values.values(), fused.eps, plain)]
-    if part != "prefix":
+    if part not in ("prefix", "step"):
         want = [want[0], want[1][:, :0], want[2][:, :0]]
     path = tmp_path / f"{mlp}-{batch}-{part}.case"
     write_tensors(
@@ -127,28 +137,51 @@ def test_the_block_matches_its_reference_natively(native, tmp_path, mlp, batch, 
 def test_the_block_matches_its_reference_on_aarch64_under_qemu(
     cross, tmp_path, cpu, product, mlp, batch, part, monkeypatch
 ):
-    """On a CPU with sdot (neon_dot) and one without (neon): the products' paths give the same bits as the portable
-    one (their integer sums are exact), and the block matches the reference."""
+    """On a CPU with sdot (neon_dot) and one without (neon), the scan on its neon path: the products' paths give the
+    same bits as the portable one (their integer sums are exact), and the block matches the reference."""
     monkeypatch.delenv("DSSP_QGEMM_PATH", raising=False)
     monkeypatch.delenv("DSSP_SCAN_PATH", raising=False)
     path, want = case(tmp_path, mlp, batch, part)
     out = tmp_path / "out"
     report, got = run(["qemu-aarch64", "-cpu", cpu, str(cross), str(path), str(out), "2"], out)
-    assert report["arch"] == "aarch64" and report["qgemm_path"] == product and report["scan_path"] == "portable", report
+    assert report["arch"] == "aarch64" and report["qgemm_path"] == product and report["scan_path"] == "neon", report
     assert_close(got, want, (cpu, product))
     _, portable = run(["qemu-aarch64", "-cpu", cpu, str(cross), str(path), str(out)], out, DSSP_QGEMM_PATH="portable")
     for name in got:
         assert np.array_equal(got[name], portable[name]), name
 
 
-def test_a_path_the_cpu_lacks_is_one_line_not_a_crash(cross, tmp_path):
+@pytest.mark.parametrize("mlp, batch, part", [("gated", 2, "prefix"), ("gated", 2, "step")])
+def test_the_portable_scan_still_runs_on_aarch64_and_agrees_with_neon(cross, tmp_path, mlp, batch, part, monkeypatch):
+    """DSSP_SCAN_PATH=portable on aarch64 (the loops GCC vectorises): the block matches the reference, and the neon
+    scan to the same tolerance (another exp and summation order: close, not the same bits). The cases write the
+    scan's state: over several tokens (scan_block) and over one (scan_step)."""
+    monkeypatch.delenv("DSSP_QGEMM_PATH", raising=False)
+    path, want = case(tmp_path, mlp, batch, part)
+    out = tmp_path / "out"
+    binary = ["qemu-aarch64", "-cpu", "cortex-a53", str(cross), str(path), str(out), "2"]
+    report, portable = run(binary, out, DSSP_SCAN_PATH="portable")
+    assert (report["arch"], report["scan_path"]) == ("aarch64", "portable"), report
+    assert_close(portable, want, "portable")
+    report, neon = run(binary, out, DSSP_SCAN_PATH="neon")
+    assert report["scan_path"] == "neon", report
+    assert_close(neon, want, "neon")
+    assert_close(neon, [portable[name] for name in ("a", "conv", "ssm")], "neon against portable")
+
+
+def test_a_path_the_cpu_lacks_is_one_line_not_a_crash(cross, native, tmp_path, monkeypatch):
+    """x86-64 paths asked of the aarch64 build, and the neon scan of the native (x86-64) one."""
+    monkeypatch.delenv("DSSP_QGEMM_PATH", raising=False)
+    monkeypatch.delenv("DSSP_SCAN_PATH", raising=False)
     path, _ = case(tmp_path, "gated", 1, "actions")
-    for env, word in (
-        (dict(DSSP_SCAN_PATH="avx512"), "DSSP_SCAN_PATH=avx512"),
-        (dict(DSSP_QGEMM_PATH="avx2"), "DSSP_QGEMM_PATH=avx2"),
+    aarch64 = ["qemu-aarch64", "-cpu", "max", str(cross)]
+    for binary, env, word in (
+        (aarch64, dict(DSSP_SCAN_PATH="avx512"), "DSSP_SCAN_PATH=avx512"),
+        (aarch64, dict(DSSP_QGEMM_PATH="avx2"), "DSSP_QGEMM_PATH=avx2"),
+        ([str(native)], dict(DSSP_SCAN_PATH="neon"), "DSSP_SCAN_PATH=neon"),
     ):
         result = subprocess.run(
-            ["qemu-aarch64", "-cpu", "max", str(cross), str(path), str(tmp_path / "out")],
+            [*binary, str(path), str(tmp_path / "out")],
             capture_output=True,
             text=True,
             timeout=300,

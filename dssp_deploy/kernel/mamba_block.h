@@ -25,6 +25,9 @@
 #if (defined(__x86_64__) || defined(_M_X64)) && defined(__GNUC__) && !defined(__clang__)
 #include <immintrin.h>
 #define DSSP_HAVE_SIMD_PATHS 1
+#elif defined(__aarch64__) && defined(__ARM_NEON)
+#include <arm_neon.h>
+#define DSSP_HAVE_NEON_PATH 1
 #endif
 
 namespace dssp::mamba {
@@ -106,13 +109,69 @@ inline void scan_block_portable(const Problem& p, int64_t b, int64_t e0, int64_t
 }
 
 // ------------------------------------------------------------------ the SIMD paths
-// One loop (scan_simd.inc) compiled twice, inside a namespace per instruction set that defines its vector V.
-// GCC only: `#pragma GCC target` compiles a region for an instruction set the build's flags do not assume;
-// other compilers build the portable path alone.
+// One loop (scan_simd.inc) compiled once per instruction set, inside a namespace that defines its vectors V and P.
+// x86-64 (AVX2, AVX-512): GCC only, `#pragma GCC target` compiles a region for an instruction set the build's
+// flags do not assume; other compilers build the portable path alone there. aarch64: NEON is part of the
+// architecture, so any aarch64 build has the neon path.
 #ifdef DSSP_HAVE_SIMD_PATHS
 #pragma GCC push_options
 #pragma GCC target("avx2,fma")
+// The 8-lane AVX vector of both x86 paths' per-token preliminaries and layout changes (scan_simd.inc's P).
+struct Avx8 {
+  using T = __m256;
+  using M = __m256;  // a lane mask: all bits set or all clear
+  static constexpr int kLanes = 8;
+  static T loadu(const float* p) { return _mm256_loadu_ps(p); }
+  static void store(float* p, T v) { _mm256_store_ps(p, v); }
+  static void storeu(float* p, T v) { _mm256_storeu_ps(p, v); }
+  static T set1(float v) { return _mm256_set1_ps(v); }
+  static T add(T a, T b) { return _mm256_add_ps(a, b); }
+  static T sub(T a, T b) { return _mm256_sub_ps(a, b); }
+  static T mul(T a, T b) { return _mm256_mul_ps(a, b); }
+  static T div(T a, T b) { return _mm256_div_ps(a, b); }
+  static T min(T a, T b) { return _mm256_min_ps(a, b); }
+  static T max(T a, T b) { return _mm256_max_ps(a, b); }
+  static T fmadd(T a, T b, T c) { return _mm256_fmadd_ps(a, b, c); }
+  static T fnmadd(T a, T b, T c) { return _mm256_fnmadd_ps(a, b, c); }
+  static T round(T v) { return _mm256_round_ps(v, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC); }
+  static T abs(T v) { return _mm256_andnot_ps(_mm256_set1_ps(-0.0f), v); }
+  static M greater(T a, T b) { return _mm256_cmp_ps(a, b, _CMP_GT_OQ); }
+  static M equal(T a, T b) { return _mm256_cmp_ps(a, b, _CMP_EQ_OQ); }
+  static T select(M m, T a, T b) { return _mm256_blendv_ps(b, a, m); }
+  static T and_mask(M m, T v) { return _mm256_and_ps(m, v); }
+  static T pow2(T n) {
+    return _mm256_castsi256_ps(_mm256_slli_epi32(_mm256_add_epi32(_mm256_cvtps_epi32(n), _mm256_set1_epi32(127)), 23));
+  }
+  static T exponent(T w) {
+    return _mm256_cvtepi32_ps(_mm256_sub_epi32(_mm256_srli_epi32(_mm256_castps_si256(w), 23), _mm256_set1_epi32(127)));
+  }
+  static T mantissa(T w) {
+    return _mm256_castsi256_ps(_mm256_or_si256(_mm256_and_si256(_mm256_castps_si256(w), _mm256_set1_epi32(0x007fffff)),
+                                               _mm256_set1_epi32(0x3f800000)));
+  }
+  static void transpose(const float* src, int64_t stride, float* dst, int64_t dst_stride, T scale) {
+    __m256 r[8], t[8];
+    for (int c = 0; c < 8; ++c) r[c] = _mm256_mul_ps(_mm256_loadu_ps(src + c * stride), scale);
+    for (int c = 0; c < 8; c += 2) {
+      t[c] = _mm256_unpacklo_ps(r[c], r[c + 1]);
+      t[c + 1] = _mm256_unpackhi_ps(r[c], r[c + 1]);
+    }
+    for (int c = 0; c < 8; c += 4) {
+      r[c] = _mm256_shuffle_ps(t[c], t[c + 2], _MM_SHUFFLE(1, 0, 1, 0));
+      r[c + 1] = _mm256_shuffle_ps(t[c], t[c + 2], _MM_SHUFFLE(3, 2, 3, 2));
+      r[c + 2] = _mm256_shuffle_ps(t[c + 1], t[c + 3], _MM_SHUFFLE(1, 0, 1, 0));
+      r[c + 3] = _mm256_shuffle_ps(t[c + 1], t[c + 3], _MM_SHUFFLE(3, 2, 3, 2));
+    }
+    for (int j = 0; j < 4; ++j) {
+      _mm256_storeu_ps(dst + j * dst_stride, _mm256_permute2f128_ps(r[j], r[j + 4], 0x20));
+      _mm256_storeu_ps(dst + (j + 4) * dst_stride, _mm256_permute2f128_ps(r[j], r[j + 4], 0x31));
+    }
+  }
+  static void prefetch(const char* p) { _mm_prefetch(p, _MM_HINT_T0); }
+};
+
 namespace avx2 {
+using P = Avx8;
 struct V {
   using T = __m256;
   static constexpr int kLanes = 8;
@@ -146,6 +205,7 @@ struct V {
 #pragma GCC diagnostic push
 #pragma GCC diagnostic ignored "-Wmaybe-uninitialized"  // GCC 12's avx512fintrin.h (_mm512_undefined_*), not this code
 namespace avx512 {
+using P = Avx8;
 struct V {
   using T = __m512;
   static constexpr int kLanes = 16;
@@ -179,6 +239,64 @@ inline bool cpu_has_avx2() {
 }
 
 inline bool cpu_has_avx512() { return cpu_has_avx2() && __builtin_cpu_supports("avx512f"); }
+#endif
+
+#ifdef DSSP_HAVE_NEON_PATH
+namespace neon {
+// The 128-bit NEON vector, 4 lanes: scan_simd.inc's V and P both.
+struct V {
+  using T = float32x4_t;
+  using M = uint32x4_t;  // a lane mask: all bits set or all clear
+  static constexpr int kLanes = 4;
+  static constexpr bool kScalef = false;
+  static float sum(T v) { return vaddvq_f32(v); }
+  static T load(const float* p) { return vld1q_f32(p); }
+  static T loadu(const float* p) { return vld1q_f32(p); }
+  static void store(float* p, T v) { vst1q_f32(p, v); }
+  static void storeu(float* p, T v) { vst1q_f32(p, v); }
+  static T set1(float v) { return vdupq_n_f32(v); }
+  static T broadcast(const float* p) { return vld1q_dup_f32(p); }
+  static T add(T a, T b) { return vaddq_f32(a, b); }
+  static T sub(T a, T b) { return vsubq_f32(a, b); }
+  static T mul(T a, T b) { return vmulq_f32(a, b); }
+  static T div(T a, T b) { return vdivq_f32(a, b); }
+  static T min(T a, T b) { return vminq_f32(a, b); }
+  static T max(T a, T b) { return vmaxq_f32(a, b); }
+  static T fmadd(T a, T b, T c) { return vfmaq_f32(c, a, b); }
+  static T fnmadd(T a, T b, T c) { return vfmsq_f32(c, a, b); }
+  static T round(T v) { return vrndnq_f32(v); }
+  static T abs(T v) { return vabsq_f32(v); }
+  static M greater(T a, T b) { return vcgtq_f32(a, b); }
+  static M equal(T a, T b) { return vceqq_f32(a, b); }
+  static T select(M m, T a, T b) { return vbslq_f32(m, a, b); }
+  static T and_mask(M m, T v) { return vreinterpretq_f32_u32(vandq_u32(m, vreinterpretq_u32_f32(v))); }
+  static T pow2(T n) { return vreinterpretq_f32_s32(vshlq_n_s32(vaddq_s32(vcvtq_s32_f32(n), vdupq_n_s32(127)), 23)); }
+  static T exponent(T w) {
+    return vcvtq_f32_s32(vsubq_s32(vreinterpretq_s32_u32(vshrq_n_u32(vreinterpretq_u32_f32(w), 23)), vdupq_n_s32(127)));
+  }
+  static T mantissa(T w) {
+    return vreinterpretq_f32_u32(
+        vorrq_u32(vandq_u32(vreinterpretq_u32_f32(w), vdupq_n_u32(0x007fffff)), vdupq_n_u32(0x3f800000)));
+  }
+  static T add_exponent(T q, T t) {  // the low bits of t are round(y): shifted into the exponent field they add it
+    return vreinterpretq_f32_s32(vaddq_s32(vreinterpretq_s32_f32(q), vshlq_n_s32(vreinterpretq_s32_f32(t), 23)));
+  }
+  static void transpose(const float* src, int64_t stride, float* dst, int64_t dst_stride, T scale) {
+    const T r0 = vmulq_f32(vld1q_f32(src), scale), r1 = vmulq_f32(vld1q_f32(src + stride), scale);
+    const T r2 = vmulq_f32(vld1q_f32(src + 2 * stride), scale), r3 = vmulq_f32(vld1q_f32(src + 3 * stride), scale);
+    // (r0[j], r1[j]) pairs: t0 holds columns 0 and 2, t1 columns 1 and 3 (rows 0 and 1); t2, t3 rows 2 and 3
+    const float64x2_t t0 = vreinterpretq_f64_f32(vtrn1q_f32(r0, r1)), t1 = vreinterpretq_f64_f32(vtrn2q_f32(r0, r1));
+    const float64x2_t t2 = vreinterpretq_f64_f32(vtrn1q_f32(r2, r3)), t3 = vreinterpretq_f64_f32(vtrn2q_f32(r2, r3));
+    vst1q_f32(dst, vreinterpretq_f32_f64(vtrn1q_f64(t0, t2)));
+    vst1q_f32(dst + dst_stride, vreinterpretq_f32_f64(vtrn1q_f64(t1, t3)));
+    vst1q_f32(dst + 2 * dst_stride, vreinterpretq_f32_f64(vtrn2q_f64(t0, t2)));
+    vst1q_f32(dst + 3 * dst_stride, vreinterpretq_f32_f64(vtrn2q_f64(t1, t3)));
+  }
+  static void prefetch(const char* p) { __builtin_prefetch(p, 0, 3); }
+};
+using P = V;
+#include "scan_simd.inc"
+}  // namespace neon
 #endif
 
 // ------------------------------------------------------------------ the causal depthwise convolution
@@ -231,32 +349,42 @@ DSSP_AVX2_CLONES inline void conv_block(const ConvProblem& p, int64_t b, int64_t
 }
 
 // ------------------------------------------------------------------ the scan's paths
-enum class Path { kPortable, kAvx2, kAvx512 };
+enum class Path { kPortable, kAvx2, kAvx512, kNeon };
 
 inline const char* path_name(Path path) {
-  return path == Path::kAvx512 ? "avx512" : path == Path::kAvx2 ? "avx2" : "portable";
+  return path == Path::kAvx512 ? "avx512" : path == Path::kAvx2 ? "avx2" : path == Path::kNeon ? "neon" : "portable";
 }
 
-// DSSP_SCAN_PATH: auto (the widest this CPU runs), avx512, avx2 or portable. A path this CPU or build lacks: the
-// fallback is returned and *error says why (empty when the choice holds).
+// DSSP_SCAN_PATH: auto (the widest this CPU runs), avx512, avx2, neon or portable. A path this CPU or build lacks:
+// the fallback is returned and *error says why (empty when the choice holds).
 inline Path choose_path(std::string* error) {
   error->clear();
   const char* env = std::getenv("DSSP_SCAN_PATH");
   const std::string want = env ? env : "auto";
-  if (want != "auto" && want != "avx512" && want != "avx2" && want != "portable") {
-    *error = "DSSP_SCAN_PATH=" + want + " is not one of auto, avx512, avx2, portable";
+  if (want != "auto" && want != "avx512" && want != "avx2" && want != "neon" && want != "portable") {
+    *error = "DSSP_SCAN_PATH=" + want + " is not one of auto, avx512, avx2, neon, portable";
     return Path::kPortable;
   }
   if (want == "portable") return Path::kPortable;
 #ifdef DSSP_HAVE_SIMD_PATHS
+  if (want == "neon") {
+    *error = "DSSP_SCAN_PATH=neon, but neon is aarch64 only (this build is x86-64); unset it or use avx512, avx2 or portable";
+    return Path::kPortable;
+  }
   const bool avx512 = cpu_has_avx512(), avx2 = cpu_has_avx2();
   if (want == "avx512" && !avx512) *error = "DSSP_SCAN_PATH=avx512, but this CPU lacks AVX-512; unset it or use avx2 or portable";
   if (want == "avx2" && !avx2) *error = "DSSP_SCAN_PATH=avx2, but this CPU lacks AVX2 or FMA; unset it or use portable";
   if (!error->empty()) return Path::kPortable;
   if (want == "avx2") return Path::kAvx2;
   return avx512 ? Path::kAvx512 : avx2 ? Path::kAvx2 : Path::kPortable;
+#elif defined(DSSP_HAVE_NEON_PATH)
+  if (want == "avx512" || want == "avx2") {
+    *error = "DSSP_SCAN_PATH=" + want + ", but " + want + " is x86-64 only (this build is aarch64); unset it or use neon or portable";
+    return Path::kPortable;
+  }
+  return Path::kNeon;
 #else
-  if (want != "auto") *error = "DSSP_SCAN_PATH=" + want + ", but this library was built without the SIMD paths (they need x86-64 and GCC); unset it or use portable";
+  if (want != "auto") *error = "DSSP_SCAN_PATH=" + want + ", but this library was built without the SIMD paths (they need x86-64 and GCC, or aarch64); unset it or use portable";
   return Path::kPortable;
 #endif
 }
@@ -274,8 +402,12 @@ inline void run_scan_task(void* data, size_t index) {
   const int64_t e0 = (static_cast<int64_t>(index) % task.blocks_per_row) * kBlock;
   const int64_t e1 = std::min(e0 + kBlock, p.E);
 #ifdef DSSP_HAVE_SIMD_PATHS
+  const bool x86 = task.path == Path::kAvx512 || task.path == Path::kAvx2;
   if (p.L == 1 && task.path == Path::kAvx512 && p.n % avx512::V::kLanes == 0) return avx512::scan_step(p, b, e0, e1);
-  if (p.L == 1 && task.path != Path::kPortable && p.n % avx2::V::kLanes == 0) return avx2::scan_step(p, b, e0, e1);
+  if (p.L == 1 && x86 && p.n % avx2::V::kLanes == 0) return avx2::scan_step(p, b, e0, e1);
+#endif
+#ifdef DSSP_HAVE_NEON_PATH
+  if (p.L == 1 && task.path == Path::kNeon && p.n % neon::V::kLanes == 0) return neon::scan_step(p, b, e0, e1);
 #endif
   // 64-byte aligned (with w a multiple of the lanes the SIMD paths' transposed state and A are too: aligned loads)
   const size_t floats = static_cast<size_t>(3 * p.L * (e1 - e0) + 32 * p.n) + 16;
@@ -284,7 +416,10 @@ inline void run_scan_task(void* data, size_t index) {
   while (reinterpret_cast<uintptr_t>(scratch) % 64) ++scratch;
 #ifdef DSSP_HAVE_SIMD_PATHS
   if (task.path == Path::kAvx512 && (e1 - e0) % avx512::V::kLanes == 0) return avx512::scan_block(p, b, e0, e1, scratch);
-  if (task.path != Path::kPortable && (e1 - e0) % avx2::V::kLanes == 0) return avx2::scan_block(p, b, e0, e1, scratch);
+  if (x86 && (e1 - e0) % avx2::V::kLanes == 0) return avx2::scan_block(p, b, e0, e1, scratch);
+#endif
+#ifdef DSSP_HAVE_NEON_PATH
+  if (task.path == Path::kNeon && (e1 - e0) % neon::V::kLanes == 0) return neon::scan_block(p, b, e0, e1, scratch);
 #endif
   scan_block_portable(p, b, e0, e1, scratch);
 }

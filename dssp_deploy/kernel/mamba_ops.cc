@@ -18,11 +18,12 @@
 // elementwise ONNX nodes, each reading and writing (batch, L, E, n) tensors.
 //
 // Channels are split into blocks that run on ONNX Runtime's intra-op threads (KernelContext_ParallelFor).
-// Three implementations of the same loops:
+// Four implementations of the same loops:
 //   avx512    16 channels per vector: the SIMD loop of scan_simd.inc for AVX-512F (checked at run time)
 //   avx2      8 channels per vector: the same loop for AVX2 + FMA, with the same polynomial exp
-//   portable  plain C++ the compiler vectorises for the target (x86-64 without AVX2, aarch64 robot computers)
-// The environment variable DSSP_SCAN_PATH=auto|avx512|avx2|portable (default auto: the widest this CPU
+//   neon      4 channels per vector: the same loop for NEON (aarch64 builds only, e.g. the robot computers)
+//   portable  plain C++ the compiler vectorises for the target (x86-64 without AVX2, any other CPU)
+// The environment variable DSSP_SCAN_PATH=auto|avx512|avx2|neon|portable (default auto: the widest this CPU
 // runs) chooses, per session.
 //
 // Built against ONNX Runtime's C API headers (ORT_API_MANUAL_INIT: the library is not linked to
@@ -406,7 +407,7 @@ extern "C" __attribute__((visibility("default"))) OrtStatus* ORT_API_CALL Regist
   return nullptr;
 }
 
-// Which implementation a session would use on this CPU now ("avx512", "avx2" or "portable"), for start-up logs.
+// Which implementation a session would use on this CPU now ("avx512", "avx2", "neon" or "portable"), for start-up logs.
 // The implementation DSSP_SCAN_PATH selects here, or "invalid: " and why it cannot run (for the loader's message).
 extern "C" __attribute__((visibility("default"))) const char* DsspScanPath() {
   static thread_local std::string answer;
