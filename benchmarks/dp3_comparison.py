@@ -48,6 +48,7 @@ from dssp_deploy.latency import time_calls  # noqa: E402
 from dssp_deploy.manifest import DENOISER_GRAPH  # noqa: E402
 from dssp_deploy.onnx_policy import OnnxPolicy  # noqa: E402
 from dssp_deploy.sessions import check_threads, default_threads  # noqa: E402
+from studies.protocol import code_commit  # noqa: E402
 
 SCALES = {
     "paper": {
@@ -140,6 +141,7 @@ def compare(
             "batch": 1,
         },
         "machine": machine.describe(),
+        "code_commit": code_commit(),
         "models": {},
     }
     with tempfile.TemporaryDirectory(prefix="dp3_comparison_") as tmp:
@@ -180,7 +182,8 @@ def markdown(r: dict) -> str:
         f"{m['cpu']} ({m['cores']} cores); onnxruntime {m.get('onnxruntime')}; {s['threads']} threads, spinning: "
         f"{s['spinning']}; batch 1, {p['n_points']} points, state {p['state_dim']}, action {p['action_dim']}; medians of "
         f"{s['repeats']} calls after {s['warmup']} warm-up"
-        + (" (--quick: DP3's own size shrunk)" if s["quick"] else ""),
+        + (" (--quick: DP3's own size shrunk)" if s["quick"] else "")
+        + (f"; code {r['code_commit'][:12]}" if "code_commit" in r else ""),
         "",
         "| model | parameters | precision | step ms | chunk ms | tick ms (step + chunk / H_a) | DP3 / DSSP per tick | per chunk |",
         "|---|---:|---|---:|---:|---:|---:|---:|",
