@@ -32,6 +32,7 @@ from studies.study_stages import DP3_SIZES, dp3_recipe
 HEADLINE_SEEDS = [0, 1, 2, 3, 4]
 OTHER_SEEDS = [0, 1, 2]
 LABELS = {**baseline_tuning.LABELS, **memory_tasks.LABELS}
+NAMING = memory_tasks.Naming("studies.memory_fair", LABELS)
 
 
 def fair_plan(choices: Path = baseline_tuning.CHOICES) -> dict:
@@ -85,9 +86,8 @@ def main(argv: list[str] | None = None) -> int:
     return memory_tasks.main(
         argv,
         plan_of=lambda quick: quick_plan() if quick else fair_plan(baseline_tuning.CHOICES),
-        command="studies.memory_fair",
+        naming=NAMING,
         doc=__doc__,
-        labels=LABELS,
     )
 
 

@@ -27,7 +27,8 @@ from __future__ import annotations
 
 import json
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -101,6 +102,17 @@ LABELS = {
     "transformer_denoiser": "w/ Transformer denoiser",
 }
 RECORD_DIR = "record"
+
+
+@dataclass(frozen=True)
+class Naming:
+    """How a study of this shape names itself in its reports: its module and its models' labels."""
+
+    command: str = "studies.memory_tasks"
+    labels: Mapping[str, str] = field(default_factory=lambda: LABELS)
+
+
+MEMORY = Naming()
 
 
 def models_of(plan: dict, task: str) -> dict[str, dict]:
@@ -180,7 +192,7 @@ def _pct(x: float) -> str:
     return f"{100 * x:.0f}"
 
 
-def _seeds_text(plan: dict, labels: dict[str, str]) -> str:
+def _seeds_text(plan: dict, labels: Mapping[str, str]) -> str:
     """The plan's training seeds, and those of each model that names its own."""
     own = {
         name: model["seeds"]
@@ -192,15 +204,11 @@ def _seeds_text(plan: dict, labels: dict[str, str]) -> str:
 
 
 def report_lines(
-    plan: dict,
-    record: Path,
-    split: str,
-    shown_record: str | None = None,
-    command: str = "studies.memory_tasks",
-    labels: dict[str, str] = LABELS,
+    plan: dict, record: Path, split: str, shown_record: str | None = None, naming: Naming = MEMORY
 ) -> tuple[list[str], dict]:
     """The report's Markdown lines and its figures, from the record alone (``shown_record``: how the report names the
-    record's folder, default its path; ``command``: the study's module; ``labels``: the models' names)."""
+    record's folder, default its path)."""
+    command, labels = naming.command, naming.labels
     figures: dict = {"split": split, "tasks": {}}
     prov_path = record / f"provenance_{split}.json"
     runs = json.loads(prov_path.read_text()) if prov_path.is_file() else []
@@ -321,25 +329,19 @@ def _merge(dicts) -> dict:
 
 
 def write_report(
-    plan: dict,
-    record: Path,
-    report: Path,
-    split: str,
-    shown_record: str | None = None,
-    command: str = "studies.memory_tasks",
-    labels: dict[str, str] = LABELS,
+    plan: dict, record: Path, report: Path, split: str, shown_record: str | None = None, naming: Naming = MEMORY
 ) -> Path:
     """``memory_SPLIT.md`` (tables), ``.json`` (every figure) and ``.png`` (the plot), from the record alone
     (:func:`report_lines`)."""
-    lines, figures = report_lines(plan, record, split, shown_record, command, labels)
+    lines, figures = report_lines(plan, record, split, shown_record, naming)
     name = f"{REPORT_NAME}_{split}"
     lines += [f"![success and memory decision per model]({name}.png)", ""]
     md = write_md_and_json(report, name, lines, {"plan": plan, **figures})
-    plot(figures, md.with_suffix(".png"), labels)
+    plot(figures, md.with_suffix(".png"), naming.labels)
     return md
 
 
-def plot(figures: dict, path: Path, labels: dict[str, str] = LABELS) -> None:
+def plot(figures: dict, path: Path, labels: Mapping[str, str] = LABELS) -> None:
     """Per task: each model's success with its cluster-bootstrap interval, and its memory decision's accuracy among
     the episodes that reached it."""
     import matplotlib  # here, not at the top: the study's command starts without it
@@ -380,30 +382,29 @@ def run_study(
     workers: int,
     models: list[str] | None = None,
     quick: bool = False,
-    **shown,
+    naming: Naming = MEMORY,
 ) -> Path:
     """Run ``plan``'s stages of ``tasks`` on ``split`` not in the record yet, keep their evaluations and write the report
-    (``shown``: :func:`write_report`'s ``command`` and ``labels``)."""
+    (named by ``naming``)."""
     record = report / RECORD_DIR
     if split == "test":
         protocol.check_frozen(record, plan)
     stage_list = stages(plan, split, tasks, record, models)
     protocol.note_provenance(record, plan, split, tasks, allow_changes=quick)
     run_and_keep(work, record, stage_list, workers, f"{', '.join(tasks)} on the {split} split")
-    return write_report(plan, record, report, split, **shown)
+    return write_report(plan, record, report, split, naming=naming)
 
 
 def main(
     argv: list[str] | None = None,
     plan_of: Callable[[bool], dict] = lambda quick: QUICK_PLAN if quick else PLAN,
-    command: str = "studies.memory_tasks",
+    naming: Naming = MEMORY,
     doc: str = __doc__,
-    labels: dict[str, str] = LABELS,
 ) -> int:
-    """The study's command on the plan ``plan_of(--quick)`` (another study of this shape passes its own plan, module
-    name, docstring and labels; its defaults: ``runs/NAME`` and ``reports/NAME``)."""
-    name = command.removeprefix("studies.").removesuffix("_tasks")
-    p = ArgumentParser(prog=f"python -m {command}", description=doc.split("\n\n")[0])
+    """The study's command on the plan ``plan_of(--quick)`` (another study of this shape passes its own plan, naming
+    and docstring; its defaults: ``runs/NAME`` and ``reports/NAME``)."""
+    name = naming.command.removeprefix("studies.").removesuffix("_tasks")
+    p = ArgumentParser(prog=f"python -m {naming.command}", description=doc.split("\n\n")[0])
     p.add_argument("--split", choices=list(protocol.SPLITS), default="validation")
     p.add_argument("--tasks", nargs="+", metavar="TASK", help="default: every task of the plan")
     p.add_argument("--models", nargs="+", metavar="MODEL", help="only these models (default: every model of the plan)")
@@ -417,7 +418,6 @@ def main(
     p.add_argument("--report-only", action="store_true", help="run nothing: rebuild the report from the record")
     p.add_argument("--quick", action="store_true", help="a tiny plan (tests)")
     args = p.parse_args(argv)
-    shown = {"command": command, "labels": labels}
 
     def _main() -> int:
         plan = plan_of(args.quick)
@@ -440,10 +440,10 @@ def main(
             )
             return 0
         if args.report_only:
-            md = write_report(plan, record, args.report, args.split, **shown)
+            md = write_report(plan, record, args.report, args.split, naming=naming)
         else:
             md = run_study(
-                plan, args.split, tasks, args.work, args.report, args.workers, args.models, args.quick, **shown
+                plan, args.split, tasks, args.work, args.report, args.workers, args.models, args.quick, naming
             )
         print(md.read_text())
         return 0

@@ -87,8 +87,7 @@ def _memory_fair(root: Path, out: Path) -> list[str]:
                 out,
                 split,
                 shown_record="reports/memory_fair/record",
-                command="studies.memory_fair",
-                labels=memory_fair.LABELS,
+                naming=memory_fair.NAMING,
             )
             written += [md.name, md.with_suffix(".json").name]
     return written

@@ -85,9 +85,7 @@ def test_the_report_pairs_five_seeds_against_three(tmp_path):
                     }
                 )
             )
-    lines, figures = memory_tasks.report_lines(
-        plan, tmp_path, "validation", command="studies.memory_fair", labels=memory_fair.LABELS
-    )
+    lines, figures = memory_tasks.report_lines(plan, tmp_path, "validation", naming=memory_fair.NAMING)
     text = "\n".join(lines)
     assert "python -m studies.memory_fair --split validation --report-only" in text
     assert "training seeds [0, 1, 2] (DSSP w/o history: [0])" in text and "| DSSP (full history) |" in text
