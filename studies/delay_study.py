@@ -244,12 +244,14 @@ def write_report(
         )
     tests = comparisons(evals, plan)
     scenes = protocol.split_seeds(SPLIT, plan["episodes"])
+    budgets = "; ".join(
+        f"{task}: {spec['demos']} demonstrations, {spec['steps']} steps" for task, spec in plan["tasks"].items()
+    )
     lines = [
         plan.get("title", "# Inference delay: none, temporal ensembling and real-time chunking"),
         "",
         f"Rebuilt from `{shown_record or record}` by `python -m {command} --report-only`. DSSP, preset "
-        f"`{plan['preset']}`, trained per task with training seeds {plan['seeds']} (demonstrations and steps "
-        f"{ ({t: (s['demos'], s['steps']) for t, s in plan['tasks'].items()}) }), each exported with `--inpainting` at int8; "
+        f"`{plan['preset']}`, trained per task with training seeds {plan['seeds']} ({budgets}), each exported with `--inpainting` at int8; "
         f"{plan['episodes']} closed-loop episodes per cell and seed in the MuJoCo twin on validation seeds "
         f"{scenes[0]}–{scenes[-1]} (the same scenes in every cell; nothing here was tuned). The delay is injected per chunk "
         "in lockstep, in whole 10 Hz ticks (50 and 100 ms are both one tick). Success over every training seed and scene, "
