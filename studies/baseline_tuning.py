@@ -45,7 +45,9 @@ from studies.study_stages import (
     dp3_recipe,
     eval_stage,
     export_stage,
+    model_steps,
     train_stage,
+    training_of,
 )
 
 REPORT_NAME = "baseline_tuning"
@@ -104,7 +106,7 @@ def cell(task: str, model: str, lr: float) -> str:
 
 def steps_of(plan: dict, task: str, model: str) -> int:
     """The training steps that give ``model`` the task's budget of windows."""
-    return max(1, plan["tasks"][task]["windows"] // plan["models"][model]["batch"])
+    return model_steps(plan["tasks"][task]["windows"] // SIM_BATCH, plan["models"][model])
 
 
 def stages(plan: dict, tasks: list[str], record: Path) -> list[Stage]:
@@ -121,8 +123,7 @@ def stages(plan: dict, tasks: list[str], record: Path) -> list[Stage]:
                 if (record / "evals" / f"{key}.json").is_file():
                     continue
                 run, model_dir = f"runs/{key}", f"models/{key}"
-                flags = (*model["flags"], "--set", f"train.lr={lr:g}", "--set", f"train.batch_size={model['batch']}")
-                steps = steps_of(plan, task, name)
+                steps, flags = training_of(spec["windows"] // SIM_BATCH, {**model, "lr": lr}, task)
                 task_stages += [
                     train_stage(
                         key,
