@@ -12,7 +12,7 @@ The memory study's stages, report and statistics (:mod:`studies.memory_tasks`) o
   0.71, 4.8 and 17 M parameters, all with the same training windows per task, training seeds 0–4 (the seed-level
   test has a smallest p of 0.008 with five against five, 0.1 with three);
 - DSSP without history and, on tap, the four ablations of Table 5: DSSP's preset and rate, training seeds 0–2;
-- each model's learning rate per task is the one :mod:`studies.baseline_tuning` chose (its report,
+- each model's batch and learning rate per task are the ones :mod:`studies.baseline_tuning` chose (its report,
   ``reports/baseline_tuning/baseline_tuning.json``); the ablations and DSSP without history take DSSP's. While a
   task's tuning is pending the plan is refused in one line that names the command to run.
 
@@ -36,19 +36,24 @@ NAMING = memory_tasks.Naming("studies.memory_fair", LABELS)
 
 
 def fair_plan(choices: Path = baseline_tuning.CHOICES) -> dict:
-    """The plan of this study, with the rates the tuning's report at ``choices`` chose."""
+    """The plan of this study, with the configurations (batch, learning rate) the tuning's report at ``choices``
+    chose."""
     tasks = memory_tasks.PLAN["tasks"]
-    lrs = baseline_tuning.chosen_rates(baseline_tuning.read_choices(choices), list(tasks))
-    dssp = {"preset": "sim", "flags": [], "lr": lrs["dssp"]}
+    configs = baseline_tuning.chosen_configurations(baseline_tuning.read_choices(choices), list(tasks))
+    chosen = {
+        name: {field: {task: c[field] for task, c in by_task.items()} for field in ("batch", "lr")}
+        for name, by_task in configs.items()
+    }
+    dssp = {"preset": "sim", "flags": [], **chosen["dssp"]}
     return {
         **memory_tasks.PLAN,
         "models": {
             "dssp": dssp,
-            **{name: {**dp3_recipe(name), "lr": lrs[name]} for name in DP3_SIZES},
+            **{name: {**dp3_recipe(name), **chosen[name]} for name in DP3_SIZES},
             "wo_history": {**dssp, "flags": ["--no-history"], "seeds": OTHER_SEEDS},
         },
         "ablations": {
-            task: {name: {**model, "lr": lrs["dssp"], "seeds": OTHER_SEEDS} for name, model in ablations.items()}
+            task: {name: {**model, **chosen["dssp"], "seeds": OTHER_SEEDS} for name, model in ablations.items()}
             for task, ablations in memory_tasks.PLAN["ablations"].items()
         },
         "gpu_models": {

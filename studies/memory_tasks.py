@@ -225,7 +225,7 @@ def report_lines(
         f"Scenes: {split} seeds {scene_seeds[0]}–{scene_seeds[-1]} ({n} per model and training seed, the same for every "
         f"model); training seeds {_seeds_text(plan, labels)}; training steps per task "
         f"{task_steps} (at {SIM_BATCH} windows a step; "
-        "a model with its own batch takes the same windows in fewer). "
+        "a model with its own batch takes the same windows in its own steps). "
         "Success: mean over training seeds and scenes, 95 % two-way cluster-bootstrap interval (training seeds × scenes). "
         "Δ vs DSSP: paired difference (same scenes) with its interval. " + FAMILY_NOTE,
     ]

@@ -135,22 +135,22 @@ FAIR_SEEDS = {"headline": [0, 1, 2, 3, 4], "other": [0, 1, 2]}  # DSSP and DP3; 
 
 def fair_plan(choices: Path | None = None) -> dict:
     """The plan with every model at its best (``--fair``): :data:`PLAN`'s tasks, demonstrations and budget; DSSP and
-    DP3 with its recipe at three sizes (the same training windows), each at the one rate its tuning chose for the
-    suite (:mod:`studies.baseline_tuning`'s report at ``choices``, default the committed one), training seeds 0–4;
-    DSSP w/o history at DSSP's rate, seeds 0–2."""
+    DP3 with its recipe at three sizes (the same training windows), each at the one batch and rate its tuning chose
+    for the suite (:mod:`studies.baseline_tuning`'s report at ``choices``, default the committed one), training seeds
+    0–4; DSSP w/o history at DSSP's, seeds 0–2."""
     from studies import baseline_tuning  # here: the tuning imports this study's plan
 
-    rates = baseline_tuning.chosen_rates(
+    configs = baseline_tuning.chosen_configurations(
         baseline_tuning.read_choices(choices or baseline_tuning.CHOICES), ["metaworld"], "suites"
     )
-    lr = {name: by_suite["metaworld"] for name, by_suite in rates.items()}
-    dssp = {"preset": "sim", "flags": HORIZONS, "lr": lr["dssp"]}
+    chosen = {name: by_suite["metaworld"] for name, by_suite in configs.items()}
+    dssp = {"preset": "sim", "flags": HORIZONS, **chosen["dssp"]}
     return {
         **PLAN,
         "tuned_by": "studies.baseline_tuning",
         "models": {
             "dssp": dssp,
-            **{name: {**dp3_recipe(name, *HORIZONS), "lr": lr[name]} for name in DP3_SIZES},
+            **{name: {**dp3_recipe(name, *HORIZONS), **chosen[name]} for name in DP3_SIZES},
             "wo_history": {**dssp, "flags": [*HORIZONS, "--no-history"], "seeds": FAIR_SEEDS["other"]},
         },
         "seeds": FAIR_SEEDS["headline"],
@@ -397,10 +397,10 @@ def report_lines(plan: dict, record: Path, shown_record: str | None = None) -> t
         + ", ".join(f"{LABELS.get(n, n)} (`--preset {plan['models'][n]['preset']}`)" for n in model_order(plan))
         + "."
         + (
-            " Each model at the learning rate its tuning chose for the suite on validation seeds "
+            " Each model at the learning rate and batch its tuning chose for the suite on validation seeds "
             "(`reports/baseline_tuning`): "
-            + ", ".join(f"{LABELS.get(n, n)} {m['lr']:g}" for n, m in plan["models"].items())
-            + f". DP3 takes the same training windows as DSSP in steps of {plan['models']['dp3_0.7m']['batch']} "
+            + ", ".join(f"{LABELS.get(n, n)} {m['lr']:g} at batch {m['batch']}" for n, m in plan["models"].items())
+            + ". Every model takes the same training windows, in its own steps at its own batch "
             f"(its checkpoints at the same fractions of its training); {LABELS['wo_history']} has training seeds "
             f"{plan['models']['wo_history']['seeds']}."
             if fair
@@ -627,7 +627,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--fair",
         action="store_true",
-        help="every model at its best: DP3 with its recipe at three sizes, each model at the rate its tuning chose "
+        help="every model at its best: DP3 with its recipe at three sizes, each model at the batch and rate its tuning chose "
         "(studies.baseline_tuning), five training seeds on DSSP and DP3; work and report default to runs/ and "
         "reports/metaworld_fair",
     )

@@ -34,23 +34,26 @@ def seeds_of(plan: dict, model: dict) -> list[int]:
     return model.get("seeds", plan["seeds"])
 
 
-def model_steps(steps: int, model: dict) -> int:
+def of_task(value, task: str | None):
+    """A plan's per-model setting for ``task``: one value for every task, or a {task: value} dict."""
+    return value[task] if isinstance(value, dict) else value
+
+
+def model_steps(steps: int, model: dict, task: str | None = None) -> int:
     """The steps in which a plan's ``model`` takes the training windows of ``steps`` steps at the ``sim`` preset's
-    :data:`SIM_BATCH`: as many, or fewer of its own larger ``batch``."""
-    return max(1, steps * SIM_BATCH // model["batch"]) if "batch" in model else steps
+    :data:`SIM_BATCH`: as many, or fewer of its own larger ``batch`` (one, or one per task)."""
+    return max(1, steps * SIM_BATCH // of_task(model["batch"], task)) if "batch" in model else steps
 
 
 def training_of(steps: int, model: dict, task: str) -> tuple[int, tuple[str, ...]]:
     """(steps, flags) that train a plan's ``model`` on ``task`` with the training windows of ``steps`` steps
-    (:func:`model_steps`; its batch set where it has its own) at its ``lr`` where it has one (one rate, or one per
-    task)."""
+    (:func:`model_steps`) at its ``batch`` and ``lr`` where it has them (each one value, or one per task)."""
     flags = tuple(model["flags"])
     if "batch" in model:
-        flags += ("--set", f"train.batch_size={model['batch']}")
+        flags += ("--set", f"train.batch_size={of_task(model['batch'], task)}")
     if "lr" in model:
-        rate = model["lr"][task] if isinstance(model["lr"], dict) else model["lr"]
-        flags += ("--set", f"train.lr={rate:g}")
-    return model_steps(steps, model), flags
+        flags += ("--set", f"train.lr={of_task(model['lr'], task):g}")
+    return model_steps(steps, model, task), flags
 
 
 def collect_stage(key: str, task: str, demos: int, data: str) -> Stage:

@@ -13,10 +13,15 @@ from studies.study_stages import SIM_BATCH, seeds_of
 
 
 def _tuning(tmp_path, chosen=None):
-    """A tuning report whose every model chose ``chosen[model]`` (default 1e-3) on every task."""
+    """A tuning report whose every model chose ``chosen[model]`` ((batch, rate); default its recipe's own batch and
+    1e-3) on every task."""
     chosen = chosen or {}
+    models = baseline_tuning.PLAN["models"]
     tasks = {
-        task: {name: {"chosen_lr": chosen.get(name, "0.001")} for name in baseline_tuning.PLAN["models"]}
+        task: {
+            name: {"chosen": dict(zip(("batch", "lr"), chosen.get(name, (model["batches"][0], "0.001"))))}
+            for name, model in models.items()
+        }
         for task in memory_tasks.PLAN["tasks"]
     }
     path = tmp_path / "baseline_tuning.json"
@@ -24,8 +29,10 @@ def _tuning(tmp_path, chosen=None):
     return path
 
 
-def test_each_model_trains_at_its_chosen_rate_on_the_same_windows(tmp_path):
-    plan = memory_fair.fair_plan(_tuning(tmp_path, {"dp3_17m": "0.003", "dssp": "0.0003"}))
+def test_each_model_trains_at_its_chosen_configuration_on_the_same_windows(tmp_path):
+    plan = memory_fair.fair_plan(
+        _tuning(tmp_path, {"dp3_17m": (128, "0.003"), "dssp": (32, "0.0003"), "dp3_4.8m": (32, "0.0003")})
+    )
     stages = {s.name: s.argv for s in memory_tasks.stages(plan, "test", ["tap"], tmp_path / "record")}
     dp3 = stages["train_tap_dp3_17m_s4"]
     assert "dp3_recipe" in dp3 and "train.lr=0.003" in dp3 and "train.batch_size=128" in dp3
@@ -34,8 +41,10 @@ def test_each_model_trains_at_its_chosen_rate_on_the_same_windows(tmp_path):
     assert (
         "train.lr=0.0003" in dssp and dssp[dssp.index("--steps") + 1] == "3000" and "train.batch_size=128" not in dssp
     )
-    # the same windows: steps × batch equal for DSSP (the sim preset's 32) and DP3 (128)
+    # the same windows: steps × batch equal for DSSP (the sim preset's 32) and DP3 (128, or 32 where it chose it)
     assert 3000 * SIM_BATCH == 750 * 128
+    small = stages["train_tap_dp3_4.8m_s0"]
+    assert small[small.index("--steps") + 1] == "3000" and "train.batch_size=32" in small and "train.lr=0.0003" in small
     # five seeds on the headline rows, three for DSSP w/o history and the ablations (at DSSP's rate)
     for name, seeds in (("dssp", 5), ("dp3_0.7m", 5), ("wo_history", 3), ("no_dynamics_loss", 3)):
         assert len([s for s in stages if s.startswith(f"train_tap_{name}_s")]) == seeds, name
@@ -50,7 +59,7 @@ def test_each_model_trains_at_its_chosen_rate_on_the_same_windows(tmp_path):
 def test_a_pending_tuning_is_refused_with_the_command_that_completes_it(tmp_path):
     path = _tuning(tmp_path)
     report = json.loads(path.read_text())
-    report["tasks"]["swap"]["dp3_4.8m"]["chosen_lr"] = None
+    report["tasks"]["swap"]["dp3_4.8m"]["chosen"] = None
     path.write_text(json.dumps(report))
     with pytest.raises(DSSPError, match=r"dp3_4.8m on swap is not chosen yet: run python -m studies.baseline_tuning"):
         memory_fair.fair_plan(path)
@@ -97,7 +106,7 @@ def test_the_report_pairs_five_seeds_against_three(tmp_path):
 def test_a_pending_tuning_stops_the_command_in_one_line(tmp_path, capsys, monkeypatch):
     path = _tuning(tmp_path)
     report = json.loads(path.read_text())
-    report["tasks"]["tap"]["dssp"]["chosen_lr"] = None
+    report["tasks"]["tap"]["dssp"]["chosen"] = None
     path.write_text(json.dumps(report))
     monkeypatch.setattr(baseline_tuning, "CHOICES", path)
     assert memory_fair.main(["--report-only", "--report", str(tmp_path / "r")]) == 2

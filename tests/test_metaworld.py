@@ -336,8 +336,13 @@ def test_the_fair_plan_trains_each_model_at_its_tuned_rate_on_the_same_windows(t
     from studies import metaworld as study
 
     choices = tmp_path / "baseline_tuning.json"
-    rates = {"dssp": "0.0003", "dp3_0.7m": "0.001", "dp3_4.8m": "0.003", "dp3_17m": None}
-    choices.write_text(json.dumps({"suites": {"metaworld": {n: {"chosen_lr": r} for n, r in rates.items()}}}))
+    configs = {"dssp": (32, "0.0003"), "dp3_0.7m": (128, "0.001"), "dp3_4.8m": (128, "0.003"), "dp3_17m": None}
+
+    def write():
+        chosen = {n: {"chosen": c and {"batch": c[0], "lr": c[1]}} for n, c in configs.items()}
+        choices.write_text(json.dumps({"suites": {"metaworld": chosen}}))
+
+    write()
     with pytest.raises(
         DSSPError, match="dp3_17m on metaworld is not chosen yet: run python -m studies.baseline_tuning"
     ):
@@ -345,14 +350,17 @@ def test_the_fair_plan_trains_each_model_at_its_tuned_rate_on_the_same_windows(t
     monkeypatch.setattr(baseline_tuning, "CHOICES", choices)
     assert study.main(["--fair", "--cost"]) == 2
     one_error_line(capsys.readouterr().err, "--tasks button-press basketball assembly disassemble")
-    rates["dp3_17m"] = "0.0001"
-    choices.write_text(json.dumps({"suites": {"metaworld": {n: {"chosen_lr": r} for n, r in rates.items()}}}))
+    configs["dp3_17m"] = (32, "0.0001")  # DP3 at the sim preset's batch: the same windows in as many steps as DSSP
+    write()
     plan = {**study.fair_plan(choices), "tasks": ["reach"]}
     stages = {s.name: s.argv for s in study.stages(plan, "test", ["reach"], Path("/nonexistent"))}
     dp3 = stages["train_reach_dp3_4.8m_s4"]
     assert dp3[dp3.index("--steps") + 1] == "250" and "train.keep_every=50" in dp3 and "--no-holdout" in dp3
     assert "train.lr=0.003" in dp3 and "train.batch_size=128" in dp3 and "model.unet_down_dims=[64,128,256]" in dp3
     assert " ".join(study.HORIZONS) in " ".join(dp3)
+    dp3 = stages["train_reach_dp3_17m_s0"]
+    assert dp3[dp3.index("--steps") + 1] == "1000" and "train.keep_every=200" in dp3 and "train.batch_size=32" in dp3
+    assert "eval_reach_dp3_17m_s4_step1000_test" in stages
     assert "eval_reach_dp3_4.8m_s4_step250_test" in stages and "eval_reach_dssp_s4_step1000_test" in stages
     assert "train.lr=0.0003" in stages["train_reach_wo_history_s2"] and "train_reach_wo_history_s3" not in stages
     # the report pairs five seeds of DSSP with three of DSSP w/o history on the same scenes
@@ -363,6 +371,6 @@ def test_the_fair_plan_trains_each_model_at_its_tuned_rate_on_the_same_windows(t
             _fake_mw_eval(tmp_path, study.eval_name("reach", name, seed, step, "test"), scenes, [name == "dssp"] * 50)
     lines, figures = study.report_lines(plan, tmp_path)
     text = "\n".join(lines)
-    assert "python -m studies.metaworld --fair --report-only" in text and "DSSP 0.0003" in text
+    assert "python -m studies.metaworld --fair --report-only" in text and "DSSP 0.0003 at batch 32" in text
     row = figures["tasks"]["reach"]["wo_history"]["test"]
     assert row["delta"] == -1.0 and row["p_seeds"] == pytest.approx(1 / 56)  # 5 against 3 seeds: C(8, 3) splits
