@@ -324,14 +324,14 @@ class QuantizedMambaBlock(torch.nn.Module):
         p, conv, ssm = self._run(p, *self._zero_state(p), self.no_mod, True)
         return p, (conv, ssm)
 
-    def joint(self, p, a, shift, scale, gate):
-        """The prefix p (B, L_p, d) and the action tokens a (B, H, d) in one pass (one DDIM step with the timestep
-        decoupled: the prefix unmodulated) → (p, a) after the block."""
-        plain = int(p.shape[1])  # a constant of the model (its prefix's length), an attribute of the node
-        seq = torch.cat([p, a], dim=1)
+    def joint(self, seq, p, shift, scale, gate):
+        """The prefix and the action tokens, seq = [p, a] (B, L_p + H, d), in one pass (one DDIM step with the timestep
+        decoupled: the prefix unmodulated) → seq after the block. ``p`` is the prefix as it entered the first such
+        block: its length, a constant of the model, is the node's attribute, and every block takes its zero states
+        from its batch (one shape computation the graph shares). The caller keeps seq whole between blocks, so the
+        graph holds no split and join per block."""
         mod = torch.cat([shift, scale, gate], dim=0)
-        out = self._run(seq, *self._zero_state(seq), mod, False, plain)[0]
-        return out[:, :plain], out[:, plain:]
+        return self._run(seq, *self._zero_state(p), mod, False, int(p.shape[1]))[0]
 
     def forward(self, a, state, shift, scale, gate):
         conv_state, ssm_state = state

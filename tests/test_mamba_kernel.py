@@ -400,7 +400,8 @@ def test_the_int8_fused_denoiser_runs_each_block_as_one_node(tiny_export):
 
 def test_one_ddim_step_runs_prefix_and_actions_as_one_node_per_block(tiny_export, tmp_path):
     """K = 1 (the distilled samplers' shape): the prefix and the action tokens in one pass, each block one
-    MambaBlockQ8 node with the prefix's tokens plain; its chunks as close to fp32's as the standard int8 graphs'."""
+    MambaBlockQ8 node with the prefix's tokens plain, the tokens kept whole between blocks (one split, after the last)
+    and the zero states built once; its chunks as close to fp32's as the standard int8 graphs'."""
     from collections import Counter
 
     from export.to_onnx import main as export_main
@@ -428,6 +429,7 @@ def test_one_ddim_step_runs_prefix_and_actions_as_one_node_per_block(tiny_export
     assert (
         ops[mamba_kernel.BLOCK_OP] == manifest["model_config"]["n_denoiser_layers"] and ops[mamba_kernel.SCAN_OP] == 0
     )
+    assert ops["Slice"] == 1 and ops["ConstantOfShape"] == 2, ops
     m = manifest["model_config"]
     prefix = int(m["use_history"]) + int(m["use_recent_states"]) * manifest["contract"]["n_obs_steps"]
     for node in model.graph.node:

@@ -231,12 +231,15 @@ class Denoiser(nn.Module):
         """
         p, a = prefix, self.embed_actions(x_tau, committed)
         n_prefix = p.shape[1]
+        joined = None  # [p, a] (B, L_p + H, d) while consecutive blocks run as one node each (export's fused graphs)
         for i, layer in enumerate(self.layers):
             shift, scale, gate, *mlp_mod = mod.block(i)
             fused = getattr(layer, "fused_block", None)
             if fused is not None and self.decoupled:
-                p, a = fused.joint(p, a, shift, scale, gate)
+                joined = fused.joint(torch.cat([p, a], dim=1) if joined is None else joined, p, shift, scale, gate)
                 continue
+            if joined is not None:
+                p, a, joined = joined[:, :n_prefix], joined[:, n_prefix:], None
             hp = layer.norm(p)
             if not self.decoupled:
                 hp = modulate(hp, shift, scale)
@@ -247,7 +250,7 @@ class Denoiser(nn.Module):
                 p + (op if self.decoupled else gate.unsqueeze(1) * op), () if self.decoupled else mlp_mod
             )
             a = layer.mlp_residual(a + gate.unsqueeze(1) * oa, mlp_mod)
-        return self.readout(a, mod)
+        return self.readout(a if joined is None else joined[:, n_prefix:], mod)
 
     # ---------------------------------------------------- prefix-cached forward
     def encode_prefix(self, prefix: torch.Tensor, unrolled: bool = False) -> list[MixerState]:
