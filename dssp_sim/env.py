@@ -108,7 +108,6 @@ class PiperEnv(ArmServos):
         self.data = mujoco.MjData(self.model)
         self.arm = ArmIndex.find(self.model)
         self.control_rate_hz = DEFAULT_CONTROL_RATE_HZ  # the simulated Piper runs at the toolkit's default rate
-        self.max_steps = self.task.max_steps
         render_size = render_size or render_size_for(task)
         self.render_size = (int(render_size[0]), int(render_size[1]))
         self._substeps_per_control = int(round(1.0 / (self.control_rate_hz * TIMESTEP)))
@@ -136,6 +135,7 @@ class PiperEnv(ArmServos):
             self._rng = np.random.default_rng(self.seed)
         rng = self._rng
         mujoco.mj_resetData(self.model, self.data)
+        self.max_steps = self.task.max_steps  # each episode's own budget (an evaluation may lengthen it)
         self.task.reset(self, rng, options)
         start = np.clip(HOME + rng.uniform(-START_JITTER, START_JITTER, 6), JOINT_LOWER, JOINT_UPPER)
         stroke = float(opening_to_stroke(self.task.home_opening))

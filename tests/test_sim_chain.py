@@ -359,14 +359,14 @@ def test_holds_can_be_left_out_of_the_step_limit_and_prefetch_hides_the_delay(si
     from dssp_sim.tasks import make_task
 
     limit = make_task("tap").max_steps
-    run = lambda **kw: evaluate(sim_model, "tap", 1, seed=1000, threads=1, progress=False, inject_delay_ms=200, **kw)  # noqa: E731
+    run = lambda **kw: evaluate(sim_model, "tap", 2, seed=1000, threads=1, progress=False, inject_delay_ms=200, **kw)  # noqa: E731
     counted, excluded = run(), run(limit_excludes_holds=True)
     for result in (counted, excluded):
-        assert not result.episodes[0].success, "the briefly trained model is not expected to solve tap"
+        assert not any(e.success for e in result.episodes), "the briefly trained model is not expected to solve tap"
     assert counted.episodes[0].steps == limit and counted.episodes[0].holds > 0
-    held = excluded.episodes[0].holds
-    assert held > 0 and excluded.episodes[0].steps == limit + held  # the same budget of ticks that moved
-    assert not excluded.episodes[0].safety_events.get("observation_out_of_range")  # every hold here was a wait
+    for episode in excluded.episodes:  # each episode its own budget: the first one's waits do not carry over
+        assert episode.holds > 0 and episode.steps == limit + episode.holds  # the same budget of ticks that moved
+        assert not episode.safety_events.get("observation_out_of_range")  # every hold here was a wait
     assert excluded.to_dict()["limit_excludes_holds"] and not counted.to_dict()["limit_excludes_holds"]
     prefetched = run(schedule=Plain(prefetch=True))
     assert prefetched.episodes[0].holds < counted.episodes[0].holds
