@@ -273,6 +273,8 @@ def readme_blocks(root: Path) -> dict[str, str]:
         "calibration": calibration_study.readme_table(root / "reports/calibration" / calibration_study.RECORD_DIR),
         "delay": delay_study.readme_table(root / "reports/delay" / delay_study.RECORD_DIR),
     }
+    if (root / "reports/delay_fair/record/evals").is_dir():
+        blocks["delay_fair"] = delay_study.readme_table(root / "reports/delay_fair/record", delay_fair.FAIR_PLAN)
     if (root / "reports/metaworld/record/plan.json").is_file():
         blocks["metaworld"] = metaworld.readme_table(root / "reports/metaworld/record")
     for block, (script, record) in BENCHMARK_BLOCKS.items():
