@@ -41,7 +41,7 @@ def of_task(value, task: str | None):
 
 def model_steps(steps: int, model: dict, task: str | None = None) -> int:
     """The steps in which a plan's ``model`` takes the training windows of ``steps`` steps at the ``sim`` preset's
-    :data:`SIM_BATCH`: as many, or fewer of its own larger ``batch`` (one, or one per task)."""
+    :data:`SIM_BATCH`, at its own ``batch`` where it has one (one, or one per task): steps × batch windows."""
     return max(1, steps * SIM_BATCH // of_task(model["batch"], task)) if "batch" in model else steps
 
 
