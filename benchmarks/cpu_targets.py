@@ -14,12 +14,11 @@ For each graph set — the fused Mamba kernel's (``*.fused.onnx``) and the stand
 and once: PyTorch eager (``--checkpoint``, the run the model was exported from) per chunk and per
 history step. The roofline: this machine's read bandwidth (one core, numpy summing 256 MiB), and per graph set and
 precision the bytes of denoiser weights one chunk reads (``dssp_deploy.profile.roofline``: K + 1 passes with a
-cached prefix), the floor they imply, the achieved chunk and the ratio — on a CPU with VNNI also the fused int8
-chunk with the AVX2 paths forced (``DSSP_QGEMM_PATH=avx2 DSSP_SCAN_PATH=avx2``). ``--k1-model`` (the same run
-exported with ``--denoise-steps 1``, the distilled samplers' shape) adds its fused chunk on each path, the prefix and
-the step in one pass over the weights. ``--plot`` draws achieved against floor. Ratios are of medians measured in this
-run. DSSP against DP3, like for like, is
-``benchmarks/dp3_comparison.py``.
+cached prefix, K where the first step carries it), the floor they imply, the achieved chunk and the ratio — on a
+CPU with VNNI also the fused int8 chunk with the AVX2 paths forced (``DSSP_QGEMM_PATH=avx2 DSSP_SCAN_PATH=avx2``).
+``--k1-model`` (the same run exported with ``--denoise-steps 1``, the distilled samplers' shape) adds its fused
+chunk on each path, the prefix and the step in one pass over the weights. ``--plot`` draws achieved against floor.
+Ratios are of medians measured in this run. DSSP against DP3, like for like, is ``benchmarks/dp3_comparison.py``.
 Prints the targets table (the robotwin preset's targets on a 2-core CPU); ``--json`` writes every figure.
 The runtime-only figures, without torch, are ``dssp-profile MODEL_DIR``.
 """
@@ -219,7 +218,7 @@ def rows(runtime: dict, eager: dict, precision: str, lines: dict) -> list[dict]:
             "target": "<= 1.5x",
         },
         {
-            "figure": f"chunk floor, {precision}: the denoiser's weights read {{passes}} times a chunk, ms",
+            "figure": f"chunk floor, {precision}: the denoiser's weights read as often as the chunk reads them, ms",
             "values": {k: lines[k][precision]["floor_ms"] for k in runtime},
             "target": "",
         },
@@ -260,24 +259,24 @@ def markdown(report: dict) -> str:
         "| figure | " + " | ".join(head[k] for k in kernels) + " | target |",
         "|---|" + "---:|" * len(kernels) + "---|",
     ]
-    passes = next(iter(next(iter(report["roofline"].values())).values()))["passes"] if report.get("roofline") else k
     table = rows(report["runtime"], report["eager_torch"], report["precision"], report["roofline"])
     for row in table:
         cells = " | ".join(f"{row['values'][k]:.2f}" if row["values"].get(k) is not None else "-" for k in kernels)
-        lines.append(f"| {row['figure'].format(k=k, passes=passes)} | {cells} | {row['target']} |")
+        lines.append(f"| {row['figure'].format(k=k)} | {cells} | {row['target']} |")
     if report.get("roofline"):
         lines += [
             "",
             f"Roofline: read bandwidth {report['read_gbs']:.1f} GB/s (one core, numpy summing 256 MiB); a chunk "
-            f"reads the denoiser's weights {passes} times (K = {k} steps and the cached prefix):",
+            f"reads the denoiser's weights once per DDIM step (K = {k}), and once more where the cached prefix runs "
+            "apart from the first step (reads: as the exporter counted them in each graph):",
             "",
-            "| graphs | precision | weights MiB | floor ms | chunk p50 ms | chunk / floor |",
-            "|---|---|---:|---:|---:|---:|",
+            "| graphs | precision | weights MiB | reads | floor ms | chunk p50 ms | chunk / floor |",
+            "|---|---|---:|---:|---:|---:|---:|",
         ]
         for kernel, by_precision in report["roofline"].items():
             for p, r in by_precision.items():
                 lines.append(
-                    f"| {head.get(kernel, kernel)} | {p} | {r['weights_mib']:.1f} | {r['floor_ms']:.2f} | "
+                    f"| {head.get(kernel, kernel)} | {p} | {r['weights_mib']:.1f} | {r['passes']} | {r['floor_ms']:.2f} | "
                     f"{r['chunk_ms']:.2f} | {r['ratio']:.2f} |"
                 )
     eager = report["eager_torch"]

@@ -251,7 +251,7 @@ class Manifest:
 
     contract: what the model promises the robot; model: the architecture facts; source: where the weights came
     from; graphs: per graph its files {kind: name} and interface (inputs, outputs: [{name, shape, dtype}]); files:
-    {name: {bytes, sha256, onnx_nodes?}}; normalizers: per normalised tensor its per-channel statistics; data: the
+    {name: {bytes, sha256, onnx_nodes?, weight_reads?}}; normalizers: per normalised tensor its per-channel statistics; data: the
     whole JSON as read (``model_config``: the training architecture; ``verification``, ``exporter``, ...)."""
 
     contract: ModelContract
@@ -329,7 +329,8 @@ def check_manifest(data: dict[str, Any], model_dir: Path) -> Manifest:
 
 
 def _check_files(files: Any, model_dir: Path) -> dict[str, dict[str, Any]]:
-    """``files``: {file name: {bytes, sha256, onnx_nodes?}}, every name inside the model directory."""
+    """``files``: {file name: {bytes, sha256, onnx_nodes?, weight_reads?}}, every name inside the model directory
+    (weight_reads: how often one run of an ONNX graph reads its weights, counted by the exporter)."""
     where = f"{MANIFEST_NAME} files"
     files = check_value(files, dict[str, Any], Spec(), where)
     for name, info in files.items():
@@ -342,8 +343,9 @@ def _check_files(files: Any, model_dir: Path) -> dict[str, dict[str, Any]]:
         check_value(info["bytes"], int, Spec(ge=0), f"{entry}.bytes")
         if not isinstance(info["sha256"], str) or not _SHA256.fullmatch(info["sha256"]):
             raise ConfigError(f"{entry}.sha256 must be 64 lowercase hex digits, got {info['sha256']!r}")
-        if "onnx_nodes" in info:
-            check_value(info["onnx_nodes"], int, Spec(ge=0), f"{entry}.onnx_nodes")
+        for key in ("onnx_nodes", "weight_reads"):
+            if key in info:
+                check_value(info[key], int, Spec(ge=0), f"{entry}.{key}")
     return files
 
 

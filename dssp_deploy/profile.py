@@ -253,9 +253,13 @@ def run_profile(
     }
 
 
-def weight_passes(manifest: Manifest) -> int:
-    """How often one chunk reads every denoiser weight: once per DDIM step, and once more for the prefix when its
-    state is computed once and serves the K steps (a Mamba denoiser with the timestep decoupled, K > 1)."""
+def weight_passes(manifest: Manifest, fmt: str = "onnx") -> int:
+    """How often one chunk of the denoiser's ``fmt`` graph reads every weight, as the exporter counted it in the
+    graph (``weight_reads``); for a model exported before it counted: once per DDIM step, and once more for the
+    prefix when its state is computed once and serves the K steps (the timestep decoupled, K > 1)."""
+    reads = manifest.files.get(manifest.graphs[DENOISER_GRAPH]["files"].get(fmt), {}).get("weight_reads")
+    if reads:
+        return reads
     steps = manifest.contract.denoise_steps
     return steps + 1 if steps > 1 and manifest.model.timestep_decoupled else steps
 
@@ -264,7 +268,7 @@ def roofline(model_dir: Path, manifest: Manifest, fmt: str, chunk_ms: float, rea
     """One chunk against the least time reading its weights allows: the denoiser graph's bytes (``fmt``'s file: its
     weights, nearly all of it) read :func:`weight_passes` times at ``read_gbs``; ``ratio`` = achieved / floor."""
     weights = graph_file(model_dir, manifest, DENOISER_GRAPH, fmt).stat().st_size
-    passes = weight_passes(manifest)
+    passes = weight_passes(manifest, fmt)
     floor = passes * weights / (read_gbs * 1e9) * 1e3
     return {
         "graph": fmt,
@@ -294,7 +298,8 @@ def chunk_floor(
     bandwidth = memory_read_gbs()
     steps = manifest.contract.denoise_steps
     streams = cache is None or weights > cache
-    stream_ms = weight_passes(manifest) * weights / (bandwidth * 1e9) * 1e3 if streams else None
+    passes = weight_passes(manifest, fmt)
+    stream_ms = passes * weights / (bandwidth * 1e9) * 1e3 if streams else None
     compute_ms = chunk_flops_ / (peak_gflops * 1e9) * 1e3
     return {
         "compute_ms": compute_ms,
@@ -304,7 +309,7 @@ def chunk_floor(
         "read_gbs_by_mib": dict(probe),
         "read_gbs": bandwidth,
         "denoise_steps": steps,
-        "weight_passes": weight_passes(manifest),
+        "weight_passes": passes,
         "weight_stream_ms": stream_ms,
         "floor_ms": max(compute_ms, stream_ms or 0.0),
     }

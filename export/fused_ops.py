@@ -180,8 +180,8 @@ def block_reference(
     """What ``ai.dssp::MambaBlockQ8`` computes, in PyTorch: a (B, L, d) → (a (B, L, d), the mixer's state after the L
     tokens: conv (B, E, W), ssm (B, E, n)). ``mod`` (3, d) is the AdaLN row (shift, scale, gate) of the action
     tokens; (0, d) for the prefix alone (no modulation, gate 1). ``plain``: the first tokens that are the prefix
-    (unmodulated, gate 1) before the action tokens, in one pass. States (B, 0, W) and (B, 0, n) are zeros. Shapes:
-    :class:`QuantizedMambaBlock`."""
+    (unmodulated, gate 1) before the action tokens, in one pass; the states are then those after the prefix, which
+    the later DDIM steps start from. States (B, 0, W) and (B, 0, n) are zeros. Shapes: :class:`QuantizedMambaBlock`."""
     E, R = conv_w.shape[1], dt_q.shape[1]  # noqa: N806
     n = A.shape[1]
     if conv_state.shape[1] == 0:  # empty: a start from zeros
@@ -195,12 +195,16 @@ def block_reference(
         h = torch.where(actions[:, None], h * (1 + scale) + shift, h)
         gate = torch.where(actions[:, None], gate, torch.ones_like(gate))  # (L, d)
     xz = q8_linear(h, in_q, in_s)
-    x, z = xz[..., :E], xz[..., E:]
-    x, conv_after = causal_conv(x, conv_state, conv_w.t().unsqueeze(1), conv_b)
+    x_in, z = xz[..., :E], xz[..., E:]
+    x, conv_after = causal_conv(x_in, conv_state, conv_w.t().unsqueeze(1), conv_b)
     dbc = q8_linear(x, xp_q, xp_s)
     dt_in, Bm, Cm = torch.split(dbc, [R, n, n], dim=-1)  # noqa: N806
     dt = q8_linear(dt_in, dt_q, dt_s, dt_b)
     y, ssm_after = selective_scan(x, dt, Bm, Cm, z, A, D, ssm_state, linear_scan_unrolled)
+    if mod.shape[0] and 0 < plain < a.shape[1]:  # the states after the prefix's tokens
+        _, conv_after = causal_conv(x_in[:, :plain], conv_state, conv_w.t().unsqueeze(1), conv_b)
+        head = (t[:, :plain] for t in (x, dt, Bm, Cm, z))
+        _, ssm_after = selective_scan(*head, A, D, ssm_state, linear_scan_unrolled)
     out = q8_linear(y, out_q, out_s)
     a = a + (gate * out if mod.shape[0] else out)
     if fc1_q.numel():
@@ -324,14 +328,16 @@ class QuantizedMambaBlock(torch.nn.Module):
         p, conv, ssm = self._run(p, *self._zero_state(p), self.no_mod, True)
         return p, (conv, ssm)
 
-    def joint(self, seq, p, shift, scale, gate):
+    def joint(self, seq, p, shift, scale, gate, state_out: bool = False):
         """The prefix and the action tokens, seq = [p, a] (B, L_p + H, d), in one pass (one DDIM step with the timestep
-        decoupled: the prefix unmodulated) → seq after the block. ``p`` is the prefix as it entered the first such
-        block: its length, a constant of the model, is the node's attribute, and every block takes its zero states
-        from its batch (one shape computation the graph shares). The caller keeps seq whole between blocks, so the
-        graph holds no split and join per block."""
+        decoupled: the prefix unmodulated) → seq after the block, and with ``state_out`` the prefix's state after it
+        (conv (B, E, W), ssm (B, E, n)) too, for the later steps: (seq, (conv, ssm)). ``p`` is the prefix as it
+        entered the first such block: its length, a constant of the model, is the node's attribute, and every block
+        takes its zero states from its batch (one shape computation the graph shares). The caller keeps seq whole
+        between blocks, so the graph holds no split and join per block."""
         mod = torch.cat([shift, scale, gate], dim=0)
-        return self._run(seq, *self._zero_state(p), mod, False, int(p.shape[1]))[0]
+        seq, conv, ssm = self._run(seq, *self._zero_state(p), mod, state_out, int(p.shape[1]))
+        return (seq, (conv, ssm)) if state_out else seq
 
     def forward(self, a, state, shift, scale, gate):
         conv_state, ssm_state = state

@@ -36,6 +36,7 @@ import argparse
 import contextlib
 import copy
 import importlib.metadata
+import math
 import platform
 import sys
 import time
@@ -314,6 +315,19 @@ def onnx_node_count(path: Path) -> int:
     return len(onnx.load(str(path), load_external_data=False).graph.node)
 
 
+def weight_reads(path: Path) -> int:
+    """How many nodes of the graph at ``path`` read its largest weight (the initializer with the most elements):
+    how often one run reads its weights. The denoiser's: K + 1 (the prefix's pass, then the K DDIM steps), or K in
+    the int8 fused graph, whose first step carries the prefix; the history step's: 1."""
+    import onnx  # deferred: loads onnx
+
+    graph = onnx.load(str(path), load_external_data=False).graph
+    if not graph.initializer:
+        return 0
+    largest = max(graph.initializer, key=lambda t: math.prod(t.dims)).name
+    return sum(largest in node.input for node in graph.node)
+
+
 # ------------------------------------------------------------------- export
 def export_model(
     run_dir: Path,
@@ -522,6 +536,7 @@ def export_model(
                 info = {"bytes": path.stat().st_size, "sha256": file_sha256(path)}
                 if name.endswith(".onnx"):
                     info["onnx_nodes"] = onnx_node_count(path)
+                    info["weight_reads"] = weight_reads(path)
                 manifest["files"][name] = info
         write_manifest(staged.path, manifest)
         del modules, policy

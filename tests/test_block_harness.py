@@ -56,8 +56,9 @@ def read_tensors(path: Path) -> dict[str, np.ndarray]:
 
 def case(tmp_path: Path, mlp: str, batch: int, part: str) -> tuple[Path, list[np.ndarray]]:
     """A block's inputs written for the harness, and what block_reference gives for them: (a, conv, ssm), the
-    states after the tokens on the prefix alone, else (batch, 0, .) (not written). "step" is one prefix token from
-    the given states, its states written: the scan's one-token path."""
+    states after the tokens on the prefix alone, after the prefix's tokens on [prefix, actions] ("joint"), else
+    (batch, 0, .) (not written). "step" is one prefix token from the given states, its states written: the scan's
+    one-token path."""
     from export.fused_ops import block_reference
 
     fused, values = block_case(mlp, batch)
@@ -74,7 +75,7 @@ def case(tmp_path: Path, mlp: str, batch: int, part: str) -> tuple[Path, list[np
         values.update(mod=torch.zeros(0, values["a"].shape[-1]))
     with torch.no_grad():
         want = [t.numpy() for t in block_reference(*values.values(), fused.eps, plain)]
-    if part not in ("prefix", "step"):
+    if part not in ("prefix", "step", "joint"):
         want = [want[0], want[1][:, :0], want[2][:, :0]]
     path = tmp_path / f"{mlp}-{batch}-{part}.case"
     write_tensors(

@@ -323,28 +323,32 @@ def block_session(values: dict, eps: float, threads: int = 1, state_out: int = 0
         ("none", 1, "actions"),
         ("gated", 2, "prefix"),
         ("gated", 2, "joint"),
+        ("gated", 2, "joint, state out"),
     ],
 )
 def test_a_whole_int8_block_matches_its_pytorch_reference(mlp, batch, part, monkeypatch):
     """One denoiser block: the operator against ``export.fused_ops.block_reference`` (the same per-row quantization,
     the integer sums exact) on the action tokens (AdaLN, from a prefix's state), on the prefix (no AdaLN, from
-    zeros, its state out) and on both in one pass (the first 3 tokens plain), on every scan path and thread count;
-    every qgemm path this CPU runs gives the same result bit for bit (their integer sums are exact and their
-    epilogue the same)."""
+    zeros, its state out) and on both in one pass (the first 3 tokens plain; with the state out, the state after
+    them: what the prefix alone gives), on every scan path and thread count; every qgemm path this CPU runs gives the
+    same result bit for bit (their integer sums are exact and their epilogue the same)."""
     from export.fused_ops import block_reference
 
     fused, values = block_case(mlp, batch)
-    state_out, plain = int(part == "prefix"), 3 if part == "joint" else 0
+    state_out, plain = int(part in ("prefix", "joint, state out")), 3 if part.startswith("joint") else 0
     if part == "prefix":  # from zeros given, and from zeros as the exported graphs say it (empty states)
         values.update(
             conv_state=torch.zeros_like(values["conv_state"]), ssm_state=torch.zeros_like(values["ssm_state"])
         )
-    if part == "joint":
-        values.update(conv_state=values["conv_state"][:, :0], ssm_state=values["ssm_state"][:, :0])
-    if state_out:
         values.update(mod=torch.zeros(0, values["a"].shape[-1]))
+    if plain:
+        values.update(conv_state=values["conv_state"][:, :0], ssm_state=values["ssm_state"][:, :0])
     with torch.no_grad():
         want = [t.numpy() for t in block_reference(*values.values(), fused.eps, plain)]
+        if plain and state_out:  # the reference's states after the prefix: those of the prefix alone
+            alone = {**values, "a": values["a"][:, :plain], "mod": values["mod"][:0]}
+            _, conv, ssm = block_reference(*alone.values(), fused.eps, 0)
+            assert np.array_equal(conv.numpy(), want[1]) and np.allclose(ssm.numpy(), want[2], rtol=0, atol=1e-6)
     if not state_out:
         want = [want[0], want[1][:, :0], want[2][:, :0]]
     outputs = {}
@@ -371,9 +375,10 @@ def test_a_whole_int8_block_matches_its_pytorch_reference(mlp, batch, part, monk
 
 
 def test_the_int8_fused_denoiser_runs_each_block_as_one_node(tiny_export):
-    """The int8 fused denoiser: every block one MambaBlockQ8 node on the prefix and at each DDIM step, the blocks'
-    weights stored once (int8, read by the prefix's node and the K steps' alike), and its chunks as close to the fp32
-    graphs' as the standard int8 graphs' are."""
+    """The int8 fused denoiser: every block one MambaBlockQ8 node at each DDIM step, the first step's with the
+    prefix's tokens plain and its state out (the prefix needs no pass of its own: K reads of the weights, not K + 1,
+    as the manifest counts them), the blocks' weights stored once (int8, read by the K steps alike), and its chunks
+    as close to the fp32 graphs' as the standard int8 graphs' are."""
     from collections import Counter
 
     _, model_dir, _ = tiny_export
@@ -381,7 +386,22 @@ def test_the_int8_fused_denoiser_runs_each_block_as_one_node(tiny_export):
     layers, steps = manifest["model_config"]["n_denoiser_layers"], len(manifest["contract"]["ddim_timesteps"])
     model = onnx.load(str(model_dir / "denoiser.int8.fused.onnx"))
     ops = Counter(node.op_type for node in model.graph.node)
-    assert ops[mamba_kernel.BLOCK_OP] == layers * (steps + 1), ops
+    assert ops[mamba_kernel.BLOCK_OP] == layers * steps, ops
+    m = manifest["model_config"]
+    prefix = int(m["use_history"]) + int(m["use_recent_states"]) * manifest["contract"]["n_obs_steps"]
+    kinds = Counter(
+        (a["plain"], a["state_out"])
+        for a in (
+            {a.name: onnx.helper.get_attribute_value(a) for a in node.attribute}
+            for node in model.graph.node
+            if node.op_type == mamba_kernel.BLOCK_OP
+        )
+    )
+    assert kinds == {(prefix, 1): layers, (0, 0): layers * (steps - 1)}, kinds
+    reads = {
+        n: f["weight_reads"] for n, f in manifest["files"].items() if n.startswith("denoiser.") and n.endswith(".onnx")
+    }
+    assert reads.pop("denoiser.int8.fused.onnx") == steps and set(reads.values()) == {steps + 1}, reads
     assert ops[mamba_kernel.SCAN_OP] == ops[mamba_kernel.CONV_OP] == 0
     int8 = {t.name: int(np.prod(t.dims)) for t in model.graph.initializer if t.data_type == TensorProto.INT8}
     blocks = {name: size for name, size in int8.items() if ".fused_block." in name and size}
@@ -491,3 +511,38 @@ def test_layer_norm_max_over_points_matches_pytorch_and_replaces_three_nodes(sha
     assert mamba_kernel.POOL_OP in ops[".fused"] and "GlobalMaxPool" not in ops[".fused"]
     assert ops[".fused"].count("LayerNormalization") == ops[""].count("LayerNormalization") - 1
     assert mamba_kernel.POOL_OP not in ops[""] and "GlobalMaxPool" in ops[""]
+
+
+def test_the_first_ddim_step_carries_the_prefix_where_every_block_is_one_node():
+    """With every denoiser block fused (export's int8 graphs), a chunk's first step runs [prefix, actions] in one pass
+    and gives the prefix's states: the same x0 and states as the prefix's own pass and then the step, which read
+    every weight twice; the K-step chain takes that way and gives the same chunk."""
+    import dataclasses
+
+    from dssp_train.config import load_preset
+    from dssp_train.model.policy import DSSPPolicy
+    from export.fused_ops import use_fused_blocks
+
+    torch.manual_seed(0)
+    cfg = load_preset("sim")
+    cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, state_dim=7, action_dim=7))
+    policy = DSSPPolicy(cfg.model).eval()
+    den = policy.denoiser
+    assert not den.joins_prefix
+    with torch.no_grad():
+        for p in den.parameters():
+            p.add_(torch.randn_like(p) * 0.05)
+        chained = {}
+        for fused in (False, True):
+            if fused:
+                assert use_fused_blocks(den) == len(den.layers) and den.joins_prefix
+            prefix = torch.randn(2, 3, cfg.model.d_model, generator=torch.Generator().manual_seed(1))
+            noise = torch.randn(2, cfg.model.horizon, 7, generator=torch.Generator().manual_seed(2))
+            chained[fused] = policy.sample_normalized(prefix, noise, 3, unrolled=True)
+        mod = den.modulation(torch.tensor([500])).at(0)
+        x0, states = den.joint_step(prefix, noise, mod)
+        apart = den.encode_prefix(prefix, unrolled=True)
+        assert torch.equal(x0, den.denoise_modulated(apart, noise, mod, unrolled=True))
+        for (conv, ssm), (conv_apart, ssm_apart) in zip(states, apart):
+            assert torch.equal(conv, conv_apart) and torch.allclose(ssm, ssm_apart, rtol=0, atol=1e-6)
+    assert torch.allclose(chained[True], chained[False], atol=0.05)  # int8 against fp32 blocks

@@ -7,8 +7,8 @@
 // Tensor files (CASE, OUT): "DSSPTENS" then, per tensor, u32 name length, the name, u8 dtype ('f' float32,
 // 'b' int8), u32 ndim, ndim int64 dims, the values; little-endian. CASE holds MambaBlockQ8's inputs by their names
 // (a, conv_state, ssm_state, mod, norm_w, in_q, in_s, …, fc2_s: mamba_ops.cc), eps (shape ()) and optionally
-// plain (shape (), the prefix tokens before the actions); mod (0, d) is the prefix alone, whose states are
-// written; OUT holds a, conv, ssm. The scan and product paths are the ones
+// plain (shape (), the prefix tokens before the actions, whose states are written); mod (0, d) is the prefix alone,
+// whose states are written; OUT holds a, conv, ssm. The scan and product paths are the ones
 // DSSP_SCAN_PATH and DSSP_QGEMM_PATH choose. Exit 0 when the block ran, 2 when a path cannot run here (the JSON
 // line says why), 1 for a broken file.
 
@@ -222,10 +222,11 @@ int parity(const std::string& case_path, const std::string& out_path, int thread
   inputs.mod = prefix ? nullptr : mod.f(), inputs.batch = batch, inputs.L = L;
   if (t.count("plain")) inputs.plain = static_cast<int64_t>(need(t, "plain", 'f', 0).f()[0]);
   if (inputs.plain < 0 || inputs.plain > L || (prefix && inputs.plain)) broken("plain does not fit a and mod");
-  Tensors result{{"a", floats(a.shape)}, {"conv", floats({batch, prefix ? E : 0, W})}, {"ssm", floats({batch, prefix ? E : 0, n})}};
+  const bool states = prefix || inputs.plain > 0;  // the states after the prefix
+  Tensors result{{"a", floats(a.shape)}, {"conv", floats({batch, states ? E : 0, W})}, {"ssm", floats({batch, states ? E : 0, n})}};
   m::BlockOutputs outputs;
   outputs.a = reinterpret_cast<float*>(result["a"].bytes.data());
-  if (prefix) {
+  if (states) {
     outputs.conv_state = reinterpret_cast<float*>(result["conv"].bytes.data());
     outputs.ssm_state = reinterpret_cast<float*>(result["ssm"].bytes.data());
   }

@@ -64,6 +64,9 @@ struct Problem {
   const float *x, *dt, *B, *C, *z, *A, *D, *h0;  // h0 null: the state starts from zeros
   float *y, *h;  // h null: the state is not written (state_out 0)
   int64_t batch, L, E, n;
+  int64_t h_after = 0;  // h is the state after this many tokens (1..L); 0: after the last (L)
+
+  int64_t h_at() const { return h_after > 0 ? h_after : L; }
 };
 
 // Channels [e0, e1) of batch row b; scratch holds 3 * L * (e1 - e0) floats.
@@ -103,8 +106,8 @@ inline void scan_block_portable(const Problem& p, int64_t b, int64_t e0, int64_t
       }
       const int64_t at = (b * L + t) * E + e;
       p.y[at] = (acc + p.D[e] * p.x[at]) * gate[t * w + i];
+      if (p.h && t + 1 == p.h_at()) std::memcpy(p.h + (b * E + e) * n, hp, n * sizeof(float));
     }
-    if (p.h) std::memcpy(p.h + (b * E + e) * n, hp, n * sizeof(float));
   }
 }
 
@@ -307,6 +310,7 @@ struct ConvProblem {
   const float *x, *state, *weight, *bias;  // weight (W, E); state null: zeros
   float *y, *new_state;
   int64_t batch, L, E, W;
+  int64_t state_after = 0;  // new_state is the state after this many steps of x (1..L); 0: after the last (L)
 };
 
 #if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
@@ -335,8 +339,9 @@ DSSP_AVX2_CLONES inline void conv_block(const ConvProblem& p, int64_t b, int64_t
 #pragma omp simd
     for (int64_t e = e0; e < e1; ++e) y[e] = y[e] / (1.0f + fast_exp(-y[e]));
   }
-  for (int64_t k = 0; k < W; ++k) {  // the new state: the last W steps of [state, x]
-    const int64_t i = L + k;
+  const int64_t after = p.state_after > 0 ? p.state_after : L;
+  for (int64_t k = 0; k < W; ++k) {  // the new state: the last W steps of [state, x[:after]]
+    const int64_t i = after + k;
     float* out = p.new_state + b * E * W + k;
     if (i >= W) {
       const float* xi = p.x + (b * L + i - W) * E;
@@ -555,7 +560,8 @@ struct BlockInputs {
   int64_t batch = 0, L = 0, plain = 0;
 };
 
-// a (batch, L, d); the states after the L tokens, conv (batch, E, W) and ssm (batch, E, n), or null: not written
+// a (batch, L, d); the states after the L tokens (after the `plain` prefix tokens when plain > 0: what the later
+// DDIM steps start from), conv (batch, E, W) and ssm (batch, E, n), or null: not written
 struct BlockOutputs {
   float *a = nullptr, *conv_state = nullptr, *ssm_state = nullptr;
 };
@@ -621,7 +627,7 @@ inline void block_forward(const BlockWeights& w, const BlockInputs& in, const Bl
     std::memcpy(z + i * E, xz + i * 2 * E + E, sizeof(float) * E);
   }
   ConvProblem cp{x, in.conv_state, w.conv_w, w.conv_b, xc,
-                 out.conv_state ? out.conv_state : conv_after, batch, L, E, W};
+                 out.conv_state ? out.conv_state : conv_after, batch, L, E, W, in.plain};
   const int64_t conv_blocks = (E + 255) / 256;
   ConvTask conv_task{&cp, conv_blocks};
   parallel_for(run_conv_task, static_cast<size_t>(batch * conv_blocks), &conv_task);
@@ -634,7 +640,7 @@ inline void block_forward(const BlockWeights& w, const BlockInputs& in, const Bl
   }
   q8_matmul(parallel_for, dt_in, m, R, *w.dt, w.dt_b, dt, rows);
   Problem sp{xc, dt, Bm, Cm, z, w.A, w.D, in.ssm_state, y, out.ssm_state,
-             batch, L, E, n};
+             batch, L, E, n, in.plain};
   const int64_t scan_blocks = (E + kBlock - 1) / kBlock;
   ScanTask scan_task{&sp, scan_path, scan_blocks};
   parallel_for(run_scan_task, static_cast<size_t>(batch * scan_blocks), &scan_task);

@@ -210,9 +210,10 @@ struct LayerNormMaxOverPoints {
 //         dt_q (E, R) int8, dt_s (E), dt_b (E); A (E, n); D (E); out_q (d, E) int8, out_s (d);
 //         norm2_w (d); fc1_q (2h, d) int8, fc1_s (2h); fc2_q (d, h) int8, fc2_s (d) — the MLP's (0,)/(0, 0) without one
 // outputs: a (batch, H, d); the mixer's state after the tokens, conv (batch, E, W) and ssm (batch, E, n), with the
-// attribute state_out = 1 (the prefix's node; else both (batch, 0, .), never written). Attribute eps: the norms'.
+// attribute state_out = 1 (else both (batch, 0, .), never written). Attribute eps: the norms'.
 // Attribute plain (default 0): with mod (3, d), the first `plain` tokens of each row are the prefix, without AdaLN
-// and gate 1 — one DDIM step's [prefix, actions] in one pass (K = 1).
+// and gate 1 — one DDIM step's [prefix, actions] in one pass (K = 1, or the first of K steps); the states out are
+// then those after the prefix, which the later steps start from.
 //
 // Every product multiplies the rows (batch * H, a dozen) by int8 weights with the activations quantized per row
 // (qgemm.h), the weights packed once for this CPU and shared by every node that reads the same initializer (the

@@ -252,6 +252,26 @@ class Denoiser(nn.Module):
             a = layer.mlp_residual(a + gate.unsqueeze(1) * oa, mlp_mod)
         return self.readout(a if joined is None else joined[:, n_prefix:], mod)
 
+    def joint_step(
+        self, prefix: torch.Tensor, x_tau: torch.Tensor, mod: Modulation, committed: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, list[MixerState]]:
+        """The first of K DDIM steps with the prefix in the same pass, as export's fused graphs run it (every block a
+        ``fused_block``, :attr:`joins_prefix`): prefix (B, L_p, d), x_tau (B, H, A) → x0_hat (B, H, A) and every
+        layer's state after the prefix, which the later steps start from (:meth:`denoise_modulated`); equals
+        :meth:`encode_prefix` and then :meth:`denoise_modulated`, and reads each weight once instead of twice."""
+        seq, states = torch.cat([prefix, self.embed_actions(x_tau, committed)], dim=1), []
+        for i, layer in enumerate(self.layers):
+            shift, scale, gate, *_ = mod.block(i)
+            seq, state = layer.fused_block.joint(seq, prefix, shift, scale, gate, state_out=True)
+            states.append(state)
+        return self.readout(seq[:, prefix.shape[1] :], mod), states
+
+    @property
+    def joins_prefix(self) -> bool:
+        """Whether a chunk's first DDIM step can carry the prefix (:meth:`joint_step`): every block runs as one
+        fused node (export's int8 fused graphs) with the timestep decoupled."""
+        return self.decoupled and all(getattr(layer, "fused_block", None) is not None for layer in self.layers)
+
     # ---------------------------------------------------- prefix-cached forward
     def encode_prefix(self, prefix: torch.Tensor, unrolled: bool = False) -> list[MixerState]:
         """Run the (unmodulated) prefix (B, L_p, d) once: every layer's state after it — Mamba's (conv (B, E, W),
