@@ -65,8 +65,10 @@ struct Problem {
   float *y, *h;  // h null: the state is not written (state_out 0)
   int64_t batch, L, E, n;
   int64_t h_after = 0;  // h is the state after this many tokens (1..L); 0: after the last (L)
+  int64_t z_stride = 0;  // z's row stride (z inside in_proj's output [x, z]: 2E); 0: E
 
   int64_t h_at() const { return h_after > 0 ? h_after : L; }
+  const float* z_row(int64_t row) const { return z + row * (z_stride > 0 ? z_stride : E); }  // row = b * L + t
 };
 
 // Channels [e0, e1) of batch row b; scratch holds 3 * L * (e1 - e0) floats.
@@ -77,11 +79,12 @@ inline void scan_block_portable(const Problem& p, int64_t b, int64_t e0, int64_t
   float* gate = dx + L * w;     // (L, w) silu(z)
   for (int64_t t = 0; t < L; ++t) {
     const int64_t row = (b * L + t) * E + e0;
+    const float* z = p.z_row(b * L + t) + e0;
     for (int64_t i = 0; i < w; ++i) {
       const float d = softplus(p.dt[row + i]);
       delta[t * w + i] = d;
       dx[t * w + i] = d * p.x[row + i];
-      gate[t * w + i] = silu(p.z[row + i]);
+      gate[t * w + i] = silu(z[i]);
     }
   }
   std::vector<float> h(n);
@@ -311,6 +314,9 @@ struct ConvProblem {
   float *y, *new_state;
   int64_t batch, L, E, W;
   int64_t state_after = 0;  // new_state is the state after this many steps of x (1..L); 0: after the last (L)
+  int64_t x_stride = 0;  // x's row stride (x inside in_proj's output [x, z]: 2E); 0: E
+
+  const float* x_row(int64_t row) const { return x + row * (x_stride > 0 ? x_stride : E); }  // row = b * L + t
 };
 
 #if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
@@ -328,7 +334,7 @@ DSSP_AVX2_CLONES inline void conv_block(const ConvProblem& p, int64_t b, int64_t
       const int64_t i = t + 1 + j;
       const float* w = p.weight + j * E;
       if (i >= W) {
-        const float* xi = p.x + (b * L + i - W) * E;
+        const float* xi = p.x_row(b * L + i - W);
 #pragma omp simd
         for (int64_t e = e0; e < e1; ++e) y[e] += w[e] * xi[e];
       } else {
@@ -344,7 +350,7 @@ DSSP_AVX2_CLONES inline void conv_block(const ConvProblem& p, int64_t b, int64_t
     const int64_t i = after + k;
     float* out = p.new_state + b * E * W + k;
     if (i >= W) {
-      const float* xi = p.x + (b * L + i - W) * E;
+      const float* xi = p.x_row(b * L + i - W);
       for (int64_t e = e0; e < e1; ++e) out[e * W] = xi[e];
     } else {
       const float* si = p.state ? p.state + b * E * W + i : nullptr;
@@ -439,6 +445,25 @@ inline void run_conv_task(void* data, size_t index) {
   const int64_t b = static_cast<int64_t>(index) / task.blocks_per_row;
   const int64_t e0 = (static_cast<int64_t>(index) % task.blocks_per_row) * 256;
   conv_block(*task.problem, b, e0, std::min(e0 + 256, task.problem->E));
+}
+
+// The gated MLP's activation, v = u * silu(g) over fc1's rows [u, g] (m, 2h) -> v (m, h), a row per task.
+struct GateTask {
+  const float* ug;
+  float* v;
+  int64_t hidden;
+};
+
+DSSP_AVX2_CLONES inline void gate_row(const float* u, const float* g, float* v, int64_t hidden) {
+#pragma omp simd
+  for (int64_t j = 0; j < hidden; ++j) v[j] = u[j] * (g[j] / (1.0f + fast_exp(-g[j])));
+}
+
+inline void run_gate_task(void* data, size_t index) {
+  const GateTask& t = *static_cast<const GateTask*>(data);
+  const int64_t i = static_cast<int64_t>(index);
+  const float* u = t.ug + i * 2 * t.hidden;
+  gate_row(u, u + t.hidden, t.v + i * t.hidden, t.hidden);
 }
 
 // ------------------------------------------------------------------ the point encoder's pooling
@@ -581,14 +606,18 @@ inline void run_matmul_task(void* data, size_t index) {
   q::matmul_range(*t.x, *t.w, t.bias, t.y, t.ldy, begin, std::min(begin + t.columns, t.w->n));
 }
 
-constexpr int kColumnsPerTask = 128;  // a multiple of every path's column block
+constexpr int kColumnsPerTask = 128;  // at most; a multiple of every path's column block
 
-// y (m, w.n) = x (m, k) @ W.T (+ bias), the columns split across the threads; rows holds x quantized
+// y (m, w.n) = x (m, k) @ W.T (+ bias), the columns split across the threads in tasks of kColumnsPerTask columns, or
+// of a quarter of them rounded up to the path's column block where that is less (x_proj's 160 columns: 64, 64, 32,
+// not 128 and 32); rows holds x quantized
 inline void q8_matmul(const ParallelFor& parallel_for, const float* x, int64_t m, int64_t k, const q::PackedWeights& w,
                       const float* bias, float* y, q::QuantizedRows& rows) {
   q::quantize_rows(x, static_cast<int>(m), static_cast<int>(k), rows, w.path);
-  MatmulTask task{&rows, &w, bias, y, w.n, kColumnsPerTask};
-  parallel_for(run_matmul_task, static_cast<size_t>((w.n + kColumnsPerTask - 1) / kColumnsPerTask), &task);
+  const int quarter = (w.n + 3) / 4;
+  const int columns = std::min(kColumnsPerTask, (quarter + w.block - 1) / w.block * w.block);
+  MatmulTask task{&rows, &w, bias, y, w.n, columns};
+  parallel_for(run_matmul_task, static_cast<size_t>((w.n + columns - 1) / columns), &task);
 }
 
 // The block on in.L tokens of each of in.batch rows (see above); the weights checked by BlockWeights::check.
@@ -601,7 +630,7 @@ inline void block_forward(const BlockWeights& w, const BlockInputs& in, const Bl
   const float *scale = shift ? shift + d : nullptr, *gate = shift ? shift + 2 * d : nullptr;
   // one uninitialised buffer for the call's activations (each is written before it is read)
   const int64_t hidden = w.hidden(), xpn = w.xp->n;
-  const int64_t sizes[] = {m * d, m * 2 * E, m * E, m * E, m * E, out.conv_state ? 0 : batch * E * W, m * xpn, m * R,
+  const int64_t sizes[] = {m * d, m * 2 * E, m * E, out.conv_state ? 0 : batch * E * W, m * xpn, m * R,
                            m * E, m * n, m * n, m * E, m * d, m * d, m * 2 * hidden, m * hidden};
   int64_t total = 0;
   for (int64_t size : sizes) total += (size + 15) / 16 * 16;
@@ -612,22 +641,17 @@ inline void block_forward(const BlockWeights& w, const BlockInputs& in, const Bl
     next += (size + 15) / 16 * 16;
     return at;
   };
-  float *h = take(sizes[0]), *xz = take(sizes[1]), *x = take(sizes[2]), *z = take(sizes[3]), *xc = take(sizes[4]),
-        *conv_after = take(sizes[5]), *dbc = take(sizes[6]), *dt_in = take(sizes[7]), *dt = take(sizes[8]),
-        *Bm = take(sizes[9]), *Cm = take(sizes[10]), *y = take(sizes[11]), *o = take(sizes[12]), *g = take(sizes[13]),
-        *u = take(sizes[14]), *v = take(sizes[15]);
+  float *h = take(sizes[0]), *xz = take(sizes[1]), *xc = take(sizes[2]), *conv_after = take(sizes[3]),
+        *dbc = take(sizes[4]), *dt_in = take(sizes[5]), *dt = take(sizes[6]), *Bm = take(sizes[7]), *Cm = take(sizes[8]),
+        *y = take(sizes[9]), *o = take(sizes[10]), *g = take(sizes[11]), *u = take(sizes[12]), *v = take(sizes[13]);
   for (int64_t b = 0; b < batch; ++b) {  // the prefix's tokens unmodulated, the actions' with AdaLN
     const int64_t row = b * L, plain = shift ? in.plain : L;
     rms_norm(in.a + row * d, plain, d, w.norm_w, w.eps, nullptr, nullptr, h + row * d);
     rms_norm(in.a + (row + plain) * d, L - plain, d, w.norm_w, w.eps, shift, scale, h + (row + plain) * d);
   }
-  q8_matmul(parallel_for, h, m, d, *w.in, nullptr, xz, rows);
-  for (int64_t i = 0; i < m; ++i) {
-    std::memcpy(x + i * E, xz + i * 2 * E, sizeof(float) * E);
-    std::memcpy(z + i * E, xz + i * 2 * E + E, sizeof(float) * E);
-  }
-  ConvProblem cp{x, in.conv_state, w.conv_w, w.conv_b, xc,
-                 out.conv_state ? out.conv_state : conv_after, batch, L, E, W, in.plain};
+  q8_matmul(parallel_for, h, m, d, *w.in, nullptr, xz, rows);  // each row [x, z]: the conv and the scan read them there
+  ConvProblem cp{xz, in.conv_state, w.conv_w, w.conv_b, xc,
+                 out.conv_state ? out.conv_state : conv_after, batch, L, E, W, in.plain, 2 * E};
   const int64_t conv_blocks = (E + 255) / 256;
   ConvTask conv_task{&cp, conv_blocks};
   parallel_for(run_conv_task, static_cast<size_t>(batch * conv_blocks), &conv_task);
@@ -639,8 +663,8 @@ inline void block_forward(const BlockWeights& w, const BlockInputs& in, const Bl
     std::memcpy(Cm + i * n, row + R + n, sizeof(float) * n);
   }
   q8_matmul(parallel_for, dt_in, m, R, *w.dt, w.dt_b, dt, rows);
-  Problem sp{xc, dt, Bm, Cm, z, w.A, w.D, in.ssm_state, y, out.ssm_state,
-             batch, L, E, n, in.plain};
+  Problem sp{xc, dt, Bm, Cm, xz + E, w.A, w.D, in.ssm_state, y, out.ssm_state,
+             batch, L, E, n, in.plain, 2 * E};
   const int64_t scan_blocks = (E + kBlock - 1) / kBlock;
   ScanTask scan_task{&sp, scan_path, scan_blocks};
   parallel_for(run_scan_task, static_cast<size_t>(batch * scan_blocks), &scan_task);
@@ -656,12 +680,8 @@ inline void block_forward(const BlockWeights& w, const BlockInputs& in, const Bl
 
   rms_norm(out.a, m, d, w.norm2_w, w.eps, nullptr, nullptr, g);
   q8_matmul(parallel_for, g, m, d, *w.fc1, nullptr, u, rows);
-  for (int64_t i = 0; i < m; ++i) {
-    const float *ui = u + i * 2 * hidden, *gi = ui + hidden;
-    float* vi = v + i * hidden;
-#pragma omp simd
-    for (int64_t j = 0; j < hidden; ++j) vi[j] = ui[j] * (gi[j] / (1.0f + fast_exp(-gi[j])));
-  }
+  GateTask gate_task{u, v, hidden};
+  parallel_for(run_gate_task, static_cast<size_t>(m), &gate_task);
   q8_matmul(parallel_for, v, m, hidden, *w.fc2, nullptr, o, rows);
   for (int64_t i = 0; i < m * d; ++i) out.a[i] += o[i];
 }
