@@ -1,4 +1,5 @@
-"""Quantized versions of the exported ONNX graphs, both with ONNX Runtime's own quantizers.
+"""Quantized versions of the exported ONNX graphs, both with ONNX Runtime's own quantizers (the int8 fused denoiser's
+blocks excepted: :func:`keep_int8_blocks`).
 
 - int8 (:func:`quantize_int8`): dynamic quantization. Weights of every MatMul/Gemm and of every full convolution
   (DP3's UNet: ``ConvInteger``) become int8 (per output channel, 7-bit range: ``reduce_range``), activations are
@@ -108,6 +109,21 @@ def quantize_int4(src: Path, dst: Path, metadata: dict[str, str]) -> None:
         dst,
         metadata,
         f"int4 weight-only (onnxruntime MatMulNBits), blocks of {INT4_BLOCK}, symmetric, accuracy_level {INT4_ACCURACY_LEVEL}",
+    )
+
+
+def keep_int8_blocks(src: Path, dst: Path, metadata: dict[str, str]) -> None:
+    """Write the graph of ``src`` whose denoiser blocks are ``ai.dssp::MambaBlockQ8`` nodes (int8 weights of their own:
+    ``export.fused_ops``) to ``dst`` as it is: what is left around them, the actions' projections (H x d x A), stays
+    fp32 — as dynamically quantized products each was five nodes where one fp32 MatMul is both faster and exact."""
+    import onnx  # deferred: loads onnx
+
+    _save(
+        onnx.load(str(src)),
+        dst,
+        metadata,
+        "int8 in every denoiser block (ai.dssp::MambaBlockQ8: weights symmetric per output row, 8-bit; activations "
+        "per row), the actions' projections fp32",
     )
 
 

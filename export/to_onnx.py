@@ -69,7 +69,7 @@ from export.fused_ops import fitting_blocks, mark_unread_states, use_fused_block
 from export.graphs import DenoiserGraph, HistoryStepGraph, check_exportable, use_fused_ops
 from export.manifest_writer import build_manifest, metadata_props, write_manifest
 from export.output_dir import StagedDirectory
-from export.quantize import QUANTIZERS
+from export.quantize import QUANTIZERS, keep_int8_blocks
 from export.verify import file_sha256, verify_model
 from export.verify_report import check_report, describe_worst, format_report
 
@@ -512,7 +512,7 @@ def export_model(
                     for g in GRAPHS:
                         source = staged.path / files[g][src]
                         blocks = precision == "int8" and is_fused and fitting_blocks(modules[g])
-                        if blocks:  # each denoiser block as one node: a graph traced anew, then quantized
+                        if blocks:  # each denoiser block as one int8 node: a graph traced anew, kept as it is
                             source = write_block_graph(
                                 modules[g],
                                 examples[g],
@@ -523,7 +523,8 @@ def export_model(
                                 opset,
                                 metadata_props(manifest, g),
                             )
-                        QUANTIZERS[precision](source, staged.path / files[g][dst], metadata_props(manifest, g))
+                        quantizer = keep_int8_blocks if blocks else QUANTIZERS[precision]
+                        quantizer(source, staged.path / files[g][dst], metadata_props(manifest, g))
                         if blocks:
                             source.unlink()
                         written.append(files[g][dst])

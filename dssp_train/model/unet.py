@@ -89,6 +89,8 @@ class FiLMResidualBlock(nn.Module):
 class UNetDenoiser(nn.Module):
     """f_theta as DP3's UNet: prefix (B, L_p, d), x_tau (B, H, A), timesteps (B,) -> x0_hat (B, H, A)."""
 
+    joins_prefix = False  # the prefix is a global condition, flattened apart from the steps (Denoiser.joins_prefix)
+
     def __init__(self, cfg: ModelConfig):
         super().__init__()
         e, k, groups = cfg.unet_step_embed_dim, cfg.unet_kernel_size, cfg.unet_n_groups
