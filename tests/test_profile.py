@@ -64,12 +64,13 @@ def test_profile_runs_where_torch_cannot_be_imported(tiny_export, tmp_path):
     ops = {r["op"] for r in report["op_breakdown"]["denoiser_chunk"]}
     assert any("MatMul" in op for op in ops) and "MambaBlockQ8" in ops  # the int8 fused graph ran: a node per block
     assert "| denoiser chunk p50 ms |" in out.stdout and "Where the denoiser chunk goes" in out.stdout
-    floor = report["chunk_floor"]  # the least a chunk can take here, from this machine's own peak and bandwidth
-    assert (
-        floor["read_gbs"] > 0
-        and 0 < floor["compute_ms"] <= floor["floor_ms"]
-        and "Chunk floor on this machine" in out.stdout
-    )
+    # the least a chunk can take here, from this machine's bandwidth (and its float32 GEMM peak for fp32 graphs only:
+    # an int8 graph's products are not bounded by it)
+    floor = report["chunk_floor"]
+    stream = floor["weight_stream_ms"]
+    assert report["precision"] == "int8" and floor["compute_ms"] is None and floor["read_gbs"] > 0
+    assert floor["floor_ms"] == stream and "Chunk floor on this machine" in out.stdout
+    assert "no compute term" in out.stdout and ("not known here" in out.stdout) == (stream is None)
     assert [int(k) for k in floor["read_gbs_by_mib"]] == [
         2,
         4,
@@ -302,3 +303,27 @@ def test_the_effective_cache_is_the_largest_size_read_twice_as_fast_as_memory():
     shared_vm = [(2, 64.0), (4, 75.0), (8, 78.0), (12, 37.0), (16, 23.0), (128, 21.0)]  # measured on a shared 32 MiB L3
     assert effective_cache_bytes(shared_vm) == 8 * 2**20
     assert effective_cache_bytes([(2, 30.0), (128, 25.0)]) is None  # nothing read faster than memory
+
+
+def test_the_chunk_floor_takes_the_float32_peak_for_fp32_graphs_only(tiny_export, monkeypatch):
+    """The floor: the weights' stream (the graph's own reads at the measured bandwidth) where they do not stay in the
+    cache, and for an fp32 graph the float32 GEMM peak's compute too; an int8 graph's products are not bounded by it."""
+    from dssp_deploy import profile
+
+    _, model_dir, _ = tiny_export
+    manifest = read_manifest(model_dir)
+    monkeypatch.setattr(profile, "read_bandwidth_by_size", lambda: [(2, 100.0), (4, 20.0)])
+    monkeypatch.setattr(profile, "effective_cache_bytes", lambda probe: 1)  # nothing stays in the cache
+    monkeypatch.setattr(profile, "last_level_cache_bytes", lambda: 2**21)
+    monkeypatch.setattr(profile, "memory_read_gbs", lambda: 10.0)
+    flops, peak = 4 * 10**9, 100.0  # 40 ms at the peak
+    for precision in ("fp32", "int8"):
+        fmt = file_kind(precision, fused=True)
+        f = profile.chunk_floor(model_dir, manifest, flops, peak, fmt, precision)
+        size = (model_dir / manifest.graphs["denoiser"]["files"][fmt]).stat().st_size
+        stream = manifest.files[manifest.graphs["denoiser"]["files"][fmt]]["weight_reads"] * size / 10e9 * 1e3
+        assert f["weight_stream_ms"] == pytest.approx(stream)
+        if precision == "fp32":
+            assert f["compute_ms"] == pytest.approx(40.0) and f["floor_ms"] == pytest.approx(max(40.0, stream))
+        else:
+            assert f["compute_ms"] is None and f["floor_ms"] == pytest.approx(stream)
