@@ -222,9 +222,7 @@ def run_profile(
         "denoiser_chunk": chunk_flops(m, manifest.contract.denoise_steps),
     }
     achieved = {k: flops[k] / (stats[k]["p50"] / 1e3) / 1e9 for k in flops}
-    floor = chunk_floor(
-        model_dir, manifest, flops["denoiser_chunk"], peak, file_kind(precision, policy.fused), precision
-    )
+    floor = chunk_floor(model_dir, manifest, flops["denoiser_chunk"], peak, file_kind(precision, policy.fused))
     breakdown = graph_breakdowns(policy, model_dir, threads, runs=2 if quick else 5)
     used, note = policy.kernel, policy.kernel_note
     n_threads = threads or default_threads()
@@ -289,7 +287,6 @@ def chunk_floor(
     chunk_flops_: int,
     peak_gflops: float,
     fmt: str = "onnx",
-    precision: str = "fp32",
 ) -> dict[str, Any]:
     """The least time one chunk can take here: compute at the GEMM peak, or re-reading the weights per DDIM step.
 
@@ -312,7 +309,8 @@ def chunk_floor(
     streams = cache is None or weights > cache
     passes = weight_passes(manifest, fmt)
     stream_ms = passes * weights / (bandwidth * 1e9) * 1e3 if streams else None
-    compute_ms = chunk_flops_ / (peak_gflops * 1e9) * 1e3 if precision == "fp32" else None
+    fp32 = fmt in (file_kind("fp32"), file_kind("fp32", fused=True))
+    compute_ms = chunk_flops_ / (peak_gflops * 1e9) * 1e3 if fp32 else None
     known = [ms for ms in (compute_ms, stream_ms) if ms is not None]
     return {
         "compute_ms": compute_ms,

@@ -328,16 +328,16 @@ class QuantizedMambaBlock(torch.nn.Module):
         p, conv, ssm = self._run(p, *self._zero_state(p), self.no_mod, True)
         return p, (conv, ssm)
 
-    def joint(self, seq, p, shift, scale, gate, state_out: bool = False):
+    def joint(self, seq, p, shift, scale, gate, state_out: bool):
         """The prefix and the action tokens, seq = [p, a] (B, L_p + H, d), in one pass (one DDIM step with the timestep
-        decoupled: the prefix unmodulated) → seq after the block, and with ``state_out`` the prefix's state after it
-        (conv (B, E, W), ssm (B, E, n)) too, for the later steps: (seq, (conv, ssm)). ``p`` is the prefix as it
-        entered the first such block: its length, a constant of the model, is the node's attribute, and every block
-        takes its zero states from its batch (one shape computation the graph shares). The caller keeps seq whole
-        between blocks, so the graph holds no split and join per block."""
+        decoupled: the prefix unmodulated) → (seq after the block, the prefix's state after it: conv (B, E, W), ssm
+        (B, E, n) for the later steps, or both (B, 0, .) without ``state_out``). ``p`` is the prefix as it entered the
+        first such block: its length, a constant of the model, is the node's attribute, and every block takes its
+        zero states from its batch (one shape computation the graph shares). The caller keeps seq whole between
+        blocks, so the graph holds no split and join per block."""
         mod = torch.cat([shift, scale, gate], dim=0)
         seq, conv, ssm = self._run(seq, *self._zero_state(p), mod, state_out, int(p.shape[1]))
-        return (seq, (conv, ssm)) if state_out else seq
+        return seq, (conv, ssm)
 
     def forward(self, a, state, shift, scale, gate):
         conv_state, ssm_state = state

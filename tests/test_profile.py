@@ -319,7 +319,7 @@ def test_the_chunk_floor_takes_the_float32_peak_for_fp32_graphs_only(tiny_export
     flops, peak = 4 * 10**9, 100.0  # 40 ms at the peak
     for precision in ("fp32", "int8"):
         fmt = file_kind(precision, fused=True)
-        f = profile.chunk_floor(model_dir, manifest, flops, peak, fmt, precision)
+        f = profile.chunk_floor(model_dir, manifest, flops, peak, fmt)
         size = (model_dir / manifest.graphs["denoiser"]["files"][fmt]).stat().st_size
         stream = manifest.files[manifest.graphs["denoiser"]["files"][fmt]]["weight_reads"] * size / 10e9 * 1e3
         assert f["weight_stream_ms"] == pytest.approx(stream)

@@ -229,17 +229,12 @@ class Denoiser(nn.Module):
         ``mod`` has B rows or one (shared by the batch); ``unrolled`` runs the mixers' ``forward_unrolled``
         (:meth:`Mamba.forward_unrolled`; the same as ``forward`` for attention); ``committed`` as in :meth:`forward`.
         """
+        if self.joins_prefix:  # export's fused graphs: [p, a] whole through every block, one node each
+            return self.joint_step(prefix, x_tau, mod, committed, state_out=False)[0]
         p, a = prefix, self.embed_actions(x_tau, committed)
         n_prefix = p.shape[1]
-        joined = None  # [p, a] (B, L_p + H, d) while consecutive blocks run as one node each (export's fused graphs)
         for i, layer in enumerate(self.layers):
             shift, scale, gate, *mlp_mod = mod.block(i)
-            fused = getattr(layer, "fused_block", None)
-            if fused is not None and self.decoupled:
-                joined = fused.joint(torch.cat([p, a], dim=1) if joined is None else joined, p, shift, scale, gate)
-                continue
-            if joined is not None:
-                p, a, joined = joined[:, :n_prefix], joined[:, n_prefix:], None
             hp = layer.norm(p)
             if not self.decoupled:
                 hp = modulate(hp, shift, scale)
@@ -250,19 +245,25 @@ class Denoiser(nn.Module):
                 p + (op if self.decoupled else gate.unsqueeze(1) * op), () if self.decoupled else mlp_mod
             )
             a = layer.mlp_residual(a + gate.unsqueeze(1) * oa, mlp_mod)
-        return self.readout(a if joined is None else joined[:, n_prefix:], mod)
+        return self.readout(a, mod)
 
     def joint_step(
-        self, prefix: torch.Tensor, x_tau: torch.Tensor, mod: Modulation, committed: torch.Tensor | None = None
+        self,
+        prefix: torch.Tensor,
+        x_tau: torch.Tensor,
+        mod: Modulation,
+        committed: torch.Tensor | None = None,
+        state_out: bool = True,
     ) -> tuple[torch.Tensor, list[MixerState]]:
-        """The first of K DDIM steps with the prefix in the same pass, as export's fused graphs run it (every block a
+        """A DDIM step with the prefix in the same pass, as export's fused graphs run it (every block a
         ``fused_block``, :attr:`joins_prefix`): prefix (B, L_p, d), x_tau (B, H, A) → x0_hat (B, H, A) and every
-        layer's state after the prefix, which the later steps start from (:meth:`denoise_modulated`); equals
-        :meth:`encode_prefix` and then :meth:`denoise_modulated`, and reads each weight once instead of twice."""
+        layer's state after the prefix, which the later steps start from (:meth:`denoise_modulated`; empty without
+        ``state_out``: K = 1). The first of K steps this way equals :meth:`encode_prefix` and then
+        :meth:`denoise_modulated`, and reads each weight once instead of twice. [p, a] stays whole between blocks."""
         seq, states = torch.cat([prefix, self.embed_actions(x_tau, committed)], dim=1), []
         for i, layer in enumerate(self.layers):
             shift, scale, gate, *_ = mod.block(i)
-            seq, state = layer.fused_block.joint(seq, prefix, shift, scale, gate, state_out=True)
+            seq, state = layer.fused_block.joint(seq, prefix, shift, scale, gate, state_out)
             states.append(state)
         return self.readout(seq[:, prefix.shape[1] :], mod), states
 
