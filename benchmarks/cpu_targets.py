@@ -13,8 +13,8 @@ For each graph set — the fused Mamba kernel's (``*.fused.onnx``) and the stand
 
 and once: PyTorch eager (``--checkpoint``, the run the model was exported from) per chunk and per
 history step. The roofline: this machine's read bandwidth (one core, numpy summing 256 MiB), and per graph set and
-precision the bytes of denoiser weights one chunk reads (``dssp_deploy.profile.roofline``: K + 1 passes with a
-cached prefix, K where the first step carries it), the floor they imply, the achieved chunk and the ratio — on a
+precision the bytes of denoiser weights one chunk reads (``dssp_deploy.profile.roofline``: K passes, the first
+step carrying the prefix; K + 1 in a model exported before it did), the floor they imply, the achieved chunk and the ratio — on a
 CPU with VNNI also the fused int8 chunk with the AVX2 paths forced (``DSSP_QGEMM_PATH=avx2 DSSP_SCAN_PATH=avx2``).
 ``--k1-model`` (the same run exported with ``--denoise-steps 1``, the distilled samplers' shape) adds its fused
 chunk on each path, the prefix and the step in one pass over the weights. ``--plot`` draws achieved against floor.

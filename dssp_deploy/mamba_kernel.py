@@ -31,6 +31,10 @@ CONV_OP = "CausalConv1d"
 BLOCK_OP = "MambaBlockQ8"  # a whole denoiser block on the action tokens, int8 weights (the int8 fused graphs)
 POOL_OP = "LayerNormMaxOverPoints"  # the point encoder's last LayerNorm and max over the points, (B, P, F) -> (B, F)
 OPSET_VERSION = 1
+# What the exported graphs need of the library (its DsspKernelRevision(); none: before 1). 1: the attributes that take a
+# state after a prefix from a pass over more tokens (MambaBlockQ8's plain, SelectiveScan's and CausalConv1d's state_at),
+# which an older library would ignore, giving the state after every token instead.
+KERNEL_REVISION = 1
 LIBRARY_NAME = "libdssp_mamba.so"
 LIBRARY_ENV = "DSSP_KERNEL"
 DEFAULT_LIBRARY = Path(__file__).resolve().parent / "kernel" / LIBRARY_NAME
@@ -136,10 +140,21 @@ def _probe(path: Path, scan_path: str) -> Kernel:
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         return Kernel(None, f"{path} failed to load ({first}); rebuild it with `make kernel`")
     try:
-        fn = ctypes.CDLL(str(path)).DsspScanPath
+        library = ctypes.CDLL(str(path))
+    except OSError as exc:
+        return Kernel(None, f"{path} failed to load ({exc}); rebuild it with `make kernel`")
+    revision = library.DsspKernelRevision() if hasattr(library, "DsspKernelRevision") else 0
+    if revision < KERNEL_REVISION:
+        return Kernel(
+            None,
+            f"{path} is older than this runtime (revision {revision}, {KERNEL_REVISION} needed: its operators would "
+            "ignore attributes the graphs set); rebuild it with `make kernel`",
+        )
+    try:
+        fn = library.DsspScanPath
         fn.restype = ctypes.c_char_p
         implementation = fn().decode()
-    except (OSError, AttributeError):
+    except AttributeError:
         implementation = "unknown"
     if implementation.startswith(
         "invalid"

@@ -10,8 +10,8 @@ Measures, for the model directory given (batch 1, the model's point count), with
   memory (DSSP's claim: constant);
 - achieved GFLOP/s against this machine's own float32 GEMM peak (numpy), and the chunk's floor on this
   machine: its flops at that peak, and — when the denoiser's weights exceed the last-level cache, so each
-  of the K DDIM steps (and the prefix once) reads them from memory again — (K + 1) x weight bytes at the
-  measured read bandwidth (:func:`weight_passes`, :func:`roofline`).
+  of the K DDIM steps reads them from memory again (the first step carries the prefix) — K x weight bytes at
+  the measured read bandwidth, as the exporter counted the reads (:func:`weight_passes`, :func:`roofline`).
 - paths and threads: history step and chunk p50 on the fused Mamba kernel's graphs and on the standard
   ones, each at 1 thread and at ``--threads`` (default: all CPUs), with the speed-up of the threads — to
   extrapolate to a robot computer with more cores;

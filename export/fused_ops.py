@@ -21,14 +21,19 @@ from dssp_train.model.mamba import Mamba, causal_conv
 from dssp_train.model.selective_scan import linear_scan_unrolled, selective_scan
 
 
+def _state_at(state_at: int) -> dict:
+    """The nodes' attribute: ``state_at`` > 0, the state after that many tokens; none (0, the default): after the last."""
+    return {"state_at_i": int(state_at)} if state_at else {}
+
+
 class _SelectiveScan(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, x, dt, B, C, z, A, D, h0):  # noqa: N803 (the math's names)
-        return selective_scan(x, dt, B, C, z, A, D, h0, linear_scan_unrolled)
+    def forward(ctx, x, dt, B, C, z, A, D, h0, state_at):  # noqa: N803 (the math's names)
+        return selective_scan(x, dt, B, C, z, A, D, h0, linear_scan_unrolled, state_at or None)
 
     @staticmethod
-    def symbolic(g, x, dt, B, C, z, A, D, h0):  # noqa: N803
-        y, h = g.op(f"{DOMAIN}::{SCAN_OP}", x, dt, B, C, z, A, D, h0, outputs=2)
+    def symbolic(g, x, dt, B, C, z, A, D, h0, state_at):  # noqa: N803
+        y, h = g.op(f"{DOMAIN}::{SCAN_OP}", x, dt, B, C, z, A, D, h0, outputs=2, **_state_at(state_at))
         y.setType(x.type())  # the exporter's shape inference cannot see inside a custom node
         h.setType(h0.type())
         return y, h
@@ -36,12 +41,12 @@ class _SelectiveScan(torch.autograd.Function):
 
 class _CausalConv(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, x, state, weight_we, bias):
-        return causal_conv(x, state, weight_we.t().unsqueeze(1), bias)
+    def forward(ctx, x, state, weight_we, bias, state_at):
+        return causal_conv(x, state, weight_we.t().unsqueeze(1), bias, state_at or None)
 
     @staticmethod
-    def symbolic(g, x, state, weight_we, bias):
-        y, new_state = g.op(f"{DOMAIN}::{CONV_OP}", x, state, weight_we, bias, outputs=2)
+    def symbolic(g, x, state, weight_we, bias, state_at):
+        y, new_state = g.op(f"{DOMAIN}::{CONV_OP}", x, state, weight_we, bias, outputs=2, **_state_at(state_at))
         y.setType(x.type())
         new_state.setType(state.type())
         return y, new_state
@@ -64,9 +69,10 @@ class FusedOps:
     set."""
 
     @staticmethod
-    def selective_scan(x, dt, B, C, z, A, D, h0):  # noqa: N803
-        """x, dt, z (batch, L, E), B, C (batch, L, n), A (E, n), D (E,), h0 (batch, E, n) → y (batch, L, E), h (batch, E, n)."""
-        return _SelectiveScan.apply(x, dt, B, C, z, A, D, h0)
+    def selective_scan(x, dt, B, C, z, A, D, h0, state_at=None):  # noqa: N803
+        """x, dt, z (batch, L, E), B, C (batch, L, n), A (E, n), D (E,), h0 (batch, E, n) → y (batch, L, E), h (batch, E, n)
+        the state after the last token (after ``state_at`` tokens)."""
+        return _SelectiveScan.apply(x, dt, B, C, z, A, D, h0, state_at or 0)  # a traced call takes no None: 0, the last
 
     @staticmethod
     def layer_norm_max_over_points(x, norm: torch.nn.LayerNorm):
@@ -74,9 +80,10 @@ class FusedOps:
         return _LayerNormMaxOverPoints.apply(x, norm.weight, norm.bias, norm.eps)
 
     @staticmethod
-    def causal_conv(x, state, weight, bias):
-        """x (batch, L, E), state (batch, E, W), weight (W, E), bias (E,) → silu(conv) (batch, L, E), new state (batch, E, W)."""
-        return _CausalConv.apply(x, state, weight, bias)
+    def causal_conv(x, state, weight, bias, state_at=None):
+        """x (batch, L, E), state (batch, E, W), weight (W, E), bias (E,) → silu(conv) (batch, L, E), new state (batch, E, W)
+        after the last token (after ``state_at`` tokens)."""
+        return _CausalConv.apply(x, state, weight, bias, state_at or 0)
 
 
 FUSED_OPS = FusedOps()

@@ -12,8 +12,9 @@ The model's math lives in ``dssp_train``; these wrappers only choose the export-
 - The timestep reaches the denoiser only through its AdaLN parameters: with K fixed, the table of
   ``Denoiser.modulation`` for the K DDIM timesteps is computed once at construction and kept as buffers,
   so the timestep MLP and the AdaLN projections are not part of the graph, and the DDIM coefficients
-  are Python constants. With ``timestep_decoupled`` the prefix ``[c_t, z...]`` runs once per call and its
-  per-layer state serves all K steps (``Denoiser.encode_prefix`` / ``Denoiser.denoise_modulated``): Mamba's
+  are Python constants. With ``timestep_decoupled`` the prefix ``[c_t, z...]`` runs once per call, in the first
+  DDIM step's pass, and its per-layer state serves the later steps (``Denoiser.joint_step`` /
+  ``Denoiser.denoise_modulated``): Mamba's
   recurrent state, or for the Transformer denoiser (``model.denoiser_backbone = "transformer"``) the prefix's
   keys and values, which each step's action tokens attend to.
 - Mamba's sequence path (``Mamba.forward``) uses a parallel scan with in-place strided views that does

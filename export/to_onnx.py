@@ -317,8 +317,8 @@ def onnx_node_count(path: Path) -> int:
 
 def weight_reads(path: Path) -> int:
     """How many nodes of the graph at ``path`` read its largest weight (the initializer with the most elements):
-    how often one run reads its weights. The denoiser's: K + 1 (the prefix's pass, then the K DDIM steps), or K in
-    the int8 fused graph, whose first step carries the prefix; the history step's: 1."""
+    how often one run reads its weights. The denoiser's: K, once per DDIM step (the first step carries the prefix);
+    the history step's: 1."""
     import onnx  # deferred: loads onnx
 
     graph = onnx.load(str(path), load_external_data=False).graph
@@ -433,7 +433,9 @@ def export_model(
         caching = (
             "prefix in every step (timestep_decoupled false)"
             if not config.model.timestep_decoupled
-            else "prefix cached"
+            else "prefix in the first step's pass, its state cached"
+            if k > 1 and policy.denoiser.joins_prefix
+            else "prefix encoded once"
             if k > 1
             else "prefix and actions in one pass"
         )

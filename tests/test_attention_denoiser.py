@@ -92,6 +92,12 @@ def test_prefix_cache_equals_the_whole_sequence(mlp):
         states = den.encode_prefix(prefix)
         cached = den.denoise(states, x_tau, timesteps)
         unrolled = den.denoise_modulated(den.encode_prefix(prefix, True), x_tau, den.modulation(timesteps), True)
+        joint, joint_states = den.joint_step(
+            prefix, x_tau, den.modulation(timesteps)
+        )  # the prefix's cache from one pass
+    torch.testing.assert_close(joint, whole, atol=1e-5, rtol=0)
+    for got, want in zip(joint_states, states):
+        torch.testing.assert_close(got, want, atol=1e-5, rtol=0)
     assert [tuple(k.shape) for k, _ in states] == [(3, 4, cfg.prefix_length, 8)] * cfg.n_denoiser_layers
     torch.testing.assert_close(cached, whole, atol=1e-5, rtol=0)
     torch.testing.assert_close(unrolled, whole, atol=1e-5, rtol=0)

@@ -288,6 +288,28 @@ def test_variants_export_and_verify(tmp_path, overrides):
     ]
 
 
+@pytest.mark.parametrize("mlp", ["gated", "dit"])
+def test_every_graph_reads_each_weight_once_per_ddim_step(tmp_path, mlp):
+    """The first DDIM step carries the prefix, its mixer and its MLP in one pass with the action tokens: each weight
+    of the fp32 graphs (standard and fused) is read by K nodes, not K + 1, the manifest counts K, and the graphs
+    still verify against PyTorch."""
+    run = save_run(tmp_path / "run", f"model.denoiser_mlp={mlp}")
+    summary = export_model(
+        run, tmp_path / "model", fmt="onnx", quantize=(), verify_steps=60, threads=1, progress=lambda _: None
+    )
+    assert summary["verification"]["passed"]
+    manifest = read_manifest(tmp_path / "model")
+    steps = manifest.contract.denoise_steps
+    assert steps > 1
+    for name in ("denoiser.onnx", "denoiser.fused.onnx"):
+        graph = onnx.load(str(tmp_path / "model" / name)).graph
+        weights = {t.name for t in graph.initializer if len(t.dims) == 2}
+        reads = {w: sum(w in n.input for n in graph.node if n.op_type in ("MatMul", "Gemm")) for w in weights}
+        matrices = {w: r for w, r in reads.items() if r}
+        assert len(matrices) >= 4 * 2 and set(matrices.values()) == {steps}, (name, sorted(matrices.values()))
+        assert manifest.files[name]["weight_reads"] == steps
+
+
 def test_raw_weights_and_other_step_count(trained_run, tmp_path, capsys):
     out = tmp_path / "raw"
     args = [

@@ -47,12 +47,19 @@ def built_kernel():
 
 
 def op_session(
-    op: str, inputs: list[str], outputs: list[str], implementation: str, monkeypatch, threads: int | None = None
+    op: str,
+    inputs: list[str],
+    outputs: list[str],
+    implementation: str,
+    monkeypatch,
+    threads: int | None = None,
+    **attributes,
 ):
-    """A one-node graph of ``ai.dssp::op`` (its implementation chosen by DSSP_SCAN_PATH when the session is made)."""
+    """A one-node graph of ``ai.dssp::op`` with ``attributes`` (its implementation chosen by DSSP_SCAN_PATH when the
+    session is made)."""
     monkeypatch.setenv("DSSP_SCAN_PATH", implementation)
     graph = helper.make_graph(
-        [helper.make_node(op, inputs, outputs, domain=mamba_kernel.DOMAIN)],
+        [helper.make_node(op, inputs, outputs, domain=mamba_kernel.DOMAIN, **attributes)],
         "g",
         [helper.make_tensor_value_info(n, TensorProto.FLOAT, None) for n in inputs],
         [helper.make_tensor_value_info(n, TensorProto.FLOAT, None) for n in outputs],
@@ -70,13 +77,10 @@ def op_session(
 SCAN_SHAPES = [(1, 8, 64, 16), (2, 3, 40, 12), (1, 1, 1024, 64), (2, 1, 40, 24), (3, 5, 20, 5)]
 
 
-@pytest.mark.parametrize("implementation", IMPLEMENTATIONS)
-@pytest.mark.parametrize("shape", SCAN_SHAPES, ids=lambda s: "x".join(map(str, s)))
-def test_selective_scan_matches_pytorch(implementation, shape, monkeypatch):
-    b, length, e, n = shape
-    rng = np.random.default_rng(sum(shape))
+def scan_feeds(rng, b: int, length: int, e: int, n: int) -> dict[str, np.ndarray]:
+    """Random SelectiveScan inputs (batch b, L = length, E = e, n), float32: dt around softplus's bend, A negative."""
     f32 = lambda *s, scale=1.0, shift=0.0: (rng.standard_normal(s) * scale + shift).astype(np.float32)  # noqa: E731
-    feeds = {
+    return {
         "x": f32(b, length, e),
         "dt": f32(b, length, e, scale=2.0, shift=-3.0),
         "B": f32(b, length, n),
@@ -86,6 +90,13 @@ def test_selective_scan_matches_pytorch(implementation, shape, monkeypatch):
         "D": f32(e),
         "h0": f32(b, e, n),
     }
+
+
+@pytest.mark.parametrize("implementation", IMPLEMENTATIONS)
+@pytest.mark.parametrize("shape", SCAN_SHAPES, ids=lambda s: "x".join(map(str, s)))
+def test_selective_scan_matches_pytorch(implementation, shape, monkeypatch):
+    b, length, e, n = shape
+    feeds = scan_feeds(np.random.default_rng(sum(shape)), b, length, e, n)
     feeds["dt"][0, 0, :3] = [25.0, -40.0, 0.0]  # softplus's linear branch, its far tail, its middle
     if not cpu_runs(implementation):  # asking for it is a one-line error, not a crash or a silent fallback
         with pytest.raises(Exception, match=f"DSSP_SCAN_PATH={implementation}, but this CPU lacks"):
@@ -120,6 +131,43 @@ def test_causal_conv_matches_pytorch(shape, monkeypatch):
     t = {k: torch.from_numpy(v).double() for k, v in feeds.items()}
     y_ref, state_ref = causal_conv(t["x"], t["state"], t["weight"].t().unsqueeze(1), t["bias"])
     assert np.abs(y - y_ref.numpy()).max() <= 1e-5 and np.array_equal(new_state, state_ref.numpy().astype(np.float32))
+
+
+@pytest.mark.parametrize("implementation", [i for i in IMPLEMENTATIONS if cpu_runs(i)])  # the others: refused above
+def test_the_state_after_a_prefix_comes_from_a_pass_over_more_tokens(implementation, monkeypatch):
+    """The attribute state_at: the scan's and the conv's state out is the one after the first state_at tokens (the
+    prefix's, in a pass over [prefix, action tokens]); the outputs over all tokens are unchanged. A state_at beyond the
+    tokens is a one-line error."""
+    b, length, e, n, w, at = 2, 7, 40, 12, 4, 3
+    rng = np.random.default_rng(7)
+    scan = scan_feeds(rng, b, length, e, n)
+    conv = {
+        k: rng.standard_normal(s).astype(np.float32)
+        for k, s in (("x", (b, length, e)), ("state", (b, e, w)), ("weight", (w, e)), ("bias", (e,)))
+    }
+    t = {k: torch.from_numpy(v).double() for k, v in scan.items()}
+    args = (t["x"], t["dt"], t["B"], t["C"], t["z"], t["A"], t["D"], t["h0"], linear_scan_unrolled)
+    for op, feeds, outputs in ((mamba_kernel.SCAN_OP, scan, ["y", "h"]), (mamba_kernel.CONV_OP, conv, ["y", "s"])):
+        whole = op_session(op, list(feeds), outputs, implementation, monkeypatch).run(None, feeds)
+        y, state = op_session(op, list(feeds), outputs, implementation, monkeypatch, state_at=at).run(None, feeds)
+        assert np.array_equal(y, whole[0]), op
+        if op == mamba_kernel.SCAN_OP:
+            reference = selective_scan(*args, state_at=at)[1].numpy()
+            head = selective_scan(*(a[:, :at] for a in args[:5]), *args[5:])[1].numpy()  # the prefix alone
+            assert np.abs(reference - head).max() <= 1e-12
+            assert np.abs(state - reference).max() <= 2e-6 * max(1.0, float(np.abs(reference).max()))
+            assert np.abs(whole[1] - reference).max() > 1e-3  # the state after all tokens differs: a real check
+        else:
+            reference = causal_conv(
+                *(torch.from_numpy(conv[k]) for k in ("x", "state")),
+                torch.from_numpy(conv["weight"]).t().unsqueeze(1),
+                torch.from_numpy(conv["bias"]),
+                state_at=at,
+            )[1].numpy()
+            assert np.array_equal(state, reference) and np.array_equal(reference[:, :, -1], conv["x"][:, at - 1])
+        too_far = op_session(op, list(feeds), outputs, implementation, monkeypatch, state_at=length + 1)
+        with pytest.raises(Exception, match=f"state_at = {length + 1} tokens, but the input has {length}"):
+            too_far.run(None, feeds)
 
 
 def test_a_wrong_shape_is_an_error_not_a_crash(monkeypatch):
@@ -174,7 +222,8 @@ def test_fused_graphs_run_by_default_and_match_the_standard_ones(tiny_export, mo
 
 
 def test_action_token_scans_do_not_write_the_state_nobody_reads(tiny_export, monkeypatch):
-    """Export marks the denoiser's action-token scans state_out = 0; the kernel then returns an empty state."""
+    """Export marks the denoiser's action-token scans state_out = 0 (all but the first step's, which carries the prefix
+    and gives its state after it: state_at); the kernel then returns an empty state."""
     _, model_dir, _ = tiny_export
     manifest = json.loads((model_dir / MANIFEST_NAME).read_text())
     scans = [
@@ -184,9 +233,13 @@ def test_action_token_scans_do_not_write_the_state_nobody_reads(tiny_export, mon
     ]
     marked = [n for n in scans if any(a.name == "state_out" and a.i == 0 for a in n.attribute)]
     layers = manifest["model_config"]["n_denoiser_layers"]
-    assert (
-        len(marked) == len(manifest["contract"]["ddim_timesteps"]) * layers and len(scans) == len(marked) + layers
-    )  # the prefix's are read
+    m = manifest["model_config"]
+    prefix = int(m["use_history"]) + int(m["use_recent_states"]) * manifest["contract"]["n_obs_steps"]
+    first = [
+        n for n in scans if n not in marked
+    ]  # the first step's, over [prefix, actions]: the prefix's state is read
+    assert len(scans) == len(manifest["contract"]["ddim_timesteps"]) * layers and len(first) == layers
+    assert all({a.name: a.i for a in n.attribute} == {"state_at": prefix} for n in first), first
     history = onnx.load(str(model_dir / manifest["graphs"]["history_step"]["files"]["onnx_fused"])).graph.node
     assert not any(
         a.name == "state_out" for n in history for a in n.attribute
@@ -228,9 +281,13 @@ def test_a_missing_or_broken_library_falls_back_to_the_standard_graphs(tiny_expo
     want = run_chunk(OnnxPolicy(model_dir, threads=1, kernel="standard"))  # int8, the default precision
     broken = tmp_path / "libdssp_mamba.so"
     broken.write_bytes(b"\x7fELF not really a library")
+    older = tmp_path / "older.so"  # a library built before the operators knew what this runtime's graphs ask of them
+    shutil.copy(mamba_kernel.kernel().path, older)
+    monkeypatch.setattr(mamba_kernel, "KERNEL_REVISION", mamba_kernel.KERNEL_REVISION + 1)
     for library, reason in (
         (tmp_path / "missing.so", "is missing (build it with `make kernel`)"),
         (broken, "failed to load"),
+        (older, f"is older than this runtime (revision {mamba_kernel.KERNEL_REVISION - 1}, "),
     ):
         monkeypatch.setenv(mamba_kernel.LIBRARY_ENV, str(library))
         policy = OnnxPolicy(model_dir, threads=1)
@@ -401,7 +458,7 @@ def test_the_int8_fused_denoiser_runs_each_block_as_one_node(tiny_export):
     reads = {
         n: f["weight_reads"] for n, f in manifest["files"].items() if n.startswith("denoiser.") and n.endswith(".onnx")
     }
-    assert reads.pop("denoiser.int8.fused.onnx") == steps and set(reads.values()) == {steps + 1}, reads
+    assert set(reads.values()) == {steps}, reads  # every graph's first step carries the prefix
     assert ops[mamba_kernel.SCAN_OP] == ops[mamba_kernel.CONV_OP] == 0
     int8 = {t.name: int(np.prod(t.dims)) for t in model.graph.initializer if t.data_type == TensorProto.INT8}
     blocks = {name: size for name, size in int8.items() if ".fused_block." in name and size}
@@ -515,8 +572,8 @@ def test_layer_norm_max_over_points_matches_pytorch_and_replaces_three_nodes(sha
 
 def test_the_first_ddim_step_carries_the_prefix_where_every_block_is_one_node():
     """With every denoiser block fused (export's int8 graphs), a chunk's first step runs [prefix, actions] in one pass
-    and gives the prefix's states: the same x0 and states as the prefix's own pass and then the step, which read
-    every weight twice; the K-step chain takes that way and gives the same chunk."""
+    and gives the prefix's states, each block one node: the same x0 and states as the prefix's own pass and then the
+    step, which read every weight twice; the K-step chain takes that way and gives the same chunk."""
     import dataclasses
 
     from dssp_train.config import load_preset
@@ -528,14 +585,14 @@ def test_the_first_ddim_step_carries_the_prefix_where_every_block_is_one_node():
     cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, state_dim=7, action_dim=7))
     policy = DSSPPolicy(cfg.model).eval()
     den = policy.denoiser
-    assert not den.joins_prefix
+    assert den.joins_prefix and not den.fused_blocks
     with torch.no_grad():
         for p in den.parameters():
             p.add_(torch.randn_like(p) * 0.05)
         chained = {}
         for fused in (False, True):
             if fused:
-                assert use_fused_blocks(den) == len(den.layers) and den.joins_prefix
+                assert use_fused_blocks(den) == len(den.layers) and den.joins_prefix and den.fused_blocks
             prefix = torch.randn(2, 3, cfg.model.d_model, generator=torch.Generator().manual_seed(1))
             noise = torch.randn(2, cfg.model.horizon, 7, generator=torch.Generator().manual_seed(2))
             chained[fused] = policy.sample_normalized(prefix, noise, 3, unrolled=True)

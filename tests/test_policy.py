@@ -136,10 +136,12 @@ def test_prefix_caching_equals_full_denoiser():
     assert (full - cached).abs().max().item() <= 1e-5
 
 
-def test_one_step_sampling_is_one_pass_and_equals_the_cached_prefix():
-    """K = 1 runs [prefix, x] in one pass (each weight read once per chunk); K >= 2 caches the prefix's states."""
+def test_sampling_runs_the_prefix_in_the_first_steps_pass():
+    """K = 1 runs [prefix, x] in one pass (each weight read once per chunk); with K >= 2 that first pass also gives the
+    prefix's states the later steps start from (K reads a chunk, not K + 1): the same chunk as the prefix's own pass
+    and then the K steps, on the parallel and the unrolled path."""
     policy = make_policy('model.diffusion.timestep_spacing="trailing"')
-    den = policy.denoiser
+    den, schedule = policy.denoiser, policy.schedule
     prefix, noise = torch.randn(3, policy.cfg.prefix_length, 32), torch.randn(3, policy.cfg.horizon, A)
     calls, encode = [], den.encode_prefix
     den.encode_prefix = lambda *args, **kwargs: calls.append(1) or encode(*args, **kwargs)
@@ -147,11 +149,20 @@ def test_one_step_sampling_is_one_pass_and_equals_the_cached_prefix():
         for p in den.parameters():
             p.add_(0.01 * torch.randn_like(p))
         one = policy.sample_normalized(prefix, noise, 1)
-        assert calls == []
         cached = den.denoise_modulated(encode(prefix), noise, den.modulation(torch.tensor([99])).at(0))
-        assert (one - policy.schedule.ddim_step(cached, 99, noise, 1)).abs().max().item() <= 1e-5
-        policy.sample_normalized(prefix, noise, 2)
-    assert calls == [1]
+        assert (one - schedule.ddim_step(cached, 99, noise, 1)).abs().max().item() <= 1e-5
+        for unrolled in (False, True):
+            timesteps = schedule.inference_timesteps(3)
+            table = den.modulation(torch.tensor(timesteps))
+            states, x = encode(prefix, unrolled), noise
+            for k, t in enumerate(timesteps):  # the prefix's own pass, then the K steps
+                x = schedule.ddim_step(den.denoise_modulated(states, x, table.at(k), unrolled), t, x, 3)
+            chunk = policy.sample_normalized(prefix, noise, 3, table, unrolled=unrolled)
+            assert (chunk - x).abs().max().item() <= 1e-5 and x.abs().max() > 0.1
+            _, joint = den.joint_step(prefix, noise, table.at(0), unrolled=unrolled)
+            for got, want in zip(joint, states):
+                assert all((g - w).abs().max().item() <= 1e-5 for g, w in zip(got, want))
+    assert calls == []  # sampling never ran the prefix apart
 
 
 @pytest.mark.parametrize("decoupled", [True, False], ids=["cached", "full"])

@@ -219,12 +219,13 @@ def record_denoiser_calls(policy: DSSPPolicy, monkeypatch) -> list[tuple[torch.T
     """Make the policy's denoiser record each call of its sampler: (x_tau in, model output out)."""
     calls = []
     den = policy.denoiser
-    for name in ("denoise_modulated", "forward_modulated"):
+    # joint_step: the first of K steps, with the prefix in its pass
+    for name in ("denoise_modulated", "forward_modulated", "joint_step"):
         original = getattr(den, name)
 
         def recording(first, x, *rest, _original=original, **kwargs):
             out = _original(first, x, *rest, **kwargs)
-            calls.append((x.clone(), out.clone()))
+            calls.append((x.clone(), (out[0] if isinstance(out, tuple) else out).clone()))
             return out
 
         monkeypatch.setattr(den, name, recording)
@@ -304,13 +305,17 @@ def test_policy_sampling_with_fewer_steps_matches_diffusers():
     m = policy.cfg
     prefix = policy_prefix(policy, 2)
     noise = torch.randn((2, m.horizon, m.action_dim), generator=torch.Generator().manual_seed(6))
-    states = policy.denoiser.encode_prefix(prefix)
     timesteps = policy.schedule.inference_timesteps(4)
     table = policy.denoiser.modulation(torch.tensor(timesteps))  # the sampler's own AdaLN rows: only DDIM is compared
+    states = []  # the prefix's, from the first step's pass, as the sampler takes them
 
     def model(x, t):
+        k = timesteps.index(t)
         with torch.no_grad():
-            return policy.denoiser.denoise_modulated(states, x, table.at(timesteps.index(t)))
+            if k == 0:
+                x0, states[:] = policy.denoiser.joint_step(prefix, x, table.at(0))
+                return x0
+            return policy.denoiser.denoise_modulated(states, x, table.at(k))
 
     mine = policy.sample_normalized(prefix, noise, num_steps=4)
     theirs = run_diffusers(ddim(), model, noise, 4)

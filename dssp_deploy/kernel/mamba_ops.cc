@@ -10,7 +10,8 @@
 //   D        (E)
 //   h0       (batch, E, n)   the incoming SSM state
 //   y        (batch, L, E)   (C_t . h_t + D * x_t) * silu(z_t)
-//   h        (batch, E, n)   the state after the last token; (batch, 0, n) with the attribute state_out = 0
+//   h        (batch, E, n)   the state after the last token (after the first state_at tokens, with the attribute
+//                            state_at > 0); (batch, 0, n) with the attribute state_out = 0
 //
 // with delta_t = softplus(dt_t), h_t = exp(delta_t * A) * h_{t-1} + delta_t * x_t * B_t, per channel e and
 // state index k: the arithmetic of dssp_train.model.selective_scan.selective_scan, in one pass over the
@@ -84,10 +85,20 @@ T attribute(const OrtKernelInfo* info, const char* name, T fallback) {
   }
 }
 
+// The attribute state_at (int, default 0: after the last token) of SelectiveScan and CausalConv1d, checked
+// against the tokens of a call: the state out is the state after the first state_at tokens (1..L), the prefix's
+// in a pass over [prefix, action tokens] (the denoiser's first DDIM step, which the later steps start from).
+int64_t state_at_of(const char* op, int64_t state_at, int64_t L) {
+  if (state_at < 0 || state_at > L)
+    ORT_CXX_API_THROW(std::string(op) + ": state_at = " + std::to_string(state_at) + " tokens, but the input has " + std::to_string(L), ORT_INVALID_ARGUMENT);
+  return state_at;
+}
+
 // The attribute state_out (int, default 1): 0 on a node whose state output nothing reads (export sets it on
 // the denoiser's action-token scans); h is then (batch, 0, n) and the state is never written back.
 struct SelectiveScan {
-  SelectiveScan(const OrtApi*, const OrtKernelInfo* info) : path(requested_scan_path()), state_out(attribute<int64_t>(info, "state_out", 1) != 0) {}
+  SelectiveScan(const OrtApi*, const OrtKernelInfo* info)
+      : path(requested_scan_path()), state_out(attribute<int64_t>(info, "state_out", 1) != 0), state_at(attribute<int64_t>(info, "state_at", 0)) {}
 
   Ort::Status Compute(OrtKernelContext* context, const Ort::Custom::Tensor<float>& x, const Ort::Custom::Tensor<float>& dt,
                       const Ort::Custom::Tensor<float>& B, const Ort::Custom::Tensor<float>& C,
@@ -109,6 +120,7 @@ struct SelectiveScan {
     float* h_out = h.Allocate({batch, state_out ? E : 0, n});
     Problem p{x.Data(), dt.Data(), B.Data(), C.Data(), z.Data(), A.Data(), D.Data(), h0.Data(),
               y.Allocate(xs), state_out ? h_out : nullptr, batch, L, E, n};
+    p.h_after = state_at_of("SelectiveScan", state_at, L);
     if (batch == 0 || E == 0) return Ort::Status{nullptr};
     if (L == 0) {
       if (!state_out) return Ort::Status{nullptr};
@@ -123,11 +135,13 @@ struct SelectiveScan {
 
   Path path;
   bool state_out;
+  int64_t state_at;
 };
 
-// ai.dssp::CausalConv1d(x (batch, L, E), state (batch, E, W), weight (W, E), bias (E)) -> (y (batch, L, E), new_state (batch, E, W))
+// ai.dssp::CausalConv1d(x (batch, L, E), state (batch, E, W), weight (W, E), bias (E)) -> (y (batch, L, E), new_state (batch, E, W)):
+// new_state the last W conv inputs after the last token (after the first state_at tokens, with the attribute state_at > 0)
 struct CausalConv1d {
-  CausalConv1d(const OrtApi*, const OrtKernelInfo*) {}
+  CausalConv1d(const OrtApi*, const OrtKernelInfo* info) : state_at(attribute<int64_t>(info, "state_at", 0)) {}
 
   Ort::Status Compute(OrtKernelContext* context, const Ort::Custom::Tensor<float>& x, const Ort::Custom::Tensor<float>& state,
                       const Ort::Custom::Tensor<float>& weight, const Ort::Custom::Tensor<float>& bias,
@@ -141,12 +155,15 @@ struct CausalConv1d {
     expect_shape("state", state.Shape(), {batch, E, W});
     expect_shape("bias", bias.Shape(), {E});
     ConvProblem p{x.Data(), state.Data(), weight.Data(), bias.Data(), y.Allocate(xs), new_state.Allocate({batch, E, W}), batch, L, E, W};
+    p.state_after = state_at_of("CausalConv1d", state_at, L);
     if (batch == 0 || E == 0) return Ort::Status{nullptr};
     const int64_t blocks = (E + 255) / 256;
     ConvTask task{&p, blocks};
     Ort::KernelContext(context).ParallelFor(run_conv_task, static_cast<size_t>(batch * blocks), 0, &task);
     return Ort::Status{nullptr};
   }
+
+  int64_t state_at;
 };
 
 // ai.dssp::LayerNormMaxOverPoints(x (batch, P, F), weight (F), bias (F)) -> y (batch, F): the max over the points
@@ -407,6 +424,11 @@ extern "C" __attribute__((visibility("default"))) OrtStatus* ORT_API_CALL Regist
   }
   return nullptr;
 }
+
+// The library's revision: what its operators know (dssp_deploy/mamba_kernel.py's KERNEL_REVISION is the one the
+// exported graphs need; a library without this function predates revision 1). 1: MambaBlockQ8's `plain`, and
+// SelectiveScan's and CausalConv1d's `state_at` (the state after a prefix, from a pass over more tokens).
+extern "C" __attribute__((visibility("default"))) int DsspKernelRevision() { return 1; }
 
 // Which implementation a session would use on this CPU now ("avx512", "avx2", "neon" or "portable"), for start-up logs.
 // The implementation DSSP_SCAN_PATH selects here, or "invalid: " and why it cannot run (for the loader's message).

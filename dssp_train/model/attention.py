@@ -63,15 +63,21 @@ class CausalSelfAttention(nn.Module):
         return empty, empty.clone()
 
     # ------------------------------------------------------------ sequence path
-    def forward(self, hidden_states: torch.Tensor, state: KVCache | None = None) -> tuple[torch.Tensor, KVCache]:
+    def forward(
+        self, hidden_states: torch.Tensor, state: KVCache | None = None, state_at: int | None = None
+    ) -> tuple[torch.Tensor, KVCache]:
         """Attention of L new tokens over the cached ones and themselves (causal).
 
         Args:
             hidden_states: (B, L, d_model).
             state: the key/value cache ``(k, v)`` each (B, heads, L_seen, d_head), or None for none.
+            state_at: return the cache with only the first ``state_at`` new tokens (1..L) appended (a prefix's, as
+                Mamba's ``state_at``); None: all L.
         Returns:
             out (B, L, d_model) and the cache with the new tokens appended, (B, heads, L_seen + L, d_head) each.
         """
+        if state_at is not None and not 1 <= state_at <= hidden_states.shape[1]:
+            raise ValueError(f"state_at must be 1..{hidden_states.shape[1]} (the tokens given), got {state_at}")
         # The token counts as plain ints: positions and mask trace to constants (a graph's L_seen and L are fixed).
         length = int(hidden_states.shape[1])
         seen = 0 if state is None else int(state[0].shape[2])
@@ -87,6 +93,8 @@ class CausalSelfAttention(nn.Module):
         # query i (position seen + i) sees key j (position j) when j <= seen + i
         mask = torch.ones(length, seen + length, dtype=torch.bool, device=q.device).tril(seen)  # (L, L_seen + L)
         y = F.scaled_dot_product_attention(q, k, v, attn_mask=mask, scale=self.d_head**-0.5)  # (B, heads, L, d_head)
+        if state_at is not None:
+            k, v = k[:, :, : seen + state_at], v[:, :, : seen + state_at]
         return self.out_proj(y.transpose(1, 2).reshape(-1, length, self.d_model)), (k, v)
 
     forward_unrolled = forward

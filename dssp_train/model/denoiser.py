@@ -145,15 +145,19 @@ class DenoiserBlock(nn.Module):
             self.mlp = MLPS[mlp](d_model)
         self.modulation = nn.Sequential(nn.SiLU(), nn.Linear(d_model, (6 if mlp == "dit" else 3) * d_model))
 
-    def mlp_residual(self, x: torch.Tensor, mod: tuple[torch.Tensor, ...] = ()) -> torch.Tensor:
-        """x (B, L, d) → x + MLP(norm2(x)); ``mod``: the MLP's (shift, scale, gate) (B or 1, d) for modulated tokens."""
+    def mlp_residual(self, x: torch.Tensor, mod: tuple[torch.Tensor, ...] = (), plain: int = 0) -> torch.Tensor:
+        """x (B, L, d) → x + MLP(norm2(x)); ``mod``: the MLP's (shift, scale, gate) (B or 1, d) for modulated tokens,
+        all but the first ``plain`` (the prefix's, unmodulated, in the same pass: each weight read once)."""
         if self.mlp_kind == "none":
             return x
         h = self.norm2(x)
         if not mod or self.mlp_kind != "dit":
             return x + self.mlp(h)
         shift, scale, gate = mod
-        return x + gate.unsqueeze(1) * self.mlp(modulate(h, shift, scale))
+        if not plain:
+            return x + gate.unsqueeze(1) * self.mlp(modulate(h, shift, scale))
+        y = self.mlp(torch.cat([h[:, :plain], modulate(h[:, plain:], shift, scale)], dim=1))
+        return x + torch.cat([y[:, :plain], gate.unsqueeze(1) * y[:, plain:]], dim=1)
 
 
 class Denoiser(nn.Module):
@@ -229,23 +233,40 @@ class Denoiser(nn.Module):
         ``mod`` has B rows or one (shared by the batch); ``unrolled`` runs the mixers' ``forward_unrolled``
         (:meth:`Mamba.forward_unrolled`; the same as ``forward`` for attention); ``committed`` as in :meth:`forward`.
         """
-        if self.joins_prefix:  # export's fused graphs: [p, a] whole through every block, one node each
+        if self.decoupled and self.fused_blocks:  # export's int8 fused graphs: [p, a] whole through every block
             return self.joint_step(prefix, x_tau, mod, committed, state_out=False)[0]
         p, a = prefix, self.embed_actions(x_tau, committed)
-        n_prefix = p.shape[1]
         for i, layer in enumerate(self.layers):
-            shift, scale, gate, *mlp_mod = mod.block(i)
-            hp = layer.norm(p)
-            if not self.decoupled:
-                hp = modulate(hp, shift, scale)
-            ha = modulate(layer.norm(a), shift, scale)
-            out, _ = mixer_path(layer.mixer, unrolled)(torch.cat([hp, ha], dim=1))
-            op, oa = out[:, :n_prefix], out[:, n_prefix:]
-            p = layer.mlp_residual(
-                p + (op if self.decoupled else gate.unsqueeze(1) * op), () if self.decoupled else mlp_mod
-            )
-            a = layer.mlp_residual(a + gate.unsqueeze(1) * oa, mlp_mod)
+            p, a, _ = self._block(layer, mod.block(i), p, a, unrolled)
         return self.readout(a, mod)
+
+    def _block(
+        self,
+        layer: DenoiserBlock,
+        mod: tuple[torch.Tensor, ...],
+        p: torch.Tensor,
+        a: torch.Tensor,
+        unrolled: bool,
+        state_at: int | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor, MixerState]:
+        """One block over the prefix p (B, L_p, d) and the action tokens a (B, H, d) in one pass of its mixer, ``mod``
+        the block's AdaLN rows (:meth:`Modulation.block`) → p, a and the mixer's state after the last token (after
+        ``state_at`` tokens: the prefix's, for ``state_at`` = L_p)."""
+        shift, scale, gate, *mlp_mod = mod
+        n = int(p.shape[1])
+        hp = layer.norm(p)
+        if not self.decoupled:
+            hp = modulate(hp, shift, scale)
+        ha = modulate(layer.norm(a), shift, scale)
+        out, state = mixer_path(layer.mixer, unrolled)(torch.cat([hp, ha], dim=1), state_at=state_at)
+        p, a = (
+            p + (out[:, :n] if self.decoupled else gate.unsqueeze(1) * out[:, :n]),
+            a + gate.unsqueeze(1) * out[:, n:],
+        )
+        if layer.mlp_kind == "none":
+            return p, a, state
+        seq = layer.mlp_residual(torch.cat([p, a], dim=1), mlp_mod, n if self.decoupled else 0)  # each weight read once
+        return seq[:, :n], seq[:, n:], state
 
     def joint_step(
         self,
@@ -254,24 +275,44 @@ class Denoiser(nn.Module):
         mod: Modulation,
         committed: torch.Tensor | None = None,
         state_out: bool = True,
+        unrolled: bool = False,
     ) -> tuple[torch.Tensor, list[MixerState]]:
-        """A DDIM step with the prefix in the same pass, as export's fused graphs run it (every block a
-        ``fused_block``, :attr:`joins_prefix`): prefix (B, L_p, d), x_tau (B, H, A) → x0_hat (B, H, A) and every
-        layer's state after the prefix, which the later steps start from (:meth:`denoise_modulated`; empty without
-        ``state_out``: K = 1). The first of K steps this way equals :meth:`encode_prefix` and then
-        :meth:`denoise_modulated`, and reads each weight once instead of twice. [p, a] stays whole between blocks."""
-        seq, states = torch.cat([prefix, self.embed_actions(x_tau, committed)], dim=1), []
+        """A DDIM step with the prefix in the same pass (:attr:`joins_prefix`): prefix (B, L_p, d), x_tau (B, H, A) →
+        x0_hat (B, H, A) and every layer's state after the prefix, which the later steps start from
+        (:meth:`denoise_modulated`; empty without ``state_out``: K = 1). The first of K steps this way equals
+        :meth:`encode_prefix` and then :meth:`denoise_modulated`, and reads each weight once instead of twice: a chunk
+        of K steps reads the weights K times, not K + 1. ``unrolled`` as in :meth:`forward_modulated`. Where every
+        block is a ``fused_block`` (export's int8 fused graphs) each is one node and [p, a] stays whole between them."""
+        if not self.joins_prefix:
+            raise RuntimeError(
+                "a step joins the prefix only with timestep_decoupled=True and the blocks all fused or none"
+            )
+        states = []
+        if self.fused_blocks:
+            seq = torch.cat([prefix, self.embed_actions(x_tau, committed)], dim=1)
+            for i, layer in enumerate(self.layers):
+                shift, scale, gate, *_ = mod.block(i)
+                seq, state = layer.fused_block.joint(seq, prefix, shift, scale, gate, state_out)
+                states.append(state)
+            return self.readout(seq[:, prefix.shape[1] :], mod), states
+        p, a, n_prefix = prefix, self.embed_actions(x_tau, committed), int(prefix.shape[1])  # a constant of a graph
         for i, layer in enumerate(self.layers):
-            shift, scale, gate, *_ = mod.block(i)
-            seq, state = layer.fused_block.joint(seq, prefix, shift, scale, gate, state_out)
-            states.append(state)
-        return self.readout(seq[:, prefix.shape[1] :], mod), states
+            p, a, state = self._block(layer, mod.block(i), p, a, unrolled, n_prefix if state_out else None)
+            if state_out:
+                states.append(state)
+        return self.readout(a, mod), states
+
+    @property
+    def fused_blocks(self) -> bool:
+        """Whether every block runs as one fused node (``fused_block``: export's int8 fused graphs)."""
+        return all(getattr(layer, "fused_block", None) is not None for layer in self.layers)
 
     @property
     def joins_prefix(self) -> bool:
-        """Whether a chunk's first DDIM step can carry the prefix (:meth:`joint_step`): every block runs as one
-        fused node (export's int8 fused graphs) with the timestep decoupled."""
-        return self.decoupled and all(getattr(layer, "fused_block", None) is not None for layer in self.layers)
+        """Whether a chunk's first DDIM step can carry the prefix (:meth:`joint_step`): the timestep decoupled (the
+        prefix the same at every step) and the blocks all fused nodes or none."""
+        fused = [getattr(layer, "fused_block", None) is not None for layer in self.layers]
+        return self.decoupled and (all(fused) or not any(fused))
 
     # ---------------------------------------------------- prefix-cached forward
     def encode_prefix(self, prefix: torch.Tensor, unrolled: bool = False) -> list[MixerState]:

@@ -108,19 +108,23 @@ class Mamba(nn.Module):
         )
 
     # ------------------------------------------------------------ sequence path
-    def forward(self, hidden_states: torch.Tensor, state: MambaState | None = None) -> tuple[torch.Tensor, MambaState]:
+    def forward(
+        self, hidden_states: torch.Tensor, state: MambaState | None = None, state_at: int | None = None
+    ) -> tuple[torch.Tensor, MambaState]:
         """Sequence path: the recurrence as a parallel scan (any length, with a backward pass).
 
         Args:
             hidden_states: (B, L, d_model).
             state: the recurrent state to continue from, or None to start from zeros.
+            state_at: return the state after this many tokens (1..L) instead of after the last: a prefix's state
+                from a pass over [prefix, more tokens] (the denoiser's first DDIM step, ``Denoiser.joint_step``).
         Returns:
-            out (B, L, d_model) and the state after the last token.
+            out (B, L, d_model) and the state after the last token (after ``state_at`` tokens).
         """
-        return self._sequence(hidden_states, state, linear_scan)
+        return self._sequence(hidden_states, state, linear_scan, state_at)
 
     def forward_unrolled(
-        self, hidden_states: torch.Tensor, state: MambaState | None = None
+        self, hidden_states: torch.Tensor, state: MambaState | None = None, state_at: int | None = None
     ) -> tuple[torch.Tensor, MambaState]:
         """Short-sequence path: :meth:`forward` (same arguments, same result) with the recurrence unrolled.
 
@@ -129,10 +133,14 @@ class Mamba(nn.Module):
         layer traces into a plain graph (ONNX, TorchScript) for a small, fixed L. Stepping :meth:`step`
         token by token traces too, but turns every projection into L matrix-vector products.
         """
-        return self._sequence(hidden_states, state, linear_scan_unrolled)
+        return self._sequence(hidden_states, state, linear_scan_unrolled, state_at)
 
-    def _sequence(self, hidden_states: torch.Tensor, state: MambaState | None, scan) -> tuple[torch.Tensor, MambaState]:
+    def _sequence(
+        self, hidden_states: torch.Tensor, state: MambaState | None, scan, state_at: int | None
+    ) -> tuple[torch.Tensor, MambaState]:
         """hidden_states (B, L, d_model) → out (B, L, d_model), state; ``scan(a, b, h0)`` as :func:`linear_scan`."""
+        if state_at is not None and not 1 <= state_at <= hidden_states.shape[1]:
+            raise ValueError(f"state_at must be 1..{hidden_states.shape[1]} (the tokens given), got {state_at}")
         x, z = self.in_proj(hidden_states).split(
             self.d_inner, dim=-1
         )  # (B, L, d_inner) each; one Split node when exported
@@ -140,13 +148,15 @@ class Mamba(nn.Module):
         conv_state = x.new_zeros(x.shape[0], self.d_inner, self.d_conv) if state is None else state[0]
         if self.fused_ops is not None:
             x, new_conv_state = self.fused_ops.causal_conv(
-                x, conv_state, self.conv1d.weight[:, 0].t(), self._conv_bias()
+                x, conv_state, self.conv1d.weight[:, 0].t(), self._conv_bias(), state_at
             )
         else:
-            x, new_conv_state = causal_conv(x, conv_state, self.conv1d.weight, self.conv1d.bias)  # (B, L, d_inner)
+            x, new_conv_state = causal_conv(
+                x, conv_state, self.conv1d.weight, self.conv1d.bias, state_at
+            )  # (B, L, d_inner)
 
         y, last = self._selective_scan(
-            x, z, None if state is None else state[1], scan
+            x, z, None if state is None else state[1], scan, state_at
         )  # (B, L, d_inner), (B, d_inner, d_state)
         return self.out_proj(y), (new_conv_state, last)
 
@@ -182,9 +192,10 @@ class Mamba(nn.Module):
         return self.conv1d.bias if self.conv1d.bias is not None else self.conv1d.weight.new_zeros(self.d_inner)
 
     def _selective_scan(
-        self, x: torch.Tensor, z: torch.Tensor, h0: torch.Tensor | None, scan
+        self, x: torch.Tensor, z: torch.Tensor, h0: torch.Tensor | None, scan, state_at: int | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """x, z (B, L, d_inner), h0 (B, d_inner, d_state) or None → y * silu(z) (B, L, d_inner), the last state.
+        """x, z (B, L, d_inner), h0 (B, d_inner, d_state) or None → y * silu(z) (B, L, d_inner), the last state (the
+        state after ``state_at`` tokens).
 
         With :attr:`fused_ops` set (the exported fused graphs), its ``selective_scan`` does the work of
         :func:`selective_scan` in one operator; otherwise ``scan`` runs the recurrence.
@@ -197,12 +208,16 @@ class Mamba(nn.Module):
         if self.fused_ops is not None:
             if h0 is None:
                 h0 = x.new_zeros(x.shape[0], self.d_inner, self.d_state)
-            return self.fused_ops.selective_scan(x, dt, B, C, z, A, self.D, h0)
-        return selective_scan(x, dt, B, C, z, A, self.D, h0, scan)
+            return self.fused_ops.selective_scan(x, dt, B, C, z, A, self.D, h0, state_at)
+        return selective_scan(x, dt, B, C, z, A, self.D, h0, scan, state_at)
 
 
 def causal_conv(
-    x: torch.Tensor, state: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None
+    x: torch.Tensor,
+    state: torch.Tensor,
+    weight: torch.Tensor,
+    bias: torch.Tensor | None,
+    state_at: int | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Mamba's conv branch: the causal depthwise convolution continuing from ``state``, then SiLU.
 
@@ -210,10 +225,12 @@ def causal_conv(
         x: (B, L, E) the tokens' conv inputs.
         state: (B, E, W) the last W conv inputs before them, newest last (zeros at a fresh start).
         weight: (E, 1, W) the depthwise kernel (``nn.Conv1d`` layout); bias: (E,) or None.
+        state_at: the new state after this many tokens (1..L) instead of after all L; None: after all.
     Returns:
-        silu(conv) (B, L, E) and the new state (B, E, W): the last W of [state, x].
+        silu(conv) (B, L, E) and the new state (B, E, W): the last W of [state, x] (of [state, x[:state_at]]).
     """
     width = state.shape[-1]
     x_ext = torch.cat([state, x.transpose(1, 2)], dim=-1)  # (B, E, W + L)
     y = F.conv1d(x_ext[:, :, 1:], weight, bias, groups=x.shape[-1])  # (B, E, L)
-    return F.silu(y).transpose(1, 2), x_ext[:, :, -width:]
+    new_state = x_ext[:, :, -width:] if state_at is None else x_ext[:, :, state_at : state_at + width]
+    return F.silu(y).transpose(1, 2), new_state

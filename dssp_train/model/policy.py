@@ -194,8 +194,8 @@ class DSSPPolicy(nn.Module):
         gradients (a distilled student trains its K-step chain end to end), :meth:`sample_normalized` without.
 
         The AdaLN parameters of the K timesteps are computed once (or given: ``table``, K rows) and each
-        step takes its row; with ``timestep_decoupled`` the prefix runs once and its states serve every step (K = 1:
-        prefix and action tokens in one pass; export's int8 fused graphs run the prefix with the first step).
+        step takes its row; with ``timestep_decoupled`` the prefix runs once, in the first step's pass, and its states
+        serve the later steps (:meth:`Denoiser.joint_step`).
         ``unrolled`` runs the Mamba layers' traceable path (:meth:`Mamba.forward_unrolled`). ``inpaint`` (target
         (B, H, A) normalised, weight (B, H, 1)): every step's clean prediction is pulled to the target
         (:meth:`~dssp_train.model.scheduler.DiffusionSchedule.ddim_step`): real-time chunking's committed actions.
@@ -207,8 +207,8 @@ class DSSPPolicy(nn.Module):
         if table is None:
             table = den.modulation(torch.tensor(timesteps, device=noise.device))
         # The prefix's states serve the K steps; one step needs none: it runs [prefix, x] in one pass (each weight
-        # read once per chunk instead of twice). Where every block is one fused node the first step carries the
-        # prefix and gives its states (K weight reads a chunk instead of K + 1).
+        # read once per chunk instead of twice). With K > 1 the first step carries the prefix and gives its states
+        # (K weight reads a chunk instead of K + 1); DP3's UNet, whose prefix is a global condition, encodes it apart.
         cached = self.cfg.timestep_decoupled and len(timesteps) > 1
         joined = cached and den.joins_prefix
         states = den.encode_prefix(prefix, unrolled) if cached and not joined else None
@@ -225,7 +225,7 @@ class DSSPPolicy(nn.Module):
             if states is not None:
                 x0 = den.denoise_modulated(states, given, table.at(k), unrolled, **marked)
             elif joined:
-                x0, states = den.joint_step(prefix, given, table.at(k), **marked)
+                x0, states = den.joint_step(prefix, given, table.at(k), unrolled=unrolled, **marked)
             else:
                 x0 = den.forward_modulated(prefix, given, table.at(k), unrolled, **marked)
             x = self.schedule.ddim_step(x0, t, x, num_steps, inpaint)

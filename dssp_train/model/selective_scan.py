@@ -109,7 +109,7 @@ def linear_scan_unrolled(a: torch.Tensor, b: torch.Tensor, h0: torch.Tensor | No
     return torch.cat(states, dim=1)
 
 
-def selective_scan(x, dt, B, C, z, A, D, h0=None, scan=linear_scan):
+def selective_scan(x, dt, B, C, z, A, D, h0=None, scan=linear_scan, state_at=None):
     """Mamba's selective scan: y_t = (C_t . h_t + D x_t) * silu(z_t), h_t = exp(delta_t A) h_{t-1} + delta_t x_t B_t.
 
     Args:
@@ -119,12 +119,13 @@ def selective_scan(x, dt, B, C, z, A, D, h0=None, scan=linear_scan):
         A: (E, n), negative; D: (E,).
         h0: (batch, E, n) the state before the first token, or None for zeros.
         scan: :func:`linear_scan` or :func:`linear_scan_unrolled`.
+        state_at: the state to return: after this many tokens (1..L), or None: after the last.
     Returns:
-        y (batch, L, E) and the state after the last token (batch, E, n).
+        y (batch, L, E) and the state after the last token (after ``state_at`` tokens) (batch, E, n).
     """
     delta = F.softplus(dt)
     decay = torch.exp(delta.unsqueeze(-1) * A)  # (batch, L, E, n)
     drive = (delta * x).unsqueeze(-1) * B.unsqueeze(-2)  # (batch, L, E, n)
     h = scan(decay, drive, h0)  # (batch, L, E, n)
     y = torch.matmul(h, C.unsqueeze(-1))[..., 0]  # (batch, L, E)
-    return (y + D * x) * F.silu(z), h[:, -1]
+    return (y + D * x) * F.silu(z), h[:, -1 if state_at is None else state_at - 1]
