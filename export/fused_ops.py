@@ -201,17 +201,14 @@ def block_reference(
         actions = torch.arange(a.shape[1]) >= plain  # (L,): the tokens AdaLN and the gate act on
         h = torch.where(actions[:, None], h * (1 + scale) + shift, h)
         gate = torch.where(actions[:, None], gate, torch.ones_like(gate))  # (L, d)
+    state_at = plain if mod.shape[0] and 0 < plain < a.shape[1] else None  # the states after the prefix's tokens
     xz = q8_linear(h, in_q, in_s)
-    x_in, z = xz[..., :E], xz[..., E:]
-    x, conv_after = causal_conv(x_in, conv_state, conv_w.t().unsqueeze(1), conv_b)
+    x, z = xz[..., :E], xz[..., E:]
+    x, conv_after = causal_conv(x, conv_state, conv_w.t().unsqueeze(1), conv_b, state_at)
     dbc = q8_linear(x, xp_q, xp_s)
     dt_in, Bm, Cm = torch.split(dbc, [R, n, n], dim=-1)  # noqa: N806
     dt = q8_linear(dt_in, dt_q, dt_s, dt_b)
-    y, ssm_after = selective_scan(x, dt, Bm, Cm, z, A, D, ssm_state, linear_scan_unrolled)
-    if mod.shape[0] and 0 < plain < a.shape[1]:  # the states after the prefix's tokens
-        _, conv_after = causal_conv(x_in[:, :plain], conv_state, conv_w.t().unsqueeze(1), conv_b)
-        head = (t[:, :plain] for t in (x, dt, Bm, Cm, z))
-        _, ssm_after = selective_scan(*head, A, D, ssm_state, linear_scan_unrolled)
+    y, ssm_after = selective_scan(x, dt, Bm, Cm, z, A, D, ssm_state, linear_scan_unrolled, state_at)
     out = q8_linear(y, out_q, out_s)
     a = a + (gate * out if mod.shape[0] else out)
     if fc1_q.numel():
