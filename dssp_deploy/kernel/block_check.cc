@@ -294,6 +294,26 @@ double median_us(int reps, F&& f) {
   return times[reps / 2];
 }
 
+// This machine's read bandwidth, bytes a second: one thread summing 512 MB of floats, best of 5 (as the Python
+// benchmarks measure it with numpy), so the bench states the floor of reading a step's weights once.
+double read_bandwidth() {
+  std::vector<float> buffer(size_t{1} << 27, 1.0f);
+  double best = 1e30;
+  volatile float sink = 0.0f;
+  for (int r = 0; r < 5; ++r) {
+    const auto t0 = std::chrono::steady_clock::now();
+    float lanes[64] = {};  // independent sums the compiler keeps in vector registers
+    for (size_t i = 0; i < buffer.size(); i += 64)
+      for (int j = 0; j < 64; ++j) lanes[j] += buffer[i + j];
+    float total = 0.0f;
+    for (float v : lanes) total += v;
+    sink = total;
+    best = std::min(best, std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
+  }
+  (void)sink;
+  return static_cast<double>(buffer.size() * sizeof(float)) / best;
+}
+
 int bench(int threads) {
   // robotwin: d 512, expand 2, d_state 64, dt rank 32, conv 4, the gated MLP's hidden 1408; 8 blocks; H = 8 rows
   const int64_t d = 512, E = 1024, n = 64, R = 32, W = 4, hidden = 1408, blocks = 8, rows = 8;
@@ -322,6 +342,10 @@ int bench(int threads) {
   const double step_us = median_us(reps, [&] {
     for (auto& b : step) m::block_forward(b->w, inputs, outputs, spath, pf);
   });
+  // the step's arithmetic alone: block 0 run as often as the step has blocks, its weights (3.9 MB) from the caches
+  const double cached_step_us = median_us(reps, [&] {
+    for (int64_t i = 0; i < blocks; ++i) m::block_forward(step[0]->w, inputs, outputs, spath, pf);
+  });
   // the parts of one block, each on its own (the weights of block 0 from the caches, as the parts are repeated)
   const m::BlockWeights& w = step[0]->w;
   std::vector<float> x(rows * 2 * hidden), y(rows * 2 * hidden), xc(rows * E), dt(rows * E), Bm(rows * n), Cm(rows * n);
@@ -349,10 +373,16 @@ int bench(int threads) {
   for (auto& b : step)
     for (const q::PackedWeights* p : {b->w.in, b->w.xp, b->w.dt, b->w.out, b->w.fc1, b->w.fc2})
       weight_bytes += static_cast<double>(p->n) * p->k;
+  // the floor of one read of the step's weights at this machine's bandwidth, and the step and its arithmetic alone
+  // against it: where the arithmetic alone is above a target ratio, no way of reading the weights meets it
+  const double read_gbs = read_bandwidth() / 1e9, floor_us = weight_bytes / (read_gbs * 1e3);
   std::printf("{\"arch\": \"%s\", \"scan_path\": \"%s\", \"qgemm_path\": \"%s\", \"threads\": %d, \"rows\": %lld, "
-              "\"blocks\": %lld, \"weight_mb\": %.2f, \"step_us\": %.1f, \"block_parts_us\": {",
+              "\"blocks\": %lld, \"weight_mb\": %.2f, \"read_gbs\": %.1f, \"floor_us\": %.1f, \"step_us\": %.1f, "
+              "\"step_over_floor\": %.2f, \"cached_step_us\": %.1f, \"cached_step_over_floor\": %.2f, "
+              "\"block_parts_us\": {",
               arch(), m::path_name(spath), q::path_name(qpath), threads, static_cast<long long>(rows),
-              static_cast<long long>(blocks), weight_bytes / 1e6, step_us);
+              static_cast<long long>(blocks), weight_bytes / 1e6, read_gbs, floor_us, step_us, step_us / floor_us,
+              cached_step_us, cached_step_us / floor_us);
   const char* sep = "";
   for (const auto& [name, us] : parts) std::printf("%s\"%s\": %.1f", sep, name.c_str(), us), sep = ", ";
   std::printf("}}\n");
