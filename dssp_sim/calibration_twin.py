@@ -32,10 +32,11 @@ import numpy as np
 
 from dssp_data.arm_kinematics import TCP_OFFSET
 from dssp_data.pointcloud.depth_frame import DepthFrame, Intrinsics
-from dssp_sim.env import DEPTH_UNIT, ArmServos, DepthRenderThread
+from dssp_sim.env import DEPTH_UNIT, ArmServos
 from dssp_sim.ik import IKSolver
 from dssp_sim.mjcf import CAMERA_FOVY_DEG, CAMERA_NAME, CAMERA_POS, ArmIndex, arm_xml, fmt, mat_to_quat, scene_xml
 from dssp_sim.mujoco_arm import MujocoPiper
+from dssp_sim.render import CameraRenders
 from dssp_sim.tasks import HOME
 from hardware.calibration.charuco import CharucoBoardSpec, board_image
 from hardware.calibration.hand_eye import EYE_TO_HAND, MODES, invert
@@ -151,7 +152,7 @@ class CalibrationTwin(ArmServos):
         )
         self.board_body = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, "charuco")
         self.flange_body = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, "link6")
-        self._renderers: dict[bool, DepthRenderThread] = {}
+        self._renders = CameraRenders(self, self.model, self.size, self.camera_id)
         start = self.start_pose()
         self.data.qpos[self.arm.qpos] = start
         self.set_targets(start, GRIPPER_STROKE_MIN)
@@ -228,9 +229,7 @@ class CalibrationTwin(ArmServos):
 
     def _render(self, depth: bool) -> np.ndarray:
         with self.lock:
-            if depth not in self._renderers:
-                self._renderers[depth] = DepthRenderThread(self.model, self.size, self.camera_id, depth=depth)
-            return self._renderers[depth].render(self.data)
+            return self._renders.render(self.data, depth)
 
     def render_rgb(self) -> np.ndarray:
         """(H, W, 3) uint8 RGB from the calibration camera, now."""
@@ -242,9 +241,7 @@ class CalibrationTwin(ArmServos):
         return np.where(metres > 0, np.rint(metres / DEPTH_UNIT), 0).clip(0, 65535).astype(np.uint16)
 
     def close(self) -> None:
-        for renderer in self._renderers.values():
-            renderer.close()
-        self._renderers = {}
+        self._renders.close()
 
 
 class TwinClock(FakeClock):

@@ -22,9 +22,7 @@ from __future__ import annotations
 
 import math
 import os
-import queue
 import threading
-import weakref
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
@@ -34,6 +32,7 @@ import numpy as np  # noqa: E402
 from dssp_core.schema import DEFAULT_CONTROL_RATE_HZ  # noqa: E402
 from dssp_data.pointcloud.depth_frame import Intrinsics
 from dssp_sim.mjcf import CAMERA_NAME, TIMESTEP, ArmIndex, scene_xml  # noqa: E402
+from dssp_sim.render import CameraRenders  # noqa: E402
 from dssp_sim.settings import render_size_for  # noqa: E402
 from dssp_sim.tasks import HOME, HOME_TOLERANCE, START_JITTER, Task, TaskStatus, make_task  # noqa: E402
 from hardware.piper.limits import (  # noqa: E402
@@ -112,8 +111,7 @@ class PiperEnv(ArmServos):
         self.render_size = (int(render_size[0]), int(render_size[1]))
         self._substeps_per_control = int(round(1.0 / (self.control_rate_hz * TIMESTEP)))
         self._camera_id = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_CAMERA, CAMERA_NAME)
-        self._renderer: DepthRenderThread | None = None
-        self._renderer_finalizer = None
+        self._renders = CameraRenders(self, self.model, self.render_size, self._camera_id)
         self.lock = threading.RLock()
         self._substeps = 0
         self._time_debt = 0.0
@@ -242,10 +240,7 @@ class PiperEnv(ArmServos):
         480 x 640) on a shared 2-core CPU with EGL/llvmpipe; the first call also creates the GL context
         (~0.2 s)."""
         with self.lock:
-            if self._renderer is None:
-                self._renderer = DepthRenderThread(self.model, self.render_size, self._camera_id)
-                self._renderer_finalizer = weakref.finalize(self, self._renderer.close)
-            metres = self._renderer.render(self.data)
+            metres = self._renders.render(self.data)
             cam_to_base = self.camera_to_base()
         valid = (metres >= DEPTH_MIN_M) & (metres <= DEPTH_MAX_M)
         raw = np.where(valid, np.rint(metres / DEPTH_UNIT), 0.0).astype(np.uint16)
@@ -254,64 +249,10 @@ class PiperEnv(ArmServos):
     def close(self) -> None:
         """Stop the render thread and free its GL context (the env stays usable; rendering again starts a
         new one)."""
-        with self.lock:
-            renderer, self._renderer = self._renderer, None
-            if self._renderer_finalizer is not None:
-                self._renderer_finalizer.detach()
-                self._renderer_finalizer = None
-        if renderer is not None:
-            renderer.close()
+        self._renders.close()
 
     def __enter__(self) -> "PiperEnv":
         return self
 
     def __exit__(self, *exc) -> None:
         self.close()
-
-
-class DepthRenderThread:
-    """One thread that owns a MuJoCo depth renderer and its GL context (a GL context is bound to the
-    thread that made it current), so ``render_depth`` works from any thread: a capture thread, a test,
-    the main loop. ``render(data)`` -> (H, W) float32 metric depth (metres along the optical axis); with
-    ``depth=False`` the colour image instead, (H, W, 3) uint8 RGB."""
-
-    def __init__(self, model: mujoco.MjModel, size: tuple[int, int], camera_id: int, depth: bool = True) -> None:
-        self._model, self._size, self._camera_id, self._depth = model, size, camera_id, depth
-        self._requests: queue.Queue = queue.Queue()
-        self._thread = threading.Thread(target=self._run, name="dssp-sim-render", daemon=True)
-        self._thread.start()
-
-    def render(self, data: mujoco.MjData) -> np.ndarray:
-        reply: queue.Queue = queue.Queue(maxsize=1)
-        self._requests.put((data, reply))
-        ok, value = reply.get()
-        if not ok:
-            raise value
-        return value
-
-    def close(self) -> None:
-        if self._thread.is_alive():
-            self._requests.put(None)
-            if threading.current_thread() is not self._thread:
-                self._thread.join()
-
-    def _run(self) -> None:
-        renderer = None
-        try:
-            while True:
-                item = self._requests.get()
-                if item is None:
-                    return
-                data, reply = item
-                try:
-                    if renderer is None:
-                        renderer = mujoco.Renderer(self._model, *self._size)
-                        if self._depth:
-                            renderer.enable_depth_rendering()
-                    renderer.update_scene(data, camera=self._camera_id)
-                    reply.put((True, renderer.render()))
-                except Exception as e:  # handed to the caller
-                    reply.put((False, e))
-        finally:
-            if renderer is not None:
-                renderer.close()

@@ -45,7 +45,6 @@ import math
 import os
 import threading
 import warnings
-import weakref
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
@@ -56,7 +55,7 @@ from dssp_core.errors import ConfigError
 from dssp_data.model_contract import ModelContract  # noqa: E402
 from dssp_data.observation import ObservationContract, PointCloudConfig, VectorLayout  # noqa: E402
 from dssp_data.pointcloud.depth_frame import Intrinsics
-from dssp_sim.env import DepthRenderThread  # noqa: E402
+from dssp_sim.render import CameraRenders  # noqa: E402
 from dssp_sim.tasks import TaskStatus  # noqa: E402
 
 PREFIX = "metaworld/"
@@ -288,8 +287,7 @@ class MetaWorldEnv:
         self.control_rate_hz = 1.0 / (self.env.frame_skip * float(self.model.opt.timestep))
         self._goal_site = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_SITE, "goal")
         self.lock = threading.RLock()
-        self._renderer: DepthRenderThread | None = None
-        self._renderer_finalizer = None
+        self._renders = CameraRenders(self, self.model, self.render_size, self._camera_id)
         self.reset(seed)
 
     # ------------------------------------------------------------------------------------------- episode
@@ -366,22 +364,13 @@ class MetaWorldEnv:
     def render_depth(self) -> tuple[np.ndarray, float, Intrinsics, np.ndarray]:
         """(depth (H, W) uint16 raw, depth unit m, intrinsics, camera pose (4, 4) in DP3's cloud frame)."""
         with self.lock:
-            if self._renderer is None:
-                self._renderer = DepthRenderThread(self.model, self.render_size, self._camera_id)
-                self._renderer_finalizer = weakref.finalize(self, self._renderer.close)
-            metres = self._renderer.render(self.data)
+            metres = self._renders.render(self.data)
         valid = (metres > 0) & (metres <= DEPTH_FAR_M)
         raw = np.where(valid, np.rint(metres / DEPTH_UNIT), 0.0).astype(np.uint16)
         return raw, DEPTH_UNIT, self.intrinsics(), CAMERA_TO_CLOUD.copy()
 
     def close(self) -> None:
-        with self.lock:
-            renderer, self._renderer = self._renderer, None
-            if self._renderer_finalizer is not None:
-                self._renderer_finalizer.detach()
-                self._renderer_finalizer = None
-        if renderer is not None:
-            renderer.close()
+        self._renders.close()
 
     def __enter__(self) -> "MetaWorldEnv":
         return self

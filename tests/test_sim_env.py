@@ -223,6 +223,52 @@ def test_render_depth_from_another_thread(tap_env):
     np.testing.assert_array_equal(tap_env.render_depth()[0], main)  # usable again after close
 
 
+def _render_threads() -> int:
+    import threading
+
+    return sum(t.name == "dssp-sim-render" and t.is_alive() for t in threading.enumerate())
+
+
+def _piper_env():
+    env = PiperEnv("tap", seed=0)
+    return env, [env.render_depth]
+
+
+def _calibration_twin():
+    from dssp_sim.calibration_twin import CalibrationTwin
+
+    twin = CalibrationTwin("eye-to-hand", size=(48, 64))
+    return twin, [twin.render_depth, twin.render_rgb]
+
+
+def _metaworld_env():
+    from dssp_sim.metaworld_env import MetaWorldEnv
+
+    env = MetaWorldEnv("button-press", seed=0, render_size=(48, 64))
+    return env, [env.render_depth]
+
+
+@pytest.mark.parametrize("make", [_piper_env, _calibration_twin, _metaworld_env])
+def test_render_threads_stop_on_close_and_when_their_owner_is_collected(make):
+    """A GL context's thread (one per kind of image) starts with its first render and stops on close() or when the
+    env that rendered is garbage."""
+    import gc
+
+    before = _render_threads()
+    env, renders = make()
+    assert _render_threads() == before  # started by the first render, not by the env
+    for i in range(len(renders)):  # no loop variable left holding a bound method (and the env)
+        renders[i]()
+    assert _render_threads() == before + len(renders)
+    env.close()
+    assert _render_threads() == before
+    renders[0]()  # usable again after close
+    assert _render_threads() == before + 1
+    del env, renders
+    gc.collect()
+    assert _render_threads() == before
+
+
 def test_render_depth_is_fast(tap_env):
     import time
 
