@@ -1,4 +1,5 @@
-"""Mamba's fused CPU operators (``ai.dssp::SelectiveScan``, ``ai.dssp::CausalConv1d``): their library, found and loaded.
+"""The fused CPU operators (``ai.dssp::SelectiveScan``, ``ai.dssp::CausalConv1d``, ``MambaBlockQ8``, ``DdimStep``, …): their
+library, found and loaded.
 
 The library is built from ``dssp_deploy/kernel/mamba_ops.cc`` by ``make kernel`` (part of ``make
 setup``) into ``dssp_deploy/kernel/libdssp_mamba.so``; ``DSSP_KERNEL=PATH`` points at another build and
@@ -30,11 +31,13 @@ SCAN_OP = "SelectiveScan"
 CONV_OP = "CausalConv1d"
 BLOCK_OP = "MambaBlockQ8"  # a whole denoiser block on the action tokens, int8 weights (the int8 fused graphs)
 POOL_OP = "LayerNormMaxOverPoints"  # the point encoder's last LayerNorm and max over the points, (B, P, F) -> (B, F)
+STEP_OP = "DdimStep"  # the denoiser's readout, the DDIM update and the next step's action tokens (the fused graphs)
 OPSET_VERSION = 1
 # What the exported graphs need of the library (its DsspKernelRevision(); none: before 1). 1: the attributes that take a
 # state after a prefix from a pass over more tokens (MambaBlockQ8's plain, SelectiveScan's and CausalConv1d's state_at),
-# which an older library would ignore, giving the state after every token instead.
-KERNEL_REVISION = 1
+# which an older library would ignore, giving the state after every token instead. 2: DdimStep, which an older library
+# lacks (a session would not load the graph).
+KERNEL_REVISION = 2
 LIBRARY_NAME = "libdssp_mamba.so"
 LIBRARY_ENV = "DSSP_KERNEL"
 DEFAULT_LIBRARY = Path(__file__).resolve().parent / "kernel" / LIBRARY_NAME
@@ -147,8 +150,8 @@ def _probe(path: Path, scan_path: str) -> Kernel:
     if revision < KERNEL_REVISION:
         return Kernel(
             None,
-            f"{path} is older than this runtime (revision {revision}, {KERNEL_REVISION} needed: its operators would "
-            "ignore attributes the graphs set); rebuild it with `make kernel`",
+            f"{path} is older than this runtime (revision {revision}, {KERNEL_REVISION} needed: it lacks operators "
+            "the graphs use, or would ignore attributes they set); rebuild it with `make kernel`",
         )
     try:
         fn = library.DsspScanPath

@@ -15,9 +15,10 @@ from __future__ import annotations
 
 import torch
 
-from dssp_deploy.mamba_kernel import BLOCK_OP, CONV_OP, DOMAIN, POOL_OP, SCAN_OP
-from dssp_train.model.denoiser import DenoiserBlock
+from dssp_deploy.mamba_kernel import BLOCK_OP, CONV_OP, DOMAIN, POOL_OP, SCAN_OP, STEP_OP
+from dssp_train.model.denoiser import DenoiserBlock, modulate
 from dssp_train.model.mamba import Mamba, causal_conv
+from dssp_train.model.scheduler import ddim_update
 from dssp_train.model.selective_scan import linear_scan_unrolled, selective_scan
 
 
@@ -64,6 +65,51 @@ class _LayerNormMaxOverPoints(torch.autograd.Function):
         return y
 
 
+def ddim_step_reference(h, x, norm_w, mod, out_w, out_b, in_w, in_b, pos, eps, a_t, a_prev, sample, clip, tokens):
+    """What ``ai.dssp::DdimStep`` computes, in PyTorch (the denoiser's readout, :func:`ddim_update` and its next action
+    tokens, as :meth:`Denoiser.readout`, :meth:`DiffusionSchedule.ddim_step` and :meth:`Denoiser.embed_actions` do
+    them): h (B, H, d), the last block's output on the action tokens, and x (B, H, A), the sample x_t → (x_prev
+    (B, H, A), the next step's action tokens (B, H, d), or (B, H, 0) without ``tokens``). mod (2, d): the readout's
+    shift and scale; out_w (A, d), out_b (A); in_w (A, d) (the input layer's weight transposed), in_b (d), pos (H, d)."""
+    y = torch.nn.functional.linear(modulate(rms_norm(h, norm_w, eps), mod[:1], mod[1:]), out_w, out_b)
+    x_prev = ddim_update(y, x, a_t, a_prev, sample, clip)
+    a = x_prev @ in_w + in_b + pos if tokens else h[..., :0]
+    return x_prev, a
+
+
+class _DdimStep(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, *inputs):
+        return ddim_step_reference(*inputs)
+
+    @staticmethod
+    def symbolic(g, h, x, norm_w, mod, out_w, out_b, in_w, in_b, pos, eps, a_t, a_prev, sample, clip, tokens):
+        x_prev, a = g.op(
+            f"{DOMAIN}::{STEP_OP}",
+            h,
+            x,
+            norm_w,
+            mod,
+            out_w,
+            out_b,
+            in_w,
+            in_b,
+            pos,
+            eps_f=float(eps),
+            c_t_f=a_t**0.5,
+            s_t_f=(1 - a_t) ** 0.5,
+            c_prev_f=a_prev**0.5,
+            s_prev_f=(1 - a_prev) ** 0.5,
+            sample_i=int(sample),
+            clip_i=int(clip),
+            tokens_i=int(tokens),
+            outputs=2,
+        )
+        x_prev.setType(x.type())
+        a.setType(h.type().with_sizes([None, None, None]))
+        return x_prev, a
+
+
 class FusedOps:
     """The operators :class:`dssp_train.model.mamba.Mamba` and the point encoder call when their ``fused_ops`` is
     set."""
@@ -78,6 +124,33 @@ class FusedOps:
     def layer_norm_max_over_points(x, norm: torch.nn.LayerNorm):
         """x (batch, P, F) → (batch, F): the max over the points of ``norm`` (over F) of each."""
         return _LayerNormMaxOverPoints.apply(x, norm.weight, norm.bias, norm.eps)
+
+    @staticmethod
+    def ddim_step(den, schedule, h, x, mod, t: int, num_steps: int | None, tokens: bool):
+        """The end of DDIM step t (of ``num_steps``) of the denoiser ``den`` under ``schedule``: its last block's output
+        on the action tokens h (B, H, d), x_t (B, H, A) and the step's one-row :class:`Modulation` ``mod`` → (x_prev
+        (B, H, A), the next step's action tokens (B, H, d); (B, H, 0) without ``tokens``: the chunk's last step)."""
+        if mod.final.shape[0] != 1:
+            raise ValueError(f"DdimStep takes one row of AdaLN parameters (the step's), got {mod.final.shape[0]}")
+        a_t, a_prev = schedule.ddim_coefficients(t, num_steps)
+        cfg = schedule.cfg
+        return _DdimStep.apply(
+            h,
+            x,
+            den.norm_f.weight,
+            mod.final[0],
+            den.action_out.weight,
+            den.action_out.bias,
+            den.action_in.weight.t(),
+            den.action_in.bias,
+            den.action_pos,
+            den.norm_f.eps,
+            a_t,
+            a_prev,
+            cfg.prediction_type == "sample",
+            cfg.clip_sample,
+            tokens,
+        )
 
     @staticmethod
     def causal_conv(x, state, weight, bias, state_at=None):

@@ -40,6 +40,7 @@ import torch
 from torch import nn
 
 from dssp_core.errors import ConfigError
+from dssp_train.model.denoiser import Denoiser
 from dssp_train.model.mamba import Mamba
 from dssp_train.model.obs_encoder import PointEncoder
 from dssp_train.model.policy import DSSPPolicy
@@ -74,9 +75,10 @@ def pruned_copy(policy: DSSPPolicy, keep: tuple[str, ...]) -> DSSPPolicy:
 
 
 def use_fused_ops(module: nn.Module) -> None:
-    """Route every Mamba layer and point encoder of ``module`` through the fused operators (:mod:`export.fused_ops`)."""
+    """Route every Mamba layer, point encoder and denoiser (the end of each DDIM step) of ``module`` through the fused
+    operators (:mod:`export.fused_ops`)."""
     for layer in module.modules():
-        if isinstance(layer, (Mamba, PointEncoder)):
+        if isinstance(layer, (Mamba, PointEncoder, Denoiser)):
             layer.fused_ops = FUSED_OPS
 
 

@@ -14,6 +14,7 @@ import pytest
 import torch
 from conftest import one_error_line
 
+from dssp_deploy.mamba_kernel import STEP_OP
 from dssp_deploy.manifest import read_manifest
 from dssp_deploy.sessions import session_options
 from dssp_train.cli.train import main as train_main
@@ -291,8 +292,10 @@ def test_variants_export_and_verify(tmp_path, overrides):
 @pytest.mark.parametrize("mlp", ["gated", "dit"])
 def test_every_graph_reads_each_weight_once_per_ddim_step(tmp_path, mlp):
     """The first DDIM step carries the prefix, its mixer and its MLP in one pass with the action tokens: each weight
-    of the fp32 graphs (standard and fused) is read by K nodes, not K + 1, the manifest counts K, and the graphs
-    still verify against PyTorch."""
+    matrix of the fp32 graphs (standard and fused) is read by K nodes, not K + 1, the manifest counts K, and the
+    graphs still verify against PyTorch. A matrix is its values in either layout (the fused graph's DdimStep nodes
+    take the action input layer's weight transposed, the first step's MatMul the exporter's copy), read by a product:
+    a MatMul or Gemm, or a DdimStep's output layer, and its input layer where it makes the next step's tokens."""
     run = save_run(tmp_path / "run", f"model.denoiser_mlp={mlp}")
     summary = export_model(
         run, tmp_path / "model", fmt="onnx", quantize=(), verify_steps=60, threads=1, progress=lambda _: None
@@ -303,11 +306,29 @@ def test_every_graph_reads_each_weight_once_per_ddim_step(tmp_path, mlp):
     assert steps > 1
     for name in ("denoiser.onnx", "denoiser.fused.onnx"):
         graph = onnx.load(str(tmp_path / "model" / name)).graph
-        weights = {t.name for t in graph.initializer if len(t.dims) == 2}
-        reads = {w: sum(w in n.input for n in graph.node if n.op_type in ("MatMul", "Gemm")) for w in weights}
-        matrices = {w: r for w, r in reads.items() if r}
-        assert len(matrices) >= 4 * 2 and set(matrices.values()) == {steps}, (name, sorted(matrices.values()))
+        matrix = {}  # initializer name → its values, one layout for both
+        for t in graph.initializer:
+            if len(t.dims) == 2:
+                a = onnx.numpy_helper.to_array(t)
+                a = a if a.shape[0] <= a.shape[1] else a.T
+                matrix[t.name] = (a.shape, a.tobytes())
+        reads = dict.fromkeys(matrix.values(), 0)
+        for node in graph.node:
+            if node.op_type in ("MatMul", "Gemm"):
+                products = list(node.input)
+            elif node.op_type == STEP_OP:
+                tokens = next((a.i for a in node.attribute if a.name == "tokens"), 1)
+                products = [node.input[4]] + ([node.input[6]] if tokens else [])  # out_w, in_w
+            else:
+                continue
+            for w in products:
+                if w in matrix:
+                    reads[matrix[w]] += 1
+        counts = sorted(r for r in reads.values() if r)
+        assert len(counts) >= 4 * 2 and set(counts) == {steps}, (name, counts)
         assert manifest.files[name]["weight_reads"] == steps
+    fused = onnx.load(str(tmp_path / "model" / "denoiser.fused.onnx")).graph
+    assert [n.op_type for n in fused.node].count(STEP_OP) == steps
 
 
 def test_raw_weights_and_other_step_count(trained_run, tmp_path, capsys):

@@ -13,7 +13,7 @@ from conftest import BLOCK_INPUTS, QGEMM_X86_PATHS, block_case, cpu_flags
 from onnx import TensorProto, helper
 
 from dssp_deploy import mamba_kernel
-from dssp_deploy.manifest import MANIFEST_NAME, ModelDirError, sha256_hex
+from dssp_deploy.manifest import MANIFEST_NAME, ModelDirError, read_manifest, sha256_hex
 from dssp_deploy.onnx_policy import DEFAULT_PRECISION, OnnxPolicy
 from dssp_deploy.sessions import session_options
 from dssp_train.model.mamba import causal_conv
@@ -568,6 +568,67 @@ def test_layer_norm_max_over_points_matches_pytorch_and_replaces_three_nodes(sha
     assert mamba_kernel.POOL_OP in ops[".fused"] and "GlobalMaxPool" not in ops[".fused"]
     assert ops[".fused"].count("LayerNormalization") == ops[""].count("LayerNormalization") - 1
     assert mamba_kernel.POOL_OP not in ops[""] and "GlobalMaxPool" in ops[""]
+
+
+@pytest.mark.parametrize("sample", [True, False], ids=["predicts-sample", "predicts-noise"])
+@pytest.mark.parametrize("clip", [True, False], ids=["clip", "no-clip"])
+def test_ddim_step_matches_its_reference_and_ends_every_step_of_the_fused_graphs(sample, clip, tiny_export):
+    """ai.dssp::DdimStep (the readout, the DDIM update and the next step's action tokens) equals its PyTorch reference
+    (export.fused_ops.ddim_step_reference) to float rounding, for either prediction, clipped or not, with the tokens
+    and without (the chunk's last step: (batch, H, 0)); a weight of the wrong shape is refused with its name; the fused
+    denoiser graphs end each of their K steps with one, the standard graph has none."""
+    from export.fused_ops import ddim_step_reference
+
+    rng = np.random.default_rng(int(sample) + 2 * int(clip))
+    B, H, d, A = 2, 5, 21, 6  # noqa: N806 — d and A not multiples of the vector widths or of the four outputs a pass
+    shapes = {"h": (B, H, d), "x": (B, H, A), "norm_w": (d,), "mod": (2, d), "out_w": (A, d), "out_b": (A,)}
+    shapes |= {"in_w": (A, d), "in_b": (d,), "pos": (H, d)}
+    feeds = {name: (rng.standard_normal(shape) * 0.7).astype(np.float32) for name, shape in shapes.items()}
+    a_t, a_prev = 0.37, 0.81
+    for tokens in (True, False):
+        want_x, want_a = (
+            t.numpy()
+            for t in ddim_step_reference(
+                *(torch.from_numpy(v) for v in feeds.values()), 1e-5, a_t, a_prev, sample, clip, tokens
+            )
+        )
+        node = helper.make_node(
+            mamba_kernel.STEP_OP,
+            list(shapes),
+            ["x_next", "a_next"],
+            domain=mamba_kernel.DOMAIN,
+            eps=1e-5,
+            c_t=a_t**0.5,
+            s_t=(1 - a_t) ** 0.5,
+            c_prev=a_prev**0.5,
+            s_prev=(1 - a_prev) ** 0.5,
+            sample=int(sample),
+            clip=int(clip),
+            tokens=int(tokens),
+        )
+        graph = helper.make_graph(
+            [node],
+            "g",
+            [helper.make_tensor_value_info(n, TensorProto.FLOAT, None) for n in shapes],
+            [helper.make_tensor_value_info(n, TensorProto.FLOAT, None) for n in ("x_next", "a_next")],
+        )
+        model = helper.make_model(
+            graph, opset_imports=[helper.make_opsetid("", 17), helper.make_opsetid(mamba_kernel.DOMAIN, 1)]
+        )
+        session = ort.InferenceSession(
+            model.SerializeToString(), session_options(1, fused=True), providers=["CPUExecutionProvider"]
+        )
+        x_next, a_next = session.run(None, feeds)
+        assert x_next.shape == want_x.shape and a_next.shape == want_a.shape == ((B, H, d) if tokens else (B, H, 0))
+        assert np.abs(x_next - want_x).max() <= 1e-5 * max(1.0, float(np.abs(want_x).max()))
+        assert a_next.size == 0 or np.abs(a_next - want_a).max() <= 1e-5 * max(1.0, float(np.abs(want_a).max()))
+    with pytest.raises(Exception, match=r"DdimStep: pos has shape \(4, 21\), expected \(5, 21\)"):
+        session.run(None, {**feeds, "pos": feeds["pos"][:4]})
+    _, model_dir, _ = tiny_export
+    steps = read_manifest(model_dir).contract.denoise_steps
+    for name in ("denoiser.fused.onnx", "denoiser.int8.fused.onnx", "denoiser.onnx"):
+        ops = [n.op_type for n in onnx.load(str(model_dir / name), load_external_data=False).graph.node]
+        assert ops.count(mamba_kernel.STEP_OP) == (0 if name == "denoiser.onnx" else steps), name
 
 
 def test_the_first_ddim_step_carries_the_prefix_where_every_block_is_one_node():

@@ -533,6 +533,50 @@ inline void rms_norm(const float* x, int64_t m, int64_t d, const float* weight, 
   }
 }
 
+// ------------------------------------------------------------------ the end of one DDIM step
+// One action token at the end of a DDIM step (ai.dssp::DdimStep in mamba_ops.cc gives the arithmetic): the readout
+// of h (d) to the model's output y (A), the DDIM update of x (A) to x_next (A), and, when a_next is given, the next
+// step's token a_next (d) = x_next in_w + in_b + pos. r: d floats of scratch.
+struct DdimStepWeights {
+  const float *norm_w, *shift, *scale;  // (d), (d), (d)
+  const float *out_w, *out_b;           // (A, d), (A)
+  const float *in_w, *in_b;             // (A, d): the input layer's weight transposed, (d)
+  int64_t d, A;
+  float eps, c_t, s_t, c_prev, s_prev;  // the norm's eps; sqrt(abar_t), sqrt(1 - abar_t), the same at the step's end
+  bool sample, clip;                    // the model predicts the clean sample (else the noise); x0 clamped to [-1, 1]
+};
+
+DSSP_AVX2_CLONES inline void ddim_step_row(const DdimStepWeights& w, const float* h, const float* x, const float* pos,
+                                           float* x_next, float* a_next, float* r) {
+  const int64_t d = w.d, A = w.A;
+  rms_norm(h, 1, d, w.norm_w, w.eps, w.shift, w.scale, r);
+  for (int64_t j = 0; j < A; j += 4) {  // four outputs at a time: four independent chains of adds
+    const float* w0 = w.out_w + j * d;
+    const float *w1 = j + 1 < A ? w0 + d : w0, *w2 = j + 2 < A ? w0 + 2 * d : w0, *w3 = j + 3 < A ? w0 + 3 * d : w0;
+    float s0 = 0.0f, s1 = 0.0f, s2 = 0.0f, s3 = 0.0f;
+#pragma omp simd reduction(+ : s0, s1, s2, s3)
+    for (int64_t k = 0; k < d; ++k) s0 += r[k] * w0[k], s1 += r[k] * w1[k], s2 += r[k] * w2[k], s3 += r[k] * w3[k];
+    const float sums[4] = {s0, s1, s2, s3};
+    for (int64_t u = 0; u < 4 && j + u < A; ++u) {
+      const float y = sums[u] + w.out_b[j + u], xt = x[j + u];
+      float x0 = w.sample ? y : (xt - w.s_t * y) / w.c_t;
+      const float e = w.sample ? (xt - w.c_t * y) / w.s_t : y;
+      if (w.clip) x0 = std::min(1.0f, std::max(-1.0f, x0));
+      x_next[j + u] = w.c_prev * x0 + w.s_prev * e;
+    }
+  }
+  if (a_next == nullptr) return;
+#pragma omp simd
+  for (int64_t k = 0; k < d; ++k) a_next[k] = 0.0f;
+  for (int64_t j = 0; j < A; ++j) {
+    const float xj = x_next[j], *wj = w.in_w + j * d;
+#pragma omp simd
+    for (int64_t k = 0; k < d; ++k) a_next[k] += xj * wj[k];
+  }
+#pragma omp simd
+  for (int64_t k = 0; k < d; ++k) a_next[k] = (a_next[k] + w.in_b[k]) + pos[k];
+}
+
 // ------------------------------------------------------------------ a whole denoiser block (int8 weights)
 // One block of the denoiser, on the action tokens for one DDIM step or on the prefix (ai.dssp::MambaBlockQ8):
 //

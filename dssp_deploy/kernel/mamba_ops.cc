@@ -1,6 +1,7 @@
 // The fused CPU operators for ONNX Runtime (domain ai.dssp), over the arithmetic of mamba_block.h: the selective
 // scan of one Mamba layer, its causal depthwise convolution (CausalConv1d), a whole int8 denoiser block
-// (MambaBlockQ8) and the point encoder's last LayerNorm and max over the points (LayerNormMaxOverPoints), further down.
+// (MambaBlockQ8), the end of a DDIM step (DdimStep) and the point encoder's last LayerNorm and max over the points
+// (LayerNormMaxOverPoints), further down.
 //
 //   ai.dssp::SelectiveScan(x, dt, B, C, z, A, D, h0) -> (y, h)
 //
@@ -395,6 +396,71 @@ struct MambaBlockQ8 {
   Weights in_w, xp_w, dt_w, out_w, fc1_w, fc2_w;
 };
 
+// ------------------------------------------------------------------ the end of one DDIM step
+// ai.dssp::DdimStep: what the denoiser does between its last block of one DDIM step and its first block of the next —
+// the readout, the DDIM update and the next step's action tokens — in one node instead of about sixteen small ones
+// (dssp_train.model.denoiser.Denoiser.readout, dssp_train.model.scheduler.DiffusionSchedule.ddim_step with eta = 0
+// and no inpainting, Denoiser.embed_actions without committed actions), fp32, a row at a time (mamba_block.h's
+// ddim_step_row):
+//
+//   r   = rmsnorm(h) * norm_w * (1 + scale) + shift                  h: the last block's output on the action tokens
+//   y   = r out_w^T + out_b                                          (batch, H, A): the model's output
+//   x0, eps = y, (x - c_t y) / s_t          with the attribute sample = 1 (the model predicts the clean sample)
+//   x0, eps = (x - s_t y) / c_t, y          with sample = 0 (it predicts the noise)
+//   x0  = clamp(x0, -1, 1)                  with the attribute clip = 1
+//   x'  = c_prev x0 + s_prev eps                                     (batch, H, A): the sample of the next step
+//   a'  = x' in_w + in_b + pos                                       (batch, H, d): the next step's action tokens
+//
+// inputs: h (batch, H, d); x (batch, H, A); norm_w (d); mod (2, d): shift, scale; out_w (A, d), out_b (A);
+//         in_w (A, d) (the transpose of the layer's), in_b (d), pos (H, d)
+// outputs: x' (batch, H, A); a' (batch, H, d) — (batch, H, 0) with the attribute tokens = 0 (the chunk's last step)
+// attributes: eps (the norm's), c_t, s_t, c_prev, s_prev (sqrt(abar_t), sqrt(1 - abar_t), sqrt(abar_prev),
+//             sqrt(1 - abar_prev)), sample, clip, tokens (default 1).
+// The arithmetic is in the order of the standard graph's nodes (each a float32 operation); the two products sum in
+// another order than ONNX Runtime's MatMul, so the outputs agree to rounding, not bit for bit.
+struct DdimStep {
+  DdimStep(const OrtApi*, const OrtKernelInfo* info)
+      : eps(attribute(info, "eps", 1e-5f)), c_t(attribute(info, "c_t", 1.0f)), s_t(attribute(info, "s_t", 0.0f)),
+        c_prev(attribute(info, "c_prev", 1.0f)), s_prev(attribute(info, "s_prev", 0.0f)),
+        sample(attribute<int64_t>(info, "sample", 1) != 0), clip(attribute<int64_t>(info, "clip", 0) != 0),
+        tokens(attribute<int64_t>(info, "tokens", 1) != 0) {}
+
+  Ort::Status Compute(const Ort::Custom::Tensor<float>& h, const Ort::Custom::Tensor<float>& x,
+                      const Ort::Custom::Tensor<float>& norm_w, const Ort::Custom::Tensor<float>& mod,
+                      const Ort::Custom::Tensor<float>& out_w, const Ort::Custom::Tensor<float>& out_b,
+                      const Ort::Custom::Tensor<float>& in_w, const Ort::Custom::Tensor<float>& in_b,
+                      const Ort::Custom::Tensor<float>& pos, Ort::Custom::Tensor<float>& x_next,
+                      Ort::Custom::Tensor<float>& a_next) {
+    const auto hs = h.Shape(), xs = x.Shape();
+    if (hs.size() != 3 || xs.size() != 3 || xs[0] != hs[0] || xs[1] != hs[1])
+      ORT_CXX_API_THROW("DdimStep: h must be (batch, H, d) and x (batch, H, A), got " + shape_str(hs) + " and " +
+                            shape_str(xs), ORT_INVALID_ARGUMENT);
+    const int64_t batch = hs[0], d = hs[2], H = xs[1], A = xs[2];
+    const std::pair<const char*, std::pair<std::vector<int64_t>, std::vector<int64_t>>> shapes[] = {
+        {"norm_w", {norm_w.Shape(), {d}}}, {"mod", {mod.Shape(), {2, d}}},   {"out_w", {out_w.Shape(), {A, d}}},
+        {"out_b", {out_b.Shape(), {A}}},   {"in_w", {in_w.Shape(), {A, d}}}, {"in_b", {in_b.Shape(), {d}}},
+        {"pos", {pos.Shape(), {H, d}}}};
+    for (const auto& [name, got_want] : shapes)
+      if (got_want.first != got_want.second)
+        ORT_CXX_API_THROW(std::string("DdimStep: ") + name + " has shape " + shape_str(got_want.first) + ", expected " +
+                              shape_str(got_want.second), ORT_INVALID_ARGUMENT);
+    float* xn = x_next.Allocate(xs);
+    float* an = a_next.Allocate({batch, H, tokens ? d : 0});
+    DdimStepWeights w;
+    w.norm_w = norm_w.Data(), w.shift = mod.Data(), w.scale = mod.Data() + d;
+    w.out_w = out_w.Data(), w.out_b = out_b.Data(), w.in_w = in_w.Data(), w.in_b = in_b.Data(), w.d = d, w.A = A;
+    w.eps = eps, w.c_t = c_t, w.s_t = s_t, w.c_prev = c_prev, w.s_prev = s_prev, w.sample = sample, w.clip = clip;
+    std::vector<float> r(static_cast<size_t>(d));
+    for (int64_t row = 0; row < batch * H; ++row)
+      ddim_step_row(w, h.Data() + row * d, x.Data() + row * A, pos.Data() + (row % H) * d, xn + row * A,
+                    tokens ? an + row * d : nullptr, r.data());
+    return Ort::Status{nullptr};
+  }
+
+  float eps, c_t, s_t, c_prev, s_prev;
+  bool sample, clip, tokens;
+};
+
 }  // namespace
 
 // The library's entry point, called by SessionOptions.register_custom_ops_library.
@@ -403,7 +469,7 @@ extern "C" __attribute__((visibility("default"))) OrtStatus* ORT_API_CALL Regist
   const OrtApi* api = api_base->GetApi(ORT_API_VERSION);
   if (api == nullptr) return nullptr;  // an older runtime: the session fails to load the graph, the caller falls back
   Ort::InitApi(api);
-  static std::unique_ptr<Ort::Custom::OrtLiteCustomOp> scan_op, conv_op, block_op, pool_op;
+  static std::unique_ptr<Ort::Custom::OrtLiteCustomOp> scan_op, conv_op, block_op, pool_op, step_op;
   static Ort::CustomOpDomain domain{nullptr};
   static std::once_flag once;
   try {
@@ -412,11 +478,13 @@ extern "C" __attribute__((visibility("default"))) OrtStatus* ORT_API_CALL Regist
       conv_op.reset(Ort::Custom::CreateLiteCustomOp<CausalConv1d>("CausalConv1d", "CPUExecutionProvider"));
       block_op.reset(Ort::Custom::CreateLiteCustomOp<MambaBlockQ8>("MambaBlockQ8", "CPUExecutionProvider"));
       pool_op.reset(Ort::Custom::CreateLiteCustomOp<LayerNormMaxOverPoints>("LayerNormMaxOverPoints", "CPUExecutionProvider"));
+      step_op.reset(Ort::Custom::CreateLiteCustomOp<DdimStep>("DdimStep", "CPUExecutionProvider"));
       domain = Ort::CustomOpDomain(kDomain);
       domain.Add(scan_op.get());
       domain.Add(conv_op.get());
       domain.Add(block_op.get());
       domain.Add(pool_op.get());
+      domain.Add(step_op.get());
     });
     Ort::UnownedSessionOptions(options).Add(domain);
   } catch (const std::exception& e) {
@@ -427,8 +495,8 @@ extern "C" __attribute__((visibility("default"))) OrtStatus* ORT_API_CALL Regist
 
 // The library's revision: what its operators know (dssp_deploy/mamba_kernel.py's KERNEL_REVISION is the one the
 // exported graphs need; a library without this function predates revision 1). 1: MambaBlockQ8's `plain`, and
-// SelectiveScan's and CausalConv1d's `state_at` (the state after a prefix, from a pass over more tokens).
-extern "C" __attribute__((visibility("default"))) int DsspKernelRevision() { return 1; }
+// SelectiveScan's and CausalConv1d's `state_at` (the state after a prefix, from a pass over more tokens). 2: DdimStep.
+extern "C" __attribute__((visibility("default"))) int DsspKernelRevision() { return 2; }
 
 // Which implementation a session would use on this CPU now ("avx512", "avx2", "neon" or "portable"), for start-up logs.
 // The implementation DSSP_SCAN_PATH selects here, or "invalid: " and why it cannot run (for the loader's message).

@@ -161,6 +161,10 @@ class DenoiserBlock(nn.Module):
 
 
 class Denoiser(nn.Module):
+    # Set on the copies export traces into the fused graphs (``export.fused_ops.FusedOps``): its ``ddim_step`` ends a
+    # DDIM step (the readout, the update, the next step's action tokens) in one operator; None: the plain modules.
+    fused_ops = None
+
     def __init__(self, cfg: ModelConfig):
         super().__init__()
         d = cfg.d_model
@@ -233,12 +237,19 @@ class Denoiser(nn.Module):
         ``mod`` has B rows or one (shared by the batch); ``unrolled`` runs the mixers' ``forward_unrolled``
         (:meth:`Mamba.forward_unrolled`; the same as ``forward`` for attention); ``committed`` as in :meth:`forward`.
         """
+        return self.readout(self.forward_tokens(prefix, self.embed_actions(x_tau, committed), mod, unrolled), mod)
+
+    def forward_tokens(
+        self, prefix: torch.Tensor, a: torch.Tensor, mod: Modulation, unrolled: bool = False
+    ) -> torch.Tensor:
+        """:meth:`forward_modulated` from the action tokens a (B, H, d) (:meth:`embed_actions`) to the last block's
+        output on them (B, H, d), before :meth:`readout`."""
         if self.decoupled and self.fused_blocks:  # export's int8 fused graphs: [p, a] whole through every block
-            return self.joint_step(prefix, x_tau, mod, committed, state_out=False)[0]
-        p, a = prefix, self.embed_actions(x_tau, committed)
+            return self.joint_tokens(prefix, a, mod, state_out=False)[0]
+        p = prefix
         for i, layer in enumerate(self.layers):
             p, a, _ = self._block(layer, mod.block(i), p, a, unrolled)
-        return self.readout(a, mod)
+        return a
 
     def _block(
         self,
@@ -283,24 +294,32 @@ class Denoiser(nn.Module):
         :meth:`encode_prefix` and then :meth:`denoise_modulated`, and reads each weight once instead of twice: a chunk
         of K steps reads the weights K times, not K + 1. ``unrolled`` as in :meth:`forward_modulated`. Where every
         block is a ``fused_block`` (export's int8 fused graphs) each is one node and [p, a] stays whole between them."""
+        a, states = self.joint_tokens(prefix, self.embed_actions(x_tau, committed), mod, state_out, unrolled)
+        return self.readout(a, mod), states
+
+    def joint_tokens(
+        self, prefix: torch.Tensor, a: torch.Tensor, mod: Modulation, state_out: bool = True, unrolled: bool = False
+    ) -> tuple[torch.Tensor, list[MixerState]]:
+        """:meth:`joint_step` from the action tokens a (B, H, d) to the last block's output on them (B, H, d), before
+        :meth:`readout`, and the states after the prefix."""
         if not self.joins_prefix:
             raise RuntimeError(
                 "a step joins the prefix only with timestep_decoupled=True and the blocks all fused or none"
             )
         states = []
         if self.fused_blocks:
-            seq = torch.cat([prefix, self.embed_actions(x_tau, committed)], dim=1)
+            seq = torch.cat([prefix, a], dim=1)
             for i, layer in enumerate(self.layers):
                 shift, scale, gate, *_ = mod.block(i)
                 seq, state = layer.fused_block.joint(seq, prefix, shift, scale, gate, state_out)
                 states.append(state)
-            return self.readout(seq[:, prefix.shape[1] :], mod), states
-        p, a, n_prefix = prefix, self.embed_actions(x_tau, committed), int(prefix.shape[1])  # a constant of a graph
+            return seq[:, prefix.shape[1] :], states
+        p, n_prefix = prefix, int(prefix.shape[1])  # a constant of a graph
         for i, layer in enumerate(self.layers):
             p, a, state = self._block(layer, mod.block(i), p, a, unrolled, n_prefix if state_out else None)
             if state_out:
                 states.append(state)
-        return self.readout(a, mod), states
+        return a, states
 
     @property
     def fused_blocks(self) -> bool:
@@ -347,7 +366,15 @@ class Denoiser(nn.Module):
     ) -> torch.Tensor:
         """:meth:`denoise` with the AdaLN parameters given (B rows or one): x_tau (B, H, A) → x0_hat (B, H, A);
         ``committed`` as in :meth:`forward`."""
-        a = self.embed_actions(x_tau, committed)
+        return self.readout(
+            self.denoise_tokens(prefix_states, self.embed_actions(x_tau, committed), mod, unrolled), mod
+        )
+
+    def denoise_tokens(
+        self, prefix_states: list[MixerState], a: torch.Tensor, mod: Modulation, unrolled: bool = False
+    ) -> torch.Tensor:
+        """:meth:`denoise_modulated` from the action tokens a (B, H, d) to the last block's output on them (B, H, d),
+        before :meth:`readout`."""
         for i, (layer, state) in enumerate(zip(self.layers, prefix_states)):
             shift, scale, gate, *mlp_mod = mod.block(i)
             fused = getattr(layer, "fused_block", None)
@@ -356,7 +383,25 @@ class Denoiser(nn.Module):
                 continue
             out, _ = mixer_path(layer.mixer, unrolled)(modulate(layer.norm(a), shift, scale), state)
             a = layer.mlp_residual(a + gate.unsqueeze(1) * out, mlp_mod)
-        return self.readout(a, mod)
+        return a
+
+    def step_tokens(
+        self,
+        prefix: torch.Tensor,
+        a: torch.Tensor,
+        mod: Modulation,
+        states: list[MixerState] | None,
+        join: bool,
+        unrolled: bool = False,
+    ) -> tuple[torch.Tensor, list[MixerState] | None]:
+        """One DDIM step's pass over the action tokens a (B, H, d) → the last block's output on them (B, H, d), and the
+        prefix's states for the later steps: from the cached ``states`` when there are some, else with the prefix in
+        the same pass (``join``: :meth:`joint_tokens`, which gives the states) or on its own (:meth:`forward_tokens`)."""
+        if states is not None:
+            return self.denoise_tokens(states, a, mod, unrolled), states
+        if join:
+            return self.joint_tokens(prefix, a, mod, unrolled=unrolled)
+        return self.forward_tokens(prefix, a, mod, unrolled), None
 
     # ----------------------------------------------------------------- helpers
     def embed_actions(self, x_tau: torch.Tensor, committed: torch.Tensor | None = None) -> torch.Tensor:

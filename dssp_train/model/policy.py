@@ -220,6 +220,15 @@ class DSSPPolicy(nn.Module):
             inpaint = (target, mask.to(target.dtype))
         marked = {} if committed is None else {"committed": committed}
         x = noise
+        fused = (
+            getattr(den, "fused_ops", None) if inpaint is None else None
+        )  # export's fused graphs: a step's end, one node
+        if fused is not None:
+            a = den.embed_actions(x)
+            for k, t in enumerate(timesteps):
+                h, states = den.step_tokens(prefix, a, table.at(k), states, joined, unrolled)
+                x, a = fused.ddim_step(den, self.schedule, h, x, table.at(k), t, num_steps, k < len(timesteps) - 1)
+            return x
         for k, t in enumerate(timesteps):
             given = x if committed is None else torch.where(inpaint[1] > 0, inpaint[0], x)
             if states is not None:

@@ -81,18 +81,9 @@ class DiffusionSchedule:
         the target, x0 <- weight * target + (1 - weight) * x0, before the step (real-time chunking's inpainting of the
         actions already committed); weight 1 keeps the target exactly at the chain's end, weight 0 changes nothing."""
         a_t, a_prev = self.ddim_coefficients(t, num_steps)
-        if self.cfg.prediction_type == "sample":
-            x0 = model_output
-            eps = (sample - a_t**0.5 * x0) / (1 - a_t) ** 0.5
-        else:
-            eps = model_output
-            x0 = (sample - (1 - a_t) ** 0.5 * eps) / a_t**0.5
-        if self.cfg.clip_sample:
-            x0 = x0.clamp(-1.0, 1.0)
-        if inpaint is not None:
-            target, weight = inpaint
-            x0 = weight * target + (1 - weight) * x0
-        return a_prev**0.5 * x0 + (1 - a_prev) ** 0.5 * eps
+        return ddim_update(
+            model_output, sample, a_t, a_prev, self.cfg.prediction_type == "sample", self.cfg.clip_sample, inpaint
+        )
 
     # ------------------------------------------------- per-sample steps (distillation)
     def alpha_prod(self, t: torch.Tensor) -> torch.Tensor:
@@ -118,3 +109,29 @@ class DiffusionSchedule:
         """Deterministic DDIM to timesteps t_to (B,) (-1: the clean end) from a prediction (x0, eps), each (B, H, A)."""
         a_to = self.alpha_prod(t_to).to(x0.dtype).reshape(-1, *([1] * (x0.dim() - 1)))
         return a_to.sqrt() * x0 + (1 - a_to).sqrt() * eps
+
+
+def ddim_update(
+    model_output: torch.Tensor,
+    sample: torch.Tensor,
+    a_t: float,
+    a_prev: float,
+    predicts_sample: bool,
+    clip: bool,
+    inpaint: tuple[torch.Tensor, torch.Tensor] | None = None,
+) -> torch.Tensor:
+    """The deterministic DDIM update (eta = 0) from x_t = ``sample`` (B, H, A) with abar_t = ``a_t`` to abar_prev =
+    ``a_prev``, given the model's output (B, H, A): the clean sample (``predicts_sample``) or the noise; ``clip``
+    clamps the clean prediction to [-1, 1]; ``inpaint`` as in :meth:`DiffusionSchedule.ddim_step`."""
+    if predicts_sample:
+        x0 = model_output
+        eps = (sample - a_t**0.5 * x0) / (1 - a_t) ** 0.5
+    else:
+        eps = model_output
+        x0 = (sample - (1 - a_t) ** 0.5 * eps) / a_t**0.5
+    if clip:
+        x0 = x0.clamp(-1.0, 1.0)
+    if inpaint is not None:
+        target, weight = inpaint
+        x0 = weight * target + (1 - weight) * x0
+    return a_prev**0.5 * x0 + (1 - a_prev) ** 0.5 * eps
