@@ -220,9 +220,9 @@ class DSSPPolicy(nn.Module):
             inpaint = (target, mask.to(target.dtype))
         marked = {} if committed is None else {"committed": committed}
         x = noise
-        fused = (
-            getattr(den, "fused_ops", None) if inpaint is None else None
-        )  # export's fused graphs: a step's end, one node
+        # export's fused graphs (inpainting aside): each step's end, the readout, the update and the next step's
+        # action tokens, one node (export.fused_ops.FusedOps.ddim_step)
+        fused = getattr(den, "fused_ops", None) if inpaint is None else None
         if fused is not None:
             a = den.embed_actions(x)
             for k, t in enumerate(timesteps):
