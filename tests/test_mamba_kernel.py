@@ -189,6 +189,9 @@ def test_a_wrong_shape_is_an_error_not_a_crash(monkeypatch):
                 "h0": z(1, 8, 3),
             },
         )
+    conv = op_session(mamba_kernel.CONV_OP, ["x", "state", "weight", "bias"], ["y", "new_state"], "auto", monkeypatch)
+    with pytest.raises(Exception, match="CausalConv1d: bias has shape \\(7\\), expected \\(8\\)"):  # its own name
+        conv.run(None, {"x": z(1, 2, 8), "state": z(1, 8, 4), "weight": z(4, 8), "bias": z(7)})
 
 
 # ------------------------------------------------------------ the runtime's choice

@@ -71,9 +71,10 @@ std::string shape_str(const std::vector<int64_t>& s) {
   return out + ")";
 }
 
-void expect_shape(const char* name, const std::vector<int64_t>& got, const std::vector<int64_t>& want) {
+// The one-line refusal of operator `op`'s input `name` when its shape is not `want`.
+void expect_shape(const char* op, const char* name, const std::vector<int64_t>& got, const std::vector<int64_t>& want) {
   if (got != want)
-    ORT_CXX_API_THROW(std::string("SelectiveScan: ") + name + " has shape " + shape_str(got) + ", expected " + shape_str(want), ORT_INVALID_ARGUMENT);
+    ORT_CXX_API_THROW(std::string(op) + ": " + name + " has shape " + shape_str(got) + ", expected " + shape_str(want), ORT_INVALID_ARGUMENT);
 }
 
 // A node's attribute `name`, or `fallback` when the node has none.
@@ -112,12 +113,12 @@ struct SelectiveScan {
     const auto as = A.Shape();
     if (as.size() != 2 || as[0] != E) ORT_CXX_API_THROW("SelectiveScan: A must be (E, n) with E = " + std::to_string(E) + ", got " + shape_str(as), ORT_INVALID_ARGUMENT);
     const int64_t n = as[1];
-    expect_shape("dt", dt.Shape(), xs);
-    expect_shape("z", z.Shape(), xs);
-    expect_shape("B", B.Shape(), {batch, L, n});
-    expect_shape("C", C.Shape(), {batch, L, n});
-    expect_shape("D", D.Shape(), {E});
-    expect_shape("h0", h0.Shape(), {batch, E, n});
+    expect_shape("SelectiveScan", "dt", dt.Shape(), xs);
+    expect_shape("SelectiveScan", "z", z.Shape(), xs);
+    expect_shape("SelectiveScan", "B", B.Shape(), {batch, L, n});
+    expect_shape("SelectiveScan", "C", C.Shape(), {batch, L, n});
+    expect_shape("SelectiveScan", "D", D.Shape(), {E});
+    expect_shape("SelectiveScan", "h0", h0.Shape(), {batch, E, n});
     float* h_out = h.Allocate({batch, state_out ? E : 0, n});
     Problem p{x.Data(), dt.Data(), B.Data(), C.Data(), z.Data(), A.Data(), D.Data(), h0.Data(),
               y.Allocate(xs), state_out ? h_out : nullptr, batch, L, E, n};
@@ -153,8 +154,8 @@ struct CausalConv1d {
     const auto ws = weight.Shape();
     if (ws.size() != 2 || ws[1] != E) ORT_CXX_API_THROW("CausalConv1d: weight must be (W, E) with E = " + std::to_string(E) + ", got " + shape_str(ws), ORT_INVALID_ARGUMENT);
     const int64_t W = ws[0];
-    expect_shape("state", state.Shape(), {batch, E, W});
-    expect_shape("bias", bias.Shape(), {E});
+    expect_shape("CausalConv1d", "state", state.Shape(), {batch, E, W});
+    expect_shape("CausalConv1d", "bias", bias.Shape(), {E});
     ConvProblem p{x.Data(), state.Data(), weight.Data(), bias.Data(), y.Allocate(xs), new_state.Allocate({batch, E, W}), batch, L, E, W};
     p.state_after = state_at_of("CausalConv1d", state_at, L);
     if (batch == 0 || E == 0) return Ort::Status{nullptr};
@@ -196,8 +197,8 @@ struct LayerNormMaxOverPoints {
     if (xs.size() != 3 || xs[1] < 1)
       ORT_CXX_API_THROW("LayerNormMaxOverPoints: x must be (batch, P, F) with P >= 1, got " + shape_str(xs), ORT_INVALID_ARGUMENT);
     const int64_t batch = xs[0], P = xs[1], F = xs[2];
-    expect_shape("weight", weight.Shape(), {F});
-    expect_shape("bias", bias.Shape(), {F});
+    expect_shape("LayerNormMaxOverPoints", "weight", weight.Shape(), {F});
+    expect_shape("LayerNormMaxOverPoints", "bias", bias.Shape(), {F});
     float* out = y.Allocate({batch, F});
     if (batch == 0 || F == 0) return Ort::Status{nullptr};
     const int64_t runs = (P + kPointsPerTask - 1) / kPointsPerTask;
@@ -343,12 +344,12 @@ struct MambaBlockQ8 {
     const int64_t W = ws[0], E = ws[1], n = ns[1];
     const bool conv_zero = conv_state.Shape() == std::vector<int64_t>{batch, 0, W};  // empty: a start from zeros
     const bool ssm_zero = ssm_state.Shape() == std::vector<int64_t>{batch, 0, n};
-    if (!conv_zero) expect_shape("conv_state", conv_state.Shape(), {batch, E, W});
-    if (!ssm_zero) expect_shape("ssm_state", ssm_state.Shape(), {batch, E, n});
+    if (!conv_zero) expect_shape("MambaBlockQ8", "conv_state", conv_state.Shape(), {batch, E, W});
+    if (!ssm_zero) expect_shape("MambaBlockQ8", "ssm_state", ssm_state.Shape(), {batch, E, n});
     const bool modulated = !mod.Shape().empty() && mod.Shape()[0] != 0;
-    expect_shape("mod", mod.Shape(), {modulated ? 3 : 0, d});
-    expect_shape("norm_w", norm_w.Shape(), {d});
-    expect_shape("A", ns, {E, n});
+    expect_shape("MambaBlockQ8", "mod", mod.Shape(), {modulated ? 3 : 0, d});
+    expect_shape("MambaBlockQ8", "norm_w", norm_w.Shape(), {d});
+    expect_shape("MambaBlockQ8", "A", ns, {E, n});
     const auto held_in = in_w.get(in_q, in_s, qgemm_path, "in_proj");
     const auto held_xp = xp_w.get(xp_q, xp_s, qgemm_path, "x_proj");
     const auto held_dt = dt_w.get(dt_q, dt_s, qgemm_path, "dt_proj");
@@ -356,7 +357,7 @@ struct MambaBlockQ8 {
     const bool mlp = fc1_q.NumberOfElement() > 0;
     std::shared_ptr<const q::PackedWeights> held_fc1, held_fc2;
     if (mlp) {
-      expect_shape("norm2_w", norm2_w.Shape(), {d});
+      expect_shape("MambaBlockQ8", "norm2_w", norm2_w.Shape(), {d});
       held_fc1 = fc1_w.get(fc1_q, fc1_s, qgemm_path, "fc1");
       held_fc2 = fc2_w.get(fc2_q, fc2_s, qgemm_path, "fc2");
     }
@@ -436,14 +437,13 @@ struct DdimStep {
       ORT_CXX_API_THROW("DdimStep: h must be (batch, H, d) and x (batch, H, A), got " + shape_str(hs) + " and " +
                             shape_str(xs), ORT_INVALID_ARGUMENT);
     const int64_t batch = hs[0], d = hs[2], H = xs[1], A = xs[2];
-    const std::pair<const char*, std::pair<std::vector<int64_t>, std::vector<int64_t>>> shapes[] = {
-        {"norm_w", {norm_w.Shape(), {d}}}, {"mod", {mod.Shape(), {2, d}}},   {"out_w", {out_w.Shape(), {A, d}}},
-        {"out_b", {out_b.Shape(), {A}}},   {"in_w", {in_w.Shape(), {A, d}}}, {"in_b", {in_b.Shape(), {d}}},
-        {"pos", {pos.Shape(), {H, d}}}};
-    for (const auto& [name, got_want] : shapes)
-      if (got_want.first != got_want.second)
-        ORT_CXX_API_THROW(std::string("DdimStep: ") + name + " has shape " + shape_str(got_want.first) + ", expected " +
-                              shape_str(got_want.second), ORT_INVALID_ARGUMENT);
+    expect_shape("DdimStep", "norm_w", norm_w.Shape(), {d});
+    expect_shape("DdimStep", "mod", mod.Shape(), {2, d});
+    expect_shape("DdimStep", "out_w", out_w.Shape(), {A, d});
+    expect_shape("DdimStep", "out_b", out_b.Shape(), {A});
+    expect_shape("DdimStep", "in_w", in_w.Shape(), {A, d});
+    expect_shape("DdimStep", "in_b", in_b.Shape(), {d});
+    expect_shape("DdimStep", "pos", pos.Shape(), {H, d});
     float* xn = x_next.Allocate(xs);
     float* an = a_next.Allocate({batch, H, tokens ? d : 0});
     DdimStepWeights w;
