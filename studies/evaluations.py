@@ -61,28 +61,35 @@ def compact(result: dict) -> dict:
 def run_and_keep(
     work: Path, record: Path, stage_list: list[Stage], workers: int, what: str, seconds: bool = False
 ) -> None:
-    """Run the stages in ``work`` (``workers`` at a time) and keep every finished stage's evaluations (its
-    ``outputs``) in ``record`` at the same relative paths — also when a stage fails or the study is stopped.
-    ``seconds``: keep each finished stage's seconds too (``record/seconds/NAME.seconds``, from its done marker)."""
+    """Run the stages in ``work`` (``workers`` at a time) and keep each finished stage's evaluations (its ``outputs``)
+    in ``record`` at the same relative paths as soon as it finishes, and again at the end for any finished before
+    (a resumed run) — also when a stage fails or the study is stopped. ``seconds``: keep each finished stage's seconds
+    too (``record/seconds/NAME.seconds``, from its done marker)."""
     (work / "evals").mkdir(parents=True, exist_ok=True)
     runner = Runner(work, workers=workers)
     code = protocol.code_commit()  # each evaluation kept names the code that made it, beside the model it scored
+
+    def keep(s: Stage) -> None:
+        if not runner.done(s.name):
+            return
+        for output in s.outputs:
+            if (work / output).is_file():
+                (record / output).parent.mkdir(parents=True, exist_ok=True)
+                kept = {**compact(json.loads((work / output).read_text())), "code_commit": code}
+                atomic_write_text(record / output, json.dumps(kept, indent=1) + "\n")
+        if seconds:
+            (record / "seconds").mkdir(parents=True, exist_ok=True)
+            atomic_write_text(
+                record / "seconds" / f"{s.name}.seconds",
+                f"{json.loads(runner.marker(s.name).read_text())['seconds']:.1f}\n",
+            )
+
     print(f"{len(stage_list)} stage(s) for {what}, {workers} at a time")
     try:
-        runner.run(stage_list)
+        runner.run(stage_list, on_done=keep)
     finally:
         for s in stage_list:
-            for output in s.outputs:
-                if runner.done(s.name) and (work / output).is_file():
-                    (record / output).parent.mkdir(parents=True, exist_ok=True)
-                    kept = {**compact(json.loads((work / output).read_text())), "code_commit": code}
-                    atomic_write_text(record / output, json.dumps(kept, indent=1) + "\n")
-            if seconds and runner.done(s.name):
-                (record / "seconds").mkdir(parents=True, exist_ok=True)
-                atomic_write_text(
-                    record / "seconds" / f"{s.name}.seconds",
-                    f"{json.loads(runner.marker(s.name).read_text())['seconds']:.1f}\n",
-                )
+            keep(s)
 
 
 def write_md_and_json(report: Path, name: str, lines: list[str], figures: dict) -> Path:

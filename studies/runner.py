@@ -20,6 +20,9 @@ in their own processes with one thread each, resumed after an interruption.
 - The first stage that fails stops the others and raises :class:`StageFailed`, one line: its name, its exit code,
   its log's last line and the log's path. Ctrl-C, or SIGTERM (also where a background launch ignores SIGINT), stops every
   running stage too; what finished is kept.
+- ``on_done`` (optional) is called with each stage as soon as its marker is written, while the others run: a study
+  keeps what the stage made there and then, so a run that is ended outright (the machine gone) loses only the
+  stages still running.
 """
 
 from __future__ import annotations
@@ -193,8 +196,9 @@ class Runner:
     def _path(self, path: str) -> Path:
         return Path(path) if os.path.isabs(path) else self.work / path
 
-    def run(self, stages: Sequence[Stage]) -> dict[str, float]:
-        """Run every stage not done yet, in dependency order; returns {name: seconds} of the stages run now."""
+    def run(self, stages: Sequence[Stage], on_done: Callable[[Stage], None] | None = None) -> dict[str, float]:
+        """Run every stage not done yet, in dependency order (``on_done``: called with each one as it finishes);
+        returns {name: seconds} of the stages run now."""
         names = [s.name for s in stages]
         if len(set(names)) != len(names):
             raise DSSPError(f"stage names repeat: {sorted({n for n in names if names.count(n) > 1})}")
@@ -259,6 +263,8 @@ class Runner:
                     )
                     ran[name] = seconds
                     self.say(f"  {name}: done in {seconds:.0f} s")
+                    if on_done is not None:
+                        on_done(s)
                 time.sleep(POLL_S)
         finally:
             _restore_sigterm(previous)

@@ -38,6 +38,21 @@ def test_stages_run_in_order_in_their_folder_with_one_thread_and_are_not_run_twi
     assert json.loads((work / "done/first.json").read_text())["argv"] == ["out/a.json"]
 
 
+def test_each_evaluation_is_kept_in_the_record_as_soon_as_its_stage_finishes(tmp_path):
+    from studies.evaluations import run_and_keep
+
+    work, record = tmp_path / "work", tmp_path / "record"
+    kept = record / "evals/a.json"
+    stages = [
+        Stage("first", f"{STUDY_ENTRIES}:write_marker", ("evals/a.json",), outputs=("evals/a.json",)),
+        # runs only once the first is done, and fails unless the record already holds the first's evaluation
+        Stage("second", f"{STUDY_ENTRIES}:needs", (str(kept),), after=("first",)),
+    ]
+    run_and_keep(work, record, stages, workers=1, what="a test", seconds=True)
+    assert set(json.loads(kept.read_text())) == {"code_commit"}  # an evaluation's fields; this one has none
+    assert (record / "seconds/first.seconds").is_file() and (record / "seconds/second.seconds").is_file()
+
+
 def test_a_failed_stage_stops_the_study_with_one_line_and_runs_again_next_time(tmp_path):
     work = tmp_path / "work"
     stages = [
