@@ -193,17 +193,94 @@ def test_a_path_the_cpu_lacks_is_one_line_not_a_crash(cross, native, tmp_path, m
         assert not (tmp_path / "out").exists()
 
 
-def test_on_a_cpu_without_avx512_the_block_takes_the_avx2_paths_and_matches(tmp_path, monkeypatch):
-    """The x86-64 build on an emulated Haswell (AVX2 + FMA, no AVX-512, no VNNI), whatever CPU runs the suite: the
-    block picks the avx2 scan and products by itself and matches the reference."""
-    monkeypatch.delenv("DSSP_QGEMM_PATH", raising=False)
-    monkeypatch.delenv("DSSP_SCAN_PATH", raising=False)
+@pytest.fixture(scope="module")
+def static_x86() -> Path:
+    """The x86-64 build, static, for qemu-x86_64's emulated CPUs."""
     if shutil.which("qemu-x86_64") is None:
         pytest.fail(f"qemu-x86_64 is missing; {CROSS_HINT}")
-    binary = build_harness("block_check.cc", "g++", BUILD / "block_check_static", "-static")
+    return build_harness("block_check.cc", "g++", BUILD / "block_check_static", "-static")
+
+
+# emulated x86-64 CPUs: Haswell (AVX2 + FMA, no AVX-512, no VNNI) and Nehalem (SSE4.2, no AVX): the paths each picks
+EMULATED = [("Haswell", "avx2", "x86-64-v3"), ("Nehalem", "portable", "default")]
+
+
+@pytest.mark.parametrize("cpu, path, clone", EMULATED)
+def test_on_a_cpu_without_avx512_the_block_takes_its_paths_by_itself_and_matches(
+    static_x86, tmp_path, monkeypatch, cpu, path, clone
+):
+    """The x86-64 build on an emulated CPU, whatever CPU runs the suite: the block picks the scan and products that
+    CPU can run (the avx2 ones on Haswell, the portable ones and the baseline copies of the plain C++ loops on
+    Nehalem) by itself and matches the reference."""
+    monkeypatch.delenv("DSSP_QGEMM_PATH", raising=False)
+    monkeypatch.delenv("DSSP_SCAN_PATH", raising=False)
     for mlp, batch, part in CASES:
-        path, want = case(tmp_path, mlp, batch, part)
+        case_path, want = case(tmp_path, mlp, batch, part)
         out = tmp_path / "out"
-        report, got = run(["qemu-x86_64", "-cpu", "Haswell", str(binary), str(path), str(out), "2"], out)
-        assert (report["arch"], report["scan_path"], report["qgemm_path"]) == ("x86_64", "avx2", "avx2"), report
-        assert_close(got, want, ("Haswell", part))
+        report, got = run(["qemu-x86_64", "-cpu", cpu, str(static_x86), str(case_path), str(out), "2"], out)
+        assert (report["arch"], report["scan_path"], report["qgemm_path"]) == ("x86_64", path, path), report
+        assert_close(got, want, (cpu, part))
+
+
+def ddim_case(tmp_path: Path, sample: bool, clip: bool, tokens: bool) -> tuple[Path, list[np.ndarray]]:
+    """ai.dssp::DdimStep's inputs and attributes written for the harness (d and A not multiples of a vector, so every
+    loop runs its tail), and what ``export.fused_ops.ddim_step_reference`` gives for them: (x_next, a_next)."""
+    from export.fused_ops import ddim_step_reference
+
+    g = torch.Generator().manual_seed(7 + 4 * sample + 2 * clip + tokens)
+    batch, H, d, A = 2, 3, 37, 7
+    values = {
+        "h": torch.randn(batch, H, d, generator=g),
+        "x": 1.5 * torch.randn(batch, H, A, generator=g),  # some of x0 beyond [-1, 1], for the clip
+        "norm_w": 1 + 0.1 * torch.randn(d, generator=g),
+        "mod": 0.1 * torch.randn(2, d, generator=g),
+        "out_w": torch.randn(A, d, generator=g) / d**0.5,
+        "out_b": 0.1 * torch.randn(A, generator=g),
+        "in_w": torch.randn(A, d, generator=g) / A**0.5,
+        "in_b": 0.1 * torch.randn(d, generator=g),
+        "pos": 0.1 * torch.randn(H, d, generator=g),
+    }
+    eps, a_t, a_prev = 1e-5, 0.3, 0.6
+    with torch.no_grad():
+        want = [t.numpy() for t in ddim_step_reference(*values.values(), eps, a_t, a_prev, sample, clip, tokens)]
+    scalars = {
+        "eps": eps,
+        "c_t": a_t**0.5,
+        "s_t": (1 - a_t) ** 0.5,
+        "c_prev": a_prev**0.5,
+        "s_prev": (1 - a_prev) ** 0.5,
+        "sample": sample,
+        "clip": clip,
+        "tokens": tokens,
+    }
+    path = tmp_path / f"ddim-{sample:d}{clip:d}{tokens:d}.case"
+    write_tensors(
+        path,
+        {**{k: v.numpy() for k, v in values.items()}, **{k: np.array(v, np.float32) for k, v in scalars.items()}},
+    )
+    return path, want
+
+
+DDIM_CASES = [(True, True, True), (True, False, False), (False, True, True), (False, False, True)]
+
+
+def assert_ddim_close(got: dict[str, np.ndarray], want: list[np.ndarray], where) -> None:
+    for name, w in zip(("x_next", "a_next"), want):
+        assert got[name].shape == w.shape, (where, name)
+        assert np.abs(got[name] - w).max(initial=0) <= 1e-5 * max(1.0, np.abs(w).max(initial=1)), (where, name)
+
+
+@pytest.mark.parametrize("sample, clip, tokens", DDIM_CASES)
+def test_the_ddim_step_matches_its_reference_natively_and_on_emulated_cpus(
+    native, static_x86, tmp_path, sample, clip, tokens
+):
+    """DdimStep's arithmetic (the readout, the DDIM update, the next tokens) in the copy each CPU takes: this CPU's,
+    the AVX2 + FMA copy on Haswell and the baseline copy on Nehalem, which no CPU here would run otherwise."""
+    case_path, want = ddim_case(tmp_path, sample, clip, tokens)
+    out = tmp_path / "out"
+    _, got = run([str(native), str(case_path), str(out)], out)
+    assert_ddim_close(got, want, "native")
+    for cpu, _, clone in EMULATED:
+        report, got = run(["qemu-x86_64", "-cpu", cpu, str(static_x86), str(case_path), str(out)], out)
+        assert report["ddim_clone"] == clone, report
+        assert_ddim_close(got, want, cpu)

@@ -2,6 +2,7 @@
 // builds for (aarch64 under qemu included) and for the time of its parts on this one.
 //
 //   block_check CASE OUT [THREADS]   run the block on the tensors in CASE, write its outputs to OUT, print a JSON line
+//                                    (or, when CASE holds h, the end of a DDIM step: ai.dssp::DdimStep's arithmetic)
 //   block_check --bench [THREADS]    time a denoiser step's blocks and each part of one (robotwin sizes), print JSON
 //
 // Tensor files (CASE, OUT): "DSSPTENS" then, per tensor, u32 name length, the name, u8 dtype ('f' float32,
@@ -10,7 +11,9 @@
 // plain (shape (), the prefix tokens before the actions, whose states are written); mod (0, d) is the prefix alone,
 // whose states are written; OUT holds a, conv, ssm. The scan and product paths are the ones
 // DSSP_SCAN_PATH and DSSP_QGEMM_PATH choose. Exit 0 when the block ran, 2 when a path cannot run here (the JSON
-// line says why), 1 for a broken file.
+// line says why), 1 for a broken file. A DDIM-step CASE holds DdimStep's inputs by their names (h, x, norm_w, mod,
+// out_w, out_b, in_w, in_b, pos: mamba_ops.cc) and its attributes as scalars (shape ()): eps, c_t, s_t, c_prev,
+// s_prev, sample, clip, tokens; OUT holds x_next and a_next.
 
 #include "mamba_block.h"
 
@@ -190,8 +193,47 @@ Tensor floats(std::vector<int64_t> shape) {
   return t;
 }
 
+// The end of one DDIM step on every row of h (batch, H, d) and x (batch, H, A), as ai.dssp::DdimStep runs it.
+int ddim_step(const Tensors& t, const std::string& out_path) {
+  const Tensor& h = need(t, "h", 'f', 3);
+  const Tensor& x = need(t, "x", 'f', 3);
+  const Tensor& out_w = need(t, "out_w", 'f', 2);
+  const Tensor& mod = need(t, "mod", 'f', 2);
+  const Tensor& pos = need(t, "pos", 'f', 2);
+  const int64_t batch = h.shape[0], H = h.shape[1], d = h.shape[2], A = out_w.shape[0];
+  const Tensor &in_w = need(t, "in_w", 'f', 2), &norm_w = need(t, "norm_w", 'f', 1);
+  const Tensor &out_b = need(t, "out_b", 'f', 1), &in_b = need(t, "in_b", 'f', 1);
+  if (x.shape != std::vector<int64_t>{batch, H, A} || out_w.shape[1] != d || in_w.shape != out_w.shape ||
+      mod.shape != std::vector<int64_t>{2, d} || pos.shape != std::vector<int64_t>{H, d} || norm_w.numel() != d ||
+      out_b.numel() != A || in_b.numel() != d)
+    broken("the DDIM step's inputs do not fit h (batch, H, d) and out_w (A, d)");
+  auto scalar = [&](const char* name) { return need(t, name, 'f', 0).f()[0]; };
+  m::DdimStepWeights w;
+  w.norm_w = norm_w.f(), w.shift = mod.f(), w.scale = mod.f() + d;
+  w.out_w = out_w.f(), w.out_b = out_b.f(), w.in_w = in_w.f(), w.in_b = in_b.f(), w.d = d, w.A = A;
+  w.eps = scalar("eps"), w.c_t = scalar("c_t"), w.s_t = scalar("s_t"), w.c_prev = scalar("c_prev");
+  w.s_prev = scalar("s_prev"), w.sample = scalar("sample") != 0.0f, w.clip = scalar("clip") != 0.0f;
+  const bool tokens = scalar("tokens") != 0.0f;
+  Tensors result{{"x_next", floats(x.shape)}, {"a_next", floats({batch, H, tokens ? d : 0})}};
+  float* xn = reinterpret_cast<float*>(result["x_next"].bytes.data());
+  float* an = reinterpret_cast<float*>(result["a_next"].bytes.data());
+  std::vector<float> scratch(static_cast<size_t>(d));
+  for (int64_t row = 0; row < batch * H; ++row)
+    m::ddim_step_row(w, h.f() + row * d, x.f() + row * A, pos.f() + (row % H) * d, xn + row * A,
+                     tokens ? an + row * d : nullptr, scratch.data());
+  write_tensors(out_path, result);
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+  const char* clone = __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma") ? "x86-64-v3" : "default";
+#else
+  const char* clone = "none";
+#endif
+  std::printf("{\"ok\": true, \"arch\": \"%s\", \"ddim_clone\": \"%s\"}\n", arch(), clone);
+  return 0;
+}
+
 int parity(const std::string& case_path, const std::string& out_path, int threads) {
   const Tensors t = read_tensors(case_path);
+  if (t.count("h")) return ddim_step(t, out_path);
   const q::Path qpath = product_path();
   const m::Path spath = scan_path();
   const Tensor& a = need(t, "a", 'f', 3);
