@@ -295,6 +295,14 @@ def report_lines(
             )
         for name in plan["gpu_models"]:
             lines.append(f"| {labels.get(name, name)} | not run: a GPU model (commands below) | | | | | | |")
+        family = len(models) - 1  # every model against DSSP
+        if comparisons and len(comparisons) < family:
+            lines += [
+                "",
+                f"Pending rows: {len(comparisons)} of the table's {family} comparisons are recorded, and Holm's "
+                f"correction here is over those {len(comparisons)}; it is taken again over all {family} when the "
+                "rest are in, so these Holm p-values are not final.",
+            ]
         disagree = disagreements(comparisons, labels)
         lines += (
             ["", "Where the paired test and the interval disagree:", "", *[f"- {x}" for x in disagree]]

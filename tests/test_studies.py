@@ -310,6 +310,8 @@ def test_the_memory_report_pairs_every_model_with_dssp_and_marks_what_is_pending
     assert row["decision_right"] == 4 and row["decision_reached"] == 20
     assert "| DSSP w/o history | 20 (" in text and describe_p(row["p"]) in text
     assert "| DP3 (sim size, 0.71 M) | pending |" in text  # not evaluated yet: never a made-up row
+    assert "1 of the table's 2 comparisons are recorded" in text  # Holm over a partial family is said to be so
+    assert row["p_holm"] == pytest.approx(row["p"])  # a family of one
     assert "| 2 presses | 3 presses | 4 presses |" in text and "not a test result" in text
     assert "reports/memory/record" in text and str(tmp_path) not in text
     # trainings run on another machine are stated; a malformed statement is refused, not skipped
