@@ -331,6 +331,8 @@ def figures_of(plan: dict, record: Path) -> dict:
     holm_family(c for _, c in comparisons)
     for test, c in comparisons:
         test.update(delta_ci=c.pop("ci"), **c)
+    # the family when every row is in: each task's models against its DSSP
+    out["holm"] = {"recorded": len(comparisons), "family": len(out["tasks"]) * (len(model_order(plan)) - 1)}
     for group in mw.DIFFICULTY:
         tasks = [t for t in plan["tasks"] if mw.difficulty_of(t) == group]
         if not tasks:
@@ -465,6 +467,14 @@ def report_lines(plan: dict, record: Path, shown_record: str | None = None) -> t
         )
     ]
     lines += ["", "Where the paired test and the interval disagree:", "", *disagree] if disagree else []
+    recorded, family = figures["holm"]["recorded"], figures["holm"]["family"]
+    if 0 < recorded < family:
+        lines += [
+            "",
+            f"Pending rows: {recorded} of the table's {family} comparisons are recorded, and Holm's correction here "
+            f"is over those {recorded}; it is taken again over all {family} when the rest are in, so these Holm "
+            "p-values are not final.",
+        ]
     lines.append("")
     return lines, figures
 

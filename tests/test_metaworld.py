@@ -305,6 +305,8 @@ def test_the_report_gives_the_papers_metric_and_the_paired_test_split(tmp_path):
     assert figures["groups"]["easy"]["dssp"]["test_ci"][0] <= figures["groups"]["easy"]["dssp"]["test"]
     assert dp3["p_holm"] >= dp3["p"] and f"Holm {dp3['p_holm']:.2g}" in text
     assert "| button-press | DSSP w/o history | pending |" in text  # never a made-up row
+    family = 2 * (len(study.model_order(plan)) - 1)  # Holm over the recorded two of the family is said to be so
+    assert f"2 of the table's {family} comparisons are recorded" in text
     assert "plain mean of them all, no selection" in text and "optimistic" not in text  # top 5 of 5 checkpoints
     assert "0.10 of the paper's 1000 epochs" in text
     (tmp_path / "plan.json").write_text(json.dumps(plan))  # the README's block: the same table, from the record
