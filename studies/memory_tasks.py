@@ -39,7 +39,15 @@ from dssp_core.output_guard import write_output_figure
 from studies import protocol
 from studies.evaluations import run_and_keep, write_md_and_json
 from studies.runner import Stage
-from studies.stats import FAMILY_NOTE, cluster_bootstrap, compare, describe_p, disagreements, holm_family
+from studies.stats import (
+    FAMILY_NOTE,
+    cluster_bootstrap,
+    compare,
+    describe_p,
+    disagreements,
+    holm_family,
+    partial_family_note,
+)
 from studies.study_stages import (
     SIM_BATCH,
     collect_stage,
@@ -295,14 +303,7 @@ def report_lines(
             )
         for name in plan["gpu_models"]:
             lines.append(f"| {labels.get(name, name)} | not run: a GPU model (commands below) | | | | | | |")
-        family = len(models) - 1  # every model against DSSP
-        if comparisons and len(comparisons) < family:
-            lines += [
-                "",
-                f"Pending rows: {len(comparisons)} of the table's {family} comparisons are recorded, and Holm's "
-                f"correction here is over those {len(comparisons)}; it is taken again over all {family} when the "
-                "rest are in, so these Holm p-values are not final.",
-            ]
+        lines += partial_family_note(len(comparisons), len(models) - 1)  # the family: every model against DSSP
         disagree = disagreements(comparisons, labels)
         lines += (
             ["", "Where the paired test and the interval disagree:", "", *[f"- {x}" for x in disagree]]

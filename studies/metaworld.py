@@ -41,7 +41,15 @@ from dssp_core.files import atomic_write_text
 from studies import protocol
 from studies.evaluations import run_and_keep, write_md_and_json
 from studies.runner import Stage
-from studies.stats import FAMILY_NOTE, cluster_bootstrap, compare, describe_p, disagreements, holm_family
+from studies.stats import (
+    FAMILY_NOTE,
+    cluster_bootstrap,
+    compare,
+    describe_p,
+    disagreements,
+    holm_family,
+    partial_family_note,
+)
 from studies.study_stages import (
     DP3_LABELS,
     DP3_SIZES,
@@ -467,14 +475,7 @@ def report_lines(plan: dict, record: Path, shown_record: str | None = None) -> t
         )
     ]
     lines += ["", "Where the paired test and the interval disagree:", "", *disagree] if disagree else []
-    recorded, family = figures["holm"]["recorded"], figures["holm"]["family"]
-    if 0 < recorded < family:
-        lines += [
-            "",
-            f"Pending rows: {recorded} of the table's {family} comparisons are recorded, and Holm's correction here "
-            f"is over those {recorded}; it is taken again over all {family} when the rest are in, so these Holm "
-            "p-values are not final.",
-        ]
+    lines += partial_family_note(figures["holm"]["recorded"], figures["holm"]["family"])
     lines.append("")
     return lines, figures
 

@@ -169,6 +169,19 @@ FAMILY_NOTE = (
 )
 
 
+def partial_family_note(recorded: int, family: int) -> list[str]:
+    """A report's lines under a table whose rows are partly pending: Holm's correction is over the ``recorded`` of its
+    ``family`` comparisons, so not final; none once every row is in (or none is)."""
+    if not 0 < recorded < family:
+        return []
+    return [
+        "",
+        f"Pending rows: {recorded} of the table's {family} comparisons are recorded, and Holm's correction here is "
+        f"over those {recorded}; it is taken again over all {family} when the rest are in, so these Holm p-values are "
+        "not final.",
+    ]
+
+
 def compare(grid, base) -> dict:
     """One row's comparison with ``base`` ((R, S) grids on the same scenes): the difference and its interval (``delta``,
     ``ci``), the paired test over scenes (``p``) and the test over training seeds (``p_seeds``)."""
