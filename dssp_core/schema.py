@@ -26,6 +26,7 @@ robot's runtime for the dozen checks written here.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import re
@@ -137,7 +138,7 @@ class Settings:
         _REGISTRY.append(cls)
 
     def __post_init__(self) -> None:
-        hints = typing.get_type_hints(type(self))
+        hints = _type_hints(type(self))
         for f in dataclasses.fields(self):
             spec = f.metadata.get("spec", Spec())
             value = check_value(getattr(self, f.name), hints[f.name], spec, f"{self.SECTION}.{f.name}")
@@ -185,6 +186,13 @@ class Settings:
             return cls.from_dict(values)
         except ConfigError as exc:
             raise ConfigError(f"{path}: {exc}") from None
+
+
+@functools.cache
+def _type_hints(cls: type) -> dict[str, Any]:
+    """A settings class's resolved annotations, once per class (resolving them on every construction dominated the
+    cost of building a settings object)."""
+    return typing.get_type_hints(cls)
 
 
 def all_schemas() -> list[type]:
