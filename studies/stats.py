@@ -56,14 +56,19 @@ def _resampled_means(grids: list[np.ndarray], samples: int, seed: int) -> np.nda
     rows = rng.integers(0, r, (samples, r))
     cols = rng.integers(0, s, (samples, s))
     out = np.empty((samples, len(grids)))
+    scenes = _counts(cols, s)  # (samples, s): how often each scene is drawn
     for i, g in enumerate(grids):
         own = rows if g.shape[0] == r else rng.integers(0, g.shape[0], (samples, g.shape[0]))
-        # mean over the resampled (seed, scene) cells: the rows' means at the resampled columns
-        picked = g[own]  # (samples, R, s)
-        out[:, i] = np.take_along_axis(picked, np.broadcast_to(cols[:, None, :], picked.shape[:2] + (s,)), axis=2).mean(
-            axis=(1, 2)
-        )
+        # the mean over the resampled (seed, scene) cells, as counts: sum_ij n_i g_ij m_j / (R s), exact in float64
+        # (whole numbers), so the same as averaging the drawn cells
+        out[:, i] = np.einsum("kj,kj->k", _counts(own, g.shape[0]) @ g, scenes) / (own.shape[1] * s)
     return out
+
+
+def _counts(draws: np.ndarray, n: int) -> np.ndarray:
+    """(samples, n): how many times each of 0..n-1 appears in each row of ``draws`` (samples, m)."""
+    k = draws.shape[0]
+    return np.bincount((draws + n * np.arange(k)[:, None]).ravel(), minlength=k * n).reshape(k, n).astype(np.float64)
 
 
 def cluster_bootstrap(
