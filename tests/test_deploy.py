@@ -79,7 +79,10 @@ def test_quantized_graphs_run_on_request_and_their_absence_is_named(tiny_export,
         OnnxPolicy(model_dir, precision="fp16")
     int8_dir = tmp_path / "int8"
     assert (
-        export_main([str(run_dir), "-o", str(int8_dir), "--skip-verify", "--quantize", "int8", "--format", "onnx"]) == 0
+        export_main(
+            [str(run_dir), "-o", str(int8_dir), "--skip-verify", "--quantize", "int8", "--format", "onnx", "--no-fused"]
+        )
+        == 0
     )
     with pytest.raises(ModelDirError, match="--quantize int4"):
         OnnxPolicy(int8_dir, precision="int4")
