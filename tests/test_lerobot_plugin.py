@@ -252,7 +252,20 @@ def test_lerobot_train_then_export_to_onnx(setup, tmp_path):
 
     model = tmp_path / "model"
     code = export_main(
-        [str(run), "-o", str(model), "--quantize", "none", "--format", "onnx", "--verify-steps", "40", "--threads", "1"]
+        [
+            str(run),
+            "-o",
+            str(model),
+            "--quantize",
+            "none",
+            "--no-fused",
+            "--format",
+            "onnx",
+            "--verify-steps",
+            "40",
+            "--threads",
+            "1",
+        ]
     )
     assert code == 0
     manifest = json.loads((model / "dssp_model.json").read_text())
@@ -392,6 +405,7 @@ def test_lerobot_train_on_depth_makes_the_robots_clouds(setup, depth, tmp_path):
                 str(model),
                 "--quantize",
                 "none",
+                "--no-fused",
                 "--format",
                 "onnx",
                 "--verify-steps",
