@@ -3,8 +3,11 @@ checked entity by entity and tick by tick against the run's own log; the queue t
 control loop drops (and counts) instead of blocking; a missing rerun-sdk, and every bad --rerun / --rerun-save
 value, is one line before anything opens; a recording is never written through a link."""
 
+import os
+import signal
 import sys
 import threading
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -184,6 +187,18 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+def _group_alive(pgid: int) -> bool:
+    """Whether a process of group ``pgid`` still runs (a zombie, exited and not yet reaped, does not)."""
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:  # it ended while the folder was read
+            continue
+        if fields[0] != "Z" and int(fields[2]) == pgid:
+            return True
+    return False
+
+
 def test_rerun_url_connects_to_a_running_viewer_or_server(tmp_path):
     """--rerun URL streams to a Rerun server (here the rerun CLI, headless, saving what it receives)."""
     import shutil
@@ -192,11 +207,12 @@ def test_rerun_url_connects_to_a_running_viewer_or_server(tmp_path):
     from waiting import wait_for
 
     received, port = tmp_path / "received.rrd", _free_port()
-    server = subprocess.Popen(
+    server = subprocess.Popen(  # its own process group: the rerun script runs the viewer binary as its child
         [shutil.which("rerun") or "rerun", "--port", str(port), "--save", str(received)],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
         text=True,
+        start_new_session=True,
     )
     try:
         wait_for(lambda: received.exists() or server.poll() is not None, timeout=30)
@@ -217,8 +233,9 @@ def test_rerun_url_connects_to_a_running_viewer_or_server(tmp_path):
 
         wait_for(all_received, timeout=30, what="the 5 ticks at the server")
     finally:
-        server.terminate()
+        os.killpg(server.pid, signal.SIGTERM)  # the script and the binary it started: none outlives the test
         server.wait(10)
+    wait_for(lambda: not _group_alive(server.pid), timeout=10, what="the rerun server's processes to end", poll=0.05)
     ticks, _, _ = read_rrd(received)
     assert ticks["safety/held"] == ticks["joints/arm0/state"] == list(range(5))
 
