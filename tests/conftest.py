@@ -197,7 +197,7 @@ def one_line_message(error, *fragments: str) -> str:
     return message
 
 
-def _arm_export(tmp_path_factory, request, n_arms: int):
+def _arm_export(tmp_path_factory, request, n_arms: int, export_flags: tuple[str, ...] = ("--skip-verify",)):
     from dssp_train.cli.train import main as train_main
     from export.to_onnx import main as export_main
 
@@ -222,7 +222,7 @@ def _arm_export(tmp_path_factory, request, n_arms: int):
             )
             == 0
         )
-        assert export_main([str(run_dir), "-o", str(model_dir), "--skip-verify"]) == 0
+        assert export_main([str(run_dir), "-o", str(model_dir), *export_flags]) == 0
         return (model_dir,)
 
     return built_once(tmp_path_factory, request, f"arm_export_{n_arms}", build)[0]
@@ -236,8 +236,8 @@ def arm_export(tmp_path_factory, request):
 
 @pytest.fixture(scope="session")
 def dual_arm_export(tmp_path_factory, request):
-    """The same for the two-arm platform (state = action = 14, RoboTwin order)."""
-    return _arm_export(tmp_path_factory, request, 2)
+    """The same for the two-arm platform (state = action = 14, RoboTwin order): its fp32 standard graphs only."""
+    return _arm_export(tmp_path_factory, request, 2, tuple(FAST_EXPORT))
 
 
 def snapshot(root):
