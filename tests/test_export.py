@@ -432,8 +432,8 @@ def test_the_failure_says_what_it_measured():
 def test_parity_failure_exits_1_and_leaves_nothing(trained_run, tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(verify_module, "BOUND", 0.0)
     out = tmp_path / "models" / "fails"
-    args = [str(trained_run), "-o", str(out), "--format", "onnx", "--verify-steps", "10", "--threads", "1"]
-    assert export_main(args) == 1
+    fp32_standard = ["--format", "onnx", "--quantize", "none", "--no-fused", "--threads", "1"]
+    assert export_main([str(trained_run), "-o", str(out), *fp32_standard, "--verify-steps", "10"]) == 1
     line = one_error_line(capsys.readouterr().err)
     assert "differs from PyTorch fp32 by" in line and "above the bound 0;" in line and " at step " in line
     assert "nothing was written" in line
