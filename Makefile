@@ -7,7 +7,7 @@ EXTRAS ?= train,export,deploy,hardware,sim,viz,ros,lerobot,dev
 # Test workers (pytest-xdist), one per core; each test file runs whole in one worker (its fixtures built once).
 TEST_WORKERS ?= auto
 
-.PHONY: system setup kernel kernel-aarch64 qgemm-bench block-bench demo test test-slow bench
+.PHONY: system setup packages kernel-or-note kernel kernel-aarch64 qgemm-bench block-bench demo test test-slow bench
 
 # The fused Mamba operators for ONNX Runtime (optional at run time; see dssp_deploy/kernel/). Built against
 # ONNX Runtime's C API headers: fetched from Debian 13's libonnxruntime-dev into build/ort-include, or taken
@@ -37,13 +37,20 @@ METAWORLD ?= metaworld==3.1.1
 # (tests/test_lerobot.py says how it stands in for torchvision). The plugin goes in editable, without dependencies.
 LEROBOT ?= lerobot==0.4.4
 
-setup: system
+# The system packages, the Python packages and the kernel go in side by side (none needs another to install): each
+# one's output is printed whole when it is done.
+setup:
+	@$(MAKE) --no-print-directory -j3 --output-sync=target system packages kernel-or-note
+
+packages:
 	$(PYTHON) -m pip install --quiet "$(TORCH)" -e ".[$(EXTRAS)]"
 	@out=$$($(PYTHON) -m pip install --quiet --no-deps "$(METAWORLD)" 2>&1) || { echo "$$out"; exit 1; }; \
 	  echo "$$out" | grep -v "requires mujoco==\|dependency resolver\|^$$" || true
 	@out=$$($(PYTHON) -m pip install --quiet --no-deps "$(LEROBOT)" 2>&1) || { echo "$$out"; exit 1; }; \
 	  echo "$$out" | grep -v "lerobot .* requires \|dependency resolver\|^$$" || true
 	$(PYTHON) -m pip install --quiet --no-deps -e plugins/lerobot_policy_dssp
+
+kernel-or-note:
 	@$(MAKE) --no-print-directory kernel || echo "note: the fused Mamba kernel was not built; the standard ONNX graphs will run (see make kernel)"
 
 kernel: $(KERNEL)
