@@ -75,14 +75,18 @@ def _memory(root: Path, out: Path) -> list[str]:
     return written
 
 
+def _fair_plan(root: Path) -> dict:
+    """The fair memory study's plan, with the batch and learning rates chosen on validation seeds under ``root``."""
+    return memory_fair.fair_plan(root / baseline_tuning.CHOICES.relative_to(baseline_tuning.ROOT))
+
+
 def _memory_fair(root: Path, out: Path) -> list[str]:
     record = root / "reports/memory_fair" / memory_tasks.RECORD_DIR
     written = []
     for split in ("validation", "test"):
         if any((record / "evals").glob(f"*_{split}.json")):
-            plan = memory_fair.fair_plan(root / baseline_tuning.CHOICES.relative_to(baseline_tuning.ROOT))
             md = memory_tasks.write_report(
-                plan,
+                _fair_plan(root),
                 record,
                 out,
                 split,
@@ -234,9 +238,12 @@ def sim_paired_table(record: Path) -> str:
     return "\n".join(lines) + "\n"
 
 
-def memory_table(record: Path, split: str) -> str:
-    """The memory study's tables of ``split`` for the tasks run so far (rows not yet evaluated left out)."""
-    lines, figures = memory_tasks.report_lines(memory_tasks.PLAN, record, split, shown_record="reports/memory/record")
+def memory_table(
+    record: Path, split: str, plan: dict = memory_tasks.PLAN, naming: memory_tasks.Naming = memory_tasks.MEMORY
+) -> str:
+    """A memory study's tables of ``split`` for the tasks run so far (rows not yet evaluated left out): the first
+    study's by default, the fair study's with its ``plan`` and ``naming``."""
+    lines, figures = memory_tasks.report_lines(plan, record, split, naming=naming)
     out: list[str] = []
     for task, rows in figures["tasks"].items():
         if not rows:
@@ -244,7 +251,9 @@ def memory_table(record: Path, split: str) -> str:
         start = lines.index(f"## {task}") + 2
         end = next(i for i, line in enumerate(lines[start:]) if not line.startswith("|"))
         table = [line for line in lines[start : start + end] if "| pending |" not in line]
-        out += [f"`{task}`, {split} split:", "", *table, ""]
+        section = lines[start + end : next((i for i in range(start, len(lines)) if lines[i].startswith("## ")), None)]
+        pending = [line for line in section if line.startswith("Pending rows: ")]  # Holm over a partial family
+        out += [f"`{task}`, {split} split:", "", *table, *(["", *pending] if pending else []), ""]
     return "\n".join(out) if out else "(no task evaluated yet)\n"
 
 
@@ -269,6 +278,9 @@ def readme_blocks(root: Path) -> dict[str, str]:
         "demo": results_table(demo["evals"]) + "\n",
         "sim_paired": sim_paired_table(root / "reports/sim/record"),
         "memory_test": memory_table(root / "reports/memory/record", "test"),
+        "memory_fair_test": memory_table(
+            root / "reports/memory_fair/record", "test", _fair_plan(root), memory_fair.NAMING
+        ),
         "sampling": sampling.readme_table(root / "reports/sampling" / sampling.RECORD_DIR),
         "calibration": calibration_study.readme_table(root / "reports/calibration" / calibration_study.RECORD_DIR),
         "delay": delay_study.readme_table(root / "reports/delay" / delay_study.RECORD_DIR),

@@ -51,3 +51,20 @@ def test_a_readme_block_nothing_rebuilds_is_an_error(copy_root):
     readme.write_text(readme.read_text() + "\n<!-- figures: guesswork -->\n| made up |\n<!-- /figures -->\n")
     with pytest.raises(DSSPError, match="'guesswork' that nothing rebuilds"):
         rebuild(copy_root, check=True)
+
+
+def test_the_fair_memory_block_leaves_pending_rows_out_and_says_its_holm_is_partial(copy_root):
+    """The README's fair-study table shows the rows recorded; while some of a task's are pending, the block says that
+    Holm's correction is over a partial family (as the report does), and says nothing of it once all are in."""
+    from studies.rebuild import readme_blocks
+
+    def tap(block: str) -> str:  # tap's part of the block: up to the next task's table
+        return block.split("`tap`, test split:", 1)[1].split(", test split:", 1)[0]
+
+    full = tap(readme_blocks(copy_root)["memory_fair_test"])
+    assert "| w/ Transformer denoiser |" in full and "Pending rows" not in full
+    for name in ("tap_transformer_denoiser_s0_test.json", "tap_transformer_denoiser_s1_test.json"):
+        (copy_root / "reports/memory_fair/record/evals" / name).unlink()
+    partial = tap(readme_blocks(copy_root)["memory_fair_test"])
+    assert "| w/ Transformer denoiser |" not in partial and "| pending |" not in partial
+    assert "Pending rows: 7 of the table's 8 comparisons are recorded" in partial
