@@ -6,6 +6,7 @@ manifest says "unknown"."""
 import json
 
 import pytest
+from conftest import FAST_EXPORT
 
 from dssp_core.errors import ConfigError
 from dssp_data.observation import (
@@ -76,7 +77,7 @@ def recorded_model(tmp_path_factory):
         )
         == 0
     )
-    assert export_main([str(run_dir), "-o", str(model_dir), "--skip-verify", "--quantize", "none"]) == 0
+    assert export_main([str(run_dir), "-o", str(model_dir), *FAST_EXPORT]) == 0
     return model_dir, run_dir
 
 
