@@ -194,6 +194,10 @@ def lerobot(tmp: Path, paths: list[str], script: str, *args) -> subprocess.Compl
     )
 
 
+STANDARD_FP32 = ["--quantize", "none", "--no-fused", "--format", "onnx", "--threads", "1"]
+"""Export flags: the fp32 standard graphs, verified on one thread (the fused graphs have their own tests)."""
+
+
 def train_args(repo_id: str, root: Path, out: Path) -> list[str]:
     return [
         f"--dataset.repo_id={repo_id}",
@@ -251,23 +255,7 @@ def test_lerobot_train_then_export_to_onnx(setup, tmp_path):
     assert json.loads((pretrained / "config.json").read_text())["run_config"] == config  # recorded by LeRobot too
 
     model = tmp_path / "model"
-    code = export_main(
-        [
-            str(run),
-            "-o",
-            str(model),
-            "--quantize",
-            "none",
-            "--no-fused",
-            "--format",
-            "onnx",
-            "--verify-steps",
-            "40",
-            "--threads",
-            "1",
-        ]
-    )
-    assert code == 0
+    assert export_main([str(run), "-o", str(model), *STANDARD_FP32, "--verify-steps", "40"]) == 0
     manifest = json.loads((model / "dssp_model.json").read_text())
     assert (
         manifest["contract"]["control_rate_hz"] == 10.0
@@ -397,25 +385,7 @@ def test_lerobot_train_on_depth_makes_the_robots_clouds(setup, depth, tmp_path):
         np.testing.assert_array_equal(window[j], clouds[max(j - 5, 0)])
 
     model = tmp_path / "model"
-    assert (
-        export_main(
-            [
-                str(run),
-                "-o",
-                str(model),
-                "--quantize",
-                "none",
-                "--no-fused",
-                "--format",
-                "onnx",
-                "--verify-steps",
-                "20",
-                "--threads",
-                "1",
-            ]
-        )
-        == 0
-    )
+    assert export_main([str(run), "-o", str(model), *STANDARD_FP32, "--verify-steps", "20"]) == 0
     manifest = json.loads((model / "dssp_model.json").read_text())
     assert manifest["contract"]["observation"]["frame"] == FRAME_ROBOT_BASE
     policy = OnnxPolicy(model, threads=1)
